@@ -1,0 +1,75 @@
+"""Terminal output: the run's progress bar and the tables people read."""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+
+import numpy as np
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+from rich.table import Table
+
+from labcal.fit import ROW_NAMES, SENSORS, LinearFit
+from labcal.sequencer import Display, Step
+
+
+def format_duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    h, rem = divmod(seconds, 3600)
+    m, s = divmod(rem, 60)
+    return f"{h} h {m:02d} min {s:02d} s" if h else f"{m} min {s:02d} s"
+
+
+class ProgressDisplay(Display):
+    """A rich progress bar with ETA and a live line of the last reading and station time."""
+
+    def __init__(self, console: Console, total: int):
+        self.progress = Progress(
+            TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+            TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
+            TextColumn("{task.fields[last]}"), console=console, transient=False,
+        )
+        self.task = self.progress.add_task("calibrating", total=total, last="")
+
+    def __enter__(self) -> ProgressDisplay:
+        self.progress.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.progress.stop()
+
+    @contextmanager
+    def pause(self):
+        self.progress.stop()
+        try:
+            yield
+        finally:
+            self.progress.start()
+
+    def point_done(self, step: Step, volts: np.ndarray, station_time_s: float) -> None:
+        last = f"p={step.pitch_deg:g}° r={step.roll_deg:g}° · rig time {format_duration(station_time_s)}"
+        self.progress.update(self.task, advance=1, last=last)
+
+
+def coefficient_table(fit: LinearFit, title: str = "Fitted coefficients X = [Bᵀ; S]") -> Table:
+    table = Table(title=title)
+    table.add_column("row")
+    for name in SENSORS:
+        table.add_column(f"sensor {name}", justify="right")
+    se = fit.ls.stderr
+    for i, row in enumerate(ROW_NAMES):
+        unit = "V" if i == 0 else "V/g"
+        table.add_row(f"{row} ({unit})", *(
+            f"{fit.coefficients[i, j]:+.9f} ± {se[i, j]:.2g}" if np.isfinite(se[i, j])
+            else f"{fit.coefficients[i, j]:+.9f}" for j in range(3)))
+    table.add_row("S_E (V)", *(f"{s:.3g}" for s in fit.ls.residual_se))
+    table.caption = (f"{fit.ls.n_obs} points, {fit.ls.dof} degrees of freedom per sensor; "
+                     "± is one standard error")
+    return table

@@ -1,0 +1,174 @@
+"""Kinematics of the two-axis calibration device (Soto 2020, §4 and eq. 11).
+
+Angles are radians here; degrees live only at the edges (CLI, files, reports).
+Every function is vectorised over points: angles broadcast against each other.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+ARCSEC = np.pi / (180 * 3600)
+MISALIGNMENT_NAMES = ("a", "b", "d", "e", "f", "k")
+
+
+def rx(t: ArrayLike) -> NDArray:
+    """Textbook rotation about x, stacked over the shape of ``t`` (..., 3, 3)."""
+    c, s = np.cos(t), np.sin(t)
+    o, z = np.ones_like(c), np.zeros_like(c)
+    return np.stack([o, z, z, z, c, -s, z, s, c], axis=-1).reshape(*np.shape(c), 3, 3)
+
+
+def ry(t: ArrayLike) -> NDArray:
+    """Textbook rotation about y."""
+    c, s = np.cos(t), np.sin(t)
+    o, z = np.ones_like(c), np.zeros_like(c)
+    return np.stack([c, z, s, z, o, z, -s, z, c], axis=-1).reshape(*np.shape(c), 3, 3)
+
+
+def rz(t: ArrayLike) -> NDArray:
+    """Textbook rotation about z."""
+    c, s = np.cos(t), np.sin(t)
+    o, z = np.ones_like(c), np.zeros_like(c)
+    return np.stack([c, -s, z, s, c, z, z, z, o], axis=-1).reshape(*np.shape(c), 3, 3)
+
+
+def prot(x: ArrayLike) -> NDArray:
+    """Pitch rotation, aeronautical sign: Ry(-x)."""
+    return ry(-np.asarray(x, dtype=float))
+
+
+def rrot(x: ArrayLike) -> NDArray:
+    """Roll rotation: Rx(x)."""
+    return rx(np.asarray(x, dtype=float))
+
+
+def yrot(x: ArrayLike) -> NDArray:
+    """Yaw rotation, aeronautical sign: Rz(-x)."""
+    return rz(-np.asarray(x, dtype=float))
+
+
+@dataclass(frozen=True)
+class Misalignment:
+    """The six grouped CD misalignments of Soto Table 1, in radians.
+
+    a, b: pitch and roll of the device as a rigid body; d: yaw between the tables;
+    e, f: pitch and roll of the x–y plate; k: yaw of the x–z dowels. Each may be a scalar
+    or an array over points (index and wobble errors vary from point to point).
+    """
+
+    a: ArrayLike = 0.0
+    b: ArrayLike = 0.0
+    d: ArrayLike = 0.0
+    e: ArrayLike = 0.0
+    f: ArrayLike = 0.0
+    k: ArrayLike = 0.0
+
+    @classmethod
+    def from_degrees(cls, **angles_deg: float) -> Misalignment:
+        return cls(**{name: np.radians(value) for name, value in angles_deg.items()})
+
+    def __add__(self, other: Misalignment) -> Misalignment:
+        return Misalignment(
+            **{f.name: np.add(getattr(self, f.name), getattr(other, f.name)) for f in fields(self)}
+        )
+
+    def degrees(self) -> dict[str, float]:
+        return {name: float(np.degrees(getattr(self, name))) for name in MISALIGNMENT_NAMES}
+
+
+NO_MISALIGNMENT = Misalignment()
+
+
+def device_matrix(
+    pitch: ArrayLike, roll: ArrayLike, y: ArrayLike, u: ArrayLike, mis: Misalignment = NO_MISALIGNMENT
+) -> NDArray:
+    """KM of Soto eq. 11: columns are the instrument's x, y, z axes in the gravity frame.
+
+    KM = rrot[b]·prot[p]·prot[a]·yrot[d]·rrot[r]·rrot[f]·prot[e]·yrot[k]·yrot[y]·rrot[u]
+    """
+    chain = (
+        rrot(mis.b), prot(pitch), prot(mis.a), yrot(mis.d), rrot(roll),
+        rrot(mis.f), prot(mis.e), yrot(mis.k), yrot(y), rrot(u),
+    )
+    km = chain[0]
+    for m in chain[1:]:
+        km = km @ m
+    return km
+
+
+def gravity(
+    pitch: ArrayLike, roll: ArrayLike, y: ArrayLike, u: ArrayLike, mis: Misalignment = NO_MISALIGNMENT
+) -> NDArray:
+    """Gravity (in g) seen by the instrument's x, y, z sensors: row 3 of KM, shape (..., 3).
+
+    With ``mis`` zero this is the *nominal* gravity the fit uses; with the device's
+    misalignments it is the *true* gravity that drives the instrument.
+    """
+    return device_matrix(pitch, roll, y, u, mis)[..., 2, :]
+
+
+@dataclass(frozen=True)
+class Mount:
+    """One of the four mounting orientations (Soto Table 3), in degrees."""
+
+    y_deg: float
+    u_deg: float
+
+    @property
+    def radians(self) -> tuple[float, float]:
+        return float(np.radians(self.y_deg)), float(np.radians(self.u_deg))
+
+    def describe(self) -> str:
+        """The orientation in the words a technician uses at the bench."""
+        side = "top" if self.u_deg % 360 == 0 else "bottom"
+        direction = "forward" if self.y_deg % 360 == 0 else "backward"
+        return f"{side} side of the plate, x sensor pointing {direction}"
+
+    def __str__(self) -> str:
+        return f"y={self.y_deg:g}°, u={self.u_deg:g}°"
+
+
+MOUNTS = (Mount(0, 0), Mount(180, 0), Mount(0, 180), Mount(180, 180))
+
+
+@dataclass(frozen=True)
+class IndexWobble:
+    """Per-point index and wobble errors of the two tables (Soto Table 1: a2, d1, f1, f3, e1, k1).
+
+    Each error is a fixed function of its table's angle — a real table errs the same way
+    every time it returns to an angle — modelled as harmonics 1–3 of that angle with
+    random phases and weights summing to one, so its magnitude never exceeds the stated
+    amplitude and it averages to zero over a revolution and over any four points 90° apart.
+    """
+
+    index_arcsec: float = 0.0
+    wobble_arcsec: float = 0.0
+    seed: int = 0
+
+    def _terms(self) -> NDArray:
+        rng = np.random.default_rng([self.seed, 0x1DE4])
+        weights = rng.dirichlet(np.ones(3), size=6)  # a2 d1 f1 | f3 e1 k1
+        phases = rng.uniform(0, 2 * np.pi, size=(6, 3))
+        return weights, phases
+
+    def misalignment(self, pitch: ArrayLike, roll: ArrayLike) -> Misalignment:
+        """The point-dependent part of the misalignments at these table angles (radians)."""
+        if self.index_arcsec == 0 and self.wobble_arcsec == 0:
+            return NO_MISALIGNMENT
+        weights, phases = self._terms()
+        h = np.arange(1, 4)
+        amp = np.array([self.index_arcsec, self.wobble_arcsec, self.wobble_arcsec,
+                        self.index_arcsec, self.wobble_arcsec, self.wobble_arcsec]) * ARCSEC
+
+        def err(i: int, angle: ArrayLike) -> NDArray:
+            angle = np.asarray(angle, dtype=float)[..., None]
+            return amp[i] * np.sum(weights[i] * np.sin(h * angle + phases[i]), axis=-1)
+
+        return Misalignment(
+            a=err(0, pitch), d=err(1, pitch), f=err(2, pitch) + err(3, roll),
+            e=err(4, roll), k=err(5, roll),
+        )

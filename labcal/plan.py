@@ -1,0 +1,149 @@
+"""Calibration plans: which mounts, which (pitch, roll) points, how many replicates.
+
+Plans are TOML files; the ones shipped in `sequences/` are found by name. Every angle is
+validated before anything moves.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from labcal.errors import LabcalError
+from labcal.kinematics import Mount, gravity
+
+PLAN_SUFFIX = ".toml"
+INDEX_STEP_DEG = 1.0  # the index tables stop on a 1° grid
+N_COEFFICIENTS = 4  # per sensor: bias and three sensitivities
+
+
+class Plan(BaseModel):
+    """A validated articulation plan. Angles in degrees: table angles in -180..360 on the 1° grid."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = Field(min_length=1)
+    description: str = ""
+    replicates: int = Field(default=1, ge=1, le=100)
+    mounts: list[tuple[float, float]] = Field(min_length=1, description="[y_deg, u_deg] per mount")
+    points: list[tuple[float, float]] = Field(min_length=1, description="[pitch_deg, roll_deg] per point")
+
+    @field_validator("mounts")
+    @classmethod
+    def _mount_angles(cls, mounts: list[tuple[float, float]]) -> list[tuple[float, float]]:
+        for i, (y, u) in enumerate(mounts):
+            if y not in (0, 180) or u not in (0, 180):
+                raise ValueError(f"mount {i + 1} is [{y:g}, {u:g}]; y_deg and u_deg must each be 0 or 180")
+        if len(set(mounts)) != len(mounts):
+            raise ValueError("a mount is listed twice; use `replicates` to repeat the plan")
+        return mounts
+
+    @field_validator("points")
+    @classmethod
+    def _point_angles(cls, points: list[tuple[float, float]]) -> list[tuple[float, float]]:
+        for i, point in enumerate(points):
+            for axis, angle in zip(("pitch", "roll"), point, strict=True):
+                if not -180 <= angle <= 360:
+                    raise ValueError(f"point {i + 1}: {axis} {angle:g}° is outside -180..360")
+                if abs(angle / INDEX_STEP_DEG - round(angle / INDEX_STEP_DEG)) > 1e-9:
+                    raise ValueError(
+                        f"point {i + 1}: {axis} {angle:g}° is not on the index tables' "
+                        f"{INDEX_STEP_DEG:g}° grid"
+                    )
+        seen: dict[tuple[float, float], int] = {}
+        for i, (p, r) in enumerate(points):
+            key = (p % 360, r % 360)
+            if key in seen:
+                raise ValueError(
+                    f"point {i + 1} repeats point {seen[key] + 1} ({p:g}, {r:g}); "
+                    "use `replicates` to repeat points"
+                )
+            seen[key] = i
+        return points
+
+    @model_validator(mode="after")
+    def _determines_coefficients(self) -> Plan:
+        if len(self.mounts) * len(self.points) < N_COEFFICIENTS:
+            raise ValueError(
+                f"{len(self.mounts) * len(self.points)} points per replicate cannot determine "
+                f"{N_COEFFICIENTS} coefficients per sensor"
+            )
+        g = self.nominal_gravity()
+        design = np.column_stack([np.ones(len(g)), g])
+        if np.linalg.matrix_rank(design, tol=1e-9) < N_COEFFICIENTS:
+            raise ValueError(
+                "the points do not determine bias and sensitivities (the design is singular); "
+                "spread them over more pitch and roll angles"
+            )
+        return self
+
+    @property
+    def mount_list(self) -> list[Mount]:
+        return [Mount(y, u) for y, u in self.mounts]
+
+    @property
+    def n_points(self) -> int:
+        """Points in the whole run, every replicate and mount included."""
+        return self.replicates * len(self.mounts) * len(self.points)
+
+    def nominal_gravity(self) -> np.ndarray:
+        """Nominal g of one replicate, mount by mount, (len(mounts)·len(points), 3)."""
+        p, r = np.radians(np.array(self.points)).T
+        return np.concatenate(
+            [gravity(p, r, *np.radians([y, u])) for y, u in self.mounts], axis=0
+        )
+
+
+def _one_line(exc: ValidationError) -> str:
+    err = exc.errors()[0]
+    where = ".".join(str(part) for part in err["loc"])
+    msg = err["msg"].removeprefix("Value error, ")
+    more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
+    return f"{where}: {msg}{more}" if where else f"{msg}{more}"
+
+
+def shipped_plans() -> dict[str, resources.abc.Traversable]:
+    """The plans that ship with labcal, by name."""
+    folder = resources.files("labcal.sequences")
+    return {
+        entry.name.removesuffix(PLAN_SUFFIX): entry
+        for entry in sorted(folder.iterdir(), key=lambda e: e.name)
+        if entry.name.endswith(PLAN_SUFFIX)
+    }
+
+
+def parse_plan(text: str, source: str) -> Plan:
+    """Parse and validate plan TOML; errors name the source and the field."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise LabcalError(f"{source}: malformed TOML: {exc}") from None
+    try:
+        return Plan.model_validate(data)
+    except ValidationError as exc:
+        raise LabcalError(f"{source}: {_one_line(exc)}") from None
+
+
+def load_plan(name_or_path: str) -> tuple[Plan, str]:
+    """A plan by file path or by the name of a shipped plan; returns the plan and its TOML text."""
+    path = Path(name_or_path)
+    if path.suffix == PLAN_SUFFIX or path.exists():
+        try:
+            text = path.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            raise LabcalError(f"{path}: no such plan file") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise LabcalError(f"{path}: cannot read plan file ({exc})") from None
+        return parse_plan(text, str(path)), text
+    plans = shipped_plans()
+    if name_or_path not in plans:
+        raise LabcalError(
+            f"unknown plan {name_or_path!r}; shipped plans: {', '.join(plans)} "
+            "(or give a path to a .toml file)"
+        )
+    text = plans[name_or_path].read_text(encoding="utf-8")
+    return parse_plan(text, f"plan {name_or_path}"), text

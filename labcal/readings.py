@@ -1,0 +1,160 @@
+"""The readings CSV (DESIGN.md §5): one row per calibration point, header required.
+
+Required columns: replicate,y_deg,u_deg,pitch_deg,roll_deg,vx,vy,vz; optional temp_c;
+any other column is ignored on reading. Every error names the file, the line and the column.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from labcal.errors import LabcalError
+
+REQUIRED = ("replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", "vx", "vy", "vz")
+OPTIONAL = ("temp_c",)
+# Written by labcal after the contract's columns: what a metrologist needs to audit a point.
+EXTRA = ("n_samples", "sd_vx", "sd_vy", "sd_vz", "time_s")
+WRITTEN = REQUIRED + OPTIONAL + EXTRA
+
+
+@dataclass(frozen=True)
+class Readings:
+    """Calibration points as arrays; angles in degrees as they arrive from files."""
+
+    replicate: NDArray  # (n,) int
+    y_deg: NDArray
+    u_deg: NDArray
+    pitch_deg: NDArray
+    roll_deg: NDArray
+    volts: NDArray  # (n, 3): vx, vy, vz
+    temp_c: NDArray | None = None
+
+    def __len__(self) -> int:
+        return len(self.replicate)
+
+    @property
+    def angles_rad(self) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """(pitch, roll, y, u) in radians for the kinematics."""
+        return tuple(np.radians(a) for a in (self.pitch_deg, self.roll_deg, self.y_deg, self.u_deg))
+
+
+def _number(text: str, where: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise LabcalError(f"{where}: {text.strip()!r} is not a number") from None
+    if not math.isfinite(value):
+        raise LabcalError(f"{where}: value is {text.strip()}; remove or re-measure this point")
+    return value
+
+
+def _check_angles(values: dict[str, float], where: str) -> None:
+    for name in ("y_deg", "u_deg"):
+        if values[name] % 360 not in (0.0, 180.0):
+            raise LabcalError(f"{where}, column {name}: {values[name]:g} is not a mount angle (0 or 180)")
+    for name in ("pitch_deg", "roll_deg"):
+        if not -360.0 <= values[name] <= 360.0:
+            raise LabcalError(f"{where}, column {name}: {values[name]:g}° is outside -360..360")
+    if values["replicate"] != int(values["replicate"]) or values["replicate"] < 1:
+        raise LabcalError(f"{where}, column replicate: {values['replicate']:g} is not a whole number ≥ 1")
+
+
+def read_readings(path: str | Path) -> Readings:
+    """Load and validate a readings CSV; raise LabcalError naming file, line and column."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise LabcalError(f"{path}: no such readings file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise LabcalError(f"{path}: cannot read readings file ({exc})") from None
+    if not text.strip():
+        raise LabcalError(f"{path}: file is empty; expected a header line {','.join(REQUIRED)}")
+    reader = csv.reader(text.splitlines())
+    header = [h.strip() for h in next(reader)]
+    missing = [c for c in REQUIRED if c not in header]
+    if missing:
+        raise LabcalError(
+            f"{path}: missing column(s) {', '.join(missing)}; the header must contain {','.join(REQUIRED)}"
+        )
+    wanted = REQUIRED + tuple(c for c in OPTIONAL if c in header)
+    index = {c: header.index(c) for c in wanted}
+    rows: list[list[float]] = []
+    for line_no, row in enumerate(reader, start=2):
+        if not any(cell.strip() for cell in row):
+            continue
+        where = f"{path}: line {line_no}"
+        if len(row) < len(header):
+            raise LabcalError(f"{where}: {len(row)} fields, the header has {len(header)}")
+        values = {c: _number(row[i], f"{where}, column {c}") for c, i in index.items()}
+        _check_angles(values, where)
+        rows.append([values[c] for c in wanted])
+    if not rows:
+        raise LabcalError(f"{path}: header only, no readings")
+    data = np.array(rows)
+    return Readings(
+        replicate=data[:, 0].astype(int),
+        y_deg=data[:, 1], u_deg=data[:, 2], pitch_deg=data[:, 3], roll_deg=data[:, 4],
+        volts=data[:, 5:8],
+        temp_c=data[:, 8] if "temp_c" in index else None,
+    )
+
+
+def write_readings(path: str | Path, readings: Readings) -> None:
+    """Write a whole Readings set (used by `labcal simulate`)."""
+    with ReadingsWriter(path) as writer:
+        for i in range(len(readings)):
+            writer.append(
+                replicate=int(readings.replicate[i]), y_deg=readings.y_deg[i], u_deg=readings.u_deg[i],
+                pitch_deg=readings.pitch_deg[i], roll_deg=readings.roll_deg[i], volts=readings.volts[i],
+                temp_c=None if readings.temp_c is None else readings.temp_c[i],
+            )
+
+
+class ReadingsWriter:
+    """Appends one row per point and forces it to disk at once, so a crash loses nothing taken."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self._file = self.path.open("w", newline="", encoding="utf-8")
+        self._csv = csv.writer(self._file)
+        self._csv.writerow(WRITTEN)
+        self._sync()
+        self.count = 0
+
+    def _sync(self) -> None:
+        self._file.flush()
+        os.fsync(self._file.fileno())
+
+    def append(
+        self, *, replicate: int, y_deg: float, u_deg: float, pitch_deg: float, roll_deg: float,
+        volts: NDArray, temp_c: float | None = None, sd: NDArray | None = None,
+        n_samples: int | None = None, time_s: float | None = None,
+    ) -> None:
+        def fmt(x: float | None, spec: str = ".10g") -> str:
+            return "" if x is None or (isinstance(x, float) and math.isnan(x)) else format(float(x), spec)
+
+        sd = [None] * 3 if sd is None else sd
+        self._csv.writerow([
+            replicate, fmt(y_deg, "g"), fmt(u_deg, "g"), fmt(pitch_deg, ".17g"), fmt(roll_deg, ".17g"),
+            *(fmt(v, ".17g") for v in volts), fmt(temp_c, ".4f"),
+            "" if n_samples is None else n_samples, *(fmt(s, ".4g") for s in sd), fmt(time_s, ".3f"),
+        ])
+        self._sync()
+        self.count += 1
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> ReadingsWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

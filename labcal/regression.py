@@ -1,0 +1,77 @@
+"""The one linear least-squares core every model uses (DESIGN.md §3).
+
+Solved by a thin QR factorisation, never the normal equations: the normal equations
+square the design's condition number, which costs digits a calibration cannot spare.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import solve_triangular
+
+from labcal.errors import LabcalError
+
+RANK_TOLERANCE = 1e-10  # smallest singular value of the column-scaled design, relative to the largest
+
+
+@dataclass(frozen=True)
+class LeastSquares:
+    """Fit of Y (K×m) = F (K×L) · coef (L×m) + e, one column of Y per sensor."""
+
+    coef: NDArray  # (L, m)
+    cov_unscaled: NDArray  # (L, L) = (FᵀF)⁻¹, shared by every column
+    residuals: NDArray  # (K, m)
+
+    @property
+    def n_obs(self) -> int:
+        return self.residuals.shape[0]
+
+    @property
+    def dof(self) -> int:
+        return self.n_obs - self.coef.shape[0]
+
+    @property
+    def residual_se(self) -> NDArray:
+        """S_E = √(eᵀe / (K − L)) per column (Tripp eq. 34); NaN when no degree of freedom is left."""
+        if self.dof == 0:
+            return np.full(self.coef.shape[1], np.nan)
+        return np.sqrt(np.sum(self.residuals**2, axis=0) / self.dof)
+
+    @property
+    def stderr(self) -> NDArray:
+        """Standard error of every coefficient, (L, m)."""
+        return np.sqrt(np.diag(self.cov_unscaled))[:, None] * self.residual_se[None, :]
+
+    def covariance(self, column: int) -> NDArray:
+        """Coefficient covariance S_E² (FᵀF)⁻¹ of one column (one sensor)."""
+        return self.residual_se[column] ** 2 * self.cov_unscaled
+
+
+def least_squares(design: NDArray, observations: NDArray) -> LeastSquares:
+    """Solve the least-squares problem by QR; refuse a design that cannot determine every coefficient."""
+    design = np.asarray(design, dtype=float)
+    observations = np.asarray(observations, dtype=float)
+    if observations.ndim == 1:
+        observations = observations[:, None]
+    n_obs, n_coef = design.shape
+    if n_obs < n_coef:
+        raise LabcalError(
+            f"{n_obs} points cannot determine {n_coef} coefficients per sensor; "
+            "add points or mounts to the plan"
+        )
+    scale = np.linalg.norm(design, axis=0)
+    scale[scale == 0] = 1.0
+    q, r = np.linalg.qr(design / scale)
+    singular = np.linalg.svd(r, compute_uv=False)
+    if singular[-1] <= RANK_TOLERANCE * singular[0]:
+        raise LabcalError(
+            f"the points do not determine all {n_coef} coefficients (the design is singular); "
+            "spread the points over more pitch and roll angles"
+        )
+    r_inv = solve_triangular(r, np.eye(n_coef)) / scale[:, None]
+    coef = r_inv @ (q.T @ observations)
+    residuals = observations - design @ coef
+    return LeastSquares(coef=coef, cov_unscaled=r_inv @ r_inv.T, residuals=residuals)

@@ -1,0 +1,97 @@
+"""The two small interfaces the sequencer drives, and the station that bundles them.
+
+Hardware drivers (`labcal.drivers`) and the simulated rig (`labcal.sim`) both implement
+them, so the sequencer cannot tell which it talks to (DESIGN.md §4).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from labcal.kinematics import Mount
+
+
+class RotaryAxis(Protocol):
+    """One index table."""
+
+    name: str
+
+    def move_to(self, angle_deg: float) -> None:
+        """Start a move to an absolute angle (shortest way round); returns at once."""
+
+    def wait_in_position(self, timeout_s: float) -> float:
+        """Block until the table is in position and clamped; return the position read back (deg)."""
+
+    def position(self) -> float:
+        """Present position in degrees, 0..360."""
+
+    def stop(self) -> None:
+        """Stop at once. Must always reach the device."""
+
+
+@dataclass(frozen=True)
+class Scan:
+    """N consecutive samples of the three accelerometer channels (V) and the temperature (°C)."""
+
+    volts: NDArray  # (n, 3)
+    temp_c: NDArray | None = None  # (n,)
+
+
+class Voltmeter(Protocol):
+    def read(self, n_samples: int) -> Scan:
+        """Take n consecutive samples of all channels."""
+
+
+class Clock(Protocol):
+    def now(self) -> float: ...
+
+    def sleep(self, seconds: float) -> None: ...
+
+
+class SystemClock:
+    """Wall-clock time, for real hardware."""
+
+    def now(self) -> float:
+        return time.monotonic()
+
+    def sleep(self, seconds: float) -> None:
+        time.sleep(max(0.0, seconds))
+
+
+def _nobody_to_tell(mount: Mount) -> None:
+    """On a real station the operator's hands do the remount; no device needs telling."""
+
+
+@dataclass
+class Station:
+    """Everything the sequencer drives: two tables, a DMM, a clock, and what a remount changes."""
+
+    pitch: RotaryAxis
+    roll: RotaryAxis
+    dmm: Voltmeter
+    clock: Clock = field(default_factory=SystemClock)
+    remounted: Callable[[Mount], None] = _nobody_to_tell
+    description: str = "station"
+
+    def stop(self) -> None:
+        """Stop both tables; each stop is attempted even if the other fails."""
+        errors = []
+        for axis in (self.pitch, self.roll):
+            try:
+                axis.stop()
+            except Exception as exc:  # noqa: BLE001 - both axes must get their stop
+                errors.append(exc)
+        if errors:
+            raise errors[0]
+
+
+def mean_and_sd(scan: Scan) -> tuple[NDArray, NDArray]:
+    """Mean and sample standard deviation per channel."""
+    ddof = 1 if len(scan.volts) > 1 else 0
+    return scan.volts.mean(axis=0), scan.volts.std(axis=0, ddof=ddof) if ddof else np.zeros(3)

@@ -1,0 +1,1 @@
+"""Calibration plan files (data). Found by name through `labcal.plan.shipped_plans`."""

@@ -1,0 +1,161 @@
+"""The simulated calibration rig: device kinematics + instrument physics + tables + DMM.
+
+It exposes the same `Station` the hardware drivers build, so the sequencer cannot tell.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from labcal.errors import LabcalError
+from labcal.kinematics import ARCSEC, IndexWobble, Misalignment, Mount, gravity
+from labcal.sim.clock import VirtualClock
+from labcal.sim.instrument import InstrumentTruth, default_instrument
+from labcal.sim.tables import SimAxis
+from labcal.station import Scan, Station
+
+
+class DeviceTruth(BaseModel):
+    """The calibration device's true geometry (Soto Table 1)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    misalignment_deg: dict[str, float] = Field(
+        default={"a": 0.0012, "b": -0.0008, "d": 0.0005, "e": 0.0015, "f": -0.001, "k": 0.0009})
+    index_arcsec: float = Field(default=2.0, ge=0)
+    wobble_arcsec: float = Field(default=2.0, ge=0)
+    mount_repeat_arcsec: float = Field(default=0.0, ge=0, description="plate tilt/yaw scatter per remount")
+
+    def misalignment(self) -> Misalignment:
+        unknown = set(self.misalignment_deg) - set("abdefk")
+        if unknown:
+            raise LabcalError(f"unknown misalignment(s) {', '.join(sorted(unknown))}; use a, b, d, e, f, k")
+        return Misalignment.from_degrees(**self.misalignment_deg)
+
+
+class RigConfig(BaseModel):
+    """Everything about the simulated rig; defaults describe a plausible lab."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    device: DeviceTruth = DeviceTruth()
+    instrument: InstrumentTruth = Field(default_factory=default_instrument)
+    speed_dps: float = Field(default=20.0, gt=0)
+    accel_dps2: float = Field(default=40.0, gt=0)
+    clamp_s: float = Field(default=1.0, ge=0)
+    nplc: float = Field(default=10.0, gt=0, description="DMM integration per sample, power-line cycles")
+    line_hz: float = Field(default=50.0, gt=0)
+    remount_s: float = Field(default=300.0, ge=0, description="operator time for one remount")
+    lab_temp_c: float = 21.0
+    lab_temp_swing_c: float = Field(default=0.3, ge=0)
+    lab_temp_period_h: float = Field(default=6.0, gt=0)
+    seed: int = 0
+
+
+def load_rig_config(path: str | Path) -> RigConfig:
+    path = Path(path)
+    try:
+        return RigConfig.model_validate(tomllib.loads(path.read_text(encoding="utf-8")))
+    except FileNotFoundError:
+        raise LabcalError(f"{path}: no such rig file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise LabcalError(f"{path}: malformed TOML: {exc}") from None
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise LabcalError(f"{path}: {'.'.join(map(str, err['loc']))}: {err['msg']}") from None
+
+
+class SimRig:
+    """Physics of the whole rig on a virtual clock."""
+
+    def __init__(self, config: RigConfig | None = None, seed: int | None = None):
+        self.config = config = config or RigConfig()
+        self.seed = config.seed if seed is None else seed
+        self.clock = VirtualClock()
+        sync = self._catch_up
+        self.pitch = SimAxis("pitch", self.clock, config.speed_dps, config.accel_dps2, config.clamp_s, sync)
+        self.roll = SimAxis("roll", self.clock, config.speed_dps, config.accel_dps2, config.clamp_s, sync)
+        self.instrument: InstrumentTruth = config.instrument
+        self.misalignment = config.device.misalignment()
+        self.index_wobble = IndexWobble(config.device.index_arcsec, config.device.wobble_arcsec, self.seed)
+        self._rng = np.random.default_rng([self.seed, 0x5EED])
+        self.mount = Mount(0, 0)
+        self._mount_error = Misalignment()
+        self._t_filter = 0.0
+        self._g_filtered = self.true_gravity(0.0, 0.0)
+
+    # --- physics -------------------------------------------------------------------------
+    def true_gravity(self, pitch_deg: NDArray | float, roll_deg: NDArray | float) -> NDArray:
+        """Gravity the sensors feel at these table angles, every misalignment included."""
+        p, r = np.radians(pitch_deg), np.radians(roll_deg)
+        y, u = self.mount.radians
+        mis = self.misalignment + self._mount_error + self.index_wobble.misalignment(p, r)
+        return gravity(p, r, y, u, mis)
+
+    def _catch_up(self) -> None:
+        self._advance_filter(self.clock.now())
+
+    def lab_temperature(self, t: float) -> float:
+        c = self.config
+        return c.lab_temp_c + c.lab_temp_swing_c * math.sin(2 * math.pi * t / (c.lab_temp_period_h * 3600))
+
+    def _advance_filter(self, t: float) -> None:
+        """Carry the instrument's first-order output response forward to time t.
+
+        Exact for an input held constant over each step: x ← u + (x − u)·exp(−dt/τ). While a
+        table moves the input is sampled at the midpoints of steps of τ/10.
+        """
+        t0, tau = self._t_filter, self.instrument.tau_s
+        if t <= t0:
+            return
+        moving = self.pitch.moving_between(t0, t) or self.roll.moving_between(t0, t)
+        if moving:
+            t_still = min(t, max(self.pitch.motion_end, self.roll.motion_end))
+            n = max(1, math.ceil((t_still - t0) / (tau / 10)))
+            edges = np.linspace(t0, t_still, n + 1)
+            mids = 0.5 * (edges[:-1] + edges[1:])
+            inputs = self.true_gravity(self.pitch.angle_at(mids), self.roll.angle_at(mids))
+            decay = math.exp(-(edges[1] - edges[0]) / tau)
+            x = self._g_filtered
+            for u in inputs:
+                x = u + (x - u) * decay
+            self._g_filtered, t0 = x, t_still
+        u = self.true_gravity(self.pitch.angle_at(t), self.roll.angle_at(t))
+        self._g_filtered = u + (self._g_filtered - u) * math.exp(-(t - t0) / tau)
+        self._t_filter = t
+
+    def read(self, n_samples: int) -> Scan:
+        """n consecutive DMM samples (implements `labcal.station.Voltmeter`)."""
+        t_int = self.config.nplc / self.config.line_hz
+        volts = np.empty((n_samples, 3))
+        temps = np.empty(n_samples)
+        for i in range(n_samples):
+            t_mid = self.clock.now() + 0.5 * t_int
+            self._advance_filter(t_mid)
+            temps[i] = self.lab_temperature(t_mid)
+            volts[i] = self.instrument.static_volts(self._g_filtered, t_mid, temps[i])
+            self.clock.sleep(t_int)
+        volts += self._rng.normal(0.0, self.instrument.noise_v, size=volts.shape)
+        return Scan(volts=volts, temp_c=temps)
+
+    def remounted(self, mount: Mount) -> None:
+        """The simulated technician remounts the instrument; takes operator time."""
+        self._catch_up()
+        self.clock.sleep(self.config.remount_s)
+        self.mount = mount
+        scatter = self.config.device.mount_repeat_arcsec * ARCSEC
+        if scatter:
+            e, f, k = self._rng.normal(0.0, scatter, 3)
+            self._mount_error = Misalignment(e=e, f=f, k=k)
+        self._t_filter = self.clock.now()
+        self._g_filtered = self.true_gravity(self.pitch.position(), self.roll.position())
+
+    def station(self) -> Station:
+        return Station(pitch=self.pitch, roll=self.roll, dmm=self, clock=self.clock,
+                       remounted=self.remounted, description="simulated rig")
