@@ -26,7 +26,7 @@ EXIT_STOPPED = 1
 EXIT_INTERRUPTED = 130
 
 out = Console(highlight=False)
-err = Console(stderr=True, highlight=False)
+err = Console(stderr=True, highlight=False, soft_wrap=True)  # prose: the terminal wraps it
 
 
 def print_json(doc: dict) -> None:

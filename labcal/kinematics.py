@@ -149,7 +149,7 @@ class IndexWobble:
     wobble_arcsec: float = 0.0
     seed: int = 0
 
-    def _terms(self) -> NDArray:
+    def _terms(self) -> tuple[NDArray, NDArray]:
         rng = np.random.default_rng([self.seed, 0x1DE4])
         weights = rng.dirichlet(np.ones(3), size=6)  # a2 d1 f1 | f3 e1 k1
         phases = rng.uniform(0, 2 * np.pi, size=(6, 3))

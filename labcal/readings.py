@@ -21,7 +21,6 @@ REQUIRED = ("replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", "vx", "vy", 
 OPTIONAL = ("temp_c",)
 # Written by labcal after the contract's columns: what a metrologist needs to audit a point.
 EXTRA = ("n_samples", "sd_vx", "sd_vy", "sd_vz", "time_s")
-WRITTEN = REQUIRED + OPTIONAL + EXTRA
 
 
 @dataclass(frozen=True)
@@ -46,6 +45,8 @@ class Readings:
 
 
 def _number(text: str, where: str) -> float:
+    if not text.strip():
+        raise LabcalError(f"{where}: empty; every point needs a value here")
     try:
         value = float(text)
     except ValueError:
@@ -109,7 +110,7 @@ def read_readings(path: str | Path) -> Readings:
 
 def write_readings(path: str | Path, readings: Readings) -> None:
     """Write a whole Readings set (used by `labcal simulate`)."""
-    with ReadingsWriter(path) as writer:
+    with ReadingsWriter(path, temperature=readings.temp_c is not None, audit=False) as writer:
         for i in range(len(readings)):
             writer.append(
                 replicate=int(readings.replicate[i]), y_deg=readings.y_deg[i], u_deg=readings.u_deg[i],
@@ -119,13 +120,17 @@ def write_readings(path: str | Path, readings: Readings) -> None:
 
 
 class ReadingsWriter:
-    """Appends one row per point and forces it to disk at once, so a crash loses nothing taken."""
+    """Appends one row per point and forces it to disk at once, so a crash loses nothing taken.
 
-    def __init__(self, path: str | Path):
+    ``temperature``: write the temp_c column; ``audit``: write the per-point audit columns.
+    """
+
+    def __init__(self, path: str | Path, temperature: bool = True, audit: bool = True):
         self.path = Path(path)
+        self.temperature, self.audit = temperature, audit
         self._file = self.path.open("w", newline="", encoding="utf-8")
         self._csv = csv.writer(self._file)
-        self._csv.writerow(WRITTEN)
+        self._csv.writerow(REQUIRED + OPTIONAL * temperature + EXTRA * audit)
         self._sync()
         self.count = 0
 
@@ -141,12 +146,14 @@ class ReadingsWriter:
         def fmt(x: float | None, spec: str = ".10g") -> str:
             return "" if x is None or (isinstance(x, float) and math.isnan(x)) else format(float(x), spec)
 
-        sd = [None] * 3 if sd is None else sd
-        self._csv.writerow([
-            replicate, fmt(y_deg, "g"), fmt(u_deg, "g"), fmt(pitch_deg, ".17g"), fmt(roll_deg, ".17g"),
-            *(fmt(v, ".17g") for v in volts), fmt(temp_c, ".4f"),
-            "" if n_samples is None else n_samples, *(fmt(s, ".4g") for s in sd), fmt(time_s, ".3f"),
-        ])
+        row = [replicate, fmt(y_deg, "g"), fmt(u_deg, "g"), fmt(pitch_deg, ".17g"), fmt(roll_deg, ".17g"),
+               *(fmt(v, ".17g") for v in volts)]
+        if self.temperature:
+            row.append(fmt(temp_c, ".4f"))
+        if self.audit:
+            sd = [None] * 3 if sd is None else sd
+            row += ["" if n_samples is None else n_samples, *(fmt(s, ".4g") for s in sd), fmt(time_s, ".3f")]
+        self._csv.writerow(row)
         self._sync()
         self.count += 1
 

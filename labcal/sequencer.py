@@ -6,7 +6,7 @@ while a remount prompt is open, and every point is on disk before the next move 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 
@@ -89,7 +89,6 @@ def move_both(station: Station, pitch: float, roll: float, settings: SequencerSe
 def run_plan(
     plan: Plan, station: Station, operator: Operator, writer: ReadingsWriter,
     settings: SequencerSettings, display: Display | None = None,
-    on_remount: Callable[[Mount], None] | None = None,
 ) -> RunOutcome:
     """Run every point of the plan. On any exception (Ctrl-C included) the tables are stopped
     and the exception propagates; every point recorded so far is already on disk."""
@@ -107,8 +106,6 @@ def run_plan(
                 with display.pause():
                     operator.confirm_mount(step.mount, change, n_mount_changes)
                 station.remounted(step.mount)
-                if on_remount:
-                    on_remount(step.mount)
                 mounted = step.mount
             move_both(station, step.pitch_deg, step.roll_deg, settings)
             station.clock.sleep(settings.settle_s)

@@ -28,7 +28,7 @@ def trapezoid_travel(t: NDArray, distance: float, speed: float, accel: float) ->
     t_acc = peak / accel
     t = np.clip(np.asarray(t, float), 0.0, total)
     accel_part = 0.5 * accel * np.minimum(t, t_acc) ** 2
-    cruise = peak * np.clip(t - t_acc, 0.0, total - 2 * t_acc)
+    cruise = peak * np.clip(t - t_acc, 0.0, max(0.0, total - 2 * t_acc))
     tail = np.clip(t - (total - t_acc), 0.0, t_acc)
     decel_part = peak * tail - 0.5 * accel * tail**2
     return math.copysign(1.0, distance) * (accel_part + cruise + decel_part)

@@ -1,0 +1,265 @@
+"""The command line: contracts (CSV, JSON), bad input, prompts, interruption."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from labcal.cli import main
+from labcal.readings import REQUIRED
+
+LABCAL = str(Path(sys.executable).with_name("labcal"))
+MISALIGN = "a=0.3,b=-0.2,d=0.1,e=0.4,f=-0.3,k=0.2"
+
+
+def run_cli(capsys, *args: str) -> tuple[int, str, str]:
+    code = main(list(args))
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def labcal(*args: str, **kw) -> subprocess.CompletedProcess:
+    return subprocess.run([LABCAL, *args], capture_output=True, text=True, timeout=120, **kw)
+
+
+# --- contracts -----------------------------------------------------------------------------
+def test_simulate_then_fit_four_mounts_cancels_every_misalignment(tmp_path, capsys):
+    out = tmp_path / "r.csv"
+    code, _, _ = run_cli(capsys, "simulate", "--plan", "four-mount-64", "--misalign", MISALIGN,
+                         "--noise", "0", "--seed", "1", "--out", str(out))
+    assert code == 0
+    with out.open() as f:
+        header = next(csv.reader(f))
+    assert tuple(header[:8]) == REQUIRED
+    code, stdout, _ = run_cli(capsys, "fit", str(out), "--json")
+    assert code == 0
+    doc = json.loads(stdout)
+    assert doc["model"] == "linear"
+    X = np.array(doc["coefficients"])
+    assert X.shape == (4, 3)
+    off_diagonal = X[1:][~np.eye(3, dtype=bool)]
+    assert np.max(np.abs(X[0])) < 1e-12 and np.max(np.abs(off_diagonal)) < 1e-12
+    a, b, d, e, f, k = np.radians([0.3, -0.2, 0.1, 0.4, -0.3, 0.2])
+    assert X[1, 0] == pytest.approx(np.cos(a) * np.cos(b) * np.cos(d) * np.cos(e) * np.cos(k), abs=1e-12)
+    assert doc["degrees_of_freedom"] == 60 and doc["n_points"] == 64
+    assert np.array(doc["standard_errors"]).shape == (4, 3)
+    assert len(doc["residual_standard_error"]) == 3
+
+
+def test_simulate_one_mount_leaks_e_f_k(tmp_path, capsys):
+    out = tmp_path / "r.csv"
+    run_cli(capsys, "simulate", "--plan", "one-mount-16", "--misalign", MISALIGN, "--out", str(out))
+    _, stdout, _ = run_cli(capsys, "fit", str(out), "--json")
+    X = np.array(json.loads(stdout)["coefficients"])
+    e, f, k = np.radians([0.4, -0.3, 0.2])
+    # Soto eq. 33 to first order (second-order terms ≤ 5e-5 for 0.4° angles)
+    assert X[2, 0] == pytest.approx(-k, abs=5e-5) and X[1, 1] == pytest.approx(k, abs=5e-5)
+    assert X[3, 0] == pytest.approx(e, abs=5e-5) and X[1, 2] == pytest.approx(-e, abs=5e-5)
+    assert X[3, 1] == pytest.approx(f, abs=5e-5) and X[2, 2] == pytest.approx(-f, abs=5e-5)
+
+
+def test_simulate_with_truth_file_and_noise(tmp_path, capsys):
+    truth = tmp_path / "truth.toml"
+    truth.write_text("B = [0.01, -0.02, 0.03]\nS = [[5.0, 0.01, 0.0], [0.0, 5.1, 0.0], [0.0, 0.0, 4.9]]\n")
+    out = tmp_path / "r.csv"
+    run_cli(capsys, "simulate", "--truth", str(truth), "--noise", "1e-5", "--seed", "4",
+            "--index-error", "2", "--wobble", "3", "--out", str(out))
+    _, stdout, _ = run_cli(capsys, "fit", str(out), "--json")
+    doc = json.loads(stdout)
+    X, se = np.array(doc["coefficients"]), np.array(doc["standard_errors"])
+    assert np.all(np.abs(X[0] - [0.01, -0.02, 0.03]) < 4 * se[0] + 1e-6)
+    assert X[1, 1] == pytest.approx(0.01, abs=1e-4)
+
+
+def test_plan_list_and_show(capsys):
+    code, stdout, _ = run_cli(capsys, "plan", "list", "--json")
+    plans = {p["name"]: p for p in json.loads(stdout)["plans"]}
+    assert code == 0 and plans["four-mount-64"]["points"] == 64 and plans["one-mount-16"]["points"] == 16
+    code, stdout, _ = run_cli(capsys, "plan", "show", "four-mount-64")
+    assert code == 0 and "bottom side of the plate, x sensor pointing backward" in stdout
+
+
+def test_every_command_has_help():
+    for args in (["--help"], ["run", "--help"], ["fit", "--help"], ["simulate", "--help"],
+                 ["plan", "--help"], ["plan", "list", "--help"], ["plan", "show", "--help"]):
+        with pytest.raises(SystemExit) as exc:
+            main(args)
+        assert exc.value.code == 0
+
+
+# --- bad input: one line, exit 2, no traceback -------------------------------------------
+READINGS_HEADER = ",".join(REQUIRED)
+GOOD_ROW = "1,0,0,0,0,0.1,0.2,1.0"
+
+
+@pytest.mark.parametrize("content,expected", [
+    ("", "file is empty"),
+    (READINGS_HEADER + "\n", "header only, no readings"),
+    ("replicate,y_deg,u_deg,pitch_deg,roll_deg,vx,vy\n1,0,0,0,0,0.1,0.2\n", "missing column(s) vz"),
+    (f"{READINGS_HEADER}\n{GOOD_ROW}\n1,0,0,0,90,0.1,abc,1.0\n", "line 3, column vy: 'abc' is not a number"),
+    (f"{READINGS_HEADER}\n1,0,0,0,90,nan,0.2,1.0\n", "line 2, column vx: value is nan"),
+    (f"{READINGS_HEADER}\n1,90,0,0,90,0.1,0.2,1.0\n", "column y_deg: 90 is not a mount angle"),
+    (f"{READINGS_HEADER}\n1,0,0,0\n", "line 2: 4 fields, the header has 8"),
+    (f"{READINGS_HEADER}\n" + "1,0,0,0,0,0.1,0.2,1.0\n" * 6, "singular"),
+])
+def test_bad_readings(tmp_path, capsys, content, expected):
+    path = tmp_path / "bad.csv"
+    path.write_text(content)
+    code, stdout, stderr = run_cli(capsys, "fit", str(path))
+    assert code == 2 and stdout == ""
+    assert expected in stderr and str(path) in stderr or expected == "singular" and expected in stderr
+    assert stderr.strip().count("\n") == 0 and "Traceback" not in stderr
+
+
+PLAN_HEAD = 'name = "x"\nmounts = [[0, 0]]\n'
+
+
+@pytest.mark.parametrize("content,expected", [
+    ('name = "x"\nmounts = [[0, 0]\n', "malformed TOML"),
+    (PLAN_HEAD + "points = [[0, 0], [90, 0]]\n", "2 points per replicate cannot determine 4 coefficients"),
+    (PLAN_HEAD + "points = [[0, 0], [400, 0], [0, 90], [0, 180]]\n", "point 2: pitch 400° is outside"),
+    (PLAN_HEAD + "points = [[0, 0.5], [90, 0], [0, 90], [0, 180]]\n", "not on the index tables' 1° grid"),
+    (PLAN_HEAD + "points = [[0, 0], [90, 0], [0, 90], [0, 360]]\n", "point 4 repeats point 1"),
+    (PLAN_HEAD + "points = [[90, 0], [90, 90], [90, 180], [90, 270]]\n", "the design is singular"),
+    ('name = "x"\nmounts = [[0, 90]]\npoints = [[0, 0]]\n', "y_deg and u_deg must each be 0 or 180"),
+    (PLAN_HEAD + "points = [[0, 0]]\ncolour = 1\n", "colour: Extra inputs are not permitted"),
+    ('name = "x"\nmounts = [[0, 0]]\npoints = [[0, "a"]]\n', "points.0.1"),
+])
+def test_bad_plans(tmp_path, capsys, content, expected):
+    path = tmp_path / "plan.toml"
+    path.write_text(content)
+    code, stdout, stderr = run_cli(capsys, "plan", "show", str(path))
+    assert code == 2 and stdout == ""
+    assert expected in stderr and str(path) in stderr
+    assert stderr.strip().count("\n") == 0
+
+
+@pytest.mark.parametrize("args,expected", [
+    (["plan", "show", "no-such-plan"], "unknown plan 'no-such-plan'; shipped plans: four-mount-64"),
+    (["fit", "missing.csv"], "missing.csv: no such readings file"),
+    (["simulate", "--misalign", "q=1", "--out", "x.csv"], "'q=1' is not NAME=DEGREES"),
+    (["simulate", "--misalign", "a=big", "--out", "x.csv"], "'big' for a is not a number"),
+    (["simulate", "--truth", "nope.toml", "--out", "x.csv"], "nope.toml: no such truth file"),
+    (["run"], "no station given: use --sim"),
+    (["run", "--sim", "--plan", "nope"], "unknown plan 'nope'"),
+])
+def test_bad_arguments(tmp_path, capsys, monkeypatch, args, expected):
+    monkeypatch.chdir(tmp_path)
+    code, stdout, stderr = run_cli(capsys, *args)
+    assert code == 2 and stdout == "" and expected in stderr
+    assert stderr.strip().count("\n") == 0
+
+
+def test_run_refuses_a_used_directory(tmp_path, capsys):
+    (tmp_path / "old.csv").write_text("x")
+    code, _, stderr = run_cli(capsys, "run", "--sim", "--yes", "--out", str(tmp_path))
+    assert code == 2 and "exists and is not empty" in stderr
+    assert (tmp_path / "old.csv").read_text() == "x"
+
+
+# --- runs ----------------------------------------------------------------------------------
+def test_run_sim_yes_end_to_end(tmp_path):
+    run_dir = tmp_path / "run"
+    proc = labcal("run", "--sim", "--yes", "--seed", "3", "--out", str(run_dir), "--json")
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout)
+    assert summary["points"] == 64 and summary["wall_time_s"] < 10
+    assert summary["simulated_rig_time_s"] > 20 * 60  # 64 points and 4 remounts take real time
+    assert {p.name for p in run_dir.iterdir()} == {"readings.csv", "fit.json", "plan.toml", "run.json"}
+    assert proc.stderr.count("(--yes: confirmed)") == 4
+    meta = json.loads((run_dir / "run.json").read_text())
+    assert meta["status"] == "complete" and meta["points_recorded"] == 64
+    X = np.array(json.loads((run_dir / "fit.json").read_text())["coefficients"])
+    truth = np.array(meta["simulated_truth"]["coefficients"])
+    # the default rig has arcsec misalignments, drift and a temperature swing: within 0.1 mV
+    assert np.max(np.abs(X - truth)) < 1e-4
+
+
+def test_run_prompts_are_answered_interactively(tmp_path):
+    proc = labcal("run", "--sim", "--out", str(tmp_path / "run"), input="y\nyes\nY\ny\n")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.count("Type y and Enter when mounted") == 4
+    assert "bottom side of the plate, x sensor pointing backward" in proc.stderr
+
+
+def test_operator_stops_at_a_prompt_and_keeps_readings(tmp_path):
+    run_dir = tmp_path / "run"
+    proc = labcal("run", "--sim", "--out", str(run_dir), input="y\nq\n")
+    assert proc.returncode == 1
+    assert "16 reading(s) kept" in proc.stderr and proc.stderr.strip().splitlines()[-1].startswith("stopped")
+    assert len((run_dir / "readings.csv").read_text().strip().splitlines()) == 1 + 16
+    assert json.loads((run_dir / "run.json").read_text())["status"] == "interrupted"
+
+
+def test_ctrl_c_at_a_prompt_keeps_every_reading(tmp_path):
+    run_dir = tmp_path / "run"
+    proc = subprocess.Popen([LABCAL, "run", "--sim", "--out", str(run_dir)], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc.stdin.write("y\n")
+    proc.stdin.flush()
+    readings = run_dir / "readings.csv"
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:  # wait until mount 1's 16 points are on disk
+        if readings.exists() and len(readings.read_text().strip().splitlines()) == 17:
+            break
+        time.sleep(0.05)
+    time.sleep(0.3)  # now at the second prompt
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=30)
+    assert proc.returncode == 130, stderr
+    assert "16 reading(s) kept" in stderr and "Traceback" not in stderr
+    rows = list(csv.DictReader(readings.open()))
+    assert len(rows) == 16 and {r["y_deg"] for r in rows} == {"0"}
+    meta = json.loads((run_dir / "run.json").read_text())
+    assert meta["status"] == "interrupted" and meta["points_recorded"] == 16
+
+
+def test_no_answer_at_a_prompt_stops_cleanly(tmp_path):
+    proc = labcal("run", "--sim", "--out", str(tmp_path / "run"), stdin=subprocess.DEVNULL)
+    assert proc.returncode == 1 and "no answer at the remount prompt" in proc.stderr
+    assert "0 reading(s) kept" in proc.stderr
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
+def test_interrupt_during_measurement_stops_tables(tmp_path):
+    """Ctrl-C between points (here raised by the display after 10 points) stops both tables,
+    keeps the 10 readings, and records why the run ended."""
+    import io
+
+    from rich.console import Console
+
+    from labcal.operator import AutoOperator
+    from labcal.plan import load_plan
+    from labcal.run import calibrate
+    from labcal.sequencer import Display, SequencerSettings
+    from labcal.sim.rig import SimRig
+
+    class CtrlCAfter(Display):
+        def __init__(self, n):
+            self.n = n
+
+        def point_done(self, step, volts, station_time_s):
+            self.n -= 1
+            if self.n == 0:
+                raise KeyboardInterrupt
+
+    rig = SimRig()
+    stops = []
+    for axis in (rig.pitch, rig.roll):
+        axis.stop = (lambda a: lambda: stops.append(a.name))(axis)
+    plan, text = load_plan("four-mount-64")
+    with pytest.raises(KeyboardInterrupt):
+        calibrate(plan, text, rig.station(), AutoOperator(Console(file=io.StringIO())),
+                  SequencerSettings(), tmp_path, CtrlCAfter(10))
+    assert sorted(stops) == ["pitch", "roll"]
+    assert len((tmp_path / "readings.csv").read_text().strip().splitlines()) == 11
+    assert json.loads((tmp_path / "run.json").read_text())["points_recorded"] == 10
