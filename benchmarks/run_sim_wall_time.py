@@ -21,7 +21,8 @@ LABCAL = str(Path(sys.executable).with_name("labcal"))
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--plan", default="four-mount-64")
     parser.add_argument("--repeat", type=int, default=5)
     args = parser.parse_args()
