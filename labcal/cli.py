@@ -5,15 +5,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tomllib
-from pathlib import Path
 
-from pydantic import ValidationError
 from rich.console import Console
 from rich.table import Table
 
 from labcal import __version__
 from labcal.errors import LabcalError
+from labcal.files import load_model
 from labcal.kinematics import MISALIGNMENT_NAMES, IndexWobble, Misalignment
 from labcal.operator import AutoOperator, ConsoleOperator, OperatorDeclined
 from labcal.plan import load_plan, shipped_plans
@@ -99,26 +97,12 @@ def parse_misalign(text: str) -> Misalignment:
     return Misalignment.from_degrees(**angles)
 
 
-def load_truth(path: str):
-    from labcal.sim.instrument import InstrumentTruth
-
-    try:
-        return InstrumentTruth.model_validate(tomllib.loads(Path(path).read_text(encoding="utf-8")))
-    except FileNotFoundError:
-        raise LabcalError(f"{path}: no such truth file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise LabcalError(f"{path}: malformed TOML: {exc}") from None
-    except ValidationError as exc:
-        e = exc.errors()[0]
-        raise LabcalError(f"{path}: {'.'.join(map(str, e['loc']))}: {e['msg']}") from None
-
-
 def cmd_simulate(args: argparse.Namespace) -> int:
     from labcal.sim.direct import simulate_readings
     from labcal.sim.instrument import InstrumentTruth
 
     plan, _ = load_plan(args.plan)
-    truth = load_truth(args.truth) if args.truth else InstrumentTruth()
+    truth = load_model(args.truth, InstrumentTruth, "truth") if args.truth else InstrumentTruth()
     if args.noise < 0:
         raise LabcalError("--noise must be ≥ 0 (V rms)")
     readings = simulate_readings(

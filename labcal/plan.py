@@ -6,14 +6,14 @@ validated before anything moves.
 
 from __future__ import annotations
 
-import tomllib
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from labcal.errors import LabcalError
+from labcal.files import parse_model, read_text
 from labcal.kinematics import Mount, gravity
 
 PLAN_SUFFIX = ".toml"
@@ -98,14 +98,6 @@ class Plan(BaseModel):
         )
 
 
-def _one_line(exc: ValidationError) -> str:
-    err = exc.errors()[0]
-    where = ".".join(str(part) for part in err["loc"])
-    msg = err["msg"].removeprefix("Value error, ")
-    more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
-    return f"{where}: {msg}{more}" if where else f"{msg}{more}"
-
-
 def shipped_plans() -> dict[str, resources.abc.Traversable]:
     """The plans that ship with labcal, by name."""
     folder = resources.files("labcal.sequences")
@@ -118,26 +110,14 @@ def shipped_plans() -> dict[str, resources.abc.Traversable]:
 
 def parse_plan(text: str, source: str) -> Plan:
     """Parse and validate plan TOML; errors name the source and the field."""
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise LabcalError(f"{source}: malformed TOML: {exc}") from None
-    try:
-        return Plan.model_validate(data)
-    except ValidationError as exc:
-        raise LabcalError(f"{source}: {_one_line(exc)}") from None
+    return parse_model(text, Plan, source)
 
 
 def load_plan(name_or_path: str) -> tuple[Plan, str]:
     """A plan by file path or by the name of a shipped plan; returns the plan and its TOML text."""
     path = Path(name_or_path)
     if path.suffix == PLAN_SUFFIX or path.exists():
-        try:
-            text = path.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise LabcalError(f"{path}: no such plan file") from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise LabcalError(f"{path}: cannot read plan file ({exc})") from None
+        text = read_text(path, "plan")
         return parse_plan(text, str(path)), text
     plans = shipped_plans()
     if name_or_path not in plans:

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal.errors import LabcalError
+from labcal.files import read_text
 
 REQUIRED = ("replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", "vx", "vy", "vz")
 OPTIONAL = ("temp_c",)
@@ -70,12 +71,7 @@ def _check_angles(values: dict[str, float], where: str) -> None:
 def read_readings(path: str | Path) -> Readings:
     """Load and validate a readings CSV; raise LabcalError naming file, line and column."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise LabcalError(f"{path}: no such readings file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise LabcalError(f"{path}: cannot read readings file ({exc})") from None
+    text = read_text(path, "readings")
     if not text.strip():
         raise LabcalError(f"{path}: file is empty; expected a header line {','.join(REQUIRED)}")
     reader = csv.reader(text.splitlines())

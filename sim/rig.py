@@ -6,14 +6,14 @@ It exposes the same `Station` the hardware drivers build, so the sequencer canno
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 
 from labcal.errors import LabcalError
+from labcal.files import load_model
 from labcal.kinematics import ARCSEC, IndexWobble, Misalignment, Mount, gravity
 from labcal.sim.clock import VirtualClock
 from labcal.sim.instrument import InstrumentTruth, default_instrument
@@ -59,16 +59,7 @@ class RigConfig(BaseModel):
 
 
 def load_rig_config(path: str | Path) -> RigConfig:
-    path = Path(path)
-    try:
-        return RigConfig.model_validate(tomllib.loads(path.read_text(encoding="utf-8")))
-    except FileNotFoundError:
-        raise LabcalError(f"{path}: no such rig file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise LabcalError(f"{path}: malformed TOML: {exc}") from None
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        raise LabcalError(f"{path}: {'.'.join(map(str, err['loc']))}: {err['msg']}") from None
+    return load_model(path, RigConfig, "rig")
 
 
 class SimRig:

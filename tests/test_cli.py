@@ -263,3 +263,19 @@ def test_interrupt_during_measurement_stops_tables(tmp_path):
     assert sorted(stops) == ["pitch", "roll"]
     assert len((tmp_path / "readings.csv").read_text().strip().splitlines()) == 11
     assert json.loads((tmp_path / "run.json").read_text())["points_recorded"] == 10
+
+
+def test_rig_file_sets_the_simulated_rig(tmp_path, capsys):
+    rig = tmp_path / "rig.toml"
+    rig.write_text("remount_s = 0\nspeed_dps = 40\n[device]\nmisalignment_deg = {}\n"
+                   "[instrument]\nB = [0.1, 0.2, 0.3]\nnoise_v = 1e-6\n")
+    code, stdout, _ = run_cli(capsys, "run", "--sim", "--yes", "--json", "--rig", str(rig),
+                              "--out", str(tmp_path / "run"))
+    assert code == 0
+    summary = json.loads(stdout)
+    assert summary["simulated_rig_time_s"] < 20 * 60  # no remount allowance, faster tables
+    assert np.allclose(summary["fit"]["coefficients"][0], [0.1, 0.2, 0.3], atol=2e-5)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("speed_dps = -1\n")
+    code, _, stderr = run_cli(capsys, "run", "--sim", "--rig", str(bad), "--out", str(tmp_path / "r2"))
+    assert code == 2 and "speed_dps: Input should be greater than 0" in stderr
