@@ -16,7 +16,7 @@ from labcal.kinematics import MISALIGNMENT_NAMES, IndexWobble, Misalignment
 from labcal.operator import AutoOperator, ConsoleOperator, OperatorDeclined
 from labcal.plan import load_plan, shipped_plans
 from labcal.readings import read_readings, write_readings
-from labcal.run import RUN, calibrate, json_safe, new_run_dir
+from labcal.run import calibrate, json_safe, new_run_dir, points_on_disk
 from labcal.sequencer import SequencerSettings
 
 EXIT_USER_ERROR = 2
@@ -139,11 +139,11 @@ def cmd_run(args: argparse.Namespace) -> int:
             result = calibrate(plan, plan_text, rig.station(), operator, settings, run_dir,
                                display, metadata={"simulated_truth": truth})
     except KeyboardInterrupt:
-        kept = json.loads((run_dir / RUN).read_text())["points_recorded"]
+        kept = points_on_disk(run_dir)
         err.print(f"[bold red]interrupted[/]: tables stopped; {kept} reading(s) kept in {run_dir}")
         return EXIT_INTERRUPTED
     except OperatorDeclined as exc:
-        kept = json.loads((run_dir / RUN).read_text())["points_recorded"]
+        kept = points_on_disk(run_dir)
         err.print(f"[bold yellow]stopped[/]: {exc}; {kept} reading(s) kept in {run_dir}")
         return EXIT_STOPPED
     summary = {

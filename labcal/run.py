@@ -40,6 +40,15 @@ def write_json(path: Path, doc: dict) -> None:
     tmp.replace(path)  # atomic: a reader never sees half a file
 
 
+def points_on_disk(run_dir: Path) -> int:
+    """Readings already safe in a run directory (rows after the header)."""
+    try:
+        with (run_dir / READINGS).open(encoding="utf-8") as f:
+            return max(0, sum(1 for line in f if line.strip()) - 1)
+    except FileNotFoundError:
+        return 0
+
+
 def new_run_dir(out: str | None, plan: Plan) -> Path:
     if out is None:
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
@@ -77,7 +86,7 @@ def calibrate(
     }
     write_json(run_dir / RUN, meta)
     wall0 = time.perf_counter()
-    with ReadingsWriter(run_dir / READINGS) as writer:
+    with ReadingsWriter(run_dir / READINGS, temperature=station.dmm.measures_temperature) as writer:
         try:
             outcome = run_plan(plan, station, operator, writer, settings, display)
         except BaseException as exc:

@@ -118,7 +118,10 @@ def run_plan(
                 n_samples=settings.samples, time_s=station.clock.now() - t0,
             )
             display.point_done(step, mean, station.clock.now() - t0)
-    except BaseException:
-        station.stop()
+    except BaseException as exc:
+        try:
+            station.stop()
+        except Exception as stop_error:  # noqa: BLE001 - report it, but keep the original cause
+            exc.add_note(f"and stopping the tables failed too: {stop_error}")
         raise
     return RunOutcome(points_recorded=writer.count, station_time_s=station.clock.now() - t0)

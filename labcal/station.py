@@ -44,6 +44,8 @@ class Scan:
 
 
 class Voltmeter(Protocol):
+    measures_temperature: bool  # whether scans carry temp_c
+
     def read(self, n_samples: int) -> Scan:
         """Take n consecutive samples of all channels."""
 

@@ -65,6 +65,8 @@ def load_rig_config(path: str | Path) -> RigConfig:
 class SimRig:
     """Physics of the whole rig on a virtual clock."""
 
+    measures_temperature = True  # the simulated DMM scans a lab thermometer too
+
     def __init__(self, config: RigConfig | None = None, seed: int | None = None):
         self.config = config = config or RigConfig()
         self.seed = config.seed if seed is None else seed

@@ -279,3 +279,30 @@ def test_rig_file_sets_the_simulated_rig(tmp_path, capsys):
     bad.write_text("speed_dps = -1\n")
     code, _, stderr = run_cli(capsys, "run", "--sim", "--rig", str(bad), "--out", str(tmp_path / "r2"))
     assert code == 2 and "speed_dps: Input should be greater than 0" in stderr
+
+
+def test_a_failing_stop_does_not_hide_why_the_run_ended(tmp_path):
+    import io
+
+    from rich.console import Console
+
+    from labcal.operator import AutoOperator
+    from labcal.plan import load_plan
+    from labcal.readings import ReadingsWriter
+    from labcal.sequencer import SequencerSettings, run_plan
+    from labcal.sim.rig import SimRig
+
+    rig = SimRig()
+
+    def broken_stop():
+        raise OSError("port closed")
+
+    def boom(n):
+        raise KeyboardInterrupt
+
+    rig.roll.stop = broken_stop
+    rig.read = boom
+    plan, _ = load_plan("one-mount-16")
+    with ReadingsWriter(tmp_path / "r.csv") as writer, pytest.raises(KeyboardInterrupt) as exc:
+        run_plan(plan, rig.station(), AutoOperator(Console(file=io.StringIO())), writer, SequencerSettings())
+    assert "stopping the tables failed too: port closed" in exc.value.__notes__[0]
