@@ -1,0 +1,22 @@
+"""What every command shares: the two consoles and JSON output."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from rich.console import Console
+
+from labcal.run import json_safe
+
+EXIT_USER_ERROR = 2
+EXIT_STOPPED = 1
+EXIT_INTERRUPTED = 130
+
+out = Console(highlight=False)
+err = Console(stderr=True, highlight=False, soft_wrap=True)  # prose: the terminal wraps it
+
+
+def print_json(doc: dict) -> None:
+    """One JSON document on stdout and nothing else (`--json`)."""
+    sys.stdout.write(json.dumps(json_safe(doc), indent=2) + "\n")
