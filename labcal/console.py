@@ -16,7 +16,7 @@ from rich.progress import (
 )
 from rich.table import Table
 
-from labcal.fit import ROW_NAMES, SENSORS, LinearFit
+from labcal.fit import ROW_NAMES, SENSORS, Fit
 from labcal.sequencer import Display, Step
 
 
@@ -58,12 +58,12 @@ class ProgressDisplay(Display):
         self.progress.update(self.task, advance=1, last=last)
 
 
-def coefficient_table(fit: LinearFit, title: str = "Fitted coefficients X = [Bᵀ; S]") -> Table:
+def coefficient_table(fit: Fit, title: str = "Fitted coefficients X = [Bᵀ; S]") -> Table:
     table = Table(title=title)
     table.add_column("row")
     for name in SENSORS:
         table.add_column(f"sensor {name}", justify="right")
-    se = fit.ls.stderr
+    se = fit.stderr
     for i, row in enumerate(ROW_NAMES):
         unit = "V" if i == 0 else "V/g"
         table.add_row(f"{row} ({unit})", *(

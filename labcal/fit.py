@@ -1,60 +1,209 @@
-"""The linear instrument model V = B + gᵀS (Soto eqs. 4, 13–21) fitted on the nominal gravity."""
+"""Fitting the instrument model V = B + gᵀS (Soto eqs. 13–21) with honest statistics.
+
+Every model is a regressor set (`labcal.models`) solved by the one QR core. Uncertainties
+use the residual standard error, or — when replicates show significant lack of fit — the
+lack-of-fit mean square, because point biases repeat in every replicate and replication
+cannot average them away (metrology_stats.md §2.6).
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import stats
 
-from labcal.kinematics import gravity
+from labcal.models import BASE_NAMES, EXTENSIONS, Model, Points
 from labcal.readings import Readings
 from labcal.regression import LeastSquares, least_squares
+from labcal.replication import ALPHA, Replication, analyse, point_groups
 
 SENSORS = ("x", "y", "z")
-ROW_NAMES = ("B", "S_x", "S_y", "S_z")  # rows of X: bias, then the g_x, g_y, g_z sensitivities
+ROW_NAMES = BASE_NAMES
 
 
-def linear_design(readings: Readings) -> NDArray:
-    """[1 gᵀ] with g the nominal gravity of each point, mount included (Soto eq. 14)."""
-    g = gravity(*readings.angles_rad)
-    return np.column_stack([np.ones(len(readings)), g])
+def readings_points(readings: Readings) -> Points:
+    return Points(readings.pitch_deg, readings.roll_deg, readings.y_deg, readings.u_deg, readings.temp_c)
+
+
+def point_keys(readings: Readings) -> NDArray:
+    """Identity of each calibration point: mount and table angles modulo 360°."""
+    return np.round(np.column_stack([readings.y_deg, readings.u_deg, readings.pitch_deg, readings.roll_deg])
+                    % 360.0, 9) % 360.0
 
 
 @dataclass(frozen=True)
-class LinearFit:
-    """X = [Bᵀ; S] (4×3) with its statistics; column j is sensor j."""
+class Fit:
+    """Coefficients of every sensor (columns) with the statistics a certificate needs."""
 
+    model: Model
+    names: tuple[str, ...]
     ls: LeastSquares
+    replication: Replication | None = None
+    notes: tuple[str, ...] = field(default=())
 
+    # --- coefficients and their uncertainty -------------------------------------------------
     @property
     def coefficients(self) -> NDArray:
-        return self.ls.coef
+        """Soto's X = [Bᵀ; S] (4×3); extension coefficients are in `ls.coef[4:]`."""
+        return self.ls.coef[: len(BASE_NAMES)]
 
     @property
-    def bias(self) -> NDArray:
-        return self.ls.coef[0]
+    def bias_significant(self) -> NDArray:
+        if self.replication is None:
+            return np.zeros(self.ls.coef.shape[1], dtype=bool)
+        return self.replication.lack_of_fit.significant
 
     @property
-    def sensitivity(self) -> NDArray:
-        return self.ls.coef[1:]
+    def variance(self) -> NDArray:
+        """Per sensor: the variance that scales (FᵀF)⁻¹ into the coefficient covariance."""
+        if self.replication is None:
+            return self.ls.residual_se**2
+        return np.where(self.bias_significant, self.replication.lack_of_fit_ms, self.ls.residual_se**2)
+
+    @property
+    def variance_dof(self) -> NDArray:
+        dof = np.full(self.ls.coef.shape[1], self.ls.dof)
+        if self.replication is not None:
+            dof = np.where(self.bias_significant, self.replication.lack_of_fit.df_num, dof)
+        return dof
+
+    @property
+    def variance_basis(self) -> list[str]:
+        return ["lack-of-fit mean square" if b else "residual standard error" for b in self.bias_significant]
+
+    def covariance(self, sensor: int) -> NDArray:
+        """Covariance of every coefficient of one sensor (L×L, in `names` order)."""
+        return self.variance[sensor] * self.ls.cov_unscaled
+
+    @property
+    def stderr(self) -> NDArray:
+        return np.sqrt(np.diag(self.ls.cov_unscaled))[:, None] * np.sqrt(self.variance)[None, :]
+
+    # --- the output at new points (Tripp eqs. 52, 72, 73) -------------------------------------
+    def new_measurement_variance(self) -> NDArray:
+        """Variance of one new reading like the calibration's: σ_prec² + σ_bias², or S_E²."""
+        if self.replication is None:
+            return self.ls.residual_se**2
+        return self.replication.sigma_prec**2 + self.replication.sigma_bias**2
+
+    def predict(self, points: Points, level: float = 0.95) -> dict[str, NDArray]:
+        """Predicted output (n×3) with confidence and prediction half-widths at ``level``."""
+        _, f = self.model.design(points)
+        q = np.einsum("ij,jk,ik->i", f, self.ls.cov_unscaled, f)  # fᵀ R⁻¹ f
+        t = stats.t.ppf(0.5 + level / 2, self.variance_dof)
+        var_mean = q[:, None] * self.variance[None, :]
+        return {
+            "volts": f @ self.ls.coef,
+            "confidence": t * np.sqrt(var_mean),
+            "prediction": t * np.sqrt(var_mean + self.new_measurement_variance()[None, :]),
+            "std_normalised": np.sqrt(q),
+        }
 
     def to_json(self) -> dict:
-        """The linear fit JSON contract of DESIGN.md §5, plus per-sensor statistics."""
-        return {
+        """The linear fit JSON contract of DESIGN.md §5, plus the statistics behind it."""
+        n_base = len(BASE_NAMES)
+        doc = {
             "model": "linear",
-            "coefficients": self.ls.coef.tolist(),
-            "standard_errors": self.ls.stderr.tolist(),
+            "coefficients": self.coefficients.tolist(),
+            "standard_errors": self.stderr[:n_base].tolist(),
             "residual_standard_error": self.ls.residual_se.tolist(),
             "degrees_of_freedom": self.ls.dof,
             "n_points": self.ls.n_obs,
+            "parameters": list(self.names),
+            "covariance": [self.covariance(j).tolist() for j in range(len(SENSORS))],
+            "uncertainty_basis": self.variance_basis,
+            "uncertainty_dof": self.variance_dof.tolist(),
             "layout": {
                 "rows": ["B", "S row g_x", "S row g_y", "S row g_z"],
                 "columns": ["sensor x", "sensor y", "sensor z"],
                 "units": "V (bias), V/g (sensitivity)",
             },
         }
+        if self.model.extensions:
+            doc["extensions"] = {
+                "names": list(self.names[n_base:]), "t_ref_c": self.model.t_ref,
+                "coefficients": self.ls.coef[n_base:].tolist(),
+                "standard_errors": self.stderr[n_base:].tolist(),
+            }
+        if self.replication is not None:
+            doc["replication"] = {s: self.replication.to_json(j) for j, s in enumerate(SENSORS)}
+        if self.notes:
+            doc["notes"] = list(self.notes)
+        return doc
 
 
-def fit_linear(readings: Readings) -> LinearFit:
-    return LinearFit(least_squares(linear_design(readings), readings.volts))
+def fit_readings(readings: Readings, model: Model | None = None) -> Fit:
+    """Least squares on the nominal gravity, with replicated analysis when there are replicates."""
+    model = model or Model(t_ref=float(np.mean(readings.temp_c)) if readings.temp_c is not None else 20.0)
+    names, design = model.design(readings_points(readings))
+    ls = least_squares(design, readings.volts)
+    groups, _ = point_groups(point_keys(readings))
+    notes: list[str] = []
+    replication = None
+    if len(np.unique(readings.replicate)) > 1:
+        first = np.zeros(groups.max() + 1, dtype=int)
+        first[groups[::-1]] = np.arange(len(groups))[::-1]
+        if np.allclose(design, design[first][groups], rtol=0, atol=1e-12):
+            replication = analyse(design, readings.volts, groups, readings.replicate)
+        else:
+            notes.append("replication analysis skipped: temperature terms differ between replicates "
+                         "of the same point")
+    fit = Fit(model, names, ls, replication)
+    if np.any(fit.bias_significant):
+        sensors = ", ".join(s for s, b in zip(SENSORS, fit.bias_significant, strict=True) if b)
+        notes.append(f"significant lack of fit (bias) for sensor(s) {sensors} at {ALPHA:.0%}: their "
+                     "coefficient uncertainties are scaled by the lack-of-fit mean square")
+    return Fit(model, names, ls, replication, tuple(notes))
+
+
+def fit_linear(readings: Readings) -> Fit:
+    return fit_readings(readings)
+
+
+@dataclass(frozen=True)
+class ExtensionTest:
+    """Is an extra regressor set warranted? Extra-sum-of-squares F test against the base model."""
+
+    name: str
+    reason: str | None  # why it could not be tested, else None
+    f: NDArray | None = None
+    df: tuple[int, int] | None = None
+
+    @property
+    def p_value(self) -> NDArray | None:
+        return None if self.f is None else stats.f.sf(self.f, *self.df)
+
+    def to_json(self) -> dict:
+        if self.reason:
+            return {"tested": False, "reason": self.reason}
+        return {"tested": True, "F": self.f.tolist(), "df": list(self.df), "p_value": self.p_value.tolist(),
+                "critical_95": float(stats.f.isf(ALPHA, *self.df)),
+                "warranted": (self.p_value < ALPHA).tolist()}
+
+
+def extension_tests(readings: Readings) -> list[ExtensionTest]:
+    """F test of each model extension added alone to the base model."""
+    from labcal.errors import LabcalError
+
+    base = fit_readings(readings, Model())
+    sse_base = np.sum(base.ls.residuals**2, axis=0)
+    results = []
+    for name in EXTENSIONS:
+        try:
+            full = fit_readings(readings, Model((name,), t_ref=base.model.t_ref if readings.temp_c is None
+                                                else float(np.mean(readings.temp_c))))
+        except LabcalError as exc:
+            reason = ("not estimable with this plan (its regressors are aliased with the base model)"
+                      if "singular" in str(exc) or "cannot determine" in str(exc) else str(exc))
+            results.append(ExtensionTest(name, reason))
+            continue
+        q = full.ls.coef.shape[0] - base.ls.coef.shape[0]
+        sse_full = np.sum(full.ls.residuals**2, axis=0)
+        if full.ls.dof == 0:
+            results.append(ExtensionTest(name, "no degrees of freedom left to test it"))
+            continue
+        f = ((sse_base - sse_full) / q) / (sse_full / full.ls.dof)
+        results.append(ExtensionTest(name, None, f, (q, full.ls.dof)))
+    return results

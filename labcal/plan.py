@@ -17,7 +17,7 @@ from labcal.files import parse_model, read_text
 from labcal.kinematics import Mount, gravity
 
 PLAN_SUFFIX = ".toml"
-INDEX_STEP_DEG = 1.0  # the index tables stop on a 1° grid
+INDEX_STEP_DEG = 1.0  # index tables stop on a 1° grid
 N_COEFFICIENTS = 4  # per sensor: bias and three sensitivities
 
 
@@ -29,6 +29,7 @@ class Plan(BaseModel):
     name: str = Field(min_length=1)
     description: str = ""
     replicates: int = Field(default=1, ge=1, le=100)
+    angle_step_deg: float = Field(default=INDEX_STEP_DEG, ge=0, description="table grid, 0 if continuous")
     mounts: list[tuple[float, float]] = Field(min_length=1, description="[y_deg, u_deg] per mount")
     points: list[tuple[float, float]] = Field(min_length=1, description="[pitch_deg, roll_deg] per point")
 
@@ -42,28 +43,19 @@ class Plan(BaseModel):
             raise ValueError("a mount is listed twice; use `replicates` to repeat the plan")
         return mounts
 
-    @field_validator("points")
-    @classmethod
-    def _point_angles(cls, points: list[tuple[float, float]]) -> list[tuple[float, float]]:
-        for i, point in enumerate(points):
+    @model_validator(mode="after")
+    def _point_angles(self) -> Plan:
+        step = self.angle_step_deg
+        for i, point in enumerate(self.points):
             for axis, angle in zip(("pitch", "roll"), point, strict=True):
                 if not -180 <= angle <= 360:
                     raise ValueError(f"point {i + 1}: {axis} {angle:g}° is outside -180..360")
-                if abs(angle / INDEX_STEP_DEG - round(angle / INDEX_STEP_DEG)) > 1e-9:
+                if step and abs(angle / step - round(angle / step)) > 1e-9:
                     raise ValueError(
-                        f"point {i + 1}: {axis} {angle:g}° is not on the index tables' "
-                        f"{INDEX_STEP_DEG:g}° grid"
+                        f"point {i + 1}: {axis} {angle:g}° is not on the tables' {step:g}° grid "
+                        "(set angle_step_deg = 0 for continuously positioned tables)"
                     )
-        seen: dict[tuple[float, float], int] = {}
-        for i, (p, r) in enumerate(points):
-            key = (p % 360, r % 360)
-            if key in seen:
-                raise ValueError(
-                    f"point {i + 1} repeats point {seen[key] + 1} ({p:g}, {r:g}); "
-                    "use `replicates` to repeat points"
-                )
-            seen[key] = i
-        return points
+        return self
 
     @model_validator(mode="after")
     def _determines_coefficients(self) -> Plan:

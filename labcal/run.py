@@ -10,7 +10,7 @@ from pathlib import Path
 
 from labcal import __version__
 from labcal.errors import LabcalError
-from labcal.fit import LinearFit, fit_linear
+from labcal.fit import Fit, fit_linear
 from labcal.operator import Operator
 from labcal.plan import Plan
 from labcal.readings import ReadingsWriter, read_readings
@@ -68,7 +68,7 @@ def new_run_dir(out: str | None, plan: Plan) -> Path:
 class RunResult:
     directory: Path
     outcome: RunOutcome
-    fit: LinearFit
+    fit: Fit
     wall_s: float
 
 

@@ -1,0 +1,163 @@
+"""Pitch and roll from the three voltages, with uncertainty (Soto eqs. 5–7, App. B; Tripp eqs. 99–104).
+
+Two estimators, both vectorised over rows:
+- closed form: g = (v − B)S⁻¹ (batch form of Soto App. B), α = asin g_x, R = atan2(g_y, g_z);
+- weighted least squares on the unit sphere: minimise (v − f(z)) Σ_v⁻¹ (v − f(z))ᵀ over
+  z = (α, R), f(z) = B + g(z)ᵀS, by Gauss–Newton from the closed form.
+Σ_v holds, per sensor, the calibration's output variance fᵀ C f plus the variance of one new
+reading; the attitude covariance follows by eq. 104. At α = ±90° gravity lies along x and the
+roll angle does not exist; such rows report roll as NaN with the reason.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import stats
+
+from labcal.errors import LabcalError
+from labcal.files import read_text
+
+ROLL_SIGNIFICANCE = 3.0  # the horizontal part of g must exceed this many standard uncertainties
+GN_ITERATIONS = 4  # the closed form starts within ~1e-4 rad; Gauss–Newton converges quadratically
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """What attitude needs from a fit or certificate: X (4×3), per-sensor 4×4 covariance of
+    (B, s_x, s_y, s_z), the standard deviation of one new reading, and degrees of freedom."""
+
+    X: NDArray
+    covariance: NDArray  # (3, 4, 4)
+    reading_sd: NDArray  # (3,)
+    dof: int
+
+    @property
+    def s_inv(self) -> NDArray:
+        return np.linalg.inv(self.X[1:])
+
+
+def load_calibration(path: str | Path) -> Calibration:
+    """Read the coefficients and their uncertainty from a fit JSON (or a certificate)."""
+    text = read_text(path, "calibration")
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise LabcalError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    doc = doc.get("fit", doc) if isinstance(doc, dict) else doc
+    try:
+        X = np.array(doc["coefficients"], dtype=float)
+        cov = np.array(doc["covariance"], dtype=float)[:, :4, :4]
+        sd = np.array(doc.get("reading_sd", doc["residual_standard_error"]), dtype=float)
+        dof = int(min(doc.get("uncertainty_dof", [doc["degrees_of_freedom"]])))
+    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        raise LabcalError(f"{path}: not a labcal fit or certificate (missing or malformed {exc})") from None
+    if X.shape != (4, 3) or cov.shape != (3, 4, 4) or sd.shape != (3,):
+        raise LabcalError(f"{path}: coefficients must be 4×3 and covariance 3×(4×4)")
+    if not (np.all(np.isfinite(X)) and np.all(np.isfinite(cov)) and np.all(np.isfinite(sd))):
+        raise LabcalError(f"{path}: coefficients or uncertainties contain NaN or infinity")
+    if abs(np.linalg.det(X[1:])) < 1e-12:
+        raise LabcalError(f"{path}: the sensitivity matrix S is singular; it cannot turn voltages into g")
+    return Calibration(X, cov, sd, dof)
+
+
+@dataclass(frozen=True)
+class Attitude:
+    """Per row: pitch and roll (rad), their standard uncertainties, and the 95 % coverage factor."""
+
+    pitch: NDArray
+    roll: NDArray  # NaN where undefined
+    u_pitch: NDArray
+    u_roll: NDArray
+    k95: float
+
+    @property
+    def roll_defined(self) -> NDArray:
+        return np.isfinite(self.roll)
+
+
+def _gravity_and_derivatives(pitch: NDArray, roll: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    sp, cp, sr, cr = np.sin(pitch), np.cos(pitch), np.sin(roll), np.cos(roll)
+    g = np.stack([sp, cp * sr, cp * cr], axis=-1)
+    dg_dp = np.stack([cp, -sp * sr, -sp * cr], axis=-1)
+    dg_dr = np.stack([np.zeros_like(sp), cp * cr, -cp * sr], axis=-1)
+    return g, dg_dp, dg_dr
+
+
+def output_variance(cal: Calibration, g: NDArray) -> NDArray:
+    """Σ_v diagonal per row (n×3): calibration variance fᵀ C_j f plus one reading's variance."""
+    f = np.concatenate([np.ones((len(g), 1)), g], axis=1)
+    calib = np.stack([np.sum((f @ c) * f, axis=1) for c in cal.covariance], axis=1)
+    return calib + cal.reading_sd**2
+
+
+def _k95(cal: Calibration) -> float:
+    return float(stats.t.ppf(0.975, cal.dof)) if cal.dof > 0 else float("inf")
+
+
+def closed_form(cal: Calibration, volts: NDArray) -> Attitude:
+    """Soto eqs. 5–7 with first-order uncertainty through the same Σ_v as the sphere solution."""
+    volts = np.atleast_2d(np.asarray(volts, float))
+    g = (volts - cal.X[0]) @ cal.s_inv  # batch form of Soto App. B
+    gx = np.clip(g[:, 0], -1.0, 1.0)
+    h2 = g[:, 1] ** 2 + g[:, 2] ** 2
+    pitch, roll = np.arcsin(gx), np.arctan2(g[:, 1], g[:, 2])
+    # dz/dv = (dz/dg)(dg/dv), dg/dv = S⁻¹ (row-vector convention: dg = dv·S⁻¹)
+    dp_dg = np.zeros_like(g)
+    dp_dg[:, 0] = 1.0 / np.sqrt(np.maximum(1.0 - gx**2, 1e-300))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dr_dg = np.stack([np.zeros(len(g)), g[:, 2] / h2, -g[:, 1] / h2], axis=1)
+    sigma_v = output_variance(cal, g)
+    dp_dv, dr_dv = dp_dg @ cal.s_inv.T, dr_dg @ cal.s_inv.T
+    u_p = np.sqrt(np.sum(dp_dv**2 * sigma_v, axis=1))
+    u_r = np.sqrt(np.sum(dr_dv**2 * sigma_v, axis=1))
+    roll, u_r = _undefined_roll(cal, g, sigma_v, roll, u_r)
+    return Attitude(pitch, roll, u_p, u_r, _k95(cal))
+
+
+def _undefined_roll(cal: Calibration, g: NDArray, sigma_v: NDArray, roll: NDArray,
+                    u_roll: NDArray) -> tuple[NDArray, NDArray]:
+    """NaN roll where the horizontal part of g is not distinguishable from zero (pitch ±90°)."""
+    var_g = sigma_v @ cal.s_inv**2  # diagonal of Σ_g = S⁻ᵀ Σ_v S⁻¹ (Σ_v diagonal)
+    u_h = np.sqrt(0.5 * (var_g[:, 1] + var_g[:, 2]))
+    undefined = np.hypot(g[:, 1], g[:, 2]) <= ROLL_SIGNIFICANCE * u_h
+    return np.where(undefined, np.nan, roll), np.where(undefined, np.nan, u_roll)
+
+
+def sphere_least_squares(cal: Calibration, volts: NDArray) -> Attitude:
+    """Tripp eqs. 99–104: weighted least squares over (α, R) on the unit sphere."""
+    volts = np.atleast_2d(np.asarray(volts, float))
+    start = closed_form(cal, volts)
+    pitch, roll = start.pitch.copy(), np.where(start.roll_defined, start.roll, 0.0)
+    free_roll = start.roll_defined
+    S = cal.X[1:]
+    for _ in range(GN_ITERATIONS):
+        g, dg_dp, dg_dr = _gravity_and_derivatives(pitch, roll)
+        w = 1.0 / output_variance(cal, g)
+        resid = volts - cal.X[0] - g @ S
+        fp, fr = dg_dp @ S, dg_dr @ S  # rows of F_z
+        a = np.sum(w * fp * fp, axis=1)
+        b = np.sum(w * fp * fr, axis=1)
+        c = np.sum(w * fr * fr, axis=1)
+        rp, rr = np.sum(w * fp * resid, axis=1), np.sum(w * fr * resid, axis=1)
+        det = a * c - b * b
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step_p = np.where(free_roll, (c * rp - b * rr) / det, rp / a)
+            step_r = np.where(free_roll, (a * rr - b * rp) / det, 0.0)
+        pitch, roll = pitch + step_p, roll + step_r
+    g, dg_dp, dg_dr = _gravity_and_derivatives(pitch, roll)
+    w = 1.0 / output_variance(cal, g)
+    fp, fr = dg_dp @ S, dg_dr @ S
+    a, b, c = (np.sum(w * x * y, axis=1) for x, y in ((fp, fp), (fp, fr), (fr, fr)))
+    det = a * c - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):  # Σ_z = (F W Fᵀ)⁻¹ with W = Σ_v⁻¹
+        u_p = np.sqrt(np.where(free_roll, c / det, 1.0 / a))
+        u_r = np.sqrt(a / det)
+    pitch = np.arctan2(np.sin(pitch), np.cos(pitch))
+    roll = np.arctan2(np.sin(roll), np.cos(roll))
+    roll, u_r = np.where(free_roll, roll, np.nan), np.where(free_roll, u_r, np.nan)
+    return Attitude(pitch, roll, u_p, u_r, _k95(cal))

@@ -1,0 +1,85 @@
+"""Instrument models as regressor sets over the one least-squares core (DESIGN.md §3).
+
+The base model is Soto's [1 gᵀ]; extensions are extra regressors: temperature-corrected
+offset and sensitivity, and the 2α / 2R harmonics Tripp & Tcheng see in their residuals.
+The coning model (b, S, Ω, A) is not a regressor set but a change of variables of the
+base fit (`labcal.coning`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from labcal.errors import LabcalError
+from labcal.kinematics import gravity
+
+BASE_NAMES = ("B", "S_x", "S_y", "S_z")
+
+
+@dataclass(frozen=True)
+class Points:
+    """Where the instrument was (or will be): table angles and mount in degrees, temperature in °C."""
+
+    pitch_deg: NDArray
+    roll_deg: NDArray
+    y_deg: NDArray
+    u_deg: NDArray
+    temp_c: NDArray | None = None
+
+    @classmethod
+    def at(cls, pitch_deg: ArrayLike, roll_deg: ArrayLike, y_deg: ArrayLike = 0.0, u_deg: ArrayLike = 0.0,
+           temp_c: ArrayLike | None = None) -> Points:
+        p, r, y, u = np.broadcast_arrays(*(np.atleast_1d(np.asarray(a, float))
+                                           for a in (pitch_deg, roll_deg, y_deg, u_deg)))
+        t = None if temp_c is None else np.broadcast_to(np.asarray(temp_c, float), p.shape)
+        return cls(p, r, y, u, t)
+
+    def nominal_gravity(self) -> NDArray:
+        return gravity(*(np.radians(a) for a in (self.pitch_deg, self.roll_deg, self.y_deg, self.u_deg)))
+
+
+def _temperature(points: Points, t_ref: float) -> tuple[tuple[str, ...], NDArray]:
+    if points.temp_c is None:
+        raise LabcalError("the temperature extension needs a temp_c column in the readings")
+    dt = (points.temp_c - t_ref)[:, None]
+    g = points.nominal_gravity()
+    return ("dB/dT", "dS_x/dT", "dS_y/dT", "dS_z/dT"), np.hstack([dt, dt * g])
+
+
+def _harmonics(points: Points, t_ref: float) -> tuple[tuple[str, ...], NDArray]:
+    p, r = np.radians(points.pitch_deg), np.radians(points.roll_deg)
+    cols = np.column_stack([np.sin(2 * p), np.cos(2 * p), np.sin(2 * r), np.cos(2 * r)])
+    return ("sin 2α", "cos 2α", "sin 2R", "cos 2R"), cols
+
+
+EXTENSIONS: dict[str, Callable[[Points, float], tuple[tuple[str, ...], NDArray]]] = {
+    "temperature": _temperature,
+    "harmonics": _harmonics,
+}
+
+
+@dataclass(frozen=True)
+class Model:
+    """A regressor set: the base [1 gᵀ] plus named extensions; ``t_ref`` centres temperature terms."""
+
+    extensions: tuple[str, ...] = ()
+    t_ref: float = 20.0
+
+    def __post_init__(self) -> None:
+        unknown = [e for e in self.extensions if e not in EXTENSIONS]
+        if unknown:
+            raise LabcalError(f"unknown model extension {unknown[0]!r}; choose from {', '.join(EXTENSIONS)}")
+
+    def design(self, points: Points) -> tuple[tuple[str, ...], NDArray]:
+        """Regressor names and the design matrix F (K×L)."""
+        g = points.nominal_gravity()
+        names, cols = list(BASE_NAMES), [np.ones((len(g), 1)), g]
+        for ext in self.extensions:
+            ext_names, ext_cols = EXTENSIONS[ext](points, self.t_ref)
+            names += ext_names
+            cols.append(ext_cols)
+        return tuple(names), np.hstack(cols)

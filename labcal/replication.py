@@ -1,0 +1,155 @@
+"""Replicated calibration analysis (Tripp & Tcheng §8, Table 2; reference/metrology_stats.md §2).
+
+Readings of the same point (mount, pitch, roll) in several replicates separate precision from
+bias: pure error is the scatter about the point means, lack of fit the distance of the point
+means from the model. Drift between replicates is tested on per-replicate fits. Everything is
+vectorised over the columns of Y (one per sensor, or one per Monte Carlo trial).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import stats
+
+ALPHA = 0.05
+
+
+@dataclass(frozen=True)
+class FTest:
+    """An F test per column: statistic, degrees of freedom, critical value at ALPHA, p-value."""
+
+    statistic: NDArray
+    df_num: int
+    df_den: NDArray | int  # per column: the pure-error denominator may differ between sensors
+
+    @property
+    def critical(self) -> NDArray:
+        return stats.f.isf(ALPHA, self.df_num, self.df_den)
+
+    @property
+    def p_value(self) -> NDArray:
+        return stats.f.sf(self.statistic, self.df_num, self.df_den)
+
+    @property
+    def significant(self) -> NDArray:
+        return self.p_value < ALPHA
+
+    def to_json(self, column: int) -> dict:
+        df_den = int(np.broadcast_to(self.df_den, self.statistic.shape)[column])
+        return {"F": float(self.statistic[column]), "df": [self.df_num, df_den],
+                "critical_95": float(np.broadcast_to(self.critical, self.statistic.shape)[column]),
+                "p_value": float(self.p_value[column]), "significant": bool(self.significant[column])}
+
+
+@dataclass(frozen=True)
+class DriftTest:
+    """Drift of one scalar coefficient function between replicates (marginal form)."""
+
+    name: str
+    test: FTest
+    sigma_drift: NDArray  # between-replicate standard deviation beyond what noise explains
+
+    def to_json(self, column: int) -> dict:
+        return {**self.test.to_json(column), "sigma_drift": float(self.sigma_drift[column])}
+
+
+@dataclass(frozen=True)
+class Replication:
+    n_points: int  # distinct calibration points m
+    n_replicates: int
+    lack_of_fit_ms: NDArray
+    lack_of_fit: FTest  # against the pure error the drift tests call for
+    classical: FTest  # against one-way pure error (no drift allowed)
+    drift_robust: FTest | None  # against the residual after all drift (balanced designs only)
+    sigma_prec: NDArray
+    sigma_bias: NDArray
+    drift: tuple[DriftTest, ...]
+
+    def to_json(self, column: int) -> dict:
+        return {
+            "distinct_points": self.n_points, "replicates": self.n_replicates,
+            "sigma_prec": float(self.sigma_prec[column]), "sigma_bias": float(self.sigma_bias[column]),
+            "lack_of_fit": self.lack_of_fit.to_json(column),
+            "lack_of_fit_classical": self.classical.to_json(column),
+            "lack_of_fit_drift_robust": None if self.drift_robust is None
+            else self.drift_robust.to_json(column),
+            "drift": {d.name: d.to_json(column) for d in self.drift},
+        }
+
+
+def point_groups(keys: NDArray) -> tuple[NDArray, int]:
+    """Group index of every row (rows with equal keys are the same calibration point)."""
+    _, inverse = np.unique(keys, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    return inverse, int(inverse.max()) + 1
+
+
+def analyse(design: NDArray, y: NDArray, groups: NDArray, replicate: NDArray,
+            sensitivity: slice = slice(1, 4)) -> Replication | None:
+    """Lack of fit, variance components and drift tests; None when nothing is replicated.
+
+    ``design`` rows must depend only on the point (so that point means are well defined);
+    ``sensitivity`` selects the coefficients whose vector norm is the sensor's sensitivity.
+    """
+    y = y if y.ndim == 2 else y[:, None]
+    n_obs, n_coef = design.shape
+    n_groups = int(groups.max()) + 1
+    reps = np.unique(replicate)
+    if n_groups >= n_obs or len(reps) < 2 or n_groups <= n_coef:
+        return None
+    counts = np.bincount(groups, minlength=n_groups).astype(float)
+    means = np.zeros((n_groups, y.shape[1]))
+    np.add.at(means, groups, y)
+    means /= counts[:, None]
+    first_row = np.zeros(n_groups, dtype=int)
+    first_row[groups[::-1]] = np.arange(n_obs)[::-1]
+    j_m = design[first_row]  # one design row per distinct point
+    w = counts[:, None]
+    moment_inv = np.linalg.inv(j_m.T @ (w * j_m))
+    theta = moment_inv @ (j_m.T @ (w * means))
+    ss_lof = np.sum(w * (means - j_m @ theta) ** 2, axis=0)
+    ss_pe = np.sum((y - means[groups]) ** 2, axis=0)
+    df_lof, df_pe = n_groups - n_coef, n_obs - n_groups
+    ms_lof, ms_pe = ss_lof / df_lof, ss_pe / df_pe
+    classical = FTest(ms_lof / ms_pe, df_lof, df_pe)
+
+    drift_robust, drift, ms_star, df_star = None, (), ms_pe, df_pe
+    balanced = np.all(counts == len(reps)) and all(
+        np.array_equal(np.sort(groups[replicate == r]), np.arange(n_groups)) for r in reps)
+    if balanced:
+        per_rep = np.stack([y[replicate == r][np.argsort(groups[replicate == r])] for r in reps])
+        unscaled = np.linalg.inv(j_m.T @ j_m)
+        hat = unscaled @ j_m.T
+        theta_r = np.einsum("pm,rmc->rpc", hat, per_rep)  # per-replicate fits
+        dev = per_rep - means[None]  # D_r
+        resid = dev - np.einsum("mp,rpc->rmc", j_m, np.einsum("pm,rmc->rpc", hat, dev))
+        df_e = (len(reps) - 1) * df_lof
+        ms_e = np.sum(resid**2, axis=(0, 1)) / df_e
+        drift_robust = FTest(ms_lof / ms_e, df_lof, df_e)
+        s_bar = theta_r.mean(axis=0)[sensitivity]
+        grad = s_bar / np.linalg.norm(s_bar, axis=0)  # ∂|s|/∂s
+        u_ss = unscaled[sensitivity, sensitivity]
+        drift = (
+            _drift("offset", theta_r[:, 0, :], unscaled[0, 0], ms_e, df_e),
+            _drift("sensitivity", np.linalg.norm(theta_r[:, sensitivity, :], axis=1),
+                   np.einsum("ic,ij,jc->c", grad, u_ss, grad), ms_e, df_e),
+        )
+        # Drift inflates one-way pure error: where it is found, test bias against the residual
+        # after all drift instead (metrology_stats.md §2.6).
+        drifting = np.any([d.test.significant for d in drift], axis=0)
+        ms_star, df_star = np.where(drifting, ms_e, ms_pe), np.where(drifting, df_e, df_pe)
+    lof = FTest(ms_lof / ms_star, df_lof, df_star)
+    c = (n_obs - np.trace(moment_inv @ (j_m.T @ (w**2 * j_m)))) / df_lof
+    sigma_bias = np.sqrt(np.maximum(0.0, (ms_lof - ms_star) / c))
+    return Replication(n_groups, len(reps), ms_lof, lof, classical, drift_robust,
+                       np.sqrt(ms_star), sigma_bias, drift)
+
+
+def _drift(name: str, values: NDArray, factor: NDArray | float, ms_e: NDArray, df_e: int) -> DriftTest:
+    n_rep = values.shape[0]
+    between = np.var(values, axis=0, ddof=1)
+    noise = ms_e * factor
+    return DriftTest(name, FTest(between / noise, n_rep - 1, df_e), np.sqrt(np.maximum(0.0, between - noise)))
