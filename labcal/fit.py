@@ -114,6 +114,7 @@ class Fit:
             "parameters": list(self.names),
             "covariance": [self.covariance(j).tolist() for j in range(len(SENSORS))],
             "uncertainty_basis": self.variance_basis,
+            "reading_sd": np.sqrt(self.new_measurement_variance()).tolist(),
             "uncertainty_dof": self.variance_dof.tolist(),
             "layout": {
                 "rows": ["B", "S row g_x", "S row g_y", "S row g_z"],

@@ -37,18 +37,18 @@ def rz(t: ArrayLike) -> NDArray:
 
 
 def prot(x: ArrayLike) -> NDArray:
-    """Pitch rotation, aeronautical sign: Ry(-x)."""
-    return ry(-np.asarray(x, dtype=float))
+    """Pitch rotation, aeronautical sign: Ry(-x). Angles may be complex (complex-step derivatives)."""
+    return ry(-np.asarray(x))
 
 
 def rrot(x: ArrayLike) -> NDArray:
     """Roll rotation: Rx(x)."""
-    return rx(np.asarray(x, dtype=float))
+    return rx(np.asarray(x))
 
 
 def yrot(x: ArrayLike) -> NDArray:
     """Yaw rotation, aeronautical sign: Rz(-x)."""
-    return rz(-np.asarray(x, dtype=float))
+    return rz(-np.asarray(x))
 
 
 @dataclass(frozen=True)

@@ -68,20 +68,25 @@ def _check_angles(values: dict[str, float], where: str) -> None:
         raise LabcalError(f"{where}, column replicate: {values['replicate']:g} is not a whole number ≥ 1")
 
 
-def read_readings(path: str | Path) -> Readings:
-    """Load and validate a readings CSV; raise LabcalError naming file, line and column."""
+def read_numeric_csv(path: str | Path, kind: str, required: tuple[str, ...], optional: tuple[str, ...] = (),
+                     check=None) -> dict[str, NDArray]:
+    """Numeric columns of a CSV with a header, by name; other columns are ignored.
+
+    Every error names the file, the line and the column. ``check(values, where)`` may validate
+    each row further.
+    """
     path = Path(path)
-    text = read_text(path, "readings")
+    text = read_text(path, kind)
     if not text.strip():
-        raise LabcalError(f"{path}: file is empty; expected a header line {','.join(REQUIRED)}")
+        raise LabcalError(f"{path}: file is empty; expected a header line {','.join(required)}")
     reader = csv.reader(text.splitlines())
     header = [h.strip() for h in next(reader)]
-    missing = [c for c in REQUIRED if c not in header]
+    missing = [c for c in required if c not in header]
     if missing:
         raise LabcalError(
-            f"{path}: missing column(s) {', '.join(missing)}; the header must contain {','.join(REQUIRED)}"
+            f"{path}: missing column(s) {', '.join(missing)}; the header must contain {','.join(required)}"
         )
-    wanted = REQUIRED + tuple(c for c in OPTIONAL if c in header)
+    wanted = required + tuple(c for c in optional if c in header)
     index = {c: header.index(c) for c in wanted}
     rows: list[list[float]] = []
     for line_no, row in enumerate(reader, start=2):
@@ -91,16 +96,23 @@ def read_readings(path: str | Path) -> Readings:
         if len(row) < len(header):
             raise LabcalError(f"{where}: {len(row)} fields, the header has {len(header)}")
         values = {c: _number(row[i], f"{where}, column {c}") for c, i in index.items()}
-        _check_angles(values, where)
+        if check:
+            check(values, where)
         rows.append([values[c] for c in wanted])
     if not rows:
-        raise LabcalError(f"{path}: header only, no readings")
+        raise LabcalError(f"{path}: header only, no data rows")
     data = np.array(rows)
+    return {c: data[:, k] for k, c in enumerate(wanted)}
+
+
+def read_readings(path: str | Path) -> Readings:
+    """Load and validate a readings CSV; raise LabcalError naming file, line and column."""
+    cols = read_numeric_csv(path, "readings", REQUIRED, OPTIONAL, _check_angles)
     return Readings(
-        replicate=data[:, 0].astype(int),
-        y_deg=data[:, 1], u_deg=data[:, 2], pitch_deg=data[:, 3], roll_deg=data[:, 4],
-        volts=data[:, 5:8],
-        temp_c=data[:, 8] if "temp_c" in index else None,
+        replicate=cols["replicate"].astype(int),
+        y_deg=cols["y_deg"], u_deg=cols["u_deg"], pitch_deg=cols["pitch_deg"], roll_deg=cols["roll_deg"],
+        volts=np.column_stack([cols["vx"], cols["vy"], cols["vz"]]),
+        temp_c=cols.get("temp_c"),
     )
 
 

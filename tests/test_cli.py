@@ -103,7 +103,7 @@ GOOD_ROW = "1,0,0,0,0,0.1,0.2,1.0"
 
 @pytest.mark.parametrize("content,expected", [
     ("", "file is empty"),
-    (READINGS_HEADER + "\n", "header only, no readings"),
+    (READINGS_HEADER + "\n", "header only, no data rows"),
     ("replicate,y_deg,u_deg,pitch_deg,roll_deg,vx,vy\n1,0,0,0,0,0.1,0.2\n", "missing column(s) vz"),
     (f"{READINGS_HEADER}\n{GOOD_ROW}\n1,0,0,0,90,0.1,abc,1.0\n", "line 3, column vy: 'abc' is not a number"),
     (f"{READINGS_HEADER}\n1,0,0,0,90,nan,0.2,1.0\n", "line 2, column vx: value is nan"),
