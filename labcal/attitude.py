@@ -51,13 +51,17 @@ def load_calibration(path: str | Path) -> Calibration:
     doc = doc.get("fit", doc) if isinstance(doc, dict) else doc
     try:
         X = np.array(doc["coefficients"], dtype=float)
-        cov = np.array(doc["covariance"], dtype=float)[:, :4, :4]
+        cov = np.array(doc["covariance"], dtype=float)
         sd = np.array(doc.get("reading_sd", doc["residual_standard_error"]), dtype=float)
         dof = int(min(doc.get("uncertainty_dof", [doc["degrees_of_freedom"]])))
-    except (KeyError, TypeError, ValueError, IndexError) as exc:
-        raise LabcalError(f"{path}: not a labcal fit or certificate (missing or malformed {exc})") from None
-    if X.shape != (4, 3) or cov.shape != (3, 4, 4) or sd.shape != (3,):
-        raise LabcalError(f"{path}: coefficients must be 4×3 and covariance 3×(4×4)")
+    except KeyError as exc:
+        raise LabcalError(f"{path}: not a labcal fit or certificate (no field {exc})") from None
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise LabcalError(f"{path}: not a labcal fit or certificate ({exc})") from None
+    if X.shape != (4, 3) or cov.ndim != 3 or cov.shape[0] != 3 or cov.shape[1] < 4 or sd.shape != (3,):
+        raise LabcalError(f"{path}: coefficients must be 4×3, covariance 3 matrices of at least 4×4, "
+                          "and 3 reading standard deviations")
+    cov = cov[:, :4, :4]  # extension terms do not enter the attitude
     if not (np.all(np.isfinite(X)) and np.all(np.isfinite(cov)) and np.all(np.isfinite(sd))):
         raise LabcalError(f"{path}: coefficients or uncertainties contain NaN or infinity")
     if abs(np.linalg.det(X[1:])) < 1e-12:

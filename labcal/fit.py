@@ -165,12 +165,16 @@ def fit_linear(readings: Readings) -> Fit:
 
 @dataclass(frozen=True)
 class ExtensionTest:
-    """Is an extra regressor set warranted? Extra-sum-of-squares F test against the base model."""
+    """Is an extra regressor set warranted? Extra-sum-of-squares F test against the base model.
+
+    Terms the plan cannot separate from the base model (aliased) are left out and named.
+    """
 
     name: str
     reason: str | None  # why it could not be tested, else None
     f: NDArray | None = None
     df: tuple[int, int] | None = None
+    aliased: tuple[str, ...] = ()
 
     @property
     def p_value(self) -> NDArray | None:
@@ -181,30 +185,48 @@ class ExtensionTest:
             return {"tested": False, "reason": self.reason}
         return {"tested": True, "F": self.f.tolist(), "df": list(self.df), "p_value": self.p_value.tolist(),
                 "critical_95": float(stats.f.isf(ALPHA, *self.df)),
-                "warranted": (self.p_value < ALPHA).tolist()}
+                "warranted": (self.p_value < ALPHA).tolist(), "aliased_terms": list(self.aliased)}
+
+
+def _estimable(design: NDArray, n_base: int) -> NDArray:
+    """Columns beyond the base that add rank, in order (aliased ones are dropped)."""
+    keep = list(range(n_base))
+    for col in range(n_base, design.shape[1]):
+        trial = design[:, keep + [col]]
+        scale = np.linalg.norm(trial, axis=0)
+        if scale[-1] > 1e-12 * scale.max() and \
+                np.linalg.matrix_rank(trial / scale, tol=1e-9) == len(keep) + 1:
+            keep.append(col)
+    return np.array(keep)
 
 
 def extension_tests(readings: Readings) -> list[ExtensionTest]:
     """F test of each model extension added alone to the base model."""
     from labcal.errors import LabcalError
 
-    base = fit_readings(readings, Model())
-    sse_base = np.sum(base.ls.residuals**2, axis=0)
+    t_ref = float(np.mean(readings.temp_c)) if readings.temp_c is not None else 20.0
+    points = readings_points(readings)
+    _, base_design = Model().design(points)
+    n_base = base_design.shape[1]
+    sse_base = np.sum(least_squares(base_design, readings.volts).residuals ** 2, axis=0)
     results = []
     for name in EXTENSIONS:
         try:
-            full = fit_readings(readings, Model((name,), t_ref=base.model.t_ref if readings.temp_c is None
-                                                else float(np.mean(readings.temp_c))))
+            names, design = Model((name,), t_ref).design(points)
         except LabcalError as exc:
-            reason = ("not estimable with this plan (its regressors are aliased with the base model)"
-                      if "singular" in str(exc) or "cannot determine" in str(exc) else str(exc))
-            results.append(ExtensionTest(name, reason))
+            results.append(ExtensionTest(name, str(exc)))
             continue
-        q = full.ls.coef.shape[0] - base.ls.coef.shape[0]
-        sse_full = np.sum(full.ls.residuals**2, axis=0)
-        if full.ls.dof == 0:
+        keep = _estimable(design, n_base)
+        aliased = tuple(n for i, n in enumerate(names) if i >= n_base and i not in keep)
+        q, dof = len(keep) - n_base, len(readings) - len(keep)
+        if q == 0:
+            results.append(ExtensionTest(name, "not estimable with this plan: its terms are aliased with "
+                                               "the base model"))
+            continue
+        if dof <= 0:
             results.append(ExtensionTest(name, "no degrees of freedom left to test it"))
             continue
-        f = ((sse_base - sse_full) / q) / (sse_full / full.ls.dof)
-        results.append(ExtensionTest(name, None, f, (q, full.ls.dof)))
+        sse_full = np.sum(least_squares(design[:, keep], readings.volts).residuals ** 2, axis=0)
+        f = ((sse_base - sse_full) / q) / (sse_full / dof)
+        results.append(ExtensionTest(name, None, f, (q, dof), aliased))
     return results

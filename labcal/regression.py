@@ -15,6 +15,7 @@ from scipy.linalg import solve_triangular
 from labcal.errors import LabcalError
 
 RANK_TOLERANCE = 1e-10  # smallest singular value of the column-scaled design, relative to the largest
+ZERO_COLUMN = 1e-12  # a column this much smaller than the largest is zero to rounding
 
 
 @dataclass(frozen=True)
@@ -63,10 +64,12 @@ def least_squares(design: NDArray, observations: NDArray) -> LeastSquares:
             "add points or mounts to the plan"
         )
     scale = np.linalg.norm(design, axis=0)
-    scale[scale == 0] = 1.0
+    # A column of rounding noise (sin 180° ≈ 1e-16) is zero; scaling must not blow it up to unit norm.
+    null_column = scale <= ZERO_COLUMN * scale.max()
+    scale[null_column] = 1.0
     q, r = np.linalg.qr(design / scale)
     singular = np.linalg.svd(r, compute_uv=False)
-    if singular[-1] <= RANK_TOLERANCE * singular[0]:
+    if np.any(null_column) or singular[-1] <= RANK_TOLERANCE * singular[0]:
         raise LabcalError(
             f"the points do not determine all {n_coef} coefficients (the design is singular); "
             "spread the points over more pitch and roll angles"
