@@ -101,9 +101,7 @@ def analyse(design: NDArray, y: NDArray, groups: NDArray, replicate: NDArray,
     if n_groups >= n_obs or len(reps) < 2 or n_groups <= n_coef:
         return None
     counts = np.bincount(groups, minlength=n_groups).astype(float)
-    means = np.zeros((n_groups, y.shape[1]))
-    np.add.at(means, groups, y)
-    means /= counts[:, None]
+    means = _group_means(y, groups, n_groups)
     first_row = np.zeros(n_groups, dtype=int)
     first_row[groups[::-1]] = np.arange(n_obs)[::-1]
     j_m = design[first_row]  # one design row per distinct point
@@ -117,17 +115,17 @@ def analyse(design: NDArray, y: NDArray, groups: NDArray, replicate: NDArray,
     classical = FTest(ms_lof / ms_pe, df_lof, df_pe)
 
     drift_robust, drift, ms_star, df_star = None, (), ms_pe, df_pe
-    balanced = np.all(counts == len(reps)) and all(
-        np.array_equal(np.sort(groups[replicate == r]), np.arange(n_groups)) for r in reps)
-    if balanced:
-        per_rep = np.stack([y[replicate == r][np.argsort(groups[replicate == r])] for r in reps])
-        unscaled = np.linalg.inv(j_m.T @ j_m)
-        hat = unscaled @ j_m.T
-        theta_r = np.einsum("pm,rmc->rpc", hat, per_rep)  # per-replicate fits
+    per_rep_counts = np.stack([np.bincount(groups[replicate == r], minlength=n_groups) for r in reps])
+    if np.all(per_rep_counts == per_rep_counts[0]):  # every replicate holds the same points
+        c = per_rep_counts[0].astype(float)[:, None]  # readings of each point per replicate
+        per_rep = np.stack([_group_means(y[replicate == r], groups[replicate == r], n_groups) for r in reps])
+        unscaled = np.linalg.inv(j_m.T @ (c * j_m))
+        hat = unscaled @ (j_m.T * c.T)  # weighted least squares on per-replicate point means
+        theta_r = np.einsum("pm,rmc->rpc", hat, per_rep)
         dev = per_rep - means[None]  # D_r
         resid = dev - np.einsum("mp,rpc->rmc", j_m, np.einsum("pm,rmc->rpc", hat, dev))
         df_e = (len(reps) - 1) * df_lof
-        ms_e = np.sum(resid**2, axis=(0, 1)) / df_e
+        ms_e = np.sum(c[None] * resid**2, axis=(0, 1)) / df_e
         drift_robust = FTest(ms_lof / ms_e, df_lof, df_e)
         s_bar = theta_r.mean(axis=0)[sensitivity]
         grad = s_bar / np.linalg.norm(s_bar, axis=0)  # ∂|s|/∂s
@@ -146,6 +144,12 @@ def analyse(design: NDArray, y: NDArray, groups: NDArray, replicate: NDArray,
     sigma_bias = np.sqrt(np.maximum(0.0, (ms_lof - ms_star) / c))
     return Replication(n_groups, len(reps), ms_lof, lof, classical, drift_robust,
                        np.sqrt(ms_star), sigma_bias, drift)
+
+
+def _group_means(y: NDArray, groups: NDArray, n_groups: int) -> NDArray:
+    sums = np.zeros((n_groups, y.shape[1]))
+    np.add.at(sums, groups, y)
+    return sums / np.bincount(groups, minlength=n_groups)[:, None]
 
 
 def _drift(name: str, values: NDArray, factor: NDArray | float, ms_e: NDArray, df_e: int) -> DriftTest:

@@ -162,3 +162,17 @@ def test_harmonic_extension_finds_a_2_alpha_pattern():
     tests = {t.name: t for t in extension_tests(replace(readings, volts=readings.volts + pattern))}
     assert np.all(tests["harmonics"].p_value < 1e-6)
     assert tests["temperature"].reason.startswith("the temperature extension needs a temp_c column")
+
+
+def test_replicates_that_visit_a_point_twice_still_get_drift_tests():
+    """Tripp's 481-point design holds both −180° and 180°: each replicate sees those points twice.
+    The drift-robust analysis uses per-replicate point means weighted by their counts."""
+    from labcal.design import grid, make_plan
+
+    plan = make_plan("t481", "", grid(-180, 180, 10, -180, 180, 30), four_mounts=False, replicates=3)
+    readings = simulate_readings(plan, TRUTH, noise_v=1e-5, seed=12)
+    rep = fit_readings(readings).replication
+    assert rep.n_points == 36 * 12 and rep.drift_robust is not None
+    assert rep.drift_robust.df_den == 2 * (432 - 4)
+    assert rep.classical.df_den == len(readings) - 432
+    assert np.mean(rep.sigma_prec) == pytest.approx(1e-5, rel=0.05)
