@@ -70,6 +70,7 @@ def coefficient_table(fit: Fit, title: str = "Fitted coefficients X = [Bᵀ; S]"
             f"{fit.coefficients[i, j]:+.9f} ± {se[i, j]:.2g}" if np.isfinite(se[i, j])
             else f"{fit.coefficients[i, j]:+.9f}" for j in range(3)))
     table.add_row("S_E (V)", *(f"{s:.3g}" for s in fit.ls.residual_se))
-    table.caption = (f"{fit.ls.n_obs} points, {fit.ls.dof} degrees of freedom per sensor; "
-                     "± is one standard error")
+    basis = "; ".join(sorted({f"{b} ({d} df)" for b, d in zip(fit.variance_basis, fit.variance_dof,
+                                                                  strict=True)}))
+    table.caption = f"{fit.ls.n_obs} points; ± is one standard error, from the {basis}"
     return table

@@ -152,6 +152,14 @@ def cmd_audit(args: argparse.Namespace) -> int:
     return 0
 
 
+def angle_list(text: str) -> list[float]:
+    """'P1,P2,...' in degrees (argparse type)."""
+    try:
+        return [float(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of angles") from None
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     plan = sub.add_parser("plan", help="list, show and design calibration plans",
                           description="Calibration plans shipped with labcal or in your own files; "
@@ -181,8 +189,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument("--n-pitch", type=int, required=True, help="N")
     d.add_argument("--n-roll", type=int, required=True, help="M")
     d = designs.add_parser("d0", parents=[common], help="your pitches × M uniform rolls")
-    d.add_argument("--pitch", type=lambda t: [float(x) for x in t.split(",")], required=True,
-                   metavar="P1,P2,...", help="pitch angles (°)")
+    d.add_argument("--pitch", type=angle_list, required=True,
+                   metavar="P1,P2,...",
+                   help="pitch angles (°); write --pitch=-20,0,20 when the first is negative")
     d.add_argument("--n-roll", type=int, required=True, help="M")
     designs.add_parser("tumble", parents=[common], help="the six cardinal attitudes (Tripp eq. 56)")
     d = designs.add_parser("fractional", parents=[common], help="a decimated D design (Tripp eq. 109)")
