@@ -1,0 +1,244 @@
+"""The run journal: every reading on disk, in SQLite, before the next move begins.
+
+One database per lab (`runs/labcal.sqlite`, or $LABCAL_DB, or --db) holds every run: a manifest
+first, then one transaction per point with its raw samples, and the events of the run (prompts
+and answers, faults, retries, pauses). WAL mode with synchronous=FULL: a committed point
+survives a killed process and a power cut. readings.csv and fit.json are exports of it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sqlite3
+from dataclasses import dataclass, fields
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from labcal.errors import LabcalError
+from labcal.readings import Readings
+
+DEFAULT_DB = Path("runs") / "labcal.sqlite"
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS runs (
+    id INTEGER PRIMARY KEY,
+    run_dir TEXT NOT NULL,
+    plan_name TEXT NOT NULL, plan_text TEXT NOT NULL, plan_hash TEXT NOT NULL,
+    station_text TEXT NOT NULL, station_hash TEXT NOT NULL,
+    software_version TEXT NOT NULL, instrument_serial TEXT, device_id TEXT, operator TEXT,
+    settings TEXT NOT NULL, metadata TEXT NOT NULL,
+    started_utc TEXT NOT NULL, status TEXT NOT NULL, reason TEXT, ended_utc TEXT
+);
+CREATE TABLE IF NOT EXISTS points (
+    run_id INTEGER NOT NULL REFERENCES runs(id), seq INTEGER NOT NULL,
+    replicate INTEGER NOT NULL, y_deg REAL NOT NULL, u_deg REAL NOT NULL,
+    pitch_deg REAL NOT NULL, roll_deg REAL NOT NULL, pitch_read REAL, roll_read REAL,
+    attempt INTEGER NOT NULL, status TEXT NOT NULL, t_start REAL, t_end REAL, utc TEXT NOT NULL,
+    n_samples INTEGER NOT NULL, vx REAL, vy REAL, vz REAL, sd_vx REAL, sd_vy REAL, sd_vz REAL,
+    temp_c REAL, settle_s REAL, settle_verdict TEXT, samples BLOB,
+    PRIMARY KEY (run_id, seq)
+);
+CREATE TABLE IF NOT EXISTS events (
+    id INTEGER PRIMARY KEY, run_id INTEGER NOT NULL REFERENCES runs(id),
+    utc TEXT NOT NULL, station_time REAL, kind TEXT NOT NULL, message TEXT NOT NULL, data TEXT
+);
+"""
+
+
+def db_path(option: str | None = None) -> Path:
+    """The lab database: --db, else $LABCAL_DB, else runs/labcal.sqlite."""
+    return Path(option or os.environ.get("LABCAL_DB") or DEFAULT_DB)
+
+
+def sha256(text: str) -> str:
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def utc_now() -> str:
+    return datetime.now(UTC).isoformat(timespec="milliseconds")
+
+
+@dataclass(frozen=True)
+class Manifest:
+    """What a run is: written before the first move."""
+
+    run_dir: str
+    plan_name: str
+    plan_text: str
+    station_text: str
+    software_version: str
+    settings: dict
+    metadata: dict
+    instrument_serial: str | None = None
+    device_id: str | None = None
+    operator: str | None = None
+
+
+@dataclass(frozen=True)
+class PointRecord:
+    """One measured (or failed) point of the schedule."""
+
+    seq: int
+    replicate: int
+    y_deg: float
+    u_deg: float
+    pitch_deg: float
+    roll_deg: float
+    pitch_read: float | None
+    roll_read: float | None
+    attempt: int
+    status: str  # "ok" or "failed"
+    t_start: float
+    t_end: float
+    n_samples: int
+    vx: float | None
+    vy: float | None
+    vz: float | None
+    sd_vx: float | None
+    sd_vy: float | None
+    sd_vz: float | None
+    temp_c: float | None
+    settle_s: float | None
+    settle_verdict: str
+
+
+@dataclass(frozen=True)
+class RunRow:
+    id: int
+    run_dir: str
+    plan_name: str
+    plan_text: str
+    plan_hash: str
+    station_text: str
+    station_hash: str
+    software_version: str
+    settings: dict
+    metadata: dict
+    started_utc: str
+    status: str
+    reason: str | None
+    instrument_serial: str | None
+    operator: str | None
+
+
+class Journal:
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.db = sqlite3.connect(self.path, timeout=10.0, isolation_level=None)
+            self.db.execute("PRAGMA journal_mode=WAL")
+            self.db.execute("PRAGMA synchronous=FULL")
+            self.db.execute("PRAGMA foreign_keys=ON")
+            self.db.executescript(SCHEMA)
+        except (sqlite3.Error, OSError) as exc:
+            raise LabcalError(f"{self.path}: cannot open the run journal ({exc})") from None
+
+    def close(self) -> None:
+        self.db.close()
+
+    def __enter__(self) -> Journal:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _transaction(self, statements: list[tuple[str, tuple]]) -> int | None:
+        """Run statements atomically; a crash leaves all of them or none."""
+        last = None
+        self.db.execute("BEGIN IMMEDIATE")
+        try:
+            for sql, args in statements:
+                last = self.db.execute(sql, args).lastrowid
+            self.db.execute("COMMIT")
+        except BaseException:
+            self.db.execute("ROLLBACK")
+            raise
+        return last
+
+    # --- writing ---------------------------------------------------------------------------------
+    def start_run(self, m: Manifest) -> int:
+        return self._transaction([(
+            "INSERT INTO runs (run_dir, plan_name, plan_text, plan_hash, station_text, station_hash,"
+            " software_version, instrument_serial, device_id, operator, settings, metadata,"
+            " started_utc, status) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,'running')",
+            (m.run_dir, m.plan_name, m.plan_text, sha256(m.plan_text), m.station_text,
+             sha256(m.station_text), m.software_version, m.instrument_serial, m.device_id, m.operator,
+             json.dumps(m.settings), json.dumps(m.metadata), utc_now()),
+        )])
+
+    def record_point(self, run_id: int, point: PointRecord, samples: NDArray | None) -> None:
+        """The point and its raw samples in one transaction."""
+        names = [f.name for f in fields(PointRecord)]
+        values = [getattr(point, n) for n in names]
+        blob = None if samples is None else np.ascontiguousarray(samples, dtype="<f8").tobytes()
+        self._transaction([
+            (f"INSERT INTO points (run_id, {', '.join(names)}, utc, samples) VALUES "
+             f"(?, {', '.join('?' * len(names))}, ?, ?)", (run_id, *values, utc_now(), blob)),
+        ])
+
+    def event(self, run_id: int, kind: str, message: str, data: dict | None = None,
+              station_time: float | None = None) -> None:
+        self._transaction([("INSERT INTO events (run_id, utc, station_time, kind, message, data) "
+                            "VALUES (?,?,?,?,?,?)",
+                            (run_id, utc_now(), station_time, kind, message,
+                             None if data is None else json.dumps(data)))])
+
+    def finish(self, run_id: int, status: str, reason: str | None = None) -> None:
+        self._transaction([("UPDATE runs SET status=?, reason=?, ended_utc=? WHERE id=?",
+                            (status, reason, utc_now(), run_id))])
+
+    def reopen(self, run_id: int) -> None:
+        self._transaction([("UPDATE runs SET status='running', reason=NULL, ended_utc=NULL WHERE id=?",
+                            (run_id,))])
+
+    # --- reading ---------------------------------------------------------------------------------
+    def run(self, run_id: int) -> RunRow:
+        cols = [f.name for f in fields(RunRow)]
+        row = self.db.execute(f"SELECT {', '.join(cols)} FROM runs WHERE id=?", (run_id,)).fetchone()
+        if row is None:
+            raise LabcalError(f"{self.path}: no run {run_id} in this journal")
+        values = dict(zip(cols, row, strict=True))
+        for key in ("settings", "metadata"):
+            values[key] = json.loads(values[key])
+        return RunRow(**values)
+
+    def points(self, run_id: int, status: str | None = None) -> list[PointRecord]:
+        names = [f.name for f in fields(PointRecord)]
+        sql = f"SELECT {', '.join(names)} FROM points WHERE run_id=?"
+        args: tuple = (run_id,)
+        if status:
+            sql, args = sql + " AND status=?", (run_id, status)
+        rows = self.db.execute(sql + " ORDER BY seq", args).fetchall()
+        return [PointRecord(**dict(zip(names, r, strict=True))) for r in rows]
+
+    def samples(self, run_id: int, seq: int) -> NDArray:
+        row = self.db.execute("SELECT samples FROM points WHERE run_id=? AND seq=?", (run_id, seq)).fetchone()
+        if row is None or row[0] is None:
+            return np.empty((0, 4))
+        return np.frombuffer(row[0], dtype="<f8").reshape(-1, 4)
+
+    def events(self, run_id: int) -> list[dict]:
+        rows = self.db.execute("SELECT utc, station_time, kind, message, data FROM events WHERE run_id=? "
+                               "ORDER BY id", (run_id,)).fetchall()
+        return [{"utc": u, "station_time": t, "kind": k, "message": m, "data": json.loads(d) if d else None}
+                for u, t, k, m, d in rows]
+
+    def readings(self, run_id: int) -> Readings:
+        """The committed good points as Readings (the export behind readings.csv and the fit)."""
+        pts = self.points(run_id, status="ok")
+        if not pts:
+            raise LabcalError(f"run {run_id} has no readings yet")
+        temps = [p.temp_c for p in pts]
+        return Readings(
+            replicate=np.array([p.replicate for p in pts]),
+            y_deg=np.array([p.y_deg for p in pts]), u_deg=np.array([p.u_deg for p in pts]),
+            pitch_deg=np.array([p.pitch_deg for p in pts]), roll_deg=np.array([p.roll_deg for p in pts]),
+            volts=np.array([[p.vx, p.vy, p.vz] for p in pts]),
+            temp_c=None if any(t is None for t in temps) else np.array(temps),
+        )
+

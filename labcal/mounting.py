@@ -1,0 +1,31 @@
+"""Is the instrument mounted the way the plan says? Checked before any point of a mount is kept.
+
+At level all four mounts look alike to x (g along z only separates top from bottom), so the
+check attitude is pitch 30°, roll 30°, where the four mounts' gravity vectors differ in sign on
+at least two axes. The reading is turned into g with the calibration so far when there is one,
+otherwise with the nominal instrument (B ≈ 0, S ≈ s·I, s > 0): only signs need to be right.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from labcal.kinematics import MOUNTS, Mount, gravity
+
+CHECK_ATTITUDE = (30.0, 30.0)
+
+
+def expected_gravity(mount: Mount) -> NDArray:
+    return gravity(*np.radians(CHECK_ATTITUDE), *mount.radians)
+
+
+def identify(volts: NDArray, provisional: NDArray | None = None) -> Mount:
+    """The mount whose check-attitude gravity best matches the mean voltages. ``provisional`` is
+    an X (4×3) fitted from the points measured so far, if any."""
+    volts = np.asarray(volts, float)
+    if provisional is not None:
+        g = np.linalg.solve(provisional[1:].T, volts - provisional[0])
+    else:
+        g = volts / np.linalg.norm(volts)
+    return min(MOUNTS, key=lambda m: float(np.linalg.norm(g - expected_gravity(m))))

@@ -1,0 +1,83 @@
+"""In which order to visit a mount's points: the plan's, the shortest, the paper's sweep, or random.
+
+Both tables move at once, so going from one point to the next takes the longer of the two
+moves (each the shortest way round). `shortest` builds a nearest-neighbour tour from the load
+position and improves it by 2-opt; Tripp & Tcheng recommend sweeping pitch min → max → min
+(§4.1); a randomised order per replicate guards against drift aliasing with attitude.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+ORDERS = ("shortest", "plan", "sweep", "random")
+
+
+def move_time(a: NDArray, b: NDArray, speed: float, accel: float) -> NDArray:
+    """Time to go from attitude(s) a to b (…×2 degrees) with both tables moving together."""
+    d = np.abs((np.asarray(b) - np.asarray(a) + 180.0) % 360.0 - 180.0)
+    t = np.where(d <= speed**2 / accel, 2 * np.sqrt(d / accel), d / speed + speed / accel)
+    return t.max(axis=-1)
+
+
+def tour_time(points: NDArray, start: NDArray, speed: float, accel: float) -> float:
+    path = np.vstack([start, points])
+    return float(move_time(path[:-1], path[1:], speed, accel).sum())
+
+
+def _shortest(points: NDArray, start: NDArray, speed: float, accel: float) -> list[int]:
+    n = len(points)
+    cost = move_time(points[:, None, :], points[None, :, :], speed, accel)
+    from_start = move_time(start[None, :], points, speed, accel)
+    order, left = [int(np.argmin(from_start))], set(range(n))
+    left.remove(order[0])
+    while left:
+        rest = np.fromiter(left, int)
+        nxt = int(rest[np.argmin(cost[order[-1], rest])])
+        order.append(nxt)
+        left.remove(nxt)
+    path = np.array(order)
+    improved = True
+    while improved:  # 2-opt on the open path: reverse path[i..j] when that shortens it
+        improved = False
+        for i in range(n - 1):
+            before = from_start[path[0]] if i == 0 else cost[path[i - 1], path[i]]
+            prev_node = None if i == 0 else path[i - 1]
+            j = np.arange(i + 1, n)
+            after = np.where(j < n - 1, cost[path[j], path[np.minimum(j + 1, n - 1)]], 0.0)
+            new_first = from_start[path[j]] if prev_node is None else cost[prev_node, path[j]]
+            new_last = np.where(j < n - 1, cost[path[i], path[np.minimum(j + 1, n - 1)]], 0.0)
+            gain = before + after - new_first - new_last
+            best = int(np.argmax(gain))
+            if gain[best] > 1e-9:
+                path[i:j[best] + 1] = path[i:j[best] + 1][::-1].copy()
+                improved = True
+    return path.tolist()
+
+
+def _sweep(points: NDArray, descending: bool) -> list[int]:
+    """Pitch from min to max (or max to min); roll alternating direction at each pitch."""
+    pitch = (points[:, 0] + 180.0) % 360.0 - 180.0
+    order = []
+    for k, p in enumerate(sorted(set(pitch), reverse=descending)):
+        idx = np.flatnonzero(pitch == p)
+        idx = idx[np.argsort(points[idx, 1] % 360.0)]
+        order += (idx[::-1] if k % 2 else idx).tolist()
+    return order
+
+
+def order_points(points: list[tuple[float, float]], how: str, *, replicate: int = 1, seed: int = 0,
+                 start: tuple[float, float] = (0.0, 0.0), speed: float = 20.0,
+                 accel: float = 40.0) -> list[int]:
+    """Indices of ``points`` in visiting order."""
+    pts = np.asarray(points, dtype=float)
+    if how == "plan":
+        return list(range(len(pts)))
+    if how == "sweep":
+        return _sweep(pts, descending=replicate % 2 == 0)
+    if how == "random":
+        return np.random.default_rng([seed, replicate, 0x0DE5]).permutation(len(pts)).tolist()
+    if how == "shortest":
+        return _shortest(pts, np.asarray(start, float), speed, accel)
+    raise ValueError(f"unknown order {how!r}; choose from {', '.join(ORDERS)}")
