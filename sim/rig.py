@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from labcal.errors import LabcalError
 from labcal.files import load_model
 from labcal.kinematics import ARCSEC, IndexWobble, Misalignment, Mount, gravity
-from labcal.sim.clock import VirtualClock
+from labcal.sim.clock import ScaledClock, VirtualClock
 from labcal.sim.instrument import InstrumentTruth, default_instrument
 from labcal.sim.tables import SimAxis
 from labcal.station import Scan, Station
@@ -67,10 +67,13 @@ class SimRig:
 
     measures_temperature = True  # the simulated DMM scans a lab thermometer too
 
-    def __init__(self, config: RigConfig | None = None, seed: int | None = None):
+    def __init__(self, config: RigConfig | None = None, seed: int | None = None,
+                 clock: VirtualClock | ScaledClock | None = None):
+        """``clock``: the virtual clock of a dry run by default; protocol emulators pass a
+        `ScaledClock` so that the physics runs in (scaled) wall time."""
         self.config = config = config or RigConfig()
         self.seed = config.seed if seed is None else seed
-        self.clock = VirtualClock()
+        self.clock = clock or VirtualClock()
         sync = self._catch_up
         self.pitch = SimAxis("pitch", self.clock, config.speed_dps, config.accel_dps2, config.clamp_s, sync)
         self.roll = SimAxis("roll", self.clock, config.speed_dps, config.accel_dps2, config.clamp_s, sync)
@@ -80,6 +83,8 @@ class SimRig:
         self._rng = np.random.default_rng([self.seed, 0x5EED])
         self.mount = Mount(0, 0)
         self._mount_error = Misalignment()
+        self._gravity_key: tuple | None = None
+        self._gravity = np.zeros(3)
         self._t_filter = 0.0
         self._g_filtered = self.true_gravity(0.0, 0.0)
 
@@ -90,6 +95,14 @@ class SimRig:
         y, u = self.mount.radians
         mis = self.misalignment + self._mount_error + self.index_wobble.misalignment(p, r)
         return gravity(p, r, y, u, mis)
+
+    def _still_gravity(self, pitch_deg: float, roll_deg: float) -> NDArray:
+        """`true_gravity`, remembered while the tables stand still and the mount is unchanged (a
+        DMM scan asks the same question for every sample)."""
+        key = (pitch_deg, roll_deg, self.mount, id(self._mount_error))
+        if key != self._gravity_key:
+            self._gravity_key, self._gravity = key, self.true_gravity(pitch_deg, roll_deg)
+        return self._gravity
 
     def _catch_up(self) -> None:
         self._advance_filter(self.clock.now())
@@ -119,21 +132,29 @@ class SimRig:
             for u in inputs:
                 x = u + (x - u) * decay
             self._g_filtered, t0 = x, t_still
-        u = self.true_gravity(self.pitch.angle_at(t), self.roll.angle_at(t))
+        u = self._still_gravity(float(self.pitch.angle_at(t)), float(self.roll.angle_at(t)))
         self._g_filtered = u + (self._g_filtered - u) * math.exp(-(t - t0) / tau)
         self._t_filter = t
 
     def read(self, n_samples: int) -> Scan:
         """n consecutive DMM samples (implements `labcal.station.Voltmeter`)."""
         t_int = self.config.nplc / self.config.line_hz
-        volts = np.empty((n_samples, 3))
-        temps = np.empty(n_samples)
+        times = np.empty(n_samples)
         for i in range(n_samples):
-            t_mid = self.clock.now() + 0.5 * t_int
-            self._advance_filter(t_mid)
-            temps[i] = self.lab_temperature(t_mid)
-            volts[i] = self.instrument.static_volts(self._g_filtered, t_mid, temps[i])
+            times[i] = self.clock.now() + 0.5 * t_int
             self.clock.sleep(t_int)
+        return self.sample_at(times)
+
+    def sample_at(self, times: NDArray) -> Scan:
+        """The instrument's outputs (noise included) and the lab temperature at the given rig
+        times, which must not decrease and not precede earlier samples (the output filter only
+        runs forward). Emulated DMMs sample each channel at its own time through this."""
+        volts = np.empty((len(times), 3))
+        temps = np.empty(len(times))
+        for i, t in enumerate(times):
+            self._advance_filter(t)
+            temps[i] = self.lab_temperature(t)
+            volts[i] = self.instrument.static_volts(self._g_filtered, t, temps[i])
         volts += self._rng.normal(0.0, self.instrument.noise_v, size=volts.shape)
         return Scan(volts=volts, temp_c=temps)
 
@@ -141,6 +162,11 @@ class SimRig:
         """The simulated technician remounts the instrument; takes operator time."""
         self._catch_up()
         self.clock.sleep(self.config.remount_s)
+        self.set_mount(mount)
+
+    def set_mount(self, mount: Mount) -> None:
+        """The instrument is now in ``mount`` (the operator's time is not the rig's business)."""
+        self._catch_up()
         self.mount = mount
         scatter = self.config.device.mount_repeat_arcsec * ARCSEC
         if scatter:

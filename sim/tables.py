@@ -62,11 +62,16 @@ class SimAxis:
     def motion_end(self) -> float:
         return self._t_motion_end
 
-    def move_to(self, angle_deg: float) -> None:
+    def move_to(self, angle_deg: float, way: str = "shortest") -> None:
+        """Start a move: the ``shortest`` way round (angles mod 360), ``direct`` to the unwrapped
+        angle (a table with limits), or ``forward`` / ``reverse`` round (emulated drives need all)."""
         self._before_move()
         now = self.clock.now()
         current = float(self.angle_at(now))
-        delta = (angle_deg - current + 180.0) % 360.0 - 180.0
+        delta = {"shortest": (angle_deg - current + 180.0) % 360.0 - 180.0,
+                 "direct": angle_deg - current,
+                 "forward": (angle_deg - current) % 360.0,
+                 "reverse": -((current - angle_deg) % 360.0)}[way]
         self._start_angle, self._distance, self._t_start = current, delta, now
         self._t_motion_end = now + trapezoid_duration(delta, self.speed, self.accel)
         self.travel_deg += abs(delta)
