@@ -12,7 +12,6 @@ from rich.progress import (
     Progress,
     TextColumn,
     TimeElapsedColumn,
-    TimeRemainingColumn,
 )
 from rich.table import Table
 
@@ -30,13 +29,16 @@ def format_duration(seconds: float) -> str:
 class ProgressDisplay(Display):
     """A rich progress bar with ETA and a live line of the last reading and station time."""
 
-    def __init__(self, console: Console, total: int):
+    def __init__(self, console: Console, total: int, step_estimates: dict[int, float] | None = None,
+                 done: int = 0):
         self.progress = Progress(
             TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-            TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
+            TimeElapsedColumn(), TextColumn("rig ETA {task.fields[rig_eta]}"),
             TextColumn("{task.fields[last]}"), console=console, transient=False,
         )
-        self.task = self.progress.add_task("calibrating", total=total, last="")
+        self.estimates = step_estimates or {}
+        self.task = self.progress.add_task("calibrating", total=total, completed=done, last="",
+                                           rig_eta=format_duration(sum(self.estimates.values())))
 
     def __enter__(self) -> ProgressDisplay:
         self.progress.start()
@@ -53,9 +55,13 @@ class ProgressDisplay(Display):
         finally:
             self.progress.start()
 
-    def point_done(self, step: Step, volts: np.ndarray, station_time_s: float) -> None:
-        last = f"p={step.pitch_deg:g}° r={step.roll_deg:g}° · rig time {format_duration(station_time_s)}"
-        self.progress.update(self.task, advance=1, last=last)
+    def point_done(self, step: Step, volts: np.ndarray, station_time_s: float, settle_s: float) -> None:
+        last = f"p={step.pitch_deg:g}° r={step.roll_deg:g}° settled in {settle_s:.1f} s"
+        remaining = sum(t for seq, t in self.estimates.items() if seq > step.seq)
+        self.progress.update(self.task, advance=1, last=last, rig_eta=format_duration(remaining))
+
+    def message(self, text: str) -> None:
+        self.progress.console.print(text)
 
 
 def coefficient_table(fit: Fit, title: str = "Fitted coefficients X = [Bᵀ; S]") -> Table:

@@ -1,5 +1,5 @@
 """Ctrl-C during a run: the first asks for a pause after the current point, the second stops
-the tables at once. Neither cuts a journal transaction or a device exchange in half: inside a
+the tables at once; at a prompt, where nothing moves, the first stops. Neither cuts a journal transaction or a device exchange in half: inside a
 `critical()` section the stop is deferred to the section's end.
 """
 
@@ -14,6 +14,7 @@ from contextlib import contextmanager
 class Interrupts:
     def __init__(self, on_first: Callable[[], None] = lambda: None):
         self.count = 0
+        self._prompting = False
         self._depth = 0
         self._deferred = False
         self._on_first = on_first
@@ -29,6 +30,8 @@ class Interrupts:
             signal.signal(signal.SIGINT, self._previous)
 
     def _handle(self, signum: int, frame: object) -> None:
+        if self._prompting:  # nothing moves at a prompt: Ctrl-C there means stop
+            raise KeyboardInterrupt
         self.count += 1
         if self.count == 1:
             self._on_first()
@@ -44,6 +47,15 @@ class Interrupts:
     def resumed(self) -> None:
         """The operator chose to go on after a pause: the next Ctrl-C pauses again."""
         self.count = 0
+
+    @contextmanager
+    def prompting(self) -> Iterator[None]:
+        """While the operator is asked something, Ctrl-C stops the run at once."""
+        self._prompting = True
+        try:
+            yield
+        finally:
+            self._prompting = False
 
     @contextmanager
     def critical(self) -> Iterator[None]:

@@ -1,53 +1,104 @@
-"""Talking to the technician: remount prompts in bench words, answered at the console or by --yes."""
+"""Talking to the technician: prompts in bench words, answered at the console, by --yes, or from
+a file of answers (for tests and unattended runs)."""
 
 from __future__ import annotations
 
-from typing import Protocol
+from pathlib import Path
+from typing import Literal, Protocol
 
 from rich.console import Console
 
+from labcal.errors import LabcalError
 from labcal.kinematics import Mount
+
+PauseChoice = Literal["resume", "abort"]
 
 
 class OperatorDeclined(Exception):
-    """The operator chose to stop at a prompt."""
+    """The operator chose to stop at a prompt (or nobody answered)."""
 
 
 class Operator(Protocol):
-    def confirm_mount(self, mount: Mount, step: int, n_steps: int) -> None:
+    def confirm_mount(self, mount: Mount, step: int, n_steps: int, note: str = "") -> None:
         """Return once the instrument is mounted as asked; raise OperatorDeclined to stop."""
 
+    def after_pause(self, why: str) -> PauseChoice:
+        """The run is paused with the tables still: go on, or stop here (resumable later)."""
 
-def mount_request(mount: Mount, step: int, n_steps: int) -> str:
+
+def mount_request(mount: Mount, step: int, n_steps: int, note: str = "") -> str:
+    extra = f" {note[0].upper()}{note[1:]}." if note else ""
     return (f"Mount {step} of {n_steps}: put the instrument on the [bold]{mount.describe()}[/] "
-            f"({mount}). The tables are level and will not move until you confirm.")
+            f"({mount}).{extra} The tables are level and will not move until you confirm.")
 
 
-class ConsoleOperator:
+MOUNT_QUESTION = "Type [bold]y[/] and Enter when mounted, [bold]q[/] to stop: "
+PAUSE_QUESTION = "Type [bold]r[/] and Enter to resume, [bold]a[/] to abort (the run can be resumed later): "
+YES, NO = ("y", "yes"), ("q", "quit", "n", "no")
+RESUME, ABORT = ("r", "resume"), ("a", "abort", "q", "quit")
+
+
+class _Asking:
+    """Shared by the console and the scripted operator: only where answers come from differs."""
+
+    console: Console
+
+    def answer(self, question: str) -> str:
+        raise NotImplementedError
+
+    def _until(self, question: str, accepted: dict[tuple[str, ...], str]) -> str:
+        while True:
+            reply = self.answer(question).strip().lower()
+            for words, meaning in accepted.items():
+                if reply in words:
+                    return meaning
+            self.console.print(f"[yellow]{reply!r} is not one of the answers.[/]")
+
+    def confirm_mount(self, mount: Mount, step: int, n_steps: int, note: str = "") -> None:
+        self.console.print(mount_request(mount, step, n_steps, note))
+        if self._until(MOUNT_QUESTION, {YES: "y", NO: "q"}) == "q":
+            raise OperatorDeclined("operator stopped the run at the remount prompt")
+
+    def after_pause(self, why: str) -> PauseChoice:
+        self.console.print(f"[bold]Paused[/] ({why}). The tables are still; every reading so far is saved.")
+        return self._until(PAUSE_QUESTION, {RESUME: "resume", ABORT: "abort"})  # type: ignore[return-value]
+
+
+class ConsoleOperator(_Asking):
     """Asks at the terminal and waits for the answer."""
 
     def __init__(self, console: Console):
         self.console = console
 
-    def confirm_mount(self, mount: Mount, step: int, n_steps: int) -> None:
-        self.console.print(mount_request(mount, step, n_steps))
-        while True:
-            try:
-                answer = self.console.input("Type [bold]y[/] and Enter when mounted, [bold]q[/] to stop: ")
-            except EOFError:
-                raise OperatorDeclined("no answer at the remount prompt (input closed)") from None
-            answer = answer.strip().lower()
-            if answer in ("y", "yes"):
-                return
-            if answer in ("q", "quit", "n", "no"):
-                raise OperatorDeclined("operator stopped the run at the remount prompt")
+    def answer(self, question: str) -> str:
+        try:
+            return self.console.input(question)
+        except EOFError:
+            raise OperatorDeclined("no answer at the prompt (input closed)") from None
 
 
-class AutoOperator:
-    """Answers every prompt with yes (`--yes`), saying so, for unattended and simulated runs."""
+class ScriptedOperator(_Asking):
+    """Answers from a file, one answer per line, in order; echoes each so the log reads like a session."""
 
-    def __init__(self, console: Console):
+    def __init__(self, console: Console, path: str | Path):
         self.console = console
+        try:
+            self.answers = [line.strip() for line in Path(path).read_text(encoding="utf-8").splitlines()
+                            if line.strip() and not line.lstrip().startswith("#")]
+        except OSError as exc:
+            raise LabcalError(f"{path}: cannot read the answers file ({exc.strerror})") from None
 
-    def confirm_mount(self, mount: Mount, step: int, n_steps: int) -> None:
-        self.console.print(mount_request(mount, step, n_steps) + " [dim](--yes: confirmed)[/]")
+    def answer(self, question: str) -> str:
+        if not self.answers:
+            raise OperatorDeclined("the answers file has no answer left for this prompt")
+        reply = self.answers.pop(0)
+        self.console.print(f"{question}{reply} [dim](from the answers file)[/]")
+        return reply
+
+
+class AutoOperator(ConsoleOperator):
+    """--yes: confirms every remount itself, saying so. A pause (someone pressed Ctrl-C) still
+    asks at the console, since the person who pressed it is there."""
+
+    def confirm_mount(self, mount: Mount, step: int, n_steps: int, note: str = "") -> None:
+        self.console.print(mount_request(mount, step, n_steps, note) + " [dim](--yes: confirmed)[/]")

@@ -1,4 +1,9 @@
-"""A calibration run: its directory, the plan it used, the sequencer, and the fit at the end."""
+"""A calibration run: its journal entry, its directory of exports, and resuming it.
+
+The journal (SQLite) is the source of truth; the run directory holds what people and other
+programs read: plan.toml, run.json (where the journal is and how the run ended), and the
+exports readings.csv and fit.json, rewritten whenever the run stops for any reason.
+"""
 
 from __future__ import annotations
 
@@ -10,17 +15,20 @@ from pathlib import Path
 
 from labcal import __version__
 from labcal.errors import LabcalError
-from labcal.fit import Fit, fit_linear
+from labcal.fit import Fit, fit_readings
+from labcal.interrupts import Interrupts
+from labcal.journal import Journal, Manifest, sha256
 from labcal.operator import Operator
-from labcal.plan import Plan
-from labcal.readings import ReadingsWriter, read_readings
-from labcal.sequencer import Display, RunOutcome, SequencerSettings, run_plan
+from labcal.plan import Plan, parse_plan
+from labcal.readings import ReadingsWriter
+from labcal.sequencer import Display, RunOutcome, Sequencer, SequencerSettings, schedule
 from labcal.station import Station
 
 READINGS = "readings.csv"
 FIT = "fit.json"
 PLAN = "plan.toml"
 RUN = "run.json"
+MIN_POINTS_FOR_MOUNT_CHECK_FIT = 8
 
 
 def json_safe(value):
@@ -40,15 +48,6 @@ def write_json(path: Path, doc: dict) -> None:
     tmp.replace(path)  # atomic: a reader never sees half a file
 
 
-def points_on_disk(run_dir: Path) -> int:
-    """Readings already safe in a run directory (rows after the header)."""
-    try:
-        with (run_dir / READINGS).open(encoding="utf-8") as f:
-            return max(0, sum(1 for line in f if line.strip()) - 1)
-    except FileNotFoundError:
-        return 0
-
-
 def new_run_dir(out: str | None, plan: Plan) -> Path:
     if out is None:
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
@@ -64,40 +63,135 @@ def new_run_dir(out: str | None, plan: Plan) -> Path:
     return path
 
 
+def read_run_json(run_dir: Path) -> dict:
+    try:
+        return json.loads((run_dir / RUN).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise LabcalError(f"{run_dir}: not a run directory (no {RUN})") from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise LabcalError(f"{run_dir / RUN}: unreadable ({exc})") from None
+
+
+def points_on_disk(run_dir: Path) -> int:
+    """Readings safe in the run's journal (0 when there is no journal yet)."""
+    try:
+        info = read_run_json(run_dir)
+        with Journal(info["journal"]) as journal:
+            return len(journal.points(info["run_id"], status="ok"))
+    except (LabcalError, KeyError):
+        return 0
+
+
+def export(journal: Journal, run_id: int, run_dir: Path) -> Fit | None:
+    """Rewrite readings.csv (and fit.json when the points determine a fit) from the journal."""
+    points = journal.points(run_id, status="ok")
+    with ReadingsWriter(run_dir / READINGS, temperature=bool(points) and all(p.temp_c is not None
+                                                                               for p in points)) as w:
+        for p in points:
+            w.append(replicate=p.replicate, y_deg=p.y_deg, u_deg=p.u_deg, pitch_deg=p.pitch_deg,
+                     roll_deg=p.roll_deg, volts=[p.vx, p.vy, p.vz], temp_c=p.temp_c,
+                     sd=[p.sd_vx, p.sd_vy, p.sd_vz], n_samples=p.n_samples, time_s=p.t_end)
+    try:
+        fit = fit_readings(journal.readings(run_id))
+    except LabcalError:
+        return None  # too few points so far for a fit
+    write_json(run_dir / FIT, fit.to_json())
+    return fit
+
+
 @dataclass
 class RunResult:
     directory: Path
+    run_id: int
     outcome: RunOutcome
     fit: Fit
     wall_s: float
 
 
-def calibrate(
-    plan: Plan, plan_text: str, station: Station, operator: Operator, settings: SequencerSettings,
-    run_dir: Path, display: Display | None = None, metadata: dict | None = None,
-) -> RunResult:
-    """Run the plan into ``run_dir`` and fit the readings. On interruption the directory keeps
-    every reading taken and run.json says how the run ended."""
-    (run_dir / PLAN).write_text(plan_text, encoding="utf-8")
-    meta = {
-        "labcal_version": __version__, "plan": plan.name, "station": station.description,
-        "started_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "settings": settings.model_dump(), "status": "running", **(metadata or {}),
-    }
-    write_json(run_dir / RUN, meta)
-    wall0 = time.perf_counter()
-    with ReadingsWriter(run_dir / READINGS, temperature=station.dmm.measures_temperature) as writer:
+def _provisional_fit(journal: Journal, run_id: int):
+    """X from the points so far, for checking the next mount; None when there are too few."""
+    def fit():
+        if len(journal.points(run_id, status="ok")) < MIN_POINTS_FOR_MOUNT_CHECK_FIT:
+            return None
         try:
-            outcome = run_plan(plan, station, operator, writer, settings, display)
-        except BaseException as exc:
-            meta.update(status="interrupted", reason=str(exc) or type(exc).__name__,
-                        points_recorded=writer.count)
-            write_json(run_dir / RUN, meta)
-            raise
-    fit = fit_linear(read_readings(run_dir / READINGS))
-    write_json(run_dir / FIT, fit.to_json())
-    wall = time.perf_counter() - wall0
-    meta.update(status="complete", points_recorded=outcome.points_recorded,
-                station_time_s=outcome.station_time_s, wall_time_s=wall)
-    write_json(run_dir / RUN, meta)
-    return RunResult(run_dir, outcome, fit, wall)
+            return fit_readings(journal.readings(run_id)).coefficients
+        except LabcalError:
+            return None
+    return fit
+
+
+def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: Station, operator: Operator,
+            settings: SequencerSettings, display: Display | None = None) -> RunResult:
+    """Run (or go on with) every step not yet in the journal; whatever happens, the journal says
+    how the run ended and the exports are rewritten."""
+    display = display or Display()
+    wall0 = time.perf_counter()
+    steps = schedule(plan, settings)
+    committed = {p.seq for p in journal.points(run_id)}
+    status, reason = "interrupted", "Ctrl-C"
+    try:
+        with Interrupts(lambda: display.message("[yellow]Ctrl-C: pausing after this point "
+                                                "(press again to stop the tables now)[/]")) as interrupts:
+            sequencer = Sequencer(plan, station, operator, journal, run_id, settings, display, interrupts)
+            outcome = sequencer.run(steps, committed, _provisional_fit(journal, run_id))
+        status, reason = "complete", None
+    except KeyboardInterrupt:
+        raise
+    except BaseException as exc:
+        status, reason = "stopped", str(exc) or type(exc).__name__
+        raise
+    finally:
+        journal.finish(run_id, status, reason)
+        fit = export(journal, run_id, run_dir)
+        info = read_run_json(run_dir)
+        info.update(status=status, reason=reason, points_recorded=len(journal.points(run_id, status="ok")))
+        write_json(run_dir / RUN, info)
+    if fit is None:
+        raise LabcalError(f"run {run_id} finished without enough good points to fit")
+    info.update(station_time_s=outcome.station_time_s, wall_time_s=time.perf_counter() - wall0)
+    write_json(run_dir / RUN, info)
+    return RunResult(run_dir, run_id, outcome, fit, time.perf_counter() - wall0)
+
+
+def calibrate(plan: Plan, plan_text: str, station: Station, station_text: str, operator: Operator,
+              settings: SequencerSettings, run_dir: Path, journal: Journal, display: Display | None = None,
+              metadata: dict | None = None, serial: str | None = None,
+              operator_name: str | None = None) -> RunResult:
+    """Start a new run: manifest first, then every point."""
+    (run_dir / PLAN).write_text(plan_text, encoding="utf-8")
+    run_id = journal.start_run(Manifest(
+        run_dir=str(run_dir), plan_name=plan.name, plan_text=plan_text, station_text=station_text,
+        software_version=__version__, settings=settings.model_dump(), metadata=metadata or {},
+        instrument_serial=serial, operator=operator_name))
+    write_json(run_dir / RUN, {
+        "labcal_version": __version__, "journal": str(journal.path.resolve()), "run_id": run_id,
+        "plan": plan.name, "plan_sha256": sha256(plan_text), "station": station.description,
+        "instrument_serial": serial, "operator": operator_name,
+        "started_utc": datetime.now(UTC).isoformat(timespec="seconds"), "status": "running",
+        "settings": settings.model_dump(), **(metadata or {}),
+    })
+    return execute(journal, run_id, run_dir, plan, station, operator, settings, display)
+
+
+@dataclass(frozen=True)
+class ResumeContext:
+    journal: Journal
+    run_id: int
+    plan: Plan
+    settings: SequencerSettings
+    station_text: str
+    metadata: dict
+
+
+def open_for_resume(run_dir: Path) -> ResumeContext:
+    """The journal entry of an unfinished run, its plan checked against the hash in the manifest."""
+    info = read_run_json(run_dir)
+    journal = Journal(info["journal"])
+    row = journal.run(info["run_id"])
+    if row.status == "complete":
+        raise LabcalError(f"{run_dir}: run {row.id} is already complete; nothing to resume")
+    if sha256(row.plan_text) != row.plan_hash:
+        raise LabcalError(f"{run_dir}: the journal's plan does not match its recorded hash; not resuming")
+    plan = parse_plan(row.plan_text, f"run {row.id} plan")
+    return ResumeContext(journal, row.id, plan, SequencerSettings.model_validate(row.settings),
+                         row.station_text, row.metadata)

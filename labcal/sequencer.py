@@ -1,53 +1,74 @@
-"""Executes a plan on a station: move, wait in position, settle, average, record.
+"""Executes a plan on a station: move, wait in position, settle, measure, journal, repeat.
 
-The sequencer never knows whether a real rig or the simulator answers. Axes never move
-while a remount prompt is open, and every point is on disk before the next move starts.
+The sequencer never knows whether a real rig or the simulator answers. Before anything moves,
+every angle of the run is checked against the tables' limits. Axes never move while a prompt is
+open. Each point is one journal transaction, committed before the next move. The first Ctrl-C
+pauses after the current point; the second stops the tables at once.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from contextlib import AbstractContextManager, nullcontext
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from labcal.errors import LabcalError
-from labcal.kinematics import Mount
-from labcal.operator import Operator
+from labcal.interrupts import Interrupts
+from labcal.journal import Journal, PointRecord
+from labcal.kinematics import Mount, gravity
+from labcal.mounting import CHECK_ATTITUDE, identify
+from labcal.operator import Operator, OperatorDeclined
+from labcal.ordering import order_points
 from labcal.plan import Plan
-from labcal.readings import ReadingsWriter
+from labcal.settle import Dwell, SettleSettings, dwell
 from labcal.station import Station, mean_and_sd
 
 LOAD_POSITION = (0.0, 0.0)  # tables level while the operator remounts
+MOUNT_ATTEMPTS = 3
 
 
 class SequencerSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    settle_s: float = Field(default=8.0, ge=0, description="dwell after in-position (≥ 15 τ)")
-    samples: int = Field(default=10, ge=1, le=10000, description="DMM samples averaged per point")
+    settle: SettleSettings = SettleSettings()
+    order: Literal["shortest", "plan", "sweep", "random"] = "shortest"
+    seed: int = Field(default=0, description="for the random order")
     move_timeout_s: float = Field(default=120.0, gt=0)
     position_tolerance_deg: float = Field(default=0.01, gt=0)
+    check_mount: bool = True
+    on_failure: Literal["skip", "pause", "abort"] = Field(
+        default="skip", description="what to do with a point that does not settle after one retry")
+    speed_dps: float = Field(default=20.0, gt=0, description="table speed, for ordering and estimates")
+    accel_dps2: float = Field(default=40.0, gt=0)
 
 
 @dataclass(frozen=True)
 class Step:
+    seq: int
     replicate: int
     mount: Mount
     pitch_deg: float
     roll_deg: float
+    block_start: bool  # first point of a (replicate, mount) block: the instrument is (re)seated first
 
 
-def schedule(plan: Plan) -> Iterator[Step]:
-    """Replicates one after another; the mount order alternates so a replicate starts on the
-    mount the previous one ended on, which saves a remount per replicate."""
+def schedule(plan: Plan, settings: SequencerSettings) -> list[Step]:
+    """Every point of the run in order. Replicates alternate the mount order (…, 3, 4 | 4, 3, …) so
+    that consecutive replicates meet on the same orientation; the instrument is still re-seated
+    there, so that each replicate holds its own mountings and replicates stay independent."""
+    steps: list[Step] = []
     for rep in range(1, plan.replicates + 1):
         mounts = plan.mount_list if rep % 2 else plan.mount_list[::-1]
         for mount in mounts:
-            for pitch, roll in plan.points:
-                yield Step(rep, mount, pitch, roll)
+            order = order_points(plan.points, settings.order, replicate=rep, seed=settings.seed,
+                                 start=LOAD_POSITION, speed=settings.speed_dps, accel=settings.accel_dps2)
+            for k, i in enumerate(order):
+                pitch, roll = plan.points[i]
+                steps.append(Step(len(steps), rep, mount, pitch, roll, block_start=k == 0))
+    return steps
 
 
 class Display:
@@ -57,14 +78,46 @@ class Display:
         """Context in which a prompt may use the terminal."""
         return nullcontext()
 
-    def point_done(self, step: Step, volts: np.ndarray, station_time_s: float) -> None:
+    def point_done(self, step: Step, volts: np.ndarray, station_time_s: float, settle_s: float) -> None:
+        pass
+
+    def message(self, text: str) -> None:
         pass
 
 
 @dataclass
 class RunOutcome:
     points_recorded: int
+    points_failed: int
     station_time_s: float
+
+
+def check_limits(station: Station, steps: list[Step]) -> None:
+    """Every angle the run will visit, against each table's limits, before anything moves."""
+    angles = {
+        station.pitch: [s.pitch_deg for s in steps] + [LOAD_POSITION[0], CHECK_ATTITUDE[0]],
+        station.roll: [s.roll_deg for s in steps] + [LOAD_POSITION[1], CHECK_ATTITUDE[1]],
+    }
+    for axis, values in angles.items():
+        check = getattr(axis, "check_angle", None)
+        if check is None:
+            continue
+        for angle in sorted(set(values)):
+            try:
+                check(angle)
+            except LabcalError as exc:
+                raise LabcalError(f"plan refused before any motion: {axis.name} {exc}") from None
+
+
+def move_both(station: Station, pitch: float, roll: float, settings: SequencerSettings,
+              critical=nullcontext) -> tuple[float, float]:
+    """Start both tables (inside ``critical()``: a command is never cut in half), wait for both,
+    and verify the read-back positions."""
+    with critical():
+        station.pitch.move_to(pitch)
+        station.roll.move_to(roll)
+    return (_in_position(station.pitch, pitch, settings.move_timeout_s, settings.position_tolerance_deg),
+            _in_position(station.roll, roll, settings.move_timeout_s, settings.position_tolerance_deg))
 
 
 def _in_position(axis, target: float, timeout: float, tolerance: float) -> float:
@@ -78,50 +131,150 @@ def _in_position(axis, target: float, timeout: float, tolerance: float) -> float
     return position
 
 
-def move_both(station: Station, pitch: float, roll: float, settings: SequencerSettings) -> None:
-    """Start both tables, then wait for both and verify the read-back positions."""
-    station.pitch.move_to(pitch)
-    station.roll.move_to(roll)
-    _in_position(station.pitch, pitch, settings.move_timeout_s, settings.position_tolerance_deg)
-    _in_position(station.roll, roll, settings.move_timeout_s, settings.position_tolerance_deg)
+@dataclass
+class Sequencer:
+    plan: Plan
+    station: Station
+    operator: Operator
+    journal: Journal
+    run_id: int
+    settings: SequencerSettings
+    display: Display = field(default_factory=Display)
+    interrupts: Interrupts = field(default_factory=Interrupts)
+    _g_last: np.ndarray | None = None
+    _t0: float = 0.0
 
+    # --- motion ----------------------------------------------------------------------------------
+    def move(self, pitch: float, roll: float) -> tuple[float, float]:
+        return move_both(self.station, pitch, roll, self.settings, self.interrupts.critical)
 
-def run_plan(
-    plan: Plan, station: Station, operator: Operator, writer: ReadingsWriter,
-    settings: SequencerSettings, display: Display | None = None,
-) -> RunOutcome:
-    """Run every point of the plan. On any exception (Ctrl-C included) the tables are stopped
-    and the exception propagates; every point recorded so far is already on disk."""
-    display = display or Display()
-    t0 = station.clock.now()
-    steps = list(schedule(plan))
-    n_mount_changes = 1 + sum(a.mount != b.mount for a, b in zip(steps, steps[1:], strict=False))
-    mounted: Mount | None = None
-    change = 0
-    try:
-        for step in steps:
-            if step.mount != mounted:
-                change += 1
-                move_both(station, *LOAD_POSITION, settings)
-                with display.pause():
-                    operator.confirm_mount(step.mount, change, n_mount_changes)
-                station.remounted(step.mount)
-                mounted = step.mount
-            move_both(station, step.pitch_deg, step.roll_deg, settings)
-            station.clock.sleep(settings.settle_s)
-            scan = station.dmm.read(settings.samples)
-            mean, sd = mean_and_sd(scan)
-            writer.append(
-                replicate=step.replicate, y_deg=step.mount.y_deg, u_deg=step.mount.u_deg,
-                pitch_deg=step.pitch_deg, roll_deg=step.roll_deg, volts=mean, sd=sd,
-                temp_c=None if scan.temp_c is None else float(np.mean(scan.temp_c)),
-                n_samples=settings.samples, time_s=station.clock.now() - t0,
-            )
-            display.point_done(step, mean, station.clock.now() - t0)
-    except BaseException as exc:
+    def measure(self, g_nominal: np.ndarray, key: str) -> Dwell:
+        step_g = 2.0 if self._g_last is None else float(np.max(np.abs(g_nominal - self._g_last)))
+        self.station.at_point(key)
+        with self.interrupts.critical():
+            result = dwell(self.station.dmm, self.station.clock,
+                           step_g * self.settings.settle.sensitivity_v_per_g, self.settings.settle)
+        self._g_last = g_nominal
+        return result
+
+    def event(self, kind: str, message: str, **data) -> None:
+        with self.interrupts.critical():
+            self.journal.event(self.run_id, kind, message, data or None, self.station.clock.now() - self._t0)
+
+    # --- the operator ----------------------------------------------------------------------------
+    def ask(self, kind: str, question, *args) -> object:
+        """A prompt, with the tables still, its answer journaled."""
+        self.event("prompt", kind, args=[str(a) for a in args])
         try:
-            station.stop()
-        except Exception as stop_error:  # noqa: BLE001 - report it, but keep the original cause
-            exc.add_note(f"and stopping the tables failed too: {stop_error}")
-        raise
-    return RunOutcome(points_recorded=writer.count, station_time_s=station.clock.now() - t0)
+            with self.display.pause(), self.interrupts.prompting():
+                answer = question(*args)
+        except OperatorDeclined as exc:
+            self.event("answer", f"{kind}: declined", reason=str(exc))
+            raise
+        self.event("answer", f"{kind}: {answer if answer is not None else 'confirmed'}")
+        return answer
+
+    def mount(self, mount: Mount, step: int, n_steps: int, why: str,
+              provisional: np.ndarray | None) -> None:
+        """Move to the load position, have the operator mount, and verify the mount from gravity."""
+        note = why
+        for _ in range(MOUNT_ATTEMPTS):
+            self.move(*LOAD_POSITION)
+            self.ask("mount", self.operator.confirm_mount, mount, step, n_steps, note)
+            self.station.remounted(mount)
+            self._g_last = None
+            if not self.settings.check_mount:
+                return
+            self.move(*CHECK_ATTITUDE)
+            check = self.measure(gravity(*np.radians(CHECK_ATTITUDE), *mount.radians), f"check:{mount}")
+            seen = identify(mean_and_sd(check.scan)[0], provisional)
+            if seen == mount:
+                self.event("mount", f"mount verified: {mount}")
+                return
+            note = f"the instrument reads as if on the {seen.describe()}; please correct it"
+            self.event("fault", f"wrong mount: expected {mount}, reads as {seen}")
+            self.display.message(f"[bold red]Wrong mount:[/] {note}.")
+        raise OperatorDeclined(f"the instrument was not mounted as {mount.describe()} after "
+                               f"{MOUNT_ATTEMPTS} attempts")
+
+    def pause(self, why: str) -> None:
+        self.event("pause", why)
+        choice = self.ask("pause", self.operator.after_pause, why)
+        if choice == "abort":
+            raise OperatorDeclined(f"operator aborted the run after a pause ({why})")
+        self.interrupts.resumed()
+        self.event("resume", "operator resumed after the pause")
+
+    # --- the run ---------------------------------------------------------------------------------
+    def run(self, steps: list[Step], committed: set[int], provisional=lambda: None) -> RunOutcome:
+        """Measure every step not yet committed. ``provisional()`` returns an X from the points so
+        far (or None) for the mount check."""
+        check_limits(self.station, steps)
+        self._t0 = self.station.clock.now()
+        todo = [s for s in steps if s.seq not in committed]
+        blocks = [s for s in steps if s.block_start]
+        mounted: Mount | None = None
+        failed = 0
+        try:
+            for step in todo:
+                if step.block_start or mounted is None:
+                    if not step.block_start:
+                        why = "confirm the mount to resume the run"
+                    elif mounted == step.mount:
+                        why = "re-seat it for an independent replicate"
+                    else:
+                        why = ""
+                    index = sum(1 for b in blocks if b.seq <= step.seq)
+                    self.mount(step.mount, index, len(blocks), why, provisional())
+                    mounted = step.mount
+                failed += self.point(step)
+                if self.interrupts.pause_requested:
+                    self.pause("Ctrl-C")
+        except BaseException as exc:
+            try:
+                self.station.stop()
+            except Exception as stop_error:  # noqa: BLE001 - report it, but keep the original cause
+                exc.add_note(f"and stopping the tables failed too: {stop_error}")
+            raise
+        recorded = len(self.journal.points(self.run_id, status="ok"))
+        return RunOutcome(recorded, failed, self.station.clock.now() - self._t0)
+
+    def point(self, step: Step) -> int:
+        """Measure one step (retrying once if it does not settle) and commit it; 1 if it failed."""
+        pitch_read, roll_read = self.move(step.pitch_deg, step.roll_deg)
+        g = gravity(*np.radians([step.pitch_deg, step.roll_deg]), *step.mount.radians)
+        for attempt in (1, 2):
+            t_start = self.station.clock.now() - self._t0
+            result = self.measure(g, f"{step.seq}:{attempt}")
+            if result.verdict.settled:
+                break
+            self.event("retry", f"point {step.seq} did not settle ({result.verdict.reason})",
+                       attempt=attempt)
+        ok = result.verdict.settled
+        mean, sd = mean_and_sd(result.scan)
+        scan = result.scan
+        temp = None if scan.temp_c is None else float(np.mean(scan.temp_c))
+        raw = np.column_stack([scan.volts, scan.temp_c if scan.temp_c is not None
+                               else np.full(len(scan.volts), np.nan)])
+        record = PointRecord(
+            seq=step.seq, replicate=step.replicate, y_deg=step.mount.y_deg, u_deg=step.mount.u_deg,
+            pitch_deg=step.pitch_deg, roll_deg=step.roll_deg, pitch_read=pitch_read, roll_read=roll_read,
+            attempt=attempt, status="ok" if ok else "failed", t_start=t_start,
+            t_end=self.station.clock.now() - self._t0, n_samples=len(scan.volts),
+            vx=float(mean[0]), vy=float(mean[1]), vz=float(mean[2]),
+            sd_vx=float(sd[0]), sd_vy=float(sd[1]), sd_vz=float(sd[2]), temp_c=temp,
+            settle_s=result.settle_s, settle_verdict=result.verdict.reason,
+        )
+        with self.interrupts.critical():
+            self.journal.record_point(self.run_id, record, raw)
+        self.display.point_done(step, mean, record.t_end, result.settle_s)
+        if ok:
+            return 0
+        policy = self.settings.on_failure
+        self.event("fault", f"point {step.seq} failed: {result.verdict.reason}", policy=policy)
+        if policy == "abort":
+            raise LabcalError(f"point {step.seq} (pitch {step.pitch_deg:g}°, roll {step.roll_deg:g}°) did "
+                              f"not settle: {result.verdict.reason}; run stopped (on_failure = abort)")
+        if self.settings.on_failure == "pause":
+            self.pause(f"point {step.seq} did not settle")
+        return 1

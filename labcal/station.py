@@ -70,6 +70,10 @@ def _nobody_to_tell(mount: Mount) -> None:
     """On a real station the operator's hands do the remount; no device needs telling."""
 
 
+def _nothing_to_prepare(key: str) -> None:
+    """Real hardware needs no notice of which point is next."""
+
+
 @dataclass
 class Station:
     """Everything the sequencer drives: two tables, a DMM, a clock, and what a remount changes."""
@@ -79,6 +83,7 @@ class Station:
     dmm: Voltmeter
     clock: Clock = field(default_factory=SystemClock)
     remounted: Callable[[Mount], None] = _nobody_to_tell
+    at_point: Callable[[str], None] = _nothing_to_prepare  # the simulator draws each point's noise from it
     description: str = "station"
 
     def stop(self) -> None:

@@ -3,12 +3,21 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from labcal.fit import fit_linear
 from labcal.kinematics import Misalignment
 from labcal.plan import Plan
 from labcal.sim.direct import simulate_readings
 from labcal.sim.instrument import InstrumentTruth
+
+
+@pytest.fixture(autouse=True)
+def lab_database(tmp_path, monkeypatch):
+    """Every test (and every labcal it starts) journals into its own database, never runs/."""
+    monkeypatch.setenv("LABCAL_DB", str(tmp_path / "labcal.sqlite"))
+    return tmp_path / "labcal.sqlite"
+
 
 SOTO_POINTS = [(p, r) for p in (0, 90, 180, 270) for r in (0, 90, 180, 270)]  # Soto Table 2
 FOUR_MOUNTS = [(0, 0), (180, 0), (0, 180), (180, 180)]  # Soto Table 3
@@ -22,3 +31,28 @@ def ideal_fit(mounts: list[tuple[int, int]], mis: Misalignment) -> np.ndarray:
     """X fitted to noise-free readings of an ideal instrument (B = 0, S = I) on a misaligned CD."""
     readings = simulate_readings(soto_plan(mounts), InstrumentTruth(), mis)
     return fit_linear(readings).coefficients
+
+
+def quiet_console():
+    import io
+
+    from rich.console import Console
+
+    return Console(file=io.StringIO())
+
+
+def run_on_rig(rig, plan_name: str, tmp_path, settings=None, display=None, operator=None):
+    """A whole calibration of a shipped plan on a SimRig, journaled under tmp_path."""
+    from labcal.journal import Journal
+    from labcal.operator import AutoOperator
+    from labcal.plan import load_plan
+    from labcal.run import calibrate
+    from labcal.sequencer import SequencerSettings
+
+    plan, text = load_plan(plan_name)
+    run_dir = tmp_path / "run"
+    run_dir.mkdir(exist_ok=True)
+    with Journal(tmp_path / "journal.sqlite") as journal:
+        operator = operator or AutoOperator(quiet_console())
+        return calibrate(plan, text, rig.station(), "simulated rig", operator,
+                         settings or SequencerSettings(), run_dir, journal, display)

@@ -2,19 +2,15 @@
 
 from __future__ import annotations
 
-import io
 import math
 
 import numpy as np
 import pytest
-from rich.console import Console
+from conftest import run_on_rig
 
-from labcal.fit import fit_linear
 from labcal.kinematics import Mount
-from labcal.operator import AutoOperator
-from labcal.plan import load_plan
-from labcal.readings import ReadingsWriter, read_readings
-from labcal.sequencer import SequencerSettings, move_both, run_plan
+from labcal.sequencer import SequencerSettings, move_both
+from labcal.settle import SettleSettings
 from labcal.sim.clock import VirtualClock
 from labcal.sim.instrument import InstrumentTruth, coning_axes
 from labcal.sim.rig import DeviceTruth, RigConfig, SimRig
@@ -66,7 +62,7 @@ def test_rig_time_is_the_sum_of_its_parts():
     config = RigConfig(device=QUIET_DEVICE, clamp_s=1.5, nplc=10, line_hz=50)
     rig = SimRig(config)
     station = rig.station()
-    settings = SequencerSettings(settle_s=8, samples=10)
+    settings = SequencerSettings()
     move_both(station, 0, 90, settings)
     assert rig.clock.now() == pytest.approx(trapezoid_duration(90, 20, 40) + 1.5)
     t0 = rig.clock.now()
@@ -96,22 +92,15 @@ def test_remount_changes_what_the_instrument_feels():
 
 
 def test_noisy_four_mount_run_recovers_a_non_ideal_truth(tmp_path):
-    """Sequencer + rig dynamics + noise, no CD misalignment: every coefficient within 3 of its
-    stated standard errors of the truth."""
+    """Sequencer + settle detection + rig dynamics + noise, no CD misalignment: every coefficient
+    within 3 of its stated standard errors of the truth, and S_E matches the noise model."""
     truth = InstrumentTruth.from_coning(
         b=[0.0123, -0.0081, 0.0047], sensitivity=[4.9871, 5.0124, 4.9958],
         omega_deg=[0.21, 0.14, 0.09], azimuth_deg=[35, -120, 200], noise_v=50e-6, tau_s=0.5)
     rig = SimRig(RigConfig(device=QUIET_DEVICE, instrument=truth), seed=11)
-    plan, _ = load_plan("four-mount-64")
-    with ReadingsWriter(tmp_path / "r.csv") as writer:
-        run_plan(plan, rig.station(), AutoOperator(console_null()), writer,
-                 SequencerSettings(settle_s=10, samples=10))
-    fit = fit_linear(read_readings(tmp_path / "r.csv"))
-    z = (fit.coefficients - truth.X) / fit.ls.stderr
+    settings = SequencerSettings(settle=SettleSettings(tau_s=0.5, noise_v=50e-6, samples=10))
+    fit = run_on_rig(rig, "four-mount-64", tmp_path, settings).fit
+    z = (fit.coefficients - truth.X) / fit.stderr
     assert np.all(np.abs(z) < 3), z
     # the noise model is honest too: S_E ≈ 50 µV/√10 per averaged point
     assert np.allclose(fit.ls.residual_se, 50e-6 / math.sqrt(10), rtol=0.25)
-
-
-def console_null():
-    return Console(file=io.StringIO())

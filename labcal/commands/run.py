@@ -1,80 +1,205 @@
-"""`labcal run`: a calibration on a station (the simulated rig with --sim)."""
+"""`labcal run` and `labcal resume`: a calibration on a station (the simulated rig with --sim)."""
 
 from __future__ import annotations
 
 import argparse
+import json
+from dataclasses import dataclass
+from pathlib import Path
 
 from labcal.commands.common import EXIT_INTERRUPTED, EXIT_STOPPED, err, out, print_json
+from labcal.design import plan_toml
 from labcal.errors import LabcalError
-from labcal.operator import AutoOperator, ConsoleOperator, OperatorDeclined
-from labcal.plan import load_plan
-from labcal.run import calibrate, new_run_dir, points_on_disk
+from labcal.estimate import Estimate, Timing, estimate
+from labcal.journal import Journal, db_path
+from labcal.operator import AutoOperator, ConsoleOperator, OperatorDeclined, ScriptedOperator
+from labcal.plan import Plan, load_plan
+from labcal.run import RunResult, calibrate, execute, new_run_dir, open_for_resume, points_on_disk
 from labcal.sequencer import SequencerSettings
+from labcal.settle import SettleSettings
 from labcal.station import Station
 
 
-def sim_station(args: argparse.Namespace) -> tuple[Station, dict, float]:
-    """The simulated rig, what the run should record about its truth, and its remount time."""
+@dataclass
+class StationSetup:
+    """A station ready to run, what the journal keeps of it, and its pace for estimates."""
+
+    station: Station
+    text: str  # the snapshot the journal keeps; a resume must rebuild the same station from it
+    metadata: dict
+    timing: Timing
+    settle: SettleSettings
+
+
+def sim_station(rig_file: str | None, seed: int | None, snapshot: str | None = None,
+                start_time_s: float = 0.0) -> StationSetup:
+    """The simulated rig, from a rig file or from a journal snapshot (resume)."""
+    from labcal.sim.clock import VirtualClock
     from labcal.sim.rig import RigConfig, SimRig, load_rig_config
 
-    config = load_rig_config(args.rig) if args.rig else RigConfig()
-    rig = SimRig(config, seed=args.seed)
+    if snapshot is not None:
+        doc = json.loads(snapshot)
+        config, seed = RigConfig.model_validate(doc["rig"]), doc["seed"]
+    else:
+        config = load_rig_config(rig_file) if rig_file else RigConfig()
+    rig = SimRig(config, seed=seed, clock=VirtualClock(start_time_s))
     truth = {"coefficients": rig.instrument.X.tolist(),
              "misalignment_deg": rig.misalignment.degrees(), "seed": rig.seed}
-    return rig.station(), {"simulated_truth": truth}, config.remount_s
+    text = json.dumps({"kind": "simulated rig", "seed": rig.seed, "rig": config.model_dump()}, sort_keys=True)
+    inst = config.instrument
+    settle = SettleSettings(tau_s=inst.tau_s, noise_v=max(inst.noise_v, 1e-7),
+                            sensitivity_v_per_g=float(max(abs(x) for row in inst.S for x in row)))
+    timing = Timing(clamp_s=config.clamp_s, sample_s=config.nplc / config.line_hz, remount_s=config.remount_s)
+    return StationSetup(rig.station(), text, {"simulated_truth": truth}, timing, settle)
+
+
+def settings_from(args: argparse.Namespace, setup: StationSetup, speed: float = 20.0,
+                  accel: float = 40.0) -> SequencerSettings:
+    settle = setup.settle.model_copy(update={
+        k: v for k, v in (("samples", args.samples), ("fixed_dwell_s", args.fixed_dwell),
+                          ("max_dwell_s", args.max_dwell)) if v is not None})
+    return SequencerSettings(settle=settle, order=args.order, seed=args.seed or 0,
+                             on_failure=args.on_failure, check_mount=not args.no_mount_check,
+                             speed_dps=speed, accel_dps2=accel)
+
+
+def make_operator(args: argparse.Namespace):
+    if args.answers:
+        return ScriptedOperator(err, args.answers)
+    return AutoOperator(err) if args.yes else ConsoleOperator(err)
+
+
+def print_estimate(plan: Plan, est: Estimate, as_json: bool) -> None:
+    from labcal.console import format_duration
+
+    doc = {"plan": plan.name, "points": plan.n_points, "total_s": est.total_s, "moves_s": est.moves_s,
+           "settling_s": est.settling_s, "averaging_s": est.averaging_s, "mounting_s": est.mounting_s}
+    if as_json:
+        print_json(doc)
+        return
+    out.print(f"{plan.name}: {plan.n_points} points would take about [bold]{format_duration(est.total_s)}[/] "
+              "on this station:")
+    for part in ("moves", "settling", "averaging", "mounting"):
+        out.print(f"  {part:<10} {format_duration(doc[part + '_s'])}")
+    out.print("(mounting includes the operator's remount allowance and the mount checks; nothing moved)")
+
+
+def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done: int) -> int:
+    """Run with a progress display; turn the ways a run can end into messages and exit codes."""
+    from labcal.console import ProgressDisplay, coefficient_table, format_duration
+
+    err.print(f"Run directory: {run_dir}")
+    try:
+        with ProgressDisplay(err, plan.n_points, est.per_step_s, done) as display:
+            result: RunResult = runner(display)
+    except KeyboardInterrupt:
+        err.print(f"[bold red]interrupted[/]: tables stopped; {points_on_disk(run_dir)} reading(s) kept in "
+                  f"{run_dir}; continue with: labcal resume {run_dir}")
+        return EXIT_INTERRUPTED
+    except OperatorDeclined as exc:
+        err.print(f"[bold yellow]stopped[/]: {exc}; {points_on_disk(run_dir)} reading(s) kept in {run_dir}; "
+                  f"continue with: labcal resume {run_dir}")
+        return EXIT_STOPPED
+    except LabcalError as exc:
+        raise LabcalError(f"{exc}; {points_on_disk(run_dir)} reading(s) kept in {run_dir}; "
+                          f"continue with: labcal resume {run_dir}") from None
+    o = result.outcome
+    if args.json:
+        print_json({"run_dir": str(result.directory), "run_id": result.run_id, "points": o.points_recorded,
+                    "points_failed": o.points_failed, "simulated_rig_time_s": o.station_time_s,
+                    "wall_time_s": result.wall_s, "fit": result.fit.to_json()})
+        return 0
+    out.print(coefficient_table(result.fit))
+    for note in result.fit.notes:
+        out.print(f"[yellow]note:[/] {note}")
+    failed = f", {o.points_failed} failed (see the journal)" if o.points_failed else ""
+    out.print(f"{o.points_recorded} points{failed} in {result.wall_s:.2f} s of wall time; the rig's clock "
+              f"says {format_duration(o.station_time_s)} (remount allowances included).")
+    out.print(f"Files in {run_dir}/: readings.csv, fit.json, plan.toml, run.json; journal {db_path(args.db)}")
+    return 0
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from labcal.console import ProgressDisplay, coefficient_table, format_duration
-
     if not args.sim:
         raise LabcalError("no station given: use --sim for a dry run on the simulated rig "
                           "(hardware stations arrive with the drivers)")
     plan, plan_text = load_plan(args.plan)
-    settings = SequencerSettings(settle_s=args.settle, samples=args.samples)
-    station, metadata, remount_s = sim_station(args)
-    run_dir = new_run_dir(args.out, plan)
-    operator = AutoOperator(err) if args.yes else ConsoleOperator(err)
-    err.print(f"Run directory: {run_dir}")
-    try:
-        with ProgressDisplay(err, plan.n_points) as display:
-            result = calibrate(plan, plan_text, station, operator, settings, run_dir, display, metadata)
-    except KeyboardInterrupt:
-        err.print(f"[bold red]interrupted[/]: tables stopped; {points_on_disk(run_dir)} reading(s) "
-                  f"kept in {run_dir}")
-        return EXIT_INTERRUPTED
-    except OperatorDeclined as exc:
-        err.print(f"[bold yellow]stopped[/]: {exc}; {points_on_disk(run_dir)} reading(s) kept in {run_dir}")
-        return EXIT_STOPPED
-    if args.json:
-        print_json({
-            "run_dir": str(result.directory), "points": result.outcome.points_recorded,
-            "simulated_rig_time_s": result.outcome.station_time_s, "wall_time_s": result.wall_s,
-            "fit": result.fit.to_json(),
-        })
+    if args.replicates is not None:  # the journal keeps the plan that actually runs
+        plan = Plan.model_validate({**plan.model_dump(), "replicates": args.replicates})
+        plan_text = plan_toml(plan)
+    setup = sim_station(args.rig, args.seed)
+    settings = settings_from(args, setup)
+    est = estimate(plan, settings, setup.timing)
+    if args.dry_run:
+        print_estimate(plan, est, args.json)
         return 0
-    out.print(coefficient_table(result.fit))
-    out.print(f"{result.outcome.points_recorded} points in {result.wall_s:.2f} s of wall time; "
-              f"a real rig would need {format_duration(result.outcome.station_time_s)} "
-              f"(including {format_duration(remount_s)} per remount).")
-    out.print(f"Files in {run_dir}/: readings.csv, fit.json, plan.toml, run.json")
-    return 0
+    operator = make_operator(args)
+    run_dir = new_run_dir(args.out, plan)
+    with Journal(db_path(args.db)) as journal:
+        return run_and_report(args, lambda display: calibrate(
+            plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, display,
+            setup.metadata, args.serial, args.operator), run_dir, plan, est, 0)
+
+
+def cmd_resume(args: argparse.Namespace) -> int:
+    run_dir = Path(args.run)
+    ctx = open_for_resume(run_dir)
+    points = ctx.journal.points(ctx.run_id)
+    start = max((p.t_end for p in points), default=0.0)
+    setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start)
+    if ctx.station_text != setup.text:
+        raise LabcalError(f"{run_dir}: the station differs from the one the run started on; not resuming")
+    est = estimate(ctx.plan, ctx.settings, setup.timing)
+    operator = make_operator(args)
+    ctx.journal.reopen(ctx.run_id)
+    ctx.journal.event(ctx.run_id, "resume", f"resumed after {len(points)} committed point(s)")
+    try:
+        return run_and_report(args, lambda display: execute(
+            ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, display),
+            run_dir, ctx.plan, est, len(points))
+    finally:
+        ctx.journal.close()
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--yes", action="store_true", help="confirm every remount prompt automatically")
+    p.add_argument("--answers", metavar="FILE", help="answer prompts from this file, one answer per line")
+    p.add_argument("--db", help="the lab's journal database (default $LABCAL_DB or runs/labcal.sqlite)")
+    p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    defaults = SequencerSettings()
     p = sub.add_parser("run", help="run a calibration (on the simulated rig with --sim)",
-                       description="Run a calibration plan: move the tables, prompt for each "
-                                   "remount, record every point, fit the coefficients.")
-    p.add_argument("--sim", action="store_true", help="dry run on the simulated rig")
+                       description="Run a calibration plan: check every angle against the limits, move the "
+                                   "tables, prompt for each remount and verify it, settle, record every "
+                                   "point in the journal, fit the coefficients. Ctrl-C once pauses after "
+                                   "the current point; twice stops the tables at once.")
+    p.add_argument("--sim", action="store_true", help="run on the simulated rig")
     p.add_argument("--plan", default="four-mount-64", help="plan name or .toml file (default %(default)s)")
-    p.add_argument("--seed", type=int, default=None, help="simulated rig's random seed")
-    p.add_argument("--yes", action="store_true", help="confirm every remount prompt automatically")
+    p.add_argument("--replicates", type=int, help="override the plan's number of replicates")
+    p.add_argument("--order", choices=["shortest", "plan", "sweep", "random"], default="shortest",
+                   help="order of the points within a mount (default %(default)s)")
+    p.add_argument("--seed", type=int, default=None, help="simulated rig's (and random order's) seed")
     p.add_argument("--out", help="run directory (default runs/<UTC time>-<plan>)")
     p.add_argument("--rig", help="TOML file describing the simulated rig (truth, noise, speeds)")
-    p.add_argument("--settle", type=float, default=defaults.settle_s,
-                   help="dwell after in-position, s (default %(default)s)")
-    p.add_argument("--samples", type=int, default=defaults.samples,
-                   help="DMM samples averaged per point (default %(default)s)")
-    p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    p.add_argument("--samples", type=int, help="DMM samples per settle window, averaged per point")
+    p.add_argument("--fixed-dwell", type=float, metavar="S",
+                   help="dwell S seconds instead of detecting settling")
+    p.add_argument("--max-dwell", type=float, metavar="S", help="give up settling after S seconds")
+    p.add_argument("--on-failure", choices=["skip", "pause", "abort"], default="skip",
+                   help="a point that does not settle after one retry (default %(default)s)")
+    p.add_argument("--no-mount-check", action="store_true", help="do not verify each mount from gravity")
+    p.add_argument("--serial", help="the instrument's serial number (kept in the journal)")
+    p.add_argument("--operator", help="who runs the calibration (kept in the journal)")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print the estimated duration of the plan on this station; move nothing")
+    _common(p)
     p.set_defaults(func=cmd_run)
+
+    r = sub.add_parser("resume", help="continue an interrupted run where it stopped",
+                       description="Continue a run after Ctrl-C, a fault, a killed process or a power cut: "
+                                   "checks the plan hash and the station, asks to confirm the mount, and "
+                                   "goes on at the first point not in the journal.")
+    r.add_argument("run", help="the run directory")
+    _common(r)
+    r.set_defaults(func=cmd_resume)
