@@ -6,6 +6,7 @@ It exposes the same `Station` the hardware drivers build, so the sequencer canno
 from __future__ import annotations
 
 import math
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -81,6 +82,7 @@ class SimRig:
         self.misalignment = config.device.misalignment()
         self.index_wobble = IndexWobble(config.device.index_arcsec, config.device.wobble_arcsec, self.seed)
         self._rng = np.random.default_rng([self.seed, 0x5EED])
+        self._noise = np.random.default_rng([self.seed, 0x5A11])
         self.mount = Mount(0, 0)
         self._mount_error = Misalignment()
         self._gravity_key: tuple | None = None
@@ -155,7 +157,7 @@ class SimRig:
             self._advance_filter(t)
             temps[i] = self.lab_temperature(t)
             volts[i] = self.instrument.static_volts(self._g_filtered, t, temps[i])
-        volts += self._rng.normal(0.0, self.instrument.noise_v, size=volts.shape)
+        volts += self._noise.normal(0.0, self.instrument.noise_v, size=volts.shape)
         return Scan(volts=volts, temp_c=temps)
 
     def remounted(self, mount: Mount) -> None:
@@ -175,6 +177,11 @@ class SimRig:
         self._t_filter = self.clock.now()
         self._g_filtered = self.true_gravity(self.pitch.position(), self.roll.position())
 
+    def at_point(self, key: str) -> None:
+        """Draw this point's noise from the seed and the point's identity, not from one stream, so
+        that a resumed run measures every point as the uninterrupted run would have."""
+        self._noise = np.random.default_rng([self.seed, zlib.crc32(key.encode())])
+
     def station(self) -> Station:
         return Station(pitch=self.pitch, roll=self.roll, dmm=self, clock=self.clock,
-                       remounted=self.remounted, description="simulated rig")
+                       remounted=self.remounted, at_point=self.at_point, description="simulated rig")
