@@ -147,7 +147,10 @@ def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: S
         info.update(status=status, reason=reason, points_recorded=len(journal.points(run_id, status="ok")))
         write_json(run_dir / RUN, info)
     if fit is None:
-        raise LabcalError(f"run {run_id} finished without enough good points to fit")
+        reason = "finished without enough good points to fit"
+        journal.finish(run_id, "failed", reason)
+        write_json(run_dir / RUN, {**info, "status": "failed", "reason": reason})
+        raise LabcalError(f"run {run_id} {reason}")
     info.update(station_time_s=outcome.station_time_s, wall_time_s=time.perf_counter() - wall0)
     write_json(run_dir / RUN, info)
     return RunResult(run_dir, run_id, outcome, fit, time.perf_counter() - wall0)

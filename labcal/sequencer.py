@@ -248,8 +248,8 @@ class Sequencer:
             result = self.measure(g, f"{step.seq}:{attempt}")
             if result.verdict.settled:
                 break
-            self.event("retry", f"point {step.seq} did not settle ({result.verdict.reason})",
-                       attempt=attempt)
+            if attempt == 1:
+                self.event("retry", f"point {step.seq} did not settle ({result.verdict.reason}); retrying")
         ok = result.verdict.settled
         mean, sd = mean_and_sd(result.scan)
         scan = result.scan

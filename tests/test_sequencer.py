@@ -1,0 +1,245 @@
+"""The sequencer on the simulated rig: interrupts, resume, operator checks, limits, settling."""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import quiet_console, run_on_rig
+
+from labcal.commands.run import sim_station
+from labcal.errors import LabcalError
+from labcal.journal import Journal
+from labcal.kinematics import MOUNTS, Mount
+from labcal.operator import AutoOperator, ScriptedOperator
+from labcal.plan import load_plan
+from labcal.run import calibrate, execute, open_for_resume
+from labcal.sequencer import Display, SequencerSettings, schedule
+from labcal.settle import SettleSettings
+from labcal.sim.rig import RigConfig, SimRig
+
+STATIC_LAB = str(Path(__file__).parent / "data" / "rig_static_lab.toml")
+LABCAL = str(Path(sys.executable).with_name("labcal"))
+
+
+class After(Display):
+    """Does something (raise, or signal this process) when the n-th point is done."""
+
+    def __init__(self, n: int, action):
+        self.n, self.action, self.done = n, action, 0
+
+    def point_done(self, step, volts, station_time_s, settle_s):
+        self.done += 1
+        if self.done in (self.n if isinstance(self.n, tuple) else (self.n,)):
+            self.action()
+
+
+def ctrl_c():
+    os.kill(os.getpid(), signal.SIGINT)
+
+
+def journal_run(tmp_path, setup, display=None, operator=None, settings=None, plan_name="four-mount-64"):
+    plan, text = load_plan(plan_name)
+    run_dir = tmp_path / "run"
+    run_dir.mkdir(exist_ok=True)
+    settings = settings or SequencerSettings(settle=setup.settle)
+    with Journal(tmp_path / "j.sqlite") as journal:
+        return calibrate(plan, text, setup.station, setup.text, operator or AutoOperator(quiet_console()),
+                         settings, run_dir, journal, display)
+
+
+def resume_in_process(run_dir: Path, operator=None):
+    ctx = open_for_resume(run_dir)
+    start = max(p.t_end for p in ctx.journal.points(ctx.run_id))
+    setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start)
+    with ctx.journal:
+        return execute(ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station,
+                       operator or AutoOperator(quiet_console()), ctx.settings)
+
+
+def test_schedule_snakes_mounts_and_reseats_between_replicates():
+    plan, _ = load_plan("four-mount-64")
+    plan = plan.model_copy(update={"replicates": 3})
+    steps = schedule(plan, SequencerSettings())
+    blocks = [s for s in steps if s.block_start]
+    assert [b.mount for b in blocks] == list(MOUNTS) + list(MOUNTS)[::-1] + list(MOUNTS)
+    assert [s.seq for s in steps] == list(range(192)) and len(blocks) == 12
+    for rep in (1, 2, 3):  # every replicate visits every point of every mount once
+        got = sorted((s.mount.y_deg, s.mount.u_deg, s.pitch_deg, s.roll_deg)
+                     for s in steps if s.replicate == rep)
+        assert got == sorted((y, u, p, r) for y, u in plan.mounts for p, r in plan.points)
+
+
+def test_first_ctrl_c_pauses_after_the_point_then_the_run_goes_on(tmp_path):
+    answers = tmp_path / "answers.txt"
+    answers.write_text("y\nr\ny\ny\ny\n")  # mount 1, resume after the pause, mounts 2-4
+    result = journal_run(tmp_path, sim_station(None, 1), After(10, ctrl_c),
+                         ScriptedOperator(quiet_console(), answers))
+    assert result.outcome.points_recorded == 64
+    with Journal(tmp_path / "j.sqlite") as journal:
+        events = journal.events(result.run_id)
+        kinds = [e["kind"] for e in events]
+        assert "pause" in kinds and "resume" in kinds
+        pause_at = kinds.index("pause")
+        paused_at = events[pause_at]["station_time"]
+        points_before = [p for p in journal.points(result.run_id) if p.t_end <= paused_at]
+        assert len(points_before) == 10  # paused right after the 10th point, nothing cut short
+
+
+def test_second_ctrl_c_stops_the_tables_at_once_and_keeps_every_point(tmp_path):
+    setup = sim_station(None, 2)
+    rig_axes = setup.station.pitch, setup.station.roll
+    stops = []
+    for axis in rig_axes:
+        original = axis.stop
+        axis.stop = (lambda a, o: lambda: (stops.append(a.name), o()))(axis, original)
+    with pytest.raises(KeyboardInterrupt):
+        journal_run(tmp_path, setup, After(7, lambda: (ctrl_c(), ctrl_c())))
+    assert sorted(stops) == ["pitch", "roll"]
+    with Journal(tmp_path / "j.sqlite") as journal:
+        run = journal.run(1)
+        assert run.status == "interrupted" and len(journal.points(1)) == 7
+    assert len((tmp_path / "run" / "readings.csv").read_text().strip().splitlines()) == 1 + 7
+
+
+def test_a_failing_stop_does_not_hide_why_the_run_ended(tmp_path):
+    setup = sim_station(None, 3)
+
+    def broken_stop():
+        raise OSError("port closed")
+
+    setup.station.roll.stop = broken_stop
+    with pytest.raises(KeyboardInterrupt) as exc:
+        journal_run(tmp_path, setup, After(3, lambda: (_ for _ in ()).throw(KeyboardInterrupt)))
+    assert "stopping the tables failed too: port closed" in exc.value.__notes__[0]
+
+
+def test_a_wrong_mount_is_caught_before_any_point_is_kept(tmp_path):
+    setup = sim_station(STATIC_LAB, 4)
+    rig_remounted = setup.station.remounted
+    mistakes = {Mount(180, 0): Mount(0, 180)}  # first time asked for top-backward, the technician errs
+
+    def technician(mount):
+        rig_remounted(mistakes.pop(mount, mount))
+
+    setup.station.remounted = technician
+    result = journal_run(tmp_path, setup)
+    with Journal(tmp_path / "j.sqlite") as journal:
+        faults = [e["message"] for e in journal.events(result.run_id) if e["kind"] == "fault"]
+        points = journal.points(result.run_id)
+    assert faults == ["wrong mount: expected y=180°, u=0°, reads as y=0°, u=180°"]
+    assert len(points) == 64
+    x = result.fit.coefficients
+    assert np.max(np.abs(x[1:][~np.eye(3, dtype=bool)] - np.array(
+        [[0.0106, 0.0074], [-0.015, -0.0027], [-0.0105, -0.0061]]).ravel())) < 1e-4
+
+
+def test_limits_are_checked_before_anything_moves(tmp_path):
+    setup = sim_station(None, 5)
+
+    def check(angle):
+        if (angle % 360) == 270:
+            raise LabcalError("270° is outside the soft limits [-100°, 200°]")
+
+    setup.station.pitch.check_angle = check
+    with pytest.raises(LabcalError, match="plan refused before any motion: pitch 270° is outside"):
+        journal_run(tmp_path, setup)
+    assert setup.station.pitch.travel_deg == 0 and setup.station.roll.travel_deg == 0
+
+
+def test_a_point_that_never_settles_is_retried_then_handled_by_the_policy(tmp_path):
+    """The rig's noise is 20 µV; the sequencer is told to expect 2 µV, so no window ever passes
+    the scatter test: each point is retried once, recorded as failed, and the policy decides."""
+    tight = SettleSettings(noise_v=2e-6, max_dwell_s=6)
+    with pytest.raises(LabcalError, match="finished without enough good points to fit"):
+        run_on_rig(SimRig(RigConfig(), seed=6), "one-mount-16", tmp_path,
+                   SequencerSettings(settle=tight, check_mount=False, on_failure="skip"))
+    with Journal(tmp_path / "journal.sqlite") as journal:
+        failed = journal.points(1, status="failed")
+        retries = [e for e in journal.events(1) if e["kind"] == "retry"]
+        assert journal.run(1).status == "failed"
+    assert len(failed) == 16 and len(retries) == 16
+    assert all(p.attempt == 2 and p.settle_verdict != "settled" for p in failed)
+    (tmp_path / "abort").mkdir()
+    with pytest.raises(LabcalError, match="did not settle.*on_failure = abort"):
+        run_on_rig(SimRig(RigConfig(), seed=6), "one-mount-16", tmp_path / "abort",
+                   SequencerSettings(settle=tight, check_mount=False, on_failure="abort"))
+
+
+def test_resumed_run_equals_the_uninterrupted_one(tmp_path):
+    """Noise is drawn per point, so an interrupted and resumed run on a static lab gives the
+    uninterrupted coefficients to a small fraction of their uncertainty (what remains is the
+    tables' transient history, ~1e-8 V)."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    whole = journal_run(tmp_path / "a", sim_station(STATIC_LAB, 7))
+    with pytest.raises(KeyboardInterrupt):
+        journal_run(tmp_path / "b", sim_station(STATIC_LAB, 7),
+                    After(23, lambda: (_ for _ in ()).throw(KeyboardInterrupt)))
+    resumed = resume_in_process(tmp_path / "b" / "run")
+    assert resumed.outcome.points_recorded == 64
+    diff = np.abs(resumed.fit.coefficients - whole.fit.coefficients) / whole.fit.stderr
+    assert np.max(diff) < 0.01, diff
+
+
+def committed(db: Path) -> int:
+    if not db.exists():
+        return 0
+    try:
+        with sqlite3.connect(db, timeout=5) as con:
+            return con.execute("SELECT COUNT(*) FROM points").fetchone()[0]
+    except sqlite3.OperationalError:
+        return 0
+
+
+def test_sigkill_at_random_moments_then_resume_loses_and_duplicates_nothing(tmp_path):
+    """Kill the run process (SIGKILL) at 10 different moments — one while it waits at a remount
+    prompt, the others after 1–60 committed points plus a random few milliseconds, wherever the
+    process then is (moving, settling, writing) — and resume each: every planned point is in the
+    journal exactly once and the coefficients equal the uninterrupted run's."""
+    env = dict(os.environ)
+    base = ["run", "--sim", "--seed", "8", "--rig", STATIC_LAB, "--json"]
+    reference = subprocess.run([LABCAL, *base, "--yes", "--out", str(tmp_path / "ref")], capture_output=True,
+                               text=True, timeout=120, env={**env, "LABCAL_DB": str(tmp_path / "ref.sqlite")})
+    assert reference.returncode == 0, reference.stderr
+    import json
+
+    ref_fit = json.loads(reference.stdout)["fit"]
+    ref_x, ref_se = np.array(ref_fit["coefficients"]), np.array(ref_fit["standard_errors"])
+    rng = random.Random(2026)
+    moments = ["prompt"] + sorted(rng.sample(range(1, 61), 9))
+    for k, moment in enumerate(moments):
+        db, run_dir = tmp_path / f"k{k}.sqlite", tmp_path / f"k{k}"
+        kenv = {**env, "LABCAL_DB": str(db)}
+        interactive = moment == "prompt"
+        proc = subprocess.Popen([LABCAL, *base, "--out", str(run_dir)] + ([] if interactive else ["--yes"]),
+                                stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                text=True, env=kenv)
+        target = 16 if interactive else moment
+        if interactive:
+            proc.stdin.write("y\n")  # mount 1; mount 2's prompt is left waiting
+            proc.stdin.flush()
+        deadline = time.monotonic() + 60
+        while committed(db) < target and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.002)
+        time.sleep(0.3 if interactive else rng.uniform(0, 0.03))
+        proc.kill()
+        proc.wait(timeout=10)
+        before = committed(db)
+        resumed = subprocess.run([LABCAL, "resume", str(run_dir), "--yes", "--json"], capture_output=True,
+                                 text=True, timeout=120, env=kenv)
+        assert resumed.returncode == 0, (moment, resumed.stderr)
+        with sqlite3.connect(db) as con:
+            seqs = [r[0] for r in con.execute("SELECT seq FROM points ORDER BY seq")]
+            status = con.execute("SELECT status FROM runs").fetchone()[0]
+        assert seqs == list(range(64)) and status == "complete", (moment, before)
+        x = np.array(json.loads(resumed.stdout)["fit"]["coefficients"])
+        assert np.max(np.abs(x - ref_x) / ref_se) < 0.01, (moment, before)
