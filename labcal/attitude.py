@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
 
+from labcal.distributions import t_quantile
 from labcal.errors import LabcalError
 from labcal.files import read_text
 
@@ -100,7 +100,7 @@ def output_variance(cal: Calibration, g: NDArray) -> NDArray:
 
 
 def _k95(cal: Calibration) -> float:
-    return float(stats.t.ppf(0.975, cal.dof)) if cal.dof > 0 else float("inf")
+    return float(t_quantile(0.975, cal.dof)) if cal.dof > 0 else float("inf")
 
 
 def closed_form(cal: Calibration, volts: NDArray) -> Attitude:

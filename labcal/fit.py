@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
 
+from labcal.distributions import f_isf, f_sf, t_quantile
 from labcal.models import BASE_NAMES, EXTENSIONS, Model, Points
 from labcal.readings import Readings
 from labcal.regression import LeastSquares, least_squares
@@ -92,7 +92,7 @@ class Fit:
         """Predicted output (n×3) with confidence and prediction half-widths at ``level``."""
         _, f = self.model.design(points)
         q = np.einsum("ij,jk,ik->i", f, self.ls.cov_unscaled, f)  # fᵀ R⁻¹ f
-        t = stats.t.ppf(0.5 + level / 2, self.variance_dof)
+        t = t_quantile(0.5 + level / 2, self.variance_dof)
         var_mean = q[:, None] * self.variance[None, :]
         return {
             "volts": f @ self.ls.coef,
@@ -178,13 +178,13 @@ class ExtensionTest:
 
     @property
     def p_value(self) -> NDArray | None:
-        return None if self.f is None else stats.f.sf(self.f, *self.df)
+        return None if self.f is None else f_sf(self.f, *self.df)
 
     def to_json(self) -> dict:
         if self.reason:
             return {"tested": False, "reason": self.reason}
         return {"tested": True, "F": self.f.tolist(), "df": list(self.df), "p_value": self.p_value.tolist(),
-                "critical_95": float(stats.f.isf(ALPHA, *self.df)),
+                "critical_95": float(f_isf(ALPHA, *self.df)),
                 "warranted": (self.p_value < ALPHA).tolist(), "aliased_terms": list(self.aliased)}
 
 

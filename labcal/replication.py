@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
+
+from labcal.distributions import f_isf, f_sf
 
 ALPHA = 0.05
 
@@ -27,11 +28,11 @@ class FTest:
 
     @property
     def critical(self) -> NDArray:
-        return stats.f.isf(ALPHA, self.df_num, self.df_den)
+        return f_isf(ALPHA, self.df_num, self.df_den)
 
     @property
     def p_value(self) -> NDArray:
-        return stats.f.sf(self.statistic, self.df_num, self.df_den)
+        return f_sf(self.statistic, self.df_num, self.df_den)
 
     @property
     def significant(self) -> NDArray:

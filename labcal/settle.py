@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
-from scipy import stats
 
+from labcal.distributions import chi2_quantile
 from labcal.station import Clock, Scan, Voltmeter
 
 
@@ -59,7 +59,7 @@ def window_verdict(volts: NDArray, noise_v: float, k_sigma: float) -> Verdict:
     diff = volts[:half].mean(axis=0) - volts[n - half:].mean(axis=0)
     if np.any(np.abs(diff) > k_sigma * noise_v * math.sqrt(2 / half)):
         return Verdict(False, "half-window means disagree")
-    limit = noise_v * math.sqrt(stats.chi2.ppf(0.999, n - 1) / (n - 1))
+    limit = noise_v * math.sqrt(chi2_quantile(0.999, n - 1) / (n - 1))
     if np.any(volts.std(axis=0, ddof=1) > limit):
         return Verdict(False, "scatter above the noise model")
     return Verdict(True, "settled")
