@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import random
 import signal
@@ -210,8 +211,6 @@ def test_sigkill_at_random_moments_then_resume_loses_and_duplicates_nothing(tmp_
     reference = subprocess.run([LABCAL, *base, "--yes", "--out", str(tmp_path / "ref")], capture_output=True,
                                text=True, timeout=120, env={**env, "LABCAL_DB": str(tmp_path / "ref.sqlite")})
     assert reference.returncode == 0, reference.stderr
-    import json
-
     ref_fit = json.loads(reference.stdout)["fit"]
     ref_x, ref_se = np.array(ref_fit["coefficients"]), np.array(ref_fit["standard_errors"])
     rng = random.Random(2026)
@@ -243,3 +242,30 @@ def test_sigkill_at_random_moments_then_resume_loses_and_duplicates_nothing(tmp_
         assert seqs == list(range(64)) and status == "complete", (moment, before)
         x = np.array(json.loads(resumed.stdout)["fit"]["coefficients"])
         assert np.max(np.abs(x - ref_x) / ref_se) < 0.01, (moment, before)
+
+
+def test_dry_run_estimate_matches_the_rig_and_moves_nothing(tmp_path, capsys):
+    from labcal.cli import main
+
+    assert main(["run", "--sim", "--dry-run", "--json", "--seed", "9"]) == 0
+    estimate = json.loads(capsys.readouterr().out)
+    assert main(["run", "--sim", "--yes", "--json", "--seed", "9", "--out", str(tmp_path / "run")]) == 0
+    actual = json.loads(capsys.readouterr().out)["simulated_rig_time_s"]
+    assert estimate["total_s"] == pytest.approx(actual, rel=0.05)
+    assert estimate["points"] == 64 and not (tmp_path / "dry").exists()
+
+
+def test_resume_refuses_what_it_cannot_continue(tmp_path, capsys, lab_database):
+    from labcal.cli import main
+
+    run_dir = tmp_path / "run"
+    assert main(["run", "--sim", "--yes", "--plan", "one-mount-16", "--out", str(run_dir)]) == 0
+    capsys.readouterr()
+    assert main(["resume", str(run_dir), "--yes"]) == 2
+    assert "already complete; nothing to resume" in capsys.readouterr().err
+    assert main(["resume", str(tmp_path / "nowhere")]) == 2
+    assert "not a run directory (no run.json)" in capsys.readouterr().err
+    with sqlite3.connect(lab_database) as con:  # someone edits the plan inside the journal
+        con.execute("UPDATE runs SET status='interrupted', plan_text=plan_text || '# edited'")
+    assert main(["resume", str(run_dir), "--yes"]) == 2
+    assert "does not match its recorded hash" in capsys.readouterr().err
