@@ -27,6 +27,10 @@ from labcal.settle import Dwell, SettleSettings, dwell
 from labcal.station import Station, mean_and_sd
 
 LOAD_POSITION = (0.0, 0.0)  # tables level while the operator remounts
+
+
+class PolicyAbort(LabcalError):
+    """A point did not settle and the policy says abort (not a device fault to pause on)."""
 MOUNT_ATTEMPTS = 3
 
 
@@ -225,9 +229,9 @@ class Sequencer:
                     else:
                         why = ""
                     index = sum(1 for b in blocks if b.seq <= step.seq)
-                    self.mount(step.mount, index, len(blocks), why, provisional())
+                    self.until_done(self.mount, step.mount, index, len(blocks), why, provisional())
                     mounted = step.mount
-                failed += self.point(step)
+                failed += self.until_done(self.point, step)
                 if self.interrupts.pause_requested:
                     self.pause("Ctrl-C")
         except BaseException as exc:
@@ -238,6 +242,23 @@ class Sequencer:
             raise
         recorded = len(self.journal.points(self.run_id, status="ok"))
         return RunOutcome(recorded, failed, self.station.clock.now() - self._t0)
+
+    def until_done(self, action, *args):
+        """Do ``action(*args)``; on a device fault stop the tables, say what happened and pause: the
+        operator fixes the cause and resumes (the action is done again) or aborts (resumable later)."""
+        while True:
+            try:
+                return action(*args)
+            except PolicyAbort:
+                raise
+            except LabcalError as fault:
+                try:
+                    self.station.stop()
+                except Exception as stop_error:  # noqa: BLE001 - the fault is the news; note the rest
+                    fault.add_note(f"stopping the tables failed too: {stop_error}")
+                self.event("fault", str(fault))
+                self.display.message(f"[bold red]Fault:[/] {fault}")
+                self.pause(f"fault: {fault}")
 
     def point(self, step: Step) -> int:
         """Measure one step (retrying once if it does not settle) and commit it; 1 if it failed."""
@@ -273,7 +294,7 @@ class Sequencer:
         policy = self.settings.on_failure
         self.event("fault", f"point {step.seq} failed: {result.verdict.reason}", policy=policy)
         if policy == "abort":
-            raise LabcalError(f"point {step.seq} (pitch {step.pitch_deg:g}°, roll {step.roll_deg:g}°) did "
+            raise PolicyAbort(f"point {step.seq} (pitch {step.pitch_deg:g}°, roll {step.roll_deg:g}°) did "
                               f"not settle: {result.verdict.reason}; run stopped (on_failure = abort)")
         if self.settings.on_failure == "pause":
             self.pause(f"point {step.seq} did not settle")

@@ -269,3 +269,50 @@ def test_resume_refuses_what_it_cannot_continue(tmp_path, capsys, lab_database):
         con.execute("UPDATE runs SET status='interrupted', plan_text=plan_text || '# edited'")
     assert main(["resume", str(run_dir), "--yes"]) == 2
     assert "does not match its recorded hash" in capsys.readouterr().err
+
+
+def test_a_device_fault_pauses_and_resuming_retries_the_point(tmp_path):
+    """A voltmeter that fails once (as an emulator's injected fault would) stops the tables and
+    pauses with the device's message; the operator resumes and the point is measured again."""
+    from labcal.drivers.errors import NoReply
+
+    setup = sim_station(None, 10)
+    dmm, calls = setup.station.dmm, {"n": 0}
+    real_read = dmm.read
+
+    def flaky_read(n):
+        calls["n"] += 1
+        if calls["n"] == 40:
+            raise NoReply("no reply to READ? within 2 s", "DMM (34970A at socket://127.0.0.1:5025)")
+        return real_read(n)
+
+    dmm.read = flaky_read
+    answers = tmp_path / "answers.txt"
+    answers.write_text("y\ny\ny\nr\ny\n")  # the 40th read is in mount 3: mounts 1-3, resume, mount 4
+    result = journal_run(tmp_path, setup, operator=ScriptedOperator(quiet_console(), answers))
+    assert result.outcome.points_recorded == 64
+    with Journal(tmp_path / "j.sqlite") as journal:
+        events = journal.events(result.run_id)
+    faults = [e["message"] for e in events if e["kind"] == "fault"]
+    assert faults == ["DMM (34970A at socket://127.0.0.1:5025): no reply to READ? within 2 s"]
+    assert [e["kind"] for e in events].count("pause") == 1
+
+
+def test_a_device_fault_with_nobody_to_answer_stops_and_keeps_every_point(tmp_path):
+    setup = sim_station(None, 11)
+    real_move = setup.station.roll.move_to
+    moves = {"n": 0}
+
+    def failing_move(angle):
+        moves["n"] += 1
+        if moves["n"] > 12:
+            raise LabcalError("roll table (simulated): alarm 0x30 overload")
+        real_move(angle)
+
+    setup.station.roll.move_to = failing_move
+    answers = tmp_path / "answers.txt"
+    answers.write_text("y\n")  # mount 1 only: the pause finds no answer
+    with pytest.raises(Exception, match="no answer left"):
+        journal_run(tmp_path, setup, operator=ScriptedOperator(quiet_console(), answers))
+    with Journal(tmp_path / "j.sqlite") as journal:
+        assert journal.run(1).status == "stopped" and len(journal.points(1)) == 10  # 2 moves: load, check
