@@ -31,7 +31,7 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()
             proc = subprocess.run([LABCAL, "run", "--sim", "--yes", "--json", "--seed", str(i),
-                                   "--plan", args.plan, "--out", f"{tmp}/run"],
+                                   "--plan", args.plan, "--out", f"{tmp}/run", "--db", f"{tmp}/j.sqlite"],
                                   capture_output=True, text=True, check=True)
             command_s.append(time.perf_counter() - t0)
         summary = json.loads(proc.stdout)
