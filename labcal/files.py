@@ -1,7 +1,9 @@
-"""Reading user files: every failure becomes one LabcalError line naming the file and the field."""
+"""Reading user files (every failure one LabcalError line naming the file and the field) and
+writing JSON documents safely."""
 
 from __future__ import annotations
 
+import json
 import tomllib
 from pathlib import Path
 from typing import TypeVar
@@ -46,3 +48,21 @@ def parse_model(text: str, model: type[Model], source: str) -> Model:
 
 def load_model(path: str | Path, model: type[Model], kind: str) -> Model:
     return parse_model(read_text(path, kind), model, str(path))
+
+
+def json_safe(value):
+    """Replace NaN and infinities (no JSON for them) by null."""
+    if isinstance(value, float):
+        return value if value == value and abs(value) != float("inf") else None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(v) for v in value]
+    return value
+
+
+def write_json(path: Path, doc: dict) -> None:
+    """Write a JSON document atomically: a reader never sees half a file."""
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(json_safe(doc), indent=2) + "\n", encoding="utf-8")
+    tmp.replace(path)

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from labcal import __version__
 from labcal.errors import LabcalError
+from labcal.files import json_safe, write_json  # noqa: F401 - json_safe is part of this module's API
 from labcal.fit import Fit, fit_readings
 from labcal.interrupts import Interrupts
 from labcal.journal import Journal, Manifest, sha256
@@ -29,23 +30,6 @@ FIT = "fit.json"
 PLAN = "plan.toml"
 RUN = "run.json"
 MIN_POINTS_FOR_MOUNT_CHECK_FIT = 8
-
-
-def json_safe(value):
-    """Replace NaN and infinities (no JSON for them) by null."""
-    if isinstance(value, float):
-        return value if value == value and abs(value) != float("inf") else None
-    if isinstance(value, dict):
-        return {k: json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [json_safe(v) for v in value]
-    return value
-
-
-def write_json(path: Path, doc: dict) -> None:
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(json_safe(doc), indent=2) + "\n", encoding="utf-8")
-    tmp.replace(path)  # atomic: a reader never sees half a file
 
 
 def new_run_dir(out: str | None, plan: Plan) -> Path:

@@ -7,7 +7,7 @@ import sys
 
 from rich.console import Console
 
-from labcal.run import json_safe
+from labcal.files import json_safe
 
 EXIT_USER_ERROR = 2
 EXIT_STOPPED = 1
