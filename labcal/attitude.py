@@ -11,7 +11,6 @@ roll angle does not exist; such rows report roll as NaN with the reason.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,13 +41,18 @@ class Calibration:
 
 
 def load_calibration(path: str | Path) -> Calibration:
-    """Read the coefficients and their uncertainty from a fit JSON (or a certificate)."""
-    text = read_text(path, "calibration")
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise LabcalError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
-    doc = doc.get("fit", doc) if isinstance(doc, dict) else doc
+    """Read the coefficients and their uncertainty from a fit JSON or a certificate; a certificate's
+    schema and digest are verified first, so a tampered certificate never converts a voltage."""
+    from labcal.certificate import certificate_from_doc, is_certificate, parse_json
+
+    doc = parse_json(read_text(path, "calibration"), str(path))
+    if is_certificate(doc):
+        doc = certificate_from_doc(doc, str(path)).fit.model_dump()
+    return calibration_from_json(doc.get("fit", doc) if isinstance(doc, dict) else doc, path)
+
+
+def calibration_from_json(doc: dict, path: str | Path) -> Calibration:
+    """The attitude calibration from a fit JSON document (``path`` names it in messages)."""
     try:
         X = np.array(doc["coefficients"], dtype=float)
         cov = np.array(doc["covariance"], dtype=float)

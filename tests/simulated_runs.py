@@ -1,0 +1,38 @@
+"""Dry runs on the simulated rig for the certificate, report and history tests.
+
+Through the command line (`labcal run --sim`), in-process: the interface the lab uses, and the one
+that stays put while the run's internals move to the journal. One run takes about a second.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+from labcal.cli import main
+from labcal.sim.instrument import default_instrument
+
+
+def rig_with_bias_shift(path: Path, shift_v: tuple[float, float, float]) -> Path:
+    """A rig file whose instrument is the default one with its bias B shifted by ``shift_v``."""
+    truth = default_instrument().model_dump()
+    truth["B"] = [b + d for b, d in zip(truth["B"], shift_v, strict=True)]
+    path.write_text("[instrument]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in truth.items()),
+                    encoding="utf-8")
+    return path
+
+
+def simulated_run(run_dir: Path, db: Path, seed: int, *, rig: Path | None = None, plan: str | None = None,
+                  serial: str | None = None) -> Path:
+    """A complete dry run into ``run_dir`` journaled in ``db``; it starts in a new UTC second, so
+    consecutive runs have distinct calibration times (run.json keeps whole seconds)."""
+    start = datetime.now(UTC).replace(microsecond=0)
+    while datetime.now(UTC).replace(microsecond=0) == start:
+        time.sleep(0.02)
+    args = ["run", "--sim", "--yes", "--seed", str(seed), "--out", str(run_dir), "--db", str(db)]
+    args += ["--rig", str(rig)] * (rig is not None) + ["--plan", plan] * (plan is not None)
+    args += ["--serial", serial] * (serial is not None)
+    assert main(args) == 0
+    return run_dir

@@ -1,0 +1,200 @@
+"""The certificate: exact round trip, contents checked against the fit, sealing, ILAC-P14 numbers."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy import stats
+from simulated_runs import simulated_run
+
+from labcal.attitude import load_calibration
+from labcal.certificate import (
+    SCHEMA,
+    CertificateSettings,
+    build_certificate,
+    content_digest,
+    envelope_grid,
+    format_result,
+    format_uncertainty,
+    load_settings,
+    read_certificate,
+    write_certificate,
+)
+from labcal.cli import main
+from labcal.errors import LabcalError
+from labcal.fit import fit_readings
+from labcal.runrecord import load_run
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    base = tmp_path_factory.mktemp("cert")
+    return load_run(simulated_run(base / "run", base / "lab.sqlite", seed=7, serial="SN-0042"))
+
+
+@pytest.fixture(scope="module")
+def cert(run):
+    return build_certificate(run, fit_readings(run.readings),
+                             CertificateSettings(attitude_u95_max_deg=0.01, bias_max_v=0.02))
+
+
+@pytest.fixture
+def cert_file(cert, tmp_path):
+    return write_certificate(tmp_path / "certificate.json", cert)
+
+
+def test_round_trip_is_exact(cert, cert_file, tmp_path):
+    again = read_certificate(cert_file)
+    assert again == cert
+    assert again.to_json() == cert.to_json()
+    rewritten = write_certificate(tmp_path / "again.json", again)
+    assert rewritten.read_bytes() == cert_file.read_bytes()
+    assert cert.digest.value == content_digest(json.loads(cert_file.read_text()))
+
+
+def test_contents_match_the_fit_and_the_run(run, cert):
+    fit = fit_readings(run.readings)
+    assert cert.to_json()["schema"] == SCHEMA
+    assert cert.instrument.serial == "SN-0042"  # recorded by `labcal run --serial`
+    assert cert.station.simulated and cert.station.simulated_truth["seed"] == 7
+    np.testing.assert_array_equal(cert.coefficients, fit.coefficients)
+    for j in range(3):
+        np.testing.assert_array_equal(cert.fit.covariance[j], fit.covariance(j))
+    # 64 points, 4 coefficients per sensor: ν = 60, k = t₀.₉₇₅(60) = 2.0003 (GUM G.4)
+    assert cert.fit.degrees_of_freedom == 60 and cert.expanded_uncertainty.nu_eff == [60, 60, 60]
+    assert cert.expanded_uncertainty.k == pytest.approx([2.000297822] * 3, abs=1e-9)
+    np.testing.assert_allclose(cert.U, stats.t.ppf(0.975, 60) * fit.stderr[:4], rtol=1e-15)
+    assert cert.environment.temperature_c_min == run.readings.temp_c.min()
+    assert cert.environment.temperature_c_max == run.readings.temp_c.max()
+    assert cert.plan.sha256 == hashlib.sha256((run.directory / "plan.toml").read_bytes()).hexdigest()
+    readings = (run.directory / "readings.csv").read_bytes()
+    assert cert.data.readings_sha256 == hashlib.sha256(readings).hexdigest()
+    # Soto's result: four mounts × 16 points cancel every misalignment in B and off-diagonal S.
+    assert set(cert.plan_audit.misalignments) == set("abdefk")
+    assert all(m.cancelled for m in cert.plan_audit.misalignments.values())
+
+
+def test_attitude_uncertainty_is_in_degrees_and_matches_first_order_propagation(cert):
+    """At level attitude the pitch comes from sensor x alone to first order: u_p = √(fᵀC_x f + σ_x²)/S_xx
+    with f = (1, 0, 0, 1); off-axis sensitivities (≈ 0.2 % of S_xx) change it by far less than 1 %."""
+    cal = cert.calibration()
+    env = envelope_grid(cal, CertificateSettings())
+    i, j = list(env.pitch_deg).index(0.0), list(env.roll_deg).index(0.0)
+    f = np.array([1.0, 0.0, 0.0, 1.0])
+    u_p = np.sqrt(f @ cal.covariance[0] @ f + cal.reading_sd[0] ** 2) / cal.X[1, 0]
+    assert env.u95_pitch_deg[i, j] == pytest.approx(env.k * np.degrees(u_p), rel=1e-2)
+    a = cert.attitude
+    assert a.pitch_U95_max_deg == pytest.approx(np.max(env.u95_pitch_deg), rel=1e-12)
+    assert a.roll_U95_max_deg == pytest.approx(np.nanmax(env.u95_roll_deg), rel=1e-12)
+    assert a.pitch_U95_rms_deg <= a.pitch_U95_max_deg and a.grid_points == 25 * 73
+    assert a.roll_undefined_points == 0  # the default envelope stops at ±60° pitch
+
+
+def test_conformity_follows_the_decision_rule(run, cert):
+    fit = fit_readings(run.readings)
+    assert cert.conformity.passed  # U95 ≈ 0.003–0.006° < 0.01°, |B| + U ≤ 0.0124 V < 0.02 V
+    worst = max(cert.attitude.pitch_U95_max_deg, cert.attitude.roll_U95_max_deg)
+    tight = build_certificate(run, fit, CertificateSettings(attitude_u95_max_deg=worst * 0.999))
+    assert not tight.conformity.passed
+    assert [c.passed for c in tight.conformity.checks].count(False) == 1
+    bias_x = abs(cert.coefficients[0, 0]) + cert.U[0, 0]
+    biased = build_certificate(run, fit, CertificateSettings(bias_max_v=bias_x * 0.999))
+    assert [c.passed for c in biased.conformity.checks] == [False, True, True]
+    assert build_certificate(run, fit).conformity is None  # no tolerance, no statement
+
+
+def _edit(path, change) -> None:
+    doc = json.loads(path.read_text())
+    change(doc)
+    path.write_text(json.dumps(doc, indent=2))
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda d: d["fit"]["coefficients"][1].__setitem__(0, d["fit"]["coefficients"][1][0] + 1e-9),
+     "digest mismatch: the content was altered after issue"),
+    (lambda d: d["conformity"].__setitem__("passed", not d["conformity"]["passed"]), "digest mismatch"),
+    (lambda d: d["digest"].__setitem__("value", "0" * 64), "digest mismatch"),
+    (lambda d: d.__setitem__("schema", "labcal.certificate/9"),
+     "schema 'labcal.certificate/9' is not supported"),
+    (lambda d: d.pop("schema"), "not a labcal certificate"),
+    (lambda d: d["fit"].pop("covariance"), "invalid certificate: fit.covariance: Field required"),
+    (lambda d: d["fit"]["coefficients"].pop(), "coefficients must have shape 4×3, not 3×3"),
+    (lambda d: d.__setitem__("extra", 1), "invalid certificate: extra: Extra inputs are not permitted"),
+])
+def test_altered_certificate_is_rejected(cert_file, change, message):
+    _edit(cert_file, change)
+    with pytest.raises(LabcalError, match=message.replace("(", r"\(")) as exc:
+        read_certificate(cert_file)
+    assert "\n" not in str(exc.value)
+
+
+@pytest.mark.parametrize("keep", [0.1, 0.5, 0.99])
+def test_truncated_certificate_is_rejected(cert_file, keep):
+    text = cert_file.read_text()
+    cert_file.write_text(text[: int(len(text) * keep)])
+    with pytest.raises(LabcalError, match="not valid JSON: the file is truncated"):
+        read_certificate(cert_file)
+
+
+def test_attitude_reads_a_certificate_and_refuses_a_tampered_one(cert, cert_file, tmp_path, capsys):
+    cal = load_calibration(cert_file)
+    np.testing.assert_array_equal(cal.X, cert.coefficients)
+    volts = tmp_path / "v.csv"
+    g = np.array([0.0, 0.0, 1.0])  # level: pitch 0, roll 0
+    v = cert.coefficients[0] + g @ cert.coefficients[1:]
+    volts.write_text("vx,vy,vz\n" + ",".join(f"{x:.12f}" for x in v) + "\n")
+    assert main(["attitude", "--cert", str(cert_file), "--csv", str(volts), "--json"]) == 0
+    row = json.loads(capsys.readouterr().out)["rows"][0]["sphere_least_squares"]
+    assert (row["pitch_deg"], row["roll_deg"]) == pytest.approx((0.0, 0.0), abs=1e-9)
+    tampered = tmp_path / "tampered.json"
+    shutil.copy(cert_file, tampered)
+    _edit(tampered, lambda d: d["fit"]["reading_sd"].__setitem__(0, 1e-9))  # a smaller claimed noise
+    assert main(["attitude", "--cert", str(tampered), "--csv", str(volts)]) == 2
+    err = capsys.readouterr().err
+    assert "digest mismatch" in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("value, u, expected", [
+    (4.98715012, 4.0658e-5, "4.987150 ± 0.000041"),  # y rounded to the last digit of U
+    (1.23456, 0.0996, "1.23 ± 0.10"),  # rounding carries U to a new decade: still two digits
+    (-0.0081049, 2.5e-5, "-0.008105 ± 0.000025"),
+    (12345.6, 149.7, "12350 ± 150"),
+    (0.5, 0.0, "0.5"),  # no uncertainty: no ±
+])
+def test_format_result_follows_ilac_p14(value, u, expected):
+    assert format_result(value, u) == expected
+
+
+def test_format_uncertainty_has_two_significant_digits():
+    assert [format_uncertainty(u) for u in (0.000123456, 0.00996, 2.04, 97.6)] == ["0.00012", "0.010", "2.0",
+                                                                                   "98"]
+
+
+def test_settings_from_a_station_file_and_the_command_line(tmp_path):
+    station = tmp_path / "station.toml"
+    station.write_text('description = "bench 2"\n[certificate]\nlaboratory = "Lab A, Hampton VA"\n'
+                       "attitude_u95_max_deg = 0.02\nusage_pitch_deg = [-30, 30]\n")
+    s = load_settings(station, attitude_u95_max_deg=0.005, bias_max_v=None)
+    assert (s.laboratory, s.attitude_u95_max_deg, s.usage_pitch_deg, s.bias_max_v) == \
+        ("Lab A, Hampton VA", 0.005, (-30.0, 30.0), None)
+    station.write_text("[certificate]\nusage_pitch_deg = [-95, 30]\n")
+    with pytest.raises(LabcalError, match=r"station.toml: certificate.*must be increasing within -90..90"):
+        load_settings(station)
+    with pytest.raises(LabcalError, match="certificate.attitude_u95_max_deg: Input should be greater than 0"):
+        load_settings(None, attitude_u95_max_deg=-1.0)
+
+
+def test_serial_must_be_known_and_not_contradicted(run, tmp_path):
+    fit = fit_readings(run.readings)
+    with pytest.raises(LabcalError, match="the run records instrument serial 'SN-0042'; 'SN-9' disagrees"):
+        build_certificate(run, fit, serial="SN-9")
+    anonymous = replace(run, meta={k: v for k, v in run.meta.items()
+                                   if k not in ("instrument_serial", "simulated_truth")})
+    with pytest.raises(LabcalError, match="does not record the instrument's serial number; give --serial"):
+        build_certificate(anonymous, fit)
+    assert build_certificate(anonymous, fit, serial="SN-7").instrument.serial == "SN-7"
