@@ -1,0 +1,133 @@
+"""What every index-table driver shares: soft limits, which way round, waiting, and read-back.
+
+A driver supplies four device exchanges (status, angle, go to an absolute angle, halt); this base
+turns them into `labcal.station.RotaryAxis`. A move is checked against the soft limits before
+anything is sent, and is only over when the device reports it in position *and* the position read
+back lies within the tolerance of the target.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+from labcal.drivers.errors import DeviceFault, OutOfLimits
+from labcal.station import Clock
+
+ARCSEC_PER_DEG = 3600.0
+START_GRACE_S = 1.0  # a device may report its old in-position state this long after a move starts
+
+
+@dataclass(frozen=True)
+class AxisStatus:
+    """A table's state in the driver's terms, whatever the device's own words."""
+
+    ready: bool  # would accept a move
+    moving: bool
+    in_position: bool  # stopped, clamped and settled
+    fault: str | None  # what is wrong, in words; None when healthy
+    words: str  # the device's own status, for people ("READY IN-POS", "READY from MOVING (33h)")
+
+
+def wrapped(delta_deg: float) -> float:
+    """An angle difference folded into [-180, 180)."""
+    return (delta_deg + 180.0) % 360.0 - 180.0
+
+
+class IndexAxis(ABC):
+    """An index table behind `labcal.station.RotaryAxis`."""
+
+    model = "index table"
+
+    def __init__(self, name: str, where: str, clock: Clock, *, limits_deg: tuple[float, float] | None,
+                 tolerance_arcsec: float, poll_s: float):
+        self.name = name
+        self.device = f"{name} table ({self.model}, {where})"
+        self.clock = clock
+        self.limits = limits_deg
+        self.tolerance_arcsec = tolerance_arcsec
+        self.poll_s = poll_s
+        self._target: float | None = None
+
+    # --- the device's part ------------------------------------------------------------------
+    @abstractmethod
+    def status(self) -> AxisStatus:
+        """Read the device's status."""
+
+    @abstractmethod
+    def angle(self) -> float:
+        """The device's position in degrees, unwrapped where the device counts turns."""
+
+    @abstractmethod
+    def _go(self, target_deg: float) -> None:
+        """Start an absolute move to ``target_deg`` (unwrapped, already within the limits)."""
+
+    @abstractmethod
+    def _halt(self) -> None:
+        """Tell the device to stop."""
+
+    @abstractmethod
+    def identify(self) -> str:
+        """Who answers, in words (model, address, firmware where the device says)."""
+
+    def prepare(self) -> None:
+        """Make the table ready for a run (home it, enable it); refuses when it reports a fault."""
+        status = self.status()
+        if status.fault:
+            raise DeviceFault(status.fault, self.device)
+
+    # --- shared logic -----------------------------------------------------------------------
+    def check_angle(self, angle_deg: float) -> float:
+        """The angle equivalent to ``angle_deg`` (mod 360) within the soft limits nearest to it;
+        raises `OutOfLimits` when there is none. No I/O: plans are checked with it before anything moves."""
+        return self._within_limits(angle_deg, angle_deg)
+
+    def _within_limits(self, angle_deg: float, near_deg: float) -> float:
+        if self.limits is None:
+            return near_deg + wrapped(angle_deg - near_deg)
+        lo, hi = self.limits
+        k_lo, k_hi = math.ceil((lo - angle_deg) / 360.0 - 1e-9), math.floor((hi - angle_deg) / 360.0 + 1e-9)
+        if k_lo > k_hi:
+            raise OutOfLimits(f"{angle_deg:g}° is outside the soft limits [{lo:g}°, {hi:g}°]; "
+                              "change the plan or the limits in the station file", self.device)
+        return min((angle_deg + 360.0 * k for k in range(k_lo, k_hi + 1)), key=lambda t: abs(t - near_deg))
+
+    def move_to(self, angle_deg: float) -> None:
+        """Start a move: the shortest way round on a free table, within the limits on a limited one."""
+        self.check_angle(angle_deg)  # refuse before any exchange with the device
+        target = self._within_limits(angle_deg, self.angle())
+        self._target = target
+        self._go(target)
+
+    def wait_in_position(self, timeout_s: float) -> float:
+        """Poll until in position and on target; returns the position read back (0..360°)."""
+        start = self.clock.now()
+        deadline = start + timeout_s
+        while True:
+            expired = self.clock.now() >= deadline
+            status = self.status()
+            if status.fault:
+                raise DeviceFault(status.fault, self.device)
+            if status.in_position and not status.moving:
+                here = self.angle()
+                if self._target is None:
+                    return here % 360.0
+                off = wrapped(here - self._target) * ARCSEC_PER_DEG
+                if abs(off) <= self.tolerance_arcsec:
+                    return here % 360.0
+                if expired or self.clock.now() - start > START_GRACE_S:
+                    raise DeviceFault(
+                        f"in position at {here % 360.0:.5f}°, {off:+.1f}″ from the target "
+                        f"{self._target % 360.0:g}° (tolerance {self.tolerance_arcsec:g}″); "
+                        "check for a stall or a slipping coupling", self.device)
+            elif expired:
+                raise DeviceFault(f"not in position {timeout_s:g} s after the move to "
+                                  f"{(self._target or 0.0) % 360.0:g}° began ({status.words})", self.device)
+            self.clock.sleep(self.poll_s)
+
+    def position(self) -> float:
+        return self.angle() % 360.0
+
+    def stop(self) -> None:
+        self._halt()

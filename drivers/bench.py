@@ -1,0 +1,137 @@
+"""The devices a station file names, opened: one link per bus, one driver per device."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from labcal.drivers.axis import IndexAxis
+from labcal.drivers.errors import DriverError
+from labcal.drivers.keysight_34970a import EOL as SCPI_EOL
+from labcal.drivers.keysight_34970a import Keysight34970A
+from labcal.drivers.modbus import ModbusLink
+from labcal.drivers.newport_smc100 import EOL as SMC_EOL
+from labcal.drivers.newport_smc100 import Smc100Axis
+from labcal.drivers.oriental_az import AzAxis
+from labcal.drivers.station_file import AzSettings, LinkSettings, Smc100Settings, StationFile
+from labcal.drivers.transport import LineTransport, SerialStream, TcpStream, tcp_address
+from labcal.station import Clock, Station, SystemClock
+
+
+def line_transport(settings: LinkSettings, eol: bytes) -> LineTransport:
+    """An ASCII link on the port or TCP address the settings name (opened on first use)."""
+    if settings.tcp:
+        host, port = tcp_address(settings.tcp)
+        return LineTransport(settings.where, lambda: TcpStream(host, port, settings.timeout_s), eol=eol,
+                             timeout_s=settings.timeout_s, reconnect_s=settings.reconnect_s)
+    url = settings.port
+    assert url is not None
+    return LineTransport(settings.where, lambda: SerialStream(
+        url, baudrate=settings.baudrate, bytesize=settings.bytesize, parity=settings.parity,
+        stopbits=settings.stopbits, xonxoff=settings.xonxoff, timeout_s=settings.timeout_s),
+        eol=eol, timeout_s=settings.timeout_s, reconnect_s=settings.reconnect_s)
+
+
+def modbus_link(settings: LinkSettings) -> ModbusLink:
+    common = dict(timeout_s=settings.timeout_s, retries=settings.retries, reconnect_s=settings.reconnect_s)
+    if settings.tcp:
+        host, port = tcp_address(settings.tcp)
+        return ModbusLink.tcp(host, port, **common)
+    assert settings.port is not None
+    return ModbusLink.serial(settings.port, baudrate=settings.baudrate, bytesize=settings.bytesize,
+                             parity=settings.parity, stopbits=settings.stopbits, **common)
+
+
+class Bench:
+    """Drivers for a station file. Nothing is opened until a device is first asked something;
+    `close` releases every port."""
+
+    def __init__(self, config: StationFile, clock: Clock | None = None):
+        self.config = config
+        self.clock = clock or SystemClock()
+        self._links: dict[str, ModbusLink | LineTransport] = {}
+        self.pitch = self._axis("pitch", config.pitch)
+        self.roll = self._axis("roll", config.roll)
+        dmm = config.dmm
+        self.dmm = Keysight34970A("dmm", self._link(dmm, lambda: line_transport(dmm, SCPI_EOL)),
+                                  channels=dmm.channels, temperature_channel=dmm.temperature_channel,
+                                  temperature_probe=dmm.temperature_probe, nplc=dmm.nplc, range_v=dmm.range_v,
+                                  line_hz=dmm.line_hz, retries=dmm.retries, serial_line=dmm.port is not None)
+
+    def _link(self, settings: LinkSettings, make: Callable[[], ModbusLink | LineTransport]):
+        if settings.bus not in self._links:
+            self._links[settings.bus] = make()
+        return self._links[settings.bus]
+
+    def _axis(self, name: str, s: AzSettings | Smc100Settings) -> IndexAxis:
+        common = dict(limits_deg=s.limits_deg, tolerance_arcsec=s.in_position_arcsec, poll_s=s.poll_s)
+        if isinstance(s, AzSettings):
+            return AzAxis(name, self._link(s, lambda: modbus_link(s)), s.unit, self.clock,
+                          steps_per_degree=s.steps_per_degree, speed_dps=s.speed_dps, accel_dps2=s.accel_dps2,
+                          wrap=s.wrap, **common)
+        return Smc100Axis(name, self._link(s, lambda: line_transport(s, SMC_EOL)), s.address, self.clock,
+                          speed_dps=s.speed_dps, accel_dps2=s.accel_dps2, home_timeout_s=s.home_timeout_s,
+                          retries=s.retries, **common)
+
+    @property
+    def axes(self) -> tuple[IndexAxis, IndexAxis]:
+        return self.pitch, self.roll
+
+    def check_angles(self, pitch_deg: list[float], roll_deg: list[float]) -> None:
+        """Every angle a run will visit, against the soft limits, before anything moves."""
+        for angle in pitch_deg:
+            self.pitch.check_angle(angle)
+        for angle in roll_deg:
+            self.roll.check_angle(angle)
+
+    def prepare(self, say: Callable[[str], None] = lambda text: None) -> None:
+        """Home and enable the tables where their controllers need it, and configure the DMM."""
+        for axis in self.axes:
+            say(f"preparing the {axis.name} table ({axis.identify()})")
+            axis.prepare()
+        self.dmm.configure()
+
+    def check(self, reset_alarms: bool = False) -> list[dict]:
+        """Ask every device who it is and how it is, without moving anything: tables their status
+        and position, the DMM one scan. One report per device; ``problem`` says what failed."""
+        reports = []
+        for axis in self.axes:
+            report: dict = {"device": axis.name, "model": axis.model, "link": axis.device, "problem": None}
+            try:
+                report["identity"] = axis.identify()
+                status = axis.status()
+                if status.fault and reset_alarms and isinstance(axis, AzAxis):
+                    axis.reset_alarm()
+                    report["alarm_reset"] = True
+                    status = axis.status()
+                report.update(status=status.words, position_deg=axis.position(), problem=status.fault)
+            except DriverError as exc:
+                report["problem"] = str(exc)
+            reports.append(report)
+        report = {"device": "dmm", "model": self.dmm.model, "link": self.dmm.device, "problem": None}
+        try:
+            report["identity"] = self.dmm.identify()
+            self.dmm.configure()
+            scan = self.dmm.read(1)
+            report["volts"] = scan.volts[0].tolist()
+            report["temp_c"] = None if scan.temp_c is None else float(scan.temp_c[0])
+        except DriverError as exc:
+            report["problem"] = str(exc)
+        reports.append(report)
+        return reports
+
+    def station(self, **hooks: Callable) -> Station:
+        """The drivers as the sequencer's station; ``hooks`` (``remounted``, ``at_point``) tell an
+        emulated rig what the operator did. Real hardware needs neither."""
+        return Station(pitch=self.pitch, roll=self.roll, dmm=self.dmm, clock=self.clock,
+                       description=self.config.description or "hardware station", **hooks)
+
+    def close(self) -> None:
+        for link in self._links.values():
+            link.close()
+        self._links.clear()
+
+    def __enter__(self) -> Bench:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

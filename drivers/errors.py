@@ -1,0 +1,69 @@
+"""What can go wrong talking to a device. Every driver failure is a `DriverError`, and that is a
+`LabcalError`: the CLI prints its message on one line (which device, what happened, what to do)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from labcal.errors import LabcalError
+
+
+class DriverError(LabcalError):
+    """A device did not do what was asked."""
+
+    def __init__(self, message: str, device: str | None = None):
+        super().__init__(f"{device}: {message}" if device else message)
+        self.device = device  # set once the message names the device
+
+
+class NoReply(DriverError):
+    """Silence until the timeout (a device that is off, a wrong address or line setting)."""
+
+
+class BadReply(DriverError):
+    """A reply arrived but is not what the protocol allows (noise, bad CRC, a stale reply)."""
+
+
+class PortClosed(DriverError):
+    """The port or connection went away in the middle of an exchange; reconnecting may help."""
+
+
+class LinkLost(DriverError):
+    """The port could not be reopened within the reconnect budget."""
+
+
+class Rejected(DriverError):
+    """The device answered but refused the command (exception response, error code)."""
+
+
+class DeviceFault(DriverError):
+    """The device reports a fault state (alarm, disabled stage, overload) or missed its target."""
+
+
+class OutOfLimits(DriverError):
+    """A move was refused before anything was sent: the target lies outside the soft limits."""
+
+
+# Failures after which the same exchange may be tried again (when repeating it is safe).
+TRANSIENT = (NoReply, BadReply, PortClosed)
+
+
+HINTS: dict[type[DriverError], str] = {
+    NoReply: "check that it is powered and cabled, and its address and line settings in the station file",
+    BadReply: "check the line settings (baud rate, parity) and the cable",
+    PortClosed: "check the cable and the port",
+    LinkLost: "check the cable, the port name, and that no other program holds the port",
+}
+
+
+@contextmanager
+def on_device(device: str) -> Iterator[None]:
+    """Tell a driver failure inside as one line naming ``device`` and, for link trouble, what to check."""
+    try:
+        yield
+    except DriverError as exc:
+        if exc.device is not None:
+            raise
+        hint = HINTS.get(type(exc))
+        raise type(exc)(f"{exc}; {hint}" if hint else str(exc), device) from None

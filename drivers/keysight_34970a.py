@@ -1,0 +1,156 @@
+"""Keysight (Agilent) 34970A / 34972A / DAQ970A data acquisition units over SCPI.
+
+Three DC-volts channels (and optionally a temperature channel) in one scan list; each `read` is
+``TRIG:COUN n``, ``INIT``, ``*OPC?`` (answers when the sweeps are done), ``FETC?`` (readings stay
+in memory, so fetching again is safe) and ``SYST:ERR?``. Lines end in LF; over RS-232 the unit
+needs ``SYST:REM`` first. A query the unit cannot answer gets no reply and leaves an error in the
+queue, so silence is explained by reading the queue. Dialect: hardware_protocols.md §3.1.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Sequence
+
+import numpy as np
+
+from labcal.drivers.errors import BadReply, DeviceFault, NoReply, Rejected, on_device
+from labcal.drivers.transport import LineTransport, retried
+from labcal.station import Scan
+
+EOL = b"\n"
+NPLC_VALUES = (0.02, 0.2, 1.0, 2.0, 10.0, 20.0, 100.0, 200.0)
+RANGES_V = (0.1, 1.0, 10.0, 100.0, 300.0)
+OVERLOAD = 9.9e37
+CHANNEL_S = 0.005  # relay switching and settling per channel, on top of integration
+MAX_ERRORS = 20  # the 34970A's error queue holds 10; never loop for ever on a chatty device
+
+
+def channel_time_s(nplc: float, line_hz: float) -> float:
+    """Time per channel: the integration twice (autozero is on), plus relay switching."""
+    return 2 * nplc / line_hz + CHANNEL_S
+
+
+def channel_list(channels: Sequence[int]) -> str:
+    return "(@" + ",".join(str(c) for c in channels) + ")"
+
+
+def parse_error(line: str) -> tuple[int, str]:
+    """``-113,"Undefined header"`` → (-113, 'Undefined header')."""
+    match = re.fullmatch(r'\s*([+-]?\d+)\s*,\s*"([^"]*)"\s*', line)
+    if not match:
+        raise BadReply(f"{line[:60]!r} is not an error-queue entry")
+    return int(match.group(1)), match.group(2)
+
+
+def parse_readings(line: str, scan_list: Sequence[int], sweeps: int) -> np.ndarray:
+    """``FETC?`` with channel numbers on (``+1.23E+00,101,...``) → (sweeps, channels) array; the
+    channels must come in scan-list order, sweep after sweep."""
+    fields = line.split(",")
+    expected = 2 * sweeps * len(scan_list)
+    if len(fields) != expected:
+        raise BadReply(f"{len(fields) // 2} readings in the reply, {expected // 2} expected")
+    try:
+        values = [float(f) for f in fields[0::2]]
+        channels = [int(f) for f in fields[1::2]]
+    except ValueError:
+        raise BadReply(f"reply {line[:60]!r} is not readings and channel numbers") from None
+    if channels != list(scan_list) * sweeps:
+        raise BadReply(f"readings from channels {sorted(set(channels))[:8]}, scan list {list(scan_list)}")
+    if not all(math.isfinite(v) for v in values):
+        raise BadReply("a reading is not a finite number")
+    return np.array(values).reshape(sweeps, len(scan_list))
+
+
+class Keysight34970A:
+    """A scanning DMM behind `labcal.station.Voltmeter`."""
+
+    model = "Keysight 34970A"
+
+    def __init__(self, name: str, link: LineTransport, *, channels: Sequence[int] = (101, 102, 103),
+                 temperature_channel: int | None = None, temperature_probe: str = "RTD,85",
+                 nplc: float = 10.0, range_v: float = 10.0, line_hz: float = 50.0, retries: int = 2,
+                 serial_line: bool = False):
+        self.name, self.link = name, link
+        self.device = f"{name} ({self.model}, {link.where})"
+        self.channels = tuple(channels)
+        self.temperature_channel = temperature_channel
+        self.temperature_probe = temperature_probe
+        self.scan_list = self.channels + ((temperature_channel,) if temperature_channel else ())
+        self.nplc, self.range_v, self.line_hz = nplc, range_v, line_hz
+        self.tries = retries + 1
+        self.serial_line = serial_line
+        self.measures_temperature = temperature_channel is not None
+
+    # --- exchanges --------------------------------------------------------------------------
+    def errors(self) -> list[tuple[int, str]]:
+        """Empty the error queue."""
+        found = []
+        for _ in range(MAX_ERRORS):
+            code, text = parse_error(self.link.query("SYST:ERR?"))
+            if code == 0:
+                return found
+            found.append((code, text))
+        raise BadReply(f"the error queue does not empty ({found[-1]})")
+
+    def _check(self, after: str) -> None:
+        if found := self.errors():
+            raise Rejected(f"SCPI error {found[0][0]} \"{found[0][1]}\" after {after}", self.device)
+
+    def _ask(self, query: str, timeout_s: float | None = None) -> str:
+        try:
+            return self.link.query(query, timeout_s)
+        except NoReply:
+            self._check(query)  # silence because the query failed, or just silence
+            raise
+
+    def _exchange(self, exchange):
+        with on_device(self.device):
+            return retried(exchange, self.tries, self.link.drain)
+
+    # --- the voltmeter ----------------------------------------------------------------------
+    def identify(self) -> str:
+        return self._exchange(lambda: self._ask("*IDN?"))
+
+    def configure(self) -> None:
+        """Put the unit in a known state: DC volts at a fixed range and NPLC on the three
+        channels, the temperature channel, the scan list, channel numbers in the readings."""
+        volts = channel_list(self.channels)
+        commands = ["*RST", "*CLS"] + (["SYST:REM"] if self.serial_line else []) + [
+            f"CONF:VOLT:DC {self.range_v:g},{volts}", f"VOLT:DC:NPLC {self.nplc:g},{volts}"]
+        if self.temperature_channel:
+            commands.append(f"CONF:TEMP {self.temperature_probe},{channel_list([self.temperature_channel])}")
+        commands += [f"ROUT:SCAN {channel_list(self.scan_list)}", "FORM:READ:CHAN ON", "FORM:READ:TIME OFF",
+                     "FORM:READ:UNIT OFF", "FORM:READ:ALAR OFF", "TRIG:SOUR IMM"]
+
+        def once() -> None:
+            for command in commands:
+                self.link.write_line(command)
+            self._check("configuration")
+
+        self._exchange(once)
+
+    def scan_time_s(self, sweeps: int) -> float:
+        """How long the unit needs for ``sweeps`` sweeps of the scan list."""
+        return sweeps * len(self.scan_list) * channel_time_s(self.nplc, self.line_hz)
+
+    def read(self, n_samples: int) -> Scan:
+        """n sweeps of the scan list; a lost or garbled reply repeats the whole scan."""
+        def once() -> np.ndarray:
+            self.link.write_line(f"TRIG:COUN {n_samples}")
+            self.link.write_line("INIT")
+            done = self._ask("*OPC?", self.link.timeout_s + 1.5 * self.scan_time_s(n_samples))
+            if done.strip() != "1":
+                raise BadReply(f"*OPC? answered {done[:40]!r}")
+            readings = parse_readings(self._ask("FETC?"), self.scan_list, n_samples)
+            self._check("the scan")
+            return readings
+
+        readings = self._exchange(once)
+        for column, channel in enumerate(self.scan_list):
+            if np.any(np.abs(readings[:, column]) >= OVERLOAD):
+                raise DeviceFault(f"channel {channel} overloaded (+9.9E+37): check the range "
+                                  f"({self.range_v:g} V) and the wiring", self.device)
+        volts = readings[:, :3]
+        return Scan(volts=volts, temp_c=readings[:, 3] if self.measures_temperature else None)

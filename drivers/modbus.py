@@ -1,0 +1,139 @@
+"""One Modbus master per bus (an RS-485 line, or a TCP gateway), on the real pymodbus client.
+
+pymodbus frames and checks the bytes (CRC, transaction ids); this link adds what a bench needs:
+its own bounded retries (pymodbus is told not to retry, so only exchanges known to be safe are
+repeated), a reopened port after a late reply or a vanished port, and replies checked for shape
+and turned into driver errors. Units on one bus share one link: one bus, one owner.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+
+from pymodbus import FramerType
+from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+from pymodbus.exceptions import ConnectionException, ModbusIOException
+from pymodbus.pdu import ExceptionResponse, ModbusPDU
+
+from labcal.drivers.errors import BadReply, NoReply, PortClosed, Rejected
+from labcal.drivers.transport import reconnect, retried
+
+logging.getLogger("pymodbus").addHandler(logging.NullHandler())  # our errors say it in one line
+
+EXCEPTION_CODES = {
+    1: "illegal function", 2: "illegal data address", 3: "illegal data value",
+    4: "slave device failure", 5: "acknowledge", 6: "slave device busy", 8: "memory parity error",
+    10: "gateway path unavailable", 11: "gateway target failed to respond",
+}
+
+Trace = Callable[[bool, bytes], bytes]
+
+
+def int32_words(value: int) -> list[int]:
+    """A signed 32-bit value as two registers, upper word first (two's complement)."""
+    if not -(2**31) <= value < 2**31:
+        raise ValueError(f"{value} does not fit in 32 bits")
+    raw = value & 0xFFFFFFFF
+    return [raw >> 16, raw & 0xFFFF]
+
+
+def words_int32(upper: int, lower: int) -> int:
+    raw = (upper << 16) | lower
+    return raw - 2**32 if raw & 0x80000000 else raw
+
+
+def checked(response: object, function_code: int, address: int, count: int) -> list[int]:
+    """The registers of a well-formed reply to (function_code, address, count); raises `Rejected`
+    for an exception response and `BadReply` for anything else that is not the expected reply."""
+    if isinstance(response, ExceptionResponse) or (isinstance(response, ModbusPDU) and response.isError()):
+        code = getattr(response, "exception_code", 0)
+        raise Rejected(f"exception {code:02X}h ({EXCEPTION_CODES.get(code, 'unknown code')}) "
+                       f"to function {function_code:02X}h at {address:04X}h")
+    if not isinstance(response, ModbusPDU) or response.function_code != function_code:
+        raise BadReply(f"reply {response} does not answer function {function_code:02X}h")
+    registers = list(getattr(response, "registers", []) or [])
+    if function_code == 0x03 and len(registers) != count:
+        raise BadReply(f"{len(registers)} registers in the reply, {count} asked for")
+    if function_code in (0x06, 0x10) and getattr(response, "address", None) != address:
+        raise BadReply(f"write acknowledged at {getattr(response, 'address', None)}, not {address:04X}h")
+    if function_code == 0x10 and getattr(response, "count", None) != count:
+        raise BadReply(f"write of {count} registers acknowledged as {getattr(response, 'count', None)}")
+    return registers
+
+
+class ModbusLink:
+    """A Modbus master on one bus; every method is one exchange, retried because all are safe
+    to repeat (reads, absolute-move writes, stop pulses, edge-triggered resets)."""
+
+    def __init__(self, client: ModbusSerialClient | ModbusTcpClient, where: str, *, timeout_s: float,
+                 retries: int, reconnect_s: float):
+        self.client = client
+        self.where = where
+        self.timeout_s = timeout_s
+        self.tries = retries + 1
+        self.reconnect_s = reconnect_s
+
+    @classmethod
+    def serial(cls, port: str, *, baudrate: int, bytesize: int, parity: str, stopbits: int,
+               timeout_s: float, retries: int, reconnect_s: float, trace: Trace | None = None) -> ModbusLink:
+        """Modbus RTU on a serial port or pyserial URL (a pty, ``socket://`` to a serial server)."""
+        client = ModbusSerialClient(port, framer=FramerType.RTU, baudrate=baudrate, bytesize=bytesize,
+                                    parity=parity, stopbits=stopbits, timeout=timeout_s, retries=0,
+                                    reconnect_delay=0, trace_packet=trace)
+        return cls(client, port, timeout_s=timeout_s, retries=retries, reconnect_s=reconnect_s)
+
+    @classmethod
+    def tcp(cls, host: str, port: int, *, timeout_s: float, retries: int, reconnect_s: float,
+            trace: Trace | None = None) -> ModbusLink:
+        """Modbus TCP (MBAP framing), e.g. through an RS-485 gateway: unit id = slave address."""
+        client = ModbusTcpClient(host, port=port, timeout=timeout_s, retries=0, reconnect_delay=0,
+                                 trace_packet=trace)
+        return cls(client, f"tcp {host}:{port}", timeout_s=timeout_s, retries=retries,
+                   reconnect_s=reconnect_s)
+
+    def read(self, unit: int, address: int, count: int) -> list[int]:
+        """FC 03, read holding registers."""
+        def request():
+            return self.client.read_holding_registers(address, count=count, device_id=unit)
+        return self._exchange(request, 0x03, address, count)
+
+    def write(self, unit: int, address: int, values: Sequence[int]) -> None:
+        """FC 10h, write multiple registers."""
+        self._exchange(lambda: self.client.write_registers(address, list(values), device_id=unit),
+                       0x10, address, len(values))
+
+    def write_one(self, unit: int, address: int, value: int) -> None:
+        """FC 06, write single register."""
+        self._exchange(lambda: self.client.write_register(address, value, device_id=unit), 0x06, address, 1)
+
+    def _exchange(self, request: Callable[[], object], function_code: int, address: int,
+                  count: int) -> list[int]:
+        def once() -> list[int]:
+            if not self.client.connected:
+                reconnect(self.client.connect, self.reconnect_s, self.where)
+            try:
+                response = request()
+            except ConnectionException as exc:
+                self.client.close()
+                raise PortClosed(f"{self.where} closed ({exc})") from None
+            except ModbusIOException as exc:
+                if "No response" in str(exc):
+                    raise NoReply(f"no reply within {self.timeout_s:g} s") from None
+                raise BadReply(f"reply does not match the request ({exc})") from None
+            except (ValueError, IndexError, KeyError, TypeError, AttributeError) as exc:
+                raise BadReply(f"undecodable reply ({type(exc).__name__}: {exc})") from None
+            return checked(response, function_code, address, count)
+
+        return retried(once, self.tries, self._recover)
+
+    def _recover(self) -> None:
+        """Let a late reply arrive, then reopen the port: the reopened port starts with empty
+        buffers, so a late reply is never taken for the answer to the next request (RTU has no
+        transaction ids to tell them apart)."""
+        time.sleep(min(self.timeout_s, 0.5))
+        self.client.close()
+
+    def close(self) -> None:
+        self.client.close()

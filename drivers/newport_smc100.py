@@ -1,0 +1,188 @@
+"""Newport SMC100 (CC/PP) motion controllers over their ASCII serial protocol.
+
+Commands are ``<address><mnemonic><value>`` lines ending CR LF; replies echo address and mnemonic
+(``1TP`` → ``1TP45.000000``). A command that fails is not answered: the controller keeps the
+error, and ``TE`` reports it (once). So every command here is followed by ``TE``, and silence after
+a query is explained by asking ``TE``. Up to 31 controllers share one port (addresses 1..31).
+Protocol: hardware_protocols.md §2.2 and PyMeasure's smc100 driver.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable
+from typing import TypeVar
+
+from labcal.drivers.axis import AxisStatus, IndexAxis
+from labcal.drivers.errors import BadReply, DeviceFault, NoReply, Rejected, on_device
+from labcal.drivers.transport import LineTransport, retried
+from labcal.station import Clock
+
+EOL = b"\r\n"
+T = TypeVar("T")
+
+STATES = {
+    0x0A: "NOT REFERENCED from reset", 0x0B: "NOT REFERENCED from HOMING",
+    0x0C: "NOT REFERENCED from CONFIGURATION", 0x0D: "NOT REFERENCED from DISABLE",
+    0x0E: "NOT REFERENCED from READY", 0x0F: "NOT REFERENCED from MOVING",
+    0x10: "NOT REFERENCED, ESP stage error", 0x11: "NOT REFERENCED from JOGGING",
+    0x14: "CONFIGURATION", 0x1E: "HOMING", 0x1F: "HOMING from the keypad", 0x28: "MOVING",
+    0x32: "READY from HOMING", 0x33: "READY from MOVING", 0x34: "READY from DISABLE",
+    0x35: "READY from JOGGING", 0x3C: "DISABLE from READY", 0x3D: "DISABLE from MOVING",
+    0x3E: "DISABLE from JOGGING", 0x46: "JOGGING from READY", 0x47: "JOGGING from DISABLE",
+}
+NOT_REFERENCED = frozenset(range(0x0A, 0x12))
+HOMING = frozenset({0x1E, 0x1F})
+MOVING = frozenset({0x28})
+READY = frozenset({0x32, 0x33, 0x34, 0x35})
+DISABLE = frozenset({0x3C, 0x3D, 0x3E})
+
+POSITIONER_ERRORS = {
+    0x0200: "80 W output power exceeded", 0x0100: "DC voltage too low", 0x0080: "wrong ESP stage",
+    0x0040: "homing time-out", 0x0020: "following error", 0x0010: "short circuit",
+    0x0008: "RMS current limit", 0x0004: "peak current limit", 0x0002: "positive end of run",
+    0x0001: "negative end of run",
+}
+
+COMMAND_ERRORS = {
+    "A": "unknown message code", "B": "bad address", "C": "parameter missing or out of range",
+    "D": "command not allowed", "E": "home sequence already started", "F": "ESP stage name unknown",
+    "G": "displacement out of limits", "H": "not allowed in NOT REFERENCED",
+    "I": "not allowed in CONFIGURATION", "J": "not allowed in DISABLE", "K": "not allowed in READY",
+    "L": "not allowed in HOMING", "M": "not allowed in MOVING", "N": "position out of software limits",
+    "S": "communication time-out", "U": "EEPROM error", "V": "error during execution",
+    "W": "not allowed for PP", "X": "not allowed for CC",
+}
+
+
+def parse_reply(line: str, address: int, mnemonic: str) -> str:
+    """The value in a reply ``<address><MNEMONIC><value>``; `BadReply` if it does not echo them."""
+    echo = f"{address}{mnemonic.rstrip('?').upper()}"
+    if not line.startswith(echo):
+        raise BadReply(f"reply {line[:40]!r} does not echo {echo!r}")
+    return line[len(echo):].strip()
+
+
+def parse_number(value: str) -> float:
+    try:
+        number = float(value)
+    except ValueError:
+        raise BadReply(f"{value[:40]!r} is not a number") from None
+    if not math.isfinite(number):
+        raise BadReply(f"{value[:40]!r} is not a finite number")
+    return number
+
+
+def parse_state(value: str) -> tuple[int, int]:
+    """``TS`` value ``EEEESS`` → (positioner error bits, controller state)."""
+    if not re.fullmatch(r"[0-9A-Fa-f]{6}", value):
+        raise BadReply(f"status {value[:40]!r} is not six hex digits")
+    return int(value[:4], 16), int(value[4:], 16)
+
+
+def parse_error_code(value: str) -> str:
+    if len(value) != 1 or value != "@" and value not in COMMAND_ERRORS:
+        raise BadReply(f"error code {value[:40]!r} is not one of @, A..X")
+    return value
+
+
+def describe_state(errors: int, state: int) -> str:
+    words = f"{STATES.get(state, 'unknown state')} ({state:02X}h)"
+    bits = [text for mask, text in POSITIONER_ERRORS.items() if errors & mask]
+    return words + (f", positioner error: {', '.join(bits)}" if bits else "")
+
+
+class Smc100Axis(IndexAxis):
+    model = "Newport SMC100"
+
+    def __init__(self, name: str, link: LineTransport, address: int, clock: Clock, *, speed_dps: float,
+                 accel_dps2: float, limits_deg: tuple[float, float] | None = None,
+                 tolerance_arcsec: float = 5.0, poll_s: float = 0.05, home_timeout_s: float = 60.0,
+                 retries: int = 2):
+        super().__init__(name, f"address {address} on {link.where}", clock, limits_deg=limits_deg,
+                         tolerance_arcsec=tolerance_arcsec, poll_s=poll_s)
+        self.link, self.address = link, address
+        self.speed_dps, self.accel_dps2 = speed_dps, accel_dps2
+        self.home_timeout_s = home_timeout_s
+        self.tries = retries + 1
+
+    # --- exchanges --------------------------------------------------------------------------
+    def _error_code(self) -> str:
+        return parse_error_code(parse_reply(self.link.query(f"{self.address}TE"), self.address, "TE"))
+
+    def _refused(self, what: str, code: str) -> Rejected:
+        return Rejected(f"refused {what}: error {code} ({COMMAND_ERRORS[code]})", self.device)
+
+    def ask(self, mnemonic: str, parse: Callable[[str], T] = str) -> T:
+        """A query (``TP``, ``TS``, ``ID?``...): its value, parsed (a reply that does not parse is
+        asked again). Silence is explained by ``TE``."""
+        def once() -> T:
+            self.link.write_line(f"{self.address}{mnemonic}")
+            try:
+                line = self.link.read_line()
+            except NoReply:
+                code = self._error_code()
+                if code != "@":
+                    raise self._refused(mnemonic, code) from None
+                raise
+            return parse(parse_reply(line, self.address, mnemonic))
+
+        with on_device(self.device):
+            return retried(once, self.tries, self.link.drain)
+
+    def do(self, command: str, safe: bool = True) -> None:
+        """A command, then ``TE``; raises `Rejected` with the controller's reason. Commands safe to
+        repeat (absolute moves, stop, settings) are retried; homing is not."""
+        def once() -> None:
+            self.link.write_line(f"{self.address}{command}")
+            code = self._error_code()
+            if code != "@":
+                raise self._refused(command, code)
+
+        with on_device(self.device):
+            retried(once, self.tries if safe else 1, self.link.drain)
+
+    # --- the axis ---------------------------------------------------------------------------
+    def status(self) -> AxisStatus:
+        errors, state = self.ask("TS", parse_state)
+        words = describe_state(errors, state)
+        fault = None
+        if errors or state in DISABLE or state in NOT_REFERENCED or state not in STATES:
+            fault = words + ("; home it (a run homes it first)" if state in NOT_REFERENCED and not errors
+                             else "; clear the cause, then re-enable it (MM1) or home it")
+        return AxisStatus(ready=state in READY, moving=state in MOVING | HOMING, in_position=state in READY,
+                          fault=fault, words=words)
+
+    def angle(self) -> float:
+        return self.ask("TP", parse_number)
+
+    def _go(self, target_deg: float) -> None:
+        self.do(f"PA{target_deg:.6f}")
+
+    def _halt(self) -> None:
+        self.do("ST")
+
+    def identify(self) -> str:
+        return f"{self.model} address {self.address}: stage {self.ask('ID?')}, {self.ask('VE')}"
+
+    def prepare(self) -> None:
+        """Home the stage if it is not referenced (it moves!), enable it if disabled, and set the
+        speed and acceleration from the station file."""
+        errors, state = self.ask("TS", parse_state)
+        if errors and state not in NOT_REFERENCED:
+            raise DeviceFault(describe_state(errors, state), self.device)
+        if state in NOT_REFERENCED:
+            self.do("OR", safe=False)
+            self._target = None
+            deadline = self.clock.now() + self.home_timeout_s
+            while (state := self.ask("TS", parse_state)[1]) in HOMING:
+                if self.clock.now() > deadline:
+                    self._halt()
+                    raise DeviceFault(f"homing took longer than {self.home_timeout_s:g} s", self.device)
+                self.clock.sleep(self.poll_s)
+        if state in DISABLE:
+            self.do("MM1")
+        super().prepare()
+        self.do(f"VA{self.speed_dps:g}")
+        self.do(f"AC{self.accel_dps2:g}")

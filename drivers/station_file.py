@@ -1,0 +1,202 @@
+"""The station file: which driver runs each table and the DMM, on which link, with which settings.
+
+TOML validated by pydantic; `load_station` turns every mistake into one `LabcalError` line naming
+the file and the field. Devices that name the same port or TCP address share one bus (one owner):
+two AZ drives on one RS-485 line, two SMC100 controllers daisy-chained on one serial port.
+"""
+
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from labcal.drivers.keysight_34970a import NPLC_VALUES, RANGES_V
+from labcal.drivers.transport import tcp_address
+from labcal.errors import LabcalError
+from labcal.files import parse_model, read_text
+
+
+class LinkSettings(BaseModel):
+    """How to reach a device: ``port`` (a serial device or pyserial URL) or ``tcp`` (host:port)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    port: str | None = Field(default=None, description="serial device path or pyserial URL "
+                                                        "(socket://host:port, rfc2217://, loop://)")
+    tcp: str | None = Field(default=None, description="host:port of a TCP connection")
+    baudrate: int = Field(default=57600, gt=0)
+    parity: Literal["N", "E", "O"] = "N"
+    bytesize: Literal[7, 8] = 8
+    stopbits: Literal[1, 2] = 1
+    xonxoff: bool = False
+    timeout_s: float = Field(default=0.5, gt=0, le=60, description="reply timeout of one exchange")
+    retries: int = Field(default=2, ge=0, le=10, description="repeats of an exchange that is safe to repeat")
+    reconnect_s: float = Field(default=5.0, ge=0, le=600, description="how long to try reopening a lost port")
+
+    @model_validator(mode="after")
+    def _one_link(self):
+        if (self.port is None) == (self.tcp is None):
+            raise ValueError("give exactly one of port (a serial device or URL) and tcp (host:port)")
+        if self.tcp is not None:
+            tcp_address(self.tcp)
+        return self
+
+    @property
+    def where(self) -> str:
+        """The link in words, for messages: ``tcp 10.0.0.5:502`` or the port as given."""
+        return f"tcp {self.tcp}" if self.tcp else str(self.port)
+
+    @property
+    def bus(self) -> str:
+        """What identifies the physical link; devices with the same bus share it."""
+        return f"tcp:{self.tcp}" if self.tcp else f"port:{self.port}"
+
+    def line_settings(self) -> tuple:
+        return self.baudrate, self.parity, self.bytesize, self.stopbits, self.xonxoff, self.timeout_s
+
+
+class AxisSettings(LinkSettings):
+    speed_dps: float = Field(default=20.0, gt=0, le=3600)
+    accel_dps2: float = Field(default=40.0, gt=0, le=100000)
+    limits_deg: tuple[float, float] | None = Field(
+        default=None, description="soft limits [low, high] in the table's own degrees; none: free to wrap")
+    in_position_arcsec: float = Field(default=5.0, gt=0, le=36000, description="read-back tolerance")
+    poll_s: float = Field(default=0.05, gt=0, le=10, description="status polling interval while moving")
+
+    @field_validator("limits_deg")
+    @classmethod
+    def _ordered(cls, limits):
+        if limits is not None and not limits[0] < limits[1]:
+            raise ValueError("limits_deg must be [low, high] with low < high")
+        return limits
+
+
+class AzSettings(AxisSettings):
+    """Oriental Motor AZ drive (Modbus RTU on ``port``, Modbus TCP on ``tcp``)."""
+
+    driver: Literal["oriental-az"]
+    unit: int = Field(default=1, ge=1, le=247, description="Modbus slave address (unit id)")
+    steps_per_degree: float = Field(gt=0, description="table steps per degree (motor steps × gear)")
+    wrap: bool = Field(default=True, description="the drive's wrap setting: one table turn, 0..N−1")
+    baudrate: int = 115200
+    parity: Literal["N", "E", "O"] = "E"
+
+    @model_validator(mode="after")
+    def _wrap(self):
+        turn = 360 * self.steps_per_degree
+        if abs(turn - round(turn)) > 1e-6:
+            raise ValueError(f"steps_per_degree × 360 = {turn:g} is not a whole number of steps per turn")
+        if self.wrap and self.limits_deg is not None:
+            raise ValueError("a wrapping table has no limits: set wrap = false to use limits_deg")
+        return self
+
+
+class Smc100Settings(AxisSettings):
+    """Newport SMC100 controller with a rotation stage (ASCII over serial or TCP)."""
+
+    driver: Literal["newport-smc100"]
+    address: int = Field(default=1, ge=1, le=31, description="controller address on the RS-485 chain")
+    home_timeout_s: float = Field(default=60.0, gt=0)
+    xonxoff: bool = True
+
+
+class DmmSettings(LinkSettings):
+    """Keysight 34970A-family DMM with a multiplexer card."""
+
+    driver: Literal["keysight-34970a"]
+    channels: tuple[int, int, int] = Field(default=(101, 102, 103), description="x, y, z outputs")
+    temperature_channel: int | None = Field(default=None, description="optional temperature sensor channel")
+    temperature_probe: str = Field(default="RTD,85",
+                                   description="CONF:TEMP arguments, e.g. RTD,85 or THER,10000")
+    nplc: float = 10.0
+    range_v: float = 10.0
+    line_hz: Literal[50, 60] = 50
+    xonxoff: bool = True
+
+    @field_validator("nplc")
+    @classmethod
+    def _nplc(cls, nplc):
+        if nplc not in NPLC_VALUES:
+            raise ValueError(f"nplc must be one of {', '.join(f'{v:g}' for v in NPLC_VALUES)}")
+        return nplc
+
+    @field_validator("range_v")
+    @classmethod
+    def _range(cls, range_v):
+        if range_v not in RANGES_V:
+            raise ValueError(f"range_v must be one of {', '.join(f'{v:g}' for v in RANGES_V)}")
+        return range_v
+
+    @model_validator(mode="after")
+    def _channels(self):
+        scan = [*self.channels, *([self.temperature_channel] if self.temperature_channel else [])]
+        if any(not (1 <= c // 100 <= 3 and 1 <= c % 100 <= 40) for c in scan):
+            raise ValueError("channels are slot × 100 + channel, e.g. 101 (slots 1-3, channels 1-40)")
+        if len(set(scan)) != len(scan):
+            raise ValueError("each channel may appear once")
+        return self
+
+
+AxisConfig = Annotated[AzSettings | Smc100Settings, Field(discriminator="driver")]
+
+
+class StationFile(BaseModel):
+    """A rig: the two tables, the DMM, how long to settle, and how to emulate it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    description: str = ""
+    pitch: AxisConfig
+    roll: AxisConfig
+    dmm: DmmSettings
+    sequencer: dict[str, Any] = Field(default_factory=dict, description="read by `labcal run`: the "
+                                      "sequencer's settings on this station (timeouts, settling)")
+    emulation: dict[str, Any] = Field(default_factory=dict, description="read by `labcal sim serve` "
+                                      "and `--emulate`: time_scale, seed and a [emulation.rig] table")
+    certificate: dict[str, Any] = Field(default_factory=dict, description="read by `labcal report`: "
+                                        "laboratory, tolerances, usage envelope")
+
+    @model_validator(mode="after")
+    def _buses(self):
+        pitch, roll = self.pitch, self.roll
+        if self.dmm.bus in (pitch.bus, roll.bus):
+            raise ValueError(f"the DMM cannot share {self.dmm.where} with a table")
+        if pitch.bus == roll.bus:
+            if pitch.driver != roll.driver:
+                raise ValueError(f"pitch and roll share {pitch.where} but not a driver")
+            if pitch.line_settings() != roll.line_settings():
+                raise ValueError(f"pitch and roll share {pitch.where}: give them the same line settings")
+            if self.address(pitch) == self.address(roll):
+                raise ValueError(f"pitch and roll share {pitch.where} and address {self.address(pitch)}")
+        return self
+
+    @staticmethod
+    def address(axis: AzSettings | Smc100Settings) -> int:
+        return axis.unit if isinstance(axis, AzSettings) else axis.address
+
+    def devices(self) -> dict[str, LinkSettings]:
+        return {"pitch": self.pitch, "roll": self.roll, "dmm": self.dmm}
+
+
+def shipped_stations() -> dict[str, resources.abc.Traversable]:
+    """The example stations that ship with labcal, by name."""
+    folder = resources.files("labcal.stations")
+    entries = sorted(folder.iterdir(), key=lambda e: e.name)
+    return {entry.name.removesuffix(".toml"): entry for entry in entries if entry.name.endswith(".toml")}
+
+
+def load_station(name_or_path: str | Path) -> tuple[StationFile, str]:
+    """A station file by path or by the name of a shipped example; returns it and its TOML text."""
+    path = Path(name_or_path)
+    if path.suffix == ".toml" or path.exists():
+        text = read_text(path, "station")
+        return parse_model(text, StationFile, str(path)), text
+    examples = shipped_stations()
+    if str(name_or_path) not in examples:
+        raise LabcalError(f"unknown station {str(name_or_path)!r}; give a station file (.toml) or one of the "
+                          f"examples: {', '.join(examples)}")
+    text = examples[str(name_or_path)].read_text(encoding="utf-8")
+    return parse_model(text, StationFile, f"station {name_or_path}"), text

@@ -1,0 +1,243 @@
+"""Byte links to devices, chosen by configuration, and the rules every exchange follows.
+
+A link is a serial port given by path or any pyserial URL (``socket://host:port``, ``loop://``,
+``rfc2217://``...) or a raw TCP connection to ``host:port``. Every exchange has a timeout; an
+exchange that is safe to repeat is retried a bounded number of times; a vanished port is
+reopened with backoff; Ctrl-C waits until the exchange in flight is complete so that no reply is
+left half-read on the line.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Protocol, TypeVar
+
+import serial
+
+from labcal.drivers.errors import TRANSIENT, BadReply, LinkLost, NoReply, PortClosed
+
+T = TypeVar("T")
+
+BACKOFF_FIRST_S = 0.05
+BACKOFF_MAX_S = 1.0
+SLICE_S = 0.02  # streams return what arrived within this; callers loop until their own deadline
+
+
+@contextmanager
+def uninterruptible() -> Iterator[None]:
+    """Defer the first Ctrl-C until the block is done, then raise it (a second one is immediate).
+
+    Only the main thread receives signals; elsewhere, or inside another such block, this is a no-op.
+    """
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+        yield
+        return
+    pending: list[int] = []
+
+    def defer(signum, frame):
+        if pending:
+            raise KeyboardInterrupt
+        pending.append(signum)
+
+    signal.signal(signal.SIGINT, defer)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    if pending:
+        raise KeyboardInterrupt
+
+
+def retried(exchange: Callable[[], T], tries: int, recover: Callable[[], None]) -> T:
+    """Run an exchange that is safe to repeat (a read, an absolute move, a stop) up to ``tries``
+    times; ``recover`` clears the line between tries (late replies, a reopened port)."""
+    for attempt in range(tries):
+        try:
+            with uninterruptible():
+                return exchange()
+        except TRANSIENT:
+            if attempt + 1 >= tries:
+                raise
+            recover()
+    raise AssertionError("tries must be >= 1")
+
+
+def reconnect(connect: Callable[[], object], budget_s: float, what: str) -> None:
+    """Call ``connect`` until it succeeds (returns anything but False without raising), waiting
+    0.05 s, 0.1 s, ... up to 1 s between attempts; `LinkLost` once ``budget_s`` is spent."""
+    deadline = time.monotonic() + budget_s
+    delay = BACKOFF_FIRST_S
+    while True:
+        try:
+            if connect() is not False:
+                return
+            reason = "connection refused"
+        except (OSError, serial.SerialException, ValueError) as exc:
+            errno = getattr(exc, "errno", None)
+            reason = os.strerror(errno) if isinstance(errno, int) else str(exc) or type(exc).__name__
+        if time.monotonic() + delay > deadline:
+            tried = f"; kept trying for {budget_s:g} s" if budget_s > 0 else ""
+            raise LinkLost(f"cannot open {what} ({reason}){tried}")
+        time.sleep(delay)
+        delay = min(2 * delay, BACKOFF_MAX_S)
+
+
+def tcp_address(text: str) -> tuple[str, int]:
+    """'host:port' → (host, port); raises ValueError with a readable message."""
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ValueError(f"{text!r} is not host:port")
+    return host.strip("[]"), int(port)
+
+
+class Stream(Protocol):
+    """An open byte stream: what a line transport needs from a serial port or a socket."""
+
+    def write(self, data: bytes) -> None: ...
+
+    def read_some(self) -> bytes:
+        """What arrives within `SLICE_S` (b"" if nothing); raises OSError if the port is gone."""
+
+    def close(self) -> None: ...
+
+
+class SerialStream:
+    """A serial port or pyserial URL."""
+
+    def __init__(self, url: str, *, baudrate: int, bytesize: int, parity: str, stopbits: float,
+                 xonxoff: bool, timeout_s: float):
+        self.port = serial.serial_for_url(url, baudrate=baudrate, bytesize=bytesize, parity=parity,
+                                          stopbits=stopbits, xonxoff=xonxoff, timeout=SLICE_S,
+                                          write_timeout=timeout_s, exclusive=True)
+
+    def write(self, data: bytes) -> None:
+        try:
+            self.port.write(data)
+        except serial.SerialException as exc:
+            raise OSError(str(exc)) from None
+
+    def read_some(self) -> bytes:
+        try:
+            first = self.port.read(1)
+            return first + self.port.read(self.port.in_waiting) if first else b""
+        except serial.SerialException as exc:
+            raise OSError(str(exc)) from None
+
+    def close(self) -> None:
+        self.port.close()
+
+
+class TcpStream:
+    """A raw TCP connection (SCPI on port 5025, a serial-device server)."""
+
+    def __init__(self, host: str, port: int, timeout_s: float):
+        self.sock = socket.create_connection((host, port), timeout=timeout_s)
+        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.sock.settimeout(SLICE_S)
+
+    def write(self, data: bytes) -> None:
+        self.sock.sendall(data)
+
+    def read_some(self) -> bytes:
+        try:
+            data = self.sock.recv(65536)
+        except TimeoutError:
+            return b""
+        if not data:
+            raise ConnectionResetError("the other end closed the connection")
+        return data
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class LineTransport:
+    """ASCII lines over a stream that is opened on first use and reopened when it vanishes."""
+
+    def __init__(self, where: str, open_stream: Callable[[], Stream], *, eol: bytes = b"\n",
+                 timeout_s: float = 1.0, reconnect_s: float = 5.0):
+        self.where = where  # e.g. "tcp 127.0.0.1:5025", for messages
+        self.open_stream = open_stream
+        self.eol = eol
+        self.timeout_s = timeout_s
+        self.reconnect_s = reconnect_s
+        self._stream: Stream | None = None
+        self._buffer = b""
+
+    def _open(self) -> Stream:
+        if self._stream is None:
+            def connect():
+                self._stream = self.open_stream()
+            reconnect(connect, self.reconnect_s, self.where)
+            self._buffer = b""
+        assert self._stream is not None
+        return self._stream
+
+    def _lost(self, exc: OSError) -> PortClosed:
+        self.close()
+        return PortClosed(f"{self.where} closed ({exc})")
+
+    def write_line(self, text: str) -> None:
+        stream = self._open()
+        try:
+            stream.write(text.encode("ascii") + self.eol)
+        except OSError as exc:
+            raise self._lost(exc) from None
+
+    def read_line(self, timeout_s: float | None = None) -> str:
+        """The next line without its terminator; NoReply on silence, BadReply on a partial line
+        or bytes that are not ASCII text."""
+        timeout = self.timeout_s if timeout_s is None else timeout_s
+        stream = self._open()
+        deadline = time.monotonic() + timeout
+        while b"\n" not in self._buffer:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                partial, self._buffer = self._buffer, b""
+                if partial:
+                    raise BadReply(f"incomplete reply {partial[:40]!r} after {timeout:g} s")
+                raise NoReply(f"no reply within {timeout:g} s")
+            try:
+                self._buffer += stream.read_some()
+            except OSError as exc:
+                raise self._lost(exc) from None
+        raw, _, self._buffer = self._buffer.partition(b"\n")
+        text = raw.decode("ascii", errors="replace").removesuffix("\r")
+        if "\ufffd" in text or not text.isprintable():  # bytes that are not ASCII text
+            raise BadReply(f"garbled reply {raw[:40]!r}")
+        return text
+
+    def query(self, text: str, timeout_s: float | None = None) -> str:
+        self.write_line(text)
+        return self.read_line(timeout_s)
+
+    def drain(self) -> None:
+        """Discard input until the line has been quiet for one timeout (a late reply must not be
+        taken for the answer to the next question); gives up listening after three timeouts."""
+        self._buffer = b""
+        if self._stream is None:
+            return
+        now = time.monotonic()
+        quiet_until, give_up = now + self.timeout_s, now + 3 * self.timeout_s
+        try:
+            while now < min(quiet_until, give_up):
+                if self._stream.read_some():
+                    quiet_until = time.monotonic() + self.timeout_s
+                now = time.monotonic()
+        except OSError:
+            self.close()
+
+    def close(self) -> None:
+        if self._stream is not None:
+            try:
+                self._stream.close()
+            finally:
+                self._stream = None
+                self._buffer = b""

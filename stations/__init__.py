@@ -1,0 +1,1 @@
+"""Example station files (data), shipped with labcal and found by name (`labcal station list`)."""
