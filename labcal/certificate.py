@@ -31,11 +31,10 @@ from labcal.attitude import Calibration, calibration_from_json, sphere_least_squ
 from labcal.design import LEAK_ZERO, audit, audit_summary, figure_of_merit, grid
 from labcal.distributions import t_quantile
 from labcal.errors import LabcalError
-from labcal.files import one_line, read_text
+from labcal.files import json_safe, one_line, read_text, write_json
 from labcal.fit import SENSORS, Fit
 from labcal.kinematics import gravity
 from labcal.models import BASE_NAMES
-from labcal.run import json_safe, write_json
 from labcal.runrecord import RunRecord
 
 SCHEMA = "labcal.certificate/1"

@@ -1,0 +1,78 @@
+"""`labcal report`: certificate, report (HTML + PDF) and history entry of a finished run."""
+
+from __future__ import annotations
+
+import argparse
+
+from rich.table import Table as RichTable
+
+from labcal.commands.common import out, print_json
+
+
+def add_db_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--db", metavar="PATH",
+                   help="the lab's SQLite database (default: $LABCAL_DB, else runs/labcal.sqlite)")
+
+
+def rich_table(t) -> RichTable:
+    """A report table (`labcal.report.Table`) for the terminal."""
+    table = RichTable(title=t.title, caption=t.caption or None)
+    for h in t.header:
+        table.add_column(h, justify="right")
+    for i, row in enumerate(t.rows):
+        table.add_row(*(f"[bold red]{c}[/]" if (i, j) in t.emphasis else c for j, c in enumerate(row)))
+    return table
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from labcal.certificate import load_settings
+    from labcal.report import attitude_table, coefficient_table, conformity_table, write_run_outputs
+
+    settings = load_settings(args.station, attitude_u95_max_deg=args.tolerance_deg,
+                             bias_max_v=args.bias_max_v, usage_pitch_deg=args.usage_pitch,
+                             usage_roll_deg=args.usage_roll)
+    result = write_run_outputs(args.run_dir, settings, serial=args.serial, operator=args.operator, db=args.db)
+    cert = result.certificate
+    if args.json:
+        print_json({
+            "certificate_id": cert.certificate_id, "serial": cert.instrument.serial,
+            "certificate": str(result.certificate_path), "report_html": str(result.html_path),
+            "report_pdf": str(result.pdf_path), "database": str(result.database),
+            "passed": None if cert.conformity is None else cert.conformity.passed,
+            "conformity": None if cert.conformity is None else cert.conformity.model_dump(mode="json"),
+            "attitude": cert.attitude.model_dump(mode="json"),
+            "coefficients": cert.fit.coefficients, "U": cert.expanded_uncertainty.U,
+            "k": cert.expanded_uncertainty.k, "digest": cert.digest.value,
+        })
+        return 0
+    for table in (coefficient_table(cert), attitude_table(cert), conformity_table(cert)):
+        out.print(rich_table(table))
+    out.print(f"Certificate {cert.certificate_id}: {result.certificate_path}")
+    out.print(f"Report: {result.html_path}, {result.pdf_path}")
+    out.print(f"Stored in {result.database} (see `labcal history {cert.instrument.serial}`)")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("report", help="certificate and report of a finished run; stores it in the history",
+                       description="Regenerate certificate.json, report.html (self-contained) and report.pdf "
+                                   "in a run directory from its readings, plan and run record, and store the "
+                                   "certificate in the lab's database. Tolerances come from the command line "
+                                   "or a station file's [certificate] section (the command line wins).")
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a complete run directory (readings.csv, plan.toml, "
+                                                      "run.json)")
+    p.add_argument("--tolerance-deg", type=float, metavar="X",
+                   help="pass when the largest U95 of pitch and of roll over the usage envelope is ≤ X°")
+    p.add_argument("--bias-max-v", type=float, metavar="V", help="pass a sensor's bias when |B| + U(B) ≤ V")
+    p.add_argument("--usage-pitch", type=float, nargs=2, metavar=("MIN", "MAX"),
+                   help="usage envelope pitch range in ° (default -60 60)")
+    p.add_argument("--usage-roll", type=float, nargs=2, metavar=("MIN", "MAX"),
+                   help="usage envelope roll range in ° (default -180 180)")
+    p.add_argument("--station", metavar="FILE",
+                   help="station TOML whose [certificate] section sets laboratory, tolerances and usage "
+                        "envelope")
+    p.add_argument("--serial", help="instrument serial, if the run did not record it (dry runs: SIMULATED)")
+    p.add_argument("--operator", help="operator's name, if the run did not record it")
+    add_db_option(p)
+    p.add_argument("--json", action="store_true", help="print a summary as JSON on stdout")
+    p.set_defaults(func=cmd_report)

@@ -1,0 +1,181 @@
+"""Every certificate in the lab's SQLite database, and each instrument's coefficients over time.
+
+The database is shared with the run journal; this module owns only the ``certificates`` table.
+Its path: the --db option, else $LABCAL_DB, else runs/labcal.sqlite. A stored certificate is the
+exact JSON issued; reading it back verifies schema and digest, so history never shows a value
+that was altered in the database.
+
+Drift rule: consecutive calibrations disagree when |Δ| > k·√(u₁² + u₂²), with u the standard
+uncertainties and k = t₀.₉₇₅(ν) at the Welch–Satterthwaite degrees of freedom of the difference
+(GUM G.4): a change larger than the combined expanded uncertainty.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+from contextlib import closing
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from labcal.certificate import COVERAGE, Certificate, certificate_from_doc, parse_json
+from labcal.distributions import t_quantile
+from labcal.errors import LabcalError
+from labcal.fit import ROW_NAMES, SENSORS
+from labcal.journal import db_path
+
+RULE = "|Δ| > k·√(u₁² + u₂²), k = t₀.₉₇₅(ν) at the Welch–Satterthwaite ν of the difference"
+TABLE = """CREATE TABLE IF NOT EXISTS certificates (
+    certificate_id TEXT PRIMARY KEY,
+    serial TEXT NOT NULL,
+    calibrated_utc TEXT NOT NULL,
+    issued_utc TEXT NOT NULL,
+    sha256 TEXT NOT NULL,
+    document TEXT NOT NULL
+)"""
+INDEX = "CREATE INDEX IF NOT EXISTS certificates_by_serial ON certificates (serial, calibrated_utc)"
+
+
+def _connect(path: Path) -> sqlite3.Connection:
+    try:
+        conn = sqlite3.connect(path, timeout=10.0)
+        conn.execute("PRAGMA journal_mode=WAL")  # readers never block the journal's writer
+        conn.execute(TABLE)
+        conn.execute(INDEX)
+    except sqlite3.Error as exc:
+        raise LabcalError(f"{path}: cannot use the database ({exc})") from None
+    return conn
+
+
+def store(cert: Certificate, db: str | Path | None = None) -> Path:
+    """Insert a certificate, or replace the one issued before for the same calibration."""
+    path = db_path(db)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise LabcalError(f"{path.parent}: cannot create the database folder ({exc.strerror})") from None
+    doc = cert.model_dump_json(indent=2)
+    with closing(_connect(path)) as conn, conn:
+        conn.execute("INSERT OR REPLACE INTO certificates VALUES (?, ?, ?, ?, ?, ?)",
+                     (cert.certificate_id, cert.instrument.serial, cert.calibrated_utc.isoformat(),
+                      cert.issued_utc.isoformat(), cert.digest.value, doc))
+    return path
+
+
+def certificates_for(serial: str, db: str | Path | None = None) -> list[Certificate]:
+    """The instrument's certificates, oldest calibration first, each verified."""
+    path = db_path(db)
+    if not path.is_file():
+        raise LabcalError(f"{path}: no such database; `labcal report RUN` stores certificates there "
+                          "(or give --db / set LABCAL_DB)")
+    with closing(_connect(path)) as conn:
+        rows = conn.execute("SELECT certificate_id, document FROM certificates WHERE serial = ? "
+                            "ORDER BY calibrated_utc, certificate_id", (serial,)).fetchall()
+        if not rows:
+            known = [s for (s,) in conn.execute("SELECT DISTINCT serial FROM certificates ORDER BY serial")]
+            raise LabcalError(f"no certificates for instrument {serial!r} in {path}; known serials: "
+                              f"{', '.join(known) if known else 'none'}")
+    return [certificate_from_doc(parse_json(doc, f"{path}: certificate {cid}"), f"{path}: certificate {cid}")
+            for cid, doc in rows]
+
+
+@dataclass(frozen=True)
+class Change:
+    """One coefficient between two consecutive calibrations."""
+
+    row: int
+    sensor: int
+    before: str  # certificate ids
+    after: str
+    delta: float
+    u_combined: float
+    nu: float
+    k: float
+
+    @property
+    def limit(self) -> float:
+        return self.k * self.u_combined
+
+    @property
+    def flagged(self) -> bool:
+        return abs(self.delta) > self.limit
+
+    @property
+    def name(self) -> str:
+        return f"{ROW_NAMES[self.row]} of sensor {SENSORS[self.sensor]}"
+
+    def to_json(self) -> dict:
+        return {"coefficient": ROW_NAMES[self.row], "row": self.row, "sensor": SENSORS[self.sensor],
+                "before": self.before, "after": self.after, "delta": self.delta,
+                "u_combined": self.u_combined, "nu": self.nu, "k": self.k, "limit": self.limit,
+                "flagged": self.flagged}
+
+
+def changes(certs: list[Certificate]) -> list[Change]:
+    """Every coefficient's change between consecutive calibrations, judged by the drift rule."""
+    found = []
+    for a, b in zip(certs, certs[1:], strict=False):
+        ua, ub = a.standard_uncertainty, b.standard_uncertainty
+        nu_a, nu_b = (np.array(c.expanded_uncertainty.nu_eff, float)[None, :] for c in (a, b))
+        var = ua**2 + ub**2
+        nu = var**2 / (ua**4 / nu_a + ub**4 / nu_b)  # Welch–Satterthwaite, GUM eq. G.2b
+        k = t_quantile(0.5 + COVERAGE / 2, nu)
+        delta = b.coefficients - a.coefficients
+        for i in range(delta.shape[0]):
+            for j in range(delta.shape[1]):
+                found.append(Change(i, j, a.certificate_id, b.certificate_id, float(delta[i, j]),
+                                    float(np.sqrt(var[i, j])), float(nu[i, j]), float(k[i, j])))
+    return found
+
+
+def history_json(serial: str, certs: list[Certificate], found: list[Change]) -> dict:
+    return {
+        "serial": serial, "rule": RULE,
+        "calibrations": [{"certificate_id": c.certificate_id, "calibrated_utc": c.calibrated_utc.isoformat(),
+                          "digest": c.digest.value, "coefficients": c.fit.coefficients,
+                          "standard_uncertainty": c.fit.standard_errors, "U": c.expanded_uncertainty.U,
+                          "k": c.expanded_uncertainty.k} for c in certs],
+        "rows": ["B", "S row g_x", "S row g_y", "S row g_z"], "columns": ["sensor x", "sensor y", "sensor z"],
+        "changes": [c.to_json() for c in found],
+        "flagged": [c.to_json() for c in found if c.flagged],
+    }
+
+
+def plot_history(serial: str, certs: list[Certificate], found: list[Change], path: str | Path) -> None:
+    """Each coefficient against calibration date with ±U error bars; flagged changes in red."""
+    from matplotlib.dates import ConciseDateFormatter
+    from matplotlib.figure import Figure
+
+    if not Path(path).parent.is_dir():  # before drawing twelve panels for nothing
+        raise LabcalError(f"{path}: cannot write the plot (no folder {Path(path).parent})")
+    dates = [c.calibrated_utc for c in certs]
+    X = np.array([c.coefficients for c in certs])
+    U = np.array([c.U for c in certs])
+    index = {c.certificate_id: n for n, c in enumerate(certs)}
+    fig = Figure(figsize=(12, 10))
+    fig.subplots_adjust(left=0.09, right=0.98, top=0.93, bottom=0.08, hspace=0.3, wspace=0.42)
+    axes = fig.subplots(4, 3, sharex=True, squeeze=False)
+    for i, row in enumerate(ROW_NAMES):
+        for j, sensor in enumerate(SENSORS):
+            ax = axes[i, j]
+            ax.errorbar(dates, X[:, i, j], yerr=U[:, i, j], fmt="o-", ms=4, capsize=3)
+            for ch in found:
+                if ch.flagged and (ch.row, ch.sensor) == (i, j):
+                    n0, n1 = index[ch.before], index[ch.after]
+                    ax.plot([dates[n0], dates[n1]], X[[n0, n1], i, j], color="tab:red", lw=2.5,
+                            label="change > combined U")
+            ax.set_title(f"{row} of sensor {sensor}", fontsize=9)
+            ax.set_ylabel(f"{row} ({'V' if i == 0 else 'V/g'})")
+            ax.ticklabel_format(axis="y", useOffset=True, style="plain")
+            if ax.get_legend_handles_labels()[0]:
+                ax.legend(fontsize=7)
+            if i == len(ROW_NAMES) - 1:
+                ax.set_xlabel("calibration date (UTC)", labelpad=14)  # below the date offset
+                ax.xaxis.set_major_formatter(ConciseDateFormatter(ax.xaxis.get_major_locator()))
+    fig.suptitle(f"Instrument {serial}: coefficients ± U (95 %) over time; red: {RULE}", fontsize=10)
+    try:
+        fig.savefig(path, dpi=110)
+    except (OSError, ValueError) as exc:  # ValueError: a file suffix matplotlib cannot write
+        why = getattr(exc, "strerror", None) or exc
+        raise LabcalError(f"{path}: cannot write the plot ({why})") from None

@@ -1,0 +1,453 @@
+"""The calibration report: one self-contained HTML file and a PDF, built from a certificate.
+
+The report shows what the certificate states and the evidence behind it: per sensor, residuals
+against pitch and roll with 95 % confidence and prediction bands (as Tripp & Tcheng figs. 44–49),
+the errors of pitch and roll inferred from every calibration reading, where the plan's points lie
+on the gravity sphere, and the attitude uncertainty across the usage envelope. Tables are built
+once and rendered three ways (HTML, PDF text, terminal), so every output says the same thing.
+Plots use matplotlib's object API (no pyplot state, no display needed).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import mpl_toolkits.mplot3d  # noqa: F401 - registers the 3-D projection
+import numpy as np
+from matplotlib.backends.backend_pdf import PdfPages
+from matplotlib.figure import Figure
+
+from labcal.attitude import sphere_least_squares
+from labcal.certificate import (
+    Certificate,
+    CertificateSettings,
+    build_certificate,
+    envelope_grid,
+    format_result,
+    format_uncertainty,
+    write_certificate,
+)
+from labcal.errors import LabcalError
+from labcal.fit import ROW_NAMES, SENSORS, Fit, fit_readings, readings_points
+from labcal.kinematics import Mount
+from labcal.models import Points
+from labcal.runrecord import RunRecord, load_run
+
+CERTIFICATE = "certificate.json"
+REPORT_HTML = "report.html"
+REPORT_PDF = "report.pdf"
+UNITS = ("V", "V/g", "V/g", "V/g")
+MOUNT_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red")
+# Fixed margins: a layout engine would double the drawing time of every figure, drawn twice.
+DODGE_DEG = 3.0
+WIDE = {"left": 0.08, "right": 0.98, "top": 0.84, "bottom": 0.13, "wspace": 0.25}
+
+
+# --- tables: built once, rendered as HTML, PDF text and terminal ----------------------------------
+@dataclass(frozen=True)
+class Table:
+    title: str
+    header: list[str]
+    rows: list[list[str]]
+    caption: str = ""
+    emphasis: set[tuple[int, int]] = field(default_factory=set)  # (row, column) cells that fail
+
+
+def _g(x: float | None, spec: str = ".3g") -> str:
+    return "—" if x is None else format(x, spec)
+
+
+def identification_table(cert: Certificate) -> Table:
+    env, plan, data = cert.environment, cert.plan, cert.data
+    temperature = ("not recorded" if env.temperature_c_min is None else
+                   f"{env.temperature_c_min:.2f} … {env.temperature_c_max:.2f} °C "
+                   f"(mean {env.temperature_c_mean:.2f} °C)")
+    rows = [
+        ["certificate", cert.certificate_id],
+        ["laboratory", cert.laboratory or "not stated"],
+        ["instrument serial", cert.instrument.serial + (f" ({cert.instrument.description})"
+                                                        if cert.instrument.description else "")],
+        ["calibration device", cert.station.description + (" (simulated: a dry run, not a calibration "
+                                                           "of a real instrument)" if cert.station.simulated
+                                                           else "")],
+        ["operator", cert.operator or "not recorded"],
+        ["calibrated (UTC)", cert.calibrated_utc.isoformat()],
+        ["issued (UTC)", cert.issued_utc.isoformat()],
+        ["plan", f"{plan.name}: {len(plan.points)} points × {len(plan.mounts)} mount(s) × "
+                 f"{plan.replicates} replicate(s); sha256 {plan.sha256[:16]}…"],
+        ["readings", f"{data.n_points} points in {data.replicates} replicate(s); sha256 "
+                     f"{data.readings_sha256[:16]}…"],
+        ["temperature", temperature],
+        ["software", f"labcal {cert.labcal_version}"],
+    ]
+    return Table("Identification", ["item", "value"], rows)
+
+
+def verdict_text(cert: Certificate) -> str:
+    if cert.conformity is None:
+        return "no statement of conformity: no tolerance was given"
+    return "PASS" if cert.conformity.passed else "FAIL"
+
+
+def conformity_table(cert: Certificate) -> Table:
+    c = cert.conformity
+    if c is None:
+        return Table("Statement of conformity", ["verdict"], [[verdict_text(cert)]],
+                     "Give --tolerance-deg (and optionally --bias-max-v) or a [certificate] section in the "
+                     "station file.")
+    rows = [[k.quantity, f"{format_uncertainty(k.value)} {k.unit}", f"{k.limit:g} {k.unit}",
+             "pass" if k.passed else "FAIL"] for k in c.checks]
+    emphasis = {(i, 3) for i, k in enumerate(c.checks) if not k.passed}
+    return Table(f"Statement of conformity: {verdict_text(cert)}", ["quantity", "value", "limit", "result"],
+                 rows, f"Decision rule: {c.decision_rule}", emphasis)
+
+
+def attitude_table(cert: Certificate) -> Table:
+    a = cert.attitude
+    def where(at): return "—" if at is None else f"pitch {at[0]:g}°, roll {at[1]:g}°"
+    def deg(u): return "undefined" if u is None else f"{format_uncertainty(u)}°"
+    rows = [["pitch", deg(a.pitch_U95_max_deg), where(a.pitch_U95_max_at_deg), deg(a.pitch_U95_rms_deg)],
+            ["roll", deg(a.roll_U95_max_deg), where(a.roll_U95_max_at_deg), deg(a.roll_U95_rms_deg)]]
+    (p0, p1), (r0, r1) = a.usage_pitch_deg, a.usage_roll_deg
+    caption = (f"Over pitch {p0:g}…{p1:g}° × roll {r0:g}…{r1:g}° in {a.grid_step_deg:g}° steps "
+               f"({a.grid_points} attitudes); "
+               f"{a.method}; k = {a.k:.2f} (ν = {a.degrees_of_freedom}).")
+    if a.roll_undefined_points:
+        caption += f" Roll is undefined at {a.roll_undefined_points} attitude(s) near pitch ±90°."
+    return Table("Attitude uncertainty (95 %) over the usage envelope", ["angle", "largest U95", "at",
+                                                                          "RMS of U95"], rows, caption)
+
+
+def coefficient_table(cert: Certificate) -> Table:
+    X, U = cert.coefficients, cert.U
+    e = cert.expanded_uncertainty
+    rows = [[f"{name} ({unit})", *(format_result(X[i, j], U[i, j]) for j in range(3))]
+            for i, (name, unit) in enumerate(zip(ROW_NAMES, UNITS, strict=True))]
+    rows.append(["S_E (V)", *(format_uncertainty(s) for s in cert.fit.residual_standard_error)])
+    rows.append(["k", *(f"{k:.2f}" for k in e.k)])
+    rows.append(["ν_eff", *(str(n) for n in e.nu_eff)])
+    rows.append(["basis of u", *cert.fit.uncertainty_basis])
+    return Table("Coefficients X = [Bᵀ; S] with expanded uncertainty (y ± U)",
+                 ["coefficient", *(f"sensor {s}" for s in SENSORS)], rows, e.statement)
+
+
+def replication_table(cert: Certificate) -> Table:
+    rep = cert.fit.replication
+    header = ["sensor", "σ_prec (V)", "σ_bias (V)", "lack of fit F (df)", "F crit 95 %", "p",
+              "offset drift F (p)", "sensitivity drift F (p)"]
+    if rep is None:
+        return Table("Replication and lack of fit (Tripp & Tcheng Table 2)", ["analysis"],
+                     [["not available: one replicate"]], "Precision and bias cannot be separated and drift "
+                     "cannot be tested without replicates.")
+    rows, emphasis = [], set()
+    for i, (sensor, r) in enumerate(rep.items()):
+        lof = r["lack_of_fit"]
+
+        def drift(name: str, col: int, r=r, i=i) -> str:
+            t = r["drift"].get(name)
+            if t is None:
+                return "—"
+            if t["significant"]:
+                emphasis.add((i, col))
+            return f"{t['F']:.3g} ({t['p_value']:.2g})"
+        if lof["significant"]:
+            emphasis.add((i, 3))
+        rows.append([sensor, _g(r["sigma_prec"]), _g(r["sigma_bias"]), f"{lof['F']:.3g} {tuple(lof['df'])}",
+                     f"{lof['critical_95']:.3g}", f"{lof['p_value']:.2g}", drift("offset", 6),
+                     drift("sensitivity", 7)])
+    first = next(iter(rep.values()))
+    return Table("Replication and lack of fit (Tripp & Tcheng Table 2)", header, rows,
+                 f"{first['distinct_points']} distinct points × {first['replicates']} replicates; "
+                 "highlighted: significant at 5 %.", emphasis)
+
+
+def audit_table(cert: Certificate) -> Table:
+    a = cert.plan_audit
+    rows = [[name, f"{m.bias_max:.2e}", f"{m.off_diagonal_max:.2e}", f"{m.diagonal_max:.2e}",
+             "yes" if m.cancelled else "no"] for name, m in a.misalignments.items()]
+    return Table("Plan audit: leakage of calibration-device misalignments (Soto §7)",
+                 ["misalignment", "max |∂B| per rad", "max |∂S off-diag.| per rad", "max |∂S diag.| per rad",
+                  "cancelled in B and off-diag. S"], rows,
+                 f"First-order change of the coefficients of an ideal instrument (B = 0, S = I) per radian "
+                 f"of each misalignment; zero below {a.zero_below:g}. Box figure of merit over the usage "
+                 f"pitch range: V_R^½ = {a.figure_of_merit_usage_sqrt:.4f}.")
+
+
+def tables(cert: Certificate) -> list[Table]:
+    return [identification_table(cert), conformity_table(cert), attitude_table(cert),
+            coefficient_table(cert), replication_table(cert), audit_table(cert)]
+
+
+# --- figures ----------------------------------------------------------------------------------
+def _mount_masks(record: RunRecord) -> list[tuple[Mount, np.ndarray]]:
+    r = record.readings
+    return [(m, (r.y_deg % 360 == m.y_deg % 360) & (r.u_deg % 360 == m.u_deg % 360))
+            for m in record.plan.mount_list]
+
+
+def residual_figure(fit: Fit, record: RunRecord) -> Figure:
+    """Residuals against table pitch and roll, per sensor, with the 95 % bands of a reading taken at
+    the other angle 0°, top-forward mount (Tripp & Tcheng figs. 44, 47)."""
+    r = record.readings
+    fig = Figure(figsize=(11, 10))
+    fig.subplots_adjust(left=0.08, right=0.98, top=0.92, bottom=0.06, hspace=0.42, wspace=0.22)
+    axes = fig.subplots(3, 2, squeeze=False)
+    for col, (angle, name) in enumerate(((r.pitch_deg, "pitch α"), (r.roll_deg, "roll R"))):
+        dense = np.linspace(angle.min(), angle.max(), 361)
+        at = Points.at(dense, 0.0, temp_c=fit.model.t_ref) if col == 0 else \
+            Points.at(0.0, dense, temp_c=fit.model.t_ref)
+        bands = fit.predict(at, 0.95)
+        for j, sensor in enumerate(SENSORS):
+            ax = axes[j, col]
+            pred, conf = bands["prediction"][:, j] * 1e6, bands["confidence"][:, j] * 1e6
+            ax.fill_between(dense, -pred, pred, color="0.85", label="95 % prediction band")
+            ax.fill_between(dense, -conf, conf, color="0.65", label="95 % confidence band")
+            for (mount, mask), colour in zip(_mount_masks(record), MOUNT_COLOURS, strict=False):
+                ax.plot(angle[mask], fit.ls.residuals[mask, j] * 1e6, "o", ms=4, color=colour,
+                        label=f"mount {mount}")
+            ax.axhline(0.0, color="k", lw=0.6)
+            ax.set_xlabel(f"table {name} (°)")
+            ax.set_ylabel(f"residual v_{sensor} − v̂_{sensor} (µV)")
+            ax.set_title(f"sensor {sensor}: residuals against {name.split()[0]}")
+            ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=7, loc="upper right")
+    fig.suptitle("Calibration residuals; bands for one reading at the other angle 0°, top-forward mount")
+    return fig
+
+
+def inferred_attitude(cert: Certificate, record: RunRecord) -> dict[str, np.ndarray]:
+    """Pitch and roll inferred from every calibration reading against the nominal attitude the
+    instrument had (the table angles mapped through the mount), in degrees."""
+    g = readings_points(record.readings).nominal_gravity()
+    nominal_pitch = np.degrees(np.arcsin(np.clip(g[:, 0], -1, 1)))
+    nominal_roll = np.degrees(np.arctan2(g[:, 1], g[:, 2]))
+    att = sphere_least_squares(cert.calibration(), record.readings.volts)
+    roll_error = (np.degrees(att.roll) - nominal_roll + 180.0) % 360.0 - 180.0
+    return {"nominal_pitch": nominal_pitch, "nominal_roll": nominal_roll,
+            "pitch_error": np.degrees(att.pitch) - nominal_pitch, "roll_error": roll_error,
+            "U95_pitch": att.k95 * np.degrees(att.u_pitch), "U95_roll": att.k95 * np.degrees(att.u_roll)}
+
+
+def attitude_error_figure(cert: Certificate, record: RunRecord) -> Figure:
+    """Errors of inferred pitch and roll with their U95 (Tripp & Tcheng figs. 45–46, 48–49)."""
+    e = inferred_attitude(cert, record)
+    fig = Figure(figsize=(11, 4.5))
+    fig.subplots_adjust(**WIDE)
+    axes = fig.subplots(1, 2)
+    masks = _mount_masks(record)
+    for ax, angle in zip(axes, ("pitch", "roll"), strict=True):
+        defined = np.isfinite(e[f"{angle}_error"])
+        for k, ((mount, mask), colour) in enumerate(zip(masks, MOUNT_COLOURS, strict=False)):
+            m = mask & defined
+            dodge = (k - (len(masks) - 1) / 2) * DODGE_DEG  # mounts side by side, not on top of each other
+            ax.errorbar(e[f"nominal_{angle}"][m] + dodge, e[f"{angle}_error"][m], yerr=e[f"U95_{angle}"][m],
+                        fmt="o", ms=4, capsize=2, color=colour, label=f"mount {mount}")
+        ax.axhline(0.0, color="k", lw=0.6)
+        ax.set_xlabel(f"nominal {angle} of the instrument (°; mounts offset by {DODGE_DEG:g}° to stay apart)")
+        ax.set_ylabel(f"inferred − nominal {angle} (°)")
+        ax.ticklabel_format(axis="y", style="plain", useOffset=False)
+        title = f"{angle} error, error bars U95"
+        if not defined.all():
+            title += f" ({int((~defined).sum())} points at pitch ±90° have no roll)"
+        ax.set_title(title, fontsize=10)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle("Attitude inferred from each calibration reading (least squares on the sphere)")
+    return fig
+
+
+def sphere_figure(record: RunRecord) -> Figure:
+    """Where the plan's points lie on the unit gravity sphere, in the instrument's axes, per mount."""
+    plan = record.plan
+    g = plan.nominal_gravity().reshape(len(plan.mounts), len(plan.points), 3)
+    fig = Figure(figsize=(7, 6.5))
+    ax = fig.add_subplot(projection="3d")
+    u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 37), np.linspace(0, np.pi, 19))
+    ax.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.8", lw=0.4)
+    markers = ("o", "s", "^", "D")
+    for k, (mount, colour) in enumerate(zip(plan.mount_list, MOUNT_COLOURS, strict=False)):
+        ax.scatter(*g[k].T, s=40 - 8 * k, marker=markers[k % 4], color=colour, depthshade=False,
+                   label=f"mount {mount}")
+    directions, counts = np.unique(np.round(g.reshape(-1, 3), 6), axis=0, return_counts=True)
+    for d, n in zip(directions, counts * plan.replicates, strict=True):
+        ax.text(*(1.18 * d), f"{n}", fontsize=8, ha="center")  # readings that share this direction
+    ax.set_xlabel("g_x (g)")
+    ax.set_ylabel("g_y (g)")
+    ax.set_zlabel("g_z (g)")
+    ax.set_box_aspect((1, 1, 1))
+    ax.set_title(f"Plan {plan.name}: nominal gravity of every point in the instrument's axes\n"
+                 "(numbers: readings in each direction, replicates included)", fontsize=10)
+    ax.legend(fontsize=7, loc="upper left")
+    return fig
+
+
+def envelope_figure(cert: Certificate) -> Figure:
+    """U95 of inferred pitch and roll against pitch over the usage envelope (largest and RMS over roll)."""
+    a = cert.attitude
+    settings = CertificateSettings(usage_pitch_deg=a.usage_pitch_deg, usage_roll_deg=a.usage_roll_deg,
+                                   grid_step_deg=a.grid_step_deg)
+    env = envelope_grid(cert.calibration(), settings)
+    tolerance = next((c.limit for c in (cert.conformity.checks if cert.conformity else []) if c.unit == "°"),
+                     None)
+    fig = Figure(figsize=(11, 4.5))
+    fig.subplots_adjust(**WIDE)
+    axes = fig.subplots(1, 2)
+    for ax, angle, values in zip(axes, ("pitch", "roll"), (env.u95_pitch_deg, env.u95_roll_deg), strict=True):
+        with np.errstate(invalid="ignore"):
+            ax.plot(env.pitch_deg, np.nanmax(values, axis=1), "-o", ms=3, label="largest over roll")
+            ax.plot(env.pitch_deg, np.sqrt(np.nanmean(values**2, axis=1)), "--", label="RMS over roll")
+        if tolerance is not None:
+            ax.axhline(tolerance, color="tab:red", lw=1, label=f"tolerance {tolerance:g}°")
+        ax.set_xlabel("pitch of the instrument (°)")
+        ax.set_ylabel(f"U95 of inferred {angle} (°)")
+        ax.set_title(f"{angle}: 95 % expanded uncertainty, k = {env.k:.2f}", fontsize=10)
+        ax.set_ylim(bottom=0)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle(f"Attitude uncertainty over the usage envelope (roll {a.usage_roll_deg[0]:g}…"
+                 f"{a.usage_roll_deg[1]:g}°, one new reading)")
+    return fig
+
+
+def figures(cert: Certificate, record: RunRecord, fit: Fit) -> list[tuple[str, Figure]]:
+    return [
+        ("Residuals per sensor with 95 % confidence and prediction bands", residual_figure(fit, record)),
+        ("Errors of the attitude inferred from each calibration reading",
+         attitude_error_figure(cert, record)),
+        ("Attitude uncertainty over the usage envelope", envelope_figure(cert)),
+        ("The plan's points on the gravity sphere", sphere_figure(record)),
+    ]
+
+
+# --- rendering --------------------------------------------------------------------------------
+CSS = """
+body{font-family:system-ui,-apple-system,"Segoe UI",sans-serif;max-width:1100px;margin:2em auto;color:#111;
+line-height:1.4}
+h1{font-size:1.5em;margin-bottom:0}h2{font-size:1.15em;margin-top:1.6em;border-bottom:1px solid #ccc}
+table{border-collapse:collapse;margin:.5em 0;font-size:.9em}
+th,td{border:1px solid #bbb;padding:.25em .6em;text-align:right;font-variant-numeric:tabular-nums}
+th:first-child,td:first-child{text-align:left}caption{caption-side:bottom;text-align:left;font-size:.85em;
+color:#444;padding-top:.3em}td.fail{background:#fdd;font-weight:bold}
+.verdict{font-size:1.3em;font-weight:bold;padding:.3em .6em;display:inline-block;border:2px solid}
+.pass{color:#064;border-color:#064}.fail-v{color:#a00;border-color:#a00}.none{color:#555;border-color:#999}
+img{max-width:100%}footer{margin-top:2em;font-size:.8em;color:#555;word-break:break-all}
+@media print{h2{break-after:avoid}figure{break-inside:avoid}}
+"""
+
+
+def _html_table(t: Table) -> str:
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in t.header)
+    fail = ' class="fail"'
+    body = "".join(
+        "<tr>" + "".join(f"<td{fail if (i, j) in t.emphasis else ''}>{html.escape(c)}</td>"
+                         for j, c in enumerate(row)) + "</tr>"
+        for i, row in enumerate(t.rows))
+    caption = f"<caption>{html.escape(t.caption)}</caption>" if t.caption else ""
+    return (f"<h2>{html.escape(t.title)}</h2><table>{caption}<thead><tr>{head}</tr></thead>"
+            f"<tbody>{body}</tbody></table>")
+
+
+def _png(fig: Figure) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def render_html(cert: Certificate, figs: list[tuple[str, Figure]]) -> str:
+    """One HTML file with inline CSS and inline PNG plots: it opens offline and can be mailed alone."""
+    verdict = verdict_text(cert)
+    css_class = "none" if cert.conformity is None else ("pass" if cert.conformity.passed else "fail-v")
+    parts = [f"<!DOCTYPE html><html lang=\"en\"><head><meta charset=\"utf-8\"><title>Calibration certificate "
+             f"{html.escape(cert.certificate_id)}</title><style>{CSS}</style></head><body>",
+             f"<h1>Calibration certificate and report</h1><p>{html.escape(cert.certificate_id)} · "
+             f"instrument {html.escape(cert.instrument.serial)}</p>"
+             f"<p class=\"verdict {css_class}\">{html.escape(verdict)}</p>"]
+    parts += [_html_table(t) for t in tables(cert)]
+    parts.append("<h2>Method</h2>" + "".join(f"<p>{html.escape(p)}</p>" for p in
+                                             (cert.method, *cert.statements, *cert.fit.notes)))
+    for title, fig in figs:
+        parts.append(f"<h2>{html.escape(title)}</h2><figure><img alt=\"{html.escape(title)}\" "
+                     f"src=\"data:image/png;base64,{_png(fig)}\"></figure>")
+    parts.append(f"<footer>End of report {html.escape(cert.certificate_id)}. Certificate content sha256 "
+                 f"{cert.digest.value} (certificate.json holds the full-precision values and covariances)."
+                 "</footer></body></html>")
+    return "\n".join(parts)
+
+
+def text_table(t: Table) -> str:
+    """A fixed-width rendering for the PDF's text pages."""
+    cells = [t.header, *t.rows]
+    widths = [max(len(r[j]) for r in cells if j < len(r)) for j in range(len(t.header))]
+    lines = [t.title, "  ".join(h.ljust(w) for h, w in zip(t.header, widths, strict=True)),
+             "  ".join("-" * w for w in widths)]
+    lines += ["  ".join(c.ljust(w) for c, w in zip(row, widths, strict=False)) for row in t.rows]
+    return "\n".join(lines)
+
+
+def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path) -> None:
+    """Text pages with every table, then one page per figure."""
+    import textwrap
+
+    blocks = []
+    for t in tables(cert):
+        blocks.append(text_table(t))
+        if t.caption:
+            blocks.append(textwrap.fill(t.caption, 140))
+        blocks.append("")
+    blocks += [textwrap.fill(p, 140) + "\n" for p in (cert.method, *cert.statements, *cert.fit.notes)]
+    lines = "\n".join(blocks).splitlines()
+    per_page = 62
+    with PdfPages(path, metadata={"Title": f"Calibration certificate {cert.certificate_id}",
+                                  "Subject": f"instrument {cert.instrument.serial}"}) as pdf:
+        pages = range(0, len(lines), per_page)
+        for n, start in enumerate(pages, start=1):
+            page = Figure(figsize=(11.69, 8.27))
+            page.text(0.03, 0.97, f"Calibration certificate {cert.certificate_id} — {verdict_text(cert)} — "
+                                  f"page {n} of {len(pages)} (text)", fontsize=9, va="top", weight="bold")
+            page.text(0.03, 0.93, "\n".join(lines[start:start + per_page]), family="monospace", fontsize=6.4,
+                      va="top")
+            pdf.savefig(page)
+        for title, fig in figs:
+            fig.text(0.01, 0.001, f"{cert.certificate_id} · {title}", fontsize=7, va="bottom")
+            pdf.savefig(fig)
+
+
+def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit) -> tuple[Path, Path]:
+    figs = figures(cert, record, fit)
+    html_path, pdf_path = directory / REPORT_HTML, directory / REPORT_PDF
+    try:
+        html_path.write_text(render_html(cert, figs), encoding="utf-8")
+        render_pdf(cert, figs, pdf_path)
+    except OSError as exc:
+        raise LabcalError(f"{exc.filename or directory}: cannot write the report ({exc.strerror})") from None
+    return html_path, pdf_path
+
+
+# --- what a run leaves behind ------------------------------------------------------------------
+@dataclass(frozen=True)
+class RunOutputs:
+    certificate: Certificate
+    certificate_path: Path
+    html_path: Path
+    pdf_path: Path
+    database: Path
+
+
+def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None = None, *,
+                      serial: str | None = None, operator: str | None = None,
+                      db: str | Path | None = None) -> RunOutputs:
+    """Certificate, report and history entry of a finished run (called at the end of `labcal run`
+    and by `labcal report`); ``db`` None means $LABCAL_DB or runs/labcal.sqlite."""
+    from labcal import history
+
+    record = load_run(run_dir)
+    fit = fit_readings(record.readings)
+    cert = build_certificate(record, fit, settings, serial=serial, operator=operator)
+    cert_path = write_certificate(record.directory / CERTIFICATE, cert)
+    html_path, pdf_path = write_report(record.directory, cert, record, fit)
+    database = history.store(cert, db)
+    return RunOutputs(cert, cert_path, html_path, pdf_path, database)

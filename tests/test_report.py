@@ -1,0 +1,191 @@
+"""The report of a simulated run: every plot holds the data it claims, the HTML stands alone, the
+PDF has every page, and `labcal report` turns bad input into one line and exit code 2."""
+
+from __future__ import annotations
+
+import base64
+import json
+import re
+import shutil
+
+import numpy as np
+import pytest
+from simulated_runs import simulated_run
+
+from labcal.certificate import CertificateSettings, read_certificate
+from labcal.cli import main
+from labcal.fit import fit_readings
+from labcal.report import figures, inferred_attitude, tables, write_run_outputs
+from labcal.runrecord import load_run
+
+TOLERANCE_DEG = 0.01
+
+
+@pytest.fixture(scope="module")
+def outputs(tmp_path_factory):
+    base = tmp_path_factory.mktemp("report")
+    run_dir = simulated_run(base / "run", base / "lab.sqlite", seed=3)
+    settings = CertificateSettings(attitude_u95_max_deg=TOLERANCE_DEG)
+    return write_run_outputs(run_dir, settings, db=base / "lab.sqlite")
+
+
+@pytest.fixture(scope="module")
+def drawn(outputs):
+    record = load_run(outputs.certificate_path.parent)
+    fit = fit_readings(record.readings)
+    return record, fit, dict(figures(outputs.certificate, record, fit))
+
+
+def _labelled(ax) -> None:
+    labels = [ax.get_xlabel(), ax.get_ylabel()] + ([ax.get_zlabel()] if hasattr(ax, "get_zlabel") else [])
+    for label in labels:
+        assert re.search(r"\(.+\)", label), f"axis label {label!r} has no unit"
+
+
+def _marker_data(ax) -> tuple[np.ndarray, np.ndarray]:
+    """x and y of the plotted points (lines drawn with markers, reference lines left out)."""
+    lines = [line for line in ax.get_lines() if line.get_marker() not in ("None", "", None)]
+    return (np.concatenate([line.get_xdata() for line in lines]),
+            np.concatenate([line.get_ydata() for line in lines]))
+
+
+def test_residual_plots_hold_every_residual_and_both_bands(drawn):
+    record, fit, figs = drawn
+    fig = figs["Residuals per sensor with 95 % confidence and prediction bands"]
+    axes = np.array(fig.axes).reshape(3, 2)
+    for j in range(3):
+        for col, angle in enumerate((record.readings.pitch_deg, record.readings.roll_deg)):
+            ax = axes[j, col]
+            _labelled(ax)
+            x, y = _marker_data(ax)
+            assert len(y) == len(record.readings) == 64
+            np.testing.assert_allclose(np.sort(y), np.sort(fit.ls.residuals[:, j] * 1e6), rtol=1e-12)
+            np.testing.assert_array_equal(np.sort(x), np.sort(angle))
+            prediction, confidence = (np.abs(c.get_paths()[0].vertices[:, 1]) for c in ax.collections)
+            assert np.all(np.isfinite(prediction)) and confidence.max() > 0
+            assert prediction.max() > confidence.max()  # a new reading is less certain than the mean
+
+
+def test_inferred_attitude_errors_are_plotted_with_their_u95(outputs, drawn):
+    record, _, figs = drawn
+    e = inferred_attitude(outputs.certificate, record)
+    fig = figs["Errors of the attitude inferred from each calibration reading"]
+    for ax, angle in zip(fig.axes, ("pitch", "roll"), strict=True):
+        _labelled(ax)
+        points = [c.lines[0].get_ydata() for c in ax.containers]
+        errors = e[f"{angle}_error"][np.isfinite(e[f"{angle}_error"])]
+        np.testing.assert_allclose(np.sort(np.concatenate(points)), np.sort(errors), rtol=1e-12)
+    # Pitch ±90° leaves 32 of the 64 readings without roll (Soto's plan visits it once per roll).
+    assert np.isfinite(e["pitch_error"]).sum() == 64 and np.isfinite(e["roll_error"]).sum() == 32
+    # The error bars are honest: a 95 % interval covers the error at most points (64 correlated points
+    # per angle, so at least 85 % rather than exactly 95 %).
+    for angle in ("pitch", "roll"):
+        ok = np.isfinite(e[f"{angle}_error"])
+        covered = np.abs(e[f"{angle}_error"][ok]) <= e[f"U95_{angle}"][ok]
+        assert covered.mean() >= 0.85
+    # Errors are small against a degree: the dry rig's misalignments are about 0.001°.
+    assert np.nanmax(np.abs(e["pitch_error"])) < 0.02
+
+
+def test_envelope_plot_matches_the_certificate(outputs, drawn):
+    _, _, figs = drawn
+    cert = outputs.certificate
+    fig = figs["Attitude uncertainty over the usage envelope"]
+    for ax, largest_cert in zip(fig.axes, (cert.attitude.pitch_U95_max_deg, cert.attitude.roll_U95_max_deg),
+                                strict=True):
+        _labelled(ax)
+        largest, rms, tolerance = ax.get_lines()
+        assert len(largest.get_xdata()) == 25  # -60..60° in 5° steps
+        assert np.all(largest.get_ydata() >= rms.get_ydata())
+        assert np.max(largest.get_ydata()) == pytest.approx(largest_cert, rel=1e-12)
+        assert set(tolerance.get_ydata()) == {TOLERANCE_DEG}
+
+
+def test_sphere_plot_shows_every_point_of_every_mount(drawn):
+    record, _, figs = drawn
+    fig = figs["The plan's points on the gravity sphere"]
+    fig.canvas.draw()  # 3-D scatter offsets exist once projected
+    ax = fig.axes[0]
+    _labelled(ax)
+    scatters = [c for c in ax.collections if len(c.get_offsets()) > 1]
+    assert [len(c.get_offsets()) for c in scatters] == [16] * 4  # 16 points × 4 mounts
+    labels = sorted(int(t.get_text()) for t in ax.texts)
+    assert labels == [8, 8, 8, 8, 16, 16] and sum(labels) == 64  # Soto's plan: 6 cardinal directions
+
+
+def test_html_is_one_self_contained_file(outputs):
+    text = outputs.html_path.read_text(encoding="utf-8")
+    assert not re.search(r"https?://|<link|<script|url\(", text)
+    images = re.findall(r'<img alt="[^"]*" src="data:image/png;base64,([^"]+)"', text)
+    assert len(images) == 4 and all(base64.b64decode(i)[:8] == b"\x89PNG\r\n\x1a\n" for i in images)
+    for t in tables(outputs.certificate):
+        assert t.title.replace("&", "&amp;") in text
+    assert "Statement of conformity: PASS" in text and outputs.certificate.digest.value in text
+
+
+def test_pdf_has_text_and_figure_pages(outputs):
+    pdf = outputs.pdf_path.read_bytes()
+    assert pdf.startswith(b"%PDF")
+    pages = len(re.findall(rb"/Type\s*/Page\b(?!s)", pdf))
+    assert pages >= 4 + 1  # the tables' text, then one page per figure
+
+
+def test_cli_regenerates_certificate_report_and_history(outputs, tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    shutil.copytree(outputs.certificate_path.parent, run_dir)
+    for name in ("certificate.json", "report.html", "report.pdf"):
+        (run_dir / name).unlink()
+    db = tmp_path / "lab.sqlite"
+    code = main(["report", str(run_dir), "--tolerance-deg", "0.001", "--db", str(db), "--json"])
+    doc = json.loads(capsys.readouterr().out)
+    assert code == 0 and doc["passed"] is False  # U95 ≈ 0.003° exceeds 0.001°
+    assert doc["serial"] == "SIMULATED" and doc["database"] == str(db)
+    cert = read_certificate(run_dir / "certificate.json")
+    assert cert.certificate_id == outputs.certificate.certificate_id  # same calibration, same id
+    assert (run_dir / "report.html").stat().st_size > 0 and (run_dir / "report.pdf").stat().st_size > 0
+    assert main(["history", "SIMULATED", "--db", str(db), "--json"]) == 0
+    assert len(json.loads(capsys.readouterr().out)["calibrations"]) == 1
+
+
+def _one_line_error(capsys, *args: str) -> str:
+    assert main(list(args)) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and "Traceback" not in captured.err
+    assert len(captured.err.strip().splitlines()) == 1, captured.err
+    return captured.err
+
+
+def _broken_copy(outputs, tmp_path, edit) -> str:
+    run_dir = tmp_path / "run"
+    shutil.copytree(outputs.certificate_path.parent, run_dir)
+    edit(run_dir)
+    return str(run_dir)
+
+
+def _interrupted(run_dir):
+    doc = json.loads((run_dir / "run.json").read_text())
+    (run_dir / "run.json").write_text(json.dumps({**doc, "status": "interrupted", "reason": "Ctrl-C"}))
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: (d / "readings.csv").unlink(), "readings.csv: no such readings file"),
+    (lambda d: (d / "plan.toml").unlink(), "plan.toml: no such plan file"),
+    (lambda d: (d / "run.json").unlink(), "run.json: no such run record file"),
+    (lambda d: (d / "run.json").write_text("{"), "run.json: not valid JSON"),
+    (_interrupted, "the run is interrupted (Ctrl-C); only a complete run gets a certificate"),
+])
+def test_bad_run_directories(outputs, tmp_path, capsys, edit, message):
+    run_dir = _broken_copy(outputs, tmp_path, edit)
+    assert message in _one_line_error(capsys, "report", run_dir, "--db", str(tmp_path / "db.sqlite"))
+
+
+def test_bad_arguments(outputs, tmp_path, capsys):
+    run_dir = str(outputs.certificate_path.parent)
+    db = str(tmp_path / "db.sqlite")
+    assert "no such run directory" in _one_line_error(capsys, "report", str(tmp_path / "nope"), "--db", db)
+    assert "usage_pitch_deg [-100, 10] must be increasing within -90..90" in _one_line_error(
+        capsys, "report", run_dir, "--usage-pitch", "-100", "10", "--db", db)
+    assert "no such station file" in _one_line_error(capsys, "report", run_dir, "--station",
+                                                     str(tmp_path / "none.toml"), "--db", db)
+    assert "certificate.attitude_u95_max_deg: Input should be greater than 0" in _one_line_error(
+        capsys, "report", run_dir, "--tolerance-deg", "-1", "--db", db)
