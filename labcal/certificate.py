@@ -521,7 +521,10 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
     expanded = _expanded(fit)
     cal = calibration_from_json(fit_doc, run_dir)
     envelope = attitude_envelope(cal, settings)
-    stamp = datetime.fromisoformat(calibrated).astimezone(UTC).strftime("%Y%m%dT%H%M%SZ")
+    try:
+        stamp = datetime.fromisoformat(calibrated).astimezone(UTC).strftime("%Y%m%dT%H%M%SZ")
+    except (TypeError, ValueError):
+        raise LabcalError(f"{run_dir}: run.json started_utc {calibrated!r} is not an ISO 8601 time") from None
     content = {
         "schema": SCHEMA,
         "certificate_id": f"{serial}-{stamp}-{record.readings_sha256[:8]}",

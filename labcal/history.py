@@ -119,7 +119,8 @@ def changes(certs: list[Certificate]) -> list[Change]:
         ua, ub = a.standard_uncertainty, b.standard_uncertainty
         nu_a, nu_b = (np.array(c.expanded_uncertainty.nu_eff, float)[None, :] for c in (a, b))
         var = ua**2 + ub**2
-        nu = var**2 / (ua**4 / nu_a + ub**4 / nu_b)  # Welch–Satterthwaite, GUM eq. G.2b
+        with np.errstate(invalid="ignore"):  # u = 0 (noise-free data): ν = ∞, any change is flagged
+            nu = np.where(var > 0, var**2 / (ua**4 / nu_a + ub**4 / nu_b), np.inf)  # WS, GUM eq. G.2b
         k = t_quantile(0.5 + COVERAGE / 2, nu)
         delta = b.coefficients - a.coefficients
         for i in range(delta.shape[0]):

@@ -13,6 +13,7 @@ from __future__ import annotations
 import base64
 import html
 import io
+import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -297,9 +298,12 @@ def envelope_figure(cert: Certificate) -> Figure:
     fig.subplots_adjust(**WIDE)
     axes = fig.subplots(1, 2)
     for ax, angle, values in zip(axes, ("pitch", "roll"), (env.u95_pitch_deg, env.u95_roll_deg), strict=True):
-        with np.errstate(invalid="ignore"):
-            ax.plot(env.pitch_deg, np.nanmax(values, axis=1), "-o", ms=3, label="largest over roll")
-            ax.plot(env.pitch_deg, np.sqrt(np.nanmean(values**2, axis=1)), "--", label="RMS over roll")
+        defined = np.isfinite(values).any(axis=1)  # at pitch ±90° no roll exists
+        largest, rms = np.full((2, len(env.pitch_deg)), np.nan)
+        largest[defined] = np.nanmax(values[defined], axis=1)
+        rms[defined] = np.sqrt(np.nanmean(values[defined] ** 2, axis=1))
+        ax.plot(env.pitch_deg, largest, "-o", ms=3, label="largest over roll")
+        ax.plot(env.pitch_deg, rms, "--", label="RMS over roll")
         if tolerance is not None:
             ax.axhline(tolerance, color="tab:red", lw=1, label=f"tolerance {tolerance:g}°")
         ax.set_xlabel("pitch of the instrument (°)")
@@ -390,8 +394,6 @@ def text_table(t: Table) -> str:
 
 def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path) -> None:
     """Text pages with every table, then one page per figure."""
-    import textwrap
-
     blocks = []
     for t in tables(cert):
         blocks.append(text_table(t))

@@ -131,3 +131,13 @@ def test_missing_database_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "none.sqlite: no such database" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "none.sqlite").exists()  # a query never creates a database
+
+
+def test_without_uncertainty_every_change_is_flagged(lab):
+    """Noise-free data give u = 0: ν is infinite, k = 1.96 and any nonzero change exceeds a zero limit."""
+    certs = certificates_for(SERIAL, lab)[:2]
+    exact = [c.model_copy(update={"fit": c.fit.model_copy(update={"standard_errors": [[0.0] * 3] * 4})})
+             for c in certs]
+    found = changes(exact)
+    assert all(c.limit == 0.0 and c.k == pytest.approx(1.959964, abs=1e-6) for c in found)
+    assert [c.flagged for c in found] == [c.delta != 0.0 for c in found]

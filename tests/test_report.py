@@ -7,15 +7,16 @@ import base64
 import json
 import re
 import shutil
+import warnings
 
 import numpy as np
 import pytest
 from simulated_runs import simulated_run
 
-from labcal.certificate import CertificateSettings, read_certificate
+from labcal.certificate import CertificateSettings, build_certificate, read_certificate
 from labcal.cli import main
 from labcal.fit import fit_readings
-from labcal.report import figures, inferred_attitude, tables, write_run_outputs
+from labcal.report import envelope_figure, figures, inferred_attitude, tables, write_run_outputs
 from labcal.runrecord import load_run
 
 TOLERANCE_DEG = 0.01
@@ -189,3 +190,15 @@ def test_bad_arguments(outputs, tmp_path, capsys):
                                                      str(tmp_path / "none.toml"), "--db", db)
     assert "certificate.attitude_u95_max_deg: Input should be greater than 0" in _one_line_error(
         capsys, "report", run_dir, "--tolerance-deg", "-1", "--db", db)
+
+
+def test_envelope_through_the_poles(drawn):
+    """Pitch ±90° is in the envelope: roll is undefined on those two grid rows (2 × 73 attitudes) and
+    the plot leaves them out without a warning."""
+    record, fit, _ = drawn
+    cert = build_certificate(record, fit, CertificateSettings(usage_pitch_deg=(-90, 90)))
+    assert cert.attitude.roll_undefined_points == 146 and np.isfinite(cert.attitude.roll_U95_max_deg)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        largest = envelope_figure(cert).axes[1].get_lines()[0].get_ydata()
+    assert np.isnan(largest[[0, -1]]).all() and np.isfinite(largest[1:-1]).all()
