@@ -120,7 +120,9 @@ class Keysight34970A:
         commands = ["*RST", "*CLS"] + (["SYST:REM"] if self.serial_line else []) + [
             f"CONF:VOLT:DC {self.range_v:g},{volts}", f"VOLT:DC:NPLC {self.nplc:g},{volts}"]
         if self.temperature_channel:
-            commands.append(f"CONF:TEMP {self.temperature_probe},{channel_list([self.temperature_channel])}")
+            thermometer = channel_list([self.temperature_channel])
+            commands += [f"CONF:TEMP {self.temperature_probe},{thermometer}",
+                         f"TEMP:NPLC {self.nplc:g},{thermometer}"]  # the same mains rejection
         commands += [f"ROUT:SCAN {channel_list(self.scan_list)}", "FORM:READ:CHAN ON", "FORM:READ:TIME OFF",
                      "FORM:READ:UNIT OFF", "FORM:READ:ALAR OFF", "TRIG:SOUR IMM"]
 

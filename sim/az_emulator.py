@@ -1,0 +1,312 @@
+"""Oriental Motor AZ drives on a pymodbus server, driving the emulated tables.
+
+The register map is the driver's own (`labcal.drivers.oriental_az`); every read is computed from
+the rig's physics at that moment, every write acts on it. Emulated: direct data operation
+(types absolute, incremental, wrap absolute/proximity/forward/reverse), the status bits
+(READY, MOVE, IN-POS after the table's clamp, ALM-A), present alarm and history, alarm reset,
+P-PRESET, STOP and FREE inputs, command and feedback position and speed. Not emulated: stored
+operation data, START/ZHOME inputs, parameters. Units answer on one bus: Modbus TCP (a gateway),
+Modbus RTU on a pty pair, or RTU over a TCP socket.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+from pymodbus import FramerType
+from pymodbus.constants import ExcCodes
+from pymodbus.pdu import ModbusPDU
+from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from labcal.drivers.modbus import int32_words, words_int32
+from labcal.drivers.oriental_az import (
+    ALARM,
+    ALARM_HISTORY,
+    ALARM_RESET,
+    CLEAR_ALARM_HISTORY,
+    COMM_ERROR,
+    COMMAND_POSITION,
+    CONFIGURATION,
+    DDO,
+    DDO_FIELDS,
+    FEEDBACK_POSITION,
+    FEEDBACK_SPEED,
+    INPUT_AUTO_OFF,
+    INPUT_REF,
+    NOT_RESETTABLE,
+    P_PRESET,
+    STATUS,
+    Input,
+    OpType,
+    Output,
+)
+from labcal.sim.emulated_rig import EmulatedRig
+from labcal.sim.endpoint import Endpoint
+from labcal.sim.faults import Fault, FaultInjector, FaultKind, garble
+from labcal.sim.ptys import PtyPair
+
+logging.getLogger("pymodbus").addHandler(logging.NullHandler())
+
+DEFAULT_ALARM = 0x10  # excessive position deviation: what a stalled table raises
+HISTORY = 10
+WRAP_WAYS = {OpType.WRAP_PROXIMITY: "shortest", OpType.WRAP_FORWARD: "forward",
+             OpType.WRAP_REVERSE: "reverse"}
+# (address, registers, read-only): the map's blocks; anything else answers "illegal data address"
+BLOCKS = ((DDO, 18, False), (INPUT_AUTO_OFF, 6, False), (STATUS, 2, True), (ALARM, 22, True),
+          (COMM_ERROR, 2, True), (COMMAND_POSITION, 2, True), (FEEDBACK_POSITION, 6, True),
+          (ALARM_RESET, 14, False))
+
+
+@dataclass
+class AzUnit:
+    """One drive: its settings and the state the registers show."""
+
+    name: str  # the rig table it drives
+    steps_per_degree: float
+    wrap: bool = True
+    alarm: int = 0
+    history: list[int] = field(default_factory=list)
+    ddo: list[int] = field(default_factory=lambda: [0] * len(DDO_FIELDS))
+    inputs: int = 0
+    offset: int = 0  # device steps − rig steps, changed by P-PRESET
+    preset: int = 0  # the preset-position parameter
+    command: int = 0  # command position, steps
+    maintenance: dict[int, int] = field(default_factory=dict)
+
+    @property
+    def steps_per_turn(self) -> int:
+        return round(360 * self.steps_per_degree)
+
+
+class AzDrives:
+    """The drives' register semantics (called with the rig locked)."""
+
+    def __init__(self, rig: EmulatedRig, units: dict[int, AzUnit]):
+        self.rig, self.units = rig, units
+
+    def _steps(self, unit: AzUnit) -> int:
+        """Feedback position in device steps (within one turn if the wrap setting is on)."""
+        angle = float(self.rig.axis(unit.name).angle_at(self.rig.clock.now()))
+        steps = round(angle * unit.steps_per_degree) + unit.offset
+        return steps % unit.steps_per_turn if unit.wrap else steps
+
+    def _status(self, unit: AzUnit) -> int:
+        axis, now = self.rig.axis(unit.name), self.rig.clock.now()
+        moving = now < axis.motion_end
+        bits = Output(0)
+        if unit.alarm:
+            bits |= Output.ALM_A
+        elif not moving and not unit.inputs & Input.FREE:
+            bits |= Output.READY
+        if moving:
+            bits |= Output.MOVE
+        elif now >= axis.motion_end + axis.clamp_s and not unit.alarm:
+            bits |= Output.IN_POS
+        return int(bits)
+
+    def read(self, unit: AzUnit, address: int) -> int:
+        """The 32-bit value of the pair at ``address``."""
+        axis = self.rig.axis(unit.name)
+        if DDO <= address < DDO + 2 * len(DDO_FIELDS):
+            return unit.ddo[(address - DDO) // 2]
+        if ALARM_HISTORY <= address < ALARM_HISTORY + 2 * HISTORY:
+            i = (address - ALARM_HISTORY) // 2
+            return unit.history[i] if i < len(unit.history) else 0
+        moving = self.rig.clock.now() < axis.motion_end
+        speed_hz = round(axis.speed * unit.steps_per_degree) if moving else 0
+        return {INPUT_AUTO_OFF: 0, INPUT_REF: unit.inputs, STATUS: self._status(unit), ALARM: unit.alarm,
+                COMM_ERROR: 0, COMMAND_POSITION: unit.command, FEEDBACK_POSITION: self._steps(unit),
+                FEEDBACK_SPEED - 2: round(speed_hz * 60 / unit.steps_per_turn), FEEDBACK_SPEED: speed_hz,
+                }.get(address, unit.maintenance.get(address, 0))
+
+    def write(self, unit: AzUnit, address: int, value: int) -> None:
+        if DDO <= address < DDO + 2 * len(DDO_FIELDS):
+            unit.ddo[(address - DDO) // 2] = value
+            if address == DDO + 2 * DDO_FIELDS.index("trigger") and value:
+                self._start(unit)
+        elif address in (INPUT_REF, INPUT_AUTO_OFF):
+            rising = Input(value & ~unit.inputs if address == INPUT_REF else value)
+            if address == INPUT_REF:
+                unit.inputs = value
+            self._inputs(unit, rising)
+        elif address in (ALARM_RESET, CLEAR_ALARM_HISTORY, P_PRESET, CONFIGURATION):
+            if value == 1 and unit.maintenance.get(address, 0) == 0:
+                self._maintenance(unit, address)
+            unit.maintenance[address] = value
+
+    def raise_alarm(self, unit: AzUnit, code: int) -> None:
+        unit.alarm = code
+        unit.history = [code, *unit.history][:HISTORY]
+        self.rig.axis(unit.name).stop()
+
+    def _inputs(self, unit: AzUnit, rising: Input) -> None:
+        if Input.STOP in rising:
+            self.rig.axis(unit.name).stop()
+        if Input.ALM_RST in rising:
+            self._maintenance(unit, ALARM_RESET)
+        if Input.FREE in rising:
+            self.rig.axis(unit.name).stop()
+
+    def _maintenance(self, unit: AzUnit, address: int) -> None:
+        if address == ALARM_RESET and unit.alarm not in NOT_RESETTABLE:
+            unit.alarm = 0
+        elif address == CLEAR_ALARM_HISTORY:
+            unit.history = []
+        elif address == P_PRESET:
+            angle = float(self.rig.axis(unit.name).angle_at(self.rig.clock.now()))
+            unit.offset = unit.preset - round(angle * unit.steps_per_degree)
+
+    def _start(self, unit: AzUnit) -> None:
+        """Direct data operation: start the move the DDO registers describe."""
+        if unit.alarm or unit.inputs & Input.FREE:
+            return  # a drive in alarm, or de-energised, ignores operation requests
+        _, op_type, position, speed, rate, *_ = unit.ddo
+        wrap_type = op_type in (OpType.WRAP_ABSOLUTE, *WRAP_WAYS)
+        if speed <= 0 or rate <= 0 or op_type not in {*OpType} or wrap_type and not unit.wrap:
+            self.raise_alarm(unit, 0x70)  # operation data error
+            return
+        axis = self.rig.axis(unit.name)
+        axis.speed, axis.accel = speed / unit.steps_per_degree, rate / unit.steps_per_degree
+        angle = float(axis.angle_at(self.rig.clock.now()))
+        if op_type in WRAP_WAYS:
+            axis.move_to((position - unit.offset) / unit.steps_per_degree, WRAP_WAYS[OpType(op_type)])
+            unit.command = position
+        elif op_type == OpType.INCREMENTAL:
+            axis.move_to(angle + position / unit.steps_per_degree, "direct")
+            unit.command = self._steps(unit) + position
+        else:  # absolute: straight to the position, never across the wrap point
+            current = self._steps(unit)
+            axis.move_to(angle + (position - current) / unit.steps_per_degree, "direct")
+            unit.command = position
+
+
+class AzServer:
+    """The drives on one bus, served by pymodbus from a thread of their own."""
+
+    def __init__(self, drives: AzDrives, endpoint: Endpoint, faults: dict[str, FaultInjector]):
+        self.drives, self.endpoint, self.faults = drives, endpoint, faults
+        self._replies: deque[Fault | None] = deque()  # faults for the replies still to be sent
+        self._current: Fault | None = None  # the fault of the request being executed
+        self._server: ModbusTcpServer | ModbusSerialServer | None = None
+        self._pty: PtyPair | None = None
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_forever, name=f"emulator {endpoint}",
+                                        daemon=True)
+        self._thread.start()
+        self._call(self._open())
+
+    def _call(self, coroutine):
+        return asyncio.run_coroutine_threadsafe(coroutine, self._loop).result(timeout=30)
+
+    @property
+    def address(self) -> str:
+        return str(self.endpoint)
+
+    # --- serving ----------------------------------------------------------------------------
+    def _devices(self) -> list[SimDevice]:
+        blocks = [SimData(address, count=count, values=0, datatype=DataType.REGISTERS, readonly=readonly)
+                  for address, count, readonly in BLOCKS]
+        return [SimDevice(id=unit_id, simdata=list(blocks), action=self._action(unit_id))
+                for unit_id in self.drives.units]
+
+    async def _open(self) -> None:
+        hooks = dict(trace_pdu=self._trace_pdu, trace_packet=self._trace_packet)
+        ep = self.endpoint
+        if ep.kind == "tcp":
+            self._server = ModbusTcpServer(self._devices(), address=(ep.host, ep.port), **hooks)
+        else:
+            if ep.kind == "pty":
+                self._pty = PtyPair(ep.link)
+                port = self._pty.device_path
+            else:
+                port = f"socket://{ep.host}:{ep.port}"
+            self._server = ModbusSerialServer(self._devices(), framer=FramerType.RTU, port=port,
+                                              baudrate=115200, **hooks)
+        await self._server.serve_forever(background=True)
+        if ep.kind != "pty":
+            self.endpoint = ep.bound(self._server.transport.sockets[0].getsockname()[1])
+
+    async def _shut(self) -> None:
+        if self._server is not None:
+            await self._server.shutdown()
+            self._server = None
+        if self._pty is not None:
+            self._pty.close()
+            self._pty = None
+        self._replies.clear()
+
+    async def _bounce(self, reopen_s: float | None) -> None:
+        """The port goes away (a pulled cable, a gateway reboot) and comes back if ``reopen_s``."""
+        await self._shut()
+        if reopen_s is not None:
+            await asyncio.sleep(reopen_s)
+            await self._open()
+
+    # --- faults and semantics ---------------------------------------------------------------
+    def _trace_pdu(self, sending: bool, pdu: ModbusPDU) -> ModbusPDU:
+        if not sending:
+            unit = self.drives.units.get(pdu.dev_id)
+            description = f"fc{pdu.function_code:02d} {getattr(pdu, 'address', 0):04X}"
+            injector = self.faults.get(unit.name) if unit else None
+            self._current = injector.take(description) if injector else None
+            silent = unit is None  # nobody at that address on an RS-485 line: silence
+            self._replies.append(Fault(FaultKind.NO_REPLY) if silent else self._current)
+        return pdu
+
+    def _trace_packet(self, sending: bool, packet: bytes) -> bytes:
+        if not sending or not packet:
+            return packet
+        fault = self._replies.popleft() if self._replies else None
+        kind = fault.kind if fault else None
+        if kind in (FaultKind.NO_REPLY, FaultKind.CLOSE_PORT):
+            if kind == FaultKind.CLOSE_PORT:
+                assert fault is not None
+                self._loop.create_task(self._bounce(fault.reopen_s))
+            return b""
+        if kind == FaultKind.LATE_REPLY:
+            time.sleep(fault.delay_s)  # the bus is busy meanwhile, as it would be
+        if kind == FaultKind.GARBLED:
+            return packet[:2] + b"\xa5\x5a" + packet[4:] if self.endpoint.kind == "tcp" else garble(packet)
+        return packet
+
+    def _action(self, unit_id: int):
+        unit = self.drives.units[unit_id]
+
+        async def action(fc: int, start: int, address: int, count: int, registers: list[int],
+                         values: list[int] | None) -> ExcCodes | None:
+            fault, self._current = self._current, None
+            if fault and fault.kind == FaultKind.EXCEPTION:
+                return ExcCodes(int(fault.code) if fault.code is not None else ExcCodes.DEVICE_FAILURE)
+            with self.drives.rig.lock:
+                if fault and fault.kind == FaultKind.ALARM:
+                    self.drives.raise_alarm(unit, DEFAULT_ALARM if fault.code is None else int(fault.code))
+                if values is None:
+                    for pair in range(address & ~1, address + count, 2):
+                        for i, word in enumerate(int32_words(self.drives.read(unit, pair))):
+                            if 0 <= pair + i - start < len(registers):
+                                registers[pair + i - start] = word
+                    return None
+                if fc == 0x10 and (address % 2 or count % 2):
+                    return ExcCodes.ILLEGAL_ADDRESS  # 32-bit values are written as whole pairs
+                pairs = range(address & ~1, address + count, 2)
+                words = {a: registers[a - start] for pair in pairs for a in (pair, pair + 1)}
+                words.update({address + i: v for i, v in enumerate(values)})  # FC 06 may write half a pair
+                for pair in pairs:
+                    self.drives.write(unit, pair, words_int32(words[pair], words[pair + 1]))
+            return None
+
+        return action
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self._call(self._shut())
+        self._loop.call_soon_threadsafe(self._loop.stop)
+        self._thread.join(timeout=10)
+        self._loop.close()

@@ -1,0 +1,313 @@
+"""A Keysight 34970A with a multiplexer card, wired to the emulated instrument's outputs.
+
+Speaks the SCPI subset a scanning DMM needs (CONF, NPLC, ROUT:SCAN, FORM:READ, TRIG, INIT,
+*OPC?, FETC?, DATA:POIN?, ABOR, SYST:ERR?) with short and long mnemonics, ``;``-joined commands,
+and a SCPI error queue. Each channel is measured at its own moment of the scan, from the rig's
+physics at the tables' current angles and the current mount; a sweep takes as long as the real
+unit's integration (scaled with the rig's clock).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from labcal.drivers.keysight_34970a import NPLC_VALUES, OVERLOAD, RANGES_V, channel_time_s
+from labcal.sim.emulated_rig import EmulatedRig
+
+IDN = "Keysight Technologies,34970A,LABCAL-EMULATOR,labcal-1.0"
+ERRORS = {-102: "Syntax error", -113: "Undefined header", -221: "Settings conflict",
+          -222: "Data out of range", -230: "Data corrupt or stale", -350: "Queue overflow"}
+QUEUE_SIZE = 10
+OVER_RANGE = 1.2  # readings beyond 120 % of the range are overloads
+FORM_FIELDS = ("CHAN", "TIME", "UNIT", "ALAR")  # FORMat:READing fields, in reply order after the value
+
+
+def _regex(spec: str) -> re.Pattern:
+    """SCPI header spec (``[SENSe:]VOLTage[:DC]:NPLCycles``) → regex accepting short and long forms."""
+    def mnemonic(m: re.Match) -> str:
+        word = m.group(0)
+        short = "".join(c for c in word if c.isupper() or c.isdigit())
+        return f"(?:{word.upper()}|{short})" if short != word.upper() else word.upper()
+
+    optional = re.escape(spec).replace(r"\[", "(?:").replace(r"\]", ")?")
+    return re.compile(re.sub(r"[A-Za-z][A-Za-z0-9]*", mnemonic, optional), re.IGNORECASE)
+
+
+def parse_channels(text: str) -> list[int]:
+    """``(@101:103,105)`` → [101, 102, 103, 105]; ValueError if malformed."""
+    match = re.fullmatch(r"\(@([\d,: ]+)\)", text.strip())
+    if not match:
+        raise ValueError(text)
+    channels: list[int] = []
+    for part in match.group(1).split(","):
+        first, _, last = part.strip().partition(":")
+        channels += range(int(first), int(last or first) + 1)
+    return channels
+
+
+@dataclass
+class Channel:
+    function: str  # "VOLT" or "TEMP"
+    range_v: float = 10.0
+    nplc: float = 1.0
+
+
+@dataclass
+class ScanRun:
+    """One INIT: when it began, the sweeps it takes, and the readings once measured."""
+
+    start: float
+    channels: list[int]
+    durations: list[float]
+    sweeps: int
+    readings: np.ndarray | None = None
+    aborted_at: float | None = None
+
+    @property
+    def sweep_s(self) -> float:
+        return sum(self.durations)
+
+    @property
+    def end(self) -> float:
+        return self.start + self.sweeps * self.sweep_s if self.aborted_at is None else self.aborted_at
+
+    def times(self) -> np.ndarray:
+        """Mid-integration time of every reading, sweep after sweep."""
+        offsets = np.cumsum([0.0, *self.durations[:-1]]) + 0.5 * np.asarray(self.durations)
+        return (self.start + np.arange(self.sweeps)[:, None] * self.sweep_s + offsets[None, :]).ravel()
+
+    def done_by(self, t: float) -> int:
+        return int(np.sum(self.times() <= t))
+
+
+@dataclass
+class State:
+    channels: dict[int, Channel] = field(default_factory=dict)
+    scan_list: list[int] = field(default_factory=list)
+    form: dict[str, bool] = field(default_factory=lambda: dict.fromkeys(FORM_FIELDS, False))
+    trigger_count: int = 1
+    scan: ScanRun | None = None
+
+
+class Keysight34970AEmulator:
+    eol = b"\n"
+
+    def __init__(self, rig: EmulatedRig, wiring: dict[int, int | str], name: str = "dmm"):
+        """``wiring``: channel → instrument output 0, 1, 2 (x, y, z) or "temp" for the thermometer."""
+        self.rig, self.wiring, self.name = rig, wiring, name
+        self.state = State()
+        self.errors: list[int] = []
+        self.overload_next = False
+        self.commands: list[tuple[re.Pattern, Callable[[str], str | None]]] = [
+            (_regex(spec), handler) for spec, handler in (
+                ("*IDN?", lambda a: IDN), ("*RST", self._reset), ("*CLS", lambda a: self.errors.clear()),
+                ("*OPC?", self._opc), ("*WAI", self._wait), ("SYSTem:ERRor[:NEXT]?", self._next_error),
+                ("SYSTem:REMote", lambda a: None), ("SYSTem:VERSion?", lambda a: "1994.0"),
+                ("CONFigure[:VOLTage][:DC]", self._conf_volts), ("CONFigure:TEMPerature", self._conf_temp),
+                ("[SENSe:]VOLTage[:DC]:NPLCycles", self._nplc), ("[SENSe:]TEMPerature:NPLCycles", self._nplc),
+                ("[SENSe:]VOLTage[:DC]:RANGe", self._range), ("ROUTe:SCAN", self._scan_list),
+                ("ROUTe:SCAN?", self._scan_list_query), ("FORMat:READing:CHANnel", self._form("CHAN")),
+                ("FORMat:READing:TIME", self._form("TIME")), ("FORMat:READing:UNIT", self._form("UNIT")),
+                ("FORMat:READing:ALARm", self._form("ALAR")), ("TRIGger:SOURce", self._trigger_source),
+                ("TRIGger:COUNt", self._trigger_count), ("TRIGger:TIMer", lambda a: None),
+                ("INITiate", self._init), ("ABORt", self._abort), ("FETCh?", self._fetch),
+                ("DATA:POINts?", self._points))]
+
+    # --- LineDevice -------------------------------------------------------------------------
+    def route(self, line: str) -> str:
+        return self.name
+
+    def refuse(self, line: str, code: int | str | None) -> None:
+        self._error(int(code) if isinstance(code, int) else -221)
+
+    def alarm(self, name: str, code: int | str | None) -> None:
+        self.overload_next = True
+
+    def handle(self, line: str) -> str | None:
+        replies = []
+        for part in filter(None, (p.strip() for p in line.split(";"))):
+            header, _, argument = part.lstrip(":").partition(" ")
+            handler = next((h for pattern, h in self.commands if pattern.fullmatch(header)), None)
+            if handler is None:
+                self._error(-113)
+                continue
+            try:
+                reply = handler(argument.strip())
+            except ValueError:
+                self._error(-102)
+                continue
+            if reply is not None:
+                replies.append(reply)
+        return ";".join(replies) if replies else None
+
+    # --- commands ---------------------------------------------------------------------------
+    def _error(self, code: int) -> None:
+        if len(self.errors) < QUEUE_SIZE:
+            self.errors.append(code)
+        else:
+            self.errors[-1] = -350
+
+    def _next_error(self, _: str) -> str:
+        code = self.errors.pop(0) if self.errors else 0
+        return f'{code:+d},"{ERRORS.get(code, "No error")}"'
+
+    def _reset(self, _: str) -> None:
+        self.state = State()
+
+    @staticmethod
+    def _split(argument: str) -> tuple[list[str], list[int]]:
+        """``10,(@101:103)`` → (["10"], [101, 102, 103])."""
+        head, at, channels = argument.partition("(@")
+        values = [v.strip() for v in head.split(",") if v.strip()]
+        return values, parse_channels(at + channels) if at else []
+
+    def _configure(self, channels: list[int], channel: Callable[[], Channel]) -> None:
+        if not channels or any(c not in self.wiring and not 101 <= c <= 340 for c in channels):
+            self._error(-222)
+            return
+        for c in channels:
+            self.state.channels[c] = channel()
+        self.state.scan_list = list(channels)  # CONFigure redefines the scan list ...
+        self.state.form = dict.fromkeys(self.state.form, False)  # ... and the reading format
+
+    def _conf_volts(self, argument: str) -> None:
+        values, channels = self._split(argument)
+        range_v = 10.0 if not values or values[0].upper() in ("AUTO", "DEF") else float(values[0])
+        if range_v not in RANGES_V:
+            self._error(-222)
+            return
+        self._configure(channels, lambda: Channel("VOLT", range_v))
+
+    def _conf_temp(self, argument: str) -> None:
+        values, channels = self._split(argument)
+        if not values:
+            self._error(-102)
+            return
+        self._configure(channels, lambda: Channel("TEMP"))
+
+    def _nplc(self, argument: str) -> None:
+        values, channels = self._split(argument)
+        if len(values) != 1 or float(values[0]) not in NPLC_VALUES:
+            self._error(-222)
+            return
+        if any(c not in self.state.channels for c in channels):
+            self._error(-221)
+            return
+        for c in channels:
+            self.state.channels[c].nplc = float(values[0])
+
+    def _range(self, argument: str) -> None:
+        values, channels = self._split(argument)
+        if len(values) != 1 or float(values[0]) not in RANGES_V or any(
+                self.state.channels.get(c, Channel("")).function != "VOLT" for c in channels):
+            self._error(-222)
+            return
+        for c in channels:
+            self.state.channels[c].range_v = float(values[0])
+
+    def _scan_list(self, argument: str) -> None:
+        channels = parse_channels(argument)
+        if any(c not in self.state.channels for c in channels):
+            self._error(-221)
+            return
+        self.state.scan_list = channels
+
+    def _scan_list_query(self, _: str) -> str:
+        text = "(@" + ",".join(map(str, self.state.scan_list)) + ")"
+        return f"#{len(str(len(text)))}{len(text)}{text}"
+
+    def _form(self, field_name: str) -> Callable[[str], None]:
+        def set_form(argument: str) -> None:
+            if argument.upper() not in ("ON", "OFF", "1", "0"):
+                self._error(-222)
+                return
+            self.state.form[field_name] = argument.upper() in ("ON", "1")
+        return set_form
+
+    def _trigger_source(self, argument: str) -> None:
+        if argument.upper() not in ("IMM", "IMMEDIATE", "TIM", "TIMER", "BUS", "EXT", "EXTERNAL"):
+            self._error(-222)
+
+    def _trigger_count(self, argument: str) -> None:
+        count = int(float(argument))
+        if not 1 <= count <= 50000:
+            self._error(-222)
+            return
+        self.state.trigger_count = count
+
+    def _init(self, _: str) -> None:
+        state = self.state
+        if not state.scan_list:
+            self._error(-221)
+            return
+        line_hz = self.rig.rig.config.line_hz
+        durations = [channel_time_s(state.channels[c].nplc, line_hz) for c in state.scan_list]
+        state.scan = ScanRun(self.rig.clock.now(), list(state.scan_list), durations, state.trigger_count)
+
+    def _abort(self, _: str) -> None:
+        if self.state.scan is not None and self.state.scan.end > self.rig.clock.now():
+            self.state.scan.aborted_at = self.rig.clock.now()
+
+    def _wait(self, _: str) -> None:
+        if self.state.scan is not None:
+            self.rig.clock.advance_to(self.state.scan.end)
+
+    def _opc(self, _: str) -> str:
+        self._wait("")
+        return "1"
+
+    def _points(self, _: str) -> str:
+        scan = self.state.scan
+        return "0" if scan is None else str(scan.done_by(min(self.rig.clock.now(), scan.end)))
+
+    def _fetch(self, _: str) -> str | None:
+        scan = self.state.scan
+        if scan is None:
+            self._error(-230)
+            return None
+        self._wait("")
+        if scan.readings is None:
+            scan.readings = self._measure(scan)
+        n = scan.done_by(scan.end)
+        return ",".join(self._format(value, scan.channels[i % len(scan.channels)], t)
+                        for i, (value, t) in enumerate(zip(scan.readings[:n], scan.times()[:n] - scan.start,
+                                                           strict=True)))
+
+    # --- measurement ------------------------------------------------------------------------
+    def _measure(self, scan: ScanRun) -> np.ndarray:
+        """Every reading of the scan, each channel at its own time."""
+        times = scan.times()
+        with self.rig.lock:
+            sample = self.rig.rig.sample_at(times)
+        readings = np.empty(len(times))
+        for i, channel in enumerate(scan.channels * scan.sweeps):
+            wired = self.wiring.get(channel)
+            if wired == "temp":
+                readings[i] = sample.temp_c[i]
+            elif isinstance(wired, int):
+                readings[i] = sample.volts[i, wired]
+            else:
+                readings[i] = 0.0  # nothing wired to this input
+            if self.state.channels[channel].function == "VOLT":
+                if abs(readings[i]) > OVER_RANGE * self.state.channels[channel].range_v:
+                    readings[i] = OVERLOAD
+        if self.overload_next:
+            self.overload_next = False
+            readings[0::len(scan.channels)] = OVERLOAD
+        return readings
+
+    def _format(self, value: float, channel: int, t: float) -> str:
+        form = self.state.form
+        unit = {"VOLT": " VDC", "TEMP": " C"}[self.state.channels[channel].function] if form["UNIT"] else ""
+        parts = [f"{value:+.8E}{unit}"]
+        if form["TIME"]:
+            parts.append(f"{t:.3f}")
+        if form["CHAN"]:
+            parts.append(f"{channel:03d}")
+        if form["ALAR"]:
+            parts.append("0")
+        return ",".join(parts)

@@ -1,0 +1,132 @@
+"""Start the emulators a station file points at, fed by one simulated rig.
+
+Devices on the same port share one emulated bus (two AZ drives behind one gateway, two SMC100
+controllers on one daisy chain). The station file's ``[emulation]`` table sets the time scale,
+the seed and the rig (``[emulation.rig]``, a `RigConfig`). `Emulation.station_config` is the
+station file as the running emulators answer it (free TCP ports filled in).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from labcal.drivers.station_file import AzSettings, LinkSettings, Smc100Settings, StationFile
+from labcal.errors import LabcalError
+from labcal.files import one_line
+from labcal.sim.az_emulator import AzDrives, AzServer, AzUnit
+from labcal.sim.dmm_emulator import Keysight34970AEmulator
+from labcal.sim.emulated_rig import EmulatedRig
+from labcal.sim.endpoint import Endpoint
+from labcal.sim.faults import FaultInjector
+from labcal.sim.line_server import LineServer
+from labcal.sim.rig import RigConfig
+from labcal.sim.smc100_emulator import Positioner, Smc100Emulator
+
+Server = AzServer | LineServer
+NO_LIMITS = (-1e9, 1e9)
+
+
+class EmulationSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    time_scale: float = Field(default=1.0, gt=0, le=1e5, description="rig time per second of wall time")
+    seed: int | None = Field(default=None, description="the rig's random seed (default: the rig's own)")
+    rig: RigConfig = Field(default_factory=RigConfig)
+
+
+def emulation_settings(config: StationFile, source: str) -> EmulationSettings:
+    try:
+        return EmulationSettings.model_validate(config.emulation)
+    except ValidationError as exc:
+        raise LabcalError(f"{source}: emulation.{one_line(exc)}") from None
+
+
+class Emulation:
+    """Running emulators; `close` (or leaving the `with` block) stops them and removes their ptys."""
+
+    def __init__(self, config: StationFile, *, time_scale: float | None = None, seed: int | None = None,
+                 source: str = "station file", start_s: float = 0.0):
+        settings = emulation_settings(config, source)
+        if time_scale is not None and not 0 < time_scale <= 1e5:
+            raise LabcalError(f"time scale {time_scale:g} must be > 0 and ≤ 100000")
+        self.time_scale = time_scale or settings.time_scale
+        seed = settings.seed if seed is None else seed
+        self.rig = EmulatedRig(settings.rig, self.time_scale, seed, start_s)
+        self.faults = {name: FaultInjector() for name in ("pitch", "roll", "dmm")}
+        self.servers: dict[str, tuple[list[str], str, Server]] = {}  # bus → (devices, protocol, server)
+        try:
+            for bus, names in self._buses(config).items():
+                self.servers[bus] = self._serve(config, names)
+        except BaseException:
+            self.close()
+            raise
+        self.station_config = config.model_copy(update={
+            name: settings.model_copy(update={"port": None, "tcp": None,
+                                              **self.servers[settings.bus][2].endpoint.settings_update()})
+            for name, settings in config.devices().items()})
+
+    @staticmethod
+    def _buses(config: StationFile) -> dict[str, list[str]]:
+        buses: dict[str, list[str]] = {}
+        for name, settings in config.devices().items():
+            buses.setdefault(settings.bus, []).append(name)
+        return buses
+
+    def _serve(self, config: StationFile, names: list[str]) -> tuple[list[str], str, Server]:
+        first: LinkSettings = config.devices()[names[0]]
+        endpoint = Endpoint.of(names[0], first)
+        try:
+            if isinstance(first, AzSettings):
+                units = {s.unit: AzUnit(n, s.steps_per_degree, s.wrap)
+                         for n, s in ((n, config.devices()[n]) for n in names) if isinstance(s, AzSettings)}
+                server: Server = AzServer(AzDrives(self.rig, units), endpoint, self.faults)
+                protocol = "Modbus TCP" if endpoint.kind == "tcp" else "Modbus RTU"
+            elif isinstance(first, Smc100Settings):
+                controllers = {s.address: Positioner(n, limits=s.limits_deg or NO_LIMITS)
+                               for n, s in ((n, config.devices()[n]) for n in names)
+                               if isinstance(s, Smc100Settings)}
+                server = LineServer(Smc100Emulator(self.rig, controllers), endpoint, self.faults)
+                protocol = "Newport SMC100 ASCII"
+            else:
+                dmm = config.dmm
+                wiring: dict[int, int | str] = {c: i for i, c in enumerate(dmm.channels)}
+                if dmm.temperature_channel:
+                    wiring[dmm.temperature_channel] = "temp"
+                server = LineServer(Keysight34970AEmulator(self.rig, wiring), endpoint, self.faults)
+                protocol = "Keysight 34970A SCPI"
+        except OSError as exc:
+            raise LabcalError(f"{', '.join(names)}: cannot serve {endpoint} ({exc.strerror or exc}); "
+                              "is another emulator (labcal sim serve) already using it?") from None
+        return names, protocol, server
+
+    def endpoints(self) -> list[dict]:
+        """What listens where, for people and for `--json`."""
+        return [{"devices": names, "protocol": protocol, "address": server.address}
+                for names, protocol, server in self.servers.values()]
+
+    def hooks(self) -> dict[str, Callable]:
+        """What a station on these emulators tells the rig: the operator's remounts, and which
+        point is measured (the rig draws each point's noise from it, so a resume measures alike)."""
+        def at_point(key: str) -> None:
+            with self.rig.lock:
+                self.rig.rig.at_point(key)
+        return {"remounted": self.rig.set_mount, "at_point": at_point}
+
+    def truth(self) -> dict:
+        """The emulated instrument and rig, as a run records them."""
+        rig = self.rig.rig
+        return {"coefficients": rig.instrument.X.tolist(), "misalignment_deg": rig.misalignment.degrees(),
+                "seed": rig.seed, "time_scale": self.time_scale, "endpoints": self.endpoints()}
+
+    def close(self) -> None:
+        for _, _, server in self.servers.values():
+            server.close()
+        self.servers.clear()
+
+    def __enter__(self) -> Emulation:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,97 @@
+"""Fault injection for the protocol emulators: what goes wrong, on which requests, how often.
+
+Each emulated device has a `FaultInjector`. The emulator asks it about every request it receives
+(described as text: the ASCII line, or ``fc03 00CC`` for Modbus) and applies the fault it gets:
+
+- ``no-reply``: the request is executed but its reply is lost;
+- ``late-reply``: the reply leaves ``delay_s`` late;
+- ``garbled``: the reply's bytes are corrupted (for Modbus RTU: a bad CRC);
+- ``alarm``: the device raises an alarm (AZ alarm code, SMC100 following error, DMM overload);
+- ``exception``: the device refuses the request (Modbus exception response, SMC100 error code,
+  SCPI error in the queue);
+- ``close-port``: the port or connection is closed, and reopened after ``reopen_s`` if given.
+"""
+
+from __future__ import annotations
+
+import re
+import threading
+from collections import deque
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+
+class FaultKind(StrEnum):
+    NO_REPLY = "no-reply"
+    LATE_REPLY = "late-reply"
+    GARBLED = "garbled"
+    ALARM = "alarm"
+    EXCEPTION = "exception"
+    CLOSE_PORT = "close-port"
+
+
+@dataclass
+class Fault:
+    kind: FaultKind
+    count: int = 1  # matching requests affected
+    after: int = 0  # matching requests let through first
+    match: str | None = None  # regular expression searched in the request's description
+    delay_s: float = 1.0  # late-reply
+    code: int | str | None = None  # alarm / exception: the device's code (each device has a default)
+    reopen_s: float | None = None  # close-port: reopen after this long; None: stays closed
+    seen: int = field(default=0, repr=False)
+
+    def __post_init__(self):
+        self.kind = FaultKind(self.kind)
+
+
+class FaultInjector:
+    """Thread-safe: emulators run in their own threads, tests inject from the main one."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._faults: list[Fault] = []
+        self.applied: list[tuple[FaultKind, str]] = []  # what happened to which request, in order
+        self.recent: deque[str] = deque(maxlen=1000)  # the latest requests, faulty or not
+        self.requests = 0
+
+    def add(self, fault: Fault) -> Fault:
+        with self._lock:
+            self._faults.append(fault)
+        return fault
+
+    def clear(self) -> None:
+        with self._lock:
+            self._faults.clear()
+
+    def take(self, request: str) -> Fault | None:
+        """The fault to apply to this request, if any (the first pending one that matches)."""
+        with self._lock:
+            self.requests += 1
+            self.recent.append(request)
+            for fault in self._faults:
+                if fault.match is not None and not re.search(fault.match, request):
+                    continue
+                fault.seen += 1
+                if fault.seen <= fault.after:
+                    continue
+                if fault.seen - fault.after >= fault.count:
+                    self._faults.remove(fault)
+                self.applied.append((fault.kind, request))
+                return fault
+            return None
+
+    def count(self, kind: FaultKind) -> int:
+        with self._lock:
+            return sum(1 for applied, _ in self.applied if applied == kind)
+
+
+def garble(data: bytes) -> bytes:
+    """The same bytes with some flipped: a burst of line noise that keeps the frame's length."""
+    if not data:
+        return data
+    noisy = bytearray(data)
+    for i in range(len(noisy) // 2, len(noisy), 3):
+        noisy[i] ^= 0xA5
+    noisy[-1] ^= 0x5A  # the last byte always changes: a Modbus RTU CRC byte, or the line end
+    return bytes(noisy)

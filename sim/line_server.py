@@ -1,0 +1,187 @@
+"""Serves a line-protocol device emulator (SMC100, SCPI) on a pty pair or a TCP port, one thread.
+
+The device sees one request line at a time and returns its reply line (or None: no reply). Faults
+from the device's `FaultInjector` are applied here, the same way for every line protocol.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import select
+import socket
+import sys
+import termios
+import threading
+import time
+import tty
+from collections.abc import Callable
+from typing import Protocol
+
+from labcal.sim.endpoint import Endpoint
+from labcal.sim.faults import FaultInjector, FaultKind, garble
+from labcal.sim.ptys import PtyPair
+
+
+class LineDevice(Protocol):
+    eol: bytes
+
+    def route(self, line: str) -> str:
+        """The name of the device a request addresses (whose faults apply)."""
+
+    def handle(self, line: str) -> str | None:
+        """Execute one request; its reply without terminator, or None when none is due."""
+
+    def refuse(self, line: str, code: int | str | None) -> None:
+        """Refuse the request as the device does for a bad one (error code, error queue)."""
+
+    def alarm(self, name: str, code: int | str | None) -> None:
+        """Raise the device's alarm on the named device."""
+
+
+class _Channel:
+    """One open connection (a socket or the emulator's end of a pty) with its input buffer."""
+
+    def __init__(self, fd: int, send: Callable[[bytes], None], close: Callable[[], None]):
+        self.fd, self.send, self.close = fd, send, close
+        self.buffer = b""
+
+
+class LineServer:
+    def __init__(self, device: LineDevice, endpoint: Endpoint, faults: dict[str, FaultInjector]):
+        self.device, self.endpoint, self.faults = device, endpoint, faults
+        self.errors: list[BaseException] = []  # emulator bugs, kept for tests to see
+        self._listener: socket.socket | None = None
+        self._pty: PtyPair | None = None
+        self._channels: dict[int, _Channel] = {}
+        self._reopen_at: float | None = None
+        self._closed = False
+        self._wake_r, self._wake_w = os.pipe()
+        self._open()
+        self._thread = threading.Thread(target=self._serve, name=f"emulator {endpoint}", daemon=True)
+        self._thread.start()
+
+    # --- the port ---------------------------------------------------------------------------
+    def _open(self) -> None:
+        if self.endpoint.kind == "pty":
+            self._pty = PtyPair(self.endpoint.link)
+            fd = os.open(self._pty.device_path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+            tty.setraw(fd)
+            termios.tcflush(fd, termios.TCIOFLUSH)
+            self._channels[fd] = _Channel(fd, lambda data: _write_all(fd, data), lambda: os.close(fd))
+        else:
+            listener = socket.create_server((self.endpoint.host, self.endpoint.port), reuse_port=False)
+            listener.setblocking(False)
+            self._listener = listener
+            self.endpoint = self.endpoint.bound(listener.getsockname()[1])
+
+    def _close_port(self) -> None:
+        for channel in list(self._channels.values()):
+            with contextlib.suppress(OSError):
+                channel.close()
+        self._channels.clear()
+        if self._listener is not None:
+            self._listener.close()
+            self._listener = None
+        if self._pty is not None:
+            self._pty.close()
+            self._pty = None
+
+    @property
+    def address(self) -> str:
+        return str(self.endpoint)
+
+    # --- the loop ---------------------------------------------------------------------------
+    def _serve(self) -> None:
+        while not self._closed:
+            if self._reopen_at is not None and time.monotonic() >= self._reopen_at:
+                self._reopen_at = None
+                self._open()
+            watched = [self._wake_r, *self._channels] + ([self._listener] if self._listener else [])
+            timeout = None if self._reopen_at is None else max(0.0, self._reopen_at - time.monotonic())
+            ready, _, _ = select.select(watched, [], [], timeout)
+            if self._wake_r in ready:
+                return
+            for item in ready:
+                if item is self._listener:
+                    self._accept()
+                elif item in self._channels:
+                    self._receive(self._channels[item])
+
+    def _accept(self) -> None:
+        assert self._listener is not None
+        try:
+            conn, _ = self._listener.accept()
+        except BlockingIOError:
+            return
+        conn.setblocking(True)
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._channels[conn.fileno()] = _Channel(conn.fileno(), conn.sendall, conn.close)
+
+    def _receive(self, channel: _Channel) -> None:
+        try:
+            data = os.read(channel.fd, 65536)
+        except BlockingIOError:
+            return
+        except OSError:
+            data = b""
+        if not data:  # the other end hung up
+            if self._pty is None:
+                self._channels.pop(channel.fd, None)
+                channel.close()
+            return
+        channel.buffer += data
+        while b"\n" in channel.buffer and channel.fd in self._channels:
+            raw, _, channel.buffer = channel.buffer.partition(b"\n")
+            line = raw.decode("ascii", errors="replace").strip()
+            if line:
+                try:
+                    self._request(channel, line)
+                except OSError:
+                    pass  # the requester went away before its reply
+                except Exception as exc:  # noqa: BLE001 - an emulator bug must not kill the port
+                    self.errors.append(exc)
+                    print(f"labcal emulator: {type(exc).__name__}: {exc}", file=sys.stderr)
+
+    def _request(self, channel: _Channel, line: str) -> None:
+        name = self.device.route(line)
+        injector = self.faults.get(name)
+        fault = injector.take(line) if injector else None
+        kind = fault.kind if fault else None
+        if kind == FaultKind.CLOSE_PORT:
+            assert fault is not None
+            self._close_port()
+            self._reopen_at = None if fault.reopen_s is None else time.monotonic() + fault.reopen_s
+            return
+        if kind == FaultKind.EXCEPTION:
+            self.device.refuse(line, fault.code if fault else None)
+            return
+        if kind == FaultKind.ALARM:
+            self.device.alarm(name, fault.code if fault else None)
+        reply = self.device.handle(line)
+        if reply is None or kind == FaultKind.NO_REPLY:
+            return
+        data = reply.encode("ascii")
+        if kind == FaultKind.GARBLED:
+            data = garble(data)
+        if kind == FaultKind.LATE_REPLY and fault is not None:
+            time.sleep(fault.delay_s)
+        channel.send(data + self.device.eol)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        os.write(self._wake_w, b"x")
+        self._thread.join(timeout=10)
+        self._close_port()
+        os.close(self._wake_r)
+        os.close(self._wake_w)
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    while data:
+        try:
+            data = data[os.write(fd, data):]
+        except BlockingIOError:
+            select.select([], [fd], [], 1.0)

@@ -1,0 +1,91 @@
+"""A null-modem cable made of two pseudo-terminals, like ``socat pty,link=A pty,link=B``.
+
+The emulator opens one end by its path, the driver the other; both are real ttys, so pyserial
+and pymodbus use their ordinary serial code. The driver's end can be given a fixed name (a
+symlink such as ``/tmp/labcal-sim/tables``) so that a station file can point at it. Closing
+the pair is what a pulled cable looks like to both ends. (ptys cannot carry parity: use N.)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import pty
+import select
+import threading
+import tty
+from pathlib import Path
+
+
+class PtyPair:
+    def __init__(self, link: str | Path | None = None):
+        """``link``: where to put a symlink to the driver's end (replaces a stale symlink)."""
+        self._masters: list[int] = []
+        self._slaves: list[int] = []
+        for _ in range(2):
+            master, slave = pty.openpty()
+            tty.setraw(slave)  # no echo, no line editing until a program opens and sets it
+            os.set_blocking(master, False)  # a full buffer drops bytes, as an overrun UART does
+            self._masters.append(master)
+            self._slaves.append(slave)  # held open so the masters never see a hang-up
+        self.device_path = os.ttyname(self._slaves[0])
+        self.driver_path = os.ttyname(self._slaves[1])
+        self.link = Path(link) if link is not None else None
+        if self.link is not None:
+            try:
+                self._make_link(self.link, self.driver_path)
+            except BaseException:
+                self._close_fds()
+                raise
+        self._wake_r, self._wake_w = os.pipe()
+        self._thread = threading.Thread(target=self._relay, name=f"pty relay {self.driver_path}", daemon=True)
+        self._thread.start()
+
+    @property
+    def path(self) -> str:
+        """What a driver opens: the symlink if there is one."""
+        return str(self.link) if self.link is not None else self.driver_path
+
+    @staticmethod
+    def _make_link(link: Path, target: str) -> None:
+        if link.is_symlink():
+            link.unlink()
+        elif link.exists():
+            raise FileExistsError(f"{link} exists and is not a symlink; refusing to replace it")
+        link.parent.mkdir(parents=True, exist_ok=True)
+        link.symlink_to(target)
+
+    def _relay(self) -> None:
+        a, b = self._masters
+        peer = {a: b, b: a}
+        while True:
+            ready, _, _ = select.select([a, b, self._wake_r], [], [])
+            if self._wake_r in ready:
+                return
+            for fd in ready:
+                try:
+                    data = os.read(fd, 65536)
+                except BlockingIOError:
+                    continue
+                except OSError:
+                    return
+                with contextlib.suppress(BlockingIOError):
+                    os.write(peer[fd], data)
+
+    def _close_fds(self) -> None:
+        for fd in self._masters + self._slaves:
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        self._masters, self._slaves = [], []
+
+    def close(self) -> None:
+        """Pull the cable: both ends see the line go dead; the symlink goes too."""
+        if not self._masters:
+            return
+        os.write(self._wake_w, b"x")
+        self._thread.join(timeout=5)
+        os.close(self._wake_r)
+        os.close(self._wake_w)
+        self._close_fds()
+        if self.link is not None and self.link.is_symlink() and os.readlink(self.link) == self.driver_path:
+            self.link.unlink()

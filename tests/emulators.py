@@ -1,0 +1,78 @@
+"""Shared by the driver, emulator and station tests: example stations made private to one test,
+emulators that are always stopped, and a check that nothing is left running."""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+
+from labcal.drivers.bench import Bench
+from labcal.drivers.station_file import StationFile, load_station
+from labcal.sim.emulation import Emulation
+
+TIME_SCALE = 1000.0  # the default test time scale: a 30-minute calibration takes ~2 s of emulated motion
+MOTION_SCALE = 20.0  # slow enough to catch a table mid-move: a 90° move lasts 250 ms of wall time
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def private(config: StationFile, tmp_path: Path, **changes: dict) -> StationFile:
+    """The station with free TCP ports and its ptys under ``tmp_path``, so that tests never meet
+    (devices that shared a port still do); ``changes`` per device (e.g. ``pitch={"timeout_s":
+    0.1}``) override any link setting."""
+    ports: dict[str, int] = {}
+    updates = {}
+    for name, link in config.devices().items():
+        change = dict(changes.get(name, {}))
+        if link.tcp or str(link.port).startswith("socket://"):
+            port = ports.setdefault(link.bus, free_port())
+            change.setdefault(*(("tcp", f"127.0.0.1:{port}") if link.tcp else ("port", f"socket://127.0.0.1:{port}")))
+        else:
+            change.setdefault("port", str(tmp_path / Path(str(link.port)).name))
+        updates[name] = link.model_copy(update=change)
+    return config.model_copy(update=updates)
+
+
+@contextmanager
+def emulated(station: str | StationFile, tmp_path: Path, time_scale: float = TIME_SCALE,
+             **changes: dict) -> Iterator[tuple[Emulation, Bench]]:
+    """Emulators for a (private copy of a) station, and the real drivers talking to them."""
+    config = load_station(station)[0] if isinstance(station, str) else station
+    with Emulation(private(config, tmp_path, **changes), time_scale=time_scale) as emulation, \
+            Bench(emulation.station_config, emulation.rig.clock) as bench:
+        yield emulation, bench
+
+
+def _ptys() -> set[str]:
+    found = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith("/dev/pts/") or target == "/dev/ptmx":
+            found.add(f"{fd}->{target}")
+    return found
+
+
+@pytest.fixture
+def no_leaks():
+    """Fails the test if it leaves a thread or a pty open behind it."""
+    threads, ptys = set(threading.enumerate()), _ptys()
+    yield
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline and (set(threading.enumerate()) - threads or _ptys() - ptys):
+        time.sleep(0.05)
+    assert not set(threading.enumerate()) - threads, "threads left running"
+    assert not _ptys() - ptys, "ptys left open"

@@ -1,0 +1,122 @@
+"""The Keysight 34970A driver against its SCPI emulator (pty and TCP): readings are the emulated
+instrument's physics, the error queue behaves as SCPI says, and faults are handled."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from emulators import MOTION_SCALE, emulated, no_leaks  # noqa: F401 - fixture
+
+from labcal.drivers.errors import BadReply, DeviceFault, NoReply, Rejected
+from labcal.drivers.keysight_34970a import channel_time_s
+from labcal.kinematics import Mount
+from labcal.sim.faults import Fault, FaultKind
+
+QUICK = {"timeout_s": 0.1, "retries": 2, "reconnect_s": 0.5}
+
+
+@pytest.fixture(params=["smc100-serial", "az-modbus-tcp"])  # the DMM on a pty, and on TCP with a thermometer
+def station(request):
+    return request.param
+
+
+@pytest.fixture
+def dmm(station, tmp_path, no_leaks):  # noqa: F811
+    with emulated(station, tmp_path, dmm=QUICK) as (emulation, bench):
+        bench.dmm.configure()
+        yield emulation, bench.dmm
+
+
+def test_identity_and_a_clean_error_queue(dmm):
+    _, meter = dmm
+    assert meter.identify().startswith("Keysight Technologies,34970A,")
+    assert meter.errors() == []
+
+
+def test_readings_are_the_instruments_outputs_at_the_tables_angles(dmm):
+    """Tables at pitch 30°, roll 60°, mount (180, 0), settled: the mean of 20 sweeps is the truth's
+    output there (temperature and drift included) within 5 standard errors of the noise."""
+    emulation, meter = dmm
+    rig = emulation.rig.rig
+    with emulation.rig.lock:
+        rig.pitch.move_to(30.0)
+        rig.roll.move_to(60.0)
+    emulation.rig.set_mount(Mount(180, 0))
+    emulation.rig.clock.sleep(30)  # the moves, then 60 output time constants
+    scan = meter.read(20)
+    t = emulation.rig.clock.now()
+    with emulation.rig.lock:
+        expected = rig.instrument.static_volts(rig.true_gravity(30.0, 60.0), t, rig.lab_temperature(t))
+    noise = rig.instrument.noise_v
+    assert scan.volts.shape == (20, 3)
+    assert np.max(np.abs(scan.volts.mean(axis=0) - expected)) < 5 * noise / np.sqrt(20)
+    assert np.std(scan.volts - scan.volts.mean(axis=0), ddof=1) == pytest.approx(noise, rel=0.3)
+    if meter.measures_temperature:
+        # the lab swings ±0.3 °C over 6 h: over a 33 s scan it moves less than 0.003 °C
+        assert scan.temp_c.shape == (20,) and np.all(np.abs(scan.temp_c - rig.lab_temperature(t)) < 0.01)
+    else:
+        assert scan.temp_c is None
+
+
+def test_a_scan_takes_the_units_integration_time(station, tmp_path, no_leaks):  # noqa: F811
+    with emulated(station, tmp_path, MOTION_SCALE, dmm=QUICK) as (emulation, bench):
+        meter = bench.dmm
+        meter.configure()
+        n = 5
+        t0 = emulation.rig.clock.now()
+        meter.read(n)
+        took = emulation.rig.clock.now() - t0
+    expected = n * len(meter.scan_list) * channel_time_s(meter.nplc, meter.line_hz)  # 6 or 8 s of rig time
+    assert expected <= took < expected + 0.2 * MOTION_SCALE  # plus at most 0.2 s of wall time for the bytes
+
+
+def test_the_error_queue(dmm):
+    _, meter = dmm
+    link = meter.link
+    link.write_line("VOLT:DC:NPLC 7,(@101)")  # not an NPLC the unit has
+    link.write_line("FROB 1")
+    link.write_line("SENSe:VOLTage:DC:NPLCycles 1,(@101)")  # long forms are fine
+    assert meter.errors() == [(-222, "Data out of range"), (-113, "Undefined header")]
+    link.write_line("*RST")
+    with pytest.raises(NoReply):
+        link.query("FETC?")  # nothing measured since the reset: no reply, error -230
+    assert meter.errors() == [(-230, "Data corrupt or stale")]
+    assert link.query("ROUT:SCAN?") == "#13(@)"  # a definite-length block: 1 digit, 3 bytes
+
+
+def test_an_overload_is_reported_not_averaged(dmm):
+    emulation, meter = dmm
+    emulation.faults["dmm"].add(Fault(FaultKind.ALARM))
+    with pytest.raises(DeviceFault, match="dmm .*channel 101 overloaded \\(\\+9.9E\\+37\\): check the range"):
+        meter.read(3)
+    assert meter.read(3).volts.shape == (3, 3)
+
+
+def test_a_refused_command_is_reported_with_the_units_words(dmm):
+    emulation, meter = dmm
+    emulation.faults["dmm"].add(Fault(FaultKind.EXCEPTION, code=-221, match="INIT"))
+    with pytest.raises(Rejected, match="SCPI error -221 \"Settings conflict\""):
+        meter.read(2)
+
+
+@pytest.mark.parametrize("kind", [FaultKind.NO_REPLY, FaultKind.GARBLED, FaultKind.LATE_REPLY])
+def test_a_lost_garbled_or_late_scan_is_taken_again(dmm, kind):
+    emulation, meter = dmm
+    emulation.faults["dmm"].add(Fault(kind, match="FETC", delay_s=0.25))
+    scan = meter.read(4)
+    assert scan.volts.shape == (4, 3) and emulation.faults["dmm"].count(kind) == 1
+    assert list(emulation.faults["dmm"].recent).count("INIT") >= 2
+
+
+def test_bounded_retries(dmm):
+    emulation, meter = dmm
+    emulation.faults["dmm"].add(Fault(FaultKind.GARBLED, count=3, match="FETC"))
+    with pytest.raises(BadReply, match="dmm \\(Keysight 34970A, .*garbled reply"):
+        meter.read(2)
+
+
+def test_the_port_comes_back(dmm):
+    emulation, meter = dmm
+    emulation.faults["dmm"].add(Fault(FaultKind.CLOSE_PORT, reopen_s=0.2, match="FETC"))
+    meter.configure()  # a reopened serial unit may have lost its setup; configuring again is safe
+    assert meter.read(2).volts.shape == (2, 3)

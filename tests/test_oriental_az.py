@@ -1,0 +1,193 @@
+"""The Oriental Motor AZ driver against its emulator through the real pymodbus client and server:
+Modbus TCP (a gateway) and Modbus RTU on a pty pair; every fault and what the driver does about it."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from emulators import MOTION_SCALE, emulated, no_leaks  # noqa: F401 - fixture
+
+from labcal.drivers.bench import Bench
+from labcal.drivers.errors import BadReply, DeviceFault, LinkLost, NoReply, OutOfLimits, Rejected
+from labcal.drivers.oriental_az import Output
+from labcal.sim.faults import Fault, FaultKind
+
+QUICK = {"timeout_s": 0.1, "retries": 2, "reconnect_s": 0.5}
+
+
+@pytest.fixture(params=["az-modbus-tcp", "az-modbus-rtu"])
+def station(request):
+    return request.param
+
+
+@pytest.fixture
+def az(station, tmp_path, no_leaks):  # noqa: F811
+    with emulated(station, tmp_path, pitch=QUICK, roll=QUICK) as (emulation, bench):
+        yield emulation, bench
+
+
+@pytest.fixture
+def az_slow(station, tmp_path, no_leaks):  # noqa: F811
+    """Tables slow enough in wall time to be caught moving."""
+    with emulated(station, tmp_path, MOTION_SCALE, pitch=QUICK, roll=QUICK) as (emulation, bench):
+        yield emulation, bench
+
+
+def test_move_status_and_read_back(az_slow):
+    emulation, bench = az_slow
+    pitch, table = bench.pitch, emulation.rig.axis("pitch")
+    assert pitch.status().in_position and pitch.status().ready
+    pitch.move_to(90)
+    status = pitch.status()
+    assert status.moving and not status.in_position and "MOVE" in status.words
+    assert pitch.wait_in_position(60) == pytest.approx(90.0, abs=1e-9)
+    # the position read back is the table's: 1000 steps/°, so exact on the 1° grid
+    assert float(table.angle_at(emulation.rig.clock.now())) == pytest.approx(90.0, abs=1e-12)
+    assert pitch.position() == 90.0 and not pitch.status().moving
+
+
+def test_wrap_moves_go_the_shortest_way_round(az):
+    emulation, bench = az
+    roll, table = bench.roll, emulation.rig.axis("roll")
+    roll.move_to(350)
+    roll.wait_in_position(60)
+    assert table.travel_deg == pytest.approx(10.0)  # 0 → 350 is 10° backwards
+    roll.move_to(10)
+    assert roll.wait_in_position(60) == pytest.approx(10.0)
+    assert table.travel_deg == pytest.approx(30.0)  # and 350 → 10 is 20° forwards, across the wrap
+
+
+def test_a_limited_table_moves_within_its_limits_and_refuses_before_sending(tmp_path, no_leaks):  # noqa: F811
+    limited = {**QUICK, "wrap": False, "limits_deg": (-10.0, 300.0)}
+    with emulated("az-modbus-tcp", tmp_path, pitch=limited) as (emulation, bench):
+        pitch, table = bench.pitch, emulation.rig.axis("pitch")
+        pitch.move_to(270)
+        assert pitch.wait_in_position(60) == pytest.approx(270.0)
+        assert table.travel_deg == pytest.approx(270.0)  # the direct way, not 90° backwards through -10°
+        seen = emulation.faults["pitch"].requests
+        with pytest.raises(OutOfLimits, match="305° is outside the soft limits \\[-10°, 300°\\]"):
+            pitch.move_to(305)
+        with pytest.raises(OutOfLimits):
+            pitch.check_angle(-20)
+        assert emulation.faults["pitch"].requests == seen  # refused before a single byte was sent
+        assert pitch.check_angle(-5) == -5 and pitch.check_angle(355) == -5
+
+
+def test_alarm_during_a_move_stops_it_and_is_reported(az):
+    emulation, bench = az
+    pitch = bench.pitch
+    pitch.move_to(180)
+    emulation.faults["pitch"].add(Fault(FaultKind.ALARM, code=0x10))
+    with pytest.raises(DeviceFault, match="alarm 10h \\(excessive position deviation\\)"):
+        pitch.wait_in_position(60)
+    now = emulation.rig.clock.now()
+    assert not emulation.rig.axis("pitch").moving_between(now, now + 1)  # the drive stopped the table
+    assert pitch.alarm() == 0x10
+    pitch.move_to(90)  # a drive in alarm ignores moves
+    with pytest.raises(DeviceFault, match="alarm 10h"):
+        pitch.wait_in_position(60)
+    pitch.reset_alarm()
+    assert pitch.status().fault is None
+    pitch.move_to(90)
+    assert pitch.wait_in_position(60) == pytest.approx(90.0)
+
+
+def test_an_alarm_a_command_cannot_reset(az):
+    emulation, bench = az
+    emulation.faults["roll"].add(Fault(FaultKind.ALARM, code=0x33))
+    status = bench.roll.status()
+    assert "alarm 33h (absolute position error" in status.fault and "cycle the drive's power" in status.fault
+    bench.roll.reset_alarm()
+    assert bench.roll.alarm() == 0x33
+
+
+def test_stop_reaches_the_drive_mid_move(az_slow):
+    emulation, bench = az_slow
+    pitch, table = bench.pitch, emulation.rig.axis("pitch")
+    pitch.move_to(180)  # ~10 s of table time, 0.5 s of wall time
+    pitch.stop()
+    now = emulation.rig.clock.now()
+    assert table.motion_end <= now and 0 < abs(float(table.angle_at(now))) < 179  # stopped short
+    assert not pitch.status().moving
+
+
+def test_p_preset_makes_here_the_origin(az):
+    emulation, bench = az
+    pitch = bench.pitch
+    pitch.move_to(90)
+    pitch.wait_in_position(60)
+    pitch.preset_position()
+    assert pitch.angle() == 0.0
+    assert float(emulation.rig.axis("pitch").angle_at(emulation.rig.clock.now())) == pytest.approx(90.0)
+
+
+def test_an_exception_response_is_reported_not_retried(az):
+    emulation, bench = az
+    injector = emulation.faults["pitch"]
+    injector.add(Fault(FaultKind.EXCEPTION, code=4))
+    before = injector.requests
+    with pytest.raises(Rejected, match="exception 04h \\(slave device failure\\)"):
+        bench.pitch.angle()
+    assert injector.requests == before + 1
+
+
+@pytest.mark.parametrize("kind", [FaultKind.NO_REPLY, FaultKind.GARBLED])
+def test_lost_and_garbled_replies_are_retried(az, kind):
+    emulation, bench = az
+    injector = emulation.faults["pitch"]
+    injector.add(Fault(kind, count=2))
+    before = injector.requests
+    assert bench.pitch.angle() == 0.0
+    assert injector.requests == before + 3 and injector.count(kind) == 2
+
+
+@pytest.mark.parametrize("kind,error", [(FaultKind.NO_REPLY, NoReply), (FaultKind.GARBLED, NoReply)])
+def test_retries_are_bounded(az, kind, error):
+    emulation, bench = az
+    emulation.faults["pitch"].add(Fault(kind, count=3))
+    t0 = time.monotonic()
+    with pytest.raises(error, match="pitch table .*no reply within 0.1 s; check that it is powered"):
+        bench.pitch.angle()
+    assert time.monotonic() - t0 < 3 * (0.1 + 0.1) + 1.0  # three tries, each a timeout and a pause
+    assert bench.pitch.angle() == 0.0  # and the next exchange is fine
+
+
+def test_a_late_reply_is_never_taken_for_the_next_answer(az):
+    emulation, bench = az
+    bench.roll.move_to(45)
+    bench.roll.wait_in_position(60)
+    emulation.faults["pitch"].add(Fault(FaultKind.LATE_REPLY, delay_s=0.3, match="fc03 00CC"))
+    assert bench.pitch.angle() == 0.0  # too late: retried; the late answer is drained
+    assert bench.roll.angle() == pytest.approx(45.0)
+    emulation.faults["pitch"].add(Fault(FaultKind.LATE_REPLY, delay_s=0.02))
+    assert bench.pitch.angle() == 0.0  # late but within the timeout
+
+
+def test_silence_from_an_absent_unit(tmp_path, no_leaks):  # noqa: F811
+    """Nobody at unit 9 on the RS-485 line: silence, as on a real bus (not an exception reply)."""
+    with emulated("az-modbus-rtu", tmp_path, pitch=QUICK, roll=QUICK) as (emulation, _):
+        config = emulation.station_config
+        wrong = config.model_copy(update={"roll": config.roll.model_copy(update={"unit": 9, "retries": 0})})
+        with Bench(wrong, emulation.rig.clock) as bench:
+            with pytest.raises(NoReply, match="roll table \\(Oriental Motor AZ, unit 9"):
+                bench.roll.status()
+            assert bench.pitch.status().ready
+
+
+def test_port_closed_mid_run_is_reopened(az):
+    emulation, bench = az
+    emulation.faults["pitch"].add(Fault(FaultKind.CLOSE_PORT, reopen_s=0.3))
+    assert bench.pitch.angle() == 0.0  # the reply is lost with the port; reconnected with backoff
+    assert Output.READY.name in bench.roll.status().words
+
+
+def test_port_closed_for_good_gives_up_within_the_budget(az):
+    emulation, bench = az
+    emulation.faults["pitch"].add(Fault(FaultKind.CLOSE_PORT))
+    t0 = time.monotonic()
+    with pytest.raises((LinkLost, NoReply, BadReply), match="pitch table"):
+        bench.pitch.angle()
+    assert time.monotonic() - t0 < 0.5 + 3 * 0.2 + 1.0  # reconnect budget, tries, slack
+    with pytest.raises(LinkLost, match="cannot open .*; kept trying for 0.5 s; check the cable"):
+        bench.pitch.stop()
