@@ -1,8 +1,8 @@
-"""What a finished calibration run holds, read from its one source of truth.
+"""What a finished calibration run holds, read from its one source of truth: the journal.
 
 `load_run` is the single seam between the run's storage and everything that issues results
-(certificate, report, history): today it reads the run directory (readings.csv, plan.toml,
-run.json); when the run journal moves to SQLite only this function changes.
+(certificate, report, history). The run directory's run.json says which journal and which run;
+the readings, the plan, the identities and the dates come from the journal itself.
 """
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from labcal.errors import LabcalError
-from labcal.files import read_text
+from labcal.journal import Journal
 from labcal.plan import Plan, parse_plan
-from labcal.readings import Readings, read_readings
-from labcal.run import PLAN, READINGS, RUN
+from labcal.readings import Readings
+from labcal.run import RUN, read_run_json
 
 
 @dataclass(frozen=True)
@@ -35,26 +35,32 @@ class RunRecord:
         return "simulated_truth" in self.meta
 
 
+def readings_digest(points) -> str:
+    """SHA-256 over the committed points in a canonical form: names the exact data a result rests on."""
+    rows = [[p.seq, p.replicate, p.y_deg, p.u_deg, p.pitch_deg, p.roll_deg, p.vx, p.vy, p.vz, p.temp_c]
+            for p in points]
+    return hashlib.sha256(json.dumps(rows, separators=(",", ":")).encode()).hexdigest()
+
+
 def load_run(run_dir: str | Path) -> RunRecord:
-    """Read a run directory; a missing, unfinished or malformed run is one LabcalError line."""
+    """Read a run from its journal; a missing, unfinished or malformed run is one LabcalError line."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise LabcalError(f"{run_dir}: no such run directory")
-    meta_path = run_dir / RUN
-    try:
-        meta = json.loads(read_text(meta_path, "run record"))
-    except json.JSONDecodeError as exc:
-        raise LabcalError(f"{meta_path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
-    if not isinstance(meta, dict):
-        raise LabcalError(f"{meta_path}: not a labcal run record (expected a JSON object)")
-    status = meta.get("status")
-    if status != "complete":
-        why = f" ({meta['reason']})" if meta.get("reason") else ""
-        raise LabcalError(f"{run_dir}: the run is {status or 'of unknown status'}{why}; "
-                          "only a complete run gets a certificate")
-    readings_path = run_dir / READINGS
-    readings = read_readings(readings_path)
-    digest = hashlib.sha256(readings_path.read_bytes()).hexdigest()
-    plan_text = read_text(run_dir / PLAN, "plan")
-    plan = parse_plan(plan_text, str(run_dir / PLAN))
-    return RunRecord(run_dir, readings, digest, plan, plan_text, meta)
+    info = read_run_json(run_dir)
+    if "journal" not in info or "run_id" not in info:
+        raise LabcalError(f"{run_dir / RUN}: names no journal; was this run made by labcal run?")
+    with Journal(info["journal"]) as journal:
+        row = journal.run(info["run_id"])
+        if row.status != "complete":
+            why = f" ({row.reason})" if row.reason else ""
+            raise LabcalError(f"{run_dir}: the run is {row.status}{why}; only a complete run gets a "
+                              "certificate (labcal resume finishes it)")
+        points = journal.points(row.id, status="ok")
+        readings = journal.readings(row.id)
+        ended = journal.db.execute("SELECT ended_utc FROM runs WHERE id=?", (row.id,)).fetchone()[0]
+    plan = parse_plan(row.plan_text, f"run {row.id} plan")
+    meta = {**info, **row.metadata, "status": row.status, "reason": row.reason,
+            "started_utc": row.started_utc, "ended_utc": ended, "settings": row.settings,
+            "instrument_serial": row.instrument_serial, "operator": row.operator}
+    return RunRecord(run_dir, readings, readings_digest(points), plan, row.plan_text, meta)

@@ -7,7 +7,9 @@ import base64
 import json
 import re
 import shutil
+import sqlite3
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -157,27 +159,51 @@ def _one_line_error(capsys, *args: str) -> str:
 
 
 def _broken_copy(outputs, tmp_path, edit) -> str:
+    """A copy of the run directory and of its journal (so edits stay local), then ``edit``."""
     run_dir = tmp_path / "run"
     shutil.copytree(outputs.certificate_path.parent, run_dir)
+    info = json.loads((run_dir / "run.json").read_text())
+    journal = tmp_path / "journal.sqlite"
+    with sqlite3.connect(info["journal"]) as source, sqlite3.connect(journal) as copy:
+        source.backup(copy)
+    (run_dir / "run.json").write_text(json.dumps({**info, "journal": str(journal)}))
     edit(run_dir)
     return str(run_dir)
 
 
 def _interrupted(run_dir):
-    doc = json.loads((run_dir / "run.json").read_text())
-    (run_dir / "run.json").write_text(json.dumps({**doc, "status": "interrupted", "reason": "Ctrl-C"}))
+    info = json.loads((run_dir / "run.json").read_text())
+    with sqlite3.connect(info["journal"]) as con:
+        con.execute("UPDATE runs SET status='interrupted', reason='Ctrl-C' WHERE id=?", (info["run_id"],))
+
+
+def _without_journal(run_dir):
+    info = json.loads((run_dir / "run.json").read_text())
+    del info["journal"]
+    (run_dir / "run.json").write_text(json.dumps(info))
 
 
 @pytest.mark.parametrize("edit, message", [
-    (lambda d: (d / "readings.csv").unlink(), "readings.csv: no such readings file"),
-    (lambda d: (d / "plan.toml").unlink(), "plan.toml: no such plan file"),
-    (lambda d: (d / "run.json").unlink(), "run.json: no such run record file"),
-    (lambda d: (d / "run.json").write_text("{"), "run.json: not valid JSON"),
+    (lambda d: (d / "run.json").unlink(), "not a run directory (no run.json)"),
+    (lambda d: (d / "run.json").write_text("{"), "run.json: unreadable"),
+    (_without_journal, "names no journal; was this run made by labcal run?"),
     (_interrupted, "the run is interrupted (Ctrl-C); only a complete run gets a certificate"),
 ])
 def test_bad_run_directories(outputs, tmp_path, capsys, edit, message):
     run_dir = _broken_copy(outputs, tmp_path, edit)
     assert message in _one_line_error(capsys, "report", run_dir, "--db", str(tmp_path / "db.sqlite"))
+
+
+def test_the_report_comes_from_the_journal_not_the_exports(outputs, tmp_path, capsys):
+    def drop_exports(d):
+        (d / "readings.csv").unlink()
+        (d / "plan.toml").unlink()
+
+    run_dir = _broken_copy(outputs, tmp_path, drop_exports)
+    assert main(["report", run_dir, "--db", str(tmp_path / "db.sqlite"), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    cert = json.loads(Path(doc["certificate"]).read_text())
+    assert cert["data"]["readings_sha256"] == outputs.certificate.data.readings_sha256
 
 
 def test_bad_arguments(outputs, tmp_path, capsys):
