@@ -28,6 +28,7 @@ class AxisStatus:
     in_position: bool  # stopped, clamped and settled
     fault: str | None  # what is wrong, in words; None when healthy
     words: str  # the device's own status, for people ("READY IN-POS", "READY from MOVING (33h)")
+    needs_homing: bool = False  # the fault is only that the table is not referenced (a run homes it)
 
 
 def wrapped(delta_deg: float) -> float:

@@ -103,7 +103,9 @@ class Bench:
                     axis.reset_alarm()
                     report["alarm_reset"] = True
                     status = axis.status()
-                report.update(status=status.words, position_deg=axis.position(), problem=status.fault)
+                homing = status.needs_homing  # not a problem: a run homes the table first
+                report.update(status=status.words + (" (a run homes it first)" if homing else ""),
+                              position_deg=axis.position(), problem=None if homing else status.fault)
             except DriverError as exc:
                 report["problem"] = str(exc)
             reports.append(report)

@@ -152,7 +152,7 @@ class Smc100Axis(IndexAxis):
             fault = words + ("; home it (a run homes it first)" if state in NOT_REFERENCED and not errors
                              else "; clear the cause, then re-enable it (MM1) or home it")
         return AxisStatus(ready=state in READY, moving=state in MOVING | HOMING, in_position=state in READY,
-                          fault=fault, words=words)
+                          fault=fault, words=words, needs_homing=state in NOT_REFERENCED and not errors)
 
     def angle(self) -> float:
         return self.ask("TP", parse_number)

@@ -9,6 +9,7 @@ station file as the running emulators answer it (free TCP ports filled in).
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -19,7 +20,7 @@ from labcal.sim.az_emulator import AzDrives, AzServer, AzUnit
 from labcal.sim.dmm_emulator import Keysight34970AEmulator
 from labcal.sim.emulated_rig import EmulatedRig
 from labcal.sim.endpoint import Endpoint
-from labcal.sim.faults import FaultInjector
+from labcal.sim.faults import Fault, FaultInjector, FaultKind
 from labcal.sim.line_server import LineServer
 from labcal.sim.rig import RigConfig
 from labcal.sim.smc100_emulator import Positioner, Smc100Emulator
@@ -28,12 +29,28 @@ Server = AzServer | LineServer
 NO_LIMITS = (-1e9, 1e9)
 
 
+class FaultSpec(BaseModel):
+    """A fault to inject from the start (``[[emulation.faults]]``): see `labcal.sim.faults`."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    device: Literal["pitch", "roll", "dmm"]
+    kind: FaultKind
+    count: int = Field(default=1, ge=1)
+    after: int = Field(default=0, ge=0, description="matching requests let through first")
+    match: str | None = Field(default=None, description="regular expression on the request")
+    delay_s: float = Field(default=1.0, ge=0)
+    code: int | str | None = None
+    reopen_s: float | None = Field(default=None, ge=0)
+
+
 class EmulationSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     time_scale: float = Field(default=1.0, gt=0, le=1e5, description="rig time per second of wall time")
     seed: int | None = Field(default=None, description="the rig's random seed (default: the rig's own)")
     rig: RigConfig = Field(default_factory=RigConfig)
+    faults: list[FaultSpec] = Field(default_factory=list)
 
 
 def emulation_settings(config: StationFile, source: str) -> EmulationSettings:
@@ -55,6 +72,8 @@ class Emulation:
         seed = settings.seed if seed is None else seed
         self.rig = EmulatedRig(settings.rig, self.time_scale, seed, start_s)
         self.faults = {name: FaultInjector() for name in ("pitch", "roll", "dmm")}
+        for spec in settings.faults:
+            self.faults[spec.device].add(Fault(**spec.model_dump(exclude={"device"})))
         self.servers: dict[str, tuple[list[str], str, Server]] = {}  # bus → (devices, protocol, server)
         try:
             for bus, names in self._buses(config).items():

@@ -40,6 +40,9 @@ class Endpoint:
         if "://" in url:
             raise LabcalError(f"{name}: cannot emulate a device on {url}; emulators serve a pty path, "
                               "tcp = \"127.0.0.1:PORT\" or port = \"socket://127.0.0.1:PORT\"")
+        if url.startswith("/dev/"):
+            raise LabcalError(f"{name}: {url} is a real device; emulators link their ptys elsewhere, "
+                              "e.g. port = \"/tmp/labcal-sim/tables\"")
         if settings.parity != "N":
             raise LabcalError(f"{name}: a pty cannot carry parity {settings.parity}; "
                               "set parity = \"N\" to emulate it on a pty")

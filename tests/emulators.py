@@ -4,6 +4,7 @@ emulators that are always stopped, and a check that nothing is left running."""
 from __future__ import annotations
 
 import os
+import re
 import socket
 import threading
 import time
@@ -14,11 +15,20 @@ from pathlib import Path
 import pytest
 
 from labcal.drivers.bench import Bench
-from labcal.drivers.station_file import StationFile, load_station
+from labcal.drivers.station_file import StationFile, load_station, shipped_stations
 from labcal.sim.emulation import Emulation
 
 TIME_SCALE = 1000.0  # the default test time scale: a 30-minute calibration takes ~2 s of emulated motion
 MOTION_SCALE = 20.0  # slow enough to catch a table mid-move: a 90° move lasts 250 ms of wall time
+
+
+def cli(capsys, *args: str) -> tuple[int, str, str]:
+    """`labcal ARGS` in this process: exit code, stdout, stderr."""
+    from labcal.cli import main
+
+    code = main(list(args))
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
 
 
 def free_port() -> int:
@@ -42,6 +52,20 @@ def private(config: StationFile, tmp_path: Path, **changes: dict) -> StationFile
             change.setdefault("port", str(tmp_path / Path(str(link.port)).name))
         updates[name] = link.model_copy(update=change)
     return config.model_copy(update=updates)
+
+
+def private_file(station: str, tmp_path: Path, extra: str = "", link: str = "") -> Path:
+    """A shipped example station rewritten for one test (its ptys under ``tmp_path``, free TCP
+    ports), ``link`` settings added to every device (e.g. ``timeout_s = 0.1``) and ``extra`` TOML
+    (e.g. ``[[emulation.faults]]`` tables) appended; returns the file."""
+    text = shipped_stations()[station].read_text(encoding="utf-8").replace("/tmp/labcal-sim/", f"{tmp_path}/")
+    for device in ("[pitch]", "[roll]", "[dmm]"):
+        text = text.replace(f"{device}\n", f"{device}\n{link}\n" if link else f"{device}\n")
+    ports: dict[str, int] = {}  # the example's port → a free one; devices that shared a port still do
+    text = re.sub(r"127\.0\.0\.1:(\d+)", lambda m: f"127.0.0.1:{ports.setdefault(m[1], free_port())}", text)
+    path = tmp_path / f"{station}.toml"
+    path.write_text(text + extra, encoding="utf-8")
+    return path
 
 
 @contextmanager

@@ -1,11 +1,14 @@
-"""`labcal run` and `labcal resume`: a calibration on a station (the simulated rig with --sim)."""
+"""`labcal run` and `labcal resume`: a calibration on a station: the simulated rig (--sim), or a
+station file's devices through the real drivers (--station), on its emulators with --emulate."""
 
 from __future__ import annotations
 
 import argparse
 import json
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from labcal.commands.common import EXIT_INTERRUPTED, EXIT_STOPPED, err, out, print_json
 from labcal.design import plan_toml
@@ -15,9 +18,16 @@ from labcal.journal import Journal, db_path
 from labcal.operator import AutoOperator, ConsoleOperator, OperatorDeclined, ScriptedOperator
 from labcal.plan import Plan, load_plan
 from labcal.run import RunResult, calibrate, execute, new_run_dir, open_for_resume, points_on_disk
-from labcal.sequencer import SequencerSettings
+from labcal.sequencer import SequencerSettings, check_limits, schedule
 from labcal.settle import SettleSettings
 from labcal.station import Station
+
+if TYPE_CHECKING:
+    from labcal.drivers.bench import Bench
+    from labcal.drivers.station_file import StationFile
+    from labcal.sim.instrument import InstrumentTruth
+
+REMOUNT_ALLOWANCE_S = 300.0  # the operator's time for one remount, for estimates on real hardware
 
 
 @dataclass
@@ -46,11 +56,74 @@ def sim_station(rig_file: str | None, seed: int | None, snapshot: str | None = N
     truth = {"coefficients": rig.instrument.X.tolist(),
              "misalignment_deg": rig.misalignment.degrees(), "seed": rig.seed}
     text = json.dumps({"kind": "simulated rig", "seed": rig.seed, "rig": config.model_dump()}, sort_keys=True)
-    inst = config.instrument
-    settle = SettleSettings(tau_s=inst.tau_s, noise_v=max(inst.noise_v, 1e-7),
-                            sensitivity_v_per_g=float(max(abs(x) for row in inst.S for x in row)))
     timing = Timing(clamp_s=config.clamp_s, sample_s=config.nplc / config.line_hz, remount_s=config.remount_s)
+    settle = known_settle(config.instrument)
     return StationSetup(rig.station(), text, {"simulated_truth": truth}, timing, settle)
+
+
+def known_settle(inst: InstrumentTruth) -> SettleSettings:
+    """Settle settings for a simulated or emulated instrument, whose time constant and noise are known."""
+    return SettleSettings(tau_s=inst.tau_s, noise_v=max(inst.noise_v, 1e-7),
+                          sensitivity_v_per_g=float(max(abs(x) for row in inst.S for x in row)))
+
+
+def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emulate: bool = False,
+                     time_scale: float | None = None, seed: int | None = None,
+                     start_time_s: float = 0.0) -> tuple[StationSetup, Bench, SequencerSettings]:
+    """A station file's devices through the real drivers (on the emulators it points at with
+    ``emulate``, started here and stopped with ``stack``). The journal keeps the file, so that a
+    resume rebuilds the same station; also returns the file's [sequencer] settings."""
+    from labcal.drivers.bench import Bench
+    from labcal.drivers.keysight_34970a import channel_time_s
+    from labcal.files import one_line
+
+    try:
+        base = SequencerSettings.model_validate(config.sequencer)
+    except ValueError as exc:
+        raise LabcalError(f"{source}: sequencer.{one_line(exc)}") from None
+    station = config.model_dump(mode="json")
+    station["emulation"].pop("faults", None)  # injected faults are a test, not the station: a resume has none
+    snapshot: dict = {"kind": "station", "station": station, "emulate": emulate}
+    sweep_s = (3 + bool(config.dmm.temperature_channel)) * channel_time_s(config.dmm.nplc, config.dmm.line_hz)
+    timing = Timing(clamp_s=0.0, sample_s=sweep_s, remount_s=REMOUNT_ALLOWANCE_S)
+    settle, clock, hooks, metadata = base.settle, None, {}, {"station_file": source}
+    if emulate:
+        from labcal.sim.emulation import Emulation
+
+        emulation = stack.enter_context(Emulation(config, time_scale=time_scale, seed=seed, source=source,
+                                                  start_s=start_time_s))
+        rig = emulation.rig.rig
+        snapshot.update(time_scale=emulation.time_scale, seed=rig.seed)
+        timing = Timing(clamp_s=rig.config.clamp_s, sample_s=sweep_s, remount_s=0.0)
+        settle, clock, hooks = known_settle(rig.instrument), emulation.rig.clock, emulation.hooks()
+        metadata["simulated_truth"] = emulation.truth()
+        config = emulation.station_config
+    bench = stack.enter_context(Bench(config, clock))
+    text = json.dumps(snapshot, sort_keys=True)
+    return StationSetup(bench.station(**hooks), text, metadata, timing, settle), bench, base
+
+
+def station_from_snapshot(text: str, stack: ExitStack, start_time_s: float) -> tuple[StationSetup, Bench]:
+    """The station a journaled run started on, rebuilt from its snapshot (emulators restarted)."""
+    from labcal.drivers.station_file import StationFile
+
+    doc = json.loads(text)
+    setup, bench, _ = hardware_station(StationFile.model_validate(doc["station"]), "the journaled station",
+                                       stack, emulate=doc["emulate"], time_scale=doc.get("time_scale"),
+                                       seed=doc.get("seed"), start_time_s=start_time_s)
+    return setup, bench
+
+
+def prepare(bench: Bench, station: Station) -> None:
+    """Home and enable the tables and configure the DMM; a stop reaches the tables if that fails."""
+    try:
+        bench.prepare(say=lambda text: err.print(text))
+    except BaseException:
+        try:
+            station.stop()
+        except LabcalError as stop_error:
+            err.print(f"[bold red]and stopping the tables failed:[/] {stop_error}")
+        raise
 
 
 def settings_from(args: argparse.Namespace, setup: StationSetup, speed: float = 20.0,
@@ -120,45 +193,74 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    if not args.sim:
-        raise LabcalError("no station given: use --sim for a dry run on the simulated rig "
-                          "(hardware stations arrive with the drivers)")
+    if not args.sim and not args.station:
+        raise LabcalError("no station given: use --sim for a dry run on the simulated rig, or --station FILE "
+                          "for a station's devices (add --emulate to run them on their emulators)")
+    if args.sim and args.station:
+        raise LabcalError("give --sim (the simulated rig) or --station FILE, not both")
+    if args.emulate and not args.station:
+        raise LabcalError("--emulate needs --station FILE: it starts the emulators that file points at")
+    if args.rig and not args.sim:
+        raise LabcalError("--rig describes the rig of --sim; an emulated station has [emulation.rig]")
     plan, plan_text = load_plan(args.plan)
     if args.replicates is not None:  # the journal keeps the plan that actually runs
         plan = Plan.model_validate({**plan.model_dump(), "replicates": args.replicates})
         plan_text = plan_toml(plan)
-    setup = sim_station(args.rig, args.seed)
-    settings = settings_from(args, setup)
-    est = estimate(plan, settings, setup.timing)
-    if args.dry_run:
-        print_estimate(plan, est, args.json)
-        return 0
-    operator = make_operator(args)
-    run_dir = new_run_dir(args.out, plan)
-    with Journal(db_path(args.db)) as journal:
-        return run_and_report(args, lambda display: calibrate(
-            plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, display,
-            setup.metadata, args.serial, args.operator), run_dir, plan, est, 0)
+    with ExitStack() as stack:
+        bench = None
+        if args.sim:
+            setup = sim_station(args.rig, args.seed)
+            settings = settings_from(args, setup)
+        else:
+            from labcal.drivers.station_file import load_station
+
+            config, _ = load_station(args.station)
+            setup, bench, base = hardware_station(config, args.station, stack, emulate=args.emulate,
+                                                  time_scale=args.time_scale, seed=args.seed)
+            pitch, roll = config.pitch, config.roll  # the slower table sets the pace of the estimates
+            settings = settings_from(args, setup, min(pitch.speed_dps, roll.speed_dps),
+                                     min(pitch.accel_dps2, roll.accel_dps2))
+            settings = settings.model_copy(update={"move_timeout_s": base.move_timeout_s,
+                                                   "position_tolerance_deg": base.position_tolerance_deg})
+        est = estimate(plan, settings, setup.timing)
+        if args.dry_run:
+            print_estimate(plan, est, args.json)
+            return 0
+        if bench is not None:  # the limits first: homing moves a table too
+            check_limits(setup.station, schedule(plan, settings))
+            prepare(bench, setup.station)
+        operator = make_operator(args)
+        run_dir = new_run_dir(args.out, plan)
+        with Journal(db_path(args.db)) as journal:
+            return run_and_report(args, lambda display: calibrate(
+                plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, display,
+                setup.metadata, args.serial, args.operator), run_dir, plan, est, 0)
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
     run_dir = Path(args.run)
     ctx = open_for_resume(run_dir)
-    points = ctx.journal.points(ctx.run_id)
-    start = max((p.t_end for p in points), default=0.0)
-    setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start)
-    if ctx.station_text != setup.text:
-        raise LabcalError(f"{run_dir}: the station differs from the one the run started on; not resuming")
-    est = estimate(ctx.plan, ctx.settings, setup.timing)
-    operator = make_operator(args)
-    ctx.journal.reopen(ctx.run_id)
-    ctx.journal.event(ctx.run_id, "resume", f"resumed after {len(points)} committed point(s)")
-    try:
+    with ExitStack() as stack:
+        stack.callback(ctx.journal.close)
+        points = ctx.journal.points(ctx.run_id)
+        start = max((p.t_end for p in points), default=0.0)
+        bench = None
+        if json.loads(ctx.station_text).get("kind") == "station":
+            setup, bench = station_from_snapshot(ctx.station_text, stack, start)
+        else:
+            setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start)
+        if ctx.station_text != setup.text:
+            raise LabcalError(f"{run_dir}: the station differs from the one the run started on; not resuming")
+        est = estimate(ctx.plan, ctx.settings, setup.timing)
+        if bench is not None:
+            check_limits(setup.station, schedule(ctx.plan, ctx.settings))
+            prepare(bench, setup.station)
+        operator = make_operator(args)
+        ctx.journal.reopen(ctx.run_id)
+        ctx.journal.event(ctx.run_id, "resume", f"resumed after {len(points)} committed point(s)")
         return run_and_report(args, lambda display: execute(
             ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, display),
             run_dir, ctx.plan, est, len(points))
-    finally:
-        ctx.journal.close()
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -169,17 +271,24 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("run", help="run a calibration (on the simulated rig with --sim)",
+    p = sub.add_parser("run", help="run a calibration (on the simulated rig with --sim, or on a --station)",
                        description="Run a calibration plan: check every angle against the limits, move the "
                                    "tables, prompt for each remount and verify it, settle, record every "
                                    "point in the journal, fit the coefficients. Ctrl-C once pauses after "
                                    "the current point; twice stops the tables at once.")
     p.add_argument("--sim", action="store_true", help="run on the simulated rig")
+    p.add_argument("--station", metavar="STATION",
+                   help="run on a station's devices through the drivers (station file or example name)")
+    p.add_argument("--emulate", action="store_true",
+                   help="with --station: start the emulators the station file points at, and run on them")
+    p.add_argument("--time-scale", type=float, metavar="X",
+                   help="with --emulate: emulated seconds per wall second (default: the station's)")
     p.add_argument("--plan", default="four-mount-64", help="plan name or .toml file (default %(default)s)")
     p.add_argument("--replicates", type=int, help="override the plan's number of replicates")
     p.add_argument("--order", choices=["shortest", "plan", "sweep", "random"], default="shortest",
                    help="order of the points within a mount (default %(default)s)")
-    p.add_argument("--seed", type=int, default=None, help="simulated rig's (and random order's) seed")
+    p.add_argument("--seed", type=int, default=None,
+                   help="simulated or emulated rig's (and random order's) seed")
     p.add_argument("--out", help="run directory (default runs/<UTC time>-<plan>)")
     p.add_argument("--rig", help="TOML file describing the simulated rig (truth, noise, speeds)")
     p.add_argument("--samples", type=int, help="DMM samples per settle window, averaged per point")

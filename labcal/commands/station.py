@@ -1,0 +1,100 @@
+"""`labcal station list|check`: the example stations, and whether a station's devices answer."""
+
+from __future__ import annotations
+
+import argparse
+from contextlib import ExitStack
+
+from rich.table import Table
+
+from labcal.commands.common import err, out, print_json
+from labcal.commands.sim import TIME_SCALE_HELP
+from labcal.errors import LabcalError
+
+
+def cmd_list(args: argparse.Namespace) -> int:
+    from labcal.drivers.station_file import load_station, shipped_stations
+
+    stations = {name: load_station(name)[0] for name in shipped_stations()}
+    if args.json:
+        print_json({"stations": [{"name": n, "description": s.description, "pitch": s.pitch.driver,
+                                  "roll": s.roll.driver, "dmm": s.dmm.driver} for n, s in stations.items()]})
+        return 0
+    table = Table(title="Example stations (labcal station check NAME, labcal sim serve NAME)")
+    for col in ("name", "pitch", "roll", "description"):
+        table.add_column(col)
+    for name, s in stations.items():
+        table.add_row(name, s.pitch.driver, s.roll.driver, s.description)
+    out.print(table)
+    return 0
+
+
+def _row(report: dict) -> tuple[str, str, str]:
+    if report["device"] == "dmm" and "volts" in report:
+        reading = "  ".join(f"{axis} {v:+.6f} V" for axis, v in zip("xyz", report["volts"], strict=True))
+        if report.get("temp_c") is not None:
+            reading += f"  {report['temp_c']:.2f} °C"
+        return report.get("identity", ""), "scan ok", reading
+    if "position_deg" in report:
+        return report["identity"], report["status"], f"{report['position_deg']:.5f}°"
+    return report.get("identity", ""), "", ""
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from labcal.drivers.bench import Bench
+    from labcal.drivers.station_file import load_station
+
+    config, _ = load_station(args.station)
+    with ExitStack() as stack:
+        clock = None
+        if args.emulate:
+            from labcal.sim.emulation import Emulation
+
+            emulation = Emulation(config, time_scale=args.time_scale, source=args.station)
+            stack.enter_context(emulation)
+            config, clock = emulation.station_config, emulation.rig.clock
+        # A check should say at once that a port is missing, not retry for the reconnect budget.
+        quick = config.model_copy(update={name: link.model_copy(update={"reconnect_s": 0.0})
+                                          for name, link in config.devices().items()})
+        bench = stack.enter_context(Bench(quick, clock))
+        reports = bench.check(reset_alarms=args.reset_alarms)
+    failed = [r for r in reports if r["problem"]]
+    if args.json:
+        print_json({"station": config.description or args.station, "ok": not failed, "devices": reports})
+    else:
+        table = Table(title=f"Station {config.description or args.station}")
+        for col in ("device", "identity", "status", "reading"):
+            table.add_column(col)
+        for report in reports:
+            table.add_row(report["device"], *_row(report))
+        out.print(table)
+        for report in failed:
+            err.print(f"[bold red]problem:[/] {report['problem']}")
+    if failed:
+        raise LabcalError(f"{len(failed)} of {len(reports)} devices failed the check "
+                          f"({', '.join(r['device'] for r in failed)}); see the lines above")
+    if not args.json:
+        err.print("every device answers; nothing was moved")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("station", help="example stations; check that a station's devices answer",
+                       description="Station files say which driver runs each table and the DMM, on which "
+                                   "port, with which settings (see `labcal station list`).")
+    station_sub = p.add_subparsers(dest="station_command", required=True, metavar="SUBCOMMAND")
+    lst = station_sub.add_parser("list", help="the example stations that ship with labcal",
+                                 description="The example station files that ship with labcal.")
+    lst.add_argument("--json", action="store_true", help="print the list as JSON on stdout")
+    lst.set_defaults(func=cmd_list)
+    chk = station_sub.add_parser(
+        "check", help="identify every device, read status, position and one DMM scan; move nothing",
+        description="Talk to every device of a station: identify it, read its status and position, take "
+                    "one DMM scan, and say plainly what does not answer (exit code 2). Nothing moves.")
+    chk.add_argument("station", metavar="STATION", help="station file (.toml) or example name")
+    chk.add_argument("--emulate", action="store_true", help="start the station's emulators for the check")
+    chk.add_argument("--time-scale", type=float, help=TIME_SCALE_HELP)
+    chk.add_argument("--reset-alarms", action="store_true",
+                     help="reset a table drive's alarm (Oriental Motor AZ) once its cause is cleared")
+    chk.add_argument("--json", action="store_true", help="print the reports as JSON on stdout")
+    chk.set_defaults(func=cmd_check)

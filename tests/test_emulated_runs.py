@@ -1,0 +1,126 @@
+"""Whole calibrations through the real drivers against the emulators (`labcal run --station
+--emulate`): the simulated truth comes back, faults end the way they promise, nothing is lost."""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+
+import numpy as np
+import pytest
+from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
+
+SCALE = ["--time-scale", str(TIME_SCALE)]
+QUICK = "timeout_s = 0.1\nreconnect_s = 1"  # faults cost timeouts: keep them short
+
+
+def readings(run_dir) -> list[dict]:
+    with (run_dir / "readings.csv").open() as f:
+        return list(csv.DictReader(f))
+
+
+def faults(*tables: str) -> str:
+    return "".join(f"\n[[emulation.faults]]\n{t}\n" for t in tables)
+
+
+@pytest.mark.parametrize("station", ["az-modbus-tcp", "smc100-serial"])
+def test_a_four_mount_calibration_through_the_drivers_recovers_the_truth(station, tmp_path, capsys, no_leaks):  # noqa: F811
+    """64 points, 4 mounts, one table protocol each (Modbus TCP; SMC100 ASCII on a pty with homing
+    and soft limits), the DMM on TCP or a pty: the fit is the emulated instrument's truth to
+    0.1 mV, as for the simulated rig (arcsec misalignments, drift and a temperature swing)."""
+    run_dir = tmp_path / "run"
+    t0 = time.perf_counter()
+    path = private_file(station, tmp_path)
+    code, out, err = cli(capsys, "run", "--station", str(path), "--emulate", *SCALE, "--yes",
+                         "--out", str(run_dir), "--json")
+    wall = time.perf_counter() - t0
+    assert code == 0, err
+    summary = json.loads(out)
+    meta = json.loads((run_dir / "run.json").read_text())
+    truth = np.array(meta["simulated_truth"]["coefficients"])
+    X = np.array(summary["fit"]["coefficients"])
+    assert summary["points"] == 64 and summary["points_failed"] == 0 and meta["status"] == "complete"
+    assert np.max(np.abs(X - truth)) < 1e-4
+    assert err.count("(--yes: confirmed)") == 4 and "preparing the pitch table" in err
+    assert wall < 30  # at the test time scale; typically 3-4 s
+    rows = readings(run_dir)
+    assert len(rows) == 64 and {(r["y_deg"], r["u_deg"]) for r in rows} == {("0", "0"), ("180", "0"),
+                                                                            ("0", "180"), ("180", "180")}
+
+
+def test_transient_faults_are_absorbed_without_a_pause(tmp_path, capsys, no_leaks):  # noqa: F811
+    """Lost, garbled and late replies and a gateway that drops off for 0.3 s: retried and
+    reconnected by the drivers; the run completes with every point and no fault in the journal."""
+    extra = faults('device = "pitch"\nkind = "close-port"\nafter = 40\nreopen_s = 0.3',
+                   'device = "roll"\nkind = "garbled"\ncount = 2\nafter = 100',
+                   'device = "dmm"\nkind = "no-reply"\nmatch = "FETC"\nafter = 30',
+                   'device = "dmm"\nkind = "late-reply"\nmatch = "OPC"\nafter = 60\ndelay_s = 0.3')
+    station = private_file("az-modbus-tcp", tmp_path, extra, QUICK)
+    code, out, err = cli(capsys, "run", "--station", str(station), "--emulate", *SCALE, "--yes",
+                         "--out", str(tmp_path / "run"), "--json")
+    assert code == 0, err
+    assert json.loads(out)["points"] == 64 and "Fault" not in err
+
+
+def test_a_port_that_never_comes_back_pauses_safely_and_resume_finishes(tmp_path, capsys, no_leaks):  # noqa: F811
+    """The DMM's port closes for good mid-run: the driver gives up after its reconnect budget, the
+    sequencer stops the tables and pauses with the driver's one-line message; the operator aborts.
+    Every reading taken is on disk, and `labcal resume` (emulators restarted) finishes the run
+    without changing one of them."""
+    run_dir = tmp_path / "run"
+    station = private_file("smc100-tcp", tmp_path, faults('device = "dmm"\nkind = "close-port"\nafter = 40\n'
+                                                          'match = "FETC"'), QUICK)
+    answers = tmp_path / "answers.txt"
+    answers.write_text("y\ny\ny\na\n")
+    code, out, err = cli(capsys, "run", "--station", str(station), "--emulate", *SCALE, "--answers",
+                         str(answers), "--out", str(run_dir))
+    assert code == 1, err
+    assert "Fault:" in err and "dmm (Keysight 34970A, tcp 127.0.0.1:" in err and "kept trying for 1 s" in err
+    assert "continue with: labcal resume" in err.strip().splitlines()[-1] and "Traceback" not in err
+    before = readings(run_dir)
+    assert 16 < len(before) < 64
+    meta = json.loads((run_dir / "run.json").read_text())
+    assert meta["status"] == "stopped" and meta["points_recorded"] == len(before)
+
+    answers.write_text("y\ny\n")  # confirm the mount to resume, then the remaining mount(s)
+    code, out, err = cli(capsys, "resume", str(run_dir), "--answers", str(answers), "--json")
+    assert code == 0, err
+    after = readings(run_dir)
+    assert len(after) == 64 and json.loads(out)["points"] == 64
+    kept = {(r["y_deg"], r["u_deg"], r["pitch_deg"], r["roll_deg"]): r for r in before}
+    again = {(r["y_deg"], r["u_deg"], r["pitch_deg"], r["roll_deg"]): r for r in after}
+    assert all(again[key] == row for key, row in kept.items())  # not one reading changed
+
+
+def test_a_drive_alarm_stops_both_tables_and_pauses(tmp_path, capsys, no_leaks):  # noqa: F811
+    """The roll drive raises alarm 10h mid-run: the run stops the tables and pauses with the
+    alarm's meaning and what to do; aborting keeps every reading and exits 1 (resumable)."""
+    run_dir = tmp_path / "run"
+    station = private_file("az-modbus-rtu", tmp_path, faults('device = "roll"\nkind = "alarm"\ncode = 16\n'
+                                                             'after = 150'), QUICK)
+    answers = tmp_path / "answers.txt"
+    answers.write_text("y\ny\ny\ny\na\n")
+    code, _, err = cli(capsys, "run", "--station", str(station), "--emulate", *SCALE, "--answers",
+                       str(answers), "--out", str(run_dir))
+    assert code == 1, err
+    assert "roll table (Oriental Motor AZ, unit 2 on" in err
+    assert "alarm 10h (excessive position deviation)" in err
+    assert "--reset-alarms" in err
+    rows = readings(run_dir)
+    assert 0 < len(rows) < 64
+    assert json.loads((run_dir / "run.json").read_text())["points_recorded"] == len(rows)
+
+
+def test_limits_refuse_a_plan_before_anything_moves(tmp_path, capsys, no_leaks):  # noqa: F811
+    """A pitch table limited to [-10°, 100°] cannot reach 180° or 270°: refused before homing or
+    any move, exit 2, one line."""
+    station = private_file("smc100-serial", tmp_path).read_text().replace("limits_deg = [-100, 280]",
+                                                                          "limits_deg = [-10, 100]")
+    path = tmp_path / "limited.toml"
+    path.write_text(station)
+    code, out, err = cli(capsys, "run", "--station", str(path), "--emulate", *SCALE, "--yes",
+                         "--out", str(tmp_path / "run"))
+    assert code == 2 and out == "" and err.strip().count("\n") == 0, err
+    assert "plan refused before any motion: pitch" in err and "180° is outside the soft limits" in err
+    assert not (tmp_path / "run").exists()
