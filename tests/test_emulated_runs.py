@@ -5,12 +5,19 @@ from __future__ import annotations
 
 import csv
 import json
+import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
 
+from labcal.sim.instrument import default_instrument
+
+LABCAL = str(Path(sys.executable).with_name("labcal"))
 SCALE = ["--time-scale", str(TIME_SCALE)]
 QUICK = "timeout_s = 0.1\nreconnect_s = 1"  # faults cost timeouts: keep them short
 
@@ -124,3 +131,25 @@ def test_limits_refuse_a_plan_before_anything_moves(tmp_path, capsys, no_leaks):
     assert code == 2 and out == "" and err.strip().count("\n") == 0, err
     assert "plan refused before any motion: pitch" in err and "180° is outside the soft limits" in err
     assert not (tmp_path / "run").exists()
+
+
+def test_a_run_on_hardware_served_by_another_process(tmp_path, capsys):
+    """The real-hardware path: `labcal run --station` (no --emulate: the system clock, no hooks into
+    the rig) against `labcal sim serve` in another process, as against a bench. One mount, since
+    nobody remounts the emulated instrument; a fixed dwell, since the system clock is not scaled."""
+    station = private_file("smc100-tcp", tmp_path)
+    serve = subprocess.Popen([LABCAL, "sim", "serve", str(station), "--time-scale", "500", "--json"],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert json.loads("".join(iter(serve.stdout.readline, "}\n")) + "}")["time_scale"] == 500
+        code, out, err = cli(capsys, "run", "--station", str(station), "--plan", "one-mount-16", "--yes",
+                             "--fixed-dwell", "0.05", "--out", str(tmp_path / "run"), "--json")
+    finally:
+        serve.send_signal(signal.SIGINT)
+        serve.communicate(timeout=20)
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["points"] == 16 and "preparing the pitch table" in err
+    S, truth = np.array(summary["fit"]["coefficients"])[1:], default_instrument().X[1:]
+    assert np.max(np.abs(np.diag(S) - np.diag(truth))) < 1e-3  # one mount: only ~1e-5 leaks into the diagonal
+    assert serve.returncode == 0
