@@ -11,7 +11,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from labcal.drivers.keysight_34970a import NPLC_VALUES, RANGES_V
 from labcal.drivers.transport import tcp_address
@@ -116,19 +116,14 @@ class DmmSettings(LinkSettings):
     line_hz: Literal[50, 60] = 50
     xonxoff: bool = True
 
-    @field_validator("nplc")
+    @field_validator("nplc", "range_v")
     @classmethod
-    def _nplc(cls, nplc):
-        if nplc not in NPLC_VALUES:
-            raise ValueError(f"nplc must be one of {', '.join(f'{v:g}' for v in NPLC_VALUES)}")
-        return nplc
-
-    @field_validator("range_v")
-    @classmethod
-    def _range(cls, range_v):
-        if range_v not in RANGES_V:
-            raise ValueError(f"range_v must be one of {', '.join(f'{v:g}' for v in RANGES_V)}")
-        return range_v
+    def _settable(cls, value: float, info: ValidationInfo) -> float:
+        """Only the values the unit has (the 34970A answers others with error -222)."""
+        allowed = {"nplc": NPLC_VALUES, "range_v": RANGES_V}[info.field_name]
+        if value not in allowed:
+            raise ValueError(f"{info.field_name} must be one of {', '.join(f'{v:g}' for v in allowed)}")
+        return value
 
     @model_validator(mode="after")
     def _channels(self):

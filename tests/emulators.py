@@ -78,6 +78,24 @@ def emulated(station: str | StationFile, tmp_path: Path, time_scale: float = TIM
         yield emulation, bench
 
 
+def bench_fixtures(stations: list[str], **changes: dict):
+    """Three fixtures for a module's tests: ``station`` (each of ``stations`` in turn), and the
+    emulators with the drivers on them, at the test time scale and slow enough to catch a table
+    moving. Use: ``station, rig, slow_rig = bench_fixtures([...], pitch=QUICK)``."""
+    @pytest.fixture(params=stations)
+    def station(request):
+        return request.param
+
+    def at(time_scale: float):
+        @pytest.fixture
+        def emulators_and_drivers(station, tmp_path, no_leaks):
+            with emulated(station, tmp_path, time_scale, **changes) as pair:
+                yield pair
+        return emulators_and_drivers
+
+    return station, at(TIME_SCALE), at(MOTION_SCALE)
+
+
 def _ptys() -> set[str]:
     found = set()
     for fd in os.listdir("/proc/self/fd"):

@@ -31,6 +31,15 @@ def faults(*tables: str) -> str:
     return "".join(f"\n[[emulation.faults]]\n{t}\n" for t in tables)
 
 
+def run_with_a_fault(capsys, tmp_path, station: str, fault: str, answers: str) -> tuple[int, str]:
+    """`labcal run` into tmp_path/run, with one fault injected and the operator's answers from a file."""
+    script = tmp_path / "answers.txt"
+    script.write_text(answers)
+    code, _, err = cli(capsys, "run", "--station", str(private_file(station, tmp_path, faults(fault), QUICK)),
+                       "--emulate", *SCALE, "--answers", str(script), "--out", str(tmp_path / "run"))
+    return code, err
+
+
 @pytest.mark.parametrize("station", ["az-modbus-tcp", "smc100-serial"])
 def test_a_four_mount_calibration_through_the_drivers_recovers_the_truth(station, tmp_path, capsys, no_leaks):  # noqa: F811
     """64 points, 4 mounts, one table protocol each (Modbus TCP; SMC100 ASCII on a pty with homing
@@ -75,13 +84,9 @@ def test_a_port_that_never_comes_back_pauses_safely_and_resume_finishes(tmp_path
     sequencer stops the tables and pauses with the driver's one-line message; the operator aborts.
     Every reading taken is on disk, and `labcal resume` (emulators restarted) finishes the run
     without changing one of them."""
-    run_dir = tmp_path / "run"
-    station = private_file("smc100-tcp", tmp_path, faults('device = "dmm"\nkind = "close-port"\nafter = 40\n'
-                                                          'match = "FETC"'), QUICK)
-    answers = tmp_path / "answers.txt"
-    answers.write_text("y\ny\ny\na\n")
-    code, out, err = cli(capsys, "run", "--station", str(station), "--emulate", *SCALE, "--answers",
-                         str(answers), "--out", str(run_dir))
+    run_dir, answers = tmp_path / "run", tmp_path / "answers.txt"
+    closes = 'device = "dmm"\nkind = "close-port"\nafter = 40\nmatch = "FETC"'
+    code, err = run_with_a_fault(capsys, tmp_path, "smc100-tcp", closes, "y\ny\ny\na\n")
     assert code == 1, err
     assert "Fault:" in err and "dmm (Keysight 34970A, tcp 127.0.0.1:" in err and "kept trying for 1 s" in err
     assert "continue with: labcal resume" in err.strip().splitlines()[-1] and "Traceback" not in err
@@ -103,20 +108,15 @@ def test_a_port_that_never_comes_back_pauses_safely_and_resume_finishes(tmp_path
 def test_a_drive_alarm_stops_both_tables_and_pauses(tmp_path, capsys, no_leaks):  # noqa: F811
     """The roll drive raises alarm 10h mid-run: the run stops the tables and pauses with the
     alarm's meaning and what to do; aborting keeps every reading and exits 1 (resumable)."""
-    run_dir = tmp_path / "run"
-    station = private_file("az-modbus-rtu", tmp_path, faults('device = "roll"\nkind = "alarm"\ncode = 16\n'
-                                                             'after = 150'), QUICK)
-    answers = tmp_path / "answers.txt"
-    answers.write_text("y\ny\ny\ny\na\n")
-    code, _, err = cli(capsys, "run", "--station", str(station), "--emulate", *SCALE, "--answers",
-                       str(answers), "--out", str(run_dir))
+    code, err = run_with_a_fault(capsys, tmp_path, "az-modbus-rtu",
+                                 'device = "roll"\nkind = "alarm"\ncode = 16\nafter = 150', "y\ny\ny\ny\na\n")
     assert code == 1, err
     assert "roll table (Oriental Motor AZ, unit 2 on" in err
     assert "alarm 10h (excessive position deviation)" in err
     assert "--reset-alarms" in err
-    rows = readings(run_dir)
+    rows = readings(tmp_path / "run")
     assert 0 < len(rows) < 64
-    assert json.loads((run_dir / "run.json").read_text())["points_recorded"] == len(rows)
+    assert json.loads((tmp_path / "run" / "run.json").read_text())["points_recorded"] == len(rows)
 
 
 def test_limits_refuse_a_plan_before_anything_moves(tmp_path, capsys, no_leaks):  # noqa: F811

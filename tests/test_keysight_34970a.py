@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from emulators import MOTION_SCALE, emulated, no_leaks  # noqa: F401 - fixture
+from emulators import MOTION_SCALE, bench_fixtures, no_leaks  # noqa: F401 - fixture
 
 from labcal.drivers.errors import BadReply, DeviceFault, NoReply, Rejected
 from labcal.drivers.keysight_34970a import channel_time_s
@@ -15,16 +15,15 @@ from labcal.sim.faults import Fault, FaultKind
 QUICK = {"timeout_s": 0.1, "retries": 2, "reconnect_s": 0.5}
 
 
-@pytest.fixture(params=["smc100-serial", "az-modbus-tcp"])  # the DMM on a pty, and on TCP with a thermometer
-def station(request):
-    return request.param
+# the DMM on a pty, and on TCP with a thermometer
+station, rig, slow_rig = bench_fixtures(["smc100-serial", "az-modbus-tcp"], dmm=QUICK)
 
 
 @pytest.fixture
-def dmm(station, tmp_path, no_leaks):  # noqa: F811
-    with emulated(station, tmp_path, dmm=QUICK) as (emulation, bench):
-        bench.dmm.configure()
-        yield emulation, bench.dmm
+def dmm(rig):
+    emulation, bench = rig
+    bench.dmm.configure()
+    return emulation, bench.dmm
 
 
 def test_identity_and_a_clean_error_queue(dmm):
@@ -58,14 +57,14 @@ def test_readings_are_the_instruments_outputs_at_the_tables_angles(dmm):
         assert scan.temp_c is None
 
 
-def test_a_scan_takes_the_units_integration_time(station, tmp_path, no_leaks):  # noqa: F811
-    with emulated(station, tmp_path, MOTION_SCALE, dmm=QUICK) as (emulation, bench):
-        meter = bench.dmm
-        meter.configure()
-        n = 5
-        t0 = emulation.rig.clock.now()
-        meter.read(n)
-        took = emulation.rig.clock.now() - t0
+def test_a_scan_takes_the_units_integration_time(slow_rig):
+    emulation, bench = slow_rig
+    meter = bench.dmm
+    meter.configure()
+    n = 5
+    t0 = emulation.rig.clock.now()
+    meter.read(n)
+    took = emulation.rig.clock.now() - t0
     expected = n * len(meter.scan_list) * channel_time_s(meter.nplc, meter.line_hz)  # 6 or 8 s of rig time
     assert expected <= took < expected + 0.2 * MOTION_SCALE  # plus at most 0.2 s of wall time for the bytes
 

@@ -7,7 +7,7 @@ import time
 
 import pytest
 import serial
-from emulators import MOTION_SCALE, emulated, no_leaks  # noqa: F401 - fixture
+from emulators import bench_fixtures, emulated, no_leaks  # noqa: F401 - fixture
 
 from labcal.drivers.errors import BadReply, DeviceFault, LinkLost, NoReply, OutOfLimits, Rejected
 from labcal.drivers.newport_smc100 import EOL, Smc100Axis
@@ -17,22 +17,7 @@ from labcal.sim.faults import Fault, FaultKind
 QUICK = {"timeout_s": 0.1, "retries": 2, "reconnect_s": 0.5}
 
 
-@pytest.fixture(params=["smc100-serial", "smc100-tcp"])
-def station(request):
-    return request.param
-
-
-@pytest.fixture
-def smc(station, tmp_path, no_leaks):  # noqa: F811
-    with emulated(station, tmp_path, pitch=QUICK, roll=QUICK) as (emulation, bench):
-        yield emulation, bench
-
-
-@pytest.fixture
-def smc_slow(station, tmp_path, no_leaks):  # noqa: F811
-    """Stages slow enough in wall time to be caught moving."""
-    with emulated(station, tmp_path, MOTION_SCALE, pitch=QUICK, roll=QUICK) as (emulation, bench):
-        yield emulation, bench
+station, smc, smc_slow = bench_fixtures(["smc100-serial", "smc100-tcp"], pitch=QUICK, roll=QUICK)
 
 
 def test_power_up_state_homing_and_ready(smc):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 
 import pytest
-from emulators import MOTION_SCALE, emulated, no_leaks  # noqa: F401 - fixture
+from emulators import bench_fixtures, emulated, no_leaks  # noqa: F401 - fixture
 
 from labcal.drivers.bench import Bench
 from labcal.drivers.errors import BadReply, DeviceFault, LinkLost, NoReply, OutOfLimits, Rejected
@@ -16,22 +16,7 @@ from labcal.sim.faults import Fault, FaultKind
 QUICK = {"timeout_s": 0.1, "retries": 2, "reconnect_s": 0.5}
 
 
-@pytest.fixture(params=["az-modbus-tcp", "az-modbus-rtu"])
-def station(request):
-    return request.param
-
-
-@pytest.fixture
-def az(station, tmp_path, no_leaks):  # noqa: F811
-    with emulated(station, tmp_path, pitch=QUICK, roll=QUICK) as (emulation, bench):
-        yield emulation, bench
-
-
-@pytest.fixture
-def az_slow(station, tmp_path, no_leaks):  # noqa: F811
-    """Tables slow enough in wall time to be caught moving."""
-    with emulated(station, tmp_path, MOTION_SCALE, pitch=QUICK, roll=QUICK) as (emulation, bench):
-        yield emulation, bench
+station, az, az_slow = bench_fixtures(["az-modbus-tcp", "az-modbus-rtu"], pitch=QUICK, roll=QUICK)
 
 
 def test_move_status_and_read_back(az_slow):
