@@ -70,18 +70,20 @@ class CertificateSettings(BaseModel):
 def load_settings(station_path: str | Path | None, **overrides) -> CertificateSettings:
     """The ``[certificate]`` section of a station file (defaults without one), then the command
     line's non-None ``overrides``; every mistake is one line naming the file and the field."""
-    data: dict = {}
-    source = "command line"
-    if station_path is not None:
-        source = str(station_path)
-        try:
-            section = tomllib.loads(read_text(station_path, "station")).get("certificate", {})
-        except tomllib.TOMLDecodeError as exc:
-            raise LabcalError(f"{station_path}: malformed TOML: {exc}") from None
-        if not isinstance(section, dict):
-            raise LabcalError(f"{station_path}: certificate must be a table ([certificate])")
-        data = section
-    data = {**data, **{k: v for k, v in overrides.items() if v is not None}}
+    if station_path is None:
+        return settings_from(None, "command line", **overrides)
+    try:
+        section = tomllib.loads(read_text(station_path, "station")).get("certificate", {})
+    except tomllib.TOMLDecodeError as exc:
+        raise LabcalError(f"{station_path}: malformed TOML: {exc}") from None
+    return settings_from(section, str(station_path), **overrides)
+
+
+def settings_from(section: object, source: str, **overrides) -> CertificateSettings:
+    """Certificate settings from a station's ``[certificate]`` section and non-None ``overrides``."""
+    if section is not None and not isinstance(section, dict):
+        raise LabcalError(f"{source}: certificate must be a table ([certificate])")
+    data = {**(section or {}), **{k: v for k, v in overrides.items() if v is not None}}
     try:
         return CertificateSettings.model_validate(data)
     except ValidationError as exc:

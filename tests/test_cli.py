@@ -167,7 +167,7 @@ def test_run_refuses_a_used_directory(tmp_path, capsys):
 # --- runs ----------------------------------------------------------------------------------
 def test_run_sim_yes_end_to_end(tmp_path):
     run_dir = tmp_path / "run"
-    proc = labcal("run", "--sim", "--yes", "--seed", "3", "--out", str(run_dir), "--json")
+    proc = labcal("run", "--sim", "--yes", "--seed", "3", "--out", str(run_dir), "--json", "--no-report")
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout)
     assert summary["points"] == 64 and summary["wall_time_s"] < 10
@@ -183,7 +183,7 @@ def test_run_sim_yes_end_to_end(tmp_path):
 
 
 def test_run_prompts_are_answered_interactively(tmp_path):
-    proc = labcal("run", "--sim", "--out", str(tmp_path / "run"), input="y\nyes\nY\ny\n")
+    proc = labcal("run", "--sim", "--no-report", "--out", str(tmp_path / "run"), input="y\nyes\nY\ny\n")
     assert proc.returncode == 0, proc.stderr
     assert proc.stderr.count("Type y and Enter when mounted") == 4
     assert "bottom side of the plate, x sensor pointing backward" in proc.stderr
@@ -191,7 +191,7 @@ def test_run_prompts_are_answered_interactively(tmp_path):
 
 def test_operator_stops_at_a_prompt_and_keeps_readings(tmp_path):
     run_dir = tmp_path / "run"
-    proc = labcal("run", "--sim", "--out", str(run_dir), input="y\nq\n")
+    proc = labcal("run", "--sim", "--no-report", "--out", str(run_dir), input="y\nq\n")
     assert proc.returncode == 1
     assert "16 reading(s) kept" in proc.stderr and proc.stderr.strip().splitlines()[-1].startswith("stopped")
     assert len((run_dir / "readings.csv").read_text().strip().splitlines()) == 1 + 16
@@ -213,7 +213,8 @@ def journal_points(db) -> int:
 
 def test_ctrl_c_at_a_prompt_keeps_every_reading(tmp_path, lab_database):
     run_dir = tmp_path / "run"
-    proc = subprocess.Popen([LABCAL, "run", "--sim", "--out", str(run_dir)], stdin=subprocess.PIPE,
+    proc = subprocess.Popen([LABCAL, "run", "--sim", "--no-report", "--out", str(run_dir)],
+                            stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     proc.stdin.write("y\n")
     proc.stdin.flush()
@@ -232,7 +233,7 @@ def test_ctrl_c_at_a_prompt_keeps_every_reading(tmp_path, lab_database):
 
 
 def test_no_answer_at_a_prompt_stops_cleanly(tmp_path):
-    proc = labcal("run", "--sim", "--out", str(tmp_path / "run"), stdin=subprocess.DEVNULL)
+    proc = labcal("run", "--sim", "--no-report", "--out", str(tmp_path / "run"), stdin=subprocess.DEVNULL)
     assert proc.returncode == 1 and "no answer at the prompt" in proc.stderr
     assert "0 reading(s) kept" in proc.stderr
 
@@ -241,7 +242,7 @@ def test_rig_file_sets_the_simulated_rig(tmp_path, capsys):
     rig = tmp_path / "rig.toml"
     rig.write_text("remount_s = 0\nspeed_dps = 40\n[device]\nmisalignment_deg = {}\n"
                    "[instrument]\nB = [0.1, 0.2, 0.3]\nnoise_v = 1e-6\n")
-    code, stdout, _ = run_cli(capsys, "run", "--sim", "--yes", "--json", "--rig", str(rig),
+    code, stdout, _ = run_cli(capsys, "run", "--sim", "--yes", "--json", "--no-report", "--rig", str(rig),
                               "--out", str(tmp_path / "run"))
     assert code == 0
     summary = json.loads(stdout)
@@ -251,3 +252,19 @@ def test_rig_file_sets_the_simulated_rig(tmp_path, capsys):
     bad.write_text("speed_dps = -1\n")
     code, _, stderr = run_cli(capsys, "run", "--sim", "--rig", str(bad), "--out", str(tmp_path / "r2"))
     assert code == 2 and "speed_dps: Input should be greater than 0" in stderr
+
+
+def test_a_complete_run_issues_its_certificate_and_report(tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    code, stdout, _ = run_cli(capsys, "run", "--sim", "--yes", "--json", "--plan", "one-mount-16",
+                              "--tolerance-deg", "0.5", "--out", str(run_dir))
+    assert code == 0
+    summary = json.loads(stdout)
+    assert summary["certificate"] == str(run_dir / "certificate.json") and summary["verdict"] == "pass"
+    assert {"certificate.json", "report.html", "report.pdf"} <= {p.name for p in run_dir.iterdir()}
+    code, stdout, _ = run_cli(capsys, "history", "SIMULATED", "--json")
+    assert code == 0 and len(json.loads(stdout)["calibrations"]) == 1
+    code, _, stderr = run_cli(capsys, "run", "--sim", "--yes", "--plan", "one-mount-16",
+                              "--tolerance-deg", "-1", "--out", str(tmp_path / "r2"))
+    assert code == 2 and "attitude_u95_max_deg: Input should be greater than 0" in stderr
+    assert not (tmp_path / "r2").exists()  # refused before the run began

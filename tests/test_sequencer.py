@@ -207,7 +207,7 @@ def test_sigkill_at_random_moments_then_resume_loses_and_duplicates_nothing(tmp_
     process then is (moving, settling, writing) — and resume each: every planned point is in the
     journal exactly once and the coefficients equal the uninterrupted run's."""
     env = dict(os.environ)
-    base = ["run", "--sim", "--seed", "8", "--rig", STATIC_LAB, "--json"]
+    base = ["run", "--sim", "--seed", "8", "--rig", STATIC_LAB, "--json", "--no-report"]
     reference = subprocess.run([LABCAL, *base, "--yes", "--out", str(tmp_path / "ref")], capture_output=True,
                                text=True, timeout=120, env={**env, "LABCAL_DB": str(tmp_path / "ref.sqlite")})
     assert reference.returncode == 0, reference.stderr
@@ -233,8 +233,8 @@ def test_sigkill_at_random_moments_then_resume_loses_and_duplicates_nothing(tmp_
         proc.kill()
         proc.wait(timeout=10)
         before = committed(db)
-        resumed = subprocess.run([LABCAL, "resume", str(run_dir), "--yes", "--json"], capture_output=True,
-                                 text=True, timeout=120, env=kenv)
+        resumed = subprocess.run([LABCAL, "resume", str(run_dir), "--yes", "--json", "--no-report"],
+                                 capture_output=True, text=True, timeout=120, env=kenv)
         assert resumed.returncode == 0, (moment, resumed.stderr)
         with sqlite3.connect(db) as con:
             seqs = [r[0] for r in con.execute("SELECT seq FROM points ORDER BY seq")]
@@ -249,7 +249,8 @@ def test_dry_run_estimate_matches_the_rig_and_moves_nothing(tmp_path, capsys):
 
     assert main(["run", "--sim", "--dry-run", "--json", "--seed", "9"]) == 0
     estimate = json.loads(capsys.readouterr().out)
-    assert main(["run", "--sim", "--yes", "--json", "--seed", "9", "--out", str(tmp_path / "run")]) == 0
+    assert main(["run", "--sim", "--yes", "--json", "--no-report", "--seed", "9",
+                 "--out", str(tmp_path / "run")]) == 0
     actual = json.loads(capsys.readouterr().out)["simulated_rig_time_s"]
     assert estimate["total_s"] == pytest.approx(actual, rel=0.05)
     assert estimate["points"] == 64 and not (tmp_path / "dry").exists()
@@ -259,7 +260,8 @@ def test_resume_refuses_what_it_cannot_continue(tmp_path, capsys, lab_database):
     from labcal.cli import main
 
     run_dir = tmp_path / "run"
-    assert main(["run", "--sim", "--yes", "--plan", "one-mount-16", "--out", str(run_dir)]) == 0
+    assert main(["run", "--sim", "--yes", "--no-report", "--plan", "one-mount-16",
+                 "--out", str(run_dir)]) == 0
     capsys.readouterr()
     assert main(["resume", str(run_dir), "--yes"]) == 2
     assert "already complete; nothing to resume" in capsys.readouterr().err

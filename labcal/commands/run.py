@@ -157,8 +157,19 @@ def print_estimate(plan: Plan, est: Estimate, as_json: bool) -> None:
     out.print("(mounting includes the operator's remount allowance and the mount checks; nothing moved)")
 
 
-def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done: int) -> int:
-    """Run with a progress display; turn the ways a run can end into messages and exit codes."""
+def certificate_settings(args: argparse.Namespace, section: dict | None, source: str):
+    """The station's [certificate] section with the command line's tolerances over it."""
+    from labcal.certificate import settings_from
+
+    usage = tuple(args.usage_pitch) if getattr(args, "usage_pitch", None) else None
+    return settings_from(section, source, attitude_u95_max_deg=getattr(args, "tolerance_deg", None),
+                         usage_pitch_deg=usage)
+
+
+def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done: int,
+                   certificate=None) -> int:
+    """Run with a progress display; turn the ways a run can end into messages and exit codes; at the
+    end of a complete run issue its certificate and report (``certificate``: their settings)."""
     from labcal.console import ProgressDisplay, coefficient_table, format_duration
 
     err.print(f"Run directory: {run_dir}")
@@ -177,10 +188,18 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
         raise LabcalError(f"{exc}; {points_on_disk(run_dir)} reading(s) kept in {run_dir}; "
                           f"continue with: labcal resume {run_dir}") from None
     o = result.outcome
+    issued = None
+    if not args.no_report:
+        from labcal.report import write_run_outputs
+
+        issued = write_run_outputs(run_dir, certificate, db=args.db)
     if args.json:
         print_json({"run_dir": str(result.directory), "run_id": result.run_id, "points": o.points_recorded,
                     "points_failed": o.points_failed, "simulated_rig_time_s": o.station_time_s,
-                    "wall_time_s": result.wall_s, "fit": result.fit.to_json()})
+                    "wall_time_s": result.wall_s, "fit": result.fit.to_json(),
+                    "certificate": None if issued is None else str(issued.certificate_path),
+                    "verdict": None if issued is None or issued.certificate.conformity is None
+                    else "pass" if issued.certificate.conformity.passed else "fail"})
         return 0
     out.print(coefficient_table(result.fit))
     for note in result.fit.notes:
@@ -188,7 +207,14 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
     failed = f", {o.points_failed} failed (see the journal)" if o.points_failed else ""
     out.print(f"{o.points_recorded} points{failed} in {result.wall_s:.2f} s of wall time; the rig's clock "
               f"says {format_duration(o.station_time_s)} (remount allowances included).")
-    out.print(f"Files in {run_dir}/: readings.csv, fit.json, plan.toml, run.json; journal {db_path(args.db)}")
+    files = "readings.csv, fit.json, plan.toml, run.json"
+    if issued is not None:
+        files += ", certificate.json, report.html, report.pdf"
+        conformity = issued.certificate.conformity
+        if conformity is not None:
+            verdict = "[green]PASS[/]" if conformity.passed else "[red]FAIL[/]"
+            out.print(f"Verdict against the tolerances: [bold]{verdict}[/]")
+    out.print(f"Files in {run_dir}/: {files}; journal {db_path(args.db)}")
     return 0
 
 
@@ -211,10 +237,15 @@ def cmd_run(args: argparse.Namespace) -> int:
         if args.sim:
             setup = sim_station(args.rig, args.seed)
             settings = settings_from(args, setup)
+            cert_settings = certificate_settings(args, None, "command line")
         else:
             from labcal.drivers.station_file import load_station
 
             config, _ = load_station(args.station)
+            cert_settings = certificate_settings(args, config.certificate, args.station)
+            if not args.emulate and not args.serial and not args.no_report:
+                raise LabcalError("a calibration on real hardware needs the instrument's --serial for its "
+                                  "certificate (or --no-report)")
             setup, bench, base = hardware_station(config, args.station, stack, emulate=args.emulate,
                                                   time_scale=args.time_scale, seed=args.seed)
             pitch, roll = config.pitch, config.roll  # the slower table sets the pace of the estimates
@@ -234,7 +265,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         with Journal(db_path(args.db)) as journal:
             return run_and_report(args, lambda display: calibrate(
                 plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, display,
-                setup.metadata, args.serial, args.operator), run_dir, plan, est, 0)
+                setup.metadata, args.serial, args.operator), run_dir, plan, est, 0, cert_settings)
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
@@ -258,9 +289,11 @@ def cmd_resume(args: argparse.Namespace) -> int:
         operator = make_operator(args)
         ctx.journal.reopen(ctx.run_id)
         ctx.journal.event(ctx.run_id, "resume", f"resumed after {len(points)} committed point(s)")
+        section = json.loads(ctx.station_text).get("station", {}).get("certificate")
+        cert_settings = certificate_settings(args, section, "the run's station")
         return run_and_report(args, lambda display: execute(
             ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, display),
-            run_dir, ctx.plan, est, len(points))
+            run_dir, ctx.plan, est, len(points), cert_settings)
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -268,6 +301,12 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--answers", metavar="FILE", help="answer prompts from this file, one answer per line")
     p.add_argument("--db", help="the lab's journal database (default $LABCAL_DB or runs/labcal.sqlite)")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    p.add_argument("--no-report", action="store_true",
+                   help="skip the certificate and report at the end (labcal report RUN makes them later)")
+    p.add_argument("--tolerance-deg", type=float, metavar="DEG",
+                   help="pass/fail tolerance on the attitude U95 over the usage envelope")
+    p.add_argument("--usage-pitch", type=float, nargs=2, metavar=("MIN", "MAX"),
+                   help="usage pitch range for the attitude uncertainty (default -60 60)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
