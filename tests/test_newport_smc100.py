@@ -157,3 +157,21 @@ def test_a_loop_url_echoes_the_command_which_is_no_reply():
         axis.angle()
     link.close()
     assert isinstance(serial.serial_for_url("loop://"), serial.SerialBase)
+
+
+def test_stop_after_an_exchange_torn_by_ctrl_c(smc_slow):
+    """Ctrl-C between a query and its reply leaves the reply on the line: the stop that follows
+    still reaches the controller, and no later answer is the stale one."""
+    emulation, bench = smc_slow
+    bench.roll.prepare()
+    bench.roll.move_to(180)
+    read_line = bench.roll.link.read_line
+    bench.roll.link.read_line = lambda *a: (_ for _ in ()).throw(KeyboardInterrupt)  # Ctrl-C right after TP
+    with pytest.raises(KeyboardInterrupt):
+        bench.roll.angle()
+    bench.roll.link.read_line = read_line
+    bench.roll.stop()
+    now, table = emulation.rig.clock.now(), emulation.rig.axis("roll")
+    assert table.motion_end <= now and 0 < abs(float(table.angle_at(now))) < 179  # stopped mid-move
+    assert bench.roll.status().words == "READY from MOVING (33h)"
+    assert bench.roll.angle() == pytest.approx(float(table.angle_at(now)), abs=1e-5)

@@ -8,6 +8,7 @@ import time
 import pytest
 from emulators import bench_fixtures, emulated, no_leaks  # noqa: F401 - fixture
 
+from labcal.drivers.axis import wrapped
 from labcal.drivers.bench import Bench
 from labcal.drivers.errors import BadReply, DeviceFault, LinkLost, NoReply, OutOfLimits, Rejected
 from labcal.drivers.oriental_az import Output
@@ -176,3 +177,26 @@ def test_port_closed_for_good_gives_up_within_the_budget(az):
     assert time.monotonic() - t0 < 0.5 + 3 * 0.2 + 1.0  # reconnect budget, tries, slack
     with pytest.raises(LinkLost, match="cannot open .*; kept trying for 0.5 s; check the cable"):
         bench.pitch.stop()
+
+
+def test_stop_after_an_exchange_torn_by_ctrl_c(az_slow):
+    """Ctrl-C while a reply is arriving: the stop that follows still reaches the drive."""
+    emulation, bench = az_slow
+    pitch, table = bench.pitch, emulation.rig.axis("pitch")
+    pitch.move_to(180)
+    transaction = pitch.link.client.transaction  # where pymodbus calls its packet hook
+
+    def ctrl_c_on_receive(sending: bool, data: bytes) -> bytes:
+        if not sending:
+            raise KeyboardInterrupt
+        return data
+
+    real_trace, transaction.trace_packet = transaction.trace_packet, ctrl_c_on_receive
+    with pytest.raises(KeyboardInterrupt):
+        pitch.angle()
+    transaction.trace_packet = real_trace
+    pitch.stop()
+    now = emulation.rig.clock.now()
+    assert table.motion_end <= now and 0 < abs(float(table.angle_at(now))) < 179
+    assert not pitch.status().moving
+    assert abs(wrapped(pitch.angle() - float(table.angle_at(now)))) <= 1e-3  # one step is 0.001°
