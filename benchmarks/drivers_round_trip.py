@@ -6,8 +6,9 @@ Prints, per transport: the round trip of one Modbus register read (AZ feedback p
 SMC100 query (1TP), and one DMM scan exchange (TRIG:COUN, INIT, *OPC?, FETC?, SYST:ERR?) both
 with a negligible integration (1 sweep at NPLC 0.02: the protocol's own cost) and as a run
 reads it (10 sweeps of the scan list at NPLC 10, the integration shrunk by the time scale);
-then the wall time of `labcal run --station NAME --emulate` (the four-mount plan, 64 points)
-for every example station. Uses the example stations' ports: stop `labcal sim serve` first.
+then the wall time of `labcal run --station NAME --emulate --no-report` (the four-mount plan,
+64 points; the certificate and report are left out) for every example station. Uses the
+example stations' ports: stop `labcal sim serve` first.
 """
 
 from __future__ import annotations
@@ -61,9 +62,10 @@ def runs(time_scale: float, repeat: int) -> None:
         for _ in range(repeat):
             with tempfile.TemporaryDirectory() as tmp:
                 t0 = time.perf_counter()
-                proc = subprocess.run([LABCAL, "run", "--station", station, "--emulate", "--time-scale",
-                                       str(time_scale), "--yes", "--json", "--out", f"{tmp}/run",
-                                       "--db", f"{tmp}/journal.sqlite"], capture_output=True, text=True)
+                command = [LABCAL, "run", "--station", station, "--emulate", "--time-scale", str(time_scale),
+                           "--yes", "--json", "--no-report", "--out", f"{tmp}/run",
+                           "--db", f"{tmp}/journal.sqlite"]
+                proc = subprocess.run(command, capture_output=True, text=True)
                 walls.append(time.perf_counter() - t0)
             if proc.returncode:
                 sys.exit(f"{station}: {proc.stderr.strip().splitlines()[-1]}")

@@ -18,7 +18,7 @@ from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fi
 from labcal.sim.instrument import default_instrument
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
-SCALE = ["--time-scale", str(TIME_SCALE)]
+EMULATE = ["--emulate", "--time-scale", str(TIME_SCALE), "--no-report"]  # the certificate is not the subject
 QUICK = "timeout_s = 0.1\nreconnect_s = 1"  # faults cost timeouts: keep them short
 
 
@@ -36,7 +36,7 @@ def run_with_a_fault(capsys, tmp_path, station: str, fault: str, answers: str) -
     script = tmp_path / "answers.txt"
     script.write_text(answers)
     code, _, err = cli(capsys, "run", "--station", str(private_file(station, tmp_path, faults(fault), QUICK)),
-                       "--emulate", *SCALE, "--answers", str(script), "--out", str(tmp_path / "run"))
+                       *EMULATE, "--answers", str(script), "--out", str(tmp_path / "run"))
     return code, err
 
 
@@ -48,7 +48,7 @@ def test_a_four_mount_calibration_through_the_drivers_recovers_the_truth(station
     run_dir = tmp_path / "run"
     t0 = time.perf_counter()
     path = private_file(station, tmp_path)
-    code, out, err = cli(capsys, "run", "--station", str(path), "--emulate", *SCALE, "--yes",
+    code, out, err = cli(capsys, "run", "--station", str(path), *EMULATE, "--yes",
                          "--out", str(run_dir), "--json")
     wall = time.perf_counter() - t0
     assert code == 0, err
@@ -73,7 +73,7 @@ def test_transient_faults_are_absorbed_without_a_pause(tmp_path, capsys, no_leak
                    'device = "dmm"\nkind = "no-reply"\nmatch = "FETC"\nafter = 30',
                    'device = "dmm"\nkind = "late-reply"\nmatch = "OPC"\nafter = 60\ndelay_s = 0.3')
     station = private_file("az-modbus-tcp", tmp_path, extra, QUICK)
-    code, out, err = cli(capsys, "run", "--station", str(station), "--emulate", *SCALE, "--yes",
+    code, out, err = cli(capsys, "run", "--station", str(station), *EMULATE, "--yes",
                          "--out", str(tmp_path / "run"), "--json")
     assert code == 0, err
     assert json.loads(out)["points"] == 64 and "Fault" not in err
@@ -96,7 +96,7 @@ def test_a_port_that_never_comes_back_pauses_safely_and_resume_finishes(tmp_path
     assert meta["status"] == "stopped" and meta["points_recorded"] == len(before)
 
     answers.write_text("y\ny\n")  # confirm the mount to resume, then the remaining mount(s)
-    code, out, err = cli(capsys, "resume", str(run_dir), "--answers", str(answers), "--json")
+    code, out, err = cli(capsys, "resume", str(run_dir), "--answers", str(answers), "--json", "--no-report")
     assert code == 0, err
     after = readings(run_dir)
     assert len(after) == 64 and json.loads(out)["points"] == 64
@@ -126,7 +126,7 @@ def test_limits_refuse_a_plan_before_anything_moves(tmp_path, capsys, no_leaks):
                                                                           "limits_deg = [-10, 100]")
     path = tmp_path / "limited.toml"
     path.write_text(station)
-    code, out, err = cli(capsys, "run", "--station", str(path), "--emulate", *SCALE, "--yes",
+    code, out, err = cli(capsys, "run", "--station", str(path), *EMULATE, "--yes",
                          "--out", str(tmp_path / "run"))
     assert code == 2 and out == "" and err.strip().count("\n") == 0, err
     assert "plan refused before any motion: pitch" in err and "180° is outside the soft limits" in err
@@ -143,7 +143,7 @@ def test_a_run_on_hardware_served_by_another_process(tmp_path, capsys):
     try:
         assert json.loads("".join(iter(serve.stdout.readline, "}\n")) + "}")["time_scale"] == 500
         code, out, err = cli(capsys, "run", "--station", str(station), "--plan", "one-mount-16", "--yes",
-                             "--fixed-dwell", "0.05", "--out", str(tmp_path / "run"), "--json")
+                             "--no-report", "--fixed-dwell", "0.05", "--out", str(tmp_path / "run"), "--json")
     finally:
         serve.send_signal(signal.SIGINT)
         serve.communicate(timeout=20)
