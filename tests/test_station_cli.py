@@ -180,3 +180,15 @@ def test_sim_serve_until_ctrl_c(tmp_path, capsys):
     assert "mount y=180°, u=0°" in err and "commands: mount Y U" in err  # status, and help for "frob"
     assert err.strip().endswith("emulators stopped") and "Traceback" not in err
     assert not (tmp_path / "smc100").exists() and not (tmp_path / "dmm").exists()
+
+
+def test_check_reports_a_drive_alarm_and_resets_it_on_request(tmp_path, capsys, no_leaks):  # noqa: F811
+    alarm = '\n[[emulation.faults]]\ndevice = "pitch"\nkind = "alarm"\ncode = 16\n'
+    station = str(private_file("az-modbus-tcp", tmp_path, alarm))
+    code, _, err = cli(capsys, "station", "check", station, "--emulate", "--time-scale", str(TIME_SCALE))
+    assert code == 2 and "alarm 10h (excessive position deviation); clear the cause, then" in err
+    assert "`labcal station check STATION --reset-alarms`" in err
+    code, out, err = cli(capsys, "station", "check", station, "--emulate", "--time-scale", str(TIME_SCALE),
+                         "--reset-alarms", "--json")
+    pitch = json.loads(out)["devices"][0]
+    assert code == 0 and pitch["alarm_reset"] and pitch["status"] == "READY IN-POS", err
