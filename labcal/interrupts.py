@@ -1,6 +1,7 @@
 """Ctrl-C during a run: the first asks for a pause after the current point, the second stops
-the tables at once; at a prompt, where nothing moves, the first stops. Neither cuts a journal transaction or a device exchange in half: inside a
-`critical()` section the stop is deferred to the section's end.
+the tables at once; at a prompt, where nothing moves, the first stops. Neither cuts a journal
+transaction or a device exchange in half: inside a `critical()` section the stop is deferred to the
+section's end.
 """
 
 from __future__ import annotations
