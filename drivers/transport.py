@@ -33,8 +33,16 @@ SLICE_S = 0.02  # streams return what arrived within this; callers loop until th
 def uninterruptible() -> Iterator[None]:
     """Defer the first Ctrl-C until the block is done, then raise it (a second one is immediate).
 
-    Only the main thread receives signals; elsewhere, or inside another such block, this is a no-op.
+    During a run the run's own handler owns Ctrl-C: the block is then one of its critical sections
+    (a first Ctrl-C asks for a pause, a second is deferred to the end of the exchange). Only the
+    main thread receives signals; elsewhere, or inside another such block, this is a no-op.
     """
+    from labcal.interrupts import ACTIVE
+
+    if ACTIVE and threading.current_thread() is threading.main_thread():
+        with ACTIVE[-1].critical():
+            yield
+        return
     if (threading.current_thread() is not threading.main_thread()
             or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
         yield

@@ -318,3 +318,18 @@ def test_a_device_fault_with_nobody_to_answer_stops_and_keeps_every_point(tmp_pa
         journal_run(tmp_path, setup, operator=ScriptedOperator(quiet_console(), answers))
     with Journal(tmp_path / "j.sqlite") as journal:
         assert journal.run(1).status == "stopped" and len(journal.points(1)) == 10  # 2 moves: load, check
+
+
+def test_during_a_run_a_stop_waits_for_the_device_exchange_to_finish():
+    """The drivers' exchanges are critical sections of the run's Ctrl-C handler: a second Ctrl-C
+    arriving in the middle of one is raised only when the exchange is complete."""
+    from labcal.drivers.transport import uninterruptible
+    from labcal.interrupts import Interrupts
+
+    finished = []
+    with Interrupts() as interrupts, pytest.raises(KeyboardInterrupt):
+        with uninterruptible():
+            ctrl_c()  # first: a pause is requested, nothing is raised
+            ctrl_c()  # second: deferred
+            finished.append("reply read")
+    assert finished == ["reply read"] and interrupts.count == 2
