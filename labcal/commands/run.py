@@ -118,11 +118,12 @@ def prepare(bench: Bench, station: Station) -> None:
     """Home and enable the tables and configure the DMM; a stop reaches the tables if that fails."""
     try:
         bench.prepare(say=lambda text: err.print(text))
-    except BaseException:
+    except BaseException as exc:
         try:
             station.stop()
         except LabcalError as stop_error:
-            err.print(f"[bold red]and stopping the tables failed:[/] {stop_error}")
+            if str(stop_error) != str(exc):  # an unreachable table fails both the same way: say it once
+                err.print(f"[bold red]and stopping the tables failed:[/] {stop_error}")
         raise
 
 
