@@ -76,13 +76,6 @@ class Bench:
     def axes(self) -> tuple[IndexAxis, IndexAxis]:
         return self.pitch, self.roll
 
-    def check_angles(self, pitch_deg: list[float], roll_deg: list[float]) -> None:
-        """Every angle a run will visit, against the soft limits, before anything moves."""
-        for angle in pitch_deg:
-            self.pitch.check_angle(angle)
-        for angle in roll_deg:
-            self.roll.check_angle(angle)
-
     def prepare(self, say: Callable[[str], None] = lambda text: None) -> None:
         """Home and enable the tables where their controllers need it, and configure the DMM."""
         for axis in self.axes:

@@ -159,10 +159,6 @@ def fit_readings(readings: Readings, model: Model | None = None) -> Fit:
     return Fit(model, names, ls, replication, tuple(notes))
 
 
-def fit_linear(readings: Readings) -> Fit:
-    return fit_readings(readings)
-
-
 @dataclass(frozen=True)
 class ExtensionTest:
     """Is an extra regressor set warranted? Extra-sum-of-squares F test against the base model.

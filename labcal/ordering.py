@@ -21,11 +21,6 @@ def move_time(a: NDArray, b: NDArray, speed: float, accel: float) -> NDArray:
     return t.max(axis=-1)
 
 
-def tour_time(points: NDArray, start: NDArray, speed: float, accel: float) -> float:
-    path = np.vstack([start, points])
-    return float(move_time(path[:-1], path[1:], speed, accel).sum())
-
-
 def _shortest(points: NDArray, start: NDArray, speed: float, accel: float) -> list[int]:
     n = len(points)
     cost = move_time(points[:, None, :], points[None, :, :], speed, accel)

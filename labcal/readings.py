@@ -39,11 +39,6 @@ class Readings:
     def __len__(self) -> int:
         return len(self.replicate)
 
-    @property
-    def angles_rad(self) -> tuple[NDArray, NDArray, NDArray, NDArray]:
-        """(pitch, roll, y, u) in radians for the kinematics."""
-        return tuple(np.radians(a) for a in (self.pitch_deg, self.roll_deg, self.y_deg, self.u_deg))
-
 
 def _number(text: str, where: str) -> float:
     if not text.strip():

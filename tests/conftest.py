@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from labcal.fit import fit_linear
+from labcal.fit import fit_readings
 from labcal.kinematics import Misalignment
 from labcal.plan import Plan
 from labcal.sim.direct import simulate_readings
@@ -30,7 +30,7 @@ def soto_plan(mounts: list[tuple[int, int]]) -> Plan:
 def ideal_fit(mounts: list[tuple[int, int]], mis: Misalignment) -> np.ndarray:
     """X fitted to noise-free readings of an ideal instrument (B = 0, S = I) on a misaligned CD."""
     readings = simulate_readings(soto_plan(mounts), InstrumentTruth(), mis)
-    return fit_linear(readings).coefficients
+    return fit_readings(readings).coefficients
 
 
 def quiet_console():

@@ -7,7 +7,7 @@ import pytest
 from conftest import FOUR_MOUNTS, soto_plan
 
 from labcal.errors import LabcalError
-from labcal.fit import fit_linear
+from labcal.fit import fit_readings
 from labcal.regression import least_squares
 from labcal.sim.direct import simulate_readings
 from labcal.sim.instrument import InstrumentTruth
@@ -55,7 +55,7 @@ def test_standard_errors_are_honest_monte_carlo():
     standard error the fit reports (within the ±10 % a 400-sample SD allows at ~3σ)."""
     truth = InstrumentTruth(B=[0.01, -0.02, 0.005], S=[[5, 0.01, 0], [0, 4.9, 0.02], [0.01, 0, 5.1]])
     plan = soto_plan(FOUR_MOUNTS)
-    fits = [fit_linear(simulate_readings(plan, truth, noise_v=1e-4, seed=s)) for s in range(400)]
+    fits = [fit_readings(simulate_readings(plan, truth, noise_v=1e-4, seed=s)) for s in range(400)]
     X = np.array([f.coefficients for f in fits])
     reported = np.mean([f.ls.stderr for f in fits], axis=0)
     ratio = X.std(axis=0, ddof=1) / reported
