@@ -135,9 +135,14 @@ class Fit:
         return doc
 
 
+def reference_temperature(readings: Readings) -> float:
+    """Where temperature terms are centred: the run's mean temperature (20 °C when none was read)."""
+    return float(np.mean(readings.temp_c)) if readings.temp_c is not None else 20.0
+
+
 def fit_readings(readings: Readings, model: Model | None = None) -> Fit:
     """Least squares on the nominal gravity, with replicated analysis when there are replicates."""
-    model = model or Model(t_ref=float(np.mean(readings.temp_c)) if readings.temp_c is not None else 20.0)
+    model = model or Model(t_ref=reference_temperature(readings))
     names, design = model.design(readings_points(readings))
     ls = least_squares(design, readings.volts)
     groups, _ = point_groups(point_keys(readings))
@@ -200,7 +205,7 @@ def extension_tests(readings: Readings) -> list[ExtensionTest]:
     """F test of each model extension added alone to the base model."""
     from labcal.errors import LabcalError
 
-    t_ref = float(np.mean(readings.temp_c)) if readings.temp_c is not None else 20.0
+    t_ref = reference_temperature(readings)
     points = readings_points(readings)
     _, base_design = Model().design(points)
     n_base = base_design.shape[1]

@@ -27,13 +27,12 @@ def parse_at(text: str) -> tuple[float, float, float, float]:
 def cmd_fit(args: argparse.Namespace) -> int:
     from labcal.coning import coning, coning_json
     from labcal.console import coefficient_table
-    from labcal.fit import SENSORS, extension_tests, fit_readings
+    from labcal.fit import SENSORS, extension_tests, fit_readings, reference_temperature
     from labcal.models import Model
 
     readings = read_readings(args.readings)
     extend = tuple(e.strip() for e in args.extend.split(",") if e.strip()) if args.extend else ()
-    t_ref = float(np.mean(readings.temp_c)) if readings.temp_c is not None else 20.0
-    fit = fit_readings(readings, Model(extend, t_ref))
+    fit = fit_readings(readings, Model(extend, reference_temperature(readings)))
     doc = coning_json(fit) if args.model == "coning" else fit.to_json()
     at = [parse_at(a) for a in args.at or []]
     if at:
