@@ -9,16 +9,23 @@ position and improves it by 2-opt; Tripp & Tcheng recommend sweeping pitch min �
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 ORDERS = ("shortest", "plan", "sweep", "random")
 
 
+def trapezoid_duration(distance: ArrayLike, speed: float, accel: float) -> NDArray | float:
+    """Time to travel |distance| from rest to rest at peak ``speed`` and acceleration ``accel``
+    (triangular when the table never reaches full speed). The simulated tables move by it too."""
+    d = np.abs(np.asarray(distance, dtype=float))
+    t = np.where(d <= speed**2 / accel, 2 * np.sqrt(d / accel), d / speed + speed / accel)
+    return t if t.ndim else float(t)
+
+
 def move_time(a: NDArray, b: NDArray, speed: float, accel: float) -> NDArray:
     """Time to go from attitude(s) a to b (…×2 degrees) with both tables moving together."""
-    d = np.abs((np.asarray(b) - np.asarray(a) + 180.0) % 360.0 - 180.0)
-    t = np.where(d <= speed**2 / accel, 2 * np.sqrt(d / accel), d / speed + speed / accel)
-    return t.max(axis=-1)
+    d = (np.asarray(b) - np.asarray(a) + 180.0) % 360.0 - 180.0
+    return np.max(trapezoid_duration(d, speed, accel), axis=-1)
 
 
 def _shortest(points: NDArray, start: NDArray, speed: float, accel: float) -> list[int]:

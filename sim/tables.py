@@ -9,15 +9,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal.errors import LabcalError
+from labcal.ordering import trapezoid_duration
 from labcal.sim.clock import VirtualClock
-
-
-def trapezoid_duration(distance: float, speed: float, accel: float) -> float:
-    """Time to travel |distance| from rest to rest at peak ``speed`` and acceleration ``accel``."""
-    d = abs(distance)
-    if d <= speed**2 / accel:  # triangular: never reaches full speed
-        return 2 * math.sqrt(d / accel)
-    return d / speed + speed / accel
 
 
 def trapezoid_travel(t: NDArray, distance: float, speed: float, accel: float) -> NDArray:
