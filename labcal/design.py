@@ -9,7 +9,7 @@ from numpy.typing import NDArray
 
 from labcal.errors import LabcalError
 from labcal.kinematics import MISALIGNMENT_NAMES, Misalignment, gravity
-from labcal.plan import INDEX_STEP_DEG, Plan
+from labcal.plan import INDEX_STEP_DEG, Plan, on_grid
 
 FOUR_MOUNTS = [(0.0, 0.0), (180.0, 0.0), (0.0, 180.0), (180.0, 180.0)]
 ONE_MOUNT = [(0.0, 0.0)]
@@ -73,9 +73,9 @@ def grid(pitch_min: float, pitch_max: float, pitch_step: float, roll_min: float,
 def make_plan(name: str, description: str, points: list[tuple[float, float]], four_mounts: bool,
               replicates: int = 1) -> Plan:
     """A validated plan; angles off the 1° index grid mark it for continuous tables."""
-    on_grid = all(abs(a - round(a)) < 1e-9 for point in points for a in point)
+    indexable = all(on_grid(a, INDEX_STEP_DEG) for point in points for a in point)
     return Plan(name=name, description=description, replicates=replicates,
-                angle_step_deg=INDEX_STEP_DEG if on_grid else 0.0,
+                angle_step_deg=INDEX_STEP_DEG if indexable else 0.0,
                 mounts=FOUR_MOUNTS if four_mounts else ONE_MOUNT, points=points)
 
 

@@ -21,6 +21,11 @@ INDEX_STEP_DEG = 1.0  # index tables stop on a 1° grid
 N_COEFFICIENTS = 4  # per sensor: bias and three sensitivities
 
 
+def on_grid(angle: float, step: float) -> bool:
+    """Whether an angle is one the tables can stop at (step 0: any angle)."""
+    return not step or abs(angle / step - round(angle / step)) <= 1e-9
+
+
 class Plan(BaseModel):
     """A validated articulation plan. Angles in degrees: table angles in -180..360 on the 1° grid."""
 
@@ -50,7 +55,7 @@ class Plan(BaseModel):
             for axis, angle in zip(("pitch", "roll"), point, strict=True):
                 if not -180 <= angle <= 360:
                     raise ValueError(f"point {i + 1}: {axis} {angle:g}° is outside -180..360")
-                if step and abs(angle / step - round(angle / step)) > 1e-9:
+                if not on_grid(angle, step):
                     raise ValueError(
                         f"point {i + 1}: {axis} {angle:g}° is not on the tables' {step:g}° grid "
                         "(set angle_step_deg = 0 for continuously positioned tables)"
