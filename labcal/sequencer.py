@@ -235,13 +235,17 @@ class Sequencer:
                 if self.interrupts.pause_requested:
                     self.pause("Ctrl-C")
         except BaseException as exc:
-            try:
-                self.station.stop()
-            except Exception as stop_error:  # noqa: BLE001 - report it, but keep the original cause
-                exc.add_note(f"and stopping the tables failed too: {stop_error}")
+            self.stop_tables(exc)
             raise
         recorded = len(self.journal.points(self.run_id, status="ok"))
         return RunOutcome(recorded, failed, self.station.clock.now() - self._t0)
+
+    def stop_tables(self, cause: BaseException) -> None:
+        """Stop both tables; if that fails too, note it on ``cause`` rather than replace it."""
+        try:
+            self.station.stop()
+        except Exception as stop_error:  # noqa: BLE001 - the cause is the news; keep it
+            cause.add_note(f"and stopping the tables failed too: {stop_error}")
 
     def until_done(self, action, *args):
         """Do ``action(*args)``; on a device fault stop the tables, say what happened and pause: the
@@ -252,10 +256,7 @@ class Sequencer:
             except PolicyAbort:
                 raise
             except LabcalError as fault:
-                try:
-                    self.station.stop()
-                except Exception as stop_error:  # noqa: BLE001 - the fault is the news; note the rest
-                    fault.add_note(f"stopping the tables failed too: {stop_error}")
+                self.stop_tables(fault)
                 self.event("fault", str(fault))
                 self.display.message(f"[bold red]Fault:[/] {fault}")
                 self.pause(f"fault: {fault}")
