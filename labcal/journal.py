@@ -119,6 +119,7 @@ class RunRow:
     settings: dict
     metadata: dict
     started_utc: str
+    ended_utc: str | None
     status: str
     reason: str | None
     instrument_serial: str | None

@@ -58,9 +58,8 @@ def load_run(run_dir: str | Path) -> RunRecord:
                               "certificate (labcal resume finishes it)")
         points = journal.points(row.id, status="ok")
         readings = journal.readings(row.id)
-        ended = journal.db.execute("SELECT ended_utc FROM runs WHERE id=?", (row.id,)).fetchone()[0]
     plan = parse_plan(row.plan_text, f"run {row.id} plan")
     meta = {**info, **row.metadata, "status": row.status, "reason": row.reason,
-            "started_utc": row.started_utc, "ended_utc": ended, "settings": row.settings,
+            "started_utc": row.started_utc, "ended_utc": row.ended_utc, "settings": row.settings,
             "instrument_serial": row.instrument_serial, "operator": row.operator}
     return RunRecord(run_dir, readings, readings_digest(points), plan, row.plan_text, meta)

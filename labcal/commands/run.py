@@ -162,9 +162,8 @@ def certificate_settings(args: argparse.Namespace, section: dict | None, source:
     """The station's [certificate] section with the command line's tolerances over it."""
     from labcal.certificate import settings_from
 
-    usage = tuple(args.usage_pitch) if getattr(args, "usage_pitch", None) else None
-    return settings_from(section, source, attitude_u95_max_deg=getattr(args, "tolerance_deg", None),
-                         usage_pitch_deg=usage)
+    usage = tuple(args.usage_pitch) if args.usage_pitch else None
+    return settings_from(section, source, attitude_u95_max_deg=args.tolerance_deg, usage_pitch_deg=usage)
 
 
 def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done: int,
