@@ -11,21 +11,20 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from labcal.commands.common import EXIT_INTERRUPTED, EXIT_STOPPED, err, out, print_json
-from labcal.design import plan_toml
 from labcal.errors import LabcalError
-from labcal.estimate import Estimate, Timing, estimate
-from labcal.journal import Journal, db_path
-from labcal.operator import AutoOperator, ConsoleOperator, OperatorDeclined, ScriptedOperator
 from labcal.plan import Plan, load_plan
-from labcal.run import RunResult, calibrate, execute, new_run_dir, open_for_resume, points_on_disk
-from labcal.sequencer import SequencerSettings, check_limits, schedule
-from labcal.settle import SettleSettings
-from labcal.station import Station
 
+# The run machinery (sequencer, journal, statistics) is imported where it is used, so that the
+# other commands, which import this module to build the parser, do not pay for it at start-up.
 if TYPE_CHECKING:
     from labcal.drivers.bench import Bench
     from labcal.drivers.station_file import StationFile
+    from labcal.estimate import Estimate, Timing
+    from labcal.run import RunResult
+    from labcal.sequencer import SequencerSettings
+    from labcal.settle import SettleSettings
     from labcal.sim.instrument import InstrumentTruth
+    from labcal.station import Station
 
 REMOUNT_ALLOWANCE_S = 300.0  # the operator's time for one remount, for estimates on real hardware
 
@@ -44,6 +43,7 @@ class StationSetup:
 def sim_station(rig_file: str | None, seed: int | None, snapshot: str | None = None,
                 start_time_s: float = 0.0) -> StationSetup:
     """The simulated rig, from a rig file or from a journal snapshot (resume)."""
+    from labcal.estimate import Timing
     from labcal.sim.clock import VirtualClock
     from labcal.sim.rig import RigConfig, SimRig, load_rig_config
 
@@ -63,6 +63,8 @@ def sim_station(rig_file: str | None, seed: int | None, snapshot: str | None = N
 
 def known_settle(inst: InstrumentTruth) -> SettleSettings:
     """Settle settings for a simulated or emulated instrument, whose time constant and noise are known."""
+    from labcal.settle import SettleSettings
+
     return SettleSettings(tau_s=inst.tau_s, noise_v=max(inst.noise_v, 1e-7),
                           sensitivity_v_per_g=float(max(abs(x) for row in inst.S for x in row)))
 
@@ -75,7 +77,9 @@ def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emul
     resume rebuilds the same station; also returns the file's [sequencer] settings."""
     from labcal.drivers.bench import Bench
     from labcal.drivers.keysight_34970a import channel_time_s
+    from labcal.estimate import Timing
     from labcal.files import one_line
+    from labcal.sequencer import SequencerSettings
 
     try:
         base = SequencerSettings.model_validate(config.sequencer)
@@ -129,6 +133,8 @@ def prepare(bench: Bench, station: Station) -> None:
 
 def settings_from(args: argparse.Namespace, setup: StationSetup, speed: float = 20.0,
                   accel: float = 40.0) -> SequencerSettings:
+    from labcal.sequencer import SequencerSettings
+
     settle = setup.settle.model_copy(update={
         k: v for k, v in (("samples", args.samples), ("fixed_dwell_s", args.fixed_dwell),
                           ("max_dwell_s", args.max_dwell)) if v is not None})
@@ -138,6 +144,8 @@ def settings_from(args: argparse.Namespace, setup: StationSetup, speed: float = 
 
 
 def make_operator(args: argparse.Namespace):
+    from labcal.operator import AutoOperator, ConsoleOperator, ScriptedOperator
+
     if args.answers:
         return ScriptedOperator(err, args.answers)
     return AutoOperator(err) if args.yes else ConsoleOperator(err)
@@ -171,6 +179,9 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
     """Run with a progress display; turn the ways a run can end into messages and exit codes; at the
     end of a complete run issue its certificate and report (``certificate``: their settings)."""
     from labcal.console import ProgressDisplay, coefficient_table, format_duration
+    from labcal.journal import db_path
+    from labcal.operator import OperatorDeclined
+    from labcal.run import points_on_disk
 
     err.print(f"Run directory: {run_dir}")
     try:
@@ -219,6 +230,12 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from labcal.design import plan_toml
+    from labcal.estimate import estimate
+    from labcal.journal import Journal, db_path
+    from labcal.run import calibrate, new_run_dir
+    from labcal.sequencer import check_limits, schedule
+
     if not args.sim and not args.station:
         raise LabcalError("no station given: use --sim for a dry run on the simulated rig, or --station FILE "
                           "for a station's devices (add --emulate to run them on their emulators)")
@@ -269,6 +286,10 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
+    from labcal.estimate import estimate
+    from labcal.run import execute, open_for_resume
+    from labcal.sequencer import check_limits, schedule
+
     run_dir = Path(args.run)
     ctx = open_for_resume(run_dir)
     with ExitStack() as stack:
