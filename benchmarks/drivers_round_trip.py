@@ -22,8 +22,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from labcal.drivers.bench import Bench
-from labcal.drivers.station_file import load_station, shipped_stations
+from labcal.bench.hardware import Bench
+from labcal.config.station import load_station, shipped_stations
 from labcal.sim.emulation import Emulation
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))

@@ -19,15 +19,16 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
-from labcal.commands.run import sim_station
-from labcal.journal import Journal
-from labcal.kinematics import gravity
-from labcal.operator import AutoOperator
-from labcal.ordering import move_time
-from labcal.plan import load_plan
-from labcal.run import calibrate
-from labcal.sequencer import SequencerSettings, schedule
-from labcal.settle import dead_time
+from labcal.analysis.kinematics import gravity
+from labcal.bench.setup import sim_station
+from labcal.config.plans import load_plan
+from labcal.config.settings import SequencerSettings
+from labcal.run.journal import Journal
+from labcal.run.operator import AutoOperator
+from labcal.run.ordering import move_time
+from labcal.run.runner import calibrate
+from labcal.run.sequencer import schedule
+from labcal.run.settle import dead_time
 
 
 def run(seed: int, fixed_dwell: float | None, tmp: Path):

@@ -11,10 +11,10 @@ import time
 import numpy as np
 from scipy.optimize import least_squares as scipy_least_squares
 
-from labcal.attitude import Calibration, closed_form, sphere_least_squares
-from labcal.design import grid, make_plan
-from labcal.fit import fit_readings
-from labcal.kinematics import gravity
+from labcal.analysis.attitude import Calibration, closed_form, sphere_least_squares
+from labcal.analysis.design import grid, make_plan
+from labcal.analysis.fit import fit_readings
+from labcal.analysis.kinematics import gravity
 from labcal.sim.direct import simulate_readings
 from labcal.sim.instrument import InstrumentTruth
 

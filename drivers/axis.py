@@ -13,7 +13,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 from labcal.drivers.errors import DeviceFault, OutOfLimits
-from labcal.station import Clock
+from labcal.run.station import Clock
 
 ARCSEC_PER_DEG = 3600.0
 START_GRACE_S = 1.0  # a device may report its old in-position state this long after a move starts

@@ -17,7 +17,7 @@ import numpy as np
 
 from labcal.drivers.errors import BadReply, DeviceFault, NoReply, Rejected, on_device
 from labcal.drivers.transport import LineTransport, retried
-from labcal.station import Scan
+from labcal.run.station import Scan
 
 EOL = b"\n"
 NPLC_VALUES = (0.02, 0.2, 1.0, 2.0, 10.0, 20.0, 100.0, 200.0)
@@ -107,7 +107,7 @@ class Keysight34970A:
 
     def _exchange(self, exchange):
         with on_device(self.device):
-            return retried(exchange, self.tries, self.link.drain)
+            return retried(exchange, self.tries, self.link.drain, self.link.critical)
 
     # --- the voltmeter ----------------------------------------------------------------------
     def identify(self) -> str:

@@ -19,6 +19,7 @@ from pymodbus.pdu import ExceptionResponse, ModbusPDU
 
 from labcal.drivers.errors import BadReply, NoReply, PortClosed, Rejected
 from labcal.drivers.transport import reconnect, retried
+from labcal.run.station import CriticalSection
 
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())  # our errors say it in one line
 
@@ -74,6 +75,7 @@ class ModbusLink:
         self.timeout_s = timeout_s
         self.tries = retries + 1
         self.reconnect_s = reconnect_s
+        self.critical: CriticalSection | None = None  # the run's, while a run drives this link
 
     @classmethod
     def serial(cls, port: str, *, baudrate: int, bytesize: int, parity: str, stopbits: int,
@@ -126,7 +128,7 @@ class ModbusLink:
                 raise BadReply(f"undecodable reply ({type(exc).__name__}: {exc})") from None
             return checked(response, function_code, address, count)
 
-        return retried(once, self.tries, self._recover)
+        return retried(once, self.tries, self._recover, self.critical)
 
     def _recover(self) -> None:
         """Let a late reply arrive, then reopen the port: the reopened port starts with empty

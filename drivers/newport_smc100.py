@@ -17,7 +17,7 @@ from typing import TypeVar
 from labcal.drivers.axis import AxisStatus, IndexAxis
 from labcal.drivers.errors import BadReply, DeviceFault, NoReply, Rejected, on_device
 from labcal.drivers.transport import LineTransport, retried
-from labcal.station import Clock
+from labcal.run.station import Clock
 
 EOL = b"\r\n"
 T = TypeVar("T")
@@ -129,7 +129,7 @@ class Smc100Axis(IndexAxis):
             return parse(parse_reply(line, self.address, mnemonic))
 
         with on_device(self.device):
-            return retried(once, self.tries, self.link.drain)
+            return retried(once, self.tries, self.link.drain, self.link.critical)
 
     def do(self, command: str, safe: bool = True) -> None:
         """A command, then ``TE``; raises `Rejected` with the controller's reason. Commands safe to
@@ -141,7 +141,7 @@ class Smc100Axis(IndexAxis):
                 raise self._refused(command, code)
 
         with on_device(self.device):
-            retried(once, self.tries if safe else 1, self.link.drain)
+            retried(once, self.tries if safe else 1, self.link.drain, self.link.critical)
 
     # --- the axis ---------------------------------------------------------------------------
     def status(self) -> AxisStatus:

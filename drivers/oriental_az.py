@@ -14,7 +14,7 @@ from enum import IntEnum, IntFlag
 from labcal.drivers.axis import AxisStatus, IndexAxis
 from labcal.drivers.errors import on_device
 from labcal.drivers.modbus import ModbusLink, int32_words, words_int32
-from labcal.station import Clock
+from labcal.run.station import Clock
 
 # --- register map (wire addresses of the upper word of each 32-bit pair) --------------------
 DDO = 0x0058  # operation data No., type, position, speed, rate, stop rate, current, trigger, destination

@@ -21,6 +21,7 @@ from typing import Protocol, TypeVar
 import serial
 
 from labcal.drivers.errors import TRANSIENT, BadReply, LinkLost, NoReply, PortClosed
+from labcal.run.station import CriticalSection
 
 T = TypeVar("T")
 
@@ -30,17 +31,16 @@ SLICE_S = 0.02  # streams return what arrived within this; callers loop until th
 
 
 @contextmanager
-def uninterruptible() -> Iterator[None]:
+def uninterruptible(critical: CriticalSection | None = None) -> Iterator[None]:
     """Defer the first Ctrl-C until the block is done, then raise it (a second one is immediate).
 
-    During a run the run's own handler owns Ctrl-C: the block is then one of its critical sections
-    (a first Ctrl-C asks for a pause, a second is deferred to the end of the exchange). Only the
-    main thread receives signals; elsewhere, or inside another such block, this is a no-op.
+    During a run the run's own handler owns Ctrl-C and hands its links ``critical``: the block is
+    then one of its critical sections (a first Ctrl-C asks for a pause, a second is deferred to the
+    end of the exchange). Only the main thread receives signals; elsewhere, or inside another such
+    block, this is a no-op.
     """
-    from labcal.interrupts import ACTIVE
-
-    if ACTIVE and threading.current_thread() is threading.main_thread():
-        with ACTIVE[-1].critical():
+    if critical is not None and threading.current_thread() is threading.main_thread():
+        with critical():
             yield
         return
     if (threading.current_thread() is not threading.main_thread()
@@ -63,12 +63,14 @@ def uninterruptible() -> Iterator[None]:
         raise KeyboardInterrupt
 
 
-def retried(exchange: Callable[[], T], tries: int, recover: Callable[[], None]) -> T:
+def retried(exchange: Callable[[], T], tries: int, recover: Callable[[], None],
+            critical: CriticalSection | None = None) -> T:
     """Run an exchange that is safe to repeat (a read, an absolute move, a stop) up to ``tries``
-    times; ``recover`` clears the line between tries (late replies, a reopened port)."""
+    times; ``recover`` clears the line between tries (late replies, a reopened port); each try is
+    uninterruptible (``critical``: the run's critical section, when a run has handed one)."""
     for attempt in range(tries):
         try:
-            with uninterruptible():
+            with uninterruptible(critical):
                 return exchange()
         except TRANSIENT:
             if attempt + 1 >= tries:
@@ -178,6 +180,7 @@ class LineTransport:
         self.reconnect_s = reconnect_s
         self._stream: Stream | None = None
         self._buffer = b""
+        self.critical: CriticalSection | None = None  # the run's, while a run drives this link
 
     def _open(self) -> Stream:
         if self._stream is None:

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from labcal.kinematics import NO_MISALIGNMENT, IndexWobble, Misalignment, gravity
-from labcal.plan import Plan
-from labcal.readings import Readings
+from labcal.analysis.kinematics import NO_MISALIGNMENT, IndexWobble, Misalignment, gravity
+from labcal.analysis.plan import Plan
+from labcal.analysis.readings import Readings
 from labcal.sim.instrument import InstrumentTruth
 
 

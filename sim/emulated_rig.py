@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import threading
 
-from labcal.kinematics import Mount
+from labcal.analysis.kinematics import Mount
 from labcal.sim.clock import ScaledClock
 from labcal.sim.rig import RigConfig, SimRig
 from labcal.sim.tables import SimAxis

@@ -13,9 +13,9 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from labcal.drivers.station_file import AzSettings, LinkSettings, Smc100Settings, StationFile
+from labcal.config.files import one_line
+from labcal.config.station import AzSettings, LinkSettings, Smc100Settings, StationFile
 from labcal.errors import LabcalError
-from labcal.files import one_line
 from labcal.sim.az_emulator import AzDrives, AzServer, AzUnit
 from labcal.sim.dmm_emulator import Keysight34970AEmulator
 from labcal.sim.emulated_rig import EmulatedRig

@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Literal
 
-from labcal.drivers.station_file import LinkSettings
+from labcal.config.station import LinkSettings
 from labcal.drivers.transport import tcp_address
 from labcal.errors import LabcalError
 

@@ -13,13 +13,13 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
+from labcal.analysis.kinematics import ARCSEC, IndexWobble, Misalignment, Mount, gravity
+from labcal.config.files import load_model
 from labcal.errors import LabcalError
-from labcal.files import load_model
-from labcal.kinematics import ARCSEC, IndexWobble, Misalignment, Mount, gravity
+from labcal.run.station import Scan, Station
 from labcal.sim.clock import ScaledClock, VirtualClock
 from labcal.sim.instrument import InstrumentTruth, default_instrument
 from labcal.sim.tables import SimAxis
-from labcal.station import Scan, Station
 
 
 class DeviceTruth(BaseModel):

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from labcal.fit import fit_readings
-from labcal.kinematics import Misalignment
-from labcal.plan import Plan
+from labcal.analysis.fit import fit_readings
+from labcal.analysis.kinematics import Misalignment
+from labcal.analysis.plan import Plan
 from labcal.sim.direct import simulate_readings
 from labcal.sim.instrument import InstrumentTruth
 
@@ -43,11 +43,11 @@ def quiet_console():
 
 def run_on_rig(rig, plan_name: str, tmp_path, settings=None, display=None, operator=None):
     """A whole calibration of a shipped plan on a SimRig, journaled under tmp_path."""
-    from labcal.journal import Journal
-    from labcal.operator import AutoOperator
-    from labcal.plan import load_plan
-    from labcal.run import calibrate
-    from labcal.sequencer import SequencerSettings
+    from labcal.config.plans import load_plan
+    from labcal.config.settings import SequencerSettings
+    from labcal.run.journal import Journal
+    from labcal.run.operator import AutoOperator
+    from labcal.run.runner import calibrate
 
     plan, text = load_plan(plan_name)
     run_dir = tmp_path / "run"

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from labcal.drivers.bench import Bench
-from labcal.drivers.station_file import StationFile, load_station, shipped_stations
+from labcal.bench.hardware import Bench
+from labcal.config.station import StationFile, load_station, shipped_stations
 from labcal.sim.emulation import Emulation
 
 TIME_SCALE = 1000.0  # the default test time scale: a 30-minute calibration takes ~2 s of emulated motion

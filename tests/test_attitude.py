@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 from conftest import FOUR_MOUNTS, soto_plan
 
-from labcal.attitude import Calibration, closed_form, load_calibration, sphere_least_squares
+from labcal.analysis.attitude import Calibration, closed_form, sphere_least_squares
+from labcal.analysis.fit import fit_readings
+from labcal.analysis.kinematics import gravity
+from labcal.analysis.plan import Plan
 from labcal.cli import main
-from labcal.fit import fit_readings
-from labcal.kinematics import gravity
-from labcal.plan import Plan
+from labcal.documents.certificate import load_calibration
 from labcal.sim.direct import simulate_readings
 from labcal.sim.instrument import InstrumentTruth
 

@@ -12,8 +12,9 @@ import pytest
 from scipy import stats
 from simulated_runs import simulated_run
 
-from labcal.attitude import load_calibration
-from labcal.certificate import (
+from labcal.analysis.fit import fit_readings
+from labcal.cli import main
+from labcal.documents.certificate import (
     SCHEMA,
     CertificateSettings,
     build_certificate,
@@ -21,14 +22,13 @@ from labcal.certificate import (
     envelope_grid,
     format_result,
     format_uncertainty,
+    load_calibration,
     load_settings,
     read_certificate,
     write_certificate,
 )
-from labcal.cli import main
 from labcal.errors import LabcalError
-from labcal.fit import fit_readings
-from labcal.runrecord import load_run
+from labcal.run.record import load_run
 
 
 @pytest.fixture(scope="module")
@@ -73,8 +73,8 @@ def test_contents_match_the_fit_and_the_run(run, cert):
     assert cert.environment.temperature_c_max == run.readings.temp_c.max()
     assert cert.plan.sha256 == hashlib.sha256((run.directory / "plan.toml").read_bytes()).hexdigest()
     # the data digest names the journal's committed points, which the readings.csv export mirrors
-    from labcal.journal import Journal
-    from labcal.runrecord import readings_digest
+    from labcal.run.journal import Journal
+    from labcal.run.record import readings_digest
 
     info = json.loads((run.directory / "run.json").read_text())
     with Journal(info["journal"]) as journal:
@@ -125,8 +125,8 @@ def _edit(path, change) -> None:
      "digest mismatch: the content was altered after issue"),
     (lambda d: d["conformity"].__setitem__("passed", not d["conformity"]["passed"]), "digest mismatch"),
     (lambda d: d["digest"].__setitem__("value", "0" * 64), "digest mismatch"),
-    (lambda d: d.__setitem__("schema", "labcal.certificate/9"),
-     "schema 'labcal.certificate/9' is not supported"),
+    (lambda d: d.__setitem__("schema", "labcal.documents.certificate/9"),
+     "schema 'labcal.documents.certificate/9' is not supported"),
     (lambda d: d.pop("schema"), "not a labcal certificate"),
     (lambda d: d["fit"].pop("covariance"), "invalid certificate: fit.covariance: Field required"),
     (lambda d: d["fit"]["coefficients"].pop(), "coefficients must have shape 4×3, not 3×3"),

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from labcal.cli import main
-from labcal.readings import REQUIRED
+from labcal.config.readings_csv import REQUIRED
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 MISALIGN = "a=0.3,b=-0.2,d=0.1,e=0.4,f=-0.3,k=0.2"

@@ -15,11 +15,11 @@ import pytest
 from scipy import stats
 from simulated_runs import rig_with_bias_shift, simulated_run
 
-from labcal.certificate import build_certificate
+from labcal.analysis.fit import fit_readings
 from labcal.cli import main
-from labcal.fit import fit_readings
-from labcal.history import RULE, certificates_for, changes, store
-from labcal.runrecord import load_run
+from labcal.documents.certificate import build_certificate
+from labcal.documents.history import RULE, certificates_for, changes, store
+from labcal.run.record import load_run
 
 SERIAL = "SN-1001"
 SHIFT_V = 1e-4
@@ -77,7 +77,7 @@ def test_history_command_json_and_plot(lab, tmp_path, capsys):
 
 
 def test_database_path_option_environment_and_default(lab, monkeypatch, capsys):
-    from labcal.journal import db_path
+    from labcal.run.journal import db_path
 
     monkeypatch.setenv("LABCAL_DB", str(lab))
     assert main(["history", SERIAL, "--json"]) == 0  # $LABCAL_DB when there is no --db

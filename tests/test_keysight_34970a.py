@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from emulators import MOTION_SCALE, bench_fixtures, no_leaks  # noqa: F401 - fixture
 
+from labcal.analysis.kinematics import Mount
 from labcal.drivers.errors import BadReply, DeviceFault, NoReply, Rejected
 from labcal.drivers.keysight_34970a import channel_time_s
-from labcal.kinematics import Mount
 from labcal.sim.faults import Fault, FaultKind
 
 QUICK = {"timeout_s": 0.1, "retries": 2, "reconnect_s": 0.5}

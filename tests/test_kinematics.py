@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from labcal.kinematics import (
+from labcal.analysis.kinematics import (
     ARCSEC,
     MOUNTS,
     IndexWobble,

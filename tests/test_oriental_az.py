@@ -8,8 +8,8 @@ import time
 import pytest
 from emulators import bench_fixtures, emulated, no_leaks  # noqa: F401 - fixture
 
+from labcal.bench.hardware import Bench
 from labcal.drivers.axis import wrapped
-from labcal.drivers.bench import Bench
 from labcal.drivers.errors import BadReply, DeviceFault, LinkLost, NoReply, OutOfLimits, Rejected
 from labcal.drivers.oriental_az import Output
 from labcal.sim.faults import Fault, FaultKind

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from labcal.readings import REQUIRED, Readings, read_readings, write_readings
+from labcal.analysis.readings import Readings
+from labcal.config.readings_csv import REQUIRED, read_readings, write_readings
 
 
 def test_round_trip_is_bit_exact(tmp_path):

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from conftest import FOUR_MOUNTS, soto_plan
 
+from labcal.analysis.fit import fit_readings
+from labcal.analysis.regression import least_squares
 from labcal.errors import LabcalError
-from labcal.fit import fit_readings
-from labcal.regression import least_squares
 from labcal.sim.direct import simulate_readings
 from labcal.sim.instrument import InstrumentTruth
 

@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 from simulated_runs import simulated_run
 
-from labcal.certificate import CertificateSettings, build_certificate, read_certificate
+from labcal.analysis.fit import fit_readings
 from labcal.cli import main
-from labcal.fit import fit_readings
-from labcal.report import envelope_figure, figures, inferred_attitude, tables, write_run_outputs
-from labcal.runrecord import load_run
+from labcal.documents.certificate import CertificateSettings, build_certificate, read_certificate
+from labcal.documents.report import envelope_figure, figures, inferred_attitude, tables, write_run_outputs
+from labcal.run.record import load_run
 
 TOLERANCE_DEG = 0.01
 

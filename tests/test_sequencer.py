@@ -16,15 +16,15 @@ import numpy as np
 import pytest
 from conftest import quiet_console, run_on_rig
 
-from labcal.commands.run import sim_station
+from labcal.analysis.kinematics import MOUNTS, Mount
+from labcal.bench.setup import sim_station
+from labcal.config.plans import load_plan
+from labcal.config.settings import SequencerSettings, SettleSettings
 from labcal.errors import LabcalError
-from labcal.journal import Journal
-from labcal.kinematics import MOUNTS, Mount
-from labcal.operator import AutoOperator, ScriptedOperator
-from labcal.plan import load_plan
-from labcal.run import calibrate, execute, open_for_resume
-from labcal.sequencer import Display, SequencerSettings, schedule
-from labcal.settle import SettleSettings
+from labcal.run.journal import Journal
+from labcal.run.operator import AutoOperator, ScriptedOperator
+from labcal.run.runner import calibrate, execute, open_for_resume
+from labcal.run.sequencer import Display, schedule
 from labcal.sim.rig import RigConfig, SimRig
 
 STATIC_LAB = str(Path(__file__).parent / "data" / "rig_static_lab.toml")
@@ -324,11 +324,11 @@ def test_during_a_run_a_stop_waits_for_the_device_exchange_to_finish():
     """The drivers' exchanges are critical sections of the run's Ctrl-C handler: a second Ctrl-C
     arriving in the middle of one is raised only when the exchange is complete."""
     from labcal.drivers.transport import uninterruptible
-    from labcal.interrupts import Interrupts
+    from labcal.run.interrupts import Interrupts
 
     finished = []
     with Interrupts() as interrupts, pytest.raises(KeyboardInterrupt):
-        with uninterruptible():
+        with uninterruptible(interrupts.critical):
             ctrl_c()  # first: a pause is requested, nothing is raised
             ctrl_c()  # second: deferred
             finished.append("reply read")

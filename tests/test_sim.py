@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from conftest import run_on_rig
 
-from labcal.kinematics import Mount
-from labcal.sequencer import SequencerSettings, move_both
-from labcal.settle import SettleSettings
+from labcal.analysis.kinematics import Mount
+from labcal.config.settings import SequencerSettings, SettleSettings
+from labcal.run.sequencer import move_both
 from labcal.sim.clock import VirtualClock
 from labcal.sim.instrument import InstrumentTruth, coning_axes
 from labcal.sim.rig import DeviceTruth, RigConfig, SimRig

@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy import cos, sin
 
-from labcal.kinematics import Misalignment
+from labcal.analysis.kinematics import Misalignment
 
 TOL = 1e-12
 angle = st.floats(min_value=-0.5, max_value=0.5, allow_nan=False)  # degrees

@@ -14,7 +14,7 @@ import pytest
 from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.cli import main
-from labcal.drivers.station_file import load_station, shipped_stations
+from labcal.config.station import load_station, shipped_stations
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 EMULATED = [name for name in shipped_stations() if name != "lab-example"]
@@ -68,7 +68,7 @@ def test_a_silent_device_is_named(tmp_path, capsys, no_leaks):  # noqa: F811
     emulated_file = tmp_path / "emu.toml"
     emulated_file.write_text(path.read_text())
     path.write_text(text)
-    from labcal.drivers.station_file import load_station as load
+    from labcal.config.station import load_station as load
     from labcal.sim.emulation import Emulation
 
     with Emulation(load(emulated_file)[0], time_scale=TIME_SCALE):

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 from conftest import FOUR_MOUNTS, soto_plan
 
-from labcal.coning import coning
-from labcal.fit import Fit, extension_tests, fit_readings, point_keys
-from labcal.models import Model, Points
-from labcal.plan import Plan
-from labcal.readings import Readings
-from labcal.regression import least_squares
-from labcal.replication import analyse, point_groups
+from labcal.analysis.coning import coning
+from labcal.analysis.fit import Fit, extension_tests, fit_readings, point_keys
+from labcal.analysis.models import Model, Points
+from labcal.analysis.plan import Plan
+from labcal.analysis.readings import Readings
+from labcal.analysis.regression import least_squares
+from labcal.analysis.replication import analyse, point_groups
 from labcal.sim.direct import simulate_readings
 from labcal.sim.instrument import InstrumentTruth
 
@@ -112,7 +112,7 @@ def test_lack_of_fit_test_has_its_nominal_size_when_the_model_is_right():
 def test_bias_is_detected_and_scales_the_uncertainty():
     """A CD misalignment the model ignores repeats in every replicate: the lack-of-fit test finds
     it, σ_bias estimates it, and the coefficient uncertainty grows to the lack-of-fit scale."""
-    from labcal.kinematics import Misalignment
+    from labcal.analysis.kinematics import Misalignment
 
     plan = Plan(**{**soto_plan(FOUR_MOUNTS).model_dump(), "replicates": 3})
     biased = simulate_readings(plan, TRUTH, Misalignment.from_degrees(a=0.01, d=0.01), noise_v=1e-5, seed=2)
@@ -154,7 +154,7 @@ def test_temperature_extension_is_warranted_only_when_temperature_matters():
 
 
 def test_harmonic_extension_finds_a_2_alpha_pattern():
-    from labcal.design import d1, make_plan
+    from labcal.analysis.design import d1, make_plan
 
     plan = make_plan("d1", "", d1(90, 19, 8), four_mounts=False, replicates=2)
     readings = simulate_readings(plan, TRUTH, noise_v=1e-5, seed=9)
@@ -167,7 +167,7 @@ def test_harmonic_extension_finds_a_2_alpha_pattern():
 def test_replicates_that_visit_a_point_twice_still_get_drift_tests():
     """Tripp's 481-point design holds both −180° and 180°: each replicate sees those points twice.
     The drift-robust analysis uses per-replicate point means weighted by their counts."""
-    from labcal.design import grid, make_plan
+    from labcal.analysis.design import grid, make_plan
 
     plan = make_plan("t481", "", grid(-180, 180, 10, -180, 180, 30), four_mounts=False, replicates=3)
     readings = simulate_readings(plan, TRUTH, noise_v=1e-5, seed=12)

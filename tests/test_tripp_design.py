@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from labcal.design import (
+from labcal.analysis.design import (
     audit,
     audit_summary,
     d1,
@@ -14,10 +14,9 @@ from labcal.design import (
     fractional_size,
     make_plan,
     normalised_variance,
-    plan_toml,
     tumble,
 )
-from labcal.plan import load_plan, parse_plan
+from labcal.config.plans import load_plan, parse_plan, plan_toml
 
 # Tripp Table 1, columns 2–5: design D1, M = 64, N = 33; V^½ over the calibration range and
 # V_R^½ over the usage range −30°..30°.
@@ -85,7 +84,7 @@ def test_audit_agrees_with_finite_misalignments():
     """The first-order audit predicts the exact fit of a slightly misaligned device."""
     from conftest import ideal_fit
 
-    from labcal.kinematics import Misalignment
+    from labcal.analysis.kinematics import Misalignment
 
     leaks = audit(load_plan("one-mount-16")[0])
     h = 1e-6

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from labcal.commands.common import print_json
-from labcal.readings import read_numeric_csv
+from labcal.config.readings_csv import read_numeric_csv
 
 METHODS = {"closed": "closed_form", "sphere": "sphere_least_squares"}
 PREFIX = {"closed": "cf_", "sphere": "ls_"}
@@ -27,9 +27,10 @@ def _columns(att, prefix: str) -> dict[str, np.ndarray]:
 
 
 def cmd_attitude(args: argparse.Namespace) -> int:
-    from labcal import attitude
+    from labcal.analysis import attitude
+    from labcal.documents.certificate import load_calibration
 
-    cal = attitude.load_calibration(args.cert)
+    cal = load_calibration(args.cert)
     source = args.csv
     if source is None:  # voltages on standard input
         with tempfile.NamedTemporaryFile("w", suffix=".csv", delete=False) as tmp:

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 
 from rich.console import Console
 
-from labcal.files import json_safe
+from labcal.config.files import json_safe
 
 EXIT_USER_ERROR = 2
 EXIT_STOPPED = 1
@@ -20,3 +21,8 @@ err = Console(stderr=True, highlight=False, soft_wrap=True)  # prose: the termin
 def print_json(doc: dict) -> None:
     """One JSON document on stdout and nothing else (`--json`)."""
     sys.stdout.write(json.dumps(json_safe(doc), indent=2) + "\n")
+
+
+def add_db_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--db", metavar="PATH",
+                   help="the lab's SQLite database (default: $LABCAL_DB, else runs/labcal.sqlite)")

@@ -7,10 +7,10 @@ import argparse
 import numpy as np
 from rich.table import Table
 
+from labcal.analysis.models import EXTENSIONS, Points
 from labcal.commands.common import out, print_json
+from labcal.config.readings_csv import read_readings
 from labcal.errors import LabcalError
-from labcal.models import EXTENSIONS, Points
-from labcal.readings import read_readings
 
 
 def parse_at(text: str) -> tuple[float, float, float, float]:
@@ -25,10 +25,10 @@ def parse_at(text: str) -> tuple[float, float, float, float]:
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    from labcal.coning import coning, coning_json
-    from labcal.console import coefficient_table
-    from labcal.fit import SENSORS, extension_tests, fit_readings, reference_temperature
-    from labcal.models import Model
+    from labcal.analysis.coning import coning, coning_json
+    from labcal.analysis.fit import SENSORS, extension_tests, fit_readings, reference_temperature
+    from labcal.analysis.models import Model
+    from labcal.commands.console import coefficient_table
 
     readings = read_readings(args.readings)
     extend = tuple(e.strip() for e in args.extend.split(",") if e.strip()) if args.extend else ()

@@ -6,14 +6,13 @@ import argparse
 
 from rich.table import Table
 
-from labcal.commands.common import out, print_json
-from labcal.commands.report import add_db_option
+from labcal.commands.common import add_db_option, out, print_json
 
 
 def cmd_history(args: argparse.Namespace) -> int:
-    from labcal.certificate import format_result
-    from labcal.fit import ROW_NAMES, SENSORS
-    from labcal.history import RULE, certificates_for, changes, history_json, plot_history
+    from labcal.analysis.fit import ROW_NAMES, SENSORS
+    from labcal.documents.certificate import format_result
+    from labcal.documents.history import RULE, certificates_for, changes, history_json, plot_history
 
     certs = certificates_for(args.serial, args.db)
     found = changes(certs)

@@ -8,8 +8,8 @@ from pathlib import Path
 from rich.table import Table
 
 from labcal.commands.common import err, out, print_json
+from labcal.config.plans import load_plan, shipped_plans
 from labcal.errors import LabcalError
-from labcal.plan import load_plan, shipped_plans
 
 
 def cmd_list(args: argparse.Namespace) -> int:
@@ -47,7 +47,8 @@ def cmd_show(args: argparse.Namespace) -> int:
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
-    from labcal import design
+    from labcal.analysis import design
+    from labcal.config.plans import plan_toml
 
     points = {
         "d1": lambda: design.d1(args.pitch_max, args.n_pitch, args.n_roll),
@@ -62,7 +63,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
     plan = design.make_plan(args.name or Path(args.out).stem, description, points, args.four_mounts,
                             args.replicates)
     try:
-        Path(args.out).write_text(design.plan_toml(plan), encoding="utf-8")
+        Path(args.out).write_text(plan_toml(plan), encoding="utf-8")
     except OSError as exc:
         raise LabcalError(f"{args.out}: cannot write plan ({exc.strerror})") from None
     err.print(f"{plan.n_points} points ({len(plan.points)} × {len(plan.mounts)} mount(s) × {plan.replicates} "
@@ -74,7 +75,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
 
 def cmd_merit(args: argparse.Namespace) -> int:
-    from labcal import design
+    from labcal.analysis import design
 
     plan, _ = load_plan(args.plan)
     pitches = [p for p, _ in plan.points]
@@ -106,7 +107,7 @@ def plot_merit(plan, calibration_range, usage, path: str) -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from labcal.design import normalised_variance
+    from labcal.analysis.design import normalised_variance
 
     lo, hi = calibration_range
     pitch = np.linspace(lo, hi, 721)
@@ -130,7 +131,7 @@ def plot_merit(plan, calibration_range, usage, path: str) -> None:
 
 
 def cmd_audit(args: argparse.Namespace) -> int:
-    from labcal.design import LEAK_ZERO, audit, audit_summary
+    from labcal.analysis.design import LEAK_ZERO, audit, audit_summary
 
     plan, _ = load_plan(args.plan)
     leaks = audit(plan)

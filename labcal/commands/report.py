@@ -6,12 +6,7 @@ import argparse
 
 from rich.table import Table as RichTable
 
-from labcal.commands.common import out, print_json
-
-
-def add_db_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--db", metavar="PATH",
-                   help="the lab's SQLite database (default: $LABCAL_DB, else runs/labcal.sqlite)")
+from labcal.commands.common import add_db_option, out, print_json
 
 
 def rich_table(t) -> RichTable:
@@ -25,8 +20,8 @@ def rich_table(t) -> RichTable:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from labcal.certificate import load_settings
-    from labcal.report import attitude_table, coefficient_table, conformity_table, write_run_outputs
+    from labcal.documents.certificate import load_settings
+    from labcal.documents.report import attitude_table, coefficient_table, conformity_table, write_run_outputs
 
     settings = load_settings(args.station, attitude_u95_max_deg=args.tolerance_deg,
                              bias_max_v=args.bias_max_v, usage_pitch_deg=args.usage_pitch,

@@ -6,134 +6,26 @@ from __future__ import annotations
 import argparse
 import json
 from contextlib import ExitStack
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from labcal.analysis.plan import Plan
 from labcal.commands.common import EXIT_INTERRUPTED, EXIT_STOPPED, err, out, print_json
+from labcal.config.plans import load_plan
 from labcal.errors import LabcalError
-from labcal.plan import Plan, load_plan
 
 # The run machinery (sequencer, journal, statistics) is imported where it is used, so that the
 # other commands, which import this module to build the parser, do not pay for it at start-up.
 if TYPE_CHECKING:
-    from labcal.drivers.bench import Bench
-    from labcal.drivers.station_file import StationFile
-    from labcal.estimate import Estimate, Timing
-    from labcal.run import RunResult
-    from labcal.sequencer import SequencerSettings
-    from labcal.settle import SettleSettings
-    from labcal.sim.instrument import InstrumentTruth
-    from labcal.station import Station
-
-REMOUNT_ALLOWANCE_S = 300.0  # the operator's time for one remount, for estimates on real hardware
+    from labcal.bench.setup import StationSetup
+    from labcal.config.settings import SequencerSettings
+    from labcal.run.estimate import Estimate
+    from labcal.run.runner import RunResult
 
 
-@dataclass
-class StationSetup:
-    """A station ready to run, what the journal keeps of it, and its pace for estimates."""
-
-    station: Station
-    text: str  # the snapshot the journal keeps; a resume must rebuild the same station from it
-    metadata: dict
-    timing: Timing
-    settle: SettleSettings
-
-
-def sim_station(rig_file: str | None, seed: int | None, snapshot: str | None = None,
-                start_time_s: float = 0.0) -> StationSetup:
-    """The simulated rig, from a rig file or from a journal snapshot (resume)."""
-    from labcal.estimate import Timing
-    from labcal.sim.clock import VirtualClock
-    from labcal.sim.rig import RigConfig, SimRig, load_rig_config
-
-    if snapshot is not None:
-        doc = json.loads(snapshot)
-        config, seed = RigConfig.model_validate(doc["rig"]), doc["seed"]
-    else:
-        config = load_rig_config(rig_file) if rig_file else RigConfig()
-    rig = SimRig(config, seed=seed, clock=VirtualClock(start_time_s))
-    truth = {"coefficients": rig.instrument.X.tolist(),
-             "misalignment_deg": rig.misalignment.degrees(), "seed": rig.seed}
-    text = json.dumps({"kind": "simulated rig", "seed": rig.seed, "rig": config.model_dump()}, sort_keys=True)
-    timing = Timing(clamp_s=config.clamp_s, sample_s=config.nplc / config.line_hz, remount_s=config.remount_s)
-    settle = known_settle(config.instrument)
-    return StationSetup(rig.station(), text, {"simulated_truth": truth}, timing, settle)
-
-
-def known_settle(inst: InstrumentTruth) -> SettleSettings:
-    """Settle settings for a simulated or emulated instrument, whose time constant and noise are known."""
-    from labcal.settle import SettleSettings
-
-    return SettleSettings(tau_s=inst.tau_s, noise_v=max(inst.noise_v, 1e-7),
-                          sensitivity_v_per_g=float(max(abs(x) for row in inst.S for x in row)))
-
-
-def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emulate: bool = False,
-                     time_scale: float | None = None, seed: int | None = None,
-                     start_time_s: float = 0.0) -> tuple[StationSetup, Bench, SequencerSettings]:
-    """A station file's devices through the real drivers (on the emulators it points at with
-    ``emulate``, started here and stopped with ``stack``). The journal keeps the file, so that a
-    resume rebuilds the same station; also returns the file's [sequencer] settings."""
-    from labcal.drivers.bench import Bench
-    from labcal.drivers.keysight_34970a import channel_time_s
-    from labcal.estimate import Timing
-    from labcal.files import one_line
-    from labcal.sequencer import SequencerSettings
-
-    try:
-        base = SequencerSettings.model_validate(config.sequencer)
-    except ValueError as exc:
-        raise LabcalError(f"{source}: sequencer.{one_line(exc)}") from None
-    station = config.model_dump(mode="json")
-    station["emulation"].pop("faults", None)  # injected faults are a test, not the station: a resume has none
-    snapshot: dict = {"kind": "station", "station": station, "emulate": emulate}
-    sweep_s = (3 + bool(config.dmm.temperature_channel)) * channel_time_s(config.dmm.nplc, config.dmm.line_hz)
-    timing = Timing(clamp_s=0.0, sample_s=sweep_s, remount_s=REMOUNT_ALLOWANCE_S)
-    settle, clock, hooks, metadata = base.settle, None, {}, {"station_file": source}
-    if emulate:
-        from labcal.sim.emulation import Emulation
-
-        emulation = stack.enter_context(Emulation(config, time_scale=time_scale, seed=seed, source=source,
-                                                  start_s=start_time_s))
-        rig = emulation.rig.rig
-        snapshot.update(time_scale=emulation.time_scale, seed=rig.seed)
-        timing = Timing(clamp_s=rig.config.clamp_s, sample_s=sweep_s, remount_s=0.0)
-        settle, clock, hooks = known_settle(rig.instrument), emulation.rig.clock, emulation.hooks()
-        metadata["simulated_truth"] = emulation.truth()
-        config = emulation.station_config
-    bench = stack.enter_context(Bench(config, clock))
-    text = json.dumps(snapshot, sort_keys=True)
-    return StationSetup(bench.station(**hooks), text, metadata, timing, settle), bench, base
-
-
-def station_from_snapshot(text: str, stack: ExitStack, start_time_s: float) -> tuple[StationSetup, Bench]:
-    """The station a journaled run started on, rebuilt from its snapshot (emulators restarted)."""
-    from labcal.drivers.station_file import StationFile
-
-    doc = json.loads(text)
-    setup, bench, _ = hardware_station(StationFile.model_validate(doc["station"]), "the journaled station",
-                                       stack, emulate=doc["emulate"], time_scale=doc.get("time_scale"),
-                                       seed=doc.get("seed"), start_time_s=start_time_s)
-    return setup, bench
-
-
-def prepare(bench: Bench, station: Station) -> None:
-    """Home and enable the tables and configure the DMM; a stop reaches the tables if that fails."""
-    try:
-        bench.prepare(say=lambda text: err.print(text))
-    except BaseException as exc:
-        try:
-            station.stop()
-        except LabcalError as stop_error:
-            if str(stop_error) != str(exc):  # an unreachable table fails both the same way: say it once
-                err.print(f"[bold red]and stopping the tables failed:[/] {stop_error}")
-        raise
-
-
-def settings_from(args: argparse.Namespace, setup: StationSetup, speed: float = 20.0,
+def sequencer_settings_for_run(args: argparse.Namespace, setup: StationSetup, speed: float = 20.0,
                   accel: float = 40.0) -> SequencerSettings:
-    from labcal.sequencer import SequencerSettings
+    from labcal.config.settings import SequencerSettings
 
     settle = setup.settle.model_copy(update={
         k: v for k, v in (("samples", args.samples), ("fixed_dwell_s", args.fixed_dwell),
@@ -144,7 +36,7 @@ def settings_from(args: argparse.Namespace, setup: StationSetup, speed: float = 
 
 
 def make_operator(args: argparse.Namespace):
-    from labcal.operator import AutoOperator, ConsoleOperator, ScriptedOperator
+    from labcal.run.operator import AutoOperator, ConsoleOperator, ScriptedOperator
 
     if args.answers:
         return ScriptedOperator(err, args.answers)
@@ -152,7 +44,7 @@ def make_operator(args: argparse.Namespace):
 
 
 def print_estimate(plan: Plan, est: Estimate, as_json: bool) -> None:
-    from labcal.console import format_duration
+    from labcal.commands.console import format_duration
 
     doc = {"plan": plan.name, "points": plan.n_points, "total_s": est.total_s, "moves_s": est.moves_s,
            "settling_s": est.settling_s, "averaging_s": est.averaging_s, "mounting_s": est.mounting_s}
@@ -166,22 +58,23 @@ def print_estimate(plan: Plan, est: Estimate, as_json: bool) -> None:
     out.print("(mounting includes the operator's remount allowance and the mount checks; nothing moved)")
 
 
-def certificate_settings(args: argparse.Namespace, section: dict | None, source: str):
+def certificate_settings_for_run(args: argparse.Namespace, section: dict | None, source: str):
     """The station's [certificate] section with the command line's tolerances over it."""
-    from labcal.certificate import settings_from
+    from labcal.documents.certificate import certificate_settings
 
     usage = tuple(args.usage_pitch) if args.usage_pitch else None
-    return settings_from(section, source, attitude_u95_max_deg=args.tolerance_deg, usage_pitch_deg=usage)
+    return certificate_settings(section, source, attitude_u95_max_deg=args.tolerance_deg,
+                                usage_pitch_deg=usage)
 
 
 def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done: int,
                    certificate=None) -> int:
     """Run with a progress display; turn the ways a run can end into messages and exit codes; at the
     end of a complete run issue its certificate and report (``certificate``: their settings)."""
-    from labcal.console import ProgressDisplay, coefficient_table, format_duration
-    from labcal.journal import db_path
-    from labcal.operator import OperatorDeclined
-    from labcal.run import points_on_disk
+    from labcal.commands.console import ProgressDisplay, coefficient_table, format_duration
+    from labcal.run.journal import db_path
+    from labcal.run.operator import OperatorDeclined
+    from labcal.run.rundir import points_on_disk
 
     err.print(f"Run directory: {run_dir}")
     try:
@@ -201,7 +94,7 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
     o = result.outcome
     issued = None
     if not args.no_report:
-        from labcal.report import write_run_outputs
+        from labcal.documents.report import write_run_outputs
 
         issued = write_run_outputs(run_dir, certificate, db=args.db)
     if args.json:
@@ -230,11 +123,13 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from labcal.design import plan_toml
-    from labcal.estimate import estimate
-    from labcal.journal import Journal, db_path
-    from labcal.run import calibrate, new_run_dir
-    from labcal.sequencer import check_limits, schedule
+    from labcal.bench.setup import hardware_station, prepare, sim_station
+    from labcal.config.plans import plan_toml
+    from labcal.run.estimate import estimate
+    from labcal.run.journal import Journal, db_path
+    from labcal.run.rundir import new_run_dir
+    from labcal.run.runner import calibrate
+    from labcal.run.sequencer import check_limits, schedule
 
     if not args.sim and not args.station:
         raise LabcalError("no station given: use --sim for a dry run on the simulated rig, or --station FILE "
@@ -253,20 +148,20 @@ def cmd_run(args: argparse.Namespace) -> int:
         bench = None
         if args.sim:
             setup = sim_station(args.rig, args.seed)
-            settings = settings_from(args, setup)
-            cert_settings = certificate_settings(args, None, "command line")
+            settings = sequencer_settings_for_run(args, setup)
+            cert_settings = certificate_settings_for_run(args, None, "command line")
         else:
-            from labcal.drivers.station_file import load_station
+            from labcal.config.station import load_station
 
             config, _ = load_station(args.station)
-            cert_settings = certificate_settings(args, config.certificate, args.station)
+            cert_settings = certificate_settings_for_run(args, config.certificate, args.station)
             if not args.emulate and not args.serial and not args.no_report:
                 raise LabcalError("a calibration on real hardware needs the instrument's --serial for its "
                                   "certificate (or --no-report)")
             setup, bench, base = hardware_station(config, args.station, stack, emulate=args.emulate,
                                                   time_scale=args.time_scale, seed=args.seed)
             pitch, roll = config.pitch, config.roll  # the slower table sets the pace of the estimates
-            settings = settings_from(args, setup, min(pitch.speed_dps, roll.speed_dps),
+            settings = sequencer_settings_for_run(args, setup, min(pitch.speed_dps, roll.speed_dps),
                                      min(pitch.accel_dps2, roll.accel_dps2))
             settings = settings.model_copy(update={"move_timeout_s": base.move_timeout_s,
                                                    "position_tolerance_deg": base.position_tolerance_deg})
@@ -276,7 +171,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             return 0
         if bench is not None:  # the limits first: homing moves a table too
             check_limits(setup.station, schedule(plan, settings))
-            prepare(bench, setup.station)
+            prepare(bench, setup.station, err.print)
         operator = make_operator(args)
         run_dir = new_run_dir(args.out, plan)
         with Journal(db_path(args.db)) as journal:
@@ -286,9 +181,10 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
-    from labcal.estimate import estimate
-    from labcal.run import execute, open_for_resume
-    from labcal.sequencer import check_limits, schedule
+    from labcal.bench.setup import prepare, sim_station, station_from_snapshot
+    from labcal.run.estimate import estimate
+    from labcal.run.runner import execute, open_for_resume
+    from labcal.run.sequencer import check_limits, schedule
 
     run_dir = Path(args.run)
     ctx = open_for_resume(run_dir)
@@ -306,12 +202,12 @@ def cmd_resume(args: argparse.Namespace) -> int:
         est = estimate(ctx.plan, ctx.settings, setup.timing)
         if bench is not None:
             check_limits(setup.station, schedule(ctx.plan, ctx.settings))
-            prepare(bench, setup.station)
+            prepare(bench, setup.station, err.print)
         operator = make_operator(args)
         ctx.journal.reopen(ctx.run_id)
         ctx.journal.event(ctx.run_id, "resume", f"resumed after {len(points)} committed point(s)")
         section = json.loads(ctx.station_text).get("station", {}).get("certificate")
-        cert_settings = certificate_settings(args, section, "the run's station")
+        cert_settings = certificate_settings_for_run(args, section, "the run's station")
         return run_and_report(args, lambda display: execute(
             ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, display),
             run_dir, ctx.plan, est, len(points), cert_settings)

@@ -20,7 +20,7 @@ HELP = ("commands: mount Y U | fault DEVICE KIND [COUNT] (KIND: no-reply, late-r
 
 def console_command(emulation, line: str) -> str:
     """Carry out one console line; returns what to print. Raises EOFError on quit."""
-    from labcal.kinematics import Mount
+    from labcal.analysis.kinematics import Mount
     from labcal.sim.faults import Fault, FaultKind
 
     words = line.split()
@@ -50,7 +50,7 @@ def console_command(emulation, line: str) -> str:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    from labcal.drivers.station_file import load_station
+    from labcal.config.station import load_station
     from labcal.sim.emulation import Emulation
 
     config, _ = load_station(args.station)

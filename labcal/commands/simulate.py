@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import argparse
 
+from labcal.analysis.kinematics import MISALIGNMENT_NAMES, IndexWobble, Misalignment
 from labcal.commands.common import err
+from labcal.config.files import load_model
+from labcal.config.plans import load_plan
+from labcal.config.readings_csv import write_readings
 from labcal.errors import LabcalError
-from labcal.files import load_model
-from labcal.kinematics import MISALIGNMENT_NAMES, IndexWobble, Misalignment
-from labcal.plan import load_plan
-from labcal.readings import write_readings
 
 
 def parse_misalign(text: str) -> Misalignment:

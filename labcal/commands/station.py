@@ -13,7 +13,7 @@ from labcal.errors import LabcalError
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    from labcal.drivers.station_file import load_station, shipped_stations
+    from labcal.config.station import load_station, shipped_stations
 
     stations = {name: load_station(name)[0] for name in shipped_stations()}
     if args.json:
@@ -41,8 +41,8 @@ def _row(report: dict) -> tuple[str, str, str]:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from labcal.drivers.bench import Bench
-    from labcal.drivers.station_file import load_station
+    from labcal.bench.hardware import Bench
+    from labcal.config.station import load_station
 
     config, _ = load_station(args.station)
     with ExitStack() as stack:

@@ -15,8 +15,8 @@ from rich.progress import (
 )
 from rich.table import Table
 
-from labcal.fit import ROW_NAMES, SENSORS, Fit
-from labcal.sequencer import Display, Step
+from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit
+from labcal.run.sequencer import Display, Step
 
 
 def format_duration(seconds: float) -> str:

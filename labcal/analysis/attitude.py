@@ -17,9 +17,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from labcal.distributions import t_quantile
+from labcal.analysis.distributions import t_quantile
 from labcal.errors import LabcalError
-from labcal.files import read_text
 
 ROLL_SIGNIFICANCE = 3.0  # the horizontal part of g must exceed this many standard uncertainties
 GN_ITERATIONS = 4  # the closed form starts within ~1e-4 rad; Gauss–Newton converges quadratically
@@ -38,17 +37,6 @@ class Calibration:
     @property
     def s_inv(self) -> NDArray:
         return np.linalg.inv(self.X[1:])
-
-
-def load_calibration(path: str | Path) -> Calibration:
-    """Read the coefficients and their uncertainty from a fit JSON or a certificate; a certificate's
-    schema and digest are verified first, so a tampered certificate never converts a voltage."""
-    from labcal.certificate import certificate_from_doc, is_certificate, parse_json
-
-    doc = parse_json(read_text(path, "calibration"), str(path))
-    if is_certificate(doc):
-        doc = certificate_from_doc(doc, str(path)).fit.model_dump()
-    return calibration_from_json(doc.get("fit", doc) if isinstance(doc, dict) else doc, path)
 
 
 def calibration_from_json(doc: dict, path: str | Path) -> Calibration:

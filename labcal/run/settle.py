@@ -16,23 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
 
-from labcal.distributions import chi2_quantile
-from labcal.station import Clock, Scan, Voltmeter
-
-
-class SettleSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    tau_s: float = Field(default=0.5, gt=0, description="sensor output time constant")
-    noise_v: float = Field(default=20e-6, gt=0, description="noise of one DMM sample, V rms")
-    sensitivity_v_per_g: float = Field(default=5.0, gt=0, description="nominal, to size a step in volts")
-    samples: int = Field(default=10, ge=4, le=10000, description="samples in the test window = averaged")
-    k_sigma: float = Field(default=3.0, gt=0, description="significance of the slope and halves tests")
-    max_dwell_s: float = Field(default=60.0, gt=0, description="give up on a point after this dwell")
-    fixed_dwell_s: float | None = Field(default=None, ge=0,
-                                        description="dwell this long and take one window, no test")
+from labcal.analysis.distributions import chi2_quantile
+from labcal.config.settings import SettleSettings
+from labcal.run.station import Clock, Scan, Voltmeter
 
 
 @dataclass(frozen=True)

@@ -12,11 +12,12 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from labcal.analysis.plan import Plan
+from labcal.analysis.readings import Readings
+from labcal.config.plans import parse_plan
 from labcal.errors import LabcalError
-from labcal.journal import Journal
-from labcal.plan import Plan, parse_plan
-from labcal.readings import Readings
-from labcal.run import RUN, read_run_json
+from labcal.run.journal import Journal
+from labcal.run.rundir import RUN, read_run_json
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
 """Fitting the instrument model V = B + gᵀS (Soto eqs. 13–21) with honest statistics.
 
-Every model is a regressor set (`labcal.models`) solved by the one QR core. Uncertainties
+Every model is a regressor set (`labcal.analysis.models`) solved by the one QR core. Uncertainties
 use the residual standard error, or — when replicates show significant lack of fit — the
 lack-of-fit mean square, because point biases repeat in every replicate and replication
 cannot average them away (metrology_stats.md §2.6).
@@ -13,11 +13,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from labcal.distributions import f_isf, f_sf, t_quantile
-from labcal.models import BASE_NAMES, EXTENSIONS, Model, Points
-from labcal.readings import Readings
-from labcal.regression import LeastSquares, least_squares
-from labcal.replication import ALPHA, Replication, analyse, point_groups
+from labcal.analysis.distributions import f_isf, f_sf, t_quantile
+from labcal.analysis.models import BASE_NAMES, EXTENSIONS, Model, Points
+from labcal.analysis.readings import Readings
+from labcal.analysis.regression import LeastSquares, least_squares
+from labcal.analysis.replication import ALPHA, Replication, analyse, point_groups
 
 SENSORS = ("x", "y", "z")
 ROW_NAMES = BASE_NAMES

@@ -3,7 +3,7 @@
 The base model is Soto's [1 gᵀ]; extensions are extra regressors: temperature-corrected
 offset and sensitivity, and the 2α / 2R harmonics Tripp & Tcheng see in their residuals.
 The coning model (b, S, Ω, A) is not a regressor set but a change of variables of the
-base fit (`labcal.coning`).
+base fit (`labcal.analysis.coning`).
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from labcal.analysis.kinematics import gravity
 from labcal.errors import LabcalError
-from labcal.kinematics import gravity
 
 BASE_NAMES = ("B", "S_x", "S_y", "S_z")
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from labcal.distributions import f_isf, f_sf
+from labcal.analysis.distributions import f_isf, f_sf
 
 ALPHA = 0.05
 

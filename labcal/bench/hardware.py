@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from labcal.config.station import AzSettings, LinkSettings, Smc100Settings, StationFile
 from labcal.drivers.axis import IndexAxis
 from labcal.drivers.errors import DriverError
 from labcal.drivers.keysight_34970a import EOL as SCPI_EOL
@@ -12,9 +13,8 @@ from labcal.drivers.modbus import ModbusLink
 from labcal.drivers.newport_smc100 import EOL as SMC_EOL
 from labcal.drivers.newport_smc100 import Smc100Axis
 from labcal.drivers.oriental_az import AzAxis
-from labcal.drivers.station_file import AzSettings, LinkSettings, Smc100Settings, StationFile
 from labcal.drivers.transport import LineTransport, SerialStream, TcpStream, tcp_address
-from labcal.station import Clock, Station, SystemClock
+from labcal.run.station import Clock, CriticalSection, Station, SystemClock
 
 
 def line_transport(settings: LinkSettings, eol: bytes) -> LineTransport:
@@ -114,11 +114,17 @@ class Bench:
         reports.append(report)
         return reports
 
+    def guard_exchanges(self, critical: CriticalSection | None) -> None:
+        """Make every exchange on every link a critical section of the run (None: no run)."""
+        for link in self._links.values():
+            link.critical = critical
+
     def station(self, **hooks: Callable) -> Station:
         """The drivers as the sequencer's station; ``hooks`` (``remounted``, ``at_point``) tell an
         emulated rig what the operator did. Real hardware needs neither."""
         return Station(pitch=self.pitch, roll=self.roll, dmm=self.dmm, clock=self.clock,
-                       description=self.config.description or "hardware station", **hooks)
+                       description=self.config.description or "hardware station",
+                       guard_exchanges=self.guard_exchanges, **hooks)
 
     def close(self) -> None:
         for link in self._links.values():

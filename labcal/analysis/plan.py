@@ -1,22 +1,16 @@
 """Calibration plans: which mounts, which (pitch, roll) points, how many replicates.
 
-Plans are TOML files; the ones shipped in `sequences/` are found by name. Every angle is
-validated before anything moves.
+The validated model of an experimental design; `labcal.config.plans` reads and writes plan files.
+Every angle is validated before anything moves.
 """
 
 from __future__ import annotations
 
-from importlib import resources
-from pathlib import Path
-
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from labcal.errors import LabcalError
-from labcal.files import parse_model, read_text
-from labcal.kinematics import Mount, gravity
+from labcal.analysis.kinematics import Mount, gravity
 
-PLAN_SUFFIX = ".toml"
 INDEX_STEP_DEG = 1.0  # index tables stop on a 1° grid
 N_COEFFICIENTS = 4  # per sensor: bias and three sensitivities
 
@@ -93,34 +87,3 @@ class Plan(BaseModel):
         return np.concatenate(
             [gravity(p, r, *np.radians([y, u])) for y, u in self.mounts], axis=0
         )
-
-
-def shipped_plans() -> dict[str, resources.abc.Traversable]:
-    """The plans that ship with labcal, by name."""
-    folder = resources.files("labcal.sequences")
-    return {
-        entry.name.removesuffix(PLAN_SUFFIX): entry
-        for entry in sorted(folder.iterdir(), key=lambda e: e.name)
-        if entry.name.endswith(PLAN_SUFFIX)
-    }
-
-
-def parse_plan(text: str, source: str) -> Plan:
-    """Parse and validate plan TOML; errors name the source and the field."""
-    return parse_model(text, Plan, source)
-
-
-def load_plan(name_or_path: str) -> tuple[Plan, str]:
-    """A plan by file path or by the name of a shipped plan; returns the plan and its TOML text."""
-    path = Path(name_or_path)
-    if path.suffix == PLAN_SUFFIX or path.exists():
-        text = read_text(path, "plan")
-        return parse_plan(text, str(path)), text
-    plans = shipped_plans()
-    if name_or_path not in plans:
-        raise LabcalError(
-            f"unknown plan {name_or_path!r}; shipped plans: {', '.join(plans)} "
-            "(or give a path to a .toml file)"
-        )
-    text = plans[name_or_path].read_text(encoding="utf-8")
-    return parse_plan(text, f"plan {name_or_path}"), text

@@ -1,7 +1,7 @@
 """How long a plan takes on a rig, without moving anything (`labcal run --dry-run`, the ETA).
 
 Per point: both tables' trapezoidal moves (the longer one) and the clamp, the dead time the step
-in gravity needs (labcal.settle), and one window of samples; per mounting: the operator's remount
+in gravity needs (labcal.run.settle), and one window of samples; per mounting: the operator's remount
 allowance and the mount check. The settle test usually accepts the first window, so this is also
 close to what a run with settle detection takes.
 """
@@ -12,12 +12,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from labcal.kinematics import gravity
-from labcal.mounting import CHECK_ATTITUDE
-from labcal.ordering import move_time
-from labcal.plan import Plan
-from labcal.sequencer import LOAD_POSITION, SequencerSettings, Step, schedule
-from labcal.settle import dead_time
+from labcal.analysis.kinematics import gravity
+from labcal.analysis.plan import Plan
+from labcal.config.settings import SequencerSettings
+from labcal.run.mounting import CHECK_ATTITUDE
+from labcal.run.ordering import move_time
+from labcal.run.sequencer import LOAD_POSITION, Step, schedule
+from labcal.run.settle import dead_time
 
 
 @dataclass(frozen=True)

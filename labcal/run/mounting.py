@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from labcal.kinematics import MOUNTS, Mount, gravity
+from labcal.analysis.kinematics import MOUNTS, Mount, gravity
 
 CHECK_ATTITUDE = (30.0, 30.0)
 

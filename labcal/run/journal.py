@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from labcal.analysis.readings import Readings
 from labcal.errors import LabcalError
-from labcal.readings import Readings
 
 DEFAULT_DB = Path("runs") / "labcal.sqlite"
 SCHEMA = """

@@ -22,8 +22,11 @@ import numpy as np
 from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
-from labcal.attitude import sphere_least_squares
-from labcal.certificate import (
+from labcal.analysis.attitude import sphere_least_squares
+from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit, fit_readings, readings_points
+from labcal.analysis.kinematics import Mount
+from labcal.analysis.models import Points
+from labcal.documents.certificate import (
     Certificate,
     CertificateSettings,
     build_certificate,
@@ -33,10 +36,7 @@ from labcal.certificate import (
     write_certificate,
 )
 from labcal.errors import LabcalError
-from labcal.fit import ROW_NAMES, SENSORS, Fit, fit_readings, readings_points
-from labcal.kinematics import Mount
-from labcal.models import Points
-from labcal.runrecord import RunRecord, load_run
+from labcal.run.record import RunRecord, load_run
 
 CERTIFICATE = "certificate.json"
 REPORT_HTML = "report.html"
@@ -444,7 +444,7 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
                       db: str | Path | None = None) -> RunOutputs:
     """Certificate, report and history entry of a finished run (called at the end of `labcal run`
     and by `labcal report`); ``db`` None means $LABCAL_DB or runs/labcal.sqlite."""
-    from labcal import history
+    from labcal.documents import history
 
     record = load_run(run_dir)
     fit = fit_readings(record.readings)

@@ -13,10 +13,10 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
+from labcal.config.files import parse_model, read_text
 from labcal.drivers.keysight_34970a import NPLC_VALUES, RANGES_V
 from labcal.drivers.transport import tcp_address
 from labcal.errors import LabcalError
-from labcal.files import parse_model, read_text
 
 
 class LinkSettings(BaseModel):

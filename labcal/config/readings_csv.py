@@ -9,35 +9,19 @@ from __future__ import annotations
 import csv
 import math
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from labcal.analysis.readings import Readings
+from labcal.config.files import read_text
 from labcal.errors import LabcalError
-from labcal.files import read_text
 
 REQUIRED = ("replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", "vx", "vy", "vz")
 OPTIONAL = ("temp_c",)
 # Written by labcal after the contract's columns: what a metrologist needs to audit a point.
 EXTRA = ("n_samples", "sd_vx", "sd_vy", "sd_vz", "time_s")
-
-
-@dataclass(frozen=True)
-class Readings:
-    """Calibration points as arrays; angles in degrees as they arrive from files."""
-
-    replicate: NDArray  # (n,) int
-    y_deg: NDArray
-    u_deg: NDArray
-    pitch_deg: NDArray
-    roll_deg: NDArray
-    volts: NDArray  # (n, 3): vx, vy, vz
-    temp_c: NDArray | None = None
-
-    def __len__(self) -> int:
-        return len(self.replicate)
 
 
 def _number(text: str, where: str) -> float:

@@ -27,18 +27,18 @@ from numpy.typing import NDArray
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from labcal import __version__
-from labcal.attitude import Calibration, calibration_from_json, sphere_least_squares
-from labcal.design import LEAK_ZERO, audit, audit_summary, figure_of_merit, grid
-from labcal.distributions import t_quantile
+from labcal.analysis.attitude import Calibration, calibration_from_json, sphere_least_squares
+from labcal.analysis.design import LEAK_ZERO, audit, audit_summary, figure_of_merit, grid
+from labcal.analysis.distributions import t_quantile
+from labcal.analysis.fit import SENSORS, Fit
+from labcal.analysis.kinematics import gravity
+from labcal.analysis.models import BASE_NAMES
+from labcal.config.files import json_safe, one_line, read_text, write_json
 from labcal.errors import LabcalError
-from labcal.files import json_safe, one_line, read_text, write_json
-from labcal.fit import SENSORS, Fit
-from labcal.kinematics import gravity
-from labcal.models import BASE_NAMES
-from labcal.runrecord import RunRecord
+from labcal.run.record import RunRecord
 
-SCHEMA = "labcal.certificate/1"
-SCHEMA_PREFIX = "labcal.certificate/"
+SCHEMA = "labcal.documents.certificate/1"
+SCHEMA_PREFIX = "labcal.documents.certificate/"
 COVERAGE = 0.95
 SIMULATED_SERIAL = "SIMULATED"  # a dry run's instrument is the simulator's, whatever the seed
 
@@ -71,15 +71,15 @@ def load_settings(station_path: str | Path | None, **overrides) -> CertificateSe
     """The ``[certificate]`` section of a station file (defaults without one), then the command
     line's non-None ``overrides``; every mistake is one line naming the file and the field."""
     if station_path is None:
-        return settings_from(None, "command line", **overrides)
+        return certificate_settings(None, "command line", **overrides)
     try:
         section = tomllib.loads(read_text(station_path, "station")).get("certificate", {})
     except tomllib.TOMLDecodeError as exc:
         raise LabcalError(f"{station_path}: malformed TOML: {exc}") from None
-    return settings_from(section, str(station_path), **overrides)
+    return certificate_settings(section, str(station_path), **overrides)
 
 
-def settings_from(section: object, source: str, **overrides) -> CertificateSettings:
+def certificate_settings(section: object, source: str, **overrides) -> CertificateSettings:
     """Certificate settings from a station's ``[certificate]`` section and non-None ``overrides``."""
     if section is not None and not isinstance(section, dict):
         raise LabcalError(f"{source}: certificate must be a table ([certificate])")
@@ -247,7 +247,7 @@ class Digest(_Strict):
 class Certificate(_Strict):
     model_config = ConfigDict(validate_by_alias=True, validate_by_name=True, serialize_by_alias=True)
 
-    schema_id: Literal["labcal.certificate/1"] = Field(alias="schema")
+    schema_id: Literal["labcal.documents.certificate/1"] = Field(alias="schema")
     certificate_id: str
     labcal_version: str
     laboratory: str
@@ -557,3 +557,12 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
         else c.model_dump(),
     }
     return seal(content)
+
+
+def load_calibration(path: str | Path) -> Calibration:
+    """Read the coefficients and their uncertainty from a fit JSON or a certificate; a certificate's
+    schema and digest are verified first, so a tampered certificate never converts a voltage."""
+    doc = parse_json(read_text(path, "calibration"), str(path))
+    if is_certificate(doc):
+        doc = certificate_from_doc(doc, str(path)).fit.model_dump()
+    return calibration_from_json(doc.get("fit", doc) if isinstance(doc, dict) else doc, path)

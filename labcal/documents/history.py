@@ -19,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from labcal.certificate import COVERAGE, Certificate, certificate_from_doc, parse_json
-from labcal.distributions import t_quantile
+from labcal.analysis.distributions import t_quantile
+from labcal.analysis.fit import ROW_NAMES, SENSORS
+from labcal.documents.certificate import COVERAGE, Certificate, certificate_from_doc, parse_json
 from labcal.errors import LabcalError
-from labcal.fit import ROW_NAMES, SENSORS
-from labcal.journal import db_path
+from labcal.run.journal import db_path
 
 RULE = "|Δ| > k·√(u₁² + u₂²), k = t₀.₉₇₅(ν) at the Welch–Satterthwaite ν of the difference"
 TABLE = """CREATE TABLE IF NOT EXISTS certificates (

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from labcal.fit import SENSORS, Fit
+from labcal.analysis.fit import SENSORS, Fit
 
 # For each sensor: index of the main component m of s, and the signed components (t1, t2) with
 # sin Ω cos A = t1/S and sin Ω sin A = t2/S, read off the unit vectors u_x, u_y, u_z.

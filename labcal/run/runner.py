@@ -1,69 +1,32 @@
-"""A calibration run: its journal entry, its directory of exports, and resuming it.
+"""A calibration run: its journal entry, its exports, and resuming it.
 
-The journal (SQLite) is the source of truth; the run directory holds what people and other
-programs read: plan.toml, run.json (where the journal is and how the run ended), and the
-exports readings.csv and fit.json, rewritten whenever the run stops for any reason.
+The journal (SQLite) is the source of truth; the run directory (`labcal.run.rundir`) holds what
+people and other programs read, rewritten whenever the run stops for any reason.
 """
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
 from labcal import __version__
+from labcal.analysis.fit import Fit, fit_readings
+from labcal.analysis.plan import Plan
+from labcal.config.files import write_json
+from labcal.config.plans import parse_plan
+from labcal.config.readings_csv import ReadingsWriter
+from labcal.config.settings import SequencerSettings
 from labcal.errors import LabcalError
-from labcal.files import json_safe, write_json  # noqa: F401 - json_safe is part of this module's API
-from labcal.fit import Fit, fit_readings
-from labcal.interrupts import Interrupts
-from labcal.journal import Journal, Manifest, sha256
-from labcal.operator import Operator
-from labcal.plan import Plan, parse_plan
-from labcal.readings import ReadingsWriter
-from labcal.sequencer import Display, RunOutcome, Sequencer, SequencerSettings, schedule
-from labcal.station import Station
+from labcal.run.interrupts import Interrupts
+from labcal.run.journal import Journal, Manifest, sha256
+from labcal.run.operator import Operator
+from labcal.run.rundir import FIT, PLAN, READINGS, RUN, read_run_json
+from labcal.run.sequencer import Display, RunOutcome, Sequencer, schedule
+from labcal.run.station import Station
 
-READINGS = "readings.csv"
-FIT = "fit.json"
-PLAN = "plan.toml"
-RUN = "run.json"
 MIN_POINTS_FOR_MOUNT_CHECK_FIT = 8
-
-
-def new_run_dir(out: str | None, plan: Plan) -> Path:
-    if out is None:
-        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
-        path = Path("runs") / f"{stamp}-{plan.name}"
-    else:
-        path = Path(out)
-    if path.exists() and any(path.iterdir()):
-        raise LabcalError(f"{path}: run directory exists and is not empty; choose another --out")
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise LabcalError(f"{path}: cannot create run directory ({exc.strerror})") from None
-    return path
-
-
-def read_run_json(run_dir: Path) -> dict:
-    try:
-        return json.loads((run_dir / RUN).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise LabcalError(f"{run_dir}: not a run directory (no {RUN})") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise LabcalError(f"{run_dir / RUN}: unreadable ({exc})") from None
-
-
-def points_on_disk(run_dir: Path) -> int:
-    """Readings safe in the run's journal (0 when there is no journal yet)."""
-    try:
-        info = read_run_json(run_dir)
-        with Journal(info["journal"]) as journal:
-            return len(journal.points(info["run_id"], status="ok"))
-    except (LabcalError, KeyError):
-        return 0
 
 
 def export(journal: Journal, run_id: int, run_dir: Path) -> Fit | None:
@@ -116,8 +79,12 @@ def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: S
     try:
         with Interrupts(lambda: display.message("[yellow]Ctrl-C: pausing after this point "
                                                 "(press again to stop the tables now)[/]")) as interrupts:
-            sequencer = Sequencer(plan, station, operator, journal, run_id, settings, display, interrupts)
-            outcome = sequencer.run(steps, committed, _provisional_fit(journal, run_id))
+            station.guard_exchanges(interrupts.critical)  # no device exchange is cut in half
+            try:
+                sequencer = Sequencer(plan, station, operator, journal, run_id, settings, display, interrupts)
+                outcome = sequencer.run(steps, committed, _provisional_fit(journal, run_id))
+            finally:
+                station.guard_exchanges(None)
         status, reason = "complete", None
     except KeyboardInterrupt:
         raise

@@ -11,8 +11,6 @@ import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
-ACTIVE: list[Interrupts] = []  # the run's handler while one is installed (drivers defer to it)
-
 
 class Interrupts:
     def __init__(self, on_first: Callable[[], None] = lambda: None):
@@ -26,13 +24,11 @@ class Interrupts:
     def __enter__(self) -> Interrupts:
         if threading.current_thread() is threading.main_thread():
             self._previous = signal.signal(signal.SIGINT, self._handle)
-            ACTIVE.append(self)
         return self
 
     def __exit__(self, *exc: object) -> None:
         if self._previous is not None:
             signal.signal(signal.SIGINT, self._previous)
-            ACTIVE.remove(self)
 
     def _handle(self, signum: int, frame: object) -> None:
         if self._prompting:  # nothing moves at a prompt: Ctrl-C there means stop

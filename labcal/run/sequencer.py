@@ -10,21 +10,20 @@ from __future__ import annotations
 
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
+from labcal.analysis.kinematics import Mount, gravity
+from labcal.analysis.plan import Plan
+from labcal.config.settings import SequencerSettings
 from labcal.errors import LabcalError
-from labcal.interrupts import Interrupts
-from labcal.journal import Journal, PointRecord
-from labcal.kinematics import Mount, gravity
-from labcal.mounting import CHECK_ATTITUDE, identify
-from labcal.operator import Operator, OperatorDeclined
-from labcal.ordering import order_points
-from labcal.plan import Plan
-from labcal.settle import Dwell, SettleSettings, dwell
-from labcal.station import Station, mean_and_sd
+from labcal.run.interrupts import Interrupts
+from labcal.run.journal import Journal, PointRecord
+from labcal.run.mounting import CHECK_ATTITUDE, identify
+from labcal.run.operator import Operator, OperatorDeclined
+from labcal.run.ordering import order_points
+from labcal.run.settle import Dwell, dwell
+from labcal.run.station import Station, mean_and_sd
 
 LOAD_POSITION = (0.0, 0.0)  # tables level while the operator remounts
 
@@ -32,21 +31,6 @@ LOAD_POSITION = (0.0, 0.0)  # tables level while the operator remounts
 class PolicyAbort(LabcalError):
     """A point did not settle and the policy says abort (not a device fault to pause on)."""
 MOUNT_ATTEMPTS = 3
-
-
-class SequencerSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    settle: SettleSettings = SettleSettings()
-    order: Literal["shortest", "plan", "sweep", "random"] = "shortest"
-    seed: int = Field(default=0, description="for the random order")
-    move_timeout_s: float = Field(default=120.0, gt=0)
-    position_tolerance_deg: float = Field(default=0.01, gt=0)
-    check_mount: bool = True
-    on_failure: Literal["skip", "pause", "abort"] = Field(
-        default="skip", description="what to do with a point that does not settle after one retry")
-    speed_dps: float = Field(default=20.0, gt=0, description="table speed, for ordering and estimates")
-    accel_dps2: float = Field(default=40.0, gt=0)
 
 
 @dataclass(frozen=True)

@@ -8,8 +8,8 @@ from typing import Literal, Protocol
 
 from rich.console import Console
 
+from labcal.analysis.kinematics import Mount
 from labcal.errors import LabcalError
-from labcal.kinematics import Mount
 
 PauseChoice = Literal["resume", "abort"]
 

@@ -8,13 +8,17 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from labcal.kinematics import Mount
+from labcal.analysis.kinematics import Mount
+
+CriticalSection = Callable[[], AbstractContextManager[None]]
+"""A section a stop must not cut in half (the run's Ctrl-C handler defers a stop to its end)."""
 
 
 class RotaryAxis(Protocol):
@@ -74,6 +78,10 @@ def _nothing_to_prepare(key: str) -> None:
     """Real hardware needs no notice of which point is next."""
 
 
+def _no_exchanges_to_guard(critical: CriticalSection | None) -> None:
+    """A simulated station exchanges no bytes that a stop could cut in half."""
+
+
 @dataclass
 class Station:
     """Everything the sequencer drives: two tables, a DMM, a clock, and what a remount changes."""
@@ -84,6 +92,8 @@ class Station:
     clock: Clock = field(default_factory=SystemClock)
     remounted: Callable[[Mount], None] = _nobody_to_tell
     at_point: Callable[[str], None] = _nothing_to_prepare  # the simulator draws each point's noise from it
+    # the run hands its critical section to the devices' links, so that no exchange is cut in half
+    guard_exchanges: Callable[[CriticalSection | None], None] = _no_exchanges_to_guard
     description: str = "station"
 
     def stop(self) -> None:

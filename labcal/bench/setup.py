@@ -1,0 +1,131 @@
+"""Stations ready to run: the simulated rig (`--sim`), or a station file's devices through the
+drivers, on the emulators it points at with `--emulate`.
+
+These factories are the one production path into `labcal.sim`: everything else drives a station
+through the interfaces of `labcal.run.station` and cannot tell a simulator from hardware. Each
+factory also says what the journal keeps of the station (its snapshot), so that `labcal resume`
+rebuilds the same one, and the station's pace for the estimates.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from contextlib import ExitStack
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from labcal.errors import LabcalError
+
+if TYPE_CHECKING:  # the simulator and the drivers are imported where a station of theirs is made
+    from labcal.bench.hardware import Bench
+    from labcal.config.settings import SequencerSettings, SettleSettings
+    from labcal.config.station import StationFile
+    from labcal.run.estimate import Timing
+    from labcal.run.station import Station
+    from labcal.sim.instrument import InstrumentTruth
+
+REMOUNT_ALLOWANCE_S = 300.0  # the operator's time for one remount, for estimates on real hardware
+
+
+@dataclass
+class StationSetup:
+    """A station ready to run, what the journal keeps of it, and its pace for estimates."""
+
+    station: Station
+    text: str  # the snapshot the journal keeps; a resume must rebuild the same station from it
+    metadata: dict
+    timing: Timing
+    settle: SettleSettings
+
+
+def sim_station(rig_file: str | None, seed: int | None, snapshot: str | None = None,
+                start_time_s: float = 0.0) -> StationSetup:
+    """The simulated rig, from a rig file or from a journal snapshot (resume)."""
+    from labcal.run.estimate import Timing
+    from labcal.sim.clock import VirtualClock
+    from labcal.sim.rig import RigConfig, SimRig, load_rig_config
+
+    if snapshot is not None:
+        doc = json.loads(snapshot)
+        config, seed = RigConfig.model_validate(doc["rig"]), doc["seed"]
+    else:
+        config = load_rig_config(rig_file) if rig_file else RigConfig()
+    rig = SimRig(config, seed=seed, clock=VirtualClock(start_time_s))
+    truth = {"coefficients": rig.instrument.X.tolist(),
+             "misalignment_deg": rig.misalignment.degrees(), "seed": rig.seed}
+    text = json.dumps({"kind": "simulated rig", "seed": rig.seed, "rig": config.model_dump()}, sort_keys=True)
+    timing = Timing(clamp_s=config.clamp_s, sample_s=config.nplc / config.line_hz, remount_s=config.remount_s)
+    settle = known_settle(config.instrument)
+    return StationSetup(rig.station(), text, {"simulated_truth": truth}, timing, settle)
+
+
+def known_settle(inst: InstrumentTruth) -> SettleSettings:
+    """Settle settings for a simulated or emulated instrument, whose time constant and noise are known."""
+    from labcal.config.settings import SettleSettings
+
+    return SettleSettings(tau_s=inst.tau_s, noise_v=max(inst.noise_v, 1e-7),
+                          sensitivity_v_per_g=float(max(abs(x) for row in inst.S for x in row)))
+
+
+def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emulate: bool = False,
+                     time_scale: float | None = None, seed: int | None = None,
+                     start_time_s: float = 0.0) -> tuple[StationSetup, Bench, SequencerSettings]:
+    """A station file's devices through the real drivers (on the emulators it points at with
+    ``emulate``, started here and stopped with ``stack``). The journal keeps the file, so that a
+    resume rebuilds the same station; also returns the file's [sequencer] settings."""
+    from labcal.bench.hardware import Bench
+    from labcal.config.files import one_line
+    from labcal.config.settings import SequencerSettings
+    from labcal.drivers.keysight_34970a import channel_time_s
+    from labcal.run.estimate import Timing
+
+    try:
+        base = SequencerSettings.model_validate(config.sequencer)
+    except ValueError as exc:
+        raise LabcalError(f"{source}: sequencer.{one_line(exc)}") from None
+    station = config.model_dump(mode="json")
+    station["emulation"].pop("faults", None)  # injected faults are a test, not the station: a resume has none
+    snapshot: dict = {"kind": "station", "station": station, "emulate": emulate}
+    sweep_s = (3 + bool(config.dmm.temperature_channel)) * channel_time_s(config.dmm.nplc, config.dmm.line_hz)
+    timing = Timing(clamp_s=0.0, sample_s=sweep_s, remount_s=REMOUNT_ALLOWANCE_S)
+    settle, clock, hooks, metadata = base.settle, None, {}, {"station_file": source}
+    if emulate:
+        from labcal.sim.emulation import Emulation
+
+        emulation = stack.enter_context(Emulation(config, time_scale=time_scale, seed=seed, source=source,
+                                                  start_s=start_time_s))
+        rig = emulation.rig.rig
+        snapshot.update(time_scale=emulation.time_scale, seed=rig.seed)
+        timing = Timing(clamp_s=rig.config.clamp_s, sample_s=sweep_s, remount_s=0.0)
+        settle, clock, hooks = known_settle(rig.instrument), emulation.rig.clock, emulation.hooks()
+        metadata["simulated_truth"] = emulation.truth()
+        config = emulation.station_config
+    bench = stack.enter_context(Bench(config, clock))
+    text = json.dumps(snapshot, sort_keys=True)
+    return StationSetup(bench.station(**hooks), text, metadata, timing, settle), bench, base
+
+
+def station_from_snapshot(text: str, stack: ExitStack, start_time_s: float) -> tuple[StationSetup, Bench]:
+    """The station a journaled run started on, rebuilt from its snapshot (emulators restarted)."""
+    from labcal.config.station import StationFile
+
+    doc = json.loads(text)
+    setup, bench, _ = hardware_station(StationFile.model_validate(doc["station"]), "the journaled station",
+                                       stack, emulate=doc["emulate"], time_scale=doc.get("time_scale"),
+                                       seed=doc.get("seed"), start_time_s=start_time_s)
+    return setup, bench
+
+
+def prepare(bench: Bench, station: Station, say: Callable[[str], None]) -> None:
+    """Home and enable the tables and configure the DMM; a stop reaches the tables if that fails
+    (``say`` tells the operator what is being done, and a stop that failed too)."""
+    try:
+        bench.prepare(say=say)
+    except BaseException as exc:
+        try:
+            station.stop()
+        except LabcalError as stop_error:
+            if str(stop_error) != str(exc):  # an unreachable table fails both the same way: say it once
+                say(f"[bold red]and stopping the tables failed:[/] {stop_error}")
+        raise
