@@ -20,8 +20,6 @@ from labcal.drivers.transport import LineTransport, retried
 from labcal.run.station import Scan
 
 EOL = b"\n"
-NPLC_VALUES = (0.02, 0.2, 1.0, 2.0, 10.0, 20.0, 100.0, 200.0)
-RANGES_V = (0.1, 1.0, 10.0, 100.0, 300.0)
 OVERLOAD = 9.9e37
 CHANNEL_S = 0.005  # relay switching and settling per channel, on top of integration
 MAX_ERRORS = 20  # the 34970A's error queue holds 10; never loop for ever on a chatty device

@@ -99,14 +99,6 @@ def reconnect(connect: Callable[[], object], budget_s: float, what: str) -> None
         delay = min(2 * delay, BACKOFF_MAX_S)
 
 
-def tcp_address(text: str) -> tuple[str, int]:
-    """'host:port' → (host, port); raises ValueError with a readable message."""
-    host, sep, port = text.rpartition(":")
-    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
-        raise ValueError(f"{text!r} is not host:port")
-    return host.strip("[]"), int(port)
-
-
 class Stream(Protocol):
     """An open byte stream: what a line transport needs from a serial port or a socket."""
 

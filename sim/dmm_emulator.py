@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from labcal.drivers.keysight_34970a import NPLC_VALUES, OVERLOAD, RANGES_V, channel_time_s
+from labcal.config.station import NPLC_VALUES, RANGES_V
+from labcal.drivers.keysight_34970a import OVERLOAD, channel_time_s
 from labcal.sim.emulated_rig import EmulatedRig
 
 IDN = "Keysight Technologies,34970A,LABCAL-EMULATOR,labcal-1.0"

@@ -14,8 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Literal
 
-from labcal.config.station import LinkSettings
-from labcal.drivers.transport import tcp_address
+from labcal.config.station import LinkSettings, tcp_address
 from labcal.errors import LabcalError
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from labcal.config.station import AzSettings, LinkSettings, Smc100Settings, StationFile
+from labcal.config.station import AzSettings, LinkSettings, Smc100Settings, StationFile, tcp_address
 from labcal.drivers.axis import IndexAxis
 from labcal.drivers.errors import DriverError
 from labcal.drivers.keysight_34970a import EOL as SCPI_EOL
@@ -13,7 +13,7 @@ from labcal.drivers.modbus import ModbusLink
 from labcal.drivers.newport_smc100 import EOL as SMC_EOL
 from labcal.drivers.newport_smc100 import Smc100Axis
 from labcal.drivers.oriental_az import AzAxis
-from labcal.drivers.transport import LineTransport, SerialStream, TcpStream, tcp_address
+from labcal.drivers.transport import LineTransport, SerialStream, TcpStream
 from labcal.run.station import Clock, CriticalSection, Station, SystemClock
 
 

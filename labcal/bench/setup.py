@@ -129,3 +129,21 @@ def prepare(bench: Bench, station: Station, say: Callable[[str], None]) -> None:
             if str(stop_error) != str(exc):  # an unreachable table fails both the same way: say it once
                 say(f"[bold red]and stopping the tables failed:[/] {stop_error}")
         raise
+
+
+def bench_for_check(config: StationFile, source: str, stack: ExitStack, *, emulate: bool = False,
+                    time_scale: float | None = None) -> Bench:
+    """A station's devices for `labcal station check` (on the emulators it points at with ``emulate``,
+    started here and stopped with ``stack``). A check says at once that a port is missing instead
+    of retrying for the reconnect budget."""
+    from labcal.bench.hardware import Bench
+
+    clock = None
+    if emulate:
+        from labcal.sim.emulation import Emulation
+
+        emulation = stack.enter_context(Emulation(config, time_scale=time_scale, source=source))
+        config, clock = emulation.station_config, emulation.rig.clock
+    quick = config.model_copy(update={name: link.model_copy(update={"reconnect_s": 0.0})
+                                      for name, link in config.devices().items()})
+    return stack.enter_context(Bench(quick, clock))

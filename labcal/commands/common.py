@@ -13,6 +13,7 @@ from labcal.config.files import json_safe
 EXIT_USER_ERROR = 2
 EXIT_STOPPED = 1
 EXIT_INTERRUPTED = 130
+TIME_SCALE_HELP = "emulated seconds per wall-clock second (default: the station file's [emulation])"
 
 out = Console(highlight=False)
 err = Console(stderr=True, highlight=False, soft_wrap=True)  # prose: the terminal wraps it

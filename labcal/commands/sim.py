@@ -11,9 +11,8 @@ import argparse
 import signal
 import sys
 
-from labcal.commands.common import err, out, print_json
+from labcal.commands.common import TIME_SCALE_HELP, err, out, print_json
 
-TIME_SCALE_HELP = "emulated seconds per wall-clock second (default: the station file's [emulation])"
 HELP = ("commands: mount Y U | fault DEVICE KIND [COUNT] (KIND: no-reply, late-reply, garbled, alarm, "
         "exception, close-port) | status | quit")
 

@@ -7,8 +7,7 @@ from contextlib import ExitStack
 
 from rich.table import Table
 
-from labcal.commands.common import err, out, print_json
-from labcal.commands.sim import TIME_SCALE_HELP
+from labcal.commands.common import TIME_SCALE_HELP, err, out, print_json
 from labcal.errors import LabcalError
 
 
@@ -41,22 +40,12 @@ def _row(report: dict) -> tuple[str, str, str]:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from labcal.bench.hardware import Bench
+    from labcal.bench.setup import bench_for_check
     from labcal.config.station import load_station
 
     config, _ = load_station(args.station)
     with ExitStack() as stack:
-        clock = None
-        if args.emulate:
-            from labcal.sim.emulation import Emulation
-
-            emulation = Emulation(config, time_scale=args.time_scale, source=args.station)
-            stack.enter_context(emulation)
-            config, clock = emulation.station_config, emulation.rig.clock
-        # A check should say at once that a port is missing, not retry for the reconnect budget.
-        quick = config.model_copy(update={name: link.model_copy(update={"reconnect_s": 0.0})
-                                          for name, link in config.devices().items()})
-        bench = stack.enter_context(Bench(quick, clock))
+        bench = bench_for_check(config, args.station, stack, emulate=args.emulate, time_scale=args.time_scale)
         reports = bench.check(reset_alarms=args.reset_alarms)
     failed = [r for r in reports if r["problem"]]
     if args.json:

@@ -14,9 +14,20 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from labcal.config.files import parse_model, read_text
-from labcal.drivers.keysight_34970a import NPLC_VALUES, RANGES_V
-from labcal.drivers.transport import tcp_address
 from labcal.errors import LabcalError
+
+# The 34970A's settable integration times (power-line cycles) and DC volts ranges: others are
+# answered with error -222 (34970A/34972A User's Guide, DC voltage measurements).
+NPLC_VALUES = (0.02, 0.2, 1.0, 2.0, 10.0, 20.0, 100.0, 200.0)
+RANGES_V = (0.1, 1.0, 10.0, 100.0, 300.0)
+
+
+def tcp_address(text: str) -> tuple[str, int]:
+    """'host:port' → (host, port); raises ValueError with a readable message."""
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ValueError(f"{text!r} is not host:port")
+    return host.strip("[]"), int(port)
 
 
 class LinkSettings(BaseModel):
