@@ -64,7 +64,9 @@ class ProgressDisplay(Display):
         self.progress.console.print(text)
 
 
-def coefficient_table(fit: Fit, title: str = "Fitted coefficients X = [Bᵀ; S]") -> Table:
+def coefficients_with_standard_errors(fit: Fit, title: str = "Fitted coefficients X = [Bᵀ; S]") -> Table:
+    """The fit's coefficients ± one standard error, for the terminal (the certificate's table,
+    `labcal.documents.report.coefficients_with_expanded_uncertainty`, states ± U95 instead)."""
     table = Table(title=title)
     table.add_column("row")
     for name in SENSORS:

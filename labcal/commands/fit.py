@@ -28,7 +28,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from labcal.analysis.coning import coning, coning_json
     from labcal.analysis.fit import SENSORS, extension_tests, fit_readings, reference_temperature
     from labcal.analysis.models import Model
-    from labcal.commands.console import coefficient_table
+    from labcal.commands.console import coefficients_with_standard_errors
 
     readings = read_readings(args.readings)
     extend = tuple(e.strip() for e in args.extend.split(",") if e.strip()) if args.extend else ()
@@ -49,7 +49,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if args.json:
         print_json(doc)
         return 0
-    out.print(coefficient_table(fit))
+    out.print(coefficients_with_standard_errors(fit))
     for note in fit.notes:
         out.print(f"[yellow]note:[/] {note}")
     if args.model == "coning":

@@ -21,7 +21,12 @@ def rich_table(t) -> RichTable:
 
 def cmd_report(args: argparse.Namespace) -> int:
     from labcal.documents.certificate import load_settings
-    from labcal.documents.report import attitude_table, coefficient_table, conformity_table, write_run_outputs
+    from labcal.documents.report import (
+        attitude_table,
+        coefficients_with_expanded_uncertainty,
+        conformity_table,
+        write_run_outputs,
+    )
 
     settings = load_settings(args.station, attitude_u95_max_deg=args.tolerance_deg,
                              bias_max_v=args.bias_max_v, usage_pitch_deg=args.usage_pitch,
@@ -40,7 +45,7 @@ def cmd_report(args: argparse.Namespace) -> int:
             "k": cert.expanded_uncertainty.k, "digest": cert.digest.value,
         })
         return 0
-    for table in (coefficient_table(cert), attitude_table(cert), conformity_table(cert)):
+    for table in (coefficients_with_expanded_uncertainty(cert), attitude_table(cert), conformity_table(cert)):
         out.print(rich_table(table))
     out.print(f"Certificate {cert.certificate_id}: {result.certificate_path}")
     out.print(f"Report: {result.html_path}, {result.pdf_path}")

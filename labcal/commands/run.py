@@ -71,7 +71,7 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
                    certificate=None) -> int:
     """Run with a progress display; turn the ways a run can end into messages and exit codes; at the
     end of a complete run issue its certificate and report (``certificate``: their settings)."""
-    from labcal.commands.console import ProgressDisplay, coefficient_table, format_duration
+    from labcal.commands.console import ProgressDisplay, coefficients_with_standard_errors, format_duration
     from labcal.run.journal import db_path
     from labcal.run.operator import OperatorDeclined
     from labcal.run.rundir import points_on_disk
@@ -105,7 +105,7 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
                     "verdict": None if issued is None or issued.certificate.conformity is None
                     else "pass" if issued.certificate.conformity.passed else "fail"})
         return 0
-    out.print(coefficient_table(result.fit))
+    out.print(coefficients_with_standard_errors(result.fit))
     for note in result.fit.notes:
         out.print(f"[yellow]note:[/] {note}")
     failed = f", {o.points_failed} failed (see the journal)" if o.points_failed else ""

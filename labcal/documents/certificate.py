@@ -106,8 +106,10 @@ class Instrument(_Strict):
     description: str = ""
 
 
-class Station(_Strict):
-    """The calibration device and how the sequencer ran it; a dry run keeps the simulator's truth."""
+class StationRecord(_Strict):
+    """What the certificate records of the calibration device and how the sequencer ran it (not the
+    live station the sequencer drives, `labcal.run.station.Station`); a dry run keeps the
+    simulator's truth."""
 
     description: str
     device_id: str | None = None
@@ -256,7 +258,7 @@ class Certificate(_Strict):
     calibrated_utc: AwareDatetime
     completed_utc: AwareDatetime | None
     issued_utc: AwareDatetime
-    station: Station
+    station: StationRecord
     plan: PlanRecord
     data: DataRecord
     environment: Environment

@@ -123,7 +123,9 @@ def attitude_table(cert: Certificate) -> Table:
                                                                           "RMS of U95"], rows, caption)
 
 
-def coefficient_table(cert: Certificate) -> Table:
+def coefficients_with_expanded_uncertainty(cert: Certificate) -> Table:
+    """The certified coefficients ± U95 (the terminal's fit table,
+    `labcal.commands.console.coefficients_with_standard_errors`, states ± one standard error)."""
     X, U = cert.coefficients, cert.U
     e = cert.expanded_uncertainty
     rows = [[f"{name} ({unit})", *(format_result(X[i, j], U[i, j]) for j in range(3))]
@@ -180,7 +182,7 @@ def audit_table(cert: Certificate) -> Table:
 
 def tables(cert: Certificate) -> list[Table]:
     return [identification_table(cert), conformity_table(cert), attitude_table(cert),
-            coefficient_table(cert), replication_table(cert), audit_table(cert)]
+            coefficients_with_expanded_uncertainty(cert), replication_table(cert), audit_table(cert)]
 
 
 # --- figures ----------------------------------------------------------------------------------
