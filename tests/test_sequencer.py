@@ -22,7 +22,7 @@ from labcal.config.plans import load_plan
 from labcal.config.settings import SequencerSettings, SettleSettings
 from labcal.errors import LabcalError
 from labcal.run.journal import Journal
-from labcal.run.operator import AutoOperator, ScriptedOperator
+from labcal.run.operator import AutoOperator, OperatorDeclined, ScriptedOperator
 from labcal.run.runner import calibrate, execute, open_for_resume
 from labcal.run.sequencer import Display, schedule
 from labcal.sim.rig import RigConfig, SimRig
@@ -314,7 +314,7 @@ def test_a_device_fault_with_nobody_to_answer_stops_and_keeps_every_point(tmp_pa
     setup.station.roll.move_to = failing_move
     answers = tmp_path / "answers.txt"
     answers.write_text("y\n")  # mount 1 only: the pause finds no answer
-    with pytest.raises(Exception, match="no answer left"):
+    with pytest.raises(OperatorDeclined, match="^the answers file has no answer left for this prompt$"):
         journal_run(tmp_path, setup, operator=ScriptedOperator(quiet_console(), answers))
     with Journal(tmp_path / "j.sqlite") as journal:
         assert journal.run(1).status == "stopped" and len(journal.points(1)) == 10  # 2 moves: load, check
