@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 from labcal.cli import build_parser, main
-from labcal.config.readings_csv import REQUIRED
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
+CONTRACT = ("replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", "vx", "vy", "vz")  # README, DESIGN.md
 MISALIGN = "a=0.3,b=-0.2,d=0.1,e=0.4,f=-0.3,k=0.2"
 
 
@@ -41,7 +41,7 @@ def test_simulate_then_fit_four_mounts_cancels_every_misalignment(tmp_path, caps
     assert code == 0
     with out.open() as f:
         header = next(csv.reader(f))
-    assert tuple(header[:8]) == REQUIRED
+    assert tuple(header[:8]) == CONTRACT
     code, stdout, _ = run_cli(capsys, "fit", str(out), "--json")
     assert code == 0
     doc = json.loads(stdout)
@@ -128,7 +128,7 @@ def test_every_command_and_sub_command_has_help():
 
 
 # --- bad input: one line, exit 2, no traceback -------------------------------------------
-READINGS_HEADER = ",".join(REQUIRED)
+READINGS_HEADER = ",".join(CONTRACT)
 GOOD_ROW = "1,0,0,0,0,0.1,0.2,1.0"
 
 
