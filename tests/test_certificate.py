@@ -15,10 +15,8 @@ from simulated_runs import simulated_run
 from labcal.analysis.fit import fit_readings
 from labcal.cli import main
 from labcal.documents.certificate import (
-    SCHEMA,
     CertificateSettings,
     build_certificate,
-    content_digest,
     envelope_grid,
     format_result,
     format_uncertainty,
@@ -54,12 +52,18 @@ def test_round_trip_is_exact(cert, cert_file, tmp_path):
     assert again.to_json() == cert.to_json()
     rewritten = write_certificate(tmp_path / "again.json", again)
     assert rewritten.read_bytes() == cert_file.read_bytes()
-    assert cert.digest.value == content_digest(json.loads(cert_file.read_text()))
+    # the seal a third party can check without labcal: SHA-256 of the canonical JSON (sorted keys,
+    # no spaces, UTF-8) of everything but the digest, as the README documents it
+    doc = json.loads(cert_file.read_text())
+    canonical = json.dumps({k: v for k, v in doc.items() if k != "digest"}, sort_keys=True,
+                           separators=(",", ":"), ensure_ascii=False)
+    digest = hashlib.sha256(canonical.encode("utf-8")).hexdigest()
+    assert cert.digest.value == doc["digest"]["value"] == digest
 
 
 def test_contents_match_the_fit_and_the_run(run, cert):
     fit = fit_readings(run.readings)
-    assert cert.to_json()["schema"] == SCHEMA
+    assert cert.to_json()["schema"] == "labcal.certificate/1"  # published (README); issued ones carry it
     assert cert.instrument.serial == "SN-0042"  # recorded by `labcal run --serial`
     assert cert.station.simulated and cert.station.simulated_truth["seed"] == 7
     np.testing.assert_array_equal(cert.coefficients, fit.coefficients)

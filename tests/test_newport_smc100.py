@@ -144,7 +144,10 @@ def test_port_closed_for_good(smc):
         bench.roll.angle()
     with pytest.raises(LinkLost, match="kept trying for 0.5 s"):
         bench.pitch.stop()  # the same port: it is gone for both
-    assert time.monotonic() - t0 < 4
+    # It gives up: the budget is the configured 0.5 s (named by the message above) plus 3 tries of
+    # 0.1 s. This bound only catches a link that never gives up, and is generous so that a loaded
+    # 2-core CI (threads, pty, scheduling) cannot trip it.
+    assert time.monotonic() - t0 < 20
 
 
 def test_a_loop_url_echoes_the_command_which_is_no_reply():

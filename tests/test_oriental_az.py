@@ -11,7 +11,6 @@ from emulators import bench_fixtures, emulated, no_leaks  # noqa: F401 - fixture
 from labcal.bench.hardware import Bench
 from labcal.drivers.axis import wrapped
 from labcal.drivers.errors import BadReply, DeviceFault, LinkLost, NoReply, OutOfLimits, Rejected
-from labcal.drivers.oriental_az import Output
 from labcal.sim.faults import Fault, FaultKind
 
 QUICK = {"timeout_s": 0.1, "retries": 2, "reconnect_s": 0.5}
@@ -131,11 +130,12 @@ def test_lost_and_garbled_replies_are_retried(az, kind):
 @pytest.mark.parametrize("kind,error", [(FaultKind.NO_REPLY, NoReply), (FaultKind.GARBLED, NoReply)])
 def test_retries_are_bounded(az, kind, error):
     emulation, bench = az
-    emulation.faults["pitch"].add(Fault(kind, count=3))
-    t0 = time.monotonic()
+    injector = emulation.faults["pitch"]
+    injector.add(Fault(kind, count=3))
+    before = injector.requests
     with pytest.raises(error, match="pitch table .*no reply within 0.1 s; check that it is powered"):
         bench.pitch.angle()
-    assert time.monotonic() - t0 < 3 * (0.1 + 0.1) + 1.0  # three tries, each a timeout and a pause
+    assert injector.requests == before + 3 and injector.count(kind) == 3  # retries = 2: three tries, no more
     assert bench.pitch.angle() == 0.0  # and the next exchange is fine
 
 
@@ -165,7 +165,7 @@ def test_port_closed_mid_run_is_reopened(az):
     emulation, bench = az
     emulation.faults["pitch"].add(Fault(FaultKind.CLOSE_PORT, reopen_s=0.3))
     assert bench.pitch.angle() == 0.0  # the reply is lost with the port; reconnected with backoff
-    assert Output.READY.name in bench.roll.status().words
+    assert "READY" in bench.roll.status().words
 
 
 def test_port_closed_for_good_gives_up_within_the_budget(az):
@@ -174,7 +174,10 @@ def test_port_closed_for_good_gives_up_within_the_budget(az):
     t0 = time.monotonic()
     with pytest.raises((LinkLost, NoReply, BadReply), match="pitch table"):
         bench.pitch.angle()
-    assert time.monotonic() - t0 < 0.5 + 3 * 0.2 + 1.0  # reconnect budget, tries, slack
+    # It gives up: the budget spent is the configured one (0.5 s reconnect, 3 tries of 0.1 s: ~1.1 s;
+    # the message of the stop below names it). This bound only catches a link that never gives up,
+    # and is generous so that a loaded 2-core CI (threads, pty, scheduling) cannot trip it.
+    assert time.monotonic() - t0 < 20
     with pytest.raises(LinkLost, match="cannot open .*; kept trying for 0.5 s; check the cable"):
         bench.pitch.stop()
 

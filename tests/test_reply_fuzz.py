@@ -5,8 +5,9 @@ else (no IndexError, no UnicodeDecodeError, no pymodbus exception leaking out)."
 from __future__ import annotations
 
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
+from modbus_crc import with_crc
 
 from labcal.drivers.errors import DriverError
 from labcal.drivers.keysight_34970a import Keysight34970A, parse_error, parse_readings
@@ -86,11 +87,21 @@ def test_keysight_driver_on_any_replies(replies, n):
     only_driver_errors(meter.identify)
 
 
+registers4 = st.lists(st.integers(0, 0xFFFF), min_size=4, max_size=4)
+
+
+def signed32(upper: int, lower: int) -> int:
+    """Two registers, upper word first, as a two's-complement 32-bit value (§2.1 "Data format")."""
+    return int.from_bytes(upper.to_bytes(2, "big") + lower.to_bytes(2, "big"), "big", signed=True)
+
+
 @FUZZ
-@given(st.lists(st.integers(0, 0xFFFF), min_size=4, max_size=4))
+@given(registers4)
 def test_az_status_decoding(registers):
+    """The output bits are the lower word of 007Eh/7Fh (the upper word is not status); the
+    alarm is 0080h/81h read as a signed 32-bit pair."""
     bits, alarm = decode_status(registers)
-    assert 0 <= int(bits) <= 0xFFFF and -(2**31) <= alarm < 2**31
+    assert int(bits) == registers[1] and alarm == signed32(registers[2], registers[3])
 
 
 @pytest.fixture(scope="module")
@@ -118,3 +129,27 @@ def test_modbus_driver_on_any_reply_bytes(modbus_reply, data):
     only_driver_errors(axis.angle)
     only_driver_errors(axis.status)
     only_driver_errors(axis.stop)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+                                                                 HealthCheck.function_scoped_fixture])
+@given(registers4)
+@example([0, 0x0080, 0, 0])  # ALM-A set, no code yet
+@example([0, 0x6020, 0, 0])  # READY, MOVE and IN-POS together: moving, so not in position
+@example([0xFFFF, 0x4020, 0, 0x0030])  # upper word all ones (not status); alarm 30h
+def test_modbus_driver_status_from_any_registers(modbus_reply, registers):
+    """A well-formed FC03 reply with any four registers at 007Eh: the driver's status is what
+    hardware_protocols.md §2.1 says the bits mean (READY bit 5, ALM-A bit 7, MOVE bit 13,
+    IN-POS bit 14 of the lower word; in position = IN-POS and not MOVE) and a fault exactly when
+    an alarm code is present or ALM-A is set, naming the code."""
+    link, reply = modbus_reply
+    reply["bytes"] = with_crc(bytes([1, 3, 8]) + b"".join(r.to_bytes(2, "big") for r in registers))
+    axis = AzAxis("pitch", link, 1, VirtualClock(), steps_per_degree=50, speed_dps=10, accel_dps2=10)
+    status = axis.status()
+    low, alarm = registers[1], signed32(registers[2], registers[3])
+    assert status.ready == bool(low & 1 << 5) and status.moving == bool(low & 1 << 13)
+    assert status.in_position == (bool(low & 1 << 14) and not low & 1 << 13)
+    if alarm or low & 1 << 7:
+        assert status.fault is not None and status.fault.startswith(f"alarm {alarm:02X}h ("), status.fault
+    else:
+        assert status.fault is None

@@ -13,7 +13,6 @@ from pathlib import Path
 import pytest
 from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
 
-from labcal.cli import main
 from labcal.config.station import load_station, shipped_stations
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
@@ -50,9 +49,9 @@ def test_check_says_plainly_what_does_not_answer(tmp_path, capsys):
     station.write_text('[pitch]\ndriver = "oriental-az"\ntcp = "127.0.0.1:1"\nsteps_per_degree = 50\n'
                        f'[roll]\ndriver = "newport-smc100"\nport = "{tmp_path}/no-such-port"\n'
                        '[dmm]\ndriver = "keysight-34970a"\ntcp = "127.0.0.1:2"\n')
-    t0 = time.monotonic()
     code, out, err = cli(capsys, "station", "check", str(station))
-    assert code == 2 and time.monotonic() - t0 < 5
+    assert code == 2
+    assert "kept trying" not in err  # one attempt per device, not the 5 s reconnect budget of a run
     lines = err.strip().splitlines()
     assert lines[-1] == "labcal: error: 3 of 3 devices failed the check (pitch, roll, dmm); see the lines " \
                         "above"
@@ -139,14 +138,6 @@ def test_a_pty_cannot_carry_parity(tmp_path, capsys):
     path.write_text(path.read_text().replace('parity = "N"', 'parity = "E"'))
     code, _, err = cli(capsys, "station", "check", str(path), "--emulate")
     assert code == 2 and 'pitch: a pty cannot carry parity E; set parity = "N" to emulate it on a pty' in err
-
-
-def test_every_new_command_has_help():
-    for args in (["station", "--help"], ["station", "list", "--help"], ["station", "check", "--help"],
-                 ["sim", "--help"], ["sim", "serve", "--help"], ["run", "--help"]):
-        with pytest.raises(SystemExit) as exc:
-            main(args)
-        assert exc.value.code == 0
 
 
 def test_sim_serve_until_ctrl_c(tmp_path, capsys):
