@@ -9,8 +9,9 @@ from __future__ import annotations
 import threading
 
 from labcal.analysis.kinematics import Mount
+from labcal.config.emulation import RigConfig
 from labcal.sim.clock import ScaledClock
-from labcal.sim.rig import RigConfig, SimRig
+from labcal.sim.rig import SimRig
 from labcal.sim.tables import SimAxis
 
 

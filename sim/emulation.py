@@ -1,71 +1,36 @@
 """Start the emulators a station file points at, fed by one simulated rig.
 
 Devices on the same port share one emulated bus (two AZ drives behind one gateway, two SMC100
-controllers on one daisy chain). The station file's ``[emulation]`` table sets the time scale,
-the seed and the rig (``[emulation.rig]``, a `RigConfig`). `Emulation.station_config` is the
-station file as the running emulators answer it (free TCP ports filled in).
+controllers on one daisy chain). The station file's ``[emulation]`` table (validated with the
+station file, as `labcal.config.emulation.EmulationSettings`) sets the time scale, the seed, the
+rig (``[emulation.rig]``) and the faults to inject. `Emulation.station_config` is the station
+file as the running emulators answer it (free TCP ports filled in).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
-
-from labcal.config.files import one_line
 from labcal.config.station import AzSettings, LinkSettings, Smc100Settings, StationFile
 from labcal.errors import LabcalError
 from labcal.sim.az_emulator import AzDrives, AzServer, AzUnit
 from labcal.sim.dmm_emulator import Keysight34970AEmulator
 from labcal.sim.emulated_rig import EmulatedRig
 from labcal.sim.endpoint import Endpoint
-from labcal.sim.faults import Fault, FaultInjector, FaultKind
+from labcal.sim.faults import Fault, FaultInjector
 from labcal.sim.line_server import LineServer
-from labcal.sim.rig import RigConfig
 from labcal.sim.smc100_emulator import Positioner, Smc100Emulator
 
 Server = AzServer | LineServer
 NO_LIMITS = (-1e9, 1e9)
 
 
-class FaultSpec(BaseModel):
-    """A fault to inject from the start (``[[emulation.faults]]``): see `labcal.sim.faults`."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    device: Literal["pitch", "roll", "dmm"]
-    kind: FaultKind
-    count: int = Field(default=1, ge=1)
-    after: int = Field(default=0, ge=0, description="matching requests let through first")
-    match: str | None = Field(default=None, description="regular expression on the request")
-    delay_s: float = Field(default=1.0, ge=0)
-    code: int | str | None = None
-    reopen_s: float | None = Field(default=None, ge=0)
-
-
-class EmulationSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    time_scale: float = Field(default=1.0, gt=0, le=1e5, description="rig time per second of wall time")
-    seed: int | None = Field(default=None, description="the rig's random seed (default: the rig's own)")
-    rig: RigConfig = Field(default_factory=RigConfig)
-    faults: list[FaultSpec] = Field(default_factory=list)
-
-
-def emulation_settings(config: StationFile, source: str) -> EmulationSettings:
-    try:
-        return EmulationSettings.model_validate(config.emulation)
-    except ValidationError as exc:
-        raise LabcalError(f"{source}: emulation.{one_line(exc)}") from None
-
-
 class Emulation:
     """Running emulators; `close` (or leaving the `with` block) stops them and removes their ptys."""
 
     def __init__(self, config: StationFile, *, time_scale: float | None = None, seed: int | None = None,
-                 source: str = "station file", start_s: float = 0.0):
-        settings = emulation_settings(config, source)
+                 start_s: float = 0.0):
+        settings = config.emulation
         if time_scale is not None and not 0 < time_scale <= 1e5:
             raise LabcalError(f"time scale {time_scale:g} must be > 0 and ≤ 100000")
         self.time_scale = time_scale or settings.time_scale

@@ -18,16 +18,10 @@ import re
 import threading
 from collections import deque
 from dataclasses import dataclass, field
-from enum import StrEnum
 
+from labcal.config.emulation import FaultKind
 
-class FaultKind(StrEnum):
-    NO_REPLY = "no-reply"
-    LATE_REPLY = "late-reply"
-    GARBLED = "garbled"
-    ALARM = "alarm"
-    EXCEPTION = "exception"
-    CLOSE_PORT = "close-port"
+__all__ = ["Fault", "FaultInjector", "FaultKind", "garble"]  # FaultKind: a station file names it too
 
 
 @dataclass

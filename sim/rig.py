@@ -7,60 +7,17 @@ from __future__ import annotations
 
 import math
 import zlib
-from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
 
 from labcal.analysis.kinematics import ARCSEC, IndexWobble, Misalignment, Mount, gravity
-from labcal.config.files import load_model
-from labcal.errors import LabcalError
+from labcal.config.emulation import DeviceTruth, InstrumentTruth, RigConfig
 from labcal.run.station import Scan, Station
 from labcal.sim.clock import ScaledClock, VirtualClock
-from labcal.sim.instrument import InstrumentTruth, default_instrument
 from labcal.sim.tables import SimAxis
 
-
-class DeviceTruth(BaseModel):
-    """The calibration device's true geometry (Soto Table 1)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    misalignment_deg: dict[str, float] = Field(
-        default={"a": 0.0012, "b": -0.0008, "d": 0.0005, "e": 0.0015, "f": -0.001, "k": 0.0009})
-    index_arcsec: float = Field(default=2.0, ge=0)
-    wobble_arcsec: float = Field(default=2.0, ge=0)
-    mount_repeat_arcsec: float = Field(default=0.0, ge=0, description="plate tilt/yaw scatter per remount")
-
-    def misalignment(self) -> Misalignment:
-        unknown = set(self.misalignment_deg) - set("abdefk")
-        if unknown:
-            raise LabcalError(f"unknown misalignment(s) {', '.join(sorted(unknown))}; use a, b, d, e, f, k")
-        return Misalignment.from_degrees(**self.misalignment_deg)
-
-
-class RigConfig(BaseModel):
-    """Everything about the simulated rig; defaults describe a plausible lab."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    device: DeviceTruth = DeviceTruth()
-    instrument: InstrumentTruth = Field(default_factory=default_instrument)
-    speed_dps: float = Field(default=20.0, gt=0)
-    accel_dps2: float = Field(default=40.0, gt=0)
-    clamp_s: float = Field(default=1.0, ge=0)
-    nplc: float = Field(default=10.0, gt=0, description="DMM integration per sample, power-line cycles")
-    line_hz: float = Field(default=50.0, gt=0)
-    remount_s: float = Field(default=300.0, ge=0, description="operator time for one remount")
-    lab_temp_c: float = 21.0
-    lab_temp_swing_c: float = Field(default=0.3, ge=0)
-    lab_temp_period_h: float = Field(default=6.0, gt=0)
-    seed: int = 0
-
-
-def load_rig_config(path: str | Path) -> RigConfig:
-    return load_model(path, RigConfig, "rig")
+__all__ = ["DeviceTruth", "RigConfig", "SimRig"]  # the rig's configuration models live in labcal.config
 
 
 class SimRig:

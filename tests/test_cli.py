@@ -161,7 +161,8 @@ PLAN_HEAD = 'name = "x"\nmounts = [[0, 0]]\n'
     (PLAN_HEAD + "points = [[0, 0.5], [90, 0], [0, 90], [0, 180]]\n", "is not on the tables' 1° grid"),
     (PLAN_HEAD + "points = [[90, 0], [90, 90], [90, 180], [90, 270]]\n", "the design is singular"),
     ('name = "x"\nmounts = [[0, 90]]\npoints = [[0, 0]]\n', "y_deg and u_deg must each be 0 or 180"),
-    (PLAN_HEAD + "points = [[0, 0]]\ncolour = 1\n", "colour: Extra inputs are not permitted"),
+    (PLAN_HEAD + "points = [[0, 0]]\ncolour = 1\n",
+     "colour: unknown key; the valid keys here are angle_step_deg, description,"),
     ('name = "x"\nmounts = [[0, 0]]\npoints = [[0, "a"]]\n', "points.0.1"),
 ])
 def test_bad_plans(tmp_path, capsys, content, expected):

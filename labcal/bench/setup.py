@@ -13,17 +13,18 @@ import json
 from collections.abc import Callable
 from contextlib import ExitStack
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from labcal.errors import LabcalError
 
 if TYPE_CHECKING:  # the simulator and the drivers are imported where a station of theirs is made
     from labcal.bench.hardware import Bench
-    from labcal.config.settings import SequencerSettings, SettleSettings
+    from labcal.config.emulation import InstrumentTruth
+    from labcal.config.settings import SettleSettings
     from labcal.config.station import StationFile
     from labcal.run.estimate import Timing
     from labcal.run.station import Station
-    from labcal.sim.instrument import InstrumentTruth
 
 REMOUNT_ALLOWANCE_S = 300.0  # the operator's time for one remount, for estimates on real hardware
 
@@ -42,13 +43,15 @@ class StationSetup:
 def sim_station(rig_file: str | None, seed: int | None, snapshot: str | None = None,
                 start_time_s: float = 0.0) -> StationSetup:
     """The simulated rig, from a rig file or from a journal snapshot (resume)."""
+    from labcal.config.emulation import RigConfig, load_rig_config
+    from labcal.config.files import validate_model
     from labcal.run.estimate import Timing
     from labcal.sim.clock import VirtualClock
-    from labcal.sim.rig import RigConfig, SimRig, load_rig_config
+    from labcal.sim.rig import SimRig
 
-    if snapshot is not None:
+    if snapshot is not None:  # validated by today's model: defaults fill the fields added since
         doc = json.loads(snapshot)
-        config, seed = RigConfig.model_validate(doc["rig"]), doc["seed"]
+        config, seed = validate_model(doc["rig"], RigConfig, "the journaled simulated rig"), doc["seed"]
     else:
         config = load_rig_config(rig_file) if rig_file else RigConfig()
     rig = SimRig(config, seed=seed, clock=VirtualClock(start_time_s))
@@ -70,30 +73,24 @@ def known_settle(inst: InstrumentTruth) -> SettleSettings:
 
 def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emulate: bool = False,
                      time_scale: float | None = None, seed: int | None = None,
-                     start_time_s: float = 0.0) -> tuple[StationSetup, Bench, SequencerSettings]:
+                     start_time_s: float = 0.0) -> tuple[StationSetup, Bench]:
     """A station file's devices through the real drivers (on the emulators it points at with
     ``emulate``, started here and stopped with ``stack``). The journal keeps the file, so that a
-    resume rebuilds the same station; also returns the file's [sequencer] settings."""
+    resume can rebuild the same station, or check that a new file describes the same bench."""
     from labcal.bench.hardware import Bench
-    from labcal.config.files import one_line
-    from labcal.config.settings import SequencerSettings
     from labcal.drivers.keysight_34970a import channel_time_s
     from labcal.run.estimate import Timing
 
-    try:
-        base = SequencerSettings.model_validate(config.sequencer)
-    except ValueError as exc:
-        raise LabcalError(f"{source}: sequencer.{one_line(exc)}") from None
-    station = config.model_dump(mode="json")
-    station["emulation"].pop("faults", None)  # injected faults are a test, not the station: a resume has none
+    # injected faults are a test, not the station: a resume has none
+    station = config.model_dump(mode="json", exclude={"emulation": {"faults"}})
     snapshot: dict = {"kind": "station", "station": station, "emulate": emulate}
     sweep_s = (3 + bool(config.dmm.temperature_channel)) * channel_time_s(config.dmm.nplc, config.dmm.line_hz)
     timing = Timing(clamp_s=0.0, sample_s=sweep_s, remount_s=REMOUNT_ALLOWANCE_S)
-    settle, clock, hooks, metadata = base.settle, None, {}, {"station_file": source}
+    settle, clock, hooks, metadata = config.sequencer.settle, None, {}, {"station_file": source}
     if emulate:
         from labcal.sim.emulation import Emulation
 
-        emulation = stack.enter_context(Emulation(config, time_scale=time_scale, seed=seed, source=source,
+        emulation = stack.enter_context(Emulation(config, time_scale=time_scale, seed=seed,
                                                   start_s=start_time_s))
         rig = emulation.rig.rig
         snapshot.update(time_scale=emulation.time_scale, seed=rig.seed)
@@ -103,18 +100,54 @@ def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emul
         config = emulation.station_config
     bench = stack.enter_context(Bench(config, clock))
     text = json.dumps(snapshot, sort_keys=True)
-    return StationSetup(bench.station(**hooks), text, metadata, timing, settle), bench, base
+    return StationSetup(bench.station(**hooks), text, metadata, timing, settle), bench
 
 
-def station_from_snapshot(text: str, stack: ExitStack, start_time_s: float) -> tuple[StationSetup, Bench]:
-    """The station a journaled run started on, rebuilt from its snapshot (emulators restarted)."""
+@dataclass(frozen=True)
+class StationSnapshot:
+    """What the journal keeps of a station file's station, validated with today's models."""
+
+    config: StationFile
+    emulate: bool
+    time_scale: float | None
+    seed: int | None
+
+
+def read_snapshot(text: str, run_name: str, started_with: str) -> StationSnapshot | None:
+    """The station a journaled run started on; None for the simulated rig (``--sim``). Validated
+    with today's models, so that fields added since take their defaults; one that no longer
+    validates is one line naming the field (``run_name``: the run; ``started_with``: its labcal)."""
+    from pydantic import ValidationError
+
+    from labcal.config.files import one_line
     from labcal.config.station import StationFile
 
     doc = json.loads(text)
-    setup, bench, _ = hardware_station(StationFile.model_validate(doc["station"]), "the journaled station",
-                                       stack, emulate=doc["emulate"], time_scale=doc.get("time_scale"),
-                                       seed=doc.get("seed"), start_time_s=start_time_s)
-    return setup, bench
+    if doc.get("kind") != "station":
+        return None
+    try:
+        config = StationFile.model_validate(doc["station"])
+    except ValidationError as exc:
+        raise LabcalError(f"{run_name}: the station it started on no longer validates "
+                          f"({one_line(exc, StationFile)}); resume it with labcal {started_with}, "
+                          "which started it") from None
+    return StationSnapshot(config, doc["emulate"], doc.get("time_scale"), doc.get("seed"))
+
+
+def station_for_resume(snapshot: StationSnapshot, run_name: str, stack: ExitStack, start_time_s: float,
+                       new: tuple[StationFile, str] | None = None) -> tuple[StationSetup, Bench]:
+    """The station a journaled run goes on with: the one it started on, or ``new`` (a station
+    file and its name) when that describes the same bench on other links; emulators restarted."""
+    config, source = snapshot.config, "the journaled station"
+    if new is not None:
+        config, source = new
+        differences = snapshot.config.identity_differences(config, Path(source).name, snapshot.emulate)
+        if differences:
+            raise LabcalError(f"{source} is not the bench {run_name} started on: {'; '.join(differences)}; a "
+                              "resumed run may change only links, timeouts and retries: correct the file, or "
+                              "omit --station to resume on the run's own station")
+    return hardware_station(config, source, stack, emulate=snapshot.emulate, time_scale=snapshot.time_scale,
+                            seed=snapshot.seed, start_time_s=start_time_s)
 
 
 def prepare(bench: Bench, station: Station, say: Callable[[str], None]) -> None:
@@ -131,7 +164,7 @@ def prepare(bench: Bench, station: Station, say: Callable[[str], None]) -> None:
         raise
 
 
-def bench_for_check(config: StationFile, source: str, stack: ExitStack, *, emulate: bool = False,
+def bench_for_check(config: StationFile, stack: ExitStack, *, emulate: bool = False,
                     time_scale: float | None = None) -> Bench:
     """A station's devices for `labcal station check` (on the emulators it points at with ``emulate``,
     started here and stopped with ``stack``). A check says at once that a port is missing instead
@@ -142,7 +175,7 @@ def bench_for_check(config: StationFile, source: str, stack: ExitStack, *, emula
     if emulate:
         from labcal.sim.emulation import Emulation
 
-        emulation = stack.enter_context(Emulation(config, time_scale=time_scale, source=source))
+        emulation = stack.enter_context(Emulation(config, time_scale=time_scale))
         config, clock = emulation.station_config, emulation.rig.clock
     quick = config.model_copy(update={name: link.model_copy(update={"reconnect_s": 0.0})
                                       for name, link in config.devices().items()})

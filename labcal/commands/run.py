@@ -4,7 +4,6 @@ station file's devices through the real drivers (--station), on its emulators wi
 from __future__ import annotations
 
 import argparse
-import json
 from contextlib import ExitStack
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -18,7 +17,7 @@ from labcal.errors import LabcalError
 # other commands, which import this module to build the parser, do not pay for it at start-up.
 if TYPE_CHECKING:
     from labcal.bench.setup import StationSetup
-    from labcal.config.settings import SequencerSettings
+    from labcal.config.settings import CertificateSettings, SequencerSettings
     from labcal.run.estimate import Estimate
     from labcal.run.runner import RunResult
 
@@ -58,13 +57,15 @@ def print_estimate(plan: Plan, est: Estimate, as_json: bool) -> None:
     out.print("(mounting includes the operator's remount allowance and the mount checks; nothing moved)")
 
 
-def certificate_settings_for_run(args: argparse.Namespace, section: dict | None, source: str):
-    """The station's [certificate] section with the command line's tolerances over it."""
-    from labcal.documents.certificate import certificate_settings
+def certificate_settings_for_run(args: argparse.Namespace, station: CertificateSettings | None,
+                                 source: str) -> CertificateSettings:
+    """The station's [certificate] settings (defaults without a station) with the command line's
+    tolerances over them."""
+    from labcal.config.settings import CertificateSettings
 
     usage = tuple(args.usage_pitch) if args.usage_pitch else None
-    return certificate_settings(section, source, attitude_u95_max_deg=args.tolerance_deg,
-                                usage_pitch_deg=usage)
+    return (station or CertificateSettings()).overridden(source, attitude_u95_max_deg=args.tolerance_deg,
+                                                         usage_pitch_deg=usage)
 
 
 def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done: int,
@@ -158,13 +159,14 @@ def cmd_run(args: argparse.Namespace) -> int:
             if not args.emulate and not args.serial and not args.no_report:
                 raise LabcalError("a calibration on real hardware needs the instrument's --serial for its "
                                   "certificate (or --no-report)")
-            setup, bench, base = hardware_station(config, args.station, stack, emulate=args.emulate,
-                                                  time_scale=args.time_scale, seed=args.seed)
+            setup, bench = hardware_station(config, args.station, stack, emulate=args.emulate,
+                                            time_scale=args.time_scale, seed=args.seed)
             pitch, roll = config.pitch, config.roll  # the slower table sets the pace of the estimates
             settings = sequencer_settings_for_run(args, setup, min(pitch.speed_dps, roll.speed_dps),
                                      min(pitch.accel_dps2, roll.accel_dps2))
-            settings = settings.model_copy(update={"move_timeout_s": base.move_timeout_s,
-                                                   "position_tolerance_deg": base.position_tolerance_deg})
+            settings = settings.model_copy(update={
+                "move_timeout_s": config.sequencer.move_timeout_s,
+                "position_tolerance_deg": config.sequencer.position_tolerance_deg})
         est = estimate(plan, settings, setup.timing)
         if args.dry_run:
             print_estimate(plan, est, args.json)
@@ -181,8 +183,11 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
-    from labcal.bench.setup import prepare, sim_station, station_from_snapshot
+    from labcal.bench.setup import prepare, read_snapshot, sim_station, station_for_resume
+    from labcal.config.settings import CertificateSettings
+    from labcal.config.station import load_station
     from labcal.run.estimate import estimate
+    from labcal.run.journal import sha256
     from labcal.run.runner import execute, open_for_resume
     from labcal.run.sequencer import check_limits, schedule
 
@@ -192,22 +197,34 @@ def cmd_resume(args: argparse.Namespace) -> int:
         stack.callback(ctx.journal.close)
         points = ctx.journal.points(ctx.run_id)
         start = max((p.t_end for p in points), default=0.0)
+        run_name = f"run {ctx.run_id} in {run_dir}"
+        snapshot = read_snapshot(ctx.station_text, run_name, ctx.software_version)
+        new_station, on_station, station_record = None, "on the station it started on", None
+        if args.station:
+            if snapshot is None:
+                raise LabcalError(f"{run_name} is a dry run on the simulated rig (--sim): it resumes on that "
+                                  "rig; omit --station")
+            new_config, new_text = load_station(args.station)
+            new_station = (new_config, args.station)
+            on_station = f"on station file {args.station} (sha256 {sha256(new_text)[:12]})"
+            station_record = {"station_file": args.station, "station_sha256": sha256(new_text),
+                              "station_text": new_text}
         bench = None
-        if json.loads(ctx.station_text).get("kind") == "station":
-            setup, bench = station_from_snapshot(ctx.station_text, stack, start)
-        else:
+        if snapshot is None:
             setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start)
-        if ctx.station_text != setup.text:
-            raise LabcalError(f"{run_dir}: the station differs from the one the run started on; not resuming")
+            certificate = CertificateSettings()
+        else:
+            setup, bench = station_for_resume(snapshot, run_name, stack, start, new_station)
+            certificate = (new_station[0] if new_station else snapshot.config).certificate
         est = estimate(ctx.plan, ctx.settings, setup.timing)
         if bench is not None:
             check_limits(setup.station, schedule(ctx.plan, ctx.settings))
             prepare(bench, setup.station, err.print)
         operator = make_operator(args)
         ctx.journal.reopen(ctx.run_id)
-        ctx.journal.event(ctx.run_id, "resume", f"resumed after {len(points)} committed point(s)")
-        section = json.loads(ctx.station_text).get("station", {}).get("certificate")
-        cert_settings = certificate_settings_for_run(args, section, "the run's station")
+        ctx.journal.event(ctx.run_id, "resume",
+                          f"resumed after {len(points)} committed point(s) {on_station}", station_record)
+        cert_settings = certificate_settings_for_run(args, certificate, args.station or "the run's station")
         return run_and_report(args, lambda display: execute(
             ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, display),
             run_dir, ctx.plan, est, len(points), cert_settings)
@@ -266,5 +283,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "checks the plan hash and the station, asks to confirm the mount, and "
                                    "goes on at the first point not in the journal.")
     r.add_argument("run", help="the run directory")
+    r.add_argument("--station", metavar="STATION",
+                   help="go on with this station file instead of the one the run started on: the same bench "
+                        "(drivers, addresses, steps, limits, channels) on other links (ports, TCP addresses, "
+                        "baud rates, timeouts, retries); anything else is refused, field by field")
     _common(r)
     r.set_defaults(func=cmd_resume)

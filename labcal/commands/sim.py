@@ -55,7 +55,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     config, _ = load_station(args.station)
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # a kill stops them cleanly too
     try:
-        with Emulation(config, time_scale=args.time_scale, seed=args.seed, source=args.station) as emulation:
+        with Emulation(config, time_scale=args.time_scale, seed=args.seed) as emulation:
             endpoints = emulation.endpoints()
             if args.json:
                 print_json({"station": config.description or args.station, "time_scale": emulation.time_scale,

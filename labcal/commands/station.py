@@ -45,7 +45,7 @@ def cmd_check(args: argparse.Namespace) -> int:
 
     config, _ = load_station(args.station)
     with ExitStack() as stack:
-        bench = bench_for_check(config, args.station, stack, emulate=args.emulate, time_scale=args.time_scale)
+        bench = bench_for_check(config, stack, emulate=args.emulate, time_scale=args.time_scale)
         reports = bench.check(reset_alarms=args.reset_alarms)
     failed = [r for r in reports if r["problem"]]
     if args.json:

@@ -5,10 +5,13 @@ from __future__ import annotations
 
 import json
 import tomllib
+from difflib import get_close_matches
 from pathlib import Path
-from typing import TypeVar
+from types import UnionType
+from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
 
 from pydantic import BaseModel, ValidationError
+from pydantic.fields import FieldInfo
 
 from labcal.errors import LabcalError
 
@@ -25,13 +28,93 @@ def read_text(path: str | Path, kind: str) -> str:
         raise LabcalError(f"{path}: cannot read {kind} file ({exc})") from None
 
 
-def one_line(exc: ValidationError) -> str:
-    """The first validation error as 'field.path: message (and N more)'."""
-    err = exc.errors()[0]
-    where = ".".join(str(part) for part in err["loc"])
+def one_line(exc: ValidationError, model: type[BaseModel] | None = None) -> str:
+    """The first validation error as 'field.path: message (and N more)'.
+
+    Given the ``model`` that was validated, the path is spelled as the file spells it (a tagged
+    union's tag, which pydantic puts in the path, is left out) and an unknown key is answered with
+    the nearest valid name at that place: a typo then says how to fix it instead of only that
+    something is extra. An unknown key is reported before the other errors: a misspelt required
+    field is also a missing one, and the spelling is what to fix."""
+    errors = exc.errors()
+    err = next((e for e in errors if e["type"] == "extra_forbidden"), errors[0]) if model else errors[0]
+    loc = tuple(err["loc"])
     msg = err["msg"].removeprefix("Value error, ")
+    if model is None:
+        where = ".".join(str(part) for part in loc)
+    else:
+        path, holders = _located(model, loc)
+        where = ".".join(path)
+        if err["type"] == "extra_forbidden" and path:
+            msg = _unknown_key(path[-1], holders)
     more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
     return f"{where}: {msg}{more}" if where else f"{msg}{more}"
+
+
+def _unknown_key(key: str, holders: list[type[BaseModel]]) -> str:
+    names = sorted({name for holder in holders for name in _keys(holder)})
+    nearest = get_close_matches(key, names, n=1)
+    if nearest:
+        return f"unknown key; did you mean {nearest[0]}?"
+    return f"unknown key; the valid keys here are {', '.join(names)}" if names else "unknown key"
+
+
+def _keys(model: type[BaseModel]) -> dict[str, FieldInfo]:
+    """The names a file may use for the model's fields: their names and aliases."""
+    keys = dict(model.model_fields)
+    keys.update({info.alias: info for info in model.model_fields.values() if info.alias})
+    return keys
+
+
+def _held(annotation: Any) -> list[Any]:
+    """The types a field's values are made of, through unions, Annotated, sequences and dict values."""
+    origin, args = get_origin(annotation), get_args(annotation)
+    if origin is Annotated:
+        return _held(args[0])
+    if origin in (Union, UnionType, list, tuple, set, frozenset):
+        return [held for arg in args if arg is not Ellipsis for held in _held(arg)]
+    if origin is dict:
+        return _held(args[1])
+    return [annotation]
+
+
+def _models(types: list[Any]) -> list[type[BaseModel]]:
+    return [t for t in types if isinstance(t, type) and issubclass(t, BaseModel)]
+
+
+def _tagged(model: type[BaseModel], tag: str) -> bool:
+    """Whether ``tag`` names this member of a union (its discriminator's value, or its class name)."""
+    return tag == model.__name__ or any(
+        get_origin(info.annotation) is Literal and get_args(info.annotation) == (tag,)
+        for info in model.model_fields.values())
+
+
+def _located(model: type[BaseModel], loc: tuple[int | str, ...]) -> tuple[list[str], list[type[BaseModel]]]:
+    """An error's location as the file spells it, and the models that may hold its last key."""
+    path: list[str] = []
+    holders: list[Any] = [model]
+    for i, part in enumerate(loc):
+        last = i == len(loc) - 1
+        fields = {key: info for holder in _models(holders) for key, info in _keys(holder).items()}
+        tagged = [m for m in _models(holders) if _tagged(m, str(part))] if not last else []
+        if isinstance(part, str) and part in fields:
+            path.append(part)
+            if not last:
+                holders = _held(fields[part].annotation)
+        elif tagged and isinstance(part, str):
+            holders = tagged  # pydantic names the union member it tried; the file does not
+        else:
+            path.append(str(part))  # a list index, a dict key, or the unknown key itself
+    return path, _models(holders)
+
+
+def validate_model(data: object, model: type[Model], source: str) -> Model:
+    """Validate parsed data (a TOML file's, a journal snapshot's) into ``model``; every mistake is
+    one LabcalError line naming ``source`` and the field."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise LabcalError(f"{source}: {one_line(exc, model)}") from None
 
 
 def parse_model(text: str, model: type[Model], source: str) -> Model:
@@ -40,10 +123,7 @@ def parse_model(text: str, model: type[Model], source: str) -> Model:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise LabcalError(f"{source}: malformed TOML: {exc}") from None
-    try:
-        return model.model_validate(data)
-    except ValidationError as exc:
-        raise LabcalError(f"{source}: {one_line(exc)}") from None
+    return validate_model(data, model, source)
 
 
 def load_model(path: str | Path, model: type[Model], kind: str) -> Model:

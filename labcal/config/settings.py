@@ -1,14 +1,19 @@
-"""The run's settings: how the sequencer settles, orders and times a run.
+"""The settings a station file carries besides its devices: how the sequencer settles, orders and
+times a run (``[sequencer]``), and what a certificate says and checks (``[certificate]``).
 
 A station file's `[sequencer]` table is a `SequencerSettings`; the command line's options go over
 it. The journal keeps the settings a run started with, validated again by these models on resume.
+Its `[certificate]` table is a `CertificateSettings`, with the command line's tolerances over it.
 """
 
 from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from labcal.config.files import one_line
+from labcal.errors import LabcalError
 
 
 class SettleSettings(BaseModel):
@@ -37,3 +42,36 @@ class SequencerSettings(BaseModel):
         default="skip", description="what to do with a point that does not settle after one retry")
     speed_dps: float = Field(default=20.0, gt=0, description="table speed, for ordering and estimates")
     accel_dps2: float = Field(default=40.0, gt=0)
+
+
+class CertificateSettings(BaseModel):
+    """Who issues, the usage envelope and the tolerances of the conformity statement."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    laboratory: str = Field(default="", description="laboratory name and address, as printed")
+    attitude_u95_max_deg: float | None = Field(default=None, gt=0, description="tolerance on the largest "
+                                               "95 % expanded uncertainty of pitch and of roll")
+    bias_max_v: float | None = Field(default=None, gt=0, description="limit on |B| + U(B) per sensor")
+    usage_pitch_deg: tuple[float, float] = (-60.0, 60.0)
+    usage_roll_deg: tuple[float, float] = (-180.0, 180.0)
+    grid_step_deg: float = Field(default=5.0, gt=0, le=45)
+
+    @model_validator(mode="after")
+    def _envelope(self) -> CertificateSettings:
+        (p0, p1), (r0, r1) = self.usage_pitch_deg, self.usage_roll_deg
+        if not -90 <= p0 < p1 <= 90:
+            raise ValueError(f"usage_pitch_deg [{p0:g}, {p1:g}] must be increasing within -90..90")
+        if not -180 <= r0 < r1 <= 180:
+            raise ValueError(f"usage_roll_deg [{r0:g}, {r1:g}] must be increasing within -180..180")
+        return self
+
+    def overridden(self, source: str, **overrides: object) -> CertificateSettings:
+        """These settings with the command line's non-None ``overrides`` over them, validated again
+        (a tolerance typed on the command line is checked like one in the file); ``source`` names
+        where these settings came from, for the message."""
+        data = {**self.model_dump(), **{k: v for k, v in overrides.items() if v is not None}}
+        try:
+            return CertificateSettings.model_validate(data)
+        except ValidationError as exc:
+            raise LabcalError(f"{source}: certificate.{one_line(exc, CertificateSettings)}") from None

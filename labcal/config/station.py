@@ -9,11 +9,13 @@ from __future__ import annotations
 
 from importlib import resources
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
+from labcal.config.emulation import EmulationSettings
 from labcal.config.files import parse_model, read_text
+from labcal.config.settings import CertificateSettings, SequencerSettings
 from labcal.errors import LabcalError
 
 # The 34970A's settable integration times (power-line cycles) and DC volts ranges: others are
@@ -34,6 +36,10 @@ class LinkSettings(BaseModel):
     """How to reach a device: ``port`` (a serial device or pyserial URL) or ``tcp`` (host:port)."""
 
     model_config = ConfigDict(extra="forbid")
+
+    # The fields that make a device the one a run's readings were taken with, as opposed to how it
+    # is reached: a resumed run may change the link (a USB adapter back on another port), not these.
+    IDENTITY: ClassVar[tuple[str, ...]] = ()
 
     port: str | None = Field(default=None, description="serial device path or pyserial URL "
                                                         "(socket://host:port, rfc2217://, loop://)")
@@ -88,6 +94,7 @@ class AxisSettings(LinkSettings):
 class AzSettings(AxisSettings):
     """Oriental Motor AZ drive (Modbus RTU on ``port``, Modbus TCP on ``tcp``)."""
 
+    IDENTITY: ClassVar[tuple[str, ...]] = ("driver", "unit", "steps_per_degree", "wrap", "limits_deg")
     driver: Literal["oriental-az"]
     unit: int = Field(default=1, ge=1, le=247, description="Modbus slave address (unit id)")
     steps_per_degree: float = Field(gt=0, description="table steps per degree (motor steps × gear)")
@@ -108,6 +115,7 @@ class AzSettings(AxisSettings):
 class Smc100Settings(AxisSettings):
     """Newport SMC100 controller with a rotation stage (ASCII over serial or TCP)."""
 
+    IDENTITY: ClassVar[tuple[str, ...]] = ("driver", "address", "limits_deg")
     driver: Literal["newport-smc100"]
     address: int = Field(default=1, ge=1, le=31, description="controller address on the RS-485 chain")
     home_timeout_s: float = Field(default=60.0, gt=0)
@@ -117,6 +125,8 @@ class Smc100Settings(AxisSettings):
 class DmmSettings(LinkSettings):
     """Keysight 34970A-family DMM with a multiplexer card."""
 
+    IDENTITY: ClassVar[tuple[str, ...]] = ("driver", "channels", "temperature_channel", "temperature_probe",
+                                           "nplc", "range_v")
     driver: Literal["keysight-34970a"]
     channels: tuple[int, int, int] = Field(default=(101, 102, 103), description="x, y, z outputs")
     temperature_channel: int | None = Field(default=None, description="optional temperature sensor channel")
@@ -158,12 +168,12 @@ class StationFile(BaseModel):
     pitch: AxisConfig
     roll: AxisConfig
     dmm: DmmSettings
-    sequencer: dict[str, Any] = Field(default_factory=dict, description="read by `labcal run`: the "
-                                      "sequencer's settings on this station (timeouts, settling)")
-    emulation: dict[str, Any] = Field(default_factory=dict, description="read by `labcal sim serve` "
-                                      "and `--emulate`: time_scale, seed and a [emulation.rig] table")
-    certificate: dict[str, Any] = Field(default_factory=dict, description="read by `labcal report`: "
-                                        "laboratory, tolerances, usage envelope")
+    sequencer: SequencerSettings = Field(default_factory=SequencerSettings, description="read by `labcal "
+                                         "run`: the sequencer's settings on this station (timeouts)")
+    emulation: EmulationSettings = Field(default_factory=EmulationSettings, description="read by `labcal "
+                                         "sim serve` and `--emulate`: time_scale, seed, [emulation.rig]")
+    certificate: CertificateSettings = Field(default_factory=CertificateSettings, description="read by "
+                                             "`labcal run` and `labcal report`: laboratory, tolerances")
 
     @model_validator(mode="after")
     def _buses(self):
@@ -185,6 +195,62 @@ class StationFile(BaseModel):
 
     def devices(self) -> dict[str, LinkSettings]:
         return {"pitch": self.pitch, "roll": self.roll, "dmm": self.dmm}
+
+    def identity_differences(self, new: StationFile, new_name: str, emulated: bool = False) -> list[str]:
+        """How ``new`` is another bench than this one, a run's station: each identity field that
+        differs, as ``pitch.steps_per_degree: 1000 in the run, 500 in new.toml``. Links, timeouts
+        and retries may differ. For an emulated run the simulated rig is the bench too."""
+        ours: dict[str, object] = {}
+        theirs: dict[str, object] = {}
+        for name in ("pitch", "roll", "dmm"):
+            device, other = getattr(self, name), getattr(new, name)
+            for field in device.IDENTITY if device.driver == other.driver else ("driver",):
+                ours[f"{name}.{field}"] = getattr(device, field)
+                theirs[f"{name}.{field}"] = getattr(other, field)
+        if emulated:
+            ours.update(leaves(self.emulation.rig.model_dump(mode="json"), "emulation.rig"))
+            theirs.update(leaves(new.emulation.rig.model_dump(mode="json"), "emulation.rig"))
+        return [f"{key}: {spelled(ours.get(key))} in the run, {spelled(theirs.get(key))} in {new_name}"
+                for key in dict.fromkeys([*ours, *theirs]) if ours.get(key) != theirs.get(key)]
+
+
+def spelled(value: object) -> str:
+    """A setting's value as a station file spells it: 1000, [101, 102, 103], true, none."""
+    if value is None:
+        return "none"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, list | tuple):
+        return f"[{', '.join(spelled(item) for item in value)}]"
+    return str(value)
+
+
+def leaves(tree: dict, prefix: str) -> dict[str, object]:
+    """A nested table's values by dotted name (lists are values)."""
+    flat: dict[str, object] = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            flat.update(leaves(value, f"{prefix}.{key}"))
+        else:
+            flat[f"{prefix}.{key}"] = value
+    return flat
+
+
+class CertificateSection(BaseModel):
+    """A station file read for its ``[certificate]`` table alone."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    certificate: CertificateSettings = Field(default_factory=CertificateSettings)
+
+
+def load_certificate_settings(path: str | Path) -> CertificateSettings:
+    """The ``[certificate]`` table of a station file. `labcal report` makes the documents of a
+    finished run, often away from the bench whose devices the rest of the file describes: only
+    this table is read, validated by the same model as when the whole station is read."""
+    return parse_model(read_text(path, "station"), CertificateSection, str(path)).certificate
 
 
 def shipped_stations() -> dict[str, resources.abc.Traversable]:

@@ -16,7 +16,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import tomllib
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -34,6 +33,8 @@ from labcal.analysis.fit import SENSORS, Fit
 from labcal.analysis.kinematics import gravity
 from labcal.analysis.models import BASE_NAMES
 from labcal.config.files import json_safe, one_line, read_text, write_json
+from labcal.config.settings import CertificateSettings
+from labcal.config.station import load_certificate_settings
 from labcal.errors import LabcalError
 from labcal.run.record import RunRecord
 
@@ -43,51 +44,12 @@ COVERAGE = 0.95
 SIMULATED_SERIAL = "SIMULATED"  # a dry run's instrument is the simulator's, whatever the seed
 
 
-# --- settings: the station file's [certificate] section and the command line -------------------
-class CertificateSettings(BaseModel):
-    """Who issues, the usage envelope and the tolerances of the conformity statement."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    laboratory: str = Field(default="", description="laboratory name and address, as printed")
-    attitude_u95_max_deg: float | None = Field(default=None, gt=0, description="tolerance on the largest "
-                                               "95 % expanded uncertainty of pitch and of roll")
-    bias_max_v: float | None = Field(default=None, gt=0, description="limit on |B| + U(B) per sensor")
-    usage_pitch_deg: tuple[float, float] = (-60.0, 60.0)
-    usage_roll_deg: tuple[float, float] = (-180.0, 180.0)
-    grid_step_deg: float = Field(default=5.0, gt=0, le=45)
-
-    @model_validator(mode="after")
-    def _envelope(self) -> CertificateSettings:
-        (p0, p1), (r0, r1) = self.usage_pitch_deg, self.usage_roll_deg
-        if not -90 <= p0 < p1 <= 90:
-            raise ValueError(f"usage_pitch_deg [{p0:g}, {p1:g}] must be increasing within -90..90")
-        if not -180 <= r0 < r1 <= 180:
-            raise ValueError(f"usage_roll_deg [{r0:g}, {r1:g}] must be increasing within -180..180")
-        return self
-
-
-def load_settings(station_path: str | Path | None, **overrides) -> CertificateSettings:
-    """The ``[certificate]`` section of a station file (defaults without one), then the command
+def load_settings(station_path: str | Path | None, **overrides: object) -> CertificateSettings:
+    """The ``[certificate]`` table of a station file (defaults without one), then the command
     line's non-None ``overrides``; every mistake is one line naming the file and the field."""
     if station_path is None:
-        return certificate_settings(None, "command line", **overrides)
-    try:
-        section = tomllib.loads(read_text(station_path, "station")).get("certificate", {})
-    except tomllib.TOMLDecodeError as exc:
-        raise LabcalError(f"{station_path}: malformed TOML: {exc}") from None
-    return certificate_settings(section, str(station_path), **overrides)
-
-
-def certificate_settings(section: object, source: str, **overrides) -> CertificateSettings:
-    """Certificate settings from a station's ``[certificate]`` section and non-None ``overrides``."""
-    if section is not None and not isinstance(section, dict):
-        raise LabcalError(f"{source}: certificate must be a table ([certificate])")
-    data = {**(section or {}), **{k: v for k, v in overrides.items() if v is not None}}
-    try:
-        return CertificateSettings.model_validate(data)
-    except ValidationError as exc:
-        raise LabcalError(f"{source}: certificate.{one_line(exc)}") from None
+        return CertificateSettings().overridden("command line", **overrides)
+    return load_certificate_settings(station_path).overridden(str(station_path), **overrides)
 
 
 # --- the schema ----------------------------------------------------------------------------------

@@ -135,6 +135,7 @@ class ResumeContext:
     settings: SequencerSettings
     station_text: str
     metadata: dict
+    software_version: str  # the labcal that started the run
 
 
 def open_for_resume(run_dir: Path) -> ResumeContext:
@@ -148,4 +149,4 @@ def open_for_resume(run_dir: Path) -> ResumeContext:
         raise LabcalError(f"{run_dir}: the journal's plan does not match its recorded hash; not resuming")
     plan = parse_plan(row.plan_text, f"run {row.id} plan")
     return ResumeContext(journal, row.id, plan, SequencerSettings.model_validate(row.settings),
-                         row.station_text, row.metadata)
+                         row.station_text, row.metadata, row.software_version)
