@@ -38,7 +38,7 @@ def test_every_link_holds_the_runs_critical_section_during_the_run_and_none_afte
     config, _ = load_station(private_file("az-modbus-tcp", tmp_path))
     plan, plan_text = load_plan("one-mount-16")
     with ExitStack() as stack:
-        setup, bench, _ = hardware_station(config, "test station", stack, emulate=True)
+        setup, bench = hardware_station(config, "test station", stack, emulate=True)
         links = list(bench._links.values())
         prepare(bench, setup.station, say=lambda text: None)  # as `labcal run` does: home, enable, configure
         assert links and all(link.critical is None for link in links)  # no run yet
