@@ -7,7 +7,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from labcal.analysis.kinematics import MISALIGNMENT_NAMES, Misalignment, gravity
 from labcal.analysis.plan import INDEX_STEP_DEG, Plan, on_grid
@@ -90,8 +90,7 @@ def design_matrix(plan: Plan) -> NDArray[np.float64]:
     return np.column_stack([np.ones(len(g)), g])
 
 
-def normalised_variance(plan: Plan, pitch_deg: NDArray[np.float64],
-                        roll_deg: NDArray[np.float64]) -> NDArray[np.float64]:
+def normalised_variance(plan: Plan, pitch_deg: ArrayLike, roll_deg: ArrayLike) -> NDArray[np.float64]:
     """K·fᵀ(FᵀF)⁻¹f at attitudes of the instrument in use (top, forward mount): σ_v²·K/σ_E²."""
     f_cal = design_matrix(plan)
     moment_inv = np.linalg.inv(f_cal.T @ f_cal)
@@ -112,7 +111,7 @@ def figure_of_merit(plan: Plan, pitch_range: tuple[float, float]) -> float:
         raise LabcalError(f"pitch range {lo:g}..{hi:g} is empty")
     x, w = np.polynomial.legendre.leggauss(200)
     pitch = lo + (x + 1) * (hi - lo) / 2
-    roll = np.arange(72, dtype=np.float64) * 5.0
+    roll = np.arange(72) * 5.0
     q = normalised_variance(plan, pitch[:, None], roll[None, :]).mean(axis=1)
     return float(np.sum(w * q) / 2)
 
