@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import TypeVar
 
 import numpy as np
 
@@ -19,6 +20,7 @@ from labcal.drivers.errors import BadReply, DeviceFault, NoReply, Rejected, on_d
 from labcal.drivers.transport import LineTransport, retried
 from labcal.run.station import Scan
 
+T = TypeVar("T")
 EOL = b"\n"
 OVERLOAD = 9.9e37
 CHANNEL_S = 0.005  # relay switching and settling per channel, on top of integration
@@ -84,7 +86,7 @@ class Keysight34970A:
     # --- exchanges --------------------------------------------------------------------------
     def errors(self) -> list[tuple[int, str]]:
         """Empty the error queue."""
-        found = []
+        found: list[tuple[int, str]] = []
         for _ in range(MAX_ERRORS):
             code, text = parse_error(self.link.query("SYST:ERR?"))
             if code == 0:
@@ -103,7 +105,7 @@ class Keysight34970A:
             self._check(query)  # silence because the query failed, or just silence
             raise
 
-    def _exchange(self, exchange):
+    def _exchange(self, exchange: Callable[[], T]) -> T:
         with on_device(self.device):
             return retried(exchange, self.tries, self.link.drain, self.link.critical)
 

@@ -97,7 +97,7 @@ class ModbusLink:
 
     def read(self, unit: int, address: int, count: int) -> list[int]:
         """FC 03, read holding registers."""
-        def request():
+        def request() -> object:
             return self.client.read_holding_registers(address, count=count, device_id=unit)
         return self._exchange(request, 0x03, address, count)
 
@@ -118,7 +118,7 @@ class ModbusLink:
             try:
                 response = request()
             except ConnectionException as exc:
-                self.client.close()
+                self.close()
                 raise PortClosed(f"{self.where} closed ({exc})") from None
             except ModbusIOException as exc:
                 if "No response" in str(exc):
@@ -135,7 +135,7 @@ class ModbusLink:
         buffers, so a late reply is never taken for the answer to the next request (RTU has no
         transaction ids to tell them apart)."""
         time.sleep(min(self.timeout_s, 0.5))
-        self.client.close()
+        self.close()
 
     def close(self) -> None:
-        self.client.close()
+        self.client.close()  # type: ignore[no-untyped-call]  # pymodbus: the sync clients' close() is unannotated

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Callable
-from typing import TypeVar
+from typing import TypeVar, overload
 
 from labcal.drivers.axis import AxisStatus, IndexAxis
 from labcal.drivers.errors import BadReply, DeviceFault, NoReply, Rejected, on_device
@@ -114,10 +114,15 @@ class Smc100Axis(IndexAxis):
     def _refused(self, what: str, code: str) -> Rejected:
         return Rejected(f"refused {what}: error {code} ({COMMAND_ERRORS[code]})", self.device)
 
-    def ask(self, mnemonic: str, parse: Callable[[str], T] = str) -> T:
+    @overload
+    def ask(self, mnemonic: str) -> str: ...
+    @overload
+    def ask(self, mnemonic: str, parse: Callable[[str], T]) -> T: ...
+
+    def ask(self, mnemonic: str, parse: Callable[[str], object] = str) -> object:
         """A query (``TP``, ``TS``, ``ID?``...): its value, parsed (a reply that does not parse is
         asked again). Silence is explained by ``TE``."""
-        def once() -> T:
+        def once() -> object:
             self.link.write_line(f"{self.address}{mnemonic}")
             try:
                 line = self.link.read_line()

@@ -16,6 +16,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from types import FrameType
 from typing import Protocol, TypeVar
 
 import serial
@@ -49,7 +50,7 @@ def uninterruptible(critical: CriticalSection | None = None) -> Iterator[None]:
         return
     pending: list[int] = []
 
-    def defer(signum, frame):
+    def defer(signum: int, frame: FrameType | None) -> None:
         if pending:
             raise KeyboardInterrupt
         pending.append(signum)
@@ -176,7 +177,7 @@ class LineTransport:
 
     def _open(self) -> Stream:
         if self._stream is None:
-            def connect():
+            def connect() -> None:
                 self._stream = self.open_stream()
             reconnect(connect, self.reconnect_s, self.where)
             self._buffer = b""

@@ -217,10 +217,10 @@ class AzServer:
                 for unit_id in self.drives.units]
 
     async def _open(self) -> None:
-        hooks = dict(trace_pdu=self._trace_pdu, trace_packet=self._trace_packet)
         ep = self.endpoint
         if ep.kind == "tcp":
-            self._server = ModbusTcpServer(self._devices(), address=(ep.host, ep.port), **hooks)
+            self._server = ModbusTcpServer(self._devices(), address=(ep.host, ep.port),
+                                           trace_pdu=self._trace_pdu, trace_packet=self._trace_packet)
         else:
             if ep.kind == "pty":
                 self._pty = PtyPair(ep.link)
@@ -228,10 +228,13 @@ class AzServer:
             else:
                 port = f"socket://{ep.host}:{ep.port}"
             self._server = ModbusSerialServer(self._devices(), framer=FramerType.RTU, port=port,
-                                              baudrate=115200, **hooks)
+                                              baudrate=115200, trace_pdu=self._trace_pdu,
+                                              trace_packet=self._trace_packet)
         await self._server.serve_forever(background=True)
         if ep.kind != "pty":
-            self.endpoint = ep.bound(self._server.transport.sockets[0].getsockname()[1])
+            # pymodbus types the transport as asyncio.BaseTransport; a listener's is an asyncio.Server
+            server = self._server.transport
+            self.endpoint = ep.bound(server.sockets[0].getsockname()[1])  # type: ignore[attr-defined]
 
     async def _shut(self) -> None:
         if self._server is not None:
@@ -270,7 +273,7 @@ class AzServer:
                 assert fault is not None
                 self._loop.create_task(self._bounce(fault.reopen_s))
             return b""
-        if kind == FaultKind.LATE_REPLY:
+        if fault is not None and kind == FaultKind.LATE_REPLY:
             time.sleep(fault.delay_s)  # the bus is busy meanwhile, as it would be
         if kind == FaultKind.GARBLED:
             return packet[:2] + b"\xa5\x5a" + packet[4:] if self.endpoint.kind == "tcp" else garble(packet)

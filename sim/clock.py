@@ -1,6 +1,18 @@
 """A virtual clock: a dry run takes seconds of wall time while accounting real-rig time."""
 
 import time
+from typing import Protocol
+
+
+class RigClock(Protocol):
+    """What the simulated rig and its tables need of a clock: `labcal.run.station.Clock`, and a
+    way to let time pass up to a given instant. `VirtualClock` and `ScaledClock` both are one."""
+
+    def now(self) -> float: ...
+
+    def sleep(self, seconds: float) -> None: ...
+
+    def advance_to(self, t: float) -> None: ...
 
 
 class VirtualClock:

@@ -284,6 +284,7 @@ class Keysight34970AEmulator:
         times = scan.times()
         with self.rig.lock:
             sample = self.rig.rig.sample_at(times)
+        assert sample.temp_c is not None  # SimRig.sample_at always reads the lab thermometer
         readings = np.empty(len(times))
         for i, channel in enumerate(scan.channels * scan.sweeps):
             wired = self.wiring.get(channel)

@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 from labcal.analysis.kinematics import ARCSEC, IndexWobble, Misalignment, Mount, gravity
 from labcal.config.emulation import DeviceTruth, InstrumentTruth, RigConfig
 from labcal.run.station import Scan, Station
-from labcal.sim.clock import ScaledClock, VirtualClock
+from labcal.sim.clock import RigClock, VirtualClock
 from labcal.sim.tables import SimAxis
 
 __all__ = ["DeviceTruth", "RigConfig", "SimRig"]  # the rig's configuration models live in labcal.config
@@ -26,12 +26,12 @@ class SimRig:
     measures_temperature = True  # the simulated DMM scans a lab thermometer too
 
     def __init__(self, config: RigConfig | None = None, seed: int | None = None,
-                 clock: VirtualClock | ScaledClock | None = None):
+                 clock: RigClock | None = None):
         """``clock``: the virtual clock of a dry run by default; protocol emulators pass a
         `ScaledClock` so that the physics runs in (scaled) wall time."""
         self.config = config = config or RigConfig()
         self.seed = config.seed if seed is None else seed
-        self.clock = clock or VirtualClock()
+        self.clock: RigClock = clock or VirtualClock()
         sync = self._catch_up
         self.pitch = SimAxis("pitch", self.clock, config.speed_dps, config.accel_dps2, config.clamp_s, sync)
         self.roll = SimAxis("roll", self.clock, config.speed_dps, config.accel_dps2, config.clamp_s, sync)

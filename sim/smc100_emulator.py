@@ -8,6 +8,7 @@ command is not answered and its error waits for ``TE``. Motion is the rig's own 
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from labcal.drivers.newport_smc100 import COMMAND_ERRORS, DISABLE, HOMING, MOVING, NOT_REFERENCED, READY
@@ -104,7 +105,9 @@ class Smc100Emulator:
             return self._fail(p, why, lambda: self._move(p, 0.0, 0x1E))
         if mnemonic == "PA":
             target = _number(value)
-            why = self._not_ready(p) or ("C" if target is None else None)
+            why = self._not_ready(p)
+            if target is None:
+                return self._fail(p, why or "C", None)
             if why is None and not p.limits[0] <= target <= p.limits[1]:
                 why = "G"
             return self._fail(p, why, lambda: self._move(p, target, 0x28))
@@ -146,7 +149,7 @@ class Smc100Emulator:
         p.state, p.target = state, target
 
     @staticmethod
-    def _fail(p: Positioner, code: str | None, action) -> None:
+    def _fail(p: Positioner, code: str | None, action: Callable[[], object] | None) -> None:
         """Refuse with ``code`` (kept for ``TE``), or carry out ``action``. Commands never reply."""
         if code is not None:
             p.last_error = code

@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 
 from labcal.errors import LabcalError
 from labcal.run.ordering import trapezoid_duration
-from labcal.sim.clock import VirtualClock
+from labcal.sim.clock import RigClock
 
 
 def trapezoid_travel(t: NDArray, distance: float, speed: float, accel: float) -> NDArray:
@@ -28,9 +28,9 @@ def trapezoid_travel(t: NDArray, distance: float, speed: float, accel: float) ->
 
 
 class SimAxis:
-    """A simulated index table on the virtual clock (implements `labcal.station.RotaryAxis`)."""
+    """A simulated index table on the rig's clock (implements `labcal.station.RotaryAxis`)."""
 
-    def __init__(self, name: str, clock: VirtualClock, speed_dps: float = 20.0,
+    def __init__(self, name: str, clock: RigClock, speed_dps: float = 20.0,
                  accel_dps2: float = 40.0, clamp_s: float = 1.0,
                  before_move: Callable[[], None] = lambda: None):
         self.name = name
@@ -66,7 +66,7 @@ class SimAxis:
                  "forward": (angle_deg - current) % 360.0,
                  "reverse": -((current - angle_deg) % 360.0)}[way]
         self._start_angle, self._distance, self._t_start = current, delta, now
-        self._t_motion_end = now + trapezoid_duration(delta, self.speed, self.accel)
+        self._t_motion_end = now + float(trapezoid_duration(delta, self.speed, self.accel))
         self.travel_deg += abs(delta)
 
     def wait_in_position(self, timeout_s: float) -> float:

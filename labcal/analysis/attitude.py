@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,17 +30,18 @@ class Calibration:
     """What attitude needs from a fit or certificate: X (4×3), per-sensor 4×4 covariance of
     (B, s_x, s_y, s_z), the standard deviation of one new reading, and degrees of freedom."""
 
-    X: NDArray
-    covariance: NDArray  # (3, 4, 4)
-    reading_sd: NDArray  # (3,)
+    X: NDArray[np.float64]
+    covariance: NDArray[np.float64]  # (3, 4, 4)
+    reading_sd: NDArray[np.float64]  # (3,)
     dof: int
 
     @property
-    def s_inv(self) -> NDArray:
-        return np.linalg.inv(self.X[1:])
+    def s_inv(self) -> NDArray[np.float64]:
+        # numpy's stubs type inv() as floating[Any]; the inverse of a float64 matrix is float64
+        return cast("NDArray[np.float64]", np.linalg.inv(self.X[1:]))
 
 
-def calibration_from_json(doc: dict, path: str | Path) -> Calibration:
+def calibration_from_json(doc: dict[str, Any], path: str | Path) -> Calibration:
     """The attitude calibration from a fit JSON document (``path`` names it in messages)."""
     try:
         X = np.array(doc["coefficients"], dtype=float)
@@ -65,18 +67,20 @@ def calibration_from_json(doc: dict, path: str | Path) -> Calibration:
 class Attitude:
     """Per row: pitch and roll (rad), their standard uncertainties, and the 95 % coverage factor."""
 
-    pitch: NDArray
-    roll: NDArray  # NaN where undefined
-    u_pitch: NDArray
-    u_roll: NDArray
+    pitch: NDArray[np.float64]
+    roll: NDArray[np.float64]  # NaN where undefined
+    u_pitch: NDArray[np.float64]
+    u_roll: NDArray[np.float64]
     k95: float
 
     @property
-    def roll_defined(self) -> NDArray:
+    def roll_defined(self) -> NDArray[np.float64]:
         return np.isfinite(self.roll)
 
 
-def _gravity_and_derivatives(pitch: NDArray, roll: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+def _gravity_and_derivatives(
+    pitch: NDArray[np.float64], roll: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     sp, cp, sr, cr = np.sin(pitch), np.cos(pitch), np.sin(roll), np.cos(roll)
     g = np.stack([sp, cp * sr, cp * cr], axis=-1)
     dg_dp = np.stack([cp, -sp * sr, -sp * cr], axis=-1)
@@ -84,7 +88,7 @@ def _gravity_and_derivatives(pitch: NDArray, roll: NDArray) -> tuple[NDArray, ND
     return g, dg_dp, dg_dr
 
 
-def output_variance(cal: Calibration, g: NDArray) -> NDArray:
+def output_variance(cal: Calibration, g: NDArray[np.float64]) -> NDArray[np.float64]:
     """Σ_v diagonal per row (n×3): calibration variance fᵀ C_j f plus one reading's variance."""
     f = np.concatenate([np.ones((len(g), 1)), g], axis=1)
     calib = np.stack([np.sum((f @ c) * f, axis=1) for c in cal.covariance], axis=1)
@@ -95,7 +99,7 @@ def _k95(cal: Calibration) -> float:
     return float(t_quantile(0.975, cal.dof)) if cal.dof > 0 else float("inf")
 
 
-def closed_form(cal: Calibration, volts: NDArray) -> Attitude:
+def closed_form(cal: Calibration, volts: NDArray[np.float64]) -> Attitude:
     """Soto eqs. 5–7 with first-order uncertainty through the same Σ_v as the sphere solution."""
     volts = np.atleast_2d(np.asarray(volts, float))
     g = (volts - cal.X[0]) @ cal.s_inv  # batch form of Soto App. B
@@ -115,8 +119,10 @@ def closed_form(cal: Calibration, volts: NDArray) -> Attitude:
     return Attitude(pitch, roll, u_p, u_r, _k95(cal))
 
 
-def _undefined_roll(cal: Calibration, g: NDArray, sigma_v: NDArray, roll: NDArray,
-                    u_roll: NDArray) -> tuple[NDArray, NDArray]:
+def _undefined_roll(
+    cal: Calibration, g: NDArray[np.float64], sigma_v: NDArray[np.float64], roll: NDArray[np.float64],
+    u_roll: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """NaN roll where the horizontal part of g is not distinguishable from zero (pitch ±90°)."""
     var_g = sigma_v @ cal.s_inv**2  # diagonal of Σ_g = S⁻ᵀ Σ_v S⁻¹ (Σ_v diagonal)
     u_h = np.sqrt(0.5 * (var_g[:, 1] + var_g[:, 2]))
@@ -124,7 +130,7 @@ def _undefined_roll(cal: Calibration, g: NDArray, sigma_v: NDArray, roll: NDArra
     return np.where(undefined, np.nan, roll), np.where(undefined, np.nan, u_roll)
 
 
-def sphere_least_squares(cal: Calibration, volts: NDArray) -> Attitude:
+def sphere_least_squares(cal: Calibration, volts: NDArray[np.float64]) -> Attitude:
     """Tripp eqs. 99–104: weighted least squares over (α, R) on the unit sphere."""
     volts = np.atleast_2d(np.asarray(volts, float))
     start = closed_form(cal, volts)

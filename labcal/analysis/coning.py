@@ -9,6 +9,7 @@ solver is needed, and near Ω = 0 the azimuth is undefined and reported as such.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,11 +29,11 @@ AZIMUTH_SIGNIFICANCE = 3.0  # Ω must exceed this many standard errors for A to 
 @dataclass(frozen=True)
 class ConingSensor:
     name: str
-    values: NDArray  # b (V), S (V/g), Ω (rad), A (rad)
-    covariance: NDArray  # 4×4, same order
+    values: NDArray[np.float64]  # b (V), S (V/g), Ω (rad), A (rad)
+    covariance: NDArray[np.float64]  # 4×4, same order
     azimuth_defined: bool
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         se = np.sqrt(np.diag(self.covariance))
         sd = np.where(se > 0, se, 1.0)
         corr = self.covariance / np.outer(sd, sd)
@@ -51,7 +52,8 @@ class ConingSensor:
         return {k: (float(v) if isinstance(v, np.floating) else v) for k, v in doc.items()}
 
 
-def coning_from_column(bias: float, column: NDArray, cov: NDArray, sensor: str) -> ConingSensor:
+def coning_from_column(bias: float, column: NDArray[np.float64], cov: NDArray[np.float64],
+                       sensor: str) -> ConingSensor:
     """(b, S, Ω, A) and covariance from one sensor's (B, s_x, s_y, s_z) and their 4×4 covariance."""
     main, (i1, sign1), (i2, sign2) = _AXES[sensor]
     m, t1, t2 = column[main], sign1 * column[i1], sign2 * column[i2]
@@ -79,7 +81,7 @@ def coning(fit: Fit) -> list[ConingSensor]:
             for j, name in enumerate(SENSORS)]
 
 
-def coning_json(fit: Fit) -> dict:
+def coning_json(fit: Fit) -> dict[str, Any]:
     doc = fit.to_json()
     doc["model"] = "coning"
     doc["sensors"] = {c.name: c.to_json() for c in coning(fit)}

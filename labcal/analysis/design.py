@@ -4,8 +4,10 @@ of how each calibration-device misalignment leaks into the fitted coefficients (
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from labcal.analysis.kinematics import MISALIGNMENT_NAMES, Misalignment, gravity
 from labcal.analysis.plan import INDEX_STEP_DEG, Plan, on_grid
@@ -17,7 +19,7 @@ LEAK_ZERO = 1e-9  # below this a leakage per radian is zero to rounding
 
 
 # --- generators (angles in degrees) -------------------------------------------------------------
-def uniform_roll(n_roll: int) -> NDArray:
+def uniform_roll(n_roll: int) -> NDArray[np.float64]:
     """M roll angles uniformly over [−180°, 180° − ΔR] (designs D0 and D1)."""
     return -180.0 + 360.0 * np.arange(n_roll) / n_roll
 
@@ -62,10 +64,10 @@ def fractional_size(n_pitch: int, n_roll: int, k_pitch: int, k_roll: int) -> flo
 def grid(pitch_min: float, pitch_max: float, pitch_step: float, roll_min: float, roll_max: float,
          roll_step: float) -> list[tuple[float, float]]:
     """Every (pitch, roll) on a rectangular grid, ends included."""
-    def axis(lo: float, hi: float, step: float) -> NDArray:
+    def axis(lo: float, hi: float, step: float) -> NDArray[np.float64]:
         if step <= 0 or hi < lo:
             raise LabcalError(f"grid {lo:g}..{hi:g} step {step:g}: need step > 0 and max ≥ min")
-        return lo + step * np.arange(int(np.floor((hi - lo) / step + 1e-9)) + 1)
+        return lo + step * np.arange(int(np.floor((hi - lo) / step + 1e-9)) + 1, dtype=np.float64)
     return [(float(p), float(r)) for p in axis(pitch_min, pitch_max, pitch_step)
             for r in axis(roll_min, roll_max, roll_step)]
 
@@ -82,19 +84,20 @@ def make_plan(name: str, description: str, points: list[tuple[float, float]], fo
 
 
 # --- figure of merit (Tripp §3.4, eq. 53) -------------------------------------------------------
-def design_matrix(plan: Plan) -> NDArray:
+def design_matrix(plan: Plan) -> NDArray[np.float64]:
     """[1 gᵀ] of every point of the run (replicates included)."""
     g = np.tile(plan.nominal_gravity(), (plan.replicates, 1))
     return np.column_stack([np.ones(len(g)), g])
 
 
-def normalised_variance(plan: Plan, pitch_deg: NDArray, roll_deg: NDArray) -> NDArray:
+def normalised_variance(plan: Plan, pitch_deg: ArrayLike, roll_deg: ArrayLike) -> NDArray[np.float64]:
     """K·fᵀ(FᵀF)⁻¹f at attitudes of the instrument in use (top, forward mount): σ_v²·K/σ_E²."""
     f_cal = design_matrix(plan)
     moment_inv = np.linalg.inv(f_cal.T @ f_cal)
     g = gravity(np.radians(pitch_deg), np.radians(roll_deg), 0.0, 0.0)
     f = np.concatenate([np.ones(g.shape[:-1] + (1,)), g], axis=-1)
-    return len(f_cal) * np.einsum("...i,ij,...j->...", f, moment_inv, f)
+    q: NDArray[np.float64] = len(f_cal) * np.einsum("...i,ij,...j->...", f, moment_inv, f)
+    return q
 
 
 def figure_of_merit(plan: Plan, pitch_range: tuple[float, float]) -> float:
@@ -114,7 +117,7 @@ def figure_of_merit(plan: Plan, pitch_range: tuple[float, float]) -> float:
 
 
 # --- audit (Soto §7): ∂X/∂misalignment through the kinematic model --------------------------------
-def audit(plan: Plan) -> dict[str, NDArray]:
+def audit(plan: Plan) -> dict[str, NDArray[np.float64]]:
     """First-order change of every coefficient of X (4×3) per radian of each CD misalignment,
     for an ideal instrument (B = 0, S = I). Complex-step derivatives: exact to rounding."""
     p, r = np.radians(np.array(plan.points)).T
@@ -131,7 +134,7 @@ def audit(plan: Plan) -> dict[str, NDArray]:
     return leaks
 
 
-def audit_summary(leaks: dict[str, NDArray]) -> dict[str, dict]:
+def audit_summary(leaks: dict[str, NDArray[np.float64]]) -> dict[str, dict[str, Any]]:
     """Which misalignments leak into the bias and the off-diagonal of S (above LEAK_ZERO)."""
     off = ~np.eye(3, dtype=bool)
     summary = {}

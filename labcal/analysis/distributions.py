@@ -6,25 +6,31 @@ scipy.stats would give the same numbers but takes about a second to import, whic
 
 from __future__ import annotations
 
+from typing import cast
+
+import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import special
 
+# scipy ships no type information: its ufuncs are Any to mypy. They return float64 arrays (numpy
+# scalars for scalar arguments), which is what the casts below state.
 
-def t_quantile(p: ArrayLike, dof: ArrayLike) -> NDArray:
+
+def t_quantile(p: ArrayLike, dof: ArrayLike) -> NDArray[np.float64]:
     """Student t quantile: P(T ≤ x) = p."""
-    return special.stdtrit(dof, p)
+    return cast("NDArray[np.float64]", special.stdtrit(dof, p))
 
 
-def f_sf(x: ArrayLike, dfn: ArrayLike, dfd: ArrayLike) -> NDArray:
+def f_sf(x: ArrayLike, dfn: ArrayLike, dfd: ArrayLike) -> NDArray[np.float64]:
     """P(F > x) for F(dfn, dfd): the p-value of an F test."""
-    return special.fdtrc(dfn, dfd, x)
+    return cast("NDArray[np.float64]", special.fdtrc(dfn, dfd, x))
 
 
-def f_isf(alpha: ArrayLike, dfn: ArrayLike, dfd: ArrayLike) -> NDArray:
+def f_isf(alpha: ArrayLike, dfn: ArrayLike, dfd: ArrayLike) -> NDArray[np.float64]:
     """The F(dfn, dfd) value exceeded with probability alpha: the test's critical value."""
-    return special.fdtri(dfn, dfd, 1.0 - alpha)
+    return cast("NDArray[np.float64]", special.fdtri(dfn, dfd, 1.0 - np.asarray(alpha)))
 
 
-def chi2_quantile(p: ArrayLike, dof: ArrayLike) -> NDArray:
+def chi2_quantile(p: ArrayLike, dof: ArrayLike) -> NDArray[np.float64]:
     """χ² quantile: P(X ≤ x) = p."""
-    return special.chdtri(dof, 1.0 - p)
+    return cast("NDArray[np.float64]", special.chdtri(dof, 1.0 - np.asarray(p)))

@@ -9,6 +9,7 @@ cannot average them away (metrology_stats.md §2.6).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,7 +28,7 @@ def readings_points(readings: Readings) -> Points:
     return Points(readings.pitch_deg, readings.roll_deg, readings.y_deg, readings.u_deg, readings.temp_c)
 
 
-def point_keys(readings: Readings) -> NDArray:
+def point_keys(readings: Readings) -> NDArray[np.float64]:
     """Identity of each calibration point: mount and table angles modulo 360°."""
     return np.round(np.column_stack([readings.y_deg, readings.u_deg, readings.pitch_deg, readings.roll_deg])
                     % 360.0, 9) % 360.0
@@ -45,25 +46,25 @@ class Fit:
 
     # --- coefficients and their uncertainty -------------------------------------------------
     @property
-    def coefficients(self) -> NDArray:
+    def coefficients(self) -> NDArray[np.float64]:
         """Soto's X = [Bᵀ; S] (4×3); extension coefficients are in `ls.coef[4:]`."""
         return self.ls.coef[: len(BASE_NAMES)]
 
     @property
-    def bias_significant(self) -> NDArray:
+    def bias_significant(self) -> NDArray[np.bool_]:
         if self.replication is None:
             return np.zeros(self.ls.coef.shape[1], dtype=bool)
         return self.replication.lack_of_fit.significant
 
     @property
-    def variance(self) -> NDArray:
+    def variance(self) -> NDArray[np.float64]:
         """Per sensor: the variance that scales (FᵀF)⁻¹ into the coefficient covariance."""
         if self.replication is None:
             return self.ls.residual_se**2
         return np.where(self.bias_significant, self.replication.lack_of_fit_ms, self.ls.residual_se**2)
 
     @property
-    def variance_dof(self) -> NDArray:
+    def variance_dof(self) -> NDArray[np.int_]:
         dof = np.full(self.ls.coef.shape[1], self.ls.dof)
         if self.replication is not None:
             dof = np.where(self.bias_significant, self.replication.lack_of_fit.df_num, dof)
@@ -73,22 +74,22 @@ class Fit:
     def variance_basis(self) -> list[str]:
         return ["lack-of-fit mean square" if b else "residual standard error" for b in self.bias_significant]
 
-    def covariance(self, sensor: int) -> NDArray:
+    def covariance(self, sensor: int) -> NDArray[np.float64]:
         """Covariance of every coefficient of one sensor (L×L, in `names` order)."""
-        return self.variance[sensor] * self.ls.cov_unscaled
+        return float(self.variance[sensor]) * self.ls.cov_unscaled
 
     @property
-    def stderr(self) -> NDArray:
+    def stderr(self) -> NDArray[np.float64]:
         return np.sqrt(np.diag(self.ls.cov_unscaled))[:, None] * np.sqrt(self.variance)[None, :]
 
     # --- the output at new points (Tripp eqs. 52, 72, 73) -------------------------------------
-    def new_measurement_variance(self) -> NDArray:
+    def new_measurement_variance(self) -> NDArray[np.float64]:
         """Variance of one new reading like the calibration's: σ_prec² + σ_bias², or S_E²."""
         if self.replication is None:
             return self.ls.residual_se**2
         return self.replication.sigma_prec**2 + self.replication.sigma_bias**2
 
-    def predict(self, points: Points, level: float = 0.95) -> dict[str, NDArray]:
+    def predict(self, points: Points, level: float = 0.95) -> dict[str, NDArray[np.float64]]:
         """Predicted output (n×3) with confidence and prediction half-widths at ``level``."""
         _, f = self.model.design(points)
         q = np.einsum("ij,jk,ik->i", f, self.ls.cov_unscaled, f)  # fᵀ R⁻¹ f
@@ -101,7 +102,7 @@ class Fit:
             "std_normalised": np.sqrt(q),
         }
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         """The linear fit JSON contract of DESIGN.md §5, plus the statistics behind it."""
         n_base = len(BASE_NAMES)
         doc = {
@@ -173,23 +174,26 @@ class ExtensionTest:
 
     name: str
     reason: str | None  # why it could not be tested, else None
-    f: NDArray | None = None
+    f: NDArray[np.float64] | None = None
     df: tuple[int, int] | None = None
     aliased: tuple[str, ...] = ()
 
     @property
-    def p_value(self) -> NDArray | None:
-        return None if self.f is None else f_sf(self.f, *self.df)
+    def p_value(self) -> NDArray[np.float64] | None:
+        if self.f is None or self.df is None:
+            return None
+        return f_sf(self.f, *self.df)
 
-    def to_json(self) -> dict:
-        if self.reason:
-            return {"tested": False, "reason": self.reason}
-        return {"tested": True, "F": self.f.tolist(), "df": list(self.df), "p_value": self.p_value.tolist(),
+    def to_json(self) -> dict[str, Any]:
+        if self.reason or self.f is None or self.df is None:
+            return {"tested": False, "reason": self.reason or "no F statistic was computed"}
+        p_value = f_sf(self.f, *self.df)
+        return {"tested": True, "F": self.f.tolist(), "df": list(self.df), "p_value": p_value.tolist(),
                 "critical_95": float(f_isf(ALPHA, *self.df)),
-                "warranted": (self.p_value < ALPHA).tolist(), "aliased_terms": list(self.aliased)}
+                "warranted": (p_value < ALPHA).tolist(), "aliased_terms": list(self.aliased)}
 
 
-def _estimable(design: NDArray, n_base: int) -> NDArray:
+def _estimable(design: NDArray[np.float64], n_base: int) -> NDArray[np.int_]:
     """Columns beyond the base that add rank, in order (aliased ones are dropped)."""
     keep = list(range(n_base))
     for col in range(n_base, design.shape[1]):

@@ -2,6 +2,9 @@
 
 Angles are radians here; degrees live only at the edges (CLI, files, reports).
 Every function is vectorised over points: angles broadcast against each other.
+Results are typed float64; the complex-step derivatives of `labcal.analysis.design.audit` pass
+complex angles and get complex arrays of the same shapes (numpy's types cannot follow the dtype
+of an ArrayLike argument).
 """
 
 from __future__ import annotations
@@ -15,38 +18,38 @@ ARCSEC = np.pi / (180 * 3600)
 MISALIGNMENT_NAMES = ("a", "b", "d", "e", "f", "k")
 
 
-def rx(t: ArrayLike) -> NDArray:
+def rx(t: ArrayLike) -> NDArray[np.float64]:
     """Textbook rotation about x, stacked over the shape of ``t`` (..., 3, 3)."""
     c, s = np.cos(t), np.sin(t)
     o, z = np.ones_like(c), np.zeros_like(c)
     return np.stack([o, z, z, z, c, -s, z, s, c], axis=-1).reshape(*np.shape(c), 3, 3)
 
 
-def ry(t: ArrayLike) -> NDArray:
+def ry(t: ArrayLike) -> NDArray[np.float64]:
     """Textbook rotation about y."""
     c, s = np.cos(t), np.sin(t)
     o, z = np.ones_like(c), np.zeros_like(c)
     return np.stack([c, z, s, z, o, z, -s, z, c], axis=-1).reshape(*np.shape(c), 3, 3)
 
 
-def rz(t: ArrayLike) -> NDArray:
+def rz(t: ArrayLike) -> NDArray[np.float64]:
     """Textbook rotation about z."""
     c, s = np.cos(t), np.sin(t)
     o, z = np.ones_like(c), np.zeros_like(c)
     return np.stack([c, -s, z, s, c, z, z, z, o], axis=-1).reshape(*np.shape(c), 3, 3)
 
 
-def prot(x: ArrayLike) -> NDArray:
+def prot(x: ArrayLike) -> NDArray[np.float64]:
     """Pitch rotation, aeronautical sign: Ry(-x). Angles may be complex (complex-step derivatives)."""
     return ry(-np.asarray(x))
 
 
-def rrot(x: ArrayLike) -> NDArray:
+def rrot(x: ArrayLike) -> NDArray[np.float64]:
     """Roll rotation: Rx(x)."""
     return rx(np.asarray(x))
 
 
-def yrot(x: ArrayLike) -> NDArray:
+def yrot(x: ArrayLike) -> NDArray[np.float64]:
     """Yaw rotation, aeronautical sign: Rz(-x)."""
     return rz(-np.asarray(x))
 
@@ -85,7 +88,7 @@ NO_MISALIGNMENT = Misalignment()
 
 def device_matrix(
     pitch: ArrayLike, roll: ArrayLike, y: ArrayLike, u: ArrayLike, mis: Misalignment = NO_MISALIGNMENT
-) -> NDArray:
+) -> NDArray[np.float64]:
     """KM of Soto eq. 11: columns are the instrument's x, y, z axes in the gravity frame.
 
     KM = rrot[b]·prot[p]·prot[a]·yrot[d]·rrot[r]·rrot[f]·prot[e]·yrot[k]·yrot[y]·rrot[u]
@@ -102,7 +105,7 @@ def device_matrix(
 
 def gravity(
     pitch: ArrayLike, roll: ArrayLike, y: ArrayLike, u: ArrayLike, mis: Misalignment = NO_MISALIGNMENT
-) -> NDArray:
+) -> NDArray[np.float64]:
     """Gravity (in g) seen by the instrument's x, y, z sensors: row 3 of KM, shape (..., 3).
 
     With ``mis`` zero this is the *nominal* gravity the fit uses; with the device's
@@ -149,7 +152,7 @@ class IndexWobble:
     wobble_arcsec: float = 0.0
     seed: int = 0
 
-    def _terms(self) -> tuple[NDArray, NDArray]:
+    def _terms(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         rng = np.random.default_rng([self.seed, 0x1DE4])
         weights = rng.dirichlet(np.ones(3), size=6)  # a2 d1 f1 | f3 e1 k1
         phases = rng.uniform(0, 2 * np.pi, size=(6, 3))
@@ -164,9 +167,10 @@ class IndexWobble:
         amp = np.array([self.index_arcsec, self.wobble_arcsec, self.wobble_arcsec,
                         self.index_arcsec, self.wobble_arcsec, self.wobble_arcsec]) * ARCSEC
 
-        def err(i: int, angle: ArrayLike) -> NDArray:
+        def err(i: int, angle: ArrayLike) -> NDArray[np.float64]:
             angle = np.asarray(angle, dtype=float)[..., None]
-            return amp[i] * np.sum(weights[i] * np.sin(h * angle + phases[i]), axis=-1)
+            e: NDArray[np.float64] = amp[i] * np.sum(weights[i] * np.sin(h * angle + phases[i]), axis=-1)
+            return e
 
         return Misalignment(
             a=err(0, pitch), d=err(1, pitch), f=err(2, pitch) + err(3, roll),

@@ -24,11 +24,11 @@ BASE_NAMES = ("B", "S_x", "S_y", "S_z")
 class Points:
     """Where the instrument was (or will be): table angles and mount in degrees, temperature in °C."""
 
-    pitch_deg: NDArray
-    roll_deg: NDArray
-    y_deg: NDArray
-    u_deg: NDArray
-    temp_c: NDArray | None = None
+    pitch_deg: NDArray[np.float64]
+    roll_deg: NDArray[np.float64]
+    y_deg: NDArray[np.float64]
+    u_deg: NDArray[np.float64]
+    temp_c: NDArray[np.float64] | None = None
 
     @classmethod
     def at(cls, pitch_deg: ArrayLike, roll_deg: ArrayLike, y_deg: ArrayLike = 0.0, u_deg: ArrayLike = 0.0,
@@ -38,11 +38,12 @@ class Points:
         t = None if temp_c is None else np.broadcast_to(np.asarray(temp_c, float), p.shape)
         return cls(p, r, y, u, t)
 
-    def nominal_gravity(self) -> NDArray:
-        return gravity(*(np.radians(a) for a in (self.pitch_deg, self.roll_deg, self.y_deg, self.u_deg)))
+    def nominal_gravity(self) -> NDArray[np.float64]:
+        return gravity(np.radians(self.pitch_deg), np.radians(self.roll_deg), np.radians(self.y_deg),
+                       np.radians(self.u_deg))
 
 
-def _temperature(points: Points, t_ref: float) -> tuple[tuple[str, ...], NDArray]:
+def _temperature(points: Points, t_ref: float) -> tuple[tuple[str, ...], NDArray[np.float64]]:
     if points.temp_c is None:
         raise LabcalError("the temperature extension needs a temp_c column in the readings")
     dt = (points.temp_c - t_ref)[:, None]
@@ -50,13 +51,13 @@ def _temperature(points: Points, t_ref: float) -> tuple[tuple[str, ...], NDArray
     return ("dB/dT", "dS_x/dT", "dS_y/dT", "dS_z/dT"), np.hstack([dt, dt * g])
 
 
-def _harmonics(points: Points, t_ref: float) -> tuple[tuple[str, ...], NDArray]:
+def _harmonics(points: Points, t_ref: float) -> tuple[tuple[str, ...], NDArray[np.float64]]:
     p, r = np.radians(points.pitch_deg), np.radians(points.roll_deg)
     cols = np.column_stack([np.sin(2 * p), np.cos(2 * p), np.sin(2 * r), np.cos(2 * r)])
     return ("sin 2α", "cos 2α", "sin 2R", "cos 2R"), cols
 
 
-EXTENSIONS: dict[str, Callable[[Points, float], tuple[tuple[str, ...], NDArray]]] = {
+EXTENSIONS: dict[str, Callable[[Points, float], tuple[tuple[str, ...], NDArray[np.float64]]]] = {
     "temperature": _temperature,
     "harmonics": _harmonics,
 }
@@ -74,7 +75,7 @@ class Model:
         if unknown:
             raise LabcalError(f"unknown model extension {unknown[0]!r}; choose from {', '.join(EXTENSIONS)}")
 
-    def design(self, points: Points) -> tuple[tuple[str, ...], NDArray]:
+    def design(self, points: Points) -> tuple[tuple[str, ...], NDArray[np.float64]]:
         """Regressor names and the design matrix F (K×L)."""
         g = points.nominal_gravity()
         names, cols = list(BASE_NAMES), [np.ones((len(g), 1)), g]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 from numpy.typing import NDArray
 
 
@@ -12,13 +13,13 @@ from numpy.typing import NDArray
 class Readings:
     """Calibration points as arrays; angles in degrees as they arrive from files."""
 
-    replicate: NDArray  # (n,) int
-    y_deg: NDArray
-    u_deg: NDArray
-    pitch_deg: NDArray
-    roll_deg: NDArray
-    volts: NDArray  # (n, 3): vx, vy, vz
-    temp_c: NDArray | None = None
+    replicate: NDArray[np.int_]  # (n,)
+    y_deg: NDArray[np.float64]
+    u_deg: NDArray[np.float64]
+    pitch_deg: NDArray[np.float64]
+    roll_deg: NDArray[np.float64]
+    volts: NDArray[np.float64]  # (n, 3): vx, vy, vz
+    temp_c: NDArray[np.float64] | None = None
 
     def __len__(self) -> int:
         return len(self.replicate)

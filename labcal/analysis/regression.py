@@ -22,36 +22,37 @@ ZERO_COLUMN = 1e-12  # a column this much smaller than the largest is zero to ro
 class LeastSquares:
     """Fit of Y (K×m) = F (K×L) · coef (L×m) + e, one column of Y per sensor."""
 
-    coef: NDArray  # (L, m)
-    cov_unscaled: NDArray  # (L, L) = (FᵀF)⁻¹, shared by every column
-    residuals: NDArray  # (K, m)
+    coef: NDArray[np.float64]  # (L, m)
+    cov_unscaled: NDArray[np.float64]  # (L, L) = (FᵀF)⁻¹, shared by every column
+    residuals: NDArray[np.float64]  # (K, m)
 
     @property
     def n_obs(self) -> int:
-        return self.residuals.shape[0]
+        return int(self.residuals.shape[0])
 
     @property
     def dof(self) -> int:
-        return self.n_obs - self.coef.shape[0]
+        return self.n_obs - int(self.coef.shape[0])
 
     @property
-    def residual_se(self) -> NDArray:
+    def residual_se(self) -> NDArray[np.float64]:
         """S_E = √(eᵀe / (K − L)) per column (Tripp eq. 34); NaN when no degree of freedom is left."""
         if self.dof == 0:
             return np.full(self.coef.shape[1], np.nan)
-        return np.sqrt(np.sum(self.residuals**2, axis=0) / self.dof)
+        se: NDArray[np.float64] = np.sqrt(np.sum(self.residuals**2, axis=0) / self.dof)
+        return se
 
     @property
-    def stderr(self) -> NDArray:
+    def stderr(self) -> NDArray[np.float64]:
         """Standard error of every coefficient, (L, m)."""
         return np.sqrt(np.diag(self.cov_unscaled))[:, None] * self.residual_se[None, :]
 
-    def covariance(self, column: int) -> NDArray:
+    def covariance(self, column: int) -> NDArray[np.float64]:
         """Coefficient covariance S_E² (FᵀF)⁻¹ of one column (one sensor)."""
-        return self.residual_se[column] ** 2 * self.cov_unscaled
+        return float(self.residual_se[column]) ** 2 * self.cov_unscaled
 
 
-def least_squares(design: NDArray, observations: NDArray) -> LeastSquares:
+def least_squares(design: NDArray[np.float64], observations: NDArray[np.float64]) -> LeastSquares:
     """Solve the least-squares problem by QR; refuse a design that cannot determine every coefficient."""
     design = np.asarray(design, dtype=float)
     observations = np.asarray(observations, dtype=float)

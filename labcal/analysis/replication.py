@@ -9,6 +9,7 @@ vectorised over the columns of Y (one per sensor, or one per Monte Carlo trial).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,23 +23,23 @@ ALPHA = 0.05
 class FTest:
     """An F test per column: statistic, degrees of freedom, critical value at ALPHA, p-value."""
 
-    statistic: NDArray
+    statistic: NDArray[np.float64]
     df_num: int
-    df_den: NDArray | int  # per column: the pure-error denominator may differ between sensors
+    df_den: NDArray[np.int_] | int  # per column: the pure-error denominator may differ between sensors
 
     @property
-    def critical(self) -> NDArray:
+    def critical(self) -> NDArray[np.float64]:
         return f_isf(ALPHA, self.df_num, self.df_den)
 
     @property
-    def p_value(self) -> NDArray:
+    def p_value(self) -> NDArray[np.float64]:
         return f_sf(self.statistic, self.df_num, self.df_den)
 
     @property
-    def significant(self) -> NDArray:
+    def significant(self) -> NDArray[np.bool_]:
         return self.p_value < ALPHA
 
-    def to_json(self, column: int) -> dict:
+    def to_json(self, column: int) -> dict[str, Any]:
         df_den = int(np.broadcast_to(self.df_den, self.statistic.shape)[column])
         return {"F": float(self.statistic[column]), "df": [self.df_num, df_den],
                 "critical_95": float(np.broadcast_to(self.critical, self.statistic.shape)[column]),
@@ -51,9 +52,9 @@ class DriftTest:
 
     name: str
     test: FTest
-    sigma_drift: NDArray  # between-replicate standard deviation beyond what noise explains
+    sigma_drift: NDArray[np.float64]  # between-replicate standard deviation beyond what noise explains
 
-    def to_json(self, column: int) -> dict:
+    def to_json(self, column: int) -> dict[str, Any]:
         return {**self.test.to_json(column), "sigma_drift": float(self.sigma_drift[column])}
 
 
@@ -61,15 +62,15 @@ class DriftTest:
 class Replication:
     n_points: int  # distinct calibration points m
     n_replicates: int
-    lack_of_fit_ms: NDArray
+    lack_of_fit_ms: NDArray[np.float64]
     lack_of_fit: FTest  # against the pure error the drift tests call for
     classical: FTest  # against one-way pure error (no drift allowed)
     drift_robust: FTest | None  # against the residual after all drift (balanced designs only)
-    sigma_prec: NDArray
-    sigma_bias: NDArray
+    sigma_prec: NDArray[np.float64]
+    sigma_bias: NDArray[np.float64]
     drift: tuple[DriftTest, ...]
 
-    def to_json(self, column: int) -> dict:
+    def to_json(self, column: int) -> dict[str, Any]:
         return {
             "distinct_points": self.n_points, "replicates": self.n_replicates,
             "sigma_prec": float(self.sigma_prec[column]), "sigma_bias": float(self.sigma_bias[column]),
@@ -81,14 +82,15 @@ class Replication:
         }
 
 
-def point_groups(keys: NDArray) -> tuple[NDArray, int]:
+def point_groups(keys: NDArray[np.float64]) -> tuple[NDArray[np.intp], int]:
     """Group index of every row (rows with equal keys are the same calibration point)."""
     _, inverse = np.unique(keys, axis=0, return_inverse=True)
     inverse = inverse.ravel()
     return inverse, int(inverse.max()) + 1
 
 
-def analyse(design: NDArray, y: NDArray, groups: NDArray, replicate: NDArray,
+def analyse(design: NDArray[np.float64], y: NDArray[np.float64], groups: NDArray[np.intp],
+            replicate: NDArray[np.int_],
             sensitivity: slice = slice(1, 4)) -> Replication | None:
     """Lack of fit, variance components and drift tests; None when nothing is replicated.
 
@@ -115,7 +117,10 @@ def analyse(design: NDArray, y: NDArray, groups: NDArray, replicate: NDArray,
     ms_lof, ms_pe = ss_lof / df_lof, ss_pe / df_pe
     classical = FTest(ms_lof / ms_pe, df_lof, df_pe)
 
-    drift_robust, drift, ms_star, df_star = None, (), ms_pe, df_pe
+    drift_robust: FTest | None = None
+    drift: tuple[DriftTest, ...] = ()
+    ms_star: NDArray[np.float64] = ms_pe
+    df_star: NDArray[np.int_] | int = df_pe
     per_rep_counts = np.stack([np.bincount(groups[replicate == r], minlength=n_groups) for r in reps])
     if np.all(per_rep_counts == per_rep_counts[0]):  # every replicate holds the same points
         c = per_rep_counts[0].astype(float)[:, None]  # readings of each point per replicate
@@ -147,13 +152,14 @@ def analyse(design: NDArray, y: NDArray, groups: NDArray, replicate: NDArray,
                        np.sqrt(ms_star), sigma_bias, drift)
 
 
-def _group_means(y: NDArray, groups: NDArray, n_groups: int) -> NDArray:
+def _group_means(y: NDArray[np.float64], groups: NDArray[np.intp], n_groups: int) -> NDArray[np.float64]:
     sums = np.zeros((n_groups, y.shape[1]))
     np.add.at(sums, groups, y)
     return sums / np.bincount(groups, minlength=n_groups)[:, None]
 
 
-def _drift(name: str, values: NDArray, factor: NDArray | float, ms_e: NDArray, df_e: int) -> DriftTest:
+def _drift(name: str, values: NDArray[np.float64], factor: NDArray[np.float64] | float,
+           ms_e: NDArray[np.float64], df_e: int) -> DriftTest:
     n_rep = values.shape[0]
     between = np.var(values, axis=0, ddof=1)
     noise = ms_e * factor

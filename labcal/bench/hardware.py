@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any, TypeVar
 
 from labcal.config.station import AzSettings, LinkSettings, Smc100Settings, StationFile, tcp_address
 from labcal.drivers.axis import IndexAxis
@@ -15,6 +16,8 @@ from labcal.drivers.newport_smc100 import Smc100Axis
 from labcal.drivers.oriental_az import AzAxis
 from labcal.drivers.transport import LineTransport, SerialStream, TcpStream
 from labcal.run.station import Clock, CriticalSection, Station, SystemClock
+
+Link = TypeVar("Link", ModbusLink, LineTransport)
 
 
 def line_transport(settings: LinkSettings, eol: bytes) -> LineTransport:
@@ -32,13 +35,14 @@ def line_transport(settings: LinkSettings, eol: bytes) -> LineTransport:
 
 
 def modbus_link(settings: LinkSettings) -> ModbusLink:
-    common = dict(timeout_s=settings.timeout_s, retries=settings.retries, reconnect_s=settings.reconnect_s)
     if settings.tcp:
         host, port = tcp_address(settings.tcp)
-        return ModbusLink.tcp(host, port, **common)
+        return ModbusLink.tcp(host, port, timeout_s=settings.timeout_s, retries=settings.retries,
+                              reconnect_s=settings.reconnect_s)
     assert settings.port is not None
     return ModbusLink.serial(settings.port, baudrate=settings.baudrate, bytesize=settings.bytesize,
-                             parity=settings.parity, stopbits=settings.stopbits, **common)
+                             parity=settings.parity, stopbits=settings.stopbits, timeout_s=settings.timeout_s,
+                             retries=settings.retries, reconnect_s=settings.reconnect_s)
 
 
 class Bench:
@@ -52,25 +56,30 @@ class Bench:
         self.pitch = self._axis("pitch", config.pitch)
         self.roll = self._axis("roll", config.roll)
         dmm = config.dmm
-        self.dmm = Keysight34970A("dmm", self._link(dmm, lambda: line_transport(dmm, SCPI_EOL)),
+        dmm_link = self._link(dmm, LineTransport, lambda: line_transport(dmm, SCPI_EOL))
+        self.dmm = Keysight34970A("dmm", dmm_link,
                                   channels=dmm.channels, temperature_channel=dmm.temperature_channel,
                                   temperature_probe=dmm.temperature_probe, nplc=dmm.nplc, range_v=dmm.range_v,
                                   line_hz=dmm.line_hz, retries=dmm.retries, serial_line=dmm.port is not None)
 
-    def _link(self, settings: LinkSettings, make: Callable[[], ModbusLink | LineTransport]):
+    def _link(self, settings: LinkSettings, kind: type[Link], make: Callable[[], Link]) -> Link:
+        """The one link of the settings' bus, made for its first device."""
         if settings.bus not in self._links:
             self._links[settings.bus] = make()
-        return self._links[settings.bus]
+        link = self._links[settings.bus]
+        assert isinstance(link, kind)  # StationFile gives the devices sharing a bus one driver
+        return link
 
     def _axis(self, name: str, s: AzSettings | Smc100Settings) -> IndexAxis:
-        common = dict(limits_deg=s.limits_deg, tolerance_arcsec=s.in_position_arcsec, poll_s=s.poll_s)
         if isinstance(s, AzSettings):
-            return AzAxis(name, self._link(s, lambda: modbus_link(s)), s.unit, self.clock,
+            return AzAxis(name, self._link(s, ModbusLink, lambda: modbus_link(s)), s.unit, self.clock,
                           steps_per_degree=s.steps_per_degree, speed_dps=s.speed_dps, accel_dps2=s.accel_dps2,
-                          wrap=s.wrap, **common)
-        return Smc100Axis(name, self._link(s, lambda: line_transport(s, SMC_EOL)), s.address, self.clock,
-                          speed_dps=s.speed_dps, accel_dps2=s.accel_dps2, home_timeout_s=s.home_timeout_s,
-                          retries=s.retries, **common)
+                          wrap=s.wrap, limits_deg=s.limits_deg, tolerance_arcsec=s.in_position_arcsec,
+                          poll_s=s.poll_s)
+        return Smc100Axis(name, self._link(s, LineTransport, lambda: line_transport(s, SMC_EOL)), s.address,
+                          self.clock, speed_dps=s.speed_dps, accel_dps2=s.accel_dps2,
+                          home_timeout_s=s.home_timeout_s, retries=s.retries, limits_deg=s.limits_deg,
+                          tolerance_arcsec=s.in_position_arcsec, poll_s=s.poll_s)
 
     @property
     def axes(self) -> tuple[IndexAxis, IndexAxis]:
@@ -83,12 +92,13 @@ class Bench:
             axis.prepare()
         self.dmm.configure()
 
-    def check(self, reset_alarms: bool = False) -> list[dict]:
+    def check(self, reset_alarms: bool = False) -> list[dict[str, Any]]:
         """Ask every device who it is and how it is, without moving anything: tables their status
         and position, the DMM one scan. One report per device; ``problem`` says what failed."""
         reports = []
         for axis in self.axes:
-            report: dict = {"device": axis.name, "model": axis.model, "link": axis.device, "problem": None}
+            report: dict[str, Any] = {"device": axis.name, "model": axis.model, "link": axis.device,
+                                      "problem": None}
             try:
                 report["identity"] = axis.identify()
                 status = axis.status()
@@ -119,7 +129,7 @@ class Bench:
         for link in self._links.values():
             link.critical = critical
 
-    def station(self, **hooks: Callable) -> Station:
+    def station(self, **hooks: Callable[..., None]) -> Station:
         """The drivers as the sequencer's station; ``hooks`` (``remounted``, ``at_point``) tell an
         emulated rig what the operator did. Real hardware needs neither."""
         return Station(pitch=self.pitch, roll=self.roll, dmm=self.dmm, clock=self.clock,
@@ -134,5 +144,5 @@ class Bench:
     def __enter__(self) -> Bench:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()

@@ -21,7 +21,11 @@ def parse_at(text: str) -> tuple[float, float, float, float]:
         raise LabcalError(f"--at {text!r}: expected PITCH,ROLL or PITCH,ROLL,Y,U in degrees") from None
     if len(values) not in (2, 4):
         raise LabcalError(f"--at {text!r}: expected PITCH,ROLL or PITCH,ROLL,Y,U in degrees")
-    return (*values, 0.0, 0.0)[:4] if len(values) == 2 else tuple(values)
+    if len(values) == 2:
+        pitch, roll = values
+        return pitch, roll, 0.0, 0.0
+    pitch, roll, y, u = values
+    return pitch, roll, y, u
 
 
 def cmd_fit(args: argparse.Namespace) -> int:

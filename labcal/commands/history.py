@@ -35,11 +35,11 @@ def cmd_history(args: argparse.Namespace) -> int:
             table.add_row(str(n), *(f"[bold red]{v} ▲[/]" if (c.certificate_id, i, j) in flagged else v
                                     for i, v in enumerate(cells)))
         out.print(table)
-    for c in found:
-        if c.flagged:
-            out.print(f"[bold red]change:[/] {c.name} from {c.before} to {c.after}: Δ = {c.delta:+.3g}, "
-                      f"limit k·√(u₁²+u₂²) = {c.limit:.2g} (k = {c.k:.2f})")
-    out.print(f"{len(certs)} calibration(s); {sum(c.flagged for c in found)} change(s) flagged by {RULE}.")
+    for ch in found:
+        if ch.flagged:
+            out.print(f"[bold red]change:[/] {ch.name} from {ch.before} to {ch.after}: Δ = {ch.delta:+.3g}, "
+                      f"limit k·√(u₁²+u₂²) = {ch.limit:.2g} (k = {ch.k:.2f})")
+    out.print(f"{len(certs)} calibration(s); {sum(ch.flagged for ch in found)} change(s) flagged by {RULE}.")
     if args.plot:
         out.print(f"plot written to {args.plot}")
     return 0
