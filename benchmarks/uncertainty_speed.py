@@ -15,8 +15,8 @@ from labcal.analysis.attitude import Calibration, closed_form, sphere_least_squa
 from labcal.analysis.design import grid, make_plan
 from labcal.analysis.fit import fit_readings
 from labcal.analysis.kinematics import gravity
+from labcal.config.emulation import InstrumentTruth
 from labcal.sim.direct import simulate_readings
-from labcal.sim.instrument import InstrumentTruth
 
 TRUTH = InstrumentTruth.from_coning(b=[0.0123, -0.0081, 0.0047], sensitivity=[4.9871, 5.0124, 4.9958],
                                     omega_deg=[0.21, 0.14, 0.09], azimuth_deg=[35, -120, 200])

@@ -25,6 +25,7 @@ from pymodbus.pdu import ModbusPDU
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+from labcal.config.emulation import FaultKind
 from labcal.drivers.modbus import int32_words, words_int32
 from labcal.drivers.oriental_az import (
     ALARM,
@@ -49,7 +50,7 @@ from labcal.drivers.oriental_az import (
 )
 from labcal.sim.emulated_rig import EmulatedRig
 from labcal.sim.endpoint import Endpoint
-from labcal.sim.faults import Fault, FaultInjector, FaultKind, garble
+from labcal.sim.faults import Fault, FaultInjector, garble
 from labcal.sim.ptys import PtyPair
 
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())

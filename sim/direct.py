@@ -11,7 +11,7 @@ import numpy as np
 from labcal.analysis.kinematics import NO_MISALIGNMENT, IndexWobble, Misalignment, gravity
 from labcal.analysis.plan import Plan
 from labcal.analysis.readings import Readings
-from labcal.sim.instrument import InstrumentTruth
+from labcal.config.emulation import InstrumentTruth
 
 
 def simulate_readings(

@@ -21,8 +21,6 @@ from dataclasses import dataclass, field
 
 from labcal.config.emulation import FaultKind
 
-__all__ = ["Fault", "FaultInjector", "FaultKind", "garble"]  # FaultKind: a station file names it too
-
 
 @dataclass
 class Fault:

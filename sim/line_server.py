@@ -18,8 +18,9 @@ import tty
 from collections.abc import Callable
 from typing import Protocol
 
+from labcal.config.emulation import FaultKind
 from labcal.sim.endpoint import Endpoint
-from labcal.sim.faults import FaultInjector, FaultKind, garble
+from labcal.sim.faults import FaultInjector, garble
 from labcal.sim.ptys import PtyPair
 
 

@@ -12,12 +12,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal.analysis.kinematics import ARCSEC, IndexWobble, Misalignment, Mount, gravity
-from labcal.config.emulation import DeviceTruth, InstrumentTruth, RigConfig
+from labcal.config.emulation import InstrumentTruth, RigConfig
 from labcal.run.station import Scan, Station
 from labcal.sim.clock import RigClock, VirtualClock
 from labcal.sim.tables import SimAxis
-
-__all__ = ["DeviceTruth", "RigConfig", "SimRig"]  # the rig's configuration models live in labcal.config
 
 
 class SimRig:

@@ -8,8 +8,8 @@ import pytest
 from labcal.analysis.fit import fit_readings
 from labcal.analysis.kinematics import Misalignment
 from labcal.analysis.plan import Plan
+from labcal.config.emulation import InstrumentTruth
 from labcal.sim.direct import simulate_readings
-from labcal.sim.instrument import InstrumentTruth
 
 
 @pytest.fixture(autouse=True)

@@ -12,7 +12,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from labcal.cli import main
-from labcal.sim.instrument import default_instrument
+from labcal.config.emulation import default_instrument
 
 
 def rig_with_bias_shift(path: Path, shift_v: tuple[float, float, float]) -> Path:

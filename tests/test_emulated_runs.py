@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
 
-from labcal.sim.instrument import default_instrument
+from labcal.config.emulation import default_instrument
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 EMULATE = ["--emulate", "--time-scale", str(TIME_SCALE), "--no-report"]  # the certificate is not the subject

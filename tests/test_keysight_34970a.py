@@ -8,8 +8,9 @@ import pytest
 from emulators import MOTION_SCALE, bench_fixtures, no_leaks  # noqa: F401 - fixture
 
 from labcal.analysis.kinematics import Mount
+from labcal.config.emulation import FaultKind
 from labcal.drivers.errors import BadReply, DeviceFault, NoReply, Rejected
-from labcal.sim.faults import Fault, FaultKind
+from labcal.sim.faults import Fault
 
 QUICK = {"timeout_s": 0.1, "retries": 2, "reconnect_s": 0.5}
 

@@ -9,10 +9,11 @@ import pytest
 import serial
 from emulators import bench_fixtures, emulated, no_leaks  # noqa: F401 - fixture
 
+from labcal.config.emulation import FaultKind
 from labcal.drivers.errors import BadReply, DeviceFault, LinkLost, NoReply, OutOfLimits, Rejected
 from labcal.drivers.newport_smc100 import EOL, Smc100Axis
 from labcal.drivers.transport import LineTransport, SerialStream
-from labcal.sim.faults import Fault, FaultKind
+from labcal.sim.faults import Fault
 
 QUICK = {"timeout_s": 0.1, "retries": 2, "reconnect_s": 0.5}
 

@@ -9,9 +9,10 @@ import pytest
 from emulators import bench_fixtures, emulated, no_leaks  # noqa: F401 - fixture
 
 from labcal.bench.hardware import Bench
+from labcal.config.emulation import FaultKind
 from labcal.drivers.axis import wrapped
 from labcal.drivers.errors import BadReply, DeviceFault, LinkLost, NoReply, OutOfLimits, Rejected
-from labcal.sim.faults import Fault, FaultKind
+from labcal.sim.faults import Fault
 
 QUICK = {"timeout_s": 0.1, "retries": 2, "reconnect_s": 0.5}
 

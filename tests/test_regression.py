@@ -8,9 +8,9 @@ from conftest import FOUR_MOUNTS, soto_plan
 
 from labcal.analysis.fit import fit_readings
 from labcal.analysis.regression import least_squares
+from labcal.config.emulation import InstrumentTruth
 from labcal.errors import LabcalError
 from labcal.sim.direct import simulate_readings
-from labcal.sim.instrument import InstrumentTruth
 
 
 def test_qr_keeps_digits_the_normal_equations_lose():

@@ -18,6 +18,7 @@ from conftest import quiet_console, run_on_rig
 
 from labcal.analysis.kinematics import MOUNTS, Mount
 from labcal.bench.setup import sim_station
+from labcal.config.emulation import RigConfig
 from labcal.config.plans import load_plan
 from labcal.config.settings import SequencerSettings, SettleSettings
 from labcal.errors import LabcalError
@@ -25,7 +26,7 @@ from labcal.run.journal import Journal
 from labcal.run.operator import AutoOperator, OperatorDeclined, ScriptedOperator
 from labcal.run.runner import calibrate, execute, open_for_resume
 from labcal.run.sequencer import Display, schedule
-from labcal.sim.rig import RigConfig, SimRig
+from labcal.sim.rig import SimRig
 
 STATIC_LAB = str(Path(__file__).parent / "data" / "rig_static_lab.toml")
 LABCAL = str(Path(sys.executable).with_name("labcal"))

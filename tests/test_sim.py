@@ -9,11 +9,11 @@ import pytest
 from conftest import run_on_rig
 
 from labcal.analysis.kinematics import Mount
+from labcal.config.emulation import DeviceTruth, InstrumentTruth, RigConfig, coning_axes
 from labcal.config.settings import SequencerSettings, SettleSettings
 from labcal.run.sequencer import move_both
 from labcal.sim.clock import VirtualClock
-from labcal.sim.instrument import InstrumentTruth, coning_axes
-from labcal.sim.rig import DeviceTruth, RigConfig, SimRig
+from labcal.sim.rig import SimRig
 from labcal.sim.tables import SimAxis, trapezoid_duration, trapezoid_travel
 
 QUIET_DEVICE = DeviceTruth(misalignment_deg={}, index_arcsec=0, wobble_arcsec=0)

@@ -17,8 +17,8 @@ from labcal.analysis.plan import Plan
 from labcal.analysis.readings import Readings
 from labcal.analysis.regression import least_squares
 from labcal.analysis.replication import analyse, point_groups
+from labcal.config.emulation import InstrumentTruth
 from labcal.sim.direct import simulate_readings
-from labcal.sim.instrument import InstrumentTruth
 
 DATA = Path(__file__).parent / "data"
 TRUTH = InstrumentTruth.from_coning(b=[0.0123, -0.0081, 0.0047], sensitivity=[4.9871, 5.0124, 4.9958],

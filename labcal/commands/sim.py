@@ -20,7 +20,8 @@ HELP = ("commands: mount Y U | fault DEVICE KIND [COUNT] (KIND: no-reply, late-r
 def console_command(emulation, line: str) -> str:
     """Carry out one console line; returns what to print. Raises EOFError on quit."""
     from labcal.analysis.kinematics import Mount
-    from labcal.sim.faults import Fault, FaultKind
+    from labcal.config.emulation import FaultKind
+    from labcal.sim.faults import Fault
 
     words = line.split()
     if not words:

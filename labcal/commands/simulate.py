@@ -31,8 +31,8 @@ def parse_misalign(text: str) -> Misalignment:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    from labcal.config.emulation import InstrumentTruth
     from labcal.sim.direct import simulate_readings
-    from labcal.sim.instrument import InstrumentTruth
 
     plan, _ = load_plan(args.plan)
     truth = load_model(args.truth, InstrumentTruth, "truth") if args.truth else InstrumentTruth()
