@@ -9,6 +9,7 @@ of an ArrayLike argument).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -133,6 +134,13 @@ class Mount:
 
     def __str__(self) -> str:
         return f"y={self.y_deg:g}°, u={self.u_deg:g}°"
+
+
+def mount_gravity(pitch_deg: float, roll_deg: float, mount: Mount) -> NDArray[np.float64]:
+    """Nominal gravity at table angles in degrees on one mount: what the run machinery expects at a
+    point (degrees at the edge, radians inside)."""
+    y, u = mount.radians
+    return gravity(math.radians(pitch_deg), math.radians(roll_deg), y, u)
 
 
 MOUNTS = (Mount(0, 0), Mount(180, 0), Mount(0, 180), Mount(180, 180))

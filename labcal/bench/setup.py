@@ -14,7 +14,7 @@ from collections.abc import Callable
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from labcal.errors import LabcalError
 
@@ -83,10 +83,11 @@ def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emul
 
     # injected faults are a test, not the station: a resume has none
     station = config.model_dump(mode="json", exclude={"emulation": {"faults"}})
-    snapshot: dict = {"kind": "station", "station": station, "emulate": emulate}
+    snapshot: dict[str, Any] = {"kind": "station", "station": station, "emulate": emulate}
     sweep_s = (3 + bool(config.dmm.temperature_channel)) * channel_time_s(config.dmm.nplc, config.dmm.line_hz)
     timing = Timing(clamp_s=0.0, sample_s=sweep_s, remount_s=REMOUNT_ALLOWANCE_S)
-    settle, clock, hooks, metadata = config.sequencer.settle, None, {}, {"station_file": source}
+    settle, clock, hooks = config.sequencer.settle, None, {}
+    metadata: dict[str, Any] = {"station_file": source}
     if emulate:
         from labcal.sim.emulation import Emulation
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from contextlib import ExitStack
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from labcal.analysis.plan import Plan
 from labcal.commands.common import EXIT_INTERRUPTED, EXIT_STOPPED, err, out, print_json
@@ -45,8 +45,9 @@ def make_operator(args: argparse.Namespace):
 def print_estimate(plan: Plan, est: Estimate, as_json: bool) -> None:
     from labcal.commands.console import format_duration
 
-    doc = {"plan": plan.name, "points": plan.n_points, "total_s": est.total_s, "moves_s": est.moves_s,
-           "settling_s": est.settling_s, "averaging_s": est.averaging_s, "mounting_s": est.mounting_s}
+    doc: dict[str, Any] = {
+        "plan": plan.name, "points": plan.n_points, "total_s": est.total_s, "moves_s": est.moves_s,
+        "settling_s": est.settling_s, "averaging_s": est.averaging_s, "mounting_s": est.mounting_s}
     if as_json:
         print_json(doc)
         return

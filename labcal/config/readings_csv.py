@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -127,7 +128,7 @@ class ReadingsWriter:
 
     def append(
         self, *, replicate: int, y_deg: float, u_deg: float, pitch_deg: float, roll_deg: float,
-        volts: NDArray, temp_c: float | None = None, sd: NDArray | None = None,
+        volts: Sequence[float | None], temp_c: float | None = None, sd: Sequence[float | None] | None = None,
         n_samples: int | None = None, time_s: float | None = None,
     ) -> None:
         def fmt(x: float | None, spec: str = ".10g") -> str:
@@ -138,8 +139,8 @@ class ReadingsWriter:
         if self.temperature:
             row.append(fmt(temp_c, ".4f"))
         if self.audit:
-            sd = [None] * 3 if sd is None else sd
-            row += ["" if n_samples is None else n_samples, *(fmt(s, ".4g") for s in sd), fmt(time_s, ".3f")]
+            sds = (None, None, None) if sd is None else sd
+            row += ["" if n_samples is None else n_samples, *(fmt(s, ".4g") for s in sds), fmt(time_s, ".3f")]
         self._csv.writerow(row)
         self._sync()
         self.count += 1

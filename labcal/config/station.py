@@ -141,7 +141,7 @@ class DmmSettings(LinkSettings):
     @classmethod
     def _settable(cls, value: float, info: ValidationInfo) -> float:
         """Only the values the unit has (the 34970A answers others with error -222)."""
-        allowed = {"nplc": NPLC_VALUES, "range_v": RANGES_V}[info.field_name]
+        allowed = NPLC_VALUES if info.field_name == "nplc" else RANGES_V
         if value not in allowed:
             raise ValueError(f"{info.field_name} must be one of {', '.join(f'{v:g}' for v in allowed)}")
         return value

@@ -372,7 +372,8 @@ def envelope_grid(cal: Calibration, settings: CertificateSettings) -> EnvelopeGr
                         (att.k95 * np.degrees(att.u_roll)).reshape(shape), att.k95, cal.dof)
 
 
-def _summary(grid_: EnvelopeGrid, values: NDArray) -> tuple[float | None, float | None, tuple | None]:
+def _summary(grid_: EnvelopeGrid, values: NDArray
+             ) -> tuple[float | None, float | None, tuple[float, float] | None]:
     if not np.any(np.isfinite(values)):
         return None, None, None
     i, j = np.unravel_index(np.nanargmax(values), values.shape)
@@ -383,6 +384,11 @@ def _summary(grid_: EnvelopeGrid, values: NDArray) -> tuple[float | None, float 
 def attitude_envelope(cal: Calibration, settings: CertificateSettings) -> AttitudeEnvelope:
     env = envelope_grid(cal, settings)
     p_max, p_rms, p_at = _summary(env, env.u95_pitch_deg)
+    if p_max is None or p_rms is None or p_at is None:  # pitch exists everywhere; roll may not
+        low, high = settings.usage_pitch_deg
+        raise LabcalError(f"the pitch uncertainty is not finite anywhere in the usage envelope (pitch "
+                          f"{low:g}..{high:g}°); check the usage envelope and the calibration's "
+                          "uncertainties")
     r_max, r_rms, r_at = _summary(env, env.u95_roll_deg)
     return AttitudeEnvelope(
         method="weighted least squares on the unit sphere (Tripp & Tcheng eqs. 99–104), one new reading, "

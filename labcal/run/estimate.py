@@ -11,8 +11,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
-from labcal.analysis.kinematics import gravity
+from labcal.analysis.kinematics import mount_gravity
 from labcal.analysis.plan import Plan
 from labcal.config.settings import SequencerSettings
 from labcal.run.mounting import CHECK_ATTITUDE
@@ -47,16 +48,17 @@ def estimate(plan: Plan, settings: SequencerSettings, timing: Timing) -> Estimat
     s = settings.settle
     window_s = s.samples * timing.sample_s
     per_step, moves, settling, mounting = {}, 0.0, 0.0, 0.0
-    where, g_last = np.array(LOAD_POSITION), None
+    where: NDArray[np.float64] = np.array(LOAD_POSITION, dtype=float)
+    g_last: NDArray[np.float64] | None = None
     steps: list[Step] = schedule(plan, settings)
     for step in steps:
         t_mount = 0.0
         if step.block_start:
-            t_mount = move_time(where, np.array(LOAD_POSITION), settings.speed_dps, settings.accel_dps2)
-            t_mount += timing.remount_s + timing.clamp_s
+            to_load = move_time(where, np.array(LOAD_POSITION), settings.speed_dps, settings.accel_dps2)
+            t_mount = float(to_load) + timing.remount_s + timing.clamp_s
             if settings.check_mount:
-                t_mount += move_time(np.array(LOAD_POSITION), np.array(CHECK_ATTITUDE), settings.speed_dps,
-                                     settings.accel_dps2) + timing.clamp_s
+                t_mount += float(move_time(np.array(LOAD_POSITION), np.array(CHECK_ATTITUDE),
+                                           settings.speed_dps, settings.accel_dps2)) + timing.clamp_s
                 t_mount += dead_time(2 * s.sensitivity_v_per_g, s) + window_s
                 where = np.array(CHECK_ATTITUDE)
             else:
@@ -64,7 +66,7 @@ def estimate(plan: Plan, settings: SequencerSettings, timing: Timing) -> Estimat
             g_last = None
         target = np.array([step.pitch_deg, step.roll_deg])
         t_move = float(move_time(where, target, settings.speed_dps, settings.accel_dps2)) + timing.clamp_s
-        g = gravity(*np.radians(target), *step.mount.radians)
+        g = mount_gravity(step.pitch_deg, step.roll_deg, step.mount)
         step_g = 2.0 if g_last is None else float(np.max(np.abs(g - g_last)))
         t_settle = (s.fixed_dwell_s if s.fixed_dwell_s is not None
                     else dead_time(step_g * s.sensitivity_v_per_g, s))

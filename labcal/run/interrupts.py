@@ -10,6 +10,10 @@ import signal
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from types import FrameType
+from typing import Any
+
+SignalHandler = Callable[[int, FrameType | None], Any] | int | signal.Handlers | None
 
 
 class Interrupts:
@@ -19,7 +23,7 @@ class Interrupts:
         self._depth = 0
         self._deferred = False
         self._on_first = on_first
-        self._previous = None
+        self._previous: SignalHandler = None  # the handler to put back
 
     def __enter__(self) -> Interrupts:
         if threading.current_thread() is threading.main_thread():

@@ -11,13 +11,13 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from labcal.analysis.kinematics import MOUNTS, Mount, gravity
+from labcal.analysis.kinematics import MOUNTS, Mount, mount_gravity
 
 CHECK_ATTITUDE = (30.0, 30.0)
 
 
 def expected_gravity(mount: Mount) -> NDArray:
-    return gravity(*np.radians(CHECK_ATTITUDE), *mount.radians)
+    return mount_gravity(*CHECK_ATTITUDE, mount)
 
 
 def identify(volts: NDArray, provisional: NDArray | None = None) -> Mount:

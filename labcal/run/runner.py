@@ -75,7 +75,8 @@ def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: S
     wall0 = time.perf_counter()
     steps = schedule(plan, settings)
     committed = {p.seq for p in journal.points(run_id)}
-    status, reason = "interrupted", "Ctrl-C"
+    status = "interrupted"
+    reason: str | None = "Ctrl-C"
     try:
         with Interrupts(lambda: display.message("[yellow]Ctrl-C: pausing after this point "
                                                 "(press again to stop the tables now)[/]")) as interrupts:

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from labcal.analysis.kinematics import Mount, gravity
+from labcal.analysis.kinematics import Mount, mount_gravity
 from labcal.analysis.plan import Plan
 from labcal.config.settings import SequencerSettings
 from labcal.errors import LabcalError
@@ -174,7 +174,7 @@ class Sequencer:
             if not self.settings.check_mount:
                 return
             self.move(*CHECK_ATTITUDE)
-            check = self.measure(gravity(*np.radians(CHECK_ATTITUDE), *mount.radians), f"check:{mount}")
+            check = self.measure(mount_gravity(*CHECK_ATTITUDE, mount), f"check:{mount}")
             seen = identify(mean_and_sd(check.scan)[0], provisional)
             if seen == mount:
                 self.event("mount", f"mount verified: {mount}")
@@ -248,7 +248,7 @@ class Sequencer:
     def point(self, step: Step) -> int:
         """Measure one step (retrying once if it does not settle) and commit it; 1 if it failed."""
         pitch_read, roll_read = self.move(step.pitch_deg, step.roll_deg)
-        g = gravity(*np.radians([step.pitch_deg, step.roll_deg]), *step.mount.radians)
+        g = mount_gravity(step.pitch_deg, step.roll_deg, step.mount)
         for attempt in (1, 2):
             t_start = self.station.clock.now() - self._t0
             result = self.measure(g, f"{step.seq}:{attempt}")
