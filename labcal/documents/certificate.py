@@ -37,8 +37,10 @@ from labcal.config.files import json_safe, one_line, read_text, write_json
 from labcal.errors import LabcalError
 from labcal.run.record import RunRecord
 
-SCHEMA = "labcal.documents.certificate/1"
-SCHEMA_PREFIX = "labcal.documents.certificate/"
+# The document format's name, not the module's: certificates issued before the subpackages
+# (a8863ee and earlier) carry it, and a format that did not change keeps its name.
+SCHEMA = "labcal.certificate/1"
+SCHEMA_PREFIX = "labcal.certificate/"
 COVERAGE = 0.95
 SIMULATED_SERIAL = "SIMULATED"  # a dry run's instrument is the simulator's, whatever the seed
 
@@ -247,7 +249,7 @@ class Digest(_Strict):
 class Certificate(_Strict):
     model_config = ConfigDict(validate_by_alias=True, validate_by_name=True, serialize_by_alias=True)
 
-    schema_id: Literal["labcal.documents.certificate/1"] = Field(alias="schema")
+    schema_id: Literal["labcal.certificate/1"] = Field(alias="schema")
     certificate_id: str
     labcal_version: str
     laboratory: str
