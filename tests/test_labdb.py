@@ -15,6 +15,7 @@ import shutil
 import sqlite3
 import subprocess
 import sys
+import threading
 from contextlib import closing
 from dataclasses import fields
 from pathlib import Path
@@ -22,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import labcal as labcal_package
 from labcal.cli import main
 from labcal.documents.history import certificates_for, store
 from labcal.errors import LabcalError
@@ -30,7 +32,7 @@ from labcal.run.journal import Journal, Manifest, PointRecord
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 V0 = Path(__file__).parent / "data" / "v0"
-SOURCE = Path(__file__).parents[1] / "labcal"
+SOURCE = Path(labcal_package.__file__).parent  # the labcal under test: the source tree or the wheel
 
 
 @pytest.fixture
@@ -305,3 +307,27 @@ def test_backup_is_consistent_while_another_program_holds_the_wal(v0):
             assert backup.execute("SELECT operator FROM runs WHERE id=1").fetchone() == ("in the wal",)
             assert backup.execute("PRAGMA user_version").fetchone() == (0,)
 
+
+
+def test_programs_opening_an_old_database_at_once_migrate_it_once(v0):
+    """The journal of a starting run and a history query may both find version 0: the version is
+    read again under the write lock, so the second one finds the work done."""
+    db = v0 / "labcal.sqlite"
+    old = dump(db)
+    start = threading.Barrier(4)
+    errors: list[BaseException] = []
+
+    def open_it() -> None:
+        start.wait()
+        try:
+            labdb.connect(db).close()
+        except BaseException as exc:  # reported by the assertion below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=open_it) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    assert errors == [] and user_version(db) == labdb.SCHEMA_VERSION
+    assert dump(labdb.backup_path(db, 0)) == old
