@@ -38,6 +38,8 @@ from labcal.config.station import load_certificate_settings
 from labcal.errors import LabcalError
 from labcal.run.record import RunRecord
 
+# The document format's name, not the module's: certificates issued before the subpackages
+# (a8863ee and earlier) carry it, and a format that did not change keeps its name.
 SCHEMA = "labcal.certificate/1"
 SCHEMA_PREFIX = "labcal.certificate/"
 COVERAGE = 0.95

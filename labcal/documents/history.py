@@ -1,6 +1,8 @@
 """Every certificate in the lab's SQLite database, and each instrument's coefficients over time.
 
-The database is shared with the run journal; this module owns only the ``certificates`` table.
+The database is shared with the run journal; its schema (the ``certificates`` table among the
+others), version and migrations are `labcal.run.labdb`'s, and every statement here names its
+columns.
 Its path: the --db option, else $LABCAL_DB, else runs/labcal.sqlite. A stored certificate is the
 exact JSON issued; reading it back verifies schema and digest, so history never shows a value
 that was altered in the database.
@@ -12,7 +14,6 @@ uncertainties and k = t₀.₉₇₅(ν) at the Welch–Satterthwaite degrees of
 
 from __future__ import annotations
 
-import sqlite3
 from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,29 +24,10 @@ from labcal.analysis.distributions import t_quantile
 from labcal.analysis.fit import ROW_NAMES, SENSORS
 from labcal.documents.certificate import COVERAGE, Certificate, certificate_from_doc, parse_json
 from labcal.errors import LabcalError
+from labcal.run import labdb
 from labcal.run.journal import db_path
 
 RULE = "|Δ| > k·√(u₁² + u₂²), k = t₀.₉₇₅(ν) at the Welch–Satterthwaite ν of the difference"
-TABLE = """CREATE TABLE IF NOT EXISTS certificates (
-    certificate_id TEXT PRIMARY KEY,
-    serial TEXT NOT NULL,
-    calibrated_utc TEXT NOT NULL,
-    issued_utc TEXT NOT NULL,
-    sha256 TEXT NOT NULL,
-    document TEXT NOT NULL
-)"""
-INDEX = "CREATE INDEX IF NOT EXISTS certificates_by_serial ON certificates (serial, calibrated_utc)"
-
-
-def _connect(path: Path) -> sqlite3.Connection:
-    try:
-        conn = sqlite3.connect(path, timeout=10.0)
-        conn.execute("PRAGMA journal_mode=WAL")  # readers never block the journal's writer
-        conn.execute(TABLE)
-        conn.execute(INDEX)
-    except sqlite3.Error as exc:
-        raise LabcalError(f"{path}: cannot use the database ({exc})") from None
-    return conn
 
 
 def store(cert: Certificate, db: str | Path | None = None) -> Path:
@@ -56,8 +38,9 @@ def store(cert: Certificate, db: str | Path | None = None) -> Path:
     except OSError as exc:
         raise LabcalError(f"{path.parent}: cannot create the database folder ({exc.strerror})") from None
     doc = cert.model_dump_json(indent=2)
-    with closing(_connect(path)) as conn, conn:
-        conn.execute("INSERT OR REPLACE INTO certificates VALUES (?, ?, ?, ?, ?, ?)",
+    with closing(labdb.connect(path)) as conn, conn:
+        conn.execute("INSERT OR REPLACE INTO certificates (certificate_id, serial, calibrated_utc,"
+                     " issued_utc, sha256, document) VALUES (?, ?, ?, ?, ?, ?)",
                      (cert.certificate_id, cert.instrument.serial, cert.calibrated_utc.isoformat(),
                       cert.issued_utc.isoformat(), cert.digest.value, doc))
     return path
@@ -69,7 +52,7 @@ def certificates_for(serial: str, db: str | Path | None = None) -> list[Certific
     if not path.is_file():
         raise LabcalError(f"{path}: no such database; `labcal report RUN` stores certificates there "
                           "(or give --db / set LABCAL_DB)")
-    with closing(_connect(path)) as conn:
+    with closing(labdb.connect(path)) as conn:
         rows = conn.execute("SELECT certificate_id, document FROM certificates WHERE serial = ? "
                             "ORDER BY calibrated_utc, certificate_id", (serial,)).fetchall()
         if not rows:

@@ -4,6 +4,9 @@ One database per lab (`runs/labcal.sqlite`, or $LABCAL_DB, or --db) holds every 
 first, then one transaction per point with its raw samples, and the events of the run (prompts
 and answers, faults, retries, pauses). WAL mode with synchronous=FULL: a committed point
 survives a killed process and a power cut. readings.csv and fit.json are exports of it.
+
+The tables are `labcal.run.labdb`'s, which versions and migrates the file on open; every
+statement here names its columns, so a column added by a later schema breaks no read or write.
 """
 
 from __future__ import annotations
@@ -11,7 +14,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import sqlite3
 from dataclasses import dataclass, fields
 from datetime import UTC, datetime
 from pathlib import Path
@@ -21,32 +23,9 @@ from numpy.typing import NDArray
 
 from labcal.analysis.readings import Readings
 from labcal.errors import LabcalError
+from labcal.run import labdb
 
 DEFAULT_DB = Path("runs") / "labcal.sqlite"
-SCHEMA = """
-CREATE TABLE IF NOT EXISTS runs (
-    id INTEGER PRIMARY KEY,
-    run_dir TEXT NOT NULL,
-    plan_name TEXT NOT NULL, plan_text TEXT NOT NULL, plan_hash TEXT NOT NULL,
-    station_text TEXT NOT NULL, station_hash TEXT NOT NULL,
-    software_version TEXT NOT NULL, instrument_serial TEXT, device_id TEXT, operator TEXT,
-    settings TEXT NOT NULL, metadata TEXT NOT NULL,
-    started_utc TEXT NOT NULL, status TEXT NOT NULL, reason TEXT, ended_utc TEXT
-);
-CREATE TABLE IF NOT EXISTS points (
-    run_id INTEGER NOT NULL REFERENCES runs(id), seq INTEGER NOT NULL,
-    replicate INTEGER NOT NULL, y_deg REAL NOT NULL, u_deg REAL NOT NULL,
-    pitch_deg REAL NOT NULL, roll_deg REAL NOT NULL, pitch_read REAL, roll_read REAL,
-    attempt INTEGER NOT NULL, status TEXT NOT NULL, t_start REAL, t_end REAL, utc TEXT NOT NULL,
-    n_samples INTEGER NOT NULL, vx REAL, vy REAL, vz REAL, sd_vx REAL, sd_vy REAL, sd_vz REAL,
-    temp_c REAL, settle_s REAL, settle_verdict TEXT, samples BLOB,
-    PRIMARY KEY (run_id, seq)
-);
-CREATE TABLE IF NOT EXISTS events (
-    id INTEGER PRIMARY KEY, run_id INTEGER NOT NULL REFERENCES runs(id),
-    utc TEXT NOT NULL, station_time REAL, kind TEXT NOT NULL, message TEXT NOT NULL, data TEXT
-);
-"""
 
 
 def db_path(option: str | None = None) -> Path:
@@ -131,13 +110,9 @@ class Journal:
         self.path = Path(path)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.db = sqlite3.connect(self.path, timeout=10.0, isolation_level=None)
-            self.db.execute("PRAGMA journal_mode=WAL")
-            self.db.execute("PRAGMA synchronous=FULL")
-            self.db.execute("PRAGMA foreign_keys=ON")
-            self.db.executescript(SCHEMA)
-        except (sqlite3.Error, OSError) as exc:
+        except OSError as exc:
             raise LabcalError(f"{self.path}: cannot open the run journal ({exc})") from None
+        self.db = labdb.connect(self.path)  # the schema, its version and its migrations live there
 
     def close(self) -> None:
         self.db.close()

@@ -1,0 +1,193 @@
+"""The lab database: one SQLite file, one schema, owned here, versioned and migrated on open.
+
+Every run of the lab (the journal: ``runs``, ``points``, ``events``) and every certificate issued
+(``certificates``) live in one file (`labcal.run.journal.db_path`). The journal and the history
+each used to create their own tables in it; now both open it through `connect`, which is the only
+place that knows the schema. ``PRAGMA user_version`` is its version, and `MIGRATIONS` is the
+ordered list of steps from each version to the next.
+
+Version 0 is the schema as labcal created it before it was versioned: tables made with
+``CREATE TABLE IF NOT EXISTS`` by whichever of the journal or the history opened the file first,
+so a version-0 file may hold all four tables, only the journal's, only ``certificates``, or none.
+`BASELINE` (idempotent) brings any of those to the full version-0 schema, and the migrations take
+it from there; a new file goes the same way, so a new database and a migrated one cannot differ.
+
+On open, a file older than this labcal is migrated in one transaction, under SQLite's write lock
+(so two programs opening it at once migrate it once), after a consistent copy of it is written
+beside it as ``<name>.v<old>.bak`` with SQLite's online backup (correct for a WAL database whose
+latest pages are still in the -wal file). A failure rolls every step back: the file stays at its
+old version, and says so in one line. A file newer than this labcal is refused, untouched.
+
+Reads and writes name their columns (no ``SELECT *``, no ``INSERT … VALUES`` without a column
+list), so a migration that adds a column never breaks the code that came before it.
+"""
+
+from __future__ import annotations
+
+import os
+import sqlite3
+from collections.abc import Callable
+from contextlib import closing
+from dataclasses import dataclass
+from pathlib import Path
+
+from labcal.errors import LabcalError
+
+# Version 0, exactly as the unversioned labcal created it (journal.py and history.py, a8863ee).
+BASELINE: tuple[str, ...] = (
+    """CREATE TABLE IF NOT EXISTS runs (
+    id INTEGER PRIMARY KEY,
+    run_dir TEXT NOT NULL,
+    plan_name TEXT NOT NULL, plan_text TEXT NOT NULL, plan_hash TEXT NOT NULL,
+    station_text TEXT NOT NULL, station_hash TEXT NOT NULL,
+    software_version TEXT NOT NULL, instrument_serial TEXT, device_id TEXT, operator TEXT,
+    settings TEXT NOT NULL, metadata TEXT NOT NULL,
+    started_utc TEXT NOT NULL, status TEXT NOT NULL, reason TEXT, ended_utc TEXT
+)""",
+    """CREATE TABLE IF NOT EXISTS points (
+    run_id INTEGER NOT NULL REFERENCES runs(id), seq INTEGER NOT NULL,
+    replicate INTEGER NOT NULL, y_deg REAL NOT NULL, u_deg REAL NOT NULL,
+    pitch_deg REAL NOT NULL, roll_deg REAL NOT NULL, pitch_read REAL, roll_read REAL,
+    attempt INTEGER NOT NULL, status TEXT NOT NULL, t_start REAL, t_end REAL, utc TEXT NOT NULL,
+    n_samples INTEGER NOT NULL, vx REAL, vy REAL, vz REAL, sd_vx REAL, sd_vy REAL, sd_vz REAL,
+    temp_c REAL, settle_s REAL, settle_verdict TEXT, samples BLOB,
+    PRIMARY KEY (run_id, seq)
+)""",
+    """CREATE TABLE IF NOT EXISTS events (
+    id INTEGER PRIMARY KEY, run_id INTEGER NOT NULL REFERENCES runs(id),
+    utc TEXT NOT NULL, station_time REAL, kind TEXT NOT NULL, message TEXT NOT NULL, data TEXT
+)""",
+    """CREATE TABLE IF NOT EXISTS certificates (
+    certificate_id TEXT PRIMARY KEY,
+    serial TEXT NOT NULL,
+    calibrated_utc TEXT NOT NULL,
+    issued_utc TEXT NOT NULL,
+    sha256 TEXT NOT NULL,
+    document TEXT NOT NULL
+)""",
+    "CREATE INDEX IF NOT EXISTS certificates_by_serial ON certificates (serial, calibrated_utc)",
+)
+
+
+@dataclass(frozen=True)
+class Migration:
+    """One step: from version ``version - 1`` to ``version``, inside the caller's transaction.
+
+    ``apply`` must not commit (no ``executescript``, which commits first): the whole chain of
+    steps commits together or not at all.
+    """
+
+    version: int
+    why: str
+    apply: Callable[[sqlite3.Connection], None]
+
+
+def _v1_events_by_run(db: sqlite3.Connection) -> None:
+    db.execute("CREATE INDEX events_by_run ON events (run_id, id)")
+
+
+MIGRATIONS: tuple[Migration, ...] = (
+    Migration(1, "index events by run: `Journal.events(run)` (the audit trail of prompts, faults, "
+                 "retries and pauses) read the whole lab's events table for every run, and "
+                 "events.run_id is a foreign key that SQLite advises indexing (points are already "
+                 "indexed by their primary key (run_id, seq)). An index only, so the previous labcal "
+                 "still reads and writes a version-1 file.", _v1_events_by_run),
+)
+SCHEMA_VERSION = MIGRATIONS[-1].version
+
+
+def backup_path(path: Path, version: int) -> Path:
+    """Where the copy made before migrating from ``version`` goes: beside the database."""
+    return path.with_name(f"{path.name}.v{version}.bak")
+
+
+def version_of(db: sqlite3.Connection) -> int:
+    return int(db.execute("PRAGMA user_version").fetchone()[0])
+
+
+def connect(path: str | Path, migrations: tuple[Migration, ...] = MIGRATIONS) -> sqlite3.Connection:
+    """Open the lab database at the current schema: WAL, synchronous=FULL, foreign keys on,
+    autocommit (callers open their own transactions), migrated first if older.
+
+    ``migrations`` is the schema's history; only tests give another one (a step that fails).
+    """
+    path = Path(path)
+    try:
+        db = sqlite3.connect(path, timeout=10.0, isolation_level=None)
+    except sqlite3.Error as exc:
+        raise LabcalError(f"{path}: cannot open the lab database ({exc})") from None
+    try:
+        db.execute("PRAGMA journal_mode=WAL")  # readers never block the journal's writer
+        db.execute("PRAGMA synchronous=FULL")  # a committed point survives a power cut
+        db.execute("PRAGMA foreign_keys=ON")
+        migrate(db, path, migrations)
+    except sqlite3.Error as exc:
+        db.close()
+        raise LabcalError(f"{path}: cannot open the lab database ({exc})") from None
+    except BaseException:
+        db.close()
+        raise
+    return db
+
+
+def migrate(db: sqlite3.Connection, path: Path, migrations: tuple[Migration, ...] = MIGRATIONS) -> int:
+    """Bring the open database to the last version of ``migrations``; returns the version found.
+
+    Nothing to do (the usual case) costs one pragma. Otherwise, under the write lock: read the
+    version again (another program may have just migrated it), back the file up if it holds
+    anything, and apply the baseline and every later step in one transaction.
+    """
+    target = migrations[-1].version if migrations else 0
+    found = version_of(db)
+    if found == target:
+        return found
+    if found > target:
+        raise _newer(path, found, target)
+    db.execute("BEGIN IMMEDIATE")
+    try:
+        found = version_of(db)  # another program may have migrated it while we waited for the lock
+        if found < target:
+            if db.execute("SELECT count(*) FROM sqlite_master").fetchone()[0]:
+                _backup(path, backup_path(path, found))
+            if found == 0:
+                for statement in BASELINE:
+                    db.execute(statement)
+            for step in migrations:
+                if step.version > found:
+                    step.apply(db)
+            db.execute(f"PRAGMA user_version = {int(target)}")
+        db.execute("COMMIT")
+    except BaseException as exc:
+        if db.in_transaction:  # some errors (a full disk) have rolled it back already
+            db.execute("ROLLBACK")
+        if isinstance(exc, sqlite3.Error):
+            raise LabcalError(f"{path}: cannot migrate the lab database from schema {found} to {target} "
+                              f"({exc}); the file is unchanged") from None
+        raise
+    if found > target:
+        raise _newer(path, found, target)
+    return found
+
+
+def _newer(path: Path, found: int, target: int) -> LabcalError:
+    return LabcalError(f"{path}: lab database schema {found} is newer than this labcal ({target}); "
+                       "upgrade labcal")
+
+
+def _backup(path: Path, target: Path) -> None:
+    """A consistent copy of the database (WAL included) at ``target``, written whole or not at all.
+
+    Called while the migrating connection holds the write lock, so nobody writes during the copy;
+    the copy reads through a second connection because SQLite's backup cannot read from a
+    connection that is in a write transaction.
+    """
+    partial = target.with_name(target.name + ".partial")
+    try:
+        with closing(sqlite3.connect(path, timeout=10.0)) as source, \
+                closing(sqlite3.connect(partial)) as copy:
+            source.backup(copy)
+        os.replace(partial, target)
+    except (sqlite3.Error, OSError) as exc:
+        partial.unlink(missing_ok=True)
+        raise LabcalError(f"{target}: cannot back up the lab database before migrating it ({exc}); "
+                          "nothing was changed") from None
