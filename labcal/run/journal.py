@@ -28,7 +28,7 @@ from labcal.run import labdb
 DEFAULT_DB = Path("runs") / "labcal.sqlite"
 
 
-def db_path(option: str | None = None) -> Path:
+def db_path(option: str | Path | None = None) -> Path:
     """The lab database: --db, else $LABCAL_DB, else runs/labcal.sqlite."""
     return Path(option or os.environ.get("LABCAL_DB") or DEFAULT_DB)
 
@@ -138,7 +138,7 @@ class Journal:
 
     # --- writing ---------------------------------------------------------------------------------
     def start_run(self, m: Manifest) -> int:
-        return self._transaction([(
+        run_id = self._transaction([(
             "INSERT INTO runs (run_dir, plan_name, plan_text, plan_hash, station_text, station_hash,"
             " software_version, instrument_serial, device_id, operator, settings, metadata,"
             " started_utc, status) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,'running')",
@@ -146,6 +146,8 @@ class Journal:
              sha256(m.station_text), m.software_version, m.instrument_serial, m.device_id, m.operator,
              json.dumps(m.settings), json.dumps(m.metadata), utc_now()),
         )])
+        assert run_id is not None  # an INSERT into a rowid table always sets lastrowid
+        return run_id
 
     def record_point(self, run_id: int, point: PointRecord, samples: NDArray | None) -> None:
         """The point and its raw samples in one transaction."""
