@@ -14,17 +14,15 @@ from simulated_runs import simulated_run
 
 from labcal.analysis.fit import fit_readings
 from labcal.cli import main
+from labcal.config.settings import CertificateSettings
 from labcal.documents.certificate import (
-    CertificateSettings,
-    build_certificate,
-    envelope_grid,
     format_result,
     format_uncertainty,
     load_calibration,
-    load_settings,
     read_certificate,
     write_certificate,
 )
+from labcal.documents.issuing import build_certificate, envelope_grid, load_settings
 from labcal.errors import LabcalError
 from labcal.run.record import load_run
 

@@ -17,8 +17,8 @@ from simulated_runs import rig_with_bias_shift, simulated_run
 
 from labcal.analysis.fit import fit_readings
 from labcal.cli import main
-from labcal.documents.certificate import build_certificate
 from labcal.documents.history import RULE, certificates_for, changes, store
+from labcal.documents.issuing import build_certificate
 from labcal.run.record import load_run
 
 SERIAL = "SN-1001"

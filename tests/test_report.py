@@ -17,7 +17,9 @@ from simulated_runs import simulated_run
 
 from labcal.analysis.fit import fit_readings
 from labcal.cli import main
-from labcal.documents.certificate import CertificateSettings, build_certificate, read_certificate
+from labcal.config.settings import CertificateSettings
+from labcal.documents.certificate import read_certificate
+from labcal.documents.issuing import build_certificate
 from labcal.documents.report import envelope_figure, figures, inferred_attitude, tables, write_run_outputs
 from labcal.run.record import load_run
 

@@ -20,7 +20,7 @@ def rich_table(t) -> RichTable:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from labcal.documents.certificate import load_settings
+    from labcal.documents.issuing import load_settings
     from labcal.documents.report import (
         attitude_table,
         coefficients_with_expanded_uncertainty,

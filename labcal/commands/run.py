@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from labcal.analysis.plan import Plan
-from labcal.commands.common import EXIT_INTERRUPTED, EXIT_STOPPED, err, out, print_json
+from labcal.commands.common import EXIT_INTERRUPTED, EXIT_STOPPED, add_db_option, err, out, print_json
 from labcal.config.plans import load_plan
 from labcal.errors import LabcalError
 
@@ -164,7 +164,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                                             time_scale=args.time_scale, seed=args.seed)
             pitch, roll = config.pitch, config.roll  # the slower table sets the pace of the estimates
             settings = sequencer_settings_for_run(args, setup, min(pitch.speed_dps, roll.speed_dps),
-                                     min(pitch.accel_dps2, roll.accel_dps2))
+                                                  min(pitch.accel_dps2, roll.accel_dps2))
             settings = settings.model_copy(update={
                 "move_timeout_s": config.sequencer.move_timeout_s,
                 "position_tolerance_deg": config.sequencer.position_tolerance_deg})
@@ -234,7 +234,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--yes", action="store_true", help="confirm every remount prompt automatically")
     p.add_argument("--answers", metavar="FILE", help="answer prompts from this file, one answer per line")
-    p.add_argument("--db", help="the lab's journal database (default $LABCAL_DB or runs/labcal.sqlite)")
+    add_db_option(p)
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     p.add_argument("--no-report", action="store_true",
                    help="skip the certificate and report at the end (labcal report RUN makes them later)")

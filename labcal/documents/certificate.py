@@ -8,7 +8,8 @@ given, a statement of conformity with its decision rule (7.8.4.1 e). JSON keeps 
 people read U to two significant digits (ILAC-P14, GUM 7.2.6) through `format_result`.
 
 A SHA-256 digest over the canonical JSON of the content seals it: any edit after issue, or a
-truncated file, is refused with one line saying what is wrong.
+truncated file, is refused with one line saying what is wrong. This module is the document and
+how it is read back; `labcal.documents.issuing` builds one from a finished run.
 """
 
 from __future__ import annotations
@@ -16,8 +17,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from dataclasses import dataclass
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Literal
 
@@ -25,33 +24,15 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from labcal import __version__
-from labcal.analysis.attitude import Calibration, calibration_from_json, sphere_least_squares
-from labcal.analysis.design import LEAK_ZERO, audit, audit_summary, figure_of_merit, grid
-from labcal.analysis.distributions import t_quantile
-from labcal.analysis.fit import SENSORS, Fit
-from labcal.analysis.kinematics import gravity
-from labcal.analysis.models import BASE_NAMES
-from labcal.config.files import json_safe, one_line, read_text, write_json
-from labcal.config.settings import CertificateSettings
-from labcal.config.station import load_certificate_settings
+from labcal.analysis.attitude import Calibration, calibration_from_json
+from labcal.config.files import one_line, read_text, write_json
 from labcal.errors import LabcalError
-from labcal.run.record import RunRecord
 
 # The document format's name, not the module's: certificates issued before the subpackages
 # (a8863ee and earlier) carry it, and a format that did not change keeps its name.
 SCHEMA = "labcal.certificate/1"
 SCHEMA_PREFIX = "labcal.certificate/"
 COVERAGE = 0.95
-SIMULATED_SERIAL = "SIMULATED"  # a dry run's instrument is the simulator's, whatever the seed
-
-
-def load_settings(station_path: str | Path | None, **overrides: object) -> CertificateSettings:
-    """The ``[certificate]`` table of a station file (defaults without one), then the command
-    line's non-None ``overrides``; every mistake is one line naming the file and the field."""
-    if station_path is None:
-        return CertificateSettings().overridden("command line", **overrides)
-    return load_certificate_settings(station_path).overridden(str(station_path), **overrides)
 
 
 # --- the schema ----------------------------------------------------------------------------------
@@ -346,189 +327,6 @@ def format_result(value: float, u: float, unit: str = "") -> str:
         return f"{value:.7g}{unit}"
     _, decimals = round_uncertainty(u)
     return f"{round(value, decimals):.{max(decimals, 0)}f} ± {format_uncertainty(u)}{unit}"
-
-
-# --- attitude uncertainty over the usage envelope ---------------------------------------------------
-@dataclass(frozen=True)
-class EnvelopeGrid:
-    """U95 of inferred pitch and roll (°) on the pitch × roll grid of the usage envelope."""
-
-    pitch_deg: NDArray  # (n_p,)
-    roll_deg: NDArray  # (n_r,)
-    u95_pitch_deg: NDArray  # (n_p, n_r)
-    u95_roll_deg: NDArray  # (n_p, n_r), NaN where roll is undefined
-    k: float
-    dof: int
-
-
-def envelope_grid(cal: Calibration, settings: CertificateSettings) -> EnvelopeGrid:
-    """Weighted least squares on the sphere (Tripp eqs. 99–104) at every grid attitude, top-forward
-    mount, for one new reading: the uncertainty a user of the instrument gets, in degrees."""
-    step = settings.grid_step_deg
-    points = np.array(grid(*settings.usage_pitch_deg, step, *settings.usage_roll_deg, step))
-    pitch, roll = np.unique(points[:, 0]), np.unique(points[:, 1])
-    g = gravity(np.radians(points[:, 0]), np.radians(points[:, 1]), 0.0, 0.0)
-    att = sphere_least_squares(cal, cal.X[0] + g @ cal.X[1:])
-    shape = (len(pitch), len(roll))
-    return EnvelopeGrid(pitch, roll, (att.k95 * np.degrees(att.u_pitch)).reshape(shape),
-                        (att.k95 * np.degrees(att.u_roll)).reshape(shape), att.k95, cal.dof)
-
-
-def _summary(grid_: EnvelopeGrid, values: NDArray
-             ) -> tuple[float | None, float | None, tuple[float, float] | None]:
-    if not np.any(np.isfinite(values)):
-        return None, None, None
-    i, j = np.unravel_index(np.nanargmax(values), values.shape)
-    rms = float(np.sqrt(np.nanmean(values**2)))
-    return float(values[i, j]), rms, (float(grid_.pitch_deg[i]), float(grid_.roll_deg[j]))
-
-
-def attitude_envelope(cal: Calibration, settings: CertificateSettings) -> AttitudeEnvelope:
-    env = envelope_grid(cal, settings)
-    p_max, p_rms, p_at = _summary(env, env.u95_pitch_deg)
-    if p_max is None or p_rms is None or p_at is None:  # pitch exists everywhere; roll may not
-        low, high = settings.usage_pitch_deg
-        raise LabcalError(f"the pitch uncertainty is not finite anywhere in the usage envelope (pitch "
-                          f"{low:g}..{high:g}°); check the usage envelope and the calibration's "
-                          "uncertainties")
-    r_max, r_rms, r_at = _summary(env, env.u95_roll_deg)
-    return AttitudeEnvelope(
-        method="weighted least squares on the unit sphere (Tripp & Tcheng eqs. 99–104), one new reading, "
-               "top-forward mount; U95 = k·u with k = t₀.₉₇₅(ν)",
-        usage_pitch_deg=settings.usage_pitch_deg, usage_roll_deg=settings.usage_roll_deg,
-        grid_step_deg=settings.grid_step_deg, grid_points=int(env.u95_pitch_deg.size), k=env.k,
-        degrees_of_freedom=env.dof,
-        pitch_U95_max_deg=p_max, pitch_U95_rms_deg=p_rms, pitch_U95_max_at_deg=p_at,
-        roll_U95_max_deg=r_max, roll_U95_rms_deg=r_rms, roll_U95_max_at_deg=r_at,
-        roll_undefined_points=int(np.sum(~np.isfinite(env.u95_roll_deg))))
-
-
-# --- building a certificate from a run -------------------------------------------------------------
-def _recorded(meta_value, given: str | None, what: str, run_dir: Path) -> str | None:
-    """A value the run recorded, or the one given on the command line; never two different ones."""
-    if given and meta_value and given != meta_value:
-        raise LabcalError(f"{run_dir}: the run records {what} {meta_value!r}; {given!r} disagrees")
-    return given or meta_value or None
-
-
-def _expanded(fit: Fit) -> Expanded:
-    nu = fit.variance_dof
-    k = t_quantile(0.5 + COVERAGE / 2, nu)
-    ks = ", ".join(f"{s}: k = {kj:.2f} at ν_eff = {n}" for s, kj, n in zip(SENSORS, k, nu, strict=True))
-    statement = ("The reported expanded uncertainty is the standard uncertainty multiplied by the coverage "
-                 f"factor k = t₀.₉₇₅(ν_eff) ({ks}), which for a t-distribution corresponds to a coverage "
-                 "probability of approximately 95 %.")
-    return Expanded(coverage_probability=COVERAGE, nu_eff=nu.tolist(), k=k.tolist(),
-                    U=(k[None, :] * fit.stderr[: len(BASE_NAMES)]).tolist(), statement=statement)
-
-
-def _plan_audit(record: RunRecord, settings: CertificateSettings) -> PlanAudit:
-    leaks = audit(record.plan)
-    summary = audit_summary(leaks)
-    return PlanAudit(
-        zero_below=LEAK_ZERO,
-        misalignments={name: Leak(**summary[name], per_radian=leaks[name].tolist()) for name in leaks},
-        figure_of_merit_usage_sqrt=figure_of_merit(record.plan, settings.usage_pitch_deg) ** 0.5)
-
-
-def _conformity(fit: Fit, U: NDArray, env: AttitudeEnvelope, settings: CertificateSettings
-                ) -> Conformity | None:
-    checks, rules = [], []
-    tol = settings.attitude_u95_max_deg
-    if tol is not None:
-        rules.append("the attitude passes when the largest 95 % expanded uncertainty of inferred pitch and "
-                     "of inferred roll over the usage envelope does not exceed the tolerance")
-        for angle, value in (("pitch", env.pitch_U95_max_deg), ("roll", env.roll_U95_max_deg)):
-            if value is not None:
-                checks.append(Check(quantity=f"{angle} U95, largest over the usage envelope", value=value,
-                                    limit=tol, unit="°", passed=value <= tol))
-    if settings.bias_max_v is not None:
-        rules.append("a bias passes when |B| + U(B) does not exceed its limit (guarded acceptance with guard "
-                     "band w = U, ILAC-G8)")
-        for j, s in enumerate(SENSORS):
-            value = abs(float(fit.coefficients[0, j])) + float(U[0, j])
-            checks.append(Check(quantity=f"|B_{s}| + U(B_{s})", value=value, limit=settings.bias_max_v,
-                                unit="V", passed=value <= settings.bias_max_v))
-    if not checks:
-        return None
-    rule = "; ".join(rules)
-    return Conformity(decision_rule=rule[0].upper() + rule[1:] + ".", checks=checks,
-                      passed=all(c.passed for c in checks))
-
-
-def _environment(record: RunRecord) -> Environment:
-    t = record.readings.temp_c
-    if t is None:
-        return Environment(note="temperature not recorded with the readings")
-    return Environment(temperature_c_min=float(t.min()), temperature_c_max=float(t.max()),
-                       temperature_c_mean=float(t.mean()),
-                       note="temperature at the instrument during the readings")
-
-
-METHOD = ("Linear model V = B + gᵀS fitted per sensor by least squares on the nominal gravity of each "
-          "calibration point (Soto 2020, eqs. 13–21). Standard uncertainties are Type A: the residual "
-          "standard error, or where replication shows significant lack of fit the lack-of-fit mean square "
-          "(Tripp & Tcheng 1999, §8), so ν_eff is the degrees of freedom of that estimate. Systematic "
-          "misalignments of the calibration device are not added to U; the plan audit states how far each "
-          "one leaks into the coefficients. Attitude uncertainties propagate the full coefficient covariance "
-          "and one new reading's variance (Tripp & Tcheng eqs. 99–104).")
-STATEMENTS = ("The results relate only to the item calibrated.",
-              "Coefficient covariances are given in full in the JSON certificate; the attitude uncertainty "
-              "depends on them.")
-
-
-def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings | None = None, *,
-                      serial: str | None = None, operator: str | None = None,
-                      issued_utc: datetime | None = None) -> Certificate:
-    """The sealed certificate of a run's fit. ``serial``/``operator`` fill in what the run did not
-    record (and may not contradict it); a dry run's instrument is SIMULATED."""
-    settings = settings or CertificateSettings()
-    meta, run_dir = record.meta, record.directory
-    serial = _recorded(meta.get("instrument_serial"), serial, "instrument serial", run_dir) \
-        or (SIMULATED_SERIAL if record.simulated else None)
-    if serial is None:
-        raise LabcalError(f"{run_dir}: the run does not record the instrument's serial number; give --serial")
-    calibrated = meta.get("started_utc")
-    if not calibrated:
-        raise LabcalError(f"{run_dir}: run.json has no started_utc; the calibration date is unknown")
-    fit_doc = json_safe(fit.to_json())
-    expanded = _expanded(fit)
-    cal = calibration_from_json(fit_doc, run_dir)
-    envelope = attitude_envelope(cal, settings)
-    try:
-        stamp = datetime.fromisoformat(calibrated).astimezone(UTC).strftime("%Y%m%dT%H%M%SZ")
-    except (TypeError, ValueError):
-        raise LabcalError(f"{run_dir}: run.json started_utc {calibrated!r} is not an ISO 8601 time") from None
-    content = {
-        "schema": SCHEMA,
-        "certificate_id": f"{serial}-{stamp}-{record.readings_sha256[:8]}",
-        "labcal_version": __version__,
-        "laboratory": settings.laboratory,
-        "instrument": {"serial": serial, "description": meta.get("instrument_description", "")},
-        "operator": _recorded(meta.get("operator"), operator, "operator", run_dir),
-        "calibrated_utc": calibrated,
-        "completed_utc": meta.get("ended_utc"),
-        "issued_utc": (issued_utc or datetime.now(UTC)).isoformat(timespec="seconds"),
-        "station": {"description": meta.get("station", ""), "device_id": meta.get("device_id"),
-                    "simulated": record.simulated,
-                    "sequencer_settings": meta.get("settings", {}),
-                    "simulated_truth": meta.get("simulated_truth")},
-        "plan": {"name": record.plan.name, "sha256": hashlib.sha256(record.plan_text.encode()).hexdigest(),
-                 "toml": record.plan_text, "replicates": record.plan.replicates,
-                 "mounts": record.plan.mounts, "points": record.plan.points},
-        "data": {"readings_sha256": record.readings_sha256, "n_points": len(record.readings),
-                 "replicates": int(len(np.unique(record.readings.replicate)))},
-        "environment": _environment(record).model_dump(),
-        "method": METHOD,
-        "statements": list(STATEMENTS),
-        "fit": {k: fit_doc[k] for k in FitSection.model_fields if k in fit_doc},
-        "expanded_uncertainty": expanded.model_dump(),
-        "plan_audit": _plan_audit(record, settings).model_dump(),
-        "attitude": envelope.model_dump(),
-        "conformity": None if (c := _conformity(fit, np.array(expanded.U), envelope, settings)) is None
-        else c.model_dump(),
-    }
-    return seal(content)
 
 
 def load_calibration(path: str | Path) -> Calibration:

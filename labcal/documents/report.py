@@ -26,15 +26,9 @@ from labcal.analysis.attitude import sphere_least_squares
 from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit, fit_readings, readings_points
 from labcal.analysis.kinematics import Mount
 from labcal.analysis.models import Points
-from labcal.documents.certificate import (
-    Certificate,
-    CertificateSettings,
-    build_certificate,
-    envelope_grid,
-    format_result,
-    format_uncertainty,
-    write_certificate,
-)
+from labcal.config.settings import CertificateSettings
+from labcal.documents.certificate import Certificate, format_result, format_uncertainty, write_certificate
+from labcal.documents.issuing import build_certificate, envelope_grid
 from labcal.errors import LabcalError
 from labcal.run.record import RunRecord, load_run
 
