@@ -127,6 +127,19 @@ def test_a_snapshot_that_no_longer_validates_is_one_line_naming_the_field(tmp_pa
            "key" in err
 
 
+
+def test_stored_settings_that_no_longer_validate_are_one_line_naming_the_key(tmp_path, capsys, lab_database):
+    """The run's settings are read with today's model too: a key this labcal no longer knows is one
+    line, not a validation traceback."""
+    run_dir, _ = interrupted_run(capsys, tmp_path)
+    with sqlite3.connect(lab_database) as db:
+        settings = json.loads(db.execute("SELECT settings FROM runs").fetchone()[0])
+        settings["retired_option"] = 1
+        db.execute("UPDATE runs SET settings = ?", (json.dumps(settings),))
+    code, out, err = resume(capsys, run_dir)
+    assert code == 2 and out == "" and err.count("\n") == 1 and "Traceback" not in err
+    assert f"{run_dir}: run 1's settings: retired_option: unknown key" in err
+
 def test_a_simulated_run_resumes_from_an_older_snapshot_and_refuses_a_station(tmp_path, capsys, lab_database):
     """A dry run's rig snapshot stored without two defaulted fields resumes on its simulated rig;
     --station is for station-file runs only."""

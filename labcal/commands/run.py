@@ -23,7 +23,7 @@ if TYPE_CHECKING:
 
 
 def sequencer_settings_for_run(args: argparse.Namespace, setup: StationSetup, speed: float = 20.0,
-                  accel: float = 40.0) -> SequencerSettings:
+                               accel: float = 40.0) -> SequencerSettings:
     from labcal.config.settings import SequencerSettings
 
     settle = setup.settle.model_copy(update={

@@ -14,7 +14,7 @@ from pathlib import Path
 from labcal import __version__
 from labcal.analysis.fit import Fit, fit_readings
 from labcal.analysis.plan import Plan
-from labcal.config.files import write_json
+from labcal.config.files import validate_model, write_json
 from labcal.config.plans import parse_plan
 from labcal.config.readings_csv import ReadingsWriter
 from labcal.config.settings import SequencerSettings
@@ -149,5 +149,6 @@ def open_for_resume(run_dir: Path) -> ResumeContext:
     if sha256(row.plan_text) != row.plan_hash:
         raise LabcalError(f"{run_dir}: the journal's plan does not match its recorded hash; not resuming")
     plan = parse_plan(row.plan_text, f"run {row.id} plan")
-    return ResumeContext(journal, row.id, plan, SequencerSettings.model_validate(row.settings),
-                         row.station_text, row.metadata, row.software_version)
+    settings = validate_model(row.settings, SequencerSettings, f"{run_dir}: run {row.id}'s settings")
+    return ResumeContext(journal, row.id, plan, settings, row.station_text, row.metadata,
+                         row.software_version)
