@@ -82,3 +82,11 @@ def test_an_unknown_key_in_a_rig_file(tmp_path):
     (tmp_path / "rig.toml").write_text("remount = 0\n[device]\nindex_arcsec = 1\n", encoding="utf-8")
     refused(labcal("run", "--sim", "--rig", "rig.toml", "--yes", "--no-report", cwd=tmp_path),
             "rig.toml: remount: unknown key; did you mean remount_s?")
+
+
+def test_an_unknown_misalignment_in_a_rig_file_is_refused_when_the_file_is_read(tmp_path):
+    rig = "[device]\nmisalignment_deg = {a = 0.01, q = 0.02}\n"
+    (tmp_path / "rig.toml").write_text(rig, encoding="utf-8")
+    refused(labcal("run", "--sim", "--rig", "rig.toml", "--yes", "--no-report", cwd=tmp_path),
+            "rig.toml: device.misalignment_deg: unknown misalignment(s) q; use a, b, d, e, f, k")
+

@@ -14,9 +14,8 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from labcal.analysis.kinematics import Misalignment
+from labcal.analysis.kinematics import MISALIGNMENT_NAMES, Misalignment
 from labcal.config.files import load_model
-from labcal.errors import LabcalError
 
 
 def coning_axes(omega: NDArray, azimuth: NDArray) -> NDArray:
@@ -102,10 +101,17 @@ class DeviceTruth(BaseModel):
     wobble_arcsec: float = Field(default=2.0, ge=0)
     mount_repeat_arcsec: float = Field(default=0.0, ge=0, description="plate tilt/yaw scatter per remount")
 
-    def misalignment(self) -> Misalignment:
-        unknown = set(self.misalignment_deg) - set("abdefk")
+    @field_validator("misalignment_deg")
+    @classmethod
+    def _known(cls, angles: dict[str, float]) -> dict[str, float]:
+        """Checked when the file is read, so a typo names the file and the table."""
+        unknown = set(angles) - set(MISALIGNMENT_NAMES)
         if unknown:
-            raise LabcalError(f"unknown misalignment(s) {', '.join(sorted(unknown))}; use a, b, d, e, f, k")
+            raise ValueError(f"unknown misalignment(s) {', '.join(sorted(unknown))}; use "
+                             f"{', '.join(MISALIGNMENT_NAMES)}")
+        return angles
+
+    def misalignment(self) -> Misalignment:
         return Misalignment.from_degrees(**self.misalignment_deg)
 
 
