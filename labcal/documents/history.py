@@ -33,10 +33,6 @@ RULE = "|Δ| > k·√(u₁² + u₂²), k = t₀.₉₇₅(ν) at the Welch–Sa
 def store(cert: Certificate, db: str | Path | None = None) -> Path:
     """Insert a certificate, or replace the one issued before for the same calibration."""
     path = db_path(db)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise LabcalError(f"{path.parent}: cannot create the database folder ({exc.strerror})") from None
     doc = cert.model_dump_json(indent=2)
     with closing(labdb.connect(path)) as conn, conn:
         conn.execute("INSERT OR REPLACE INTO certificates (certificate_id, serial, calibrated_utc,"

@@ -108,10 +108,6 @@ class RunRow:
 class Journal:
     def __init__(self, path: str | Path):
         self.path = Path(path)
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise LabcalError(f"{self.path}: cannot open the run journal ({exc})") from None
         self.db = labdb.connect(self.path)  # the schema, its version and its migrations live there
 
     def close(self) -> None:

@@ -106,12 +106,17 @@ def version_of(db: sqlite3.Connection) -> int:
 
 
 def connect(path: str | Path, migrations: tuple[Migration, ...] = MIGRATIONS) -> sqlite3.Connection:
-    """Open the lab database at the current schema: WAL, synchronous=FULL, foreign keys on,
-    autocommit (callers open their own transactions), migrated first if older.
+    """Open the lab database at the current schema (its folder made if need be): WAL,
+    synchronous=FULL, foreign keys on, autocommit (callers open their own transactions), migrated
+    first if older.
 
     ``migrations`` is the schema's history; only tests give another one (a step that fails).
     """
     path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise LabcalError(f"{path.parent}: cannot create the database folder ({exc.strerror})") from None
     try:
         db = sqlite3.connect(path, timeout=10.0, isolation_level=None)
     except sqlite3.Error as exc:
