@@ -196,8 +196,13 @@ def cmd_resume(args: argparse.Namespace) -> int:
     ctx = open_for_resume(run_dir)
     with ExitStack() as stack:
         stack.callback(ctx.journal.close)
+        stack.callback(ctx.lock.release)
+        for note in ctx.notes:
+            err.print(f"[yellow]note:[/] {note}")
+        if ctx.complete:
+            return finish_complete(args, run_dir, ctx.run_id)
         points = ctx.journal.points(ctx.run_id)
-        start = max((p.t_end for p in points), default=0.0)
+        start = ctx.journal.rig_time(ctx.run_id)  # the rig's clock goes on from here (one clock per run)
         run_name = f"run {ctx.run_id} in {run_dir}"
         snapshot = read_snapshot(ctx.station_text, run_name, ctx.software_version)
         new_station, on_station, station_record = None, "on the station it started on", None
@@ -229,6 +234,20 @@ def cmd_resume(args: argparse.Namespace) -> int:
         return run_and_report(args, lambda display: execute(
             ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, display),
             run_dir, ctx.plan, est, len(points), cert_settings)
+
+
+def finish_complete(args: argparse.Namespace, run_dir: Path, run_id: int) -> int:
+    """A complete run resumed: its exports were checked and repaired; its certificate and report are
+    issued again if any of them is missing or not the history's (a kill during `labcal report`)."""
+    from labcal.documents.report import outputs_in_place, write_run_outputs
+
+    if args.no_report or outputs_in_place(run_dir, db=args.db):
+        err.print(f"run {run_id} is already complete; its files in {run_dir} match the journal")
+        return 0
+    issued = write_run_outputs(run_dir, certificate_settings_for_run(args, None, "command line"), db=args.db)
+    err.print(f"run {run_id} is already complete; certificate {issued.certificate.certificate_id} and its "
+              f"report written again in {run_dir}")
+    return 0
 
 
 def _common(p: argparse.ArgumentParser) -> None:

@@ -16,6 +16,7 @@ import io
 import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 
 import mpl_toolkits.mplot3d  # noqa: F401 - registers the 3-D projection
 import numpy as np
@@ -26,8 +27,15 @@ from labcal.analysis.attitude import sphere_least_squares
 from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit, fit_readings, readings_points
 from labcal.analysis.kinematics import Mount
 from labcal.analysis.models import Points
+from labcal.config.files import write_atomic
 from labcal.config.settings import CertificateSettings
-from labcal.documents.certificate import Certificate, format_result, format_uncertainty, write_certificate
+from labcal.documents.certificate import (
+    Certificate,
+    format_result,
+    format_uncertainty,
+    read_certificate,
+    write_certificate,
+)
 from labcal.documents.issuing import build_certificate, envelope_grid
 from labcal.errors import LabcalError
 from labcal.run.record import RunRecord, load_run
@@ -388,7 +396,7 @@ def text_table(t: Table) -> str:
     return "\n".join(lines)
 
 
-def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path) -> None:
+def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path | BinaryIO) -> None:
     """Text pages with every table, then one page per figure."""
     blocks = []
     for t in tables(cert):
@@ -417,11 +425,8 @@ def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path) ->
 def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit) -> tuple[Path, Path]:
     figs = figures(cert, record, fit)
     html_path, pdf_path = directory / REPORT_HTML, directory / REPORT_PDF
-    try:
-        html_path.write_text(render_html(cert, figs), encoding="utf-8")
-        render_pdf(cert, figs, pdf_path)
-    except OSError as exc:
-        raise LabcalError(f"{exc.filename or directory}: cannot write the report ({exc.strerror})") from None
+    write_atomic(html_path, render_html(cert, figs))  # whole or not at all: a kill never cuts a report
+    write_atomic(pdf_path, lambda file: render_pdf(cert, figs, file))
     return html_path, pdf_path
 
 
@@ -433,6 +438,7 @@ class RunOutputs:
     html_path: Path
     pdf_path: Path
     database: Path
+    notes: tuple[str, ...] = ()  # what checking the run folder against the journal repaired
 
 
 def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None = None, *,
@@ -445,7 +451,28 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
     record = load_run(run_dir)
     fit = fit_readings(record.readings)
     cert = build_certificate(record, fit, settings, serial=serial, operator=operator)
-    cert_path = write_certificate(record.directory / CERTIFICATE, cert)
     html_path, pdf_path = write_report(record.directory, cert, record, fit)
+    # The history entry and the certificate file go together: the entry is committed first and the
+    # file is the entry's document, so a kill between them leaves a history entry without its file
+    # (`outputs_in_place` sees it; resume or report writes it again), never a certificate that
+    # history does not know.
     database = history.store(cert, db)
-    return RunOutputs(cert, cert_path, html_path, pdf_path, database)
+    cert_path = write_certificate(record.directory / CERTIFICATE, cert)
+    return RunOutputs(cert, cert_path, html_path, pdf_path, database, record.notes)
+
+
+def outputs_in_place(run_dir: str | Path, db: str | Path | None = None) -> bool:
+    """Whether a complete run's certificate, its report and its history entry are all there and
+    are of the run's current readings (after a kill during `labcal report` one may be missing)."""
+    from labcal.documents import history
+
+    run_dir = Path(run_dir)
+    if not all((run_dir / name).is_file() for name in (CERTIFICATE, REPORT_HTML, REPORT_PDF)):
+        return False
+    try:
+        cert = read_certificate(run_dir / CERTIFICATE)
+        record = load_run(run_dir)
+    except LabcalError:
+        return False
+    return (cert.data.readings_sha256 == record.readings_sha256
+            and history.stored_digest(cert.certificate_id, db) == cert.digest.value)
