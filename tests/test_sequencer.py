@@ -60,9 +60,8 @@ def journal_run(tmp_path, setup, display=None, operator=None, settings=None, pla
 
 def resume_in_process(run_dir: Path, operator=None):
     ctx = open_for_resume(run_dir)
-    start = max(p.t_end for p in ctx.journal.points(ctx.run_id))
-    setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start)
-    with ctx.journal:
+    setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=ctx.journal.rig_time(ctx.run_id))
+    with ctx.journal, ctx.lock:
         return execute(ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station,
                        operator or AutoOperator(quiet_console()), ctx.settings)
 

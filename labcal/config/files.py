@@ -121,12 +121,35 @@ def validate_model(data: object, model: type[Model], source: str) -> Model:
         raise LabcalError(f"{source}: {one_line(exc, model)}") from None
 
 
+MAX_DEPTH = 32  # nesting of arrays and tables in a file labcal reads; the deepest it writes is 4
+
+
+def check_depth(data: object, source: str, limit: int = MAX_DEPTH) -> None:
+    """Refuse a parsed document nested deeper than ``limit`` (one line naming the file and the
+    field), walking it without recursion: a hostile file must not exhaust the stack."""
+    stack: list[tuple[object, tuple[str, ...]]] = [(data, ())]
+    while stack:
+        value, path = stack.pop()
+        if len(path) > limit:
+            where = ".".join(path[:3]) + (".…" if len(path) > 3 else "")
+            raise LabcalError(f"{source}: field {where} is nested more than {limit} deep; labcal's files "
+                              "are not nested like that")
+        if isinstance(value, dict):
+            stack.extend((v, (*path, str(k))) for k, v in value.items())
+        elif isinstance(value, list):
+            stack.extend((v, (*path, str(i))) for i, v in enumerate(value))
+
+
 def parse_model(text: str, model: type[Model], source: str) -> Model:
     """Parse TOML text into a validated pydantic model."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise LabcalError(f"{source}: malformed TOML: {exc}") from None
+    except RecursionError:
+        raise LabcalError(f"{source}: nested more than {MAX_DEPTH} deep; labcal's files are not nested "
+                          "like that") from None
+    check_depth(data, source)
     return validate_model(data, model, source)
 
 

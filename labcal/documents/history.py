@@ -164,7 +164,8 @@ def plot_history(serial: str, certs: list[Certificate], found: list[Change], pat
             if i == len(ROW_NAMES) - 1:
                 ax.set_xlabel("calibration date (UTC)", labelpad=14)  # below the date offset
                 ax.xaxis.set_major_formatter(ConciseDateFormatter(ax.xaxis.get_major_locator()))
-    fig.suptitle(f"Instrument {serial}: coefficients ± U (95 %) over time; red: {RULE}", fontsize=10)
+    fig.suptitle(f"Instrument {serial}: coefficients ± U (95 %) over time; red: {RULE}", fontsize=10,
+                 parse_math=False)  # the serial as typed: "$" is no mathtext
     try:
         fig.savefig(path, dpi=110)
     except (OSError, ValueError) as exc:  # ValueError: a file suffix matplotlib cannot write

@@ -285,7 +285,8 @@ def sphere_figure(record: RunRecord) -> Figure:
     ax.set_zlabel("g_z (g)")
     ax.set_box_aspect((1, 1, 1))
     ax.set_title(f"Plan {plan.name}: nominal gravity of every point in the instrument's axes\n"
-                 "(numbers: readings in each direction, replicates included)", fontsize=10)
+                 "(numbers: readings in each direction, replicates included)", fontsize=10,
+                 parse_math=False)  # a plan's name is drawn as written, never read as mathtext
     ax.legend(fontsize=7, loc="upper left")
     return fig
 
@@ -413,12 +414,14 @@ def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path | B
         for n, start in enumerate(pages, start=1):
             page = Figure(figsize=(11.69, 8.27))
             page.text(0.03, 0.97, f"Calibration certificate {cert.certificate_id} — {verdict_text(cert)} — "
-                                  f"page {n} of {len(pages)} (text)", fontsize=9, va="top", weight="bold")
+                                  f"page {n} of {len(pages)} (text)", fontsize=9, va="top", weight="bold",
+                      parse_math=False)  # serials, operators and names hold what people typed: "$" too
             page.text(0.03, 0.93, "\n".join(lines[start:start + per_page]), family="monospace", fontsize=6.4,
-                      va="top")
+                      va="top", parse_math=False)
             pdf.savefig(page)
         for title, fig in figs:
-            fig.text(0.01, 0.001, f"{cert.certificate_id} · {title}", fontsize=7, va="bottom")
+            fig.text(0.01, 0.001, f"{cert.certificate_id} · {title}", fontsize=7, va="bottom",
+                     parse_math=False)
             pdf.savefig(fig)
 
 
