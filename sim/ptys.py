@@ -65,7 +65,7 @@ class PtyPair:
             os.symlink(target, link)  # fails, atomically, if anything is there already
         except FileExistsError:
             raise LabcalError(f"{link}: exists; the emulator will not replace it (another emulator's link, "
-                              "or one left by a crashed emulator: remove it yourself if it is stale)") from None
+                              "or one left by a crashed emulator: remove it if it is stale)") from None
         except OSError as exc:
             raise LabcalError(f"{link}: cannot create the emulator's link ({exc.strerror})") from None
 
