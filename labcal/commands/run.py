@@ -242,11 +242,19 @@ def finish_complete(args: argparse.Namespace, run_dir: Path, run_id: int) -> int
     from labcal.documents.report import outputs_in_place, write_run_outputs
 
     if args.no_report or outputs_in_place(run_dir, db=args.db):
-        err.print(f"run {run_id} is already complete; its files in {run_dir} match the journal")
-        return 0
-    issued = write_run_outputs(run_dir, certificate_settings_for_run(args, None, "command line"), db=args.db)
-    err.print(f"run {run_id} is already complete; certificate {issued.certificate.certificate_id} and its "
-              f"report written again in {run_dir}")
+        certificate = None
+        message = f"run {run_id} is already complete; its files in {run_dir} match the journal"
+    else:
+        settings = certificate_settings_for_run(args, None, "command line")
+        issued = write_run_outputs(run_dir, settings, db=args.db)
+        certificate = str(issued.certificate_path)
+        message = (f"run {run_id} is already complete; certificate {issued.certificate.certificate_id} and "
+                   f"its report written again in {run_dir}")
+    if args.json:
+        print_json({"run_dir": str(run_dir), "run_id": run_id, "status": "complete",
+                    "already_complete": True, "certificate_rewritten": certificate})
+    else:
+        err.print(message)
     return 0
 
 
