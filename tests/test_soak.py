@@ -95,7 +95,8 @@ def test_sigkill_in_every_phase_then_resume_leaves_one_consistent_run(tmp_path):
         proc.wait(timeout=10)
         n, distinct, status = db_state(db)
         shown = all((run_dir / f).exists() for f in ("certificate.json", "report.pdf"))
-        landed.append(f"{phase}:{n}:{status}:{'certificate' if shown else '-'}:{'reached' if reached else 'ended'}")
+        ended = "reached" if reached else "ended"
+        landed.append(f"{phase}:{n}:{status}:{'certificate' if shown else '-'}:{ended}")
         assert n == distinct  # never a point twice
         command = ["resume", str(run_dir), "--yes"]
     final = subprocess.run([LABCAL, *command], capture_output=True, text=True, timeout=120, env=env)
