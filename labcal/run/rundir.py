@@ -83,6 +83,9 @@ def open_run(run_dir: Path) -> tuple[dict, Journal, RunRow]:
         raise LabcalError(f"{run_dir / RUN}: names no journal; was this run made by labcal run?")
     if not isinstance(info["run_id"], int) or not isinstance(info["journal"], str):
         raise LabcalError(f"{run_dir / RUN}: run_id or journal is not what labcal writes there")
+    if not Path(info["journal"]).is_file():  # never make an empty database where a path points
+        raise LabcalError(f"{run_dir / RUN}: its journal {info['journal']} does not exist (moved, or on "
+                          "another machine?); nothing was changed")
     journal = Journal(info["journal"])
     try:
         row = journal.run(info["run_id"])
