@@ -38,8 +38,10 @@ def one_line(capsys, args: list[str]) -> str:
     capsys.readouterr()  # what came before is not this command's
     assert main(args) == 2
     captured = capsys.readouterr()
-    assert "Traceback" not in captured.err and len(captured.err.strip().splitlines()) == 1, captured.err
-    return captured.err
+    lines = captured.err.strip().splitlines()  # a run's progress may come first, on its own lines
+    assert "Traceback" not in captured.err and lines[-1].startswith("labcal: error:"), captured.err
+    assert sum(line.startswith("labcal: error:") for line in lines) == 1 and captured.out == "", captured
+    return lines[-1]
 
 
 def status(db: Path, run_id: int = 1) -> str:
@@ -56,7 +58,7 @@ def test_a_failed_write_leaves_the_old_file_whole_and_says_where_and_how_much(tm
         file.write(b"x" * 1000)
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    with pytest.raises(LabcalError, match=rf"{tmp_path}: disk full writing readings.csv: .* MB free, "
+    with pytest.raises(LabcalError, match=rf"{tmp_path}: disk full writing readings.csv: .* free, "
                                           r"1\.0 MB needed"):
         write_atomic(target, disk_fills)
     assert target.read_text() == "the old file\n" and sorted(os.listdir(tmp_path)) == ["readings.csv"]
@@ -257,3 +259,47 @@ def test_waiting_is_not_needed_for_the_lock_file_to_say_nothing(tmp_path):
         pass
     time.sleep(0)
     assert (tmp_path / "lab.sqlite.run-3.lock").read_text() == "" and held_by(db, 3) is None
+
+
+@pytest.fixture
+def small_disk(tmp_path, request):
+    """A filesystem of its own (tmpfs; 12 kB unless the test says, where a run's exports do not
+    fit); skipped where this machine does not let the test mount one."""
+    where = tmp_path / "small"
+    where.mkdir()
+    size = getattr(request, "param", "12k")
+    made = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(where)],
+                          capture_output=True)
+    if made.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here ({made.stderr.decode().strip()})")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+def test_a_full_disk_at_the_final_export_keeps_the_run_and_says_how_to_finish_it(tmp_path, small_disk,
+                                                                                  capsys):
+    db = tmp_path / "lab.sqlite"
+    err = one_line(capsys, ["run", "--sim", "--yes", "--no-report", "--out", str(small_disk / "r"),
+                            "--db", str(db)])
+    assert f"{small_disk / 'r'}: disk full writing" in err and "needed" in err, err
+    assert "labcal export 1" in err, err
+    assert status(db) == "stopped" and not list((small_disk / "r").glob(".*.tmp"))  # nothing half-made
+    with Journal(db) as journal:
+        assert len(journal.points(1)) == 64  # every reading kept
+    assert main(["export", "1", "--db", str(db), "--out", str(tmp_path / "moved")]) == 0
+    assert main(["resume", str(tmp_path / "moved"), "--yes", "--no-report"]) == 0
+    assert status(db) == "complete" and (tmp_path / "moved" / "fit.json").exists()
+
+
+@pytest.mark.parametrize("small_disk", ["2m"], indirect=True)
+def test_a_read_only_database_is_one_line_and_leaves_no_run_folder(tmp_path, small_disk, capsys):
+    db = small_disk / "lab.sqlite"
+    with Journal(db):
+        pass
+    subprocess.run(["mount", "-o", "remount,ro", str(small_disk)], check=True)
+    err = one_line(capsys, ["run", "--sim", "--yes", "--plan", "one-mount-16", "--db", str(db),
+                            "--out", str(tmp_path / "never")])
+    assert f"{db}: the lab database is read-only" in err and "writable" in err, err
+    assert not (tmp_path / "never").exists()

@@ -91,6 +91,8 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
                   f"continue with: labcal resume {run_dir}")
         return EXIT_STOPPED
     except LabcalError as exc:
+        if not (run_dir / "run.json").exists():  # the run never started (or its folder is gone)
+            raise
         raise LabcalError(f"{exc}; {points_on_disk(run_dir)} reading(s) kept in {run_dir}; "
                           f"continue with: labcal resume {run_dir}") from None
     o = result.outcome

@@ -218,6 +218,14 @@ def _fsync_folder(folder: Path) -> None:
         os.close(fd)
 
 
+def size_text(n: int) -> str:
+    """Bytes as people read them: 812 B, 8.3 kB, 1.2 MB, 3.4 GB."""
+    for unit, scale in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= scale:
+            return f"{n / scale:.1f} {unit}"
+    return f"{n} B"
+
+
 def _size(path: Path) -> int:
     try:
         return path.stat().st_size
@@ -240,7 +248,7 @@ def _write_failure(path: Path, exc: OSError, needed: int) -> str:
             free = shutil.disk_usage(folder if folder.exists() else Path.cwd()).free
         except OSError:
             free = 0
-        return (f"{folder}: disk full writing {path.name}: {free / 1e6:.1f} MB free, {needed / 1e6:.1f} MB "
+        return (f"{folder}: disk full writing {path.name}: {size_text(free)} free, {size_text(needed)} "
                 "needed; free some space there and run the command again (nothing was lost)")
     if exc.errno == errno.ENOENT and not folder.exists():
         return f"{folder}: folder no longer exists; cannot write {path.name}"

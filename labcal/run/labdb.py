@@ -33,6 +33,7 @@ from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
 
+from labcal.config.files import size_text
 from labcal.errors import LabcalError
 
 # Version 0, exactly as the unversioned labcal created it (journal.py and history.py, a8863ee).
@@ -162,10 +163,11 @@ def failure(path: Path, exc: sqlite3.Error) -> LabcalError:
     code = getattr(exc, "sqlite_errorcode", None)
     if code == sqlite3.SQLITE_FULL or "full" in text:
         free = _free_bytes(path.parent)
-        return LabcalError(f"{path}: disk full ({free / 1e6:.1f} MB free in {path.parent}); free at least "
-                           f"{FREE_SPACE_WANTED / 1e6:.0f} MB there and run the command again (every "
+        return LabcalError(f"{path}: disk full ({size_text(free)} free in {path.parent}); free at least "
+                           f"{size_text(FREE_SPACE_WANTED)} there and run the command again (every "
                            "committed reading is kept)")
-    if code == sqlite3.SQLITE_READONLY or "readonly" in text or "read-only" in text:
+    cannot_write = path.exists() and not (os.access(path, os.W_OK) and os.access(path.parent, os.W_OK))
+    if code == sqlite3.SQLITE_READONLY or "readonly" in text or "read-only" in text or cannot_write:
         return LabcalError(f"{path}: the lab database is read-only ({text}); make the file and its folder "
                            "writable (or give --db / set LABCAL_DB to a writable copy) and run it again")
     damaged = code in (sqlite3.SQLITE_CORRUPT, sqlite3.SQLITE_NOTADB)

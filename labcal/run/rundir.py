@@ -33,6 +33,8 @@ def slug(name: str, limit: int = 60) -> str:
 
 
 def new_run_dir(out: str | None, plan: Plan) -> Path:
+    """Where a new run's folder goes (checked, not made: `make_run_dir` makes it once the journal has
+    the run, so a database that cannot be written leaves no half-made folder behind)."""
     if out is None:
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
         path = Path("runs") / f"{stamp}-{slug(plan.name)}"
@@ -42,11 +44,14 @@ def new_run_dir(out: str | None, plan: Plan) -> Path:
         raise LabcalError(f"{path}: exists and is not a folder; choose another --out")
     if path.exists() and any(path.iterdir()):
         raise LabcalError(f"{path}: run directory exists and is not empty; choose another --out")
+    return path
+
+
+def make_run_dir(path: Path) -> None:
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise LabcalError(f"{path}: cannot create run directory ({exc.strerror})") from None
-    return path
 
 
 def read_run_json(run_dir: Path) -> dict:
@@ -83,7 +88,11 @@ def open_run(run_dir: Path) -> tuple[dict, Journal, RunRow]:
         raise LabcalError(f"{run_dir / RUN}: names no journal; was this run made by labcal run?")
     if not isinstance(info["run_id"], int) or not isinstance(info["journal"], str):
         raise LabcalError(f"{run_dir / RUN}: run_id or journal is not what labcal writes there")
-    if not Path(info["journal"]).is_file():  # never make an empty database where a path points
+    try:
+        found = Path(info["journal"]).is_file()
+    except (OSError, ValueError):  # a name too long for the filesystem, a NUL byte
+        found = False
+    if not found:  # never make an empty database where a path points
         raise LabcalError(f"{run_dir / RUN}: its journal {info['journal']} does not exist (moved, or on "
                           "another machine?); nothing was changed")
     journal = Journal(info["journal"])

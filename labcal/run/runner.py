@@ -22,7 +22,7 @@ from labcal.run.interrupts import Interrupts
 from labcal.run.journal import Journal, Manifest, sha256
 from labcal.run.lock import RunLock
 from labcal.run.operator import Operator
-from labcal.run.rundir import open_run
+from labcal.run.rundir import make_run_dir, open_run
 from labcal.run.sequencer import Display, RunOutcome, Sequencer, schedule
 from labcal.run.station import Station
 
@@ -128,6 +128,7 @@ def calibrate(plan: Plan, plan_text: str, station: Station, station_text: str, o
         instrument_serial=serial, operator=operator_name))
     row = journal.run(run_id)
     try:
+        make_run_dir(run_dir)
         journal.exported(run_id, exports.write(run_dir, exports.derive(journal, row)))
     except LabcalError:
         journal.finish(run_id, "failed", "its run folder could not be written")
