@@ -17,6 +17,7 @@ from labcal.analysis.readings import Readings
 from labcal.config.plans import parse_plan
 from labcal.errors import LabcalError
 from labcal.run import exports
+from labcal.run.lock import held_by
 from labcal.run.rundir import open_run, read_run_json
 
 
@@ -55,8 +56,12 @@ def load_run(run_dir: str | Path) -> RunRecord:
     _, journal, row = open_run(run_dir)
     with journal:
         if row.status != "complete":
+            state = row.status
+            if state == "running" and held_by(journal.path, row.id) is None:
+                state = "interrupted (its process ended without closing it)"
+                exports.sync(journal, row, run_dir)  # its readings so far, in readings.csv
             why = f" ({row.reason})" if row.reason else ""
-            raise LabcalError(f"{run_dir}: the run is {row.status}{why}; only a complete run gets a "
+            raise LabcalError(f"{run_dir}: the run is {state}{why}; only a complete run gets a "
                               "certificate (labcal resume finishes it)")
         notes, _ = exports.sync(journal, row, run_dir)
         info = read_run_json(run_dir)
