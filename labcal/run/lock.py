@@ -59,9 +59,9 @@ class RunLock:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            holder = _describe(fd)
+            who = _describe(fd)
             os.close(fd)
-            raise LabcalError(f"run {self.run_id} is in use by {holder}; wait for it to finish, or stop it "
+            raise LabcalError(f"run {self.run_id} is in use by {who}; wait for it to finish, or stop it "
                               "there (Ctrl-C) and run the command again") from None
         except OSError as exc:
             os.close(fd)
