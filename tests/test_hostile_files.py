@@ -28,7 +28,7 @@ from labcal.run.rundir import open_run
 STATIONS = Path(__file__).parent.parent / "stations"
 STATIC_LAB = Path(__file__).parent / "data" / "rig_static_lab.toml"
 MUTATION = dict(choice=st.integers(0, 100), depth=st.integers(1, 1200), where=st.integers(0, 10**6))
-FUZZ = settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+FUZZ = settings(max_examples=50, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 
 
 @pytest.fixture(scope="module")

@@ -29,11 +29,12 @@ from labcal.run.rundir import open_run
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 STATIC_LAB = str(Path(__file__).parent / "data" / "rig_static_lab.toml")
 POINTS = 64
-BASE = ["--sim", "--seed", "11", "--rig", STATIC_LAB, "--yes"]
-# The kills, in order: 6 while measuring (after a random number of committed points), 1 as the
-# last point is committed (the final export), 3 during the certificate and report (the first
-# after the run completes, the next two in `resume`s that find the run complete and issue again).
-MEASURING, EXPORT, REPORT = 6, 1, 3
+BASE = ["--sim", "--seed", "11", "--rig", STATIC_LAB]
+# The kills, in order: 1 at a remount prompt, 5 while measuring (after a random number of committed
+# points), 1 as the last point is committed (the final export), 3 during the certificate and report
+# (the first after the run completes, the next two in `resume`s that find the run complete and
+# issue them again).
+MEASURING, EXPORT, REPORT = 5, 1, 3
 
 
 def db_state(db: Path) -> tuple[int, int, str | None]:
@@ -69,21 +70,28 @@ def readings(path: Path) -> np.ndarray:
 
 def test_sigkill_in_every_phase_then_resume_leaves_one_consistent_run(tmp_path):
     env = {**os.environ, "LABCAL_DB": str(tmp_path / "ref.sqlite")}
-    reference = subprocess.run([LABCAL, "run", *BASE, "--no-report", "--out", str(tmp_path / "ref")],
+    reference = subprocess.run([LABCAL, "run", *BASE, "--yes", "--no-report", "--out", str(tmp_path / "ref")],
                                capture_output=True, text=True, timeout=120, env=env)
     assert reference.returncode == 0, reference.stderr
 
     db, run_dir = tmp_path / "soak.sqlite", tmp_path / "soak"
     env = {**os.environ, "LABCAL_DB": str(db)}
     rng = random.Random(16)
-    targets = sorted(rng.sample(range(1, POINTS - 4), MEASURING))
-    plan = [("measuring", t) for t in targets] + [("export", POINTS)] * EXPORT + [("report", None)] * REPORT
+    targets = sorted(rng.sample(range(17, POINTS - 4), MEASURING))
+    plan = [("prompt", 16)] + [("measuring", t) for t in targets] + [("export", POINTS)] * EXPORT \
+        + [("report", None)] * REPORT
     landed: list[str] = []
     command = ["run", *BASE, "--out", str(run_dir)]
     for phase, target in plan:
-        proc = subprocess.Popen([LABCAL, *command], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                env=env)
-        if phase == "measuring":
+        prompted = phase == "prompt"  # answered by hand: mount 1 yes, then mount 2's prompt waits
+        proc = subprocess.Popen([LABCAL, *command] + ([] if prompted else ["--yes"]), stdin=subprocess.PIPE,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, text=True)
+        if prompted:
+            proc.stdin.write("y\n")
+            proc.stdin.flush()
+            reached = wait_for(proc, lambda t=target: db_state(db)[0] >= t)
+            time.sleep(0.3)  # at mount 2's prompt, which waits for ever
+        elif phase == "measuring":
             reached = wait_for(proc, lambda t=target: db_state(db)[0] >= t)
             time.sleep(rng.uniform(0, 0.02))  # wherever it then is: moving, settling, committing
         elif phase == "export":
@@ -93,13 +101,14 @@ def test_sigkill_in_every_phase_then_resume_leaves_one_consistent_run(tmp_path):
             time.sleep(rng.uniform(0.2, 1.0))  # PDF and HTML take a second or two
         proc.kill()
         proc.wait(timeout=10)
+        proc.stdin.close()
         n, distinct, status = db_state(db)
         shown = all((run_dir / f).exists() for f in ("certificate.json", "report.pdf"))
         ended = "reached" if reached else "ended"
         landed.append(f"{phase}:{n}:{status}:{'certificate' if shown else '-'}:{ended}")
         assert n == distinct  # never a point twice
-        command = ["resume", str(run_dir), "--yes"]
-    final = subprocess.run([LABCAL, *command], capture_output=True, text=True, timeout=120, env=env)
+        command = ["resume", str(run_dir)]
+    final = subprocess.run([LABCAL, *command, "--yes"], capture_output=True, text=True, timeout=120, env=env)
     assert final.returncode == 0, (landed, final.stderr)
 
     kills = [k for k in landed if k.endswith("reached")]
