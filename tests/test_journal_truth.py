@@ -303,3 +303,16 @@ def test_a_read_only_database_is_one_line_and_leaves_no_run_folder(tmp_path, sma
                             "--out", str(tmp_path / "never")])
     assert f"{db}: the lab database is read-only" in err and "writable" in err, err
     assert not (tmp_path / "never").exists()
+
+
+def test_a_killed_writes_temporary_file_is_removed_and_named(tmp_path, capsys):
+    db = tmp_path / "lab.sqlite"
+    folder = run(tmp_path, "r", db)
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True).stdout.strip()
+    (folder / f".readings.csv.{dead}.tmp").write_text("half a fi")
+    (folder / f".fit.json.{os.getpid()}.tmp").write_text("a live writer's")
+    capsys.readouterr()
+    assert main(["export", str(folder)]) == 0
+    assert f".readings.csv.{dead}.tmp removed" in capsys.readouterr().err
+    assert sorted(p.name for p in folder.glob(".*")) == [f".fit.json.{os.getpid()}.tmp"]

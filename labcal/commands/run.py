@@ -201,12 +201,14 @@ def cmd_resume(args: argparse.Namespace) -> int:
         stack.callback(ctx.lock.release)
         for note in ctx.notes:
             err.print(f"[yellow]note:[/] {note}")
-        if ctx.complete:
-            return finish_complete(args, run_dir, ctx.run_id)
-        points = ctx.journal.points(ctx.run_id)
-        start = ctx.journal.rig_time(ctx.run_id)  # the rig's clock goes on from here (one clock per run)
         run_name = f"run {ctx.run_id} in {run_dir}"
         snapshot = read_snapshot(ctx.station_text, run_name, ctx.software_version)
+        if ctx.complete:
+            settings = certificate_settings_for_run(args, snapshot.config.certificate if snapshot else None,
+                                                    "the run's station")
+            return finish_complete(args, run_dir, ctx.run_id, settings)
+        points = ctx.journal.points(ctx.run_id)
+        start = ctx.journal.rig_time(ctx.run_id)  # the rig's clock goes on from here (one clock per run)
         new_station, on_station, station_record = None, "on the station it started on", None
         if args.station:
             if snapshot is None:
@@ -238,7 +240,8 @@ def cmd_resume(args: argparse.Namespace) -> int:
             run_dir, ctx.plan, est, len(points), cert_settings)
 
 
-def finish_complete(args: argparse.Namespace, run_dir: Path, run_id: int) -> int:
+def finish_complete(args: argparse.Namespace, run_dir: Path, run_id: int,
+                    settings: CertificateSettings) -> int:
     """A complete run resumed: its exports were checked and repaired; its certificate and report are
     issued again if any of them is missing or not the history's (a kill during `labcal report`)."""
     from labcal.documents.report import outputs_in_place, write_run_outputs
@@ -247,7 +250,6 @@ def finish_complete(args: argparse.Namespace, run_dir: Path, run_id: int) -> int
         certificate = None
         message = f"run {run_id} is already complete; its files in {run_dir} match the journal"
     else:
-        settings = certificate_settings_for_run(args, None, "command line")
         issued = write_run_outputs(run_dir, settings, db=args.db)
         certificate = str(issued.certificate_path)
         message = (f"run {run_id} is already complete; certificate {issued.certificate.certificate_id} and "

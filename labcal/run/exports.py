@@ -108,7 +108,7 @@ def sync(journal: Journal, row: RunRow, run_dir: Path) -> tuple[list[str], Fit |
     and rewritten from the journal."""
     derived = derive(journal, row)
     known = journal.export_hashes(row.id)
-    notes = []
+    notes = [f"{name} removed: a partial file left by a killed write" for name in remove_orphans(run_dir)]
     for name, data in derived.files.items():
         path = run_dir / name
         on_disk = _read(path)
@@ -130,6 +130,32 @@ def sync(journal: Journal, row: RunRow, run_dir: Path) -> tuple[list[str], Fit |
     hashes = write(run_dir, derived)
     journal.exported(row.id, hashes)
     return notes, derived.fit
+
+
+def remove_orphans(run_dir: Path) -> list[str]:
+    """Delete the temporary files of writes whose process is gone (`write_atomic` names them
+    ``.NAME.PID.tmp``); a live writer's are left alone. Returns their names."""
+    removed = []
+    for path in run_dir.glob(".*.*.tmp"):
+        pid = path.name.rsplit(".", 2)[-2]
+        if not pid.isdigit() or _alive(int(pid)):
+            continue
+        try:
+            path.unlink()
+        except OSError:
+            continue
+        removed.append(path.name)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True  # someone else's process: alive
+    return True
 
 
 def _is_run_json_of(data: bytes, row: RunRow) -> bool:
