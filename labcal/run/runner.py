@@ -86,32 +86,35 @@ def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: S
     simulated rig's virtual clock does: `labcal.bench.setup`)."""
     display = display or Display()
     wall0 = time.perf_counter()
-    with RunLock(journal.path, run_id):
-        steps = schedule(plan, settings)
-        committed = {p.seq for p in journal.points(run_id)}
-        offset = journal.rig_time(run_id)
-        journal.event(run_id, "segment", f"measuring from rig time {offset:.3f} s", {"offset_s": offset},
-                      station_time=offset)
-        status = "interrupted"
-        reason: str | None = "Ctrl-C"
+    lock = RunLock(journal.path, run_id).acquire()  # released in the finally below, or with the process
+    steps = schedule(plan, settings)
+    committed = {p.seq for p in journal.points(run_id)}
+    offset = journal.rig_time(run_id)
+    journal.event(run_id, "segment", f"measuring from rig time {offset:.3f} s", {"offset_s": offset},
+                  station_time=offset)
+    status = "interrupted"
+    reason: str | None = "Ctrl-C"
+    try:
+        with Interrupts(lambda: display.message("[yellow]Ctrl-C: pausing after this point "
+                                                "(press again to stop the tables now)[/]")) as interrupts:
+            station.guard_exchanges(interrupts.critical)  # no device exchange is cut in half
+            try:
+                sequencer = Sequencer(plan, station, operator, journal, run_id, settings, display, interrupts,
+                                      offset_s=offset)
+                outcome = sequencer.run(steps, committed, _provisional_fit(journal, run_id))
+            finally:
+                station.guard_exchanges(None)
+        status, reason = "complete", None
+    except KeyboardInterrupt:
+        raise
+    except BaseException as exc:
+        status, reason = "stopped", str(exc) or type(exc).__name__
+        raise
+    finally:
         try:
-            with Interrupts(lambda: display.message("[yellow]Ctrl-C: pausing after this point "
-                                                    "(press again to stop the tables now)[/]")) as interrupts:
-                station.guard_exchanges(interrupts.critical)  # no device exchange is cut in half
-                try:
-                    sequencer = Sequencer(plan, station, operator, journal, run_id, settings, display,
-                                          interrupts, offset_s=offset)
-                    outcome = sequencer.run(steps, committed, _provisional_fit(journal, run_id))
-                finally:
-                    station.guard_exchanges(None)
-            status, reason = "complete", None
-        except KeyboardInterrupt:
-            raise
-        except BaseException as exc:
-            status, reason = "stopped", str(exc) or type(exc).__name__
-            raise
-        finally:
             fit = publish(journal, run_id, run_dir, status, reason)
+        finally:
+            lock.release()
     assert fit is not None  # publish raises for a run that cannot be fitted
     return RunResult(run_dir, run_id, outcome, fit, time.perf_counter() - wall0)
 
