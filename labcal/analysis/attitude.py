@@ -41,23 +41,36 @@ class Calibration:
         return cast("NDArray[np.float64]", np.linalg.inv(self.X[1:]))
 
 
+MAX_COEFFICIENT = 1e6  # V and V/g: a million volts is no accelerometer's bias or sensitivity
+MAX_DOF = 1e9  # degrees of freedom of any fit a lab makes; beyond this t is the normal quantile anyway
+
+
 def calibration_from_json(doc: dict[str, Any], path: str | Path) -> Calibration:
     """The attitude calibration from a fit JSON document (``path`` names it in messages)."""
     try:
         X = np.array(doc["coefficients"], dtype=float)
         cov = np.array(doc["covariance"], dtype=float)
         sd = np.array(doc.get("reading_sd", doc["residual_standard_error"]), dtype=float)
-        dof = int(min(doc.get("uncertainty_dof", [doc["degrees_of_freedom"]])))
+        dofs = np.array(doc.get("uncertainty_dof", [doc["degrees_of_freedom"]]), dtype=float)
     except KeyError as exc:
         raise LabcalError(f"{path}: not a labcal fit or certificate (no field {exc})") from None
-    except (TypeError, ValueError, AttributeError) as exc:
+    except (TypeError, ValueError, AttributeError, OverflowError) as exc:
         raise LabcalError(f"{path}: not a labcal fit or certificate ({exc})") from None
+    if dofs.ndim != 1 or dofs.size == 0 or not np.all((dofs >= 1) & (dofs <= MAX_DOF)) \
+            or not np.all(dofs == np.round(dofs)):
+        raise LabcalError(f"{path}: field uncertainty_dof (or degrees_of_freedom) must be whole numbers "
+                          f"from 1 to {MAX_DOF:.0e}")
+    dof = int(dofs.min())
     if X.shape != (4, 3) or cov.ndim != 3 or cov.shape[0] != 3 or cov.shape[1] < 4 or sd.shape != (3,):
         raise LabcalError(f"{path}: coefficients must be 4×3, covariance 3 matrices of at least 4×4, "
                           "and 3 reading standard deviations")
     cov = cov[:, :4, :4]  # extension terms do not enter the attitude
     if not (np.all(np.isfinite(X)) and np.all(np.isfinite(cov)) and np.all(np.isfinite(sd))):
         raise LabcalError(f"{path}: coefficients or uncertainties contain NaN or infinity")
+    if np.max(np.abs(X)) > MAX_COEFFICIENT or np.max(np.abs(cov)) > MAX_COEFFICIENT**2 \
+            or np.max(np.abs(sd)) > MAX_COEFFICIENT:
+        raise LabcalError(f"{path}: field coefficients (or their uncertainties) exceeds {MAX_COEFFICIENT:g} "
+                          "V in magnitude; not an instrument's calibration")
     if abs(np.linalg.det(X[1:])) < 1e-12:
         raise LabcalError(f"{path}: the sensitivity matrix S is singular; it cannot turn voltages into g")
     return Calibration(X, cov, sd, dof)

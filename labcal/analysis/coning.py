@@ -14,7 +14,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from labcal.analysis.attitude import MAX_COEFFICIENT  # the bound on a calibration read from a file
 from labcal.analysis.fit import SENSORS, Fit
+from labcal.errors import LabcalError
 
 # For each sensor: index of the main component m of s, and the signed components (t1, t2) with
 # sin Ω cos A = t1/S and sin Ω sin A = t2/S, read off the unit vectors u_x, u_y, u_z.
@@ -77,6 +79,11 @@ def coning_from_column(bias: float, column: NDArray[np.float64], cov: NDArray[np
 def coning(fit: Fit) -> list[ConingSensor]:
     """The coning parameters of every sensor from a fit (its first four coefficients per sensor)."""
     X = fit.coefficients
+    largest = float(np.max(np.abs(X))) if np.all(np.isfinite(X)) else float("inf")
+    if largest > MAX_COEFFICIENT:  # the angles' Jacobian squares them: keep it far from overflow
+        raise LabcalError(f"the fitted coefficients reach {largest:.3g} V (or V/g), beyond any "
+                          f"instrument (bound {MAX_COEFFICIENT:g}); the readings' voltages are not an "
+                          "accelerometer's: check the readings file")
     return [coning_from_column(X[0, j], X[1:, j], fit.covariance(j)[:4, :4], name)
             for j, name in enumerate(SENSORS)]
 

@@ -20,6 +20,9 @@ def on_grid(angle: float, step: float) -> bool:
     return not step or abs(angle / step - round(angle / step)) <= 1e-9
 
 
+MIN_STEP_DEG = 1e-6  # finer than any rotary table's resolution (0.36 arcsec = 1e-4°)
+
+
 class Plan(BaseModel):
     """A validated articulation plan. Angles in degrees: table angles in -180..360 on the 1° grid."""
 
@@ -28,7 +31,8 @@ class Plan(BaseModel):
     name: str = Field(min_length=1)
     description: str = ""
     replicates: int = Field(default=1, ge=1, le=100)
-    angle_step_deg: float = Field(default=INDEX_STEP_DEG, ge=0, description="table grid, 0 if continuous")
+    angle_step_deg: float = Field(default=INDEX_STEP_DEG, ge=0, le=90, allow_inf_nan=False,
+                                  description="table grid, 0 if continuous")
     mounts: list[tuple[float, float]] = Field(min_length=1, description="[y_deg, u_deg] per mount")
     points: list[tuple[float, float]] = Field(min_length=1, description="[pitch_deg, roll_deg] per point")
 
@@ -41,6 +45,14 @@ class Plan(BaseModel):
         if len(set(mounts)) != len(mounts):
             raise ValueError("a mount is listed twice; use `replicates` to repeat the plan")
         return mounts
+
+    @field_validator("angle_step_deg")
+    @classmethod
+    def _real_grid(cls, step: float) -> float:
+        if 0 < step < MIN_STEP_DEG:  # a subnormal step would make every angle "off the grid" by overflow
+            raise ValueError(f"{step:g}° is finer than any table's grid; use 0 (continuous) or at least "
+                             f"{MIN_STEP_DEG:g}°")
+        return step
 
     @model_validator(mode="after")
     def _point_angles(self) -> Plan:

@@ -119,7 +119,7 @@ def plot_merit(plan, calibration_range, usage, path: str) -> None:
         ax.axvspan(*usage, color="grey", alpha=0.15, label="usage range")
     ax.set_xlabel("pitch α (°)")
     ax.set_ylabel("σ_v · √K / σ_E")
-    ax.set_title(f"{plan.name}: normalised output standard deviation")
+    ax.set_title(f"{plan.name}: normalised output standard deviation", parse_math=False)  # names as written
     ax.legend()
     ax.grid(alpha=0.3)
     try:

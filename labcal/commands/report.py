@@ -6,7 +6,7 @@ import argparse
 
 from rich.table import Table as RichTable
 
-from labcal.commands.common import add_db_option, out, print_json
+from labcal.commands.common import add_db_option, err, out, print_json
 
 
 def rich_table(t) -> RichTable:
@@ -33,6 +33,8 @@ def cmd_report(args: argparse.Namespace) -> int:
                              usage_roll_deg=args.usage_roll)
     result = write_run_outputs(args.run_dir, settings, serial=args.serial, operator=args.operator, db=args.db)
     cert = result.certificate
+    for note in result.notes:
+        err.print(f"[yellow]note:[/] {note}")
     if args.json:
         print_json({
             "certificate_id": cert.certificate_id, "serial": cert.instrument.serial,

@@ -91,6 +91,8 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
                   f"continue with: labcal resume {run_dir}")
         return EXIT_STOPPED
     except LabcalError as exc:
+        if not (run_dir / "run.json").exists():  # the run never started (or its folder is gone)
+            raise
         raise LabcalError(f"{exc}; {points_on_disk(run_dir)} reading(s) kept in {run_dir}; "
                           f"continue with: labcal resume {run_dir}") from None
     o = result.outcome
@@ -196,10 +198,17 @@ def cmd_resume(args: argparse.Namespace) -> int:
     ctx = open_for_resume(run_dir)
     with ExitStack() as stack:
         stack.callback(ctx.journal.close)
-        points = ctx.journal.points(ctx.run_id)
-        start = max((p.t_end for p in points), default=0.0)
+        stack.callback(ctx.lock.release)
+        for note in ctx.notes:
+            err.print(f"[yellow]note:[/] {note}")
         run_name = f"run {ctx.run_id} in {run_dir}"
         snapshot = read_snapshot(ctx.station_text, run_name, ctx.software_version)
+        if ctx.complete:
+            settings = certificate_settings_for_run(args, snapshot.config.certificate if snapshot else None,
+                                                    "the run's station")
+            return finish_complete(args, run_dir, ctx.run_id, settings)
+        points = ctx.journal.points(ctx.run_id)
+        start = ctx.journal.rig_time(ctx.run_id)  # the rig's clock goes on from here (one clock per run)
         new_station, on_station, station_record = None, "on the station it started on", None
         if args.station:
             if snapshot is None:
@@ -229,6 +238,28 @@ def cmd_resume(args: argparse.Namespace) -> int:
         return run_and_report(args, lambda display: execute(
             ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, display),
             run_dir, ctx.plan, est, len(points), cert_settings)
+
+
+def finish_complete(args: argparse.Namespace, run_dir: Path, run_id: int,
+                    settings: CertificateSettings) -> int:
+    """A complete run resumed: its exports were checked and repaired; its certificate and report are
+    issued again if any of them is missing or not the history's (a kill during `labcal report`)."""
+    from labcal.documents.report import outputs_in_place, write_run_outputs
+
+    if args.no_report or outputs_in_place(run_dir, db=args.db):
+        certificate = None
+        message = f"run {run_id} is already complete; its files in {run_dir} match the journal"
+    else:
+        issued = write_run_outputs(run_dir, settings, db=args.db)
+        certificate = str(issued.certificate_path)
+        message = (f"run {run_id} is already complete; certificate {issued.certificate.certificate_id} and "
+                   f"its report written again in {run_dir}")
+    if args.json:
+        print_json({"run_dir": str(run_dir), "run_id": run_id, "status": "complete",
+                    "already_complete": True, "certificate_rewritten": certificate})
+    else:
+        err.print(message)
+    return 0
 
 
 def _common(p: argparse.ArgumentParser) -> None:

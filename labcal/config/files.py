@@ -3,12 +3,16 @@ writing JSON documents safely."""
 
 from __future__ import annotations
 
+import errno
 import json
+import os
+import shutil
 import tomllib
+from collections.abc import Callable
 from difflib import get_close_matches
 from pathlib import Path
 from types import UnionType
-from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
+from typing import Annotated, Any, BinaryIO, Literal, TypeVar, Union, get_args, get_origin
 
 from pydantic import BaseModel, ValidationError
 from pydantic.fields import FieldInfo
@@ -117,12 +121,35 @@ def validate_model(data: object, model: type[Model], source: str) -> Model:
         raise LabcalError(f"{source}: {one_line(exc, model)}") from None
 
 
+MAX_DEPTH = 32  # nesting of arrays and tables in a file labcal reads; the deepest it writes is 4
+
+
+def check_depth(data: object, source: str, limit: int = MAX_DEPTH) -> None:
+    """Refuse a parsed document nested deeper than ``limit`` (one line naming the file and the
+    field), walking it without recursion: a hostile file must not exhaust the stack."""
+    stack: list[tuple[object, tuple[str, ...]]] = [(data, ())]
+    while stack:
+        value, path = stack.pop()
+        if len(path) > limit:
+            where = ".".join(path[:3]) + (".…" if len(path) > 3 else "")
+            raise LabcalError(f"{source}: field {where} is nested more than {limit} deep; labcal's files "
+                              "are not nested like that")
+        if isinstance(value, dict):
+            stack.extend((v, (*path, str(k))) for k, v in value.items())
+        elif isinstance(value, list):
+            stack.extend((v, (*path, str(i))) for i, v in enumerate(value))
+
+
 def parse_model(text: str, model: type[Model], source: str) -> Model:
     """Parse TOML text into a validated pydantic model."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise LabcalError(f"{source}: malformed TOML: {exc}") from None
+    except RecursionError:
+        raise LabcalError(f"{source}: nested more than {MAX_DEPTH} deep; labcal's files are not nested "
+                          "like that") from None
+    check_depth(data, source)
     return validate_model(data, model, source)
 
 
@@ -143,6 +170,89 @@ def json_safe(value):
 
 def write_json(path: Path, doc: dict) -> None:
     """Write a JSON document atomically: a reader never sees half a file."""
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(json_safe(doc), indent=2) + "\n", encoding="utf-8")
-    tmp.replace(path)
+    write_atomic(path, json.dumps(json_safe(doc), indent=2) + "\n")
+
+
+def write_atomic(path: str | Path, content: str | bytes | Callable[[BinaryIO], object]) -> Path:
+    """Write a whole file so that a reader, a crash or a full disk never leaves half of it.
+
+    The content goes to a temporary file beside ``path`` (``content`` is text, bytes, or a function
+    that writes into the open binary file), is fsynced once and renamed over ``path``; the folder is
+    then fsynced so that the rename survives a power cut too. Every file labcal leaves in a run
+    folder, and every document it issues, is written here. A failure removes the temporary file and
+    is one LabcalError line naming the folder (and, when the disk is full, the space needed).
+    """
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    data = content.encode("utf-8") if isinstance(content, str) else content
+    try:
+        with open(tmp, "wb") as file:
+            if callable(data):
+                data(file)
+            else:
+                file.write(data)
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(tmp, path)
+        _fsync_folder(path.parent)
+    except OSError as exc:
+        needed = len(data) if isinstance(data, bytes) else _size(tmp) + MARGIN_BYTES
+        _remove_quietly(tmp)
+        raise LabcalError(_write_failure(path, exc, needed)) from None
+    except BaseException:
+        _remove_quietly(tmp)
+        raise
+    return path
+
+
+def _fsync_folder(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return  # a platform without directory handles: the rename is as durable as it gets there
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def size_text(n: int) -> str:
+    """Bytes as people read them: 812 B, 8.3 kB, 1.2 MB, 3.4 GB."""
+    for unit, scale in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= scale:
+            return f"{n / scale:.1f} {unit}"
+    return f"{n} B"
+
+
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
+
+
+def _remove_quietly(path: Path) -> None:
+    try:
+        path.unlink(missing_ok=True)
+    except OSError:
+        pass
+
+
+def _write_failure(path: Path, exc: OSError, needed: int) -> str:
+    """One line for a failed write: which folder, and what to do."""
+    folder = path.parent
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        try:
+            free = shutil.disk_usage(folder if folder.exists() else Path.cwd()).free
+        except OSError:
+            free = 0
+        return (f"{folder}: disk full writing {path.name}: {size_text(free)} free, {size_text(needed)} "
+                "needed; free some space there and run the command again (nothing was lost)")
+    if exc.errno == errno.ENOENT and not folder.exists():
+        return f"{folder}: folder no longer exists; cannot write {path.name}"
+    return f"{path}: cannot write ({exc.strerror or exc})"
+
+
+MARGIN_BYTES = 1_000_000  # what a file written by a function may still have needed when the disk filled

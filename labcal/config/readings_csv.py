@@ -7,8 +7,8 @@ any other column is ignored on reading. Every error names the file, the line and
 from __future__ import annotations
 
 import csv
+import io
 import math
-import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal.analysis.readings import Readings
-from labcal.config.files import read_text
+from labcal.config.files import read_text, write_atomic
 from labcal.errors import LabcalError
 
 REQUIRED = ("replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", "vx", "vy", "vz")
@@ -108,7 +108,9 @@ def write_readings(path: str | Path, readings: Readings) -> None:
 
 
 class ReadingsWriter:
-    """Appends one row per point and forces it to disk at once, so a crash loses nothing taken.
+    """Collects one row per point; on a clean close the whole file is written atomically
+    (`write_atomic`), so a reader or a crash never sees a file cut short. The journal, not this
+    file, is what keeps a reading: readings.csv is an export of it, rewritten whole.
 
     ``temperature``: write the temp_c column; ``audit``: write the per-point audit columns.
     """
@@ -116,15 +118,10 @@ class ReadingsWriter:
     def __init__(self, path: str | Path, temperature: bool = True, audit: bool = True):
         self.path = Path(path)
         self.temperature, self.audit = temperature, audit
-        self._file = self.path.open("w", newline="", encoding="utf-8")
+        self._file = io.StringIO(newline="")
         self._csv = csv.writer(self._file)
         self._csv.writerow(REQUIRED + OPTIONAL * temperature + EXTRA * audit)
-        self._sync()
         self.count = 0
-
-    def _sync(self) -> None:
-        self._file.flush()
-        os.fsync(self._file.fileno())
 
     def append(
         self, *, replicate: int, y_deg: float, u_deg: float, pitch_deg: float, roll_deg: float,
@@ -142,14 +139,17 @@ class ReadingsWriter:
             sds = (None, None, None) if sd is None else sd
             row += ["" if n_samples is None else n_samples, *(fmt(s, ".4g") for s in sds), fmt(time_s, ".3f")]
         self._csv.writerow(row)
-        self._sync()
         self.count += 1
 
+    def text(self) -> str:
+        return self._file.getvalue()
+
     def close(self) -> None:
-        self._file.close()
+        write_atomic(self.path, self.text())
 
     def __enter__(self) -> ReadingsWriter:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        if exc_type is None:  # a failure half-way writes nothing: the old file stays whole
+            self.close()

@@ -97,7 +97,8 @@ class AzSettings(AxisSettings):
     IDENTITY: ClassVar[tuple[str, ...]] = ("driver", "unit", "steps_per_degree", "wrap", "limits_deg")
     driver: Literal["oriental-az"]
     unit: int = Field(default=1, ge=1, le=247, description="Modbus slave address (unit id)")
-    steps_per_degree: float = Field(gt=0, description="table steps per degree (motor steps × gear)")
+    steps_per_degree: float = Field(gt=0, le=1e9, allow_inf_nan=False,
+                                    description="table steps per degree (motor steps × gear)")
     wrap: bool = Field(default=True, description="the drive's wrap setting: one table turn, 0..N−1")
     baudrate: int = 115200
     parity: Literal["N", "E", "O"] = "E"

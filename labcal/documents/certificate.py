@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from labcal.analysis.attitude import Calibration, calibration_from_json
-from labcal.config.files import one_line, read_text, write_json
+from labcal.config.files import MAX_DEPTH, check_depth, one_line, read_text, write_json
 from labcal.errors import LabcalError
 
 # The document format's name, not the module's: certificates issued before the subpackages
@@ -257,12 +257,17 @@ def seal(content: dict) -> Certificate:
 def parse_json(text: str, source: str):
     """JSON text, or one line saying why not — naming truncation, the usual way files break."""
     try:
-        return json.loads(text)
+        doc = json.loads(text)
+    except RecursionError:
+        raise LabcalError(f"{source}: nested more than {MAX_DEPTH} deep; a certificate is not nested like "
+                          "that") from None
     except json.JSONDecodeError as exc:
         if exc.pos >= len(text.rstrip()) or exc.msg.startswith("Unterminated string"):
             raise LabcalError(f"{source}: not valid JSON: the file is truncated (it stops at line "
                               f"{text.rstrip().count(chr(10)) + 1} before the document ends)") from None
         raise LabcalError(f"{source}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    check_depth(doc, source)
+    return doc
 
 
 def is_certificate(doc) -> bool:

@@ -42,6 +42,17 @@ def store(cert: Certificate, db: str | Path | None = None) -> Path:
     return path
 
 
+def stored_digest(certificate_id: str, db: str | Path | None = None) -> str | None:
+    """The digest of the certificate stored under ``certificate_id`` (None: not in the history)."""
+    path = db_path(db)
+    if not path.is_file():
+        return None
+    with closing(labdb.connect(path)) as conn:
+        row = conn.execute("SELECT sha256 FROM certificates WHERE certificate_id = ?",
+                           (certificate_id,)).fetchone()
+    return None if row is None else row[0]
+
+
 def certificates_for(serial: str, db: str | Path | None = None) -> list[Certificate]:
     """The instrument's certificates, oldest calibration first, each verified."""
     path = db_path(db)
@@ -153,7 +164,8 @@ def plot_history(serial: str, certs: list[Certificate], found: list[Change], pat
             if i == len(ROW_NAMES) - 1:
                 ax.set_xlabel("calibration date (UTC)", labelpad=14)  # below the date offset
                 ax.xaxis.set_major_formatter(ConciseDateFormatter(ax.xaxis.get_major_locator()))
-    fig.suptitle(f"Instrument {serial}: coefficients ± U (95 %) over time; red: {RULE}", fontsize=10)
+    fig.suptitle(f"Instrument {serial}: coefficients ± U (95 %) over time; red: {RULE}", fontsize=10,
+                 parse_math=False)  # the serial as typed: "$" is no mathtext
     try:
         fig.savefig(path, dpi=110)
     except (OSError, ValueError) as exc:  # ValueError: a file suffix matplotlib cannot write

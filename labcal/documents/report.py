@@ -16,6 +16,7 @@ import io
 import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 
 import mpl_toolkits.mplot3d  # noqa: F401 - registers the 3-D projection
 import numpy as np
@@ -26,8 +27,15 @@ from labcal.analysis.attitude import sphere_least_squares
 from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit, fit_readings, readings_points
 from labcal.analysis.kinematics import Mount
 from labcal.analysis.models import Points
+from labcal.config.files import write_atomic
 from labcal.config.settings import CertificateSettings
-from labcal.documents.certificate import Certificate, format_result, format_uncertainty, write_certificate
+from labcal.documents.certificate import (
+    Certificate,
+    format_result,
+    format_uncertainty,
+    read_certificate,
+    write_certificate,
+)
 from labcal.documents.issuing import build_certificate, envelope_grid
 from labcal.errors import LabcalError
 from labcal.run.record import RunRecord, load_run
@@ -277,7 +285,8 @@ def sphere_figure(record: RunRecord) -> Figure:
     ax.set_zlabel("g_z (g)")
     ax.set_box_aspect((1, 1, 1))
     ax.set_title(f"Plan {plan.name}: nominal gravity of every point in the instrument's axes\n"
-                 "(numbers: readings in each direction, replicates included)", fontsize=10)
+                 "(numbers: readings in each direction, replicates included)", fontsize=10,
+                 parse_math=False)  # a plan's name is drawn as written, never read as mathtext
     ax.legend(fontsize=7, loc="upper left")
     return fig
 
@@ -388,7 +397,7 @@ def text_table(t: Table) -> str:
     return "\n".join(lines)
 
 
-def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path) -> None:
+def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path | BinaryIO) -> None:
     """Text pages with every table, then one page per figure."""
     blocks = []
     for t in tables(cert):
@@ -405,23 +414,22 @@ def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path) ->
         for n, start in enumerate(pages, start=1):
             page = Figure(figsize=(11.69, 8.27))
             page.text(0.03, 0.97, f"Calibration certificate {cert.certificate_id} — {verdict_text(cert)} — "
-                                  f"page {n} of {len(pages)} (text)", fontsize=9, va="top", weight="bold")
+                                  f"page {n} of {len(pages)} (text)", fontsize=9, va="top", weight="bold",
+                      parse_math=False)  # serials, operators and names hold what people typed: "$" too
             page.text(0.03, 0.93, "\n".join(lines[start:start + per_page]), family="monospace", fontsize=6.4,
-                      va="top")
+                      va="top", parse_math=False)
             pdf.savefig(page)
         for title, fig in figs:
-            fig.text(0.01, 0.001, f"{cert.certificate_id} · {title}", fontsize=7, va="bottom")
+            fig.text(0.01, 0.001, f"{cert.certificate_id} · {title}", fontsize=7, va="bottom",
+                     parse_math=False)
             pdf.savefig(fig)
 
 
 def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit) -> tuple[Path, Path]:
     figs = figures(cert, record, fit)
     html_path, pdf_path = directory / REPORT_HTML, directory / REPORT_PDF
-    try:
-        html_path.write_text(render_html(cert, figs), encoding="utf-8")
-        render_pdf(cert, figs, pdf_path)
-    except OSError as exc:
-        raise LabcalError(f"{exc.filename or directory}: cannot write the report ({exc.strerror})") from None
+    write_atomic(html_path, render_html(cert, figs))  # whole or not at all: a kill never cuts a report
+    write_atomic(pdf_path, lambda file: render_pdf(cert, figs, file))
     return html_path, pdf_path
 
 
@@ -433,6 +441,7 @@ class RunOutputs:
     html_path: Path
     pdf_path: Path
     database: Path
+    notes: tuple[str, ...] = ()  # what checking the run folder against the journal repaired
 
 
 def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None = None, *,
@@ -445,7 +454,28 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
     record = load_run(run_dir)
     fit = fit_readings(record.readings)
     cert = build_certificate(record, fit, settings, serial=serial, operator=operator)
-    cert_path = write_certificate(record.directory / CERTIFICATE, cert)
     html_path, pdf_path = write_report(record.directory, cert, record, fit)
+    # The history entry and the certificate file go together: the entry is committed first and the
+    # file is the entry's document, so a kill between them leaves a history entry without its file
+    # (`outputs_in_place` sees it; resume or report writes it again), never a certificate that
+    # history does not know.
     database = history.store(cert, db)
-    return RunOutputs(cert, cert_path, html_path, pdf_path, database)
+    cert_path = write_certificate(record.directory / CERTIFICATE, cert)
+    return RunOutputs(cert, cert_path, html_path, pdf_path, database, record.notes)
+
+
+def outputs_in_place(run_dir: str | Path, db: str | Path | None = None) -> bool:
+    """Whether a complete run's certificate, its report and its history entry are all there and
+    are of the run's current readings (after a kill during `labcal report` one may be missing)."""
+    from labcal.documents import history
+
+    run_dir = Path(run_dir)
+    if not all((run_dir / name).is_file() for name in (CERTIFICATE, REPORT_HTML, REPORT_PDF)):
+        return False
+    try:
+        cert = read_certificate(run_dir / CERTIFICATE)
+        record = load_run(run_dir)
+    except LabcalError:
+        return False
+    return (cert.data.readings_sha256 == record.readings_sha256
+            and history.stored_digest(cert.certificate_id, db) == cert.digest.value)

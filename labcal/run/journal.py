@@ -14,6 +14,8 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import sqlite3
+import uuid
 from dataclasses import dataclass, fields
 from datetime import UTC, datetime
 from pathlib import Path
@@ -103,6 +105,7 @@ class RunRow:
     reason: str | None
     instrument_serial: str | None
     operator: str | None
+    uuid: str | None  # None only for a run of a database older than run identities (migrated: set)
 
 
 class Journal:
@@ -122,13 +125,21 @@ class Journal:
     def _transaction(self, statements: list[tuple[str, tuple]]) -> int | None:
         """Run statements atomically; a crash leaves all of them or none."""
         last = None
-        self.db.execute("BEGIN IMMEDIATE")
         try:
+            self.db.execute("BEGIN IMMEDIATE")
             for sql, args in statements:
                 last = self.db.execute(sql, args).lastrowid
             self.db.execute("COMMIT")
-        except BaseException:
-            self.db.execute("ROLLBACK")
+        except BaseException as exc:
+            if self.db.in_transaction:  # a full disk has rolled it back already: say that, not this
+                try:
+                    self.db.execute("ROLLBACK")
+                except sqlite3.Error:
+                    pass
+            if isinstance(exc, sqlite3.IntegrityError):
+                raise
+            if isinstance(exc, sqlite3.Error):
+                raise labdb.failure(self.path, exc) from None
             raise
         return last
 
@@ -137,10 +148,10 @@ class Journal:
         run_id = self._transaction([(
             "INSERT INTO runs (run_dir, plan_name, plan_text, plan_hash, station_text, station_hash,"
             " software_version, instrument_serial, device_id, operator, settings, metadata,"
-            " started_utc, status) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,'running')",
+            " started_utc, status, uuid) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,'running',?)",
             (m.run_dir, m.plan_name, m.plan_text, sha256(m.plan_text), m.station_text,
              sha256(m.station_text), m.software_version, m.instrument_serial, m.device_id, m.operator,
-             json.dumps(m.settings), json.dumps(m.metadata), utc_now()),
+             json.dumps(m.settings), json.dumps(m.metadata), utc_now(), str(uuid.uuid4())),
         )])
         assert run_id is not None  # an INSERT into a rowid table always sets lastrowid
         return run_id
@@ -162,9 +173,27 @@ class Journal:
                             (run_id, utc_now(), station_time, kind, message,
                              None if data is None else json.dumps(data)))])
 
-    def finish(self, run_id: int, status: str, reason: str | None = None) -> None:
+    def finish(self, run_id: int, status: str, reason: str | None = None,
+               exports: dict[str, str] | None = None) -> None:
+        """The run's status, and the SHA-256 of the exports just written for it, in one transaction:
+        a run is marked complete only together with the hashes of the files that show it."""
         self._transaction([("UPDATE runs SET status=?, reason=?, ended_utc=? WHERE id=?",
-                            (status, reason, utc_now(), run_id))])
+                            (status, reason, utc_now(), run_id)),
+                           *self._export_rows(run_id, exports or {})])
+
+    def exported(self, run_id: int, exports: dict[str, str]) -> None:
+        """Remember the hashes of exports rewritten for a run (status unchanged)."""
+        if exports:
+            self._transaction(self._export_rows(run_id, exports))
+
+    @staticmethod
+    def _export_rows(run_id: int, exports: dict[str, str]) -> list[tuple[str, tuple]]:
+        return [("INSERT OR REPLACE INTO run_exports (run_id, name, sha256) VALUES (?,?,?)",
+                 (run_id, name, digest)) for name, digest in exports.items()]
+
+    def set_run_dir(self, run_id: int, run_dir: str) -> None:
+        """Where the run's folder now is (`labcal export RUN --out DIR` recreated it there)."""
+        self._transaction([("UPDATE runs SET run_dir=? WHERE id=?", (run_dir, run_id))])
 
     def reopen(self, run_id: int) -> None:
         self._transaction([("UPDATE runs SET status='running', reason=NULL, ended_utc=NULL WHERE id=?",
@@ -195,6 +224,19 @@ class Journal:
         if row is None or row[0] is None:
             return np.empty((0, 4))
         return np.frombuffer(row[0], dtype="<f8").reshape(-1, 4)
+
+    def export_hashes(self, run_id: int) -> dict[str, str]:
+        """The SHA-256 of each file labcal last wrote into the run's folder."""
+        rows = self.db.execute("SELECT name, sha256 FROM run_exports WHERE run_id=?", (run_id,)).fetchall()
+        return dict(rows)
+
+    def rig_time(self, run_id: int) -> float:
+        """Rig time since the run began when it was last heard of: its last point or event. A resumed
+        segment's clock starts here, so that time runs on, never back, across resumes."""
+        row = self.db.execute("SELECT max(coalesce((SELECT max(t_end) FROM points WHERE run_id=?), 0.0),"
+                              " coalesce((SELECT max(station_time) FROM events WHERE run_id=?), 0.0))",
+                              (run_id, run_id)).fetchone()
+        return float(row[0] or 0.0)
 
     def events(self, run_id: int) -> list[dict]:
         rows = self.db.execute("SELECT utc, station_time, kind, message, data FROM events WHERE run_id=? "

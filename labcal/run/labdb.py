@@ -25,12 +25,15 @@ list), so a migration that adds a column never breaks the code that came before 
 from __future__ import annotations
 
 import os
+import shutil
 import sqlite3
+import uuid
 from collections.abc import Callable
 from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
 
+from labcal.config.files import size_text
 from labcal.errors import LabcalError
 
 # Version 0, exactly as the unversioned labcal created it (journal.py and history.py, a8863ee).
@@ -86,12 +89,27 @@ def _v1_events_by_run(db: sqlite3.Connection) -> None:
     db.execute("CREATE INDEX events_by_run ON events (run_id, id)")
 
 
+def _v2_run_identity_and_exports(db: sqlite3.Connection) -> None:
+    db.execute("ALTER TABLE runs ADD COLUMN uuid TEXT")
+    for (run_id,) in db.execute("SELECT id FROM runs").fetchall():
+        db.execute("UPDATE runs SET uuid=? WHERE id=?", (str(uuid.uuid4()), run_id))
+    db.execute("CREATE UNIQUE INDEX runs_by_uuid ON runs (uuid)")
+    db.execute("CREATE TABLE run_exports (run_id INTEGER NOT NULL REFERENCES runs(id), name TEXT NOT NULL, "
+               "sha256 TEXT NOT NULL, PRIMARY KEY (run_id, name))")
+
+
 MIGRATIONS: tuple[Migration, ...] = (
     Migration(1, "index events by run: `Journal.events(run)` (the audit trail of prompts, faults, "
                  "retries and pauses) read the whole lab's events table for every run, and "
                  "events.run_id is a foreign key that SQLite advises indexing (points are already "
                  "indexed by their primary key (run_id, seq)). An index only, so the previous labcal "
                  "still reads and writes a version-1 file.", _v1_events_by_run),
+    Migration(2, "run identity and export hashes: a run gets a UUID (runs.uuid, written into its "
+                 "run.json), so a run folder whose database was restored or re-created (ids reused) is "
+                 "recognised as another run's; run_exports keeps the SHA-256 of every file labcal last "
+                 "wrote into a run folder, so a missing, stale or hand-edited export is detected and "
+                 "rewritten from the journal. Existing runs get a UUID here. Additive only.",
+              _v2_run_identity_and_exports),
 )
 SCHEMA_VERSION = MIGRATIONS[-1].version
 
@@ -120,7 +138,7 @@ def connect(path: str | Path, migrations: tuple[Migration, ...] = MIGRATIONS) ->
     try:
         db = sqlite3.connect(path, timeout=10.0, isolation_level=None)
     except sqlite3.Error as exc:
-        raise LabcalError(f"{path}: cannot open the lab database ({exc})") from None
+        raise failure(path, exc) from None
     try:
         db.execute("PRAGMA journal_mode=WAL")  # readers never block the journal's writer
         db.execute("PRAGMA synchronous=FULL")  # a committed point survives a power cut
@@ -128,11 +146,48 @@ def connect(path: str | Path, migrations: tuple[Migration, ...] = MIGRATIONS) ->
         migrate(db, path, migrations)
     except sqlite3.Error as exc:
         db.close()
-        raise LabcalError(f"{path}: cannot open the lab database ({exc})") from None
+        raise failure(path, exc) from None
     except BaseException:
         db.close()
         raise
     return db
+
+
+def failure(path: Path, exc: sqlite3.Error) -> LabcalError:
+    """One line for a database that cannot be used: which file, what is wrong, what to do.
+
+    A full disk, a read-only file and a damaged file are the lab's to fix, not labcal's; each says
+    so without a traceback, and nothing committed before is lost (SQLite rolls the open
+    transaction back)."""
+    text = str(exc)
+    code = getattr(exc, "sqlite_errorcode", None)
+    if code == sqlite3.SQLITE_FULL or "full" in text:
+        free = _free_bytes(path.parent)
+        return LabcalError(f"{path}: disk full ({size_text(free)} free in {path.parent}); free at least "
+                           f"{size_text(FREE_SPACE_WANTED)} there and run the command again (every "
+                           "committed reading is kept)")
+    cannot_write = path.exists() and not (os.access(path, os.W_OK) and os.access(path.parent, os.W_OK))
+    if code == sqlite3.SQLITE_READONLY or "readonly" in text or "read-only" in text or cannot_write:
+        return LabcalError(f"{path}: the lab database is read-only ({text}); make the file and its folder "
+                           "writable (or give --db / set LABCAL_DB to a writable copy) and run it again")
+    damaged = code in (sqlite3.SQLITE_CORRUPT, sqlite3.SQLITE_NOTADB)
+    if damaged or "malformed" in text or "not a database" in text:
+        return LabcalError(f"{path}: the lab database is damaged ({text}); check it with sqlite3 {path} "
+                           "'PRAGMA integrity_check' and restore it from its latest backup")
+    if code == sqlite3.SQLITE_BUSY or "locked" in text:
+        return LabcalError(f"{path}: the lab database is busy ({text}); another labcal is writing it: "
+                           "wait for it and run the command again")
+    return LabcalError(f"{path}: cannot use the lab database ({text})")
+
+
+FREE_SPACE_WANTED = 10_000_000  # a run's points and events, with room for SQLite's write-ahead log
+
+
+def _free_bytes(folder: Path) -> int:
+    try:
+        return shutil.disk_usage(folder).free
+    except OSError:
+        return 0
 
 
 def migrate(db: sqlite3.Connection, path: Path, migrations: tuple[Migration, ...] = MIGRATIONS) -> int:

@@ -16,8 +16,9 @@ from labcal.analysis.plan import Plan
 from labcal.analysis.readings import Readings
 from labcal.config.plans import parse_plan
 from labcal.errors import LabcalError
-from labcal.run.journal import Journal
-from labcal.run.rundir import RUN, read_run_json
+from labcal.run import exports
+from labcal.run.lock import held_by
+from labcal.run.rundir import open_run, read_run_json
 
 
 @dataclass(frozen=True)
@@ -30,6 +31,7 @@ class RunRecord:
     plan: Plan
     plan_text: str
     meta: dict  # run.json: station, settings, dates, status, identities, simulated truth
+    notes: tuple[str, ...] = ()  # what checking the folder against the journal found and repaired
 
     @property
     def simulated(self) -> bool:
@@ -44,23 +46,29 @@ def readings_digest(points) -> str:
 
 
 def load_run(run_dir: str | Path) -> RunRecord:
-    """Read a run from its journal; a missing, unfinished or malformed run is one LabcalError line."""
+    """Read a run from its journal; a missing, unfinished, foreign or malformed run is one
+    LabcalError line. The folder's exports are checked against the journal on the way and rewritten
+    where missing, stale or edited (`labcal.run.exports.sync`; the notes say which)."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
-        raise LabcalError(f"{run_dir}: no such run directory")
-    info = read_run_json(run_dir)
-    if "journal" not in info or "run_id" not in info:
-        raise LabcalError(f"{run_dir / RUN}: names no journal; was this run made by labcal run?")
-    with Journal(info["journal"]) as journal:
-        row = journal.run(info["run_id"])
+        raise LabcalError(f"{run_dir}: no such run directory (if it was deleted, `labcal export RUN_ID "
+                          "--out DIR` recreates it from the journal)")
+    _, journal, row = open_run(run_dir)
+    with journal:
         if row.status != "complete":
+            state = row.status
+            if state == "running" and held_by(journal.path, row.id) is None:
+                state = "interrupted (its process ended without closing it)"
+                exports.sync(journal, row, run_dir)  # its readings so far, in readings.csv
             why = f" ({row.reason})" if row.reason else ""
-            raise LabcalError(f"{run_dir}: the run is {row.status}{why}; only a complete run gets a "
+            raise LabcalError(f"{run_dir}: the run is {state}{why}; only a complete run gets a "
                               "certificate (labcal resume finishes it)")
+        notes, _ = exports.sync(journal, row, run_dir)
+        info = read_run_json(run_dir)
         points = journal.points(row.id, status="ok")
         readings = journal.readings(row.id)
     plan = parse_plan(row.plan_text, f"run {row.id} plan")
     meta = {**info, **row.metadata, "status": row.status, "reason": row.reason,
             "started_utc": row.started_utc, "ended_utc": row.ended_utc, "settings": row.settings,
             "instrument_serial": row.instrument_serial, "operator": row.operator}
-    return RunRecord(run_dir, readings, readings_digest(points), plan, row.plan_text, meta)
+    return RunRecord(run_dir, readings, readings_digest(points), plan, row.plan_text, meta, tuple(notes))

@@ -8,42 +8,51 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from pathlib import Path
 
 from labcal import __version__
 from labcal.analysis.fit import Fit, fit_readings
 from labcal.analysis.plan import Plan
-from labcal.config.files import validate_model, write_json
+from labcal.config.files import validate_model
 from labcal.config.plans import parse_plan
-from labcal.config.readings_csv import ReadingsWriter
 from labcal.config.settings import SequencerSettings
 from labcal.errors import LabcalError
+from labcal.run import exports
 from labcal.run.interrupts import Interrupts
 from labcal.run.journal import Journal, Manifest, sha256
+from labcal.run.lock import RunLock
 from labcal.run.operator import Operator
-from labcal.run.rundir import FIT, PLAN, READINGS, RUN, read_run_json
+from labcal.run.rundir import make_run_dir, open_run
 from labcal.run.sequencer import Display, RunOutcome, Sequencer, schedule
 from labcal.run.station import Station
 
 MIN_POINTS_FOR_MOUNT_CHECK_FIT = 8
 
 
-def export(journal: Journal, run_id: int, run_dir: Path) -> Fit | None:
-    """Rewrite readings.csv (and fit.json when the points determine a fit) from the journal."""
-    points = journal.points(run_id, status="ok")
-    with ReadingsWriter(run_dir / READINGS, temperature=bool(points) and all(p.temp_c is not None
-                                                                               for p in points)) as w:
-        for p in points:
-            w.append(replicate=p.replicate, y_deg=p.y_deg, u_deg=p.u_deg, pitch_deg=p.pitch_deg,
-                     roll_deg=p.roll_deg, volts=[p.vx, p.vy, p.vz], temp_c=p.temp_c,
-                     sd=[p.sd_vx, p.sd_vy, p.sd_vz], n_samples=p.n_samples, time_s=p.t_end)
+def publish(journal: Journal, run_id: int, run_dir: Path, status: str, reason: str | None) -> Fit | None:
+    """The run's exports from the journal, written whole, then its status with their hashes in one
+    transaction: "complete" is journaled only once the files that show it are in place. A run that
+    ends without enough good points for a fit is "failed"; a folder that cannot be written (deleted,
+    disk full) leaves the run "stopped", every reading kept, and says how to recreate it."""
+    row = journal.run(run_id)
+    derived = exports.derive(journal, row, status, reason)
+    if status == "complete" and derived.fit is None:
+        status, reason = "failed", "finished without enough good points to fit"
+        derived = exports.derive(journal, row, status, reason)
     try:
-        fit = fit_readings(journal.readings(run_id))
-    except LabcalError:
-        return None  # too few points so far for a fit
-    write_json(run_dir / FIT, fit.to_json())
-    return fit
+        hashes = exports.write(run_dir, derived)
+    except LabcalError as exc:
+        why = f"exports not written: {exc}"
+        if status == "complete":
+            status, reason = "stopped", why
+        journal.finish(run_id, status, reason)
+        raise LabcalError(f"{exc}; run {run_id} is safe in {journal.path}: `labcal export {run_id} --db "
+                          f"{journal.path} --out DIR` recreates its folder, `labcal resume DIR` completes "
+                          "it") from None
+    journal.finish(run_id, status, reason, hashes)
+    if status == "failed":
+        raise LabcalError(f"run {run_id} {reason}")
+    return derived.fit
 
 
 @dataclass
@@ -69,12 +78,20 @@ def _provisional_fit(journal: Journal, run_id: int):
 
 def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: Station, operator: Operator,
             settings: SequencerSettings, display: Display | None = None) -> RunResult:
-    """Run (or go on with) every step not yet in the journal; whatever happens, the journal says
-    how the run ended and the exports are rewritten."""
+    """Run (or go on with) every step not yet in the journal, holding the run's lock; whatever
+    happens, the exports are rewritten and the journal says how the run ended.
+
+    Rig time runs on from where the run was last heard of (`Journal.rig_time`): each segment's
+    offset is journaled, time_s never goes back, and the station's clock must start there too (a
+    simulated rig's virtual clock does: `labcal.bench.setup`)."""
     display = display or Display()
     wall0 = time.perf_counter()
+    lock = RunLock(journal.path, run_id).acquire()  # released in the finally below, or with the process
     steps = schedule(plan, settings)
     committed = {p.seq for p in journal.points(run_id)}
+    offset = journal.rig_time(run_id)
+    journal.event(run_id, "segment", f"measuring from rig time {offset:.3f} s", {"offset_s": offset},
+                  station_time=offset)
     status = "interrupted"
     reason: str | None = "Ctrl-C"
     try:
@@ -82,7 +99,8 @@ def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: S
                                                 "(press again to stop the tables now)[/]")) as interrupts:
             station.guard_exchanges(interrupts.critical)  # no device exchange is cut in half
             try:
-                sequencer = Sequencer(plan, station, operator, journal, run_id, settings, display, interrupts)
+                sequencer = Sequencer(plan, station, operator, journal, run_id, settings, display, interrupts,
+                                      offset_s=offset)
                 outcome = sequencer.run(steps, committed, _provisional_fit(journal, run_id))
             finally:
                 station.guard_exchanges(None)
@@ -93,18 +111,11 @@ def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: S
         status, reason = "stopped", str(exc) or type(exc).__name__
         raise
     finally:
-        journal.finish(run_id, status, reason)
-        fit = export(journal, run_id, run_dir)
-        info = read_run_json(run_dir)
-        info.update(status=status, reason=reason, points_recorded=len(journal.points(run_id, status="ok")))
-        write_json(run_dir / RUN, info)
-    if fit is None:
-        reason = "finished without enough good points to fit"
-        journal.finish(run_id, "failed", reason)
-        write_json(run_dir / RUN, {**info, "status": "failed", "reason": reason})
-        raise LabcalError(f"run {run_id} {reason}")
-    info.update(station_time_s=outcome.station_time_s, wall_time_s=time.perf_counter() - wall0)
-    write_json(run_dir / RUN, info)
+        try:
+            fit = publish(journal, run_id, run_dir, status, reason)
+        finally:
+            lock.release()
+    assert fit is not None  # publish raises for a run that cannot be fitted
     return RunResult(run_dir, run_id, outcome, fit, time.perf_counter() - wall0)
 
 
@@ -112,19 +123,19 @@ def calibrate(plan: Plan, plan_text: str, station: Station, station_text: str, o
               settings: SequencerSettings, run_dir: Path, journal: Journal, display: Display | None = None,
               metadata: dict | None = None, serial: str | None = None,
               operator_name: str | None = None) -> RunResult:
-    """Start a new run: manifest first, then every point."""
-    (run_dir / PLAN).write_text(plan_text, encoding="utf-8")
+    """Start a new run: manifest first (its folder's files derived from it), then every point."""
     run_id = journal.start_run(Manifest(
         run_dir=str(run_dir), plan_name=plan.name, plan_text=plan_text, station_text=station_text,
-        software_version=__version__, settings=settings.model_dump(), metadata=metadata or {},
+        software_version=__version__, settings=settings.model_dump(),
+        metadata={"station": station.description, **(metadata or {})},
         instrument_serial=serial, operator=operator_name))
-    write_json(run_dir / RUN, {
-        "labcal_version": __version__, "journal": str(journal.path.resolve()), "run_id": run_id,
-        "plan": plan.name, "plan_sha256": sha256(plan_text), "station": station.description,
-        "instrument_serial": serial, "operator": operator_name,
-        "started_utc": datetime.now(UTC).isoformat(timespec="seconds"), "status": "running",
-        "settings": settings.model_dump(), **(metadata or {}),
-    })
+    row = journal.run(run_id)
+    try:
+        make_run_dir(run_dir)
+        journal.exported(run_id, exports.write(run_dir, exports.derive(journal, row)))
+    except LabcalError:
+        journal.finish(run_id, "failed", "its run folder could not be written")
+        raise
     return execute(journal, run_id, run_dir, plan, station, operator, settings, display)
 
 
@@ -137,18 +148,44 @@ class ResumeContext:
     station_text: str
     metadata: dict
     software_version: str  # the labcal that started the run
+    lock: RunLock  # held from before anything changes until the command ends
+    status: str  # as found: "complete" (only the exports were checked), "running" (interrupted), …
+    notes: tuple[str, ...]  # what the folder's check found and repaired
+
+    @property
+    def complete(self) -> bool:
+        return self.status == "complete"
 
 
 def open_for_resume(run_dir: Path) -> ResumeContext:
-    """The journal entry of an unfinished run, its plan checked against the hash in the manifest."""
-    info = read_run_json(run_dir)
-    journal = Journal(info["journal"])
-    row = journal.run(info["run_id"])
-    if row.status == "complete":
-        raise LabcalError(f"{run_dir}: run {row.id} is already complete; nothing to resume")
+    """The journal entry of a run, its folder checked against it (identity, then every export
+    rewritten that is missing, stale or edited), its plan against the hash in the manifest, and its
+    lock taken: a run another process is measuring is refused, with who, before anything changes.
+
+    A run the journal calls "running" whose lock nobody held was interrupted (its process was
+    killed); a complete run is only checked and repaired."""
+    _, journal, row = open_run(run_dir)
+    try:
+        lock = RunLock(journal.path, row.id, "resuming").acquire()
+        try:
+            return _resume_context(run_dir, journal, row, lock)
+        except BaseException:
+            lock.release()
+            raise
+    except BaseException:
+        journal.close()
+        raise
+
+
+def _resume_context(run_dir: Path, journal: Journal, row, lock: RunLock) -> ResumeContext:
     if sha256(row.plan_text) != row.plan_hash:
         raise LabcalError(f"{run_dir}: the journal's plan does not match its recorded hash; not resuming")
+    notes, _ = exports.sync(journal, row, run_dir)
+    if row.status == "running":
+        notes.insert(0, f"run {row.id} was interrupted: the journal says running but no process holds it "
+                        "(killed or powered off)")
+        journal.event(row.id, "interrupted", "found running with nobody holding its lock")
     plan = parse_plan(row.plan_text, f"run {row.id} plan")
     settings = validate_model(row.settings, SequencerSettings, f"{run_dir}: run {row.id}'s settings")
     return ResumeContext(journal, row.id, plan, settings, row.station_text, row.metadata,
-                         row.software_version)
+                         row.software_version, lock, row.status, tuple(notes))

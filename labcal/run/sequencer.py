@@ -129,6 +129,7 @@ class Sequencer:
     settings: SequencerSettings
     display: Display = field(default_factory=Display)
     interrupts: Interrupts = field(default_factory=Interrupts)
+    offset_s: float = 0.0  # rig time since the run began when this segment starts (0 unless resumed)
     _g_last: np.ndarray | None = None
     _t0: float = 0.0
 
@@ -198,7 +199,7 @@ class Sequencer:
         """Measure every step not yet committed. ``provisional()`` returns an X from the points so
         far (or None) for the mount check."""
         check_limits(self.station, steps)
-        self._t0 = self.station.clock.now()
+        self._t0 = self.station.clock.now() - self.offset_s  # one clock per run, across resumes
         todo = [s for s in steps if s.seq not in committed]
         blocks = [s for s in steps if s.block_start]
         mounted: Mount | None = None
@@ -222,7 +223,7 @@ class Sequencer:
             self.stop_tables(exc)
             raise
         recorded = len(self.journal.points(self.run_id, status="ok"))
-        return RunOutcome(recorded, failed, self.station.clock.now() - self._t0)
+        return RunOutcome(recorded, failed, self.station.clock.now() - self._t0)  # since the run began
 
     def stop_tables(self, cause: BaseException) -> None:
         """Stop both tables; if that fails too, note it on ``cause`` rather than replace it."""

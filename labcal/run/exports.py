@@ -1,0 +1,171 @@
+"""A run folder's files, derived from the journal: written whole, checked, repaired.
+
+plan.toml, readings.csv, fit.json and run.json are exports of the run's journal entry: the same
+journal always gives the same bytes. Each is written with `write_atomic` (temporary file, one
+fsync, rename), run.json last, and their SHA-256 are journaled with the run's status in one
+transaction (`Journal.finish`), so a run is "complete" only once the files that show it are in
+place. `sync` compares a folder with what the journal gives and rewrites what is missing or
+stale; a file whose hash labcal never wrote (edited by hand) is named, kept beside as
+``NAME.edited`` and rewritten — nothing anyone wrote is lost, and the journal stays the truth.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from labcal.analysis.fit import Fit, fit_readings
+from labcal.config.files import json_safe, write_atomic
+from labcal.config.readings_csv import ReadingsWriter
+from labcal.errors import LabcalError
+from labcal.run.journal import Journal, RunRow
+from labcal.run.rundir import FIT, PLAN, READINGS, RUN, identity
+
+EXPORTS = (PLAN, READINGS, FIT, RUN)  # in the order written: run.json, which names the run, last
+
+
+@dataclass(frozen=True)
+class Derived:
+    """What the journal gives for a run folder: each file's bytes, and the fit (None: too few points)."""
+
+    files: dict[str, bytes]
+    fit: Fit | None
+
+
+def digest(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def derive(journal: Journal, row: RunRow, status: str | None = None, reason: str | None = None) -> Derived:
+    """Every export of ``row`` as the journal has it (``status``/``reason``: the ones about to be
+    journaled, when the run is ending)."""
+    points = journal.points(row.id, status="ok")
+    writer = ReadingsWriter(Path(READINGS), temperature=bool(points) and all(p.temp_c is not None
+                                                                                for p in points))
+    for p in points:
+        writer.append(replicate=p.replicate, y_deg=p.y_deg, u_deg=p.u_deg, pitch_deg=p.pitch_deg,
+                      roll_deg=p.roll_deg, volts=[p.vx, p.vy, p.vz], temp_c=p.temp_c,
+                      sd=[p.sd_vx, p.sd_vy, p.sd_vz], n_samples=p.n_samples, time_s=p.t_end)
+    files = {PLAN: row.plan_text.encode("utf-8"), READINGS: writer.text().encode("utf-8")}
+    fit = None
+    if points:
+        try:
+            fit = fit_readings(journal.readings(row.id))
+        except LabcalError:
+            fit = None  # too few points so far for a fit
+    if fit is not None:
+        files[FIT] = _json(fit.to_json())
+    status = status or row.status
+    info = {"labcal_version": row.software_version, "journal": str(journal.path.resolve()),
+            **identity(row), "plan": row.plan_name, "station": station_description(row),
+            "operator": row.operator, "status": status,
+            "reason": reason if status != row.status or reason else row.reason,
+            "points_recorded": len(points), "rig_time_s": journal.rig_time(row.id),
+            "settings": row.settings, **{k: v for k, v in row.metadata.items() if k != "station"}}
+    files[RUN] = _json(info)
+    return Derived(files, fit)
+
+
+def station_description(row: RunRow) -> str:
+    """What the run's station was, from the journal (runs before it was journaled: from the kind of
+    its snapshot)."""
+    if row.metadata.get("station"):
+        return str(row.metadata["station"])
+    try:
+        kind = json.loads(row.station_text).get("kind")
+    except (ValueError, AttributeError):
+        kind = None
+    return str(kind or "the station in the journal's snapshot")
+
+
+def _json(doc: dict) -> bytes:
+    return (json.dumps(json_safe(doc), indent=2) + "\n").encode("utf-8")
+
+
+def write(run_dir: Path, derived: Derived) -> dict[str, str]:
+    """Write every export whose bytes differ from the folder's (run.json last); their hashes."""
+    for name, data in derived.files.items():
+        if _read(run_dir / name) != data:
+            write_atomic(run_dir / name, data)
+    return {name: digest(data) for name, data in derived.files.items()}
+
+
+def _read(path: Path) -> bytes | None:
+    try:
+        return path.read_bytes()
+    except OSError:
+        return None
+
+
+def sync(journal: Journal, row: RunRow, run_dir: Path) -> tuple[list[str], Fit | None]:
+    """Bring a run folder back to what its journal says; one note per file that was not.
+
+    Missing and stale exports (a kill before they were rewritten) are rewritten; a file whose hash
+    is none that labcal wrote for this run was edited by hand: it is named, kept as NAME.edited,
+    and rewritten from the journal."""
+    derived = derive(journal, row)
+    known = journal.export_hashes(row.id)
+    notes = [f"{name} removed: a partial file left by a killed write" for name in remove_orphans(run_dir)]
+    for name, data in derived.files.items():
+        path = run_dir / name
+        on_disk = _read(path)
+        if on_disk == data:
+            continue
+        if on_disk is None:
+            notes.append(f"{name} was missing; rewritten from the journal")
+            continue
+        found = digest(on_disk)
+        if found == known.get(name) or (name == RUN and _is_run_json_of(on_disk, row)):
+            notes.append(f"{name} was out of date; rewritten from the journal")
+            continue
+        if name == PLAN and found == row.plan_hash:
+            continue  # the same plan text (an older labcal wrote it); nothing to say
+        kept = path.with_name(name + ".edited")
+        os.replace(path, kept)
+        notes.append(f"{name} was edited by hand (sha256 {found[:12]}…, the journal's {digest(data)[:12]}…); "
+                     f"kept as {kept.name}, rewritten from the journal")
+    hashes = write(run_dir, derived)
+    journal.exported(row.id, hashes)
+    return notes, derived.fit
+
+
+def remove_orphans(run_dir: Path) -> list[str]:
+    """Delete the temporary files of writes whose process is gone (`write_atomic` names them
+    ``.NAME.PID.tmp``); a live writer's are left alone. Returns their names."""
+    removed = []
+    for path in run_dir.glob(".*.*.tmp"):
+        pid = path.name.rsplit(".", 2)[-2]
+        if not pid.isdigit() or _alive(int(pid)):
+            continue
+        try:
+            path.unlink()
+        except OSError:
+            continue
+        removed.append(path.name)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True  # someone else's process: alive
+    return True
+
+
+def _is_run_json_of(data: bytes, row: RunRow) -> bool:
+    """run.json is labcal's status record, rewritten at every stop: one naming this run is labcal's."""
+    try:
+        info = json.loads(data)
+    except ValueError:
+        return False
+    if not isinstance(info, dict):
+        return False
+    if "run_uuid" in info:
+        return info["run_uuid"] == row.uuid
+    return info.get("run_id") == row.id and info.get("plan_sha256") == row.plan_hash  # before UUIDs
