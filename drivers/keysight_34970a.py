@@ -107,7 +107,7 @@ class Keysight34970A:
 
     def _exchange(self, exchange: Callable[[], T]) -> T:
         with on_device(self.device):
-            return retried(exchange, self.tries, self.link.drain, self.link.critical)
+            return retried(exchange, self.tries, self.link.drain, self.link.critical, self.device)
 
     # --- the voltmeter ----------------------------------------------------------------------
     def identify(self) -> str:

@@ -134,7 +134,7 @@ class Smc100Axis(IndexAxis):
             return parse(parse_reply(line, self.address, mnemonic))
 
         with on_device(self.device):
-            return retried(once, self.tries, self.link.drain, self.link.critical)
+            return retried(once, self.tries, self.link.drain, self.link.critical, self.device)
 
     def do(self, command: str, safe: bool = True) -> None:
         """A command, then ``TE``; raises `Rejected` with the controller's reason. Commands safe to
@@ -146,7 +146,7 @@ class Smc100Axis(IndexAxis):
                 raise self._refused(command, code)
 
         with on_device(self.device):
-            retried(once, self.tries if safe else 1, self.link.drain, self.link.critical)
+            retried(once, self.tries if safe else 1, self.link.drain, self.link.critical, self.device)
 
     # --- the axis ---------------------------------------------------------------------------
     def status(self) -> AxisStatus:

@@ -157,6 +157,8 @@ class LineServer:
         if kind == FaultKind.EXCEPTION:
             self.device.refuse(line, fault.code if fault else None)
             return
+        if kind == FaultKind.LOST_REQUEST:
+            return
         if kind == FaultKind.ALARM:
             self.device.alarm(name, fault.code if fault else None)
         reply = self.device.handle(line)
@@ -165,6 +167,9 @@ class LineServer:
         data = reply.encode("ascii")
         if kind == FaultKind.GARBLED:
             data = garble(data)
+        if kind == FaultKind.TRUNCATED:
+            channel.send(data[:len(data) // 2])
+            return
         if kind == FaultKind.LATE_REPLY and fault is not None:
             time.sleep(fault.delay_s)
         channel.send(data + self.device.eol)

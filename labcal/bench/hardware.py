@@ -101,6 +101,9 @@ class Bench:
                                       "problem": None}
             try:
                 report["identity"] = axis.identify()
+                if reset_alarms and isinstance(axis, AzAxis) and axis.stop_input_on():
+                    axis.release_stop()  # left on by a stop whose release never arrived
+                    report["stop_released"] = True
                 status = axis.status()
                 if status.fault and reset_alarms and isinstance(axis, AzAxis):
                     axis.reset_alarm()
