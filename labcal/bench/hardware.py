@@ -60,7 +60,8 @@ class Bench:
         self.dmm = Keysight34970A("dmm", dmm_link,
                                   channels=dmm.channels, temperature_channel=dmm.temperature_channel,
                                   temperature_probe=dmm.temperature_probe, nplc=dmm.nplc, range_v=dmm.range_v,
-                                  line_hz=dmm.line_hz, retries=dmm.retries, serial_line=dmm.port is not None)
+                                  line_hz=dmm.line_hz, retries=dmm.retries, serial_line=dmm.port is not None,
+                                  baudrate=dmm.baudrate)
 
     def _link(self, settings: LinkSettings, kind: type[Link], make: Callable[[], Link]) -> Link:
         """The one link of the settings' bus, made for its first device."""
