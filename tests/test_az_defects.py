@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from emulators import bench_fixtures, emulated, no_leaks  # noqa: F401 - fixture
 
+from labcal.bench.hardware import Bench
 from labcal.config.emulation import FaultKind
 from labcal.drivers.errors import DeviceFault, LinkLost, Rejected
 from labcal.drivers.modbus import ModbusLink
@@ -101,3 +102,14 @@ def test_a_serial_port_that_does_not_open_says_why(tmp_path):
     with pytest.raises(LinkLost, match="cannot open .*ttyUSB9 \\(.*(No such file|could not open port)"):
         link.read(1, 0x00CC, 2)
     assert "connection refused" not in str(pytest.raises(LinkLost, link.read, 1, 0x00CC, 2).value)
+
+
+def test_station_check_shows_an_identity_only_for_a_drive_that_answered(tmp_path, no_leaks):  # noqa: F811
+    with emulated("az-modbus-tcp", tmp_path, pitch=QUICK, roll=QUICK) as (emulation, _):
+        config = emulation.station_config
+        wrong = config.model_copy(update={"roll": config.roll.model_copy(update={"unit": 9, "retries": 0})})
+        with Bench(wrong, emulation.rig.clock) as bench:
+            pitch, roll, dmm = bench.check()
+        assert pitch["identity"].startswith("Oriental Motor AZ unit 1 on tcp 127.0.0.1:")
+        assert "identity" not in roll and "no reply" in roll["problem"]
+        assert dmm["identity"].startswith("Keysight Technologies,34970A,")

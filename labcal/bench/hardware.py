@@ -45,6 +45,13 @@ def modbus_link(settings: LinkSettings) -> ModbusLink:
                              retries=settings.retries, reconnect_s=settings.reconnect_s)
 
 
+def dmm_identity(idn: str) -> dict[str, str]:
+    """A 34970A-family ``*IDN?`` answer (maker, model, serial number, firmware) by field."""
+    maker, model, serial, firmware = (field.strip() for field in idn.split(",", 3))
+    return {"model": f"{maker} {model}", "identity": idn, "maker": maker, "serial": serial,
+            "firmware": firmware}
+
+
 class Bench:
     """Drivers for a station file. Nothing is opened until a device is first asked something;
     `close` releases every port."""
@@ -53,6 +60,9 @@ class Bench:
         self.config = config
         self.clock = clock or SystemClock()
         self._links: dict[str, ModbusLink | LineTransport] = {}
+        # who answered, as each device says it (read by `prepare`): a run journals these in its
+        # metadata ("device_identity") and a resume as an event, for the certificate's traceability
+        self.identities: dict[str, dict[str, str]] = {}
         self.pitch = self._axis("pitch", config.pitch)
         self.roll = self._axis("roll", config.roll)
         dmm = config.dmm
@@ -87,10 +97,14 @@ class Bench:
         return self.pitch, self.roll
 
     def prepare(self, say: Callable[[str], None] = lambda text: None) -> None:
-        """Home and enable the tables where their controllers need it, and configure the DMM."""
+        """Read every device's identity (`identities`), home and enable the tables where their
+        controllers need it, and configure the DMM."""
         for axis in self.axes:
-            say(f"preparing the {axis.name} table ({axis.identify()})")
+            identity = axis.identify()
+            self.identities[axis.name] = {"model": axis.model, "identity": identity}
+            say(f"preparing the {axis.name} table ({identity})")
             axis.prepare()
+        self.identities["dmm"] = dmm_identity(self.dmm.identify())
         self.dmm.configure()
 
     def check(self, reset_alarms: bool = False) -> list[dict[str, Any]]:
