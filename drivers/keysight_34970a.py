@@ -18,7 +18,7 @@ from typing import TypeVar
 import numpy as np
 
 from labcal.drivers.errors import BadReply, DeviceFault, NoReply, Rejected, on_device
-from labcal.drivers.transport import LineTransport, retried
+from labcal.drivers.transport import Lines, retried
 from labcal.run.station import Scan
 
 T = TypeVar("T")
@@ -74,7 +74,7 @@ class Keysight34970A:
 
     model = "Keysight 34970A"
 
-    def __init__(self, name: str, link: LineTransport, *, channels: Sequence[int] = (101, 102, 103),
+    def __init__(self, name: str, link: Lines, *, channels: Sequence[int] = (101, 102, 103),
                  temperature_channel: int | None = None, temperature_probe: str = "RTD,85",
                  nplc: float = 10.0, range_v: float = 10.0, line_hz: float = 50.0, retries: int = 2,
                  serial_line: bool = False, baudrate: int | None = None):

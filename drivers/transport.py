@@ -110,6 +110,25 @@ def reconnect(connect: Callable[[], object], budget_s: float, what: str) -> None
         delay = min(2 * delay, BACKOFF_MAX_S)
 
 
+class Lines(Protocol):
+    """What a line-protocol driver needs from its link: `LineTransport`, or a VISA resource
+    (`labcal.drivers.visa.VisaLink`)."""
+
+    where: str
+    timeout_s: float
+    critical: CriticalSection | None
+
+    def write_line(self, text: str) -> None: ...
+
+    def read_line(self, timeout_s: float | None = None) -> str: ...
+
+    def query(self, text: str, timeout_s: float | None = None) -> str: ...
+
+    def drain(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
 class Stream(Protocol):
     """An open byte stream: what a line transport needs from a serial port or a socket."""
 
