@@ -195,7 +195,21 @@ class ModbusLink:
         buffers, so a late reply is never taken for the answer to the next request (RTU has no
         transaction ids to tell them apart)."""
         time.sleep(min(self.timeout_s, 0.5))
+        late = self._waiting()
+        log.warning("%s: reopening the port%s", self.where,
+                    f" ({late} late byte(s) discarded with it)" if late else " before the next try")
         self.close()
+
+    def _waiting(self) -> int:
+        """Bytes that arrived after the exchange gave up (a late reply), without reading them."""
+        port = getattr(self.client, "socket", None)
+        try:
+            if isinstance(port, socket.socket):
+                port.setblocking(False)
+                return len(port.recv(4096, socket.MSG_PEEK))
+            return int(getattr(port, "in_waiting", 0))
+        except (OSError, ValueError, TypeError):
+            return 0
 
     def close(self) -> None:
         self.client.close()  # type: ignore[no-untyped-call]  # pymodbus: the sync clients' close() is unannotated
