@@ -110,6 +110,15 @@ def reconnect(connect: Callable[[], object], budget_s: float, what: str) -> None
         delay = min(2 * delay, BACKOFF_MAX_S)
 
 
+def ascii_line(raw: bytes, where: str) -> str:
+    """A reply line without its terminator, logged; `BadReply` for bytes that are not ASCII text."""
+    text = raw.decode("ascii", errors="replace").rstrip("\r\n")
+    log.debug("%s < %s", where, text)
+    if "\ufffd" in text or not text.isprintable():
+        raise BadReply(f"garbled reply {raw[:40]!r}")
+    return text
+
+
 class Lines(Protocol):
     """What a line-protocol driver needs from its link: `LineTransport`, or a VISA resource
     (`labcal.drivers.visa.VisaLink`)."""
@@ -243,11 +252,7 @@ class LineTransport:
             except OSError as exc:
                 raise self._lost(exc) from None
         raw, _, self._buffer = self._buffer.partition(b"\n")
-        text = raw.decode("ascii", errors="replace").removesuffix("\r")
-        log.debug("%s < %s", self.where, text)
-        if "\ufffd" in text or not text.isprintable():  # bytes that are not ASCII text
-            raise BadReply(f"garbled reply {raw[:40]!r}")
-        return text
+        return ascii_line(raw, self.where)
 
     def query(self, text: str, timeout_s: float | None = None) -> str:
         self.write_line(text)

@@ -14,8 +14,8 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from labcal.drivers.errors import BadReply, LinkLost, NoReply, PortClosed
-from labcal.drivers.transport import reconnect
+from labcal.drivers.errors import LinkLost, NoReply, PortClosed
+from labcal.drivers.transport import ascii_line, reconnect
 from labcal.run.station import CriticalSection
 
 log = logging.getLogger(__name__)
@@ -117,11 +117,7 @@ class VisaLink:
             raise self._lost(exc) from None
         except OSError as exc:
             raise self._lost(exc) from None
-        text = raw.decode("ascii", errors="replace").rstrip("\r\n")
-        log.debug("%s < %s", self.where, text)
-        if "\ufffd" in text or not text.isprintable():
-            raise BadReply(f"garbled reply {raw[:40]!r}")
-        return text
+        return ascii_line(raw, self.where)
 
     def query(self, text: str, timeout_s: float | None = None) -> str:
         self.write_line(text)
