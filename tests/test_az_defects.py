@@ -4,14 +4,18 @@ gateways, the RTU silent interval, and why a port does not open."""
 
 from __future__ import annotations
 
+import sqlite3
+
 import numpy as np
 import pytest
-from emulators import bench_fixtures, emulated, no_leaks  # noqa: F401 - fixture
+from emulators import bench_fixtures, cli, emulated, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.bench.hardware import Bench
 from labcal.config.emulation import FaultKind
+from labcal.config.station import load_station
 from labcal.drivers.errors import DeviceFault, LinkLost, Rejected
 from labcal.drivers.modbus import ModbusLink
+from labcal.sim.emulation import Emulation
 from labcal.sim.faults import Fault
 
 QUICK = {"timeout_s": 0.1, "retries": 2, "reconnect_s": 0.5}
@@ -113,3 +117,20 @@ def test_station_check_shows_an_identity_only_for_a_drive_that_answered(tmp_path
         assert pitch["identity"].startswith("Oriental Motor AZ unit 1 on tcp 127.0.0.1:")
         assert "identity" not in roll and "no reply" in roll["problem"]
         assert dmm["identity"].startswith("Keysight Technologies,34970A,")
+
+
+def test_a_run_on_a_drive_with_stop_on_is_refused_in_one_line(tmp_path, capsys, lab_database, no_leaks):  # noqa: F811
+    """`labcal run` on a bench (here served by emulators the test starts) whose pitch drive still
+    has STOP on: one line naming the drive and what to do, exit 2, no run journaled."""
+    path = private_file("az-modbus-tcp", tmp_path, link="timeout_s = 0.2")
+    config, _ = load_station(path)
+    with Emulation(config) as emulation, Bench(emulation.station_config, emulation.rig.clock) as bench:
+        bench.pitch.link.write_one(1, 0x007D, STOP_BIT)
+        code, out, err = cli(capsys, "run", "--station", str(path), "--no-report", "--yes",
+                             "--out", str(tmp_path / "run"))
+    assert code == 2 and out == "" and "Traceback" not in err, err
+    [error] = [line for line in err.splitlines() if line.startswith("labcal: error:")]  # after "preparing"
+    assert error.startswith("labcal: error: pitch table (Oriental Motor AZ, unit 1 on tcp 127.0.0.1:")
+    assert "STOP input is on" in error and "--reset-alarms" in error
+    with sqlite3.connect(lab_database) as db:  # no run started: the journal was never opened
+        assert db.execute("SELECT name FROM sqlite_master WHERE name = 'runs'").fetchall() == []
