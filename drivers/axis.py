@@ -8,6 +8,7 @@ back lies within the tolerance of the target.
 
 from __future__ import annotations
 
+import logging
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
@@ -15,6 +16,7 @@ from dataclasses import dataclass
 from labcal.drivers.errors import DeviceFault, OutOfLimits
 from labcal.run.station import Clock
 
+log = logging.getLogger(__name__)
 ARCSEC_PER_DEG = 3600.0
 START_GRACE_S = 1.0  # a device may report its old in-position state this long after a move starts
 
@@ -131,4 +133,9 @@ class IndexAxis(ABC):
         return self.angle() % 360.0
 
     def stop(self) -> None:
-        self._halt()
+        """Tell the device to stop; a stop that fails is logged as a WARNING and raised."""
+        try:
+            self._halt()
+        except Exception as exc:
+            log.warning("%s: STOP FAILED, the table may still be moving: %s", self.device, exc)
+            raise

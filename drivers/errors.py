@@ -37,6 +37,12 @@ class Rejected(DriverError):
     """The device answered but refused the command (exception response, error code)."""
 
 
+class Busy(Rejected):
+    """The device (or a gateway in front of it) could not take the request now: Modbus exceptions
+    06h (busy), 0Ah (gateway path unavailable), 0Bh (gateway target did not respond). Nothing was
+    done, so an exchange that is safe to repeat is repeated, as after a lost reply."""
+
+
 class DeviceFault(DriverError):
     """The device reports a fault state (alarm, disabled stage, overload) or missed its target."""
 
@@ -46,13 +52,14 @@ class OutOfLimits(DriverError):
 
 
 # Failures after which the same exchange may be tried again (when repeating it is safe).
-TRANSIENT = (NoReply, BadReply, PortClosed)
+TRANSIENT = (NoReply, BadReply, PortClosed, Busy)
 
 
 HINTS: dict[type[DriverError], str] = {
     NoReply: "check that it is powered and cabled, and its address and line settings in the station file",
     BadReply: "check the line settings (baud rate, parity) and the cable",
     PortClosed: "check the cable and the port",
+    Busy: "it stayed busy through every retry; check the gateway and the drive behind it",
     LinkLost: "check the cable, the port name, and that no other program holds the port",
 }
 

@@ -9,6 +9,7 @@ queue, so silence is explained by reading the queue. Dialect: hardware_protocols
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 from collections.abc import Callable, Sequence
@@ -17,14 +18,19 @@ from typing import TypeVar
 import numpy as np
 
 from labcal.drivers.errors import BadReply, DeviceFault, NoReply, Rejected, on_device
-from labcal.drivers.transport import LineTransport, retried
+from labcal.drivers.transport import Lines, retried
 from labcal.run.station import Scan
 
 T = TypeVar("T")
+log = logging.getLogger(__name__)
 EOL = b"\n"
 OVERLOAD = 9.9e37
 CHANNEL_S = 0.005  # relay switching and settling per channel, on top of integration
 MAX_ERRORS = 20  # the 34970A's error queue holds 10; never loop for ever on a chatty device
+READING_CHARS = 20  # one reading with its channel number in a FETC? reply: "+1.23456789E+00,101,"
+BITS_PER_CHAR = 10  # start, 8 data, stop (8N1; a parity bit makes it 11, within the margin)
+MARGIN = 1.5  # deadlines allow half as long again as the estimate
+FAMILY = ("34970A", "34972A", "DAQ970A", "DAQ973A")  # the models that speak this scan-list dialect
 
 
 def channel_time_s(nplc: float, line_hz: float) -> float:
@@ -68,10 +74,10 @@ class Keysight34970A:
 
     model = "Keysight 34970A"
 
-    def __init__(self, name: str, link: LineTransport, *, channels: Sequence[int] = (101, 102, 103),
+    def __init__(self, name: str, link: Lines, *, channels: Sequence[int] = (101, 102, 103),
                  temperature_channel: int | None = None, temperature_probe: str = "RTD,85",
                  nplc: float = 10.0, range_v: float = 10.0, line_hz: float = 50.0, retries: int = 2,
-                 serial_line: bool = False):
+                 serial_line: bool = False, baudrate: int | None = None):
         self.name, self.link = name, link
         self.device = f"{name} ({self.model}, {link.where})"
         self.channels = tuple(channels)
@@ -81,6 +87,7 @@ class Keysight34970A:
         self.nplc, self.range_v, self.line_hz = nplc, range_v, line_hz
         self.tries = retries + 1
         self.serial_line = serial_line
+        self.char_s = BITS_PER_CHAR / baudrate if serial_line and baudrate else 0.0  # 0: network speed
         self.measures_temperature = temperature_channel is not None
 
     # --- exchanges --------------------------------------------------------------------------
@@ -107,17 +114,33 @@ class Keysight34970A:
 
     def _exchange(self, exchange: Callable[[], T]) -> T:
         with on_device(self.device):
-            return retried(exchange, self.tries, self.link.drain, self.link.critical)
+            return retried(exchange, self.tries, self.link.drain, self.link.critical, self.device)
 
     # --- the voltmeter ----------------------------------------------------------------------
+    def _remote(self) -> None:
+        """On RS-232 the unit obeys nothing before ``SYST:REM`` (User's Guide, SYSTem:REMote)."""
+        if self.serial_line:
+            self.link.write_line("SYST:REM")
+
     def identify(self) -> str:
-        return self._exchange(lambda: self._ask("*IDN?"))
+        """``*IDN?``: maker, model, serial number, firmware. A unit that answers as another model
+        is refused: this driver's scan-list dialect is the 34970A family's."""
+        def once() -> str:
+            self._remote()
+            return self._ask("*IDN?")
+
+        identity = self._exchange(once)
+        fields = [f.strip() for f in identity.split(",")]
+        if len(fields) != 4 or not any(model in fields[1].upper() for model in FAMILY):
+            raise DeviceFault(f"answers *IDN? with {identity[:80]!r}, not a {'/'.join(FAMILY)}; check the "
+                              "station file's dmm link (is another instrument at that address?)", self.device)
+        return identity
 
     def configure(self) -> None:
         """Put the unit in a known state: DC volts at a fixed range and NPLC on the three
         channels, the temperature channel, the scan list, channel numbers in the readings."""
         volts = channel_list(self.channels)
-        commands = ["*RST", "*CLS"] + (["SYST:REM"] if self.serial_line else []) + [
+        commands = (["SYST:REM"] if self.serial_line else []) + ["*RST", "*CLS"] + [
             f"CONF:VOLT:DC {self.range_v:g},{volts}", f"VOLT:DC:NPLC {self.nplc:g},{volts}"]
         if self.temperature_channel:
             thermometer = channel_list([self.temperature_channel])
@@ -137,15 +160,25 @@ class Keysight34970A:
         """How long the unit needs for ``sweeps`` sweeps of the scan list."""
         return sweeps * len(self.scan_list) * channel_time_s(self.nplc, self.line_hz)
 
+    def deadlines_s(self, sweeps: int) -> tuple[float, float]:
+        """How long to wait for ``*OPC?`` (the scan: NPLC × channels × sweeps) and for ``FETC?``
+        (its reply: every reading with its channel number, at the serial line's rate), each the
+        link's own timeout plus half as long again as the estimate."""
+        transfer_s = sweeps * len(self.scan_list) * READING_CHARS * self.char_s
+        timeout = self.link.timeout_s
+        return timeout + MARGIN * self.scan_time_s(sweeps), timeout + MARGIN * transfer_s
+
     def read(self, n_samples: int) -> Scan:
         """n sweeps of the scan list; a lost or garbled reply repeats the whole scan."""
+        scan_s, fetch_s = self.deadlines_s(n_samples)
+
         def once() -> np.ndarray:
             self.link.write_line(f"TRIG:COUN {n_samples}")
             self.link.write_line("INIT")
-            done = self._ask("*OPC?", self.link.timeout_s + 1.5 * self.scan_time_s(n_samples))
+            done = self._ask("*OPC?", scan_s)
             if done.strip() != "1":
                 raise BadReply(f"*OPC? answered {done[:40]!r}")
-            readings = parse_readings(self._ask("FETC?"), self.scan_list, n_samples)
+            readings = parse_readings(self._ask("FETC?", fetch_s), self.scan_list, n_samples)
             self._check("the scan")
             return readings
 

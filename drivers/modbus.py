@@ -2,26 +2,31 @@
 
 pymodbus frames and checks the bytes (CRC, transaction ids); this link adds what a bench needs:
 its own bounded retries (pymodbus is told not to retry, so only exchanges known to be safe are
-repeated), a reopened port after a late reply or a vanished port, and replies checked for shape
-and turned into driver errors. Units on one bus share one link: one bus, one owner.
+repeated; a busy device or gateway, exceptions 06h/0Ah/0Bh, counts as a missing reply), a reopened
+port after a late reply or a vanished port, the RTU silent interval before every request, and
+replies checked for shape and turned into driver errors. Units on one bus share one link: one
+bus, one owner. Every frame is logged at DEBUG in hex (logger ``labcal.drivers.modbus``).
 """
 
 from __future__ import annotations
 
 import logging
+import socket
 import time
 from collections.abc import Callable, Sequence
 
+import serial
 from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusIOException
 from pymodbus.pdu import ExceptionResponse, ModbusPDU
 
-from labcal.drivers.errors import BadReply, NoReply, PortClosed, Rejected
+from labcal.drivers.errors import BadReply, Busy, NoReply, PortClosed, Rejected
 from labcal.drivers.transport import reconnect, retried
 from labcal.run.station import CriticalSection
 
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())  # our errors say it in one line
+log = logging.getLogger(__name__)
 
 EXCEPTION_CODES = {
     1: "illegal function", 2: "illegal data address", 3: "illegal data value",
@@ -29,7 +34,44 @@ EXCEPTION_CODES = {
     10: "gateway path unavailable", 11: "gateway target failed to respond",
 }
 
+BUSY_CODES = frozenset({0x06, 0x0A, 0x0B})  # nothing done; asking again later may succeed
+
 Trace = Callable[[bool, bytes], bytes]
+
+
+def silent_interval_s(baudrate: int, bits_per_char: int = 11) -> float:
+    """t3.5, the silence that must precede every RTU frame: 3.5 character times (11 bits each),
+    fixed at 1.75 ms above 19200 Bd (Modbus over Serial Line V1.02, §2.5.1.1)."""
+    return 1.75e-3 if baudrate > 19200 else 3.5 * bits_per_char / baudrate
+
+
+class SilentInterval:
+    """A pymodbus packet trace that holds each request back until the line has been silent for
+    t3.5 since the last byte received or sent: a request that starts earlier runs into the previous
+    frame, and a strict slave drops both (a reply arrives, and on a daisy chain our own request
+    ends, only a moment before the next request would otherwise go out)."""
+
+    def __init__(self, baudrate: int, bits_per_char: int, then: Trace | None = None):
+        self.t35 = silent_interval_s(baudrate, bits_per_char)
+        self.char_s = bits_per_char / baudrate
+        self.then = then
+        self.quiet_from = 0.0  # monotonic time of the end of the last byte on the line
+
+    def __call__(self, sending: bool, packet: bytes) -> bytes:
+        if sending:
+            while (wait := self.quiet_from + self.t35 - time.monotonic()) > 0:
+                time.sleep(wait)
+            self.quiet_from = time.monotonic() + len(packet) * self.char_s
+        else:
+            self.quiet_from = max(self.quiet_from, time.monotonic())
+        return trace_frame(sending, packet, self.then)
+
+
+def trace_frame(sending: bool, packet: bytes, then: Trace | None) -> bytes:
+    """Log a frame at DEBUG (hex) and hand it to ``then``, a test's trace, if any."""
+    if packet and log.isEnabledFor(logging.DEBUG):
+        log.debug("%s %s", ">" if sending else "<", packet.hex(" "))
+    return then(sending, packet) if then else packet
 
 
 def int32_words(value: int) -> list[int]:
@@ -50,8 +92,9 @@ def checked(response: object, function_code: int, address: int, count: int) -> l
     for an exception response and `BadReply` for anything else that is not the expected reply."""
     if isinstance(response, ExceptionResponse) or (isinstance(response, ModbusPDU) and response.isError()):
         code = getattr(response, "exception_code", 0)
-        raise Rejected(f"exception {code:02X}h ({EXCEPTION_CODES.get(code, 'unknown code')}) "
-                       f"to function {function_code:02X}h at {address:04X}h")
+        refused = Busy if code in BUSY_CODES else Rejected
+        raise refused(f"exception {code:02X}h ({EXCEPTION_CODES.get(code, 'unknown code')}) "
+                      f"to function {function_code:02X}h at {address:04X}h")
     if not isinstance(response, ModbusPDU) or response.function_code != function_code:
         raise BadReply(f"reply {response} does not answer function {function_code:02X}h")
     registers = list(getattr(response, "registers", []) or [])
@@ -69,9 +112,10 @@ class ModbusLink:
     to repeat (reads, absolute-move writes, stop pulses, edge-triggered resets)."""
 
     def __init__(self, client: ModbusSerialClient | ModbusTcpClient, where: str, *, timeout_s: float,
-                 retries: int, reconnect_s: float):
+                 retries: int, reconnect_s: float, open_port: Callable[[], object]):
         self.client = client
         self.where = where
+        self.open_port = open_port  # opens the client's socket; raises what the OS said
         self.timeout_s = timeout_s
         self.tries = retries + 1
         self.reconnect_s = reconnect_s
@@ -81,19 +125,35 @@ class ModbusLink:
     def serial(cls, port: str, *, baudrate: int, bytesize: int, parity: str, stopbits: int,
                timeout_s: float, retries: int, reconnect_s: float, trace: Trace | None = None) -> ModbusLink:
         """Modbus RTU on a serial port or pyserial URL (a pty, ``socket://`` to a serial server)."""
+        bits_per_char = 1 + bytesize + (parity != "N") + stopbits
+        silence = SilentInterval(baudrate, bits_per_char, trace)
         client = ModbusSerialClient(port, framer=FramerType.RTU, baudrate=baudrate, bytesize=bytesize,
                                     parity=parity, stopbits=stopbits, timeout=timeout_s, retries=0,
-                                    reconnect_delay=0, trace_packet=trace)
-        return cls(client, port, timeout_s=timeout_s, retries=retries, reconnect_s=reconnect_s)
+                                    reconnect_delay=0, trace_packet=silence)
+
+        def open_port() -> None:
+            """pymodbus's own connect() logs why a port does not open and returns False; this
+            keeps the reason (no such port, permission denied, port busy)."""
+            client.socket = serial.serial_for_url(port, baudrate=baudrate, bytesize=bytesize, parity=parity,
+                                                  stopbits=stopbits, timeout=timeout_s,
+                                                  write_timeout=timeout_s, exclusive=True)
+            client.socket.inter_byte_timeout = client.inter_byte_timeout
+
+        return cls(client, port, timeout_s=timeout_s, retries=retries, reconnect_s=reconnect_s,
+                   open_port=open_port)
 
     @classmethod
     def tcp(cls, host: str, port: int, *, timeout_s: float, retries: int, reconnect_s: float,
             trace: Trace | None = None) -> ModbusLink:
         """Modbus TCP (MBAP framing), e.g. through an RS-485 gateway: unit id = slave address."""
         client = ModbusTcpClient(host, port=port, timeout=timeout_s, retries=0, reconnect_delay=0,
-                                 trace_packet=trace)
+                                 trace_packet=lambda sending, packet: trace_frame(sending, packet, trace))
+
+        def open_port() -> None:
+            client.socket = socket.create_connection((host, port), timeout=timeout_s)
+
         return cls(client, f"tcp {host}:{port}", timeout_s=timeout_s, retries=retries,
-                   reconnect_s=reconnect_s)
+                   reconnect_s=reconnect_s, open_port=open_port)
 
     def read(self, unit: int, address: int, count: int) -> list[int]:
         """FC 03, read holding registers."""
@@ -114,7 +174,7 @@ class ModbusLink:
                   count: int) -> list[int]:
         def once() -> list[int]:
             if not self.client.connected:
-                reconnect(self.client.connect, self.reconnect_s, self.where)
+                reconnect(self.open_port, self.reconnect_s, self.where)
             try:
                 response = request()
             except ConnectionException as exc:
@@ -128,14 +188,28 @@ class ModbusLink:
                 raise BadReply(f"undecodable reply ({type(exc).__name__}: {exc})") from None
             return checked(response, function_code, address, count)
 
-        return retried(once, self.tries, self._recover, self.critical)
+        return retried(once, self.tries, self._recover, self.critical, what=self.where)
 
     def _recover(self) -> None:
         """Let a late reply arrive, then reopen the port: the reopened port starts with empty
         buffers, so a late reply is never taken for the answer to the next request (RTU has no
         transaction ids to tell them apart)."""
         time.sleep(min(self.timeout_s, 0.5))
+        late = self._waiting()
+        log.warning("%s: reopening the port%s", self.where,
+                    f" ({late} late byte(s) discarded with it)" if late else " before the next try")
         self.close()
+
+    def _waiting(self) -> int:
+        """Bytes that arrived after the exchange gave up (a late reply), without reading them."""
+        port = getattr(self.client, "socket", None)
+        try:
+            if isinstance(port, socket.socket):
+                port.setblocking(False)
+                return len(port.recv(4096, socket.MSG_PEEK))
+            return int(getattr(port, "in_waiting", 0))
+        except (OSError, ValueError, TypeError):
+            return 0
 
     def close(self) -> None:
         self.client.close()  # type: ignore[no-untyped-call]  # pymodbus: the sync clients' close() is unannotated

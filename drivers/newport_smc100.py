@@ -9,18 +9,21 @@ Protocol: hardware_protocols.md §2.2 and PyMeasure's smc100 driver.
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 from collections.abc import Callable
 from typing import TypeVar, overload
 
 from labcal.drivers.axis import AxisStatus, IndexAxis
-from labcal.drivers.errors import BadReply, DeviceFault, NoReply, Rejected, on_device
+from labcal.drivers.errors import TRANSIENT, BadReply, DeviceFault, NoReply, Rejected, on_device
 from labcal.drivers.transport import LineTransport, retried
 from labcal.run.station import Clock
 
 EOL = b"\r\n"
 T = TypeVar("T")
+log = logging.getLogger(__name__)
+SETPOINT_TOLERANCE_DEG = 1e-6  # TH answers with six decimals, as PA was sent
 
 STATES = {
     0x0A: "NOT REFERENCED from reset", 0x0B: "NOT REFERENCED from HOMING",
@@ -134,7 +137,7 @@ class Smc100Axis(IndexAxis):
             return parse(parse_reply(line, self.address, mnemonic))
 
         with on_device(self.device):
-            return retried(once, self.tries, self.link.drain, self.link.critical)
+            return retried(once, self.tries, self.link.drain, self.link.critical, self.device)
 
     def do(self, command: str, safe: bool = True) -> None:
         """A command, then ``TE``; raises `Rejected` with the controller's reason. Commands safe to
@@ -146,7 +149,7 @@ class Smc100Axis(IndexAxis):
                 raise self._refused(command, code)
 
         with on_device(self.device):
-            retried(once, self.tries if safe else 1, self.link.drain, self.link.critical)
+            retried(once, self.tries if safe else 1, self.link.drain, self.link.critical, self.device)
 
     # --- the axis ---------------------------------------------------------------------------
     def status(self) -> AxisStatus:
@@ -163,12 +166,52 @@ class Smc100Axis(IndexAxis):
         return self.ask("TP", parse_number)
 
     def _go(self, target_deg: float) -> None:
-        self.do(f"PA{target_deg:.6f}")
+        """``PA`` once, then ``TE``. The controller takes ``PA`` only in READY, so when the ``TE``
+        reply is lost, sending ``PA`` again would be refused while the stage moves (error M) and
+        stop the run: the state (``TS``) and the set-point (``TH``) tell whether the move began."""
+        command = f"PA{target_deg:.6f}"
+        with on_device(self.device):
+            self.link.write_line(f"{self.address}{command}")
+            try:
+                code = self._error_code()
+            except TRANSIENT as exc:
+                log.warning("%s: the reply to TE after %s was lost (%s); asking the state instead",
+                            self.device, command, exc)
+                self.link.drain()
+                self._confirm_move(command, target_deg)
+                return
+            if code != "@":
+                raise self._refused(command, code)
+
+    def _confirm_move(self, command: str, target_deg: float) -> None:
+        """After a ``PA`` whose acknowledgement was lost: moving, or READY with the set-point on
+        the target, means it was taken; READY elsewhere means it never arrived (sent once more)."""
+        errors, state = self.ask("TS", parse_state)
+        if state in MOVING and not errors:
+            return
+        if state in READY and not errors:
+            if abs(self.ask("TH", parse_number) - float(f"{target_deg:.6f}")) <= SETPOINT_TOLERANCE_DEG:
+                return
+            log.warning("%s: %s did not arrive; sending it again (READY)", self.device, command)
+            self.do(command, safe=False)
+            return
+        raise DeviceFault(f"after {command}: {describe_state(errors, state)}", self.device)
 
     def _halt(self) -> None:
+        """``ST``, but only to a stage that can be moving: the controller refuses ``ST`` when NOT
+        REFERENCED. When the state cannot be read, ``ST`` is sent anyway (a stop must be tried)."""
+        try:
+            state = self.ask("TS", parse_state)[1]
+        except TRANSIENT as exc:
+            log.warning("%s: state unreadable before stopping (%s); sending ST anyway", self.device, exc)
+            state = None
+        if state is not None and state not in MOVING | HOMING:
+            log.debug("%s: not moving (%s): nothing to stop", self.device, describe_state(0, state))
+            return
         self.do("ST")
 
     def identify(self) -> str:
+        """``ID?`` (the stage) and ``VE`` (controller and firmware), as the manual documents them."""
         return f"{self.model} address {self.address}: stage {self.ask('ID?')}, {self.ask('VE')}"
 
     def prepare(self) -> None:

@@ -9,12 +9,16 @@ with soft limits uses plain absolute moves instead. Register map: hardware_proto
 
 from __future__ import annotations
 
+import logging
 from enum import IntEnum, IntFlag
 
 from labcal.drivers.axis import AxisStatus, IndexAxis
-from labcal.drivers.errors import on_device
+from labcal.drivers.errors import TRANSIENT, DeviceFault, DriverError, on_device
 from labcal.drivers.modbus import ModbusLink, int32_words, words_int32
 from labcal.run.station import Clock
+
+log = logging.getLogger(__name__)
+RELEASE_TRIES = 5  # attempts to clear the STOP input, each a write read back (each write is retried)
 
 # --- register map (wire addresses of the upper word of each 32-bit pair) --------------------
 DDO = 0x0058  # operation data No., type, position, speed, rate, stop rate, current, trigger, destination
@@ -134,7 +138,10 @@ class AzAxis(IndexAxis):
 
     def _write(self, address: int, values: list[int]) -> None:
         with on_device(self.device):
-            self.link.write(self.unit, address, values)
+            if len(values) == 1:
+                self.link.write_one(self.unit, address, values[0])
+            else:
+                self.link.write(self.unit, address, values)
 
     def _pulse(self, address: int) -> None:
         """A maintenance command: 0 → 1 executes; the 0 after it arms the next one."""
@@ -159,10 +166,45 @@ class AzAxis(IndexAxis):
         self._write(DDO, ddo_registers(op_type, steps, self.speed_hz, self.rate))
 
     def _halt(self) -> None:
-        """STOP pulse on the lower word of the input command (decelerating stop)."""
+        """STOP on, then off again, in the lower word of the input command (a decelerating stop).
+
+        STOP is a level, not a pulse: while it is on the drive starts nothing, so a release that
+        does not arrive leaves the table stopped for good. Setting and clearing cannot be one write
+        (the drive acts on the level it sees), so the release is read back and repeated until the
+        drive reports the input off, and a release that never lands is an error that says so."""
         with on_device(self.device):
             self.link.write_one(self.unit, INPUT_REF + 1, Input.STOP)
-            self.link.write_one(self.unit, INPUT_REF + 1, 0)
+        self.release_stop()
+
+    def stop_input_on(self) -> bool:
+        """Whether the drive's STOP input (reference input command) is on."""
+        return bool(words_int32(*self._read(INPUT_REF, 2)) & Input.STOP)
+
+    def release_stop(self) -> None:
+        """Clear the STOP input and read it back; repeated until the drive reports it off."""
+        failure: DriverError | None = None
+        for attempt in range(1, RELEASE_TRIES + 1):
+            try:
+                self._write(INPUT_REF + 1, [0])
+                if not self.stop_input_on():
+                    return
+                failure = None
+            except TRANSIENT as exc:
+                failure = exc
+            log.warning("%s: STOP input still on after release attempt %d of %d%s", self.device, attempt,
+                        RELEASE_TRIES, f" ({failure})" if failure else "")
+        raise DeviceFault(f"the STOP input may still be on after {RELEASE_TRIES} attempts to release it "
+                          f"({failure or 'read back on'}): the table will not move until it is off; "
+                          "check the line, then `labcal station check STATION --reset-alarms`", self.device)
+
+    def prepare(self) -> None:
+        """Refuse a drive whose STOP input is on (an earlier stop whose release never arrived):
+        no move would start, and the run would fail later with a misleading stall."""
+        if self.stop_input_on():
+            raise DeviceFault("its STOP input is on (left on by an interrupted stop?), so no move can "
+                              "start; release it with `labcal station check STATION --reset-alarms`, "
+                              "then run or resume again", self.device)
+        super().prepare()
 
     def alarm(self) -> int:
         return words_int32(*self._read(ALARM, 2))
@@ -175,4 +217,8 @@ class AzAxis(IndexAxis):
         self._pulse(P_PRESET)
 
     def identify(self) -> str:
-        return f"{self.model} unit {self.unit}"
+        """The AZ register map (hardware_protocols.md §2.1) documents no product or firmware
+        register, so the identity is the model and the unit, confirmed by a status read (a drive
+        that does not answer has no identity)."""
+        self._read(STATUS, 2)
+        return f"{self.model} unit {self.unit} on {self.link.where}"

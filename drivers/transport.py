@@ -4,11 +4,13 @@ A link is a serial port given by path or any pyserial URL (``socket://host:port`
 ``rfc2217://``...) or a raw TCP connection to ``host:port``. Every exchange has a timeout; an
 exchange that is safe to repeat is retried a bounded number of times; a vanished port is
 reopened with backoff; Ctrl-C waits until the exchange in flight is complete so that no reply is
-left half-read on the line.
+left half-read on the line. Every line is logged at DEBUG, every retry, reconnect and late reply at
+WARNING (loggers ``labcal.drivers.*``), so that a degrading line leaves a record.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import socket
@@ -25,6 +27,7 @@ from labcal.drivers.errors import TRANSIENT, BadReply, LinkLost, NoReply, PortCl
 from labcal.run.station import CriticalSection
 
 T = TypeVar("T")
+log = logging.getLogger(__name__)
 
 BACKOFF_FIRST_S = 0.05
 BACKOFF_MAX_S = 1.0
@@ -65,17 +68,19 @@ def uninterruptible(critical: CriticalSection | None = None) -> Iterator[None]:
 
 
 def retried(exchange: Callable[[], T], tries: int, recover: Callable[[], None],
-            critical: CriticalSection | None = None) -> T:
+            critical: CriticalSection | None = None, what: str = "device") -> T:
     """Run an exchange that is safe to repeat (a read, an absolute move, a stop) up to ``tries``
     times; ``recover`` clears the line between tries (late replies, a reopened port); each try is
-    uninterruptible (``critical``: the run's critical section, when a run has handed one)."""
+    uninterruptible (``critical``: the run's critical section, when a run has handed one). Each
+    repeat is logged as a WARNING naming ``what`` and the failure that caused it."""
     for attempt in range(tries):
         try:
             with uninterruptible(critical):
                 return exchange()
-        except TRANSIENT:
+        except TRANSIENT as exc:
             if attempt + 1 >= tries:
                 raise
+            log.warning("%s: retry %d of %d after: %s", what, attempt + 1, tries - 1, exc)
             recover()
     raise AssertionError("tries must be >= 1")
 
@@ -85,19 +90,52 @@ def reconnect(connect: Callable[[], object], budget_s: float, what: str) -> None
     0.05 s, 0.1 s, ... up to 1 s between attempts; `LinkLost` once ``budget_s`` is spent."""
     deadline = time.monotonic() + budget_s
     delay = BACKOFF_FIRST_S
+    failures = 0
     while True:
         try:
             if connect() is not False:
+                if failures:
+                    log.warning("%s: reopened after %d failed attempt(s)", what, failures)
                 return
             reason = "connection refused"
         except (OSError, serial.SerialException, ValueError) as exc:
             errno = getattr(exc, "errno", None)
             reason = os.strerror(errno) if isinstance(errno, int) else str(exc) or type(exc).__name__
+        failures += 1
         if time.monotonic() + delay > deadline:
             tried = f"; kept trying for {budget_s:g} s" if budget_s > 0 else ""
             raise LinkLost(f"cannot open {what} ({reason}){tried}")
+        log.warning("%s: cannot open (%s); trying again in %g s", what, reason, delay)
         time.sleep(delay)
         delay = min(2 * delay, BACKOFF_MAX_S)
+
+
+def ascii_line(raw: bytes, where: str) -> str:
+    """A reply line without its terminator, logged; `BadReply` for bytes that are not ASCII text."""
+    text = raw.decode("ascii", errors="replace").rstrip("\r\n")
+    log.debug("%s < %s", where, text)
+    if "\ufffd" in text or not text.isprintable():
+        raise BadReply(f"garbled reply {raw[:40]!r}")
+    return text
+
+
+class Lines(Protocol):
+    """What a line-protocol driver needs from its link: `LineTransport`, or a VISA resource
+    (`labcal.drivers.visa.VisaLink`)."""
+
+    where: str
+    timeout_s: float
+    critical: CriticalSection | None
+
+    def write_line(self, text: str) -> None: ...
+
+    def read_line(self, timeout_s: float | None = None) -> str: ...
+
+    def query(self, text: str, timeout_s: float | None = None) -> str: ...
+
+    def drain(self) -> None: ...
+
+    def close(self) -> None: ...
 
 
 class Stream(Protocol):
@@ -190,6 +228,7 @@ class LineTransport:
 
     def write_line(self, text: str) -> None:
         stream = self._open()
+        log.debug("%s > %s", self.where, text)
         try:
             stream.write(text.encode("ascii") + self.eol)
         except OSError as exc:
@@ -213,10 +252,7 @@ class LineTransport:
             except OSError as exc:
                 raise self._lost(exc) from None
         raw, _, self._buffer = self._buffer.partition(b"\n")
-        text = raw.decode("ascii", errors="replace").removesuffix("\r")
-        if "\ufffd" in text or not text.isprintable():  # bytes that are not ASCII text
-            raise BadReply(f"garbled reply {raw[:40]!r}")
-        return text
+        return ascii_line(raw, self.where)
 
     def query(self, text: str, timeout_s: float | None = None) -> str:
         self.write_line(text)
@@ -232,7 +268,8 @@ class LineTransport:
         quiet_until, give_up = now + self.timeout_s, now + 3 * self.timeout_s
         try:
             while now < min(quiet_until, give_up):
-                if self._stream.read_some():
+                if late := self._stream.read_some():
+                    log.warning("%s: late reply discarded: %r", self.where, late[:60])
                     quiet_until = time.monotonic() + self.timeout_s
                 now = time.monotonic()
         except OSError:

@@ -4,7 +4,10 @@ Speaks the SCPI subset a scanning DMM needs (CONF, NPLC, ROUT:SCAN, FORM:READ, T
 *OPC?, FETC?, DATA:POIN?, ABOR, SYST:ERR?) with short and long mnemonics, ``;``-joined commands,
 and a SCPI error queue. Each channel is measured at its own moment of the scan, from the rig's
 physics at the tables' current angles and the current mount; a sweep takes as long as the real
-unit's integration (scaled with the rig's clock).
+unit's integration (scaled with the rig's clock). On RS-232 the unit obeys nothing until
+``SYST:REM`` (User's Guide, "RS-232 interface configuration" / SYSTem:REMote): until then a
+command is ignored and answered by nothing. Written from the Keysight 34970A/34972A User's Guide,
+not from labcal's driver; each constant below cites its place.
 """
 
 from __future__ import annotations
@@ -15,11 +18,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from labcal.config.station import NPLC_VALUES, RANGES_V
-from labcal.drivers.keysight_34970a import OVERLOAD, channel_time_s
 from labcal.sim.emulated_rig import EmulatedRig
 
-IDN = "Keysight Technologies,34970A,LABCAL-EMULATOR,labcal-1.0"
+# *IDN?: manufacturer, model, serial number, firmware revisions (User's Guide, "*IDN?": the
+# 34970A answers e.g. "HEWLETT-PACKARD,34970A,0,13-2-2"; later units say Agilent/Keysight)
+IDN = "Keysight Technologies,34970A,MY00000001,13-2-2"
+OVERLOAD = 9.9e37  # an overload reads +9.90000000E+37 (User's Guide, "Overload" readings)
+# Settable integration times in PLC and DC volts ranges (User's Guide, DC voltage: "Integration
+# time" and "Ranges" tables); others get -222 "Data out of range"
+NPLC_VALUES = (0.02, 0.2, 1.0, 2.0, 10.0, 20.0, 100.0, 200.0)
+RANGES_V = (0.1, 1.0, 10.0, 100.0, 300.0)
+SWITCH_AND_DELAY_S = 0.005  # relay closure and automatic channel delay per channel (User's Guide,
+# "Channel delay": automatic delay for DC volts; 34901A relay operate time)
 ERRORS = {-102: "Syntax error", -113: "Undefined header", -221: "Settings conflict",
           -222: "Data out of range", -230: "Data corrupt or stale", -350: "Queue overflow"}
 QUEUE_SIZE = 10
@@ -94,12 +104,21 @@ class State:
     scan: ScanRun | None = None
 
 
+def channel_s(nplc: float, line_hz: float) -> float:
+    """One channel of a sweep: the integration, once more for autozero (on by default: the offset
+    is measured after every reading, User's Guide "Autozero"), and the switch/delay time."""
+    return 2 * nplc / line_hz + SWITCH_AND_DELAY_S
+
+
 class Keysight34970AEmulator:
     eol = b"\n"
 
-    def __init__(self, rig: EmulatedRig, wiring: dict[int, int | str], name: str = "dmm"):
-        """``wiring``: channel → instrument output 0, 1, 2 (x, y, z) or "temp" for the thermometer."""
+    def __init__(self, rig: EmulatedRig, wiring: dict[int, int | str], name: str = "dmm",
+                 serial_line: bool = False):
+        """``wiring``: channel → instrument output 0, 1, 2 (x, y, z) or "temp" for the thermometer;
+        ``serial_line``: on RS-232, where ``SYST:REM`` must come first."""
         self.rig, self.wiring, self.name = rig, wiring, name
+        self.remote = not serial_line
         self.state = State()
         self.errors: list[int] = []
         self.overload_next = False
@@ -132,6 +151,9 @@ class Keysight34970AEmulator:
         replies = []
         for part in filter(None, (p.strip() for p in line.split(";"))):
             header, _, argument = part.lstrip(":").partition(" ")
+            if not self.remote:
+                self.remote = bool(re.fullmatch(r"SYST(EM)?:REM(OTE)?", header, re.IGNORECASE))
+                continue  # in local, RS-232 commands are not obeyed
             handler = next((h for pattern, h in self.commands if pattern.fullmatch(header)), None)
             if handler is None:
                 self._error(-113)
@@ -246,7 +268,7 @@ class Keysight34970AEmulator:
             self._error(-221)
             return
         line_hz = self.rig.rig.config.line_hz
-        durations = [channel_time_s(state.channels[c].nplc, line_hz) for c in state.scan_list]
+        durations = [channel_s(state.channels[c].nplc, line_hz) for c in state.scan_list]
         state.scan = ScanRun(self.rig.clock.now(), list(state.scan_list), durations, state.trigger_count)
 
     def _abort(self, _: str) -> None:

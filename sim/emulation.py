@@ -78,7 +78,11 @@ class Emulation:
                 wiring: dict[int, int | str] = {c: i for i, c in enumerate(dmm.channels)}
                 if dmm.temperature_channel:
                     wiring[dmm.temperature_channel] = "temp"
-                server = LineServer(Keysight34970AEmulator(self.rig, wiring), endpoint, self.faults)
+                serial_line = endpoint.kind == "pty"
+                meter = Keysight34970AEmulator(self.rig, wiring, serial_line=serial_line)
+                # RS-232 carries 10 bits a character (8N1), in the rig's time
+                char_s = 10 / dmm.baudrate / self.time_scale if serial_line else 0.0
+                server = LineServer(meter, endpoint, self.faults, char_s=char_s)
                 protocol = "Keysight 34970A SCPI"
         except OSError as exc:
             raise LabcalError(f"{', '.join(names)}: cannot serve {endpoint} ({exc.strerror or exc}); "

@@ -29,6 +29,10 @@ class Endpoint:
 
     @classmethod
     def of(cls, name: str, settings: LinkSettings) -> Endpoint:
+        if getattr(settings, "visa", None) is not None:
+            raise LabcalError(f"{name}: emulators serve a pty or a TCP port, not a VISA resource; emulate "
+                              "the station with tcp = \"127.0.0.1:PORT\" and reach it through VISA as "
+                              "visa = \"TCPIP0::127.0.0.1::PORT::SOCKET\" from another station file")
         if settings.tcp is not None:
             host, port = tcp_address(settings.tcp)
             return cls("tcp", host, port).checked(name)

@@ -9,7 +9,11 @@ Each emulated device has a `FaultInjector`. The emulator asks it about every req
 - ``alarm``: the device raises an alarm (AZ alarm code, SMC100 following error, DMM overload);
 - ``exception``: the device refuses the request (Modbus exception response, SMC100 error code,
   SCPI error in the queue);
-- ``close-port``: the port or connection is closed, and reopened after ``reopen_s`` if given.
+- ``close-port``: the port or connection is closed, and reopened after ``reopen_s`` if given;
+- ``lost-request``: the request never reaches the device (noise on the request: a Modbus slave
+  drops a frame whose CRC fails, Modbus over Serial Line V1.02 §2.5.1.2), so nothing is done and
+  nothing is answered;
+- ``truncated``: only the first half of the reply arrives.
 """
 
 from __future__ import annotations

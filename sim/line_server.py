@@ -49,8 +49,12 @@ class _Channel:
 
 
 class LineServer:
-    def __init__(self, device: LineDevice, endpoint: Endpoint, faults: dict[str, FaultInjector]):
+    def __init__(self, device: LineDevice, endpoint: Endpoint, faults: dict[str, FaultInjector],
+                 char_s: float = 0.0):
+        """``char_s``: replies leave no faster than one character in that many seconds, as on a
+        real RS-232 line; 0: at once (a network link)."""
         self.device, self.endpoint, self.faults = device, endpoint, faults
+        self.char_s = char_s
         self.errors: list[BaseException] = []  # emulator bugs, kept for tests to see
         self._listener: socket.socket | None = None
         self._pty: PtyPair | None = None
@@ -157,6 +161,8 @@ class LineServer:
         if kind == FaultKind.EXCEPTION:
             self.device.refuse(line, fault.code if fault else None)
             return
+        if kind == FaultKind.LOST_REQUEST:
+            return
         if kind == FaultKind.ALARM:
             self.device.alarm(name, fault.code if fault else None)
         reply = self.device.handle(line)
@@ -165,9 +171,23 @@ class LineServer:
         data = reply.encode("ascii")
         if kind == FaultKind.GARBLED:
             data = garble(data)
+        if kind == FaultKind.TRUNCATED:
+            channel.send(data[:len(data) // 2])
+            return
         if kind == FaultKind.LATE_REPLY and fault is not None:
             time.sleep(fault.delay_s)
-        channel.send(data + self.device.eol)
+        self._send(channel, data + self.device.eol)
+
+    def _send(self, channel: _Channel, data: bytes) -> None:
+        """The reply, paced at the line's rate when it has one (in pieces of ~20 ms)."""
+        if not self.char_s:
+            channel.send(data)
+            return
+        piece = max(1, int(0.02 / self.char_s))
+        for at in range(0, len(data), piece):
+            started = time.monotonic()
+            channel.send(data[at:at + piece])
+            time.sleep(max(0.0, started + len(data[at:at + piece]) * self.char_s - time.monotonic()))
 
     def close(self) -> None:
         if self._closed:

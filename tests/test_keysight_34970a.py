@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from emulators import MOTION_SCALE, bench_fixtures, no_leaks  # noqa: F401 - fixture
+from emulators import MOTION_SCALE, bench_fixtures, emulated, no_leaks  # noqa: F401 - fixture
 
 from labcal.analysis.kinematics import Mount
 from labcal.config.emulation import FaultKind
@@ -122,3 +122,40 @@ def test_the_port_comes_back(dmm):
     emulation.faults["dmm"].add(Fault(FaultKind.CLOSE_PORT, reopen_s=0.2, match="FETC"))
     meter.configure()  # a reopened serial unit may have lost its setup; configuring again is safe
     assert meter.read(2).volts.shape == (2, 3)
+
+
+def test_a_slow_scan_on_a_slow_serial_line_is_waited_for(tmp_path, no_leaks):  # noqa: F811
+    """At 1200 Bd the readings of 2 sweeps × 4 channels take 1.3 s to arrive (20 characters
+    each, 10 bits a character), more than twice the link's 0.5 s timeout: the FETC? deadline scales
+    with the reply's length at the line's rate (the emulator paces its replies in rig time, here
+    real time)."""
+    slow_line = {"timeout_s": 0.5, "retries": 0, "baudrate": 1200, "nplc": 0.2}
+    with emulated("smc100-serial", tmp_path, time_scale=1.0, dmm=slow_line) as (emulation, bench):
+        bench.dmm.configure()
+        assert bench.dmm.scan_list == (101, 102, 103, 104)
+        scan_s, fetch_s = bench.dmm.deadlines_s(2)
+        assert fetch_s == pytest.approx(0.5 + 1.5 * 2 * 4 * 20 * 10 / 1200)
+        assert scan_s == pytest.approx(0.5 + 1.5 * 2 * 4 * (2 * 0.2 / 50 + 0.005))
+        assert bench.dmm.read(2).volts.shape == (2, 3)
+
+
+def test_on_rs232_nothing_is_obeyed_before_syst_rem(tmp_path, no_leaks):  # noqa: F811
+    """The emulator, from the User's Guide: on RS-232, SYST:REM first; the driver sends it first."""
+    with emulated("smc100-serial", tmp_path, dmm=QUICK) as (emulation, bench):
+        link = bench.dmm.link
+        with pytest.raises(NoReply):
+            link.query("*IDN?")  # in local: ignored
+        assert bench.dmm.identify().startswith("Keysight Technologies,34970A,")
+        bench.dmm.configure()
+        assert bench.dmm.read(1).volts.shape == (1, 3)
+
+
+def test_another_instrument_at_the_dmm_address_is_one_line(tmp_path, no_leaks, monkeypatch):  # noqa: F811
+    from labcal.sim import dmm_emulator
+
+    monkeypatch.setattr(dmm_emulator, "IDN", "Keysight Technologies,34465A,MY12345678,A.02.14")
+    with emulated("az-modbus-tcp", tmp_path, dmm=QUICK) as (_, bench):
+        with pytest.raises(DeviceFault, match="dmm .*answers \\*IDN\\? with '.*34465A.*', not a 34970A/"):
+            bench.dmm.identify()
+        [report] = [r for r in bench.check() if r["device"] == "dmm"]
+        assert "identity" not in report and "34465A" in report["problem"]

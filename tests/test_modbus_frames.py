@@ -100,8 +100,10 @@ def test_driver_frames_on_an_rtu_line(tmp_path, no_leaks):  # noqa: F811
             assert axis.alarm() == 0
             assert exchanges() == [(frame("read alarm"), bytes.fromhex("01 03 04 00 00 00 00 FA 33"))]
             axis.stop()
+            # STOP on, STOP off, and the input command read back to see that it is off
             assert [request for request, _ in exchanges()] == [frame("stop pulse"),
-                                                               bytes.fromhex("01 06 00 7D 00 00 19 D2")]
+                                                               bytes.fromhex("01 06 00 7D 00 00 19 D2"),
+                                                               with_crc(bytes.fromhex("01 03 00 7C 00 02"))]
             axis.reset_alarm()
             assert exchanges()[0][0] == frame("alarm reset")
             with pytest.raises(Rejected, match="exception 02h \\(illegal data address\\)"):

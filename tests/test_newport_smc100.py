@@ -115,12 +115,47 @@ def test_retries_are_bounded(smc):
         bench.pitch.angle()
 
 
-def test_absolute_moves_are_repeated_when_their_acknowledgement_is_lost(smc):
-    emulation, bench = smc
+def test_a_lost_acknowledgement_of_a_move_is_not_answered_by_resending_it(smc_slow):
+    """The TE after PA is lost while the stage moves at its real speed (20°/s): PA is accepted in
+    READY only, so the driver asks the state instead of sending PA again (which error M refuses)."""
+    emulation, bench = smc_slow
     bench.pitch.prepare()
+    assert bench.config.pitch.speed_dps == 20.0
     emulation.faults["pitch"].add(Fault(FaultKind.NO_REPLY, match="TE"))  # the TE after PA is lost
     bench.pitch.move_to(45)
     assert bench.pitch.wait_in_position(60) == pytest.approx(45.0)
+    sent = list(emulation.faults["pitch"].recent)
+    assert [line for line in sent if line.startswith("1PA")] == ["1PA45.000000"]
+    assert emulation.faults["pitch"].count(FaultKind.NO_REPLY) == 1
+
+
+def test_a_move_that_never_arrived_is_sent_again_from_ready(smc):
+    emulation, bench = smc
+    bench.pitch.prepare()
+    emulation.faults["pitch"].add(Fault(FaultKind.LOST_REQUEST, match="PA"))  # PA lost on the way
+    emulation.faults["pitch"].add(Fault(FaultKind.NO_REPLY, match="TE"))  # and no TE reply either
+    bench.pitch.move_to(30)
+    assert bench.pitch.wait_in_position(60) == pytest.approx(30.0)
+    assert [line for line in emulation.faults["pitch"].recent if "PA" in line] == ["1PA30.000000"] * 2
+
+
+def test_the_controller_refuses_pa_while_moving(smc_slow):
+    """The emulator, from the manual: PA is allowed in READY only (error M while MOVING)."""
+    emulation, bench = smc_slow
+    bench.pitch.prepare()
+    bench.pitch.move_to(90)
+    with pytest.raises(Rejected, match=r"error M \(not allowed in MOVING\)"):
+        bench.pitch.do("PA10")
+    bench.pitch.stop()
+
+
+def test_no_stop_is_sent_to_a_stage_that_is_not_referenced(smc):
+    emulation, bench = smc
+    assert "NOT REFERENCED" in bench.pitch.status().words
+    bench.pitch.stop()  # nothing can be moving: the controller would refuse ST (error H)
+    assert not [line for line in emulation.faults["pitch"].recent if line.endswith("ST")]
+    with pytest.raises(Rejected, match=r"error H \(not allowed in NOT REFERENCED\)"):
+        bench.pitch.do("ST")  # what sending it anyway gets
 
 
 def test_homing_is_not_repeated(smc):

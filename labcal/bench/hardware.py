@@ -5,7 +5,14 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-from labcal.config.station import AzSettings, LinkSettings, Smc100Settings, StationFile, tcp_address
+from labcal.config.station import (
+    AzSettings,
+    DmmSettings,
+    LinkSettings,
+    Smc100Settings,
+    StationFile,
+    tcp_address,
+)
 from labcal.drivers.axis import IndexAxis
 from labcal.drivers.errors import DriverError
 from labcal.drivers.keysight_34970a import EOL as SCPI_EOL
@@ -15,6 +22,7 @@ from labcal.drivers.newport_smc100 import EOL as SMC_EOL
 from labcal.drivers.newport_smc100 import Smc100Axis
 from labcal.drivers.oriental_az import AzAxis
 from labcal.drivers.transport import LineTransport, SerialStream, TcpStream
+from labcal.drivers.visa import VisaLink
 from labcal.run.station import Clock, CriticalSection, Station, SystemClock
 
 Link = TypeVar("Link", ModbusLink, LineTransport)
@@ -34,6 +42,21 @@ def line_transport(settings: LinkSettings, eol: bytes) -> LineTransport:
         eol=eol, timeout_s=settings.timeout_s, reconnect_s=settings.reconnect_s)
 
 
+def dmm_link(settings: DmmSettings) -> LineTransport | VisaLink:
+    """The DMM's link: a VISA resource when the station names one, else a port or TCP address."""
+    if settings.visa is None:
+        return line_transport(settings, SCPI_EOL)
+    serial = {}
+    if settings.serial_line:  # an ASRL resource takes the station's line settings
+        from pyvisa.constants import Parity, StopBits
+
+        serial = {"baud_rate": settings.baudrate, "data_bits": settings.bytesize,
+                  "parity": {"N": Parity.none, "E": Parity.even, "O": Parity.odd}[settings.parity],
+                  "stop_bits": {1: StopBits.one, 2: StopBits.two}[settings.stopbits]}
+    return VisaLink(settings.visa, library=settings.visa_library, eol=SCPI_EOL.decode(),
+                    timeout_s=settings.timeout_s, reconnect_s=settings.reconnect_s, serial=serial)
+
+
 def modbus_link(settings: LinkSettings) -> ModbusLink:
     if settings.tcp:
         host, port = tcp_address(settings.tcp)
@@ -45,6 +68,13 @@ def modbus_link(settings: LinkSettings) -> ModbusLink:
                              retries=settings.retries, reconnect_s=settings.reconnect_s)
 
 
+def dmm_identity(idn: str) -> dict[str, str]:
+    """A 34970A-family ``*IDN?`` answer (maker, model, serial number, firmware) by field."""
+    maker, model, serial, firmware = (field.strip() for field in idn.split(",", 3))
+    return {"model": f"{maker} {model}", "identity": idn, "maker": maker, "serial": serial,
+            "firmware": firmware}
+
+
 class Bench:
     """Drivers for a station file. Nothing is opened until a device is first asked something;
     `close` releases every port."""
@@ -52,15 +82,19 @@ class Bench:
     def __init__(self, config: StationFile, clock: Clock | None = None):
         self.config = config
         self.clock = clock or SystemClock()
-        self._links: dict[str, ModbusLink | LineTransport] = {}
+        self._links: dict[str, ModbusLink | LineTransport | VisaLink] = {}
+        # who answered, as each device says it (read by `prepare`): a run journals these in its
+        # metadata ("device_identity") and a resume as an event, for the certificate's traceability
+        self.identities: dict[str, dict[str, str]] = {}
         self.pitch = self._axis("pitch", config.pitch)
         self.roll = self._axis("roll", config.roll)
         dmm = config.dmm
-        dmm_link = self._link(dmm, LineTransport, lambda: line_transport(dmm, SCPI_EOL))
-        self.dmm = Keysight34970A("dmm", dmm_link,
+        self._links[dmm.bus] = link = dmm_link(dmm)  # the DMM shares its link with nothing
+        self.dmm = Keysight34970A("dmm", link,
                                   channels=dmm.channels, temperature_channel=dmm.temperature_channel,
                                   temperature_probe=dmm.temperature_probe, nplc=dmm.nplc, range_v=dmm.range_v,
-                                  line_hz=dmm.line_hz, retries=dmm.retries, serial_line=dmm.port is not None)
+                                  line_hz=dmm.line_hz, retries=dmm.retries, serial_line=dmm.serial_line,
+                                  baudrate=dmm.baudrate)
 
     def _link(self, settings: LinkSettings, kind: type[Link], make: Callable[[], Link]) -> Link:
         """The one link of the settings' bus, made for its first device."""
@@ -86,10 +120,14 @@ class Bench:
         return self.pitch, self.roll
 
     def prepare(self, say: Callable[[str], None] = lambda text: None) -> None:
-        """Home and enable the tables where their controllers need it, and configure the DMM."""
+        """Read every device's identity (`identities`), home and enable the tables where their
+        controllers need it, and configure the DMM."""
         for axis in self.axes:
-            say(f"preparing the {axis.name} table ({axis.identify()})")
+            identity = axis.identify()
+            self.identities[axis.name] = {"model": axis.model, "identity": identity}
+            say(f"preparing the {axis.name} table ({identity})")
             axis.prepare()
+        self.identities["dmm"] = dmm_identity(self.dmm.identify())
         self.dmm.configure()
 
     def check(self, reset_alarms: bool = False) -> list[dict[str, Any]]:
@@ -101,6 +139,9 @@ class Bench:
                                       "problem": None}
             try:
                 report["identity"] = axis.identify()
+                if reset_alarms and isinstance(axis, AzAxis) and axis.stop_input_on():
+                    axis.release_stop()  # left on by a stop whose release never arrived
+                    report["stop_released"] = True
                 status = axis.status()
                 if status.fault and reset_alarms and isinstance(axis, AzAxis):
                     axis.reset_alarm()

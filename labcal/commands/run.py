@@ -177,6 +177,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         if bench is not None:  # the limits first: homing moves a table too
             check_limits(setup.station, schedule(plan, settings))
             prepare(bench, setup.station, err.print)
+            setup.metadata["device_identity"] = bench.identities  # the manifest's metadata and run.json
         operator = make_operator(args)
         run_dir = new_run_dir(args.out, plan)
         with Journal(db_path(args.db)) as journal:
@@ -234,6 +235,9 @@ def cmd_resume(args: argparse.Namespace) -> int:
         ctx.journal.reopen(ctx.run_id)
         ctx.journal.event(ctx.run_id, "resume",
                           f"resumed after {len(points)} committed point(s) {on_station}", station_record)
+        if bench is not None:
+            ctx.journal.event(ctx.run_id, "device_identity", "the devices that answered on resuming",
+                              bench.identities)
         cert_settings = certificate_settings_for_run(args, certificate, args.station or "the run's station")
         return run_and_report(args, lambda display: execute(
             ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, display),

@@ -13,8 +13,8 @@ import sys
 
 from labcal.commands.common import TIME_SCALE_HELP, err, out, print_json
 
-HELP = ("commands: mount Y U | fault DEVICE KIND [COUNT] (KIND: no-reply, late-reply, garbled, alarm, "
-        "exception, close-port) | status | quit")
+HELP = ("commands: mount Y U | fault DEVICE KIND [COUNT] (KIND: no-reply, late-reply, garbled, truncated, "
+        "lost-request, alarm, exception, close-port) | status | quit")
 
 
 def console_command(emulation, line: str) -> str:

@@ -84,6 +84,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     chk.add_argument("--emulate", action="store_true", help="start the station's emulators for the check")
     chk.add_argument("--time-scale", type=float, help=TIME_SCALE_HELP)
     chk.add_argument("--reset-alarms", action="store_true",
-                     help="reset a table drive's alarm (Oriental Motor AZ) once its cause is cleared")
+                     help="reset a table drive's alarm (Oriental Motor AZ) once its cause is cleared, "
+                          "and release its STOP input if a stop left it on")
     chk.add_argument("--json", action="store_true", help="print the reports as JSON on stdout")
     chk.set_defaults(func=cmd_check)

@@ -147,6 +147,8 @@ class FaultKind(StrEnum):
     ALARM = "alarm"
     EXCEPTION = "exception"
     CLOSE_PORT = "close-port"
+    LOST_REQUEST = "lost-request"
+    TRUNCATED = "truncated"
 
 
 class FaultSpec(BaseModel):

@@ -137,6 +137,35 @@ class DmmSettings(LinkSettings):
     range_v: float = 10.0
     line_hz: Literal[50, 60] = 50
     xonxoff: bool = True
+    visa: str | None = Field(default=None, description="a VISA resource instead of port/tcp: "
+                             "GPIB0::9::INSTR, TCPIP0::host::inst0::INSTR, TCPIP0::host::5025::SOCKET, "
+                             "USB0::...::INSTR, ASRL/dev/ttyUSB0::INSTR")
+    visa_library: str = Field(default="@py", description="the VISA library: @py (pyvisa-py, installed with "
+                              "labcal), @ivi, or the path of a vendor's libvisa")
+
+    @model_validator(mode="after")
+    def _one_link(self):
+        """Exactly one of port, tcp and visa (the base class's rule, with VISA as a third way)."""
+        given = [name for name in ("port", "tcp", "visa") if getattr(self, name) is not None]
+        if len(given) != 1:
+            raise ValueError("give exactly one of port (a serial device or URL), tcp (host:port) and visa "
+                             "(a VISA resource string)")
+        if self.tcp is not None:
+            tcp_address(self.tcp)
+        return self
+
+    @property
+    def where(self) -> str:
+        return f"VISA {self.visa}" if self.visa else super().where
+
+    @property
+    def bus(self) -> str:
+        return f"visa:{self.visa}" if self.visa else super().bus
+
+    @property
+    def serial_line(self) -> bool:
+        """RS-232 (a serial port, or a VISA ASRL resource), where the unit needs SYST:REM."""
+        return self.port is not None or (self.visa or "").upper().startswith("ASRL")
 
     @field_validator("nplc", "range_v")
     @classmethod
