@@ -69,11 +69,17 @@ def certificate_settings_for_run(args: argparse.Namespace, station: CertificateS
                                                          usage_pitch_deg=usage)
 
 
+def _stop_failure(exc: BaseException) -> str:
+    """What the run's last stop left undone (noted on the exception that ended the run), or ''."""
+    return "; ".join(note for note in getattr(exc, "__notes__", ()) if note.startswith("STOP FAILED"))
+
+
 def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done: int,
                    certificate=None) -> int:
     """Run with a progress display; turn the ways a run can end into messages and exit codes; at the
     end of a complete run issue its certificate and report (``certificate``: their settings)."""
     from labcal.commands.console import ProgressDisplay, coefficients_with_standard_errors, format_duration
+    from labcal.run.interrupts import StopSignal
     from labcal.run.journal import db_path
     from labcal.run.operator import OperatorDeclined
     from labcal.run.rundir import points_on_disk
@@ -82,16 +88,20 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
     try:
         with ProgressDisplay(err, plan.n_points, est.per_step_s, done) as display:
             result: RunResult = runner(display)
-    except KeyboardInterrupt:
-        err.print(f"[bold red]interrupted[/]: tables stopped; {points_on_disk(run_dir)} reading(s) kept in "
+    except KeyboardInterrupt as exc:
+        why = f" ({exc.reason})" if isinstance(exc, StopSignal) else ""
+        tables = _stop_failure(exc) or "tables stopped"
+        err.print(f"[bold red]interrupted[/]{why}: {tables}; {points_on_disk(run_dir)} reading(s) kept in "
                   f"{run_dir}; continue with: labcal resume {run_dir}")
-        return EXIT_INTERRUPTED
+        return 128 + exc.signum if isinstance(exc, StopSignal) else EXIT_INTERRUPTED  # 130 for Ctrl-C
     except OperatorDeclined as exc:
-        err.print(f"[bold yellow]stopped[/]: {exc}; {points_on_disk(run_dir)} reading(s) kept in {run_dir}; "
-                  f"continue with: labcal resume {run_dir}")
+        failure = f"; {_stop_failure(exc)}" if _stop_failure(exc) else ""
+        err.print(f"[bold yellow]stopped[/]: {exc}{failure}; {points_on_disk(run_dir)} reading(s) kept in "
+                  f"{run_dir}; continue with: labcal resume {run_dir}")
         return EXIT_STOPPED
     except LabcalError as exc:
-        raise LabcalError(f"{exc}; {points_on_disk(run_dir)} reading(s) kept in {run_dir}; "
+        failure = f"; {_stop_failure(exc)}" if _stop_failure(exc) else ""
+        raise LabcalError(f"{exc}{failure}; {points_on_disk(run_dir)} reading(s) kept in {run_dir}; "
                           f"continue with: labcal resume {run_dir}") from None
     o = result.outcome
     issued = None

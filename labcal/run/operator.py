@@ -10,6 +10,7 @@ from rich.console import Console
 
 from labcal.analysis.kinematics import Mount
 from labcal.errors import LabcalError
+from labcal.run.station import may_be_moving
 
 PauseChoice = Literal["resume", "abort"]
 
@@ -22,8 +23,9 @@ class Operator(Protocol):
     def confirm_mount(self, mount: Mount, step: int, n_steps: int, note: str = "") -> None:
         """Return once the instrument is mounted as asked; raise OperatorDeclined to stop."""
 
-    def after_pause(self, why: str) -> PauseChoice:
-        """The run is paused with the tables still: go on, or stop here (resumable later)."""
+    def after_pause(self, why: str, moving: tuple[str, ...] = ()) -> PauseChoice:
+        """The run is paused, with the tables still unless ``moving`` names tables whose stop
+        failed: go on, or stop here (resumable later)."""
 
 
 def mount_request(mount: Mount, step: int, n_steps: int, note: str = "") -> str:
@@ -59,8 +61,10 @@ class _Asking:
         if self._until(MOUNT_QUESTION, {YES: "y", NO: "q"}) == "q":
             raise OperatorDeclined("operator stopped the run at the remount prompt")
 
-    def after_pause(self, why: str) -> PauseChoice:
-        self.console.print(f"[bold]Paused[/] ({why}). The tables are still; every reading so far is saved.")
+    def after_pause(self, why: str, moving: tuple[str, ...] = ()) -> PauseChoice:
+        tables = (f"[bold red]The stop did not reach the {may_be_moving(moving)}: it may still be moving;"
+                  " make it safe before you resume.[/]" if moving else "The tables are still.")
+        self.console.print(f"[bold]Paused[/] ({why}). {tables} Every reading so far is saved.")
         return self._until(PAUSE_QUESTION, {RESUME: "resume", ABORT: "abort"})  # type: ignore[return-value]
 
 

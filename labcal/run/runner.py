@@ -77,9 +77,10 @@ def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: S
     committed = {p.seq for p in journal.points(run_id)}
     status = "interrupted"
     reason: str | None = "Ctrl-C"
+    interrupts = Interrupts(lambda: display.message("[yellow]Ctrl-C: pausing after this point "
+                                                    "(press again to stop the tables now)[/]"))
     try:
-        with Interrupts(lambda: display.message("[yellow]Ctrl-C: pausing after this point "
-                                                "(press again to stop the tables now)[/]")) as interrupts:
+        with interrupts:
             station.guard_exchanges(interrupts.critical)  # no device exchange is cut in half
             try:
                 sequencer = Sequencer(plan, station, operator, journal, run_id, settings, display, interrupts)
@@ -88,6 +89,7 @@ def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: S
                 station.guard_exchanges(None)
         status, reason = "complete", None
     except KeyboardInterrupt:
+        reason = interrupts.reason or reason
         raise
     except BaseException as exc:
         status, reason = "stopped", str(exc) or type(exc).__name__

@@ -23,7 +23,7 @@ from labcal.run.mounting import CHECK_ATTITUDE, identify
 from labcal.run.operator import Operator, OperatorDeclined
 from labcal.run.ordering import order_points
 from labcal.run.settle import Dwell, dwell
-from labcal.run.station import Station, mean_and_sd
+from labcal.run.station import Station, StopFailed, mean_and_sd
 
 LOAD_POSITION = (0.0, 0.0)  # tables level while the operator remounts
 
@@ -131,6 +131,7 @@ class Sequencer:
     interrupts: Interrupts = field(default_factory=Interrupts)
     _g_last: np.ndarray | None = None
     _t0: float = 0.0
+    moving: tuple[str, ...] = ()  # tables whose last stop failed: they may still be moving
 
     # --- motion ----------------------------------------------------------------------------------
     def move(self, pitch: float, roll: float) -> tuple[float, float]:
@@ -186,11 +187,12 @@ class Sequencer:
                                f"{MOUNT_ATTEMPTS} attempts")
 
     def pause(self, why: str) -> None:
-        self.event("pause", why)
-        choice = self.ask("pause", self.operator.after_pause, why)
+        self.event("pause", why, may_be_moving=list(self.moving))
+        choice = self.ask("pause", self.operator.after_pause, why, self.moving)
         if choice == "abort":
             raise OperatorDeclined(f"operator aborted the run after a pause ({why})")
         self.interrupts.resumed()
+        self.moving = ()  # the operator has seen to the tables
         self.event("resume", "operator resumed after the pause")
 
     # --- the run ---------------------------------------------------------------------------------
@@ -225,11 +227,21 @@ class Sequencer:
         return RunOutcome(recorded, failed, self.station.clock.now() - self._t0)
 
     def stop_tables(self, cause: BaseException) -> None:
-        """Stop both tables; if that fails too, note it on ``cause`` rather than replace it."""
-        try:
-            self.station.stop()
-        except Exception as stop_error:  # noqa: BLE001 - the cause is the news; keep it
-            cause.add_note(f"and stopping the tables failed too: {stop_error}")
+        """Stop both tables, uninterrupted, and journal whether the stop reached them. A failed
+        stop is said loudly at once and noted on ``cause`` (the news that ended the run, which it
+        does not replace); `moving` remembers it for the pause prompt."""
+        with self.interrupts.stopping():
+            try:
+                self.station.stop()
+            except StopFailed as failed:
+                self.moving = failed.tables
+                self.display.message(f"[bold red]STOP FAILED:[/] {failed}; make the table safe by hand")
+                cause.add_note(f"STOP FAILED: {failed}")
+                self.event("stop", f"stop failed: {failed}", may_be_moving=list(failed.tables),
+                           cause=str(cause))
+                return
+            self.moving = ()
+            self.event("stop", "both tables stopped", cause=str(cause) or type(cause).__name__)
 
     def until_done(self, action, *args):
         """Do ``action(*args)``; on a device fault stop the tables, say what happened and pause: the

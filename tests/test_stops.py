@@ -1,0 +1,133 @@
+"""Stops that always reach the tables and say so: a second Ctrl-C, SIGTERM and SIGHUP stop both
+tables and mark the run interrupted in the journal; a stop that fails is printed, journaled, and
+the pause prompt names the table that may still be moving. Signals go to a real `labcal run`."""
+
+from __future__ import annotations
+
+import json
+import signal
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
+
+LABCAL = str(Path(sys.executable).with_name("labcal"))
+
+
+def committed(db: Path) -> int:
+    try:
+        with sqlite3.connect(db) as con:
+            return con.execute("SELECT COUNT(*) FROM points").fetchone()[0]
+    except sqlite3.OperationalError:  # not created yet
+        return 0
+
+
+def journal_of(db: Path) -> tuple[str, str, list[tuple[str, str, dict]]]:
+    """The run's status, reason and events (kind, message, data)."""
+    with sqlite3.connect(db) as con:
+        status, reason = con.execute("SELECT status, reason FROM runs").fetchone()
+        events = [(k, m, json.loads(d) if d else {}) for k, m, d in
+                  con.execute("SELECT kind, message, data FROM events ORDER BY id")]
+    return status, reason, events
+
+
+class Run:
+    """`labcal run` in a child process; its stderr collected as it comes."""
+
+    def __init__(self, *args: str):
+        self.proc = subprocess.Popen([LABCAL, "run", *args], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True)
+        self.err: list[str] = []
+        self._reader = threading.Thread(target=lambda: self.err.extend(self.proc.stderr), daemon=True)
+        self._reader.start()
+
+    def wait_for(self, condition, what: str, timeout: float = 60.0) -> None:
+        deadline = time.monotonic() + timeout
+        while not condition():
+            assert self.proc.poll() is None, f"the run ended before {what}: {''.join(self.err)}"
+            assert time.monotonic() < deadline, f"no {what} within {timeout} s: {''.join(self.err)}"
+            time.sleep(0.01)
+
+    def saw(self, text: str) -> bool:
+        return text in "".join(self.err)
+
+    def end(self) -> tuple[int, str]:
+        self.proc.stdin.close()
+        code = self.proc.wait(timeout=60)
+        self._reader.join(timeout=10)
+        return code, "".join(self.err)
+
+
+@pytest.mark.parametrize(("signals", "reason", "code"), [
+    ((signal.SIGTERM,), "SIGTERM", 128 + signal.SIGTERM),
+    ((signal.SIGHUP,), "SIGHUP", 128 + signal.SIGHUP),
+    ((signal.SIGINT, signal.SIGINT), "Ctrl-C", 130),
+])
+def test_a_stop_signal_mid_run_stops_both_tables_and_marks_the_run_interrupted(tmp_path, lab_database,
+                                                                                signals, reason, code):
+    """Mid-run (20 replicates: far more points than are measured before the signal lands), each
+    way of stopping labcal from outside stops both tables, journals it, and leaves the run
+    'interrupted' with the signal as its reason, resumable; the readings are kept. Before, SIGTERM
+    and SIGHUP ended the process with no stop sent and the run 'running', and no stop was
+    journaled at all."""
+    run = Run("--sim", "--yes", "--no-report", "--replicates", "20", "--out", str(tmp_path / "run"))
+    run.wait_for(lambda: committed(lab_database) >= 20, "20 points")
+    run.proc.send_signal(signals[0])
+    if len(signals) > 1:  # the second only once the first is seen (a pending signal is not counted twice)
+        run.wait_for(lambda: run.saw("pausing after this point"), "the first Ctrl-C's message")
+        run.proc.send_signal(signals[1])
+    exit_code, err = run.end()
+    assert exit_code == code, err
+    assert "Traceback" not in err and "tables stopped" in err and "continue with: labcal resume" in err
+    status, why, events = journal_of(lab_database)
+    assert status == "interrupted" and why.startswith(reason), (status, why)
+    stops = [(m, d) for k, m, d in events if k == "stop"]
+    assert len(stops) == 1 and stops[0][0] == "both tables stopped", stops
+    assert stops[0][1]["cause"].startswith(reason)
+    run_json = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert run_json["status"] == "interrupted" and run_json["points_recorded"] == committed(lab_database)
+
+
+def test_sigterm_at_a_remount_prompt_stops_and_marks_the_run_interrupted(tmp_path, lab_database):
+    """A service manager or a closing session may end labcal while it waits for the operator."""
+    run = Run("--sim", "--no-report", "--out", str(tmp_path / "run"))
+    run.proc.stdin.write("y\n")  # mount 1; mount 2's prompt is left waiting
+    run.proc.stdin.flush()
+    run.wait_for(lambda: run.saw("Mount 2 of 4"), "the second remount prompt")
+    run.proc.send_signal(signal.SIGTERM)
+    exit_code, err = run.end()
+    assert exit_code == 128 + signal.SIGTERM and "Traceback" not in err, err
+    status, why, events = journal_of(lab_database)
+    assert (status, why) == ("interrupted", "SIGTERM")
+    assert [m for k, m, _ in events if k == "stop"] == ["both tables stopped"]
+    assert committed(lab_database) == 16
+
+
+def test_a_stop_that_fails_is_printed_journaled_and_named_at_the_pause_prompt(tmp_path, capsys, no_leaks):  # noqa: F811
+    """The pitch drive's link dies for good mid-run: the move fails, the stop cannot reach the
+    pitch table (the roll table takes its stop). That is said at once, journaled, the pause
+    prompt says the pitch table may still be moving instead of "the tables are still", and the
+    last line says the stop failed instead of "tables stopped"."""
+    answers = tmp_path / "answers.txt"
+    answers.write_text("y\ny\ny\ny\na\n")
+    dies = '\n[[emulation.faults]]\ndevice = "pitch"\nkind = "close-port"\nafter = 60\n'
+    station = private_file("mixed-rtu-socket", tmp_path, dies, "timeout_s = 0.1\nreconnect_s = 0.5")
+    code, _, err = cli(capsys, "run", "--station", str(station), "--emulate", "--time-scale", str(TIME_SCALE),
+                       "--no-report", "--answers", str(answers), "--out", str(tmp_path / "run"))
+    assert code == 1, err
+    flat = " ".join(err.split())
+    assert "STOP FAILED: the stop did not reach the pitch table" in flat
+    assert "The stop did not reach the pitch table: it may still be moving" in flat
+    assert "The tables are still" not in flat
+    assert "STOP FAILED" in err.strip().splitlines()[-1] and "Traceback" not in err
+    status, _, events = journal_of(tmp_path / "labcal.sqlite")
+    assert status == "stopped"
+    stops = [d for k, _, d in events if k == "stop"]
+    assert stops and all(d["may_be_moving"] == ["pitch"] for d in stops), stops
+    pauses = [d for k, _, d in events if k == "pause"]
+    assert pauses and pauses[0]["may_be_moving"] == ["pitch"]
