@@ -9,6 +9,7 @@ left half-read on the line.
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import socket
@@ -25,6 +26,7 @@ from labcal.drivers.errors import TRANSIENT, BadReply, LinkLost, NoReply, PortCl
 from labcal.run.station import CriticalSection
 
 T = TypeVar("T")
+log = logging.getLogger(__name__)
 
 BACKOFF_FIRST_S = 0.05
 BACKOFF_MAX_S = 1.0
@@ -65,17 +67,19 @@ def uninterruptible(critical: CriticalSection | None = None) -> Iterator[None]:
 
 
 def retried(exchange: Callable[[], T], tries: int, recover: Callable[[], None],
-            critical: CriticalSection | None = None) -> T:
+            critical: CriticalSection | None = None, what: str = "device") -> T:
     """Run an exchange that is safe to repeat (a read, an absolute move, a stop) up to ``tries``
     times; ``recover`` clears the line between tries (late replies, a reopened port); each try is
-    uninterruptible (``critical``: the run's critical section, when a run has handed one)."""
+    uninterruptible (``critical``: the run's critical section, when a run has handed one). Each
+    repeat is logged as a WARNING naming ``what`` and the failure that caused it."""
     for attempt in range(tries):
         try:
             with uninterruptible(critical):
                 return exchange()
-        except TRANSIENT:
+        except TRANSIENT as exc:
             if attempt + 1 >= tries:
                 raise
+            log.warning("%s: retry %d of %d after: %s", what, attempt + 1, tries - 1, exc)
             recover()
     raise AssertionError("tries must be >= 1")
 
@@ -85,17 +89,22 @@ def reconnect(connect: Callable[[], object], budget_s: float, what: str) -> None
     0.05 s, 0.1 s, ... up to 1 s between attempts; `LinkLost` once ``budget_s`` is spent."""
     deadline = time.monotonic() + budget_s
     delay = BACKOFF_FIRST_S
+    failures = 0
     while True:
         try:
             if connect() is not False:
+                if failures:
+                    log.warning("%s: reopened after %d failed attempt(s)", what, failures)
                 return
             reason = "connection refused"
         except (OSError, serial.SerialException, ValueError) as exc:
             errno = getattr(exc, "errno", None)
             reason = os.strerror(errno) if isinstance(errno, int) else str(exc) or type(exc).__name__
+        failures += 1
         if time.monotonic() + delay > deadline:
             tried = f"; kept trying for {budget_s:g} s" if budget_s > 0 else ""
             raise LinkLost(f"cannot open {what} ({reason}){tried}")
+        log.warning("%s: cannot open (%s); trying again in %g s", what, reason, delay)
         time.sleep(delay)
         delay = min(2 * delay, BACKOFF_MAX_S)
 

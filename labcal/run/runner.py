@@ -19,6 +19,7 @@ from labcal.config.plans import parse_plan
 from labcal.config.readings_csv import ReadingsWriter
 from labcal.config.settings import SequencerSettings
 from labcal.errors import LabcalError
+from labcal.run.devicelog import journaled_warnings
 from labcal.run.interrupts import Interrupts
 from labcal.run.journal import Journal, Manifest, sha256
 from labcal.run.operator import Operator
@@ -84,7 +85,8 @@ def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: S
             station.guard_exchanges(interrupts.critical)  # no device exchange is cut in half
             try:
                 sequencer = Sequencer(plan, station, operator, journal, run_id, settings, display, interrupts)
-                outcome = sequencer.run(steps, committed, _provisional_fit(journal, run_id))
+                with journaled_warnings(sequencer.event):  # retries and reconnects are events of the run
+                    outcome = sequencer.run(steps, committed, _provisional_fit(journal, run_id))
             finally:
                 station.guard_exchanges(None)
         status, reason = "complete", None
