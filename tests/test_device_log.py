@@ -50,7 +50,7 @@ def test_a_log_file_that_cannot_be_opened_is_one_line_and_exit_2(tmp_path):
 def test_a_log_level_without_a_file_logs_to_stderr_for_the_command_only(capsys):
     import logging
 
-    from labcal.cli import logging_to
+    from labcal.commands.logfile import logging_to
 
     bad = subprocess.run([LABCAL, "--log-level", "loud", "plan", "list"], capture_output=True, text=True,
                          timeout=60)
