@@ -39,7 +39,6 @@ class StopSignal(KeyboardInterrupt):
 class Interrupts:
     def __init__(self, on_first: Callable[[], None] = lambda: None):
         self.count = 0
-        self.reason: str | None = None  # what stopped the run, once something did
         self._prompting = False
         self._stopping = False
         self._depth = 0
@@ -73,7 +72,6 @@ class Interrupts:
         else:
             reason = signal.Signals(signum).name
         self.count = max(self.count, 2)
-        self.reason = reason
         stop = StopSignal(signum, reason)
         if self._depth and not self._prompting:
             self._deferred = stop

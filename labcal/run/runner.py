@@ -78,10 +78,9 @@ def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: S
     committed = {p.seq for p in journal.points(run_id)}
     status = "interrupted"
     reason: str | None = "Ctrl-C"
-    interrupts = Interrupts(lambda: display.message("[yellow]Ctrl-C: pausing after this point "
-                                                    "(press again to stop the tables now)[/]"))
     try:
-        with interrupts:
+        with Interrupts(lambda: display.message("[yellow]Ctrl-C: pausing after this point "
+                                                "(press again to stop the tables now)[/]")) as interrupts:
             station.guard_exchanges(interrupts.critical)  # no device exchange is cut in half
             try:
                 sequencer = Sequencer(plan, station, operator, journal, run_id, settings, display, interrupts)
@@ -90,8 +89,8 @@ def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: S
             finally:
                 station.guard_exchanges(None)
         status, reason = "complete", None
-    except KeyboardInterrupt:
-        reason = interrupts.reason or reason
+    except KeyboardInterrupt as exc:
+        reason = getattr(exc, "reason", reason)  # a StopSignal names what stopped the run
         raise
     except BaseException as exc:
         status, reason = "stopped", str(exc) or type(exc).__name__
