@@ -38,9 +38,10 @@ def main(argv: list[str] | None = None) -> int:
     except LabcalError as exc:
         err.print(f"[bold red]labcal: error:[/] {exc}")
         return EXIT_USER_ERROR
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         err.print("[bold red]interrupted[/]")
-        return EXIT_INTERRUPTED
+        signum = getattr(exc, "signum", None)  # SIGTERM, SIGHUP: 128 + its number, as a shell says it
+        return EXIT_INTERRUPTED if signum is None else 128 + signum
 
 
 if __name__ == "__main__":

@@ -131,3 +131,18 @@ def test_a_stop_that_fails_is_printed_journaled_and_named_at_the_pause_prompt(tm
     assert stops and all(d["may_be_moving"] == ["pitch"] for d in stops), stops
     pauses = [d for k, _, d in events if k == "pause"]
     assert pauses and pauses[0]["may_be_moving"] == ["pitch"]
+
+
+def test_sigterm_while_the_tables_are_homed_stops_them_and_says_so(tmp_path, lab_database):
+    """Before the run proper begins, the SMC100 stages are homed (a move). SIGTERM then used to end
+    labcal at once, the stage moving on; now it raises like Ctrl-C, the bench's stop is sent, the
+    emulators are shut down, and labcal ends with 128 + 15 and one line."""
+    station = private_file("smc100-serial", tmp_path)
+    run = Run("--station", str(station), "--emulate", "--time-scale", "1", "--yes", "--no-report",
+              "--out", str(tmp_path / "run"))
+    run.wait_for(lambda: run.saw("preparing the pitch table"), "homing")
+    run.proc.send_signal(signal.SIGTERM)
+    exit_code, err = run.end()
+    assert exit_code == 128 + signal.SIGTERM, err
+    assert "interrupted" in err.splitlines()[-1] and "Traceback" not in err
+    assert "stopping the tables failed" not in err and committed(lab_database) == 0

@@ -138,6 +138,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from labcal.bench.setup import hardware_station, prepare, sim_station
     from labcal.config.plans import plan_toml
     from labcal.run.estimate import estimate
+    from labcal.run.interrupts import stop_signals_raise
     from labcal.run.journal import Journal, db_path
     from labcal.run.rundir import new_run_dir
     from labcal.run.runner import calibrate
@@ -157,6 +158,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         plan = Plan.model_validate({**plan.model_dump(), "replicates": args.replicates})
         plan_text = plan_toml(plan)
     with ExitStack() as stack:
+        stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
         bench = None
         if args.sim:
             setup = sim_station(args.rig, args.seed)
@@ -198,6 +200,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
     from labcal.config.settings import CertificateSettings
     from labcal.config.station import load_station
     from labcal.run.estimate import estimate
+    from labcal.run.interrupts import stop_signals_raise
     from labcal.run.journal import sha256
     from labcal.run.runner import execute, open_for_resume
     from labcal.run.sequencer import check_limits, schedule
@@ -205,6 +208,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
     run_dir = Path(args.run)
     ctx = open_for_resume(run_dir)
     with ExitStack() as stack:
+        stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
         stack.callback(ctx.journal.close)
         points = ctx.journal.points(ctx.run_id)
         start = max((p.t_end for p in points), default=0.0)

@@ -115,3 +115,23 @@ class Interrupts:
             if self._depth == 0 and self._deferred is not None and not self._stopping:
                 stop, self._deferred = self._deferred, None
                 raise stop
+
+
+def _raise_stop(signum: int, frame: FrameType | None) -> None:
+    raise StopSignal(signum, signal.Signals(signum).name)
+
+
+@contextmanager
+def stop_signals_raise() -> Iterator[None]:
+    """Outside a run's own handler (homing the tables, starting the emulators), SIGTERM and SIGHUP
+    raise `StopSignal` as Ctrl-C raises KeyboardInterrupt, so that the code that stops the tables
+    on any exception runs for them too, instead of the process dying with a table moving."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {signum: signal.signal(signum, _raise_stop) for signum in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
