@@ -31,10 +31,11 @@ def add_log_options(parser: argparse.ArgumentParser) -> None:
 class UtcFormatter(logging.Formatter):
     """``2026-11-23T22:31:54.123Z WARNING labcal.drivers.transport: …``: UTC, like the journal."""
 
-    converter = time.gmtime
-
     def __init__(self) -> None:
-        super().__init__("%(asctime)s.%(msecs)03dZ %(levelname)s %(name)s: %(message)s", "%Y-%m-%dT%H:%M:%S")
+        super().__init__("%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+    def formatTime(self, record: logging.LogRecord, datefmt: str | None = None) -> str:  # noqa: N802
+        return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created)) + f".{int(record.msecs):03d}Z"
 
 
 @contextmanager
