@@ -55,6 +55,14 @@ def discard_typeahead(fd: int) -> int:
     """Throw away whatever was typed on terminal ``fd`` before now, whole lines and a line begun
     alike; the number of bytes thrown away. Keys pressed while points were being measured must
     not answer the next prompt. Nothing on anything but a terminal: piped answers are answers."""
+    if sys.platform == "win32":  # the console's own key queue
+        import msvcrt
+
+        discarded = 0
+        while msvcrt.kbhit():
+            msvcrt.getwch()
+            discarded += 1
+        return discarded
     import termios
 
     try:
