@@ -117,8 +117,10 @@ def test_a_stop_that_fails_is_printed_journaled_and_named_at_the_pause_prompt(tm
     answers.write_text("y\ny\ny\ny\na\n")
     dies = '\n[[emulation.faults]]\ndevice = "pitch"\nkind = "close-port"\nafter = 60\n'
     station = private_file("mixed-rtu-socket", tmp_path, dies, "timeout_s = 0.1\nreconnect_s = 0.5")
-    code, _, err = cli(capsys, "run", "--station", str(station), "--emulate", "--time-scale", str(TIME_SCALE),
-                       "--no-report", "--answers", str(answers), "--out", str(tmp_path / "run"))
+    log = tmp_path / "labcal.log"
+    code, _, err = cli(capsys, "--log-file", str(log), "run", "--station", str(station), "--emulate",
+                       "--time-scale", str(TIME_SCALE), "--no-report", "--answers", str(answers),
+                       "--out", str(tmp_path / "run"))
     assert code == 1, err
     flat = " ".join(err.split())
     assert "STOP FAILED: the stop did not reach the pitch table" in flat
@@ -131,6 +133,9 @@ def test_a_stop_that_fails_is_printed_journaled_and_named_at_the_pause_prompt(tm
     assert stops and all(d["may_be_moving"] == ["pitch"] for d in stops), stops
     pauses = [d for k, _, d in events if k == "pause"]
     assert pauses and pauses[0]["may_be_moving"] == ["pitch"]
+    failed = [line for line in log.read_text().splitlines()
+              if " WARNING labcal.run.sequencer: STOP FAILED" in line]
+    assert len(failed) == len(stops), failed
 
 
 def test_sigterm_while_the_tables_are_homed_stops_them_and_says_so(tmp_path, lab_database):

@@ -8,6 +8,7 @@ pauses after the current point; the second stops the tables at once.
 
 from __future__ import annotations
 
+import logging
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 
@@ -26,6 +27,7 @@ from labcal.run.settle import Dwell, dwell
 from labcal.run.station import Station, StopFailed, mean_and_sd
 
 LOAD_POSITION = (0.0, 0.0)  # tables level while the operator remounts
+log = logging.getLogger(__name__)
 
 
 class PolicyAbort(LabcalError):
@@ -78,6 +80,10 @@ class RunOutcome:
     points_recorded: int
     points_failed: int
     station_time_s: float
+
+
+def cause_text(cause: BaseException) -> str:
+    return str(cause) or type(cause).__name__
 
 
 def check_limits(station: Station, steps: list[Step]) -> None:
@@ -235,13 +241,15 @@ class Sequencer:
                 self.station.stop()
             except StopFailed as failed:
                 self.moving = failed.tables
+                log.warning("STOP FAILED after %s: %s", cause_text(cause), failed)
                 self.display.message(f"[bold red]STOP FAILED:[/] {failed}; make the table safe by hand")
                 cause.add_note(f"STOP FAILED: {failed}")
                 self.event("stop", f"stop failed: {failed}", may_be_moving=list(failed.tables),
-                           cause=str(cause))
+                           cause=cause_text(cause))
                 return
             self.moving = ()
-            self.event("stop", "both tables stopped", cause=str(cause) or type(cause).__name__)
+            log.info("both tables stopped after %s", cause_text(cause))
+            self.event("stop", "both tables stopped", cause=cause_text(cause))
 
     def until_done(self, action, *args):
         """Do ``action(*args)``; on a device fault stop the tables, say what happened and pause: the
