@@ -5,6 +5,7 @@ the pause prompt names the table that may still be moving. Signals go to a real 
 from __future__ import annotations
 
 import json
+import os
 import signal
 import sqlite3
 import subprocess
@@ -14,7 +15,15 @@ import time
 from pathlib import Path
 
 import pytest
-from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
+from conftest import quiet_console
+from emulators import TIME_SCALE, cli, emulated, no_leaks, private_file  # noqa: F401 - fixture
+
+from labcal.bench.setup import prepare
+from labcal.config.plans import load_plan
+from labcal.config.settings import SequencerSettings
+from labcal.run.journal import Journal
+from labcal.run.operator import AutoOperator
+from labcal.run.runner import calibrate
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 
@@ -151,3 +160,50 @@ def test_sigterm_while_the_tables_are_homed_stops_them_and_says_so(tmp_path, lab
     assert exit_code == 128 + signal.SIGTERM, err
     assert "interrupted" in err.splitlines()[-1] and "Traceback" not in err
     assert "stopping the tables failed" not in err and committed(lab_database) == 0
+
+
+@pytest.mark.parametrize("station", ["az-modbus-tcp", "smc100-serial"])
+def test_sigterm_mid_move_reaches_the_drives_through_the_drivers(station, tmp_path, no_leaks):  # noqa: F811
+    """SIGTERM while the pitch table swings to the mount check: through the real drivers the
+    emulated drives get their stop, the table halts short of where it was going (it is not moving
+    afterwards, and its move ended before the end it was planned to have), and the journal says
+    both tables stopped. The emulators keep the truth the drivers cannot fake."""
+    plan, text = load_plan("one-mount-16")
+    with emulated(station, tmp_path, time_scale=2.0) as (emulation, bench):
+        rig, clock = emulation.rig.rig, emulation.rig.clock
+        station_ = bench.station(**emulation.hooks())
+        prepare(bench, station_, say=lambda text: None)
+        planned: list[float] = []
+
+        def signal_mid_move() -> None:  # the first move with > 1 s of rig time (0.5 s of wall) left
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline:
+                left = rig.pitch.motion_end - clock.now()
+                if 1.0 < left < 1e6:
+                    planned.append(rig.pitch.motion_end)
+                    os.kill(os.getpid(), signal.SIGTERM)
+                    return
+                time.sleep(0.001)
+
+        def unhandled(signum, frame):  # what the run must replace while it runs (else pytest dies)
+            pytest.fail("the run left SIGTERM to its default: the process would have died mid-move")
+
+        watcher = threading.Thread(target=signal_mid_move)
+        watcher.start()
+        run_dir = tmp_path / "run"
+        run_dir.mkdir()
+        before = signal.signal(signal.SIGTERM, unhandled)
+        try:
+            with Journal(tmp_path / "j.sqlite") as journal, pytest.raises(KeyboardInterrupt) as stopped:
+                calibrate(plan, text, station_, "test", AutoOperator(quiet_console()),
+                          SequencerSettings(settle=bench.config.sequencer.settle), run_dir, journal)
+        finally:
+            watcher.join()
+            signal.signal(signal.SIGTERM, before)
+        assert planned and getattr(stopped.value, "reason", None) == "SIGTERM"
+        now = clock.now()
+        assert rig.pitch.motion_end <= now and rig.roll.motion_end <= now  # neither table moves
+        assert rig.pitch.motion_end < planned[0] - 0.5  # cut short by the stop, by most of a second
+    status, why, events = journal_of(tmp_path / "j.sqlite")
+    assert (status, why) == ("interrupted", "SIGTERM")
+    assert [m for k, m, _ in events if k == "stop"] == ["both tables stopped"]
