@@ -70,8 +70,9 @@ def certificate_settings_for_run(args: argparse.Namespace, station: CertificateS
 
 
 def _stop_failure(exc: BaseException) -> str:
-    """What the run's last stop left undone (noted on the exception that ended the run), or ''."""
-    return "; ".join(note for note in getattr(exc, "__notes__", ()) if note.startswith("STOP FAILED"))
+    """'; STOP FAILED: …' when the run's last stop did not reach a table (noted on the exception
+    that ended the run), else ''."""
+    return "".join(f"; {note}" for note in getattr(exc, "__notes__", ()) if note.startswith("STOP FAILED"))
 
 
 def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done: int,
@@ -90,19 +91,17 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
             result: RunResult = runner(display)
     except KeyboardInterrupt as exc:
         why = f" ({exc.reason})" if isinstance(exc, StopSignal) else ""
-        tables = _stop_failure(exc) or "tables stopped"
+        tables = _stop_failure(exc).removeprefix("; ") or "tables stopped"
         err.print(f"[bold red]interrupted[/]{why}: {tables}; {points_on_disk(run_dir)} reading(s) kept in "
                   f"{run_dir}; continue with: labcal resume {run_dir}")
         return 128 + exc.signum if isinstance(exc, StopSignal) else EXIT_INTERRUPTED  # 130 for Ctrl-C
     except OperatorDeclined as exc:
-        failure = f"; {_stop_failure(exc)}" if _stop_failure(exc) else ""
-        err.print(f"[bold yellow]stopped[/]: {exc}{failure}; {points_on_disk(run_dir)} reading(s) kept in "
-                  f"{run_dir}; continue with: labcal resume {run_dir}")
+        err.print(f"[bold yellow]stopped[/]: {exc}{_stop_failure(exc)}; {points_on_disk(run_dir)} reading(s) "
+                  f"kept in {run_dir}; continue with: labcal resume {run_dir}")
         return EXIT_STOPPED
     except LabcalError as exc:
-        failure = f"; {_stop_failure(exc)}" if _stop_failure(exc) else ""
-        raise LabcalError(f"{exc}{failure}; {points_on_disk(run_dir)} reading(s) kept in {run_dir}; "
-                          f"continue with: labcal resume {run_dir}") from None
+        raise LabcalError(f"{exc}{_stop_failure(exc)}; {points_on_disk(run_dir)} reading(s) kept in "
+                          f"{run_dir}; continue with: labcal resume {run_dir}") from None
     o = result.outcome
     issued = None
     if not args.no_report:

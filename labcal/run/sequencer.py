@@ -82,10 +82,6 @@ class RunOutcome:
     station_time_s: float
 
 
-def cause_text(cause: BaseException) -> str:
-    return str(cause) or type(cause).__name__
-
-
 def check_limits(station: Station, steps: list[Step]) -> None:
     """Every angle the run will visit, against each table's limits, before anything moves."""
     angles = {
@@ -236,20 +232,21 @@ class Sequencer:
         """Stop both tables, uninterrupted, and journal whether the stop reached them. A failed
         stop is said loudly at once and noted on ``cause`` (the news that ended the run, which it
         does not replace); `moving` remembers it for the pause prompt."""
+        why = str(cause) or type(cause).__name__
         with self.interrupts.stopping():
             try:
                 self.station.stop()
             except StopFailed as failed:
                 self.moving = failed.tables
-                log.warning("STOP FAILED after %s: %s", cause_text(cause), failed)
+                log.warning("STOP FAILED after %s: %s", why, failed)
                 self.display.message(f"[bold red]STOP FAILED:[/] {failed}; make the table safe by hand")
                 cause.add_note(f"STOP FAILED: {failed}")
                 self.event("stop", f"stop failed: {failed}", may_be_moving=list(failed.tables),
-                           cause=cause_text(cause))
+                           cause=why)
                 return
             self.moving = ()
-            log.info("both tables stopped after %s", cause_text(cause))
-            self.event("stop", "both tables stopped", cause=cause_text(cause))
+            log.info("both tables stopped after %s", why)
+            self.event("stop", "both tables stopped", cause=why)
 
     def until_done(self, action, *args):
         """Do ``action(*args)``; on a device fault stop the tables, say what happened and pause: the
