@@ -207,3 +207,20 @@ def test_sigterm_mid_move_reaches_the_drives_through_the_drivers(station, tmp_pa
     status, why, events = journal_of(tmp_path / "j.sqlite")
     assert (status, why) == ("interrupted", "SIGTERM")
     assert [m for k, m, _ in events if k == "stop"] == ["both tables stopped"]
+
+
+def test_a_signal_while_the_tables_are_being_stopped_is_kept_for_after_the_stop():
+    """Ctrl-C or SIGTERM during a stop must neither cut it short (the second table would not get
+    its stop) nor be lost (after a fault's stop comes a pause prompt that would wait for ever):
+    it is raised at the next critical section's end."""
+    from labcal.run.interrupts import Interrupts, StopSignal
+
+    reached = []
+    with Interrupts() as interrupts:
+        with interrupts.stopping():
+            os.kill(os.getpid(), signal.SIGTERM)
+            os.kill(os.getpid(), signal.SIGINT)
+            reached.append("roll told to stop")
+        with pytest.raises(StopSignal) as stop, interrupts.critical():
+            reached.append("fault journaled")
+    assert reached == ["roll told to stop", "fault journaled"] and stop.value.reason == "SIGTERM"

@@ -5,9 +5,10 @@ Ctrl-C: without a handler they would end the process with the tables still movin
 marked "running" in the journal.
 
 No stop cuts a journal transaction or a device exchange in half: inside a `critical()` section it
-is deferred to the section's end. While the tables are being stopped (`stopping()`), further
-signals are noted and otherwise ignored, so that an impatient third Ctrl-C cannot keep the second
-table from getting its stop.
+is deferred to the section's end. While the tables are being stopped (`stopping()`), a signal is
+only noted, so that an impatient third Ctrl-C cannot keep the second table from getting its stop;
+it is raised at the next critical section's end (a stop after a fault is followed by journaling
+the fault, before the pause prompt).
 """
 
 from __future__ import annotations
@@ -59,8 +60,6 @@ class Interrupts:
         self._previous.clear()
 
     def _handle(self, signum: int, frame: object) -> None:
-        if self._stopping:  # the tables are being stopped already: let both stops complete
-            return
         if signum == signal.SIGINT and not self._prompting:
             self.count += 1
             if self.count == 1:
@@ -73,8 +72,8 @@ class Interrupts:
             reason = signal.Signals(signum).name
         self.count = max(self.count, 2)
         stop = StopSignal(signum, reason)
-        if self._depth and not self._prompting:
-            self._deferred = stop
+        if self._stopping or (self._depth and not self._prompting):
+            self._deferred = self._deferred or stop  # raised where it cuts neither a stop nor an exchange
         else:
             raise stop
 
@@ -97,7 +96,7 @@ class Interrupts:
 
     @contextmanager
     def stopping(self) -> Iterator[None]:
-        """While both tables are told to stop, no signal interrupts that."""
+        """While both tables are told to stop, no signal interrupts that (it is deferred)."""
         self._stopping = True
         try:
             yield
