@@ -262,7 +262,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Run a calibration plan: check every angle against the limits, move the "
                                    "tables, prompt for each remount and verify it, settle, record every "
                                    "point in the journal, fit the coefficients. Ctrl-C once pauses after "
-                                   "the current point; twice stops the tables at once.")
+                                   "the current point; twice (or SIGTERM, SIGHUP) stops the tables at once. "
+                                   "At a remount prompt: y when mounted, n to wait, stop to end the run.")
     p.add_argument("--sim", action="store_true", help="run on the simulated rig")
     p.add_argument("--station", metavar="STATION",
                    help="run on a station's devices through the drivers (station file or example name)")
