@@ -8,6 +8,7 @@ import sys
 from labcal import __version__
 from labcal.commands import attitude, export, fit, history, plan, report, run, sim, simulate, station
 from labcal.commands.common import EXIT_INTERRUPTED, EXIT_USER_ERROR, err
+from labcal.commands.logfile import add_log_options, logging_to
 from labcal.errors import LabcalError
 
 COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, station, sim, export)
@@ -25,19 +26,22 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for group in COMMAND_GROUPS:
         group.register(sub)
+    add_log_options(parser)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return args.func(args)
+        with logging_to(args.log_file, args.log_level):
+            return args.func(args)
     except LabcalError as exc:
         err.print(f"[bold red]labcal: error:[/] {exc}")
         return EXIT_USER_ERROR
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         err.print("[bold red]interrupted[/]")
-        return EXIT_INTERRUPTED
+        signum = getattr(exc, "signum", None)  # SIGTERM, SIGHUP: 128 + its number, as a shell says it
+        return EXIT_INTERRUPTED if signum is None else 128 + signum
 
 
 if __name__ == "__main__":

@@ -115,7 +115,10 @@ def test_a_failing_stop_does_not_hide_why_the_run_ended(tmp_path):
     setup.station.roll.stop = broken_stop
     with pytest.raises(KeyboardInterrupt) as exc:
         journal_run(tmp_path, setup, After(3, lambda: (_ for _ in ()).throw(KeyboardInterrupt)))
-    assert "stopping the tables failed too: port closed" in exc.value.__notes__[0]
+    assert exc.value.__notes__ == ["STOP FAILED: the stop did not reach the roll table (roll: port closed)"]
+    with Journal(tmp_path / "j.sqlite") as journal:
+        stops = [e for e in journal.events(1) if e["kind"] == "stop"]
+    assert [s["data"]["may_be_moving"] for s in stops] == [["roll"]]
 
 
 def test_a_wrong_mount_is_caught_before_any_point_is_kept(tmp_path):

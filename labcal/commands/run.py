@@ -69,11 +69,18 @@ def certificate_settings_for_run(args: argparse.Namespace, station: CertificateS
                                                          usage_pitch_deg=usage)
 
 
+def _stop_failure(exc: BaseException) -> str:
+    """'; STOP FAILED: …' when the run's last stop did not reach a table (noted on the exception
+    that ended the run), else ''."""
+    return "".join(f"; {note}" for note in getattr(exc, "__notes__", ()) if note.startswith("STOP FAILED"))
+
+
 def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done: int,
                    certificate=None) -> int:
     """Run with a progress display; turn the ways a run can end into messages and exit codes; at the
     end of a complete run issue its certificate and report (``certificate``: their settings)."""
     from labcal.commands.console import ProgressDisplay, coefficients_with_standard_errors, format_duration
+    from labcal.run.interrupts import StopSignal
     from labcal.run.journal import db_path
     from labcal.run.operator import OperatorDeclined
     from labcal.run.rundir import points_on_disk
@@ -82,19 +89,21 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
     try:
         with ProgressDisplay(err, plan.n_points, est.per_step_s, done) as display:
             result: RunResult = runner(display)
-    except KeyboardInterrupt:
-        err.print(f"[bold red]interrupted[/]: tables stopped; {points_on_disk(run_dir)} reading(s) kept in "
+    except KeyboardInterrupt as exc:
+        why = f" ({exc.reason})" if isinstance(exc, StopSignal) else ""
+        tables = _stop_failure(exc).removeprefix("; ") or "tables stopped"
+        err.print(f"[bold red]interrupted[/]{why}: {tables}; {points_on_disk(run_dir)} reading(s) kept in "
                   f"{run_dir}; continue with: labcal resume {run_dir}")
-        return EXIT_INTERRUPTED
+        return 128 + exc.signum if isinstance(exc, StopSignal) else EXIT_INTERRUPTED  # 130 for Ctrl-C
     except OperatorDeclined as exc:
-        err.print(f"[bold yellow]stopped[/]: {exc}; {points_on_disk(run_dir)} reading(s) kept in {run_dir}; "
-                  f"continue with: labcal resume {run_dir}")
+        err.print(f"[bold yellow]stopped[/]: {exc}{_stop_failure(exc)}; {points_on_disk(run_dir)} reading(s) "
+                  f"kept in {run_dir}; continue with: labcal resume {run_dir}")
         return EXIT_STOPPED
     except LabcalError as exc:
         if not (run_dir / "run.json").exists():  # the run never started (or its folder is gone)
             raise
-        raise LabcalError(f"{exc}; {points_on_disk(run_dir)} reading(s) kept in {run_dir}; "
-                          f"continue with: labcal resume {run_dir}") from None
+        raise LabcalError(f"{exc}{_stop_failure(exc)}; {points_on_disk(run_dir)} reading(s) kept in "
+                          f"{run_dir}; continue with: labcal resume {run_dir}") from None
     o = result.outcome
     issued = None
     if not args.no_report:
@@ -130,6 +139,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from labcal.bench.setup import hardware_station, prepare, sim_station
     from labcal.config.plans import plan_toml
     from labcal.run.estimate import estimate
+    from labcal.run.interrupts import stop_signals_raise
     from labcal.run.journal import Journal, db_path
     from labcal.run.rundir import new_run_dir
     from labcal.run.runner import calibrate
@@ -149,6 +159,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         plan = Plan.model_validate({**plan.model_dump(), "replicates": args.replicates})
         plan_text = plan_toml(plan)
     with ExitStack() as stack:
+        stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
         bench = None
         if args.sim:
             setup = sim_station(args.rig, args.seed)
@@ -191,6 +202,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
     from labcal.config.settings import CertificateSettings
     from labcal.config.station import load_station
     from labcal.run.estimate import estimate
+    from labcal.run.interrupts import stop_signals_raise
     from labcal.run.journal import sha256
     from labcal.run.runner import execute, open_for_resume
     from labcal.run.sequencer import check_limits, schedule
@@ -198,6 +210,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
     run_dir = Path(args.run)
     ctx = open_for_resume(run_dir)
     with ExitStack() as stack:
+        stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
         stack.callback(ctx.journal.close)
         stack.callback(ctx.lock.release)
         for note in ctx.notes:
@@ -284,7 +297,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Run a calibration plan: check every angle against the limits, move the "
                                    "tables, prompt for each remount and verify it, settle, record every "
                                    "point in the journal, fit the coefficients. Ctrl-C once pauses after "
-                                   "the current point; twice stops the tables at once.")
+                                   "the current point; twice (or SIGTERM, SIGHUP) stops the tables at once. "
+                                   "At a remount prompt: y when mounted, n to wait, stop to end the run.")
     p.add_argument("--sim", action="store_true", help="run on the simulated rig")
     p.add_argument("--station", metavar="STATION",
                    help="run on a station's devices through the drivers (station file or example name)")

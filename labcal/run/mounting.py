@@ -29,3 +29,16 @@ def identify(volts: NDArray, provisional: NDArray | None = None) -> Mount:
     else:
         g = volts / np.linalg.norm(volts)
     return min(MOUNTS, key=lambda m: float(np.linalg.norm(g - expected_gravity(m))))
+
+
+def drawing(mount: Mount) -> list[str]:
+    """The mount asked for, drawn for the technician: the roll table's plate seen from the side
+    (the front of the table to the right), its dowels, the instrument on the plate's top or bottom
+    side, and the instrument's x arrow pointing forward or backward. Plain ASCII, 22 columns at
+    most, so that any terminal shows it whole; the words beside the prompt say the same."""
+    arrow = "x -->" if mount.y_deg % 360 == 0 else "<-- x"
+    case = ["    +------------+", f"    |   {arrow}    |", "    +------------+"]
+    plate = "====o============o===="
+    top = mount.u_deg % 360 == 0
+    body = [*case[:2], plate] if top else [plate, *case[1:]]
+    return ["front of the table -->", *body, "=  the plate", "o  its dowels"]

@@ -1,8 +1,16 @@
 """Talking to the technician: prompts in bench words, answered at the console, by --yes, or from
-a file of answers (for tests and unattended runs)."""
+a file of answers (for tests and unattended runs).
+
+Nothing confirms a prompt by accident: keys typed while points were measured are thrown away
+before each prompt (the prompt says so), a bell calls the technician to a remount, "n", "not yet"
+or "wait" keep the prompt open, and only "stop" (or "q") ends the run there. At a terminal the
+prose wraps at word boundaries at its width; in a file or pipe each paragraph stays one line.
+"""
 
 from __future__ import annotations
 
+import os
+import sys
 from pathlib import Path
 from typing import Literal, Protocol
 
@@ -10,6 +18,8 @@ from rich.console import Console
 
 from labcal.analysis.kinematics import Mount
 from labcal.errors import LabcalError
+from labcal.run.mounting import drawing
+from labcal.run.station import may_be_moving
 
 PauseChoice = Literal["resume", "abort"]
 
@@ -22,8 +32,9 @@ class Operator(Protocol):
     def confirm_mount(self, mount: Mount, step: int, n_steps: int, note: str = "") -> None:
         """Return once the instrument is mounted as asked; raise OperatorDeclined to stop."""
 
-    def after_pause(self, why: str) -> PauseChoice:
-        """The run is paused with the tables still: go on, or stop here (resumable later)."""
+    def after_pause(self, why: str, moving: tuple[str, ...] = ()) -> PauseChoice:
+        """The run is paused, with the tables still unless ``moving`` names tables whose stop
+        failed: go on, or stop here (resumable later)."""
 
 
 def mount_request(mount: Mount, step: int, n_steps: int, note: str = "") -> str:
@@ -32,10 +43,48 @@ def mount_request(mount: Mount, step: int, n_steps: int, note: str = "") -> str:
             f"({mount}).{extra} The tables are level and will not move until you confirm.")
 
 
-MOUNT_QUESTION = "Type [bold]y[/] and Enter when mounted, [bold]q[/] to stop: "
+MOUNT_QUESTION = ("Type [bold]y[/] and Enter when mounted ([bold]n[/]: not yet, the prompt stays; "
+                  "[bold]stop[/]: end the run here, resumable later): ")
 PAUSE_QUESTION = "Type [bold]r[/] and Enter to resume, [bold]a[/] to abort (the run can be resumed later): "
-YES, NO = ("y", "yes"), ("q", "quit", "n", "no")
-RESUME, ABORT = ("r", "resume"), ("a", "abort", "q", "quit")
+YES, STOP = ("y", "yes"), ("stop", "q", "quit")
+NOT_YET = ("n", "no", "not yet", "wait")
+RESUME, ABORT = ("r", "resume"), ("a", "abort", "stop", "q", "quit")
+
+
+def discard_typeahead(fd: int) -> int:
+    """Throw away whatever was typed on terminal ``fd`` before now, whole lines and a line begun
+    alike; the number of bytes thrown away. Keys pressed while points were being measured must
+    not answer the next prompt. Nothing on anything but a terminal: piped answers are answers."""
+    if sys.platform == "win32":  # the console's own key queue
+        import msvcrt
+
+        discarded = 0
+        while msvcrt.kbhit():
+            msvcrt.getwch()
+            discarded += 1
+        return discarded
+    import termios
+
+    try:
+        saved = termios.tcgetattr(fd)
+    except (termios.error, OSError):
+        return 0
+    # Out of line-by-line (canonical) mode, a line still being typed can be read too; the count
+    # says whether to tell the technician. tcflush then empties whatever is left.
+    raw = [*saved[:6], list(saved[6])]
+    raw[3] &= ~(termios.ICANON | termios.ECHO)
+    raw[6][termios.VMIN], raw[6][termios.VTIME] = 0, 0
+    discarded = 0
+    try:
+        termios.tcsetattr(fd, termios.TCSANOW, raw)
+        while chunk := os.read(fd, 4096):
+            discarded += len(chunk)
+    except OSError:
+        pass
+    finally:
+        termios.tcflush(fd, termios.TCIFLUSH)
+        termios.tcsetattr(fd, termios.TCSANOW, saved)
+    return discarded
 
 
 class _Asking:
@@ -46,21 +95,44 @@ class _Asking:
     def answer(self, question: str) -> str:
         raise NotImplementedError
 
+    def discard_typeahead(self) -> int:
+        """Throw away answers typed before the prompt appeared; how many keys that was."""
+        return 0
+
+    def call(self) -> None:
+        """Call the technician to the bench."""
+
+    def say(self, text: str, end: str = "\n") -> None:
+        """Prose: wrapped at word boundaries at a terminal's width, one line in a file or pipe."""
+        self.console.print(text, end=end, soft_wrap=not self.console.is_terminal)
+
     def _until(self, question: str, accepted: dict[tuple[str, ...], str]) -> str:
+        discarded = self.discard_typeahead()
+        if discarded:
+            self.say(f"[yellow]Ignored {discarded} key(s) typed before this prompt appeared; "
+                     "answer it now.[/]")
         while True:
-            reply = self.answer(question).strip().lower()
+            reply = " ".join(self.answer(question).lower().split())
             for words, meaning in accepted.items():
                 if reply in words:
                     return meaning
-            self.console.print(f"[yellow]{reply!r} is not one of the answers.[/]")
+            if reply in NOT_YET:
+                self.say("Take your time: nothing moves until you answer.")
+            else:
+                self.say(f"[yellow]{reply!r} is not one of the answers.[/]")
 
     def confirm_mount(self, mount: Mount, step: int, n_steps: int, note: str = "") -> None:
-        self.console.print(mount_request(mount, step, n_steps, note))
-        if self._until(MOUNT_QUESTION, {YES: "y", NO: "q"}) == "q":
+        self.call()
+        self.say(mount_request(mount, step, n_steps, note))
+        for line in drawing(mount):
+            self.console.print(f"  {line}", markup=False, no_wrap=True, overflow="crop", soft_wrap=False)
+        if self._until(MOUNT_QUESTION, {YES: "y", STOP: "stop"}) == "stop":
             raise OperatorDeclined("operator stopped the run at the remount prompt")
 
-    def after_pause(self, why: str) -> PauseChoice:
-        self.console.print(f"[bold]Paused[/] ({why}). The tables are still; every reading so far is saved.")
+    def after_pause(self, why: str, moving: tuple[str, ...] = ()) -> PauseChoice:
+        tables = (f"[bold red]The stop did not reach the {may_be_moving(moving)}: it may still be moving;"
+                  " make it safe before you resume.[/]" if moving else "The tables are still.")
+        self.say(f"[bold]Paused[/] ({why}). {tables} Every reading so far is saved.")
         return self._until(PAUSE_QUESTION, {RESUME: "resume", ABORT: "abort"})  # type: ignore[return-value]
 
 
@@ -71,10 +143,23 @@ class ConsoleOperator(_Asking):
         self.console = console
 
     def answer(self, question: str) -> str:
+        self.say(question, end="")
         try:
-            return self.console.input(question)
+            return self.console.input()
         except EOFError:
             raise OperatorDeclined("no answer at the prompt (input closed)") from None
+
+    def discard_typeahead(self) -> int:
+        try:
+            fd = sys.stdin.fileno()
+        except (AttributeError, ValueError, OSError):  # no stdin, or one replaced by a test
+            return 0
+        return discard_typeahead(fd) if os.isatty(fd) else 0
+
+    def call(self) -> None:
+        if self.console.is_terminal:  # a bell on a terminal; never a BEL byte in a log file
+            self.console.file.write("\a")
+            self.console.file.flush()
 
 
 class ScriptedOperator(_Asking):
@@ -92,7 +177,7 @@ class ScriptedOperator(_Asking):
         if not self.answers:
             raise OperatorDeclined("the answers file has no answer left for this prompt")
         reply = self.answers.pop(0)
-        self.console.print(f"{question}{reply} [dim](from the answers file)[/]")
+        self.say(f"{question}{reply} [dim](from the answers file)[/]")
         return reply
 
 
@@ -101,4 +186,4 @@ class AutoOperator(ConsoleOperator):
     asks at the console, since the person who pressed it is there."""
 
     def confirm_mount(self, mount: Mount, step: int, n_steps: int, note: str = "") -> None:
-        self.console.print(mount_request(mount, step, n_steps, note) + " [dim](--yes: confirmed)[/]")
+        self.say(mount_request(mount, step, n_steps, note) + " [dim](--yes: confirmed)[/]")

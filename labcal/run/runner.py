@@ -18,6 +18,7 @@ from labcal.config.plans import parse_plan
 from labcal.config.settings import SequencerSettings
 from labcal.errors import LabcalError
 from labcal.run import exports
+from labcal.run.devicelog import journaled_warnings
 from labcal.run.interrupts import Interrupts
 from labcal.run.journal import Journal, Manifest, sha256
 from labcal.run.lock import RunLock
@@ -101,11 +102,13 @@ def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: S
             try:
                 sequencer = Sequencer(plan, station, operator, journal, run_id, settings, display, interrupts,
                                       offset_s=offset)
-                outcome = sequencer.run(steps, committed, _provisional_fit(journal, run_id))
+                with journaled_warnings(sequencer.event):  # retries and reconnects are events of the run
+                    outcome = sequencer.run(steps, committed, _provisional_fit(journal, run_id))
             finally:
                 station.guard_exchanges(None)
         status, reason = "complete", None
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
+        reason = getattr(exc, "reason", reason)  # a StopSignal names what stopped the run
         raise
     except BaseException as exc:
         status, reason = "stopped", str(exc) or type(exc).__name__

@@ -8,6 +8,7 @@ pauses after the current point; the second stops the tables at once.
 
 from __future__ import annotations
 
+import logging
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 
@@ -23,9 +24,10 @@ from labcal.run.mounting import CHECK_ATTITUDE, identify
 from labcal.run.operator import Operator, OperatorDeclined
 from labcal.run.ordering import order_points
 from labcal.run.settle import Dwell, dwell
-from labcal.run.station import Station, mean_and_sd
+from labcal.run.station import Station, StopFailed, mean_and_sd
 
 LOAD_POSITION = (0.0, 0.0)  # tables level while the operator remounts
+log = logging.getLogger(__name__)
 
 
 class PolicyAbort(LabcalError):
@@ -132,6 +134,7 @@ class Sequencer:
     offset_s: float = 0.0  # rig time since the run began when this segment starts (0 unless resumed)
     _g_last: np.ndarray | None = None
     _t0: float = 0.0
+    moving: tuple[str, ...] = ()  # tables whose last stop failed: they may still be moving
 
     # --- motion ----------------------------------------------------------------------------------
     def move(self, pitch: float, roll: float) -> tuple[float, float]:
@@ -187,11 +190,12 @@ class Sequencer:
                                f"{MOUNT_ATTEMPTS} attempts")
 
     def pause(self, why: str) -> None:
-        self.event("pause", why)
-        choice = self.ask("pause", self.operator.after_pause, why)
+        self.event("pause", why, may_be_moving=list(self.moving))
+        choice = self.ask("pause", self.operator.after_pause, why, self.moving)
         if choice == "abort":
             raise OperatorDeclined(f"operator aborted the run after a pause ({why})")
         self.interrupts.resumed()
+        self.moving = ()  # the operator has seen to the tables
         self.event("resume", "operator resumed after the pause")
 
     # --- the run ---------------------------------------------------------------------------------
@@ -226,11 +230,24 @@ class Sequencer:
         return RunOutcome(recorded, failed, self.station.clock.now() - self._t0)  # since the run began
 
     def stop_tables(self, cause: BaseException) -> None:
-        """Stop both tables; if that fails too, note it on ``cause`` rather than replace it."""
-        try:
-            self.station.stop()
-        except Exception as stop_error:  # noqa: BLE001 - the cause is the news; keep it
-            cause.add_note(f"and stopping the tables failed too: {stop_error}")
+        """Stop both tables, uninterrupted, and journal whether the stop reached them. A failed
+        stop is said loudly at once and noted on ``cause`` (the news that ended the run, which it
+        does not replace); `moving` remembers it for the pause prompt."""
+        why = str(cause) or type(cause).__name__
+        with self.interrupts.stopping():
+            try:
+                self.station.stop()
+            except StopFailed as failed:
+                self.moving = failed.tables
+                log.warning("STOP FAILED after %s: %s", why, failed)
+                self.display.message(f"[bold red]STOP FAILED:[/] {failed}; make the table safe by hand")
+                cause.add_note(f"STOP FAILED: {failed}")
+                self.event("stop", f"stop failed: {failed}", may_be_moving=list(failed.tables),
+                           cause=why)
+                return
+            self.moving = ()
+            log.info("both tables stopped after %s", why)
+            self.event("stop", "both tables stopped", cause=why)
 
     def until_done(self, action, *args):
         """Do ``action(*args)``; on a device fault stop the tables, say what happened and pause: the

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal.analysis.kinematics import Mount
+from labcal.errors import LabcalError
 
 CriticalSection = Callable[[], AbstractContextManager[None]]
 """A section a stop must not cut in half (the run's Ctrl-C handler defers a stop to its end)."""
@@ -97,15 +98,30 @@ class Station:
     description: str = "station"
 
     def stop(self) -> None:
-        """Stop both tables; each stop is attempted even if the other fails."""
-        errors = []
-        for axis in (self.pitch, self.roll):
+        """Stop both tables; each stop is attempted even if the other fails. `StopFailed` names
+        every table whose stop did not reach it."""
+        failures: dict[str, Exception] = {}
+        for table, axis in (("pitch", self.pitch), ("roll", self.roll)):
             try:
                 axis.stop()
             except Exception as exc:  # noqa: BLE001 - both axes must get their stop
-                errors.append(exc)
-        if errors:
-            raise errors[0]
+                failures[table] = exc
+        if failures:
+            raise StopFailed(failures)
+
+
+class StopFailed(LabcalError):
+    """A table did not take its stop: it may still be moving, and the operator must be told so."""
+
+    def __init__(self, failures: dict[str, Exception]):
+        self.tables = tuple(failures)  # "pitch", "roll": the tables that may still be moving
+        why = "; ".join(f"{table}: {exc}" for table, exc in failures.items())
+        super().__init__(f"the stop did not reach the {may_be_moving(self.tables)} ({why})")
+
+
+def may_be_moving(tables: tuple[str, ...]) -> str:
+    """'pitch table', 'pitch and roll tables': the tables a failed stop leaves possibly moving."""
+    return " and ".join(tables) + (" tables" if len(tables) > 1 else " table")
 
 
 def mean_and_sd(scan: Scan) -> tuple[NDArray, NDArray]:
