@@ -21,6 +21,7 @@ from labcal.analysis.fit import SENSORS, Fit
 from labcal.analysis.kinematics import gravity
 from labcal.analysis.models import BASE_NAMES
 from labcal.config.files import json_safe
+from labcal.config.lab import certificate_settings
 from labcal.config.settings import CertificateSettings
 from labcal.config.station import load_certificate_settings
 from labcal.documents.certificate import (
@@ -44,11 +45,13 @@ SIMULATED_SERIAL = "SIMULATED"  # a dry run's instrument is the simulator's, wha
 
 
 def load_settings(station_path: str | Path | None, **overrides: object) -> CertificateSettings:
-    """The ``[certificate]`` table of a station file (defaults without one), then the command
-    line's non-None ``overrides``; every mistake is one line naming the file and the field."""
+    """The lab file's certificate defaults, the ``[certificate]`` table of a station file over them,
+    then the command line's non-None ``overrides``; every mistake is one line naming the file and
+    the field."""
     if station_path is None:
-        return CertificateSettings().overridden("command line", **overrides)
-    return load_certificate_settings(station_path).overridden(str(station_path), **overrides)
+        return certificate_settings(None, "lab file").overridden("command line", **overrides)
+    station = load_certificate_settings(station_path)
+    return certificate_settings(station, str(station_path)).overridden(str(station_path), **overrides)
 
 
 # --- attitude uncertainty over the usage envelope ---------------------------------------------------

@@ -439,7 +439,7 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
                       serial: str | None = None, operator: str | None = None,
                       db: str | Path | None = None) -> RunOutputs:
     """Certificate, report and history entry of a finished run (called at the end of `labcal run`
-    and by `labcal report`); ``db`` None means $LABCAL_DB or runs/labcal.sqlite."""
+    and by `labcal report`); ``db`` None means $LABCAL_DB or the lab file's database."""
     from labcal.documents import history
 
     record = load_run(run_dir)
