@@ -28,16 +28,16 @@ def cmd_show(args: argparse.Namespace) -> int:
     from labcal.config.lab import load_lab_config
 
     lab = load_lab_config()
-    doc = {"path": None if lab.path is None else str(lab.path), "database": str(lab.database()),
-           "laboratory": lab.laboratory.model_dump(), "certificate": lab.certificate.model_dump(mode="json")}
+    laboratory, certificate = lab.laboratory.model_dump(), lab.certificate.model_dump(mode="json")
+    path, database = None if lab.path is None else str(lab.path), str(lab.database())
     if args.json:
-        print_json(doc)
+        print_json({"path": path, "database": database, "laboratory": laboratory, "certificate": certificate})
         return 0
-    out.print(f"lab file: {doc['path'] or 'none (defaults)'}")
-    out.print(f"database: {doc['database']}")
-    for key, value in doc["laboratory"].items():
+    out.print(f"lab file: {path or 'none (defaults)'}")
+    out.print(f"database: {database}")
+    for key, value in laboratory.items():
         out.print(f"laboratory.{key}: {value or 'not stated'}")
-    for key, value in doc["certificate"].items():
+    for key, value in certificate.items():
         out.print(f"certificate.{key}: {'none' if value is None else value}")
     return 0
 

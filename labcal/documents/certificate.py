@@ -186,6 +186,73 @@ class Conformity(_Strict):
     passed: bool
 
 
+class BudgetRow(_Strict):
+    """One source of the GUM budget: its input and its contribution u_i to pitch and roll (arcsec)
+    at the envelope's worst point (where U95 of that angle is largest) and RMS over the envelope."""
+
+    source: str
+    type: Literal["A", "B"]
+    distribution: str
+    standard_uncertainty: float
+    unit: str
+    sensitivity_pitch: float | None  # arcsec per unit of the input, at the worst point
+    sensitivity_roll: float | None
+    pitch_worst_arcsec: float
+    pitch_rms_arcsec: float
+    roll_worst_arcsec: float | None
+    roll_rms_arcsec: float | None
+    degrees_of_freedom: float | None  # None: infinite (a Type B input with known bounds)
+    added: bool
+    note: str = ""
+
+
+class BudgetTotal(_Strict):
+    angle: Literal["pitch", "roll"]
+    worst_at_deg: tuple[float, float]
+    u_c_arcsec: float
+    nu_eff: float | None
+    k: float
+    U95_arcsec: float
+    U95_rms_arcsec: float
+
+
+class MonteCarloCheck(_Strict):
+    """JCGM 101 propagation of the same inputs at each angle's worst point."""
+
+    trials: int = Field(ge=1)
+    seed: int
+    angle: Literal["pitch", "roll"]
+    at_deg: tuple[float, float]
+    linear_U95_arcsec: float
+    monte_carlo_U95_arcsec: float
+    agree_within_5_percent: bool
+
+
+class CoefficientBudgetRecord(_Strict):
+    """Per coefficient (4×3, as X): combined standard uncertainty, ν_eff (None: infinite), k, U, and
+    each source's standard uncertainty."""
+
+    u_c: list[list[float]]
+    nu_eff: list[list[float | None]]
+    k: list[list[float]]
+    U: list[list[float]]
+    contributions: dict[str, list[list[float]]]
+
+
+class UncertaintyBudget(_Strict):
+    method: str
+    inputs: dict
+    rows: list[BudgetRow]
+    totals: list[BudgetTotal]
+    coefficients: CoefficientBudgetRecord
+    monte_carlo: list[MonteCarloCheck] | None = None
+    statement: str
+
+
+def _absent(value: object) -> bool:
+    return value is None
+
+
 class Digest(_Strict):
     algorithm: Literal["sha256"] = "sha256"
     value: str = Field(pattern="^[0-9a-f]{64}$")
@@ -214,6 +281,9 @@ class Certificate(_Strict):
     plan_audit: PlanAudit
     attitude: AttitudeEnvelope
     conformity: Conformity | None
+    # Sections added to format 1 are left out of the document when absent, so that certificates
+    # issued before them read back and hash exactly as they were issued.
+    uncertainty_budget: UncertaintyBudget | None = Field(default=None, exclude_if=_absent)
     digest: Digest
 
     @property

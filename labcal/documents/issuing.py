@@ -15,11 +15,11 @@ from numpy.typing import NDArray
 
 from labcal import __version__
 from labcal.analysis.attitude import Calibration, calibration_from_json, sphere_least_squares
+from labcal.analysis.budget import TypeBInputs
 from labcal.analysis.design import LEAK_ZERO, audit, audit_summary, figure_of_merit, grid
 from labcal.analysis.distributions import t_quantile
 from labcal.analysis.fit import SENSORS, Fit
 from labcal.analysis.kinematics import gravity
-from labcal.analysis.models import BASE_NAMES
 from labcal.config.files import json_safe
 from labcal.config.lab import certificate_settings
 from labcal.config.settings import CertificateSettings
@@ -36,8 +36,10 @@ from labcal.documents.certificate import (
     FitSection,
     Leak,
     PlanAudit,
+    UncertaintyBudget,
     seal,
 )
+from labcal.documents.uncertainty import budget, stated_U95_arcsec
 from labcal.errors import LabcalError
 from labcal.run.record import RunRecord
 
@@ -117,15 +119,21 @@ def _recorded(meta_value, given: str | None, what: str, run_dir: Path) -> str | 
     return given or meta_value or None
 
 
-def _expanded(fit: Fit) -> Expanded:
-    nu = fit.variance_dof
+def _expanded(fit: Fit, budget: UncertaintyBudget) -> Expanded:
+    """U = k·u_c of every coefficient, u_c from the whole budget (Type A and B); per sensor the
+    smallest Welch–Satterthwaite ν_eff of its coefficients, truncated (GUM G.4.1 note 1), sets k.
+    With no Type B input this is the fit's own ν and standard error."""
+    nu_coef = np.array([[np.inf if n is None else n for n in row] for row in budget.coefficients.nu_eff])
+    nu_min = nu_coef.min(axis=0)
+    nu = np.where(np.isfinite(nu_min), np.floor(np.nan_to_num(nu_min) + 1e-6), fit.variance_dof).astype(int)
     k = t_quantile(0.5 + COVERAGE / 2, nu)
     ks = ", ".join(f"{s}: k = {kj:.2f} at ν_eff = {n}" for s, kj, n in zip(SENSORS, k, nu, strict=True))
-    statement = ("The reported expanded uncertainty is the standard uncertainty multiplied by the coverage "
-                 f"factor k = t₀.₉₇₅(ν_eff) ({ks}), which for a t-distribution corresponds to a coverage "
-                 "probability of approximately 95 %.")
+    statement = ("The reported expanded uncertainty is the combined standard uncertainty of the budget's "
+                 f"sources multiplied by the coverage factor k = t₀.₉₇₅(ν_eff) ({ks}), which for a "
+                 "t-distribution corresponds to a coverage probability of approximately 95 %.")
+    u_c = np.array(budget.coefficients.u_c)
     return Expanded(coverage_probability=COVERAGE, nu_eff=nu.tolist(), k=k.tolist(),
-                    U=(k[None, :] * fit.stderr[: len(BASE_NAMES)]).tolist(), statement=statement)
+                    U=(k[None, :] * u_c).tolist(), statement=statement)
 
 
 def _plan_audit(record: RunRecord, settings: CertificateSettings) -> PlanAudit:
@@ -137,14 +145,17 @@ def _plan_audit(record: RunRecord, settings: CertificateSettings) -> PlanAudit:
         figure_of_merit_usage_sqrt=figure_of_merit(record.plan, settings.usage_pitch_deg) ** 0.5)
 
 
-def _conformity(fit: Fit, U: NDArray, env: AttitudeEnvelope, settings: CertificateSettings
+def _conformity(fit: Fit, U: NDArray, budget: UncertaintyBudget, settings: CertificateSettings
                 ) -> Conformity | None:
     checks, rules = [], []
     tol = settings.attitude_u95_max_deg
     if tol is not None:
         rules.append("the attitude passes when the largest 95 % expanded uncertainty of inferred pitch and "
-                     "of inferred roll over the usage envelope does not exceed the tolerance")
-        for angle, value in (("pitch", env.pitch_U95_max_deg), ("roll", env.roll_U95_max_deg)):
+                     "of inferred roll over the usage envelope, from the full uncertainty budget, does not "
+                     "exceed the tolerance")
+        for angle in ("pitch", "roll"):
+            arcsec = stated_U95_arcsec(budget, angle)
+            value = None if arcsec is None else arcsec / 3600.0
             if value is not None:
                 checks.append(Check(quantity=f"{angle} U95, largest over the usage envelope", value=value,
                                     limit=tol, unit="°", passed=value <= tol))
@@ -185,9 +196,11 @@ STATEMENTS = ("The results relate only to the item calibrated.",
 
 def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings | None = None, *,
                       serial: str | None = None, operator: str | None = None,
-                      issued_utc: datetime | None = None) -> Certificate:
+                      issued_utc: datetime | None = None, inputs: TypeBInputs | None = None,
+                      monte_carlo: int = 0) -> Certificate:
     """The sealed certificate of a run's fit. ``serial``/``operator`` fill in what the run did not
-    record (and may not contradict it); a dry run's instrument is SIMULATED."""
+    record (and may not contradict it); a dry run's instrument is SIMULATED. ``inputs``: the bench's
+    Type B inputs (none: a Type A budget); ``monte_carlo``: trials of the JCGM 101 check (0: none)."""
     settings = settings or CertificateSettings()
     meta, run_dir = record.meta, record.directory
     serial = _recorded(meta.get("instrument_serial"), serial, "instrument serial", run_dir) \
@@ -198,7 +211,9 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
     if not calibrated:
         raise LabcalError(f"{run_dir}: run.json has no started_utc; the calibration date is unknown")
     fit_doc = json_safe(fit.to_json())
-    expanded = _expanded(fit)
+    seed = int(record.readings_sha256[:8], 16)  # the same run gives the same Monte Carlo draws
+    uncertainty = budget(record, fit, inputs or TypeBInputs(), settings, monte_carlo, seed)
+    expanded = _expanded(fit, uncertainty)
     cal = calibration_from_json(fit_doc, run_dir)
     envelope = attitude_envelope(cal, settings)
     try:
@@ -231,7 +246,8 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
         "expanded_uncertainty": expanded.model_dump(),
         "plan_audit": _plan_audit(record, settings).model_dump(),
         "attitude": envelope.model_dump(),
-        "conformity": None if (c := _conformity(fit, np.array(expanded.U), envelope, settings)) is None
+        "conformity": None if (c := _conformity(fit, np.array(expanded.U), uncertainty, settings)) is None
         else c.model_dump(),
+        "uncertainty_budget": uncertainty.model_dump(),
     }
     return seal(content)

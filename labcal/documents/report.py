@@ -29,6 +29,7 @@ from labcal.analysis.models import Points
 from labcal.config.settings import CertificateSettings
 from labcal.documents.certificate import Certificate, format_result, format_uncertainty, write_certificate
 from labcal.documents.issuing import build_certificate, envelope_grid
+from labcal.documents.uncertainty import bench_section, type_b_inputs
 from labcal.errors import LabcalError
 from labcal.run.record import RunRecord, load_run
 
@@ -174,8 +175,41 @@ def audit_table(cert: Certificate) -> Table:
                  f"pitch range: V_R^½ = {a.figure_of_merit_usage_sqrt:.4f}.")
 
 
+def _arcsec(x: float | None) -> str:
+    """Arcseconds to three digits; rounding noise (what a plan cancels exactly) shows as 0."""
+    return "—" if x is None else "0" if abs(x) < 1e-9 else f"{x:.3g}"
+
+
+def budget_table(cert: Certificate) -> Table:
+    """The GUM budget: one row per source, its contribution u_i to pitch and roll (arcsec) at the
+    envelope's worst point and RMS over the envelope, then the totals (and the Monte Carlo check)."""
+    b = cert.uncertainty_budget
+    header = ["source", "type", "distribution", "u (own unit)", "c pitch (″/unit)", "pitch u_i worst (″)",
+              "pitch u_i RMS (″)", "c roll (″/unit)", "roll u_i worst (″)", "roll u_i RMS (″)", "ν"]
+    if b is None:
+        return Table("Uncertainty budget", ["budget"], [["not in this certificate (issued before budgets)"]])
+    rows = []
+    for r in b.rows:
+        name = r.source if r.added else f"{r.source} (not added)"
+        rows.append([name, r.type, r.distribution, f"{r.standard_uncertainty:.3g} {r.unit}",
+                     _arcsec(r.sensitivity_pitch), _arcsec(r.pitch_worst_arcsec), _arcsec(r.pitch_rms_arcsec),
+                     _arcsec(r.sensitivity_roll), _arcsec(r.roll_worst_arcsec), _arcsec(r.roll_rms_arcsec),
+                     "∞" if r.degrees_of_freedom is None else f"{r.degrees_of_freedom:.0f}"])
+    for t in b.totals:
+        rows.append([f"{t.angle}: combined u_c at pitch {t.worst_at_deg[0]:g}°, roll {t.worst_at_deg[1]:g}°",
+                     "", "", "", "", f"{t.u_c_arcsec:.3g}", "", "", "", "",
+                     "∞" if t.nu_eff is None else f"{t.nu_eff:.0f}"])
+        rows.append([f"{t.angle}: U95 = k·u_c (k = {t.k:.2f}); RMS over the envelope {t.U95_rms_arcsec:.3g}″",
+                     "", "", "", "", f"{t.U95_arcsec:.3g}", "", "", "", "", ""])
+    for c in b.monte_carlo or []:
+        rows.append([f"{c.angle}: Monte Carlo U95 ({c.trials} trials, JCGM 101)", "", "", "", "",
+                     f"{c.monte_carlo_U95_arcsec:.3g}", "", "", "", "",
+                     "agrees" if c.agree_within_5_percent else "differs > 5 %"])
+    return Table("Uncertainty budget of inferred pitch and roll (GUM)", header, rows, b.statement)
+
+
 def tables(cert: Certificate) -> list[Table]:
-    return [identification_table(cert), conformity_table(cert), attitude_table(cert),
+    return [identification_table(cert), conformity_table(cert), attitude_table(cert), budget_table(cert),
             coefficients_with_expanded_uncertainty(cert), replication_table(cert), audit_table(cert)]
 
 
@@ -437,14 +471,19 @@ class RunOutputs:
 
 def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None = None, *,
                       serial: str | None = None, operator: str | None = None,
-                      db: str | Path | None = None) -> RunOutputs:
+                      db: str | Path | None = None, station: str | Path | None = None,
+                      monte_carlo: int = 0) -> RunOutputs:
     """Certificate, report and history entry of a finished run (called at the end of `labcal run`
-    and by `labcal report`); ``db`` None means $LABCAL_DB or the lab file's database."""
+    and by `labcal report`); ``db`` None means $LABCAL_DB or the lab file's database. The Type B
+    inputs come from ``station`` (a station file), else the station the run was journaled with;
+    ``monte_carlo`` trials check the budget by JCGM 101."""
     from labcal.documents import history
 
     record = load_run(run_dir)
     fit = fit_readings(record.readings)
-    cert = build_certificate(record, fit, settings, serial=serial, operator=operator)
+    inputs = type_b_inputs(bench_section(record, station), record)
+    cert = build_certificate(record, fit, settings, serial=serial, operator=operator, inputs=inputs,
+                             monte_carlo=monte_carlo)
     cert_path = write_certificate(record.directory / CERTIFICATE, cert)
     html_path, pdf_path = write_report(record.directory, cert, record, fit)
     database = history.store(cert, db)

@@ -30,6 +30,7 @@ class RunRecord:
     plan: Plan
     plan_text: str
     meta: dict  # run.json: station, settings, dates, status, identities, simulated truth
+    station_text: str = ""  # the journal's snapshot of the station the run used (JSON)
 
     @property
     def simulated(self) -> bool:
@@ -63,4 +64,4 @@ def load_run(run_dir: str | Path) -> RunRecord:
     meta = {**info, **row.metadata, "status": row.status, "reason": row.reason,
             "started_utc": row.started_utc, "ended_utc": row.ended_utc, "settings": row.settings,
             "instrument_serial": row.instrument_serial, "operator": row.operator}
-    return RunRecord(run_dir, readings, readings_digest(points), plan, row.plan_text, meta)
+    return RunRecord(run_dir, readings, readings_digest(points), plan, row.plan_text, meta, row.station_text)
