@@ -130,3 +130,23 @@ def test_a_type_b_entry_in_the_wrong_unit_is_one_line(tmp_path, value, message):
     assert message in str(info.value) and str(path) in str(info.value) and "\n" not in str(info.value)
     path.write_text('[uncertainty]\npitch_index = "7.2 arcmin"\n')
     assert load_certificate_section(path).uncertainty.pitch_index == pytest.approx(432 * ARCSEC)
+
+
+def test_certificate_states_both_estimators_and_undefined_near_90(tmp_path):
+    """The closed form's U95 beside the sphere's; with the envelope reaching ±90° it is "undefined"
+    there (None in the JSON), never a number like 1e148."""
+    from labcal.analysis.attitude import closed_form
+    from labcal.config.settings import CertificateSettings
+    from labcal.documents.issuing import attitude_envelope
+
+    readings, fit = _fit("four-mount-64")
+    cal = calibration_from_json(fit.to_json(), "fit")
+    env = attitude_envelope(cal, CertificateSettings(usage_pitch_deg=(-90, 90), grid_step_deg=10))
+    cf = env.closed_form
+    assert cf is not None and cf.undefined_points == 2 * 37  # pitch ±90° × every roll
+    assert cf.pitch_U95_max_deg is not None and cf.pitch_U95_max_deg < 1  # the finite part stays sane
+    assert "both estimators" in cf.statement
+    # the closed form's pitch U95 at 60° is larger than the sphere's (about 1.9× in the issue's case)
+    g = gravity(np.radians(60.0), 0.0, 0.0, 0.0)[None]
+    v = fit.coefficients[0] + g @ fit.coefficients[1:]
+    assert closed_form(cal, v).u_pitch[0] > sphere_least_squares(cal, v).u_pitch[0]

@@ -155,6 +155,26 @@ class PlanAudit(_Strict):
     figure_of_merit_usage_sqrt: float
 
 
+def _absent(value: object) -> bool:
+    return value is None
+
+
+class ClosedFormEnvelope(_Strict):
+    """Soto's closed form (eqs. 5–7) on the same grid: its Type A U95 (None: undefined, where the
+    closed form breaks down — asin at |g_x| → 1, roll at pitch ±90°) and the statement of which
+    estimator `labcal attitude` uses."""
+
+    method: str
+    pitch_U95_max_deg: float | None
+    pitch_U95_rms_deg: float | None
+    pitch_U95_max_at_deg: tuple[float, float] | None
+    roll_U95_max_deg: float | None
+    roll_U95_rms_deg: float | None
+    roll_U95_max_at_deg: tuple[float, float] | None
+    undefined_points: int
+    statement: str
+
+
 class AttitudeEnvelope(_Strict):
     method: str
     usage_pitch_deg: tuple[float, float]
@@ -170,6 +190,7 @@ class AttitudeEnvelope(_Strict):
     roll_U95_rms_deg: float | None
     roll_U95_max_at_deg: tuple[float, float] | None
     roll_undefined_points: int
+    closed_form: ClosedFormEnvelope | None = Field(default=None, exclude_if=_absent)
 
 
 class Check(_Strict):
@@ -247,10 +268,6 @@ class UncertaintyBudget(_Strict):
     coefficients: CoefficientBudgetRecord
     monte_carlo: list[MonteCarloCheck] | None = None
     statement: str
-
-
-def _absent(value: object) -> bool:
-    return value is None
 
 
 class Digest(_Strict):

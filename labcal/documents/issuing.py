@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal import __version__
-from labcal.analysis.attitude import Calibration, calibration_from_json, sphere_least_squares
+from labcal.analysis.attitude import Calibration, calibration_from_json, closed_form, sphere_least_squares
 from labcal.analysis.budget import TypeBInputs
 from labcal.analysis.design import LEAK_ZERO, audit, audit_summary, figure_of_merit, grid
 from labcal.analysis.distributions import t_quantile
@@ -30,6 +30,7 @@ from labcal.documents.certificate import (
     AttitudeEnvelope,
     Certificate,
     Check,
+    ClosedFormEnvelope,
     Conformity,
     Environment,
     Expanded,
@@ -69,14 +70,16 @@ class EnvelopeGrid:
     dof: int
 
 
-def envelope_grid(cal: Calibration, settings: CertificateSettings) -> EnvelopeGrid:
-    """Weighted least squares on the sphere (Tripp eqs. 99–104) at every grid attitude, top-forward
-    mount, for one new reading: the uncertainty a user of the instrument gets, in degrees."""
+def envelope_grid(cal: Calibration, settings: CertificateSettings, estimator=sphere_least_squares
+                  ) -> EnvelopeGrid:
+    """Weighted least squares on the sphere (Tripp eqs. 99–104; or another ``estimator``) at every
+    grid attitude, top-forward mount, for one new reading: the uncertainty a user of the instrument
+    gets, in degrees."""
     step = settings.grid_step_deg
     points = np.array(grid(*settings.usage_pitch_deg, step, *settings.usage_roll_deg, step))
     pitch, roll = np.unique(points[:, 0]), np.unique(points[:, 1])
     g = gravity(np.radians(points[:, 0]), np.radians(points[:, 1]), 0.0, 0.0)
-    att = sphere_least_squares(cal, cal.X[0] + g @ cal.X[1:])
+    att = estimator(cal, cal.X[0] + g @ cal.X[1:])
     shape = (len(pitch), len(roll))
     return EnvelopeGrid(pitch, roll, (att.k95 * np.degrees(att.u_pitch)).reshape(shape),
                         (att.k95 * np.degrees(att.u_roll)).reshape(shape), att.k95, cal.dof)
@@ -108,7 +111,34 @@ def attitude_envelope(cal: Calibration, settings: CertificateSettings) -> Attitu
         degrees_of_freedom=env.dof,
         pitch_U95_max_deg=p_max, pitch_U95_rms_deg=p_rms, pitch_U95_max_at_deg=p_at,
         roll_U95_max_deg=r_max, roll_U95_rms_deg=r_rms, roll_U95_max_at_deg=r_at,
-        roll_undefined_points=int(np.sum(~np.isfinite(env.u95_roll_deg))))
+        roll_undefined_points=int(np.sum(~np.isfinite(env.u95_roll_deg))),
+        closed_form=_closed_form_envelope(cal, settings, p_max, p_at))
+
+
+def _closed_form_envelope(cal: Calibration, settings: CertificateSettings, sphere_pitch_max: float,
+                          sphere_at: tuple[float, float]) -> ClosedFormEnvelope:
+    """The closed form's U95 on the same grid, "undefined" (None) where it breaks down, and the
+    ratio to the sphere estimator where the sphere's pitch U95 is largest."""
+    env = envelope_grid(cal, settings, closed_form)
+    p_max, p_rms, p_at = _summary(env, env.u95_pitch_deg)
+    r_max, r_rms, r_at = _summary(env, env.u95_roll_deg)
+    undefined = int(np.sum(~np.isfinite(env.u95_pitch_deg)))
+    i = int(np.searchsorted(env.pitch_deg, sphere_at[0]))
+    j = int(np.searchsorted(env.roll_deg, sphere_at[1]))
+    ratio = env.u95_pitch_deg[i, j] / sphere_pitch_max
+    statement = ("`labcal attitude` prints both estimators by default (columns cf_ closed form, ls_ "
+                 "least squares on the sphere; --method chooses one); this certificate's budget and "
+                 f"conformity are for the sphere estimator. At pitch {sphere_at[0]:g}°, roll "
+                 f"{sphere_at[1]:g}° the closed form's pitch U95 is "
+                 + (f"{ratio:.2g}× the sphere estimator's." if np.isfinite(ratio) else "undefined.")
+                 + (f" The closed form is undefined at {undefined} attitude(s) near pitch ±90°, where asin "
+                    "has no usable slope and roll does not exist." if undefined else ""))
+    return ClosedFormEnvelope(
+        method="Soto's closed form g = (V − B)S⁻¹, pitch = asin g_x, roll = atan2(g_y, g_z) (eqs. 5–7), "
+               "first-order uncertainty through the same Σ_v; Type A",
+        pitch_U95_max_deg=p_max, pitch_U95_rms_deg=p_rms, pitch_U95_max_at_deg=p_at,
+        roll_U95_max_deg=r_max, roll_U95_rms_deg=r_rms, roll_U95_max_at_deg=r_at,
+        undefined_points=undefined, statement=statement)
 
 
 # --- building a certificate from a run -------------------------------------------------------------

@@ -108,12 +108,20 @@ def attitude_table(cert: Certificate) -> Table:
     def deg(u): return "undefined" if u is None else f"{format_uncertainty(u)}°"
     rows = [["pitch", deg(a.pitch_U95_max_deg), where(a.pitch_U95_max_at_deg), deg(a.pitch_U95_rms_deg)],
             ["roll", deg(a.roll_U95_max_deg), where(a.roll_U95_max_at_deg), deg(a.roll_U95_rms_deg)]]
+    cf = a.closed_form
+    if cf is not None:
+        rows += [["pitch, closed form", deg(cf.pitch_U95_max_deg), where(cf.pitch_U95_max_at_deg),
+                  deg(cf.pitch_U95_rms_deg)],
+                 ["roll, closed form", deg(cf.roll_U95_max_deg), where(cf.roll_U95_max_at_deg),
+                  deg(cf.roll_U95_rms_deg)]]
     (p0, p1), (r0, r1) = a.usage_pitch_deg, a.usage_roll_deg
     caption = (f"Over pitch {p0:g}…{p1:g}° × roll {r0:g}…{r1:g}° in {a.grid_step_deg:g}° steps "
                f"({a.grid_points} attitudes); "
                f"{a.method}; k = {a.k:.2f} (ν = {a.degrees_of_freedom}).")
     if a.roll_undefined_points:
         caption += f" Roll is undefined at {a.roll_undefined_points} attitude(s) near pitch ±90°."
+    if cf is not None:
+        caption += f" {cf.statement}"
     return Table("Attitude uncertainty (95 %) over the usage envelope", ["angle", "largest U95", "at",
                                                                           "RMS of U95"], rows, caption)
 
