@@ -6,11 +6,23 @@ import argparse
 import sys
 
 from labcal import __version__
-from labcal.commands import attitude, config, fit, history, plan, report, run, sim, simulate, station
+from labcal.commands import (
+    attitude,
+    certificate,
+    config,
+    fit,
+    history,
+    plan,
+    report,
+    run,
+    sim,
+    simulate,
+    station,
+)
 from labcal.commands.common import EXIT_INTERRUPTED, EXIT_USER_ERROR, err
 from labcal.errors import LabcalError
 
-COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, station, sim, config)
+COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, station, sim, config, certificate)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -270,6 +270,18 @@ class UncertaintyBudget(_Strict):
     statement: str
 
 
+class Approval(_Strict):
+    """Who approved the certificate (ISO/IEC 17025 §7.8.2.1 o) and their Ed25519 signature over the
+    canonical content (`labcal.documents.approval`)."""
+
+    by: str = Field(min_length=1)
+    role: str = Field(min_length=1)
+    approved_utc: AwareDatetime
+    algorithm: Literal["Ed25519"]
+    key_id: str = Field(pattern="^[0-9a-f]{64}$")
+    signature: str
+
+
 class Digest(_Strict):
     algorithm: Literal["sha256"] = "sha256"
     value: str = Field(pattern="^[0-9a-f]{64}$")
@@ -301,7 +313,19 @@ class Certificate(_Strict):
     # Sections added to format 1 are left out of the document when absent, so that certificates
     # issued before them read back and hash exactly as they were issued.
     uncertainty_budget: UncertaintyBudget | None = Field(default=None, exclude_if=_absent)
+    revision: int | None = Field(default=None, ge=1, exclude_if=_absent)
+    replaces: str | None = Field(default=None, exclude_if=_absent)
+    approval: Approval | None = Field(default=None, exclude_if=_absent)
     digest: Digest
+
+    @property
+    def number(self) -> str:
+        """The certificate number with its revision, as printed (ISO/IEC 17025 §7.8.2.1 c)."""
+        return f"{self.certificate_id} rev. {self.revision or 1}"
+
+    @property
+    def draft(self) -> bool:
+        return self.approval is None
 
     @property
     def coefficients(self) -> NDArray:

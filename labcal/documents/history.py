@@ -60,6 +60,8 @@ def certificates_for(serial: str, db: str | Path | None = None, include_simulate
                               f"{', '.join(known) if known else 'none'}")
     certs = [certificate_from_doc(parse_json(doc, f"{path}: certificate {cid}"), f"{path}: certificate {cid}")
              for cid, doc in rows]
+    replaced = {c.replaces for c in certs if c.replaces}
+    certs = [c for c in certs if c.number not in replaced]  # a correction stands for the one it replaces
     if include_simulated or serial == SIMULATED_SERIAL:
         return certs
     real = [c for c in certs if not c.station.simulated]

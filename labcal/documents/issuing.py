@@ -227,7 +227,7 @@ STATEMENTS = ("The results relate only to the item calibrated.",
 def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings | None = None, *,
                       serial: str | None = None, operator: str | None = None,
                       issued_utc: datetime | None = None, inputs: TypeBInputs | None = None,
-                      monte_carlo: int = 0) -> Certificate:
+                      monte_carlo: int = 0, revision: int = 1, replaces: str | None = None) -> Certificate:
     """The sealed certificate of a run's fit. ``serial``/``operator`` fill in what the run did not
     record (and may not contradict it); a dry run's instrument is SIMULATED. ``inputs``: the bench's
     Type B inputs (none: a Type A budget); ``monte_carlo``: trials of the JCGM 101 check (0: none)."""
@@ -252,7 +252,10 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
         raise LabcalError(f"{run_dir}: run.json started_utc {calibrated!r} is not an ISO 8601 time") from None
     content = {
         "schema": SCHEMA,
-        "certificate_id": f"{serial}-{stamp}-{record.readings_sha256[:8]}",
+        "certificate_id": f"{serial}-{stamp}-{record.readings_sha256[:8]}" + (f"-R{revision}" if revision > 1
+                                                                              else ""),
+        "revision": revision,
+        "replaces": replaces,
         "labcal_version": __version__,
         "laboratory": settings.laboratory,
         "instrument": {"serial": serial, "description": meta.get("instrument_description", "")},

@@ -27,7 +27,13 @@ from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit, fit_readings, readings_
 from labcal.analysis.kinematics import Mount
 from labcal.analysis.models import Points
 from labcal.config.settings import CertificateSettings
-from labcal.documents.certificate import Certificate, format_result, format_uncertainty, write_certificate
+from labcal.documents.certificate import (
+    Certificate,
+    format_result,
+    format_uncertainty,
+    read_certificate,
+    write_certificate,
+)
 from labcal.documents.issuing import build_certificate, envelope_grid
 from labcal.documents.uncertainty import bench_section, type_b_inputs
 from labcal.errors import LabcalError
@@ -405,8 +411,9 @@ def render_html(cert: Certificate, figs: list[tuple[str, Figure]]) -> str:
     css_class = "none" if cert.conformity is None else ("pass" if cert.conformity.passed else "fail-v")
     parts = [f"<!DOCTYPE html><html lang=\"en\"><head><meta charset=\"utf-8\"><title>Calibration certificate "
              f"{html.escape(cert.certificate_id)}</title><style>{CSS}</style></head><body>",
-             f"<h1>Calibration certificate and report</h1><p>{html.escape(cert.certificate_id)} · "
-             f"instrument {html.escape(cert.instrument.serial)}</p>"
+             f"<h1>Calibration certificate and report</h1><p>{html.escape(cert.number)} · "
+             f"instrument {html.escape(cert.instrument.serial)} · "
+             f"<strong>{html.escape(_status(cert))}</strong></p>"
              f"<p class=\"verdict {css_class}\">{html.escape(verdict)}</p>"]
     parts += [_html_table(t) for t in tables(cert)]
     parts.append("<h2>Method</h2>" + "".join(f"<p>{html.escape(p)}</p>" for p in
@@ -430,8 +437,16 @@ def text_table(t: Table) -> str:
     return "\n".join(lines)
 
 
+def _status(cert: Certificate) -> str:
+    if cert.approval is None:
+        return "DRAFT — not approved"
+    a = cert.approval
+    return f"approved by {a.by} ({a.role}) on {a.approved_utc:%Y-%m-%d}"
+
+
 def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path) -> None:
-    """Text pages with every table, then one page per figure."""
+    """Text pages with every table, then one page per figure; every page says "page X of Y" and,
+    until the certificate is approved, DRAFT."""
     blocks = []
     for t in tables(cert):
         blocks.append(text_table(t))
@@ -444,16 +459,27 @@ def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path) ->
     with PdfPages(path, metadata={"Title": f"Calibration certificate {cert.certificate_id}",
                                   "Subject": f"instrument {cert.instrument.serial}"}) as pdf:
         pages = range(0, len(lines), per_page)
+        total = len(pages) + len(figs)
         for n, start in enumerate(pages, start=1):
             page = Figure(figsize=(11.69, 8.27))
-            page.text(0.03, 0.97, f"Calibration certificate {cert.certificate_id} — {verdict_text(cert)} — "
-                                  f"page {n} of {len(pages)} (text)", fontsize=9, va="top", weight="bold")
+            page.text(0.03, 0.97, f"Calibration certificate {cert.number} — {verdict_text(cert)} — "
+                                  f"{_status(cert)} — page {n} of {total}", fontsize=9, va="top",
+                      weight="bold", color="tab:red" if cert.draft else "black")
             page.text(0.03, 0.93, "\n".join(lines[start:start + per_page]), family="monospace", fontsize=6.4,
                       va="top")
+            _mark(page, cert)
             pdf.savefig(page)
-        for title, fig in figs:
-            fig.text(0.01, 0.001, f"{cert.certificate_id} · {title}", fontsize=7, va="bottom")
+        for n, (title, fig) in enumerate(figs, start=len(pages) + 1):
+            fig.text(0.01, 0.001, f"{cert.number} · {title} · {_status(cert)} · page {n} of {total}",
+                     fontsize=7, va="bottom")
+            _mark(fig, cert)
             pdf.savefig(fig)
+
+
+def _mark(page: Figure, cert: Certificate) -> None:
+    if cert.draft:
+        page.text(0.5, 0.5, "DRAFT", fontsize=90, color="tab:red", alpha=0.15, ha="center", va="center",
+                  rotation=30, weight="bold")
 
 
 def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit) -> tuple[Path, Path]:
@@ -485,14 +511,43 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
     and by `labcal report`); ``db`` None means $LABCAL_DB or the lab file's database. The Type B
     inputs come from ``station`` (a station file), else the station the run was journaled with;
     ``monte_carlo`` trials check the budget by JCGM 101."""
-    from labcal.documents import history
-
     record = load_run(run_dir)
     fit = fit_readings(record.readings)
     inputs = type_b_inputs(bench_section(record, station), record)
+    revision, replaces = 1, None
+    previous = _issued(record.directory / CERTIFICATE)
+    if previous is not None and previous.approval is not None:
+        # An approved certificate is never changed: what follows is a correction, a new revision
+        # naming the one it replaces; the approved one stays beside it and in the history.
+        revision, replaces = (previous.revision or 1) + 1, previous.number
+        write_file(record.directory / f"certificate.rev{previous.revision or 1}.json", previous)
     cert = build_certificate(record, fit, settings, serial=serial, operator=operator, inputs=inputs,
-                             monte_carlo=monte_carlo)
-    cert_path = write_certificate(record.directory / CERTIFICATE, cert)
+                             monte_carlo=monte_carlo, revision=revision, replaces=replaces)
+    return write_documents(cert, record, fit, db)
+
+
+def _issued(path: Path) -> Certificate | None:
+    """The certificate already in the run directory, if one is there and reads back intact."""
+    if not path.is_file():
+        return None
+    try:
+        return read_certificate(path)
+    except LabcalError:
+        return None  # a damaged draft is replaced; an approved one would have read back
+
+
+def write_file(path: Path, cert: Certificate) -> Path:
+    """The one place a certificate document is written (atomic replace; see write_certificate)."""
+    return write_certificate(path, cert)
+
+
+def write_documents(cert: Certificate, record: RunRecord, fit: Fit, db: str | Path | None = None
+                    ) -> RunOutputs:
+    """Every file an issue (or an approval) writes: certificate, report, history entry — through one
+    function, so that making them one transaction changes one place."""
+    from labcal.documents import history
+
+    cert_path = write_file(record.directory / CERTIFICATE, cert)
     html_path, pdf_path = write_report(record.directory, cert, record, fit)
     database = history.store(cert, db)
     return RunOutputs(cert, cert_path, html_path, pdf_path, database)

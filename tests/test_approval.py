@@ -1,0 +1,143 @@
+"""Approval with a real signature: keygen, approve, verify; a forgery with a recomputed digest is
+refused; DRAFT and "page X of Y" on every PDF page; a correction is a new revision and history
+keeps both."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import sqlite3
+import stat
+
+import pytest
+from matplotlib.backends.backend_pdf import PdfPages
+from simulated_runs import simulated_run
+
+from labcal.cli import main
+from labcal.documents.certificate import certificate_from_doc, content_digest, read_certificate
+from labcal.documents.report import write_run_outputs
+
+SAVEFIG = PdfPages.savefig
+
+
+def _pdf_pages(run) -> list[str]:
+    """The text of every page the report's PDF gets (the figures' texts, as drawn)."""
+    pages: list[str] = []
+
+    def savefig(self, figure=None, **kwargs):
+        pages.append(" ".join(t.get_text() for t in figure.texts))
+        return SAVEFIG(self, figure, **kwargs)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(PdfPages, "savefig", savefig)
+        run()
+    return pages
+
+
+def _approve(base, key: str = "approver.key") -> list[str]:
+    return ["certificate", "approve", str(base / "run"), "--by", "A. Metrologist", "--role",
+            "Technical manager", "--key", str(base / key), "--db", str(base / "lab.sqlite")]
+
+
+@pytest.fixture(scope="module")
+def issued(tmp_path_factory):
+    """A dry run, its draft certificate (the PDF's pages kept), and a key pair."""
+    base = tmp_path_factory.mktemp("approval")
+    run_dir = simulated_run(base / "run", base / "lab.sqlite", seed=5)
+    pages = _pdf_pages(lambda: write_run_outputs(run_dir, db=base / "lab.sqlite"))
+    assert main(["certificate", "keygen", "--out", str(base / "approver")]) == 0
+    return base, pages
+
+
+@pytest.fixture(scope="module")
+def approved(issued, tmp_path_factory):
+    """A copy of the issued run, approved (the PDF's pages kept)."""
+    base = tmp_path_factory.mktemp("approved") / "lab"
+    shutil.copytree(issued[0], base)
+    pages = _pdf_pages(lambda: main(_approve(base)))
+    return base, pages
+
+
+def _one_line(capsys, *args: str) -> str:
+    assert main(list(args)) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and len(captured.err.strip().splitlines()) == 1
+    return captured.err
+
+
+def test_keygen_makes_a_private_key_only_its_owner_reads(issued, capsys):
+    base, _ = issued
+    assert stat.S_IMODE((base / "approver.key").stat().st_mode) == 0o600
+    assert "already exists" in _one_line(capsys, "certificate", "keygen", "--out", str(base / "approver"))
+
+
+def test_approved_certificate_verifies_and_a_forgery_does_not(approved, tmp_path, capsys):
+    base, _ = approved
+    cert_path = base / "run" / "certificate.json"
+    assert main(["certificate", "verify", str(cert_path), "--public-key", str(base / "approver.pub")]) == 0
+    assert "signature valid" in " ".join(capsys.readouterr().out.split())
+    # A forger edits a value and recomputes the digest: the seal is satisfied, the signature is not.
+    doc = json.loads(cert_path.read_text())
+    doc["fit"]["coefficients"][0][0] += 1e-6
+    doc["digest"]["value"] = content_digest(doc)
+    certificate_from_doc(doc, "forged")  # the SHA-256 seal alone would accept it
+    forged = tmp_path / "forged.json"
+    forged.write_text(json.dumps(doc))
+    err = _one_line(capsys, "certificate", "verify", str(forged), "--public-key", str(base / "approver.pub"))
+    assert "signature does not match the content" in err
+    doc = json.loads(cert_path.read_text())  # the approver's name is signed too
+    doc["approval"]["by"] = "Someone Else"
+    doc["digest"]["value"] = content_digest(doc)
+    forged.write_text(json.dumps(doc))
+    err = _one_line(capsys, "certificate", "verify", str(forged), "--public-key", str(base / "approver.pub"))
+    assert "signature does not match" in err
+    assert main(["certificate", "keygen", "--out", str(tmp_path / "other")]) == 0
+    capsys.readouterr()
+    err = _one_line(capsys, "certificate", "verify", str(cert_path), "--public-key",
+                    str(tmp_path / "other.pub"))
+    assert "signed by another key" in err
+    assert "already approved" in _one_line(capsys, *_approve(base))
+
+
+def test_bad_keys_are_one_line_and_change_nothing(issued, tmp_path, capsys):
+    base = tmp_path / "lab"
+    shutil.copytree(issued[0], base)
+    cert_path = base / "run" / "certificate.json"
+    before = cert_path.read_bytes()
+    assert "no such private key file" in _one_line(capsys, *_approve(base, "missing.key"))
+    os.chmod(base / "approver.key", 0o644)
+    assert "let others read the private key" in _one_line(capsys, *_approve(base))
+    (base / "approver.key").write_text("not a key")
+    os.chmod(base / "approver.key", 0o600)
+    assert "not an unencrypted PEM private key" in _one_line(capsys, *_approve(base))
+    assert cert_path.read_bytes() == before
+    pub = str(base / "approver.pub")
+    err = _one_line(capsys, "certificate", "verify", str(cert_path), "--public-key", pub)
+    assert "not approved (a DRAFT)" in err
+
+
+def test_every_pdf_page_says_page_x_of_y_and_draft_until_approved(issued, approved):
+    draft, signed = issued[1], approved[1]
+    assert len(draft) >= 5 and len(signed) == len(draft)  # text pages, then the four figures
+    for n, (d, a) in enumerate(zip(draft, signed, strict=True), start=1):
+        assert f"page {n} of {len(draft)}" in d and "DRAFT" in d
+        assert f"page {n} of {len(draft)}" in a and "DRAFT" not in a and "approved by A. Metrologist" in a
+
+
+def test_a_correction_is_a_new_revision_and_history_keeps_both(approved, tmp_path, capsys):
+    base = tmp_path / "lab"
+    shutil.copytree(approved[0], base)
+    first = read_certificate(base / "run" / "certificate.json")
+    assert main(["report", str(base / "run"), "--db", str(base / "lab.sqlite"), "--json"]) == 0
+    second = read_certificate(base / "run" / "certificate.json")
+    assert second.revision == 2 and second.replaces == first.number and second.draft
+    assert re.fullmatch(r".+-R2", second.certificate_id)
+    assert read_certificate(base / "run" / "certificate.rev1.json") == first  # the approved one, kept
+    with sqlite3.connect(base / "lab.sqlite") as conn:
+        ids = {cid for (cid,) in conn.execute("SELECT certificate_id FROM certificates")}
+    assert {first.certificate_id, second.certificate_id} <= ids
+    capsys.readouterr()
+    assert main(["history", "SIMULATED", "--db", str(base / "lab.sqlite"), "--json"]) == 0
+    listed = [c["certificate_id"] for c in json.loads(capsys.readouterr().out)["calibrations"]]
+    assert second.certificate_id in listed and first.certificate_id not in listed  # superseded
