@@ -141,3 +141,32 @@ def test_a_correction_is_a_new_revision_and_history_keeps_both(approved, tmp_pat
     assert main(["history", "SIMULATED", "--db", str(base / "lab.sqlite"), "--json"]) == 0
     listed = [c["certificate_id"] for c in json.loads(capsys.readouterr().out)["calibrations"]]
     assert second.certificate_id in listed and first.certificate_id not in listed  # superseded
+
+
+def test_administrative_contents_come_from_the_lab_file_station_file_and_command_line(issued, tmp_path,
+                                                                                       monkeypatch):
+    from datetime import date
+
+    from labcal.analysis.fit import fit_readings
+    from labcal.config.station import load_certificate_section, shipped_stations
+    from labcal.documents.administration import ItemGiven
+    from labcal.documents.issuing import build_certificate
+    from labcal.run.record import load_run
+
+    lab_file = tmp_path / "lab.toml"
+    lab_file.write_text('[laboratory]\nname = "Example Lab"\naddress = "1 Metrology Way"\n'
+                        'accreditation_id = "UKAS 0000"\n')
+    monkeypatch.setenv("LABCAL_CONFIG", str(lab_file))
+    station = tmp_path / "station.toml"
+    station.write_text(shipped_stations()["lab-example"].read_text().replace("due = 2027-06-30",
+                                                                             "due = 2020-01-01"))
+    record = load_run(issued[0] / "run")
+    cert = build_certificate(record, fit_readings(record.readings), section=load_certificate_section(station),
+                             item=ItemGiven("ACME Ltd", "Acme", "AX-3", date(2026, 11, 20)))
+    a = cert.administration
+    assert a.laboratory.accreditation_id == "UKAS 0000" and a.customer == "ACME Ltd"
+    assert a.item.model == "AX-3" and a.item.received == date(2026, 11, 20) and a.item.serial == "SIMULATED"
+    assert [t.certificate for t in a.traceability] == ["CAL-2026-0193", "ANG-2026-0041"]
+    assert any("past its calibration due date 2020-01-01" in s for s in cert.statements)
+    assert "The results relate only to the item calibrated." in cert.statements
+    assert cert.number.endswith("rev. 1") and cert.draft

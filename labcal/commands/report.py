@@ -21,6 +21,7 @@ def rich_table(t) -> RichTable:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
+    from labcal.documents.administration import ItemGiven
     from labcal.documents.issuing import load_settings
     from labcal.documents.report import (
         attitude_table,
@@ -37,7 +38,8 @@ def cmd_report(args: argparse.Namespace) -> int:
                              bias_max_v=args.bias_max_v, usage_pitch_deg=args.usage_pitch,
                              usage_roll_deg=args.usage_roll)
     result = write_run_outputs(args.run_dir, settings, serial=args.serial, operator=args.operator, db=args.db,
-                               station=args.station, monte_carlo=args.monte_carlo)
+                               station=args.station, monte_carlo=args.monte_carlo,
+                               item=ItemGiven(args.customer, args.manufacturer, args.model, args.received))
     cert = result.certificate
     if args.json:
         print_json({
@@ -60,6 +62,15 @@ def cmd_report(args: argparse.Namespace) -> int:
     out.print(f"Report: {result.html_path}, {result.pdf_path}")
     out.print(f"Stored in {result.database} (see `labcal history {cert.instrument.serial}`)")
     return 0
+
+
+def _day(text: str):
+    from datetime import date
+
+    try:
+        return date.fromisoformat(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a date (YYYY-MM-DD)") from None
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -85,6 +96,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="check the uncertainty budget by JCGM 101 Monte Carlo with N trials (e.g. 10000)")
     p.add_argument("--serial", help="instrument serial, if the run did not record it (dry runs: SIMULATED)")
     p.add_argument("--operator", help="operator's name, if the run did not record it")
+    p.add_argument("--customer", metavar="NAME", help="the customer, as the certificate names them")
+    p.add_argument("--manufacturer", metavar="NAME", help="the instrument's manufacturer")
+    p.add_argument("--model", metavar="MODEL", help="the instrument's model")
+    p.add_argument("--received", type=_day, metavar="YYYY-MM-DD", help="the date the item was received")
     add_db_option(p)
     p.add_argument("--json", action="store_true", help="print a summary as JSON on stdout")
     p.set_defaults(func=cmd_report)

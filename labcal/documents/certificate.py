@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from datetime import date
 from pathlib import Path
 from typing import Literal
 
@@ -270,6 +271,48 @@ class UncertaintyBudget(_Strict):
     statement: str
 
 
+class LaboratoryRecord(_Strict):
+    name: str
+    address: str
+    accreditation_id: str
+
+
+class Item(_Strict):
+    """The item calibrated (ISO/IEC 17025 §7.8.2.1 f) and when it was received."""
+
+    manufacturer: str
+    model: str
+    serial: str
+    received: date | None
+
+
+class Equipment(_Strict):
+    """Equipment used, with the identity it reported or its station-file settings."""
+
+    role: str
+    description: str
+    identity: str | None
+
+
+class TraceabilityRecord(_Strict):
+    equipment: str
+    identity: str
+    certificate: str
+    issued_by: str
+    due: date
+
+
+class Administration(_Strict):
+    """ISO/IEC 17025 §7.8.2.1 administrative contents a run alone does not say."""
+
+    laboratory: LaboratoryRecord
+    customer: str | None
+    item: Item
+    equipment: list[Equipment]
+    traceability: list[TraceabilityRecord]
+    ambient: str
+
+
 class Approval(_Strict):
     """Who approved the certificate (ISO/IEC 17025 §7.8.2.1 o) and their Ed25519 signature over the
     canonical content (`labcal.documents.approval`)."""
@@ -313,6 +356,7 @@ class Certificate(_Strict):
     # Sections added to format 1 are left out of the document when absent, so that certificates
     # issued before them read back and hash exactly as they were issued.
     uncertainty_budget: UncertaintyBudget | None = Field(default=None, exclude_if=_absent)
+    administration: Administration | None = Field(default=None, exclude_if=_absent)
     revision: int | None = Field(default=None, ge=1, exclude_if=_absent)
     replaces: str | None = Field(default=None, exclude_if=_absent)
     approval: Approval | None = Field(default=None, exclude_if=_absent)

@@ -23,7 +23,8 @@ from labcal.analysis.kinematics import gravity
 from labcal.config.files import json_safe
 from labcal.config.lab import certificate_settings
 from labcal.config.settings import CertificateSettings
-from labcal.config.station import load_certificate_settings
+from labcal.config.station import CertificateSection, load_certificate_settings
+from labcal.documents.administration import ItemGiven, administration
 from labcal.documents.certificate import (
     COVERAGE,
     SCHEMA,
@@ -227,10 +228,13 @@ STATEMENTS = ("The results relate only to the item calibrated.",
 def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings | None = None, *,
                       serial: str | None = None, operator: str | None = None,
                       issued_utc: datetime | None = None, inputs: TypeBInputs | None = None,
-                      monte_carlo: int = 0, revision: int = 1, replaces: str | None = None) -> Certificate:
+                      monte_carlo: int = 0, revision: int = 1, replaces: str | None = None,
+                      section: CertificateSection | None = None, item: ItemGiven | None = None
+                      ) -> Certificate:
     """The sealed certificate of a run's fit. ``serial``/``operator`` fill in what the run did not
     record (and may not contradict it); a dry run's instrument is SIMULATED. ``inputs``: the bench's
-    Type B inputs (none: a Type A budget); ``monte_carlo``: trials of the JCGM 101 check (0: none)."""
+    Type B inputs (none: a Type A budget); ``monte_carlo``: trials of the JCGM 101 check (0: none);
+    ``section``: what the station file says (traceability); ``item``: customer and item details."""
     settings = settings or CertificateSettings()
     meta, run_dir = record.meta, record.directory
     serial = _recorded(meta.get("instrument_serial"), serial, "instrument serial", run_dir) \
@@ -250,6 +254,12 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
         stamp = datetime.fromisoformat(calibrated).astimezone(UTC).strftime("%Y%m%dT%H%M%SZ")
     except (TypeError, ValueError):
         raise LabcalError(f"{run_dir}: run.json started_utc {calibrated!r} is not an ISO 8601 time") from None
+    admin = administration(record, section or CertificateSection(), item or ItemGiven(), serial)
+    statements = list(STATEMENTS)
+    day = datetime.fromisoformat(calibrated).date()
+    statements += [f"Reference standard {t.equipment} (certificate {t.certificate}) was past its calibration "
+                   f"due date {t.due.isoformat()} on the calibration date."
+                   for t in admin.traceability if t.due < day]
     content = {
         "schema": SCHEMA,
         "certificate_id": f"{serial}-{stamp}-{record.readings_sha256[:8]}" + (f"-R{revision}" if revision > 1
@@ -274,7 +284,8 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
                  "replicates": int(len(np.unique(record.readings.replicate)))},
         "environment": _environment(record).model_dump(),
         "method": METHOD,
-        "statements": list(STATEMENTS),
+        "statements": statements,
+        "administration": admin.model_dump(),
         "fit": {k: fit_doc[k] for k in FitSection.model_fields if k in fit_doc},
         "expanded_uncertainty": expanded.model_dump(),
         "plan_audit": _plan_audit(record, settings).model_dump(),

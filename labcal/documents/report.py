@@ -27,6 +27,7 @@ from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit, fit_readings, readings_
 from labcal.analysis.kinematics import Mount
 from labcal.analysis.models import Points
 from labcal.config.settings import CertificateSettings
+from labcal.documents.administration import ItemGiven
 from labcal.documents.certificate import (
     Certificate,
     format_result,
@@ -86,6 +87,24 @@ def identification_table(cert: Certificate) -> Table:
         ["temperature", temperature],
         ["software", f"labcal {cert.labcal_version}"],
     ]
+    rows[0] = ["certificate", cert.number + (f", replacing {cert.replaces}" if cert.replaces else "")]
+    a = cert.administration
+    if a is not None:
+        lab = ", ".join(p for p in (a.laboratory.name, a.laboratory.address) if p) or "not stated"
+        rows[1] = ["laboratory", lab + (f"; accreditation {a.laboratory.accreditation_id}"
+                                        if a.laboratory.accreditation_id else "")]
+        item = " ".join(p for p in (a.item.manufacturer, a.item.model) if p)
+        rows[2:2] = [["customer", a.customer or "not stated"],
+                     ["item", f"{item or 'instrument'}, serial {a.item.serial}; received "
+                              f"{a.item.received.isoformat() if a.item.received else 'date not recorded'}"]]
+        rows += [["equipment", "; ".join(f"{e.role}: {e.description} ({e.identity or 'no identity'})"
+                                         for e in a.equipment)],
+                 ["traceability", "; ".join(f"{t.equipment} {t.identity}: certificate {t.certificate} "
+                                            f"({t.issued_by}), due {t.due.isoformat()}"
+                                            for t in a.traceability)
+                  or "no reference standards recorded (station file [[traceability]])"],
+                 ["ambient conditions", a.ambient]]
+    rows.append(["approval", _status(cert)])
     return Table("Identification", ["item", "value"], rows)
 
 
@@ -506,14 +525,15 @@ class RunOutputs:
 def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None = None, *,
                       serial: str | None = None, operator: str | None = None,
                       db: str | Path | None = None, station: str | Path | None = None,
-                      monte_carlo: int = 0) -> RunOutputs:
+                      monte_carlo: int = 0, item: ItemGiven | None = None) -> RunOutputs:
     """Certificate, report and history entry of a finished run (called at the end of `labcal run`
     and by `labcal report`); ``db`` None means $LABCAL_DB or the lab file's database. The Type B
     inputs come from ``station`` (a station file), else the station the run was journaled with;
     ``monte_carlo`` trials check the budget by JCGM 101."""
     record = load_run(run_dir)
     fit = fit_readings(record.readings)
-    inputs = type_b_inputs(bench_section(record, station), record)
+    section = bench_section(record, station)
+    inputs = type_b_inputs(section, record)
     revision, replaces = 1, None
     previous = _issued(record.directory / CERTIFICATE)
     if previous is not None and previous.approval is not None:
@@ -522,7 +542,8 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
         revision, replaces = (previous.revision or 1) + 1, previous.number
         write_file(record.directory / f"certificate.rev{previous.revision or 1}.json", previous)
     cert = build_certificate(record, fit, settings, serial=serial, operator=operator, inputs=inputs,
-                             monte_carlo=monte_carlo, revision=revision, replaces=replaces)
+                             monte_carlo=monte_carlo, revision=revision, replaces=replaces, section=section,
+                             item=item)
     return write_documents(cert, record, fit, db)
 
 
