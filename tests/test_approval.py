@@ -10,6 +10,7 @@ import re
 import shutil
 import sqlite3
 import stat
+from pathlib import Path
 
 import pytest
 from matplotlib.backends.backend_pdf import PdfPages
@@ -170,3 +171,40 @@ def test_administrative_contents_come_from_the_lab_file_station_file_and_command
     assert any("past its calibration due date 2020-01-01" in s for s in cert.statements)
     assert "The results relate only to the item calibrated." in cert.statements
     assert cert.number.endswith("rev. 1") and cert.draft
+
+
+DATA = Path(__file__).parent / "data" / "dcc"
+
+
+def test_dcc_validates_against_ptb_schema_and_a_broken_copy_does_not(issued):
+    import xml.etree.ElementTree as ET
+
+    import xmlschema
+
+    schema = xmlschema.XMLSchema(str(DATA / "dcc.xsd"))  # the vendored reference copy, not labcal's
+    path = issued[0] / "run" / "certificate.dcc.xml"
+    schema.validate(str(path))
+    tree = ET.parse(path)
+    text = path.read_text(encoding="utf-8")
+    cert = read_certificate(issued[0] / "run" / "certificate.json")
+    assert cert.number in text and "\\volt" in text and "<si:covarianceMatrix>" in text
+    reals = tree.getroot().findall(".//{https://ptb.de/si}real/{https://ptb.de/si}expandedUnc")
+    assert len(reals) == 12  # every coefficient with U, k and p
+    core = tree.getroot().find(".//{https://ptb.de/dcc}coreData")
+    core.remove(core.find("{https://ptb.de/dcc}uniqueIdentifier"))  # a required element
+    broken = ET.tostring(tree.getroot(), encoding="unicode")
+    assert not schema.is_valid(broken)
+
+
+def test_a_dcc_that_fails_validation_is_one_line_and_writes_nothing(issued, tmp_path, monkeypatch, capsys):
+    from labcal.documents import dcc
+
+    base = tmp_path / "lab"
+    shutil.copytree(issued[0], base)
+    before = {p.name: p.read_bytes() for p in (base / "run").iterdir() if p.is_file()}
+    monkeypatch.setattr(dcc, "dcc_document",
+                        lambda cert: b'<dcc:digitalCalibrationCertificate xmlns:dcc="https://ptb.de/dcc" '
+                                     b'schemaVersion="3.2.0"/>')
+    err = _one_line(capsys, "report", str(base / "run"), "--db", str(base / "lab.sqlite"))
+    assert "fails PTB's DCC 3.2.0 schema" in err
+    assert {p.name: p.read_bytes() for p in (base / "run").iterdir() if p.is_file()} == before

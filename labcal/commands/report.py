@@ -46,6 +46,7 @@ def cmd_report(args: argparse.Namespace) -> int:
             "certificate_id": cert.certificate_id, "serial": cert.instrument.serial,
             "certificate": str(result.certificate_path), "report_html": str(result.html_path),
             "report_pdf": str(result.pdf_path), "database": str(result.database),
+            "dcc": None if result.dcc_path is None else str(result.dcc_path),
             "passed": None if cert.conformity is None else cert.conformity.passed,
             "conformity": None if cert.conformity is None else cert.conformity.model_dump(mode="json"),
             "attitude": cert.attitude.model_dump(mode="json"),
@@ -60,6 +61,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         out.print(rich_table(table))
     out.print(f"Certificate {cert.certificate_id}: {result.certificate_path}")
     out.print(f"Report: {result.html_path}, {result.pdf_path}")
+    out.print(f"Digital Calibration Certificate: {result.dcc_path}")
     out.print(f"Stored in {result.database} (see `labcal history {cert.instrument.serial}`)")
     return 0
 

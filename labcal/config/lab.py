@@ -19,6 +19,7 @@ Example::
     name = "Example Calibration Laboratory"
     address = "1 Metrology Way, Springfield"
     accreditation_id = "UKAS 0000"
+    country_code = "GB"
 
     [certificate]          # defaults; a station's [certificate] and the command line go over them
     attitude_u95_max_deg = 0.05
@@ -52,6 +53,8 @@ class Laboratory(BaseModel):
     name: str = Field(default="", description="the laboratory's name")
     address: str = Field(default="", description="where the calibration was performed")
     accreditation_id: str = Field(default="", description="accreditation body and number, if accredited")
+    country_code: str = Field(default="", pattern="^([A-Z]{2})?$", description="ISO 3166-1 alpha-2, e.g. DE "
+                              "(the Digital Calibration Certificate needs it)")
 
     @property
     def stated(self) -> str:

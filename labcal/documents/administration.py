@@ -64,7 +64,7 @@ def administration(record: RunRecord, section: CertificateSection, given: ItemGi
                                       if record.readings.temp_c is not None else "not recorded")
     return Administration(
         laboratory=LaboratoryRecord(name=lab.name, address=lab.address,
-                                    accreditation_id=lab.accreditation_id),
+                                    accreditation_id=lab.accreditation_id, country_code=lab.country_code),
         customer=given.customer or meta.get("customer"),
         item=Item(manufacturer=given.manufacturer or meta.get("manufacturer") or "",
                   model=given.model or meta.get("model") or "", serial=serial,

@@ -275,6 +275,7 @@ class LaboratoryRecord(_Strict):
     name: str
     address: str
     accreditation_id: str
+    country_code: str
 
 
 class Item(_Strict):

@@ -520,6 +520,7 @@ class RunOutputs:
     html_path: Path
     pdf_path: Path
     database: Path
+    dcc_path: Path | None = None
 
 
 def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None = None, *,
@@ -567,8 +568,10 @@ def write_documents(cert: Certificate, record: RunRecord, fit: Fit, db: str | Pa
     """Every file an issue (or an approval) writes: certificate, report, history entry — through one
     function, so that making them one transaction changes one place."""
     from labcal.documents import history
+    from labcal.documents.dcc import DCC_FILE, write_dcc
 
+    dcc_path = write_dcc(record.directory / DCC_FILE, cert)  # validated first: a bad one stops it all
     cert_path = write_file(record.directory / CERTIFICATE, cert)
     html_path, pdf_path = write_report(record.directory, cert, record, fit)
     database = history.store(cert, db)
-    return RunOutputs(cert, cert_path, html_path, pdf_path, database)
+    return RunOutputs(cert, cert_path, html_path, pdf_path, database, dcc_path)
