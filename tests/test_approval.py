@@ -208,3 +208,31 @@ def test_a_dcc_that_fails_validation_is_one_line_and_writes_nothing(issued, tmp_
     err = _one_line(capsys, "report", str(base / "run"), "--db", str(base / "lab.sqlite"))
     assert "fails PTB's DCC 3.2.0 schema" in err
     assert {p.name: p.read_bytes() for p in (base / "run").iterdir() if p.is_file()} == before
+
+
+def test_the_journal_story_is_in_the_certificate_and_the_report(issued, tmp_path):
+    from labcal.analysis.fit import fit_readings
+    from labcal.documents.issuing import build_certificate
+    from labcal.documents.report import story_table
+    from labcal.run.journal import Journal
+    from labcal.run.record import load_run
+    from labcal.run.rundir import read_run_json
+
+    base = tmp_path / "lab"
+    shutil.copytree(issued[0], base)
+    info = read_run_json(base / "run")
+    with Journal(info["journal"].replace(str(issued[0]), str(base))) as journal:
+        journal.event(info["run_id"], "fault", "wrong mount: expected y=180°, u=0°, reads as y=0°, u=0°",
+                      station_time=12.5)
+        journal.event(info["run_id"], "pause", "operator paused", station_time=13.0)
+        journal.event(info["run_id"], "resume", "operator resumed after the pause", station_time=40.0)
+    (base / "run" / "run.json").write_text(json.dumps({**info, "journal": str(base / "lab.sqlite")}))
+    record = load_run(base / "run")
+    cert = build_certificate(record, fit_readings(record.readings))
+    story = cert.story
+    assert story.counts["fault"] == 1 and story.counts["pause"] == 1 and story.counts["resume"] == 1
+    assert story.counts.get("prompt", 0) == story.counts.get("answer", 0) > 0  # the remount prompts, answered
+    table = story_table(cert)
+    fault = next(i for i, row in enumerate(table.rows) if row[2] == "fault")
+    assert table.rows[fault][1] == "12.5" and "wrong mount" in table.rows[fault][3]
+    assert (fault, 2) in table.emphasis and "1 fault" in table.caption

@@ -314,6 +314,22 @@ class Administration(_Strict):
     ambient: str
 
 
+class JournalEvent(_Strict):
+    utc: str
+    station_time_s: float | None
+    kind: str
+    message: str
+
+
+class RunStory(_Strict):
+    """What the journal recorded while the run went on: faults, retries, wrong mounts, pauses,
+    resumes, operator prompts and answers, with their times."""
+
+    counts: dict[str, int]
+    events: list[JournalEvent]
+    omitted: int = Field(ge=0)
+
+
 class Approval(_Strict):
     """Who approved the certificate (ISO/IEC 17025 §7.8.2.1 o) and their Ed25519 signature over the
     canonical content (`labcal.documents.approval`)."""
@@ -358,6 +374,7 @@ class Certificate(_Strict):
     # issued before them read back and hash exactly as they were issued.
     uncertainty_budget: UncertaintyBudget | None = Field(default=None, exclude_if=_absent)
     administration: Administration | None = Field(default=None, exclude_if=_absent)
+    story: RunStory | None = Field(default=None, exclude_if=_absent)
     revision: int | None = Field(default=None, ge=1, exclude_if=_absent)
     replaces: str | None = Field(default=None, exclude_if=_absent)
     approval: Approval | None = Field(default=None, exclude_if=_absent)

@@ -36,8 +36,10 @@ from labcal.documents.certificate import (
     Environment,
     Expanded,
     FitSection,
+    JournalEvent,
     Leak,
     PlanAudit,
+    RunStory,
     UncertaintyBudget,
     seal,
 )
@@ -213,6 +215,18 @@ def _environment(record: RunRecord) -> Environment:
                        note="temperature at the instrument during the readings")
 
 
+STORY_EVENTS = 200  # a day-long run with many remounts stays readable; the journal keeps every one
+
+
+def _story(record: RunRecord) -> RunStory:
+    kinds = [e["kind"] for e in record.events]
+    listed = record.events[:STORY_EVENTS]
+    return RunStory(counts={k: kinds.count(k) for k in dict.fromkeys(kinds)},
+                    events=[JournalEvent(utc=e["utc"], station_time_s=e["station_time"], kind=e["kind"],
+                                         message=e["message"]) for e in listed],
+                    omitted=len(record.events) - len(listed))
+
+
 METHOD = ("Linear model V = B + gᵀS fitted per sensor by least squares on the nominal gravity of each "
           "calibration point (Soto 2020, eqs. 13–21). Standard uncertainties are Type A: the residual "
           "standard error, or where replication shows significant lack of fit the lack-of-fit mean square "
@@ -286,6 +300,7 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
         "method": METHOD,
         "statements": statements,
         "administration": admin.model_dump(),
+        "story": _story(record).model_dump(),
         "fit": {k: fit_doc[k] for k in FitSection.model_fields if k in fit_doc},
         "expanded_uncertainty": expanded.model_dump(),
         "plan_audit": _plan_audit(record, settings).model_dump(),

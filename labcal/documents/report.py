@@ -241,9 +241,26 @@ def budget_table(cert: Certificate) -> Table:
     return Table("Uncertainty budget of inferred pitch and roll (GUM)", header, rows, b.statement)
 
 
+def story_table(cert: Certificate) -> Table:
+    """The journal's story: faults, retries, wrong mounts, pauses, resumes and the operator's answers."""
+    s = cert.story
+    title = "What happened during the run (from the journal)"
+    if s is None:
+        return Table(title, ["events"], [["not in this certificate (issued before the story was recorded)"]])
+    rows = [[e.utc.replace("T", " ")[:23], "—" if e.station_time_s is None else f"{e.station_time_s:.1f}",
+             e.kind, e.message] for e in s.events]
+    emphasis = {(i, 2) for i, e in enumerate(s.events) if e.kind == "fault"}
+    counts = ", ".join(f"{n} {kind}" for kind, n in s.counts.items()) or "no events"
+    caption = f"{counts}." + (f" {s.omitted} later event(s) not listed; the journal keeps them."
+                              if s.omitted else "")
+    return Table(title, ["time (UTC)", "rig time (s)", "kind", "what"], rows or [["—", "—", "—", "nothing"]],
+                 caption, emphasis)
+
+
 def tables(cert: Certificate) -> list[Table]:
     return [identification_table(cert), conformity_table(cert), attitude_table(cert), budget_table(cert),
-            coefficients_with_expanded_uncertainty(cert), replication_table(cert), audit_table(cert)]
+            coefficients_with_expanded_uncertainty(cert), replication_table(cert), audit_table(cert),
+            story_table(cert)]
 
 
 # --- figures ----------------------------------------------------------------------------------

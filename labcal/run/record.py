@@ -31,6 +31,7 @@ class RunRecord:
     plan_text: str
     meta: dict  # run.json: station, settings, dates, status, identities, simulated truth
     station_text: str = ""  # the journal's snapshot of the station the run used (JSON)
+    events: tuple[dict, ...] = ()  # the journal's events: prompts, answers, faults, retries, pauses
 
     @property
     def simulated(self) -> bool:
@@ -60,8 +61,10 @@ def load_run(run_dir: str | Path) -> RunRecord:
                               "certificate (labcal resume finishes it)")
         points = journal.points(row.id, status="ok")
         readings = journal.readings(row.id)
+        events = tuple(journal.events(row.id))
     plan = parse_plan(row.plan_text, f"run {row.id} plan")
     meta = {**info, **row.metadata, "status": row.status, "reason": row.reason,
             "started_utc": row.started_utc, "ended_utc": row.ended_utc, "settings": row.settings,
             "instrument_serial": row.instrument_serial, "operator": row.operator}
-    return RunRecord(run_dir, readings, readings_digest(points), plan, row.plan_text, meta, row.station_text)
+    return RunRecord(run_dir, readings, readings_digest(points), plan, row.plan_text, meta, row.station_text,
+                     events)
