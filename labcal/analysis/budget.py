@@ -27,6 +27,7 @@ attitude is a direction, so |g| cancels in the ratios (stated as a row with zero
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -90,10 +91,6 @@ class Source:
     @property
     def dof(self) -> float:
         return min((c.dof for c in self.components), default=np.inf)
-
-    def coefficient_variance(self) -> list[tuple[NDArray[np.float64], float]]:
-        """Per component: the variance it adds to each of the 12 coefficients, and its dof."""
-        return [(np.sum(c.jac_x**2, axis=1) * c.u**2, c.dof) for c in self.components]
 
 
 # --- the calibration's geometry -----------------------------------------------------------------
@@ -268,13 +265,11 @@ def _compressed(c: Component) -> NDArray[np.float64]:
 
 
 @dataclass(frozen=True)
-class Propagated:
-    """Standard uncertainty (rad) of pitch (column 0) and roll (column 1) at n attitudes, per source,
-    with the combined uncertainty, ν_eff, k and U95."""
+class Combined:
+    """Each source's standard uncertainty, the combined u_c, ν_eff, k and U = k·u_c of a set of
+    outputs: pitch and roll at n attitudes (rad, n×2), or the coefficients (4×3)."""
 
-    pitch: NDArray[np.float64]
-    roll: NDArray[np.float64]
-    contributions: dict[str, NDArray[np.float64]]  # (n, 2)
+    contributions: dict[str, NDArray[np.float64]]
     u_c: NDArray[np.float64]
     nu_eff: NDArray[np.float64]
     k: NDArray[np.float64]
@@ -282,6 +277,33 @@ class Propagated:
     @property
     def U(self) -> NDArray[np.float64]:
         return np.asarray(self.k * self.u_c, dtype=float)
+
+
+@dataclass(frozen=True)
+class Propagated(Combined):
+    pitch: NDArray[np.float64]
+    roll: NDArray[np.float64]
+
+
+def _combine(rows: list[Source], variance: Callable[[Component], NDArray[np.float64]],
+             shape: tuple[int, ...]) -> Combined:
+    """Sum the sources' variances (those not ``added`` are shown, not summed) and combine their
+    degrees of freedom by Welch–Satterthwaite, component by component."""
+    contributions, parts = {}, []
+    total = np.zeros(shape)
+    for source in rows:
+        var = np.zeros(shape)
+        for c in source.components:
+            part = variance(c)
+            var += part
+            if source.added:
+                parts.append((part, c.dof))
+        contributions[source.name] = np.sqrt(var)
+        if source.added:
+            total += var
+    u_c = np.sqrt(total)
+    nu = welch_satterthwaite(u_c, parts)
+    return Combined(contributions, u_c, nu, np.asarray(t_quantile(0.5 + COVERAGE / 2, nu), dtype=float))
 
 
 def welch_satterthwaite(u_c: NDArray[np.float64], parts: list[tuple[NDArray[np.float64], float]]
@@ -299,53 +321,15 @@ def propagate(cal: Calibration, rows: list[Source], pitch: NDArray[np.float64], 
     pitch, roll = np.atleast_1d(pitch).astype(float), np.atleast_1d(roll).astype(float)
     A, _ = attitude_sensitivity(cal, pitch, roll)
     f = regressors(pitch, roll)
-    contributions, parts = {}, []
-    total = np.zeros((len(pitch), 2))
-    for source in rows:
-        var = np.zeros((len(pitch), 2))
-        for c in source.components:
-            J = _compressed(c)
-            dv = -np.einsum("ni,ijm->njm", f, J[:12].reshape(4, 3, -1)) + J[12:][None]
-            part = np.sum(np.einsum("nab,nbm->nam", A, dv) ** 2, axis=2)
-            var += part
-            if source.added:
-                parts.append((part, c.dof))
-        contributions[source.name] = np.sqrt(var)
-        if source.added:
-            total += var
-    u_c = np.sqrt(total)
-    nu = welch_satterthwaite(u_c, parts)
-    k = t_quantile(0.5 + COVERAGE / 2, nu)
-    return Propagated(pitch, roll, contributions, u_c, nu, np.asarray(k, dtype=float))
+
+    def variance(c: Component) -> NDArray[np.float64]:
+        J = _compressed(c)
+        dv = -np.einsum("ni,ijm->njm", f, J[:12].reshape(4, 3, -1)) + J[12:][None]
+        return np.asarray(np.sum(np.einsum("nab,nbm->nam", A, dv) ** 2, axis=2), dtype=float)
+    combined = _combine(rows, variance, (len(pitch), 2))
+    return Propagated(**vars(combined), pitch=pitch, roll=roll)
 
 
-@dataclass(frozen=True)
-class CoefficientBudget:
+def coefficient_budget(rows: list[Source]) -> Combined:
     """Per coefficient of X (4×3): each source's standard uncertainty, combined u, ν_eff, k, U."""
-
-    contributions: dict[str, NDArray[np.float64]]
-    u_c: NDArray[np.float64]
-    nu_eff: NDArray[np.float64]
-    k: NDArray[np.float64]
-
-    @property
-    def U(self) -> NDArray[np.float64]:
-        return np.asarray(self.k * self.u_c, dtype=float)
-
-
-def coefficient_budget(rows: list[Source]) -> CoefficientBudget:
-    contributions, parts = {}, []
-    total = np.zeros(12)
-    for source in rows:
-        var = np.zeros(12)
-        for part, dof in source.coefficient_variance():
-            var += part
-            if source.added:
-                parts.append((part, dof))
-        contributions[source.name] = np.sqrt(var).reshape(4, 3)
-        if source.added:
-            total += var
-    u_c = np.sqrt(total)
-    nu = welch_satterthwaite(u_c, parts)
-    k = np.asarray(t_quantile(0.5 + COVERAGE / 2, nu), dtype=float)
-    return CoefficientBudget(contributions, u_c.reshape(4, 3), nu.reshape(4, 3), k.reshape(4, 3))
+    return _combine(rows, lambda c: (np.sum(c.jac_x**2, axis=1) * c.u**2).reshape(4, 3), (4, 3))

@@ -83,6 +83,11 @@ def envelope(settings: CertificateSettings) -> tuple[NDArray[np.float64], NDArra
     return points[:, 0], points[:, 1]
 
 
+def _degrees(p: Propagated, i: int) -> tuple[float, float]:
+    """Grid attitude i in degrees, as the grid was given (60, not 59.99999999999999)."""
+    return round(float(np.degrees(p.pitch[i])), 9), round(float(np.degrees(p.roll[i])), 9)
+
+
 def _arcsec(x: float) -> float | None:
     return float(x) / ARCSEC if np.isfinite(x) else None
 
@@ -124,7 +129,7 @@ def _totals(p: Propagated) -> list[BudgetTotal]:
         if i is None:
             continue
         totals.append(BudgetTotal(
-            angle=angle, worst_at_deg=(float(np.degrees(p.pitch[i])), float(np.degrees(p.roll[i]))),
+            angle=angle, worst_at_deg=_degrees(p, i),
             u_c_arcsec=float(p.u_c[i, column]) / ARCSEC, nu_eff=_finite(p.nu_eff[i, column]),
             k=float(p.k[i, column]), U95_arcsec=float(p.U[i, column]) / ARCSEC,
             U95_rms_arcsec=_rms(p.U[:, column]) / ARCSEC))
@@ -142,7 +147,7 @@ def _monte_carlo(cal: Calibration, rows: list[Source], p: Propagated, trials: in
         linear, sampled = float(p.U[i, column]), mc.half_width[column]
         checks.append(MonteCarloCheck(
             trials=trials, seed=seed, angle=angle,
-            at_deg=(float(np.degrees(p.pitch[i])), float(np.degrees(p.roll[i]))),
+            at_deg=_degrees(p, i),
             linear_U95_arcsec=linear / ARCSEC, monte_carlo_U95_arcsec=sampled / ARCSEC,
             agree_within_5_percent=bool(abs(sampled / linear - 1) <= AGREEMENT) if linear > 0 else True))
     return checks
