@@ -165,8 +165,9 @@ def _statement(totals: list[BudgetTotal], checks: list[MonteCarloCheck] | None) 
         else:
             text += (f" The {c.angle} U95 stated is the Monte Carlo value {c.monte_carlo_U95_arcsec:.3g}″ "
                      f"({c.trials} trials), not the linear {c.linear_U95_arcsec:.3g}″: they differ by more "
-                     f"than {AGREEMENT:.0%} because the output is not Gaussian (rectangular inputs dominate, "
-                     "or the estimator is not linear over the spread).")
+                     f"than {AGREEMENT:.0%} because the output's distribution is not the scaled t the linear "
+                     "method assumes (Type A inputs with few degrees of freedom, dominant rectangular "
+                     "inputs, or an estimator that is not linear over the spread).")
     return text
 
 
