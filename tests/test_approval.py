@@ -236,3 +236,22 @@ def test_the_journal_story_is_in_the_certificate_and_the_report(issued, tmp_path
     fault = next(i for i, row in enumerate(table.rows) if row[2] == "fault")
     assert table.rows[fault][1] == "12.5" and "wrong mount" in table.rows[fault][3]
     assert (fault, 2) in table.emphasis and "1 fault" in table.caption
+
+
+def test_monte_carlo_trials_out_of_range_is_one_line(issued, capsys):
+    err = _one_line(capsys, "report", str(issued[0] / "run"), "--monte-carlo", "5")
+    assert "--monte-carlo 5: give 100 … 1000000 trials" in err
+
+
+def test_the_stated_attitude_u95_is_the_monte_carlo_one_where_they_disagree(issued):
+    from labcal.documents.certificate import MonteCarloCheck
+    from labcal.documents.uncertainty import stated_U95_arcsec
+
+    budget = read_certificate(issued[0] / "run" / "certificate.json").uncertainty_budget
+    linear = next(t for t in budget.totals if t.angle == "roll")
+    assert stated_U95_arcsec(budget, "roll") == linear.U95_arcsec  # no Monte Carlo asked for
+    check = MonteCarloCheck(trials=1000, seed=0, angle="roll", at_deg=linear.worst_at_deg,
+                            linear_U95_arcsec=linear.U95_arcsec,
+                            monte_carlo_U95_arcsec=1.1 * linear.U95_arcsec, agree_within_5_percent=False)
+    disagreeing = budget.model_copy(update={"monte_carlo": [check]})
+    assert stated_U95_arcsec(disagreeing, "roll") == pytest.approx(1.1 * linear.U95_arcsec)
