@@ -45,7 +45,7 @@ def _approve(base, key: str = "approver.key") -> list[str]:
 def issued(tmp_path_factory):
     """A dry run, its draft certificate (the PDF's pages kept), and a key pair."""
     base = tmp_path_factory.mktemp("approval")
-    run_dir = simulated_run(base / "run", base / "lab.sqlite", seed=5)
+    run_dir = simulated_run(base / "run", base / "lab.sqlite", seed=5, plan="one-mount-16")  # small: quick
     pages = _pdf_pages(lambda: write_run_outputs(run_dir, db=base / "lab.sqlite"))
     assert main(["certificate", "keygen", "--out", str(base / "approver")]) == 0
     return base, pages
