@@ -55,6 +55,7 @@ class TypeBInputs:
     dmm_reading: float = 0.0  # relative, of reading (34970A 1 year, 10 V: 3.5e-5)
     dmm_range_v: float = 0.0  # volts: % of range × range (34970A 1 year, 10 V range: 5e-6 × 10 V)
     dmm_noise_v: float = 0.0  # rms of one averaged reading; shown, already in the fit's Type A
+    dmm_conditions: str = ""  # the range and integration time the accuracy applies to, as stated
     pitch_index: float = 0.0  # rad
     pitch_wobble: float = 0.0
     roll_index: float = 0.0
@@ -184,9 +185,9 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
         gain[:, j, j] = X[:, j]
         offset[0, j, j] = 1.0
     rows.append(Source("DMM accuracy, % of reading", "B", "rectangular", b.dmm_reading / SQRT3, "relative",
-                       (_b(gain.reshape(12, 3), b.dmm_reading / SQRT3),)))
+                       (_b(gain.reshape(12, 3), b.dmm_reading / SQRT3),), note=b.dmm_conditions))
     rows.append(Source("DMM accuracy, % of range", "B", "rectangular", b.dmm_range_v / SQRT3, "V",
-                       (_b(offset.reshape(12, 3), b.dmm_range_v / SQRT3),)))
+                       (_b(offset.reshape(12, 3), b.dmm_range_v / SQRT3),), note=b.dmm_conditions))
     if b.dmm_noise_v > 0:  # its effect is in the residuals, hence in the fit's Type A already
         noise = np.zeros((4, 3, len(cal.installation), 3))
         for j in range(3):

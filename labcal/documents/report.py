@@ -238,7 +238,9 @@ def budget_table(cert: Certificate) -> Table:
         rows.append([f"{c.angle}: Monte Carlo U95 ({c.trials} trials, JCGM 101)", "", "", "", "",
                      f"{c.monte_carlo_U95_arcsec:.3g}", "", "", "", "",
                      "agrees" if c.agree_within_5_percent else "differs > 5 %"])
-    return Table("Uncertainty budget of inferred pitch and roll (GUM)", header, rows, b.statement)
+    notes = " ".join(f"{r.source}: {r.note}." for r in b.rows if r.note)
+    return Table("Uncertainty budget of inferred pitch and roll (GUM)", header, rows,
+                 f"{b.statement} {notes} {b.method}")
 
 
 def story_table(cert: Certificate) -> Table:

@@ -69,6 +69,9 @@ def type_b_inputs(section: CertificateSection, record: RunRecord,
     t = record.readings.temp_c
     return TypeBInputs(
         dmm_reading=u.dmm_reading, dmm_range_v=u.dmm_range * section.dmm.range_v, dmm_noise_v=u.dmm_noise,
+        dmm_conditions=f"{section.dmm.range_v:g} V range at {section.dmm.nplc:g} PLC"
+        + (" (the 34970A's published accuracy assumes ≥ 1 PLC: add its reading-speed error to dmm_range)"
+           if section.dmm.nplc < 1 else ""),
         pitch_index=u.pitch_index, pitch_wobble=u.pitch_wobble, roll_index=u.roll_index,
         roll_wobble=u.roll_wobble, mount_repeatability=u.mount_repeatability,
         temperature_half_range_k=0.0 if t is None else float(np.ptp(t)) / 2,
