@@ -6,12 +6,26 @@ import argparse
 import sys
 
 from labcal import __version__
-from labcal.commands import attitude, export, fit, history, plan, report, run, sim, simulate, station
+from labcal.commands import (
+    attitude,
+    certificate,
+    config,
+    export,
+    fit,
+    history,
+    plan,
+    report,
+    run,
+    sim,
+    simulate,
+    station,
+)
 from labcal.commands.common import EXIT_INTERRUPTED, EXIT_USER_ERROR, err
 from labcal.commands.logfile import add_log_options, logging_to
 from labcal.errors import LabcalError
 
-COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, station, sim, export)
+COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, station, sim, export, config,
+                  certificate)
 
 
 def build_parser() -> argparse.ArgumentParser:

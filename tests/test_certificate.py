@@ -106,7 +106,7 @@ def test_attitude_uncertainty_is_in_degrees_and_matches_first_order_propagation(
 def test_conformity_follows_the_decision_rule(run, cert):
     fit = fit_readings(run.readings)
     assert cert.conformity.passed  # U95 ≈ 0.003–0.006° < 0.01°, |B| + U ≤ 0.0124 V < 0.02 V
-    worst = max(cert.attitude.pitch_U95_max_deg, cert.attitude.roll_U95_max_deg)
+    worst = max(t.U95_arcsec for t in cert.uncertainty_budget.totals) / 3600  # the full budget's U95
     tight = build_certificate(run, fit, CertificateSettings(attitude_u95_max_deg=worst * 0.999))
     assert not tight.conformity.passed
     assert [c.passed for c in tight.conformity.checks].count(False) == 1

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import sqlite3
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -41,7 +42,7 @@ def lab(tmp_path_factory):
 
 
 def test_only_the_injected_drift_is_flagged(lab):
-    certs = certificates_for(SERIAL, lab)
+    certs = certificates_for(SERIAL, lab, include_simulated=True)
     assert len(certs) == 3
     assert [c.calibrated_utc for c in certs] == sorted(c.calibrated_utc for c in certs)
     found = changes(certs)
@@ -56,7 +57,7 @@ def test_only_the_injected_drift_is_flagged(lab):
 
 
 def test_rule_uses_welch_satterthwaite_coverage(lab):
-    certs = certificates_for(SERIAL, lab)
+    certs = certificates_for(SERIAL, lab, include_simulated=True)
     change = changes(certs)[0]  # bias of sensor x, calibration 1 → 2
     u1, u2 = certs[0].standard_uncertainty[0, 0], certs[1].standard_uncertainty[0, 0]
     nu = (u1**2 + u2**2) ** 2 / (u1**4 / 60 + u2**4 / 60)
@@ -66,12 +67,13 @@ def test_rule_uses_welch_satterthwaite_coverage(lab):
 
 def test_history_command_json_and_plot(lab, tmp_path, capsys):
     plot = tmp_path / "history.png"
-    assert main(["history", SERIAL, "--db", str(lab), "--json", "--plot", str(plot)]) == 0
+    assert main(["history", SERIAL, "--include-simulated", "--db", str(lab), "--json", "--plot",
+                 str(plot)]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["serial"] == SERIAL and doc["rule"] == RULE and len(doc["calibrations"]) == 3
     assert [(f["coefficient"], f["sensor"]) for f in doc["flagged"]] == [("B", "x")]
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert main(["history", SERIAL, "--db", str(lab)]) == 0
+    assert main(["history", SERIAL, "--include-simulated", "--db", str(lab)]) == 0
     text = capsys.readouterr().out
     assert "1 change(s) flagged" in text and "B of sensor x" in text
 
@@ -80,11 +82,12 @@ def test_database_path_option_environment_and_default(lab, monkeypatch, capsys):
     from labcal.run.journal import db_path
 
     monkeypatch.setenv("LABCAL_DB", str(lab))
-    assert main(["history", SERIAL, "--json"]) == 0  # $LABCAL_DB when there is no --db
+    assert main(["history", SERIAL, "--include-simulated", "--json"]) == 0  # $LABCAL_DB when there is no --db
     assert len(json.loads(capsys.readouterr().out)["calibrations"]) == 3
     assert db_path("x.sqlite").name == "x.sqlite"  # --db wins over the environment
     monkeypatch.delenv("LABCAL_DB")
-    assert str(db_path(None)) == "runs/labcal.sqlite"
+    monkeypatch.setenv("XDG_DATA_HOME", "/srv/data")
+    assert db_path(None) == Path("/srv/data/labcal/labcal.sqlite")  # not relative to the current folder
 
 
 def test_table_lives_beside_the_journal_in_wal_mode(lab):
@@ -95,9 +98,9 @@ def test_table_lives_beside_the_journal_in_wal_mode(lab):
 
 
 def test_reissuing_replaces_the_certificate_of_the_same_calibration(lab):
-    certs = certificates_for(SERIAL, lab)
+    certs = certificates_for(SERIAL, lab, include_simulated=True)
     store(certs[0], lab)
-    assert len(certificates_for(SERIAL, lab)) == 3
+    assert len(certificates_for(SERIAL, lab, include_simulated=True)) == 3
 
 
 def test_altered_row_is_refused(lab, tmp_path, capsys):
@@ -109,14 +112,16 @@ def test_altered_row_is_refused(lab, tmp_path, capsys):
         doc = json.loads(doc)
         doc["fit"]["coefficients"][0][0] += 1e-6
         conn.execute("UPDATE certificates SET document = ? WHERE certificate_id = ?", (json.dumps(doc), cid))
-    assert main(["history", SERIAL, "--db", str(db)]) == 2
+    assert main(["history", SERIAL, "--include-simulated", "--db", str(db)]) == 2
     err = capsys.readouterr().err
     assert f"certificate {cid}: digest mismatch" in err and len(err.strip().splitlines()) == 1
 
 
 @pytest.mark.parametrize("args, message", [
     (["history", "SN-NOPE"], "no certificates for instrument 'SN-NOPE'"),
-    (["history", SERIAL, "--plot", "/nonexistent/h.png"], "/nonexistent/h.png: cannot write the plot"),
+    (["history", SERIAL, "--include-simulated", "--plot", "/nonexistent/h.png"],
+     "/nonexistent/h.png: cannot write the plot"),
+    (["history", SERIAL], "has only simulated certificates"),  # dry runs never pass for real ones
 ])
 def test_bad_input_is_one_line(lab, capsys, args, message):
     assert main([*args, "--db", str(lab)]) == 2
@@ -127,7 +132,7 @@ def test_bad_input_is_one_line(lab, capsys, args, message):
 
 
 def test_missing_database_is_one_line(tmp_path, capsys):
-    assert main(["history", SERIAL, "--db", str(tmp_path / "none.sqlite")]) == 2
+    assert main(["history", SERIAL, "--include-simulated", "--db", str(tmp_path / "none.sqlite")]) == 2
     err = capsys.readouterr().err
     assert "none.sqlite: no such database" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "none.sqlite").exists()  # a query never creates a database
@@ -135,7 +140,7 @@ def test_missing_database_is_one_line(tmp_path, capsys):
 
 def test_without_uncertainty_every_change_is_flagged(lab):
     """Noise-free data give u = 0: ν is infinite, k = 1.96 and any nonzero change exceeds a zero limit."""
-    certs = certificates_for(SERIAL, lab)[:2]
+    certs = certificates_for(SERIAL, lab, include_simulated=True)[:2]
     exact = [c.model_copy(update={"fit": c.fit.model_copy(update={"standard_errors": [[0.0] * 3] * 4})})
              for c in certs]
     found = changes(exact)

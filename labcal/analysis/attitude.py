@@ -129,6 +129,9 @@ def closed_form(cal: Calibration, volts: NDArray[np.float64]) -> Attitude:
     u_p = np.sqrt(np.sum(dp_dv**2 * sigma_v, axis=1))
     u_r = np.sqrt(np.sum(dr_dv**2 * sigma_v, axis=1))
     roll, u_r = _undefined_roll(cal, g, sigma_v, roll, u_r)
+    # Where roll is undefined |g_x| is within noise of 1 and asin's slope is unbounded: the closed
+    # form's linear uncertainty is meaningless there (it reads 1e148°), so it is undefined too.
+    u_p = np.where(np.isnan(roll), np.nan, u_p)
     return Attitude(pitch, roll, u_p, u_r, _k95(cal))
 
 

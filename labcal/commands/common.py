@@ -26,4 +26,5 @@ def print_json(doc: dict) -> None:
 
 def add_db_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--db", metavar="PATH",
-                   help="the lab's SQLite database (default: $LABCAL_DB, else runs/labcal.sqlite)")
+                   help="the lab's SQLite database (default: $LABCAL_DB, else the lab file's database; "
+                        "see `labcal config path`)")

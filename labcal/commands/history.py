@@ -14,7 +14,7 @@ def cmd_history(args: argparse.Namespace) -> int:
     from labcal.documents.certificate import format_result
     from labcal.documents.history import RULE, certificates_for, changes, history_json, plot_history
 
-    certs = certificates_for(args.serial, args.db)
+    certs = certificates_for(args.serial, args.db, args.include_simulated)
     found = changes(certs)
     if args.plot:
         plot_history(args.serial, certs, found, args.plot)
@@ -24,7 +24,8 @@ def cmd_history(args: argparse.Namespace) -> int:
     flagged = {(c.after, c.row, c.sensor) for c in found if c.flagged}
     out.print(f"Instrument {args.serial}: {len(certs)} calibration(s)")
     for n, c in enumerate(certs, start=1):
-        out.print(f"  {n}  {c.calibrated_utc:%Y-%m-%d %H:%M} UTC  {c.certificate_id}")
+        simulated = "  (simulated: a dry run)" if c.station.simulated else ""
+        out.print(f"  {n}  {c.calibrated_utc:%Y-%m-%d %H:%M} UTC  {c.certificate_id}{simulated}")
     for j, sensor in enumerate(SENSORS):
         table = Table(title=f"sensor {sensor}: coefficients ± U (95 %)")
         table.add_column("#", justify="right")
@@ -53,6 +54,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "combined expanded uncertainty, |Δ| > k·√(u₁² + u₂²).")
     p.add_argument("serial", metavar="SERIAL", help="instrument serial number (dry runs: SIMULATED)")
     p.add_argument("--plot", metavar="FILE", help="also plot each coefficient over time (PNG, PDF or SVG)")
+    p.add_argument("--include-simulated", action="store_true",
+                   help="also show dry runs made under this serial (left out by default: never mistaken for "
+                        "a real calibration)")
     add_db_option(p)
     p.add_argument("--json", action="store_true", help="print as JSON on stdout")
     p.set_defaults(func=cmd_history)

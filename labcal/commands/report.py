@@ -7,6 +7,7 @@ import argparse
 from rich.table import Table as RichTable
 
 from labcal.commands.common import add_db_option, err, out, print_json
+from labcal.errors import LabcalError
 
 
 def rich_table(t) -> RichTable:
@@ -20,18 +21,25 @@ def rich_table(t) -> RichTable:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
+    from labcal.documents.administration import ItemGiven
     from labcal.documents.issuing import load_settings
     from labcal.documents.report import (
         attitude_table,
+        budget_table,
         coefficients_with_expanded_uncertainty,
         conformity_table,
         write_run_outputs,
     )
 
+    if args.monte_carlo and not 100 <= args.monte_carlo <= 1_000_000:
+        raise LabcalError(f"--monte-carlo {args.monte_carlo}: give 100 … 1000000 trials (10000 gives U95 to "
+                          "about 1 %), or leave it out")
     settings = load_settings(args.station, attitude_u95_max_deg=args.tolerance_deg,
                              bias_max_v=args.bias_max_v, usage_pitch_deg=args.usage_pitch,
                              usage_roll_deg=args.usage_roll)
-    result = write_run_outputs(args.run_dir, settings, serial=args.serial, operator=args.operator, db=args.db)
+    result = write_run_outputs(args.run_dir, settings, serial=args.serial, operator=args.operator, db=args.db,
+                               station=args.station, monte_carlo=args.monte_carlo,
+                               item=ItemGiven(args.customer, args.manufacturer, args.model, args.received))
     cert = result.certificate
     for note in result.notes:
         err.print(f"[yellow]note:[/] {note}")
@@ -40,19 +48,33 @@ def cmd_report(args: argparse.Namespace) -> int:
             "certificate_id": cert.certificate_id, "serial": cert.instrument.serial,
             "certificate": str(result.certificate_path), "report_html": str(result.html_path),
             "report_pdf": str(result.pdf_path), "database": str(result.database),
+            "dcc": None if result.dcc_path is None else str(result.dcc_path),
             "passed": None if cert.conformity is None else cert.conformity.passed,
             "conformity": None if cert.conformity is None else cert.conformity.model_dump(mode="json"),
             "attitude": cert.attitude.model_dump(mode="json"),
             "coefficients": cert.fit.coefficients, "U": cert.expanded_uncertainty.U,
             "k": cert.expanded_uncertainty.k, "digest": cert.digest.value,
+            "uncertainty_budget": None if cert.uncertainty_budget is None
+            else cert.uncertainty_budget.model_dump(mode="json"),
         })
         return 0
-    for table in (coefficients_with_expanded_uncertainty(cert), attitude_table(cert), conformity_table(cert)):
+    for table in (coefficients_with_expanded_uncertainty(cert), attitude_table(cert), budget_table(cert),
+                  conformity_table(cert)):
         out.print(rich_table(table))
     out.print(f"Certificate {cert.certificate_id}: {result.certificate_path}")
     out.print(f"Report: {result.html_path}, {result.pdf_path}")
+    out.print(f"Digital Calibration Certificate: {result.dcc_path}")
     out.print(f"Stored in {result.database} (see `labcal history {cert.instrument.serial}`)")
     return 0
+
+
+def _day(text: str):
+    from datetime import date
+
+    try:
+        return date.fromisoformat(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a date (YYYY-MM-DD)") from None
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -72,9 +94,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="usage envelope roll range in ° (default -180 180)")
     p.add_argument("--station", metavar="FILE",
                    help="station TOML whose [certificate] section sets laboratory, tolerances and usage "
-                        "envelope")
+                        "envelope, and whose [uncertainty] and [[traceability]] give the Type B inputs "
+                        "(default: the station the run was journaled with)")
+    p.add_argument("--monte-carlo", type=int, default=0, metavar="N",
+                   help="check the uncertainty budget by JCGM 101 Monte Carlo with N trials (e.g. 10000)")
     p.add_argument("--serial", help="instrument serial, if the run did not record it (dry runs: SIMULATED)")
     p.add_argument("--operator", help="operator's name, if the run did not record it")
+    p.add_argument("--customer", metavar="NAME", help="the customer, as the certificate names them")
+    p.add_argument("--manufacturer", metavar="NAME", help="the instrument's manufacturer")
+    p.add_argument("--model", metavar="MODEL", help="the instrument's model")
+    p.add_argument("--received", type=_day, metavar="YYYY-MM-DD", help="the date the item was received")
     add_db_option(p)
     p.add_argument("--json", action="store_true", help="print a summary as JSON on stdout")
     p.set_defaults(func=cmd_report)

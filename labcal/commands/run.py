@@ -60,12 +60,12 @@ def print_estimate(plan: Plan, est: Estimate, as_json: bool) -> None:
 
 def certificate_settings_for_run(args: argparse.Namespace, station: CertificateSettings | None,
                                  source: str) -> CertificateSettings:
-    """The station's [certificate] settings (defaults without a station) with the command line's
-    tolerances over them."""
-    from labcal.config.settings import CertificateSettings
+    """The lab file's certificate defaults, the station's [certificate] settings over them, and the
+    command line's tolerances over both."""
+    from labcal.config.lab import certificate_settings
 
     usage = tuple(args.usage_pitch) if args.usage_pitch else None
-    return (station or CertificateSettings()).overridden(source, attitude_u95_max_deg=args.tolerance_deg,
+    return certificate_settings(station, source).overridden(source, attitude_u95_max_deg=args.tolerance_deg,
                                                          usage_pitch_deg=usage)
 
 

@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 from labcal.config.emulation import EmulationSettings
 from labcal.config.files import parse_model, read_text
 from labcal.config.settings import CertificateSettings, SequencerSettings
+from labcal.config.uncertainty import Traceability, UncertaintyInputs
 from labcal.errors import LabcalError
 
 # The 34970A's settable integration times (power-line cycles) and DC volts ranges: others are
@@ -204,6 +205,10 @@ class StationFile(BaseModel):
                                          "sim serve` and `--emulate`: time_scale, seed, [emulation.rig]")
     certificate: CertificateSettings = Field(default_factory=CertificateSettings, description="read by "
                                              "`labcal run` and `labcal report`: laboratory, tolerances")
+    uncertainty: UncertaintyInputs = Field(default_factory=UncertaintyInputs, description="Type B inputs "
+                                           "of the uncertainty budget, each with its unit")
+    traceability: list[Traceability] = Field(default_factory=list, description="reference standards: "
+                                             "certificate number and due date")
 
     @model_validator(mode="after")
     def _buses(self):
@@ -268,19 +273,35 @@ def leaves(tree: dict, prefix: str) -> dict[str, object]:
     return flat
 
 
+class DmmRange(BaseModel):
+    model_config = ConfigDict(extra="ignore")
+
+    range_v: float = 10.0
+    nplc: float = 10.0
+
+
 class CertificateSection(BaseModel):
-    """A station file read for its ``[certificate]`` table alone."""
+    """A station file read for what a certificate takes from it: the ``[certificate]`` table, the
+    Type B inputs, the traceability entries, and the DMM range the "% of range" applies to."""
 
     model_config = ConfigDict(extra="ignore")
 
+    description: str = ""
     certificate: CertificateSettings = Field(default_factory=CertificateSettings)
+    uncertainty: UncertaintyInputs = Field(default_factory=UncertaintyInputs)
+    traceability: list[Traceability] = Field(default_factory=list)
+    dmm: DmmRange = Field(default_factory=DmmRange)
 
 
 def load_certificate_settings(path: str | Path) -> CertificateSettings:
     """The ``[certificate]`` table of a station file. `labcal report` makes the documents of a
     finished run, often away from the bench whose devices the rest of the file describes: only
     this table is read, validated by the same model as when the whole station is read."""
-    return parse_model(read_text(path, "station"), CertificateSection, str(path)).certificate
+    return load_certificate_section(path).certificate
+
+
+def load_certificate_section(path: str | Path) -> CertificateSection:
+    return parse_model(read_text(path, "station"), CertificateSection, str(path))
 
 
 def shipped_stations() -> dict[str, resources.abc.Traversable]:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from datetime import date
 from pathlib import Path
 from typing import Literal
 
@@ -155,6 +156,26 @@ class PlanAudit(_Strict):
     figure_of_merit_usage_sqrt: float
 
 
+def _absent(value: object) -> bool:
+    return value is None
+
+
+class ClosedFormEnvelope(_Strict):
+    """Soto's closed form (eqs. 5–7) on the same grid: its Type A U95 (None: undefined, where the
+    closed form breaks down — asin at |g_x| → 1, roll at pitch ±90°) and the statement of which
+    estimator `labcal attitude` uses."""
+
+    method: str
+    pitch_U95_max_deg: float | None
+    pitch_U95_rms_deg: float | None
+    pitch_U95_max_at_deg: tuple[float, float] | None
+    roll_U95_max_deg: float | None
+    roll_U95_rms_deg: float | None
+    roll_U95_max_at_deg: tuple[float, float] | None
+    undefined_points: int
+    statement: str
+
+
 class AttitudeEnvelope(_Strict):
     method: str
     usage_pitch_deg: tuple[float, float]
@@ -170,6 +191,7 @@ class AttitudeEnvelope(_Strict):
     roll_U95_rms_deg: float | None
     roll_U95_max_at_deg: tuple[float, float] | None
     roll_undefined_points: int
+    closed_form: ClosedFormEnvelope | None = Field(default=None, exclude_if=_absent)
 
 
 class Check(_Strict):
@@ -184,6 +206,140 @@ class Conformity(_Strict):
     decision_rule: str
     checks: list[Check]
     passed: bool
+
+
+class BudgetRow(_Strict):
+    """One source of the GUM budget: its input and its contribution u_i to pitch and roll (arcsec)
+    at the envelope's worst point (where U95 of that angle is largest) and RMS over the envelope."""
+
+    source: str
+    type: Literal["A", "B"]
+    distribution: str
+    standard_uncertainty: float
+    unit: str
+    sensitivity_pitch: float | None  # arcsec per unit of the input, at the worst point
+    sensitivity_roll: float | None
+    pitch_worst_arcsec: float
+    pitch_rms_arcsec: float
+    roll_worst_arcsec: float | None
+    roll_rms_arcsec: float | None
+    degrees_of_freedom: float | None  # None: infinite (a Type B input with known bounds)
+    added: bool
+    note: str = ""
+
+
+class BudgetTotal(_Strict):
+    angle: Literal["pitch", "roll"]
+    worst_at_deg: tuple[float, float]
+    u_c_arcsec: float
+    nu_eff: float | None
+    k: float
+    U95_arcsec: float
+    U95_rms_arcsec: float
+
+
+class MonteCarloCheck(_Strict):
+    """JCGM 101 propagation of the same inputs at each angle's worst point."""
+
+    trials: int = Field(ge=1)
+    seed: int
+    angle: Literal["pitch", "roll"]
+    at_deg: tuple[float, float]
+    linear_U95_arcsec: float
+    monte_carlo_U95_arcsec: float
+    agree_within_5_percent: bool
+
+
+class CoefficientBudgetRecord(_Strict):
+    """Per coefficient (4×3, as X): combined standard uncertainty, ν_eff (None: infinite), k, U, and
+    each source's standard uncertainty."""
+
+    u_c: list[list[float]]
+    nu_eff: list[list[float | None]]
+    k: list[list[float]]
+    U: list[list[float]]
+    contributions: dict[str, list[list[float]]]
+
+
+class UncertaintyBudget(_Strict):
+    method: str
+    inputs: dict
+    rows: list[BudgetRow]
+    totals: list[BudgetTotal]
+    coefficients: CoefficientBudgetRecord
+    monte_carlo: list[MonteCarloCheck] | None = None
+    statement: str
+
+
+class LaboratoryRecord(_Strict):
+    name: str
+    address: str
+    accreditation_id: str
+    country_code: str
+
+
+class Item(_Strict):
+    """The item calibrated (ISO/IEC 17025 §7.8.2.1 f) and when it was received."""
+
+    manufacturer: str
+    model: str
+    serial: str
+    received: date | None
+
+
+class Equipment(_Strict):
+    """Equipment used, with the identity it reported or its station-file settings."""
+
+    role: str
+    description: str
+    identity: str | None
+
+
+class TraceabilityRecord(_Strict):
+    equipment: str
+    identity: str
+    certificate: str
+    issued_by: str
+    due: date
+
+
+class Administration(_Strict):
+    """ISO/IEC 17025 §7.8.2.1 administrative contents a run alone does not say."""
+
+    laboratory: LaboratoryRecord
+    customer: str | None
+    item: Item
+    equipment: list[Equipment]
+    traceability: list[TraceabilityRecord]
+    ambient: str
+
+
+class JournalEvent(_Strict):
+    utc: str
+    station_time_s: float | None
+    kind: str
+    message: str
+
+
+class RunStory(_Strict):
+    """What the journal recorded while the run went on: faults, retries, wrong mounts, pauses,
+    resumes, operator prompts and answers, with their times."""
+
+    counts: dict[str, int]
+    events: list[JournalEvent]
+    omitted: int = Field(ge=0)
+
+
+class Approval(_Strict):
+    """Who approved the certificate (ISO/IEC 17025 §7.8.2.1 o) and their Ed25519 signature over the
+    canonical content (`labcal.documents.approval`)."""
+
+    by: str = Field(min_length=1)
+    role: str = Field(min_length=1)
+    approved_utc: AwareDatetime
+    algorithm: Literal["Ed25519"]
+    key_id: str = Field(pattern="^[0-9a-f]{64}$")
+    signature: str
 
 
 class Digest(_Strict):
@@ -214,7 +370,24 @@ class Certificate(_Strict):
     plan_audit: PlanAudit
     attitude: AttitudeEnvelope
     conformity: Conformity | None
+    # Sections added to format 1 are left out of the document when absent, so that certificates
+    # issued before them read back and hash exactly as they were issued.
+    uncertainty_budget: UncertaintyBudget | None = Field(default=None, exclude_if=_absent)
+    administration: Administration | None = Field(default=None, exclude_if=_absent)
+    story: RunStory | None = Field(default=None, exclude_if=_absent)
+    revision: int | None = Field(default=None, ge=1, exclude_if=_absent)
+    replaces: str | None = Field(default=None, exclude_if=_absent)
+    approval: Approval | None = Field(default=None, exclude_if=_absent)
     digest: Digest
+
+    @property
+    def number(self) -> str:
+        """The certificate number with its revision, as printed (ISO/IEC 17025 §7.8.2.1 c)."""
+        return f"{self.certificate_id} rev. {self.revision or 1}"
+
+    @property
+    def draft(self) -> bool:
+        return self.approval is None
 
     @property
     def coefficients(self) -> NDArray:

@@ -2,10 +2,9 @@
 
 The database is shared with the run journal; its schema (the ``certificates`` table among the
 others), version and migrations are `labcal.run.labdb`'s, and every statement here names its
-columns.
-Its path: the --db option, else $LABCAL_DB, else runs/labcal.sqlite. A stored certificate is the
-exact JSON issued; reading it back verifies schema and digest, so history never shows a value
-that was altered in the database.
+columns. Its path: the --db option, else $LABCAL_DB, else the lab file's (`labcal.config.lab`).
+A stored certificate is the exact JSON issued; reading it back verifies schema and digest, so
+history never shows a value that was altered in the database.
 
 Drift rule: consecutive calibrations disagree when |Δ| > k·√(u₁² + u₂²), with u the standard
 uncertainties and k = t₀.₉₇₅(ν) at the Welch–Satterthwaite degrees of freedom of the difference
@@ -23,6 +22,7 @@ import numpy as np
 from labcal.analysis.distributions import t_quantile
 from labcal.analysis.fit import ROW_NAMES, SENSORS
 from labcal.documents.certificate import COVERAGE, Certificate, certificate_from_doc, parse_json
+from labcal.documents.issuing import SIMULATED_SERIAL
 from labcal.errors import LabcalError
 from labcal.run import labdb
 from labcal.run.journal import db_path
@@ -53,8 +53,11 @@ def stored_digest(certificate_id: str, db: str | Path | None = None) -> str | No
     return None if row is None else row[0]
 
 
-def certificates_for(serial: str, db: str | Path | None = None) -> list[Certificate]:
-    """The instrument's certificates, oldest calibration first, each verified."""
+def certificates_for(serial: str, db: str | Path | None = None, include_simulated: bool = False
+                     ) -> list[Certificate]:
+    """The instrument's certificates, oldest calibration first, each verified. A dry run's
+    certificate is left out unless ``include_simulated`` (or the serial is the simulator's own):
+    a simulated calibration must never pass for one of the real instrument."""
     path = db_path(db)
     if not path.is_file():
         raise LabcalError(f"{path}: no such database; `labcal report RUN` stores certificates there "
@@ -66,8 +69,17 @@ def certificates_for(serial: str, db: str | Path | None = None) -> list[Certific
             known = [s for (s,) in conn.execute("SELECT DISTINCT serial FROM certificates ORDER BY serial")]
             raise LabcalError(f"no certificates for instrument {serial!r} in {path}; known serials: "
                               f"{', '.join(known) if known else 'none'}")
-    return [certificate_from_doc(parse_json(doc, f"{path}: certificate {cid}"), f"{path}: certificate {cid}")
-            for cid, doc in rows]
+    certs = [certificate_from_doc(parse_json(doc, f"{path}: certificate {cid}"), f"{path}: certificate {cid}")
+             for cid, doc in rows]
+    replaced = {c.replaces for c in certs if c.replaces}
+    certs = [c for c in certs if c.number not in replaced]  # a correction stands for the one it replaces
+    if include_simulated or serial == SIMULATED_SERIAL:
+        return certs
+    real = [c for c in certs if not c.station.simulated]
+    if not real:
+        raise LabcalError(f"instrument {serial!r} has only simulated certificates in {path} ({len(certs)} "
+                          "dry run(s)); give --include-simulated to see them")
+    return real
 
 
 @dataclass(frozen=True)
@@ -124,6 +136,7 @@ def history_json(serial: str, certs: list[Certificate], found: list[Change]) -> 
     return {
         "serial": serial, "rule": RULE,
         "calibrations": [{"certificate_id": c.certificate_id, "calibrated_utc": c.calibrated_utc.isoformat(),
+                          "simulated": c.station.simulated,
                           "digest": c.digest.value, "coefficients": c.fit.coefficients,
                           "standard_uncertainty": c.fit.standard_errors, "U": c.expanded_uncertainty.U,
                           "k": c.expanded_uncertainty.k} for c in certs],

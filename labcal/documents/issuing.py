@@ -14,29 +14,36 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal import __version__
-from labcal.analysis.attitude import Calibration, calibration_from_json, sphere_least_squares
+from labcal.analysis.attitude import Calibration, calibration_from_json, closed_form, sphere_least_squares
+from labcal.analysis.budget import TypeBInputs
 from labcal.analysis.design import LEAK_ZERO, audit, audit_summary, figure_of_merit, grid
 from labcal.analysis.distributions import t_quantile
 from labcal.analysis.fit import SENSORS, Fit
 from labcal.analysis.kinematics import gravity
-from labcal.analysis.models import BASE_NAMES
 from labcal.config.files import json_safe
+from labcal.config.lab import certificate_settings
 from labcal.config.settings import CertificateSettings
-from labcal.config.station import load_certificate_settings
+from labcal.config.station import CertificateSection, load_certificate_settings
+from labcal.documents.administration import ItemGiven, administration
 from labcal.documents.certificate import (
     COVERAGE,
     SCHEMA,
     AttitudeEnvelope,
     Certificate,
     Check,
+    ClosedFormEnvelope,
     Conformity,
     Environment,
     Expanded,
     FitSection,
+    JournalEvent,
     Leak,
     PlanAudit,
+    RunStory,
+    UncertaintyBudget,
     seal,
 )
+from labcal.documents.uncertainty import budget, stated_U95_arcsec
 from labcal.errors import LabcalError
 from labcal.run.record import RunRecord
 
@@ -44,11 +51,13 @@ SIMULATED_SERIAL = "SIMULATED"  # a dry run's instrument is the simulator's, wha
 
 
 def load_settings(station_path: str | Path | None, **overrides: object) -> CertificateSettings:
-    """The ``[certificate]`` table of a station file (defaults without one), then the command
-    line's non-None ``overrides``; every mistake is one line naming the file and the field."""
+    """The lab file's certificate defaults, the ``[certificate]`` table of a station file over them,
+    then the command line's non-None ``overrides``; every mistake is one line naming the file and
+    the field."""
     if station_path is None:
-        return CertificateSettings().overridden("command line", **overrides)
-    return load_certificate_settings(station_path).overridden(str(station_path), **overrides)
+        return certificate_settings(None, "lab file").overridden("command line", **overrides)
+    station = load_certificate_settings(station_path)
+    return certificate_settings(station, str(station_path)).overridden(str(station_path), **overrides)
 
 
 # --- attitude uncertainty over the usage envelope ---------------------------------------------------
@@ -64,14 +73,16 @@ class EnvelopeGrid:
     dof: int
 
 
-def envelope_grid(cal: Calibration, settings: CertificateSettings) -> EnvelopeGrid:
-    """Weighted least squares on the sphere (Tripp eqs. 99–104) at every grid attitude, top-forward
-    mount, for one new reading: the uncertainty a user of the instrument gets, in degrees."""
+def envelope_grid(cal: Calibration, settings: CertificateSettings, estimator=sphere_least_squares
+                  ) -> EnvelopeGrid:
+    """Weighted least squares on the sphere (Tripp eqs. 99–104; or another ``estimator``) at every
+    grid attitude, top-forward mount, for one new reading: the uncertainty a user of the instrument
+    gets, in degrees."""
     step = settings.grid_step_deg
     points = np.array(grid(*settings.usage_pitch_deg, step, *settings.usage_roll_deg, step))
     pitch, roll = np.unique(points[:, 0]), np.unique(points[:, 1])
     g = gravity(np.radians(points[:, 0]), np.radians(points[:, 1]), 0.0, 0.0)
-    att = sphere_least_squares(cal, cal.X[0] + g @ cal.X[1:])
+    att = estimator(cal, cal.X[0] + g @ cal.X[1:])
     shape = (len(pitch), len(roll))
     return EnvelopeGrid(pitch, roll, (att.k95 * np.degrees(att.u_pitch)).reshape(shape),
                         (att.k95 * np.degrees(att.u_roll)).reshape(shape), att.k95, cal.dof)
@@ -103,7 +114,34 @@ def attitude_envelope(cal: Calibration, settings: CertificateSettings) -> Attitu
         degrees_of_freedom=env.dof,
         pitch_U95_max_deg=p_max, pitch_U95_rms_deg=p_rms, pitch_U95_max_at_deg=p_at,
         roll_U95_max_deg=r_max, roll_U95_rms_deg=r_rms, roll_U95_max_at_deg=r_at,
-        roll_undefined_points=int(np.sum(~np.isfinite(env.u95_roll_deg))))
+        roll_undefined_points=int(np.sum(~np.isfinite(env.u95_roll_deg))),
+        closed_form=_closed_form_envelope(cal, settings, p_max, p_at))
+
+
+def _closed_form_envelope(cal: Calibration, settings: CertificateSettings, sphere_pitch_max: float,
+                          sphere_at: tuple[float, float]) -> ClosedFormEnvelope:
+    """The closed form's U95 on the same grid, "undefined" (None) where it breaks down, and the
+    ratio to the sphere estimator where the sphere's pitch U95 is largest."""
+    env = envelope_grid(cal, settings, closed_form)
+    p_max, p_rms, p_at = _summary(env, env.u95_pitch_deg)
+    r_max, r_rms, r_at = _summary(env, env.u95_roll_deg)
+    undefined = int(np.sum(~np.isfinite(env.u95_pitch_deg)))
+    i = int(np.searchsorted(env.pitch_deg, sphere_at[0]))
+    j = int(np.searchsorted(env.roll_deg, sphere_at[1]))
+    ratio = env.u95_pitch_deg[i, j] / sphere_pitch_max
+    statement = ("`labcal attitude` prints both estimators by default (columns cf_ closed form, ls_ "
+                 "least squares on the sphere; --method chooses one); this certificate's budget and "
+                 f"conformity are for the sphere estimator. At pitch {sphere_at[0]:g}°, roll "
+                 f"{sphere_at[1]:g}° the closed form's pitch U95 is "
+                 + (f"{ratio:.2g}× the sphere estimator's." if np.isfinite(ratio) else "undefined.")
+                 + (f" The closed form is undefined at {undefined} attitude(s) near pitch ±90°, where asin "
+                    "has no usable slope and roll does not exist." if undefined else ""))
+    return ClosedFormEnvelope(
+        method="Soto's closed form g = (V − B)S⁻¹, pitch = asin g_x, roll = atan2(g_y, g_z) (eqs. 5–7), "
+               "first-order uncertainty through the same Σ_v; Type A",
+        pitch_U95_max_deg=p_max, pitch_U95_rms_deg=p_rms, pitch_U95_max_at_deg=p_at,
+        roll_U95_max_deg=r_max, roll_U95_rms_deg=r_rms, roll_U95_max_at_deg=r_at,
+        undefined_points=undefined, statement=statement)
 
 
 # --- building a certificate from a run -------------------------------------------------------------
@@ -114,15 +152,21 @@ def _recorded(meta_value, given: str | None, what: str, run_dir: Path) -> str | 
     return given or meta_value or None
 
 
-def _expanded(fit: Fit) -> Expanded:
-    nu = fit.variance_dof
+def _expanded(fit: Fit, budget: UncertaintyBudget) -> Expanded:
+    """U = k·u_c of every coefficient, u_c from the whole budget (Type A and B); per sensor the
+    smallest Welch–Satterthwaite ν_eff of its coefficients, truncated (GUM G.4.1 note 1), sets k.
+    With no Type B input this is the fit's own ν and standard error."""
+    nu_coef = np.array([[np.inf if n is None else n for n in row] for row in budget.coefficients.nu_eff])
+    nu_min = nu_coef.min(axis=0)
+    nu = np.where(np.isfinite(nu_min), np.floor(np.nan_to_num(nu_min) + 1e-6), fit.variance_dof).astype(int)
     k = t_quantile(0.5 + COVERAGE / 2, nu)
     ks = ", ".join(f"{s}: k = {kj:.2f} at ν_eff = {n}" for s, kj, n in zip(SENSORS, k, nu, strict=True))
-    statement = ("The reported expanded uncertainty is the standard uncertainty multiplied by the coverage "
-                 f"factor k = t₀.₉₇₅(ν_eff) ({ks}), which for a t-distribution corresponds to a coverage "
-                 "probability of approximately 95 %.")
+    statement = ("The reported expanded uncertainty is the combined standard uncertainty of the budget's "
+                 f"sources multiplied by the coverage factor k = t₀.₉₇₅(ν_eff) ({ks}), which for a "
+                 "t-distribution corresponds to a coverage probability of approximately 95 %.")
+    u_c = np.array(budget.coefficients.u_c)
     return Expanded(coverage_probability=COVERAGE, nu_eff=nu.tolist(), k=k.tolist(),
-                    U=(k[None, :] * fit.stderr[: len(BASE_NAMES)]).tolist(), statement=statement)
+                    U=(k[None, :] * u_c).tolist(), statement=statement)
 
 
 def _plan_audit(record: RunRecord, settings: CertificateSettings) -> PlanAudit:
@@ -134,14 +178,17 @@ def _plan_audit(record: RunRecord, settings: CertificateSettings) -> PlanAudit:
         figure_of_merit_usage_sqrt=figure_of_merit(record.plan, settings.usage_pitch_deg) ** 0.5)
 
 
-def _conformity(fit: Fit, U: NDArray, env: AttitudeEnvelope, settings: CertificateSettings
+def _conformity(fit: Fit, U: NDArray, budget: UncertaintyBudget, settings: CertificateSettings
                 ) -> Conformity | None:
     checks, rules = [], []
     tol = settings.attitude_u95_max_deg
     if tol is not None:
         rules.append("the attitude passes when the largest 95 % expanded uncertainty of inferred pitch and "
-                     "of inferred roll over the usage envelope does not exceed the tolerance")
-        for angle, value in (("pitch", env.pitch_U95_max_deg), ("roll", env.roll_U95_max_deg)):
+                     "of inferred roll over the usage envelope, from the full uncertainty budget, does not "
+                     "exceed the tolerance")
+        for angle in ("pitch", "roll"):
+            arcsec = stated_U95_arcsec(budget, angle)
+            value = None if arcsec is None else arcsec / 3600.0
             if value is not None:
                 checks.append(Check(quantity=f"{angle} U95, largest over the usage envelope", value=value,
                                     limit=tol, unit="°", passed=value <= tol))
@@ -168,6 +215,18 @@ def _environment(record: RunRecord) -> Environment:
                        note="temperature at the instrument during the readings")
 
 
+STORY_EVENTS = 200  # a day-long run with many remounts stays readable; the journal keeps every one
+
+
+def _story(record: RunRecord) -> RunStory:
+    kinds = [e["kind"] for e in record.events]
+    listed = record.events[:STORY_EVENTS]
+    return RunStory(counts={k: kinds.count(k) for k in dict.fromkeys(kinds)},
+                    events=[JournalEvent(utc=e["utc"], station_time_s=e["station_time"], kind=e["kind"],
+                                         message=e["message"]) for e in listed],
+                    omitted=len(record.events) - len(listed))
+
+
 METHOD = ("Linear model V = B + gᵀS fitted per sensor by least squares on the nominal gravity of each "
           "calibration point (Soto 2020, eqs. 13–21). Standard uncertainties are Type A: the residual "
           "standard error, or where replication shows significant lack of fit the lack-of-fit mean square "
@@ -182,9 +241,14 @@ STATEMENTS = ("The results relate only to the item calibrated.",
 
 def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings | None = None, *,
                       serial: str | None = None, operator: str | None = None,
-                      issued_utc: datetime | None = None) -> Certificate:
+                      issued_utc: datetime | None = None, inputs: TypeBInputs | None = None,
+                      monte_carlo: int = 0, revision: int = 1, replaces: str | None = None,
+                      section: CertificateSection | None = None, item: ItemGiven | None = None
+                      ) -> Certificate:
     """The sealed certificate of a run's fit. ``serial``/``operator`` fill in what the run did not
-    record (and may not contradict it); a dry run's instrument is SIMULATED."""
+    record (and may not contradict it); a dry run's instrument is SIMULATED. ``inputs``: the bench's
+    Type B inputs (none: a Type A budget); ``monte_carlo``: trials of the JCGM 101 check (0: none);
+    ``section``: what the station file says (traceability); ``item``: customer and item details."""
     settings = settings or CertificateSettings()
     meta, run_dir = record.meta, record.directory
     serial = _recorded(meta.get("instrument_serial"), serial, "instrument serial", run_dir) \
@@ -195,16 +259,27 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
     if not calibrated:
         raise LabcalError(f"{run_dir}: run.json has no started_utc; the calibration date is unknown")
     fit_doc = json_safe(fit.to_json())
-    expanded = _expanded(fit)
+    seed = int(record.readings_sha256[:8], 16)  # the same run gives the same Monte Carlo draws
+    uncertainty = budget(record, fit, inputs or TypeBInputs(), settings, monte_carlo, seed)
+    expanded = _expanded(fit, uncertainty)
     cal = calibration_from_json(fit_doc, run_dir)
     envelope = attitude_envelope(cal, settings)
     try:
         stamp = datetime.fromisoformat(calibrated).astimezone(UTC).strftime("%Y%m%dT%H%M%SZ")
     except (TypeError, ValueError):
         raise LabcalError(f"{run_dir}: run.json started_utc {calibrated!r} is not an ISO 8601 time") from None
+    admin = administration(record, section or CertificateSection(), item or ItemGiven(), serial)
+    statements = list(STATEMENTS)
+    day = datetime.fromisoformat(calibrated).date()
+    statements += [f"Reference standard {t.equipment} (certificate {t.certificate}) was past its calibration "
+                   f"due date {t.due.isoformat()} on the calibration date."
+                   for t in admin.traceability if t.due < day]
     content = {
         "schema": SCHEMA,
-        "certificate_id": f"{serial}-{stamp}-{record.readings_sha256[:8]}",
+        "certificate_id": f"{serial}-{stamp}-{record.readings_sha256[:8]}" + (f"-R{revision}" if revision > 1
+                                                                              else ""),
+        "revision": revision,
+        "replaces": replaces,
         "labcal_version": __version__,
         "laboratory": settings.laboratory,
         "instrument": {"serial": serial, "description": meta.get("instrument_description", "")},
@@ -223,12 +298,15 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
                  "replicates": int(len(np.unique(record.readings.replicate)))},
         "environment": _environment(record).model_dump(),
         "method": METHOD,
-        "statements": list(STATEMENTS),
+        "statements": statements,
+        "administration": admin.model_dump(),
+        "story": _story(record).model_dump(),
         "fit": {k: fit_doc[k] for k in FitSection.model_fields if k in fit_doc},
         "expanded_uncertainty": expanded.model_dump(),
         "plan_audit": _plan_audit(record, settings).model_dump(),
         "attitude": envelope.model_dump(),
-        "conformity": None if (c := _conformity(fit, np.array(expanded.U), envelope, settings)) is None
+        "conformity": None if (c := _conformity(fit, np.array(expanded.U), uncertainty, settings)) is None
         else c.model_dump(),
+        "uncertainty_budget": uncertainty.model_dump(),
     }
     return seal(content)

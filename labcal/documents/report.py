@@ -29,6 +29,7 @@ from labcal.analysis.kinematics import Mount
 from labcal.analysis.models import Points
 from labcal.config.files import write_atomic
 from labcal.config.settings import CertificateSettings
+from labcal.documents.administration import ItemGiven
 from labcal.documents.certificate import (
     Certificate,
     format_result,
@@ -37,6 +38,7 @@ from labcal.documents.certificate import (
     write_certificate,
 )
 from labcal.documents.issuing import build_certificate, envelope_grid
+from labcal.documents.uncertainty import bench_section, type_b_inputs
 from labcal.errors import LabcalError
 from labcal.run.record import RunRecord, load_run
 
@@ -87,6 +89,24 @@ def identification_table(cert: Certificate) -> Table:
         ["temperature", temperature],
         ["software", f"labcal {cert.labcal_version}"],
     ]
+    rows[0] = ["certificate", cert.number + (f", replacing {cert.replaces}" if cert.replaces else "")]
+    a = cert.administration
+    if a is not None:
+        lab = ", ".join(p for p in (a.laboratory.name, a.laboratory.address) if p) or "not stated"
+        rows[1] = ["laboratory", lab + (f"; accreditation {a.laboratory.accreditation_id}"
+                                        if a.laboratory.accreditation_id else "")]
+        item = " ".join(p for p in (a.item.manufacturer, a.item.model) if p)
+        rows[2:2] = [["customer", a.customer or "not stated"],
+                     ["item", f"{item or 'instrument'}, serial {a.item.serial}; received "
+                              f"{a.item.received.isoformat() if a.item.received else 'date not recorded'}"]]
+        rows += [["equipment", "; ".join(f"{e.role}: {e.description} ({e.identity or 'no identity'})"
+                                         for e in a.equipment)],
+                 ["traceability", "; ".join(f"{t.equipment} {t.identity}: certificate {t.certificate} "
+                                            f"({t.issued_by}), due {t.due.isoformat()}"
+                                            for t in a.traceability)
+                  or "no reference standards recorded (station file [[traceability]])"],
+                 ["ambient conditions", a.ambient]]
+    rows.append(["approval", _status(cert)])
     return Table("Identification", ["item", "value"], rows)
 
 
@@ -115,12 +135,20 @@ def attitude_table(cert: Certificate) -> Table:
     def deg(u): return "undefined" if u is None else f"{format_uncertainty(u)}°"
     rows = [["pitch", deg(a.pitch_U95_max_deg), where(a.pitch_U95_max_at_deg), deg(a.pitch_U95_rms_deg)],
             ["roll", deg(a.roll_U95_max_deg), where(a.roll_U95_max_at_deg), deg(a.roll_U95_rms_deg)]]
+    cf = a.closed_form
+    if cf is not None:
+        rows += [["pitch, closed form", deg(cf.pitch_U95_max_deg), where(cf.pitch_U95_max_at_deg),
+                  deg(cf.pitch_U95_rms_deg)],
+                 ["roll, closed form", deg(cf.roll_U95_max_deg), where(cf.roll_U95_max_at_deg),
+                  deg(cf.roll_U95_rms_deg)]]
     (p0, p1), (r0, r1) = a.usage_pitch_deg, a.usage_roll_deg
     caption = (f"Over pitch {p0:g}…{p1:g}° × roll {r0:g}…{r1:g}° in {a.grid_step_deg:g}° steps "
                f"({a.grid_points} attitudes); "
                f"{a.method}; k = {a.k:.2f} (ν = {a.degrees_of_freedom}).")
     if a.roll_undefined_points:
         caption += f" Roll is undefined at {a.roll_undefined_points} attitude(s) near pitch ±90°."
+    if cf is not None:
+        caption += f" {cf.statement}"
     return Table("Attitude uncertainty (95 %) over the usage envelope", ["angle", "largest U95", "at",
                                                                           "RMS of U95"], rows, caption)
 
@@ -182,9 +210,61 @@ def audit_table(cert: Certificate) -> Table:
                  f"pitch range: V_R^½ = {a.figure_of_merit_usage_sqrt:.4f}.")
 
 
+def _arcsec(x: float | None) -> str:
+    """Arcseconds to three digits; rounding noise (what a plan cancels exactly) shows as 0."""
+    return "—" if x is None else "0" if abs(x) < 1e-9 else f"{x:.3g}"
+
+
+def budget_table(cert: Certificate) -> Table:
+    """The GUM budget: one row per source, its contribution u_i to pitch and roll (arcsec) at the
+    envelope's worst point and RMS over the envelope, then the totals (and the Monte Carlo check)."""
+    b = cert.uncertainty_budget
+    header = ["source", "type", "distribution", "u (own unit)", "c pitch (″/unit)", "pitch u_i worst (″)",
+              "pitch u_i RMS (″)", "c roll (″/unit)", "roll u_i worst (″)", "roll u_i RMS (″)", "ν"]
+    if b is None:
+        return Table("Uncertainty budget", ["budget"], [["not in this certificate (issued before budgets)"]])
+    rows = []
+    for r in b.rows:
+        name = r.source if r.added else f"{r.source} (not added)"
+        rows.append([name, r.type, r.distribution, f"{r.standard_uncertainty:.3g} {r.unit}",
+                     _arcsec(r.sensitivity_pitch), _arcsec(r.pitch_worst_arcsec), _arcsec(r.pitch_rms_arcsec),
+                     _arcsec(r.sensitivity_roll), _arcsec(r.roll_worst_arcsec), _arcsec(r.roll_rms_arcsec),
+                     "∞" if r.degrees_of_freedom is None else f"{r.degrees_of_freedom:.0f}"])
+    for t in b.totals:
+        rows.append([f"{t.angle}: combined u_c at pitch {t.worst_at_deg[0]:g}°, roll {t.worst_at_deg[1]:g}°",
+                     "", "", "", "", f"{t.u_c_arcsec:.3g}", "", "", "", "",
+                     "∞" if t.nu_eff is None else f"{t.nu_eff:.0f}"])
+        rows.append([f"{t.angle}: U95 = k·u_c (k = {t.k:.2f}); RMS over the envelope {t.U95_rms_arcsec:.3g}″",
+                     "", "", "", "", f"{t.U95_arcsec:.3g}", "", "", "", "", ""])
+    for c in b.monte_carlo or []:
+        rows.append([f"{c.angle}: Monte Carlo U95 ({c.trials} trials, JCGM 101)", "", "", "", "",
+                     f"{c.monte_carlo_U95_arcsec:.3g}", "", "", "", "",
+                     "agrees" if c.agree_within_5_percent else "differs > 5 %"])
+    notes = " ".join(f"{r.source}: {r.note}." for r in b.rows if r.note)
+    return Table("Uncertainty budget of inferred pitch and roll (GUM)", header, rows,
+                 f"{b.statement} {notes} {b.method}")
+
+
+def story_table(cert: Certificate) -> Table:
+    """The journal's story: faults, retries, wrong mounts, pauses, resumes and the operator's answers."""
+    s = cert.story
+    title = "What happened during the run (from the journal)"
+    if s is None:
+        return Table(title, ["events"], [["not in this certificate (issued before the story was recorded)"]])
+    rows = [[e.utc.replace("T", " ")[:23], "—" if e.station_time_s is None else f"{e.station_time_s:.1f}",
+             e.kind, e.message] for e in s.events]
+    emphasis = {(i, 2) for i, e in enumerate(s.events) if e.kind == "fault"}
+    counts = ", ".join(f"{n} {kind}" for kind, n in s.counts.items()) or "no events"
+    caption = f"{counts}." + (f" {s.omitted} later event(s) not listed; the journal keeps them."
+                              if s.omitted else "")
+    return Table(title, ["time (UTC)", "rig time (s)", "kind", "what"], rows or [["—", "—", "—", "nothing"]],
+                 caption, emphasis)
+
+
 def tables(cert: Certificate) -> list[Table]:
-    return [identification_table(cert), conformity_table(cert), attitude_table(cert),
-            coefficients_with_expanded_uncertainty(cert), replication_table(cert), audit_table(cert)]
+    return [identification_table(cert), conformity_table(cert), attitude_table(cert), budget_table(cert),
+            coefficients_with_expanded_uncertainty(cert), replication_table(cert), audit_table(cert),
+            story_table(cert)]
 
 
 # --- figures ----------------------------------------------------------------------------------
@@ -372,8 +452,9 @@ def render_html(cert: Certificate, figs: list[tuple[str, Figure]]) -> str:
     css_class = "none" if cert.conformity is None else ("pass" if cert.conformity.passed else "fail-v")
     parts = [f"<!DOCTYPE html><html lang=\"en\"><head><meta charset=\"utf-8\"><title>Calibration certificate "
              f"{html.escape(cert.certificate_id)}</title><style>{CSS}</style></head><body>",
-             f"<h1>Calibration certificate and report</h1><p>{html.escape(cert.certificate_id)} · "
-             f"instrument {html.escape(cert.instrument.serial)}</p>"
+             f"<h1>Calibration certificate and report</h1><p>{html.escape(cert.number)} · "
+             f"instrument {html.escape(cert.instrument.serial)} · "
+             f"<strong>{html.escape(_status(cert))}</strong></p>"
              f"<p class=\"verdict {css_class}\">{html.escape(verdict)}</p>"]
     parts += [_html_table(t) for t in tables(cert)]
     parts.append("<h2>Method</h2>" + "".join(f"<p>{html.escape(p)}</p>" for p in
@@ -397,8 +478,16 @@ def text_table(t: Table) -> str:
     return "\n".join(lines)
 
 
+def _status(cert: Certificate) -> str:
+    if cert.approval is None:
+        return "DRAFT — not approved"
+    a = cert.approval
+    return f"approved by {a.by} ({a.role}) on {a.approved_utc:%Y-%m-%d}"
+
+
 def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path | BinaryIO) -> None:
-    """Text pages with every table, then one page per figure."""
+    """Text pages with every table, then one page per figure; every page says "page X of Y" and,
+    until the certificate is approved, DRAFT."""
     blocks = []
     for t in tables(cert):
         blocks.append(text_table(t))
@@ -411,18 +500,28 @@ def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path | B
     with PdfPages(path, metadata={"Title": f"Calibration certificate {cert.certificate_id}",
                                   "Subject": f"instrument {cert.instrument.serial}"}) as pdf:
         pages = range(0, len(lines), per_page)
+        total = len(pages) + len(figs)
         for n, start in enumerate(pages, start=1):
             page = Figure(figsize=(11.69, 8.27))
-            page.text(0.03, 0.97, f"Calibration certificate {cert.certificate_id} — {verdict_text(cert)} — "
-                                  f"page {n} of {len(pages)} (text)", fontsize=9, va="top", weight="bold",
+            page.text(0.03, 0.97, f"Calibration certificate {cert.number} — {verdict_text(cert)} — "
+                                  f"{_status(cert)} — page {n} of {total}", fontsize=9, va="top",
+                      weight="bold", color="tab:red" if cert.draft else "black",
                       parse_math=False)  # serials, operators and names hold what people typed: "$" too
             page.text(0.03, 0.93, "\n".join(lines[start:start + per_page]), family="monospace", fontsize=6.4,
                       va="top", parse_math=False)
+            _mark(page, cert)
             pdf.savefig(page)
-        for title, fig in figs:
-            fig.text(0.01, 0.001, f"{cert.certificate_id} · {title}", fontsize=7, va="bottom",
-                     parse_math=False)
+        for n, (title, fig) in enumerate(figs, start=len(pages) + 1):
+            fig.text(0.01, 0.001, f"{cert.number} · {title} · {_status(cert)} · page {n} of {total}",
+                     fontsize=7, va="bottom", parse_math=False)
+            _mark(fig, cert)
             pdf.savefig(fig)
+
+
+def _mark(page: Figure, cert: Certificate) -> None:
+    if cert.draft:
+        page.text(0.5, 0.5, "DRAFT", fontsize=90, color="tab:red", alpha=0.15, ha="center", va="center",
+                  rotation=30, weight="bold")
 
 
 def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit) -> tuple[Path, Path]:
@@ -442,35 +541,75 @@ class RunOutputs:
     pdf_path: Path
     database: Path
     notes: tuple[str, ...] = ()  # what checking the run folder against the journal repaired
+    dcc_path: Path | None = None
 
 
 def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None = None, *,
                       serial: str | None = None, operator: str | None = None,
-                      db: str | Path | None = None) -> RunOutputs:
+                      db: str | Path | None = None, station: str | Path | None = None,
+                      monte_carlo: int = 0, item: ItemGiven | None = None) -> RunOutputs:
     """Certificate, report and history entry of a finished run (called at the end of `labcal run`
-    and by `labcal report`); ``db`` None means $LABCAL_DB or runs/labcal.sqlite."""
-    from labcal.documents import history
-
+    and by `labcal report`); ``db`` None means $LABCAL_DB or the lab file's database. The Type B
+    inputs come from ``station`` (a station file), else the station the run was journaled with;
+    ``monte_carlo`` trials check the budget by JCGM 101."""
     record = load_run(run_dir)
     fit = fit_readings(record.readings)
-    cert = build_certificate(record, fit, settings, serial=serial, operator=operator)
+    section = bench_section(record, station)
+    inputs = type_b_inputs(section, record)
+    revision, replaces = 1, None
+    previous = _issued(record.directory / CERTIFICATE)
+    if previous is not None and previous.approval is not None:
+        # An approved certificate is never changed: what follows is a correction, a new revision
+        # naming the one it replaces; the approved one stays beside it and in the history.
+        revision, replaces = (previous.revision or 1) + 1, previous.number
+        write_file(record.directory / f"certificate.rev{previous.revision or 1}.json", previous)
+    cert = build_certificate(record, fit, settings, serial=serial, operator=operator, inputs=inputs,
+                             monte_carlo=monte_carlo, revision=revision, replaces=replaces, section=section,
+                             item=item)
+    return write_documents(cert, record, fit, db)
+
+
+def _issued(path: Path) -> Certificate | None:
+    """The certificate already in the run directory, if one is there and reads back intact."""
+    if not path.is_file():
+        return None
+    try:
+        return read_certificate(path)
+    except LabcalError:
+        return None  # a damaged draft is replaced; an approved one would have read back
+
+
+def write_file(path: Path, cert: Certificate) -> Path:
+    """The one place a certificate document is written (atomic replace; see write_certificate)."""
+    return write_certificate(path, cert)
+
+
+def write_documents(cert: Certificate, record: RunRecord, fit: Fit, db: str | Path | None = None
+                    ) -> RunOutputs:
+    """Every file an issue (or an approval) writes: certificate, report, history entry — through one
+    function, so that making them one transaction changes one place."""
+    from labcal.documents import history
+    from labcal.documents.dcc import DCC_FILE, write_dcc
+
+    dcc_path = write_dcc(record.directory / DCC_FILE, cert)  # validated first: a bad one stops it all
     html_path, pdf_path = write_report(record.directory, cert, record, fit)
     # The history entry and the certificate file go together: the entry is committed first and the
     # file is the entry's document, so a kill between them leaves a history entry without its file
     # (`outputs_in_place` sees it; resume or report writes it again), never a certificate that
     # history does not know.
     database = history.store(cert, db)
-    cert_path = write_certificate(record.directory / CERTIFICATE, cert)
-    return RunOutputs(cert, cert_path, html_path, pdf_path, database, record.notes)
+    cert_path = write_file(record.directory / CERTIFICATE, cert)
+    return RunOutputs(cert, cert_path, html_path, pdf_path, database, notes=record.notes, dcc_path=dcc_path)
 
 
 def outputs_in_place(run_dir: str | Path, db: str | Path | None = None) -> bool:
     """Whether a complete run's certificate, its report and its history entry are all there and
     are of the run's current readings (after a kill during `labcal report` one may be missing)."""
     from labcal.documents import history
+    from labcal.documents.dcc import DCC_FILE
 
     run_dir = Path(run_dir)
-    if not all((run_dir / name).is_file() for name in (CERTIFICATE, REPORT_HTML, REPORT_PDF)):
+    if not all((run_dir / name).is_file() for name in (CERTIFICATE, DCC_FILE, REPORT_HTML, REPORT_PDF)):
         return False
     try:
         cert = read_certificate(run_dir / CERTIFICATE)

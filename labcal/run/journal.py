@@ -1,6 +1,7 @@
 """The run journal: every reading on disk, in SQLite, before the next move begins.
 
-One database per lab (`runs/labcal.sqlite`, or $LABCAL_DB, or --db) holds every run: a manifest
+One database per lab (--db, else $LABCAL_DB, else the lab file's `database`, see
+`labcal.config.lab`) holds every run: a manifest
 first, then one transaction per point with its raw samples, and the events of the run (prompts
 and answers, faults, retries, pauses). WAL mode with synchronous=FULL: a committed point
 survives a killed process and a power cut. readings.csv and fit.json are exports of it.
@@ -13,7 +14,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import sqlite3
 import uuid
 from dataclasses import dataclass, fields
@@ -24,15 +24,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal.analysis.readings import Readings
+from labcal.config.lab import load_lab_config
 from labcal.errors import LabcalError
 from labcal.run import labdb
 
-DEFAULT_DB = Path("runs") / "labcal.sqlite"
-
 
 def db_path(option: str | Path | None = None) -> Path:
-    """The lab database: --db, else $LABCAL_DB, else runs/labcal.sqlite."""
-    return Path(option or os.environ.get("LABCAL_DB") or DEFAULT_DB)
+    """The lab database: --db, else $LABCAL_DB, else the lab file's, else the user's data folder
+    (`labcal.config.lab.LabConfig.database`) — not a folder relative to where the command started."""
+    if option:
+        return Path(option)
+    return load_lab_config().database()
 
 
 def sha256(text: str) -> str:

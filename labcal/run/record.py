@@ -32,6 +32,8 @@ class RunRecord:
     plan_text: str
     meta: dict  # run.json: station, settings, dates, status, identities, simulated truth
     notes: tuple[str, ...] = ()  # what checking the folder against the journal found and repaired
+    station_text: str = ""  # the journal's snapshot of the station the run used (JSON)
+    events: tuple[dict, ...] = ()  # the journal's events: prompts, answers, faults, retries, pauses
 
     @property
     def simulated(self) -> bool:
@@ -67,8 +69,10 @@ def load_run(run_dir: str | Path) -> RunRecord:
         info = read_run_json(run_dir)
         points = journal.points(row.id, status="ok")
         readings = journal.readings(row.id)
+        events = tuple(journal.events(row.id))
     plan = parse_plan(row.plan_text, f"run {row.id} plan")
     meta = {**info, **row.metadata, "status": row.status, "reason": row.reason,
             "started_utc": row.started_utc, "ended_utc": row.ended_utc, "settings": row.settings,
             "instrument_serial": row.instrument_serial, "operator": row.operator}
-    return RunRecord(run_dir, readings, readings_digest(points), plan, row.plan_text, meta, tuple(notes))
+    return RunRecord(run_dir, readings, readings_digest(points), plan, row.plan_text, meta, tuple(notes),
+                     row.station_text, events)

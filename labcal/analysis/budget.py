@@ -1,0 +1,336 @@
+"""The GUM uncertainty budget of the coefficients and of inferred pitch and roll (JCGM 100).
+
+Every source is a set of independent *elementary inputs* (one per sensor for the DMM's gain error,
+one per distinct table angle for an index error, one per mounting for mount repeatability, ...)
+with one distribution, one standard uncertainty in its own unit and one number of degrees of
+freedom, and two Jacobians: ``jac_x`` (12 × m), how each input moves the twelve coefficients
+vec(X) (row-major, X[i, j] at 3i + j), and ``jac_v`` (3 × m), how it moves one new reading of the
+instrument in use. What happens at the bench reaches the coefficients through the same least
+squares the fit uses: a table that errs by δ at a point makes the instrument see gravity g + δg,
+the fit still regresses on the nominal g, so X moves by P·(δg S) with P = (FᵀF)⁻¹Fᵀ. Errors that
+repeat wherever a table returns to an angle are one input per angle, not one per reading — which
+is why a four-mount plan cancels most of them and the budget shows it, instead of averaging them
+away as if they were noise.
+
+A user infers attitude z = (pitch, roll) from a new reading with the calibrated X by weighted least
+squares on the sphere (`labcal.analysis.attitude.sphere_least_squares`). Linearised at z, a change
+δv of the effective output moves the estimate by A·δv with A = (F W Fᵀ)⁻¹ F W (F = ∂f/∂z, W the
+estimator's weights): a coefficient error δX acts as δv = −f(z)·δX, a reading error as itself.
+Each source's contribution is then u_i(z) = √(Σ_m (A δv_m u_m)²); the Type A sources alone give
+back exactly the estimator's own covariance, so the budget collapses to today's Type A values when
+every Type B input is zero. Degrees of freedom combine by Welch–Satterthwaite (GUM G.4.1) and
+k = t₀.₉₇₅(ν_eff).
+
+Local gravity is not a source: the outputs are fitted against gravity normalised to 1 g and the
+attitude is a direction, so |g| cancels in the ratios (stated as a row with zero contribution).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from labcal.analysis.attitude import _gravity_and_derivatives
+from labcal.analysis.distributions import t_quantile
+from labcal.analysis.fit import Fit, readings_points
+from labcal.analysis.kinematics import ARCSEC, Misalignment, gravity
+from labcal.analysis.models import Points
+from labcal.analysis.readings import Readings
+
+Distribution = Literal["normal", "rectangular", "t"]
+SQRT3 = float(np.sqrt(3.0))
+COVERAGE = 0.95
+COMPLEX_STEP = 1e-30
+
+
+@dataclass(frozen=True)
+class TypeBInputs:
+    """The bench's Type B inputs, in SI units; half-widths of rectangular distributions unless said.
+    Zero means "not a source here"."""
+
+    dmm_reading: float = 0.0  # relative, of reading (34970A 1 year, 10 V: 3.5e-5)
+    dmm_range_v: float = 0.0  # volts: % of range × range (34970A 1 year, 10 V range: 5e-6 × 10 V)
+    dmm_noise_v: float = 0.0  # rms of one averaged reading; shown, already in the fit's Type A
+    dmm_conditions: str = ""  # the range and integration time the accuracy applies to, as stated
+    pitch_index: float = 0.0  # rad
+    pitch_wobble: float = 0.0
+    roll_index: float = 0.0
+    roll_wobble: float = 0.0
+    mount_repeatability: float = 0.0  # rad, each of the plate's pitch, roll and yaw per mounting
+    temperature_half_range_k: float = 0.0  # half the temperature range observed during the run
+    bias_tempco_v_per_k: float = 0.0
+    sensitivity_tempco_per_k: float = 0.0
+    # Standard uncertainties (rad, normal) of the device misalignments a…k where a device model
+    # estimated them (`fit --model device`); empty: the row is absent.
+    device_misalignment: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Component:
+    jac_x: NDArray[np.float64]  # (12, m)
+    jac_v: NDArray[np.float64]  # (3, m)
+    u: float  # standard uncertainty of each elementary input, in its unit
+    dof: float  # np.inf for Type B
+    distribution: Distribution
+
+
+@dataclass(frozen=True)
+class Source:
+    name: str
+    type: Literal["A", "B"]
+    distribution: str
+    u: float  # standard uncertainty in its own unit, as stated (the largest where there are several)
+    unit: str
+    components: tuple[Component, ...]
+    added: bool = True  # False: shown for completeness, already inside another row
+    note: str = ""
+
+    @property
+    def dof(self) -> float:
+        return min((c.dof for c in self.components), default=np.inf)
+
+
+# --- the calibration's geometry -----------------------------------------------------------------
+@dataclass(frozen=True)
+class Calibration:
+    """What the budget needs of a fit: X, the per-sensor Type A covariance of (B, S) and its dof, one
+    new reading's Type A variance, and the projection P = first four rows of (FᵀF)⁻¹Fᵀ."""
+
+    X: NDArray[np.float64]  # (4, 3)
+    covariance: NDArray[np.float64]  # (3, 4, 4)
+    reading_var: NDArray[np.float64]  # (3,)
+    dof: NDArray[np.float64]  # (3,)
+    projection: NDArray[np.float64]  # (4, K)
+    points: Points
+    installation: NDArray[np.int_]  # (K,) one id per mounting (replicate × mount)
+
+
+def calibration_of(fit: Fit, readings: Readings) -> Calibration:
+    """The budget's view of a fit of these readings."""
+    points = readings_points(readings)
+    _, design = fit.model.design(points)
+    keys = np.column_stack([readings.replicate, np.mod(readings.y_deg, 360.0), np.mod(readings.u_deg, 360.0)])
+    _, installation = np.unique(np.round(keys, 6), axis=0, return_inverse=True)
+    return Calibration(
+        X=fit.coefficients, covariance=np.stack([fit.covariance(j)[:4, :4] for j in range(3)]),
+        reading_var=fit.new_measurement_variance(), dof=fit.variance_dof.astype(float),
+        projection=(fit.ls.cov_unscaled @ design.T)[:4], points=points,
+        installation=np.asarray(installation, dtype=int).ravel())
+
+
+def _gravity_derivative(points: Points, name: str) -> NDArray[np.float64]:
+    """∂g/∂(misalignment ``name``) at every calibration point (K×3), by complex step: exact."""
+    p, r, y, u = (np.radians(a) for a in (points.pitch_deg, points.roll_deg, points.y_deg, points.u_deg))
+    g = gravity(p, r, y, u, Misalignment(**{name: 1j * COMPLEX_STEP}))
+    return np.asarray(np.imag(g) / COMPLEX_STEP, dtype=float)
+
+
+def _grouped(cal: Calibration, names: tuple[str, ...], groups: NDArray[np.int_]) -> NDArray[np.float64]:
+    """∂vec(X)/∂e for one input per (group, misalignment name): the inputs act on every point of
+    their group (one table angle, one mounting, or all points) through the fit's projection."""
+    n_groups = int(groups.max()) + 1
+    member = np.zeros((len(groups), n_groups))
+    member[np.arange(len(groups)), groups] = 1.0
+    blocks = []
+    for name in names:
+        dv = _gravity_derivative(cal.points, name) @ cal.X[1:]  # (K, 3): δV per unit input at each point
+        blocks.append(np.einsum("ik,kj,km->ijm", cal.projection, dv, member).reshape(12, n_groups))
+    return np.concatenate(blocks, axis=1)
+
+
+def _angle_groups(angle_deg: NDArray[np.float64]) -> NDArray[np.int_]:
+    _, inverse = np.unique(np.round(np.mod(angle_deg, 360.0), 6) % 360.0, return_inverse=True)
+    return np.asarray(inverse, dtype=int).ravel()
+
+
+def _factor(cov: NDArray[np.float64]) -> NDArray[np.float64]:
+    """L with L Lᵀ = cov for a covariance that may be singular (noise-free data give zeros)."""
+    w, v = np.linalg.eigh(cov)
+    return np.asarray(v * np.sqrt(np.clip(w, 0.0, None)), dtype=float)
+
+
+def _b(jac_x: NDArray[np.float64], u: float, distribution: Distribution = "rectangular") -> Component:
+    return Component(jac_x, np.zeros((3, jac_x.shape[1])), u, np.inf, distribution)
+
+
+def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
+    """Every row of the budget, in the order the certificate lists them."""
+    X = cal.X
+    rows: list[Source] = []
+    # Type A: the fit's coefficient covariance (residual SE or lack-of-fit mean square, as the fit
+    # chose), one component per sensor because each sensor has its own degrees of freedom.
+    fit_parts = []
+    for j in range(3):
+        jac = np.zeros((4, 3, 4))
+        jac[:, j, :] = _factor(cal.covariance[j])
+        fit_parts.append(Component(jac.reshape(12, 4), np.zeros((3, 4)), 1.0, float(cal.dof[j]), "t"))
+    u_bias = float(np.sqrt(cal.covariance[:, 0, 0].max()))
+    rows.append(Source("calibration fit (coefficients)", "A", "t", u_bias, "V (u of B, largest)",
+                       tuple(fit_parts),
+                       note="residual standard error, or the lack-of-fit mean square where replication "
+                            "shows bias (Tripp & Tcheng §8)"))
+    rows.append(Source("one new reading (instrument repeatability)", "A", "t",
+                       float(np.sqrt(cal.reading_var.max())), "V", tuple(
+                           Component(np.zeros((12, 1)), np.eye(3)[:, [j]] * np.sqrt(cal.reading_var[j]), 1.0,
+                                     float(cal.dof[j]), "t") for j in range(3))))
+    # The DMM: gain (% of reading) and offset (% of range), systematic over the run, independent
+    # between channels (conservative: a gain common to all channels cancels in the direction).
+    gain = np.zeros((4, 3, 3))
+    offset = np.zeros((4, 3, 3))
+    for j in range(3):
+        gain[:, j, j] = X[:, j]
+        offset[0, j, j] = 1.0
+    rows.append(Source("DMM accuracy, % of reading", "B", "rectangular", b.dmm_reading / SQRT3, "relative",
+                       (_b(gain.reshape(12, 3), b.dmm_reading / SQRT3),), note=b.dmm_conditions))
+    rows.append(Source("DMM accuracy, % of range", "B", "rectangular", b.dmm_range_v / SQRT3, "V",
+                       (_b(offset.reshape(12, 3), b.dmm_range_v / SQRT3),), note=b.dmm_conditions))
+    if b.dmm_noise_v > 0:  # its effect is in the residuals, hence in the fit's Type A already
+        noise = np.zeros((4, 3, len(cal.installation), 3))
+        for j in range(3):
+            noise[:, j, :, j] = cal.projection
+        rows.append(Source("DMM noise", "B", "normal", b.dmm_noise_v, "V",
+                           (_b(noise.reshape(12, -1), b.dmm_noise_v, "normal"),), added=False,
+                           note="included in the fit's Type A (the residuals contain it); not added again"))
+    pitch_groups, roll_groups = _angle_groups(cal.points.pitch_deg), _angle_groups(cal.points.roll_deg)
+    for label, names, groups, half in (
+            ("pitch table index accuracy", ("a",), pitch_groups, b.pitch_index),
+            ("pitch table wobble", ("d", "f"), pitch_groups, b.pitch_wobble),
+            ("roll table index accuracy", ("f",), roll_groups, b.roll_index),
+            ("roll table wobble", ("e", "k"), roll_groups, b.roll_wobble)):
+        rows.append(Source(label, "B", "rectangular", half / SQRT3 / ARCSEC, "arcsec",
+                           (_b(_grouped(cal, names, groups), half / SQRT3),),
+                           note="one error per table angle, repeated wherever the table returns to it"))
+    rows.append(Source("mount repeatability", "B", "rectangular", b.mount_repeatability / SQRT3 / ARCSEC,
+                       "arcsec", (_b(_grouped(cal, ("e", "f", "k"), cal.installation),
+                                     b.mount_repeatability / SQRT3),),
+                       note="pitch, roll and yaw of the plate, one error per mounting"))
+    temp = np.zeros((4, 3, 1))
+    temp[0, :, 0] = b.bias_tempco_v_per_k
+    temp[1:, :, 0] = b.sensitivity_tempco_per_k * X[1:]
+    rows.append(Source("temperature", "B", "rectangular", b.temperature_half_range_k / SQRT3, "K",
+                       (_b(temp.reshape(12, 1), b.temperature_half_range_k / SQRT3),),
+                       note="temperature coefficients × half the range observed during the run"))
+    if b.device_misalignment:
+        everything = np.zeros(len(cal.installation), dtype=int)
+        rows.append(Source("device misalignment estimates", "B", "normal",
+                           max(b.device_misalignment.values()) / ARCSEC, "arcsec", tuple(
+                               _b(_grouped(cal, (name,), everything), u, "normal")
+                               for name, u in b.device_misalignment.items()),
+                           note="the device model's estimates of a…k, applied as corrections"))
+    rows.append(Source("local gravity", "B", "—", 0.0, "g", (), added=True,
+                       note="cancels: outputs are fitted against gravity normalised to 1 g and attitude is a "
+                            "direction"))
+    return rows
+
+
+# --- propagation to pitch and roll --------------------------------------------------------------
+def regressors(pitch: NDArray[np.float64], roll: NDArray[np.float64]) -> NDArray[np.float64]:
+    """f(z) = [1, g(z)] of the instrument in use, top-forward mount (n×4)."""
+    g, _, _ = _gravity_and_derivatives(pitch, roll)
+    return np.concatenate([np.ones((len(g), 1)), g], axis=1)
+
+
+def estimator_weights(cal: Calibration, f: NDArray[np.float64]) -> NDArray[np.float64]:
+    """W of the sphere estimator: 1 / (fᵀ C_j f + one reading's variance), per row and sensor."""
+    calib = np.stack([np.einsum("ni,ij,nj->n", f, c, f) for c in cal.covariance], axis=1)
+    return np.asarray(1.0 / (calib + cal.reading_var), dtype=float)
+
+
+def attitude_sensitivity(cal: Calibration, pitch: NDArray[np.float64], roll: NDArray[np.float64]
+                         ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """A = (F W Fᵀ)⁻¹ F W (n×2×3): how the sphere estimator's pitch and roll move with the outputs;
+    and where roll is defined (not at pitch ±90°, where only pitch is estimated)."""
+    _, dg_dp, dg_dr = _gravity_and_derivatives(pitch, roll)
+    S = cal.X[1:]
+    w = estimator_weights(cal, regressors(pitch, roll))
+    F = np.stack([dg_dp @ S, dg_dr @ S], axis=1)  # (n, 2, 3)
+    defined = np.abs(np.cos(pitch)) > 1e-9
+    M = np.einsum("nai,ni,nbi->nab", F, w, F)
+    M[~defined, 0, 1] = M[~defined, 1, 0] = 0.0  # dg/droll = 0 there: estimate pitch alone
+    M[~defined, 1, 1] = 1.0
+    A = np.linalg.solve(M, F * w[:, None, :])
+    A[~defined, 1] = np.nan
+    return A, defined
+
+
+def _compressed(c: Component) -> NDArray[np.float64]:
+    """[jac_x; jac_v] reduced to at most 15 columns with the same covariance (for the grid)."""
+    J = np.concatenate([c.jac_x, c.jac_v]) * c.u
+    if J.shape[1] <= J.shape[0]:
+        return J
+    return _factor(J @ J.T)
+
+
+@dataclass(frozen=True)
+class Combined:
+    """Each source's standard uncertainty, the combined u_c, ν_eff, k and U = k·u_c of a set of
+    outputs: pitch and roll at n attitudes (rad, n×2), or the coefficients (4×3)."""
+
+    contributions: dict[str, NDArray[np.float64]]
+    u_c: NDArray[np.float64]
+    nu_eff: NDArray[np.float64]
+    k: NDArray[np.float64]
+
+    @property
+    def U(self) -> NDArray[np.float64]:
+        return np.asarray(self.k * self.u_c, dtype=float)
+
+
+@dataclass(frozen=True)
+class Propagated(Combined):
+    pitch: NDArray[np.float64]
+    roll: NDArray[np.float64]
+
+
+def _combine(rows: list[Source], variance: Callable[[Component], NDArray[np.float64]],
+             shape: tuple[int, ...]) -> Combined:
+    """Sum the sources' variances (those not ``added`` are shown, not summed) and combine their
+    degrees of freedom by Welch–Satterthwaite, component by component."""
+    contributions, parts = {}, []
+    total = np.zeros(shape)
+    for source in rows:
+        var = np.zeros(shape)
+        for c in source.components:
+            part = variance(c)
+            var += part
+            if source.added:
+                parts.append((part, c.dof))
+        contributions[source.name] = np.sqrt(var)
+        if source.added:
+            total += var
+    u_c = np.sqrt(total)
+    nu = welch_satterthwaite(u_c, parts)
+    return Combined(contributions, u_c, nu, np.asarray(t_quantile(0.5 + COVERAGE / 2, nu), dtype=float))
+
+
+def welch_satterthwaite(u_c: NDArray[np.float64], parts: list[tuple[NDArray[np.float64], float]]
+                        ) -> NDArray[np.float64]:
+    """ν_eff = u_c⁴ / Σ u_i⁴/ν_i (GUM G.2b) over the parts (variance, dof); infinite dof add nothing."""
+    denominator = sum((var**2 / dof for var, dof in parts if np.isfinite(dof) and dof > 0),
+                      start=np.zeros_like(u_c))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.asarray(np.where(denominator > 0, u_c**4 / denominator, np.inf), dtype=float)
+
+
+def propagate(cal: Calibration, rows: list[Source], pitch: NDArray[np.float64], roll: NDArray[np.float64]
+              ) -> Propagated:
+    """Every source's contribution to pitch and roll at the attitudes (radians)."""
+    pitch, roll = np.atleast_1d(pitch).astype(float), np.atleast_1d(roll).astype(float)
+    A, _ = attitude_sensitivity(cal, pitch, roll)
+    f = regressors(pitch, roll)
+
+    def variance(c: Component) -> NDArray[np.float64]:
+        J = _compressed(c)
+        dv = -np.einsum("ni,ijm->njm", f, J[:12].reshape(4, 3, -1)) + J[12:][None]
+        return np.asarray(np.sum(np.einsum("nab,nbm->nam", A, dv) ** 2, axis=2), dtype=float)
+    combined = _combine(rows, variance, (len(pitch), 2))
+    return Propagated(**vars(combined), pitch=pitch, roll=roll)
+
+
+def coefficient_budget(rows: list[Source]) -> Combined:
+    """Per coefficient of X (4×3): each source's standard uncertainty, combined u, ν_eff, k, U."""
+    return _combine(rows, lambda c: (np.sum(c.jac_x**2, axis=1) * c.u**2).reshape(4, 3), (4, 3))

@@ -1,0 +1,155 @@
+"""The lab-wide configuration file: what belongs to the laboratory, not to a bench or a folder.
+
+One file per site holds the lab database's location, the laboratory's name, address and
+accreditation, and the default tolerances and usage envelope of its certificates. Without it the
+database would be `runs/labcal.sqlite` under whatever folder a command was started in, and
+`cd /tmp && labcal history ACC-0042` would find nothing.
+
+Where it is: $LABCAL_CONFIG, else the user's configuration folder (`$XDG_CONFIG_HOME/labcal/lab.toml`,
+`~/Library/Application Support/labcal/lab.toml` on macOS, `%APPDATA%\\labcal\\lab.toml` on Windows),
+else the first `labcal/lab.toml` in $XDG_CONFIG_DIRS (default /etc/xdg: one file for every user of
+the lab's PC). No file is fine: every value has a default that does not depend on the current
+folder. A relative `database` is relative to the file that names it.
+
+Example::
+
+    database = "/srv/lab/labcal.sqlite"
+
+    [laboratory]
+    name = "Example Calibration Laboratory"
+    address = "1 Metrology Way, Springfield"
+    accreditation_id = "UKAS 0000"
+    country_code = "GB"
+
+    [certificate]          # defaults; a station's [certificate] and the command line go over them
+    attitude_u95_max_deg = 0.05
+    usage_pitch_deg = [-60, 60]
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from labcal.config.files import parse_model, read_text
+from labcal.config.settings import CertificateSettings
+from labcal.errors import LabcalError
+
+CONFIG_ENV = "LABCAL_CONFIG"
+DB_ENV = "LABCAL_DB"
+FILE_NAME = "lab.toml"
+DB_NAME = "labcal.sqlite"
+
+
+class Laboratory(BaseModel):
+    """The issuing laboratory as a certificate names it (ISO/IEC 17025 §7.8.2.1 b)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = Field(default="", description="the laboratory's name")
+    address: str = Field(default="", description="where the calibration was performed")
+    accreditation_id: str = Field(default="", description="accreditation body and number, if accredited")
+    country_code: str = Field(default="", pattern="^([A-Z]{2})?$", description="ISO 3166-1 alpha-2, e.g. DE "
+                              "(the Digital Calibration Certificate needs it)")
+
+    @property
+    def stated(self) -> str:
+        """Name and address in one line, as printed; empty when the file states neither."""
+        return ", ".join(part for part in (self.name, self.address) if part)
+
+
+class LabFile(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    database: str | None = Field(default=None,
+                                 description="the lab's SQLite database (relative: to this file)")
+    laboratory: Laboratory = Field(default_factory=Laboratory)
+    certificate: CertificateSettings = Field(default_factory=CertificateSettings,
+                                             description="default tolerances and usage envelope")
+
+
+@dataclass(frozen=True)
+class LabConfig:
+    """The lab file as read, with where it came from (``path`` None: no file, defaults)."""
+
+    path: Path | None
+    searched: tuple[Path, ...]
+    file: LabFile
+
+    @property
+    def laboratory(self) -> Laboratory:
+        return self.file.laboratory
+
+    @property
+    def certificate(self) -> CertificateSettings:
+        """The certificate defaults, with the laboratory's name and address as the printed line."""
+        if self.laboratory.stated and not self.file.certificate.laboratory:
+            return self.file.certificate.model_copy(update={"laboratory": self.laboratory.stated})
+        return self.file.certificate
+
+    def database(self, option: str | Path | None = None) -> Path:
+        """The lab database: --db, else $LABCAL_DB, else this file's `database`, else the user's
+        data folder — never a path relative to the current folder unless one was given."""
+        if option:
+            return Path(option)
+        if os.environ.get(DB_ENV):
+            return Path(os.environ[DB_ENV])
+        if self.file.database:
+            given = Path(self.file.database).expanduser()
+            return given if given.is_absolute() or self.path is None else self.path.parent / given
+        return data_home() / "labcal" / DB_NAME
+
+
+def _home_dir(env: str, posix: str, mac: str, windows_env: str) -> Path:
+    if os.environ.get(env):
+        return Path(os.environ[env])
+    if sys.platform == "win32" and os.environ.get(windows_env):
+        return Path(os.environ[windows_env])
+    if sys.platform == "darwin":
+        return Path.home() / mac
+    return Path.home() / posix
+
+
+def config_home() -> Path:
+    return _home_dir("XDG_CONFIG_HOME", ".config", "Library/Application Support", "APPDATA")
+
+
+def data_home() -> Path:
+    return _home_dir("XDG_DATA_HOME", ".local/share", "Library/Application Support", "LOCALAPPDATA")
+
+
+def candidates() -> tuple[Path, ...]:
+    """Where the lab file is looked for, in order (the first that exists wins)."""
+    if os.environ.get(CONFIG_ENV):
+        return (Path(os.environ[CONFIG_ENV]),)
+    site = [Path(d) / "labcal" / FILE_NAME
+            for d in (os.environ.get("XDG_CONFIG_DIRS") or "/etc/xdg").split(os.pathsep) if d]
+    return (config_home() / "labcal" / FILE_NAME, *site)
+
+
+def load_lab_config() -> LabConfig:
+    """The lab file, validated (every mistake one line naming the file and the field). A file named
+    by $LABCAL_CONFIG must exist: a typo there would otherwise silently drop the lab's settings."""
+    searched = candidates()
+    if os.environ.get(CONFIG_ENV) and not searched[0].is_file():
+        raise LabcalError(f"{searched[0]}: no such lab configuration file (named by ${CONFIG_ENV}); "
+                          f"create it or unset {CONFIG_ENV}")
+    for path in searched:
+        if path.is_file():
+            return LabConfig(path, searched, parse_model(read_text(path, "lab configuration"), LabFile,
+                                                         str(path)))
+    return LabConfig(None, searched, LabFile())
+
+
+
+def certificate_settings(station: CertificateSettings | None, source: str) -> CertificateSettings:
+    """The lab file's certificate defaults with what a station file's ``[certificate]`` table sets
+    explicitly over them (the command line goes over both, `CertificateSettings.overridden`)."""
+    lab = load_lab_config().certificate
+    if station is None:
+        return lab
+    return lab.overridden(source, **{name: getattr(station, name) for name in station.model_fields_set})

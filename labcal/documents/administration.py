@@ -1,0 +1,74 @@
+"""The administrative contents of a certificate (ISO/IEC 17025 §7.8.2.1) that a run alone does not
+hold: the laboratory from the lab file, the customer and the item with its receipt date, the
+equipment used with its identities, and the reference standards behind it (the station file's
+``[[traceability]]`` entries).
+
+Device identities: where the run journaled what each device reported (``device_identities`` in the
+run's metadata, role → identity string) the certificate quotes it; otherwise it names the device
+by its station-file settings and says that no identity was read.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from datetime import date
+
+from labcal.config.lab import load_lab_config
+from labcal.config.station import CertificateSection
+from labcal.documents.certificate import Administration, Equipment, Item, LaboratoryRecord, TraceabilityRecord
+from labcal.run.record import RunRecord
+
+NOT_READ = "not read from the device"
+
+
+@dataclass(frozen=True)
+class ItemGiven:
+    """What the command line says of the customer and the item (each may also be in the run's
+    metadata; the run's value wins when the command line is silent)."""
+
+    customer: str | None = None
+    manufacturer: str | None = None
+    model: str | None = None
+    received: date | None = None
+
+
+def _equipment(record: RunRecord) -> list[Equipment]:
+    identities = record.meta.get("device_identities") or {}
+    try:
+        doc = json.loads(record.station_text) if record.station_text else {}
+    except json.JSONDecodeError:
+        doc = {}
+    if not isinstance(doc, dict) or doc.get("kind") != "station":
+        return [Equipment(role="calibration device and DMM", description="simulated rig (a dry run)",
+                          identity=None)]
+    station = doc["station"]
+    found = []
+    for role in ("pitch", "roll", "dmm"):
+        device = station.get(role, {})
+        where = device.get("tcp") or device.get("port")
+        address = next((f"{k} {device[k]}" for k in ("unit", "address") if k in device), "")
+        settings = f", range {device['range_v']:g} V, {device['nplc']:g} PLC" if role == "dmm" else ""
+        description = f"{device.get('driver', '?')} {address} on {where}{settings}"
+        found.append(Equipment(role=f"{role} table" if role != "dmm" else "DMM", description=description,
+                               identity=identities.get(role) or NOT_READ))
+    return found
+
+
+def administration(record: RunRecord, section: CertificateSection, given: ItemGiven, serial: str
+                   ) -> Administration:
+    meta = record.meta
+    lab = load_lab_config().laboratory
+    received = given.received or meta.get("received")
+    ambient = meta.get("ambient") or ("not recorded; the instrument's own temperature is under Environment"
+                                      if record.readings.temp_c is not None else "not recorded")
+    return Administration(
+        laboratory=LaboratoryRecord(name=lab.name, address=lab.address,
+                                    accreditation_id=lab.accreditation_id, country_code=lab.country_code),
+        customer=given.customer or meta.get("customer"),
+        item=Item(manufacturer=given.manufacturer or meta.get("manufacturer") or "",
+                  model=given.model or meta.get("model") or "", serial=serial,
+                  received=date.fromisoformat(received) if isinstance(received, str) else received),
+        equipment=_equipment(record),
+        traceability=[TraceabilityRecord(**t.model_dump()) for t in section.traceability],
+        ambient=str(ambient))

@@ -1,0 +1,180 @@
+"""The Digital Calibration Certificate: `certificate.dcc.xml` beside the JSON, in PTB's DCC 3.2.0
+schema with D-SI 2.1.0 units, validated against the schema when it is written.
+
+Every coefficient is an `si:real` with its expanded uncertainty, coverage factor and probability;
+each sensor's four coefficients form an `si:realList` whose `si:ellipsoidalRegion` carries their
+4×4 covariance. The inputs are gravity normalised to 1 g, so bias and sensitivity are both in volts
+(\\volt: volts at 1 g). The attitude U95 of the usage envelope is in \\degree. The administrative
+data are the certificate's (ISO/IEC 17025 §7.8.2.1). The schemas ship with labcal
+(`dcc_schema/`), so validation never needs the network.
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from functools import cache
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from labcal.analysis.fit import ROW_NAMES, SENSORS
+from labcal.config.files import write_atomic
+from labcal.documents.certificate import Certificate
+from labcal.errors import LabcalError
+
+DCC = "https://ptb.de/dcc"
+SI = "https://ptb.de/si"
+SCHEMA_VERSION = "3.2.0"
+DCC_FILE = "certificate.dcc.xml"
+UNKNOWN_COUNTRY = "ZZ"  # ISO 3166 user-assigned: the lab file states no country_code
+ET.register_namespace("dcc", DCC)
+ET.register_namespace("si", SI)
+
+
+def _d(parent: ET.Element, tag: str, text: str | None = None) -> ET.Element:
+    element = ET.SubElement(parent, f"{{{DCC}}}{tag}")
+    if text is not None:
+        element.text = text
+    return element
+
+
+def _s(parent: ET.Element, tag: str, text: str | None = None) -> ET.Element:
+    element = ET.SubElement(parent, f"{{{SI}}}{tag}")
+    if text is not None:
+        element.text = text
+    return element
+
+
+def _text(parent: ET.Element, tag: str, text: str) -> ET.Element:
+    """A dcc:textType element: its words in dcc:content."""
+    element = _d(parent, tag)
+    _d(element, "content", text or "not stated")
+    return element
+
+
+def _number(x: float) -> str:
+    return repr(float(x))
+
+
+def _expanded(parent: ET.Element, U: float, k: float) -> None:
+    unc = _s(parent, "expandedUnc")
+    _s(unc, "uncertainty", _number(U))
+    _s(unc, "coverageFactor", _number(k))
+    _s(unc, "coverageProbability", "0.95")
+
+
+def _administrative(root: ET.Element, cert: Certificate) -> None:
+    a = cert.administration
+    admin = _d(root, "administrativeData")
+    software = _d(_d(admin, "dccSoftware"), "software")
+    _text(software, "name", "labcal")
+    _d(software, "release", cert.labcal_version)
+    core = _d(admin, "coreData")
+    _d(core, "countryCodeISO3166_1", (a.laboratory.country_code if a else "") or UNKNOWN_COUNTRY)
+    _d(core, "usedLangCodeISO639_1", "en")
+    _d(core, "mandatoryLangCodeISO639_1", "en")
+    _d(core, "uniqueIdentifier", cert.number)
+    if a is not None and a.item.received is not None:
+        _d(core, "receiptDate", a.item.received.isoformat())
+    _d(core, "beginPerformanceDate", cert.calibrated_utc.date().isoformat())
+    _d(core, "endPerformanceDate", (cert.completed_utc or cert.calibrated_utc).date().isoformat())
+    _d(core, "performanceLocation", "laboratory")
+    _d(core, "issueDate", cert.issued_utc.date().isoformat())
+    item = _d(_d(admin, "items"), "item")
+    _text(item, "name", "three-axis accelerometer attitude instrument")
+    _text(_d(item, "manufacturer"), "name", a.item.manufacturer if a else "")
+    if a is not None and a.item.model:
+        _d(item, "model", a.item.model)
+    identification = _d(_d(item, "identifications"), "identification")
+    _d(identification, "issuer", "manufacturer")
+    _d(identification, "value", cert.instrument.serial)
+    _text(identification, "name", "serial number")
+    lab = _d(_d(admin, "calibrationLaboratory"), "contact")
+    _text(lab, "name", a.laboratory.name if a else cert.laboratory)
+    _text(_d(lab, "location"), "further", (a.laboratory.address if a else "") or "not stated")
+    person = _d(_d(admin, "respPersons"), "respPerson")
+    approval = cert.approval
+    _text(_d(person, "person"), "name", approval.by if approval else "not approved (DRAFT)")
+    if approval is not None:
+        _d(person, "role", approval.role)
+        _d(person, "mainSigner", "true")
+    customer = _d(admin, "customer")
+    _text(customer, "name", (a.customer if a else None) or "not stated")
+    _text(_d(customer, "location"), "further", "not stated")
+
+
+def _results(root: ET.Element, cert: Certificate) -> None:
+    result = _d(_d(root, "measurementResults"), "measurementResult")
+    _text(result, "name", "Calibration coefficients X = [Bᵀ; S] and attitude uncertainty")
+    method = _d(_d(result, "usedMethods"), "usedMethod")
+    _text(method, "name", f"plan {cert.plan.name} (sha256 {cert.plan.sha256})")
+    _text(method, "description", cert.method)
+    _d(method, "reference", "Soto 2020 (linear model, eqs. 13–21); Tripp & Tcheng 1999 (statistics)")
+    results = _d(result, "results")
+    X, U = cert.coefficients, cert.U
+    k = cert.expanded_uncertainty.k
+    for j, sensor in enumerate(SENSORS):
+        entry = _d(results, "result")
+        _text(entry, "name", f"sensor {sensor}: bias and sensitivity to g_x, g_y, g_z (volts at 1 g)")
+        values = _s(_s(_d(_d(entry, "data"), "quantity"), "list"), "realList")
+        for i, row in enumerate(ROW_NAMES):
+            real = _s(values, "real")
+            _s(real, "label", f"{row}_{sensor}")
+            _s(real, "value", _number(X[i, j]))
+            _s(real, "unit", "\\volt")
+            _expanded(real, U[i, j], k[j])
+        covariance = np.array(cert.fit.covariance[j])[:4, :4]
+        region = _s(values, "ellipsoidalRegion")
+        matrix = _s(region, "covarianceMatrix")
+        for column in covariance.T:
+            col = _s(matrix, "column")
+            for value in column:
+                cov = _s(col, "covariance")
+                _s(cov, "value", _number(value))
+                _s(cov, "unit", "\\volt\\tothe{2}")
+        _s(region, "coverageFactor", _number(k[j]))
+        _s(region, "coverageProbability", "0.95")
+    for total in cert.uncertainty_budget.totals if cert.uncertainty_budget else []:
+        entry = _d(results, "result")
+        _text(entry, "name", f"expanded uncertainty of inferred {total.angle}, largest over the usage "
+                             "envelope")
+        real = _s(_d(_d(entry, "data"), "quantity"), "real")
+        _s(real, "label", f"U95 {total.angle}")
+        _s(real, "value", _number(total.U95_arcsec / 3600))
+        _s(real, "unit", "\\degree")
+
+
+def dcc_document(cert: Certificate) -> bytes:
+    root = ET.Element(f"{{{DCC}}}digitalCalibrationCertificate", {"schemaVersion": SCHEMA_VERSION})
+    _administrative(root, cert)
+    _results(root, cert)
+    ET.indent(root)
+    return ET.tostring(root, encoding="utf-8", xml_declaration=True)
+
+
+@cache
+def schema():
+    """PTB's DCC schema, from the copy shipped with labcal (parsed once per process)."""
+    import xmlschema
+
+    with resources.as_file(resources.files("labcal.documents") / "dcc_schema" / "dcc.xsd") as path:
+        return xmlschema.XMLSchema(str(path))
+
+
+def validation_error(document: bytes) -> str | None:
+    """Why the document is not a valid DCC (the first reason, one line), or None."""
+    error = next(iter(schema().iter_errors(document.decode("utf-8"))), None)
+    if error is None:
+        return None
+    return f"{error.reason or error.message} at {error.path}".replace("\n", " ")
+
+
+def write_dcc(path: Path, cert: Certificate) -> Path:
+    """Write certificate.dcc.xml after validating it; an invalid one is one line and not written."""
+    document = dcc_document(cert)
+    why = validation_error(document)
+    if why is not None:
+        raise LabcalError(f"{path}: the Digital Calibration Certificate fails PTB's DCC {SCHEMA_VERSION} "
+                          f"schema ({why}); nothing was written — report this with the run directory")
+    return write_atomic(path, document)

@@ -1,0 +1,205 @@
+"""The certificate's uncertainty budget: the bench's Type B inputs read from its station file, the
+budget of `labcal.analysis.budget` evaluated over the usage envelope, and, when asked, its Monte
+Carlo check (`labcal.analysis.montecarlo`), as the `UncertaintyBudget` section a certificate holds.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from labcal.analysis.budget import (
+    Calibration,
+    Propagated,
+    Source,
+    TypeBInputs,
+    calibration_of,
+    coefficient_budget,
+    propagate,
+    sources,
+)
+from labcal.analysis.design import grid
+from labcal.analysis.fit import Fit
+from labcal.analysis.kinematics import ARCSEC
+from labcal.analysis.montecarlo import monte_carlo
+from labcal.config.files import validate_model
+from labcal.config.settings import CertificateSettings
+from labcal.config.station import CertificateSection, load_certificate_section
+from labcal.documents.certificate import (
+    BudgetRow,
+    BudgetTotal,
+    CoefficientBudgetRecord,
+    MonteCarloCheck,
+    UncertaintyBudget,
+)
+from labcal.run.record import RunRecord
+
+ANGLES: tuple[Literal["pitch", "roll"], ...] = ("pitch", "roll")
+AGREEMENT = 0.05  # linear and Monte Carlo U95 agree when within 5 % (the issue's criterion)
+METHOD = ("GUM (JCGM 100) budget: each source's elementary inputs propagate through the least-squares fit "
+          "to the coefficients (X moves by (FᵀF)⁻¹Fᵀ·δV for a bench error δ) and through the sphere "
+          "estimator's sensitivity A = (F W Fᵀ)⁻¹F W to pitch and roll; errors that repeat at a table angle "
+          "or for a whole mounting are one input each, so what the plan cancels shows as zero. ν_eff by "
+          "Welch–Satterthwaite, k = t₀.₉₇₅(ν_eff). Contributions are standard uncertainties u_i in arcsec at "
+          "the envelope point where U95 of the angle is largest, and their RMS over the envelope.")
+
+
+def bench_section(record: RunRecord, station: str | Path | None) -> CertificateSection:
+    """What the certificate takes from a station file: the one given, else the station the run was
+    journaled with (a dry run on the simulated rig has none: no Type B inputs)."""
+    if station is not None:
+        return load_certificate_section(station)
+    try:
+        doc = json.loads(record.station_text) if record.station_text else {}
+    except json.JSONDecodeError:
+        doc = {}
+    if isinstance(doc, dict) and doc.get("kind") == "station":
+        return validate_model(doc["station"], CertificateSection, f"{record.directory}: the run's station")
+    return CertificateSection()
+
+
+def type_b_inputs(section: CertificateSection, record: RunRecord,
+                  device_misalignment: dict[str, float] | None = None) -> TypeBInputs:
+    """The bench's inputs in SI; the temperature half-range is the run's own (none without a channel)."""
+    u = section.uncertainty
+    t = record.readings.temp_c
+    return TypeBInputs(
+        dmm_reading=u.dmm_reading, dmm_range_v=u.dmm_range * section.dmm.range_v, dmm_noise_v=u.dmm_noise,
+        dmm_conditions=f"{section.dmm.range_v:g} V range at {section.dmm.nplc:g} PLC"
+        + (" (the 34970A's published accuracy assumes ≥ 1 PLC: add its reading-speed error to dmm_range)"
+           if section.dmm.nplc < 1 else ""),
+        pitch_index=u.pitch_index, pitch_wobble=u.pitch_wobble, roll_index=u.roll_index,
+        roll_wobble=u.roll_wobble, mount_repeatability=u.mount_repeatability,
+        temperature_half_range_k=0.0 if t is None else float(np.ptp(t)) / 2,
+        bias_tempco_v_per_k=u.bias_tempco, sensitivity_tempco_per_k=u.sensitivity_tempco,
+        device_misalignment=dict(device_misalignment or {}))
+
+
+def envelope(settings: CertificateSettings) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The usage envelope's grid, pitch and roll in radians."""
+    step = settings.grid_step_deg
+    points = np.radians(np.array(grid(*settings.usage_pitch_deg, step, *settings.usage_roll_deg, step)))
+    return points[:, 0], points[:, 1]
+
+
+def _degrees(p: Propagated, i: int) -> tuple[float, float]:
+    """Grid attitude i in degrees, as the grid was given (60, not 59.99999999999999)."""
+    return round(float(np.degrees(p.pitch[i])), 9), round(float(np.degrees(p.roll[i])), 9)
+
+
+def _arcsec(x: float) -> float | None:
+    return float(x) / ARCSEC if np.isfinite(x) else None
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+def _worst(p: Propagated, column: int) -> int | None:
+    values = p.U[:, column]
+    return None if not np.any(np.isfinite(values)) else int(np.nanargmax(values))
+
+
+def _rms(values: NDArray[np.float64]) -> float:
+    return float(np.sqrt(np.nanmean(values**2))) if np.any(np.isfinite(values)) else float("nan")
+
+
+def _rows(rows: list[Source], p: Propagated) -> list[BudgetRow]:
+    i_p, i_r = _worst(p, 0), _worst(p, 1)
+    out = []
+    for s in rows:
+        c = p.contributions[s.name]
+        at_p = c[i_p, 0] if i_p is not None else float("nan")
+        at_r = c[i_r, 1] if i_r is not None else float("nan")
+        out.append(BudgetRow(
+            source=s.name, type=s.type, distribution=s.distribution, standard_uncertainty=s.u, unit=s.unit,
+            sensitivity_pitch=_arcsec(at_p / s.u) if s.u > 0 else None,
+            sensitivity_roll=_arcsec(at_r / s.u) if s.u > 0 else None,
+            pitch_worst_arcsec=float(at_p) / ARCSEC, pitch_rms_arcsec=_rms(c[:, 0]) / ARCSEC,
+            roll_worst_arcsec=_arcsec(at_r), roll_rms_arcsec=_arcsec(_rms(c[:, 1])),
+            degrees_of_freedom=_finite(s.dof), added=s.added, note=s.note))
+    return out
+
+
+def _totals(p: Propagated) -> list[BudgetTotal]:
+    totals = []
+    for column, angle in enumerate(ANGLES):
+        i = _worst(p, column)
+        if i is None:
+            continue
+        totals.append(BudgetTotal(
+            angle=angle, worst_at_deg=_degrees(p, i),
+            u_c_arcsec=float(p.u_c[i, column]) / ARCSEC, nu_eff=_finite(p.nu_eff[i, column]),
+            k=float(p.k[i, column]), U95_arcsec=float(p.U[i, column]) / ARCSEC,
+            U95_rms_arcsec=_rms(p.U[:, column]) / ARCSEC))
+    return totals
+
+
+def _monte_carlo(cal: Calibration, rows: list[Source], p: Propagated, trials: int, seed: int
+                 ) -> list[MonteCarloCheck]:
+    checks = []
+    for column, angle in enumerate(ANGLES):
+        i = _worst(p, column)
+        if i is None:
+            continue
+        mc = monte_carlo(cal, rows, float(p.pitch[i]), float(p.roll[i]), trials, seed)
+        linear, sampled = float(p.U[i, column]), mc.half_width[column]
+        checks.append(MonteCarloCheck(
+            trials=trials, seed=seed, angle=angle,
+            at_deg=_degrees(p, i),
+            linear_U95_arcsec=linear / ARCSEC, monte_carlo_U95_arcsec=sampled / ARCSEC,
+            agree_within_5_percent=bool(abs(sampled / linear - 1) <= AGREEMENT) if linear > 0 else True))
+    return checks
+
+
+def _statement(totals: list[BudgetTotal], checks: list[MonteCarloCheck] | None) -> str:
+    parts = [f"{t.angle}: U95 = {t.U95_arcsec:.3g}″ (k = {t.k:.2f}, ν_eff = "
+             f"{'∞' if t.nu_eff is None else f'{t.nu_eff:.0f}'}) at pitch {t.worst_at_deg[0]:g}°, roll "
+             f"{t.worst_at_deg[1]:g}°" for t in totals]
+    text = "Combined standard uncertainty of every added source; " + "; ".join(parts) + "."
+    for c in checks or []:
+        if c.agree_within_5_percent:
+            text += (f" Monte Carlo ({c.trials} trials) confirms the {c.angle} U95: "
+                     f"{c.monte_carlo_U95_arcsec:.3g}″ against {c.linear_U95_arcsec:.3g}″ linear.")
+        else:
+            text += (f" The {c.angle} U95 stated is the Monte Carlo value {c.monte_carlo_U95_arcsec:.3g}″ "
+                     f"({c.trials} trials), not the linear {c.linear_U95_arcsec:.3g}″: they differ by more "
+                     f"than {AGREEMENT:.0%} because the output's distribution is not the scaled t the linear "
+                     "method assumes (Type A inputs with few degrees of freedom, dominant rectangular "
+                     "inputs, or an estimator that is not linear over the spread).")
+    return text
+
+
+def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: CertificateSettings,
+           trials: int = 0, seed: int = 0) -> UncertaintyBudget:
+    """The certificate's budget section for a run's fit; ``trials`` > 0 adds the Monte Carlo check."""
+    cal = calibration_of(fit, record.readings)
+    rows = sources(cal, inputs)
+    pitch, roll = envelope(settings)
+    p = propagate(cal, rows, pitch, roll)
+    coef = coefficient_budget(rows)
+    totals = _totals(p)
+    checks = _monte_carlo(cal, rows, p, trials, seed) if trials > 0 else None
+    doc = {k: (dict(v) if isinstance(v, dict) else v) for k, v in vars(inputs).items()}
+    return UncertaintyBudget(
+        method=METHOD, inputs=doc, rows=_rows(rows, p), totals=totals,
+        coefficients=CoefficientBudgetRecord(
+            u_c=coef.u_c.tolist(), nu_eff=[[_finite(x) for x in row] for row in coef.nu_eff],
+            k=coef.k.tolist(), U=coef.U.tolist(),
+            contributions={name: c.tolist() for name, c in coef.contributions.items()}),
+        monte_carlo=checks, statement=_statement(totals, checks))
+
+
+def stated_U95_arcsec(b: UncertaintyBudget, angle: str) -> float | None:
+    """The U95 the certificate states for an angle: the Monte Carlo value where the two disagree."""
+    total = next((t for t in b.totals if t.angle == angle), None)
+    if total is None:
+        return None
+    check = next((c for c in b.monte_carlo or [] if c.angle == angle), None)
+    if check is not None and not check.agree_within_5_percent:
+        return check.monte_carlo_U95_arcsec
+    return total.U95_arcsec
