@@ -238,3 +238,17 @@ def test_fit_chooses_the_device_model_where_the_plan_identifies_it(tmp_path, cap
     assert code == 0 and json.loads(stdout)["model"] == "linear"
     code, stdout, _ = run_cli(capsys, "fit", str(four))
     assert code == 0 and "Calibration-device misalignments" in stdout and "Intrinsic parameters" in stdout
+
+
+def test_plan_audit_has_the_identifiability_section(tmp_path, capsys):
+    code, stdout, _ = run_cli(capsys, "plan", "audit", "four-mount-64", "--json")
+    ident = json.loads(stdout)["identifiability"]
+    assert code == 0 and ident["rank"] == 18 and ident["confounded"] == []
+    assert set(ident["u_arcsec_per_ug_noise"]) == set(MISALIGNMENT_NAMES)
+    plan = tmp_path / "fore-aft.toml"
+    plan.write_text('name = "fore-aft"\nmounts = [[0, 0], [180, 0]]\n'
+                    f"points = {[list(p) for p in SOTO_POINTS]}\n")
+    code, stdout, _ = run_cli(capsys, "plan", "audit", str(plan))
+    assert code == 0 and "rank 17 of 18" in stdout
+    text = " ".join(stdout.split())  # rich wraps long lines
+    assert "k is confounded with S_xy − S_yx: add a mount on the bottom side of the plate" in text

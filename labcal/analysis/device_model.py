@@ -257,7 +257,7 @@ def identifiability(where: Geometry) -> Identifiability:
         seen = seen and cov[i, i] > 0
         u_per_ug[name] = float(np.sqrt(cov[i, i]) * MICRO_G / ARCSEC) if seen else float("inf")
     confounded = []
-    for mis, combination, pivot in _named_directions(null):
+    for mis, combination, pivot in sorted(_named_directions(null), key=lambda d: d[2]):
         confounded.append(Confounding(mis, combination, _remedy(where, pivot)))
     return Identifiability(rank, condition, u_per_ug, tuple(confounded))
 
