@@ -319,6 +319,30 @@ def fit_device(readings: Readings, linear: Fit | None = None) -> DeviceFit:
                      evaluations, tuple(notes))
 
 
+def default_model(readings: Readings) -> tuple[str, str]:
+    """Which model a calibration's readings deserve — the device model where the points identify all
+    six misalignments, else the linear one — and the one line that says so (and why)."""
+    ident = identifiability(geometry_of(readings))
+    problem = ident.problem()
+    if problem is None:
+        return "device", ("device model: the plan identifies all six calibration-device misalignments "
+                          f"(rank {ident.rank}, condition {ident.condition:.3g}); --model linear for Soto's "
+                          "linear fit")
+    return "linear", f"linear model: this plan cannot identify the device misalignments ({problem})"
+
+
+def preferred_fit(readings: Readings, linear: Fit) -> tuple[DeviceFit | None, str]:
+    """The device fit where `default_model` picks it and it succeeds, with the line saying which model
+    the results are; a device fit that fails (no convergence, > 2°) falls back to the linear one."""
+    model, note = default_model(readings)
+    if model == "linear":
+        return None, note
+    try:
+        return fit_device(readings, linear), note
+    except LabcalError as exc:
+        return None, f"linear model: the device model failed ({exc})"
+
+
 def _nested_test(linear: Fit, sd: NDArray[np.float64], weighted_sse_device: float, dof: int) -> NestedTest:
     weighted_sse_linear = float(np.sum(np.sum(linear.ls.residuals**2, axis=0) / sd**2))
     extra = (weighted_sse_linear - weighted_sse_device) / N_MIS

@@ -30,23 +30,17 @@ def parse_at(text: str) -> tuple[float, float, float, float]:
 
 def choose_model(args: argparse.Namespace, readings) -> tuple[str, str | None]:
     """The model to fit and, when it was chosen for the user, the one line saying why."""
-    from labcal.analysis.device_fit import geometry_of
-    from labcal.analysis.device_model import identifiability
+    from labcal.analysis.device_fit import default_model
 
     if args.model == "device" and (args.extend or args.at):
         raise LabcalError("--extend and --at work with the linear and coning models; leave them out "
                           "with --model device")
     if args.model is not None:
         return args.model, None
-    ident = identifiability(geometry_of(readings))
-    problem = ident.problem()
-    if problem is None and not (args.extend or args.at):
-        return "device", ("device model: the plan identifies all six calibration-device misalignments "
-                          f"(rank {ident.rank}, condition {ident.condition:.3g}); --model linear for Soto's "
-                          "linear fit")
-    if problem is None:
+    model, note = default_model(readings)
+    if model == "device" and (args.extend or args.at):
         return "linear", "linear model: --extend and --at need it (--model device fits the misalignments)"
-    return "linear", f"linear model: this plan cannot identify the device misalignments ({problem})"
+    return model, note
 
 
 def cmd_fit(args: argparse.Namespace) -> int:

@@ -12,6 +12,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from labcal import __version__
+from labcal.analysis.device_fit import DeviceFit, preferred_fit
 from labcal.analysis.fit import Fit, fit_readings
 from labcal.analysis.plan import Plan
 from labcal.config.files import validate_model, write_json
@@ -29,8 +30,9 @@ from labcal.run.station import Station
 MIN_POINTS_FOR_MOUNT_CHECK_FIT = 8
 
 
-def export(journal: Journal, run_id: int, run_dir: Path) -> Fit | None:
-    """Rewrite readings.csv (and fit.json when the points determine a fit) from the journal."""
+def export(journal: Journal, run_id: int, run_dir: Path) -> tuple[Fit, DeviceFit | None, str] | None:
+    """Rewrite readings.csv (and fit.json when the points determine a fit) from the journal. fit.json
+    holds the device model where the points identify it (`preferred_fit`), else the linear fit."""
     points = journal.points(run_id, status="ok")
     with ReadingsWriter(run_dir / READINGS, temperature=bool(points) and all(p.temp_c is not None
                                                                                for p in points)) as w:
@@ -39,11 +41,15 @@ def export(journal: Journal, run_id: int, run_dir: Path) -> Fit | None:
                      roll_deg=p.roll_deg, volts=[p.vx, p.vy, p.vz], temp_c=p.temp_c,
                      sd=[p.sd_vx, p.sd_vy, p.sd_vz], n_samples=p.n_samples, time_s=p.t_end)
     try:
-        fit = fit_readings(journal.readings(run_id))
+        readings = journal.readings(run_id)
+        fit = fit_readings(readings)
     except LabcalError:
         return None  # too few points so far for a fit
-    write_json(run_dir / FIT, fit.to_json())
-    return fit
+    device, note = preferred_fit(readings, fit)
+    doc = fit.to_json() if device is None else device.to_json()
+    doc["notes"] = [note, *(n for n in doc.get("notes", []) if not n.startswith("device model: the plan"))]
+    write_json(run_dir / FIT, doc)
+    return fit, device, note
 
 
 @dataclass
@@ -53,6 +59,8 @@ class RunResult:
     outcome: RunOutcome
     fit: Fit
     wall_s: float
+    device: DeviceFit | None = None  # the device model, where the plan identifies it (issue 12)
+    model_note: str = ""  # which model fit.json holds, and why
 
 
 def _provisional_fit(journal: Journal, run_id: int):
@@ -94,18 +102,18 @@ def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: S
         raise
     finally:
         journal.finish(run_id, status, reason)
-        fit = export(journal, run_id, run_dir)
+        fits = export(journal, run_id, run_dir)
         info = read_run_json(run_dir)
         info.update(status=status, reason=reason, points_recorded=len(journal.points(run_id, status="ok")))
         write_json(run_dir / RUN, info)
-    if fit is None:
+    if fits is None:
         reason = "finished without enough good points to fit"
         journal.finish(run_id, "failed", reason)
         write_json(run_dir / RUN, {**info, "status": "failed", "reason": reason})
         raise LabcalError(f"run {run_id} {reason}")
     info.update(station_time_s=outcome.station_time_s, wall_time_s=time.perf_counter() - wall0)
     write_json(run_dir / RUN, info)
-    return RunResult(run_dir, run_id, outcome, fit, time.perf_counter() - wall0)
+    return RunResult(run_dir, run_id, outcome, fits[0], time.perf_counter() - wall0, *fits[1:])
 
 
 def calibrate(plan: Plan, plan_text: str, station: Station, station_text: str, operator: Operator,
