@@ -6,11 +6,11 @@ import argparse
 import sys
 
 from labcal import __version__
-from labcal.commands import attitude, fit, history, plan, report, run, sim, simulate, station
+from labcal.commands import attitude, device, fit, history, plan, report, run, sim, simulate, station
 from labcal.commands.common import EXIT_INTERRUPTED, EXIT_USER_ERROR, err
 from labcal.errors import LabcalError
 
-COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, station, sim)
+COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, device, station, sim)
 
 
 def build_parser() -> argparse.ArgumentParser:

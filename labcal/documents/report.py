@@ -23,11 +23,13 @@ from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
 from labcal.analysis.attitude import sphere_least_squares
+from labcal.analysis.device_fit import DeviceFit, preferred_fit
 from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit, fit_readings, readings_points
 from labcal.analysis.kinematics import Mount
 from labcal.analysis.models import Points
 from labcal.config.settings import CertificateSettings
 from labcal.documents.certificate import Certificate, format_result, format_uncertainty, write_certificate
+from labcal.documents.device_history import store_device_estimate
 from labcal.documents.issuing import build_certificate, envelope_grid
 from labcal.errors import LabcalError
 from labcal.run.record import RunRecord, load_run
@@ -357,7 +359,7 @@ def _png(fig: Figure) -> str:
     return base64.b64encode(buf.getvalue()).decode("ascii")
 
 
-def render_html(cert: Certificate, figs: list[tuple[str, Figure]]) -> str:
+def render_html(cert: Certificate, figs: list[tuple[str, Figure]], extra: tuple[Table, ...] = ()) -> str:
     """One HTML file with inline CSS and inline PNG plots: it opens offline and can be mailed alone."""
     verdict = verdict_text(cert)
     css_class = "none" if cert.conformity is None else ("pass" if cert.conformity.passed else "fail-v")
@@ -366,7 +368,7 @@ def render_html(cert: Certificate, figs: list[tuple[str, Figure]]) -> str:
              f"<h1>Calibration certificate and report</h1><p>{html.escape(cert.certificate_id)} · "
              f"instrument {html.escape(cert.instrument.serial)}</p>"
              f"<p class=\"verdict {css_class}\">{html.escape(verdict)}</p>"]
-    parts += [_html_table(t) for t in tables(cert)]
+    parts += [_html_table(t) for t in (*tables(cert), *extra)]
     parts.append("<h2>Method</h2>" + "".join(f"<p>{html.escape(p)}</p>" for p in
                                              (cert.method, *cert.statements, *cert.fit.notes)))
     for title, fig in figs:
@@ -388,10 +390,11 @@ def text_table(t: Table) -> str:
     return "\n".join(lines)
 
 
-def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path) -> None:
+def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path,
+               extra: tuple[Table, ...] = ()) -> None:
     """Text pages with every table, then one page per figure."""
     blocks = []
-    for t in tables(cert):
+    for t in (*tables(cert), *extra):
         blocks.append(text_table(t))
         if t.caption:
             blocks.append(textwrap.fill(t.caption, 140))
@@ -414,12 +417,22 @@ def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path) ->
             pdf.savefig(fig)
 
 
-def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit) -> tuple[Path, Path]:
+def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit,
+                 device: DeviceFit | None = None) -> tuple[Path, Path]:
+    """``device``: the device model's fit, where the plan identifies it (its tables and residuals are
+    appended: `labcal.documents.device_report`)."""
     figs = figures(cert, record, fit)
+    extra: tuple[Table, ...] = ()
+    if device is not None:
+        from labcal.documents.device_report import device_rows, residuals_side_by_side
+
+        extra = tuple(Table(*parts) for parts in device_rows(device))
+        figs.append(("Residuals of the linear and of the device model",
+                     residuals_side_by_side(device, record)))
     html_path, pdf_path = directory / REPORT_HTML, directory / REPORT_PDF
     try:
-        html_path.write_text(render_html(cert, figs), encoding="utf-8")
-        render_pdf(cert, figs, pdf_path)
+        html_path.write_text(render_html(cert, figs, extra), encoding="utf-8")
+        render_pdf(cert, figs, pdf_path, extra)
     except OSError as exc:
         raise LabcalError(f"{exc.filename or directory}: cannot write the report ({exc.strerror})") from None
     return html_path, pdf_path
@@ -446,6 +459,9 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
     fit = fit_readings(record.readings)
     cert = build_certificate(record, fit, settings, serial=serial, operator=operator)
     cert_path = write_certificate(record.directory / CERTIFICATE, cert)
-    html_path, pdf_path = write_report(record.directory, cert, record, fit)
+    device, _ = preferred_fit(record.readings, fit)
+    html_path, pdf_path = write_report(record.directory, cert, record, fit, device)
     database = history.store(cert, db)
+    if device is not None:
+        store_device_estimate(record, device, db)
     return RunOutputs(cert, cert_path, html_path, pdf_path, database)

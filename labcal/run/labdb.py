@@ -86,12 +86,28 @@ def _v1_events_by_run(db: sqlite3.Connection) -> None:
     db.execute("CREATE INDEX events_by_run ON events (run_id, id)")
 
 
+def _v2_device_estimates(db: sqlite3.Connection) -> None:
+    db.execute("""CREATE TABLE device_estimates (
+    device_id TEXT NOT NULL,
+    source TEXT NOT NULL,
+    calibrated_utc TEXT NOT NULL,
+    stored_utc TEXT NOT NULL,
+    document TEXT NOT NULL,
+    PRIMARY KEY (device_id, source)
+)""")
+    db.execute("CREATE INDEX device_estimates_by_date ON device_estimates (device_id, calibrated_utc)")
+
+
 MIGRATIONS: tuple[Migration, ...] = (
     Migration(1, "index events by run: `Journal.events(run)` (the audit trail of prompts, faults, "
                  "retries and pauses) read the whole lab's events table for every run, and "
                  "events.run_id is a foreign key that SQLite advises indexing (points are already "
                  "indexed by their primary key (run_id, seq)). An index only, so the previous labcal "
                  "still reads and writes a version-1 file.", _v1_events_by_run),
+    Migration(2, "the calibration device's own history (issue 12): each run's device-model estimate of "
+                 "the misalignments a…k per calibration-device id, for `labcal device history`. A new "
+                 "table only, so the previous labcal still reads and writes a version-2 file.",
+              _v2_device_estimates),
 )
 SCHEMA_VERSION = MIGRATIONS[-1].version
 
