@@ -45,8 +45,12 @@ def test_unknown_device_is_one_line(tmp_path):
 
 def test_a_dry_run_stores_the_simulated_device(tmp_path, capsys):
     db = tmp_path / "lab.sqlite"
-    assert main(["run", "--sim", "--yes", "--db", str(db), "--out", str(tmp_path / "run")]) == 0
-    capsys.readouterr()
+    assert main(["run", "--sim", "--yes", "--json", "--db", str(db), "--out", str(tmp_path / "run")]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["fit"]["model"] == "linear" and summary["device"]["model"] == "device"
+    assert summary["model_note"].startswith("device model: the plan identifies all six")
+    fit_json = json.loads((tmp_path / "run" / "fit.json").read_text())
+    assert fit_json["model"] == "device" and fit_json["notes"][0] == summary["model_note"]
     device = json.loads((tmp_path / "run" / "device.json").read_text())
     assert device["device_id"] == "SIMULATED" and set(device["misalignments"]) == set(NAMES)
     assert main(["device", "history", "SIMULATED", "--db", str(db), "--json"]) == 0

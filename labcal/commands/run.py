@@ -102,8 +102,9 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
     if args.json:
         print_json({"run_dir": str(result.directory), "run_id": result.run_id, "points": o.points_recorded,
                     "points_failed": o.points_failed, "simulated_rig_time_s": o.station_time_s,
-                    "wall_time_s": result.wall_s,
-                    "fit": (result.fit if result.device is None else result.device).to_json(),
+                    "wall_time_s": result.wall_s, "fit": result.fit.to_json(),
+                    "device": None if result.device is None else result.device.to_json(),
+                    "model_note": result.model_note,
                     "certificate": None if issued is None else str(issued.certificate_path),
                     "verdict": None if issued is None or issued.certificate.conformity is None
                     else "pass" if issued.certificate.conformity.passed else "fail"})
