@@ -305,3 +305,19 @@ def test_attitude_from_the_device_model_is_tighter_and_still_covers():
         u95_linear.append(linear.k95 * linear.u_pitch)
     assert 0.93 <= np.mean(hits) <= 0.97
     assert np.mean(u95_device) < 0.5 * np.mean(u95_linear)
+
+
+def test_attitude_command_reads_the_device_fit(tmp_path, capsys):
+    readings, fit_json, volts = tmp_path / "r.csv", tmp_path / "fit.json", tmp_path / "v.csv"
+    assert run_cli(capsys, "simulate", "--misalign", "a=60arcsec,e=-60arcsec,k=40arcsec", "--noise", "2e-5",
+                   "--out", str(readings))[0] == 0
+    code, stdout, _ = run_cli(capsys, "fit", str(readings), "--json")
+    assert code == 0 and json.loads(stdout)["model"] == "device"
+    fit_json.write_text(stdout)
+    g = np.sin(np.radians(10.0)), np.cos(np.radians(10.0)) * np.sin(np.radians(20.0)), \
+        np.cos(np.radians(10.0)) * np.cos(np.radians(20.0))  # what the ideal instrument (B = 0, S = I) reads
+    volts.write_text("vx,vy,vz\n" + ",".join(f"{v:.9f}" for v in g) + "\n")
+    code, stdout, _ = run_cli(capsys, "attitude", "--cert", str(fit_json), "--csv", str(volts), "--json")
+    row = json.loads(stdout)["rows"][0]["sphere_least_squares"]
+    assert code == 0 and row["pitch_deg"] == pytest.approx(10.0, abs=3 * row["u_pitch_deg"] + 1e-6)
+    assert row["roll_deg"] == pytest.approx(20.0, abs=3 * row["u_roll_deg"] + 1e-6)
