@@ -321,3 +321,13 @@ def test_attitude_command_reads_the_device_fit(tmp_path, capsys):
     row = json.loads(stdout)["rows"][0]["sphere_least_squares"]
     assert code == 0 and row["pitch_deg"] == pytest.approx(10.0, abs=3 * row["u_pitch_deg"] + 1e-6)
     assert row["roll_deg"] == pytest.approx(20.0, abs=3 * row["u_roll_deg"] + 1e-6)
+
+
+def test_no_convergence_in_the_iteration_budget_is_one_line(monkeypatch):
+    from labcal.analysis import device_fit
+
+    monkeypatch.setattr(device_fit, "MAX_EVALUATIONS", 1)  # LM cannot converge in one evaluation
+    readings = simulate_readings(load_plan("four-mount-64")[0], default_instrument(), RIG_60)
+    with pytest.raises(LabcalError, match=r"^the device model did not converge in 1 evaluations") as exc:
+        fit_device(readings)
+    assert "\n" not in str(exc.value)
