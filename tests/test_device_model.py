@@ -331,3 +331,40 @@ def test_no_convergence_in_the_iteration_budget_is_one_line(monkeypatch):
     with pytest.raises(LabcalError, match=r"^the device model did not converge in 1 evaluations") as exc:
         fit_device(readings)
     assert "\n" not in str(exc.value)
+
+
+# --- index errors (the optional extension) --------------------------------------------------------------
+def test_per_angle_index_errors_recovered_noise_free():
+    """The simulator's pitch index error enters a and its roll index error f, as fixed functions of
+    each table's angle (`IndexWobble`): the extension recovers them, zero-mean per table, exactly."""
+    from labcal.analysis.index_errors import fit_index_errors
+    from labcal.analysis.kinematics import IndexWobble
+
+    wobble = IndexWobble(index_arcsec=5.0, wobble_arcsec=0.0, seed=3)
+    readings = simulate_readings(load_plan("four-mount-64")[0], default_instrument(), RIG_60, wobble)
+    device = fit_device(readings)
+    extension = fit_index_errors(readings, device)
+    assert extension is not None
+    angles = np.radians([0.0, 90.0, 180.0, 270.0])
+    pitch_truth = wobble.misalignment(angles, np.zeros(4)).a
+    roll_truth = wobble.misalignment(np.zeros(4), angles).f
+    assert np.allclose(extension.pitch.angles_deg, [0, 90, 180, 270])
+    assert np.max(np.abs(extension.pitch.value_rad - (pitch_truth - pitch_truth.mean()))) < 1e-11
+    assert np.max(np.abs(extension.roll.value_rad - (roll_truth - roll_truth.mean()))) < 1e-11
+    expected = np.array([getattr(RIG_60, n) for n in MISALIGNMENT_NAMES])
+    expected[0] += pitch_truth.mean()
+    expected[4] += roll_truth.mean()
+    assert np.max(np.abs(extension.misalignment_rad - expected)) < 1e-11
+    assert np.max(np.abs(device.misalignment_rad - expected)) > 0.1 * ARCSEC  # the device model alone: biased
+
+
+def test_index_errors_not_warranted_without_them(tmp_path, capsys):
+    readings = tmp_path / "r.csv"
+    run_cli(capsys, "simulate", "--misalign", "a=40arcsec", "--noise", "2e-5", "--seed", "5",
+            "--out", str(readings))
+    code, stdout, _ = run_cli(capsys, "fit", str(readings), "--index-errors", "--json")
+    ext = json.loads(stdout)["index_errors"]
+    assert code == 0 and ext["test"]["df"][0] == 6 and ext["pitch_table"]["contrasts_estimated"] == 3
+    assert not ext["accepted"]  # p ≥ 0.05: a 5 % chance of failing for an unlucky seed; seed 5 is fixed
+    code, _, err = run_cli(capsys, "fit", str(readings), "--index-errors", "--model", "linear")
+    assert code == 2 and "--index-errors extends the device model" in err

@@ -24,6 +24,7 @@ from labcal.analysis.kinematics import (
     ARCSEC,
     MISALIGNMENT_NAMES,
     MOUNTS,
+    NO_MISALIGNMENT,
     Misalignment,
     Mount,
     gravity,
@@ -95,10 +96,12 @@ def predict(theta: NDArray[np.float64], where: Geometry) -> NDArray[np.float64]:
     return volts
 
 
-def jacobian(theta: NDArray[np.float64], where: Geometry) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Readings (K×3) and their analytic derivatives (K×3×18) with respect to θ."""
+def jacobian(theta: NDArray[np.float64], where: Geometry, offsets: Misalignment = NO_MISALIGNMENT
+             ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Readings (K×3) and their analytic derivatives (K×3×18) with respect to θ; ``offsets`` adds
+    per-point misalignments (the tables' index errors, `labcal.analysis.index_errors`)."""
     mis, X = split(theta)
-    g, dg = gravity_jacobian(where.pitch, where.roll, where.y, where.u, mis)
+    g, dg = gravity_jacobian(where.pitch, where.roll, where.y, where.u, mis + offsets)
     n = len(g)
     jac = np.empty((n, 3, N_PARAMETERS))
     jac[:, :, :N_MIS] = np.swapaxes(dg @ X[1:], 1, 2)  # ∂V_j/∂m = (∂g/∂m)·S[:, j]

@@ -32,6 +32,8 @@ def choose_model(args: argparse.Namespace, readings) -> tuple[str, str | None]:
     """The model to fit and, when it was chosen for the user, the one line saying why."""
     from labcal.analysis.device_fit import default_model
 
+    if args.index_errors and args.model not in (None, "device"):
+        raise LabcalError("--index-errors extends the device model; leave out --model or give --model device")
     if args.model == "device" and (args.extend or args.at):
         raise LabcalError("--extend and --at work with the linear and coning models; leave them out "
                           "with --model device")
@@ -104,6 +106,11 @@ def fit_device_model(args: argparse.Namespace, readings, chosen: str | None) -> 
 
     fit = fit_device(readings)
     doc = fit.to_json()
+    if args.index_errors:
+        from labcal.analysis.index_errors import fit_index_errors
+
+        extension = fit_index_errors(readings, fit)
+        doc["index_errors"] = None if extension is None else extension.to_json()
     if chosen:
         doc["notes"] = [chosen, *doc.get("notes", [])[1:]]
     if args.test_extensions:
@@ -119,7 +126,23 @@ def fit_device_model(args: argparse.Namespace, readings, chosen: str | None) -> 
         out.print(f"[yellow]note:[/] {note}")
     if fit.linear.replication is not None:
         out.print(replication_table(fit.linear.to_json()["replication"]))
+    if args.index_errors:
+        out.print(index_error_text(doc["index_errors"]))
     return 0
+
+
+def index_error_text(doc: dict | None) -> str:
+    if doc is None:
+        return "index errors: this plan leaves no per-angle index error identifiable"
+    test = doc["test"]
+    lines = [f"index errors (per visited angle, zero mean per table): F = {test['F']:.3g}, "
+             f"df {tuple(test['df'])}, p = {test['p_value']:.2g}: "
+             + ("accepted" if doc["accepted"] else "not warranted")]
+    for table in ("pitch_table", "roll_table"):
+        cells = ", ".join(f"{a['angle_deg']:g}°: {a['value_arcsec']:+.2f} ± {a['U_arcsec']:.2f}″"
+                          for a in doc[table]["angles"])
+        lines.append(f"  {table.replace('_', ' ')}: {cells}")
+    return "\n".join(lines)
 
 
 def coning_table(sensors) -> Table:
@@ -166,6 +189,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "the plan identifies all six, else linear; a note says which and why)")
     p.add_argument("--extend", metavar="NAMES",
                    help=f"extra regressors, comma-separated: {', '.join(EXTENSIONS)}")
+    p.add_argument("--index-errors", action="store_true",
+                   help="device model: also estimate each visited pitch and roll angle's index error "
+                        "(zero mean per table, where identifiable) with its F test against the device model")
     p.add_argument("--test-extensions", action="store_true",
                    help="F test whether each extension is warranted")
     p.add_argument("--at", action="append", metavar="PITCH,ROLL[,Y,U]",
