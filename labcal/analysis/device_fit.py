@@ -338,8 +338,8 @@ def fit_device(readings: Readings, linear: Fit | None = None) -> DeviceFit:
         g = gravity(where.pitch, where.roll, where.y, where.u, mis)
         replication = analyse(np.column_stack([np.ones(n), g]), volts, data.groups, readings.replicate)
     verdict = "warrants" if test.p_value < ALPHA else "does not warrant"
-    notes = [f"device model: the plan identifies all six misalignments (rank {ident.rank}, condition "
-             f"{ident.condition:.3g}); the misalignment F test {verdict} them (p = {test.p_value:.2g})"]
+    notes = [f"the F test of the six misalignments against the linear model {verdict} them "
+             f"(F = {test.f:.3g}, df {test.df}, p = {test.p_value:.2g})"]
     if replication is not None:
         notes.append("lack of fit after the device model is computed with the misalignments fixed at their "
                      "estimates (its degrees of freedom do not deduct them)")

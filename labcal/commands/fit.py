@@ -112,7 +112,7 @@ def fit_device_model(args: argparse.Namespace, readings, chosen: str | None) -> 
         extension = fit_index_errors(readings, fit)
         doc["index_errors"] = None if extension is None else extension.to_json()
     if chosen:
-        doc["notes"] = [chosen, *doc.get("notes", [])[1:]]
+        doc["notes"] = [chosen, *doc.get("notes", [])]
     if args.test_extensions:
         from labcal.analysis.fit import extension_tests
 

@@ -47,7 +47,7 @@ def export(journal: Journal, run_id: int, run_dir: Path) -> tuple[Fit, DeviceFit
         return None  # too few points so far for a fit
     device, note = preferred_fit(readings, fit)
     doc = fit.to_json() if device is None else device.to_json()
-    doc["notes"] = [note, *(n for n in doc.get("notes", []) if not n.startswith("device model: the plan"))]
+    doc["notes"] = [note, *doc.get("notes", [])]
     write_json(run_dir / FIT, doc)
     return fit, device, note
 
