@@ -281,9 +281,9 @@ def test_simulate_misalign_bad_units(text, message):
 
 def test_attitude_from_the_device_model_is_tighter_and_still_covers():
     """On a 60″ rig the device model's attitude U95 is smaller than the linear model's, and covers the
-    truth: 150 calibrations × 40 new readings, pooled coverage of pitch and roll in 0.93–0.97 (the
-    readings of one calibration share its error, so the spread is wider than binomial at n = 6000;
-    150 independent calibrations keep it near 0.01)."""
+    truth: 100 calibrations × 40 new readings, pooled coverage of pitch and roll in 0.93–0.97 (8000
+    intervals; the readings of one calibration share its error, so the spread is wider than the
+    binomial 0.0024, but the reading noise dominates u here, which keeps it well inside ±0.02)."""
     from labcal.analysis.attitude import calibration_from_json, sphere_least_squares
     from labcal.analysis.kinematics import gravity
 
@@ -291,7 +291,7 @@ def test_attitude_from_the_device_model_is_tighter_and_still_covers():
     base = simulate_readings(load_plan("four-mount-64")[0], truth, RIG_60)
     rng = np.random.default_rng(99)
     hits, u95_device, u95_linear = [], [], []
-    for _ in range(150):
+    for _ in range(100):
         fit = fit_device(noisy(base, 20e-6, rng))
         pitch, roll = rng.uniform(-60, 60, 40), rng.uniform(-180, 180, 40)
         volts = truth.static_volts(gravity(np.radians(pitch), np.radians(roll), 0, 0))
@@ -303,8 +303,8 @@ def test_attitude_from_the_device_model_is_tighter_and_still_covers():
         hits.append(np.abs(err_r) <= device.k95 * np.degrees(device.u_roll))
         u95_device.append(device.k95 * device.u_pitch)
         u95_linear.append(linear.k95 * linear.u_pitch)
-    assert 0.93 <= np.mean(hits) <= 0.97
-    assert np.mean(u95_device) < 0.5 * np.mean(u95_linear)
+    assert 0.93 <= np.mean(hits) <= 0.97, np.mean(hits)
+    assert np.mean(u95_device) < 0.5 * np.mean(u95_linear), (np.mean(u95_device), np.mean(u95_linear))
 
 
 def test_attitude_command_reads_the_device_fit(tmp_path, capsys):
