@@ -126,6 +126,11 @@ def fit_device_model(args: argparse.Namespace, readings, chosen: str | None) -> 
         out.print(f"[yellow]note:[/] {note}")
     if fit.linear.replication is not None:
         out.print(replication_table(fit.linear.to_json()["replication"]))
+    for sensor, r in doc.get("replication", {}).items():
+        before, after = r["lack_of_fit_linear"], r["lack_of_fit_device"]
+        out.print(f"sensor {sensor}: σ_bias {r['sigma_bias_linear']:.3g} → {r['sigma_bias_device']:.3g} V, "
+                  f"lack of fit F {before['F']:.3g} (p = {before['p_value']:.2g}) → {after['F']:.3g} "
+                  f"(p = {after['p_value']:.2g}), linear → device model")
     if args.index_errors:
         out.print(index_error_text(doc["index_errors"]))
     return 0
