@@ -10,6 +10,7 @@ from labcal.commands import (
     attitude,
     certificate,
     config,
+    device,
     export,
     fit,
     history,
@@ -24,8 +25,8 @@ from labcal.commands.common import EXIT_INTERRUPTED, EXIT_USER_ERROR, err
 from labcal.commands.logfile import add_log_options, logging_to
 from labcal.errors import LabcalError
 
-COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, station, sim, export, config,
-                  certificate)
+COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, device, station, sim, export,
+                  config, certificate)
 
 
 def build_parser() -> argparse.ArgumentParser:

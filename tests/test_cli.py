@@ -42,7 +42,7 @@ def test_simulate_then_fit_four_mounts_cancels_every_misalignment(tmp_path, caps
     with out.open() as f:
         header = next(csv.reader(f))
     assert tuple(header[:8]) == CONTRACT
-    code, stdout, _ = run_cli(capsys, "fit", str(out), "--json")
+    code, stdout, _ = run_cli(capsys, "fit", str(out), "--model", "linear", "--json")  # Soto's Part 1
     assert code == 0
     doc = json.loads(stdout)
     assert doc["model"] == "linear"
@@ -177,7 +177,7 @@ def test_bad_plans(tmp_path, capsys, content, expected):
 @pytest.mark.parametrize("args,expected", [
     (["plan", "show", "no-such-plan"], "unknown plan 'no-such-plan'; shipped plans: four-mount-64"),
     (["fit", "missing.csv"], "missing.csv: no such readings file"),
-    (["simulate", "--misalign", "q=1", "--out", "x.csv"], "'q=1' is not NAME=DEGREES"),
+    (["simulate", "--misalign", "q=1", "--out", "x.csv"], "'q=1' is not NAME=ANGLE"),
     (["simulate", "--misalign", "a=big", "--out", "x.csv"], "'big' for a is not a number"),
     (["simulate", "--truth", "nope.toml", "--out", "x.csv"], "nope.toml: no such truth file"),
     (["run"], "no station given: use --sim"),

@@ -94,14 +94,52 @@ def device_matrix(
 
     KM = rrot[b]·prot[p]·prot[a]·yrot[d]·rrot[r]·rrot[f]·prot[e]·yrot[k]·yrot[y]·rrot[u]
     """
-    chain = (
-        rrot(mis.b), prot(pitch), prot(mis.a), yrot(mis.d), rrot(roll),
-        rrot(mis.f), prot(mis.e), yrot(mis.k), yrot(y), rrot(u),
-    )
+    chain = device_chain(pitch, roll, y, u, mis)
     km = chain[0]
     for m in chain[1:]:
         km = km @ m
     return km
+
+
+def device_chain(
+    pitch: ArrayLike, roll: ArrayLike, y: ArrayLike, u: ArrayLike, mis: Misalignment = NO_MISALIGNMENT
+) -> tuple[NDArray[np.float64], ...]:
+    """The ten factors of KM (Soto eq. 11), left to right."""
+    return (
+        rrot(mis.b), prot(pitch), prot(mis.a), yrot(mis.d), rrot(roll),
+        rrot(mis.f), prot(mis.e), yrot(mis.k), yrot(y), rrot(u),
+    )
+
+
+# Where each misalignment sits in `device_chain` and the generator G of its factor: the derivative of
+# a factor R(x) with respect to x is R(x)·G (rrot = Rx(x): +Kx; prot = Ry(−x): −Ky; yrot = Rz(−x): −Kz).
+_KX = np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+_KY = np.array([[0.0, 0, 1], [0, 0, 0], [-1, 0, 0]])
+_KZ = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 0]])
+_FACTOR = {"a": (2, -_KY), "b": (0, _KX), "d": (3, -_KZ), "e": (6, -_KY), "f": (5, _KX), "k": (7, -_KZ)}
+
+
+def gravity_jacobian(
+    pitch: ArrayLike, roll: ArrayLike, y: ArrayLike, u: ArrayLike, mis: Misalignment = NO_MISALIGNMENT
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """True gravity (..., 3) and its analytic derivatives with respect to a, b, d, e, f, k
+    (..., 6, 3), in `MISALIGNMENT_NAMES` order: what the device model's Gauss–Newton needs.
+
+    g = e₃ᵀ·F₀·…·F₉; ∂g/∂x for the factor Fq(x) is e₃ᵀ·F₀…Fq·G·Fq₊₁…F₉. Only row 3 of KM is
+    carried on the left, so the prefixes are vectors and only the suffixes are matrices.
+    """
+    chain = device_chain(pitch, roll, y, u, mis)
+    rows = [chain[0][..., 2, :]]  # e₃ᵀ·F₀…Fq
+    for m in chain[1:]:
+        rows.append(np.einsum("...i,...ij->...j", rows[-1], m))
+    suffix: list[NDArray[np.float64]] = [np.eye(3)] * (len(chain) + 1)  # suffix[q] = Fq…F₉
+    for q in range(len(chain) - 1, -1, -1):
+        suffix[q] = chain[q] @ suffix[q + 1]
+    derivatives = [np.einsum("...i,...ij->...j", rows[q] @ generator, suffix[q + 1])
+                   for q, generator in (_FACTOR[name] for name in MISALIGNMENT_NAMES)]
+    shape = np.broadcast_shapes(rows[-1].shape, *(d.shape for d in derivatives))
+    dg = np.stack([np.broadcast_to(d, shape) for d in derivatives], axis=-2)
+    return np.broadcast_to(rows[-1], shape), dg
 
 
 def gravity(

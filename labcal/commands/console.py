@@ -82,3 +82,37 @@ def coefficients_with_standard_errors(fit: Fit, title: str = "Fitted coefficient
                                                                   strict=True)}))
     table.caption = f"{fit.ls.n_obs} points; ± is one standard error, from the {basis}"
     return table
+
+
+def device_tables(doc: dict) -> list[Table]:
+    """The device fit (its JSON document) for the terminal: misalignments ± U, X ± one standard
+    error, and the instrument's intrinsic parameters."""
+    k = doc["coverage_factor_95"]
+    mis = Table(title="Calibration-device misalignments (Soto Table 1)")
+    for col in ("", "value (″)", f"U95 (″, k = {k:.3g})"):
+        mis.add_column(col, justify="right")
+    for name, m in doc["misalignments"].items():
+        mis.add_row(name, f"{m['value_arcsec']:+.2f}", f"{m['U_arcsec']:.2f}")
+    ident = doc["identifiability"]
+    mis.caption = f"rank {ident['rank']} of {ident['parameters']}, condition {ident['condition']:.3g}"
+    coef = Table(title="Fitted coefficients X = [Bᵀ; S], device model")
+    coef.add_column("row")
+    for name in SENSORS:
+        coef.add_column(f"sensor {name}", justify="right")
+    X, se = np.array(doc["coefficients"]), np.array(doc["standard_errors"])
+    for i, row in enumerate(ROW_NAMES):
+        unit = "V" if i == 0 else "V/g"
+        coef.add_row(f"{row} ({unit})", *(f"{X[i, j]:+.9f} ± {se[i, j]:.2g}" for j in range(3)))
+    coef.add_row("S_E (V)", *(f"{s:.3g}" for s in doc["residual_standard_error"]))
+    coef.add_row("S_E linear (V)", *(f"{s:.3g}" for s in doc["residual_standard_error_linear"]))
+    coef.caption = (f"{doc['n_points']} points; ± is one standard error ({doc['degrees_of_freedom']} df), "
+                    "the misalignments' uncertainty included")
+    intrinsic = Table(title="Intrinsic parameters (independent of the mount)")
+    for col in ("", "value", "u"):
+        intrinsic.add_column(col, justify="right")
+    for s, v in doc["intrinsic"]["sensitivity_v_per_g"].items():
+        intrinsic.add_row(f"|s_{s}| (V/g)", f"{v['value']:.9f}", f"{v['u']:.2g}")
+    for pair, v in doc["intrinsic"]["inter_axis_angle_deg"].items():
+        intrinsic.add_row(f"angle {pair} − 90° (″)", f"{v['deviation_from_90_arcsec']:+.2f}",
+                          f"{v['u_arcsec']:.2g}")
+    return [mis, coef, intrinsic]

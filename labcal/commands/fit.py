@@ -28,6 +28,23 @@ def parse_at(text: str) -> tuple[float, float, float, float]:
     return pitch, roll, y, u
 
 
+def choose_model(args: argparse.Namespace, readings) -> tuple[str, str | None]:
+    """The model to fit and, when it was chosen for the user, the one line saying why."""
+    from labcal.analysis.device_fit import default_model
+
+    if args.index_errors and args.model not in (None, "device"):
+        raise LabcalError("--index-errors extends the device model; leave out --model or give --model device")
+    if args.model == "device" and (args.extend or args.at):
+        raise LabcalError("--extend and --at work with the linear and coning models; leave them out "
+                          "with --model device")
+    if args.model is not None:
+        return args.model, None
+    model, note = default_model(readings)
+    if model == "device" and (args.extend or args.at):
+        return "linear", "linear model: --extend and --at need it (--model device fits the misalignments)"
+    return model, note
+
+
 def cmd_fit(args: argparse.Namespace) -> int:
     from labcal.analysis.coning import coning, coning_json
     from labcal.analysis.fit import SENSORS, extension_tests, fit_readings, reference_temperature
@@ -35,9 +52,14 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from labcal.commands.console import coefficients_with_standard_errors
 
     readings = read_readings(args.readings)
+    model, chosen = choose_model(args, readings)
+    if model == "device":
+        return fit_device_model(args, readings, chosen)
     extend = tuple(e.strip() for e in args.extend.split(",") if e.strip()) if args.extend else ()
     fit = fit_readings(readings, Model(extend, reference_temperature(readings)))
-    doc = coning_json(fit) if args.model == "coning" else fit.to_json()
+    doc = coning_json(fit) if model == "coning" else fit.to_json()
+    if chosen:
+        doc.setdefault("notes", []).insert(0, chosen)
     at = [parse_at(a) for a in args.at or []]
     if at:
         points = Points.at(*np.array(at).T)
@@ -54,9 +76,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
         print_json(doc)
         return 0
     out.print(coefficients_with_standard_errors(fit))
-    for note in fit.notes:
+    for note in doc.get("notes", []):
         out.print(f"[yellow]note:[/] {note}")
-    if args.model == "coning":
+    if model == "coning":
         out.print(coning_table(coning(fit)))
     if fit.replication is not None:
         out.print(replication_table(doc["replication"]))
@@ -75,6 +97,57 @@ def cmd_fit(args: argparse.Namespace) -> int:
                                 for s, w, p in zip(SENSORS, test["warranted"], test["p_value"], strict=True))
             out.print(f"extension {name}: F test with df {tuple(test['df'])}: {verdict}")
     return 0
+
+
+def fit_device_model(args: argparse.Namespace, readings, chosen: str | None) -> int:
+    """`labcal fit --model device`: the instrument and the device's six misalignments together."""
+    from labcal.analysis.device_fit import fit_device
+    from labcal.commands.console import device_tables
+
+    fit = fit_device(readings)
+    doc = fit.to_json()
+    if args.index_errors:
+        from labcal.analysis.index_errors import fit_index_errors
+
+        extension = fit_index_errors(readings, fit)
+        doc["index_errors"] = None if extension is None else extension.to_json()
+    if chosen:
+        doc["notes"] = [chosen, *doc.get("notes", [])]
+    if args.test_extensions:
+        from labcal.analysis.fit import extension_tests
+
+        doc["extension_tests"] = {t.name: t.to_json() for t in extension_tests(readings)}
+    if args.json:
+        print_json(doc)
+        return 0
+    for table in device_tables(doc):
+        out.print(table)
+    for note in doc.get("notes", []):
+        out.print(f"[yellow]note:[/] {note}")
+    if fit.linear.replication is not None:
+        out.print(replication_table(fit.linear.to_json()["replication"]))
+    for sensor, r in doc.get("replication", {}).items():
+        before, after = r["lack_of_fit_linear"], r["lack_of_fit_device"]
+        out.print(f"sensor {sensor}: σ_bias {r['sigma_bias_linear']:.3g} → {r['sigma_bias_device']:.3g} V, "
+                  f"lack of fit F {before['F']:.3g} (p = {before['p_value']:.2g}) → {after['F']:.3g} "
+                  f"(p = {after['p_value']:.2g}), linear → device model")
+    if args.index_errors:
+        out.print(index_error_text(doc["index_errors"]))
+    return 0
+
+
+def index_error_text(doc: dict | None) -> str:
+    if doc is None:
+        return "index errors: this plan leaves no per-angle index error identifiable"
+    test = doc["test"]
+    lines = [f"index errors (per visited angle, zero mean per table): F = {test['F']:.3g}, "
+             f"df {tuple(test['df'])}, p = {test['p_value']:.2g}: "
+             + ("accepted" if doc["accepted"] else "not warranted")]
+    for table in ("pitch_table", "roll_table"):
+        cells = ", ".join(f"{a['angle_deg']:g}°: {a['value_arcsec']:+.2f} ± {a['U_arcsec']:.2f}″"
+                          for a in doc[table]["angles"])
+        lines.append(f"  {table.replace('_', ' ')}: {cells}")
+    return "\n".join(lines)
 
 
 def coning_table(sensors) -> Table:
@@ -115,10 +188,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "calibration analysis (Tripp & Tcheng §8) and, on request, the coning "
                                    "model and intervals.")
     p.add_argument("readings", help="readings CSV (replicate,y_deg,u_deg,pitch_deg,roll_deg,vx,vy,vz)")
-    p.add_argument("--model", choices=["linear", "coning"], default="linear",
-                   help="linear: Soto's X; coning: per sensor b, S, Ω, A (Tripp eq. 2)")
+    p.add_argument("--model", choices=["linear", "coning", "device"], default=None,
+                   help="linear: Soto's X; coning: per sensor b, S, Ω, A (Tripp eq. 2); device: X together "
+                        "with the calibration device's misalignments a, b, d, e, f, k (default: device when "
+                        "the plan identifies all six, else linear; a note says which and why)")
     p.add_argument("--extend", metavar="NAMES",
                    help=f"extra regressors, comma-separated: {', '.join(EXTENSIONS)}")
+    p.add_argument("--index-errors", action="store_true",
+                   help="device model: also estimate each visited pitch and roll angle's index error "
+                        "(zero mean per table, where identifiable) with its F test against the device model")
     p.add_argument("--test-extensions", action="store_true",
                    help="F test whether each extension is warranted")
     p.add_argument("--at", action="append", metavar="PITCH,ROLL[,Y,U]",

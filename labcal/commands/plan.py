@@ -132,14 +132,17 @@ def plot_merit(plan, calibration_range, usage, path: str) -> None:
 
 def cmd_audit(args: argparse.Namespace) -> int:
     from labcal.analysis.design import LEAK_ZERO, audit, audit_summary
+    from labcal.analysis.device_model import Geometry, identifiability
 
     plan, _ = load_plan(args.plan)
     leaks = audit(plan)
     summary = audit_summary(leaks)
+    ident = identifiability(Geometry.of_plan(plan.points, plan.mounts))
     if args.json:
         print_json({"plan": plan.name, "zero_below": LEAK_ZERO,
                     "rows": ["B", "S row g_x", "S row g_y", "S row g_z"],
-                    "per_radian": {n: d.tolist() for n, d in leaks.items()}, "summary": summary})
+                    "per_radian": {n: d.tolist() for n, d in leaks.items()}, "summary": summary,
+                    "identifiability": ident.to_json()})
         return 0
     table = Table(title=f"{plan.name}: change of X per radian of CD misalignment (first order)")
     table.caption = "cancelled: no leakage into B or the off-diagonal of S (ideal instrument)"
@@ -150,7 +153,33 @@ def cmd_audit(args: argparse.Namespace) -> int:
         table.add_row(name, f"{s['bias_max']:.2g}", f"{s['off_diagonal_max']:.2g}",
                       f"{s['diagonal_max']:.2g}", verdict)
     out.print(table)
+    out.print(identifiability_table(plan.name, ident))
+    problem = ident.problem()
+    if problem:
+        out.print(f"[yellow]device model:[/] {problem}")
+    else:
+        out.print("[green]device model:[/] this plan identifies all six misalignments with the instrument; "
+                  "labcal fit uses the device model on its readings")
     return 0
+
+
+def identifiability_table(name: str, ident) -> Table:
+    """Rank, condition and each misalignment's uncertainty per µg of reading noise (issue 12)."""
+    import math
+
+    condition = "∞" if math.isinf(ident.condition) else f"{ident.condition:.3g}"
+    table = Table(title=f"{name}: identifiability of the device model (rank {ident.rank} of 18, "
+                        f"condition {condition})")
+    table.caption = ("u: standard uncertainty of the misalignment per µg of reading noise, ideal instrument, "
+                     "one pass of the plan")
+    for col in ("misalignment", "u (″ per µg)", "verdict"):
+        table.add_column(col, justify="right")
+    confounded = {m for c in ident.confounded for m in c.misalignments}
+    for m, u in ident.u_per_ug.items():
+        verdict = ("[red]confounded[/]" if m in confounded or math.isinf(u) else
+                   "[yellow]ill-conditioned[/]" if m in ident.useless else "[green]identified[/]")
+        table.add_row(m, "—" if math.isinf(u) else f"{u:.3g}", verdict)
+    return table
 
 
 def angle_list(text: str) -> list[float]:
@@ -225,7 +254,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = actions.add_parser("audit", help="leakage of each CD misalignment into the coefficients",
                            description="First-order change of every fitted coefficient per radian of "
                                        "each calibration-device misalignment a, b, d, e, f, k, through "
-                                       "the kinematic model (Soto eq. 11), for an ideal instrument.")
+                                       "the kinematic model (Soto eq. 11), for an ideal instrument; and "
+                                       "whether the device model can identify them: rank, condition, each "
+                                       "misalignment's uncertainty per µg of noise, and the mount to add "
+                                       "for each one it cannot see.")
     p.add_argument("plan", help="plan name or .toml file")
     p.add_argument("--json", action="store_true", help="print as JSON on stdout")
     p.set_defaults(func=cmd_audit)

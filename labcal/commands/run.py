@@ -114,12 +114,20 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
         print_json({"run_dir": str(result.directory), "run_id": result.run_id, "points": o.points_recorded,
                     "points_failed": o.points_failed, "simulated_rig_time_s": o.station_time_s,
                     "wall_time_s": result.wall_s, "fit": result.fit.to_json(),
+                    "device": None if result.device is None else result.device.to_json(),
+                    "model_note": result.model_note,
                     "certificate": None if issued is None else str(issued.certificate_path),
                     "verdict": None if issued is None or issued.certificate.conformity is None
                     else "pass" if issued.certificate.conformity.passed else "fail"})
         return 0
-    out.print(coefficients_with_standard_errors(result.fit))
-    for note in result.fit.notes:
+    if result.device is not None:
+        from labcal.commands.console import device_tables
+
+        for table in device_tables(result.device.to_json()):
+            out.print(table)
+    else:
+        out.print(coefficients_with_standard_errors(result.fit))
+    for note in (result.model_note, *result.fit.notes):
         out.print(f"[yellow]note:[/] {note}")
     failed = f", {o.points_failed} failed (see the journal)" if o.points_failed else ""
     out.print(f"{o.points_recorded} points{failed} in {result.wall_s:.2f} s of wall time; the rig's clock "

@@ -11,22 +11,34 @@ from labcal.config.plans import load_plan
 from labcal.config.readings_csv import write_readings
 from labcal.errors import LabcalError
 
+UNITS_DEG = {"arcsec": 1 / 3600, "″": 1 / 3600, '"': 1 / 3600, "deg": 1.0, "°": 1.0}
+
+
+def parse_angle(name: str, text: str) -> float:
+    """'60arcsec', '60″', '0.01deg', '0.01°' → degrees; a bare number is degrees (as before units)."""
+    text = text.strip()
+    unit = next((u for u in UNITS_DEG if text.endswith(u)), "")
+    number = text[: len(text) - len(unit)].strip()
+    try:
+        value = float(number) * UNITS_DEG.get(unit, 1.0)
+    except ValueError:
+        raise LabcalError(f"--misalign: {number!r} for {name} is not a number; write e.g. {name}=60arcsec "
+                          f"or {name}=0.01deg") from None
+    if not abs(value) <= 5:
+        raise LabcalError(f"--misalign: {name}={text} is not a small misalignment (|x| ≤ 5°)")
+    return value
+
 
 def parse_misalign(text: str) -> Misalignment:
-    """'a=0.3,b=-0.2' (degrees) → Misalignment."""
+    """'a=60arcsec,k=0.01deg' (units arcsec/″ or deg/°; bare numbers are degrees) → Misalignment."""
     angles: dict[str, float] = {}
     for part in filter(None, (p.strip() for p in text.split(","))):
         name, sep, value = part.partition("=")
         name = name.strip()
         if not sep or name not in MISALIGNMENT_NAMES:
-            raise LabcalError(f"--misalign: {part!r} is not NAME=DEGREES with NAME one of "
-                              f"{', '.join(MISALIGNMENT_NAMES)}")
-        try:
-            angles[name] = float(value)
-        except ValueError:
-            raise LabcalError(f"--misalign: {value.strip()!r} for {name} is not a number") from None
-        if not abs(angles[name]) <= 5:
-            raise LabcalError(f"--misalign: {name}={value.strip()}° is not a small misalignment (|x| ≤ 5°)")
+            raise LabcalError(f"--misalign: {part!r} is not NAME=ANGLE with NAME one of "
+                              f"{', '.join(MISALIGNMENT_NAMES)} (e.g. a=60arcsec,k=0.01deg)")
+        angles[name] = parse_angle(name, value)
     return Misalignment.from_degrees(**angles)
 
 
@@ -54,15 +66,17 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Readings from a plan and a known truth, no sequencer: exact "
                                    "with --noise 0 and no index/wobble errors.")
     p.add_argument("--plan", default="four-mount-64", help="plan name or .toml file")
-    p.add_argument("--misalign", default="", metavar="a=DEG,b=DEG,...",
-                   help="CD misalignments in degrees (names a, b, d, e, f, k)")
+    p.add_argument("--misalign", default="", metavar="a=60arcsec,k=0.01deg,...",
+                   help="CD misalignments a, b, d, e, f, k with their unit: arcsec (or ″) or deg (or °); "
+                        "a number without a unit is degrees")
     p.add_argument("--truth", help="TOML with the instrument's B = [..] and S = [[..],[..],[..]] "
                                    "(default ideal: B = 0, S = I)")
     p.add_argument("--noise", type=float, default=0.0, help="white noise per reading, V rms")
     p.add_argument("--index-error", type=float, default=0.0, metavar="ARCSEC",
-                   help="amplitude of the tables' index errors")
+                   help="amplitude of the tables' per-point index errors, arcseconds (a fixed function of "
+                        "each table's angle, zero mean)")
     p.add_argument("--wobble", type=float, default=0.0, metavar="ARCSEC",
-                   help="amplitude of the tables' wobble errors")
+                   help="amplitude of the tables' per-point wobble errors, arcseconds")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--out", required=True, help="readings CSV to write")
     p.set_defaults(func=cmd_simulate)

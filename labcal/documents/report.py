@@ -24,6 +24,7 @@ from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
 from labcal.analysis.attitude import sphere_least_squares
+from labcal.analysis.device_fit import DeviceFit, preferred_fit
 from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit, fit_readings, readings_points
 from labcal.analysis.kinematics import Mount
 from labcal.analysis.models import Points
@@ -37,6 +38,7 @@ from labcal.documents.certificate import (
     read_certificate,
     write_certificate,
 )
+from labcal.documents.device_history import store_device_estimate
 from labcal.documents.issuing import build_certificate, envelope_grid
 from labcal.documents.uncertainty import bench_section, type_b_inputs
 from labcal.errors import LabcalError
@@ -446,7 +448,7 @@ def _png(fig: Figure) -> str:
     return base64.b64encode(buf.getvalue()).decode("ascii")
 
 
-def render_html(cert: Certificate, figs: list[tuple[str, Figure]]) -> str:
+def render_html(cert: Certificate, figs: list[tuple[str, Figure]], extra: tuple[Table, ...] = ()) -> str:
     """One HTML file with inline CSS and inline PNG plots: it opens offline and can be mailed alone."""
     verdict = verdict_text(cert)
     css_class = "none" if cert.conformity is None else ("pass" if cert.conformity.passed else "fail-v")
@@ -456,7 +458,7 @@ def render_html(cert: Certificate, figs: list[tuple[str, Figure]]) -> str:
              f"instrument {html.escape(cert.instrument.serial)} · "
              f"<strong>{html.escape(_status(cert))}</strong></p>"
              f"<p class=\"verdict {css_class}\">{html.escape(verdict)}</p>"]
-    parts += [_html_table(t) for t in tables(cert)]
+    parts += [_html_table(t) for t in (*tables(cert), *extra)]
     parts.append("<h2>Method</h2>" + "".join(f"<p>{html.escape(p)}</p>" for p in
                                              (cert.method, *cert.statements, *cert.fit.notes)))
     for title, fig in figs:
@@ -485,11 +487,12 @@ def _status(cert: Certificate) -> str:
     return f"approved by {a.by} ({a.role}) on {a.approved_utc:%Y-%m-%d}"
 
 
-def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path | BinaryIO) -> None:
+def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path | BinaryIO,
+               extra: tuple[Table, ...] = ()) -> None:
     """Text pages with every table, then one page per figure; every page says "page X of Y" and,
     until the certificate is approved, DRAFT."""
     blocks = []
-    for t in tables(cert):
+    for t in (*tables(cert), *extra):
         blocks.append(text_table(t))
         if t.caption:
             blocks.append(textwrap.fill(t.caption, 140))
@@ -524,11 +527,21 @@ def _mark(page: Figure, cert: Certificate) -> None:
                   rotation=30, weight="bold")
 
 
-def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit) -> tuple[Path, Path]:
+def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit,
+                 device: DeviceFit | None = None) -> tuple[Path, Path]:
+    """``device``: the device model's fit, where the plan identifies it (its tables and residuals are
+    appended: `labcal.documents.device_report`)."""
     figs = figures(cert, record, fit)
+    extra: tuple[Table, ...] = ()
+    if device is not None:
+        from labcal.documents.device_report import device_rows, residuals_side_by_side
+
+        extra = tuple(Table(*parts) for parts in device_rows(device))
+        figs.append(("Residuals of the linear and of the device model",
+                     residuals_side_by_side(device, record)))
     html_path, pdf_path = directory / REPORT_HTML, directory / REPORT_PDF
-    write_atomic(html_path, render_html(cert, figs))  # whole or not at all: a kill never cuts a report
-    write_atomic(pdf_path, lambda file: render_pdf(cert, figs, file))
+    write_atomic(html_path, render_html(cert, figs, extra))  # whole or not at all: a kill never cuts a report
+    write_atomic(pdf_path, lambda file: render_pdf(cert, figs, file, extra))
     return html_path, pdf_path
 
 
@@ -592,12 +605,15 @@ def write_documents(cert: Certificate, record: RunRecord, fit: Fit, db: str | Pa
     from labcal.documents.dcc import DCC_FILE, write_dcc
 
     dcc_path = write_dcc(record.directory / DCC_FILE, cert)  # validated first: a bad one stops it all
-    html_path, pdf_path = write_report(record.directory, cert, record, fit)
+    device, _ = preferred_fit(record.readings, fit)
+    html_path, pdf_path = write_report(record.directory, cert, record, fit, device)
     # The history entry and the certificate file go together: the entry is committed first and the
     # file is the entry's document, so a kill between them leaves a history entry without its file
     # (`outputs_in_place` sees it; resume or report writes it again), never a certificate that
     # history does not know.
     database = history.store(cert, db)
+    if device is not None:
+        store_device_estimate(record, device, db)
     cert_path = write_file(record.directory / CERTIFICATE, cert)
     return RunOutputs(cert, cert_path, html_path, pdf_path, database, notes=record.notes, dcc_path=dcc_path)
 

@@ -17,6 +17,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from labcal.analysis.device_fit import DeviceFit, preferred_fit
 from labcal.analysis.fit import Fit, fit_readings
 from labcal.config.files import json_safe, write_atomic
 from labcal.config.readings_csv import ReadingsWriter
@@ -33,6 +34,8 @@ class Derived:
 
     files: dict[str, bytes]
     fit: Fit | None
+    device: DeviceFit | None = None  # the device model, where the points identify it (issue 12)
+    model_note: str = ""  # which model fit.json holds, and why
 
 
 def digest(data: bytes) -> str:
@@ -50,14 +53,19 @@ def derive(journal: Journal, row: RunRow, status: str | None = None, reason: str
                       roll_deg=p.roll_deg, volts=[p.vx, p.vy, p.vz], temp_c=p.temp_c,
                       sd=[p.sd_vx, p.sd_vy, p.sd_vz], n_samples=p.n_samples, time_s=p.t_end)
     files = {PLAN: row.plan_text.encode("utf-8"), READINGS: writer.text().encode("utf-8")}
-    fit = None
+    fit, device, note = None, None, ""
     if points:
+        readings = journal.readings(row.id)
         try:
-            fit = fit_readings(journal.readings(row.id))
+            fit = fit_readings(readings)
         except LabcalError:
             fit = None  # too few points so far for a fit
     if fit is not None:
-        files[FIT] = _json(fit.to_json())
+        # fit.json holds the device model where the points identify it, else the linear fit
+        device, note = preferred_fit(readings, fit)
+        doc = fit.to_json() if device is None else device.to_json()
+        doc["notes"] = [note, *doc.get("notes", [])]
+        files[FIT] = _json(doc)
     status = status or row.status
     info = {"labcal_version": row.software_version, "journal": str(journal.path.resolve()),
             **identity(row), "plan": row.plan_name, "station": station_description(row),
@@ -66,7 +74,7 @@ def derive(journal: Journal, row: RunRow, status: str | None = None, reason: str
             "points_recorded": len(points), "rig_time_s": journal.rig_time(row.id),
             "settings": row.settings, **{k: v for k, v in row.metadata.items() if k != "station"}}
     files[RUN] = _json(info)
-    return Derived(files, fit)
+    return Derived(files, fit, device, note)
 
 
 def station_description(row: RunRow) -> str:

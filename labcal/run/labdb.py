@@ -98,6 +98,18 @@ def _v2_run_identity_and_exports(db: sqlite3.Connection) -> None:
                "sha256 TEXT NOT NULL, PRIMARY KEY (run_id, name))")
 
 
+def _v3_device_estimates(db: sqlite3.Connection) -> None:
+    db.execute("""CREATE TABLE device_estimates (
+    device_id TEXT NOT NULL,
+    source TEXT NOT NULL,
+    calibrated_utc TEXT NOT NULL,
+    stored_utc TEXT NOT NULL,
+    document TEXT NOT NULL,
+    PRIMARY KEY (device_id, source)
+)""")
+    db.execute("CREATE INDEX device_estimates_by_date ON device_estimates (device_id, calibrated_utc)")
+
+
 MIGRATIONS: tuple[Migration, ...] = (
     Migration(1, "index events by run: `Journal.events(run)` (the audit trail of prompts, faults, "
                  "retries and pauses) read the whole lab's events table for every run, and "
@@ -110,6 +122,10 @@ MIGRATIONS: tuple[Migration, ...] = (
                  "wrote into a run folder, so a missing, stale or hand-edited export is detected and "
                  "rewritten from the journal. Existing runs get a UUID here. Additive only.",
               _v2_run_identity_and_exports),
+    Migration(3, "the calibration device's own history (issue 12): each run's device-model estimate of "
+                 "the misalignments a…k per calibration-device id, for `labcal device history`. A new "
+                 "table only, so the previous labcal still reads and writes a version-2 file.",
+              _v3_device_estimates),
 )
 SCHEMA_VERSION = MIGRATIONS[-1].version
 

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from labcal import __version__
+from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.fit import Fit, fit_readings
 from labcal.analysis.plan import Plan
 from labcal.config.files import validate_model
@@ -30,7 +31,8 @@ from labcal.run.station import Station
 MIN_POINTS_FOR_MOUNT_CHECK_FIT = 8
 
 
-def publish(journal: Journal, run_id: int, run_dir: Path, status: str, reason: str | None) -> Fit | None:
+def publish(journal: Journal, run_id: int, run_dir: Path, status: str, reason: str | None
+            ) -> exports.Derived:
     """The run's exports from the journal, written whole, then its status with their hashes in one
     transaction: "complete" is journaled only once the files that show it are in place. A run that
     ends without enough good points for a fit is "failed"; a folder that cannot be written (deleted,
@@ -53,7 +55,7 @@ def publish(journal: Journal, run_id: int, run_dir: Path, status: str, reason: s
     journal.finish(run_id, status, reason, hashes)
     if status == "failed":
         raise LabcalError(f"run {run_id} {reason}")
-    return derived.fit
+    return derived
 
 
 @dataclass
@@ -63,6 +65,8 @@ class RunResult:
     outcome: RunOutcome
     fit: Fit
     wall_s: float
+    device: DeviceFit | None = None  # the device model, where the plan identifies it (issue 12)
+    model_note: str = ""  # which model fit.json holds, and why
 
 
 def _provisional_fit(journal: Journal, run_id: int):
@@ -115,11 +119,12 @@ def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: S
         raise
     finally:
         try:
-            fit = publish(journal, run_id, run_dir, status, reason)
+            derived = publish(journal, run_id, run_dir, status, reason)
         finally:
             lock.release()
-    assert fit is not None  # publish raises for a run that cannot be fitted
-    return RunResult(run_dir, run_id, outcome, fit, time.perf_counter() - wall0)
+    assert derived.fit is not None  # publish raises for a run that cannot be fitted
+    return RunResult(run_dir, run_id, outcome, derived.fit, time.perf_counter() - wall0, derived.device,
+                     derived.model_note)
 
 
 def calibrate(plan: Plan, plan_text: str, station: Station, station_text: str, operator: Operator,
