@@ -13,8 +13,16 @@ from labcal.errors import LabcalError
 COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, station, sim)
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its errors on one line (and where the usage is), like every other user error;
+    subcommands' parsers are of this class too (argparse makes them of their parent's class)."""
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(EXIT_USER_ERROR, f"{self.prog}: error: {message} (usage: {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="labcal", formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Calibrate three-axis accelerometer attitude instruments on a two-axis "
                     "rotary calibration device (Soto 2020; Tripp & Tcheng 1999).",
@@ -29,7 +37,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # --help, --version, or a wrong option (its one line is printed)
+        return exc.code if isinstance(exc.code, int) else EXIT_USER_ERROR
     try:
         return args.func(args)
     except LabcalError as exc:

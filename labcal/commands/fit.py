@@ -8,7 +8,7 @@ import numpy as np
 from rich.table import Table
 
 from labcal.analysis.models import EXTENSIONS, Points
-from labcal.commands.common import out, print_json
+from labcal.commands.common import bounded, out, print_json
 from labcal.config.readings_csv import read_readings
 from labcal.errors import LabcalError
 
@@ -123,6 +123,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="F test whether each extension is warranted")
     p.add_argument("--at", action="append", metavar="PITCH,ROLL[,Y,U]",
                    help="predicted output with confidence and prediction intervals here (repeatable)")
-    p.add_argument("--level", type=float, default=0.95, help="interval level (default %(default)s)")
+    p.add_argument("--level", type=bounded(float, 0, 1, lo_open=True, hi_open=True), default=0.95,
+                   help="interval level, 0 < LEVEL < 1 (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print the fit as JSON on stdout")
     p.set_defaults(func=cmd_fit)

@@ -6,7 +6,7 @@ import argparse
 
 from rich.table import Table as RichTable
 
-from labcal.commands.common import add_db_option, out, print_json
+from labcal.commands.common import add_db_option, bounded, out, print_json
 
 
 def rich_table(t) -> RichTable:
@@ -61,9 +61,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "or a station file's [certificate] section (the command line wins).")
     p.add_argument("run_dir", metavar="RUN_DIR", help="a complete run directory (readings.csv, plan.toml, "
                                                       "run.json)")
-    p.add_argument("--tolerance-deg", type=float, metavar="X",
+    p.add_argument("--tolerance-deg", type=bounded(float, 0, 180, lo_open=True), metavar="X",
                    help="pass when the largest U95 of pitch and of roll over the usage envelope is ≤ X°")
-    p.add_argument("--bias-max-v", type=float, metavar="V", help="pass a sensor's bias when |B| + U(B) ≤ V")
+    p.add_argument("--bias-max-v", type=bounded(float, 0, 1000, lo_open=True), metavar="V",
+                   help="pass a sensor's bias when |B| + U(B) ≤ V")
     p.add_argument("--usage-pitch", type=float, nargs=2, metavar=("MIN", "MAX"),
                    help="usage envelope pitch range in ° (default -60 60)")
     p.add_argument("--usage-roll", type=float, nargs=2, metavar=("MIN", "MAX"),

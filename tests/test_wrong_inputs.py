@@ -1,0 +1,68 @@
+"""Every wrong input gets one line (issue 15): the options that used to end in a traceback or were
+accepted silently, each refused in one line naming the option and its valid range, exit 2."""
+
+from __future__ import annotations
+
+import pytest
+
+from labcal.cli import main
+
+
+def one_line_error(capsys, *args: str) -> str:
+    code = main(list(args))
+    captured = capsys.readouterr()
+    assert code == 2, captured
+    assert captured.out == "" and "Traceback" not in captured.err
+    assert len(captured.err.strip().splitlines()) == 1, captured.err
+    return captured.err
+
+
+@pytest.mark.parametrize("args,expected", [
+    (["run", "--sim", "--replicates", "0"], "argument --replicates: 0 is out of range; expected a whole "
+                                            "number x with 1 ≤ x ≤ 100"),
+    (["run", "--sim", "--samples", "0"], "argument --samples: 0 is out of range; expected a whole number x "
+                                         "with 4 ≤ x ≤ 10000"),
+    (["run", "--sim", "--samples", "1"], "argument --samples: 1 is out of range"),
+    (["run", "--sim", "--fixed-dwell", "-5"], "argument --fixed-dwell: -5 is out of range; expected a "
+                                              "number x with 0 ≤ x ≤ 3600"),
+    (["run", "--sim", "--max-dwell", "nan"], "argument --max-dwell: nan is not a finite number"),
+    (["run", "--sim", "--seed", "-1"], "argument --seed: -1 is out of range"),
+    (["report", "somewhere", "--tolerance-deg", "inf"], "argument --tolerance-deg: inf is not a finite "
+                                                        "number; expected a number x with 0 < x ≤ 180"),
+    (["plan", "generate", "d1", "--n-pitch", "0", "--n-roll", "4", "--pitch-max", "60", "--out", "x.toml"],
+     "argument --n-pitch: 0 is out of range; expected a whole number x with 1 ≤ x ≤ 361"),
+    (["plan", "generate", "d1", "--n-pitch", "5", "--n-roll", "4", "--pitch-max", "200", "--out", "x.toml"],
+     "argument --pitch-max: 200 is out of range; expected a number x with 0 < x ≤ 180"),
+    (["plan", "generate", "d1", "--n-pitch", "1", "--n-roll", "2", "--pitch-max", "20", "--out", "x.toml"],
+     "the generated plan is not valid: 2 points per replicate cannot determine 4 coefficients"),
+    (["plan", "generate", "grid", "--pitch-min", "0", "--pitch-max", "10", "--pitch-step", "1e-9",
+      "--roll-min", "0", "--roll-max", "10", "--roll-step", "1", "--out", "x.toml"], "at most 541"),
+    (["plan", "generate", "d0", "--pitch=-20,0,400", "--n-roll", "4", "--out", "x.toml"],
+     "argument --pitch: '-20,0,400': 400 is out of range"),
+    (["fit", "readings.csv", "--level", "1.5"], "argument --level: 1.5 is out of range; expected a number x "
+                                                "with 0 < x < 1"),
+    (["simulate", "--noise", "-1", "--out", "x.csv"], "argument --noise: -1 is out of range"),
+    (["plan", "merit", "four-mount-64", "--pitch-range", "0", "inf"], "argument --pitch-range: inf is not"),
+    (["run", "--sim", "--bogus"], "labcal: error: unrecognized arguments: --bogus (usage: labcal --help)"),
+])
+def test_an_out_of_range_option_is_one_line_naming_it_and_its_range(tmp_path, capsys, monkeypatch, args,
+                                                                     expected):
+    monkeypatch.chdir(tmp_path)
+    assert expected in one_line_error(capsys, *args)
+    assert not any(tmp_path.iterdir())  # refused before anything was written
+
+
+def test_run_out_on_an_existing_file_is_refused(tmp_path, capsys):
+    target = tmp_path / "existing"
+    target.write_text("keep me")
+    assert "existing: exists and is not a directory" in one_line_error(
+        capsys, "run", "--sim", "--yes", "--out", str(target))
+    assert target.read_text() == "keep me"
+
+
+def test_plan_generate_never_overwrites(tmp_path, capsys):
+    target = tmp_path / "existing.toml"
+    target.write_text("keep me")
+    assert "exists; choose another --out" in one_line_error(
+        capsys, "plan", "generate", "tumble", "--out", str(target))
+    assert target.read_text() == "keep me"
