@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 
 from labcal import __version__
@@ -36,9 +37,35 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+NEGATIVE_LIST = re.compile(r"^-\d[\d.eE+-]*,")  # "-30,100": argparse would read it as an option
+
+
+def _one_value_options(parser: argparse.ArgumentParser) -> set[str]:
+    """Every option string, in the whole tree of subcommands, that takes exactly one value."""
+    found = {o for a in parser._actions if a.nargs is None and a.option_strings for o in a.option_strings}
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in action.choices.values():
+                found |= _one_value_options(child)
+    return found
+
+
+def _attach_negative_lists(parser: argparse.ArgumentParser, argv: list[str]) -> list[str]:
+    """``--at -30,100`` as ``--at=-30,100``: a comma list that starts with a negative number is the
+    option's value (argparse only recognises a lone negative number as one)."""
+    options, joined = _one_value_options(parser), []
+    for word in argv:
+        if joined and joined[-1] in options and NEGATIVE_LIST.match(word):
+            joined[-1] = f"{joined[-1]}={word}"
+        else:
+            joined.append(word)
+    return joined
+
+
 def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     try:
-        args = build_parser().parse_args(argv)
+        args = parser.parse_args(_attach_negative_lists(parser, sys.argv[1:] if argv is None else argv))
     except SystemExit as exc:  # --help, --version, or a wrong option (its one line is printed)
         return exc.code if isinstance(exc.code, int) else EXIT_USER_ERROR
     try:

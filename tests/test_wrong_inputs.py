@@ -66,3 +66,58 @@ def test_plan_generate_never_overwrites(tmp_path, capsys):
     assert "exists; choose another --out" in one_line_error(
         capsys, "plan", "generate", "tumble", "--out", str(target))
     assert target.read_text() == "keep me"
+
+
+# --- fit: nonsense refused, gross errors flagged by row, --allow-outliers --------------------
+def _readings_csv(tmp_path, capsys, edit=None) -> str:
+    """A good readings CSV of four-mount-64 from `labcal simulate` (noise 0.1 mV), optionally edited."""
+    import csv
+
+    path = tmp_path / "readings.csv"
+    assert main(["simulate", "--noise", "1e-4", "--seed", "3", "--out", str(path)]) == 0
+    if edit:
+        rows = list(csv.reader(path.read_text().splitlines()))
+        edit(rows)
+        path.write_text("\n".join(",".join(r) for r in rows) + "\n")
+    capsys.readouterr()
+    return str(path)
+
+
+@pytest.mark.parametrize("at,expected", [
+    ("10,20,90,0", "the mount Y,U must each be 0 or 180"),
+    ("10,nan", "every angle must be a finite number"),
+    ("400,0", "pitch and roll must be within -360..360°"),
+])
+def test_fit_at_refuses_nonsense(tmp_path, capsys, at, expected):
+    assert expected in one_line_error(capsys, "fit", _readings_csv(tmp_path, capsys), f"--at={at}")
+
+
+def test_fit_at_takes_a_negative_pitch_without_equals(tmp_path, capsys):
+    assert main(["fit", _readings_csv(tmp_path, capsys), "--at", "-30,100", "--json"]) == 0
+    import json
+
+    (prediction,) = json.loads(capsys.readouterr().out)["predictions"]
+    assert (prediction["pitch_deg"], prediction["roll_deg"]) == (-30, 100)
+
+
+def test_fit_refuses_a_reading_no_voltmeter_makes(tmp_path, capsys):
+    def huge(rows):
+        rows[10][5] = "1e308"
+    assert "reading 10: (1e+308," in one_line_error(capsys, "fit", _readings_csv(tmp_path, capsys, huge))
+
+
+def test_fit_names_a_missed_remount_and_exits_2_unless_allowed(tmp_path, capsys):
+    def missed(rows):  # mount 2 (rows 17-32) read while the instrument still sat as mount 1
+        for r in range(17, 33):
+            rows[r][5:8] = rows[r - 16][5:8]
+    path = _readings_csv(tmp_path, capsys, missed)
+    code = main(["fit", path, "--json"])
+    captured = capsys.readouterr()
+    import json
+
+    doc = json.loads(captured.out)  # the result is still printed: nothing lost
+    assert code == 2 and {f["row"] for f in doc["gross_errors"]} == set(range(17, 33))
+    assert "readings 17–32 (replicate 1) are labelled mount y=180 u=0 but read like mount y=0 u=0" \
+        in captured.err and "--allow-outliers" in captured.err.splitlines()[-1]
+    assert main(["fit", path, "--allow-outliers"]) == 0
+    assert "16 reading(s) flagged; accepted (--allow-outliers)" in capsys.readouterr().err

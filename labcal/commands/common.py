@@ -74,3 +74,20 @@ def bounded_field(model: type, field: str) -> Callable[[str], float]:
               if hasattr(m, name)}
     return bounded(kind, limits.get("ge", limits.get("gt")), limits.get("le", limits.get("lt")),
                    lo_open="gt" in limits, hi_open="lt" in limits)
+
+
+def outcome_of_checks(flags, allowed: bool, source: str) -> int:
+    """List the readings the gross-error checks refused (one line per finding, on stderr; the
+    result is already printed, so nothing is lost) and fail unless ``allowed`` (--allow-outliers)."""
+    if not flags:
+        return 0
+    from labcal.errors import LabcalError
+
+    for message in dict.fromkeys(f.message if f.check == "mount" else f"reading {f.row}: {f.message}"
+                                 for f in flags):
+        err.print(f"[bold yellow]gross error:[/] {message}", markup=True, highlight=False)
+    if allowed:
+        err.print(f"{len({f.row for f in flags})} reading(s) flagged; accepted (--allow-outliers)")
+        return 0
+    raise LabcalError(f"{source}: {len({f.row for f in flags})} reading(s) failed the gross-error checks "
+                      "(listed above); check or re-measure them, or accept them with --allow-outliers")

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import math
 
 import numpy as np
 from rich.table import Table
 
 from labcal.analysis.models import EXTENSIONS, Points
-from labcal.commands.common import bounded, out, print_json
+from labcal.commands.common import bounded, out, outcome_of_checks, print_json
 from labcal.config.readings_csv import read_readings
 from labcal.errors import LabcalError
 
@@ -21,23 +22,30 @@ def parse_at(text: str) -> tuple[float, float, float, float]:
         raise LabcalError(f"--at {text!r}: expected PITCH,ROLL or PITCH,ROLL,Y,U in degrees") from None
     if len(values) not in (2, 4):
         raise LabcalError(f"--at {text!r}: expected PITCH,ROLL or PITCH,ROLL,Y,U in degrees")
-    if len(values) == 2:
-        pitch, roll = values
-        return pitch, roll, 0.0, 0.0
-    pitch, roll, y, u = values
+    if not all(math.isfinite(v) for v in values):
+        raise LabcalError(f"--at {text!r}: every angle must be a finite number of degrees")
+    pitch, roll, y, u = values if len(values) == 4 else (*values, 0.0, 0.0)
+    if not (-360 <= pitch <= 360 and -360 <= roll <= 360):
+        raise LabcalError(f"--at {text!r}: pitch and roll must be within -360..360°")
+    if y % 360 not in (0, 180) or u % 360 not in (0, 180):
+        raise LabcalError(f"--at {text!r}: the mount Y,U must each be 0 or 180 (a mount is {y:g},{u:g})")
     return pitch, roll, y, u
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
     from labcal.analysis.coning import coning, coning_json
     from labcal.analysis.fit import SENSORS, extension_tests, fit_readings, reference_temperature
+    from labcal.analysis.gross_errors import fit_flags, implausible_volts
     from labcal.analysis.models import Model
     from labcal.commands.console import coefficients_with_standard_errors
 
     readings = read_readings(args.readings)
+    implausible_volts(readings.volts)
     extend = tuple(e.strip() for e in args.extend.split(",") if e.strip()) if args.extend else ()
     fit = fit_readings(readings, Model(extend, reference_temperature(readings)))
     doc = coning_json(fit) if args.model == "coning" else fit.to_json()
+    flags = fit_flags(readings, fit)
+    doc["gross_errors"] = [f.to_json() for f in flags]
     at = [parse_at(a) for a in args.at or []]
     if at:
         points = Points.at(*np.array(at).T)
@@ -52,7 +60,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         doc["extension_tests"] = {t.name: t.to_json() for t in extension_tests(readings)}
     if args.json:
         print_json(doc)
-        return 0
+        return outcome_of_checks(flags, args.allow_outliers, args.readings)
     out.print(coefficients_with_standard_errors(fit))
     for note in fit.notes:
         out.print(f"[yellow]note:[/] {note}")
@@ -74,7 +82,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
             verdict = ", ".join(f"{s} {'warranted' if w else 'not warranted'} (p = {p:.2g})"
                                 for s, w, p in zip(SENSORS, test["warranted"], test["p_value"], strict=True))
             out.print(f"extension {name}: F test with df {tuple(test['df'])}: {verdict}")
-    return 0
+    return outcome_of_checks(flags, args.allow_outliers, args.readings)
 
 
 def coning_table(sensors) -> Table:
@@ -125,5 +133,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="predicted output with confidence and prediction intervals here (repeatable)")
     p.add_argument("--level", type=bounded(float, 0, 1, lo_open=True, hi_open=True), default=0.95,
                    help="interval level, 0 < LEVEL < 1 (default %(default)s)")
+    p.add_argument("--allow-outliers", action="store_true",
+                   help="exit 0 even when readings fail the gross-error checks (they are still listed)")
     p.add_argument("--json", action="store_true", help="print the fit as JSON on stdout")
     p.set_defaults(func=cmd_fit)

@@ -211,7 +211,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     d = designs.add_parser("d0", parents=[common], help="your pitches × M uniform rolls")
     d.add_argument("--pitch", type=angle_list, required=True,
                    metavar="P1,P2,...",
-                   help="pitch angles (°); write --pitch=-20,0,20 when the first is negative")
+                   help="pitch angles (°), e.g. --pitch -20,0,20")
     d.add_argument("--n-roll", type=COUNT, required=True, help="M, 1..361")
     designs.add_parser("tumble", parents=[common], help="the six cardinal attitudes (Tripp eq. 56)")
     d = designs.add_parser("fractional", parents=[common], help="a decimated D design (Tripp eq. 109)")
