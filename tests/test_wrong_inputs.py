@@ -121,3 +121,40 @@ def test_fit_names_a_missed_remount_and_exits_2_unless_allowed(tmp_path, capsys)
         in captured.err and "--allow-outliers" in captured.err.splitlines()[-1]
     assert main(["fit", path, "--allow-outliers"]) == 0
     assert "16 reading(s) flagged; accepted (--allow-outliers)" in capsys.readouterr().err
+
+
+# --- attitude: readings that are not 1 g are flagged by row ------------------------------------
+@pytest.fixture
+def fit_json(tmp_path, capsys) -> str:
+    assert main(["fit", _readings_csv(tmp_path, capsys), "--json"]) == 0
+    path = tmp_path / "fit.json"
+    path.write_text(capsys.readouterr().out)
+    return str(path)
+
+
+def test_attitude_flags_dead_saturated_and_impossible_inputs(tmp_path, capsys, fit_json):
+    import json
+
+    volts = tmp_path / "v.csv"  # the simulated instrument: B = 0, S = I (1 V/g)
+    volts.write_text("vx,vy,vz\n0,0,0\n0.3,0.1,0.9486832980505138\n1e308,0,0\n0.8,0.8,0.8\n")
+    code = main(["attitude", "--cert", fit_json, "--csv", str(volts), "--json"])
+    captured = capsys.readouterr()
+    doc = json.loads(captured.out)
+    assert code == 2 and {f["row"] for f in doc["gross_errors"]} == {1, 3, 4}
+    assert "reading 1: |(V − B)S⁻¹| = " in captured.err and "reading 3: |(V − B)S⁻¹| = inf g" in captured.err
+    assert "closed form and sphere solution differ by" in captured.err  # row 4: |g| = 1.39 g
+    assert "Warning" not in captured.err
+    good = doc["rows"][1]["closed_form"]
+    assert good["pitch_deg"] == pytest.approx(17.457603, abs=1e-3)
+    assert main(["attitude", "--cert", fit_json, "--csv", str(volts), "--allow-outliers"]) == 0
+
+
+def test_closed_form_pitch_uncertainty_stays_finite_and_small_at_the_pole(tmp_path, capsys, fit_json):
+    import csv
+    import io
+
+    volts = tmp_path / "v.csv"
+    volts.write_text("vx,vy,vz\n1.0001,0,0\n")  # |g| 1.0001: asin clips at 90°, where 1/h was 1e147
+    main(["attitude", "--cert", fit_json, "--csv", str(volts), "--allow-outliers"])
+    row = next(csv.DictReader(io.StringIO(capsys.readouterr().out)))
+    assert 0 < float(row["cf_u_pitch_deg"]) < 0.1
