@@ -7,11 +7,11 @@ import re
 import sys
 
 from labcal import __version__
-from labcal.commands import attitude, fit, history, plan, report, run, sim, simulate, station
+from labcal.commands import attitude, fit, history, plan, report, run, runs, sim, simulate, station
 from labcal.commands.common import EXIT_INTERRUPTED, EXIT_USER_ERROR, err
 from labcal.errors import LabcalError
 
-COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, station, sim)
+COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, runs, station, sim)
 
 
 class OneLineParser(argparse.ArgumentParser):
