@@ -8,6 +8,7 @@ import math
 import numpy as np
 from rich.table import Table
 
+from labcal.analysis.coning import OMEGA_NEAR_ZERO
 from labcal.analysis.models import EXTENSIONS, Points
 from labcal.commands.common import bounded, out, outcome_of_checks, print_json
 from labcal.config.readings_csv import read_readings
@@ -34,10 +35,15 @@ def parse_at(text: str) -> tuple[float, float, float, float]:
 
 def cmd_fit(args: argparse.Namespace) -> int:
     from labcal.analysis.coning import coning, coning_json
+    from labcal.analysis.distributions import t_quantile
     from labcal.analysis.fit import SENSORS, extension_tests, fit_readings, reference_temperature
     from labcal.analysis.gross_errors import fit_flags, implausible_volts
     from labcal.analysis.models import Model
-    from labcal.commands.console import coefficients_with_standard_errors
+    from labcal.commands.console import (
+        coefficients_with_standard_errors,
+        extension_terms,
+        with_standard_error,
+    )
 
     readings = read_readings(args.readings)
     implausible_volts(readings.volts)
@@ -62,19 +68,22 @@ def cmd_fit(args: argparse.Namespace) -> int:
         print_json(doc)
         return outcome_of_checks(flags, args.allow_outliers, args.readings)
     out.print(coefficients_with_standard_errors(fit))
+    if (terms := extension_terms(fit)) is not None:
+        out.print(terms)
     for note in fit.notes:
         out.print(f"[yellow]note:[/] {note}")
     if args.model == "coning":
         out.print(coning_table(coning(fit)))
     if fit.replication is not None:
         out.print(replication_table(doc["replication"]))
+    k = t_quantile(0.5 + args.level / 2, fit.variance_dof)  # the half-widths' coverage factor
     for p in doc.get("predictions", []):
         out.print(f"at pitch {p['pitch_deg']:g}°, roll {p['roll_deg']:g}°, mount y={p['y_deg']:g} "
-                  f"u={p['u_deg']:g}: " + "; ".join(
-                      f"v{s} = {v:+.7f} V ± {c:.2g} (confidence) ± {q:.2g} (prediction)"
-                      for s, v, c, q in zip(SENSORS, p["volts"], p["confidence_half_width"],
-                                            p["prediction_half_width"], strict=True))
-                  + f" at {p['level']:.0%}")
+                  f"u={p['u_deg']:g}, {p['level']:.1%} intervals:")
+        for j, (s, v, c, q) in enumerate(zip(SENSORS, p["volts"], p["confidence_half_width"],
+                                             p["prediction_half_width"], strict=True)):
+            value = with_standard_error(v, c / k[j]).split(" ±")[0]  # to the digits its SE supports
+            out.print(f"  v{s} = {value} V; confidence ± {c:.2g}, prediction ± {q:.2g} (k = {k[j]:.2f})")
     for name, test in doc.get("extension_tests", {}).items():
         if not test["tested"]:
             out.print(f"extension {name}: not tested — {test['reason']}")
@@ -86,16 +95,24 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 
 def coning_table(sensors) -> Table:
-    table = Table(title="Coning model (Tripp eq. 2): v = b + S·(u·g)")
+    from rich import box
+
+    from labcal.commands.console import with_standard_error
+
+    table = Table(title="Coning model (Tripp eq. 2): v = b + S·(u·g), ± u (k=1)", box=box.SIMPLE_HEAD,
+                  pad_edge=False)
     for col in ("sensor", "b (V)", "S (V/g)", "Ω (°)", "A (°)"):
         table.add_column(col, justify="right")
     for c in sensors:
         d = c.to_json()
         se = d["standard_errors"]
-        azimuth = (f"{d['azimuth_deg']:.3f} ± {se['azimuth_deg']:.2g}" if d["azimuth_deg"] is not None
-                   else "undefined (Ω ≈ 0)")
-        table.add_row(c.name, f"{d['b']:+.7f} ± {se['b']:.2g}", f"{d['S']:.7f} ± {se['S']:.2g}",
-                      f"{d['omega_deg']:.5f} ± {se['omega_deg']:.2g}", azimuth)
+        azimuth = (with_standard_error(d["azimuth_deg"], se["azimuth_deg"]) if d["azimuth_deg"] is not None
+                   else "undefined")
+        omega = with_standard_error(d["omega_deg"], se["omega_deg"])
+        table.add_row(c.name, with_standard_error(d["b"], se["b"]), with_standard_error(d["S"], se["S"]),
+                      omega if d["omega_interval_reliable"] else f"{omega} *", azimuth)
+    if not all(c.azimuth_defined for c in sensors):
+        table.caption = f"* {OMEGA_NEAR_ZERO}"
     return table
 
 

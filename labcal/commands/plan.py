@@ -139,6 +139,8 @@ def plot_merit(plan, calibration_range, usage, path: str) -> None:
         fig.savefig(path, dpi=120, bbox_inches="tight")
     except OSError as exc:
         raise LabcalError(f"{path}: cannot write plot ({exc.strerror})") from None
+    except ValueError as exc:  # matplotlib: a file name whose extension is no image format it writes
+        raise LabcalError(f"{path}: cannot write plot ({exc}); name it .png, .pdf or .svg") from None
     finally:
         plt.close(fig)
 

@@ -135,6 +135,10 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
             verdict = "[green]PASS[/]" if conformity.passed else "[red]FAIL[/]"
             out.print(f"Verdict against the tolerances: [bold]{verdict}[/]")
     out.print(f"Files in {run_dir}/: {files}; journal {db_path(args.db)}")
+    if issued is not None:
+        cert = issued.certificate
+        out.print(f"Certificate {cert.certificate_id} issued: {issued.certificate_path}; stored in "
+                  f"{issued.database} (labcal history {cert.instrument.serial})")
     return 0
 
 
