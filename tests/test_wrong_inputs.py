@@ -158,3 +158,44 @@ def test_closed_form_pitch_uncertainty_stays_finite_and_small_at_the_pole(tmp_pa
     main(["attitude", "--cert", fit_json, "--csv", str(volts), "--allow-outliers"])
     row = next(csv.DictReader(io.StringIO(capsys.readouterr().out)))
     assert 0 < float(row["cf_u_pitch_deg"]) < 0.1
+
+
+# --- smaller items ---------------------------------------------------------------------------------
+def test_simulate_and_plan_generate_speak_json(tmp_path, capsys):
+    import json
+
+    assert main(["simulate", "--out", str(tmp_path / "r.csv"), "--json"]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["readings"] == 64 and captured.err == ""
+    plan = str(tmp_path / "t.toml")
+    assert main(["plan", "generate", "tumble", "--four-mounts", "--out", plan, "--json"]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["points"] == 24 and captured.err == ""
+
+
+def test_dry_run_on_a_hardware_station_needs_no_serial(capsys):
+    assert main(["run", "--station", "lab-example", "--dry-run", "--json"]) == 0
+    import json
+
+    assert json.loads(capsys.readouterr().out)["points"] == 64
+
+
+def test_report_tables_print_their_text_not_rich_markup():
+    import io
+
+    from rich.console import Console
+
+    from labcal.commands.report import rich_table
+    from labcal.documents.report import Table
+
+    console = Console(file=io.StringIO(), width=200)
+    console.print(rich_table(Table("Statement of conformity", ["verdict"], [["[b]none[/b]"]],
+                                   "Give a [certificate] section in the station file.")))
+    text = " ".join(console.file.getvalue().split())
+    assert "a [certificate] section" in text and "[b]none[/b]" in text
+
+
+def test_readme_links_nothing_outside_the_repository():
+    from pathlib import Path
+
+    assert "../shared" not in (Path(__file__).parents[1] / "README.md").read_text()

@@ -79,6 +79,11 @@ def cmd_generate(args: argparse.Namespace) -> int:
             f.write(plan_toml(plan))
     except OSError as exc:
         raise LabcalError(f"{args.out}: cannot write plan ({exc.strerror})") from None
+    if args.json:
+        print_json({"out": args.out, "name": plan.name, "design": args.design, "points": plan.n_points,
+                    "points_per_mount": len(plan.points), "mounts": len(plan.mounts),
+                    "replicates": plan.replicates, "angle_step_deg": plan.angle_step_deg})
+        return 0
     err.print(f"{plan.n_points} points ({len(plan.points)} × {len(plan.mounts)} mount(s) × {plan.replicates} "
               f"replicate(s)) written to {args.out}")
     if plan.angle_step_deg == 0:
@@ -204,6 +209,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     common.add_argument("--out", required=True, help="plan file to write (.toml)")
     common.add_argument("--name", help="plan name (default: the file name)")
     common.add_argument("--four-mounts", action="store_true", help="cross the design with the four mounts")
+    common.add_argument("--json", action="store_true", help="print what was written as JSON on stdout")
     common.add_argument("--replicates", type=bounded_field(Plan, "replicates"), default=1,
                         help="replicates, 1..100 (default %(default)s)")
     d = designs.add_parser("d1", parents=[common], help="N uniform pitches in ±α_max × M uniform rolls")

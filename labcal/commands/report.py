@@ -10,12 +10,16 @@ from labcal.commands.common import add_db_option, bounded, out, print_json
 
 
 def rich_table(t) -> RichTable:
-    """A report table (`labcal.report.Table`) for the terminal."""
-    table = RichTable(title=t.title, caption=t.caption or None)
+    """A report table (`labcal.report.Table`) for the terminal. Its text is the report's, not rich
+    markup: escaped, so that "[certificate]" (a station file's section) is printed, not eaten."""
+    from rich.markup import escape
+
+    table = RichTable(title=escape(t.title), caption=escape(t.caption) if t.caption else None)
     for h in t.header:
-        table.add_column(h, justify="right")
+        table.add_column(escape(h), justify="right")
     for i, row in enumerate(t.rows):
-        table.add_row(*(f"[bold red]{c}[/]" if (i, j) in t.emphasis else c for j, c in enumerate(row)))
+        table.add_row(*(f"[bold red]{escape(c)}[/]" if (i, j) in t.emphasis else escape(c)
+                        for j, c in enumerate(row)))
     return table
 
 

@@ -175,7 +175,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
             config, _ = load_station(args.station)
             cert_settings = certificate_settings_for_run(args, config.certificate, args.station)
-            if not args.emulate and not args.serial and not args.no_report:
+            if not args.emulate and not args.serial and not args.no_report and not args.dry_run:
                 raise LabcalError("a calibration on real hardware needs the instrument's --serial for its "
                                   "certificate (or --no-report)")
             setup, bench = hardware_station(config, args.station, stack, emulate=args.emulate,

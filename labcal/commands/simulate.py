@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from labcal.analysis.kinematics import MISALIGNMENT_NAMES, IndexWobble, Misalignment
-from labcal.commands.common import SEED, bounded, err
+from labcal.commands.common import SEED, bounded, err, print_json
 from labcal.config.files import load_model
 from labcal.config.plans import load_plan
 from labcal.config.readings_csv import write_readings
@@ -43,7 +43,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         write_readings(args.out, readings)
     except OSError as exc:
         raise LabcalError(f"{args.out}: cannot write readings ({exc.strerror})") from None
-    err.print(f"{len(readings)} readings written to {args.out}")
+    if args.json:
+        print_json({"out": args.out, "readings": len(readings), "plan": plan.name, "noise_v": args.noise,
+                    "seed": args.seed})
+    else:
+        err.print(f"{len(readings)} readings written to {args.out}")
     return 0
 
 
@@ -64,4 +68,5 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="amplitude of the tables' wobble errors")
     p.add_argument("--seed", type=SEED, default=0, help="random seed")
     p.add_argument("--out", required=True, help="readings CSV to write")
+    p.add_argument("--json", action="store_true", help="print what was written as JSON on stdout")
     p.set_defaults(func=cmd_simulate)
