@@ -167,7 +167,7 @@ def failure_of(argv: list[str], capsys) -> str | None:
         return f"{argv[0]}: exit code {code}"
     if "Traceback" in captured.err:
         return f"{argv[0]}: traceback on stderr"
-    if code == 0 and "--json" in argv:
+    if "--json" in argv and (code == 0 or captured.out.strip()):  # exit 2 may still print its result
         try:
             json.loads(captured.out)
         except ValueError:
