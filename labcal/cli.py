@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import re
 import sys
+from typing import NoReturn
 
 from labcal import __version__
 from labcal.commands import attitude, fit, history, plan, report, run, runs, sim, simulate, station
@@ -18,7 +19,7 @@ class OneLineParser(argparse.ArgumentParser):
     """argparse with its errors on one line (and where the usage is), like every other user error;
     subcommands' parsers are of this class too (argparse makes them of their parent's class)."""
 
-    def error(self, message: str):  # type: ignore[override]
+    def error(self, message: str) -> NoReturn:
         self.exit(EXIT_USER_ERROR, f"{self.prog}: error: {message} (usage: {self.prog} --help)\n")
 
 
@@ -53,7 +54,7 @@ def _one_value_options(parser: argparse.ArgumentParser) -> set[str]:
 def _attach_negative_lists(parser: argparse.ArgumentParser, argv: list[str]) -> list[str]:
     """``--at -30,100`` as ``--at=-30,100``: a comma list that starts with a negative number is the
     option's value (argparse only recognises a lone negative number as one)."""
-    options, joined = _one_value_options(parser), []
+    options, joined = _one_value_options(parser), list[str]()
     for word in argv:
         if joined and joined[-1] in options and NEGATIVE_LIST.match(word):
             joined[-1] = f"{joined[-1]}={word}"

@@ -17,6 +17,7 @@ positively dependent ones here). `tests/test_gross_errors.py` checks that rate b
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -74,7 +75,7 @@ def gravity_magnitude(cal: Calibration, volts: NDArray[np.float64]) -> tuple[NDA
     return m, u_m
 
 
-def gravity_flags(cal: Calibration, volts: NDArray[np.float64], describe=None,
+def gravity_flags(cal: Calibration, volts: NDArray[np.float64], describe: Callable[[int], str] | None = None,
                   alpha: float = FAMILY_ALPHA) -> list[Flag]:
     """Rows whose |g| is not 1 g within the family-wise threshold (or not a number at all)."""
     m, u_m = gravity_magnitude(cal, volts)
@@ -83,7 +84,7 @@ def gravity_flags(cal: Calibration, volts: NDArray[np.float64], describe=None,
     with np.errstate(all="ignore"):
         z = np.abs(m - 1.0) / u_m
     for i in np.flatnonzero(~(z <= limit)):
-        where = describe(i) if describe else ""
+        where = describe(int(i)) if describe else ""
         flags.append(Flag(int(i) + 1, "gravity",
                           f"|(V − B)S⁻¹| = {m[i]:.6g} g{where}; a static instrument reads 1 g "
                           f"(± {u_m[i]:.2g}, limit {limit:.2g} standard uncertainties)"))
@@ -111,7 +112,7 @@ def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA) -> list[Flag]:
     index = index.ravel()
     if len(keys) < 2:
         return []
-    flags = []
+    flags: list[Flag] = []
     _, design = Model().design(readings_points(readings))
     for k, (_, y, u) in enumerate(keys):
         inside, outside = index == k, index != k
