@@ -62,7 +62,7 @@ def bounded(kind: type[int] | type[float], lo: float | None = None, hi: float | 
 
 
 SEED = bounded(int, 0, 2**32 - 1)
-TIME_SCALE = bounded(float, 0, 1e6, lo_open=True)
+TIME_SCALE = bounded(float, 0, 100_000, lo_open=True)  # what the emulators accept (sim/emulation.py)
 
 
 def bounded_field(model: type, field: str) -> Callable[[str], float]:
