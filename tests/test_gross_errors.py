@@ -21,7 +21,7 @@ def good_readings(seed: int, plan: str = "four-mount-64") -> Readings:
     return simulate_readings(load_plan(plan)[0], TRUTH, noise_v=NOISE_V, seed=seed)
 
 
-@pytest.mark.parametrize("alpha,trials", [(0.05, 200), (FAMILY_ALPHA, 100)])
+@pytest.mark.parametrize("alpha,trials", [(0.05, 150), (FAMILY_ALPHA, 50)])
 def test_good_data_is_flagged_at_no_more_than_the_stated_rate(alpha, trials):
     """Each check's family-wise false-alarm rate ≤ alpha: the count of flagged files in `trials`
     files of good readings stays below the binomial 99.9 % upper bound of Bin(trials, alpha)."""
