@@ -52,19 +52,14 @@ def test_an_out_of_range_option_is_one_line_naming_it_and_its_range(tmp_path, ca
     assert not any(tmp_path.iterdir())  # refused before anything was written
 
 
-def test_run_out_on_an_existing_file_is_refused(tmp_path, capsys):
+@pytest.mark.parametrize("command,expected", [
+    (["run", "--sim", "--yes"], "existing: exists and is not a directory"),
+    (["plan", "generate", "tumble"], "existing: exists; choose another --out"),
+])
+def test_an_existing_file_given_as_out_is_refused_and_kept(tmp_path, capsys, command, expected):
     target = tmp_path / "existing"
     target.write_text("keep me")
-    assert "existing: exists and is not a directory" in one_line_error(
-        capsys, "run", "--sim", "--yes", "--out", str(target))
-    assert target.read_text() == "keep me"
-
-
-def test_plan_generate_never_overwrites(tmp_path, capsys):
-    target = tmp_path / "existing.toml"
-    target.write_text("keep me")
-    assert "exists; choose another --out" in one_line_error(
-        capsys, "plan", "generate", "tumble", "--out", str(target))
+    assert expected in one_line_error(capsys, *command, "--out", str(target))
     assert target.read_text() == "keep me"
 
 
