@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import re
 import sys
+from typing import NoReturn
 
 from labcal import __version__
 from labcal.commands import (
@@ -17,6 +19,7 @@ from labcal.commands import (
     plan,
     report,
     run,
+    runs,
     sim,
     simulate,
     station,
@@ -25,12 +28,20 @@ from labcal.commands.common import EXIT_INTERRUPTED, EXIT_USER_ERROR, err
 from labcal.commands.logfile import add_log_options, logging_to
 from labcal.errors import LabcalError
 
-COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, device, station, sim, export,
+COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, runs, device, station, sim, export,
                   config, certificate)
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its errors on one line (and where the usage is), like every other user error;
+    subcommands' parsers are of this class too (argparse makes them of their parent's class)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USER_ERROR, f"{self.prog}: error: {message} (usage: {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="labcal", formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Calibrate three-axis accelerometer attitude instruments on a two-axis "
                     "rotary calibration device (Soto 2020; Tripp & Tcheng 1999).",
@@ -45,8 +56,37 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+NEGATIVE_LIST = re.compile(r"^-\d[\d.eE+-]*,")  # "-30,100": argparse would read it as an option
+
+
+def _one_value_options(parser: argparse.ArgumentParser) -> set[str]:
+    """Every option string, in the whole tree of subcommands, that takes exactly one value."""
+    found = {o for a in parser._actions if a.nargs is None and a.option_strings for o in a.option_strings}
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in action.choices.values():
+                found |= _one_value_options(child)
+    return found
+
+
+def _attach_negative_lists(parser: argparse.ArgumentParser, argv: list[str]) -> list[str]:
+    """``--at -30,100`` as ``--at=-30,100``: a comma list that starts with a negative number is the
+    option's value (argparse only recognises a lone negative number as one)."""
+    options, joined = _one_value_options(parser), list[str]()
+    for word in argv:
+        if joined and joined[-1] in options and NEGATIVE_LIST.match(word):
+            joined[-1] = f"{joined[-1]}={word}"
+        else:
+            joined.append(word)
+    return joined
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    try:
+        args = parser.parse_args(_attach_negative_lists(parser, sys.argv[1:] if argv is None else argv))
+    except SystemExit as exc:  # --help, --version, or a wrong option (its one line is printed)
+        return exc.code if isinstance(exc.code, int) else EXIT_USER_ERROR
     try:
         with logging_to(args.log_file, args.log_level):
             return args.func(args)

@@ -299,5 +299,5 @@ def test_a_complete_run_issues_its_certificate_and_report(tmp_path, capsys):
     assert code == 0 and len(json.loads(stdout)["calibrations"]) == 1
     code, _, stderr = run_cli(capsys, "run", "--sim", "--yes", "--plan", "one-mount-16",
                               "--tolerance-deg", "-1", "--out", str(tmp_path / "r2"))
-    assert code == 2 and "attitude_u95_max_deg: Input should be greater than 0" in stderr
+    assert code == 2 and "argument --tolerance-deg: -1 is out of range; expected a number x" in stderr
     assert not (tmp_path / "r2").exists()  # refused before the run began

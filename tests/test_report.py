@@ -217,8 +217,9 @@ def test_bad_arguments(outputs, tmp_path, capsys):
         capsys, "report", run_dir, "--usage-pitch", "-100", "10", "--db", db)
     assert "no such station file" in _one_line_error(capsys, "report", run_dir, "--station",
                                                      str(tmp_path / "none.toml"), "--db", db)
-    assert "certificate.attitude_u95_max_deg: Input should be greater than 0" in _one_line_error(
-        capsys, "report", run_dir, "--tolerance-deg", "-1", "--db", db)
+    for bad in ("-1", "inf", "nan"):  # refused by the option itself, naming it and its range
+        assert f"argument --tolerance-deg: {bad} is" in _one_line_error(
+            capsys, "report", run_dir, "--tolerance-deg", bad, "--db", db)
 
 
 def test_envelope_through_the_poles(drawn):

@@ -124,7 +124,8 @@ def test_bad_station_files(text, expected, tmp_path, capsys):
     (["station", "check", "missing.toml"], "missing.toml: no such station file"),
     (["station", "check", "lab-example", "--emulate"], "pitch: /dev/serial/by-id/usb-FTDI_USB-RS485_Cable_"
      "FT1ABCDE-if00-port0 is a real device; emulators link their ptys elsewhere"),
-    (["sim", "serve", "az-modbus-tcp", "--time-scale", "-1"], "time scale -1 must be > 0"),
+    (["sim", "serve", "az-modbus-tcp", "--time-scale", "-1"],
+     "argument --time-scale: -1 is out of range; expected a number x with 0 < x ≤ 100000"),
     (["run", "--station", "az-modbus-tcp", "--sim"], "give --sim (the simulated rig) or --station FILE, not"),
     (["run", "--sim", "--emulate"], "--emulate needs --station FILE"),
 ])

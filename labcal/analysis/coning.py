@@ -26,6 +26,10 @@ _AXES = {
     "z": (2, (0, -1.0), (1, +1.0)),
 }
 AZIMUTH_SIGNIFICANCE = 3.0  # Ω must exceed this many standard errors for A to mean anything
+OMEGA_NEAR_ZERO = (f"Ω is within {AZIMUTH_SIGNIFICANCE:g} standard errors of 0, where Ω ± k·u is no valid "
+                   "interval: Ω ≥ 0 is the length of a 2-D vector, and at a true Ω of 0 the delta-method "
+                   "interval ±1.96·u covers it 85 % of the time, not 95 % (tests/test_fit_options.py); "
+                   "read it as 'Ω not distinguishable from 0'")
 
 
 @dataclass(frozen=True)
@@ -51,6 +55,8 @@ class ConingSensor:
             doc["azimuth_note"] = (f"Ω is within {AZIMUTH_SIGNIFICANCE:g} standard errors of 0: the sensor "
                                    "axis is not measurably tilted, so its azimuth A is undefined")
             doc["correlation"] = {"order": ["b", "S", "omega"], "matrix": corr[:3, :3].tolist()}
+            doc["omega_note"] = OMEGA_NEAR_ZERO
+        doc["omega_interval_reliable"] = self.azimuth_defined
         return {k: (float(v) if isinstance(v, np.floating) else v) for k, v in doc.items()}
 
 

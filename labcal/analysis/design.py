@@ -16,6 +16,7 @@ from labcal.errors import LabcalError
 FOUR_MOUNTS = [(0.0, 0.0), (180.0, 0.0), (0.0, 180.0), (180.0, 180.0)]
 ONE_MOUNT = [(0.0, 0.0)]
 LEAK_ZERO = 1e-9  # below this a leakage per radian is zero to rounding
+GRID_MAX_PER_AXIS = 541  # -180..360 on the tables' 1° grid: a finer grid is a typing mistake
 
 
 # --- generators (angles in degrees) -------------------------------------------------------------
@@ -65,9 +66,14 @@ def grid(pitch_min: float, pitch_max: float, pitch_step: float, roll_min: float,
          roll_step: float) -> list[tuple[float, float]]:
     """Every (pitch, roll) on a rectangular grid, ends included."""
     def axis(lo: float, hi: float, step: float) -> NDArray[np.float64]:
-        if step <= 0 or hi < lo:
+        if not (step > 0 and hi >= lo):
             raise LabcalError(f"grid {lo:g}..{hi:g} step {step:g}: need step > 0 and max ≥ min")
-        return lo + step * np.arange(int(np.floor((hi - lo) / step + 1e-9)) + 1, dtype=np.float64)
+        n = np.floor((hi - lo) / step + 1e-9) + 1
+        if not n <= GRID_MAX_PER_AXIS:
+            finest = (hi - lo) / (GRID_MAX_PER_AXIS - 1)
+            raise LabcalError(f"grid {lo:g}..{hi:g} step {step:g}: {n:.3g} angles per axis; at most "
+                              f"{GRID_MAX_PER_AXIS} (a step of at least {finest:.3g}°)")
+        return lo + step * np.arange(int(n), dtype=np.float64)
     return [(float(p), float(r)) for p in axis(pitch_min, pitch_max, pitch_step)
             for r in axis(roll_min, roll_max, roll_step)]
 

@@ -8,7 +8,7 @@ cannot average them away (metrology_stats.md §2.6).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -145,9 +145,15 @@ def fit_readings(readings: Readings, model: Model | None = None) -> Fit:
     """Least squares on the nominal gravity, with replicated analysis when there are replicates."""
     model = model or Model(t_ref=reference_temperature(readings))
     names, design = model.design(readings_points(readings))
+    notes: list[str] = []
+    aliased = tuple(n for i, n in enumerate(names) if i not in _estimable(design, len(BASE_NAMES)))
+    if aliased:  # e.g. sin 2α and sin 2R vanish on a 0/90/180/270° grid: fit what the plan determines
+        model = replace(model, dropped=model.dropped + aliased)
+        names, design = model.design(readings_points(readings))
+        notes.append(f"term(s) {', '.join(aliased)} left out: this plan cannot estimate them (they vanish "
+                     "on its points or repeat the other regressors)")
     ls = least_squares(design, readings.volts)
     groups, _ = point_groups(point_keys(readings))
-    notes: list[str] = []
     replication = None
     if len(np.unique(readings.replicate)) > 1:
         first = np.zeros(groups.max() + 1, dtype=int)

@@ -69,6 +69,7 @@ class Model:
 
     extensions: tuple[str, ...] = ()
     t_ref: float = 20.0
+    dropped: tuple[str, ...] = ()  # extension terms the plan cannot estimate (aliased), left out
 
     def __post_init__(self) -> None:
         unknown = [e for e in self.extensions if e not in EXTENSIONS]
@@ -81,6 +82,7 @@ class Model:
         names, cols = list(BASE_NAMES), [np.ones((len(g), 1)), g]
         for ext in self.extensions:
             ext_names, ext_cols = EXTENSIONS[ext](points, self.t_ref)
-            names += ext_names
-            cols.append(ext_cols)
+            keep = [i for i, n in enumerate(ext_names) if n not in self.dropped]
+            names += [ext_names[i] for i in keep]
+            cols.append(ext_cols[:, keep])
         return tuple(names), np.hstack(cols)

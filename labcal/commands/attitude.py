@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from labcal.commands.common import print_json
+from labcal.commands.common import outcome_of_checks, print_json
 from labcal.config.readings_csv import read_numeric_csv
 
 METHODS = {"closed": "closed_form", "sphere": "sphere_least_squares"}
@@ -42,8 +42,14 @@ def cmd_attitude(args: argparse.Namespace) -> int:
         if args.csv is None:
             Path(source).unlink()
     volts = np.column_stack([cols["vx"], cols["vy"], cols["vz"]])
+    from labcal.analysis.gross_errors import gravity_flags, methods_disagree
+
     methods = list(METHODS) if args.method == "both" else [args.method]
-    results = {m: getattr(attitude, METHODS[m])(cal, volts) for m in methods}
+    with np.errstate(all="ignore"):  # a row of 1e308 V is flagged below, not a page of warnings
+        results = {m: getattr(attitude, METHODS[m])(cal, volts) for m in methods}
+        flags = gravity_flags(cal, volts)
+        if len(methods) == 2:
+            flags += methods_disagree(results["closed"], results["sphere"])
     table = {k: v for m in methods for k, v in _columns(results[m], PREFIX[m]).items()}
     k95 = next(iter(results.values())).k95
     if args.json:
@@ -57,14 +63,15 @@ def cmd_attitude(args: argparse.Namespace) -> int:
                     values["roll_note"] = ROLL_UNDEFINED
                 row[METHODS[m]] = values
             rows.append(row)
-        print_json({"coverage_factor_95": k95, "degrees_of_freedom": cal.dof, "rows": rows})
-        return 0
+        print_json({"coverage_factor_95": k95, "degrees_of_freedom": cal.dof, "rows": rows,
+                    "gross_errors": [f.to_json() for f in flags]})
+        return outcome_of_checks(flags, args.allow_outliers, args.csv or "standard input")
     writer = csv.writer(sys.stdout)
     writer.writerow(["row", *table])
     for i in range(len(volts)):
         cells = ("" if not np.isfinite(column[i]) else f"{column[i]:.9g}" for column in table.values())
         writer.writerow([i + 1, *cells])
-    return 0
+    return outcome_of_checks(flags, args.allow_outliers, args.csv or "standard input")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -78,5 +85,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--csv", help="voltages CSV (default: standard input)")
     p.add_argument("--method", choices=["closed", "sphere", "both"], default="both",
                    help="estimator(s) to report (default %(default)s)")
+    p.add_argument("--allow-outliers", action="store_true",
+                   help="exit 0 even when rows fail the gross-error checks (|g| ≠ 1 g; the two methods "
+                        "disagree); they are listed on stderr either way")
     p.add_argument("--json", action="store_true", help="print as JSON on stdout")
     p.set_defaults(func=cmd_attitude)

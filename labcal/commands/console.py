@@ -5,13 +5,13 @@ from __future__ import annotations
 from contextlib import contextmanager
 
 import numpy as np
+from rich import box
 from rich.console import Console
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
     Progress,
     TextColumn,
-    TimeElapsedColumn,
 )
 from rich.table import Table
 
@@ -26,19 +26,36 @@ def format_duration(seconds: float) -> str:
     return f"{h} h {m:02d} min {s:02d} s" if h else f"{m} min {s:02d} s"
 
 
+def clock(seconds: float) -> str:
+    """'25:34' or '1:02:03': a duration in the fewest columns (the progress line must fit 80)."""
+    seconds = int(round(max(seconds, 0.0)))
+    h, rem = divmod(seconds, 3600)
+    m, s = divmod(rem, 60)
+    return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
+
+
+RIG_CLOCK_NOTE = ("progress: 'rig' is the rig's own clock (the simulated or emulated station's, which may "
+                  "run faster than the wall's); 'ETA' is the plan's estimate of the rest on that clock: "
+                  "moves, settling, averaging and remount allowances")
+
+
 class ProgressDisplay(Display):
-    """A rich progress bar with ETA and a live line of the last reading and station time."""
+    """A progress bar with the rig's clock and the ETA of what remains, both on the rig's clock (an
+    emulated run's wall time says nothing about the rig's), and the last point; fits 80 columns."""
 
     def __init__(self, console: Console, total: int, step_estimates: dict[int, float] | None = None,
                  done: int = 0):
         self.progress = Progress(
-            TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-            TimeElapsedColumn(), TextColumn("rig ETA {task.fields[rig_eta]}"),
+            BarColumn(bar_width=16), MofNCompleteColumn(),
+            TextColumn("rig {task.fields[rig]} ETA {task.fields[rig_eta]}"),
             TextColumn("{task.fields[last]}"), console=console, transient=False,
         )
         self.estimates = step_estimates or {}
-        self.task = self.progress.add_task("calibrating", total=total, completed=done, last="",
-                                           rig_eta=format_duration(sum(self.estimates.values())))
+        # on resume, only what remains: the steps after the `done` first ones of the schedule
+        remaining = sum(t for _, t in sorted(self.estimates.items())[done:])
+        self.task = self.progress.add_task("calibrating", total=total, completed=done, last="", rig="–",
+                                           rig_eta=clock(remaining))
+        console.print(f"[dim]{RIG_CLOCK_NOTE}[/]")
 
     def __enter__(self) -> ProgressDisplay:
         self.progress.start()
@@ -56,31 +73,60 @@ class ProgressDisplay(Display):
             self.progress.start()
 
     def point_done(self, step: Step, volts: np.ndarray, station_time_s: float, settle_s: float) -> None:
-        last = f"p={step.pitch_deg:g}° r={step.roll_deg:g}° settled in {settle_s:.1f} s"
+        last = f"p={step.pitch_deg:g}° r={step.roll_deg:g}° {settle_s:.1f} s"
         remaining = sum(t for seq, t in self.estimates.items() if seq > step.seq)
-        self.progress.update(self.task, advance=1, last=last, rig_eta=format_duration(remaining))
+        self.progress.update(self.task, advance=1, last=last, rig=clock(station_time_s),
+                             rig_eta=clock(remaining))
 
     def message(self, text: str) -> None:
         self.progress.console.print(text)
 
 
+def with_standard_error(value: float, se: float) -> str:
+    """'value ± SE' to the digits the standard error supports (SE to two significant digits,
+    the value rounded to the same decimal), as the certificate rounds (GUM 7.2.6)."""
+    from labcal.documents.certificate import format_result
+
+    if not np.isfinite(se):
+        return f"{value:+.7g}"
+    text = format_result(value, se)
+    return f"{'+' if not text.startswith('-') else ''}{text}"
+
+
 def coefficients_with_standard_errors(fit: Fit, title: str = "Fitted coefficients X = [Bᵀ; S]") -> Table:
     """The fit's coefficients ± one standard error, for the terminal (the certificate's table,
     `labcal.documents.report.coefficients_with_expanded_uncertainty`, states ± U95 instead)."""
-    table = Table(title=title)
-    table.add_column("row")
+    table = Table(title=f"{title}, ± u (k=1)", box=box.SIMPLE_HEAD, pad_edge=False)  # fits 80 columns
+    table.add_column("row", no_wrap=True)
     for name in SENSORS:
-        table.add_column(f"sensor {name}", justify="right")
+        table.add_column(f"sensor {name}", justify="right")  # wrapped, never cut, on a narrow terminal
     se = fit.stderr
     for i, row in enumerate(ROW_NAMES):
         unit = "V" if i == 0 else "V/g"
-        table.add_row(f"{row} ({unit})", *(
-            f"{fit.coefficients[i, j]:+.9f} ± {se[i, j]:.2g}" if np.isfinite(se[i, j])
-            else f"{fit.coefficients[i, j]:+.9f}" for j in range(3)))
+        table.add_row(f"{row} ({unit})", *(with_standard_error(fit.coefficients[i, j], se[i, j])
+                                           for j in range(3)))
     table.add_row("S_E (V)", *(f"{s:.3g}" for s in fit.ls.residual_se))
     basis = "; ".join(sorted({f"{b} ({d} df)" for b, d in zip(fit.variance_basis, fit.variance_dof,
                                                                   strict=True)}))
-    table.caption = f"{fit.ls.n_obs} points; ± is one standard error, from the {basis}"
+    table.caption = f"{fit.ls.n_obs} points; ± is one standard error (k=1), from the {basis}"
+    return table
+
+
+def extension_terms(fit: Fit) -> Table | None:
+    """The fitted extension coefficients (temperature, harmonics) ± one standard error, or None."""
+    n_base = len(ROW_NAMES)
+    if len(fit.names) == n_base:
+        return None
+    table = Table(title=f"Extension terms (t_ref = {fit.model.t_ref:.2f} °C), ± u (k=1)", box=box.SIMPLE_HEAD,
+                  pad_edge=False)
+    table.add_column("term")
+    for name in SENSORS:
+        table.add_column(f"sensor {name}", justify="right")
+    se = fit.stderr
+    for i, term in enumerate(fit.names[n_base:], start=n_base):
+        unit = {"dB/dT": "V/°C"}.get(term, "V/(g·°C)" if term.startswith("dS") else "V")
+        table.add_row(f"{term} ({unit})",
+                      *(with_standard_error(fit.ls.coef[i, j], se[i, j]) for j in range(3)))
     return table
 
 

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import math
 
 import numpy as np
 from rich.table import Table
 
+from labcal.analysis.coning import OMEGA_NEAR_ZERO
 from labcal.analysis.models import EXTENSIONS, Points
-from labcal.commands.common import out, print_json
+from labcal.commands.common import bounded, out, outcome_of_checks, print_json
 from labcal.config.readings_csv import read_readings
 from labcal.errors import LabcalError
 
@@ -21,10 +23,13 @@ def parse_at(text: str) -> tuple[float, float, float, float]:
         raise LabcalError(f"--at {text!r}: expected PITCH,ROLL or PITCH,ROLL,Y,U in degrees") from None
     if len(values) not in (2, 4):
         raise LabcalError(f"--at {text!r}: expected PITCH,ROLL or PITCH,ROLL,Y,U in degrees")
-    if len(values) == 2:
-        pitch, roll = values
-        return pitch, roll, 0.0, 0.0
-    pitch, roll, y, u = values
+    if not all(math.isfinite(v) for v in values):
+        raise LabcalError(f"--at {text!r}: every angle must be a finite number of degrees")
+    pitch, roll, y, u = values if len(values) == 4 else (*values, 0.0, 0.0)
+    if not (-360 <= pitch <= 360 and -360 <= roll <= 360):
+        raise LabcalError(f"--at {text!r}: pitch and roll must be within -360..360°")
+    if y % 360 not in (0, 180) or u % 360 not in (0, 180):
+        raise LabcalError(f"--at {text!r}: the mount Y,U must each be 0 or 180 (a mount is {y:g},{u:g})")
     return pitch, roll, y, u
 
 
@@ -47,11 +52,18 @@ def choose_model(args: argparse.Namespace, readings) -> tuple[str, str | None]:
 
 def cmd_fit(args: argparse.Namespace) -> int:
     from labcal.analysis.coning import coning, coning_json
+    from labcal.analysis.distributions import t_quantile
     from labcal.analysis.fit import SENSORS, extension_tests, fit_readings, reference_temperature
+    from labcal.analysis.gross_errors import fit_flags, implausible_volts
     from labcal.analysis.models import Model
-    from labcal.commands.console import coefficients_with_standard_errors
+    from labcal.commands.console import (
+        coefficients_with_standard_errors,
+        extension_terms,
+        with_standard_error,
+    )
 
     readings = read_readings(args.readings)
+    implausible_volts(readings.volts)
     model, chosen = choose_model(args, readings)
     if model == "device":
         return fit_device_model(args, readings, chosen)
@@ -60,6 +72,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     doc = coning_json(fit) if model == "coning" else fit.to_json()
     if chosen:
         doc.setdefault("notes", []).insert(0, chosen)
+    flags = fit_flags(readings, fit)
+    doc["gross_errors"] = [f.to_json() for f in flags]
     at = [parse_at(a) for a in args.at or []]
     if at:
         points = Points.at(*np.array(at).T)
@@ -74,21 +88,24 @@ def cmd_fit(args: argparse.Namespace) -> int:
         doc["extension_tests"] = {t.name: t.to_json() for t in extension_tests(readings)}
     if args.json:
         print_json(doc)
-        return 0
+        return outcome_of_checks(flags, args.allow_outliers, args.readings)
     out.print(coefficients_with_standard_errors(fit))
+    if (terms := extension_terms(fit)) is not None:
+        out.print(terms)
     for note in doc.get("notes", []):
         out.print(f"[yellow]note:[/] {note}")
     if model == "coning":
         out.print(coning_table(coning(fit)))
     if fit.replication is not None:
         out.print(replication_table(doc["replication"]))
+    k = t_quantile(0.5 + args.level / 2, fit.variance_dof)  # the half-widths' coverage factor
     for p in doc.get("predictions", []):
         out.print(f"at pitch {p['pitch_deg']:g}°, roll {p['roll_deg']:g}°, mount y={p['y_deg']:g} "
-                  f"u={p['u_deg']:g}: " + "; ".join(
-                      f"v{s} = {v:+.7f} V ± {c:.2g} (confidence) ± {q:.2g} (prediction)"
-                      for s, v, c, q in zip(SENSORS, p["volts"], p["confidence_half_width"],
-                                            p["prediction_half_width"], strict=True))
-                  + f" at {p['level']:.0%}")
+                  f"u={p['u_deg']:g}, {p['level']:.1%} intervals:")
+        for j, (s, v, c, q) in enumerate(zip(SENSORS, p["volts"], p["confidence_half_width"],
+                                             p["prediction_half_width"], strict=True)):
+            value = with_standard_error(v, c / k[j]).split(" ±")[0]  # to the digits its SE supports
+            out.print(f"  v{s} = {value} V; confidence ± {c:.2g}, prediction ± {q:.2g} (k = {k[j]:.2f})")
     for name, test in doc.get("extension_tests", {}).items():
         if not test["tested"]:
             out.print(f"extension {name}: not tested — {test['reason']}")
@@ -96,16 +113,19 @@ def cmd_fit(args: argparse.Namespace) -> int:
             verdict = ", ".join(f"{s} {'warranted' if w else 'not warranted'} (p = {p:.2g})"
                                 for s, w, p in zip(SENSORS, test["warranted"], test["p_value"], strict=True))
             out.print(f"extension {name}: F test with df {tuple(test['df'])}: {verdict}")
-    return 0
+    return outcome_of_checks(flags, args.allow_outliers, args.readings)
 
 
 def fit_device_model(args: argparse.Namespace, readings, chosen: str | None) -> int:
     """`labcal fit --model device`: the instrument and the device's six misalignments together."""
     from labcal.analysis.device_fit import fit_device
+    from labcal.analysis.gross_errors import fit_flags
     from labcal.commands.console import device_tables
 
     fit = fit_device(readings)
     doc = fit.to_json()
+    flags = fit_flags(readings, fit.linear)  # what physics guarantees, whichever model is fitted
+    doc["gross_errors"] = [f.to_json() for f in flags]
     if args.index_errors:
         from labcal.analysis.index_errors import fit_index_errors
 
@@ -119,7 +139,7 @@ def fit_device_model(args: argparse.Namespace, readings, chosen: str | None) -> 
         doc["extension_tests"] = {t.name: t.to_json() for t in extension_tests(readings)}
     if args.json:
         print_json(doc)
-        return 0
+        return outcome_of_checks(flags, args.allow_outliers, args.readings)
     for table in device_tables(doc):
         out.print(table)
     for note in doc.get("notes", []):
@@ -133,7 +153,7 @@ def fit_device_model(args: argparse.Namespace, readings, chosen: str | None) -> 
                   f"(p = {after['p_value']:.2g}), linear → device model")
     if args.index_errors:
         out.print(index_error_text(doc["index_errors"]))
-    return 0
+    return outcome_of_checks(flags, args.allow_outliers, args.readings)
 
 
 def index_error_text(doc: dict | None) -> str:
@@ -151,16 +171,24 @@ def index_error_text(doc: dict | None) -> str:
 
 
 def coning_table(sensors) -> Table:
-    table = Table(title="Coning model (Tripp eq. 2): v = b + S·(u·g)")
+    from rich import box
+
+    from labcal.commands.console import with_standard_error
+
+    table = Table(title="Coning model (Tripp eq. 2): v = b + S·(u·g), ± u (k=1)", box=box.SIMPLE_HEAD,
+                  pad_edge=False)
     for col in ("sensor", "b (V)", "S (V/g)", "Ω (°)", "A (°)"):
         table.add_column(col, justify="right")
     for c in sensors:
         d = c.to_json()
         se = d["standard_errors"]
-        azimuth = (f"{d['azimuth_deg']:.3f} ± {se['azimuth_deg']:.2g}" if d["azimuth_deg"] is not None
-                   else "undefined (Ω ≈ 0)")
-        table.add_row(c.name, f"{d['b']:+.7f} ± {se['b']:.2g}", f"{d['S']:.7f} ± {se['S']:.2g}",
-                      f"{d['omega_deg']:.5f} ± {se['omega_deg']:.2g}", azimuth)
+        azimuth = (with_standard_error(d["azimuth_deg"], se["azimuth_deg"]) if d["azimuth_deg"] is not None
+                   else "undefined")
+        omega = with_standard_error(d["omega_deg"], se["omega_deg"])
+        table.add_row(c.name, with_standard_error(d["b"], se["b"]), with_standard_error(d["S"], se["S"]),
+                      omega if d["omega_interval_reliable"] else f"{omega} *", azimuth)
+    if not all(c.azimuth_defined for c in sensors):
+        table.caption = f"* {OMEGA_NEAR_ZERO}"
     return table
 
 
@@ -201,6 +229,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="F test whether each extension is warranted")
     p.add_argument("--at", action="append", metavar="PITCH,ROLL[,Y,U]",
                    help="predicted output with confidence and prediction intervals here (repeatable)")
-    p.add_argument("--level", type=float, default=0.95, help="interval level (default %(default)s)")
+    p.add_argument("--level", type=bounded(float, 0, 1, lo_open=True, hi_open=True), default=0.95,
+                   help="interval level, 0 < LEVEL < 1 (default %(default)s)")
+    p.add_argument("--allow-outliers", action="store_true",
+                   help="exit 0 even when readings fail the gross-error checks (they are still listed)")
     p.add_argument("--json", action="store_true", help="print the fit as JSON on stdout")
     p.set_defaults(func=cmd_fit)

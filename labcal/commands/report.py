@@ -6,17 +6,21 @@ import argparse
 
 from rich.table import Table as RichTable
 
-from labcal.commands.common import add_db_option, err, out, print_json
+from labcal.commands.common import add_db_option, bounded, err, out, print_json
 from labcal.errors import LabcalError
 
 
 def rich_table(t) -> RichTable:
-    """A report table (`labcal.report.Table`) for the terminal."""
-    table = RichTable(title=t.title, caption=t.caption or None)
+    """A report table (`labcal.report.Table`) for the terminal. Its text is the report's, not rich
+    markup: escaped, so that "[certificate]" (a station file's section) is printed, not eaten."""
+    from rich.markup import escape
+
+    table = RichTable(title=escape(t.title), caption=escape(t.caption) if t.caption else None)
     for h in t.header:
-        table.add_column(h, justify="right")
+        table.add_column(escape(h), justify="right")
     for i, row in enumerate(t.rows):
-        table.add_row(*(f"[bold red]{c}[/]" if (i, j) in t.emphasis else c for j, c in enumerate(row)))
+        table.add_row(*(f"[bold red]{escape(c)}[/]" if (i, j) in t.emphasis else escape(c)
+                        for j, c in enumerate(row)))
     return table
 
 
@@ -85,9 +89,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "or a station file's [certificate] section (the command line wins).")
     p.add_argument("run_dir", metavar="RUN_DIR", help="a complete run directory (readings.csv, plan.toml, "
                                                       "run.json)")
-    p.add_argument("--tolerance-deg", type=float, metavar="X",
+    p.add_argument("--tolerance-deg", type=bounded(float, 0, 180, lo_open=True), metavar="X",
                    help="pass when the largest U95 of pitch and of roll over the usage envelope is ≤ X°")
-    p.add_argument("--bias-max-v", type=float, metavar="V", help="pass a sensor's bias when |B| + U(B) ≤ V")
+    p.add_argument("--bias-max-v", type=bounded(float, 0, 1000, lo_open=True), metavar="V",
+                   help="pass a sensor's bias when |B| + U(B) ≤ V")
     p.add_argument("--usage-pitch", type=float, nargs=2, metavar=("MIN", "MAX"),
                    help="usage envelope pitch range in ° (default -60 60)")
     p.add_argument("--usage-roll", type=float, nargs=2, metavar=("MIN", "MAX"),

@@ -9,8 +9,20 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from labcal.analysis.plan import Plan
-from labcal.commands.common import EXIT_INTERRUPTED, EXIT_STOPPED, add_db_option, err, out, print_json
+from labcal.commands.common import (
+    EXIT_INTERRUPTED,
+    EXIT_STOPPED,
+    SEED,
+    TIME_SCALE,
+    add_db_option,
+    bounded,
+    bounded_field,
+    err,
+    out,
+    print_json,
+)
 from labcal.config.plans import load_plan
+from labcal.config.settings import SettleSettings
 from labcal.errors import LabcalError
 
 # The run machinery (sequencer, journal, statistics) is imported where it is used, so that the
@@ -24,11 +36,13 @@ if TYPE_CHECKING:
 
 def sequencer_settings_for_run(args: argparse.Namespace, setup: StationSetup, speed: float = 20.0,
                                accel: float = 40.0) -> SequencerSettings:
+    from labcal.config.files import validate_model
     from labcal.config.settings import SequencerSettings
 
-    settle = setup.settle.model_copy(update={
+    settle = validate_model({**setup.settle.model_dump(), **{
         k: v for k, v in (("samples", args.samples), ("fixed_dwell_s", args.fixed_dwell),
-                          ("max_dwell_s", args.max_dwell)) if v is not None})
+                          ("max_dwell_s", args.max_dwell)) if v is not None}}, SettleSettings,
+        "command line: settle")  # validated: the options and the station file share one range
     return SequencerSettings(settle=settle, order=args.order, seed=args.seed or 0,
                              on_failure=args.on_failure, check_mount=not args.no_mount_check,
                              speed_dps=speed, accel_dps2=accel)
@@ -140,6 +154,10 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
             verdict = "[green]PASS[/]" if conformity.passed else "[red]FAIL[/]"
             out.print(f"Verdict against the tolerances: [bold]{verdict}[/]")
     out.print(f"Files in {run_dir}/: {files}; journal {db_path(args.db)}")
+    if issued is not None:
+        cert = issued.certificate
+        out.print(f"Certificate {cert.certificate_id} issued: {issued.certificate_path}; stored in "
+                  f"{issued.database} (labcal history {cert.instrument.serial})")
     return 0
 
 
@@ -178,7 +196,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
             config, _ = load_station(args.station)
             cert_settings = certificate_settings_for_run(args, config.certificate, args.station)
-            if not args.emulate and not args.serial and not args.no_report:
+            if not args.emulate and not args.serial and not args.no_report and not args.dry_run:
                 raise LabcalError("a calibration on real hardware needs the instrument's --serial for its "
                                   "certificate (or --no-report)")
             setup, bench = hardware_station(config, args.station, stack, emulate=args.emulate,
@@ -294,7 +312,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     p.add_argument("--no-report", action="store_true",
                    help="skip the certificate and report at the end (labcal report RUN makes them later)")
-    p.add_argument("--tolerance-deg", type=float, metavar="DEG",
+    p.add_argument("--tolerance-deg", type=bounded(float, 0, 180, lo_open=True), metavar="DEG",
                    help="pass/fail tolerance on the attitude U95 over the usage envelope")
     p.add_argument("--usage-pitch", type=float, nargs=2, metavar=("MIN", "MAX"),
                    help="usage pitch range for the attitude uncertainty (default -60 60)")
@@ -312,20 +330,23 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="run on a station's devices through the drivers (station file or example name)")
     p.add_argument("--emulate", action="store_true",
                    help="with --station: start the emulators the station file points at, and run on them")
-    p.add_argument("--time-scale", type=float, metavar="X",
+    p.add_argument("--time-scale", type=TIME_SCALE, metavar="X",
                    help="with --emulate: emulated seconds per wall second (default: the station's)")
     p.add_argument("--plan", default="four-mount-64", help="plan name or .toml file (default %(default)s)")
-    p.add_argument("--replicates", type=int, help="override the plan's number of replicates")
+    p.add_argument("--replicates", type=bounded_field(Plan, "replicates"),
+                   help="override the plan's number of replicates (1..100)")
     p.add_argument("--order", choices=["shortest", "plan", "sweep", "random"], default="shortest",
                    help="order of the points within a mount (default %(default)s)")
-    p.add_argument("--seed", type=int, default=None,
+    p.add_argument("--seed", type=SEED, default=None,
                    help="simulated or emulated rig's (and random order's) seed")
     p.add_argument("--out", help="run directory (default runs/<UTC time>-<plan>)")
     p.add_argument("--rig", help="TOML file describing the simulated rig (truth, noise, speeds)")
-    p.add_argument("--samples", type=int, help="DMM samples per settle window, averaged per point")
-    p.add_argument("--fixed-dwell", type=float, metavar="S",
-                   help="dwell S seconds instead of detecting settling")
-    p.add_argument("--max-dwell", type=float, metavar="S", help="give up settling after S seconds")
+    p.add_argument("--samples", type=bounded_field(SettleSettings, "samples"),
+                   help="DMM samples per settle window, averaged per point (4..10000)")
+    p.add_argument("--fixed-dwell", type=bounded(float, 0, 3600), metavar="S",
+                   help="dwell S seconds (0..3600) instead of detecting settling")
+    p.add_argument("--max-dwell", type=bounded(float, 0, 3600, lo_open=True), metavar="S",
+                   help="give up settling after S seconds (at most 3600)")
     p.add_argument("--on-failure", choices=["skip", "pause", "abort"], default="skip",
                    help="a point that does not settle after one retry (default %(default)s)")
     p.add_argument("--no-mount-check", action="store_true", help="do not verify each mount from gravity")

@@ -11,7 +11,7 @@ import argparse
 import signal
 import sys
 
-from labcal.commands.common import TIME_SCALE_HELP, err, out, print_json
+from labcal.commands.common import SEED, TIME_SCALE, TIME_SCALE_HELP, err, out, print_json
 
 HELP = ("commands: mount Y U | fault DEVICE KIND [COUNT] (KIND: no-reply, late-reply, garbled, truncated, "
         "lost-request, alarm, exception, close-port) | status | quit")
@@ -91,7 +91,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "Then run `labcal station check` or `labcal run --station` against the same file. "
                     f"On standard input: {HELP}.")
     serve.add_argument("station", metavar="STATION", help="station file (.toml) or example name")
-    serve.add_argument("--time-scale", type=float, help=TIME_SCALE_HELP)
-    serve.add_argument("--seed", type=int, help="the simulated rig's random seed")
+    serve.add_argument("--time-scale", type=TIME_SCALE, help=TIME_SCALE_HELP)
+    serve.add_argument("--seed", type=SEED, help="the simulated rig's random seed")
     serve.add_argument("--json", action="store_true", help="print where they listen as JSON on stdout")
     serve.set_defaults(func=cmd_serve)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from labcal.analysis.kinematics import MISALIGNMENT_NAMES, IndexWobble, Misalignment
-from labcal.commands.common import err
+from labcal.commands.common import SEED, bounded, err, print_json
 from labcal.config.files import load_model
 from labcal.config.plans import load_plan
 from labcal.config.readings_csv import write_readings
@@ -48,8 +48,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     plan, _ = load_plan(args.plan)
     truth = load_model(args.truth, InstrumentTruth, "truth") if args.truth else InstrumentTruth()
-    if args.noise < 0:
-        raise LabcalError("--noise must be ≥ 0 (V rms)")
     readings = simulate_readings(
         plan, truth, parse_misalign(args.misalign),
         IndexWobble(args.index_error, args.wobble, args.seed), args.noise, args.seed)
@@ -57,7 +55,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         write_readings(args.out, readings)
     except OSError as exc:
         raise LabcalError(f"{args.out}: cannot write readings ({exc.strerror})") from None
-    err.print(f"{len(readings)} readings written to {args.out}")
+    if args.json:
+        print_json({"out": args.out, "readings": len(readings), "plan": plan.name, "noise_v": args.noise,
+                    "seed": args.seed})
+    else:
+        err.print(f"{len(readings)} readings written to {args.out}")
     return 0
 
 
@@ -71,12 +73,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "a number without a unit is degrees")
     p.add_argument("--truth", help="TOML with the instrument's B = [..] and S = [[..],[..],[..]] "
                                    "(default ideal: B = 0, S = I)")
-    p.add_argument("--noise", type=float, default=0.0, help="white noise per reading, V rms")
-    p.add_argument("--index-error", type=float, default=0.0, metavar="ARCSEC",
+    p.add_argument("--noise", type=bounded(float, 0, 10), default=0.0,
+                   help="white noise per reading, V rms (0..10)")
+    p.add_argument("--index-error", type=bounded(float, 0, 3600), default=0.0, metavar="ARCSEC",
                    help="amplitude of the tables' per-point index errors, arcseconds (a fixed function of "
                         "each table's angle, zero mean)")
-    p.add_argument("--wobble", type=float, default=0.0, metavar="ARCSEC",
+    p.add_argument("--wobble", type=bounded(float, 0, 3600), default=0.0, metavar="ARCSEC",
                    help="amplitude of the tables' per-point wobble errors, arcseconds")
-    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--seed", type=SEED, default=0, help="random seed")
     p.add_argument("--out", required=True, help="readings CSV to write")
+    p.add_argument("--json", action="store_true", help="print what was written as JSON on stdout")
     p.set_defaults(func=cmd_simulate)

@@ -7,7 +7,7 @@ from contextlib import ExitStack
 
 from rich.table import Table
 
-from labcal.commands.common import TIME_SCALE_HELP, err, out, print_json
+from labcal.commands.common import TIME_SCALE, TIME_SCALE_HELP, err, out, print_json
 from labcal.errors import LabcalError
 
 
@@ -82,7 +82,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "one DMM scan, and say plainly what does not answer (exit code 2). Nothing moves.")
     chk.add_argument("station", metavar="STATION", help="station file (.toml) or example name")
     chk.add_argument("--emulate", action="store_true", help="start the station's emulators for the check")
-    chk.add_argument("--time-scale", type=float, help=TIME_SCALE_HELP)
+    chk.add_argument("--time-scale", type=TIME_SCALE, help=TIME_SCALE_HELP)
     chk.add_argument("--reset-alarms", action="store_true",
                      help="reset a table drive's alarm (Oriental Motor AZ) once its cause is cleared, "
                           "and release its STOP input if a stop left it on")

@@ -110,6 +110,23 @@ class RunRow:
     uuid: str | None  # None only for a run of a database older than run identities (migrated: set)
 
 
+@dataclass(frozen=True)
+class RunSummary:
+    """One line of `labcal runs`: what a run is and how far it got."""
+
+    id: int
+    run_dir: str
+    plan_name: str
+    instrument_serial: str | None
+    operator: str | None
+    status: str
+    reason: str | None
+    started_utc: str
+    ended_utc: str | None
+    points_ok: int
+    points_failed: int
+
+
 class Journal:
     def __init__(self, path: str | Path):
         self.path = Path(path)
@@ -211,6 +228,22 @@ class Journal:
         for key in ("settings", "metadata"):
             values[key] = json.loads(values[key])
         return RunRow(**values)
+
+    def runs(self, serial: str | None = None, statuses: tuple[str, ...] = ()) -> list[RunSummary]:
+        """Every run of the lab, oldest first, optionally of one instrument and in some statuses,
+        with its committed points counted (ok and failed)."""
+        sql = ("SELECT r.id, r.run_dir, r.plan_name, r.instrument_serial, r.operator, r.status, r.reason,"
+               " r.started_utc, r.ended_utc,"
+               " (SELECT COUNT(*) FROM points p WHERE p.run_id = r.id AND p.status = 'ok'),"
+               " (SELECT COUNT(*) FROM points p WHERE p.run_id = r.id AND p.status != 'ok')"
+               " FROM runs r WHERE 1=1")
+        args: list[object] = []
+        if serial is not None:
+            sql, args = sql + " AND r.instrument_serial = ?", [*args, serial]
+        if statuses:
+            sql += f" AND r.status IN ({', '.join('?' * len(statuses))})"
+            args += list(statuses)
+        return [RunSummary(*row) for row in self.db.execute(sql + " ORDER BY r.id", args).fetchall()]
 
     def points(self, run_id: int, status: str | None = None) -> list[PointRecord]:
         names = [f.name for f in fields(PointRecord)]

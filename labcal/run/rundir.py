@@ -41,7 +41,7 @@ def new_run_dir(out: str | None, plan: Plan) -> Path:
     else:
         path = Path(out)
     if path.exists() and not path.is_dir():
-        raise LabcalError(f"{path}: exists and is not a folder; choose another --out")
+        raise LabcalError(f"{path}: exists and is not a directory; --out names a new or empty run directory")
     if path.exists() and any(path.iterdir()):
         raise LabcalError(f"{path}: run directory exists and is not empty; choose another --out")
     return path

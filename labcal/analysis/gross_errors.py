@@ -1,0 +1,213 @@
+"""Gross-error checks: what physics guarantees every reading of a static instrument, tested so
+that good data raises a flag rarely, at a stated rate.
+
+- Gravity is 1 g: m = |(V − B)S⁻¹| must be 1 within its standard uncertainty u_m (first order,
+  from the output variance Σ_v of `labcal.analysis.attitude.output_variance`). A dead input
+  (0 V), a saturated channel, a value typed wrong or a shaken instrument are not.
+- A reading belongs to its stated mount: each (replicate, mount) group is predicted from a fit of
+  every other group; a group its stated mount does not explain but another mount does is a
+  missed or wrong remount (the readings then fit S at half its value, with no other warning).
+- Residuals: externally studentised residuals t_i = e_i / (s_(i)·√(1 − h_ii)), which are Student t
+  with K − L − 1 degrees of freedom for good normal data.
+
+Every threshold is a Šidák family-wise one: over all the tests of one check on one file, good data
+raises any flag with probability at most FAMILY_ALPHA (exactly for independent tests, less for the
+positively dependent ones here). `tests/test_gross_errors.py` checks that rate by Monte Carlo.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from labcal.analysis.attitude import Attitude, Calibration, output_variance
+from labcal.analysis.distributions import chi2_quantile, t_quantile
+from labcal.analysis.fit import Fit, readings_points
+from labcal.analysis.kinematics import gravity
+from labcal.analysis.models import Model
+from labcal.analysis.readings import Readings
+from labcal.analysis.regression import LeastSquares, least_squares
+from labcal.errors import LabcalError
+
+FAMILY_ALPHA = 0.001  # chance that one check flags anything in a file of good readings
+VOLTS_MAX = 1000.0  # no bench DMM has a range above 1000 V (the 34970A's highest is 300 V)
+SENSORS = ("x", "y", "z")
+MOUNTS = ((0.0, 0.0), (180.0, 0.0), (0.0, 180.0), (180.0, 180.0))
+
+
+@dataclass(frozen=True)
+class Flag:
+    """One reading (1-based row of the data) that a check refuses, and why, in words."""
+
+    row: int
+    check: str  # "gravity", "mount", "residual", "methods"
+    message: str
+
+    def to_json(self) -> dict[str, object]:
+        return {"row": self.row, "check": self.check, "message": self.message}
+
+
+def sidak_per_test(n_tests: int, alpha: float = FAMILY_ALPHA) -> float:
+    """The per-test level that keeps the family-wise level at ``alpha`` over n independent tests."""
+    return float(-np.expm1(np.log1p(-alpha) / max(n_tests, 1)))
+
+
+def t_threshold(n_tests: int, dof: float, alpha: float = FAMILY_ALPHA) -> float:
+    """Two-sided Student t threshold for the largest of n tests (normal when dof is infinite)."""
+    if not dof > 0:
+        return float("inf")
+    return float(t_quantile(1.0 - sidak_per_test(n_tests, alpha) / 2, min(dof, 1e7)))
+
+
+def gravity_magnitude(cal: Calibration, volts: NDArray[np.float64]) -> tuple[NDArray[np.float64],
+                                                                             NDArray[np.float64]]:
+    """m = |(V − B)S⁻¹| per row (in g) and its standard uncertainty from Σ_v (calibration and reading)."""
+    with np.errstate(all="ignore"):
+        g = (volts - cal.X[0]) @ cal.s_inv
+        m = np.linalg.norm(g, axis=1)
+        unit = np.where((m > 1e-9)[:, None] & np.isfinite(g), g / np.where(m > 0, m, 1.0)[:, None],
+                        np.array([0.0, 0.0, 1.0]))
+        dm_dv = unit @ cal.s_inv.T  # ∂m/∂v_j = Σ_k S⁻¹[j, k] ĝ_k (row convention dg = dv·S⁻¹)
+        u_m = np.sqrt(np.sum(dm_dv**2 * output_variance(cal, unit), axis=1))
+    return m, u_m
+
+
+def gravity_flags(cal: Calibration, volts: NDArray[np.float64], describe: Callable[[int], str] | None = None,
+                  alpha: float = FAMILY_ALPHA) -> list[Flag]:
+    """Rows whose |g| is not 1 g within the family-wise threshold (or not a number at all)."""
+    m, u_m = gravity_magnitude(cal, volts)
+    limit = t_threshold(len(volts), cal.dof, alpha)
+    flags = []
+    with np.errstate(all="ignore"):
+        z = np.abs(m - 1.0) / u_m
+    for i in np.flatnonzero(~(z <= limit)):
+        where = describe(int(i)) if describe else ""
+        flags.append(Flag(int(i) + 1, "gravity",
+                          f"|(V − B)S⁻¹| = {m[i]:.6g} g{where}; a static instrument reads 1 g "
+                          f"(± {u_m[i]:.2g}, limit {limit:.2g} standard uncertainties)"))
+    return flags
+
+
+def _describe(readings: Readings, i: int) -> str:
+    return (f" at pitch {readings.pitch_deg[i]:g}°, roll {readings.roll_deg[i]:g}°, mount "
+            f"y={readings.y_deg[i]:g} u={readings.u_deg[i]:g}")
+
+
+def _rows(indices: NDArray[np.int_]) -> str:
+    """'3–18' for a run of consecutive rows, else a list."""
+    rows = indices + 1
+    if len(rows) > 1 and np.all(np.diff(rows) == 1):
+        return f"{rows[0]}–{rows[-1]}"
+    return ", ".join(str(r) for r in rows)
+
+
+def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA) -> list[Flag]:
+    """Groups of readings (one replicate, one mount) that their stated mount does not explain and
+    another mount does: each group predicted from the base fit of all the other groups."""
+    groups = np.column_stack([readings.replicate, readings.y_deg % 360, readings.u_deg % 360])
+    keys, index = np.unique(groups, axis=0, return_inverse=True)
+    index = index.ravel()
+    if len(keys) < 2:
+        return []
+    flags: list[Flag] = []
+    _, design = Model().design(readings_points(readings))
+    for k, (_, y, u) in enumerate(keys):
+        inside, outside = index == k, index != k
+        try:
+            ls = least_squares(design[outside], readings.volts[outside])
+        except LabcalError:
+            continue  # the other groups alone cannot determine the model: nothing to compare with
+        if ls.dof < 1 or not np.all(ls.residual_se > 0):
+            continue
+        n = int(inside.sum())
+        limit = float(chi2_quantile(1.0 - sidak_per_test(len(keys), alpha), 3 * n))
+        p, r = np.radians(readings.pitch_deg[inside]), np.radians(readings.roll_deg[inside])
+        chi2 = {}
+        for my, mu in MOUNTS:
+            f = np.column_stack([np.ones(n), gravity(p, r, np.radians(my), np.radians(mu))])
+            q = np.einsum("ij,jk,ik->i", f, ls.cov_unscaled, f)
+            scale = ls.residual_se[None, :] * np.sqrt(1.0 + q)[:, None]
+            chi2[(my, mu)] = float(np.sum(((readings.volts[inside] - f @ ls.coef[:4]) / scale) ** 2))
+        best = min(chi2, key=lambda mount: chi2[mount])
+        if chi2[(y, u)] > limit and best != (y, u) and chi2[best] <= limit:
+            rows = np.flatnonzero(inside)
+            message = (f"readings {_rows(rows)} (replicate {keys[k][0]:g}) are labelled mount y={y:g} "
+                       f"u={u:g} but read like mount y={best[0]:g} u={best[1]:g}: a missed or wrong "
+                       f"remount? (χ² {chi2[(y, u)]:.3g} against {chi2[best]:.3g}, limit {limit:.3g})")
+            flags.extend(Flag(int(i) + 1, "mount", message) for i in rows)
+    return flags
+
+
+def residual_flags(design: NDArray[np.float64], ls: LeastSquares,
+                   skip: set[int] | frozenset[int] = frozenset(), alpha: float = FAMILY_ALPHA,
+                   ) -> tuple[list[Flag], float]:
+    """Externally studentised residuals beyond the family-wise Student t threshold (over every
+    reading and sensor) of the fit ``ls`` of ``design``; returns the flags and the threshold."""
+    dof = ls.dof
+    if dof < 2:
+        return [], float("inf")
+    h = np.einsum("ij,jk,ik->i", design, ls.cov_unscaled, design)
+    e = ls.residuals
+    with np.errstate(all="ignore"):
+        s2_without = (dof * ls.residual_se[None, :] ** 2 - e**2 / (1 - h)[:, None]) / (dof - 1)
+        t = e / np.sqrt(np.maximum(s2_without, 0) * (1 - h)[:, None])
+    limit = t_threshold(e.size, dof - 1, alpha)
+    flags = []
+    for i, j in zip(*np.nonzero(~(np.abs(t) <= limit)), strict=True):
+        if int(i) + 1 in skip:
+            continue
+        flags.append(Flag(int(i) + 1, "residual",
+                          f"sensor {SENSORS[j]}: residual {e[i, j]:+.3g} V is {abs(t[i, j]):.3g} times its "
+                          f"standard error (limit {limit:.3g}, studentised)"))
+    return flags, limit
+
+
+def implausible_volts(volts: NDArray[np.float64]) -> None:
+    """Refuse readings no voltmeter can have produced: they would make every statistic infinite."""
+    bad = np.flatnonzero(~np.all(np.abs(volts) <= VOLTS_MAX, axis=1))
+    if len(bad):
+        i = bad[0]
+        more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
+        raise LabcalError(f"reading {i + 1}: ({', '.join(f'{v:.3g}' for v in volts[i])}) V is beyond any "
+                          f"DMM range (|V| ≤ {VOLTS_MAX:g} V){more}; correct or remove it")
+
+
+def calibration_of(fit: Fit) -> Calibration:
+    """What the attitude (and the gravity check) needs from a fit: X, the covariance of (B, S) per
+    sensor, the standard deviation of one new reading and the degrees of freedom."""
+    return Calibration(fit.coefficients, np.stack([fit.covariance(j)[:4, :4] for j in range(3)]),
+                       np.sqrt(fit.new_measurement_variance()), int(np.min(fit.variance_dof)))
+
+
+def fit_flags(readings: Readings, fit: Fit, alpha: float = FAMILY_ALPHA) -> list[Flag]:
+    """Every gross-error check of a calibration's readings, row by row (mount groups first: one missed
+    remount otherwise shows as dozens of gravity and residual flags)."""
+    cal = calibration_of(fit)
+    _, design = fit.model.design(readings_points(readings))
+    mount = mount_flags(readings, alpha)
+    seen = {f.row for f in mount}
+    gravity = [f for f in gravity_flags(cal, readings.volts, lambda i: _describe(readings, i), alpha)
+               if f.row not in seen]
+    seen |= {f.row for f in gravity}
+    residual, _ = residual_flags(design, fit.ls, seen, alpha)
+    return mount + gravity + residual
+
+
+def methods_disagree(closed: Attitude, sphere: Attitude) -> list[Flag]:
+    """Rows where the two estimators differ by more than their combined expanded uncertainty: they
+    agree to first order on any reading of 1 g, so a difference means the reading is not one."""
+    flags = []
+    for name, a, b, ua, ub in (("pitch", closed.pitch, sphere.pitch, closed.u_pitch, sphere.u_pitch),
+                               ("roll", closed.roll, sphere.roll, closed.u_roll, sphere.u_roll)):
+        with np.errstate(all="ignore"):
+            diff = np.abs(np.angle(np.exp(1j * (a - b))))
+            limit = closed.k95 * np.hypot(ua, ub)
+            bad = np.isfinite(diff) & ~(diff <= limit)
+        for i in np.flatnonzero(bad):
+            flags.append(Flag(int(i) + 1, "methods",
+                              f"closed form and sphere solution differ by {np.degrees(diff[i]):.3g}° in "
+                              f"{name} (more than their combined U95, {np.degrees(limit[i]):.2g}°)"))
+    return flags
