@@ -42,7 +42,9 @@ def test_runs_lists_and_filters_and_log_shows_prompts_and_answers(tmp_path, caps
     assert "prompt: mount" in out and "answer: mount: confirmed" in out
     code, out, _ = _run(capsys, monkeypatch, "log", "2", "--json")  # by id
     events = json.loads(out)["events"]
-    assert [e["kind"] for e in events][:2] == ["prompt", "answer"] and all(e["utc"] for e in events)
+    kinds = [e["kind"] for e in events]
+    assert kinds[0] == "segment"  # the run's clock starts (its offset is journaled: issue 16)
+    assert kinds[1:3] == ["prompt", "answer"] and all(e["utc"] for e in events)
 
 
 def test_runs_and_log_without_a_database(tmp_path, capsys, monkeypatch):

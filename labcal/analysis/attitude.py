@@ -129,11 +129,10 @@ def closed_form(cal: Calibration, volts: NDArray[np.float64]) -> Attitude:
     u_p = np.sqrt(np.sum(dp_dv**2 * sigma_v, axis=1))
     u_r = np.sqrt(np.sum(dr_dv**2 * sigma_v, axis=1))
     roll, u_r = _undefined_roll(cal, g, sigma_v, roll, u_r)
-    # Where roll is undefined or |g_x| ≥ 1 (clipped), asin has no useful derivative (1/h: 1e147° at
-    # the clip); pitch there is ±(90° − h), so its error is that of h: rms √(σ_gy² + σ_gz²).
-    var_g = sigma_v @ cal.s_inv**2
-    pole = ~np.isfinite(roll) | (np.abs(g[:, 0]) >= 1.0)
-    u_p = np.where(pole, np.sqrt(var_g[:, 1] + var_g[:, 2]), u_p)
+    # Where roll is undefined |g_x| is within noise of 1, and where |g_x| ≥ 1 it was clipped: asin's
+    # slope is unbounded there, so the closed form's linear uncertainty is meaningless (it read
+    # 1e148°) and is stated as undefined (NaN); the sphere estimator's stays defined.
+    u_p = np.where(~np.isfinite(roll) | (np.abs(g[:, 0]) >= 1.0), np.nan, u_p)
     return Attitude(pitch, roll, u_p, u_r, _k95(cal))
 
 

@@ -65,6 +65,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
     readings = read_readings(args.readings)
     implausible_volts(readings.volts)
     model, chosen = choose_model(args, readings)
+    if model == "device" and args.model is None and fit_flags(readings, fit_readings(readings)):
+        model, chosen = "linear", ("linear model: some readings fail the gross-error checks (listed below); "
+                                   "the device model is fitted only to readings that pass them")
     if model == "device":
         return fit_device_model(args, readings, chosen)
     extend = tuple(e.strip() for e in args.extend.split(",") if e.strip()) if args.extend else ()
