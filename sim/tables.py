@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal.errors import LabcalError
-from labcal.run.ordering import trapezoid_duration
+from labcal.run.motion import trapezoid_duration
 from labcal.sim.clock import RigClock
 
 

@@ -1,0 +1,70 @@
+"""How the tables move and what the instrument's output is left doing when they stop.
+
+Each table runs a trapezoidal velocity profile (triangular when it never reaches full speed); both
+start together, so a move lasts as long as the longer one. The instrument's output follows gravity
+through a first-order lag of time constant τ. Integrating that lag along the trapezoid in closed
+form gives the angle by which the output trails each table when the motion ends:
+
+    accelerating (v = a·t):   L(t) = a·τ·(t − τ·(1 − e^{−t/τ}))
+    cruising (v = V):         L → V·τ + (L − V·τ)·e^{−t/τ}
+    decelerating (v = V − a·t): L → a·τ² + (L − V·τ − a·τ²)·e^{−t/τ}
+
+After a full-speed move the lag left at the stop is a·τ²·(1 − e^{−V/(aτ)}), not the whole step:
+the dead time is sized by it (`labcal.run.settle`), and counted from the end of the motion.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from labcal.analysis.kinematics import Mount, gravity
+
+
+def trapezoid_duration(distance: ArrayLike, speed: float, accel: float) -> NDArray | float:
+    """Time to travel |distance| from rest to rest at peak ``speed`` and acceleration ``accel``
+    (triangular when the table never reaches full speed). The simulated tables move by it too."""
+    d = np.abs(np.asarray(distance, dtype=float))
+    t = np.where(d <= speed**2 / accel, 2 * np.sqrt(d / accel), d / speed + speed / accel)
+    return t if t.ndim else float(t)
+
+
+def shortest_way(a: ArrayLike, b: ArrayLike) -> NDArray:
+    """Signed travel (degrees) from angle(s) a to b the shortest way round."""
+    return (np.asarray(b, dtype=float) - np.asarray(a, dtype=float) + 180.0) % 360.0 - 180.0
+
+
+def move_time(a: ArrayLike, b: ArrayLike, speed: float, accel: float) -> NDArray:
+    """Time to go from attitude(s) a to b (…×2 degrees) with both tables moving together."""
+    return np.max(trapezoid_duration(shortest_way(a, b), speed, accel), axis=-1)
+
+
+def trapezoid_lag(distance: ArrayLike, speed: float, accel: float, tau: float) -> NDArray:
+    """Signed angle (degrees) by which a first-order output of time constant ``tau`` trails a table
+    at the end of its trapezoidal move of ``distance`` (the closed form in the module docstring)."""
+    d = np.abs(np.asarray(distance, dtype=float))
+    peak = np.minimum(speed, np.sqrt(d * accel))
+    t_ramp = peak / accel
+    t_cruise = np.maximum(d / np.where(peak > 0, peak, 1.0) - t_ramp, 0.0)
+    fade_ramp, fade_cruise = np.exp(-t_ramp / tau), np.exp(-t_cruise / tau)
+    lag = accel * tau * (t_ramp - tau * (1 - fade_ramp))
+    lag = peak * tau + (lag - peak * tau) * fade_cruise
+    lag = accel * tau**2 + (lag - peak * tau - accel * tau**2) * fade_ramp
+    return np.sign(np.asarray(distance, dtype=float)) * np.where(d > 0, lag, 0.0)
+
+
+def transient_at_stop(a: ArrayLike, b: ArrayLike, mount: Mount, speed: float, accel: float,
+                      tau: float) -> NDArray:
+    """Largest |output − settled output| over the three sensors, in g, when both tables have
+    stopped after moving from attitude(s) a to b (…×2 degrees) on ``mount``: each table's lag at its
+    own stop, faded until the later table stops, then gravity at the target against gravity at the
+    target less the lag. The instrument is taken as settled when the move starts."""
+    travel = shortest_way(a, b)
+    ends = trapezoid_duration(travel, speed, accel)
+    lag = trapezoid_lag(travel, speed, accel, tau) * np.exp(-(np.max(ends, axis=-1, keepdims=True) - ends) / tau)
+    target = np.radians(np.asarray(b, dtype=float))
+    trailing = target - np.radians(lag)
+    y, u = mount.radians
+    here = gravity(target[..., 0], target[..., 1], y, u)
+    there = gravity(trailing[..., 0], trailing[..., 1], y, u)
+    return np.max(np.abs(here - there), axis=-1)
