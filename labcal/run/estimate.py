@@ -17,8 +17,8 @@ from numpy.typing import NDArray
 from labcal.analysis.kinematics import Mount
 from labcal.analysis.plan import Plan
 from labcal.config.settings import SequencerSettings
-from labcal.run.mounting import CHECK_ATTITUDE
 from labcal.run.motion import move_time, transient_at_stop
+from labcal.run.mounting import CHECK_ATTITUDE
 from labcal.run.sequencer import LOAD_POSITION, Step, schedule
 from labcal.run.settle import dead_time
 

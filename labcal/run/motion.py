@@ -61,7 +61,8 @@ def transient_at_stop(a: ArrayLike, b: ArrayLike, mount: Mount, speed: float, ac
     target less the lag. The instrument is taken as settled when the move starts."""
     travel = shortest_way(a, b)
     ends = trapezoid_duration(travel, speed, accel)
-    lag = trapezoid_lag(travel, speed, accel, tau) * np.exp(-(np.max(ends, axis=-1, keepdims=True) - ends) / tau)
+    faded = np.exp(-(np.max(ends, axis=-1, keepdims=True) - ends) / tau)  # until the later stop
+    lag = trapezoid_lag(travel, speed, accel, tau) * faded
     target = np.radians(np.asarray(b, dtype=float))
     trailing = target - np.radians(lag)
     y, u = mount.radians

@@ -19,9 +19,9 @@ from labcal.config.settings import SequencerSettings
 from labcal.errors import LabcalError
 from labcal.run.interrupts import Interrupts
 from labcal.run.journal import Journal, PointRecord
+from labcal.run.motion import move_time, transient_at_stop
 from labcal.run.mounting import CHECK_ATTITUDE, identify
 from labcal.run.operator import Operator, OperatorDeclined
-from labcal.run.motion import move_time, transient_at_stop
 from labcal.run.ordering import order_points
 from labcal.run.settle import Dwell, dead_time, dwell
 from labcal.run.station import Station, mean_and_sd
