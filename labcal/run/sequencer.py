@@ -19,7 +19,7 @@ from labcal.config.settings import SequencerSettings
 from labcal.errors import LabcalError
 from labcal.run.interrupts import Interrupts
 from labcal.run.journal import Journal, PointRecord
-from labcal.run.motion import move_time, transient_at_stop
+from labcal.run.motion import move_time, transient_at_stop, transient_left
 from labcal.run.mounting import CHECK_ATTITUDE, identify
 from labcal.run.operator import Operator, OperatorDeclined
 from labcal.run.ordering import order_points
@@ -170,8 +170,8 @@ class Sequencer:
     def measure(self, mount: Mount, key: str) -> Dwell:
         """Settle after the last move (sized by the transient it left) and take the window."""
         s, (start, target, motion_end) = self.settings.settle, self._last_move
-        lag_g = float(transient_at_stop(np.array(start), np.array(target), mount, self.settings.speed_dps,
-                                        self.settings.accel_dps2, s.tau_s))
+        lag_g = transient_left(start, target, mount, self.settings.speed_dps, self.settings.accel_dps2,
+                               s.tau_s)
         self.station.at_point(key)
         with self.interrupts.critical():
             result = dwell(self.station.dmm, self.station.clock, lag_g * s.sensitivity_v_per_g, s,
