@@ -5,12 +5,24 @@ from __future__ import annotations
 import argparse
 import sys
 
-from labcal import __version__
 from labcal.commands import attitude, fit, history, plan, report, run, sim, simulate, station
 from labcal.commands.common import EXIT_INTERRUPTED, EXIT_USER_ERROR, err
 from labcal.errors import LabcalError
 
 COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, station, sim)
+
+
+class _Version(argparse.Action):
+    """`--version`, reading the installed version only when asked (importlib.metadata is slow)."""
+
+    def __init__(self, option_strings: list[str], dest: str = argparse.SUPPRESS, **kwargs) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS,
+                         help="show program's version number and exit")
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        from labcal import __version__
+
+        parser.exit(message=f"labcal {__version__}\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -21,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="examples:\n  labcal run --sim --yes\n  labcal fit runs/*/readings.csv --json\n"
                "  labcal plan show four-mount-64",
     )
-    parser.add_argument("--version", action="version", version=f"labcal {__version__}")
+    parser.add_argument("--version", action=_Version)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for group in COMMAND_GROUPS:
         group.register(sub)

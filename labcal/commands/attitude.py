@@ -3,15 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
-import tempfile
-from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from labcal.commands.common import print_json
-from labcal.config.readings_csv import read_numeric_csv
+if TYPE_CHECKING:
+    import numpy as np
 
 METHODS = {"closed": "closed_form", "sphere": "sphere_least_squares"}
 PREFIX = {"closed": "cf_", "sphere": "ls_"}
@@ -19,6 +15,8 @@ ROLL_UNDEFINED = "pitch is ±90° within its uncertainty: gravity lies along x a
 
 
 def _columns(att, prefix: str) -> dict[str, np.ndarray]:
+    import numpy as np
+
     deg = np.degrees
     return {f"{prefix}pitch_deg": deg(att.pitch), f"{prefix}roll_deg": deg(att.roll),
             f"{prefix}u_pitch_deg": deg(att.u_pitch), f"{prefix}u_roll_deg": deg(att.u_roll),
@@ -27,7 +25,15 @@ def _columns(att, prefix: str) -> dict[str, np.ndarray]:
 
 
 def cmd_attitude(args: argparse.Namespace) -> int:
+    import csv
+    import tempfile
+    from pathlib import Path
+
+    import numpy as np
+
     from labcal.analysis import attitude
+    from labcal.commands.common import print_json
+    from labcal.config.readings_csv import read_numeric_csv
     from labcal.documents.certificate import load_calibration
 
     cal = load_calibration(args.cert)

@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-import numpy as np
-from rich.table import Table
-
-from labcal.analysis.models import EXTENSIONS, Points
 from labcal.commands.common import out, print_json
-from labcal.config.readings_csv import read_readings
 from labcal.errors import LabcalError
+
+if TYPE_CHECKING:
+    from rich.table import Table
+
+EXTENSION_NAMES = ("temperature", "harmonics")  # labcal.analysis.models.EXTENSIONS, for the help
 
 
 def parse_at(text: str) -> tuple[float, float, float, float]:
@@ -29,10 +30,13 @@ def parse_at(text: str) -> tuple[float, float, float, float]:
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from labcal.analysis.coning import coning, coning_json
     from labcal.analysis.fit import SENSORS, extension_tests, fit_readings, reference_temperature
-    from labcal.analysis.models import Model
+    from labcal.analysis.models import Model, Points
     from labcal.commands.console import coefficients_with_standard_errors
+    from labcal.config.readings_csv import read_readings
 
     readings = read_readings(args.readings)
     extend = tuple(e.strip() for e in args.extend.split(",") if e.strip()) if args.extend else ()
@@ -78,6 +82,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 
 def coning_table(sensors) -> Table:
+    from rich.table import Table
+
     table = Table(title="Coning model (Tripp eq. 2): v = b + S·(u·g)")
     for col in ("sensor", "b (V)", "S (V/g)", "Ω (°)", "A (°)"):
         table.add_column(col, justify="right")
@@ -92,6 +98,8 @@ def coning_table(sensors) -> Table:
 
 
 def replication_table(rep: dict) -> Table:
+    from rich.table import Table
+
     table = Table(title="Replicated calibration (Tripp Table 2)")
     for col in ("sensor", "σ_prec (V)", "σ_bias (V)", "lack of fit F (df) crit", "offset drift F",
                 "sens. drift F"):
@@ -118,7 +126,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", choices=["linear", "coning"], default="linear",
                    help="linear: Soto's X; coning: per sensor b, S, Ω, A (Tripp eq. 2)")
     p.add_argument("--extend", metavar="NAMES",
-                   help=f"extra regressors, comma-separated: {', '.join(EXTENSIONS)}")
+                   help=f"extra regressors, comma-separated: {', '.join(EXTENSION_NAMES)}")
     p.add_argument("--test-extensions", action="store_true",
                    help="F test whether each extension is warranted")
     p.add_argument("--at", action="append", metavar="PITCH,ROLL[,Y,U]",

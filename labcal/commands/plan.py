@@ -3,31 +3,31 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
-from rich.table import Table
-
 from labcal.commands.common import err, out, print_json
-from labcal.config.plans import load_plan, shipped_plans
+from labcal.config.plans import load_plan, shipped_plan_summaries
 from labcal.errors import LabcalError
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    plans = {name: load_plan(name)[0] for name in shipped_plans()}
+    """Plain text, not a rich table: listing two plans should not cost importing rich."""
+    plans = shipped_plan_summaries()
     if args.json:
-        print_json({"plans": [{"name": n, "description": p.description, "mounts": len(p.mounts),
-                               "points": p.n_points} for n, p in plans.items()]})
+        print_json({"plans": plans})
         return 0
-    table = Table(title="Shipped plans")
-    for col in ("name", "mounts", "points", "description"):
-        table.add_column(col)
-    for name, plan in plans.items():
-        table.add_row(name, str(len(plan.mounts)), str(plan.n_points), plan.description)
-    out.print(table)
+    rows = [("name", "mounts", "points", "description")]
+    rows += [(p["name"], str(p["mounts"]), str(p["points"]), p["description"]) for p in plans]
+    widths = [max(len(r[i]) for r in rows) for i in range(3)]
+    sys.stdout.write("Shipped plans\n" + "".join(
+        f"{r[0]:<{widths[0]}}  {r[1]:>{widths[1]}}  {r[2]:>{widths[2]}}  {r[3]}\n" for r in rows))
     return 0
 
 
 def cmd_show(args: argparse.Namespace) -> int:
+    from rich.table import Table
+
     plan, _ = load_plan(args.plan)
     if args.json:
         print_json(plan.model_dump())
@@ -131,6 +131,8 @@ def plot_merit(plan, calibration_range, usage, path: str) -> None:
 
 
 def cmd_audit(args: argparse.Namespace) -> int:
+    from rich.table import Table
+
     from labcal.analysis.design import LEAK_ZERO, audit, audit_summary
 
     plan, _ = load_plan(args.plan)

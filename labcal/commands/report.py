@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import argparse
-
-from rich.table import Table as RichTable
+from typing import TYPE_CHECKING
 
 from labcal.commands.common import add_db_option, out, print_json
+
+if TYPE_CHECKING:
+    from rich.table import Table as RichTable
 
 
 def rich_table(t) -> RichTable:
     """A report table (`labcal.report.Table`) for the terminal."""
+    from rich.table import Table as RichTable
+
     table = RichTable(title=t.title, caption=t.caption or None)
     for h in t.header:
         table.add_column(h, justify="right")

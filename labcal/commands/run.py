@@ -8,14 +8,13 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from labcal.analysis.plan import Plan
 from labcal.commands.common import EXIT_INTERRUPTED, EXIT_STOPPED, add_db_option, err, out, print_json
-from labcal.config.plans import load_plan
 from labcal.errors import LabcalError
 
 # The run machinery (sequencer, journal, statistics) is imported where it is used, so that the
 # other commands, which import this module to build the parser, do not pay for it at start-up.
 if TYPE_CHECKING:
+    from labcal.analysis.plan import Plan
     from labcal.bench.setup import StationSetup
     from labcal.config.settings import CertificateSettings, SequencerSettings
     from labcal.run.estimate import Estimate
@@ -125,8 +124,9 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from labcal.analysis.plan import Plan
     from labcal.bench.setup import hardware_station, prepare, sim_station
-    from labcal.config.plans import plan_toml
+    from labcal.config.plans import load_plan, plan_toml
     from labcal.run.estimate import estimate
     from labcal.run.journal import Journal, db_path
     from labcal.run.rundir import new_run_dir

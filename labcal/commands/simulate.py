@@ -3,17 +3,19 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-from labcal.analysis.kinematics import MISALIGNMENT_NAMES, IndexWobble, Misalignment
 from labcal.commands.common import err
-from labcal.config.files import load_model
-from labcal.config.plans import load_plan
-from labcal.config.readings_csv import write_readings
 from labcal.errors import LabcalError
+
+if TYPE_CHECKING:
+    from labcal.analysis.kinematics import Misalignment
 
 
 def parse_misalign(text: str) -> Misalignment:
     """'a=0.3,b=-0.2' (degrees) → Misalignment."""
+    from labcal.analysis.kinematics import MISALIGNMENT_NAMES, Misalignment
+
     angles: dict[str, float] = {}
     for part in filter(None, (p.strip() for p in text.split(","))):
         name, sep, value = part.partition("=")
@@ -31,7 +33,11 @@ def parse_misalign(text: str) -> Misalignment:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    from labcal.analysis.kinematics import IndexWobble
     from labcal.config.emulation import InstrumentTruth
+    from labcal.config.files import load_model
+    from labcal.config.plans import load_plan
+    from labcal.config.readings_csv import write_readings
     from labcal.sim.direct import simulate_readings
 
     plan, _ = load_plan(args.plan)
