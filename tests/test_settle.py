@@ -9,6 +9,7 @@ import pytest
 
 from labcal.analysis.kinematics import Mount
 from labcal.config.emulation import RigConfig
+from labcal.analysis.distributions import chi2_quantile
 from labcal.config.settings import SettleSettings
 from labcal.run.motion import transient_at_stop, transient_left, trapezoid_lag
 from labcal.run.settle import dead_time, dwell
@@ -93,3 +94,11 @@ def test_on_the_simulated_rig_a_window_after_a_move_is_biased_by_at_most_the_noi
     bias = np.abs(result.scan.volts.mean(axis=0) - settled)
     assert np.all(bias <= 20e-6 / math.sqrt(10)), bias
     assert t0 < end < rig.clock.now()
+
+
+@pytest.mark.parametrize(("dof", "table"), [(1, 10.828), (2, 13.816), (9, 27.877), (10, 29.588),
+                                            (20, 45.315), (50, 86.661), (100, 149.449)])
+def test_the_scatter_limit_uses_the_published_chi2_quantile(dof, table):
+    """χ²₀.₉₉₉ from the NIST/SEMATECH e-Handbook table 1.3.6.7.4 (three decimals), computed without
+    scipy so that the sequencer does not import it."""
+    assert chi2_quantile(0.999, dof) == pytest.approx(table, abs=5e-4)
