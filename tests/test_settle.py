@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
+from labcal.analysis.distributions import chi2_quantile
 from labcal.analysis.kinematics import Mount
 from labcal.config.emulation import RigConfig
-from labcal.analysis.distributions import chi2_quantile
 from labcal.config.settings import SettleSettings
 from labcal.run.motion import transient_at_stop, transient_left, trapezoid_lag
 from labcal.run.settle import dead_time, dwell
