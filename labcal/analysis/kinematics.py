@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -160,7 +161,9 @@ class IndexWobble:
     wobble_arcsec: float = 0.0
     seed: int = 0
 
+    @cached_property
     def _terms(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Weights and phases, drawn once per table (the simulator asks at every filter step)."""
         rng = np.random.default_rng([self.seed, 0x1DE4])
         weights = rng.dirichlet(np.ones(3), size=6)  # a2 d1 f1 | f3 e1 k1
         phases = rng.uniform(0, 2 * np.pi, size=(6, 3))
@@ -170,7 +173,7 @@ class IndexWobble:
         """The point-dependent part of the misalignments at these table angles (radians)."""
         if self.index_arcsec == 0 and self.wobble_arcsec == 0:
             return NO_MISALIGNMENT
-        weights, phases = self._terms()
+        weights, phases = self._terms
         h = np.arange(1, 4)
         amp = np.array([self.index_arcsec, self.wobble_arcsec, self.wobble_arcsec,
                         self.index_arcsec, self.wobble_arcsec, self.wobble_arcsec]) * ARCSEC

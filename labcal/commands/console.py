@@ -37,6 +37,11 @@ class ProgressDisplay(Display):
             TextColumn("{task.fields[last]}"), console=console, transient=False,
         )
         self.estimates = step_estimates or {}
+        self.after: dict[int, float] = {}  # rig time of the steps after each one: an O(1) ETA per point
+        remaining = sum(self.estimates.values())
+        for seq in sorted(self.estimates):
+            remaining -= self.estimates[seq]
+            self.after[seq] = remaining
         self.task = self.progress.add_task("calibrating", total=total, completed=done, last="",
                                            rig_eta=format_duration(sum(self.estimates.values())))
 
@@ -57,7 +62,7 @@ class ProgressDisplay(Display):
 
     def point_done(self, step: Step, volts: np.ndarray, station_time_s: float, settle_s: float) -> None:
         last = f"p={step.pitch_deg:g}° r={step.roll_deg:g}° settled in {settle_s:.1f} s"
-        remaining = sum(t for seq, t in self.estimates.items() if seq > step.seq)
+        remaining = self.after.get(step.seq, 0.0)
         self.progress.update(self.task, advance=1, last=last, rig_eta=format_duration(remaining))
 
     def message(self, text: str) -> None:

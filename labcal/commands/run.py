@@ -168,19 +168,20 @@ def cmd_run(args: argparse.Namespace) -> int:
             settings = settings.model_copy(update={
                 "move_timeout_s": config.sequencer.move_timeout_s,
                 "position_tolerance_deg": config.sequencer.position_tolerance_deg})
-        est = estimate(plan, settings, setup.timing)
+        steps = schedule(plan, settings)  # once: the estimate, the limits and the run share it
+        est = estimate(plan, settings, setup.timing, steps)
         if args.dry_run:
             print_estimate(plan, est, args.json)
             return 0
         if bench is not None:  # the limits first: homing moves a table too
-            check_limits(setup.station, schedule(plan, settings))
+            check_limits(setup.station, steps)
             prepare(bench, setup.station, err.print)
         operator = make_operator(args)
         run_dir = new_run_dir(args.out, plan)
-        with Journal(db_path(args.db)) as journal:
+        with Journal(db_path(args.db), durable=not args.sim) as journal:
             return run_and_report(args, lambda display: calibrate(
                 plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, display,
-                setup.metadata, args.serial, args.operator), run_dir, plan, est, 0, cert_settings)
+                setup.metadata, args.serial, args.operator, steps), run_dir, plan, est, 0, cert_settings)
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
@@ -212,14 +213,16 @@ def cmd_resume(args: argparse.Namespace) -> int:
                               "station_text": new_text}
         bench = None
         if snapshot is None:
+            ctx.journal.relax()  # a dry run: as when it started
             setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start)
             certificate = CertificateSettings()
         else:
             setup, bench = station_for_resume(snapshot, run_name, stack, start, new_station)
             certificate = (new_station[0] if new_station else snapshot.config).certificate
-        est = estimate(ctx.plan, ctx.settings, setup.timing)
+        steps = schedule(ctx.plan, ctx.settings)
+        est = estimate(ctx.plan, ctx.settings, setup.timing, steps)
         if bench is not None:
-            check_limits(setup.station, schedule(ctx.plan, ctx.settings))
+            check_limits(setup.station, steps)
             prepare(bench, setup.station, err.print)
         operator = make_operator(args)
         ctx.journal.reopen(ctx.run_id)
@@ -227,7 +230,8 @@ def cmd_resume(args: argparse.Namespace) -> int:
                           f"resumed after {len(points)} committed point(s) {on_station}", station_record)
         cert_settings = certificate_settings_for_run(args, certificate, args.station or "the run's station")
         return run_and_report(args, lambda display: execute(
-            ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, display),
+            ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, display,
+            steps),
             run_dir, ctx.plan, est, len(points), cert_settings)
 
 

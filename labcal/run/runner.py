@@ -23,7 +23,7 @@ from labcal.run.interrupts import Interrupts
 from labcal.run.journal import Journal, Manifest, sha256
 from labcal.run.operator import Operator
 from labcal.run.rundir import FIT, PLAN, READINGS, RUN, read_run_json
-from labcal.run.sequencer import Display, RunOutcome, Sequencer, schedule
+from labcal.run.sequencer import Display, RunOutcome, Sequencer, Step, schedule
 from labcal.run.station import Station
 
 MIN_POINTS_FOR_MOUNT_CHECK_FIT = 8
@@ -68,12 +68,13 @@ def _provisional_fit(journal: Journal, run_id: int):
 
 
 def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: Station, operator: Operator,
-            settings: SequencerSettings, display: Display | None = None) -> RunResult:
+            settings: SequencerSettings, display: Display | None = None,
+            steps: list[Step] | None = None) -> RunResult:
     """Run (or go on with) every step not yet in the journal; whatever happens, the journal says
-    how the run ended and the exports are rewritten."""
+    how the run ended and the exports are rewritten. ``steps``: the schedule, if already made."""
     display = display or Display()
     wall0 = time.perf_counter()
-    steps = schedule(plan, settings)
+    steps = schedule(plan, settings) if steps is None else steps
     committed = {p.seq for p in journal.points(run_id)}
     status = "interrupted"
     reason: str | None = "Ctrl-C"
@@ -111,7 +112,7 @@ def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: S
 def calibrate(plan: Plan, plan_text: str, station: Station, station_text: str, operator: Operator,
               settings: SequencerSettings, run_dir: Path, journal: Journal, display: Display | None = None,
               metadata: dict | None = None, serial: str | None = None,
-              operator_name: str | None = None) -> RunResult:
+              operator_name: str | None = None, steps: list[Step] | None = None) -> RunResult:
     """Start a new run: manifest first, then every point."""
     (run_dir / PLAN).write_text(plan_text, encoding="utf-8")
     run_id = journal.start_run(Manifest(
@@ -125,7 +126,7 @@ def calibrate(plan: Plan, plan_text: str, station: Station, station_text: str, o
         "started_utc": datetime.now(UTC).isoformat(timespec="seconds"), "status": "running",
         "settings": settings.model_dump(), **(metadata or {}),
     })
-    return execute(journal, run_id, run_dir, plan, station, operator, settings, display)
+    return execute(journal, run_id, run_dir, plan, station, operator, settings, display, steps)
 
 
 @dataclass(frozen=True)
