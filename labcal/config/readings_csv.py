@@ -114,7 +114,8 @@ def read_numeric_csv(path: str | Path, kind: str, required: tuple[str, ...], opt
     return {c: data[:, k] for k, c in enumerate(wanted)}
 
 
-def _read_clean(path: Path, required: tuple[str, ...], optional: tuple[str, ...]) -> dict[str, NDArray] | None:
+def _read_clean(path: Path, required: tuple[str, ...],
+                optional: tuple[str, ...]) -> dict[str, NDArray] | None:
     """The wanted columns of a clean file by numpy's C parser, or None where it refuses anything
     (a quote, an empty or non-numeric field, a short row, a field too long, bad encoding) or reads
     a value that is not finite: the row-by-row reader then says what and where. The header's last
