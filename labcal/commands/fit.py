@@ -35,7 +35,6 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from labcal.analysis.coning import coning, coning_json
     from labcal.analysis.fit import SENSORS, extension_tests, fit_readings, reference_temperature
     from labcal.analysis.models import Model, Points
-    from labcal.commands.console import coefficients_with_standard_errors
     from labcal.config.readings_csv import read_readings
 
     readings = read_readings(args.readings)
@@ -57,6 +56,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if args.json:
         print_json(doc)
         return 0
+    from labcal.commands.console import coefficients_with_standard_errors
+
     out.print(coefficients_with_standard_errors(fit))
     for note in fit.notes:
         out.print(f"[yellow]note:[/] {note}")

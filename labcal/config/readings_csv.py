@@ -21,7 +21,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal.analysis.readings import Readings
-from labcal.config.files import read_text
 from labcal.errors import LabcalError
 
 REQUIRED = ("replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", "vx", "vy", "vz")
@@ -74,6 +73,8 @@ def read_numeric_csv(path: str | Path, kind: str, required: tuple[str, ...], opt
             return fast
         except LabcalError:
             pass  # say it with the exact line (blank lines are skipped above): read row by row
+    from labcal.config.files import read_text  # pydantic, which a clean file does not need
+
     text = read_text(path, kind)
     if not text.strip():
         raise LabcalError(f"{path}: file is empty; expected a header line {','.join(required)}")

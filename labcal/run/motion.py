@@ -20,7 +20,7 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from labcal.analysis.kinematics import Mount, gravity
+from labcal.analysis.kinematics import Mount, nominal_gravity
 
 
 def trapezoid_duration(distance: ArrayLike, speed: float, accel: float) -> NDArray | float:
@@ -87,8 +87,8 @@ def transient_left(a: tuple[float, float], b: tuple[float, float], mount: Mount,
     roll = start[1] + np.radians(trapezoid_travel(mids, float(travel[1]), speed, accel))
     fade = math.exp(-motion / n / tau)
     weights = (1 - fade) * fade ** np.arange(n - 1, -1, -1)  # x ← g + (x − g)·fade, step by step
-    output = gravity(*start, y, u) * fade**n + weights @ gravity(pitch, roll, y, u)
-    return float(np.max(np.abs(output - gravity(*end, y, u))))
+    output = nominal_gravity(*start, y, u) * fade**n + weights @ nominal_gravity(pitch, roll, y, u)
+    return float(np.max(np.abs(output - nominal_gravity(*end, y, u))))
 
 
 def transient_at_stop(a: ArrayLike, b: ArrayLike, mount: Mount, speed: float, accel: float,
@@ -103,6 +103,6 @@ def transient_at_stop(a: ArrayLike, b: ArrayLike, mount: Mount, speed: float, ac
     target = np.radians(np.asarray(b, dtype=float))
     trailing = target - np.radians(lag)
     y, u = mount.radians
-    here = gravity(target[..., 0], target[..., 1], y, u)
-    there = gravity(trailing[..., 0], trailing[..., 1], y, u)
+    here = nominal_gravity(target[..., 0], target[..., 1], y, u)
+    there = nominal_gravity(trailing[..., 0], trailing[..., 1], y, u)
     return np.max(np.abs(here - there), axis=-1)
