@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from labcal.commands import attitude, fit, history, plan, report, run, sim, simulate, station
@@ -40,10 +41,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE, what a shell reports for a writer whose reader left
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
+    except BrokenPipeError:
+        # the reader has gone (`labcal attitude … | head`): stop quietly; point stdout at devnull so
+        # that the interpreter's own flush at exit does not fail on the closed pipe again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
     except LabcalError as exc:
         err.print(f"[bold red]labcal: error:[/] {exc}")
         return EXIT_USER_ERROR
