@@ -64,7 +64,7 @@ class SimRig:
     def _catch_up(self) -> None:
         self._advance_filter(self.clock.now())
 
-    def lab_temperature(self, t: float) -> float:
+    def lab_temperature(self, t: NDArray | float) -> NDArray | float:
         c = self.config
         return c.lab_temp_c + c.lab_temp_swing_c * np.sin(2 * math.pi * t / (c.lab_temp_period_h * 3600))
 

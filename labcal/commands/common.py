@@ -39,7 +39,7 @@ class _LazyConsole:
         return self._become().__enter__()
 
     def __exit__(self, *exc: object) -> None:
-        self._become().__exit__(*exc)  # type: ignore[arg-type]
+        self._become().__exit__(*exc)
 
 
 out: Console = _LazyConsole(highlight=False)  # type: ignore[assignment]

@@ -66,7 +66,8 @@ class InstrumentTruth(BaseModel):
         """The true coefficients in Soto's layout [Bᵀ; S] (4×3)."""
         return np.vstack([self.B, self.S])
 
-    def static_volts(self, g: NDArray, elapsed_s: float = 0.0, temp_c: float | None = None) -> NDArray:
+    def static_volts(self, g: NDArray, elapsed_s: NDArray | float = 0.0,
+                     temp_c: NDArray | float | None = None) -> NDArray:
         """Noise-free settled output for gravity g (..., 3) after ``elapsed_s`` at ``temp_c`` (each a
         number, or an array of the shape of g without its last axis: a scan of samples at once)."""
         dt = np.asarray(0.0 if temp_c is None else np.asarray(temp_c) - self.t_ref_c)[..., None]

@@ -37,10 +37,10 @@ def trapezoid_travel(t: ArrayLike, distance: float, speed: float, accel: float) 
     total = trapezoid_duration(d, speed, accel)
     peak = min(speed, math.sqrt(d * accel))
     t_acc = peak / accel
-    t = np.clip(np.asarray(t, float), 0.0, total)
-    accel_part = 0.5 * accel * np.minimum(t, t_acc) ** 2
-    cruise = peak * np.clip(t - t_acc, 0.0, max(0.0, total - 2 * t_acc))
-    tail = np.clip(t - (total - t_acc), 0.0, t_acc)
+    since = np.clip(np.asarray(t, float), 0.0, total)
+    accel_part = 0.5 * accel * np.minimum(since, t_acc) ** 2
+    cruise = peak * np.clip(since - t_acc, 0.0, max(0.0, total - 2 * t_acc))
+    tail = np.clip(since - (total - t_acc), 0.0, t_acc)
     decel_part = peak * tail - 0.5 * accel * tail**2
     return math.copysign(1.0, distance) * (accel_part + cruise + decel_part)
 
@@ -87,8 +87,9 @@ def transient_left(a: tuple[float, float], b: tuple[float, float], mount: Mount,
     roll = start[1] + np.radians(trapezoid_travel(mids, float(travel[1]), speed, accel))
     fade = math.exp(-motion / n / tau)
     weights = (1 - fade) * fade ** np.arange(n - 1, -1, -1)  # x ← g + (x − g)·fade, step by step
-    output = nominal_gravity(*start, y, u) * fade**n + weights @ nominal_gravity(pitch, roll, y, u)
-    return float(np.max(np.abs(output - nominal_gravity(*end, y, u))))
+    along = nominal_gravity(pitch, roll, y, u)
+    output = nominal_gravity(start[0], start[1], y, u) * fade**n + weights @ along
+    return float(np.max(np.abs(output - nominal_gravity(end[0], end[1], y, u))))
 
 
 def transient_at_stop(a: ArrayLike, b: ArrayLike, mount: Mount, speed: float, accel: float,
