@@ -369,11 +369,12 @@ FIGURE_DPI = 120  # one raster for the screen and for print (the HTML had 110)
 
 @dataclass(frozen=True)
 class DrawnFigure:
-    """A figure drawn once: its pixels (RGBA) and its PNG, for the HTML and the PDF alike."""
+    """A figure drawn once: its pixels (RGB; the figure is opaque) and its PNG, for the HTML and
+    the PDF alike."""
 
     title: str
     size_in: tuple[float, float]
-    rgba: np.ndarray
+    rgb: np.ndarray
     png: bytes
 
 
@@ -385,10 +386,10 @@ def draw(title: str, fig: Figure) -> DrawnFigure:
     fig.set_dpi(FIGURE_DPI)
     canvas = FigureCanvasAgg(fig)
     canvas.draw()
-    rgba = np.asarray(canvas.buffer_rgba()).copy()
+    rgb = np.asarray(canvas.buffer_rgba())[..., :3].copy()  # no alpha: one image per figure in the PDF
     buf = io.BytesIO()
-    imsave(buf, rgba, format="png")
-    return DrawnFigure(title, tuple(fig.get_size_inches()), rgba, buf.getvalue())
+    imsave(buf, rgb, format="png", pil_kwargs={"compress_level": 1})  # encoding was a third of it
+    return DrawnFigure(title, tuple(fig.get_size_inches()), rgb, buf.getvalue())
 
 
 def _png(fig: DrawnFigure) -> str:
@@ -454,7 +455,7 @@ def render_pdf(cert: Certificate, figs: list[DrawnFigure], path: Path) -> None:
         for fig in figs:
             page = Figure(figsize=fig.size_in)
             ax = page.add_axes((0, 0, 1, 1))
-            ax.imshow(fig.rgba, interpolation="none")  # embedded as drawn, not resampled
+            ax.imshow(fig.rgb, interpolation="none")  # embedded as drawn, not resampled
             ax.set_axis_off()
             page.text(0.01, 0.001, f"{cert.certificate_id} · {fig.title}", fontsize=7, va="bottom")
             pdf.savefig(page)
