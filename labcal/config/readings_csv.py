@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -128,8 +129,10 @@ def _read_clean(path: Path, required: tuple[str, ...],
             return None
         wanted = required + tuple(c for c in optional if c in header)
         columns = sorted({header.index(c) for c in wanted} | {len(header) - 1})
-        data = np.loadtxt(path, delimiter=",", skiprows=1, usecols=columns, ndmin=2, comments=None,
-                          encoding="utf-8-sig", quotechar=None)
+        with warnings.catch_warnings():  # header only: the row-by-row reader says so in one line
+            warnings.simplefilter("ignore", UserWarning)
+            data = np.loadtxt(path, delimiter=",", skiprows=1, usecols=columns, ndmin=2, comments=None,
+                              encoding="utf-8-sig", quotechar=None)
     except (OSError, ValueError, UnicodeDecodeError, csv.Error, StopIteration):
         return None
     if not len(data) or not np.isfinite(data).all():
