@@ -127,6 +127,8 @@ def compare(label: str, plan, text, rig: RigConfig, seed: int) -> None:
                                  Mount(point.y_deg, point.u_deg), rig, settle))
     z = np.abs(detect.fit.coefficients - fixed.fit.coefficients) / fixed.fit.stderr
     retries = sum(p.attempt > 1 for p in points)
+    half_window = settle.samples // 2 * rig.nplc / rig.line_hz
+    slid = sum(t - b > 0.9 * half_window for t, b in zip(per_point, bound, strict=True))
     fixed_retries = sum(p.attempt > 1 for p in fixed_points)
     rig_h = (points[-1].t_end - points[0].t_start) / 3600
     print(f"{label}: {len(points)} points, dry run {wall:.1f} s wall")
@@ -139,7 +141,8 @@ def compare(label: str, plan, text, rig: RigConfig, seed: int) -> None:
     print(f"  rig hours, whole run with settle detection: {rig_h:.2f} h "
           f"(fixed dwell: {(fixed_points[-1].t_end - fixed_points[0].t_start) / 3600:.2f} h)")
     print(f"  coefficients vs the long wait: max {z.max():.3f} SE (target ≤ 0.1); "
-          f"retries: settle detection {retries}, long wait {fixed_retries}; "
+          f"retries: settle detection {retries}, long wait {fixed_retries}; windows slid on (new "
+          f"samples, so new noise) {slid}; "
           f"failed points {sum(p.status != 'ok' for p in points)}")
 
 
