@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import sys
 from typing import NoReturn
 
-from labcal import __version__
 from labcal.commands import (
     attitude,
     certificate,
@@ -40,6 +40,19 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(EXIT_USER_ERROR, f"{self.prog}: error: {message} (usage: {self.prog} --help)\n")
 
 
+class _Version(argparse.Action):
+    """`--version`, reading the installed version only when asked (importlib.metadata is slow)."""
+
+    def __init__(self, option_strings: list[str], dest: str = argparse.SUPPRESS, **kwargs) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS,
+                         help="show program's version number and exit")
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        from labcal import __version__
+
+        parser.exit(message=f"labcal {__version__}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(
         prog="labcal", formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -48,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="examples:\n  labcal run --sim --yes\n  labcal fit runs/*/readings.csv --json\n"
                "  labcal plan show four-mount-64",
     )
-    parser.add_argument("--version", action="version", version=f"labcal {__version__}")
+    parser.add_argument("--version", action=_Version)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for group in COMMAND_GROUPS:
         group.register(sub)
@@ -81,6 +94,9 @@ def _attach_negative_lists(parser: argparse.ArgumentParser, argv: list[str]) -> 
     return joined
 
 
+EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE, what a shell reports for a writer whose reader left
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
@@ -90,6 +106,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with logging_to(args.log_file, args.log_level):
             return args.func(args)
+    except BrokenPipeError:
+        # the reader has gone (`labcal attitude … | head`): stop quietly; point stdout at devnull so
+        # that the interpreter's own flush at exit does not fail on the closed pipe again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
     except LabcalError as exc:
         err.print(f"[bold red]labcal: error:[/] {exc}")
         return EXIT_USER_ERROR

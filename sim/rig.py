@@ -64,9 +64,9 @@ class SimRig:
     def _catch_up(self) -> None:
         self._advance_filter(self.clock.now())
 
-    def lab_temperature(self, t: float) -> float:
+    def lab_temperature(self, t: NDArray | float) -> NDArray | float:
         c = self.config
-        return c.lab_temp_c + c.lab_temp_swing_c * math.sin(2 * math.pi * t / (c.lab_temp_period_h * 3600))
+        return c.lab_temp_c + c.lab_temp_swing_c * np.sin(2 * math.pi * t / (c.lab_temp_period_h * 3600))
 
     def _advance_filter(self, t: float) -> None:
         """Carry the instrument's first-order output response forward to time t.
@@ -96,22 +96,37 @@ class SimRig:
     def read(self, n_samples: int) -> Scan:
         """n consecutive DMM samples (implements `labcal.station.Voltmeter`)."""
         t_int = self.config.nplc / self.config.line_hz
-        times = np.empty(n_samples)
-        for i in range(n_samples):
-            times[i] = self.clock.now() + 0.5 * t_int
-            self.clock.sleep(t_int)
+        times = self.clock.now() + (np.arange(n_samples) + 0.5) * t_int
+        self.clock.sleep(n_samples * t_int)
         return self.sample_at(times)
 
     def sample_at(self, times: NDArray) -> Scan:
         """The instrument's outputs (noise included) and the lab temperature at the given rig
         times, which must not decrease and not precede earlier samples (the output filter only
         runs forward). Emulated DMMs sample each channel at its own time through this."""
+        times = np.asarray(times, dtype=float)
+        if len(times) and not (self.pitch.moving_between(self._t_filter, times[-1])
+                               or self.roll.moving_between(self._t_filter, times[-1])):
+            return self._still_scan(times)
         volts = np.empty((len(times), 3))
         temps = np.empty(len(times))
         for i, t in enumerate(times):
             self._advance_filter(t)
             temps[i] = self.lab_temperature(t)
             volts[i] = self.instrument.static_volts(self._g_filtered, t, temps[i])
+        volts += self._noise.normal(0.0, self.instrument.noise_v, size=volts.shape)
+        return Scan(volts=volts, temp_c=temps)
+
+    def _still_scan(self, times: NDArray) -> Scan:
+        """`sample_at` while both tables stand still, in closed form: the output relaxes towards the
+        still gravity u as u + (x − u)·e^{−(t − t₀)/τ}, every sample at once."""
+        self._advance_filter(float(times[0]))
+        u = self._still_gravity(float(self.pitch.angle_at(times[0])), float(self.roll.angle_at(times[0])))
+        fade = np.exp(-(times - times[0]) / self.instrument.tau_s)[:, None]
+        outputs = u + (self._g_filtered - u) * fade
+        self._g_filtered, self._t_filter = outputs[-1], float(times[-1])
+        temps = np.asarray(self.lab_temperature(times), dtype=float)
+        volts = self.instrument.static_volts(outputs, times, temps)
         volts += self._noise.normal(0.0, self.instrument.noise_v, size=volts.shape)
         return Scan(volts=volts, temp_c=temps)
 

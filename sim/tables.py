@@ -9,22 +9,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal.errors import LabcalError
-from labcal.run.ordering import trapezoid_duration
+from labcal.run.motion import trapezoid_duration, trapezoid_travel
 from labcal.sim.clock import RigClock
 
-
-def trapezoid_travel(t: NDArray, distance: float, speed: float, accel: float) -> NDArray:
-    """Signed travel at times t since the move began (clipped to the move)."""
-    d = abs(distance)
-    total = trapezoid_duration(d, speed, accel)
-    peak = min(speed, math.sqrt(d * accel))
-    t_acc = peak / accel
-    t = np.clip(np.asarray(t, float), 0.0, total)
-    accel_part = 0.5 * accel * np.minimum(t, t_acc) ** 2
-    cruise = peak * np.clip(t - t_acc, 0.0, max(0.0, total - 2 * t_acc))
-    tail = np.clip(t - (total - t_acc), 0.0, t_acc)
-    decel_part = peak * tail - 0.5 * accel * tail**2
-    return math.copysign(1.0, distance) * (accel_part + cruise + decel_part)
+__all__ = ["SimAxis", "trapezoid_duration", "trapezoid_travel"]  # the tables move by labcal's profile
 
 
 class SimAxis:

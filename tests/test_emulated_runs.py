@@ -100,7 +100,7 @@ def test_a_port_that_never_comes_back_pauses_safely_and_resume_finishes(tmp_path
     meta = json.loads((run_dir / "run.json").read_text())
     assert meta["status"] == "stopped" and meta["points_recorded"] == len(before)
 
-    answers.write_text("y\ny\n")  # confirm the mount to resume, then the remaining mount(s)
+    answers.write_text("y\ny\ny\n")  # confirm the mount to resume, then the remaining mount(s)
     code, out, err = cli(capsys, "resume", str(run_dir), "--answers", str(answers), "--json", "--no-report")
     assert code == 0, err
     after = readings(run_dir)

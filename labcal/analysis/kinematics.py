@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -153,6 +154,19 @@ def gravity(
     return device_matrix(pitch, roll, y, u, mis)[..., 2, :]
 
 
+def nominal_gravity(pitch: ArrayLike, roll: ArrayLike, y: ArrayLike, u: ArrayLike) -> NDArray[np.float64]:
+    """`gravity` with every misalignment zero, in closed form: row 3 of prot[p]·rrot[r] is
+    [sin p, cos p sin r, cos p cos r] (§2), then turned by yrot[y]·rrot[u]. The fit asks it for
+    every reading; the ten stacked 3×3 products of the general chain cost a million-row file
+    seconds and gigabytes."""
+    p, r, y, u = (np.asarray(a, dtype=float) for a in (pitch, roll, y, u))
+    cp = np.cos(p)
+    a0, a1, a2 = np.sin(p), cp * np.sin(r), cp * np.cos(r)
+    cy, sy, cu, su = np.cos(y), np.sin(y), np.cos(u), np.sin(u)
+    b1 = a0 * sy + a1 * cy
+    return np.stack(np.broadcast_arrays(a0 * cy - a1 * sy, b1 * cu + a2 * su, a2 * cu - b1 * su), axis=-1)
+
+
 @dataclass(frozen=True)
 class Mount:
     """One of the four mounting orientations (Soto Table 3), in degrees."""
@@ -178,7 +192,7 @@ def mount_gravity(pitch_deg: float, roll_deg: float, mount: Mount) -> NDArray[np
     """Nominal gravity at table angles in degrees on one mount: what the run machinery expects at a
     point (degrees at the edge, radians inside)."""
     y, u = mount.radians
-    return gravity(math.radians(pitch_deg), math.radians(roll_deg), y, u)
+    return nominal_gravity(math.radians(pitch_deg), math.radians(roll_deg), y, u)
 
 
 MOUNTS = (Mount(0, 0), Mount(180, 0), Mount(0, 180), Mount(180, 180))
@@ -198,7 +212,9 @@ class IndexWobble:
     wobble_arcsec: float = 0.0
     seed: int = 0
 
+    @cached_property
     def _terms(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Weights and phases, drawn once per table (the simulator asks at every filter step)."""
         rng = np.random.default_rng([self.seed, 0x1DE4])
         weights = rng.dirichlet(np.ones(3), size=6)  # a2 d1 f1 | f3 e1 k1
         phases = rng.uniform(0, 2 * np.pi, size=(6, 3))
@@ -208,7 +224,7 @@ class IndexWobble:
         """The point-dependent part of the misalignments at these table angles (radians)."""
         if self.index_arcsec == 0 and self.wobble_arcsec == 0:
             return NO_MISALIGNMENT
-        weights, phases = self._terms()
+        weights, phases = self._terms
         h = np.arange(1, 4)
         amp = np.array([self.index_arcsec, self.wobble_arcsec, self.wobble_arcsec,
                         self.index_arcsec, self.wobble_arcsec, self.wobble_arcsec]) * ARCSEC

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from labcal.analysis.kinematics import gravity
+from labcal.analysis.kinematics import nominal_gravity
 from labcal.errors import LabcalError
 
 BASE_NAMES = ("B", "S_x", "S_y", "S_z")
@@ -39,8 +39,8 @@ class Points:
         return cls(p, r, y, u, t)
 
     def nominal_gravity(self) -> NDArray[np.float64]:
-        return gravity(np.radians(self.pitch_deg), np.radians(self.roll_deg), np.radians(self.y_deg),
-                       np.radians(self.u_deg))
+        return nominal_gravity(np.radians(self.pitch_deg), np.radians(self.roll_deg),
+                               np.radians(self.y_deg), np.radians(self.u_deg))
 
 
 def _temperature(points: Points, t_ref: float) -> tuple[tuple[str, ...], NDArray[np.float64]]:

@@ -10,7 +10,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import solve_triangular
 
 from labcal.errors import LabcalError
 
@@ -75,7 +74,9 @@ def least_squares(design: NDArray[np.float64], observations: NDArray[np.float64]
             f"the points do not determine all {n_coef} coefficients (the design is singular); "
             "spread the points over more pitch and roll angles"
         )
-    r_inv = solve_triangular(r, np.eye(n_coef)) / scale[:, None]
+    # R is upper triangular: LU with partial pivoting never swaps a row and is back substitution
+    # (the same numbers as a triangular solve, without importing scipy.linalg for it)
+    r_inv = np.linalg.solve(r, np.eye(n_coef)) / scale[:, None]
     coef = r_inv @ (q.T @ observations)
     residuals = observations - design @ coef
     return LeastSquares(coef=coef, cov_unscaled=r_inv @ r_inv.T, residuals=residuals)

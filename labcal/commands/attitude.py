@@ -3,22 +3,23 @@
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
-import tempfile
-from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
+if TYPE_CHECKING:
+    import numpy as np
 
-from labcal.commands.common import outcome_of_checks, print_json
-from labcal.config.readings_csv import read_numeric_csv
+from labcal.commands.common import outcome_of_checks
 
+CHUNK_ROWS = 10_000  # rows formatted and written at a time: output memory stays flat
 METHODS = {"closed": "closed_form", "sphere": "sphere_least_squares"}
 PREFIX = {"closed": "cf_", "sphere": "ls_"}
 ROLL_UNDEFINED = "pitch is ±90° within its uncertainty: gravity lies along x and roll is undefined"
 
 
 def _columns(att, prefix: str) -> dict[str, np.ndarray]:
+    import numpy as np
+
     deg = np.degrees
     return {f"{prefix}pitch_deg": deg(att.pitch), f"{prefix}roll_deg": deg(att.roll),
             f"{prefix}u_pitch_deg": deg(att.u_pitch), f"{prefix}u_roll_deg": deg(att.u_roll),
@@ -27,7 +28,13 @@ def _columns(att, prefix: str) -> dict[str, np.ndarray]:
 
 
 def cmd_attitude(args: argparse.Namespace) -> int:
+    import tempfile
+    from pathlib import Path
+
+    import numpy as np
+
     from labcal.analysis import attitude
+    from labcal.config.readings_csv import read_numeric_csv
     from labcal.documents.certificate import load_calibration
 
     cal = load_calibration(args.cert)
@@ -53,25 +60,52 @@ def cmd_attitude(args: argparse.Namespace) -> int:
     table = {k: v for m in methods for k, v in _columns(results[m], PREFIX[m]).items()}
     k95 = next(iter(results.values())).k95
     if args.json:
+        write_json_rows(table, methods, k95, cal.dof, flags)
+    else:
+        write_csv_rows(table)
+    return outcome_of_checks(flags, args.allow_outliers, args.csv or "standard input")
+
+
+def write_csv_rows(table: dict[str, np.ndarray]) -> None:
+    """The columns as CSV, a chunk of rows per write; a non-finite value is an empty cell."""
+    import numpy as np
+
+    sys.stdout.write(",".join(["row", *table]) + "\n")
+    values = np.column_stack(list(table.values()))
+    line = "%d" + ",%.9g" * values.shape[1] + "\n"
+    for start in range(0, len(values), CHUNK_ROWS):
+        chunk = values[start:start + CHUNK_ROWS]
+        finite = np.isfinite(chunk).all(axis=1)
+        sys.stdout.write("".join(
+            line % (start + i + 1, *row) if finite[i]
+            else ",".join([str(start + i + 1), *(f"{v:.9g}" if np.isfinite(v) else "" for v in row)]) + "\n"
+            for i, row in enumerate(chunk.tolist())))
+
+
+def write_json_rows(table: dict[str, np.ndarray], methods: list[str], k95: float, dof: int, flags: list
+                    ) -> None:
+    """One JSON document, streamed: the rows are formatted a chunk at a time, never all held as
+    Python objects (a hundred thousand rows of dicts took 700 MiB)."""
+    import json
+    import math
+
+    names = {m: [k for k in table if k.startswith(PREFIX[m])] for m in methods}
+    sys.stdout.write(json.dumps({"coverage_factor_95": k95, "degrees_of_freedom": dof})[:-1] + ', "rows": [')
+    n = len(next(iter(table.values())))
+    for start in range(0, n, CHUNK_ROWS):
+        chunk = {k: v[start:start + CHUNK_ROWS].tolist() for k, v in table.items()}
         rows = []
-        for i in range(len(volts)):
+        for i in range(len(chunk[next(iter(chunk))])):
             row = {}
             for m in methods:
-                values = {k.removeprefix(PREFIX[m]): table[k][i] for k in table if k.startswith(PREFIX[m])}
-                values = {k: (None if not np.isfinite(v) else float(v)) for k, v in values.items()}
+                values = {k.removeprefix(PREFIX[m]): chunk[k][i] for k in names[m]}
+                values = {k: (v if math.isfinite(v) else None) for k, v in values.items()}
                 if values["roll_deg"] is None:
                     values["roll_note"] = ROLL_UNDEFINED
                 row[METHODS[m]] = values
-            rows.append(row)
-        print_json({"coverage_factor_95": k95, "degrees_of_freedom": cal.dof, "rows": rows,
-                    "gross_errors": [f.to_json() for f in flags]})
-        return outcome_of_checks(flags, args.allow_outliers, args.csv or "standard input")
-    writer = csv.writer(sys.stdout)
-    writer.writerow(["row", *table])
-    for i in range(len(volts)):
-        cells = ("" if not np.isfinite(column[i]) else f"{column[i]:.9g}" for column in table.values())
-        writer.writerow([i + 1, *cells])
-    return outcome_of_checks(flags, args.allow_outliers, args.csv or "standard input")
+            rows.append(json.dumps(row))
+        sys.stdout.write(("\n" if start == 0 else ",\n") + ",\n".join(rows))
+    sys.stdout.write("\n], \"gross_errors\": " + json.dumps([f.to_json() for f in flags]) + "}\n")
 
 
 def register(sub: argparse._SubParsersAction) -> None:

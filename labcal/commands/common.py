@@ -3,26 +3,57 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
-from rich.console import Console
-
-from labcal.config.files import json_safe
+if TYPE_CHECKING:
+    from rich.console import Console
 
 EXIT_USER_ERROR = 2
 EXIT_STOPPED = 1
 EXIT_INTERRUPTED = 130
 TIME_SCALE_HELP = "emulated seconds per wall-clock second (default: the station file's [emulation])"
 
-out = Console(highlight=False)
-err = Console(stderr=True, highlight=False, soft_wrap=True)  # prose: the terminal wraps it
+
+
+class _LazyConsole:
+    """A rich Console made on first use: importing rich costs every command, `--help` included,
+    a tenth of a second, and most never print through it. On first use the object becomes the
+    Console itself, so that whatever rich does with it (context managers, identity) just works."""
+
+    def __init__(self, **options: Any):
+        self._options = options
+
+    def _become(self) -> Console:
+        from rich.console import Console
+
+        options = self.__dict__.pop("_options")
+        self.__class__ = Console  # type: ignore[assignment]
+        Console.__init__(self, **options)  # type: ignore[arg-type]
+        return self  # type: ignore[return-value]
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._become(), name)
+
+    def __enter__(self) -> Console:
+        return self._become().__enter__()
+
+    def __exit__(self, *exc: object) -> None:
+        self._become().__exit__(*exc)
+
+
+out: Console = _LazyConsole(highlight=False)  # type: ignore[assignment]
+err: Console = _LazyConsole(stderr=True, highlight=False, soft_wrap=True)  # type: ignore[assignment]  # prose: the terminal wraps it
 
 
 def print_json(doc: dict) -> None:
     """One JSON document on stdout and nothing else (`--json`)."""
+    import json
+
+    from labcal.config.files import json_safe
+
     sys.stdout.write(json.dumps(json_safe(doc), indent=2) + "\n")
 
 
@@ -66,15 +97,23 @@ SEED = bounded(int, 0, 2**32 - 1)
 TIME_SCALE = bounded(float, 0, 100_000, lo_open=True)  # what the emulators accept (sim/emulation.py)
 
 
-def bounded_field(model: type, field: str) -> Callable[[str], float]:
+def bounded_field(model: str, field: str) -> Callable[[str], float]:
     """``bounded`` with the range of a pydantic model's field (its ge/gt/le/lt), so that the option
-    and the file setting it overrides accept the same values."""
-    info = model.model_fields[field]  # type: ignore[attr-defined]
-    kind = int if info.annotation is int else float
-    limits = {name: getattr(m, name) for m in info.metadata for name in ("ge", "gt", "le", "lt")
-              if hasattr(m, name)}
-    return bounded(kind, limits.get("ge", limits.get("gt")), limits.get("le", limits.get("lt")),
-                   lo_open="gt" in limits, hi_open="lt" in limits)
+    and the file setting it overrides accept the same values. ``model`` is "module:Class", imported
+    only when the option is given: building the parser (`--help`) must not import pydantic."""
+
+    def convert(text: str) -> float:
+        import importlib
+
+        module, _, name = model.partition(":")
+        info = getattr(importlib.import_module(module), name).model_fields[field]
+        kind = int if info.annotation is int else float
+        limits = {n: getattr(m, n) for m in info.metadata for n in ("ge", "gt", "le", "lt") if hasattr(m, n)}
+        return bounded(kind, limits.get("ge", limits.get("gt")), limits.get("le", limits.get("lt")),
+                       lo_open="gt" in limits, hi_open="lt" in limits)(text)
+
+    convert.__name__ = "a number"
+    return convert
 
 
 def outcome_of_checks(flags, allowed: bool, source: str) -> int:

@@ -51,6 +51,12 @@ class ProgressDisplay(Display):
             TextColumn("{task.fields[last]}"), console=console, transient=False,
         )
         self.estimates = step_estimates or {}
+        # rig time of the steps after each one: an O(1) ETA per point
+        self.after: dict[int, float] = {}
+        remaining = sum(self.estimates.values())
+        for seq in sorted(self.estimates):
+            remaining -= self.estimates[seq]
+            self.after[seq] = remaining
         # on resume, only what remains: the steps after the `done` first ones of the schedule
         remaining = sum(t for _, t in sorted(self.estimates.items())[done:])
         self.task = self.progress.add_task("calibrating", total=total, completed=done, last="", rig="–",
@@ -74,7 +80,7 @@ class ProgressDisplay(Display):
 
     def point_done(self, step: Step, volts: np.ndarray, station_time_s: float, settle_s: float) -> None:
         last = f"p={step.pitch_deg:g}° r={step.roll_deg:g}° {settle_s:.1f} s"
-        remaining = sum(t for seq, t in self.estimates.items() if seq > step.seq)
+        remaining = self.after.get(step.seq, 0.0)
         self.progress.update(self.task, advance=1, last=last, rig=clock(station_time_s),
                              rig_eta=clock(remaining))
 

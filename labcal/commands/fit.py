@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import argparse
 import math
+from typing import TYPE_CHECKING
 
-import numpy as np
-from rich.table import Table
-
-from labcal.analysis.coning import OMEGA_NEAR_ZERO
-from labcal.analysis.models import EXTENSIONS, Points
 from labcal.commands.common import bounded, out, outcome_of_checks, print_json
-from labcal.config.readings_csv import read_readings
 from labcal.errors import LabcalError
+
+if TYPE_CHECKING:
+    from rich.table import Table
+
+EXTENSION_NAMES = ("temperature", "harmonics")  # labcal.analysis.models.EXTENSIONS, for the help
 
 
 def parse_at(text: str) -> tuple[float, float, float, float]:
@@ -51,16 +51,19 @@ def choose_model(args: argparse.Namespace, readings) -> tuple[str, str | None]:
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from labcal.analysis.coning import coning, coning_json
     from labcal.analysis.distributions import t_quantile
     from labcal.analysis.fit import SENSORS, extension_tests, fit_readings, reference_temperature
     from labcal.analysis.gross_errors import fit_flags, implausible_volts
-    from labcal.analysis.models import Model
+    from labcal.analysis.models import Model, Points
     from labcal.commands.console import (
         coefficients_with_standard_errors,
         extension_terms,
         with_standard_error,
     )
+    from labcal.config.readings_csv import read_readings
 
     readings = read_readings(args.readings)
     implausible_volts(readings.volts)
@@ -175,7 +178,9 @@ def index_error_text(doc: dict | None) -> str:
 
 def coning_table(sensors) -> Table:
     from rich import box
+    from rich.table import Table
 
+    from labcal.analysis.coning import OMEGA_NEAR_ZERO
     from labcal.commands.console import with_standard_error
 
     table = Table(title="Coning model (Tripp eq. 2): v = b + S·(u·g), ± u (k=1)", box=box.SIMPLE_HEAD,
@@ -196,6 +201,8 @@ def coning_table(sensors) -> Table:
 
 
 def replication_table(rep: dict) -> Table:
+    from rich.table import Table
+
     table = Table(title="Replicated calibration (Tripp Table 2)")
     for col in ("sensor", "σ_prec (V)", "σ_bias (V)", "lack of fit F (df) crit", "offset drift F",
                 "sens. drift F"):
@@ -224,7 +231,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "with the calibration device's misalignments a, b, d, e, f, k (default: device when "
                         "the plan identifies all six, else linear; a note says which and why)")
     p.add_argument("--extend", metavar="NAMES",
-                   help=f"extra regressors, comma-separated: {', '.join(EXTENSIONS)}")
+                   help=f"extra regressors, comma-separated: {', '.join(EXTENSION_NAMES)}")
     p.add_argument("--index-errors", action="store_true",
                    help="device model: also estimate each visited pitch and roll angle's index error "
                         "(zero mean per table, where identifiable) with its F test against the device model")

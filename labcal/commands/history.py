@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import argparse
 
-from rich.table import Table
-
 from labcal.commands.common import add_db_option, out, print_json
 
 
 def cmd_history(args: argparse.Namespace) -> int:
+    from rich.table import Table
+
     from labcal.analysis.fit import ROW_NAMES, SENSORS
     from labcal.documents.certificate import format_result
     from labcal.documents.history import RULE, certificates_for, changes, history_json, plot_history

@@ -3,32 +3,35 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from rich.table import Table
-
-from labcal.analysis.plan import Plan
 from labcal.commands.common import bounded, bounded_field, err, out, print_json
-from labcal.config.plans import load_plan, shipped_plans
+from labcal.config.plans import load_plan, shipped_plan_summaries
 from labcal.errors import LabcalError
+
+if TYPE_CHECKING:
+    from rich.table import Table
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    plans = {name: load_plan(name)[0] for name in shipped_plans()}
+    """Plain text, not a rich table: listing two plans should not cost importing rich."""
+    plans = shipped_plan_summaries()
     if args.json:
-        print_json({"plans": [{"name": n, "description": p.description, "mounts": len(p.mounts),
-                               "points": p.n_points} for n, p in plans.items()]})
+        print_json({"plans": plans})
         return 0
-    table = Table(title="Shipped plans")
-    for col in ("name", "mounts", "points", "description"):
-        table.add_column(col)
-    for name, plan in plans.items():
-        table.add_row(name, str(len(plan.mounts)), str(plan.n_points), plan.description)
-    out.print(table)
+    rows = [("name", "mounts", "points", "description")]
+    rows += [(p["name"], str(p["mounts"]), str(p["points"]), p["description"]) for p in plans]
+    widths = [max(len(r[i]) for r in rows) for i in range(3)]
+    sys.stdout.write("Shipped plans\n" + "".join(
+        f"{r[0]:<{widths[0]}}  {r[1]:>{widths[1]}}  {r[2]:>{widths[2]}}  {r[3]}\n" for r in rows))
     return 0
 
 
 def cmd_show(args: argparse.Namespace) -> int:
+    from rich.table import Table
+
     plan, _ = load_plan(args.plan)
     if args.json:
         print_json(plan.model_dump())
@@ -53,6 +56,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from labcal.analysis import design
+    from labcal.analysis.plan import Plan
     from labcal.config.files import one_line
     from labcal.config.plans import plan_toml
 
@@ -151,6 +155,8 @@ def plot_merit(plan, calibration_range, usage, path: str) -> None:
 
 
 def cmd_audit(args: argparse.Namespace) -> int:
+    from rich.table import Table
+
     from labcal.analysis.design import LEAK_ZERO, audit, audit_summary
     from labcal.analysis.device_model import Geometry, identifiability
 
@@ -186,6 +192,8 @@ def cmd_audit(args: argparse.Namespace) -> int:
 def identifiability_table(name: str, ident) -> Table:
     """Rank, condition and each misalignment's uncertainty per µg of reading noise (issue 12)."""
     import math
+
+    from rich.table import Table
 
     condition = "∞" if math.isinf(ident.condition) else f"{ident.condition:.3g}"
     table = Table(title=f"{name}: identifiability of the device model (rank {ident.rank} of 18, "
@@ -239,7 +247,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     common.add_argument("--name", help="plan name (default: the file name)")
     common.add_argument("--four-mounts", action="store_true", help="cross the design with the four mounts")
     common.add_argument("--json", action="store_true", help="print what was written as JSON on stdout")
-    common.add_argument("--replicates", type=bounded_field(Plan, "replicates"), default=1,
+    common.add_argument("--replicates", type=bounded_field("labcal.analysis.plan:Plan", "replicates"),
+                        default=1,
                         help="replicates, 1..100 (default %(default)s)")
     d = designs.add_parser("d1", parents=[common], help="N uniform pitches in ±α_max × M uniform rolls")
     d.add_argument("--pitch-max", type=PITCH_MAX, required=True, help="α_max (°), 0 < α_max ≤ 180")

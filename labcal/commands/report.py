@@ -3,17 +3,20 @@
 from __future__ import annotations
 
 import argparse
-
-from rich.table import Table as RichTable
+from typing import TYPE_CHECKING
 
 from labcal.commands.common import add_db_option, bounded, err, out, print_json
 from labcal.errors import LabcalError
+
+if TYPE_CHECKING:
+    from rich.table import Table as RichTable
 
 
 def rich_table(t) -> RichTable:
     """A report table (`labcal.report.Table`) for the terminal. Its text is the report's, not rich
     markup: escaped, so that "[certificate]" (a station file's section) is printed, not eaten."""
     from rich.markup import escape
+    from rich.table import Table as RichTable
 
     table = RichTable(title=escape(t.title), caption=escape(t.caption) if t.caption else None)
     for h in t.header:

@@ -8,7 +8,6 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from labcal.analysis.plan import Plan
 from labcal.commands.common import (
     EXIT_INTERRUPTED,
     EXIT_STOPPED,
@@ -21,13 +20,12 @@ from labcal.commands.common import (
     out,
     print_json,
 )
-from labcal.config.plans import load_plan
-from labcal.config.settings import SettleSettings
 from labcal.errors import LabcalError
 
 # The run machinery (sequencer, journal, statistics) is imported where it is used, so that the
 # other commands, which import this module to build the parser, do not pay for it at start-up.
 if TYPE_CHECKING:
+    from labcal.analysis.plan import Plan
     from labcal.bench.setup import StationSetup
     from labcal.config.settings import CertificateSettings, SequencerSettings
     from labcal.run.estimate import Estimate
@@ -37,7 +35,7 @@ if TYPE_CHECKING:
 def sequencer_settings_for_run(args: argparse.Namespace, setup: StationSetup, speed: float = 20.0,
                                accel: float = 40.0) -> SequencerSettings:
     from labcal.config.files import validate_model
-    from labcal.config.settings import SequencerSettings
+    from labcal.config.settings import SequencerSettings, SettleSettings
 
     settle = validate_model({**setup.settle.model_dump(), **{
         k: v for k, v in (("samples", args.samples), ("fixed_dwell_s", args.fixed_dwell),
@@ -162,8 +160,9 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from labcal.analysis.plan import Plan
     from labcal.bench.setup import hardware_station, prepare, sim_station
-    from labcal.config.plans import plan_toml
+    from labcal.config.plans import load_plan, plan_toml
     from labcal.run.estimate import estimate
     from labcal.run.interrupts import stop_signals_raise
     from labcal.run.journal import Journal, db_path
@@ -207,20 +206,21 @@ def cmd_run(args: argparse.Namespace) -> int:
             settings = settings.model_copy(update={
                 "move_timeout_s": config.sequencer.move_timeout_s,
                 "position_tolerance_deg": config.sequencer.position_tolerance_deg})
-        est = estimate(plan, settings, setup.timing)
+        steps = schedule(plan, settings)  # once: the estimate, the limits and the run share it
+        est = estimate(plan, settings, setup.timing, steps)
         if args.dry_run:
             print_estimate(plan, est, args.json)
             return 0
         if bench is not None:  # the limits first: homing moves a table too
-            check_limits(setup.station, schedule(plan, settings))
+            check_limits(setup.station, steps)
             prepare(bench, setup.station, err.print)
             setup.metadata["device_identity"] = bench.identities  # the manifest's metadata and run.json
         operator = make_operator(args)
         run_dir = new_run_dir(args.out, plan)
-        with Journal(db_path(args.db)) as journal:
+        with Journal(db_path(args.db), durable=not args.sim) as journal:
             return run_and_report(args, lambda display: calibrate(
                 plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, display,
-                setup.metadata, args.serial, args.operator), run_dir, plan, est, 0, cert_settings)
+                setup.metadata, args.serial, args.operator, steps), run_dir, plan, est, 0, cert_settings)
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
@@ -261,14 +261,16 @@ def cmd_resume(args: argparse.Namespace) -> int:
                               "station_text": new_text}
         bench = None
         if snapshot is None:
+            ctx.journal.relax()  # a dry run: as when it started
             setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start)
             certificate = CertificateSettings()
         else:
             setup, bench = station_for_resume(snapshot, run_name, stack, start, new_station)
             certificate = (new_station[0] if new_station else snapshot.config).certificate
-        est = estimate(ctx.plan, ctx.settings, setup.timing)
+        steps = schedule(ctx.plan, ctx.settings)
+        est = estimate(ctx.plan, ctx.settings, setup.timing, steps)
         if bench is not None:
-            check_limits(setup.station, schedule(ctx.plan, ctx.settings))
+            check_limits(setup.station, steps)
             prepare(bench, setup.station, err.print)
         operator = make_operator(args)
         ctx.journal.reopen(ctx.run_id)
@@ -279,7 +281,8 @@ def cmd_resume(args: argparse.Namespace) -> int:
                               bench.identities)
         cert_settings = certificate_settings_for_run(args, certificate, args.station or "the run's station")
         return run_and_report(args, lambda display: execute(
-            ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, display),
+            ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, display,
+            steps),
             run_dir, ctx.plan, est, len(points), cert_settings)
 
 
@@ -333,7 +336,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--time-scale", type=TIME_SCALE, metavar="X",
                    help="with --emulate: emulated seconds per wall second (default: the station's)")
     p.add_argument("--plan", default="four-mount-64", help="plan name or .toml file (default %(default)s)")
-    p.add_argument("--replicates", type=bounded_field(Plan, "replicates"),
+    p.add_argument("--replicates", type=bounded_field("labcal.analysis.plan:Plan", "replicates"),
                    help="override the plan's number of replicates (1..100)")
     p.add_argument("--order", choices=["shortest", "plan", "sweep", "random"], default="shortest",
                    help="order of the points within a mount (default %(default)s)")
@@ -341,7 +344,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="simulated or emulated rig's (and random order's) seed")
     p.add_argument("--out", help="run directory (default runs/<UTC time>-<plan>)")
     p.add_argument("--rig", help="TOML file describing the simulated rig (truth, noise, speeds)")
-    p.add_argument("--samples", type=bounded_field(SettleSettings, "samples"),
+    p.add_argument("--samples", type=bounded_field("labcal.config.settings:SettleSettings", "samples"),
                    help="DMM samples per settle window, averaged per point (4..10000)")
     p.add_argument("--fixed-dwell", type=bounded(float, 0, 3600), metavar="S",
                    help="dwell S seconds (0..3600) instead of detecting settling")

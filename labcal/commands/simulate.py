@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-from labcal.analysis.kinematics import MISALIGNMENT_NAMES, IndexWobble, Misalignment
 from labcal.commands.common import SEED, bounded, err, print_json
-from labcal.config.files import load_model
-from labcal.config.plans import load_plan
-from labcal.config.readings_csv import write_readings
 from labcal.errors import LabcalError
+
+if TYPE_CHECKING:
+    from labcal.analysis.kinematics import Misalignment
 
 UNITS_DEG = {"arcsec": 1 / 3600, "″": 1 / 3600, '"': 1 / 3600, "deg": 1.0, "°": 1.0}
 
@@ -31,6 +31,8 @@ def parse_angle(name: str, text: str) -> float:
 
 def parse_misalign(text: str) -> Misalignment:
     """'a=60arcsec,k=0.01deg' (units arcsec/″ or deg/°; bare numbers are degrees) → Misalignment."""
+    from labcal.analysis.kinematics import MISALIGNMENT_NAMES, Misalignment
+
     angles: dict[str, float] = {}
     for part in filter(None, (p.strip() for p in text.split(","))):
         name, sep, value = part.partition("=")
@@ -43,7 +45,11 @@ def parse_misalign(text: str) -> Misalignment:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    from labcal.analysis.kinematics import IndexWobble
     from labcal.config.emulation import InstrumentTruth
+    from labcal.config.files import load_model
+    from labcal.config.plans import load_plan
+    from labcal.config.readings_csv import write_readings
     from labcal.sim.direct import simulate_readings
 
     plan, _ = load_plan(args.plan)

@@ -5,13 +5,13 @@ from __future__ import annotations
 import argparse
 from contextlib import ExitStack
 
-from rich.table import Table
-
 from labcal.commands.common import TIME_SCALE, TIME_SCALE_HELP, err, out, print_json
 from labcal.errors import LabcalError
 
 
 def cmd_list(args: argparse.Namespace) -> int:
+    from rich.table import Table
+
     from labcal.config.station import load_station, shipped_stations
 
     stations = {name: load_station(name)[0] for name in shipped_stations()}
@@ -40,6 +40,8 @@ def _row(report: dict) -> tuple[str, str, str]:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
+    from rich.table import Table
+
     from labcal.bench.setup import bench_for_check
     from labcal.config.station import load_station
 

@@ -66,13 +66,14 @@ class InstrumentTruth(BaseModel):
         """The true coefficients in Soto's layout [Bᵀ; S] (4×3)."""
         return np.vstack([self.B, self.S])
 
-    def static_volts(self, g: NDArray, elapsed_s: float = 0.0, temp_c: float | None = None) -> NDArray:
-        """Noise-free settled output for gravity g (..., 3) after ``elapsed_s`` at ``temp_c``."""
-        dt = 0.0 if temp_c is None else temp_c - self.t_ref_c
-        bias = np.asarray(self.B) + np.asarray(self.drift_v_per_h) * elapsed_s / 3600 \
+    def static_volts(self, g: NDArray, elapsed_s: NDArray | float = 0.0,
+                     temp_c: NDArray | float | None = None) -> NDArray:
+        """Noise-free settled output for gravity g (..., 3) after ``elapsed_s`` at ``temp_c`` (each a
+        number, or an array of the shape of g without its last axis: a scan of samples at once)."""
+        dt = np.asarray(0.0 if temp_c is None else np.asarray(temp_c) - self.t_ref_c)[..., None]
+        bias = np.asarray(self.B) + np.asarray(self.drift_v_per_h) * np.asarray(elapsed_s)[..., None] / 3600 \
             + np.asarray(self.tc_bias_v_per_c) * dt
-        sens = np.asarray(self.S) * (1 + np.asarray(self.tc_scale_per_c) * dt)[None, :]
-        return bias + np.asarray(g) @ sens
+        return bias + (np.asarray(g) @ np.asarray(self.S)) * (1 + np.asarray(self.tc_scale_per_c) * dt)
 
 
 def default_instrument() -> InstrumentTruth:

@@ -3,12 +3,15 @@ and a plan written back as TOML (generated designs, a run's plan with its replic
 
 from __future__ import annotations
 
+import tomllib
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from labcal.analysis.plan import Plan
-from labcal.config.files import parse_model, read_text
 from labcal.errors import LabcalError
+
+if TYPE_CHECKING:  # the model (pydantic, numpy) is imported where a plan is read: not by `plan list`
+    from labcal.analysis.plan import Plan
 
 PLAN_SUFFIX = ".toml"
 
@@ -23,8 +26,24 @@ def shipped_plans() -> dict[str, resources.abc.Traversable]:
     }
 
 
+def shipped_plan_summaries() -> list[dict]:
+    """Name, description, mounts and points of each shipped plan, read without building the model:
+    `labcal plan list` would spend most of its time importing the validation (the shipped plans
+    are validated by the test suite, and by `load_plan` wherever one is used)."""
+    summaries = []
+    for name, entry in shipped_plans().items():
+        doc = tomllib.loads(entry.read_text(encoding="utf-8"))
+        summaries.append({"name": name, "description": doc.get("description", ""),
+                          "mounts": len(doc["mounts"]),
+                          "points": doc.get("replicates", 1) * len(doc["mounts"]) * len(doc["points"])})
+    return summaries
+
+
 def parse_plan(text: str, source: str) -> Plan:
     """Parse and validate plan TOML; errors name the source and the field."""
+    from labcal.analysis.plan import Plan
+    from labcal.config.files import parse_model
+
     return parse_model(text, Plan, source)
 
 
@@ -32,6 +51,8 @@ def load_plan(name_or_path: str) -> tuple[Plan, str]:
     """A plan by file path or by the name of a shipped plan; returns the plan and its TOML text."""
     path = Path(name_or_path)
     if path.suffix == PLAN_SUFFIX or path.exists():
+        from labcal.config.files import read_text
+
         text = read_text(path, "plan")
         return parse_plan(text, str(path)), text
     plans = shipped_plans()

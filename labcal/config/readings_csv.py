@@ -2,6 +2,11 @@
 
 Required columns: replicate,y_deg,u_deg,pitch_deg,roll_deg,vx,vy,vz; optional temp_c;
 any other column is ignored on reading. Every error names the file, the line and the column.
+
+A clean file (plain numbers, no quotes, no blank lines) is read by numpy's C parser at numpy
+speed; anything that parser refuses, and any row the checks refuse, is read again row by row to
+say in one line what is wrong where. The rules are written once, on columns, and applied to all
+rows at once or to one row.
 """
 
 from __future__ import annotations
@@ -9,6 +14,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -16,7 +22,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal.analysis.readings import Readings
-from labcal.config.files import read_text, write_atomic
 from labcal.errors import LabcalError
 
 REQUIRED = ("replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", "vx", "vy", "vz")
@@ -37,30 +42,47 @@ def _number(text: str, where: str) -> float:
     return value
 
 
-def _check_angles(values: dict[str, float], where: str) -> None:
-    for name in ("y_deg", "u_deg"):
-        if values[name] % 360 not in (0.0, 180.0):
-            raise LabcalError(f"{where}, column {name}: {values[name]:g} is not a mount angle (0 or 180)")
-    for name in ("pitch_deg", "roll_deg"):
-        if not -360.0 <= values[name] <= 360.0:
-            raise LabcalError(f"{where}, column {name}: {values[name]:g}° is outside -360..360")
-    if values["replicate"] != int(values["replicate"]) or values["replicate"] < 1:
-        raise LabcalError(f"{where}, column replicate: {values['replicate']:g} is not a whole number ≥ 1")
+def _check_angles(cols: dict[str, NDArray], where) -> None:
+    """Mount angles 0 or 180, table angles within ±360°, whole replicates ≥ 1, on every row of
+    ``cols``; the first row that fails raises, ``where(row)`` naming its file and line."""
+    rules = [(name, ~np.isin(cols[name] % 360, (0.0, 180.0)), "{:g} is not a mount angle (0 or 180)")
+             for name in ("y_deg", "u_deg")]
+    rules += [(name, ~((-360.0 <= cols[name]) & (cols[name] <= 360.0)), "{:g}° is outside -360..360")
+              for name in ("pitch_deg", "roll_deg")]
+    rep = cols["replicate"]
+    rules.append(("replicate", (rep != np.floor(rep)) | (rep < 1), "{:g} is not a whole number ≥ 1"))
+    firsts = [(int(np.argmax(bad)), k) for k, (_, bad, _) in enumerate(rules) if bad.any()]
+    if firsts:
+        row, k = min(firsts)
+        name, _, message = rules[k]
+        raise LabcalError(f"{where(row)}, column {name}: {message.format(cols[name][row])}")
 
 
 def read_numeric_csv(path: str | Path, kind: str, required: tuple[str, ...], optional: tuple[str, ...] = (),
                      check=None) -> dict[str, NDArray]:
     """Numeric columns of a CSV with a header, by name; other columns are ignored.
 
-    Every error names the file, the line and the column. ``check(values, where)`` may validate
-    each row further.
+    Every error names the file, the line and the column. ``check(columns, where)`` may validate
+    the rows further (see `_check_angles`).
     """
     path = Path(path)
+    fast = _read_clean(path, required, optional)
+    if fast is not None:
+        try:
+            if check:
+                check(fast, lambda row: f"{path}: line {row + 2}")
+            return fast
+        except LabcalError:
+            pass  # say it with the exact line (blank lines are skipped above): read row by row
+
     text = read_text(path, kind)
     if not text.strip():
         raise LabcalError(f"{path}: file is empty; expected a header line {','.join(required)}")
     reader = csv.reader(text.splitlines())
-    header = [h.strip() for h in next(reader)]
+    try:
+        header = [h.strip() for h in next(reader)]
+    except csv.Error as exc:
+        raise LabcalError(f"{path}: line 1: {exc}; is this a readings CSV?") from None
     missing = [c for c in required if c not in header]
     if missing:
         raise LabcalError(
@@ -69,7 +91,15 @@ def read_numeric_csv(path: str | Path, kind: str, required: tuple[str, ...], opt
     wanted = required + tuple(c for c in optional if c in header)
     index = {c: header.index(c) for c in wanted}
     rows: list[list[float]] = []
-    for line_no, row in enumerate(reader, start=2):
+    line_no = 1
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            break
+        except csv.Error as exc:  # e.g. a field over the csv module's limit of 131 072 characters
+            raise LabcalError(f"{path}: line {line_no + 1}: {exc}; is this a readings CSV?") from None
+        line_no = reader.line_num
         if not any(cell.strip() for cell in row):
             continue
         where = f"{path}: line {line_no}"
@@ -77,12 +107,36 @@ def read_numeric_csv(path: str | Path, kind: str, required: tuple[str, ...], opt
             raise LabcalError(f"{where}: {len(row)} fields, the header has {len(header)}")
         values = {c: _number(row[i], f"{where}, column {c}") for c, i in index.items()}
         if check:
-            check(values, where)
+            check({c: np.array([v]) for c, v in values.items()}, lambda _, where=where: where)
         rows.append([values[c] for c in wanted])
     if not rows:
         raise LabcalError(f"{path}: header only, no data rows")
     data = np.array(rows)
     return {c: data[:, k] for k, c in enumerate(wanted)}
+
+
+def _read_clean(path: Path, required: tuple[str, ...],
+                optional: tuple[str, ...]) -> dict[str, NDArray] | None:
+    """The wanted columns of a clean file by numpy's C parser, or None where it refuses anything
+    (a quote, an empty or non-numeric field, a short row, a field too long, bad encoding) or reads
+    a value that is not finite: the row-by-row reader then says what and where. The header's last
+    column is parsed too, so that a row shorter than the header is refused as it is row by row."""
+    try:
+        with path.open(encoding="utf-8-sig", newline="") as f:
+            header = [h.strip() for h in next(csv.reader([f.readline()]))]
+        if any(c not in header for c in required):
+            return None
+        wanted = required + tuple(c for c in optional if c in header)
+        columns = sorted({header.index(c) for c in wanted} | {len(header) - 1})
+        with warnings.catch_warnings():  # header only: the row-by-row reader says so in one line
+            warnings.simplefilter("ignore", UserWarning)
+            data = np.loadtxt(path, delimiter=",", skiprows=1, usecols=columns, ndmin=2, comments=None,
+                              encoding="utf-8-sig", quotechar=None)
+    except (OSError, ValueError, UnicodeDecodeError, csv.Error, StopIteration):
+        return None
+    if not len(data) or not np.isfinite(data).all():
+        return None
+    return {c: data[:, columns.index(header.index(c))] for c in wanted}
 
 
 def read_readings(path: str | Path) -> Readings:
@@ -145,6 +199,8 @@ class ReadingsWriter:
         return self._file.getvalue()
 
     def close(self) -> None:
+        from labcal.config.files import write_atomic  # pydantic, which reading a clean file does not need
+
         write_atomic(self.path, self.text())
 
     def __enter__(self) -> ReadingsWriter:

@@ -5,7 +5,10 @@ against pitch and roll with 95 % confidence and prediction bands (as Tripp & Tch
 the errors of pitch and roll inferred from every calibration reading, where the plan's points lie
 on the gravity sphere, and the attitude uncertainty across the usage envelope. Tables are built
 once and rendered three ways (HTML, PDF text, terminal), so every output says the same thing.
-Plots use matplotlib's object API (no pyplot state, no display needed).
+Plots use matplotlib's object API (no pyplot state, no display needed). Each figure is drawn once,
+into an image that both the HTML and the PDF carry: drawing (text layout above all) is most of a
+report's cost, and drawing each twice, as PNG and again as vectors, doubled it. matplotlib is
+imported when the figures are drawn, not by a run that writes no report.
 """
 
 from __future__ import annotations
@@ -16,12 +19,9 @@ import io
 import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO
+from typing import TYPE_CHECKING, BinaryIO
 
-import mpl_toolkits.mplot3d  # noqa: F401 - registers the 3-D projection
 import numpy as np
-from matplotlib.backends.backend_pdf import PdfPages
-from matplotlib.figure import Figure
 
 from labcal.analysis.attitude import sphere_least_squares
 from labcal.analysis.device_fit import DeviceFit, preferred_fit
@@ -44,12 +44,15 @@ from labcal.documents.uncertainty import bench_section, type_b_inputs
 from labcal.errors import LabcalError
 from labcal.run.record import RunRecord, load_run
 
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
 CERTIFICATE = "certificate.json"
 REPORT_HTML = "report.html"
 REPORT_PDF = "report.pdf"
 UNITS = ("V", "V/g", "V/g", "V/g")
 MOUNT_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red")
-# Fixed margins: a layout engine would double the drawing time of every figure, drawn twice.
+# Fixed margins: a layout engine would double the drawing time of every figure.
 DODGE_DEG = 3.0
 WIDE = {"left": 0.08, "right": 0.98, "top": 0.84, "bottom": 0.13, "wspace": 0.25}
 
@@ -279,6 +282,8 @@ def _mount_masks(record: RunRecord) -> list[tuple[Mount, np.ndarray]]:
 def residual_figure(fit: Fit, record: RunRecord) -> Figure:
     """Residuals against table pitch and roll, per sensor, with the 95 % bands of a reading taken at
     the other angle 0°, top-forward mount (Tripp & Tcheng figs. 44, 47)."""
+    from matplotlib.figure import Figure
+
     r = record.readings
     fig = Figure(figsize=(11, 10))
     fig.subplots_adjust(left=0.08, right=0.98, top=0.92, bottom=0.06, hspace=0.42, wspace=0.22)
@@ -321,6 +326,8 @@ def inferred_attitude(cert: Certificate, record: RunRecord) -> dict[str, np.ndar
 
 def attitude_error_figure(cert: Certificate, record: RunRecord) -> Figure:
     """Errors of inferred pitch and roll with their U95 (Tripp & Tcheng figs. 45–46, 48–49)."""
+    from matplotlib.figure import Figure
+
     e = inferred_attitude(cert, record)
     fig = Figure(figsize=(11, 4.5))
     fig.subplots_adjust(**WIDE)
@@ -349,6 +356,9 @@ def attitude_error_figure(cert: Certificate, record: RunRecord) -> Figure:
 
 def sphere_figure(record: RunRecord) -> Figure:
     """Where the plan's points lie on the unit gravity sphere, in the instrument's axes, per mount."""
+    import mpl_toolkits.mplot3d  # noqa: F401 - registers the 3-D projection
+    from matplotlib.figure import Figure
+
     plan = record.plan
     g = plan.nominal_gravity().reshape(len(plan.mounts), len(plan.points), 3)
     fig = Figure(figsize=(7, 6.5))
@@ -375,6 +385,8 @@ def sphere_figure(record: RunRecord) -> Figure:
 
 def envelope_figure(cert: Certificate) -> Figure:
     """U95 of inferred pitch and roll against pitch over the usage envelope (largest and RMS over roll)."""
+    from matplotlib.figure import Figure
+
     a = cert.attitude
     settings = CertificateSettings(usage_pitch_deg=a.usage_pitch_deg, usage_roll_deg=a.usage_roll_deg,
                                    grid_step_deg=a.grid_step_deg)
@@ -442,13 +454,39 @@ def _html_table(t: Table) -> str:
             f"<tbody>{body}</tbody></table>")
 
 
-def _png(fig: Figure) -> str:
+FIGURE_DPI = 120  # one raster for the screen and for print (the HTML had 110)
+
+
+@dataclass(frozen=True)
+class DrawnFigure:
+    """A figure drawn once: its pixels (RGB; the figure is opaque) and its PNG, for the HTML and
+    the PDF alike."""
+
+    title: str
+    size_in: tuple[float, float]
+    rgb: np.ndarray
+    png: bytes
+
+
+def draw(title: str, fig: Figure) -> DrawnFigure:
+    """One Agg drawing of ``fig``; the PNG is encoded from the same pixels."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.image import imsave
+
+    fig.set_dpi(FIGURE_DPI)
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    rgb = np.asarray(canvas.buffer_rgba())[..., :3].copy()  # no alpha: one image per figure in the PDF
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    return base64.b64encode(buf.getvalue()).decode("ascii")
+    imsave(buf, rgb, format="png", pil_kwargs={"compress_level": 1})  # encoding was a third of it
+    return DrawnFigure(title, tuple(fig.get_size_inches()), rgb, buf.getvalue())
 
 
-def render_html(cert: Certificate, figs: list[tuple[str, Figure]], extra: tuple[Table, ...] = ()) -> str:
+def _png(fig: DrawnFigure) -> str:
+    return base64.b64encode(fig.png).decode("ascii")
+
+
+def render_html(cert: Certificate, figs: list[DrawnFigure], extra: tuple[Table, ...] = ()) -> str:
     """One HTML file with inline CSS and inline PNG plots: it opens offline and can be mailed alone."""
     verdict = verdict_text(cert)
     css_class = "none" if cert.conformity is None else ("pass" if cert.conformity.passed else "fail-v")
@@ -461,7 +499,8 @@ def render_html(cert: Certificate, figs: list[tuple[str, Figure]], extra: tuple[
     parts += [_html_table(t) for t in (*tables(cert), *extra)]
     parts.append("<h2>Method</h2>" + "".join(f"<p>{html.escape(p)}</p>" for p in
                                              (cert.method, *cert.statements, *cert.fit.notes)))
-    for title, fig in figs:
+    for fig in figs:
+        title = fig.title
         parts.append(f"<h2>{html.escape(title)}</h2><figure><img alt=\"{html.escape(title)}\" "
                      f"src=\"data:image/png;base64,{_png(fig)}\"></figure>")
     parts.append(f"<footer>End of report {html.escape(cert.certificate_id)}. Certificate content sha256 "
@@ -487,10 +526,13 @@ def _status(cert: Certificate) -> str:
     return f"approved by {a.by} ({a.role}) on {a.approved_utc:%Y-%m-%d}"
 
 
-def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path | BinaryIO,
+def render_pdf(cert: Certificate, figs: list[DrawnFigure], path: Path | BinaryIO,
                extra: tuple[Table, ...] = ()) -> None:
-    """Text pages with every table, then one page per figure; every page says "page X of Y" and,
-    until the certificate is approved, DRAFT."""
+    """Text pages with every table, then one page per figure (its image, as drawn for the HTML);
+    every page says "page X of Y" and, until the certificate is approved, DRAFT."""
+    from matplotlib.backends.backend_pdf import PdfPages
+    from matplotlib.figure import Figure
+
     blocks = []
     for t in (*tables(cert), *extra):
         blocks.append(text_table(t))
@@ -514,11 +556,15 @@ def render_pdf(cert: Certificate, figs: list[tuple[str, Figure]], path: Path | B
                       va="top", parse_math=False)
             _mark(page, cert)
             pdf.savefig(page)
-        for n, (title, fig) in enumerate(figs, start=len(pages) + 1):
-            fig.text(0.01, 0.001, f"{cert.number} · {title} · {_status(cert)} · page {n} of {total}",
-                     fontsize=7, va="bottom", parse_math=False)
-            _mark(fig, cert)
-            pdf.savefig(fig)
+        for n, fig in enumerate(figs, start=len(pages) + 1):
+            page = Figure(figsize=fig.size_in)
+            ax = page.add_axes((0, 0, 1, 1))
+            ax.imshow(fig.rgb, interpolation="none")  # embedded as drawn, not resampled
+            ax.set_axis_off()
+            page.text(0.01, 0.001, f"{cert.number} · {fig.title} · {_status(cert)} · page {n} of {total}",
+                      fontsize=7, va="bottom", parse_math=False)
+            _mark(page, cert)
+            pdf.savefig(page)
 
 
 def _mark(page: Figure, cert: Certificate) -> None:
@@ -530,15 +576,16 @@ def _mark(page: Figure, cert: Certificate) -> None:
 def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit,
                  device: DeviceFit | None = None) -> tuple[Path, Path]:
     """``device``: the device model's fit, where the plan identifies it (its tables and residuals are
-    appended: `labcal.documents.device_report`)."""
-    figs = figures(cert, record, fit)
+    appended: `labcal.documents.device_report`). Each figure is drawn once, for the HTML and the PDF."""
+    figures_drawn = figures(cert, record, fit)
     extra: tuple[Table, ...] = ()
     if device is not None:
         from labcal.documents.device_report import device_rows, residuals_side_by_side
 
         extra = tuple(Table(*parts) for parts in device_rows(device))
-        figs.append(("Residuals of the linear and of the device model",
-                     residuals_side_by_side(device, record)))
+        figures_drawn.append(("Residuals of the linear and of the device model",
+                              residuals_side_by_side(device, record)))
+    figs = [draw(title, fig) for title, fig in figures_drawn]
     html_path, pdf_path = directory / REPORT_HTML, directory / REPORT_PDF
     write_atomic(html_path, render_html(cert, figs, extra))  # whole or not at all: a kill never cuts a report
     write_atomic(pdf_path, lambda file: render_pdf(cert, figs, file, extra))

@@ -1,37 +1,37 @@
 """In which order to visit a mount's points: the plan's, the shortest, the paper's sweep, or random.
 
 Both tables move at once, so going from one point to the next takes the longer of the two
-moves (each the shortest way round). `shortest` builds a nearest-neighbour tour from the load
+moves (each the shortest way round), and then the settling that move leaves (a fast move into a
+steep part of gravity leaves more): `shortest` weighs both. It builds a nearest-neighbour tour from the load
 position and improves it by 2-opt; Tripp & Tcheng recommend sweeping pitch min → max → min
 (§4.1); a randomised order per replicate guards against drift aliasing with attitude.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
+
+from labcal.run.motion import move_time, trapezoid_duration
+
+__all__ = ["ORDERS", "move_time", "order_points", "trapezoid_duration"]
 
 ORDERS = ("shortest", "plan", "sweep", "random")
+SettleCost = Callable[[NDArray, NDArray], NDArray]  # seconds of settling after moves a → b
 
 
-def trapezoid_duration(distance: ArrayLike, speed: float, accel: float) -> NDArray | float:
-    """Time to travel |distance| from rest to rest at peak ``speed`` and acceleration ``accel``
-    (triangular when the table never reaches full speed). The simulated tables move by it too."""
-    d = np.abs(np.asarray(distance, dtype=float))
-    t = np.where(d <= speed**2 / accel, 2 * np.sqrt(d / accel), d / speed + speed / accel)
-    return t if t.ndim else float(t)
+def _no_settling(a: NDArray, b: NDArray) -> NDArray:
+    return np.zeros(np.broadcast_shapes(np.shape(a), np.shape(b))[:-1])
 
 
-def move_time(a: NDArray, b: NDArray, speed: float, accel: float) -> NDArray:
-    """Time to go from attitude(s) a to b (…×2 degrees) with both tables moving together."""
-    d = (np.asarray(b) - np.asarray(a) + 180.0) % 360.0 - 180.0
-    return np.max(trapezoid_duration(d, speed, accel), axis=-1)
-
-
-def _shortest(points: NDArray, start: NDArray, speed: float, accel: float) -> list[int]:
+def _shortest(points: NDArray, start: NDArray, speed: float, accel: float,
+              settle_s: SettleCost) -> list[int]:
     n = len(points)
-    cost = move_time(points[:, None, :], points[None, :, :], speed, accel)
-    from_start = move_time(start[None, :], points, speed, accel)
+    a, b = points[:, None, :], points[None, :, :]
+    cost = move_time(a, b, speed, accel) + settle_s(a, b)
+    from_start = move_time(start[None, :], points, speed, accel) + settle_s(start[None, :], points)
     order, left = [int(np.argmin(from_start))], set(range(n))
     left.remove(order[0])
     while left:
@@ -71,8 +71,8 @@ def _sweep(points: NDArray, descending: bool) -> list[int]:
 
 def order_points(points: list[tuple[float, float]], how: str, *, replicate: int = 1, seed: int = 0,
                  start: tuple[float, float] = (0.0, 0.0), speed: float = 20.0,
-                 accel: float = 40.0) -> list[int]:
-    """Indices of ``points`` in visiting order."""
+                 accel: float = 40.0, settle_s: SettleCost = _no_settling) -> list[int]:
+    """Indices of ``points`` in visiting order; ``settle_s`` prices the settling after each move."""
     pts = np.asarray(points, dtype=float)
     if how == "plan":
         return list(range(len(pts)))
@@ -81,5 +81,5 @@ def order_points(points: list[tuple[float, float]], how: str, *, replicate: int 
     if how == "random":
         return np.random.default_rng([seed, replicate, 0x0DE5]).permutation(len(pts)).tolist()
     if how == "shortest":
-        return _shortest(pts, np.asarray(start, float), speed, accel)
+        return _shortest(pts, np.asarray(start, float), speed, accel, settle_s)
     raise ValueError(f"unknown order {how!r}; choose from {', '.join(ORDERS)}")

@@ -25,7 +25,7 @@ from labcal.run.journal import Journal, Manifest, sha256
 from labcal.run.lock import RunLock
 from labcal.run.operator import Operator
 from labcal.run.rundir import make_run_dir, open_run
-from labcal.run.sequencer import Display, RunOutcome, Sequencer, schedule
+from labcal.run.sequencer import Display, RunOutcome, Sequencer, Step, schedule
 from labcal.run.station import Station
 
 MIN_POINTS_FOR_MOUNT_CHECK_FIT = 8
@@ -82,17 +82,18 @@ def _provisional_fit(journal: Journal, run_id: int):
 
 
 def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: Station, operator: Operator,
-            settings: SequencerSettings, display: Display | None = None) -> RunResult:
+            settings: SequencerSettings, display: Display | None = None,
+            steps: list[Step] | None = None) -> RunResult:
     """Run (or go on with) every step not yet in the journal, holding the run's lock; whatever
     happens, the exports are rewritten and the journal says how the run ended.
 
     Rig time runs on from where the run was last heard of (`Journal.rig_time`): each segment's
     offset is journaled, time_s never goes back, and the station's clock must start there too (a
-    simulated rig's virtual clock does: `labcal.bench.setup`)."""
+    simulated rig's virtual clock does: `labcal.bench.setup`). ``steps``: the schedule, if already made."""
     display = display or Display()
     wall0 = time.perf_counter()
     lock = RunLock(journal.path, run_id).acquire()  # released in the finally below, or with the process
-    steps = schedule(plan, settings)
+    steps = schedule(plan, settings) if steps is None else steps  # made once by the caller, if it did
     committed = {p.seq for p in journal.points(run_id)}
     offset = journal.rig_time(run_id)
     journal.event(run_id, "segment", f"measuring from rig time {offset:.3f} s", {"offset_s": offset},
@@ -130,7 +131,7 @@ def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: S
 def calibrate(plan: Plan, plan_text: str, station: Station, station_text: str, operator: Operator,
               settings: SequencerSettings, run_dir: Path, journal: Journal, display: Display | None = None,
               metadata: dict | None = None, serial: str | None = None,
-              operator_name: str | None = None) -> RunResult:
+              operator_name: str | None = None, steps: list[Step] | None = None) -> RunResult:
     """Start a new run: manifest first (its folder's files derived from it), then every point."""
     run_id = journal.start_run(Manifest(
         run_dir=str(run_dir), plan_name=plan.name, plan_text=plan_text, station_text=station_text,
@@ -144,7 +145,7 @@ def calibrate(plan: Plan, plan_text: str, station: Station, station_text: str, o
     except LabcalError:
         journal.finish(run_id, "failed", "its run folder could not be written")
         raise
-    return execute(journal, run_id, run_dir, plan, station, operator, settings, display)
+    return execute(journal, run_id, run_dir, plan, station, operator, settings, display, steps)
 
 
 @dataclass(frozen=True)

@@ -14,16 +14,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from labcal.analysis.kinematics import Mount, mount_gravity
+from labcal.analysis.kinematics import Mount
 from labcal.analysis.plan import Plan
 from labcal.config.settings import SequencerSettings
 from labcal.errors import LabcalError
 from labcal.run.interrupts import Interrupts
 from labcal.run.journal import Journal, PointRecord
+from labcal.run.motion import move_time, transient_at_stop, transient_left
 from labcal.run.mounting import CHECK_ATTITUDE, identify
 from labcal.run.operator import Operator, OperatorDeclined
 from labcal.run.ordering import order_points
-from labcal.run.settle import Dwell, dwell
+from labcal.run.settle import Dwell, dead_time, dwell
 from labcal.run.station import Station, StopFailed, mean_and_sd
 
 LOAD_POSITION = (0.0, 0.0)  # tables level while the operator remounts
@@ -50,15 +51,32 @@ def schedule(plan: Plan, settings: SequencerSettings) -> list[Step]:
     that consecutive replicates meet on the same orientation; the instrument is still re-seated
     there, so that each replicate holds its own mountings and replicates stay independent."""
     steps: list[Step] = []
+    orders: dict[tuple[int, Mount], list[int]] = {}
     for rep in range(1, plan.replicates + 1):
         mounts = plan.mount_list if rep % 2 else plan.mount_list[::-1]
         for mount in mounts:
-            order = order_points(plan.points, settings.order, replicate=rep, seed=settings.seed,
-                                 start=LOAD_POSITION, speed=settings.speed_dps, accel=settings.accel_dps2)
+            key = (rep if settings.order in ("sweep", "random") else 0, mount)
+            if key not in orders:  # the shortest tour of a mount is the same in every replicate
+                orders[key] = order_points(plan.points, settings.order, replicate=rep, seed=settings.seed,
+                                           start=LOAD_POSITION, speed=settings.speed_dps,
+                                           accel=settings.accel_dps2, settle_s=settle_cost(mount, settings))
+            order = orders[key]
             for k, i in enumerate(order):
                 pitch, roll = plan.points[i]
                 steps.append(Step(len(steps), rep, mount, pitch, roll, block_start=k == 0))
     return steps
+
+
+def settle_cost(mount: Mount, settings: SequencerSettings):
+    """The dead time after a move from attitude(s) a to b on ``mount``: what the shortest tour
+    weighs besides the move itself (the window's own fading is left out: it shortens every dead
+    time alike)."""
+    s = settings.settle
+
+    def cost(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        lag = transient_at_stop(a, b, mount, settings.speed_dps, settings.accel_dps2, s.tau_s)
+        return np.asarray(dead_time(lag * s.sensitivity_v_per_g, s))
+    return cost
 
 
 class Display:
@@ -132,21 +150,37 @@ class Sequencer:
     display: Display = field(default_factory=Display)
     interrupts: Interrupts = field(default_factory=Interrupts)
     offset_s: float = 0.0  # rig time since the run began when this segment starts (0 unless resumed)
-    _g_last: np.ndarray | None = None
     _t0: float = 0.0
     moving: tuple[str, ...] = ()  # tables whose last stop failed: they may still be moving
+    _at: tuple[float, float] | None = None  # where the last move went; None: unknown, read it
+    _last_move: tuple[tuple[float, float], tuple[float, float], float] = ((0.0, 0.0), (0.0, 0.0), 0.0)
+    _sample_s: float = 0.0  # the voltmeter's time per sample, once measured
 
     # --- motion ----------------------------------------------------------------------------------
     def move(self, pitch: float, roll: float) -> tuple[float, float]:
-        return move_both(self.station, pitch, roll, self.settings, self.interrupts.critical)
+        """Move both tables and remember where from and when the motion ended: the tables' own
+        profile from the move's start, or the in-position time if that came first."""
+        start = self._at or (self.station.pitch.position(), self.station.roll.position())
+        self._at = None
+        clock = self.station.clock
+        t_start = clock.now()
+        read = move_both(self.station, pitch, roll, self.settings, self.interrupts.critical)
+        travel = float(move_time(np.array(start), np.array((pitch, roll)),
+                                 self.settings.speed_dps, self.settings.accel_dps2))
+        self._at = (pitch, roll)
+        self._last_move = (start, (pitch, roll), min(t_start + travel, clock.now()))
+        return read
 
-    def measure(self, g_nominal: np.ndarray, key: str) -> Dwell:
-        step_g = 2.0 if self._g_last is None else float(np.max(np.abs(g_nominal - self._g_last)))
+    def measure(self, mount: Mount, key: str) -> Dwell:
+        """Settle after the last move (sized by the transient it left) and take the window."""
+        s, (start, target, motion_end) = self.settings.settle, self._last_move
+        lag_g = transient_left(start, target, mount, self.settings.speed_dps, self.settings.accel_dps2,
+                               s.tau_s)
         self.station.at_point(key)
         with self.interrupts.critical():
-            result = dwell(self.station.dmm, self.station.clock,
-                           step_g * self.settings.settle.sensitivity_v_per_g, self.settings.settle)
-        self._g_last = g_nominal
+            result = dwell(self.station.dmm, self.station.clock, lag_g * s.sensitivity_v_per_g, s,
+                           motion_end, self._sample_s)
+        self._sample_s = result.sample_s
         return result
 
     def event(self, kind: str, message: str, **data) -> None:
@@ -174,11 +208,10 @@ class Sequencer:
             self.move(*LOAD_POSITION)
             self.ask("mount", self.operator.confirm_mount, mount, step, n_steps, note)
             self.station.remounted(mount)
-            self._g_last = None
             if not self.settings.check_mount:
                 return
             self.move(*CHECK_ATTITUDE)
-            check = self.measure(mount_gravity(*CHECK_ATTITUDE, mount), f"check:{mount}")
+            check = self.measure(mount, f"check:{mount}")
             seen = identify(mean_and_sd(check.scan)[0], provisional)
             if seen == mount:
                 self.event("mount", f"mount verified: {mount}")
@@ -234,6 +267,7 @@ class Sequencer:
         stop is said loudly at once and noted on ``cause`` (the news that ended the run, which it
         does not replace); `moving` remembers it for the pause prompt."""
         why = str(cause) or type(cause).__name__
+        self._at = None  # wherever the tables stopped, the next move reads it first
         with self.interrupts.stopping():
             try:
                 self.station.stop()
@@ -266,10 +300,9 @@ class Sequencer:
     def point(self, step: Step) -> int:
         """Measure one step (retrying once if it does not settle) and commit it; 1 if it failed."""
         pitch_read, roll_read = self.move(step.pitch_deg, step.roll_deg)
-        g = mount_gravity(step.pitch_deg, step.roll_deg, step.mount)
         for attempt in (1, 2):
             t_start = self.station.clock.now() - self._t0
-            result = self.measure(g, f"{step.seq}:{attempt}")
+            result = self.measure(step.mount, f"{step.seq}:{attempt}")
             if result.verdict.settled:
                 break
             if attempt == 1:

@@ -1,12 +1,16 @@
 """When has the reading settled? A dead time from the sensor's time constant, then a statistical
 test on a moving window (hardware_protocols.md §4.3).
 
-After a step of Δv the first-order output's transient falls below the noise of an N-sample mean,
-σ/√N, after τ·ln(Δv·√N/σ). Nothing is read before that dead time: no test on noisy samples could
-resolve a smaller transient, and a larger one would bias the mean. Then a window of N samples is
-accepted when, on every channel, (1) its least-squares slope is not significantly different from
-zero, (2) its two half-window means agree, and (3) its scatter is consistent with the noise
-model. The accepted window is the measurement, so settling costs no averaging time of its own.
+What biases a point is the transient left in the *window mean*. The tables stop with the output
+trailing them by the first-order lag integrated along the move (`labcal.run.motion`), Δv; from the
+end of the motion it fades as Δv·e^{−t/τ}, so a window of N samples dt apart that starts t_w after
+the stop carries a bias Δv·e^{−t_w/τ}·m, with m = mean over the window of e^{−(i+½)·dt/τ}. The
+dead time is the t_w at which that bias is the noise of the mean, σ/√N: no test on noisy samples
+could resolve a smaller transient, and a larger one would bias the point. It runs from the motion's
+end, so the clamp overlaps it. Then a window is accepted when, on every channel, (1) its
+least-squares slope is not significantly different from zero, (2) its two half-window means agree,
+and (3) its scatter is consistent with the noise model: the safety net for a sensor slower than
+its settings say. The accepted window is the measurement, so settling costs no averaging time.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from labcal.analysis.distributions import chi2_quantile
 from labcal.config.settings import SettleSettings
@@ -28,10 +32,19 @@ class Verdict:
     reason: str  # which test failed, or "settled"
 
 
-def dead_time(step_v: float, settings: SettleSettings) -> float:
-    """τ·ln(Δv/(σ/√N)): the time for a step's transient to fall below the noise of the mean."""
+def window_fade(settings: SettleSettings, sample_s: float) -> float:
+    """m: the mean of e^{−(i+½)·dt/τ} over a window of N samples dt apart (1 when dt is unknown)."""
+    i = np.arange(settings.samples) + 0.5
+    return float(np.mean(np.exp(-i * sample_s / settings.tau_s)))
+
+
+def dead_time(transient_v: ArrayLike, settings: SettleSettings, sample_s: float = 0.0) -> NDArray | float:
+    """τ·ln(Δv·m/(σ/√N)), at least 0: how long after the motion ends a window must start for the
+    transient Δv left at the stop to bias its mean by no more than σ/√N."""
     target = settings.noise_v / math.sqrt(settings.samples)
-    return settings.tau_s * math.log(max(step_v / target, 1.0))
+    ratio = np.asarray(transient_v, dtype=float) * window_fade(settings, sample_s) / target
+    t = settings.tau_s * np.log(np.maximum(ratio, 1.0))
+    return t if t.ndim else float(t)
 
 
 def window_verdict(volts: NDArray, noise_v: float, k_sigma: float) -> Verdict:
@@ -57,23 +70,32 @@ class Dwell:
     scan: Scan  # the accepted window: the measurement
     settle_s: float  # from in-position to the end of the window
     verdict: Verdict
+    sample_s: float  # the voltmeter's time per sample, as measured on this window
 
 
-def dwell(dmm: Voltmeter, clock: Clock, step_v: float, settings: SettleSettings) -> Dwell:
-    """Wait out the dead time, then slide a window by half its length until it passes or the
-    maximum dwell is reached (then the last window is returned with the failing verdict)."""
+def dwell(dmm: Voltmeter, clock: Clock, transient_v: float, settings: SettleSettings,
+          motion_end: float | None = None, sample_s: float = 0.0) -> Dwell:
+    """Wait until the dead time after ``motion_end`` (by default now, the in-position time) has
+    passed, then slide a window by half its length until it passes or the maximum dwell is reached
+    (then the last window is returned with the failing verdict). ``sample_s``: the voltmeter's time
+    per sample if known (0: the dead time assumes no fading within the window)."""
     t0 = clock.now()
     if settings.fixed_dwell_s is not None:
         clock.sleep(settings.fixed_dwell_s)
+        t_read = clock.now()
         scan = dmm.read(settings.samples)
-        return Dwell(scan, clock.now() - t0, Verdict(True, f"fixed dwell {settings.fixed_dwell_s:g} s"))
-    clock.sleep(dead_time(step_v, settings))
+        return Dwell(scan, clock.now() - t0, Verdict(True, f"fixed dwell {settings.fixed_dwell_s:g} s"),
+                     (clock.now() - t_read) / settings.samples)
+    start = t0 if motion_end is None else min(motion_end, t0)
+    clock.sleep(start + float(dead_time(transient_v, settings, sample_s)) - t0)
     n, half = settings.samples, settings.samples // 2
+    t_read = clock.now()
     scan = dmm.read(n)
+    sample_s = (clock.now() - t_read) / n
     while True:
         verdict = window_verdict(scan.volts, settings.noise_v, settings.k_sigma)
         if verdict.settled or clock.now() - t0 >= settings.max_dwell_s:
-            return Dwell(scan, clock.now() - t0, verdict)
+            return Dwell(scan, clock.now() - t0, verdict, sample_s)
         more = dmm.read(half)
         scan = Scan(np.concatenate([scan.volts[half:], more.volts]),
                     None if scan.temp_c is None else np.concatenate([scan.temp_c[half:], more.temp_c]))

@@ -1,0 +1,42 @@
+"""The parser is built without the heavy libraries: `labcal --help` and `labcal plan list` pay for
+what they use, not for numpy, pydantic, rich or importlib.metadata that other commands need."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from labcal.analysis.models import EXTENSIONS
+from labcal.commands.fit import EXTENSION_NAMES
+
+HEAVY = ("numpy", "pydantic", "rich", "importlib.metadata", "scipy", "matplotlib")
+
+PROBE = """
+import json, sys
+from labcal.cli import main
+sys.argv = ["labcal", *ARGS]
+try:
+    main()
+except SystemExit:
+    pass
+heavy = sorted(m for m in sys.modules if m in HEAVY or m.split(".")[0] in HEAVY)
+sys.__stderr__.write(json.dumps(heavy))
+"""
+
+
+def imported_by(*argv: str) -> list[str]:
+    code = PROBE.replace("ARGS", repr(list(argv))).replace("HEAVY", repr(HEAVY))
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                          check=True)
+    return json.loads(proc.stderr.strip().splitlines()[-1])
+
+
+def test_help_and_plan_list_import_none_of_the_heavy_libraries():
+    assert imported_by("--help") == []
+    assert imported_by("plan", "list") == []
+    assert imported_by("fit", "--help") == []
+
+
+def test_the_fit_help_names_every_model_extension():
+    assert EXTENSION_NAMES == tuple(EXTENSIONS)
