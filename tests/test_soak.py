@@ -119,14 +119,20 @@ def test_sigkill_in_every_phase_then_resume_leaves_one_consistent_run(tmp_path):
         assert [r[0] for r in con.execute("SELECT seq FROM points ORDER BY seq")] == list(range(POINTS))
         assert con.execute("SELECT count(*) FROM certificates").fetchone()[0] == 1
 
-    # Readings: what an uninterrupted run measured. What remains is physical: each resume re-seats
-    # and re-checks the mount, which takes rig time, so the instrument's output filter enters the
-    # next point from another history; on the static lab that settles far below the noise. In a
-    # 64-kill soak (4 runs x 16 kills) the largest difference was 0.006 S_E; 0.1 S_E is the bound.
+    # Readings: what an uninterrupted run measured. What remains is physical: after a resume the
+    # tables reach the next point from the load position, not from its predecessor, so the sensor's
+    # output filter enters that one point from another history. The sequencer starts its window
+    # when the transient's bias on the window mean is at most sigma/sqrt(N) (run/settle.py), so that
+    # point may differ by up to the two runs' biases, about 2 S_E; every other point is the same
+    # reading (the simulator's noise is drawn per point, and the clock runs on across resumes).
     soaked, whole = readings(run_dir / "readings.csv"), readings(tmp_path / "ref" / "readings.csv")
     assert soaked.shape == whole.shape == (POINTS, 4)
     s_e = np.array(json.loads((tmp_path / "ref" / "fit.json").read_text())["residual_standard_error"])
-    assert np.max(np.abs(soaked[:, :3] - whole[:, :3]) / s_e) < 0.1, landed
+    differ = np.abs(soaked[:, :3] - whole[:, :3]) / s_e
+    resumes = sum(k.startswith(("prompt", "measuring")) for k in kills)
+    changed = np.flatnonzero(differ.max(axis=1) > 1e-9)
+    assert len(changed) <= resumes, (changed, landed)  # at most the first point of each segment
+    assert differ.max() < 2.0, (differ.max(), landed)
     assert np.all(np.diff(soaked[:, 3]) > 0)  # one clock: time_s never goes back across resumes
 
     # Every export is the journal's, and the certificate, report and history entry agree.

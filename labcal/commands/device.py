@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-from rich.table import Table
-
 from labcal.commands.common import add_db_option, out, print_json
 
 
@@ -20,6 +18,8 @@ def cmd_history(args: argparse.Namespace) -> int:
     if args.json:
         print_json(history_json(args.device_id, estimates, found))
         return 0
+    from rich.table import Table
+
     flagged = {(c.after, c.name) for c in found if c.flagged}
     table = Table(title=f"Calibration device {args.device_id}: misalignments (″) ± U (95 %)")
     for col in ("#", "calibrated (UTC)", "run", *MISALIGNMENT_NAMES):

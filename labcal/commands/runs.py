@@ -6,8 +6,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from rich.table import Table
-
 from labcal.commands.common import add_db_option, out, print_json
 from labcal.errors import LabcalError
 
@@ -48,6 +46,8 @@ def cmd_runs(args: argparse.Namespace) -> int:
         matching = " matching" if args.serial or args.status else ""
         out.print(f"no runs{matching} in {path}{where}", markup=False)
         return 0
+    from rich.table import Table
+
     table = Table(title=f"Runs in {path}", box=None, pad_edge=False)  # 80 columns
     for col in ("id", "instrument", "plan", "status", "started UTC", "points", "operator"):
         table.add_column(col, justify="right" if col in ("id", "points") else "left", min_width=len(col),

@@ -75,6 +75,8 @@ def read_numeric_csv(path: str | Path, kind: str, required: tuple[str, ...], opt
         except LabcalError:
             pass  # say it with the exact line (blank lines are skipped above): read row by row
 
+    from labcal.config.files import read_text  # pydantic, which a clean file does not need
+
     text = read_text(path, kind)
     if not text.strip():
         raise LabcalError(f"{path}: file is empty; expected a header line {','.join(required)}")
