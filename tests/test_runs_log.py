@@ -55,3 +55,41 @@ def test_runs_and_log_without_a_database(tmp_path, capsys, monkeypatch):
     assert code == 2 and "no lab database here" in err
     code, _, err = _run(capsys, monkeypatch, "log", str(tmp_path / "nope"))
     assert code == 2 and "neither a run id (see labcal runs) nor a run directory" in err
+
+
+def test_a_killed_run_is_listed_as_interrupted_and_found_by_that_status(tmp_path, capsys, monkeypatch):
+    """kill -9 leaves the journal saying "running"; nobody holds the run's lock any more, so
+    `labcal runs` says what it is: interrupted (and `labcal resume` goes on with it)."""
+    import os
+    import signal
+    import sqlite3
+    import subprocess
+    import time
+    from pathlib import Path
+
+    labcal = str(Path(sys.executable).with_name("labcal"))
+    db = os.environ["LABCAL_DB"]
+    proc = subprocess.Popen([labcal, "run", "--sim", "--no-report", "--out", str(tmp_path / "r")],
+                            stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            text=True)
+    proc.stdin.write("y\n")  # mount 1; the prompt for mount 2 then waits for ever
+    proc.stdin.flush()
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            with sqlite3.connect(db, timeout=5) as con:
+                if con.execute("SELECT COUNT(*) FROM points").fetchone()[0] >= 16:
+                    break
+        except sqlite3.OperationalError:
+            pass  # not made yet
+        time.sleep(0.05)
+    code, out, _ = _run(capsys, monkeypatch, "runs", "--json")
+    assert code == 0 and json.loads(out)["runs"][0]["status"] == "running"  # alive: its lock is held
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=10)
+    code, out, _ = _run(capsys, monkeypatch, "runs", "--json")
+    assert code == 0 and json.loads(out)["runs"][0]["status"] == "interrupted"
+    code, out, _ = _run(capsys, monkeypatch, "runs", "--status", "interrupted", "--json")
+    assert [r["id"] for r in json.loads(out)["runs"]] == [1]
+    code, out, _ = _run(capsys, monkeypatch, "runs", "--status", "running", "--json")
+    assert json.loads(out)["runs"] == []

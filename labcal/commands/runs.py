@@ -28,15 +28,30 @@ def _when(utc: str | None) -> str:
     return "" if not utc else utc.replace("T", " ")[:19]
 
 
+def _seen_status(db: Path, run) -> str:
+    """The journal's status, except that a "running" run whose lock nobody holds was interrupted:
+    its process ended without closing it (a kill, a power cut). `labcal resume` goes on with it."""
+    from labcal.run.lock import held_by
+
+    if run.status == "running" and held_by(db, run.id) is None:
+        return "interrupted"
+    return run.status
+
+
 def cmd_runs(args: argparse.Namespace) -> int:
     path, journal = _opened(args.db)
-    runs = []
+    runs, seen = [], {}
+    wanted = tuple(args.status or ())
     if journal is not None:
         with journal:
-            runs = journal.runs(args.serial, tuple(args.status or ()))
+            # an interrupted run may still say "running" in the journal: ask for both, then sort out
+            asked = wanted + (("running",) if "interrupted" in wanted else ())
+            runs = journal.runs(args.serial, asked)
+        seen = {r.id: _seen_status(path, r) for r in runs}
+        runs = [r for r in runs if not wanted or seen[r.id] in wanted]
     if args.json:
         print_json({"database": str(path), "runs": [{
-            "id": r.id, "instrument": r.instrument_serial, "plan": r.plan_name, "status": r.status,
+            "id": r.id, "instrument": r.instrument_serial, "plan": r.plan_name, "status": seen[r.id],
             "reason": r.reason, "started_utc": r.started_utc, "ended_utc": r.ended_utc,
             "points": r.points_ok, "points_failed": r.points_failed, "operator": r.operator,
             "run_dir": r.run_dir} for r in runs]})
@@ -54,7 +69,8 @@ def cmd_runs(args: argparse.Namespace) -> int:
                          no_wrap=col in ("plan", "status", "started UTC"))
     for r in runs:
         failed = f" (+{r.points_failed} failed)" if r.points_failed else ""
-        table.add_row(str(r.id), r.instrument_serial or "—", r.plan_name, r.status, _when(r.started_utc)[:16],
+        table.add_row(str(r.id), r.instrument_serial or "—", r.plan_name, seen[r.id],
+                      _when(r.started_utc)[:16],
                       f"{r.points_ok}{failed}", r.operator or "—")
     table.caption = "labcal log ID: a run's events; --json: its run directory too"
     out.print(table)
