@@ -19,11 +19,20 @@ import json
 import math
 from datetime import date
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    AwareDatetime,
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializerFunctionWrapHandler,
+    ValidationError,
+    model_serializer,
+    model_validator,
+)
 
 from labcal.analysis.attitude import Calibration, calibration_from_json
 from labcal.config.files import MAX_DEPTH, check_depth, one_line, read_text, write_json
@@ -39,6 +48,14 @@ COVERAGE = 0.95
 # --- the schema ----------------------------------------------------------------------------------
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    # fields added to labcal.certificate/1 after certificates were issued: left out of the JSON while
+    # None, so a certificate issued before them reads back, and hashes, exactly as it was issued
+    _added_later: ClassVar[frozenset[str]] = frozenset()
+
+    @model_serializer(mode="wrap")
+    def _without_absent_additions(self, handler: SerializerFunctionWrapHandler) -> dict:
+        doc = handler(self)
+        return {k: v for k, v in doc.items() if not (k in self._added_later and v is None)}
 
 
 def _shape(value: list, shape: tuple[int, ...], what: str) -> None:
@@ -288,11 +305,25 @@ class Item(_Strict):
 
 
 class Equipment(_Strict):
-    """Equipment used, with the identity it reported or its station-file settings."""
+    """Equipment used, with the identity it reported or its station-file settings. The fields by
+    name are what the device reported (None: it reports no such field, or a certificate issued
+    before they were recorded)."""
 
     role: str
     description: str
     identity: str | None
+    maker: str | None = None
+    model: str | None = None
+    serial: str | None = None
+    firmware: str | None = None
+    _added_later = frozenset({"maker", "model", "serial", "firmware"})
+
+    def reported(self) -> str:
+        """Maker, model, serial and firmware in words, saying which the device does not report."""
+        if self.maker is None and self.model is None:
+            return self.identity or "no identity"
+        return (f"{' '.join(p for p in (self.maker, self.model) if p)}, serial "
+                f"{self.serial or 'not reported by the device'}, firmware {self.firmware or 'not reported'}")
 
 
 class TraceabilityRecord(_Strict):

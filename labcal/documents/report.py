@@ -104,7 +104,7 @@ def identification_table(cert: Certificate) -> Table:
         rows[2:2] = [["customer", a.customer or "not stated"],
                      ["item", f"{item or 'instrument'}, serial {a.item.serial}; received "
                               f"{a.item.received.isoformat() if a.item.received else 'date not recorded'}"]]
-        rows += [["equipment", "; ".join(f"{e.role}: {e.description} ({e.identity or 'no identity'})"
+        rows += [["equipment", "; ".join(f"{e.role}: {e.description} ({e.reported()})"
                                          for e in a.equipment)],
                  ["traceability", "; ".join(f"{t.equipment} {t.identity}: certificate {t.certificate} "
                                             f"({t.issued_by}), due {t.due.isoformat()}"
