@@ -4,12 +4,15 @@ a resume), the device model the run's fit used, the ambient conditions entered a
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 
+import pytest
 from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.config.station import CertificateSection
 from labcal.documents.administration import ItemGiven, administration
+from labcal.documents.certificate import read_certificate
 from labcal.run.record import load_run
 from sim.dmm_emulator import IDN
 from sim.smc100_emulator import VERSION
@@ -41,3 +44,53 @@ def test_an_emulated_run_certifies_the_identities_the_emulators_reported(tmp_pat
         {"kind": "device_identity", "data": swapped, "utc": "", "station_time": 0.0, "message": ""},))
     *_, dmm = administration(resumed, CertificateSection(), ItemGiven(), "SN-7").equipment
     assert (dmm.serial, dmm.firmware, dmm.identity) == ("MY99", "1-0-0", "swapped")
+
+
+def test_the_default_dry_run_is_certified_on_the_device_model_it_fitted(tmp_path, capsys):
+    """`labcal run --sim --yes`: fit.json holds the device model (the plan identifies all six), and so
+    does the certificate: its coefficients are fit.json's, its device section gives the rig's
+    tens-of-arcsecond misalignments, the budget's device-misalignment row carries their standard
+    uncertainties, and the run still conforms to a 0.05° attitude tolerance."""
+    run_dir = tmp_path / "run"
+    code, _, err = cli(capsys, "run", "--sim", "--yes", "--tolerance-deg", "0.05", "--out", str(run_dir))
+    assert code == 0, err
+    fit = json.loads((run_dir / "fit.json").read_text())
+    cert = read_certificate(run_dir / "certificate.json")  # schema and digest checked
+    assert fit["model"] == cert.fit.model == "device"
+    assert cert.fit.coefficients == fit["coefficients"] and cert.fit.covariance == fit["covariance"]
+    truth = json.loads((run_dir / "run.json").read_text())["simulated_truth"]["misalignment_deg"]
+    assert cert.device is not None and set(cert.device.misalignments) == set(truth)
+    for name, m in cert.device.misalignments.items():
+        assert abs(truth[name] * 3600) >= 18  # the rig's default is realistic: tens of arcseconds
+        # The ±2″ index errors and wobble the rig adds at each table angle are not in the device model:
+        # they bias each estimate by up to about their amplitude, far more than its U (~0.3″).
+        assert abs(m.value_arcsec - truth[name] * 3600) < 2.0, (name, m, truth[name] * 3600)
+        assert m.U_arcsec == pytest.approx(cert.device.coverage_factor_95 * m.u_arcsec)
+    [row] = [r for r in cert.uncertainty_budget.rows if r.source == "device misalignment estimates"]
+    u_largest = max(m.u_arcsec for m in cert.device.misalignments.values())
+    assert row.standard_uncertainty == pytest.approx(u_largest)
+    assert cert.uncertainty_budget.inputs["device_misalignment"].keys() == truth.keys()
+    assert cert.conformity is not None and cert.conformity.passed
+    assert set(cert.device.intrinsic) == {"sensitivity_v_per_g", "inter_axis_angle_deg"}
+    assert len(cert.device.covariance) == 18 and cert.method.startswith("Device model")
+
+
+def test_a_certificate_issued_before_the_device_and_identity_fields_still_reads(tmp_path, capsys):
+    """labcal.certificate/1 as issued before: no device section, equipment without maker/model/
+    serial/firmware, sealed over that content; it reads back and verifies unchanged."""
+    run_dir = tmp_path / "run"
+    code, _, err = cli(capsys, "run", "--sim", "--yes", "--out", str(run_dir))
+    assert code == 0, err
+    doc = json.loads((run_dir / "certificate.json").read_text())
+    del doc["device"]
+    doc["fit"]["model"] = "linear"
+    for e in doc["administration"]["equipment"]:
+        for key in ("maker", "model", "serial", "firmware"):
+            e.pop(key, None)
+    content = {k: v for k, v in doc.items() if k != "digest"}
+    doc["digest"]["value"] = hashlib.sha256(json.dumps(content, sort_keys=True, separators=(",", ":"),
+                                                       ensure_ascii=False).encode()).hexdigest()
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps(doc))
+    cert = read_certificate(old)
+    assert cert.device is None and cert.to_json() == doc

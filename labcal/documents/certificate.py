@@ -19,7 +19,7 @@ import json
 import math
 from datetime import date
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,9 +28,7 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
-    SerializerFunctionWrapHandler,
     ValidationError,
-    model_serializer,
     model_validator,
 )
 
@@ -48,14 +46,6 @@ COVERAGE = 0.95
 # --- the schema ----------------------------------------------------------------------------------
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-    # fields added to labcal.certificate/1 after certificates were issued: left out of the JSON while
-    # None, so a certificate issued before them reads back, and hashes, exactly as it was issued
-    _added_later: ClassVar[frozenset[str]] = frozenset()
-
-    @model_serializer(mode="wrap")
-    def _without_absent_additions(self, handler: SerializerFunctionWrapHandler) -> dict:
-        doc = handler(self)
-        return {k: v for k, v in doc.items() if not (k in self._added_later and v is None)}
 
 
 def _shape(value: list, shape: tuple[int, ...], what: str) -> None:
@@ -113,7 +103,7 @@ class FitSection(_Strict):
     """The fit JSON contract (DESIGN.md §5) as `labcal.fit.Fit.to_json` writes it, so that
     `labcal attitude --cert` reads a certificate exactly as it reads a fit."""
 
-    model: Literal["linear"]
+    model: Literal["linear", "device"]  # device: the coefficients of the device model (DeviceSection)
     parameters: list[str]
     coefficients: list[list[float]]
     standard_errors: list[list[float]]
@@ -137,6 +127,34 @@ class FitSection(_Strict):
         _shape(self.covariance, (3, n, n), "covariance")
         for name in ("residual_standard_error", "reading_sd", "uncertainty_dof", "uncertainty_basis"):
             _shape(getattr(self, name), (3,), name)
+        return self
+
+
+class Misalignment(_Strict):
+    value_arcsec: float
+    u_arcsec: float
+    U_arcsec: float
+
+
+class DeviceSection(_Strict):
+    """The calibration device estimated with the instrument (issue 12): its six misalignments with
+    U at the device model's k, the instrument's intrinsic parameters, what the plan identifies, the
+    F test that judged the model, and θ's full covariance (θ in `parameters` order, misalignments in
+    rad², B in V², S in (V/g)²). Present where the certificate is built on the device model."""
+
+    note: str
+    misalignments: dict[str, Misalignment]
+    coverage_factor_95: float
+    degrees_of_freedom: int
+    intrinsic: dict
+    identifiability: dict
+    misalignment_test: dict
+    parameters: list[str]
+    covariance: list[list[float]]
+
+    @model_validator(mode="after")
+    def _shapes(self) -> DeviceSection:
+        _shape(self.covariance, (len(self.parameters),) * 2, "device covariance")
         return self
 
 
@@ -312,11 +330,10 @@ class Equipment(_Strict):
     role: str
     description: str
     identity: str | None
-    maker: str | None = None
-    model: str | None = None
-    serial: str | None = None
-    firmware: str | None = None
-    _added_later = frozenset({"maker", "model", "serial", "firmware"})
+    maker: str | None = Field(default=None, exclude_if=_absent)
+    model: str | None = Field(default=None, exclude_if=_absent)
+    serial: str | None = Field(default=None, exclude_if=_absent)
+    firmware: str | None = Field(default=None, exclude_if=_absent)
 
     def reported(self) -> str:
         """Maker, model, serial and firmware in words, saying which the device does not report."""
@@ -409,6 +426,7 @@ class Certificate(_Strict):
     revision: int | None = Field(default=None, ge=1, exclude_if=_absent)
     replaces: str | None = Field(default=None, exclude_if=_absent)
     approval: Approval | None = Field(default=None, exclude_if=_absent)
+    device: DeviceSection | None = Field(default=None, exclude_if=_absent)
     digest: Digest
 
     @property

@@ -614,8 +614,9 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
     ``monte_carlo`` trials check the budget by JCGM 101."""
     record = load_run(run_dir)
     fit = fit_readings(record.readings)
+    device, model_note = preferred_fit(record.readings, fit)  # the model the run's fit.json holds
     section = bench_section(record, station)
-    inputs = type_b_inputs(section, record)
+    inputs = type_b_inputs(section, record, device)
     revision, replaces = 1, None
     previous = _issued(record.directory / CERTIFICATE)
     if previous is not None and previous.approval is not None:
@@ -625,7 +626,7 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
         write_file(record.directory / f"certificate.rev{previous.revision or 1}.json", previous)
     cert = build_certificate(record, fit, settings, serial=serial, operator=operator, inputs=inputs,
                              monte_carlo=monte_carlo, revision=revision, replaces=replaces, section=section,
-                             item=item)
+                             item=item, device=device, model_note=model_note)
     return write_documents(cert, record, fit, db)
 
 
