@@ -94,3 +94,29 @@ def test_a_certificate_issued_before_the_device_and_identity_fields_still_reads(
     old.write_text(json.dumps(doc))
     cert = read_certificate(old)
     assert cert.device is None and cert.to_json() == doc
+
+
+def test_ambient_conditions_entered_at_the_start_reach_the_certificate(tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    code, _, err = cli(capsys, "run", "--sim", "--yes", "--ambient-temp", "22.5", "--humidity", "41",
+                       "--out", str(run_dir))
+    assert code == 0, err
+    assert json.loads((run_dir / "run.json").read_text())["ambient"] == {
+        "temperature_c": 22.5, "humidity_pct": 41.0, "source": "entered at the start of the run"}
+    cert = read_certificate(run_dir / "certificate.json")
+    assert cert.administration.ambient == ("air temperature 22.5 °C, relative humidity 41 % (entered at the "
+                                           "start of the run)")
+    assert "relative humidity 41 %" in (run_dir / "report.html").read_text()
+
+
+@pytest.mark.parametrize("option, value, expected", [
+    ("--ambient-temp", "75", "75 is out of range; expected a number x with -20 ≤ x ≤ 60"),
+    ("--ambient-temp", "nan", "nan is not a finite number"),
+    ("--humidity", "101", "101 is out of range; expected a number x with 0 ≤ x ≤ 100"),
+    ("--humidity", "damp", "'damp' is not a number"),
+])
+def test_ambient_conditions_out_of_range_are_one_line_and_nothing_runs(option, value, expected, tmp_path,
+                                                                        capsys):
+    code, out, err = cli(capsys, "run", "--sim", "--yes", option, value, "--out", str(tmp_path / "run"))
+    assert code == 2 and out == "" and err.strip().count("\n") == 0 and expected in err, err
+    assert f"argument {option}" in err and not (tmp_path / "run").exists()

@@ -80,13 +80,26 @@ def _equipment(record: RunRecord) -> list[Equipment]:
     return found
 
 
+def _ambient(recorded: object) -> str | None:
+    """The run's ambient conditions in words (`labcal run --ambient-temp --humidity` journals them)."""
+    if not isinstance(recorded, dict):
+        return str(recorded) if recorded else None
+    t, rh = recorded.get("temperature_c"), recorded.get("humidity_pct")
+    if t is None and rh is None:
+        return None
+    text = (f"air temperature {'not recorded' if t is None else f'{t:g} °C'}, relative humidity "
+            f"{'not recorded' if rh is None else f'{rh:g} %'}")
+    return text + (f" ({recorded['source']})" if recorded.get("source") else "")
+
+
 def administration(record: RunRecord, section: CertificateSection, given: ItemGiven, serial: str
                    ) -> Administration:
     meta = record.meta
     lab = load_lab_config().laboratory
     received = given.received or meta.get("received")
-    ambient = meta.get("ambient") or ("not recorded; the instrument's own temperature is under Environment"
-                                      if record.readings.temp_c is not None else "not recorded")
+    ambient = _ambient(meta.get("ambient")) or (
+        "not recorded; the instrument's own temperature is under Environment"
+        if record.readings.temp_c is not None else "not recorded")
     return Administration(
         laboratory=LaboratoryRecord(name=lab.name, address=lab.address,
                                     accreditation_id=lab.accreditation_id, country_code=lab.country_code),
