@@ -63,6 +63,10 @@ class TypeBInputs:
     roll_index: float = 0.0
     roll_wobble: float = 0.0
     mount_repeatability: float = 0.0  # rad, each of the plate's pitch, roll and yaw per mounting
+    # σ (rad, normal) of the same, estimated from the replicates' scatter of the mount groups
+    # (`labcal.analysis.remounting`); None: no mount was seated twice, the station file's value is used
+    mount_repeatability_sd: float | None = None
+    mount_repeatability_dof: int | None = None
     temperature_half_range_k: float = 0.0  # half the temperature range observed during the run
     bias_tempco_v_per_k: float = 0.0
     sensitivity_tempco_per_k: float = 0.0
@@ -222,10 +226,19 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
         rows.append(Source(label, "B", "rectangular", half / SQRT3 / ARCSEC, "arcsec",
                            (_b(_grouped(cal, names, groups), half / SQRT3),),
                            note="one error per table angle, repeated wherever the table returns to it"))
-    rows.append(Source("mount repeatability", "B", "rectangular", b.mount_repeatability / SQRT3 / ARCSEC,
-                       "arcsec", (_b(_grouped(cal, ("e", "f", "k"), cal.installation),
-                                     b.mount_repeatability / SQRT3),),
-                       note="pitch, roll and yaw of the plate, one error per mounting"))
+    mounting = _grouped(cal, ("e", "f", "k"), cal.installation)
+    if b.mount_repeatability_sd is None:
+        rows.append(Source("mount repeatability", "B", "rectangular", b.mount_repeatability / SQRT3 / ARCSEC,
+                           "arcsec", (_b(mounting, b.mount_repeatability / SQRT3),),
+                           note="pitch, roll and yaw of the plate, one error per mounting; from the station "
+                                "file (no mount was seated twice)"))
+    else:
+        sd, dof = b.mount_repeatability_sd, float(b.mount_repeatability_dof or np.inf)
+        rows.append(Source("mount repeatability", "A", "normal", sd / ARCSEC, "arcsec",
+                           (Component(mounting, np.zeros((3, mounting.shape[1])), sd, dof, "normal"),),
+                           note="pitch, roll and yaw of the plate, one error per mounting; from the "
+                                "replicates' scatter of the mount groups (Tripp & Tcheng, marginal drift "
+                                "component), not the station file"))
     temp = np.zeros((4, 3, 1))
     temp[0, :, 0] = b.bias_tempco_v_per_k
     temp[1:, :, 0] = b.sensitivity_tempco_per_k * X[1:]

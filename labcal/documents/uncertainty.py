@@ -6,6 +6,7 @@ Carlo check (`labcal.analysis.montecarlo`), as the `UncertaintyBudget` section a
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Literal
 
@@ -28,6 +29,7 @@ from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.fit import Fit
 from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES
 from labcal.analysis.montecarlo import monte_carlo
+from labcal.analysis.remounting import mount_scatter
 from labcal.config.files import validate_model
 from labcal.config.settings import CertificateSettings
 from labcal.config.station import CertificateSection, load_certificate_section
@@ -185,6 +187,9 @@ def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: Certifica
     certificate is built on it; ``trials`` > 0 adds the Monte Carlo check."""
     readings = record.readings
     cal = calibration_of(fit, readings) if device is None else calibration_of_device(device, readings)
+    scatter = mount_scatter(readings, cal.X)
+    if scatter is not None:  # the replicates say how the seating scatters: they win over the station file
+        inputs = replace(inputs, mount_repeatability_sd=scatter.sd_rad, mount_repeatability_dof=scatter.dof)
     rows = sources(cal, inputs)
     pitch, roll = envelope(settings)
     p = propagate(cal, rows, pitch, roll)
