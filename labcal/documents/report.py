@@ -25,8 +25,8 @@ import numpy as np
 
 from labcal.analysis.attitude import sphere_least_squares
 from labcal.analysis.device_fit import DeviceFit, preferred_fit
-from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit, fit_readings, readings_points
-from labcal.analysis.kinematics import Mount
+from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit, fit_readings
+from labcal.analysis.kinematics import NO_MISALIGNMENT, Misalignment, Mount, gravity
 from labcal.analysis.models import Points
 from labcal.config.files import write_atomic
 from labcal.config.settings import CertificateSettings
@@ -311,14 +311,27 @@ def residual_figure(fit: Fit, record: RunRecord) -> Figure:
     return fig
 
 
+NO_ROLL = 1e-9  # |(g_y, g_z)| below which the nominal attitude is at a pole (pitch ±90°)
+
+
 def inferred_attitude(cert: Certificate, record: RunRecord) -> dict[str, np.ndarray]:
-    """Pitch and roll inferred from every calibration reading against the nominal attitude the
-    instrument had (the table angles mapped through the mount), in degrees."""
-    g = readings_points(record.readings).nominal_gravity()
+    """Pitch and roll inferred from every calibration reading against the attitude the instrument
+    had: the table angles mapped through the mount and, where the certificate is built on the device
+    model, through the device's estimated misalignments (its coefficients are corrected for them, so
+    the nominal attitude would show the device's own error), in degrees."""
+    r = record.readings
+    angles = [np.radians(a) for a in (r.pitch_deg, r.roll_deg, r.y_deg, r.u_deg)]
+    device = NO_MISALIGNMENT if cert.device is None else Misalignment.from_degrees(
+        **{name: m.value_arcsec / 3600.0 for name, m in cert.device.misalignments.items()})
+    g = gravity(*angles, device)
     nominal_pitch = np.degrees(np.arcsin(np.clip(g[:, 0], -1, 1)))
     nominal_roll = np.degrees(np.arctan2(g[:, 1], g[:, 2]))
     att = sphere_least_squares(cert.calibration(), record.readings.volts)
     roll_error = (np.degrees(att.roll) - nominal_roll + 180.0) % 360.0 - 180.0
+    # At pitch ±90° the attitude has no roll: the reading's roll (finite wherever the device's
+    # misalignments tilt gravity off the pole) has nothing to be compared with
+    nominal = gravity(*angles)
+    roll_error[np.hypot(nominal[:, 1], nominal[:, 2]) < NO_ROLL] = np.nan
     return {"nominal_pitch": nominal_pitch, "nominal_roll": nominal_roll,
             "pitch_error": np.degrees(att.pitch) - nominal_pitch, "roll_error": roll_error,
             "U95_pitch": att.k95 * np.degrees(att.u_pitch), "U95_roll": att.k95 * np.degrees(att.u_roll)}
