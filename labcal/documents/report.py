@@ -320,17 +320,17 @@ def inferred_attitude(cert: Certificate, record: RunRecord) -> dict[str, np.ndar
     model, through the device's estimated misalignments (its coefficients are corrected for them, so
     the nominal attitude would show the device's own error), in degrees."""
     r = record.readings
-    angles = [np.radians(a) for a in (r.pitch_deg, r.roll_deg, r.y_deg, r.u_deg)]
+    p, q, y, u = (np.radians(a) for a in (r.pitch_deg, r.roll_deg, r.y_deg, r.u_deg))
     device = NO_MISALIGNMENT if cert.device is None else Misalignment.from_degrees(
         **{name: m.value_arcsec / 3600.0 for name, m in cert.device.misalignments.items()})
-    g = gravity(*angles, device)
+    g = gravity(p, q, y, u, device)
     nominal_pitch = np.degrees(np.arcsin(np.clip(g[:, 0], -1, 1)))
     nominal_roll = np.degrees(np.arctan2(g[:, 1], g[:, 2]))
     att = sphere_least_squares(cert.calibration(), record.readings.volts)
     roll_error = (np.degrees(att.roll) - nominal_roll + 180.0) % 360.0 - 180.0
     # At pitch ±90° the attitude has no roll: the reading's roll (finite wherever the device's
     # misalignments tilt gravity off the pole) has nothing to be compared with
-    nominal = gravity(*angles)
+    nominal = gravity(p, q, y, u)
     roll_error[np.hypot(nominal[:, 1], nominal[:, 2]) < NO_ROLL] = np.nan
     return {"nominal_pitch": nominal_pitch, "nominal_roll": nominal_roll,
             "pitch_error": np.degrees(att.pitch) - nominal_pitch, "roll_error": roll_error,
