@@ -16,6 +16,7 @@ import pytest
 from scipy import stats
 from simulated_runs import rig_with_bias_shift, simulated_run
 
+from labcal.analysis.device_fit import preferred_fit
 from labcal.analysis.fit import fit_readings
 from labcal.cli import main
 from labcal.documents.history import RULE, certificates_for, changes, store
@@ -34,7 +35,8 @@ def lab(tmp_path_factory):
     db = base / "lab.sqlite"
     for n in (1, 2):
         record = load_run(simulated_run(base / f"cal{n}", db, seed=20 + n, serial=SERIAL))
-        store(build_certificate(record, fit_readings(record.readings)), db)
+        fit = fit_readings(record.readings)  # on the model `labcal run` certifies: the device model
+        store(build_certificate(record, fit, device=preferred_fit(record.readings, fit)[0]), db)
     shifted = rig_with_bias_shift(base / "shifted.toml", (SHIFT_V, 0.0, 0.0))
     run_dir = simulated_run(base / "cal3", db, seed=23, rig=shifted, serial=SERIAL)
     assert main(["report", str(run_dir), "--db", str(db), "--json"]) == 0
@@ -60,8 +62,10 @@ def test_rule_uses_welch_satterthwaite_coverage(lab):
     certs = certificates_for(SERIAL, lab, include_simulated=True)
     change = changes(certs)[0]  # bias of sensor x, calibration 1 → 2
     u1, u2 = certs[0].standard_uncertainty[0, 0], certs[1].standard_uncertainty[0, 0]
-    nu = (u1**2 + u2**2) ** 2 / (u1**4 / 60 + u2**4 / 60)
-    assert change.nu == pytest.approx(nu, rel=1e-12) and 60 < change.nu <= 120
+    # the device model's ν = 3K − 18 = 174 per certificate (the linear fit's was 60 per sensor)
+    assert certs[0].fit.uncertainty_dof[0] == certs[1].fit.uncertainty_dof[0] == 3 * 64 - 18
+    nu = (u1**2 + u2**2) ** 2 / (u1**4 / 174 + u2**4 / 174)
+    assert change.nu == pytest.approx(nu, rel=1e-12) and 174 < change.nu <= 348
     assert change.limit == pytest.approx(stats.t.ppf(0.975, nu) * np.hypot(u1, u2), rel=1e-12)
 
 

@@ -28,13 +28,15 @@ attitude is a direction, so |g| cancels in the ratios (stated as a row with zero
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
 from labcal.analysis.attitude import _gravity_and_derivatives
+from labcal.analysis.device_fit import DeviceFit
+from labcal.analysis.device_model import N_MIS
 from labcal.analysis.distributions import t_quantile
 from labcal.analysis.fit import Fit, readings_points
 from labcal.analysis.kinematics import ARCSEC, Misalignment, gravity
@@ -61,6 +63,10 @@ class TypeBInputs:
     roll_index: float = 0.0
     roll_wobble: float = 0.0
     mount_repeatability: float = 0.0  # rad, each of the plate's pitch, roll and yaw per mounting
+    # σ (rad, normal) of the same, estimated from the replicates' scatter of the mount groups
+    # (`labcal.analysis.remounting`); None: no mount was seated twice, the station file's value is used
+    mount_repeatability_sd: float | None = None
+    mount_repeatability_dof: int | None = None
     temperature_half_range_k: float = 0.0  # half the temperature range observed during the run
     bias_tempco_v_per_k: float = 0.0
     sensitivity_tempco_per_k: float = 0.0
@@ -120,6 +126,22 @@ def calibration_of(fit: Fit, readings: Readings) -> Calibration:
         reading_var=fit.new_measurement_variance(), dof=fit.variance_dof.astype(float),
         projection=(fit.ls.cov_unscaled @ design.T)[:4], points=points,
         installation=np.asarray(installation, dtype=int).ravel())
+
+
+def calibration_of_device(device: DeviceFit, readings: Readings) -> Calibration:
+    """The budget's view of a device-model fit: X and one new reading's variance are the device
+    model's; the Type A covariance is the device model's conditional on a…k (what the readings' noise
+    does to X with the misalignments held at their estimates). The misalignments' own share is the
+    budget's device-misalignment row, propagated through the linear projection: to first order X̂ is
+    the linear fit of the readings corrected by a…k, whose noise lies in the residual space and so is
+    uncorrelated with the linear fit's, and the two parts add up to the device model's covariance."""
+    cov = device.covariance
+    m = slice(0, N_MIS)
+    rest = slice(N_MIS, None)
+    conditional = cov[rest, rest] - cov[rest, m] @ np.linalg.pinv(cov[m, m]) @ cov[m, rest]
+    per_sensor = np.stack([conditional[np.ix_(idx, idx)] for idx in (np.arange(4) * 3 + j for j in range(3))])
+    return replace(calibration_of(device.linear, readings), X=device.coefficients, covariance=per_sensor,
+                   reading_var=device.reading_sd() ** 2, dof=np.full(3, float(device.dof)))
 
 
 def _gravity_derivative(points: Points, name: str) -> NDArray[np.float64]:
@@ -204,10 +226,19 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
         rows.append(Source(label, "B", "rectangular", half / SQRT3 / ARCSEC, "arcsec",
                            (_b(_grouped(cal, names, groups), half / SQRT3),),
                            note="one error per table angle, repeated wherever the table returns to it"))
-    rows.append(Source("mount repeatability", "B", "rectangular", b.mount_repeatability / SQRT3 / ARCSEC,
-                       "arcsec", (_b(_grouped(cal, ("e", "f", "k"), cal.installation),
-                                     b.mount_repeatability / SQRT3),),
-                       note="pitch, roll and yaw of the plate, one error per mounting"))
+    mounting = _grouped(cal, ("e", "f", "k"), cal.installation)
+    if b.mount_repeatability_sd is None:
+        rows.append(Source("mount repeatability", "B", "rectangular", b.mount_repeatability / SQRT3 / ARCSEC,
+                           "arcsec", (_b(mounting, b.mount_repeatability / SQRT3),),
+                           note="pitch, roll and yaw of the plate, one error per mounting; from the station "
+                                "file (no mount was seated twice)"))
+    else:
+        sd, dof = b.mount_repeatability_sd, float(b.mount_repeatability_dof or np.inf)
+        rows.append(Source("mount repeatability", "A", "normal", sd / ARCSEC, "arcsec",
+                           (Component(mounting, np.zeros((3, mounting.shape[1])), sd, dof, "normal"),),
+                           note="pitch, roll and yaw of the plate, one error per mounting; from the "
+                                "replicates' scatter of the mount groups (Tripp & Tcheng, marginal drift "
+                                "component), not the station file"))
     temp = np.zeros((4, 3, 1))
     temp[0, :, 0] = b.bias_tempco_v_per_k
     temp[1:, :, 0] = b.sensitivity_tempco_per_k * X[1:]
@@ -220,7 +251,9 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
                            max(b.device_misalignment.values()) / ARCSEC, "arcsec", tuple(
                                _b(_grouped(cal, (name,), everything), u, "normal")
                                for name, u in b.device_misalignment.items()),
-                           note="the device model's estimates of a…k, applied as corrections"))
+                           note="the device model's estimates of a…k, applied as corrections: each one's "
+                                "standard uncertainty from the joint fit, through the fit's projection "
+                                "(their correlations are not carried)"))
     rows.append(Source("local gravity", "B", "—", 0.0, "g", (), added=True,
                        note="cancels: outputs are fitted against gravity normalised to 1 g and attitude is a "
                             "direction"))

@@ -75,6 +75,18 @@ def dmm_identity(idn: str) -> dict[str, str]:
             "firmware": firmware}
 
 
+def axis_identity(axis: IndexAxis) -> dict[str, str]:
+    """A table's identity by field, as far as its manual documents one: the SMC100 answers ``ID?``
+    (the stage) and ``VE`` (controller and firmware); the AZ register map has no product, serial
+    or version register, so an AZ drive is named by its model and unit (confirmed by a status read)."""
+    maker, _, model = axis.model.rpartition(" ")
+    found = {"model": axis.model, "identity": axis.identify(), "maker": maker}
+    if isinstance(axis, Smc100Axis):
+        found["stage"] = axis.ask("ID?")
+        found["firmware"] = axis.ask("VE")
+    return found
+
+
 class Bench:
     """Drivers for a station file. Nothing is opened until a device is first asked something;
     `close` releases every port."""
@@ -123,9 +135,8 @@ class Bench:
         """Read every device's identity (`identities`), home and enable the tables where their
         controllers need it, and configure the DMM."""
         for axis in self.axes:
-            identity = axis.identify()
-            self.identities[axis.name] = {"model": axis.model, "identity": identity}
-            say(f"preparing the {axis.name} table ({identity})")
+            self.identities[axis.name] = identity = axis_identity(axis)
+            say(f"preparing the {axis.name} table ({identity['identity']})")
             axis.prepare()
         self.identities["dmm"] = dmm_identity(self.dmm.identify())
         self.dmm.configure()

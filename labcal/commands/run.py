@@ -206,6 +206,9 @@ def cmd_run(args: argparse.Namespace) -> int:
             settings = settings.model_copy(update={
                 "move_timeout_s": config.sequencer.move_timeout_s,
                 "position_tolerance_deg": config.sequencer.position_tolerance_deg})
+        ambient = ambient_entered(args)
+        if ambient:
+            setup.metadata["ambient"] = ambient  # the manifest's metadata: the certificate quotes it
         steps = schedule(plan, settings)  # once: the estimate, the limits and the run share it
         est = estimate(plan, settings, setup.timing, steps)
         if args.dry_run:
@@ -221,6 +224,19 @@ def cmd_run(args: argparse.Namespace) -> int:
             return run_and_report(args, lambda display: calibrate(
                 plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, display,
                 setup.metadata, args.serial, args.operator, steps), run_dir, plan, est, 0, cert_settings)
+
+
+def ambient_entered(args: argparse.Namespace) -> dict[str, float | str]:
+    """The environmental conditions the operator entered at the start (ISO/IEC 17025 §7.8.2.1 i),
+    as the run journals them; empty when none was entered."""
+    found: dict[str, float | str] = {}
+    if args.ambient_temp is not None:
+        found["temperature_c"] = args.ambient_temp
+    if args.humidity is not None:
+        found["humidity_pct"] = args.humidity
+    if found:
+        found["source"] = "entered at the start of the run"
+    return found
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
@@ -353,6 +369,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--on-failure", choices=["skip", "pause", "abort"], default="skip",
                    help="a point that does not settle after one retry (default %(default)s)")
     p.add_argument("--no-mount-check", action="store_true", help="do not verify each mount from gravity")
+    p.add_argument("--ambient-temp", type=bounded(float, -20, 60), metavar="C",
+                   help="the laboratory's air temperature at the start, °C (the certificate's environmental "
+                        "conditions; a station's temperature channel measures the instrument, not the room)")
+    p.add_argument("--humidity", type=bounded(float, 0, 100), metavar="PCT",
+                   help="the laboratory's relative humidity at the start, %%")
     p.add_argument("--serial", help="the instrument's serial number (kept in the journal)")
     p.add_argument("--operator", help="who runs the calibration (kept in the journal)")
     p.add_argument("--dry-run", action="store_true",

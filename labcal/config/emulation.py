@@ -92,12 +92,15 @@ def default_instrument() -> InstrumentTruth:
 
 
 class DeviceTruth(BaseModel):
-    """The calibration device's true geometry (Soto Table 1)."""
+    """The calibration device's true geometry (Soto Table 1). The default misalignments are a
+    plausible machined two-axis device's, tens of arcseconds (36″, −18″, 25.2″, 43.2″, −28.8″,
+    21.6″), with ±2″ index errors and wobble at every table angle: large enough that a dry run shows
+    the device model estimating them, as the certificate then reports."""
 
     model_config = ConfigDict(extra="forbid")
 
     misalignment_deg: dict[str, float] = Field(
-        default={"a": 0.0012, "b": -0.0008, "d": 0.0005, "e": 0.0015, "f": -0.001, "k": 0.0009})
+        default={"a": 0.010, "b": -0.005, "d": 0.007, "e": 0.012, "f": -0.008, "k": 0.006})
     index_arcsec: float = Field(default=2.0, ge=0)
     wobble_arcsec: float = Field(default=2.0, ge=0)
     mount_repeat_arcsec: float = Field(default=0.0, ge=0, description="plate tilt/yaw scatter per remount")

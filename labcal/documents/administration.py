@@ -3,9 +3,11 @@ hold: the laboratory from the lab file, the customer and the item with its recei
 equipment used with its identities, and the reference standards behind it (the station file's
 ``[[traceability]]`` entries).
 
-Device identities: where the run journaled what each device reported (``device_identities`` in the
-run's metadata, role → identity string) the certificate quotes it; otherwise it names the device
-by its station-file settings and says that no identity was read.
+Device identities: a run journals what each device reported in its metadata (``device_identity``,
+role → the fields the bench read: maker, model, serial, firmware where the device reports them), and
+a resume journals them again as a ``device_identity`` event (the devices may have been swapped while
+the run was paused): the latest wins. Where nothing was read, the certificate names the device by
+its station-file settings and says so.
 """
 
 from __future__ import annotations
@@ -33,8 +35,31 @@ class ItemGiven:
     received: date | None = None
 
 
+def journaled_identities(record: RunRecord) -> dict[str, dict]:
+    """Role → the identity the run journaled last (at the start, then at each resume)."""
+    found = dict(record.meta.get("device_identity") or {})
+    for event in record.events:
+        if event["kind"] == "device_identity" and isinstance(event["data"], dict):
+            found.update(event["data"])
+    return {role: fields for role, fields in found.items() if isinstance(fields, dict)}
+
+
+def _identified(role: str, description: str, fields: dict | None) -> Equipment:
+    if not fields:
+        return Equipment(role=role, description=description, identity=NOT_READ)
+    maker = fields.get("maker") or None
+    model = str(fields.get("model", ""))
+    if maker and model.startswith(maker):
+        model = model[len(maker):].strip()
+    if fields.get("stage"):
+        model += f" with stage {fields['stage']}"
+    return Equipment(role=role, description=description, identity=fields.get("identity") or NOT_READ,
+                     maker=maker, model=model or None, serial=fields.get("serial") or None,
+                     firmware=fields.get("firmware") or None)
+
+
 def _equipment(record: RunRecord) -> list[Equipment]:
-    identities = record.meta.get("device_identities") or {}
+    identities = journaled_identities(record)
     try:
         doc = json.loads(record.station_text) if record.station_text else {}
     except json.JSONDecodeError:
@@ -50,9 +75,21 @@ def _equipment(record: RunRecord) -> list[Equipment]:
         address = next((f"{k} {device[k]}" for k in ("unit", "address") if k in device), "")
         settings = f", range {device['range_v']:g} V, {device['nplc']:g} PLC" if role == "dmm" else ""
         description = f"{device.get('driver', '?')} {address} on {where}{settings}"
-        found.append(Equipment(role=f"{role} table" if role != "dmm" else "DMM", description=description,
-                               identity=identities.get(role) or NOT_READ))
+        found.append(_identified("DMM" if role == "dmm" else f"{role} table", description,
+                                 identities.get(role)))
     return found
+
+
+def _ambient(recorded: object) -> str | None:
+    """The run's ambient conditions in words (`labcal run --ambient-temp --humidity` journals them)."""
+    if not isinstance(recorded, dict):
+        return str(recorded) if recorded else None
+    t, rh = recorded.get("temperature_c"), recorded.get("humidity_pct")
+    if t is None and rh is None:
+        return None
+    text = (f"air temperature {'not recorded' if t is None else f'{t:g} °C'}, relative humidity "
+            f"{'not recorded' if rh is None else f'{rh:g} %'}")
+    return text + (f" ({recorded['source']})" if recorded.get("source") else "")
 
 
 def administration(record: RunRecord, section: CertificateSection, given: ItemGiven, serial: str
@@ -60,8 +97,9 @@ def administration(record: RunRecord, section: CertificateSection, given: ItemGi
     meta = record.meta
     lab = load_lab_config().laboratory
     received = given.received or meta.get("received")
-    ambient = meta.get("ambient") or ("not recorded; the instrument's own temperature is under Environment"
-                                      if record.readings.temp_c is not None else "not recorded")
+    ambient = _ambient(meta.get("ambient")) or (
+        "not recorded; the instrument's own temperature is under Environment"
+        if record.readings.temp_c is not None else "not recorded")
     return Administration(
         laboratory=LaboratoryRecord(name=lab.name, address=lab.address,
                                     accreditation_id=lab.accreditation_id, country_code=lab.country_code),

@@ -23,7 +23,14 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    AwareDatetime,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    model_validator,
+)
 
 from labcal.analysis.attitude import Calibration, calibration_from_json
 from labcal.config.files import MAX_DEPTH, check_depth, one_line, read_text, write_json
@@ -96,7 +103,7 @@ class FitSection(_Strict):
     """The fit JSON contract (DESIGN.md §5) as `labcal.fit.Fit.to_json` writes it, so that
     `labcal attitude --cert` reads a certificate exactly as it reads a fit."""
 
-    model: Literal["linear"]
+    model: Literal["linear", "device"]  # device: the coefficients of the device model (DeviceSection)
     parameters: list[str]
     coefficients: list[list[float]]
     standard_errors: list[list[float]]
@@ -120,6 +127,34 @@ class FitSection(_Strict):
         _shape(self.covariance, (3, n, n), "covariance")
         for name in ("residual_standard_error", "reading_sd", "uncertainty_dof", "uncertainty_basis"):
             _shape(getattr(self, name), (3,), name)
+        return self
+
+
+class Misalignment(_Strict):
+    value_arcsec: float
+    u_arcsec: float
+    U_arcsec: float
+
+
+class DeviceSection(_Strict):
+    """The calibration device estimated with the instrument (issue 12): its six misalignments with
+    U at the device model's k, the instrument's intrinsic parameters, what the plan identifies, the
+    F test that judged the model, and θ's full covariance (θ in `parameters` order, misalignments in
+    rad², B in V², S in (V/g)²). Present where the certificate is built on the device model."""
+
+    note: str
+    misalignments: dict[str, Misalignment]
+    coverage_factor_95: float
+    degrees_of_freedom: int
+    intrinsic: dict
+    identifiability: dict
+    misalignment_test: dict
+    parameters: list[str]
+    covariance: list[list[float]]
+
+    @model_validator(mode="after")
+    def _shapes(self) -> DeviceSection:
+        _shape(self.covariance, (len(self.parameters),) * 2, "device covariance")
         return self
 
 
@@ -288,11 +323,24 @@ class Item(_Strict):
 
 
 class Equipment(_Strict):
-    """Equipment used, with the identity it reported or its station-file settings."""
+    """Equipment used, with the identity it reported or its station-file settings. The fields by
+    name are what the device reported (None: it reports no such field, or a certificate issued
+    before they were recorded)."""
 
     role: str
     description: str
     identity: str | None
+    maker: str | None = Field(default=None, exclude_if=_absent)
+    model: str | None = Field(default=None, exclude_if=_absent)
+    serial: str | None = Field(default=None, exclude_if=_absent)
+    firmware: str | None = Field(default=None, exclude_if=_absent)
+
+    def reported(self) -> str:
+        """Maker, model, serial and firmware in words, saying which the device does not report."""
+        if self.maker is None and self.model is None:
+            return self.identity or "no identity"
+        return (f"{' '.join(p for p in (self.maker, self.model) if p)}, serial "
+                f"{self.serial or 'not reported by the device'}, firmware {self.firmware or 'not reported'}")
 
 
 class TraceabilityRecord(_Strict):
@@ -378,6 +426,7 @@ class Certificate(_Strict):
     revision: int | None = Field(default=None, ge=1, exclude_if=_absent)
     replaces: str | None = Field(default=None, exclude_if=_absent)
     approval: Approval | None = Field(default=None, exclude_if=_absent)
+    device: DeviceSection | None = Field(default=None, exclude_if=_absent)
     digest: Digest
 
     @property

@@ -17,9 +17,11 @@ from labcal import __version__
 from labcal.analysis.attitude import Calibration, calibration_from_json, closed_form, sphere_least_squares
 from labcal.analysis.budget import TypeBInputs
 from labcal.analysis.design import LEAK_ZERO, audit, audit_summary, figure_of_merit, grid
+from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.distributions import t_quantile
 from labcal.analysis.fit import SENSORS, Fit
 from labcal.analysis.kinematics import gravity
+from labcal.analysis.models import BASE_NAMES
 from labcal.config.files import json_safe
 from labcal.config.lab import certificate_settings
 from labcal.config.settings import CertificateSettings
@@ -33,6 +35,7 @@ from labcal.documents.certificate import (
     Check,
     ClosedFormEnvelope,
     Conformity,
+    DeviceSection,
     Environment,
     Expanded,
     FitSection,
@@ -152,13 +155,13 @@ def _recorded(meta_value, given: str | None, what: str, run_dir: Path) -> str | 
     return given or meta_value or None
 
 
-def _expanded(fit: Fit, budget: UncertaintyBudget) -> Expanded:
+def _expanded(fit_dof: NDArray, budget: UncertaintyBudget) -> Expanded:
     """U = k·u_c of every coefficient, u_c from the whole budget (Type A and B); per sensor the
     smallest Welch–Satterthwaite ν_eff of its coefficients, truncated (GUM G.4.1 note 1), sets k.
     With no Type B input this is the fit's own ν and standard error."""
     nu_coef = np.array([[np.inf if n is None else n for n in row] for row in budget.coefficients.nu_eff])
     nu_min = nu_coef.min(axis=0)
-    nu = np.where(np.isfinite(nu_min), np.floor(np.nan_to_num(nu_min) + 1e-6), fit.variance_dof).astype(int)
+    nu = np.where(np.isfinite(nu_min), np.floor(np.nan_to_num(nu_min) + 1e-6), fit_dof).astype(int)
     k = t_quantile(0.5 + COVERAGE / 2, nu)
     ks = ", ".join(f"{s}: k = {kj:.2f} at ν_eff = {n}" for s, kj, n in zip(SENSORS, k, nu, strict=True))
     statement = ("The reported expanded uncertainty is the combined standard uncertainty of the budget's "
@@ -178,7 +181,7 @@ def _plan_audit(record: RunRecord, settings: CertificateSettings) -> PlanAudit:
         figure_of_merit_usage_sqrt=figure_of_merit(record.plan, settings.usage_pitch_deg) ** 0.5)
 
 
-def _conformity(fit: Fit, U: NDArray, budget: UncertaintyBudget, settings: CertificateSettings
+def _conformity(X: NDArray, U: NDArray, budget: UncertaintyBudget, settings: CertificateSettings
                 ) -> Conformity | None:
     checks, rules = [], []
     tol = settings.attitude_u95_max_deg
@@ -196,7 +199,7 @@ def _conformity(fit: Fit, U: NDArray, budget: UncertaintyBudget, settings: Certi
         rules.append("a bias passes when |B| + U(B) does not exceed its limit (guarded acceptance with guard "
                      "band w = U, ILAC-G8)")
         for j, s in enumerate(SENSORS):
-            value = abs(float(fit.coefficients[0, j])) + float(U[0, j])
+            value = abs(float(X[0, j])) + float(U[0, j])
             checks.append(Check(quantity=f"|B_{s}| + U(B_{s})", value=value, limit=settings.bias_max_v,
                                 unit="V", passed=value <= settings.bias_max_v))
     if not checks:
@@ -234,21 +237,54 @@ METHOD = ("Linear model V = B + gᵀS fitted per sensor by least squares on the 
           "misalignments of the calibration device are not added to U; the plan audit states how far each "
           "one leaks into the coefficients. Attitude uncertainties propagate the full coefficient covariance "
           "and one new reading's variance (Tripp & Tcheng eqs. 99–104).")
+METHOD_DEVICE = ("Device model: V = B + g(p, r, y, u; a, b, d, e, f, k)ᵀS (Soto 2020, eq. 11) fitted by "
+                 "nonlinear least squares from the linear fit, estimating the calibration device's six "
+                 "misalignments with the coefficients; the coefficients are corrected for them and their "
+                 "uncertainty is the budget's device-misalignment row (the section 'device' gives them with "
+                 "U, the instrument's intrinsic parameters and the covariance of all 18 parameters). "
+                 "Each sensor's readings are weighted by its noise (replicate scatter where there are "
+                 "replicates). Attitude uncertainties propagate the coefficient covariance and one new "
+                 "reading's variance (Tripp & Tcheng eqs. 99–104).")
 STATEMENTS = ("The results relate only to the item calibrated.",
               "Coefficient covariances are given in full in the JSON certificate; the attitude uncertainty "
               "depends on them.")
+
+
+def _device_fit_doc(device: DeviceFit, linear: Fit) -> dict:
+    """The fit section of a certificate built on the device model: its coefficients and their
+    covariance (marginal over a…k) in the linear fit's layout, so `labcal attitude --cert` reads it
+    as it reads any fit; the replication analysis is the linear fit's (Tripp & Tcheng Table 2)."""
+    doc = device.to_json()
+    basis = ("device model residual scatter" if device.replication is None
+             else "device model σ_prec² + σ_bias²")
+    return {**{k: doc[k] for k in ("model", "coefficients", "standard_errors", "covariance",
+                                   "residual_standard_error", "reading_sd", "degrees_of_freedom",
+                                   "uncertainty_dof", "n_points", "layout")},
+            "parameters": list(BASE_NAMES), "uncertainty_basis": [basis] * 3,
+            "replication": linear.to_json().get("replication"), "notes": doc.get("notes", [])}
+
+
+def _device_section(device: DeviceFit, note: str) -> dict:
+    doc = device.to_json()
+    return DeviceSection(
+        note=note, misalignments=doc["misalignments"], coverage_factor_95=doc["coverage_factor_95"],
+        degrees_of_freedom=doc["degrees_of_freedom"], intrinsic=doc["intrinsic"],
+        identifiability=doc["identifiability"], misalignment_test=doc["misalignment_test"],
+        parameters=doc["parameters"], covariance=device.covariance.tolist()).model_dump()
 
 
 def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings | None = None, *,
                       serial: str | None = None, operator: str | None = None,
                       issued_utc: datetime | None = None, inputs: TypeBInputs | None = None,
                       monte_carlo: int = 0, revision: int = 1, replaces: str | None = None,
-                      section: CertificateSection | None = None, item: ItemGiven | None = None
-                      ) -> Certificate:
+                      section: CertificateSection | None = None, item: ItemGiven | None = None,
+                      device: DeviceFit | None = None, model_note: str | None = None) -> Certificate:
     """The sealed certificate of a run's fit. ``serial``/``operator`` fill in what the run did not
     record (and may not contradict it); a dry run's instrument is SIMULATED. ``inputs``: the bench's
     Type B inputs (none: a Type A budget); ``monte_carlo``: trials of the JCGM 101 check (0: none);
-    ``section``: what the station file says (traceability); ``item``: customer and item details."""
+    ``section``: what the station file says (traceability); ``item``: customer and item details;
+    ``device``: the device model the run's fit.json holds (`preferred_fit`), on which the certificate
+    is then built, with ``model_note`` the line saying which model and why."""
     settings = settings or CertificateSettings()
     meta, run_dir = record.meta, record.directory
     serial = _recorded(meta.get("instrument_serial"), serial, "instrument serial", run_dir) \
@@ -258,10 +294,11 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
     calibrated = meta.get("started_utc")
     if not calibrated:
         raise LabcalError(f"{run_dir}: run.json has no started_utc; the calibration date is unknown")
-    fit_doc = json_safe(fit.to_json())
+    fit_doc = json_safe(fit.to_json() if device is None else _device_fit_doc(device, fit))
     seed = int(record.readings_sha256[:8], 16)  # the same run gives the same Monte Carlo draws
-    uncertainty = budget(record, fit, inputs or TypeBInputs(), settings, monte_carlo, seed)
-    expanded = _expanded(fit, uncertainty)
+    uncertainty = budget(record, fit, inputs or TypeBInputs(), settings, monte_carlo, seed, device)
+    X = fit.coefficients if device is None else device.coefficients
+    expanded = _expanded(fit.variance_dof if device is None else np.full(3, device.dof), uncertainty)
     cal = calibration_from_json(fit_doc, run_dir)
     envelope = attitude_envelope(cal, settings)
     try:
@@ -269,7 +306,7 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
     except (TypeError, ValueError):
         raise LabcalError(f"{run_dir}: run.json started_utc {calibrated!r} is not an ISO 8601 time") from None
     admin = administration(record, section or CertificateSection(), item or ItemGiven(), serial)
-    statements = list(STATEMENTS)
+    statements = list(STATEMENTS) + ([model_note[0].upper() + model_note[1:] + "."] if model_note else [])
     day = datetime.fromisoformat(calibrated).date()
     statements += [f"Reference standard {t.equipment} (certificate {t.certificate}) was past its calibration "
                    f"due date {t.due.isoformat()} on the calibration date."
@@ -297,7 +334,7 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
         "data": {"readings_sha256": record.readings_sha256, "n_points": len(record.readings),
                  "replicates": int(len(np.unique(record.readings.replicate)))},
         "environment": _environment(record).model_dump(),
-        "method": METHOD,
+        "method": METHOD if device is None else METHOD_DEVICE,
         "statements": statements,
         "administration": admin.model_dump(),
         "story": _story(record).model_dump(),
@@ -305,7 +342,8 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
         "expanded_uncertainty": expanded.model_dump(),
         "plan_audit": _plan_audit(record, settings).model_dump(),
         "attitude": envelope.model_dump(),
-        "conformity": None if (c := _conformity(fit, np.array(expanded.U), uncertainty, settings)) is None
+        "device": None if device is None else _device_section(device, model_note or ""),
+        "conformity": None if (c := _conformity(X, np.array(expanded.U), uncertainty, settings)) is None
         else c.model_dump(),
         "uncertainty_budget": uncertainty.model_dump(),
     }

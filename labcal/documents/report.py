@@ -25,8 +25,8 @@ import numpy as np
 
 from labcal.analysis.attitude import sphere_least_squares
 from labcal.analysis.device_fit import DeviceFit, preferred_fit
-from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit, fit_readings, readings_points
-from labcal.analysis.kinematics import Mount
+from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit, fit_readings
+from labcal.analysis.kinematics import NO_MISALIGNMENT, Misalignment, Mount, gravity
 from labcal.analysis.models import Points
 from labcal.config.files import write_atomic
 from labcal.config.settings import CertificateSettings
@@ -104,7 +104,7 @@ def identification_table(cert: Certificate) -> Table:
         rows[2:2] = [["customer", a.customer or "not stated"],
                      ["item", f"{item or 'instrument'}, serial {a.item.serial}; received "
                               f"{a.item.received.isoformat() if a.item.received else 'date not recorded'}"]]
-        rows += [["equipment", "; ".join(f"{e.role}: {e.description} ({e.identity or 'no identity'})"
+        rows += [["equipment", "; ".join(f"{e.role}: {e.description} ({e.reported()})"
                                          for e in a.equipment)],
                  ["traceability", "; ".join(f"{t.equipment} {t.identity}: certificate {t.certificate} "
                                             f"({t.issued_by}), due {t.due.isoformat()}"
@@ -311,14 +311,27 @@ def residual_figure(fit: Fit, record: RunRecord) -> Figure:
     return fig
 
 
+NO_ROLL = 1e-9  # |(g_y, g_z)| below which the nominal attitude is at a pole (pitch ±90°)
+
+
 def inferred_attitude(cert: Certificate, record: RunRecord) -> dict[str, np.ndarray]:
-    """Pitch and roll inferred from every calibration reading against the nominal attitude the
-    instrument had (the table angles mapped through the mount), in degrees."""
-    g = readings_points(record.readings).nominal_gravity()
+    """Pitch and roll inferred from every calibration reading against the attitude the instrument
+    had: the table angles mapped through the mount and, where the certificate is built on the device
+    model, through the device's estimated misalignments (its coefficients are corrected for them, so
+    the nominal attitude would show the device's own error), in degrees."""
+    r = record.readings
+    p, q, y, u = (np.radians(a) for a in (r.pitch_deg, r.roll_deg, r.y_deg, r.u_deg))
+    device = NO_MISALIGNMENT if cert.device is None else Misalignment.from_degrees(
+        **{name: m.value_arcsec / 3600.0 for name, m in cert.device.misalignments.items()})
+    g = gravity(p, q, y, u, device)
     nominal_pitch = np.degrees(np.arcsin(np.clip(g[:, 0], -1, 1)))
     nominal_roll = np.degrees(np.arctan2(g[:, 1], g[:, 2]))
     att = sphere_least_squares(cert.calibration(), record.readings.volts)
     roll_error = (np.degrees(att.roll) - nominal_roll + 180.0) % 360.0 - 180.0
+    # At pitch ±90° the attitude has no roll: the reading's roll (finite wherever the device's
+    # misalignments tilt gravity off the pole) has nothing to be compared with
+    nominal = gravity(p, q, y, u)
+    roll_error[np.hypot(nominal[:, 1], nominal[:, 2]) < NO_ROLL] = np.nan
     return {"nominal_pitch": nominal_pitch, "nominal_roll": nominal_roll,
             "pitch_error": np.degrees(att.pitch) - nominal_pitch, "roll_error": roll_error,
             "U95_pitch": att.k95 * np.degrees(att.u_pitch), "U95_roll": att.k95 * np.degrees(att.u_roll)}
@@ -614,8 +627,9 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
     ``monte_carlo`` trials check the budget by JCGM 101."""
     record = load_run(run_dir)
     fit = fit_readings(record.readings)
+    device, model_note = preferred_fit(record.readings, fit)  # the model the run's fit.json holds
     section = bench_section(record, station)
-    inputs = type_b_inputs(section, record)
+    inputs = type_b_inputs(section, record, device)
     revision, replaces = 1, None
     previous = _issued(record.directory / CERTIFICATE)
     if previous is not None and previous.approval is not None:
@@ -625,7 +639,7 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
         write_file(record.directory / f"certificate.rev{previous.revision or 1}.json", previous)
     cert = build_certificate(record, fit, settings, serial=serial, operator=operator, inputs=inputs,
                              monte_carlo=monte_carlo, revision=revision, replaces=replaces, section=section,
-                             item=item)
+                             item=item, device=device, model_note=model_note)
     return write_documents(cert, record, fit, db)
 
 

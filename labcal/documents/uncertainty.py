@@ -6,6 +6,7 @@ Carlo check (`labcal.analysis.montecarlo`), as the `UncertaintyBudget` section a
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Literal
 
@@ -18,14 +19,17 @@ from labcal.analysis.budget import (
     Source,
     TypeBInputs,
     calibration_of,
+    calibration_of_device,
     coefficient_budget,
     propagate,
     sources,
 )
 from labcal.analysis.design import grid
+from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.fit import Fit
-from labcal.analysis.kinematics import ARCSEC
+from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES
 from labcal.analysis.montecarlo import monte_carlo
+from labcal.analysis.remounting import mount_scatter
 from labcal.config.files import validate_model
 from labcal.config.settings import CertificateSettings
 from labcal.config.station import CertificateSection, load_certificate_section
@@ -62,9 +66,12 @@ def bench_section(record: RunRecord, station: str | Path | None) -> CertificateS
     return CertificateSection()
 
 
-def type_b_inputs(section: CertificateSection, record: RunRecord,
-                  device_misalignment: dict[str, float] | None = None) -> TypeBInputs:
-    """The bench's inputs in SI; the temperature half-range is the run's own (none without a channel)."""
+def type_b_inputs(section: CertificateSection, record: RunRecord, device: DeviceFit | None = None
+                  ) -> TypeBInputs:
+    """The bench's inputs in SI; the temperature half-range is the run's own (none without a channel);
+    the device misalignments' standard uncertainties where the ``device`` model estimated them."""
+    device_misalignment = {} if device is None else {
+        name: float(u) for name, u in zip(MISALIGNMENT_NAMES, device.misalignment_u_rad, strict=True)}
     u = section.uncertainty
     t = record.readings.temp_c
     return TypeBInputs(
@@ -76,7 +83,7 @@ def type_b_inputs(section: CertificateSection, record: RunRecord,
         roll_wobble=u.roll_wobble, mount_repeatability=u.mount_repeatability,
         temperature_half_range_k=0.0 if t is None else float(np.ptp(t)) / 2,
         bias_tempco_v_per_k=u.bias_tempco, sensitivity_tempco_per_k=u.sensitivity_tempco,
-        device_misalignment=dict(device_misalignment or {}))
+        device_misalignment=device_misalignment)
 
 
 def envelope(settings: CertificateSettings) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -175,9 +182,14 @@ def _statement(totals: list[BudgetTotal], checks: list[MonteCarloCheck] | None) 
 
 
 def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: CertificateSettings,
-           trials: int = 0, seed: int = 0) -> UncertaintyBudget:
-    """The certificate's budget section for a run's fit; ``trials`` > 0 adds the Monte Carlo check."""
-    cal = calibration_of(fit, record.readings)
+           trials: int = 0, seed: int = 0, device: DeviceFit | None = None) -> UncertaintyBudget:
+    """The certificate's budget section for a run's fit, or for its ``device`` model where the
+    certificate is built on it; ``trials`` > 0 adds the Monte Carlo check."""
+    readings = record.readings
+    cal = calibration_of(fit, readings) if device is None else calibration_of_device(device, readings)
+    scatter = mount_scatter(readings, cal.X)
+    if scatter is not None:  # the replicates say how the seating scatters: they win over the station file
+        inputs = replace(inputs, mount_repeatability_sd=scatter.sd_rad, mount_repeatability_dof=scatter.dof)
     rows = sources(cal, inputs)
     pitch, roll = envelope(settings)
     p = propagate(cal, rows, pitch, roll)
