@@ -143,3 +143,17 @@ def test_bad_calibration_files(tmp_path, capsys, content, expected):
         load_calibration(path)
     assert main(["attitude", "--cert", str(path), "--csv", str(path)]) == 2
     assert expected in capsys.readouterr().err
+
+
+def test_sphere_pitch_near_the_pole_does_not_assume_a_roll():
+    """Within the noise of ±90° roll is undefined and not estimated, but gravity's small horizontal
+    part still has a direction: pitch is then 90° minus its size whichever way it points. Holding
+    roll at 0° instead made pitch wrong by the whole horizontal part where gravity leans sideways."""
+    cal = exact_calibration(reading_sd=(5e-4, 5e-4, 5e-4))  # u_h ≈ 1e-4 g: 0.002° of lean is within it
+    lean_deg = 0.002
+    for roll_deg in (0.0, 90.0, -135.0):
+        v = volts_at(np.array([90.0 - lean_deg]), np.array([roll_deg]))
+        att = sphere_least_squares(cal, v)
+        assert not att.roll_defined[0]
+        # noise-free volts: pitch exactly 90° − lean, whatever the roll (1e-7°: iteration round-off)
+        assert np.degrees(att.pitch[0]) == pytest.approx(90.0 - lean_deg, abs=1e-7), roll_deg

@@ -151,7 +151,11 @@ def sphere_least_squares(cal: Calibration, volts: NDArray[np.float64]) -> Attitu
     """Tripp eqs. 99–104: weighted least squares over (α, R) on the unit sphere."""
     volts = np.atleast_2d(np.asarray(volts, float))
     start = closed_form(cal, volts)
-    pitch, roll = start.pitch.copy(), np.where(start.roll_defined, start.roll, 0.0)
+    # Where roll is undefined it is held, not estimated, but at the direction the small horizontal
+    # part of g has: held at 0° instead, pitch absorbed the whole horizontal part as an error.
+    g_raw = (volts - cal.X[0]) @ cal.s_inv
+    pitch, roll = start.pitch.copy(), np.where(start.roll_defined, start.roll,
+                                               np.arctan2(g_raw[:, 1], g_raw[:, 2]))
     free_roll = start.roll_defined
     S = cal.X[1:]
     for _ in range(GN_ITERATIONS):
