@@ -144,9 +144,8 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
     failed = f", {o.points_failed} failed (see the journal)" if o.points_failed else ""
     out.print(f"{o.points_recorded} points{failed} in {result.wall_s:.2f} s of wall time; the rig's clock "
               f"says {format_duration(o.station_time_s)} (remount allowances included).")
-    files = "readings.csv, fit.json, plan.toml, run.json"
+    files = ", ".join(sorted(p.name for p in run_dir.iterdir() if not p.name.startswith(".")))
     if issued is not None:
-        files += ", certificate.json, report.html, report.pdf"
         conformity = issued.certificate.conformity
         if conformity is not None:
             verdict = "[green]PASS[/]" if conformity.passed else "[red]FAIL[/]"
