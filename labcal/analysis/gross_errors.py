@@ -30,6 +30,7 @@ from labcal.analysis.kinematics import gravity
 from labcal.analysis.models import Model
 from labcal.analysis.readings import Readings
 from labcal.analysis.regression import LeastSquares, least_squares
+from labcal.analysis.replication import point_groups
 from labcal.errors import LabcalError
 
 FAMILY_ALPHA = 0.001  # chance that one check flags anything in a file of good readings
@@ -150,20 +151,17 @@ def _leave_group_out(design: NDArray[np.float64], volts: NDArray[np.float64], or
 def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA) -> list[Flag]:
     """Groups of readings (one replicate, one mount) that their stated mount does not explain and
     another mount does: each group predicted from the base fit of all the other groups."""
-    columns = [np.unique(c, return_inverse=True) for c in
-               (readings.replicate, readings.y_deg % 360, readings.u_deg % 360)]
-    sizes = [len(v) for v, _ in columns]
-    code = np.ravel_multi_index([inv.ravel() for _, inv in columns], sizes)
-    codes, index = np.unique(code, return_inverse=True)  # rows sorted as np.unique(axis=0) sorts them
-    keys = np.column_stack([v[i] for (v, _), i in zip(columns, np.unravel_index(codes, sizes), strict=True)])
-    index = index.ravel()
+    groups = np.column_stack([readings.replicate, readings.y_deg % 360, readings.u_deg % 360])
+    index, n_groups = point_groups(groups)
+    keys = groups[np.unique(index, return_index=True)[1]]
     if len(keys) < 2:
         return []
     flags: list[Flag] = []
+    limits: dict[int, float] = {}
     _, design = Model().design(readings_points(readings))
     order = np.argsort(index, kind="stable")
     base = gravity(np.radians(readings.pitch_deg), np.radians(readings.roll_deg), 0.0, 0.0)
-    bounds = np.searchsorted(index[order], np.arange(len(keys) + 1))
+    bounds = np.searchsorted(index[order], np.arange(n_groups + 1))
     for k, ((_, y, u), others) in enumerate(zip(keys, _leave_group_out(design, readings.volts, order, bounds),
                                                 strict=True)):
         if others is None:
@@ -173,7 +171,9 @@ def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA) -> list[Flag]:
             continue
         rows = order[bounds[k]:bounds[k + 1]]
         n = len(rows)
-        limit = float(chi2_quantile(1.0 - sidak_per_test(len(keys), alpha), 3 * n))
+        if n not in limits:  # one bisection per group size, not per group
+            limits[n] = float(chi2_quantile(1.0 - sidak_per_test(len(keys), alpha), 3 * n))
+        limit = limits[n]
         chi2 = {}
         for my, mu in MOUNTS:
             f = np.column_stack([np.ones(n), base[rows] * MOUNT_SIGNS[(my, mu)]])
