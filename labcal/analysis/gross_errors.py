@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from labcal.analysis.attitude import Attitude, Calibration, output_variance
 from labcal.analysis.distributions import chi2_quantile, t_quantile
 from labcal.analysis.fit import Fit, readings_points
-from labcal.analysis.kinematics import gravity
+from labcal.analysis.kinematics import nominal_gravity
 from labcal.analysis.models import Model
 from labcal.analysis.readings import Readings
 from labcal.analysis.regression import LeastSquares, least_squares
@@ -160,7 +160,7 @@ def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA) -> list[Flag]:
     limits: dict[int, float] = {}
     _, design = Model().design(readings_points(readings))
     order = np.argsort(index, kind="stable")
-    base = gravity(np.radians(readings.pitch_deg), np.radians(readings.roll_deg), 0.0, 0.0)
+    base = nominal_gravity(np.radians(readings.pitch_deg), np.radians(readings.roll_deg), 0.0, 0.0)
     bounds = np.searchsorted(index[order], np.arange(n_groups + 1))
     for k, ((_, y, u), others) in enumerate(zip(keys, _leave_group_out(design, readings.volts, order, bounds),
                                                 strict=True)):
