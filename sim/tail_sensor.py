@@ -53,7 +53,8 @@ class TailSensor:
     def transient(self, t: np.ndarray) -> np.ndarray:
         """Mean over each aperture [t, t + dt] of Σ w_j·e^{−t/τ_j} (per unit step)."""
         dt = self.sample_s
-        return sum(w * tau / dt * (np.exp(-t / tau) - np.exp(-(t + dt) / tau)) for w, tau in self.poles)
+        return np.sum([w * tau / dt * (np.exp(-t / tau) - np.exp(-(t + dt) / tau)) for w, tau in self.poles],
+                      axis=0)
 
     def read(self, n_samples: int) -> Scan:
         start = self.clock.now()

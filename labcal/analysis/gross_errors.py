@@ -109,8 +109,11 @@ def _rows(indices: NDArray[np.int_]) -> str:
     return ", ".join(str(r) for r in rows)
 
 
+GroupFit = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]  # coef, cov_unscaled, S_E
+
+
 def _leave_group_out(design: NDArray[np.float64], volts: NDArray[np.float64], order: NDArray[np.int_],
-                     bounds: NDArray[np.int_]):
+                     bounds: NDArray[np.int_]) -> list[GroupFit | None]:
     """For each group (rows order[bounds[k]:bounds[k+1]]): (coef, cov_unscaled, residual_se) of the
     fit of every *other* row, or None where those rows cannot determine the model. One QR of all the
     rows, then each group taken out by downdating at the residuals' scale (Fᵀe = 0 for the full
@@ -121,7 +124,7 @@ def _leave_group_out(design: NDArray[np.float64], volts: NDArray[np.float64], or
     except LabcalError:
         return [None] * (len(bounds) - 1)  # every subset of a singular design is singular
     gram, rss = design.T @ design, np.sum(full.residuals**2, axis=0)
-    out = []
+    out: list[GroupFit | None] = []
     for k in range(len(bounds) - 1):
         rows = order[bounds[k]:bounds[k + 1]]
         f, e = design[rows], full.residuals[rows]
@@ -140,11 +143,11 @@ def _leave_group_out(design: NDArray[np.float64], volts: NDArray[np.float64], or
                 continue
             out.append((ls.coef, ls.cov_unscaled, ls.residual_se) if ls.dof >= 1 else None)
             continue
-        cov = np.linalg.inv(rest)
+        cov = np.linalg.inv(rest).astype(float)
         ft_e = f.T @ e  # = −(the others' Fᵀe)
         coef = full.coef - cov @ ft_e
         rss_rest = rss - np.sum(e**2, axis=0) - np.einsum("ij,ik,kj->j", ft_e, cov, ft_e)
-        out.append((coef, cov, np.sqrt(np.maximum(rss_rest, 0.0) / dof)))
+        out.append((coef.astype(float), cov, np.sqrt(np.maximum(rss_rest, 0.0) / dof).astype(float)))
     return out
 
 
