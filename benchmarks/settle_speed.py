@@ -97,11 +97,11 @@ def point_bound(a: tuple[float, float], b: tuple[float, float], mount, rig: RigC
     return motion + start + settle.samples * sample_s
 
 
-def run(plan, text, rig: RigConfig, seed: int, fixed_dwell: float | None, tmp: Path):
+def run(plan, text, rig: RigConfig, seed: int, fixed_dwell: float | None, tmp: Path, mode: str = "detect"):
     sim = SimRig(rig, seed=seed, clock=VirtualClock())
     inst = rig.instrument
     settle = SequencerSettings().settle.model_copy(update={
-        "tau_s": inst.tau_s, "noise_v": inst.noise_v, "fixed_dwell_s": fixed_dwell,
+        "tau_s": inst.tau_s, "noise_v": inst.noise_v, "fixed_dwell_s": fixed_dwell, "mode": mode,
         "sensitivity_v_per_g": float(np.max(np.abs(inst.S)))})
     settings = SequencerSettings(settle=settle, speed_dps=rig.speed_dps, accel_dps2=rig.accel_dps2)
     wall = time.perf_counter()

@@ -73,3 +73,27 @@ def test_a_small_blunder_shows_as_a_residual_beyond_the_limit():
     flags = fit_flags(bad := _with(readings, volts=v), fit_readings(bad))
     assert [(f.row, f.check) for f in flags] == [(21, "residual")]
     assert "sensor y: residual" in flags[0].message
+
+
+def test_each_group_left_out_by_downdating_is_the_qr_fit_of_the_other_groups():
+    """The mount check's fit of every other group (downdated from one fit of all the rows) against
+    a QR fit of those rows themselves: the same coefficients, covariance and S_E to 1e-8 relative
+    (the downdate works at the residuals' scale; double rounding leaves ~1e-12 here)."""
+    import numpy as np
+
+    from labcal.analysis.fit import readings_points
+    from labcal.analysis.gross_errors import _leave_group_out
+    from labcal.analysis.models import Model
+    from labcal.analysis.regression import least_squares
+
+    readings = simulate_readings(load_plan("four-mount-64")[0].model_copy(update={"replicates": 2}),
+                                 TRUTH, noise_v=NOISE_V, seed=5)
+    _, design = Model().design(readings_points(readings))
+    index = np.unique(np.column_stack([readings.replicate, readings.y_deg, readings.u_deg]), axis=0,
+                      return_inverse=True)[1].ravel()
+    order = np.argsort(index, kind="stable")
+    bounds = np.searchsorted(index[order], np.arange(index.max() + 2))
+    for k, (coef, cov, se) in enumerate(_leave_group_out(design, readings.volts, order, bounds)):
+        ls = least_squares(design[index != k], readings.volts[index != k])
+        for mine, qr in ((coef, ls.coef), (cov, ls.cov_unscaled), (se, ls.residual_se)):
+            assert np.allclose(mine, qr, rtol=1e-8, atol=1e-8 * np.max(np.abs(qr)))

@@ -30,6 +30,7 @@ from labcal.analysis.kinematics import (
     gravity,
     gravity_jacobian,
 )
+from labcal.analysis.replication import point_groups
 
 SENSORS = ("x", "y", "z")
 N_MIS = len(MISALIGNMENT_NAMES)
@@ -66,8 +67,7 @@ class Geometry:
     def distinct(self) -> Geometry:
         """One reading per distinct point (replicates add no geometry)."""
         keys = np.round(np.column_stack([self.pitch, self.roll, self.y, self.u]) % (2 * np.pi), 12)
-        _, first = np.unique(keys, axis=0, return_index=True)
-        first = np.sort(first)
+        first = np.sort(np.unique(point_groups(keys)[0], return_index=True)[1])
         return Geometry(self.pitch[first], self.roll[first], self.y[first], self.u[first])
 
     def with_mount(self, mount: Mount) -> Geometry:

@@ -26,16 +26,21 @@ from numpy.typing import NDArray
 from labcal.analysis.attitude import Attitude, Calibration, output_variance
 from labcal.analysis.distributions import chi2_quantile, t_quantile
 from labcal.analysis.fit import Fit, readings_points
-from labcal.analysis.kinematics import gravity
+from labcal.analysis.kinematics import nominal_gravity
 from labcal.analysis.models import Model
 from labcal.analysis.readings import Readings
 from labcal.analysis.regression import LeastSquares, least_squares
+from labcal.analysis.replication import point_groups
 from labcal.errors import LabcalError
 
 FAMILY_ALPHA = 0.001  # chance that one check flags anything in a file of good readings
 VOLTS_MAX = 1000.0  # no bench DMM has a range above 1000 V (the 34970A's highest is 300 V)
 SENSORS = ("x", "y", "z")
 MOUNTS = ((0.0, 0.0), (180.0, 0.0), (0.0, 180.0), (180.0, 180.0))
+# gravity on each mount is gravity on the first one with axes reversed: y = 180° reverses x and y,
+# u = 180° reverses y and z (the sines of 180° are rounding noise, ~1e-16)
+MOUNT_SIGNS = {(0.0, 0.0): (1, 1, 1), (180.0, 0.0): (-1, -1, 1), (0.0, 180.0): (1, -1, -1),
+               (180.0, 180.0): (-1, 1, -1)}
 
 
 @dataclass(frozen=True)
@@ -104,36 +109,83 @@ def _rows(indices: NDArray[np.int_]) -> str:
     return ", ".join(str(r) for r in rows)
 
 
+GroupFit = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]  # coef, cov_unscaled, S_E
+
+
+def _leave_group_out(design: NDArray[np.float64], volts: NDArray[np.float64], order: NDArray[np.int_],
+                     bounds: NDArray[np.int_]) -> list[GroupFit | None]:
+    """For each group (rows order[bounds[k]:bounds[k+1]]): (coef, cov_unscaled, residual_se) of the
+    fit of every *other* row, or None where those rows cannot determine the model. One QR of all the
+    rows, then each group taken out by downdating at the residuals' scale (Fᵀe = 0 for the full
+    fit, so the others' Fᵀe is −F_kᵀe_k): O(rows) in all instead of one QR of the rest per group.
+    A group whose removal leaves the design near singular is refitted by QR, as before."""
+    try:
+        full = least_squares(design, volts)
+    except LabcalError:
+        return [None] * (len(bounds) - 1)  # every subset of a singular design is singular
+    gram, rss = design.T @ design, np.sum(full.residuals**2, axis=0)
+    out: list[GroupFit | None] = []
+    for k in range(len(bounds) - 1):
+        rows = order[bounds[k]:bounds[k + 1]]
+        f, e = design[rows], full.residuals[rows]
+        rest = gram - f.T @ f
+        dof = len(design) - len(rows) - design.shape[1]
+        scale = np.sqrt(np.clip(np.diag(rest), 0.0, None))
+        unit = np.where(scale > 0, scale, 1.0)
+        eig = np.linalg.eigvalsh(rest / np.outer(unit, unit))
+        if dof < 1 or not np.all(scale > 0) or eig[0] <= 1e-12 * eig[-1]:
+            others = np.ones(len(design), bool)
+            others[rows] = False
+            try:
+                ls = least_squares(design[others], volts[others])
+            except LabcalError:
+                out.append(None)
+                continue
+            out.append((ls.coef, ls.cov_unscaled, ls.residual_se) if ls.dof >= 1 else None)
+            continue
+        cov = np.linalg.inv(rest).astype(float)
+        ft_e = f.T @ e  # = −(the others' Fᵀe)
+        coef = full.coef - cov @ ft_e
+        rss_rest = rss - np.sum(e**2, axis=0) - np.einsum("ij,ik,kj->j", ft_e, cov, ft_e)
+        out.append((coef.astype(float), cov, np.sqrt(np.maximum(rss_rest, 0.0) / dof).astype(float)))
+    return out
+
+
 def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA) -> list[Flag]:
     """Groups of readings (one replicate, one mount) that their stated mount does not explain and
     another mount does: each group predicted from the base fit of all the other groups."""
     groups = np.column_stack([readings.replicate, readings.y_deg % 360, readings.u_deg % 360])
-    keys, index = np.unique(groups, axis=0, return_inverse=True)
-    index = index.ravel()
+    index, n_groups = point_groups(groups)
+    keys = groups[np.unique(index, return_index=True)[1]]
     if len(keys) < 2:
         return []
     flags: list[Flag] = []
+    limits: dict[int, float] = {}
     _, design = Model().design(readings_points(readings))
-    for k, (_, y, u) in enumerate(keys):
-        inside, outside = index == k, index != k
-        try:
-            ls = least_squares(design[outside], readings.volts[outside])
-        except LabcalError:
+    order = np.argsort(index, kind="stable")
+    base = nominal_gravity(np.radians(readings.pitch_deg), np.radians(readings.roll_deg), 0.0, 0.0)
+    bounds = np.searchsorted(index[order], np.arange(n_groups + 1))
+    for k, ((_, y, u), others) in enumerate(zip(keys, _leave_group_out(design, readings.volts, order, bounds),
+                                                strict=True)):
+        if others is None:
             continue  # the other groups alone cannot determine the model: nothing to compare with
-        if ls.dof < 1 or not np.all(ls.residual_se > 0):
+        coef, cov_unscaled, residual_se = others
+        if not np.all(residual_se > 0):
             continue
-        n = int(inside.sum())
-        limit = float(chi2_quantile(1.0 - sidak_per_test(len(keys), alpha), 3 * n))
-        p, r = np.radians(readings.pitch_deg[inside]), np.radians(readings.roll_deg[inside])
+        rows = order[bounds[k]:bounds[k + 1]]
+        n = len(rows)
+        if n not in limits:  # one bisection per group size, not per group
+            limits[n] = float(chi2_quantile(1.0 - sidak_per_test(len(keys), alpha), 3 * n))
+        limit = limits[n]
         chi2 = {}
         for my, mu in MOUNTS:
-            f = np.column_stack([np.ones(n), gravity(p, r, np.radians(my), np.radians(mu))])
-            q = np.einsum("ij,jk,ik->i", f, ls.cov_unscaled, f)
-            scale = ls.residual_se[None, :] * np.sqrt(1.0 + q)[:, None]
-            chi2[(my, mu)] = float(np.sum(((readings.volts[inside] - f @ ls.coef[:4]) / scale) ** 2))
+            f = np.column_stack([np.ones(n), base[rows] * MOUNT_SIGNS[(my, mu)]])
+            q = np.einsum("ij,jk,ik->i", f, cov_unscaled, f)
+            scale = residual_se[None, :] * np.sqrt(1.0 + q)[:, None]
+            chi2[(my, mu)] = float(np.sum(((readings.volts[rows] - f @ coef[:4]) / scale) ** 2))
         best = min(chi2, key=lambda mount: chi2[mount])
         if chi2[(y, u)] > limit and best != (y, u) and chi2[best] <= limit:
-            rows = np.flatnonzero(inside)
+            rows = np.sort(rows)
             message = (f"readings {_rows(rows)} (replicate {keys[k][0]:g}) are labelled mount y={y:g} "
                        f"u={u:g} but read like mount y={best[0]:g} u={best[1]:g}: a missed or wrong "
                        f"remount? (χ² {chi2[(y, u)]:.3g} against {chi2[best]:.3g}, limit {limit:.3g})")

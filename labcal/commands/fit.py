@@ -68,11 +68,15 @@ def cmd_fit(args: argparse.Namespace) -> int:
     readings = read_readings(args.readings)
     implausible_volts(readings.volts)
     model, chosen = choose_model(args, readings)
-    if model == "device" and args.model is None and fit_flags(readings, fit_readings(readings)):
-        model, chosen = "linear", ("linear model: some readings fail the gross-error checks (listed below); "
-                                   "the device model is fitted only to readings that pass them")
+    checked = None  # (the linear fit, its gross-error flags), computed once for the choice and the device fit
+    if model == "device" and args.model is None:
+        linear = fit_readings(readings)
+        checked = linear, fit_flags(readings, linear)
+        if checked[1]:
+            model, chosen = "linear", ("linear model: some readings fail the gross-error checks (listed "
+                                       "below); the device model is fitted only to readings that pass them")
     if model == "device":
-        return fit_device_model(args, readings, chosen)
+        return fit_device_model(args, readings, chosen, checked)
     extend = tuple(e.strip() for e in args.extend.split(",") if e.strip()) if args.extend else ()
     fit = fit_readings(readings, Model(extend, reference_temperature(readings)))
     doc = coning_json(fit) if model == "coning" else fit.to_json()
@@ -122,15 +126,16 @@ def cmd_fit(args: argparse.Namespace) -> int:
     return outcome_of_checks(flags, args.allow_outliers, args.readings)
 
 
-def fit_device_model(args: argparse.Namespace, readings, chosen: str | None) -> int:
+def fit_device_model(args: argparse.Namespace, readings, chosen: str | None, checked=None) -> int:
     """`labcal fit --model device`: the instrument and the device's six misalignments together."""
     from labcal.analysis.device_fit import fit_device
     from labcal.analysis.gross_errors import fit_flags
     from labcal.commands.console import device_tables
 
-    fit = fit_device(readings)
+    fit = fit_device(readings, checked[0] if checked else None)
     doc = fit.to_json()
-    flags = fit_flags(readings, fit.linear)  # what physics guarantees, whichever model is fitted
+    # what physics guarantees, whichever model is fitted (the same linear fit: the same flags)
+    flags = checked[1] if checked else fit_flags(readings, fit.linear)
     doc["gross_errors"] = [f.to_json() for f in flags]
     if args.index_errors:
         from labcal.analysis.index_errors import fit_index_errors

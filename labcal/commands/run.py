@@ -39,7 +39,8 @@ def sequencer_settings_for_run(args: argparse.Namespace, setup: StationSetup, sp
 
     settle = validate_model({**setup.settle.model_dump(), **{
         k: v for k, v in (("samples", args.samples), ("fixed_dwell_s", args.fixed_dwell),
-                          ("max_dwell_s", args.max_dwell)) if v is not None}}, SettleSettings,
+                          ("max_dwell_s", args.max_dwell),
+                          ("mode", args.settle)) if v is not None}}, SettleSettings,
         "command line: settle")  # validated: the options and the station file share one range
     return SequencerSettings(settle=settle, order=args.order, seed=args.seed or 0,
                              on_failure=args.on_failure, check_mount=not args.no_mount_check,
@@ -365,6 +366,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="dwell S seconds (0..3600) instead of detecting settling")
     p.add_argument("--max-dwell", type=bounded(float, 0, 3600, lo_open=True), metavar="S",
                    help="give up settling after S seconds (at most 3600)")
+    p.add_argument("--settle", choices=["detect", "model"], default=None,
+                   help="model: estimate each point from the exponential tail, waiting only when the "
+                   "sensor does not follow it (default: the station file's, else detect)")
     p.add_argument("--on-failure", choices=["skip", "pause", "abort"], default="skip",
                    help="a point that does not settle after one retry (default %(default)s)")
     p.add_argument("--no-mount-check", action="store_true", help="do not verify each mount from gravity")

@@ -27,6 +27,9 @@ class SettleSettings(BaseModel):
     max_dwell_s: float = Field(default=60.0, gt=0, description="give up on a point after this dwell")
     fixed_dwell_s: float | None = Field(default=None, ge=0,
                                         description="dwell this long and take one window, no test")
+    mode: Literal["detect", "model"] = Field(
+        default="detect", description="detect: wait out the transient, then test a window; model: fit "
+        "the exponential tail (τ estimated), fall back to detect when the sensor does not follow it")
 
 
 class SequencerSettings(BaseModel):

@@ -24,7 +24,7 @@ from labcal.run.motion import move_time, transient_at_stop, transient_left
 from labcal.run.mounting import CHECK_ATTITUDE, identify
 from labcal.run.operator import Operator, OperatorDeclined
 from labcal.run.ordering import order_points
-from labcal.run.settle import Dwell, dead_time, dwell
+from labcal.run.settle import Dwell, dead_time, dwell, dwell_model
 from labcal.run.station import Station, StopFailed, mean_and_sd
 
 LOAD_POSITION = (0.0, 0.0)  # tables level while the operator remounts
@@ -178,8 +178,9 @@ class Sequencer:
                                s.tau_s)
         self.station.at_point(key)
         with self.interrupts.critical():
-            result = dwell(self.station.dmm, self.station.clock, lag_g * s.sensitivity_v_per_g, s,
-                           motion_end, self._sample_s)
+            wait = dwell_model if s.mode == "model" and s.fixed_dwell_s is None else dwell
+            result = wait(self.station.dmm, self.station.clock, lag_g * s.sensitivity_v_per_g, s,
+                          motion_end, self._sample_s)
         self._sample_s = result.sample_s
         return result
 
@@ -308,7 +309,7 @@ class Sequencer:
             if attempt == 1:
                 self.event("retry", f"point {step.seq} did not settle ({result.verdict.reason}); retrying")
         ok = result.verdict.settled
-        mean, sd = mean_and_sd(result.scan)
+        mean, sd = result.estimate or mean_and_sd(result.scan)
         scan = result.scan
         temp = None if scan.temp_c is None else float(np.mean(scan.temp_c))
         raw = np.column_stack([scan.volts, scan.temp_c if scan.temp_c is not None
