@@ -8,16 +8,18 @@ so without a log file nothing is printed and nothing is lost.
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import TYPE_CHECKING
 
 from labcal.errors import LabcalError
 
-LOG_LEVELS = {"debug": logging.DEBUG, "info": logging.INFO, "warning": logging.WARNING}
-_QUIET = logging.NullHandler()  # no log unless asked for (not Python's last-resort printing to stderr)
+if TYPE_CHECKING:
+    import logging
+
+LOG_LEVELS = ("debug", "info", "warning")  # logging's names, lower case (logging loads after parsing)
 
 
 def add_log_options(parser: argparse.ArgumentParser) -> None:
@@ -28,22 +30,27 @@ def add_log_options(parser: argparse.ArgumentParser) -> None:
                         help="how much to log (default info); without --log-file the log goes to stderr")
 
 
-class UtcFormatter(logging.Formatter):
+def utc_formatter() -> logging.Formatter:  # logging is imported only once a command runs
     """``2026-11-23T22:31:54.123Z WARNING labcal.drivers.transport: …``: UTC, like the journal."""
+    import logging
 
-    def __init__(self) -> None:
-        super().__init__("%(asctime)s %(levelname)s %(name)s: %(message)s")
+    class UtcFormatter(logging.Formatter):
+        def formatTime(self, record: logging.LogRecord, datefmt: str | None = None) -> str:  # noqa: N802
+            return (time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created))
+                    + f".{int(record.msecs):03d}Z")
 
-    def formatTime(self, record: logging.LogRecord, datefmt: str | None = None) -> str:  # noqa: N802
-        return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created)) + f".{int(record.msecs):03d}Z"
+    return UtcFormatter("%(asctime)s %(levelname)s %(name)s: %(message)s")
 
 
 @contextmanager
 def logging_to(path: str | None, level: str | None) -> Iterator[None]:
     """labcal's log (loggers ``labcal.*``) appended to ``path``, or on stderr when only a level is
     given, for the block's duration; a file that cannot be opened is a one-line error."""
+    import logging
+
     logger = logging.getLogger("labcal")
-    logger.addHandler(_QUIET)
+    if not any(isinstance(h, logging.NullHandler) for h in logger.handlers):
+        logger.addHandler(logging.NullHandler())  # no log unless asked for (not Python's last resort)
     if path is None and level is None:
         yield
         return
@@ -56,9 +63,9 @@ def logging_to(path: str | None, level: str | None) -> Iterator[None]:
         except OSError as exc:
             raise LabcalError(f"--log-file {path}: cannot open it ({exc.strerror or exc}); give a file in a "
                               "folder you can write to") from None
-    handler.setFormatter(UtcFormatter())
+    handler.setFormatter(utc_formatter())
     before = logger.level
-    logger.setLevel(LOG_LEVELS[level or "info"])
+    logger.setLevel((level or "info").upper())  # logging knows its levels by name
     logger.addHandler(handler)
     try:
         yield

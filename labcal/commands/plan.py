@@ -8,7 +8,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from labcal.commands.common import bounded, bounded_field, err, out, print_json
-from labcal.config.plans import load_plan, shipped_plan_summaries
 from labcal.errors import LabcalError
 
 if TYPE_CHECKING:
@@ -17,6 +16,8 @@ if TYPE_CHECKING:
 
 def cmd_list(args: argparse.Namespace) -> int:
     """Plain text, not a rich table: listing two plans should not cost importing rich."""
+    from labcal.config.plans import shipped_plan_summaries  # tomllib: not on --help's path
+
     plans = shipped_plan_summaries()
     if args.json:
         print_json({"plans": plans})
@@ -31,6 +32,8 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 def cmd_show(args: argparse.Namespace) -> int:
     from rich.table import Table
+
+    from labcal.config.plans import load_plan
 
     plan, _ = load_plan(args.plan)
     if args.json:
@@ -98,6 +101,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
 def cmd_merit(args: argparse.Namespace) -> int:
     from labcal.analysis import design
+    from labcal.config.plans import load_plan
 
     plan, _ = load_plan(args.plan)
     pitches = [p for p, _ in plan.points]
@@ -159,6 +163,7 @@ def cmd_audit(args: argparse.Namespace) -> int:
 
     from labcal.analysis.design import LEAK_ZERO, audit, audit_summary
     from labcal.analysis.device_model import Geometry, identifiability
+    from labcal.config.plans import load_plan
 
     plan, _ = load_plan(args.plan)
     leaks = audit(plan)
