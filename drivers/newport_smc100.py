@@ -208,7 +208,16 @@ class Smc100Axis(IndexAxis):
         if state is not None and state not in MOVING | HOMING:
             log.debug("%s: not moving (%s): nothing to stop", self.device, describe_state(0, state))
             return
-        self.do("ST")
+        try:
+            self.do("ST")
+        except Rejected:
+            # Refused because the stage left MOVING/HOMING between TS and ST (a homing that ended or
+            # was aborted: NOT REFERENCED refuses ST). The stage then moves no more, which is what
+            # the stop is for; asked again to be sure. Still moving: the stop failed, loudly.
+            state = self.ask("TS", parse_state)[1]
+            if state in MOVING | HOMING:
+                raise
+            log.info("%s: ST refused in %s: the stage is not moving", self.device, describe_state(0, state))
 
     def identify(self) -> str:
         """``ID?`` (the stage) and ``VE`` (controller and firmware), as the manual documents them."""

@@ -151,6 +151,18 @@ def test_smc100_stop_only_when_moving():
     assert not_referenced.done()
 
 
+def test_smc100_stop_refused_because_homing_just_ended_is_a_stopped_stage():
+    """TS says HOMING (1Eh), the homing ends before ST arrives, the controller refuses ST with error
+    H (NOT REFERENCED, 0Bh from HOMING): nothing moves, so the stop has done its job. Seen when a
+    SIGTERM came during homing."""
+    raced = smc(("1TS", "1TS00001E"), ("1ST", None), ("1TE", "1TEH"), ("1TS", "1TS00000B"))
+    smc_on(raced).stop()
+    assert raced.done()
+    still_moving = smc(("1TS", "1TS000028"), ("1ST", None), ("1TE", "1TEH"), ("1TS", "1TS000028"))
+    with pytest.raises(Rejected, match="refused ST"):
+        smc_on(still_moving).stop()
+
+
 def test_smc100_identity():
     transcript = smc(("1ID?", "1IDURS100BCC"), ("1VE", "1VE SMC_CC - Controller-driver version 2.0.0"))
     assert smc_on(transcript).identify() == ("Newport SMC100 address 1: stage URS100BCC, "
