@@ -14,8 +14,8 @@ from labcal.config.station import CertificateSection
 from labcal.documents.administration import ItemGiven, administration
 from labcal.documents.certificate import read_certificate
 from labcal.run.record import load_run
-from sim.dmm_emulator import IDN
-from sim.smc100_emulator import VERSION
+from labcal.sim.dmm_emulator import IDN
+from labcal.sim.smc100_emulator import VERSION
 
 
 def test_an_emulated_run_certifies_the_identities_the_emulators_reported(tmp_path, capsys, no_leaks):  # noqa: F811
