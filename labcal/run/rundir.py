@@ -86,7 +86,8 @@ def open_run(run_dir: Path) -> tuple[dict, Journal, RunRow]:
     info = read_run_json(run_dir)
     if "journal" not in info or "run_id" not in info:
         raise LabcalError(f"{run_dir / RUN}: names no journal; was this run made by labcal run?")
-    if not isinstance(info["run_id"], int) or not isinstance(info["journal"], str):
+    if (not isinstance(info["run_id"], int) or not 0 < info["run_id"] < 2**63  # an SQLite rowid
+            or not isinstance(info["journal"], str)):
         raise LabcalError(f"{run_dir / RUN}: run_id or journal is not what labcal writes there")
     try:
         found = Path(info["journal"]).is_file()
