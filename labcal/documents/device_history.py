@@ -19,6 +19,7 @@ from typing import Any
 
 from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.kinematics import MISALIGNMENT_NAMES
+from labcal.documents.history import stored_rows
 from labcal.errors import LabcalError
 from labcal.run import labdb
 from labcal.run.journal import db_path
@@ -82,17 +83,11 @@ def store(estimate: DeviceEstimate, db: str | Path | None = None) -> Path:
 
 def estimates_for(device_id: str, db: str | Path | None = None) -> list[DeviceEstimate]:
     """The device's estimates, oldest calibration first."""
-    path = db_path(db)
-    if not path.is_file():
-        raise LabcalError(f"{path}: no such database; a finished run stores its device estimate there "
-                          "(or give --db / set LABCAL_DB)")
-    with closing(labdb.connect(path)) as conn:
-        rows = conn.execute("SELECT document FROM device_estimates WHERE device_id = ? "
-                            "ORDER BY calibrated_utc, source", (device_id,)).fetchall()
-        if not rows:
-            known = [d for (d,) in conn.execute("SELECT DISTINCT device_id FROM device_estimates ORDER BY 1")]
-            raise LabcalError(f"no device estimates for {device_id!r} in {path}; known devices: "
-                              f"{', '.join(known) if known else 'none'}")
+    path, rows = stored_rows(
+        db, "SELECT document FROM device_estimates WHERE device_id = ? ORDER BY calibrated_utc, source",
+        device_id, "SELECT DISTINCT device_id FROM device_estimates ORDER BY 1",
+        f"no device estimates for {device_id!r}", "known devices",
+        "a finished run stores its device estimate there")
     found = []
     for (text,) in rows:
         try:

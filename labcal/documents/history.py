@@ -53,22 +53,33 @@ def stored_digest(certificate_id: str, db: str | Path | None = None) -> str | No
     return None if row is None else row[0]
 
 
+def stored_rows(db: str | Path | None, select: str, key: str, known: str, missing: str, known_label: str,
+                stored_by: str) -> tuple[Path, list[tuple]]:
+    """The lab database's rows for one instrument or calibration device (``select`` with ``key``);
+    a missing database, or a key it does not hold, is one line naming what it does hold (``known``).
+    The instrument's and the device's histories both read through here."""
+    path = db_path(db)
+    if not path.is_file():
+        raise LabcalError(f"{path}: no such database; {stored_by} (or give --db / set LABCAL_DB)")
+    with closing(labdb.connect(path)) as conn:
+        rows = conn.execute(select, (key,)).fetchall()
+        if not rows:
+            held = [k for (k,) in conn.execute(known)]
+            raise LabcalError(f"{missing} in {path}; {known_label}: {', '.join(held) if held else 'none'}")
+    return path, rows
+
+
 def certificates_for(serial: str, db: str | Path | None = None, include_simulated: bool = False
                      ) -> list[Certificate]:
     """The instrument's certificates, oldest calibration first, each verified. A dry run's
     certificate is left out unless ``include_simulated`` (or the serial is the simulator's own):
     a simulated calibration must never pass for one of the real instrument."""
-    path = db_path(db)
-    if not path.is_file():
-        raise LabcalError(f"{path}: no such database; `labcal report RUN` stores certificates there "
-                          "(or give --db / set LABCAL_DB)")
-    with closing(labdb.connect(path)) as conn:
-        rows = conn.execute("SELECT certificate_id, document FROM certificates WHERE serial = ? "
-                            "ORDER BY calibrated_utc, certificate_id", (serial,)).fetchall()
-        if not rows:
-            known = [s for (s,) in conn.execute("SELECT DISTINCT serial FROM certificates ORDER BY serial")]
-            raise LabcalError(f"no certificates for instrument {serial!r} in {path}; known serials: "
-                              f"{', '.join(known) if known else 'none'}")
+    path, rows = stored_rows(
+        db, "SELECT certificate_id, document FROM certificates WHERE serial = ? "
+            "ORDER BY calibrated_utc, certificate_id", serial,
+        "SELECT DISTINCT serial FROM certificates ORDER BY serial",
+        f"no certificates for instrument {serial!r}", "known serials",
+        "`labcal report RUN` stores certificates there")
     certs = [certificate_from_doc(parse_json(doc, f"{path}: certificate {cid}"), f"{path}: certificate {cid}")
              for cid, doc in rows]
     replaced = {c.replaces for c in certs if c.replaces}
