@@ -125,6 +125,8 @@ def test_altered_row_is_refused(lab, tmp_path, capsys):
     (["history", "SN-NOPE"], "no certificates for instrument 'SN-NOPE'"),
     (["history", SERIAL, "--include-simulated", "--plot", "/nonexistent/h.png"],
      "/nonexistent/h.png: cannot write the plot"),
+    (["history", SERIAL, "--include-simulated", "--plot", "HISTORY.xyz"],
+     "HISTORY.xyz: cannot write the plot (Format 'xyz' is not supported"),  # matplotlib's words, then ours
     (["history", SERIAL], "has only simulated certificates"),  # dry runs never pass for real ones
 ])
 def test_bad_input_is_one_line(lab, capsys, args, message):

@@ -57,6 +57,16 @@ def print_json(doc: dict) -> None:
     sys.stdout.write(json.dumps(json_safe(doc), indent=2) + "\n")
 
 
+def print_changes(flagged: list[str], tally: str, rule: str, plot: str | None) -> None:
+    """A history's last lines: each flagged change, the tally with the rule that flagged them, and
+    where the plot went (the instrument's and the device's histories end alike)."""
+    for change in flagged:
+        out.print(f"[bold red]change:[/] {change}")
+    out.print(f"{tally}; {len(flagged)} change(s) flagged by {rule}.")
+    if plot:
+        out.print(f"plot written to {plot}")
+
+
 def add_db_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--db", metavar="PATH",
                    help="the lab's SQLite database (default: $LABCAL_DB, else the lab file's database; "

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from labcal.commands.common import add_db_option, out, print_json
+from labcal.commands.common import add_db_option, out, print_changes, print_json
 
 
 def cmd_history(args: argparse.Namespace) -> int:
@@ -30,13 +30,9 @@ def cmd_history(args: argparse.Namespace) -> int:
                       *(f"[bold red]{c} ▲[/]" if (e.source, m) in flagged else c
                         for c, m in zip(cells, MISALIGNMENT_NAMES, strict=True)))
     out.print(table)
-    for ch in found:
-        if ch.flagged:
-            out.print(f"[bold red]change:[/] {ch.name} from {ch.before} to {ch.after}: "
-                      f"Δ = {ch.delta_arcsec:+.2f}″, limit √(U₁²+U₂²) = {ch.limit_arcsec:.2f}″")
-    out.print(f"{len(estimates)} estimate(s); {sum(c.flagged for c in found)} change(s) flagged by {RULE}.")
-    if args.plot:
-        out.print(f"plot written to {args.plot}")
+    print_changes([f"{ch.name} from {ch.before} to {ch.after}: Δ = {ch.delta_arcsec:+.2f}″, "
+                   f"limit √(U₁²+U₂²) = {ch.limit_arcsec:.2f}″" for ch in found if ch.flagged],
+                  f"{len(estimates)} estimate(s)", RULE, args.plot)
     return 0
 
 

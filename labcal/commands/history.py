@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from labcal.commands.common import add_db_option, out, print_json
+from labcal.commands.common import add_db_option, out, print_changes, print_json
 
 
 def cmd_history(args: argparse.Namespace) -> int:
@@ -36,13 +36,9 @@ def cmd_history(args: argparse.Namespace) -> int:
             table.add_row(str(n), *(f"[bold red]{v} ▲[/]" if (c.certificate_id, i, j) in flagged else v
                                     for i, v in enumerate(cells)))
         out.print(table)
-    for ch in found:
-        if ch.flagged:
-            out.print(f"[bold red]change:[/] {ch.name} from {ch.before} to {ch.after}: Δ = {ch.delta:+.3g}, "
-                      f"limit k·√(u₁²+u₂²) = {ch.limit:.2g} (k = {ch.k:.2f})")
-    out.print(f"{len(certs)} calibration(s); {sum(ch.flagged for ch in found)} change(s) flagged by {RULE}.")
-    if args.plot:
-        out.print(f"plot written to {args.plot}")
+    print_changes([f"{ch.name} from {ch.before} to {ch.after}: Δ = {ch.delta:+.3g}, "
+                   f"limit k·√(u₁²+u₂²) = {ch.limit:.2g} (k = {ch.k:.2f})" for ch in found if ch.flagged],
+                  f"{len(certs)} calibration(s)", RULE, args.plot)
     return 0
 
 

@@ -134,6 +134,7 @@ def plot_merit(plan, calibration_range, usage, path: str) -> None:
     import numpy as np
 
     from labcal.analysis.design import normalised_variance
+    from labcal.documents.plotfile import save
 
     lo, hi = calibration_range
     pitch = np.linspace(lo, hi, 721)
@@ -149,11 +150,7 @@ def plot_merit(plan, calibration_range, usage, path: str) -> None:
     ax.legend()
     ax.grid(alpha=0.3)
     try:
-        fig.savefig(path, dpi=120, bbox_inches="tight")
-    except OSError as exc:
-        raise LabcalError(f"{path}: cannot write plot ({exc.strerror})") from None
-    except ValueError as exc:  # matplotlib: a file name whose extension is no image format it writes
-        raise LabcalError(f"{path}: cannot write plot ({exc}); name it .png, .pdf or .svg") from None
+        save(fig, path, dpi=120, bbox_inches="tight")
     finally:
         plt.close(fig)
 

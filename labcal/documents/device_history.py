@@ -20,6 +20,7 @@ from typing import Any
 from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.kinematics import MISALIGNMENT_NAMES
 from labcal.documents.history import stored_rows
+from labcal.documents.plotfile import check_folder, save
 from labcal.errors import LabcalError
 from labcal.run import labdb
 from labcal.run.journal import db_path
@@ -136,8 +137,7 @@ def plot_history(device_id: str, estimates: list[DeviceEstimate], found: list[De
     """Each misalignment against calibration number with ±U error bars; flagged changes in red."""
     from matplotlib.figure import Figure
 
-    if not Path(path).parent.is_dir():
-        raise LabcalError(f"{path}: cannot write the plot (no folder {Path(path).parent})")
+    check_folder(path)
     index = {e.source: n for n, e in enumerate(estimates, start=1)}
     fig = Figure(figsize=(10, 6))
     fig.subplots_adjust(left=0.08, right=0.98, top=0.9, bottom=0.1, hspace=0.35, wspace=0.3)
@@ -155,8 +155,4 @@ def plot_history(device_id: str, estimates: list[DeviceEstimate], found: list[De
         ax.set_xticks(numbers)
     fig.suptitle(f"Calibration device {device_id}: misalignments ± U (95 %); red: change > combined U",
                  fontsize=10)
-    try:
-        fig.savefig(path, dpi=110)
-    except (OSError, ValueError) as exc:
-        why = getattr(exc, "strerror", None) or exc
-        raise LabcalError(f"{path}: cannot write the plot ({why})") from None
+    save(fig, path, dpi=110)

@@ -23,6 +23,7 @@ from labcal.analysis.distributions import t_quantile
 from labcal.analysis.fit import ROW_NAMES, SENSORS
 from labcal.documents.certificate import COVERAGE, Certificate, certificate_from_doc, parse_json
 from labcal.documents.issuing import SIMULATED_SERIAL
+from labcal.documents.plotfile import check_folder, save
 from labcal.errors import LabcalError
 from labcal.run import labdb
 from labcal.run.journal import db_path
@@ -162,8 +163,7 @@ def plot_history(serial: str, certs: list[Certificate], found: list[Change], pat
     from matplotlib.dates import ConciseDateFormatter
     from matplotlib.figure import Figure
 
-    if not Path(path).parent.is_dir():  # before drawing twelve panels for nothing
-        raise LabcalError(f"{path}: cannot write the plot (no folder {Path(path).parent})")
+    check_folder(path)
     dates = [c.calibrated_utc for c in certs]
     X = np.array([c.coefficients for c in certs])
     U = np.array([c.U for c in certs])
@@ -190,8 +190,4 @@ def plot_history(serial: str, certs: list[Certificate], found: list[Change], pat
                 ax.xaxis.set_major_formatter(ConciseDateFormatter(ax.xaxis.get_major_locator()))
     fig.suptitle(f"Instrument {serial}: coefficients ± U (95 %) over time; red: {RULE}", fontsize=10,
                  parse_math=False)  # the serial as typed: "$" is no mathtext
-    try:
-        fig.savefig(path, dpi=110)
-    except (OSError, ValueError) as exc:  # ValueError: a file suffix matplotlib cannot write
-        why = getattr(exc, "strerror", None) or exc
-        raise LabcalError(f"{path}: cannot write the plot ({why})") from None
+    save(fig, path, dpi=110)
