@@ -169,8 +169,8 @@ def hours(seed: int) -> None:
             print(f"  on the {n - fb} points the model settled (where it is valid): model "
                   f"{wm[0] / wm[1]:.3f}× the bound (motion included), "
                   f"{(wm[0] - wm[2]) / (wm[1] - wm[2]):.3f}× after the motion")
-        print(f"  model points that waited: {fb}/{n} (the pool vouches for the model after a couple of "
-              f"hundred points); coefficients model vs conventional: "
+        print(f"  model points that waited: {fb}/{n} (the pool vouches for the model after a hundred-odd "
+              f"points); coefficients model vs conventional: "
               f"max {z.max():.2f} SE")
 
 

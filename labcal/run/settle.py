@@ -23,8 +23,9 @@ settled value is a second, slower pole too small to bend the fit (0.01 % of the 
 a point by σ/(2√N) while its χ² non-centrality is ~0.4); pooled over the run's records, weighted by
 their transients, it adds up, so the pool scores it and (1) a score beyond Z_DETECT is a detected
 mismatch: from then on every point waits; (2) before that, a point is accepted only if the pooled
-records would have seen, at Z_POWER, the slow tail that would bias that point by σ/(3√N). A run
-therefore waits for its first couple of hundred points (a 64-point run never leaves the
+records bound the slow tail well enough: the upper confidence bound on it (the pooled estimate
+plus Z_BOUND standard errors) would bias that point by at most σ/(3√N). A run therefore waits for
+its first hundred-odd points (a 64-point run never leaves the
 conventional bound), and the conventional window is the record's last N samples, so a point the
 model does not settle costs no more than waiting (benchmarks/settle_model.py validates it).
 """
@@ -125,7 +126,7 @@ TAU_RANGE = (0.2, 5.0)  # τ is searched between these multiples of the configur
 TAU_GRID = 241  # log-spaced τ at which the pooled sums are kept (1.3 % apart; τ̂ interpolated)
 SLOW = 3.0  # the slow tail the pooled score looks for: e^{−t/(3τ)} (2τ…10τ leave nearly one shape)
 Z_DETECT = 4.0  # |pooled score| that says the sensor has a slow tail (two-sided p ≈ 6e-5 per look)
-Z_POWER = 5.3  # the pooled records must see the least harmful slow tail at this z: 90 % power at Z_DETECT
+Z_BOUND = 3.0  # a point trusts the slow tail's one-sided 99.87 % upper confidence bound
 POOL_MIN = 10  # records before the pool says anything
 
 
@@ -155,8 +156,8 @@ class TailPool:
     adds up coherently while the noise does not. The pooled score for it (orthogonal to a change of
     τ, which also absorbs part of it) is z; |z| ≥ Z_DETECT is a detected mismatch, after which the
     pool never vouches for a point again. Before that, a point is settled by the model only if the
-    records so far would have seen (z ≥ Z_POWER) the slow tail that would bias that point by
-    σ/(3√N): until they would, points wait."""
+    slow tail that would bias it by σ/(3√N) lies beyond the records' upper confidence bound, i.e.
+    would show at z ≥ |z| + Z_BOUND: until it does, points wait."""
 
     def __init__(self, tau_guess: float, noise_v: float):
         self.taus = tau_guess * np.geomspace(*TAU_RANGE, TAU_GRID)
@@ -245,9 +246,9 @@ def _shape_criteria(t: NDArray, a: NDArray, pool: TailPool, tau: float, tau_se: 
 
 def fit_tail(volts: NDArray, t: NDArray, pool: TailPool, samples: int) -> TailFit:
     """Fit c_k + a_k·e^{−t/τ̂} to an (n, channels) record at t seconds after the motion ended, τ̂
-    the pool's, and judge it: the pool vouches for the model (no mismatch seen, and it would have
-    seen a slow tail biasing this point by σ/(3√N)), the residuals are consistent with the noise
-    model (χ²), and c's standard error, τ̂'s share included, is at most σ/√N."""
+    the pool's, and judge it: the pool vouches for the model (no mismatch seen, and its upper
+    bound on a slow tail biases this point by at most σ/(3√N)), the residuals are consistent with
+    the noise model (χ²), and c's standard error, τ̂'s share included, is at most σ/√N."""
     n, k = volts.shape
     target = pool.noise_v / math.sqrt(samples)
     if pool.mismatch:
@@ -263,7 +264,7 @@ def fit_tail(volts: NDArray, t: NDArray, pool: TailPool, samples: int) -> TailFi
         verdict = Verdict(False, "model: residuals above the noise model")
     elif np.any(se > target):
         verdict = Verdict(False, "model: settled value not yet precise enough")
-    elif seen < Z_POWER:
+    elif seen < abs(pool.slow_z()) + Z_BOUND:
         verdict = Verdict(False, "model: the pooled records cannot yet rule out a slow tail")
     else:
         verdict = Verdict(True, f"settled (model, pooled τ = {tau:.4g} s)")
@@ -281,7 +282,7 @@ def _samples_needed(t: NDArray, sample_s: float, pool: TailPool, fit: TailFit, s
     for m in range(len(t) + 1, most + 1):
         longer = np.concatenate([t, t[-1] + sample_s * np.arange(1, m - len(t) + 1)])
         se, seen = _shape_criteria(longer, fit.amplitude_v, pool, *found, target)
-        if np.all(se <= target) and seen >= Z_POWER:
+        if np.all(se <= target) and seen >= abs(pool.slow_z()) + Z_BOUND:
             return m
     return most
 
