@@ -207,3 +207,27 @@ def test_labcal_run_settle_model_fits_the_tail_on_the_simulated_rig(tmp_path, ca
     detect, fitted = (np.array(summaries[m]["fit"]["coefficients"]) for m in ("detect", "model"))
     se = np.array(summaries["detect"]["fit"]["standard_errors"])
     assert np.max(np.abs(fitted - detect) / se) < 3  # two runs' noise: each difference ~ √2 SE at most
+
+
+def test_the_pooled_slow_tail_score_and_tau_se_are_honest_on_a_matched_sensor():
+    """On a sensor that follows the model, the pooled slow-tail score is a standard normal and τ̂
+    scatters by the SE the pool reports: over 60 pools of 40 records each, the scores' mean is
+    within 4/√60 of 0 and their SD, like τ̂'s SD in its reported SEs, inside the two-sided 99.9 %
+    χ² bounds for 59 degrees of freedom (Monte Carlo: what the detection threshold and each
+    point's SE rely on)."""
+    rng = np.random.default_rng(6)
+    scores, tau_z = [], []
+    for _ in range(60):
+        pool = TailPool(MODEL.tau_s, MODEL.noise_v)
+        for _ in range(40):
+            clock = VirtualClock(1.0)
+            sensor = TailSensor(clock, rng.normal(0.0, 1.0, 3), STEP_V * rng.uniform(0.2, 1.0),
+                                ((1.0, 0.5),), 0.2, MODEL.noise_v, rng)
+            pool.add(sensor.read(25).volts, 1.1 + 0.2 * np.arange(25))
+        tau, se = pool.tau()
+        scores.append(pool.slow_z())
+        tau_z.append((tau - 0.5) / se)
+    lo, hi = (math.sqrt(chi2_quantile(q, 59) / 59) for q in (0.0005, 0.9995))
+    assert abs(np.mean(scores)) <= 4 / math.sqrt(60)
+    assert lo <= np.std(scores, ddof=1) <= hi
+    assert lo <= np.std(tau_z, ddof=1) <= hi
