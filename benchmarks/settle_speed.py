@@ -20,7 +20,12 @@ move the sequencer actually made,
 
 bound = motion + (window start − motion end) + N·sample time. Also printed: the largest
 coefficient difference between the settle-detection run and the long wait, in the long wait's
-standard errors, and each run's retries.
+standard errors, and each run's retries. Both runs draw each point's noise from the seed and the
+point's identity (`SimRig.at_point`), so the difference is the settling bias plus the new noise of
+the windows that slid on; the same pair of runs on a noise-free instrument (the sequencer told the
+usual noise, so it waits as long) gives the settling bias alone, printed in the fit's SE and in the
+far smaller SE white noise alone would give (the fit's SE is dominated by the index and wobble
+errors' lack of fit: a bias can hide under it).
 
 Usage: python benchmarks/settle_speed.py [--seed N] [--only 64|481]
 """
@@ -97,9 +102,14 @@ def point_bound(a: tuple[float, float], b: tuple[float, float], mount, rig: RigC
     return motion + start + settle.samples * sample_s
 
 
-def run(plan, text, rig: RigConfig, seed: int, fixed_dwell: float | None, tmp: Path, mode: str = "detect"):
-    sim = SimRig(rig, seed=seed, clock=VirtualClock())
+def run(plan, text, rig: RigConfig, seed: int, fixed_dwell: float | None, tmp: Path, mode: str = "detect",
+        quiet: bool = False):
+    """A dry run; ``quiet``: the simulated instrument has no noise, the sequencer is told it has its
+    usual noise (so it waits exactly as long): the run then differs from the long wait only by the
+    transient left in each window."""
     inst = rig.instrument
+    sim = SimRig(rig.model_copy(update={"instrument": inst.model_copy(update={"noise_v": 0.0})})
+                 if quiet else rig, seed=seed, clock=VirtualClock())
     settle = SequencerSettings().settle.model_copy(update={
         "tau_s": inst.tau_s, "noise_v": inst.noise_v, "fixed_dwell_s": fixed_dwell, "mode": mode,
         "sensitivity_v_per_g": float(np.max(np.abs(inst.S)))})
@@ -126,6 +136,13 @@ def compare(label: str, plan, text, rig: RigConfig, seed: int) -> None:
         bound.append(point_bound((prev.pitch_deg, prev.roll_deg), (point.pitch_deg, point.roll_deg),
                                  Mount(point.y_deg, point.u_deg), rig, settle))
     z = np.abs(detect.fit.coefficients - fixed.fit.coefficients) / fixed.fit.stderr
+    with tempfile.TemporaryDirectory() as a, tempfile.TemporaryDirectory() as b, \
+            np.errstate(divide="ignore", invalid="ignore"):  # no noise: replicates agree exactly
+        quiet_shift = (run(plan, text, rig, seed, None, Path(a), quiet=True)[0].fit.coefficients
+                       - run(plan, text, rig, seed, 30.0, Path(b), quiet=True)[0].fit.coefficients)
+    # the coefficients' SE were the points' only error their white noise (σ/√N per point)
+    noise_se = (np.sqrt(np.diag(fixed.fit.ls.cov_unscaled))[:len(quiet_shift), None]
+                * settle.noise_v / np.sqrt(settle.samples))
     retries = sum(p.attempt > 1 for p in points)
     half_window = settle.samples // 2 * rig.nplc / rig.line_hz
     slid = sum(t - b > 0.9 * half_window for t, b in zip(per_point, bound, strict=True))
@@ -144,6 +161,10 @@ def compare(label: str, plan, text, rig: RigConfig, seed: int) -> None:
           f"retries: settle detection {retries}, long wait {fixed_retries}; windows slid on (new "
           f"samples, so new noise) {slid}; "
           f"failed points {sum(p.status != 'ok' for p in points)}")
+    print(f"  the settling bias alone (noise-free instrument, same waits): max "
+          f"{np.max(np.abs(quiet_shift) / fixed.fit.stderr):.3f} SE of the fit, "
+          f"{np.max(np.abs(quiet_shift) / noise_se):.2f} of the SE white noise alone would give (the fit's "
+          f"SE is {np.median(fixed.fit.stderr / noise_se):.0f}× that: index and wobble errors)")
 
 
 def main() -> None:

@@ -74,6 +74,18 @@ def test_schedule_snakes_mounts_and_reseats_between_replicates():
         assert got == sorted((y, u, p, r) for y, u in plan.mounts for p, r in plan.points)
 
 
+def test_even_replicates_walk_the_shortest_tour_backwards():
+    """Each point is reached from the other side in the next replicate, so the transient a move
+    leaves (signed like the move) cancels between replicates instead of adding up."""
+    plan, _ = load_plan("four-mount-64")
+    plan = plan.model_copy(update={"replicates": 2})
+    steps = schedule(plan, SequencerSettings())
+    for mount in MOUNTS:
+        tours = [[(s.pitch_deg, s.roll_deg) for s in steps if s.replicate == rep and s.mount == mount]
+                 for rep in (1, 2)]
+        assert tours[1] == tours[0][::-1] and tours[0] != tours[1]
+
+
 def test_first_ctrl_c_pauses_after_the_point_then_the_run_goes_on(tmp_path):
     answers = tmp_path / "answers.txt"
     answers.write_text("y\nr\ny\ny\ny\n")  # mount 1, resume after the pause, mounts 2-4

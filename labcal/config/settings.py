@@ -29,7 +29,8 @@ class SettleSettings(BaseModel):
                                         description="dwell this long and take one window, no test")
     mode: Literal["detect", "model"] = Field(
         default="detect", description="detect: wait out the transient, then test a window; model: fit "
-        "the exponential tail (τ estimated), fall back to detect when the sensor does not follow it")
+        "the exponential tail (τ pooled over the run's points), waiting like detect until the run's "
+        "records rule out a slower tail and whenever the sensor does not follow it")
 
 
 class SequencerSettings(BaseModel):

@@ -24,7 +24,7 @@ from labcal.run.motion import move_time, transient_at_stop, transient_left
 from labcal.run.mounting import CHECK_ATTITUDE, identify
 from labcal.run.operator import Operator, OperatorDeclined
 from labcal.run.ordering import order_points
-from labcal.run.settle import Dwell, dead_time, dwell, dwell_model
+from labcal.run.settle import Dwell, TailPool, dead_time, dwell, dwell_model
 from labcal.run.station import Station, StopFailed, mean_and_sd
 
 LOAD_POSITION = (0.0, 0.0)  # tables level while the operator remounts
@@ -49,7 +49,10 @@ class Step:
 def schedule(plan: Plan, settings: SequencerSettings) -> list[Step]:
     """Every point of the run in order. Replicates alternate the mount order (…, 3, 4 | 4, 3, …) so
     that consecutive replicates meet on the same orientation; the instrument is still re-seated
-    there, so that each replicate holds its own mountings and replicates stay independent."""
+    there, so that each replicate holds its own mountings and replicates stay independent. Even
+    replicates walk a mount's shortest tour backwards: every point is then reached from the other
+    side, so the transient a move leaves in the window (at most σ/√N, but with the sign of the move)
+    cancels between replicates to first order instead of adding up in the coefficients."""
     steps: list[Step] = []
     orders: dict[tuple[int, Mount], list[int]] = {}
     for rep in range(1, plan.replicates + 1):
@@ -60,7 +63,7 @@ def schedule(plan: Plan, settings: SequencerSettings) -> list[Step]:
                 orders[key] = order_points(plan.points, settings.order, replicate=rep, seed=settings.seed,
                                            start=LOAD_POSITION, speed=settings.speed_dps,
                                            accel=settings.accel_dps2, settle_s=settle_cost(mount, settings))
-            order = orders[key]
+            order = orders[key] if rep % 2 or settings.order != "shortest" else orders[key][::-1]
             for k, i in enumerate(order):
                 pitch, roll = plan.points[i]
                 steps.append(Step(len(steps), rep, mount, pitch, roll, block_start=k == 0))
@@ -155,6 +158,7 @@ class Sequencer:
     _at: tuple[float, float] | None = None  # where the last move went; None: unknown, read it
     _last_move: tuple[tuple[float, float], tuple[float, float], float] = ((0.0, 0.0), (0.0, 0.0), 0.0)
     _sample_s: float = 0.0  # the voltmeter's time per sample, once measured
+    _tail: TailPool | None = None  # model settling: the instrument's tail, pooled over this segment's points
 
     # --- motion ----------------------------------------------------------------------------------
     def move(self, pitch: float, roll: float) -> tuple[float, float]:
@@ -178,9 +182,13 @@ class Sequencer:
                                s.tau_s)
         self.station.at_point(key)
         with self.interrupts.critical():
-            wait = dwell_model if s.mode == "model" and s.fixed_dwell_s is None else dwell
-            result = wait(self.station.dmm, self.station.clock, lag_g * s.sensitivity_v_per_g, s,
-                          motion_end, self._sample_s)
+            if s.mode == "model" and s.fixed_dwell_s is None:
+                self._tail = self._tail or TailPool(s.tau_s, s.noise_v)
+                result = dwell_model(self.station.dmm, self.station.clock, lag_g * s.sensitivity_v_per_g, s,
+                                     motion_end, self._sample_s, self._tail)
+            else:
+                result = dwell(self.station.dmm, self.station.clock, lag_g * s.sensitivity_v_per_g, s,
+                               motion_end, self._sample_s)
         self._sample_s = result.sample_s
         return result
 

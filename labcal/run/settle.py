@@ -13,18 +13,21 @@ and (3) its scatter is consistent with the noise model: the safety net for a sen
 its settings say. The accepted window is the measurement, so settling costs no averaging time.
 
 Model settling (``mode = "model"``, opt-in) does not wait for the transient to fade below the
-noise: it samples from the moment the tables are in position and fits c + a_k·e^{−t/τ} to every
-channel k, with τ shared by the channels and *estimated* from the record (the configured τ only
-centres the search). The point is the fitted settled value c, accepted when its standard error is
-at most σ/√N (as precise as a conventional window), the residuals are consistent with the noise
-model (χ²), τ lies inside its search range, and the fitted transient left at the record's end is
-at most EXTRAPOLATE_MAX·σ/√N (so a tail-shape error of a fraction f biases c by at most f·that).
-A sensor that does not follow one exponential fails these tests; the mode then falls back to
-conventional settling, whose first window is the record's last N samples, so a detected mismatch
-costs no more than waiting (benchmarks/settle_model.py validates it). What no record this short
-can tell from the settled value is a second, *slower* pole too small to bend the fit (0.01–0.1 %
-of the step at 3τ): it biases the point by what is left of it at the record's end — more than
-waiting would, which stops later on the same tail.
+noise: it samples from the moment the tables are in position and fits c_k + a_k·e^{−t/τ̂} to every
+channel k. τ̂ is the instrument's, estimated once from every record of the run so far (`TailPool`;
+the configured τ only centres its search), so a point fits only c and a and needs fewer samples.
+The point is the fitted settled value c, accepted when its standard error (τ̂'s share included)
+is at most σ/√N (as precise as a conventional window), its residuals are consistent with the
+noise model (χ²), and the pool vouches for the model. What no single record can tell from the
+settled value is a second, slower pole too small to bend the fit (0.01 % of the step at 3τ biases
+a point by σ/(2√N) while its χ² non-centrality is ~0.4); pooled over the run's records, weighted by
+their transients, it adds up, so the pool scores it and (1) a score beyond Z_DETECT is a detected
+mismatch: from then on every point waits; (2) before that, a point is accepted only if the pooled
+records bound the slow tail well enough: the upper confidence bound on it (the pooled estimate
+plus Z_BOUND standard errors) would bias that point by at most σ/(3√N). A run therefore waits for
+its first hundred-odd points (a 64-point run never leaves the
+conventional bound), and the conventional window is the record's last N samples, so a point the
+model does not settle costs no more than waiting (benchmarks/settle_model.py validates it).
 """
 
 from __future__ import annotations
@@ -119,108 +122,209 @@ def dwell(dmm: Voltmeter, clock: Clock, transient_v: float, settings: SettleSett
                     None if scan.temp_c is None else np.concatenate([scan.temp_c[half:], more.temp_c]))
 
 
-EXTRAPOLATE_MAX = 10.0  # the fitted transient left at the record's end, in σ/√N, at most
 TAU_RANGE = (0.2, 5.0)  # τ is searched between these multiples of the configured τ
+TAU_GRID = 241  # log-spaced τ at which the pooled sums are kept (1.3 % apart; τ̂ interpolated)
+SLOW = 3.0  # the slow tail the pooled score looks for: e^{−t/(3τ)} (2τ…10τ leave nearly one shape)
+Z_DETECT = 4.0  # |pooled score| that says the sensor has a slow tail (two-sided p ≈ 6e-5 per look)
+Z_BOUND = 3.0  # a point trusts the slow tail's one-sided 99.87 % upper confidence bound
+POOL_MIN = 10  # records before the pool says anything
+
+
+def _line_fit(v: NDArray, e: NDArray) -> tuple[NDArray, NDArray]:
+    """(c, a) of the least-squares c + a·e to each row of v (…, n), e (…, n) broadcasting."""
+    n, se, see = v.shape[-1], e.sum(-1), (e * e).sum(-1)
+    sv, sev = v.sum(-1), (e * v).sum(-1)
+    a = (n * sev - se * sv) / (n * see - se**2)
+    return (sv - a * se) / n, a
+
+
+def _project_out(v: NDArray, e: NDArray) -> NDArray:
+    """v (…, n) less its least-squares fit by {1, e}, row by row."""
+    c, a = _line_fit(v, e)
+    return v - c[..., None] - a[..., None] * e
+
+
+class TailPool:
+    """What the run's records say about its instrument's tail, pooled over every point so far.
+
+    One instrument has one τ, so it is estimated once from all the records (variable projection:
+    the residual sum of squares of c_k + a_k·e^{−t/τ} per record and channel, summed over records
+    on a grid of τ, its minimum interpolated), and each point then only fits c and a: fewer samples
+    for the same precision. What no single record can tell from the settled value is a second,
+    slower pole too small to bend it: its amplitude follows the transient, so across records its
+    residual shape, e^{−t/(SLOW·τ)} less its fit by {1, e^{−t/τ}}, weighted by each record's a,
+    adds up coherently while the noise does not. The pooled score for it (orthogonal to a change of
+    τ, which also absorbs part of it) is z; |z| ≥ Z_DETECT is a detected mismatch, after which the
+    pool never vouches for a point again. Before that, a point is settled by the model only if the
+    slow tail that would bias it by σ/(3√N) lies beyond the records' upper confidence bound, i.e.
+    would show at z ≥ |z| + Z_BOUND: until it does, points wait."""
+
+    def __init__(self, tau_guess: float, noise_v: float):
+        self.taus = tau_guess * np.geomspace(*TAU_RANGE, TAU_GRID)
+        self.noise_v = noise_v
+        self.records = 0
+        self.mismatch = ""  # why the pool stopped vouching for the model, once it has
+        # per grid τ: rss, x·x, x·d, d·d, x·r, d·r (x: the slow shape, d: ∂/∂τ, both times a)
+        self._sums = np.zeros((6, TAU_GRID))
+
+    def add(self, volts: NDArray, t: NDArray) -> None:
+        """One point's record: (n, channels) samples at t seconds after the motion ended."""
+        e = np.exp(-t[None, :] / self.taus[:, None])  # (τ, n)
+        channels = np.broadcast_to(volts.T, (TAU_GRID, *volts.T.shape))  # (τ, channel, n)
+        amp = _line_fit(channels, e[:, None, :])[1]  # (τ, channel)
+        fitted = _project_out(channels, e[:, None, :])  # residuals
+        slow = _project_out(np.exp(-t[None, :] / (SLOW * self.taus[:, None])), e)  # (τ, n)
+        dtau = _project_out(t[None, :] / self.taus[:, None] ** 2 * e, e)
+        a2 = (amp**2).sum(axis=1)
+        xr = np.einsum("gn,gkn,gk->g", slow, fitted, amp)
+        dr = np.einsum("gn,gkn,gk->g", dtau, fitted, amp)
+        self._sums += np.array([(fitted**2).sum(axis=(1, 2)), (slow**2).sum(1) * a2,
+                                (slow * dtau).sum(1) * a2, (dtau**2).sum(1) * a2, xr, dr])
+        self.records += 1
+        if self.records >= POOL_MIN and not self.mismatch:
+            tau = self.tau()
+            if tau is None:
+                self.mismatch = "model: τ outside its search range (pooled)"
+            elif abs(z := self.slow_z()) >= Z_DETECT:
+                self.mismatch = f"model: a slow tail in the pooled records (z = {z:+.1f})"
+
+    def tau(self) -> tuple[float, float] | None:
+        """(τ̂, its SE) from the pooled sums, or None when the minimum is on the range's edge."""
+        rss = self._sums[0]
+        i = int(np.argmin(rss))
+        if i in (0, TAU_GRID - 1):
+            return None
+        y0, y1, y2 = rss[i - 1:i + 2]
+        step = math.log(self.taus[1] / self.taus[0])
+        shift = 0.5 * (y0 - y2) / (y0 - 2 * y1 + y2) if y0 - 2 * y1 + y2 > 0 else 0.0
+        tau = float(self.taus[i] * math.exp(shift * step))
+        return tau, self.noise_v / math.sqrt(self._sums[3, i])
+
+    def _at_tau(self) -> list[float]:
+        """x·x, x·d, d·d, x·r, d·r at the grid τ nearest τ̂."""
+        return self._sums[1:, int(np.argmin(self._sums[0]))].tolist()
+
+    def slow_z(self) -> float:
+        """The pooled score for a slow tail, in its standard deviations (0 before POOL_MIN)."""
+        if self.records < POOL_MIN:
+            return 0.0
+        xx, xd, dd, xr, dr = self._at_tau()
+        return (xr - xd * dr / dd) / (self.noise_v * math.sqrt(max(xx - xd**2 / dd, 1e-300)))
+
+    def slow_seen(self, beta: float) -> float:
+        """The pooled z at which a slow tail of β times each record's transient would show."""
+        xx, xd, dd, _, _ = self._at_tau()
+        return beta * math.sqrt(max(xx - xd**2 / dd, 0.0)) / self.noise_v
+
+    def slow_per_tau(self) -> float:
+        """How much a slow tail of unit β moves τ̂ (the pooled fit absorbs part of it)."""
+        xx, xd, dd, _, _ = self._at_tau()
+        return xd / dd
 
 
 @dataclass(frozen=True)
 class TailFit:
     settled_v: NDArray  # c per channel
-    se_v: NDArray  # its standard error (σ from the noise model)
-    left_v: NDArray  # |a·e^{−t/τ}| at the last sample, per channel
-    tau_s: float  # estimated
+    se_v: NDArray  # its standard error: the noise model's, and τ̂'s
     verdict: Verdict
+    amplitude_v: NDArray | None = None  # a per channel (None: the pool gave no τ̂ to fit with)
 
 
-def _tail_rss(volts: NDArray, t: NDArray, taus: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-    """For each τ: the residual sum of squares of the per-channel least-squares c + a·e^{−t/τ},
-    and c, a ((τ, channel) arrays), from the 2×2 normal equations."""
-    e = np.exp(-t[None, :] / taus[:, None])  # (τ, n)
-    n, se, see = len(t), e.sum(axis=1), (e * e).sum(axis=1)
-    sy, sey = volts.sum(axis=0), e @ volts  # (channel,), (τ, channel)
-    det = n * see - se**2
-    a = (n * sey - se[:, None] * sy[None, :]) / det[:, None]
-    c = (sy[None, :] - a * se[:, None]) / n
-    resid = volts[None, :, :] - c[:, None, :] - a[:, None, :] * e[:, :, None]
-    return np.einsum("tnk,tnk->t", resid, resid), c, a
-
-
-def _fit(volts: NDArray, t: NDArray, noise_v: float, tau_guess: float):
-    """c, a (per channel), τ, the parameters' covariance (c_1, a_1, …, c_k, a_k, τ; σ from the
-    noise model), the RSS, and whether τ fell on the search range's edge. τ by variable
-    projection: the RSS on a log grid, refined by golden section between the grid neighbours of
-    its minimum; the covariance from the linearised Jacobian."""
-    n, k = volts.shape
-    grid = tau_guess * np.geomspace(*TAU_RANGE, 97)
-    best = int(np.nanargmin(_tail_rss(volts, t, grid)[0]))
-    lo, hi = np.log(grid[max(best - 1, 0)]), np.log(grid[min(best + 1, len(grid) - 1)])
-    golden = (math.sqrt(5) - 1) / 2
-    for _ in range(40):  # golden section on log τ: ~1e-8 of the bracket
-        x1, x2 = hi - golden * (hi - lo), lo + golden * (hi - lo)
-        r = _tail_rss(volts, t, np.exp([x1, x2]))[0]
-        lo, hi = (lo, x2) if r[0] <= r[1] else (x1, hi)
-    tau = float(np.exp((lo + hi) / 2))
-    rss, c, a = (x[0] for x in _tail_rss(volts, t, np.array([tau])))
+def _shape_criteria(t: NDArray, a: NDArray, pool: TailPool, tau: float, tau_se: float,
+                    target: float) -> tuple[NDArray, float]:
+    """What a record at times t with transient amplitudes a can promise, noise aside: c's standard
+    error (the noise model's and τ̂'s), and the pooled z at which the slow tail that would bias c by
+    σ/(3√N) shows (it moves c directly and through the τ̂ it shifts)."""
     e = np.exp(-t / tau)
-    jac = np.zeros((n * k, 2 * k + 1))
-    for ch in range(k):
-        rows = slice(ch * n, (ch + 1) * n)
-        jac[rows, 2 * ch], jac[rows, 2 * ch + 1] = 1.0, e
-        jac[rows, -1] = a[ch] * t / tau**2 * e
-    cov = noise_v**2 * np.linalg.pinv(jac.T @ jac)
-    return c, a, tau, cov, float(rss), best in (0, len(grid) - 1)
+    design = np.column_stack([np.ones(len(t)), e])
+    to_c = np.linalg.solve(design.T @ design, design.T)[0]  # how a record's shape moves c
+    d = t / tau**2 * e  # ∂e/∂τ
+    se = np.hypot(pool.noise_v * math.sqrt(float(to_c @ to_c)), np.abs(a * (to_c @ d)) * tau_se)
+    per_beta = np.abs(a) * abs(float(to_c @ (np.exp(-t / (SLOW * tau)) - pool.slow_per_tau() * d)))
+    return se, pool.slow_seen(target / 3 / max(float(per_beta.max()), 1e-300))
 
 
-def fit_tail(volts: NDArray, sample_s: float, noise_v: float, tau_guess: float, samples: int) -> TailFit:
-    """Fit c + a_k·e^{−t/τ} (τ shared) to an (n, channels) record of samples ``sample_s`` apart and
-    judge it (module docstring)."""
+def fit_tail(volts: NDArray, t: NDArray, pool: TailPool, samples: int) -> TailFit:
+    """Fit c_k + a_k·e^{−t/τ̂} to an (n, channels) record at t seconds after the motion ended, τ̂
+    the pool's, and judge it: the pool vouches for the model (no mismatch seen, and its upper
+    bound on a slow tail biases this point by at most σ/(3√N)), the residuals are consistent with
+    the noise model (χ²), and c's standard error, τ̂'s share included, is at most σ/√N."""
     n, k = volts.shape
-    t = (np.arange(n) + 0.5) * sample_s
-    c, a, tau, cov, rss, at_edge = _fit(volts, t, noise_v, tau_guess)
-    se = np.sqrt(np.abs(np.diag(cov)[0:2 * k:2]))
-    left = np.abs(a) * math.exp(-t[-1] / tau)
-    target = noise_v / math.sqrt(samples)
-    if at_edge:
-        verdict = Verdict(False, "model: τ outside its search range")
-    elif rss / noise_v**2 > chi2_quantile(0.999, n * k - (2 * k + 1)):
+    target = pool.noise_v / math.sqrt(samples)
+    if pool.mismatch:
+        return TailFit(volts.mean(axis=0), np.full(k, np.inf), Verdict(False, pool.mismatch))
+    if pool.records < POOL_MIN or (found := pool.tau()) is None:
+        return TailFit(volts.mean(axis=0), np.full(k, np.inf), Verdict(False, "model: τ not pooled yet"))
+    tau, tau_se = found
+    design = np.column_stack([np.ones(n), np.exp(-t / tau)])
+    c, a = np.linalg.lstsq(design, volts, rcond=None)[0]
+    resid = volts - design @ np.vstack([c, a])
+    se, seen = _shape_criteria(t, a, pool, tau, tau_se, target)
+    if float(np.sum(resid**2)) / pool.noise_v**2 > chi2_quantile(0.999, n * k - 2 * k):
         verdict = Verdict(False, "model: residuals above the noise model")
     elif np.any(se > target):
         verdict = Verdict(False, "model: settled value not yet precise enough")
-    elif np.any(left > EXTRAPOLATE_MAX * target):
-        verdict = Verdict(False, "model: too much transient left to extrapolate")
+    elif seen < abs(pool.slow_z()) + Z_BOUND:
+        verdict = Verdict(False, "model: the pooled records cannot yet rule out a slow tail")
     else:
-        verdict = Verdict(True, f"settled (model, τ = {tau:.3g} s)")
-    return TailFit(c, se, left, tau, verdict)
+        verdict = Verdict(True, f"settled (model, pooled τ = {tau:.4g} s)")
+    return TailFit(c, se, verdict, a)
+
+
+def _samples_needed(t: NDArray, sample_s: float, pool: TailPool, fit: TailFit, samples: int,
+                    most: int) -> int:
+    """The shortest record (at most ``most`` samples) whose noise-free criteria could pass, given
+    the amplitudes fitted so far: where to read to next."""
+    found = pool.tau() if fit.amplitude_v is not None else None
+    if found is None or fit.amplitude_v is None:
+        return most
+    target = pool.noise_v / math.sqrt(samples)
+    for m in range(len(t) + 1, most + 1):
+        longer = np.concatenate([t, t[-1] + sample_s * np.arange(1, m - len(t) + 1)])
+        se, seen = _shape_criteria(longer, fit.amplitude_v, pool, *found, target)
+        if np.all(se <= target) and seen >= abs(pool.slow_z()) + Z_BOUND:
+            return m
+    return most
 
 
 def dwell_model(dmm: Voltmeter, clock: Clock, transient_v: float, settings: SettleSettings,
-                motion_end: float | None = None, sample_s: float = 0.0) -> Dwell:
-    """Model settling: sample from now (in position), fit the tail after every fifth of a window, and
-    return the fitted settled value once `fit_tail` accepts it; if it has not by the time a
-    conventional window (from the dead time after ``motion_end``) would end, the record's last N
-    samples are that window and `dwell` goes on from it: a mismatch costs no more than waiting.
-    The verdict says why it waited."""
+                motion_end: float | None = None, sample_s: float = 0.0, pool: TailPool | None = None
+                ) -> Dwell:
+    """Model settling: sample from now (in position) and return the fitted settled value once
+    `fit_tail` accepts it; if it has not by the time a conventional window (from the dead time
+    after ``motion_end``) would end, the record's last N samples are that window and `dwell` goes
+    on from it: a mismatch costs no more than waiting. Either way the record joins ``pool`` (the
+    run's; a fresh one when None). The verdict says why it waited."""
+    pool = pool if pool is not None else TailPool(settings.tau_s, settings.noise_v)
     t0 = clock.now()
     start = t0 if motion_end is None else min(motion_end, t0)
-    n, more_n = settings.samples, max(settings.samples // 5, 1)  # refit every fifth of a window
-    window_start = start + float(dead_time(transient_v, settings, sample_s))
-    if window_start <= t0 + n * sample_s:  # no time to win: wait as usual
-        return dwell(dmm, clock, transient_v, settings, motion_end, sample_s)
+    n = settings.samples
     t_read = clock.now()
-    scan = dmm.read(max(n, 8))
-    sample_s = (clock.now() - t_read) / len(scan.volts)
+    scan = dmm.read(n)
+    sample_s = (clock.now() - t_read) / n
+    t = t_read - start + (np.arange(n) + 0.5) * sample_s  # each sample's time since the motion ended
+    window_end = start + float(dead_time(transient_v, settings, sample_s)) + n * sample_s
     while True:
-        fit = fit_tail(scan.volts, sample_s, settings.noise_v, settings.tau_s, n)
+        fit = fit_tail(scan.volts, t, pool, n)
         if fit.verdict.settled:
-            m = len(scan.volts)
+            pool.add(scan.volts, t)
             return Dwell(scan, clock.now() - t0, fit.verdict, sample_s,
-                         (fit.settled_v, fit.se_v * math.sqrt(m)))
-        if clock.now() >= window_start + n * sample_s:  # the record's end is a conventional window
-            fallback = dwell(dmm, clock, transient_v, settings, motion_end, sample_s,
-                             Scan(scan.volts[-n:], None if scan.temp_c is None else scan.temp_c[-n:]))
-            why = f"{fallback.verdict.reason} (waited: {fit.verdict.reason})"
-            return Dwell(fallback.scan, clock.now() - t0, Verdict(fallback.verdict.settled, why),
-                         fallback.sample_s)
-        more = dmm.read(more_n)
-        scan = Scan(np.concatenate([scan.volts, more.volts]),
-                    None if scan.temp_c is None else np.concatenate([scan.temp_c, more.temp_c]))
+                         (fit.settled_v, fit.se_v * math.sqrt(len(t))))
+        left_s = window_end - clock.now()
+        if left_s <= 1e-9:  # the record's end is a conventional window
+            break
+        left = max(1, math.floor(left_s / sample_s + 1e-9))
+        more = max(1, _samples_needed(t, sample_s, pool, fit, n, len(t) + left) - len(t))
+        if more >= left:  # no model verdict before the window's end: end the record on it exactly
+            clock.sleep(max(0.0, left_s - left * sample_s))
+            more = left
+        t_read = clock.now()
+        extra = dmm.read(more)
+        t = np.concatenate([t, t_read - start + (np.arange(more) + 0.5) * sample_s])
+        scan = Scan(np.concatenate([scan.volts, extra.volts]),
+                    None if scan.temp_c is None else np.concatenate([scan.temp_c, extra.temp_c]))
+    pool.add(scan.volts, t)
+    fallback = dwell(dmm, clock, transient_v, settings, motion_end, sample_s,
+                     Scan(scan.volts[-n:], None if scan.temp_c is None else scan.temp_c[-n:]))
+    why = f"{fallback.verdict.reason} (waited: {fit.verdict.reason})"
+    return Dwell(fallback.scan, clock.now() - t0, Verdict(fallback.verdict.settled, why), fallback.sample_s)
