@@ -31,21 +31,17 @@ from labcal.analysis.device_model import (
     split,
 )
 from labcal.analysis.distributions import f_isf, f_sf, t_quantile
-from labcal.analysis.fit import Fit, fit_readings, point_keys
+from labcal.analysis.fit import Fit, fit_readings
 from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, gravity
 from labcal.analysis.readings import Readings
 from labcal.analysis.regression import least_squares
-from labcal.analysis.replication import ALPHA, Replication, analyse, point_groups
+from labcal.analysis.replication import ALPHA, Replication, analyse_points
 from labcal.errors import LabcalError
 
 MAX_EVALUATIONS = 200  # Levenberg–Marquardt from the linear fit needs about ten
 SMALL_ANGLE_LIMIT_DEG = 2.0  # Soto's grouped misalignments are small rotations; beyond, the model is wrong
 SOLVER_TOLERANCE = 1e-15  # relative change of θ and cost at which LM stops; the GN step polishes the rest
 NOISE_FLOOR = 1e-12  # relative to the sensitivity: a noise-free reading's residual SE is rounding
-
-
-def geometry_of(readings: Readings) -> Geometry:
-    return Geometry.from_degrees(readings.pitch_deg, readings.roll_deg, readings.y_deg, readings.u_deg)
 
 
 @dataclass(frozen=True)
@@ -239,15 +235,11 @@ class PointMeans:
 
     @classmethod
     def of(cls, readings: Readings) -> PointMeans:
-        groups, n_groups = point_groups(point_keys(readings))
-        counts = np.bincount(groups, minlength=n_groups).astype(float)
-        sums = np.zeros((n_groups, 3))
-        np.add.at(sums, groups, readings.volts)
-        first = np.zeros(n_groups, dtype=np.intp)
-        first[groups[::-1]] = np.arange(len(groups))[::-1]
-        full = geometry_of(readings)
-        where = Geometry(full.pitch[first], full.roll[first], full.y[first], full.u[first])
-        return cls(where, sums / counts[:, None], np.sqrt(counts), groups)
+        points = readings.points
+        first = points.first
+        where = Geometry.from_degrees(readings.pitch_deg[first], readings.roll_deg[first],
+                                      readings.y_deg[first], readings.u_deg[first])
+        return cls(where, points.means(readings.volts), np.sqrt(points.counts), points.groups)
 
     def weighted(self, theta: NDArray[np.float64],
                  sd: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -300,15 +292,14 @@ def _gauss_newton(theta: NDArray[np.float64], data: PointMeans, volts: NDArray[n
 def fit_device(readings: Readings, linear: Fit | None = None) -> DeviceFit:
     """The device model by nonlinear least squares from the linear fit; LabcalError (one line) when the
     readings cannot identify it, the solver does not converge, or the misalignments are not small."""
-    where = geometry_of(readings)
-    ident = identifiability(where)
+    data = PointMeans.of(readings)
+    ident = identifiability(data.where)
     problem = ident.problem()
     if problem:
         raise LabcalError(f"the device model cannot be fitted to these readings: {problem}")
     linear = linear or fit_readings(readings)
     volts = readings.volts
     n = len(volts)
-    data = PointMeans.of(readings)
     theta0 = np.concatenate([np.zeros(N_MIS), linear.coefficients.ravel()])
     floor = NOISE_FLOOR * float(np.max(np.abs(linear.coefficients[1:])))
     if linear.replication is not None:  # a priori: pure error does not depend on the model
@@ -335,8 +326,10 @@ def fit_device(readings: Readings, linear: Fit | None = None) -> DeviceFit:
     replication = None
     if linear.replication is not None:
         mis, _ = split(theta)
+        where = data.where  # the true gravity is a function of the point: one design row per point
         g = gravity(where.pitch, where.roll, where.y, where.u, mis)
-        replication = analyse(np.column_stack([np.ones(n), g]), volts, data.groups, readings.replicate)
+        replication = analyse_points(np.column_stack([np.ones(len(g)), g]), volts, data.groups,
+                                     readings.replicate)
     verdict = "warrants" if test.p_value < ALPHA else "does not warrant"
     notes = [f"the F test of the six misalignments against the linear model {verdict} them "
              f"(F = {test.f:.3g}, df {test.df}, p = {test.p_value:.2g})"]
@@ -350,7 +343,7 @@ def fit_device(readings: Readings, linear: Fit | None = None) -> DeviceFit:
 def default_model(readings: Readings) -> tuple[str, str]:
     """Which model a calibration's readings deserve — the device model where the points identify all
     six misalignments, else the linear one — and the one line that says so (and why)."""
-    ident = identifiability(geometry_of(readings))
+    ident = identifiability(PointMeans.of(readings).where)
     problem = ident.problem()
     if problem is None:
         return "device", ("device model: the plan identifies all six calibration-device misalignments "
