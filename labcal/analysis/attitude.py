@@ -102,10 +102,17 @@ def _gravity_and_derivatives(
 
 
 def output_variance(cal: Calibration, g: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Σ_v diagonal per row (n×3): calibration variance fᵀ C_j f plus one reading's variance."""
-    f = np.concatenate([np.ones((len(g), 1)), g], axis=1)
-    calib = np.stack([np.sum((f @ c) * f, axis=1) for c in cal.covariance], axis=1)
-    return calib + cal.reading_sd**2
+    """Σ_v diagonal per row (n×3): calibration variance fᵀ C_j f plus one reading's variance.
+
+    With f = [1, g] the quadratic form is C₀₀ + 2·C₀g·g + Σ_ab C_ab g_a g_b: one small matrix
+    product and the six distinct products g_a g_b, not a 4×4 form per row and sensor."""
+    c = cal.covariance
+    out: NDArray[np.float64] = g @ (2.0 * c[:, 0, 1:].T)
+    out += c[:, 0, 0] + cal.reading_sd**2
+    for a, b in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)):
+        weight = c[:, 1 + a, 1 + b] if a == b else c[:, 1 + a, 1 + b] + c[:, 1 + b, 1 + a]
+        out += (g[:, a] * g[:, b])[:, None] * weight
+    return out
 
 
 def _k95(cal: Calibration) -> float:

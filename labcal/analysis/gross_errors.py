@@ -29,13 +29,14 @@ from labcal.analysis.fit import Fit, readings_points
 from labcal.analysis.kinematics import nominal_gravity
 from labcal.analysis.models import Model
 from labcal.analysis.readings import Readings
-from labcal.analysis.regression import LeastSquares, least_squares
+from labcal.analysis.regression import LeastSquares, least_squares, least_squares_of_means
 from labcal.analysis.replication import point_groups
 from labcal.errors import LabcalError
 
 FAMILY_ALPHA = 0.001  # chance that one check flags anything in a file of good readings
 VOLTS_MAX = 1000.0  # no bench DMM has a range above 1000 V (the 34970A's highest is 300 V)
 SENSORS = ("x", "y", "z")
+BLOCK_ROWS = 1 << 16  # rows a per-reading check handles at once: a few MiB of temporaries
 MOUNTS = ((0.0, 0.0), (180.0, 0.0), (0.0, 180.0), (180.0, 180.0))
 # gravity on each mount is gravity on the first one with axes reversed: y = 180° reverses x and y,
 # u = 180° reverses y and z (the sines of 180° are rounding noise, ~1e-16)
@@ -69,14 +70,21 @@ def t_threshold(n_tests: int, dof: float, alpha: float = FAMILY_ALPHA) -> float:
 
 def gravity_magnitude(cal: Calibration, volts: NDArray[np.float64]) -> tuple[NDArray[np.float64],
                                                                              NDArray[np.float64]]:
-    """m = |(V − B)S⁻¹| per row (in g) and its standard uncertainty from Σ_v (calibration and reading)."""
-    with np.errstate(all="ignore"):
-        g = (volts - cal.X[0]) @ cal.s_inv
-        m = np.linalg.norm(g, axis=1)
-        unit = np.where((m > 1e-9)[:, None] & np.isfinite(g), g / np.where(m > 0, m, 1.0)[:, None],
-                        np.array([0.0, 0.0, 1.0]))
-        dm_dv = unit @ cal.s_inv.T  # ∂m/∂v_j = Σ_k S⁻¹[j, k] ĝ_k (row convention dg = dv·S⁻¹)
-        u_m = np.sqrt(np.sum(dm_dv**2 * output_variance(cal, unit), axis=1))
+    """m = |(V − B)S⁻¹| per row (in g) and its standard uncertainty from Σ_v (calibration and reading).
+
+    In blocks of rows: a million readings need a few n×3 temporaries each, not all of them at once."""
+    m, u_m = np.empty(len(volts)), np.empty(len(volts))
+    s_inv = cal.s_inv
+    for start in range(0, len(volts), BLOCK_ROWS):
+        block = slice(start, start + BLOCK_ROWS)
+        with np.errstate(all="ignore"):
+            g = (volts[block] - cal.X[0]) @ s_inv
+            m[block] = mb = np.sqrt(np.einsum("ij,ij->i", g, g))
+            unit = np.where((mb > 1e-9)[:, None] & np.isfinite(g), g / np.where(mb > 0, mb, 1.0)[:, None],
+                            np.array([0.0, 0.0, 1.0]))
+            dm_dv = unit @ s_inv.T  # ∂m/∂v_j = Σ_k S⁻¹[j, k] ĝ_k (row convention dg = dv·S⁻¹)
+            dm_dv *= dm_dv
+            u_m[block] = np.sqrt(np.einsum("ij,ij->i", dm_dv, output_variance(cal, unit)))
     return m, u_m
 
 
@@ -109,87 +117,109 @@ def _rows(indices: NDArray[np.int_]) -> str:
     return ", ".join(str(r) for r in rows)
 
 
-GroupFit = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]  # coef, cov_unscaled, S_E
+GroupFits = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]
 
 
-def _leave_group_out(design: NDArray[np.float64], volts: NDArray[np.float64], order: NDArray[np.int_],
-                     bounds: NDArray[np.int_]) -> list[GroupFit | None]:
-    """For each group (rows order[bounds[k]:bounds[k+1]]): (coef, cov_unscaled, residual_se) of the
-    fit of every *other* row, or None where those rows cannot determine the model. One QR of all the
-    rows, then each group taken out by downdating at the residuals' scale (Fᵀe = 0 for the full
-    fit, so the others' Fᵀe is −F_kᵀe_k): O(rows) in all instead of one QR of the rest per group.
-    A group whose removal leaves the design near singular is refitted by QR, as before."""
-    try:
-        full = least_squares(design, volts)
-    except LabcalError:
-        return [None] * (len(bounds) - 1)  # every subset of a singular design is singular
-    gram, rss = design.T @ design, np.sum(full.residuals**2, axis=0)
-    out: list[GroupFit | None] = []
-    for k in range(len(bounds) - 1):
-        rows = order[bounds[k]:bounds[k + 1]]
-        f, e = design[rows], full.residuals[rows]
-        rest = gram - f.T @ f
-        dof = len(design) - len(rows) - design.shape[1]
-        scale = np.sqrt(np.clip(np.diag(rest), 0.0, None))
-        unit = np.where(scale > 0, scale, 1.0)
-        eig = np.linalg.eigvalsh(rest / np.outer(unit, unit))
-        if dof < 1 or not np.all(scale > 0) or eig[0] <= 1e-12 * eig[-1]:
-            others = np.ones(len(design), bool)
-            others[rows] = False
-            try:
-                ls = least_squares(design[others], volts[others])
-            except LabcalError:
-                out.append(None)
-                continue
-            out.append((ls.coef, ls.cov_unscaled, ls.residual_se) if ls.dof >= 1 else None)
+def _leave_group_out(design: NDArray[np.float64], volts: NDArray[np.float64], full: LeastSquares,
+                     groups: NDArray[np.intp], n_groups: int) -> GroupFits:
+    """For each group k (the rows with groups == k): the coefficients (K×L×m), unscaled covariance
+    (K×L×L) and residual SE (K×m) of the fit of every *other* row, and whether those rows determine
+    the model (K,). ``full`` is the fit of every row. Each group is taken out of the full fit by
+    downdating at the residuals' scale (Fᵀe = 0 for the full fit, so the others' Fᵀe is −F_kᵀe_k),
+    all groups at once from per-group sums: O(rows) in all, no loop over groups. A group whose
+    removal leaves the design near singular is refitted by QR, as before."""
+    n_coef = design.shape[1]
+    e = full.residuals
+
+    def per_group(weights: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.bincount(groups, weights=weights, minlength=n_groups)
+
+    gram_k = np.empty((n_groups, n_coef, n_coef))
+    for a in range(n_coef):
+        for b in range(a, n_coef):
+            gram_k[:, a, b] = gram_k[:, b, a] = per_group(design[:, a] * design[:, b])
+    ft_e = np.stack([np.stack([per_group(design[:, a] * e[:, j]) for j in range(e.shape[1])], axis=-1)
+                     for a in range(n_coef)], axis=1)  # F_kᵀe_k, (K, L, m)
+    rss_k = np.stack([per_group(e[:, j] ** 2) for j in range(e.shape[1])], axis=-1)
+    rest = design.T @ design - gram_k
+    dof = len(design) - np.bincount(groups, minlength=n_groups) - n_coef
+    scale = np.sqrt(np.clip(np.diagonal(rest, axis1=1, axis2=2), 0.0, None))
+    unit = np.where(scale > 0, scale, 1.0)
+    eig = np.linalg.eigvalsh(rest / (unit[:, :, None] * unit[:, None, :]))
+    good = (dof >= 1) & np.all(scale > 0, axis=1) & (eig[:, 0] > 1e-12 * eig[:, -1])
+    cov = np.full_like(rest, np.nan)
+    cov[good] = np.linalg.inv(rest[good])
+    coef = full.coef - cov @ ft_e
+    rss_rest = np.sum(e**2, axis=0) - rss_k - np.einsum("kaj,kab,kbj->kj", ft_e, cov, ft_e)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        se = np.sqrt(np.maximum(rss_rest, 0.0) / dof[:, None])
+    determined = good.copy()
+    for k in np.flatnonzero(~good):
+        others = groups != k
+        try:
+            ls = least_squares(design[others], volts[others])
+        except LabcalError:
             continue
-        cov = np.linalg.inv(rest).astype(float)
-        ft_e = f.T @ e  # = −(the others' Fᵀe)
-        coef = full.coef - cov @ ft_e
-        rss_rest = rss - np.sum(e**2, axis=0) - np.einsum("ij,ik,kj->j", ft_e, cov, ft_e)
-        out.append((coef.astype(float), cov, np.sqrt(np.maximum(rss_rest, 0.0) / dof).astype(float)))
-    return out
+        if ls.dof >= 1:
+            coef[k], cov[k], se[k], determined[k] = ls.coef, ls.cov_unscaled, ls.residual_se, True
+    return coef, cov, se, determined
 
 
 def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA) -> list[Flag]:
     """Groups of readings (one replicate, one mount) that their stated mount does not explain and
-    another mount does: each group predicted from the base fit of all the other groups."""
-    groups = np.column_stack([readings.replicate, readings.y_deg % 360, readings.u_deg % 360])
-    index, n_groups = point_groups(groups)
-    keys = groups[np.unique(index, return_index=True)[1]]
-    if len(keys) < 2:
+    another mount does: each group predicted from the base fit of all the other groups.
+
+    The design is the point's (every reading of a point has the same nominal gravity); the χ² of
+    every group under each of the four mounts is summed from the readings in blocks."""
+    index, n_groups = point_groups([readings.replicate, readings.y_deg % 360, readings.u_deg % 360])
+    first = np.zeros(n_groups, dtype=np.intp)
+    first[index[::-1]] = np.arange(len(index))[::-1]
+    keys = np.column_stack([readings.replicate[first], readings.y_deg[first] % 360,
+                            readings.u_deg[first] % 360])
+    if n_groups < 2:
         return []
+    points = readings.points
+    _, point_design = Model().design(readings_points(readings, points.first))
+    try:
+        full = least_squares_of_means(point_design, points.means(readings.volts), points.counts,
+                                      readings.volts, points.groups)
+    except LabcalError:
+        return []  # every subset of a singular design is singular: nothing to compare with
+    coef, cov, residual_se, determined = _leave_group_out(point_design[points.groups], readings.volts, full,
+                                                          index, n_groups)
+    usable = determined & np.all(residual_se > 0, axis=1)
+    sizes = np.bincount(index, minlength=n_groups)
+    limits = {int(n): float(chi2_quantile(1.0 - sidak_per_test(n_groups, alpha), 3 * int(n)))
+              for n in np.unique(sizes[usable])}  # one bisection per group size, not per group
+    limit = np.array([limits.get(int(n), np.inf) for n in sizes])
+    # each point's nominal gravity on the first mount: on the others it is this with axes reversed
+    base = nominal_gravity(np.radians(readings.pitch_deg[points.first]),
+                           np.radians(readings.roll_deg[points.first]), 0.0, 0.0)
+    chi2 = np.zeros((len(MOUNTS), n_groups))
+    for start in range(0, len(index), BLOCK_ROWS):
+        block = slice(start, start + BLOCK_ROWS)
+        k = index[block]
+        g0 = base[points.groups[block]]
+        c, cv, se = coef[k], cov[k], residual_se[k]
+        v = readings.volts[block]
+        for m, mount in enumerate(MOUNTS):
+            f = np.concatenate([np.ones((len(g0), 1)), g0 * MOUNT_SIGNS[mount]], axis=1)
+            pred = np.einsum("ia,iaj->ij", f, c)
+            q = np.einsum("ia,iab,ib->i", f, cv, f)
+            z = (v - pred) / se
+            chi2[m] += np.bincount(k, weights=np.einsum("ij,ij->i", z, z) / (1.0 + q), minlength=n_groups)
+    stated = np.array([MOUNTS.index((float(y), float(u))) for y, u in keys[:, 1:]])
+    best = np.argmin(np.where(usable, chi2, np.inf), axis=0)
+    chi2_stated, chi2_best = chi2[stated, np.arange(n_groups)], chi2[best, np.arange(n_groups)]
+    wrong = usable & (chi2_stated > limit) & (best != stated) & (chi2_best <= limit)
     flags: list[Flag] = []
-    limits: dict[int, float] = {}
-    _, design = Model().design(readings_points(readings))
-    order = np.argsort(index, kind="stable")
-    base = nominal_gravity(np.radians(readings.pitch_deg), np.radians(readings.roll_deg), 0.0, 0.0)
-    bounds = np.searchsorted(index[order], np.arange(n_groups + 1))
-    for k, ((_, y, u), others) in enumerate(zip(keys, _leave_group_out(design, readings.volts, order, bounds),
-                                                strict=True)):
-        if others is None:
-            continue  # the other groups alone cannot determine the model: nothing to compare with
-        coef, cov_unscaled, residual_se = others
-        if not np.all(residual_se > 0):
-            continue
-        rows = order[bounds[k]:bounds[k + 1]]
-        n = len(rows)
-        if n not in limits:  # one bisection per group size, not per group
-            limits[n] = float(chi2_quantile(1.0 - sidak_per_test(len(keys), alpha), 3 * n))
-        limit = limits[n]
-        chi2 = {}
-        for my, mu in MOUNTS:
-            f = np.column_stack([np.ones(n), base[rows] * MOUNT_SIGNS[(my, mu)]])
-            q = np.einsum("ij,jk,ik->i", f, cov_unscaled, f)
-            scale = residual_se[None, :] * np.sqrt(1.0 + q)[:, None]
-            chi2[(my, mu)] = float(np.sum(((readings.volts[rows] - f @ coef[:4]) / scale) ** 2))
-        best = min(chi2, key=lambda mount: chi2[mount])
-        if chi2[(y, u)] > limit and best != (y, u) and chi2[best] <= limit:
-            rows = np.sort(rows)
-            message = (f"readings {_rows(rows)} (replicate {keys[k][0]:g}) are labelled mount y={y:g} "
-                       f"u={u:g} but read like mount y={best[0]:g} u={best[1]:g}: a missed or wrong "
-                       f"remount? (χ² {chi2[(y, u)]:.3g} against {chi2[best]:.3g}, limit {limit:.3g})")
-            flags.extend(Flag(int(i) + 1, "mount", message) for i in rows)
+    for k in np.flatnonzero(wrong):
+        rows = np.flatnonzero(index == k)
+        (_, y, u), (by, bu) = keys[k], MOUNTS[best[k]]
+        message = (f"readings {_rows(rows)} (replicate {keys[k][0]:g}) are labelled mount y={y:g} "
+                   f"u={u:g} but read like mount y={by:g} u={bu:g}: a missed or wrong "
+                   f"remount? (χ² {chi2_stated[k]:.3g} against {chi2_best[k]:.3g}, limit {limit[k]:.3g})")
+        flags.extend(Flag(int(i) + 1, "mount", message) for i in rows)
     return flags
 
 

@@ -7,6 +7,7 @@ square the design's condition number, which costs digits a calibration cannot sp
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,7 +34,7 @@ class LeastSquares:
     def dof(self) -> int:
         return self.n_obs - int(self.coef.shape[0])
 
-    @property
+    @cached_property
     def residual_se(self) -> NDArray[np.float64]:
         """S_E = √(eᵀe / (K − L)) per column (Tripp eq. 34); NaN when no degree of freedom is left."""
         if self.dof == 0:
