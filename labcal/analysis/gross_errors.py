@@ -17,7 +17,7 @@ positively dependent ones here). `tests/test_gross_errors.py` checks that rate b
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -120,6 +120,22 @@ def _rows(indices: NDArray[np.int_]) -> str:
 GroupFits = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]
 
 
+def _batches_of_equal_groups(groups: NDArray[np.intp], n_groups: int
+                             ) -> Iterator[tuple[NDArray[np.intp], NDArray[np.intp]]]:
+    """Groups of one size together, as (their numbers, their rows as a groups × size array), about
+    BLOCK_ROWS rows at a time: per-group sums become batched matrix products, without a gather of
+    per-group values for every row. A calibration's groups mostly share one size."""
+    order = np.argsort(groups, kind="stable")
+    sizes = np.bincount(groups, minlength=n_groups)
+    starts = np.cumsum(sizes) - sizes
+    for size in np.unique(sizes):
+        same = np.flatnonzero(sizes == size)
+        step = max(1, BLOCK_ROWS // int(size))
+        for i in range(0, len(same), step):
+            ks = same[i:i + step]
+            yield ks, order[starts[ks][:, None] + np.arange(size)]
+
+
 def _leave_group_out(design: NDArray[np.float64], volts: NDArray[np.float64], full: LeastSquares,
                      groups: NDArray[np.intp], n_groups: int) -> GroupFits:
     """For each group k (the rows with groups == k): the coefficients (K×L×m), unscaled covariance
@@ -130,17 +146,13 @@ def _leave_group_out(design: NDArray[np.float64], volts: NDArray[np.float64], fu
     removal leaves the design near singular is refitted by QR, as before."""
     n_coef = design.shape[1]
     e = full.residuals
-
-    def per_group(weights: NDArray[np.float64]) -> NDArray[np.float64]:
-        return np.bincount(groups, weights=weights, minlength=n_groups)
-
     gram_k = np.empty((n_groups, n_coef, n_coef))
-    for a in range(n_coef):
-        for b in range(a, n_coef):
-            gram_k[:, a, b] = gram_k[:, b, a] = per_group(design[:, a] * design[:, b])
-    ft_e = np.stack([np.stack([per_group(design[:, a] * e[:, j]) for j in range(e.shape[1])], axis=-1)
-                     for a in range(n_coef)], axis=1)  # F_kᵀe_k, (K, L, m)
-    rss_k = np.stack([per_group(e[:, j] ** 2) for j in range(e.shape[1])], axis=-1)
+    ft_e = np.empty((n_groups, n_coef, e.shape[1]))  # F_kᵀe_k
+    rss_k = np.empty((n_groups, e.shape[1]))
+    for ks, rows in _batches_of_equal_groups(groups, n_groups):
+        f, e_k = design[rows], e[rows]
+        f_t = np.swapaxes(f, 1, 2)
+        gram_k[ks], ft_e[ks], rss_k[ks] = f_t @ f, f_t @ e_k, np.einsum("ksj,ksj->kj", e_k, e_k)
     rest = design.T @ design - gram_k
     dof = len(design) - np.bincount(groups, minlength=n_groups) - n_coef
     scale = np.sqrt(np.clip(np.diagonal(rest, axis1=1, axis2=2), 0.0, None))
@@ -198,30 +210,18 @@ def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA, base_fit: Least
     # each point's nominal gravity on the first mount: on the others it is this with axes reversed
     base = nominal_gravity(np.radians(readings.pitch_deg[points.first]),
                            np.radians(readings.roll_deg[points.first]), 0.0, 0.0)
-    # f = [1, s∘g] on the mount with axis signs s: fᵀCf = Σ_t term_t·sign_t over the ten distinct
-    # products of f, so one pass gives every mount's q (and the prediction likewise, term by term)
-    pairs = [(a, b) for a in range(4) for b in range(a, 4)]
-    signs = np.array([[(1, *MOUNT_SIGNS[m])[a] * (1, *MOUNT_SIGNS[m])[b] for a, b in pairs] for m in MOUNTS],
-                     dtype=float).T
-    terms = np.empty((BLOCK_ROWS, len(pairs)))
     chi2 = np.zeros((len(MOUNTS), n_groups))
-    for start in range(0, len(index), BLOCK_ROWS):
-        block = slice(start, start + BLOCK_ROWS)
-        k = index[block]
-        f = np.ones((len(k), 4))
-        f[:, 1:] = base[points.groups[block]]
-        c, cv, se = (np.take(a.reshape(n_groups, -1), k, axis=0).reshape(-1, *a.shape[1:])
-                     for a in (coef, cov, residual_se))  # a 2-D gather: 4× faster than a 3-D one
-        for t, (a, b) in enumerate(pairs):
-            np.multiply(f[:, a] * f[:, b], cv[:, a, b] if a == b else 2 * cv[:, a, b], out=terms[:len(k), t])
-        q = terms[:len(k)] @ signs  # (rows, mounts)
-        rest = readings.volts[block] - c[:, 0]
-        parts = [f[:, 1 + a, None] * c[:, 1 + a] for a in range(3)]
+    for ks, rows in _batches_of_equal_groups(index, n_groups):
+        f = np.ones((*rows.shape, 4))
+        f[..., 1:] = base[points.groups[rows]]
+        volts, c, cv, se = readings.volts[rows], coef[ks], cov[ks], residual_se[ks, None, :]
         for m, mount in enumerate(MOUNTS):
-            z = rest - sum(s * part for s, part in zip(MOUNT_SIGNS[mount], parts, strict=True))
+            # [1, s∘g]·c = [1, g]·(diag(1, s) c): the mount's signs go on the group's coefficients
+            signs = np.array([1.0, *MOUNT_SIGNS[mount]])
+            z = volts - f @ (c * signs[:, None])
             z /= se
-            chi2[m] += np.bincount(k, weights=np.einsum("ij,ij->i", z, z) / (1.0 + q[:, m]),
-                                   minlength=n_groups)
+            q = np.einsum("ksa,ksa->ks", f @ (cv * np.outer(signs, signs)), f)
+            chi2[m, ks] = np.sum(np.einsum("ksj,ksj->ks", z, z) / (1.0 + q), axis=1)
     stated = np.array([MOUNTS.index((float(y), float(u))) for y, u in keys[:, 1:]])
     best = np.argmin(np.where(usable, chi2, np.inf), axis=0)
     chi2_stated, chi2_best = chi2[stated, np.arange(n_groups)], chi2[best, np.arange(n_groups)]
