@@ -240,7 +240,7 @@ class PointMeans:
         first = points.first
         where = Geometry.from_degrees(readings.pitch_deg[first], readings.roll_deg[first],
                                       readings.y_deg[first], readings.u_deg[first])
-        return cls(where, points.means(readings.volts), np.sqrt(points.counts), points.groups)
+        return cls(where, readings.point_means, np.sqrt(points.counts), points.groups)
 
     def weighted(self, theta: NDArray[np.float64],
                  sd: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -292,7 +292,7 @@ def _gauss_newton(theta: NDArray[np.float64], data: PointMeans, volts: NDArray[n
     resid, design = data.weighted(theta, sd)
     step = least_squares(design, -resid)
     theta = theta + step.coef[:, 0]
-    return theta, step.cov_unscaled, volts - predict(theta, data.where)[data.groups]
+    return theta, step.cov_unscaled, volts - np.take(predict(theta, data.where), data.groups, axis=0)
 
 
 def fit_device(readings: Readings, linear: Fit | None = None) -> DeviceFit:
@@ -313,7 +313,7 @@ def fit_device(readings: Readings, linear: Fit | None = None) -> DeviceFit:
         theta, evaluations = _solve(theta0, data, sd)
     else:  # first pass unweighted, then each sensor by its own residual scatter
         theta, evaluations = _solve(theta0, data, np.ones(3))
-        resid = volts - predict(theta, data.where)[data.groups]
+        resid = volts - np.take(predict(theta, data.where), data.groups, axis=0)
         sd = np.maximum(np.sqrt(np.sum(resid**2, axis=0) / (n - N_PARAMETERS / 3)), floor)
         # The weighted optimum lies within the noise of the unweighted one: Gauss–Newton converges
         # from there in a step, quadratically; the step below polishes it again.
@@ -335,7 +335,7 @@ def fit_device(readings: Readings, linear: Fit | None = None) -> DeviceFit:
         where = data.where  # the true gravity is a function of the point: one design row per point
         g = gravity(where.pitch, where.roll, where.y, where.u, mis)
         replication = analyse_points(np.column_stack([np.ones(len(g)), g]), volts, data.groups,
-                                     readings.replicate)
+                                     readings.replicate, means=data.means)
     verdict = "warrants" if test.p_value < ALPHA else "does not warrant"
     notes = [f"the F test of the six misalignments against the linear model {verdict} them "
              f"(F = {test.f:.3g}, df {test.df}, p = {test.p_value:.2g})"]

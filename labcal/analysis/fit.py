@@ -167,10 +167,11 @@ def fit_readings(readings: Readings, model: Model | None = None) -> Fit:
     replicated = len(np.unique(readings.replicate)) > 1
     replication = None
     if points is not None:
-        ls = least_squares_of_means(design, points.means(readings.volts), points.counts, readings.volts,
+        ls = least_squares_of_means(design, readings.point_means, points.counts, readings.volts,
                                     points.groups)
         if replicated:
-            replication = analyse_points(design, readings.volts, points.groups, readings.replicate)
+            replication = analyse_points(design, readings.volts, points.groups, readings.replicate,
+                                         means=readings.point_means)
     else:
         ls = least_squares(design, readings.volts)
         groups = readings.points.groups

@@ -150,7 +150,7 @@ def _leave_group_out(design: NDArray[np.float64], volts: NDArray[np.float64], fu
     ft_e = np.empty((n_groups, n_coef, e.shape[1]))  # F_kᵀe_k
     rss_k = np.empty((n_groups, e.shape[1]))
     for ks, rows in _batches_of_equal_groups(groups, n_groups):
-        f, e_k = design[rows], e[rows]
+        f, e_k = np.take(design, rows, axis=0), np.take(e, rows, axis=0)
         f_t = np.swapaxes(f, 1, 2)
         gram_k[ks], ft_e[ks], rss_k[ks] = f_t @ f, f_t @ e_k, np.einsum("ksj,ksj->kj", e_k, e_k)
     rest = design.T @ design - gram_k
@@ -196,12 +196,12 @@ def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA, base_fit: Least
         return []
     _, point_design = Model().design(readings_points(readings, points.first))
     try:
-        full = base_fit or least_squares_of_means(point_design, points.means(readings.volts), points.counts,
+        full = base_fit or least_squares_of_means(point_design, readings.point_means, points.counts,
                                                   readings.volts, points.groups)
     except LabcalError:
         return []  # every subset of a singular design is singular: nothing to compare with
-    coef, cov, residual_se, determined = _leave_group_out(point_design[points.groups], readings.volts,
-                                                          full, index, n_groups)
+    coef, cov, residual_se, determined = _leave_group_out(np.take(point_design, points.groups, axis=0),
+                                                          readings.volts, full, index, n_groups)
     usable = determined & np.all(residual_se > 0, axis=1)
     sizes = np.bincount(index, minlength=n_groups)
     limits = {int(n): float(chi2_quantile(1.0 - sidak_per_test(n_groups, alpha), 3 * int(n)))
@@ -213,8 +213,8 @@ def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA, base_fit: Least
     chi2 = np.zeros((len(MOUNTS), n_groups))
     for ks, rows in _batches_of_equal_groups(index, n_groups):
         f = np.ones((*rows.shape, 4))
-        f[..., 1:] = base[points.groups[rows]]
-        volts, c, cv, se = readings.volts[rows], coef[ks], cov[ks], residual_se[ks, None, :]
+        f[..., 1:] = np.take(base, np.take(points.groups, rows), axis=0)
+        volts, c, cv, se = np.take(readings.volts, rows, axis=0), coef[ks], cov[ks], residual_se[ks, None, :]
         for m, mount in enumerate(MOUNTS):
             # [1, s∘g]·c = [1, g]·(diag(1, s) c): the mount's signs go on the group's coefficients
             signs = np.array([1.0, *MOUNT_SIGNS[mount]])

@@ -57,3 +57,8 @@ class Readings:
         first = np.zeros(n_points, dtype=np.intp)
         first[groups[::-1]] = np.arange(len(groups))[::-1]
         return PointIndex(groups, np.bincount(groups, minlength=n_points).astype(float), first)
+
+    @cached_property
+    def point_means(self) -> NDArray[np.float64]:
+        """The mean volts of each point (G×3), computed once for the fits and checks that start there."""
+        return self.points.means(self.volts)
