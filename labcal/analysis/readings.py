@@ -52,7 +52,9 @@ class Readings:
 
     @cached_property
     def points(self) -> PointIndex:
-        """Computed once: every fit, check and test of these readings groups them the same way."""
+        """Computed once: every fit, check and test of these readings groups them the same way (a
+        changed set of readings is a new Readings, e.g. dataclasses.replace, never arrays changed in
+        place, so the cache cannot go stale)."""
         groups, n_points = point_groups([self.y_deg, self.u_deg, self.pitch_deg, self.roll_deg], angle_key)
         first = np.zeros(n_points, dtype=np.intp)
         first[groups[::-1]] = np.arange(len(groups))[::-1]
