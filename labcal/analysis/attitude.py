@@ -107,11 +107,15 @@ def output_variance(cal: Calibration, g: NDArray[np.float64]) -> NDArray[np.floa
     With f = [1, g] the quadratic form is C₀₀ + 2·C₀g·g + Σ_ab C_ab g_a g_b: one small matrix
     product and the six distinct products g_a g_b, not a 4×4 form per row and sensor."""
     c = cal.covariance
-    out: NDArray[np.float64] = g @ (2.0 * c[:, 0, 1:].T)
+    pairs = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+    terms = np.empty((len(g), 9))  # g_a, then g_a g_b: one (n×9)·(9×3) product for all three sensors
+    terms[:, :3] = g
+    for t, (a, b) in enumerate(pairs, start=3):
+        np.multiply(g[:, a], g[:, b], out=terms[:, t])
+    weights = np.vstack([2.0 * c[:, 0, 1:].T,
+                         [c[:, 1 + a, 1 + b] + (c[:, 1 + b, 1 + a] if a != b else 0.0) for a, b in pairs]])
+    out: NDArray[np.float64] = terms @ weights
     out += c[:, 0, 0] + cal.reading_sd**2
-    for a, b in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)):
-        weight = c[:, 1 + a, 1 + b] if a == b else c[:, 1 + a, 1 + b] + c[:, 1 + b, 1 + a]
-        out += (g[:, a] * g[:, b])[:, None] * weight
     return out
 
 
