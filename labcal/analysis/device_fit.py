@@ -334,8 +334,7 @@ def fit_device(readings: Readings, linear: Fit | None = None) -> DeviceFit:
         mis, _ = split(theta)
         where = data.where  # the true gravity is a function of the point: one design row per point
         g = gravity(where.pitch, where.roll, where.y, where.u, mis)
-        replication = analyse_points(np.column_stack([np.ones(len(g)), g]), volts, data.groups,
-                                     readings.replicate, means=data.means)
+        replication = analyse_points(np.column_stack([np.ones(len(g)), g]), readings.cells)
     verdict = "warrants" if test.p_value < ALPHA else "does not warrant"
     notes = [f"the F test of the six misalignments against the linear model {verdict} them "
              f"(F = {test.f:.3g}, df {test.df}, p = {test.p_value:.2g})"]

@@ -170,8 +170,7 @@ def fit_readings(readings: Readings, model: Model | None = None) -> Fit:
         ls = least_squares_of_means(design, readings.point_means, points.counts, readings.volts,
                                     points.groups)
         if replicated:
-            replication = analyse_points(design, readings.volts, points.groups, readings.replicate,
-                                         means=readings.point_means)
+            replication = analyse_points(design, readings.cells)
     else:
         ls = least_squares(design, readings.volts)
         groups = readings.points.groups

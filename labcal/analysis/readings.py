@@ -9,7 +9,7 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import NDArray
 
-from labcal.analysis.replication import point_groups
+from labcal.analysis.replication import Cells, point_groups
 
 
 def angle_key(degrees: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -64,3 +64,8 @@ class Readings:
     def point_means(self) -> NDArray[np.float64]:
         """The mean volts of each point (G×3), computed once for the fits and checks that start there."""
         return self.points.means(self.volts)
+
+    @cached_property
+    def cells(self) -> Cells:
+        """What the replicated analyses of every model take from the readings, computed once."""
+        return Cells.of(self.volts, self.points.groups, self.replicate, len(self.points), self.point_means)
