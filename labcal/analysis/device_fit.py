@@ -39,8 +39,10 @@ from labcal.errors import LabcalError
 
 MAX_EVALUATIONS = 200  # Levenberg–Marquardt from the linear fit needs about ten
 SMALL_ANGLE_LIMIT_DEG = 2.0  # Soto's grouped misalignments are small rotations; beyond, the model is wrong
-SOLVER_TOLERANCE = 1e-12  # relative fall of the cost, or step relative to θ, at which LM stops; the
-# Gauss–Newton step after it polishes the rest
+# Relative fall of the cost, or step relative to θ, at which LM stops: a cost within 1e-10 of its
+# minimum puts θ within √(1e-10·χ²) ≈ 1e-3 standard errors of it for thousands of residuals, and the
+# Gauss–Newton step after LM converges quadratically from there.
+SOLVER_TOLERANCE = 1e-10
 LM_INITIAL_DAMPING = 1e-3  # λ relative to the Jacobian's column norms: near Gauss–Newton from the start
 NOISE_FLOOR = 1e-12  # relative to the sensitivity: a noise-free reading's residual SE is rounding
 
