@@ -210,22 +210,34 @@ def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA, base_fit: Least
     # each point's nominal gravity on the first mount: on the others it is this with axes reversed
     base = nominal_gravity(np.radians(readings.pitch_deg[points.first]),
                            np.radians(readings.roll_deg[points.first]), 0.0, 0.0)
-    chi2 = np.zeros((len(MOUNTS), n_groups))
-    for ks, rows in _batches_of_equal_groups(index, n_groups):
+    stated = np.array([MOUNTS.index((float(y), float(u))) for y, u in keys[:, 1:]])
+    # [1, s∘g]·c = [1, g]·(diag(1, s) c): a mount's axis signs s go on each group's coefficients
+    signs = np.array([[1.0, *MOUNT_SIGNS[mount]] for mount in MOUNTS])
+    chi2 = np.full((len(MOUNTS), n_groups), np.inf)
+
+    def chi2_under(mounts: NDArray[np.intp], ks: NDArray[np.intp], rows: NDArray[np.intp]) -> None:
+        """χ² of the groups ``ks`` (their rows ``rows``, groups × size) under ``mounts[k]`` each."""
         f = np.ones((*rows.shape, 4))
         f[..., 1:] = np.take(base, np.take(points.groups, rows), axis=0)
-        volts, c, cv, se = np.take(readings.volts, rows, axis=0), coef[ks], cov[ks], residual_se[ks, None, :]
-        for m, mount in enumerate(MOUNTS):
-            # [1, s∘g]·c = [1, g]·(diag(1, s) c): the mount's signs go on the group's coefficients
-            signs = np.array([1.0, *MOUNT_SIGNS[mount]])
-            z = volts - f @ (c * signs[:, None])
-            z /= se
-            q = np.einsum("ksa,ksa->ks", f @ (cv * np.outer(signs, signs)), f)
-            chi2[m, ks] = np.sum(np.einsum("ksj,ksj->ks", z, z) / (1.0 + q), axis=1)
-    stated = np.array([MOUNTS.index((float(y), float(u))) for y, u in keys[:, 1:]])
-    best = np.argmin(np.where(usable, chi2, np.inf), axis=0)
+        s = signs[mounts]
+        z = np.take(readings.volts, rows, axis=0) - f @ (coef[ks] * s[:, :, None])
+        z /= residual_se[ks, None, :]
+        q = np.einsum("ksa,ksa->ks", f @ (cov[ks] * s[:, :, None] * s[:, None, :]), f)
+        chi2[mounts, ks] = np.sum(np.einsum("ksj,ksj->ks", z, z) / (1.0 + q), axis=1)
+
+    # A group its stated mount explains is never flagged: the other mounts are tried only on the
+    # groups it does not (none, in a good file)
+    for ks, rows in _batches_of_equal_groups(index, n_groups):
+        chi2_under(stated[ks], ks, rows)
+    suspect = usable & (chi2[stated, np.arange(n_groups)] > limit)
+    if suspect.any():
+        for ks, rows in _batches_of_equal_groups(index, n_groups):
+            if suspect[ks].any():
+                for m in range(len(MOUNTS)):
+                    chi2_under(np.full(int(suspect[ks].sum()), m), ks[suspect[ks]], rows[suspect[ks]])
+    best = np.argmin(chi2, axis=0)
     chi2_stated, chi2_best = chi2[stated, np.arange(n_groups)], chi2[best, np.arange(n_groups)]
-    wrong = usable & (chi2_stated > limit) & (best != stated) & (chi2_best <= limit)
+    wrong = suspect & (best != stated) & (chi2_best <= limit)
     flags: list[Flag] = []
     for k in np.flatnonzero(wrong):
         rows = np.flatnonzero(index == k)
