@@ -83,8 +83,8 @@ class Replication:
         }
 
 
-def point_groups(keys: NDArray[np.float64] | Sequence[NDArray[np.float64]],
-                 canonical: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None = None,
+def point_groups(keys: NDArray[Any] | Sequence[NDArray[Any]],
+                 canonical: Callable[[NDArray[Any]], NDArray[Any]] | None = None,
                  ) -> tuple[NDArray[np.intp], int]:
     """Group index of every row (rows with equal keys are the same calibration point), numbered in
     the keys' lexicographic order; ``keys`` is an (n, k) array or k columns. ``canonical`` maps a
