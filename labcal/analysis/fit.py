@@ -164,7 +164,7 @@ def fit_readings(readings: Readings, model: Model | None = None) -> Fit:
         names, design = model.design(where)
         notes.append(f"term(s) {', '.join(aliased)} left out: this plan cannot estimate them (they vanish "
                      "on its points or repeat the other regressors)")
-    replicated = len(np.unique(readings.replicate)) > 1
+    replicated = readings.cells.n_replicates > 1
     replication = None
     if points is not None:
         ls = least_squares_of_means(design, readings.point_means, points.counts, readings.volts,
