@@ -183,8 +183,9 @@ def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA, base_fit: Least
     another mount does: each group predicted from the base fit of all the other groups
     (``base_fit``: the base model's fit of every reading, when the caller has it).
 
-    The design is the point's (every reading of a point has the same nominal gravity); the χ² of
-    every group under each of the four mounts is summed from the readings in blocks."""
+    The design is the point's (every reading of a point has the same nominal gravity); each group's χ²
+    under its stated mount, and under the other three where that one does not explain it, is summed
+    from the readings in batches of equal-sized groups."""
     points = readings.points
     mount_of_point = 2 * (readings.y_deg[points.first] % 360 != 0) + (readings.u_deg[points.first] % 360 != 0)
     index, n_groups = point_groups([readings.replicate, mount_of_point[points.groups]])
