@@ -4,6 +4,8 @@ the JCGM 101 Monte Carlo agrees with the linear U95."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -62,7 +64,7 @@ def _index_sensitivities(plan_name: str):
         at = np.isclose(readings.pitch_deg % 360, angle)
         moved = np.where(at, p + delta, p)
         volts = readings.volts + (gravity(moved, r, y, u) - gravity(p, r, y, u)) @ S
-        shifted = fit_readings(type(readings)(**{**vars(readings), "volts": volts}))
+        shifted = fit_readings(dataclasses.replace(readings, volts=volts))
         att = _sphere(shifted, v_use)
         slopes.append([(att.pitch - base.pitch)[0] / delta, (att.roll - base.roll)[0] / delta])
     return readings, fit, np.array(slopes)

@@ -91,9 +91,11 @@ def test_each_group_left_out_by_downdating_is_the_qr_fit_of_the_other_groups():
     _, design = Model().design(readings_points(readings))
     index = np.unique(np.column_stack([readings.replicate, readings.y_deg, readings.u_deg]), axis=0,
                       return_inverse=True)[1].ravel()
-    order = np.argsort(index, kind="stable")
-    bounds = np.searchsorted(index[order], np.arange(index.max() + 2))
-    for k, (coef, cov, se) in enumerate(_leave_group_out(design, readings.volts, order, bounds)):
+    coefs, covs, ses, determined = _leave_group_out(design, readings.volts,
+                                                    least_squares(design, readings.volts), index,
+                                                    int(index.max()) + 1)
+    assert determined.all()
+    for k, (coef, cov, se) in enumerate(zip(coefs, covs, ses, strict=True)):
         ls = least_squares(design[index != k], readings.volts[index != k])
         for mine, qr in ((coef, ls.coef), (cov, ls.cov_unscaled), (se, ls.residual_se)):
             assert np.allclose(mine, qr, rtol=1e-8, atol=1e-8 * np.max(np.abs(qr)))

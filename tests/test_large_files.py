@@ -72,3 +72,55 @@ def test_a_closed_pipe_ends_quietly(tmp_path):
     proc = subprocess.run(f"'{labcal}' attitude --cert '{fit}' --csv '{volts}' | head -2", shell=True,
                           capture_output=True, text=True, timeout=120)
     assert len(proc.stdout.splitlines()) == 2 and proc.stderr == "", proc.stderr
+
+
+def _replicated_readings(seed: int, replicates: int = 3):
+    """Noisy readings of a four-mount grid, rows shuffled, some angles written +360° (same point)."""
+    from labcal.analysis.readings import Readings
+
+    rng = np.random.default_rng(seed)
+    pitch, roll = (a.ravel() for a in np.meshgrid(np.arange(-150.0, 180, 60), np.arange(-180.0, 180, 45)))
+    mounts = np.array([[0, 0], [180, 0], [0, 180], [180, 180]], float)
+    rows = np.array([(r, y, u, p, q) for r in range(1, replicates + 1) for y, u in mounts
+                     for p, q in zip(pitch, roll, strict=True)])
+    rows = rows[rng.permutation(len(rows))]
+    rows[::7, 3] += 360.0
+    g = nominal_gravity(*np.radians(rows[:, [3, 4, 1, 2]]).T)
+    X = np.vstack([[0.01, -0.02, 0.03], 5 * np.eye(3) + rng.normal(0, 0.01, (3, 3))])
+    bias = 2e-3 * np.sin(3 * np.radians(rows[:, 3:4]))  # a lack of fit the replicates reveal
+    volts = X[0] + g @ X[1:] + bias + rng.normal(0, 2e-5, (len(rows), 3))
+    return Readings(rows[:, 0].astype(int), rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], volts)
+
+
+def test_the_fit_on_point_means_is_the_fit_on_every_reading():
+    """The point-means fit against the general one on every reading (QR of the full design,
+    replication analysis on it): the same normal equations, so equal to rounding; 1e-6 of a
+    standard error and 1e-12 V are far below any digit a certificate states."""
+    from labcal.analysis.fit import fit_readings, readings_points
+    from labcal.analysis.models import Model
+    from labcal.analysis.regression import least_squares
+    from labcal.analysis.replication import analyse
+
+    readings = _replicated_readings(5)
+    fit = fit_readings(readings)
+    _, design = Model().design(readings_points(readings))
+    every = least_squares(design, readings.volts)
+    assert np.all(np.abs(fit.ls.coef - every.coef) <= 1e-6 * every.stderr)
+    assert np.allclose(fit.ls.cov_unscaled, every.cov_unscaled, rtol=1e-9,
+                       atol=1e-12 * np.max(np.diag(every.cov_unscaled)))  # zeros off the diagonal
+    assert np.max(np.abs(fit.ls.residuals - every.residuals)) < 1e-12
+    assert fit.ls.dof == every.dof
+    groups = point_groups(np.round(np.column_stack([readings.y_deg, readings.u_deg, readings.pitch_deg,
+                                                    readings.roll_deg]) % 360, 6))[0]
+    assert len(readings.points) == groups.max() + 1 == 6 * 8 * 4
+    replication = analyse(design, readings.volts, groups, readings.replicate)
+    assert replication is not None and fit.replication is not None
+    for name in ("sigma_prec", "sigma_bias", "lack_of_fit_ms"):
+        assert np.allclose(getattr(fit.replication, name), getattr(replication, name), rtol=1e-9, atol=0)
+    assert fit.replication.lack_of_fit.significant.all()  # the sin 3p bias is seen
+
+
+def test_point_groups_compare_canonical_values():
+    angles = np.array([10.0, 370.0, -350.0, 20.0, 10.0 + 1e-12])
+    inverse, n = point_groups([angles], lambda v: np.round(v % 360.0, 9) % 360.0)
+    assert n == 2 and list(inverse) == [0, 0, 0, 1, 0]

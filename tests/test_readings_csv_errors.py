@@ -66,3 +66,16 @@ def test_the_fast_and_the_row_by_row_reader_agree_bit_for_bit(tmp_path):
     for name in ("replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", "volts"):
         assert np.array_equal(getattr(fast, name), getattr(slow, name))
     assert np.array_equal(fast.volts, volts)
+
+
+def test_a_replicate_number_beyond_any_lab_is_one_line(tmp_path):
+    """1e300 is a whole number ≥ 1, but no replicate: it was cast to a garbage integer (found by the
+    hostile-files fuzz as a RuntimeWarning)."""
+    from labcal.config.readings_csv import read_readings
+    from labcal.errors import LabcalError
+
+    path = tmp_path / "r.csv"
+    path.write_text("replicate,y_deg,u_deg,pitch_deg,roll_deg,vx,vy,vz\n1,0,0,0,0,0.1,0.2,1\n"
+                    "1e300,0,0,10,0,0.1,0.2,1\n")
+    with pytest.raises(LabcalError, match=r"line 3, column replicate: 1e\+300 is beyond any replicate"):
+        read_readings(path)

@@ -102,10 +102,21 @@ def _gravity_and_derivatives(
 
 
 def output_variance(cal: Calibration, g: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Σ_v diagonal per row (n×3): calibration variance fᵀ C_j f plus one reading's variance."""
-    f = np.concatenate([np.ones((len(g), 1)), g], axis=1)
-    calib = np.stack([np.sum((f @ c) * f, axis=1) for c in cal.covariance], axis=1)
-    return calib + cal.reading_sd**2
+    """Σ_v diagonal per row (n×3): calibration variance fᵀ C_j f plus one reading's variance.
+
+    With f = [1, g] the quadratic form is C₀₀ + 2·C₀g·g + Σ_ab C_ab g_a g_b: one small matrix
+    product and the six distinct products g_a g_b, not a 4×4 form per row and sensor."""
+    c = cal.covariance
+    pairs = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+    terms = np.empty((len(g), 9))  # g_a, then g_a g_b: one (n×9)·(9×3) product for all three sensors
+    terms[:, :3] = g
+    for t, (a, b) in enumerate(pairs, start=3):
+        np.multiply(g[:, a], g[:, b], out=terms[:, t])
+    weights = np.vstack([2.0 * c[:, 0, 1:].T,
+                         [c[:, 1 + a, 1 + b] + (c[:, 1 + b, 1 + a] if a != b else 0.0) for a, b in pairs]])
+    out: NDArray[np.float64] = terms @ weights
+    out += c[:, 0, 0] + cal.reading_sd**2
+    return out
 
 
 def _k95(cal: Calibration) -> float:

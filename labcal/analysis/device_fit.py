@@ -1,7 +1,7 @@
 """Estimating the calibration device with the instrument: the device model of
 `labcal.analysis.device_model` fitted by nonlinear least squares, started from the linear fit.
 
-The solver is scipy's Levenberg–Marquardt on the analytic Jacobian; its answer is polished, and its
+The solver is Levenberg–Marquardt on the analytic Jacobian; its answer is polished, and its
 covariance taken, by one Gauss–Newton step through the one QR core (`labcal.analysis.regression`),
 so the linearised problem is solved exactly as every other model is. Readings of the three sensors
 are weighted by each sensor's noise: the replicate scatter (pure error) when there are replicates,
@@ -16,7 +16,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares as solve_nonlinear
 
 from labcal.analysis.device_model import (
     N_MIS,
@@ -31,21 +30,21 @@ from labcal.analysis.device_model import (
     split,
 )
 from labcal.analysis.distributions import f_isf, f_sf, t_quantile
-from labcal.analysis.fit import Fit, fit_readings, point_keys
+from labcal.analysis.fit import Fit, fit_readings
 from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, gravity
 from labcal.analysis.readings import Readings
 from labcal.analysis.regression import least_squares
-from labcal.analysis.replication import ALPHA, Replication, analyse, point_groups
+from labcal.analysis.replication import ALPHA, Replication, analyse_points
 from labcal.errors import LabcalError
 
 MAX_EVALUATIONS = 200  # Levenberg–Marquardt from the linear fit needs about ten
 SMALL_ANGLE_LIMIT_DEG = 2.0  # Soto's grouped misalignments are small rotations; beyond, the model is wrong
-SOLVER_TOLERANCE = 1e-15  # relative change of θ and cost at which LM stops; the GN step polishes the rest
+# Relative fall of the cost, or step relative to θ, at which LM stops: a cost within 1e-10 of its
+# minimum puts θ within √(1e-10·χ²) ≈ 1e-3 standard errors of it for thousands of residuals, and the
+# Gauss–Newton step after LM converges quadratically from there.
+SOLVER_TOLERANCE = 1e-10
+LM_INITIAL_DAMPING = 1e-3  # λ relative to the Jacobian's column norms: near Gauss–Newton from the start
 NOISE_FLOOR = 1e-12  # relative to the sensitivity: a noise-free reading's residual SE is rounding
-
-
-def geometry_of(readings: Readings) -> Geometry:
-    return Geometry.from_degrees(readings.pitch_deg, readings.roll_deg, readings.y_deg, readings.u_deg)
 
 
 @dataclass(frozen=True)
@@ -239,15 +238,11 @@ class PointMeans:
 
     @classmethod
     def of(cls, readings: Readings) -> PointMeans:
-        groups, n_groups = point_groups(point_keys(readings))
-        counts = np.bincount(groups, minlength=n_groups).astype(float)
-        sums = np.zeros((n_groups, 3))
-        np.add.at(sums, groups, readings.volts)
-        first = np.zeros(n_groups, dtype=np.intp)
-        first[groups[::-1]] = np.arange(len(groups))[::-1]
-        full = geometry_of(readings)
-        where = Geometry(full.pitch[first], full.roll[first], full.y[first], full.u[first])
-        return cls(where, sums / counts[:, None], np.sqrt(counts), groups)
+        points = readings.points
+        first = points.first
+        where = Geometry.from_degrees(readings.pitch_deg[first], readings.roll_deg[first],
+                                      readings.y_deg[first], readings.u_deg[first])
+        return cls(where, readings.point_means, np.sqrt(points.counts), points.groups)
 
     def weighted(self, theta: NDArray[np.float64],
                  sd: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -259,30 +254,35 @@ class PointMeans:
 
 def _solve(theta0: NDArray[np.float64], data: PointMeans,
            sd: NDArray[np.float64]) -> tuple[NDArray[np.float64], int]:
-    """Levenberg–Marquardt on the weighted residuals; refuses to return a fit that did not converge."""
-    last: dict[bytes, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
-
-    def evaluate(theta: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Readings and Jacobian together (they share the kinematics); LM asks for both at each θ."""
-        key = theta.tobytes()
-        if key not in last:
-            last.clear()
-            last[key] = data.weighted(theta, sd)
-        return last[key]
-
-    def residuals(theta: NDArray[np.float64]) -> NDArray[np.float64]:
-        return evaluate(theta)[0]
-
-    def jac(theta: NDArray[np.float64]) -> NDArray[np.float64]:
-        return evaluate(theta)[1]
-
-    result = solve_nonlinear(residuals, theta0, jac=jac, method="lm", x_scale="jac", xtol=SOLVER_TOLERANCE,
-                             ftol=SOLVER_TOLERANCE, gtol=SOLVER_TOLERANCE, max_nfev=MAX_EVALUATIONS)
-    if result.status <= 0:
-        raise LabcalError(f"the device model did not converge in {MAX_EVALUATIONS} evaluations "
-                          f"({result.message}); the readings may not come from this plan's geometry, or "
-                          "the misalignments are not small: fit with --model linear")
-    return np.asarray(result.x, float), int(result.nfev)
+    """Levenberg–Marquardt on the weighted residuals, Marquardt's damping scaled by the Jacobian's
+    column norms, each step the damped linear problem [J; √λ·D] δ = [−r; 0] solved by the one QR
+    core (no scipy.optimize: its import alone cost a million-row fit a quarter of a second). Refuses
+    to return a fit that did not converge."""
+    theta = theta0
+    resid, jac = data.weighted(theta, sd)
+    cost, evaluations, damping = float(resid @ resid), 1, LM_INITIAL_DAMPING
+    zeros = np.zeros(N_PARAMETERS)
+    while evaluations < MAX_EVALUATIONS:
+        scale = np.linalg.norm(jac, axis=0)
+        damped = np.vstack([jac, np.diag(np.sqrt(damping) * np.where(scale > 0, scale, 1.0))])
+        step = least_squares(damped, np.concatenate([-resid, zeros])).coef[:, 0]
+        negligible = bool(np.all(np.abs(step) <= SOLVER_TOLERANCE * (np.abs(theta) + SOLVER_TOLERANCE)))
+        trial_resid, trial_jac = data.weighted(theta + step, sd)
+        evaluations += 1
+        trial_cost = float(trial_resid @ trial_resid)
+        if trial_cost <= cost:
+            settled = cost - trial_cost <= SOLVER_TOLERANCE * cost
+            theta, resid, jac, cost = theta + step, trial_resid, trial_jac, trial_cost
+            damping /= 10.0
+            if settled or negligible:
+                return theta, evaluations
+        elif negligible:  # no step the rounding can resolve lowers the cost: this is the minimum
+            return theta, evaluations
+        else:
+            damping *= 10.0
+    raise LabcalError(f"the device model did not converge in {MAX_EVALUATIONS} evaluations (its cost "
+                      f"was still falling at {cost:.6g}); the readings may not come from this plan's "
+                      "geometry, or the misalignments are not small: fit with --model linear")
 
 
 Arrays = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
@@ -294,21 +294,20 @@ def _gauss_newton(theta: NDArray[np.float64], data: PointMeans, volts: NDArray[n
     resid, design = data.weighted(theta, sd)
     step = least_squares(design, -resid)
     theta = theta + step.coef[:, 0]
-    return theta, step.cov_unscaled, volts - predict(theta, data.where)[data.groups]
+    return theta, step.cov_unscaled, volts - np.take(predict(theta, data.where), data.groups, axis=0)
 
 
 def fit_device(readings: Readings, linear: Fit | None = None) -> DeviceFit:
     """The device model by nonlinear least squares from the linear fit; LabcalError (one line) when the
     readings cannot identify it, the solver does not converge, or the misalignments are not small."""
-    where = geometry_of(readings)
-    ident = identifiability(where)
+    data = PointMeans.of(readings)
+    ident = identifiability(data.where)
     problem = ident.problem()
     if problem:
         raise LabcalError(f"the device model cannot be fitted to these readings: {problem}")
     linear = linear or fit_readings(readings)
     volts = readings.volts
     n = len(volts)
-    data = PointMeans.of(readings)
     theta0 = np.concatenate([np.zeros(N_MIS), linear.coefficients.ravel()])
     floor = NOISE_FLOOR * float(np.max(np.abs(linear.coefficients[1:])))
     if linear.replication is not None:  # a priori: pure error does not depend on the model
@@ -316,7 +315,7 @@ def fit_device(readings: Readings, linear: Fit | None = None) -> DeviceFit:
         theta, evaluations = _solve(theta0, data, sd)
     else:  # first pass unweighted, then each sensor by its own residual scatter
         theta, evaluations = _solve(theta0, data, np.ones(3))
-        resid = volts - predict(theta, data.where)[data.groups]
+        resid = volts - np.take(predict(theta, data.where), data.groups, axis=0)
         sd = np.maximum(np.sqrt(np.sum(resid**2, axis=0) / (n - N_PARAMETERS / 3)), floor)
         # The weighted optimum lies within the noise of the unweighted one: Gauss–Newton converges
         # from there in a step, quadratically; the step below polishes it again.
@@ -335,8 +334,9 @@ def fit_device(readings: Readings, linear: Fit | None = None) -> DeviceFit:
     replication = None
     if linear.replication is not None:
         mis, _ = split(theta)
+        where = data.where  # the true gravity is a function of the point: one design row per point
         g = gravity(where.pitch, where.roll, where.y, where.u, mis)
-        replication = analyse(np.column_stack([np.ones(n), g]), volts, data.groups, readings.replicate)
+        replication = analyse_points(np.column_stack([np.ones(len(g)), g]), readings.cells)
     verdict = "warrants" if test.p_value < ALPHA else "does not warrant"
     notes = [f"the F test of the six misalignments against the linear model {verdict} them "
              f"(F = {test.f:.3g}, df {test.df}, p = {test.p_value:.2g})"]
@@ -350,7 +350,7 @@ def fit_device(readings: Readings, linear: Fit | None = None) -> DeviceFit:
 def default_model(readings: Readings) -> tuple[str, str]:
     """Which model a calibration's readings deserve — the device model where the points identify all
     six misalignments, else the linear one — and the one line that says so (and why)."""
-    ident = identifiability(geometry_of(readings))
+    ident = identifiability(PointMeans.of(readings).where)
     problem = ident.problem()
     if problem is None:
         return "device", ("device model: the plan identifies all six calibration-device misalignments "

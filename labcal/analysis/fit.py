@@ -16,22 +16,25 @@ from numpy.typing import NDArray
 
 from labcal.analysis.distributions import f_isf, f_sf, t_quantile
 from labcal.analysis.models import BASE_NAMES, EXTENSIONS, Model, Points
-from labcal.analysis.readings import Readings
-from labcal.analysis.regression import LeastSquares, least_squares
-from labcal.analysis.replication import ALPHA, Replication, analyse, point_groups
+from labcal.analysis.readings import Readings, angle_key
+from labcal.analysis.regression import LeastSquares, least_squares, least_squares_of_means
+from labcal.analysis.replication import ALPHA, Replication, analyse, analyse_points
 
 SENSORS = ("x", "y", "z")
 ROW_NAMES = BASE_NAMES
 
 
-def readings_points(readings: Readings) -> Points:
-    return Points(readings.pitch_deg, readings.roll_deg, readings.y_deg, readings.u_deg, readings.temp_c)
+def readings_points(readings: Readings, rows: NDArray[np.intp] | None = None) -> Points:
+    """Where every reading was taken, or the readings ``rows`` only."""
+    if rows is None:
+        return Points(readings.pitch_deg, readings.roll_deg, readings.y_deg, readings.u_deg, readings.temp_c)
+    return Points(readings.pitch_deg[rows], readings.roll_deg[rows], readings.y_deg[rows],
+                  readings.u_deg[rows], None if readings.temp_c is None else readings.temp_c[rows])
 
 
 def point_keys(readings: Readings) -> NDArray[np.float64]:
     """Identity of each calibration point: mount and table angles modulo 360°."""
-    return np.round(np.column_stack([readings.y_deg, readings.u_deg, readings.pitch_deg, readings.roll_deg])
-                    % 360.0, 9) % 360.0
+    return angle_key(np.column_stack([readings.y_deg, readings.u_deg, readings.pitch_deg, readings.roll_deg]))
 
 
 @dataclass(frozen=True)
@@ -142,27 +145,41 @@ def reference_temperature(readings: Readings) -> float:
 
 
 def fit_readings(readings: Readings, model: Model | None = None) -> Fit:
-    """Least squares on the nominal gravity, with replicated analysis when there are replicates."""
+    """Least squares on the nominal gravity, with replicated analysis when there are replicates.
+
+    Where every regressor is a function of the calibration point (no temperature term) the fit is
+    made on the point means weighted by their counts: the same normal equations (Σ c·f fᵀ = FᵀF,
+    Σ c·f v̄ = FᵀV), so the same coefficients and covariance, with a design row per point instead of
+    per reading; the residuals are still every reading's."""
     model = model or Model(t_ref=reference_temperature(readings))
-    names, design = model.design(readings_points(readings))
+    points = readings.points if model.per_point else None
+    where = readings_points(readings, None if points is None else points.first)
+    weight = None if points is None else np.sqrt(points.counts)[:, None]
+    names, design = model.design(where)
     notes: list[str] = []
-    aliased = tuple(n for i, n in enumerate(names) if i not in _estimable(design, len(BASE_NAMES)))
+    weighted = design if weight is None else design * weight
+    aliased = tuple(n for i, n in enumerate(names) if i not in _estimable(weighted, len(BASE_NAMES)))
     if aliased:  # e.g. sin 2α and sin 2R vanish on a 0/90/180/270° grid: fit what the plan determines
         model = replace(model, dropped=model.dropped + aliased)
-        names, design = model.design(readings_points(readings))
+        names, design = model.design(where)
         notes.append(f"term(s) {', '.join(aliased)} left out: this plan cannot estimate them (they vanish "
                      "on its points or repeat the other regressors)")
-    ls = least_squares(design, readings.volts)
-    groups, _ = point_groups(point_keys(readings))
+    replicated = readings.cells.n_replicates > 1
     replication = None
-    if len(np.unique(readings.replicate)) > 1:
-        first = np.zeros(groups.max() + 1, dtype=int)
-        first[groups[::-1]] = np.arange(len(groups))[::-1]
-        if np.allclose(design, design[first][groups], rtol=0, atol=1e-12):
-            replication = analyse(design, readings.volts, groups, readings.replicate)
-        else:
-            notes.append("replication analysis skipped: temperature terms differ between replicates "
-                         "of the same point")
+    if points is not None:
+        ls = least_squares_of_means(design, readings.point_means, points.counts, readings.volts,
+                                    points.groups)
+        if replicated:
+            replication = analyse_points(design, readings.cells)
+    else:
+        ls = least_squares(design, readings.volts)
+        groups = readings.points.groups
+        if replicated:
+            if np.allclose(design, design[readings.points.first][groups], rtol=0, atol=1e-12):
+                replication = analyse(design, readings.volts, groups, readings.replicate)
+            else:
+                notes.append("replication analysis skipped: temperature terms differ between replicates "
+                             "of the same point")
     fit = Fit(model, names, ls, replication)
     if np.any(fit.bias_significant):
         sensors = ", ".join(s for s, b in zip(SENSORS, fit.bias_significant, strict=True) if b)

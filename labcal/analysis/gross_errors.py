@@ -17,7 +17,7 @@ positively dependent ones here). `tests/test_gross_errors.py` checks that rate b
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,15 +27,16 @@ from labcal.analysis.attitude import Attitude, Calibration, output_variance
 from labcal.analysis.distributions import chi2_quantile, t_quantile
 from labcal.analysis.fit import Fit, readings_points
 from labcal.analysis.kinematics import nominal_gravity
-from labcal.analysis.models import Model
+from labcal.analysis.models import BASE_NAMES, Model
 from labcal.analysis.readings import Readings
-from labcal.analysis.regression import LeastSquares, least_squares
+from labcal.analysis.regression import LeastSquares, least_squares, least_squares_of_means
 from labcal.analysis.replication import point_groups
 from labcal.errors import LabcalError
 
 FAMILY_ALPHA = 0.001  # chance that one check flags anything in a file of good readings
 VOLTS_MAX = 1000.0  # no bench DMM has a range above 1000 V (the 34970A's highest is 300 V)
 SENSORS = ("x", "y", "z")
+BLOCK_ROWS = 1 << 16  # rows a per-reading check handles at once: a few MiB of temporaries
 MOUNTS = ((0.0, 0.0), (180.0, 0.0), (0.0, 180.0), (180.0, 180.0))
 # gravity on each mount is gravity on the first one with axes reversed: y = 180° reverses x and y,
 # u = 180° reverses y and z (the sines of 180° are rounding noise, ~1e-16)
@@ -69,14 +70,21 @@ def t_threshold(n_tests: int, dof: float, alpha: float = FAMILY_ALPHA) -> float:
 
 def gravity_magnitude(cal: Calibration, volts: NDArray[np.float64]) -> tuple[NDArray[np.float64],
                                                                              NDArray[np.float64]]:
-    """m = |(V − B)S⁻¹| per row (in g) and its standard uncertainty from Σ_v (calibration and reading)."""
-    with np.errstate(all="ignore"):
-        g = (volts - cal.X[0]) @ cal.s_inv
-        m = np.linalg.norm(g, axis=1)
-        unit = np.where((m > 1e-9)[:, None] & np.isfinite(g), g / np.where(m > 0, m, 1.0)[:, None],
-                        np.array([0.0, 0.0, 1.0]))
-        dm_dv = unit @ cal.s_inv.T  # ∂m/∂v_j = Σ_k S⁻¹[j, k] ĝ_k (row convention dg = dv·S⁻¹)
-        u_m = np.sqrt(np.sum(dm_dv**2 * output_variance(cal, unit), axis=1))
+    """m = |(V − B)S⁻¹| per row (in g) and its standard uncertainty from Σ_v (calibration and reading).
+
+    In blocks of rows: a million readings need a few n×3 temporaries each, not all of them at once."""
+    m, u_m = np.empty(len(volts)), np.empty(len(volts))
+    s_inv = cal.s_inv
+    for start in range(0, len(volts), BLOCK_ROWS):
+        block = slice(start, start + BLOCK_ROWS)
+        with np.errstate(all="ignore"):
+            g = (volts[block] - cal.X[0]) @ s_inv
+            m[block] = mb = np.sqrt(np.einsum("ij,ij->i", g, g))
+            unit = np.where((mb > 1e-9)[:, None] & np.isfinite(g), g / np.where(mb > 0, mb, 1.0)[:, None],
+                            np.array([0.0, 0.0, 1.0]))
+            dm_dv = unit @ s_inv.T  # ∂m/∂v_j = Σ_k S⁻¹[j, k] ĝ_k (row convention dg = dv·S⁻¹)
+            dm_dv *= dm_dv
+            u_m[block] = np.sqrt(np.einsum("ij,ij->i", dm_dv, output_variance(cal, unit)))
     return m, u_m
 
 
@@ -109,116 +117,172 @@ def _rows(indices: NDArray[np.int_]) -> str:
     return ", ".join(str(r) for r in rows)
 
 
-GroupFit = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]  # coef, cov_unscaled, S_E
+GroupFits = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]
 
 
-def _leave_group_out(design: NDArray[np.float64], volts: NDArray[np.float64], order: NDArray[np.int_],
-                     bounds: NDArray[np.int_]) -> list[GroupFit | None]:
-    """For each group (rows order[bounds[k]:bounds[k+1]]): (coef, cov_unscaled, residual_se) of the
-    fit of every *other* row, or None where those rows cannot determine the model. One QR of all the
-    rows, then each group taken out by downdating at the residuals' scale (Fᵀe = 0 for the full
-    fit, so the others' Fᵀe is −F_kᵀe_k): O(rows) in all instead of one QR of the rest per group.
-    A group whose removal leaves the design near singular is refitted by QR, as before."""
-    try:
-        full = least_squares(design, volts)
-    except LabcalError:
-        return [None] * (len(bounds) - 1)  # every subset of a singular design is singular
-    gram, rss = design.T @ design, np.sum(full.residuals**2, axis=0)
-    out: list[GroupFit | None] = []
-    for k in range(len(bounds) - 1):
-        rows = order[bounds[k]:bounds[k + 1]]
-        f, e = design[rows], full.residuals[rows]
-        rest = gram - f.T @ f
-        dof = len(design) - len(rows) - design.shape[1]
-        scale = np.sqrt(np.clip(np.diag(rest), 0.0, None))
-        unit = np.where(scale > 0, scale, 1.0)
-        eig = np.linalg.eigvalsh(rest / np.outer(unit, unit))
-        if dof < 1 or not np.all(scale > 0) or eig[0] <= 1e-12 * eig[-1]:
-            others = np.ones(len(design), bool)
-            others[rows] = False
-            try:
-                ls = least_squares(design[others], volts[others])
-            except LabcalError:
-                out.append(None)
-                continue
-            out.append((ls.coef, ls.cov_unscaled, ls.residual_se) if ls.dof >= 1 else None)
+def _batches_of_equal_groups(groups: NDArray[np.intp], n_groups: int
+                             ) -> Iterator[tuple[NDArray[np.intp], NDArray[np.intp]]]:
+    """Groups of one size together, as (their numbers, their rows as a groups × size array), about
+    BLOCK_ROWS rows at a time: per-group sums become batched matrix products, without a gather of
+    per-group values for every row. A calibration's groups mostly share one size."""
+    order = np.argsort(groups, kind="stable")
+    sizes = np.bincount(groups, minlength=n_groups)
+    starts = np.cumsum(sizes) - sizes
+    for size in np.unique(sizes):
+        same = np.flatnonzero(sizes == size)
+        step = max(1, BLOCK_ROWS // int(size))
+        for i in range(0, len(same), step):
+            ks = same[i:i + step]
+            yield ks, order[starts[ks][:, None] + np.arange(size)]
+
+
+def _leave_group_out(design: NDArray[np.float64], volts: NDArray[np.float64], full: LeastSquares,
+                     groups: NDArray[np.intp], n_groups: int) -> GroupFits:
+    """For each group k (the rows with groups == k): the coefficients (K×L×m), unscaled covariance
+    (K×L×L) and residual SE (K×m) of the fit of every *other* row, and whether those rows determine
+    the model (K,). ``full`` is the fit of every row. Each group is taken out of the full fit by
+    downdating at the residuals' scale (Fᵀe = 0 for the full fit, so the others' Fᵀe is −F_kᵀe_k),
+    all groups at once from per-group sums: O(rows) in all, no loop over groups. A group whose
+    removal leaves the design near singular is refitted by QR, as before."""
+    n_coef = design.shape[1]
+    e = full.residuals
+    gram_k = np.empty((n_groups, n_coef, n_coef))
+    ft_e = np.empty((n_groups, n_coef, e.shape[1]))  # F_kᵀe_k
+    rss_k = np.empty((n_groups, e.shape[1]))
+    for ks, rows in _batches_of_equal_groups(groups, n_groups):
+        f, e_k = np.take(design, rows, axis=0), np.take(e, rows, axis=0)
+        f_t = np.swapaxes(f, 1, 2)
+        gram_k[ks], ft_e[ks], rss_k[ks] = f_t @ f, f_t @ e_k, np.einsum("ksj,ksj->kj", e_k, e_k)
+    rest = design.T @ design - gram_k
+    dof = len(design) - np.bincount(groups, minlength=n_groups) - n_coef
+    scale = np.sqrt(np.clip(np.diagonal(rest, axis1=1, axis2=2), 0.0, None))
+    unit = np.where(scale > 0, scale, 1.0)
+    eig = np.linalg.eigvalsh(rest / (unit[:, :, None] * unit[:, None, :]))
+    good = (dof >= 1) & np.all(scale > 0, axis=1) & (eig[:, 0] > 1e-12 * eig[:, -1])
+    cov = np.full_like(rest, np.nan)
+    cov[good] = np.linalg.inv(rest[good])
+    coef = full.coef - cov @ ft_e
+    rss_rest = np.einsum("ij,ij->j", e, e) - rss_k - np.sum(ft_e * (cov @ ft_e), axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        se = np.sqrt(np.maximum(rss_rest, 0.0) / dof[:, None])
+    determined = good.copy()
+    for k in np.flatnonzero(~good):
+        others = groups != k
+        try:
+            ls = least_squares(design[others], volts[others])
+        except LabcalError:
             continue
-        cov = np.linalg.inv(rest).astype(float)
-        ft_e = f.T @ e  # = −(the others' Fᵀe)
-        coef = full.coef - cov @ ft_e
-        rss_rest = rss - np.sum(e**2, axis=0) - np.einsum("ij,ik,kj->j", ft_e, cov, ft_e)
-        out.append((coef.astype(float), cov, np.sqrt(np.maximum(rss_rest, 0.0) / dof).astype(float)))
-    return out
+        if ls.dof >= 1:
+            coef[k], cov[k], se[k], determined[k] = ls.coef, ls.cov_unscaled, ls.residual_se, True
+    return coef, cov, se, determined
 
 
-def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA) -> list[Flag]:
+def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA, base_fit: LeastSquares | None = None
+                ) -> list[Flag]:
     """Groups of readings (one replicate, one mount) that their stated mount does not explain and
-    another mount does: each group predicted from the base fit of all the other groups."""
-    groups = np.column_stack([readings.replicate, readings.y_deg % 360, readings.u_deg % 360])
-    index, n_groups = point_groups(groups)
-    keys = groups[np.unique(index, return_index=True)[1]]
-    if len(keys) < 2:
+    another mount does: each group predicted from the base fit of all the other groups
+    (``base_fit``: the base model's fit of every reading, when the caller has it).
+
+    The design is the point's (every reading of a point has the same nominal gravity); each group's χ²
+    under its stated mount, and under the other three where that one does not explain it, is summed
+    from the readings in batches of equal-sized groups."""
+    points = readings.points
+    mount_of_point = 2 * (readings.y_deg[points.first] % 360 != 0) + (readings.u_deg[points.first] % 360 != 0)
+    index, n_groups = point_groups([readings.replicate, mount_of_point[points.groups]])
+    first = np.zeros(n_groups, dtype=np.intp)
+    first[index[::-1]] = np.arange(len(index))[::-1]
+    keys = np.column_stack([readings.replicate[first], readings.y_deg[first] % 360,
+                            readings.u_deg[first] % 360])
+    if n_groups < 2:
         return []
+    _, point_design = Model().design(readings_points(readings, points.first))
+    try:
+        full = base_fit or least_squares_of_means(point_design, readings.point_means, points.counts,
+                                                  readings.volts, points.groups)
+    except LabcalError:
+        return []  # every subset of a singular design is singular: nothing to compare with
+    coef, cov, residual_se, determined = _leave_group_out(np.take(point_design, points.groups, axis=0),
+                                                          readings.volts, full, index, n_groups)
+    usable = determined & np.all(residual_se > 0, axis=1)
+    sizes = np.bincount(index, minlength=n_groups)
+    limits = {int(n): float(chi2_quantile(1.0 - sidak_per_test(n_groups, alpha), 3 * int(n)))
+              for n in np.unique(sizes[usable])}  # one bisection per group size, not per group
+    limit = np.array([limits.get(int(n), np.inf) for n in sizes])
+    # each point's nominal gravity on the first mount: on the others it is this with axes reversed
+    base = nominal_gravity(np.radians(readings.pitch_deg[points.first]),
+                           np.radians(readings.roll_deg[points.first]), 0.0, 0.0)
+    stated = np.array([MOUNTS.index((float(y), float(u))) for y, u in keys[:, 1:]])
+    # [1, s∘g]·c = [1, g]·(diag(1, s) c): a mount's axis signs s go on each group's coefficients
+    signs = np.array([[1.0, *MOUNT_SIGNS[mount]] for mount in MOUNTS])
+    chi2 = np.full((len(MOUNTS), n_groups), np.inf)
+
+    def chi2_under(mounts: NDArray[np.intp], ks: NDArray[np.intp], rows: NDArray[np.intp]) -> None:
+        """χ² of the groups ``ks`` (their rows ``rows``, groups × size) under ``mounts[k]`` each."""
+        f = np.ones((*rows.shape, 4))
+        f[..., 1:] = np.take(base, np.take(points.groups, rows), axis=0)
+        s = signs[mounts]
+        z = np.take(readings.volts, rows, axis=0) - f @ (coef[ks] * s[:, :, None])
+        z /= residual_se[ks, None, :]
+        q = np.einsum("ksa,ksa->ks", f @ (cov[ks] * s[:, :, None] * s[:, None, :]), f)
+        chi2[mounts, ks] = np.sum(np.einsum("ksj,ksj->ks", z, z) / (1.0 + q), axis=1)
+
+    # A group its stated mount explains is never flagged: the other mounts are tried only on the
+    # groups it does not (none, in a good file)
+    for ks, rows in _batches_of_equal_groups(index, n_groups):
+        chi2_under(stated[ks], ks, rows)
+    suspect = usable & (chi2[stated, np.arange(n_groups)] > limit)
+    if suspect.any():
+        for ks, rows in _batches_of_equal_groups(index, n_groups):
+            if suspect[ks].any():
+                for m in range(len(MOUNTS)):
+                    chi2_under(np.full(int(suspect[ks].sum()), m), ks[suspect[ks]], rows[suspect[ks]])
+    best = np.argmin(chi2, axis=0)
+    chi2_stated, chi2_best = chi2[stated, np.arange(n_groups)], chi2[best, np.arange(n_groups)]
+    wrong = suspect & (best != stated) & (chi2_best <= limit)
     flags: list[Flag] = []
-    limits: dict[int, float] = {}
-    _, design = Model().design(readings_points(readings))
-    order = np.argsort(index, kind="stable")
-    base = nominal_gravity(np.radians(readings.pitch_deg), np.radians(readings.roll_deg), 0.0, 0.0)
-    bounds = np.searchsorted(index[order], np.arange(n_groups + 1))
-    for k, ((_, y, u), others) in enumerate(zip(keys, _leave_group_out(design, readings.volts, order, bounds),
-                                                strict=True)):
-        if others is None:
-            continue  # the other groups alone cannot determine the model: nothing to compare with
-        coef, cov_unscaled, residual_se = others
-        if not np.all(residual_se > 0):
-            continue
-        rows = order[bounds[k]:bounds[k + 1]]
-        n = len(rows)
-        if n not in limits:  # one bisection per group size, not per group
-            limits[n] = float(chi2_quantile(1.0 - sidak_per_test(len(keys), alpha), 3 * n))
-        limit = limits[n]
-        chi2 = {}
-        for my, mu in MOUNTS:
-            f = np.column_stack([np.ones(n), base[rows] * MOUNT_SIGNS[(my, mu)]])
-            q = np.einsum("ij,jk,ik->i", f, cov_unscaled, f)
-            scale = residual_se[None, :] * np.sqrt(1.0 + q)[:, None]
-            chi2[(my, mu)] = float(np.sum(((readings.volts[rows] - f @ coef[:4]) / scale) ** 2))
-        best = min(chi2, key=lambda mount: chi2[mount])
-        if chi2[(y, u)] > limit and best != (y, u) and chi2[best] <= limit:
-            rows = np.sort(rows)
-            message = (f"readings {_rows(rows)} (replicate {keys[k][0]:g}) are labelled mount y={y:g} "
-                       f"u={u:g} but read like mount y={best[0]:g} u={best[1]:g}: a missed or wrong "
-                       f"remount? (χ² {chi2[(y, u)]:.3g} against {chi2[best]:.3g}, limit {limit:.3g})")
-            flags.extend(Flag(int(i) + 1, "mount", message) for i in rows)
+    for k in np.flatnonzero(wrong):
+        rows = np.flatnonzero(index == k)
+        (_, y, u), (by, bu) = keys[k], MOUNTS[best[k]]
+        message = (f"readings {_rows(rows)} (replicate {keys[k][0]:g}) are labelled mount y={y:g} "
+                   f"u={u:g} but read like mount y={by:g} u={bu:g}: a missed or wrong "
+                   f"remount? (χ² {chi2_stated[k]:.3g} against {chi2_best[k]:.3g}, limit {limit[k]:.3g})")
+        flags.extend(Flag(int(i) + 1, "mount", message) for i in rows)
     return flags
 
 
 def residual_flags(design: NDArray[np.float64], ls: LeastSquares,
                    skip: set[int] | frozenset[int] = frozenset(), alpha: float = FAMILY_ALPHA,
-                   ) -> tuple[list[Flag], float]:
+                   rows: NDArray[np.intp] | None = None) -> tuple[list[Flag], float]:
     """Externally studentised residuals beyond the family-wise Student t threshold (over every
-    reading and sensor) of the fit ``ls`` of ``design``; returns the flags and the threshold."""
+    reading and sensor) of the fit ``ls`` of ``design``; returns the flags and the threshold.
+    ``design`` has a row per reading, or one per point with ``rows`` the point of every reading
+    (the leverage is a function of the design row). In row blocks: a few MiB of temporaries."""
     dof = ls.dof
     if dof < 2:
         return [], float("inf")
     h = np.einsum("ij,jk,ik->i", design, ls.cov_unscaled, design)
     e = ls.residuals
-    with np.errstate(all="ignore"):
-        s2_without = (dof * ls.residual_se[None, :] ** 2 - e**2 / (1 - h)[:, None]) / (dof - 1)
-        t = e / np.sqrt(np.maximum(s2_without, 0) * (1 - h)[:, None])
     limit = t_threshold(e.size, dof - 1, alpha)
     flags = []
-    for i, j in zip(*np.nonzero(~(np.abs(t) <= limit)), strict=True):
-        if int(i) + 1 in skip:
-            continue
-        flags.append(Flag(int(i) + 1, "residual",
-                          f"sensor {SENSORS[j]}: residual {e[i, j]:+.3g} V is {abs(t[i, j]):.3g} times its "
-                          f"standard error (limit {limit:.3g}, studentised)"))
+    for start in range(0, len(e), BLOCK_ROWS):
+        block = slice(start, start + BLOCK_ROWS)
+        eb, hb = e[block], (h[block] if rows is None else h[rows[block]])[:, None]
+        with np.errstate(all="ignore"):
+            s2_without = (dof * ls.residual_se**2 - eb**2 / (1 - hb)) / (dof - 1)
+            t = eb / np.sqrt(np.maximum(s2_without, 0) * (1 - hb))
+        for i, j in zip(*np.nonzero(~(np.abs(t) <= limit)), strict=True):
+            if start + int(i) + 1 in skip:
+                continue
+            flags.append(Flag(start + int(i) + 1, "residual",
+                              f"sensor {SENSORS[j]}: residual {eb[i, j]:+.3g} V is {abs(t[i, j]):.3g} times "
+                              f"its standard error (limit {limit:.3g}, studentised)"))
     return flags, limit
 
 
 def implausible_volts(volts: NDArray[np.float64]) -> None:
     """Refuse readings no voltmeter can have produced: they would make every statistic infinite."""
+    if np.max(volts, initial=-np.inf) <= VOLTS_MAX and np.min(volts, initial=np.inf) >= -VOLTS_MAX:
+        return  # two reductions say so for a clean file (a NaN fails both comparisons)
     bad = np.flatnonzero(~np.all(np.abs(volts) <= VOLTS_MAX, axis=1))
     if len(bad):
         i = bad[0]
@@ -238,13 +302,14 @@ def fit_flags(readings: Readings, fit: Fit, alpha: float = FAMILY_ALPHA) -> list
     """Every gross-error check of a calibration's readings, row by row (mount groups first: one missed
     remount otherwise shows as dozens of gravity and residual flags)."""
     cal = calibration_of(fit)
-    _, design = fit.model.design(readings_points(readings))
-    mount = mount_flags(readings, alpha)
+    rows = readings.points.groups if fit.model.per_point else None
+    _, design = fit.model.design(readings_points(readings, None if rows is None else readings.points.first))
+    mount = mount_flags(readings, alpha, fit.ls if fit.names == BASE_NAMES else None)
     seen = {f.row for f in mount}
     gravity = [f for f in gravity_flags(cal, readings.volts, lambda i: _describe(readings, i), alpha)
                if f.row not in seen]
     seen |= {f.row for f in gravity}
-    residual, _ = residual_flags(design, fit.ls, seen, alpha)
+    residual, _ = residual_flags(design, fit.ls, seen, alpha, rows)
     return mount + gravity + residual
 
 

@@ -76,6 +76,11 @@ class Model:
         if unknown:
             raise LabcalError(f"unknown model extension {unknown[0]!r}; choose from {', '.join(EXTENSIONS)}")
 
+    @property
+    def per_point(self) -> bool:
+        """Every regressor is a function of the calibration point (mount, pitch, roll) alone."""
+        return "temperature" not in self.extensions
+
     def design(self, points: Points) -> tuple[tuple[str, ...], NDArray[np.float64]]:
         """Regressor names and the design matrix F (K×L)."""
         g = points.nominal_gravity()

@@ -52,7 +52,7 @@ def print_json(doc: dict) -> None:
     """One JSON document on stdout and nothing else (`--json`)."""
     import json
 
-    from labcal.config.files import json_safe
+    from labcal.config.json_values import json_safe
 
     sys.stdout.write(json.dumps(json_safe(doc), indent=2) + "\n")
 

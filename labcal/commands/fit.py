@@ -58,11 +58,6 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from labcal.analysis.fit import SENSORS, extension_tests, fit_readings, reference_temperature
     from labcal.analysis.gross_errors import fit_flags, implausible_volts
     from labcal.analysis.models import Model, Points
-    from labcal.commands.console import (
-        coefficients_with_standard_errors,
-        extension_terms,
-        with_standard_error,
-    )
     from labcal.config.readings_csv import read_readings
 
     readings = read_readings(args.readings)
@@ -99,6 +94,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if args.json:
         print_json(doc)
         return outcome_of_checks(flags, args.allow_outliers, args.readings)
+    from labcal.commands.console import (  # rich, which --json does not need: a third of a second
+        coefficients_with_standard_errors,
+        extension_terms,
+        with_standard_error,
+    )
+
     out.print(coefficients_with_standard_errors(fit))
     if (terms := extension_terms(fit)) is not None:
         out.print(terms)
@@ -130,7 +131,6 @@ def fit_device_model(args: argparse.Namespace, readings, chosen: str | None, che
     """`labcal fit --model device`: the instrument and the device's six misalignments together."""
     from labcal.analysis.device_fit import fit_device
     from labcal.analysis.gross_errors import fit_flags
-    from labcal.commands.console import device_tables
 
     fit = fit_device(readings, checked[0] if checked else None)
     doc = fit.to_json()
@@ -151,6 +151,8 @@ def fit_device_model(args: argparse.Namespace, readings, chosen: str | None, che
     if args.json:
         print_json(doc)
         return outcome_of_checks(flags, args.allow_outliers, args.readings)
+    from labcal.commands.console import device_tables  # rich, which --json does not need
+
     for table in device_tables(doc):
         out.print(table)
     for note in doc.get("notes", []):

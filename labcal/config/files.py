@@ -17,6 +17,7 @@ from typing import Annotated, Any, BinaryIO, Literal, TypeVar, Union, get_args, 
 from pydantic import BaseModel, ValidationError
 from pydantic.fields import FieldInfo
 
+from labcal.config.json_values import json_safe as json_safe  # re-exported (exports, issuing)
 from labcal.errors import LabcalError
 
 Model = TypeVar("Model", bound=BaseModel)
@@ -155,17 +156,6 @@ def parse_model(text: str, model: type[Model], source: str) -> Model:
 
 def load_model(path: str | Path, model: type[Model], kind: str) -> Model:
     return parse_model(read_text(path, kind), model, str(path))
-
-
-def json_safe(value):
-    """Replace NaN and infinities (no JSON for them) by null."""
-    if isinstance(value, float):
-        return value if value == value and abs(value) != float("inf") else None
-    if isinstance(value, dict):
-        return {k: json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [json_safe(v) for v in value]
-    return value
 
 
 def write_json(path: Path, doc: dict) -> None:
