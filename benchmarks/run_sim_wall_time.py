@@ -108,7 +108,8 @@ for title in ("attitude errors", "uncertainty over the envelope"):  # two panels
             if title == "attitude errors":
                 ax.errorbar(pitch[mount == m] + m, resid[mount == m, k], yerr=se[k], fmt="o", ms=4, capsize=2)
             else:
-                ax.plot(np.arange(-90, 91, 5.0), np.abs(np.sin(np.radians(np.arange(-90, 91, 5.0) + m))), "-o")
+                grid = np.arange(-90, 91, 5.0)
+                ax.plot(grid, np.abs(np.sin(np.radians(grid + m))), "-o")
         ax.axhline(0, color="k", lw=0.6)
         ax.set(xlabel="pitch (°)", ylabel="error (°)", title=title)
         ax.grid(alpha=0.3)
@@ -158,8 +159,8 @@ with PdfPages(out + "/report.pdf") as pdf:
         pdf.savefig(page)
 rows = "".join(f"<tr>{''.join(f'<td>{html.escape(c)}</td>' for c in line.split())}</tr>" for line in lines)
 images = "".join(f'<img src="data:image/png;base64,{base64.b64encode(p).decode()}">' for p in pngs)
-Path(out + "/report.html").write_text(f"<!DOCTYPE html><html><body><table>{rows}</table>{images}</body></html>",
-                                      encoding="utf-8")
+page = f"<!DOCTYPE html><html><body><table>{rows}</table>{images}</body></html>"
+Path(out + "/report.html").write_text(page, encoding="utf-8")
 
 D, S = "https://ptb.de/dcc", "https://ptb.de/si"
 def real(label, value, unit):

@@ -13,27 +13,19 @@ import stat
 from pathlib import Path
 
 import pytest
-from matplotlib.backends.backend_pdf import PdfPages
+from pypdf import PdfReader
 from simulated_runs import simulated_run
 
 from labcal.cli import main
 from labcal.documents.certificate import certificate_from_doc, content_digest, read_certificate
 from labcal.documents.report import write_run_outputs
 
-SAVEFIG = PdfPages.savefig
 
-
-def _pdf_pages(run) -> list[str]:
-    """The text of every page the report's PDF gets (the figures' texts, as drawn)."""
-    pages: list[str] = []
-
-    def savefig(self, figure=None, **kwargs):
-        pages.append(" ".join(t.get_text() for t in figure.texts))
-        return SAVEFIG(self, figure, **kwargs)
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(PdfPages, "savefig", savefig)
-        run()
-    return pages
+def _pdf_pages(run, pdf: Path) -> list[str]:
+    """The text of every page of the report's PDF once ``run`` has written it, as a PDF reader
+    (pypdf, not labcal's writer) extracts it through the font's ToUnicode map."""
+    run()
+    return [page.extract_text() for page in PdfReader(pdf).pages]
 
 
 def _approve(base, key: str = "approver.key") -> list[str]:
@@ -46,7 +38,7 @@ def issued(tmp_path_factory):
     """A dry run, its draft certificate (the PDF's pages kept), and a key pair."""
     base = tmp_path_factory.mktemp("approval")
     run_dir = simulated_run(base / "run", base / "lab.sqlite", seed=5, plan="one-mount-16")  # small: quick
-    pages = _pdf_pages(lambda: write_run_outputs(run_dir, db=base / "lab.sqlite"))
+    pages = _pdf_pages(lambda: write_run_outputs(run_dir, db=base / "lab.sqlite"), run_dir / "report.pdf")
     assert main(["certificate", "keygen", "--out", str(base / "approver")]) == 0
     return base, pages
 
@@ -56,7 +48,7 @@ def approved(issued, tmp_path_factory):
     """A copy of the issued run, approved (the PDF's pages kept)."""
     base = tmp_path_factory.mktemp("approved") / "lab"
     shutil.copytree(issued[0], base)
-    pages = _pdf_pages(lambda: main(_approve(base)))
+    pages = _pdf_pages(lambda: main(_approve(base)), base / "run" / "report.pdf")
     return base, pages
 
 

@@ -19,7 +19,7 @@ import io
 import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, BinaryIO
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -472,27 +472,25 @@ FIGURE_DPI = 120  # one raster for the screen and for print (the HTML had 110)
 
 @dataclass(frozen=True)
 class DrawnFigure:
-    """A figure drawn once: its pixels (RGB; the figure is opaque) and its PNG, for the HTML and
-    the PDF alike."""
+    """A figure drawn once: its PNG (RGB; the figure is opaque), for the HTML and the PDF alike."""
 
     title: str
     size_in: tuple[float, float]
-    rgb: np.ndarray
     png: bytes
 
 
 def draw(title: str, fig: Figure) -> DrawnFigure:
     """One Agg drawing of ``fig``; the PNG is encoded from the same pixels."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.image import imsave
+    from PIL import Image  # matplotlib's own image library; its imsave would write RGBA
 
     fig.set_dpi(FIGURE_DPI)
     canvas = FigureCanvasAgg(fig)
     canvas.draw()
-    rgb = np.asarray(canvas.buffer_rgba())[..., :3].copy()  # no alpha: one image per figure in the PDF
+    rgb = np.asarray(canvas.buffer_rgba())[..., :3]  # no alpha: the PDF takes an RGB PNG as it is
     buf = io.BytesIO()
-    imsave(buf, rgb, format="png", pil_kwargs={"compress_level": 1})  # encoding was a third of it
-    return DrawnFigure(title, tuple(fig.get_size_inches()), rgb, buf.getvalue())
+    Image.fromarray(rgb).save(buf, format="png", compress_level=1)  # encoding was a third of it
+    return DrawnFigure(title, tuple(fig.get_size_inches()), buf.getvalue())
 
 
 def _png(fig: DrawnFigure) -> str:
@@ -539,12 +537,10 @@ def _status(cert: Certificate) -> str:
     return f"approved by {a.by} ({a.role}) on {a.approved_utc:%Y-%m-%d}"
 
 
-def render_pdf(cert: Certificate, figs: list[DrawnFigure], path: Path | BinaryIO,
-               extra: tuple[Table, ...] = ()) -> None:
-    """Text pages with every table, then one page per figure (its image, as drawn for the HTML);
+def render_pdf(cert: Certificate, figs: list[DrawnFigure], extra: tuple[Table, ...] = ()) -> bytes:
+    """Text pages with every table, then one page per figure (its PNG, as drawn for the HTML);
     every page says "page X of Y" and, until the certificate is approved, DRAFT."""
-    from matplotlib.backends.backend_pdf import PdfPages
-    from matplotlib.figure import Figure
+    from labcal.documents.pdf import BLACK, RED, Page, Text, pdf_document
 
     blocks = []
     for t in (*tables(cert), *extra):
@@ -555,35 +551,22 @@ def render_pdf(cert: Certificate, figs: list[DrawnFigure], path: Path | BinaryIO
     blocks += [textwrap.fill(p, 140) + "\n" for p in (cert.method, *cert.statements, *cert.fit.notes)]
     lines = "\n".join(blocks).splitlines()
     per_page = 62
-    with PdfPages(path, metadata={"Title": f"Calibration certificate {cert.certificate_id}",
-                                  "Subject": f"instrument {cert.instrument.serial}"}) as pdf:
-        pages = range(0, len(lines), per_page)
-        total = len(pages) + len(figs)
-        for n, start in enumerate(pages, start=1):
-            page = Figure(figsize=(11.69, 8.27))
-            page.text(0.03, 0.97, f"Calibration certificate {cert.number} — {verdict_text(cert)} — "
-                                  f"{_status(cert)} — page {n} of {total}", fontsize=9, va="top",
-                      weight="bold", color="tab:red" if cert.draft else "black",
-                      parse_math=False)  # serials, operators and names hold what people typed: "$" too
-            page.text(0.03, 0.93, "\n".join(lines[start:start + per_page]), family="monospace", fontsize=6.4,
-                      va="top", parse_math=False)
-            _mark(page, cert)
-            pdf.savefig(page)
-        for n, fig in enumerate(figs, start=len(pages) + 1):
-            page = Figure(figsize=fig.size_in)
-            ax = page.add_axes((0, 0, 1, 1))
-            ax.imshow(fig.rgb, interpolation="none")  # embedded as drawn, not resampled
-            ax.set_axis_off()
-            page.text(0.01, 0.001, f"{cert.number} · {fig.title} · {_status(cert)} · page {n} of {total}",
-                      fontsize=7, va="bottom", parse_math=False)
-            _mark(page, cert)
-            pdf.savefig(page)
-
-
-def _mark(page: Figure, cert: Certificate) -> None:
-    if cert.draft:
-        page.text(0.5, 0.5, "DRAFT", fontsize=90, color="tab:red", alpha=0.15, ha="center", va="center",
-                  rotation=30, weight="bold")
+    starts = range(0, len(lines), per_page)
+    total = len(starts) + len(figs)
+    draft = [Text(0.5, 0.5, "DRAFT", 90, va="center", ha="center", colour=RED, bold=True, rotation_deg=30,
+                  opacity=0.15)] if cert.draft else []
+    pages = [Page((11.69, 8.27), [
+        Text(0.03, 0.97, f"Calibration certificate {cert.number} — {verdict_text(cert)} — {_status(cert)} — "
+                         f"page {n} of {total}", 9, colour=RED if cert.draft else BLACK, bold=True,
+             max_width=0.94),
+        Text(0.03, 0.93, "\n".join(lines[start:start + per_page]), 6.4, max_width=0.94), *draft])
+        for n, start in enumerate(starts, start=1)]
+    pages += [Page(fig.size_in, [Text(0.01, 0.001, f"{cert.number} · {fig.title} · {_status(cert)} · "
+                                                    f"page {n} of {total}", 7, va="bottom", max_width=0.98),
+                                 *draft], fig.png)
+              for n, fig in enumerate(figs, start=len(starts) + 1)]
+    return pdf_document(pages, f"Calibration certificate {cert.certificate_id}",
+                        f"instrument {cert.instrument.serial}")
 
 
 def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit,
@@ -601,7 +584,7 @@ def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit
     figs = [draw(title, fig) for title, fig in figures_drawn]
     html_path, pdf_path = directory / REPORT_HTML, directory / REPORT_PDF
     write_atomic(html_path, render_html(cert, figs, extra))  # whole or not at all: a kill never cuts a report
-    write_atomic(pdf_path, lambda file: render_pdf(cert, figs, file, extra))
+    write_atomic(pdf_path, render_pdf(cert, figs, extra))
     return html_path, pdf_path
 
 
