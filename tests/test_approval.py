@@ -188,6 +188,28 @@ def test_dcc_validates_against_ptb_schema_and_a_broken_copy_does_not(issued):
     assert not schema.is_valid(broken)
 
 
+@pytest.mark.parametrize("edit", [
+    (b"<dcc:uniqueIdentifier>", b"<dcc:uniqueId>", b"</dcc:uniqueIdentifier>", b"</dcc:uniqueId>"),  # renamed
+    (b"<si:value>", b"<si:value>x"),  # not a decimal
+    (b"<si:coverageProbability>0.95", b"<si:coverageProbability>1.5"),  # not a probability
+    (b"<dcc:issueDate>", b"<dcc:issueDate>x"),  # not a date
+    (),  # as issued: valid
+])
+def test_labcals_validator_agrees_with_the_reference_validator(issued, edit):
+    """labcal validates with libxml2 (lxml) against its shipped schema; xmlschema against the tests'
+    copy is the reference: both accept the issued DCC and both refuse every broken copy."""
+    import xmlschema
+
+    from labcal.documents.dcc import validation_error
+
+    document = (issued[0] / "run" / "certificate.dcc.xml").read_bytes()
+    for old, new in zip(edit[::2], edit[1::2], strict=True):
+        document = document.replace(old, new, 1)
+    reference = xmlschema.XMLSchema(str(DATA / "dcc.xsd")).is_valid(document.decode("utf-8"))
+    assert reference == (not edit)
+    assert (validation_error(document) is None) == reference
+
+
 def test_a_dcc_that_fails_validation_is_one_line_and_writes_nothing(issued, tmp_path, monkeypatch, capsys):
     from labcal.documents import dcc
 
