@@ -609,8 +609,7 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
     inputs come from ``station`` (a station file), else the station the run was journaled with;
     ``monte_carlo`` trials check the budget by JCGM 101."""
     record = load_run(run_dir)
-    fit = fit_readings(record.readings)
-    device, model_note = preferred_fit(record.readings, fit)  # the model the run's fit.json holds
+    fit, device, model_note = fitted(record)
     section = bench_section(record, station)
     inputs = type_b_inputs(section, record, device)
     revision, replaces = 1, None
@@ -623,7 +622,16 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
     cert = build_certificate(record, fit, settings, serial=serial, operator=operator, inputs=inputs,
                              monte_carlo=monte_carlo, revision=revision, replaces=replaces, section=section,
                              item=item, device=device, model_note=model_note)
-    return write_documents(cert, record, fit, db)
+    return write_documents(cert, record, fit, db, device)
+
+
+def fitted(record: RunRecord) -> tuple[Fit, DeviceFit | None, str]:
+    """The linear fit, the device model where the points identify it, and the note saying which of
+    them the run's fit.json holds: those `load_run` derived fit.json from, else fitted here."""
+    if record.fit is not None:
+        return record.fit, record.device, record.model_note
+    fit = fit_readings(record.readings)
+    return fit, *preferred_fit(record.readings, fit)
 
 
 def _issued(path: Path) -> Certificate | None:
@@ -641,15 +649,15 @@ def write_file(path: Path, cert: Certificate) -> Path:
     return write_certificate(path, cert)
 
 
-def write_documents(cert: Certificate, record: RunRecord, fit: Fit, db: str | Path | None = None
-                    ) -> RunOutputs:
+def write_documents(cert: Certificate, record: RunRecord, fit: Fit, db: str | Path | None = None,
+                    device: DeviceFit | None = None) -> RunOutputs:
     """Every file an issue (or an approval) writes: certificate, report, history entry — through one
-    function, so that making them one transaction changes one place."""
+    function, so that making them one transaction changes one place. ``device``: the device model
+    the certificate rests on (`fitted`), None where the linear model is used."""
     from labcal.documents import history
     from labcal.documents.dcc import DCC_FILE, write_dcc
 
     dcc_path = write_dcc(record.directory / DCC_FILE, cert)  # validated first: a bad one stops it all
-    device, _ = preferred_fit(record.readings, fit)
     html_path, pdf_path = write_report(record.directory, cert, record, fit, device)
     # The history entry and the certificate file go together: the entry is committed first and the
     # file is the entry's document, so a kill between them leaves a history entry without its file
