@@ -71,9 +71,10 @@ def monospace() -> Font:
     path = Path(matplotlib.get_data_path()) / "fonts" / "ttf" / "DejaVuSansMono.ttf"
     font = FT2Font(str(path))
     scale = 1000.0 / font.units_per_EM
-    return Font(path, path.read_bytes(), font.get_charmap(),
-                round(font.get_sfnt_table("hhea")["advanceWidthMax"] * scale), font.ascender * scale,
-                font.descender * scale, tuple(v * scale for v in font.bbox), font.postscript_name)
+    x0, y0, x1, y1 = (v * scale for v in font.bbox)
+    return Font(path, path.read_bytes(), {int(c): int(g) for c, g in font.get_charmap().items()},
+                round(font.max_advance_width * scale), font.ascender * scale, font.descender * scale,
+                (x0, y0, x1, y1), font.postscript_name)
 
 
 def png_image(png: bytes) -> tuple[int, int, bytes]:
