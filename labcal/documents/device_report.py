@@ -13,8 +13,9 @@ from matplotlib.figure import Figure
 
 from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.fit import SENSORS
-from labcal.documents.report import TITLE_Y
 from labcal.run.record import RunRecord
+
+TITLE_Y = 1.0  # titles at a fixed height, as the report's figures have them (labcal.documents.report)
 
 DEVICE_JSON = "device.json"
 
