@@ -65,3 +65,14 @@ def test_only_rgb_pngs_are_taken():
         png_image(_png(np.zeros((4, 4, 3), np.uint8), "RGBA"))
     with pytest.raises(ValueError, match="not a PNG"):
         png_image(b"GIF89a")
+
+
+def test_what_people_type_cannot_break_the_document():
+    """Names and serials go into the PDF as typed: PDF's own delimiters and characters the font
+    lacks (a box is drawn) leave a document that still reads back."""
+    typed = "O'Brien (tech) \\ $x$ % <> 李 🙂 \t end"
+    pdf = pdf_document([Page((8.27, 11.69), [Text(0.1, 0.9, typed, 9)])], typed, typed)
+    reader = PdfReader(io.BytesIO(pdf))
+    text = reader.pages[0].extract_text()
+    assert "O'Brien (tech) \\ $x$ % <>" in text and "end" in text
+    assert reader.metadata.title == typed
