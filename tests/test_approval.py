@@ -13,27 +13,19 @@ import stat
 from pathlib import Path
 
 import pytest
-from matplotlib.backends.backend_pdf import PdfPages
+from pypdf import PdfReader
 from simulated_runs import simulated_run
 
 from labcal.cli import main
 from labcal.documents.certificate import certificate_from_doc, content_digest, read_certificate
 from labcal.documents.report import write_run_outputs
 
-SAVEFIG = PdfPages.savefig
 
-
-def _pdf_pages(run) -> list[str]:
-    """The text of every page the report's PDF gets (the figures' texts, as drawn)."""
-    pages: list[str] = []
-
-    def savefig(self, figure=None, **kwargs):
-        pages.append(" ".join(t.get_text() for t in figure.texts))
-        return SAVEFIG(self, figure, **kwargs)
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(PdfPages, "savefig", savefig)
-        run()
-    return pages
+def _pdf_pages(run, pdf: Path) -> list[str]:
+    """The text of every page of the report's PDF once ``run`` has written it, as a PDF reader
+    (pypdf, not labcal's writer) extracts it through the font's ToUnicode map."""
+    run()
+    return [page.extract_text() for page in PdfReader(pdf).pages]
 
 
 def _approve(base, key: str = "approver.key") -> list[str]:
@@ -46,7 +38,7 @@ def issued(tmp_path_factory):
     """A dry run, its draft certificate (the PDF's pages kept), and a key pair."""
     base = tmp_path_factory.mktemp("approval")
     run_dir = simulated_run(base / "run", base / "lab.sqlite", seed=5, plan="one-mount-16")  # small: quick
-    pages = _pdf_pages(lambda: write_run_outputs(run_dir, db=base / "lab.sqlite"))
+    pages = _pdf_pages(lambda: write_run_outputs(run_dir, db=base / "lab.sqlite"), run_dir / "report.pdf")
     assert main(["certificate", "keygen", "--out", str(base / "approver")]) == 0
     return base, pages
 
@@ -56,7 +48,7 @@ def approved(issued, tmp_path_factory):
     """A copy of the issued run, approved (the PDF's pages kept)."""
     base = tmp_path_factory.mktemp("approved") / "lab"
     shutil.copytree(issued[0], base)
-    pages = _pdf_pages(lambda: main(_approve(base)))
+    pages = _pdf_pages(lambda: main(_approve(base)), base / "run" / "report.pdf")
     return base, pages
 
 
@@ -194,6 +186,28 @@ def test_dcc_validates_against_ptb_schema_and_a_broken_copy_does_not(issued):
     core.remove(core.find("{https://ptb.de/dcc}uniqueIdentifier"))  # a required element
     broken = ET.tostring(tree.getroot(), encoding="unicode")
     assert not schema.is_valid(broken)
+
+
+@pytest.mark.parametrize("edit", [
+    (b"<dcc:uniqueIdentifier>", b"<dcc:uniqueId>", b"</dcc:uniqueIdentifier>", b"</dcc:uniqueId>"),  # renamed
+    (b"<si:value>", b"<si:value>x"),  # not a decimal
+    (b"<si:coverageProbability>0.95", b"<si:coverageProbability>1.5"),  # not a probability
+    (b"<dcc:issueDate>", b"<dcc:issueDate>x"),  # not a date
+    (),  # as issued: valid
+])
+def test_labcals_validator_agrees_with_the_reference_validator(issued, edit):
+    """labcal validates with libxml2 (lxml) against its shipped schema; xmlschema against the tests'
+    copy is the reference: both accept the issued DCC and both refuse every broken copy."""
+    import xmlschema
+
+    from labcal.documents.dcc import validation_error
+
+    document = (issued[0] / "run" / "certificate.dcc.xml").read_bytes()
+    for old, new in zip(edit[::2], edit[1::2], strict=True):
+        document = document.replace(old, new, 1)
+    reference = xmlschema.XMLSchema(str(DATA / "dcc.xsd")).is_valid(document.decode("utf-8"))
+    assert reference == (not edit)
+    assert (validation_error(document) is None) == reference
 
 
 def test_a_dcc_that_fails_validation_is_one_line_and_writes_nothing(issued, tmp_path, monkeypatch, capsys):

@@ -42,3 +42,11 @@ def test_help_and_plan_list_import_none_of_the_heavy_libraries():
 
 def test_the_fit_help_names_every_model_extension():
     assert EXTENSION_NAMES == tuple(EXTENSIONS)
+
+
+def test_a_dry_run_without_report_imports_neither_scipy_nor_matplotlib(tmp_path):
+    """The run's fits (device model included) and its statistics are numpy and the standard library:
+    importing scipy cost every run a third of a second, several times the run's own work."""
+    found = imported_by("run", "--sim", "--yes", "--no-report", "--out", str(tmp_path / "run"), "--db",
+                        str(tmp_path / "lab.sqlite"), among=("scipy", "matplotlib"))
+    assert found == []

@@ -46,3 +46,16 @@ def test_each_figure_is_drawn_once_and_the_html_and_pdf_carry_the_same_pixels(tm
     assert pixels.shape[:2] == (round(height), round(width)) and np.ptp(pixels) > 0
     pdf = pdf_path.read_bytes()
     assert pdf.count(b"/Subtype /Image") >= 4  # the four drawings, embedded as images
+
+
+def test_issuing_fits_the_device_model_once(tmp_path, monkeypatch):
+    """Checking the run folder against the journal fits the linear and the device model (fit.json is
+    derived from them); the certificate and the report reuse those fits instead of fitting again."""
+    from labcal.analysis import device_fit
+
+    run_dir = simulated_run(tmp_path / "run", tmp_path / "lab.sqlite", seed=5)
+    calls = []
+    original = device_fit.fit_device
+    monkeypatch.setattr(device_fit, "fit_device", lambda *a, **k: calls.append(1) or original(*a, **k))
+    outputs = report.write_run_outputs(run_dir, db=tmp_path / "lab.sqlite")
+    assert len(calls) == 1 and outputs.certificate.device is not None

@@ -23,16 +23,16 @@ def cmd_keygen(args: argparse.Namespace) -> int:
 def cmd_approve(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from labcal.analysis.fit import fit_readings
     from labcal.documents.approval import approve, load_private_key
     from labcal.documents.certificate import read_certificate
-    from labcal.documents.report import CERTIFICATE, write_documents
+    from labcal.documents.report import CERTIFICATE, fitted, write_documents
     from labcal.run.record import load_run
 
     key = load_private_key(args.key)  # before anything is read or written
     record = load_run(args.run_dir)
     cert = approve(read_certificate(Path(args.run_dir) / CERTIFICATE), args.by, args.role, key)
-    result = write_documents(cert, record, fit_readings(record.readings), args.db)
+    fit, device, _ = fitted(record)
+    result = write_documents(cert, record, fit, args.db, device)
     if args.json:
         print_json({"certificate": str(result.certificate_path), "number": cert.number,
                     "approved_by": args.by, "role": args.role, "key_id": cert.approval.key_id

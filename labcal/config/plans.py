@@ -4,7 +4,6 @@ and a plan written back as TOML (generated designs, a run's plan with its replic
 from __future__ import annotations
 
 import tomllib
-from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -16,14 +15,14 @@ if TYPE_CHECKING:  # the model (pydantic, numpy) is imported where a plan is rea
 PLAN_SUFFIX = ".toml"
 
 
-def shipped_plans() -> dict[str, resources.abc.Traversable]:
-    """The plans that ship with labcal, by name."""
-    folder = resources.files("labcal.sequences")
-    return {
-        entry.name.removesuffix(PLAN_SUFFIX): entry
-        for entry in sorted(folder.iterdir(), key=lambda e: e.name)
-        if entry.name.endswith(PLAN_SUFFIX)
-    }
+def shipped_plans() -> dict[str, Path]:
+    """The plans that ship with labcal, by name: the files beside the `labcal.sequences` package
+    (a folder in every install labcal supports; importlib.resources would cost `labcal plan list`
+    a sixth of its time to import)."""
+    from labcal import sequences
+
+    folder = Path(sequences.__file__).parent
+    return {path.name.removesuffix(PLAN_SUFFIX): path for path in sorted(folder.glob(f"*{PLAN_SUFFIX}"))}
 
 
 def shipped_plan_summaries() -> list[dict]:

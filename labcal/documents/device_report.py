@@ -15,6 +15,8 @@ from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.fit import SENSORS
 from labcal.run.record import RunRecord
 
+TITLE_Y = 1.0  # titles at a fixed height, as the report's figures have them (labcal.documents.report)
+
 DEVICE_JSON = "device.json"
 
 
@@ -69,7 +71,7 @@ def residuals_side_by_side(fit: DeviceFit, record: RunRecord) -> Figure:
             ax = axes[j, col]
             ax.plot(angle, resid[:, j] * 1e6, "o", ms=3)
             ax.axhline(0.0, color="k", lw=0.6)
-            ax.set_title(f"{sensor}: {name} model vs {label}", fontsize=9)
+            ax.set_title(f"{sensor}: {name} model vs {label}", fontsize=9, y=TITLE_Y)
             ax.set_xlabel(f"table {label} (°)")
             ax.grid(alpha=0.3)
         axes[j, 0].set_ylabel(f"residual v_{sensor} (µV)")

@@ -19,7 +19,7 @@ import io
 import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, BinaryIO
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -54,6 +54,9 @@ UNITS = ("V", "V/g", "V/g", "V/g")
 MOUNT_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red")
 # Fixed margins: a layout engine would double the drawing time of every figure.
 DODGE_DEG = 3.0
+# Titles at a fixed height (just above the axes, where matplotlib puts them when nothing is drawn on
+# top): placing them automatically measured every tick label of every panel, a quarter of drawing.
+TITLE_Y = 1.0
 WIDE = {"left": 0.08, "right": 0.98, "top": 0.84, "bottom": 0.13, "wspace": 0.25}
 
 
@@ -304,7 +307,7 @@ def residual_figure(fit: Fit, record: RunRecord) -> Figure:
             ax.axhline(0.0, color="k", lw=0.6)
             ax.set_xlabel(f"table {name} (°)")
             ax.set_ylabel(f"residual v_{sensor} − v̂_{sensor} (µV)")
-            ax.set_title(f"sensor {sensor}: residuals against {name.split()[0]}")
+            ax.set_title(f"sensor {sensor}: residuals against {name.split()[0]}", y=TITLE_Y)
             ax.grid(alpha=0.3)
     axes[0, 0].legend(fontsize=7, loc="upper right")
     fig.suptitle("Calibration residuals; bands for one reading at the other angle 0°, top-forward mount")
@@ -360,7 +363,7 @@ def attitude_error_figure(cert: Certificate, record: RunRecord) -> Figure:
         title = f"{angle} error, error bars U95"
         if not defined.all():
             title += f" ({int((~defined).sum())} points at pitch ±90° have no roll)"
-        ax.set_title(title, fontsize=10)
+        ax.set_title(title, fontsize=10, y=TITLE_Y)
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7)
     fig.suptitle("Attitude inferred from each calibration reading (least squares on the sphere)")
@@ -420,7 +423,7 @@ def envelope_figure(cert: Certificate) -> Figure:
             ax.axhline(tolerance, color="tab:red", lw=1, label=f"tolerance {tolerance:g}°")
         ax.set_xlabel("pitch of the instrument (°)")
         ax.set_ylabel(f"U95 of inferred {angle} (°)")
-        ax.set_title(f"{angle}: 95 % expanded uncertainty, k = {env.k:.2f}", fontsize=10)
+        ax.set_title(f"{angle}: 95 % expanded uncertainty, k = {env.k:.2f}", fontsize=10, y=TITLE_Y)
         ax.set_ylim(bottom=0)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
@@ -472,27 +475,25 @@ FIGURE_DPI = 120  # one raster for the screen and for print (the HTML had 110)
 
 @dataclass(frozen=True)
 class DrawnFigure:
-    """A figure drawn once: its pixels (RGB; the figure is opaque) and its PNG, for the HTML and
-    the PDF alike."""
+    """A figure drawn once: its PNG (RGB; the figure is opaque), for the HTML and the PDF alike."""
 
     title: str
     size_in: tuple[float, float]
-    rgb: np.ndarray
     png: bytes
 
 
 def draw(title: str, fig: Figure) -> DrawnFigure:
     """One Agg drawing of ``fig``; the PNG is encoded from the same pixels."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.image import imsave
+    from PIL import Image  # matplotlib's own image library; its imsave would write RGBA
 
     fig.set_dpi(FIGURE_DPI)
     canvas = FigureCanvasAgg(fig)
     canvas.draw()
-    rgb = np.asarray(canvas.buffer_rgba())[..., :3].copy()  # no alpha: one image per figure in the PDF
+    rgb = np.asarray(canvas.buffer_rgba())[..., :3]  # no alpha: the PDF takes an RGB PNG as it is
     buf = io.BytesIO()
-    imsave(buf, rgb, format="png", pil_kwargs={"compress_level": 1})  # encoding was a third of it
-    return DrawnFigure(title, tuple(fig.get_size_inches()), rgb, buf.getvalue())
+    Image.fromarray(rgb).save(buf, format="png", compress_level=1)  # encoding was a third of it
+    return DrawnFigure(title, tuple(fig.get_size_inches()), buf.getvalue())
 
 
 def _png(fig: DrawnFigure) -> str:
@@ -539,12 +540,10 @@ def _status(cert: Certificate) -> str:
     return f"approved by {a.by} ({a.role}) on {a.approved_utc:%Y-%m-%d}"
 
 
-def render_pdf(cert: Certificate, figs: list[DrawnFigure], path: Path | BinaryIO,
-               extra: tuple[Table, ...] = ()) -> None:
-    """Text pages with every table, then one page per figure (its image, as drawn for the HTML);
+def render_pdf(cert: Certificate, figs: list[DrawnFigure], extra: tuple[Table, ...] = ()) -> bytes:
+    """Text pages with every table, then one page per figure (its PNG, as drawn for the HTML);
     every page says "page X of Y" and, until the certificate is approved, DRAFT."""
-    from matplotlib.backends.backend_pdf import PdfPages
-    from matplotlib.figure import Figure
+    from labcal.documents.pdf import BLACK, RED, Page, Text, pdf_document
 
     blocks = []
     for t in (*tables(cert), *extra):
@@ -555,35 +554,22 @@ def render_pdf(cert: Certificate, figs: list[DrawnFigure], path: Path | BinaryIO
     blocks += [textwrap.fill(p, 140) + "\n" for p in (cert.method, *cert.statements, *cert.fit.notes)]
     lines = "\n".join(blocks).splitlines()
     per_page = 62
-    with PdfPages(path, metadata={"Title": f"Calibration certificate {cert.certificate_id}",
-                                  "Subject": f"instrument {cert.instrument.serial}"}) as pdf:
-        pages = range(0, len(lines), per_page)
-        total = len(pages) + len(figs)
-        for n, start in enumerate(pages, start=1):
-            page = Figure(figsize=(11.69, 8.27))
-            page.text(0.03, 0.97, f"Calibration certificate {cert.number} — {verdict_text(cert)} — "
-                                  f"{_status(cert)} — page {n} of {total}", fontsize=9, va="top",
-                      weight="bold", color="tab:red" if cert.draft else "black",
-                      parse_math=False)  # serials, operators and names hold what people typed: "$" too
-            page.text(0.03, 0.93, "\n".join(lines[start:start + per_page]), family="monospace", fontsize=6.4,
-                      va="top", parse_math=False)
-            _mark(page, cert)
-            pdf.savefig(page)
-        for n, fig in enumerate(figs, start=len(pages) + 1):
-            page = Figure(figsize=fig.size_in)
-            ax = page.add_axes((0, 0, 1, 1))
-            ax.imshow(fig.rgb, interpolation="none")  # embedded as drawn, not resampled
-            ax.set_axis_off()
-            page.text(0.01, 0.001, f"{cert.number} · {fig.title} · {_status(cert)} · page {n} of {total}",
-                      fontsize=7, va="bottom", parse_math=False)
-            _mark(page, cert)
-            pdf.savefig(page)
-
-
-def _mark(page: Figure, cert: Certificate) -> None:
-    if cert.draft:
-        page.text(0.5, 0.5, "DRAFT", fontsize=90, color="tab:red", alpha=0.15, ha="center", va="center",
-                  rotation=30, weight="bold")
+    starts = range(0, len(lines), per_page)
+    total = len(starts) + len(figs)
+    draft = [Text(0.5, 0.5, "DRAFT", 90, va="center", ha="center", colour=RED, bold=True, rotation_deg=30,
+                  opacity=0.15)] if cert.draft else []
+    pages = [Page((11.69, 8.27), [
+        Text(0.03, 0.97, f"Calibration certificate {cert.number} — {verdict_text(cert)} — {_status(cert)} — "
+                         f"page {n} of {total}", 9, colour=RED if cert.draft else BLACK, bold=True,
+             max_width=0.94),
+        Text(0.03, 0.93, "\n".join(lines[start:start + per_page]), 6.4, max_width=0.94), *draft])
+        for n, start in enumerate(starts, start=1)]
+    pages += [Page(fig.size_in, [Text(0.01, 0.001, f"{cert.number} · {fig.title} · {_status(cert)} · "
+                                                    f"page {n} of {total}", 7, va="bottom", max_width=0.98),
+                                 *draft], fig.png)
+              for n, fig in enumerate(figs, start=len(starts) + 1)]
+    return pdf_document(pages, f"Calibration certificate {cert.certificate_id}",
+                        f"instrument {cert.instrument.serial}")
 
 
 def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit,
@@ -601,7 +587,7 @@ def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit
     figs = [draw(title, fig) for title, fig in figures_drawn]
     html_path, pdf_path = directory / REPORT_HTML, directory / REPORT_PDF
     write_atomic(html_path, render_html(cert, figs, extra))  # whole or not at all: a kill never cuts a report
-    write_atomic(pdf_path, lambda file: render_pdf(cert, figs, file, extra))
+    write_atomic(pdf_path, render_pdf(cert, figs, extra))
     return html_path, pdf_path
 
 
@@ -626,8 +612,7 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
     inputs come from ``station`` (a station file), else the station the run was journaled with;
     ``monte_carlo`` trials check the budget by JCGM 101."""
     record = load_run(run_dir)
-    fit = fit_readings(record.readings)
-    device, model_note = preferred_fit(record.readings, fit)  # the model the run's fit.json holds
+    fit, device, model_note = fitted(record)
     section = bench_section(record, station)
     inputs = type_b_inputs(section, record, device)
     revision, replaces = 1, None
@@ -640,7 +625,16 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
     cert = build_certificate(record, fit, settings, serial=serial, operator=operator, inputs=inputs,
                              monte_carlo=monte_carlo, revision=revision, replaces=replaces, section=section,
                              item=item, device=device, model_note=model_note)
-    return write_documents(cert, record, fit, db)
+    return write_documents(cert, record, fit, db, device)
+
+
+def fitted(record: RunRecord) -> tuple[Fit, DeviceFit | None, str]:
+    """The linear fit, the device model where the points identify it, and the note saying which of
+    them the run's fit.json holds: those `load_run` derived fit.json from, else fitted here."""
+    if record.fit is not None:
+        return record.fit, record.device, record.model_note
+    fit = fit_readings(record.readings)
+    return fit, *preferred_fit(record.readings, fit)
 
 
 def _issued(path: Path) -> Certificate | None:
@@ -658,15 +652,15 @@ def write_file(path: Path, cert: Certificate) -> Path:
     return write_certificate(path, cert)
 
 
-def write_documents(cert: Certificate, record: RunRecord, fit: Fit, db: str | Path | None = None
-                    ) -> RunOutputs:
+def write_documents(cert: Certificate, record: RunRecord, fit: Fit, db: str | Path | None = None,
+                    device: DeviceFit | None = None) -> RunOutputs:
     """Every file an issue (or an approval) writes: certificate, report, history entry — through one
-    function, so that making them one transaction changes one place."""
+    function, so that making them one transaction changes one place. ``device``: the device model
+    the certificate rests on (`fitted`), None where the linear model is used."""
     from labcal.documents import history
     from labcal.documents.dcc import DCC_FILE, write_dcc
 
     dcc_path = write_dcc(record.directory / DCC_FILE, cert)  # validated first: a bad one stops it all
-    device, _ = preferred_fit(record.readings, fit)
     html_path, pdf_path = write_report(record.directory, cert, record, fit, device)
     # The history entry and the certificate file go together: the entry is committed first and the
     # file is the entry's document, so a kill between them leaves a history entry without its file

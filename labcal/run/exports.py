@@ -108,8 +108,9 @@ def _read(path: Path) -> bytes | None:
         return None
 
 
-def sync(journal: Journal, row: RunRow, run_dir: Path) -> tuple[list[str], Fit | None]:
-    """Bring a run folder back to what its journal says; one note per file that was not.
+def sync(journal: Journal, row: RunRow, run_dir: Path) -> tuple[list[str], Derived]:
+    """Bring a run folder back to what its journal says; one note per file that was not. Returns
+    the notes and what was derived (the fits included, so that nothing fits them again).
 
     Missing and stale exports (a kill before they were rewritten) are rewritten; a file whose hash
     is none that labcal wrote for this run was edited by hand: it is named, kept as NAME.edited,
@@ -137,7 +138,7 @@ def sync(journal: Journal, row: RunRow, run_dir: Path) -> tuple[list[str], Fit |
                      f"kept as {kept.name}, rewritten from the journal")
     hashes = write(run_dir, derived)
     journal.exported(row.id, hashes)
-    return notes, derived.fit
+    return notes, derived
 
 
 def remove_orphans(run_dir: Path) -> list[str]:

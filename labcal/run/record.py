@@ -12,6 +12,8 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from labcal.analysis.device_fit import DeviceFit
+from labcal.analysis.fit import Fit
 from labcal.analysis.plan import Plan
 from labcal.analysis.readings import Readings
 from labcal.config.plans import parse_plan
@@ -34,6 +36,10 @@ class RunRecord:
     notes: tuple[str, ...] = ()  # what checking the folder against the journal found and repaired
     station_text: str = ""  # the journal's snapshot of the station the run used (JSON)
     events: tuple[dict, ...] = ()  # the journal's events: prompts, answers, faults, retries, pauses
+    # The fits fit.json was derived from (checking the folder fits them): issuing reuses them
+    fit: Fit | None = None
+    device: DeviceFit | None = None  # the device model, where the points identify it
+    model_note: str = ""  # which model fit.json holds, and why
 
     @property
     def simulated(self) -> bool:
@@ -65,7 +71,7 @@ def load_run(run_dir: str | Path) -> RunRecord:
             why = f" ({row.reason})" if row.reason else ""
             raise LabcalError(f"{run_dir}: the run is {state}{why}; only a complete run gets a "
                               "certificate (labcal resume finishes it)")
-        notes, _ = exports.sync(journal, row, run_dir)
+        notes, derived = exports.sync(journal, row, run_dir)
         info = read_run_json(run_dir)
         points = journal.points(row.id, status="ok")
         readings = journal.readings(row.id)
@@ -75,4 +81,4 @@ def load_run(run_dir: str | Path) -> RunRecord:
             "started_utc": row.started_utc, "ended_utc": row.ended_utc, "settings": row.settings,
             "instrument_serial": row.instrument_serial, "operator": row.operator}
     return RunRecord(run_dir, readings, readings_digest(points), plan, row.plan_text, meta, tuple(notes),
-                     row.station_text, events)
+                     row.station_text, events, derived.fit, derived.device, derived.model_note)
