@@ -367,8 +367,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-dwell", type=bounded(float, 0, 3600, lo_open=True), metavar="S",
                    help="give up settling after S seconds (at most 3600)")
     p.add_argument("--settle", choices=["detect", "model"], default=None,
-                   help="model: estimate each point from the exponential tail, waiting only when the "
-                   "sensor does not follow it (default: the station file's, else detect)")
+                   help="model: estimate each point from its exponential tail, τ pooled over the run's "
+                   "points; a point waits until the run's records rule out a slower tail (the first "
+                   "hundred-odd points do) (default: the station file's, else detect)")
     p.add_argument("--on-failure", choices=["skip", "pause", "abort"], default="skip",
                    help="a point that does not settle after one retry (default %(default)s)")
     p.add_argument("--no-mount-check", action="store_true", help="do not verify each mount from gravity")
