@@ -1,8 +1,9 @@
 """`labcal fit` on a million readings against a bare numpy process doing the least the same job can:
 np.loadtxt of the file and a QR least-squares fit of [1 gᵀ] on the nominal gravity.
 
-Both run as separate processes, interleaved (A B A B …); each one's wall time and peak resident
-memory (ru_maxrss from os.wait4) are taken, and the ratios of the medians printed. Targets: time
+Both run as separate processes (`processes.py`: labcal's bytecode cached, as installed), after
+one warm-up each, then interleaved (A B A B …); each one's wall time and peak resident memory
+are taken, and the medians of the pairwise ratios printed. Targets: time
 ≤ 1.5×, memory ≤ 1.2×.
 
 Usage: python benchmarks/fit_large.py [--rows 1000000] [--repeat 3]
@@ -11,15 +12,13 @@ Usage: python benchmarks/fit_large.py [--rows 1000000] [--repeat 3]
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
+from processes import measure
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 
@@ -59,17 +58,6 @@ def write_readings(path: Path, rows: int) -> None:
                header="replicate,y_deg,u_deg,pitch_deg,roll_deg,vx,vy,vz", comments="")
 
 
-def measure(argv: list[str]) -> tuple[float, float]:
-    """Wall seconds and peak resident MiB of one process."""
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    _, status, usage = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - t0
-    if status != 0:
-        raise SystemExit(f"{argv[:3]} failed: {proc.stderr.read().decode()[-500:]}")
-    return wall, usage.ru_maxrss / 1024
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -79,10 +67,12 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "readings.csv"
         write_readings(path, args.rows)
+        argv_labcal, argv_bare = [LABCAL, "fit", str(path), "--json"], [sys.executable, "-c", BARE, str(path)]
+        measure(argv_labcal), measure(argv_bare)  # warm-up: labcal's bytecode, the file cache
         labcal, bare = [], []
         for _ in range(args.repeat):
-            labcal.append(measure([LABCAL, "fit", str(path), "--json"]))
-            bare.append(measure([sys.executable, "-c", BARE, str(path)]))
+            labcal.append(measure(argv_labcal))
+            bare.append(measure(argv_bare))
     for name, runs in (("labcal fit", labcal), ("bare numpy", bare)):
         print(f"{name:11s} wall {statistics.median(r[0] for r in runs):6.2f} s   "
               f"peak {statistics.median(r[1] for r in runs):6.0f} MiB")

@@ -26,13 +26,14 @@ Usage: python benchmarks/run_sim_wall_time.py [--repeat 5]
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from processes import ENV
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 ROOT = Path(__file__).resolve().parent.parent
@@ -207,9 +208,6 @@ Path(out + "/certificate.dcc.xml").write_text(dcc, encoding="utf-8")
 """
 
 
-BYTECODE = tempfile.mkdtemp(prefix="labcal-bench-pycache-")
-ENV = {**{k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"},
-       "PYTHONPYCACHEPREFIX": BYTECODE}
 
 
 def wall(argv: list[str]) -> float:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -28,11 +29,12 @@ class FTest:
     df_num: int
     df_den: NDArray[np.int_] | int  # per column: the pure-error denominator may differ between sensors
 
-    @property
+    # cached: `to_json` asks for them once per column, and each is an inverted incomplete beta
+    @cached_property
     def critical(self) -> NDArray[np.float64]:
         return f_isf(ALPHA, self.df_num, self.df_den)
 
-    @property
+    @cached_property
     def p_value(self) -> NDArray[np.float64]:
         return f_sf(self.statistic, self.df_num, self.df_den)
 
