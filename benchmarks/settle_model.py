@@ -124,7 +124,8 @@ def validate(runs: int, points: int, seed: int) -> None:
         else:
             verdict = "ok: bias within bound" if abs(bm) <= 1 / 3 else "BIAS ABOVE σ/(3√N)"
         t_acc = f"{t_m[acc].mean():9.2f}s" if acc.any() else f"{'—':>10s}"
-        print(f"{name:28s} {detected.sum():2d}/{runs:<1d} {acc.mean():8.0%} {bm:+7.3f}±{sm:5.3f} {rm:5.2f} "
+        model = f"{bm:+7.3f}±{sm:5.3f} {rm:5.2f}" if acc.any() else f"{'—':>13s} {'—':>5s}"  # none accepted
+        print(f"{name:28s} {detected.sum():2d}/{runs:<1d} {acc.mean():8.0%} {model} "
               f"{bc:+7.3f}±{sc:5.3f} {rc:5.2f} {t_m.mean():7.2f}s {t_acc} {t_c.mean():8.2f}s  {verdict}")
 
 
