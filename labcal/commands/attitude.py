@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     import numpy as np
 
-from labcal.commands.common import outcome_of_checks
+from labcal.commands.common import keep_freed_memory, outcome_of_checks
 
 CHUNK_ROWS = 10_000  # rows formatted and written at a time: output memory stays flat
 METHODS = {"closed": "closed_form", "sphere": "sphere_least_squares"}
@@ -28,6 +28,7 @@ def _columns(att, prefix: str) -> dict[str, np.ndarray]:
 
 
 def cmd_attitude(args: argparse.Namespace) -> int:
+    keep_freed_memory()
     import tempfile
     from pathlib import Path
 

@@ -6,7 +6,7 @@ import argparse
 import math
 from typing import TYPE_CHECKING
 
-from labcal.commands.common import bounded, out, outcome_of_checks, print_json
+from labcal.commands.common import bounded, keep_freed_memory, out, outcome_of_checks, print_json
 from labcal.errors import LabcalError
 
 if TYPE_CHECKING:
@@ -51,6 +51,7 @@ def choose_model(args: argparse.Namespace, readings) -> tuple[str, str | None]:
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
+    keep_freed_memory()
     import numpy as np
 
     from labcal.analysis.coning import coning, coning_json
