@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from labcal.analysis.kinematics import gravity, nominal_gravity
-from labcal.analysis.replication import point_groups
+from labcal.analysis.replication import distinct, point_groups
 
 
 def test_nominal_gravity_in_closed_form_is_the_chain_with_no_misalignment():
@@ -28,6 +28,20 @@ def test_point_groups_number_the_distinct_rows_as_numpy_unique_does():
     inverse, n = point_groups(keys)
     expected_unique, expected_inverse = np.unique(keys, axis=0, return_inverse=True)
     assert n == len(expected_unique) and np.array_equal(inverse, expected_inverse.ravel())
+
+
+@pytest.mark.parametrize("column", [
+    np.array([3, 1, 4, 1, 5, 9, 2, 6]),  # small whole numbers: counted, not sorted
+    np.array([7, 7, 7]),
+    np.array([-2, 5, -2, 0]),  # negative: sorted
+    np.array([1, 10**12, 1]),  # beyond the counting range: sorted
+    np.array([0.5, -1.0, 0.5, 3.0]),  # not whole numbers: sorted
+    np.array([], dtype=np.int64),
+])
+def test_distinct_values_and_their_indices_are_numpy_uniques(column):
+    values, index = distinct(column)
+    expected_values, expected_index = np.unique(column, return_inverse=True)
+    assert np.array_equal(values, expected_values) and np.array_equal(index, expected_index.ravel())
 
 
 def _fit_and_volts(tmp_path, rows: int):
