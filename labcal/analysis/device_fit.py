@@ -244,6 +244,10 @@ class PointMeans:
                                       readings.y_deg[first], readings.u_deg[first])
         return cls(where, readings.point_means, np.sqrt(points.counts), points.groups)
 
+    def residuals(self, theta: NDArray[np.float64], volts: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Every reading's residual (K×3) under θ: the model predicted once per point, then gathered."""
+        return volts - np.take(predict(theta, self.where), self.groups, axis=0)
+
     def weighted(self, theta: NDArray[np.float64],
                  sd: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Weighted residuals (model − mean) and their Jacobian, rows flattened."""
@@ -294,7 +298,7 @@ def _gauss_newton(theta: NDArray[np.float64], data: PointMeans, volts: NDArray[n
     resid, design = data.weighted(theta, sd)
     step = least_squares(design, -resid)
     theta = theta + step.coef[:, 0]
-    return theta, step.cov_unscaled, volts - np.take(predict(theta, data.where), data.groups, axis=0)
+    return theta, step.cov_unscaled, data.residuals(theta, volts)
 
 
 def fit_device(readings: Readings, linear: Fit | None = None) -> DeviceFit:
@@ -315,7 +319,7 @@ def fit_device(readings: Readings, linear: Fit | None = None) -> DeviceFit:
         theta, evaluations = _solve(theta0, data, sd)
     else:  # first pass unweighted, then each sensor by its own residual scatter
         theta, evaluations = _solve(theta0, data, np.ones(3))
-        resid = volts - np.take(predict(theta, data.where), data.groups, axis=0)
+        resid = data.residuals(theta, volts)
         sd = np.maximum(np.sqrt(np.sum(resid**2, axis=0) / (n - N_PARAMETERS / 3)), floor)
         # The weighted optimum lies within the noise of the unweighted one: Gauss–Newton converges
         # from there in a step, quadratically; the step below polishes it again.
