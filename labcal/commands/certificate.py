@@ -32,7 +32,7 @@ def cmd_approve(args: argparse.Namespace) -> int:
     record = load_run(args.run_dir)
     cert = approve(read_certificate(Path(args.run_dir) / CERTIFICATE), args.by, args.role, key)
     fit, device, _ = fitted(record)
-    result = write_documents(cert, record, fit, args.db, device)
+    result = write_documents(cert, record, fit, device, args.db)
     if args.json:
         print_json({"certificate": str(result.certificate_path), "number": cert.number,
                     "approved_by": args.by, "role": args.role, "key_id": cert.approval.key_id

@@ -625,7 +625,7 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
     cert = build_certificate(record, fit, settings, serial=serial, operator=operator, inputs=inputs,
                              monte_carlo=monte_carlo, revision=revision, replaces=replaces, section=section,
                              item=item, device=device, model_note=model_note)
-    return write_documents(cert, record, fit, db, device)
+    return write_documents(cert, record, fit, device, db)
 
 
 def fitted(record: RunRecord) -> tuple[Fit, DeviceFit | None, str]:
@@ -652,8 +652,8 @@ def write_file(path: Path, cert: Certificate) -> Path:
     return write_certificate(path, cert)
 
 
-def write_documents(cert: Certificate, record: RunRecord, fit: Fit, db: str | Path | None = None,
-                    device: DeviceFit | None = None) -> RunOutputs:
+def write_documents(cert: Certificate, record: RunRecord, fit: Fit, device: DeviceFit | None,
+                    db: str | Path | None = None) -> RunOutputs:
     """Every file an issue (or an approval) writes: certificate, report, history entry — through one
     function, so that making them one transaction changes one place. ``device``: the device model
     the certificate rests on (`fitted`), None where the linear model is used."""
