@@ -82,7 +82,7 @@ def test_each_group_left_out_by_downdating_is_the_qr_fit_of_the_other_groups():
     import numpy as np
 
     from labcal.analysis.fit import readings_points
-    from labcal.analysis.gross_errors import _leave_group_out
+    from labcal.analysis.gross_errors import _batches_of_equal_groups, _leave_group_out
     from labcal.analysis.models import Model
     from labcal.analysis.regression import least_squares
 
@@ -91,9 +91,10 @@ def test_each_group_left_out_by_downdating_is_the_qr_fit_of_the_other_groups():
     _, design = Model().design(readings_points(readings))
     index = np.unique(np.column_stack([readings.replicate, readings.y_deg, readings.u_deg]), axis=0,
                       return_inverse=True)[1].ravel()
+    n_groups = int(index.max()) + 1
     coefs, covs, ses, determined = _leave_group_out(design, readings.volts,
-                                                    least_squares(design, readings.volts), index,
-                                                    int(index.max()) + 1)
+                                                    least_squares(design, readings.volts), index, n_groups,
+                                                    _batches_of_equal_groups(index, n_groups))
     assert determined.all()
     for k, (coef, cov, se) in enumerate(zip(coefs, covs, ses, strict=True)):
         ls = least_squares(design[index != k], readings.volts[index != k])

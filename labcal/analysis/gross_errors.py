@@ -17,7 +17,7 @@ positively dependent ones here). `tests/test_gross_errors.py` checks that rate b
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -120,24 +120,29 @@ def _rows(indices: NDArray[np.int_]) -> str:
 GroupFits = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]
 
 
-def _batches_of_equal_groups(groups: NDArray[np.intp], n_groups: int
-                             ) -> Iterator[tuple[NDArray[np.intp], NDArray[np.intp]]]:
+Batches = list[tuple[NDArray[np.intp], NDArray[np.intp]]]
+
+
+def _batches_of_equal_groups(groups: NDArray[np.intp], n_groups: int) -> Batches:
     """Groups of one size together, as (their numbers, their rows as a groups × size array), about
     BLOCK_ROWS rows at a time: per-group sums become batched matrix products, without a gather of
-    per-group values for every row. A calibration's groups mostly share one size."""
+    per-group values for every row. A calibration's groups mostly share one size. A list, made
+    once per check (its sort is most of its cost) and walked by every pass over the groups."""
     order = np.argsort(groups, kind="stable")
     sizes = np.bincount(groups, minlength=n_groups)
     starts = np.cumsum(sizes) - sizes
+    batches = []
     for size in np.unique(sizes):
         same = np.flatnonzero(sizes == size)
         step = max(1, BLOCK_ROWS // int(size))
         for i in range(0, len(same), step):
             ks = same[i:i + step]
-            yield ks, order[starts[ks][:, None] + np.arange(size)]
+            batches.append((ks, order[starts[ks][:, None] + np.arange(size)]))
+    return batches
 
 
 def _leave_group_out(design: NDArray[np.float64], volts: NDArray[np.float64], full: LeastSquares,
-                     groups: NDArray[np.intp], n_groups: int) -> GroupFits:
+                     groups: NDArray[np.intp], n_groups: int, batches: Batches) -> GroupFits:
     """For each group k (the rows with groups == k): the coefficients (K×L×m), unscaled covariance
     (K×L×L) and residual SE (K×m) of the fit of every *other* row, and whether those rows determine
     the model (K,). ``full`` is the fit of every row. Each group is taken out of the full fit by
@@ -149,7 +154,7 @@ def _leave_group_out(design: NDArray[np.float64], volts: NDArray[np.float64], fu
     gram_k = np.empty((n_groups, n_coef, n_coef))
     ft_e = np.empty((n_groups, n_coef, e.shape[1]))  # F_kᵀe_k
     rss_k = np.empty((n_groups, e.shape[1]))
-    for ks, rows in _batches_of_equal_groups(groups, n_groups):
+    for ks, rows in batches:  # the groups', `_batches_of_equal_groups`
         f, e_k = np.take(design, rows, axis=0), np.take(e, rows, axis=0)
         f_t = np.swapaxes(f, 1, 2)
         gram_k[ks], ft_e[ks], rss_k[ks] = f_t @ f, f_t @ e_k, np.einsum("ksj,ksj->kj", e_k, e_k)
@@ -201,8 +206,9 @@ def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA, base_fit: Least
                                                   readings.volts, points.groups)
     except LabcalError:
         return []  # every subset of a singular design is singular: nothing to compare with
+    batches = _batches_of_equal_groups(index, n_groups)
     coef, cov, residual_se, determined = _leave_group_out(np.take(point_design, points.groups, axis=0),
-                                                          readings.volts, full, index, n_groups)
+                                                          readings.volts, full, index, n_groups, batches)
     usable = determined & np.all(residual_se > 0, axis=1)
     sizes = np.bincount(index, minlength=n_groups)
     limits = {int(n): float(chi2_quantile(1.0 - sidak_per_test(n_groups, alpha), 3 * int(n)))
@@ -228,11 +234,11 @@ def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA, base_fit: Least
 
     # A group its stated mount explains is never flagged: the other mounts are tried only on the
     # groups it does not (none, in a good file)
-    for ks, rows in _batches_of_equal_groups(index, n_groups):
+    for ks, rows in batches:
         chi2_under(stated[ks], ks, rows)
     suspect = usable & (chi2[stated, np.arange(n_groups)] > limit)
     if suspect.any():
-        for ks, rows in _batches_of_equal_groups(index, n_groups):
+        for ks, rows in batches:
             if suspect[ks].any():
                 for m in range(len(MOUNTS)):
                     chi2_under(np.full(int(suspect[ks].sum()), m), ks[suspect[ks]], rows[suspect[ks]])
