@@ -17,7 +17,7 @@ from typing import Annotated, Any, BinaryIO, Literal, TypeVar, Union, get_args, 
 from pydantic import BaseModel, ValidationError
 from pydantic.fields import FieldInfo
 
-from labcal.config.json_values import json_safe as json_safe  # re-exported (exports, issuing)
+from labcal.config.json_values import json_safe
 from labcal.errors import LabcalError
 
 Model = TypeVar("Model", bound=BaseModel)

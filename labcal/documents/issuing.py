@@ -22,7 +22,7 @@ from labcal.analysis.distributions import t_quantile
 from labcal.analysis.fit import SENSORS, Fit
 from labcal.analysis.kinematics import gravity
 from labcal.analysis.models import BASE_NAMES
-from labcal.config.files import json_safe
+from labcal.config.json_values import json_safe
 from labcal.config.lab import certificate_settings
 from labcal.config.settings import CertificateSettings
 from labcal.config.station import CertificateSection, load_certificate_settings

@@ -19,7 +19,8 @@ from pathlib import Path
 
 from labcal.analysis.device_fit import DeviceFit, preferred_fit
 from labcal.analysis.fit import Fit, fit_readings
-from labcal.config.files import json_safe, write_atomic
+from labcal.config.files import write_atomic
+from labcal.config.json_values import json_safe
 from labcal.config.readings_csv import ReadingsWriter
 from labcal.errors import LabcalError
 from labcal.run.journal import Journal, RunRow
