@@ -15,10 +15,8 @@
 
 Commands run as separate processes, interleaved (A B A B …); the ratio printed is the median of
 the pairwise ratios, so a machine that slows down in between affects both sides alike. Every process
-runs with its bytecode cached (in a temporary PYTHONPYCACHEPREFIX; a warm-up run writes it), as an
-installed labcal has it: pip compiles a wheel's modules when it installs them. A shell with
-PYTHONDONTWRITEBYTECODE=1 and an editable install would instead compile all of labcal's imported
-source in every process (about 20 ms of `labcal --help`), a cost no installed copy pays.
+runs with its bytecode cached, as an installed labcal has it (`processes.py`; a warm-up run writes
+it): compiling labcal's imported source in every process costs `labcal --help` about 20 ms.
 
 Usage: python benchmarks/run_sim_wall_time.py [--repeat 5]
 """
