@@ -30,7 +30,7 @@ from labcal.analysis.kinematics import (
     gravity,
     gravity_jacobian,
 )
-from labcal.analysis.replication import point_groups
+from labcal.analysis.replication import first_rows, point_groups
 
 SENSORS = ("x", "y", "z")
 N_MIS = len(MISALIGNMENT_NAMES)
@@ -67,7 +67,7 @@ class Geometry:
     def distinct(self) -> Geometry:
         """One reading per distinct point (replicates add no geometry)."""
         keys = np.round(np.column_stack([self.pitch, self.roll, self.y, self.u]) % (2 * np.pi), 12)
-        first = np.sort(np.unique(point_groups(keys)[0], return_index=True)[1])
+        first = np.sort(first_rows(*point_groups(keys)))  # in reading order
         return Geometry(self.pitch[first], self.roll[first], self.y[first], self.u[first])
 
     def with_mount(self, mount: Mount) -> Geometry:

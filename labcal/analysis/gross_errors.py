@@ -30,7 +30,7 @@ from labcal.analysis.kinematics import nominal_gravity
 from labcal.analysis.models import BASE_NAMES, Model
 from labcal.analysis.readings import Readings
 from labcal.analysis.regression import LeastSquares, least_squares, least_squares_of_means
-from labcal.analysis.replication import point_groups
+from labcal.analysis.replication import first_rows, point_groups
 from labcal.errors import LabcalError
 
 FAMILY_ALPHA = 0.001  # chance that one check flags anything in a file of good readings
@@ -194,8 +194,7 @@ def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA, base_fit: Least
     points = readings.points
     mount_of_point = 2 * (readings.y_deg[points.first] % 360 != 0) + (readings.u_deg[points.first] % 360 != 0)
     index, n_groups = point_groups([readings.replicate, mount_of_point[points.groups]])
-    first = np.zeros(n_groups, dtype=np.intp)
-    first[index[::-1]] = np.arange(len(index))[::-1]
+    first = first_rows(index, n_groups)
     keys = np.column_stack([readings.replicate[first], readings.y_deg[first] % 360,
                             readings.u_deg[first] % 360])
     if n_groups < 2:

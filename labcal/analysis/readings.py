@@ -9,7 +9,7 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import NDArray
 
-from labcal.analysis.replication import Cells, point_groups
+from labcal.analysis.replication import Cells, first_rows, point_groups
 
 
 def angle_key(degrees: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -56,9 +56,8 @@ class Readings:
         changed set of readings is a new Readings, e.g. dataclasses.replace, never arrays changed in
         place, so the cache cannot go stale)."""
         groups, n_points = point_groups([self.y_deg, self.u_deg, self.pitch_deg, self.roll_deg], angle_key)
-        first = np.zeros(n_points, dtype=np.intp)
-        first[groups[::-1]] = np.arange(len(groups))[::-1]
-        return PointIndex(groups, np.bincount(groups, minlength=n_points).astype(float), first)
+        return PointIndex(groups, np.bincount(groups, minlength=n_points).astype(float),
+                          first_rows(groups, n_points))
 
     @cached_property
     def point_means(self) -> NDArray[np.float64]:

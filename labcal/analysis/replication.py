@@ -113,6 +113,13 @@ def point_groups(keys: NDArray[Any] | Sequence[NDArray[Any]],
     return code.astype(np.intp, copy=False), size
 
 
+def first_rows(groups: NDArray[np.intp], n_groups: int) -> NDArray[np.intp]:
+    """The first row of each group (groups numbered 0..n_groups−1): where its identity is read."""
+    first = np.zeros(n_groups, dtype=np.intp)
+    first[groups[::-1]] = np.arange(len(groups))[::-1]  # the last write to each group wins: its first row
+    return first
+
+
 def distinct(column: NDArray[Any]) -> tuple[NDArray[Any], NDArray[np.intp]]:
     """The column's distinct values, ascending, and the index of each row's value among them.
     Whole numbers from 0 up to about the column's length (replicate numbers) are counted instead
@@ -180,9 +187,8 @@ def analyse(design: NDArray[np.float64], y: NDArray[np.float64], groups: NDArray
     ``sensitivity`` selects the coefficients whose vector norm is the sensor's sensitivity.
     """
     n_groups = int(groups.max()) + 1
-    first_row = np.zeros(n_groups, dtype=int)
-    first_row[groups[::-1]] = np.arange(len(groups))[::-1]
-    return analyse_points(design[first_row], Cells.of(y, groups, replicate, n_groups), sensitivity)
+    return analyse_points(design[first_rows(groups, n_groups)], Cells.of(y, groups, replicate, n_groups),
+                          sensitivity)
 
 
 def analyse_points(j_m: NDArray[np.float64], cells: Cells,
