@@ -123,15 +123,19 @@ def test_sigkill_in_every_phase_then_resume_leaves_one_consistent_run(tmp_path):
     # tables reach the next point from the load position, not from its predecessor, so the sensor's
     # output filter enters that one point from another history. The sequencer starts its window
     # when the transient's bias on the window mean is at most sigma/sqrt(N) (run/settle.py), so that
-    # point may differ by up to the two runs' biases, about 2 S_E; every other point is the same
-    # reading (the simulator's noise is drawn per point, and the clock runs on across resumes).
+    # point may differ by up to the two runs' biases, about 2 S_E. Every other point is the same
+    # reading (the simulator's noise is drawn per point, and the clock runs on across resumes) but for
+    # what is left of that first point's long move in the next ones' windows: the sequencer sizes a
+    # dead time by the transient its own move leaves, not by the remnant of the one before. Over 50
+    # soaks that remnant was at most 1e-6 S_E (point 46, eight points after a resume at 38); 1e-4 S_E
+    # is allowed, a ten-thousandth of the fit's residual SE.
     soaked, whole = readings(run_dir / "readings.csv"), readings(tmp_path / "ref" / "readings.csv")
     assert soaked.shape == whole.shape == (POINTS, 4)
     s_e = np.array(json.loads((tmp_path / "ref" / "fit.json").read_text())["residual_standard_error"])
     differ = np.abs(soaked[:, :3] - whole[:, :3]) / s_e
-    resumes = sum(k.startswith(("prompt", "measuring")) for k in kills)
-    changed = np.flatnonzero(differ.max(axis=1) > 1e-9)
-    assert len(changed) <= resumes, (changed, landed)  # at most the first point of each segment
+    starts = [int(k.split(":")[1]) for k in kills if k.startswith(("prompt", "measuring"))]  # committed
+    others = np.setdiff1d(np.arange(POINTS), starts)
+    assert differ[others].max() < 1e-4, (others[np.argmax(differ[others].max(axis=1))], landed)
     assert differ.max() < 2.0, (differ.max(), landed)
     assert np.all(np.diff(soaked[:, 3]) > 0)  # one clock: time_s never goes back across resumes
 
