@@ -22,6 +22,29 @@ def lab_database(tmp_path, monkeypatch):
     return tmp_path / "labcal.sqlite"
 
 
+@pytest.fixture(autouse=True)
+def terminal(monkeypatch):
+    """Every test sees one terminal, 80 × 25 and colourless, whatever the developer's, CI's or a
+    pipe's: labcal run in-process prints through consoles that may have been made by an earlier
+    test (their width is set here), and a labcal started as a subprocess inherits COLUMNS/LINES.
+    A test that needs another terminal sets it through this fixture's ``set`` (or a pty of its own)."""
+    from labcal.commands import common
+
+    for name in ("FORCE_COLOR", "NO_COLOR", "TTY_COMPATIBLE", "TTY_INTERACTIVE", "JUPYTER_COLUMNS",
+                 "JUPYTER_LINES"):
+        monkeypatch.delenv(name, raising=False)
+
+    def set_size(columns: int, lines: int = 25) -> None:
+        monkeypatch.setenv("COLUMNS", str(columns))
+        monkeypatch.setenv("LINES", str(lines))
+        for console in (common.out, common.err):
+            if not isinstance(console, common._LazyConsole):  # already made: it read COLUMNS then
+                console.size = (columns, lines)
+
+    set_size(80)
+    return set_size
+
+
 SOTO_POINTS = [(p, r) for p in (0, 90, 180, 270) for r in (0, 90, 180, 270)]  # Soto Table 2
 FOUR_MOUNTS = [(0, 0), (180, 0), (0, 180), (180, 180)]  # Soto Table 3
 

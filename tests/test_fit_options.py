@@ -53,8 +53,8 @@ def test_extend_harmonics_on_four_mount_64_drops_the_aliased_terms_with_a_note(r
     assert any("sin 2α, sin 2R left out: this plan cannot estimate them" in n for n in doc["notes"])
 
 
-def test_extend_temperature_prints_the_terms_and_coning_marks_omega(tmp_path, capsys, monkeypatch):
-    monkeypatch.setenv("COLUMNS", "100")
+def test_extend_temperature_prints_the_terms_and_coning_marks_omega(tmp_path, capsys, terminal):
+    terminal(100)
     assert main(["run", "--sim", "--yes", "--no-report", "--out", str(tmp_path / "run")]) == 0
     readings = tmp_path / "run" / "readings.csv"
     capsys.readouterr()

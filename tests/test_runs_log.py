@@ -17,7 +17,6 @@ def _run(capsys, monkeypatch, *args, stdin: str = "") -> tuple[int, str, str]:
 
 
 def test_runs_lists_and_filters_and_log_shows_prompts_and_answers(tmp_path, capsys, monkeypatch):
-    monkeypatch.setenv("COLUMNS", "80")
     done, stopped = tmp_path / "done", tmp_path / "stopped"
     assert _run(capsys, monkeypatch, "run", "--sim", "--yes", "--no-report", "--serial", "ACC-7",
                 "--operator", "A. Tech", "--out", str(done))[0] == 0

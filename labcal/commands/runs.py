@@ -59,7 +59,7 @@ def cmd_runs(args: argparse.Namespace) -> int:
     if not runs:
         where = "" if journal is not None else " (it does not exist yet)"
         matching = " matching" if args.serial or args.status else ""
-        out.print(f"no runs{matching} in {path}{where}", markup=False)
+        out.print(f"no runs{matching} in {path}{where}", markup=False, soft_wrap=True)  # a path is not broken
         return 0
     from rich.table import Table
 
