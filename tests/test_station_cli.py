@@ -7,7 +7,6 @@ import json
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -142,12 +141,19 @@ def test_a_pty_cannot_carry_parity(tmp_path, capsys):
     assert code == 2 and 'pitch: a pty cannot carry parity E; set parity = "N" to emulate it on a pty' in err
 
 
-def test_sim_serve_until_ctrl_c(tmp_path, capsys):
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@pytest.mark.parametrize("started", ["from a terminal", "with SIGINT ignored (cmd & in a script)"])
+def test_sim_serve_until_ctrl_c(started, tmp_path, capsys):
     """`labcal sim serve` in its own process: prints where it listens, answers `station check`
-    from another process, takes console commands, and on Ctrl-C stops and removes its ptys."""
+    from another process, takes console commands, and on Ctrl-C stops and removes its ptys — also
+    when it was started with SIGINT ignored, as `cmd &` in a non-interactive shell starts it."""
     station = private_file("smc100-serial", tmp_path)
     proc = subprocess.Popen([LABCAL, "sim", "serve", str(station), "--json", "--time-scale", "200"],
-                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_ignore_sigint if "ignored" in started else None)
     try:
         doc = json.loads("".join(iter(proc.stdout.readline, "}\n")) + "}")
         assert doc["time_scale"] == 200
@@ -161,9 +167,14 @@ def test_sim_serve_until_ctrl_c(tmp_path, capsys):
         assert report["devices"][2]["problem"] is None and len(report["devices"][2]["volts"]) == 3
         proc.stdin.write("mount 180 0\nstatus\nfrob\n")
         proc.stdin.flush()
-        time.sleep(0.5)
+        seen = ""  # stderr up to the reply to "frob", the last command: then all three were served
+        for line in iter(proc.stderr.readline, ""):
+            seen += line
+            if seen.count("commands: mount Y U") == 2:  # once when it started, once for "frob"
+                break
         proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=20)
+        _, rest = proc.communicate(timeout=20)
+        err = seen + rest
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -54,7 +54,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from labcal.sim.emulation import Emulation
 
     config, _ = load_station(args.station)
-    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # a kill stops them cleanly too
+    # Ctrl-C and a kill stop them cleanly. SIGINT is installed too: Python leaves it ignored when
+    # the process started with it ignored (`labcal sim serve … &` from a script), and then nothing
+    # but SIGKILL would stop the emulators.
+    previous = {signum: signal.signal(signum, signal.default_int_handler)
+                for signum in (signal.SIGINT, signal.SIGTERM)}
     try:
         with Emulation(config, time_scale=args.time_scale, seed=args.seed) as emulation:
             endpoints = emulation.endpoints()
@@ -75,7 +79,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
             except (KeyboardInterrupt, EOFError):
                 pass
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
     err.print("emulators stopped")
     return 0
 
