@@ -40,6 +40,7 @@ def run_with_a_fault(capsys, tmp_path, station: str, fault: str, answers: str) -
     return code, err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("station", ["az-modbus-tcp", "smc100-serial"])
 def test_a_four_mount_calibration_through_the_drivers_recovers_the_truth(station, tmp_path, capsys, no_leaks):  # noqa: F811
     """64 points, 4 mounts, one table protocol each (Modbus TCP; SMC100 ASCII on a pty with homing
@@ -60,7 +61,9 @@ def test_a_four_mount_calibration_through_the_drivers_recovers_the_truth(station
     assert np.max(np.abs(X - truth)) < 1e-4
     assert err.count("(--yes: confirmed)") == 4 and "preparing the pitch table" in err
     rig_s = summary["simulated_rig_time_s"]  # the emulation's scaled clock: moves, settling, scans
-    assert 600 < rig_s < 7200, rig_s  # a 64-point, 4-mount calibration is tens of minutes of rig time
+    # A 64-point, 4-mount calibration is tens of minutes of rig time. No upper bound: the emulation's
+    # clock runs at TIME_SCALE × the wall clock, so a loaded machine's stalls add rig time too.
+    assert rig_s > 600, rig_s
     # The time scale is in force: run at TIME_SCALE (1000x), the ~50 min of rig time take 3-4 s. Only
     # an emulation slower than 20x would fail (1x, if the scale were ignored): the bound (~150 s)
     # leaves a ~40-fold margin over the 3-4 s for a loaded 2-core CI.

@@ -3,8 +3,6 @@ on one pty, or behind a raw TCP serial-device server; states, error codes and fa
 
 from __future__ import annotations
 
-import time
-
 import pytest
 import serial
 from emulators import bench_fixtures, emulated, no_leaks  # noqa: F401 - fixture
@@ -172,18 +170,14 @@ def test_port_closed_mid_run_is_reopened(smc):
     assert bench.roll.angle() == 0.0
 
 
+@pytest.mark.timeout(60)  # a link that never gave up would hang here: a failure, not a stuck suite
 def test_port_closed_for_good(smc):
     emulation, bench = smc
     emulation.faults["roll"].add(Fault(FaultKind.CLOSE_PORT, match="TP"))
-    t0 = time.monotonic()
     with pytest.raises((LinkLost, NoReply), match="roll table"):
         bench.roll.angle()
     with pytest.raises(LinkLost, match="kept trying for 0.5 s"):
         bench.pitch.stop()  # the same port: it is gone for both
-    # It gives up: the budget is the configured 0.5 s (named by the message above) plus 3 tries of
-    # 0.1 s. This bound only catches a link that never gives up, and is generous so that a loaded
-    # 2-core CI (threads, pty, scheduling) cannot trip it.
-    assert time.monotonic() - t0 < 20
 
 
 def test_a_loop_url_echoes_the_command_which_is_no_reply():

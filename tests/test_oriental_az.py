@@ -3,8 +3,6 @@ Modbus TCP (a gateway) and Modbus RTU on a pty pair; every fault and what the dr
 
 from __future__ import annotations
 
-import time
-
 import pytest
 from emulators import bench_fixtures, emulated, no_leaks  # noqa: F401 - fixture
 
@@ -169,16 +167,12 @@ def test_port_closed_mid_run_is_reopened(az):
     assert "READY" in bench.roll.status().words
 
 
+@pytest.mark.timeout(60)  # a link that never gave up would hang here: a failure, not a stuck suite
 def test_port_closed_for_good_gives_up_within_the_budget(az):
     emulation, bench = az
     emulation.faults["pitch"].add(Fault(FaultKind.CLOSE_PORT))
-    t0 = time.monotonic()
     with pytest.raises((LinkLost, NoReply, BadReply), match="pitch table"):
         bench.pitch.angle()
-    # It gives up: the budget spent is the configured one (0.5 s reconnect, 3 tries of 0.1 s: ~1.1 s;
-    # the message of the stop below names it). This bound only catches a link that never gives up,
-    # and is generous so that a loaded 2-core CI (threads, pty, scheduling) cannot trip it.
-    assert time.monotonic() - t0 < 20
     with pytest.raises(LinkLost, match="cannot open .*; kept trying for 0.5 s; check the cable"):
         bench.pitch.stop()
 
