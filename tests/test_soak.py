@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from labcal.documents.report import outputs_in_place
 from labcal.run import exports
@@ -68,6 +69,7 @@ def readings(path: Path) -> np.ndarray:
     return np.array([[float(r[c]) for c in ("vx", "vy", "vz", "time_s")] for r in rows])
 
 
+@pytest.mark.slow
 def test_sigkill_in_every_phase_then_resume_leaves_one_consistent_run(tmp_path):
     env = {**os.environ, "LABCAL_DB": str(tmp_path / "ref.sqlite")}
     reference = subprocess.run([LABCAL, "run", *BASE, "--yes", "--no-report", "--out", str(tmp_path / "ref")],
