@@ -16,7 +16,6 @@ from __future__ import annotations
 import base64
 import html
 import io
-import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -523,16 +522,6 @@ def render_html(cert: Certificate, figs: list[DrawnFigure], extra: tuple[Table, 
     return "\n".join(parts)
 
 
-def text_table(t: Table) -> str:
-    """A fixed-width rendering for the PDF's text pages."""
-    cells = [t.header, *t.rows]
-    widths = [max(len(r[j]) for r in cells if j < len(r)) for j in range(len(t.header))]
-    lines = [t.title, "  ".join(h.ljust(w) for h, w in zip(t.header, widths, strict=True)),
-             "  ".join("-" * w for w in widths)]
-    lines += ["  ".join(c.ljust(w) for c, w in zip(row, widths, strict=False)) for row in t.rows]
-    return "\n".join(lines)
-
-
 def _status(cert: Certificate) -> str:
     if cert.approval is None:
         return "DRAFT — not approved"
@@ -540,36 +529,34 @@ def _status(cert: Certificate) -> str:
     return f"approved by {a.by} ({a.role}) on {a.approved_utc:%Y-%m-%d}"
 
 
-def render_pdf(cert: Certificate, figs: list[DrawnFigure], extra: tuple[Table, ...] = ()) -> bytes:
-    """Text pages with every table, then one page per figure (its PNG, as drawn for the HTML);
-    every page says "page X of Y" and, until the certificate is approved, DRAFT."""
-    from labcal.documents.pdf import BLACK, RED, Page, Text, pdf_document
+def overdue_standards(cert: Certificate) -> list[str]:
+    """Each reference standard whose calibration was due before this calibration was made: said on
+    the certificate's first page, not only in the budget."""
+    if cert.administration is None:
+        return []
+    on = cert.calibrated_utc.date()
+    return [f"Reference standard {t.equipment} ({t.identity}, certificate {t.certificate}) was overdue "
+            f"for calibration: due {t.due:%Y-%m-%d}, used {on:%Y-%m-%d}."
+            for t in cert.administration.traceability if t.due < on]
 
-    blocks = []
-    for t in (*tables(cert), *extra):
-        blocks.append(text_table(t))
-        if t.caption:
-            blocks.append(textwrap.fill(t.caption, 140))
-        blocks.append("")
-    blocks += [textwrap.fill(p, 140) + "\n" for p in (cert.method, *cert.statements, *cert.fit.notes)]
-    lines = "\n".join(blocks).splitlines()
-    per_page = 62
-    starts = range(0, len(lines), per_page)
-    total = len(starts) + len(figs)
-    draft = [Text(0.5, 0.5, "DRAFT", 90, va="center", ha="center", colour=RED, bold=True, rotation_deg=30,
-                  opacity=0.15)] if cert.draft else []
-    pages = [Page((11.69, 8.27), [
-        Text(0.03, 0.97, f"Calibration certificate {cert.number} — {verdict_text(cert)} — {_status(cert)} — "
-                         f"page {n} of {total}", 9, colour=RED if cert.draft else BLACK, bold=True,
-             max_width=0.94),
-        Text(0.03, 0.93, "\n".join(lines[start:start + per_page]), 6.4, max_width=0.94), *draft])
-        for n, start in enumerate(starts, start=1)]
-    pages += [Page(fig.size_in, [Text(0.01, 0.001, f"{cert.number} · {fig.title} · {_status(cert)} · "
-                                                    f"page {n} of {total}", 7, va="bottom", max_width=0.98),
-                                 *draft], fig.png)
-              for n, fig in enumerate(figs, start=len(starts) + 1)]
-    return pdf_document(pages, f"Calibration certificate {cert.certificate_id}",
-                        f"instrument {cert.instrument.serial}")
+
+def render_pdf(cert: Certificate, figs: list[DrawnFigure], extra: tuple[Table, ...] = ()) -> bytes:
+    """The certificate typeset (`labcal.documents.typeset`): identification and verdict first, every
+    table, the method and statements, the signature block, then one page per figure (its PNG, as
+    drawn for the HTML); every page says "page X of Y" and, until it is approved, DRAFT."""
+    from labcal.documents.typeset import CertificateDocument, render
+
+    a = cert.approval
+    signature = [("Approved by", f"{a.by} ({a.role})" if a else "not yet approved — DRAFT"),
+                 ("Date", f"{a.approved_utc:%Y-%m-%d %H:%M} UTC" if a else "—"),
+                 ("Electronic signature", f"{a.algorithm}, key {a.key_id[:16]}…" if a else "—"),
+                 ("Certificate content", f"sha256 {cert.digest.value}")]
+    return render(CertificateDocument(
+        heading="Calibration certificate", number=cert.number, status=_status(cert), draft=cert.draft,
+        first_lines=[verdict_text(cert)], alerts=overdue_standards(cert), tables=[*tables(cert), *extra],
+        paragraphs=[cert.method, *cert.statements, *cert.fit.notes], figures=figs, signature=signature,
+        title=f"Calibration certificate {cert.certificate_id}",
+        subject=f"instrument {cert.instrument.serial}"))
 
 
 def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit,
