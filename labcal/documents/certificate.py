@@ -388,6 +388,8 @@ class Approval(_Strict):
     algorithm: Literal["Ed25519"]
     key_id: str = Field(pattern="^[0-9a-f]{64}$")
     signature: str
+    # SHA-256 of the DCC written with the approval, signed with the rest (None: approved before)
+    dcc_sha256: str | None = Field(default=None, pattern="^[0-9a-f]{64}$", exclude_if=_absent)
 
 
 class Digest(_Strict):

@@ -14,6 +14,7 @@ two validators written by others agree on every DCC labcal issues.
 
 from __future__ import annotations
 
+import hashlib
 import xml.etree.ElementTree as ET
 from functools import cache
 from importlib import resources
@@ -184,4 +185,8 @@ def write_dcc(path: Path, cert: Certificate) -> Path:
     if why is not None:
         raise LabcalError(f"{path}: the Digital Calibration Certificate fails PTB's DCC {SCHEMA_VERSION} "
                           f"schema ({why}); nothing was written — report this with the run directory")
+    signed = cert.approval.dcc_sha256 if cert.approval else None
+    if signed is not None and hashlib.sha256(document).hexdigest() != signed:
+        raise LabcalError(f"{path}: the DCC made of the approved certificate is not the one its approver "
+                          "signed (another labcal?); nothing was written — approve it again")
     return write_atomic(path, document)
