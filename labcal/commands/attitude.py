@@ -69,7 +69,7 @@ def cmd_attitude(args: argparse.Namespace) -> int:
     if args.json:
         write_json_rows(table, methods, k95, cal.dof, flags, standing)
     else:
-        if unverified:  # the override is stated where the numbers go, not only on the terminal
+        if unverified and standing is not None:  # stated with the numbers, not only on the terminal
             sys.stdout.write(f"# UNVERIFIED certificate {args.cert}: {standing['note']}\n")
         write_csv_rows(table)
     return outcome_of_checks(flags, args.allow_outliers, args.csv or "standard input")
