@@ -400,6 +400,8 @@ class Digest(_Strict):
 class Certificate(_Strict):
     model_config = ConfigDict(validate_by_alias=True, validate_by_name=True, serialize_by_alias=True)
 
+    # First, so that the document's first line says it: a dry run's results are simulated (issue 23)
+    notice: str | None = Field(default=None, exclude_if=_absent)
     schema_id: Literal["labcal.certificate/1"] = Field(alias="schema")
     certificate_id: str
     labcal_version: str

@@ -5,7 +5,9 @@ Every coefficient is an `si:real` with its expanded uncertainty, coverage factor
 each sensor's four coefficients form an `si:realList` whose `si:ellipsoidalRegion` carries their
 4×4 covariance. The inputs are gravity normalised to 1 g, so bias and sensitivity are both in volts
 (\\volt: volts at 1 g). The attitude U95 of the usage envelope is in \\degree. The administrative
-data are the certificate's (ISO/IEC 17025 §7.8.2.1). The schemas ship with labcal
+data are the certificate's (ISO/IEC 17025 §7.8.2.1), its statements in ``dcc:statements``; a dry
+run's first statement (``refType`` labcal_simulatedData, and a comment before the root element) says
+its data are simulated. The schemas ship with labcal
 (`dcc_schema/`), so validation never needs the network. Validation is libxml2's (lxml), a complete
 XSD 1.0 validator that compiles the schema in milliseconds where xmlschema took most of a second on
 every issue; the tests check the documents with xmlschema against their own copy of the schema, so
@@ -32,6 +34,7 @@ DCC = "https://ptb.de/dcc"
 SI = "https://ptb.de/si"
 SCHEMA_VERSION = "3.2.0"
 DCC_FILE = "certificate.dcc.xml"
+SIMULATED_REF_TYPE = "labcal_simulatedData"  # dcc:statement/@refType of a dry run's notice
 UNKNOWN_COUNTRY = "ZZ"  # ISO 3166 user-assigned: the lab file states no country_code
 ET.register_namespace("dcc", DCC)
 ET.register_namespace("si", SI)
@@ -107,6 +110,15 @@ def _administrative(root: ET.Element, cert: Certificate) -> None:
     customer = _d(admin, "customer")
     _text(customer, "name", (a.customer if a else None) or "not stated")
     _text(_d(customer, "location"), "further", "not stated")
+    statements = _d(admin, "statements")
+    if cert.notice:  # the first statement of a dry run's DCC says its data are simulated
+        statement = _d(statements, "statement", None)
+        statement.set("refType", SIMULATED_REF_TYPE)
+        _text(statement, "name", "Simulated data")
+        _text(statement, "declaration", cert.notice)
+    for text in cert.statements:
+        if text != cert.notice:
+            _text(_d(statements, "statement"), "declaration", text)
 
 
 def _results(root: ET.Element, cert: Certificate) -> None:
@@ -155,7 +167,11 @@ def dcc_document(cert: Certificate) -> bytes:
     _administrative(root, cert)
     _results(root, cert)
     ET.indent(root)
-    return ET.tostring(root, encoding="utf-8", xml_declaration=True)
+    document = ET.tostring(root, encoding="utf-8", xml_declaration=True)
+    if cert.notice:  # said before the document too, where a reader of the file looks first
+        declaration, rest = document.split(b"\n", 1)
+        document = declaration + b"\n<!-- " + cert.notice.encode("utf-8") + b" -->\n" + rest
+    return document
 
 
 @cache

@@ -48,6 +48,7 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 CERTIFICATE = "certificate.json"
+SIMULATED_WORD = "SIMULATED"  # heads every page of a dry run's report (its notice says why)
 REPORT_HTML = "report.html"
 REPORT_PDF = "report.pdf"
 UNITS = ("V", "V/g", "V/g", "V/g")
@@ -504,8 +505,10 @@ def render_html(cert: Certificate, figs: list[DrawnFigure], extra: tuple[Table, 
     """One HTML file with inline CSS and inline PNG plots: it opens offline and can be mailed alone."""
     verdict = verdict_text(cert)
     css_class = "none" if cert.conformity is None else ("pass" if cert.conformity.passed else "fail-v")
-    parts = [f"<!DOCTYPE html><html lang=\"en\"><head><meta charset=\"utf-8\"><title>Calibration certificate "
-             f"{html.escape(cert.certificate_id)}</title><style>{CSS}</style></head><body>",
+    simulated = f"{SIMULATED_WORD} — " if cert.notice else ""
+    parts = [f"<!DOCTYPE html><html lang=\"en\"><head><meta charset=\"utf-8\"><title>{simulated}Calibration "
+             f"certificate {html.escape(cert.certificate_id)}</title><style>{CSS}</style></head><body>",
+             *([f"<p class=\"verdict fail-v\">{html.escape(cert.notice)}</p>"] if cert.notice else []),
              f"<h1>Calibration certificate and report</h1><p>{html.escape(cert.number)} · "
              f"instrument {html.escape(cert.instrument.serial)} · "
              f"<strong>{html.escape(_status(cert))}</strong></p>"
@@ -545,7 +548,8 @@ def render_pdf(cert: Certificate, figs: list[DrawnFigure], extra: tuple[Table, .
     every page says "page X of Y" and, until the certificate is approved, DRAFT."""
     from labcal.documents.pdf import BLACK, RED, Page, Text, pdf_document
 
-    blocks = []
+    simulated = f"{SIMULATED_WORD} — " if cert.notice else ""
+    blocks = [textwrap.fill(cert.notice, 140) + "\n"] if cert.notice else []
     for t in (*tables(cert), *extra):
         blocks.append(text_table(t))
         if t.caption:
@@ -559,13 +563,14 @@ def render_pdf(cert: Certificate, figs: list[DrawnFigure], extra: tuple[Table, .
     draft = [Text(0.5, 0.5, "DRAFT", 90, va="center", ha="center", colour=RED, bold=True, rotation_deg=30,
                   opacity=0.15)] if cert.draft else []
     pages = [Page((11.69, 8.27), [
-        Text(0.03, 0.97, f"Calibration certificate {cert.number} — {verdict_text(cert)} — {_status(cert)} — "
-                         f"page {n} of {total}", 9, colour=RED if cert.draft else BLACK, bold=True,
-             max_width=0.94),
+        Text(0.03, 0.97, f"{simulated}Calibration certificate {cert.number} — {verdict_text(cert)} — "
+                         f"{_status(cert)} — page {n} of {total}", 9, colour=RED if cert.draft else BLACK,
+             bold=True, max_width=0.94),
         Text(0.03, 0.93, "\n".join(lines[start:start + per_page]), 6.4, max_width=0.94), *draft])
         for n, start in enumerate(starts, start=1)]
-    pages += [Page(fig.size_in, [Text(0.01, 0.001, f"{cert.number} · {fig.title} · {_status(cert)} · "
-                                                    f"page {n} of {total}", 7, va="bottom", max_width=0.98),
+    pages += [Page(fig.size_in, [Text(0.01, 0.001, f"{simulated}{cert.number} · {fig.title} · "
+                                                    f"{_status(cert)} · page {n} of {total}", 7, va="bottom",
+                                      max_width=0.98),
                                  *draft], fig.png)
               for n, fig in enumerate(figs, start=len(starts) + 1)]
     return pdf_document(pages, f"Calibration certificate {cert.certificate_id}",
