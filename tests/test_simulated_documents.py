@@ -94,3 +94,47 @@ def test_a_real_station_keeps_its_own_inputs(tmp_path):
     section = CertificateSection()
     station = json.dumps({"kind": "station", "station": {}, "emulate": False})
     assert with_simulator_inputs(section, station, {}) is section
+
+
+def test_the_dcc_states_sensitivities_per_metre_per_second_squared(dry):
+    """Issue 23 item 6: sensitivities are volts per g, and D-SI has no g. PTB's own D-SI parser
+    (dsiunits, a second library) reads every unit the DCC states; the sensitivities are V/(m s⁻²),
+    the values S/g_n with g_n = 9.80665 m s⁻² (standard gravity, 3rd CGPM 1901), the covariance
+    scaled alike, the bias still in volts."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        from dsi_unit import DsiUnit
+
+    g_n = 9.80665
+    cert = read_certificate(dry / "certificate.json")
+    root = ET.parse(dry / "certificate.dcc.xml").getroot()
+    si = "{https://ptb.de/si}"
+    lists = root.findall(f".//{si}realList")
+    assert len(lists) == 3
+    volt, per_acceleration = DsiUnit(r"\volt"), DsiUnit(r"\volt") / DsiUnit(r"\metre\second\tothe{-2}")
+    for j, values in enumerate(lists):
+        reals = values.findall(f"{si}real")
+        for i, real in enumerate(reals):
+            unit = DsiUnit(real.find(f"{si}unit").text)
+            assert unit.valid
+            scale = 1.0 if i == 0 else 1 / g_n
+            assert unit == (volt if i == 0 else per_acceleration)
+            value = float(real.find(f"{si}value").text)
+            assert value == pytest.approx(cert.coefficients[i, j] * scale, rel=1e-15)
+            U = float(real.find(f"{si}expandedUnc/{si}uncertainty").text)
+            assert U == pytest.approx(cert.U[i, j] * scale, rel=1e-15)
+        columns = values.findall(f"{si}ellipsoidalRegion/{si}covarianceMatrix/{si}column")
+        for c, column in enumerate(columns):
+            for r, cov in enumerate(column.findall(f"{si}covariance")):
+                unit = DsiUnit(cov.find(f"{si}unit").text)
+                assert unit.valid
+                expected_unit = (DsiUnit(r"\volt") if r == 0 else per_acceleration) * \
+                    (DsiUnit(r"\volt") if c == 0 else per_acceleration)
+                assert unit == expected_unit
+                scale = (1.0 if r == 0 else 1 / g_n) * (1.0 if c == 0 else 1 / g_n)
+                assert float(cov.find(f"{si}value").text) == pytest.approx(
+                    cert.fit.covariance[j][r][c] * scale, rel=1e-15, abs=1e-300)
+    text = (dry / "certificate.dcc.xml").read_text(encoding="utf-8")
+    assert "g_n = 9.80665 m s⁻²" in text and 'refType="labcal_sensitivityUnit"' in text
