@@ -179,3 +179,36 @@ def chi2_quantile(p: float, dof: int) -> float:
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if chi2_cdf(mid, dof) < p else (lo, mid)
     return 0.5 * (lo + hi)
+
+
+def noncentral_f2_cdf(x: ArrayLike, noncentrality: ArrayLike, dfd: float) -> Array:
+    """P(F' ≤ x) for the noncentral F(2, dfd, λ) (scipy.stats.ncf(2, dfd, λ).cdf): the distribution of
+    |z|²/2 / (s²/σ²) for a 2-vector z ~ N(μ, σ²I) with |μ|²/σ² = λ and s² on dfd degrees of freedom.
+
+    The Poisson mixture of central F (Johnson, Kotz & Balakrishnan, ch. 30): Σ_j Pois(j; λ/2)·
+    P(F(2 + 2j, dfd) ≤ 2x/(2 + 2j)), and P(F(2 + 2j, d) ≤ 2x/(2 + 2j)) = I_w(1 + j, d/2) with the same
+    w = 2x/(2x + d) for every j, so one closed form, I_w(1, b) = 1 − (1 − w)^b, and the recurrence
+    I_w(a + 1, b) = I_w(a, b) − w^a (1 − w)^b Γ(a + b)/(Γ(a + 1)Γ(b)) give every term (summed to the
+    mixture's tail beyond 1e-16)."""
+    xv, lam = _arrays(x, noncentrality)
+    b = float(dfd) / 2
+    half = lam / 2
+    top = float(np.max(half, initial=0.0))
+    terms = int(top + 10 * math.sqrt(top) + 30)
+    a = np.arange(1, terms, dtype=float)  # the recurrence's a = 1 … terms − 1
+    log_ratio = (np.array(_lgamma(a + b), dtype=float) - np.array(_lgamma(a + 1), dtype=float)
+                 - math.lgamma(b))
+    w = np.clip(2 * xv / (2 * xv + float(dfd)), 0.0, 1.0)[..., None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_w, log_1mw = np.log(w), np.log1p(-w)
+        steps = np.where(w > 0, np.exp(log_ratio + a * log_w + b * log_1mw), 0.0)
+        steps = np.where(w < 1, steps, 0.0)
+    first = 1.0 - np.exp(b * log_1mw) if b else np.ones_like(w)
+    central = np.clip(np.concatenate([first, first - np.cumsum(steps, axis=-1)], axis=-1), 0.0, 1.0)
+    j = np.arange(terms, dtype=float)
+    log_factorial = np.concatenate([[0.0], np.cumsum(np.log(np.arange(1, terms)))])
+    with np.errstate(divide="ignore", invalid="ignore"):  # λ = 0: weight 1 on j = 0, set below
+        log_weight = -half[..., None] + j * np.log(half[..., None]) - log_factorial
+    weight = np.where(half[..., None] > 0, np.exp(np.where(half[..., None] > 0, log_weight, 0.0)),
+                      (j == 0).astype(float))
+    return np.asarray(np.sum(weight * central, axis=-1), dtype=float)

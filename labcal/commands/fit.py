@@ -199,7 +199,7 @@ def coning_table(sensors) -> Table:
 
     table = Table(title="Coning model (Tripp eq. 2): v = b + S·(u·g), ± u (k=1)", box=box.SIMPLE_HEAD,
                   pad_edge=False)
-    for col in ("sensor", "b (V)", "S (V/g)", "Ω (°)", "A (°)"):
+    for col in ("sensor", "b (V)", "S (V/g)", "Ω (°)", "Ω 95 % interval (°)", "A (°)"):
         table.add_column(col, justify="right")
     for c in sensors:
         d = c.to_json()
@@ -207,8 +207,10 @@ def coning_table(sensors) -> Table:
         azimuth = (with_standard_error(d["azimuth_deg"], se["azimuth_deg"]) if d["azimuth_deg"] is not None
                    else "undefined")
         omega = with_standard_error(d["omega_deg"], se["omega_deg"])
+        low, high = d["omega_interval_95_deg"]
         table.add_row(c.name, with_standard_error(d["b"], se["b"]), with_standard_error(d["S"], se["S"]),
-                      omega if d["omega_interval_reliable"] else f"{omega} *", azimuth)
+                      omega if d["omega_interval_reliable"] else f"{omega} *", f"{low:.3g} … {high:.3g}",
+                      azimuth)
     if not all(c.azimuth_defined for c in sensors):
         table.caption = f"* {OMEGA_NEAR_ZERO}"
     return table
