@@ -8,6 +8,7 @@ solver is needed, and near Ω = 0 the azimuth is undefined and reported as such.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -77,8 +78,8 @@ def omega_interval(tan_omega: ArrayLike, sigma: ArrayLike, dof: float, level: fl
     return np.arctan(lower * s), np.arctan(upper * s)
 
 
-def _solve(cdf, target: float, low: NDArray[np.float64], high: NDArray[np.float64],
-           steps: int = 48) -> NDArray[np.float64]:
+def _solve(cdf: Callable[[NDArray[np.float64]], NDArray[np.float64]], target: float,
+           low: NDArray[np.float64], high: NDArray[np.float64], steps: int = 48) -> NDArray[np.float64]:
     """ν with cdf(ν) = target for a cdf falling in ν, by bisection within [low, high] (the bracket's
     top is widened until the cdf there is below the target)."""
     for _ in range(20):

@@ -287,7 +287,7 @@ def tripp_sigma_bias(sigma_bias: NDArray[np.float64] | float, n_points: int, n_r
     """σ_bias in Tripp & Tcheng's Table 2 convention (σ_E² = σ_bias² + σ_prec², module docstring)
     from labcal's (unbiased, c = R), for a balanced design of m points × R replicates, p coefficients."""
     m, r, p = n_points, n_replicates, n_coefficients
-    return np.asarray(sigma_bias) * np.sqrt(r * (m - p) / (m * r - p))
+    return np.asarray(sigma_bias, dtype=float) * float(np.sqrt(r * (m - p) / (m * r - p)))
 
 
 def _group_means(y: NDArray[np.float64], groups: NDArray[np.intp], n_groups: int) -> NDArray[np.float64]:
