@@ -36,3 +36,30 @@ def simulated_run(run_dir: Path, db: Path, seed: int, *, rig: Path | None = None
     args += ["--serial", serial] * (serial is not None)
     assert main(args) == 0
     return run_dir
+
+
+def bench_run(run_dir: Path, db: Path, serial: str, plan: str = "one-mount-16") -> Path:
+    """A complete calibration through the real drivers against `labcal sim serve` in another process,
+    as against a bench (`tests/test_emulated_runs.py::test_a_run_on_hardware_served_by_another_process`):
+    labcal does not know the devices are emulated, so its journal holds no simulated truth — a run
+    that may be approved. One mount (nobody remounts the served instrument), a fixed dwell (the
+    system clock is not scaled)."""
+    import signal
+    import subprocess
+    import sys
+
+    from emulators import private_file
+
+    station = private_file("smc100-tcp", run_dir.parent)
+    labcal = str(Path(sys.executable).with_name("labcal"))
+    serve = subprocess.Popen([labcal, "sim", "serve", str(station), "--time-scale", "500", "--json"],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert json.loads("".join(iter(serve.stdout.readline, "}\n")) + "}")["time_scale"] == 500
+        code = main(["run", "--station", str(station), "--plan", plan, "--yes", "--serial", serial,
+                     "--fixed-dwell", "0.05", "--out", str(run_dir), "--db", str(db)])
+    finally:
+        serve.send_signal(signal.SIGINT)
+        serve.communicate(timeout=20)
+    assert code == 0
+    return run_dir

@@ -14,11 +14,13 @@ from pathlib import Path
 
 import pytest
 from pypdf import PdfReader
-from simulated_runs import simulated_run
+from simulated_runs import bench_run
 
 from labcal.cli import main
 from labcal.documents.certificate import certificate_from_doc, content_digest, read_certificate
 from labcal.documents.report import write_run_outputs
+
+SERIAL = "ACC-0042"  # the bench run's instrument
 
 
 def _pdf_pages(run, pdf: Path) -> list[str]:
@@ -35,11 +37,14 @@ def _approve(base, key: str = "approver.key") -> list[str]:
 
 @pytest.fixture(scope="module")
 def issued(tmp_path_factory):
-    """A dry run, its draft certificate (the PDF's pages kept), and a key pair."""
+    """A run on a bench (a dry run is never approved), its draft certificate (the PDF's pages kept),
+    and a key pair registered to the approver."""
     base = tmp_path_factory.mktemp("approval")
-    run_dir = simulated_run(base / "run", base / "lab.sqlite", seed=5, plan="one-mount-16")  # small: quick
+    run_dir = bench_run(base / "run", base / "lab.sqlite", SERIAL)  # one mount, 16 points: quick
     pages = _pdf_pages(lambda: write_run_outputs(run_dir, db=base / "lab.sqlite"), run_dir / "report.pdf")
     assert main(["certificate", "keygen", "--out", str(base / "approver")]) == 0
+    assert main(["certificate", "approvers", "add", "A. Metrologist", "--role", "Technical manager",
+                 "--public-key", str(base / "approver.pub"), "--db", str(base / "lab.sqlite")]) == 0
     return base, pages
 
 
@@ -131,7 +136,7 @@ def test_a_correction_is_a_new_revision_and_history_keeps_both(approved, tmp_pat
         ids = {cid for (cid,) in conn.execute("SELECT certificate_id FROM certificates")}
     assert {first.certificate_id, second.certificate_id} <= ids
     capsys.readouterr()
-    assert main(["history", "SIMULATED", "--db", str(base / "lab.sqlite"), "--json"]) == 0
+    assert main(["history", SERIAL, "--db", str(base / "lab.sqlite"), "--json"]) == 0
     listed = [c["certificate_id"] for c in json.loads(capsys.readouterr().out)["calibrations"]]
     assert second.certificate_id in listed and first.certificate_id not in listed  # superseded
 
@@ -158,7 +163,7 @@ def test_administrative_contents_come_from_the_lab_file_station_file_and_command
                              item=ItemGiven("ACME Ltd", "Acme", "AX-3", date(2026, 11, 20)))
     a = cert.administration
     assert a.laboratory.accreditation_id == "UKAS 0000" and a.customer == "ACME Ltd"
-    assert a.item.model == "AX-3" and a.item.received == date(2026, 11, 20) and a.item.serial == "SIMULATED"
+    assert a.item.model == "AX-3" and a.item.received == date(2026, 11, 20) and a.item.serial == SERIAL
     assert [t.certificate for t in a.traceability] == ["CAL-2026-0193", "ANG-2026-0041"]
     assert any("past its calibration due date 2020-01-01" in s for s in cert.statements)
     assert "The results relate only to the item calibrated." in cert.statements

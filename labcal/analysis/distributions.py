@@ -56,3 +56,13 @@ def chi2_quantile(p: float, dof: int) -> float:
     from scipy import special
 
     return float(special.chdtri(dof, 1.0 - p))
+
+
+def noncentral_f2_cdf(x: ArrayLike, noncentrality: ArrayLike, dfd: float) -> Array:
+    """P(F' ≤ x) for the noncentral F(2, dfd, λ): the distribution of |z|²/2 / (s²/σ²) for a
+    2-vector z ~ N(μ, σ²I) with |μ|²/σ² = λ and s² on dfd degrees of freedom (the coning angle's
+    interval, `labcal.analysis.coning`)."""
+    from scipy import special
+
+    return np.asarray(special.ncfdtr(2.0, dfd, noncentrality, np.maximum(np.asarray(x, dtype=float), 0.0)),
+                      dtype=float)

@@ -18,10 +18,20 @@ from labcal.analysis.distributions import f_isf, f_sf, t_quantile
 from labcal.analysis.models import BASE_NAMES, EXTENSIONS, Model, Points
 from labcal.analysis.readings import Readings, angle_key
 from labcal.analysis.regression import LeastSquares, least_squares, least_squares_of_means
-from labcal.analysis.replication import ALPHA, Replication, analyse, analyse_points
+from labcal.analysis.replication import (
+    ALPHA,
+    NUMERIC_RESOLUTION,
+    Replication,
+    analyse,
+    analyse_points,
+    noise_free,
+)
 
 SENSORS = ("x", "y", "z")
 ROW_NAMES = BASE_NAMES
+
+
+NOISE_FREE = "noise-free readings"  # how the note on readings that fit to rounding begins
 
 
 def readings_points(readings: Readings, rows: NDArray[np.intp] | None = None) -> Points:
@@ -52,6 +62,10 @@ class Fit:
     def coefficients(self) -> NDArray[np.float64]:
         """Soto's X = [Bᵀ; S] (4×3); extension coefficients are in `ls.coef[4:]`."""
         return self.ls.coef[: len(BASE_NAMES)]
+
+    def noise_free(self, readings: Readings) -> NDArray[np.bool_]:
+        """Per sensor: the readings fit to floating-point rounding (a simulation without noise)."""
+        return noise_free(self.ls.residual_se, np.max(np.abs(readings.volts), axis=0))
 
     @property
     def bias_significant(self) -> NDArray[np.bool_]:
@@ -181,6 +195,13 @@ def fit_readings(readings: Readings, model: Model | None = None) -> Fit:
                 notes.append("replication analysis skipped: temperature terms differ between replicates "
                              "of the same point")
     fit = Fit(model, names, ls, replication)
+    exact = fit.noise_free(readings)
+    if np.any(exact):
+        sensors = ", ".join(s for s, e in zip(SENSORS, exact, strict=True) if e)
+        notes.append(f"{NOISE_FREE} for sensor(s) {sensors}: the model fits them to floating-point "
+                     f"rounding (residual standard error ≤ {NUMERIC_RESOLUTION:g} of the largest reading), "
+                     "as a simulation without noise does; their uncertainties are at that rounding, and the "
+                     "gross-error, lack-of-fit and drift tests, which compare against noise, are not made")
     if np.any(fit.bias_significant):
         sensors = ", ".join(s for s, b in zip(SENSORS, fit.bias_significant, strict=True) if b)
         notes.append(f"significant lack of fit (bias) for sensor(s) {sensors} at {ALPHA:.0%}: their "

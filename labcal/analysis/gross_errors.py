@@ -306,6 +306,8 @@ def calibration_of(fit: Fit) -> Calibration:
 def fit_flags(readings: Readings, fit: Fit, alpha: float = FAMILY_ALPHA) -> list[Flag]:
     """Every gross-error check of a calibration's readings, row by row (mount groups first: one missed
     remount otherwise shows as dozens of gravity and residual flags)."""
+    if np.all(fit.noise_free(readings)):
+        return []  # every reading fits to rounding: none is a gross error, and there is no noise to test with
     cal = calibration_of(fit)
     rows = readings.points.groups if fit.model.per_point else None
     _, design = fit.model.design(readings_points(readings, None if rows is None else readings.points.first))

@@ -4,6 +4,31 @@ Readings of the same point (mount, pitch, roll) in several replicates separate p
 bias: pure error is the scatter about the point means, lack of fit the distance of the point
 means from the model. Drift between replicates is tested on per-replicate fits. Everything is
 vectorised over the columns of Y (one per sensor, or one per Monte Carlo trial).
+
+σ_bias: two conventions, and why labcal follows the first (issue 23). Model (metrology_stats.md
+§2.1): y_ri = f(x_i; θ) + β_i + ε_ri over m points, R replicates, N = mR readings, p coefficients,
+with point biases β_i (variance σ_bias², repeated in every replicate) and precision errors ε_ri
+(variance σ_prec²). With H the m×m hat matrix of the points, SS_LOF = R‖(I − H)(β + ε̄)‖², and
+since E‖(I − H)β‖² = (m − p)σ_bias² and E‖(I − H)ε̄‖² = (m − p)σ_prec²/R,
+
+    E[MS_LOF] = σ_prec² + R·σ_bias²,   E[MS_PE] = σ_prec²,
+
+so σ̂_bias² = (MS_LOF − MS_PE)/c with c = R is unbiased for the variance of a point bias (with
+unequal counts, c = [N − tr((XᵀWX)⁻¹XᵀW²X)]/(m − p), the same expectation argument). This is
+the convention here.
+
+Tripp & Tcheng's Table 2 states σ_E, σ_bias and σ_prec with σ_E² = σ_bias² + σ_prec² in every row
+(to their three digits, e.g. fig. 24: 3.17² = 2.62² + 1.79²; fig. 44(a): 4.34² = 4.10² + 1.42²), with
+σ_E² the regression's residual mean square over N − p. Since SS_residual = SS_LOF + SS_PE, that
+convention is σ̂_bias,T² = σ_E² − MS_PE = (m − p)(MS_LOF − MS_PE)/(N − p), i.e. c_T = (N − p)/(m − p),
+whose expectation is σ_bias²·R(m − p)/(N − p): the share of the residual variance the biases explain,
+not their variance. It is low by the factor (N − p)/(R(m − p)) = 1 + p(R − 1)/(R(m − p)): 380/360 =
+1.056 for 64 points × 6 replicates with p = 4, and more for small designs (6-point tumble × 6: 2.67),
+because the fit absorbs p of each point set's bias degrees of freedom in every replicate's residuals
+but only once in the point means. A new reading at an attitude carries the whole point bias, whose
+variance is σ_bias² (the prediction variance σ_prec² + σ_bias² of `Fit.new_measurement_variance`), so
+the unbiased c = R is the right one; `tripp_sigma_bias` converts to Table 2's convention for comparing
+with published numbers.
 """
 
 from __future__ import annotations
@@ -19,6 +44,16 @@ from numpy.typing import NDArray
 from labcal.analysis.distributions import f_isf, f_sf
 
 ALPHA = 0.05
+# Readings that a model fits to within this fraction of their size are exact to floating-point
+# rounding (float64 resolves 2.2e-16; a fit adds a few hundred times that; no DMM resolves better than
+# about 1e-9 of its range): their scatter is no noise to test against (`noise_free`).
+NUMERIC_RESOLUTION = 1e-12
+
+
+def noise_free(scatter: NDArray[np.float64], scale: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Per column: a standard deviation (residual or pure error) at floating-point rounding of data of
+    size ``scale`` — a noise-free simulation, where F tests have no noise to compare against."""
+    return np.asarray(scatter <= NUMERIC_RESOLUTION * np.maximum(scale, np.finfo(float).tiny))
 
 
 @dataclass(frozen=True)
@@ -207,7 +242,11 @@ def analyse_points(j_m: NDArray[np.float64], cells: Cells,
     ss_lof = np.sum(w * (means - j_m @ theta) ** 2, axis=0)
     df_lof, df_pe = n_groups - n_coef, n_obs - n_groups
     ms_lof, ms_pe = ss_lof / df_lof, cells.ss_pe / df_pe
-    classical = FTest(ms_lof / ms_pe, df_lof, df_pe)
+    # Noise-free readings (a simulation with --noise 0) repeat exactly: with no pure error there is
+    # nothing to test against, so their F statistics are undefined (NaN: not significant).
+    exact = noise_free(np.sqrt(ms_pe), np.max(np.abs(means), axis=0))
+    ratio = _ratio_where(~exact)
+    classical = FTest(ratio(ms_lof, ms_pe), df_lof, df_pe)
 
     drift_robust: FTest | None = None
     drift: tuple[DriftTest, ...] = ()
@@ -223,24 +262,32 @@ def analyse_points(j_m: NDArray[np.float64], cells: Cells,
         resid = dev - np.einsum("mp,rpc->rmc", j_m, np.einsum("pm,rmc->rpc", hat, dev))
         df_e = (n_reps - 1) * df_lof
         ms_e = np.sum(c[None] * resid**2, axis=(0, 1)) / df_e
-        drift_robust = FTest(ms_lof / ms_e, df_lof, df_e)
+        drift_robust = FTest(ratio(ms_lof, ms_e), df_lof, df_e)
         s_bar = theta_r.mean(axis=0)[sensitivity]
         grad = s_bar / np.linalg.norm(s_bar, axis=0)  # ∂|s|/∂s
         u_ss = unscaled[sensitivity, sensitivity]
         drift = (
-            _drift("offset", theta_r[:, 0, :], unscaled[0, 0], ms_e, df_e),
+            _drift("offset", theta_r[:, 0, :], unscaled[0, 0], ms_e, df_e, ratio),
             _drift("sensitivity", np.linalg.norm(theta_r[:, sensitivity, :], axis=1),
-                   np.einsum("ic,ij,jc->c", grad, u_ss, grad), ms_e, df_e),
+                   np.einsum("ic,ij,jc->c", grad, u_ss, grad), ms_e, df_e, ratio),
         )
         # Drift inflates one-way pure error: where it is found, test bias against the residual
         # after all drift instead (metrology_stats.md §2.6).
         drifting = np.any([d.test.significant for d in drift], axis=0)
         ms_star, df_star = np.where(drifting, ms_e, ms_pe), np.where(drifting, df_e, df_pe)
-    lof = FTest(ms_lof / ms_star, df_lof, df_star)
+    lof = FTest(ratio(ms_lof, ms_star), df_lof, df_star)
     c = (n_obs - np.trace(moment_inv @ (j_m.T @ (w**2 * j_m)))) / df_lof
     sigma_bias = np.sqrt(np.maximum(0.0, (ms_lof - ms_star) / c))
     return Replication(n_groups, n_reps, ms_lof, lof, classical, drift_robust,
                        np.sqrt(ms_star), sigma_bias, drift)
+
+
+def tripp_sigma_bias(sigma_bias: NDArray[np.float64] | float, n_points: int, n_replicates: int,
+                     n_coefficients: int) -> NDArray[np.float64]:
+    """σ_bias in Tripp & Tcheng's Table 2 convention (σ_E² = σ_bias² + σ_prec², module docstring)
+    from labcal's (unbiased, c = R), for a balanced design of m points × R replicates, p coefficients."""
+    m, r, p = n_points, n_replicates, n_coefficients
+    return np.asarray(sigma_bias, dtype=float) * float(np.sqrt(r * (m - p) / (m * r - p)))
 
 
 def _group_means(y: NDArray[np.float64], groups: NDArray[np.intp], n_groups: int) -> NDArray[np.float64]:
@@ -248,9 +295,21 @@ def _group_means(y: NDArray[np.float64], groups: NDArray[np.intp], n_groups: int
     return sums / np.bincount(groups, minlength=n_groups)[:, None]
 
 
+def _ratio_where(defined: NDArray[np.bool_]
+                 ) -> Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]:
+    """a / b per column where ``defined``, NaN elsewhere (no division there, so no warning)."""
+    def ratio(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+        out = np.full(np.broadcast(a, b).shape, np.nan)
+        np.divide(a, b, out=out, where=defined & (b > 0))
+        return out
+    return ratio
+
+
 def _drift(name: str, values: NDArray[np.float64], factor: NDArray[np.float64] | float,
-           ms_e: NDArray[np.float64], df_e: int) -> DriftTest:
+           ms_e: NDArray[np.float64], df_e: int,
+           ratio: Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]) -> DriftTest:
     n_rep = values.shape[0]
     between = np.var(values, axis=0, ddof=1)
     noise = ms_e * factor
-    return DriftTest(name, FTest(between / noise, n_rep - 1, df_e), np.sqrt(np.maximum(0.0, between - noise)))
+    return DriftTest(name, FTest(ratio(between, noise), n_rep - 1, df_e),
+                     np.sqrt(np.maximum(0.0, between - noise)))

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     import numpy as np
 
-from labcal.commands.common import keep_freed_memory, outcome_of_checks
+from labcal.commands.common import add_db_option, keep_freed_memory, outcome_of_checks
 
 CHUNK_ROWS = 10_000  # rows formatted and written at a time: output memory stays flat
 METHODS = {"closed": "closed_form", "sphere": "sphere_least_squares"}
@@ -35,10 +35,16 @@ def cmd_attitude(args: argparse.Namespace) -> int:
     import numpy as np
 
     from labcal.analysis import attitude
+    from labcal.commands.common import err
     from labcal.config.readings_csv import read_numeric_csv
-    from labcal.documents.certificate import load_calibration
+    from labcal.documents.approval import calibration_in_use
 
-    cal = load_calibration(args.cert)
+    cal, standing = calibration_in_use(args.cert, args.db, args.unverified)
+    unverified = standing is not None and standing["approved"] and not standing["verified"]
+    if standing is not None and not standing["verified"]:
+        from rich.markup import escape
+
+        err.print(f"[yellow]note:[/] {escape(str(args.cert))}: {escape(standing['note'])}")
     source = args.csv
     if source is None:  # voltages on standard input
         with tempfile.NamedTemporaryFile("w", suffix=".csv", delete=False) as tmp:
@@ -61,8 +67,10 @@ def cmd_attitude(args: argparse.Namespace) -> int:
     table = {k: v for m in methods for k, v in _columns(results[m], PREFIX[m]).items()}
     k95 = next(iter(results.values())).k95
     if args.json:
-        write_json_rows(table, methods, k95, cal.dof, flags)
+        write_json_rows(table, methods, k95, cal.dof, flags, standing)
     else:
+        if unverified and standing is not None:  # stated with the numbers, not only on the terminal
+            sys.stdout.write(f"# UNVERIFIED certificate {args.cert}: {standing['note']}\n")
         write_csv_rows(table)
     return outcome_of_checks(flags, args.allow_outliers, args.csv or "standard input")
 
@@ -87,15 +95,16 @@ def write_csv_rows(table: dict[str, np.ndarray]) -> None:
             for i, row in enumerate(chunk.tolist())))
 
 
-def write_json_rows(table: dict[str, np.ndarray], methods: list[str], k95: float, dof: int, flags: list
-                    ) -> None:
+def write_json_rows(table: dict[str, np.ndarray], methods: list[str], k95: float, dof: int, flags: list,
+                    standing: dict | None = None) -> None:
     """One JSON document, streamed: the rows are formatted a chunk at a time, never all held as
     Python objects (a hundred thousand rows of dicts took 700 MiB)."""
     import json
     import math
 
     names = {m: [k for k in table if k.startswith(PREFIX[m])] for m in methods}
-    sys.stdout.write(json.dumps({"coverage_factor_95": k95, "degrees_of_freedom": dof})[:-1] + ', "rows": [')
+    head = {"coverage_factor_95": k95, "degrees_of_freedom": dof, "certificate": standing}
+    sys.stdout.write(json.dumps(head)[:-1] + ', "rows": [')
     n = len(next(iter(table.values())))
     for start in range(0, n, CHUNK_ROWS):
         chunk = {k: v[start:start + CHUNK_ROWS].tolist() for k, v in table.items()}
@@ -127,5 +136,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--allow-outliers", action="store_true",
                    help="exit 0 even when rows fail the gross-error checks (|g| ≠ 1 g; the two methods "
                         "disagree); they are listed on stderr either way")
+    p.add_argument("--unverified", action="store_true",
+                   help="use an approved certificate whose signature is not by a key registered in the lab "
+                        "database (forged, unknown or revoked key); every output then says UNVERIFIED")
+    add_db_option(p)
     p.add_argument("--json", action="store_true", help="print as JSON on stdout")
     p.set_defaults(func=cmd_attitude)

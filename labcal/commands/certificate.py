@@ -1,4 +1,5 @@
-"""`labcal certificate`: make a key pair, approve (sign) a run's certificate, verify a signature."""
+"""`labcal certificate`: make a key pair, register approvers, approve (sign) a run's certificate,
+verify a signature."""
 
 from __future__ import annotations
 
@@ -21,41 +22,91 @@ def cmd_keygen(args: argparse.Namespace) -> int:
 
 
 def cmd_approve(args: argparse.Namespace) -> int:
-    from pathlib import Path
+    from labcal.documents.approving import approve_run
 
-    from labcal.documents.approval import approve, load_private_key
-    from labcal.documents.certificate import read_certificate
-    from labcal.documents.report import CERTIFICATE, fitted, write_documents
-    from labcal.run.record import load_run
-
-    key = load_private_key(args.key)  # before anything is read or written
-    record = load_run(args.run_dir)
-    cert = approve(read_certificate(Path(args.run_dir) / CERTIFICATE), args.by, args.role, key)
-    fit, device, _ = fitted(record)
-    result = write_documents(cert, record, fit, device, args.db)
+    result = approve_run(args.run_dir, args.by, args.role, args.key, args.db, args.station)
+    cert = result.certificate
+    approval = cert.approval
+    assert approval is not None  # approve_run signs or refuses
     if args.json:
         print_json({"certificate": str(result.certificate_path), "number": cert.number,
-                    "approved_by": args.by, "role": args.role, "key_id": cert.approval.key_id
-                    if cert.approval else None, "report_pdf": str(result.pdf_path)})
+                    "approved_by": approval.by, "role": approval.role, "key_id": approval.key_id,
+                    "dcc": None if result.dcc_path is None else str(result.dcc_path),
+                    "dcc_sha256": approval.dcc_sha256, "report_pdf": str(result.pdf_path)})
         return 0
-    out.print(f"Certificate {cert.number} approved by {args.by} ({args.role}) and signed: "
-              f"{result.certificate_path}; report {result.pdf_path} no longer says DRAFT")
+    out.print(f"Certificate {cert.number} approved by {approval.by} ({approval.role}) and signed, with its "
+              f"DCC: {result.certificate_path}; report {result.pdf_path} no longer says DRAFT")
+    return 0
+
+
+def cmd_approvers_add(args: argparse.Namespace) -> int:
+    from labcal.documents import approvers
+
+    a = approvers.add(args.name, args.role, args.public_key, args.db)
+    if args.json:
+        print_json(a.to_json())
+        return 0
+    out.print(f"{a.name} ({a.role}) may approve certificates with key {a.key_id[:12]}…")
+    return 0
+
+
+def cmd_approvers_list(args: argparse.Namespace) -> int:
+    from labcal.documents import approvers
+
+    found = approvers.listed(args.db)
+    if args.json:
+        print_json({"approvers": [a.to_json() for a in found]})
+        return 0
+    if not found:
+        out.print("no approvers registered (`labcal certificate approvers add NAME --role ROLE --public-key "
+                  "FILE`)")
+    for a in found:
+        state = "active" if a.active else f"revoked {a.revoked_utc}"
+        out.print(f"{a.name}\t{a.role}\tkey {a.key_id[:12]}…\tadded {a.added_utc}\t{state}")
+    return 0
+
+
+def cmd_approvers_revoke(args: argparse.Namespace) -> int:
+    from labcal.documents import approvers
+
+    a = approvers.revoke(args.name, args.db)
+    if args.json:
+        print_json(a.to_json())
+        return 0
+    out.print(f"{a.name}'s key {a.key_id[:12]}… revoked at {a.revoked_utc}: it approves nothing from now on, "
+              "and certificates it signed no longer verify")
     return 0
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    from labcal.documents.approval import load_public_key, verify
+    from pathlib import Path
 
-    cert = verify(args.file, load_public_key(args.public_key))
+    from labcal.documents.approval import check_dcc, load_public_key, verify, verify_registered
+    from labcal.documents.dcc import DCC_FILE
+
+    cert = (verify_registered(args.file, args.db) if args.public_key is None
+            else verify(args.file, load_public_key(args.public_key)))
     approval = cert.approval
     assert approval is not None  # verify refuses an unapproved certificate
+    dcc = args.dcc or (Path(args.file).with_name(DCC_FILE) if approval.dcc_sha256 else None)
+    if dcc is not None:
+        check_dcc(cert, dcc)
+    against = "the registered key" if args.public_key is None else "the given public key"
     if args.json:
         print_json({"file": args.file, "valid": True, "number": cert.number, "approved_by": approval.by,
-                    "role": approval.role, "approved_utc": approval.approved_utc.isoformat()})
+                    "role": approval.role, "approved_utc": approval.approved_utc.isoformat(),
+                    "verified_against": against, "dcc": None if dcc is None else str(dcc)})
         return 0
-    out.print(f"{args.file}: signature valid — certificate {cert.number}, approved by {approval.by} "
-              f"({approval.role}) on {approval.approved_utc:%Y-%m-%d %H:%M} UTC")
+    out.print(f"{args.file}: signature valid against {against} — certificate {cert.number}, approved by "
+              f"{approval.by} ({approval.role}) on {approval.approved_utc:%Y-%m-%d %H:%M} UTC"
+              + (f"; DCC {dcc} is the one signed" if dcc is not None else "; no DCC signed with it"))
     return 0
+
+
+APPROVE_HELP = ("Sign RUN_DIR/certificate.json and its DCC, regenerate the report without DRAFT, and store "
+                "the approved certificate in the history. Refused (naming every reason) for a simulated "
+                "run, a draft that the certificate rebuilt from the journal does not reproduce, and a key "
+                "that is not registered to --by and --role or is revoked.")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -69,19 +120,45 @@ def register(sub: argparse._SubParsersAction) -> None:
     keygen.add_argument("--json", action="store_true", help="print as JSON on stdout")
     keygen.set_defaults(func=cmd_keygen)
     approve = verbs.add_parser("approve", help="approve and sign a run's certificate",
-                               description="Sign RUN_DIR/certificate.json, regenerate the report without "
-                                           "DRAFT, and store the approved certificate in the history.")
+                               description=APPROVE_HELP)
     approve.add_argument("run_dir", metavar="RUN_DIR", help="the run directory holding certificate.json")
     approve.add_argument("--by", required=True, metavar="NAME", help="the approver's name")
     approve.add_argument("--role", required=True, metavar="ROLE", help="the approver's role, e.g. 'Technical "
                                                                        "manager'")
     approve.add_argument("--key", required=True, metavar="KEYFILE", help="the approver's private key (PEM)")
+    approve.add_argument("--station", metavar="STATION", help="the station file `labcal report --station` "
+                                                              "took the Type B inputs from (default: the "
+                                                              "station the run was journaled with)")
     add_db_option(approve)
     approve.add_argument("--json", action="store_true", help="print as JSON on stdout")
     approve.set_defaults(func=cmd_approve)
     verify = verbs.add_parser("verify", help="verify a certificate's signature (exit 2 if it fails)")
     verify.add_argument("file", metavar="FILE", help="a certificate.json")
-    verify.add_argument("--public-key", required=True, metavar="KEY",
-                        help="the laboratory's public key (PEM)")
+    verify.add_argument("--public-key", metavar="KEY",
+                        help="verify against this public key (PEM) instead of the lab database's registered "
+                             "approvers")
+    verify.add_argument("--dcc", metavar="DCC", help="the DCC to check against the signed digest (default: "
+                                                     "certificate.dcc.xml beside FILE)")
+    add_db_option(verify)
     verify.add_argument("--json", action="store_true", help="print as JSON on stdout")
     verify.set_defaults(func=cmd_verify)
+    approvers = verbs.add_parser("approvers", help="register, list and revoke the people who may approve",
+                                 description="The lab database's register of approvers (name, role, Ed25519 "
+                                             "public key), kept by a lab administrator.")
+    which = approvers.add_subparsers(dest="approvers_verb", required=True, metavar="VERB")
+    add = which.add_parser("add", help="register an approver's public key")
+    add.add_argument("name", metavar="NAME", help="the approver's name, as `approve --by` gives it")
+    add.add_argument("--role", required=True, metavar="ROLE", help="the approver's role")
+    add.add_argument("--public-key", required=True, metavar="FILE", help="their public key (PEM, .pub)")
+    add_db_option(add)
+    add.add_argument("--json", action="store_true", help="print as JSON on stdout")
+    add.set_defaults(func=cmd_approvers_add)
+    listing = which.add_parser("list", help="every registration, active and revoked")
+    add_db_option(listing)
+    listing.add_argument("--json", action="store_true", help="print as JSON on stdout")
+    listing.set_defaults(func=cmd_approvers_list)
+    revoke = which.add_parser("revoke", help="revoke an approver's key")
+    revoke.add_argument("name", metavar="NAME")
+    add_db_option(revoke)
+    revoke.add_argument("--json", action="store_true", help="print as JSON on stdout")
+    revoke.set_defaults(func=cmd_approvers_revoke)

@@ -131,6 +131,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
 def fit_device_model(args: argparse.Namespace, readings, chosen: str | None, checked=None) -> int:
     """`labcal fit --model device`: the instrument and the device's six misalignments together."""
     from labcal.analysis.device_fit import fit_device
+    from labcal.analysis.fit import NOISE_FREE
     from labcal.analysis.gross_errors import fit_flags
 
     fit = fit_device(readings, checked[0] if checked else None)
@@ -143,8 +144,11 @@ def fit_device_model(args: argparse.Namespace, readings, chosen: str | None, che
 
         extension = fit_index_errors(readings, fit)
         doc["index_errors"] = None if extension is None else extension.to_json()
-    if chosen:
-        doc["notes"] = [chosen, *doc.get("notes", [])]
+    # the readings' own notes (noise-free data) hold whichever model is fitted
+    exact = [n for n in fit.linear.notes if n.startswith(NOISE_FREE)]
+    doc["notes"] = [*([chosen] if chosen else []), *exact, *doc.get("notes", [])]
+    if not doc["notes"]:
+        del doc["notes"]
     if args.test_extensions:
         from labcal.analysis.fit import extension_tests
 
@@ -162,9 +166,11 @@ def fit_device_model(args: argparse.Namespace, readings, chosen: str | None, che
         out.print(replication_table(fit.linear.to_json()["replication"]))
     for sensor, r in doc.get("replication", {}).items():
         before, after = r["lack_of_fit_linear"], r["lack_of_fit_device"]
+        def n(x, spec: str) -> str:  # NaN or None: undefined (noise-free readings)
+            return "undefined" if x is None or x != x else format(x, spec)
         out.print(f"sensor {sensor}: σ_bias {r['sigma_bias_linear']:.3g} → {r['sigma_bias_device']:.3g} V, "
-                  f"lack of fit F {before['F']:.3g} (p = {before['p_value']:.2g}) → {after['F']:.3g} "
-                  f"(p = {after['p_value']:.2g}), linear → device model")
+                  f"lack of fit F {n(before['F'], '.3g')} (p = {n(before['p_value'], '.2g')}) → "
+                  f"{n(after['F'], '.3g')} (p = {n(after['p_value'], '.2g')}), linear → device model")
     if args.index_errors:
         out.print(index_error_text(doc["index_errors"]))
     return outcome_of_checks(flags, args.allow_outliers, args.readings)
@@ -193,7 +199,7 @@ def coning_table(sensors) -> Table:
 
     table = Table(title="Coning model (Tripp eq. 2): v = b + S·(u·g), ± u (k=1)", box=box.SIMPLE_HEAD,
                   pad_edge=False)
-    for col in ("sensor", "b (V)", "S (V/g)", "Ω (°)", "A (°)"):
+    for col in ("sensor", "b (V)", "S (V/g)", "Ω (°)", "Ω 95 % interval (°)", "A (°)"):
         table.add_column(col, justify="right")
     for c in sensors:
         d = c.to_json()
@@ -201,8 +207,10 @@ def coning_table(sensors) -> Table:
         azimuth = (with_standard_error(d["azimuth_deg"], se["azimuth_deg"]) if d["azimuth_deg"] is not None
                    else "undefined")
         omega = with_standard_error(d["omega_deg"], se["omega_deg"])
+        low, high = d["omega_interval_95_deg"]
         table.add_row(c.name, with_standard_error(d["b"], se["b"]), with_standard_error(d["S"], se["S"]),
-                      omega if d["omega_interval_reliable"] else f"{omega} *", azimuth)
+                      omega if d["omega_interval_reliable"] else f"{omega} *", f"{low:.3g} … {high:.3g}",
+                      azimuth)
     if not all(c.azimuth_defined for c in sensors):
         table.caption = f"* {OMEGA_NEAR_ZERO}"
     return table
@@ -218,12 +226,16 @@ def replication_table(rep: dict) -> Table:
     for sensor, r in rep.items():
         lof, off, sens = r["lack_of_fit"], r["drift"].get("offset"), r["drift"].get("sensitivity")
 
+        def statistic(t) -> str:  # None or NaN: undefined (no pure error to test against)
+            f = t["F"]
+            return "undefined" if f is None or f != f else f"{f:.3g}{' *' if t['significant'] else ''}"
+
         def flag(t):
-            return "—" if t is None else f"{t['F']:.3g}{' *' if t['significant'] else ''}"
+            return "—" if t is None else statistic(t)
         table.add_row(sensor, f"{r['sigma_prec']:.3g}", f"{r['sigma_bias']:.3g}",
-                      f"{lof['F']:.3g}{' *' if lof['significant'] else ''} ({lof['df'][0]}, {lof['df'][1]}) "
-                      f"{lof['critical_95']:.3g}", flag(off), flag(sens))
-    table.caption = "* significant at 5 %"
+                      f"{statistic(lof)} ({lof['df'][0]}, {lof['df'][1]}) {lof['critical_95']:.3g}",
+                      flag(off), flag(sens))
+    table.caption = "* significant at 5 %; undefined: no pure error (noise-free readings)"
     return table
 
 

@@ -53,6 +53,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from labcal.sim.direct import simulate_readings
 
     plan, _ = load_plan(args.plan)
+    if args.replicates is not None:
+        plan = plan.model_copy(update={"replicates": args.replicates})
     truth = load_model(args.truth, InstrumentTruth, "truth") if args.truth else InstrumentTruth()
     readings = simulate_readings(
         plan, truth, parse_misalign(args.misalign),
@@ -86,6 +88,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "each table's angle, zero mean)")
     p.add_argument("--wobble", type=bounded(float, 0, 3600), default=0.0, metavar="ARCSEC",
                    help="amplitude of the tables' per-point wobble errors, arcseconds")
+    p.add_argument("--replicates", type=bounded(int, 1, 100), metavar="N",
+                   help="repeat the plan N times (default: the plan's own replicates)")
     p.add_argument("--seed", type=SEED, default=0, help="random seed")
     p.add_argument("--out", required=True, help="readings CSV to write")
     p.add_argument("--json", action="store_true", help="print what was written as JSON on stdout")

@@ -4,7 +4,13 @@ The SHA-256 digest detects an accident but not a forgery: whoever edits a value 
 An approved certificate also carries an Ed25519 signature by the approver's private key over the
 canonical JSON of everything but the digest and the signature itself — the approver's name, role,
 time and key id included — so any change, with or without a recomputed digest, fails
-verification against the laboratory's public key.
+verification against the laboratory's public key. The signed approval also holds the SHA-256 of
+the Digital Calibration Certificate written with it (``dcc_sha256``), so the signature covers both
+files: an edited DCC no longer matches the digest the approver signed.
+
+Whose key signed is the lab database's to say (`labcal.documents.approvers`): `verify_registered`
+accepts a signature only by a registered, unrevoked key whose registered name and role are the ones
+the certificate states.
 
 Keys are PEM files: the private key PKCS#8, created readable by its owner only (0600) and refused
 when group or others may read it; the public key SubjectPublicKeyInfo, to hand to customers.
@@ -24,6 +30,7 @@ from cryptography.exceptions import InvalidSignature, UnsupportedAlgorithm
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
+from labcal.analysis.attitude import Calibration
 from labcal.config.files import read_text
 from labcal.documents.certificate import Certificate, certificate_from_doc, parse_json, seal
 from labcal.errors import LabcalError
@@ -112,7 +119,10 @@ def load_public_key(path: str | Path) -> Ed25519PublicKey:
 # --- approving and verifying ---------------------------------------------------------------------
 def approve(cert: Certificate, by: str, role: str, key: Ed25519PrivateKey,
             when: datetime | None = None) -> Certificate:
-    """The certificate approved by ``by`` (``role``) and signed with ``key``, sealed again."""
+    """The certificate approved by ``by`` (``role``) and signed with ``key``, sealed again; the
+    signature covers the DCC that `dcc_document` makes of it (its SHA-256 is in the approval)."""
+    from labcal.documents.dcc import dcc_document
+
     if cert.approval is not None:
         raise LabcalError(f"certificate {cert.number} is already approved by {cert.approval.by}; a change "
                           "is a new revision (`labcal report` issues it)")
@@ -121,29 +131,111 @@ def approve(cert: Certificate, by: str, role: str, key: Ed25519PrivateKey,
     approval = {"by": by.strip(), "role": role.strip(),
                 "approved_utc": (when or datetime.now(UTC)).isoformat(timespec="seconds"),
                 "algorithm": ALGORITHM, "key_id": key_id(key.public_key()), "signature": ""}
+    unsigned = {k: v for k, v in cert.to_json().items() if k != "digest"}
+    # The DCC states who approved (not the signature nor its own digest): make it once to hash it.
+    approval["dcc_sha256"] = dcc_sha256(dcc_document(seal({**unsigned, "approval": approval})))
     # Sign the document exactly as it will be written (validated and serialised once), so that the
     # verifier, which reads the written JSON, sees the same bytes.
-    doc = seal({**{k: v for k, v in cert.to_json().items() if k != "digest"}, "approval": approval}).to_json()
+    doc = seal({**unsigned, "approval": approval}).to_json()
     doc["approval"]["signature"] = base64.b64encode(key.sign(signed_bytes(doc))).decode("ascii")
     return seal({k: v for k, v in doc.items() if k != "digest"})
 
 
-def verify(path: str | Path, public: Ed25519PublicKey) -> Certificate:
-    """The certificate, if it is approved and its signature verifies with ``public``; otherwise one
-    line saying what is wrong (edited, signed by another key, not approved)."""
+def dcc_sha256(document: bytes) -> str:
+    return hashlib.sha256(document).hexdigest()
+
+
+def _signed_certificate(path: str | Path) -> tuple[dict, Certificate]:
     source = str(path)
     doc = parse_json(read_text(path, "certificate"), source)
     cert = certificate_from_doc(doc, source)  # schema and digest: an accident shows here
     if cert.approval is None:
         raise LabcalError(f"{source}: not approved (a DRAFT): nothing to verify; "
                           "`labcal certificate approve` signs it")
-    expected = key_id(public)
-    if cert.approval.key_id != expected:
-        raise LabcalError(f"{source}: signed by another key (key id {cert.approval.key_id[:12]}…, this "
-                          f"public key is {expected[:12]}…)")
+    return doc, cert
+
+
+def _signature_holds(doc: dict, cert: Certificate, public: Ed25519PublicKey, source: str) -> None:
+    assert cert.approval is not None
     try:
         public.verify(base64.b64decode(cert.approval.signature, validate=True), signed_bytes(doc))
     except (InvalidSignature, ValueError):
         raise LabcalError(f"{source}: the signature does not match the content: the certificate was changed "
                           "after approval") from None
+
+
+def verify_registered(path: str | Path, db: str | Path | None = None) -> Certificate:
+    """The certificate, if it is approved, its signature verifies with the key it names, and that key
+    is registered in the lab database, unrevoked, to the name and role the certificate states;
+    otherwise one line naming every reason."""
+    from labcal.documents import approvers
+
+    source = str(path)
+    doc, cert = _signed_certificate(path)
+    approval = cert.approval
+    assert approval is not None
+    registered = approvers.by_key(approval.key_id, db)
+    if registered is not None:
+        _signature_holds(doc, cert, registered.public_key(), source)
+    reasons = approvers.problems(approval.key_id, approval.by, approval.role, db)
+    if reasons:
+        raise LabcalError(f"{source}: signature not accepted: {'; '.join(reasons)}")
     return cert
+
+
+def check_dcc(cert: Certificate, dcc_path: str | Path) -> None:
+    """The DCC at ``dcc_path`` is the one the approver signed (its SHA-256 is in the approval)."""
+    approval = cert.approval
+    if approval is None or approval.dcc_sha256 is None:
+        raise LabcalError(f"{dcc_path}: the certificate's approval does not cover a DCC (approved before "
+                          "labcal signed the DCC too)")
+    try:
+        actual = dcc_sha256(Path(dcc_path).read_bytes())
+    except OSError as exc:
+        raise LabcalError(f"{dcc_path}: cannot read the DCC ({exc.strerror})") from None
+    if actual != approval.dcc_sha256:
+        raise LabcalError(f"{dcc_path}: the DCC is not the one approved (sha256 {actual[:12]}…, signed "
+                          f"{approval.dcc_sha256[:12]}…): it was changed after approval")
+
+
+def verify(path: str | Path, public: Ed25519PublicKey) -> Certificate:
+    """The certificate, if it is approved and its signature verifies with ``public``; otherwise one
+    line saying what is wrong (edited, signed by another key, not approved)."""
+    source = str(path)
+    doc, cert = _signed_certificate(path)
+    assert cert.approval is not None
+    expected = key_id(public)
+    if cert.approval.key_id != expected:
+        raise LabcalError(f"{source}: signed by another key (key id {cert.approval.key_id[:12]}…, this "
+                          f"public key is {expected[:12]}…)")
+    _signature_holds(doc, cert, public, source)
+    return cert
+
+
+# --- using a certificate ----------------------------------------------------------------------------
+def calibration_in_use(path: str | Path, db: str | Path | None = None, unverified: bool = False
+                       ) -> tuple[Calibration, dict | None]:
+    """The calibration in a fit JSON or a certificate, for converting voltages, and what the
+    certificate's standing is (None: a fit JSON, no certificate). An approved certificate is used only
+    if its signature is by a key registered in the lab database to the name and role it states
+    (`verify_registered`); ``unverified`` uses it anyway, and the standing says so and why."""
+    from labcal.analysis.attitude import calibration_from_json
+    from labcal.documents.certificate import is_certificate
+
+    source = str(path)
+    doc = parse_json(read_text(path, "calibration"), source)
+    if not is_certificate(doc):
+        return calibration_from_json(doc.get("fit", doc) if isinstance(doc, dict) else doc, path), None
+    cert = certificate_from_doc(doc, source)  # schema and digest: an accident never converts a voltage
+    standing = {"number": cert.number, "approved": cert.approval is not None, "verified": False,
+                "note": "DRAFT: not approved"}
+    if cert.approval is not None:
+        try:
+            verify_registered(path, db)
+            standing.update(verified=True, note=f"signed by {cert.approval.by} ({cert.approval.role}), "
+                                                "a registered approver")
+        except LabcalError as exc:
+            if not unverified:
+                raise
+            standing["note"] = f"UNVERIFIED (used with --unverified): {exc}"
+    return cert.calibration(), standing

@@ -388,6 +388,8 @@ class Approval(_Strict):
     algorithm: Literal["Ed25519"]
     key_id: str = Field(pattern="^[0-9a-f]{64}$")
     signature: str
+    # SHA-256 of the DCC written with the approval, signed with the rest (None: approved before)
+    dcc_sha256: str | None = Field(default=None, pattern="^[0-9a-f]{64}$", exclude_if=_absent)
 
 
 class Digest(_Strict):
@@ -398,6 +400,8 @@ class Digest(_Strict):
 class Certificate(_Strict):
     model_config = ConfigDict(validate_by_alias=True, validate_by_name=True, serialize_by_alias=True)
 
+    # First, so that the document's first line says it: a dry run's results are simulated (issue 23)
+    notice: str | None = Field(default=None, exclude_if=_absent)
     schema_id: Literal["labcal.certificate/1"] = Field(alias="schema")
     certificate_id: str
     labcal_version: str

@@ -3,9 +3,13 @@ schema with D-SI 2.1.0 units, validated against the schema when it is written.
 
 Every coefficient is an `si:real` with its expanded uncertainty, coverage factor and probability;
 each sensor's four coefficients form an `si:realList` whose `si:ellipsoidalRegion` carries their
-4×4 covariance. The inputs are gravity normalised to 1 g, so bias and sensitivity are both in volts
-(\\volt: volts at 1 g). The attitude U95 of the usage envelope is in \\degree. The administrative
-data are the certificate's (ISO/IEC 17025 §7.8.2.1). The schemas ship with labcal
+4×4 covariance. The inputs are gravity normalised to 1 g, so the fit's sensitivities are volts per g;
+D-SI has no g, so the DCC states them in \\volt\\metre\\tothe{-1}\\second\\tothe{2} (V per m s⁻²)
+through the standard acceleration of gravity (`STANDARD_GRAVITY`), and says so in a statement; the
+bias is in \\volt. The attitude U95 of the usage envelope is in \\degree. The administrative
+data are the certificate's (ISO/IEC 17025 §7.8.2.1), its statements in ``dcc:statements``; a dry
+run's first statement (``refType`` labcal_simulatedData, and a comment before the root element) says
+its data are simulated. The schemas ship with labcal
 (`dcc_schema/`), so validation never needs the network. Validation is libxml2's (lxml), a complete
 XSD 1.0 validator that compiles the schema in milliseconds where xmlschema took most of a second on
 every issue; the tests check the documents with xmlschema against their own copy of the schema, so
@@ -14,6 +18,7 @@ two validators written by others agree on every DCC labcal issues.
 
 from __future__ import annotations
 
+import hashlib
 import xml.etree.ElementTree as ET
 from functools import cache
 from importlib import resources
@@ -31,6 +36,24 @@ DCC = "https://ptb.de/dcc"
 SI = "https://ptb.de/si"
 SCHEMA_VERSION = "3.2.0"
 DCC_FILE = "certificate.dcc.xml"
+# D-SI has no unit g. Gravity is normalised to 1 g in the fit, so S is in volts per g; the DCC states
+# it per m s⁻² through the standard acceleration of gravity g_n = 9.80665 m s⁻² (exact, by convention:
+# 3rd CGPM, 1901), a documented quotient: S_SI = S / g_n, U and covariance scaled alike. The bias row
+# stays in volts.
+STANDARD_GRAVITY = 9.80665
+PER_UNIT = np.array([1.0, 1 / STANDARD_GRAVITY, 1 / STANDARD_GRAVITY, 1 / STANDARD_GRAVITY])
+SENSITIVITY_UNIT = "\\volt\\metre\\tothe{-1}\\second\\tothe{2}"  # V/(m s⁻²)
+UNIT = ("\\volt", SENSITIVITY_UNIT, SENSITIVITY_UNIT, SENSITIVITY_UNIT)
+# covariance of (bias, bias), (bias, sensitivity), (sensitivity, sensitivity)
+COVARIANCE_UNIT = ("\\volt\\tothe{2}", "\\volt\\tothe{2}\\metre\\tothe{-1}\\second\\tothe{2}",
+                   "\\volt\\tothe{2}\\metre\\tothe{-2}\\second\\tothe{4}")
+SENSITIVITY_STATEMENT = (
+    "Sensitivities are fitted against gravity normalised to 1 g (the local gravity at the calibration, "
+    "whose value cancels in attitude) and are stated in V/(m s⁻²) as S/g_n with the standard acceleration "
+    f"of gravity g_n = {STANDARD_GRAVITY!r} m s⁻² (3rd CGPM, 1901): multiply by g_n for volts per g. They "
+    "are the response to the direction of gravity, not a calibration of the response to an acceleration "
+    "of a given magnitude in m s⁻².")
+SIMULATED_REF_TYPE = "labcal_simulatedData"  # dcc:statement/@refType of a dry run's notice
 UNKNOWN_COUNTRY = "ZZ"  # ISO 3166 user-assigned: the lab file states no country_code
 ET.register_namespace("dcc", DCC)
 ET.register_namespace("si", SI)
@@ -106,6 +129,18 @@ def _administrative(root: ET.Element, cert: Certificate) -> None:
     customer = _d(admin, "customer")
     _text(customer, "name", (a.customer if a else None) or "not stated")
     _text(_d(customer, "location"), "further", "not stated")
+    statements = _d(admin, "statements")
+    if cert.notice:  # the first statement of a dry run's DCC says its data are simulated
+        statement = _d(statements, "statement", None)
+        statement.set("refType", SIMULATED_REF_TYPE)
+        _text(statement, "name", "Simulated data")
+        _text(statement, "declaration", cert.notice)
+    for text in cert.statements:
+        if text != cert.notice:
+            _text(_d(statements, "statement"), "declaration", text)
+    unit = _d(statements, "statement")
+    unit.set("refType", "labcal_sensitivityUnit")
+    _text(unit, "declaration", SENSITIVITY_STATEMENT)
 
 
 def _results(root: ET.Element, cert: Certificate) -> None:
@@ -120,23 +155,25 @@ def _results(root: ET.Element, cert: Certificate) -> None:
     k = cert.expanded_uncertainty.k
     for j, sensor in enumerate(SENSORS):
         entry = _d(results, "result")
-        _text(entry, "name", f"sensor {sensor}: bias and sensitivity to g_x, g_y, g_z (volts at 1 g)")
+        _text(entry, "name", f"sensor {sensor}: bias (V) and sensitivity to the acceleration components "
+                             "a_x, a_y, a_z (V per m s⁻², fitted per g and stated per standard gravity g_n = "
+                             f"{STANDARD_GRAVITY!r} m s⁻²)")
         values = _s(_s(_d(_d(entry, "data"), "quantity"), "list"), "realList")
         for i, row in enumerate(ROW_NAMES):
             real = _s(values, "real")
             _s(real, "label", f"{row}_{sensor}")
-            _s(real, "value", _number(X[i, j]))
-            _s(real, "unit", "\\volt")
-            _expanded(real, U[i, j], k[j])
-        covariance = np.array(cert.fit.covariance[j])[:4, :4]
+            _s(real, "value", _number(X[i, j] * PER_UNIT[i]))
+            _s(real, "unit", UNIT[i])
+            _expanded(real, U[i, j] * PER_UNIT[i], k[j])
+        covariance = np.array(cert.fit.covariance[j])[:4, :4] * np.outer(PER_UNIT, PER_UNIT)
         region = _s(values, "ellipsoidalRegion")
         matrix = _s(region, "covarianceMatrix")
-        for column in covariance.T:
+        for c, column in enumerate(covariance.T):
             col = _s(matrix, "column")
-            for value in column:
+            for r, value in enumerate(column):
                 cov = _s(col, "covariance")
                 _s(cov, "value", _number(value))
-                _s(cov, "unit", "\\volt\\tothe{2}")
+                _s(cov, "unit", COVARIANCE_UNIT[min(r, 1) + min(c, 1)])
         _s(region, "coverageFactor", _number(k[j]))
         _s(region, "coverageProbability", "0.95")
     for total in cert.uncertainty_budget.totals if cert.uncertainty_budget else []:
@@ -154,7 +191,11 @@ def dcc_document(cert: Certificate) -> bytes:
     _administrative(root, cert)
     _results(root, cert)
     ET.indent(root)
-    return ET.tostring(root, encoding="utf-8", xml_declaration=True)
+    document = ET.tostring(root, encoding="utf-8", xml_declaration=True)
+    if cert.notice:  # said before the document too, where a reader of the file looks first
+        declaration, rest = document.split(b"\n", 1)
+        document = declaration + b"\n<!-- " + cert.notice.encode("utf-8") + b" -->\n" + rest
+    return document
 
 
 @cache
@@ -184,4 +225,8 @@ def write_dcc(path: Path, cert: Certificate) -> Path:
     if why is not None:
         raise LabcalError(f"{path}: the Digital Calibration Certificate fails PTB's DCC {SCHEMA_VERSION} "
                           f"schema ({why}); nothing was written — report this with the run directory")
+    signed = cert.approval.dcc_sha256 if cert.approval else None
+    if signed is not None and hashlib.sha256(document).hexdigest() != signed:
+        raise LabcalError(f"{path}: the DCC made of the approved certificate is not the one its approver "
+                          "signed (another labcal?); nothing was written — approve it again")
     return write_atomic(path, document)

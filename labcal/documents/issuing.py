@@ -46,6 +46,7 @@ from labcal.documents.certificate import (
     UncertaintyBudget,
     seal,
 )
+from labcal.documents.simulated import NOTICE as SIMULATED_NOTICE
 from labcal.documents.uncertainty import budget, stated_U95_arcsec
 from labcal.errors import LabcalError
 from labcal.run.record import RunRecord
@@ -306,12 +307,15 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
     except (TypeError, ValueError):
         raise LabcalError(f"{run_dir}: run.json started_utc {calibrated!r} is not an ISO 8601 time") from None
     admin = administration(record, section or CertificateSection(), item or ItemGiven(), serial)
-    statements = list(STATEMENTS) + ([model_note[0].upper() + model_note[1:] + "."] if model_note else [])
+    notice = SIMULATED_NOTICE if record.simulated else None
+    statements = [notice] * (notice is not None) + list(STATEMENTS) \
+        + ([model_note[0].upper() + model_note[1:] + "."] if model_note else [])
     day = datetime.fromisoformat(calibrated).date()
     statements += [f"Reference standard {t.equipment} (certificate {t.certificate}) was past its calibration "
                    f"due date {t.due.isoformat()} on the calibration date."
                    for t in admin.traceability if t.due < day]
     content = {
+        "notice": notice,
         "schema": SCHEMA,
         "certificate_id": f"{serial}-{stamp}-{record.readings_sha256[:8]}" + (f"-R{revision}" if revision > 1
                                                                               else ""),

@@ -47,6 +47,7 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 CERTIFICATE = "certificate.json"
+SIMULATED_WORD = "SIMULATED"  # heads every page of a dry run's report (its notice says why)
 REPORT_HTML = "report.html"
 REPORT_PDF = "report.pdf"
 UNITS = ("V", "V/g", "V/g", "V/g")
@@ -503,8 +504,10 @@ def render_html(cert: Certificate, figs: list[DrawnFigure], extra: tuple[Table, 
     """One HTML file with inline CSS and inline PNG plots: it opens offline and can be mailed alone."""
     verdict = verdict_text(cert)
     css_class = "none" if cert.conformity is None else ("pass" if cert.conformity.passed else "fail-v")
-    parts = [f"<!DOCTYPE html><html lang=\"en\"><head><meta charset=\"utf-8\"><title>Calibration certificate "
-             f"{html.escape(cert.certificate_id)}</title><style>{CSS}</style></head><body>",
+    simulated = f"{SIMULATED_WORD} — " if cert.notice else ""
+    parts = [f"<!DOCTYPE html><html lang=\"en\"><head><meta charset=\"utf-8\"><title>{simulated}Calibration "
+             f"certificate {html.escape(cert.certificate_id)}</title><style>{CSS}</style></head><body>",
+             *([f"<p class=\"verdict fail-v\">{html.escape(cert.notice)}</p>"] if cert.notice else []),
              f"<h1>Calibration certificate and report</h1><p>{html.escape(cert.number)} · "
              f"instrument {html.escape(cert.instrument.serial)} · "
              f"<strong>{html.escape(_status(cert))}</strong></p>"
@@ -552,8 +555,10 @@ def render_pdf(cert: Certificate, figs: list[DrawnFigure], extra: tuple[Table, .
                  ("Electronic signature", f"{a.algorithm}, key {a.key_id[:16]}…" if a else "—"),
                  ("Certificate content", f"sha256 {cert.digest.value}")]
     return render(CertificateDocument(
-        heading="Calibration certificate", number=cert.number, status=_status(cert), draft=cert.draft,
-        first_lines=[verdict_text(cert)], alerts=overdue_standards(cert), tables=[*tables(cert), *extra],
+        heading=f"{SIMULATED_WORD} — Calibration certificate" if cert.notice else "Calibration certificate",
+        number=cert.number, status=_status(cert), draft=cert.draft,
+        first_lines=[*([cert.notice] if cert.notice else []), verdict_text(cert)],
+        alerts=overdue_standards(cert), tables=[*tables(cert), *extra],
         paragraphs=[cert.method, *cert.statements, *cert.fit.notes], figures=figs, signature=signature,
         title=f"Calibration certificate {cert.certificate_id}",
         subject=f"instrument {cert.instrument.serial}"))

@@ -40,6 +40,7 @@ from labcal.documents.certificate import (
     MonteCarloCheck,
     UncertaintyBudget,
 )
+from labcal.documents.simulated import with_simulator_inputs
 from labcal.run.record import RunRecord
 
 ANGLES: tuple[Literal["pitch", "roll"], ...] = ("pitch", "roll")
@@ -54,16 +55,18 @@ METHOD = ("GUM (JCGM 100) budget: each source's elementary inputs propagate thro
 
 def bench_section(record: RunRecord, station: str | Path | None) -> CertificateSection:
     """What the certificate takes from a station file: the one given, else the station the run was
-    journaled with (a dry run on the simulated rig has none: no Type B inputs)."""
+    journaled with; a dry run's Type B inputs are the simulator's (`labcal.documents.simulated`)."""
     if station is not None:
         return load_certificate_section(station)
     try:
         doc = json.loads(record.station_text) if record.station_text else {}
     except json.JSONDecodeError:
         doc = {}
+    section = CertificateSection()
     if isinstance(doc, dict) and doc.get("kind") == "station":
-        return validate_model(doc["station"], CertificateSection, f"{record.directory}: the run's station")
-    return CertificateSection()
+        section = validate_model(doc["station"], CertificateSection, f"{record.directory}: the run's station")
+    # a dry run: the simulator's own error sources at their simulated sizes (issue 23)
+    return with_simulator_inputs(section, record.station_text, record.meta.get("settings") or {})
 
 
 def type_b_inputs(section: CertificateSection, record: RunRecord, device: DeviceFit | None = None

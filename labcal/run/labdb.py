@@ -110,6 +110,22 @@ def _v3_device_estimates(db: sqlite3.Connection) -> None:
     db.execute("CREATE INDEX device_estimates_by_date ON device_estimates (device_id, calibrated_utc)")
 
 
+def _v4_approvers(db: sqlite3.Connection) -> None:
+    # One row per registration: a revoked row stays (it names who signed the certificates of the
+    # past); a name is active at most once and a key is registered once, ever, so that a key can
+    # never sign under two names and a revoked key never comes back.
+    db.execute("""CREATE TABLE approvers (
+    id INTEGER PRIMARY KEY,
+    name TEXT NOT NULL,
+    role TEXT NOT NULL,
+    public_key TEXT NOT NULL,
+    key_id TEXT NOT NULL UNIQUE,
+    added_utc TEXT NOT NULL,
+    revoked_utc TEXT
+)""")
+    db.execute("CREATE UNIQUE INDEX approvers_active_name ON approvers (name) WHERE revoked_utc IS NULL")
+
+
 MIGRATIONS: tuple[Migration, ...] = (
     Migration(1, "index events by run: `Journal.events(run)` (the audit trail of prompts, faults, "
                  "retries and pauses) read the whole lab's events table for every run, and "
@@ -126,6 +142,11 @@ MIGRATIONS: tuple[Migration, ...] = (
                  "the misalignments a…k per calibration-device id, for `labcal device history`. A new "
                  "table only, so the previous labcal still reads and writes a version-2 file.",
               _v3_device_estimates),
+    Migration(4, "approvers registered by the lab (issue 23): name, role and Ed25519 public key of each "
+                 "person who may approve a certificate, with the time of registration and of revocation, "
+                 "so that `certificate approve` and `attitude --cert` accept only signatures by a "
+                 "registered, unrevoked key under its own name and role. A new table only.",
+              _v4_approvers),
 )
 SCHEMA_VERSION = MIGRATIONS[-1].version
 

@@ -43,7 +43,15 @@ class RunRecord:
 
     @property
     def simulated(self) -> bool:
-        return "simulated_truth" in self.meta
+        """A dry run: on the simulated rig or its emulators, by its metadata or its station snapshot
+        (either is enough: a run folder's run.json edited cannot make the journal's station real)."""
+        if "simulated_truth" in self.meta:
+            return True
+        try:
+            doc = json.loads(self.station_text) if self.station_text else {}
+        except json.JSONDecodeError:
+            return False
+        return isinstance(doc, dict) and (doc.get("kind") == "simulated rig" or bool(doc.get("emulate")))
 
 
 def readings_digest(points) -> str:

@@ -1,0 +1,144 @@
+"""The people who may approve a certificate: name, role and Ed25519 public key, registered in the lab
+database by a lab administrator (issue 23).
+
+A signature alone proves only that someone holding some key signed; the registry says whose key it
+is. `certificate approve` signs only with a registered, unrevoked key under the name and role it is
+registered with, and `labcal attitude --cert` / `certificate verify` accept an approved certificate
+only when its key is registered and unrevoked and the name and role it states are the key's.
+
+A registration is never deleted: revoking one keeps the row (with its time), so the registry still
+says who held a key. A key is registered once, ever (a revoked key never comes back, and no key
+signs under two names); a name has at most one active key.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+from contextlib import closing
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+
+from labcal.documents.approval import key_id, load_public_key
+from labcal.errors import LabcalError
+from labcal.run import labdb
+from labcal.run.journal import db_path
+
+COLUMNS = "name, role, public_key, key_id, added_utc, revoked_utc"
+
+
+@dataclass(frozen=True)
+class Approver:
+    name: str
+    role: str
+    public_key_pem: str
+    key_id: str
+    added_utc: str
+    revoked_utc: str | None
+
+    @property
+    def active(self) -> bool:
+        return self.revoked_utc is None
+
+    def public_key(self) -> Ed25519PublicKey:
+        key = serialization.load_pem_public_key(self.public_key_pem.encode("ascii"))
+        assert isinstance(key, Ed25519PublicKey)  # only Ed25519 keys are ever registered
+        return key
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "role": self.role, "key_id": self.key_id, "added_utc": self.added_utc,
+                "revoked_utc": self.revoked_utc, "public_key": self.public_key_pem}
+
+
+def _now() -> str:
+    return datetime.now(UTC).isoformat(timespec="seconds")
+
+
+def add(name: str, role: str, public_key_file: str | Path, db: str | Path | None = None) -> Approver:
+    """Register ``name`` (``role``) with the public key in ``public_key_file``."""
+    name, role = name.strip(), role.strip()
+    if not name or not role:
+        raise LabcalError("give the approver's name and --role (neither may be empty)")
+    public = load_public_key(public_key_file)
+    pem = public.public_bytes(serialization.Encoding.PEM,
+                              serialization.PublicFormat.SubjectPublicKeyInfo).decode("ascii")
+    kid = key_id(public)
+    path = db_path(db)
+    with closing(labdb.connect(path)) as conn:
+        for known in _rows(conn, "WHERE key_id = ? OR (name = ? AND revoked_utc IS NULL)", (kid, name)):
+            if known.key_id == kid:
+                state = "registered" if known.active else f"revoked on {known.revoked_utc}"
+                raise LabcalError(f"{public_key_file}: this key (id {kid[:12]}…) is already {state} for "
+                                  f"{known.name}; a key is registered once (make a new pair with `labcal "
+                                  "certificate keygen`)")
+            raise LabcalError(f"{name}: already registered with key {known.key_id[:12]}…; `labcal "
+                              f"certificate approvers revoke {name!r}` first to give them a new key")
+        approver = Approver(name, role, pem, kid, _now(), None)
+        try:
+            conn.execute(f"INSERT INTO approvers ({COLUMNS}) VALUES (?, ?, ?, ?, ?, ?)",
+                         (approver.name, approver.role, approver.public_key_pem, approver.key_id,
+                          approver.added_utc, approver.revoked_utc))
+        except sqlite3.IntegrityError:  # another administrator registered the same name or key meanwhile
+            raise LabcalError(f"{name}: registered meanwhile by someone else; `labcal certificate approvers "
+                              "list` says by whom") from None
+    return approver
+
+
+def revoke(name: str, db: str | Path | None = None) -> Approver:
+    """Revoke ``name``'s active key: it approves and verifies nothing from now on."""
+    path = db_path(db)
+    with closing(labdb.connect(path)) as conn:
+        active = _rows(conn, "WHERE name = ? AND revoked_utc IS NULL", (name,))
+        if not active:
+            names = [a.name for a in _rows(conn, "WHERE revoked_utc IS NULL", ())]
+            raise LabcalError(f"{name}: no active approver of that name in {path}; active: "
+                              f"{', '.join(names) if names else 'none'}")
+        when = _now()
+        conn.execute("UPDATE approvers SET revoked_utc = ? WHERE name = ? AND revoked_utc IS NULL",
+                     (when, name))
+    a = active[0]
+    return Approver(a.name, a.role, a.public_key_pem, a.key_id, a.added_utc, when)
+
+
+def listed(db: str | Path | None = None) -> list[Approver]:
+    """Every registration, active and revoked, in the order they were made (a missing database:
+    none, and nothing is created)."""
+    path = db_path(db)
+    if not path.is_file():
+        return []
+    with closing(labdb.connect(path)) as conn:
+        return _rows(conn, "ORDER BY id", ())
+
+
+def by_key(kid: str, db: str | Path | None = None) -> Approver | None:
+    """The registration of the key with id ``kid`` (active or revoked), if any."""
+    path = db_path(db)
+    if not path.is_file():
+        return None
+    with closing(labdb.connect(path)) as conn:
+        found = _rows(conn, "WHERE key_id = ?", (kid,))
+    return found[0] if found else None
+
+
+def _rows(conn: sqlite3.Connection, where: str, params: tuple) -> list[Approver]:
+    return [Approver(*row) for row in conn.execute(f"SELECT {COLUMNS} FROM approvers {where}", params)]
+
+
+def problems(kid: str, name: str, role: str, db: str | Path | None = None) -> list[str]:
+    """Why a key with id ``kid`` may not sign (or have signed) as ``name`` (``role``): not registered,
+    revoked, registered to another name or another role. Empty: it may."""
+    approver = by_key(kid, db)
+    if approver is None:
+        return [f"key {kid[:12]}… is not registered (a lab administrator registers it: `labcal certificate "
+                "approvers add NAME --role ROLE --public-key FILE`)"]
+    found = []
+    if not approver.active:
+        found.append(f"key {kid[:12]}… of {approver.name} was revoked on {approver.revoked_utc}")
+    if approver.name != name.strip():
+        found.append(f"key {kid[:12]}… is registered to {approver.name!r}, not {name.strip()!r}")
+    if approver.role != role.strip():
+        found.append(f"{approver.name}'s registered role is {approver.role!r}, not {role.strip()!r}")
+    return found

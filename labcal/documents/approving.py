@@ -1,0 +1,121 @@
+"""Approving a run's certificate: the use case behind `labcal certificate approve` (issue 23).
+
+What is signed must be what the journal says. The draft in the run folder is a file anybody with
+access can edit, and its SHA-256 digest can be recomputed by whoever edits it, so approval does not
+trust it: it rebuilds the certificate from the journal with the draft's own issuing choices (the
+usage envelope, the tolerances, the item's details, the Monte Carlo trials, the issue time and
+revision) and the Type B inputs of the run's station (or of ``--station``, as `labcal report` took
+them), and signs only a draft that the rebuild reproduces. Everything a draft states that comes
+from the measurement — fit, uncertainties, budget, conformity, story — is recomputed, so an edited
+value shows as a difference whatever the editor did to the digest.
+
+A simulated run is never approved, a key must be registered, unrevoked, and registered to the name
+and role given (`labcal.documents.approvers`). Every reason that applies is named in one line, so
+the approver learns at once everything that stands in the way.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from labcal.config.settings import CertificateSettings
+from labcal.documents import approvers
+from labcal.documents.administration import ItemGiven
+from labcal.documents.approval import approve, key_id, load_private_key
+from labcal.documents.certificate import Certificate, read_certificate
+from labcal.documents.issuing import build_certificate
+from labcal.documents.report import CERTIFICATE, RunOutputs, fitted, write_documents
+from labcal.documents.uncertainty import bench_section, type_b_inputs
+from labcal.errors import LabcalError
+from labcal.run.record import RunRecord, load_run
+
+RELATIVE = 1e-9  # numbers a rebuild reproduces agree to rounding; an edit is far larger
+SIMULATED = ("the run is simulated (a dry run on the simulated rig or its emulators): its readings are not a "
+             "calibration of the instrument and are never approved")
+
+
+def issue_settings(draft: Certificate) -> CertificateSettings:
+    """The certificate settings the draft was issued with, as it states them."""
+    checks = draft.conformity.checks if draft.conformity else []
+    return CertificateSettings(
+        laboratory=draft.laboratory,
+        attitude_u95_max_deg=next((c.limit for c in checks if c.unit == "°"), None),
+        bias_max_v=next((c.limit for c in checks if c.unit == "V"), None),
+        usage_pitch_deg=draft.attitude.usage_pitch_deg, usage_roll_deg=draft.attitude.usage_roll_deg,
+        grid_step_deg=draft.attitude.grid_step_deg)
+
+
+def rebuild(record: RunRecord, draft: Certificate, station: str | Path | None = None) -> Certificate:
+    """The certificate `labcal report` makes of the journal's run with the draft's issuing choices."""
+    fit, device, model_note = fitted(record)
+    section = bench_section(record, station)
+    admin = draft.administration
+    item = ItemGiven() if admin is None else ItemGiven(admin.customer, admin.item.manufacturer or None,
+                                                       admin.item.model or None, admin.item.received)
+    checks = draft.uncertainty_budget.monte_carlo if draft.uncertainty_budget else None
+    return build_certificate(
+        record, fit, issue_settings(draft), serial=draft.instrument.serial, operator=draft.operator,
+        issued_utc=draft.issued_utc, inputs=type_b_inputs(section, record, device),
+        monte_carlo=checks[0].trials if checks else 0, revision=draft.revision or 1, replaces=draft.replaces,
+        section=section, item=item, device=device, model_note=model_note)
+
+
+def differences(a: object, b: object, path: str = "") -> list[str]:
+    """Where two JSON documents differ (numbers to `RELATIVE`), as dotted paths."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return [d for k in sorted(set(a) | set(b)) for d in differences(a.get(k), b.get(k), f"{path}.{k}")]
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        return [d for i, (x, y) in enumerate(zip(a, b, strict=True))
+                for d in differences(x, y, f"{path}[{i}]")]
+    numbers = (int, float)
+    if isinstance(a, numbers) and isinstance(b, numbers) and bool not in (type(a), type(b)):
+        return [] if math.isclose(a, b, rel_tol=RELATIVE, abs_tol=1e-300) else [path.lstrip(".")]
+    return [] if a == b else [path.lstrip(".")]
+
+
+def _sections(paths: list[str]) -> str:
+    """The differing top-level sections, each with its first differing field."""
+    first: dict[str, str] = {}
+    for p in paths:
+        first.setdefault(p.split(".")[0].split("[")[0], p)
+    return ", ".join(first.values())
+
+
+def approve_run(run_dir: str | Path, by: str, role: str, key_path: str | Path, db: str | Path | None = None,
+                station: str | Path | None = None) -> RunOutputs:
+    """Sign the run's draft certificate and write every document again, or one line naming every
+    reason it may not be signed: a simulated run, a draft the journal does not reproduce, a key that
+    is not registered, revoked, or registered to another name or role."""
+    key = load_private_key(key_path)  # before anything is read or written
+    record = load_run(run_dir)
+    path = Path(run_dir) / CERTIFICATE
+    reasons = [SIMULATED] if record.simulated else []
+    draft: Certificate | None = None
+    try:
+        draft = read_certificate(path)
+    except LabcalError as exc:
+        reasons.append(f"certificate.json cannot be signed ({str(exc).removeprefix(f'{path}: ')})")
+    if draft is not None and draft.approval is not None:
+        raise LabcalError(f"certificate {draft.number} is already approved by {draft.approval.by}; a change "
+                          "is a new revision (`labcal report` issues it)")
+    if draft is not None:
+        try:
+            rebuilt = rebuild(record, draft, station)
+        except LabcalError as exc:
+            reasons.append(f"the certificate cannot be rebuilt from the journal ({exc})")
+        else:
+            found = differences({k: v for k, v in draft.to_json().items() if k != "digest"},
+                                {k: v for k, v in rebuilt.to_json().items() if k != "digest"})
+            if found:
+                reasons.append(f"certificate.json is not what the journal gives (differs in "
+                               f"{_sections(found)}): edited after issue, or issued with another "
+                               f"station file (give it with --station) or another labcal; "
+                               f"`labcal report {run_dir}` issues it again")
+    reasons += approvers.problems(key_id(key.public_key()), by, role, db)
+    if reasons:
+        raise LabcalError(f"{run_dir}: not approved: " + "; ".join(reasons))
+    assert draft is not None
+    cert = approve(draft, by, role, key)
+    fit, device, _ = fitted(record)
+    return write_documents(cert, record, fit, device, db)
