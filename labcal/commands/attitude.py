@@ -37,7 +37,7 @@ def cmd_attitude(args: argparse.Namespace) -> int:
     from labcal.analysis import attitude
     from labcal.commands.common import err
     from labcal.config.readings_csv import read_numeric_csv
-    from labcal.documents.approval import calibration_in_use
+    from labcal.documents.approvers import calibration_in_use
 
     cal, standing = calibration_in_use(args.cert, args.db, args.unverified)
     unverified = standing is not None and standing["approved"] and not standing["verified"]

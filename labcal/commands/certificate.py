@@ -81,7 +81,8 @@ def cmd_approvers_revoke(args: argparse.Namespace) -> int:
 def cmd_verify(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from labcal.documents.approval import check_dcc, load_public_key, verify, verify_registered
+    from labcal.documents.approval import check_dcc, load_public_key, verify
+    from labcal.documents.approvers import verify_registered
     from labcal.documents.dcc import DCC_FILE
 
     cert = (verify_registered(args.file, args.db) if args.public_key is None

@@ -8,7 +8,7 @@ verification against the laboratory's public key. The signed approval also holds
 the Digital Calibration Certificate written with it (``dcc_sha256``), so the signature covers both
 files: an edited DCC no longer matches the digest the approver signed.
 
-Whose key signed is the lab database's to say (`labcal.documents.approvers`): `verify_registered`
+Whose key signed is the lab database's to say: `labcal.documents.approvers.verify_registered`
 accepts a signature only by a registered, unrevoked key whose registered name and role are the ones
 the certificate states.
 
@@ -30,7 +30,6 @@ from cryptography.exceptions import InvalidSignature, UnsupportedAlgorithm
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
-from labcal.analysis.attitude import Calibration
 from labcal.config.files import read_text
 from labcal.documents.certificate import Certificate, certificate_from_doc, parse_json, seal
 from labcal.errors import LabcalError
@@ -145,7 +144,7 @@ def dcc_sha256(document: bytes) -> str:
     return hashlib.sha256(document).hexdigest()
 
 
-def _signed_certificate(path: str | Path) -> tuple[dict, Certificate]:
+def signed_certificate(path: str | Path) -> tuple[dict, Certificate]:
     source = str(path)
     doc = parse_json(read_text(path, "certificate"), source)
     cert = certificate_from_doc(doc, source)  # schema and digest: an accident shows here
@@ -155,32 +154,13 @@ def _signed_certificate(path: str | Path) -> tuple[dict, Certificate]:
     return doc, cert
 
 
-def _signature_holds(doc: dict, cert: Certificate, public: Ed25519PublicKey, source: str) -> None:
+def signature_holds(doc: dict, cert: Certificate, public: Ed25519PublicKey, source: str) -> None:
     assert cert.approval is not None
     try:
         public.verify(base64.b64decode(cert.approval.signature, validate=True), signed_bytes(doc))
     except (InvalidSignature, ValueError):
         raise LabcalError(f"{source}: the signature does not match the content: the certificate was changed "
                           "after approval") from None
-
-
-def verify_registered(path: str | Path, db: str | Path | None = None) -> Certificate:
-    """The certificate, if it is approved, its signature verifies with the key it names, and that key
-    is registered in the lab database, unrevoked, to the name and role the certificate states;
-    otherwise one line naming every reason."""
-    from labcal.documents import approvers
-
-    source = str(path)
-    doc, cert = _signed_certificate(path)
-    approval = cert.approval
-    assert approval is not None
-    registered = approvers.by_key(approval.key_id, db)
-    if registered is not None:
-        _signature_holds(doc, cert, registered.public_key(), source)
-    reasons = approvers.problems(approval.key_id, approval.by, approval.role, db)
-    if reasons:
-        raise LabcalError(f"{source}: signature not accepted: {'; '.join(reasons)}")
-    return cert
 
 
 def check_dcc(cert: Certificate, dcc_path: str | Path) -> None:
@@ -202,40 +182,11 @@ def verify(path: str | Path, public: Ed25519PublicKey) -> Certificate:
     """The certificate, if it is approved and its signature verifies with ``public``; otherwise one
     line saying what is wrong (edited, signed by another key, not approved)."""
     source = str(path)
-    doc, cert = _signed_certificate(path)
+    doc, cert = signed_certificate(path)
     assert cert.approval is not None
     expected = key_id(public)
     if cert.approval.key_id != expected:
         raise LabcalError(f"{source}: signed by another key (key id {cert.approval.key_id[:12]}…, this "
                           f"public key is {expected[:12]}…)")
-    _signature_holds(doc, cert, public, source)
+    signature_holds(doc, cert, public, source)
     return cert
-
-
-# --- using a certificate ----------------------------------------------------------------------------
-def calibration_in_use(path: str | Path, db: str | Path | None = None, unverified: bool = False
-                       ) -> tuple[Calibration, dict | None]:
-    """The calibration in a fit JSON or a certificate, for converting voltages, and what the
-    certificate's standing is (None: a fit JSON, no certificate). An approved certificate is used only
-    if its signature is by a key registered in the lab database to the name and role it states
-    (`verify_registered`); ``unverified`` uses it anyway, and the standing says so and why."""
-    from labcal.analysis.attitude import calibration_from_json
-    from labcal.documents.certificate import is_certificate
-
-    source = str(path)
-    doc = parse_json(read_text(path, "calibration"), source)
-    if not is_certificate(doc):
-        return calibration_from_json(doc.get("fit", doc) if isinstance(doc, dict) else doc, path), None
-    cert = certificate_from_doc(doc, source)  # schema and digest: an accident never converts a voltage
-    standing = {"number": cert.number, "approved": cert.approval is not None, "verified": False,
-                "note": "DRAFT: not approved"}
-    if cert.approval is not None:
-        try:
-            verify_registered(path, db)
-            standing.update(verified=True, note=f"signed by {cert.approval.by} ({cert.approval.role}), "
-                                                "a registered approver")
-        except LabcalError as exc:
-            if not unverified:
-                raise
-            standing["note"] = f"UNVERIFIED (used with --unverified): {exc}"
-    return cert.calibration(), standing

@@ -22,7 +22,10 @@ from pathlib import Path
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
-from labcal.documents.approval import key_id, load_public_key
+from labcal.analysis.attitude import Calibration
+from labcal.config.files import read_text
+from labcal.documents.approval import key_id, load_public_key, signature_holds, signed_certificate
+from labcal.documents.certificate import Certificate, certificate_from_doc, parse_json
 from labcal.errors import LabcalError
 from labcal.run import labdb
 from labcal.run.journal import db_path
@@ -142,3 +145,49 @@ def problems(kid: str, name: str, role: str, db: str | Path | None = None) -> li
     if approver.role != role.strip():
         found.append(f"{approver.name}'s registered role is {approver.role!r}, not {role.strip()!r}")
     return found
+
+
+def verify_registered(path: str | Path, db: str | Path | None = None) -> Certificate:
+    """The certificate, if it is approved, its signature verifies with the key it names, and that key
+    is registered in the lab database, unrevoked, to the name and role the certificate states;
+    otherwise one line naming every reason."""
+    source = str(path)
+    doc, cert = signed_certificate(path)
+    approval = cert.approval
+    assert approval is not None
+    registered = by_key(approval.key_id, db)
+    if registered is not None:
+        signature_holds(doc, cert, registered.public_key(), source)
+    reasons = problems(approval.key_id, approval.by, approval.role, db)
+    if reasons:
+        raise LabcalError(f"{source}: signature not accepted: {'; '.join(reasons)}")
+    return cert
+
+
+# --- using a certificate ----------------------------------------------------------------------------
+def calibration_in_use(path: str | Path, db: str | Path | None = None, unverified: bool = False
+                       ) -> tuple[Calibration, dict | None]:
+    """The calibration in a fit JSON or a certificate, for converting voltages, and what the
+    certificate's standing is (None: a fit JSON, no certificate). An approved certificate is used only
+    if its signature is by a key registered in the lab database to the name and role it states
+    (`verify_registered`); ``unverified`` uses it anyway, and the standing says so and why."""
+    from labcal.analysis.attitude import calibration_from_json
+    from labcal.documents.certificate import is_certificate
+
+    source = str(path)
+    doc = parse_json(read_text(path, "calibration"), source)
+    if not is_certificate(doc):
+        return calibration_from_json(doc.get("fit", doc) if isinstance(doc, dict) else doc, path), None
+    cert = certificate_from_doc(doc, source)  # schema and digest: an accident never converts a voltage
+    standing = {"number": cert.number, "approved": cert.approval is not None, "verified": False,
+                "note": "DRAFT: not approved"}
+    if cert.approval is not None:
+        try:
+            verify_registered(path, db)
+            standing.update(verified=True, note=f"signed by {cert.approval.by} ({cert.approval.role}), "
+                                                "a registered approver")
+        except LabcalError as exc:
+            if not unverified:
+                raise
+            standing["note"] = f"UNVERIFIED (used with --unverified): {exc}"
+    return cert.calibration(), standing

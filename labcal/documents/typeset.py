@@ -33,17 +33,25 @@ SHADE = "#eceff3"
 
 
 class TableLike(Protocol):
-    title: str
-    header: list[str]
-    rows: list[list[str]]
-    caption: str
-    emphasis: set[tuple[int, int]]
+    @property
+    def title(self) -> str: ...
+    @property
+    def header(self) -> list[str]: ...
+    @property
+    def rows(self) -> list[list[str]]: ...
+    @property
+    def caption(self) -> str: ...
+    @property
+    def emphasis(self) -> set[tuple[int, int]]: ...
 
 
 class FigureLike(Protocol):
-    title: str
-    size_in: tuple[float, float]
-    png: bytes
+    @property
+    def title(self) -> str: ...
+    @property
+    def size_in(self) -> tuple[float, float]: ...
+    @property
+    def png(self) -> bytes: ...
 
 
 @dataclass(frozen=True)
