@@ -110,6 +110,18 @@ def _v3_device_estimates(db: sqlite3.Connection) -> None:
     db.execute("CREATE INDEX device_estimates_by_date ON device_estimates (device_id, calibrated_utc)")
 
 
+def _v4_settle_pools(db: sqlite3.Connection) -> None:
+    db.execute("""CREATE TABLE settle_pools (
+    pool_key TEXT PRIMARY KEY,
+    identity TEXT NOT NULL,
+    records INTEGER NOT NULL,
+    sources TEXT NOT NULL,
+    mismatch TEXT NOT NULL,
+    sums BLOB NOT NULL,
+    updated_utc TEXT NOT NULL
+)""")
+
+
 MIGRATIONS: tuple[Migration, ...] = (
     Migration(1, "index events by run: `Journal.events(run)` (the audit trail of prompts, faults, "
                  "retries and pauses) read the whole lab's events table for every run, and "
@@ -126,6 +138,10 @@ MIGRATIONS: tuple[Migration, ...] = (
                  "the misalignments a…k per calibration-device id, for `labcal device history`. A new "
                  "table only, so the previous labcal still reads and writes a version-2 file.",
               _v3_device_estimates),
+    Migration(4, "model settling's pooled step records (issue 27): per instrument (or type) and station, "
+                 "the sums `labcal.run.settle.TailPool` keeps over its records, so that a run starts with "
+                 "the records of the runs before it (`labcal.run.settle_pool`). A new table only, so the "
+                 "previous labcal still reads and writes a version-3 file.", _v4_settle_pools),
 )
 SCHEMA_VERSION = MIGRATIONS[-1].version
 
