@@ -73,12 +73,15 @@ def _nearest_neighbour(c: NDArray) -> NDArray:
 def _two_opt(c: NDArray, p: NDArray) -> bool:
     """One pass of 2-opt: for each i, reverse the stretch p[i..j] that gains most, if any."""
     m, improved = len(p), False
+    cf = cb = np.zeros(0)
+    stale = True
     for i in range(1, m - 1):
-        fwd = c[p[:-1], p[1:]]
-        bwd = c[p[1:], p[:-1]]
-        bwd[0] = 0.0  # the start's edge is never reversed (i ≥ 1)
-        cf = np.concatenate([[0.0], np.cumsum(fwd)])
-        cb = np.concatenate([[0.0], np.cumsum(bwd)])
+        if stale:  # the path's running sums, forwards and backwards, after a change
+            stale = False
+            bwd = c[p[1:], p[:-1]]
+            bwd[0] = 0.0  # the start's edge is never reversed (i ≥ 1)
+            cf = np.concatenate([[0.0], np.cumsum(c[p[:-1], p[1:]])])
+            cb = np.concatenate([[0.0], np.cumsum(bwd)])
         j = np.arange(i + 1, m)
         nxt = np.minimum(j + 1, m - 1)
         last = j == m - 1
@@ -88,7 +91,7 @@ def _two_opt(c: NDArray, p: NDArray) -> bool:
         k = int(np.argmax(gain))
         if gain[k] > 1e-9:
             p[i:j[k] + 1] = p[i:j[k] + 1][::-1].copy()
-            improved = True
+            improved = stale = True
     return improved
 
 
