@@ -47,7 +47,7 @@ from labcal.sim.clock import VirtualClock
 from labcal.sim.rig import SimRig
 
 sys.path.insert(0, str(Path(__file__).parent))
-from settle_speed import point_bound, profile  # noqa: E402  (the independent bound, one copy)
+from settle_speed import point_bound  # noqa: E402  (the independent bound, one copy)
 
 
 def steady_rig() -> RigConfig:
@@ -61,7 +61,8 @@ def dry_run(plan, text: str, rig: RigConfig, seed: int, mode: str, db: Path, out
     journals (`labcal.bench.setup.sim_station`), which keys model settling's pool."""
     inst = rig.instrument
     sim = SimRig(rig, seed=seed, clock=VirtualClock())
-    station_text = json.dumps({"kind": "simulated rig", "seed": seed, "rig": rig.model_dump()}, sort_keys=True)
+    station_text = json.dumps({"kind": "simulated rig", "seed": seed, "rig": rig.model_dump()},
+                              sort_keys=True)
     settle = SequencerSettings().settle.model_copy(update={
         "tau_s": inst.tau_s, "noise_v": inst.noise_v, "mode": mode,
         "sensitivity_v_per_g": float(np.max(np.abs(inst.S)))})
@@ -102,8 +103,8 @@ def line(label: str, s: dict, reference: dict | None, z: float | None) -> str:
 
 
 def hours(label: str, plan, text: str, seed: int, model_runs: int) -> None:
-    """Conventional (seed + model_runs − 1... the seed of the model runs' third) and model runs
-    1…model_runs of one instrument, pooled in one lab database."""
+    """A conventional run with the seed of the third model run, and model runs 1…model_runs of one
+    instrument (seeds seed, seed + 1, …), pooled in one lab database."""
     rig = steady_rig()
     paired = seed + 2  # the third model run's seed: the conventional run shares it
     print(f"{label}: rig hours, time between remounts against the physical bound, settling")
@@ -114,8 +115,8 @@ def hours(label: str, plan, text: str, seed: int, model_runs: int) -> None:
         conventional = summary(points, rig, settle)
         print(line(f"conventional (seed {paired})", conventional, None, None))
         for k in range(model_runs):
-            result, points, settle, pooled = dry_run(plan, text, rig, seed + k, "model", folder / "pool.sqlite",
-                                                     folder / f"model-{k}")
+            result, points, settle, pooled = dry_run(plan, text, rig, seed + k, "model",
+                                                     folder / "pool.sqlite", folder / f"model-{k}")
             z = None
             if seed + k == paired:
                 z = float(np.max(np.abs(result.fit.coefficients - conv_result.fit.coefficients)
@@ -198,7 +199,8 @@ def main() -> None:
         plan, text = load_plan("four-mount-64")
         hours("four-mount-64", plan, text, args.seed, 5)
     if args.only in (None, "481"):
-        tripp = make_plan("tripp-481", "", grid(-180, 180, 10, -180, 180, 30), four_mounts=False, replicates=6)
+        tripp = make_plan("tripp-481", "", grid(-180, 180, 10, -180, 180, 30), four_mounts=False,
+                          replicates=6)
         hours("481-point grid × 6", tripp, plan_toml(tripp), args.seed, 3)
 
 

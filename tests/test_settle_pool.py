@@ -229,3 +229,15 @@ def test_paired_runs_show_no_bias_of_pooled_model_settling(tmp_path, capsys):
 def test_paired_runs_show_no_bias_of_pooled_model_settling_many(tmp_path, capsys):
     mean, mc_se = paired_bias(tmp_path, capsys, 20)
     assert abs(mean) - 3 * mc_se <= 0.1 and mc_se < 0.05
+
+
+def test_a_short_history_is_pooled_but_not_compared():
+    """Five records of history (fewer than POOL_MIN: no τ̂ of their own) then a run of the same
+    sensor: pooled, no mismatch claimed from a comparison the history cannot support."""
+    history = TailPool(MODEL.tau_s, MODEL.noise_v)
+    for volts, t in records(5, 7):
+        history.add(volts, t)
+    pool = TailPool(MODEL.tau_s, MODEL.noise_v, history.state())
+    for volts, t in records(40, 8):
+        pool.add(volts, t)
+    assert pool.records == 45 and pool.mismatch == ""

@@ -240,7 +240,7 @@ class TailPool:
                 self.mismatch = "model: τ outside its search range (pooled)"
             elif abs(z := self.slow_z()) >= Z_DETECT:
                 self.mismatch = f"model: a slow tail in the pooled records (z = {z:+.1f})"
-            elif self._prior is not None and self.own_records >= POOL_MIN:
+            elif self._prior is not None and min(self._prior.records, self.own_records) >= POOL_MIN:
                 self.mismatch = self._unlike_history()
 
     def _unlike_history(self) -> str:
