@@ -96,7 +96,9 @@ def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emul
         rig = emulation.rig.rig
         snapshot.update(time_scale=emulation.time_scale, seed=rig.seed)
         timing = Timing(clamp_s=rig.config.clamp_s, sample_s=sweep_s, remount_s=0.0)
-        settle, clock, hooks = known_settle(rig.instrument), emulation.rig.clock, emulation.hooks()
+        pooling = config.sequencer.settle.model_dump(include={"pool", "instrument_type"})
+        settle = known_settle(rig.instrument).model_copy(update=pooling)  # the station says whose records
+        clock, hooks = emulation.rig.clock, emulation.hooks()
         metadata["simulated_truth"] = emulation.truth()
         config = emulation.station_config
     bench = stack.enter_context(Bench(config, clock))

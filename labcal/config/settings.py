@@ -31,6 +31,18 @@ class SettleSettings(BaseModel):
         default="detect", description="detect: wait out the transient, then test a window; model: fit "
         "the exponential tail (τ pooled over the run's points), waiting like detect until the run's "
         "records rule out a slower tail and whenever the sensor does not follow it")
+    pool: Literal["instrument", "type", "none"] = Field(
+        default="instrument", description="model settling: whose earlier runs' step records a run starts "
+        "with (in the lab database, per station): the same instrument's (serial; a simulated one's "
+        "truth), every instrument of `instrument_type`, or none (each run pools only its own)")
+    instrument_type: str | None = Field(default=None, min_length=1, description="with pool = \"type\": the "
+                                        "type of every instrument calibrated on this station")
+
+    @model_validator(mode="after")
+    def _type_named(self) -> SettleSettings:
+        if self.pool == "type" and self.instrument_type is None:
+            raise ValueError('pool = "type" needs instrument_type (the instruments\' type, as one name)')
+        return self
 
 
 class SequencerSettings(BaseModel):

@@ -126,6 +126,18 @@ def _v4_approvers(db: sqlite3.Connection) -> None:
     db.execute("CREATE UNIQUE INDEX approvers_active_name ON approvers (name) WHERE revoked_utc IS NULL")
 
 
+def _v5_settle_pools(db: sqlite3.Connection) -> None:
+    db.execute("""CREATE TABLE settle_pools (
+    pool_key TEXT PRIMARY KEY,
+    identity TEXT NOT NULL,
+    records INTEGER NOT NULL,
+    sources TEXT NOT NULL,
+    mismatch TEXT NOT NULL,
+    sums BLOB NOT NULL,
+    updated_utc TEXT NOT NULL
+)""")
+
+
 MIGRATIONS: tuple[Migration, ...] = (
     Migration(1, "index events by run: `Journal.events(run)` (the audit trail of prompts, faults, "
                  "retries and pauses) read the whole lab's events table for every run, and "
@@ -147,6 +159,10 @@ MIGRATIONS: tuple[Migration, ...] = (
                  "so that `certificate approve` and `attitude --cert` accept only signatures by a "
                  "registered, unrevoked key under its own name and role. A new table only.",
               _v4_approvers),
+    Migration(5, "model settling's pooled step records (issue 27): per instrument (or type) and station, "
+                 "the sums `labcal.run.settle.TailPool` keeps over its records, so that a run starts with "
+                 "the records of the runs before it (`labcal.run.settle_pool`). A new table only, so the "
+                 "previous labcal still reads and writes a version-3 file.", _v5_settle_pools),
 )
 SCHEMA_VERSION = MIGRATIONS[-1].version
 

@@ -2,8 +2,10 @@
 
 Both tables move at once, so going from one point to the next takes the longer of the two
 moves (each the shortest way round), and then the settling that move leaves (a fast move into a
-steep part of gravity leaves more): `shortest` weighs both. It builds a nearest-neighbour tour from the load
-position and improves it by 2-opt; Tripp & Tcheng recommend sweeping pitch min → max → min
+steep part of gravity leaves more): `shortest` weighs both, as one cost function
+(`labcal.run.tour.move_and_settle`), and finds a near-optimal open tour from the load position
+(`labcal.run.tour`: nearest neighbour, then 2-opt and Or-opt priced exactly for the asymmetric
+cost, with a Held–Karp lower bound to say how near); Tripp & Tcheng recommend sweeping pitch min → max → min
 (§4.1); a randomised order per replicate guards against drift aliasing with attitude.
 """
 
@@ -15,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal.run.motion import move_time, trapezoid_duration
+from labcal.run.tour import cost_matrix, move_and_settle, shortest_path
 
 __all__ = ["ORDERS", "move_time", "order_points", "trapezoid_duration"]
 
@@ -28,34 +31,8 @@ def _no_settling(a: NDArray, b: NDArray) -> NDArray:
 
 def _shortest(points: NDArray, start: NDArray, speed: float, accel: float,
               settle_s: SettleCost) -> list[int]:
-    n = len(points)
-    a, b = points[:, None, :], points[None, :, :]
-    cost = move_time(a, b, speed, accel) + settle_s(a, b)
-    from_start = move_time(start[None, :], points, speed, accel) + settle_s(start[None, :], points)
-    order, left = [int(np.argmin(from_start))], set(range(n))
-    left.remove(order[0])
-    while left:
-        rest = np.fromiter(left, int)
-        nxt = int(rest[np.argmin(cost[order[-1], rest])])
-        order.append(nxt)
-        left.remove(nxt)
-    path = np.array(order)
-    improved = True
-    while improved:  # 2-opt on the open path: reverse path[i..j] when that shortens it
-        improved = False
-        for i in range(n - 1):
-            before = from_start[path[0]] if i == 0 else cost[path[i - 1], path[i]]
-            prev_node = None if i == 0 else path[i - 1]
-            j = np.arange(i + 1, n)
-            after = np.where(j < n - 1, cost[path[j], path[np.minimum(j + 1, n - 1)]], 0.0)
-            new_first = from_start[path[j]] if prev_node is None else cost[prev_node, path[j]]
-            new_last = np.where(j < n - 1, cost[path[i], path[np.minimum(j + 1, n - 1)]], 0.0)
-            gain = before + after - new_first - new_last
-            best = int(np.argmax(gain))
-            if gain[best] > 1e-9:
-                path[i:j[best] + 1] = path[i:j[best] + 1][::-1].copy()
-                improved = True
-    return path.tolist()
+    cost = cost_matrix(points, start, move_and_settle(speed, accel, settle_s))
+    return [int(node) - 1 for node in shortest_path(cost)[1:]]
 
 
 def _sweep(points: NDArray, descending: bool) -> list[int]:

@@ -9,6 +9,7 @@ pauses after the current point; the second stops the tables at once.
 from __future__ import annotations
 
 import logging
+import sqlite3
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 
@@ -18,6 +19,7 @@ from labcal.analysis.kinematics import Mount
 from labcal.analysis.plan import Plan
 from labcal.config.settings import SequencerSettings
 from labcal.errors import LabcalError
+from labcal.run import settle_pool
 from labcal.run.interrupts import Interrupts
 from labcal.run.journal import Journal, PointRecord
 from labcal.run.motion import move_time, transient_at_stop, transient_left
@@ -158,7 +160,8 @@ class Sequencer:
     _at: tuple[float, float] | None = None  # where the last move went; None: unknown, read it
     _last_move: tuple[tuple[float, float], tuple[float, float], float] = ((0.0, 0.0), (0.0, 0.0), 0.0)
     _sample_s: float = 0.0  # the voltmeter's time per sample, once measured
-    _tail: TailPool | None = None  # model settling: the instrument's tail, pooled over this segment's points
+    _tail: TailPool | None = None  # model settling: the instrument's tail, pooled over its runs' points
+    _pool_key: settle_pool.PoolKey | None = None  # where to keep _tail when the segment ends
 
     # --- motion ----------------------------------------------------------------------------------
     def move(self, pitch: float, roll: float) -> tuple[float, float]:
@@ -183,7 +186,7 @@ class Sequencer:
         self.station.at_point(key)
         with self.interrupts.critical():
             if s.mode == "model" and s.fixed_dwell_s is None:
-                self._tail = self._tail or TailPool(s.tau_s, s.noise_v)
+                self._tail = self._tail or self._start_pool()
                 result = dwell_model(self.station.dmm, self.station.clock, lag_g * s.sensitivity_v_per_g, s,
                                      motion_end, self._sample_s, self._tail)
             else:
@@ -191,6 +194,28 @@ class Sequencer:
                                motion_end, self._sample_s)
         self._sample_s = result.sample_s
         return result
+
+    def _start_pool(self) -> TailPool:
+        """Model settling's pool, with the step records of the instrument's earlier runs on this
+        station where the lab database has them (`labcal.run.settle_pool`); the journal says which."""
+        s = self.settings.settle
+        key = settle_pool.pool_key(self.journal.run(self.run_id), s)
+        if key is None:
+            return TailPool(s.tau_s, s.noise_v)
+        state, note, keep = settle_pool.load(self.journal.db, key)
+        self._pool_key = key if keep else None
+        self.event("settle_pool", note, pool_key=key.key, records=state.records if state else 0)
+        return TailPool(s.tau_s, s.noise_v, state)
+
+    def _keep_pool(self) -> None:
+        """Keep the pool for the instrument's next run (or this one's resume). A database that
+        refuses it costs the next run its head start, never this run's points: warned, not raised."""
+        if self._tail is None or self._pool_key is None:
+            return
+        try:
+            settle_pool.save(self.journal.db, self._pool_key, self._tail)
+        except (sqlite3.Error, LabcalError) as exc:
+            log.warning("model settling's pool was not kept for the next run: %s", exc)
 
     def event(self, kind: str, message: str, **data) -> None:
         with self.interrupts.critical():
@@ -268,6 +293,8 @@ class Sequencer:
         except BaseException as exc:
             self.stop_tables(exc)
             raise
+        finally:
+            self._keep_pool()
         recorded = len(self.journal.points(self.run_id, status="ok"))
         return RunOutcome(recorded, failed, self.station.clock.now() - self._t0)  # since the run began
 

@@ -24,9 +24,10 @@ a point by σ/(2√N) while its χ² non-centrality is ~0.4); pooled over the ru
 their transients, it adds up, so the pool scores it and (1) a score beyond Z_DETECT is a detected
 mismatch: from then on every point waits; (2) before that, a point is accepted only if the pooled
 records bound the slow tail well enough: the upper confidence bound on it (the pooled estimate
-plus Z_BOUND standard errors) would bias that point by at most σ/(3√N). A run therefore waits for
-its first hundred-odd points (a 64-point run never leaves the
-conventional bound), and the conventional window is the record's last N samples, so a point the
+plus Z_BOUND standard errors) would bias that point by at most σ/(3√N). The pool therefore needs
+a hundred-odd records before it vouches for a point; a run starts with the records of the
+instrument's earlier runs (`labcal.run.settle_pool`), so a 64-point plan gains from the instrument's
+fourth run on, and the conventional window is the record's last N samples, so a point the
 model does not settle costs no more than waiting (benchmarks/settle_model.py validates it).
 """
 
@@ -144,6 +145,37 @@ def _project_out(v: NDArray, e: NDArray) -> NDArray:
     return v - c[..., None] - a[..., None] * e
 
 
+@dataclass(frozen=True)
+class PoolState:
+    """What a `TailPool` knows, to carry into the instrument's next run: its sums over ``records``
+    records (the grid of the τ and σ it was made with) and the mismatch it saw, if any."""
+
+    sums: NDArray
+    records: int
+    mismatch: str
+
+
+def _tau_of(sums: NDArray, taus: NDArray, noise_v: float) -> tuple[float, float] | None:
+    """(τ̂, its SE) from pooled sums on the grid ``taus``, or None when the minimum is on its edge."""
+    rss = sums[0]
+    i = int(np.argmin(rss))
+    if i in (0, len(taus) - 1) or sums[3, i] <= 0:
+        return None
+    y0, y1, y2 = rss[i - 1:i + 2]
+    step = math.log(taus[1] / taus[0])
+    shift = 0.5 * (y0 - y2) / (y0 - 2 * y1 + y2) if y0 - 2 * y1 + y2 > 0 else 0.0
+    return float(taus[i] * math.exp(shift * step)), noise_v / math.sqrt(sums[3, i])
+
+
+def _slow_of(sums: NDArray, i: int) -> tuple[float, float]:
+    """The slow tail's amplitude estimate β̂ (per unit transient) at grid τ ``i``, orthogonal to a
+    change of τ, and its standard error in units of σ: (x·r − x·d·d·r/d·d)/q, 1/√q with
+    q = x·x − (x·d)²/d·d."""
+    xx, xd, dd, xr, dr = sums[1:, i].tolist()
+    q = max(xx - xd**2 / dd, 1e-300) if dd > 0 else max(xx, 1e-300)
+    return (xr - (xd * dr / dd if dd > 0 else 0.0)) / q, 1.0 / math.sqrt(q)
+
+
 class TailPool:
     """What the run's records say about its instrument's tail, pooled over every point so far.
 
@@ -157,15 +189,33 @@ class TailPool:
     τ, which also absorbs part of it) is z; |z| ≥ Z_DETECT is a detected mismatch, after which the
     pool never vouches for a point again. Before that, a point is settled by the model only if the
     slow tail that would bias it by σ/(3√N) lies beyond the records' upper confidence bound, i.e.
-    would show at z ≥ |z| + Z_BOUND: until it does, points wait."""
+    would show at z ≥ |z| + Z_BOUND: until it does, points wait.
 
-    def __init__(self, tau_guess: float, noise_v: float):
+    A pool may start with the records of the instrument's earlier runs (``history``, kept in the lab
+    database by `labcal.run.settle_pool`): they count as the run's own, and a mismatch they saw
+    stays seen. Once the run has POOL_MIN records of its own, they are also checked against the
+    history (their own τ̂ and slow-tail estimate, two-sample, at Z_DETECT; and a slow tail in them
+    alone): an instrument that changed under the same key stops the pool vouching, as a mismatch."""
+
+    def __init__(self, tau_guess: float, noise_v: float, history: PoolState | None = None):
         self.taus = tau_guess * np.geomspace(*TAU_RANGE, TAU_GRID)
         self.noise_v = noise_v
         self.records = 0
         self.mismatch = ""  # why the pool stopped vouching for the model, once it has
         # per grid τ: rss, x·x, x·d, d·d, x·r, d·r (x: the slow shape, d: ∂/∂τ, both times a)
         self._sums = np.zeros((6, TAU_GRID))
+        self._own = np.zeros((6, TAU_GRID))  # this run's records alone
+        self.own_records = 0
+        self._prior: PoolState | None = None
+        if history is not None and history.records:
+            if history.sums.shape != self._sums.shape:
+                raise ValueError(f"a pool's sums are {history.sums.shape}, not {self._sums.shape}")
+            self._prior = history
+            self._sums, self.records, self.mismatch = history.sums.copy(), history.records, history.mismatch
+
+    def state(self) -> PoolState:
+        """Everything the pool knows, to be kept for the instrument's next run."""
+        return PoolState(self._sums.copy(), self.records, self.mismatch)
 
     def add(self, volts: NDArray, t: NDArray) -> None:
         """One point's record: (n, channels) samples at t seconds after the motion ended."""
@@ -178,27 +228,44 @@ class TailPool:
         a2 = (amp**2).sum(axis=1)
         xr = np.einsum("gn,gkn,gk->g", slow, fitted, amp)
         dr = np.einsum("gn,gkn,gk->g", dtau, fitted, amp)
-        self._sums += np.array([(fitted**2).sum(axis=(1, 2)), (slow**2).sum(1) * a2,
-                                (slow * dtau).sum(1) * a2, (dtau**2).sum(1) * a2, xr, dr])
+        record = np.array([(fitted**2).sum(axis=(1, 2)), (slow**2).sum(1) * a2,
+                           (slow * dtau).sum(1) * a2, (dtau**2).sum(1) * a2, xr, dr])
+        self._sums += record
+        self._own += record
         self.records += 1
+        self.own_records += 1
         if self.records >= POOL_MIN and not self.mismatch:
             tau = self.tau()
             if tau is None:
                 self.mismatch = "model: τ outside its search range (pooled)"
             elif abs(z := self.slow_z()) >= Z_DETECT:
                 self.mismatch = f"model: a slow tail in the pooled records (z = {z:+.1f})"
+            elif self._prior is not None and min(self._prior.records, self.own_records) >= POOL_MIN:
+                self.mismatch = self._unlike_history()
+
+    def _unlike_history(self) -> str:
+        """Why this run's records are not the earlier runs' instrument (empty when they agree): its
+        own τ̂, or its own slow-tail estimate at the pooled τ̂, differs from the history's by
+        Z_DETECT of their combined standard errors, or its own records alone see a slow tail."""
+        assert self._prior is not None
+        own, before = _tau_of(self._own, self.taus, self.noise_v), _tau_of(self._prior.sums, self.taus,
+                                                                           self.noise_v)
+        if own is None or before is None:
+            return "model: τ outside its search range (this run's records)"
+        if abs(z := (own[0] - before[0]) / math.hypot(own[1], before[1])) >= Z_DETECT:
+            return f"model: this run's τ differs from the earlier runs' (z = {z:+.1f})"
+        i = int(np.argmin(self._sums[0]))
+        (b_own, se_own), (b_before, se_before) = _slow_of(self._own, i), _slow_of(self._prior.sums, i)
+        if abs(z := b_own / (self.noise_v * se_own)) >= Z_DETECT:
+            return f"model: a slow tail in this run's records (z = {z:+.1f})"
+        z = (b_own - b_before) / (self.noise_v * math.hypot(se_own, se_before))
+        if abs(z) >= Z_DETECT:
+            return f"model: this run's slow tail differs from the earlier runs' (z = {z:+.1f})"
+        return ""
 
     def tau(self) -> tuple[float, float] | None:
         """(τ̂, its SE) from the pooled sums, or None when the minimum is on the range's edge."""
-        rss = self._sums[0]
-        i = int(np.argmin(rss))
-        if i in (0, TAU_GRID - 1):
-            return None
-        y0, y1, y2 = rss[i - 1:i + 2]
-        step = math.log(self.taus[1] / self.taus[0])
-        shift = 0.5 * (y0 - y2) / (y0 - 2 * y1 + y2) if y0 - 2 * y1 + y2 > 0 else 0.0
-        tau = float(self.taus[i] * math.exp(shift * step))
-        return tau, self.noise_v / math.sqrt(self._sums[3, i])
+        return _tau_of(self._sums, self.taus, self.noise_v)
 
     def _at_tau(self) -> list[float]:
         """x·x, x·d, d·d, x·r, d·r at the grid τ nearest τ̂."""

@@ -1,0 +1,208 @@
+"""Rig hours of a calibration (issue 27), in one run: where they go and how near their bounds.
+
+1. Rig hours of four-mount-64 and of Tripp & Tcheng's 481-point grid × 6 replicates, dry runs on
+   the default simulated rig (lab temperature steady, no drift: only settling tells runs apart, as
+   in `settle_model.py`), conventional settling and model settling (`--settle model`): the
+   instrument's first run (no pooled history: what model settling did before issue 27) and its
+   third (and for four-mount-64 every run up to the fifth), the earlier runs' step records pooled
+   in the lab database. Each against the independent physical bound of `settle_speed.py` (the
+   least a window that waits out the transient can cost, from the rig's own physics: between
+   remounts, motion included). Also each run's summed per-point settle time from the journal, the
+   points the model settled, and the largest coefficient difference from the conventional run
+   of the same seed in its SE.
+2. The point order: per mount, the tour `--order shortest` takes (move and settling seconds from
+   the load position through every point, `labcal.run.tour`) against the Held–Karp lower bound,
+   and the tour the previous `shortest` made (nearest neighbour and a 2-opt pass, kept below as
+   the "before"), with the time each takes to build.
+
+Usage: python benchmarks/rig_hours.py [--seed N] [--only 64|481|tour]
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+
+from labcal.analysis.design import grid, make_plan
+from labcal.analysis.kinematics import Mount
+from labcal.config.emulation import RigConfig
+from labcal.config.plans import load_plan, plan_toml
+from labcal.config.settings import SequencerSettings
+from labcal.run.journal import Journal
+from labcal.run.motion import move_time
+from labcal.run.operator import AutoOperator
+from labcal.run.runner import calibrate
+from labcal.run.sequencer import LOAD_POSITION, settle_cost
+from labcal.run.tour import cost_matrix, move_and_settle, path_length, path_lower_bound, shortest_path
+from labcal.sim.clock import VirtualClock
+from labcal.sim.rig import SimRig
+
+sys.path.insert(0, str(Path(__file__).parent))
+from settle_speed import point_bound  # noqa: E402  (the independent bound, one copy)
+
+
+def steady_rig() -> RigConfig:
+    base = RigConfig()
+    return base.model_copy(update={"lab_temp_swing_c": 0.0, "instrument": base.instrument.model_copy(
+        update={"drift_v_per_h": [0.0, 0.0, 0.0]})})
+
+
+def dry_run(plan, text: str, rig: RigConfig, seed: int, mode: str, db: Path, out: Path):
+    """One dry run into the lab database ``db``; the station text is the one `labcal run --sim`
+    journals (`labcal.bench.setup.sim_station`), which keys model settling's pool."""
+    inst = rig.instrument
+    sim = SimRig(rig, seed=seed, clock=VirtualClock())
+    station_text = json.dumps({"kind": "simulated rig", "seed": seed, "rig": rig.model_dump()},
+                              sort_keys=True)
+    settle = SequencerSettings().settle.model_copy(update={
+        "tau_s": inst.tau_s, "noise_v": inst.noise_v, "mode": mode,
+        "sensitivity_v_per_g": float(np.max(np.abs(inst.S)))})
+    settings = SequencerSettings(settle=settle, speed_dps=rig.speed_dps, accel_dps2=rig.accel_dps2)
+    with Journal(db) as journal:
+        result = calibrate(plan, text, sim.station(), station_text, AutoOperator(Console(file=io.StringIO())),
+                           settings, out, journal)
+        points = journal.points(result.run_id)
+        pooled = [e["data"]["records"] for e in journal.events(result.run_id)
+                  if e["kind"] == "settle_pool" and e.get("data")]
+    return result, points, settle, (pooled[0] if pooled else 0)
+
+
+def summary(points, rig: RigConfig, settle) -> dict:
+    """Rig hours; between remounts, the time spent against the physical bound (motion included)."""
+    firsts = {min(p.seq for p in points if (p.replicate, p.y_deg, p.u_deg) == k)
+              for k in {(p.replicate, p.y_deg, p.u_deg) for p in points}}
+    spent = bound = 0.0
+    for prev, point in zip(points, points[1:], strict=False):
+        if point.seq in firsts:
+            continue
+        spent += point.t_end - prev.t_end
+        bound += point_bound((prev.pitch_deg, prev.roll_deg), (point.pitch_deg, point.roll_deg),
+                             Mount(point.y_deg, point.u_deg), rig, settle)
+    return {"hours": (points[-1].t_end - points[0].t_start) / 3600, "spent": spent, "bound": bound,
+            "settle": sum(p.settle_s or 0.0 for p in points),
+            "model": sum((p.settle_verdict or "").startswith("settled (model") for p in points),
+            "n": len(points)}
+
+
+def line(label: str, s: dict, reference: dict | None, z: float | None) -> str:
+    text = (f"  {label:34s} {s['hours']:6.3f} h  {s['spent'] / s['bound']:5.3f}× bound  "
+            f"settle Σ {s['settle']:8.1f} s")
+    if reference is not None:
+        text += f" ({s['settle'] / reference['settle']:.3f}× conventional)"
+    text += f"  model-settled {s['model']:4d}/{s['n']}"
+    return text + (f"  coefficients vs conventional ≤ {z:.2f} SE" if z is not None else "")
+
+
+def hours(label: str, plan, text: str, seed: int, model_runs: int) -> None:
+    """A conventional run with the seed of the third model run, and model runs 1…model_runs of one
+    instrument (seeds seed, seed + 1, …), pooled in one lab database."""
+    rig = steady_rig()
+    paired = seed + 2  # the third model run's seed: the conventional run shares it
+    print(f"{label}: rig hours, time between remounts against the physical bound, settling")
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        conv_result, points, settle, _ = dry_run(plan, text, rig, paired, "detect", folder / "conv.sqlite",
+                                                 folder / "conv")
+        conventional = summary(points, rig, settle)
+        print(line(f"conventional (seed {paired})", conventional, None, None))
+        for k in range(model_runs):
+            result, points, settle, pooled = dry_run(plan, text, rig, seed + k, "model",
+                                                     folder / "pool.sqlite", folder / f"model-{k}")
+            z = None
+            if seed + k == paired:
+                z = float(np.max(np.abs(result.fit.coefficients - conv_result.fit.coefficients)
+                                 / conv_result.fit.stderr))
+            name = f"model run {k + 1} (seed {seed + k}, {pooled} records pooled)"
+            print(line(name, summary(points, rig, settle), conventional, z))
+
+
+def old_shortest(points: np.ndarray, start: np.ndarray, cost: Callable) -> list[int]:
+    """The `shortest` order before issue 27 (labcal 36283d8), verbatim but for the cost function:
+    nearest neighbour, then 2-opt passes whose gain ignored the reversed stretch's own cost."""
+    n = len(points)
+    a, b = points[:, None, :], points[None, :, :]
+    c = cost(a, b)
+    from_start = cost(start[None, :], points)
+    order, left = [int(np.argmin(from_start))], set(range(n))
+    left.remove(order[0])
+    while left:
+        rest = np.fromiter(left, int)
+        nxt = int(rest[np.argmin(c[order[-1], rest])])
+        order.append(nxt)
+        left.remove(nxt)
+    path = np.array(order)
+    improved = True
+    while improved:
+        improved = False
+        for i in range(n - 1):
+            before = from_start[path[0]] if i == 0 else c[path[i - 1], path[i]]
+            prev_node = None if i == 0 else path[i - 1]
+            j = np.arange(i + 1, n)
+            after = np.where(j < n - 1, c[path[j], path[np.minimum(j + 1, n - 1)]], 0.0)
+            new_first = from_start[path[j]] if prev_node is None else c[prev_node, path[j]]
+            new_last = np.where(j < n - 1, c[path[i], path[np.minimum(j + 1, n - 1)]], 0.0)
+            gain = before + after - new_first - new_last
+            best = int(np.argmax(gain))
+            if gain[best] > 1e-9:
+                path[i:j[best] + 1] = path[i:j[best] + 1][::-1].copy()
+                improved = True
+    return path.tolist()
+
+
+def tours(seed: int) -> None:
+    settings = SequencerSettings()
+    fm64, _ = load_plan("four-mount-64")
+    plans = [("four-mount-64", np.asarray(fm64.points, float)),
+             ("481-point grid", np.asarray(grid(-180, 180, 10, -180, 180, 30), float))]
+    print("Tours per mount (move + settling seconds from the load position), against the Held–Karp bound")
+    start = np.asarray(LOAD_POSITION, float)
+    for label, points in plans:
+        for mount in (Mount(0, 0), Mount(180, 0), Mount(0, 180), Mount(180, 180)):
+            cost = move_and_settle(settings.speed_dps, settings.accel_dps2, settle_cost(mount, settings))
+            wall = time.perf_counter()
+            c = cost_matrix(points, start, cost)
+            tour = shortest_path(c)
+            t_new = time.perf_counter() - wall
+            wall = time.perf_counter()
+            old = old_shortest(points, start, cost)
+            t_old = time.perf_counter() - wall
+            bound = path_lower_bound(c)
+            new_len, old_len = path_length(c, tour), path_length(c, [0] + [i + 1 for i in old])
+            moves = float(sum(move_time(c_a, c_b, settings.speed_dps, settings.accel_dps2) for c_a, c_b in
+                              zip(np.vstack([start, points[tour[1:] - 1]])[:-1], points[tour[1:] - 1],
+                                  strict=True)))
+            print(f"  {label:15s} mount {mount.y_deg:3.0f}/{mount.u_deg:3.0f}: tour {new_len:8.1f} s "
+                  f"({moves:7.1f} s of moves), bound {bound:8.1f} s: {new_len / bound:.4f}× "
+                  f"(target ≤ 1.05×) in {t_new:.2f} s; before {old_len:8.1f} s: {old_len / bound:.4f}× "
+                  f"in {t_old:.2f} s")
+    del seed
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--only", choices=("64", "481", "tour"))
+    args = parser.parse_args()
+    if args.only in (None, "tour"):
+        tours(args.seed)
+    if args.only in (None, "64"):
+        plan, text = load_plan("four-mount-64")
+        hours("four-mount-64", plan, text, args.seed, 5)
+    if args.only in (None, "481"):
+        tripp = make_plan("tripp-481", "", grid(-180, 180, 10, -180, 180, 30), four_mounts=False,
+                          replicates=6)
+        hours("481-point grid × 6", tripp, plan_toml(tripp), args.seed, 3)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,139 @@
+"""Model settling's pool of step records, kept per instrument and station across runs.
+
+The settling model needs a hundred-odd step records before it can rule out a slow tail
+(`labcal.run.settle.TailPool`), so a 64-point run never got there. The pool's sums are the
+instrument's, not the run's: kept in the lab database (table ``settle_pools``, migration 4 of
+`labcal.run.labdb`), a run starts with the records of the runs before it.
+
+Which runs share a pool is its key, the SHA-256 of a canonical identity:
+- the instrument: its serial (``pool = "instrument"``, the default) or the station's
+  ``instrument_type`` (``pool = "type"``); a simulated or emulated instrument is also its simulated
+  truth (time constant, noise, coefficients…: the rig file's ``[instrument]``), because every dry
+  run is serial SIMULATED and two rig files are two instruments. The seed is not the instrument: it
+  draws the noise, the device's index errors and the mount errors of a run;
+- the station: the devices as the station file describes them, links aside (a port may move), and
+  the identities they answered with (serial numbers); for a simulated rig, the rig file less its
+  instrument and seed;
+- what the sums are made on: the configured τ and σ (the τ grid and the noise scale) and the
+  pool's layout version.
+A changed instrument or station is therefore another pool, which starts empty: it never biases a
+point. An instrument that changed under its key (a repaired sensor) is caught by the pool itself
+(`TailPool`: this run's records against the history's).
+
+The same seed draws the same noise for the same point: a new dry run repeating a seed that the pool
+already holds would count one noise realisation twice, so it starts without the history (and adds
+nothing to it). A resumed run goes on with the pool it saved at its pause.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import sqlite3
+from dataclasses import dataclass
+
+import numpy as np
+
+from labcal.config.settings import SettleSettings
+from labcal.config.station import LinkSettings
+from labcal.run.journal import RunRow, utc_now
+from labcal.run.settle import SLOW, TAU_GRID, TAU_RANGE, PoolState, TailPool
+
+LAYOUT = f"tailpool/1 grid={TAU_GRID} range={TAU_RANGE[0]:g}-{TAU_RANGE[1]:g} slow={SLOW:g}"
+LINK_FIELDS = frozenset(LinkSettings.model_fields) | {"visa", "visa_library"}
+
+
+@dataclass(frozen=True)
+class PoolKey:
+    key: str  # SHA-256 of the identity's canonical JSON
+    identity: dict
+    run: str  # the run's uuid (or id): a resumed run is the same source
+    noise: str | None  # what draws a dry run's noise (its seed); None on real hardware
+
+
+def pool_key(row: RunRow, settle: SettleSettings) -> PoolKey | None:
+    """Whose pool a run shares (module docstring); None when the station pools nothing across runs."""
+    if settle.pool == "none":
+        return None
+    try:
+        snapshot = json.loads(row.station_text)
+    except ValueError:  # not a snapshot labcal wrote: the text itself is the station
+        snapshot = {"kind": "text", "station": {"text": row.station_text}}
+    if not isinstance(snapshot, dict):
+        snapshot = {"kind": "text", "station": {"text": row.station_text}}
+    truth: object = None
+    noise: str | None = None
+    if snapshot.get("kind") == "simulated rig":
+        rig = dict(snapshot["rig"])
+        truth = rig.pop("instrument", None)
+        rig.pop("seed", None)
+        station: dict = {"simulated rig": rig}
+        noise = f"seed {snapshot.get('seed')}"
+    else:
+        described = snapshot.get("station", {})
+        station = {name: {k: v for k, v in (described.get(name) or {}).items() if k not in LINK_FIELDS}
+                   for name in ("pitch", "roll", "dmm")} if "text" not in described else dict(described)
+        station["identities"] = row.metadata.get("device_identity")
+        if snapshot.get("emulate"):
+            rig = dict((described.get("emulation") or {}).get("rig") or {})
+            truth = rig.pop("instrument", None)
+            rig.pop("seed", None)
+            station["emulated rig"] = rig
+            noise = f"seed {snapshot.get('seed')}"
+    instrument: dict[str, object] = ({"type": settle.instrument_type} if settle.pool == "type"
+                  else {"serial": row.instrument_serial or "SIMULATED"})
+    if truth is not None:
+        instrument["simulated truth"] = truth
+    identity = {"instrument": instrument, "station": station,
+                "sums": {"layout": LAYOUT, "tau_s": settle.tau_s, "noise_v": settle.noise_v}}
+    text = json.dumps(identity, sort_keys=True, separators=(",", ":"), default=str)
+    return PoolKey(hashlib.sha256(text.encode()).hexdigest(), identity, row.uuid or str(row.id), noise)
+
+
+def _sources(text: str) -> list[dict]:
+    return list(json.loads(text))
+
+
+def load(db: sqlite3.Connection, key: PoolKey) -> tuple[PoolState | None, str, bool]:
+    """The pool the earlier runs left under ``key`` (None: start empty), one line saying what it
+    holds, and whether this run may keep its records there (not when it repeats a seed's noise)."""
+    row = db.execute("SELECT records, sources, mismatch, sums FROM settle_pools WHERE pool_key=?",
+                     (key.key,)).fetchone()
+    if row is None:
+        return None, "model settling: no earlier runs of this instrument on this station", True
+    records, sources, mismatch, blob = row
+    if key.noise is not None and any(s.get("noise") == key.noise and s.get("run") != key.run
+                                     for s in _sources(sources)):
+        return None, (f"model settling: the pool of earlier runs already holds {key.noise}'s noise; "
+                      "this dry run repeats it and starts without them"), False
+    sums = np.load(io.BytesIO(blob), allow_pickle=False)
+    runs = len({s.get("run") for s in _sources(sources)})
+    note = f"model settling starts with {records} step records of {runs} earlier run(s)"
+    return PoolState(sums, int(records), str(mismatch)), note + (f"; {mismatch}" if mismatch else ""), True
+
+
+def save(db: sqlite3.Connection, key: PoolKey, pool: TailPool) -> None:
+    """Keep ``pool`` (the history it started with and this run's records) under ``key``, in one
+    transaction; only for a run that `load` allowed to."""
+    if pool.own_records == 0:
+        return
+    state = pool.state()
+    buffer = io.BytesIO()
+    np.save(buffer, state.sums, allow_pickle=False)
+    db.execute("BEGIN IMMEDIATE")
+    try:
+        row = db.execute("SELECT sources FROM settle_pools WHERE pool_key=?", (key.key,)).fetchone()
+        sources = [s for s in _sources(row[0]) if s.get("run") != key.run] if row else []
+        sources.append({"run": key.run, "noise": key.noise})
+        db.execute("INSERT INTO settle_pools (pool_key, identity, records, sources, mismatch, sums, "
+                   "updated_utc) VALUES (?, ?, ?, ?, ?, ?, ?) ON CONFLICT (pool_key) DO UPDATE SET "
+                   "records=excluded.records, sources=excluded.sources, mismatch=excluded.mismatch, "
+                   "sums=excluded.sums, updated_utc=excluded.updated_utc",
+                   (key.key, json.dumps(key.identity, sort_keys=True, default=str), state.records,
+                    json.dumps(sources), state.mismatch, buffer.getvalue(), utc_now()))
+        db.execute("COMMIT")
+    except BaseException:
+        if db.in_transaction:
+            db.execute("ROLLBACK")
+        raise
