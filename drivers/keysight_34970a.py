@@ -30,6 +30,10 @@ MAX_ERRORS = 20  # the 34970A's error queue holds 10; never loop for ever on a c
 READING_CHARS = 20  # one reading with its channel number in a FETC? reply: "+1.23456789E+00,101,"
 BITS_PER_CHAR = 10  # start, 8 data, stop (8N1; a parity bit makes it 11, within the margin)
 MARGIN = 1.5  # deadlines allow half as long again as the estimate
+# DC volts ranges with a >10 GΩ input under INPut:IMPedance:AUTO ON; above them, and on every range
+# with AUTO OFF (the *RST and CONFigure default), the input is 10 MΩ, which a ~5 kΩ source output
+# pulls ~500 ppm low (User's Guide, "DC input resistance"; hardware_protocols.md §3.1)
+HIGH_Z_RANGES_V = (0.1, 1.0, 10.0)
 FAMILY = ("34970A", "34972A", "DAQ970A", "DAQ973A")  # the models that speak this scan-list dialect
 
 
@@ -89,6 +93,8 @@ class Keysight34970A:
         self.serial_line = serial_line
         self.char_s = BITS_PER_CHAR / baudrate if serial_line and baudrate else 0.0  # 0: network speed
         self.measures_temperature = temperature_channel is not None
+        # declared: the >10 GΩ input wherever the range has one (CONFigure turns it off again)
+        self.impedance_auto = range_v in HIGH_Z_RANGES_V
 
     # --- exchanges --------------------------------------------------------------------------
     def errors(self) -> list[tuple[int, str]]:
@@ -138,10 +144,12 @@ class Keysight34970A:
 
     def configure(self) -> None:
         """Put the unit in a known state: DC volts at a fixed range and NPLC on the three
-        channels, the temperature channel, the scan list, channel numbers in the readings."""
+        channels with the high-impedance input where the range has it, the temperature channel,
+        the scan list, channel numbers in the readings."""
         volts = channel_list(self.channels)
         commands = (["SYST:REM"] if self.serial_line else []) + ["*RST", "*CLS"] + [
-            f"CONF:VOLT:DC {self.range_v:g},{volts}", f"VOLT:DC:NPLC {self.nplc:g},{volts}"]
+            f"CONF:VOLT:DC {self.range_v:g},{volts}", f"VOLT:DC:NPLC {self.nplc:g},{volts}"] + (
+            [f"INP:IMP:AUTO ON,{volts}"] if self.impedance_auto else [])
         if self.temperature_channel:
             thermometer = channel_list([self.temperature_channel])
             commands += [f"CONF:TEMP {self.temperature_probe},{thermometer}",

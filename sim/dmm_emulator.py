@@ -33,6 +33,12 @@ SWITCH_AND_DELAY_S = 0.005  # relay closure and automatic channel delay per chan
 ERRORS = {-102: "Syntax error", -113: "Undefined header", -221: "Settings conflict",
           -222: "Data out of range", -230: "Data corrupt or stale", -350: "Queue overflow"}
 QUEUE_SIZE = 10
+# DC volts input resistance (User's Guide, "DC input resistance" / INPut:IMPedance:AUTO): fixed at
+# 10 MΩ on every range with AUTO OFF, the *RST and CONFigure default; with AUTO ON, >10 GΩ on the
+# 100 mV, 1 V and 10 V ranges (10 GΩ here, the bound the manual gives) and still 10 MΩ above
+INPUT_OHM = 10e6
+HIGH_Z_OHM = 10e9
+HIGH_Z_RANGES_V = (0.1, 1.0, 10.0)
 OVER_RANGE = 1.2  # readings beyond 120 % of the range are overloads
 FORM_FIELDS = ("CHAN", "TIME", "UNIT", "ALAR")  # FORMat:READing fields, in reply order after the value
 
@@ -65,6 +71,11 @@ class Channel:
     function: str  # "VOLT" or "TEMP"
     range_v: float = 10.0
     nplc: float = 1.0
+    impedance_auto: bool = False  # INPut:IMPedance:AUTO; CONFigure and *RST turn it off
+
+    def input_ohm(self) -> float:
+        """The input resistance the channel presents to its source."""
+        return HIGH_Z_OHM if self.impedance_auto and self.range_v in HIGH_Z_RANGES_V else INPUT_OHM
 
 
 @dataclass
@@ -129,7 +140,9 @@ class Keysight34970AEmulator:
                 ("SYSTem:REMote", lambda a: None), ("SYSTem:VERSion?", lambda a: "1994.0"),
                 ("CONFigure[:VOLTage][:DC]", self._conf_volts), ("CONFigure:TEMPerature", self._conf_temp),
                 ("[SENSe:]VOLTage[:DC]:NPLCycles", self._nplc), ("[SENSe:]TEMPerature:NPLCycles", self._nplc),
-                ("[SENSe:]VOLTage[:DC]:RANGe", self._range), ("ROUTe:SCAN", self._scan_list),
+                ("[SENSe:]VOLTage[:DC]:RANGe", self._range),
+                ("INPut:IMPedance:AUTO", self._impedance), ("INPut:IMPedance:AUTO?", self._impedance_query),
+                ("ROUTe:SCAN", self._scan_list),
                 ("ROUTe:SCAN?", self._scan_list_query), ("FORMat:READing:CHANnel", self._form("CHAN")),
                 ("FORMat:READing:TIME", self._form("TIME")), ("FORMat:READing:UNIT", self._form("UNIT")),
                 ("FORMat:READing:ALARm", self._form("ALAR")), ("TRIGger:SOURce", self._trigger_source),
@@ -232,6 +245,25 @@ class Keysight34970AEmulator:
         for c in channels:
             self.state.channels[c].range_v = float(values[0])
 
+    def _impedance(self, argument: str) -> None:
+        values, channels = self._split(argument)
+        if len(values) != 1 or values[0].upper() not in ("ON", "OFF", "1", "0"):
+            self._error(-222)
+            return
+        if not channels or any(self.state.channels.get(c, Channel("")).function != "VOLT" for c in channels):
+            self._error(-221)
+            return
+        for c in channels:
+            self.state.channels[c].impedance_auto = values[0].upper() in ("ON", "1")
+
+    def _impedance_query(self, argument: str) -> str | None:
+        """``INP:IMP:AUTO? (@101:103)`` → ``1,1,1``: one 0/1 per channel, in the list's order."""
+        _, channels = self._split(argument)
+        if not channels or any(self.state.channels.get(c, Channel("")).function != "VOLT" for c in channels):
+            self._error(-221)
+            return None
+        return ",".join("1" if self.state.channels[c].impedance_auto else "0" for c in channels)
+
     def _scan_list(self, argument: str) -> None:
         channels = parse_channels(argument)
         if any(c not in self.state.channels for c in channels):
@@ -317,6 +349,9 @@ class Keysight34970AEmulator:
             else:
                 readings[i] = 0.0  # nothing wired to this input
             if self.state.channels[channel].function == "VOLT":
+                # the source's output resistance and the input's form a divider
+                input_ohm = self.state.channels[channel].input_ohm()
+                readings[i] *= input_ohm / (input_ohm + self.rig.rig.config.output_ohm)
                 if abs(readings[i]) > OVER_RANGE * self.state.channels[channel].range_v:
                     readings[i] = OVERLOAD
         if self.overload_next:

@@ -159,3 +159,47 @@ def test_another_instrument_at_the_dmm_address_is_one_line(tmp_path, no_leaks, m
             bench.dmm.identify()
         [report] = [r for r in bench.check() if r["device"] == "dmm"]
         assert "identity" not in report and "34465A" in report["problem"]
+
+
+def _loading(emulation, meter, n: int = 20) -> float:
+    """The DMM's reading of a change of the instrument's outputs over the change itself: tables from
+    pitch 0°, roll 0° to pitch 180°, roll 90° (each output swings by up to 2 g × 5 V/g), each
+    attitude settled, 20 sweeps averaged; one least-squares ratio over the three channels."""
+    rig = emulation.rig.rig
+    read, true = [], []
+    for pitch, roll in ((0.0, 0.0), (180.0, 90.0)):
+        with emulation.rig.lock:
+            rig.pitch.move_to(pitch)
+            rig.roll.move_to(roll)
+        emulation.rig.clock.sleep(30)  # the moves, then 60 output time constants
+        read.append(meter.read(n).volts.mean(axis=0))
+        t = emulation.rig.clock.now()
+        with emulation.rig.lock:
+            true.append(rig.instrument.static_volts(rig.true_gravity(pitch, roll), t, rig.lab_temperature(t)))
+    d_read, d_true = read[1] - read[0], true[1] - true[0]
+    return float(d_read @ d_true / (d_true @ d_true))
+
+
+def test_the_high_impedance_input_is_declared_and_a_10_megohm_input_reads_500_ppm_low(dmm):
+    """Issue 22 item 4. The instrument's outputs have a 5 kΩ source resistance (the emulation's
+    default); the 34970A's DC volts input is 10 MΩ unless INP:IMP:AUTO ON gives the ≤10 V ranges
+    >10 GΩ. By hand: a 10 MΩ input reads 10e6/(10e6 + 5e3) = 0.99950025 of the output (500 ppm
+    low), a 10 GΩ one 10e9/(10e9 + 5e3) = 0.9999995. The ratio's noise: 20 µV/√20 per mean over a
+    change of ~10 V, under 1 ppm; the tolerance, 20 ppm, is 25 times smaller than the effect."""
+    emulation, meter = dmm
+    assert emulation.station_config.emulation.rig.output_ohm == 5000.0
+    volts = "(@101,102,103)"
+    assert meter.link.query(f"INP:IMP:AUTO? {volts}") == "1,1,1"  # the driver's configuration sent it
+    assert _loading(emulation, meter) == pytest.approx(10e9 / (10e9 + 5e3), abs=20e-6)
+    meter.link.write_line(f"INP:IMP:AUTO OFF,{volts}")  # labcal before issue 22: the reset default
+    assert _loading(emulation, meter) == pytest.approx(10e6 / (10e6 + 5e3), abs=20e-6)
+    assert 10e6 / (10e6 + 5e3) == pytest.approx(1 - 500e-6, abs=1e-6)
+
+
+def test_no_high_impedance_input_above_10_volts(tmp_path, no_leaks):  # noqa: F811
+    """The 100 V range has no >10 GΩ input (User's Guide, DC input resistance): the driver does not
+    ask for one there, and the unit keeps its 10 MΩ."""
+    with emulated("az-modbus-tcp", tmp_path, dmm={**QUICK, "range_v": 100.0}) as (emulation, bench):
+        bench.dmm.configure()
+        assert bench.dmm.link.query("INP:IMP:AUTO? (@101:103)") == "0,0,0"
+        assert "INP:IMP:AUTO ON" not in " ".join(emulation.faults["dmm"].recent)

@@ -131,6 +131,9 @@ class RigConfig(BaseModel):
     clamp_s: float = Field(default=1.0, ge=0)
     nplc: float = Field(default=10.0, gt=0, description="DMM integration per sample, power-line cycles")
     line_hz: float = Field(default=50.0, gt=0)
+    output_ohm: float = Field(default=5000.0, ge=0, description="the instrument outputs' source impedance, "
+                              "which the DMM's input resistance loads (a servo-accelerometer's output "
+                              "resistor, ~5 kΩ)")
     remount_s: float = Field(default=300.0, ge=0, description="operator time for one remount")
     lab_temp_c: float = 21.0
     lab_temp_swing_c: float = Field(default=0.3, ge=0)
