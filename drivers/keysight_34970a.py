@@ -2,9 +2,12 @@
 
 Three DC-volts channels (and optionally a temperature channel) in one scan list; each `read` is
 ``TRIG:COUN n``, ``INIT``, ``*OPC?`` (answers when the sweeps are done), ``FETC?`` (readings stay
-in memory, so fetching again is safe) and ``SYST:ERR?``. Lines end in LF; over RS-232 the unit
-needs ``SYST:REM`` first. A query the unit cannot answer gets no reply and leaves an error in the
-queue, so silence is explained by reading the queue. Dialect: hardware_protocols.md §3.1.
+in memory, so fetching again is safe) and ``SYST:ERR?``. Every reading carries its time of day
+(``FORM:READ:TIME ON``, ``TYPE ABS``), so a fetched scan is known to be the one just started: a
+lost ``INIT`` leaves the previous scan in memory, which ``FETC?`` would return again. Lines end in
+LF; over RS-232 the unit needs ``SYST:REM`` first. A query the unit cannot answer gets no reply
+and leaves an error in the queue, so silence is explained by reading the queue. Dialect:
+hardware_protocols.md §3.1.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ import logging
 import math
 import re
 from collections.abc import Callable, Sequence
+from datetime import datetime
 from typing import TypeVar
 
 import numpy as np
@@ -27,7 +31,11 @@ EOL = b"\n"
 OVERLOAD = 9.9e37
 CHANNEL_S = 0.005  # relay switching and settling per channel, on top of integration
 MAX_ERRORS = 20  # the 34970A's error queue holds 10; never loop for ever on a chatty device
-READING_CHARS = 20  # one reading with its channel number in a FETC? reply: "+1.23456789E+00,101,"
+# one reading with its time of day and channel number in a FETC? reply:
+# "+1.23456789E+00,2026,01,01,12,00,01.234,101,"
+READING_CHARS = 45
+STAMP_FIELDS = 6  # an absolute time stamp is yyyy,mm,dd,hh,mm,ss.sss (FORMat:READing:TIME:TYPE ABS)
+NO_DATA = -230  # "Data corrupt or stale": FETC? with no scan in memory (after *RST, or before any INIT)
 BITS_PER_CHAR = 10  # start, 8 data, stop (8N1; a parity bit makes it 11, within the margin)
 MARGIN = 1.5  # deadlines allow half as long again as the estimate
 # DC volts ranges with a >10 GΩ input under INPut:IMPedance:AUTO ON; above them, and on every range
@@ -54,23 +62,55 @@ def parse_error(line: str) -> tuple[int, str]:
     return int(match.group(1)), match.group(2)
 
 
-def parse_readings(line: str, scan_list: Sequence[int], sweeps: int) -> np.ndarray:
-    """``FETC?`` with channel numbers on (``+1.23E+00,101,...``) → (sweeps, channels) array; the
-    channels must come in scan-list order, sweep after sweep."""
+class ScpiError(Rejected):
+    """The unit refused a command: the first entry of its error queue, with its code."""
+
+    def __init__(self, code: int, message: str, device: str | None = None):
+        super().__init__(message, device)
+        self.code = code
+
+
+class StaleScan(BadReply):
+    """``FETC?`` gave a scan other than the one just started (its ``INIT`` never arrived): discarded,
+    and the scan is taken again like any reply that is not the answer."""
+
+
+def parse_readings(line: str, scan_list: Sequence[int], sweeps: int, previous: datetime | None = None
+                   ) -> tuple[np.ndarray, list[datetime]]:
+    """``FETC?`` with absolute time stamps and channel numbers on (``+1.23E+00,2026,01,01,12,00,
+    01.234,101,...``) → (sweeps, channels) array and each reading's time of day; the channels must
+    come in scan-list order, sweep after sweep. A scan whose first reading is stamped ``previous``
+    (when the last scan fetched began) is that scan again: `StaleScan`, whatever its length."""
     fields = line.split(",")
-    expected = 2 * sweeps * len(scan_list)
-    if len(fields) != expected:
-        raise BadReply(f"{len(fields) // 2} readings in the reply, {expected // 2} expected")
+    width = 2 + STAMP_FIELDS
+    expected = width * sweeps * len(scan_list)
+    if len(fields) % width:
+        raise BadReply(f"reply {line[:60]!r} is not readings, time stamps and channel numbers")
     try:
-        values = [float(f) for f in fields[0::2]]
-        channels = [int(f) for f in fields[1::2]]
+        values = [float(f) for f in fields[0::width]]
+        channels = [int(f) for f in fields[width - 1::width]]
+        stamps = [stamp(fields[i + 1:i + 1 + STAMP_FIELDS]) for i in range(0, len(fields), width)]
     except ValueError:
-        raise BadReply(f"reply {line[:60]!r} is not readings and channel numbers") from None
+        raise BadReply(f"reply {line[:60]!r} is not readings, time stamps and channel numbers") from None
+    if previous is not None and stamps[0] == previous:
+        raise StaleScan(f"FETC? returned the previous scan again (begun {previous:%H:%M:%S.%f}): the INIT "
+                        "was lost; discarded")
+    if len(fields) != expected:
+        raise BadReply(f"{len(fields) // width} readings in the reply, {expected // width} expected")
     if channels != list(scan_list) * sweeps:
         raise BadReply(f"readings from channels {sorted(set(channels))[:8]}, scan list {list(scan_list)}")
     if not all(math.isfinite(v) for v in values):
         raise BadReply("a reading is not a finite number")
-    return np.array(values).reshape(sweeps, len(scan_list))
+    return np.array(values).reshape(sweeps, len(scan_list)), stamps
+
+
+def stamp(fields: Sequence[str]) -> datetime:
+    """``2026,01,01,12,00,01.234`` → that time of day; ValueError if it is not one."""
+    year, month, day, hour, minute = (int(f) for f in fields[:5])
+    seconds = float(fields[5])
+    if not 0 <= seconds < 61:
+        raise ValueError(fields[5])
+    return datetime(year, month, day, hour, minute, int(seconds), round((seconds % 1) * 1e6) % 1000000)
 
 
 class Keysight34970A:
@@ -95,6 +135,7 @@ class Keysight34970A:
         self.measures_temperature = temperature_channel is not None
         # declared: the >10 GΩ input wherever the range has one (CONFigure turns it off again)
         self.impedance_auto = range_v in HIGH_Z_RANGES_V
+        self.last_scan: datetime | None = None  # when the last scan fetched began, by the unit's clock
 
     # --- exchanges --------------------------------------------------------------------------
     def errors(self) -> list[tuple[int, str]]:
@@ -109,7 +150,8 @@ class Keysight34970A:
 
     def _check(self, after: str) -> None:
         if found := self.errors():
-            raise Rejected(f"SCPI error {found[0][0]} \"{found[0][1]}\" after {after}", self.device)
+            code, text = found[0]
+            raise ScpiError(code, f"SCPI error {code} \"{text}\" after {after}", self.device)
 
     def _ask(self, query: str, timeout_s: float | None = None) -> str:
         try:
@@ -154,7 +196,8 @@ class Keysight34970A:
             thermometer = channel_list([self.temperature_channel])
             commands += [f"CONF:TEMP {self.temperature_probe},{thermometer}",
                          f"TEMP:NPLC {self.nplc:g},{thermometer}"]  # the same mains rejection
-        commands += [f"ROUT:SCAN {channel_list(self.scan_list)}", "FORM:READ:CHAN ON", "FORM:READ:TIME OFF",
+        commands += [f"ROUT:SCAN {channel_list(self.scan_list)}", "FORM:READ:CHAN ON", "FORM:READ:TIME ON",
+                     "FORM:READ:TIME:TYPE ABS",
                      "FORM:READ:UNIT OFF", "FORM:READ:ALAR OFF", "TRIG:SOUR IMM"]
 
         def once() -> None:
@@ -177,7 +220,9 @@ class Keysight34970A:
         return timeout + MARGIN * self.scan_time_s(sweeps), timeout + MARGIN * transfer_s
 
     def read(self, n_samples: int) -> Scan:
-        """n sweeps of the scan list; a lost or garbled reply repeats the whole scan."""
+        """n sweeps of the scan list; a lost or garbled reply repeats the whole scan, and so does a
+        stale one: a scan whose first reading is stamped as the last scan's was (its ``INIT`` was
+        lost, so ``FETC?`` returned the previous scan), or no scan at all (error -230)."""
         scan_s, fetch_s = self.deadlines_s(n_samples)
 
         def once() -> np.ndarray:
@@ -186,8 +231,15 @@ class Keysight34970A:
             done = self._ask("*OPC?", scan_s)
             if done.strip() != "1":
                 raise BadReply(f"*OPC? answered {done[:40]!r}")
-            readings = parse_readings(self._ask("FETC?", fetch_s), self.scan_list, n_samples)
+            try:
+                reply = self._ask("FETC?", fetch_s)
+            except ScpiError as exc:
+                if exc.code == NO_DATA:
+                    raise StaleScan("no scan in memory after INIT (error -230): the INIT was lost") from None
+                raise
+            readings, stamps = parse_readings(reply, self.scan_list, n_samples, self.last_scan)
             self._check("the scan")
+            self.last_scan = stamps[0]
             return readings
 
         readings = self._exchange(once)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from datetime import datetime, timedelta
 
 import numpy as np
 
@@ -41,6 +42,10 @@ HIGH_Z_OHM = 10e9
 HIGH_Z_RANGES_V = (0.1, 1.0, 10.0)
 OVER_RANGE = 1.2  # readings beyond 120 % of the range are overloads
 FORM_FIELDS = ("CHAN", "TIME", "UNIT", "ALAR")  # FORMat:READing fields, in reply order after the value
+# The unit's real-time clock at rig time 0 (an emulation choice: the battery-backed clock is set by
+# SYSTem:DATE/TIME); absolute time stamps are "yyyy,mm,dd,hh,mm,ss.sss", 1 ms resolution (User's
+# Guide, FORMat:READing:TIME:TYPE ABSolute; the 34980A's reading format shows "2004,11,21,15,30,23.000")
+CLOCK_AT_ZERO = datetime(2026, 1, 1)
 
 
 def _regex(spec: str) -> re.Pattern:
@@ -111,6 +116,7 @@ class State:
     channels: dict[int, Channel] = field(default_factory=dict)
     scan_list: list[int] = field(default_factory=list)
     form: dict[str, bool] = field(default_factory=lambda: dict.fromkeys(FORM_FIELDS, False))
+    time_absolute: bool = False  # FORMat:READing:TIME:TYPE ABSolute (*RST: RELative)
     trigger_count: int = 1
     scan: ScanRun | None = None
 
@@ -145,7 +151,8 @@ class Keysight34970AEmulator:
                 ("ROUTe:SCAN", self._scan_list),
                 ("ROUTe:SCAN?", self._scan_list_query), ("FORMat:READing:CHANnel", self._form("CHAN")),
                 ("FORMat:READing:TIME", self._form("TIME")), ("FORMat:READing:UNIT", self._form("UNIT")),
-                ("FORMat:READing:ALARm", self._form("ALAR")), ("TRIGger:SOURce", self._trigger_source),
+                ("FORMat:READing:ALARm", self._form("ALAR")),
+                ("FORMat:READing:TIME:TYPE", self._time_type), ("TRIGger:SOURce", self._trigger_source),
                 ("TRIGger:COUNt", self._trigger_count), ("TRIGger:TIMer", lambda a: None),
                 ("INITiate", self._init), ("ABORt", self._abort), ("FETCh?", self._fetch),
                 ("DATA:POINts?", self._points))]
@@ -283,6 +290,12 @@ class Keysight34970AEmulator:
             self.state.form[field_name] = argument.upper() in ("ON", "1")
         return set_form
 
+    def _time_type(self, argument: str) -> None:
+        if argument.upper() not in ("ABS", "ABSOLUTE", "REL", "RELATIVE"):
+            self._error(-222)
+            return
+        self.state.time_absolute = argument.upper().startswith("ABS")
+
     def _trigger_source(self, argument: str) -> None:
         if argument.upper() not in ("IMM", "IMMEDIATE", "TIM", "TIMER", "BUS", "EXT", "EXTERNAL"):
             self._error(-222)
@@ -328,9 +341,8 @@ class Keysight34970AEmulator:
         if scan.readings is None:
             scan.readings = self._measure(scan)
         n = scan.done_by(scan.end)
-        return ",".join(self._format(value, scan.channels[i % len(scan.channels)], t)
-                        for i, (value, t) in enumerate(zip(scan.readings[:n], scan.times()[:n] - scan.start,
-                                                           strict=True)))
+        return ",".join(self._format(value, scan.channels[i % len(scan.channels)], t, scan.start)
+                        for i, (value, t) in enumerate(zip(scan.readings[:n], scan.times()[:n], strict=True)))
 
     # --- measurement ------------------------------------------------------------------------
     def _measure(self, scan: ScanRun) -> np.ndarray:
@@ -359,12 +371,17 @@ class Keysight34970AEmulator:
             readings[0::len(scan.channels)] = OVERLOAD
         return readings
 
-    def _format(self, value: float, channel: int, t: float) -> str:
+    def _format(self, value: float, channel: int, t: float, start: float) -> str:
+        """One reading with the fields FORMat:READing asks for; the time stamp is the reading's
+        time of day (ABSolute) or its seconds since the start of the scan (RELative)."""
         form = self.state.form
         unit = {"VOLT": " VDC", "TEMP": " C"}[self.state.channels[channel].function] if form["UNIT"] else ""
         parts = [f"{value:+.8E}{unit}"]
-        if form["TIME"]:
-            parts.append(f"{t:.3f}")
+        if form["TIME"] and self.state.time_absolute:
+            stamp = CLOCK_AT_ZERO + timedelta(seconds=round(t, 3))
+            parts.append(f"{stamp:%Y,%m,%d,%H,%M},{stamp.second + stamp.microsecond / 1e6:06.3f}")
+        elif form["TIME"]:
+            parts.append(f"{t - start:.3f}")
         if form["CHAN"]:
             parts.append(f"{channel:03d}")
         if form["ALAR"]:

@@ -64,7 +64,10 @@ SCENARIOS: dict[str, tuple[str, dict[str, str]]] = {
         **kinds("pitch", "TS", "PA", "TS"),
         "lost TE after PA (20°/s)": fault("pitch", "no-reply", after=5, match="TE"),
     }),
-    "SCPI (34970A, TCP)": ("az-modbus-tcp", kinds("dmm", "FETC", "FETC", "FETC")),
+    "SCPI (34970A, TCP)": ("az-modbus-tcp", {
+        **kinds("dmm", "FETC", "FETC", "FETC"),
+        "lost INIT (stale scan)": fault("dmm", "lost-request", after=40, match="^INIT"),
+    }),
 }
 
 

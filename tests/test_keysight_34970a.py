@@ -104,7 +104,7 @@ def test_a_refused_command_is_reported_with_the_units_words(dmm):
 @pytest.mark.parametrize("kind", [FaultKind.NO_REPLY, FaultKind.GARBLED, FaultKind.LATE_REPLY])
 def test_a_lost_garbled_or_late_scan_is_taken_again(dmm, kind):
     emulation, meter = dmm
-    emulation.faults["dmm"].add(Fault(kind, match="FETC", delay_s=0.25))
+    emulation.faults["dmm"].add(Fault(kind, match="FETC", delay_s=0.5))  # beyond the FETC? deadline (0.29 s)
     scan = meter.read(4)
     assert scan.volts.shape == (4, 3) and emulation.faults["dmm"].count(kind) == 1
     assert list(emulation.faults["dmm"].recent).count("INIT") >= 2
@@ -125,16 +125,17 @@ def test_the_port_comes_back(dmm):
 
 
 def test_a_slow_scan_on_a_slow_serial_line_is_waited_for(tmp_path, no_leaks):  # noqa: F811
-    """At 1200 Bd the readings of 2 sweeps × 4 channels take 1.3 s to arrive (20 characters
-    each, 10 bits a character), more than twice the link's 0.5 s timeout: the FETC? deadline scales
+    """At 2400 Bd the readings of 2 sweeps × 4 channels take 1.5 s to arrive (45 characters
+    each with its time stamp and channel, "+1.23456789E+00,2026,01,01,12,00,01.234,101,"; 10 bits
+    a character), more than twice the link's 0.5 s timeout: the FETC? deadline scales
     with the reply's length at the line's rate (the emulator paces its replies in rig time, here
     real time)."""
-    slow_line = {"timeout_s": 0.5, "retries": 0, "baudrate": 1200, "nplc": 0.2}
+    slow_line = {"timeout_s": 0.5, "retries": 0, "baudrate": 2400, "nplc": 0.2}
     with emulated("smc100-serial", tmp_path, time_scale=1.0, dmm=slow_line) as (emulation, bench):
         bench.dmm.configure()
         assert bench.dmm.scan_list == (101, 102, 103, 104)
         scan_s, fetch_s = bench.dmm.deadlines_s(2)
-        assert fetch_s == pytest.approx(0.5 + 1.5 * 2 * 4 * 20 * 10 / 1200)
+        assert fetch_s == pytest.approx(0.5 + 1.5 * 2 * 4 * 45 * 10 / 2400)
         assert scan_s == pytest.approx(0.5 + 1.5 * 2 * 4 * (2 * 0.2 / 50 + 0.005))
         assert bench.dmm.read(2).volts.shape == (2, 3)
 
@@ -203,3 +204,38 @@ def test_no_high_impedance_input_above_10_volts(tmp_path, no_leaks):  # noqa: F8
         bench.dmm.configure()
         assert bench.dmm.link.query("INP:IMP:AUTO? (@101:103)") == "0,0,0"
         assert "INP:IMP:AUTO ON" not in " ".join(emulation.faults["dmm"].recent)
+
+
+def test_a_lost_init_does_not_fetch_the_previous_scan(dmm):
+    """Issue 22 item 6: the INIT of a scan never reaches the unit (noise on the line). *OPC?
+    answers at once and FETC? returns the previous scan, taken at the tables' previous attitude.
+    The driver sees that the fetched scan began when the last one did (the readings' time stamps),
+    discards it and scans again: the readings are those of the new attitude, taken after the move.
+    Before, the previous attitude's readings came back for the new point (volts off by up to 2 g)."""
+    emulation, meter = dmm
+    rig = emulation.rig.rig
+    first = meter.read(3)
+    with emulation.rig.lock:
+        rig.pitch.move_to(180.0)  # every output that sees gravity changes by up to 2 g × 5 V/g
+    emulation.rig.clock.sleep(30)
+    emulation.faults["dmm"].add(Fault(FaultKind.LOST_REQUEST, match="^INIT"))
+    t0 = emulation.rig.clock.now()
+    second = meter.read(3)
+    t = emulation.rig.clock.now()
+    assert emulation.faults["dmm"].count(FaultKind.LOST_REQUEST) == 1
+    assert list(emulation.faults["dmm"].recent).count("INIT") == 3  # the first scan, the lost one, again
+    with emulation.rig.lock:
+        expected = rig.instrument.static_volts(rig.true_gravity(180.0, 0.0), t, rig.lab_temperature(t))
+    noise = rig.instrument.noise_v
+    assert np.max(np.abs(second.volts.mean(axis=0) - expected)) < 5 * noise / np.sqrt(3) + 10e-6  # + loading
+    assert np.max(np.abs(second.volts.mean(axis=0) - first.volts.mean(axis=0))) > 1.0
+    assert t - t0 >= 3 * len(meter.scan_list) * 2 * meter.nplc / meter.line_hz  # a scan was taken after
+
+
+def test_a_lost_first_init_is_measured_again(dmm):
+    """A lost INIT right after the configuration (*RST emptied the memory): FETC? has nothing to
+    give and the unit says -230 "Data corrupt or stale" — a scan to take again, not a refusal."""
+    emulation, meter = dmm
+    emulation.faults["dmm"].add(Fault(FaultKind.LOST_REQUEST, match="^INIT"))
+    assert meter.read(2).volts.shape == (2, 3)
+    assert meter.errors() == []

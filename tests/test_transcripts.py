@@ -188,8 +188,9 @@ def scpi(*pairs: tuple[str, str | None]) -> Transcript:
 
 NO_ERROR = ("SYST:ERR?", '+0,"No error"')
 CONFIGURE = [("*RST", None), ("*CLS", None), ("CONF:VOLT:DC 10,(@101,102,103)", None),
-             ("VOLT:DC:NPLC 10,(@101,102,103)", None), ("ROUT:SCAN (@101,102,103)", None),
-             ("FORM:READ:CHAN ON", None), ("FORM:READ:TIME OFF", None), ("FORM:READ:UNIT OFF", None),
+             ("VOLT:DC:NPLC 10,(@101,102,103)", None), ("INP:IMP:AUTO ON,(@101,102,103)", None),
+             ("ROUT:SCAN (@101,102,103)", None), ("FORM:READ:CHAN ON", None), ("FORM:READ:TIME ON", None),
+             ("FORM:READ:TIME:TYPE ABS", None), ("FORM:READ:UNIT OFF", None),
              ("FORM:READ:ALAR OFF", None), ("TRIG:SOUR IMM", None), NO_ERROR]
 
 
@@ -199,8 +200,9 @@ def test_34970a_identity():
 
 
 def test_34970a_configure_and_one_scan_of_two_sweeps():
-    readings = ("+1.00000000E+00,101,-2.50000000E-01,102,+4.99990000E+00,103,"
-                "+1.00001000E+00,101,-2.50010000E-01,102,+4.99980000E+00,103")
+    readings = ("+1.00000000E+00,2026,01,01,12,00,01.100,101,-2.50000000E-01,2026,01,01,12,00,01.500,102,"
+                "+4.99990000E+00,2026,01,01,12,00,01.900,103,+1.00001000E+00,2026,01,01,12,00,02.300,101,"
+                "-2.50010000E-01,2026,01,01,12,00,02.700,102,+4.99980000E+00,2026,01,01,12,00,03.100,103")
     transcript = scpi(*CONFIGURE, ("TRIG:COUN 2", None), ("INIT", None), ("*OPC?", "1"),
                       ("FETC?", readings), NO_ERROR)
     meter = dmm_on(transcript)
@@ -217,7 +219,8 @@ def test_34970a_on_rs232_starts_with_syst_rem():
 
 
 def test_34970a_overload_and_error_queue():
-    overload = ("+9.90000000E+37,101,-2.50000000E-01,102,+4.99990000E+00,103")
+    overload = ("+9.90000000E+37,2026,01,01,12,00,01.100,101,-2.50000000E-01,2026,01,01,12,00,01.500,102,"
+                "+4.99990000E+00,2026,01,01,12,00,01.900,103")
     transcript = scpi(("TRIG:COUN 1", None), ("INIT", None), ("*OPC?", "1"), ("FETC?", overload), NO_ERROR)
     with pytest.raises(DeviceFault, match="channel 101 overloaded"):
         dmm_on(transcript).read(1)
