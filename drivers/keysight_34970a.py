@@ -35,6 +35,9 @@ MAX_ERRORS = 20  # the 34970A's error queue holds 10; never loop for ever on a c
 # "+1.23456789E+00,2026,01,01,12,00,01.234,101,"
 READING_CHARS = 45
 STAMP_FIELDS = 6  # an absolute time stamp is yyyy,mm,dd,hh,mm,ss.sss (FORMat:READing:TIME:TYPE ABS)
+PON = 128  # *ESR? bit 7, power on: set when the unit powers up, cleared by *CLS or by reading it
+# (IEEE 488.2 standard event register; 34970A User's Guide, status system, *ESR?)
+POWERED_ON = "it was powered off and on (*ESR? power-on bit)"
 NO_DATA = -230  # "Data corrupt or stale": FETC? with no scan in memory (after *RST, or before any INIT)
 BITS_PER_CHAR = 10  # start, 8 data, stop (8N1; a parity bit makes it 11, within the margin)
 MARGIN = 1.5  # deadlines allow half as long again as the estimate
@@ -104,6 +107,35 @@ def parse_readings(line: str, scan_list: Sequence[int], sweeps: int, previous: d
     return np.array(values).reshape(sweeps, len(scan_list)), stamps
 
 
+def definite_block(reply: str) -> str:
+    """An IEEE 488.2 definite-length block (``#213(@101,102,103)``) → its bytes as text."""
+    match = re.fullmatch(r"#([1-9])(\d+)(.*)", reply.strip())
+    if not match or int(match.group(1)) > len(match.group(2)):
+        raise BadReply(f"{reply[:40]!r} is not a definite-length block")
+    digits = int(match.group(1))
+    length, text = int(match.group(2)[:digits]), match.group(2)[digits:] + match.group(3)
+    if len(text) != length:
+        raise BadReply(f"{reply[:40]!r} is not a definite-length block of {length} bytes")
+    return text
+
+
+def channels_of(text: str) -> list[int]:
+    """``(@101:103,105)`` → [101, 102, 103, 105]; BadReply if it is not a channel list."""
+    match = re.fullmatch(r"\(@([\d,: ]*)\)", text.strip())
+    if not match:
+        raise BadReply(f"{text[:40]!r} is not a channel list")
+    channels: list[int] = []
+    for part in filter(None, (p.strip() for p in match.group(1).split(","))):
+        first, _, last = part.partition(":")
+        channels += range(int(first), int(last or first) + 1)
+    return channels
+
+
+def spell(value: str | list[float]) -> str:
+    """A setting for a message: ``10,1,10`` or the text."""
+    return value if isinstance(value, str) else ",".join(f"{v:g}" for v in value)
+
+
 def stamp(fields: Sequence[str]) -> datetime:
     """``2026,01,01,12,00,01.234`` → that time of day; ValueError if it is not one."""
     year, month, day, hour, minute = (int(f) for f in fields[:5])
@@ -136,6 +168,8 @@ class Keysight34970A:
         # declared: the >10 GΩ input wherever the range has one (CONFigure turns it off again)
         self.impedance_auto = range_v in HIGH_Z_RANGES_V
         self.last_scan: datetime | None = None  # when the last scan fetched began, by the unit's clock
+        self._verified_at: int | None = None  # the link's open count when the state was last verified
+        self._suspect = False  # an exchange failed: the unit may have been reset, verify before using it
 
     # --- exchanges --------------------------------------------------------------------------
     def errors(self) -> list[tuple[int, str]]:
@@ -162,7 +196,14 @@ class Keysight34970A:
 
     def _exchange(self, exchange: Callable[[], T]) -> T:
         with on_device(self.device):
-            return retried(exchange, self.tries, self.link.drain, self.link.critical, self.device)
+            return retried(exchange, self.tries, self._recover, self.link.critical, self.device)
+
+    def _recover(self) -> None:
+        """Between tries: drain late replies, and have the next try verify the unit first (silence
+        may be a unit that was powered off and on: back to its defaults, and on RS-232 deaf until
+        ``SYST:REM``)."""
+        self.link.drain()
+        self._suspect = True
 
     # --- the voltmeter ----------------------------------------------------------------------
     def _remote(self) -> None:
@@ -184,28 +225,105 @@ class Keysight34970A:
                               "station file's dmm link (is another instrument at that address?)", self.device)
         return identity
 
-    def configure(self) -> None:
-        """Put the unit in a known state: DC volts at a fixed range and NPLC on the three
+    def commands(self) -> list[str]:
+        """The configuration, from a reset: DC volts at a fixed range and NPLC on the three
         channels with the high-impedance input where the range has it, the temperature channel,
-        the scan list, channel numbers in the readings."""
+        the scan list, each reading's time of day and channel number."""
         volts = channel_list(self.channels)
-        commands = (["SYST:REM"] if self.serial_line else []) + ["*RST", "*CLS"] + [
-            f"CONF:VOLT:DC {self.range_v:g},{volts}", f"VOLT:DC:NPLC {self.nplc:g},{volts}"] + (
-            [f"INP:IMP:AUTO ON,{volts}"] if self.impedance_auto else [])
+        commands = ["*RST", "*CLS", f"CONF:VOLT:DC {self.range_v:g},{volts}",
+                    f"VOLT:DC:NPLC {self.nplc:g},{volts}"]
+        commands += [f"INP:IMP:AUTO ON,{volts}"] if self.impedance_auto else []
         if self.temperature_channel:
             thermometer = channel_list([self.temperature_channel])
             commands += [f"CONF:TEMP {self.temperature_probe},{thermometer}",
                          f"TEMP:NPLC {self.nplc:g},{thermometer}"]  # the same mains rejection
-        commands += [f"ROUT:SCAN {channel_list(self.scan_list)}", "FORM:READ:CHAN ON", "FORM:READ:TIME ON",
-                     "FORM:READ:TIME:TYPE ABS",
-                     "FORM:READ:UNIT OFF", "FORM:READ:ALAR OFF", "TRIG:SOUR IMM"]
+        return commands + [f"ROUT:SCAN {channel_list(self.scan_list)}", "FORM:READ:CHAN ON",
+                           "FORM:READ:TIME ON", "FORM:READ:TIME:TYPE ABS", "FORM:READ:UNIT OFF",
+                           "FORM:READ:ALAR OFF", "TRIG:SOUR IMM"]
 
-        def once() -> None:
-            for command in commands:
-                self.link.write_line(command)
-            self._check("configuration")
+    def declared(self) -> dict[str, list[float] | str]:
+        """The configuration as the unit reports it when it holds it: each query and its answer
+        (numbers per channel, or text)."""
+        volts, n = channel_list(self.channels), len(self.channels)
+        state: dict[str, list[float] | str] = {
+            f"VOLT:DC:RANG? {volts}": [self.range_v] * n, f"VOLT:DC:NPLC? {volts}": [self.nplc] * n,
+            f"INP:IMP:AUTO? {volts}": [float(self.impedance_auto)] * n}
+        if self.temperature_channel:
+            state[f"TEMP:NPLC? {channel_list([self.temperature_channel])}"] = [self.nplc]
+        return {**state, "ROUT:SCAN?": channel_list(self.scan_list), "FORM:READ:CHAN?": [1.0],
+                "FORM:READ:TIME?": [1.0], "FORM:READ:TIME:TYPE?": "ABS", "FORM:READ:UNIT?": [0.0],
+                "FORM:READ:ALAR?": [0.0]}
 
-        self._exchange(once)
+    def differences(self) -> list[str]:
+        """Each declared setting the unit does not hold, as ``VOLT:DC:NPLC? (@101,102,103) answers
+        1,1,1, declared 10,10,10`` (a query it cannot answer counts as a difference)."""
+        found = []
+        for query, want in self.declared().items():
+            try:
+                answer = self._ask(query)
+            except (NoReply, Rejected) as exc:
+                found.append(f"{query} unanswered ({exc})")
+                continue
+            if isinstance(want, str):
+                got: str | list[float] = answer.strip().upper()
+                if query == "ROUT:SCAN?":
+                    got = channel_list(channels_of(definite_block(answer)))
+            else:
+                try:
+                    got = [float(f) for f in answer.split(",")]
+                except ValueError:
+                    raise BadReply(f"{query} answered {answer[:40]!r}") from None
+            if not (got == want if isinstance(want, str) else len(got) == len(want) and all(
+                    math.isclose(a, b, rel_tol=1e-6) for a, b in zip(got, want, strict=True))):
+                found.append(f"{query} answers {spell(got)}, declared {spell(want)}")
+        return found
+
+    def _configure(self) -> None:
+        """Send the configuration and read it back (inside an exchange)."""
+        self._remote()
+        for command in self.commands():
+            self.link.write_line(command)
+        self._check("configuration")
+        if found := self.differences():
+            raise DeviceFault(f"does not hold the configuration just sent ({'; '.join(found)}); check the "
+                              "multiplexer card and the station's channels", self.device)
+        self._verified_at, self._suspect = self.link.opens, False
+
+    def configure(self) -> None:
+        """Put the unit in the declared state (`commands`) and verify it by reading it back."""
+        self._exchange(self._configure)
+
+    def _inspect(self) -> list[str]:
+        """What says the unit is not in the declared state: the power-on bit of ``*ESR?`` (it was
+        reset), errors in its queue, or a setting that differs (inside an exchange)."""
+        self._remote()
+        if self._status() & PON:
+            return [POWERED_ON]
+        if errors := self.errors():
+            return [f"errors in its queue: {', '.join(f'{c} {t!r}' for c, t in errors)}"]
+        return self.differences()
+
+    def _status(self) -> int:
+        """``*ESR?``: the standard event register (reading it clears it)."""
+        try:
+            return int(self._ask("*ESR?"))
+        except ValueError:
+            raise BadReply("*ESR? did not answer a number") from None
+
+    def _ensure(self, why: str, found: list[str] | None = None) -> list[str]:
+        """Verify the declared state (unless ``found`` already says what is wrong); configure again
+        if the unit lost it. Returns what was found."""
+        found = self._inspect() if found is None else found
+        if found:
+            log.warning("%s: %s: %s; configuring it again", self.device, why, "; ".join(found))
+            self._configure()
+        self._verified_at, self._suspect = self.link.opens, False
+        return found
+
+    def verify(self, why: str = "verifying its configuration") -> list[str]:
+        """Read the declared configuration back (at every mount, and whenever asked); a unit that
+        was reset or changed is configured again. Returns what was found wrong (empty: nothing)."""
+        return self._exchange(lambda: self._ensure(why))
 
     def scan_time_s(self, sweeps: int) -> float:
         """How long the unit needs for ``sweeps`` sweeps of the scan list."""
@@ -226,6 +344,10 @@ class Keysight34970A:
         scan_s, fetch_s = self.deadlines_s(n_samples)
 
         def once() -> np.ndarray:
+            if self._suspect or self.link.opens != self._verified_at:
+                self._ensure("after a lost reply" if self._suspect else "after the link was reopened")
+            elif self._status() & PON:  # powered off and on since the last scan
+                self._ensure("before a scan", [POWERED_ON])
             self.link.write_line(f"TRIG:COUN {n_samples}")
             self.link.write_line("INIT")
             done = self._ask("*OPC?", scan_s)

@@ -126,6 +126,7 @@ class Lines(Protocol):
     where: str
     timeout_s: float
     critical: CriticalSection | None
+    opens: int  # how many times the link has been opened: a driver verifies a device after a reopening
 
     def write_line(self, text: str) -> None: ...
 
@@ -212,6 +213,7 @@ class LineTransport:
         self._stream: Stream | None = None
         self._buffer = b""
         self.critical: CriticalSection | None = None  # the run's, while a run drives this link
+        self.opens = 0
 
     def _open(self) -> Stream:
         if self._stream is None:
@@ -219,6 +221,7 @@ class LineTransport:
                 self._stream = self.open_stream()
             reconnect(connect, self.reconnect_s, self.where)
             self._buffer = b""
+            self.opens += 1
         assert self._stream is not None
         return self._stream
 

@@ -34,6 +34,11 @@ SWITCH_AND_DELAY_S = 0.005  # relay closure and automatic channel delay per chan
 ERRORS = {-102: "Syntax error", -113: "Undefined header", -221: "Settings conflict",
           -222: "Data out of range", -230: "Data corrupt or stale", -350: "Queue overflow"}
 QUEUE_SIZE = 10
+# The standard event register (*ESR?, IEEE 488.2; User's Guide, "Status System"): bit 7 power on,
+# 5 command error (-1xx), 4 execution error (-2xx), 3 device-dependent error (-3xx), 2 query error
+# (-4xx); reading it or *CLS clears it
+PON = 128
+ERROR_BITS = {1: 32, 2: 16, 3: 8, 4: 4}
 # DC volts input resistance (User's Guide, "DC input resistance" / INPut:IMPedance:AUTO): fixed at
 # 10 MΩ on every range with AUTO OFF, the *RST and CONFigure default; with AUTO ON, >10 GΩ on the
 # 100 mV, 1 V and 10 V ranges (10 GΩ here, the bound the manual gives) and still 10 MΩ above
@@ -135,24 +140,36 @@ class Keysight34970AEmulator:
         """``wiring``: channel → instrument output 0, 1, 2 (x, y, z) or "temp" for the thermometer;
         ``serial_line``: on RS-232, where ``SYST:REM`` must come first."""
         self.rig, self.wiring, self.name = rig, wiring, name
+        self.serial_line = serial_line
         self.remote = not serial_line
         self.state = State()
         self.errors: list[int] = []
+        self.event_status = PON  # the unit has just been switched on
         self.overload_next = False
         self.commands: list[tuple[re.Pattern, Callable[[str], str | None]]] = [
             (_regex(spec), handler) for spec, handler in (
-                ("*IDN?", lambda a: IDN), ("*RST", self._reset), ("*CLS", lambda a: self.errors.clear()),
+                ("*IDN?", lambda a: IDN), ("*RST", self._reset), ("*CLS", self._clear_status),
+                ("*ESR?", self._event_status),
                 ("*OPC?", self._opc), ("*WAI", self._wait), ("SYSTem:ERRor[:NEXT]?", self._next_error),
                 ("SYSTem:REMote", lambda a: None), ("SYSTem:VERSion?", lambda a: "1994.0"),
                 ("CONFigure[:VOLTage][:DC]", self._conf_volts), ("CONFigure:TEMPerature", self._conf_temp),
                 ("[SENSe:]VOLTage[:DC]:NPLCycles", self._nplc), ("[SENSe:]TEMPerature:NPLCycles", self._nplc),
                 ("[SENSe:]VOLTage[:DC]:RANGe", self._range),
-                ("INPut:IMPedance:AUTO", self._impedance), ("INPut:IMPedance:AUTO?", self._impedance_query),
+                ("[SENSe:]VOLTage[:DC]:RANGe?", self._per_channel("VOLT", lambda c: f"{c.range_v:+.8E}")),
+                ("[SENSe:]VOLTage[:DC]:NPLCycles?", self._per_channel("VOLT", lambda c: f"{c.nplc:+.8E}")),
+                ("[SENSe:]TEMPerature:NPLCycles?", self._per_channel("TEMP", lambda c: f"{c.nplc:+.8E}")),
+                ("INPut:IMPedance:AUTO", self._impedance),
+                ("INPut:IMPedance:AUTO?", self._per_channel("VOLT", lambda c: str(int(c.impedance_auto)))),
                 ("ROUTe:SCAN", self._scan_list),
                 ("ROUTe:SCAN?", self._scan_list_query), ("FORMat:READing:CHANnel", self._form("CHAN")),
                 ("FORMat:READing:TIME", self._form("TIME")), ("FORMat:READing:UNIT", self._form("UNIT")),
                 ("FORMat:READing:ALARm", self._form("ALAR")),
-                ("FORMat:READing:TIME:TYPE", self._time_type), ("TRIGger:SOURce", self._trigger_source),
+                ("FORMat:READing:TIME:TYPE", self._time_type),
+                ("FORMat:READing:TIME:TYPE?", lambda a: "ABS" if self.state.time_absolute else "REL"),
+                ("FORMat:READing:CHANnel?", self._form_query("CHAN")),
+                ("FORMat:READing:TIME?", self._form_query("TIME")),
+                ("FORMat:READing:UNIT?", self._form_query("UNIT")),
+                ("FORMat:READing:ALARm?", self._form_query("ALAR")), ("TRIGger:SOURce", self._trigger_source),
                 ("TRIGger:COUNt", self._trigger_count), ("TRIGger:TIMer", lambda a: None),
                 ("INITiate", self._init), ("ABORt", self._abort), ("FETCh?", self._fetch),
                 ("DATA:POINts?", self._points))]
@@ -166,6 +183,17 @@ class Keysight34970AEmulator:
 
     def alarm(self, name: str, code: int | str | None) -> None:
         self.overload_next = True
+
+    def power_cycle(self) -> None:
+        """Switched off and on: the power-on state (User's Guide, "Power-on and reset state": the
+        *RST defaults, no scan list), the error queue empty, the power-on bit set, and on RS-232
+        back in local until SYST:REM. The reading memory is cleared too (a simplification: the
+        unit keeps a scan in non-volatile memory; the driver's time stamps would refuse it anyway)."""
+        self.state = State()
+        self.errors.clear()
+        self.event_status = PON
+        self.remote = not self.serial_line
+        self.overload_next = False
 
     def handle(self, line: str) -> str | None:
         replies = []
@@ -189,6 +217,7 @@ class Keysight34970AEmulator:
 
     # --- commands ---------------------------------------------------------------------------
     def _error(self, code: int) -> None:
+        self.event_status |= ERROR_BITS.get(-code // 100, 0)
         if len(self.errors) < QUEUE_SIZE:
             self.errors.append(code)
         else:
@@ -200,6 +229,29 @@ class Keysight34970AEmulator:
 
     def _reset(self, _: str) -> None:
         self.state = State()
+
+    def _clear_status(self, _: str) -> None:
+        self.errors.clear()
+        self.event_status = 0
+
+    def _event_status(self, _: str) -> str:
+        status, self.event_status = self.event_status, 0
+        return f"{status:+d}"
+
+    def _per_channel(self, function: str, value: Callable[[Channel], str]) -> Callable[[str], str | None]:
+        """A query with a channel list (``VOLT:DC:NPLC? (@101:103)``): one value per channel, in
+        the list's order; -221 if a channel is not configured for the function."""
+        def query(argument: str) -> str | None:
+            _, channels = self._split(argument)
+            if not channels or any(self.state.channels.get(c, Channel("")).function != function
+                                   for c in channels):
+                self._error(-221)
+                return None
+            return ",".join(value(self.state.channels[c]) for c in channels)
+        return query
+
+    def _form_query(self, field_name: str) -> Callable[[str], str]:
+        return lambda _: "1" if self.state.form[field_name] else "0"
 
     @staticmethod
     def _split(argument: str) -> tuple[list[str], list[int]]:
@@ -262,14 +314,6 @@ class Keysight34970AEmulator:
             return
         for c in channels:
             self.state.channels[c].impedance_auto = values[0].upper() in ("ON", "1")
-
-    def _impedance_query(self, argument: str) -> str | None:
-        """``INP:IMP:AUTO? (@101:103)`` → ``1,1,1``: one 0/1 per channel, in the list's order."""
-        _, channels = self._split(argument)
-        if not channels or any(self.state.channels.get(c, Channel("")).function != "VOLT" for c in channels):
-            self._error(-221)
-            return None
-        return ",".join("1" if self.state.channels[c].impedance_auto else "0" for c in channels)
 
     def _scan_list(self, argument: str) -> None:
         channels = parse_channels(argument)

@@ -182,3 +182,24 @@ def test_lost_scan_starts_are_measured_again_not_journaled_stale(tmp_path, capsy
     assert np.max(np.abs(np.array(summary["fit"]["coefficients"]) - truth)) < 1e-4
     log = cli(capsys, "log", str(run_dir), "--json")[1]
     assert log.count("the INIT was lost") == 3, log
+
+
+@pytest.mark.parametrize("station", ["smc100-serial", "az-modbus-tcp"])
+def test_a_power_cycled_dmm_is_recovered_and_the_run_completes(station, tmp_path, capsys, no_leaks):  # noqa: F811
+    """Issue 22 item 5, end to end: the DMM is switched off and on mid-run (on RS-232 it is then deaf
+    until SYST:REM; on TCP its connection drops) and comes back with its power-on defaults: no scan
+    list, 10 MΩ input. The driver re-sends SYST:REM and the configuration and reads it back; the
+    run completes with every point, and the fit is the truth to 0.1 mV (a 10 MΩ input alone would
+    put the sensitivities 500 ppm, 2.5 mV/g, off). Before, the run paused on "no reply" for good."""
+    cycle = faults('device = "dmm"\nkind = "power-cycle"\nmatch = "FETC"\nafter = 40')
+    path = private_file(station, tmp_path, cycle, QUICK)
+    run_dir = tmp_path / "run"
+    code, out, err = cli(capsys, "run", "--station", str(path), *EMULATE, "--yes", "--out", str(run_dir),
+                         "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    truth = np.array(json.loads((run_dir / "run.json").read_text())["simulated_truth"]["coefficients"])
+    assert summary["points"] == 64 and summary["points_failed"] == 0 and "Fault" not in err
+    assert np.max(np.abs(np.array(summary["fit"]["coefficients"]) - truth)) < 1e-4
+    log = cli(capsys, "log", str(run_dir), "--json")[1]
+    assert "it was powered off and on (*ESR? power-on bit); configuring it again" in log

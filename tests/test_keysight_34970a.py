@@ -19,6 +19,11 @@ QUICK = {"timeout_s": 0.1, "retries": 2, "reconnect_s": 0.5}
 station, rig, slow_rig = bench_fixtures(["smc100-serial", "az-modbus-tcp"], dmm=QUICK)
 
 
+def unit(emulation):
+    """The emulated 34970A itself, for what only its front panel would show."""
+    return next(server.device for _, protocol, server in emulation.servers.values() if "34970A" in protocol)
+
+
 @pytest.fixture
 def dmm(rig):
     emulation, bench = rig
@@ -239,3 +244,49 @@ def test_a_lost_first_init_is_measured_again(dmm):
     emulation.faults["dmm"].add(Fault(FaultKind.LOST_REQUEST, match="^INIT"))
     assert meter.read(2).volts.shape == (2, 3)
     assert meter.errors() == []
+
+
+def test_the_declared_configuration_is_read_back_and_restored(dmm, caplog):
+    """Issue 22 item 5: range, NPLC, input impedance, scan list and reading format are a declared
+    state. Someone sets NPLC 1 at the front panel between mounts (the unit would then integrate
+    20 ms instead of 200 ms, with 10 times less mains rejection): the check at the mount names it
+    and configures the unit again."""
+    emulation, meter = dmm
+    assert meter.differences() == [] and meter.verify() == []
+    meter.link.write_line("VOLT:DC:NPLC 1,(@102)")
+    found = meter.verify("at the mount")
+    assert found == ["VOLT:DC:NPLC? (@101,102,103) answers 10,1,10, declared 10,10,10"], found
+    assert "at the mount: VOLT:DC:NPLC?" in caplog.text and "configuring it again" in caplog.text
+    assert [unit(emulation).state.channels[c].nplc for c in (101, 102, 103)] == [10.0, 10.0, 10.0]
+    assert meter.differences() == []
+
+
+@pytest.mark.parametrize("when", ["TRIG:COUN", "FETC"])
+def test_a_power_cycled_dmm_is_configured_again_and_the_scan_taken(dmm, when, caplog):
+    """Issue 22 item 5: the unit is switched off and on as a scan begins or is fetched. It comes
+    back with its power-on defaults (no scan list, NPLC 1... here none configured at all, 10 MΩ
+    input) and, on RS-232, deaf until SYST:REM; on TCP the connection is gone. The driver's next
+    try sends SYST:REM, sees the power-on bit of *ESR?, sends the configuration, reads it back and
+    takes the scan. Before, the scan failed with "no reply" again and again."""
+    emulation, meter = dmm
+    meter.read(2)
+    emulation.faults["dmm"].add(Fault(FaultKind.POWER_CYCLE, match=when))
+    scan = meter.read(3)
+    assert scan.volts.shape == (3, 3) and emulation.faults["dmm"].count(FaultKind.POWER_CYCLE) == 1
+    assert "it was powered off and on (*ESR? power-on bit); configuring it again" in caplog.text
+    state = unit(emulation).state
+    assert state.scan_list == list(meter.scan_list)
+    assert all(state.channels[c].impedance_auto and state.channels[c].nplc == 10.0 for c in meter.channels)
+    assert meter.differences() == []
+
+
+def test_a_dmm_reset_between_scans_is_seen_by_its_power_on_bit(dmm, caplog):
+    """A power cycle that no exchange noticed (the unit was off between two scans, and on a network
+    link the connection survived it): the power-on bit read before every scan says so."""
+    emulation, meter = dmm
+    meter.read(2)
+    unit(emulation).power_cycle()
+    unit(emulation).remote = True  # as a GPIB or LAN unit would be
+    assert meter.read(2).volts.shape == (2, 3)
+    assert "before a scan: it was powered off and on" in caplog.text
+    assert meter.differences() == []

@@ -12,7 +12,7 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from labcal.analysis.kinematics import MISALIGNMENT_NAMES, Misalignment
 from labcal.config.files import load_model
@@ -156,6 +156,7 @@ class FaultKind(StrEnum):
     CLOSE_PORT = "close-port"
     LOST_REQUEST = "lost-request"
     TRUNCATED = "truncated"
+    POWER_CYCLE = "power-cycle"
 
 
 class FaultSpec(BaseModel):
@@ -171,6 +172,12 @@ class FaultSpec(BaseModel):
     delay_s: float = Field(default=1.0, ge=0)
     code: int | str | None = None
     reopen_s: float | None = Field(default=None, ge=0)
+
+    @model_validator(mode="after")
+    def _power_cycle(self):
+        if self.kind == FaultKind.POWER_CYCLE and self.device != "dmm":
+            raise ValueError("a power-cycle fault is emulated on the dmm only")
+        return self
 
 
 class EmulationSettings(BaseModel):
