@@ -21,7 +21,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from labcal.drivers.errors import BadReply, DeviceFault, NoReply, Rejected, on_device
+from labcal.drivers.errors import BadReply, Busy, DeviceFault, NoReply, Rejected, on_device
 from labcal.drivers.transport import Lines, retried
 from labcal.run.station import Scan
 
@@ -71,6 +71,11 @@ class ScpiError(Rejected):
     def __init__(self, code: int, message: str, device: str | None = None):
         super().__init__(message, device)
         self.code = code
+
+
+class ScanRefused(Busy):
+    """The unit refused a scan (an error in its queue): repeated, once its configuration has been
+    verified (a unit that was reset has no scan list); after every try, the unit's words."""
 
 
 class StaleScan(BadReply):
@@ -345,22 +350,23 @@ class Keysight34970A:
 
         def once() -> np.ndarray:
             if self._suspect or self.link.opens != self._verified_at:
-                self._ensure("after a lost reply" if self._suspect else "after the link was reopened")
-            elif self._status() & PON:  # powered off and on since the last scan
-                self._ensure("before a scan", [POWERED_ON])
-            self.link.write_line(f"TRIG:COUN {n_samples}")
-            self.link.write_line("INIT")
-            done = self._ask("*OPC?", scan_s)
-            if done.strip() != "1":
-                raise BadReply(f"*OPC? answered {done[:40]!r}")
+                self._ensure("after a failed exchange" if self._suspect else "after the link was reopened")
             try:
+                self.link.write_line(f"TRIG:COUN {n_samples}")
+                self.link.write_line("INIT")
+                done = self._ask("*OPC?", scan_s)
+                if done.strip() != "1":
+                    raise BadReply(f"*OPC? answered {done[:40]!r}")
                 reply = self._ask("FETC?", fetch_s)
+                readings, stamps = parse_readings(reply, self.scan_list, n_samples, self.last_scan)
+                self._check("the scan")
             except ScpiError as exc:
                 if exc.code == NO_DATA:
                     raise StaleScan("no scan in memory after INIT (error -230): the INIT was lost") from None
-                raise
-            readings, stamps = parse_readings(reply, self.scan_list, n_samples, self.last_scan)
-            self._check("the scan")
+                # a unit reset since the last scan (no scan list, another format) refuses it: the
+                # next try verifies its configuration first
+                raise ScanRefused(f"{exc.args[0].removeprefix(f'{self.device}: ')}; verifying the unit's "
+                                  "configuration", self.device) from None
             self.last_scan = stamps[0]
             return readings
 

@@ -100,9 +100,13 @@ def test_an_overload_is_reported_not_averaged(dmm):
 
 
 def test_a_refused_command_is_reported_with_the_units_words(dmm):
+    """Refused once, the scan is taken again after the configuration was verified; refused every
+    time, the unit's words."""
     emulation, meter = dmm
-    emulation.faults["dmm"].add(Fault(FaultKind.EXCEPTION, code=-221, match="INIT"))
-    with pytest.raises(Rejected, match="SCPI error -221 \"Settings conflict\""):
+    emulation.faults["dmm"].add(Fault(FaultKind.EXCEPTION, code=-221, match="^INIT"))
+    assert meter.read(2).volts.shape == (2, 3)
+    emulation.faults["dmm"].add(Fault(FaultKind.EXCEPTION, code=-221, match="^INIT", count=3))
+    with pytest.raises(Rejected, match="SCPI error -221 \"Settings conflict\" after .*; verifying the unit"):
         meter.read(2)
 
 
@@ -281,12 +285,13 @@ def test_a_power_cycled_dmm_is_configured_again_and_the_scan_taken(dmm, when, ca
 
 
 def test_a_dmm_reset_between_scans_is_seen_by_its_power_on_bit(dmm, caplog):
-    """A power cycle that no exchange noticed (the unit was off between two scans, and on a network
-    link the connection survived it): the power-on bit read before every scan says so."""
+    """A power cycle between two scans that leaves the link as it was (GPIB, or a LAN connection
+    that survived it): the unit, with no scan list, refuses the scan (-221); the next try verifies
+    the unit, finds its power-on bit, and configures it again."""
     emulation, meter = dmm
     meter.read(2)
     unit(emulation).power_cycle()
     unit(emulation).remote = True  # as a GPIB or LAN unit would be
     assert meter.read(2).volts.shape == (2, 3)
-    assert "before a scan: it was powered off and on" in caplog.text
+    assert "after a failed exchange: it was powered off and on" in caplog.text
     assert meter.differences() == []

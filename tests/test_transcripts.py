@@ -201,7 +201,6 @@ CONFIGURE = [("*RST", None), ("*CLS", None), (f"CONF:VOLT:DC 10,{VOLTS}", None),
              (f"INP:IMP:AUTO? {VOLTS}", "1,1,1"), ("ROUT:SCAN?", "#214(@101,102,103)"),
              ("FORM:READ:CHAN?", "1"), ("FORM:READ:TIME?", "1"), ("FORM:READ:TIME:TYPE?", "ABS"),
              ("FORM:READ:UNIT?", "0"), ("FORM:READ:ALAR?", "0")]
-STATUS = ("*ESR?", "+0")  # before each scan: no power-on bit, the unit was not reset
 
 
 def test_34970a_identity():
@@ -213,7 +212,7 @@ def test_34970a_configure_and_one_scan_of_two_sweeps():
     readings = ("+1.00000000E+00,2026,01,01,12,00,01.100,101,-2.50000000E-01,2026,01,01,12,00,01.500,102,"
                 "+4.99990000E+00,2026,01,01,12,00,01.900,103,+1.00001000E+00,2026,01,01,12,00,02.300,101,"
                 "-2.50010000E-01,2026,01,01,12,00,02.700,102,+4.99980000E+00,2026,01,01,12,00,03.100,103")
-    transcript = scpi(*CONFIGURE, STATUS, ("TRIG:COUN 2", None), ("INIT", None), ("*OPC?", "1"),
+    transcript = scpi(*CONFIGURE, ("TRIG:COUN 2", None), ("INIT", None), ("*OPC?", "1"),
                       ("FETC?", readings), NO_ERROR)
     meter = dmm_on(transcript)
     meter.configure()
@@ -228,14 +227,17 @@ def test_34970a_on_rs232_starts_with_syst_rem():
     assert transcript.done()
 
 
-def test_34970a_a_reset_unit_is_configured_again_before_the_scan():
-    """*ESR? before a scan has the power-on bit (128): the configuration is sent and read back
-    again, then the scan is taken."""
+def test_34970a_a_reset_unit_is_configured_again_before_the_scan_is_repeated():
+    """The unit refuses the scan (-221: a reset left it no scan list): the next try asks *ESR?,
+    sees the power-on bit (128), sends the configuration, reads it back, and scans again."""
     readings = ("+1.00000000E+00,2026,01,01,12,00,01.100,101,-2.50000000E-01,2026,01,01,12,00,01.500,102,"
                 "+4.99990000E+00,2026,01,01,12,00,01.900,103")
-    transcript = scpi(*CONFIGURE, ("*ESR?", "+128"), *CONFIGURE, ("TRIG:COUN 1", None), ("INIT", None),
-                      ("*OPC?", "1"), ("FETC?", readings), NO_ERROR)
-    meter = dmm_on(transcript)
+    scan = [("TRIG:COUN 1", None), ("INIT", None), ("*OPC?", "1")]
+    transcript = scpi(*CONFIGURE, *scan, ("FETC?", None), ("SYST:ERR?", '-221,"Settings conflict"'),
+                      ("SYST:ERR?", '-230,"Data corrupt or stale"'), NO_ERROR,
+                      ("*ESR?", "+148"), *CONFIGURE, *scan, ("FETC?", readings), NO_ERROR)
+    meter = Keysight34970A("dmm", LineTransport("transcript", lambda: transcript, eol=b"\n", timeout_s=0.05,
+                                                reconnect_s=0), nplc=10, range_v=10, retries=1)
     meter.configure()
     assert meter.read(1).volts.tolist() == [[1.0, -0.25, 4.9999]]
     assert transcript.done()
@@ -244,7 +246,7 @@ def test_34970a_a_reset_unit_is_configured_again_before_the_scan():
 def test_34970a_overload_and_error_queue():
     overload = ("+9.90000000E+37,2026,01,01,12,00,01.100,101,-2.50000000E-01,2026,01,01,12,00,01.500,102,"
                 "+4.99990000E+00,2026,01,01,12,00,01.900,103")
-    transcript = scpi(*CONFIGURE, STATUS, ("TRIG:COUN 1", None), ("INIT", None), ("*OPC?", "1"),
+    transcript = scpi(*CONFIGURE, ("TRIG:COUN 1", None), ("INIT", None), ("*OPC?", "1"),
                       ("FETC?", overload), NO_ERROR)
     meter = dmm_on(transcript)
     meter.configure()
