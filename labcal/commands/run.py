@@ -198,6 +198,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             if not args.emulate and not args.serial and not args.no_report and not args.dry_run:
                 raise LabcalError("a calibration on real hardware needs the instrument's --serial for its "
                                   "certificate (or --no-report)")
+            if not args.dry_run:  # before an emulator or a device is opened, held until the end
+                lock_station(stack, config, args.station, args.db)
             setup, bench = hardware_station(config, args.station, stack, emulate=args.emulate,
                                             time_scale=args.time_scale, seed=args.seed)
             pitch, roll = config.pitch, config.roll  # the slower table sets the pace of the estimates
@@ -224,6 +226,19 @@ def cmd_run(args: argparse.Namespace) -> int:
             return run_and_report(args, lambda display: calibrate(
                 plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, display,
                 setup.metadata, args.serial, args.operator, steps), run_dir, plan, est, 0, cert_settings)
+
+
+def lock_station(stack: ExitStack, config, name: str, db: str | None) -> None:
+    """Hold the station for this command (one run per station at a time, across processes: a second
+    one is refused in one line naming who holds it); a lock left by a process that is gone is
+    taken over, with a note."""
+    from labcal.run.journal import db_path
+    from labcal.run.lock import StationLock, station_locks
+
+    lock = stack.enter_context(StationLock(station_locks(db_path(db)),
+                                           {s.bus: s.where for s in config.devices().values()}, name))
+    for note in lock.notes:
+        err.print(f"[yellow]note:[/] {note}")
 
 
 def ambient_entered(args: argparse.Namespace) -> dict[str, float | str]:
@@ -281,6 +296,8 @@ def cmd_resume(args: argparse.Namespace) -> int:
             setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start)
             certificate = CertificateSettings()
         else:
+            lock_station(stack, new_station[0] if new_station else snapshot.config, args.station or run_name,
+                         args.db)
             setup, bench = station_for_resume(snapshot, run_name, stack, start, new_station)
             certificate = (new_station[0] if new_station else snapshot.config).certificate
         steps = schedule(ctx.plan, ctx.settings)
