@@ -41,6 +41,11 @@ POWERED_ON = "it was powered off and on (*ESR? power-on bit)"
 NO_DATA = -230  # "Data corrupt or stale": FETC? with no scan in memory (after *RST, or before any INIT)
 BITS_PER_CHAR = 10  # start, 8 data, stop (8N1; a parity bit makes it 11, within the margin)
 MARGIN = 1.5  # deadlines allow half as long again as the estimate
+# The unit's own time to take a reading from memory, format it and hand it to the interface, on
+# top of the line's rate: what sizes a long FETC? on LAN or GPIB, where the line is fast. An
+# allowance, generous against the ~3 ms a reading takes on RS-232 at 57600 Bd (hardware_protocols.md
+# §3.1), most of which is the line's
+OUTPUT_S = 0.002
 # DC volts ranges with a >10 GΩ input under INPut:IMPedance:AUTO ON; above them, and on every range
 # with AUTO OFF (the *RST and CONFigure default), the input is 10 MΩ, which a ~5 kΩ source output
 # pulls ~500 ppm low (User's Guide, "DC input resistance"; hardware_protocols.md §3.1)
@@ -336,9 +341,10 @@ class Keysight34970A:
 
     def deadlines_s(self, sweeps: int) -> tuple[float, float]:
         """How long to wait for ``*OPC?`` (the scan: NPLC × channels × sweeps) and for ``FETC?``
-        (its reply: every reading with its channel number, at the serial line's rate), each the
-        link's own timeout plus half as long again as the estimate."""
-        transfer_s = sweeps * len(self.scan_list) * READING_CHARS * self.char_s
+        (its reply: every reading with its time stamp and channel number, each taken from memory by
+        the unit and sent at the serial line's rate), each the link's own timeout plus half as long
+        again as the estimate: a long fast scan is waited for, on any link."""
+        transfer_s = sweeps * len(self.scan_list) * (READING_CHARS * self.char_s + OUTPUT_S)
         timeout = self.link.timeout_s
         return timeout + MARGIN * self.scan_time_s(sweeps), timeout + MARGIN * transfer_s
 

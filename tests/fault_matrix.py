@@ -67,6 +67,10 @@ SCENARIOS: dict[str, tuple[str, dict[str, str]]] = {
     "SCPI (34970A, TCP)": ("az-modbus-tcp", {
         **kinds("dmm", "FETC", "FETC", "FETC"),
         "lost INIT (stale scan)": fault("dmm", "lost-request", after=40, match="^INIT"),
+        "power cycle": fault("dmm", "power-cycle", after=40, match="FETC"),
+    }),
+    "SCPI (34970A, RS-232)": ("smc100-serial", {
+        "power cycle (local until SYST:REM)": fault("dmm", "power-cycle", after=40, match="FETC"),
     }),
 }
 

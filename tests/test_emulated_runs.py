@@ -203,3 +203,23 @@ def test_a_power_cycled_dmm_is_recovered_and_the_run_completes(station, tmp_path
     assert np.max(np.abs(np.array(summary["fit"]["coefficients"]) - truth)) < 1e-4
     log = cli(capsys, "log", str(run_dir), "--json")[1]
     assert "it was powered off and on (*ESR? power-on bit); configuring it again" in log
+
+
+def test_resume_names_the_runs_own_journal(tmp_path, capsys, no_leaks):  # noqa: F811
+    """Issue 22 item 9: a run journaled in `--db elsewhere/lab.sqlite` stops at a fault (the DMM's
+    port closes for good) and is aborted; `labcal resume RUN_DIR` without --db goes on in the
+    journal its run.json names, and says that one, not the default ($LABCAL_DB here)."""
+    db = tmp_path / "elsewhere" / "lab.sqlite"
+    db.parent.mkdir()
+    run_dir, answers = tmp_path / "run", tmp_path / "answers.txt"
+    answers.write_text("y\na\n")
+    station = private_file("smc100-tcp", tmp_path, faults('device = "dmm"\nkind = "close-port"\nafter = 20\n'
+                                                          'match = "FETC"'), QUICK)
+    code, _, err = cli(capsys, "run", "--station", str(station), *EMULATE, "--plan", "one-mount-16",
+                       "--answers", str(answers), "--db", str(db), "--out", str(run_dir))
+    assert code == 1, err
+    answers.write_text("y\n")
+    code, out, err = cli(capsys, "resume", str(run_dir), "--answers", str(answers), "--no-report")
+    assert code == 0, err
+    said = "".join(out.split())  # whatever the console's width folded
+    assert f"journal{db}" in said and "labcal.sqlite" not in said.replace(str(db), ""), out
