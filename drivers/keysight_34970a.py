@@ -141,9 +141,9 @@ def channels_of(text: str) -> list[int]:
     return channels
 
 
-def spell(value: str | list[float]) -> str:
-    """A setting for a message: ``10,1,10`` or the text."""
-    return value if isinstance(value, str) else ",".join(f"{v:g}" for v in value)
+def spell(values: list[float]) -> str:
+    """Numbers for a message: ``10,1,10``."""
+    return ",".join(f"{v:g}" for v in values)
 
 
 def stamp(fields: Sequence[str]) -> datetime:
@@ -275,17 +275,19 @@ class Keysight34970A:
                 found.append(f"{query} unanswered ({exc})")
                 continue
             if isinstance(want, str):
-                got: str | list[float] = answer.strip().upper()
+                text = answer.strip().upper()
                 if query == "ROUT:SCAN?":
-                    got = channel_list(channels_of(definite_block(answer)))
-            else:
-                try:
-                    got = [float(f) for f in answer.split(",")]
-                except ValueError:
-                    raise BadReply(f"{query} answered {answer[:40]!r}") from None
-            if not (got == want if isinstance(want, str) else len(got) == len(want) and all(
-                    math.isclose(a, b, rel_tol=1e-6) for a, b in zip(got, want, strict=True))):
-                found.append(f"{query} answers {spell(got)}, declared {spell(want)}")
+                    text = channel_list(channels_of(definite_block(answer)))
+                if text != want:
+                    found.append(f"{query} answers {text}, declared {want}")
+                continue
+            try:
+                numbers = [float(f) for f in answer.split(",")]
+            except ValueError:
+                raise BadReply(f"{query} answered {answer[:40]!r}") from None
+            if len(numbers) != len(want) or not all(
+                    math.isclose(a, b, rel_tol=1e-6) for a, b in zip(numbers, want, strict=True)):
+                found.append(f"{query} answers {spell(numbers)}, declared {spell(want)}")
         return found
 
     def _configure(self) -> None:

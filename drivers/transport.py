@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
 from types import FrameType
-from typing import Protocol, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import serial
 
@@ -151,10 +151,12 @@ class Stream(Protocol):
     def close(self) -> None: ...
 
 
-LINE_SETTINGS = {"baudrate": 9600, "bytesize": 8, "parity": "N", "stopbits": 1, "xonxoff": False}  # 9600 8N1
+# 9600 8N1, what a port is probed at to name the setting it refuses
+LINE_SETTINGS: dict[str, Any] = {"baudrate": 9600, "bytesize": 8, "parity": "N", "stopbits": 1,
+                                 "xonxoff": False}
 
 
-def open_serial(url: str, **settings: object) -> serial.Serial:
+def open_serial(url: str, **settings: Any) -> serial.Serial:
     """A serial port or pyserial URL, opened for this process alone with the station's line
     settings. A setting the operating system refuses is `SettingsRefused` naming it (found by
     trying each on the port at 9600 8N1), at once: reopening would be refused the same way."""
@@ -180,7 +182,7 @@ def open_serial(url: str, **settings: object) -> serial.Serial:
                           "line settings to ones the port and the device support")
 
 
-def _not_kept(port: serial.SerialBase, settings: dict[str, object]) -> list[str]:
+def _not_kept(port: serial.SerialBase, settings: dict[str, Any]) -> list[str]:
     """The line settings asked for that the port's terminal attributes do not hold (a device node
     only: a URL such as ``socket://`` has none)."""
     fd = getattr(port, "fd", None)
