@@ -223,3 +223,23 @@ def test_resume_names_the_runs_own_journal(tmp_path, capsys, no_leaks):  # noqa:
     assert code == 0, err
     said = "".join(out.split())  # whatever the console's width folded
     assert f"journal{db}" in said and "labcal.sqlite" not in said.replace(str(db), ""), out
+
+
+def test_a_dmm_reset_while_the_operator_remounts_is_found_at_the_mount(tmp_path, capsys, no_leaks):  # noqa: F811
+    """Issue 22 item 5: the DMM is switched off and on while the operator remounts the instrument
+    for the second mount (on RS-232: back in local, its defaults, no scan list). The check of its
+    declared configuration at the mount finds it (the power-on bit), configures it again, and the
+    run completes with every point and the truth to 0.1 mV."""
+    # the *ESR? of the second mount's check (the first mount's goes through)
+    at_mount = faults('device = "dmm"\nkind = "power-cycle"\nmatch = "^\\\\*ESR"\nafter = 1')
+    path = private_file("smc100-serial", tmp_path, at_mount, QUICK)
+    run_dir = tmp_path / "run"
+    code, out, err = cli(capsys, "run", "--station", str(path), *EMULATE, "--yes", "--out", str(run_dir),
+                         "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    truth = np.array(json.loads((run_dir / "run.json").read_text())["simulated_truth"]["coefficients"])
+    assert summary["points"] == 64 and summary["points_failed"] == 0 and "Fault" not in err
+    assert np.max(np.abs(np.array(summary["fit"]["coefficients"]) - truth)) < 1e-4
+    log = cli(capsys, "log", str(run_dir), "--json")[1]
+    assert "at the mount: it was powered off and on (*ESR? power-on bit); configuring it again" in log, log
