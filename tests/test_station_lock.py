@@ -29,7 +29,7 @@ def first_run_waiting_at_a_prompt(station: Path, db: Path, tmp_path: Path) -> su
     first = subprocess.Popen([LABCAL, "run", "--station", str(station), *EMULATE, "--db", str(db),
                               "--out", str(tmp_path / "first")], stdin=subprocess.PIPE,
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    folder = station_locks(db)
+    folder = station_locks(db)[0]
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         held = [json.loads(p.read_text() or "{}") for p in folder.glob("*.lock")] if folder.exists() else []
@@ -41,10 +41,13 @@ def first_run_waiting_at_a_prompt(station: Path, db: Path, tmp_path: Path) -> su
     raise AssertionError("the first run never held the station")
 
 
-@pytest.mark.parametrize("name", ["az-modbus-tcp", "smc100-serial"])
-def test_a_second_run_on_the_same_links_is_refused_in_one_line(name, tmp_path, capsys):
+@pytest.mark.parametrize(("name", "second_db"), [("az-modbus-tcp", "lab.sqlite"),
+                                               ("smc100-serial", "lab.sqlite"),
+                                               ("az-modbus-tcp", "another-lab.sqlite")])
+def test_a_second_run_on_the_same_links_is_refused_in_one_line(name, second_db, tmp_path, capsys):
     """Two `labcal run --station … --emulate` on one station, Modbus TCP or serial ports (the second
-    through another station file naming the same links): the second exits 2 with one line naming
+    through another station file naming the same links, journaling into the same lab database or
+    another one: the user's runtime folder holds the locks too): the second exits 2 with one line naming
     the station, a link, and who holds it (run 1, the first process's pid, this host) before it
     starts anything. Before, the second crashed with pymodbus's "Could not start listen"
     traceback (or, on a real bench, drove the tables the first run held)."""
@@ -56,8 +59,8 @@ def test_a_second_run_on_the_same_links_is_refused_in_one_line(name, tmp_path, c
     db = tmp_path / "lab.sqlite"
     first = first_run_waiting_at_a_prompt(station, db, tmp_path)
     try:
-        code, out, err = cli(capsys, "run", "--station", str(other), *EMULATE, "--yes", "--db", str(db),
-                             "--out", str(tmp_path / "second"))
+        code, out, err = cli(capsys, "run", "--station", str(other), *EMULATE, "--yes", "--db",
+                             str(tmp_path / second_db), "--out", str(tmp_path / "second"))
     finally:
         first.send_signal(signal.SIGTERM)
         first.communicate(timeout=30)
@@ -82,7 +85,7 @@ def test_a_lock_left_by_a_killed_run_is_taken_over_with_a_note(tmp_path, capsys,
     assert f"locked by run 1, pid {first.pid} on {socket.gethostname()}" in err
     assert "which is no longer running; lock taken over" in err
     assert json.loads(out)["points"] == 16
-    assert all(p.read_text() == "" for p in station_locks(db).glob("*.lock"))  # released: says nothing
+    assert all(p.read_text() == "" for folder in station_locks(db) for p in folder.glob("*.lock"))  # released
 
 
 def test_an_address_another_emulator_serves_is_one_line(tmp_path, capsys, no_leaks):  # noqa: F811

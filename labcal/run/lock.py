@@ -18,6 +18,7 @@ import json
 import os
 import socket
 import sys
+import tempfile
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -128,11 +129,14 @@ def held_by(db: Path, run_id: int) -> str | None:
     return None
 
 
-def station_locks(db: Path) -> Path:
-    """The folder of the station locks: beside the lab database, so that every process that
-    journals into it (whoever runs it, whatever its current folder) meets the same locks."""
+def station_locks(db: Path) -> list[Path]:
+    """The folders of the station locks: beside the lab database, so that every process that
+    journals into it (whoever runs it, whatever its current folder) meets the same locks; and the
+    user's runtime folder, so that this user's runs into two databases meet there."""
     db = Path(db).resolve()
-    return db.with_name(f"{db.name}.stations")
+    runtime = os.environ.get("XDG_RUNTIME_DIR")
+    mine = Path(runtime) if runtime else Path(tempfile.gettempdir()) / f"labcal-{os.getuid()}"
+    return [db.with_name(f"{db.name}.stations"), mine / "labcal-stations"]
 
 
 def link_key(bus: str) -> str:
@@ -175,44 +179,43 @@ def link_keys(bus: str) -> set[str]:
 
 
 class StationLock:
-    """``with StationLock(folder, links, station):`` — one run per station at a time, across
-    processes: an exclusive ``flock`` on one file per link of the station (keyed by `link_key`, in
-    ``folder``, beside the lab database), so that two station files naming the same port or address
-    conflict. Held from before the emulators start or a device is opened until the command ends,
-    pauses included; released by the kernel when the process ends in any way. A second run gets one
-    LabcalError line naming the station, the link, and who holds it (run id, pid, host). A file
-    left naming a process that is gone (a ``kill -9``) is taken over, with a note (`notes`)."""
+    """``with StationLock(folders, links, station):`` — one run per station at a time, across
+    processes: an exclusive ``flock`` on one file per link of the station (keyed by `link_keys`) in
+    each of ``folders`` (beside the lab database, for everyone who journals there; the user's
+    runtime folder, for this user's runs into any database), so that two station files naming the
+    same port or address conflict. Held from before the emulators start or a device is opened until
+    the command ends, pauses included; released by the kernel when the process ends in any way. A
+    second run gets one LabcalError line naming the station, the link, and who holds it (run id,
+    pid, host). A file left naming a process that is gone (a ``kill -9``) is taken over, with a
+    note (`notes`)."""
 
     _held: dict[Path, StationLock] = {}  # lock file -> this process's lock on it
 
-    def __init__(self, folder: Path, links: dict[str, str], station: str, doing: str = "running"):
+    def __init__(self, folders: list[Path], links: dict[str, str], station: str, doing: str = "running"):
         """``links``: each device's bus (`LinkSettings.bus`) and the link in words (``where``)."""
-        self.folder, self.station, self.doing = Path(folder), station, doing
+        self.folders, self.station, self.doing = [Path(f) for f in folders], station, doing
         self.links = {key: where for bus, where in links.items() for key in link_keys(bus)}  # key -> in words
         self.notes: list[str] = []
         self._fds: dict[Path, int] = {}
 
-    def _path(self, key: str) -> Path:
+    def acquire(self) -> StationLock:
         import hashlib
 
-        return self.folder / f"link-{hashlib.sha256(key.encode()).hexdigest()[:16]}.lock"
-
-    def acquire(self) -> StationLock:
         try:
-            self.folder.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise LabcalError(f"{self.folder}: cannot make the station locks' folder ({exc.strerror}); the "
-                              "database's folder must be writable") from None
-        try:
-            for key in sorted(self.links):
-                self._take(key)
+            for folder in self.folders:
+                try:
+                    folder.mkdir(parents=True, exist_ok=True)
+                except OSError as exc:
+                    raise LabcalError(f"{folder}: cannot make the station locks' folder ({exc.strerror}); it "
+                                      "must be writable") from None
+                for key in sorted(self.links):
+                    self._take(folder / f"link-{hashlib.sha256(key.encode()).hexdigest()[:16]}.lock", key)
         except BaseException:
             self.release()
             raise
         return self
 
-    def _take(self, key: str) -> None:
-        path = self._path(key)
+    def _take(self, path: Path, key: str) -> None:
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as exc:
@@ -229,8 +232,10 @@ class StationLock:
             raise LabcalError(f"{path}: cannot lock {self.links[key]} ({exc.strerror})") from None
         left = _read(fd)
         if left.get("pid") and left.get("host") == socket.gethostname() and not _alive(left["pid"]):
-            self.notes.append(f"{self.links[key]} was locked by {_holder_text(left)}, which is no longer "
-                              "running; lock taken over")
+            note = (f"{self.links[key]} was locked by {_holder_text(left)}, which is no longer running; "
+                    "lock taken over")
+            if note not in self.notes:
+                self.notes.append(note)
         self._fds[path] = fd
         StationLock._held[path] = self
         self._write(fd)
