@@ -28,6 +28,7 @@ if TYPE_CHECKING:
     from labcal.analysis.plan import Plan
     from labcal.bench.setup import StationSetup
     from labcal.config.settings import CertificateSettings, SequencerSettings
+    from labcal.config.station import StationFile
     from labcal.run.estimate import Estimate
     from labcal.run.runner import RunResult
 
@@ -230,7 +231,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                 setup.metadata, args.serial, args.operator, steps), run_dir, plan, est, 0, cert_settings)
 
 
-def lock_station(stack: ExitStack, config, name: str, db: str | Path | None) -> None:
+def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Path | None) -> None:
     """Hold the station for this command (one run per station at a time, across processes: a second
     one is refused in one line naming who holds it); a lock left by a process that is gone is
     taken over, with a note."""
