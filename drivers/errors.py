@@ -33,6 +33,11 @@ class LinkLost(DriverError):
     """The port could not be reopened within the reconnect budget."""
 
 
+class SettingsRefused(DriverError):
+    """The operating system refused a line setting of a serial port (a pty carries no parity, an
+    adapter has no such baud rate): not a port to reopen, a station file to correct."""
+
+
 class Rejected(DriverError):
     """The device answered but refused the command (exception response, error code)."""
 

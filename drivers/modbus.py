@@ -15,14 +15,13 @@ import socket
 import time
 from collections.abc import Callable, Sequence
 
-import serial
 from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusIOException
 from pymodbus.pdu import ExceptionResponse, ModbusPDU
 
 from labcal.drivers.errors import BadReply, Busy, NoReply, PortClosed, Rejected
-from labcal.drivers.transport import reconnect, retried
+from labcal.drivers.transport import open_serial, reconnect, retried
 from labcal.run.station import CriticalSection
 
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())  # our errors say it in one line
@@ -134,10 +133,9 @@ class ModbusLink:
         def open_port() -> None:
             """pymodbus's own connect() logs why a port does not open and returns False; this
             keeps the reason (no such port, permission denied, port busy)."""
-            client.socket = serial.serial_for_url(port, baudrate=baudrate, bytesize=bytesize, parity=parity,
-                                                  stopbits=stopbits, timeout=timeout_s,
-                                                  write_timeout=timeout_s, exclusive=True)
-            client.socket.inter_byte_timeout = client.inter_byte_timeout
+            client.socket = open_serial(port, baudrate=baudrate, bytesize=bytesize, parity=parity,
+                                        stopbits=stopbits, timeout=timeout_s, write_timeout=timeout_s,
+                                        inter_byte_timeout=client.inter_byte_timeout)
 
         return cls(client, port, timeout_s=timeout_s, retries=retries, reconnect_s=reconnect_s,
                    open_port=open_port)

@@ -14,16 +14,17 @@ import logging
 import os
 import signal
 import socket
+import termios
 import threading
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from types import FrameType
-from typing import Protocol, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import serial
 
-from labcal.drivers.errors import TRANSIENT, BadReply, LinkLost, NoReply, PortClosed
+from labcal.drivers.errors import TRANSIENT, BadReply, LinkLost, NoReply, PortClosed, SettingsRefused
 from labcal.run.station import CriticalSection
 
 T = TypeVar("T")
@@ -126,6 +127,7 @@ class Lines(Protocol):
     where: str
     timeout_s: float
     critical: CriticalSection | None
+    opens: int  # how many times the link has been opened: a driver verifies a device after a reopening
 
     def write_line(self, text: str) -> None: ...
 
@@ -149,14 +151,79 @@ class Stream(Protocol):
     def close(self) -> None: ...
 
 
+# 9600 8N1, what a port is probed at to name the setting it refuses
+LINE_SETTINGS: dict[str, Any] = {"baudrate": 9600, "bytesize": 8, "parity": "N", "stopbits": 1,
+                                 "xonxoff": False}
+
+
+def open_serial(url: str, **settings: Any) -> serial.Serial:
+    """A serial port or pyserial URL, opened for this process alone with the station's line
+    settings. A setting the operating system refuses is `SettingsRefused` naming it (found by
+    trying each on the port at 9600 8N1), at once: reopening would be refused the same way."""
+    try:
+        port = serial.serial_for_url(url, exclusive=True, **settings)
+        if dropped := _not_kept(port, settings):  # a pty takes parity without a word, and drops it
+            port.close()
+            raise SettingsRefused(f"{url} does not keep {' and '.join(dropped)} (it reads back other line "
+                                  "settings); set the station file's line settings to ones the port and the "
+                                  "device support")
+        return port
+    except termios.error as exc:
+        reason = exc.args[1] if len(exc.args) > 1 else str(exc)
+    except ValueError as exc:  # pyserial: a baud rate the port cannot be set to
+        if "baud" not in str(exc).lower():
+            raise
+        reason = str(exc)
+    refused = [f"{name} = {_spelled(value)}" for name, value in settings.items()
+               if name in LINE_SETTINGS and _refuses(url, name, value)]
+    given = ", ".join(f"{name} = {_spelled(settings[name])}" for name in LINE_SETTINGS if name in settings)
+    what = (f"refuses {' and '.join(refused)}" if refused else f"refuses its line settings ({given})")
+    raise SettingsRefused(f"{url} {what} (the operating system says: {reason}); set the station file's "
+                          "line settings to ones the port and the device support")
+
+
+def _not_kept(port: serial.SerialBase, settings: dict[str, Any]) -> list[str]:
+    """The line settings asked for that the port's terminal attributes do not hold (a device node
+    only: a URL such as ``socket://`` has none)."""
+    fd = getattr(port, "fd", None)
+    if not isinstance(fd, int):
+        return []
+    cflag = termios.tcgetattr(fd)[2]
+    sizes = {termios.CS5: 5, termios.CS6: 6, termios.CS7: 7, termios.CS8: 8}
+    held = {"parity": "N" if not cflag & termios.PARENB else "O" if cflag & termios.PARODD else "E",
+            "bytesize": sizes.get(cflag & termios.CSIZE), "stopbits": 2 if cflag & termios.CSTOPB else 1}
+    return [f"{name} = {_spelled(settings[name])}" for name, value in held.items()
+            if name in settings and settings[name] != value]
+
+
+def _refuses(url: str, name: str, value: object) -> bool:
+    """Whether the port, open at 9600 8N1, refuses this one setting (False if it cannot be opened)."""
+    try:
+        port = serial.serial_for_url(url, exclusive=True, **LINE_SETTINGS)
+    except (termios.error, ValueError, OSError, serial.SerialException):
+        return False
+    try:
+        setattr(port, name, value)
+        return False
+    except (termios.error, ValueError, serial.SerialException):
+        return True
+    finally:
+        with suppress(termios.error, ValueError, OSError, serial.SerialException):
+            port.close()
+
+
+def _spelled(value: object) -> str:
+    return (f'"{value}"' if isinstance(value, str) else str(value).lower() if isinstance(value, bool)
+            else str(value))
+
+
 class SerialStream:
     """A serial port or pyserial URL."""
 
     def __init__(self, url: str, *, baudrate: int, bytesize: int, parity: str, stopbits: float,
                  xonxoff: bool, timeout_s: float):
-        self.port = serial.serial_for_url(url, baudrate=baudrate, bytesize=bytesize, parity=parity,
-                                          stopbits=stopbits, xonxoff=xonxoff, timeout=SLICE_S,
-                                          write_timeout=timeout_s, exclusive=True)
+        self.port = open_serial(url, baudrate=baudrate, bytesize=bytesize, parity=parity, stopbits=stopbits,
+                                xonxoff=xonxoff, timeout=SLICE_S, write_timeout=timeout_s)
 
     def write(self, data: bytes) -> None:
         try:
@@ -212,6 +279,7 @@ class LineTransport:
         self._stream: Stream | None = None
         self._buffer = b""
         self.critical: CriticalSection | None = None  # the run's, while a run drives this link
+        self.opens = 0
 
     def _open(self) -> Stream:
         if self._stream is None:
@@ -219,6 +287,7 @@ class LineTransport:
                 self._stream = self.open_stream()
             reconnect(connect, self.reconnect_s, self.where)
             self._buffer = b""
+            self.opens += 1
         assert self._stream is not None
         return self._stream
 

@@ -46,6 +46,7 @@ class VisaLink:
         self.critical: CriticalSection | None = None  # the run's, while a run drives this link
         self._manager: Any = None
         self._instrument: Any = None
+        self.opens = 0  # how many times the resource has been opened
 
     def _open(self) -> Any:
         if self._instrument is None:
@@ -64,6 +65,7 @@ class VisaLink:
                     raise ValueError(str(exc).splitlines()[0]) from None
 
             reconnect(connect, self.reconnect_s, self.where)
+            self.opens += 1
             self._no_delay()
         return self._instrument
 

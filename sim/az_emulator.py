@@ -257,7 +257,14 @@ class AzServer:
         self._thread = threading.Thread(target=self._loop.run_forever, name=f"emulator {endpoint}",
                                         daemon=True)
         self._thread.start()
-        self._call(self._open())
+        try:
+            self._call(self._open())
+        except RuntimeError as exc:  # pymodbus: "Could not start listen", an address already served
+            self.close()
+            raise OSError(f"the address is taken ({exc})") from None
+        except BaseException:
+            self.close()
+            raise
 
     def _call(self, coroutine):
         return asyncio.run_coroutine_threadsafe(coroutine, self._loop).result(timeout=30)

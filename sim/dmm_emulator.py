@@ -15,6 +15,7 @@ from __future__ import annotations
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from datetime import datetime, timedelta
 
 import numpy as np
 
@@ -33,8 +34,23 @@ SWITCH_AND_DELAY_S = 0.005  # relay closure and automatic channel delay per chan
 ERRORS = {-102: "Syntax error", -113: "Undefined header", -221: "Settings conflict",
           -222: "Data out of range", -230: "Data corrupt or stale", -350: "Queue overflow"}
 QUEUE_SIZE = 10
+# The standard event register (*ESR?, IEEE 488.2; User's Guide, "Status System"): bit 7 power on,
+# 5 command error (-1xx), 4 execution error (-2xx), 3 device-dependent error (-3xx), 2 query error
+# (-4xx); reading it or *CLS clears it
+PON = 128
+ERROR_BITS = {1: 32, 2: 16, 3: 8, 4: 4}
+# DC volts input resistance (User's Guide, "DC input resistance" / INPut:IMPedance:AUTO): fixed at
+# 10 MΩ on every range with AUTO OFF, the *RST and CONFigure default; with AUTO ON, >10 GΩ on the
+# 100 mV, 1 V and 10 V ranges (10 GΩ here, the bound the manual gives) and still 10 MΩ above
+INPUT_OHM = 10e6
+HIGH_Z_OHM = 10e9
+HIGH_Z_RANGES_V = (0.1, 1.0, 10.0)
 OVER_RANGE = 1.2  # readings beyond 120 % of the range are overloads
 FORM_FIELDS = ("CHAN", "TIME", "UNIT", "ALAR")  # FORMat:READing fields, in reply order after the value
+# The unit's real-time clock at rig time 0 (an emulation choice: the battery-backed clock is set by
+# SYSTem:DATE/TIME); absolute time stamps are "yyyy,mm,dd,hh,mm,ss.sss", 1 ms resolution (User's
+# Guide, FORMat:READing:TIME:TYPE ABSolute; the 34980A's reading format shows "2004,11,21,15,30,23.000")
+CLOCK_AT_ZERO = datetime(2026, 1, 1)
 
 
 def _regex(spec: str) -> re.Pattern:
@@ -65,6 +81,11 @@ class Channel:
     function: str  # "VOLT" or "TEMP"
     range_v: float = 10.0
     nplc: float = 1.0
+    impedance_auto: bool = False  # INPut:IMPedance:AUTO; CONFigure and *RST turn it off
+
+    def input_ohm(self) -> float:
+        """The input resistance the channel presents to its source."""
+        return HIGH_Z_OHM if self.impedance_auto and self.range_v in HIGH_Z_RANGES_V else INPUT_OHM
 
 
 @dataclass
@@ -100,6 +121,7 @@ class State:
     channels: dict[int, Channel] = field(default_factory=dict)
     scan_list: list[int] = field(default_factory=list)
     form: dict[str, bool] = field(default_factory=lambda: dict.fromkeys(FORM_FIELDS, False))
+    time_absolute: bool = False  # FORMat:READing:TIME:TYPE ABSolute (*RST: RELative)
     trigger_count: int = 1
     scan: ScanRun | None = None
 
@@ -118,21 +140,36 @@ class Keysight34970AEmulator:
         """``wiring``: channel → instrument output 0, 1, 2 (x, y, z) or "temp" for the thermometer;
         ``serial_line``: on RS-232, where ``SYST:REM`` must come first."""
         self.rig, self.wiring, self.name = rig, wiring, name
+        self.serial_line = serial_line
         self.remote = not serial_line
         self.state = State()
         self.errors: list[int] = []
+        self.event_status = PON  # the unit has just been switched on
         self.overload_next = False
         self.commands: list[tuple[re.Pattern, Callable[[str], str | None]]] = [
             (_regex(spec), handler) for spec, handler in (
-                ("*IDN?", lambda a: IDN), ("*RST", self._reset), ("*CLS", lambda a: self.errors.clear()),
+                ("*IDN?", lambda a: IDN), ("*RST", self._reset), ("*CLS", self._clear_status),
+                ("*ESR?", self._event_status),
                 ("*OPC?", self._opc), ("*WAI", self._wait), ("SYSTem:ERRor[:NEXT]?", self._next_error),
                 ("SYSTem:REMote", lambda a: None), ("SYSTem:VERSion?", lambda a: "1994.0"),
                 ("CONFigure[:VOLTage][:DC]", self._conf_volts), ("CONFigure:TEMPerature", self._conf_temp),
                 ("[SENSe:]VOLTage[:DC]:NPLCycles", self._nplc), ("[SENSe:]TEMPerature:NPLCycles", self._nplc),
-                ("[SENSe:]VOLTage[:DC]:RANGe", self._range), ("ROUTe:SCAN", self._scan_list),
+                ("[SENSe:]VOLTage[:DC]:RANGe", self._range),
+                ("[SENSe:]VOLTage[:DC]:RANGe?", self._per_channel("VOLT", lambda c: f"{c.range_v:+.8E}")),
+                ("[SENSe:]VOLTage[:DC]:NPLCycles?", self._per_channel("VOLT", lambda c: f"{c.nplc:+.8E}")),
+                ("[SENSe:]TEMPerature:NPLCycles?", self._per_channel("TEMP", lambda c: f"{c.nplc:+.8E}")),
+                ("INPut:IMPedance:AUTO", self._impedance),
+                ("INPut:IMPedance:AUTO?", self._per_channel("VOLT", lambda c: str(int(c.impedance_auto)))),
+                ("ROUTe:SCAN", self._scan_list),
                 ("ROUTe:SCAN?", self._scan_list_query), ("FORMat:READing:CHANnel", self._form("CHAN")),
                 ("FORMat:READing:TIME", self._form("TIME")), ("FORMat:READing:UNIT", self._form("UNIT")),
-                ("FORMat:READing:ALARm", self._form("ALAR")), ("TRIGger:SOURce", self._trigger_source),
+                ("FORMat:READing:ALARm", self._form("ALAR")),
+                ("FORMat:READing:TIME:TYPE", self._time_type),
+                ("FORMat:READing:TIME:TYPE?", lambda a: "ABS" if self.state.time_absolute else "REL"),
+                ("FORMat:READing:CHANnel?", self._form_query("CHAN")),
+                ("FORMat:READing:TIME?", self._form_query("TIME")),
+                ("FORMat:READing:UNIT?", self._form_query("UNIT")),
+                ("FORMat:READing:ALARm?", self._form_query("ALAR")), ("TRIGger:SOURce", self._trigger_source),
                 ("TRIGger:COUNt", self._trigger_count), ("TRIGger:TIMer", lambda a: None),
                 ("INITiate", self._init), ("ABORt", self._abort), ("FETCh?", self._fetch),
                 ("DATA:POINts?", self._points))]
@@ -146,6 +183,17 @@ class Keysight34970AEmulator:
 
     def alarm(self, name: str, code: int | str | None) -> None:
         self.overload_next = True
+
+    def power_cycle(self) -> None:
+        """Switched off and on: the power-on state (User's Guide, "Power-on and reset state": the
+        *RST defaults, no scan list), the error queue empty, the power-on bit set, and on RS-232
+        back in local until SYST:REM. The reading memory is cleared too (a simplification: the
+        unit keeps a scan in non-volatile memory; the driver's time stamps would refuse it anyway)."""
+        self.state = State()
+        self.errors.clear()
+        self.event_status = PON
+        self.remote = not self.serial_line
+        self.overload_next = False
 
     def handle(self, line: str) -> str | None:
         replies = []
@@ -169,6 +217,7 @@ class Keysight34970AEmulator:
 
     # --- commands ---------------------------------------------------------------------------
     def _error(self, code: int) -> None:
+        self.event_status |= ERROR_BITS.get(-code // 100, 0)
         if len(self.errors) < QUEUE_SIZE:
             self.errors.append(code)
         else:
@@ -180,6 +229,29 @@ class Keysight34970AEmulator:
 
     def _reset(self, _: str) -> None:
         self.state = State()
+
+    def _clear_status(self, _: str) -> None:
+        self.errors.clear()
+        self.event_status = 0
+
+    def _event_status(self, _: str) -> str:
+        status, self.event_status = self.event_status, 0
+        return f"{status:+d}"
+
+    def _per_channel(self, function: str, value: Callable[[Channel], str]) -> Callable[[str], str | None]:
+        """A query with a channel list (``VOLT:DC:NPLC? (@101:103)``): one value per channel, in
+        the list's order; -221 if a channel is not configured for the function."""
+        def query(argument: str) -> str | None:
+            _, channels = self._split(argument)
+            if not channels or any(self.state.channels.get(c, Channel("")).function != function
+                                   for c in channels):
+                self._error(-221)
+                return None
+            return ",".join(value(self.state.channels[c]) for c in channels)
+        return query
+
+    def _form_query(self, field_name: str) -> Callable[[str], str]:
+        return lambda _: "1" if self.state.form[field_name] else "0"
 
     @staticmethod
     def _split(argument: str) -> tuple[list[str], list[int]]:
@@ -232,6 +304,17 @@ class Keysight34970AEmulator:
         for c in channels:
             self.state.channels[c].range_v = float(values[0])
 
+    def _impedance(self, argument: str) -> None:
+        values, channels = self._split(argument)
+        if len(values) != 1 or values[0].upper() not in ("ON", "OFF", "1", "0"):
+            self._error(-222)
+            return
+        if not channels or any(self.state.channels.get(c, Channel("")).function != "VOLT" for c in channels):
+            self._error(-221)
+            return
+        for c in channels:
+            self.state.channels[c].impedance_auto = values[0].upper() in ("ON", "1")
+
     def _scan_list(self, argument: str) -> None:
         channels = parse_channels(argument)
         if any(c not in self.state.channels for c in channels):
@@ -250,6 +333,12 @@ class Keysight34970AEmulator:
                 return
             self.state.form[field_name] = argument.upper() in ("ON", "1")
         return set_form
+
+    def _time_type(self, argument: str) -> None:
+        if argument.upper() not in ("ABS", "ABSOLUTE", "REL", "RELATIVE"):
+            self._error(-222)
+            return
+        self.state.time_absolute = argument.upper().startswith("ABS")
 
     def _trigger_source(self, argument: str) -> None:
         if argument.upper() not in ("IMM", "IMMEDIATE", "TIM", "TIMER", "BUS", "EXT", "EXTERNAL"):
@@ -296,9 +385,8 @@ class Keysight34970AEmulator:
         if scan.readings is None:
             scan.readings = self._measure(scan)
         n = scan.done_by(scan.end)
-        return ",".join(self._format(value, scan.channels[i % len(scan.channels)], t)
-                        for i, (value, t) in enumerate(zip(scan.readings[:n], scan.times()[:n] - scan.start,
-                                                           strict=True)))
+        return ",".join(self._format(value, scan.channels[i % len(scan.channels)], t, scan.start)
+                        for i, (value, t) in enumerate(zip(scan.readings[:n], scan.times()[:n], strict=True)))
 
     # --- measurement ------------------------------------------------------------------------
     def _measure(self, scan: ScanRun) -> np.ndarray:
@@ -317,6 +405,9 @@ class Keysight34970AEmulator:
             else:
                 readings[i] = 0.0  # nothing wired to this input
             if self.state.channels[channel].function == "VOLT":
+                # the source's output resistance and the input's form a divider
+                input_ohm = self.state.channels[channel].input_ohm()
+                readings[i] *= input_ohm / (input_ohm + self.rig.rig.config.output_ohm)
                 if abs(readings[i]) > OVER_RANGE * self.state.channels[channel].range_v:
                     readings[i] = OVERLOAD
         if self.overload_next:
@@ -324,12 +415,17 @@ class Keysight34970AEmulator:
             readings[0::len(scan.channels)] = OVERLOAD
         return readings
 
-    def _format(self, value: float, channel: int, t: float) -> str:
+    def _format(self, value: float, channel: int, t: float, start: float) -> str:
+        """One reading with the fields FORMat:READing asks for; the time stamp is the reading's
+        time of day (ABSolute) or its seconds since the start of the scan (RELative)."""
         form = self.state.form
         unit = {"VOLT": " VDC", "TEMP": " C"}[self.state.channels[channel].function] if form["UNIT"] else ""
         parts = [f"{value:+.8E}{unit}"]
-        if form["TIME"]:
-            parts.append(f"{t:.3f}")
+        if form["TIME"] and self.state.time_absolute:
+            stamp = CLOCK_AT_ZERO + timedelta(seconds=round(t, 3))
+            parts.append(f"{stamp:%Y,%m,%d,%H,%M},{stamp.second + stamp.microsecond / 1e6:06.3f}")
+        elif form["TIME"]:
+            parts.append(f"{t - start:.3f}")
         if form["CHAN"]:
             parts.append(f"{channel:03d}")
         if form["ALAR"]:

@@ -13,7 +13,9 @@ Each emulated device has a `FaultInjector`. The emulator asks it about every req
 - ``lost-request``: the request never reaches the device (noise on the request: a Modbus slave
   drops a frame whose CRC fails, Modbus over Serial Line V1.02 §2.5.1.2), so nothing is done and
   nothing is answered;
-- ``truncated``: only the first half of the reply arrives.
+- ``truncated``: only the first half of the reply arrives;
+- ``power-cycle``: the device is switched off and on as the request arrives (the request is lost;
+  the DMM only): back to its power-on state, and a network connection to it is dropped.
 """
 
 from __future__ import annotations

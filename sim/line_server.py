@@ -163,6 +163,16 @@ class LineServer:
             return
         if kind == FaultKind.LOST_REQUEST:
             return
+        if kind == FaultKind.POWER_CYCLE:
+            power_cycle = getattr(self.device, "power_cycle", None)  # FaultSpec allows it on the DMM only
+            if power_cycle is not None:
+                power_cycle()
+            if self._listener is not None:  # its network interface restarts: connections are gone
+                for fd, other in list(self._channels.items()):
+                    self._channels.pop(fd)
+                    with contextlib.suppress(OSError):
+                        other.close()
+            return
         if kind == FaultKind.ALARM:
             self.device.alarm(name, fault.code if fault else None)
         reply = self.device.handle(line)

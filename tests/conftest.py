@@ -16,6 +16,7 @@ from labcal.sim.direct import simulate_readings
 def lab_database(tmp_path, monkeypatch):
     """Every test (and every labcal it starts) journals into its own database, never runs/."""
     monkeypatch.setenv("LABCAL_DB", str(tmp_path / "labcal.sqlite"))
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "runtime"))  # its station locks are the test's own
     monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))  # never the developer's own lab file
     monkeypatch.setenv("XDG_CONFIG_DIRS", str(tmp_path / "site-config"))
     monkeypatch.delenv("LABCAL_CONFIG", raising=False)

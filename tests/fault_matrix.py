@@ -64,7 +64,14 @@ SCENARIOS: dict[str, tuple[str, dict[str, str]]] = {
         **kinds("pitch", "TS", "PA", "TS"),
         "lost TE after PA (20°/s)": fault("pitch", "no-reply", after=5, match="TE"),
     }),
-    "SCPI (34970A, TCP)": ("az-modbus-tcp", kinds("dmm", "FETC", "FETC", "FETC")),
+    "SCPI (34970A, TCP)": ("az-modbus-tcp", {
+        **kinds("dmm", "FETC", "FETC", "FETC"),
+        "lost INIT (stale scan)": fault("dmm", "lost-request", after=40, match="^INIT"),
+        "power cycle": fault("dmm", "power-cycle", after=40, match="FETC"),
+    }),
+    "SCPI (34970A, RS-232)": ("smc100-serial", {
+        "power cycle (local until SYST:REM)": fault("dmm", "power-cycle", after=40, match="FETC"),
+    }),
 }
 
 

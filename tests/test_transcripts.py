@@ -187,10 +187,20 @@ def scpi(*pairs: tuple[str, str | None]) -> Transcript:
 
 
 NO_ERROR = ("SYST:ERR?", '+0,"No error"')
-CONFIGURE = [("*RST", None), ("*CLS", None), ("CONF:VOLT:DC 10,(@101,102,103)", None),
-             ("VOLT:DC:NPLC 10,(@101,102,103)", None), ("ROUT:SCAN (@101,102,103)", None),
-             ("FORM:READ:CHAN ON", None), ("FORM:READ:TIME OFF", None), ("FORM:READ:UNIT OFF", None),
-             ("FORM:READ:ALAR OFF", None), ("TRIG:SOUR IMM", None), NO_ERROR]
+VOLTS = "(@101,102,103)"
+# the configuration as the manual's command sequence sends it (hardware_protocols.md §3.1), then
+# read back by its queries: range and NPLC per channel as numbers, INP:IMP:AUTO? as 0/1, the
+# scan list as a definite-length block, the FORMat:READing switches as 0/1
+CONFIGURE = [("*RST", None), ("*CLS", None), (f"CONF:VOLT:DC 10,{VOLTS}", None),
+             (f"VOLT:DC:NPLC 10,{VOLTS}", None), (f"INP:IMP:AUTO ON,{VOLTS}", None),
+             ("ROUT:SCAN (@101,102,103)", None), ("FORM:READ:CHAN ON", None), ("FORM:READ:TIME ON", None),
+             ("FORM:READ:TIME:TYPE ABS", None), ("FORM:READ:UNIT OFF", None),
+             ("FORM:READ:ALAR OFF", None), ("TRIG:SOUR IMM", None), NO_ERROR,
+             (f"VOLT:DC:RANG? {VOLTS}", "+1.00000000E+01,+1.00000000E+01,+1.00000000E+01"),
+             (f"VOLT:DC:NPLC? {VOLTS}", "+1.00000000E+01,+1.00000000E+01,+1.00000000E+01"),
+             (f"INP:IMP:AUTO? {VOLTS}", "1,1,1"), ("ROUT:SCAN?", "#214(@101,102,103)"),
+             ("FORM:READ:CHAN?", "1"), ("FORM:READ:TIME?", "1"), ("FORM:READ:TIME:TYPE?", "ABS"),
+             ("FORM:READ:UNIT?", "0"), ("FORM:READ:ALAR?", "0")]
 
 
 def test_34970a_identity():
@@ -199,8 +209,9 @@ def test_34970a_identity():
 
 
 def test_34970a_configure_and_one_scan_of_two_sweeps():
-    readings = ("+1.00000000E+00,101,-2.50000000E-01,102,+4.99990000E+00,103,"
-                "+1.00001000E+00,101,-2.50010000E-01,102,+4.99980000E+00,103")
+    readings = ("+1.00000000E+00,2026,01,01,12,00,01.100,101,-2.50000000E-01,2026,01,01,12,00,01.500,102,"
+                "+4.99990000E+00,2026,01,01,12,00,01.900,103,+1.00001000E+00,2026,01,01,12,00,02.300,101,"
+                "-2.50010000E-01,2026,01,01,12,00,02.700,102,+4.99980000E+00,2026,01,01,12,00,03.100,103")
     transcript = scpi(*CONFIGURE, ("TRIG:COUN 2", None), ("INIT", None), ("*OPC?", "1"),
                       ("FETC?", readings), NO_ERROR)
     meter = dmm_on(transcript)
@@ -216,11 +227,31 @@ def test_34970a_on_rs232_starts_with_syst_rem():
     assert transcript.done()
 
 
+def test_34970a_a_reset_unit_is_configured_again_before_the_scan_is_repeated():
+    """The unit refuses the scan (-221: a reset left it no scan list): the next try asks *ESR?,
+    sees the power-on bit (128), sends the configuration, reads it back, and scans again."""
+    readings = ("+1.00000000E+00,2026,01,01,12,00,01.100,101,-2.50000000E-01,2026,01,01,12,00,01.500,102,"
+                "+4.99990000E+00,2026,01,01,12,00,01.900,103")
+    scan = [("TRIG:COUN 1", None), ("INIT", None), ("*OPC?", "1")]
+    transcript = scpi(*CONFIGURE, *scan, ("FETC?", None), ("SYST:ERR?", '-221,"Settings conflict"'),
+                      ("SYST:ERR?", '-230,"Data corrupt or stale"'), NO_ERROR,
+                      ("*ESR?", "+148"), *CONFIGURE, *scan, ("FETC?", readings), NO_ERROR)
+    meter = Keysight34970A("dmm", LineTransport("transcript", lambda: transcript, eol=b"\n", timeout_s=0.05,
+                                                reconnect_s=0), nplc=10, range_v=10, retries=1)
+    meter.configure()
+    assert meter.read(1).volts.tolist() == [[1.0, -0.25, 4.9999]]
+    assert transcript.done()
+
+
 def test_34970a_overload_and_error_queue():
-    overload = ("+9.90000000E+37,101,-2.50000000E-01,102,+4.99990000E+00,103")
-    transcript = scpi(("TRIG:COUN 1", None), ("INIT", None), ("*OPC?", "1"), ("FETC?", overload), NO_ERROR)
+    overload = ("+9.90000000E+37,2026,01,01,12,00,01.100,101,-2.50000000E-01,2026,01,01,12,00,01.500,102,"
+                "+4.99990000E+00,2026,01,01,12,00,01.900,103")
+    transcript = scpi(*CONFIGURE, ("TRIG:COUN 1", None), ("INIT", None), ("*OPC?", "1"),
+                      ("FETC?", overload), NO_ERROR)
+    meter = dmm_on(transcript)
+    meter.configure()
     with pytest.raises(DeviceFault, match="channel 101 overloaded"):
-        dmm_on(transcript).read(1)
-    refused = scpi(*CONFIGURE[:-1], ("SYST:ERR?", '-222,"Data out of range"'), NO_ERROR)
+        meter.read(1)
+    refused = scpi(*CONFIGURE[:12], ("SYST:ERR?", '-222,"Data out of range"'), NO_ERROR)
     with pytest.raises(Rejected, match='SCPI error -222 "Data out of range" after configuration'):
         dmm_on(refused).configure()

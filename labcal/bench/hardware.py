@@ -48,11 +48,14 @@ def dmm_link(settings: DmmSettings) -> LineTransport | VisaLink:
         return line_transport(settings, SCPI_EOL)
     serial = {}
     if settings.serial_line:  # an ASRL resource takes the station's line settings
-        from pyvisa.constants import Parity, StopBits
+        from pyvisa.constants import ControlFlow, Parity, StopBits
 
         serial = {"baud_rate": settings.baudrate, "data_bits": settings.bytesize,
                   "parity": {"N": Parity.none, "E": Parity.even, "O": Parity.odd}[settings.parity],
-                  "stop_bits": {1: StopBits.one, 2: StopBits.two}[settings.stopbits]}
+                  "stop_bits": {1: StopBits.one, 2: StopBits.two}[settings.stopbits],
+                  # the 34970A's RS-232 factory setting is XON/XOFF (User's Guide p.192): without it
+                  # the unit's XOFF is read as data and a long reply overruns its buffer
+                  "flow_control": ControlFlow.xon_xoff if settings.xonxoff else ControlFlow.none}
     return VisaLink(settings.visa, library=settings.visa_library, eol=SCPI_EOL.decode(),
                     timeout_s=settings.timeout_s, reconnect_s=settings.reconnect_s, serial=serial)
 

@@ -28,6 +28,7 @@ if TYPE_CHECKING:
     from labcal.analysis.plan import Plan
     from labcal.bench.setup import StationSetup
     from labcal.config.settings import CertificateSettings, SequencerSettings
+    from labcal.config.station import StationFile
     from labcal.run.estimate import Estimate
     from labcal.run.runner import RunResult
 
@@ -89,15 +90,17 @@ def _stop_failure(exc: BaseException) -> str:
 
 
 def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done: int,
-                   certificate=None) -> int:
+                   certificate=None, journal: Path | None = None) -> int:
     """Run with a progress display; turn the ways a run can end into messages and exit codes; at the
-    end of a complete run issue its certificate and report (``certificate``: their settings)."""
+    end of a complete run issue its certificate and report (``certificate``: their settings) into
+    the run's journal (``journal``: a resumed run's, which its folder names; else --db's)."""
     from labcal.commands.console import ProgressDisplay, coefficients_with_standard_errors, format_duration
     from labcal.run.interrupts import StopSignal
     from labcal.run.journal import db_path
     from labcal.run.operator import OperatorDeclined
     from labcal.run.rundir import points_on_disk
 
+    journal = journal or db_path(args.db)
     err.print(f"Run directory: {run_dir}")
     try:
         with ProgressDisplay(err, plan.n_points, est.per_step_s, done) as display:
@@ -122,7 +125,7 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
     if not args.no_report:
         from labcal.documents.report import write_run_outputs
 
-        issued = write_run_outputs(run_dir, certificate, db=args.db)
+        issued = write_run_outputs(run_dir, certificate, db=journal)
     if args.json:
         print_json({"run_dir": str(result.directory), "run_id": result.run_id, "points": o.points_recorded,
                     "points_failed": o.points_failed, "simulated_rig_time_s": o.station_time_s,
@@ -151,7 +154,7 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
         if conformity is not None:
             verdict = "[green]PASS[/]" if conformity.passed else "[red]FAIL[/]"
             out.print(f"Verdict against the tolerances: [bold]{verdict}[/]")
-    out.print(f"Files in {run_dir}/: {files}; journal {db_path(args.db)}")
+    out.print(f"Files in {run_dir}/: {files}; journal {journal}")
     if issued is not None:
         cert = issued.certificate
         out.print(f"Certificate {cert.certificate_id} issued: {issued.certificate_path}; stored in "
@@ -198,6 +201,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             if not args.emulate and not args.serial and not args.no_report and not args.dry_run:
                 raise LabcalError("a calibration on real hardware needs the instrument's --serial for its "
                                   "certificate (or --no-report)")
+            if not args.dry_run:  # before an emulator or a device is opened, held until the end
+                lock_station(stack, config, args.station, args.db)
             setup, bench = hardware_station(config, args.station, stack, emulate=args.emulate,
                                             time_scale=args.time_scale, seed=args.seed)
             pitch, roll = config.pitch, config.roll  # the slower table sets the pace of the estimates
@@ -224,6 +229,19 @@ def cmd_run(args: argparse.Namespace) -> int:
             return run_and_report(args, lambda display: calibrate(
                 plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, display,
                 setup.metadata, args.serial, args.operator, steps), run_dir, plan, est, 0, cert_settings)
+
+
+def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Path | None) -> None:
+    """Hold the station for this command (one run per station at a time, across processes: a second
+    one is refused in one line naming who holds it); a lock left by a process that is gone is
+    taken over, with a note."""
+    from labcal.run.journal import db_path
+    from labcal.run.lock import StationLock, station_locks
+
+    lock = stack.enter_context(StationLock(station_locks(db_path(db)),
+                                           {s.bus: s.where for s in config.devices().values()}, name))
+    for note in lock.notes:
+        err.print(f"[yellow]note:[/] {note}")
 
 
 def ambient_entered(args: argparse.Namespace) -> dict[str, float | str]:
@@ -262,7 +280,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
         if ctx.complete:
             settings = certificate_settings_for_run(args, snapshot.config.certificate if snapshot else None,
                                                     "the run's station")
-            return finish_complete(args, run_dir, ctx.run_id, settings)
+            return finish_complete(args, run_dir, ctx.run_id, settings, ctx.journal.path)
         points = ctx.journal.points(ctx.run_id)
         start = ctx.journal.rig_time(ctx.run_id)  # the rig's clock goes on from here (one clock per run)
         new_station, on_station, station_record = None, "on the station it started on", None
@@ -281,6 +299,8 @@ def cmd_resume(args: argparse.Namespace) -> int:
             setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start)
             certificate = CertificateSettings()
         else:
+            lock_station(stack, new_station[0] if new_station else snapshot.config, args.station or run_name,
+                         ctx.journal.path)
             setup, bench = station_for_resume(snapshot, run_name, stack, start, new_station)
             certificate = (new_station[0] if new_station else snapshot.config).certificate
         steps = schedule(ctx.plan, ctx.settings)
@@ -299,20 +319,20 @@ def cmd_resume(args: argparse.Namespace) -> int:
         return run_and_report(args, lambda display: execute(
             ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, display,
             steps),
-            run_dir, ctx.plan, est, len(points), cert_settings)
+            run_dir, ctx.plan, est, len(points), cert_settings, ctx.journal.path)
 
 
 def finish_complete(args: argparse.Namespace, run_dir: Path, run_id: int,
-                    settings: CertificateSettings) -> int:
+                    settings: CertificateSettings, journal: Path) -> int:
     """A complete run resumed: its exports were checked and repaired; its certificate and report are
     issued again if any of them is missing or not the history's (a kill during `labcal report`)."""
     from labcal.documents.report import outputs_in_place, write_run_outputs
 
-    if args.no_report or outputs_in_place(run_dir, db=args.db):
+    if args.no_report or outputs_in_place(run_dir, db=journal):
         certificate = None
         message = f"run {run_id} is already complete; its files in {run_dir} match the journal"
     else:
-        issued = write_run_outputs(run_dir, settings, db=args.db)
+        issued = write_run_outputs(run_dir, settings, db=journal)
         certificate = str(issued.certificate_path)
         message = (f"run {run_id} is already complete; certificate {issued.certificate.certificate_id} and "
                    f"its report written again in {run_dir}")

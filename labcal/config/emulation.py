@@ -12,7 +12,7 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from labcal.analysis.kinematics import MISALIGNMENT_NAMES, Misalignment
 from labcal.config.files import load_model
@@ -131,6 +131,9 @@ class RigConfig(BaseModel):
     clamp_s: float = Field(default=1.0, ge=0)
     nplc: float = Field(default=10.0, gt=0, description="DMM integration per sample, power-line cycles")
     line_hz: float = Field(default=50.0, gt=0)
+    output_ohm: float = Field(default=5000.0, ge=0, description="the instrument outputs' source impedance, "
+                              "which the DMM's input resistance loads (a servo-accelerometer's output "
+                              "resistor, ~5 kΩ)")
     remount_s: float = Field(default=300.0, ge=0, description="operator time for one remount")
     lab_temp_c: float = 21.0
     lab_temp_swing_c: float = Field(default=0.3, ge=0)
@@ -153,6 +156,7 @@ class FaultKind(StrEnum):
     CLOSE_PORT = "close-port"
     LOST_REQUEST = "lost-request"
     TRUNCATED = "truncated"
+    POWER_CYCLE = "power-cycle"
 
 
 class FaultSpec(BaseModel):
@@ -168,6 +172,12 @@ class FaultSpec(BaseModel):
     delay_s: float = Field(default=1.0, ge=0)
     code: int | str | None = None
     reopen_s: float | None = Field(default=None, ge=0)
+
+    @model_validator(mode="after")
+    def _power_cycle(self):
+        if self.kind == FaultKind.POWER_CYCLE and self.device != "dmm":
+            raise ValueError("a power-cycle fault is emulated on the dmm only")
+        return self
 
 
 class EmulationSettings(BaseModel):

@@ -242,6 +242,9 @@ class Sequencer:
             self.move(*LOAD_POSITION)
             self.ask("mount", self.operator.confirm_mount, mount, step, n_steps, note)
             self.station.remounted(mount)
+            verify = getattr(self.station.dmm, "verify", None)  # a DMM with a declared configuration
+            if verify is not None:
+                verify("at the mount")
             if not self.settings.check_mount:
                 return
             self.move(*CHECK_ATTITUDE)

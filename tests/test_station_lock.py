@@ -1,0 +1,119 @@
+"""One run per station at a time (issue 22 item 7): across processes, for serial and TCP links,
+held while the run waits at a prompt; a second run is one line naming the station and who holds it;
+a lock left by a killed process is taken over with a note; an address another emulator serves is
+one line, not pymodbus's traceback."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
+
+from labcal.run.lock import link_key, station_locks
+
+LABCAL = str(Path(sys.executable).with_name("labcal"))
+EMULATE = ["--emulate", "--time-scale", str(TIME_SCALE), "--no-report"]
+
+
+def first_run_waiting_at_a_prompt(station: Path, db: Path, tmp_path: Path) -> subprocess.Popen:
+    """`labcal run` in another process, holding the station while it waits at the first remount
+    prompt (its stdin stays open and silent); returns once its station lock names its run."""
+    first = subprocess.Popen([LABCAL, "run", "--station", str(station), *EMULATE, "--db", str(db),
+                              "--out", str(tmp_path / "first")], stdin=subprocess.PIPE,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    folder = station_locks(db)[0]
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        held = [json.loads(p.read_text() or "{}") for p in folder.glob("*.lock")] if folder.exists() else []
+        if held and all(h.get("run_id") == 1 for h in held):
+            return first
+        assert first.poll() is None, "the first run ended"
+        time.sleep(0.05)
+    first.kill()
+    raise AssertionError("the first run never held the station")
+
+
+@pytest.mark.parametrize(("name", "second_db"), [("az-modbus-tcp", "lab.sqlite"),
+                                               ("smc100-serial", "lab.sqlite"),
+                                               ("az-modbus-tcp", "another-lab.sqlite")])
+def test_a_second_run_on_the_same_links_is_refused_in_one_line(name, second_db, tmp_path, capsys):
+    """Two `labcal run --station … --emulate` on one station, Modbus TCP or serial ports (the second
+    through another station file naming the same links, journaling into the same lab database or
+    another one: the user's runtime folder holds the locks too): the second exits 2 with one line naming
+    the station, a link, and who holds it (run 1, the first process's pid, this host) before it
+    starts anything. Before, the second crashed with pymodbus's "Could not start listen"
+    traceback (or, on a real bench, drove the tables the first run held)."""
+    station = private_file(name, tmp_path, link="timeout_s = 0.1\nreconnect_s = 1")
+    other = tmp_path / "same-bench-other-name.toml"
+    (tmp_path / "by-id").mkdir()
+    other.write_text(station.read_text().replace("127.0.0.1:", "localhost:")  # the same links, spelt
+                     .replace(f"{tmp_path}/", f"{tmp_path}/by-id/../"))  # otherwise
+    db = tmp_path / "lab.sqlite"
+    first = first_run_waiting_at_a_prompt(station, db, tmp_path)
+    try:
+        code, out, err = cli(capsys, "run", "--station", str(other), *EMULATE, "--yes", "--db",
+                             str(tmp_path / second_db), "--out", str(tmp_path / "second"))
+    finally:
+        first.send_signal(signal.SIGTERM)
+        first.communicate(timeout=30)
+    assert code == 2 and out == "" and err.strip().count("\n") == 0, err
+    assert f"station {other}: {'tcp localhost:' if name.startswith('az') else tmp_path}" in err
+    assert f"is in use by run 1, pid {first.pid} on {socket.gethostname()}" in err, err
+    assert "Traceback" not in err and "Could not start listen" not in err
+    assert not (tmp_path / "second").exists()
+
+
+def test_a_lock_left_by_a_killed_run_is_taken_over_with_a_note(tmp_path, capsys, no_leaks):  # noqa: F811
+    """The first run is killed (-9) at a prompt: the kernel drops its flock, its lock file still
+    names it. The next run on the station takes the lock over, says so, and completes."""
+    station = private_file("az-modbus-tcp", tmp_path, link="timeout_s = 0.1\nreconnect_s = 1")
+    db = tmp_path / "lab.sqlite"
+    first = first_run_waiting_at_a_prompt(station, db, tmp_path)
+    first.kill()
+    first.communicate(timeout=30)
+    code, out, err = cli(capsys, "run", "--station", str(station), *EMULATE, "--yes", "--db", str(db),
+                         "--plan", "one-mount-16", "--out", str(tmp_path / "second"), "--json")
+    assert code == 0, err
+    assert f"locked by run 1, pid {first.pid} on {socket.gethostname()}" in err
+    assert "which is no longer running; lock taken over" in err
+    assert json.loads(out)["points"] == 16
+    assert all(p.read_text() == "" for folder in station_locks(db) for p in folder.glob("*.lock"))  # released
+
+
+def test_an_address_another_emulator_serves_is_one_line(tmp_path, capsys, no_leaks):  # noqa: F811
+    """`labcal sim serve` (which takes no station lock) already listens on the station's Modbus TCP
+    address: `labcal run --emulate` says so in one line, exit 2, instead of pymodbus's traceback."""
+    station = private_file("az-modbus-tcp", tmp_path)
+    text = station.read_text()
+    port = int(text.split('tcp = "127.0.0.1:')[1].split('"')[0])  # the tables' gateway
+    with socket.create_server(("127.0.0.1", port)):
+        code, out, err = cli(capsys, "run", "--station", str(station), *EMULATE, "--yes",
+                             "--out", str(tmp_path / "run"))
+    assert code == 2 and err.strip().count("\n") == 0, err
+    assert f"cannot serve tcp 127.0.0.1:{port} (the address is taken" in err
+    assert "Traceback" not in err and "is another emulator" in err
+
+
+def test_two_spellings_of_one_link_are_one_lock(tmp_path):
+    """By hand: a by-id symlink and the port it points at, localhost and 127.0.0.1, a pyserial socket
+    URL and a VISA raw socket resource and a TCP address, an ASRL resource and its port."""
+    port = tmp_path / "ttyUSB0"
+    port.touch()
+    alias = tmp_path / "usb-FTDI-if00-port0"
+    alias.symlink_to(port)
+    assert link_key(f"port:{alias}") == link_key(f"port:{port}") == f"port:{port.resolve()}"
+    assert link_key("tcp:localhost:502") == link_key("tcp:127.0.0.1:502") == "tcp:127.0.0.1:502"
+    assert link_key("port:socket://127.0.0.1:4001") == link_key("visa:TCPIP0::127.0.0.1::4001::SOCKET") \
+        == link_key("tcp:127.0.0.1:4001") == "tcp:127.0.0.1:4001"
+    assert link_key(f"visa:ASRL{alias}::INSTR") == f"port:{port.resolve()}"
+    assert link_key("visa:gpib0::9::instr") == link_key("visa:GPIB0::9::INSTR") == "visa:GPIB0::9::INSTR"
+    assert link_key("tcp:10.0.0.5:502") != link_key("tcp:10.0.0.5:503")
+    assert os.path.exists(port)
