@@ -50,9 +50,12 @@ def shortest_way(a: ArrayLike, b: ArrayLike) -> NDArray:
     return (np.asarray(b, dtype=float) - np.asarray(a, dtype=float) + 180.0) % 360.0 - 180.0
 
 
-def move_time(a: ArrayLike, b: ArrayLike, speed: float, accel: float) -> NDArray:
-    """Time to go from attitude(s) a to b (…×2 degrees) with both tables moving together."""
-    return np.max(trapezoid_duration(shortest_way(a, b), speed, accel), axis=-1)
+def move_time(a: ArrayLike, b: ArrayLike, speed: float, accel: float, unwrapped: bool = False) -> NDArray:
+    """Time to go from attitude(s) a to b (…×2 degrees) with both tables moving together: the
+    shortest way round, or straight from a to b when they are ``unwrapped`` (accumulated angles,
+    the way round chosen for the tables' cables)."""
+    travel = np.asarray(b, dtype=float) - np.asarray(a, dtype=float) if unwrapped else shortest_way(a, b)
+    return np.max(trapezoid_duration(travel, speed, accel), axis=-1)
 
 
 def trapezoid_lag(distance: ArrayLike, speed: float, accel: float, tau: float) -> NDArray:
@@ -70,12 +73,13 @@ def trapezoid_lag(distance: ArrayLike, speed: float, accel: float, tau: float) -
 
 
 def transient_left(a: tuple[float, float], b: tuple[float, float], mount: Mount, speed: float,
-                   accel: float, tau: float, steps_per_tau: int = 50) -> float:
+                   accel: float, tau: float, steps_per_tau: int = 50, unwrapped: bool = False) -> float:
     """Largest |output − settled output| over the three sensors, in g, when both tables have
     stopped after the move a → b on ``mount``: nominal gravity along both trapezoids, through the
     first-order lag integrated in steps of τ/50 (exact for an input held over each step; the
-    midpoint rule's error is ~1e-4 relative), starting settled. What the dead time is sized by."""
-    travel = shortest_way(a, b)
+    midpoint rule's error is ~1e-4 relative), starting settled. What the dead time is sized by.
+    ``unwrapped``: a and b are accumulated angles, the tables went straight from one to the other."""
+    travel = np.asarray(b, dtype=float) - np.asarray(a, dtype=float) if unwrapped else shortest_way(a, b)
     motion = float(np.max(trapezoid_duration(travel, speed, accel)))
     y, u = mount.radians
     start, end = np.radians(a), np.radians(b)
