@@ -20,7 +20,7 @@ from labcal.config.settings import SequencerSettings
 from labcal.errors import LabcalError
 from labcal.run.interrupts import Interrupts
 from labcal.run.journal import Journal, PointRecord
-from labcal.run.motion import move_time, transient_at_stop, transient_left
+from labcal.run.motion import Move, move_time, transient_after, transient_at_stop
 from labcal.run.mounting import CHECK_ATTITUDE, identify
 from labcal.run.operator import Operator, OperatorDeclined
 from labcal.run.ordering import order_points
@@ -180,6 +180,7 @@ class Sequencer:
     _at: Winding | None = None  # where the last move went (accumulated from home); None: unknown, locate it
     _windings: dict[int, Winding] = field(default_factory=dict)  # each step's, planned for the run
     _last_move: tuple[tuple[float, float], tuple[float, float], float] = ((0.0, 0.0), (0.0, 0.0), 0.0)
+    _moves: list[Move] = field(default_factory=list)  # since the last window: what the transient is
     _sample_s: float = 0.0  # the voltmeter's time per sample, once measured
     _tail: TailPool | None = None  # model settling: the instrument's tail, pooled over this segment's points
 
@@ -190,7 +191,11 @@ class Sequencer:
         move before it starts, and remember where from and when the motion ended: the tables' own
         profile from the move's start, or the in-position time if that came first. A table a turn
         or more from its winding gets there by way of the midpoint: no leg is a turn or more."""
-        start = self._at or self.locate()
+        start = self._at
+        if start is None:
+            start = self.locate()
+            if self._moves:  # a stop caught the last move part way: it ended where the tables are
+                self._moves[-1] = (self._moves[-1][0], start, self._moves[-1][2])
         if winding is None:
             found = [axis.reach.nearest(angle, here) for axis, angle, here
                      in ((self.station.pitch, pitch, start[0]), (self.station.roll, roll, start[1]))]
@@ -212,6 +217,7 @@ class Sequencer:
             travel = float(move_time(np.array(start), np.array(leg), self.settings.speed_dps,
                                      self.settings.accel_dps2, unwrapped=True))
             self._last_move = (start, leg, min(t_start + travel, clock.now()))
+            self._moves.append((start, leg, t_start))
             start = leg
         self._at = winding
         return read
@@ -229,10 +235,14 @@ class Sequencer:
         return found[0], found[1]
 
     def measure(self, mount: Mount, key: str) -> Dwell:
-        """Settle after the last move (sized by the transient it left) and take the window."""
-        s, (start, target, motion_end) = self.settings.settle, self._last_move
-        lag_g = transient_left(start, target, mount, self.settings.speed_dps, self.settings.accel_dps2,
-                               s.tau_s, unwrapped=True)
+        """Settle after the last move and take the window. The dead time is sized by the transient
+        the tables' moves since the last window left (from where each really began: after a resume
+        the move to the load position too, if the output had no time to settle since), not by the
+        last move's alone; once the window is taken, the output is settled to its criterion."""
+        s, (_, _, motion_end) = self.settings.settle, self._last_move
+        lag_g = transient_after(self._moves, mount, self.settings.speed_dps, self.settings.accel_dps2,
+                                s.tau_s)
+        self._moves = []
         self.station.at_point(key)
         with self.interrupts.critical():
             if s.mode == "model" and s.fixed_dwell_s is None:
