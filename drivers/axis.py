@@ -1,20 +1,22 @@
-"""What every index-table driver shares: soft limits, which way round, waiting, and read-back.
+"""What every index-table driver shares: soft limits, cable wrap, which way round, waiting, and
+read-back.
 
 A driver supplies four device exchanges (status, angle, go to an absolute angle, halt); this base
-turns them into `labcal.station.RotaryAxis`. A move is checked against the soft limits before
-anything is sent, and is only over when the device reports it in position *and* the position read
-back lies within the tolerance of the target.
+turns them into `labcal.station.RotaryAxis`. A move is checked against the table's reach (its soft
+limits and its cable wrap, `labcal.run.winding`) before anything is sent, goes the way round the
+caller chose (``travel_deg``), and is only over when the device reports it in position *and* the
+position read back lies within the tolerance of the target.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 from labcal.drivers.errors import DeviceFault, OutOfLimits
 from labcal.run.station import Clock
+from labcal.run.winding import Reach
 
 log = logging.getLogger(__name__)
 ARCSEC_PER_DEG = 3600.0
@@ -42,13 +44,16 @@ class IndexAxis(ABC):
     """An index table behind `labcal.station.RotaryAxis`."""
 
     model = "index table"
+    counts_turns = True  # its angle is unwrapped: its accumulated rotation from home (an AZ with wrap: not)
 
     def __init__(self, name: str, where: str, clock: Clock, *, limits_deg: tuple[float, float] | None,
-                 tolerance_arcsec: float, poll_s: float):
+                 tolerance_arcsec: float, poll_s: float, cable_wrap_deg: float | None = None):
         self.name = name
         self.device = f"{name} table ({self.model}, {where})"
         self.clock = clock
         self.limits = limits_deg
+        self.cable_wrap_deg = cable_wrap_deg  # None: slip rings
+        self.reach = Reach.of(cable_wrap_deg, limits_deg)
         self.tolerance_arcsec = tolerance_arcsec
         self.poll_s = poll_s
         self._target: float | None = None
@@ -63,8 +68,9 @@ class IndexAxis(ABC):
         """The device's position in degrees, unwrapped where the device counts turns."""
 
     @abstractmethod
-    def _go(self, target_deg: float) -> None:
-        """Start an absolute move to ``target_deg`` (unwrapped, already within the limits)."""
+    def _go(self, target_deg: float, travel_deg: float = 0.0) -> None:
+        """Start an absolute move to ``target_deg`` (unwrapped, already within the limits), turning
+        by ``travel_deg`` from where the device said it was (the way round, for a wrapping drive)."""
 
     @abstractmethod
     def _halt(self) -> None:
@@ -82,26 +88,39 @@ class IndexAxis(ABC):
 
     # --- shared logic -----------------------------------------------------------------------
     def check_angle(self, angle_deg: float) -> float:
-        """The angle equivalent to ``angle_deg`` (mod 360) within the soft limits nearest to it;
+        """The angle equivalent to ``angle_deg`` (mod 360) within the table's reach nearest to it;
         raises `OutOfLimits` when there is none. No I/O: plans are checked with it before anything moves."""
-        return self._within_limits(angle_deg, angle_deg)
-
-    def _within_limits(self, angle_deg: float, near_deg: float) -> float:
-        if self.limits is None:
-            return near_deg + wrapped(angle_deg - near_deg)
-        lo, hi = self.limits
-        k_lo, k_hi = math.ceil((lo - angle_deg) / 360.0 - 1e-9), math.floor((hi - angle_deg) / 360.0 + 1e-9)
-        if k_lo > k_hi:
+        if self.limits is not None and Reach.of(None, self.limits).nearest(angle_deg, angle_deg) is None:
+            lo, hi = self.limits
             raise OutOfLimits(f"{angle_deg:g}° is outside the soft limits [{lo:g}°, {hi:g}°]; "
                               "change the plan or the limits in the station file", self.device)
-        return min((angle_deg + 360.0 * k for k in range(k_lo, k_hi + 1)), key=lambda t: abs(t - near_deg))
+        found = self.reach.nearest(angle_deg, angle_deg)
+        if found is None:
+            raise OutOfLimits(f"{angle_deg:g}° is beyond its cable wrap ({self.reach}); change the plan, "
+                              "or cable_wrap_deg (slip_ring) in the station file if its cables allow it",
+                              self.device)
+        return found
 
-    def move_to(self, angle_deg: float) -> None:
-        """Start a move: the shortest way round on a free table, within the limits on a limited one."""
+    def move_to(self, angle_deg: float, *, travel_deg: float | None = None) -> None:
+        """Start a move turning the table by ``travel_deg`` (signed; the caller's choice of the way
+        round) to ``angle_deg`` (any equivalent); without it the shortest way round within the
+        reach. A device that counts turns (its angle unwrapped) is sent the unwrapped target, which
+        must lie within the soft limits; a wrapping AZ drive is told which way round instead."""
         self.check_angle(angle_deg)  # refuse before any exchange with the device
-        target = self._within_limits(angle_deg, self.angle())
+        here = self.angle()
+        if travel_deg is None and not self.counts_turns:  # no turns to keep within the reach
+            target = here + wrapped(angle_deg - here)
+        elif travel_deg is None:
+            found = self.reach.nearest(angle_deg, here)
+            assert found is not None  # check_angle found one
+            target = found
+        else:
+            target = angle_deg + 360.0 * round((here + travel_deg - angle_deg) / 360.0)
+            if self.limits is not None and not self.limits[0] - 1e-9 <= target <= self.limits[1] + 1e-9:
+                raise OutOfLimits(f"a turn of {travel_deg:+g}° to {angle_deg:g}° from {here:g}° would leave "
+                                  f"the soft limits [{self.limits[0]:g}°, {self.limits[1]:g}°]", self.device)
         self._target = target
-        self._go(target)
+        self._go(target, target - here)
 
     def wait_in_position(self, timeout_s: float) -> float:
         """Poll until in position and on target; returns the position read back (0..360°)."""
@@ -131,6 +150,9 @@ class IndexAxis(ABC):
 
     def position(self) -> float:
         return self.angle() % 360.0
+
+    def winding(self) -> float | None:
+        return self.angle() if self.counts_turns else None
 
     def stop(self) -> None:
         """Tell the device to stop; a stop that fails is logged as a WARNING and raised."""

@@ -102,9 +102,9 @@ class Smc100Axis(IndexAxis):
     def __init__(self, name: str, link: LineTransport, address: int, clock: Clock, *, speed_dps: float,
                  accel_dps2: float, limits_deg: tuple[float, float] | None = None,
                  tolerance_arcsec: float = 5.0, poll_s: float = 0.05, home_timeout_s: float = 60.0,
-                 retries: int = 2):
+                 retries: int = 2, cable_wrap_deg: float | None = None):
         super().__init__(name, f"address {address} on {link.where}", clock, limits_deg=limits_deg,
-                         tolerance_arcsec=tolerance_arcsec, poll_s=poll_s)
+                         tolerance_arcsec=tolerance_arcsec, poll_s=poll_s, cable_wrap_deg=cable_wrap_deg)
         self.link, self.address = link, address
         self.speed_dps, self.accel_dps2 = speed_dps, accel_dps2
         self.home_timeout_s = home_timeout_s
@@ -165,8 +165,9 @@ class Smc100Axis(IndexAxis):
     def angle(self) -> float:
         return self.ask("TP", parse_number)
 
-    def _go(self, target_deg: float) -> None:
-        """``PA`` once, then ``TE``. The controller takes ``PA`` only in READY, so when the ``TE``
+    def _go(self, target_deg: float, travel_deg: float = 0.0) -> None:
+        """``PA`` once, then ``TE``; the stage counts turns, so the unwrapped target is the way round.
+        The controller takes ``PA`` only in READY, so when the ``TE``
         reply is lost, sending ``PA`` again would be refused while the stage moves (error M) and
         stop the run: the state (``TS``) and the set-point (``TH``) tell whether the move began."""
         command = f"PA{target_deg:.6f}"

@@ -18,6 +18,7 @@ from labcal.drivers.modbus import ModbusLink, int32_words, words_int32
 from labcal.run.station import Clock
 
 log = logging.getLogger(__name__)
+HALF_TURN_DEG = 180.0  # from here on, a wrapping drive is told the way round (FWD or RVS)
 RELEASE_TRIES = 5  # attempts to clear the STOP input, each a write read back (each write is retried)
 
 # --- register map (wire addresses of the upper word of each 32-bit pair) --------------------
@@ -122,13 +123,14 @@ class AzAxis(IndexAxis):
     def __init__(self, name: str, link: ModbusLink, unit: int, clock: Clock, *, steps_per_degree: float,
                  speed_dps: float, accel_dps2: float, wrap: bool = True,
                  limits_deg: tuple[float, float] | None = None, tolerance_arcsec: float = 5.0,
-                 poll_s: float = 0.05):
+                 poll_s: float = 0.05, cable_wrap_deg: float | None = None):
         super().__init__(name, f"unit {unit} on {link.where}", clock, limits_deg=limits_deg,
-                         tolerance_arcsec=tolerance_arcsec, poll_s=poll_s)
+                         tolerance_arcsec=tolerance_arcsec, poll_s=poll_s, cable_wrap_deg=cable_wrap_deg)
         self.link, self.unit = link, unit
         self.steps_per_degree = steps_per_degree
         self.steps_per_turn = round(360 * steps_per_degree)
         self.wrap = wrap
+        self.counts_turns = not wrap  # with the wrap setting on, positions stay within one turn
         self.speed_hz = max(1, round(speed_dps * steps_per_degree))
         self.rate = max(1, round(accel_dps2 * steps_per_degree))
 
@@ -158,11 +160,17 @@ class AzAxis(IndexAxis):
     def angle(self) -> float:
         return words_int32(*self._read(FEEDBACK_POSITION, 2)) / self.steps_per_degree
 
-    def _go(self, target_deg: float) -> None:
+    def _go(self, target_deg: float, travel_deg: float = 0.0) -> None:
+        """With the wrap setting on, the drive's coordinates stay within one turn and do not say
+        which way round: half a turn or more goes by wrap absolute FWD or RVS (the way the caller's
+        cable wrap chose), less by wrap proximity (the shortest way, the same way; it never makes a
+        full turn out of a target a step behind the table). Without it, a plain absolute move."""
         steps = round(target_deg * self.steps_per_degree)
         op_type = OpType.ABSOLUTE
         if self.wrap:
-            steps, op_type = steps % self.steps_per_turn, OpType.WRAP_PROXIMITY
+            op_type = (OpType.WRAP_FORWARD if travel_deg >= HALF_TURN_DEG else OpType.WRAP_REVERSE
+                       if travel_deg <= -HALF_TURN_DEG else OpType.WRAP_PROXIMITY)
+            steps %= self.steps_per_turn
         self._write(DDO, ddo_registers(op_type, steps, self.speed_hz, self.rate))
 
     def _halt(self) -> None:

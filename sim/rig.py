@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 from labcal.analysis.kinematics import ARCSEC, IndexWobble, Misalignment, Mount, gravity
 from labcal.config.emulation import InstrumentTruth, RigConfig
 from labcal.run.station import Scan, Station
+from labcal.run.winding import Reach
 from labcal.sim.clock import RigClock, VirtualClock
 from labcal.sim.tables import SimAxis
 
@@ -31,8 +32,10 @@ class SimRig:
         self.seed = config.seed if seed is None else seed
         self.clock: RigClock = clock or VirtualClock()
         sync = self._catch_up
-        self.pitch = SimAxis("pitch", self.clock, config.speed_dps, config.accel_dps2, config.clamp_s, sync)
-        self.roll = SimAxis("roll", self.clock, config.speed_dps, config.accel_dps2, config.clamp_s, sync)
+        reach = Reach.of(None if config.slip_rings else config.cable_wrap_deg)
+        pace = (config.speed_dps, config.accel_dps2, config.clamp_s)
+        self.pitch = SimAxis("pitch", self.clock, *pace, sync, reach)
+        self.roll = SimAxis("roll", self.clock, *pace, sync, reach)
         self.instrument: InstrumentTruth = config.instrument
         self.misalignment = config.device.misalignment()
         self.index_wobble = IndexWobble(config.device.index_arcsec, config.device.wobble_arcsec, self.seed)

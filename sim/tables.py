@@ -1,4 +1,6 @@
-"""Index-table motion: trapezoidal velocity profile, shortest way round, then a clamp delay."""
+"""Index-table motion: trapezoidal velocity profile, the way round it is told (the shortest by
+default), then a clamp delay. A table's angle is continuous (unwrapped): it is its accumulated
+rotation from home, what its cables feel, and `SimAxis.record` keeps every turning point of it."""
 
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ from numpy.typing import NDArray
 
 from labcal.errors import LabcalError
 from labcal.run.motion import trapezoid_duration, trapezoid_travel
+from labcal.run.winding import Reach
 from labcal.sim.clock import RigClock
 
 __all__ = ["SimAxis", "trapezoid_duration", "trapezoid_travel"]  # the tables move by labcal's profile
@@ -20,8 +23,9 @@ class SimAxis:
 
     def __init__(self, name: str, clock: RigClock, speed_dps: float = 20.0,
                  accel_dps2: float = 40.0, clamp_s: float = 1.0,
-                 before_move: Callable[[], None] = lambda: None):
+                 before_move: Callable[[], None] = lambda: None, reach: Reach | None = None):
         self.name = name
+        self.reach = reach or Reach()  # what labcal is told of its cables (the simulator never refuses)
         self._before_move = before_move  # lets the rig integrate its physics up to the move
         self.clock = clock
         self.speed, self.accel, self.clamp_s = speed_dps, accel_dps2, clamp_s
@@ -30,6 +34,15 @@ class SimAxis:
         self._t_start = -math.inf
         self._t_motion_end = -math.inf
         self.travel_deg = 0.0
+        # (time, unwrapped angle) where each move began and where it ended or was stopped: a
+        # trapezoid is monotonic, so these hold the extremes of the table's accumulated rotation
+        self.record: list[tuple[float, float]] = [(clock.now(), 0.0)]
+
+    def place(self, angle_deg: float) -> None:
+        """Put the table at rest at this accumulated angle (a resumed run's tables stayed where the
+        interrupted one left them; the simulator starts afresh)."""
+        self._start_angle, self._distance = angle_deg, 0.0
+        self.record = [(self.clock.now(), angle_deg)]
 
     def angle_at(self, t: NDArray | float) -> NDArray:
         """True table angle (deg, unwrapped) at time(s) t."""
@@ -43,19 +56,24 @@ class SimAxis:
     def motion_end(self) -> float:
         return self._t_motion_end
 
-    def move_to(self, angle_deg: float, way: str = "shortest") -> None:
+    def move_to(self, angle_deg: float, way: str = "shortest", *, travel_deg: float | None = None) -> None:
         """Start a move: the ``shortest`` way round (angles mod 360), ``direct`` to the unwrapped
-        angle (a table with limits), or ``forward`` / ``reverse`` round (emulated drives need all)."""
+        angle (a table with limits), or ``forward`` / ``reverse`` round (emulated drives need all);
+        or by ``travel_deg``, the turn labcal chose, to the equivalent of the angle nearest it."""
         self._before_move()
         now = self.clock.now()
         current = float(self.angle_at(now))
-        delta = {"shortest": (angle_deg - current + 180.0) % 360.0 - 180.0,
-                 "direct": angle_deg - current,
-                 "forward": (angle_deg - current) % 360.0,
-                 "reverse": -((current - angle_deg) % 360.0)}[way]
+        if travel_deg is not None:
+            delta = angle_deg + 360.0 * round((current + travel_deg - angle_deg) / 360.0) - current
+        else:
+            delta = {"shortest": (angle_deg - current + 180.0) % 360.0 - 180.0,
+                     "direct": angle_deg - current,
+                     "forward": (angle_deg - current) % 360.0,
+                     "reverse": -((current - angle_deg) % 360.0)}[way]
         self._start_angle, self._distance, self._t_start = current, delta, now
         self._t_motion_end = now + float(trapezoid_duration(delta, self.speed, self.accel))
         self.travel_deg += abs(delta)
+        self.record += [(now, current), (self._t_motion_end, current + delta)]
 
     def wait_in_position(self, timeout_s: float) -> float:
         ready = self._t_motion_end + self.clamp_s
@@ -67,8 +85,14 @@ class SimAxis:
     def position(self) -> float:
         return float(self.angle_at(self.clock.now())) % 360.0
 
+    def winding(self) -> None:
+        """The simulated tables report no turns, as AZ drives with their wrap setting on: the
+        journal's moves say which turn they are on (what a dry run then exercises)."""
+        return None
+
     def stop(self) -> None:
         now = self.clock.now()
         if now < self._t_motion_end:  # freeze where it is (an instant stop is enough for a sim)
             here = float(self.angle_at(now))
             self._start_angle, self._distance, self._t_start, self._t_motion_end = here, 0.0, now, now
+            self.record[-1] = (now, here)

@@ -43,7 +43,8 @@ def test_runs_lists_and_filters_and_log_shows_prompts_and_answers(tmp_path, caps
     events = json.loads(out)["events"]
     kinds = [e["kind"] for e in events]
     assert kinds[0] == "segment"  # the run's clock starts (its offset is journaled: issue 16)
-    assert kinds[1:3] == ["prompt", "answer"] and all(e["utc"] for e in events)
+    # the tables go to the load position (each move journaled before it starts: issue 22), then the prompt
+    assert kinds[1:4] == ["move", "prompt", "answer"] and all(e["utc"] for e in events)
 
 
 def test_runs_and_log_without_a_database(tmp_path, capsys, monkeypatch):

@@ -22,6 +22,7 @@ from labcal.run.journal import Journal
 from labcal.run.operator import AutoOperator, OperatorDeclined, ScriptedOperator
 from labcal.run.runner import calibrate, execute, open_for_resume
 from labcal.run.sequencer import Display, schedule
+from labcal.run.winding import left_at
 from labcal.sim.rig import SimRig
 
 STATIC_LAB = str(Path(__file__).parent / "data" / "rig_static_lab.toml")
@@ -54,8 +55,9 @@ def journal_run(tmp_path, setup, display=None, operator=None, settings=None, pla
 
 
 def resume_in_process(run_dir: Path, operator=None):
-    ctx = open_for_resume(run_dir)
-    setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=ctx.journal.rig_time(ctx.run_id))
+    ctx = open_for_resume(run_dir)  # as `labcal resume` does: the rig's clock and tables where they were left
+    setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=ctx.journal.rig_time(ctx.run_id),
+                        tables_at=left_at(ctx.journal.events(ctx.run_id)))
     with ctx.journal, ctx.lock:
         return execute(ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station,
                        operator or AutoOperator(quiet_console()), ctx.settings)
@@ -264,11 +266,11 @@ def test_a_device_fault_with_nobody_to_answer_stops_and_keeps_every_point(tmp_pa
     real_move = setup.station.roll.move_to
     moves = {"n": 0}
 
-    def failing_move(angle):
+    def failing_move(angle, **way):
         moves["n"] += 1
         if moves["n"] > 12:
             raise LabcalError("roll table (simulated): alarm 0x30 overload")
-        real_move(angle)
+        real_move(angle, **way)
 
     setup.station.roll.move_to = failing_move
     answers = tmp_path / "answers.txt"

@@ -11,7 +11,6 @@ of labcal's runs on SIGKILL).
 from __future__ import annotations
 
 import csv
-import json
 import os
 import random
 import sqlite3
@@ -36,6 +35,9 @@ BASE = ["--sim", "--seed", "11", "--rig", STATIC_LAB]
 # (the first after the run completes, the next two in `resume`s that find the run complete and
 # issue them again).
 MEASURING, EXPORT, REPORT = 5, 1, 3
+# the static lab (data/rig_static_lab.toml, the rig's defaults otherwise) and the sequencer's window
+NOISE_V, TAU_S, SAMPLES, SAMPLE_S, CLAMP_S = 2e-5, 0.5, 10, 10 / 50, 1.0  # sample: NPLC 10 at 50 Hz
+SHORTEST_MOVE_S = 90 / 20 + 20 / 40  # four-mount-64's points are 90° apart on one table at least
 
 
 def db_state(db: Path) -> tuple[int, int, str | None]:
@@ -122,23 +124,34 @@ def test_sigkill_in_every_phase_then_resume_leaves_one_consistent_run(tmp_path):
         assert con.execute("SELECT count(*) FROM certificates").fetchone()[0] == 1
 
     # Readings: what an uninterrupted run measured. What remains is physical: after a resume the
-    # tables reach the next point from the load position, not from its predecessor, so the sensor's
-    # output filter enters that one point from another history. The sequencer starts its window
-    # when the transient's bias on the window mean is at most sigma/sqrt(N) (run/settle.py), so that
-    # point may differ by up to the two runs' biases, about 2 S_E. Every other point is the same
-    # reading (the simulator's noise is drawn per point, and the clock runs on across resumes) but for
-    # what is left of that first point's long move in the next ones' windows: the sequencer sizes a
-    # dead time by the transient its own move leaves, not by the remnant of the one before. Over 50
-    # soaks that remnant was at most 1e-6 S_E (point 46, eight points after a resume at 38); 1e-4 S_E
-    # is allowed, a ten-thousandth of the fit's residual SE.
+    # tables reach the next point from the check attitude, not from its predecessor, so the sensor's
+    # output filter enters that one point from another history. The sequencer starts a window when
+    # the transient every move since the last window left biases its mean by at most sigma/sqrt(N)
+    # (run/settle.py, run/motion.transient_after), in the nominal gravity it sizes by; so the two
+    # runs' readings of that point differ by at most 2 sigma/sqrt(N), but where the nominal gravity
+    # does not see a move (a roll move at pitch ±90°) and the device's and the instrument's
+    # misalignments (0.01°-0.2°) do: there a window of the uninterrupted run may carry up to
+    # 3 sigma/sqrt(N) (2.9 measured over a 64-point run), so 4 sigma/sqrt(N) is allowed (the bound
+    # was 2 S_E, ten times more).
+    # Every other point is the same reading (the simulator's noise is drawn per point, the windings
+    # are planned for the whole run, the simulated tables resume where they were left, and the clock
+    # runs on across resumes) but for what that first point's history leaves in the next windows. The
+    # two runs then see the same inputs, so the outputs' difference only fades: from at most
+    # 4 sigma/sqrt(N) on the first point's window mean to, on the next one's, that times
+    # e^{-(N dt + clamp + move)/tau} (its own window, the clamp, and the shortest move between two
+    # points of the plan, 90° at 20°/s and 40°/s²: 5 s), 2.8e-12 V; the readings' rounding (1e-15 V)
+    # is far below it. (Before the windings were planned, a resumed rig's tables turned from 0° where
+    # the uninterrupted one's had wound turns away, and its trigonometry rounded otherwise: 1e-6 S_E.)
     soaked, whole = readings(run_dir / "readings.csv"), readings(tmp_path / "ref" / "readings.csv")
     assert soaked.shape == whole.shape == (POINTS, 4)
-    s_e = np.array(json.loads((tmp_path / "ref" / "fit.json").read_text())["residual_standard_error"])
-    differ = np.abs(soaked[:, :3] - whole[:, :3]) / s_e
+    criterion_v = NOISE_V / np.sqrt(SAMPLES)
     starts = [int(k.split(":")[1]) for k in kills if k.startswith(("prompt", "measuring"))]  # committed
+    first = np.abs(soaked[starts, :3] - whole[starts, :3])
+    assert first.max() <= 4 * criterion_v, (first / criterion_v, starts, landed)
     others = np.setdiff1d(np.arange(POINTS), starts)
-    assert differ[others].max() < 1e-4, (others[np.argmax(differ[others].max(axis=1))], landed)
-    assert differ.max() < 2.0, (differ.max(), landed)
+    left = 4 * criterion_v * np.exp(-(SAMPLES * SAMPLE_S + CLAMP_S + SHORTEST_MOVE_S) / TAU_S)
+    differ = np.abs(soaked[others, :3] - whole[others, :3])
+    assert differ.max() <= left, (others[np.argmax(differ.max(axis=1))], differ.max(), left, landed)
     assert np.all(np.diff(soaked[:, 3]) > 0)  # one clock: time_s never goes back across resumes
 
     # Every export is the journal's, and the certificate, report and history entry agree.

@@ -124,11 +124,11 @@ class Bench:
             return AzAxis(name, self._link(s, ModbusLink, lambda: modbus_link(s)), s.unit, self.clock,
                           steps_per_degree=s.steps_per_degree, speed_dps=s.speed_dps, accel_dps2=s.accel_dps2,
                           wrap=s.wrap, limits_deg=s.limits_deg, tolerance_arcsec=s.in_position_arcsec,
-                          poll_s=s.poll_s)
+                          poll_s=s.poll_s, cable_wrap_deg=s.wrap_deg)
         return Smc100Axis(name, self._link(s, LineTransport, lambda: line_transport(s, SMC_EOL)), s.address,
                           self.clock, speed_dps=s.speed_dps, accel_dps2=s.accel_dps2,
                           home_timeout_s=s.home_timeout_s, retries=s.retries, limits_deg=s.limits_deg,
-                          tolerance_arcsec=s.in_position_arcsec, poll_s=s.poll_s)
+                          tolerance_arcsec=s.in_position_arcsec, poll_s=s.poll_s, cable_wrap_deg=s.wrap_deg)
 
     @property
     def axes(self) -> tuple[IndexAxis, IndexAxis]:

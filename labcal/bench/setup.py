@@ -41,8 +41,9 @@ class StationSetup:
 
 
 def sim_station(rig_file: str | None, seed: int | None, snapshot: str | None = None,
-                start_time_s: float = 0.0) -> StationSetup:
-    """The simulated rig, from a rig file or from a journal snapshot (resume)."""
+                start_time_s: float = 0.0, tables_at: tuple[float, float] | None = None) -> StationSetup:
+    """The simulated rig, from a rig file or from a journal snapshot (resume); ``tables_at``: where
+    a resumed run's tables were left, accumulated from home (`labcal.run.winding.left_at`)."""
     from labcal.config.emulation import RigConfig, load_rig_config
     from labcal.config.files import validate_model
     from labcal.run.estimate import Timing
@@ -55,6 +56,9 @@ def sim_station(rig_file: str | None, seed: int | None, snapshot: str | None = N
     else:
         config = load_rig_config(rig_file) if rig_file else RigConfig()
     rig = SimRig(config, seed=seed, clock=VirtualClock(start_time_s))
+    if tables_at is not None:
+        rig.pitch.place(tables_at[0])
+        rig.roll.place(tables_at[1])
     truth = {"coefficients": rig.instrument.X.tolist(),
              "misalignment_deg": rig.misalignment.degrees(), "seed": rig.seed}
     text = json.dumps({"kind": "simulated rig", "seed": rig.seed, "rig": config.model_dump()}, sort_keys=True)
@@ -73,7 +77,8 @@ def known_settle(inst: InstrumentTruth) -> SettleSettings:
 
 def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emulate: bool = False,
                      time_scale: float | None = None, seed: int | None = None,
-                     start_time_s: float = 0.0) -> tuple[StationSetup, Bench]:
+                     start_time_s: float = 0.0, tables_at: tuple[float, float] | None = None
+                     ) -> tuple[StationSetup, Bench]:
     """A station file's devices through the real drivers (on the emulators it points at with
     ``emulate``, started here and stopped with ``stack``). The journal keeps the file, so that a
     resume can rebuild the same station, or check that a new file describes the same bench."""
@@ -94,6 +99,9 @@ def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emul
         emulation = stack.enter_context(Emulation(config, time_scale=time_scale, seed=seed,
                                                   start_s=start_time_s))
         rig = emulation.rig.rig
+        if tables_at is not None:  # a resumed run: the emulated tables are where it left them
+            rig.pitch.place(tables_at[0])
+            rig.roll.place(tables_at[1])
         snapshot.update(time_scale=emulation.time_scale, seed=rig.seed)
         timing = Timing(clamp_s=rig.config.clamp_s, sample_s=sweep_s, remount_s=0.0)
         pooling = config.sequencer.settle.model_dump(include={"pool", "instrument_type"})
@@ -138,7 +146,8 @@ def read_snapshot(text: str, run_name: str, started_with: str) -> StationSnapsho
 
 
 def station_for_resume(snapshot: StationSnapshot, run_name: str, stack: ExitStack, start_time_s: float,
-                       new: tuple[StationFile, str] | None = None) -> tuple[StationSetup, Bench]:
+                       new: tuple[StationFile, str] | None = None,
+                       tables_at: tuple[float, float] | None = None) -> tuple[StationSetup, Bench]:
     """The station a journaled run goes on with: the one it started on, or ``new`` (a station
     file and its name) when that describes the same bench on other links; emulators restarted."""
     config, source = snapshot.config, "the journaled station"
@@ -150,7 +159,7 @@ def station_for_resume(snapshot: StationSnapshot, run_name: str, stack: ExitStac
                               "resumed run may change only links, timeouts and retries: correct the file, or "
                               "omit --station to resume on the run's own station")
     return hardware_station(config, source, stack, emulate=snapshot.emulate, time_scale=snapshot.time_scale,
-                            seed=snapshot.seed, start_time_s=start_time_s)
+                            seed=snapshot.seed, start_time_s=start_time_s, tables_at=tables_at)
 
 
 def prepare(bench: Bench, station: Station, say: Callable[[str], None]) -> None:

@@ -219,8 +219,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         if args.dry_run:
             print_estimate(plan, est, args.json)
             return 0
-        if bench is not None:  # the limits first: homing moves a table too
-            check_limits(setup.station, steps)
+        check_limits(setup.station, steps, settings.check_mount)  # first: homing moves a table too
+        if bench is not None:
             prepare(bench, setup.station, err.print)
             setup.metadata["device_identity"] = bench.identities  # the manifest's metadata and run.json
         operator = make_operator(args)
@@ -266,6 +266,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
     from labcal.run.journal import sha256
     from labcal.run.runner import execute, open_for_resume
     from labcal.run.sequencer import check_limits, schedule
+    from labcal.run.winding import left_at
 
     run_dir = Path(args.run)
     ctx = open_for_resume(run_dir)
@@ -294,14 +295,16 @@ def cmd_resume(args: argparse.Namespace) -> int:
             station_record = {"station_file": args.station, "station_sha256": sha256(new_text),
                               "station_text": new_text}
         bench = None
+        tables_at = left_at(ctx.journal.events(ctx.run_id))  # a simulated rig's tables stayed there too
         if snapshot is None:
             ctx.journal.relax()  # a dry run: as when it started
-            setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start)
+            setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start,
+                                tables_at=tables_at)
             certificate = CertificateSettings()
         else:
             lock_station(stack, new_station[0] if new_station else snapshot.config, args.station or run_name,
                          ctx.journal.path)
-            setup, bench = station_for_resume(snapshot, run_name, stack, start, new_station)
+            setup, bench = station_for_resume(snapshot, run_name, stack, start, new_station, tables_at)
             certificate = (new_station[0] if new_station else snapshot.config).certificate
         steps = schedule(ctx.plan, ctx.settings)
         est = estimate(ctx.plan, ctx.settings, setup.timing, steps)

@@ -135,6 +135,9 @@ class RigConfig(BaseModel):
                               "which the DMM's input resistance loads (a servo-accelerometer's output "
                               "resistor, ~5 kΩ)")
     remount_s: float = Field(default=300.0, ge=0, description="operator time for one remount")
+    slip_rings: bool = Field(default=False, description="--sim: the tables may turn without bound")
+    cable_wrap_deg: float = Field(default=360.0, gt=0, le=36000, description="--sim: each table's "
+                                  "accumulated rotation from home stays within ± this (a station's default)")
     lab_temp_c: float = 21.0
     lab_temp_swing_c: float = Field(default=0.3, ge=0)
     lab_temp_period_h: float = Field(default=6.0, gt=0)

@@ -21,6 +21,7 @@ from labcal.errors import LabcalError
 
 # The 34970A's settable integration times (power-line cycles) and DC volts ranges: others are
 # answered with error -222 (34970A/34972A User's Guide, DC voltage measurements).
+DEFAULT_CABLE_WRAP_DEG = 360.0  # a table without slip rings: a turn either way from home (issue 22)
 NPLC_VALUES = (0.02, 0.2, 1.0, 2.0, 10.0, 20.0, 100.0, 200.0)
 RANGES_V = (0.1, 1.0, 10.0, 100.0, 300.0)
 
@@ -83,6 +84,11 @@ class AxisSettings(LinkSettings):
         default=None, description="soft limits [low, high] in the table's own degrees; none: free to wrap")
     in_position_arcsec: float = Field(default=5.0, gt=0, le=36000, description="read-back tolerance")
     poll_s: float = Field(default=0.05, gt=0, le=10, description="status polling interval while moving")
+    slip_ring: bool = Field(default=False, description="the table's cables pass through slip rings: it may "
+                            "turn without bound")
+    cable_wrap_deg: float | None = Field(default=None, gt=0, le=36000, allow_inf_nan=False, description=(
+        f"the table's accumulated rotation from home stays within ± this (default {DEFAULT_CABLE_WRAP_DEG:g} "
+        "without slip_ring)"))
 
     @field_validator("limits_deg")
     @classmethod
@@ -90,6 +96,20 @@ class AxisSettings(LinkSettings):
         if limits is not None and not limits[0] < limits[1]:
             raise ValueError("limits_deg must be [low, high] with low < high")
         return limits
+
+    @model_validator(mode="after")
+    def _cables(self):
+        if self.slip_ring and self.cable_wrap_deg is not None:
+            raise ValueError("a table on slip rings has no cable wrap: give slip_ring = true or "
+                             "cable_wrap_deg, not both")
+        return self
+
+    @property
+    def wrap_deg(self) -> float | None:
+        """How far from home the table's cables let it turn, either way; None: slip rings."""
+        if self.slip_ring:
+            return None
+        return DEFAULT_CABLE_WRAP_DEG if self.cable_wrap_deg is None else self.cable_wrap_deg
 
 
 class AzSettings(AxisSettings):

@@ -50,6 +50,7 @@ from labcal.documents.simulated import NOTICE as SIMULATED_NOTICE
 from labcal.documents.uncertainty import budget, stated_U95_arcsec
 from labcal.errors import LabcalError
 from labcal.run.record import RunRecord
+from labcal.run.winding import MOVE_EVENT
 
 SIMULATED_SERIAL = "SIMULATED"  # a dry run's instrument is the simulator's, whatever the seed
 
@@ -223,12 +224,15 @@ STORY_EVENTS = 200  # a day-long run with many remounts stays readable; the jour
 
 
 def _story(record: RunRecord) -> RunStory:
-    kinds = [e["kind"] for e in record.events]
-    listed = record.events[:STORY_EVENTS]
+    """The journal's story: what happened to the run. The tables' moves (journaled, each before it
+    starts, for the cables' winding) are the run's routine, not its story."""
+    events = [e for e in record.events if e["kind"] != MOVE_EVENT]
+    kinds = [e["kind"] for e in events]
+    listed = events[:STORY_EVENTS]
     return RunStory(counts={k: kinds.count(k) for k in dict.fromkeys(kinds)},
                     events=[JournalEvent(utc=e["utc"], station_time_s=e["station_time"], kind=e["kind"],
                                          message=e["message"]) for e in listed],
-                    omitted=len(record.events) - len(listed))
+                    omitted=len(events) - len(listed))
 
 
 METHOD = ("Linear model V = B + gᵀS fitted per sensor by least squares on the nominal gravity of each "

@@ -10,12 +10,16 @@ form gives the angle by which the output trails each table when the motion ends:
     decelerating (v = V − a·t): L → a·τ² + (L − V·τ − a·τ²)·e^{−t/τ}
 
 After a full-speed move the lag left at the stop is a·τ²·(1 − e^{−V/(aτ)}), not the whole step:
-the dead time is sized by it (`labcal.run.settle`), and counted from the end of the motion.
+the dead time is sized by it (`labcal.run.settle`), and counted from the end of the motion. What
+an earlier move left is still there, faded, when the next one begins (a resumed run's move to the
+load position, the mount confirmed at once, then a short move to its first point): `transient_after`
+integrates the output along every move since the last window.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -50,9 +54,12 @@ def shortest_way(a: ArrayLike, b: ArrayLike) -> NDArray:
     return (np.asarray(b, dtype=float) - np.asarray(a, dtype=float) + 180.0) % 360.0 - 180.0
 
 
-def move_time(a: ArrayLike, b: ArrayLike, speed: float, accel: float) -> NDArray:
-    """Time to go from attitude(s) a to b (…×2 degrees) with both tables moving together."""
-    return np.max(trapezoid_duration(shortest_way(a, b), speed, accel), axis=-1)
+def move_time(a: ArrayLike, b: ArrayLike, speed: float, accel: float, unwrapped: bool = False) -> NDArray:
+    """Time to go from attitude(s) a to b (…×2 degrees) with both tables moving together: the
+    shortest way round, or straight from a to b when they are ``unwrapped`` (accumulated angles,
+    the way round chosen for the tables' cables)."""
+    travel = np.asarray(b, dtype=float) - np.asarray(a, dtype=float) if unwrapped else shortest_way(a, b)
+    return np.max(trapezoid_duration(travel, speed, accel), axis=-1)
 
 
 def trapezoid_lag(distance: ArrayLike, speed: float, accel: float, tau: float) -> NDArray:
@@ -69,27 +76,54 @@ def trapezoid_lag(distance: ArrayLike, speed: float, accel: float, tau: float) -
     return np.sign(np.asarray(distance, dtype=float)) * np.where(d > 0, lag, 0.0)
 
 
-def transient_left(a: tuple[float, float], b: tuple[float, float], mount: Mount, speed: float,
-                   accel: float, tau: float, steps_per_tau: int = 50) -> float:
+Move = tuple[tuple[float, float], tuple[float, float], float]  # (from, to) accumulated degrees, start time s
+
+
+def transient_after(moves: Sequence[Move], mount: Mount, speed: float, accel: float, tau: float,
+                    steps_per_tau: int = 50) -> float:
     """Largest |output − settled output| over the three sensors, in g, when both tables have
-    stopped after the move a → b on ``mount``: nominal gravity along both trapezoids, through the
-    first-order lag integrated in steps of τ/50 (exact for an input held over each step; the
-    midpoint rule's error is ~1e-4 relative), starting settled. What the dead time is sized by."""
-    travel = shortest_way(a, b)
-    motion = float(np.max(trapezoid_duration(travel, speed, accel)))
+    stopped after ``moves`` on ``mount``: each (from, to, start time), the tables going straight
+    from one accumulated angle to the other, still between moves (the output fading towards the
+    gravity there). The output starts settled at the first move's start: what the dead time after
+    the last move is sized by, every move since the last measured window counted (a resumed run's
+    long move to the load position, a long move's legs), not the last one alone. Nominal gravity
+    along the trapezoids, through the first-order lag integrated in steps of τ/50 (exact for an
+    input held over each step; the midpoint rule's error is ~1e-4 relative)."""
     y, u = mount.radians
-    start, end = np.radians(a), np.radians(b)
-    if motion == 0:
+    output: NDArray | None = None
+    end = np.zeros(2)
+    still_since = 0.0
+    for a, b, t_start in moves:
+        start, end = np.radians(a), np.radians(b)
+        here = nominal_gravity(start[0], start[1], y, u)
+        if output is None:
+            output = here
+        else:  # still at a since the last move ended
+            output = here + (output - here) * math.exp(-max(t_start - still_since, 0.0) / tau)
+        travel = np.asarray(b, dtype=float) - np.asarray(a, dtype=float)
+        motion = float(np.max(trapezoid_duration(travel, speed, accel)))
+        still_since = t_start + motion
+        if motion == 0:
+            continue
+        n = math.ceil(motion * steps_per_tau / tau)
+        mids = (np.arange(n) + 0.5) * (motion / n)
+        pitch = start[0] + np.radians(trapezoid_travel(mids, float(travel[0]), speed, accel))
+        roll = start[1] + np.radians(trapezoid_travel(mids, float(travel[1]), speed, accel))
+        fade = math.exp(-motion / n / tau)
+        weights = (1 - fade) * fade ** np.arange(n - 1, -1, -1)  # x ← g + (x − g)·fade, step by step
+        output = output * fade**n + weights @ nominal_gravity(pitch, roll, y, u)
+    if output is None:
         return 0.0
-    n = math.ceil(motion * steps_per_tau / tau)
-    mids = (np.arange(n) + 0.5) * (motion / n)
-    pitch = start[0] + np.radians(trapezoid_travel(mids, float(travel[0]), speed, accel))
-    roll = start[1] + np.radians(trapezoid_travel(mids, float(travel[1]), speed, accel))
-    fade = math.exp(-motion / n / tau)
-    weights = (1 - fade) * fade ** np.arange(n - 1, -1, -1)  # x ← g + (x − g)·fade, step by step
-    along = nominal_gravity(pitch, roll, y, u)
-    output = nominal_gravity(start[0], start[1], y, u) * fade**n + weights @ along
     return float(np.max(np.abs(output - nominal_gravity(end[0], end[1], y, u))))
+
+
+def transient_left(a: tuple[float, float], b: tuple[float, float], mount: Mount, speed: float,
+                   accel: float, tau: float, steps_per_tau: int = 50, unwrapped: bool = False) -> float:
+    """`transient_after` one move a → b from rest, settled: the shortest way round, or straight
+    from a to b when they are ``unwrapped`` (accumulated angles)."""
+    travel = np.asarray(b, dtype=float) - np.asarray(a, dtype=float) if unwrapped else shortest_way(a, b)
+    to = (float(a[0] + travel[0]), float(a[1] + travel[1]))
+    return transient_after([(a, to, 0.0)], mount, speed, accel, tau, steps_per_tau)
 
 
 def transient_at_stop(a: ArrayLike, b: ArrayLike, mount: Mount, speed: float, accel: float,

@@ -22,12 +22,15 @@ from labcal.errors import LabcalError
 from labcal.run import settle_pool
 from labcal.run.interrupts import Interrupts
 from labcal.run.journal import Journal, PointRecord
-from labcal.run.motion import move_time, transient_at_stop, transient_left
+from labcal.run.motion import Move, move_time, transient_after, transient_at_stop
 from labcal.run.mounting import CHECK_ATTITUDE, identify
 from labcal.run.operator import Operator, OperatorDeclined
 from labcal.run.ordering import order_points
 from labcal.run.settle import Dwell, TailPool, dead_time, dwell, dwell_model
 from labcal.run.station import Station, StopFailed, mean_and_sd
+from labcal.run.winding import MOVE_EVENT, last_move, locate, plan_windings
+
+Winding = tuple[float, float]  # each table's accumulated rotation from home, degrees (pitch, roll)
 
 LOAD_POSITION = (0.0, 0.0)  # tables level while the operator remounts
 log = logging.getLogger(__name__)
@@ -105,8 +108,9 @@ class RunOutcome:
     station_time_s: float
 
 
-def check_limits(station: Station, steps: list[Step]) -> None:
-    """Every angle the run will visit, against each table's limits, before anything moves."""
+def check_limits(station: Station, steps: list[Step], check_mount: bool = True) -> dict[int, Winding]:
+    """Every angle the run will visit, against each table's limits and cable wrap, before anything
+    moves; returns each step's winding, planned for the whole run (`labcal.run.winding`)."""
     angles = {
         station.pitch: [s.pitch_deg for s in steps] + [LOAD_POSITION[0], CHECK_ATTITUDE[0]],
         station.roll: [s.roll_deg for s in steps] + [LOAD_POSITION[1], CHECK_ATTITUDE[1]],
@@ -120,15 +124,33 @@ def check_limits(station: Station, steps: list[Step]) -> None:
                 check(angle)
             except LabcalError as exc:
                 raise LabcalError(f"plan refused before any motion: {axis.name} {exc}") from None
+    return planned_windings(station, steps, check_mount)
+
+
+def planned_windings(station: Station, steps: list[Step], check_mount: bool = True) -> dict[int, Winding]:
+    """Each step's winding in the uninterrupted run: every move (a mount's load position and check
+    attitude included) to the equivalent nearest where the tables are, from home. A resumed run
+    goes to the same windings, so it makes the same moves as the uninterrupted one."""
+    targets: list[tuple[float, float]] = []
+    index: dict[int, int] = {}
+    for step in steps:
+        if step.block_start:
+            targets += [LOAD_POSITION, CHECK_ATTITUDE] if check_mount else [LOAD_POSITION]
+        index[step.seq] = len(targets)
+        targets.append((step.pitch_deg, step.roll_deg))
+    windings = plan_windings(targets, (station.pitch.reach, station.roll.reach))
+    return {seq: windings[i] for seq, i in index.items()}
 
 
 def move_both(station: Station, pitch: float, roll: float, settings: SequencerSettings,
-              critical=nullcontext) -> tuple[float, float]:
-    """Start both tables (inside ``critical()``: a command is never cut in half), wait for both,
-    and verify the read-back positions."""
+              critical=nullcontext, travel: tuple[float, float] | None = None) -> tuple[float, float]:
+    """Start both tables (inside ``critical()``: a command is never cut in half), each turning by
+    its ``travel`` (the way round its cable wrap chose; None: the shortest), wait for both, and
+    verify the read-back positions."""
+    turn_pitch, turn_roll = travel or (None, None)
     with critical():
-        station.pitch.move_to(pitch)
-        station.roll.move_to(roll)
+        station.pitch.move_to(pitch, travel_deg=turn_pitch)
+        station.roll.move_to(roll, travel_deg=turn_roll)
     return (_in_position(station.pitch, pitch, settings.move_timeout_s, settings.position_tolerance_deg),
             _in_position(station.roll, roll, settings.move_timeout_s, settings.position_tolerance_deg))
 
@@ -157,32 +179,73 @@ class Sequencer:
     offset_s: float = 0.0  # rig time since the run began when this segment starts (0 unless resumed)
     _t0: float = 0.0
     moving: tuple[str, ...] = ()  # tables whose last stop failed: they may still be moving
-    _at: tuple[float, float] | None = None  # where the last move went; None: unknown, read it
+    _at: Winding | None = None  # where the last move went (accumulated from home); None: unknown, locate it
+    _windings: dict[int, Winding] = field(default_factory=dict)  # each step's, planned for the run
     _last_move: tuple[tuple[float, float], tuple[float, float], float] = ((0.0, 0.0), (0.0, 0.0), 0.0)
+    _moves: list[Move] = field(default_factory=list)  # since the last window: what the transient is
     _sample_s: float = 0.0  # the voltmeter's time per sample, once measured
     _tail: TailPool | None = None  # model settling: the instrument's tail, pooled over its runs' points
     _pool_key: settle_pool.PoolKey | None = None  # where to keep _tail when the segment ends
 
     # --- motion ----------------------------------------------------------------------------------
-    def move(self, pitch: float, roll: float) -> tuple[float, float]:
-        """Move both tables and remember where from and when the motion ended: the tables' own
-        profile from the move's start, or the in-position time if that came first."""
-        start = self._at or (self.station.pitch.position(), self.station.roll.position())
+    def move(self, pitch: float, roll: float, winding: Winding | None = None) -> tuple[float, float]:
+        """Move both tables to ``winding`` (each table's accumulated rotation from home; by default
+        the equivalents of the angles nearest where they are, within their reach), journaling the
+        move before it starts, and remember where from and when the motion ended: the tables' own
+        profile from the move's start, or the in-position time if that came first. A table a turn
+        or more from its winding gets there by way of the midpoint: no leg is a turn or more."""
+        start = self._at
+        if start is None:
+            start = self.locate()
+            if self._moves:  # a stop caught the last move part way: it ended where the tables are
+                self._moves[-1] = (self._moves[-1][0], start, self._moves[-1][2])
+        if winding is None:
+            found = [axis.reach.nearest(angle, here) for axis, angle, here
+                     in ((self.station.pitch, pitch, start[0]), (self.station.roll, roll, start[1]))]
+            if found[0] is None or found[1] is None:  # the plan was checked: only a stray angle gets here
+                raise LabcalError(f"pitch {pitch:g}°, roll {roll:g}° is beyond the tables' cable wrap or "
+                                  "limits")
+            winding = (found[0], found[1])
         self._at = None
+        legs = [winding]
+        if max(abs(winding[0] - start[0]), abs(winding[1] - start[1])) >= 360.0 - 1e-6:
+            legs.insert(0, ((start[0] + winding[0]) / 2, (start[1] + winding[1]) / 2))
         clock = self.station.clock
-        t_start = clock.now()
-        read = move_both(self.station, pitch, roll, self.settings, self.interrupts.critical)
-        travel = float(move_time(np.array(start), np.array((pitch, roll)),
-                                 self.settings.speed_dps, self.settings.accel_dps2))
-        self._at = (pitch, roll)
-        self._last_move = (start, (pitch, roll), min(t_start + travel, clock.now()))
+        for leg in legs:
+            self.event(MOVE_EVENT, f"pitch {start[0]:g}° → {leg[0]:g}°, roll {start[1]:g}° → {leg[1]:g}° "
+                       "(accumulated from home)", pitch=[start[0], leg[0]], roll=[start[1], leg[1]])
+            t_start = clock.now()
+            read = move_both(self.station, leg[0] % 360.0, leg[1] % 360.0, self.settings,
+                             self.interrupts.critical, (leg[0] - start[0], leg[1] - start[1]))
+            travel = float(move_time(np.array(start), np.array(leg), self.settings.speed_dps,
+                                     self.settings.accel_dps2, unwrapped=True))
+            self._last_move = (start, leg, min(t_start + travel, clock.now()))
+            self._moves.append((start, leg, t_start))
+            start = leg
+        self._at = winding
         return read
 
+    def locate(self) -> Winding:
+        """Where the tables are, in accumulated degrees from home: as a device that counts turns says
+        (homing it unwound its cables), else its position read back placed on the last move the
+        journal has (`labcal.run.winding.locate`)."""
+        last = last_move(self.journal.events(self.run_id))
+        found = []
+        for i, axis in enumerate((self.station.pitch, self.station.roll)):
+            counted = axis.winding()
+            found.append(counted if counted is not None else
+                         locate(axis.position(), last and last[i], axis.reach))
+        return found[0], found[1]
+
     def measure(self, mount: Mount, key: str) -> Dwell:
-        """Settle after the last move (sized by the transient it left) and take the window."""
-        s, (start, target, motion_end) = self.settings.settle, self._last_move
-        lag_g = transient_left(start, target, mount, self.settings.speed_dps, self.settings.accel_dps2,
-                               s.tau_s)
+        """Settle after the last move and take the window. The dead time is sized by the transient
+        the tables' moves since the last window left (from where each really began: after a resume
+        the move to the load position too, if the output had no time to settle since), not by the
+        last move's alone; once the window is taken, the output is settled to its criterion."""
+        s, (_, _, motion_end) = self.settings.settle, self._last_move
+        lag_g = transient_after(self._moves, mount, self.settings.speed_dps, self.settings.accel_dps2,
+                                s.tau_s)
+        self._moves = []
         self.station.at_point(key)
         with self.interrupts.critical():
             if s.mode == "model" and s.fixed_dwell_s is None:
@@ -272,7 +335,7 @@ class Sequencer:
     def run(self, steps: list[Step], committed: set[int], provisional=lambda: None) -> RunOutcome:
         """Measure every step not yet committed. ``provisional()`` returns an X from the points so
         far (or None) for the mount check."""
-        check_limits(self.station, steps)
+        self._windings = check_limits(self.station, steps, self.settings.check_mount)
         self._t0 = self.station.clock.now() - self.offset_s  # one clock per run, across resumes
         todo = [s for s in steps if s.seq not in committed]
         blocks = [s for s in steps if s.block_start]
@@ -338,7 +401,7 @@ class Sequencer:
 
     def point(self, step: Step) -> int:
         """Measure one step (retrying once if it does not settle) and commit it; 1 if it failed."""
-        pitch_read, roll_read = self.move(step.pitch_deg, step.roll_deg)
+        pitch_read, roll_read = self.move(step.pitch_deg, step.roll_deg, self._windings.get(step.seq))
         for attempt in (1, 2):
             t_start = self.station.clock.now() - self._t0
             result = self.measure(step.mount, f"{step.seq}:{attempt}")

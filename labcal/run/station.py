@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from labcal.analysis.kinematics import Mount
 from labcal.errors import LabcalError
+from labcal.run.winding import Reach
 
 CriticalSection = Callable[[], AbstractContextManager[None]]
 """A section a stop must not cut in half (the run's Ctrl-C handler defers a stop to its end)."""
@@ -26,15 +27,22 @@ class RotaryAxis(Protocol):
     """One index table."""
 
     name: str
+    reach: Reach  # the accumulated rotation from home it may have: its cable wrap and soft limits
 
-    def move_to(self, angle_deg: float) -> None:
-        """Start a move to an absolute angle (shortest way round); returns at once."""
+    def move_to(self, angle_deg: float, *, travel_deg: float | None = None) -> None:
+        """Start a move to an absolute angle; returns at once. ``travel_deg``: the signed turn the
+        caller chose for it (`labcal.run.winding`: which way round its cables allow); None: the
+        shortest way round within the reach."""
 
     def wait_in_position(self, timeout_s: float) -> float:
         """Block until the table is in position and clamped; return the position read back (deg)."""
 
     def position(self) -> float:
         """Present position in degrees, 0..360."""
+
+    def winding(self) -> float | None:
+        """Its accumulated rotation from home, where the device counts turns (None where it does
+        not: then the journal's moves say which turn it is on, `labcal.run.winding.locate`)."""
 
     def stop(self) -> None:
         """Stop at once. Must always reach the device."""
