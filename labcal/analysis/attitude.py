@@ -37,8 +37,31 @@ class Calibration:
 
     @property
     def s_inv(self) -> NDArray[np.float64]:
+        defect = sensitivity_defect(self.X)
+        if defect:  # every reader checks first, naming its file; this is the last word, not a traceback
+            raise LabcalError(defect)
         # numpy's stubs type inv() as floating[Any]; the inverse of a float64 matrix is float64
         return cast("NDArray[np.float64]", np.linalg.inv(self.X[1:]))
+
+
+SINGULAR_CONDITION = 1e8  # an accelerometer triad's S is near orthogonal (condition ~1); 1e8 is no triad
+
+
+def sensitivity_defect(X: NDArray[np.float64]) -> str | None:
+    """Why the sensitivity matrix S (rows 1–3 of X) cannot turn voltages into g, or None.
+
+    S is singular when the voltages do not follow gravity in three independent directions:
+    identical voltages on every row (a dead or disconnected meter), a constant channel, or two
+    inputs wired to one sensor. Judged by S's condition number, which no unit or gain changes."""
+    S = np.asarray(X, float)[1:]
+    if not np.all(np.isfinite(S)):
+        return "the sensitivity matrix S is not finite; it cannot turn voltages into g"
+    singular_values = np.linalg.svd(S, compute_uv=False)
+    if not singular_values[-1] > singular_values[0] / SINGULAR_CONDITION:
+        return ("the sensitivity matrix S is singular (the voltages do not follow gravity in three "
+                "independent directions: a constant channel, identical readings, or two channels on one "
+                "sensor); check the wiring and the columns vx, vy, vz")
+    return None
 
 
 MAX_COEFFICIENT = 1e6  # V and V/g: a million volts is no accelerometer's bias or sensitivity
@@ -71,7 +94,7 @@ def calibration_from_json(doc: dict[str, Any], path: str | Path) -> Calibration:
             or np.max(np.abs(sd)) > MAX_COEFFICIENT:
         raise LabcalError(f"{path}: field coefficients (or their uncertainties) exceeds {MAX_COEFFICIENT:g} "
                           "V in magnitude; not an instrument's calibration")
-    if abs(np.linalg.det(X[1:])) < 1e-12:
+    if sensitivity_defect(X):
         raise LabcalError(f"{path}: the sensitivity matrix S is singular; it cannot turn voltages into g")
     return Calibration(X, cov, sd, dof)
 

@@ -36,13 +36,15 @@ def cmd_attitude(args: argparse.Namespace) -> int:
 
     from labcal.analysis import attitude
     from labcal.config.readings_csv import read_numeric_csv
+    from labcal.config.streams import read_stream
     from labcal.documents.certificate import load_calibration
 
     cal = load_calibration(args.cert)
     source = args.csv
-    if source is None:  # voltages on standard input
+    if source is None:  # voltages on standard input (never a device: /dev/zero would fill memory)
+        text = read_stream(sys.stdin, "standard input", "voltages")
         with tempfile.NamedTemporaryFile("w", suffix=".csv", delete=False) as tmp:
-            tmp.write(sys.stdin.read())
+            tmp.write(text)
         source = tmp.name
     try:
         cols = read_numeric_csv(source, "voltages", ("vx", "vy", "vz"))

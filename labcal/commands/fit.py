@@ -33,6 +33,16 @@ def parse_at(text: str) -> tuple[float, float, float, float]:
     return pitch, roll, y, u
 
 
+def singular_sensitivity(X, source: str) -> None:
+    """Refuse, naming the readings file, a fit whose S cannot turn voltages into g: every check and
+    estimate after it inverts S."""
+    from labcal.analysis.attitude import sensitivity_defect
+
+    defect = sensitivity_defect(X)
+    if defect:
+        raise LabcalError(f"{source}: {defect}")
+
+
 def choose_model(args: argparse.Namespace, readings) -> tuple[str, str | None]:
     """The model to fit and, when it was chosen for the user, the one line saying why."""
     from labcal.analysis.device_fit import default_model
@@ -65,16 +75,18 @@ def cmd_fit(args: argparse.Namespace) -> int:
     implausible_volts(readings.volts)
     model, chosen = choose_model(args, readings)
     checked = None  # (the linear fit, its gross-error flags), computed once for the choice and the device fit
-    if model == "device" and args.model is None:
+    if model == "device":
         linear = fit_readings(readings)
+        singular_sensitivity(linear.coefficients, args.readings)
         checked = linear, fit_flags(readings, linear)
-        if checked[1]:
+        if checked[1] and args.model is None:
             model, chosen = "linear", ("linear model: some readings fail the gross-error checks (listed "
                                        "below); the device model is fitted only to readings that pass them")
     if model == "device":
         return fit_device_model(args, readings, chosen, checked)
     extend = tuple(e.strip() for e in args.extend.split(",") if e.strip()) if args.extend else ()
     fit = fit_readings(readings, Model(extend, reference_temperature(readings)))
+    singular_sensitivity(fit.coefficients, args.readings)
     doc = coning_json(fit) if model == "coning" else fit.to_json()
     if chosen:
         doc.setdefault("notes", []).insert(0, chosen)

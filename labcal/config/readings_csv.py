@@ -80,8 +80,11 @@ def read_numeric_csv(path: str | Path, kind: str, required: tuple[str, ...], opt
     Every error names the file, the line and the column. ``check(columns, where)`` may validate
     the rows further (see `_check_angles`).
     """
+    from labcal.config.streams import kind_of, read_pipe
+
     path = Path(path)
-    fast = _read_clean(path, required, optional)
+    piped = read_pipe(path, kind) if kind_of(path, kind) == "pipe" else None  # a pipe is read once
+    fast = _read_clean(path, required, optional, piped)
     if fast is not None:
         try:
             if check:
@@ -92,7 +95,7 @@ def read_numeric_csv(path: str | Path, kind: str, required: tuple[str, ...], opt
 
     from labcal.config.files import read_text  # pydantic, which a clean file does not need
 
-    text = read_text(path, kind)
+    text = read_text(path, kind) if piped is None else piped
     if not text.strip():
         raise LabcalError(f"{path}: file is empty; expected a header line {','.join(required)}")
     reader = csv.reader(text.splitlines())
@@ -132,14 +135,15 @@ def read_numeric_csv(path: str | Path, kind: str, required: tuple[str, ...], opt
     return {c: data[:, k] for k, c in enumerate(wanted)}
 
 
-def _read_clean(path: Path, required: tuple[str, ...],
-                optional: tuple[str, ...]) -> dict[str, NDArray] | None:
+def _read_clean(path: Path, required: tuple[str, ...], optional: tuple[str, ...],
+                text: str | None = None) -> dict[str, NDArray] | None:
     """The wanted columns of a clean file by numpy's C parser, or None where it refuses anything
     (a quote, an empty or non-numeric field, a short row, a field too long, bad encoding) or reads
     a value that is not finite: the row-by-row reader then says what and where. The header's last
-    column is parsed too, so that a row shorter than the header is refused as it is row by row."""
+    column is parsed too, so that a row shorter than the header is refused as it is row by row.
+    ``text``: the file's text, already read (from a pipe, which cannot be read twice)."""
     try:
-        with path.open(encoding="utf-8-sig", newline="") as f:
+        with path.open(encoding="utf-8-sig", newline="") if text is None else io.StringIO(text) as f:
             header = [h.strip() for h in next(csv.reader([f.readline()]))]
         if any(c not in header for c in required):
             return None
@@ -147,7 +151,8 @@ def _read_clean(path: Path, required: tuple[str, ...],
         columns = sorted({header.index(c) for c in wanted} | {len(header) - 1})
         with warnings.catch_warnings():  # header only: the row-by-row reader says so in one line
             warnings.simplefilter("ignore", UserWarning)
-            data = np.loadtxt(path, delimiter=",", skiprows=1, usecols=columns, ndmin=2, comments=None,
+            source = path if text is None else io.StringIO(text)
+            data = np.loadtxt(source, delimiter=",", skiprows=1, usecols=columns, ndmin=2, comments=None,
                               encoding="utf-8-sig", quotechar=None)
     except (OSError, ValueError, UnicodeDecodeError, csv.Error, StopIteration):
         return None
