@@ -28,6 +28,7 @@ REQUIRED = ("replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", "vx", "vy", 
 OPTIONAL = ("temp_c",)
 # Written by labcal after the contract's columns: what a metrologist needs to audit a point.
 EXTRA = ("n_samples", "sd_vx", "sd_vy", "sd_vz", "time_s")
+ABSOLUTE_ZERO_C, MAX_TEMP_C = -273.15, 1000.0  # a temperature beyond these is a typo or a broken probe
 MAX_REPLICATE = 1e9  # no lab repeats a plan a billion times; a larger number is a typo (and no int64)
 
 
@@ -55,6 +56,9 @@ def _check_angles(cols: dict[str, NDArray], where) -> None:
     def not_a_replicate(v: NDArray) -> NDArray:
         return (v != np.floor(v)) | (v < 1)
 
+    def not_a_temperature(v: NDArray) -> NDArray:
+        return ~((ABSOLUTE_ZERO_C < v) & (v <= MAX_TEMP_C))
+
     rules = [("y_deg", not_a_mount, "{:g} is not a mount angle (0 or 180)"),
              ("u_deg", not_a_mount, "{:g} is not a mount angle (0 or 180)"),
              ("pitch_deg", out_of_range, "{:g}° is outside -360..360"),
@@ -62,6 +66,10 @@ def _check_angles(cols: dict[str, NDArray], where) -> None:
              ("replicate", not_a_replicate, "{:g} is not a whole number ≥ 1"),
              ("replicate", lambda v: v > MAX_REPLICATE,
               f"{{:g}} is beyond any replicate number (1 to {MAX_REPLICATE:g})")]
+    if "temp_c" in cols:  # 1e308 °C overflowed the temperature terms' products
+        rules.append(("temp_c", not_a_temperature,
+                      f"{{:g}} °C is no temperature a calibration is made at ({ABSOLUTE_ZERO_C:g} < t ≤ "
+                      f"{MAX_TEMP_C:g} °C)"))
     # each rule judges a value alone: judged on a column's few distinct values, a clean million-row
     # file passes in a tenth of the time; a column with a bad value is searched row by row
     distinct = {name: np.unique(cols[name]) for name, _, _ in rules}
