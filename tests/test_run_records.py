@@ -155,3 +155,23 @@ def test_a_fault_in_an_unattended_run_is_its_recorded_cause(tmp_path, capsys, mo
     assert reason.endswith("; paused, and no answer at the prompt (input closed)")
     text = _log_text(capsys, monkeypatch, "1")
     assert "stop: both tables stopped (after roll table (Oriental Motor AZ, unit 2 on" in text
+
+
+# --- 3. the device estimate is the run's ----------------------------------------------------------
+def test_a_run_without_a_report_still_reaches_the_device_history(tmp_path, capsys, monkeypatch):
+    """--no-report skips the certificate, not the device: device.json and the history entry are
+    there, and they are the estimate the run printed (its --json)."""
+    db = tmp_path / "lab.sqlite"
+    code, out, _ = _run(capsys, monkeypatch, "run", "--sim", "--yes", "--no-report", "--json", "--db",
+                        str(db), "--out", str(tmp_path / "run"))
+    assert code == 0
+    printed = json.loads(out)["device"]["misalignments"]
+    assert not (tmp_path / "run" / "certificate.json").exists()
+    device = json.loads((tmp_path / "run" / "device.json").read_text())
+    code, out, _ = _run(capsys, monkeypatch, "device", "history", "SIMULATED", "--db", str(db), "--json")
+    (stored,) = json.loads(out)["estimates"]
+    assert stored["source"] == "run"
+    for name, m in stored["misalignments"].items():
+        assert m["value_arcsec"] == device["misalignments"][name]["value_arcsec"] \
+            == printed[name]["value_arcsec"]
+        assert m["U_arcsec"] == device["misalignments"][name]["U_arcsec"]
