@@ -55,9 +55,13 @@ def cmd_attitude(args: argparse.Namespace) -> int:
     from labcal.analysis.gross_errors import gravity_flags, methods_disagree
 
     methods = list(METHODS) if args.method == "both" else [args.method]
+    # local gravity may differ from the calibration's: the sphere estimator takes |g| as 1 ± its
+    # uncertainty, the gravity check tests only what lies beyond the tolerance
+    estimate = {"closed": lambda: attitude.closed_form(cal, volts),
+                "sphere": lambda: attitude.sphere_least_squares(cal, volts, attitude.LOCAL_GRAVITY_U)}
     with np.errstate(all="ignore"):  # a row of 1e308 V is flagged below, not a page of warnings
-        results = {m: getattr(attitude, METHODS[m])(cal, volts) for m in methods}
-        flags = gravity_flags(cal, volts)
+        results = {m: estimate[m]() for m in methods}
+        flags = gravity_flags(cal, volts, tolerance=attitude.LOCAL_GRAVITY_TOLERANCE)
         if len(methods) == 2:
             flags += methods_disagree(results["closed"], results["sphere"])
     table = {k: v for m in methods for k, v in _columns(results[m], PREFIX[m]).items()}
