@@ -291,16 +291,28 @@ def residual_flags(design: NDArray[np.float64], ls: LeastSquares,
     return flags, limit
 
 
-def implausible_volts(volts: NDArray[np.float64]) -> None:
-    """Refuse readings no voltmeter can have produced: they would make every statistic infinite."""
-    if np.max(volts, initial=-np.inf) <= VOLTS_MAX and np.min(volts, initial=np.inf) >= -VOLTS_MAX:
+# The largest output an instrument can give, per unit: a DMM's highest range for volts; for counts
+# the largest integer a double holds exactly (no converter comes near it); for m/s² 100 000 g.
+OUTPUT_MAX = {"V": VOLTS_MAX, "mV": VOLTS_MAX * 1e3, "counts": 2.0**53, "m/s2": 1e6}
+
+
+def implausible_volts(volts: NDArray[np.float64], units: str = "V") -> None:
+    """Refuse readings no instrument can have produced (they would make every statistic infinite):
+    volts beyond any DMM range, other units beyond their `OUTPUT_MAX`. The volts' message names
+    --units: counts or m/s² read as volts are the usual cause."""
+    limit = OUTPUT_MAX[units]
+    if np.max(volts, initial=-np.inf) <= limit and np.min(volts, initial=np.inf) >= -limit:
         return  # two reductions say so for a clean file (a NaN fails both comparisons)
-    bad = np.flatnonzero(~np.all(np.abs(volts) <= VOLTS_MAX, axis=1))
+    bad = np.flatnonzero(~np.all(np.abs(volts) <= limit, axis=1))
     if len(bad):
         i = bad[0]
         more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
-        raise LabcalError(f"reading {i + 1}: ({', '.join(f'{v:.3g}' for v in volts[i])}) V is beyond any "
-                          f"DMM range (|V| ≤ {VOLTS_MAX:g} V){more}; correct or remove it")
+        values = f"reading {i + 1}: ({', '.join(f'{v:.3g}' for v in volts[i])}) {units}"
+        if units in ("V", "mV"):
+            raise LabcalError(f"{values} is beyond any DMM range (|V| ≤ {VOLTS_MAX:g} V){more}; correct or "
+                              "remove it, or give --units (mV, counts, m/s2) if the outputs are not volts")
+        raise LabcalError(f"{values} is beyond any instrument's output (|x| ≤ {limit:g} {units}){more}; "
+                          "correct or remove it")
 
 
 def calibration_of(fit: Fit) -> Calibration:
