@@ -195,7 +195,7 @@ def test_an_az_emulator_whose_port_is_taken_is_one_line(tmp_path, capsys, no_lea
     assert (f"pitch{', roll' if station == 'az-modbus-tcp' else ''}: cannot serve "
             f"{'tcp' if station == 'az-modbus-tcp' else 'socket://'}" in message)
     assert f"127.0.0.1:{held} (Address already in use); is another emulator" in message
-    assert not (tmp_path / "run").exists()
+    assert not (tmp_path / "run").exists() and not db.exists()  # nothing journaled, no folder made
 
 
 # --- readings that make S singular ---------------------------------------------------------------
