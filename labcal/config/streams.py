@@ -21,7 +21,7 @@ from typing import TextIO
 
 from labcal.errors import LabcalError
 
-STALL_S = 4.0  # a pipe silent this long is refused: well within the 10 s a technician waits
+STALL_S = 3.0  # a pipe silent this long is refused: with start-up, well within the 10 s a technician waits
 CHUNK = 1 << 16
 
 _WHAT = ((stat.S_ISDIR, "a folder"), (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
