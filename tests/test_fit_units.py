@@ -99,3 +99,20 @@ def test_comment_lines_keep_the_line_numbers_of_errors(exact, tmp_path, capsys):
     path = _scaled(rows, tmp_path, 1000.0, "# units = mV")
     code, _, err = _fit(capsys, path)
     assert code == 2 and f"{path}: line 5, column roll_deg: 400° is outside -360..360" in err
+
+
+def test_a_residual_is_stated_in_the_units(tmp_path, capsys):
+    path = tmp_path / "noisy.csv"
+    assert main(["simulate", "--noise", "1e-4", "--seed", "3", "--out", str(path)]) == 0
+    rows = list(csv.reader(path.read_text().splitlines()))
+    # 20 σ on sensor x of reading 20 (pitch 0°, roll 270°: x reads 0 g there, so |g| moves by 2e-6 only
+    # and the residual check, not the gravity check, sees it)
+    rows[20][5] = repr(float(rows[20][5]) + 2e-3)
+    path = _scaled(rows, tmp_path, 16384.0, "# units = counts")
+    code, doc, err = _fit(capsys, path)
+    assert code == 2 and [f["row"] for f in doc["gross_errors"]] == [20]
+    import re
+
+    # 2e-3 V × 16384 counts/V = 32.8 counts, less the share the fit takes (leverage ~4/64) and noise
+    match = re.search(r"reading 20: sensor x: residual \+([\d.]+) counts is", err)
+    assert match and 25 < float(match[1]) < 35, err

@@ -264,11 +264,12 @@ def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA, base_fit: Least
 
 def residual_flags(design: NDArray[np.float64], ls: LeastSquares,
                    skip: set[int] | frozenset[int] = frozenset(), alpha: float = FAMILY_ALPHA,
-                   rows: NDArray[np.intp] | None = None) -> tuple[list[Flag], float]:
+                   rows: NDArray[np.intp] | None = None, units: str = "V") -> tuple[list[Flag], float]:
     """Externally studentised residuals beyond the family-wise Student t threshold (over every
     reading and sensor) of the fit ``ls`` of ``design``; returns the flags and the threshold.
     ``design`` has a row per reading, or one per point with ``rows`` the point of every reading
-    (the leverage is a function of the design row). In row blocks: a few MiB of temporaries."""
+    (the leverage is a function of the design row). In row blocks: a few MiB of temporaries. A
+    residual with no scatter left to judge it by (0/0: an exact fit) is not flagged."""
     dof = ls.dof
     if dof < 2:
         return [], float("inf")
@@ -282,12 +283,12 @@ def residual_flags(design: NDArray[np.float64], ls: LeastSquares,
         with np.errstate(all="ignore"):
             s2_without = (dof * ls.residual_se**2 - eb**2 / (1 - hb)) / (dof - 1)
             t = eb / np.sqrt(np.maximum(s2_without, 0) * (1 - hb))
-        for i, j in zip(*np.nonzero(~(np.abs(t) <= limit)), strict=True):
+        for i, j in zip(*np.nonzero(~(np.abs(t) <= limit) & ~np.isnan(t)), strict=True):
             if start + int(i) + 1 in skip:
                 continue
             flags.append(Flag(start + int(i) + 1, "residual",
-                              f"sensor {SENSORS[j]}: residual {eb[i, j]:+.3g} V is {abs(t[i, j]):.3g} times "
-                              f"its standard error (limit {limit:.3g}, studentised)"))
+                              f"sensor {SENSORS[j]}: residual {eb[i, j]:+.3g} {units} is {abs(t[i, j]):.3g} "
+                              f"times its standard error (limit {limit:.3g}, studentised)"))
     return flags, limit
 
 
@@ -333,7 +334,7 @@ def fit_flags(readings: Readings, fit: Fit, alpha: float = FAMILY_ALPHA) -> list
     gravity = [f for f in gravity_flags(cal, readings.volts, lambda i: _describe(readings, i), alpha)
                if f.row not in seen]
     seen |= {f.row for f in gravity}
-    residual, _ = residual_flags(design, fit.ls, seen, alpha, rows)
+    residual, _ = residual_flags(design, fit.ls, seen, alpha, rows, readings.units)
     return mount + gravity + residual
 
 
