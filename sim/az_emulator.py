@@ -20,6 +20,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
+import socket
 import threading
 import time
 from collections import deque
@@ -240,6 +242,17 @@ class AzDrives:
             unit.command = position
 
 
+def _listen_failure(endpoint: Endpoint, exc: RuntimeError) -> OSError:
+    """Why pymodbus could not listen on ``endpoint``, as the OSError a listener of our own gets
+    there (the port is taken, the address is not this host's), for `Emulation` to say in one line."""
+    if endpoint.kind != "pty":
+        try:
+            socket.create_server((endpoint.host, endpoint.port)).close()
+        except OSError as reason:  # create_server appends the address, which the caller names already
+            return OSError(reason.errno, os.strerror(reason.errno)) if reason.errno else reason
+    return OSError(f"{exc}".rstrip("."))
+
+
 class AzServer:
     """The drives on one bus, served by pymodbus from a thread of their own."""
 
@@ -259,11 +272,8 @@ class AzServer:
         self._thread.start()
         try:
             self._call(self._open())
-        except RuntimeError as exc:  # pymodbus: "Could not start listen", an address already served
-            self.close()
-            raise OSError(f"the address is taken ({exc})") from None
         except BaseException:
-            self.close()
+            self.close()  # the loop's thread too: a port that is taken leaves nothing running
             raise
 
     def _call(self, coroutine):
@@ -294,7 +304,10 @@ class AzServer:
             self._server = ModbusSerialServer(self._devices(), framer=FramerType.RTU, port=port,
                                               baudrate=115200, trace_pdu=self._trace_pdu,
                                               trace_packet=self._trace_packet)
-        await self._server.serve_forever(background=True)
+        try:
+            await self._server.serve_forever(background=True)
+        except RuntimeError as exc:  # pymodbus says only "Could not start listen": the port says why
+            raise _listen_failure(ep, exc) from None
         if ep.kind != "pty":
             # pymodbus types the transport as asyncio.BaseTransport; a listener's is an asyncio.Server
             server = self._server.transport

@@ -205,7 +205,9 @@ def test_run_sim_yes_end_to_end(tmp_path):
     summary = json.loads(proc.stdout)
     assert summary["points"] == 64 and summary["wall_time_s"] < 10
     assert summary["simulated_rig_time_s"] > 20 * 60  # 64 points and 4 remounts take real time
-    assert {p.name for p in run_dir.iterdir()} == {"readings.csv", "fit.json", "plan.toml", "run.json"}
+    # device.json too: the device estimate is the run's, report or not (issue 26)
+    assert {p.name for p in run_dir.iterdir()} == {"readings.csv", "fit.json", "plan.toml", "run.json",
+                                                   "device.json"}
     assert proc.stderr.count("(--yes: confirmed)") == 4
     meta = json.loads((run_dir / "run.json").read_text())
     assert meta["status"] == "complete" and meta["points_recorded"] == 64

@@ -275,7 +275,10 @@ def test_a_device_fault_with_nobody_to_answer_stops_and_keeps_every_point(tmp_pa
     setup.station.roll.move_to = failing_move
     answers = tmp_path / "answers.txt"
     answers.write_text("y\n")  # mount 1 only: the pause finds no answer
-    with pytest.raises(OperatorDeclined, match="^the answers file has no answer left for this prompt$"):
+    # the fault is why the run stopped; the unanswered pause comes second (issue 26)
+    with pytest.raises(OperatorDeclined, match=r"^fault: roll table \(simulated\): alarm 0x30 overload; "
+                                               "paused, and the answers file has no answer left for this "
+                                               "prompt$"):
         journal_run(tmp_path, setup, operator=ScriptedOperator(quiet_console(), answers))
     with Journal(tmp_path / "j.sqlite") as journal:
         assert journal.run(1).status == "stopped" and len(journal.points(1)) == 10  # 2 moves: load, check

@@ -5,6 +5,7 @@ one line, not pymodbus's traceback."""
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import signal
@@ -98,7 +99,7 @@ def test_an_address_another_emulator_serves_is_one_line(tmp_path, capsys, no_lea
         code, out, err = cli(capsys, "run", "--station", str(station), *EMULATE, "--yes",
                              "--out", str(tmp_path / "run"))
     assert code == 2 and err.strip().count("\n") == 0, err
-    assert f"cannot serve tcp 127.0.0.1:{port} (the address is taken" in err
+    assert f"cannot serve tcp 127.0.0.1:{port} ({os.strerror(errno.EADDRINUSE)})" in err
     assert "Traceback" not in err and "is another emulator" in err
 
 

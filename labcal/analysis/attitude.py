@@ -21,6 +21,11 @@ from numpy.typing import NDArray
 from labcal.analysis.distributions import t_quantile
 from labcal.errors import LabcalError
 
+# Local gravity where an instrument is used may differ from where it was calibrated: by latitude
+# and height, a few 1e-4 between labs of one region. The attitude is a direction, so that is no
+# error of it; readings within this of the calibration's |g| are valid (`labcal attitude`).
+LOCAL_GRAVITY_TOLERANCE = 5e-4
+LOCAL_GRAVITY_U = LOCAL_GRAVITY_TOLERANCE / np.sqrt(3.0)  # rectangular over ±tolerance (GUM 4.3.7)
 ROLL_SIGNIFICANCE = 3.0  # the horizontal part of g must exceed this many standard uncertainties
 GN_ITERATIONS = 4  # the closed form starts within ~1e-4 rad; Gauss–Newton converges quadratically
 
@@ -37,8 +42,31 @@ class Calibration:
 
     @property
     def s_inv(self) -> NDArray[np.float64]:
+        defect = sensitivity_defect(self.X)
+        if defect:  # every reader checks first, naming its file; this is the last word, not a traceback
+            raise LabcalError(defect)
         # numpy's stubs type inv() as floating[Any]; the inverse of a float64 matrix is float64
         return cast("NDArray[np.float64]", np.linalg.inv(self.X[1:]))
+
+
+SINGULAR_CONDITION = 1e8  # an accelerometer triad's S is near orthogonal (condition ~1); 1e8 is no triad
+
+
+def sensitivity_defect(X: NDArray[np.float64]) -> str | None:
+    """Why the sensitivity matrix S (rows 1–3 of X) cannot turn voltages into g, or None.
+
+    S is singular when the voltages do not follow gravity in three independent directions:
+    identical voltages on every row (a dead or disconnected meter), a constant channel, or two
+    inputs wired to one sensor. Judged by S's condition number, which no unit or gain changes."""
+    S = np.asarray(X, float)[1:]
+    if not np.all(np.isfinite(S)):
+        return "the sensitivity matrix S is not finite; it cannot turn voltages into g"
+    singular_values = np.linalg.svd(S, compute_uv=False)
+    if not singular_values[-1] > singular_values[0] / SINGULAR_CONDITION:
+        return ("the sensitivity matrix S is singular (the voltages do not follow gravity in three "
+                "independent directions: a constant channel, identical readings, or two channels on one "
+                "sensor); check the wiring and the columns vx, vy, vz")
+    return None
 
 
 MAX_COEFFICIENT = 1e6  # V and V/g: a million volts is no accelerometer's bias or sensitivity
@@ -71,7 +99,7 @@ def calibration_from_json(doc: dict[str, Any], path: str | Path) -> Calibration:
             or np.max(np.abs(sd)) > MAX_COEFFICIENT:
         raise LabcalError(f"{path}: field coefficients (or their uncertainties) exceeds {MAX_COEFFICIENT:g} "
                           "V in magnitude; not an instrument's calibration")
-    if abs(np.linalg.det(X[1:])) < 1e-12:
+    if sensitivity_defect(X):
         raise LabcalError(f"{path}: the sensitivity matrix S is singular; it cannot turn voltages into g")
     return Calibration(X, cov, sd, dof)
 
@@ -124,26 +152,30 @@ def _k95(cal: Calibration) -> float:
 
 
 def closed_form(cal: Calibration, volts: NDArray[np.float64]) -> Attitude:
-    """Soto eqs. 5–7 with first-order uncertainty through the same Σ_v as the sphere solution."""
+    """Soto eqs. 5–7 with first-order uncertainty through the same Σ_v as the sphere solution.
+
+    Pitch is the elevation of g, atan2(g_x, √(g_y² + g_z²)): Soto's asin g_x where |g| = 1, and the
+    same direction wherever local gravity differs from the calibration's (asin of an unnormalised
+    g_x was 0.012° off at 45° and 1.05° at 89.9° for |g| = 1 + 2e-4, and clipped beyond the pole)."""
     volts = np.atleast_2d(np.asarray(volts, float))
     g = (volts - cal.X[0]) @ cal.s_inv  # batch form of Soto App. B
-    gx = np.clip(g[:, 0], -1.0, 1.0)
     h2 = g[:, 1] ** 2 + g[:, 2] ** 2
-    pitch, roll = np.arcsin(gx), np.arctan2(g[:, 1], g[:, 2])
+    h, n2 = np.sqrt(h2), h2 + g[:, 0] ** 2
+    pitch, roll = np.arctan2(g[:, 0], h), np.arctan2(g[:, 1], g[:, 2])
     # dz/dv = (dz/dg)(dg/dv), dg/dv = S⁻¹ (row-vector convention: dg = dv·S⁻¹)
-    dp_dg = np.zeros_like(g)
-    dp_dg[:, 0] = 1.0 / np.sqrt(np.maximum(1.0 - gx**2, 1e-300))
     with np.errstate(divide="ignore", invalid="ignore"):
+        dp_dg = np.stack([h, -g[:, 0] * g[:, 1] / h, -g[:, 0] * g[:, 2] / h], axis=1) / n2[:, None]
         dr_dg = np.stack([np.zeros(len(g)), g[:, 2] / h2, -g[:, 1] / h2], axis=1)
     sigma_v = output_variance(cal, g)
     dp_dv, dr_dv = dp_dg @ cal.s_inv.T, dr_dg @ cal.s_inv.T
     u_p = np.sqrt(np.sum(dp_dv**2 * sigma_v, axis=1))
     u_r = np.sqrt(np.sum(dr_dv**2 * sigma_v, axis=1))
     roll, u_r = _undefined_roll(cal, g, sigma_v, roll, u_r)
-    # Where roll is undefined |g_x| is within noise of 1, and where |g_x| ≥ 1 it was clipped: asin's
-    # slope is unbounded there, so the closed form's linear uncertainty is meaningless (it read
-    # 1e148°) and is stated as undefined (NaN); the sphere estimator's stays defined.
-    u_p = np.where(~np.isfinite(roll) | (np.abs(g[:, 0]) >= 1.0), np.nan, u_p)
+    # Where roll is undefined g lies along x within noise: the elevation's slope turns with the
+    # unknown direction of the small horizontal part, so the closed form's linear uncertainty means
+    # nothing there (asin's read 1e148°) and is stated as undefined (NaN); the sphere estimator's
+    # stays defined.
+    u_p = np.where(~np.isfinite(roll), np.nan, u_p)
     return Attitude(pitch, roll, u_p, u_r, _k95(cal))
 
 
@@ -158,8 +190,17 @@ def _undefined_roll(
     return np.where(undefined, np.nan, roll), np.where(undefined, np.nan, u_roll)
 
 
-def sphere_least_squares(cal: Calibration, volts: NDArray[np.float64]) -> Attitude:
-    """Tripp eqs. 99–104: weighted least squares over (α, R) on the unit sphere."""
+def sphere_least_squares(cal: Calibration, volts: NDArray[np.float64], gravity_u: float = 0.0) -> Attitude:
+    """Tripp eqs. 99–104: weighted least squares over (α, R) on the unit sphere.
+
+    ``gravity_u``: the standard uncertainty of local |g| relative to the calibration's (0: the same
+    gravity, Tripp's estimator exactly). Three sensors see one direction and one magnitude; the
+    magnitude is what the sphere adds to the closed form, and it is worth only what |g| is known to.
+    So |g| = m is estimated with the attitude, m a priori 1 ± ``gravity_u``: where local gravity
+    differs from the calibration's (a few 1e-4 between labs) the estimate follows the direction
+    instead of being pulled by the anisotropic weights (0.0012° at 45° for |g| off by 2e-4 with a
+    10 µV instrument), and its covariance carries that uncertainty.
+    """
     volts = np.atleast_2d(np.asarray(volts, float))
     start = closed_form(cal, volts)
     # Where roll is undefined it is held, not estimated, but at the direction the small horizontal
@@ -167,31 +208,60 @@ def sphere_least_squares(cal: Calibration, volts: NDArray[np.float64]) -> Attitu
     g_raw = (volts - cal.X[0]) @ cal.s_inv
     pitch, roll = start.pitch.copy(), np.where(start.roll_defined, start.roll,
                                                np.arctan2(g_raw[:, 1], g_raw[:, 2]))
-    free_roll = start.roll_defined
+    free_roll: NDArray[np.bool_] = np.isfinite(start.roll)
+    held = ~free_roll
+    free_m = gravity_u > 0
+    prior = 1.0 / gravity_u**2 if free_m else 0.0
+    m = np.ones(len(volts))
     S = cal.X[1:]
-    for _ in range(GN_ITERATIONS):
+
+    def normal_equations(pitch: NDArray[np.float64], roll: NDArray[np.float64], m: NDArray[np.float64]
+                         ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """N = Jᵀ W J (+ the prior on m) and Jᵀ W r − prior·(m − 1), per row; a held parameter's
+        row and column are the identity's, so its step is 0."""
         g, dg_dp, dg_dr = _gravity_and_derivatives(pitch, roll)
         w = 1.0 / output_variance(cal, g)
-        resid = volts - cal.X[0] - g @ S
-        fp, fr = dg_dp @ S, dg_dr @ S  # rows of F_z
-        a = np.sum(w * fp * fp, axis=1)
-        b = np.sum(w * fp * fr, axis=1)
-        c = np.sum(w * fr * fr, axis=1)
-        rp, rr = np.sum(w * fp * resid, axis=1), np.sum(w * fr * resid, axis=1)
-        det = a * c - b * b
-        with np.errstate(divide="ignore", invalid="ignore"):
-            step_p = np.where(free_roll, (c * rp - b * rr) / det, rp / a)
-            step_r = np.where(free_roll, (a * rr - b * rp) / det, 0.0)
-        pitch, roll = pitch + step_p, roll + step_r
-    g, dg_dp, dg_dr = _gravity_and_derivatives(pitch, roll)
-    w = 1.0 / output_variance(cal, g)
-    fp, fr = dg_dp @ S, dg_dr @ S
-    a, b, c = (np.sum(w * x * y, axis=1) for x, y in ((fp, fp), (fp, fr), (fr, fr)))
-    det = a * c - b * b
-    with np.errstate(divide="ignore", invalid="ignore"):  # Σ_z = (F W Fᵀ)⁻¹ with W = Σ_v⁻¹
-        u_p = np.sqrt(np.where(free_roll, c / det, 1.0 / a))
-        u_r = np.sqrt(a / det)
+        resid = volts - cal.X[0] - m[:, None] * (g @ S)
+        jac = np.stack([m[:, None] * (dg_dp @ S), m[:, None] * (dg_dr @ S), g @ S], axis=1)  # n × 3 × 3
+        jac[held, 1] = 0.0
+        if not free_m:
+            jac[:, 2] = 0.0
+        normal = np.einsum("nak,nk,nbk->nab", jac, w, jac)
+        rhs = np.einsum("nak,nk,nk->na", jac, w, resid)
+        normal[:, 2, 2] += prior if free_m else 1.0
+        rhs[:, 2] -= prior * (m - 1.0)
+        normal[held, 1, 1] = 1.0
+        return normal, rhs
+
+    with np.errstate(all="ignore"):  # a row of 1e308 V is flagged by the gravity check, not here
+        for _ in range(GN_ITERATIONS):
+            normal, rhs = normal_equations(pitch, roll, m)
+            step = _solve(normal, rhs)
+            pitch, roll, m = pitch + step[:, 0], roll + step[:, 1], m + step[:, 2]
+        normal, _ = normal_equations(pitch, roll, m)
+        cov = _inverse(normal)  # Σ_z = (F W Fᵀ)⁻¹ with W = Σ_v⁻¹, the prior on |g| with it
+        u_p, u_r = np.sqrt(cov[:, 0, 0]), np.sqrt(cov[:, 1, 1])
+    # pitch beyond ±90° is the same direction seen with roll turned by 180°: fold it back, so that
+    # both estimators state one attitude (at the pole they disagreed in roll by 180°)
     pitch = np.arctan2(np.sin(pitch), np.cos(pitch))
+    over = np.abs(pitch) > np.pi / 2
+    pitch = np.where(over, np.sign(pitch) * np.pi - pitch, pitch)
+    roll = np.where(over, roll + np.pi, roll)
     roll = np.arctan2(np.sin(roll), np.cos(roll))
     roll, u_r = np.where(free_roll, roll, np.nan), np.where(free_roll, u_r, np.nan)
     return Attitude(pitch, roll, u_p, u_r, _k95(cal))
+
+
+def _solve(normal: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Each row's 3×3 system; a singular one (a reading of no direction) steps by NaN, not an error."""
+    ok = np.all(np.isfinite(normal), axis=(1, 2)) & (np.abs(np.linalg.det(np.where(
+        np.isfinite(normal), normal, 0.0))) > 0)
+    out = np.full(rhs.shape, np.nan)
+    if ok.any():
+        out[ok] = np.linalg.solve(normal[ok], rhs[ok][..., None])[..., 0]
+    return out
+
+
+def _inverse(normal: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Each row's 3×3 inverse, column by column (NaN where singular)."""
+    return np.stack([_solve(normal, np.tile(e, (len(normal), 1))) for e in np.eye(3)], axis=2)

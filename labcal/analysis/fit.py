@@ -243,8 +243,10 @@ def _estimable(design: NDArray[np.float64], n_base: int) -> NDArray[np.int_]:
     for col in range(n_base, design.shape[1]):
         trial = design[:, keep + [col]]
         scale = np.linalg.norm(trial, axis=0)
+        # a base column may be all zero (every reading at one attitude with g_x = 0): it adds no
+        # rank and divides by nothing; the base fit then says its design is singular in one line
         if scale[-1] > 1e-12 * scale.max() and \
-                np.linalg.matrix_rank(trial / scale, tol=1e-9) == len(keep) + 1:
+                np.linalg.matrix_rank(trial / np.where(scale > 0, scale, 1.0), tol=1e-9) == len(keep) + 1:
             keep.append(col)
     return np.array(keep)
 

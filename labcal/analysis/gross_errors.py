@@ -89,18 +89,23 @@ def gravity_magnitude(cal: Calibration, volts: NDArray[np.float64]) -> tuple[NDA
 
 
 def gravity_flags(cal: Calibration, volts: NDArray[np.float64], describe: Callable[[int], str] | None = None,
-                  alpha: float = FAMILY_ALPHA) -> list[Flag]:
-    """Rows whose |g| is not 1 g within the family-wise threshold (or not a number at all)."""
+                  alpha: float = FAMILY_ALPHA, tolerance: float = 0.0) -> list[Flag]:
+    """Rows whose |g| is not 1 g within the family-wise threshold (or not a number at all).
+
+    ``tolerance``: how far local |g| may lie from the calibration's (relative), e.g. readings taken
+    in another lab (`labcal.analysis.attitude.LOCAL_GRAVITY_TOLERANCE`); only what lies beyond it
+    is tested. The calibration's own readings are at its gravity: 0."""
     m, u_m = gravity_magnitude(cal, volts)
     limit = t_threshold(len(volts), cal.dof, alpha)
     flags = []
     with np.errstate(all="ignore"):
-        z = np.abs(m - 1.0) / u_m
+        z = np.maximum(np.abs(m - 1.0) - tolerance, 0.0) / u_m
+    allowed = f" beyond the ±{tolerance:.2g} local gravity may differ by" if tolerance else ""
     for i in np.flatnonzero(~(z <= limit)):
         where = describe(int(i)) if describe else ""
         flags.append(Flag(int(i) + 1, "gravity",
                           f"|(V − B)S⁻¹| = {m[i]:.6g} g{where}; a static instrument reads 1 g "
-                          f"(± {u_m[i]:.2g}, limit {limit:.2g} standard uncertainties)"))
+                          f"(± {u_m[i]:.2g}, limit {limit:.2g} standard uncertainties{allowed})"))
     return flags
 
 
@@ -227,9 +232,11 @@ def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA, base_fit: Least
         f[..., 1:] = np.take(base, np.take(points.groups, rows), axis=0)
         s = signs[mounts]
         z = np.take(readings.volts, rows, axis=0) - f @ (coef[ks] * s[:, :, None])
-        z /= residual_se[ks, None, :]
+        with np.errstate(divide="ignore", invalid="ignore"):  # a group with no scatter left is not
+            z /= residual_se[ks, None, :]                    # usable: its χ² is never judged
         q = np.einsum("ksa,ksa->ks", f @ (cov[ks] * s[:, :, None] * s[:, None, :]), f)
-        chi2[mounts, ks] = np.sum(np.einsum("ksj,ksj->ks", z, z) / (1.0 + q), axis=1)
+        with np.errstate(invalid="ignore"):
+            chi2[mounts, ks] = np.sum(np.einsum("ksj,ksj->ks", z, z) / (1.0 + q), axis=1)
 
     # A group its stated mount explains is never flagged: the other mounts are tried only on the
     # groups it does not (none, in a good file)
@@ -257,11 +264,12 @@ def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA, base_fit: Least
 
 def residual_flags(design: NDArray[np.float64], ls: LeastSquares,
                    skip: set[int] | frozenset[int] = frozenset(), alpha: float = FAMILY_ALPHA,
-                   rows: NDArray[np.intp] | None = None) -> tuple[list[Flag], float]:
+                   rows: NDArray[np.intp] | None = None, units: str = "V") -> tuple[list[Flag], float]:
     """Externally studentised residuals beyond the family-wise Student t threshold (over every
     reading and sensor) of the fit ``ls`` of ``design``; returns the flags and the threshold.
     ``design`` has a row per reading, or one per point with ``rows`` the point of every reading
-    (the leverage is a function of the design row). In row blocks: a few MiB of temporaries."""
+    (the leverage is a function of the design row). In row blocks: a few MiB of temporaries. A
+    residual with no scatter left to judge it by (0/0: an exact fit) is not flagged."""
     dof = ls.dof
     if dof < 2:
         return [], float("inf")
@@ -275,25 +283,37 @@ def residual_flags(design: NDArray[np.float64], ls: LeastSquares,
         with np.errstate(all="ignore"):
             s2_without = (dof * ls.residual_se**2 - eb**2 / (1 - hb)) / (dof - 1)
             t = eb / np.sqrt(np.maximum(s2_without, 0) * (1 - hb))
-        for i, j in zip(*np.nonzero(~(np.abs(t) <= limit)), strict=True):
+        for i, j in zip(*np.nonzero(~(np.abs(t) <= limit) & ~np.isnan(t)), strict=True):
             if start + int(i) + 1 in skip:
                 continue
             flags.append(Flag(start + int(i) + 1, "residual",
-                              f"sensor {SENSORS[j]}: residual {eb[i, j]:+.3g} V is {abs(t[i, j]):.3g} times "
-                              f"its standard error (limit {limit:.3g}, studentised)"))
+                              f"sensor {SENSORS[j]}: residual {eb[i, j]:+.3g} {units} is {abs(t[i, j]):.3g} "
+                              f"times its standard error (limit {limit:.3g}, studentised)"))
     return flags, limit
 
 
-def implausible_volts(volts: NDArray[np.float64]) -> None:
-    """Refuse readings no voltmeter can have produced: they would make every statistic infinite."""
-    if np.max(volts, initial=-np.inf) <= VOLTS_MAX and np.min(volts, initial=np.inf) >= -VOLTS_MAX:
+# The largest output an instrument can give, per unit: a DMM's highest range for volts; for counts
+# the largest integer a double holds exactly (no converter comes near it); for m/s² 100 000 g.
+OUTPUT_MAX = {"V": VOLTS_MAX, "mV": VOLTS_MAX * 1e3, "counts": 2.0**53, "m/s2": 1e6}
+
+
+def implausible_volts(volts: NDArray[np.float64], units: str = "V") -> None:
+    """Refuse readings no instrument can have produced (they would make every statistic infinite):
+    volts beyond any DMM range, other units beyond their `OUTPUT_MAX`. The volts' message names
+    --units: counts or m/s² read as volts are the usual cause."""
+    limit = OUTPUT_MAX[units]
+    if np.max(volts, initial=-np.inf) <= limit and np.min(volts, initial=np.inf) >= -limit:
         return  # two reductions say so for a clean file (a NaN fails both comparisons)
-    bad = np.flatnonzero(~np.all(np.abs(volts) <= VOLTS_MAX, axis=1))
+    bad = np.flatnonzero(~np.all(np.abs(volts) <= limit, axis=1))
     if len(bad):
         i = bad[0]
         more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
-        raise LabcalError(f"reading {i + 1}: ({', '.join(f'{v:.3g}' for v in volts[i])}) V is beyond any "
-                          f"DMM range (|V| ≤ {VOLTS_MAX:g} V){more}; correct or remove it")
+        values = f"reading {i + 1}: ({', '.join(f'{v:.3g}' for v in volts[i])}) {units}"
+        if units in ("V", "mV"):
+            raise LabcalError(f"{values} is beyond any DMM range (|V| ≤ {VOLTS_MAX:g} V){more}; correct or "
+                              "remove it, or give --units (mV, counts, m/s2) if the outputs are not volts")
+        raise LabcalError(f"{values} is beyond any instrument's output (|x| ≤ {limit:g} {units}){more}; "
+                          "correct or remove it")
 
 
 def calibration_of(fit: Fit) -> Calibration:
@@ -316,22 +336,30 @@ def fit_flags(readings: Readings, fit: Fit, alpha: float = FAMILY_ALPHA) -> list
     gravity = [f for f in gravity_flags(cal, readings.volts, lambda i: _describe(readings, i), alpha)
                if f.row not in seen]
     seen |= {f.row for f in gravity}
-    residual, _ = residual_flags(design, fit.ls, seen, alpha, rows)
+    residual, _ = residual_flags(design, fit.ls, seen, alpha, rows, readings.units)
     return mount + gravity + residual
 
 
 def methods_disagree(closed: Attitude, sphere: Attitude) -> list[Flag]:
     """Rows where the two estimators differ by more than their combined expanded uncertainty: they
     agree to first order on any reading of 1 g, so a difference means the reading is not one."""
+    def wrapped(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.asarray(np.abs(np.angle(np.exp(1j * x))), dtype=float)
+
     flags = []
-    for name, a, b, ua, ub in (("pitch", closed.pitch, sphere.pitch, closed.u_pitch, sphere.u_pitch),
-                               ("roll", closed.roll, sphere.roll, closed.u_roll, sphere.u_roll)):
+    with np.errstate(all="ignore"):
+        limits = {"pitch": closed.k95 * np.hypot(closed.u_pitch, sphere.u_pitch),
+                  "roll": closed.k95 * np.hypot(closed.u_roll, sphere.u_roll)}
+        # (p, r) and (±180° − p, r + 180°) are one direction: near the pole one estimator may state
+        # it the other way, which is no disagreement (the roll is 180° apart, the gravity is not)
+        across = ((wrapped(np.sign(closed.pitch) * np.pi - closed.pitch - sphere.pitch) <= limits["pitch"])
+                  & (wrapped(closed.roll + np.pi - sphere.roll) <= limits["roll"]))
+    for name, a, b in (("pitch", closed.pitch, sphere.pitch), ("roll", closed.roll, sphere.roll)):
         with np.errstate(all="ignore"):
-            diff = np.abs(np.angle(np.exp(1j * (a - b))))
-            limit = closed.k95 * np.hypot(ua, ub)
-            # where the closed form's uncertainty is undefined (asin at the pole) nothing is compared:
+            diff, limit = wrapped(a - b), limits[name]
+            # where the closed form's uncertainty is undefined (at the pole) nothing is compared:
             # the gravity check still sees a reading that is not 1 g
-            bad = np.isfinite(diff) & np.isfinite(limit) & (diff > limit)
+            bad = np.isfinite(diff) & np.isfinite(limit) & (diff > limit) & ~across
         for i in np.flatnonzero(bad):
             flags.append(Flag(int(i) + 1, "methods",
                               f"closed form and sphere solution differ by {np.degrees(diff[i]):.3g}° in "

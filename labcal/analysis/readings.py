@@ -46,6 +46,7 @@ class Readings:
     roll_deg: NDArray[np.float64]
     volts: NDArray[np.float64]  # (n, 3): vx, vy, vz
     temp_c: NDArray[np.float64] | None = None
+    units: str = "V"  # the outputs' unit (V, mV, counts, m/s2): B is in it, S in it per g
 
     def __len__(self) -> int:
         return len(self.replicate)

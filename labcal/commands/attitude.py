@@ -37,6 +37,7 @@ def cmd_attitude(args: argparse.Namespace) -> int:
     from labcal.analysis import attitude
     from labcal.commands.common import err
     from labcal.config.readings_csv import read_numeric_csv
+    from labcal.config.streams import read_stream
     from labcal.documents.approvers import calibration_in_use
 
     cal, standing = calibration_in_use(args.cert, args.db, args.unverified)
@@ -46,9 +47,10 @@ def cmd_attitude(args: argparse.Namespace) -> int:
 
         err.print(f"[yellow]note:[/] {escape(str(args.cert))}: {escape(standing['note'])}")
     source = args.csv
-    if source is None:  # voltages on standard input
+    if source is None:  # voltages on standard input (never a device: /dev/zero would fill memory)
+        text = read_stream(sys.stdin, "standard input", "voltages")
         with tempfile.NamedTemporaryFile("w", suffix=".csv", delete=False) as tmp:
-            tmp.write(sys.stdin.read())
+            tmp.write(text)
         source = tmp.name
     try:
         cols = read_numeric_csv(source, "voltages", ("vx", "vy", "vz"))
@@ -59,9 +61,13 @@ def cmd_attitude(args: argparse.Namespace) -> int:
     from labcal.analysis.gross_errors import gravity_flags, methods_disagree
 
     methods = list(METHODS) if args.method == "both" else [args.method]
+    # local gravity may differ from the calibration's: the sphere estimator takes |g| as 1 ± its
+    # uncertainty, the gravity check tests only what lies beyond the tolerance
+    estimate = {"closed": lambda: attitude.closed_form(cal, volts),
+                "sphere": lambda: attitude.sphere_least_squares(cal, volts, attitude.LOCAL_GRAVITY_U)}
     with np.errstate(all="ignore"):  # a row of 1e308 V is flagged below, not a page of warnings
-        results = {m: getattr(attitude, METHODS[m])(cal, volts) for m in methods}
-        flags = gravity_flags(cal, volts)
+        results = {m: estimate[m]() for m in methods}
+        flags = gravity_flags(cal, volts, tolerance=attitude.LOCAL_GRAVITY_TOLERANCE)
         if len(methods) == 2:
             flags += methods_disagree(results["closed"], results["sphere"])
     table = {k: v for m in methods for k, v in _columns(results[m], PREFIX[m]).items()}

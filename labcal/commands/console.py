@@ -99,7 +99,8 @@ def with_standard_error(value: float, se: float) -> str:
     return f"{'+' if not text.startswith('-') else ''}{text}"
 
 
-def coefficients_with_standard_errors(fit: Fit, title: str = "Fitted coefficients X = [Bᵀ; S]") -> Table:
+def coefficients_with_standard_errors(fit: Fit, title: str = "Fitted coefficients X = [Bᵀ; S]",
+                                      units: str = "V") -> Table:
     """The fit's coefficients ± one standard error, for the terminal (the certificate's table,
     `labcal.documents.report.coefficients_with_expanded_uncertainty`, states ± U95 instead)."""
     table = Table(title=f"{title}, ± u (k=1)", box=box.SIMPLE_HEAD, pad_edge=False)  # fits 80 columns
@@ -108,10 +109,10 @@ def coefficients_with_standard_errors(fit: Fit, title: str = "Fitted coefficient
         table.add_column(f"sensor {name}", justify="right")  # wrapped, never cut, on a narrow terminal
     se = fit.stderr
     for i, row in enumerate(ROW_NAMES):
-        unit = "V" if i == 0 else "V/g"
+        unit = units if i == 0 else f"{units}/g"
         table.add_row(f"{row} ({unit})", *(with_standard_error(fit.coefficients[i, j], se[i, j])
                                            for j in range(3)))
-    table.add_row("S_E (V)", *(f"{s:.3g}" for s in fit.ls.residual_se))
+    table.add_row(f"S_E ({units})", *(f"{s:.3g}" for s in fit.ls.residual_se))
     basis = "; ".join(sorted({f"{b} ({d} df)" for b, d in zip(fit.variance_basis, fit.variance_dof,
                                                                   strict=True)}))
     table.caption = f"{fit.ls.n_obs} points; ± is one standard error (k=1), from the {basis}"
@@ -152,18 +153,19 @@ def device_tables(doc: dict) -> list[Table]:
     for name in SENSORS:
         coef.add_column(f"sensor {name}", justify="right")
     X, se = np.array(doc["coefficients"]), np.array(doc["standard_errors"])
+    units = doc.get("units", "V")
     for i, row in enumerate(ROW_NAMES):
-        unit = "V" if i == 0 else "V/g"
+        unit = units if i == 0 else f"{units}/g"
         coef.add_row(f"{row} ({unit})", *(f"{X[i, j]:+.9f} ± {se[i, j]:.2g}" for j in range(3)))
-    coef.add_row("S_E (V)", *(f"{s:.3g}" for s in doc["residual_standard_error"]))
-    coef.add_row("S_E linear (V)", *(f"{s:.3g}" for s in doc["residual_standard_error_linear"]))
+    coef.add_row(f"S_E ({units})", *(f"{s:.3g}" for s in doc["residual_standard_error"]))
+    coef.add_row(f"S_E linear ({units})", *(f"{s:.3g}" for s in doc["residual_standard_error_linear"]))
     coef.caption = (f"{doc['n_points']} points; ± is one standard error ({doc['degrees_of_freedom']} df), "
                     "the misalignments' uncertainty included")
     intrinsic = Table(title="Intrinsic parameters (independent of the mount)")
     for col in ("", "value", "u"):
         intrinsic.add_column(col, justify="right")
     for s, v in doc["intrinsic"]["sensitivity_v_per_g"].items():
-        intrinsic.add_row(f"|s_{s}| (V/g)", f"{v['value']:.9f}", f"{v['u']:.2g}")
+        intrinsic.add_row(f"|s_{s}| ({units}/g)", f"{v['value']:.9f}", f"{v['u']:.2g}")
     for pair, v in doc["intrinsic"]["inter_axis_angle_deg"].items():
         intrinsic.add_row(f"angle {pair} − 90° (″)", f"{v['deviation_from_90_arcsec']:+.2f}",
                           f"{v['u_arcsec']:.2g}")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from labcal.commands.common import add_db_option, err, print_json
@@ -12,12 +13,16 @@ from labcal.errors import LabcalError
 def cmd_export(args: argparse.Namespace) -> int:
     from labcal.run import exports
     from labcal.run.journal import Journal, db_path
-    from labcal.run.rundir import RUN, open_run, read_run_json
+    from labcal.run.rundir import RUN, open_run, read_run_json, recorded_folder
 
     if args.run.isdigit():  # a run id: the folder may be gone; the journal has all of it
         journal = Journal(db_path(args.db))
-        row = journal.run(int(args.run))
-        folder = Path(args.out or row.run_dir)
+        try:
+            row = journal.run(int(args.run))
+            folder = Path(args.out) if args.out else recorded_folder(journal, row)
+        except BaseException:
+            journal.close()
+            raise
     else:
         _, journal, row = open_run(Path(args.run))
         folder = Path(args.out or args.run)
@@ -30,14 +35,17 @@ def cmd_export(args: argparse.Namespace) -> int:
             check_identity(folder, read_run_json(folder), row)
         elif folder.exists() and any(folder.iterdir()):
             raise LabcalError(f"{folder}: folder is not empty and is no run's; give an empty or new --out")
+        created = not (folder / RUN).exists()  # else this run's own folder, only recorded anew
         try:
             folder.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise LabcalError(f"{folder}: cannot create the run folder ({exc.strerror})") from None
         notes, _ = exports.sync(journal, row, folder)
-        if str(folder) != row.run_dir:
-            journal.set_run_dir(row.id, str(folder))
-            journal.event(row.id, "export", f"run folder recreated in {folder}")
+        where = os.path.abspath(folder)  # recorded absolute: found from any folder
+        if where != row.run_dir:
+            journal.set_run_dir(row.id, where)
+            journal.event(row.id, "export", f"run folder recreated in {where}" if created
+                          else f"run folder recorded as {where} (was {row.run_dir})")
     if args.json:
         print_json({"run_id": row.id, "run_uuid": row.uuid, "folder": str(folder), "status": row.status,
                     "notes": notes})

@@ -33,6 +33,16 @@ def parse_at(text: str) -> tuple[float, float, float, float]:
     return pitch, roll, y, u
 
 
+def singular_sensitivity(X, source: str) -> None:
+    """Refuse, naming the readings file, a fit whose S cannot turn voltages into g: every check and
+    estimate after it inverts S."""
+    from labcal.analysis.attitude import sensitivity_defect
+
+    defect = sensitivity_defect(X)
+    if defect:
+        raise LabcalError(f"{source}: {defect}")
+
+
 def choose_model(args: argparse.Namespace, readings) -> tuple[str, str | None]:
     """The model to fit and, when it was chosen for the user, the one line saying why."""
     from labcal.analysis.device_fit import default_model
@@ -61,21 +71,24 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from labcal.analysis.models import Model, Points
     from labcal.config.readings_csv import read_readings
 
-    readings = read_readings(args.readings)
-    implausible_volts(readings.volts)
+    readings = read_readings(args.readings, args.units)
+    implausible_volts(readings.volts, readings.units)
     model, chosen = choose_model(args, readings)
     checked = None  # (the linear fit, its gross-error flags), computed once for the choice and the device fit
-    if model == "device" and args.model is None:
+    if model == "device":
         linear = fit_readings(readings)
+        singular_sensitivity(linear.coefficients, args.readings)
         checked = linear, fit_flags(readings, linear)
-        if checked[1]:
+        if checked[1] and args.model is None:
             model, chosen = "linear", ("linear model: some readings fail the gross-error checks (listed "
                                        "below); the device model is fitted only to readings that pass them")
     if model == "device":
         return fit_device_model(args, readings, chosen, checked)
     extend = tuple(e.strip() for e in args.extend.split(",") if e.strip()) if args.extend else ()
     fit = fit_readings(readings, Model(extend, reference_temperature(readings)))
+    singular_sensitivity(fit.coefficients, args.readings)
     doc = coning_json(fit) if model == "coning" else fit.to_json()
+    doc["units"] = readings.units  # B and S_E in these, S in these per g
     if chosen:
         doc.setdefault("notes", []).insert(0, chosen)
     flags = fit_flags(readings, fit)
@@ -101,15 +114,15 @@ def cmd_fit(args: argparse.Namespace) -> int:
         with_standard_error,
     )
 
-    out.print(coefficients_with_standard_errors(fit))
+    out.print(coefficients_with_standard_errors(fit, units=readings.units))
     if (terms := extension_terms(fit)) is not None:
         out.print(terms)
     for note in doc.get("notes", []):
         out.print(f"[yellow]note:[/] {note}")
     if model == "coning":
-        out.print(coning_table(coning(fit)))
+        out.print(coning_table(coning(fit), readings.units))
     if fit.replication is not None:
-        out.print(replication_table(doc["replication"]))
+        out.print(replication_table(doc["replication"], readings.units))
     k = t_quantile(0.5 + args.level / 2, fit.variance_dof)  # the half-widths' coverage factor
     for p in doc.get("predictions", []):
         out.print(f"at pitch {p['pitch_deg']:g}°, roll {p['roll_deg']:g}°, mount y={p['y_deg']:g} "
@@ -117,7 +130,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         for j, (s, v, c, q) in enumerate(zip(SENSORS, p["volts"], p["confidence_half_width"],
                                              p["prediction_half_width"], strict=True)):
             value = with_standard_error(v, c / k[j]).split(" ±")[0]  # to the digits its SE supports
-            out.print(f"  v{s} = {value} V; confidence ± {c:.2g}, prediction ± {q:.2g} (k = {k[j]:.2f})")
+            out.print(f"  v{s} = {value} {readings.units}; confidence ± {c:.2g}, prediction ± {q:.2g} "
+                      f"(k = {k[j]:.2f})")
     for name, test in doc.get("extension_tests", {}).items():
         if not test["tested"]:
             out.print(f"extension {name}: not tested — {test['reason']}")
@@ -136,6 +150,7 @@ def fit_device_model(args: argparse.Namespace, readings, chosen: str | None, che
 
     fit = fit_device(readings, checked[0] if checked else None)
     doc = fit.to_json()
+    doc["units"] = readings.units  # B and S_E in these, S in these per g
     # what physics guarantees, whichever model is fitted (the same linear fit: the same flags)
     flags = checked[1] if checked else fit_flags(readings, fit.linear)
     doc["gross_errors"] = [f.to_json() for f in flags]
@@ -163,14 +178,15 @@ def fit_device_model(args: argparse.Namespace, readings, chosen: str | None, che
     for note in doc.get("notes", []):
         out.print(f"[yellow]note:[/] {note}")
     if fit.linear.replication is not None:
-        out.print(replication_table(fit.linear.to_json()["replication"]))
+        out.print(replication_table(fit.linear.to_json()["replication"], readings.units))
     for sensor, r in doc.get("replication", {}).items():
         before, after = r["lack_of_fit_linear"], r["lack_of_fit_device"]
         def n(x, spec: str) -> str:  # NaN or None: undefined (noise-free readings)
             return "undefined" if x is None or x != x else format(x, spec)
-        out.print(f"sensor {sensor}: σ_bias {r['sigma_bias_linear']:.3g} → {r['sigma_bias_device']:.3g} V, "
-                  f"lack of fit F {n(before['F'], '.3g')} (p = {n(before['p_value'], '.2g')}) → "
-                  f"{n(after['F'], '.3g')} (p = {n(after['p_value'], '.2g')}), linear → device model")
+        out.print(f"sensor {sensor}: σ_bias {r['sigma_bias_linear']:.3g} → {r['sigma_bias_device']:.3g} "
+                  f"{readings.units}, lack of fit F {n(before['F'], '.3g')} "
+                  f"(p = {n(before['p_value'], '.2g')}) → {n(after['F'], '.3g')} "
+                  f"(p = {n(after['p_value'], '.2g')}), linear → device model")
     if args.index_errors:
         out.print(index_error_text(doc["index_errors"]))
     return outcome_of_checks(flags, args.allow_outliers, args.readings)
@@ -190,7 +206,7 @@ def index_error_text(doc: dict | None) -> str:
     return "\n".join(lines)
 
 
-def coning_table(sensors) -> Table:
+def coning_table(sensors, units: str = "V") -> Table:
     from rich import box
     from rich.table import Table
 
@@ -199,7 +215,7 @@ def coning_table(sensors) -> Table:
 
     table = Table(title="Coning model (Tripp eq. 2): v = b + S·(u·g), ± u (k=1)", box=box.SIMPLE_HEAD,
                   pad_edge=False)
-    for col in ("sensor", "b (V)", "S (V/g)", "Ω (°)", "Ω 95 % interval (°)", "A (°)"):
+    for col in ("sensor", f"b ({units})", f"S ({units}/g)", "Ω (°)", "Ω 95 % interval (°)", "A (°)"):
         table.add_column(col, justify="right")
     for c in sensors:
         d = c.to_json()
@@ -216,12 +232,12 @@ def coning_table(sensors) -> Table:
     return table
 
 
-def replication_table(rep: dict) -> Table:
+def replication_table(rep: dict, units: str = "V") -> Table:
     from rich.table import Table
 
     table = Table(title="Replicated calibration (Tripp Table 2)")
-    for col in ("sensor", "σ_prec (V)", "σ_bias (V)", "lack of fit F (df) crit", "offset drift F",
-                "sens. drift F"):
+    for col in ("sensor", f"σ_prec ({units})", f"σ_bias ({units})", "lack of fit F (df) crit",
+                "offset drift F", "sens. drift F"):
         table.add_column(col, justify="right")
     for sensor, r in rep.items():
         lof, off, sens = r["lack_of_fit"], r["drift"].get("offset"), r["drift"].get("sensitivity")
@@ -237,6 +253,15 @@ def replication_table(rep: dict) -> Table:
                       flag(off), flag(sens))
     table.caption = "* significant at 5 %; undefined: no pure error (noise-free readings)"
     return table
+
+
+def _units(text: str) -> str:
+    from labcal.config.readings_csv import unit_named
+
+    try:
+        return unit_named(text, "--units")
+    except LabcalError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--units: ")) from None
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -263,5 +288,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="interval level, 0 < LEVEL < 1 (default %(default)s)")
     p.add_argument("--allow-outliers", action="store_true",
                    help="exit 0 even when readings fail the gross-error checks (they are still listed)")
+    p.add_argument("--units", type=_units, metavar="V|mV|counts|m/s2",
+                   help="the outputs' unit (default: what the readings file states, else V); B is then in "
+                        "it and S per g in it, and only volts are held to a DMM's range")
     p.add_argument("--json", action="store_true", help="print the fit as JSON on stdout")
     p.set_defaults(func=cmd_fit)

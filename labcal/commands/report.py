@@ -76,12 +76,17 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def _day(text: str):
+    """A receipt date: a real day, and not after today (an item is received before it is calibrated)."""
     from datetime import date
 
     try:
-        return date.fromisoformat(text)
+        day = date.fromisoformat(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a date (YYYY-MM-DD)") from None
+    if day > date.today():
+        raise argparse.ArgumentTypeError(f"{text} is in the future (today is {date.today().isoformat()}); "
+                                         "give the date the item was received")
+    return day
 
 
 def register(sub: argparse._SubParsersAction) -> None:

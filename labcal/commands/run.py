@@ -121,6 +121,11 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
         raise LabcalError(f"{exc}{_stop_failure(exc)}; {points_on_disk(run_dir)} reading(s) kept in "
                           f"{run_dir}; continue with: labcal resume {run_dir}") from None
     o = result.outcome
+    if result.device is not None:  # the device's estimate is the run's, whether or not a report is made
+        from labcal.documents.device_history import store_device_estimate
+        from labcal.run.record import load_run
+
+        store_device_estimate(load_run(run_dir), result.device, args.db)
     issued = None
     if not args.no_report:
         from labcal.documents.report import write_run_outputs

@@ -45,6 +45,8 @@ def parse_misalign(text: str) -> Misalignment:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    import os
+
     from labcal.analysis.kinematics import IndexWobble
     from labcal.config.emulation import InstrumentTruth
     from labcal.config.files import load_model
@@ -52,6 +54,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from labcal.config.readings_csv import write_readings
     from labcal.sim.direct import simulate_readings
 
+    if os.path.lexists(args.out) and not args.force:  # it may be a measured file: replace it only if told
+        raise LabcalError(f"{args.out}: exists; choose another --out, or give --force to replace it")
     plan, _ = load_plan(args.plan)
     if args.replicates is not None:
         plan = plan.model_copy(update={"replicates": args.replicates})
@@ -91,6 +95,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--replicates", type=bounded(int, 1, 100), metavar="N",
                    help="repeat the plan N times (default: the plan's own replicates)")
     p.add_argument("--seed", type=SEED, default=0, help="random seed")
-    p.add_argument("--out", required=True, help="readings CSV to write")
+    p.add_argument("--out", required=True, help="readings CSV to write (refused if it exists, unless "
+                                                     "--force)")
+    p.add_argument("--force", action="store_true", help="replace --out if it exists")
     p.add_argument("--json", action="store_true", help="print what was written as JSON on stdout")
     p.set_defaults(func=cmd_simulate)

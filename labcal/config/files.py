@@ -24,7 +24,12 @@ Model = TypeVar("Model", bound=BaseModel)
 
 
 def read_text(path: str | Path, kind: str) -> str:
-    """The file's text; ``kind`` names the file in the message ("plan", "readings", ...)."""
+    """The file's text; ``kind`` names the file in the message ("plan", "readings", ...). A pipe is
+    read as long as it delivers, a device or a folder refused (`labcal.config.streams`)."""
+    from labcal.config.streams import kind_of, read_pipe
+
+    if kind_of(path, kind) == "pipe":
+        return read_pipe(path, kind)
     try:
         return Path(path).read_text(encoding="utf-8-sig")
     except FileNotFoundError:

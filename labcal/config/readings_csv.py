@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import re
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -28,6 +29,7 @@ REQUIRED = ("replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", "vx", "vy", 
 OPTIONAL = ("temp_c",)
 # Written by labcal after the contract's columns: what a metrologist needs to audit a point.
 EXTRA = ("n_samples", "sd_vx", "sd_vy", "sd_vz", "time_s")
+ABSOLUTE_ZERO_C, MAX_TEMP_C = -273.15, 1000.0  # a temperature beyond these is a typo or a broken probe
 MAX_REPLICATE = 1e9  # no lab repeats a plan a billion times; a larger number is a typo (and no int64)
 
 
@@ -55,6 +57,9 @@ def _check_angles(cols: dict[str, NDArray], where) -> None:
     def not_a_replicate(v: NDArray) -> NDArray:
         return (v != np.floor(v)) | (v < 1)
 
+    def not_a_temperature(v: NDArray) -> NDArray:
+        return ~((ABSOLUTE_ZERO_C < v) & (v <= MAX_TEMP_C))
+
     rules = [("y_deg", not_a_mount, "{:g} is not a mount angle (0 or 180)"),
              ("u_deg", not_a_mount, "{:g} is not a mount angle (0 or 180)"),
              ("pitch_deg", out_of_range, "{:g}° is outside -360..360"),
@@ -62,6 +67,10 @@ def _check_angles(cols: dict[str, NDArray], where) -> None:
              ("replicate", not_a_replicate, "{:g} is not a whole number ≥ 1"),
              ("replicate", lambda v: v > MAX_REPLICATE,
               f"{{:g}} is beyond any replicate number (1 to {MAX_REPLICATE:g})")]
+    if "temp_c" in cols:  # 1e308 °C overflowed the temperature terms' products
+        rules.append(("temp_c", not_a_temperature,
+                      f"{{:g}} °C is no temperature a calibration is made at ({ABSOLUTE_ZERO_C:g} < t ≤ "
+                      f"{MAX_TEMP_C:g} °C)"))
     # each rule judges a value alone: judged on a column's few distinct values, a clean million-row
     # file passes in a tenth of the time; a column with a bad value is searched row by row
     distinct = {name: np.unique(cols[name]) for name, _, _ in rules}
@@ -78,28 +87,67 @@ def read_numeric_csv(path: str | Path, kind: str, required: tuple[str, ...], opt
     """Numeric columns of a CSV with a header, by name; other columns are ignored.
 
     Every error names the file, the line and the column. ``check(columns, where)`` may validate
-    the rows further (see `_check_angles`).
+    the rows further (see `_check_angles`). Lines starting with "#" before the header are comments
+    (`read_readings` reads a units entry there).
     """
+    return _read_csv(path, kind, required, optional, check).columns
+
+
+class _Csv:
+    """What `_read_csv` read: the wanted columns, the comment lines before the header, the header,
+    and the file's text where it was read whole (a pipe, or a file the fast parser refused)."""
+
+    def __init__(self, columns: dict[str, NDArray], comments: list[str], header: list[str], text: str | None):
+        self.columns, self.comments, self.header, self.text = columns, comments, header, text
+
+
+MAX_COMMENT_LINES = 100  # comment lines before the header: a units entry, a note; never a whole file
+
+
+def _leading_comments(path: Path, text: str | None) -> list[str]:
+    """The lines starting with "#" before the header (at most MAX_COMMENT_LINES)."""
+    comments: list[str] = []
+    try:
+        with path.open(encoding="utf-8-sig", newline="") if text is None else io.StringIO(text) as f:
+            while len(comments) < MAX_COMMENT_LINES:
+                line = f.readline(1 << 16)
+                if not line.lstrip().startswith("#"):
+                    break
+                comments.append(line.rstrip("\r\n"))
+    except (OSError, UnicodeDecodeError):
+        return []  # the reader below says what is wrong with the file
+    return comments
+
+
+def _read_csv(path: str | Path, kind: str, required: tuple[str, ...], optional: tuple[str, ...] = (),
+              check=None) -> _Csv:
+    from labcal.config.streams import kind_of, read_pipe
+
     path = Path(path)
-    fast = _read_clean(path, required, optional)
+    piped = read_pipe(path, kind) if kind_of(path, kind) == "pipe" else None  # a pipe is read once
+    comments = _leading_comments(path, piped)
+    skip = len(comments)
+    fast = _read_clean(path, required, optional, piped, skip)
     if fast is not None:
         try:
             if check:
-                check(fast, lambda row: f"{path}: line {row + 2}")
-            return fast
+                check(fast[0], lambda row: f"{path}: line {row + 2 + skip}")
+            return _Csv(fast[0], comments, fast[1], piped)
         except LabcalError:
             pass  # say it with the exact line (blank lines are skipped above): read row by row
 
     from labcal.config.files import read_text  # pydantic, which a clean file does not need
 
-    text = read_text(path, kind)
+    text = read_text(path, kind) if piped is None else piped
     if not text.strip():
         raise LabcalError(f"{path}: file is empty; expected a header line {','.join(required)}")
-    reader = csv.reader(text.splitlines())
+    reader = csv.reader(text.splitlines()[skip:])
     try:
         header = [h.strip() for h in next(reader)]
     except csv.Error as exc:
-        raise LabcalError(f"{path}: line 1: {exc}; is this a readings CSV?") from None
+        raise LabcalError(f"{path}: line {1 + skip}: {exc}; is this a readings CSV?") from None
+    except StopIteration:
+        raise LabcalError(f"{path}: comments only; expected a header line {','.join(required)}") from None
     missing = [c for c in required if c not in header]
     if missing:
         raise LabcalError(
@@ -108,7 +156,7 @@ def read_numeric_csv(path: str | Path, kind: str, required: tuple[str, ...], opt
     wanted = required + tuple(c for c in optional if c in header)
     index = {c: header.index(c) for c in wanted}
     rows: list[list[float]] = []
-    line_no = 1
+    line_no = 1 + skip
     while True:
         try:
             row = next(reader)
@@ -116,7 +164,7 @@ def read_numeric_csv(path: str | Path, kind: str, required: tuple[str, ...], opt
             break
         except csv.Error as exc:  # e.g. a field over the csv module's limit of 131 072 characters
             raise LabcalError(f"{path}: line {line_no + 1}: {exc}; is this a readings CSV?") from None
-        line_no = reader.line_num
+        line_no = reader.line_num + skip
         if not any(cell.strip() for cell in row):
             continue
         where = f"{path}: line {line_no}"
@@ -129,17 +177,21 @@ def read_numeric_csv(path: str | Path, kind: str, required: tuple[str, ...], opt
     if not rows:
         raise LabcalError(f"{path}: header only, no data rows")
     data = np.array(rows)
-    return {c: data[:, k] for k, c in enumerate(wanted)}
+    return _Csv({c: data[:, k] for k, c in enumerate(wanted)}, comments, header, text)
 
 
-def _read_clean(path: Path, required: tuple[str, ...],
-                optional: tuple[str, ...]) -> dict[str, NDArray] | None:
+def _read_clean(path: Path, required: tuple[str, ...], optional: tuple[str, ...], text: str | None = None,
+                skip: int = 0) -> tuple[dict[str, NDArray], list[str]] | None:
     """The wanted columns of a clean file by numpy's C parser, or None where it refuses anything
     (a quote, an empty or non-numeric field, a short row, a field too long, bad encoding) or reads
     a value that is not finite: the row-by-row reader then says what and where. The header's last
-    column is parsed too, so that a row shorter than the header is refused as it is row by row."""
+    column is parsed too, so that a row shorter than the header is refused as it is row by row.
+    ``text``: the file's text, already read (from a pipe, which cannot be read twice); ``skip``:
+    the comment lines before the header. Returns the columns and the header."""
     try:
-        with path.open(encoding="utf-8-sig", newline="") as f:
+        with path.open(encoding="utf-8-sig", newline="") if text is None else io.StringIO(text) as f:
+            for _ in range(skip):
+                f.readline(1 << 16)
             header = [h.strip() for h in next(csv.reader([f.readline()]))]
         if any(c not in header for c in required):
             return None
@@ -147,23 +199,70 @@ def _read_clean(path: Path, required: tuple[str, ...],
         columns = sorted({header.index(c) for c in wanted} | {len(header) - 1})
         with warnings.catch_warnings():  # header only: the row-by-row reader says so in one line
             warnings.simplefilter("ignore", UserWarning)
-            data = np.loadtxt(path, delimiter=",", skiprows=1, usecols=columns, ndmin=2, comments=None,
-                              encoding="utf-8-sig", quotechar=None)
+            source = path if text is None else io.StringIO(text)
+            data = np.loadtxt(source, delimiter=",", skiprows=1 + skip, usecols=columns, ndmin=2,
+                              comments=None, encoding="utf-8-sig", quotechar=None)
     except (OSError, ValueError, UnicodeDecodeError, csv.Error, StopIteration):
         return None
     if not len(data) or not np.isfinite(data).all():
         return None
-    return {c: data[:, columns.index(header.index(c))] for c in wanted}
+    return {c: data[:, columns.index(header.index(c))] for c in wanted}, header
 
 
-def read_readings(path: str | Path) -> Readings:
-    """Load and validate a readings CSV; raise LabcalError naming file, line and column."""
-    cols = read_numeric_csv(path, "readings", REQUIRED, OPTIONAL, _check_angles)
+UNITS = ("V", "mV", "counts", "m/s2")  # what an instrument's outputs may be read in
+_UNIT_SPELLINGS = {"v": "V", "volt": "V", "volts": "V", "mv": "mV", "millivolt": "mV", "millivolts": "mV",
+                   "count": "counts", "counts": "counts", "lsb": "counts", "m/s2": "m/s2", "m/s^2": "m/s2",
+                   "m/s²": "m/s2", "m s-2": "m/s2"}
+_UNITS_COMMENT = re.compile(r"^\s*#\s*units\s*[=:]\s*(.*?)\s*$", re.IGNORECASE)
+
+
+def unit_named(text: str, where: str) -> str:
+    """One of UNITS from how a person writes it ("mV", "millivolts", "m/s^2"); one line otherwise."""
+    unit = _UNIT_SPELLINGS.get(text.strip().strip("\"'").lower())
+    if unit is None:
+        raise LabcalError(f"{where}: units {text.strip()!r} is not one of {', '.join(UNITS)}")
+    return unit
+
+
+def _units_of(path: Path, read: _Csv) -> str | None:
+    """The units a readings file states: a "# units = mV" line before the header, or a units
+    column (one value throughout); None where it states none. Both must agree."""
+    stated: dict[str, str] = {}
+    for k, line in enumerate(read.comments):
+        match = _UNITS_COMMENT.match(line)
+        if match:
+            stated[unit_named(match[1], f"{path}: line {k + 1}")] = f"line {k + 1}"
+    if "units" in read.header:
+        from labcal.config.files import read_text
+
+        text = read.text if read.text is not None else read_text(path, "readings")
+        column = read.header.index("units")
+        rows = csv.reader(text.splitlines()[len(read.comments) + 1:])
+        values = {row[column].strip() for row in rows if len(row) > column and row[column].strip()}
+        for value in values:
+            stated[unit_named(value, f"{path}: column units")] = "column units"
+    if len(stated) > 1:
+        raise LabcalError(f"{path}: the file states more than one unit ({', '.join(sorted(stated))}); "
+                          "its outputs must all be in one")
+    return next(iter(stated), None)
+
+
+def read_readings(path: str | Path, units: str | None = None) -> Readings:
+    """Load and validate a readings CSV; raise LabcalError naming file, line and column.
+
+    The outputs' unit is ``units`` (from --units), else what the file states ("# units = mV" before
+    the header, or a units column), else volts; --units and the file must not disagree."""
+    read = _read_csv(path, "readings", REQUIRED, OPTIONAL, _check_angles)
+    stated = _units_of(Path(path), read)
+    if units is not None and stated is not None and units != stated:
+        raise LabcalError(f"{path}: the file states its outputs in {stated}, --units says {units}; leave out "
+                          "--units or correct the file")
+    cols = read.columns
     return Readings(
         replicate=cols["replicate"].astype(int),
         y_deg=cols["y_deg"], u_deg=cols["u_deg"], pitch_deg=cols["pitch_deg"], roll_deg=cols["roll_deg"],
         volts=np.column_stack([cols["vx"], cols["vy"], cols["vz"]]),
-        temp_c=cols.get("temp_c"),
+        temp_c=cols.get("temp_c"), units=units or stated or "V",
     )
 
 

@@ -6,14 +6,16 @@ side. Kept apart from the certificate's own tables so that the certificate can c
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from matplotlib.figure import Figure
 
 from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.fit import SENSORS
 from labcal.run.record import RunRecord
+
+if TYPE_CHECKING:  # matplotlib only where a figure is drawn: a run stores device.json without it
+    from matplotlib.figure import Figure
 
 TITLE_Y = 1.0  # titles at a fixed height, as the report's figures have them (labcal.documents.report)
 
@@ -61,6 +63,8 @@ def device_rows(fit: DeviceFit) -> list[tuple[str, list[str], list[list[str]], s
 def residuals_side_by_side(fit: DeviceFit, record: RunRecord) -> Figure:
     """Residuals against pitch and roll, linear model beside device model, per sensor (µV)."""
     r = record.readings
+    from matplotlib.figure import Figure
+
     fig = Figure(figsize=(11, 10))
     fig.subplots_adjust(left=0.08, right=0.98, top=0.92, bottom=0.06, hspace=0.42, wspace=0.25)
     axes = fig.subplots(3, 4, squeeze=False)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Literal, Protocol
 
@@ -28,7 +29,12 @@ class OperatorDeclined(Exception):
     """The operator chose to stop at a prompt (or nobody answered)."""
 
 
+Heard = Callable[[str, str], None]  # (the reply, what it did) for a reply that kept a prompt open
+
+
 class Operator(Protocol):
+    heard: Heard | None  # told of every reply that keeps a prompt open, so the journal has each answer
+
     def confirm_mount(self, mount: Mount, step: int, n_steps: int, note: str = "") -> None:
         """Return once the instrument is mounted as asked; raise OperatorDeclined to stop."""
 
@@ -91,6 +97,7 @@ class _Asking:
     """Shared by the console and the scripted operator: only where answers come from differs."""
 
     console: Console
+    heard: Heard | None = None
 
     def answer(self, question: str) -> str:
         raise NotImplementedError
@@ -120,6 +127,8 @@ class _Asking:
                 self.say("Take your time: nothing moves until you answer.")
             else:
                 self.say(f"[yellow]{reply!r} is not one of the answers.[/]")
+            if self.heard is not None:
+                self.heard(reply, "not yet" if reply in NOT_YET else "not one of the answers")
 
     def confirm_mount(self, mount: Mount, step: int, n_steps: int, note: str = "") -> None:
         self.call()

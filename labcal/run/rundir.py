@@ -11,6 +11,7 @@ without importing the sequencer.
 from __future__ import annotations
 
 import json
+import os
 import re
 from datetime import UTC, datetime
 from pathlib import Path
@@ -104,6 +105,27 @@ def open_run(run_dir: Path) -> tuple[dict, Journal, RunRow]:
         journal.close()
         raise
     return info, journal, row
+
+
+def recorded_folder(journal: Journal, row: RunRow) -> Path:
+    """The run's folder as the journal records it. Runs record it absolute, so that `labcal
+    export RUN_ID` from another folder finds it; an older run recorded it as given, relative to
+    the folder the run was started in, which the journal does not say. Such a one is taken only
+    where a folder at that relative path here shows this very run (run.json: same journal, run id
+    and identity); otherwise one line asks for --out."""
+    path = Path(row.run_dir)
+    if path.is_absolute():
+        return path
+    try:
+        info = read_run_json(path)
+        same_journal = Path(str(info.get("journal"))).resolve() == journal.path.resolve()
+        if same_journal and info.get("run_id") == row.id:
+            check_identity(path, info, row)
+            return Path(os.path.abspath(path))
+    except (LabcalError, OSError):
+        pass
+    raise LabcalError(f"run {row.id}: its folder was recorded as {row.run_dir}, relative to the folder the "
+                      "run was started in, which the journal does not say; run this there, or give --out DIR")
 
 
 def check_identity(run_dir: Path, info: dict, row: RunRow) -> None:

@@ -6,6 +6,7 @@ people and other programs read, rewritten whenever the run stops for any reason.
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -134,7 +135,7 @@ def calibrate(plan: Plan, plan_text: str, station: Station, station_text: str, o
               operator_name: str | None = None, steps: list[Step] | None = None) -> RunResult:
     """Start a new run: manifest first (its folder's files derived from it), then every point."""
     run_id = journal.start_run(Manifest(
-        run_dir=str(run_dir), plan_name=plan.name, plan_text=plan_text, station_text=station_text,
+        run_dir=os.path.abspath(run_dir), plan_name=plan.name, plan_text=plan_text, station_text=station_text,
         software_version=__version__, settings=settings.model_dump(),
         metadata={"station": station.description, **(metadata or {})},
         instrument_serial=serial, operator=operator_name))

@@ -288,12 +288,19 @@ class Sequencer:
     def ask(self, kind: str, question, *args) -> object:
         """A prompt, with the tables still, its answer journaled."""
         self.event("prompt", kind, args=[str(a) for a in args])
+
+        def heard(reply: str, meaning: str) -> None:  # "n" and the like: journaled as they come
+            self.event("answer", f"{kind}: {reply!r} ({meaning}; the prompt stays open)")
+
+        self.operator.heard = heard
         try:
             with self.display.pause(), self.interrupts.prompting():
                 answer = question(*args)
         except OperatorDeclined as exc:
             self.event("answer", f"{kind}: declined", reason=str(exc))
             raise
+        finally:
+            self.operator.heard = None
         self.event("answer", f"{kind}: {answer if answer is not None else 'confirmed'}")
         return answer
 
@@ -324,7 +331,10 @@ class Sequencer:
 
     def pause(self, why: str) -> None:
         self.event("pause", why, may_be_moving=list(self.moving))
-        choice = self.ask("pause", self.operator.after_pause, why, self.moving)
+        try:
+            choice = self.ask("pause", self.operator.after_pause, why, self.moving)
+        except OperatorDeclined as exc:  # nobody answered (an unattended run): the pause's cause ended it
+            raise OperatorDeclined(f"{why}; paused, and {exc}") from None
         if choice == "abort":
             raise OperatorDeclined(f"operator aborted the run after a pause ({why})")
         self.interrupts.resumed()
