@@ -68,7 +68,12 @@ class IndexAxis(ABC):
 
     @abstractmethod
     def _halt(self) -> None:
-        """Tell the device to stop."""
+        """Tell the device to stop, and make sure it took the stop (retried where safe)."""
+
+    @abstractmethod
+    def send_stop(self) -> None:
+        """Put a stop on the line once, waiting for no acknowledgement and retrying nothing, so that
+        the other table's stop follows at once whatever this device does (`stop` confirms it)."""
 
     @abstractmethod
     def identify(self) -> str:

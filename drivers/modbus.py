@@ -22,11 +22,14 @@ from pymodbus.exceptions import ConnectionException, ModbusIOException
 from pymodbus.pdu import ExceptionResponse, ModbusPDU
 
 from labcal.drivers.errors import BadReply, Busy, NoReply, PortClosed, Rejected
-from labcal.drivers.transport import reconnect, retried
+from labcal.drivers.transport import reconnect, retried, uninterruptible
 from labcal.run.station import CriticalSection
 
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())  # our errors say it in one line
 log = logging.getLogger(__name__)
+
+BROADCAST = 0  # the address every slave on a serial line obeys and none answers (Modbus over Serial Line
+# V1.02 §2.2; AZ: hardware_protocols.md §2.1, "0 = broadcast (no reply)"); a gateway forwards it as such
 
 EXCEPTION_CODES = {
     1: "illegal function", 2: "illegal data address", 3: "illegal data value",
@@ -169,6 +172,18 @@ class ModbusLink:
     def write_one(self, unit: int, address: int, value: int) -> None:
         """FC 06, write single register."""
         self._exchange(lambda: self.client.write_register(address, value, device_id=unit), 0x06, address, 1)
+
+    def broadcast_one(self, address: int, value: int) -> None:
+        """FC 06 to every unit on the bus at once, sent once: nobody answers a broadcast, so nothing
+        is waited for and nothing retried (a stop that must not wait for a dead unit's retries)."""
+        with uninterruptible(self.critical):
+            if not self.client.connected:
+                reconnect(self.open_port, 0.0, self.where)  # one attempt: the stop's confirmation retries
+            try:
+                self.client.write_register(address, value, device_id=BROADCAST, no_response_expected=True)
+            except ConnectionException as exc:
+                self.close()
+                raise PortClosed(f"{self.where} closed ({exc})") from None
 
     def _exchange(self, request: Callable[[], object], function_code: int, address: int,
                   count: int) -> list[int]:

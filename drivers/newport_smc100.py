@@ -109,6 +109,7 @@ class Smc100Axis(IndexAxis):
         self.speed_dps, self.accel_dps2 = speed_dps, accel_dps2
         self.home_timeout_s = home_timeout_s
         self.tries = retries + 1
+        self._unread_te = False  # a `send_stop` whose TE is still in the controller
 
     # --- exchanges --------------------------------------------------------------------------
     def _error_code(self) -> str:
@@ -197,9 +198,22 @@ class Smc100Axis(IndexAxis):
             return
         raise DeviceFault(f"after {command}: {describe_state(errors, state)}", self.device)
 
+    def send_stop(self) -> None:
+        """``ST`` once, without its ``TE``: a command gets no reply, so the next controller's ``ST``
+        follows it on the chain at once. `stop` then reads the ``TE`` this leaves (a stage NOT
+        REFERENCED refuses ``ST`` with error H, which must not be taken for the next command's)."""
+        with on_device(self.device):
+            self._unread_te = True
+            self.link.write_line(f"{self.address}ST")
+
     def _halt(self) -> None:
         """``ST``, but only to a stage that can be moving: the controller refuses ``ST`` when NOT
-        REFERENCED. When the state cannot be read, ``ST`` is sent anyway (a stop must be tried)."""
+        REFERENCED. When the state cannot be read, ``ST`` is sent anyway (a stop must be tried).
+        After `send_stop`, its ``TE`` is read first (any refusal there is of that ``ST``)."""
+        if self._unread_te:
+            code = self.ask("TE", parse_error_code)
+            self._unread_te = False
+            log.debug("%s: the ST sent without TE left %s", self.device, code)
         try:
             state = self.ask("TS", parse_state)[1]
         except TRANSIENT as exc:

@@ -176,6 +176,13 @@ class AzAxis(IndexAxis):
             self.link.write_one(self.unit, INPUT_REF + 1, Input.STOP)
         self.release_stop()
 
+    def send_stop(self) -> None:
+        """STOP on in every drive on the bus, by one broadcast frame that no drive answers: one
+        frame stops both tables of a shared line, and a drive that does not answer delays nothing.
+        `stop` then sets it again per drive, confirmed, and releases it."""
+        with on_device(self.device):
+            self.link.broadcast_one(INPUT_REF + 1, Input.STOP)
+
     def stop_input_on(self) -> bool:
         """Whether the drive's STOP input (reference input command) is on."""
         return bool(words_int32(*self._read(INPUT_REF, 2)) & Input.STOP)

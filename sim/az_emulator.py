@@ -101,6 +101,9 @@ OPERATION_DATA_ERROR = 0x70  # speed 0, a wrap type with the wrap setting off
 NOT_RESETTABLE = frozenset({0x20, 0x28, 0x33, 0x41})  # overcurrent, sensor, absolute position, EEPROM
 DEFAULT_ALARM = EXCESSIVE_DEVIATION
 WRAP_WAYS = {Op.WRAP_PROXIMITY: "shortest", Op.WRAP_FORWARD: "forward", Op.WRAP_REVERSE: "reverse"}
+BROADCAST = 0  # every drive executes a request to address 0 and none answers (§2.1: "0 = broadcast (no
+# reply)", and its simulator checklist "Broadcast (address 0): execute, no reply"; Modbus over Serial
+# Line V1.02 §2.2)
 T35_ABOVE_19200_S = 1.75e-3  # Modbus over Serial Line V1.02 §2.5.1.1: t3.5 fixed above 19200 Bd
 
 
@@ -142,6 +145,7 @@ class AzDrives:
 
     def __init__(self, rig: EmulatedRig, units: dict[int, AzUnit]):
         self.rig, self.units = rig, units
+        self.stops: list[tuple[str, float]] = []  # (table, rig time) of each STOP input turned on
 
     def _steps(self, unit: AzUnit) -> int:
         """Feedback position in device steps (within one turn if the wrap setting is on)."""
@@ -200,6 +204,7 @@ class AzDrives:
 
     def _inputs(self, unit: AzUnit, rising: In) -> None:
         if In.STOP in rising:
+            self.stops.append((unit.name, self.rig.clock.now()))
             self.rig.axis(unit.name).stop()
         if In.ALM_RST in rising:
             self._maintenance(unit, ALARM_RESET)
@@ -276,7 +281,7 @@ class AzServer:
     async def _open(self) -> None:
         ep = self.endpoint
         if ep.kind == "tcp":
-            self._server = ModbusTcpServer(self._devices(), address=(ep.host, ep.port),
+            self._server = ModbusTcpServer(self._devices(), address=(ep.host, ep.port), broadcast_enable=True,
                                            trace_pdu=self._trace_pdu, trace_packet=self._trace_packet)
         else:
             if ep.kind == "pty":
@@ -285,8 +290,8 @@ class AzServer:
             else:
                 port = f"socket://{ep.host}:{ep.port}"
             self._server = ModbusSerialServer(self._devices(), framer=FramerType.RTU, port=port,
-                                              baudrate=115200, trace_pdu=self._trace_pdu,
-                                              trace_packet=self._trace_packet)
+                                              baudrate=115200, broadcast_enable=True,
+                                              trace_pdu=self._trace_pdu, trace_packet=self._trace_packet)
         await self._server.serve_forever(background=True)
         if ep.kind != "pty":
             # pymodbus types the transport as asyncio.BaseTransport; a listener's is an asyncio.Server
@@ -311,7 +316,11 @@ class AzServer:
 
     # --- faults and semantics ---------------------------------------------------------------
     def _trace_pdu(self, sending: bool, pdu: ModbusPDU) -> ModbusPDU:
-        if not sending:
+        if not sending and pdu.dev_id == BROADCAST:
+            self._current = self._request_gap = None  # every drive executes it; no reply leaves, so
+            if self.endpoint.kind != "tcp":  # the line is quiet from the frame's end
+                self._line_quiet_from = time.monotonic()
+        elif not sending:
             unit = self.drives.units.get(pdu.dev_id)
             description = f"fc{pdu.function_code:02d} {getattr(pdu, 'address', 0):04X}"
             injector = self.faults.get(unit.name) if unit else None

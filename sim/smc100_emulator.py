@@ -62,6 +62,7 @@ class Smc100Emulator:
     def __init__(self, rig: EmulatedRig, positioners: dict[int, Positioner]):
         self.rig = rig
         self.positioners = positioners
+        self.stops: list[tuple[str, float]] = []  # (table, rig time) of each ST a controller received
 
     # --- LineDevice -------------------------------------------------------------------------
     def route(self, line: str) -> str:
@@ -137,6 +138,7 @@ class Smc100Emulator:
                 why = OUT_OF_LIMITS
             return self._fail(p, why, lambda: self._move(p, target, MOVING_STATE))
         if mnemonic == "ST":  # refused in NOT REFERENCED and CONFIGURATION; a no-op when still
+            self.stops.append((p.name, self.rig.clock.now()))
             if p.state in NOT_REFERENCED | CONFIGURATION:
                 return self._fail(p, self._state_error(p), None)
             if p.state in MOVING | HOMING:

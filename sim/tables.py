@@ -67,7 +67,14 @@ class SimAxis:
     def position(self) -> float:
         return float(self.angle_at(self.clock.now())) % 360.0
 
+    def send_stop(self) -> None:
+        """A simulated table takes its stop at once: `stop` then finds it still."""
+        self._halt()
+
     def stop(self) -> None:
+        self._halt()
+
+    def _halt(self) -> None:
         now = self.clock.now()
         if now < self._t_motion_end:  # freeze where it is (an instant stop is enough for a sim)
             here = float(self.angle_at(now))

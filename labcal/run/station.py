@@ -36,8 +36,12 @@ class RotaryAxis(Protocol):
     def position(self) -> float:
         """Present position in degrees, 0..360."""
 
+    def send_stop(self) -> None:
+        """Put a stop on its way at once, waiting for no reply (`Station.stop` sends every table's
+        before it confirms any)."""
+
     def stop(self) -> None:
-        """Stop at once. Must always reach the device."""
+        """Stop at once, confirmed (retried where safe). Must always reach the device."""
 
 
 @dataclass(frozen=True)
@@ -98,10 +102,18 @@ class Station:
     description: str = "station"
 
     def stop(self) -> None:
-        """Stop both tables; each stop is attempted even if the other fails. `StopFailed` names
-        every table whose stop did not reach it."""
+        """Stop both tables at once: every table's stop is sent first, once and without waiting for
+        any reply, and only then is each confirmed (with its retries), so that a controller that does
+        not answer never delays the other table's stop. Each is attempted even if the other fails.
+        `StopFailed` names every table whose stop was not confirmed."""
+        tables = (("pitch", self.pitch), ("roll", self.roll))
+        for _, axis in tables:
+            try:
+                axis.send_stop()
+            except Exception:  # noqa: BLE001, S110 - the confirmation below stops it, or says it did not
+                pass
         failures: dict[str, Exception] = {}
-        for table, axis in (("pitch", self.pitch), ("roll", self.roll)):
+        for table, axis in tables:
             try:
                 axis.stop()
             except Exception as exc:  # noqa: BLE001 - both axes must get their stop
