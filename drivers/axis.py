@@ -14,7 +14,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 from labcal.drivers.errors import DeviceFault, OutOfLimits
-from labcal.run.station import Clock
+from labcal.run.station import Clock, TableState
 
 log = logging.getLogger(__name__)
 ARCSEC_PER_DEG = 3600.0
@@ -136,6 +136,14 @@ class IndexAxis(ABC):
 
     def position(self) -> float:
         return self.angle() % 360.0
+
+    def state(self) -> TableState:
+        """Status, then position, against the last commanded target and the station's tolerance."""
+        status = self.status()
+        here = self.angle()
+        off = None if self._target is None else wrapped(here - self._target) * ARCSEC_PER_DEG
+        return TableState(self.device, status.fault, status.moving, status.in_position, here % 360.0, off,
+                          self.tolerance_arcsec, status.words)
 
     def stop(self) -> None:
         """Tell the device to stop; a stop that fails is logged as a WARNING and raised."""

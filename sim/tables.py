@@ -10,6 +10,7 @@ from numpy.typing import NDArray
 
 from labcal.errors import LabcalError
 from labcal.run.motion import trapezoid_duration, trapezoid_travel
+from labcal.run.station import TableState
 from labcal.sim.clock import RigClock
 
 __all__ = ["SimAxis", "trapezoid_duration", "trapezoid_travel"]  # the tables move by labcal's profile
@@ -30,11 +31,23 @@ class SimAxis:
         self._t_start = -math.inf
         self._t_motion_end = -math.inf
         self.travel_deg = 0.0
+        self.tolerance_arcsec = 5.0  # as a station's in_position_arcsec by default
+        self._target: float | None = None
+        self._slip = (0.0, math.inf, 0.0)  # (start time, duration, degrees): a drift no move commanded
 
     def angle_at(self, t: NDArray | float) -> NDArray:
         """True table angle (deg, unwrapped) at time(s) t."""
-        return self._start_angle + trapezoid_travel(np.asarray(t) - self._t_start, self._distance,
-                                                    self.speed, self.accel)
+        t = np.asarray(t)
+        t0, duration, slip_deg = self._slip
+        slipped = slip_deg * np.clip((t - t0) / duration, 0.0, 1.0) if slip_deg else 0.0
+        return self._start_angle + trapezoid_travel(t - self._t_start, self._distance, self.speed,
+                                                    self.accel) + slipped
+
+    def slip(self, degrees: float, duration_s: float) -> None:
+        """The table creeps ``degrees`` over ``duration_s`` from now, though nothing commanded it (a
+        slipping coupling, a servo pushed off its position): what a fault scenario injects. The next
+        move starts from where the creep left it."""
+        self._slip = (self.clock.now(), max(duration_s, 1e-9), degrees)
 
     def moving_between(self, t0: float, t1: float) -> bool:
         return t0 < self._t_motion_end and t1 > self._t_start
@@ -54,6 +67,7 @@ class SimAxis:
                  "forward": (angle_deg - current) % 360.0,
                  "reverse": -((current - angle_deg) % 360.0)}[way]
         self._start_angle, self._distance, self._t_start = current, delta, now
+        self._slip, self._target = (0.0, math.inf, 0.0), current + delta
         self._t_motion_end = now + float(trapezoid_duration(delta, self.speed, self.accel))
         self.travel_deg += abs(delta)
 
@@ -67,6 +81,15 @@ class SimAxis:
     def position(self) -> float:
         return float(self.angle_at(self.clock.now())) % 360.0
 
+    def state(self) -> TableState:
+        now = self.clock.now()
+        here = float(self.angle_at(now))
+        off = None if self._target is None else ((here - self._target + 180.0) % 360.0 - 180.0) * 3600.0
+        moving, in_position = now < self._t_motion_end, now >= self._t_motion_end + self.clamp_s
+        return TableState(f"{self.name} table (simulated)", None, moving, in_position, here % 360.0, off,
+                          self.tolerance_arcsec, "moving" if moving else "in position" if in_position
+                          else "clamping")
+
     def send_stop(self) -> None:
         """A simulated table takes its stop at once: `stop` then finds it still."""
         self._halt()
@@ -79,3 +102,4 @@ class SimAxis:
         if now < self._t_motion_end:  # freeze where it is (an instant stop is enough for a sim)
             here = float(self.angle_at(now))
             self._start_angle, self._distance, self._t_start, self._t_motion_end = here, 0.0, now, now
+            self._slip = (0.0, math.inf, 0.0)  # the creep so far is in ``here``

@@ -22,10 +22,39 @@ CriticalSection = Callable[[], AbstractContextManager[None]]
 """A section a stop must not cut in half (the run's Ctrl-C handler defers a stop to its end)."""
 
 
+@dataclass(frozen=True)
+class TableState:
+    """What a table reports of itself, in the same terms for every table family: the sequencer reads
+    it before and after each measurement window, and discards a window it does not vouch for."""
+
+    device: str  # the table, in words ("roll table (Newport SMC100, address 2 on /dev/ttyUSB0)")
+    fault: str | None  # what its controller reports wrong, in words; None when healthy
+    moving: bool
+    in_position: bool
+    position_deg: float  # 0..360
+    off_arcsec: float | None  # position − the commanded one, folded; None when nothing was commanded
+    tolerance_arcsec: float  # the station's in_position_arcsec
+    words: str  # the controller's own status, for people
+
+    def problem(self) -> str | None:
+        """Why a window measured with the table in this state cannot be kept; None if it can."""
+        if self.fault:
+            return f"{self.device}: {self.fault}"
+        if self.moving:
+            return f"{self.device}: moving ({self.words})"
+        if self.off_arcsec is not None and abs(self.off_arcsec) > self.tolerance_arcsec:
+            return (f"{self.device}: at {self.position_deg:.5f}°, {self.off_arcsec:+.1f}″ off its commanded "
+                    f"position (tolerance {self.tolerance_arcsec:g}″)")
+        return None
+
+
 class RotaryAxis(Protocol):
     """One index table."""
 
     name: str
+
+    def state(self) -> TableState:
+        """Status and position, read now (no motion)."""
 
     def move_to(self, angle_deg: float) -> None:
         """Start a move to an absolute angle (shortest way round); returns at once."""
