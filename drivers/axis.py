@@ -79,6 +79,11 @@ class IndexAxis(ABC):
     def identify(self) -> str:
         """Who answers, in words (model, address, firmware where the device says)."""
 
+    def not_ready_why(self) -> str:
+        """What keeps a table without a fault from being ready, where its controller can say
+        ("; its STOP input is on ..."); empty when it cannot."""
+        return ""
+
     def prepare(self) -> None:
         """Make the table ready for a run (home it, enable it); refuses when it reports a fault."""
         status = self.status()
@@ -124,6 +129,11 @@ class IndexAxis(ABC):
                 off = wrapped(here - self._target) * ARCSEC_PER_DEG
                 if abs(off) <= self.tolerance_arcsec:
                     return here % 360.0
+                if not status.ready and (expired or self.clock.now() - start > START_GRACE_S):
+                    raise DeviceFault(  # it stands still because it would not start: not a stall
+                        f"the move to {self._target % 360.0:g}° did not start: the table is at "
+                        f"{here % 360.0:.5f}° and its controller is not ready ({status.words})"
+                        f"{self.not_ready_why()}", self.device)
                 if expired or self.clock.now() - start > START_GRACE_S:
                     raise DeviceFault(
                         f"in position at {here % 360.0:.5f}°, {off:+.1f}″ from the target "

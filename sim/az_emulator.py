@@ -7,8 +7,8 @@ the Modbus over Serial Line specification V1.02), so a misreading in the driver 
 disagreement. Every read is computed from the rig's physics at that moment, every write acts on
 it. Emulated: direct data operation (types absolute, incremental, wrap absolute/proximity/
 forward/reverse), the status bits (READY, MOVE, IN-POS after the table's clamp, ALM-A), present
-alarm and history, alarm reset, P-PRESET, the STOP input (a decelerating stop, and no operation
-starts while it stays on; READY is off meanwhile) and FREE, command and feedback position and
+alarm and history, alarm reset, P-PRESET, the STOP input (a decelerating stop at the table's rate, and
+no operation starts while it stays on; READY is off meanwhile) and FREE, command and feedback position and
 speed. On an RTU line a request that begins within t3.5 of the previous frame is dropped, as a
 strict slave does, and the silence before each request is recorded (`AzServer.gaps`). Not
 emulated: stored operation data, START/ZHOME inputs, parameters. Units answer on one bus: Modbus
@@ -203,9 +203,9 @@ class AzDrives:
         self.rig.axis(unit.name).stop()
 
     def _inputs(self, unit: AzUnit, rising: In) -> None:
-        if In.STOP in rising:
+        if In.STOP in rising:  # a decelerating stop (HM-60262E "STOP input"; §2.1 "Stop (decelerate)")
             self.stops.append((unit.name, self.rig.clock.now()))
-            self.rig.axis(unit.name).stop()
+            self.rig.axis(unit.name).decelerate()
         if In.ALM_RST in rising:
             self._maintenance(unit, ALARM_RESET)
         if In.FREE in rising:

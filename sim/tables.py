@@ -34,12 +34,17 @@ class SimAxis:
         self.tolerance_arcsec = 5.0  # as a station's in_position_arcsec by default
         self._target: float | None = None
         self._slip = (0.0, math.inf, 0.0)  # (start time, duration, degrees): a drift no move commanded
+        self._brake: tuple[float, float, float] | None = None  # a decelerating stop: (start, angle, speed)
 
     def angle_at(self, t: NDArray | float) -> NDArray:
         """True table angle (deg, unwrapped) at time(s) t."""
         t = np.asarray(t)
         t0, duration, slip_deg = self._slip
         slipped = slip_deg * np.clip((t - t0) / duration, 0.0, 1.0) if slip_deg else 0.0
+        if self._brake is not None:  # v·τ − a·τ²/2 until the speed is spent
+            start, here, v = self._brake
+            tau = np.clip(t - start, 0.0, abs(v) / self.accel)
+            return here + v * tau - math.copysign(0.5 * self.accel, v) * tau**2 + slipped
         return self._start_angle + trapezoid_travel(t - self._t_start, self._distance, self.speed,
                                                     self.accel) + slipped
 
@@ -62,6 +67,7 @@ class SimAxis:
         self._before_move()
         now = self.clock.now()
         current = float(self.angle_at(now))
+        self._brake = None
         delta = {"shortest": (angle_deg - current + 180.0) % 360.0 - 180.0,
                  "direct": angle_deg - current,
                  "forward": (angle_deg - current) % 360.0,
@@ -97,9 +103,24 @@ class SimAxis:
     def stop(self) -> None:
         self._halt()
 
+    def decelerate(self) -> None:
+        """A decelerating stop, as a drive's STOP input and an SMC100's ``ST`` make one: from the
+        speed it has now the table slows at its acceleration, and is still only once that is spent."""
+        now = self.clock.now()
+        if now >= self._t_motion_end:
+            return
+        self._before_move()
+        h = 1e-6  # the speed now, by a central difference (exact on each parabolic piece of the profile)
+        speed = float(self.angle_at(now + h) - self.angle_at(now - h)) / (2 * h)
+        here = float(self.angle_at(now))
+        self._slip = (0.0, math.inf, 0.0)  # the creep so far is in ``here``
+        self._brake = (now, here, speed)
+        self._t_motion_end = now + abs(speed) / self.accel
+
     def _halt(self) -> None:
         now = self.clock.now()
         if now < self._t_motion_end:  # freeze where it is (an instant stop is enough for a sim)
             here = float(self.angle_at(now))
+            self._brake = None
             self._start_angle, self._distance, self._t_start, self._t_motion_end = here, 0.0, now, now
             self._slip = (0.0, math.inf, 0.0)  # the creep so far is in ``here``

@@ -18,6 +18,14 @@ from labcal.sim.faults import Fault
 QUICK = {"timeout_s": 0.1, "retries": 2, "reconnect_s": 0.5}
 
 
+def until_still(axis, within_s: float = 30.0) -> None:
+    """Wait until the controller says the stage no longer moves (a stop decelerates first)."""
+    deadline = time.monotonic() + within_s
+    while axis.status().moving:
+        assert time.monotonic() < deadline, "still moving"
+        time.sleep(0.005)
+
+
 station, smc, smc_slow = bench_fixtures(["smc100-serial", "smc100-tcp"], pitch=QUICK, roll=QUICK)
 
 
@@ -210,6 +218,7 @@ def test_stop_after_an_exchange_torn_by_ctrl_c(smc_slow):
         bench.roll.angle()
     bench.roll.link.read_line = read_line
     bench.roll.stop()
+    until_still(bench.roll)  # ST is a decelerating stop: MOVING until the stage is still
     now, table = emulation.rig.clock.now(), emulation.rig.axis("roll")
     assert table.motion_end <= now and 0 < abs(float(table.angle_at(now))) < 179  # stopped mid-move
     assert bench.roll.status().words == "READY from MOVING (33h)"

@@ -93,6 +93,10 @@ def test_stop_reaches_the_drive_mid_move(az_slow):
     pitch, table = bench.pitch, emulation.rig.axis("pitch")
     pitch.move_to(180)  # ~10 s of table time, 0.5 s of wall time
     pitch.stop()
+    deadline = time.monotonic() + 30
+    while pitch.status().moving:  # a decelerating stop: MOVE stays on until the table is still
+        assert time.monotonic() < deadline
+        time.sleep(0.005)
     now = emulation.rig.clock.now()
     assert table.motion_end <= now and 0 < abs(float(table.angle_at(now))) < 179  # stopped short
     assert not pitch.status().moving

@@ -18,6 +18,8 @@ from numpy.typing import NDArray
 from labcal.analysis.kinematics import Mount
 from labcal.errors import LabcalError
 
+STILL_WITHIN_S = 30.0  # a stopped table decelerating from full speed is still long before this
+STILL_POLL_S = 0.05
 CriticalSection = Callable[[], AbstractContextManager[None]]
 """A section a stop must not cut in half (the run's Ctrl-C handler defers a stop to its end)."""
 
@@ -147,8 +149,34 @@ class Station:
                 axis.stop()
             except Exception as exc:  # noqa: BLE001 - both axes must get their stop
                 failures[table] = exc
+        failures.update(self._until_still([(table, axis) for table, axis in tables if table not in failures]))
         if failures:
             raise StopFailed(failures)
+
+    def _until_still(self, tables: list[tuple[str, RotaryAxis]]) -> dict[str, Exception]:
+        """Wait until each stopped table's status says it is not moving (a stop decelerates): only
+        then are the tables still, as the pause prompt says. A table whose status cannot be read, or
+        that still moves after `STILL_WITHIN_S`, may be moving."""
+        deadline = self.clock.now() + STILL_WITHIN_S
+        failures: dict[str, Exception] = {}
+        waiting = dict(tables)
+        while waiting:
+            for table, axis in list(waiting.items()):
+                try:
+                    state = axis.state()
+                except Exception as exc:  # noqa: BLE001 - whatever went wrong, it may be moving
+                    failures[table] = exc
+                    del waiting[table]
+                    continue
+                if not state.moving:
+                    del waiting[table]
+                elif self.clock.now() >= deadline:
+                    failures[table] = LabcalError(f"still moving {STILL_WITHIN_S:g} s after its stop "
+                                                  f"({state.words})")
+                    del waiting[table]
+            if waiting:
+                self.clock.sleep(STILL_POLL_S)
+        return failures
 
 
 class StopFailed(LabcalError):
