@@ -118,7 +118,7 @@ def unvouched(before: tuple[TableState, ...], after: tuple[TableState, ...]) -> 
     for when, states in (("before", before), ("after", after)):
         for state in states:
             if problem := state.problem():
-                found.append((state.fault is not None, f"{problem} ({when} the measurement window)"))
+                found.append((state.fault is not None, f"{when} the measurement window, {problem}"))
     if not found:
         return None, False
     faulted, why = max(found, key=lambda item: item[0])
