@@ -254,6 +254,9 @@ class AzServer:
         self._current: Fault | None = None  # the fault of the request being executed
         self.gaps: list[float] = []  # RTU: silence before each request since the last frame, s
         self.dropped = 0  # RTU requests dropped for starting within t3.5
+        self.after_broadcast: list[float] = []  # RTU: silence before the first request after each broadcast
+        self._broadcast_heard = False
+        self._last_rx = 0.0  # when the last bytes arrived (RTU)
         self._line_quiet_from: float | None = None  # when our last reply left
         self._request_gap: float | None = None  # the silence before the request being received
         self._server: ModbusTcpServer | ModbusSerialServer | None = None
@@ -318,8 +321,9 @@ class AzServer:
     def _trace_pdu(self, sending: bool, pdu: ModbusPDU) -> ModbusPDU:
         if not sending and pdu.dev_id == BROADCAST:
             self._current = self._request_gap = None  # every drive executes it; no reply leaves, so
-            if self.endpoint.kind != "tcp":  # the line is quiet from the frame's end
-                self._line_quiet_from = time.monotonic()
+            if self.endpoint.kind != "tcp":  # the line is quiet from the frame's last bytes
+                self._line_quiet_from = self._last_rx
+                self._broadcast_heard = True
         elif not sending:
             unit = self.drives.units.get(pdu.dev_id)
             description = f"fc{pdu.function_code:02d} {getattr(pdu, 'address', 0):04X}"
@@ -358,11 +362,16 @@ class AzServer:
         bytes of the next request arriving (pymodbus traces every chunk it reads; the first chunk
         after a complete frame starts a request)."""
         now = time.monotonic()
+        if not sending:
+            self._last_rx = now
         if sending:
             self._line_quiet_from = now
         elif self._request_gap is None and self._line_quiet_from is not None:
             self._request_gap = now - self._line_quiet_from
             self.gaps.append(self._request_gap)
+            if self._broadcast_heard:
+                self.after_broadcast.append(self._request_gap)
+                self._broadcast_heard = False
             self._line_quiet_from = None
     def _action(self, unit_id: int):
         unit = self.drives.units[unit_id]

@@ -7,7 +7,7 @@ import time
 
 import pytest
 import serial
-from emulators import bench_fixtures, emulated, no_leaks  # noqa: F401 - fixture
+from emulators import bench_fixtures, emulated, no_leaks, until_still  # noqa: F401 - fixture
 
 from labcal.config.emulation import FaultKind
 from labcal.drivers.errors import BadReply, DeviceFault, LinkLost, NoReply, OutOfLimits, Rejected
@@ -16,14 +16,6 @@ from labcal.drivers.transport import LineTransport, SerialStream
 from labcal.sim.faults import Fault
 
 QUICK = {"timeout_s": 0.1, "retries": 2, "reconnect_s": 0.5}
-
-
-def until_still(axis, within_s: float = 30.0) -> None:
-    """Wait until the controller says the stage no longer moves (a stop decelerates first)."""
-    deadline = time.monotonic() + within_s
-    while axis.status().moving:
-        assert time.monotonic() < deadline, "still moving"
-        time.sleep(0.005)
 
 
 station, smc, smc_slow = bench_fixtures(["smc100-serial", "smc100-tcp"], pitch=QUICK, roll=QUICK)

@@ -11,6 +11,7 @@ from emulators import emulated, no_leaks  # noqa: F401 - fixture
 
 from labcal.config.emulation import FaultKind
 from labcal.run.station import StopFailed
+from labcal.sim.az_emulator import AzServer
 from labcal.sim.emulation import Emulation
 from labcal.sim.faults import Fault
 
@@ -77,3 +78,16 @@ def test_a_dead_controller_does_not_delay_the_live_tables_stop(station, dead, tm
     latency, failed = stop_latency(station, dead, tmp_path)
     assert 0 <= latency <= BOUND_S, f"the live table's stop arrived {latency:.3f} s after it was asked for"
     assert failed is not None and failed.tables == (dead,)
+
+
+def test_after_a_broadcast_stop_the_serial_line_keeps_the_turnaround(tmp_path, no_leaks):  # noqa: F811
+    """Modbus over Serial Line V1.02 §2.4.1: after a broadcast the master waits a turnaround delay
+    (typically 100 to 200 ms) for every slave to have processed it before its next request; without
+    it the next request follows after t3.5 (1.75 ms). The emulator measures the silence before the
+    first request after each broadcast from when the broadcast's bytes reached it, which may lag the
+    master's own clock by the emulator thread's scheduling: half the turnaround is the bound."""
+    with emulated("az-modbus-rtu", tmp_path, time_scale=1.0, pitch=LINK, roll=LINK) as (emulation, bench):
+        bench.pitch.move_to(90)
+        bench.station().stop()
+        server = next(s for _, _, s in emulation.servers.values() if isinstance(s, AzServer))
+        assert server.after_broadcast and min(server.after_broadcast) >= 0.05
