@@ -352,14 +352,16 @@ class Sequencer:
     def point(self, step: Step) -> int:
         """Measure one step (retrying once if it does not settle) and commit it; 1 if it failed.
         Each window is kept only if both tables vouch for it, before and after: healthy, still, and
-        on their commanded positions within the station's tolerance. A window they do not vouch for
-        is journaled as discarded, with why, and the point is moved to and measured again; one
-        during which a table reported a fault pauses the run instead (`TableFault`)."""
+        on their commanded positions within the station's tolerance. Before the first window that
+        is what the move has just verified (its last status and position reads); before a second
+        window, and after every window, their states are read. A window they do not vouch for is
+        journaled as discarded, with why, and the point is moved to and measured again; one during
+        which a table reported a fault pauses the run instead (`TableFault`)."""
         for _ in range(MEASURE_AGAIN + 1):
             pitch_read, roll_read = self.move(step.pitch_deg, step.roll_deg)
             for attempt in (1, 2):
                 t_start = self.station.clock.now() - self._t0
-                before = self.tables()
+                before = () if attempt == 1 else self.tables()  # () : verified by the move
                 result = self.measure(step.mount, f"{step.seq}:{attempt}")
                 why, faulted = unvouched(before, self.tables())
                 if why or result.verdict.settled:
