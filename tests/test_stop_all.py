@@ -6,10 +6,20 @@ the moment the stop was asked for."""
 
 from __future__ import annotations
 
+import json
+import sqlite3
+
 import pytest
+from conftest import quiet_console
 from emulators import emulated, no_leaks  # noqa: F401 - fixture
 
+from labcal.bench.setup import known_settle, prepare
 from labcal.config.emulation import FaultKind
+from labcal.config.plans import load_plan
+from labcal.config.settings import SequencerSettings
+from labcal.run.journal import Journal
+from labcal.run.operator import OperatorDeclined, ScriptedOperator
+from labcal.run.runner import calibrate
 from labcal.run.station import StopFailed
 from labcal.sim.az_emulator import AzServer
 from labcal.sim.emulation import Emulation
@@ -91,3 +101,48 @@ def test_after_a_broadcast_stop_the_serial_line_keeps_the_turnaround(tmp_path, n
         bench.station().stop()
         server = next(s for _, _, s in emulation.servers.values() if isinstance(s, AzServer))
         assert server.after_broadcast and min(server.after_broadcast) >= 0.05
+
+
+@pytest.mark.parametrize(("station", "dead"), [
+    ("az-modbus-tcp", "pitch"), ("smc100-serial", "pitch"), ("smc100-serial", "roll"),
+])
+def test_a_run_whose_controller_dies_stops_the_other_table_at_once(station, dead, tmp_path, no_leaks):  # noqa: F811
+    """Through the sequencer: one controller goes dead (obeys, never replies) as the run starts;
+    its first exchange fails after its retries, the run stops both tables and pauses naming the
+    dead one's table as the one that may still be moving. Each time the run asks for a stop (after
+    the fault, and when the operator aborts), the live table's stop reaches it within the bound.
+    Before, with the pitch controller dead, each of those stops reached the roll table only after
+    the pitch's three timeouts and two recoveries (2.8 s on AZ, measured here); with the SMC100
+    roll controller dead, no ST reached the pitch table at all (it was asked its state first)."""
+    live = "roll" if dead == "pitch" else "pitch"
+    plan, text = load_plan("one-mount-16")
+    (tmp_path / "answers.txt").write_text("y\na\n")
+    with emulated(station, tmp_path, time_scale=1.0, pitch=LINK, roll=LINK) as (emulation, bench):
+        hooks = emulation.hooks()
+        station_ = bench.station(**hooks)
+        prepare(bench, station_, say=lambda text: None)
+        asked: list[float] = []
+        stop = station_.stop
+
+        def timed_stop() -> None:
+            asked.append(emulation.rig.clock.now())
+            stop()
+
+        station_.stop = timed_stop  # type: ignore[method-assign]
+        emulation.faults[dead].add(Fault(FaultKind.NO_REPLY, count=DEAD))
+        settings = SequencerSettings(settle=known_settle(emulation.rig.rig.instrument), check_mount=False)
+        (tmp_path / "run").mkdir()
+        operator = ScriptedOperator(quiet_console(), tmp_path / "answers.txt")
+        with Journal(tmp_path / "j.sqlite") as journal, pytest.raises(OperatorDeclined):
+            calibrate(plan, text, station_, "test", operator, settings, tmp_path / "run", journal)
+        live_stops = [t for table, t in stops_seen(emulation) if table == live]
+    assert len(asked) == 2  # after the fault, and when the operator aborted at the pause
+    for t in asked:
+        assert any(s >= t for s in live_stops), f"no stop reached the {live} table"
+        first = min(s for s in live_stops if s >= t)
+        assert first - t <= BOUND_S, f"the {live} table's stop arrived {first - t:.3f} s after it was asked"
+    with sqlite3.connect(tmp_path / "j.sqlite") as con:
+        stops = [json.loads(d) for (d,) in con.execute("SELECT data FROM events WHERE kind = 'stop'")]
+        pauses = [m for (m,) in con.execute("SELECT message FROM events WHERE kind = 'pause'")]
+    assert len(stops) == 2 and all(s["may_be_moving"] == [dead] for s in stops)
+    assert len(pauses) == 1 and f"{dead} table" in pauses[0] and "no reply" in pauses[0]
