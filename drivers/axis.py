@@ -15,7 +15,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 from labcal.drivers.errors import DeviceFault, OutOfLimits
-from labcal.run.station import Clock
+from labcal.run.station import Clock, TableState
 from labcal.run.winding import Reach
 
 log = logging.getLogger(__name__)
@@ -74,11 +74,21 @@ class IndexAxis(ABC):
 
     @abstractmethod
     def _halt(self) -> None:
-        """Tell the device to stop."""
+        """Tell the device to stop, and make sure it took the stop (retried where safe)."""
+
+    @abstractmethod
+    def send_stop(self) -> None:
+        """Put a stop on the line once, waiting for no acknowledgement and retrying nothing, so that
+        the other table's stop follows at once whatever this device does (`stop` confirms it)."""
 
     @abstractmethod
     def identify(self) -> str:
         """Who answers, in words (model, address, firmware where the device says)."""
+
+    def not_ready_why(self) -> str:
+        """What keeps a table without a fault from being ready, where its controller can say
+        ("; its STOP input is on ..."); empty when it cannot."""
+        return ""
 
     def prepare(self) -> None:
         """Make the table ready for a run (home it, enable it); refuses when it reports a fault."""
@@ -138,6 +148,11 @@ class IndexAxis(ABC):
                 off = wrapped(here - self._target) * ARCSEC_PER_DEG
                 if abs(off) <= self.tolerance_arcsec:
                     return here % 360.0
+                if not status.ready and (expired or self.clock.now() - start > START_GRACE_S):
+                    raise DeviceFault(  # it stands still because it would not start: not a stall
+                        f"the move to {self._target % 360.0:g}° did not start: the table is at "
+                        f"{here % 360.0:.5f}° and its controller is not ready ({status.words})"
+                        f"{self.not_ready_why()}", self.device)
                 if expired or self.clock.now() - start > START_GRACE_S:
                     raise DeviceFault(
                         f"in position at {here % 360.0:.5f}°, {off:+.1f}″ from the target "
@@ -153,6 +168,14 @@ class IndexAxis(ABC):
 
     def winding(self) -> float | None:
         return self.angle() if self.counts_turns else None
+
+    def state(self) -> TableState:
+        """Status, then position, against the last commanded target and the station's tolerance."""
+        status = self.status()
+        here = self.angle()
+        off = None if self._target is None else wrapped(here - self._target) * ARCSEC_PER_DEG
+        return TableState(self.device, status.fault, status.moving, status.in_position, here % 360.0, off,
+                          self.tolerance_arcsec, status.words)
 
     def stop(self) -> None:
         """Tell the device to stop; a stop that fails is logged as a WARNING and raised."""

@@ -21,11 +21,16 @@ from pymodbus.exceptions import ConnectionException, ModbusIOException
 from pymodbus.pdu import ExceptionResponse, ModbusPDU
 
 from labcal.drivers.errors import BadReply, Busy, NoReply, PortClosed, Rejected
-from labcal.drivers.transport import open_serial, reconnect, retried
+from labcal.drivers.transport import open_serial, reconnect, retried, uninterruptible
 from labcal.run.station import CriticalSection
 
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())  # our errors say it in one line
 log = logging.getLogger(__name__)
+
+TURNAROUND_S = 0.1  # after a broadcast on a serial line the master waits this long before its next request,
+# for every slave to have processed it (Modbus over Serial Line V1.02 §2.4.1: "typically 100 ms to 200 ms")
+BROADCAST = 0  # the address every slave on a serial line obeys and none answers (Modbus over Serial Line
+# V1.02 §2.2; AZ: hardware_protocols.md §2.1, "0 = broadcast (no reply)"); a gateway forwards it as such
 
 EXCEPTION_CODES = {
     1: "illegal function", 2: "illegal data address", 3: "illegal data value",
@@ -119,6 +124,9 @@ class ModbusLink:
         self.tries = retries + 1
         self.reconnect_s = reconnect_s
         self.critical: CriticalSection | None = None  # the run's, while a run drives this link
+        self.turnaround_s = 0.0  # serial lines: the wait after a broadcast (a gateway keeps its own)
+        self._quiet_until = 0.0  # no request before this (monotonic): the turnaround of a broadcast
+        self._broadcast: tuple[int, int] | None = None  # the last broadcast (address, value)
 
     @classmethod
     def serial(cls, port: str, *, baudrate: int, bytesize: int, parity: str, stopbits: int,
@@ -137,8 +145,10 @@ class ModbusLink:
                                         stopbits=stopbits, timeout=timeout_s, write_timeout=timeout_s,
                                         inter_byte_timeout=client.inter_byte_timeout)
 
-        return cls(client, port, timeout_s=timeout_s, retries=retries, reconnect_s=reconnect_s,
+        link = cls(client, port, timeout_s=timeout_s, retries=retries, reconnect_s=reconnect_s,
                    open_port=open_port)
+        link.turnaround_s = TURNAROUND_S
+        return link
 
     @classmethod
     def tcp(cls, host: str, port: int, *, timeout_s: float, retries: int, reconnect_s: float,
@@ -168,9 +178,28 @@ class ModbusLink:
         """FC 06, write single register."""
         self._exchange(lambda: self.client.write_register(address, value, device_id=unit), 0x06, address, 1)
 
+    def broadcast_one(self, address: int, value: int) -> None:
+        """FC 06 to every unit on the bus at once, sent once: nobody answers a broadcast, so nothing
+        is waited for and nothing retried (a stop that must not wait for a dead unit's retries)."""
+        if (address, value) == self._broadcast and time.monotonic() < self._quiet_until:
+            return  # the same broadcast just went out (two drives of one bus each asked for it)
+        with uninterruptible(self.critical):
+            if not self.client.connected:
+                reconnect(self.open_port, 0.0, self.where)  # one attempt: the stop's confirmation retries
+            try:
+                self.client.write_register(address, value, device_id=BROADCAST, no_response_expected=True)
+            except ConnectionException as exc:
+                self.close()
+                raise PortClosed(f"{self.where} closed ({exc})") from None
+            self._quiet_until = time.monotonic() + self.turnaround_s
+            self._broadcast = (address, value)
+
     def _exchange(self, request: Callable[[], object], function_code: int, address: int,
                   count: int) -> list[int]:
         def once() -> list[int]:
+            if (wait := self._quiet_until - time.monotonic()) > 0:
+                time.sleep(wait)
+            self._broadcast = None
             if not self.client.connected:
                 reconnect(self.open_port, self.reconnect_s, self.where)
             try:

@@ -24,6 +24,7 @@ EOL = b"\r\n"
 T = TypeVar("T")
 log = logging.getLogger(__name__)
 SETPOINT_TOLERANCE_DEG = 1e-6  # TH answers with six decimals, as PA was sent
+LIMITLESS_DEG = 1e6  # software limits at least this far out leave a free table free (thousands of turns)
 
 STATES = {
     0x0A: "NOT REFERENCED from reset", 0x0B: "NOT REFERENCED from HOMING",
@@ -109,6 +110,7 @@ class Smc100Axis(IndexAxis):
         self.speed_dps, self.accel_dps2 = speed_dps, accel_dps2
         self.home_timeout_s = home_timeout_s
         self.tries = retries + 1
+        self._unread_te = False  # a `send_stop` whose TE is still in the controller
 
     # --- exchanges --------------------------------------------------------------------------
     def _error_code(self) -> str:
@@ -198,9 +200,22 @@ class Smc100Axis(IndexAxis):
             return
         raise DeviceFault(f"after {command}: {describe_state(errors, state)}", self.device)
 
+    def send_stop(self) -> None:
+        """``ST`` once, without its ``TE``: a command gets no reply, so the next controller's ``ST``
+        follows it on the chain at once. `stop` then reads the ``TE`` this leaves (a stage NOT
+        REFERENCED refuses ``ST`` with error H, which must not be taken for the next command's)."""
+        with on_device(self.device):
+            self._unread_te = True
+            self.link.write_line(f"{self.address}ST")
+
     def _halt(self) -> None:
         """``ST``, but only to a stage that can be moving: the controller refuses ``ST`` when NOT
-        REFERENCED. When the state cannot be read, ``ST`` is sent anyway (a stop must be tried)."""
+        REFERENCED. When the state cannot be read, ``ST`` is sent anyway (a stop must be tried).
+        After `send_stop`, its ``TE`` is read first (any refusal there is of that ``ST``)."""
+        if self._unread_te:
+            code = self.ask("TE", parse_error_code)
+            self._unread_te = False
+            log.debug("%s: the ST sent without TE left %s", self.device, code)
         try:
             state = self.ask("TS", parse_state)[1]
         except TRANSIENT as exc:
@@ -224,20 +239,50 @@ class Smc100Axis(IndexAxis):
         """``ID?`` (the stage) and ``VE`` (controller and firmware), as the manual documents them."""
         return f"{self.model} address {self.address}: stage {self.ask('ID?')}, {self.ask('VE')}"
 
+    def software_limits(self) -> tuple[float, float]:
+        """The controller's own software limits, ``SL?`` and ``SR?`` (degrees): it refuses a ``PA``
+        beyond them."""
+        return self.ask("SL?", parse_number), self.ask("SR?", parse_number)
+
+    def check_software_limits(self) -> None:
+        """Refuse a station whose limits reach beyond the controller's: a planned angle the station
+        allows would otherwise be refused mid-run, with a table half-way through a plan."""
+        lo, hi = self.software_limits()
+        if self.limits is None:
+            if lo > -LIMITLESS_DEG or hi < LIMITLESS_DEG:
+                raise DeviceFault(f"the controller's software limits are [{lo:g}°, {hi:g}°] (SL, SR) but the "
+                                  "station file gives no limits_deg (a free table, moved the shortest way "
+                                  "round); set limits_deg within the controller's, or widen SL and SR",
+                                  self.device)
+            return
+        (low, high) = self.limits
+        if low < lo or high > hi:
+            raise DeviceFault(f"the station's limits_deg [{low:g}°, {high:g}°] exceed the controller's "
+                              f"software limits [{lo:g}°, {hi:g}°] (SL, SR); narrow limits_deg in the "
+                              "station file, or widen SL and SR on the controller", self.device)
+
     def prepare(self) -> None:
-        """Home the stage if it is not referenced (it moves!), enable it if disabled, and set the
-        speed and acceleration from the station file."""
+        """Check the controller's software limits against the station's, home the stage if it is not
+        referenced (it moves!), enable it if disabled, and set the speed and acceleration from the
+        station file."""
+        self.check_software_limits()  # before anything moves
         errors, state = self.ask("TS", parse_state)
         if errors and state not in NOT_REFERENCED:
             raise DeviceFault(describe_state(errors, state), self.device)
         if state in NOT_REFERENCED:
             self.do("OR", safe=False)
             self._target = None
-            deadline = self.clock.now() + self.home_timeout_s
+            started = self.clock.now()
             while (state := self.ask("TS", parse_state)[1]) in HOMING:
-                if self.clock.now() > deadline:
+                if self.clock.now() > started + self.home_timeout_s:
                     self._halt()
-                    raise DeviceFault(f"homing took longer than {self.home_timeout_s:g} s", self.device)
+                    where = self.angle()
+                    errors, state = self.ask("TS", parse_state)
+                    raise DeviceFault(
+                        f"homing (OR) did not find home within home_timeout_s = {self.home_timeout_s:g} s; "
+                        f"the stage was stopped (ST) at {where:.3f}°, now {describe_state(errors, state)}; "
+                        "check that nothing blocks the stage and that its home switch is cabled, or raise "
+                        "home_timeout_s in the station file if homing from there takes longer", self.device)
                 self.clock.sleep(self.poll_s)
         if state in DISABLE:
             self.do("MM1")

@@ -133,6 +133,7 @@ class AzAxis(IndexAxis):
         self.counts_turns = not wrap  # with the wrap setting on, positions stay within one turn
         self.speed_hz = max(1, round(speed_dps * steps_per_degree))
         self.rate = max(1, round(accel_dps2 * steps_per_degree))
+        self._stop_on = False  # a stop set the STOP input and no release has been read back off yet
 
     def _read(self, address: int, count: int) -> list[int]:
         with on_device(self.device):
@@ -164,7 +165,12 @@ class AzAxis(IndexAxis):
         """With the wrap setting on, the drive's coordinates stay within one turn and do not say
         which way round: half a turn or more goes by wrap absolute FWD or RVS (the way the caller's
         cable wrap chose), less by wrap proximity (the shortest way, the same way; it never makes a
-        full turn out of a target a step behind the table). Without it, a plain absolute move."""
+        full turn out of a target a step behind the table). Without it, a plain absolute move.
+        After a stop whose acknowledgement was lost (the STOP input may still be on, and the drive
+        would start nothing), the input is released first."""
+        if self._stop_on:
+            log.warning("%s: releasing the STOP input left by a stop that was not confirmed", self.device)
+            self.release_stop()
         steps = round(target_deg * self.steps_per_degree)
         op_type = OpType.ABSOLUTE
         if self.wrap:
@@ -180,9 +186,26 @@ class AzAxis(IndexAxis):
         does not arrive leaves the table stopped for good. Setting and clearing cannot be one write
         (the drive acts on the level it sees), so the release is read back and repeated until the
         drive reports the input off, and a release that never lands is an error that says so."""
+        self._stop_on = True  # until a release is read back off
         with on_device(self.device):
             self.link.write_one(self.unit, INPUT_REF + 1, Input.STOP)
         self.release_stop()
+
+    def send_stop(self) -> None:
+        """STOP on in every drive on the bus, by one broadcast frame that no drive answers: one
+        frame stops both tables of a shared line, and a drive that does not answer delays nothing.
+        `stop` then sets it again per drive, confirmed, and releases it."""
+        self._stop_on = True
+        with on_device(self.device):
+            self.link.broadcast_one(INPUT_REF + 1, Input.STOP)
+
+    def not_ready_why(self) -> str:
+        try:
+            stop_on = self.stop_input_on()
+        except DriverError:
+            return ""
+        return ("; its STOP input is on (a stop whose release never arrived), so no move starts: release "
+                "it with `labcal station check STATION --reset-alarms`" if stop_on else "")
 
     def stop_input_on(self) -> bool:
         """Whether the drive's STOP input (reference input command) is on."""
@@ -195,6 +218,7 @@ class AzAxis(IndexAxis):
             try:
                 self._write(INPUT_REF + 1, [0])
                 if not self.stop_input_on():
+                    self._stop_on = False
                     return
                 failure = None
             except TRANSIENT as exc:

@@ -7,8 +7,8 @@ the Modbus over Serial Line specification V1.02), so a misreading in the driver 
 disagreement. Every read is computed from the rig's physics at that moment, every write acts on
 it. Emulated: direct data operation (types absolute, incremental, wrap absolute/proximity/
 forward/reverse), the status bits (READY, MOVE, IN-POS after the table's clamp, ALM-A), present
-alarm and history, alarm reset, P-PRESET, the STOP input (a decelerating stop, and no operation
-starts while it stays on; READY is off meanwhile) and FREE, command and feedback position and
+alarm and history, alarm reset, P-PRESET, the STOP input (a decelerating stop at the table's rate, and
+no operation starts while it stays on; READY is off meanwhile) and FREE, command and feedback position and
 speed. On an RTU line a request that begins within t3.5 of the previous frame is dropped, as a
 strict slave does, and the silence before each request is recorded (`AzServer.gaps`). Not
 emulated: stored operation data, START/ZHOME inputs, parameters. Units answer on one bus: Modbus
@@ -103,6 +103,9 @@ OPERATION_DATA_ERROR = 0x70  # speed 0, a wrap type with the wrap setting off
 NOT_RESETTABLE = frozenset({0x20, 0x28, 0x33, 0x41})  # overcurrent, sensor, absolute position, EEPROM
 DEFAULT_ALARM = EXCESSIVE_DEVIATION
 WRAP_WAYS = {Op.WRAP_PROXIMITY: "shortest", Op.WRAP_FORWARD: "forward", Op.WRAP_REVERSE: "reverse"}
+BROADCAST = 0  # every drive executes a request to address 0 and none answers (§2.1: "0 = broadcast (no
+# reply)", and its simulator checklist "Broadcast (address 0): execute, no reply"; Modbus over Serial
+# Line V1.02 §2.2)
 T35_ABOVE_19200_S = 1.75e-3  # Modbus over Serial Line V1.02 §2.5.1.1: t3.5 fixed above 19200 Bd
 
 
@@ -144,6 +147,7 @@ class AzDrives:
 
     def __init__(self, rig: EmulatedRig, units: dict[int, AzUnit]):
         self.rig, self.units = rig, units
+        self.stops: list[tuple[str, float]] = []  # (table, rig time) of each STOP input turned on
 
     def _steps(self, unit: AzUnit) -> int:
         """Feedback position in device steps (within one turn if the wrap setting is on)."""
@@ -201,8 +205,9 @@ class AzDrives:
         self.rig.axis(unit.name).stop()
 
     def _inputs(self, unit: AzUnit, rising: In) -> None:
-        if In.STOP in rising:
-            self.rig.axis(unit.name).stop()
+        if In.STOP in rising:  # a decelerating stop (HM-60262E "STOP input"; §2.1 "Stop (decelerate)")
+            self.stops.append((unit.name, self.rig.clock.now()))
+            self.rig.axis(unit.name).decelerate()
         if In.ALM_RST in rising:
             self._maintenance(unit, ALARM_RESET)
         if In.FREE in rising:
@@ -262,6 +267,9 @@ class AzServer:
         self._current: Fault | None = None  # the fault of the request being executed
         self.gaps: list[float] = []  # RTU: silence before each request since the last frame, s
         self.dropped = 0  # RTU requests dropped for starting within t3.5
+        self.after_broadcast: list[float] = []  # RTU: silence before the first request after each broadcast
+        self._broadcast_heard = False
+        self._last_rx = 0.0  # when the last bytes arrived (RTU)
         self._line_quiet_from: float | None = None  # when our last reply left
         self._request_gap: float | None = None  # the silence before the request being received
         self._server: ModbusTcpServer | ModbusSerialServer | None = None
@@ -293,7 +301,7 @@ class AzServer:
     async def _open(self) -> None:
         ep = self.endpoint
         if ep.kind == "tcp":
-            self._server = ModbusTcpServer(self._devices(), address=(ep.host, ep.port),
+            self._server = ModbusTcpServer(self._devices(), address=(ep.host, ep.port), broadcast_enable=True,
                                            trace_pdu=self._trace_pdu, trace_packet=self._trace_packet)
         else:
             if ep.kind == "pty":
@@ -302,8 +310,8 @@ class AzServer:
             else:
                 port = f"socket://{ep.host}:{ep.port}"
             self._server = ModbusSerialServer(self._devices(), framer=FramerType.RTU, port=port,
-                                              baudrate=115200, trace_pdu=self._trace_pdu,
-                                              trace_packet=self._trace_packet)
+                                              baudrate=115200, broadcast_enable=True,
+                                              trace_pdu=self._trace_pdu, trace_packet=self._trace_packet)
         try:
             await self._server.serve_forever(background=True)
         except RuntimeError as exc:  # pymodbus says only "Could not start listen": the port says why
@@ -331,7 +339,12 @@ class AzServer:
 
     # --- faults and semantics ---------------------------------------------------------------
     def _trace_pdu(self, sending: bool, pdu: ModbusPDU) -> ModbusPDU:
-        if not sending:
+        if not sending and pdu.dev_id == BROADCAST:
+            self._current = self._request_gap = None  # every drive executes it; no reply leaves, so
+            if self.endpoint.kind != "tcp":  # the line is quiet from the frame's last bytes
+                self._line_quiet_from = self._last_rx
+                self._broadcast_heard = True
+        elif not sending:
             unit = self.drives.units.get(pdu.dev_id)
             description = f"fc{pdu.function_code:02d} {getattr(pdu, 'address', 0):04X}"
             injector = self.faults.get(unit.name) if unit else None
@@ -369,11 +382,16 @@ class AzServer:
         bytes of the next request arriving (pymodbus traces every chunk it reads; the first chunk
         after a complete frame starts a request)."""
         now = time.monotonic()
+        if not sending:
+            self._last_rx = now
         if sending:
             self._line_quiet_from = now
         elif self._request_gap is None and self._line_quiet_from is not None:
             self._request_gap = now - self._line_quiet_from
             self.gaps.append(self._request_gap)
+            if self._broadcast_heard:
+                self.after_broadcast.append(self._request_gap)
+                self._broadcast_heard = False
             self._line_quiet_from = None
     def _action(self, unit_id: int):
         unit = self.drives.units[unit_id]

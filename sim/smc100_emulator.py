@@ -52,7 +52,7 @@ class Positioner:
     last_error: str = "@"
     speed: float = 20.0
     accel: float = 80.0
-    limits: tuple[float, float] = (-1e9, 1e9)
+    limits: tuple[float, float] = (-1e9, 1e9)  # SL, SR (hardware_protocols.md §2.2 "Limits")
     target: float = 0.0
 
 
@@ -62,6 +62,7 @@ class Smc100Emulator:
     def __init__(self, rig: EmulatedRig, positioners: dict[int, Positioner]):
         self.rig = rig
         self.positioners = positioners
+        self.stops: list[tuple[str, float]] = []  # (table, rig time) of each ST a controller received
 
     # --- LineDevice -------------------------------------------------------------------------
     def route(self, line: str) -> str:
@@ -137,12 +138,14 @@ class Smc100Emulator:
                 why = OUT_OF_LIMITS
             return self._fail(p, why, lambda: self._move(p, target, MOVING_STATE))
         if mnemonic == "ST":  # refused in NOT REFERENCED and CONFIGURATION; a no-op when still
+            self.stops.append((p.name, self.rig.clock.now()))
             if p.state in NOT_REFERENCED | CONFIGURATION:
                 return self._fail(p, self._state_error(p), None)
-            if p.state in MOVING | HOMING:
-                axis.stop()
+            if p.state in MOVING | HOMING:  # "decelerating stop" (§2.2 command table): MOVING until still
+                axis.decelerate()
                 p.target = float(axis.angle_at(axis.motion_end))
-                p.state = READY_FROM_MOVING if p.state in MOVING else NOT_REFERENCED_FROM_HOMING
+                if p.state in HOMING:
+                    p.state = NOT_REFERENCED_FROM_HOMING
             return None
         if mnemonic == "MM":
             if value == "0":

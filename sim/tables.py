@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 
 from labcal.errors import LabcalError
 from labcal.run.motion import trapezoid_duration, trapezoid_travel
+from labcal.run.station import TableState
 from labcal.run.winding import Reach
 from labcal.sim.clock import RigClock
 
@@ -34,6 +35,10 @@ class SimAxis:
         self._t_start = -math.inf
         self._t_motion_end = -math.inf
         self.travel_deg = 0.0
+        self.tolerance_arcsec = 5.0  # as a station's in_position_arcsec by default
+        self._target: float | None = None
+        self._slip = (0.0, math.inf, 0.0)  # (start time, duration, degrees): a drift no move commanded
+        self._brake: tuple[float, float, float] | None = None  # a decelerating stop: (start, angle, speed)
         # (time, unwrapped angle) where each move began and where it ended or was stopped: a
         # trapezoid is monotonic, so these hold the extremes of the table's accumulated rotation
         self.record: list[tuple[float, float]] = [(clock.now(), 0.0)]
@@ -42,12 +47,26 @@ class SimAxis:
         """Put the table at rest at this accumulated angle (a resumed run's tables stayed where the
         interrupted one left them; the simulator starts afresh)."""
         self._start_angle, self._distance = angle_deg, 0.0
+        self._target, self._brake, self._slip = None, None, (0.0, math.inf, 0.0)
         self.record = [(self.clock.now(), angle_deg)]
 
     def angle_at(self, t: NDArray | float) -> NDArray:
         """True table angle (deg, unwrapped) at time(s) t."""
-        return self._start_angle + trapezoid_travel(np.asarray(t) - self._t_start, self._distance,
-                                                    self.speed, self.accel)
+        t = np.asarray(t)
+        t0, duration, slip_deg = self._slip
+        slipped = slip_deg * np.clip((t - t0) / duration, 0.0, 1.0) if slip_deg else 0.0
+        if self._brake is not None:  # v·τ − a·τ²/2 until the speed is spent
+            start, here, v = self._brake
+            tau = np.clip(t - start, 0.0, abs(v) / self.accel)
+            return here + v * tau - math.copysign(0.5 * self.accel, v) * tau**2 + slipped
+        return self._start_angle + trapezoid_travel(t - self._t_start, self._distance, self.speed,
+                                                    self.accel) + slipped
+
+    def slip(self, degrees: float, duration_s: float) -> None:
+        """The table creeps ``degrees`` over ``duration_s`` from now, though nothing commanded it (a
+        slipping coupling, a servo pushed off its position): what a fault scenario injects. The next
+        move starts from where the creep left it."""
+        self._slip = (self.clock.now(), max(duration_s, 1e-9), degrees)
 
     def moving_between(self, t0: float, t1: float) -> bool:
         return t0 < self._t_motion_end and t1 > self._t_start
@@ -63,6 +82,7 @@ class SimAxis:
         self._before_move()
         now = self.clock.now()
         current = float(self.angle_at(now))
+        self._brake = None
         if travel_deg is not None:
             delta = angle_deg + 360.0 * round((current + travel_deg - angle_deg) / 360.0) - current
         else:
@@ -71,6 +91,7 @@ class SimAxis:
                      "forward": (angle_deg - current) % 360.0,
                      "reverse": -((current - angle_deg) % 360.0)}[way]
         self._start_angle, self._distance, self._t_start = current, delta, now
+        self._slip, self._target = (0.0, math.inf, 0.0), current + delta
         self._t_motion_end = now + float(trapezoid_duration(delta, self.speed, self.accel))
         self.travel_deg += abs(delta)
         self.record += [(now, current), (self._t_motion_end, current + delta)]
@@ -90,9 +111,42 @@ class SimAxis:
         journal's moves say which turn they are on (what a dry run then exercises)."""
         return None
 
+    def state(self) -> TableState:
+        now = self.clock.now()
+        here = float(self.angle_at(now))
+        off = None if self._target is None else ((here - self._target + 180.0) % 360.0 - 180.0) * 3600.0
+        moving, in_position = now < self._t_motion_end, now >= self._t_motion_end + self.clamp_s
+        return TableState(f"{self.name} table (simulated)", None, moving, in_position, here % 360.0, off,
+                          self.tolerance_arcsec, "moving" if moving else "in position" if in_position
+                          else "clamping")
+
+    def send_stop(self) -> None:
+        """A simulated table takes its stop at once: `stop` then finds it still."""
+        self._halt()
+
     def stop(self) -> None:
+        self._halt()
+
+    def decelerate(self) -> None:
+        """A decelerating stop, as a drive's STOP input and an SMC100's ``ST`` make one: from the
+        speed it has now the table slows at its acceleration, and is still only once that is spent."""
+        now = self.clock.now()
+        if now >= self._t_motion_end:
+            return
+        self._before_move()
+        h = 1e-6  # the speed now, by a central difference (exact on each parabolic piece of the profile)
+        speed = float(self.angle_at(now + h) - self.angle_at(now - h)) / (2 * h)
+        here = float(self.angle_at(now))
+        self._slip = (0.0, math.inf, 0.0)  # the creep so far is in ``here``
+        self._brake = (now, here, speed)
+        self._t_motion_end = now + abs(speed) / self.accel
+        self.record[-1] = (self._t_motion_end, here + speed * abs(speed) / (2 * self.accel))
+
+    def _halt(self) -> None:
         now = self.clock.now()
         if now < self._t_motion_end:  # freeze where it is (an instant stop is enough for a sim)
             here = float(self.angle_at(now))
+            self._brake = None
             self._start_angle, self._distance, self._t_start, self._t_motion_end = here, 0.0, now, now
             self.record[-1] = (now, here)
+            self._slip = (0.0, math.inf, 0.0)  # the creep so far is in ``here``

@@ -96,6 +96,14 @@ def bench_fixtures(stations: list[str], **changes: dict):
     return station, at(TIME_SCALE), at(MOTION_SCALE)
 
 
+def until_still(axis, within_s: float = 30.0) -> None:
+    """Wait until the controller says the table no longer moves: a stop decelerates first."""
+    deadline = time.monotonic() + within_s
+    while axis.status().moving:
+        assert time.monotonic() < deadline, f"{axis.name} still moving {within_s:g} s after its stop"
+        time.sleep(0.005)
+
+
 def _ptys() -> set[str]:
     found = set()
     for fd in os.listdir("/proc/self/fd"):

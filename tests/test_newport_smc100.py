@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 import serial
-from emulators import bench_fixtures, emulated, no_leaks  # noqa: F401 - fixture
+from emulators import bench_fixtures, emulated, no_leaks, until_still  # noqa: F401 - fixture
 
 from labcal.config.emulation import FaultKind
 from labcal.drivers.errors import BadReply, DeviceFault, LinkLost, NoReply, OutOfLimits, Rejected
@@ -204,6 +204,7 @@ def test_stop_after_an_exchange_torn_by_ctrl_c(smc_slow):
         bench.roll.angle()
     bench.roll.link.read_line = read_line
     bench.roll.stop()
+    until_still(bench.roll)  # ST is a decelerating stop: MOVING until the stage is still
     now, table = emulation.rig.clock.now(), emulation.rig.axis("roll")
     assert table.motion_end <= now and 0 < abs(float(table.angle_at(now))) < 179  # stopped mid-move
     assert bench.roll.status().words == "READY from MOVING (33h)"

@@ -4,7 +4,7 @@ Modbus TCP (a gateway) and Modbus RTU on a pty pair; every fault and what the dr
 from __future__ import annotations
 
 import pytest
-from emulators import bench_fixtures, emulated, no_leaks  # noqa: F401 - fixture
+from emulators import bench_fixtures, emulated, no_leaks, until_still  # noqa: F401 - fixture
 
 from labcal.bench.hardware import Bench
 from labcal.config.emulation import FaultKind
@@ -91,6 +91,7 @@ def test_stop_reaches_the_drive_mid_move(az_slow):
     pitch, table = bench.pitch, emulation.rig.axis("pitch")
     pitch.move_to(180)  # ~10 s of table time, 0.5 s of wall time
     pitch.stop()
+    until_still(pitch)  # a decelerating stop: MOVE stays on until the table is still
     now = emulation.rig.clock.now()
     assert table.motion_end <= now and 0 < abs(float(table.angle_at(now))) < 179  # stopped short
     assert not pitch.status().moving
@@ -194,6 +195,7 @@ def test_stop_after_an_exchange_torn_by_ctrl_c(az_slow):
         pitch.angle()
     transaction.trace_packet = real_trace
     pitch.stop()
+    until_still(pitch)  # a decelerating stop
     now = emulation.rig.clock.now()
     assert table.motion_end <= now and 0 < abs(float(table.angle_at(now))) < 179
     assert not pitch.status().moving

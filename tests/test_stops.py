@@ -175,11 +175,11 @@ def test_sigterm_mid_move_reaches_the_drives_through_the_drivers(station, tmp_pa
         prepare(bench, station_, say=lambda text: None)
         planned: list[float] = []
 
-        def signal_mid_move() -> None:  # the first move with > 1 s of rig time (0.5 s of wall) left
-            deadline = time.monotonic() + 30
+        def signal_mid_move() -> None:  # the first move with > 1.5 s of rig time (0.75 s of wall) left:
+            deadline = time.monotonic() + 30  # the stop's deceleration (0.5 s from full speed) leaves 1 s
             while time.monotonic() < deadline:
                 left = rig.pitch.motion_end - clock.now()
-                if 1.0 < left < 1e6:
+                if 1.5 < left < 1e6:
                     planned.append(rig.pitch.motion_end)
                     os.kill(os.getpid(), signal.SIGTERM)
                     return

@@ -27,7 +27,7 @@ from labcal.run.mounting import CHECK_ATTITUDE, identify
 from labcal.run.operator import Operator, OperatorDeclined
 from labcal.run.ordering import order_points
 from labcal.run.settle import Dwell, TailPool, dead_time, dwell, dwell_model
-from labcal.run.station import Station, StopFailed, mean_and_sd
+from labcal.run.station import Station, StopFailed, TableState, mean_and_sd
 from labcal.run.winding import MOVE_EVENT, last_move, locate, plan_windings
 
 Winding = tuple[float, float]  # each table's accumulated rotation from home, degrees (pitch, roll)
@@ -38,7 +38,14 @@ log = logging.getLogger(__name__)
 
 class PolicyAbort(LabcalError):
     """A point did not settle and the policy says abort (not a device fault to pause on)."""
+
+
+class TableFault(LabcalError):
+    """A table reported a fault around a measurement window: the run stops the tables and pauses."""
+
+
 MOUNT_ATTEMPTS = 3
+MEASURE_AGAIN = 2  # windows of one point a table's state may discard before the run pauses on it
 
 
 @dataclass(frozen=True)
@@ -106,6 +113,28 @@ class RunOutcome:
     points_recorded: int
     points_failed: int
     station_time_s: float
+
+
+def unvouched(before: tuple[TableState, ...], after: tuple[TableState, ...]) -> tuple[str | None, bool]:
+    """Why a window measured between the ``before`` and ``after`` states cannot be kept (None if it
+    can), and whether a table reported a fault (the run pauses) rather than being off or moving (the
+    point is measured again). A fault anywhere outranks the rest."""
+    found: list[tuple[bool, str]] = []
+    for when, states in (("before", before), ("after", after)):
+        for state in states:
+            if problem := state.problem():
+                found.append((state.fault is not None, f"{when} the measurement window, {problem}"))
+    if not found:
+        return None, False
+    faulted, why = max(found, key=lambda item: item[0])
+    return why, faulted
+
+
+def raw_samples(result: Dwell) -> np.ndarray:
+    """The window's samples, one row each: the three voltages and the temperature (NaN if none)."""
+    scan = result.scan
+    return np.column_stack([scan.volts, scan.temp_c if scan.temp_c is not None
+                            else np.full(len(scan.volts), np.nan)])
 
 
 def check_limits(station: Station, steps: list[Step], check_mount: bool = True) -> dict[int, Winding]:
@@ -395,6 +424,16 @@ class Sequencer:
             log.info("both tables stopped after %s", why)
             self.event("stop", "both tables stopped", cause=why)
 
+    def discard(self, step: Step, attempt: int, result: Dwell, why: str, faulted: bool) -> None:
+        """Journal a window the tables did not vouch for, with its readings (nothing taken is lost)."""
+        mean, sd = result.estimate or mean_and_sd(result.scan)
+        then = "the run pauses" if faulted else "measured again"
+        self.event("discarded", f"point {step.seq}: readings discarded, {then}: {why}", seq=step.seq,
+                   attempt=attempt, reason=why, volts=[float(v) for v in mean], sd=[float(v) for v in sd],
+                   samples=[[None if np.isnan(v) else float(v) for v in row] for row in raw_samples(result)])
+        if not faulted:
+            self.display.message(f"[yellow]Point {step.seq} measured again:[/] {why}")
+
     def until_done(self, action, *args):
         """Do ``action(*args)``; on a device fault stop the tables, say what happened and pause: the
         operator fixes the cause and resumes (the action is done again) or aborts (resumable later)."""
@@ -409,22 +448,43 @@ class Sequencer:
                 self.display.message(f"[bold red]Fault:[/] {fault}")
                 self.pause(f"fault: {fault}")
 
+    def tables(self) -> tuple[TableState, TableState]:
+        """Both tables' status and position, read now."""
+        return self.station.pitch.state(), self.station.roll.state()
+
     def point(self, step: Step) -> int:
-        """Measure one step (retrying once if it does not settle) and commit it; 1 if it failed."""
-        pitch_read, roll_read = self.move(step.pitch_deg, step.roll_deg, self._windings.get(step.seq))
-        for attempt in (1, 2):
-            t_start = self.station.clock.now() - self._t0
-            result = self.measure(step.mount, f"{step.seq}:{attempt}")
-            if result.verdict.settled:
+        """Measure one step (retrying once if it does not settle) and commit it; 1 if it failed.
+        Each window is kept only if both tables vouch for it, before and after: healthy, still, and
+        on their commanded positions within the station's tolerance. Before the first window that
+        is what the move has just verified (its last status and position reads); before a second
+        window, and after every window, their states are read. A window they do not vouch for is
+        journaled as discarded, with why, and the point is moved to and measured again; one during
+        which a table reported a fault pauses the run instead (`TableFault`)."""
+        for _ in range(MEASURE_AGAIN + 1):
+            pitch_read, roll_read = self.move(step.pitch_deg, step.roll_deg, self._windings.get(step.seq))
+            for attempt in (1, 2):
+                t_start = self.station.clock.now() - self._t0
+                before = () if attempt == 1 else self.tables()  # () : verified by the move
+                result = self.measure(step.mount, f"{step.seq}:{attempt}")
+                why, faulted = unvouched(before, self.tables())
+                if why or result.verdict.settled:
+                    break
+                if attempt == 1:
+                    self.event("retry",
+                               f"point {step.seq} did not settle ({result.verdict.reason}); retrying")
+            if why is None:
                 break
-            if attempt == 1:
-                self.event("retry", f"point {step.seq} did not settle ({result.verdict.reason}); retrying")
+            self.discard(step, attempt, result, why, faulted)
+            if faulted:
+                raise TableFault(f"point {step.seq}'s readings discarded: {why}")
+        else:
+            raise LabcalError(f"point {step.seq} measured {MEASURE_AGAIN + 1} times, every window discarded "
+                              f"(last: {why}); check the table, its clamp and coupling")
         ok = result.verdict.settled
         mean, sd = result.estimate or mean_and_sd(result.scan)
         scan = result.scan
         temp = None if scan.temp_c is None else float(np.mean(scan.temp_c))
-        raw = np.column_stack([scan.volts, scan.temp_c if scan.temp_c is not None
-                               else np.full(len(scan.volts), np.nan)])
+        raw = raw_samples(result)
         record = PointRecord(
             seq=step.seq, replicate=step.replicate, y_deg=step.mount.y_deg, u_deg=step.mount.u_deg,
             pitch_deg=step.pitch_deg, roll_deg=step.roll_deg, pitch_read=pitch_read, roll_read=roll_read,

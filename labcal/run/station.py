@@ -19,8 +19,36 @@ from labcal.analysis.kinematics import Mount
 from labcal.errors import LabcalError
 from labcal.run.winding import Reach
 
+STILL_WITHIN_S = 30.0  # a stopped table decelerating from full speed is still long before this
+STILL_POLL_S = 0.05
 CriticalSection = Callable[[], AbstractContextManager[None]]
 """A section a stop must not cut in half (the run's Ctrl-C handler defers a stop to its end)."""
+
+
+@dataclass(frozen=True)
+class TableState:
+    """What a table reports of itself, in the same terms for every table family: the sequencer reads
+    it before and after each measurement window, and discards a window it does not vouch for."""
+
+    device: str  # the table, in words ("roll table (Newport SMC100, address 2 on /dev/ttyUSB0)")
+    fault: str | None  # what its controller reports wrong, in words; None when healthy
+    moving: bool
+    in_position: bool
+    position_deg: float  # 0..360
+    off_arcsec: float | None  # position − the commanded one, folded; None when nothing was commanded
+    tolerance_arcsec: float  # the station's in_position_arcsec
+    words: str  # the controller's own status, for people
+
+    def problem(self) -> str | None:
+        """Why a window measured with the table in this state cannot be kept; None if it can."""
+        if self.fault:
+            return f"{self.device}: {self.fault}"
+        if self.moving:
+            return f"{self.device}: moving ({self.words})"
+        if self.off_arcsec is not None and abs(self.off_arcsec) > self.tolerance_arcsec:
+            return (f"{self.device}: at {self.position_deg:.5f}°, {self.off_arcsec:+.1f}″ off its commanded "
+                    f"position (tolerance {self.tolerance_arcsec:g}″)")
+        return None
 
 
 class RotaryAxis(Protocol):
@@ -28,6 +56,9 @@ class RotaryAxis(Protocol):
 
     name: str
     reach: Reach  # the accumulated rotation from home it may have: its cable wrap and soft limits
+
+    def state(self) -> TableState:
+        """Status and position, read now (no motion)."""
 
     def move_to(self, angle_deg: float, *, travel_deg: float | None = None) -> None:
         """Start a move to an absolute angle; returns at once. ``travel_deg``: the signed turn the
@@ -44,8 +75,12 @@ class RotaryAxis(Protocol):
         """Its accumulated rotation from home, where the device counts turns (None where it does
         not: then the journal's moves say which turn it is on, `labcal.run.winding.locate`)."""
 
+    def send_stop(self) -> None:
+        """Put a stop on its way at once, waiting for no reply (`Station.stop` sends every table's
+        before it confirms any)."""
+
     def stop(self) -> None:
-        """Stop at once. Must always reach the device."""
+        """Stop at once, confirmed (retried where safe). Must always reach the device."""
 
 
 @dataclass(frozen=True)
@@ -106,16 +141,50 @@ class Station:
     description: str = "station"
 
     def stop(self) -> None:
-        """Stop both tables; each stop is attempted even if the other fails. `StopFailed` names
-        every table whose stop did not reach it."""
+        """Stop both tables at once: every table's stop is sent first, once and without waiting for
+        any reply, and only then is each confirmed (with its retries), so that a controller that does
+        not answer never delays the other table's stop. Each is attempted even if the other fails.
+        `StopFailed` names every table whose stop was not confirmed."""
+        tables = (("pitch", self.pitch), ("roll", self.roll))
+        for _, axis in tables:
+            try:
+                axis.send_stop()
+            except Exception:  # noqa: BLE001, S110 - the confirmation below stops it, or says it did not
+                pass
         failures: dict[str, Exception] = {}
-        for table, axis in (("pitch", self.pitch), ("roll", self.roll)):
+        for table, axis in tables:
             try:
                 axis.stop()
             except Exception as exc:  # noqa: BLE001 - both axes must get their stop
                 failures[table] = exc
+        failures.update(self._until_still([(table, axis) for table, axis in tables if table not in failures]))
         if failures:
             raise StopFailed(failures)
+
+    def _until_still(self, tables: list[tuple[str, RotaryAxis]]) -> dict[str, Exception]:
+        """Wait until each stopped table's status says it is not moving (a stop decelerates): only
+        then are the tables still, as the pause prompt says. A table whose status cannot be read, or
+        that still moves after `STILL_WITHIN_S`, may be moving."""
+        deadline = self.clock.now() + STILL_WITHIN_S
+        failures: dict[str, Exception] = {}
+        waiting = dict(tables)
+        while waiting:
+            for table, axis in list(waiting.items()):
+                try:
+                    state = axis.state()
+                except Exception as exc:  # noqa: BLE001 - whatever went wrong, it may be moving
+                    failures[table] = exc
+                    del waiting[table]
+                    continue
+                if not state.moving:
+                    del waiting[table]
+                elif self.clock.now() >= deadline:
+                    failures[table] = LabcalError(f"still moving {STILL_WITHIN_S:g} s after its stop "
+                                                  f"({state.words})")
+                    del waiting[table]
+            if waiting:
+                self.clock.sleep(STILL_POLL_S)
+        return failures
 
 
 class StopFailed(LabcalError):
