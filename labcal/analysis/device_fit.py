@@ -1,12 +1,13 @@
 """Estimating the calibration device with the instrument: the device model of
 `labcal.analysis.device_model` fitted by nonlinear least squares, started from the linear fit.
 
-The solver is Levenberg–Marquardt on the analytic Jacobian; its answer is polished, and its
-covariance taken, by one Gauss–Newton step through the one QR core (`labcal.analysis.regression`),
-so the linearised problem is solved exactly as every other model is. Readings of the three sensors
-are weighted by each sensor's noise: the replicate scatter (pure error) when there are replicates,
-else the device model's own per-sensor residual standard error from a first pass. The covariance is
-s²·(JᵀWJ)⁻¹ with s² the weighted residual mean square on 3K − 18 degrees of freedom.
+The solver is scipy's Levenberg–Marquardt (MINPACK) on the analytic Jacobian; its answer is
+polished, and its covariance taken, by one Gauss–Newton step through the one QR core
+(`labcal.analysis.regression`), so the linearised problem is solved exactly as every other model
+is. Readings of the three sensors are weighted by each sensor's noise: the replicate scatter (pure
+error) when there are replicates, else the device model's own per-sensor residual standard error
+from a first pass. The covariance is s²·(JᵀWJ)⁻¹ with s² the weighted residual mean square on
+3K − 18 degrees of freedom.
 """
 
 from __future__ import annotations
@@ -43,7 +44,6 @@ SMALL_ANGLE_LIMIT_DEG = 2.0  # Soto's grouped misalignments are small rotations;
 # minimum puts θ within √(1e-10·χ²) ≈ 1e-3 standard errors of it for thousands of residuals, and the
 # Gauss–Newton step after LM converges quadratically from there.
 SOLVER_TOLERANCE = 1e-10
-LM_INITIAL_DAMPING = 1e-3  # λ relative to the Jacobian's column norms: near Gauss–Newton from the start
 NOISE_FLOOR = 1e-12  # relative to the sensitivity: a noise-free reading's residual SE is rounding
 
 
@@ -258,35 +258,29 @@ class PointMeans:
 
 def _solve(theta0: NDArray[np.float64], data: PointMeans,
            sd: NDArray[np.float64]) -> tuple[NDArray[np.float64], int]:
-    """Levenberg–Marquardt on the weighted residuals, Marquardt's damping scaled by the Jacobian's
-    column norms, each step the damped linear problem [J; √λ·D] δ = [−r; 0] solved by the one QR
-    core (no scipy.optimize: its import alone cost a million-row fit a quarter of a second). Refuses
-    to return a fit that did not converge."""
-    theta = theta0
-    resid, jac = data.weighted(theta, sd)
-    cost, evaluations, damping = float(resid @ resid), 1, LM_INITIAL_DAMPING
-    zeros = np.zeros(N_PARAMETERS)
-    while evaluations < MAX_EVALUATIONS:
-        scale = np.linalg.norm(jac, axis=0)
-        damped = np.vstack([jac, np.diag(np.sqrt(damping) * np.where(scale > 0, scale, 1.0))])
-        step = least_squares(damped, np.concatenate([-resid, zeros])).coef[:, 0]
-        negligible = bool(np.all(np.abs(step) <= SOLVER_TOLERANCE * (np.abs(theta) + SOLVER_TOLERANCE)))
-        trial_resid, trial_jac = data.weighted(theta + step, sd)
-        evaluations += 1
-        trial_cost = float(trial_resid @ trial_resid)
-        if trial_cost <= cost:
-            settled = cost - trial_cost <= SOLVER_TOLERANCE * cost
-            theta, resid, jac, cost = theta + step, trial_resid, trial_jac, trial_cost
-            damping /= 10.0
-            if settled or negligible:
-                return theta, evaluations
-        elif negligible:  # no step the rounding can resolve lowers the cost: this is the minimum
-            return theta, evaluations
-        else:
-            damping *= 10.0
-    raise LabcalError(f"the device model did not converge in {MAX_EVALUATIONS} evaluations (its cost "
-                      f"was still falling at {cost:.6g}); the readings may not come from this plan's "
-                      "geometry, or the misalignments are not small: fit with --model linear")
+    """Levenberg–Marquardt (scipy.optimize.least_squares, MINPACK's lmder) on the weighted residuals
+    with the analytic Jacobian, scaled by its column norms. Refuses to return a fit that did not
+    converge."""
+    from scipy.optimize import least_squares as minimise
+
+    last: dict[bytes, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
+
+    def weighted(theta: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        key = theta.tobytes()  # MINPACK asks for the Jacobian where it has just asked for the residuals
+        if key not in last:
+            last.clear()
+            last[key] = data.weighted(theta, sd)
+        return last[key]
+
+    result = minimise(lambda t: weighted(t)[0], theta0, jac=lambda t: weighted(t)[1], method="lm",
+                      x_scale="jac", xtol=SOLVER_TOLERANCE, ftol=SOLVER_TOLERANCE, gtol=SOLVER_TOLERANCE,
+                      max_nfev=MAX_EVALUATIONS)
+    if result.status <= 0:
+        cost = 2 * float(result.cost)
+        raise LabcalError(f"the device model did not converge in {MAX_EVALUATIONS} evaluations (its cost "
+                          f"was still falling at {cost:.6g}); the readings may not come from this plan's "
+                          "geometry, or the misalignments are not small: fit with --model linear")
+    return np.asarray(result.x, dtype=float), int(result.nfev)
 
 
 Arrays = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
