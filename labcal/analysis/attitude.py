@@ -4,9 +4,15 @@ Two estimators, both vectorised over rows:
 - closed form: g = (v − B)S⁻¹ (batch form of Soto App. B), α = asin g_x, R = atan2(g_y, g_z);
 - weighted least squares on the unit sphere: minimise (v − f(z)) Σ_v⁻¹ (v − f(z))ᵀ over
   z = (α, R), f(z) = B + g(z)ᵀS, by Gauss–Newton from the closed form.
-Σ_v holds, per sensor, the calibration's output variance fᵀ C f plus the variance of one new
-reading; the attitude covariance follows by eq. 104. At α = ±90° gravity lies along x and the
-roll angle does not exist; such rows report roll as NaN with the reason.
+Σ_v holds, per sensor, the calibration's Type A output variance fᵀ C f plus the variance of one
+new reading: it sets the estimator's weights (eq. 104 is its covariance when that is all there is).
+The uncertainty every output states — `labcal attitude`, the certificate's envelope and budget, the
+report and the DCC — is `combined_uncertainty`: the estimator's sensitivity A = ∂z/∂v applied to the
+*complete* covariance of the coefficients and of one new reading (Type A, Type B and their
+correlations across the three channels), held as independent parts each with its degrees of
+freedom, ν_eff by Welch–Satterthwaite and k = t₀.₉₇₅(ν_eff) per attitude and angle. A fit alone has
+Type A parts only, and then the sphere estimator's u is eq. 104 exactly. At α = ±90° gravity lies
+along x and the roll angle does not exist; such rows report roll as NaN with the reason.
 """
 
 from __future__ import annotations
@@ -18,27 +24,62 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from labcal.analysis.distributions import t_quantile
+from labcal.analysis.distributions import t_quantile, welch_satterthwaite
 from labcal.errors import LabcalError
 
+N_COEFFICIENTS = 12  # vec(X), row-major: X[i, j] at 3i + j
+N_ERRORS = N_COEFFICIENTS + 3  # then one new reading's three outputs
 ROLL_SIGNIFICANCE = 3.0  # the horizontal part of g must exceed this many standard uncertainties
 GN_ITERATIONS = 4  # the closed form starts within ~1e-4 rad; Gauss–Newton converges quadratically
 
 
 @dataclass(frozen=True)
+class CovariancePart:
+    """One independent group of inputs that share one variance estimate (so one number of degrees of
+    freedom): the covariance (15×15) of the errors it causes in [vec(X) row-major; one new reading's
+    three outputs]. Off-diagonal terms carry correlations, across coefficients and across channels
+    (a gain common to the three channels of a scanning DMM)."""
+
+    matrix: NDArray[np.float64]  # (15, 15)
+    dof: float  # np.inf: a Type B input of known distribution
+    label: str = ""
+
+
+def type_a_parts(covariance: NDArray[np.float64], reading_sd: NDArray[np.float64],
+                 dofs: NDArray[np.float64]) -> tuple[CovariancePart, ...]:
+    """The Type A parts of a fit: per sensor, its coefficients' covariance and one new reading's
+    variance, which share that sensor's residual variance estimate and its degrees of freedom."""
+    parts = []
+    for j in range(3):
+        m = np.zeros((N_ERRORS, N_ERRORS))
+        idx = np.arange(4) * 3 + j
+        m[np.ix_(idx, idx)] = covariance[j]
+        m[N_COEFFICIENTS + j, N_COEFFICIENTS + j] = reading_sd[j] ** 2
+        parts.append(CovariancePart(m, float(dofs[j]), f"Type A, sensor {'xyz'[j]}"))
+    return tuple(parts)
+
+
+@dataclass(frozen=True)
 class Calibration:
-    """What attitude needs from a fit or certificate: X (4×3), per-sensor 4×4 covariance of
-    (B, s_x, s_y, s_z), the standard deviation of one new reading, and degrees of freedom."""
+    """What attitude needs from a fit or certificate: X (4×3), per-sensor 4×4 Type A covariance of
+    (B, s_x, s_y, s_z) and the standard deviation of one new reading (the estimator's weights), the
+    degrees of freedom, and the complete covariance as independent parts (empty: the Type A one)."""
 
     X: NDArray[np.float64]
     covariance: NDArray[np.float64]  # (3, 4, 4)
     reading_sd: NDArray[np.float64]  # (3,)
     dof: int
+    parts: tuple[CovariancePart, ...] = ()
 
     @property
     def s_inv(self) -> NDArray[np.float64]:
         # numpy's stubs type inv() as floating[Any]; the inverse of a float64 matrix is float64
         return cast("NDArray[np.float64]", np.linalg.inv(self.X[1:]))
+
+    @property
+    def uncertainty_parts(self) -> tuple[CovariancePart, ...]:
+        """The complete covariance's parts: as given, or the Type A ones of the fit."""
+        return self.parts or type_a_parts(self.covariance, self.reading_sd, np.full(3, float(self.dof)))
 
 
 MAX_COEFFICIENT = 1e6  # V and V/g: a million volts is no accelerometer's bias or sensitivity
@@ -65,6 +106,7 @@ def calibration_from_json(doc: dict[str, Any], path: str | Path) -> Calibration:
         raise LabcalError(f"{path}: coefficients must be 4×3, covariance 3 matrices of at least 4×4, "
                           "and 3 reading standard deviations")
     cov = cov[:, :4, :4]  # extension terms do not enter the attitude
+    per_sensor = dofs if dofs.size == 3 else np.full(3, float(dof))
     if not (np.all(np.isfinite(X)) and np.all(np.isfinite(cov)) and np.all(np.isfinite(sd))):
         raise LabcalError(f"{path}: coefficients or uncertainties contain NaN or infinity")
     if np.max(np.abs(X)) > MAX_COEFFICIENT or np.max(np.abs(cov)) > MAX_COEFFICIENT**2 \
@@ -73,22 +115,83 @@ def calibration_from_json(doc: dict[str, Any], path: str | Path) -> Calibration:
                           "V in magnitude; not an instrument's calibration")
     if abs(np.linalg.det(X[1:])) < 1e-12:
         raise LabcalError(f"{path}: the sensitivity matrix S is singular; it cannot turn voltages into g")
-    return Calibration(X, cov, sd, dof)
+    return Calibration(X, cov, sd, dof, type_a_parts(cov, sd, per_sensor))
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """Per row and angle (n×2: pitch, roll): combined standard uncertainty (rad), ν_eff and k."""
+
+    u: NDArray[np.float64]
+    nu_eff: NDArray[np.float64]
+    k: NDArray[np.float64]
+
+    @property
+    def U(self) -> NDArray[np.float64]:
+        return np.asarray(self.k * self.u, dtype=float)
+
+
+def error_sensitivity(A: NDArray[np.float64], f: NDArray[np.float64]) -> NDArray[np.float64]:
+    """H (n×2×15): how pitch and roll move with the errors of [vec(X); one new reading]. A reading
+    error δv moves the estimate by A·δv; a coefficient error δX acts as δv = −f·δX, f = [1, g]."""
+    n = len(A)
+    H = np.empty((n, 2, N_ERRORS))
+    H[:, :, :N_COEFFICIENTS] = -(f[:, None, :, None] * A[:, :, None, :]).reshape(n, 2, N_COEFFICIENTS)
+    H[:, :, N_COEFFICIENTS:] = A
+    return H
+
+
+def part_variances(parts: tuple[CovariancePart, ...], A: NDArray[np.float64], f: NDArray[np.float64]
+                   ) -> list[NDArray[np.float64]]:
+    """Each part's variance of pitch and roll (n×2) for estimator sensitivity A (n×2×3) at f."""
+    H = error_sensitivity(A, f)
+    return [np.einsum("nak,kl,nal->na", H, p.matrix, H) for p in parts]
+
+
+def combined_uncertainty(parts: tuple[CovariancePart, ...], A: NDArray[np.float64],
+                         f: NDArray[np.float64]) -> Uncertainty:
+    """THE attitude uncertainty: u_c² = Σ_parts H Σ_part Hᵀ, ν_eff by Welch–Satterthwaite over the
+    parts (GUM G.4.1), k = t₀.₉₇₅(ν_eff). Every output that states a pitch or roll U95 comes here."""
+    with np.errstate(invalid="ignore"):
+        variances = part_variances(parts, A, f)
+        total = np.sum(variances, axis=0) if variances else np.zeros((len(A), 2))
+        u = np.sqrt(np.clip(total, 0.0, None))
+        nu = welch_satterthwaite(u, [(v, p.dof) for v, p in zip(variances, parts, strict=True)])
+    return Uncertainty(u, nu, coverage_factor(nu, u))
+
+
+def coverage_factor(nu: NDArray[np.float64], u: NDArray[np.float64]) -> NDArray[np.float64]:
+    """k = t₀.₉₇₅ at ν_eff truncated to the integer below (GUM G.4.1 note 1), once per distinct value
+    (a hundred thousand rows share a handful); NaN where u is undefined."""
+    whole = np.where(np.isfinite(nu) & (nu < MAX_DOF), np.floor(np.maximum(nu, 1.0) + 1e-9), np.inf)
+    values, inverse = np.unique(whole, return_inverse=True)
+    k = np.asarray(t_quantile(0.975, values), dtype=float)[inverse].reshape(nu.shape)
+    return np.where(np.isfinite(u), k, np.nan)
 
 
 @dataclass(frozen=True)
 class Attitude:
-    """Per row: pitch and roll (rad), their standard uncertainties, and the 95 % coverage factor."""
+    """Per row: pitch and roll (rad), their combined standard uncertainties and 95 % coverage
+    factors (k = t₀.₉₇₅(ν_eff) per row and angle)."""
 
     pitch: NDArray[np.float64]
     roll: NDArray[np.float64]  # NaN where undefined
     u_pitch: NDArray[np.float64]
     u_roll: NDArray[np.float64]
-    k95: float
+    k_pitch: NDArray[np.float64]
+    k_roll: NDArray[np.float64]
 
     @property
     def roll_defined(self) -> NDArray[np.float64]:
         return np.isfinite(self.roll)
+
+    @property
+    def U_pitch(self) -> NDArray[np.float64]:
+        return np.asarray(self.k_pitch * self.u_pitch, dtype=float)
+
+    @property
+    def U_roll(self) -> NDArray[np.float64]:
+        return np.asarray(self.k_roll * self.u_roll, dtype=float)
 
 
 def _gravity_and_derivatives(
@@ -119,8 +222,23 @@ def output_variance(cal: Calibration, g: NDArray[np.float64]) -> NDArray[np.floa
     return out
 
 
-def _k95(cal: Calibration) -> float:
-    return float(t_quantile(0.975, cal.dof)) if cal.dof > 0 else float("inf")
+def regressors_of(g: NDArray[np.float64]) -> NDArray[np.float64]:
+    """f = [1, g] per row (n×4): what multiplies X in V = B + gᵀS."""
+    return np.concatenate([np.ones((len(g), 1)), g], axis=1)
+
+
+def sphere_sensitivity(F: NDArray[np.float64], w: NDArray[np.float64], free_roll: NDArray[np.bool_]
+                       ) -> NDArray[np.float64]:
+    """A = (F W Fᵀ)⁻¹ F W (n×2×3): how the sphere estimator's pitch and roll move with the outputs,
+    F (n×2×3) the rows ∂f/∂pitch, ∂f/∂roll and W the weights (n×3); where roll is not free only pitch
+    is estimated and roll's row is NaN."""
+    M = np.einsum("nai,ni,nbi->nab", F, w, F)
+    held = ~np.asarray(free_roll, dtype=bool)
+    M[held, 0, 1] = M[held, 1, 0] = 0.0
+    M[held, 1, 1] = 1.0
+    A: NDArray[np.float64] = np.linalg.solve(M, F * w[:, None, :])
+    A[held, 1] = np.nan
+    return A
 
 
 def closed_form(cal: Calibration, volts: NDArray[np.float64]) -> Attitude:
@@ -136,15 +254,16 @@ def closed_form(cal: Calibration, volts: NDArray[np.float64]) -> Attitude:
     with np.errstate(divide="ignore", invalid="ignore"):
         dr_dg = np.stack([np.zeros(len(g)), g[:, 2] / h2, -g[:, 1] / h2], axis=1)
     sigma_v = output_variance(cal, g)
-    dp_dv, dr_dv = dp_dg @ cal.s_inv.T, dr_dg @ cal.s_inv.T
-    u_p = np.sqrt(np.sum(dp_dv**2 * sigma_v, axis=1))
-    u_r = np.sqrt(np.sum(dr_dv**2 * sigma_v, axis=1))
+    A = np.stack([dp_dg @ cal.s_inv.T, dr_dg @ cal.s_inv.T], axis=1)
+    unc = combined_uncertainty(cal.uncertainty_parts, A, regressors_of(g))
+    u_p, u_r = unc.u[:, 0], unc.u[:, 1]
     roll, u_r = _undefined_roll(cal, g, sigma_v, roll, u_r)
     # Where roll is undefined |g_x| is within noise of 1, and where |g_x| ≥ 1 it was clipped: asin's
     # slope is unbounded there, so the closed form's linear uncertainty is meaningless (it read
     # 1e148°) and is stated as undefined (NaN); the sphere estimator's stays defined.
     u_p = np.where(~np.isfinite(roll) | (np.abs(g[:, 0]) >= 1.0), np.nan, u_p)
-    return Attitude(pitch, roll, u_p, u_r, _k95(cal))
+    return Attitude(pitch, roll, u_p, u_r, np.where(np.isfinite(u_p), unc.k[:, 0], np.nan),
+                    np.where(np.isfinite(u_r), unc.k[:, 1], np.nan))
 
 
 def _undefined_roll(
@@ -185,13 +304,9 @@ def sphere_least_squares(cal: Calibration, volts: NDArray[np.float64]) -> Attitu
         pitch, roll = pitch + step_p, roll + step_r
     g, dg_dp, dg_dr = _gravity_and_derivatives(pitch, roll)
     w = 1.0 / output_variance(cal, g)
-    fp, fr = dg_dp @ S, dg_dr @ S
-    a, b, c = (np.sum(w * x * y, axis=1) for x, y in ((fp, fp), (fp, fr), (fr, fr)))
-    det = a * c - b * b
-    with np.errstate(divide="ignore", invalid="ignore"):  # Σ_z = (F W Fᵀ)⁻¹ with W = Σ_v⁻¹
-        u_p = np.sqrt(np.where(free_roll, c / det, 1.0 / a))
-        u_r = np.sqrt(a / det)
+    A = sphere_sensitivity(np.stack([dg_dp @ S, dg_dr @ S], axis=1), w, free_roll)
+    unc = combined_uncertainty(cal.uncertainty_parts, A, regressors_of(g))
     pitch = np.arctan2(np.sin(pitch), np.cos(pitch))
     roll = np.arctan2(np.sin(roll), np.cos(roll))
-    roll, u_r = np.where(free_roll, roll, np.nan), np.where(free_roll, u_r, np.nan)
-    return Attitude(pitch, roll, u_p, u_r, _k95(cal))
+    roll, u_r = np.where(free_roll, roll, np.nan), np.where(free_roll, unc.u[:, 1], np.nan)
+    return Attitude(pitch, roll, unc.u[:, 0], u_r, unc.k[:, 0], np.where(free_roll, unc.k[:, 1], np.nan))

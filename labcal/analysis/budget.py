@@ -34,10 +34,17 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from labcal.analysis.attitude import _gravity_and_derivatives
+from labcal.analysis.attitude import (
+    N_ERRORS,
+    CovariancePart,
+    _gravity_and_derivatives,
+    combined_uncertainty,
+    coverage_factor,
+    sphere_sensitivity,
+)
 from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.device_model import N_MIS
-from labcal.analysis.distributions import t_quantile
+from labcal.analysis.distributions import welch_satterthwaite
 from labcal.analysis.fit import Fit, readings_points
 from labcal.analysis.kinematics import ARCSEC, Misalignment, gravity
 from labcal.analysis.models import Points
@@ -58,6 +65,10 @@ class TypeBInputs:
     dmm_range_v: float = 0.0  # volts: % of range × range (34970A 1 year, 10 V range: 5e-6 × 10 V)
     dmm_noise_v: float = 0.0  # rms of one averaged reading; shown, already in the fit's Type A
     dmm_conditions: str = ""  # the range and integration time the accuracy applies to, as stated
+    # Inputs whose error is one and the same in the three channels ("dmm_reading", "dmm_range"): a
+    # scanning DMM reads them through one ADC. A common gain scales X as a whole and largely cancels
+    # in the attitude (a direction); declared independent it would be counted three times over.
+    common: tuple[str, ...] = ()
     pitch_index: float = 0.0  # rad
     pitch_wobble: float = 0.0
     roll_index: float = 0.0
@@ -82,6 +93,10 @@ class Component:
     u: float  # standard uncertainty of each elementary input, in its unit
     dof: float  # np.inf for Type B
     distribution: Distribution
+    # Components naming the same estimate share one variance estimate (a sensor's residual variance
+    # sets both its coefficients' covariance and one new reading's variance): one term in
+    # Welch–Satterthwaite, and one χ² draw in the Monte Carlo.
+    estimate: str = ""
 
 
 @dataclass(frozen=True)
@@ -113,6 +128,10 @@ class Calibration:
     projection: NDArray[np.float64]  # (4, K)
     points: Points
     installation: NDArray[np.int_]  # (K,) one id per mounting (replicate × mount)
+    # The per-sensor covariance the attitude estimator weights by, where it is not ``covariance``: a
+    # device-model certificate states the marginal covariance of (B, S), and `labcal attitude`
+    # weights by what the certificate states.
+    estimator_covariance: NDArray[np.float64] | None = None
 
 
 def calibration_of(fit: Fit, readings: Readings) -> Calibration:
@@ -141,7 +160,8 @@ def calibration_of_device(device: DeviceFit, readings: Readings) -> Calibration:
     conditional = cov[rest, rest] - cov[rest, m] @ np.linalg.pinv(cov[m, m]) @ cov[m, rest]
     per_sensor = np.stack([conditional[np.ix_(idx, idx)] for idx in (np.arange(4) * 3 + j for j in range(3))])
     return replace(calibration_of(device.linear, readings), X=device.coefficients, covariance=per_sensor,
-                   reading_var=device.reading_sd() ** 2, dof=np.full(3, float(device.dof)))
+                   reading_var=device.reading_sd() ** 2, dof=np.full(3, float(device.dof)),
+                   estimator_covariance=np.stack([device.sensor_covariance(j) for j in range(3)]))
 
 
 def _gravity_derivative(points: Points, name: str) -> NDArray[np.float64]:
@@ -189,7 +209,8 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
     for j in range(3):
         jac = np.zeros((4, 3, 4))
         jac[:, j, :] = _factor(cal.covariance[j])
-        fit_parts.append(Component(jac.reshape(12, 4), np.zeros((3, 4)), 1.0, float(cal.dof[j]), "t"))
+        fit_parts.append(Component(jac.reshape(12, 4), np.zeros((3, 4)), 1.0, float(cal.dof[j]), "t",
+                                   f"residual variance {'xyz'[j]}"))
     u_bias = float(np.sqrt(cal.covariance[:, 0, 0].max()))
     rows.append(Source("calibration fit (coefficients)", "A", "t", u_bias, "V (u of B, largest)",
                        tuple(fit_parts),
@@ -198,18 +219,31 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
     rows.append(Source("one new reading (instrument repeatability)", "A", "t",
                        float(np.sqrt(cal.reading_var.max())), "V", tuple(
                            Component(np.zeros((12, 1)), np.eye(3)[:, [j]] * np.sqrt(cal.reading_var[j]), 1.0,
-                                     float(cal.dof[j]), "t") for j in range(3))))
-    # The DMM: gain (% of reading) and offset (% of range), systematic over the run, independent
-    # between channels (conservative: a gain common to all channels cancels in the direction).
-    gain = np.zeros((4, 3, 3))
-    offset = np.zeros((4, 3, 3))
-    for j in range(3):
-        gain[:, j, j] = X[:, j]
-        offset[0, j, j] = 1.0
-    rows.append(Source("DMM accuracy, % of reading", "B", "rectangular", b.dmm_reading / SQRT3, "relative",
-                       (_b(gain.reshape(12, 3), b.dmm_reading / SQRT3),), note=b.dmm_conditions))
-    rows.append(Source("DMM accuracy, % of range", "B", "rectangular", b.dmm_range_v / SQRT3, "V",
-                       (_b(offset.reshape(12, 3), b.dmm_range_v / SQRT3),), note=b.dmm_conditions))
+                                     float(cal.dof[j]), "t", f"residual variance {'xyz'[j]}")
+                           for j in range(3))))
+    # The DMM: gain (% of reading) and offset (% of range), systematic over the run; per channel
+    # independent, or one error common to the three channels where the station declares it so.
+    def dmm(name: str, per_channel: Callable[[int], NDArray[np.float64]]) -> tuple[NDArray[np.float64], str]:
+        common = name in b.common
+        jac = np.zeros((4, 3, 1 if common else 3))
+        for j in range(3):
+            jac[:, j, 0 if common else j] = per_channel(j)
+        how = ("one error common to the three channels (one ADC scans them)" if common
+               else "independent between the channels")
+        return jac.reshape(12, -1), how
+
+    def _column(j: int) -> NDArray[np.float64]:
+        return X[:, j]
+
+    def _offset(j: int) -> NDArray[np.float64]:
+        return np.eye(4)[0]
+
+    for name, label, half, unit, per_channel in (
+            ("dmm_reading", "DMM accuracy, % of reading", b.dmm_reading, "relative", _column),
+            ("dmm_range", "DMM accuracy, % of range", b.dmm_range_v, "V", _offset)):
+        jac, how = dmm(name, per_channel)
+        rows.append(Source(label, "B", "rectangular", half / SQRT3, unit, (_b(jac, half / SQRT3),),
+                           note="; ".join(n for n in (how, b.dmm_conditions) if n)))
     if b.dmm_noise_v > 0:  # its effect is in the residuals, hence in the fit's Type A already
         noise = np.zeros((4, 3, len(cal.installation), 3))
         for j in range(3):
@@ -268,8 +302,10 @@ def regressors(pitch: NDArray[np.float64], roll: NDArray[np.float64]) -> NDArray
 
 
 def estimator_weights(cal: Calibration, f: NDArray[np.float64]) -> NDArray[np.float64]:
-    """W of the sphere estimator: 1 / (fᵀ C_j f + one reading's variance), per row and sensor."""
-    calib = np.stack([np.einsum("ni,ij,nj->n", f, c, f) for c in cal.covariance], axis=1)
+    """W of the sphere estimator: 1 / (fᵀ C_j f + one reading's variance), per row and sensor, C_j the
+    covariance the estimator is given (`labcal.analysis.attitude.output_variance`)."""
+    weighting = cal.covariance if cal.estimator_covariance is None else cal.estimator_covariance
+    calib = np.stack([np.einsum("ni,ij,nj->n", f, c, f) for c in weighting], axis=1)
     return np.asarray(1.0 / (calib + cal.reading_var), dtype=float)
 
 
@@ -280,14 +316,8 @@ def attitude_sensitivity(cal: Calibration, pitch: NDArray[np.float64], roll: NDA
     _, dg_dp, dg_dr = _gravity_and_derivatives(pitch, roll)
     S = cal.X[1:]
     w = estimator_weights(cal, regressors(pitch, roll))
-    F = np.stack([dg_dp @ S, dg_dr @ S], axis=1)  # (n, 2, 3)
     defined = np.abs(np.cos(pitch)) > 1e-9
-    M = np.einsum("nai,ni,nbi->nab", F, w, F)
-    M[~defined, 0, 1] = M[~defined, 1, 0] = 0.0  # dg/droll = 0 there: estimate pitch alone
-    M[~defined, 1, 1] = 1.0
-    A = np.linalg.solve(M, F * w[:, None, :])
-    A[~defined, 1] = np.nan
-    return A, defined
+    return sphere_sensitivity(np.stack([dg_dp @ S, dg_dr @ S], axis=1), w, defined), defined
 
 
 def _compressed(c: Component) -> NDArray[np.float64]:
@@ -323,35 +353,44 @@ def _combine(rows: list[Source], variance: Callable[[Component], NDArray[np.floa
              shape: tuple[int, ...]) -> Combined:
     """Sum the sources' variances (those not ``added`` are shown, not summed) and combine their
     degrees of freedom by Welch–Satterthwaite, component by component."""
-    contributions, parts = {}, []
-    total = np.zeros(shape)
-    for source in rows:
-        var = np.zeros(shape)
-        for c in source.components:
-            part = variance(c)
-            var += part
-            if source.added:
-                parts.append((part, c.dof))
-        contributions[source.name] = np.sqrt(var)
-        if source.added:
-            total += var
+    contributions = _contributions(rows, variance, shape)
+    parts = [(variance(c), c.dof) for source in rows if source.added for c in source.components]
+    total = sum((v for v, _ in parts), start=np.zeros(shape))
     u_c = np.sqrt(total)
     nu = welch_satterthwaite(u_c, parts)
-    return Combined(contributions, u_c, nu, np.asarray(t_quantile(0.5 + COVERAGE / 2, nu), dtype=float))
+    return Combined(contributions, u_c, nu, coverage_factor(nu, u_c))
 
 
-def welch_satterthwaite(u_c: NDArray[np.float64], parts: list[tuple[NDArray[np.float64], float]]
-                        ) -> NDArray[np.float64]:
-    """ν_eff = u_c⁴ / Σ u_i⁴/ν_i (GUM G.2b) over the parts (variance, dof); infinite dof add nothing."""
-    denominator = sum((var**2 / dof for var, dof in parts if np.isfinite(dof) and dof > 0),
-                      start=np.zeros_like(u_c))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.asarray(np.where(denominator > 0, u_c**4 / denominator, np.inf), dtype=float)
+def _contributions(rows: list[Source], variance: Callable[[Component], NDArray[np.float64]],
+                   shape: tuple[int, ...]) -> dict[str, NDArray[np.float64]]:
+    """Each source's standard uncertainty in the outputs (shown; the totals are not summed from it)."""
+    return {s.name: np.sqrt(sum((variance(c) for c in s.components), start=np.zeros(shape))) for s in rows}
+
+
+def covariance_parts(rows: list[Source]) -> tuple[CovariancePart, ...]:
+    """The complete covariance of [vec(X); one new reading] as independent parts: every added Type B
+    component with infinite degrees of freedom in one part (they add nothing to Welch–Satterthwaite),
+    each finite-dof component in its own, components naming one estimate together. Correlations a
+    component carries (across coefficients, across channels) stay in its matrix."""
+    parts: dict[str, tuple[NDArray[np.float64], float, str]] = {}
+    for source in rows:
+        if not source.added:
+            continue
+        for i, c in enumerate(source.components):
+            J = np.concatenate([c.jac_x, c.jac_v]) * c.u
+            key = "Type B" if not np.isfinite(c.dof) else (c.estimate or f"{source.name} #{i}")
+            label = "Type B (every input of known distribution)" if key == "Type B" else \
+                (c.estimate or source.name)
+            previous = parts.get(key, (np.zeros((N_ERRORS, N_ERRORS)), c.dof, label))[0]
+            parts[key] = (previous + J @ J.T, c.dof, label)
+    return tuple(CovariancePart(m, dof, label) for m, dof, label in parts.values())
 
 
 def propagate(cal: Calibration, rows: list[Source], pitch: NDArray[np.float64], roll: NDArray[np.float64]
               ) -> Propagated:
-    """Every source's contribution to pitch and roll at the attitudes (radians)."""
+    """Every source's contribution to pitch and roll at the attitudes (radians), and the totals from
+    the complete covariance through `labcal.analysis.attitude.combined_uncertainty` — the one
+    function every stated attitude U95 comes from."""
     pitch, roll = np.atleast_1d(pitch).astype(float), np.atleast_1d(roll).astype(float)
     A, _ = attitude_sensitivity(cal, pitch, roll)
     f = regressors(pitch, roll)
@@ -360,8 +399,9 @@ def propagate(cal: Calibration, rows: list[Source], pitch: NDArray[np.float64], 
         J = _compressed(c)
         dv = -np.einsum("ni,ijm->njm", f, J[:12].reshape(4, 3, -1)) + J[12:][None]
         return np.asarray(np.sum(np.einsum("nab,nbm->nam", A, dv) ** 2, axis=2), dtype=float)
-    combined = _combine(rows, variance, (len(pitch), 2))
-    return Propagated(**vars(combined), pitch=pitch, roll=roll)
+    total = combined_uncertainty(covariance_parts(rows), A, f)
+    return Propagated(_contributions(rows, variance, (len(pitch), 2)), total.u, total.nu_eff, total.k,
+                      pitch=pitch, roll=roll)
 
 
 def coefficient_budget(rows: list[Source]) -> Combined:

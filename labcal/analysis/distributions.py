@@ -179,3 +179,12 @@ def chi2_quantile(p: float, dof: int) -> float:
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if chi2_cdf(mid, dof) < p else (lo, mid)
     return 0.5 * (lo + hi)
+
+
+def welch_satterthwaite(u_c: Array, parts: list[tuple[Array, float]]) -> Array:
+    """ν_eff = u_c⁴ / Σ u_i⁴/ν_i (GUM G.2b) over the parts (variance u_i², dof ν_i); infinite dof add
+    nothing, and with nothing finite ν_eff is infinite."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        denominator = sum((var**2 / dof for var, dof in parts if np.isfinite(dof) and dof > 0),
+                          start=np.zeros_like(u_c))
+        return np.asarray(np.where(denominator > 0, u_c**4 / denominator, np.inf), dtype=float)

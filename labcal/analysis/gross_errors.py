@@ -322,11 +322,12 @@ def methods_disagree(closed: Attitude, sphere: Attitude) -> list[Flag]:
     """Rows where the two estimators differ by more than their combined expanded uncertainty: they
     agree to first order on any reading of 1 g, so a difference means the reading is not one."""
     flags = []
-    for name, a, b, ua, ub in (("pitch", closed.pitch, sphere.pitch, closed.u_pitch, sphere.u_pitch),
-                               ("roll", closed.roll, sphere.roll, closed.u_roll, sphere.u_roll)):
+    for name, a, b, ua, ub, k in (
+            ("pitch", closed.pitch, sphere.pitch, closed.u_pitch, sphere.u_pitch, closed.k_pitch),
+            ("roll", closed.roll, sphere.roll, closed.u_roll, sphere.u_roll, closed.k_roll)):
         with np.errstate(all="ignore"):
             diff = np.abs(np.angle(np.exp(1j * (a - b))))
-            limit = closed.k95 * np.hypot(ua, ub)
+            limit = k * np.hypot(ua, ub)
             # where the closed form's uncertainty is undefined (asin at the pole) nothing is compared:
             # the gravity check still sees a reading that is not 1 g
             bad = np.isfinite(diff) & np.isfinite(limit) & (diff > limit)

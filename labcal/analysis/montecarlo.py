@@ -23,7 +23,10 @@ GN_ITERATIONS = 6
 CHUNK = 4000  # trials per batch: bounds memory for plans with many elementary inputs
 
 
-def _draw(c: Component, n: int, rng: np.random.Generator) -> NDArray[np.float64]:
+def _draw(c: Component, n: int, rng: np.random.Generator, chi: dict[str, NDArray[np.float64]]
+          ) -> NDArray[np.float64]:
+    """The component's elementary inputs in units of u (m×n); components naming one estimate share
+    its χ² draw (``chi``, filled as they come), as one sensor's coefficients and new reading do."""
     m = c.jac_x.shape[1]
     if c.distribution == "rectangular":
         e = rng.uniform(-np.sqrt(3.0), np.sqrt(3.0), size=(m, n))
@@ -31,7 +34,10 @@ def _draw(c: Component, n: int, rng: np.random.Generator) -> NDArray[np.float64]
         e = rng.standard_normal((m, n))
         if c.distribution == "t" and np.isfinite(c.dof):
             # t_ν with scale u (JCGM 101 6.4.9.7): wider than u by √(ν/(ν−2)), as k = t(ν) is in GUM
-            e *= np.sqrt(c.dof / rng.chisquare(c.dof, size=n))[None, :]
+            key = c.estimate or str(id(c))
+            if key not in chi:
+                chi[key] = np.sqrt(c.dof / rng.chisquare(c.dof, size=n))
+            e *= chi[key][None, :]
     return e
 
 
@@ -77,11 +83,12 @@ def monte_carlo(cal: Calibration, rows: list[Source], pitch: float, roll: float,
         n = min(CHUNK, trials - start)
         dX = np.zeros((12, n))
         dv = np.zeros((3, n))
+        chi: dict[str, NDArray[np.float64]] = {}
         for source in rows:
             if not source.added:
                 continue
             for c in source.components:
-                e = _draw(c, n, rng) * c.u
+                e = _draw(c, n, rng, chi) * c.u
                 dX += c.jac_x @ e
                 dv += c.jac_v @ e
         X = cal.X[None] + dX.T.reshape(n, 4, 3)

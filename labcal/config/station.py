@@ -273,11 +273,23 @@ def leaves(tree: dict, prefix: str) -> dict[str, object]:
     return flat
 
 
+# DMMs that scan their channels through one ADC: their gain error is common to the three channels
+SCANNING_DMMS = frozenset({"keysight-34970a"})
+
+
 class DmmRange(BaseModel):
     model_config = ConfigDict(extra="ignore")
 
+    driver: str | None = None
     range_v: float = 10.0
     nplc: float = 10.0
+
+    def common_inputs(self, declared: list[str] | None) -> tuple[str, ...]:
+        """The Type B inputs common to the three channels: as declared, else the DMM gain of a
+        scanning DMM."""
+        if declared is not None:
+            return tuple(declared)
+        return ("dmm_reading",) if self.driver in SCANNING_DMMS else ()
 
 
 class CertificateSection(BaseModel):

@@ -128,7 +128,9 @@ def _results(root: ET.Element, cert: Certificate) -> None:
             _s(real, "value", _number(X[i, j]))
             _s(real, "unit", "\\volt")
             _expanded(real, U[i, j], k[j])
-        covariance = np.array(cert.fit.covariance[j])[:4, :4]
+        # the complete covariance (Type A and B) that U above comes from, not the fit's Type A alone
+        idx = np.arange(4) * 3 + j
+        covariance = cert.coefficient_covariance()[np.ix_(idx, idx)]
         region = _s(values, "ellipsoidalRegion")
         matrix = _s(region, "covarianceMatrix")
         for column in covariance.T:

@@ -21,6 +21,7 @@ from labcal.analysis.budget import (
     calibration_of,
     calibration_of_device,
     coefficient_budget,
+    covariance_parts,
     propagate,
     sources,
 )
@@ -37,6 +38,7 @@ from labcal.documents.certificate import (
     BudgetRow,
     BudgetTotal,
     CoefficientBudgetRecord,
+    CovariancePartRecord,
     MonteCarloCheck,
     UncertaintyBudget,
 )
@@ -81,6 +83,7 @@ def type_b_inputs(section: CertificateSection, record: RunRecord, device: Device
            if section.dmm.nplc < 1 else ""),
         pitch_index=u.pitch_index, pitch_wobble=u.pitch_wobble, roll_index=u.roll_index,
         roll_wobble=u.roll_wobble, mount_repeatability=u.mount_repeatability,
+        common=section.dmm.common_inputs(u.common),
         temperature_half_range_k=0.0 if t is None else float(np.ptp(t)) / 2,
         bias_tempco_v_per_k=u.bias_tempco, sensitivity_tempco_per_k=u.sensitivity_tempco,
         device_misalignment=device_misalignment)
@@ -203,7 +206,9 @@ def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: Certifica
             u_c=coef.u_c.tolist(), nu_eff=[[_finite(x) for x in row] for row in coef.nu_eff],
             k=coef.k.tolist(), U=coef.U.tolist(),
             contributions={name: c.tolist() for name, c in coef.contributions.items()}),
-        monte_carlo=checks, statement=_statement(totals, checks))
+        monte_carlo=checks, statement=_statement(totals, checks),
+        covariance=[CovariancePartRecord(label=part.label, degrees_of_freedom=_finite(part.dof),
+                                         matrix=part.matrix.tolist()) for part in covariance_parts(rows)])
 
 
 def stated_U95_arcsec(b: UncertaintyBudget, angle: str) -> float | None:
