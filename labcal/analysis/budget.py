@@ -132,6 +132,10 @@ class Calibration:
     # device-model certificate states the marginal covariance of (B, S), and `labcal attitude`
     # weights by what the certificate states.
     estimator_covariance: NDArray[np.float64] | None = None
+    # ∂vec(X)/∂V (12 × K × 3) where the fit is not linear in the readings' regressors: the device model
+    # re-estimates the misalignments with X, so a bench error reaches X through its own projection
+    # (None: the linear fit's, P per sensor).
+    reading_projection: NDArray[np.float64] | None = None
 
 
 def calibration_of(fit: Fit, readings: Readings) -> Calibration:
@@ -149,19 +153,20 @@ def calibration_of(fit: Fit, readings: Readings) -> Calibration:
 
 def calibration_of_device(device: DeviceFit, readings: Readings) -> Calibration:
     """The budget's view of a device-model fit: X and one new reading's variance are the device
-    model's; the Type A covariance is the device model's conditional on a…k (what the readings' noise
-    does to X with the misalignments held at their estimates). The misalignments' own share is the
-    budget's device-misalignment row, propagated through the linear projection: to first order X̂ is
-    the linear fit of the readings corrected by a…k, whose noise lies in the residual space and so is
-    uncorrelated with the linear fit's, and the two parts add up to the device model's covariance."""
-    cov = device.covariance
+    model's; the Type A covariance is the device model's noise share conditional on a…k (what the
+    readings' noise does to X with the misalignments held at their estimates); the misalignments' own
+    noise share is the budget's device-misalignment row. Bench errors (the tables' index and wobble,
+    a remount) reach X through the device model's own projection, which re-estimates a…k with X: the
+    tables' angle errors enter once, as the table rows, not also through the misalignments' u."""
+    cov = device.noise_covariance
     m = slice(0, N_MIS)
     rest = slice(N_MIS, None)
     conditional = cov[rest, rest] - cov[rest, m] @ np.linalg.pinv(cov[m, m]) @ cov[m, rest]
     per_sensor = np.stack([conditional[np.ix_(idx, idx)] for idx in (np.arange(4) * 3 + j for j in range(3))])
     return replace(calibration_of(device.linear, readings), X=device.coefficients, covariance=per_sensor,
                    reading_var=device.reading_sd() ** 2, dof=np.full(3, float(device.dof)),
-                   estimator_covariance=np.stack([device.sensor_covariance(j) for j in range(3)]))
+                   estimator_covariance=np.stack([device.sensor_covariance(j) for j in range(3)]),
+                   reading_projection=device.reading_projection(readings)[N_MIS:])
 
 
 def _gravity_derivative(points: Points, name: str) -> NDArray[np.float64]:
@@ -171,16 +176,21 @@ def _gravity_derivative(points: Points, name: str) -> NDArray[np.float64]:
     return np.asarray(np.imag(g) / COMPLEX_STEP, dtype=float)
 
 
-def _grouped(cal: Calibration, names: tuple[str, ...], groups: NDArray[np.int_]) -> NDArray[np.float64]:
+def _grouped(cal: Calibration, names: tuple[str, ...], groups: NDArray[np.int_], linear: bool = False
+             ) -> NDArray[np.float64]:
     """∂vec(X)/∂e for one input per (group, misalignment name): the inputs act on every point of
-    their group (one table angle, one mounting, or all points) through the fit's projection."""
+    their group (one table angle, one mounting, or all points) through the fit's projection (with
+    ``linear``, the linear fit's: an error in a correction applied to the readings)."""
     n_groups = int(groups.max()) + 1
     member = np.zeros((len(groups), n_groups))
     member[np.arange(len(groups)), groups] = 1.0
     blocks = []
     for name in names:
         dv = _gravity_derivative(cal.points, name) @ cal.X[1:]  # (K, 3): δV per unit input at each point
-        blocks.append(np.einsum("ik,kj,km->ijm", cal.projection, dv, member).reshape(12, n_groups))
+        if cal.reading_projection is not None and not linear:
+            blocks.append(np.einsum("ikc,kc,km->im", cal.reading_projection, dv, member))
+        else:
+            blocks.append(np.einsum("ik,kj,km->ijm", cal.projection, dv, member).reshape(12, n_groups))
     return np.concatenate(blocks, axis=1)
 
 
@@ -283,7 +293,7 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
         everything = np.zeros(len(cal.installation), dtype=int)
         rows.append(Source("device misalignment estimates", "B", "normal",
                            max(b.device_misalignment.values()) / ARCSEC, "arcsec", tuple(
-                               _b(_grouped(cal, (name,), everything), u, "normal")
+                               _b(_grouped(cal, (name,), everything, linear=True), u, "normal")
                                for name, u in b.device_misalignment.items()),
                            note="the device model's estimates of a…k, applied as corrections: each one's "
                                 "standard uncertainty from the joint fit, through the fit's projection "

@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 from dataclasses import replace
 from datetime import date
 from pathlib import Path
@@ -510,6 +511,9 @@ def seal(content: dict) -> Certificate:
 
 
 # --- reading and writing ---------------------------------------------------------------------------
+_CUT_TOKEN = re.compile(r"[-+0-9.eE]+|t(r(u)?)?|f(a(l(s)?)?)?|n(u(l)?)?")
+
+
 def parse_json(text: str, source: str):
     """JSON text, or one line saying why not — naming truncation, the usual way files break."""
     try:
@@ -518,7 +522,9 @@ def parse_json(text: str, source: str):
         raise LabcalError(f"{source}: nested more than {MAX_DEPTH} deep; a certificate is not nested like "
                           "that") from None
     except json.JSONDecodeError as exc:
-        if exc.pos >= len(text.rstrip()) or exc.msg.startswith("Unterminated string"):
+        rest = text.rstrip()[exc.pos:]
+        # cut inside a number ("0." or "1e-") or a literal ("tr"): the parser stops at its last character
+        if not rest or _CUT_TOKEN.fullmatch(rest) or exc.msg.startswith("Unterminated string"):
             raise LabcalError(f"{source}: not valid JSON: the file is truncated (it stops at line "
                               f"{text.rstrip().count(chr(10)) + 1} before the document ends)") from None
         raise LabcalError(f"{source}: not valid JSON ({exc.msg} at line {exc.lineno})") from None

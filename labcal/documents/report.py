@@ -30,6 +30,7 @@ from labcal.analysis.kinematics import NO_MISALIGNMENT, Misalignment, Mount, gra
 from labcal.analysis.models import Points
 from labcal.config.files import write_atomic
 from labcal.config.settings import CertificateSettings
+from labcal.config.station import stated_angle_errors
 from labcal.documents.administration import ItemGiven
 from labcal.documents.certificate import (
     Certificate,
@@ -634,7 +635,7 @@ def fitted(record: RunRecord) -> tuple[Fit, DeviceFit | None, str]:
     if record.fit is not None:
         return record.fit, record.device, record.model_note
     fit = fit_readings(record.readings)
-    return fit, *preferred_fit(record.readings, fit)
+    return fit, *preferred_fit(record.readings, fit, stated_angle_errors(record.station_text))
 
 
 def _issued(path: Path) -> Certificate | None:

@@ -72,8 +72,9 @@ def type_b_inputs(section: CertificateSection, record: RunRecord, device: Device
                   ) -> TypeBInputs:
     """The bench's inputs in SI; the temperature half-range is the run's own (none without a channel);
     the device misalignments' standard uncertainties where the ``device`` model estimated them."""
-    device_misalignment = {} if device is None else {
-        name: float(u) for name, u in zip(MISALIGNMENT_NAMES, device.misalignment_u_rad, strict=True)}
+    noise_u = None if device is None else np.sqrt(np.diag(device.noise_covariance)[:len(MISALIGNMENT_NAMES)])
+    device_misalignment = {} if noise_u is None else {
+        name: float(u) for name, u in zip(MISALIGNMENT_NAMES, noise_u, strict=True)}
     u = section.uncertainty
     t = record.readings.temp_c
     return TypeBInputs(
@@ -190,6 +191,11 @@ def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: Certifica
     certificate is built on it; ``trials`` > 0 adds the Monte Carlo check."""
     readings = record.readings
     cal = calibration_of(fit, readings) if device is None else calibration_of_device(device, readings)
+    if device is not None and device.angle_errors is not None:
+        # the tables' index and wobble the device model was fitted with are the budget's table rows
+        a = device.angle_errors
+        inputs = replace(inputs, pitch_index=a.pitch_index, pitch_wobble=a.pitch_wobble,
+                         roll_index=a.roll_index, roll_wobble=a.roll_wobble)
     scatter = mount_scatter(readings, cal.X)
     if scatter is not None:  # the replicates say how the seating scatters: they win over the station file
         inputs = replace(inputs, mount_repeatability_sd=scatter.sd_rad, mount_repeatability_dof=scatter.dof)
