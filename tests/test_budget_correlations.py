@@ -40,9 +40,10 @@ def _gain_row(cal, common: bool):
     return next(s for s in sources(cal, inputs) if s.name == ROW)
 
 
-def _sensitivities(fit, attitudes):
+def _sensitivities(fit, attitudes, offset: bool = False):
     """∂(pitch, roll)/∂(relative gain of channel j) at each attitude, by central differences of the
-    sphere estimator with the coefficients scaled as a DMM gain error scales them (n×2×3)."""
+    sphere estimator with the coefficients scaled as a DMM gain error scales them (n×2×3); with
+    ``offset``, ∂/∂(offset of channel j in volts): the bias moves by it."""
     cal0 = calibration_from_json(fit.to_json(), "fit")
     g = gravity(attitudes[:, 0], attitudes[:, 1], 0.0, 0.0)
     volts = fit.coefficients[0] + g @ fit.coefficients[1:]
@@ -52,7 +53,10 @@ def _sensitivities(fit, attitudes):
         z = []
         for sign in (1, -1):
             X = fit.coefficients.copy()
-            X[:, j] *= 1 + sign * h
+            if offset:
+                X[0, j] += sign * h
+            else:
+                X[:, j] *= 1 + sign * h
             att = sphere_least_squares(cal0.__class__(X, cal0.covariance, cal0.reading_sd, cal0.dof), volts)
             z.append(np.column_stack([att.pitch, att.roll]))
         out[:, :, j] = (z[0] - z[1]) / (2 * h)
@@ -74,6 +78,26 @@ def test_dmm_gain_row_is_the_gum_formula(calibration, common):
     np.testing.assert_allclose(p.contributions[ROW], expected, rtol=1e-4)
     np.testing.assert_allclose(p.u_c, expected, rtol=1e-4)
     np.testing.assert_allclose(p.k, 1.959963984540054, rtol=1e-14)  # infinite dof: the normal quantile
+
+
+RANGE_V = 5e-5  # ± half-width in volts: 0.0005 % of the 10 V range
+
+
+@pytest.mark.parametrize("common", [False, True])
+def test_dmm_range_row_is_the_gum_formula(calibration, common):
+    fit, cal = calibration
+    label = "DMM accuracy, % of range"
+    inputs = TypeBInputs(dmm_range_v=RANGE_V, common=("dmm_range",) if common else ())
+    row = next(s for s in sources(cal, inputs) if s.name == label)
+    u_offset = RANGE_V / np.sqrt(3)
+    # an offset moves each bias by itself and no sensitivity
+    expected_x = np.zeros((4, 3))
+    expected_x[0] = u_offset
+    np.testing.assert_allclose(coefficient_budget([row]).contributions[label], expected_x, rtol=1e-12)
+    c = _sensitivities(fit, ATTITUDES, offset=True)
+    expected = np.abs(c.sum(axis=2)) * u_offset if common else np.sqrt(np.sum(c**2, axis=2)) * u_offset
+    p = propagate(cal, [row], ATTITUDES[:, 0], ATTITUDES[:, 1])
+    np.testing.assert_allclose(p.contributions[label], expected, rtol=1e-4)
 
 
 @pytest.mark.parametrize("common", [False, True])

@@ -7,6 +7,8 @@ certificate against the same refits."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -144,3 +146,40 @@ def test_coverage_of_a_thousand_rigs(replicates):
     """The issue's criterion: ≥ 93 % for each misalignment and each coefficient in 1 000 trials."""
     after = _coverage(1000, replicates, stated=True)
     assert np.all(after >= 0.93), after
+
+
+def test_fit_command_takes_the_tables_stated_errors(tmp_path, capsys):
+    from labcal.cli import main
+
+    csv = tmp_path / "readings.csv"
+    assert main(["simulate", "--plan", "four-mount-64", "--misalign", "a=30arcsec,e=20arcsec",
+                 "--index-error", "1", "--wobble", "2", "--noise", "5e-6", "--seed", "3",
+                 "--out", str(csv)]) == 0
+    capsys.readouterr()
+    assert main(["fit", str(csv), "--model", "device", "--json"]) == 0
+    bare = json.loads(capsys.readouterr().out)
+    assert main(["fit", str(csv), "--model", "device", "--table-index", "1", "--table-wobble", "2",
+                 "--json"]) == 0
+    stated = json.loads(capsys.readouterr().out)
+    assert stated["angle_errors_stated"]["roll_wobble_arcsec"] == pytest.approx(2.0)
+    assert "angle_errors_stated" not in bare
+    for name in MISALIGNMENT_NAMES:  # the same estimate, a wider U (the wobble dominates at 5 µV)
+        assert stated["misalignments"][name]["value_arcsec"] == bare["misalignments"][name]["value_arcsec"]
+        assert stated["misalignments"][name]["U_arcsec"] > 2 * bare["misalignments"][name]["U_arcsec"]
+    assert main(["fit", str(csv), "--model", "linear", "--table-wobble", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "--table-index and --table-wobble are the device model's" in err and err.count("\n") == 1
+
+
+def test_a_run_s_station_states_the_tables_errors():
+    from labcal.config.station import stated_angle_errors
+
+    rig = {"kind": "simulated rig", "seed": 1,
+           "rig": {"device": {"index_arcsec": 1.5, "wobble_arcsec": 0.5}}}
+    errors = stated_angle_errors(json.dumps(rig))
+    assert errors == AngleErrors(1.5 * ARCSEC, 0.5 * ARCSEC, 1.5 * ARCSEC, 0.5 * ARCSEC)
+    table = {"pitch_index": "2 arcsec", "roll_wobble": "1 arcsec"}
+    station = {"kind": "station", "station": {"uncertainty": table}}
+    assert stated_angle_errors(json.dumps(station)) == AngleErrors(pitch_index=2 * ARCSEC, roll_wobble=ARCSEC)
+    assert stated_angle_errors(json.dumps({"kind": "station", "station": {}})) is None  # states none
+    assert stated_angle_errors("") is None
