@@ -227,7 +227,7 @@ def regressors_of(g: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.concatenate([np.ones((len(g), 1)), g], axis=1)
 
 
-def sphere_sensitivity(F: NDArray[np.float64], w: NDArray[np.float64], free_roll: NDArray[np.bool_]
+def sphere_sensitivity(F: NDArray[np.float64], w: NDArray[np.float64], free_roll: NDArray[Any]
                        ) -> NDArray[np.float64]:
     """A = (F W Fᵀ)⁻¹ F W (n×2×3): how the sphere estimator's pitch and roll move with the outputs,
     F (n×2×3) the rows ∂f/∂pitch, ∂f/∂roll and W the weights (n×3); where roll is not free only pitch

@@ -233,26 +233,20 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
                            for j in range(3))))
     # The DMM: gain (% of reading) and offset (% of range), systematic over the run; per channel
     # independent, or one error common to the three channels where the station declares it so.
-    def dmm(name: str, per_channel: Callable[[int], NDArray[np.float64]]) -> tuple[NDArray[np.float64], str]:
+    offset = np.zeros((4, 3))
+    offset[0] = 1.0
+    for name, label, half, unit, effect in (("dmm_reading", "DMM accuracy, % of reading", b.dmm_reading,
+                                             "relative", X),
+                                            ("dmm_range", "DMM accuracy, % of range", b.dmm_range_v, "V",
+                                             offset)):
         common = name in b.common
         jac = np.zeros((4, 3, 1 if common else 3))
-        for j in range(3):
-            jac[:, j, 0 if common else j] = per_channel(j)
+        for j in range(3):  # channel j's error moves column j of X by effect[:, j] per unit
+            jac[:, j, 0 if common else j] = effect[:, j]
         how = ("one error common to the three channels (one ADC scans them)" if common
                else "independent between the channels")
-        return jac.reshape(12, -1), how
-
-    def _column(j: int) -> NDArray[np.float64]:
-        return X[:, j]
-
-    def _offset(j: int) -> NDArray[np.float64]:
-        return np.eye(4)[0]
-
-    for name, label, half, unit, per_channel in (
-            ("dmm_reading", "DMM accuracy, % of reading", b.dmm_reading, "relative", _column),
-            ("dmm_range", "DMM accuracy, % of range", b.dmm_range_v, "V", _offset)):
-        jac, how = dmm(name, per_channel)
-        rows.append(Source(label, "B", "rectangular", half / SQRT3, unit, (_b(jac, half / SQRT3),),
+        rows.append(Source(label, "B", "rectangular", half / SQRT3, unit,
+                           (_b(jac.reshape(12, -1), half / SQRT3),),
                            note="; ".join(n for n in (how, b.dmm_conditions) if n)))
     if b.dmm_noise_v > 0:  # its effect is in the residuals, hence in the fit's Type A already
         noise = np.zeros((4, 3, len(cal.installation), 3))

@@ -7,6 +7,7 @@ two AZ drives on one RS-485 line, two SMC100 controllers daisy-chained on one se
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, ClassVar, Literal
@@ -287,7 +288,7 @@ class DmmRange(BaseModel):
     range_v: float = 10.0
     nplc: float = 10.0
 
-    def common_inputs(self, declared: list[str] | None) -> tuple[str, ...]:
+    def common_inputs(self, declared: Sequence[str] | None) -> tuple[str, ...]:
         """The Type B inputs common to the three channels: as declared, else the DMM gain of a
         scanning DMM."""
         if declared is not None:
