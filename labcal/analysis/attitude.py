@@ -131,29 +131,56 @@ class Uncertainty:
         return np.asarray(self.k * self.u, dtype=float)
 
 
-def error_sensitivity(A: NDArray[np.float64], f: NDArray[np.float64]) -> NDArray[np.float64]:
-    """H (n×2×15): how pitch and roll move with the errors of [vec(X); one new reading]. A reading
-    error δv moves the estimate by A·δv; a coefficient error δX acts as δv = −f·δX, f = [1, g]."""
-    n = len(A)
-    H = np.empty((n, 2, N_ERRORS))
-    H[:, :, :N_COEFFICIENTS] = -(f[:, None, :, None] * A[:, :, None, :]).reshape(n, 2, N_COEFFICIENTS)
-    H[:, :, N_COEFFICIENTS:] = A
-    return H
+# f_i f_k for f = [1, g]: the ten distinct products, and which one each (i, k) is
+_PAIRS = tuple((i, k) for i in range(4) for k in range(i, 4))
+_MONOMIAL = {pair: m for m, pair in enumerate(_PAIRS)} | {(k, i): m for m, (i, k) in enumerate(_PAIRS)}
 
 
-def part_variances(parts: tuple[CovariancePart, ...], A: NDArray[np.float64], f: NDArray[np.float64]
-                   ) -> list[NDArray[np.float64]]:
-    """Each part's variance of pitch and roll (n×2) for estimator sensitivity A (n×2×3) at f."""
-    H = error_sensitivity(A, f)
-    return [np.einsum("nak,kl,nal->na", H, p.matrix, H) for p in parts]
+def _output_covariance_weights(matrix: NDArray[np.float64]) -> NDArray[np.float64]:
+    """W (10 × 9) with Cov(δv_j, δv_l) = Σ_m f-monomial_m · W[m, 3j + l] for one part, where a reading
+    in use errs by δv = −f·δX + δr (f = [1, g]): Σ_ik f_i f_k C(X_ij, X_kl) − Σ_i f_i [C(X_ij, r_l) +
+    C(r_j, X_il)] + C(r_j, r_l)."""
+    cx = matrix[:N_COEFFICIENTS, :N_COEFFICIENTS].reshape(4, 3, 4, 3)
+    cxr = matrix[:N_COEFFICIENTS, N_COEFFICIENTS:].reshape(4, 3, 3)  # C(X_ij, r_l)
+    crr = matrix[N_COEFFICIENTS:, N_COEFFICIENTS:]
+    w = np.zeros((len(_PAIRS), 3, 3))
+    for i in range(4):
+        for k in range(4):
+            w[_MONOMIAL[(i, k)]] += cx[i, :, k, :]
+        w[_MONOMIAL[(0, i)]] -= cxr[i] + cxr[i].T
+    w[_MONOMIAL[(0, 0)]] += crr
+    return w.reshape(len(_PAIRS), 9)
+
+
+def output_covariance(parts: tuple[CovariancePart, ...], f: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Per row and part (n × P × 9, [j, l] row-major) the covariance of one reading's error in use,
+    Σ_v = G Σ_part Gᵀ with G = [−f ⊗ I, I]: one (n × 10)·(10 × 9P) product of f's monomials for every
+    part at once."""
+    monomials = np.empty((len(f), len(_PAIRS)))
+    for m, (i, k) in enumerate(_PAIRS):
+        np.multiply(f[:, i], f[:, k], out=monomials[:, m])
+    weights = np.concatenate([_output_covariance_weights(p.matrix) for p in parts], axis=1) if parts \
+        else np.zeros((len(_PAIRS), 0))
+    return (monomials @ weights).reshape(len(f), len(parts), 9)
+
+
+def part_variances(parts: tuple[CovariancePart, ...], A: NDArray[np.float64], f: NDArray[np.float64],
+                   sigma: NDArray[np.float64] | None = None) -> list[NDArray[np.float64]]:
+    """Each part's variance of pitch and roll (n×2) for estimator sensitivity A (n×2×3) at f:
+    A Σ_v Aᵀ (``sigma``: `output_covariance` of the parts at f, where already computed)."""
+    if sigma is None:
+        sigma = output_covariance(parts, f)
+    outer = (A[:, :, :, None] * A[:, :, None, :]).reshape(len(f), 2, 9)  # A_aj A_al
+    variances = np.matmul(outer, np.swapaxes(sigma, 1, 2))  # (n, 2, P): a batched product, not einsum
+    return [variances[:, :, q] for q in range(len(parts))]
 
 
 def combined_uncertainty(parts: tuple[CovariancePart, ...], A: NDArray[np.float64],
-                         f: NDArray[np.float64]) -> Uncertainty:
+                         f: NDArray[np.float64], sigma: NDArray[np.float64] | None = None) -> Uncertainty:
     """THE attitude uncertainty: u_c² = Σ_parts H Σ_part Hᵀ, ν_eff by Welch–Satterthwaite over the
     parts (GUM G.4.1), k = t₀.₉₇₅(ν_eff). Every output that states a pitch or roll U95 comes here."""
     with np.errstate(invalid="ignore"):
-        variances = part_variances(parts, A, f)
+        variances = part_variances(parts, A, f, sigma)
         total = np.sum(variances, axis=0) if variances else np.zeros((len(A), 2))
         u = np.sqrt(np.clip(total, 0.0, None))
         nu = welch_satterthwaite(u, [(v, p.dof) for v, p in zip(variances, parts, strict=True)])
@@ -253,9 +280,11 @@ def closed_form(cal: Calibration, volts: NDArray[np.float64]) -> Attitude:
     dp_dg[:, 0] = 1.0 / np.sqrt(np.maximum(1.0 - gx**2, 1e-300))
     with np.errstate(divide="ignore", invalid="ignore"):
         dr_dg = np.stack([np.zeros(len(g)), g[:, 2] / h2, -g[:, 1] / h2], axis=1)
-    sigma_v = output_variance(cal, g)
     A = np.stack([dp_dg @ cal.s_inv.T, dr_dg @ cal.s_inv.T], axis=1)
-    unc = combined_uncertainty(cal.uncertainty_parts, A, regressors_of(g))
+    f = regressors_of(g)
+    sigma = output_covariance(cal.uncertainty_parts, f)
+    unc = combined_uncertainty(cal.uncertainty_parts, A, f, sigma)
+    sigma_v = sigma.sum(axis=1)[:, [0, 4, 8]]  # the complete Σ_v's diagonal
     u_p, u_r = unc.u[:, 0], unc.u[:, 1]
     roll, u_r = _undefined_roll(cal, g, sigma_v, roll, u_r)
     # Where roll is undefined |g_x| is within noise of 1, and where |g_x| ≥ 1 it was clipped: asin's
