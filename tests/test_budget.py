@@ -49,9 +49,10 @@ def test_collapses_to_the_type_a_uncertainty_without_type_b_inputs():
 
 
 def _index_sensitivities(plan_name: str):
-    """∂(inferred pitch, roll)/∂(pitch index error at each table angle), by perturbing the readings as
-    the instrument would have read them with the table off by δ at that angle, refitting, and
-    inferring the attitude again — the budget's linearisation is not used."""
+    """∂(inferred pitch, roll)/∂(pitch index error) at each table angle, and ∂/∂(amplitude of each of
+    harmonics 1–3 of the pitch angle, cos and sin), by perturbing the readings as the instrument would
+    have read them with the table off by δ·pattern, refitting, and inferring the attitude again — the
+    budget's linearisation is not used."""
     readings, fit = _fit(plan_name)
     v_use = fit.coefficients[0] + gravity(*AT, 0.0, 0.0) @ fit.coefficients[1:]
     base = _sphere(fit, v_use)
@@ -59,20 +60,23 @@ def _index_sensitivities(plan_name: str):
                   (readings.pitch_deg, readings.roll_deg, readings.y_deg, readings.u_deg))
     S = np.array(TRUTH.S)
     delta = 1e-8  # small against the noise, so that refitting leaves the estimator's weights as they were
-    slopes = []
-    for angle in np.unique(readings.pitch_deg % 360):
-        at = np.isclose(readings.pitch_deg % 360, angle)
-        moved = np.where(at, p + delta, p)
-        volts = readings.volts + (gravity(moved, r, y, u) - gravity(p, r, y, u)) @ S
-        shifted = fit_readings(dataclasses.replace(readings, volts=volts))
-        att = _sphere(shifted, v_use)
-        slopes.append([(att.pitch - base.pitch)[0] / delta, (att.roll - base.roll)[0] / delta])
-    return readings, fit, np.array(slopes)
+
+    def slope(pattern):
+        volts = readings.volts + (gravity(p + delta * pattern, r, y, u) - gravity(p, r, y, u)) @ S
+        att = _sphere(fit_readings(dataclasses.replace(readings, volts=volts)), v_use)
+        return [(att.pitch - base.pitch)[0] / delta, (att.roll - base.roll)[0] / delta]
+    per_angle = [slope(np.isclose(readings.pitch_deg % 360, angle).astype(float))
+                 for angle in np.unique(readings.pitch_deg % 360)]
+    harmonics = [slope(f(h * p)) for h in (1, 2, 3) for f in (np.cos, np.sin)]
+    return readings, fit, np.array(per_angle), np.array(harmonics)
 
 
 def test_index_accuracy_adds_what_refitting_predicts():
-    readings, fit, slopes = _index_sensitivities("one-mount-16")
-    expected = np.sqrt(np.sum(slopes**2, axis=0)) * INDEX / np.sqrt(3)  # rectangular: u = a/√3
+    """GUM: u² = Σ c² u², with u = a/√3 (rectangular ± a) for each angle's error of a rough table and
+    u²/3 for each harmonic's amplitude of a smooth one (the budget states both shapes)."""
+    readings, fit, slopes, harmonics = _index_sensitivities("one-mount-16")
+    u = INDEX / np.sqrt(3)
+    expected = np.sqrt(np.sum(slopes**2, axis=0) * u**2 + np.sum(harmonics**2, axis=0) * u**2 / 3)
     cal = calibration_of(fit, readings)
     budget = propagate(cal, sources(cal, TypeBInputs(pitch_index=INDEX)), *AT)
     got = budget.contributions["pitch table index accuracy"][0]
@@ -84,8 +88,9 @@ def test_index_accuracy_adds_what_refitting_predicts():
 
 
 def test_four_mounts_cancel_the_index_error():
-    readings, fit, slopes = _index_sensitivities("four-mount-64")
-    assert np.max(np.abs(slopes)) < 1e-4  # refitting: an index error leaves pitch and roll (Soto §7)
+    readings, fit, slopes, harmonics = _index_sensitivities("four-mount-64")
+    # refitting: an index error leaves pitch and roll (Soto §7), at one angle or as a harmonic
+    assert np.max(np.abs(slopes)) < 1e-4 and np.max(np.abs(harmonics)) < 1e-4
     cal = calibration_of(fit, readings)
     budget = propagate(cal, sources(cal, TypeBInputs(pitch_index=INDEX, roll_index=INDEX)), *AT)
     assert budget.contributions["pitch table index accuracy"].max() < 1e-9 * ARCSEC

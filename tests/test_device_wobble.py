@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from labcal.analysis.budget import TypeBInputs, calibration_of_device, coefficient_budget, sources
+from labcal.analysis.design import make_plan
 from labcal.analysis.device_fit import AngleErrors, fit_device
 from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, IndexWobble, Misalignment, gravity
 from labcal.analysis.plan import Plan
@@ -35,37 +36,43 @@ def _stated(index: float = INDEX, wobble: float = WOBBLE) -> AngleErrors:
     return AngleErrors(index * ARCSEC, wobble * ARCSEC, index * ARCSEC, wobble * ARCSEC)
 
 
-def _perturbed(readings: Readings, table: str, angle: float, name: str, delta: float,
+def _perturbed(readings: Readings, pattern: np.ndarray, name: str, delta: float,
                base: Misalignment = MIS) -> Readings:
-    """The readings the instrument gives when the table errs by δ in misalignment ``name`` at one of
-    its angles (every mount and replicate at that angle), the rest exactly as read: V + (g(δ) − g)·S."""
+    """The readings the instrument gives when a table errs by δ·pattern in misalignment ``name`` (the
+    pattern: 1 at one table angle, or a harmonic of the table angle, at every mount and replicate),
+    the rest exactly as read: V + (g(δ) − g)·S."""
     degrees = (readings.pitch_deg, readings.roll_deg, readings.y_deg, readings.u_deg)
     p, r, y, u = (np.radians(a) for a in degrees)
-    table_deg = readings.pitch_deg if table == "pitch" else readings.roll_deg
-    at = np.isclose(np.mod(table_deg - angle + 180, 360), 180)
-    shift = np.zeros(len(p))
-    shift[at] = delta
     g0 = gravity(p, r, y, u, base)
-    g1 = gravity(p, r, y, u, base + Misalignment(**{name: shift}))
+    g1 = gravity(p, r, y, u, base + Misalignment(**{name: delta * pattern}))
     volts = readings.volts + (g1 - g0) @ TRUTH.X[1:]
     return Readings(readings.replicate, readings.y_deg, readings.u_deg, readings.pitch_deg, readings.roll_deg,
                     volts)
 
 
+def _patterns(readings: Readings, table: str) -> list[tuple[np.ndarray, float]]:
+    """The table's error shapes with their share of u²: one per distinct angle (a rough table, u²
+    each) and harmonics 1–3 of the angle, cos and sin (a smooth table, u²/3 each)."""
+    table_deg = np.mod(readings.pitch_deg if table == "pitch" else readings.roll_deg, 360)
+    rough = [(np.isclose(table_deg, angle).astype(float), 1.0) for angle in np.unique(table_deg)]
+    smooth = [(f(h * np.radians(table_deg)), 1 / 3) for h in (1, 2, 3) for f in (np.cos, np.sin)]
+    return rough + smooth
+
+
 def _refit_covariance(readings: Readings, stated: AngleErrors, base: Misalignment = MIS) -> np.ndarray:
-    """Σ over inputs of c·cᵀ·u², c = ∂θ̂/∂δ by central differences of full refits, u = half-width/√3."""
-    fit = fit_device(readings)
+    """Σ over inputs of c·cᵀ·u², c = ∂θ̂/∂δ by central differences of full refits, u² = half-width²/3
+    times the shape's share."""
     cov = np.zeros((18, 18))
     h = 0.05 * ARCSEC
     for table, names, half in stated.inputs():
-        angles = np.unique(np.mod(readings.pitch_deg if table == "pitch" else readings.roll_deg, 360))
-        for angle in angles:
+        if half == 0:
+            continue
+        for pattern, share in _patterns(readings, table):
             for name in names:
-                up = fit_device(_perturbed(readings, table, angle, name, h, base)).theta
-                down = fit_device(_perturbed(readings, table, angle, name, -h, base)).theta
+                up = fit_device(_perturbed(readings, pattern, name, h, base)).theta
+                down = fit_device(_perturbed(readings, pattern, name, -h, base)).theta
                 c = (up - down) / (2 * h)
-                cov += np.outer(c, c) * half**2 / 3
-    assert fit.theta.shape == (18,)
+                cov += np.outer(c, c) * share * half**2 / 3
     return cov
 
 
@@ -75,11 +82,12 @@ def test_angle_error_covariance_is_what_refitting_predicts():
     fit = fit_device(readings, angle_errors=stated)
     expected = _refit_covariance(readings, stated)
     assert fit.angle_covariance is not None
-    # to 0.3 %, or to 0.1 % of the noise's u where the angle errors' share is nil (four mounts cancel
-    # them in B): the refits' own precision (the solver stops at 1e-10 of the cost)
+    # to 1 %, or to 0.1 % of the noise's u where the angle errors' share is nil (four mounts cancel
+    # them in B): a refit weights each sensor by its own residual scatter, which the perturbation moves
+    # (the code linearises at fixed weights), and the solver stops at 1e-10 of the cost
     got, want = np.sqrt(np.diag(fit.angle_covariance)), np.sqrt(np.diag(expected))
     noise = np.sqrt(np.diag(fit.noise_covariance))
-    assert np.all(np.abs(got - want) <= 3e-3 * want + 1e-3 * noise), (got, want)
+    assert np.all(np.abs(got - want) <= 1e-2 * want + 1e-3 * noise), (got, want)
     assert np.all(want[:6] > 2 * noise[:6])  # the wobble dominates the misalignments' u here
     # the noise share is the fit without stated errors, exactly
     np.testing.assert_allclose(fit.noise_covariance, fit_device(readings).covariance, rtol=1e-9, atol=1e-30)
@@ -107,13 +115,22 @@ def test_budget_table_rows_of_a_device_certificate_are_what_refitting_predicts()
         expected = np.sqrt(np.diag(_refit_covariance(readings, stated, Misalignment()))[6:]).reshape(4, 3)
         got = coefficient_budget([rows[label]]).contributions[label]
         noise = np.sqrt(np.diag(fit.noise_covariance)[6:]).reshape(4, 3)
-        assert np.all(np.abs(got - expected) <= 5e-3 * expected + 1e-3 * noise), (label, got, expected)
+        assert np.all(np.abs(got - expected) <= 1e-2 * expected + 1e-3 * noise), (label, got, expected)
 
 
-def _coverage(trials: int, replicates: int, stated: bool) -> np.ndarray:
+def _scattered_plan() -> Plan:
+    """Twenty scattered articulations in four mounts: many distinct table angles, close together, where
+    a smooth table's errors do not average out as independent ones would."""
+    rng = np.random.default_rng(3)
+    points = [(float(p), float(r)) for p, r in zip(rng.integers(-80, 80, 20), rng.integers(0, 359, 20),
+                                                    strict=True)]
+    return make_plan("scattered-20", "20 scattered points × 4 mounts", points, four_mounts=True)
+
+
+def _coverage(trials: int, replicates: int, stated: bool, plan: Plan | None = None) -> np.ndarray:
     """Per parameter, the fraction of trials (each a new rig: new index and wobble harmonics, new
     noise) whose U = k·u covers the truth, with or without the stated errors given to the fit."""
-    plan = _plan(replicates)
+    plan = plan or _plan(replicates)
     true = np.concatenate([[getattr(MIS, n) for n in MISALIGNMENT_NAMES], TRUTH.X.ravel()])
     hits = []
     for seed in range(trials):
@@ -138,6 +155,13 @@ def test_misalignments_and_coefficients_cover_with_wobble(replicates):
     # without the stated errors the misalignments' U does not cover (the issue: 0.23–0.66): 30 trials
     # tell 0.95 from below 0.7 (binomial SE 0.04)
     assert np.min(_coverage(30, replicates, stated=False)[:6]) < 0.7
+
+
+def test_a_scattered_plan_covers_too():
+    """Many distinct, nearby table angles: the smooth shape of the errors is what covers here."""
+    trials = 100
+    after = _coverage(trials, 1, stated=True, plan=_scattered_plan())
+    assert np.all(after >= _lowest_acceptable(trials)), after
 
 
 @pytest.mark.slow

@@ -42,7 +42,7 @@ from labcal.analysis.attitude import (
     coverage_factor,
     sphere_sensitivity,
 )
-from labcal.analysis.device_fit import DeviceFit
+from labcal.analysis.device_fit import DeviceFit, angle_error_shapes
 from labcal.analysis.device_model import N_MIS
 from labcal.analysis.distributions import welch_satterthwaite
 from labcal.analysis.fit import Fit, readings_points
@@ -176,27 +176,27 @@ def _gravity_derivative(points: Points, name: str) -> NDArray[np.float64]:
     return np.asarray(np.imag(g) / COMPLEX_STEP, dtype=float)
 
 
-def _grouped(cal: Calibration, names: tuple[str, ...], groups: NDArray[np.int_], linear: bool = False
-             ) -> NDArray[np.float64]:
-    """∂vec(X)/∂e for one input per (group, misalignment name): the inputs act on every point of
-    their group (one table angle, one mounting, or all points) through the fit's projection (with
-    ``linear``, the linear fit's: an error in a correction applied to the readings)."""
-    n_groups = int(groups.max()) + 1
-    member = np.zeros((len(groups), n_groups))
+def _membership(groups: NDArray[np.int_]) -> NDArray[np.float64]:
+    """One column per group (one table angle, one mounting, or all points): 1 at its points."""
+    member = np.zeros((len(groups), int(groups.max()) + 1))
     member[np.arange(len(groups)), groups] = 1.0
+    return member
+
+
+def _grouped(cal: Calibration, names: tuple[str, ...], basis: NDArray[np.float64], linear: bool = False
+             ) -> NDArray[np.float64]:
+    """∂vec(X)/∂e for one input per (basis column, misalignment name): an input moves the misalignment
+    at every point by its column's value there (1 in its group, or a harmonic of the table angle),
+    through the fit's projection (with ``linear``, the linear fit's: an error in a correction applied
+    to the readings)."""
     blocks = []
     for name in names:
         dv = _gravity_derivative(cal.points, name) @ cal.X[1:]  # (K, 3): δV per unit input at each point
         if cal.reading_projection is not None and not linear:
-            blocks.append(np.einsum("ikc,kc,km->im", cal.reading_projection, dv, member))
+            blocks.append(np.einsum("ikc,kc,km->im", cal.reading_projection, dv, basis))
         else:
-            blocks.append(np.einsum("ik,kj,km->ijm", cal.projection, dv, member).reshape(12, n_groups))
+            blocks.append(np.einsum("ik,kj,km->ijm", cal.projection, dv, basis).reshape(12, basis.shape[1]))
     return np.concatenate(blocks, axis=1)
-
-
-def _angle_groups(angle_deg: NDArray[np.float64]) -> NDArray[np.int_]:
-    _, inverse = np.unique(np.round(np.mod(angle_deg, 360.0), 6) % 360.0, return_inverse=True)
-    return np.asarray(inverse, dtype=int).ravel()
 
 
 def _factor(cov: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -255,16 +255,21 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
         rows.append(Source("DMM noise", "B", "normal", b.dmm_noise_v, "V",
                            (_b(noise.reshape(12, -1), b.dmm_noise_v, "normal"),), added=False,
                            note="included in the fit's Type A (the residuals contain it); not added again"))
-    pitch_groups, roll_groups = _angle_groups(cal.points.pitch_deg), _angle_groups(cal.points.roll_deg)
-    for label, names, groups, half in (
-            ("pitch table index accuracy", ("a",), pitch_groups, b.pitch_index),
-            ("pitch table wobble", ("d", "f"), pitch_groups, b.pitch_wobble),
-            ("roll table index accuracy", ("f",), roll_groups, b.roll_index),
-            ("roll table wobble", ("e", "k"), roll_groups, b.roll_wobble)):
+    pitch_shapes = angle_error_shapes(np.radians(cal.points.pitch_deg))
+    roll_shapes = angle_error_shapes(np.radians(cal.points.roll_deg))
+    for label, names, shapes, half in (
+            ("pitch table index accuracy", ("a",), pitch_shapes, b.pitch_index),
+            ("pitch table wobble", ("d", "f"), pitch_shapes, b.pitch_wobble),
+            ("roll table index accuracy", ("f",), roll_shapes, b.roll_index),
+            ("roll table wobble", ("e", "k"), roll_shapes, b.roll_wobble)):
+        (rough, _), (smooth, share) = shapes
         rows.append(Source(label, "B", "rectangular", half / SQRT3 / ARCSEC, "arcsec",
-                           (_b(_grouped(cal, names, groups), half / SQRT3),),
-                           note="one error per table angle, repeated wherever the table returns to it"))
-    mounting = _grouped(cal, ("e", "f", "k"), cal.installation)
+                           (_b(_grouped(cal, names, rough), half / SQRT3),
+                            _b(_grouped(cal, names, smooth), half / SQRT3 * np.sqrt(share), "normal")),
+                           note="a function of the table angle, repeated wherever the table returns to "
+                                "it: one error per angle, and harmonics 1–3 of the angle, each with the "
+                                "stated u (a rough and a smooth table)"))
+    mounting = _grouped(cal, ("e", "f", "k"), _membership(cal.installation))
     if b.mount_repeatability_sd is None:
         rows.append(Source("mount repeatability", "B", "rectangular", b.mount_repeatability / SQRT3 / ARCSEC,
                            "arcsec", (_b(mounting, b.mount_repeatability / SQRT3),),
@@ -287,7 +292,7 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
         everything = np.zeros(len(cal.installation), dtype=int)
         rows.append(Source("device misalignment estimates", "B", "normal",
                            max(b.device_misalignment.values()) / ARCSEC, "arcsec", tuple(
-                               _b(_grouped(cal, (name,), everything, linear=True), u, "normal")
+                               _b(_grouped(cal, (name,), _membership(everything), linear=True), u, "normal")
                                for name, u in b.device_misalignment.items()),
                            note="the device model's estimates of a…k, applied as corrections: each one's "
                                 "standard uncertainty from the joint fit, through the fit's projection "
