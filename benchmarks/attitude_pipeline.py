@@ -35,10 +35,16 @@ import numpy as np
 doc = json.load(open(sys.argv[1], encoding="utf-8"))
 X, C = np.array(doc["coefficients"]), np.array(doc["covariance"])[:, :4, :4]
 sd2 = np.array(doc["reading_sd"]) ** 2
-nu = min(doc["uncertainty_dof"])
-z = NormalDist().inv_cdf(0.975)  # t quantile by Cornish-Fisher, Abramowitz & Stegun 26.7.5
-k95 = (z + (z**3 + z) / 4 / nu + (5 * z**5 + 16 * z**3 + 3 * z) / 96 / nu**2
-       + (3 * z**7 + 19 * z**5 + 17 * z**3 - 15 * z) / 384 / nu**3)
+nus = np.array(doc["uncertainty_dof"], dtype=float)
+z = NormalDist().inv_cdf(0.975)
+
+def k95(u2, parts):  # Welch-Satterthwaite over the sensors' Type A parts (GUM G.2b), nu_eff truncated
+    # (G.4.1 note 1); t quantile by Cornish-Fisher, Abramowitz & Stegun 26.7.5
+    with np.errstate(divide="ignore", invalid="ignore"):
+        nu = np.floor(np.maximum(u2**2 / sum(p**2 / n for p, n in zip(parts, nus)), 1.0) + 1e-9)
+    return (z + (z**3 + z) / 4 / nu + (5 * z**5 + 16 * z**3 + 3 * z) / 96 / nu**2
+            + (3 * z**7 + 19 * z**5 + 17 * z**3 - 15 * z) / 384 / nu**3
+            + (79 * z**9 + 776 * z**7 + 1482 * z**5 - 1920 * z**3 - 945 * z) / 92160 / nu**4)
 B, S = X[0], X[1:]
 Si = np.linalg.inv(S)
 v = np.loadtxt(sys.argv[2], delimiter=",", skiprows=1, ndmin=2)
@@ -61,6 +67,7 @@ with np.errstate(divide="ignore", invalid="ignore"):
     jp = np.outer(1 / np.sqrt(np.maximum(1 - gx**2, 1e-300)), Si[:, 0])  # d pitch / dv
     jr = (g[:, 2:3] * Si[:, 1] - g[:, 1:2] * Si[:, 2]) / h2[:, None]  # d roll / dv
 up, ur = np.sqrt((jp**2 * w).sum(1)), np.sqrt((jr**2 * w).sum(1))
+cf_k = [k95(up**2, list((jp**2 * w).T)), k95(ur**2, list((jr**2 * w).T))]
 vg = w @ Si**2
 free = np.sqrt(h2) > 3 * np.sqrt((vg[:, 1] + vg[:, 2]) / 2)  # roll exists: |g_h| above 3 u
 cf = [p0, np.where(free, r0, np.nan), np.where(free & (np.abs(g[:, 0]) < 1), up, np.nan),
@@ -81,14 +88,20 @@ for it in range(5):
 with np.errstate(divide="ignore", invalid="ignore"):
     ls = [np.arctan2(np.sin(p), np.cos(p)), np.where(free, np.arctan2(np.sin(r), np.cos(r)), np.nan),
           np.sqrt(np.where(free, c / det, 1 / a)), np.where(free, np.sqrt(a / det), np.nan)]
+    # A = (F W F^T)^-1 F W: each sensor's share of the variance, for the coverage factor
+    ap = np.where(free[:, None], (c[:, None] * W * fp - b[:, None] * W * fr) / det[:, None],
+                  W * fp / a[:, None])
+    ar = (a[:, None] * W * fr - b[:, None] * W * fp) / det[:, None]
+    ls_k = [k95(ls[2]**2, list((ap**2 / W).T)), np.where(free, k95(ls[3]**2, list((ar**2 / W).T)), np.nan)]
 cols = []
-for est in (cf, ls):
+for est, (kp, kr) in ((cf, cf_k), (ls, ls_k)):
     d = [np.degrees(x) for x in est]
-    cols += [*d, k95 * d[2], k95 * d[3]]
+    cols += [*d, kp * d[2], kr * d[3], np.where(np.isfinite(d[2]), kp, np.nan),
+             np.where(np.isfinite(d[3]), kr, np.nan)]
 names = [f"{m}{c}" for m in ("cf_", "ls_") for c in ("pitch_deg", "roll_deg", "u_pitch_deg", "u_roll_deg",
-                                                      "U95_pitch_deg", "U95_roll_deg")]
+                                                      "U95_pitch_deg", "U95_roll_deg", "k_pitch", "k_roll")]
 np.savetxt(sys.stdout, np.column_stack([np.arange(1, len(v) + 1), *cols]), delimiter=",",
-           fmt=["%d"] + ["%.9g"] * 12, comments="", header="row," + ",".join(names))
+           fmt=["%d"] + ["%.9g"] * 16, comments="", header="row," + ",".join(names))
 """
 
 

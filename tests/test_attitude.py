@@ -98,9 +98,9 @@ def test_95_percent_intervals_cover_when_the_calibration_is_uncertain_too():
                           np.array(doc["reading_sd"]), fit.ls.dof)
         pitch, roll = rng.uniform(-60, 60, 50), rng.uniform(-180, 180, 50)
         att = sphere_least_squares(cal, volts_at(pitch, roll) + rng.normal(0, 5e-5, (50, 3)))
-        hits_p.append(np.abs(np.degrees(att.pitch) - pitch) <= att.k95 * np.degrees(att.u_pitch))
+        hits_p.append(np.abs(np.degrees(att.pitch) - pitch) <= np.degrees(att.U_pitch))
         err_r = (np.degrees(att.roll) - roll + 180) % 360 - 180
-        hits_r.append(np.abs(err_r) <= att.k95 * np.degrees(att.u_roll))
+        hits_r.append(np.abs(err_r) <= np.degrees(att.U_roll))
     assert 0.93 <= np.mean(hits_p) <= 0.97 and 0.93 <= np.mean(hits_r) <= 0.97
 
 

@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from labcal.analysis.attitude import calibration_from_json, sphere_least_squares
+from labcal.analysis.attitude import LOCAL_GRAVITY_U, calibration_from_json, sphere_least_squares
 from labcal.analysis.budget import TypeBInputs, calibration_of, coefficient_budget, propagate, sources
 from labcal.analysis.fit import fit_readings
 from labcal.analysis.kinematics import ARCSEC, Misalignment, gravity
@@ -31,7 +31,7 @@ def _fit(plan_name: str, noise_v: float = 3e-5):
 
 
 def _sphere(fit, volts):
-    return sphere_least_squares(calibration_from_json(fit.to_json(), "fit"), volts)
+    return sphere_least_squares(calibration_from_json(fit.to_json(), "fit"), volts, LOCAL_GRAVITY_U)
 
 
 def test_collapses_to_the_type_a_uncertainty_without_type_b_inputs():
@@ -49,9 +49,10 @@ def test_collapses_to_the_type_a_uncertainty_without_type_b_inputs():
 
 
 def _index_sensitivities(plan_name: str):
-    """∂(inferred pitch, roll)/∂(pitch index error at each table angle), by perturbing the readings as
-    the instrument would have read them with the table off by δ at that angle, refitting, and
-    inferring the attitude again — the budget's linearisation is not used."""
+    """∂(inferred pitch, roll)/∂(pitch index error) at each table angle, and ∂/∂(amplitude of each of
+    harmonics 1–3 of the pitch angle, cos and sin), by perturbing the readings as the instrument would
+    have read them with the table off by δ·pattern, refitting, and inferring the attitude again — the
+    budget's linearisation is not used."""
     readings, fit = _fit(plan_name)
     v_use = fit.coefficients[0] + gravity(*AT, 0.0, 0.0) @ fit.coefficients[1:]
     base = _sphere(fit, v_use)
@@ -59,33 +60,38 @@ def _index_sensitivities(plan_name: str):
                   (readings.pitch_deg, readings.roll_deg, readings.y_deg, readings.u_deg))
     S = np.array(TRUTH.S)
     delta = 1e-8  # small against the noise, so that refitting leaves the estimator's weights as they were
-    slopes = []
-    for angle in np.unique(readings.pitch_deg % 360):
-        at = np.isclose(readings.pitch_deg % 360, angle)
-        moved = np.where(at, p + delta, p)
-        volts = readings.volts + (gravity(moved, r, y, u) - gravity(p, r, y, u)) @ S
-        shifted = fit_readings(dataclasses.replace(readings, volts=volts))
-        att = _sphere(shifted, v_use)
-        slopes.append([(att.pitch - base.pitch)[0] / delta, (att.roll - base.roll)[0] / delta])
-    return readings, fit, np.array(slopes)
+
+    def slope(pattern):
+        volts = readings.volts + (gravity(p + delta * pattern, r, y, u) - gravity(p, r, y, u)) @ S
+        att = _sphere(fit_readings(dataclasses.replace(readings, volts=volts)), v_use)
+        return [(att.pitch - base.pitch)[0] / delta, (att.roll - base.roll)[0] / delta]
+    per_angle = [slope(np.isclose(readings.pitch_deg % 360, angle).astype(float))
+                 for angle in np.unique(readings.pitch_deg % 360)]
+    harmonics = [slope(f(h * p)) for h in (1, 2, 3) for f in (np.cos, np.sin)]
+    return readings, fit, np.array(per_angle), np.array(harmonics)
 
 
 def test_index_accuracy_adds_what_refitting_predicts():
-    readings, fit, slopes = _index_sensitivities("one-mount-16")
-    expected = np.sqrt(np.sum(slopes**2, axis=0)) * INDEX / np.sqrt(3)  # rectangular: u = a/√3
+    """GUM: u² = Σ c² u², with u = a/√3 (rectangular ± a) for each angle's error of a rough table and
+    u²/3 for each harmonic's amplitude of a smooth one (the budget states both shapes)."""
+    readings, fit, slopes, harmonics = _index_sensitivities("one-mount-16")
+    u = INDEX / np.sqrt(3)
+    expected = np.sqrt(np.sum(slopes**2, axis=0) * u**2 + np.sum(harmonics**2, axis=0) * u**2 / 3)
     cal = calibration_of(fit, readings)
     budget = propagate(cal, sources(cal, TypeBInputs(pitch_index=INDEX)), *AT)
     got = budget.contributions["pitch table index accuracy"][0]
     assert expected[0] > 0.1 * ARCSEC  # one mount does not cancel it: a real contribution
-    # 1e-3: the budget uses the fitted S for δV = δg·S where the check uses the true S (≈ 1e-4 apart)
-    np.testing.assert_allclose(got, expected, rtol=1e-3)
+    # 1e-3: the budget uses the fitted S for δV = δg·S where the check uses the true S (≈ 1e-4 apart);
+    # the same 1e-3 of the row's pitch term bounds its roll term, four orders smaller at this attitude
+    np.testing.assert_allclose(got, expected, rtol=1e-3, atol=1e-3 * expected[0])
     no_index = propagate(cal, sources(cal, TypeBInputs()), *AT).u_c[0]
     np.testing.assert_allclose(budget.u_c[0], np.hypot(no_index, expected), rtol=5e-3)
 
 
 def test_four_mounts_cancel_the_index_error():
-    readings, fit, slopes = _index_sensitivities("four-mount-64")
-    assert np.max(np.abs(slopes)) < 1e-4  # refitting: an index error leaves pitch and roll (Soto §7)
+    readings, fit, slopes, harmonics = _index_sensitivities("four-mount-64")
+    # refitting: an index error leaves pitch and roll (Soto §7), at one angle or as a harmonic
+    assert np.max(np.abs(slopes)) < 1e-4 and np.max(np.abs(harmonics)) < 1e-4
     cal = calibration_of(fit, readings)
     budget = propagate(cal, sources(cal, TypeBInputs(pitch_index=INDEX, roll_index=INDEX)), *AT)
     assert budget.contributions["pitch table index accuracy"].max() < 1e-9 * ARCSEC

@@ -99,13 +99,15 @@ def test_contents_match_the_fit_and_the_run(run, cert):
 
 def test_attitude_uncertainty_is_in_degrees_and_matches_first_order_propagation(cert):
     """At level attitude the pitch comes from sensor x alone to first order: u_p = √(fᵀC_x f + σ_x²)/S_xx
-    with f = (1, 0, 0, 1); off-axis sensitivities (≈ 0.2 % of S_xx) change it by far less than 1 %."""
+    with f = (1, 0, 0, 1); off-axis sensitivities (≈ 0.2 % of S_xx) change it by far less than 1 %. The
+    one sensor's variance estimate is then the only term of Welch–Satterthwaite: k = t₀.₉₇₅(ν)."""
     cal = cert.calibration()
     env = envelope_grid(cal, CertificateSettings())
     i, j = list(env.pitch_deg).index(0.0), list(env.roll_deg).index(0.0)
     f = np.array([1.0, 0.0, 0.0, 1.0])
     u_p = np.sqrt(f @ cal.covariance[0] @ f + cal.reading_sd[0] ** 2) / cal.X[1, 0]
-    assert env.u95_pitch_deg[i, j] == pytest.approx(env.k * np.degrees(u_p), rel=1e-2)
+    k = float(stats.t.ppf(0.975, cal.dof))
+    assert env.u95_pitch_deg[i, j] == pytest.approx(k * np.degrees(u_p), rel=1e-2)
     a = cert.attitude
     assert a.pitch_U95_max_deg == pytest.approx(np.max(env.u95_pitch_deg), rel=1e-12)
     assert a.roll_U95_max_deg == pytest.approx(np.nanmax(env.u95_roll_deg), rel=1e-12)

@@ -62,13 +62,22 @@ def test_the_default_dry_run_is_certified_on_the_device_model_it_fitted(tmp_path
     assert cert.device is not None and set(cert.device.misalignments) == set(truth)
     for name, m in cert.device.misalignments.items():
         assert abs(truth[name] * 3600) >= 18  # the rig's default is realistic: tens of arcseconds
-        # The ±2″ index errors and wobble the rig adds at each table angle are not in the device model:
-        # they bias each estimate by up to about their amplitude, far more than its U (~0.3″).
-        assert abs(m.value_arcsec - truth[name] * 3600) < 2.0, (name, m, truth[name] * 3600)
+        # The ±2″ index errors and wobble the rig adds at each table angle bias each estimate by up to
+        # about their amplitude; the device model now carries them (issue 23), so its U covers that.
+        assert abs(m.value_arcsec - truth[name] * 3600) <= m.U_arcsec, (name, m, truth[name] * 3600)
         assert m.U_arcsec == pytest.approx(cert.device.coverage_factor_95 * m.u_arcsec)
+    # the budget's device-misalignment row is the readings' share of their u (the fit without the
+    # tables' errors); the tables' index and wobble are their own rows, at the rig's ±2″
+    from labcal.analysis.device_fit import fit_device
+    from labcal.analysis.kinematics import ARCSEC
+
+    noise_only = fit_device(load_run(run_dir).readings)
     [row] = [r for r in cert.uncertainty_budget.rows if r.source == "device misalignment estimates"]
-    u_largest = max(m.u_arcsec for m in cert.device.misalignments.values())
-    assert row.standard_uncertainty == pytest.approx(u_largest)
+    assert row.standard_uncertainty == pytest.approx(max(noise_only.misalignment_u_rad) / ARCSEC, rel=1e-6)
+    tables = {r.source: r.standard_uncertainty for r in cert.uncertainty_budget.rows if "table" in r.source}
+    u_rig = 2 / 3**0.5  # ± 2″ rectangular: u = a/√3 (GUM 4.3.7)
+    assert tables == pytest.approx({"pitch table index accuracy": u_rig, "pitch table wobble": u_rig,
+                                    "roll table index accuracy": u_rig, "roll table wobble": u_rig})
     assert cert.uncertainty_budget.inputs["device_misalignment"].keys() == truth.keys()
     assert cert.conformity is not None and cert.conformity.passed
     assert set(cert.device.intrinsic) == {"sensitivity_v_per_g", "inter_axis_angle_deg"}

@@ -299,10 +299,10 @@ def test_attitude_from_the_device_model_is_tighter_and_still_covers():
         device = sphere_least_squares(calibration_from_json(fit.to_json(), "device"), volts)
         linear = sphere_least_squares(calibration_from_json(fit.linear.to_json(), "linear"), volts)
         err_r = (np.degrees(device.roll) - roll + 180) % 360 - 180
-        hits.append(np.abs(np.degrees(device.pitch) - pitch) <= device.k95 * np.degrees(device.u_pitch))
-        hits.append(np.abs(err_r) <= device.k95 * np.degrees(device.u_roll))
-        u95_device.append(device.k95 * device.u_pitch)
-        u95_linear.append(linear.k95 * linear.u_pitch)
+        hits.append(np.abs(np.degrees(device.pitch) - pitch) <= np.degrees(device.U_pitch))
+        hits.append(np.abs(err_r) <= np.degrees(device.U_roll))
+        u95_device.append(device.U_pitch)
+        u95_linear.append(linear.U_pitch)
     assert 0.93 <= np.mean(hits) <= 0.97, np.mean(hits)
     assert np.mean(u95_device) < 0.5 * np.mean(u95_linear), (np.mean(u95_device), np.mean(u95_linear))
 

@@ -21,8 +21,10 @@ back exactly the estimator's own covariance, so the budget collapses to today's 
 every Type B input is zero. Degrees of freedom combine by Welch–Satterthwaite (GUM G.4.1) and
 k = t₀.₉₇₅(ν_eff).
 
-Local gravity is not a source: the outputs are fitted against gravity normalised to 1 g and the
-attitude is a direction, so |g| cancels in the ratios (stated as a row with zero contribution).
+Local gravity: the outputs are fitted against gravity normalised to 1 g, and in use the sphere
+estimator takes |g| as unknown within ±LOCAL_GRAVITY_TOLERANCE of the calibration's (a prior), so a
+different local gravity leaves the direction alone; the prior itself is a source, propagated through
+the estimator (`labcal.analysis.attitude.sphere_sensitivity`), not through the outputs.
 """
 
 from __future__ import annotations
@@ -34,10 +36,19 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from labcal.analysis.attitude import _gravity_and_derivatives
-from labcal.analysis.device_fit import DeviceFit
+from labcal.analysis.attitude import (
+    LOCAL_GRAVITY_TOLERANCE,
+    LOCAL_GRAVITY_U,
+    N_ERRORS,
+    CovariancePart,
+    _gravity_and_derivatives,
+    combined_uncertainty,
+    coverage_factor,
+    sphere_sensitivity,
+)
+from labcal.analysis.device_fit import DeviceFit, angle_error_shapes
 from labcal.analysis.device_model import N_MIS
-from labcal.analysis.distributions import t_quantile
+from labcal.analysis.distributions import welch_satterthwaite
 from labcal.analysis.fit import Fit, readings_points
 from labcal.analysis.kinematics import ARCSEC, Misalignment, gravity
 from labcal.analysis.models import Points
@@ -47,6 +58,8 @@ Distribution = Literal["normal", "rectangular", "t"]
 SQRT3 = float(np.sqrt(3.0))
 COVERAGE = 0.95
 COMPLEX_STEP = 1e-30
+
+LOCAL_GRAVITY = "local gravity"  # the budget row of the estimator's prior on |g|
 
 
 @dataclass(frozen=True)
@@ -58,6 +71,10 @@ class TypeBInputs:
     dmm_range_v: float = 0.0  # volts: % of range × range (34970A 1 year, 10 V range: 5e-6 × 10 V)
     dmm_noise_v: float = 0.0  # rms of one averaged reading; shown, already in the fit's Type A
     dmm_conditions: str = ""  # the range and integration time the accuracy applies to, as stated
+    # Inputs whose error is one and the same in the three channels ("dmm_reading", "dmm_range"): a
+    # scanning DMM reads them through one ADC. A common gain scales X as a whole and largely cancels
+    # in the attitude (a direction); declared independent it would be counted three times over.
+    common: tuple[str, ...] = ()
     pitch_index: float = 0.0  # rad
     pitch_wobble: float = 0.0
     roll_index: float = 0.0
@@ -82,6 +99,10 @@ class Component:
     u: float  # standard uncertainty of each elementary input, in its unit
     dof: float  # np.inf for Type B
     distribution: Distribution
+    # Components naming the same estimate share one variance estimate (a sensor's residual variance
+    # sets both its coefficients' covariance and one new reading's variance): one term in
+    # Welch–Satterthwaite, and one χ² draw in the Monte Carlo.
+    estimate: str = ""
 
 
 @dataclass(frozen=True)
@@ -113,6 +134,14 @@ class Calibration:
     projection: NDArray[np.float64]  # (4, K)
     points: Points
     installation: NDArray[np.int_]  # (K,) one id per mounting (replicate × mount)
+    # The per-sensor covariance the attitude estimator weights by, where it is not ``covariance``: a
+    # device-model certificate states the marginal covariance of (B, S), and `labcal attitude`
+    # weights by what the certificate states.
+    estimator_covariance: NDArray[np.float64] | None = None
+    # ∂vec(X)/∂V (12 × K × 3) where the fit is not linear in the readings' regressors: the device model
+    # re-estimates the misalignments with X, so a bench error reaches X through its own projection
+    # (None: the linear fit's, P per sensor).
+    reading_projection: NDArray[np.float64] | None = None
 
 
 def calibration_of(fit: Fit, readings: Readings) -> Calibration:
@@ -130,18 +159,20 @@ def calibration_of(fit: Fit, readings: Readings) -> Calibration:
 
 def calibration_of_device(device: DeviceFit, readings: Readings) -> Calibration:
     """The budget's view of a device-model fit: X and one new reading's variance are the device
-    model's; the Type A covariance is the device model's conditional on a…k (what the readings' noise
-    does to X with the misalignments held at their estimates). The misalignments' own share is the
-    budget's device-misalignment row, propagated through the linear projection: to first order X̂ is
-    the linear fit of the readings corrected by a…k, whose noise lies in the residual space and so is
-    uncorrelated with the linear fit's, and the two parts add up to the device model's covariance."""
-    cov = device.covariance
+    model's; the Type A covariance is the device model's noise share conditional on a…k (what the
+    readings' noise does to X with the misalignments held at their estimates); the misalignments' own
+    noise share is the budget's device-misalignment row. Bench errors (the tables' index and wobble,
+    a remount) reach X through the device model's own projection, which re-estimates a…k with X: the
+    tables' angle errors enter once, as the table rows, not also through the misalignments' u."""
+    cov = device.noise_covariance
     m = slice(0, N_MIS)
     rest = slice(N_MIS, None)
     conditional = cov[rest, rest] - cov[rest, m] @ np.linalg.pinv(cov[m, m]) @ cov[m, rest]
     per_sensor = np.stack([conditional[np.ix_(idx, idx)] for idx in (np.arange(4) * 3 + j for j in range(3))])
     return replace(calibration_of(device.linear, readings), X=device.coefficients, covariance=per_sensor,
-                   reading_var=device.reading_sd() ** 2, dof=np.full(3, float(device.dof)))
+                   reading_var=device.reading_sd() ** 2, dof=np.full(3, float(device.dof)),
+                   estimator_covariance=np.stack([device.sensor_covariance(j) for j in range(3)]),
+                   reading_projection=device.reading_projection(readings)[N_MIS:])
 
 
 def _gravity_derivative(points: Points, name: str) -> NDArray[np.float64]:
@@ -151,22 +182,27 @@ def _gravity_derivative(points: Points, name: str) -> NDArray[np.float64]:
     return np.asarray(np.imag(g) / COMPLEX_STEP, dtype=float)
 
 
-def _grouped(cal: Calibration, names: tuple[str, ...], groups: NDArray[np.int_]) -> NDArray[np.float64]:
-    """∂vec(X)/∂e for one input per (group, misalignment name): the inputs act on every point of
-    their group (one table angle, one mounting, or all points) through the fit's projection."""
-    n_groups = int(groups.max()) + 1
-    member = np.zeros((len(groups), n_groups))
+def _membership(groups: NDArray[np.int_]) -> NDArray[np.float64]:
+    """One column per group (one table angle, one mounting, or all points): 1 at its points."""
+    member = np.zeros((len(groups), int(groups.max()) + 1))
     member[np.arange(len(groups)), groups] = 1.0
+    return member
+
+
+def _grouped(cal: Calibration, names: tuple[str, ...], basis: NDArray[np.float64], linear: bool = False
+             ) -> NDArray[np.float64]:
+    """∂vec(X)/∂e for one input per (basis column, misalignment name): an input moves the misalignment
+    at every point by its column's value there (1 in its group, or a harmonic of the table angle),
+    through the fit's projection (with ``linear``, the linear fit's: an error in a correction applied
+    to the readings)."""
     blocks = []
     for name in names:
         dv = _gravity_derivative(cal.points, name) @ cal.X[1:]  # (K, 3): δV per unit input at each point
-        blocks.append(np.einsum("ik,kj,km->ijm", cal.projection, dv, member).reshape(12, n_groups))
+        if cal.reading_projection is not None and not linear:
+            blocks.append(np.einsum("ikc,kc,km->im", cal.reading_projection, dv, basis))
+        else:
+            blocks.append(np.einsum("ik,kj,km->ijm", cal.projection, dv, basis).reshape(12, basis.shape[1]))
     return np.concatenate(blocks, axis=1)
-
-
-def _angle_groups(angle_deg: NDArray[np.float64]) -> NDArray[np.int_]:
-    _, inverse = np.unique(np.round(np.mod(angle_deg, 360.0), 6) % 360.0, return_inverse=True)
-    return np.asarray(inverse, dtype=int).ravel()
 
 
 def _factor(cov: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -189,7 +225,8 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
     for j in range(3):
         jac = np.zeros((4, 3, 4))
         jac[:, j, :] = _factor(cal.covariance[j])
-        fit_parts.append(Component(jac.reshape(12, 4), np.zeros((3, 4)), 1.0, float(cal.dof[j]), "t"))
+        fit_parts.append(Component(jac.reshape(12, 4), np.zeros((3, 4)), 1.0, float(cal.dof[j]), "t",
+                                   f"residual variance {'xyz'[j]}"))
     u_bias = float(np.sqrt(cal.covariance[:, 0, 0].max()))
     rows.append(Source("calibration fit (coefficients)", "A", "t", u_bias, "V (u of B, largest)",
                        tuple(fit_parts),
@@ -198,18 +235,25 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
     rows.append(Source("one new reading (instrument repeatability)", "A", "t",
                        float(np.sqrt(cal.reading_var.max())), "V", tuple(
                            Component(np.zeros((12, 1)), np.eye(3)[:, [j]] * np.sqrt(cal.reading_var[j]), 1.0,
-                                     float(cal.dof[j]), "t") for j in range(3))))
-    # The DMM: gain (% of reading) and offset (% of range), systematic over the run, independent
-    # between channels (conservative: a gain common to all channels cancels in the direction).
-    gain = np.zeros((4, 3, 3))
-    offset = np.zeros((4, 3, 3))
-    for j in range(3):
-        gain[:, j, j] = X[:, j]
-        offset[0, j, j] = 1.0
-    rows.append(Source("DMM accuracy, % of reading", "B", "rectangular", b.dmm_reading / SQRT3, "relative",
-                       (_b(gain.reshape(12, 3), b.dmm_reading / SQRT3),), note=b.dmm_conditions))
-    rows.append(Source("DMM accuracy, % of range", "B", "rectangular", b.dmm_range_v / SQRT3, "V",
-                       (_b(offset.reshape(12, 3), b.dmm_range_v / SQRT3),), note=b.dmm_conditions))
+                                     float(cal.dof[j]), "t", f"residual variance {'xyz'[j]}")
+                           for j in range(3))))
+    # The DMM: gain (% of reading) and offset (% of range), systematic over the run; per channel
+    # independent, or one error common to the three channels where the station declares it so.
+    offset = np.zeros((4, 3))
+    offset[0] = 1.0
+    for name, label, half, unit, effect in (("dmm_reading", "DMM accuracy, % of reading", b.dmm_reading,
+                                             "relative", X),
+                                            ("dmm_range", "DMM accuracy, % of range", b.dmm_range_v, "V",
+                                             offset)):
+        common = name in b.common
+        jac = np.zeros((4, 3, 1 if common else 3))
+        for j in range(3):  # channel j's error moves column j of X by effect[:, j] per unit
+            jac[:, j, 0 if common else j] = effect[:, j]
+        how = ("one error common to the three channels (one ADC scans them)" if common
+               else "independent between the channels")
+        rows.append(Source(label, "B", "rectangular", half / SQRT3, unit,
+                           (_b(jac.reshape(12, -1), half / SQRT3),),
+                           note="; ".join(n for n in (how, b.dmm_conditions) if n)))
     if b.dmm_noise_v > 0:  # its effect is in the residuals, hence in the fit's Type A already
         noise = np.zeros((4, 3, len(cal.installation), 3))
         for j in range(3):
@@ -217,16 +261,21 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
         rows.append(Source("DMM noise", "B", "normal", b.dmm_noise_v, "V",
                            (_b(noise.reshape(12, -1), b.dmm_noise_v, "normal"),), added=False,
                            note="included in the fit's Type A (the residuals contain it); not added again"))
-    pitch_groups, roll_groups = _angle_groups(cal.points.pitch_deg), _angle_groups(cal.points.roll_deg)
-    for label, names, groups, half in (
-            ("pitch table index accuracy", ("a",), pitch_groups, b.pitch_index),
-            ("pitch table wobble", ("d", "f"), pitch_groups, b.pitch_wobble),
-            ("roll table index accuracy", ("f",), roll_groups, b.roll_index),
-            ("roll table wobble", ("e", "k"), roll_groups, b.roll_wobble)):
+    pitch_shapes = angle_error_shapes(np.radians(cal.points.pitch_deg))
+    roll_shapes = angle_error_shapes(np.radians(cal.points.roll_deg))
+    for label, names, shapes, half in (
+            ("pitch table index accuracy", ("a",), pitch_shapes, b.pitch_index),
+            ("pitch table wobble", ("d", "f"), pitch_shapes, b.pitch_wobble),
+            ("roll table index accuracy", ("f",), roll_shapes, b.roll_index),
+            ("roll table wobble", ("e", "k"), roll_shapes, b.roll_wobble)):
+        (rough, _), (smooth, share) = shapes
         rows.append(Source(label, "B", "rectangular", half / SQRT3 / ARCSEC, "arcsec",
-                           (_b(_grouped(cal, names, groups), half / SQRT3),),
-                           note="one error per table angle, repeated wherever the table returns to it"))
-    mounting = _grouped(cal, ("e", "f", "k"), cal.installation)
+                           (_b(_grouped(cal, names, rough), half / SQRT3),
+                            _b(_grouped(cal, names, smooth), half / SQRT3 * np.sqrt(share), "normal")),
+                           note="a function of the table angle, repeated wherever the table returns to "
+                                "it: one error per angle, and harmonics 1–3 of the angle, each with the "
+                                "stated u (a rough and a smooth table)"))
+    mounting = _grouped(cal, ("e", "f", "k"), _membership(cal.installation))
     if b.mount_repeatability_sd is None:
         rows.append(Source("mount repeatability", "B", "rectangular", b.mount_repeatability / SQRT3 / ARCSEC,
                            "arcsec", (_b(mounting, b.mount_repeatability / SQRT3),),
@@ -249,14 +298,16 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
         everything = np.zeros(len(cal.installation), dtype=int)
         rows.append(Source("device misalignment estimates", "B", "normal",
                            max(b.device_misalignment.values()) / ARCSEC, "arcsec", tuple(
-                               _b(_grouped(cal, (name,), everything), u, "normal")
+                               _b(_grouped(cal, (name,), _membership(everything), linear=True), u, "normal")
                                for name, u in b.device_misalignment.items()),
                            note="the device model's estimates of a…k, applied as corrections: each one's "
                                 "standard uncertainty from the joint fit, through the fit's projection "
                                 "(their correlations are not carried)"))
-    rows.append(Source("local gravity", "B", "—", 0.0, "g", (), added=True,
-                       note="cancels: outputs are fitted against gravity normalised to 1 g and attitude is a "
-                            "direction"))
+    rows.append(Source(LOCAL_GRAVITY, "B", "rectangular", LOCAL_GRAVITY_U, "g", (), added=True,
+                       note=f"where the instrument is used |g| may differ from the calibration's by up "
+                            f"to ±{LOCAL_GRAVITY_TOLERANCE:g} (latitude, height): the sphere estimator takes "
+                            "|g| as unknown within that (a prior), so it follows the direction; its share "
+                            "is what the prior leaves in pitch and roll"))
     return rows
 
 
@@ -268,26 +319,26 @@ def regressors(pitch: NDArray[np.float64], roll: NDArray[np.float64]) -> NDArray
 
 
 def estimator_weights(cal: Calibration, f: NDArray[np.float64]) -> NDArray[np.float64]:
-    """W of the sphere estimator: 1 / (fᵀ C_j f + one reading's variance), per row and sensor."""
-    calib = np.stack([np.einsum("ni,ij,nj->n", f, c, f) for c in cal.covariance], axis=1)
+    """W of the sphere estimator: 1 / (fᵀ C_j f + one reading's variance), per row and sensor, C_j the
+    covariance the estimator is given (`labcal.analysis.attitude.output_variance`)."""
+    weighting = cal.covariance if cal.estimator_covariance is None else cal.estimator_covariance
+    calib = np.stack([np.einsum("ni,ij,nj->n", f, c, f) for c in weighting], axis=1)
     return np.asarray(1.0 / (calib + cal.reading_var), dtype=float)
 
 
 def attitude_sensitivity(cal: Calibration, pitch: NDArray[np.float64], roll: NDArray[np.float64]
-                         ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """A = (F W Fᵀ)⁻¹ F W (n×2×3): how the sphere estimator's pitch and roll move with the outputs;
-    and where roll is defined (not at pitch ±90°, where only pitch is estimated)."""
-    _, dg_dp, dg_dr = _gravity_and_derivatives(pitch, roll)
+                         ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """How the sphere estimator `labcal attitude` uses moves its pitch and roll with the outputs
+    (A, n×2×3), the variance its prior on local |g| brings (n×2), and where roll is defined (not at
+    pitch ±90°, where only pitch is estimated): `labcal.analysis.attitude.sphere_sensitivity`."""
+    g, dg_dp, dg_dr = _gravity_and_derivatives(pitch, roll)
     S = cal.X[1:]
     w = estimator_weights(cal, regressors(pitch, roll))
-    F = np.stack([dg_dp @ S, dg_dr @ S], axis=1)  # (n, 2, 3)
     defined = np.abs(np.cos(pitch)) > 1e-9
-    M = np.einsum("nai,ni,nbi->nab", F, w, F)
-    M[~defined, 0, 1] = M[~defined, 1, 0] = 0.0  # dg/droll = 0 there: estimate pitch alone
-    M[~defined, 1, 1] = 1.0
-    A = np.linalg.solve(M, F * w[:, None, :])
-    A[~defined, 1] = np.nan
-    return A, defined
+    A, known = sphere_sensitivity(np.stack([dg_dp @ S, dg_dr @ S], axis=1), w, defined, LOCAL_GRAVITY_U,
+                                  g @ S)
+    assert known is not None
+    return A, known, defined
 
 
 def _compressed(c: Component) -> NDArray[np.float64]:
@@ -323,45 +374,58 @@ def _combine(rows: list[Source], variance: Callable[[Component], NDArray[np.floa
              shape: tuple[int, ...]) -> Combined:
     """Sum the sources' variances (those not ``added`` are shown, not summed) and combine their
     degrees of freedom by Welch–Satterthwaite, component by component."""
-    contributions, parts = {}, []
-    total = np.zeros(shape)
-    for source in rows:
-        var = np.zeros(shape)
-        for c in source.components:
-            part = variance(c)
-            var += part
-            if source.added:
-                parts.append((part, c.dof))
-        contributions[source.name] = np.sqrt(var)
-        if source.added:
-            total += var
+    contributions = _contributions(rows, variance, shape)
+    parts = [(variance(c), c.dof) for source in rows if source.added for c in source.components]
+    total = sum((v for v, _ in parts), start=np.zeros(shape))
     u_c = np.sqrt(total)
     nu = welch_satterthwaite(u_c, parts)
-    return Combined(contributions, u_c, nu, np.asarray(t_quantile(0.5 + COVERAGE / 2, nu), dtype=float))
+    return Combined(contributions, u_c, nu, coverage_factor(nu, u_c))
 
 
-def welch_satterthwaite(u_c: NDArray[np.float64], parts: list[tuple[NDArray[np.float64], float]]
-                        ) -> NDArray[np.float64]:
-    """ν_eff = u_c⁴ / Σ u_i⁴/ν_i (GUM G.2b) over the parts (variance, dof); infinite dof add nothing."""
-    denominator = sum((var**2 / dof for var, dof in parts if np.isfinite(dof) and dof > 0),
-                      start=np.zeros_like(u_c))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.asarray(np.where(denominator > 0, u_c**4 / denominator, np.inf), dtype=float)
+def _contributions(rows: list[Source], variance: Callable[[Component], NDArray[np.float64]],
+                   shape: tuple[int, ...]) -> dict[str, NDArray[np.float64]]:
+    """Each source's standard uncertainty in the outputs (shown; the totals are not summed from it)."""
+    return {s.name: np.sqrt(sum((variance(c) for c in s.components), start=np.zeros(shape))) for s in rows}
+
+
+def covariance_parts(rows: list[Source]) -> tuple[CovariancePart, ...]:
+    """The complete covariance of [vec(X); one new reading] as independent parts: every added Type B
+    component with infinite degrees of freedom in one part (they add nothing to Welch–Satterthwaite),
+    each finite-dof component in its own, components naming one estimate together. Correlations a
+    component carries (across coefficients, across channels) stay in its matrix."""
+    parts: dict[str, tuple[NDArray[np.float64], float, str]] = {}
+    for source in rows:
+        if not source.added:
+            continue
+        for i, c in enumerate(source.components):
+            J = np.concatenate([c.jac_x, c.jac_v]) * c.u
+            key = "Type B" if not np.isfinite(c.dof) else (c.estimate or f"{source.name} #{i}")
+            label = "Type B (every input of known distribution)" if key == "Type B" else \
+                (c.estimate or source.name)
+            previous = parts.get(key, (np.zeros((N_ERRORS, N_ERRORS)), c.dof, label))[0]
+            parts[key] = (previous + J @ J.T, c.dof, label)
+    return tuple(CovariancePart(m, dof, label) for m, dof, label in parts.values())
 
 
 def propagate(cal: Calibration, rows: list[Source], pitch: NDArray[np.float64], roll: NDArray[np.float64]
               ) -> Propagated:
-    """Every source's contribution to pitch and roll at the attitudes (radians)."""
+    """Every source's contribution to pitch and roll at the attitudes (radians), and the totals from
+    the complete covariance through `labcal.analysis.attitude.combined_uncertainty` — the one
+    function every stated attitude U95 comes from."""
     pitch, roll = np.atleast_1d(pitch).astype(float), np.atleast_1d(roll).astype(float)
-    A, _ = attitude_sensitivity(cal, pitch, roll)
+    A, from_gravity, _ = attitude_sensitivity(cal, pitch, roll)
     f = regressors(pitch, roll)
 
     def variance(c: Component) -> NDArray[np.float64]:
         J = _compressed(c)
         dv = -np.einsum("ni,ijm->njm", f, J[:12].reshape(4, 3, -1)) + J[12:][None]
         return np.asarray(np.sum(np.einsum("nab,nbm->nam", A, dv) ** 2, axis=2), dtype=float)
-    combined = _combine(rows, variance, (len(pitch), 2))
-    return Propagated(**vars(combined), pitch=pitch, roll=roll)
+    with_gravity = any(s.name == LOCAL_GRAVITY and s.added for s in rows)  # `sources` always adds it
+    total = combined_uncertainty(covariance_parts(rows), A, f, known=from_gravity if with_gravity else None)
+    contributions = _contributions(rows, variance, (len(pitch), 2))
+    if with_gravity:
+        contributions[LOCAL_GRAVITY] = np.sqrt(from_gravity)  # through the estimator's prior, not the outputs
+    return Propagated(contributions, total.u, total.nu_eff, total.k, pitch=pitch, roll=roll)
 
 
 def coefficient_budget(rows: list[Source]) -> Combined:

@@ -66,3 +66,12 @@ def noncentral_f2_cdf(x: ArrayLike, noncentrality: ArrayLike, dfd: float) -> Arr
 
     return np.asarray(special.ncfdtr(2.0, dfd, noncentrality, np.maximum(np.asarray(x, dtype=float), 0.0)),
                       dtype=float)
+
+
+def welch_satterthwaite(u_c: Array, parts: list[tuple[Array, float]]) -> Array:
+    """ν_eff = u_c⁴ / Σ u_i⁴/ν_i (GUM G.2b) over the parts (variance u_i², dof ν_i); infinite dof add
+    nothing, and with nothing finite ν_eff is infinite."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        denominator = sum((var**2 / dof for var, dof in parts if np.isfinite(dof) and dof > 0),
+                          start=np.zeros_like(u_c))
+        return np.asarray(np.where(denominator > 0, u_c**4 / denominator, np.inf), dtype=float)

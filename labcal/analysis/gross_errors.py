@@ -348,8 +348,8 @@ def methods_disagree(closed: Attitude, sphere: Attitude) -> list[Flag]:
 
     flags = []
     with np.errstate(all="ignore"):
-        limits = {"pitch": closed.k95 * np.hypot(closed.u_pitch, sphere.u_pitch),
-                  "roll": closed.k95 * np.hypot(closed.u_roll, sphere.u_roll)}
+        limits = {"pitch": closed.k_pitch * np.hypot(closed.u_pitch, sphere.u_pitch),
+                  "roll": closed.k_roll * np.hypot(closed.u_roll, sphere.u_roll)}
         # (p, r) and (±180° − p, r + 180°) are one direction: near the pole one estimator may state
         # it the other way, which is no disagreement (the roll is 180° apart, the gravity is not)
         across = ((wrapped(np.sign(closed.pitch) * np.pi - closed.pitch - sphere.pitch) <= limits["pitch"])

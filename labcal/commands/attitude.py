@@ -23,8 +23,8 @@ def _columns(att, prefix: str) -> dict[str, np.ndarray]:
     deg = np.degrees
     return {f"{prefix}pitch_deg": deg(att.pitch), f"{prefix}roll_deg": deg(att.roll),
             f"{prefix}u_pitch_deg": deg(att.u_pitch), f"{prefix}u_roll_deg": deg(att.u_roll),
-            f"{prefix}U95_pitch_deg": att.k95 * deg(att.u_pitch),
-            f"{prefix}U95_roll_deg": att.k95 * deg(att.u_roll)}
+            f"{prefix}U95_pitch_deg": deg(att.U_pitch), f"{prefix}U95_roll_deg": deg(att.U_roll),
+            f"{prefix}k_pitch": att.k_pitch, f"{prefix}k_roll": att.k_roll}
 
 
 def cmd_attitude(args: argparse.Namespace) -> int:
@@ -71,9 +71,8 @@ def cmd_attitude(args: argparse.Namespace) -> int:
         if len(methods) == 2:
             flags += methods_disagree(results["closed"], results["sphere"])
     table = {k: v for m in methods for k, v in _columns(results[m], PREFIX[m]).items()}
-    k95 = next(iter(results.values())).k95
     if args.json:
-        write_json_rows(table, methods, k95, cal.dof, flags, standing)
+        write_json_rows(table, methods, cal.dof, flags, standing)
     else:
         if unverified and standing is not None:  # stated with the numbers, not only on the terminal
             sys.stdout.write(f"# UNVERIFIED certificate {args.cert}: {standing['note']}\n")
@@ -101,7 +100,7 @@ def write_csv_rows(table: dict[str, np.ndarray]) -> None:
             for i, row in enumerate(chunk.tolist())))
 
 
-def write_json_rows(table: dict[str, np.ndarray], methods: list[str], k95: float, dof: int, flags: list,
+def write_json_rows(table: dict[str, np.ndarray], methods: list[str], dof: int, flags: list,
                     standing: dict | None = None) -> None:
     """One JSON document, streamed: the rows are formatted a chunk at a time, never all held as
     Python objects (a hundred thousand rows of dicts took 700 MiB)."""
@@ -109,8 +108,11 @@ def write_json_rows(table: dict[str, np.ndarray], methods: list[str], k95: float
     import math
 
     names = {m: [k for k in table if k.startswith(PREFIX[m])] for m in methods}
-    head = {"coverage_factor_95": k95, "degrees_of_freedom": dof, "certificate": standing}
-    sys.stdout.write(json.dumps(head)[:-1] + ', "rows": [')
+    header = {"coverage": "U95 = k·u_c per row, u_c from the calibration's complete covariance (a "
+                          "certificate's uncertainty budget: Type A and B with their correlations), "
+                          "k = t₀.₉₇₅(ν_eff) per row and angle (k_pitch, k_roll)",
+              "degrees_of_freedom": dof, "certificate": standing}
+    sys.stdout.write(json.dumps(header)[:-1] + ', "rows": [')
     n = len(next(iter(table.values())))
     for start in range(0, n, CHUNK_ROWS):
         chunk = {k: v[start:start + CHUNK_ROWS].tolist() for k, v in table.items()}
@@ -133,8 +135,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Convert voltages (CSV columns vx,vy,vz) to pitch and roll using a "
                                    "calibration: Soto's closed form (eqs. 5–7) and weighted least squares "
                                    "on the unit sphere (Tripp eqs. 99–104), each with standard "
-                                   "uncertainties and 95 % expanded uncertainties (U95 = k·u, k from "
-                                   "Student t). Roll is empty where pitch is ±90°.")
+                                   "uncertainties and 95 % expanded uncertainties (U95 = k·u_c from the "
+                                   "certificate's complete uncertainty budget, k = t₀.₉₇₅(ν_eff)). "
+                                   "Roll is empty where pitch is ±90°.")
     p.add_argument("--cert", required=True, help="fit.json or certificate.json of the instrument")
     p.add_argument("--csv", help="voltages CSV (default: standard input)")
     p.add_argument("--method", choices=["closed", "sphere", "both"], default="both",

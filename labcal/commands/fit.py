@@ -49,6 +49,9 @@ def choose_model(args: argparse.Namespace, readings) -> tuple[str, str | None]:
 
     if args.index_errors and args.model not in (None, "device"):
         raise LabcalError("--index-errors extends the device model; leave out --model or give --model device")
+    if (args.table_index or args.table_wobble) and args.model not in (None, "device"):
+        raise LabcalError("--table-index and --table-wobble are the device model's; leave out --model or "
+                          "give --model device")
     if args.model == "device" and (args.extend or args.at):
         raise LabcalError("--extend and --at work with the linear and coning models; leave them out "
                           "with --model device")
@@ -144,11 +147,13 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 def fit_device_model(args: argparse.Namespace, readings, chosen: str | None, checked=None) -> int:
     """`labcal fit --model device`: the instrument and the device's six misalignments together."""
-    from labcal.analysis.device_fit import fit_device
+    from labcal.analysis.device_fit import AngleErrors, fit_device
     from labcal.analysis.fit import NOISE_FREE
     from labcal.analysis.gross_errors import fit_flags
+    from labcal.analysis.kinematics import ARCSEC
 
-    fit = fit_device(readings, checked[0] if checked else None)
+    index, wobble = args.table_index * ARCSEC, args.table_wobble * ARCSEC
+    fit = fit_device(readings, checked[0] if checked else None, AngleErrors(index, wobble, index, wobble))
     doc = fit.to_json()
     doc["units"] = readings.units  # B and S_E in these, S in these per g
     # what physics guarantees, whichever model is fitted (the same linear fit: the same flags)
@@ -280,6 +285,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--index-errors", action="store_true",
                    help="device model: also estimate each visited pitch and roll angle's index error "
                         "(zero mean per table, where identifiable) with its F test against the device model")
+    p.add_argument("--table-index", type=bounded(float, 0, 3600), default=0.0, metavar="ARCSEC",
+                   help="device model: the tables' index accuracy, ± arcseconds at every table angle "
+                        "(station file's pitch_index/roll_index), propagated into the misalignments' and "
+                        "coefficients' uncertainty")
+    p.add_argument("--table-wobble", type=bounded(float, 0, 3600), default=0.0, metavar="ARCSEC",
+                   help="device model: the tables' wobble, ± arcseconds at every table angle")
     p.add_argument("--test-extensions", action="store_true",
                    help="F test whether each extension is warranted")
     p.add_argument("--at", action="append", metavar="PITCH,ROLL[,Y,U]",

@@ -7,17 +7,21 @@ two AZ drives on one RS-485 line, two SMC100 controllers daisy-chained on one se
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
-from typing import Annotated, ClassVar, Literal
+from typing import TYPE_CHECKING, Annotated, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
-from labcal.config.emulation import EmulationSettings
-from labcal.config.files import parse_model, read_text
+from labcal.config.emulation import EmulationSettings, RigConfig
+from labcal.config.files import parse_model, read_text, validate_model
 from labcal.config.settings import CertificateSettings, SequencerSettings
 from labcal.config.uncertainty import Traceability, UncertaintyInputs
 from labcal.errors import LabcalError
+
+if TYPE_CHECKING:
+    from labcal.analysis.device_fit import AngleErrors
 
 # The 34970A's settable integration times (power-line cycles) and DC volts ranges: others are
 # answered with error -222 (34970A/34972A User's Guide, DC voltage measurements).
@@ -293,11 +297,23 @@ def leaves(tree: dict, prefix: str) -> dict[str, object]:
     return flat
 
 
+# DMMs that scan their channels through one ADC: their gain error is common to the three channels
+SCANNING_DMMS = frozenset({"keysight-34970a"})
+
+
 class DmmRange(BaseModel):
     model_config = ConfigDict(extra="ignore")
 
+    driver: str | None = None
     range_v: float = 10.0
     nplc: float = 10.0
+
+    def common_inputs(self, declared: Sequence[str] | None) -> tuple[str, ...]:
+        """The Type B inputs common to the three channels: as declared, else the DMM gain of a
+        scanning DMM."""
+        if declared is not None:
+            return tuple(declared)
+        return ("dmm_reading",) if self.driver in SCANNING_DMMS else ()
 
 
 class CertificateSection(BaseModel):
@@ -343,3 +359,30 @@ def load_station(name_or_path: str | Path) -> tuple[StationFile, str]:
                           f"examples: {', '.join(examples)}")
     text = examples[str(name_or_path)].read_text(encoding="utf-8")
     return parse_model(text, StationFile, f"station {name_or_path}"), text
+
+
+def stated_angle_errors(station_text: str) -> AngleErrors | None:
+    """The tables' index accuracy and wobble for the device model's covariance, from a run's journaled
+    station: a station file's ``[uncertainty]`` table, or the simulated rig's own amplitudes (its
+    errors are bounded by them: the half-widths). None where neither states any."""
+    import json
+
+    from labcal.analysis.device_fit import AngleErrors
+    from labcal.analysis.kinematics import ARCSEC
+
+    try:
+        doc = json.loads(station_text) if station_text else {}
+    except json.JSONDecodeError:
+        return None
+    if not isinstance(doc, dict):
+        return None
+    if doc.get("kind") == "station":
+        u = validate_model(doc["station"], CertificateSection, "the run's station").uncertainty
+        errors = AngleErrors(u.pitch_index, u.pitch_wobble, u.roll_index, u.roll_wobble)
+    elif doc.get("kind") == "simulated rig":
+        device = validate_model(doc["rig"], RigConfig, "the journaled simulated rig").device
+        index, wobble = device.index_arcsec * ARCSEC, device.wobble_arcsec * ARCSEC
+        errors = AngleErrors(index, wobble, index, wobble)
+    else:
+        return None
+    return errors if errors else None

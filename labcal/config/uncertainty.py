@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import re
 from datetime import date
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer
 
@@ -88,6 +88,11 @@ class UncertaintyInputs(BaseModel):
     roll_wobble: Angle = 0.0
     mount_repeatability: Angle = Field(default=0.0, description="± half-width of each of the plate's pitch, "
                                                                 "roll and yaw at a remount")
+    common: list[Literal["dmm_reading", "dmm_range"]] | None = Field(
+        default=None, description="inputs whose error is one and the same in the three channels (a scanning "
+                                  "DMM measures them through one ADC); default: dmm_reading where the DMM is "
+                                  "a scanning one (keysight-34970a), else none; [] declares every one "
+                                  "independent per channel")
     bias_tempco: VoltagePerKelvin = Field(default=0.0, description="instrument bias temperature coefficient")
     sensitivity_tempco: PerKelvin = Field(default=0.0, description="instrument sensitivity temperature "
                                                                    "coefficient")

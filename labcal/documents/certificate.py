@@ -17,6 +17,8 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
+from dataclasses import replace
 from datetime import date
 from pathlib import Path
 from typing import Literal
@@ -32,7 +34,7 @@ from pydantic import (
     model_validator,
 )
 
-from labcal.analysis.attitude import Calibration, calibration_from_json
+from labcal.analysis.attitude import Calibration, CovariancePart, calibration_from_json
 from labcal.config.files import MAX_DEPTH, check_depth, one_line, read_text, write_json
 from labcal.errors import LabcalError
 
@@ -296,6 +298,24 @@ class CoefficientBudgetRecord(_Strict):
     contributions: dict[str, list[list[float]]]
 
 
+class CovariancePartRecord(_Strict):
+    """One independent part of the complete covariance of [vec(X) row-major; one new reading]
+    (`labcal.analysis.attitude.CovariancePart`): V², V²/g and (V/g)²; dof None: infinite."""
+
+    label: str
+    degrees_of_freedom: float | None
+    matrix: list[list[float]]
+
+    @model_validator(mode="after")
+    def _shapes(self) -> CovariancePartRecord:
+        _shape(self.matrix, (15, 15), "covariance part")
+        return self
+
+    def part(self) -> CovariancePart:
+        dof = np.inf if self.degrees_of_freedom is None else self.degrees_of_freedom
+        return CovariancePart(np.array(self.matrix, dtype=float), dof, self.label)
+
+
 class UncertaintyBudget(_Strict):
     method: str
     inputs: dict
@@ -304,6 +324,12 @@ class UncertaintyBudget(_Strict):
     coefficients: CoefficientBudgetRecord
     monte_carlo: list[MonteCarloCheck] | None = None
     statement: str
+    # The complete covariance the totals come from; `labcal attitude --cert` and every other output
+    # state the attitude U95 from it (absent in certificates issued before: their fit's Type A).
+    covariance: list[CovariancePartRecord] | None = Field(default=None, exclude_if=_absent)
+
+    def parts(self) -> tuple[CovariancePart, ...]:
+        return tuple(p.part() for p in self.covariance or [])
 
 
 class LaboratoryRecord(_Strict):
@@ -455,7 +481,16 @@ class Certificate(_Strict):
         return np.array(self.expanded_uncertainty.U)
 
     def calibration(self) -> Calibration:
-        return calibration_from_json(self.fit.model_dump(), self.certificate_id)
+        """The calibration `labcal attitude` uses: the fit's coefficients and weights, and the budget's
+        complete covariance where the certificate states one."""
+        cal = calibration_from_json(self.fit.model_dump(), self.certificate_id)
+        parts = self.uncertainty_budget.parts() if self.uncertainty_budget is not None else ()
+        return replace(cal, parts=parts) if parts else cal
+
+    def coefficient_covariance(self) -> NDArray:
+        """The complete 12×12 covariance of vec(X) (row-major), Type A and B, across channels."""
+        parts = self.calibration().uncertainty_parts
+        return np.sum([p.matrix[:12, :12] for p in parts], axis=0)
 
     def to_json(self) -> dict:
         return self.model_dump(mode="json")
@@ -480,6 +515,9 @@ def seal(content: dict) -> Certificate:
 
 
 # --- reading and writing ---------------------------------------------------------------------------
+_CUT_TOKEN = re.compile(r"[-+0-9.eE]+|t(r(u)?)?|f(a(l(s)?)?)?|n(u(l)?)?")
+
+
 def parse_json(text: str, source: str):
     """JSON text, or one line saying why not — naming truncation, the usual way files break."""
     try:
@@ -488,7 +526,9 @@ def parse_json(text: str, source: str):
         raise LabcalError(f"{source}: nested more than {MAX_DEPTH} deep; a certificate is not nested like "
                           "that") from None
     except json.JSONDecodeError as exc:
-        if exc.pos >= len(text.rstrip()) or exc.msg.startswith("Unterminated string"):
+        rest = text.rstrip()[exc.pos:]
+        # cut inside a number ("0." or "1e-") or a literal ("tr"): the parser stops at its last character
+        if not rest or _CUT_TOKEN.fullmatch(rest) or exc.msg.startswith("Unterminated string"):
             raise LabcalError(f"{source}: not valid JSON: the file is truncated (it stops at line "
                               f"{text.rstrip().count(chr(10)) + 1} before the document ends)") from None
         raise LabcalError(f"{source}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
@@ -565,5 +605,5 @@ def load_calibration(path: str | Path) -> Calibration:
     schema and digest are verified first, so a tampered certificate never converts a voltage."""
     doc = parse_json(read_text(path, "calibration"), str(path))
     if is_certificate(doc):
-        doc = certificate_from_doc(doc, str(path)).fit.model_dump()
+        return certificate_from_doc(doc, str(path)).calibration()
     return calibration_from_json(doc.get("fit", doc) if isinstance(doc, dict) else doc, path)

@@ -165,7 +165,9 @@ def _results(root: ET.Element, cert: Certificate) -> None:
             _s(real, "value", _number(X[i, j] * PER_UNIT[i]))
             _s(real, "unit", UNIT[i])
             _expanded(real, U[i, j] * PER_UNIT[i], k[j])
-        covariance = np.array(cert.fit.covariance[j])[:4, :4] * np.outer(PER_UNIT, PER_UNIT)
+        # the complete covariance (Type A and B) that U above comes from, not the fit's Type A alone
+        idx = np.arange(4) * 3 + j
+        covariance = cert.coefficient_covariance()[np.ix_(idx, idx)] * np.outer(PER_UNIT, PER_UNIT)
         region = _s(values, "ellipsoidalRegion")
         matrix = _s(region, "covarianceMatrix")
         for c, column in enumerate(covariance.T):

@@ -6,7 +6,7 @@ document (`labcal.documents.certificate` says what a certificate is and how it i
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -14,7 +14,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal import __version__
-from labcal.analysis.attitude import Calibration, calibration_from_json, closed_form, sphere_least_squares
+from labcal.analysis.attitude import (
+    LOCAL_GRAVITY_TOLERANCE,
+    LOCAL_GRAVITY_U,
+    Attitude,
+    Calibration,
+    calibration_from_json,
+    closed_form,
+    sphere_least_squares,
+)
 from labcal.analysis.budget import TypeBInputs
 from labcal.analysis.design import LEAK_ZERO, audit, audit_summary, figure_of_merit, grid
 from labcal.analysis.device_fit import DeviceFit
@@ -74,23 +82,27 @@ class EnvelopeGrid:
     roll_deg: NDArray  # (n_r,)
     u95_pitch_deg: NDArray  # (n_p, n_r)
     u95_roll_deg: NDArray  # (n_p, n_r), NaN where roll is undefined
-    k: float
+    k_pitch: NDArray  # (n_p, n_r): k = t₀.₉₇₅(ν_eff) of each attitude
     dof: int
 
 
-def envelope_grid(cal: Calibration, settings: CertificateSettings, estimator=sphere_least_squares
-                  ) -> EnvelopeGrid:
-    """Weighted least squares on the sphere (Tripp eqs. 99–104; or another ``estimator``) at every
-    grid attitude, top-forward mount, for one new reading: the uncertainty a user of the instrument
-    gets, in degrees."""
+def in_use(cal: Calibration, volts: NDArray) -> Attitude:
+    """The sphere estimator as `labcal attitude` runs it: |g| known to ±LOCAL_GRAVITY_TOLERANCE."""
+    return sphere_least_squares(cal, volts, LOCAL_GRAVITY_U)
+
+
+def envelope_grid(cal: Calibration, settings: CertificateSettings, estimator=in_use) -> EnvelopeGrid:
+    """Weighted least squares on the sphere (Tripp eqs. 99–104, with local |g| as `labcal attitude`
+    takes it; or another ``estimator``) at every grid attitude, top-forward mount, for one new
+    reading: the uncertainty a user of the instrument gets, in degrees."""
     step = settings.grid_step_deg
     points = np.array(grid(*settings.usage_pitch_deg, step, *settings.usage_roll_deg, step))
     pitch, roll = np.unique(points[:, 0]), np.unique(points[:, 1])
     g = gravity(np.radians(points[:, 0]), np.radians(points[:, 1]), 0.0, 0.0)
     att = estimator(cal, cal.X[0] + g @ cal.X[1:])
     shape = (len(pitch), len(roll))
-    return EnvelopeGrid(pitch, roll, (att.k95 * np.degrees(att.u_pitch)).reshape(shape),
-                        (att.k95 * np.degrees(att.u_roll)).reshape(shape), att.k95, cal.dof)
+    return EnvelopeGrid(pitch, roll, np.degrees(att.U_pitch).reshape(shape),
+                        np.degrees(att.U_roll).reshape(shape), att.k_pitch.reshape(shape), cal.dof)
 
 
 def _summary(grid_: EnvelopeGrid, values: NDArray
@@ -111,11 +123,16 @@ def attitude_envelope(cal: Calibration, settings: CertificateSettings) -> Attitu
                           f"{low:g}..{high:g}°); check the usage envelope and the calibration's "
                           "uncertainties")
     r_max, r_rms, r_at = _summary(env, env.u95_roll_deg)
+    i, j = int(np.searchsorted(env.pitch_deg, p_at[0])), int(np.searchsorted(env.roll_deg, p_at[1]))
     return AttitudeEnvelope(
-        method="weighted least squares on the unit sphere (Tripp & Tcheng eqs. 99–104), one new reading, "
-               "top-forward mount; U95 = k·u with k = t₀.₉₇₅(ν)",
+        method="weighted least squares on the unit sphere (Tripp & Tcheng eqs. 99–104) with local |g| "
+               f"taken as unknown within ±{LOCAL_GRAVITY_TOLERANCE:g} of the calibration's (as `labcal "
+               "attitude` estimates), one new reading, top-forward mount; u_c from the complete "
+               "covariance of the coefficients and the reading (the uncertainty budget's Type A and "
+               "Type B parts, with their correlations), U95 = k·u_c with k = t₀.₉₇₅(ν_eff) at each attitude (k stated: at the largest pitch U95)",
         usage_pitch_deg=settings.usage_pitch_deg, usage_roll_deg=settings.usage_roll_deg,
-        grid_step_deg=settings.grid_step_deg, grid_points=int(env.u95_pitch_deg.size), k=env.k,
+        grid_step_deg=settings.grid_step_deg, grid_points=int(env.u95_pitch_deg.size),
+        k=float(env.k_pitch[i, j]),
         degrees_of_freedom=env.dof,
         pitch_U95_max_deg=p_max, pitch_U95_rms_deg=p_rms, pitch_U95_max_at_deg=p_at,
         roll_U95_max_deg=r_max, roll_U95_rms_deg=r_rms, roll_U95_max_at_deg=r_at,
@@ -143,7 +160,7 @@ def _closed_form_envelope(cal: Calibration, settings: CertificateSettings, spher
                     "has no usable slope and roll does not exist." if undefined else ""))
     return ClosedFormEnvelope(
         method="Soto's closed form g = (V − B)S⁻¹, pitch = asin g_x, roll = atan2(g_y, g_z) (eqs. 5–7), "
-               "first-order uncertainty through the same Σ_v; Type A",
+               "first-order uncertainty from the same complete covariance as the sphere estimator's",
         pitch_U95_max_deg=p_max, pitch_U95_rms_deg=p_rms, pitch_U95_max_at_deg=p_at,
         roll_U95_max_deg=r_max, roll_U95_rms_deg=r_rms, roll_U95_max_at_deg=r_at,
         undefined_points=undefined, statement=statement)
@@ -304,7 +321,8 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
     uncertainty = budget(record, fit, inputs or TypeBInputs(), settings, monte_carlo, seed, device)
     X = fit.coefficients if device is None else device.coefficients
     expanded = _expanded(fit.variance_dof if device is None else np.full(3, device.dof), uncertainty)
-    cal = calibration_from_json(fit_doc, run_dir)
+    # the envelope states the budget's U95: the complete covariance, through the one function
+    cal = replace(calibration_from_json(fit_doc, run_dir), parts=uncertainty.parts())
     envelope = attitude_envelope(cal, settings)
     try:
         stamp = datetime.fromisoformat(calibrated).astimezone(UTC).strftime("%Y%m%dT%H%M%SZ")

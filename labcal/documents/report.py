@@ -29,6 +29,7 @@ from labcal.analysis.kinematics import NO_MISALIGNMENT, Misalignment, Mount, gra
 from labcal.analysis.models import Points
 from labcal.config.files import write_atomic
 from labcal.config.settings import CertificateSettings
+from labcal.config.station import stated_angle_errors
 from labcal.documents.administration import ItemGiven
 from labcal.documents.certificate import (
     Certificate,
@@ -152,7 +153,7 @@ def attitude_table(cert: Certificate) -> Table:
     (p0, p1), (r0, r1) = a.usage_pitch_deg, a.usage_roll_deg
     caption = (f"Over pitch {p0:g}…{p1:g}° × roll {r0:g}…{r1:g}° in {a.grid_step_deg:g}° steps "
                f"({a.grid_points} attitudes); "
-               f"{a.method}; k = {a.k:.2f} (ν = {a.degrees_of_freedom}).")
+               f"{a.method}; k = {a.k:.2f}.")
     if a.roll_undefined_points:
         caption += f" Roll is undefined at {a.roll_undefined_points} attitude(s) near pitch ±90°."
     if cf is not None:
@@ -337,7 +338,7 @@ def inferred_attitude(cert: Certificate, record: RunRecord) -> dict[str, np.ndar
     roll_error[np.hypot(nominal[:, 1], nominal[:, 2]) < NO_ROLL] = np.nan
     return {"nominal_pitch": nominal_pitch, "nominal_roll": nominal_roll,
             "pitch_error": np.degrees(att.pitch) - nominal_pitch, "roll_error": roll_error,
-            "U95_pitch": att.k95 * np.degrees(att.u_pitch), "U95_roll": att.k95 * np.degrees(att.u_roll)}
+            "U95_pitch": np.degrees(att.U_pitch), "U95_roll": np.degrees(att.U_roll)}
 
 
 def attitude_error_figure(cert: Certificate, record: RunRecord) -> Figure:
@@ -423,7 +424,7 @@ def envelope_figure(cert: Certificate) -> Figure:
             ax.axhline(tolerance, color="tab:red", lw=1, label=f"tolerance {tolerance:g}°")
         ax.set_xlabel("pitch of the instrument (°)")
         ax.set_ylabel(f"U95 of inferred {angle} (°)")
-        ax.set_title(f"{angle}: 95 % expanded uncertainty, k = {env.k:.2f}", fontsize=10, y=TITLE_Y)
+        ax.set_title(f"{angle}: 95 % expanded uncertainty", fontsize=10, y=TITLE_Y)
         ax.set_ylim(bottom=0)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
@@ -626,7 +627,7 @@ def fitted(record: RunRecord) -> tuple[Fit, DeviceFit | None, str]:
     if record.fit is not None:
         return record.fit, record.device, record.model_note
     fit = fit_readings(record.readings)
-    return fit, *preferred_fit(record.readings, fit)
+    return fit, *preferred_fit(record.readings, fit, stated_angle_errors(record.station_text))
 
 
 def _issued(path: Path) -> Certificate | None:

@@ -21,6 +21,7 @@ from labcal.analysis.budget import (
     calibration_of,
     calibration_of_device,
     coefficient_budget,
+    covariance_parts,
     propagate,
     sources,
 )
@@ -37,6 +38,7 @@ from labcal.documents.certificate import (
     BudgetRow,
     BudgetTotal,
     CoefficientBudgetRecord,
+    CovariancePartRecord,
     MonteCarloCheck,
     UncertaintyBudget,
 )
@@ -73,8 +75,9 @@ def type_b_inputs(section: CertificateSection, record: RunRecord, device: Device
                   ) -> TypeBInputs:
     """The bench's inputs in SI; the temperature half-range is the run's own (none without a channel);
     the device misalignments' standard uncertainties where the ``device`` model estimated them."""
-    device_misalignment = {} if device is None else {
-        name: float(u) for name, u in zip(MISALIGNMENT_NAMES, device.misalignment_u_rad, strict=True)}
+    noise_u = None if device is None else np.sqrt(np.diag(device.noise_covariance)[:len(MISALIGNMENT_NAMES)])
+    device_misalignment = {} if noise_u is None else {
+        name: float(u) for name, u in zip(MISALIGNMENT_NAMES, noise_u, strict=True)}
     u = section.uncertainty
     t = record.readings.temp_c
     return TypeBInputs(
@@ -84,6 +87,7 @@ def type_b_inputs(section: CertificateSection, record: RunRecord, device: Device
            if section.dmm.nplc < 1 else ""),
         pitch_index=u.pitch_index, pitch_wobble=u.pitch_wobble, roll_index=u.roll_index,
         roll_wobble=u.roll_wobble, mount_repeatability=u.mount_repeatability,
+        common=section.dmm.common_inputs(u.common),
         temperature_half_range_k=0.0 if t is None else float(np.ptp(t)) / 2,
         bias_tempco_v_per_k=u.bias_tempco, sensitivity_tempco_per_k=u.sensitivity_tempco,
         device_misalignment=device_misalignment)
@@ -190,6 +194,11 @@ def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: Certifica
     certificate is built on it; ``trials`` > 0 adds the Monte Carlo check."""
     readings = record.readings
     cal = calibration_of(fit, readings) if device is None else calibration_of_device(device, readings)
+    if device is not None and device.angle_errors is not None:
+        # the tables' index and wobble the device model was fitted with are the budget's table rows
+        a = device.angle_errors
+        inputs = replace(inputs, pitch_index=a.pitch_index, pitch_wobble=a.pitch_wobble,
+                         roll_index=a.roll_index, roll_wobble=a.roll_wobble)
     scatter = mount_scatter(readings, cal.X)
     if scatter is not None:  # the replicates say how the seating scatters: they win over the station file
         inputs = replace(inputs, mount_repeatability_sd=scatter.sd_rad, mount_repeatability_dof=scatter.dof)
@@ -206,7 +215,9 @@ def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: Certifica
             u_c=coef.u_c.tolist(), nu_eff=[[_finite(x) for x in row] for row in coef.nu_eff],
             k=coef.k.tolist(), U=coef.U.tolist(),
             contributions={name: c.tolist() for name, c in coef.contributions.items()}),
-        monte_carlo=checks, statement=_statement(totals, checks))
+        monte_carlo=checks, statement=_statement(totals, checks),
+        covariance=[CovariancePartRecord(label=part.label, degrees_of_freedom=_finite(part.dof),
+                                         matrix=part.matrix.tolist()) for part in covariance_parts(rows)])
 
 
 def stated_U95_arcsec(b: UncertaintyBudget, angle: str) -> float | None:

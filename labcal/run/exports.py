@@ -22,6 +22,7 @@ from labcal.analysis.fit import Fit, fit_readings
 from labcal.config.files import write_atomic
 from labcal.config.json_values import json_safe
 from labcal.config.readings_csv import ReadingsWriter
+from labcal.config.station import stated_angle_errors
 from labcal.errors import LabcalError
 from labcal.run.journal import Journal, RunRow
 from labcal.run.rundir import FIT, PLAN, READINGS, RUN, identity
@@ -63,7 +64,8 @@ def derive(journal: Journal, row: RunRow, status: str | None = None, reason: str
             fit = None  # too few points so far for a fit
     if fit is not None:
         # fit.json holds the device model where the points identify it, else the linear fit
-        device, note = preferred_fit(readings, fit)
+        # with the tables' index and wobble as the run's station states them (issue 23)
+        device, note = preferred_fit(readings, fit, stated_angle_errors(row.station_text))
         doc = fit.to_json() if device is None else device.to_json()
         doc["notes"] = [note, *doc.get("notes", [])]
         files[FIT] = _json(doc)
