@@ -129,7 +129,8 @@ def attitude_envelope(cal: Calibration, settings: CertificateSettings) -> Attitu
                f"taken as unknown within ±{LOCAL_GRAVITY_TOLERANCE:g} of the calibration's (as `labcal "
                "attitude` estimates), one new reading, top-forward mount; u_c from the complete "
                "covariance of the coefficients and the reading (the uncertainty budget's Type A and "
-               "Type B parts, with their correlations), U95 = k·u_c with k = t₀.₉₇₅(ν_eff) at each attitude (k stated: at the largest pitch U95)",
+               "Type B parts, with their correlations), U95 = k·u_c with k = t₀.₉₇₅(ν_eff) at each "
+               "attitude (k stated: at the largest pitch U95)",
         usage_pitch_deg=settings.usage_pitch_deg, usage_roll_deg=settings.usage_roll_deg,
         grid_step_deg=settings.grid_step_deg, grid_points=int(env.u95_pitch_deg.size),
         k=float(env.k_pitch[i, j]),
