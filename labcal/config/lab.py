@@ -95,13 +95,36 @@ class LabConfig:
         """The lab database: --db, else $LABCAL_DB, else this file's `database`, else the user's
         data folder — never a path relative to the current folder unless one was given."""
         if option:
-            return Path(option)
+            return database_path(str(option), "--db")
         if os.environ.get(DB_ENV):
-            return Path(os.environ[DB_ENV])
+            return database_path(os.environ[DB_ENV], f"${DB_ENV}")
         if self.file.database:
-            given = Path(self.file.database).expanduser()
+            given = database_path(self.file.database, f"{self.path or FILE_NAME}: database").expanduser()
             return given if given.is_absolute() or self.path is None else self.path.parent / given
         return data_home() / "labcal" / DB_NAME
+
+
+SERVER_SCHEMES = ("postgresql", "postgres", "postgresql+psycopg")
+
+
+def database_path(location: str, source: str) -> Path:
+    """The SQLite file a database location names: a path, or a URL `sqlite:///PATH` (SQLAlchemy's
+    form: three slashes then the path, so `sqlite:////srv/lab.sqlite` is absolute). Any other
+    `SCHEME://` is refused in one line rather than taken for a folder name: a PostgreSQL lab server
+    (issue 24) is not supported by this labcal yet, and an unknown scheme is a typing error."""
+    scheme, sep, rest = location.partition("://")
+    if not sep:
+        return Path(location)
+    if scheme == "sqlite":
+        if not rest.startswith("/") or rest == "/":
+            raise LabcalError(f"{source}: {location!r} names no file; write sqlite:///PATH (three slashes "
+                              "and a relative path, or four and an absolute one)")
+        return Path(rest[1:])
+    if scheme in SERVER_SCHEMES:
+        raise LabcalError(f"{source}: {location!r} is a PostgreSQL server, which this labcal cannot use "
+                          "yet; give the lab database as a path or sqlite:///PATH")
+    raise LabcalError(f"{source}: unknown database scheme {scheme!r} in {location!r}; give a path or "
+                      "sqlite:///PATH")
 
 
 def _home_dir(env: str, posix: str, mac: str, windows_env: str) -> Path:

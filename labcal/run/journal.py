@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal.analysis.readings import Readings
-from labcal.config.lab import load_lab_config
+from labcal.config.lab import database_path, load_lab_config
 from labcal.errors import LabcalError
 from labcal.run import labdb
 
@@ -33,7 +33,7 @@ def db_path(option: str | Path | None = None) -> Path:
     """The lab database: --db, else $LABCAL_DB, else the lab file's, else the user's data folder
     (`labcal.config.lab.LabConfig.database`) — not a folder relative to where the command started."""
     if option:
-        return Path(option)
+        return database_path(str(option), "--db")
     return load_lab_config().database()
 
 

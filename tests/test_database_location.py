@@ -1,0 +1,45 @@
+"""Where the lab database is (issue 24's interface, its SQLite part): a path or `sqlite:///PATH` in
+--db, $LABCAL_DB or the lab file; any other `SCHEME://` is one line, never a folder named after it."""
+
+from __future__ import annotations
+
+import sqlite3
+
+import pytest
+
+from labcal.cli import main
+
+
+@pytest.mark.parametrize("location, message", [
+    ("postgresql://lab@127.0.0.1:5432/labcal", "is a PostgreSQL server, which this labcal cannot use yet"),
+    ("postgresql+psycopg://lab@db/labcal", "is a PostgreSQL server"),
+    ("mysql://lab@db/labcal", "unknown database scheme 'mysql'"),
+    ("sqlite://", "names no file; write sqlite:///PATH"),
+])
+def test_a_location_that_is_no_sqlite_file_is_one_line_and_creates_nothing(location, message, tmp_path,
+                                                                             monkeypatch, capsys):
+    monkeypatch.setenv("LABCAL_DB", location)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    assert main(["runs"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "$LABCAL_DB" in err and message in err and "Traceback" not in err
+    assert main(["run", "--sim", "--yes", "--no-report", "--out", str(tmp_path / "r")]) == 2
+    assert message in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no folder named after the URL, no run
+    assert main(["runs", "--db", location]) == 2 and "--db" in capsys.readouterr().err
+
+
+def test_sqlite_urls_name_the_file_as_sqlalchemy_reads_them(tmp_path, monkeypatch, capsys):
+    """`sqlite:///lab.sqlite` is relative (to the current folder), `sqlite:////abs/lab.sqlite` absolute;
+    a run journals into that file."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("LABCAL_DB", "sqlite:///relative.sqlite")
+    assert main(["run", "--sim", "--yes", "--no-report", "--out", str(tmp_path / "one")]) == 0
+    absolute = tmp_path / "sub" / "absolute.sqlite"
+    absolute.parent.mkdir()
+    monkeypatch.setenv("LABCAL_DB", f"sqlite:///{absolute}")  # the path's own slash makes the fourth
+    assert main(["run", "--sim", "--yes", "--no-report", "--out", str(tmp_path / "two")]) == 0
+    for db in (tmp_path / "relative.sqlite", absolute):
+        with sqlite3.connect(db) as con:
+            assert con.execute("SELECT count(*) FROM runs").fetchone()[0] == 1
+    capsys.readouterr()
