@@ -158,3 +158,23 @@ def test_certificate_states_both_estimators_and_undefined_near_90(tmp_path):
     g = gravity(np.radians(60.0), 0.0, 0.0, 0.0)[None]
     v = fit.coefficients[0] + g @ fit.coefficients[1:]
     assert closed_form(cal, v).u_pitch[0] > sphere_least_squares(cal, v).u_pitch[0]
+
+
+def test_local_gravity_row_is_what_the_estimator_does_where_gravity_differs():
+    """GUM: u = |c|·a/√3 for local |g| anywhere within ±a = 5e-4 of the calibration's (rectangular),
+    with c = ∂(pitch, roll)/∂|g| found here by central differences of the estimator `labcal attitude`
+    runs, fed readings of an instrument that sees |g| = 1 ± δ — not by the budget's linear algebra."""
+    readings, fit = _fit("four-mount-64")
+    cal = calibration_of(fit, readings)
+    g = gravity(*AT, 0.0, 0.0)
+    delta = 1e-6
+
+    def attitude(scale: float) -> np.ndarray:
+        volts = fit.coefficients[0] + scale * (g @ fit.coefficients[1:])
+        att = _sphere(fit, volts)
+        return np.array([att.pitch[0], att.roll[0]])
+    c = (attitude(1 + delta) - attitude(1 - delta)) / (2 * delta)
+    expected = np.abs(c) * 5e-4 / np.sqrt(3)
+    got = propagate(cal, sources(cal, TypeBInputs()), *AT).contributions["local gravity"][0]
+    assert expected[0] > 1e-3 * ARCSEC  # the prior leaves a share in pitch here: a real row
+    np.testing.assert_allclose(got, expected, rtol=1e-3)
