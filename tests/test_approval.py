@@ -274,3 +274,63 @@ def test_the_stated_attitude_u95_is_the_monte_carlo_one_where_they_disagree(issu
                             monte_carlo_U95_arcsec=1.1 * linear.U95_arcsec, agree_within_5_percent=False)
     disagreeing = budget.model_copy(update={"monte_carlo": [check]})
     assert stated_U95_arcsec(disagreeing, "roll") == pytest.approx(1.1 * linear.U95_arcsec)
+
+
+def _report(base, *extra: str) -> dict:
+    """`labcal report` of the run in ``base`` with --json, its summary."""
+    import contextlib
+    import io
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert main(["report", str(base / "run"), "--db", str(base / "lab.sqlite"), "--json", *extra]) == 0
+    return json.loads(buf.getvalue())
+
+
+ITEM = ("--customer", "ACME Ltd", "--manufacturer", "Acme", "--model", "AX-3", "--received", "2026-01-15")
+
+
+def test_a_reissue_keeps_the_identification_unless_told_and_says_what_changed(approved, tmp_path, capsys):
+    """Issue with the item's details, re-report the draft without them: kept; approve, re-issue
+    without them: the revision keeps them too; re-issue with a new customer: that one field
+    changes and both the certificate and the command's output name it (old → new)."""
+    from datetime import date
+
+    base = tmp_path / "lab"
+    shutil.copytree(approved[0], base)
+    (base / "run" / "certificate.json").unlink()  # start again from a first draft with the item given
+    first = _report(base, *ITEM)
+    assert first["compared_with"] is None
+    again = _report(base)  # a draft reported again, nothing repeated
+    draft = read_certificate(base / "run" / "certificate.json")
+    a = draft.administration
+    assert (a.customer, a.item.manufacturer, a.item.model, a.item.received) == \
+        ("ACME Ltd", "Acme", "AX-3", date(2026, 1, 15))
+    assert again["identification_changed"] == [] and draft.revision == 1 and draft.replaces is None
+    capsys.readouterr()
+    assert main(_approve(base)) == 0
+    approved_one = read_certificate(base / "run" / "certificate.json")
+    revision = _report(base)  # the re-issue of an approved certificate, nothing repeated
+    second = read_certificate(base / "run" / "certificate.json")
+    a = second.administration
+    assert second.revision == 2 and second.replaces == approved_one.number
+    assert (a.customer, a.item.manufacturer, a.item.model, a.item.received) == \
+        ("ACME Ltd", "Acme", "AX-3", date(2026, 1, 15))
+    assert revision["identification_changed"] == []
+    assert f"This revision replaces certificate {approved_one.number}; its identification is unchanged." \
+        in second.statements
+    capsys.readouterr()
+    assert main(["report", str(base / "run"), "--db", str(base / "lab.sqlite"), "--customer",
+                 "Beta GmbH"]) == 0
+    printed = capsys.readouterr().out
+    third = read_certificate(base / "run" / "certificate.json")
+    assert third.revision == 2 and third.replaces == approved_one.number  # still the same revision's draft
+    assert third.administration.customer == "Beta GmbH" and third.administration.item.model == "AX-3"
+    assert ("identification changed: customer ('ACME Ltd' → 'Beta GmbH')." in
+            " ".join(third.statements))
+    assert "Identification changed from" in printed and "customer ('ACME Ltd' → 'Beta GmbH')" in \
+        " ".join(printed.split())
+    assert not any("manufacturer (" in s or "model (" in s for s in third.statements)
+    # the revision draft with its statement is what the journal gives: it can be approved
+    capsys.readouterr()
+    assert main(_approve(base)) == 0

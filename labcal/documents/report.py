@@ -16,7 +16,7 @@ from __future__ import annotations
 import base64
 import html
 import io
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -39,7 +39,13 @@ from labcal.documents.certificate import (
     write_certificate,
 )
 from labcal.documents.device_history import store_device_estimate
-from labcal.documents.issuing import build_certificate, envelope_grid
+from labcal.documents.issuing import (
+    build_certificate,
+    changed_fields,
+    envelope_grid,
+    identification,
+    kept_identification,
+)
 from labcal.documents.uncertainty import bench_section, type_b_inputs
 from labcal.errors import LabcalError
 from labcal.run.record import RunRecord, load_run
@@ -594,6 +600,8 @@ class RunOutputs:
     database: Path
     notes: tuple[str, ...] = ()  # what checking the run folder against the journal repaired
     dcc_path: Path | None = None
+    compared_with: str | None = None  # the certificate this issue replaced in the run directory
+    changes: tuple[str, ...] = ()  # its identification fields that differ, in words
 
 
 def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None = None, *,
@@ -608,17 +616,39 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
     fit, device, model_note = fitted(record)
     section = bench_section(record, station)
     inputs = type_b_inputs(section, record, device)
-    revision, replaces = 1, None
+    revision, replaced = 1, None
     previous = _issued(record.directory / CERTIFICATE)
     if previous is not None and previous.approval is not None:
         # An approved certificate is never changed: what follows is a correction, a new revision
         # naming the one it replaces; the approved one stays beside it and in the history.
-        revision, replaces = (previous.revision or 1) + 1, previous.number
+        revision, replaced = (previous.revision or 1) + 1, previous
         write_file(record.directory / f"certificate.rev{previous.revision or 1}.json", previous)
+    elif previous is not None and (previous.revision or 1) > 1:
+        # a revision's draft reported again is still that revision, replacing the same approved one
+        revision, replaced = previous.revision or 1, replaced_by(record.directory, previous)
+    item, serial, operator = kept_identification(previous, item or ItemGiven(), serial, operator)
     cert = build_certificate(record, fit, settings, serial=serial, operator=operator, inputs=inputs,
-                             monte_carlo=monte_carlo, revision=revision, replaces=replaces, section=section,
-                             item=item, device=device, model_note=model_note)
-    return write_documents(cert, record, fit, device, db)
+                             monte_carlo=monte_carlo, revision=revision,
+                             replaces=None if replaced is None else replaced.number, section=section,
+                             item=item, device=device, model_note=model_note, replaced=replaced)
+    outputs = write_documents(cert, record, fit, device, db)
+    if previous is None:
+        return outputs
+    return replace(outputs, compared_with=previous.number,
+                   changes=tuple(changed_fields(identification(previous), identification(cert))))
+
+
+def replaced_by(directory: Path, cert: Certificate) -> Certificate | None:
+    """The approved certificate a revision replaces, as kept beside it in the run directory
+    (``certificate.revN.json``); None for a first issue."""
+    if not cert.replaces:
+        return None
+    path = directory / f"certificate.rev{(cert.revision or 1) - 1}.json"
+    kept = read_certificate(path) if path.is_file() else None
+    if kept is None or kept.number != cert.replaces:
+        raise LabcalError(f"{path}: the certificate {cert.number} replaces ({cert.replaces}) is not kept "
+                          "there")
+    return kept
 
 
 def fitted(record: RunRecord) -> tuple[Fit, DeviceFit | None, str]:
