@@ -334,3 +334,34 @@ def test_a_reissue_keeps_the_identification_unless_told_and_says_what_changed(ap
     # the revision draft with its statement is what the journal gives: it can be approved
     capsys.readouterr()
     assert main(_approve(base)) == 0
+
+
+def test_the_residual_page_names_the_linear_model_and_each_sensors_rms(issued):
+    """The bench run's certificate rests on the linear model (one mount: the device is not
+    identified): its residual figure's heading, in the HTML and on its PDF page, names that model and
+    each sensor's residual RMS, computed here from the readings and the certified coefficients with
+    gravity by hand on the top-forward mount, g = [sin p, cos p sin r, cos p cos r] (Soto §2)."""
+    import html
+
+    import numpy as np
+
+    from labcal.run.record import load_run
+
+    base, pages = issued
+    cert = read_certificate(base / "run" / "certificate.json")
+    assert cert.device is None and cert.fit.model == "linear"
+    r = load_run(base / "run").readings
+    assert not np.any(r.y_deg % 360) and not np.any(r.u_deg % 360)  # top-forward only
+    p, q = np.radians(r.pitch_deg), np.radians(r.roll_deg)
+    g = np.column_stack([np.sin(p), np.cos(p) * np.sin(q), np.cos(p) * np.cos(q)])
+    X = np.array(cert.fit.coefficients)
+    rms = np.sqrt(np.mean((r.volts - X[0] - g @ X[1:]) ** 2, axis=0))
+    assert np.all((rms > 1e-7) & (rms < 1e-3))  # microvolts: stated in µV
+    stated = ", ".join(f"{s} {v * 1e6:.3g} µV" for s, v in zip("xyz", rms, strict=True))
+    text = (base / "run" / "report.html").read_text(encoding="utf-8")
+    [heading] = re.findall(r"<h2>(Residuals per sensor of the [^<]*)</h2>", text)
+    heading = html.unescape(heading)
+    assert heading.startswith("Residuals per sensor of the linear model (V = B + gᵀS")
+    assert heading.endswith(f"residual RMS {stated}")
+    pdf = " ".join(" ".join(page.split()) for page in pages)
+    assert "Residuals per sensor of the linear model" in pdf and stated in pdf
