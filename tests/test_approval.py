@@ -165,7 +165,11 @@ def test_administrative_contents_come_from_the_lab_file_station_file_and_command
     assert a.laboratory.accreditation_id == "UKAS 0000" and a.customer == "ACME Ltd"
     assert a.item.model == "AX-3" and a.item.received == date(2026, 11, 20) and a.item.serial == SERIAL
     assert [t.certificate for t in a.traceability] == ["CAL-2026-0193", "ANG-2026-0041"]
-    assert any("past its calibration due date 2020-01-01" in s for s in cert.statements)
+    # said as the PDF's first page and `labcal station check` say it (one function)
+    calibrated = cert.calibrated_utc.date().isoformat()
+    assert ("Reference standard DMM (34972A) (Keysight 34972A, serial MY00000000, certificate CAL-2026-0193) "
+            f"was overdue for calibration: due 2020-01-01, used {calibrated}.") in cert.statements
+    assert not any("ANG-2026-0041" in s for s in cert.statements)  # due 2027-03-31: in date
     assert "The results relate only to the item calibrated." in cert.statements
     assert cert.number.endswith("rev. 1") and cert.draft
 

@@ -34,6 +34,7 @@ from labcal.config.json_values import json_safe
 from labcal.config.lab import certificate_settings
 from labcal.config.settings import CertificateSettings
 from labcal.config.station import CertificateSection, load_certificate_settings
+from labcal.config.uncertainty import overdue_standards
 from labcal.documents.administration import ItemGiven, administration
 from labcal.documents.certificate import (
     COVERAGE,
@@ -376,10 +377,7 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
     notice = SIMULATED_NOTICE if record.simulated else None
     statements = [notice] * (notice is not None) + list(STATEMENTS) \
         + ([model_note[0].upper() + model_note[1:] + "."] if model_note else [])
-    day = datetime.fromisoformat(calibrated).date()
-    statements += [f"Reference standard {t.equipment} (certificate {t.certificate}) was past its calibration "
-                   f"due date {t.due.isoformat()} on the calibration date."
-                   for t in admin.traceability if t.due < day]
+    statements += overdue_standards(admin.traceability, datetime.fromisoformat(calibrated).date())
     operator = _recorded(meta.get("operator"), operator, "operator", run_dir)
     if replaced is not None:
         changes = changed_fields(identification(replaced),

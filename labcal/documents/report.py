@@ -30,6 +30,7 @@ from labcal.analysis.models import Points
 from labcal.config.files import write_atomic
 from labcal.config.settings import CertificateSettings
 from labcal.config.station import stated_angle_errors
+from labcal.config.uncertainty import overdue_standards as overdue
 from labcal.documents.administration import ItemGiven
 from labcal.documents.certificate import (
     Certificate,
@@ -604,13 +605,11 @@ def _status(cert: Certificate) -> str:
 
 def overdue_standards(cert: Certificate) -> list[str]:
     """Each reference standard whose calibration was due before this calibration was made: said on
-    the certificate's first page, not only in the budget."""
+    the certificate's first page, not only in the budget (`labcal station check` says it by the same
+    function, `labcal.config.uncertainty.overdue_standards`)."""
     if cert.administration is None:
         return []
-    on = cert.calibrated_utc.date()
-    return [f"Reference standard {t.equipment} ({t.identity}, certificate {t.certificate}) was overdue "
-            f"for calibration: due {t.due:%Y-%m-%d}, used {on:%Y-%m-%d}."
-            for t in cert.administration.traceability if t.due < on]
+    return overdue(cert.administration.traceability, cert.calibrated_utc.date())
 
 
 def render_pdf(cert: Certificate, figs: list[DrawnFigure], extra: tuple[Table, ...] = ()) -> bytes:
