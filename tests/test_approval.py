@@ -165,7 +165,11 @@ def test_administrative_contents_come_from_the_lab_file_station_file_and_command
     assert a.laboratory.accreditation_id == "UKAS 0000" and a.customer == "ACME Ltd"
     assert a.item.model == "AX-3" and a.item.received == date(2026, 11, 20) and a.item.serial == SERIAL
     assert [t.certificate for t in a.traceability] == ["CAL-2026-0193", "ANG-2026-0041"]
-    assert any("past its calibration due date 2020-01-01" in s for s in cert.statements)
+    # said as the PDF's first page and `labcal station check` say it (one function)
+    calibrated = cert.calibrated_utc.date().isoformat()
+    assert ("Reference standard DMM (34972A) (Keysight 34972A, serial MY00000000, certificate CAL-2026-0193) "
+            f"was overdue for calibration: due 2020-01-01, used {calibrated}.") in cert.statements
+    assert not any("ANG-2026-0041" in s for s in cert.statements)  # due 2027-03-31: in date
     assert "The results relate only to the item calibrated." in cert.statements
     assert cert.number.endswith("rev. 1") and cert.draft
 
@@ -274,3 +278,94 @@ def test_the_stated_attitude_u95_is_the_monte_carlo_one_where_they_disagree(issu
                             monte_carlo_U95_arcsec=1.1 * linear.U95_arcsec, agree_within_5_percent=False)
     disagreeing = budget.model_copy(update={"monte_carlo": [check]})
     assert stated_U95_arcsec(disagreeing, "roll") == pytest.approx(1.1 * linear.U95_arcsec)
+
+
+def _report(base, *extra: str) -> dict:
+    """`labcal report` of the run in ``base`` with --json, its summary."""
+    import contextlib
+    import io
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert main(["report", str(base / "run"), "--db", str(base / "lab.sqlite"), "--json", *extra]) == 0
+    return json.loads(buf.getvalue())
+
+
+ITEM = ("--customer", "ACME Ltd", "--manufacturer", "Acme", "--model", "AX-3", "--received", "2026-01-15")
+
+
+def test_a_reissue_keeps_the_identification_unless_told_and_says_what_changed(approved, tmp_path, capsys):
+    """Issue with the item's details, re-report the draft without them: kept; approve, re-issue
+    without them: the revision keeps them too; re-issue with a new customer: that one field
+    changes and both the certificate and the command's output name it (old → new)."""
+    from datetime import date
+
+    base = tmp_path / "lab"
+    shutil.copytree(approved[0], base)
+    (base / "run" / "certificate.json").unlink()  # start again from a first draft with the item given
+    first = _report(base, *ITEM)
+    assert first["compared_with"] is None
+    again = _report(base)  # a draft reported again, nothing repeated
+    draft = read_certificate(base / "run" / "certificate.json")
+    a = draft.administration
+    assert (a.customer, a.item.manufacturer, a.item.model, a.item.received) == \
+        ("ACME Ltd", "Acme", "AX-3", date(2026, 1, 15))
+    assert again["identification_changed"] == [] and draft.revision == 1 and draft.replaces is None
+    capsys.readouterr()
+    assert main(_approve(base)) == 0
+    approved_one = read_certificate(base / "run" / "certificate.json")
+    revision = _report(base)  # the re-issue of an approved certificate, nothing repeated
+    second = read_certificate(base / "run" / "certificate.json")
+    a = second.administration
+    assert second.revision == 2 and second.replaces == approved_one.number
+    assert (a.customer, a.item.manufacturer, a.item.model, a.item.received) == \
+        ("ACME Ltd", "Acme", "AX-3", date(2026, 1, 15))
+    assert revision["identification_changed"] == []
+    assert f"This revision replaces certificate {approved_one.number}; its identification is unchanged." \
+        in second.statements
+    capsys.readouterr()
+    assert main(["report", str(base / "run"), "--db", str(base / "lab.sqlite"), "--customer",
+                 "Beta GmbH"]) == 0
+    printed = capsys.readouterr().out
+    third = read_certificate(base / "run" / "certificate.json")
+    assert third.revision == 2 and third.replaces == approved_one.number  # still the same revision's draft
+    assert third.administration.customer == "Beta GmbH" and third.administration.item.model == "AX-3"
+    assert ("identification changed: customer ('ACME Ltd' → 'Beta GmbH')." in
+            " ".join(third.statements))
+    assert "Identification changed from" in printed and "customer ('ACME Ltd' → 'Beta GmbH')" in \
+        " ".join(printed.split())
+    assert not any("manufacturer (" in s or "model (" in s for s in third.statements)
+    # the revision draft with its statement is what the journal gives: it can be approved
+    capsys.readouterr()
+    assert main(_approve(base)) == 0
+
+
+def test_the_residual_page_names_the_linear_model_and_each_sensors_rms(issued):
+    """The bench run's certificate rests on the linear model (one mount: the device is not
+    identified): its residual figure's heading, in the HTML and on its PDF page, names that model and
+    each sensor's residual RMS, computed here from the readings and the certified coefficients with
+    gravity by hand on the top-forward mount, g = [sin p, cos p sin r, cos p cos r] (Soto §2)."""
+    import html
+
+    import numpy as np
+
+    from labcal.run.record import load_run
+
+    base, pages = issued
+    cert = read_certificate(base / "run" / "certificate.json")
+    assert cert.device is None and cert.fit.model == "linear"
+    r = load_run(base / "run").readings
+    assert not np.any(r.y_deg % 360) and not np.any(r.u_deg % 360)  # top-forward only
+    p, q = np.radians(r.pitch_deg), np.radians(r.roll_deg)
+    g = np.column_stack([np.sin(p), np.cos(p) * np.sin(q), np.cos(p) * np.cos(q)])
+    X = np.array(cert.fit.coefficients)
+    rms = np.sqrt(np.mean((r.volts - X[0] - g @ X[1:]) ** 2, axis=0))
+    assert np.all((rms > 1e-7) & (rms < 1e-3))  # microvolts: stated in µV
+    stated = ", ".join(f"{s} {v * 1e6:.3g} µV" for s, v in zip("xyz", rms, strict=True))
+    text = (base / "run" / "report.html").read_text(encoding="utf-8")
+    [heading] = re.findall(r"<h2>(Residuals per sensor of the [^<]*)</h2>", text)
+    heading = html.unescape(heading)
+    assert heading.startswith("Residuals per sensor of the linear model (V = B + gᵀS")
+    assert heading.endswith(f"residual RMS {stated}")
+    pdf = " ".join(" ".join(page.split()) for page in pages)
+    assert "Residuals per sensor of the linear model" in pdf and stated in pdf

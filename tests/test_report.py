@@ -4,6 +4,7 @@ PDF has every page, and `labcal report` turns bad input into one line and exit c
 from __future__ import annotations
 
 import base64
+import html
 import json
 import re
 import shutil
@@ -15,12 +16,19 @@ import numpy as np
 import pytest
 from simulated_runs import simulated_run
 
-from labcal.analysis.fit import fit_readings
+from labcal.analysis.kinematics import NO_MISALIGNMENT, Misalignment, gravity
 from labcal.cli import main
 from labcal.config.settings import CertificateSettings
 from labcal.documents.certificate import read_certificate
 from labcal.documents.issuing import build_certificate
-from labcal.documents.report import envelope_figure, figures, inferred_attitude, tables, write_run_outputs
+from labcal.documents.report import (
+    envelope_figure,
+    figures,
+    fitted,
+    inferred_attitude,
+    tables,
+    write_run_outputs,
+)
 from labcal.run.record import load_run
 
 TOLERANCE_DEG = 0.01
@@ -39,11 +47,29 @@ def outputs(tmp_path_factory):
     return write_run_outputs(run_dir, settings, db=base / "lab.sqlite")
 
 
+RESIDUALS = "Residuals per sensor of the "  # the residual figure's heading starts so
+
+
 @pytest.fixture(scope="module")
 def drawn(outputs):
     record = load_run(outputs.certificate_path.parent)
-    fit = fit_readings(record.readings)
-    return record, fit, dict(figures(outputs.certificate, record, fit))
+    fit, device, _ = fitted(record)
+    figs = dict(figures(outputs.certificate, record, fit, device))
+    [residuals] = [title for title in figs if title.startswith(RESIDUALS)]
+    figs[RESIDUALS] = figs.pop(residuals)
+    return record, fit, figs, residuals
+
+
+def _certified_residuals(cert, record) -> np.ndarray:
+    """V − B − g(p, r, y, u; misalignments)ᵀS of every reading, from the certificate's coefficients
+    and its device section's misalignments (nominal gravity where it has none) through the
+    kinematics alone, not through the fit (K×3, V)."""
+    r = record.readings
+    mis = NO_MISALIGNMENT if cert.device is None else Misalignment.from_degrees(
+        **{n: m.value_arcsec / 3600.0 for n, m in cert.device.misalignments.items()})
+    g = gravity(*(np.radians(a) for a in (r.pitch_deg, r.roll_deg, r.y_deg, r.u_deg)), mis)
+    X = np.array(cert.fit.coefficients)
+    return r.volts - X[0] - g @ X[1:]
 
 
 def _labelled(ax) -> None:
@@ -59,17 +85,33 @@ def _marker_data(ax) -> tuple[np.ndarray, np.ndarray]:
             np.concatenate([line.get_ydata() for line in lines]))
 
 
-def test_residual_plots_hold_every_residual_and_both_bands(drawn):
-    record, fit, figs = drawn
-    fig = figs["Residuals per sensor with 95 % confidence and prediction bands"]
+def test_residual_plots_hold_every_residual_of_the_certified_model_and_both_bands(outputs, drawn):
+    """The dry run's certificate rests on the device model: the residual page plots that model's
+    residuals (computed here from the readings, the certified coefficients and misalignments), and
+    its heading, in the figure list and in the HTML, names the model and each sensor's RMS in µV."""
+    record, fit, figs, heading = drawn
+    cert = outputs.certificate
+    assert cert.fit.model == "device"
+    resid = _certified_residuals(cert, record)
+    rms = np.sqrt(np.mean(resid**2, axis=0))
+    assert np.all(rms < 1e-3)  # tens of µV: stated in µV
+    linear_rms = np.sqrt(np.mean(fit.ls.residuals**2, axis=0))
+    assert np.all(np.abs(linear_rms / rms - 1) > 0.05)  # the two models' residuals are told apart
+    stated = ", ".join(f"{s} {v * 1e6:.3g} µV" for s, v in zip("xyz", rms, strict=True))
+    assert heading.startswith(f"{RESIDUALS}device model (") and heading.endswith(f"residual RMS {stated}")
+    assert html.escape(heading) in outputs.html_path.read_text(encoding="utf-8")
+    fig = figs[RESIDUALS]
+    assert "device model the certificate states" in fig._suptitle.get_text()
     axes = np.array(fig.axes).reshape(3, 2)
     for j in range(3):
         for col, angle in enumerate((record.readings.pitch_deg, record.readings.roll_deg)):
             ax = axes[j, col]
             _labelled(ax)
+            assert ax.get_ylabel().endswith("(µV)") and ax.get_title().endswith(f"RMS {rms[j] * 1e6:.3g} µV")
             x, y = _marker_data(ax)
             assert len(y) == len(record.readings) == 64
-            np.testing.assert_allclose(np.sort(y), np.sort(fit.ls.residuals[:, j] * 1e6), rtol=1e-12)
+            # to the rounding of B + gᵀS (volts near 1, so ~1e-15 V = 1e-9 µV)
+            np.testing.assert_allclose(np.sort(y), np.sort(resid[:, j] * 1e6), rtol=0, atol=1e-6)
             np.testing.assert_array_equal(np.sort(x), np.sort(angle))
             prediction, confidence = (np.abs(c.get_paths()[0].vertices[:, 1]) for c in ax.collections)
             assert np.all(np.isfinite(prediction)) and confidence.max() > 0
@@ -77,7 +119,7 @@ def test_residual_plots_hold_every_residual_and_both_bands(drawn):
 
 
 def test_inferred_attitude_errors_are_plotted_with_their_u95(outputs, drawn):
-    record, _, figs = drawn
+    record, _, figs, _ = drawn
     e = inferred_attitude(outputs.certificate, record)
     fig = figs["Errors of the attitude inferred from each calibration reading"]
     for ax, angle in zip(fig.axes, ("pitch", "roll"), strict=True):
@@ -101,7 +143,7 @@ def test_inferred_attitude_errors_are_plotted_with_their_u95(outputs, drawn):
 
 
 def test_envelope_plot_matches_the_certificate(outputs, drawn):
-    _, _, figs = drawn
+    _, _, figs, _ = drawn
     cert = outputs.certificate
     fig = figs["Attitude uncertainty over the usage envelope"]
     for ax, largest_cert in zip(fig.axes, (cert.attitude.pitch_U95_max_deg, cert.attitude.roll_U95_max_deg),
@@ -115,7 +157,7 @@ def test_envelope_plot_matches_the_certificate(outputs, drawn):
 
 
 def test_sphere_plot_shows_every_point_of_every_mount(drawn):
-    record, _, figs = drawn
+    record, _, figs, _ = drawn
     fig = figs["The plan's points on the gravity sphere"]
     fig.canvas.draw()  # 3-D scatter offsets exist once projected
     ax = fig.axes[0]
@@ -233,7 +275,7 @@ def test_bad_arguments(outputs, tmp_path, capsys):
 def test_envelope_through_the_poles(drawn):
     """Pitch ±90° is in the envelope: roll is undefined on those two grid rows (2 × 73 attitudes) and
     the plot leaves them out without a warning."""
-    record, fit, _ = drawn
+    record, fit, _, _ = drawn
     cert = build_certificate(record, fit, CertificateSettings(usage_pitch_deg=(-90, 90)))
     assert cert.attitude.roll_undefined_points == 146 and np.isfinite(cert.attitude.roll_U95_max_deg)
     with warnings.catch_warnings():

@@ -196,3 +196,31 @@ def test_check_reports_a_drive_alarm_and_resets_it_on_request(tmp_path, capsys, 
                          "--reset-alarms", "--json")
     pitch = json.loads(out)["devices"][0]
     assert code == 0 and pitch["alarm_reset"] and pitch["status"] == "READY IN-POS", err
+
+
+def test_check_warns_of_an_overdue_reference_standard(tmp_path, capsys, no_leaks):  # noqa: F811
+    """A station file's [[traceability]] entry due before today: one warning line naming the
+    standard, its certificate and due date (and in --json); one due in 2999 is not named. The
+    devices answer, so the check still passes."""
+    from datetime import date
+
+    standards = ('\n[[traceability]]\nequipment = "reference DMM"\nidentity = "Keysight 34970A, serial '
+                 'MY1"\ncertificate = "CAL-OLD-7"\nissued_by = "a lab"\ndue = 2020-01-01\n'
+                 '\n[[traceability]]\nequipment = "index tables"\nidentity = "T-1"\ncertificate = '
+                 '"ANG-NEW-1"\nissued_by = "a lab"\ndue = 2999-12-31\n')
+    station = private_file("smc100-tcp", tmp_path, extra=standards)
+    today = date.today().isoformat()
+    expected = ("Reference standard reference DMM (Keysight 34970A, serial MY1, certificate CAL-OLD-7) is "
+                f"overdue for calibration: due 2020-01-01, today {today}.")
+    code, out, err = cli(capsys, "station", "check", str(station), "--emulate", "--time-scale",
+                         str(TIME_SCALE), "--json")
+    assert code == 0, err
+    assert json.loads(out)["overdue_standards"] == [
+        {"equipment": "reference DMM", "identity": "Keysight 34970A, serial MY1", "certificate": "CAL-OLD-7",
+         "due": "2020-01-01", "message": expected}]
+    code, out, err = cli(capsys, "station", "check", str(station), "--emulate", "--time-scale",
+                         str(TIME_SCALE))
+    assert code == 0, err
+    warnings = [line for line in err.splitlines() if line.startswith("warning:")]
+    assert [" ".join(w.split()) for w in warnings] == [f"warning: {expected}"]
+    assert "ANG-NEW-1" not in err + out

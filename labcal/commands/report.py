@@ -28,6 +28,8 @@ def rich_table(t) -> RichTable:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
+    from rich.markup import escape
+
     from labcal.documents.administration import ItemGiven
     from labcal.documents.issuing import load_settings
     from labcal.documents.report import (
@@ -50,6 +52,10 @@ def cmd_report(args: argparse.Namespace) -> int:
     cert = result.certificate
     for note in result.notes:
         err.print(f"[yellow]note:[/] {note}")
+    changed = None
+    if result.compared_with is not None:
+        changed = (f"identification changed from {result.compared_with}: {'; '.join(result.changes)}"
+                   if result.changes else f"identification kept from {result.compared_with}")
     if args.json:
         print_json({
             "certificate_id": cert.certificate_id, "serial": cert.instrument.serial,
@@ -63,12 +69,16 @@ def cmd_report(args: argparse.Namespace) -> int:
             "k": cert.expanded_uncertainty.k, "digest": cert.digest.value,
             "uncertainty_budget": None if cert.uncertainty_budget is None
             else cert.uncertainty_budget.model_dump(mode="json"),
+            "replaces": cert.replaces, "compared_with": result.compared_with,
+            "identification_changed": list(result.changes),
         })
         return 0
     for table in (coefficients_with_expanded_uncertainty(cert), attitude_table(cert), budget_table(cert),
                   conformity_table(cert)):
         out.print(rich_table(table))
-    out.print(f"Certificate {cert.certificate_id}: {result.certificate_path}")
+    out.print(f"Certificate {cert.number}: {result.certificate_path}")
+    if changed is not None:
+        out.print(escape(changed[0].upper() + changed[1:]))
     out.print(f"Report: {result.html_path}, {result.pdf_path}")
     out.print(f"Digital Calibration Certificate: {result.dcc_path}")
     out.print(f"Stored in {result.database} (see `labcal history {cert.instrument.serial}`)")

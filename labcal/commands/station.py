@@ -40,18 +40,27 @@ def _row(report: dict) -> tuple[str, str, str]:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
+    from datetime import date
+
+    from rich.markup import escape
     from rich.table import Table
 
     from labcal.bench.setup import bench_for_check
     from labcal.config.station import load_station
+    from labcal.config.uncertainty import overdue_standards
 
     config, _ = load_station(args.station)
+    today = date.today()
+    overdue = [(t, line) for t in config.traceability for line in overdue_standards([t], today, today=True)]
     with ExitStack() as stack:
         bench = bench_for_check(config, stack, emulate=args.emulate, time_scale=args.time_scale)
         reports = bench.check(reset_alarms=args.reset_alarms)
     failed = [r for r in reports if r["problem"]]
     if args.json:
-        print_json({"station": config.description or args.station, "ok": not failed, "devices": reports})
+        print_json({"station": config.description or args.station, "ok": not failed, "devices": reports,
+                    "overdue_standards": [{"equipment": t.equipment, "identity": t.identity,
+                                           "certificate": t.certificate, "due": t.due.isoformat(),
+                                           "message": line} for t, line in overdue]})
     else:
         table = Table(title=f"Station {config.description or args.station}")
         for col in ("device", "identity", "status", "reading"):
@@ -61,6 +70,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         out.print(table)
         for report in failed:
             err.print(f"[bold red]problem:[/] {report['problem']}")
+    for _, line in overdue:  # a warning, not a failure: the devices answer; a certificate will say it too
+        err.print(f"[bold yellow]warning:[/] {escape(line)}")
     if failed:
         raise LabcalError(f"{len(failed)} of {len(reports)} devices failed the check "
                           f"({', '.join(r['device'] for r in failed)}); see the lines above")

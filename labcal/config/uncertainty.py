@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Iterable
 from datetime import date
-from typing import Annotated, Literal
+from typing import Annotated, Literal, Protocol
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer
 
@@ -109,3 +110,26 @@ class Traceability(BaseModel):
     certificate: str = Field(min_length=1, description="number of its calibration certificate")
     issued_by: str = Field(default="", description="the laboratory that calibrated it")
     due: date = Field(description="calibration due date")
+
+
+class Standard(Protocol):
+    """A reference standard as a station file (`Traceability`) or a certificate states it."""
+
+    @property
+    def equipment(self) -> str: ...
+    @property
+    def identity(self) -> str: ...
+    @property
+    def certificate(self) -> str: ...
+    @property
+    def due(self) -> date: ...
+
+
+def overdue_standards(standards: Iterable[Standard], on: date, today: bool = False) -> list[str]:
+    """One line for each reference standard whose calibration was due before ``on``: the day a
+    certificate's calibration was made (its first page says it), or ``today`` (`labcal station
+    check`, before a run uses it). One function, so the two never disagree about what is overdue."""
+    when = "today" if today else "used"
+    return [f"Reference standard {t.equipment} ({t.identity}, certificate {t.certificate}) "
+            f"{'is' if today else 'was'} overdue for calibration: due {t.due:%Y-%m-%d}, {when} {on:%Y-%m-%d}."
+            for t in standards if t.due < on]

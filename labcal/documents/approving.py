@@ -25,7 +25,7 @@ from labcal.documents.administration import ItemGiven
 from labcal.documents.approval import approve, key_id, load_private_key
 from labcal.documents.certificate import Certificate, read_certificate
 from labcal.documents.issuing import build_certificate
-from labcal.documents.report import CERTIFICATE, RunOutputs, fitted, write_documents
+from labcal.documents.report import CERTIFICATE, RunOutputs, fitted, replaced_by, write_documents
 from labcal.documents.uncertainty import bench_section, type_b_inputs
 from labcal.errors import LabcalError
 from labcal.run.record import RunRecord, load_run
@@ -58,7 +58,8 @@ def rebuild(record: RunRecord, draft: Certificate, station: str | Path | None = 
         record, fit, issue_settings(draft), serial=draft.instrument.serial, operator=draft.operator,
         issued_utc=draft.issued_utc, inputs=type_b_inputs(section, record, device),
         monte_carlo=checks[0].trials if checks else 0, revision=draft.revision or 1, replaces=draft.replaces,
-        section=section, item=item, device=device, model_note=model_note)
+        section=section, item=item, device=device, model_note=model_note,
+        replaced=replaced_by(record.directory, draft))
 
 
 def differences(a: object, b: object, path: str = "") -> list[str]:

@@ -34,10 +34,12 @@ from labcal.config.json_values import json_safe
 from labcal.config.lab import certificate_settings
 from labcal.config.settings import CertificateSettings
 from labcal.config.station import CertificateSection, load_certificate_settings
+from labcal.config.uncertainty import overdue_standards
 from labcal.documents.administration import ItemGiven, administration
 from labcal.documents.certificate import (
     COVERAGE,
     SCHEMA,
+    Administration,
     AttitudeEnvelope,
     Certificate,
     Check,
@@ -296,18 +298,60 @@ def _device_section(device: DeviceFit, note: str) -> dict:
         parameters=doc["parameters"], covariance=device.covariance.tolist()).model_dump()
 
 
+# --- a re-issue keeps the identification of the certificate it replaces ---------------------------
+def _identification(laboratory: str, admin: Administration | None, serial: str, operator: str | None
+                    ) -> dict[str, str | None]:
+    """The identification fields a re-issue carries over, by name, as the certificate states them."""
+    lab = laboratory
+    if admin is not None:
+        lab = ", ".join(p for p in (admin.laboratory.name, admin.laboratory.address) if p) or laboratory
+    item = admin.item if admin is not None else None
+    return {"laboratory": lab or None, "customer": admin.customer if admin else None,
+            "manufacturer": (item.manufacturer or None) if item else None,
+            "model": (item.model or None) if item else None, "serial": serial,
+            "received": item.received.isoformat() if item and item.received else None,
+            "operator": operator}
+
+
+def identification(cert: Certificate) -> dict[str, str | None]:
+    return _identification(cert.laboratory, cert.administration, cert.instrument.serial, cert.operator)
+
+
+def changed_fields(before: dict[str, str | None], after: dict[str, str | None]) -> list[str]:
+    """Each identification field that differs, in words: ``customer ('A' → 'B')``."""
+    def said(v: str | None) -> str:
+        return "not stated" if v is None else repr(v)
+    return [f"{k} ({said(before.get(k))} → {said(v)})" for k, v in after.items() if before.get(k) != v]
+
+
+def kept_identification(previous: Certificate | None, item: ItemGiven, serial: str | None,
+                        operator: str | None) -> tuple[ItemGiven, str | None, str | None]:
+    """What the command line gives, and for each field it leaves out, the certificate this one
+    replaces (an approved one re-issued, or a draft reported again): a re-issue never drops the
+    customer, the item or its receipt date because the command line did not repeat them."""
+    if previous is None:
+        return item, serial, operator
+    a = previous.administration
+    if a is not None:
+        item = ItemGiven(item.customer or a.customer, item.manufacturer or a.item.manufacturer or None,
+                         item.model or a.item.model or None, item.received or a.item.received)
+    return item, serial or previous.instrument.serial, operator or previous.operator
+
+
 def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings | None = None, *,
                       serial: str | None = None, operator: str | None = None,
                       issued_utc: datetime | None = None, inputs: TypeBInputs | None = None,
                       monte_carlo: int = 0, revision: int = 1, replaces: str | None = None,
                       section: CertificateSection | None = None, item: ItemGiven | None = None,
-                      device: DeviceFit | None = None, model_note: str | None = None) -> Certificate:
+                      device: DeviceFit | None = None, model_note: str | None = None,
+                      replaced: Certificate | None = None) -> Certificate:
     """The sealed certificate of a run's fit. ``serial``/``operator`` fill in what the run did not
     record (and may not contradict it); a dry run's instrument is SIMULATED. ``inputs``: the bench's
     Type B inputs (none: a Type A budget); ``monte_carlo``: trials of the JCGM 101 check (0: none);
     ``section``: what the station file says (traceability); ``item``: customer and item details;
     ``device``: the device model the run's fit.json holds (`preferred_fit`), on which the certificate
-    is then built, with ``model_note`` the line saying which model and why."""
+    is then built, with ``model_note`` the line saying which model and why; ``replaced``: the
+    certificate this revision replaces, whose identification fields that differ are then stated."""
     settings = settings or CertificateSettings()
     meta, run_dir = record.meta, record.directory
     serial = _recorded(meta.get("instrument_serial"), serial, "instrument serial", run_dir) \
@@ -333,10 +377,14 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
     notice = SIMULATED_NOTICE if record.simulated else None
     statements = [notice] * (notice is not None) + list(STATEMENTS) \
         + ([model_note[0].upper() + model_note[1:] + "."] if model_note else [])
-    day = datetime.fromisoformat(calibrated).date()
-    statements += [f"Reference standard {t.equipment} (certificate {t.certificate}) was past its calibration "
-                   f"due date {t.due.isoformat()} on the calibration date."
-                   for t in admin.traceability if t.due < day]
+    statements += overdue_standards(admin.traceability, datetime.fromisoformat(calibrated).date())
+    operator = _recorded(meta.get("operator"), operator, "operator", run_dir)
+    if replaced is not None:
+        changes = changed_fields(identification(replaced),
+                                 _identification(settings.laboratory, admin, serial, operator))
+        statements.append(f"This revision replaces certificate {replaced.number}; "
+                          + (f"identification changed: {'; '.join(changes)}." if changes
+                             else "its identification is unchanged."))
     content = {
         "notice": notice,
         "schema": SCHEMA,
@@ -347,7 +395,7 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
         "labcal_version": __version__,
         "laboratory": settings.laboratory,
         "instrument": {"serial": serial, "description": meta.get("instrument_description", "")},
-        "operator": _recorded(meta.get("operator"), operator, "operator", run_dir),
+        "operator": operator,
         "calibrated_utc": calibrated,
         "completed_utc": meta.get("ended_utc"),
         "issued_utc": (issued_utc or datetime.now(UTC)).isoformat(timespec="seconds"),

@@ -16,7 +16,7 @@ from __future__ import annotations
 import base64
 import html
 import io
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -30,6 +30,7 @@ from labcal.analysis.models import Points
 from labcal.config.files import write_atomic
 from labcal.config.settings import CertificateSettings
 from labcal.config.station import stated_angle_errors
+from labcal.config.uncertainty import overdue_standards as overdue
 from labcal.documents.administration import ItemGiven
 from labcal.documents.certificate import (
     Certificate,
@@ -39,7 +40,13 @@ from labcal.documents.certificate import (
     write_certificate,
 )
 from labcal.documents.device_history import store_device_estimate
-from labcal.documents.issuing import build_certificate, envelope_grid
+from labcal.documents.issuing import (
+    build_certificate,
+    changed_fields,
+    envelope_grid,
+    identification,
+    kept_identification,
+)
 from labcal.documents.uncertainty import bench_section, type_b_inputs
 from labcal.errors import LabcalError
 from labcal.run.record import RunRecord, load_run
@@ -283,35 +290,95 @@ def _mount_masks(record: RunRecord) -> list[tuple[Mount, np.ndarray]]:
             for m in record.plan.mount_list]
 
 
-def residual_figure(fit: Fit, record: RunRecord) -> Figure:
-    """Residuals against table pitch and roll, per sensor, with the 95 % bands of a reading taken at
-    the other angle 0°, top-forward mount (Tripp & Tcheng figs. 44, 47)."""
-    from matplotlib.figure import Figure
+def volt_unit(v: float, unit: str = "V") -> tuple[float, str]:
+    """The factor and unit a reading of size ``v`` (in the readings' ``unit``) reads best in: µV
+    below 1 mV, mV below 1 V, else V; outputs in another unit (counts, m/s2) stay in it."""
+    if unit not in ("V", "mV"):
+        return 1.0, unit
+    to_v = 1e-3 if unit == "mV" else 1.0
+    a = abs(v) * to_v
+    factor, shown = (1e6, "µV") if a < 1e-3 else (1e3, "mV") if a < 1.0 else (1.0, "V")
+    return factor * to_v, shown
 
-    r = record.readings
-    fig = Figure(figsize=(11, 10))
-    fig.subplots_adjust(left=0.08, right=0.98, top=0.92, bottom=0.06, hspace=0.42, wspace=0.22)
-    axes = fig.subplots(3, 2, squeeze=False)
-    for col, (angle, name) in enumerate(((r.pitch_deg, "pitch α"), (r.roll_deg, "roll R"))):
-        dense = np.linspace(angle.min(), angle.max(), 361)
+
+def in_volts(v: float, unit: str = "V") -> str:
+    factor, shown = volt_unit(v, unit)
+    return f"{v * factor:.3g} {shown}"
+
+
+def certified_residuals(fit: Fit, device: DeviceFit | None) -> tuple[str, str, np.ndarray]:
+    """The model the certificate states (its name, its equation) and every reading's residual (K×3,
+    V) under it: the device model where the certificate is built on it (`fitted`), else the linear fit."""
+    if device is not None:
+        return ("device model", "V = B + g(p, r, y, u; a, b, d, e, f, k)ᵀS, Soto eq. 11, the calibration "
+                "device's six misalignments fitted", device.residuals)
+    extended = f" extended by {', '.join(fit.model.extensions)}" if fit.model.extensions else ""
+    return f"linear model{extended}", "V = B + gᵀS on nominal gravity", fit.ls.residuals
+
+
+def residual_heading(fit: Fit, device: DeviceFit | None, unit: str = "V") -> str:
+    """The residual figure's heading: the model the certificate states and each sensor's residual RMS
+    (``unit``: the readings' unit)."""
+    name, equation, resid = certified_residuals(fit, device)
+    rms = np.sqrt(np.mean(resid**2, axis=0))
+    each = ", ".join(f"{s} {in_volts(float(v), unit)}" for s, v in zip(SENSORS, rms, strict=True))
+    return (f"Residuals per sensor of the {name} ({equation}), with 95 % confidence and prediction bands; "
+            f"residual RMS {each}")
+
+
+def _bands(fit: Fit, device: DeviceFit | None, dense: np.ndarray, col: int) -> tuple[np.ndarray, np.ndarray]:
+    """95 % prediction and confidence half-widths (n×3, V) of one reading along ``dense`` (pitch
+    when ``col`` is 0, else roll) at the other angle 0°, top-forward mount, under the stated model:
+    for the device model, first-order through its complete covariance, k = t₀.₉₇₅(ν)."""
+    if device is None:
         at = Points.at(dense, 0.0, temp_c=fit.model.t_ref) if col == 0 else \
             Points.at(0.0, dense, temp_c=fit.model.t_ref)
         bands = fit.predict(at, 0.95)
+        return bands["prediction"], bands["confidence"]
+    from labcal.analysis.device_model import Geometry, jacobian
+
+    zero = np.zeros_like(dense)
+    where = Geometry.from_degrees(dense, zero, zero, zero) if col == 0 else \
+        Geometry.from_degrees(zero, dense, zero, zero)
+    _, jac = jacobian(device.theta, where)
+    var_mean = np.einsum("ijp,pq,ijq->ij", jac, device.covariance, jac)
+    k = device.k95
+    return k * np.sqrt(var_mean + device.reading_sd()[None, :] ** 2), k * np.sqrt(var_mean)
+
+
+def residual_figure(fit: Fit, record: RunRecord, device: DeviceFit | None = None) -> Figure:
+    """Residuals of the model the certificate states against table pitch and roll, per sensor, with
+    the 95 % bands of a reading taken at the other angle 0°, top-forward mount (Tripp & Tcheng figs.
+    44, 47); each sensor in µV, mV or V by the size of what is drawn."""
+    from matplotlib.figure import Figure
+
+    r = record.readings
+    name, equation, resid = certified_residuals(fit, device)
+    fig = Figure(figsize=(11, 10))
+    fig.subplots_adjust(left=0.08, right=0.98, top=0.90, bottom=0.06, hspace=0.42, wspace=0.22)
+    axes = fig.subplots(3, 2, squeeze=False)
+    rms = np.sqrt(np.mean(resid**2, axis=0))
+    for col, (angle, label) in enumerate(((r.pitch_deg, "pitch α"), (r.roll_deg, "roll R"))):
+        dense = np.linspace(angle.min(), angle.max(), 361)
+        prediction, confidence = _bands(fit, device, dense, col)
         for j, sensor in enumerate(SENSORS):
+            factor, unit = volt_unit(max(float(np.max(np.abs(resid[:, j]))), float(np.max(prediction[:, j]))),
+                                     r.units)
             ax = axes[j, col]
-            pred, conf = bands["prediction"][:, j] * 1e6, bands["confidence"][:, j] * 1e6
+            pred, conf = prediction[:, j] * factor, confidence[:, j] * factor
             ax.fill_between(dense, -pred, pred, color="0.85", label="95 % prediction band")
             ax.fill_between(dense, -conf, conf, color="0.65", label="95 % confidence band")
             for (mount, mask), colour in zip(_mount_masks(record), MOUNT_COLOURS, strict=False):
-                ax.plot(angle[mask], fit.ls.residuals[mask, j] * 1e6, "o", ms=4, color=colour,
-                        label=f"mount {mount}")
+                ax.plot(angle[mask], resid[mask, j] * factor, "o", ms=4, color=colour, label=f"mount {mount}")
             ax.axhline(0.0, color="k", lw=0.6)
-            ax.set_xlabel(f"table {name} (°)")
-            ax.set_ylabel(f"residual v_{sensor} − v̂_{sensor} (µV)")
-            ax.set_title(f"sensor {sensor}: residuals against {name.split()[0]}", y=TITLE_Y)
+            ax.set_xlabel(f"table {label} (°)")
+            ax.set_ylabel(f"residual v_{sensor} − v̂_{sensor} ({unit})")
+            ax.set_title(f"sensor {sensor}: residuals against {label.split()[0]}; RMS "
+                         f"{in_volts(float(rms[j]), r.units)}", y=TITLE_Y)
             ax.grid(alpha=0.3)
     axes[0, 0].legend(fontsize=7, loc="upper right")
-    fig.suptitle("Calibration residuals; bands for one reading at the other angle 0°, top-forward mount")
+    fig.suptitle(f"Residuals of the {name} the certificate states ({equation});\nbands for one reading at "
+                 "the other angle 0°, top-forward mount", fontsize=10)
     return fig
 
 
@@ -433,9 +500,12 @@ def envelope_figure(cert: Certificate) -> Figure:
     return fig
 
 
-def figures(cert: Certificate, record: RunRecord, fit: Fit) -> list[tuple[str, Figure]]:
+def figures(cert: Certificate, record: RunRecord, fit: Fit, device: DeviceFit | None = None
+            ) -> list[tuple[str, Figure]]:
+    """``device``: the device model the certificate rests on (None: the linear fit); the residual
+    figure shows that model's residuals, as the certificate states it."""
     return [
-        ("Residuals per sensor with 95 % confidence and prediction bands", residual_figure(fit, record)),
+        (residual_heading(fit, device, record.readings.units), residual_figure(fit, record, device)),
         ("Errors of the attitude inferred from each calibration reading",
          attitude_error_figure(cert, record)),
         ("Attitude uncertainty over the usage envelope", envelope_figure(cert)),
@@ -535,13 +605,11 @@ def _status(cert: Certificate) -> str:
 
 def overdue_standards(cert: Certificate) -> list[str]:
     """Each reference standard whose calibration was due before this calibration was made: said on
-    the certificate's first page, not only in the budget."""
+    the certificate's first page, not only in the budget (`labcal station check` says it by the same
+    function, `labcal.config.uncertainty.overdue_standards`)."""
     if cert.administration is None:
         return []
-    on = cert.calibrated_utc.date()
-    return [f"Reference standard {t.equipment} ({t.identity}, certificate {t.certificate}) was overdue "
-            f"for calibration: due {t.due:%Y-%m-%d}, used {on:%Y-%m-%d}."
-            for t in cert.administration.traceability if t.due < on]
+    return overdue(cert.administration.traceability, cert.calibrated_utc.date())
 
 
 def render_pdf(cert: Certificate, figs: list[DrawnFigure], extra: tuple[Table, ...] = ()) -> bytes:
@@ -569,7 +637,7 @@ def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit
                  device: DeviceFit | None = None) -> tuple[Path, Path]:
     """``device``: the device model's fit, where the plan identifies it (its tables and residuals are
     appended: `labcal.documents.device_report`). Each figure is drawn once, for the HTML and the PDF."""
-    figures_drawn = figures(cert, record, fit)
+    figures_drawn = figures(cert, record, fit, device)
     extra: tuple[Table, ...] = ()
     if device is not None:
         from labcal.documents.device_report import device_rows, residuals_side_by_side
@@ -594,6 +662,8 @@ class RunOutputs:
     database: Path
     notes: tuple[str, ...] = ()  # what checking the run folder against the journal repaired
     dcc_path: Path | None = None
+    compared_with: str | None = None  # the certificate this issue replaced in the run directory
+    changes: tuple[str, ...] = ()  # its identification fields that differ, in words
 
 
 def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None = None, *,
@@ -608,17 +678,39 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
     fit, device, model_note = fitted(record)
     section = bench_section(record, station)
     inputs = type_b_inputs(section, record, device)
-    revision, replaces = 1, None
+    revision, replaced = 1, None
     previous = _issued(record.directory / CERTIFICATE)
     if previous is not None and previous.approval is not None:
         # An approved certificate is never changed: what follows is a correction, a new revision
         # naming the one it replaces; the approved one stays beside it and in the history.
-        revision, replaces = (previous.revision or 1) + 1, previous.number
+        revision, replaced = (previous.revision or 1) + 1, previous
         write_file(record.directory / f"certificate.rev{previous.revision or 1}.json", previous)
+    elif previous is not None and (previous.revision or 1) > 1:
+        # a revision's draft reported again is still that revision, replacing the same approved one
+        revision, replaced = previous.revision or 1, replaced_by(record.directory, previous)
+    item, serial, operator = kept_identification(previous, item or ItemGiven(), serial, operator)
     cert = build_certificate(record, fit, settings, serial=serial, operator=operator, inputs=inputs,
-                             monte_carlo=monte_carlo, revision=revision, replaces=replaces, section=section,
-                             item=item, device=device, model_note=model_note)
-    return write_documents(cert, record, fit, device, db)
+                             monte_carlo=monte_carlo, revision=revision,
+                             replaces=None if replaced is None else replaced.number, section=section,
+                             item=item, device=device, model_note=model_note, replaced=replaced)
+    outputs = write_documents(cert, record, fit, device, db)
+    if previous is None:
+        return outputs
+    return replace(outputs, compared_with=previous.number,
+                   changes=tuple(changed_fields(identification(previous), identification(cert))))
+
+
+def replaced_by(directory: Path, cert: Certificate) -> Certificate | None:
+    """The approved certificate a revision replaces, as kept beside it in the run directory
+    (``certificate.revN.json``); None for a first issue."""
+    if not cert.replaces:
+        return None
+    path = directory / f"certificate.rev{(cert.revision or 1) - 1}.json"
+    kept = read_certificate(path) if path.is_file() else None
+    if kept is None or kept.number != cert.replaces:
+        raise LabcalError(f"{path}: the certificate {cert.number} replaces ({cert.replaces}) is not kept "
+                          "there")
+    return kept
 
 
 def fitted(record: RunRecord) -> tuple[Fit, DeviceFit | None, str]:
