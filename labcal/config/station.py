@@ -361,20 +361,27 @@ def load_station(name_or_path: str | Path) -> tuple[StationFile, str]:
     return parse_model(text, StationFile, f"station {name_or_path}"), text
 
 
-def stated_angle_errors(station_text: str) -> AngleErrors | None:
-    """The tables' index accuracy and wobble for the device model's covariance, from a run's journaled
-    station: a station file's ``[uncertainty]`` table, or the simulated rig's own amplitudes (its
-    errors are bounded by them: the half-widths). None where neither states any."""
+def journaled_snapshot(station_text: str | None) -> dict | None:
+    """A run's journaled station snapshot as a document (``kind``: "station" or "simulated rig");
+    None where there is none or it is not one (a run journaled before snapshots were kept)."""
     import json
-
-    from labcal.analysis.device_fit import AngleErrors
-    from labcal.analysis.kinematics import ARCSEC
 
     try:
         doc = json.loads(station_text) if station_text else {}
     except json.JSONDecodeError:
         return None
-    if not isinstance(doc, dict):
+    return doc if isinstance(doc, dict) else None
+
+
+def stated_angle_errors(station_text: str) -> AngleErrors | None:
+    """The tables' index accuracy and wobble for the device model's covariance, from a run's journaled
+    station: a station file's ``[uncertainty]`` table, or the simulated rig's own amplitudes (its
+    errors are bounded by them: the half-widths). None where neither states any."""
+    from labcal.analysis.device_fit import AngleErrors
+    from labcal.analysis.kinematics import ARCSEC
+
+    doc = journaled_snapshot(station_text)
+    if doc is None:
         return None
     if doc.get("kind") == "station":
         u = validate_model(doc["station"], CertificateSection, "the run's station").uncertainty

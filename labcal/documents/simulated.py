@@ -25,10 +25,9 @@ residuals, so in the fit's Type A.
 
 from __future__ import annotations
 
-import json
 import math
 
-from labcal.config.station import CertificateSection
+from labcal.config.station import CertificateSection, journaled_snapshot
 from labcal.config.uncertainty import UncertaintyInputs
 
 NOTICE = ("SIMULATED: these results come from a dry run on labcal's simulated rig or its device emulators, "
@@ -40,11 +39,8 @@ def simulator_rig(station_text: str) -> dict | None:
     """The simulated rig (its rig-file settings) a run's journaled station snapshot describes: the
     simulated rig of `run --sim`, or the emulators' rig of `run --station … --emulate`; None for a
     station of real devices."""
-    try:
-        doc = json.loads(station_text) if station_text else {}
-    except json.JSONDecodeError:
-        return None
-    if not isinstance(doc, dict):
+    doc = journaled_snapshot(station_text)
+    if doc is None:
         return None
     if doc.get("kind") == "simulated rig":
         return doc.get("rig") or {}
