@@ -12,6 +12,8 @@ Student t.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy import stats
@@ -353,6 +355,17 @@ def test_a_device_fit_gives_the_coefficients_covariance_with_the_misalignments_h
     np.testing.assert_array_equal(dev.dof, np.full(3, 3 * 64 - 18, dtype=float))
     np.testing.assert_array_equal(dev.projection, cal.projection)
     np.testing.assert_array_equal(dev.installation, cal.installation)
+    # four mounts decouple a…k from X almost entirely; a covariance where they are strongly coupled
+    # (A Aᵀ, A random and seeded) tells the conditional from the marginal covariance
+    a = np.random.default_rng(11).normal(size=(18, 18))
+    coupled = a @ a.T + 0.1 * np.eye(18)
+    dev = calibration_of_device(replace(device, covariance=coupled), readings)
+    given = np.linalg.inv(np.linalg.inv(coupled)[6:, 6:])
+    for j in range(3):
+        idx = [3 * i + j for i in range(4)]
+        np.testing.assert_allclose(dev.covariance[j], given[np.ix_(idx, idx)], rtol=1e-8)
+        assert not np.allclose(dev.covariance[j], coupled[np.ix_([6 + i for i in idx], [6 + i for i in idx])],
+                               rtol=0.1)
 
 
 def test_the_estimators_weights_are_one_over_each_outputs_variance():

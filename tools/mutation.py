@@ -18,6 +18,7 @@ hand them the unmutated file. So each module gets ``.mutation/<name>/`` holding 
 ``drivers/``, ``sim/``, ``sequences/`` and ``stations/`` placed where the wheel puts them, the tests, and a
 pyproject whose ``[tool.mutmut]`` mutates that one file and runs only the test files that cover it
 (its ``tests/test_<name>_mutants.py`` included) — minutes, not the hours of the whole suite per mutant.
+Every run starts from scratch: mutmut would keep a survivor's verdict although the tests changed.
 
 Survivors reviewed as equivalent (no test can tell them from the original) are listed with the
 reason in ``docs/mutation.md`` and keyed in ``tools/mutation_equivalents.toml`` by mutant name and
@@ -90,11 +91,12 @@ class Score:
 
 
 def stage(name: str, target: Target, baseline: bool = False) -> Path:
-    """Lay the installed tree out in ``.mutation/<name>/``, keeping mutmut's earlier results there
-    (``<name>-baseline/`` without the module's own ``_mutants`` tests: the score they started from)."""
+    """Lay the installed tree out in ``.mutation/<name>/`` (``<name>-baseline/`` without the module's own
+    ``_mutants`` tests: the score they started from), where ``--no-run`` finds the last run's results."""
     where = STAGE / (f"{name}-baseline" if baseline else name)
     ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
-    for dest in LAYOUT.values():
+    # mutmut keeps a survivor's verdict when the tests change; a run is only honest from scratch
+    for dest in (*LAYOUT.values(), "mutants"):
         shutil.rmtree(where / dest, ignore_errors=True)
     for source, dest in LAYOUT.items():
         shutil.copytree(ROOT / source, where / dest, ignore=ignore, dirs_exist_ok=True)
