@@ -241,3 +241,67 @@ def test_a_serial_link_frames_characters_as_the_line_settings_say():
     assert (even.tries, even.timeout_s, even.reconnect_s) == (3, 0.1, 0.0)
     trace_even, trace_none = even.client.transaction.trace_packet, none.client.transaction.trace_packet
     assert trace_even.char_s == pytest.approx(11 / 9600) and trace_none.char_s == pytest.approx(10 / 9600)
+
+
+def test_t35_follows_the_character_size_it_is_given():
+    assert SilentInterval(9600, 10).t35 == pytest.approx(3.5 * 10 / 9600, rel=1e-12)  # 8N1
+    assert SilentInterval(9600, 10).char_s == pytest.approx(10 / 9600, rel=1e-12)
+
+
+def test_a_line_never_used_has_been_silent_since_the_clock_began(monkeypatch):
+    """The first request waits for nothing, even a moment after the monotonic clock's origin."""
+    clock = FakeTime()
+    clock.now = 0.5
+    monkeypatch.setattr(modbus, "time", clock)
+    SilentInterval(9600, 11)(True, b"\x01")
+    assert clock.sleeps == []
+
+
+def test_recovery_waits_for_a_late_reply_at_most_half_a_second(monkeypatch):
+    clock = FakeTime()
+    monkeypatch.setattr(modbus, "time", clock)
+    _link(timeout_s=2.0)._recover()
+    _link(timeout_s=0.2)._recover()
+    assert clock.sleeps == [0.5, 0.2]
+
+
+def test_a_serial_link_opens_its_port_with_the_stations_settings():
+    """Every setting of the station reaches the client (pymodbus retries none itself, reconnects at
+    once, frames RTU) and the port labcal opens itself."""
+    link = ModbusLink.serial("loop://", baudrate=19200, bytesize=7, parity="O", stopbits=2, timeout_s=0.3,
+                             retries=1, reconnect_s=0.0)
+    params = link.client.comm_params
+    assert (params.baudrate, params.bytesize, params.parity, params.stopbits) == (19200, 7, "O", 2)
+    assert (params.timeout_connect, params.reconnect_delay, link.client.retries) == (0.3, 0, 0)
+    assert type(link.client.framer).__name__ == "FramerRTU"
+    link.open_port()
+    port = link.client.socket
+    try:
+        assert (port.baudrate, port.bytesize, port.parity, port.stopbits) == (19200, 7, "O", 2)
+        assert (port.timeout, port.write_timeout, port.exclusive) == (0.3, 0.3, True)
+        # pymodbus's inter-character timeout (1.5 character times) reaches the port labcal opened
+        assert port.inter_byte_timeout == link.client.inter_byte_timeout
+        assert 0 < port.inter_byte_timeout < 1.5 * 12 / 19200
+    finally:
+        link.close()
+
+
+def test_a_tcp_link_opens_its_socket_and_traces_every_frame():
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+    seen: list[tuple[bool, bytes]] = []
+    link = ModbusLink.tcp("127.0.0.1", port, timeout_s=0.7, retries=3, reconnect_s=0.0,
+                          trace=lambda sending, packet: seen.append((sending, packet)) or packet + b"!")
+    try:
+        params = link.client.comm_params
+        assert (params.host, params.port, params.timeout_connect, params.reconnect_delay) == (
+            "127.0.0.1", port, 0.7, 0)
+        assert (link.client.retries, link.tries, link.where) == (0, 4, f"tcp 127.0.0.1:{port}")
+        assert link.client.transaction.trace_packet(True, b"\x00\x01") == b"\x00\x01!"
+        assert seen == [(True, b"\x00\x01")]
+        link.open_port()
+        assert link.client.socket.gettimeout() == 0.7
+        assert link.client.socket.getpeername() == ("127.0.0.1", port)
+    finally:
+        link.close()
+        server.close()

@@ -23,7 +23,8 @@ Every run starts from scratch: mutmut would keep a survivor's verdict although t
 Survivors reviewed as equivalent (no test can tell them from the original) are listed with the
 reason in ``docs/mutation.md`` and keyed in ``tools/mutation_equivalents.toml`` by mutant name and
 the mutated line; a key whose line no longer matches (the module changed) counts as a survivor
-again until reviewed. The score printed is killed / (mutants − reviewed equivalents).
+again until reviewed. The score printed is killed / (mutants − reviewed equivalents), where a mutant
+that makes a test hang until mutmut's timeout (a wait that never ends) counts as killed.
 """
 
 from __future__ import annotations
@@ -137,8 +138,10 @@ def score(name: str, where: Path, equivalents: dict[str, dict[str, str]]) -> Sco
     for match in re.finditer(r"^\s+(\S+): (.+)$", listing, re.MULTILINE):
         mutant, status = match[1], match[2].strip()
         result.total += 1
-        if status == "killed":
+        if status in ("killed", "timeout"):  # a mutant that hangs a test (waits for ever) is caught too
             result.killed += 1
+            if status == "timeout":
+                result.other["timeout"] = result.other.get("timeout", 0) + 1
             continue
         reviewed = equivalents.get(mutant)
         if status == "survived" and reviewed and reviewed["line"] == mutated_line(where, mutant):
@@ -182,9 +185,10 @@ def main() -> int:
         scores.append(score(name, where, equivalents))
     print(f"\n{'module':<16} {'killed':>6} {'mutants':>7} {'equiv.':>6} {'score':>7}  unreviewed survivors")
     for s in scores:
-        extra = ", ".join(f"{n} {k}" for k, n in s.other.items())
+        extra = ", ".join(f"{n} {k}" for k, n in s.other.items() if k != "timeout")
+        hung = f" (of which {s.other['timeout']} by timeout)" if s.other.get("timeout") else ""
         print(f"{s.name:<16} {s.killed:>6} {s.total:>7} {len(s.equivalent):>6} {s.percent:>6.1f}%  "
-              f"{len(s.survivors)}{f' ({extra})' if extra else ''}")
+              f"{len(s.survivors)}{f' ({extra})' if extra else ''}{hung}")
     for s in scores:
         for mutant in s.survivors:
             print(f"  {mutant}")
