@@ -145,3 +145,85 @@ def test_numbers_are_finite_decimals():
         assert str(err.value) == f"{bad!r} is not a finite number"
     with pytest.raises(BadReply, match="is not a number"):
         parse_number("45,0")
+
+
+# --- the axis on its emulator (the SMC100 state machine of §2.2, through pyserial on a pty) --------
+import logging  # noqa: E402
+
+from emulators import bench_fixtures, no_leaks  # noqa: E402, F401 - fixture
+
+from labcal.config.emulation import FaultKind  # noqa: E402
+from labcal.drivers.errors import DeviceFault  # noqa: E402
+from labcal.sim.faults import Fault  # noqa: E402
+
+QUICK = {"timeout_s": 0.1, "retries": 2, "reconnect_s": 0.5}
+station, smc, smc_slow = bench_fixtures(["smc100-serial"], pitch=QUICK, roll=QUICK)
+
+
+def test_status_flags_through_power_up_homing_and_a_move(smc_slow):
+    """§2.2: 0A at power-up (home it), 1E HOMING → 32 READY; 28 MOVING during PA."""
+    emulation, bench = smc_slow
+    s = bench.pitch.status()
+    assert (s.ready, s.moving, s.in_position, s.needs_homing) == (False, False, False, True)
+    assert s.fault == "NOT REFERENCED from reset (0Ah); home it (a run homes it first)"
+    bench.pitch.prepare()
+    s = bench.pitch.status()
+    assert (s.ready, s.moving, s.in_position, s.needs_homing, s.fault) == (True, False, True, False, None)
+    bench.pitch.move_to(90)
+    s = bench.pitch.status()
+    assert (s.ready, s.moving, s.in_position, s.needs_homing, s.fault) == (False, True, False, False, None)
+    bench.pitch.stop()
+
+
+def test_a_following_error_is_a_fault_to_clear_not_a_homing(smc_slow):
+    emulation, bench = smc_slow
+    bench.roll.prepare()
+    bench.roll.move_to(180)
+    emulation.faults["roll"].add(Fault(FaultKind.ALARM))
+    with pytest.raises(DeviceFault):
+        bench.roll.wait_in_position(60)
+    s = bench.roll.status()
+    # §2.2: "reading TS clears the positioner error", which the wait already read: DISABLE remains
+    assert s.fault == "DISABLE from MOVING (3Dh); clear the cause, then re-enable it (MM1) or home it"
+    assert (s.ready, s.moving, s.needs_homing) == (False, False, False)
+
+
+def test_a_move_that_never_arrived_is_logged_and_sent_once_more(smc, caplog):
+    emulation, bench = smc
+    caplog.set_level(logging.WARNING, logger="labcal.drivers.newport_smc100")
+    bench.pitch.prepare()
+    emulation.faults["pitch"].add(Fault(FaultKind.LOST_REQUEST, match="PA"))
+    emulation.faults["pitch"].add(Fault(FaultKind.NO_REPLY, match="TE"))
+    bench.pitch.move_to(30)
+    assert bench.pitch.wait_in_position(60) == pytest.approx(30.0)
+    device = bench.pitch.device
+    messages = [r.getMessage() for r in caplog.records]
+    assert messages[-1] == f"{device}: PA30.000000 did not arrive; sending it again (READY)"
+    assert messages[-2].startswith(f"{device}: the reply to TE after PA30.000000 was lost (")
+    assert messages[-2].endswith("); asking the state instead")
+
+
+def test_nothing_is_sent_to_stop_a_stage_that_cannot_move(smc, caplog):
+    emulation, bench = smc
+    caplog.set_level(logging.DEBUG, logger="labcal.drivers.newport_smc100")
+    bench.pitch.stop()
+    assert f"{bench.pitch.device}: not moving (NOT REFERENCED from reset (0Ah)): nothing to stop" in [
+        r.getMessage() for r in caplog.records]
+
+
+def test_replies_of_any_length_are_quoted_to_forty_characters():
+    with pytest.raises(BadReply) as err:
+        parse_number("inf" + " " * 60)  # float() takes the blanks: infinite
+    assert str(err.value) == f"{('inf' + ' ' * 37)!r} is not a finite number"
+    with pytest.raises(BadReply) as err:
+        parse_state("0" * 60)
+    assert str(err.value) == f"status {'0' * 40!r} is not six hex digits"
+    with pytest.raises(BadReply) as err:
+        parse_error_code("@" * 60)
+    assert str(err.value) == f"error code {'@' * 40!r} is not one of @, A..X"
+
+
+def test_only_the_query_mark_is_stripped_from_a_mnemonic():
+    """`ZX` (stage auto-configuration) ends in X: the echo is `1ZX`, not `1Z`."""
+    assert parse_reply("1ZX2", 1, "ZX") == "2"
+    assert parse_reply("1ZX2", 1, "ZX?") == "2"
