@@ -198,9 +198,9 @@ def test_a_move_that_never_arrived_is_logged_and_sent_once_more(smc, caplog):
     assert bench.pitch.wait_in_position(60) == pytest.approx(30.0)
     device = bench.pitch.device
     messages = [r.getMessage() for r in caplog.records]
-    assert messages[-1] == f"{device}: PA30.000000 did not arrive; sending it again (READY)"
-    assert messages[-2].startswith(f"{device}: the reply to TE after PA30.000000 was lost (")
-    assert messages[-2].endswith("); asking the state instead")
+    assert f"{device}: PA30.000000 did not arrive; sending it again (READY)" in messages
+    lost = [m for m in messages if m.startswith(f"{device}: the reply to TE after PA30.000000 was lost (")]
+    assert len(lost) == 1 and lost[0].endswith("); asking the state instead")
 
 
 def test_nothing_is_sent_to_stop_a_stage_that_cannot_move(smc, caplog):
@@ -227,3 +227,19 @@ def test_only_the_query_mark_is_stripped_from_a_mnemonic():
     """`ZX` (stage auto-configuration) ends in X: the echo is `1ZX`, not `1Z`."""
     assert parse_reply("1ZX2", 1, "ZX") == "2"
     assert parse_reply("1ZX2", 1, "ZX?") == "2"
+
+
+def test_a_stop_is_sent_even_when_the_state_cannot_be_read(smc_slow, caplog):
+    """A stop must be tried: with every TS reply lost, ST goes out anyway, and the log says why."""
+    emulation, bench = smc_slow
+    caplog.set_level(logging.WARNING, logger="labcal.drivers.newport_smc100")
+    bench.roll.prepare()
+    bench.roll.move_to(180)
+    emulation.faults["roll"].add(Fault(FaultKind.NO_REPLY, count=3, match="TS"))
+    bench.roll.stop()
+    assert f"{bench.roll.address}ST" in list(emulation.faults["roll"].recent)
+    device = bench.roll.device
+    warning = [r.getMessage() for r in caplog.records if "state unreadable" in r.getMessage()]
+    assert len(warning) == 1 and warning[0].startswith(f"{device}: state unreadable before stopping (")
+    assert warning[0].endswith("); sending ST anyway")
+    assert bench.roll.status().words == "READY from MOVING (33h)"  # it stopped
