@@ -67,3 +67,73 @@ def test_status_words_list_the_bits_in_a_fixed_order():
     assert status_words(Output.SYS_BSY | Output.MOVE | Output.READY, 0) == "READY MOVE SYS-BSY"
     assert status_words(Output.ALM_A, 0x33) == "ALM-A 33h"
     assert status_words(Output.READY | Output.HOME_END | Output.INFO, 0x0A) == "READY ALM-A 0Ah"
+
+
+# --- the axis: its arithmetic, and on its emulator (Modbus TCP) -------------------------------------
+import logging  # noqa: E402
+
+from emulators import bench_fixtures, no_leaks  # noqa: E402, F401 - fixture
+
+from labcal.config.emulation import FaultKind  # noqa: E402
+from labcal.drivers.errors import DeviceFault  # noqa: E402
+from labcal.drivers.modbus import ModbusLink  # noqa: E402
+from labcal.drivers.oriental_az import AzAxis  # noqa: E402
+from labcal.sim.faults import Fault  # noqa: E402
+
+QUICK = {"timeout_s": 0.1, "retries": 2, "reconnect_s": 0.5}
+STOP_WRITE = "fc06 007D"  # how the emulator names an FC 06 write to 007Dh
+station, az, az_slow = bench_fixtures(["az-modbus-tcp"], pitch=QUICK, roll=QUICK)
+
+
+def _axis(**kw: object) -> AzAxis:
+    link = ModbusLink.tcp("127.0.0.1", 9, timeout_s=0.1, retries=0, reconnect_s=0.0)
+    settings = {"steps_per_degree": 50.0, "speed_dps": 50.0, "accel_dps2": 20_000.0, **kw}
+    return AzAxis("pitch", link, 1, None, **settings)
+
+
+def test_steps_speeds_and_rates_from_degrees():
+    """§2.1 "Units": a DGII table of ratio 18 is 18 000 steps a turn, 50 steps/°; the reference move
+    runs at 2500 Hz (= 50°/s) with a rate of 1 000 000 (0.001 kHz/s units = steps/s²: 20 000°/s²)."""
+    axis = _axis()
+    assert (axis.steps_per_turn, axis.speed_hz, axis.rate, axis.wrap) == (18_000, 2500, 1_000_000, True)
+    slow = _axis(speed_dps=0.001, accel_dps2=0.001, wrap=False)  # 0.05 steps/s rounds to 0: at least 1
+    assert (slow.speed_hz, slow.rate, slow.wrap) == (1, 1, False)
+
+
+def test_an_alarm_is_the_status_fault_and_word(az):
+    """Alarm 10h (the emulator's default, excessive position deviation) read from 0x0080."""
+    emulation, bench = az
+    emulation.faults["pitch"].add(Fault(FaultKind.ALARM))
+    bench.pitch.status()  # the request the alarm strikes on
+    s = bench.pitch.status()
+    assert s.fault == ("alarm 10h (excessive position deviation); clear the cause, then `labcal station "
+                       "check STATION --reset-alarms`")
+    assert "ALM-A 10h" in s.words and not s.ready and not s.in_position
+
+
+def test_a_stop_release_that_never_lands_names_each_attempt_and_the_last_error(az, caplog):
+    emulation, bench = az
+    caplog.set_level(logging.WARNING, logger="labcal.drivers.oriental_az")
+    emulation.faults["pitch"].add(Fault(FaultKind.LOST_REQUEST, match=STOP_WRITE, after=1, count=100))
+    with pytest.raises(DeviceFault) as err:
+        bench.pitch.stop()
+    device = bench.pitch.device
+    text = str(err.value)
+    assert text.startswith(f"{device}: the STOP input may still be on after 5 attempts to release it (")
+    assert "read back on" not in text  # the writes failed: the last failure is named
+    assert text.endswith("): the table will not move until it is off; check the line, then `labcal station "
+                         "check STATION --reset-alarms`")
+    attempts = [r.getMessage() for r in caplog.records if "STOP input still on" in r.getMessage()]
+    assert [m.split(" of ")[0] for m in attempts] == [
+        f"{device}: STOP input still on after release attempt {k}" for k in range(1, 6)]
+    assert all(m.split(" of ")[1].startswith("5 (") and m.endswith(")") for m in attempts)
+
+
+def test_a_stop_input_left_on_is_refused_before_anything_moves(az):
+    emulation, bench = az
+    bench.pitch.link.write_one(bench.pitch.unit, 0x007D, 1 << 5)  # STOP, as a lost release leaves it
+    with pytest.raises(DeviceFault) as err:
+        bench.pitch.prepare()
+    assert str(err.value) == (f"{bench.pitch.device}: its STOP input is on (left on by an interrupted "
+                              "stop?), so no move can start; release it with `labcal station check STATION "
+                              "--reset-alarms`, then run or resume again")
