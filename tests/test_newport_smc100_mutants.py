@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import pytest
 
-from labcal.drivers.errors import BadReply
+from labcal.drivers.errors import BadReply, Rejected
 from labcal.drivers.newport_smc100 import (
     COMMAND_ERRORS,
     DISABLE,
@@ -243,3 +243,35 @@ def test_a_stop_is_sent_even_when_the_state_cannot_be_read(smc_slow, caplog):
     assert len(warning) == 1 and warning[0].startswith(f"{device}: state unreadable before stopping (")
     assert warning[0].endswith("); sending ST anyway")
     assert bench.roll.status().words == "READY from MOVING (33h)"  # it stopped
+
+
+def test_a_refusal_names_the_table_the_command_and_the_manuals_reason(smc):
+    emulation, bench = smc
+    with pytest.raises(Rejected) as err:  # §2.2: ST is not allowed in NOT REFERENCED (error H)
+        bench.pitch.do("ST")
+    assert str(err.value) == f"{bench.pitch.device}: refused ST: error H (not allowed in NOT REFERENCED)"
+
+
+def test_retries_of_queries_and_commands_name_the_table(smc, caplog):
+    emulation, bench = smc
+    caplog.set_level(logging.WARNING, logger="labcal.drivers.transport")
+    bench.pitch.prepare()
+    emulation.faults["pitch"].add(Fault(FaultKind.GARBLED, count=1, match="TP"))
+    assert bench.pitch.angle() == 0.0
+    emulation.faults["pitch"].add(Fault(FaultKind.NO_REPLY, count=1, match="TE"))
+    bench.pitch.do("VA10")  # safe to repeat: retried after the lost TE
+    assert bench.pitch.ask("VA?") == "10"
+    retries = [r.getMessage() for r in caplog.records if "retry" in r.getMessage()]
+    assert len(retries) == 2
+    assert all(m.startswith(f"{bench.pitch.device}: retry 1 of 2 after: ") for m in retries)
+
+
+def test_prepare_refuses_a_stage_with_a_positioner_error(smc_slow):
+    emulation, bench = smc_slow
+    bench.roll.prepare()
+    bench.roll.move_to(180)
+    emulation.faults["roll"].add(Fault(FaultKind.ALARM))
+    with pytest.raises(DeviceFault) as err:
+        bench.roll.prepare()
+    device = bench.roll.device
+    assert str(err.value) == f"{device}: DISABLE from MOVING (3Dh), positioner error: following error"
