@@ -1,0 +1,277 @@
+"""The SMC100's replies decoded as the manual documents them (issue 21, docs/mutation.md).
+
+Every expected value is transcribed from hardware_protocols.md §2.2 ("Controller states", "Positioner
+error bits", "Command error codes", reply syntax `1TP` → `1TP45.00012`); where the driver spells out an
+abbreviation of that table ("SW" → "software", "comm" → "communication", "/" → "or") the test says so.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from labcal.drivers.errors import BadReply, Rejected
+from labcal.drivers.newport_smc100 import (
+    COMMAND_ERRORS,
+    DISABLE,
+    HOMING,
+    MOVING,
+    NOT_REFERENCED,
+    POSITIONER_ERRORS,
+    READY,
+    STATES,
+    describe_state,
+    parse_error_code,
+    parse_number,
+    parse_reply,
+    parse_state,
+)
+
+# §2.2 "Controller states (TS last 2 hex digits)"; 1E/1F are "HOMING (RS-232)" and "HOMING (SMC-RC)",
+# the keypad's, which the driver names so.
+MANUAL_STATES = {
+    "0A": "NOT REFERENCED from reset", "0B": "NOT REFERENCED from HOMING",
+    "0C": "NOT REFERENCED from CONFIGURATION", "0D": "NOT REFERENCED from DISABLE",
+    "0E": "NOT REFERENCED from READY", "0F": "NOT REFERENCED from MOVING",
+    "10": "NOT REFERENCED, ESP stage error", "11": "NOT REFERENCED from JOGGING", "14": "CONFIGURATION",
+    "1E": "HOMING", "1F": "HOMING from the keypad", "28": "MOVING", "32": "READY from HOMING",
+    "33": "READY from MOVING", "34": "READY from DISABLE", "35": "READY from JOGGING",
+    "3C": "DISABLE from READY", "3D": "DISABLE from MOVING", "3E": "DISABLE from JOGGING",
+    "46": "JOGGING from READY", "47": "JOGGING from DISABLE",
+}
+# §2.2 "Positioner error bits (TS first 4 hex digits)"
+MANUAL_BITS = {
+    "0200": "80 W output power exceeded", "0100": "DC voltage too low", "0080": "wrong ESP stage",
+    "0040": "homing time-out", "0020": "following error", "0010": "short circuit",
+    "0008": "RMS current limit",
+    "0004": "peak current limit", "0002": "positive end of run", "0001": "negative end of run",
+}
+# §2.2 "Command error codes (TE)"
+MANUAL_ERRORS = {
+    "A": "unknown message code", "B": "bad address", "C": "parameter missing or out of range",  # "/"
+    "D": "command not allowed", "E": "home sequence already started",  # "home already started"
+    "F": "ESP stage name unknown", "G": "displacement out of limits", "H": "not allowed in NOT REFERENCED",
+    "I": "not allowed in CONFIGURATION", "J": "not allowed in DISABLE", "K": "not allowed in READY",
+    "L": "not allowed in HOMING", "M": "not allowed in MOVING",
+    "N": "position out of software limits",  # "position out of SW limit"
+    "S": "communication time-out",  # "comm time-out"
+    "U": "EEPROM error", "V": "error during execution", "W": "not allowed for PP", "X": "not allowed for CC",
+}
+
+
+@pytest.mark.parametrize("code, text", MANUAL_STATES.items())
+def test_every_controller_state_is_described_as_the_manual_names_it(code, text):
+    assert describe_state(0, int(code, 16)) == f"{text} ({code}h)"
+    assert parse_state(f"0000{code}") == (0, int(code, 16))
+
+
+def test_the_state_families_are_the_manuals_code_ranges():
+    """READY 32–35, MOVING 28, HOMING 1E–1F, DISABLE 3C–3E, NOT REFERENCED 0A–11 (§2.2 table)."""
+    assert set(STATES) == {int(c, 16) for c in MANUAL_STATES}
+    assert READY == {0x32, 0x33, 0x34, 0x35}
+    assert MOVING == {0x28}
+    assert HOMING == {0x1E, 0x1F}
+    assert DISABLE == {0x3C, 0x3D, 0x3E}
+    assert NOT_REFERENCED == {0x0A, 0x0B, 0x0C, 0x0D, 0x0E, 0x0F, 0x10, 0x11}
+
+
+def test_an_undocumented_state_is_named_unknown_with_its_code():
+    assert describe_state(0, 0x29) == "unknown state (29h)"
+    assert describe_state(0, 0x05) == "unknown state (05h)"
+
+
+@pytest.mark.parametrize("mask, text", MANUAL_BITS.items())
+def test_each_positioner_error_bit_is_named(mask, text):
+    assert POSITIONER_ERRORS[int(mask, 16)] == text
+    assert describe_state(int(mask, 16), 0x33) == f"READY from MOVING (33h), positioner error: {text}"
+    assert parse_state(f"{mask}33") == (int(mask, 16), 0x33)
+
+
+def test_several_error_bits_are_listed_from_the_highest():
+    """0x0221 = 80 W exceeded + following error + negative end of run."""
+    assert describe_state(0x0221, 0x3D) == ("DISABLE from MOVING (3Dh), positioner error: 80 W output power "
+                                            "exceeded, following error, negative end of run")
+    assert describe_state(0x8000, 0x3D) == "DISABLE from MOVING (3Dh)"  # an undocumented bit: no word
+
+
+def test_command_errors_are_the_manuals_letters():
+    assert COMMAND_ERRORS == MANUAL_ERRORS
+    for code in [*MANUAL_ERRORS, "@"]:
+        assert parse_error_code(code) == code
+
+
+@pytest.mark.parametrize("value", ["", "@@", "Y", "O", "a", "1"])
+def test_an_error_code_outside_the_table_is_a_bad_reply(value):
+    with pytest.raises(BadReply) as err:
+        parse_error_code(value)
+    assert str(err.value).startswith(f"error code {value!r} is not one of @, A..X")
+
+
+def test_status_is_exactly_six_hex_digits():
+    assert parse_state("02210A") == (0x0221, 0x0A)
+    assert parse_state("0000ff") == (0, 0xFF)  # hex digits in either case
+    for bad in ("00033", "0000033", "00003G", " 00033", "0x0033"):
+        with pytest.raises(BadReply) as err:
+            parse_state(bad)
+        assert str(err.value) == f"status {bad!r} is not six hex digits"
+
+
+def test_a_reply_echoes_address_and_mnemonic():
+    """`1TP` → `1TP45.00012` (§2.2 syntax); a query's `?` is not echoed (`1ID?` → `1ID<stage>`)."""
+    assert parse_reply("1TP45.00012", 1, "TP") == "45.00012"
+    assert parse_reply("12TS00000A", 12, "TS") == "00000A"
+    assert parse_reply("1IDURS75BCC ", 1, "ID?") == "URS75BCC"
+    assert parse_reply("1TP 45.0", 1, "tp") == "45.0"  # blanks around the value are ignored
+    for line, address in (("2TP45.0", 1), ("1TH45.0", 1), ("TP45.0", 1), ("1T", 1), ("1TP45", 11)):
+        with pytest.raises(BadReply) as err:
+            parse_reply(line, address, "TP")
+        assert str(err.value) == f"reply {line!r} does not echo '{address}TP'"
+
+
+def test_a_long_reply_is_quoted_shortened_in_the_error():
+    with pytest.raises(BadReply) as err:
+        parse_reply("9" * 100, 1, "TP")
+    assert str(err.value) == f"reply {'9' * 40!r} does not echo '1TP'"
+    with pytest.raises(BadReply) as err:
+        parse_number("x" * 100)
+    assert str(err.value) == f"{'x' * 40!r} is not a number"
+
+
+def test_numbers_are_finite_decimals():
+    assert parse_number("45.00012") == 45.00012
+    assert parse_number("-0.5") == -0.5
+    for bad in ("nan", "inf", "-inf", "1e999"):
+        with pytest.raises(BadReply) as err:
+            parse_number(bad)
+        assert str(err.value) == f"{bad!r} is not a finite number"
+    with pytest.raises(BadReply, match="is not a number"):
+        parse_number("45,0")
+
+
+# --- the axis on its emulator (the SMC100 state machine of §2.2, through pyserial on a pty) --------
+import logging  # noqa: E402
+
+from emulators import bench_fixtures, no_leaks  # noqa: E402, F401 - fixture
+
+from labcal.config.emulation import FaultKind  # noqa: E402
+from labcal.drivers.errors import DeviceFault  # noqa: E402
+from labcal.sim.faults import Fault  # noqa: E402
+
+QUICK = {"timeout_s": 0.1, "retries": 2, "reconnect_s": 0.5}
+station, smc, smc_slow = bench_fixtures(["smc100-serial"], pitch=QUICK, roll=QUICK)
+
+
+def test_status_flags_through_power_up_homing_and_a_move(smc_slow):
+    """§2.2: 0A at power-up (home it), 1E HOMING → 32 READY; 28 MOVING during PA."""
+    emulation, bench = smc_slow
+    s = bench.pitch.status()
+    assert (s.ready, s.moving, s.in_position, s.needs_homing) == (False, False, False, True)
+    assert s.fault == "NOT REFERENCED from reset (0Ah); home it (a run homes it first)"
+    bench.pitch.prepare()
+    s = bench.pitch.status()
+    assert (s.ready, s.moving, s.in_position, s.needs_homing, s.fault) == (True, False, True, False, None)
+    bench.pitch.move_to(90)
+    s = bench.pitch.status()
+    assert (s.ready, s.moving, s.in_position, s.needs_homing, s.fault) == (False, True, False, False, None)
+    bench.pitch.stop()
+
+
+def test_a_following_error_is_a_fault_to_clear_not_a_homing(smc_slow):
+    emulation, bench = smc_slow
+    bench.roll.prepare()
+    bench.roll.move_to(180)
+    emulation.faults["roll"].add(Fault(FaultKind.ALARM))
+    with pytest.raises(DeviceFault):
+        bench.roll.wait_in_position(60)
+    s = bench.roll.status()
+    # §2.2: "reading TS clears the positioner error", which the wait already read: DISABLE remains
+    assert s.fault == "DISABLE from MOVING (3Dh); clear the cause, then re-enable it (MM1) or home it"
+    assert (s.ready, s.moving, s.needs_homing) == (False, False, False)
+
+
+def test_a_move_that_never_arrived_is_logged_and_sent_once_more(smc, caplog):
+    emulation, bench = smc
+    caplog.set_level(logging.WARNING, logger="labcal.drivers.newport_smc100")
+    bench.pitch.prepare()
+    emulation.faults["pitch"].add(Fault(FaultKind.LOST_REQUEST, match="PA"))
+    emulation.faults["pitch"].add(Fault(FaultKind.NO_REPLY, match="TE"))
+    bench.pitch.move_to(30)
+    assert bench.pitch.wait_in_position(60) == pytest.approx(30.0)
+    device = bench.pitch.device
+    messages = [r.getMessage() for r in caplog.records]
+    assert f"{device}: PA30.000000 did not arrive; sending it again (READY)" in messages
+    lost = [m for m in messages if m.startswith(f"{device}: the reply to TE after PA30.000000 was lost (")]
+    assert len(lost) == 1 and lost[0].endswith("); asking the state instead")
+
+
+def test_nothing_is_sent_to_stop_a_stage_that_cannot_move(smc, caplog):
+    emulation, bench = smc
+    caplog.set_level(logging.DEBUG, logger="labcal.drivers.newport_smc100")
+    bench.pitch.stop()
+    assert f"{bench.pitch.device}: not moving (NOT REFERENCED from reset (0Ah)): nothing to stop" in [
+        r.getMessage() for r in caplog.records]
+
+
+def test_replies_of_any_length_are_quoted_to_forty_characters():
+    with pytest.raises(BadReply) as err:
+        parse_number("inf" + " " * 60)  # float() takes the blanks: infinite
+    assert str(err.value) == f"{('inf' + ' ' * 37)!r} is not a finite number"
+    with pytest.raises(BadReply) as err:
+        parse_state("0" * 60)
+    assert str(err.value) == f"status {'0' * 40!r} is not six hex digits"
+    with pytest.raises(BadReply) as err:
+        parse_error_code("@" * 60)
+    assert str(err.value) == f"error code {'@' * 40!r} is not one of @, A..X"
+
+
+def test_only_the_query_mark_is_stripped_from_a_mnemonic():
+    """`ZX` (stage auto-configuration) ends in X: the echo is `1ZX`, not `1Z`."""
+    assert parse_reply("1ZX2", 1, "ZX") == "2"
+    assert parse_reply("1ZX2", 1, "ZX?") == "2"
+
+
+def test_a_stop_is_sent_even_when_the_state_cannot_be_read(smc_slow, caplog):
+    """A stop must be tried: with every TS reply lost, ST goes out anyway, and the log says why."""
+    emulation, bench = smc_slow
+    caplog.set_level(logging.WARNING, logger="labcal.drivers.newport_smc100")
+    bench.roll.prepare()
+    bench.roll.move_to(180)
+    emulation.faults["roll"].add(Fault(FaultKind.NO_REPLY, count=3, match="TS"))
+    bench.roll.stop()
+    assert f"{bench.roll.address}ST" in list(emulation.faults["roll"].recent)
+    device = bench.roll.device
+    warning = [r.getMessage() for r in caplog.records if "state unreadable" in r.getMessage()]
+    assert len(warning) == 1 and warning[0].startswith(f"{device}: state unreadable before stopping (")
+    assert warning[0].endswith("); sending ST anyway")
+    assert bench.roll.status().words == "READY from MOVING (33h)"  # it stopped
+
+
+def test_a_refusal_names_the_table_the_command_and_the_manuals_reason(smc):
+    emulation, bench = smc
+    with pytest.raises(Rejected) as err:  # §2.2: ST is not allowed in NOT REFERENCED (error H)
+        bench.pitch.do("ST")
+    assert str(err.value) == f"{bench.pitch.device}: refused ST: error H (not allowed in NOT REFERENCED)"
+
+
+def test_retries_of_queries_and_commands_name_the_table(smc, caplog):
+    emulation, bench = smc
+    caplog.set_level(logging.WARNING, logger="labcal.drivers.transport")
+    bench.pitch.prepare()
+    emulation.faults["pitch"].add(Fault(FaultKind.GARBLED, count=1, match="TP"))
+    assert bench.pitch.angle() == 0.0
+    emulation.faults["pitch"].add(Fault(FaultKind.NO_REPLY, count=1, match="TE"))
+    bench.pitch.do("VA10")  # safe to repeat: retried after the lost TE
+    assert bench.pitch.ask("VA?") == "10"
+    retries = [r.getMessage() for r in caplog.records if "retry" in r.getMessage()]
+    assert len(retries) == 2
+    assert all(m.startswith(f"{bench.pitch.device}: retry 1 of 2 after: ") for m in retries)
+
+
+def test_prepare_refuses_a_stage_with_a_positioner_error(smc_slow):
+    emulation, bench = smc_slow
+    bench.roll.prepare()
+    bench.roll.move_to(180)
+    emulation.faults["roll"].add(Fault(FaultKind.ALARM))
+    with pytest.raises(DeviceFault) as err:
+        bench.roll.prepare()
+    device = bench.roll.device
+    assert str(err.value) == f"{device}: DISABLE from MOVING (3Dh), positioner error: following error"
