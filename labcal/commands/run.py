@@ -60,8 +60,9 @@ def print_estimate(plan: Plan, est: Estimate, as_json: bool) -> None:
     from labcal.commands.console import format_duration
 
     doc: dict[str, Any] = {
-        "plan": plan.name, "points": plan.n_points, "total_s": est.total_s, "moves_s": est.moves_s,
-        "settling_s": est.settling_s, "averaging_s": est.averaging_s, "mounting_s": est.mounting_s}
+        "plan": plan.name, "points": plan.n_points, "total_s": est.total_s,
+        "estimated_rig_time_s": est.total_s, "moves_s": est.moves_s, "settling_s": est.settling_s,
+        "averaging_s": est.averaging_s, "mounting_s": est.mounting_s}
     if as_json:
         print_json(doc)
         return
@@ -134,6 +135,7 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
     if args.json:
         print_json({"run_dir": str(result.directory), "run_id": result.run_id, "points": o.points_recorded,
                     "points_failed": o.points_failed, "simulated_rig_time_s": o.station_time_s,
+                    "estimated_rig_time_s": est.total_s,
                     "wall_time_s": result.wall_s, "fit": result.fit.to_json(),
                     "device": None if result.device is None else result.device.to_json(),
                     "model_note": result.model_note,
@@ -226,6 +228,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         if args.dry_run:
             print_estimate(plan, est, args.json)
             return 0
+        setup.metadata["estimated_rig_time_s"] = est.total_s  # run.json: the estimate beside the actual
         check_limits(setup.station, steps, settings.check_mount)  # first: homing moves a table too
         if bench is not None:
             prepare(bench, setup.station, err.print)
