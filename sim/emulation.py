@@ -5,13 +5,21 @@ controllers on one daisy chain). The station file's ``[emulation]`` table (valid
 station file, as `labcal.config.emulation.EmulationSettings`) sets the time scale, the seed, the
 rig (``[emulation.rig]``) and the faults to inject. `Emulation.station_config` is the station
 file as the running emulators answer it (free TCP ports filled in).
+
+A station may let the emulators choose its links (`LinkSettings.chosen_by_emulators`): port 0
+is any free TCP port (the devices of one driver on port 0 share it: one gateway, one daisy
+chain), and ``port = "pty:NAME"`` a pty linked as NAME in a temporary folder of this emulation's
+own, removed when it stops. Two emulated runs of one such station file then never meet.
 """
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 from collections.abc import Callable
+from pathlib import Path
 
-from labcal.config.station import AzSettings, LinkSettings, Smc100Settings, StationFile
+from labcal.config.station import PTY_PREFIX, AzSettings, LinkSettings, Smc100Settings, StationFile
 from labcal.errors import LabcalError
 from labcal.sim.az_emulator import AzDrives, AzServer, AzUnit
 from labcal.sim.dmm_emulator import Keysight34970AEmulator
@@ -40,6 +48,7 @@ class Emulation:
         for spec in settings.faults:
             self.faults[spec.device].add(Fault(**spec.model_dump(exclude={"device"})))
         self.servers: dict[str, tuple[list[str], str, Server]] = {}  # bus → (devices, protocol, server)
+        self._pty_folder: Path | None = None  # made for the first pty:NAME link
         try:
             for bus, names in self._buses(config).items():
                 self.servers[bus] = self._serve(config, names)
@@ -58,8 +67,20 @@ class Emulation:
             buses.setdefault(settings.bus, []).append(name)
         return buses
 
+    def _own_pty(self, name: str, settings: LinkSettings) -> LinkSettings:
+        """``port = "pty:NAME"`` → the path of NAME in this emulation's own temporary folder."""
+        link = (settings.port or "").removeprefix(PTY_PREFIX)
+        if not link or "/" in link or link in (".", ".."):
+            raise LabcalError(f"{name}: port = \"{settings.port}\" must name the pty's link, e.g. "
+                              f"\"{PTY_PREFIX}tables\" (a name, no folder: the emulators choose the folder)")
+        if self._pty_folder is None:
+            self._pty_folder = Path(tempfile.mkdtemp(prefix="labcal-emulator-"))
+        return settings.model_copy(update={"port": str(self._pty_folder / link)})
+
     def _serve(self, config: StationFile, names: list[str]) -> tuple[list[str], str, Server]:
         first: LinkSettings = config.devices()[names[0]]
+        if (first.port or "").startswith(PTY_PREFIX):
+            first = self._own_pty(names[0], first)
         endpoint = Endpoint.of(names[0], first)
         try:
             if isinstance(first, AzSettings):
@@ -112,6 +133,9 @@ class Emulation:
         for _, _, server in self.servers.values():
             server.close()
         self.servers.clear()
+        if self._pty_folder is not None:  # its links went with their ptys; the folder is ours alone
+            shutil.rmtree(self._pty_folder, ignore_errors=True)
+            self._pty_folder = None
 
     def __enter__(self) -> Emulation:
         return self

@@ -46,10 +46,10 @@ def private(config: StationFile, tmp_path: Path, **changes: dict) -> StationFile
     for name, link in config.devices().items():
         change = dict(changes.get(name, {}))
         if link.tcp or str(link.port).startswith("socket://"):
-            port = ports.setdefault(link.bus, free_port())
+            port = ports.setdefault(link.bus, free_port())  # on port 0, the bus names the driver
             change.setdefault(*(("tcp", f"127.0.0.1:{port}") if link.tcp else ("port", f"socket://127.0.0.1:{port}")))
-        else:
-            change.setdefault("port", str(tmp_path / Path(str(link.port)).name))
+        else:  # a pty path, or pty:NAME
+            change.setdefault("port", str(tmp_path / Path(str(link.port).removeprefix("pty:")).name))
         updates[name] = link.model_copy(update=change)
     return config.model_copy(update=updates)
 
@@ -59,10 +59,18 @@ def private_file(station: str, tmp_path: Path, extra: str = "", link: str = "") 
     ports), ``link`` settings added to every device (e.g. ``timeout_s = 0.1``) and ``extra`` TOML
     (e.g. ``[[emulation.faults]]`` tables) appended; returns the file."""
     text = shipped_stations()[station].read_text(encoding="utf-8").replace("/tmp/labcal-sim/", f"{tmp_path}/")
+    text = text.replace('"pty:', f'"{tmp_path}/')  # an emulator's own pty: here, at a fixed path
     for device in ("[pitch]", "[roll]", "[dmm]"):
         text = text.replace(f"{device}\n", f"{device}\n{link}\n" if link else f"{device}\n")
-    ports: dict[str, int] = {}  # the example's port → a free one; devices that shared a port still do
-    text = re.sub(r"127\.0\.0\.1:(\d+)", lambda m: f"127.0.0.1:{ports.setdefault(m[1], free_port())}", text)
+    # the example's port → a free one; devices that shared a port still do, and on port 0 (any free
+    # one) the devices of one driver do, as the emulators have them
+    ports: dict[tuple[str, str], int] = {}
+    sections = re.split(r"(?m)^(?=\[)", text)
+    for i, section in enumerate(sections):
+        driver = m[1] if (m := re.search(r'(?m)^driver = "([^"]+)"', section)) else ""
+        sections[i] = re.sub(r"127\.0\.0\.1:(\d+)", lambda m, driver=driver: "127.0.0.1:" + str(
+            ports.setdefault((m[1], driver if m[1] == "0" else ""), free_port())), section)
+    text = "".join(sections)
     path = tmp_path / f"{station}.toml"
     path.write_text(text + extra, encoding="utf-8")
     return path

@@ -14,11 +14,11 @@ import time
 from pathlib import Path
 
 import pytest
-from emulators import free_port, no_leaks  # noqa: F401 - fixture
+from emulators import free_port, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.cli import main
 from labcal.config import streams
-from labcal.config.station import shipped_stations
+from labcal.config.station import load_station, tcp_address
 
 LABCAL = [sys.executable, "-m", "labcal.cli"]
 
@@ -176,16 +176,16 @@ def test_a_receipt_date_in_the_future_is_refused(tmp_path, capsys, monkeypatch):
 
 
 # --- an emulator's port taken ----------------------------------------------------------------
-@pytest.mark.parametrize("station,port", [("az-modbus-tcp", "15020"), ("mixed-rtu-socket", "15021")])
+@pytest.mark.parametrize("station", ["az-modbus-tcp", "mixed-rtu-socket"])
 @pytest.mark.parametrize("command", [["sim", "serve"], ["run", "--emulate", "--yes", "--no-report"]])
-def test_an_az_emulator_whose_port_is_taken_is_one_line(tmp_path, capsys, no_leaks, station, port,  # noqa: F811
+def test_an_az_emulator_whose_port_is_taken_is_one_line(tmp_path, capsys, no_leaks, station,  # noqa: F811
                                                          command):
     with socket.create_server(("127.0.0.1", 0)) as taken:
         held = taken.getsockname()[1]
-        text = shipped_stations()[station].read_text().replace("/tmp/labcal-sim/", f"{tmp_path}/")
-        text = text.replace(f"127.0.0.1:{port}", f"127.0.0.1:{held}")
-        for other in ("15025", "15045"):
-            text = text.replace(f"127.0.0.1:{other}", f"127.0.0.1:{free_port()}")
+        private = private_file(station, tmp_path)  # free ports, ptys under tmp_path
+        text, pitch = private.read_text(), load_station(private)[0].pitch
+        port = tcp_address(pitch.tcp or str(pitch.port).removeprefix("socket://"))[1]
+        text = text.replace(f"127.0.0.1:{port}", f"127.0.0.1:{held}")  # the AZ drives' port, taken
         path = tmp_path / "station.toml"
         path.write_text(text)
         db = tmp_path / "lab.sqlite"

@@ -173,7 +173,7 @@ def test_lost_scan_starts_are_measured_again_not_journaled_stale(tmp_path, capsy
     point and the fit is still the truth to 0.1 mV (a stale point, taken at another attitude, is
     off by up to 10 V)."""
     lost = faults(*(f'device = "dmm"\nkind = "lost-request"\nmatch = "^INIT"\nafter = {n}'
-                    for n in (20, 50, 80)))
+                    for n in (20, 40, 60)))  # a run takes 68 scans at least: 64 points, 4 mount checks
     station = private_file("az-modbus-tcp", tmp_path, lost, QUICK)
     run_dir = tmp_path / "run"
     code, out, err = cli(capsys, "run", "--station", str(station), *EMULATE, "--yes", "--out", str(run_dir),
@@ -216,8 +216,8 @@ def test_resume_names_the_runs_own_journal(tmp_path, capsys, no_leaks):  # noqa:
     db.parent.mkdir()
     run_dir, answers = tmp_path / "run", tmp_path / "answers.txt"
     answers.write_text("y\na\n")
-    station = private_file("smc100-tcp", tmp_path, faults('device = "dmm"\nkind = "close-port"\nafter = 20\n'
-                                                          'match = "FETC"'), QUICK)
+    station = private_file("smc100-tcp", tmp_path, faults('device = "dmm"\nkind = "close-port"\nafter = 10\n'
+                                                          'match = "FETC"'), QUICK)  # mid-run: 17+ scans
     code, _, err = cli(capsys, "run", "--station", str(station), *EMULATE, "--plan", "one-mount-16",
                        "--answers", str(answers), "--db", str(db), "--out", str(run_dir))
     assert code == 1, err

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
+from emulators import private_file
 
 from labcal.analysis.kinematics import MOUNTS
 from labcal.run.mounting import drawing
@@ -41,13 +42,20 @@ def mount_answers(db: Path) -> list[str]:
 class Terminal:
     """`labcal ARGS` with a pseudo-terminal for stdin, stdout and stderr, ``columns`` wide."""
 
-    def __init__(self, *args: str, columns: int = 100):
+    def __init__(self, *args: str, columns: int = 100, controlling: bool = False):
+        """``controlling``: the pty is labcal's controlling terminal (as a shell's is), so that
+        Ctrl-C typed there is a SIGINT to it."""
         master, slave = pty.openpty()
         fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 50, columns, 0, 0))
         env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
         env["TERM"] = "xterm"
+
+        def take_terminal() -> None:  # in the child, after setsid: this session's terminal
+            fcntl.ioctl(0, termios.TIOCSCTTY, 0)
+
         self.proc = subprocess.Popen([LABCAL, *args], stdin=slave, stdout=slave, stderr=slave, env=env,
-                                     start_new_session=True)
+                                     start_new_session=True,
+                                     preexec_fn=take_terminal if controlling else None)
         os.close(slave)
         self.master = master
         self.raw = b""
@@ -68,6 +76,12 @@ class Terminal:
     def screen(self) -> str:
         """What was written, without colours and cursor movements, lines ended by \\n."""
         return ANSI.sub("", self.raw.decode("utf-8", "replace")).replace("\r\n", "\n").replace("\r", "\n")
+
+    def echoes(self) -> bool:
+        """Whether the terminal echoes keys and edits lines now (the pty's settings as labcal
+        left them: the master reads the slave's)."""
+        lflag = termios.tcgetattr(self.master)[3]
+        return bool(lflag & termios.ECHO) and bool(lflag & termios.ICANON)
 
     def type(self, keys: str) -> None:
         os.write(self.master, keys.encode())
@@ -94,8 +108,8 @@ class Terminal:
 def terminals():
     opened: list[Terminal] = []
 
-    def start(*args: str, columns: int = 100) -> Terminal:
-        opened.append(Terminal(*args, columns=columns))
+    def start(*args: str, columns: int = 100, controlling: bool = False) -> Terminal:
+        opened.append(Terminal(*args, columns=columns, controlling=controlling))
         return opened[-1]
 
     yield start
@@ -194,3 +208,41 @@ def test_the_drawings_tell_the_four_mounts_apart():
         assert (arrow < plate) == (mount.u_deg == 0)
         assert max(map(len, art)) <= 22
     assert len({tuple(drawing(m)) for m in MOUNTS}) == 4
+
+
+def test_keys_typed_during_the_progress_do_not_echo_and_the_terminal_is_restored(tmp_path, lab_database,
+                                                                                terminals):
+    """Keys typed while points are measured used to echo into the progress line. Now, while the
+    progress is shown, the terminal neither echoes nor edits lines; each prompt (a remount, the
+    pause after a Ctrl-C) has it echo again and still throws the keys away, and a stop signal
+    ending the run mid-progress leaves it echoing as found. An emulated station at 50× so that a
+    mount's points take seconds of wall time."""
+    station = private_file("az-modbus-tcp", tmp_path)
+    term = terminals("run", "--station", str(station), "--emulate", "--time-scale", "50", "--no-report",
+                     "--out", str(tmp_path / "run"), controlling=True)
+    assert term.echoes()  # as the test made it: the checks below can fail
+    term.wait_for("when mounted")
+    assert term.echoes()  # the prompt: the technician sees the answer typed
+    term.type("y\r")
+    term.wait_for("1/64")  # the first point of mount 1 is in the progress line
+    assert not term.echoes()
+    term.type("zqxj\r")
+    term.wait_for("when mounted", count=2)
+    assert term.echoes()
+    assert "Ignored 5 key(s) typed before this prompt appeared" in term.screen
+    assert "zqxj" not in term.screen
+    assert committed(lab_database) == 16
+    term.type("y\r")
+    term.wait_for("17/64")
+    assert not term.echoes()
+    term.type("\x03")  # Ctrl-C: a pause after this point, at a prompt that echoes
+    term.wait_for("to resume")
+    assert term.echoes()
+    term.type("r\r")
+    term.wait_for("/64", count=term.screen.count("/64") + 1)
+    assert not term.echoes()
+    term.proc.terminate()  # SIGTERM mid-progress: the tables stop, the run ends with an exception
+    term.proc.wait(timeout=60)
+    assert term.echoes()  # read before close() closes the pty
+    assert term.close() == 128 + 15, term.screen
+    assert "interrupted (SIGTERM)" in term.screen

@@ -60,7 +60,7 @@ def test_the_dead_time_puts_the_window_mean_bias_at_the_noise_of_the_mean():
     settings = SettleSettings(tau_s=TAU, noise_v=20e-6, samples=10)
     step_v, sample_s = 0.5, 0.2
     t_w = dead_time(step_v, settings, sample_s)
-    samples = t_w + (np.arange(10) + 0.5) * sample_s
+    samples = t_w + np.arange(10) * sample_s  # each at its sweep's start, where a first channel is read
     bias = step_v * np.mean(np.exp(-samples / TAU))
     assert bias == pytest.approx(20e-6 / math.sqrt(10), rel=1e-9)
     assert dead_time(1e-9, settings, sample_s) == 0.0  # nothing left to wait for

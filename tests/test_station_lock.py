@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
 
+from labcal.config.station import load_station
 from labcal.run.lock import link_key, station_locks
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
@@ -118,3 +119,45 @@ def test_two_spellings_of_one_link_are_one_lock(tmp_path):
     assert link_key("visa:gpib0::9::instr") == link_key("visa:GPIB0::9::INSTR") == "visa:GPIB0::9::INSTR"
     assert link_key("tcp:10.0.0.5:502") != link_key("tcp:10.0.0.5:503")
     assert os.path.exists(port)
+
+
+def test_two_emulated_runs_of_one_example_station_at_once_both_complete(tmp_path, lab_database):
+    """The example stations let the emulators choose free ports (``127.0.0.1:0``) and ptys of
+    their own: two `labcal run --station az-modbus-tcp --emulate` at once, journaling into one lab
+    database (so one set of station locks), both complete. Before, the example's fixed ports made
+    the second one fail (its lock, or its emulator's listen). Each served its own addresses."""
+    runs = [subprocess.Popen([LABCAL, "run", "--station", "az-modbus-tcp", *EMULATE, "--yes",
+                              "--out", str(tmp_path / name)], stdin=subprocess.DEVNULL,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for name in "ab"]
+    outputs = [run.communicate(timeout=300) for run in runs]
+    assert [run.returncode for run in runs] == [0, 0], outputs
+    served = [json.loads((tmp_path / name / "run.json").read_text())["simulated_truth"]["endpoints"]
+              for name in "ab"]
+    addresses = [e["address"] for endpoints in served for e in endpoints]
+    assert len(set(addresses)) == 4 and not any(a.endswith(":0") for a in addresses), served
+
+
+def test_the_lock_of_an_emulated_run_holds_the_addresses_its_emulators_chose(tmp_path, capsys,
+                                                                             lab_database):
+    """While an emulated run of the example station (free ports) waits at a prompt, a run through
+    another station file that names the address its emulators chose is refused in one line naming
+    run 1: the lock holds the chosen address, not "port 0"."""
+    first = first_run_waiting_at_a_prompt(Path("az-modbus-tcp"), lab_database, tmp_path)
+    try:
+        deadline = time.monotonic() + 60
+        while not (tmp_path / "first" / "run.json").exists():
+            assert time.monotonic() < deadline, "the first run wrote no run.json"
+            time.sleep(0.05)
+        endpoints = json.loads((tmp_path / "first" / "run.json").read_text())["simulated_truth"]["endpoints"]
+        gateway = next(e["address"] for e in endpoints if "pitch" in e["devices"]).removeprefix("tcp ")
+        station = private_file("az-modbus-tcp", tmp_path)  # fixed free ports of its own...
+        own = load_station(station)[0].pitch.tcp
+        same = station.read_text().replace(f'"{own}"', f'"{gateway}"')  # ...but the first's gateway
+        (tmp_path / "same-gateway.toml").write_text(same)
+        code, out, err = cli(capsys, "run", "--station", str(tmp_path / "same-gateway.toml"), "--no-report",
+                             "--out", str(tmp_path / "second"))
+        assert code == 2
+        assert f"tcp {gateway} is in use by run 1" in err, err
+    finally:
+        first.kill()
+        first.wait(timeout=30)

@@ -75,6 +75,15 @@ def known_settle(inst: InstrumentTruth) -> SettleSettings:
                           sensitivity_v_per_g=float(max(abs(x) for row in inst.S for x in row)))
 
 
+def links_fixed(config: StationFile, source: str) -> None:
+    """Without emulators, a link they would choose (port 0, ``pty:NAME``) reaches nothing: one line."""
+    for name, link in config.devices().items():
+        if link.chosen_by_emulators:
+            raise LabcalError(f"{source}: {name}'s link {link.where} is one the emulators choose as they "
+                              "start (any free port, a pty of their own); use --emulate, or point a copy of "
+                              "the station file at the addresses `labcal sim serve` printed")
+
+
 def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emulate: bool = False,
                      time_scale: float | None = None, seed: int | None = None,
                      start_time_s: float = 0.0, tables_at: tuple[float, float] | None = None
@@ -109,6 +118,8 @@ def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emul
         clock, hooks = emulation.rig.clock, emulation.hooks()
         metadata["simulated_truth"] = emulation.truth()
         config = emulation.station_config
+    else:
+        links_fixed(config, source)
     bench = stack.enter_context(Bench(config, clock))
     text = json.dumps(snapshot, sort_keys=True)
     return StationSetup(bench.station(**hooks), text, metadata, timing, settle), bench
@@ -189,6 +200,8 @@ def bench_for_check(config: StationFile, stack: ExitStack, *, emulate: bool = Fa
 
         emulation = stack.enter_context(Emulation(config, time_scale=time_scale))
         config, clock = emulation.station_config, emulation.rig.clock
+    else:
+        links_fixed(config, "the station")
     quick = config.model_copy(update={name: link.model_copy(update={"reconnect_s": 0.0})
                                       for name, link in config.devices().items()})
     return stack.enter_context(Bench(quick, clock))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 
 import numpy as np
 from rich import box
@@ -16,6 +16,7 @@ from rich.progress import (
 from rich.table import Table
 
 from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit
+from labcal.run.operator import QuietKeys
 from labcal.run.sequencer import Display, Step
 
 
@@ -41,7 +42,9 @@ RIG_CLOCK_NOTE = ("progress: 'rig' is the rig's own clock (the simulated or emul
 
 class ProgressDisplay(Display):
     """A progress bar with the rig's clock and the ETA of what remains, both on the rig's clock (an
-    emulated run's wall time says nothing about the rig's), and the last point; fits 80 columns."""
+    emulated run's wall time says nothing about the rig's), and the last point; fits 80 columns.
+    While it is shown, keys typed at the terminal do not echo into it (`QuietKeys`); a prompt
+    (`pause`) has them echo again."""
 
     def __init__(self, console: Console, total: int, step_estimates: dict[int, float] | None = None,
                  done: int = 0):
@@ -62,21 +65,27 @@ class ProgressDisplay(Display):
         self.task = self.progress.add_task("calibrating", total=total, completed=done, last="", rig="–",
                                            rig_eta=clock(remaining))
         console.print(f"[dim]{RIG_CLOCK_NOTE}[/]")
+        self.keys = QuietKeys()
+        self._shown = ExitStack()
 
     def __enter__(self) -> ProgressDisplay:
-        self.progress.start()
+        with ExitStack() as stack:
+            stack.enter_context(self.keys)
+            self.progress.start()
+            stack.callback(self.progress.stop)
+            self._shown = stack.pop_all()  # the terminal restored after the display stops, always
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self.progress.stop()
+        self._shown.close()
 
     @contextmanager
     def pause(self):
-        self.progress.stop()
+        self.__exit__()
         try:
             yield
         finally:
-            self.progress.start()
+            self.__enter__()
 
     def point_done(self, step: Step, volts: np.ndarray, station_time_s: float, settle_s: float) -> None:
         last = f"p={step.pitch_deg:g}° r={step.roll_deg:g}° {settle_s:.1f} s"

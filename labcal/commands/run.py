@@ -60,8 +60,9 @@ def print_estimate(plan: Plan, est: Estimate, as_json: bool) -> None:
     from labcal.commands.console import format_duration
 
     doc: dict[str, Any] = {
-        "plan": plan.name, "points": plan.n_points, "total_s": est.total_s, "moves_s": est.moves_s,
-        "settling_s": est.settling_s, "averaging_s": est.averaging_s, "mounting_s": est.mounting_s}
+        "plan": plan.name, "points": plan.n_points, "total_s": est.total_s,
+        "estimated_rig_time_s": est.total_s, "moves_s": est.moves_s, "settling_s": est.settling_s,
+        "averaging_s": est.averaging_s, "mounting_s": est.mounting_s}
     if as_json:
         print_json(doc)
         return
@@ -134,6 +135,7 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
     if args.json:
         print_json({"run_dir": str(result.directory), "run_id": result.run_id, "points": o.points_recorded,
                     "points_failed": o.points_failed, "simulated_rig_time_s": o.station_time_s,
+                    "estimated_rig_time_s": est.total_s,
                     "wall_time_s": result.wall_s, "fit": result.fit.to_json(),
                     "device": None if result.device is None else result.device.to_json(),
                     "model_note": result.model_note,
@@ -210,6 +212,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 lock_station(stack, config, args.station, args.db)
             setup, bench = hardware_station(config, args.station, stack, emulate=args.emulate,
                                             time_scale=args.time_scale, seed=args.seed)
+            if not args.dry_run:  # the links the emulators chose, by the addresses they chose
+                lock_station(stack, config, args.station, args.db, chosen=bench.config)
             pitch, roll = config.pitch, config.roll  # the slower table sets the pace of the estimates
             settings = sequencer_settings_for_run(args, setup, min(pitch.speed_dps, roll.speed_dps),
                                                   min(pitch.accel_dps2, roll.accel_dps2))
@@ -224,6 +228,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         if args.dry_run:
             print_estimate(plan, est, args.json)
             return 0
+        setup.metadata["estimated_rig_time_s"] = est.total_s  # run.json: the estimate beside the actual
         check_limits(setup.station, steps, settings.check_mount)  # first: homing moves a table too
         if bench is not None:
             prepare(bench, setup.station, err.print)
@@ -236,15 +241,22 @@ def cmd_run(args: argparse.Namespace) -> int:
                 setup.metadata, args.serial, args.operator, steps), run_dir, plan, est, 0, cert_settings)
 
 
-def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Path | None) -> None:
+def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Path | None,
+                 chosen: StationFile | None = None) -> None:
     """Hold the station for this command (one run per station at a time, across processes: a second
     one is refused in one line naming who holds it); a lock left by a process that is gone is
-    taken over, with a note."""
+    taken over, with a note. A link the emulators choose (port 0, ``pty:NAME``) is no address
+    yet: it is held once they have chosen it, by a second call with ``chosen``, the station as
+    they serve it (`Emulation.station_config`)."""
     from labcal.run.journal import db_path
     from labcal.run.lock import StationLock, station_locks
 
-    lock = stack.enter_context(StationLock(station_locks(db_path(db)),
-                                           {s.bus: s.where for s in config.devices().values()}, name))
+    links = {(chosen.devices()[n] if chosen is not None else s).bus:
+             (chosen.devices()[n] if chosen is not None else s).where
+             for n, s in config.devices().items() if s.chosen_by_emulators == (chosen is not None)}
+    if not links:
+        return
+    lock = stack.enter_context(StationLock(station_locks(db_path(db)), links, name))
     for note in lock.notes:
         err.print(f"[yellow]note:[/] {note}")
 
@@ -307,9 +319,10 @@ def cmd_resume(args: argparse.Namespace) -> int:
                                 tables_at=tables_at)
             certificate = CertificateSettings()
         else:
-            lock_station(stack, new_station[0] if new_station else snapshot.config, args.station or run_name,
-                         ctx.journal.path)
+            resumed_on = new_station[0] if new_station else snapshot.config
+            lock_station(stack, resumed_on, args.station or run_name, ctx.journal.path)
             setup, bench = station_for_resume(snapshot, run_name, stack, start, new_station, tables_at)
+            lock_station(stack, resumed_on, args.station or run_name, ctx.journal.path, chosen=bench.config)
             certificate = (new_station[0] if new_station else snapshot.config).certificate
         steps = schedule(ctx.plan, ctx.settings)
         est = estimate(ctx.plan, ctx.settings, setup.timing, steps)

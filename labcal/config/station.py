@@ -30,6 +30,9 @@ NPLC_VALUES = (0.02, 0.2, 1.0, 2.0, 10.0, 20.0, 100.0, 200.0)
 RANGES_V = (0.1, 1.0, 10.0, 100.0, 300.0)
 
 
+PTY_PREFIX = "pty:"  # port = "pty:NAME": an emulator's pty, linked as NAME in a folder of the run's own
+
+
 def tcp_address(text: str) -> tuple[str, int]:
     """'host:port' → (host, port); raises ValueError with a readable message."""
     host, sep, port = text.rpartition(":")
@@ -73,9 +76,30 @@ class LinkSettings(BaseModel):
         return f"tcp {self.tcp}" if self.tcp else str(self.port)
 
     @property
+    def chosen_by_emulators(self) -> bool:
+        """``tcp = "127.0.0.1:0"``, ``port = "socket://127.0.0.1:0"`` or ``port = "pty:NAME"``: a
+        link the emulators choose as they start (any free TCP port; a pty linked in a folder of
+        their own), so that two emulated runs of one station file never meet. Real hardware has
+        no such link."""
+        if self.tcp is not None:
+            return tcp_address(self.tcp)[1] == 0
+        port = self.port or ""
+        if port.startswith("socket://"):
+            try:
+                return tcp_address(port.removeprefix("socket://").split("?")[0])[1] == 0
+            except ValueError:
+                return False
+        return port.startswith(PTY_PREFIX)
+
+    @property
     def bus(self) -> str:
-        """What identifies the physical link; devices with the same bus share it."""
-        return f"tcp:{self.tcp}" if self.tcp else f"port:{self.port}"
+        """What identifies the physical link; devices with the same bus share it. On port 0 (any
+        free port, `chosen_by_emulators`) the devices of one driver share one (one gateway, one
+        daisy chain), and a DMM or another driver gets a port of its own."""
+        bus = f"tcp:{self.tcp}" if self.tcp else f"port:{self.port}"
+        if self.chosen_by_emulators and not (self.port or "").startswith(PTY_PREFIX):
+            bus += f"#{getattr(self, 'driver', '')}"
+        return bus
 
     def line_settings(self) -> tuple:
         return self.baudrate, self.parity, self.bytesize, self.stopbits, self.xonxoff, self.timeout_s

@@ -13,7 +13,8 @@ import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Literal, Protocol
+from types import TracebackType
+from typing import Any, Literal, Protocol
 
 from rich.console import Console
 
@@ -91,6 +92,63 @@ def discard_typeahead(fd: int) -> int:
         termios.tcflush(fd, termios.TCIFLUSH)
         termios.tcsetattr(fd, termios.TCSANOW, saved)
     return discarded
+
+
+class QuietKeys:
+    """Keys typed while the run's progress is shown neither echo into the progress line nor edit
+    a line: echo and line-by-line (canonical) mode off on stdin, put back as found on leaving,
+    whatever ends the run (Ctrl-C, a stop signal, a fault). Re-enterable: a prompt leaves it (the
+    technician sees the answer typed) and the progress enters it again. Nothing is read: keys
+    typed meanwhile wait in the terminal's queue, which each prompt empties before it asks
+    (`discard_typeahead`), so they still answer nothing. Nothing happens unless stdin is a
+    terminal this process has in the foreground (from the background, changing the terminal
+    would stop the process with SIGTTOU)."""
+
+    def __init__(self) -> None:
+        self.fd: int | None = None
+        self.saved: list[Any] | None = None
+        if sys.platform == "win32":  # the console shows no keys typed while nobody reads
+            return
+        try:
+            fd = sys.stdin.fileno()
+            if not os.isatty(fd):
+                return
+        except (AttributeError, ValueError, OSError):  # no stdin, or one replaced by a test
+            return
+        try:
+            foreground = os.tcgetpgrp(fd)
+        except OSError:  # not this process's controlling terminal: no job control to upset
+            foreground = os.getpgrp()
+        if foreground == os.getpgrp():
+            self.fd = fd
+
+    def __enter__(self) -> QuietKeys:
+        if self.fd is None or self.saved is not None:
+            return self
+        import termios
+
+        try:
+            saved = termios.tcgetattr(self.fd)
+            quiet = [*saved[:6], list(saved[6])]
+            quiet[3] &= ~(termios.ECHO | termios.ICANON)
+            quiet[6][termios.VMIN], quiet[6][termios.VTIME] = 1, 0
+            self.saved = saved  # before the change: an interrupt right after it still restores
+            termios.tcsetattr(self.fd, termios.TCSANOW, quiet)
+        except (termios.error, OSError):
+            self.saved = None
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None = None, exc: BaseException | None = None,
+                 tb: TracebackType | None = None) -> None:
+        saved, self.saved = self.saved, None
+        if self.fd is None or saved is None:
+            return
+        import termios
+
+        try:
+            termios.tcsetattr(self.fd, termios.TCSANOW, saved)
+        except (termios.error, OSError):  # the terminal is gone (its window closed): nothing to restore
+            pass
 
 
 class _Asking:

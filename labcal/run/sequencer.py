@@ -176,10 +176,23 @@ def move_both(station: Station, pitch: float, roll: float, settings: SequencerSe
     """Start both tables (inside ``critical()``: a command is never cut in half), each turning by
     its ``travel`` (the way round its cable wrap chose; None: the shortest), wait for both, and
     verify the read-back positions."""
+    start_both(station, pitch, roll, critical, travel)
+    return wait_both(station, pitch, roll, settings)
+
+
+def start_both(station: Station, pitch: float, roll: float, critical=nullcontext,
+               travel: tuple[float, float] | None = None) -> None:
+    """Command both moves (`move_both`'s first half); each table starts as its command is
+    answered, which takes the link's round trips: not the instant the first command was sent."""
     turn_pitch, turn_roll = travel or (None, None)
     with critical():
         station.pitch.move_to(pitch, travel_deg=turn_pitch)
         station.roll.move_to(roll, travel_deg=turn_roll)
+
+
+def wait_both(station: Station, pitch: float, roll: float,
+              settings: SequencerSettings) -> tuple[float, float]:
+    """Wait for both tables and verify their read-back positions (`move_both`'s second half)."""
     return (_in_position(station.pitch, pitch, settings.move_timeout_s, settings.position_tolerance_deg),
             _in_position(station.roll, roll, settings.move_timeout_s, settings.position_tolerance_deg))
 
@@ -243,9 +256,13 @@ class Sequencer:
         for leg in legs:
             self.event(MOVE_EVENT, f"pitch {start[0]:g}° → {leg[0]:g}°, roll {start[1]:g}° → {leg[1]:g}° "
                        "(accumulated from home)", pitch=[start[0], leg[0]], roll=[start[1], leg[1]])
+            start_both(self.station, leg[0] % 360.0, leg[1] % 360.0, self.interrupts.critical,
+                       (leg[0] - start[0], leg[1] - start[1]))
+            # both tables are moving by now (on a slow link, or an emulated one whose clock runs
+            # fast, the commands' round trips are a good part of a second): their profiles, and the
+            # transient's dead time, run from here, else the first window meets the transient
             t_start = clock.now()
-            read = move_both(self.station, leg[0] % 360.0, leg[1] % 360.0, self.settings,
-                             self.interrupts.critical, (leg[0] - start[0], leg[1] - start[1]))
+            read = wait_both(self.station, leg[0] % 360.0, leg[1] % 360.0, self.settings)
             travel = float(move_time(np.array(start), np.array(leg), self.settings.speed_dps,
                                      self.settings.accel_dps2, unwrapped=True))
             self._last_move = (start, leg, min(t_start + travel, clock.now()))

@@ -4,7 +4,10 @@ test on a moving window (hardware_protocols.md §4.3).
 What biases a point is the transient left in the *window mean*. The tables stop with the output
 trailing them by the first-order lag integrated along the move (`labcal.run.motion`), Δv; from the
 end of the motion it fades as Δv·e^{−t/τ}, so a window of N samples dt apart that starts t_w after
-the stop carries a bias Δv·e^{−t_w/τ}·m, with m = mean over the window of e^{−(i+½)·dt/τ}. The
+the stop carries a bias Δv·e^{−t_w/τ}·m, with m = mean over the window of e^{−i·dt/τ}: a sample is
+counted from the start of its sweep, where a scanning DMM's first channel integrates (counted from
+the sweep's middle, the first channel's first sample kept 3–9σ of transient on the emulated 34970A
+and a third of the first windows failed the slope test). The
 dead time is the t_w at which that bias is the noise of the mean, σ/√N: no test on noisy samples
 could resolve a smaller transient, and a larger one would bias the point. It runs from the motion's
 end, so the clamp overlaps it. Then a window is accepted when, on every channel, (1) its
@@ -51,8 +54,9 @@ class Verdict:
 
 
 def window_fade(settings: SettleSettings, sample_s: float) -> float:
-    """m: the mean of e^{−(i+½)·dt/τ} over a window of N samples dt apart (1 when dt is unknown)."""
-    i = np.arange(settings.samples) + 0.5
+    """m: the mean of e^{−i·dt/τ} over a window of N sweeps dt apart (1 when dt is unknown), each
+    sweep's sample taken at its start: the first channel's, the one nearest the transient."""
+    i = np.arange(settings.samples)
     return float(np.mean(np.exp(-i * sample_s / settings.tau_s)))
 
 
