@@ -69,25 +69,50 @@ def _refit(volts: np.ndarray) -> np.ndarray:
     return np.linalg.lstsq(DESIGN, volts, rcond=None)[0]
 
 
-def _sensitivity(name: str, groups: np.ndarray) -> np.ndarray:
-    """∂X/∂(error ``name`` of each group), 4×3×n_groups, by refitting readings made with the error."""
+def _sensitivity(name: str, patterns: np.ndarray) -> np.ndarray:
+    """∂X/∂(error ``name`` of each input), 4×3×n_inputs, by refitting readings made with the error:
+    input m moves misalignment ``name`` at point k by patterns[k, m] per unit."""
     delta, columns = 1e-6, []
-    for g in np.unique(groups):
-        mask = (groups == g).astype(float)
-        plus = _refit(_volts(Misalignment(**{name: delta * mask})))
-        minus = _refit(_volts(Misalignment(**{name: -delta * mask})))
+    for pattern in patterns.T:
+        plus = _refit(_volts(Misalignment(**{name: delta * pattern})))
+        minus = _refit(_volts(Misalignment(**{name: -delta * pattern})))
         columns.append((plus - minus) / (2 * delta))
     return np.stack(columns, axis=-1)
 
 
+def _per_group(groups: np.ndarray) -> np.ndarray:
+    """One input per group: 1 at the group's points, 0 elsewhere (K × n_groups)."""
+    return np.stack([(groups == g).astype(float) for g in np.unique(groups)], axis=1)
+
+
+def _harmonics(angle_deg: np.ndarray) -> np.ndarray:
+    """A smooth table's error: harmonics 1–3 of the table angle, cos and sin (K × 6)."""
+    a = np.radians(angle_deg)
+    return np.column_stack([f(h * a) for f in (np.cos, np.sin) for h in (1, 2, 3)])
+
+
 def _u_of(half_width: float, names: tuple[str, ...], groups: np.ndarray) -> np.ndarray:
     """Each coefficient's standard uncertainty from independent rectangular errors ±half_width."""
-    jac = np.concatenate([_sensitivity(n, groups) for n in names], axis=-1)
+    jac = np.concatenate([_sensitivity(n, _per_group(groups)) for n in names], axis=-1)
     return half_width / SQRT3 * np.sqrt(np.sum(jac**2, axis=-1))
+
+
+def _u_of_table(half_width: float, names: tuple[str, ...], groups: np.ndarray, angle_deg: np.ndarray
+                ) -> np.ndarray:
+    """A table error in its two shapes (issue 23): a rough table, one rectangular error ±half_width per
+    table angle (u = a/√3), and a smooth one, six harmonic amplitudes of u²/3 each; independent, so
+    their variances add."""
+    rough = _u_of(half_width, names, groups)
+    jac = np.concatenate([_sensitivity(n, _harmonics(angle_deg)) for n in names], axis=-1)
+    smooth = half_width / SQRT3 / np.sqrt(3.0) * np.sqrt(np.sum(jac**2, axis=-1))
+    return np.hypot(rough, smooth)
 
 
 PITCH_GROUPS = np.concatenate([np.repeat([0, 1, 2, 3], 3), np.repeat([0, 1, 2, 4], 3)])
 ROLL_GROUPS = np.round(np.mod(_R, 360.0) / 120.0).astype(int)
+# each point's table angle as the table stood (315° is −45°, 359.9999996° is 0°)
+PITCH_ANGLES = np.concatenate([np.repeat([-45.0, 0.0, 45.0, 80.5], 3), np.repeat([-45.0, 0.0, 45.0, 80.0], 3)])
+ROLL_ANGLES = 120.0 * ROLL_GROUPS
 MOUNT_GROUPS = (_Y != 0).astype(int)
 
 INPUTS = TypeBInputs(dmm_reading=3.5e-5, dmm_range_v=5e-5, pitch_index=2 * ARCSEC, pitch_wobble=3 * ARCSEC,
@@ -122,11 +147,12 @@ def test_each_type_b_row_of_the_coefficients_is_what_refitting_the_disturbed_rea
         "DMM accuracy, % of range": np.vstack([np.full(3, 5e-5 / SQRT3), np.zeros((3, 3))]),
         # ΔT moves every B by c_B ΔT and every S by c_S S ΔT, one input for all
         "temperature": np.vstack([np.full(3, 1e-4), 2e-5 * np.abs(S)]) * 1.5 / SQRT3,
-        # the tables' errors repeat at each table angle: a (pitch) and f (roll) add to the table angles
-        "pitch table index accuracy": _u_of(2 * ARCSEC, ("a",), PITCH_GROUPS),
-        "pitch table wobble": _u_of(3 * ARCSEC, ("d", "f"), PITCH_GROUPS),
-        "roll table index accuracy": _u_of(4 * ARCSEC, ("f",), ROLL_GROUPS),
-        "roll table wobble": _u_of(5 * ARCSEC, ("e", "k"), ROLL_GROUPS),
+        # the tables' errors are functions of the table angle: a (pitch) and f (roll) add to the table
+        # angles, one error per angle (rough) and harmonics 1–3 of it (smooth)
+        "pitch table index accuracy": _u_of_table(2 * ARCSEC, ("a",), PITCH_GROUPS, PITCH_ANGLES),
+        "pitch table wobble": _u_of_table(3 * ARCSEC, ("d", "f"), PITCH_GROUPS, PITCH_ANGLES),
+        "roll table index accuracy": _u_of_table(4 * ARCSEC, ("f",), ROLL_GROUPS, ROLL_ANGLES),
+        "roll table wobble": _u_of_table(5 * ARCSEC, ("e", "k"), ROLL_GROUPS, ROLL_ANGLES),
         "mount repeatability": _u_of(6 * ARCSEC, ("e", "f", "k"), MOUNT_GROUPS),
         "one new reading (instrument repeatability)": np.zeros((4, 3)),
         "local gravity": np.zeros((4, 3)),
