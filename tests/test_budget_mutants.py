@@ -180,7 +180,7 @@ def test_rows_state_their_inputs_in_their_own_units(cal):
         "roll table wobble": ("B", "rectangular", "arcsec"),
         "mount repeatability": ("B", "rectangular", "arcsec"),
         "temperature": ("B", "rectangular", "K"),
-        "local gravity": ("B", "—", "g"),
+        "local gravity": ("B", "rectangular", "g"),
     }
     for name, half in (("pitch table index accuracy", 2), ("pitch table wobble", 3),
                        ("roll table index accuracy", 4), ("roll table wobble", 5),
@@ -190,8 +190,11 @@ def test_rows_state_their_inputs_in_their_own_units(cal):
     assert rows["DMM accuracy, % of reading"].u == pytest.approx(3.5e-5 / SQRT3, rel=1e-12)
     assert rows["DMM accuracy, % of range"].u == pytest.approx(5e-5 / SQRT3, rel=1e-12)
     assert rows["temperature"].u == pytest.approx(1.5 / SQRT3, rel=1e-12)
-    assert rows["local gravity"].u == 0.0 and rows["local gravity"].components == ()
-    assert rows["local gravity"].dof == np.inf  # no component: nothing limits it
+    # |g| where used within ±5e-4 of the calibration's (the estimator's prior): u = 5e-4/√3, in g; it
+    # reaches pitch and roll through the estimator, not the coefficients or outputs: no component
+    assert rows["local gravity"].u == pytest.approx(5e-4 / SQRT3, rel=1e-12)
+    assert rows["local gravity"].components == () and rows["local gravity"].added
+    assert rows["local gravity"].dof == np.inf  # a stated distribution: nothing limits it
     # the Type A rows carry the fit's 24 − 4 = 20 degrees of freedom
     assert rows["calibration fit (coefficients)"].dof == 20
     assert rows["one new reading (instrument repeatability)"].dof == 20
