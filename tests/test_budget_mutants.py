@@ -279,27 +279,51 @@ def _dg(p: float, r: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             np.array([0.0, cp * cr, -cp * sr]))
 
 
+U_GRAVITY = 5e-4 / SQRT3  # the estimator's prior on local |g|: within ±5e-4 of the calibration's
+
+
+def _estimator(p: float, r: float, w: np.ndarray) -> np.ndarray:
+    """A = ∂(pitch, roll)/∂v of the sphere estimator with S = I, B = 0: parameters (p, r, m), m = |g|,
+    outputs m·g(p, r), so J = [∂g/∂p, ∂g/∂r, g] (columns), and the prior m = 1 ± U_GRAVITY adds
+    P = 1/U_GRAVITY² to m's normal equation: A = first two rows of (JᵀWJ + P e_m e_mᵀ)⁻¹ JᵀW."""
+    g, dp, dr = _dg(p, r)
+    J = np.column_stack([dp, dr, g])
+    N = J.T @ np.diag(w) @ J + np.diag([0.0, 0.0, 1.0 / U_GRAVITY**2])
+    return np.asarray(np.linalg.solve(N, J.T @ np.diag(w))[:2])
+
+
+def _k(nu: np.ndarray) -> np.ndarray:
+    """k = t₀.₉₇₅ at ν_eff truncated to the integer below (GUM G.4.1 note 1), from scipy."""
+    return np.asarray(stats.t.ppf(0.975, np.floor(nu)))
+
+
 def test_a_new_readings_noise_reaches_pitch_and_roll_as_the_geometry_says():
-    """Equal weights and orthogonal ∂g/∂p, ∂g/∂r: A = [∂g/∂p; ∂g/∂r / cos²p], so u_pitch = σ and
-    u_roll = σ / cos p; ν_eff from the three sensors' shares σ²(∂g/∂p)_j² with their own ν."""
+    """Equal weights and orthogonal ∂g/∂p, ∂g/∂r, g: the prior on |g| only moves m, and A = [∂g/∂p;
+    ∂g/∂r / cos²p], so u_pitch = σ and u_roll = σ / cos p; ν_eff from the three sensors' shares
+    σ²(∂g/∂p)_j² with their own ν; k at ν truncated."""
     p, r = np.radians(60.0), np.radians(20.0)
     cal = _hand_cal()
     out = propagate(cal, sources(cal, TypeBInputs()), p, r)
-    _, dp, dr = _dg(p, r)
+    g, dp, dr = _dg(p, r)
+    np.testing.assert_allclose(_estimator(p, r, np.full(3, SIGMA**-2)), [dp, dr / np.cos(p) ** 2],
+                               atol=1e-12)  # the hand form is the estimator's, prior included
     np.testing.assert_allclose(out.contributions["one new reading (instrument repeatability)"][0],
                                [SIGMA, SIGMA / np.cos(p)], rtol=1e-9)
     np.testing.assert_allclose(out.u_c[0], [SIGMA, 2 * SIGMA], rtol=1e-9)  # cos 60° = ½
     nu = [1.0 / np.sum(d**4 / DOF) for d in (dp, dr / np.linalg.norm(dr))]
     np.testing.assert_allclose(out.nu_eff[0], nu, rtol=1e-9)
-    np.testing.assert_allclose(out.k[0], stats.t.ppf(0.975, nu), rtol=1e-7)
-    np.testing.assert_allclose(out.U[0], stats.t.ppf(0.975, nu) * np.array([SIGMA, 2 * SIGMA]), rtol=1e-7)
+    assert np.all(np.floor(nu) < nu)  # ν is not whole here: the truncation shows in k
+    np.testing.assert_allclose(out.k[0], _k(nu), rtol=1e-7)
+    np.testing.assert_allclose(out.U[0], _k(nu) * np.array([SIGMA, 2 * SIGMA]), rtol=1e-7)
     np.testing.assert_allclose(out.pitch, [p])
     np.testing.assert_allclose(out.roll, [r])
 
 
 def test_the_fits_covariance_reaches_pitch_and_roll_through_f_of_z():
     """C_j = c·I: var(fᵀδX_j) = c |f|² = 2c (|g| = 1), the same for every sensor, so the weights stay
-    equal and the fit row gives √(2c) in pitch, √(2c)/cos p in roll; ν_eff adds both rows' shares."""
+    equal and the fit row gives √(2c) in pitch, √(2c)/cos p in roll. A sensor's fit covariance and its
+    new reading's variance come from its one residual variance estimate: one Welch–Satterthwaite term
+    per sensor, (2c + σ²) d_j², with that sensor's ν."""
     p, r = np.radians(30.0), np.radians(-70.0)
     cal = _hand_cal(C_FIT)
     out = propagate(cal, sources(cal, TypeBInputs()), p, r)
@@ -309,9 +333,10 @@ def test_the_fits_covariance_reaches_pitch_and_roll_through_f_of_z():
                                [fit_u, fit_u / np.cos(p)], rtol=1e-9)
     u_c = np.sqrt(2 * C_FIT + SIGMA**2) * np.array([1.0, 1.0 / np.cos(p)])
     np.testing.assert_allclose(out.u_c[0], u_c, rtol=1e-9)
-    shares = [(2 * C_FIT * d**2) ** 2 + (SIGMA**2 * d**2) ** 2 for d in (dp, dr / np.cos(p) ** 2)]
-    nu = [u**4 / np.sum(s / DOF) for u, s in zip(u_c, shares, strict=True)]
+    shares = [((2 * C_FIT + SIGMA**2) * d**2) ** 2 for d in (dp, dr / np.cos(p) ** 2)]
+    nu = np.array([u**4 / np.sum(s / DOF) for u, s in zip(u_c, shares, strict=True)])
     np.testing.assert_allclose(out.nu_eff[0], nu, rtol=1e-9)
+    np.testing.assert_allclose(out.k[0], _k(nu), rtol=1e-7)
     coef = coefficient_budget(sources(cal, TypeBInputs()))
     np.testing.assert_allclose(coef.u_c, np.full((4, 3), np.sqrt(C_FIT)), rtol=1e-12)
     np.testing.assert_allclose(coef.nu_eff, np.broadcast_to(DOF, (4, 3)), rtol=1e-12)
@@ -335,7 +360,43 @@ def test_dmm_and_temperature_reach_pitch_and_roll_as_the_geometry_says():
     np.testing.assert_allclose(c["DMM accuracy, % of reading"][0], gain, rtol=1e-9)
     temp = 1e-4 * 2.0 / SQRT3 * np.abs([dp.sum(), a_roll.sum()])
     np.testing.assert_allclose(c["temperature"][0], temp, rtol=1e-9, atol=1e-15)
-    np.testing.assert_allclose(c["local gravity"][0], [0.0, 0.0])
+    # Local |g| = 1 + δ scales v along g: A·g·δ = (∂g/∂p·g, ∂g/∂r·g/cos²p)·δ = 0, the prior's m takes
+    # it all. Exact zero by hand; the solver's rounding leaves ~eps·‖N⁻¹‖/u ≈ 1e-18 rad, 13 orders
+    # below the other rows here, hence atol 1e-15 rad.
+    np.testing.assert_allclose(_estimator(p, r, np.full(3, SIGMA**-2)) @ g, [0.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(c["local gravity"][0], [0.0, 0.0], atol=1e-15)
+    # A gain common to the three channels (one ADC) is the same scaling along g: no angle moves
+    common = propagate(cal, sources(cal, replace(inputs, common=("dmm_reading",))), p, r)
+    np.testing.assert_allclose(common.contributions["DMM accuracy, % of reading"][0], [0.0, 0.0], atol=1e-15)
+    assert gain.min() > 1e-6  # while independent gains move both angles
+
+
+def test_unequal_weights_let_the_prior_on_gravity_into_pitch_and_roll():
+    """One new reading's σ_j different per sensor (σ, 2σ, σ/2): the weights differ, ∂g/∂p, ∂g/∂r and g
+    are no longer orthogonal under W, and the prior matters. A from (JᵀWJ + P e_m e_mᵀ)⁻¹ JᵀW by numpy;
+    the new-reading row is √(Σ_j A_aj² σ_j²); local |g| = 1 + δ (rectangular ±5e-4) moves the
+    estimate by A·g·δ, so the local gravity row is |A·g|·5e-4/√3."""
+    p, r = np.radians(40.0), np.radians(25.0)
+    sd = SIGMA * np.array([1.0, 2.0, 0.5])
+    cal = replace(_hand_cal(), reading_var=sd**2)
+    out = propagate(cal, sources(cal, TypeBInputs()), p, r)
+    g, dp, dr = _dg(p, r)
+    A = _estimator(p, r, sd**-2.0)
+    no_prior = np.linalg.solve(np.column_stack([dp, dr, g]).T @ np.diag(sd**-2.0)
+                               @ np.column_stack([dp, dr, g]), np.column_stack([dp, dr, g]).T
+                               @ np.diag(sd**-2.0))[:2]
+    assert np.abs(A - no_prior).max() > 0.01 * np.abs(A).max()  # the prior changes A here
+    reading = np.sqrt(np.sum(A**2 * sd**2, axis=1))
+    np.testing.assert_allclose(out.contributions["one new reading (instrument repeatability)"][0], reading,
+                               rtol=1e-9)
+    gravity_row = np.abs(A @ g) * U_GRAVITY
+    assert gravity_row.min() > 1e-6  # a real share in both angles
+    np.testing.assert_allclose(out.contributions["local gravity"][0], gravity_row, rtol=1e-9)
+    np.testing.assert_allclose(out.u_c[0], np.hypot(reading, gravity_row), rtol=1e-9)
+    # ν_eff: the readings' shares (A_aj σ_j)² with ν_j, the prior's with ν = ∞
+    nu = np.array([out.u_c[0, a] ** 4 / np.sum((A[a] * sd) ** 4 / DOF) for a in range(2)])
+    np.testing.assert_allclose(out.nu_eff[0], nu, rtol=1e-9)
+    np.testing.assert_allclose(out.k[0], _k(nu), rtol=1e-7)
 
 
 def test_at_pitch_90_only_pitch_is_estimated():
