@@ -111,7 +111,8 @@ def _u_of_table(half_width: float, names: tuple[str, ...], groups: np.ndarray, a
 PITCH_GROUPS = np.concatenate([np.repeat([0, 1, 2, 3], 3), np.repeat([0, 1, 2, 4], 3)])
 ROLL_GROUPS = np.round(np.mod(_R, 360.0) / 120.0).astype(int)
 # each point's table angle as the table stood (315° is −45°, 359.9999996° is 0°)
-PITCH_ANGLES = np.concatenate([np.repeat([-45.0, 0.0, 45.0, 80.5], 3), np.repeat([-45.0, 0.0, 45.0, 80.0], 3)])
+PITCH_ANGLES = np.concatenate([np.repeat([-45.0, 0.0, 45.0, 80.5], 3),
+                               np.repeat([-45.0, 0.0, 45.0, 80.0], 3)])
 ROLL_ANGLES = 120.0 * ROLL_GROUPS
 MOUNT_GROUPS = (_Y != 0).astype(int)
 
@@ -546,18 +547,21 @@ def test_welch_satterthwaite_counts_one_degree_of_freedom_and_stays_quiet():
 WORDING = {
     "calibration fit (coefficients)": "residual standard error, or the lack-of-fit mean square where "
                                       "replication shows bias (Tripp & Tcheng §8)",
-    "DMM accuracy, % of reading": "10 V range at 10 PLC",
-    "DMM accuracy, % of range": "10 V range at 10 PLC",
+    "DMM accuracy, % of reading": "independent between the channels; 10 V range at 10 PLC",
+    "DMM accuracy, % of range": "independent between the channels; 10 V range at 10 PLC",
     "DMM noise": "included in the fit's Type A (the residuals contain it); not added again",
-    "pitch table index accuracy": "one error per table angle, repeated wherever the table returns to it",
+    "pitch table index accuracy": "a function of the table angle, repeated wherever the table returns to it: "
+                                  "one error per angle, and harmonics 1–3 of the angle, each with the "
+                                  "stated u (a rough and a smooth table)",
     "mount repeatability": "pitch, roll and yaw of the plate, one error per mounting; from the station "
                            "file (no mount was seated twice)",
     "temperature": "temperature coefficients × half the range observed during the run",
     "device misalignment estimates": "the device model's estimates of a…k, applied as corrections: each "
                                      "one's standard uncertainty from the joint fit, through the fit's "
                                      "projection (their correlations are not carried)",
-    "local gravity": "cancels: outputs are fitted against gravity normalised to 1 g and attitude is a "
-                     "direction",
+    "local gravity": "where the instrument is used |g| may differ from the calibration's by up to ±0.0005 "
+                     "(latitude, height): the sphere estimator takes |g| as unknown within that (a prior), "
+                     "so it follows the direction; its share is what the prior leaves in pitch and roll",
 }
 
 
@@ -571,6 +575,13 @@ def test_each_row_says_on_the_certificate_what_it_computed(cal):
         assert rows[name].note == note, name
     for name in ("pitch table wobble", "roll table index accuracy", "roll table wobble"):
         assert rows[name].note == WORDING["pitch table index accuracy"]
+    # a scanning DMM's gain declared common (what it does to pitch and roll is checked above)
+    common = {r.name: r for r in sources(cal, replace(inputs, common=("dmm_reading",)))}
+    assert common["DMM accuracy, % of reading"].note == ("one error common to the three channels (one ADC "
+                                                         "scans them); 10 V range at 10 PLC")
+    assert common["DMM accuracy, % of range"].note == WORDING["DMM accuracy, % of range"]
+    assert _row(sources(cal, TypeBInputs()), "DMM accuracy, % of reading").note == \
+        "independent between the channels"  # no conditions stated: no dangling "; "
     assert rows["one new reading (instrument repeatability)"].note == ""
     assert (rows["DMM noise"].unit, rows["device misalignment estimates"].unit) == ("V", "arcsec")
     assert rows["local gravity"].added is True
