@@ -4,10 +4,12 @@ Coefficients: each bench error is applied to noise-free readings as the bench wo
 off by δ at one angle, a plate seated off by δ for one mounting, a DMM reading ε too high), the
 readings are refitted with numpy's lstsq on the nominal design, and the change of X per unit error is
 the sensitivity (central difference, exact to δ²); GUM: u = half-width/√3 for a rectangular input,
-contributions add in quadrature. Pitch and roll: a hand-built calibration with S = I, where the
-estimator's sensitivities are the gravity derivatives written out in the test (∂g/∂p ⟂ ∂g/∂r,
-|∂g/∂p| = 1, |∂g/∂r| = cos p), ν_eff by Welch–Satterthwaite written out (GUM G.2b) and k from scipy's
-Student t.
+contributions add in quadrature; a table's error in both shapes the budget states (one per table
+angle, and harmonics 1–3 of the angle at u²/3 each). Pitch and roll: a hand-built calibration with
+S = I, where the estimator's sensitivities are the gravity derivatives written out in the test
+(∂g/∂p ⟂ ∂g/∂r ⟂ g, |∂g/∂p| = 1, |∂g/∂r| = cos p), with the |g| column and the prior on |g| in numpy
+where unequal weights let it matter, ν_eff by Welch–Satterthwaite written out (GUM G.2b) and k from
+scipy's Student t at ν_eff truncated to the integer below (GUM G.4.1 note 1).
 """
 
 from __future__ import annotations
