@@ -313,7 +313,7 @@ def test_a_new_readings_noise_reaches_pitch_and_roll_as_the_geometry_says():
     np.testing.assert_allclose(out.contributions["one new reading (instrument repeatability)"][0],
                                [SIGMA, SIGMA / np.cos(p)], rtol=1e-9)
     np.testing.assert_allclose(out.u_c[0], [SIGMA, 2 * SIGMA], rtol=1e-9)  # cos 60° = ½
-    nu = [1.0 / np.sum(d**4 / DOF) for d in (dp, dr / np.linalg.norm(dr))]
+    nu = np.array([1.0 / np.sum(d**4 / DOF) for d in (dp, dr / np.linalg.norm(dr))])
     np.testing.assert_allclose(out.nu_eff[0], nu, rtol=1e-9)
     assert np.all(np.floor(nu) < nu)  # ν is not whole here: the truncation shows in k
     np.testing.assert_allclose(out.k[0], _k(nu), rtol=1e-7)
