@@ -4,10 +4,12 @@ Coefficients: each bench error is applied to noise-free readings as the bench wo
 off by δ at one angle, a plate seated off by δ for one mounting, a DMM reading ε too high), the
 readings are refitted with numpy's lstsq on the nominal design, and the change of X per unit error is
 the sensitivity (central difference, exact to δ²); GUM: u = half-width/√3 for a rectangular input,
-contributions add in quadrature. Pitch and roll: a hand-built calibration with S = I, where the
-estimator's sensitivities are the gravity derivatives written out in the test (∂g/∂p ⟂ ∂g/∂r,
-|∂g/∂p| = 1, |∂g/∂r| = cos p), ν_eff by Welch–Satterthwaite written out (GUM G.2b) and k from scipy's
-Student t.
+contributions add in quadrature; a table's error in both shapes the budget states (one per table
+angle, and harmonics 1–3 of the angle at u²/3 each). Pitch and roll: a hand-built calibration with
+S = I, where the estimator's sensitivities are the gravity derivatives written out in the test
+(∂g/∂p ⟂ ∂g/∂r ⟂ g, |∂g/∂p| = 1, |∂g/∂r| = cos p), with the |g| column and the prior on |g| in numpy
+where unequal weights let it matter, ν_eff by Welch–Satterthwaite written out (GUM G.2b) and k from
+scipy's Student t at ν_eff truncated to the integer below (GUM G.4.1 note 1).
 """
 
 from __future__ import annotations
@@ -69,25 +71,51 @@ def _refit(volts: np.ndarray) -> np.ndarray:
     return np.linalg.lstsq(DESIGN, volts, rcond=None)[0]
 
 
-def _sensitivity(name: str, groups: np.ndarray) -> np.ndarray:
-    """∂X/∂(error ``name`` of each group), 4×3×n_groups, by refitting readings made with the error."""
+def _sensitivity(name: str, patterns: np.ndarray) -> np.ndarray:
+    """∂X/∂(error ``name`` of each input), 4×3×n_inputs, by refitting readings made with the error:
+    input m moves misalignment ``name`` at point k by patterns[k, m] per unit."""
     delta, columns = 1e-6, []
-    for g in np.unique(groups):
-        mask = (groups == g).astype(float)
-        plus = _refit(_volts(Misalignment(**{name: delta * mask})))
-        minus = _refit(_volts(Misalignment(**{name: -delta * mask})))
+    for pattern in patterns.T:
+        plus = _refit(_volts(Misalignment(**{name: delta * pattern})))
+        minus = _refit(_volts(Misalignment(**{name: -delta * pattern})))
         columns.append((plus - minus) / (2 * delta))
     return np.stack(columns, axis=-1)
 
 
+def _per_group(groups: np.ndarray) -> np.ndarray:
+    """One input per group: 1 at the group's points, 0 elsewhere (K × n_groups)."""
+    return np.stack([(groups == g).astype(float) for g in np.unique(groups)], axis=1)
+
+
+def _harmonics(angle_deg: np.ndarray) -> np.ndarray:
+    """A smooth table's error: harmonics 1–3 of the table angle, cos and sin (K × 6)."""
+    a = np.radians(angle_deg)
+    return np.column_stack([f(h * a) for f in (np.cos, np.sin) for h in (1, 2, 3)])
+
+
 def _u_of(half_width: float, names: tuple[str, ...], groups: np.ndarray) -> np.ndarray:
     """Each coefficient's standard uncertainty from independent rectangular errors ±half_width."""
-    jac = np.concatenate([_sensitivity(n, groups) for n in names], axis=-1)
+    jac = np.concatenate([_sensitivity(n, _per_group(groups)) for n in names], axis=-1)
     return half_width / SQRT3 * np.sqrt(np.sum(jac**2, axis=-1))
+
+
+def _u_of_table(half_width: float, names: tuple[str, ...], groups: np.ndarray, angle_deg: np.ndarray
+                ) -> np.ndarray:
+    """A table error in its two shapes (issue 23): a rough table, one rectangular error ±half_width per
+    table angle (u = a/√3), and a smooth one, six harmonic amplitudes of u²/3 each; independent, so
+    their variances add."""
+    rough = _u_of(half_width, names, groups)
+    jac = np.concatenate([_sensitivity(n, _harmonics(angle_deg)) for n in names], axis=-1)
+    smooth = half_width / SQRT3 / np.sqrt(3.0) * np.sqrt(np.sum(jac**2, axis=-1))
+    return np.hypot(rough, smooth)
 
 
 PITCH_GROUPS = np.concatenate([np.repeat([0, 1, 2, 3], 3), np.repeat([0, 1, 2, 4], 3)])
 ROLL_GROUPS = np.round(np.mod(_R, 360.0) / 120.0).astype(int)
+# each point's table angle as the table stood (315° is −45°, 359.9999996° is 0°)
+PITCH_ANGLES = np.concatenate([np.repeat([-45.0, 0.0, 45.0, 80.5], 3),
+                               np.repeat([-45.0, 0.0, 45.0, 80.0], 3)])
+ROLL_ANGLES = 120.0 * ROLL_GROUPS
 MOUNT_GROUPS = (_Y != 0).astype(int)
 
 INPUTS = TypeBInputs(dmm_reading=3.5e-5, dmm_range_v=5e-5, pitch_index=2 * ARCSEC, pitch_wobble=3 * ARCSEC,
@@ -122,11 +150,12 @@ def test_each_type_b_row_of_the_coefficients_is_what_refitting_the_disturbed_rea
         "DMM accuracy, % of range": np.vstack([np.full(3, 5e-5 / SQRT3), np.zeros((3, 3))]),
         # ΔT moves every B by c_B ΔT and every S by c_S S ΔT, one input for all
         "temperature": np.vstack([np.full(3, 1e-4), 2e-5 * np.abs(S)]) * 1.5 / SQRT3,
-        # the tables' errors repeat at each table angle: a (pitch) and f (roll) add to the table angles
-        "pitch table index accuracy": _u_of(2 * ARCSEC, ("a",), PITCH_GROUPS),
-        "pitch table wobble": _u_of(3 * ARCSEC, ("d", "f"), PITCH_GROUPS),
-        "roll table index accuracy": _u_of(4 * ARCSEC, ("f",), ROLL_GROUPS),
-        "roll table wobble": _u_of(5 * ARCSEC, ("e", "k"), ROLL_GROUPS),
+        # the tables' errors are functions of the table angle: a (pitch) and f (roll) add to the table
+        # angles, one error per angle (rough) and harmonics 1–3 of it (smooth)
+        "pitch table index accuracy": _u_of_table(2 * ARCSEC, ("a",), PITCH_GROUPS, PITCH_ANGLES),
+        "pitch table wobble": _u_of_table(3 * ARCSEC, ("d", "f"), PITCH_GROUPS, PITCH_ANGLES),
+        "roll table index accuracy": _u_of_table(4 * ARCSEC, ("f",), ROLL_GROUPS, ROLL_ANGLES),
+        "roll table wobble": _u_of_table(5 * ARCSEC, ("e", "k"), ROLL_GROUPS, ROLL_ANGLES),
         "mount repeatability": _u_of(6 * ARCSEC, ("e", "f", "k"), MOUNT_GROUPS),
         "one new reading (instrument repeatability)": np.zeros((4, 3)),
         "local gravity": np.zeros((4, 3)),
@@ -154,7 +183,7 @@ def test_rows_state_their_inputs_in_their_own_units(cal):
         "roll table wobble": ("B", "rectangular", "arcsec"),
         "mount repeatability": ("B", "rectangular", "arcsec"),
         "temperature": ("B", "rectangular", "K"),
-        "local gravity": ("B", "—", "g"),
+        "local gravity": ("B", "rectangular", "g"),
     }
     for name, half in (("pitch table index accuracy", 2), ("pitch table wobble", 3),
                        ("roll table index accuracy", 4), ("roll table wobble", 5),
@@ -164,8 +193,11 @@ def test_rows_state_their_inputs_in_their_own_units(cal):
     assert rows["DMM accuracy, % of reading"].u == pytest.approx(3.5e-5 / SQRT3, rel=1e-12)
     assert rows["DMM accuracy, % of range"].u == pytest.approx(5e-5 / SQRT3, rel=1e-12)
     assert rows["temperature"].u == pytest.approx(1.5 / SQRT3, rel=1e-12)
-    assert rows["local gravity"].u == 0.0 and rows["local gravity"].components == ()
-    assert rows["local gravity"].dof == np.inf  # no component: nothing limits it
+    # |g| where used within ±5e-4 of the calibration's (the estimator's prior): u = 5e-4/√3, in g; it
+    # reaches pitch and roll through the estimator, not the coefficients or outputs: no component
+    assert rows["local gravity"].u == pytest.approx(5e-4 / SQRT3, rel=1e-12)
+    assert rows["local gravity"].components == () and rows["local gravity"].added
+    assert rows["local gravity"].dof == np.inf  # a stated distribution: nothing limits it
     # the Type A rows carry the fit's 24 − 4 = 20 degrees of freedom
     assert rows["calibration fit (coefficients)"].dof == 20
     assert rows["one new reading (instrument repeatability)"].dof == 20
@@ -250,27 +282,51 @@ def _dg(p: float, r: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             np.array([0.0, cp * cr, -cp * sr]))
 
 
+U_GRAVITY = 5e-4 / SQRT3  # the estimator's prior on local |g|: within ±5e-4 of the calibration's
+
+
+def _estimator(p: float, r: float, w: np.ndarray) -> np.ndarray:
+    """A = ∂(pitch, roll)/∂v of the sphere estimator with S = I, B = 0: parameters (p, r, m), m = |g|,
+    outputs m·g(p, r), so J = [∂g/∂p, ∂g/∂r, g] (columns), and the prior m = 1 ± U_GRAVITY adds
+    P = 1/U_GRAVITY² to m's normal equation: A = first two rows of (JᵀWJ + P e_m e_mᵀ)⁻¹ JᵀW."""
+    g, dp, dr = _dg(p, r)
+    J = np.column_stack([dp, dr, g])
+    N = J.T @ np.diag(w) @ J + np.diag([0.0, 0.0, 1.0 / U_GRAVITY**2])
+    return np.asarray(np.linalg.solve(N, J.T @ np.diag(w))[:2])
+
+
+def _k(nu: np.ndarray) -> np.ndarray:
+    """k = t₀.₉₇₅ at ν_eff truncated to the integer below (GUM G.4.1 note 1), from scipy."""
+    return np.asarray(stats.t.ppf(0.975, np.floor(nu)))
+
+
 def test_a_new_readings_noise_reaches_pitch_and_roll_as_the_geometry_says():
-    """Equal weights and orthogonal ∂g/∂p, ∂g/∂r: A = [∂g/∂p; ∂g/∂r / cos²p], so u_pitch = σ and
-    u_roll = σ / cos p; ν_eff from the three sensors' shares σ²(∂g/∂p)_j² with their own ν."""
+    """Equal weights and orthogonal ∂g/∂p, ∂g/∂r, g: the prior on |g| only moves m, and A = [∂g/∂p;
+    ∂g/∂r / cos²p], so u_pitch = σ and u_roll = σ / cos p; ν_eff from the three sensors' shares
+    σ²(∂g/∂p)_j² with their own ν; k at ν truncated."""
     p, r = np.radians(60.0), np.radians(20.0)
     cal = _hand_cal()
     out = propagate(cal, sources(cal, TypeBInputs()), p, r)
-    _, dp, dr = _dg(p, r)
+    g, dp, dr = _dg(p, r)
+    np.testing.assert_allclose(_estimator(p, r, np.full(3, SIGMA**-2)), [dp, dr / np.cos(p) ** 2],
+                               atol=1e-12)  # the hand form is the estimator's, prior included
     np.testing.assert_allclose(out.contributions["one new reading (instrument repeatability)"][0],
                                [SIGMA, SIGMA / np.cos(p)], rtol=1e-9)
     np.testing.assert_allclose(out.u_c[0], [SIGMA, 2 * SIGMA], rtol=1e-9)  # cos 60° = ½
-    nu = [1.0 / np.sum(d**4 / DOF) for d in (dp, dr / np.linalg.norm(dr))]
+    nu = np.array([1.0 / np.sum(d**4 / DOF) for d in (dp, dr / np.linalg.norm(dr))])
     np.testing.assert_allclose(out.nu_eff[0], nu, rtol=1e-9)
-    np.testing.assert_allclose(out.k[0], stats.t.ppf(0.975, nu), rtol=1e-7)
-    np.testing.assert_allclose(out.U[0], stats.t.ppf(0.975, nu) * np.array([SIGMA, 2 * SIGMA]), rtol=1e-7)
+    assert np.all(np.floor(nu) < nu)  # ν is not whole here: the truncation shows in k
+    np.testing.assert_allclose(out.k[0], _k(nu), rtol=1e-7)
+    np.testing.assert_allclose(out.U[0], _k(nu) * np.array([SIGMA, 2 * SIGMA]), rtol=1e-7)
     np.testing.assert_allclose(out.pitch, [p])
     np.testing.assert_allclose(out.roll, [r])
 
 
 def test_the_fits_covariance_reaches_pitch_and_roll_through_f_of_z():
     """C_j = c·I: var(fᵀδX_j) = c |f|² = 2c (|g| = 1), the same for every sensor, so the weights stay
-    equal and the fit row gives √(2c) in pitch, √(2c)/cos p in roll; ν_eff adds both rows' shares."""
+    equal and the fit row gives √(2c) in pitch, √(2c)/cos p in roll. A sensor's fit covariance and its
+    new reading's variance come from its one residual variance estimate: one Welch–Satterthwaite term
+    per sensor, (2c + σ²) d_j², with that sensor's ν."""
     p, r = np.radians(30.0), np.radians(-70.0)
     cal = _hand_cal(C_FIT)
     out = propagate(cal, sources(cal, TypeBInputs()), p, r)
@@ -280,9 +336,10 @@ def test_the_fits_covariance_reaches_pitch_and_roll_through_f_of_z():
                                [fit_u, fit_u / np.cos(p)], rtol=1e-9)
     u_c = np.sqrt(2 * C_FIT + SIGMA**2) * np.array([1.0, 1.0 / np.cos(p)])
     np.testing.assert_allclose(out.u_c[0], u_c, rtol=1e-9)
-    shares = [(2 * C_FIT * d**2) ** 2 + (SIGMA**2 * d**2) ** 2 for d in (dp, dr / np.cos(p) ** 2)]
-    nu = [u**4 / np.sum(s / DOF) for u, s in zip(u_c, shares, strict=True)]
+    shares = [((2 * C_FIT + SIGMA**2) * d**2) ** 2 for d in (dp, dr / np.cos(p) ** 2)]
+    nu = np.array([u**4 / np.sum(s / DOF) for u, s in zip(u_c, shares, strict=True)])
     np.testing.assert_allclose(out.nu_eff[0], nu, rtol=1e-9)
+    np.testing.assert_allclose(out.k[0], _k(nu), rtol=1e-7)
     coef = coefficient_budget(sources(cal, TypeBInputs()))
     np.testing.assert_allclose(coef.u_c, np.full((4, 3), np.sqrt(C_FIT)), rtol=1e-12)
     np.testing.assert_allclose(coef.nu_eff, np.broadcast_to(DOF, (4, 3)), rtol=1e-12)
@@ -306,7 +363,43 @@ def test_dmm_and_temperature_reach_pitch_and_roll_as_the_geometry_says():
     np.testing.assert_allclose(c["DMM accuracy, % of reading"][0], gain, rtol=1e-9)
     temp = 1e-4 * 2.0 / SQRT3 * np.abs([dp.sum(), a_roll.sum()])
     np.testing.assert_allclose(c["temperature"][0], temp, rtol=1e-9, atol=1e-15)
-    np.testing.assert_allclose(c["local gravity"][0], [0.0, 0.0])
+    # Local |g| = 1 + δ scales v along g: A·g·δ = (∂g/∂p·g, ∂g/∂r·g/cos²p)·δ = 0, the prior's m takes
+    # it all. Exact zero by hand; the solver's rounding leaves ~eps·‖N⁻¹‖/u ≈ 1e-18 rad, 13 orders
+    # below the other rows here, hence atol 1e-15 rad.
+    np.testing.assert_allclose(_estimator(p, r, np.full(3, SIGMA**-2)) @ g, [0.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(c["local gravity"][0], [0.0, 0.0], atol=1e-15)
+    # A gain common to the three channels (one ADC) is the same scaling along g: no angle moves
+    common = propagate(cal, sources(cal, replace(inputs, common=("dmm_reading",))), p, r)
+    np.testing.assert_allclose(common.contributions["DMM accuracy, % of reading"][0], [0.0, 0.0], atol=1e-15)
+    assert gain.min() > 1e-6  # while independent gains move both angles
+
+
+def test_unequal_weights_let_the_prior_on_gravity_into_pitch_and_roll():
+    """One new reading's σ_j different per sensor (σ, 2σ, σ/2): the weights differ, ∂g/∂p, ∂g/∂r and g
+    are no longer orthogonal under W, and the prior matters. A from (JᵀWJ + P e_m e_mᵀ)⁻¹ JᵀW by numpy;
+    the new-reading row is √(Σ_j A_aj² σ_j²); local |g| = 1 + δ (rectangular ±5e-4) moves the
+    estimate by A·g·δ, so the local gravity row is |A·g|·5e-4/√3."""
+    p, r = np.radians(40.0), np.radians(25.0)
+    sd = SIGMA * np.array([1.0, 2.0, 0.5])
+    cal = replace(_hand_cal(), reading_var=sd**2)
+    out = propagate(cal, sources(cal, TypeBInputs()), p, r)
+    g, dp, dr = _dg(p, r)
+    A = _estimator(p, r, sd**-2.0)
+    no_prior = np.linalg.solve(np.column_stack([dp, dr, g]).T @ np.diag(sd**-2.0)
+                               @ np.column_stack([dp, dr, g]), np.column_stack([dp, dr, g]).T
+                               @ np.diag(sd**-2.0))[:2]
+    assert np.abs(A - no_prior).max() > 0.01 * np.abs(A).max()  # the prior changes A here
+    reading = np.sqrt(np.sum(A**2 * sd**2, axis=1))
+    np.testing.assert_allclose(out.contributions["one new reading (instrument repeatability)"][0], reading,
+                               rtol=1e-9)
+    gravity_row = np.abs(A @ g) * U_GRAVITY
+    assert gravity_row.min() > 1e-6  # a real share in both angles
+    np.testing.assert_allclose(out.contributions["local gravity"][0], gravity_row, rtol=1e-9)
+    np.testing.assert_allclose(out.u_c[0], np.hypot(reading, gravity_row), rtol=1e-9)
+    # ν_eff: the readings' shares (A_aj σ_j)² with ν_j, the prior's with ν = ∞
+    nu = np.array([out.u_c[0, a] ** 4 / np.sum((A[a] * sd) ** 4 / DOF) for a in range(2)])
+    np.testing.assert_allclose(out.nu_eff[0], nu, rtol=1e-9)
+    np.testing.assert_allclose(out.k[0], _k(nu), rtol=1e-7)
 
 
 def test_at_pitch_90_only_pitch_is_estimated():
@@ -456,18 +549,21 @@ def test_welch_satterthwaite_counts_one_degree_of_freedom_and_stays_quiet():
 WORDING = {
     "calibration fit (coefficients)": "residual standard error, or the lack-of-fit mean square where "
                                       "replication shows bias (Tripp & Tcheng §8)",
-    "DMM accuracy, % of reading": "10 V range at 10 PLC",
-    "DMM accuracy, % of range": "10 V range at 10 PLC",
+    "DMM accuracy, % of reading": "independent between the channels; 10 V range at 10 PLC",
+    "DMM accuracy, % of range": "independent between the channels; 10 V range at 10 PLC",
     "DMM noise": "included in the fit's Type A (the residuals contain it); not added again",
-    "pitch table index accuracy": "one error per table angle, repeated wherever the table returns to it",
+    "pitch table index accuracy": "a function of the table angle, repeated wherever the table returns to it: "
+                                  "one error per angle, and harmonics 1–3 of the angle, each with the "
+                                  "stated u (a rough and a smooth table)",
     "mount repeatability": "pitch, roll and yaw of the plate, one error per mounting; from the station "
                            "file (no mount was seated twice)",
     "temperature": "temperature coefficients × half the range observed during the run",
     "device misalignment estimates": "the device model's estimates of a…k, applied as corrections: each "
                                      "one's standard uncertainty from the joint fit, through the fit's "
                                      "projection (their correlations are not carried)",
-    "local gravity": "cancels: outputs are fitted against gravity normalised to 1 g and attitude is a "
-                     "direction",
+    "local gravity": "where the instrument is used |g| may differ from the calibration's by up to ±0.0005 "
+                     "(latitude, height): the sphere estimator takes |g| as unknown within that (a prior), "
+                     "so it follows the direction; its share is what the prior leaves in pitch and roll",
 }
 
 
@@ -481,6 +577,13 @@ def test_each_row_says_on_the_certificate_what_it_computed(cal):
         assert rows[name].note == note, name
     for name in ("pitch table wobble", "roll table index accuracy", "roll table wobble"):
         assert rows[name].note == WORDING["pitch table index accuracy"]
+    # a scanning DMM's gain declared common (what it does to pitch and roll is checked above)
+    common = {r.name: r for r in sources(cal, replace(inputs, common=("dmm_reading",)))}
+    assert common["DMM accuracy, % of reading"].note == ("one error common to the three channels (one ADC "
+                                                         "scans them); 10 V range at 10 PLC")
+    assert common["DMM accuracy, % of range"].note == WORDING["DMM accuracy, % of range"]
+    assert _row(sources(cal, TypeBInputs()), "DMM accuracy, % of reading").note == \
+        "independent between the channels"  # no conditions stated: no dangling "; "
     assert rows["one new reading (instrument repeatability)"].note == ""
     assert (rows["DMM noise"].unit, rows["device misalignment estimates"].unit) == ("V", "arcsec")
     assert rows["local gravity"].added is True
