@@ -150,7 +150,7 @@ def test_numbers_are_finite_decimals():
 # --- the axis on its emulator (the SMC100 state machine of §2.2, through pyserial on a pty) --------
 import logging  # noqa: E402
 
-from emulators import bench_fixtures, no_leaks  # noqa: E402, F401 - fixture
+from emulators import bench_fixtures, no_leaks, until_still  # noqa: E402, F401 - fixture
 
 from labcal.config.emulation import FaultKind  # noqa: E402
 from labcal.drivers.errors import DeviceFault  # noqa: E402
@@ -242,6 +242,7 @@ def test_a_stop_is_sent_even_when_the_state_cannot_be_read(smc_slow, caplog):
     warning = [r.getMessage() for r in caplog.records if "state unreadable" in r.getMessage()]
     assert len(warning) == 1 and warning[0].startswith(f"{device}: state unreadable before stopping (")
     assert warning[0].endswith("); sending ST anyway")
+    until_still(bench.roll)  # ST decelerates the stage (MOVING until still, §2.2), then READY
     assert bench.roll.status().words == "READY from MOVING (33h)"  # it stopped
 
 
