@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -21,8 +23,11 @@ def lab_database(tmp_path, monkeypatch):
     monkeypatch.setenv("XDG_CONFIG_DIRS", str(tmp_path / "site-config"))
     monkeypatch.delenv("LABCAL_CONFIG", raising=False)
     # and works in its own folder: a run's default runs/ lands there, and `python -m labcal.cli` finds
-    # the installed labcal, not the source tree's labcal/ (which lacks drivers/ and sim/) beside it
-    monkeypatch.chdir(tmp_path)
+    # the installed labcal, not the source tree's labcal/ (which lacks drivers/ and sim/) beside it.
+    # Not under mutation testing (tools/mutation.py): mutmut's trampoline reads its configuration
+    # from the current folder, and there the tree is laid out as installed anyway.
+    if "MUTANT_UNDER_TEST" not in os.environ:
+        monkeypatch.chdir(tmp_path)
     return tmp_path / "labcal.sqlite"
 
 

@@ -109,8 +109,9 @@ def stage(name: str, target: Target, baseline: bool = False) -> Path:
         'source_paths = ["labcal"]\n'
         f'only_mutate = ["{target.installed}"]\n'
         f"pytest_add_cli_args_test_selection = {tests!r}\n"
-        # -p no:randomly and -x keep a run short; the timeout stops a mutant that loops on a socket.
-        'pytest_add_cli_args = ["-x", "-q", "-p", "no:cacheprovider", "-p", "no:randomly"]\n'
+        # -p no:randomly and -x keep a run short; the timeout stops a mutant that loops on a socket;
+        # -n 0: mutmut records which tests reach a mutant in its own process, not in xdist's workers
+        'pytest_add_cli_args = ["-x", "-q", "-n", "0", "-p", "no:cacheprovider", "-p", "no:randomly"]\n'
     ).replace("'", '"')
     (where / "pyproject.toml").write_text(pyproject)
     return where
