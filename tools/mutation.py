@@ -63,11 +63,14 @@ TARGETS: dict[str, Target] = {
     "modbus": Target("labcal/drivers/modbus.py",
                      ("tests/test_modbus_frames.py", "tests/test_az_defects.py", "tests/test_transcripts.py",
                       "tests/test_driver_logging.py")),
+    # the stops, window checks and diagnoses of issue 22 are tested through both drivers
     "newport_smc100": Target("labcal/drivers/newport_smc100.py",
-                             ("tests/test_newport_smc100.py", "tests/test_transcripts.py")),
+                             ("tests/test_newport_smc100.py", "tests/test_transcripts.py",
+                              "tests/test_stop_all.py", "tests/test_axis_diagnoses.py")),
     "oriental_az": Target("labcal/drivers/oriental_az.py",
                           ("tests/test_modbus_frames.py", "tests/test_az_defects.py",
-                           "tests/test_transcripts.py")),
+                           "tests/test_transcripts.py", "tests/test_oriental_az.py",
+                           "tests/test_stop_all.py", "tests/test_axis_diagnoses.py")),
 }
 
 # Folders of the repository and where the wheel installs them (pyproject [tool.setuptools.package-dir]).
