@@ -284,7 +284,13 @@ import time  # noqa: E402
 
 from emulators import emulated  # noqa: E402
 
-from labcal.drivers.errors import NoReply  # noqa: E402
+from labcal.drivers.errors import DriverError, NoReply  # noqa: E402
+
+
+def spelled_as_the_manual(sent):
+    """Every request as §2.2 writes it: address, the upper-case two-letter mnemonic, value or `?`."""
+    for request in sent:
+        assert re.fullmatch(r"[12][A-Z]{2}(\?|-?[0-9.]*)", request), request
 
 
 def _controller(emulation, table):
@@ -383,6 +389,8 @@ def test_prepare_sets_the_station_files_speed_and_acceleration(tmp_path, no_leak
         assert (bench.pitch.ask("VA?"), bench.pitch.ask("AC?")) == ("15", "60")
         sent = list(emulation.faults["pitch"].recent)
         assert "1OR" in sent and "1VA15" in sent and "1AC60" in sent
+        assert sent[:5] == ["1SL?", "1SR?", "1TS", "1OR", "1TE"]
+        spelled_as_the_manual(sent)
         assert bench.pitch.status().words == "READY from HOMING (32h)"
 
 
@@ -397,6 +405,7 @@ def test_prepare_enables_a_disabled_stage_without_homing_it(smc):
     bench.pitch.prepare()
     sent = list(emulation.faults["pitch"].recent)
     assert "1MM1" in sent and "1OR" not in sent
+    spelled_as_the_manual(sent)
     assert bench.pitch.status().words == "READY from DISABLE (34h)"
 
 
@@ -428,7 +437,11 @@ def test_the_homing_timeout_message_word_for_word(tmp_path, no_leaks):  # noqa: 
             r"homing from there takes longer", message.split("): ", 1)[1])
         assert found is not None, message
         assert 0.0 < float(found[1]) < 90.0  # on its way home from 90°
-        assert "1ST" in list(emulation.faults["pitch"].recent)
+        sent = list(emulation.faults["pitch"].recent)
+        assert "1ST" in sent
+        spelled_as_the_manual(sent)
+        after_stop = sent[sent.index("1ST"):]
+        assert after_stop[:4] == ["1ST", "1TE", "1TP", "1TS"]  # stopped, then where and in which state
 
 
 def test_a_stop_sent_without_te_has_its_refusal_read_by_the_stop(smc, caplog):
@@ -541,3 +554,97 @@ def test_a_lost_move_on_a_disabled_stage_is_a_fault_word_for_word(smc):
     with pytest.raises(DeviceFault) as err:
         bench.pitch.move_to(30)
     assert str(err.value) == f"{bench.pitch.device}: after PA30.000000: DISABLE from READY (3Ch)"
+
+
+def test_the_lost_acknowledgement_warning_names_the_failure(smc, caplog):
+    """The reply to TE lost once: the warning quotes the link's failure ("no reply within 0.1 s",
+    0.1 s being QUICK's timeout_s) word for word, and the controller is asked TS, then TH (§2.2)."""
+    emulation, bench = smc
+    bench.pitch.prepare()
+    emulation.faults["pitch"].recent.clear()
+    emulation.faults["pitch"].add(Fault(FaultKind.NO_REPLY, match="TE"))
+    caplog.set_level(logging.WARNING, logger="labcal.drivers.newport_smc100")
+    bench.pitch.move_to(30)
+    assert [r.getMessage() for r in caplog.records if r.name == "labcal.drivers.newport_smc100"] == [
+        f"{bench.pitch.device}: the reply to TE after PA30.000000 was lost (no reply within 0.1 s); "
+        "asking the state instead"]
+    sent = list(emulation.faults["pitch"].recent)
+    assert sent[sent.index("1PA30.000000"):][:4] == ["1PA30.000000", "1TE", "1TS", "1TH"]
+    spelled_as_the_manual(sent)
+
+
+def test_a_stop_with_the_state_unreadable_quotes_why(smc_slow, caplog):
+    emulation, bench = smc_slow
+    caplog.set_level(logging.WARNING, logger="labcal.drivers.newport_smc100")
+    bench.roll.prepare()
+    bench.roll.move_to(150)
+    emulation.faults["roll"].add(Fault(FaultKind.NO_REPLY, count=3, match="TS"))  # every try of TS
+    bench.roll.stop()
+    device = bench.roll.device
+    hint = "check that it is powered and cabled, and its address and line settings in the station file"
+    assert [r.getMessage() for r in caplog.records if "state unreadable" in r.getMessage()] == [
+        f"{device}: state unreadable before stopping ({device}: no reply within 0.1 s; {hint}); "
+        "sending ST anyway"]
+    until_still(bench.roll)
+
+
+def test_homing_again_forgets_the_last_target(smc):
+    """After a reset (`1RS`, §2.2: back to NOT REFERENCED) prepare homes the stage to 0°; waiting then
+    expects no earlier move's target (30°) but where homing left the stage."""
+    emulation, bench = smc
+    bench.pitch.prepare()
+    bench.pitch.move_to(30)
+    assert bench.pitch.wait_in_position(60) == pytest.approx(30.0)
+    bench.pitch.do("RS")
+    assert bench.pitch.status().words == "NOT REFERENCED from reset (0Ah)"
+    bench.pitch.prepare()
+    assert bench.pitch.wait_in_position(60) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_exchanges_are_critical_sections_of_a_run(smc):
+    """A run hands its links its critical section: each query and each command with its TE runs
+    inside one (a Ctrl-C waits for the exchange to end)."""
+    from contextlib import contextmanager
+
+    emulation, bench = smc
+    entered: list[int] = []
+
+    @contextmanager
+    def section():
+        entered.append(len(emulation.faults["pitch"].recent))
+        yield
+
+    bench.pitch.link.critical = section
+    try:
+        assert bench.pitch.ask("VA?") == "20"  # the emulator's power-up speed
+        assert len(entered) == 1
+        bench.pitch.do("VA10")
+        assert len(entered) == 2
+    finally:
+        bench.pitch.link.critical = None
+
+
+def test_link_failures_on_a_stop_or_a_move_name_the_table(smc):
+    """The port gone (emulators closed): the error names the table and says what to check."""
+    emulation, bench = smc
+    bench.pitch.prepare()
+    emulation.close()
+    device = bench.pitch.device
+    with pytest.raises(DriverError) as err:  # a link error (PortClosed)
+        bench.pitch.send_stop()
+    assert str(err.value).startswith(f"{device}: ")
+    assert str(err.value).endswith("; check the cable and the port")
+    with pytest.raises(DriverError) as err:  # LinkLost
+        bench.pitch._go(30.0)  # PA's own exchange (move_to would fail first at TP)
+    assert str(err.value).startswith(f"{device}: cannot open ")
+    hint = "check the cable, the port name, and that no other program holds the port"
+    assert str(err.value).endswith(f"; {hint}")
+
+
+def test_retries_default_to_two(smc):
+    """The station file's default (retries = 2: three tries) is also the driver's."""
+    from labcal.drivers.newport_smc100 import Smc100Axis
+
+    emulation, bench = smc
+    axis = Smc100Axis("pitch", bench.pitch.link, 1, emulation.rig.clock, speed_dps=20, accel_dps2=80)
+    assert axis.tries == 3
