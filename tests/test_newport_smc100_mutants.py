@@ -648,3 +648,17 @@ def test_retries_default_to_two(smc):
     emulation, bench = smc
     axis = Smc100Axis("pitch", bench.pitch.link, 1, emulation.rig.clock, speed_dps=20, accel_dps2=80)
     assert axis.tries == 3
+
+
+def test_a_set_point_one_unit_of_the_sixth_decimal_off_counts_as_taken(smc):
+    """TH answers with six decimals as PA was sent (§2.2 `1TH` → set-point): one unit of the last
+    decimal (1e-6°, 0.0036″) is within the set-point tolerance, inclusive; the PA is not sent again.
+    Homed, the set-point is 0.000000; PA0.000001 is lost with its acknowledgement."""
+    emulation, bench = smc
+    bench.pitch.prepare()
+    emulation.faults["pitch"].add(Fault(FaultKind.LOST_REQUEST, match="PA"))
+    emulation.faults["pitch"].add(Fault(FaultKind.NO_REPLY, match="TE"))
+    bench.pitch.move_to(0.000001)
+    sent = list(emulation.faults["pitch"].recent)
+    assert sent.count("1PA0.000001") == 1 and "1TH" in sent
+    assert bench.pitch.wait_in_position(60) == pytest.approx(0.0, abs=1e-5)
