@@ -522,14 +522,15 @@ def test_a_move_whose_acknowledgement_was_lost_is_not_sent_twice(smc, caplog):
 def test_a_moving_stage_after_a_lost_acknowledgement_is_taken_as_moving(smc_slow, caplog):
     emulation, bench = smc_slow
     caplog.set_level(logging.WARNING, logger="labcal.drivers.newport_smc100")
-    bench.roll.prepare()
-    emulation.faults["roll"].add(Fault(FaultKind.NO_REPLY, match="TE"))
-    bench.roll.move_to(150)  # 7.5 s at 20°/s: about 0.4 s here, still MOVING after the 0.1 s timeout
-    sent = list(emulation.faults["roll"].recent)
-    assert sent.count("2PA150.000000") == 1 and "2TH" not in sent  # MOVING: no set-point needed
+    bench.pitch.prepare()
+    emulation.faults["pitch"].add(Fault(FaultKind.NO_REPLY, match="TE"))
+    # 270° at 20°/s: 13.5 s, 0.7 s here; still MOVING after the lost TE (0.1 s) and the drain (0.1 s)
+    bench.pitch.move_to(270, travel_deg=270)
+    sent = list(emulation.faults["pitch"].recent)
+    assert sent.count("1PA270.000000") == 1 and "1TH" not in sent  # MOVING: no set-point needed
     assert not [r for r in caplog.records if "did not arrive" in r.getMessage()]
-    bench.roll.stop()
-    until_still(bench.roll)
+    bench.pitch.stop()
+    until_still(bench.pitch)
 
 
 def test_a_move_sent_again_is_not_retried(smc):
