@@ -187,6 +187,19 @@ def test_lost_scan_starts_are_measured_again_not_journaled_stale(tmp_path, capsy
     assert log.count("the INIT was lost") == 3, log
 
 
+def recovered_run(capsys, station, run_dir) -> str:
+    """An emulated run that must complete every point with the fit at the truth to 0.1 mV, despite
+    its injected fault; returns its journal as `labcal log --json` prints it."""
+    code, out, err = cli(capsys, "run", "--station", str(station), *EMULATE, "--yes", "--out", str(run_dir),
+                         "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    truth = np.array(json.loads((run_dir / "run.json").read_text())["simulated_truth"]["coefficients"])
+    assert summary["points"] == 64 and summary["points_failed"] == 0 and "Fault" not in err
+    assert np.max(np.abs(np.array(summary["fit"]["coefficients"]) - truth)) < 1e-4
+    return cli(capsys, "log", str(run_dir), "--json")[1]
+
+
 @pytest.mark.parametrize("station", ["smc100-serial", "az-modbus-tcp"])
 def test_a_power_cycled_dmm_is_recovered_and_the_run_completes(station, tmp_path, capsys, no_leaks):  # noqa: F811
     """Issue 22 item 5, end to end: the DMM is switched off and on mid-run (on RS-232 it is then deaf
@@ -196,15 +209,7 @@ def test_a_power_cycled_dmm_is_recovered_and_the_run_completes(station, tmp_path
     put the sensitivities 500 ppm, 2.5 mV/g, off). Before, the run paused on "no reply" for good."""
     cycle = faults('device = "dmm"\nkind = "power-cycle"\nmatch = "FETC"\nafter = 40')
     path = private_file(station, tmp_path, cycle, QUICK)
-    run_dir = tmp_path / "run"
-    code, out, err = cli(capsys, "run", "--station", str(path), *EMULATE, "--yes", "--out", str(run_dir),
-                         "--json")
-    assert code == 0, err
-    summary = json.loads(out)
-    truth = np.array(json.loads((run_dir / "run.json").read_text())["simulated_truth"]["coefficients"])
-    assert summary["points"] == 64 and summary["points_failed"] == 0 and "Fault" not in err
-    assert np.max(np.abs(np.array(summary["fit"]["coefficients"]) - truth)) < 1e-4
-    log = cli(capsys, "log", str(run_dir), "--json")[1]
+    log = recovered_run(capsys, path, tmp_path / "run")
     assert "it was powered off and on (*ESR? power-on bit); configuring it again" in log
 
 
@@ -236,13 +241,5 @@ def test_a_dmm_reset_while_the_operator_remounts_is_found_at_the_mount(tmp_path,
     # the *ESR? of the second mount's check (the first mount's goes through)
     at_mount = faults('device = "dmm"\nkind = "power-cycle"\nmatch = "^\\\\*ESR"\nafter = 1')
     path = private_file("smc100-serial", tmp_path, at_mount, QUICK)
-    run_dir = tmp_path / "run"
-    code, out, err = cli(capsys, "run", "--station", str(path), *EMULATE, "--yes", "--out", str(run_dir),
-                         "--json")
-    assert code == 0, err
-    summary = json.loads(out)
-    truth = np.array(json.loads((run_dir / "run.json").read_text())["simulated_truth"]["coefficients"])
-    assert summary["points"] == 64 and summary["points_failed"] == 0 and "Fault" not in err
-    assert np.max(np.abs(np.array(summary["fit"]["coefficients"]) - truth)) < 1e-4
-    log = cli(capsys, "log", str(run_dir), "--json")[1]
+    log = recovered_run(capsys, path, tmp_path / "run")
     assert "at the mount: it was powered off and on (*ESR? power-on bit); configuring it again" in log, log
