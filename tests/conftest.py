@@ -91,3 +91,6 @@ def run_on_rig(rig, plan_name: str, tmp_path, settings=None, display=None, opera
         operator = operator or AutoOperator(quiet_console())
         return calibrate(plan, text, rig.station(), "simulated rig", operator,
                          settings or SequencerSettings(), run_dir, journal, display)
+
+
+pytest_plugins = ["services"]  # postgres_cluster, postgres_url, browser: tests/services.py

@@ -1,0 +1,166 @@
+"""The lab database's schema, once, for SQLite and PostgreSQL alike (SQLAlchemy Core).
+
+`METADATA` is the schema at the newest revision; `labcal/run/migrations/` (Alembic) is its history,
+revision by revision, and is what creates and upgrades a database of either backend: a new database
+and an upgraded one cannot differ, because both are made by the same steps. A test checks that the
+migrations arrive at exactly `METADATA` (tables, columns, types, indexes), so neither can drift.
+
+Column names are the journal's (`vx`, `vy`, `vz`, `sd_vx`, …) on both backends: the readings a
+PostgreSQL query returns are named as in readings.csv and in the station's own journal.
+"""
+
+from __future__ import annotations
+
+from sqlalchemy import (
+    Column,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    LargeBinary,
+    MetaData,
+    PrimaryKeyConstraint,
+    Table,
+    Text,
+    text,
+)
+
+METADATA = MetaData()
+
+runs = Table(
+    "runs", METADATA,
+    Column("id", Integer, primary_key=True),
+    Column("run_dir", Text, nullable=False),
+    Column("plan_name", Text, nullable=False),
+    Column("plan_text", Text, nullable=False),
+    Column("plan_hash", Text, nullable=False),
+    Column("station_text", Text, nullable=False),
+    Column("station_hash", Text, nullable=False),
+    Column("software_version", Text, nullable=False),
+    Column("instrument_serial", Text),
+    Column("device_id", Text),
+    Column("operator", Text),
+    Column("settings", Text, nullable=False),
+    Column("metadata", Text, nullable=False),
+    Column("started_utc", Text, nullable=False),
+    Column("status", Text, nullable=False),
+    Column("reason", Text),
+    Column("ended_utc", Text),
+    Column("uuid", Text),
+    # revision 0006: the lab as a whole
+    Column("station", Text),  # the station's name (its lab-wide identity), for the lab's view
+    Column("points_total", Integer),  # every point of the run's schedule, for "N / TOTAL"
+    Index("runs_by_uuid", "uuid", unique=True),
+)
+
+points = Table(
+    "points", METADATA,
+    Column("run_id", Integer, ForeignKey("runs.id"), nullable=False),
+    Column("seq", Integer, nullable=False),
+    Column("replicate", Integer, nullable=False),
+    Column("y_deg", Float, nullable=False),
+    Column("u_deg", Float, nullable=False),
+    Column("pitch_deg", Float, nullable=False),
+    Column("roll_deg", Float, nullable=False),
+    Column("pitch_read", Float),
+    Column("roll_read", Float),
+    Column("attempt", Integer, nullable=False),
+    Column("status", Text, nullable=False),
+    Column("t_start", Float),
+    Column("t_end", Float),
+    Column("utc", Text, nullable=False),
+    Column("n_samples", Integer, nullable=False),
+    Column("vx", Float), Column("vy", Float), Column("vz", Float),
+    Column("sd_vx", Float), Column("sd_vy", Float), Column("sd_vz", Float),
+    Column("temp_c", Float),
+    Column("settle_s", Float),
+    Column("settle_verdict", Text),
+    Column("samples", LargeBinary),
+    PrimaryKeyConstraint("run_id", "seq"),
+)
+
+events = Table(
+    "events", METADATA,
+    Column("id", Integer, primary_key=True),
+    Column("run_id", Integer, ForeignKey("runs.id"), nullable=False),
+    Column("utc", Text, nullable=False),
+    Column("station_time", Float),
+    Column("kind", Text, nullable=False),
+    Column("message", Text, nullable=False),
+    Column("data", Text),
+    Index("events_by_run", "run_id", "id"),
+)
+
+certificates = Table(
+    "certificates", METADATA,
+    Column("certificate_id", Text, primary_key=True),
+    Column("serial", Text, nullable=False),
+    Column("calibrated_utc", Text, nullable=False),
+    Column("issued_utc", Text, nullable=False),
+    Column("sha256", Text, nullable=False),
+    Column("document", Text, nullable=False),
+    Index("certificates_by_serial", "serial", "calibrated_utc"),
+)
+
+run_exports = Table(
+    "run_exports", METADATA,
+    Column("run_id", Integer, ForeignKey("runs.id"), nullable=False),
+    Column("name", Text, nullable=False),
+    Column("sha256", Text, nullable=False),
+    PrimaryKeyConstraint("run_id", "name"),
+)
+
+device_estimates = Table(
+    "device_estimates", METADATA,
+    Column("device_id", Text, nullable=False),
+    Column("source", Text, nullable=False),
+    Column("calibrated_utc", Text, nullable=False),
+    Column("stored_utc", Text, nullable=False),
+    Column("document", Text, nullable=False),
+    PrimaryKeyConstraint("device_id", "source"),
+    Index("device_estimates_by_date", "device_id", "calibrated_utc"),
+)
+
+# A revoked row stays (it names who signed the certificates of the past); a name is active at most
+# once and a key is registered once, ever: a key never signs under two names, a revoked key never
+# comes back.
+approvers = Table(
+    "approvers", METADATA,
+    Column("id", Integer, primary_key=True),
+    Column("name", Text, nullable=False),
+    Column("role", Text, nullable=False),
+    Column("public_key", Text, nullable=False),
+    Column("key_id", Text, nullable=False, unique=True),
+    Column("added_utc", Text, nullable=False),
+    Column("revoked_utc", Text),
+    Index("approvers_active_name", "name", unique=True,
+          sqlite_where=text("revoked_utc IS NULL"), postgresql_where=text("revoked_utc IS NULL")),
+)
+
+settle_pools = Table(
+    "settle_pools", METADATA,
+    Column("pool_key", Text, primary_key=True),
+    Column("identity", Text, nullable=False),
+    Column("records", Integer, nullable=False),
+    Column("sources", Text, nullable=False),
+    Column("mismatch", Text, nullable=False),
+    Column("sums", LargeBinary, nullable=False),
+    Column("updated_utc", Text, nullable=False),
+)
+
+# Revision 0006: the lab server's users. Passwords and API tokens are kept only as hashes
+# (argon2 for the password; SHA-256 of a 256-bit random token, which needs no slow hash to resist
+# guessing); `role` is technician, approver or viewer. A disabled user stays, like a revoked approver.
+users = Table(
+    "users", METADATA,
+    Column("id", Integer, primary_key=True),
+    Column("name", Text, nullable=False, unique=True),
+    Column("role", Text, nullable=False),
+    Column("password_hash", Text, nullable=False),
+    Column("token_hash", Text, nullable=False, unique=True),
+    Column("created_utc", Text, nullable=False),
+    Column("disabled_utc", Text),
+)
+
+__all__ = ["METADATA", "approvers", "certificates", "device_estimates", "events", "points", "run_exports",
+           "runs", "settle_pools", "users"]
