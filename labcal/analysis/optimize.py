@@ -1,0 +1,292 @@
+"""Plan for the uncertainty the customer needs (issue 27 §2): the predicted attitude U95 of a candidate
+plan before anything moves, and a small search for the quickest plan that reaches a target.
+
+Prediction. A candidate is mounts × articulations (pitch, roll) × a measurement window of N DMM
+samples. Its calibration is predicted as the budget would see the run's fit (`labcal.analysis.budget`):
+the moment matrix R = FᵀF of the nominal design (Tripp & Tcheng §3.2, eqs. 49–50), the coefficients'
+covariance σ²R⁻¹ per sensor, and one new reading's variance σ², where σ² is what the residual variance
+of such a run is expected to be: the instrument's noise per sample over the window, σ_s²/N, plus the
+share of the tables' index and wobble errors and of the remounts that the fit cannot absorb (their
+Type B inputs as the budget has them, each through I − H of the design: E[eᵀe]/(K − L)). The Type B
+rows are the budget's own (`budget.sources`), and the attitude U95 over the usage envelope comes from
+`budget.propagate`, that is `attitude.combined_uncertainty` with `attitude.sphere_sensitivity`: the one
+estimator every stated U95 comes from, here given a predicted instead of a fitted calibration.
+
+The calibration device's misalignments a…k are never left in the coefficients: either the plan
+identifies them with the instrument (the device model, `plan audit` full rank: each one's uncertainty
+from `device_model.identifiability` enters as the budget's device-misalignment row), or they are known
+from the device's recent, in-control history and applied as a correction, whose uncertainty is that
+same row (a Type B input). Only then may a plan use fewer than the four mounts.
+
+Search. Articulations come from a candidate grid (pitch and roll on a 30° lattice); for each mount set
+they are taken by greedy forward selection maximising det R (D-optimality: the confidence ellipsoid of
+the coefficients, Tripp & Tcheng eq. 51, has volume ∝ det R^-½), so every prefix of the sequence is the
+design of that size. Every (mount set, size, window) is timed by the caller (the station's timing
+model, the tour included) and its U95 predicted; the quickest whose U95 meets the target wins. A few
+hundred evaluations: seconds, deterministic.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from labcal.analysis.budget import (
+    Calibration,
+    Propagated,
+    TypeBInputs,
+    _gravity_derivative,
+    _membership,
+    propagate,
+    sources,
+)
+from labcal.analysis.design import FOUR_MOUNTS, grid
+from labcal.analysis.device_fit import angle_error_shapes
+from labcal.analysis.device_model import Geometry, identifiability
+from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, nominal_gravity
+from labcal.analysis.models import Points
+from labcal.errors import LabcalError
+
+SQRT3 = float(np.sqrt(3.0))
+N_COEFFICIENTS = 4  # per sensor: B and the three sensitivities
+CANDIDATE_STEP_DEG = 30.0  # the articulation grid: 62 distinct attitudes, every one on the 1° index grid
+SIZES = (6, 8, 12, 16, 24, 32, 48, 64)  # articulations per mount
+WINDOWS = (4, 10, 20, 40)  # DMM samples per point (4: the sequencer's least, `SettleSettings.samples`)
+MOUNT_SETS: tuple[tuple[tuple[float, float], ...], ...] = (
+    ((0.0, 0.0),), ((0.0, 0.0), (180.0, 180.0)), tuple(FOUR_MOUNTS))
+SEARCH_GRID_STEP_DEG = 15.0  # the envelope during the search; the chosen plan is checked on the certificate's
+
+
+@dataclass(frozen=True)
+class Bench:
+    """What the prediction needs of the station and the instrument: the nominal coefficients (4×3),
+    the noise of one DMM sample (V rms), the bench's Type B inputs, and the usage envelope (degrees)."""
+
+    X: NDArray[np.float64]
+    noise_v: float
+    type_b: TypeBInputs
+    usage_pitch_deg: tuple[float, float] = (-60.0, 60.0)
+    usage_roll_deg: tuple[float, float] = (-180.0, 180.0)
+    grid_step_deg: float = 5.0
+
+
+@dataclass(frozen=True)
+class DeviceCorrection:
+    """The device's misalignments as its history knows them (radians), to be corrected for, each with
+    its standard uncertainty: what a plan of fewer mounts relies on."""
+
+    device_id: str
+    source: str  # the run whose estimate this is
+    value_rad: dict[str, float]
+    u_rad: dict[str, float]
+
+
+@dataclass(frozen=True)
+class Candidate:
+    mounts: tuple[tuple[float, float], ...]
+    points: tuple[tuple[float, float], ...]
+    samples: int
+
+    @property
+    def n_points(self) -> int:
+        return len(self.mounts) * len(self.points)
+
+
+@dataclass(frozen=True)
+class Evaluated:
+    candidate: Candidate
+    rig_time_s: float
+    u95_pitch_rad: float  # the largest over the envelope
+    u95_roll_rad: float
+    identified: bool  # the device model identifies a…k from this plan (else the correction is relied on)
+    contributions: dict[str, float] = field(default_factory=dict)  # u (rad) at the worst pitch attitude
+
+    @property
+    def u95_rad(self) -> float:
+        """The attitude U95: the larger of pitch's and roll's worst over the envelope."""
+        return max(self.u95_pitch_rad, self.u95_roll_rad)
+
+
+def envelope_attitudes(bench: Bench, step_deg: float | None = None) -> tuple[NDArray[np.float64], ...]:
+    """The usage envelope's grid (radians), as the certificate's (`documents.uncertainty.envelope`)."""
+    step = bench.grid_step_deg if step_deg is None else step_deg
+    points = np.radians(np.array(grid(*bench.usage_pitch_deg, step, *bench.usage_roll_deg, step)))
+    return points[:, 0], points[:, 1]
+
+
+def _points(c: Candidate) -> Points:
+    rows = np.array([(p, r, y, u) for y, u in c.mounts for p, r in c.points], dtype=float)
+    return Points.at(*rows.T)
+
+
+def _residual_variance(points: Points, X: NDArray[np.float64], design: NDArray[np.float64],
+                       b: TypeBInputs) -> NDArray[np.float64]:
+    """Per sensor, E[eᵀe]/(K − L) that the tables' index and wobble errors and the remounts leave in the
+    residuals of the fit: each input of the budget's (one per table angle for a rough table, harmonics
+    1–3 for a smooth one; the mean of the two, as the budget bounds by their sum) through I − H."""
+    k = len(design)
+    hat = design @ np.linalg.pinv(design)
+    rest = np.eye(k) - hat
+    total = np.zeros(3)
+    pitch_shapes = angle_error_shapes(np.radians(points.pitch_deg))
+    roll_shapes = angle_error_shapes(np.radians(points.roll_deg))
+    for names, shapes, half in ((("a",), pitch_shapes, b.pitch_index),
+                                (("d", "f"), pitch_shapes, b.pitch_wobble),
+                                (("f",), roll_shapes, b.roll_index),
+                                (("e", "k"), roll_shapes, b.roll_wobble)):
+        if half <= 0:
+            continue
+        for name in names:
+            dv = _gravity_derivative(points, name) @ X[1:]  # (K, 3) per radian
+            for basis, share in shapes:
+                r = rest @ (dv[:, None, :] * basis[:, :, None]).reshape(k, -1)
+                total += 0.5 * (half / SQRT3) ** 2 * share * np.sum(r.reshape(k, -1, 3) ** 2, axis=(0, 1))
+    if b.mount_repeatability > 0:
+        keys = np.column_stack([np.mod(points.y_deg, 360.0), np.mod(points.u_deg, 360.0)])
+        _, installation = np.unique(keys, axis=0, return_inverse=True)
+        basis = _membership(np.asarray(installation).ravel())
+        for name in ("e", "f", "k"):
+            dv = _gravity_derivative(points, name) @ X[1:]
+            r = rest @ (dv[:, None, :] * basis[:, :, None]).reshape(k, -1)
+            total += (b.mount_repeatability / SQRT3) ** 2 * np.sum(r.reshape(k, -1, 3) ** 2, axis=(0, 1))
+    return total / max(k - N_COEFFICIENTS, 1)
+
+
+def predicted_calibration(c: Candidate, bench: Bench) -> Calibration:
+    """The budget's view of the fit a run of ``c`` is expected to give (one replicate)."""
+    points = _points(c)
+    g = nominal_gravity(*(np.radians(a) for a in (points.pitch_deg, points.roll_deg, points.y_deg,
+                                                  points.u_deg)))
+    design = np.column_stack([np.ones(len(g)), g])
+    inverse = np.linalg.inv(design.T @ design)  # R⁻¹ (Tripp eq. 50)
+    reading_var = bench.noise_v**2 / c.samples + _residual_variance(points, bench.X, design, bench.type_b)
+    keys = np.column_stack([np.mod(points.y_deg, 360.0), np.mod(points.u_deg, 360.0)])
+    _, installation = np.unique(keys, axis=0, return_inverse=True)
+    return Calibration(X=bench.X, covariance=reading_var[:, None, None] * inverse[None],
+                       reading_var=reading_var,
+                       dof=np.full(3, float(len(g) - N_COEFFICIENTS)), projection=(inverse @ design.T)[:4],
+                       points=points, installation=np.asarray(installation, dtype=int).ravel())
+
+
+def identified_u(c: Candidate, bench: Bench, reading_var: NDArray[np.float64]) -> dict[str, float] | None:
+    """Each misalignment's standard uncertainty (rad) where the device model identifies a…k from
+    ``c``'s points with the instrument (`device_model.identifiability`, per µg of reading noise), else
+    None."""
+    ident = identifiability(Geometry.of_plan(list(c.points), list(c.mounts)))
+    if ident.problem():
+        return None
+    sensitivity = float(np.mean(np.abs(np.diag(bench.X[1:]))))
+    noise_ug = float(np.sqrt(np.max(reading_var))) / sensitivity * 1e6
+    return {n: ident.u_per_ug[n] * noise_ug * ARCSEC for n in MISALIGNMENT_NAMES}
+
+
+def predicted_u95(c: Candidate, bench: Bench, correction: DeviceCorrection | None,
+                  pitch: NDArray[np.float64], roll: NDArray[np.float64]) -> tuple[Propagated, bool] | None:
+    """Pitch and roll U95 (rad) a run of ``c`` is expected to state at these attitudes (radians), from
+    the budget's rows and `budget.propagate`, and whether the plan identifies a…k itself; None where
+    its misalignments would be left in the coefficients (neither identified by the plan nor known)."""
+    cal = predicted_calibration(c, bench)
+    identified = identified_u(c, bench, cal.reading_var) if len(c.mounts) == len(FOUR_MOUNTS) else None
+    device_u = correction.u_rad if correction is not None else identified
+    if device_u is None:
+        return None
+    rows = sources(cal, replace(bench.type_b, device_misalignment=dict(device_u)))
+    return propagate(cal, rows, pitch, roll), correction is None
+
+
+def evaluate(c: Candidate, bench: Bench, correction: DeviceCorrection | None, rig_time_s: float,
+             step_deg: float | None = None) -> Evaluated | None:
+    """``c``'s predicted worst U95 over the envelope (its grid at ``step_deg``, default the
+    certificate's); None where `predicted_u95` is."""
+    predicted = predicted_u95(c, bench, correction, *envelope_attitudes(bench, step_deg))
+    if predicted is None:
+        return None
+    p, identified = predicted
+    U = p.U
+    worst = int(np.nanargmax(U[:, 0]))
+    return Evaluated(c, rig_time_s, float(np.nanmax(U[:, 0])), float(np.nanmax(U[:, 1])), identified,
+                     {name: float(v[worst, 0]) for name, v in p.contributions.items()})
+
+
+def candidate_articulations(step_deg: float = CANDIDATE_STEP_DEG) -> list[tuple[float, float]]:
+    """Pitch −90…90° × roll −180…180° on a ``step_deg`` lattice; at pitch ±90° one roll only (gravity
+    lies along the roll axis there: other rolls are the same attitude)."""
+    pitches = np.arange(-90.0, 90.0 + 1e-9, step_deg)
+    rolls = np.arange(-180.0, 180.0 - 1e-9, step_deg)
+    return [(float(p), float(r)) for p in pitches for r in rolls if abs(p) < 90 or r == 0.0]
+
+
+def d_optimal_sequence(mounts: Sequence[tuple[float, float]], candidates: list[tuple[float, float]],
+                       length: int) -> list[tuple[float, float]]:
+    """Greedy forward selection maximising det R of the rows of every mount (D-optimality): each step
+    adds the articulation with the largest fᵀR⁻¹f summed over the mounts (the matrix determinant lemma
+    for a rank-one update; for several mounts the sum is its first-order form), the first on ties.
+    A small ridge starts R nonsingular; deterministic."""
+    rows = np.stack([np.column_stack([np.ones(len(candidates)), nominal_gravity(
+        *np.radians(np.array(candidates)).T, *np.radians([y, u]))]) for y, u in mounts], axis=1)  # (C, M, 4)
+    R = 1e-6 * np.eye(N_COEFFICIENTS)
+    chosen: list[int] = []
+    for _ in range(min(length, len(candidates))):
+        inv = np.linalg.inv(R)
+        gain = np.einsum("cmi,ij,cmj->c", rows, inv, rows)
+        gain[chosen] = -np.inf
+        best = int(np.argmax(gain))
+        chosen.append(best)
+        R = R + np.einsum("mi,mj->ij", rows[best], rows[best])
+    return [candidates[i] for i in chosen]
+
+
+def candidates(mount_sets: Sequence[tuple[tuple[float, float], ...]] = MOUNT_SETS,
+               sizes: Sequence[int] = SIZES, windows: Sequence[int] = WINDOWS) -> list[Candidate]:
+    """Every (mount set, size, window) of the search, articulations by `d_optimal_sequence`."""
+    grid_ = candidate_articulations()
+    out = []
+    for mounts in mount_sets:
+        sequence = d_optimal_sequence(mounts, grid_, max(sizes))
+        for n in sizes:
+            if n * len(mounts) < N_COEFFICIENTS + 2 or n > len(grid_):
+                continue
+            out += [Candidate(tuple(mounts), tuple(sequence[:n]), w) for w in windows]
+    return out
+
+
+def search(bench: Bench, correction: DeviceCorrection | None, rig_time: Callable[[Candidate], float],
+           candidate_list: list[Candidate] | None = None) -> list[Evaluated]:
+    """Every candidate that keeps the misalignments out of the coefficients, timed and predicted on the
+    search's envelope grid; quickest first. Mount sets of fewer than four only with a ``correction``."""
+    found = []
+    for c in candidate_list if candidate_list is not None else candidates():
+        if correction is None and len(c.mounts) < len(FOUR_MOUNTS):
+            continue
+        e = evaluate(c, bench, correction, rig_time(c), SEARCH_GRID_STEP_DEG)
+        if e is not None:
+            found.append(e)
+    return sorted(found, key=lambda e: (e.rig_time_s, e.u95_rad))
+
+
+def frontier(found: list[Evaluated]) -> list[Evaluated]:
+    """The candidates no other beats in both rig time and U95, quickest first."""
+    best, out = np.inf, []
+    for e in sorted(found, key=lambda e: (e.rig_time_s, e.u95_rad)):
+        if e.u95_rad < best:
+            out.append(e)
+            best = e.u95_rad
+    return out
+
+
+def choose(found: list[Evaluated], bench: Bench, correction: DeviceCorrection | None,
+           target_rad: float) -> Evaluated:
+    """The quickest candidate whose U95, checked again on the certificate's envelope grid, is within
+    ``target_rad``; one line naming the best reachable U95 where none is."""
+    for e in found:
+        if e.u95_rad > target_rad:
+            continue
+        full = evaluate(e.candidate, bench, correction, e.rig_time_s)
+        if full is not None and full.u95_rad <= target_rad:
+            return full
+    reachable = min((e.u95_rad for e in found), default=np.inf)
+    raise LabcalError(f"no candidate plan reaches an attitude U95 of {np.degrees(target_rad):.4g}°; the best "
+                      f"reachable is {np.degrees(reachable):.4g}° (raise --target-attitude-u95-deg)")
