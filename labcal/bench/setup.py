@@ -84,6 +84,16 @@ def links_fixed(config: StationFile, source: str) -> None:
                               "the station file at the addresses `labcal sim serve` printed")
 
 
+def station_timing(config: StationFile) -> Timing:
+    """A station file's pace for estimates on real hardware: one DMM sweep of its channels per sample,
+    the operator's remount allowance (`labcal run --dry-run`, `labcal plan optimize`)."""
+    from labcal.drivers.keysight_34970a import channel_time_s
+    from labcal.run.estimate import Timing
+
+    sweep_s = (3 + bool(config.dmm.temperature_channel)) * channel_time_s(config.dmm.nplc, config.dmm.line_hz)
+    return Timing(clamp_s=0.0, sample_s=sweep_s, remount_s=REMOUNT_ALLOWANCE_S)
+
+
 def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emulate: bool = False,
                      time_scale: float | None = None, seed: int | None = None,
                      start_time_s: float = 0.0, tables_at: tuple[float, float] | None = None
@@ -92,14 +102,13 @@ def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emul
     ``emulate``, started here and stopped with ``stack``). The journal keeps the file, so that a
     resume can rebuild the same station, or check that a new file describes the same bench."""
     from labcal.bench.hardware import Bench
-    from labcal.drivers.keysight_34970a import channel_time_s
     from labcal.run.estimate import Timing
 
     # injected faults are a test, not the station: a resume has none
     station = config.model_dump(mode="json", exclude={"emulation": {"faults"}})
     snapshot: dict[str, Any] = {"kind": "station", "station": station, "emulate": emulate}
-    sweep_s = (3 + bool(config.dmm.temperature_channel)) * channel_time_s(config.dmm.nplc, config.dmm.line_hz)
-    timing = Timing(clamp_s=0.0, sample_s=sweep_s, remount_s=REMOUNT_ALLOWANCE_S)
+    timing = station_timing(config)
+    sweep_s = timing.sample_s
     settle, clock, hooks = config.sequencer.settle, None, {}
     metadata: dict[str, Any] = {"station_file": source}
     if emulate:

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from labcal.commands.common import bounded, bounded_field, err, out, print_json
+from labcal.commands.common import add_db_option, bounded, bounded_field, err, out, print_json
 from labcal.errors import LabcalError
 
 if TYPE_CHECKING:
@@ -35,7 +35,7 @@ def cmd_show(args: argparse.Namespace) -> int:
 
     from labcal.config.plans import load_plan
 
-    plan, _ = load_plan(args.plan)
+    plan, _ = load_plan(args.plan, device_corrections=True)
     if args.json:
         print_json(plan.model_dump())
         return 0
@@ -103,7 +103,7 @@ def cmd_merit(args: argparse.Namespace) -> int:
     from labcal.analysis import design
     from labcal.config.plans import load_plan
 
-    plan, _ = load_plan(args.plan)
+    plan, _ = load_plan(args.plan, device_corrections=True)
     pitches = [p for p, _ in plan.points]
     calibration_range = tuple(args.pitch_range) if args.pitch_range else (min(pitches), max(pitches))
     v = design.figure_of_merit(plan, calibration_range)
@@ -162,7 +162,7 @@ def cmd_audit(args: argparse.Namespace) -> int:
     from labcal.analysis.device_model import Geometry, identifiability
     from labcal.config.plans import load_plan
 
-    plan, _ = load_plan(args.plan)
+    plan, _ = load_plan(args.plan, device_corrections=True)
     leaks = audit(plan)
     summary = audit_summary(leaks)
     ident = identifiability(Geometry.of_plan(plan.points, plan.mounts))
@@ -300,3 +300,259 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("plan", help="plan name or .toml file")
     p.add_argument("--json", action="store_true", help="print as JSON on stdout")
     p.set_defaults(func=cmd_audit)
+
+    p = actions.add_parser("optimize", help="the quickest plan whose predicted attitude U95 meets a target",
+                           description="Chooses the mounts, the articulations (greedy D-optimal over a 30° "
+                                       "grid, Tripp & Tcheng §3.2), their order (the shortest tour) and the "
+                                       "window length that minimise the predicted rig time (the station's "
+                                       "timing model of `labcal run --dry-run`, remounts included) "
+                                       "subject to "
+                                       "the predicted attitude U95 (the certificate's budget and estimator) "
+                                       "≤ the target over the usage envelope. Fewer than four mounts only "
+                                       "with --device whose history knows its misalignments; "
+                                       + CORRECTION_NOTE + ".")
+    p.add_argument("--target-attitude-u95-deg", type=bounded(float, 0, 90, lo_open=True), required=True,
+                   metavar="X",
+                   help="largest attitude U95 (°) allowed anywhere in the usage envelope, 0 < X ≤ 90")
+    p.add_argument("--station", metavar="FILE", help="station file (default: the simulated rig of --sim)")
+    p.add_argument("--device", metavar="ID",
+                   help="calibration-device id whose in-control history may replace remounts (dry runs: "
+                        "SIMULATED)")
+    add_db_option(p)
+    p.add_argument("--out", metavar="FILE.toml", help="write the plan here")
+    p.add_argument("--frontier", metavar="FILE.png", help="draw every candidate's rig time against its U95")
+    p.add_argument("--json", action="store_true", help="print as JSON on stdout")
+    p.set_defaults(func=cmd_optimize)
+
+
+# --- plan optimize (issue 27 §2) -----------------------------------------------------------------
+CORRECTION_NOTE = ("labcal run cannot apply device corrections yet: it refuses this plan until a later "
+                   "change applies them in the run and states them on the certificate")
+NORMAL_K = 1.96  # a device estimate's U95 back to u: its k is t₀.₉₇₅ at many degrees of freedom
+
+
+def _type_b(section, temperature_half_range_k: float):
+    """The budget's Type B inputs from a station's (or the simulator's) inputs, before a run: the
+    mapping `labcal.documents.uncertainty.type_b_inputs` makes from a finished run's, with the
+    temperature range given instead of observed."""
+    from labcal.analysis.budget import TypeBInputs
+
+    u = section.uncertainty
+    return TypeBInputs(
+        dmm_reading=u.dmm_reading, dmm_range_v=u.dmm_range * section.dmm.range_v, dmm_noise_v=u.dmm_noise,
+        pitch_index=u.pitch_index, pitch_wobble=u.pitch_wobble, roll_index=u.roll_index,
+        roll_wobble=u.roll_wobble, mount_repeatability=u.mount_repeatability,
+        common=section.dmm.common_inputs(u.common), temperature_half_range_k=temperature_half_range_k,
+        bias_tempco_v_per_k=u.bias_tempco, sensitivity_tempco_per_k=u.sensitivity_tempco)
+
+
+def planning_bench(station: str | None):
+    """The prediction's bench, the station's timing model and its sequencer settings: the simulated
+    rig of `labcal run --sim` (its instrument, its Type B inputs as a dry run's certificate states them,
+    its lab's temperature swing as the half-range), or a station file's (nominal instrument from its
+    [sequencer.settle], its [uncertainty] and [certificate] envelope, temperature not predicted)."""
+    import numpy as np
+
+    from labcal.analysis.optimize import Bench
+    from labcal.config.settings import CertificateSettings, SequencerSettings
+    from labcal.config.station import CertificateSection
+
+    if station is None:
+        from labcal.bench.setup import sim_station
+        from labcal.config.emulation import RigConfig
+        from labcal.documents.simulated import simulator_inputs
+
+        rig = RigConfig()
+        setup = sim_station(None, rig.seed)
+        settings = SequencerSettings(settle=setup.settle, speed_dps=rig.speed_dps, accel_dps2=rig.accel_dps2)
+        section = CertificateSection().model_copy(update={
+            "uncertainty": simulator_inputs(rig.model_dump(), setup.settle.samples)})
+        inst = rig.instrument
+        envelope = CertificateSettings()
+        bench = Bench(inst.X, inst.noise_v, _type_b(section, rig.lab_temp_swing_c),
+                      envelope.usage_pitch_deg, envelope.usage_roll_deg, envelope.grid_step_deg)
+        return bench, setup.timing, settings
+    from labcal.bench.setup import station_timing
+    from labcal.config.station import load_certificate_section, load_station
+
+    config, _ = load_station(station)
+    section = load_certificate_section(station)
+    s = config.sequencer.settle
+    settings = config.sequencer.model_copy(update={
+        "speed_dps": min(config.pitch.speed_dps, config.roll.speed_dps),
+        "accel_dps2": min(config.pitch.accel_dps2, config.roll.accel_dps2)})
+    X = np.vstack([np.zeros(3), s.sensitivity_v_per_g * np.eye(3)])
+    envelope = section.certificate
+    bench = Bench(X, s.noise_v, _type_b(section, 0.0), envelope.usage_pitch_deg, envelope.usage_roll_deg,
+                  envelope.grid_step_deg)
+    return bench, station_timing(config), settings
+
+
+def device_correction(device_id: str, db):
+    """The device's misalignments where its history knows them: at least two estimates and no flagged
+    change between the last two (in control). The latest estimate, each with u² = (U/k)² plus half the
+    square of the last change (the history's own reproducibility). (None, why) where not known."""
+    import math
+
+    from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES
+    from labcal.analysis.optimize import DeviceCorrection
+    from labcal.documents.device_history import changes, estimates_for
+
+    estimates = estimates_for(device_id, db)  # an unknown device: one line naming the known ones
+    if len(estimates) < 2:
+        return None, (f"device {device_id} has {len(estimates)} estimate(s); two are needed to judge it in "
+                      "control")
+    last = estimates[-1]
+    moved = [c for c in changes(estimates[-2:]) if c.flagged]
+    if moved:
+        return None, (f"device {device_id} changed between {moved[0].before} and {moved[0].after} "
+                      f"({', '.join(c.name for c in moved)} beyond √(U₁² + U₂²)); its misalignments are not "
+                      "known")
+    delta = {c.name: c.delta_arcsec for c in changes(estimates[-2:])}
+    return DeviceCorrection(device_id, last.source,
+                            {n: last.value_arcsec[n] * ARCSEC for n in MISALIGNMENT_NAMES},
+                            {n: math.hypot(last.U_arcsec[n] / NORMAL_K, delta[n] / math.sqrt(2)) * ARCSEC
+                             for n in MISALIGNMENT_NAMES}), ""
+
+
+def optimized_plan_toml(plan, e, correction, target_deg: float, reference) -> str:
+    """The plan file: the plan, what was predicted for it, and the device corrections it relies on."""
+    import math
+
+    from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES
+    from labcal.config.plans import DEVICE_CORRECTION, plan_toml
+
+    head = [f"# Written by labcal plan optimize --target-attitude-u95-deg {target_deg:g}.",
+            f"# Run it with --samples {e.candidate.samples} (the measurement window it was planned with).",
+            f"# Predicted: rig time {e.rig_time_s:.0f} s ({e.rig_time_s / reference.rig_time_s:.3f}× "
+            f"four-mount-64's {reference.rig_time_s:.0f} s), attitude U95 {math.degrees(e.u95_rad):.5f}° "
+            f"(pitch {e.u95_pitch_rad / ARCSEC:.2f}″, roll {e.u95_roll_rad / ARCSEC:.2f}″) over the usage "
+            "envelope."]
+    body = plan_toml(plan)
+    if correction is None:
+        return "\n".join(head) + "\n" + body
+    head.append(f"# It relies on the device corrections below; {CORRECTION_NOTE}.")
+    values = ", ".join(f"{n} = {correction.value_rad[n] / ARCSEC!r}" for n in MISALIGNMENT_NAMES)
+    us = ", ".join(f"{n} = {correction.u_rad[n] / ARCSEC!r}" for n in MISALIGNMENT_NAMES)
+    return ("\n".join(head) + "\n" + body + f"\n[{DEVICE_CORRECTION}]\n"
+            "# the device's misalignments a…k (Soto Table 1) to correct the readings' gravity for, from its\n"
+            "# latest in-control estimate; u: standard uncertainty, carried as a Type B input\n"
+            f'device_id = "{correction.device_id}"\nsource = "{correction.source}"\n'
+            f"value_arcsec = {{ {values} }}\nu_arcsec = {{ {us} }}\n")
+
+
+def cmd_optimize(args: argparse.Namespace) -> int:
+    import math
+    import os
+
+    from labcal.analysis import optimize
+    from labcal.analysis.kinematics import ARCSEC
+    from labcal.analysis.plan import Plan
+    from labcal.config.plans import load_plan
+    from labcal.run.estimate import estimate
+    from labcal.run.sequencer import schedule
+
+    if args.out and os.path.lexists(args.out):  # a plan file may be the record of a past calibration
+        raise LabcalError(f"{args.out}: exists; choose another --out (or delete it first)")
+    bench, timing, settings = planning_bench(args.station)
+    correction, why = (None, "") if args.device is None else device_correction(args.device, args.db)
+    steps: dict = {}
+
+    def rig_time(c) -> float:
+        """The station's timing model (`labcal run --dry-run`), the tour of `--order shortest` included."""
+        plan = Plan(name="candidate", mounts=list(c.mounts), points=list(c.points))
+        window = settings.settle.model_copy(update={"samples": c.samples})
+        run = settings.model_copy(update={"settle": window})
+        if (c.mounts, c.points) not in steps:  # the tour does not depend on the window
+            steps[(c.mounts, c.points)] = schedule(plan, run)
+        return estimate(plan, run, timing, steps[(c.mounts, c.points)]).total_s
+
+    fm64, _ = load_plan("four-mount-64")
+    ref = optimize.Candidate(tuple(fm64.mounts), tuple(fm64.points), settings.settle.samples)
+    reference = optimize.evaluate(ref, bench, None, rig_time(ref))
+    assert reference is not None  # four mounts identify a…k
+    target = math.radians(args.target_attitude_u95_deg)
+    found = optimize.search(bench, correction, rig_time)
+    chosen = optimize.choose(found, bench, correction, target)
+    c = chosen.candidate
+    relies = correction is not None and len(c.mounts) < 4
+    plan = Plan(name=Path(args.out).stem if args.out else "optimized",
+                description=f"optimized for attitude U95 ≤ {args.target_attitude_u95_deg:g}° "
+                            f"(labcal plan optimize, {c.samples} samples per point)",
+                mounts=list(c.mounts), points=list(c.points))
+    if args.out:
+        try:
+            with open(args.out, "x", encoding="utf-8") as f:
+                f.write(optimized_plan_toml(plan, chosen, correction if relies else None,
+                                            args.target_attitude_u95_deg, reference))
+        except OSError as exc:
+            raise LabcalError(f"{args.out}: cannot write plan ({exc.strerror})") from None
+    if args.frontier:
+        plot_frontier(found, chosen, reference, target, args.frontier)
+    doc = {"mounts": [list(m) for m in c.mounts], "points": len(c.points), "samples": c.samples,
+           "rig_time_s": chosen.rig_time_s, "u95_deg": math.degrees(chosen.u95_rad),
+           "u95_pitch_deg": math.degrees(chosen.u95_pitch_rad),
+           "u95_roll_deg": math.degrees(chosen.u95_roll_rad),
+           "target_u95_deg": args.target_attitude_u95_deg,
+           "four_mount_64": {"rig_time_s": reference.rig_time_s, "u95_deg": math.degrees(reference.u95_rad)},
+           "rig_time_ratio": chosen.rig_time_s / reference.rig_time_s,
+           "device_correction": None if not relies or correction is None else {
+               "device_id": correction.device_id, "source": correction.source,
+               "value_arcsec": {n: v / ARCSEC for n, v in correction.value_rad.items()},
+               "u_arcsec": {n: v / ARCSEC for n, v in correction.u_rad.items()}},
+           "candidates": len(found), "out": args.out}
+    if args.json:
+        print_json(doc)
+        return 0
+    if why:
+        err.print(f"[yellow]note:[/] {why}; planned with the four mounts that identify them")
+    out.print(f"optimized plan: {len(c.mounts)} mount(s) × {len(c.points)} points, {c.samples} samples per "
+              f"point: predicted rig time {chosen.rig_time_s:.0f} s = {doc['rig_time_ratio']:.3f}× "
+              f"four-mount-64's {reference.rig_time_s:.0f} s; predicted attitude U95 "
+              f"{doc['u95_deg']:.5f}° (pitch {chosen.u95_pitch_rad / ARCSEC:.2f}″, roll "
+              f"{chosen.u95_roll_rad / ARCSEC:.2f}″) ≤ {args.target_attitude_u95_deg:g}° "
+              f"(four-mount-64: {math.degrees(reference.u95_rad):.5f}°)")
+    if relies and correction is not None:
+        out.print(f"it relies on device {correction.device_id}'s misalignments from {correction.source} "
+                  f"instead of remounting; {CORRECTION_NOTE}")
+    if args.out:
+        out.print(f"written to {args.out}; run it with --samples {c.samples}")
+    if args.frontier:
+        out.print(f"frontier of rig time against U95 drawn in {args.frontier}")
+    return 0
+
+
+def plot_frontier(found, chosen, reference, target: float, path: str) -> None:
+    """Every candidate's predicted rig time against its U95, the frontier, the target and the choice."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from labcal.analysis.kinematics import ARCSEC
+    from labcal.analysis.optimize import frontier
+    from labcal.documents.plotfile import save
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for mounts, colour in ((1, "tab:blue"), (2, "tab:orange"), (4, "tab:green")):
+        pts = np.array([(e.u95_rad / ARCSEC, e.rig_time_s / 60) for e in found
+                        if len(e.candidate.mounts) == mounts])
+        if len(pts):
+            ax.scatter(pts[:, 0], pts[:, 1], s=12, color=colour, alpha=0.5, label=f"{mounts} mount(s)")
+    front = np.array([(e.u95_rad / ARCSEC, e.rig_time_s / 60) for e in frontier(found)])
+    ax.step(front[:, 0], front[:, 1], where="post", color="black", lw=1, label="frontier")
+    ax.axvline(target / ARCSEC, color="tab:red", ls="--", label="target")
+    ax.scatter([reference.u95_rad / ARCSEC], [reference.rig_time_s / 60], marker="*", s=120, color="grey",
+               label="four-mount-64")
+    ax.scatter([chosen.u95_rad / ARCSEC], [chosen.rig_time_s / 60], marker="o", s=80, facecolor="none",
+               edgecolor="tab:red", label="chosen")
+    ax.set_xlabel("predicted attitude U95, worst over the envelope (″)")
+    ax.set_ylabel("predicted rig time (min)")
+    ax.set_title("labcal plan optimize: rig time against U95", parse_math=False)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    try:
+        save(fig, path, dpi=120, bbox_inches="tight")
+    finally:
+        plt.close(fig)

@@ -38,22 +38,36 @@ def shipped_plan_summaries() -> list[dict]:
     return summaries
 
 
-def parse_plan(text: str, source: str) -> Plan:
-    """Parse and validate plan TOML; errors name the source and the field."""
-    from labcal.analysis.plan import Plan
-    from labcal.config.files import parse_model
+DEVICE_CORRECTION = "device_correction"  # the table of the device corrections a plan relies on
+CANNOT_CORRECT = "this plan relies on device corrections that labcal run cannot apply yet"
 
+
+def parse_plan(text: str, source: str, device_corrections: bool = False) -> Plan:
+    """Parse and validate plan TOML; errors name the source and the field. A plan with a
+    ``[device_correction]`` table (`labcal plan optimize --device`) counts on corrections no run applies
+    yet: refused, unless the caller only reads it (``device_corrections``: `labcal plan show`, audit)."""
+    from labcal.analysis.plan import Plan
+    from labcal.config.files import parse_model, validate_model
+
+    try:
+        data = tomllib.loads(text)
+    except (tomllib.TOMLDecodeError, RecursionError):
+        data = {}  # parse_model says what is wrong with it, in its one line
+    if DEVICE_CORRECTION in data:
+        if not device_corrections:
+            raise LabcalError(f"{source}: {CANNOT_CORRECT}")
+        return validate_model({k: v for k, v in data.items() if k != DEVICE_CORRECTION}, Plan, source)
     return parse_model(text, Plan, source)
 
 
-def load_plan(name_or_path: str) -> tuple[Plan, str]:
+def load_plan(name_or_path: str, device_corrections: bool = False) -> tuple[Plan, str]:
     """A plan by file path or by the name of a shipped plan; returns the plan and its TOML text."""
     path = Path(name_or_path)
     if path.suffix == PLAN_SUFFIX or path.exists():
         from labcal.config.files import read_text
 
         text = read_text(path, "plan")
-        return parse_plan(text, str(path)), text
+        return parse_plan(text, str(path), device_corrections), text
     plans = shipped_plans()
     if name_or_path not in plans:
         raise LabcalError(
