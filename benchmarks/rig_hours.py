@@ -15,7 +15,13 @@
    and the tour the previous `shortest` made (nearest neighbour and a 2-opt pass, kept below as
    the "before"), with the time each takes to build.
 
-Usage: python benchmarks/rig_hours.py [--seed N] [--only 64|481|tour]
+3. The optimized plan (`labcal plan optimize`, issue 27 §2) for X = 1.5 × four-mount-64's predicted
+   worst attitude U95: its predicted rig hours (the station's timing model of `labcal run --dry-run`)
+   next to four-mount-64's and 481 × 6's, without a device history (the four mounts stay) and with
+   the simulated device characterised by two earlier four-mount-64 runs (fewer mounts; such a plan
+   relies on device corrections that `labcal run` cannot apply yet, so it is timed, not run).
+
+Usage: python benchmarks/rig_hours.py [--seed N] [--only 64|481|tour|optimized]
 """
 
 from __future__ import annotations
@@ -187,14 +193,72 @@ def tours(seed: int) -> None:
     del seed
 
 
+def optimized(seed: int) -> None:
+    """Predicted rig hours: four-mount-64, 481 × 6 and the optimized plans, one timing model."""
+    import contextlib
+    import math
+
+    from labcal.analysis import optimize
+    from labcal.analysis.device_fit import AngleErrors, fit_device
+    from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, IndexWobble
+    from labcal.bench.setup import sim_station
+    from labcal.cli import main as labcal
+    from labcal.commands.plan import planning_bench
+    from labcal.documents.device_history import DeviceEstimate, store
+    from labcal.run.estimate import estimate
+    from labcal.sim.direct import simulate_readings
+
+    rig = RigConfig()
+    setup = sim_station(None, rig.seed)
+    settings = SequencerSettings(settle=setup.settle)
+    fm64, _ = load_plan("four-mount-64")
+    tripp = make_plan("tripp-481", "", grid(-180, 180, 10, -180, 180, 30), four_mounts=False, replicates=6)
+    h64 = estimate(fm64, settings, setup.timing).total_s / 3600
+    h481 = estimate(tripp, settings, setup.timing).total_s / 3600
+    bench, _, _ = planning_bench(None)
+    ref = optimize.evaluate(optimize.Candidate(tuple(fm64.mounts), tuple(fm64.points),
+                                               settings.settle.samples), bench, None, 0.0)
+    assert ref is not None
+    target = 1.5 * math.degrees(ref.u95_rad)
+    print(f"Predicted rig hours (dry-run timing model), target X = 1.5 × four-mount-64's U95 = {target:.5f}°")
+    print(f"  four-mount-64                       {h64:6.3f} h  U95 {math.degrees(ref.u95_rad):.5f}°")
+    print(f"  481-point grid × 6                  {h481:6.3f} h")
+    with tempfile.TemporaryDirectory() as tmp:
+        db = Path(tmp) / "lab.sqlite"
+        truth, device = rig.instrument, rig.device
+        stated = AngleErrors(*(np.array([device.index_arcsec, device.wobble_arcsec] * 2) * ARCSEC))
+        for n, s in enumerate((seed, seed + 1), start=1):
+            readings = simulate_readings(fm64, truth, device.misalignment(),
+                                         IndexWobble(device.index_arcsec, device.wobble_arcsec, s),
+                                         truth.noise_v / math.sqrt(settings.settle.samples), s)
+            doc = fit_device(readings, angle_errors=stated).to_json()["misalignments"]
+            store(DeviceEstimate("SIMULATED", f"2026-0{n}-01T00:00:00+00:00", f"run-{n}",
+                                 {m: doc[m]["value_arcsec"] for m in MISALIGNMENT_NAMES},
+                                 {m: doc[m]["U_arcsec"] for m in MISALIGNMENT_NAMES}), db)
+        for label, extra in (("optimized, no device history", []),
+                             ("optimized, device characterised", ["--device", "SIMULATED", "--db", str(db)])):
+            wall = time.perf_counter()
+            text = io.StringIO()
+            with contextlib.redirect_stdout(text):
+                assert labcal(["plan", "optimize", "--target-attitude-u95-deg", repr(target), "--json",
+                               *extra]) == 0
+            doc = json.loads(text.getvalue())
+            print(f"  {label:35s} {doc['rig_time_s'] / 3600:6.3f} h  U95 {doc['u95_deg']:.5f}°  "
+                  f"{doc['rig_time_ratio']:.3f}× four-mount-64 (target ≤ 0.45× with a characterised device); "
+                  f"{len(doc['mounts'])} mount(s) × {doc['points']} points, {doc['samples']} samples; "
+                  f"searched {doc['candidates']} candidates in {time.perf_counter() - wall:.1f} s")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--only", choices=("64", "481", "tour"))
+    parser.add_argument("--only", choices=("64", "481", "tour", "optimized"))
     args = parser.parse_args()
     if args.only in (None, "tour"):
         tours(args.seed)
+    if args.only in (None, "optimized"):
+        optimized(args.seed)
     if args.only in (None, "64"):
         plan, text = load_plan("four-mount-64")
         hours("four-mount-64", plan, text, args.seed, 5)
