@@ -10,6 +10,7 @@ by the sphere estimator a user runs; the error must lie within the predicted U95
 
 from __future__ import annotations
 
+import json
 import math
 import tomllib
 
@@ -100,6 +101,9 @@ def test_optimized_plan_is_quicker_than_four_mount_64_within_the_target(optimize
 
 def test_labcal_run_refuses_a_plan_that_relies_on_device_corrections(optimized, capsys):
     _, out, _ = optimized
+    assert main(["plan", "show", str(out)]) == 0  # shown, with what it relies on
+    shown = capsys.readouterr().out
+    assert "relies on device SIMULATED" in shown and "cannot apply device corrections yet" in shown
     code = main(["run", "--plan", str(out), "--sim", "--dry-run"])
     err = capsys.readouterr().err
     assert code == 2
@@ -192,10 +196,36 @@ def test_without_a_known_device_the_plan_keeps_the_four_mounts(tmp_path, capsys)
     """No device history: the mounts stay the four that identify a…k (`plan audit` full rank)."""
     from labcal.analysis.device_model import Geometry, identifiability
 
-    out = tmp_path / "four.toml"
+    out, png = tmp_path / "four.toml", tmp_path / "frontier.png"
     target = 1.5 * four_mount_64_u95_deg()
-    assert main(["plan", "optimize", "--target-attitude-u95-deg", repr(target), "--out", str(out)]) == 0
+    assert main(["plan", "optimize", "--target-attitude-u95-deg", repr(target), "--out", str(out),
+                 "--frontier", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     plan, _ = load_plan(str(out))  # no correction: labcal run takes it
     assert sorted(plan.mounts) == [(0, 0), (0, 180), (180, 0), (180, 180)]
     assert identifiability(Geometry.of_plan(plan.points, plan.mounts)).complete
     assert "predicted rig time" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_a_run_of_the_optimized_four_mount_plan_states_a_u95_within_the_target(tmp_path, capsys):
+    """End to end on the simulated rig: the plan optimize writes without a device history, run with the
+    window it names; the certificate's own U95 (its budget, its estimator) is within the target and the
+    run's rig time below four-mount-64's estimate (the dry run's timing model)."""
+    from labcal.bench.setup import sim_station
+    from labcal.run.estimate import estimate
+
+    plan_file, run_dir = tmp_path / "four.toml", tmp_path / "run"
+    target = 1.5 * four_mount_64_u95_deg()
+    assert main(["plan", "optimize", "--target-attitude-u95-deg", repr(target), "--out", str(plan_file)]) == 0
+    samples = plan_file.read_text(encoding="utf-8").split("Run it with --samples ")[1].split()[0]
+    assert main(["run", "--sim", "--yes", "--plan", str(plan_file), "--samples", samples,
+                 "--out", str(run_dir)]) == 0
+    certificate = json.loads((run_dir / "certificate.json").read_text(encoding="utf-8"))
+    attitude = certificate["attitude"]
+    assert max(attitude["pitch_U95_max_deg"], attitude["roll_U95_max_deg"]) <= target
+    setup = sim_station(None, RIG.seed)
+    reference = estimate(load_plan("four-mount-64")[0], SequencerSettings(settle=setup.settle),
+                         setup.timing).total_s
+    run = json.loads((run_dir / "run.json").read_text(encoding="utf-8"))
+    assert run["rig_time_s"] < reference

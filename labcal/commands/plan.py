@@ -35,11 +35,15 @@ def cmd_show(args: argparse.Namespace) -> int:
 
     from labcal.config.plans import load_plan
 
-    plan, _ = load_plan(args.plan, device_corrections=True)
+    plan, text = load_plan(args.plan, device_corrections=True)
+    correction = relied_on(text)
     if args.json:
-        print_json(plan.model_dump())
+        print_json({**plan.model_dump(), **({"device_correction": correction} if correction else {})})
         return 0
     out.print(f"[bold]{plan.name}[/] — {plan.description}")
+    if correction:
+        out.print(f"[yellow]relies on device {correction.get('device_id')}'s misalignments from "
+                  f"{correction.get('source')} instead of remounting;[/] {CORRECTION_NOTE}")
     out.print(f"{plan.replicates} replicate(s) × {len(plan.mounts)} mount(s) × "
               f"{len(plan.points)} points = {plan.n_points} points")
     for i, mount in enumerate(plan.mount_list, 1):
@@ -51,6 +55,16 @@ def cmd_show(args: argparse.Namespace) -> int:
         table.add_row(str(i), f"{p:g}", f"{r:g}")
     out.print(table)
     return 0
+
+
+def relied_on(text: str) -> dict | None:
+    """The ``[device_correction]`` table of a plan written by `plan optimize --device`, or None."""
+    import tomllib
+
+    from labcal.config.plans import DEVICE_CORRECTION
+
+    table = tomllib.loads(text).get(DEVICE_CORRECTION)  # the text has been parsed once already
+    return table if isinstance(table, dict) else None
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
