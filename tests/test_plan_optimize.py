@@ -93,6 +93,10 @@ def test_optimized_plan_is_quicker_than_four_mount_64_within_the_target(optimize
     assert fast / reference <= 0.45  # the issue's target with a characterised device
     correction = tomllib.loads(text)["device_correction"]
     assert correction["device_id"] == "SIMULATED" and correction["source"] == "run-2"
+    latest = device_history.estimates_for("SIMULATED", optimized[2])[-1]  # what the history states
+    assert correction["value_arcsec"] == pytest.approx(latest.value_arcsec, rel=1e-12)
+    assert correction["U_arcsec"] == pytest.approx(latest.U_arcsec, rel=1e-12)
+    assert all(correction["u_arcsec"][n] >= latest.U_arcsec[n] / 1.96 for n in MISALIGNMENT_NAMES)
     assert "cannot apply device corrections yet" in text
     # the predicted U95 the file states is within the target
     stated = float(text.split("attitude U95 ")[1].split("°")[0])
@@ -229,3 +233,21 @@ def test_a_run_of_the_optimized_four_mount_plan_states_a_u95_within_the_target(t
                          setup.timing).total_s
     run = json.loads((run_dir / "run.json").read_text(encoding="utf-8"))
     assert run["rig_time_s"] < reference
+
+
+def test_a_device_that_changed_is_not_relied_on(tmp_path, capsys):
+    """Two estimates whose a differs by more than √(U₁² + U₂²) (the device history's flag): the device is
+    not in control, so the plan keeps the four mounts, with a note saying why."""
+    db = tmp_path / "lab.sqlite"
+    for n, a in ((1, 36.0), (2, 39.0)):  # Δ = 3″ > √(1² + 1²) = 1.41″
+        device_history.store(DeviceEstimate("CD-9", f"2026-0{n}-01T00:00:00+00:00", f"run-{n}",
+                                            {m: (a if m == "a" else 20.0) for m in MISALIGNMENT_NAMES},
+                                            {m: 1.0 for m in MISALIGNMENT_NAMES}), db)
+    out = tmp_path / "plan.toml"
+    target = 1.5 * four_mount_64_u95_deg()
+    assert main(["plan", "optimize", "--target-attitude-u95-deg", repr(target), "--device", "CD-9",
+                 "--db", str(db), "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert "device CD-9 changed between run-1 and run-2 (a beyond" in captured.err
+    plan, _ = load_plan(str(out))  # no correction in it
+    assert len(plan.mounts) == 4

@@ -22,8 +22,8 @@ Search. Articulations come from a candidate grid (pitch and roll on a 30° latti
 they are taken by greedy forward selection maximising det R (D-optimality: the confidence ellipsoid of
 the coefficients, Tripp & Tcheng eq. 51, has volume ∝ det R^-½), so every prefix of the sequence is the
 design of that size. Every (mount set, size, window) is timed by the caller (the station's timing
-model, the tour included) and its U95 predicted; the quickest whose U95 meets the target wins. A few
-hundred evaluations: seconds, deterministic.
+model, the tour included) and its U95 predicted; the quickest whose U95 meets the target wins. About a
+hundred candidates, each timed and predicted in tens of milliseconds: seconds, deterministic.
 """
 
 from __future__ import annotations
@@ -81,7 +81,8 @@ class DeviceCorrection:
     device_id: str
     source: str  # the run whose estimate this is
     value_rad: dict[str, float]
-    u_rad: dict[str, float]
+    u_rad: dict[str, float]  # what the plan carries as the Type B input
+    U_rad: dict[str, float] = field(default_factory=dict)  # the estimate's own U (95 %), as stated
 
 
 @dataclass(frozen=True)

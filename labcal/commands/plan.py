@@ -426,7 +426,8 @@ def device_correction(device_id: str, db):
     return DeviceCorrection(device_id, last.source,
                             {n: last.value_arcsec[n] * ARCSEC for n in MISALIGNMENT_NAMES},
                             {n: math.hypot(last.U_arcsec[n] / NORMAL_K, delta[n] / math.sqrt(2)) * ARCSEC
-                             for n in MISALIGNMENT_NAMES}), ""
+                             for n in MISALIGNMENT_NAMES},
+                            {n: last.U_arcsec[n] * ARCSEC for n in MISALIGNMENT_NAMES}), ""
 
 
 def optimized_plan_toml(plan, e, correction, target_deg: float, reference) -> str:
@@ -448,11 +449,14 @@ def optimized_plan_toml(plan, e, correction, target_deg: float, reference) -> st
     head.append(f"# It relies on the device corrections below; {CORRECTION_NOTE}.")
     values = ", ".join(f"{n} = {correction.value_rad[n] / ARCSEC!r}" for n in MISALIGNMENT_NAMES)
     us = ", ".join(f"{n} = {correction.u_rad[n] / ARCSEC!r}" for n in MISALIGNMENT_NAMES)
+    big_us = ", ".join(f"{n} = {correction.U_rad[n] / ARCSEC!r}" for n in MISALIGNMENT_NAMES)
     return ("\n".join(head) + "\n" + body + f"\n[{DEVICE_CORRECTION}]\n"
             "# the device's misalignments a…k (Soto Table 1) to correct the readings' gravity for, from its\n"
-            "# latest in-control estimate; u: standard uncertainty, carried as a Type B input\n"
+            "# latest in-control estimate (run `source`): its values and their U (95 %) as the device\n"
+            "# history states them; u: the standard uncertainty carried as a Type B input,\n"
+            "# √((U/1.96)² + Δ²/2) with Δ the change from the estimate before it\n"
             f'device_id = "{correction.device_id}"\nsource = "{correction.source}"\n'
-            f"value_arcsec = {{ {values} }}\nu_arcsec = {{ {us} }}\n")
+            f"value_arcsec = {{ {values} }}\nU_arcsec = {{ {big_us} }}\nu_arcsec = {{ {us} }}\n")
 
 
 def cmd_optimize(args: argparse.Namespace) -> int:
@@ -513,6 +517,7 @@ def cmd_optimize(args: argparse.Namespace) -> int:
            "device_correction": None if not relies or correction is None else {
                "device_id": correction.device_id, "source": correction.source,
                "value_arcsec": {n: v / ARCSEC for n, v in correction.value_rad.items()},
+               "U_arcsec": {n: v / ARCSEC for n, v in correction.U_rad.items()},
                "u_arcsec": {n: v / ARCSEC for n, v in correction.u_rad.items()}},
            "candidates": len(found), "out": args.out}
     if args.json:
