@@ -173,6 +173,8 @@ def test_a_target_no_candidate_reaches_is_one_line_naming_the_best(capsys):
     assert "the best reachable is" in err
     best = float(err.split("the best reachable is ")[1].split("°")[0])
     assert best > 0.0001
+    # and the U95 it names is reachable indeed (printed to 4 digits: just above it)
+    assert main(["plan", "optimize", "--target-attitude-u95-deg", repr(best * 1.001)]) == 0
 
 
 @pytest.mark.parametrize("args, words", [

@@ -288,6 +288,8 @@ def choose(found: list[Evaluated], bench: Bench, correction: DeviceCorrection | 
         full = evaluate(e.candidate, bench, correction, e.rig_time_s)
         if full is not None and full.u95_rad <= target_rad:
             return full
-    reachable = min((e.u95_rad for e in found), default=np.inf)
+    best = min(found, key=lambda e: e.u95_rad, default=None)
+    full = None if best is None else evaluate(best.candidate, bench, correction, best.rig_time_s)
+    reachable = np.inf if full is None else full.u95_rad  # on the grid the target was checked on
     raise LabcalError(f"no candidate plan reaches an attitude U95 of {np.degrees(target_rad):.4g}°; the best "
                       f"reachable is {np.degrees(reachable):.4g}° (raise --target-attitude-u95-deg)")
