@@ -102,7 +102,7 @@ class Evaluated:
     rig_time_s: float
     u95_pitch_rad: float  # the largest over the envelope
     u95_roll_rad: float
-    identified: bool  # the device model identifies a…k from this plan (else the correction is relied on)
+    identified: bool  # the device model identifies a…k from this plan; else it relies on the correction
     contributions: dict[str, float] = field(default_factory=dict)  # u (rad) at the worst pitch attitude
 
     @property
@@ -191,11 +191,11 @@ def predicted_u95(c: Candidate, bench: Bench, correction: DeviceCorrection | Non
     its misalignments would be left in the coefficients (neither identified by the plan nor known)."""
     cal = predicted_calibration(c, bench)
     identified = identified_u(c, bench, cal.reading_var) if len(c.mounts) == len(FOUR_MOUNTS) else None
-    device_u = correction.u_rad if correction is not None else identified
+    device_u = identified if identified is not None else None if correction is None else correction.u_rad
     if device_u is None:
         return None
     rows = sources(cal, replace(bench.type_b, device_misalignment=dict(device_u)))
-    return propagate(cal, rows, pitch, roll), correction is None
+    return propagate(cal, rows, pitch, roll), identified is not None
 
 
 def evaluate(c: Candidate, bench: Bench, correction: DeviceCorrection | None, rig_time_s: float,

@@ -493,7 +493,7 @@ def cmd_optimize(args: argparse.Namespace) -> int:
     found = optimize.search(bench, correction, rig_time)
     chosen = optimize.choose(found, bench, correction, target)
     c = chosen.candidate
-    relies = correction is not None and len(c.mounts) < 4
+    relies = not chosen.identified  # (`search` offers such a plan only with a correction)
     plan = Plan(name=Path(args.out).stem if args.out else "optimized",
                 description=f"optimized for attitude U95 ≤ {args.target_attitude_u95_deg:g}° "
                             f"(labcal plan optimize, {c.samples} samples per point)",
