@@ -340,8 +340,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 # --- plan optimize (issue 27 §2) -----------------------------------------------------------------
-CORRECTION_NOTE = ("labcal run cannot apply device corrections yet: it refuses this plan until a later "
-                   "change applies them in the run and states them on the certificate")
+CORRECTION_NOTE = ("labcal run cannot apply device corrections yet: it refuses a plan that relies on them "
+                   "until a later change applies them in the run and states them on the certificate")
 NORMAL_K = 1.96  # a device estimate's U95 back to u: its k is t₀.₉₇₅ at many degrees of freedom
 
 
