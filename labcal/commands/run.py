@@ -96,6 +96,7 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
     end of a complete run issue its certificate and report (``certificate``: their settings) into
     the run's journal (``journal``: a resumed run's, which its folder names; else --db's)."""
     from labcal.commands.console import ProgressDisplay, coefficients_with_standard_errors, format_duration
+    from labcal.run.events import EventBus
     from labcal.run.interrupts import StopSignal
     from labcal.run.journal import db_path
     from labcal.run.operator import OperatorDeclined
@@ -104,8 +105,10 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
     journal = journal or db_path(args.db)
     err.print(f"Run directory: {run_dir}")
     try:
-        with ProgressDisplay(err, plan.n_points, est.per_step_s, done) as display:
-            result: RunResult = runner(display)
+        with ProgressDisplay(err, plan.n_points, done) as display:
+            events = EventBus()  # the journal is subscribed first, by the runner
+            events.subscribe(display, kinds=display.KINDS)
+            result: RunResult = runner(events, display, est.forecast())
     except KeyboardInterrupt as exc:
         why = f" ({exc.reason})" if isinstance(exc, StopSignal) else ""
         tables = _stop_failure(exc).removeprefix("; ") or "tables stopped"
@@ -236,9 +239,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         operator = make_operator(args)
         run_dir = new_run_dir(args.out, plan)
         with Journal(db_path(args.db), durable=not args.sim) as journal:
-            return run_and_report(args, lambda display: calibrate(
-                plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, display,
-                setup.metadata, args.serial, args.operator, steps), run_dir, plan, est, 0, cert_settings)
+            return run_and_report(args, lambda events, terminal, forecast: calibrate(
+                plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, events,
+                setup.metadata, args.serial, args.operator, steps, terminal=terminal, forecast=forecast),
+                run_dir, plan, est, 0, cert_settings)
 
 
 def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Path | None,
@@ -337,9 +341,9 @@ def cmd_resume(args: argparse.Namespace) -> int:
             ctx.journal.event(ctx.run_id, "device_identity", "the devices that answered on resuming",
                               bench.identities)
         cert_settings = certificate_settings_for_run(args, certificate, args.station or "the run's station")
-        return run_and_report(args, lambda display: execute(
-            ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, display,
-            steps),
+        return run_and_report(args, lambda events, terminal, forecast: execute(
+            ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, events,
+            steps, terminal=terminal, forecast=forecast),
             run_dir, ctx.plan, est, len(points), cert_settings, ctx.journal.path)
 
 
