@@ -11,7 +11,6 @@ from rich.console import Console
 
 from labcal.analysis.coning import coning
 from labcal.analysis.fit import fit_readings
-from labcal.analysis.kinematics import Mount
 from labcal.cli import main
 from labcal.commands.console import ProgressDisplay, with_standard_error
 from labcal.config.emulation import InstrumentTruth

@@ -16,11 +16,11 @@ from labcal.bench.setup import hardware_station, prepare
 from labcal.config.plans import load_plan
 from labcal.config.settings import SequencerSettings
 from labcal.config.station import load_station
+from labcal.run.events import EventBus
 from labcal.run.interrupts import Interrupts
 from labcal.run.journal import Journal
 from labcal.run.operator import AutoOperator
 from labcal.run.runner import calibrate
-from labcal.run.events import EventBus
 
 
 class LinkWatcher:

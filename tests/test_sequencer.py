@@ -18,10 +18,10 @@ from labcal.config.emulation import RigConfig
 from labcal.config.plans import load_plan
 from labcal.config.settings import SequencerSettings, SettleSettings
 from labcal.errors import LabcalError
+from labcal.run.events import EventBus
 from labcal.run.journal import Journal
 from labcal.run.operator import AutoOperator, OperatorDeclined, ScriptedOperator
 from labcal.run.runner import calibrate, execute, open_for_resume
-from labcal.run.events import EventBus
 from labcal.run.sequencer import schedule
 from labcal.run.winding import left_at
 from labcal.sim.rig import SimRig

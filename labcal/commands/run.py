@@ -192,6 +192,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise LabcalError("--emulate needs --station FILE: it starts the emulators that file points at")
     if args.rig and not args.sim:
         raise LabcalError("--rig describes the rig of --sim; an emulated station has [emulation.rig]")
+    if args.pace is not None and not args.sim:
+        raise LabcalError(PACE_SIM_ONLY)
     plan, plan_text = load_plan(args.plan)
     if args.replicates is not None:  # the journal keeps the plan that actually runs
         plan = Plan.model_validate({**plan.model_dump(), "replicates": args.replicates})
@@ -200,7 +202,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
         bench = None
         if args.sim:
-            setup = sim_station(args.rig, args.seed)
+            setup = sim_station(args.rig, args.seed, pace=args.pace)
             settings = sequencer_settings_for_run(args, setup)
             cert_settings = certificate_settings_for_run(args, None, "command line")
         else:
@@ -299,6 +301,8 @@ def cmd_resume(args: argparse.Namespace) -> int:
             err.print(f"[yellow]note:[/] {note}")
         run_name = f"run {ctx.run_id} in {run_dir}"
         snapshot = read_snapshot(ctx.station_text, run_name, ctx.software_version)
+        if args.pace is not None and snapshot is not None:
+            raise LabcalError(f"{run_name} runs on a station, not the simulated rig: {PACE_SIM_ONLY}")
         if ctx.complete:
             settings = certificate_settings_for_run(args, snapshot.config.certificate if snapshot else None,
                                                     "the run's station")
@@ -320,7 +324,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
         if snapshot is None:
             ctx.journal.relax()  # a dry run: as when it started
             setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start,
-                                tables_at=tables_at)
+                                tables_at=tables_at, pace=args.pace)
             certificate = CertificateSettings()
         else:
             resumed_on = new_station[0] if new_station else snapshot.config
@@ -369,7 +373,14 @@ def finish_complete(args: argparse.Namespace, run_dir: Path, run_id: int,
     return 0
 
 
+PACE_SIM_ONLY = ("--pace paces the simulated rig (--sim) only; a station's devices keep real time, and its "
+                 "emulators run at --time-scale")
+
+
 def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--pace", type=TIME_SCALE, metavar="X",
+                   help="with --sim: run the simulated rig at X times real time (1: a rig second takes a "
+                        "wall second; default: as fast as it can)")
     p.add_argument("--yes", action="store_true", help="confirm every remount prompt automatically")
     p.add_argument("--answers", metavar="FILE", help="answer prompts from this file, one answer per line")
     add_db_option(p)
