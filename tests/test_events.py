@@ -244,3 +244,28 @@ def test_a_wrong_pace_is_one_line(tmp_path, capsys, argv, says):
     err = capsys.readouterr().err.strip()
     assert says in err and "\n" not in err and "Traceback" not in err
     assert not (tmp_path / "lab.sqlite").exists()
+
+
+def test_a_resumed_simulated_run_keeps_the_pace_asked_for(tmp_path, capsys):
+    """An interrupted dry run, resumed with --pace: the rest of the run takes at least its rig time
+    over the pace, and the run completes with every point."""
+    bus = EventBus()
+
+    def interrupt(event):
+        if event.seq == 7:
+            raise KeyboardInterrupt
+
+    bus.subscribe(interrupt, kinds=("point",))
+    with pytest.raises(KeyboardInterrupt):
+        sim_run(tmp_path, bus, "one-mount-16")
+    with Journal(tmp_path / "lab.sqlite") as journal:
+        assert len(journal.points(1)) == 8
+        rig_before = journal.rig_time(1)
+    pace = 400.0
+    start = time.monotonic()
+    code = main(["resume", str(tmp_path / "run"), "--pace", str(pace), "--yes", "--no-report", "--json"])
+    wall = time.monotonic() - start
+    assert code == 0
+    done = json.loads(capsys.readouterr().out)
+    assert done["points"] == 16 and done["simulated_rig_time_s"] > rig_before + 100.0  # a remount's allowance
+    assert wall >= (done["simulated_rig_time_s"] - rig_before) / pace
