@@ -15,7 +15,20 @@ from labcal.cli import main
 from labcal.config.plans import load_plan
 from labcal.config.settings import SequencerSettings
 from labcal.run.estimate import estimate
-from labcal.run.events import EVENTS, EventBus, Fault, Note, PointMeasured, Status
+from labcal.run.events import (
+    EVENTS,
+    Answer,
+    Discarded,
+    EventBus,
+    Fault,
+    Note,
+    Paused,
+    PointMeasured,
+    Prompt,
+    Resumed,
+    Status,
+    Stopped,
+)
 from labcal.run.journal import Journal
 from labcal.run.operator import AutoOperator
 from labcal.run.runner import calibrate
@@ -86,6 +99,41 @@ def test_an_event_reads_back_from_its_json_without_the_journals_payload():
     assert EVENTS.validate_json(status.model_dump_json()) == status
     with pytest.raises(Exception):  # noqa: B017 - frozen: pydantic's ValidationError
         status.points_done = 6  # type: ignore[misc]
+
+
+def test_each_event_is_the_journal_row_it_always_was():
+    """The events table's kind, message and data, as the sequencer journaled them before events
+    existed (`labcal log`, the certificate's story and the lab database read them)."""
+    at = {"run_id": 1, "rig_time_s": 5.0}
+    rows = [
+        (Answer(**at, what="mount", reply="n", meaning="not yet", outcome="open"),
+         ("answer", "mount: 'n' (not yet; the prompt stays open)", None)),
+        (Answer(**at, what="mount", reply="confirmed", meaning="confirmed", outcome="answered"),
+         ("answer", "mount: confirmed", None)),
+        (Answer(**at, what="pause", reply="declined", meaning="no answers left", outcome="declined"),
+         ("answer", "pause: declined", {"reason": "no answers left"})),
+        (Prompt(**at, what="pause", message="paused (Ctrl-C)", args=("Ctrl-C", "()")),
+         ("prompt", "pause", {"args": ["Ctrl-C", "()"]})),
+        (Paused(**at, why="Ctrl-C"), ("pause", "Ctrl-C", {"may_be_moving": []})),
+        (Resumed(**at, why="operator resumed after the pause"),
+         ("resume", "operator resumed after the pause", None)),
+        (Fault(**at, message="point 3 failed: drift", policy="skip"),
+         ("fault", "point 3 failed: drift", {"policy": "skip"})),
+        (Fault(**at, message="wrong mount"), ("fault", "wrong mount", None)),
+        (Stopped(**at, cause="Ctrl-C twice"), ("stop", "both tables stopped", {"cause": "Ctrl-C twice"})),
+        (Stopped(**at, cause="x", failed="no reply", may_be_moving=("roll",)),
+         ("stop", "stop failed: no reply", {"may_be_moving": ["roll"], "cause": "x"})),
+        (Discarded(**at, seq=4, attempt=1, reason="pitch moving", faulted=False, volts=(1.0, 2.0, 3.0),
+                   sd=(0.1, 0.1, 0.1), samples=((1.0, 2.0, 3.0, None),)),
+         ("discarded", "point 4: readings discarded, measured again: pitch moving",
+          {"seq": 4, "attempt": 1, "reason": "pitch moving", "volts": [1.0, 2.0, 3.0], "sd": [0.1, 0.1, 0.1],
+           "samples": [[1.0, 2.0, 3.0, None]]})),
+        (Note(**at, name="retry", message="point 2 did not settle"),
+         ("retry", "point 2 did not settle", None)),
+    ]
+    for event, row in rows:
+        assert event.journal_entry() == row
+        assert list(event.journal_entry()[2] or {}) == list(row[2] or {})  # the JSON keeps its key order
 
 
 # --- a simulated run's events -----------------------------------------------------------------------
