@@ -7,6 +7,7 @@ import json
 import logging
 import time
 
+import numpy as np
 import pytest
 from conftest import quiet_console
 
@@ -29,7 +30,7 @@ from labcal.run.events import (
     Status,
     Stopped,
 )
-from labcal.run.journal import Journal
+from labcal.run.journal import Journal, PointRecord
 from labcal.run.operator import AutoOperator
 from labcal.run.runner import calibrate
 from labcal.run.sequencer import schedule
@@ -97,6 +98,16 @@ def test_an_event_reads_back_from_its_json_without_the_journals_payload():
     status = Status(run_id=3, rig_time_s=12.5, status="running", at="point", points_done=5, points_total=64,
                     mount=2, next_remount_in_s=40.0, eta_s=300.0)
     assert EVENTS.validate_json(status.model_dump_json()) == status
+    record = PointRecord(7, 1, 0, 180, 30, 45, 30, 45, 1, "ok", 10.0, 12.0, 2, 0.1, 0.2, 0.3,
+                         1e-5, 1e-5, 1e-5, None, 1.5, "settled")
+    point = PointMeasured(run_id=3, rig_time_s=12.0, seq=7, replicate=1, mount=3, pitch_deg=30, roll_deg=45,
+                          volts=(0.1, 0.2, 0.3), settle_s=1.5, ok=True, points_done=8, points_total=64,
+                          record=record, samples=np.zeros((2, 4)))
+    doc = json.loads(point.model_dump_json())
+    assert "record" not in doc and "samples" not in doc and doc["kind"] == "point" and doc["mount"] == 3
+    back = EVENTS.validate_json(point.model_dump_json())
+    assert back.record is None and back.model_dump() == point.model_dump()
+    assert not point.samples.flags.writeable
     with pytest.raises(Exception):  # noqa: B017 - frozen: pydantic's ValidationError
         status.points_done = 6  # type: ignore[misc]
 

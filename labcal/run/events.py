@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, field_validator
 
 from labcal.run.journal import PointRecord, utc_now
 
@@ -58,7 +58,9 @@ class RunEvent(BaseModel):
 
 class PointMeasured(RunEvent):
     """A point measured (or failed to settle) and committed: the journal's record and its raw
-    samples ride along for the journal (``record``, ``samples``; left out of ``model_dump``)."""
+    samples ride along for the journal (``record``, ``samples``, read-only). They are left out of
+    ``model_dump``/``model_dump_json`` (a stream's clients get the figures above them), so an event
+    read back from JSON has neither."""
 
     model_config = ConfigDict(frozen=True, extra="forbid", arbitrary_types_allowed=True)
 
@@ -73,8 +75,15 @@ class PointMeasured(RunEvent):
     ok: bool  # settled; False: journaled as failed (the plan's on_failure policy applies)
     points_done: int  # points of the run in the journal, this one included (ok and failed)
     points_total: int
-    record: PointRecord = Field(exclude=True, repr=False)
+    record: PointRecord | None = Field(default=None, exclude=True, repr=False)
     samples: np.ndarray | None = Field(default=None, exclude=True, repr=False)  # a row per sample: vx vy vz T
+
+    @field_validator("samples")
+    @classmethod
+    def _read_only(cls, samples: np.ndarray | None) -> np.ndarray | None:
+        if samples is not None:
+            samples.setflags(write=False)  # the event is frozen: so are the readings it carries
+        return samples
 
     def journal_entry(self) -> JournalEntry | None:
         return None  # the points table (`Journal.record_point`)

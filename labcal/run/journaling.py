@@ -20,6 +20,8 @@ class JournalSubscriber:
 
     def __call__(self, event: RunEvent) -> None:
         if isinstance(event, PointMeasured):
+            if event.record is None:  # read back from JSON: the readings are not in it
+                raise ValueError(f"point {event.seq} of run {event.run_id} has no record to journal")
             self.journal.record_point(event.run_id, event.record, event.samples, utc=event.utc)
             return
         entry = event.journal_entry()
