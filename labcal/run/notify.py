@@ -15,9 +15,10 @@ three of them into words:
 A notification is never worth a reading. `Notifications` sends from a worker thread of its own
 through a queue, so the run's thread only appends to a list: a slow or dead endpoint costs the run
 nothing. A send that fails (apprise says so, or raises) is told once, in one line, and the run
-goes on; at the run's end `close` waits a few seconds at most for the queue to drain and then says
-what was not sent. apprise missing is also one line and no notifications. What is refused is a URL
-that apprise cannot parse: that is a typing mistake, caught before anything moves (`parse_urls`).
+goes on (later failures are logged); at the run's end `close` waits a few seconds at most for the
+queue to drain and then says what was not sent. apprise missing is also one line and no
+notifications. What is refused is a URL apprise cannot parse: a typing mistake, caught when the
+notifications are set up, before anything moves (`lab_notifications`).
 """
 
 from __future__ import annotations
@@ -29,13 +30,11 @@ import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from labcal.analysis.kinematics import MOUNTS
 from labcal.errors import LabcalError
-
-if TYPE_CHECKING:
-    from labcal.run.events import Paused, Prompt, RunEvent, Status
+from labcal.run.events import Paused, Prompt, RunEvent, Status
 
 log = logging.getLogger(__name__)
 
@@ -68,8 +67,9 @@ class Message:
 class Notifications:
     """Sends messages to apprise URLs from a worker thread; see the module for what it promises.
 
-    ``warn`` prints one line (the command's console); it is called at most once for failures while
-    the run goes on, and once at `close` if anything is left unsent."""
+    ``warn`` prints one line (the command's console): at the first failure (the later ones are
+    logged, not printed: one broken endpoint would otherwise print a line per remount), and at
+    `close` if the queue did not drain in time."""
 
     def __init__(self, urls: Sequence[str], source: str, warn: Warn, drain_s: float = DRAIN_S) -> None:
         self.urls = tuple(urls)
@@ -82,7 +82,7 @@ class Notifications:
         self._busy: Message | None = None  # the message the worker is sending
         self._warned = False
         self._closed = False
-        self._apprise = self._load()
+        self._apprise = self._load() if self.urls else None
         self._worker: threading.Thread | None = None
         if self._apprise is not None:
             self._worker = threading.Thread(target=self._work, name="labcal-notify", daemon=True)
@@ -100,9 +100,9 @@ class Notifications:
         sender = apprise.Apprise()
         for i, url in enumerate(self.urls, 1):
             if not sender.add(url):
-                raise LabcalError(f"{self.source}: URL {i} of {len(self.urls)} ({shown(url)}) is not a notification "
-                                  "URL apprise understands; see https://github.com/caronc/apprise/wiki for "
-                                  "the forms, or leave it out")
+                raise LabcalError(f"{self.source}: URL {i} of {len(self.urls)} ({shown(url)}) is not a "
+                                  "notification URL apprise understands; see https://github.com/caronc/"
+                                  "apprise/wiki for the forms, or leave it out")
         return sender
 
     def _warn_once(self, line: str) -> None:
@@ -124,7 +124,8 @@ class Notifications:
             try:
                 with apprise.LogCapture(level=logging.WARNING, fmt="%(message)s") as said:
                     ok = bool(self._apprise.notify(body=message.body, title=message.title))
-                why = "; ".join(line for line in said.getvalue().splitlines() if line.strip()) if not ok else ""
+                lines = said.getvalue().splitlines()
+                why = "" if ok else "; ".join(line for line in lines if line.strip())
             except Exception as exc:  # a plugin's bug, a network library's surprise: never the run's
                 ok, why = False, f"{type(exc).__name__}: {exc}"
             if ok:
@@ -132,9 +133,9 @@ class Notifications:
             else:
                 self.failed.append(message)
                 log.warning("notification not sent (%s): %s", message.what, why)
-                self._warn_once(f"notification not sent ({message.what}): {why or 'apprise reported a failure'}"
-                                f" [{', '.join(shown(u) for u in self.urls)}]; the run goes on, and later "
-                                "failures are counted at its end")
+                to, why = ", ".join(map(shown, self.urls)), why or "apprise reported a failure"
+                self._warn_once(f"notification not sent ({message.what}): {why} [{to}]; the run goes on, and "
+                                "later failures go to the log only (--log-file)")
             self._busy = None
 
     def close(self) -> None:
@@ -146,14 +147,12 @@ class Notifications:
             return
         self._queue.put(None)
         self._worker.join(self.drain_s)
-        unsent = [m for m in (self._busy, *self._pending()) if m is not None] if self._worker.is_alive() else []
-        later = self.failed[1:]  # the first failure was told when it happened
-        if unsent or later:
-            parts = [f"{len(later)} more failed ({', '.join(m.what for m in later)})"] if later else []
-            if unsent:
-                parts.append(f"{len(unsent)} still queued after {self.drain_s:g} s "
-                             f"({', '.join(m.what for m in unsent)})")
-            self.warn(f"notifications not sent: {'; '.join(parts)}")
+        if not self._worker.is_alive():
+            return
+        unsent = [m for m in (self._busy, *self._pending()) if m is not None]
+        if unsent:  # the worker goes on with the send it is in (a daemon: it never holds the process)
+            self.warn(f"notifications not sent: {len(unsent)} still queued after {self.drain_s:g} s "
+                      f"({', '.join(m.what for m in unsent)})")
 
     def _pending(self) -> list[Message]:
         pending = []
@@ -172,3 +171,93 @@ class Notifications:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def station_label(metadata: dict[str, Any]) -> str:
+    """How a notification names the station: "station NAME", NAME the station file's name without
+    its folder and ``.toml`` (or the shipped example's name), as the run's metadata keeps it; the
+    simulated rig (no station file) is "simulated rig"."""
+    source = metadata.get("station_file")
+    if not source:
+        return "simulated rig"
+    return f"station {Path(str(source)).name.removesuffix('.toml')}"
+
+
+def fit_figures(run_dir: Path) -> str:
+    """The fit's figures from the run's fit.json (written before a run is journaled complete): its
+    model, points and each sensor's residual standard error; '' when the file cannot be read."""
+    try:
+        doc = json.loads((run_dir / "fit.json").read_text(encoding="utf-8"))
+        rse = ", ".join(f"{axis} {value * 1e3:.3g} mV"
+                        for axis, value in zip("xyz", doc["residual_standard_error"], strict=True))
+        points = f" of {doc['n_points']} points" if "n_points" in doc else ""
+        return f"{doc['model']} fit{points}: residual standard error {rse}"
+    except (OSError, ValueError, KeyError, TypeError):
+        return ""
+
+
+class RunNotifier:
+    """A run's events put into words and handed to `Notifications` (subscribe ``handle`` with
+    ``kinds=KINDS``; it only queues, so the run's thread never waits for a network)."""
+
+    KINDS = KINDS
+
+    def __init__(self, notifications: Notifications, station: str, run_dir: Path) -> None:
+        self.notifications = notifications
+        self.station = station
+        self.run_dir = run_dir
+
+    def handle(self, event: RunEvent) -> None:
+        message = self.compose(event)
+        if message is not None:
+            self.notifications.send(message)
+
+    def compose(self, event: RunEvent) -> Message | None:
+        """The notification an event makes, if any: a mount prompt, a pause, the run's end."""
+        who = f"labcal {self.station}, run {event.run_id}"
+        if isinstance(event, Prompt) and event.what == "mount":
+            return self._mount(who, event)
+        if isinstance(event, Paused):
+            return self._paused(who, event)
+        if isinstance(event, Status) and event.at == "end":
+            return self._finished(who, event)
+        return None
+
+    def _mount(self, who: str, event: Prompt) -> Message:
+        which = f"mount {event.step} of {event.n_steps}" if event.step is not None else "a mount"
+        where = ""
+        if event.mount is not None:
+            mount = MOUNTS[event.mount - 1]  # Soto Table 3's numbering (`labcal.run.events.mount_number`)
+            where = f" on the {mount.describe()} ({mount})"
+        return Message(which, f"labcal run {event.run_id}: {which}",
+                       f"{who}: {which}: remount the instrument{where}; the tables wait until the operator "
+                       f"confirms it at the station ({event.message})")
+
+    def _paused(self, who: str, event: Paused) -> Message:
+        tables = (f"the stop did not reach the {', '.join(event.may_be_moving)} table(s): it may still be "
+                  "moving" if event.may_be_moving else "the tables are still")
+        return Message("the pause", f"labcal run {event.run_id}: paused",
+                       f"{who}: paused ({event.why}); {tables}; every reading so far is saved, and the run "
+                       "waits for the operator to resume or abort it at the station")
+
+    def _finished(self, who: str, event: Status) -> Message:
+        counted = f"{event.points_done} of {event.points_total} points"
+        if event.status == "complete":
+            figures = fit_figures(self.run_dir)
+            verdict = f"complete, {counted}" + (f"; {figures}" if figures else "")
+        else:
+            verdict = f"{event.status} ({event.reason or 'no reason given'}), {counted}"
+            if event.status in ("stopped", "interrupted"):
+                verdict += f"; labcal resume {self.run_dir} continues it"
+        return Message("the end", f"labcal run {event.run_id}: finished, {event.status}",
+                       f"{who}: finished: {verdict}")
+
+
+def lab_notifications(warn: Warn) -> Notifications:
+    """The notifications the lab asks for ($LABCAL_NOTIFY, else the lab file's ``notify``), their
+    URLs checked by apprise now, before anything moves; with none, a `Notifications` that sends
+    nothing."""
+    from labcal.config.lab import load_lab_config
+
+    urls, source = load_lab_config().notify_urls()
+    return Notifications(urls, source, warn)

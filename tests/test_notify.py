@@ -1,0 +1,233 @@
+"""Notifications through apprise (issue 24), received for real: apprise's ``json://`` posts each one
+to an HTTP endpoint this test serves on a free port. The texts expected are written here from the
+plan and the station chosen (Soto Table 3's mounts in the technician's words), the run's own files
+(run.json, fit.json) and the emulated alarm's meaning in the AZ manual — never from the notifier."""
+
+from __future__ import annotations
+
+import json
+import socket
+import sqlite3
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+
+import pytest
+from emulators import cli, free_port, no_leaks, private_file  # noqa: F401 - fixture
+
+from labcal.config.plans import load_plan
+from labcal.run.notify import Message, Notifications
+
+EMULATE = ["--emulate", "--time-scale", "1000", "--no-report"]
+
+
+class Inbox:
+    """What the endpoint received: one dict per notification (apprise's JSON: title, message, …)."""
+
+    def __init__(self) -> None:
+        self.received: list[dict] = []
+        self.arrived = threading.Condition()
+
+    def bodies(self) -> list[str]:
+        return [doc["message"] for doc in self.received]
+
+    def wait_for(self, count: int, timeout: float = 10.0) -> list[str]:
+        with self.arrived:
+            self.arrived.wait_for(lambda: len(self.received) >= count, timeout)
+        return self.bodies()
+
+
+@contextmanager
+def endpoint() -> Iterator[tuple[str, Inbox]]:
+    """A local HTTP endpoint for apprise's ``json://`` on a free port; yields its URL and inbox."""
+    inbox = Inbox()
+
+    class Handler(BaseHTTPRequestHandler):
+        def do_POST(self) -> None:  # noqa: N802 - http.server's name
+            doc = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
+            self.send_response(200)
+            self.end_headers()
+            with inbox.arrived:
+                inbox.received.append(doc)
+                inbox.arrived.notify_all()
+
+        def log_message(self, *args: object) -> None:  # the test's stderr is the run's
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"json://127.0.0.1:{server.server_address[1]}/", inbox
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def described(y_deg: float, u_deg: float) -> str:
+    """A mount as the technician is told it (Soto Table 3: u 180° = bottom of the plate, y 180° = x
+    sensor backward), with its angles."""
+    side = "bottom" if u_deg == 180 else "top"
+    way = "backward" if y_deg == 180 else "forward"
+    return f"{side} side of the plate, x sensor pointing {way} (y={y_deg:g}°, u={u_deg:g}°)"
+
+
+def journaled_points(db: Path, run_id: int) -> int:
+    with sqlite3.connect(db) as con:
+        return con.execute("SELECT count(*) FROM points WHERE run_id = ?", (run_id,)).fetchone()[0]
+
+
+def test_a_simulated_run_notifies_each_remount_and_its_end(tmp_path, capsys, monkeypatch):
+    """`labcal run --sim --yes`: one notification per mount of four-mount-64 (the plan's order in
+    a first replicate), naming the station, the mount and the run, then "finished" with the verdict
+    and the fit's residual standard errors as the run's fit.json states them."""
+    plan, _ = load_plan("four-mount-64")
+    with endpoint() as (url, inbox):
+        monkeypatch.setenv("LABCAL_NOTIFY", url)
+        code, out, err = cli(capsys, "run", "--sim", "--yes", "--no-report", "--plan", "four-mount-64",
+                             "--out", str(tmp_path / "run"), "--json")
+        assert code == 0, err
+        run_id = json.loads(out)["run_id"]
+        bodies = inbox.wait_for(len(plan.mounts) + 1)  # close() drained the queue: all are in already
+    assert len(bodies) == len(plan.mounts) + 1, bodies
+    who = f"labcal simulated rig, run {run_id}: "
+    for step, ((y, u), body) in enumerate(zip(plan.mounts, bodies, strict=False), 1):
+        assert body.startswith(who), body
+        assert f"mount {step} of {len(plan.mounts)}: remount the instrument on the {described(y, u)}" in body
+    fit = json.loads((tmp_path / "run" / "fit.json").read_text())
+    rse = ", ".join(f"{axis} {value * 1e3:.3g} mV"
+                    for axis, value in zip("xyz", fit["residual_standard_error"], strict=True))
+    n = plan.n_points
+    assert bodies[-1] == (f"{who}finished: complete, {n} of {n} points; {fit['model']} fit of {n} points: "
+                          f"residual standard error {rse}")
+    assert [doc["title"] for doc in inbox.received][-1] == f"labcal run {run_id}: finished, complete"
+    assert "notification" not in err  # every one was sent: nothing to warn of
+
+
+def test_a_fault_pause_is_notified_with_the_fault(tmp_path, capsys, monkeypatch, no_leaks):  # noqa: F811
+    """The roll drive of an emulated AZ station raises alarm 10h mid-run (AZ manual: excessive
+    position deviation); the run pauses and the notification says "paused" with the alarm; the
+    operator aborts, and the end is "stopped" with why and how to continue."""
+    alarm = '\n[[emulation.faults]]\ndevice = "roll"\nkind = "alarm"\ncode = 16\nafter = 150\n'
+    station = private_file("az-modbus-rtu", tmp_path, alarm, "timeout_s = 0.1\nreconnect_s = 1")
+    answers = tmp_path / "answers.txt"
+    answers.write_text("y\ny\ny\ny\na\n")
+    with endpoint() as (url, inbox):
+        monkeypatch.setenv("LABCAL_NOTIFY", url)
+        code, _, err = cli(capsys, "run", "--station", str(station), *EMULATE, "--answers", str(answers),
+                           "--out", str(tmp_path / "run"))
+        bodies = inbox.bodies()
+    assert code == 1, err
+    run_id = json.loads((tmp_path / "run" / "run.json").read_text())["run_id"]
+    who = f"labcal station az-modbus-rtu, run {run_id}: "
+    paused = [b for b in bodies if b.startswith(f"{who}paused (fault: ")]
+    assert len(paused) == 1, bodies
+    assert "roll table" in paused[0] and "alarm 10h (excessive position deviation)" in paused[0]
+    assert bodies[-1].startswith(f"{who}finished: stopped (operator aborted the run after a pause (fault: ")
+    assert bodies[-1].endswith(f"; labcal resume {tmp_path / 'run'} continues it")
+    assert all(b.startswith(who) for b in bodies)
+
+
+@contextmanager
+def garbage_endpoint() -> Iterator[int]:
+    """A TCP port that answers any request with bytes that are not HTTP, then hangs up."""
+    server = socket.create_server(("127.0.0.1", 0))
+    stop = threading.Event()
+
+    def serve() -> None:
+        server.settimeout(0.1)
+        while not stop.is_set():
+            try:
+                conn, _ = server.accept()
+            except TimeoutError:
+                continue
+            with conn:
+                conn.recv(65536)
+                conn.sendall(b"\x00\xffnot http at all\r\n\r\n")
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        yield server.getsockname()[1]
+    finally:
+        stop.set()
+        thread.join(5)
+        server.close()
+
+
+@pytest.mark.parametrize("where", ["closed port", "not HTTP"])
+def test_an_endpoint_that_fails_costs_the_run_nothing_and_says_so_once(where, tmp_path, capsys, monkeypatch):
+    """Every notification fails (a closed port: refused; an endpoint answering garbage): the run
+    completes, every point of the plan is in the journal, and stderr has one warning line."""
+    plan, _ = load_plan("four-mount-64")
+    with garbage_endpoint() as garbage:
+        port = free_port() if where == "closed port" else garbage  # free_port's socket is closed again
+        monkeypatch.setenv("LABCAL_NOTIFY", f"json://127.0.0.1:{port}/")
+        code, out, err = cli(capsys, "run", "--sim", "--yes", "--no-report", "--out", str(tmp_path / "run"),
+                             "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["points"] == plan.n_points
+    assert journaled_points(tmp_path / "labcal.sqlite", summary["run_id"]) == plan.n_points
+    assert json.loads((tmp_path / "run" / "run.json").read_text())["status"] == "complete"
+    warnings = [line for line in err.splitlines() if "notification" in line]
+    assert len(warnings) == 1, err
+    assert warnings[0].startswith("notification not sent (mount 1 of 4)") and "the run goes on" in warnings[0]
+
+
+@pytest.mark.parametrize("given", ["env", "lab file"])
+def test_a_url_apprise_cannot_parse_is_refused_before_anything_moves(given, tmp_path, capsys, monkeypatch):
+    """A second URL with a scheme apprise has no plugin for: exit 2, one line naming where it came
+    from and which URL (its scheme only: URLs hold tokens), no run folder, nothing journaled."""
+    with endpoint() as (url, inbox):
+        if given == "env":
+            monkeypatch.setenv("LABCAL_NOTIFY", f"{url}, nosuchservice://token@host")
+            source = "$LABCAL_NOTIFY"
+        else:
+            lab = tmp_path / "lab.toml"
+            lab.write_text(f'notify = ["{url}", "nosuchservice://token@host"]\n')
+            monkeypatch.setenv("LABCAL_CONFIG", str(lab))
+            source = f"{lab}: notify"
+        code, out, err = cli(capsys, "run", "--sim", "--yes", "--out", str(tmp_path / "run"))
+    assert code == 2 and out == ""
+    assert err.strip().count("\n") == 0, err
+    assert f"{source}: URL 2 of 2 (nosuchservice://…) is not a notification URL apprise understands" in err
+    assert "token" not in err
+    assert not (tmp_path / "run").exists() and not (tmp_path / "labcal.sqlite").exists()
+    assert inbox.received == []
+
+
+def test_close_waits_a_bounded_time_for_an_endpoint_that_never_answers(tmp_path):
+    """An endpoint that takes the connection and never replies holds the worker in its send; the
+    run's thread queues at once, and close gives up after its drain bound and names what was left."""
+    warned: list[str] = []
+    release = threading.Event()
+    server = socket.create_server(("127.0.0.1", 0))
+    held: list[socket.socket] = []
+
+    def accept() -> None:
+        conn, _ = server.accept()
+        held.append(conn)
+        release.wait(30)
+
+    thread = threading.Thread(target=accept, daemon=True)
+    thread.start()
+    try:
+        notes = Notifications([f"json://127.0.0.1:{server.getsockname()[1]}/"], "test", warned.append,
+                              drain_s=0.3)
+        for what in ("mount 1 of 2", "the end"):
+            notes.send(Message(what, what, f"body of {what}"))
+        started = time.monotonic()
+        notes.close()
+        waited = time.monotonic() - started
+    finally:
+        release.set()
+        thread.join(5)
+        for conn in held:
+            conn.close()
+        server.close()
+    assert waited < 3.0  # the drain bound (0.3 s), far below apprise's own 4 s read timeout
+    assert warned == ["notifications not sent: 2 still queued after 0.3 s (mount 1 of 2, the end)"]
