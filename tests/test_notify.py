@@ -231,3 +231,19 @@ def test_close_waits_a_bounded_time_for_an_endpoint_that_never_answers(tmp_path)
         server.close()
     assert waited < 3.0  # the drain bound (0.3 s), far below apprise's own 4 s read timeout
     assert warned == ["notifications not sent: 2 still queued after 0.3 s (mount 1 of 2, the end)"]
+
+
+def test_without_apprise_a_run_goes_on_and_says_so_once(tmp_path, capsys, monkeypatch):
+    """apprise not installed (its import fails, as it does without the `lab` extra): the run is
+    complete with every point, and one line says the notifications are off and how to get them."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "apprise", None)  # `import apprise` raises ImportError
+    monkeypatch.setenv("LABCAL_NOTIFY", f"json://127.0.0.1:{free_port()}/")
+    code, out, err = cli(capsys, "run", "--sim", "--yes", "--no-report", "--plan", "one-mount-16",
+                         "--out", str(tmp_path / "run"), "--json")
+    assert code == 0, err
+    assert json.loads(out)["points"] == 16 == len(load_plan("one-mount-16")[0].points)
+    warnings = [line for line in err.splitlines() if "notification" in line]
+    assert warnings == ["notifications are off: $LABCAL_NOTIFY names notification URLs, but apprise is not "
+                        "installed (pip install 'labcal[lab]'); the run goes on without them"], err

@@ -204,7 +204,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         plan_text = plan_toml(plan)
     with ExitStack() as stack:
         stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
-        notifications = stack.enter_context(lab_notifications(err.print))  # URLs checked before any move
+        notifications = stack.enter_context(lab_notifications(lambda line: err.print(line, markup=False)))
         bench = None
         if args.sim:
             setup = sim_station(args.rig, args.seed, pace=args.pace)
@@ -302,7 +302,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
     ctx = open_for_resume(run_dir)
     with ExitStack() as stack:
         stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
-        notifications = stack.enter_context(lab_notifications(err.print))  # URLs checked before any move
+        notifications = stack.enter_context(lab_notifications(lambda line: err.print(line, markup=False)))
         stack.callback(ctx.journal.close)
         stack.callback(ctx.lock.release)
         for note in ctx.notes:

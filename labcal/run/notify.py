@@ -90,7 +90,8 @@ class Notifications:
 
     def _load(self) -> Any:
         """apprise with every URL added; None (one line said) when apprise is not installed. A URL
-        apprise cannot parse is refused: the run has not started, so nothing is lost."""
+        apprise cannot parse is refused: the run has not started, so nothing is lost. Built here,
+        before anything moves: the callers set it up first (`lab_notifications`)."""
         try:
             import apprise
         except ImportError:
@@ -134,8 +135,8 @@ class Notifications:
                 self.failed.append(message)
                 log.warning("notification not sent (%s): %s", message.what, why)
                 to, why = ", ".join(map(shown, self.urls)), why or "apprise reported a failure"
-                self._warn_once(f"notification not sent ({message.what}): {why} [{to}]; the run goes on, and "
-                                "later failures go to the log only (--log-file)")
+                self._warn_once(f"notification not sent ({message.what}) to {to}: {why}; the run goes on, "
+                                "and later failures go to the log only (--log-file)")
             self._busy = None
 
     def close(self) -> None:
