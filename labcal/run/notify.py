@@ -82,7 +82,7 @@ class Notifications:
         self._busy: Message | None = None  # the message the worker is sending
         self._warned = False
         self._closed = False
-        self._apprise = self._load() if self.urls else None
+        self._apprise: Any = self._load() if self.urls else None  # an apprise.Apprise
         self._worker: threading.Thread | None = None
         if self._apprise is not None:
             self._worker = threading.Thread(target=self._work, name="labcal-notify", daemon=True)
@@ -156,7 +156,7 @@ class Notifications:
                       f"({', '.join(m.what for m in unsent)})")
 
     def _pending(self) -> list[Message]:
-        pending = []
+        pending: list[Message] = []
         while True:
             try:
                 message = self._queue.get_nowait()
