@@ -230,9 +230,11 @@ class RunNotifier:
         if event.mount is not None:
             mount = MOUNTS[event.mount - 1]  # Soto Table 3's numbering (`labcal.run.events.mount_number`)
             where = f" on the {mount.describe()} ({mount})"
+        note = event.args[3] if len(event.args) == 4 else ""  # (mount, step, n_steps, note), as journaled
+        note = f" ({note})" if note else ""  # a replicate's re-seat, a wrong mount to correct
         return Message(which, f"labcal run {event.run_id}: {which}",
-                       f"{who}: {which}: remount the instrument{where}; the tables wait until the operator "
-                       f"confirms it at the station ({event.message})")
+                       f"{who}: {which}: remount the instrument{where}{note}; the tables wait until the "
+                       "operator confirms it at the station")
 
     def _paused(self, who: str, event: Paused) -> Message:
         tables = (f"the stop did not reach the {', '.join(event.may_be_moving)} table(s): it may still be "
