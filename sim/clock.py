@@ -47,7 +47,7 @@ class PacedClock(VirtualClock):
             raise ValueError("pace must be > 0")
         super().__init__(start)
         self.pace = pace
-        self._anchor = (time.monotonic(), start)  # (wall, rig) from which the pace counts
+        self._anchor: tuple[float, float] | None = None  # (wall, rig) from which the pace counts
 
     def sleep(self, seconds: float) -> None:
         if seconds > 0:
@@ -59,9 +59,10 @@ class PacedClock(VirtualClock):
 
     def _wait_until(self, t: float) -> None:
         wall = time.monotonic()
-        wall0, rig0 = self._anchor
+        wall0, rig0 = self._anchor or (wall, self._t)  # from the rig's first motion, not from its making
         if wall0 + (self._t - rig0) / self.pace < wall - self.CATCH_UP_S:  # far behind: count from here
-            wall0, rig0 = self._anchor = (wall, self._t)
+            wall0, rig0 = wall, self._t
+        self._anchor = (wall0, rig0)
         due = wall0 + (t - rig0) / self.pace
         while (left := due - time.monotonic()) > 0:
             time.sleep(left)

@@ -255,26 +255,24 @@ class EventBus:
         self._others: list[Subscription] = []
 
     def subscribe(self, handler: Handler, *, kinds: Iterable[str] | None = None,
-                  durable: bool = False) -> Subscription:
+                  durable: bool = False, first: bool = False) -> Subscription:
         """Call ``handler(event)`` for every event (of ``kinds``, if given). ``durable``: the handler
         must not miss an event, and its failure stops the run (the journal is the one; others, such
-        as a notifier or a database sync, are not durable). An unknown kind is refused at once:
-        a misspelt kind would otherwise be a subscriber that silently never hears anything."""
+        as a notifier or a database sync, are not durable). ``first``: before the others of its tier
+        (the run subscribes its journal so). An unknown kind is refused at once: a misspelt kind
+        would otherwise be a subscriber that silently never hears anything."""
         wanted = None if kinds is None else frozenset(kinds)
         if wanted is not None and (unknown := wanted - KINDS):
             raise ValueError(f"unknown event kind(s) {sorted(unknown)}; the kinds are {sorted(KINDS)}")
         subscription = Subscription(handler, wanted, durable)
-        (self._durable if durable else self._others).append(subscription)
+        tier = self._durable if durable else self._others
+        tier.insert(0 if first else len(tier), subscription)
         return subscription
 
     def unsubscribe(self, subscription: Subscription) -> None:
         for tier in (self._durable, self._others):
             if subscription in tier:
                 tier.remove(subscription)
-
-    @property
-    def durable(self) -> tuple[Subscription, ...]:
-        return tuple(self._durable)
 
     def publish(self, event: RunEvent,
                 critical: Callable[[], AbstractContextManager[object]] = nullcontext) -> None:

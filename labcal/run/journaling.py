@@ -29,9 +29,6 @@ class JournalSubscriber:
 
 
 def subscribe_journal(bus: EventBus, journal: Journal) -> Subscription:
-    """The journal, subscribed first and durably: it has every event before anyone else sees it.
-    A bus that already has a durable subscriber is refused (it would hear of points not yet on disk)."""
-    if bus.durable:
-        raise ValueError("the journal must be the run's first durable subscriber; subscribe the others "
-                         "after the run has started, or not durably")
-    return bus.subscribe(JournalSubscriber(journal), durable=True)
+    """The journal, subscribed first and durably: it has every event before anyone else sees it,
+    another durable subscriber included."""
+    return bus.subscribe(JournalSubscriber(journal), durable=True, first=True)

@@ -158,11 +158,13 @@ def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: S
 def _say_how_it_ended(sequencer: Sequencer, journal: Journal, run_id: int,
                       ended: BaseException | None) -> None:
     """The final Status, as the journal has just recorded it (a run that could not be fitted is
-    "failed", one whose folder could not be written "stopped"). If it cannot be journaled while
-    other news is ending the run, that news is what the caller hears; the failure is logged."""
+    "failed", one whose folder could not be written "stopped"), at the rig time the exports state
+    (the journal's last): journaling it must not make run.json out of date. If it cannot be
+    journaled while other news is ending the run, that news is what the caller hears; the failure
+    is logged."""
     try:
         row = journal.run(run_id)
-        sequencer.status("end", row.status, row.reason)
+        sequencer.status("end", row.status, row.reason, journal.rig_time(run_id))
     except Exception as exc:
         if ended is None:
             raise

@@ -390,15 +390,18 @@ class Sequencer:
         self.publish(Note(run_id=self.run_id, rig_time_s=self.rig_time(), name=name, message=message,
                           data=data or None))
 
-    def status(self, at: str, status: str = "running", reason: str | None = None) -> None:
+    def status(self, at: str, status: str = "running", reason: str | None = None,
+               rig_time_s: float | None = None) -> None:
         """Where the run stands, before the next step (`Forecast.ahead`); ``at``: what occasioned it.
-        At the end (``status`` not running) no remount is ahead, whatever the forecast said."""
+        At the end (``status`` not running) no remount is ahead, whatever the forecast said.
+        ``rig_time_s``: when, if not now."""
         remount, eta = self._ahead[self._next] if self._ahead else (None, None)
         if at == "mount" and self.forecast is not None:  # its prompt is past: the next one is ahead
             remount, eta = self.forecast.after_mount(self._todo[self._next], self._ahead[self._next + 1])
         if status != "running":
             remount = None
-        self.publish(Status(run_id=self.run_id, rig_time_s=self.rig_time(),
+        when = self.rig_time() if rig_time_s is None else rig_time_s
+        self.publish(Status(run_id=self.run_id, rig_time_s=when,
                             status=status, reason=reason, at=at,  # type: ignore[arg-type]
                             points_done=self._points_done,
                             points_total=self._points_total, mount=self._mount,
