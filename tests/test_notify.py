@@ -247,3 +247,68 @@ def test_without_apprise_a_run_goes_on_and_says_so_once(tmp_path, capsys, monkey
     warnings = [line for line in err.splitlines() if "notification" in line]
     assert warnings == ["notifications are off: $LABCAL_NOTIFY names notification URLs, but apprise is not "
                         "installed (pip install 'labcal[lab]'); the run goes on without them"], err
+
+
+def test_a_run_stopped_at_a_remount_and_resumed_notifies_under_its_own_number(tmp_path, capsys, monkeypatch):
+    """`labcal run --sim` stopped at the second remount prompt ("stop"): "finished: stopped" with how to
+    go on; `labcal resume` of that folder asks for the mount again (to confirm it), then the rest
+    of the plan's mounts, and ends "finished: complete" — every notification under the one run's
+    number."""
+    plan, _ = load_plan("four-mount-64")
+    answers = tmp_path / "answers.txt"
+    answers.write_text("y\nstop\n")
+    run_dir = tmp_path / "run"
+    with endpoint() as (url, inbox):
+        monkeypatch.setenv("LABCAL_NOTIFY", url)
+        code, _, err = cli(capsys, "run", "--sim", "--answers", str(answers), "--no-report",
+                           "--out", str(run_dir))
+        assert code == 1, err
+        first = len(inbox.received)
+        stopped = json.loads((run_dir / "run.json").read_text())  # the run's own record of how it ended
+        code, _, err = cli(capsys, "resume", str(run_dir), "--yes", "--no-report")
+        assert code == 0, err
+        bodies = inbox.bodies()
+    run_id = json.loads((run_dir / "run.json").read_text())["run_id"]
+    who = f"labcal simulated rig, run {run_id}: "
+    assert all(b.startswith(who) for b in bodies), bodies
+    n = len(plan.mounts)
+    (y1, u1), (y2, u2) = plan.mounts[:2]
+    assert bodies[:first] == [
+        f"{who}mount 1 of {n}: remount the instrument on the {described(y1, u1)}; the tables wait until the "
+        "operator confirms it at the station",
+        f"{who}mount 2 of {n}: remount the instrument on the {described(y2, u2)}; the tables wait until the "
+        "operator confirms it at the station",
+        f"{who}finished: stopped ({stopped['reason']}), {stopped['points_recorded']} of {plan.n_points} "
+        f"points; labcal resume {run_dir} continues it"]
+    assert stopped["status"] == "stopped" and stopped["points_recorded"] == len(plan.points)  # one mount's
+    mounts = [b for b in bodies[first:] if "remount the instrument" in b]
+    assert len(mounts) == n - 1 and all(f"{who}mount {step} of {n}: " in b
+                                        for step, b in zip(range(2, n + 1), mounts, strict=True)), mounts
+    assert bodies[-1].startswith(f"{who}finished: complete, {plan.n_points} of {plan.n_points} points; ")
+
+
+def test_what_a_pause_and_the_ends_say():
+    """The words of a pause whose stop failed, and of the ends that are not complete, from events
+    made here: the reasons and counts come through as given, with how to continue where one can."""
+    from labcal.run.events import Paused, Status
+    from labcal.run.notify import RunNotifier
+
+    notifier = RunNotifier(Notifications([], "test", print), "station bench-2", Path("/srv/runs/r7"))
+    who = "labcal station bench-2, run 7: "
+    paused = notifier.compose(Paused(run_id=7, rig_time_s=5.0, why="fault: roll table: no reply",
+                                     may_be_moving=("roll",)))
+    assert paused is not None and paused.body == (
+        f"{who}paused (fault: roll table: no reply); the stop did not reach the roll table(s): it may still "
+        "be moving; every reading so far is saved, and the run waits for the operator to resume or abort it "
+        "at the station")
+    ends = {status: notifier.compose(Status(run_id=7, rig_time_s=9.0, status=status, reason=reason, at="end",
+                                            points_done=10, points_total=64))
+            for status, reason in (("interrupted", "SIGTERM"), ("failed", "finished without enough good "
+                                                                          "points to fit"))}
+    assert ends["interrupted"] is not None and ends["interrupted"].body == (
+        f"{who}finished: interrupted (SIGTERM), 10 of 64 points; labcal resume /srv/runs/r7 continues it")
+    assert ends["failed"] is not None and ends["failed"].body == (
+        f"{who}finished: failed (finished without enough good points to fit), 10 of 64 points")
+    for at in ("start", "point", "mount", "resume"):  # a run going on is no news
+        assert notifier.compose(Status(run_id=7, rig_time_s=1.0, status="running", at=at, points_done=1,
+                                       points_total=64)) is None
