@@ -152,8 +152,8 @@ class Notifications:
             return
         unsent = [m for m in (self._busy, *self._pending()) if m is not None]
         if unsent:  # the worker goes on with the send it is in (a daemon: it never holds the process)
-            self.warn(f"notifications not sent: {len(unsent)} still queued after {self.drain_s:g} s "
-                      f"({', '.join(m.what for m in unsent)})")
+            self.warn(f"notifications not sent: {len(unsent)} still queued or unanswered after "
+                      f"{self.drain_s:g} s ({', '.join(m.what for m in unsent)})")
 
     def _pending(self) -> list[Message]:
         pending: list[Message] = []
