@@ -88,3 +88,22 @@ def test_a_missing_labcal_config_file_is_one_line(tmp_path, monkeypatch, capsys)
     monkeypatch.setenv("LABCAL_CONFIG", str(tmp_path / "nope.toml"))
     assert main(["config", "path"]) == 2
     assert "no such lab configuration file" in capsys.readouterr().err
+
+
+def test_labcal_config_shows_where_notifications_go_and_no_token(tmp_path, capsys, monkeypatch):
+    """The lab file's ``notify`` (issue 24) by scheme only (an apprise URL holds its service's token),
+    and $LABCAL_NOTIFY over it, even empty."""
+    lab = tmp_path / "lab.toml"
+    lab.write_text('notify = ["tgram://123456:SECRET/42", "json://127.0.0.1:8080/hook"]\n')
+    monkeypatch.setenv("LABCAL_CONFIG", str(lab))
+    assert main(["config", "show", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert (doc["notify"], doc["notify_from"]) == (["tgram://…", "json://…"], f"{lab}: notify")
+    monkeypatch.setenv("LABCAL_NOTIFY", "mailto://me:SECRET@example.com, ")
+    assert main(["config", "show"]) == 0
+    shown = capsys.readouterr().out
+    assert "notify: mailto://… ($LABCAL_NOTIFY)" in shown and "SECRET" not in shown
+    monkeypatch.setenv("LABCAL_NOTIFY", "")
+    assert main(["config", "show", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["notify"] == []
+

@@ -30,11 +30,15 @@ def cmd_show(args: argparse.Namespace) -> int:
     lab = load_lab_config()
     laboratory, certificate = lab.laboratory.model_dump(), lab.certificate.model_dump(mode="json")
     path, database = None if lab.path is None else str(lab.path), str(lab.database())
+    urls, source = lab.notify_urls()
+    notify = [url.partition("://")[0] + "://…" for url in urls]  # the scheme: the rest may hold a token
     if args.json:
-        print_json({"path": path, "database": database, "laboratory": laboratory, "certificate": certificate})
+        print_json({"path": path, "database": database, "laboratory": laboratory, "certificate": certificate,
+                    "notify": notify, "notify_from": source})
         return 0
     out.print(f"lab file: {path or 'none (defaults)'}")
     out.print(f"database: {database}")
+    out.print(f"notify: {', '.join(notify) or 'nobody'} ({source})", markup=False)
     for key, value in laboratory.items():
         out.print(f"laboratory.{key}: {value or 'not stated'}")
     for key, value in certificate.items():

@@ -30,6 +30,7 @@ if TYPE_CHECKING:
     from labcal.config.settings import CertificateSettings, SequencerSettings
     from labcal.config.station import StationFile
     from labcal.run.estimate import Estimate
+    from labcal.run.notify import RunNotifier
     from labcal.run.runner import RunResult
 
 
@@ -91,7 +92,7 @@ def _stop_failure(exc: BaseException) -> str:
 
 
 def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done: int,
-                   certificate=None, journal: Path | None = None) -> int:
+                   certificate=None, journal: Path | None = None, notifier: RunNotifier | None = None) -> int:
     """Run with a progress display; turn the ways a run can end into messages and exit codes; at the
     end of a complete run issue its certificate and report (``certificate``: their settings) into
     the run's journal (``journal``: a resumed run's, which its folder names; else --db's)."""
@@ -108,6 +109,8 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
         with ProgressDisplay(err, plan.n_points, done) as display:
             events = EventBus()  # the journal is subscribed first, by the runner
             events.subscribe(display, kinds=display.KINDS)
+            if notifier is not None:  # remounts, pauses and the end, through apprise (issue 24)
+                events.subscribe(notifier.handle, kinds=notifier.KINDS)
             result: RunResult = runner(events, display, est.forecast())
     except KeyboardInterrupt as exc:
         why = f" ({exc.reason})" if isinstance(exc, StopSignal) else ""
@@ -179,6 +182,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from labcal.run.estimate import estimate
     from labcal.run.interrupts import stop_signals_raise
     from labcal.run.journal import Journal, db_path
+    from labcal.run.notify import RunNotifier, lab_notifications, station_label
     from labcal.run.rundir import new_run_dir
     from labcal.run.runner import calibrate
     from labcal.run.sequencer import check_limits, schedule
@@ -200,6 +204,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         plan_text = plan_toml(plan)
     with ExitStack() as stack:
         stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
+        notifications = stack.enter_context(lab_notifications(lambda line: err.print(line, markup=False)))
         bench = None
         if args.sim:
             setup = sim_station(args.rig, args.seed, pace=args.pace)
@@ -244,7 +249,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             return run_and_report(args, lambda events, terminal, forecast: calibrate(
                 plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, events,
                 setup.metadata, args.serial, args.operator, steps, terminal=terminal, forecast=forecast),
-                run_dir, plan, est, 0, cert_settings)
+                run_dir, plan, est, 0, cert_settings,
+                notifier=RunNotifier(notifications, station_label(setup.metadata), run_dir))
 
 
 def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Path | None,
@@ -287,6 +293,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
     from labcal.run.estimate import estimate
     from labcal.run.interrupts import stop_signals_raise
     from labcal.run.journal import sha256
+    from labcal.run.notify import RunNotifier, lab_notifications, station_label
     from labcal.run.runner import execute, open_for_resume
     from labcal.run.sequencer import check_limits, schedule
     from labcal.run.winding import left_at
@@ -295,6 +302,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
     ctx = open_for_resume(run_dir)
     with ExitStack() as stack:
         stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
+        notifications = stack.enter_context(lab_notifications(lambda line: err.print(line, markup=False)))
         stack.callback(ctx.journal.close)
         stack.callback(ctx.lock.release)
         for note in ctx.notes:
@@ -348,7 +356,8 @@ def cmd_resume(args: argparse.Namespace) -> int:
         return run_and_report(args, lambda events, terminal, forecast: execute(
             ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, events,
             steps, terminal=terminal, forecast=forecast),
-            run_dir, ctx.plan, est, len(points), cert_settings, ctx.journal.path)
+            run_dir, ctx.plan, est, len(points), cert_settings, ctx.journal.path,
+            notifier=RunNotifier(notifications, station_label(ctx.metadata), run_dir))
 
 
 def finish_complete(args: argparse.Namespace, run_dir: Path, run_id: int,

@@ -14,6 +14,7 @@ folder. A relative `database` is relative to the file that names it.
 Example::
 
     database = "/srv/lab/labcal.sqlite"
+    notify = ["mailto://user:app-password@example.com"]  # apprise URLs: remounts, pauses, run ends
 
     [laboratory]
     name = "Example Calibration Laboratory"
@@ -41,6 +42,7 @@ from labcal.errors import LabcalError
 
 CONFIG_ENV = "LABCAL_CONFIG"
 DB_ENV = "LABCAL_DB"
+NOTIFY_ENV = "LABCAL_NOTIFY"
 FILE_NAME = "lab.toml"
 DB_NAME = "labcal.sqlite"
 
@@ -70,6 +72,9 @@ class LabFile(BaseModel):
     laboratory: Laboratory = Field(default_factory=Laboratory)
     certificate: CertificateSettings = Field(default_factory=CertificateSettings,
                                              description="default tolerances and usage envelope")
+    notify: list[str] = Field(default_factory=list,
+                              description="apprise URLs told of each remount, pause and run's end "
+                                          "(issue 24); $LABCAL_NOTIFY goes over it")
 
 
 @dataclass(frozen=True)
@@ -90,6 +95,15 @@ class LabConfig:
         if self.laboratory.stated and not self.file.certificate.laboratory:
             return self.file.certificate.model_copy(update={"laboratory": self.laboratory.stated})
         return self.file.certificate
+
+    def notify_urls(self) -> tuple[tuple[str, ...], str]:
+        """Where a run's notifications go, and who said so (for a one-line refusal): $LABCAL_NOTIFY
+        (comma-separated) when it is set, even empty (which turns the lab file's off for one
+        command), else the lab file's ``notify``."""
+        if NOTIFY_ENV in os.environ:
+            urls = os.environ[NOTIFY_ENV].split(",")
+            return tuple(u.strip() for u in urls if u.strip()), f"${NOTIFY_ENV}"
+        return tuple(u.strip() for u in self.file.notify if u.strip()), f"{self.path or FILE_NAME}: notify"
 
     def database(self, option: str | Path | None = None) -> Path:
         """The lab database: --db, else $LABCAL_DB, else this file's `database`, else the user's
