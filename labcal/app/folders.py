@@ -60,6 +60,7 @@ def export_run(request: ExportRun) -> FolderWritten:
     of the copy makes the copy the run's folder)."""
     from labcal.app.journals import open_named
     from labcal.run import exports
+    from labcal.run.rundir import RUN
 
     journal, row, named = open_named(request.run, request.db)
     folder = Path(request.out)
@@ -69,9 +70,10 @@ def export_run(request: ExportRun) -> FolderWritten:
         if os.path.abspath(folder) in own:
             raise LabcalError(f"{folder}: is run {row.id}'s own folder; `labcal export {request.run}` "
                               "without --out rebuilds it")
+        fresh = not (folder / RUN).exists()  # else an earlier copy: what differed is said
         _target(folder, row)
         notes, _ = exports.sync(journal, row, folder, remember=False)
-    return FolderWritten(row.id, row.uuid, folder, row.status, tuple(notes))
+    return FolderWritten(row.id, row.uuid, folder, row.status, () if fresh else tuple(notes))
 
 
 def rebuild_run_folder(request: RebuildRunFolder) -> FolderWritten:
