@@ -209,3 +209,63 @@ def test_bad_monte_carlo_is_refused_before_anything_is_written(tmp_path):
     with pytest.raises(LabcalError, match="--monte-carlo 5: give 100"):
         issue_certificate(IssueCertificate(str(tmp_path), monte_carlo=5))
     assert not any(tmp_path.iterdir())
+
+
+class Front:
+    """A front end for a run without a terminal: what it is told is kept, prompts are answered from
+    a list (as `labcal run --answers` does), and the progress view shows nothing."""
+
+    def __init__(self, tmp_path: Path, answers: str | None = None):
+        from conftest import quiet_console
+
+        self.lines: list[str] = []
+        self.console = quiet_console()
+        self.answers = None
+        if answers is not None:
+            self.answers = tmp_path / "answers.txt"
+            self.answers.write_text(answers)
+
+    def say(self, text: str) -> None:
+        self.lines.append(text)
+
+    def operator(self):
+        from labcal.run.operator import AutoOperator, ScriptedOperator
+
+        return AutoOperator(self.console) if self.answers is None else ScriptedOperator(self.console,
+                                                                                         self.answers)
+
+    def display(self, total, step_estimates, done):
+        from contextlib import nullcontext
+
+        from labcal.run.sequencer import Display
+
+        return nullcontext(Display())
+
+
+def test_start_stop_resume_and_resume_again_through_the_application_layer(tmp_path):
+    """four-mount-64 is four mounts of 16 points: stopped at the second mount's prompt, 16 readings
+    are kept; the resume measures the other 48; a third call finds the run complete."""
+    from labcal.app.calibration import (
+        AlreadyComplete,
+        Ended,
+        Estimated,
+        Finished,
+        ResumeRun,
+        StartRun,
+        resume_run,
+        start_run,
+    )
+
+    db, run_dir = tmp_path / "lab.sqlite", tmp_path / "r"
+    estimated = start_run(StartRun(sim=True, dry_run=True, db=str(db), out=str(run_dir)), Front(tmp_path))
+    assert isinstance(estimated, Estimated) and estimated.plan.n_points == 64
+    assert not run_dir.exists() and not db.exists()  # a dry run moves nothing and journals nothing
+    front = Front(tmp_path, "y\nq\n")
+    ended = start_run(StartRun(sim=True, seed=4, db=str(db), out=str(run_dir), no_report=True), front)
+    assert isinstance(ended, Ended) and ended.how == "stopped" and ended.points_kept == 16
+    assert front.lines[0] == f"Run directory: {run_dir}"
+    finished = resume_run(ResumeRun(str(run_dir), db=str(db), no_report=True), Front(tmp_path))
+    assert isinstance(finished, Finished) and finished.issued is None
+    assert finished.result.outcome.points_recorded == 64 and finished.journal == db
+    again = resume_run(ResumeRun(str(run_dir), db=str(db), no_report=True), Front(tmp_path))
+    assert isinstance(again, AlreadyComplete) and again.certificate is None and again.run_id == 1

@@ -13,7 +13,7 @@ from __future__ import annotations
 from contextlib import AbstractContextManager, ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Literal, Protocol
 
 from labcal.errors import LabcalError
 
@@ -53,7 +53,7 @@ class StartRun:
     time_scale: float | None = None
     plan: str = "four-mount-64"
     replicates: int | None = None
-    order: str = "shortest"
+    order: Literal["shortest", "plan", "sweep", "random"] = "shortest"
     seed: int | None = None
     out: str | None = None
     rig: str | None = None
@@ -61,7 +61,7 @@ class StartRun:
     fixed_dwell: float | None = None
     max_dwell: float | None = None
     settle: str | None = None
-    on_failure: str = "skip"
+    on_failure: Literal["skip", "pause", "abort"] = "skip"
     no_mount_check: bool = False
     ambient_temp: float | None = None
     humidity: float | None = None
@@ -137,8 +137,8 @@ def sequencer_settings_for_run(args: StartRun, setup: StationSetup, speed: float
                           ("max_dwell_s", args.max_dwell),
                           ("mode", args.settle)) if v is not None}}, SettleSettings,
         "command line: settle")  # validated: the options and the station file share one range
-    return SequencerSettings(settle=settle, order=args.order, seed=args.seed or 0,  # type: ignore[arg-type]
-                             on_failure=args.on_failure, check_mount=not args.no_mount_check,  # type: ignore[arg-type]
+    return SequencerSettings(settle=settle, order=args.order, seed=args.seed or 0,
+                             on_failure=args.on_failure, check_mount=not args.no_mount_check,
                              speed_dps=speed, accel_dps2=accel)
 
 
@@ -177,10 +177,10 @@ def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Esti
         with front.display(plan.n_points, est.per_step_s, done) as display:
             result: RunResult = runner(display)
     except KeyboardInterrupt as exc:
-        signal = isinstance(exc, StopSignal)
-        return Ended(run_dir, "interrupted", exc.reason if signal else "",
-                     _stop_failure(exc).removeprefix("; ") or "tables stopped", points_on_disk(run_dir),
-                     exc.signum if signal else None)
+        tables = _stop_failure(exc).removeprefix("; ") or "tables stopped"
+        if isinstance(exc, StopSignal):
+            return Ended(run_dir, "interrupted", exc.reason, tables, points_on_disk(run_dir), exc.signum)
+        return Ended(run_dir, "interrupted", "", tables, points_on_disk(run_dir))
     except OperatorDeclined as exc:
         return Ended(run_dir, "stopped", str(exc), _stop_failure(exc), points_on_disk(run_dir))
     except LabcalError as exc:

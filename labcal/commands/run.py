@@ -22,9 +22,7 @@ from labcal.commands.common import (
 # The run machinery (sequencer, journal, statistics) is imported where it is used, so that the
 # other commands, which import this module to build the parser, do not pay for it at start-up.
 if TYPE_CHECKING:
-    from labcal.analysis.plan import Plan
-    from labcal.app.calibration import AlreadyComplete, Ended, Finished
-    from labcal.run.estimate import Estimate
+    from labcal.app.calibration import AlreadyComplete, Ended, Estimated, Finished
 
 
 class Console:
@@ -62,9 +60,10 @@ def make_operator(args: argparse.Namespace):
     return AutoOperator(err) if args.yes else ConsoleOperator(err)
 
 
-def print_estimate(plan: Plan, est: Estimate, as_json: bool) -> None:
+def print_estimate(estimated: Estimated, as_json: bool) -> None:
     from labcal.commands.console import format_duration
 
+    plan, est = estimated.plan, estimated.estimate
     doc: dict[str, Any] = {
         "plan": plan.name, "points": plan.n_points, "total_s": est.total_s,
         "estimated_rig_time_s": est.total_s, "moves_s": est.moves_s, "settling_s": est.settling_s,
@@ -139,7 +138,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     ended = start_run(request(StartRun, args), Console(args))
     if isinstance(ended, Estimated):
-        print_estimate(ended.plan, ended.estimate, args.json)
+        print_estimate(ended, args.json)
         return 0
     return run_and_report(args, ended)
 
