@@ -264,8 +264,12 @@ def test_start_stop_resume_and_resume_again_through_the_application_layer(tmp_pa
     ended = start_run(StartRun(sim=True, seed=4, db=str(db), out=str(run_dir), no_report=True), front)
     assert isinstance(ended, Ended) and ended.how == "stopped" and ended.points_kept == 16
     assert front.lines[0] == f"Run directory: {run_dir}"
-    finished = resume_run(ResumeRun(str(run_dir), db=str(db), no_report=True), Front(tmp_path))
+    copy = tmp_path / "copy"  # resumed from a copy (as after a full disk): the copy is the run's from then on
+    export_run(ExportRun(str(run_dir), str(copy), str(db)))
+    assert list_runs(ListRuns(str(db))).runs[0].run_dir == str(run_dir)
+    finished = resume_run(ResumeRun(str(copy), db=str(db), no_report=True), Front(tmp_path))
     assert isinstance(finished, Finished) and finished.issued is None
     assert finished.result.outcome.points_recorded == 64 and finished.journal == db
-    again = resume_run(ResumeRun(str(run_dir), db=str(db), no_report=True), Front(tmp_path))
+    assert list_runs(ListRuns(str(db))).runs[0].run_dir == str(copy)
+    again = resume_run(ResumeRun(str(copy), db=str(db), no_report=True), Front(tmp_path))
     assert isinstance(again, AlreadyComplete) and again.certificate is None and again.run_id == 1

@@ -313,6 +313,7 @@ def ambient_entered(args: StartRun) -> dict[str, float | str]:
 def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyComplete:
     """Go on with an interrupted run at the first point not in the journal, on the station it
     started on or another station file of the same bench; then the shared sequence."""
+    from labcal.app.folders import record_folder
     from labcal.bench.setup import prepare, read_snapshot, sim_station, station_for_resume
     from labcal.config.settings import CertificateSettings
     from labcal.config.station import load_station
@@ -329,6 +330,8 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
         stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
         stack.callback(ctx.journal.close)
         stack.callback(ctx.lock.release)
+        # a copy (`labcal export RUN --out DIR`) resumed is the run's folder from now on
+        record_folder(ctx.journal, ctx.journal.run(ctx.run_id), run_dir, "resume")
         for note in ctx.notes:
             front.say(f"[yellow]note:[/] {note}")
         run_name = f"run {ctx.run_id} in {run_dir}"

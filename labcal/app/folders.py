@@ -7,8 +7,12 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from labcal.errors import LabcalError
+
+if TYPE_CHECKING:
+    from labcal.run.journal import Journal, RunRow
 
 
 @dataclass(frozen=True)
@@ -90,11 +94,19 @@ def rebuild_run_folder(request: RebuildRunFolder) -> FolderWritten:
         created = not (folder / RUN).exists()  # else the run's own folder, perhaps recorded anew
         _target(folder, row)
         notes, _ = exports.sync(journal, row, folder)
-        where = os.path.abspath(folder)  # recorded absolute: found from any folder
-        moved = None
-        if where != row.run_dir:
-            moved = row.run_dir
-            journal.set_run_dir(row.id, where)
-            journal.event(row.id, "export", f"run folder recreated in {where}" if created
-                          else f"run folder recorded as {where} (was {row.run_dir})")
+        moved = record_folder(journal, row, folder, "export", "run folder recreated in {}" if created else "")
     return FolderWritten(row.id, row.uuid, folder, row.status, tuple(notes), moved)
+
+
+def record_folder(journal: Journal, row: RunRow, folder: Path, kind: str, message: str = "") -> str | None:
+    """Record ``folder`` as the run's (absolute: found from any folder) when the journal has it
+    elsewhere, with an event ``kind`` (``message``: its words, {} the folder); returns the folder it
+    was recorded in before, None when it was this one. The folder a run is rebuilt or resumed in
+    is its folder: where its files are."""
+    where = os.path.abspath(folder)
+    if where == row.run_dir:
+        return None
+    journal.set_run_dir(row.id, where)
+    journal.event(row.id, kind, message.format(where) if message
+                  else f"run folder recorded as {where} (was {row.run_dir})")
+    return row.run_dir

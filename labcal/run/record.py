@@ -69,8 +69,8 @@ def load_run(run_dir: str | Path) -> RunRecord:
     `labcal.app.folders.rebuild_run_folder`)."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
-        raise LabcalError(f"{run_dir}: no such run directory (if it was deleted, `labcal export RUN_ID "
-                          "--out DIR` recreates it from the journal)")
+        raise LabcalError(f"{run_dir}: no such run directory (if it was deleted, `labcal export RUN_ID` "
+                          "recreates it from the journal)")
     _, journal, row = open_run(run_dir)
     with journal:
         if row.status != "complete":
