@@ -25,7 +25,7 @@ if TYPE_CHECKING:
     from labcal.app.calibration import AlreadyComplete, Ended, Estimated, Finished
 
 
-class Console:
+class Terminal:
     """The terminal as the run's front end (`labcal.app.calibration.FrontEnd`): lines on stderr,
     prompts answered at the keyboard (or by --yes, --answers), a progress bar."""
 
@@ -136,7 +136,7 @@ def run_and_report(args, ended: Ended | Finished) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     from labcal.app.calibration import Estimated, StartRun, start_run
 
-    ended = start_run(request(StartRun, args), Console(args))
+    ended = start_run(request(StartRun, args), Terminal(args))
     if isinstance(ended, Estimated):
         print_estimate(ended, args.json)
         return 0
@@ -146,7 +146,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_resume(args: argparse.Namespace) -> int:
     from labcal.app.calibration import AlreadyComplete, ResumeRun, resume_run
 
-    ended = resume_run(request(ResumeRun, args), Console(args))
+    ended = resume_run(request(ResumeRun, args), Terminal(args))
     if isinstance(ended, AlreadyComplete):
         return finish_complete(args, ended)
     return run_and_report(args, ended)
