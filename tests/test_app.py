@@ -273,3 +273,14 @@ def test_start_stop_resume_and_resume_again_through_the_application_layer(tmp_pa
     assert list_runs(ListRuns(str(db))).runs[0].run_dir == str(copy)
     again = resume_run(ResumeRun(str(copy), db=str(db), no_report=True), Front(tmp_path))
     assert isinstance(again, AlreadyComplete) and again.certificate is None and again.run_id == 1
+
+
+def test_the_read_commands_change_nothing(unchanged, capsys):
+    """The same reads through the command line, text and JSON."""
+    base, db = unchanged
+    for args in (["runs"], ["runs", "--json"], ["log", "1"], ["log", str(base / "bench"), "--json"],
+                 ["history", SERIAL, "--include-simulated"], ["device", "history", "SIMULATED", "--json"],
+                 ["certificate", "verify", str(base / "bench" / "certificate.json")],
+                 ["certificate", "approvers", "list"]):
+        assert main([*args, "--db", str(db)]) == 0, args
+    assert "A. Metrologist" in capsys.readouterr().out
