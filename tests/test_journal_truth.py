@@ -90,6 +90,9 @@ def test_a_deleted_run_folder_is_recreated_from_the_run_id(tmp_path, capsys):
     assert "no such run directory" in one_line(capsys, ["report", str(folder), "--db", str(db)])
     assert main(["export", "1", "--db", str(db), "--out", str(tmp_path / "again")]) == 0
     assert {p.name: p.read_bytes() for p in (tmp_path / "again").iterdir()} == original
+    with Journal(db) as journal:
+        assert journal.run(1).run_dir == str(folder)  # a copy: the run is recorded where it was
+    assert main(["export", str(tmp_path / "again")]) == 0  # rebuilding the copy makes it the run's folder
     assert main(["report", str(tmp_path / "again"), "--db", str(db)]) == 0
     with Journal(db) as journal:
         assert journal.run(1).run_dir == str(tmp_path / "again")  # the journal knows where it is now

@@ -9,40 +9,40 @@ from labcal.commands.common import add_db_option, out, print_json
 
 
 def cmd_keygen(args: argparse.Namespace) -> int:
-    from labcal.documents.approval import key_id, keygen, load_public_key
+    from labcal.app.certificates import MakeKeys, make_keys
 
-    private, public = keygen(args.out)
-    kid = key_id(load_public_key(public))
+    keys = make_keys(MakeKeys(args.out))
     if args.json:
-        print_json({"private_key": str(private), "public_key": str(public), "key_id": kid})
+        print_json({"private_key": str(keys.private_key), "public_key": str(keys.public_key),
+                    "key_id": keys.key_id})
         return 0
-    out.print(f"private key {private} (readable by you only: keep it so), public key {public}")
-    out.print(f"key id {kid}; give the public key to whoever verifies your certificates")
+    out.print(f"private key {keys.private_key} (readable by you only: keep it so), public key "
+              f"{keys.public_key}")
+    out.print(f"key id {keys.key_id}; give the public key to whoever verifies your certificates")
     return 0
 
 
 def cmd_approve(args: argparse.Namespace) -> int:
-    from labcal.documents.approving import approve_run
+    from labcal.app.certificates import ApproveCertificate, approve_certificate
 
-    result = approve_run(args.run_dir, args.by, args.role, args.key, args.db, args.station)
+    approved = approve_certificate(ApproveCertificate(args.run_dir, args.by, args.role, args.key, args.db,
+                                                      args.station))
+    if args.json:
+        print_json(approved.to_json())
+        return 0
+    result = approved.outputs
     cert = result.certificate
     approval = cert.approval
     assert approval is not None  # approve_run signs or refuses
-    if args.json:
-        print_json({"certificate": str(result.certificate_path), "number": cert.number,
-                    "approved_by": approval.by, "role": approval.role, "key_id": approval.key_id,
-                    "dcc": None if result.dcc_path is None else str(result.dcc_path),
-                    "dcc_sha256": approval.dcc_sha256, "report_pdf": str(result.pdf_path)})
-        return 0
     out.print(f"Certificate {cert.number} approved by {approval.by} ({approval.role}) and signed, with its "
               f"DCC: {result.certificate_path}; report {result.pdf_path} no longer says DRAFT")
     return 0
 
 
 def cmd_approvers_add(args: argparse.Namespace) -> int:
-    from labcal.documents import approvers
+    from labcal.app.certificates import AddApprover, add_approver
 
-    a = approvers.add(args.name, args.role, args.public_key, args.db)
+    a = add_approver(AddApprover(args.name, args.role, args.public_key, args.db))
     if args.json:
         print_json(a.to_json())
         return 0
@@ -51,9 +51,9 @@ def cmd_approvers_add(args: argparse.Namespace) -> int:
 
 
 def cmd_approvers_list(args: argparse.Namespace) -> int:
-    from labcal.documents import approvers
+    from labcal.app.certificates import ListApprovers, list_approvers
 
-    found = approvers.listed(args.db)
+    found = list_approvers(ListApprovers(args.db)).approvers
     if args.json:
         print_json({"approvers": [a.to_json() for a in found]})
         return 0
@@ -67,9 +67,9 @@ def cmd_approvers_list(args: argparse.Namespace) -> int:
 
 
 def cmd_approvers_revoke(args: argparse.Namespace) -> int:
-    from labcal.documents import approvers
+    from labcal.app.certificates import RevokeApprover, revoke_approver
 
-    a = approvers.revoke(args.name, args.db)
+    a = revoke_approver(RevokeApprover(args.name, args.db))
     if args.json:
         print_json(a.to_json())
         return 0
@@ -79,28 +79,15 @@ def cmd_approvers_revoke(args: argparse.Namespace) -> int:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    from pathlib import Path
+    from labcal.app.certificates import VerifyCertificate, verify_certificate
 
-    from labcal.documents.approval import check_dcc, load_public_key, verify
-    from labcal.documents.approvers import verify_registered
-    from labcal.documents.dcc import DCC_FILE
-
-    cert = (verify_registered(args.file, args.db) if args.public_key is None
-            else verify(args.file, load_public_key(args.public_key)))
-    approval = cert.approval
-    assert approval is not None  # verify refuses an unapproved certificate
-    dcc = args.dcc or (Path(args.file).with_name(DCC_FILE) if approval.dcc_sha256 else None)
-    if dcc is not None:
-        check_dcc(cert, dcc)
-    against = "the registered key" if args.public_key is None else "the given public key"
+    v = verify_certificate(VerifyCertificate(args.file, args.public_key, args.dcc, args.db))
     if args.json:
-        print_json({"file": args.file, "valid": True, "number": cert.number, "approved_by": approval.by,
-                    "role": approval.role, "approved_utc": approval.approved_utc.isoformat(),
-                    "verified_against": against, "dcc": None if dcc is None else str(dcc)})
+        print_json(v.to_json())
         return 0
-    out.print(f"{args.file}: signature valid against {against} — certificate {cert.number}, approved by "
-              f"{approval.by} ({approval.role}) on {approval.approved_utc:%Y-%m-%d %H:%M} UTC"
-              + (f"; DCC {dcc} is the one signed" if dcc is not None else "; no DCC signed with it"))
+    out.print(f"{v.file}: signature valid against {v.verified_against} — certificate {v.number}, approved by "
+              f"{v.approved_by} ({v.role}) on {v.approved_utc:%Y-%m-%d %H:%M} UTC"
+              + (f"; DCC {v.dcc} is the one signed" if v.dcc is not None else "; no DCC signed with it"))
     return 0
 
 

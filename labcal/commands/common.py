@@ -11,6 +11,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from rich.console import Console
 
+    from labcal.app.histories import History
+
 EXIT_USER_ERROR = 2
 EXIT_STOPPED = 1
 EXIT_INTERRUPTED = 130
@@ -77,14 +79,26 @@ def print_json(doc: dict) -> None:
     sys.stdout.write(json.dumps(json_safe(doc), indent=2) + "\n")
 
 
-def print_changes(flagged: list[str], tally: str, rule: str, plot: str | None) -> None:
-    """A history's last lines: each flagged change, the tally with the rule that flagged them, and
-    where the plot went (the instrument's and the device's histories end alike)."""
-    for change in flagged:
+def print_history(history: History) -> None:
+    """A history (`labcal.app.histories`): its calibrations, its tables with each flagged change in
+    red, each flagged change in words, the tally with the rule that flagged them, and where the plot
+    went (the instrument's and the device's histories end alike)."""
+    from rich.table import Table
+
+    for entry in history.entries:
+        out.print(f"  {entry}")
+    for t in history.tables:
+        table = Table(title=t.title)
+        for col in t.columns:
+            table.add_column(col, justify="right")
+        for row in t.rows:
+            table.add_row(*(f"[bold red]{c.text} ▲[/]" if c.flagged else c.text for c in row))
+        out.print(table)
+    for change in history.flagged:
         out.print(f"[bold red]change:[/] {change}")
-    out.print(f"{tally}; {len(flagged)} change(s) flagged by {rule}.")
-    if plot:
-        out.print(f"plot written to {plot}")
+    out.print(f"{history.tally}; {len(history.flagged)} change(s) flagged by {history.rule}.")
+    if history.plot:
+        out.print(f"plot written to {history.plot}")
 
 
 def add_db_option(p: argparse.ArgumentParser) -> None:

@@ -4,35 +4,17 @@ from __future__ import annotations
 
 import argparse
 
-from labcal.commands.common import add_db_option, out, print_changes, print_json
+from labcal.commands.common import add_db_option, print_history, print_json
 
 
 def cmd_history(args: argparse.Namespace) -> int:
-    from labcal.analysis.kinematics import MISALIGNMENT_NAMES
-    from labcal.documents.device_history import RULE, changes, estimates_for, history_json, plot_history
+    from labcal.app.histories import DeviceHistory, device_history
 
-    estimates = estimates_for(args.device_id, args.db)
-    found = changes(estimates)
-    if args.plot:
-        plot_history(args.device_id, estimates, found, args.plot)
+    history = device_history(DeviceHistory(args.device_id, args.db, args.plot))
     if args.json:
-        print_json(history_json(args.device_id, estimates, found))
+        print_json(history.document)
         return 0
-    from rich.table import Table
-
-    flagged = {(c.after, c.name) for c in found if c.flagged}
-    table = Table(title=f"Calibration device {args.device_id}: misalignments (″) ± U (95 %)")
-    for col in ("#", "calibrated (UTC)", "run", *MISALIGNMENT_NAMES):
-        table.add_column(col, justify="right")
-    for n, e in enumerate(estimates, start=1):
-        cells = [f"{e.value_arcsec[m]:+.2f} ± {e.U_arcsec[m]:.2f}" for m in MISALIGNMENT_NAMES]
-        table.add_row(str(n), e.calibrated_utc[:16].replace("T", " "), e.source,
-                      *(f"[bold red]{c} ▲[/]" if (e.source, m) in flagged else c
-                        for c, m in zip(cells, MISALIGNMENT_NAMES, strict=True)))
-    out.print(table)
-    print_changes([f"{ch.name} from {ch.before} to {ch.after}: Δ = {ch.delta_arcsec:+.2f}″, "
-                   f"limit √(U₁²+U₂²) = {ch.limit_arcsec:.2f}″" for ch in found if ch.flagged],
-                  f"{len(estimates)} estimate(s)", RULE, args.plot)
+    print_history(history)
     return 0
 
 

@@ -6,7 +6,6 @@ import argparse
 from typing import TYPE_CHECKING
 
 from labcal.commands.common import add_db_option, bounded, err, out, print_json
-from labcal.errors import LabcalError
 
 if TYPE_CHECKING:
     from rich.table import Table as RichTable
@@ -30,55 +29,25 @@ def rich_table(t) -> RichTable:
 def cmd_report(args: argparse.Namespace) -> int:
     from rich.markup import escape
 
-    from labcal.documents.administration import ItemGiven
-    from labcal.documents.issuing import load_settings
-    from labcal.documents.report import (
-        attitude_table,
-        budget_table,
-        coefficients_with_expanded_uncertainty,
-        conformity_table,
-        write_run_outputs,
-    )
+    from labcal.app.certificates import IssueCertificate, issue_certificate
 
-    if args.monte_carlo and not 100 <= args.monte_carlo <= 1_000_000:
-        raise LabcalError(f"--monte-carlo {args.monte_carlo}: give 100 … 1000000 trials (10000 gives U95 to "
-                          "about 1 %), or leave it out")
-    settings = load_settings(args.station, attitude_u95_max_deg=args.tolerance_deg,
-                             bias_max_v=args.bias_max_v, usage_pitch_deg=args.usage_pitch,
-                             usage_roll_deg=args.usage_roll)
-    result = write_run_outputs(args.run_dir, settings, serial=args.serial, operator=args.operator, db=args.db,
-                               station=args.station, monte_carlo=args.monte_carlo,
-                               item=ItemGiven(args.customer, args.manufacturer, args.model, args.received))
-    cert = result.certificate
-    for note in result.notes:
+    issued = issue_certificate(IssueCertificate(
+        args.run_dir, args.db, args.station, args.tolerance_deg, args.bias_max_v,
+        tuple(args.usage_pitch) if args.usage_pitch else None,
+        tuple(args.usage_roll) if args.usage_roll else None,
+        args.monte_carlo, args.serial, args.operator, args.customer, args.manufacturer, args.model,
+        args.received))
+    for note in issued.notes:
         err.print(f"[yellow]note:[/] {note}")
-    changed = None
-    if result.compared_with is not None:
-        changed = (f"identification changed from {result.compared_with}: {'; '.join(result.changes)}"
-                   if result.changes else f"identification kept from {result.compared_with}")
     if args.json:
-        print_json({
-            "certificate_id": cert.certificate_id, "serial": cert.instrument.serial,
-            "certificate": str(result.certificate_path), "report_html": str(result.html_path),
-            "report_pdf": str(result.pdf_path), "database": str(result.database),
-            "dcc": None if result.dcc_path is None else str(result.dcc_path),
-            "passed": None if cert.conformity is None else cert.conformity.passed,
-            "conformity": None if cert.conformity is None else cert.conformity.model_dump(mode="json"),
-            "attitude": cert.attitude.model_dump(mode="json"),
-            "coefficients": cert.fit.coefficients, "U": cert.expanded_uncertainty.U,
-            "k": cert.expanded_uncertainty.k, "digest": cert.digest.value,
-            "uncertainty_budget": None if cert.uncertainty_budget is None
-            else cert.uncertainty_budget.model_dump(mode="json"),
-            "replaces": cert.replaces, "compared_with": result.compared_with,
-            "identification_changed": list(result.changes),
-        })
+        print_json(issued.to_json())
         return 0
-    for table in (coefficients_with_expanded_uncertainty(cert), attitude_table(cert), budget_table(cert),
-                  conformity_table(cert)):
+    result, cert = issued.outputs, issued.outputs.certificate
+    for table in issued.tables:
         out.print(rich_table(table))
     out.print(f"Certificate {cert.number}: {result.certificate_path}")
-    if changed is not None:
-        out.print(escape(changed[0].upper() + changed[1:]))
+    if issued.changed is not None:
+        out.print(escape(issued.changed[0].upper() + issued.changed[1:]))
     out.print(f"Report: {result.html_path}, {result.pdf_path}")
     out.print(f"Digital Calibration Certificate: {result.dcc_path}")
     out.print(f"Stored in {result.database} (see `labcal history {cert.instrument.serial}`)")

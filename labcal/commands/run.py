@@ -4,8 +4,7 @@ station file's devices through the real drivers (--station), on its emulators wi
 from __future__ import annotations
 
 import argparse
-from contextlib import ExitStack
-from pathlib import Path
+from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
 
 from labcal.commands.common import (
@@ -20,33 +19,41 @@ from labcal.commands.common import (
     out,
     print_json,
 )
-from labcal.errors import LabcalError
 
 # The run machinery (sequencer, journal, statistics) is imported where it is used, so that the
 # other commands, which import this module to build the parser, do not pay for it at start-up.
 if TYPE_CHECKING:
-    from labcal.analysis.plan import Plan
-    from labcal.bench.setup import StationSetup
-    from labcal.config.settings import CertificateSettings, SequencerSettings
-    from labcal.config.station import StationFile
-    from labcal.run.estimate import Estimate
-    from labcal.run.notify import RunNotifier
-    from labcal.run.runner import RunResult
+    from labcal.app.calibration import AlreadyComplete, Ended, Estimated, Finished
 
 
-def sequencer_settings_for_run(args: argparse.Namespace, setup: StationSetup, speed: float = 20.0,
-                               accel: float = 40.0) -> SequencerSettings:
-    from labcal.config.files import validate_model
-    from labcal.config.settings import SequencerSettings, SettleSettings
+class CommandLine:
+    """The terminal as the run's front end (`labcal.app.calibration.FrontEnd`): lines on stderr,
+    prompts answered at the keyboard (or by --yes, --answers), a progress bar."""
 
-    settle = validate_model({**setup.settle.model_dump(), **{
-        k: v for k, v in (("samples", args.samples), ("fixed_dwell_s", args.fixed_dwell),
-                          ("max_dwell_s", args.max_dwell),
-                          ("mode", args.settle)) if v is not None}}, SettleSettings,
-        "command line: settle")  # validated: the options and the station file share one range
-    return SequencerSettings(settle=settle, order=args.order, seed=args.seed or 0,
-                             on_failure=args.on_failure, check_mount=not args.no_mount_check,
-                             speed_dps=speed, accel_dps2=accel)
+    def __init__(self, args: argparse.Namespace):
+        self.args = args
+
+    def say(self, text: str, markup: bool = True) -> None:
+        err.print(text, markup=markup)
+
+    def operator(self):
+        return make_operator(self.args)
+
+    @contextmanager
+    def display(self, total: int, done: int):
+        """The progress bar, which is also the terminal the prompts pause it for."""
+        from labcal.commands.console import ProgressDisplay
+
+        with ProgressDisplay(err, total, done) as display:
+            yield display, display
+
+
+def request(kind: type, args: argparse.Namespace) -> Any:
+    """A use case's request from the parsed options of the same names."""
+    from dataclasses import fields
+
+    return kind(**{f.name: (tuple(v) if isinstance(v := getattr(args, f.name), list) else v)
+                   for f in fields(kind)})
 
 
 def make_operator(args: argparse.Namespace):
@@ -57,9 +64,10 @@ def make_operator(args: argparse.Namespace):
     return AutoOperator(err) if args.yes else ConsoleOperator(err)
 
 
-def print_estimate(plan: Plan, est: Estimate, as_json: bool) -> None:
+def print_estimate(estimated: Estimated, as_json: bool) -> None:
     from labcal.commands.console import format_duration
 
+    plan, est = estimated.plan, estimated.estimate
     doc: dict[str, Any] = {
         "plan": plan.name, "points": plan.n_points, "total_s": est.total_s,
         "estimated_rig_time_s": est.total_s, "moves_s": est.moves_s, "settling_s": est.settling_s,
@@ -74,70 +82,24 @@ def print_estimate(plan: Plan, est: Estimate, as_json: bool) -> None:
     out.print("(mounting includes the operator's remount allowance and the mount checks; nothing moved)")
 
 
-def certificate_settings_for_run(args: argparse.Namespace, station: CertificateSettings | None,
-                                 source: str) -> CertificateSettings:
-    """The lab file's certificate defaults, the station's [certificate] settings over them, and the
-    command line's tolerances over both."""
-    from labcal.config.lab import certificate_settings
+def run_and_report(args, ended: Ended | Finished) -> int:
+    """How the run ended, in words and an exit code; a complete run's fit, files and certificate."""
+    from labcal.app.calibration import Ended
+    from labcal.commands.console import coefficients_with_standard_errors, format_duration
 
-    usage = tuple(args.usage_pitch) if args.usage_pitch else None
-    return certificate_settings(station, source).overridden(source, attitude_u95_max_deg=args.tolerance_deg,
-                                                         usage_pitch_deg=usage)
-
-
-def _stop_failure(exc: BaseException) -> str:
-    """'; STOP FAILED: …' when the run's last stop did not reach a table (noted on the exception
-    that ended the run), else ''."""
-    return "".join(f"; {note}" for note in getattr(exc, "__notes__", ()) if note.startswith("STOP FAILED"))
-
-
-def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done: int,
-                   certificate=None, journal: Path | None = None, notifier: RunNotifier | None = None) -> int:
-    """Run with a progress display; turn the ways a run can end into messages and exit codes; at the
-    end of a complete run issue its certificate and report (``certificate``: their settings) into
-    the run's journal (``journal``: a resumed run's, which its folder names; else --db's)."""
-    from labcal.commands.console import ProgressDisplay, coefficients_with_standard_errors, format_duration
-    from labcal.run.events import EventBus
-    from labcal.run.interrupts import StopSignal
-    from labcal.run.journal import db_path
-    from labcal.run.operator import OperatorDeclined
-    from labcal.run.rundir import points_on_disk
-
-    journal = journal or db_path(args.db)
-    err.print(f"Run directory: {run_dir}")
-    try:
-        with ProgressDisplay(err, plan.n_points, done) as display:
-            events = EventBus()  # the journal is subscribed first, by the runner
-            events.subscribe(display, kinds=display.KINDS)
-            if notifier is not None:  # remounts, pauses and the end, through apprise (issue 24)
-                events.subscribe(notifier.handle, kinds=notifier.KINDS)
-            result: RunResult = runner(events, display, est.forecast())
-    except KeyboardInterrupt as exc:
-        why = f" ({exc.reason})" if isinstance(exc, StopSignal) else ""
-        tables = _stop_failure(exc).removeprefix("; ") or "tables stopped"
-        err.print(f"[bold red]interrupted[/]{why}: {tables}; {points_on_disk(run_dir)} reading(s) kept in "
-                  f"{run_dir}; continue with: labcal resume {run_dir}")
-        return 128 + exc.signum if isinstance(exc, StopSignal) else EXIT_INTERRUPTED  # 130 for Ctrl-C
-    except OperatorDeclined as exc:
-        err.print(f"[bold yellow]stopped[/]: {exc}{_stop_failure(exc)}; {points_on_disk(run_dir)} reading(s) "
+    if isinstance(ended, Ended):
+        run_dir = ended.run_dir
+        if ended.how == "interrupted":
+            why = f" ({ended.why})" if ended.why else ""
+            err.print(f"[bold red]interrupted[/]{why}: {ended.tables}; {ended.points_kept} reading(s) kept "
+                      f"in {run_dir}; continue with: labcal resume {run_dir}")
+            return 128 + ended.signum if ended.signum is not None else EXIT_INTERRUPTED  # 130 for Ctrl-C
+        err.print(f"[bold yellow]stopped[/]: {ended.why}{ended.tables}; {ended.points_kept} reading(s) "
                   f"kept in {run_dir}; continue with: labcal resume {run_dir}")
         return EXIT_STOPPED
-    except LabcalError as exc:
-        if not (run_dir / "run.json").exists():  # the run never started (or its folder is gone)
-            raise
-        raise LabcalError(f"{exc}{_stop_failure(exc)}; {points_on_disk(run_dir)} reading(s) kept in "
-                          f"{run_dir}; continue with: labcal resume {run_dir}") from None
+    result, run_dir, est, issued, journal = (ended.result, ended.run_dir, ended.estimate, ended.issued,
+                                             ended.journal)
     o = result.outcome
-    if result.device is not None:  # the device's estimate is the run's, whether or not a report is made
-        from labcal.documents.device_history import store_device_estimate
-        from labcal.run.record import load_run
-
-        store_device_estimate(load_run(run_dir), result.device, args.db)
-    issued = None
-    if not args.no_report:
-        from labcal.documents.report import write_run_outputs
-
-        issued = write_run_outputs(run_dir, certificate, db=journal)
     if args.json:
         print_json({"run_dir": str(result.directory), "run_id": result.run_id, "points": o.points_recorded,
                     "points_failed": o.points_failed, "simulated_rig_time_s": o.station_time_s,
@@ -176,220 +138,41 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from labcal.analysis.plan import Plan
-    from labcal.bench.setup import hardware_station, prepare, sim_station
-    from labcal.config.plans import load_plan, plan_toml
-    from labcal.run.estimate import estimate
-    from labcal.run.interrupts import stop_signals_raise
-    from labcal.run.journal import Journal, db_path
-    from labcal.run.notify import RunNotifier, lab_notifications, station_label
-    from labcal.run.rundir import new_run_dir
-    from labcal.run.runner import calibrate
-    from labcal.run.sequencer import check_limits, schedule
+    from labcal.app.calibration import Estimated, StartRun, start_run
 
-    if not args.sim and not args.station:
-        raise LabcalError("no station given: use --sim for a dry run on the simulated rig, or --station FILE "
-                          "for a station's devices (add --emulate to run them on their emulators)")
-    if args.sim and args.station:
-        raise LabcalError("give --sim (the simulated rig) or --station FILE, not both")
-    if args.emulate and not args.station:
-        raise LabcalError("--emulate needs --station FILE: it starts the emulators that file points at")
-    if args.rig and not args.sim:
-        raise LabcalError("--rig describes the rig of --sim; an emulated station has [emulation.rig]")
-    if args.pace is not None and not args.sim:
-        raise LabcalError(PACE_SIM_ONLY)
-    plan, plan_text = load_plan(args.plan)
-    if args.replicates is not None:  # the journal keeps the plan that actually runs
-        plan = Plan.model_validate({**plan.model_dump(), "replicates": args.replicates})
-        plan_text = plan_toml(plan)
-    with ExitStack() as stack:
-        stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
-        notifications = stack.enter_context(lab_notifications(lambda line: err.print(line, markup=False)))
-        bench = None
-        if args.sim:
-            setup = sim_station(args.rig, args.seed, pace=args.pace)
-            settings = sequencer_settings_for_run(args, setup)
-            cert_settings = certificate_settings_for_run(args, None, "command line")
-        else:
-            from labcal.config.station import load_station
-
-            config, _ = load_station(args.station)
-            cert_settings = certificate_settings_for_run(args, config.certificate, args.station)
-            if not args.emulate and not args.serial and not args.no_report and not args.dry_run:
-                raise LabcalError("a calibration on real hardware needs the instrument's --serial for its "
-                                  "certificate (or --no-report)")
-            if not args.dry_run:  # before an emulator or a device is opened, held until the end
-                lock_station(stack, config, args.station, args.db)
-            setup, bench = hardware_station(config, args.station, stack, emulate=args.emulate,
-                                            time_scale=args.time_scale, seed=args.seed)
-            if not args.dry_run:  # the links the emulators chose, by the addresses they chose
-                lock_station(stack, config, args.station, args.db, chosen=bench.config)
-            pitch, roll = config.pitch, config.roll  # the slower table sets the pace of the estimates
-            settings = sequencer_settings_for_run(args, setup, min(pitch.speed_dps, roll.speed_dps),
-                                                  min(pitch.accel_dps2, roll.accel_dps2))
-            settings = settings.model_copy(update={
-                "move_timeout_s": config.sequencer.move_timeout_s,
-                "position_tolerance_deg": config.sequencer.position_tolerance_deg})
-        ambient = ambient_entered(args)
-        if ambient:
-            setup.metadata["ambient"] = ambient  # the manifest's metadata: the certificate quotes it
-        steps = schedule(plan, settings)  # once: the estimate, the limits and the run share it
-        est = estimate(plan, settings, setup.timing, steps)
-        if args.dry_run:
-            print_estimate(plan, est, args.json)
-            return 0
-        setup.metadata["estimated_rig_time_s"] = est.total_s  # run.json: the estimate beside the actual
-        check_limits(setup.station, steps, settings.check_mount)  # first: homing moves a table too
-        if bench is not None:
-            prepare(bench, setup.station, err.print)
-            setup.metadata["device_identity"] = bench.identities  # the manifest's metadata and run.json
-        operator = make_operator(args)
-        run_dir = new_run_dir(args.out, plan)
-        with Journal(db_path(args.db), durable=not args.sim) as journal:
-            return run_and_report(args, lambda events, terminal, forecast: calibrate(
-                plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, events,
-                setup.metadata, args.serial, args.operator, steps, terminal=terminal, forecast=forecast),
-                run_dir, plan, est, 0, cert_settings,
-                notifier=RunNotifier(notifications, station_label(setup.metadata), run_dir))
-
-
-def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Path | None,
-                 chosen: StationFile | None = None) -> None:
-    """Hold the station for this command (one run per station at a time, across processes: a second
-    one is refused in one line naming who holds it); a lock left by a process that is gone is
-    taken over, with a note. A link the emulators choose (port 0, ``pty:NAME``) is no address
-    yet: it is held once they have chosen it, by a second call with ``chosen``, the station as
-    they serve it (`Emulation.station_config`)."""
-    from labcal.run.journal import db_path
-    from labcal.run.lock import StationLock, station_locks
-
-    links = {(chosen.devices()[n] if chosen is not None else s).bus:
-             (chosen.devices()[n] if chosen is not None else s).where
-             for n, s in config.devices().items() if s.chosen_by_emulators == (chosen is not None)}
-    if not links:
-        return
-    lock = stack.enter_context(StationLock(station_locks(db_path(db)), links, name))
-    for note in lock.notes:
-        err.print(f"[yellow]note:[/] {note}")
-
-
-def ambient_entered(args: argparse.Namespace) -> dict[str, float | str]:
-    """The environmental conditions the operator entered at the start (ISO/IEC 17025 §7.8.2.1 i),
-    as the run journals them; empty when none was entered."""
-    found: dict[str, float | str] = {}
-    if args.ambient_temp is not None:
-        found["temperature_c"] = args.ambient_temp
-    if args.humidity is not None:
-        found["humidity_pct"] = args.humidity
-    if found:
-        found["source"] = "entered at the start of the run"
-    return found
+    ended = start_run(request(StartRun, args), CommandLine(args))
+    if isinstance(ended, Estimated):
+        print_estimate(ended, args.json)
+        return 0
+    return run_and_report(args, ended)
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
-    from labcal.bench.setup import prepare, read_snapshot, sim_station, station_for_resume
-    from labcal.config.settings import CertificateSettings
-    from labcal.config.station import load_station
-    from labcal.run.estimate import estimate
-    from labcal.run.interrupts import stop_signals_raise
-    from labcal.run.journal import sha256
-    from labcal.run.notify import RunNotifier, lab_notifications, station_label
-    from labcal.run.runner import execute, open_for_resume
-    from labcal.run.sequencer import check_limits, schedule
-    from labcal.run.winding import left_at
+    from labcal.app.calibration import AlreadyComplete, ResumeRun, resume_run
 
-    run_dir = Path(args.run)
-    ctx = open_for_resume(run_dir)
-    with ExitStack() as stack:
-        stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
-        notifications = stack.enter_context(lab_notifications(lambda line: err.print(line, markup=False)))
-        stack.callback(ctx.journal.close)
-        stack.callback(ctx.lock.release)
-        for note in ctx.notes:
-            err.print(f"[yellow]note:[/] {note}")
-        run_name = f"run {ctx.run_id} in {run_dir}"
-        snapshot = read_snapshot(ctx.station_text, run_name, ctx.software_version)
-        if args.pace is not None and snapshot is not None:
-            raise LabcalError(f"{run_name} runs on a station, not the simulated rig: {PACE_SIM_ONLY}")
-        if ctx.complete:
-            settings = certificate_settings_for_run(args, snapshot.config.certificate if snapshot else None,
-                                                    "the run's station")
-            return finish_complete(args, run_dir, ctx.run_id, settings, ctx.journal.path)
-        points = ctx.journal.points(ctx.run_id)
-        start = ctx.journal.rig_time(ctx.run_id)  # the rig's clock goes on from here (one clock per run)
-        new_station, on_station, station_record = None, "on the station it started on", None
-        if args.station:
-            if snapshot is None:
-                raise LabcalError(f"{run_name} is a dry run on the simulated rig (--sim): it resumes on that "
-                                  "rig; omit --station")
-            new_config, new_text = load_station(args.station)
-            new_station = (new_config, args.station)
-            on_station = f"on station file {args.station} (sha256 {sha256(new_text)[:12]})"
-            station_record = {"station_file": args.station, "station_sha256": sha256(new_text),
-                              "station_text": new_text}
-        bench = None
-        tables_at = left_at(ctx.journal.events(ctx.run_id))  # a simulated rig's tables stayed there too
-        if snapshot is None:
-            ctx.journal.relax()  # a dry run: as when it started
-            setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start,
-                                tables_at=tables_at, pace=args.pace)
-            certificate = CertificateSettings()
-        else:
-            resumed_on = new_station[0] if new_station else snapshot.config
-            lock_station(stack, resumed_on, args.station or run_name, ctx.journal.path)
-            setup, bench = station_for_resume(snapshot, run_name, stack, start, new_station, tables_at)
-            lock_station(stack, resumed_on, args.station or run_name, ctx.journal.path, chosen=bench.config)
-            certificate = (new_station[0] if new_station else snapshot.config).certificate
-        steps = schedule(ctx.plan, ctx.settings)
-        est = estimate(ctx.plan, ctx.settings, setup.timing, steps)
-        if bench is not None:
-            check_limits(setup.station, steps)
-            prepare(bench, setup.station, err.print)
-        operator = make_operator(args)
-        ctx.journal.reopen(ctx.run_id)
-        ctx.journal.event(ctx.run_id, "resume",
-                          f"resumed after {len(points)} committed point(s) {on_station}", station_record)
-        if bench is not None:
-            ctx.journal.event(ctx.run_id, "device_identity", "the devices that answered on resuming",
-                              bench.identities)
-        cert_settings = certificate_settings_for_run(args, certificate, args.station or "the run's station")
-        return run_and_report(args, lambda events, terminal, forecast: execute(
-            ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, events,
-            steps, terminal=terminal, forecast=forecast),
-            run_dir, ctx.plan, est, len(points), cert_settings, ctx.journal.path,
-            notifier=RunNotifier(notifications, station_label(ctx.metadata), run_dir))
+    ended = resume_run(request(ResumeRun, args), CommandLine(args))
+    if isinstance(ended, AlreadyComplete):
+        return finish_complete(args, ended)
+    return run_and_report(args, ended)
 
 
-def finish_complete(args: argparse.Namespace, run_dir: Path, run_id: int,
-                    settings: CertificateSettings, journal: Path) -> int:
-    """A complete run resumed: its exports were checked and repaired; its certificate and report are
-    issued again if any of them is missing or not the history's (a kill during `labcal report`)."""
-    from labcal.documents.report import outputs_in_place, write_run_outputs
-
-    if args.no_report or outputs_in_place(run_dir, db=journal):
-        certificate = None
-        message = f"run {run_id} is already complete; its files in {run_dir} match the journal"
+def finish_complete(args: argparse.Namespace, done: AlreadyComplete) -> int:
+    """A complete run resumed: its exports were checked and repaired; its certificate and report
+    issued again if any of them was missing or not the history's (a kill during `labcal report`)."""
+    if done.certificate is None:
+        message = f"run {done.run_id} is already complete; its files in {done.run_dir} match the journal"
     else:
-        issued = write_run_outputs(run_dir, settings, db=journal)
-        certificate = str(issued.certificate_path)
-        message = (f"run {run_id} is already complete; certificate {issued.certificate.certificate_id} and "
-                   f"its report written again in {run_dir}")
+        message = (f"run {done.run_id} is already complete; certificate {done.certificate_id} and "
+                   f"its report written again in {done.run_dir}")
     if args.json:
-        print_json({"run_dir": str(run_dir), "run_id": run_id, "status": "complete",
-                    "already_complete": True, "certificate_rewritten": certificate})
+        print_json({"run_dir": str(done.run_dir), "run_id": done.run_id, "status": "complete",
+                    "already_complete": True, "certificate_rewritten": done.certificate})
     else:
         err.print(message)
     return 0
 
 
-PACE_SIM_ONLY = ("--pace paces the simulated rig (--sim) only; a station's devices keep real time, and its "
-                 "emulators run at --time-scale")
-
-
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--pace", type=TIME_SCALE, metavar="X",
-                   help="with --sim: run the simulated rig at X times real time (1: a rig second takes a "
-                        "wall second; default: as fast as it can)")
     p.add_argument("--yes", action="store_true", help="confirm every remount prompt automatically")
     p.add_argument("--answers", metavar="FILE", help="answer prompts from this file, one answer per line")
     add_db_option(p)
@@ -400,6 +183,9 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="pass/fail tolerance on the attitude U95 over the usage envelope")
     p.add_argument("--usage-pitch", type=float, nargs=2, metavar=("MIN", "MAX"),
                    help="usage pitch range for the attitude uncertainty (default -60 60)")
+    p.add_argument("--pace", type=TIME_SCALE, metavar="X",
+                   help="with --sim: run the simulated rig at X times real time (1: a rig second takes a "
+                        "wall second; default: as fast as it can)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:

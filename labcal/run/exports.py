@@ -4,8 +4,9 @@ plan.toml, readings.csv, fit.json and run.json are exports of the run's journal 
 journal always gives the same bytes. Each is written with `write_atomic` (temporary file, one
 fsync, rename), run.json last, and their SHA-256 are journaled with the run's status in one
 transaction (`Journal.finish`), so a run is "complete" only once the files that show it are in
-place. `sync` compares a folder with what the journal gives and rewrites what is missing or
-stale; a file whose hash labcal never wrote (edited by hand) is named, kept beside as
+place. `check` compares a folder with what the journal gives and only says what differs (every
+read of a run); `sync` rewrites what is missing or stale (`labcal export`, `labcal resume`); a
+file whose hash labcal never wrote (edited by hand) is named, kept beside as
 ``NAME.edited`` and rewritten — nothing anyone wrote is lost, and the journal stays the truth.
 """
 
@@ -111,47 +112,90 @@ def _read(path: Path) -> bytes | None:
         return None
 
 
-def sync(journal: Journal, row: RunRow, run_dir: Path) -> tuple[list[str], Derived]:
+def differences(run_dir: Path, derived: Derived, known: dict[str, str], row: RunRow) -> list[tuple[str, str]]:
+    """How a folder differs from what the journal gives, reading only: (name, what) for each export
+    that is "missing", "stale" (a file labcal wrote for this run, out of date) or "edited" (a hash
+    labcal never wrote for it); an identical file, or an older labcal's plan.toml of the same plan
+    text, is not named."""
+    found = []
+    for name, data in derived.files.items():
+        on_disk = _read(run_dir / name)
+        if on_disk == data:
+            continue
+        if on_disk is None:
+            found.append((name, "missing"))
+            continue
+        sha = digest(on_disk)
+        if sha == known.get(name) or (name == RUN and _is_run_json_of(on_disk, row)):
+            found.append((name, "stale"))
+        elif not (name == PLAN and sha == row.plan_hash):
+            found.append((name, "edited"))
+    return found
+
+
+def check(journal: Journal, row: RunRow, run_dir: Path) -> tuple[list[str], Derived]:
+    """What `sync` would repair in a run folder, said and not done: one note per export that is
+    missing, out of date or edited, and per partial file of a killed write. Writes nothing (a read
+    of a run never changes its folder or the journal; `labcal export RUN` rebuilds it)."""
+    derived = derive(journal, row)
+    rebuild = f"`labcal export {run_dir}` rewrites it from the journal"
+    notes = [f"{path.name}: a partial file left by a killed write; `labcal export {run_dir}` removes it"
+             for path in orphans(run_dir)]
+    for name, what in differences(run_dir, derived, journal.export_hashes(row.id), row):
+        if what == "edited":
+            found = digest((run_dir / name).read_bytes())
+            notes.append(f"{name} was edited by hand (sha256 {found[:12]}…, the journal's "
+                         f"{digest(derived.files[name])[:12]}…); {rebuild}, keeping yours as {name}.edited")
+        else:
+            notes.append(f"{name} is {'missing' if what == 'missing' else 'out of date'}; {rebuild}")
+    return notes, derived
+
+
+def sync(journal: Journal, row: RunRow, run_dir: Path, remember: bool = True) -> tuple[list[str], Derived]:
     """Bring a run folder back to what its journal says; one note per file that was not. Returns
     the notes and what was derived (the fits included, so that nothing fits them again).
 
     Missing and stale exports (a kill before they were rewritten) are rewritten; a file whose hash
     is none that labcal wrote for this run was edited by hand: it is named, kept as NAME.edited,
-    and rewritten from the journal."""
+    and rewritten from the journal. ``remember`` False: a copy elsewhere, whose hashes the journal
+    does not keep (it records the run's own folder only)."""
     derived = derive(journal, row)
     known = journal.export_hashes(row.id)
     notes = [f"{name} removed: a partial file left by a killed write" for name in remove_orphans(run_dir)]
-    for name, data in derived.files.items():
-        path = run_dir / name
-        on_disk = _read(path)
-        if on_disk == data:
-            continue
-        if on_disk is None:
+    for name, what in differences(run_dir, derived, known, row):
+        if what == "missing":
             notes.append(f"{name} was missing; rewritten from the journal")
-            continue
-        found = digest(on_disk)
-        if found == known.get(name) or (name == RUN and _is_run_json_of(on_disk, row)):
+        elif what == "stale":
             notes.append(f"{name} was out of date; rewritten from the journal")
-            continue
-        if name == PLAN and found == row.plan_hash:
-            continue  # the same plan text (an older labcal wrote it); nothing to say
-        kept = path.with_name(name + ".edited")
-        os.replace(path, kept)
-        notes.append(f"{name} was edited by hand (sha256 {found[:12]}…, the journal's {digest(data)[:12]}…); "
-                     f"kept as {kept.name}, rewritten from the journal")
+        else:
+            path = run_dir / name
+            found = digest(path.read_bytes())
+            kept = path.with_name(name + ".edited")
+            os.replace(path, kept)
+            notes.append(f"{name} was edited by hand (sha256 {found[:12]}…, the journal's "
+                         f"{digest(derived.files[name])[:12]}…); kept as {kept.name}, rewritten from the "
+                         "journal")
     hashes = write(run_dir, derived)
-    journal.exported(row.id, hashes)
+    if remember:
+        journal.exported(row.id, hashes)
     return notes, derived
 
 
-def remove_orphans(run_dir: Path) -> list[str]:
-    """Delete the temporary files of writes whose process is gone (`write_atomic` names them
-    ``.NAME.PID.tmp``); a live writer's are left alone. Returns their names."""
-    removed = []
+def orphans(run_dir: Path) -> list[Path]:
+    """The temporary files of writes whose process is gone (`write_atomic` names them
+    ``.NAME.PID.tmp``); a live writer's are not among them."""
+    found = []
     for path in run_dir.glob(".*.*.tmp"):
         pid = path.name.rsplit(".", 2)[-2]
-        if not pid.isdigit() or _alive(int(pid)):
-            continue
+        if pid.isdigit() and not _alive(int(pid)):
+            found.append(path)
+    return found
+
+
+def remove_orphans(run_dir: Path) -> list[str]:
+    """Delete the temporary files of writes whose process is gone; returns their names."""
+    removed = []
+    for path in orphans(run_dir):
         try:
             path.unlink()
         except OSError:

@@ -220,7 +220,8 @@ class Journal:
                  (run_id, name, digest)) for name, digest in exports.items()]
 
     def set_run_dir(self, run_id: int, run_dir: str) -> None:
-        """Where the run's folder now is (`labcal export RUN --out DIR` recreated it there)."""
+        """Where the run's folder now is (`labcal export DIR` rebuilt it there, or `labcal resume DIR`
+        went on with it there)."""
         self._transaction([("UPDATE runs SET run_dir=? WHERE id=?", (run_dir, run_id))])
 
     def reopen(self, run_id: int) -> None:

@@ -1,7 +1,7 @@
 """What a finished calibration run holds, read from its one source of truth: the journal.
 
 `load_run` is the single seam between the run's storage and everything that issues results
-(certificate, report, history). The run directory's run.json says which journal and which run;
+(certificate, report, history); it only reads. The run directory's run.json says which journal and which run;
 the readings, the plan, the identities and the dates come from the journal itself.
 """
 
@@ -33,7 +33,7 @@ class RunRecord:
     plan: Plan
     plan_text: str
     meta: dict  # run.json: station, settings, dates, status, identities, simulated truth
-    notes: tuple[str, ...] = ()  # what checking the folder against the journal found and repaired
+    notes: tuple[str, ...] = ()  # how the folder differs from the journal (said, not repaired)
     station_text: str = ""  # the journal's snapshot of the station the run used (JSON)
     events: tuple[dict, ...] = ()  # the journal's events: prompts, answers, faults, retries, pauses
     # The fits fit.json was derived from (checking the folder fits them): issuing reuses them
@@ -63,23 +63,24 @@ def readings_digest(points) -> str:
 
 def load_run(run_dir: str | Path) -> RunRecord:
     """Read a run from its journal; a missing, unfinished, foreign or malformed run is one
-    LabcalError line. The folder's exports are checked against the journal on the way and rewritten
-    where missing, stale or edited (`labcal.run.exports.sync`; the notes say which)."""
+    LabcalError line. A read: it changes neither the folder nor the journal. The folder's exports
+    are checked against the journal on the way and a missing, stale or edited one is named in the
+    notes (`labcal.run.exports.check`); rewriting them is its own use case (`labcal export RUN`,
+    `labcal.app.folders.rebuild_run_folder`)."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
-        raise LabcalError(f"{run_dir}: no such run directory (if it was deleted, `labcal export RUN_ID "
-                          "--out DIR` recreates it from the journal)")
+        raise LabcalError(f"{run_dir}: no such run directory (if it was deleted, `labcal export RUN_ID` "
+                          "recreates it from the journal)")
     _, journal, row = open_run(run_dir)
     with journal:
         if row.status != "complete":
             state = row.status
             if state == "running" and held_by(journal.path, row.id) is None:
                 state = "interrupted (its process ended without closing it)"
-                exports.sync(journal, row, run_dir)  # its readings so far, in readings.csv
             why = f" ({row.reason})" if row.reason else ""
             raise LabcalError(f"{run_dir}: the run is {state}{why}; only a complete run gets a "
                               "certificate (labcal resume finishes it)")
-        notes, derived = exports.sync(journal, row, run_dir)
+        notes, derived = exports.check(journal, row, run_dir)
         info = read_run_json(run_dir)
         points = journal.points(row.id, status="ok")
         readings = journal.readings(row.id)

@@ -60,8 +60,8 @@ def read_run_json(run_dir: Path) -> dict:
         info = json.loads((run_dir / RUN).read_text(encoding="utf-8"))
     except FileNotFoundError:
         if not run_dir.is_dir():
-            raise LabcalError(f"{run_dir}: no such run directory (if it was deleted, `labcal export RUN_ID "
-                              "--out DIR` recreates it from the journal)") from None
+            raise LabcalError(f"{run_dir}: no such run directory (if it was deleted, `labcal export RUN_ID` "
+                              "recreates it from the journal)") from None
         raise LabcalError(f"{run_dir}: not a run directory (no {RUN})") from None
     except (OSError, ValueError, RecursionError) as exc:
         raise LabcalError(f"{run_dir / RUN}: unreadable ({type(exc).__name__}: {str(exc)[:120]})") from None

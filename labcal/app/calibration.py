@@ -1,0 +1,429 @@
+"""Running a calibration, and resuming one: the one sequence both share (run with a view, turn the
+ways a run ends into outcomes, store the device's estimate, issue the certificate), and what
+each does before it (a new run: the station, the plan, the locks, the estimate; a resume: the
+journal's run, its station or another file of the same bench).
+
+Whoever starts a run (the command line; later the lab server) gives a `FrontEnd`: the operator
+who answers prompts, the view that shows progress, and where messages go. What the run ended as
+comes back as a typed outcome; printing it is the front end's business.
+"""
+
+from __future__ import annotations
+
+from contextlib import AbstractContextManager, ExitStack
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Literal, Protocol
+
+from labcal.errors import LabcalError
+
+if TYPE_CHECKING:
+    from labcal.analysis.plan import Plan
+    from labcal.bench.setup import StationSetup
+    from labcal.config.settings import CertificateSettings, SequencerSettings
+    from labcal.config.station import StationFile
+    from labcal.documents.report import RunOutputs
+    from labcal.run.estimate import Estimate
+    from labcal.run.events import RunEvent
+    from labcal.run.notify import RunNotifier
+    from labcal.run.operator import Operator, Terminal
+    from labcal.run.runner import RunResult
+
+
+class Display(Protocol):
+    """The front end's view of a run: a subscriber to its events, and the terminal its prompts use."""
+
+    KINDS: tuple[str, ...]
+
+    def __call__(self, event: RunEvent) -> None: ...
+
+
+class FrontEnd(Protocol):
+    """What a run needs from whoever started it."""
+
+    def say(self, text: str, markup: bool = True) -> None:
+        """A line for the operator: where the run goes, homing, a note (rich markup unless
+        ``markup`` is False: text from elsewhere, such as a notification service's answer)."""
+
+    def operator(self) -> Operator:
+        """Who answers the run's prompts."""
+
+    def display(self, total: int, done: int) -> AbstractContextManager[tuple[Display, Terminal]]:
+        """The view of the run's progress while it measures (subscribed to the run's events), and the
+        terminal the run's prompts use."""
+
+
+@dataclass(frozen=True)
+class StartRun:
+    """`labcal run`'s options, by the same names."""
+
+    sim: bool = False
+    station: str | None = None
+    emulate: bool = False
+    time_scale: float | None = None
+    plan: str = "four-mount-64"
+    replicates: int | None = None
+    order: Literal["shortest", "plan", "sweep", "random"] = "shortest"
+    seed: int | None = None
+    out: str | None = None
+    rig: str | None = None
+    samples: int | None = None
+    fixed_dwell: float | None = None
+    max_dwell: float | None = None
+    settle: str | None = None
+    on_failure: Literal["skip", "pause", "abort"] = "skip"
+    no_mount_check: bool = False
+    ambient_temp: float | None = None
+    humidity: float | None = None
+    serial: str | None = None
+    operator: str | None = None
+    dry_run: bool = False
+    pace: float | None = None
+    db: str | None = None
+    no_report: bool = False
+    tolerance_deg: float | None = None
+    usage_pitch: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
+class ResumeRun:
+    """`labcal resume`'s options, by the same names."""
+
+    run: str
+    station: str | None = None
+    pace: float | None = None
+    db: str | None = None
+    no_report: bool = False
+    tolerance_deg: float | None = None
+    usage_pitch: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
+class Estimated:
+    """A dry run (--dry-run): what the plan would take on this station; nothing moved."""
+
+    plan: Plan
+    estimate: Estimate
+
+
+@dataclass(frozen=True)
+class Ended:
+    """A run that ended before its last point: Ctrl-C or a signal ("interrupted"), or the operator
+    ("stopped"); every reading taken is in the journal and the run resumes."""
+
+    run_dir: Path
+    how: str  # "interrupted" or "stopped"
+    why: str  # the signal's or the operator's reason, "" when none
+    tables: str  # "tables stopped", or the STOP FAILED notes
+    points_kept: int
+    signum: int | None = None  # the signal that stopped it (None: Ctrl-C or the operator)
+
+
+@dataclass(frozen=True)
+class Finished:
+    run_dir: Path
+    result: RunResult
+    estimate: Estimate
+    journal: Path
+    issued: RunOutputs | None  # None with --no-report
+
+
+@dataclass(frozen=True)
+class AlreadyComplete:
+    """A complete run resumed: its exports were checked and repaired; its certificate and report
+    issued again if any was missing or not the history's."""
+
+    run_id: int
+    run_dir: Path
+    certificate: str | None  # the certificate written again, if it was
+    certificate_id: str | None = None
+
+
+def sequencer_settings_for_run(args: StartRun, setup: StationSetup, speed: float = 20.0,
+                               accel: float = 40.0) -> SequencerSettings:
+    from labcal.config.files import validate_model
+    from labcal.config.settings import SequencerSettings, SettleSettings
+
+    settle = validate_model({**setup.settle.model_dump(), **{
+        k: v for k, v in (("samples", args.samples), ("fixed_dwell_s", args.fixed_dwell),
+                          ("max_dwell_s", args.max_dwell),
+                          ("mode", args.settle)) if v is not None}}, SettleSettings,
+        "command line: settle")  # validated: the options and the station file share one range
+    return SequencerSettings(settle=settle, order=args.order, seed=args.seed or 0,
+                             on_failure=args.on_failure, check_mount=not args.no_mount_check,
+                             speed_dps=speed, accel_dps2=accel)
+
+
+def certificate_settings_for_run(args: StartRun | ResumeRun, station: CertificateSettings | None,
+                                 source: str) -> CertificateSettings:
+    """The lab file's certificate defaults, the station's [certificate] settings over them, and the
+    command line's tolerances over both."""
+    from labcal.config.lab import certificate_settings
+
+    usage = tuple(args.usage_pitch) if args.usage_pitch else None
+    return certificate_settings(station, source).overridden(source, attitude_u95_max_deg=args.tolerance_deg,
+                                                         usage_pitch_deg=usage)
+
+
+def _stop_failure(exc: BaseException) -> str:
+    """'; STOP FAILED: …' when the run's last stop did not reach a table (noted on the exception
+    that ended the run), else ''."""
+    return "".join(f"; {note}" for note in getattr(exc, "__notes__", ()) if note.startswith("STOP FAILED"))
+
+
+PACE_SIM_ONLY = ("--pace paces the simulated rig (--sim) only; a station's devices keep real time, and its "
+                 "emulators run at --time-scale")
+
+
+def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Estimate, done: int,
+                   db: str | None, no_report: bool, certificate=None,
+                   journal: Path | None = None, notifier: RunNotifier | None = None) -> Ended | Finished:
+    """The sequence a run and a resume share: run with the front end's view and the notifier
+    subscribed to its events (the journal is subscribed first, by the runner); turn the ways a run can
+    end into outcomes; at the end of a complete run store the device's estimate and issue its
+    certificate and report (``certificate``: their settings) into the run's journal (``journal``: a
+    resumed run's, which its folder names; else ``db``'s)."""
+    from labcal.run.events import EventBus
+    from labcal.run.interrupts import StopSignal
+    from labcal.run.journal import db_path
+    from labcal.run.operator import OperatorDeclined
+    from labcal.run.rundir import points_on_disk
+
+    journal = journal or db_path(db)
+    front.say(f"Run directory: {run_dir}")
+    try:
+        with front.display(plan.n_points, done) as (display, terminal):
+            events = EventBus()
+            events.subscribe(display, kinds=display.KINDS)
+            if notifier is not None:  # remounts, pauses and the end, through apprise (issue 24)
+                events.subscribe(notifier.handle, kinds=notifier.KINDS)
+            result: RunResult = runner(events, terminal, est.forecast())
+    except KeyboardInterrupt as exc:
+        tables = _stop_failure(exc).removeprefix("; ") or "tables stopped"
+        if isinstance(exc, StopSignal):
+            return Ended(run_dir, "interrupted", exc.reason, tables, points_on_disk(run_dir), exc.signum)
+        return Ended(run_dir, "interrupted", "", tables, points_on_disk(run_dir))
+    except OperatorDeclined as exc:
+        return Ended(run_dir, "stopped", str(exc), _stop_failure(exc), points_on_disk(run_dir))
+    except LabcalError as exc:
+        if not (run_dir / "run.json").exists():  # the run never started (or its folder is gone)
+            raise
+        raise LabcalError(f"{exc}{_stop_failure(exc)}; {points_on_disk(run_dir)} reading(s) kept in "
+                          f"{run_dir}; continue with: labcal resume {run_dir}") from None
+    if result.device is not None:  # the device's estimate is the run's, whether or not a report is made
+        from labcal.documents.device_history import store_device_estimate
+        from labcal.run.record import load_run
+
+        store_device_estimate(load_run(run_dir), result.device, db)
+    issued = None
+    if not no_report:
+        from labcal.documents.report import write_run_outputs
+
+        issued = write_run_outputs(run_dir, certificate, db=journal)
+    return Finished(run_dir, result, est, journal, issued)
+
+
+def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
+    """A calibration on the simulated rig (``sim``) or a station file's devices (``station``, on its
+    emulators with ``emulate``): every angle checked before anything moves, the station locked
+    for the run, then the shared sequence."""
+    from labcal.analysis.plan import Plan
+    from labcal.bench.setup import hardware_station, prepare, sim_station
+    from labcal.config.plans import load_plan, plan_toml
+    from labcal.run.estimate import estimate
+    from labcal.run.interrupts import stop_signals_raise
+    from labcal.run.journal import Journal, db_path
+    from labcal.run.notify import RunNotifier, lab_notifications, station_label
+    from labcal.run.rundir import new_run_dir
+    from labcal.run.runner import calibrate
+    from labcal.run.sequencer import check_limits, schedule
+
+    if not args.sim and not args.station:
+        raise LabcalError("no station given: use --sim for a dry run on the simulated rig, or --station FILE "
+                          "for a station's devices (add --emulate to run them on their emulators)")
+    if args.sim and args.station:
+        raise LabcalError("give --sim (the simulated rig) or --station FILE, not both")
+    if args.emulate and not args.station:
+        raise LabcalError("--emulate needs --station FILE: it starts the emulators that file points at")
+    if args.rig and not args.sim:
+        raise LabcalError("--rig describes the rig of --sim; an emulated station has [emulation.rig]")
+    if args.pace is not None and not args.sim:
+        raise LabcalError(PACE_SIM_ONLY)
+    plan, plan_text = load_plan(args.plan)
+    if args.replicates is not None:  # the journal keeps the plan that actually runs
+        plan = Plan.model_validate({**plan.model_dump(), "replicates": args.replicates})
+        plan_text = plan_toml(plan)
+    with ExitStack() as stack:
+        stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
+        notifications = stack.enter_context(lab_notifications(lambda line: front.say(line, markup=False)))
+        bench = None
+        if args.sim:
+            setup = sim_station(args.rig, args.seed, pace=args.pace)
+            settings = sequencer_settings_for_run(args, setup)
+            cert_settings = certificate_settings_for_run(args, None, "command line")
+        else:
+            from labcal.config.station import load_station
+
+            assert args.station is not None
+            config, _ = load_station(args.station)
+            cert_settings = certificate_settings_for_run(args, config.certificate, args.station)
+            if not args.emulate and not args.serial and not args.no_report and not args.dry_run:
+                raise LabcalError("a calibration on real hardware needs the instrument's --serial for its "
+                                  "certificate (or --no-report)")
+            if not args.dry_run:  # before an emulator or a device is opened, held until the end
+                lock_station(stack, config, args.station, args.db, front)
+            setup, bench = hardware_station(config, args.station, stack, emulate=args.emulate,
+                                            time_scale=args.time_scale, seed=args.seed)
+            if not args.dry_run:  # the links the emulators chose, by the addresses they chose
+                lock_station(stack, config, args.station, args.db, front, chosen=bench.config)
+            pitch, roll = config.pitch, config.roll  # the slower table sets the pace of the estimates
+            settings = sequencer_settings_for_run(args, setup, min(pitch.speed_dps, roll.speed_dps),
+                                                  min(pitch.accel_dps2, roll.accel_dps2))
+            settings = settings.model_copy(update={
+                "move_timeout_s": config.sequencer.move_timeout_s,
+                "position_tolerance_deg": config.sequencer.position_tolerance_deg})
+        ambient = ambient_entered(args)
+        if ambient:
+            setup.metadata["ambient"] = ambient  # the manifest's metadata: the certificate quotes it
+        steps = schedule(plan, settings)  # once: the estimate, the limits and the run share it
+        est = estimate(plan, settings, setup.timing, steps)
+        if args.dry_run:
+            return Estimated(plan, est)
+        setup.metadata["estimated_rig_time_s"] = est.total_s  # run.json: the estimate beside the actual
+        check_limits(setup.station, steps, settings.check_mount)  # first: homing moves a table too
+        if bench is not None:
+            prepare(bench, setup.station, front.say)
+            setup.metadata["device_identity"] = bench.identities  # the manifest's metadata and run.json
+        operator = front.operator()
+        run_dir = new_run_dir(args.out, plan)
+        with Journal(db_path(args.db), durable=not args.sim) as journal:
+            return run_and_finish(front, lambda events, terminal, forecast: calibrate(
+                plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, events,
+                setup.metadata, args.serial, args.operator, steps, terminal=terminal, forecast=forecast),
+                run_dir, plan, est, 0, args.db, args.no_report, cert_settings,
+                notifier=RunNotifier(notifications, station_label(setup.metadata), run_dir))
+
+
+def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Path | None, front: FrontEnd,
+                 chosen: StationFile | None = None) -> None:
+    """Hold the station for this command (one run per station at a time, across processes: a second
+    one is refused in one line naming who holds it); a lock left by a process that is gone is
+    taken over, with a note. A link the emulators choose (port 0, ``pty:NAME``) is no address
+    yet: it is held once they have chosen it, by a second call with ``chosen``, the station as
+    they serve it (`Emulation.station_config`)."""
+    from labcal.run.journal import db_path
+    from labcal.run.lock import StationLock, station_locks
+
+    links = {(chosen.devices()[n] if chosen is not None else s).bus:
+             (chosen.devices()[n] if chosen is not None else s).where
+             for n, s in config.devices().items() if s.chosen_by_emulators == (chosen is not None)}
+    if not links:
+        return
+    lock = stack.enter_context(StationLock(station_locks(db_path(db)), links, name))
+    for note in lock.notes:
+        front.say(f"[yellow]note:[/] {note}")
+
+
+def ambient_entered(args: StartRun) -> dict[str, float | str]:
+    """The environmental conditions the operator entered at the start (ISO/IEC 17025 §7.8.2.1 i),
+    as the run journals them; empty when none was entered."""
+    found: dict[str, float | str] = {}
+    if args.ambient_temp is not None:
+        found["temperature_c"] = args.ambient_temp
+    if args.humidity is not None:
+        found["humidity_pct"] = args.humidity
+    if found:
+        found["source"] = "entered at the start of the run"
+    return found
+
+
+def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyComplete:
+    """Go on with an interrupted run at the first point not in the journal, on the station it
+    started on or another station file of the same bench; then the shared sequence."""
+    from labcal.app.folders import record_folder
+    from labcal.bench.setup import prepare, read_snapshot, sim_station, station_for_resume
+    from labcal.config.settings import CertificateSettings
+    from labcal.config.station import load_station
+    from labcal.run.estimate import estimate
+    from labcal.run.interrupts import stop_signals_raise
+    from labcal.run.journal import sha256
+    from labcal.run.notify import RunNotifier, lab_notifications, station_label
+    from labcal.run.runner import execute, open_for_resume
+    from labcal.run.sequencer import check_limits, schedule
+    from labcal.run.winding import left_at
+
+    run_dir = Path(args.run)
+    ctx = open_for_resume(run_dir)
+    with ExitStack() as stack:
+        stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
+        notifications = stack.enter_context(lab_notifications(lambda line: front.say(line, markup=False)))
+        stack.callback(ctx.journal.close)
+        stack.callback(ctx.lock.release)
+        # a copy (`labcal export RUN --out DIR`) resumed is the run's folder from now on
+        record_folder(ctx.journal, ctx.journal.run(ctx.run_id), run_dir, "resume")
+        for note in ctx.notes:
+            front.say(f"[yellow]note:[/] {note}")
+        run_name = f"run {ctx.run_id} in {run_dir}"
+        snapshot = read_snapshot(ctx.station_text, run_name, ctx.software_version)
+        if args.pace is not None and snapshot is not None:
+            raise LabcalError(f"{run_name} runs on a station, not the simulated rig: {PACE_SIM_ONLY}")
+        if ctx.complete:
+            settings = certificate_settings_for_run(args, snapshot.config.certificate if snapshot else None,
+                                                    "the run's station")
+            return finish_complete(args, run_dir, ctx.run_id, settings, ctx.journal.path)
+        points = ctx.journal.points(ctx.run_id)
+        start = ctx.journal.rig_time(ctx.run_id)  # the rig's clock goes on from here (one clock per run)
+        new_station, on_station, station_record = None, "on the station it started on", None
+        if args.station:
+            if snapshot is None:
+                raise LabcalError(f"{run_name} is a dry run on the simulated rig (--sim): it resumes on that "
+                                  "rig; omit --station")
+            new_config, new_text = load_station(args.station)
+            new_station = (new_config, args.station)
+            on_station = f"on station file {args.station} (sha256 {sha256(new_text)[:12]})"
+            station_record = {"station_file": args.station, "station_sha256": sha256(new_text),
+                              "station_text": new_text}
+        bench = None
+        tables_at = left_at(ctx.journal.events(ctx.run_id))  # a simulated rig's tables stayed there too
+        if snapshot is None:
+            ctx.journal.relax()  # a dry run: as when it started
+            setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start,
+                                tables_at=tables_at, pace=args.pace)
+            certificate = CertificateSettings()
+        else:
+            resumed_on = new_station[0] if new_station else snapshot.config
+            lock_station(stack, resumed_on, args.station or run_name, ctx.journal.path, front)
+            setup, bench = station_for_resume(snapshot, run_name, stack, start, new_station, tables_at)
+            lock_station(stack, resumed_on, args.station or run_name, ctx.journal.path, front,
+                         chosen=bench.config)
+            certificate = (new_station[0] if new_station else snapshot.config).certificate
+        steps = schedule(ctx.plan, ctx.settings)
+        est = estimate(ctx.plan, ctx.settings, setup.timing, steps)
+        if bench is not None:
+            check_limits(setup.station, steps)
+            prepare(bench, setup.station, front.say)
+        operator = front.operator()
+        ctx.journal.reopen(ctx.run_id)
+        ctx.journal.event(ctx.run_id, "resume",
+                          f"resumed after {len(points)} committed point(s) {on_station}", station_record)
+        if bench is not None:
+            ctx.journal.event(ctx.run_id, "device_identity", "the devices that answered on resuming",
+                              bench.identities)
+        cert_settings = certificate_settings_for_run(args, certificate, args.station or "the run's station")
+        return run_and_finish(front, lambda events, terminal, forecast: execute(
+            ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, events,
+            steps, terminal=terminal, forecast=forecast),
+            run_dir, ctx.plan, est, len(points), args.db, args.no_report, cert_settings, ctx.journal.path,
+            notifier=RunNotifier(notifications, station_label(ctx.metadata), run_dir))
+
+
+def finish_complete(args: ResumeRun, run_dir: Path, run_id: int,
+                    settings: CertificateSettings, journal: Path) -> AlreadyComplete:
+    """A complete run resumed: its exports were checked and repaired; its certificate and report are
+    issued again if any of them is missing or not the history's (a kill during `labcal report`)."""
+    from labcal.documents.report import outputs_in_place, write_run_outputs
+
+    if args.no_report or outputs_in_place(run_dir, db=journal):
+        return AlreadyComplete(run_id, run_dir, None)
+    issued = write_run_outputs(run_dir, settings, db=journal)
+    return AlreadyComplete(run_id, run_dir, str(issued.certificate_path), issued.certificate.certificate_id)

@@ -1,0 +1,244 @@
+"""A finished run's certificate: issue it (with its report, DCC and history entry), approve (sign)
+it, verify a signature; and the register of those who may approve, and their keys.
+
+Issuing and approving write into the run folder (certificate.json, certificate.dcc.xml,
+report.html, report.pdf) and the lab database's history, and nothing else: readings.csv, fit.json,
+plan.toml and run.json are left as they are. The certificate is built from the journal, whose
+readings it names by digest, so it is true whatever those files say; a folder whose exports are
+missing, stale or edited is *reported* in the notes (`labcal export RUN_DIR` rebuilds it), never
+silently rewritten. Verifying and listing only read.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from datetime import date, datetime
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from labcal.errors import LabcalError
+
+if TYPE_CHECKING:
+    from labcal.documents.approvers import Approver
+    from labcal.documents.report import RunOutputs, Table
+
+
+@dataclass(frozen=True)
+class IssueCertificate:
+    """Certificate, report, DCC and history entry of a complete run. Tolerances: the lab file's,
+    the station file's [certificate] over them, these over both (None: not given)."""
+
+    run_dir: str
+    db: str | None = None
+    station: str | None = None  # the station file for the Type B inputs (default: the journaled one)
+    tolerance_deg: float | None = None
+    bias_max_v: float | None = None
+    usage_pitch: tuple[float, float] | None = None
+    usage_roll: tuple[float, float] | None = None
+    monte_carlo: int = 0  # JCGM 101 trials checking the budget (0: none)
+    serial: str | None = None
+    operator: str | None = None
+    customer: str | None = None
+    manufacturer: str | None = None
+    model: str | None = None
+    received: date | None = None
+
+
+@dataclass(frozen=True)
+class Issued:
+    outputs: RunOutputs
+    tables: tuple[Table, ...] = ()  # coefficients, attitude, budget and conformity, as the report has them
+    changed: str | None = None  # "identification changed from …" / "kept from …" when one was replaced
+
+    @property
+    def notes(self) -> tuple[str, ...]:
+        return self.outputs.notes
+
+    def to_json(self) -> dict[str, Any]:
+        result, cert = self.outputs, self.outputs.certificate
+        return {
+            "certificate_id": cert.certificate_id, "serial": cert.instrument.serial,
+            "certificate": str(result.certificate_path), "report_html": str(result.html_path),
+            "report_pdf": str(result.pdf_path), "database": str(result.database),
+            "dcc": None if result.dcc_path is None else str(result.dcc_path),
+            "passed": None if cert.conformity is None else cert.conformity.passed,
+            "conformity": None if cert.conformity is None else cert.conformity.model_dump(mode="json"),
+            "attitude": cert.attitude.model_dump(mode="json"),
+            "coefficients": cert.fit.coefficients, "U": cert.expanded_uncertainty.U,
+            "k": cert.expanded_uncertainty.k, "digest": cert.digest.value,
+            "uncertainty_budget": None if cert.uncertainty_budget is None
+            else cert.uncertainty_budget.model_dump(mode="json"),
+            "replaces": cert.replaces, "compared_with": result.compared_with,
+            "identification_changed": list(result.changes),
+        }
+
+
+def issue_certificate(request: IssueCertificate) -> Issued:
+    """Issue (or issue again) a complete run's certificate and report; one line for a run that is
+    not complete, not this journal's, or settings that are wrong."""
+    from labcal.documents.administration import ItemGiven
+    from labcal.documents.issuing import load_settings
+    from labcal.documents.report import (
+        attitude_table,
+        budget_table,
+        coefficients_with_expanded_uncertainty,
+        conformity_table,
+        write_run_outputs,
+    )
+
+    if request.monte_carlo and not 100 <= request.monte_carlo <= 1_000_000:
+        raise LabcalError(f"--monte-carlo {request.monte_carlo}: give 100 … 1000000 trials (10000 gives U95 "
+                          "to about 1 %), or leave it out")
+    settings = load_settings(request.station, attitude_u95_max_deg=request.tolerance_deg,
+                             bias_max_v=request.bias_max_v, usage_pitch_deg=request.usage_pitch,
+                             usage_roll_deg=request.usage_roll)
+    result = write_run_outputs(request.run_dir, settings, serial=request.serial, operator=request.operator,
+                               db=request.db, station=request.station, monte_carlo=request.monte_carlo,
+                               item=ItemGiven(request.customer, request.manufacturer, request.model,
+                                              request.received))
+    cert = result.certificate
+    changed = None
+    if result.compared_with is not None:
+        changed = (f"identification changed from {result.compared_with}: {'; '.join(result.changes)}"
+                   if result.changes else f"identification kept from {result.compared_with}")
+    tables = tuple(make(cert) for make in (coefficients_with_expanded_uncertainty, attitude_table,
+                                           budget_table, conformity_table))
+    return Issued(result, tables, changed)
+
+
+@dataclass(frozen=True)
+class ApproveCertificate:
+    run_dir: str
+    by: str
+    role: str
+    key: str  # the approver's private key (PEM)
+    db: str | None = None
+    station: str | None = None  # the station file the certificate was issued with, if not the journaled
+
+
+@dataclass(frozen=True)
+class Approved:
+    outputs: RunOutputs
+
+    def to_json(self) -> dict[str, Any]:
+        result, cert = self.outputs, self.outputs.certificate
+        approval = cert.approval
+        assert approval is not None  # approve_run signs or refuses
+        return {"certificate": str(result.certificate_path), "number": cert.number,
+                "approved_by": approval.by, "role": approval.role, "key_id": approval.key_id,
+                "dcc": None if result.dcc_path is None else str(result.dcc_path),
+                "dcc_sha256": approval.dcc_sha256, "report_pdf": str(result.pdf_path)}
+
+
+def approve_certificate(request: ApproveCertificate) -> Approved:
+    """Sign the run's draft certificate and its DCC, write the report without DRAFT and store the
+    approved certificate; one line naming every reason it may not be signed."""
+    from labcal.documents.approving import approve_run
+
+    return Approved(approve_run(request.run_dir, request.by, request.role, request.key, request.db,
+                                request.station))
+
+
+@dataclass(frozen=True)
+class VerifyCertificate:
+    file: str  # a certificate.json
+    public_key: str | None = None  # verify against this key instead of the lab database's register
+    dcc: str | None = None  # the DCC to check against the signed digest (default: the one beside FILE)
+    db: str | None = None
+
+
+@dataclass(frozen=True)
+class Verified:
+    file: str
+    number: str
+    approved_by: str
+    role: str
+    approved_utc: datetime
+    verified_against: str
+    dcc: str | None
+
+    def to_json(self) -> dict[str, Any]:
+        return {"file": self.file, "valid": True, "number": self.number, "approved_by": self.approved_by,
+                "role": self.role, "approved_utc": self.approved_utc.isoformat(),
+                "verified_against": self.verified_against, "dcc": self.dcc}
+
+
+def verify_certificate(request: VerifyCertificate) -> Verified:
+    """A certificate's signature checked (and its DCC's digest); one line when it fails. A read."""
+    from labcal.documents.approval import check_dcc, load_public_key, verify
+    from labcal.documents.approvers import verify_registered
+    from labcal.documents.dcc import DCC_FILE
+
+    cert = (verify_registered(request.file, request.db) if request.public_key is None
+            else verify(request.file, load_public_key(request.public_key)))
+    approval = cert.approval
+    assert approval is not None  # verify refuses an unapproved certificate
+    dcc = (Path(request.dcc) if request.dcc else
+           Path(request.file).with_name(DCC_FILE) if approval.dcc_sha256 else None)
+    if dcc is not None:
+        check_dcc(cert, dcc)
+    against = "the registered key" if request.public_key is None else "the given public key"
+    return Verified(request.file, cert.number, approval.by, approval.role, approval.approved_utc,
+                    against, None if dcc is None else str(dcc))
+
+
+@dataclass(frozen=True)
+class MakeKeys:
+    out: str  # writes OUT.key (readable by its owner only) and OUT.pub
+
+
+@dataclass(frozen=True)
+class Keys:
+    private_key: Path
+    public_key: Path
+    key_id: str
+
+
+def make_keys(request: MakeKeys) -> Keys:
+    from labcal.documents.approval import key_id, keygen, load_public_key
+
+    private, public = keygen(request.out)
+    return Keys(private, public, key_id(load_public_key(public)))
+
+
+@dataclass(frozen=True)
+class AddApprover:
+    name: str
+    role: str
+    public_key: str
+    db: str | None = None
+
+
+@dataclass(frozen=True)
+class RevokeApprover:
+    name: str
+    db: str | None = None
+
+
+@dataclass(frozen=True)
+class ListApprovers:
+    db: str | None = None
+
+
+@dataclass(frozen=True)
+class Approvers:
+    approvers: tuple[Approver, ...] = field(default_factory=tuple)
+
+
+def add_approver(request: AddApprover) -> Approver:
+    from labcal.documents import approvers
+
+    return approvers.add(request.name, request.role, request.public_key, request.db)
+
+
+def revoke_approver(request: RevokeApprover) -> Approver:
+    from labcal.documents import approvers
+
+    return approvers.revoke(request.name, request.db)
+
+
+def list_approvers(request: ListApprovers) -> Approvers:
+    """Every registration, active and revoked (a missing database: none, and nothing is created)."""
+    from labcal.documents import approvers
+
+    return Approvers(tuple(approvers.listed(request.db)))
