@@ -13,8 +13,9 @@ if TYPE_CHECKING:
 
 
 def rich_table(t) -> RichTable:
-    """A report table (`labcal.report.Table`) for the terminal. Its text is the report's, not rich
-    markup: escaped, so that "[certificate]" (a station file's section) is printed, not eaten."""
+    """A report table (`labcal.documents.report_tables.Table`) for the terminal. Its text is the
+    report's, not rich markup: escaped, so that "[certificate]" (a station file's section) is
+    printed, not eaten."""
     from rich.markup import escape
     from rich.table import Table as RichTable
 
@@ -32,12 +33,12 @@ def cmd_report(args: argparse.Namespace) -> int:
 
     from labcal.documents.administration import ItemGiven
     from labcal.documents.issuing import load_settings
-    from labcal.documents.report import (
+    from labcal.documents.report import write_run_outputs
+    from labcal.documents.report_tables import (
         attitude_table,
         budget_table,
         coefficients_with_expanded_uncertainty,
         conformity_table,
-        write_run_outputs,
     )
 
     if args.monte_carlo and not 100 <= args.monte_carlo <= 1_000_000:

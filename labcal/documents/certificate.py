@@ -503,6 +503,20 @@ class Certificate(Strict):
         return self.model_dump(mode="json")
 
 
+SCHEMA_FILE = "schemas/certificate.schema.json"  # in the repository, beside labcal/
+
+
+def json_schema() -> dict:
+    """The JSON Schema (draft 2020-12) of certificate.json, generated from these models: published
+    in the repository as `SCHEMA_FILE` (`tools/certificate_schema.py` writes it; a test keeps it
+    equal to this), so that a customer's software validates a certificate without labcal. Checks
+    that JSON Schema cannot state (a plan's SHA-256 of its text, the digest, array shapes) are
+    labcal's own on reading."""
+    return {"$schema": "https://json-schema.org/draft/2020-12/schema",
+            **Certificate.model_json_schema(by_alias=True, mode="validation"),
+            "title": f"labcal calibration certificate ({SCHEMA})"}
+
+
 def content_digest(doc: dict) -> str:
     """SHA-256 of the canonical JSON (sorted keys, no spaces, UTF-8) of everything but the digest."""
     content = {k: v for k, v in doc.items() if k != "digest"}
