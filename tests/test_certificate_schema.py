@@ -159,3 +159,20 @@ def test_replication_is_typed_in_the_schema(validator):
     doc = json.loads((ISSUED / "replicated.json").read_text(encoding="utf-8"))
     doc["fit"]["replication"]["x"]["lack_of_fit"]["significant"] = "yes"
     assert list(validator.iter_errors(doc)) != []
+
+
+def test_a_fit_with_extensions_is_certified_under_the_schema(fresh, validator):
+    """No fixture has model extensions (a run's certificate is fitted on the base model unless asked):
+    a temperature term, fitted here, goes through the typed record and the published schema."""
+    from labcal.analysis.fit import fit_readings
+    from labcal.analysis.models import Model
+    from labcal.documents.issuing import build_certificate
+    from labcal.run.record import load_run
+
+    record = load_run(fresh.parent)
+    fit = fit_readings(record.readings, Model(extensions=("temperature",), t_ref=20.0))
+    written = json.loads(json.dumps(fit.to_json()["extensions"]))
+    cert = build_certificate(record, fit)
+    assert cert.fit.extensions is not None and cert.fit.extensions.names == written["names"]
+    assert cert.to_json()["fit"]["extensions"] == written
+    assert list(validator.iter_errors(cert.to_json())) == []
