@@ -236,7 +236,7 @@ def test_a_dcc_that_fails_validation_is_one_line_and_writes_nothing(issued, tmp_
 def test_the_journal_story_is_in_the_certificate_and_the_report(issued, tmp_path):
     from labcal.analysis.fit import fit_readings
     from labcal.documents.issuing import build_certificate
-    from labcal.documents.report import story_table
+    from labcal.documents.report_tables import story_table
     from labcal.run.journal import Journal
     from labcal.run.record import load_run
     from labcal.run.rundir import read_run_json

@@ -72,7 +72,7 @@ def test_contents_match_the_fit_and_the_run(run, cert):
     fit = fit_readings(run.readings)
     assert cert.to_json()["schema"] == "labcal.certificate/1"  # published (README); issued ones carry it
     assert cert.instrument.serial == "SN-0042"  # recorded by `labcal run --serial`
-    assert cert.station.simulated and cert.station.simulated_truth["seed"] == 7
+    assert cert.station.simulated and cert.station.simulated_truth.seed == 7
     np.testing.assert_array_equal(cert.coefficients, fit.coefficients)
     for j in range(3):
         np.testing.assert_array_equal(cert.fit.covariance[j], fit.covariance(j))

@@ -78,9 +78,11 @@ def test_the_default_dry_run_is_certified_on_the_device_model_it_fitted(tmp_path
     u_rig = 2 / 3**0.5  # ± 2″ rectangular: u = a/√3 (GUM 4.3.7)
     assert tables == pytest.approx({"pitch table index accuracy": u_rig, "pitch table wobble": u_rig,
                                     "roll table index accuracy": u_rig, "roll table wobble": u_rig})
-    assert cert.uncertainty_budget.inputs["device_misalignment"].keys() == truth.keys()
+    assert cert.uncertainty_budget.inputs.device_misalignment.keys() == truth.keys()
     assert cert.conformity is not None and cert.conformity.passed
-    assert set(cert.device.intrinsic) == {"sensitivity_v_per_g", "inter_axis_angle_deg"}
+    intrinsic = cert.device.intrinsic  # every sensor's |s| and every pair's angle
+    assert set(intrinsic.sensitivity_v_per_g) == {"x", "y", "z"}
+    assert set(intrinsic.inter_axis_angle_deg) == {"xy", "xz", "yz"}
     assert len(cert.device.covariance) == 18 and cert.method.startswith("Device model")
 
 

@@ -21,14 +21,9 @@ from labcal.cli import main
 from labcal.config.settings import CertificateSettings
 from labcal.documents.certificate import read_certificate
 from labcal.documents.issuing import build_certificate
-from labcal.documents.report import (
-    envelope_figure,
-    figures,
-    fitted,
-    inferred_attitude,
-    tables,
-    write_run_outputs,
-)
+from labcal.documents.report import fitted, write_run_outputs
+from labcal.documents.report_figures import envelope_figure, figures, inferred_attitude
+from labcal.documents.report_tables import tables
 from labcal.run.record import load_run
 
 TOLERANCE_DEG = 0.01

@@ -12,7 +12,7 @@ from matplotlib.image import imread
 from simulated_runs import simulated_run
 
 from labcal.analysis.fit import fit_readings
-from labcal.documents import report
+from labcal.documents import report, report_figures
 from labcal.documents.issuing import build_certificate
 from labcal.run.record import load_run
 
@@ -42,7 +42,7 @@ def test_each_figure_is_drawn_once_and_the_html_and_pdf_carry_the_same_pixels(tm
     pngs = re.findall(r'src="data:image/png;base64,([^"]+)"', html_path.read_text(encoding="utf-8"))
     assert len(pngs) == 4
     pixels = imread(io.BytesIO(base64.b64decode(pngs[0])))
-    width, height = made[0].get_size_inches() * report.FIGURE_DPI
+    width, height = made[0].get_size_inches() * report_figures.FIGURE_DPI
     assert pixels.shape[:2] == (round(height), round(width)) and np.ptp(pixels) > 0
     pdf = pdf_path.read_bytes()
     assert pdf.count(b"/Subtype /Image") >= 4  # the four drawings, embedded as images

@@ -82,8 +82,8 @@ def test_the_dry_run_budget_lists_the_simulators_sources_at_their_sizes(dry):
     assert rows["DMM noise"].standard_uncertainty == pytest.approx(noise, rel=1e-12)
     assert not rows["DMM noise"].added
     inputs = budget.inputs
-    assert inputs["bias_tempco_v_per_k"] == pytest.approx(max(map(abs, default_instrument().tc_bias_v_per_c)))
-    assert inputs["dmm_reading"] == 0 and inputs["dmm_range_v"] == 0  # the simulated DMM reads exactly
+    assert inputs.bias_tempco_v_per_k == pytest.approx(max(map(abs, default_instrument().tc_bias_v_per_c)))
+    assert inputs.dmm_reading == 0 and inputs.dmm_range_v == 0  # the simulated DMM reads exactly
 
 
 def test_a_real_station_keeps_its_own_inputs(tmp_path):

@@ -184,7 +184,7 @@ def test_report_tables_print_their_text_not_rich_markup():
     from rich.console import Console
 
     from labcal.commands.report import rich_table
-    from labcal.documents.report import Table
+    from labcal.documents.report_tables import Table
 
     console = Console(file=io.StringIO(), width=200)
     console.print(rich_table(Table("Statement of conformity", ["verdict"], [["[b]none[/b]"]],

@@ -20,7 +20,8 @@ from labcal.errors import LabcalError
 
 if TYPE_CHECKING:
     from labcal.documents.approvers import Approver
-    from labcal.documents.report import RunOutputs, Table
+    from labcal.documents.report import RunOutputs
+    from labcal.documents.report_tables import Table
 
 
 @dataclass(frozen=True)
@@ -78,12 +79,12 @@ def issue_certificate(request: IssueCertificate) -> Issued:
     not complete, not this journal's, or settings that are wrong."""
     from labcal.documents.administration import ItemGiven
     from labcal.documents.issuing import load_settings
-    from labcal.documents.report import (
+    from labcal.documents.report import write_run_outputs
+    from labcal.documents.report_tables import (
         attitude_table,
         budget_table,
         coefficients_with_expanded_uncertainty,
         conformity_table,
-        write_run_outputs,
     )
 
     if request.monte_carlo and not 100 <= request.monte_carlo <= 1_000_000:

@@ -114,7 +114,7 @@ def with_standard_error(value: float, se: float) -> str:
 def coefficients_with_standard_errors(fit: Fit, title: str = "Fitted coefficients X = [Bᵀ; S]",
                                       units: str = "V") -> Table:
     """The fit's coefficients ± one standard error, for the terminal (the certificate's table,
-    `labcal.documents.report.coefficients_with_expanded_uncertainty`, states ± U95 instead)."""
+    `labcal.documents.report_tables.coefficients_with_expanded_uncertainty`, states ± U95 instead)."""
     table = Table(title=f"{title}, ± u (k=1)", box=box.SIMPLE_HEAD, pad_edge=False)  # fits 80 columns
     table.add_column("row", no_wrap=True)
     for name in SENSORS:

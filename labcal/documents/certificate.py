@@ -27,7 +27,6 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import (
     AwareDatetime,
-    BaseModel,
     ConfigDict,
     Field,
     ValidationError,
@@ -36,6 +35,18 @@ from pydantic import (
 
 from labcal.analysis.attitude import Calibration, CovariancePart, calibration_from_json
 from labcal.config.files import MAX_DEPTH, check_depth, one_line, read_text, write_json
+from labcal.documents.certificate_sections import (
+    BudgetInputs,
+    Extensions,
+    Identifiability,
+    Intrinsic,
+    Layout,
+    MisalignmentTest,
+    Replication,
+    SequencerRecord,
+    SimulatedTruth,
+    Strict,
+)
 from labcal.errors import LabcalError
 
 # The document format's name, not the module's: certificates issued before the subpackages
@@ -46,22 +57,18 @@ COVERAGE = 0.95
 
 
 # --- the schema ----------------------------------------------------------------------------------
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
-
 def _shape(value: list, shape: tuple[int, ...], what: str) -> None:
     if np.shape(value) != shape:
         raise ValueError(f"{what} must have shape {'×'.join(map(str, shape))}, not "
                          f"{'×'.join(map(str, np.shape(value)))}")
 
 
-class Instrument(_Strict):
+class Instrument(Strict):
     serial: str = Field(min_length=1)
     description: str = ""
 
 
-class StationRecord(_Strict):
+class StationRecord(Strict):
     """What the certificate records of the calibration device and how the sequencer ran it (not the
     live station the sequencer drives, `labcal.run.station.Station`); a dry run keeps the
     simulator's truth."""
@@ -69,11 +76,11 @@ class StationRecord(_Strict):
     description: str
     device_id: str | None = None
     simulated: bool
-    sequencer_settings: dict
-    simulated_truth: dict | None = None
+    sequencer_settings: SequencerRecord
+    simulated_truth: SimulatedTruth | None = None
 
 
-class PlanRecord(_Strict):
+class PlanRecord(Strict):
     name: str
     sha256: str = Field(pattern="^[0-9a-f]{64}$")
     toml: str
@@ -88,20 +95,20 @@ class PlanRecord(_Strict):
         return self
 
 
-class DataRecord(_Strict):
+class DataRecord(Strict):
     readings_sha256: str = Field(pattern="^[0-9a-f]{64}$")
     n_points: int = Field(ge=1)
     replicates: int = Field(ge=1)
 
 
-class Environment(_Strict):
+class Environment(Strict):
     temperature_c_min: float | None = None
     temperature_c_max: float | None = None
     temperature_c_mean: float | None = None
     note: str = ""
 
 
-class FitSection(_Strict):
+class FitSection(Strict):
     """The fit JSON contract (DESIGN.md §5) as `labcal.fit.Fit.to_json` writes it, so that
     `labcal attitude --cert` reads a certificate exactly as it reads a fit."""
 
@@ -116,9 +123,9 @@ class FitSection(_Strict):
     uncertainty_dof: list[int]
     uncertainty_basis: list[str]
     n_points: int
-    layout: dict
-    extensions: dict | None = None
-    replication: dict | None = None
+    layout: Layout
+    extensions: Extensions | None = None
+    replication: dict[str, Replication] | None = None  # per sensor
     notes: list[str] = []
 
     @model_validator(mode="after")
@@ -132,13 +139,13 @@ class FitSection(_Strict):
         return self
 
 
-class Misalignment(_Strict):
+class Misalignment(Strict):
     value_arcsec: float
     u_arcsec: float
     U_arcsec: float
 
 
-class DeviceSection(_Strict):
+class DeviceSection(Strict):
     """The calibration device estimated with the instrument (issue 12): its six misalignments with
     U at the device model's k, the instrument's intrinsic parameters, what the plan identifies, the
     F test that judged the model, and θ's full covariance (θ in `parameters` order, misalignments in
@@ -148,9 +155,9 @@ class DeviceSection(_Strict):
     misalignments: dict[str, Misalignment]
     coverage_factor_95: float
     degrees_of_freedom: int
-    intrinsic: dict
-    identifiability: dict
-    misalignment_test: dict
+    intrinsic: Intrinsic
+    identifiability: Identifiability
+    misalignment_test: MisalignmentTest
     parameters: list[str]
     covariance: list[list[float]]
 
@@ -160,7 +167,7 @@ class DeviceSection(_Strict):
         return self
 
 
-class Expanded(_Strict):
+class Expanded(Strict):
     """U = k·u per coefficient, k = t at ν_eff per sensor (GUM G.4)."""
 
     coverage_probability: float
@@ -177,7 +184,7 @@ class Expanded(_Strict):
         return self
 
 
-class Leak(_Strict):
+class Leak(Strict):
     bias_max: float
     off_diagonal_max: float
     diagonal_max: float
@@ -185,7 +192,7 @@ class Leak(_Strict):
     per_radian: list[list[float]]
 
 
-class PlanAudit(_Strict):
+class PlanAudit(Strict):
     """Leakage of each CD misalignment into X per radian (Soto §7) and Box's V over usage pitch."""
 
     zero_below: float
@@ -197,7 +204,7 @@ def _absent(value: object) -> bool:
     return value is None
 
 
-class ClosedFormEnvelope(_Strict):
+class ClosedFormEnvelope(Strict):
     """Soto's closed form (eqs. 5–7) on the same grid: its Type A U95 (None: undefined, where the
     closed form breaks down — asin at |g_x| → 1, roll at pitch ±90°) and the statement of which
     estimator `labcal attitude` uses."""
@@ -213,7 +220,7 @@ class ClosedFormEnvelope(_Strict):
     statement: str
 
 
-class AttitudeEnvelope(_Strict):
+class AttitudeEnvelope(Strict):
     method: str
     usage_pitch_deg: tuple[float, float]
     usage_roll_deg: tuple[float, float]
@@ -231,7 +238,7 @@ class AttitudeEnvelope(_Strict):
     closed_form: ClosedFormEnvelope | None = Field(default=None, exclude_if=_absent)
 
 
-class Check(_Strict):
+class Check(Strict):
     quantity: str
     value: float
     limit: float
@@ -239,13 +246,13 @@ class Check(_Strict):
     passed: bool
 
 
-class Conformity(_Strict):
+class Conformity(Strict):
     decision_rule: str
     checks: list[Check]
     passed: bool
 
 
-class BudgetRow(_Strict):
+class BudgetRow(Strict):
     """One source of the GUM budget: its input and its contribution u_i to pitch and roll (arcsec)
     at the envelope's worst point (where U95 of that angle is largest) and RMS over the envelope."""
 
@@ -265,7 +272,7 @@ class BudgetRow(_Strict):
     note: str = ""
 
 
-class BudgetTotal(_Strict):
+class BudgetTotal(Strict):
     angle: Literal["pitch", "roll"]
     worst_at_deg: tuple[float, float]
     u_c_arcsec: float
@@ -275,7 +282,7 @@ class BudgetTotal(_Strict):
     U95_rms_arcsec: float
 
 
-class MonteCarloCheck(_Strict):
+class MonteCarloCheck(Strict):
     """JCGM 101 propagation of the same inputs at each angle's worst point."""
 
     trials: int = Field(ge=1)
@@ -287,7 +294,7 @@ class MonteCarloCheck(_Strict):
     agree_within_5_percent: bool
 
 
-class CoefficientBudgetRecord(_Strict):
+class CoefficientBudgetRecord(Strict):
     """Per coefficient (4×3, as X): combined standard uncertainty, ν_eff (None: infinite), k, U, and
     each source's standard uncertainty."""
 
@@ -298,7 +305,7 @@ class CoefficientBudgetRecord(_Strict):
     contributions: dict[str, list[list[float]]]
 
 
-class CovariancePartRecord(_Strict):
+class CovariancePartRecord(Strict):
     """One independent part of the complete covariance of [vec(X) row-major; one new reading]
     (`labcal.analysis.attitude.CovariancePart`): V², V²/g and (V/g)²; dof None: infinite."""
 
@@ -316,9 +323,9 @@ class CovariancePartRecord(_Strict):
         return CovariancePart(np.array(self.matrix, dtype=float), dof, self.label)
 
 
-class UncertaintyBudget(_Strict):
+class UncertaintyBudget(Strict):
     method: str
-    inputs: dict
+    inputs: BudgetInputs
     rows: list[BudgetRow]
     totals: list[BudgetTotal]
     coefficients: CoefficientBudgetRecord
@@ -332,14 +339,14 @@ class UncertaintyBudget(_Strict):
         return tuple(p.part() for p in self.covariance or [])
 
 
-class LaboratoryRecord(_Strict):
+class LaboratoryRecord(Strict):
     name: str
     address: str
     accreditation_id: str
     country_code: str
 
 
-class Item(_Strict):
+class Item(Strict):
     """The item calibrated (ISO/IEC 17025 §7.8.2.1 f) and when it was received."""
 
     manufacturer: str
@@ -348,7 +355,7 @@ class Item(_Strict):
     received: date | None
 
 
-class Equipment(_Strict):
+class Equipment(Strict):
     """Equipment used, with the identity it reported or its station-file settings. The fields by
     name are what the device reported (None: it reports no such field, or a certificate issued
     before they were recorded)."""
@@ -369,7 +376,7 @@ class Equipment(_Strict):
                 f"{self.serial or 'not reported by the device'}, firmware {self.firmware or 'not reported'}")
 
 
-class TraceabilityRecord(_Strict):
+class TraceabilityRecord(Strict):
     equipment: str
     identity: str
     certificate: str
@@ -377,7 +384,7 @@ class TraceabilityRecord(_Strict):
     due: date
 
 
-class Administration(_Strict):
+class Administration(Strict):
     """ISO/IEC 17025 §7.8.2.1 administrative contents a run alone does not say."""
 
     laboratory: LaboratoryRecord
@@ -388,14 +395,14 @@ class Administration(_Strict):
     ambient: str
 
 
-class JournalEvent(_Strict):
+class JournalEvent(Strict):
     utc: str
     station_time_s: float | None
     kind: str
     message: str
 
 
-class RunStory(_Strict):
+class RunStory(Strict):
     """What the journal recorded while the run went on: faults, retries, wrong mounts, pauses,
     resumes, operator prompts and answers, with their times."""
 
@@ -404,7 +411,7 @@ class RunStory(_Strict):
     omitted: int = Field(ge=0)
 
 
-class Approval(_Strict):
+class Approval(Strict):
     """Who approved the certificate (ISO/IEC 17025 §7.8.2.1 o) and their Ed25519 signature over the
     canonical content (`labcal.documents.approval`)."""
 
@@ -418,12 +425,12 @@ class Approval(_Strict):
     dcc_sha256: str | None = Field(default=None, pattern="^[0-9a-f]{64}$", exclude_if=_absent)
 
 
-class Digest(_Strict):
+class Digest(Strict):
     algorithm: Literal["sha256"] = "sha256"
     value: str = Field(pattern="^[0-9a-f]{64}$")
 
 
-class Certificate(_Strict):
+class Certificate(Strict):
     model_config = ConfigDict(validate_by_alias=True, validate_by_name=True, serialize_by_alias=True)
 
     # First, so that the document's first line says it: a dry run's results are simulated (issue 23)
@@ -494,6 +501,20 @@ class Certificate(_Strict):
 
     def to_json(self) -> dict:
         return self.model_dump(mode="json")
+
+
+SCHEMA_FILE = "schemas/certificate.schema.json"  # in the repository, beside labcal/
+
+
+def json_schema() -> dict:
+    """The JSON Schema (draft 2020-12) of certificate.json, generated from these models: published
+    in the repository as `SCHEMA_FILE` (`tools/certificate_schema.py` writes it; a test keeps it
+    equal to this), so that a customer's software validates a certificate without labcal. Checks
+    that JSON Schema cannot state (a plan's SHA-256 of its text, the digest, array shapes) are
+    labcal's own on reading."""
+    return {"$schema": "https://json-schema.org/draft/2020-12/schema",
+            **Certificate.model_json_schema(by_alias=True, mode="validation"),
+            "title": f"labcal calibration certificate ({SCHEMA})"}
 
 
 def content_digest(doc: dict) -> str:

@@ -17,7 +17,7 @@ from labcal.run.record import RunRecord
 if TYPE_CHECKING:  # matplotlib only where a figure is drawn: a run stores device.json without it
     from matplotlib.figure import Figure
 
-TITLE_Y = 1.0  # titles at a fixed height, as the report's figures have them (labcal.documents.report)
+TITLE_Y = 1.0  # titles at a fixed height, as the report's figures have them (labcal.documents.report_figures)
 
 DEVICE_JSON = "device.json"
 

@@ -42,6 +42,7 @@ from labcal.documents.certificate import (
     MonteCarloCheck,
     UncertaintyBudget,
 )
+from labcal.documents.certificate_sections import BudgetInputs
 from labcal.documents.simulated import with_simulator_inputs
 from labcal.run.record import RunRecord
 
@@ -210,7 +211,7 @@ def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: Certifica
     checks = _monte_carlo(cal, rows, p, trials, seed) if trials > 0 else None
     doc = {k: (dict(v) if isinstance(v, dict) else v) for k, v in vars(inputs).items()}
     return UncertaintyBudget(
-        method=METHOD, inputs=doc, rows=_rows(rows, p), totals=totals,
+        method=METHOD, inputs=BudgetInputs.model_validate(doc), rows=_rows(rows, p), totals=totals,
         coefficients=CoefficientBudgetRecord(
             u_c=coef.u_c.tolist(), nu_eff=[[_finite(x) for x in row] for row in coef.nu_eff],
             k=coef.k.tolist(), U=coef.U.tolist(),

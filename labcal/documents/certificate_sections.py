@@ -1,0 +1,214 @@
+"""The certificate's records of what other parts of labcal computed: the sequencer's settings and a
+dry run's simulated truth (`labcal.config.settings`, `labcal.bench.setup`), the fit's layout,
+extensions and replication analysis (`labcal.analysis.fit`, `labcal.analysis.replication`), the
+device model's intrinsic parameters, identifiability and F test (`labcal.analysis.device_fit`), and
+the uncertainty budget's Type B inputs (`labcal.analysis.budget.TypeBInputs`).
+
+They were untyped dicts; typed, a wrong type or a missing field is refused when a certificate is
+sealed or read, the DCC and the report read them by attribute, and the published JSON Schema
+(`schemas/certificate.schema.json`) states them. Each is written exactly as the code that computed
+it wrote it: signatures are over the canonical JSON, so a certificate issued before these models
+must serialise to the same bytes. A field added to a section after certificates were issued
+without it is optional and, where the document does not carry it, stays out of the document
+(`Recorded`); a field the document carries as null stays null.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, SerializationInfo, SerializerFunctionWrapHandler, model_serializer
+
+
+class Strict(BaseModel):
+    """A certificate section: no unknown field, immutable, no NaN or infinity (JSON has none)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class Recorded(Strict):
+    """A section as its producer wrote it: an optional field the document does not carry (it was
+    issued before the field existed) is left out when written again, so its bytes do not change."""
+
+    @model_serializer(mode="wrap")
+    def _as_recorded(self, handler: SerializerFunctionWrapHandler, info: SerializationInfo) -> Any:
+        data = handler(self)
+        fields = type(self).model_fields
+        return {k: v for k, v in data.items()
+                if k not in fields or fields[k].is_required() or k in self.model_fields_set}
+
+
+# --- how the sequencer ran (station.sequencer_settings) ----------------------------------------------
+class SettleRecord(Recorded):
+    """`labcal.config.settings.SettleSettings` as the run's journal kept it (validated there)."""
+
+    tau_s: float
+    noise_v: float
+    sensitivity_v_per_g: float
+    samples: int
+    k_sigma: float
+    max_dwell_s: float
+    fixed_dwell_s: float | None
+    mode: str | None = None  # "detect" or "model" (absent: issued before model settling)
+    pool: str | None = None  # whose step records model settling starts with (absent: before pools)
+    instrument_type: str | None = None
+
+
+class SequencerRecord(Recorded):
+    """`labcal.config.settings.SequencerSettings` as the run's journal kept it."""
+
+    settle: SettleRecord
+    order: str
+    seed: int
+    move_timeout_s: float
+    position_tolerance_deg: float
+    check_mount: bool
+    on_failure: str
+    speed_dps: float
+    accel_dps2: float
+
+
+class Endpoint(Strict):
+    """Where an emulator listened (`sim.emulation.Emulation.endpoints`)."""
+
+    devices: list[str]
+    protocol: str
+    address: str
+
+
+class SimulatedTruth(Recorded):
+    """The simulated instrument and calibration device a dry run (or an emulated one) measured: the
+    truth its results can be compared with."""
+
+    coefficients: list[list[float]]
+    misalignment_deg: dict[str, float]
+    seed: int
+    time_scale: float | None = None  # emulated runs: emulated seconds per wall second
+    endpoints: list[Endpoint] | None = None
+
+
+# --- the fit (fit.layout, fit.extensions, fit.replication) -----------------------------------------
+class Layout(Strict):
+    """How the coefficient arrays are laid out, in words (DESIGN.md §5)."""
+
+    rows: list[str]
+    columns: list[str]
+    units: str
+
+
+class Extensions(Strict):
+    """The terms beyond B and S (temperature, …) with their coefficients, rows in ``names`` order."""
+
+    names: list[str]
+    t_ref_c: float
+    coefficients: list[list[float]]
+    standard_errors: list[list[float]]
+
+
+class FTestRecord(Strict):
+    """An F test of one sensor (`labcal.analysis.replication.FTest.to_json`)."""
+
+    F: float
+    df: tuple[int, int]
+    critical_95: float
+    p_value: float
+    significant: bool
+
+
+class DriftTestRecord(Recorded):
+    F: float
+    df: tuple[int, int]
+    critical_95: float
+    p_value: float
+    significant: bool
+    sigma_drift: float | None = None  # absent: issued before the drift's size was stated
+
+
+class Replication(Recorded):
+    """One sensor's replication analysis (Tripp & Tcheng Table 2): precision and bias, lack of fit
+    against the pure error, and drift between replicates."""
+
+    distinct_points: int
+    replicates: int
+    sigma_prec: float
+    sigma_bias: float
+    lack_of_fit: FTestRecord
+    lack_of_fit_classical: FTestRecord | None = None  # absent: issued before the drift-aware test
+    lack_of_fit_drift_robust: FTestRecord | None = None
+    drift: dict[str, DriftTestRecord]
+
+
+# --- the device model (device.intrinsic, device.identifiability, device.misalignment_test) --------
+class Estimate(Strict):
+    value: float
+    u: float
+
+
+class InterAxisAngle(Strict):
+    value_deg: float
+    deviation_from_90_arcsec: float
+    u_arcsec: float
+
+
+class Intrinsic(Strict):
+    """The instrument's mount-independent parameters: each sensor's sensitivity |s_j| (V/g) and the
+    angle between each pair of sensitive axes, with standard uncertainties."""
+
+    sensitivity_v_per_g: dict[str, Estimate]
+    inter_axis_angle_deg: dict[str, InterAxisAngle]
+
+
+class Confounded(Strict):
+    """A direction the readings cannot see: misalignments with a combination of coefficients, and a
+    mount (y, u in degrees) whose addition separates them, if one does."""
+
+    misalignments: list[str]
+    coefficients: dict[str, float]
+    description: str
+    add_mount: tuple[float, float] | None
+
+
+class Identifiability(Strict):
+    """What the plan's points tell about the device model's parameters (condition None: infinite)."""
+
+    rank: int
+    parameters: int
+    condition: float | None
+    u_arcsec_per_ug_noise: dict[str, float | None]
+    confounded: list[str]
+    confounded_directions: list[Confounded]
+    ill_conditioned: list[str]
+
+
+class MisalignmentTest(Strict):
+    """The F test that judged the device model against the linear one."""
+
+    F: float
+    df: tuple[int, int]
+    p_value: float
+    critical_95: float
+    warranted: bool
+    denominator: str
+
+
+# --- the budget's Type B inputs (uncertainty_budget.inputs) ----------------------------------------
+class BudgetInputs(Recorded):
+    """`labcal.analysis.budget.TypeBInputs` in SI units, half-widths of rectangular distributions
+    unless said; zero: not a source here."""
+
+    dmm_reading: float
+    dmm_range_v: float
+    dmm_noise_v: float | None = None  # absent: issued before the DMM's noise was shown
+    dmm_conditions: str | None = None
+    common: list[str] | None = None
+    pitch_index: float
+    pitch_wobble: float
+    roll_index: float
+    roll_wobble: float
+    mount_repeatability: float
+    mount_repeatability_sd: float | None = None  # absent: issued before remount scatter was estimated
+    mount_repeatability_dof: int | None = None
+    temperature_half_range_k: float
+    bias_tempco_v_per_k: float
+    sensitivity_tempco_per_k: float
+    device_misalignment: dict[str, float]
