@@ -14,6 +14,7 @@ from labcal.commands.common import (
     SEED,
     TIME_SCALE,
     add_db_option,
+    add_power_on_options,
     bounded,
     bounded_field,
     err,
@@ -172,6 +173,7 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
 def cmd_run(args: argparse.Namespace) -> int:
     from labcal.analysis.plan import Plan
     from labcal.bench.setup import hardware_station, prepare, sim_station
+    from labcal.commands.console import before_run
     from labcal.config.plans import load_plan, plan_toml
     from labcal.run.estimate import estimate
     from labcal.run.interrupts import stop_signals_raise
@@ -230,6 +232,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             return 0
         setup.metadata["estimated_rig_time_s"] = est.total_s  # run.json: the estimate beside the actual
         check_limits(setup.station, steps, settings.check_mount)  # first: homing moves a table too
+        setup.metadata["checklist"] = before_run(args, bench, setup.station, plan.n_points, settings.settle.samples)
         if bench is not None:
             prepare(bench, setup.station, err.print)
             setup.metadata["device_identity"] = bench.identities  # the manifest's metadata and run.json
@@ -423,6 +426,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--operator", help="who runs the calibration (kept in the journal)")
     p.add_argument("--dry-run", action="store_true",
                    help="print the estimated duration of the plan on this station; move nothing")
+    add_power_on_options(p)
     _common(p)
     p.set_defaults(func=cmd_run)
 

@@ -169,14 +169,22 @@ def attitude_table(cert: Certificate) -> Table:
                                                                           "RMS of U95"], rows, caption)
 
 
+def output_unit(cert: Certificate) -> str:
+    """The instrument's output unit, as the certificate's fit layout states it ("counts (bias),
+    counts/g (sensitivity)"; volts in certificates issued before it could be another)."""
+    return str(cert.fit.layout.get("units", "V")).split(" (bias)")[0]
+
+
 def coefficients_with_expanded_uncertainty(cert: Certificate) -> Table:
     """The certified coefficients ± U95 (the terminal's fit table,
     `labcal.commands.console.coefficients_with_standard_errors`, states ± one standard error)."""
     X, U = cert.coefficients, cert.U
     e = cert.expanded_uncertainty
+    unit = output_unit(cert)
+    units = UNITS if unit == "V" else (unit, *[f"{unit}/g"] * 3)
     rows = [[f"{name} ({unit})", *(format_result(X[i, j], U[i, j]) for j in range(3))]
-            for i, (name, unit) in enumerate(zip(ROW_NAMES, UNITS, strict=True))]
-    rows.append(["S_E (V)", *(format_uncertainty(s) for s in cert.fit.residual_standard_error)])
+            for i, (name, unit) in enumerate(zip(ROW_NAMES, units, strict=True))]
+    rows.append([f"S_E ({unit})", *(format_uncertainty(s) for s in cert.fit.residual_standard_error)])
     rows.append(["k", *(f"{k:.2f}" for k in e.k)])
     rows.append(["ν_eff", *(str(n) for n in e.nu_eff)])
     rows.append(["basis of u", *cert.fit.uncertainty_basis])
