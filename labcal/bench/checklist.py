@@ -42,11 +42,12 @@ CHANNELS_STORED = 4  # x, y, z and temperature: the most a point's raw samples h
 BYTES_PER_SAMPLE = 8  # each raw sample is a little-endian double in the journal
 # A point's row, its events (move, settle verdict, retries) and SQLite's indexes and write-ahead log,
 # beside its raw samples; and each try of a point that is retried keeps its samples too
-POINT_OVERHEAD_B = 4_000
+POINT_OVERHEAD_B = 4_000  # measured: 3.2 kB a point in all, raw samples included (64 points, 10 samples)
 TRIES_ALLOWED = 3
 READINGS_ROW_B = 300  # a readings.csv row with its audit columns
-# fit.json, run.json, plan.toml, the certificate, its DCC and the report (HTML and PDF with figures)
-RUN_FOLDER_FIXED_B = 20_000_000
+# fit.json, run.json, plan.toml, the certificate, its DCC and the report (HTML and PDF with figures):
+# 2.0 MB for Soto's 64 points on the simulated rig (measured), with room for longer plans' figures
+RUN_FOLDER_FIXED_B = 5_000_000
 MARGIN = 2.0  # free space below this multiple of the estimate is a warning: other runs share the disk
 
 
@@ -82,14 +83,16 @@ def parse_power_on(text: str, now: datetime, where: str = "--powered-on") -> dat
         else:
             at = datetime.strptime(text.replace("T", " "), "%Y-%m-%d %H:%M").replace(tzinfo=now.tzinfo)
     except ValueError:
-        raise LabcalError(f"{where}: {text!r} is not a time; give HH:MM (today) or YYYY-MM-DD HH:MM") from None
+        raise LabcalError(f"{where}: {text!r} is not a time; give HH:MM (today) or YYYY-MM-DD HH:MM"
+                          ) from None
     if at > now:
         raise LabcalError(f"{where}: {text} is later than now ({now:%H:%M}); give when the instrument was "
                           "switched on, with its date if that was another day (YYYY-MM-DD HH:MM)")
     return at
 
 
-def warm_up(instrument: InstrumentSettings | None, power: PowerOn, now: datetime, unsaid: Status = "fail") -> Item:
+def warm_up(instrument: InstrumentSettings | None, power: PowerOn, now: datetime,
+            unsaid: Status = "fail") -> Item:
     """The instrument's warm-up, where the station declares one (``unsaid``: the verdict when nobody
     said when it was switched on: a run is refused, `labcal station check` warns)."""
     name = "warm-up"
@@ -103,7 +106,8 @@ def warm_up(instrument: InstrumentSettings | None, power: PowerOn, now: datetime
                                   "instrument was switched on: give --powered-on HH:MM, or --warmed-up")
     on_for = (now - power.at).total_seconds() / 60.0
     if on_for >= wanted:
-        return Item(name, "ok", f"powered on at {power.at:%H:%M}, {on_for:.0f} min ago ({wanted:g} min asked)")
+        return Item(name, "ok", f"powered on at {power.at:%H:%M}, {on_for:.0f} min ago "
+                                f"({wanted:g} min asked)")
     ready = power.at + timedelta(minutes=wanted)
     return Item(name, "fail", f"powered on at {power.at:%H:%M}, only {on_for:.0f} min ago; the station asks "
                               f"{wanted:g} min: wait until {ready:%H:%M}, or go on with --warmed-up")
@@ -117,7 +121,8 @@ def standards(traceability: Iterable[Traceability] | None, today: date) -> Item:
     listed = list(traceability)
     if not listed:
         return Item(name, "warning", "the station names no reference standards ([[traceability]]): the "
-                                     "certificate will state none; add the DMM's and the tables' certificates")
+                                     "certificate will state none; add the DMM's and the tables' "
+                                     "certificates")
     overdue = overdue_standards(listed, today, today=True)
     if overdue:
         more = f" (and {len(overdue) - 1} more)" if len(overdue) > 1 else ""
@@ -149,8 +154,7 @@ def tables_homed(bench: Bench | None, station: Station | None) -> Item:
             found.append(("fail", f"{axis.name}: no status ({exc})"))
             continue
         if status.needs_homing:
-            found.append(("warning", f"{axis.name}: {status.words}; the run homes it first (it moves to its "
-                                     "home switch): keep the instrument clear"))
+            found.append(("warning", f"{axis.name}: {status.words}"))
         elif status.fault:
             found.append(("fail", f"{axis.name}: {status.fault}"))
         elif isinstance(axis, AzAxis):
@@ -159,7 +163,9 @@ def tables_homed(bench: Bench | None, station: Station | None) -> Item:
             found.append(("ok", f"{axis.name}: {status.words}"))
     worst: Status = "fail" if any(s == "fail" for s, _ in found) else \
         "warning" if any(s == "warning" for s, _ in found) else "ok"
-    return Item(name, worst, "; ".join(line for _, line in found))
+    homes = " (the run homes a table NOT REFERENCED first: it moves to its home switch, so keep the " \
+        "instrument clear)" if worst == "warning" else ""
+    return Item(name, worst, "; ".join(line for _, line in found) + homes)
 
 
 def dmm(bench: Bench | None) -> Item:
@@ -176,7 +182,8 @@ def dmm(bench: Bench | None) -> Item:
     except DriverError as exc:
         return Item(name, "fail", f"{exc}; check its link and settings in the station file")
     channels = ",".join(str(c) for c in d.channels)
-    return Item(name, "ok", f"{identity.split(',')[1].strip()} configured and read back as declared "
+    maker, model, serial = (field.strip() for field in identity.split(",")[:3])
+    return Item(name, "ok", f"{maker} {model} serial {serial} configured and read back as declared "
                             f"({d.range_v:g} V range, {d.nplc:g} PLC, channels {channels})")
 
 

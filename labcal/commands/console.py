@@ -222,8 +222,8 @@ def before_run(args, bench, station, points: int, samples: int) -> dict:
     if attended and config is not None and config.instrument.warm_up_min and power == PowerOn():
         while True:  # a typo is asked again; an empty answer (or none) leaves it unsaid
             try:
-                text = err.input(f"The instrument needs {config.instrument.warm_up_min:g} min of warm-up: when "
-                                 "was it switched on? (HH:MM, 'warm' if it has warmed up): ").strip()
+                text = err.input(f"The instrument needs {config.instrument.warm_up_min:g} min of warm-up: "
+                                 "when was it switched on? (HH:MM, 'warm' if it has warmed up): ").strip()
             except EOFError:
                 text = ""
             if text.lower() in ("", "warm"):
@@ -246,7 +246,8 @@ def before_run(args, bench, station, points: int, samples: int) -> dict:
     names = ", ".join(i.name for i in failed)
     if attended:
         try:
-            go_on = err.input(f"{len(failed)} item(s) not met ({names}). Go on anyway? [y/N] ").strip().lower()
+            go_on = err.input(f"{len(failed)} item(s) not met ({names}). Go on anyway? [y/N] ")
+            go_on = go_on.strip().lower()
         except EOFError:
             go_on = ""
         if go_on in ("y", "yes"):

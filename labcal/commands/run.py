@@ -232,7 +232,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             return 0
         setup.metadata["estimated_rig_time_s"] = est.total_s  # run.json: the estimate beside the actual
         check_limits(setup.station, steps, settings.check_mount)  # first: homing moves a table too
-        setup.metadata["checklist"] = before_run(args, bench, setup.station, plan.n_points, settings.settle.samples)
+        setup.metadata["checklist"] = before_run(args, bench, setup.station, plan.n_points,
+                                                 settings.settle.samples)  # before anything moves
         if bench is not None:
             prepare(bench, setup.station, err.print)
             setup.metadata["device_identity"] = bench.identities  # the manifest's metadata and run.json

@@ -59,8 +59,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     from labcal.commands.console import power_on_given, print_checklist
     from labcal.config.plans import load_plan
     from labcal.config.station import load_station
-    from labcal.run.journal import db_path
     from labcal.config.uncertainty import overdue_standards
+    from labcal.run.journal import db_path
 
     config, _ = load_station(args.station)
     now = datetime.now().astimezone()

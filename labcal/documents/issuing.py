@@ -31,8 +31,8 @@ from labcal.analysis.fit import SENSORS, Fit
 from labcal.analysis.kinematics import gravity
 from labcal.analysis.models import BASE_NAMES
 from labcal.config.json_values import json_safe
-from labcal.config.readings_csv import coefficient_units
 from labcal.config.lab import certificate_settings
+from labcal.config.readings_csv import coefficient_units
 from labcal.config.settings import CertificateSettings
 from labcal.config.station import CertificateSection, load_certificate_settings
 from labcal.config.uncertainty import overdue_standards

@@ -21,8 +21,7 @@ from labcal.analysis.device_fit import DeviceFit, preferred_fit
 from labcal.analysis.fit import Fit, fit_readings
 from labcal.config.files import write_atomic
 from labcal.config.json_values import json_safe
-from labcal.config.readings_csv import ReadingsWriter
-from labcal.config.readings_csv import coefficient_units
+from labcal.config.readings_csv import ReadingsWriter, coefficient_units
 from labcal.config.station import output_units, stated_angle_errors
 from labcal.errors import LabcalError
 from labcal.run.journal import Journal, RunRow
@@ -56,7 +55,7 @@ def derive(journal: Journal, row: RunRow, status: str | None = None, reason: str
                       roll_deg=p.roll_deg, volts=[p.vx, p.vy, p.vz], temp_c=p.temp_c,
                       sd=[p.sd_vx, p.sd_vy, p.sd_vz], n_samples=p.n_samples, time_s=p.t_end)
     units = output_units(row.station_text)  # the station's [instrument] units; volts unless it says
-    stated = "" if units == "V" else f"# units = {units}\n"  # what `labcal fit` reads back (a volts run's bytes as before)
+    stated = "" if units == "V" else f"# units = {units}\n"  # `labcal fit` reads it; volts: as before
     files = {PLAN: row.plan_text.encode("utf-8"), READINGS: (stated + writer.text()).encode("utf-8")}
     fit, device, note = None, None, ""
     if points:
