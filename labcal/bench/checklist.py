@@ -100,7 +100,7 @@ def warm_up(instrument: InstrumentSettings | None, power: PowerOn, now: datetime
     if wanted is None:
         return Item(name, "ok", "the station declares no warm-up time ([instrument] warm_up_min)")
     if power.warmed_up:
-        return Item(name, "ok", f"warmed up, as the operator stated (--warmed-up; {wanted:g} min asked)")
+        return Item(name, "ok", f"warmed up, as the operator stated ({wanted:g} min asked)")
     if power.at is None:
         return Item(name, unsaid, f"the station asks {wanted:g} min after power-on and nobody said when the "
                                   "instrument was switched on: give --powered-on HH:MM, or --warmed-up")
@@ -180,7 +180,7 @@ def dmm(bench: Bench | None) -> Item:
         identity = d.identify()
         d.configure()  # sends the declared configuration and reads every setting back
     except DriverError as exc:
-        return Item(name, "fail", f"{exc}; check its link and settings in the station file")
+        return Item(name, "fail", str(exc))  # the driver's line says what to check
     channels = ",".join(str(c) for c in d.channels)
     maker, model, serial = (field.strip() for field in identity.split(",")[:3])
     return Item(name, "ok", f"{maker} {model} serial {serial} configured and read back as declared "

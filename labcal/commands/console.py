@@ -246,7 +246,7 @@ def before_run(args, bench, station, points: int, samples: int) -> dict:
     names = ", ".join(i.name for i in failed)
     if attended:
         try:
-            go_on = err.input(f"{len(failed)} item(s) not met ({names}). Go on anyway? [y/N] ")
+            go_on = err.input(f"{len(failed)} item(s) not met ({names}). Go on anyway? (y/N) ")
             go_on = go_on.strip().lower()
         except EOFError:
             go_on = ""
