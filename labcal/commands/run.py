@@ -232,13 +232,13 @@ def cmd_run(args: argparse.Namespace) -> int:
             return 0
         setup.metadata["estimated_rig_time_s"] = est.total_s  # run.json: the estimate beside the actual
         check_limits(setup.station, steps, settings.check_mount)  # first: homing moves a table too
+        run_dir = new_run_dir(args.out, plan)  # a bad --out is one line before the checklist
         setup.metadata["checklist"] = before_run(args, bench, setup.station, plan.n_points,
                                                  settings.settle.samples)  # before anything moves
         if bench is not None:
             prepare(bench, setup.station, err.print)
             setup.metadata["device_identity"] = bench.identities  # the manifest's metadata and run.json
         operator = make_operator(args)
-        run_dir = new_run_dir(args.out, plan)
         with Journal(db_path(args.db), durable=not args.sim) as journal:
             return run_and_report(args, lambda display: calibrate(
                 plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, display,
