@@ -272,6 +272,10 @@ def test_station_units_reach_fit_json_and_the_certificate(tmp_path, capsys, no_l
     assert cert["fit"]["layout"]["units"] == "counts (bias), counts/g (sensitivity)"
     html = re.sub(r"data:[^\"')]*", "", (run / "report.html").read_text())  # figures' base64 bytes aside
     assert "B (counts)" in html and "counts/g" in html and "V/g" not in html
+    dcc = (run / "certificate.dcc.xml").read_text(encoding="utf-8")
+    assert "<si:unit>\\one</si:unit>" in dcc  # counts: dimensionless; S per m s⁻²
+    assert "<si:unit>\\metre\\tothe{-1}\\second\\tothe{2}</si:unit>" in dcc
+    assert "\\volt" not in dcc and "bias (counts) and sensitivity" in dcc
     code, out, err = cli(capsys, "fit", str(run / "readings.csv"), "--model", "linear", "--json")
     assert code == 0, err
     assert json.loads(out)["units"] == "counts"
@@ -286,3 +290,24 @@ def test_a_volts_station_writes_what_it_always_wrote(tmp_path, capsys, no_leaks)
     assert (run / "readings.csv").read_text().startswith("replicate,")
     fit = json.loads((run / "fit.json").read_text())
     assert "units" not in fit and fit["layout"]["units"] == "V (bias), V/g (sensitivity)"
+
+
+@pytest.mark.parametrize("unit, base", [("V", r"\volt"), ("mV", r"\milli\volt"), ("counts", r"\one"),
+                                        ("m/s2", r"\metre\second\tothe{-2}")])
+def test_dcc_units_per_output_unit_read_by_ptbs_parser(unit, base):
+    """The DCC's D-SI spellings for each output unit, read by PTB's dsiunits (a second library): the
+    bias in the unit, each sensitivity in it per m s⁻², the covariances their products."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        from dsi_unit import DsiUnit
+
+    from labcal.documents.dcc import DSI_UNITS
+
+    _, units, covariances = DSI_UNITS[unit]
+    b = DsiUnit(base)
+    s = b / DsiUnit(r"\metre\second\tothe{-2}")
+    assert all(DsiUnit(text).valid for text in (*units, *covariances))
+    assert DsiUnit(units[0]) == b and all(DsiUnit(text) == s for text in units[1:])
+    assert [DsiUnit(text) for text in covariances] == [b * b, b * s, s * s]

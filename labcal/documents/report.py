@@ -169,18 +169,12 @@ def attitude_table(cert: Certificate) -> Table:
                                                                           "RMS of U95"], rows, caption)
 
 
-def output_unit(cert: Certificate) -> str:
-    """The instrument's output unit, as the certificate's fit layout states it ("counts (bias),
-    counts/g (sensitivity)"; volts in certificates issued before it could be another)."""
-    return str(cert.fit.layout.get("units", "V")).split(" (bias)")[0]
-
-
 def coefficients_with_expanded_uncertainty(cert: Certificate) -> Table:
     """The certified coefficients ± U95 (the terminal's fit table,
     `labcal.commands.console.coefficients_with_standard_errors`, states ± one standard error)."""
     X, U = cert.coefficients, cert.U
     e = cert.expanded_uncertainty
-    unit = output_unit(cert)
+    unit = cert.output_unit
     units = UNITS if unit == "V" else (unit, *[f"{unit}/g"] * 3)
     rows = [[f"{name} ({unit})", *(format_result(X[i, j], U[i, j]) for j in range(3))]
             for i, (name, unit) in enumerate(zip(ROW_NAMES, units, strict=True))]
