@@ -124,6 +124,17 @@ def test_az_tables_ok_then_an_alarm_fails(tmp_path, no_leaks):  # noqa: F811
         assert failed.why.startswith("pitch: READY")
 
 
+def test_an_az_drive_whose_stop_input_is_on_fails(tmp_path, no_leaks):  # noqa: F811
+    """STOP on (reference input 007Dh bit 5, hardware_protocols.md §2.1) and the drive starts no move:
+    the item fails with what to do, though no alarm is on."""
+    with emulated("az-modbus-tcp", tmp_path) as (_, bench):
+        bench.pitch.link.write_one(bench.pitch.unit, 0x007D, 1 << 5)
+        item = checklist.tables_homed(bench, None)
+    assert item.status == "fail" and item.why.startswith("pitch: "), item.why
+    assert "its STOP input is on" in item.why and "--reset-alarms" in item.why
+    assert "roll: READY" in item.why
+
+
 # --- DMM -----------------------------------------------------------------------------------
 def test_dmm_configured_and_read_back(tmp_path, no_leaks):  # noqa: F811
     with emulated("smc100-tcp", tmp_path) as (_, bench):
@@ -158,6 +169,34 @@ def test_free_disk_ok_and_short(tmp_path):
     points = free // (3 * 4_320) + 1  # one point more than the disk holds, by the journal alone
     short = checklist.free_disk(tmp_path, tmp_path, points, 10)
     assert short.status == "fail" and short.why.endswith("; free space there before the run")
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 12 kB filesystem of its own (tmpfs): no run folder fits; skipped where none can be mounted."""
+    import subprocess
+
+    where = tmp_path / "small"
+    where.mkdir()
+    made = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=12k", "tmpfs", str(where)],
+                          capture_output=True)
+    if made.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here ({made.stderr.decode().strip()})")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+def test_a_run_whose_folder_does_not_fit_is_refused(tmp_path, small_disk, capsys, lab_database):
+    code, _, err = cli(capsys, "run", "--sim", "--yes", "--no-report", "--out", str(small_disk / "r"))
+    assert code == 2
+    line = err.strip().splitlines()[-1]
+    # 12 kB free against 64 × 300 B + 5 MB = 5.0 MB for the folder (the journal is elsewhere)
+    assert line.startswith("labcal: error: pre-run checklist: free disk: ") and line.endswith(
+        f"free in {small_disk}, the run needs about 5.0 MB (64 points); free space there before the run; "
+        "nothing was moved"), line
+    assert list(small_disk.iterdir()) == []
 
 
 # --- lab database ------------------------------------------------------------------------------

@@ -157,6 +157,9 @@ def tables_homed(bench: Bench | None, station: Station | None) -> Item:
             found.append(("warning", f"{axis.name}: {status.words}"))
         elif status.fault:
             found.append(("fail", f"{axis.name}: {status.fault}"))
+        elif not status.ready and not status.moving:  # an AZ drive whose STOP input a lost release left on
+            why = axis.not_ready_why() or "; it would start no move"
+            found.append(("fail", f"{axis.name}: {status.words}{why}"))
         elif isinstance(axis, AzAxis):
             found.append(("ok", f"{axis.name}: {status.words}, absolute encoder, no alarm"))
         else:
