@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import argparse
+from collections.abc import Iterable
 from contextlib import ExitStack, contextmanager
+from datetime import datetime
+from typing import TYPE_CHECKING
 
 import numpy as np
 from rich import box
@@ -18,6 +22,11 @@ from rich.table import Table
 from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit
 from labcal.run.operator import QuietKeys
 from labcal.run.sequencer import Display, Step
+
+if TYPE_CHECKING:
+    from labcal.bench.checklist import Item, PowerOn
+    from labcal.bench.hardware import Bench
+    from labcal.run.station import Station
 
 
 def format_duration(seconds: float) -> str:
@@ -184,7 +193,7 @@ def device_tables(doc: dict) -> list[Table]:
 CHECK_MARKS = {"ok": "[green]ok[/]", "warning": "[yellow]warning[/]", "fail": "[bold red]FAIL[/]"}
 
 
-def print_checklist(console: Console, items) -> None:
+def print_checklist(console: Console, items: Iterable[Item]) -> None:
     """The pre-run checklist (`labcal.bench.checklist`), one line per item."""
     from rich.markup import escape
 
@@ -193,7 +202,7 @@ def print_checklist(console: Console, items) -> None:
         console.print(f"  {CHECK_MARKS[item.status]} {item.name}: {escape(item.why)}")
 
 
-def power_on_given(args, now):
+def power_on_given(args: argparse.Namespace, now: datetime) -> PowerOn:
     """What the command line says of the instrument's power (`labcal.bench.checklist.PowerOn`)."""
     from labcal.bench.checklist import PowerOn, parse_power_on
 
@@ -201,13 +210,13 @@ def power_on_given(args, now):
     return PowerOn(at, args.warmed_up)
 
 
-def before_run(args, bench, station, points: int, samples: int) -> dict:
+def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, points: int,
+               samples: int) -> dict:
     """The pre-run checklist of `labcal run`, shown before anything moves. An unmet item stops the
     run in one line (exit 2, nothing moved) unless the operator, asked at the terminal, says to go
     on; with --yes or --answers nobody is asked. Where the station asks for a warm-up and the
     command line did not say when the instrument was switched on, the operator at the terminal is
     asked. Returns what the run journals of it (its metadata: run.json, the manifest)."""
-    from datetime import datetime
     from pathlib import Path
 
     from labcal.bench.checklist import PowerOn, parse_power_on, run_checklist, unmet
