@@ -225,6 +225,7 @@ class Front:
             self.answers = tmp_path / "answers.txt"
             self.answers.write_text(answers)
         self.points: list[int] = []
+        self.tmp_path = tmp_path
 
     def say(self, text: str, markup: bool = True) -> None:
         self.lines.append(text)
@@ -234,6 +235,17 @@ class Front:
 
         return AutoOperator(self.console) if self.answers is None else ScriptedOperator(self.console,
                                                                                          self.answers)
+
+    def checklist(self, bench, station, points, samples):
+        """The real checklist, unattended: an unmet item stops the run (as with --yes)."""
+        from datetime import datetime
+
+        from labcal.bench.checklist import PowerOn, run_checklist, unmet
+
+        items = run_checklist(None, bench, station, db=self.tmp_path / "lab.sqlite", run_folder=self.tmp_path,
+                              points=points, samples=samples, power=PowerOn(), now=datetime.now().astimezone())
+        assert not unmet(items), unmet(items)
+        return {"items": [item.to_json() for item in items]}
 
     def display(self, total, done):
         from contextlib import nullcontext

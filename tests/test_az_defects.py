@@ -133,8 +133,9 @@ def test_a_run_on_a_drive_with_stop_on_is_refused_in_one_line(tmp_path, capsys, 
         code, out, err = cli(capsys, "run", "--station", str(path), "--no-report", "--yes",
                              "--out", str(tmp_path / "run"))
     assert code == 2 and out == "" and "Traceback" not in err, err
-    [error] = [line for line in err.splitlines() if line.startswith("labcal: error:")]  # after "preparing"
-    assert error.startswith("labcal: error: pitch table (Oriental Motor AZ, unit 1 on tcp 127.0.0.1:")
-    assert "STOP input is on" in error and "--reset-alarms" in error
-    with sqlite3.connect(lab_database) as db:  # no run started: the journal was never opened
-        assert db.execute("SELECT name FROM sqlite_master WHERE name = 'runs'").fetchall() == []
+    [error] = [line for line in err.splitlines() if line.startswith("labcal: error:")]  # after the checklist
+    assert error.startswith("labcal: error: pre-run checklist: tables homed: pitch: ")
+    assert "; its STOP input is on" in error
+    assert "--reset-alarms" in error and error.endswith("; nothing was moved")
+    with sqlite3.connect(lab_database) as db:  # no run started (the checklist opened the lab database)
+        assert db.execute("SELECT count(*) FROM runs").fetchall() == [(0,)]

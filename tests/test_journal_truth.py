@@ -7,6 +7,7 @@ line and breaks one thing about it the way the lab's soak did.
 from __future__ import annotations
 
 import errno
+import io
 import os
 import sqlite3
 import subprocess
@@ -282,10 +283,11 @@ def small_disk(tmp_path, request):
 
 
 def test_a_full_disk_at_the_final_export_keeps_the_run_and_says_how_to_finish_it(tmp_path, small_disk,
-                                                                                  capsys):
+                                                                                  capsys, monkeypatch):
     db = tmp_path / "lab.sqlite"
-    err = one_line(capsys, ["run", "--sim", "--yes", "--no-report", "--out", str(small_disk / "r"),
-                            "--db", str(db)])
+    # the pre-run checklist sees the disk too small: the operator goes on regardless, then y at each mount
+    monkeypatch.setattr("sys.stdin", io.StringIO("y\n" * 5))
+    err = one_line(capsys, ["run", "--sim", "--no-report", "--out", str(small_disk / "r"), "--db", str(db)])
     assert f"{small_disk / 'r'}: disk full writing" in err and "needed" in err, err
     assert "labcal export 1" in err, err
     assert status(db) == "stopped" and not list((small_disk / "r").glob(".*.tmp"))  # nothing half-made

@@ -18,7 +18,7 @@ from labcal.sim.emulation import Emulation
 def test_a_parity_the_pty_refuses_is_one_line_naming_the_device_and_the_setting(tmp_path, capsys,
                                                                                    no_leaks):  # noqa: F811
     """The DMM's RS-232 link is a pty (`labcal sim serve`), which carries no parity: a station file
-    that asks for parity E on it. `labcal run` prepares the tables, then the DMM's port is refused:
+    that asks for parity E on it. `labcal run`'s pre-run checklist asks the DMM, whose port is refused:
     exit 2, one line naming the DMM, its port and `parity = "E"`, within far less than the
     reconnect budget (30 s here). Before, termios.error escaped as a traceback."""
     served = private_file("az-modbus-rtu", tmp_path)
@@ -31,8 +31,11 @@ def test_a_parity_the_pty_refuses_is_one_line_naming_the_device_and_the_setting(
         took = time.monotonic() - t0
     line = err.strip().splitlines()[-1]
     assert code == 2 and out == "" and "Traceback" not in err, err
-    assert line.startswith(f"labcal: error: dmm (Keysight 34970A, {tmp_path}/dmm): {tmp_path}/dmm does not "
-                           'keep parity = "E" (it reads back other line settings)'), line
+    # the pre-run checklist asks the DMM first, before anything moves, and names the DMM's own line
+    assert line.startswith(f"labcal: error: pre-run checklist: DMM: dmm (Keysight 34970A, {tmp_path}/dmm): "
+                           f'{tmp_path}/dmm does not keep parity = "E" (it reads back other line '
+                           "settings)"), line
+    assert line.endswith("; nothing was moved")
     assert took < 15, took
 
 

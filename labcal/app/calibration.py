@@ -19,6 +19,7 @@ from labcal.errors import LabcalError
 
 if TYPE_CHECKING:
     from labcal.analysis.plan import Plan
+    from labcal.bench.hardware import Bench
     from labcal.bench.setup import StationSetup
     from labcal.config.settings import CertificateSettings, SequencerSettings
     from labcal.config.station import StationFile
@@ -28,6 +29,7 @@ if TYPE_CHECKING:
     from labcal.run.notify import RunNotifier
     from labcal.run.operator import Operator, Terminal
     from labcal.run.runner import RunResult
+    from labcal.run.station import Station
 
 
 class Display(Protocol):
@@ -47,6 +49,10 @@ class FrontEnd(Protocol):
 
     def operator(self) -> Operator:
         """Who answers the run's prompts."""
+
+    def checklist(self, bench: Bench | None, station: Station, points: int, samples: int) -> dict:
+        """The pre-run checklist (`labcal.bench.checklist`), shown before anything moves; what the
+        run journals of it. An unmet item raises LabcalError unless whoever is there says to go on."""
 
     def display(self, total: int, done: int) -> AbstractContextManager[tuple[Display, Terminal]]:
         """The view of the run's progress while it measures (subscribed to the run's events), and the
@@ -291,11 +297,13 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
             return Estimated(plan, est)
         setup.metadata["estimated_rig_time_s"] = est.total_s  # run.json: the estimate beside the actual
         check_limits(setup.station, steps, settings.check_mount)  # first: homing moves a table too
+        run_dir = new_run_dir(args.out, plan)  # a bad --out is one line before the checklist
+        setup.metadata["checklist"] = front.checklist(bench, setup.station, plan.n_points,
+                                                      settings.settle.samples)  # before anything moves
         if bench is not None:
             prepare(bench, setup.station, front.say)
             setup.metadata["device_identity"] = bench.identities  # the manifest's metadata and run.json
         operator = front.operator()
-        run_dir = new_run_dir(args.out, plan)
         with Journal(db_path(args.db), durable=not args.sim) as journal:
             return run_and_finish(front, lambda events, terminal, forecast: calibrate(
                 plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, events,

@@ -101,6 +101,17 @@ def print_history(history: History) -> None:
         out.print(f"plot written to {history.plot}")
 
 
+def add_power_on_options(p: argparse.ArgumentParser) -> None:
+    """--powered-on and --warmed-up: what the technician says about the instrument's warm-up."""
+    group = p.add_mutually_exclusive_group()
+    group.add_argument("--powered-on", metavar="HH:MM",
+                       help="when the instrument was switched on (local time; YYYY-MM-DD HH:MM for another "
+                            "day): the checklist holds it to the station's [instrument] warm_up_min")
+    group.add_argument("--warmed-up", action="store_true",
+                       help="the instrument has warmed up (e.g. left on overnight): go on whatever the "
+                            "station's warm-up time (journaled with the run)")
+
+
 def add_db_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--db", metavar="PATH",
                    help="the lab's SQLite database (default: $LABCAL_DB, else the lab file's database; "

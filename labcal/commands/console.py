@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import argparse
+from collections.abc import Iterable
 from contextlib import ExitStack, contextmanager
+from datetime import datetime
+from typing import TYPE_CHECKING
 
 import numpy as np
 from rich import box
@@ -18,6 +22,11 @@ from rich.table import Table
 from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit
 from labcal.run.events import Discarded, Fault, PointMeasured, RunEvent, Status, Stopped
 from labcal.run.operator import QuietKeys, Terminal
+
+if TYPE_CHECKING:
+    from labcal.bench.checklist import Item, PowerOn
+    from labcal.bench.hardware import Bench
+    from labcal.run.station import Station
 
 
 def format_duration(seconds: float) -> str:
@@ -182,3 +191,79 @@ def device_tables(doc: dict) -> list[Table]:
         intrinsic.add_row(f"angle {pair} − 90° (″)", f"{v['deviation_from_90_arcsec']:+.2f}",
                           f"{v['u_arcsec']:.2g}")
     return [mis, coef, intrinsic]
+
+
+CHECK_MARKS = {"ok": "[green]ok[/]", "warning": "[yellow]warning[/]", "fail": "[bold red]FAIL[/]"}
+
+
+def print_checklist(console: Console, items: Iterable[Item]) -> None:
+    """The pre-run checklist (`labcal.bench.checklist`), one line per item."""
+    from rich.markup import escape
+
+    console.print("[bold]Pre-run checklist[/] (nothing moves):")
+    for item in items:
+        console.print(f"  {CHECK_MARKS[item.status]} {item.name}: {escape(item.why)}")
+
+
+def power_on_given(args: argparse.Namespace, now: datetime) -> PowerOn:
+    """What the command line says of the instrument's power (`labcal.bench.checklist.PowerOn`)."""
+    from labcal.bench.checklist import PowerOn, parse_power_on
+
+    at = None if args.powered_on is None else parse_power_on(args.powered_on, now)
+    return PowerOn(at, args.warmed_up)
+
+
+def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, points: int,
+               samples: int) -> dict:
+    """The pre-run checklist of `labcal run`, shown before anything moves. An unmet item stops the
+    run in one line (exit 2, nothing moved) unless the operator, asked at the terminal, says to go
+    on; with --yes or --answers nobody is asked. Where the station asks for a warm-up and the
+    command line did not say when the instrument was switched on, the operator at the terminal is
+    asked. Returns what the run journals of it (its metadata: run.json, the manifest)."""
+    from pathlib import Path
+
+    from labcal.bench.checklist import PowerOn, parse_power_on, run_checklist, unmet
+    from labcal.commands.common import err
+    from labcal.errors import LabcalError
+    from labcal.run.journal import db_path
+
+    now = datetime.now().astimezone()
+    power = power_on_given(args, now)
+    config = None if bench is None else bench.config
+    attended = not (args.yes or args.answers)
+    if attended and config is not None and config.instrument.warm_up_min and power == PowerOn():
+        while True:  # a typo is asked again; an empty answer (or none) leaves it unsaid
+            try:
+                text = err.input(f"The instrument needs {config.instrument.warm_up_min:g} min of warm-up: "
+                                 "when was it switched on? (HH:MM, 'warm' if it has warmed up): ").strip()
+            except EOFError:
+                text = ""
+            if text.lower() in ("", "warm"):
+                power = PowerOn(warmed_up=text.lower() == "warm")
+                break
+            try:
+                power = PowerOn(parse_power_on(text, now, "the answer"))
+                break
+            except LabcalError as exc:
+                err.print(f"[yellow]{exc}[/]")
+    items = run_checklist(config, bench, station, db=db_path(args.db), run_folder=Path(args.out or "runs"),
+                          points=points, samples=samples, power=power, now=now)
+    print_checklist(err, items)
+    record = {"items": [i.to_json() for i in items], "went_on_regardless": False,
+              "powered_on": None if power.at is None else power.at.isoformat(timespec="minutes"),
+              "warmed_up_stated": power.warmed_up}
+    failed = unmet(items)
+    if not failed:
+        return record
+    names = ", ".join(i.name for i in failed)
+    if attended:
+        try:
+            go_on = err.input(f"{len(failed)} item(s) not met ({names}). Go on anyway? (y/N) ")
+            go_on = go_on.strip().lower()
+        except EOFError:
+            go_on = ""
+        if go_on in ("y", "yes"):
+            return {**record, "went_on_regardless": True}
+    raise LabcalError(f"pre-run checklist: {failed[0].name}: {failed[0].why}"
+                      + (f" (and {len(failed) - 1} more item(s) not met)" if len(failed) > 1 else "")
+                      + "; nothing was moved")

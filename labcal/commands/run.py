@@ -13,6 +13,7 @@ from labcal.commands.common import (
     SEED,
     TIME_SCALE,
     add_db_option,
+    add_power_on_options,
     bounded,
     bounded_field,
     err,
@@ -38,6 +39,11 @@ class CommandLine:
 
     def operator(self):
         return make_operator(self.args)
+
+    def checklist(self, bench, station, points: int, samples: int) -> dict:
+        from labcal.commands.console import before_run
+
+        return before_run(self.args, bench, station, points, samples)
 
     @contextmanager
     def display(self, total: int, done: int):
@@ -233,6 +239,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--operator", help="who runs the calibration (kept in the journal)")
     p.add_argument("--dry-run", action="store_true",
                    help="print the estimated duration of the plan on this station; move nothing")
+    add_power_on_options(p)
     _common(p)
     p.set_defaults(func=cmd_run)
 

@@ -5,7 +5,15 @@ from __future__ import annotations
 import argparse
 from contextlib import ExitStack
 
-from labcal.commands.common import TIME_SCALE, TIME_SCALE_HELP, err, out, print_json
+from labcal.commands.common import (
+    TIME_SCALE,
+    TIME_SCALE_HELP,
+    add_db_option,
+    add_power_on_options,
+    err,
+    out,
+    print_json,
+)
 from labcal.errors import LabcalError
 
 
@@ -40,24 +48,36 @@ def _row(report: dict) -> tuple[str, str, str]:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from datetime import date
+    from datetime import datetime
+    from pathlib import Path
 
     from rich.markup import escape
     from rich.table import Table
 
+    from labcal.bench.checklist import run_checklist, unmet
     from labcal.bench.setup import bench_for_check
+    from labcal.commands.console import power_on_given, print_checklist
+    from labcal.config.plans import load_plan
     from labcal.config.station import load_station
     from labcal.config.uncertainty import overdue_standards
+    from labcal.run.journal import db_path
 
     config, _ = load_station(args.station)
-    today = date.today()
+    now = datetime.now().astimezone()
+    power = power_on_given(args, now)  # a mistake here is one line before any device is opened
+    plan, _ = load_plan(args.plan)
+    today = now.date()
     overdue = [(t, line) for t in config.traceability for line in overdue_standards([t], today, today=True)]
     with ExitStack() as stack:
         bench = bench_for_check(config, stack, emulate=args.emulate, time_scale=args.time_scale)
         reports = bench.check(reset_alarms=args.reset_alarms)
+        items = run_checklist(config, bench, None, db=db_path(args.db), run_folder=Path(args.out or "runs"),
+                              points=plan.n_points, samples=config.sequencer.settle.samples, power=power,
+                              now=now, unsaid="warning")
     failed = [r for r in reports if r["problem"]]
     if args.json:
-        print_json({"station": config.description or args.station, "ok": not failed, "devices": reports,
+        print_json({"station": config.description or args.station, "ok": not failed and not unmet(items),
+                    "devices": reports, "checklist": [i.to_json() for i in items],
                     "overdue_standards": [{"equipment": t.equipment, "identity": t.identity,
                                            "certificate": t.certificate, "due": t.due.isoformat(),
                                            "message": line} for t, line in overdue]})
@@ -70,11 +90,15 @@ def cmd_check(args: argparse.Namespace) -> int:
         out.print(table)
         for report in failed:
             err.print(f"[bold red]problem:[/] {report['problem']}")
+        print_checklist(err, items)
     for _, line in overdue:  # a warning, not a failure: the devices answer; a certificate will say it too
         err.print(f"[bold yellow]warning:[/] {escape(line)}")
     if failed:
         raise LabcalError(f"{len(failed)} of {len(reports)} devices failed the check "
                           f"({', '.join(r['device'] for r in failed)}); see the lines above")
+    if unmet(items):
+        raise LabcalError(f"pre-run checklist: {', '.join(i.name for i in unmet(items))} not met; see the "
+                          "lines above (a run would be refused)")
     if not args.json:
         err.print("every device answers; nothing was moved")
     return 0
@@ -99,5 +123,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     chk.add_argument("--reset-alarms", action="store_true",
                      help="reset a table drive's alarm (Oriental Motor AZ) once its cause is cleared, "
                           "and release its STOP input if a stop left it on")
+    chk.add_argument("--plan", default="four-mount-64",
+                     help="the plan a run would follow, for the free-disk estimate (default %(default)s)")
+    chk.add_argument("--out", metavar="DIR", help="where the run's folder would go (default runs/)")
+    add_power_on_options(chk)
+    add_db_option(chk)
     chk.add_argument("--json", action="store_true", help="print the reports as JSON on stdout")
     chk.set_defaults(func=cmd_check)

@@ -216,6 +216,11 @@ _UNIT_SPELLINGS = {"v": "V", "volt": "V", "volts": "V", "mv": "mV", "millivolt":
 _UNITS_COMMENT = re.compile(r"^\s*#\s*units\s*[=:]\s*(.*?)\s*$", re.IGNORECASE)
 
 
+def coefficient_units(units: str) -> str:
+    """The fit JSON's ``layout.units`` for outputs in ``units``: B in them, S in them per g."""
+    return f"{units} (bias), {units}/g (sensitivity)"
+
+
 def unit_named(text: str, where: str) -> str:
     """One of UNITS from how a person writes it ("mV", "millivolts", "m/s^2"); one line otherwise."""
     unit = _UNIT_SPELLINGS.get(text.strip().strip("\"'").lower())

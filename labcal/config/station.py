@@ -238,6 +238,33 @@ class DmmSettings(LinkSettings):
 AxisConfig = Annotated[AzSettings | Smc100Settings, Field(discriminator="driver")]
 
 
+class InstrumentSettings(BaseModel):
+    """The instrument under calibration, as far as a run needs to know it: the unit its outputs are
+    read in (a run's fit, fit.json and certificate state B in it and S per g in it; only volts are
+    held to a DMM's range) and how long it must be powered before it is calibrated (the pre-run
+    checklist asks when it was switched on)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    units: Literal["V", "mV", "counts", "m/s2"] = Field(
+        default="V", description="the outputs' unit: V, mV, counts or m/s2 (as `labcal fit --units`)")
+    warm_up_min: float | None = Field(default=None, gt=0, le=7 * 24 * 60, description=(
+        "minutes the instrument must be powered before a run (its data sheet's warm-up time)"))
+
+    @field_validator("units", mode="before")
+    @classmethod
+    def _spelled(cls, value: object) -> object:
+        """"millivolts", "m/s^2", "LSB": spelled as a readings file's ``# units =`` line may be."""
+        from labcal.config.readings_csv import UNITS, unit_named
+
+        if not isinstance(value, str):
+            return value
+        try:
+            return unit_named(value, "units")
+        except LabcalError:
+            raise ValueError(f"{value!r} is not one of {', '.join(UNITS)}") from None
+
+
 class StationFile(BaseModel):
     """A rig: the two tables, the DMM, how long to settle, and how to emulate it."""
 
@@ -247,6 +274,8 @@ class StationFile(BaseModel):
     pitch: AxisConfig
     roll: AxisConfig
     dmm: DmmSettings
+    instrument: InstrumentSettings = Field(default_factory=InstrumentSettings, description="the instrument "
+                                           "under calibration: its output units and warm-up time")
     sequencer: SequencerSettings = Field(default_factory=SequencerSettings, description="read by `labcal "
                                          "run`: the sequencer's settings on this station (timeouts)")
     emulation: EmulationSettings = Field(default_factory=EmulationSettings, description="read by `labcal "
@@ -351,6 +380,7 @@ class CertificateSection(BaseModel):
     uncertainty: UncertaintyInputs = Field(default_factory=UncertaintyInputs)
     traceability: list[Traceability] = Field(default_factory=list)
     dmm: DmmRange = Field(default_factory=DmmRange)
+    instrument: InstrumentSettings = Field(default_factory=InstrumentSettings)
 
 
 def load_certificate_settings(path: str | Path) -> CertificateSettings:
@@ -417,3 +447,12 @@ def stated_angle_errors(station_text: str) -> AngleErrors | None:
     else:
         return None
     return errors if errors else None
+
+
+def output_units(station_text: str) -> str:
+    """The unit a run's outputs were read in, from its journaled station: a station file's
+    ``[instrument] units``; volts for the simulated rig and for runs journaled before the key."""
+    doc = journaled_snapshot(station_text)
+    if doc is None or doc.get("kind") != "station":
+        return "V"
+    return validate_model(doc["station"], CertificateSection, "the run's station").instrument.units

@@ -467,6 +467,12 @@ class Certificate(Strict):
     digest: Digest
 
     @property
+    def output_unit(self) -> str:
+        """The instrument's output unit (V, mV, counts, m/s2) as the fit's layout states it ("counts
+        (bias), counts/g (sensitivity)"); volts in certificates issued before it could be another."""
+        return str(self.fit.layout.get("units", "V")).split(" (bias)")[0]
+
+    @property
     def number(self) -> str:
         """The certificate number with its revision, as printed (ISO/IEC 17025 §7.8.2.1 c)."""
         return f"{self.certificate_id} rev. {self.revision or 1}"

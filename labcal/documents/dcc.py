@@ -39,20 +39,41 @@ DCC_FILE = "certificate.dcc.xml"
 # D-SI has no unit g. Gravity is normalised to 1 g in the fit, so S is in volts per g; the DCC states
 # it per m s⁻² through the standard acceleration of gravity g_n = 9.80665 m s⁻² (exact, by convention:
 # 3rd CGPM, 1901), a documented quotient: S_SI = S / g_n, U and covariance scaled alike. The bias row
-# stays in volts.
+# stays in the instrument's output unit (volts unless its station says otherwise).
 STANDARD_GRAVITY = 9.80665
 PER_UNIT = np.array([1.0, 1 / STANDARD_GRAVITY, 1 / STANDARD_GRAVITY, 1 / STANDARD_GRAVITY])
-SENSITIVITY_UNIT = "\\volt\\metre\\tothe{-1}\\second\\tothe{2}"  # V/(m s⁻²)
-UNIT = ("\\volt", SENSITIVITY_UNIT, SENSITIVITY_UNIT, SENSITIVITY_UNIT)
-# covariance of (bias, bias), (bias, sensitivity), (sensitivity, sensitivity)
-COVARIANCE_UNIT = ("\\volt\\tothe{2}", "\\volt\\tothe{2}\\metre\\tothe{-1}\\second\\tothe{2}",
-                   "\\volt\\tothe{2}\\metre\\tothe{-2}\\second\\tothe{4}")
-SENSITIVITY_STATEMENT = (
-    "Sensitivities are fitted against gravity normalised to 1 g (the local gravity at the calibration, "
-    "whose value cancels in attitude) and are stated in V/(m s⁻²) as S/g_n with the standard acceleration "
-    f"of gravity g_n = {STANDARD_GRAVITY!r} m s⁻² (3rd CGPM, 1901): multiply by g_n for volts per g. They "
-    "are the response to the direction of gravity, not a calibration of the response to an acceleration "
-    "of a given magnitude in m s⁻².")
+# D-SI spellings per output unit (the station's [instrument] units): the bias, the sensitivity per
+# m s⁻², and the covariances of (bias, bias), (bias, sensitivity), (sensitivity, sensitivity).
+# Counts are dimensionless (\\one); m/s² per m s⁻² is too.
+DSI_UNITS: dict[str, tuple[str, tuple[str, str, str, str], tuple[str, str, str]]] = {
+    "V": ("V", ("\\volt",) + ("\\volt\\metre\\tothe{-1}\\second\\tothe{2}",) * 3,
+          ("\\volt\\tothe{2}", "\\volt\\tothe{2}\\metre\\tothe{-1}\\second\\tothe{2}",
+           "\\volt\\tothe{2}\\metre\\tothe{-2}\\second\\tothe{4}")),
+    "mV": ("mV", ("\\milli\\volt",) + ("\\milli\\volt\\metre\\tothe{-1}\\second\\tothe{2}",) * 3,
+           ("\\milli\\volt\\tothe{2}", "\\milli\\volt\\tothe{2}\\metre\\tothe{-1}\\second\\tothe{2}",
+            "\\milli\\volt\\tothe{2}\\metre\\tothe{-2}\\second\\tothe{4}")),
+    "counts": ("counts", ("\\one",) + ("\\metre\\tothe{-1}\\second\\tothe{2}",) * 3,
+               ("\\one", "\\metre\\tothe{-1}\\second\\tothe{2}", "\\metre\\tothe{-2}\\second\\tothe{4}")),
+    "m/s2": ("m s⁻²", ("\\metre\\second\\tothe{-2}",) + ("\\one",) * 3,
+             ("\\metre\\tothe{2}\\second\\tothe{-4}", "\\metre\\second\\tothe{-2}", "\\one")),
+}
+UNIT = DSI_UNITS["V"][1]
+COVARIANCE_UNIT = DSI_UNITS["V"][2]
+
+
+def sensitivity_statement(unit: str = "V") -> str:
+    """How the sensitivities are stated, in the instrument's output ``unit`` (V: volts)."""
+    spoken = DSI_UNITS[unit][0]
+    per_g = "volts" if unit == "V" else spoken
+    return ("Sensitivities are fitted against gravity normalised to 1 g (the local gravity at the "
+            "calibration, whose value cancels in attitude) and are stated in "
+            f"{spoken}/(m s⁻²) as S/g_n with the standard acceleration of gravity g_n = "
+            f"{STANDARD_GRAVITY!r} m s⁻² (3rd CGPM, 1901): multiply by g_n for {per_g} per g. They are the "
+            "response to the direction of gravity, not a calibration of the response to an acceleration of "
+            "a given magnitude in m s⁻².")
+
+
+SENSITIVITY_STATEMENT = sensitivity_statement()
 SIMULATED_REF_TYPE = "labcal_simulatedData"  # dcc:statement/@refType of a dry run's notice
 UNKNOWN_COUNTRY = "ZZ"  # ISO 3166 user-assigned: the lab file states no country_code
 ET.register_namespace("dcc", DCC)
@@ -140,7 +161,7 @@ def _administrative(root: ET.Element, cert: Certificate) -> None:
             _text(_d(statements, "statement"), "declaration", text)
     unit = _d(statements, "statement")
     unit.set("refType", "labcal_sensitivityUnit")
-    _text(unit, "declaration", SENSITIVITY_STATEMENT)
+    _text(unit, "declaration", sensitivity_statement(cert.output_unit))
 
 
 def _results(root: ET.Element, cert: Certificate) -> None:
@@ -153,17 +174,18 @@ def _results(root: ET.Element, cert: Certificate) -> None:
     results = _d(result, "results")
     X, U = cert.coefficients, cert.U
     k = cert.expanded_uncertainty.k
+    spoken, units, covariance_units = DSI_UNITS[cert.output_unit]
     for j, sensor in enumerate(SENSORS):
         entry = _d(results, "result")
-        _text(entry, "name", f"sensor {sensor}: bias (V) and sensitivity to the acceleration components "
-                             "a_x, a_y, a_z (V per m s⁻², fitted per g and stated per standard gravity g_n = "
-                             f"{STANDARD_GRAVITY!r} m s⁻²)")
+        _text(entry, "name", f"sensor {sensor}: bias ({spoken}) and sensitivity to the acceleration "
+                             f"components a_x, a_y, a_z ({spoken} per m s⁻², fitted per g and stated per "
+                             f"standard gravity g_n = {STANDARD_GRAVITY!r} m s⁻²)")
         values = _s(_s(_d(_d(entry, "data"), "quantity"), "list"), "realList")
         for i, row in enumerate(ROW_NAMES):
             real = _s(values, "real")
             _s(real, "label", f"{row}_{sensor}")
             _s(real, "value", _number(X[i, j] * PER_UNIT[i]))
-            _s(real, "unit", UNIT[i])
+            _s(real, "unit", units[i])
             _expanded(real, U[i, j] * PER_UNIT[i], k[j])
         # the complete covariance (Type A and B) that U above comes from, not the fit's Type A alone
         idx = np.arange(4) * 3 + j
@@ -175,7 +197,7 @@ def _results(root: ET.Element, cert: Certificate) -> None:
             for r, value in enumerate(column):
                 cov = _s(col, "covariance")
                 _s(cov, "value", _number(value))
-                _s(cov, "unit", COVARIANCE_UNIT[min(r, 1) + min(c, 1)])
+                _s(cov, "unit", covariance_units[min(r, 1) + min(c, 1)])
         _s(region, "coverageFactor", _number(k[j]))
         _s(region, "coverageProbability", "0.95")
     for total in cert.uncertainty_budget.totals if cert.uncertainty_budget else []:

@@ -32,6 +32,7 @@ from labcal.analysis.kinematics import gravity
 from labcal.analysis.models import BASE_NAMES
 from labcal.config.json_values import json_safe
 from labcal.config.lab import certificate_settings
+from labcal.config.readings_csv import coefficient_units
 from labcal.config.settings import CertificateSettings
 from labcal.config.station import CertificateSection, load_certificate_settings
 from labcal.config.uncertainty import overdue_standards
@@ -362,6 +363,8 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
     if not calibrated:
         raise LabcalError(f"{run_dir}: run.json has no started_utc; the calibration date is unknown")
     fit_doc = json_safe(fit.to_json() if device is None else _device_fit_doc(device, fit))
+    if record.readings.units != "V":  # the instrument's output units (its station's [instrument] units)
+        fit_doc["layout"] = {**fit_doc["layout"], "units": coefficient_units(record.readings.units)}
     seed = int(record.readings_sha256[:8], 16)  # the same run gives the same Monte Carlo draws
     uncertainty = budget(record, fit, inputs or TypeBInputs(), settings, monte_carlo, seed, device)
     X = fit.coefficients if device is None else device.coefficients

@@ -121,9 +121,11 @@ def coefficients_with_expanded_uncertainty(cert: Certificate) -> Table:
     `labcal.commands.console.coefficients_with_standard_errors`, states ± one standard error)."""
     X, U = cert.coefficients, cert.U
     e = cert.expanded_uncertainty
+    output = cert.output_unit
+    units = UNITS if output == "V" else (output, *[f"{output}/g"] * 3)
     rows = [[f"{name} ({unit})", *(format_result(X[i, j], U[i, j]) for j in range(3))]
-            for i, (name, unit) in enumerate(zip(ROW_NAMES, UNITS, strict=True))]
-    rows.append(["S_E (V)", *(format_uncertainty(s) for s in cert.fit.residual_standard_error)])
+            for i, (name, unit) in enumerate(zip(ROW_NAMES, units, strict=True))]
+    rows.append([f"S_E ({output})", *(format_uncertainty(s) for s in cert.fit.residual_standard_error)])
     rows.append(["k", *(f"{k:.2f}" for k in e.k)])
     rows.append(["ν_eff", *(str(n) for n in e.nu_eff)])
     rows.append(["basis of u", *cert.fit.uncertainty_basis])

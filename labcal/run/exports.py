@@ -15,15 +15,15 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from labcal.analysis.device_fit import DeviceFit, preferred_fit
 from labcal.analysis.fit import Fit, fit_readings
 from labcal.config.files import write_atomic
 from labcal.config.json_values import json_safe
-from labcal.config.readings_csv import ReadingsWriter
-from labcal.config.station import stated_angle_errors
+from labcal.config.readings_csv import ReadingsWriter, coefficient_units
+from labcal.config.station import output_units, stated_angle_errors
 from labcal.errors import LabcalError
 from labcal.run.journal import Journal, RunRow
 from labcal.run.rundir import FIT, PLAN, READINGS, RUN, identity
@@ -55,10 +55,12 @@ def derive(journal: Journal, row: RunRow, status: str | None = None, reason: str
         writer.append(replicate=p.replicate, y_deg=p.y_deg, u_deg=p.u_deg, pitch_deg=p.pitch_deg,
                       roll_deg=p.roll_deg, volts=[p.vx, p.vy, p.vz], temp_c=p.temp_c,
                       sd=[p.sd_vx, p.sd_vy, p.sd_vz], n_samples=p.n_samples, time_s=p.t_end)
-    files = {PLAN: row.plan_text.encode("utf-8"), READINGS: writer.text().encode("utf-8")}
+    units = output_units(row.station_text)  # the station's [instrument] units; volts unless it says
+    stated = "" if units == "V" else f"# units = {units}\n"  # `labcal fit` reads it; volts: as before
+    files = {PLAN: row.plan_text.encode("utf-8"), READINGS: (stated + writer.text()).encode("utf-8")}
     fit, device, note = None, None, ""
     if points:
-        readings = journal.readings(row.id)
+        readings = replace(journal.readings(row.id), units=units)
         try:
             fit = fit_readings(readings)
         except LabcalError:
@@ -69,6 +71,9 @@ def derive(journal: Journal, row: RunRow, status: str | None = None, reason: str
         device, note = preferred_fit(readings, fit, stated_angle_errors(row.station_text))
         doc = fit.to_json() if device is None else device.to_json()
         doc["notes"] = [note, *doc.get("notes", [])]
+        if units != "V":  # as `labcal fit --units` states it: B in these, S in these per g
+            doc["units"] = units
+            doc["layout"] = {**doc["layout"], "units": coefficient_units(units)}
         files[FIT] = _json(doc)
     status = status or row.status
     info = {"labcal_version": row.software_version, "journal": str(journal.path.resolve()),

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from labcal.analysis.device_fit import DeviceFit
@@ -17,6 +17,7 @@ from labcal.analysis.fit import Fit
 from labcal.analysis.plan import Plan
 from labcal.analysis.readings import Readings
 from labcal.config.plans import parse_plan
+from labcal.config.station import output_units
 from labcal.errors import LabcalError
 from labcal.run import exports
 from labcal.run.lock import held_by
@@ -83,7 +84,7 @@ def load_run(run_dir: str | Path) -> RunRecord:
         notes, derived = exports.check(journal, row, run_dir)
         info = read_run_json(run_dir)
         points = journal.points(row.id, status="ok")
-        readings = journal.readings(row.id)
+        readings = replace(journal.readings(row.id), units=output_units(row.station_text))
         events = tuple(journal.events(row.id))
     plan = parse_plan(row.plan_text, f"run {row.id} plan")
     meta = {**info, **row.metadata, "status": row.status, "reason": row.reason,
