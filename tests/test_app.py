@@ -242,8 +242,9 @@ class Front:
 
         from labcal.bench.checklist import PowerOn, run_checklist, unmet
 
+        now = datetime.now().astimezone()
         items = run_checklist(None, bench, station, db=self.tmp_path / "lab.sqlite", run_folder=self.tmp_path,
-                              points=points, samples=samples, power=PowerOn(), now=datetime.now().astimezone())
+                              points=points, samples=samples, power=PowerOn(), now=now)
         assert not unmet(items), unmet(items)
         return {"items": [item.to_json() for item in items]}
 

@@ -470,7 +470,7 @@ class Certificate(Strict):
     def output_unit(self) -> str:
         """The instrument's output unit (V, mV, counts, m/s2) as the fit's layout states it ("counts
         (bias), counts/g (sensitivity)"); volts in certificates issued before it could be another."""
-        return str(self.fit.layout.get("units", "V")).split(" (bias)")[0]
+        return self.fit.layout.units.split(" (bias)")[0]
 
     @property
     def number(self) -> str:
