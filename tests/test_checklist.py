@@ -309,6 +309,13 @@ def test_station_units_reach_fit_json_and_the_certificate(tmp_path, capsys, no_l
     assert fit["units"] == "counts" and fit["layout"]["units"] == "counts (bias), counts/g (sensitivity)"
     cert = json.loads((run / "certificate.json").read_text())
     assert cert["fit"]["layout"]["units"] == "counts (bias), counts/g (sensitivity)"
+    # the budget: nothing in volts (the DMM's range and noise terms are volts, and counts are not
+    # read through its range); the residual row in counts; the note says why
+    budget = cert["uncertainty_budget"]
+    assert budget["inputs"]["output_unit"] == "counts" and budget["inputs"]["dmm_range_v"] == 0
+    assert "not volts" in budget["inputs"]["dmm_conditions"]
+    units = {row["source"]: row["unit"] for row in budget["rows"]}
+    assert "V" not in units.values() and "counts" in units.values(), units
     html = re.sub(r"data:[^\"')]*", "", (run / "report.html").read_text())  # figures' base64 bytes aside
     assert "B (counts)" in html and "counts/g" in html and "V/g" not in html
     dcc = (run / "certificate.dcc.xml").read_text(encoding="utf-8")

@@ -71,6 +71,9 @@ class TypeBInputs:
     dmm_range_v: float = 0.0  # volts: % of range × range (34970A 1 year, 10 V range: 5e-6 × 10 V)
     dmm_noise_v: float = 0.0  # rms of one averaged reading; shown, already in the fit's Type A
     dmm_conditions: str = ""  # the range and integration time the accuracy applies to, as stated
+    # The unit the readings are in (V, mV, counts, m/s2): the residual variance and the reader's
+    # absolute terms (dmm_range_v, dmm_noise_v, given in that unit) are stated in it.
+    output_unit: str = "V"
     # Inputs whose error is one and the same in the three channels ("dmm_reading", "dmm_range"): a
     # scanning DMM reads them through one ADC. A common gain scales X as a whole and largely cancels
     # in the attitude (a direction); declared independent it would be counted three times over.
@@ -233,7 +236,7 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
                        note="residual standard error, or the lack-of-fit mean square where replication "
                             "shows bias (Tripp & Tcheng §8)"))
     rows.append(Source("one new reading (instrument repeatability)", "A", "t",
-                       float(np.sqrt(cal.reading_var.max())), "V", tuple(
+                       float(np.sqrt(cal.reading_var.max())), b.output_unit, tuple(
                            Component(np.zeros((12, 1)), np.eye(3)[:, [j]] * np.sqrt(cal.reading_var[j]), 1.0,
                                      float(cal.dof[j]), "t", f"residual variance {'xyz'[j]}")
                            for j in range(3))))
@@ -243,7 +246,8 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
     offset[0] = 1.0
     for name, label, half, unit, effect in (("dmm_reading", "DMM accuracy, % of reading", b.dmm_reading,
                                              "relative", X),
-                                            ("dmm_range", "DMM accuracy, % of range", b.dmm_range_v, "V",
+                                            ("dmm_range", "DMM accuracy, % of range", b.dmm_range_v,
+                                             b.output_unit,
                                              offset)):
         common = name in b.common
         jac = np.zeros((4, 3, 1 if common else 3))
@@ -258,7 +262,7 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
         noise = np.zeros((4, 3, len(cal.installation), 3))
         for j in range(3):
             noise[:, j, :, j] = cal.projection
-        rows.append(Source("DMM noise", "B", "normal", b.dmm_noise_v, "V",
+        rows.append(Source("DMM noise", "B", "normal", b.dmm_noise_v, b.output_unit,
                            (_b(noise.reshape(12, -1), b.dmm_noise_v, "normal"),), added=False,
                            note="included in the fit's Type A (the residuals contain it); not added again"))
     pitch_shapes = angle_error_shapes(np.radians(cal.points.pitch_deg))

@@ -200,6 +200,7 @@ class BudgetInputs(Recorded):
     dmm_range_v: float
     dmm_noise_v: float | None = None  # absent: issued before the DMM's noise was shown
     dmm_conditions: str | None = None
+    output_unit: str | None = None  # the readings' unit where not volts (absent: volts)
     common: list[str] | None = None
     pitch_index: float
     pitch_wobble: float

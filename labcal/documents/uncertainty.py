@@ -81,11 +81,20 @@ def type_b_inputs(section: CertificateSection, record: RunRecord, device: Device
         name: float(u) for name, u in zip(MISALIGNMENT_NAMES, noise_u, strict=True)}
     u = section.uncertainty
     t = record.readings.temp_c
+    unit = record.readings.units
+    conditions = (f"{section.dmm.range_v:g} V range at {section.dmm.nplc:g} PLC"
+                  + (" (the 34970A's published accuracy assumes ≥ 1 PLC: add its reading-speed error to "
+                     "dmm_range)" if section.dmm.nplc < 1 else ""))
+    # The DMM's absolute terms are volts: stated in the readings' unit where they are volts or millivolts;
+    # an instrument whose output is not a voltage (counts, m/s²) is not read through the DMM's range, so
+    # only its relative term (% of reading, for whatever reads it) is kept, and the budget says so.
+    volts = {"V": 1.0, "mV": 1e3}.get(unit)
+    if volts is None:
+        conditions = (f"the outputs are in {unit}, not volts: the DMM's range and noise terms do not apply; "
+                      "the reader's own accuracy is the % of reading stated for it")
     return TypeBInputs(
-        dmm_reading=u.dmm_reading, dmm_range_v=u.dmm_range * section.dmm.range_v, dmm_noise_v=u.dmm_noise,
-        dmm_conditions=f"{section.dmm.range_v:g} V range at {section.dmm.nplc:g} PLC"
-        + (" (the 34970A's published accuracy assumes ≥ 1 PLC: add its reading-speed error to dmm_range)"
-           if section.dmm.nplc < 1 else ""),
+        dmm_reading=u.dmm_reading, dmm_range_v=u.dmm_range * section.dmm.range_v * (volts or 0.0),
+        dmm_noise_v=u.dmm_noise * (volts or 0.0), dmm_conditions=conditions, output_unit=unit,
         pitch_index=u.pitch_index, pitch_wobble=u.pitch_wobble, roll_index=u.roll_index,
         roll_wobble=u.roll_wobble, mount_repeatability=u.mount_repeatability,
         common=section.dmm.common_inputs(u.common),
@@ -209,7 +218,8 @@ def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: Certifica
     coef = coefficient_budget(rows)
     totals = _totals(p)
     checks = _monte_carlo(cal, rows, p, trials, seed) if trials > 0 else None
-    doc = {k: (dict(v) if isinstance(v, dict) else v) for k, v in vars(inputs).items()}
+    doc = {k: (dict(v) if isinstance(v, dict) else v) for k, v in vars(inputs).items()
+           if not (k == "output_unit" and v == "V")}  # volts: as certificates always said it
     return UncertaintyBudget(
         method=METHOD, inputs=BudgetInputs.model_validate(doc), rows=_rows(rows, p), totals=totals,
         coefficients=CoefficientBudgetRecord(
