@@ -120,7 +120,9 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_BROKEN_PIPE
     except LabcalError as exc:
-        err.print(f"[bold red]labcal: error:[/] {exc}")
+        from rich.markup import escape
+
+        err.print(f"[bold red]labcal: error:[/] {escape(str(exc))}")  # "pip install 'labcal[lab]'" as written
         return EXIT_USER_ERROR
     except KeyboardInterrupt as exc:
         err.print("[bold red]interrupted[/]")

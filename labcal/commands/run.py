@@ -248,7 +248,9 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def _note(line: str) -> None:
-    err.print(f"[yellow]note:[/] {line}")
+    from rich.markup import escape
+
+    err.print(f"[yellow]note:[/] {escape(line)}")
 
 
 def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Path | None,

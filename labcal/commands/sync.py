@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 
 from labcal.commands.common import add_db_option, out, print_json
-from labcal.errors import LabcalError
 
 
 def cmd_sync(args: argparse.Namespace) -> int:
@@ -20,10 +19,11 @@ def cmd_sync(args: argparse.Namespace) -> int:
         out.print(f"{where}: the lab database is this SQLite file itself; nothing to send")
         return 0
     journal = db_path(args.db)
-    if not journal.exists():
-        raise LabcalError(f"{journal}: no journal on this station (set $LABCAL_JOURNAL or the lab file's "
-                          "journal if it is elsewhere); nothing to send")
     labdb.open_server(where).dispose()  # reachable, at this labcal's schema (created if empty)
+    if not journal.exists():
+        out.print(f"{journal}: no journal on this station yet (it is $LABCAL_JOURNAL, else the lab file's "
+                  "journal); nothing to send")
+        return 0
     sender = Sender(journal, where)
     try:
         sent = sender.push()
