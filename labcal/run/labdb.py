@@ -100,8 +100,9 @@ class Revision:
     def __str__(self) -> str:
         if self.revision is None:
             return "empty"
-        return f"{self.revision} (user_version {int(self.revision)}, before Alembic)" if self.legacy \
-            else self.revision
+        if self.legacy and self.revision.isdigit():
+            return f"{self.revision} (user_version {int(self.revision)}, before Alembic)"
+        return self.revision
 
 
 def backup_path(path: Path, revision: str) -> Path:
