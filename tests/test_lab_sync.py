@@ -97,8 +97,8 @@ def test_three_stations_at_once_reach_one_server_exactly_once(tmp_path, postgres
     total = assert_exactly_once(postgres_url, journals)
     assert total == len(stations) * MOUNTS * MOUNT_POINTS
     with psycopg.connect(postgres_url) as conn:
-        rows = conn.execute("SELECT r.station, r.status, r.points_total, count(p.seq) FROM runs r JOIN points p "
-                            "ON p.run_id = r.id GROUP BY r.id ORDER BY r.station").fetchall()
+        rows = conn.execute("SELECT r.station, r.status, r.points_total, count(p.seq) FROM runs r "
+                            "JOIN points p ON p.run_id = r.id GROUP BY r.id ORDER BY r.station").fetchall()
     every = MOUNTS * MOUNT_POINTS
     assert rows == [(name, "complete", every, every) for name in sorted(stations)]
 

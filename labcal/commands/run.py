@@ -194,7 +194,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if not args.dry_run:  # a lab database behind or ahead of this labcal: refused before anything moves
         from labcal.run.sync import ready
 
-        ready(args.db, _note)
+        ready(args.db)
     if args.replicates is not None:  # the journal keeps the plan that actually runs
         plan = Plan.model_validate({**plan.model_dump(), "replicates": args.replicates})
         plan_text = plan_toml(plan)

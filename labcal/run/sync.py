@@ -317,10 +317,11 @@ def _utc() -> str:
     return utc_now()
 
 
-def ready(db: str | Path | None, say: Callable[[str], None]) -> None:
+def ready(db: str | Path | None) -> None:
     """Before a run moves anything: the journal current (created if new), and a server that can be
     reached at this labcal's schema (created if empty). A server behind or ahead refuses the run
-    in one line; one that cannot be reached does not (the run never waits for it): said once."""
+    in one line; one that cannot be reached does not (the run never waits for it): the run's
+    sender says so, once."""
     from labcal.run.journal import db_path, lab_database
 
     labdb.connect(db_path(db)).close()
@@ -332,8 +333,6 @@ def ready(db: str | Path | None, say: Callable[[str], None]) -> None:
     except LabcalError as exc:
         if "cannot reach" not in str(exc):
             raise
-        say(f"{exc.args[0].split('; check')[0]}; the run goes on, its records are sent when it is back "
-            "(or with labcal sync)")
 
 
 @contextmanager
