@@ -11,7 +11,7 @@ from labcal.commands.common import add_db_option, out, print_json
 
 def cmd_db_upgrade(args: argparse.Namespace) -> int:
     from labcal.run import labdb
-    from labcal.run.journal import lab_database
+    from labcal.run.labdb import lab_database
 
     where = lab_database(args.db)
     done = labdb.upgrade(where)
@@ -31,7 +31,7 @@ def cmd_db_upgrade(args: argparse.Namespace) -> int:
 
 def cmd_db_status(args: argparse.Namespace) -> int:
     from labcal.run import labdb
-    from labcal.run.journal import lab_database
+    from labcal.run.labdb import lab_database
     from labcal.run.migrations import HEAD
 
     where = lab_database(args.db)

@@ -11,7 +11,8 @@ from labcal.commands.common import add_db_option, out, print_json
 def cmd_sync(args: argparse.Namespace) -> int:
     from labcal.config.lab import ServerDatabase
     from labcal.run import labdb
-    from labcal.run.journal import db_path, lab_database
+    from labcal.run.journal import db_path
+    from labcal.run.labdb import lab_database
     from labcal.run.sync import Sender, is_outage
 
     where = lab_database(args.db)

@@ -24,17 +24,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal.analysis.readings import Readings
-from labcal.config.lab import ServerDatabase, database_location, load_lab_config
+from labcal.config.lab import load_lab_config
 from labcal.errors import LabcalError
 from labcal.run import labdb
-
-
-def lab_database(option: str | Path | None = None) -> Path | ServerDatabase:
-    """The lab database: --db, else $LABCAL_DB, else the lab file's, else the user's data folder
-    (`labcal.config.lab.LabConfig.database`) — not a folder relative to where the command started."""
-    if option:
-        return database_location(str(option), "--db")
-    return load_lab_config().database()
+from labcal.run.labdb import lab_database
 
 
 def db_path(option: str | Path | None = None) -> Path:

@@ -35,12 +35,20 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from labcal.config.files import size_text
-from labcal.config.lab import DRIVER_HINT, ServerDatabase
+from labcal.config.lab import DRIVER_HINT, ServerDatabase, database_location, load_lab_config
 from labcal.errors import LabcalError
 from labcal.run.migrations import HEAD
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Connection, Engine
+
+def lab_database(option: str | Path | None = None) -> Path | ServerDatabase:
+    """The lab database: --db, else $LABCAL_DB, else the lab file's, else the user's data folder
+    (`labcal.config.lab.LabConfig.database`) — not a folder relative to where the command started."""
+    if option:
+        return database_location(str(option), "--db")
+    return load_lab_config().database()
+
 
 ALEMBIC_USER_VERSION = 6  # > 5: the labcal before Alembic refuses an Alembic-kept file as newer
 PG_LOCK = 0x6C616263  # "labc": the advisory lock that serialises creating and upgrading on a server
@@ -245,11 +253,11 @@ def _sqlite_engine(path: Path) -> Engine:
     engine = create_engine(f"sqlite:///{path}", poolclass=NullPool, connect_args={"timeout": 10.0})
 
     @event.listens_for(engine, "connect")
-    def _autocommit_driver(dbapi_connection, _record) -> None:  # type: ignore[no-untyped-def]
+    def _autocommit_driver(dbapi_connection: sqlite3.Connection, _record: object) -> None:
         dbapi_connection.isolation_level = None
 
     @event.listens_for(engine, "begin")
-    def _write_lock(connection) -> None:  # type: ignore[no-untyped-def]
+    def _write_lock(connection: Connection) -> None:
         connection.exec_driver_sql("BEGIN IMMEDIATE")
 
     return engine
@@ -406,8 +414,6 @@ def lab_engine(db: str | Path | None = None) -> Engine:
     folder) as a SQLAlchemy engine, for those who read it as a whole (the lab server): a new one is
     created at the newest revision; one behind or ahead is refused in one line (`LabcalError`); a
     server that cannot be reached too. The tables are `labcal.run.schema`'s."""
-    from labcal.run.journal import lab_database
-
     where = lab_database(db)
     if isinstance(where, Path):
         connect(where).close()  # created if new, refused if behind or ahead

@@ -322,7 +322,8 @@ def ready(db: str | Path | None) -> None:
     reached at this labcal's schema (created if empty). A server behind or ahead refuses the run
     in one line; one that cannot be reached does not (the run never waits for it): the run's
     sender says so, once."""
-    from labcal.run.journal import db_path, lab_database
+    from labcal.run.journal import db_path
+    from labcal.run.labdb import lab_database
 
     labdb.connect(db_path(db)).close()
     where = lab_database(db)
@@ -339,7 +340,7 @@ def ready(db: str | Path | None) -> None:
 def sending(db: str | Path | None, journal: Path, say: Callable[[str], None]) -> Iterator[Background | None]:
     """During a run: its records sent to the lab's server as they are written (nothing to do when the
     lab database is the journal itself, a SQLite file). At the end, what is left is said."""
-    from labcal.run.journal import lab_database
+    from labcal.run.labdb import lab_database
 
     where = lab_database(db)
     if isinstance(where, Path):
