@@ -281,3 +281,32 @@ def test_a_server_url_without_its_driver_says_what_to_install(tmp_path, lab_file
         done = subprocess.run([sys.executable, "-c", code, *command], env=env, capture_output=True, text=True,
                               timeout=60)
         one_line_refusal(done, "psycopg", "pip install 'labcal[lab]'")
+
+
+def test_a_sender_fills_an_empty_server_database_and_sends_nothing_twice(tmp_path, postgres_url, lab_file):
+    """A journal made with a SQLite lab database (the same schema) sent to an empty server database,
+    as a run's sender does when the server was away at the start: the schema is created first."""
+    from labcal.config.lab import ServerDatabase
+    from labcal.run.sync import Sender
+
+    journal = tmp_path / "lab.sqlite"
+    env = env_for(tmp_path, str(journal), "bench")
+    done = subprocess.run([LABCAL, "run", "--sim", "--yes", "--no-report", "--out", str(tmp_path / "run")],
+                          env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    with closing(sqlite3.connect(journal)) as db:
+        events = db.execute("SELECT count(*) FROM events").fetchone()[0]
+    sender = Sender(journal, ServerDatabase(postgres_url, "test"), station="bench")
+    try:
+        first = sender.push()
+        second = sender.push()
+    finally:
+        sender.close()
+    assert first.offered == {"runs": 1, "points": MOUNTS * MOUNT_POINTS, "events": events, "certificates": 0}
+    assert first.stored == first.offered
+    assert second.total == 0
+    assert assert_exactly_once(postgres_url, [journal]) == MOUNTS * MOUNT_POINTS
+    with psycopg.connect(postgres_url) as conn:
+        found = conn.execute("SELECT count(*), count(DISTINCT origin_id) FROM events").fetchone()
+        assert found == (events, events)
+        assert conn.execute("SELECT station, status FROM runs").fetchall() == [("bench", "complete")]

@@ -29,7 +29,7 @@ def cmd_sync(args: argparse.Namespace) -> int:
     try:
         sent = sender.push()
     except Exception as exc:
-        if is_outage(exc):
+        if is_outage(exc) and not isinstance(exc, labdb.Unreachable):
             raise labdb.unreachable(where, exc) from None
         raise
     finally:

@@ -328,10 +328,14 @@ def server_engine(server: ServerDatabase, connect_timeout_s: float = 5.0) -> Eng
                           f"not installed; {DRIVER_HINT}") from None
 
 
-def unreachable(server: ServerDatabase, exc: BaseException) -> LabcalError:
+class Unreachable(LabcalError):
+    """The lab's server cannot be reached (a run goes on without it; a command says so and exits 2)."""
+
+
+def unreachable(server: ServerDatabase, exc: BaseException) -> Unreachable:
     """One line for a server that cannot be reached or refuses us."""
     why = _first_line(getattr(exc, "orig", None) or exc)
-    return LabcalError(f"{server}: cannot reach the lab database ({why}); "
+    return Unreachable(f"{server}: cannot reach the lab database ({why}); "
                        "check that its server is running and reachable, then run the command again")
 
 

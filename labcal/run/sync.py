@@ -84,6 +84,7 @@ class Sender:
         self.station = station or load_lab_config().station()
         self.engine = engine or labdb.server_engine(server)
         self._totals: dict[int, int | None] = {}
+        self._schema_checked = False
 
     def close(self) -> None:
         self.engine.dispose()
@@ -125,6 +126,9 @@ class Sender:
     def push(self) -> Sent:
         """Send everything pending, in batches, each committed on the server before the journal's
         cursor moves. Raises the server's error (SQLAlchemy's) when it cannot be reached."""
+        if not self._schema_checked:  # an empty database created, one behind or ahead refused
+            labdb.open_server(self.server).dispose()
+            self._schema_checked = True
         sent = Sent()
         with closing(self._local()) as db:
             while True:
@@ -222,7 +226,8 @@ def is_outage(exc: BaseException) -> bool:
     """A server that cannot be reached (or went away mid-transaction): retried, not fatal."""
     from sqlalchemy.exc import DBAPIError, OperationalError
 
-    return isinstance(exc, OperationalError) or (isinstance(exc, DBAPIError) and exc.connection_invalidated)
+    return isinstance(exc, OperationalError | labdb.Unreachable) or (
+        isinstance(exc, DBAPIError) and exc.connection_invalidated)
 
 
 class Background:
@@ -331,9 +336,8 @@ def ready(db: str | Path | None) -> None:
         return
     try:
         labdb.open_server(where).dispose()
-    except LabcalError as exc:
-        if "cannot reach" not in str(exc):
-            raise
+    except labdb.Unreachable:
+        pass
 
 
 @contextmanager
