@@ -295,10 +295,11 @@ def cmd_resume(args: argparse.Namespace) -> int:
     from labcal.run.journal import sha256
     from labcal.run.runner import execute, open_for_resume
     from labcal.run.sequencer import check_limits, schedule
-    from labcal.run.sync import sending
+    from labcal.run.sync import check_server, sending
     from labcal.run.winding import left_at
 
     run_dir = Path(args.run)
+    check_server(args.db)  # a lab server behind or ahead of this labcal: refused before anything changes
     ctx = open_for_resume(run_dir)
     with ExitStack() as stack:
         stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too

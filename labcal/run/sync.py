@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING
 from labcal.config.lab import ServerDatabase, load_lab_config
 from labcal.errors import LabcalError
 from labcal.run import labdb, schema
+from labcal.run.labdb import lab_database
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Connection, Engine
@@ -285,10 +286,10 @@ class Background:
 
     def finish(self, within_s: float = FLUSH_S) -> dict[str, int]:
         """Stop the thread, send what can be sent within ``within_s``, and return what is left."""
+        deadline = time.monotonic() + within_s
         self._stop.set()
         self._wake.set()
-        self._thread.join(within_s)
-        deadline = time.monotonic() + within_s
+        self._thread.join(within_s)  # its last push, if one is under way (each connect: at most 5 s)
         while time.monotonic() < deadline:
             try:
                 if self._attempt():
@@ -328,9 +329,14 @@ def ready(db: str | Path | None) -> None:
     in one line; one that cannot be reached does not (the run never waits for it): the run's
     sender says so, once."""
     from labcal.run.journal import db_path
-    from labcal.run.labdb import lab_database
 
     labdb.connect(db_path(db)).close()
+    check_server(db)
+
+
+def check_server(db: str | Path | None) -> None:
+    """A lab server that can be reached is at this labcal's schema (created if empty; behind or
+    ahead: refused in one line); one that cannot be reached is not waited for."""
     where = lab_database(db)
     if isinstance(where, Path):
         return
@@ -344,8 +350,6 @@ def ready(db: str | Path | None) -> None:
 def sending(db: str | Path | None, journal: Path, say: Callable[[str], None]) -> Iterator[Background | None]:
     """During a run: its records sent to the lab's server as they are written (nothing to do when the
     lab database is the journal itself, a SQLite file). At the end, what is left is said."""
-    from labcal.run.labdb import lab_database
-
     where = lab_database(db)
     if isinstance(where, Path):
         yield None
