@@ -291,8 +291,9 @@ class Background:
         self._wake.set()
         self._thread.join(within_s)  # its last push, if one is under way (each connect: at most 5 s)
         while time.monotonic() < deadline:
+            was_down = self.down_since is not None
             try:
-                if self._attempt():
+                if self._attempt() or was_down:  # a server away for a while: one last try, no waiting
                     break
             except Exception:  # noqa: BLE001 - said below as what is left
                 break
