@@ -28,6 +28,7 @@ POINT_COLUMNS = ("seq", "replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", 
                  "sd_vy", "sd_vz", "temp_c", "settle_s", "settle_verdict", "samples")
 MOUNT_POINTS = 16  # four-mount-64 (the default plan): 4 mounts × 16 points = 64, one replicate
 MOUNTS = 4
+CERTIFICATE = "certificate_id, serial, calibrated_utc, issued_utc, sha256, document"
 
 
 def env_for(tmp_path: Path, url: str, station: str) -> dict[str, str]:
@@ -291,18 +292,20 @@ def test_a_sender_fills_an_empty_server_database_and_sends_nothing_twice(tmp_pat
 
     journal = tmp_path / "lab.sqlite"
     env = env_for(tmp_path, str(journal), "bench")
-    done = subprocess.run([LABCAL, "run", "--sim", "--yes", "--no-report", "--out", str(tmp_path / "run")],
+    done = subprocess.run([LABCAL, "run", "--sim", "--yes", "--out", str(tmp_path / "run")],
                           env=env, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     with closing(sqlite3.connect(journal)) as db:
         events = db.execute("SELECT count(*) FROM events").fetchone()[0]
+        certificate = db.execute(f"SELECT {CERTIFICATE} FROM certificates").fetchall()
+    assert len(certificate) == 1  # the run's, issued at its end
     sender = Sender(journal, ServerDatabase(postgres_url, "test"), station="bench")
     try:
         first = sender.push()
         second = sender.push()
     finally:
         sender.close()
-    assert first.offered == {"runs": 1, "points": MOUNTS * MOUNT_POINTS, "events": events, "certificates": 0}
+    assert first.offered == {"runs": 1, "points": MOUNTS * MOUNT_POINTS, "events": events, "certificates": 1}
     assert first.stored == first.offered
     assert second.total == 0
     assert assert_exactly_once(postgres_url, [journal]) == MOUNTS * MOUNT_POINTS
@@ -310,3 +313,4 @@ def test_a_sender_fills_an_empty_server_database_and_sends_nothing_twice(tmp_pat
         found = conn.execute("SELECT count(*), count(DISTINCT origin_id) FROM events").fetchone()
         assert found == (events, events)
         assert conn.execute("SELECT station, status FROM runs").fetchall() == [("bench", "complete")]
+        assert conn.execute(f"SELECT {CERTIFICATE} FROM certificates").fetchall() == certificate
