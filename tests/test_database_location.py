@@ -64,3 +64,12 @@ def test_with_a_server_the_station_journals_locally_where_labcal_journal_says(tm
         assert con.execute("SELECT count(*) FROM points").fetchone()[0] == 64  # four-mount-64
     assert main(["runs", "--json"]) == 0
     assert '"status": "complete"' in capsys.readouterr().out
+
+
+def test_a_server_url_is_printed_without_its_password(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("LABCAL_CONFIG", str(tmp_path / "lab.toml"))
+    (tmp_path / "lab.toml").write_text('database = "postgresql://lab:s3cret@db.example:5432/labcal"\n')
+    monkeypatch.delenv("LABCAL_DB", raising=False)
+    assert main(["config", "path", "--json"]) == 0
+    out = capsys.readouterr().out
+    assert "postgresql://lab:***@db.example:5432/labcal" in out and "s3cret" not in out
