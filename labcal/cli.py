@@ -12,6 +12,7 @@ from labcal.commands import (
     attitude,
     certificate,
     config,
+    db,
     device,
     export,
     fit,
@@ -23,6 +24,7 @@ from labcal.commands import (
     sim,
     simulate,
     station,
+    sync,
 )
 from labcal.commands.common import EXIT_INTERRUPTED, EXIT_USER_ERROR, err
 from labcal.commands.logfile import add_log_options, logging_to
@@ -35,7 +37,7 @@ from labcal.errors import LabcalError
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, runs, device, station, sim, export,
-                  config, certificate)
+                  config, certificate, db, sync)
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -118,7 +120,9 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_BROKEN_PIPE
     except LabcalError as exc:
-        err.print(f"[bold red]labcal: error:[/] {exc}")
+        from rich.markup import escape
+
+        err.print(f"[bold red]labcal: error:[/] {escape(str(exc))}")  # "pip install 'labcal[lab]'" as written
         return EXIT_USER_ERROR
     except KeyboardInterrupt as exc:
         err.print("[bold red]interrupted[/]")

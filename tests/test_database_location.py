@@ -1,5 +1,6 @@
-"""Where the lab database is (issue 24's interface, its SQLite part): a path or `sqlite:///PATH` in
---db, $LABCAL_DB or the lab file; any other `SCHEME://` is one line, never a folder named after it."""
+"""Where the lab database is (issue 24's interface): a path, `sqlite:///PATH` or
+`postgresql://USER@HOST:PORT/DBNAME` in --db, $LABCAL_DB or the lab file; any other `SCHEME://` is
+one line, never a folder named after it."""
 
 from __future__ import annotations
 
@@ -11,8 +12,8 @@ from labcal.cli import main
 
 
 @pytest.mark.parametrize("location, message", [
-    ("postgresql://lab@127.0.0.1:5432/labcal", "is a PostgreSQL server, which this labcal cannot use yet"),
-    ("postgresql+psycopg://lab@db/labcal", "is a PostgreSQL server"),
+    ("postgresql://lab@127.0.0.1:5432", "names no database; write postgresql://USER@HOST:PORT/DBNAME"),
+    ("postgresql+psycopg://lab@db/", "names no database"),
     ("mysql://lab@db/labcal", "unknown database scheme 'mysql'"),
     ("sqlite://", "names no file; write sqlite:///PATH"),
 ])
@@ -43,3 +44,32 @@ def test_sqlite_urls_name_the_file_as_sqlalchemy_reads_them(tmp_path, monkeypatc
         with sqlite3.connect(db) as con:
             assert con.execute("SELECT count(*) FROM runs").fetchone()[0] == 1
     capsys.readouterr()
+
+
+def test_with_a_server_the_station_journals_locally_where_labcal_journal_says(tmp_path, monkeypatch, capsys):
+    """Nothing listens at the URL: the run journals in $LABCAL_JOURNAL all the same (it never waits
+    for the server), says once that the server is unreachable, and `labcal runs` lists the journal."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    journal = tmp_path / "station" / "journal.sqlite"
+    monkeypatch.setenv("LABCAL_DB", f"postgresql://lab@127.0.0.1:{port}/labcal")
+    monkeypatch.setenv("LABCAL_JOURNAL", str(journal))
+    assert main(["run", "--sim", "--yes", "--no-report", "--out", str(tmp_path / "r")]) == 0
+    err = capsys.readouterr().err
+    assert err.count("unreachable") == 1 and "labcal sync" in err
+    with sqlite3.connect(journal) as con:
+        assert con.execute("SELECT count(*) FROM points").fetchone()[0] == 64  # four-mount-64
+    assert main(["runs", "--json"]) == 0
+    assert '"status": "complete"' in capsys.readouterr().out
+
+
+def test_a_server_url_is_printed_without_its_password(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("LABCAL_CONFIG", str(tmp_path / "lab.toml"))
+    (tmp_path / "lab.toml").write_text('database = "postgresql://lab:s3cret@db.example:5432/labcal"\n')
+    monkeypatch.delenv("LABCAL_DB", raising=False)
+    assert main(["config", "path", "--json"]) == 0
+    out = capsys.readouterr().out
+    assert "postgresql://lab:***@db.example:5432/labcal" in out and "s3cret" not in out

@@ -22,12 +22,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from legacy_schema import legacy_file
+from test_schema import shape
 
 import labcal as labcal_package
 from labcal.cli import main
 from labcal.documents.history import certificates_for, store
 from labcal.errors import LabcalError
-from labcal.run import labdb
+from labcal.run import labdb, migrations
 from labcal.run.journal import Journal, Manifest, PointRecord
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
@@ -88,7 +90,23 @@ def test_fixture_is_the_unversioned_schema():
     assert "events_by_run" not in names
 
 
-def test_previous_database_is_migrated_resumed_and_its_certificate_read(v0):
+HEAD = migrations.head()  # Alembic's own walk of the scripts, not the constant labcal checks on open
+
+
+def alembic_revision(path: Path) -> str | None:
+    with closing(raw(path)) as con:
+        if not con.execute("SELECT 1 FROM sqlite_master WHERE name='alembic_version'").fetchone():
+            return None
+        return con.execute("SELECT version_num FROM alembic_version").fetchone()[0]
+
+
+def upgrade(db: Path) -> subprocess.CompletedProcess:
+    done = labcal(db, "db", "upgrade")
+    assert done.returncode == 0, done.stderr
+    return done
+
+
+def test_previous_database_is_refused_then_upgraded_resumed_and_its_certificate_read(v0):
     db = v0 / "labcal.sqlite"
     old = dump(db)
     stopped_run = json.loads((v0 / "stopped" / "run.json").read_text())["run_id"]
@@ -97,13 +115,21 @@ def test_previous_database_is_migrated_resumed_and_its_certificate_read(v0):
     with closing(raw(db)) as con:
         (cert_id, digest), = con.execute("SELECT certificate_id, sha256 FROM certificates")
 
+    refused = labcal(db, "resume", str(v0 / "stopped"), "--yes", "--no-report")
+    assert refused.returncode == 2 and len(refused.stderr.strip().splitlines()) == 1
+    assert "older than this labcal" in refused.stderr and "labcal db upgrade" in refused.stderr
+    assert dump(db) == old and not list(v0.glob("*.bak"))  # opening never migrates
+
+    done = upgrade(db)
+    backup = v0 / "labcal.sqlite.v0000.bak"
+    assert "upgraded from schema 0000" in done.stdout and backup.name in done.stdout.replace("\n", "")
+    assert alembic_revision(db) == HEAD
+    assert user_version(db) == 6  # > 5: the labcal before Alembic refuses the file as newer
+    assert ("index", "events_by_run") in {(t, n) for t, n, _ in schema(db)}
+    assert user_version(backup) == 0 and dump(backup) == old  # the whole old database, unchanged
+
     proc = labcal(db, "resume", str(v0 / "stopped"), "--yes", "--no-report")
     assert proc.returncode == 0, proc.stderr
-
-    assert user_version(db) == labdb.SCHEMA_VERSION >= 1  # every later migration must migrate this file too
-    assert ("index", "events_by_run") in {(t, n) for t, n, _ in schema(db)}
-    backup = v0 / "labcal.sqlite.v0.bak"
-    assert user_version(backup) == 0 and dump(backup) == old  # the whole old database, unchanged
     after = point_rows(db, stopped_run)
     assert len(after) == 64 and all(p[-1] is not None for p in after)  # 48 more, samples kept
     assert after[:16] == earlier  # every earlier reading (values, samples, times) unchanged
@@ -119,10 +145,58 @@ def test_previous_database_is_migrated_resumed_and_its_certificate_read(v0):
 
 def test_the_resumed_run_of_the_old_database_gets_a_certificate(v0):
     db = v0 / "labcal.sqlite"
+    upgrade(db)
     assert labcal(db, "resume", str(v0 / "stopped"), "--yes").returncode == 0  # reports when done
     proc = labcal(db, "history", "SIMULATED", "--json")
     assert proc.returncode == 0, proc.stderr
     assert len(json.loads(proc.stdout)["calibrations"]) == 2  # the old certificate and the new one
+
+
+@pytest.mark.parametrize("version", [1, 3, 5])
+def test_a_file_behind_is_refused_by_every_command_before_anything_moves(tmp_path, version):
+    db = legacy_file(tmp_path / "lab.sqlite", version)
+    old = dump(db)
+    for command in (("runs",), ("history", "SIMULATED"),
+                    ("run", "--sim", "--yes", "--no-report", "--out", str(tmp_path / "run"))):
+        proc = labcal(db, *command)
+        assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+        line = proc.stderr.strip()
+        assert f"schema {version:04d} (user_version {version}, before Alembic), older than this labcal's " \
+               f"({HEAD}); run: labcal db upgrade --db {db}" in line.replace("\n", "")
+    assert not (tmp_path / "run").exists()  # the run was refused before its folder (or a move)
+    assert dump(db) == old
+    status = labcal(db, "db", "status")
+    assert status.returncode == 0 and "behind" in status.stdout
+    done = upgrade(db)
+    assert f"upgraded from schema {version:04d}" in done.stdout
+    assert dump(labdb.backup_path(db, f"{version:04d}")) == old
+    assert labcal(db, "runs").returncode == 0
+
+
+def test_an_alembic_revision_behind_is_refused_and_upgraded(tmp_path):
+    import sqlalchemy as sa
+
+    db = tmp_path / "lab.sqlite"
+    engine = sa.create_engine(f"sqlite:///{db}")
+    with engine.begin() as connection:
+        migrations.upgrade(connection, "0006")
+    engine.dispose()
+    with pytest.raises(LabcalError, match=r"schema 0006, older than this labcal's .*labcal db upgrade"):
+        Journal(db)
+    labdb.upgrade(db)
+    assert alembic_revision(db) == HEAD
+    with closing(raw(db)) as con:
+        assert "origin_id" in {r[1] for r in con.execute("PRAGMA table_info(events)")}
+
+
+def test_a_new_file_is_created_at_the_newest_revision_without_setup(tmp_path):
+    db = tmp_path / "new" / "labcal.sqlite"
+    with Journal(db):
+        pass
+    assert alembic_revision(db) == HEAD and user_version(db) == 6
+    assert not list(db.parent.glob("*.bak"))  # nothing to keep
+    status = labcal(db, "db", "status")
+    assert status.returncode == 0 and f"schema {HEAD}" in status.stdout and "current" in status.stdout
 
 
 def version_0(tmp_path: Path, tables: tuple[str, ...]) -> Path:
@@ -136,22 +210,30 @@ def version_0(tmp_path: Path, tables: tuple[str, ...]) -> Path:
     return path
 
 
+def shape_of(path: Path) -> dict:
+    import sqlalchemy as sa
+
+    engine = sa.create_engine(f"sqlite:///{path}")
+    with engine.connect() as connection:
+        found = shape(connection)
+    engine.dispose()
+    return found
+
+
 @pytest.mark.parametrize("tables", [("runs", "points", "events"), ("certificates",), ()])
-def test_every_version_0_file_migrates_to_the_schema_of_a_new_one(tmp_path, tables):
+def test_every_version_0_file_upgrades_to_the_schema_of_a_new_one(tmp_path, tables):
     """The journal or the history alone may have created the file; either way, one schema after."""
     path = version_0(tmp_path, tables)
-    with Journal(path):
-        pass
+    labdb.upgrade(path)
     fresh = tmp_path / "new" / "labcal.sqlite"
     with Journal(fresh):
         pass
     migrated = tmp_path / "migrated.sqlite"
     shutil.copy(V0 / "labcal.sqlite", migrated)
-    labdb.connect(migrated).close()
-    assert schema(path) == schema(fresh) == schema(migrated)
-    assert user_version(path) == user_version(fresh) == labdb.SCHEMA_VERSION
-    assert labdb.backup_path(path, 0).exists() == bool(tables)  # nothing to keep in an empty file
-    assert not labdb.backup_path(fresh, 0).exists()
+    labdb.upgrade(migrated)
+    assert shape_of(path) == shape_of(fresh) == shape_of(migrated)
+    assert alembic_revision(path) == alembic_revision(fresh) == HEAD
+    assert labdb.backup_path(path, "0000").exists() == bool(tables)  # nothing to keep in an empty file
     with pytest.raises(LabcalError, match="no certificates for instrument 'SIMULATED'"):
         certificates_for("SIMULATED", path)  # the table is there, empty
 
@@ -159,7 +241,7 @@ def test_every_version_0_file_migrates_to_the_schema_of_a_new_one(tmp_path, tabl
 # --- (b) a column added later breaks nothing -----------------------------------------------------
 def test_added_columns_break_no_read_or_write(v0):
     db = v0 / "labcal.sqlite"
-    labdb.connect(db).close()
+    labdb.upgrade(db)
     with closing(raw(db)) as con:  # what a later migration might do to every table
         for table in ("runs", "points", "events", "certificates"):
             con.execute(f"ALTER TABLE {table} ADD COLUMN later_note TEXT NOT NULL DEFAULT 'later'")
@@ -227,107 +309,123 @@ def test_point_columns_are_the_journal_record():
 
 
 # --- (c) a newer database is refused -------------------------------------------------------------
-def test_newer_database_is_refused_in_one_line_and_left_alone(v0, capsys):
+@pytest.mark.parametrize("newer", ["alembic", "user_version"])
+def test_newer_database_is_refused_in_one_line_and_left_alone(v0, capsys, newer):
     db = v0 / "labcal.sqlite"
-    newer = labdb.SCHEMA_VERSION + 2
-    with closing(raw(db)) as con:
-        con.execute(f"PRAGMA user_version = {newer}")
+    if newer == "alembic":
+        labdb.upgrade(db)
+        for backup in v0.glob("*.bak"):
+            backup.unlink()
+        with closing(raw(db)) as con:
+            con.execute("UPDATE alembic_version SET version_num='0099'")
+            con.commit()
+        found = "0099"
+    else:  # a labcal before Alembic never wrote 9; no alembic_version: not this history's
+        with closing(raw(db)) as con:
+            con.execute("PRAGMA user_version = 9")
+        found = "user_version 9"
     before = dump(db)
-    message = (f"{db}: lab database schema {newer} is newer than this labcal ({labdb.SCHEMA_VERSION}); "
+    message = (f"{db}: the lab database is at schema {found}, newer than this labcal's ({HEAD}); "
                "upgrade labcal")
     with pytest.raises(LabcalError) as exc:
         Journal(db)
     assert str(exc.value) == message
-    assert main(["history", "SIMULATED", "--db", str(db)]) == 2
-    err = capsys.readouterr().err
-    assert message in err and len(err.strip().splitlines()) == 1
+    for command in (["history", "SIMULATED", "--db", str(db)], ["db", "upgrade", "--db", str(db)]):
+        assert main(command) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1
+        assert "newer than this labcal" in err and "upgrade labcal" in err
     proc = labcal(db, "resume", str(v0 / "stopped"), "--yes", "--no-report")
-    assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
-    assert user_version(db) == newer and dump(db) == before
-    assert not labdb.backup_path(db, newer).exists() and not labdb.backup_path(db, 0).exists()
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1
+    assert "upgrade labcal" in proc.stderr
+    assert dump(db) == before and not list(v0.glob("*.bak"))
 
 
-# --- (d) migrating twice, and a migration that fails ---------------------------------------------
-def test_migrating_twice_is_a_no_op(v0):
+# --- (d) upgrading twice, and an upgrade that fails ----------------------------------------------
+def test_upgrading_twice_is_a_no_op(v0):
     db = v0 / "labcal.sqlite"
-    labdb.connect(db).close()
+    upgrade(db)
     migrated = dump(db)
-    backup = labdb.backup_path(db, 0)
+    backup = labdb.backup_path(db, "0000")
     backup.unlink()
-    with closing(labdb.connect(db)) as again:
-        assert labdb.migrate(again, db) == labdb.SCHEMA_VERSION  # already there: nothing found to do
+    again = upgrade(db)
+    assert "already at schema" in again.stdout
     with Journal(db):
         pass
-    assert dump(db) == migrated and user_version(db) == labdb.SCHEMA_VERSION
-    assert not backup.exists()  # no migration, no backup
+    assert dump(db) == migrated and alembic_revision(db) == HEAD
+    assert not list(v0.glob("*.bak"))  # no upgrade, no backup
 
 
-def test_a_failing_step_rolls_every_step_back(v0):
+def test_a_failing_step_rolls_every_step_back(v0, capsys):
+    """Someone's own ``users`` table: revision 0006 fails after 0001–0005 have run; all undone."""
     db = v0 / "labcal.sqlite"
+    with closing(raw(db)) as con:
+        con.execute("CREATE TABLE users (who TEXT)")
+        con.commit()
     old = dump(db)
-
-    def half_done(con: sqlite3.Connection) -> None:
-        con.execute("CREATE TABLE half (x)")
-        raise RuntimeError("power cut in the middle of a migration")
-
-    broken = (*labdb.MIGRATIONS, labdb.Migration(labdb.SCHEMA_VERSION + 1, "fails", half_done))
-    with pytest.raises(RuntimeError, match="power cut"):
-        labdb.connect(db, broken)
-    assert user_version(db) == 0 and dump(db) == old  # version 1's index rolled back with it
-    assert dump(labdb.backup_path(db, 0)) == old
-    with Journal(db) as journal:  # and the real migrations still go through afterwards
+    assert main(["db", "upgrade", "--db", str(db)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1
+    assert f"{db}: cannot upgrade the lab database from schema 0000" in err.replace("\n", "")
+    assert "users already exists" in err and "the file is unchanged" in err
+    assert user_version(db) == 0 and dump(db) == old  # 0001's index, 0002's column… rolled back with it
+    assert alembic_revision(db) is None
+    assert dump(labdb.backup_path(db, "0000")) == old
+    with closing(raw(db)) as con:
+        con.execute("DROP TABLE users")
+        con.commit()
+    labdb.upgrade(db)  # and the upgrade still goes through afterwards
+    with Journal(db) as journal:
         assert journal.run(2).status == "stopped"
-    assert user_version(db) == labdb.SCHEMA_VERSION
+    assert alembic_revision(db) == HEAD
 
 
-def test_a_database_error_in_a_migration_is_one_line_and_changes_nothing(v0, capsys):
+def test_a_database_error_in_the_first_step_is_one_line_and_changes_nothing(v0, capsys):
     db = v0 / "labcal.sqlite"
-    with closing(raw(db)) as con:  # someone's own index already holds version 1's name
+    with closing(raw(db)) as con:  # someone's own index already holds revision 0001's name
         con.execute("CREATE INDEX events_by_run ON certificates (issued_utc)")
         con.commit()
     old = dump(db)
-    assert main(["history", "SIMULATED", "--db", str(db)]) == 2
+    assert main(["db", "upgrade", "--db", str(db)]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1
-    assert f"{db}: cannot migrate the lab database from schema 0 to {labdb.SCHEMA_VERSION}" in err
     assert "events_by_run already exists" in err and "the file is unchanged" in err
     assert user_version(db) == 0 and dump(db) == old
 
 
 def test_backup_is_consistent_while_another_program_holds_the_wal(v0):
-    """The last points of a WAL database can still sit in the -wal file when labcal migrates it."""
+    """The last points of a WAL database can still sit in the -wal file when labcal upgrades it."""
     db = v0 / "labcal.sqlite"
     with closing(raw(db)) as writer:
+        writer.execute("PRAGMA journal_mode=WAL")
         writer.execute("PRAGMA wal_autocheckpoint=0")  # keep every new page in the -wal file
         writer.execute("UPDATE runs SET operator='in the wal' WHERE id=1")
         writer.commit()
         assert Path(f"{db}-wal").stat().st_size > 0
-        labdb.connect(db).close()
-        with closing(raw(labdb.backup_path(db, 0))) as backup:
+        labdb.upgrade(db)
+        with closing(raw(labdb.backup_path(db, "0000"))) as backup:
             assert backup.execute("SELECT operator FROM runs WHERE id=1").fetchone() == ("in the wal",)
             assert backup.execute("PRAGMA user_version").fetchone() == (0,)
 
 
-
-def test_programs_opening_an_old_database_at_once_migrate_it_once(v0):
-    """The journal of a starting run and a history query may both find version 0: the version is
-    read again under the write lock, so the second one finds the work done."""
+def test_programs_upgrading_an_old_database_at_once_upgrade_it_once(v0):
+    """The revision is read again under the write lock, so the second one finds the work done."""
     db = v0 / "labcal.sqlite"
     old = dump(db)
     start = threading.Barrier(4)
     errors: list[BaseException] = []
 
-    def open_it() -> None:
+    def upgrade_it() -> None:
         start.wait()
         try:
-            labdb.connect(db).close()
+            labdb.upgrade(db)
         except BaseException as exc:  # reported by the assertion below
             errors.append(exc)
 
-    threads = [threading.Thread(target=open_it) for _ in range(4)]
+    threads = [threading.Thread(target=upgrade_it) for _ in range(4)]
     for t in threads:
         t.start()
     for t in threads:
         t.join(timeout=60)
-    assert errors == [] and user_version(db) == labdb.SCHEMA_VERSION
-    assert dump(labdb.backup_path(db, 0)) == old
+    assert errors == [] and alembic_revision(db) == HEAD
+    assert dump(labdb.backup_path(db, "0000")) == old

@@ -10,8 +10,9 @@ from contextlib import closing
 
 import pytest
 import sqlalchemy as sa
+from legacy_schema import legacy_file
 
-from labcal.run import labdb, migrations
+from labcal.run import migrations
 from labcal.run.schema import METADATA
 
 
@@ -78,8 +79,7 @@ def test_the_history_arrives_at_the_schema_on_postgresql(postgres_cluster):
 
 
 def test_revision_0005_is_the_schema_sqlite_files_carried_as_user_version_5(tmp_path):
-    legacy = tmp_path / "legacy.sqlite"
-    labdb.connect(legacy).close()  # BASELINE and MIGRATIONS 1–5, as labcal wrote them
+    legacy = legacy_file(tmp_path / "legacy.sqlite", 5)  # the statements of 1–5, as labcal wrote them
     with closing(sqlite3.connect(legacy)) as db:
         assert db.execute("PRAGMA user_version").fetchone()[0] == 5
     engine = sa.create_engine(f"sqlite:///{tmp_path / 'alembic.sqlite'}")
@@ -101,3 +101,8 @@ def test_every_revision_is_known_in_order():
 @pytest.mark.parametrize("column", ["vx", "vy", "vz", "sd_vx", "sd_vy", "sd_vz", "temp_c"])
 def test_the_readings_keep_the_journals_column_names(column):
     assert column in METADATA.tables["points"].columns
+
+
+def test_the_head_labcal_checks_on_open_is_alembics():
+    """`migrations.HEAD` spares every open the loading of Alembic; it must be Alembic's head."""
+    assert migrations.HEAD == migrations.head()

@@ -10,6 +10,7 @@ comes back as a typed outcome; printing it is the front end's business.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from contextlib import AbstractContextManager, ExitStack
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +31,7 @@ if TYPE_CHECKING:
     from labcal.run.operator import Operator, Terminal
     from labcal.run.runner import RunResult
     from labcal.run.station import Station
+    from labcal.run.sync import Background
 
 
 class Display(Protocol):
@@ -181,9 +183,15 @@ PACE_SIM_ONLY = ("--pace paces the simulated rig (--sim) only; a station's devic
                  "emulators run at --time-scale")
 
 
+def _noted(front: FrontEnd) -> Callable[[str], None]:
+    """A note for the operator from elsewhere (the lab server's sender): plain text, no markup."""
+    return lambda line: front.say(f"note: {line}", markup=False)
+
+
 def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Estimate, done: int,
                    db: str | None, no_report: bool, certificate=None,
-                   journal: Path | None = None, notifier: RunNotifier | None = None) -> Ended | Finished:
+                   journal: Path | None = None, notifier: RunNotifier | None = None,
+                   sender: Background | None = None) -> Ended | Finished:
     """The sequence a run and a resume share: run with the front end's view and the notifier
     subscribed to its events (the journal is subscribed first, by the runner); turn the ways a run can
     end into outcomes; at the end of a complete run store the device's estimate and issue its
@@ -203,6 +211,8 @@ def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Esti
             events.subscribe(display, kinds=display.KINDS)
             if notifier is not None:  # remounts, pauses and the end, through apprise (issue 24)
                 events.subscribe(notifier.handle, kinds=notifier.KINDS)
+            if sender is not None:  # a record journaled: sent to the lab's server now, not at the next poll
+                events.subscribe(lambda _: sender.wake())
             result: RunResult = runner(events, terminal, est.forecast())
     except KeyboardInterrupt as exc:
         tables = _stop_failure(exc).removeprefix("; ") or "tables stopped"
@@ -243,6 +253,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
     from labcal.run.rundir import new_run_dir
     from labcal.run.runner import calibrate
     from labcal.run.sequencer import check_limits, schedule
+    from labcal.run.sync import sending
 
     if not args.sim and not args.station:
         raise LabcalError("no station given: use --sim for a dry run on the simulated rig, or --station FILE "
@@ -256,6 +267,10 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
     if args.pace is not None and not args.sim:
         raise LabcalError(PACE_SIM_ONLY)
     plan, plan_text = load_plan(args.plan)
+    if not args.dry_run:  # a lab database behind or ahead of this labcal: refused before anything moves
+        from labcal.run.sync import ready
+
+        ready(args.db)
     if args.replicates is not None:  # the journal keeps the plan that actually runs
         plan = Plan.model_validate({**plan.model_dump(), "replicates": args.replicates})
         plan_text = plan_toml(plan)
@@ -304,12 +319,13 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
             prepare(bench, setup.station, front.say)
             setup.metadata["device_identity"] = bench.identities  # the manifest's metadata and run.json
         operator = front.operator()
-        with Journal(db_path(args.db), durable=not args.sim) as journal:
+        with Journal(db_path(args.db), durable=not args.sim) as journal, \
+                sending(args.db, journal.path, _noted(front)) as sender:
             return run_and_finish(front, lambda events, terminal, forecast: calibrate(
                 plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, events,
                 setup.metadata, args.serial, args.operator, steps, terminal=terminal, forecast=forecast),
                 run_dir, plan, est, 0, args.db, args.no_report, cert_settings,
-                notifier=RunNotifier(notifications, station_label(setup.metadata), run_dir))
+                notifier=RunNotifier(notifications, station_label(setup.metadata), run_dir), sender=sender)
 
 
 def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Path | None, front: FrontEnd,
@@ -358,9 +374,11 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
     from labcal.run.notify import RunNotifier, lab_notifications, station_label
     from labcal.run.runner import execute, open_for_resume
     from labcal.run.sequencer import check_limits, schedule
+    from labcal.run.sync import check_server, sending
     from labcal.run.winding import left_at
 
     run_dir = Path(args.run)
+    check_server(args.db)  # a lab server behind or ahead of this labcal: refused before anything changes
     ctx = open_for_resume(run_dir)
     with ExitStack() as stack:
         stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
@@ -418,11 +436,12 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
             ctx.journal.event(ctx.run_id, "device_identity", "the devices that answered on resuming",
                               bench.identities)
         cert_settings = certificate_settings_for_run(args, certificate, args.station or "the run's station")
+        sender = stack.enter_context(sending(args.db, ctx.journal.path, _noted(front)))
         return run_and_finish(front, lambda events, terminal, forecast: execute(
             ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, events,
             steps, terminal=terminal, forecast=forecast),
             run_dir, ctx.plan, est, len(points), args.db, args.no_report, cert_settings, ctx.journal.path,
-            notifier=RunNotifier(notifications, station_label(ctx.metadata), run_dir))
+            notifier=RunNotifier(notifications, station_label(ctx.metadata), run_dir), sender=sender)
 
 
 def finish_complete(args: ResumeRun, run_dir: Path, run_id: int,

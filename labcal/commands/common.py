@@ -113,9 +113,9 @@ def add_power_on_options(p: argparse.ArgumentParser) -> None:
 
 
 def add_db_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--db", metavar="PATH",
-                   help="the lab's SQLite database (default: $LABCAL_DB, else the lab file's database; "
-                        "see `labcal config path`)")
+    p.add_argument("--db", metavar="PATH|URL",
+                   help="the lab database: a SQLite file, or postgresql://USER@HOST:PORT/DBNAME (default: "
+                        "$LABCAL_DB, else the lab file's database; see `labcal config path`)")
 
 
 def bounded(kind: type[int] | type[float], lo: float | None = None, hi: float | None = None, *,
