@@ -20,9 +20,11 @@ from labcal.commands import (
     report,
     run,
     runs,
+    serve,
     sim,
     simulate,
     station,
+    user,
 )
 from labcal.commands.common import EXIT_INTERRUPTED, EXIT_USER_ERROR, err
 from labcal.commands.logfile import add_log_options, logging_to
@@ -35,7 +37,7 @@ from labcal.errors import LabcalError
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, runs, device, station, sim, export,
-                  config, certificate)
+                  config, certificate, serve, user)
 
 
 class OneLineParser(argparse.ArgumentParser):
