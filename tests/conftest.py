@@ -76,7 +76,7 @@ def quiet_console():
     return Console(file=io.StringIO())
 
 
-def run_on_rig(rig, plan_name: str, tmp_path, settings=None, display=None, operator=None):
+def run_on_rig(rig, plan_name: str, tmp_path, settings=None, events=None, operator=None):
     """A whole calibration of a shipped plan on a SimRig, journaled under tmp_path."""
     from labcal.config.plans import load_plan
     from labcal.config.settings import SequencerSettings
@@ -90,7 +90,7 @@ def run_on_rig(rig, plan_name: str, tmp_path, settings=None, display=None, opera
     with Journal(tmp_path / "journal.sqlite") as journal:
         operator = operator or AutoOperator(quiet_console())
         return calibrate(plan, text, rig.station(), "simulated rig", operator,
-                         settings or SequencerSettings(), run_dir, journal, display)
+                         settings or SequencerSettings(), run_dir, journal, events)
 
 
 pytest_plugins = ["services"]  # postgres_cluster, postgres_url, browser: tests/services.py

@@ -11,12 +11,14 @@ from rich.console import Console
 
 from labcal.analysis.coning import coning
 from labcal.analysis.fit import fit_readings
-from labcal.analysis.kinematics import Mount
 from labcal.cli import main
 from labcal.commands.console import ProgressDisplay, with_standard_error
 from labcal.config.emulation import InstrumentTruth
 from labcal.config.plans import load_plan
-from labcal.run.sequencer import Step
+from labcal.config.settings import SequencerSettings
+from labcal.run.events import PointMeasured, Status
+from labcal.run.journal import PointRecord
+from labcal.run.sequencer import Forecast, schedule
 from labcal.sim.direct import simulate_readings
 
 
@@ -77,12 +79,23 @@ def test_coefficients_to_the_digits_their_standard_error_supports(value, se, exp
 def test_progress_of_a_resume_counts_what_remains_and_fits_80_columns():
     buffer = io.StringIO()
     console = Console(file=buffer, width=80, force_terminal=False)
-    estimates = {seq: 10.0 for seq in range(64)}  # 64 steps of 10 s on the rig's clock
-    display = ProgressDisplay(console, 64, estimates, done=16)
-    assert display.progress.tasks[0].fields["rig_eta"] == "8:00"  # the 48 steps that remain, not all 64
+    plan, _ = load_plan("four-mount-64")
+    steps = schedule(plan, SequencerSettings())
+    forecast = Forecast({s.seq: 10.0 for s in steps}, {}, {})  # 64 steps of 10 s on the rig's clock
+    ahead = forecast.ahead(steps[16:])  # resumed after 16 points
+    assert ahead[0][1] == 480.0 and ahead[1][1] == 470.0  # the 48 steps that remain, not all 64; then 47
+    display = ProgressDisplay(console, 64, done=16)
     with display:
-        display.point_done(Step(seq=16, replicate=1, mount=Mount(180, 0), pitch_deg=270, roll_deg=270,
-                                block_start=False), np.zeros(3), 3723.0, 2.0)
+        display(Status(run_id=1, rig_time_s=3713.0, status="running", at="start", points_done=16,
+                       points_total=64, eta_s=ahead[0][1]))
+        assert display.progress.tasks[0].fields["rig_eta"] == "8:00"
+        record = PointRecord(16, 1, 180, 0, 270, 270, 270, 270, 1, "ok", 3700.0, 3723.0, 10,
+                             0.1, 0.2, 0.3, 1e-5, 1e-5, 1e-5, None, 2.0, "settled")
+        display(PointMeasured(run_id=1, rig_time_s=3723.0, seq=16, replicate=1, mount=2, pitch_deg=270,
+                              roll_deg=270, volts=(0.1, 0.2, 0.3), settle_s=2.0, ok=True, points_done=17,
+                              points_total=64, record=record))
+        display(Status(run_id=1, rig_time_s=3723.0, status="running", at="point", points_done=17,
+                       points_total=64, eta_s=ahead[1][1]))
     text = buffer.getvalue()
     assert "'rig' is the rig's own clock" in text  # said once, where the line starts
     final = [line for line in text.splitlines() if "17/64" in line][-1]

@@ -96,7 +96,7 @@ def test_a_deleted_run_folder_is_recreated_from_the_run_id(tmp_path, capsys):
 
 
 # --- 2. one clock per run -----------------------------------------------------------------------
-def resume(folder: Path, display=None):
+def resume(folder: Path, after=None):
     """Resume in this process on the simulated rig, its clock started where the journal says."""
     from conftest import quiet_console
 
@@ -109,7 +109,7 @@ def resume(folder: Path, display=None):
     with ctx.journal, ctx.lock:
         return execute(ctx.journal, ctx.run_id, folder, ctx.plan, setup.station,
                        AutoOperator(quiet_console()),
-                       ctx.settings, display)
+                       ctx.settings, after and after.events())
 
 
 def test_rig_time_runs_on_across_resumes(tmp_path):

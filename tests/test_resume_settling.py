@@ -26,11 +26,11 @@ from labcal.analysis.kinematics import Mount, nominal_gravity
 from labcal.config.emulation import RigConfig
 from labcal.config.plans import plan_toml
 from labcal.config.settings import SequencerSettings, SettleSettings
+from labcal.run.events import EventBus
 from labcal.run.journal import Journal
 from labcal.run.motion import transient_after, transient_left, trapezoid_duration, trapezoid_travel
 from labcal.run.operator import AutoOperator
 from labcal.run.runner import calibrate, execute, open_for_resume
-from labcal.run.sequencer import Display
 from labcal.run.station import Station
 from labcal.run.winding import left_at
 from labcal.sim.clock import VirtualClock
@@ -77,13 +77,13 @@ def test_the_transient_after_several_moves_is_the_first_order_lag_integrated_alo
         transient_left((60.0, 180.0), (0.0, 0.0), mount, SPEED, ACCEL, TAU, unwrapped=True))
 
 
-class Interrupt(Display):
-    """Ends the run (as a kill would) once ``after`` points are committed."""
+class Interrupt:
+    """Ends the run (as a kill would) once ``after`` points are committed (a "point" subscriber)."""
 
     def __init__(self, after: int):
         self.after, self.done = after, 0
 
-    def point_done(self, step, volts, station_time_s, settle_s):
+    def __call__(self, event):
         self.done += 1
         if self.done == self.after:
             raise KeyboardInterrupt
@@ -107,11 +107,13 @@ def readings(tmp_path, name: str, settle: SettleSettings, interrupt_after: int |
     run_dir = tmp_path / name / "run"
     run_dir.mkdir(parents=True)
     db = tmp_path / name / "lab.sqlite"
-    display = Interrupt(interrupt_after) if interrupt_after else None
+    events = EventBus()
+    if interrupt_after:
+        events.subscribe(Interrupt(interrupt_after), kinds=("point",))
     with Journal(db) as journal:
         try:
             calibrate(plan, plan_toml(plan), bench(), "simulated bench", AutoOperator(quiet_console()),
-                      settings, run_dir, journal, display)
+                      settings, run_dir, journal, events)
         except KeyboardInterrupt:
             assert interrupt_after is not None
     if interrupt_after:

@@ -16,21 +16,21 @@ from labcal.bench.setup import hardware_station, prepare
 from labcal.config.plans import load_plan
 from labcal.config.settings import SequencerSettings
 from labcal.config.station import load_station
+from labcal.run.events import EventBus
 from labcal.run.interrupts import Interrupts
 from labcal.run.journal import Journal
 from labcal.run.operator import AutoOperator
 from labcal.run.runner import calibrate
-from labcal.run.sequencer import Display
 
 
-class LinkWatcher(Display):
-    """Notes, at every point, the critical section each link holds."""
+class LinkWatcher:
+    """Notes, at every point, the critical section each link holds (a "point" subscriber)."""
 
     def __init__(self, links: list) -> None:
         self.links = links
         self.seen: list[list] = []
 
-    def point_done(self, step, volts, station_time_s, settle_s) -> None:
+    def __call__(self, event) -> None:
         self.seen.append([link.critical for link in self.links])
 
 
@@ -43,11 +43,13 @@ def test_every_link_holds_the_runs_critical_section_during_the_run_and_none_afte
         prepare(bench, setup.station, say=lambda text: None)  # as `labcal run` does: home, enable, configure
         assert links and all(link.critical is None for link in links)  # no run yet
         watcher = LinkWatcher(links)
+        events = EventBus()
+        events.subscribe(watcher, kinds=("point",))
         run_dir = tmp_path / "run"
         run_dir.mkdir()
         with Journal(tmp_path / "j.sqlite") as journal:
             calibrate(plan, plan_text, setup.station, setup.text, AutoOperator(quiet_console()),
-                      SequencerSettings(settle=setup.settle), run_dir, journal, watcher)
+                      SequencerSettings(settle=setup.settle), run_dir, journal, events)
         assert len(watcher.seen) == 16
         holders = {id(getattr(c, "__self__", None)) for point in watcher.seen for c in point}
         owners = [getattr(c, "__self__", None) for point in watcher.seen for c in point]

@@ -18,23 +18,30 @@ from labcal.config.emulation import RigConfig
 from labcal.config.plans import load_plan
 from labcal.config.settings import SequencerSettings, SettleSettings
 from labcal.errors import LabcalError
+from labcal.run.events import EventBus
 from labcal.run.journal import Journal
 from labcal.run.operator import AutoOperator, OperatorDeclined, ScriptedOperator
 from labcal.run.runner import calibrate, execute, open_for_resume
-from labcal.run.sequencer import Display, schedule
+from labcal.run.sequencer import schedule
 from labcal.run.winding import left_at
 from labcal.sim.rig import SimRig
 
 STATIC_LAB = str(Path(__file__).parent / "data" / "rig_static_lab.toml")
 
 
-class After(Display):
-    """Does something (raise, or signal this process) when the n-th point is done."""
+class After:
+    """Does something (raise, or signal this process) when the n-th point is done: a subscriber of
+    the run's "point" events (`events()` gives a bus with it subscribed)."""
 
     def __init__(self, n: int, action):
         self.n, self.action, self.done = n, action, 0
 
-    def point_done(self, step, volts, station_time_s, settle_s):
+    def events(self) -> EventBus:
+        bus = EventBus()
+        bus.subscribe(self, kinds=("point",))
+        return bus
+
+    def __call__(self, event):
         self.done += 1
         if self.done in (self.n if isinstance(self.n, tuple) else (self.n,)):
             self.action()
@@ -44,14 +51,14 @@ def ctrl_c():
     os.kill(os.getpid(), signal.SIGINT)
 
 
-def journal_run(tmp_path, setup, display=None, operator=None, settings=None, plan_name="four-mount-64"):
+def journal_run(tmp_path, setup, after=None, operator=None, settings=None, plan_name="four-mount-64"):
     plan, text = load_plan(plan_name)
     run_dir = tmp_path / "run"
     run_dir.mkdir(exist_ok=True)
     settings = settings or SequencerSettings(settle=setup.settle)
     with Journal(tmp_path / "j.sqlite") as journal:
         return calibrate(plan, text, setup.station, setup.text, operator or AutoOperator(quiet_console()),
-                         settings, run_dir, journal, display)
+                         settings, run_dir, journal, after and after.events())
 
 
 def resume_in_process(run_dir: Path, operator=None):

@@ -16,8 +16,8 @@ from rich.progress import (
 from rich.table import Table
 
 from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit
-from labcal.run.operator import QuietKeys
-from labcal.run.sequencer import Display, Step
+from labcal.run.events import Discarded, Fault, PointMeasured, RunEvent, Status, Stopped
+from labcal.run.operator import QuietKeys, Terminal
 
 
 def format_duration(seconds: float) -> str:
@@ -40,30 +40,24 @@ RIG_CLOCK_NOTE = ("progress: 'rig' is the rig's own clock (the simulated or emul
                   "moves, settling, averaging and remount allowances")
 
 
-class ProgressDisplay(Display):
-    """A progress bar with the rig's clock and the ETA of what remains, both on the rig's clock (an
-    emulated run's wall time says nothing about the rig's), and the last point; fits 80 columns.
-    While it is shown, keys typed at the terminal do not echo into it (`QuietKeys`); a prompt
-    (`pause`) has them echo again."""
+class ProgressDisplay(Terminal):
+    """The run's console view, one subscriber of its events among others (subscribe it for
+    ``KINDS``): a progress bar with the rig's clock and the ETA of what remains, both on the rig's
+    clock (an emulated run's wall time says nothing about the rig's), and the last point; fits 80
+    columns; faults, stops that failed and points measured again are printed above it. While it is
+    shown, keys typed at the terminal do not echo into it (`QuietKeys`); a prompt (`pause`, the
+    terminal's, not an event) has them echo again."""
 
-    def __init__(self, console: Console, total: int, step_estimates: dict[int, float] | None = None,
-                 done: int = 0):
+    KINDS = ("point", "status", "fault", "stop", "discarded")
+
+    def __init__(self, console: Console, total: int, done: int = 0):
         self.progress = Progress(
             BarColumn(bar_width=16), MofNCompleteColumn(),
             TextColumn("rig {task.fields[rig]} ETA {task.fields[rig_eta]}"),
             TextColumn("{task.fields[last]}"), console=console, transient=False,
         )
-        self.estimates = step_estimates or {}
-        # rig time of the steps after each one: an O(1) ETA per point
-        self.after: dict[int, float] = {}
-        remaining = sum(self.estimates.values())
-        for seq in sorted(self.estimates):
-            remaining -= self.estimates[seq]
-            self.after[seq] = remaining
-        # on resume, only what remains: the steps after the `done` first ones of the schedule
-        remaining = sum(t for _, t in sorted(self.estimates.items())[done:])
         self.task = self.progress.add_task("calibrating", total=total, completed=done, last="", rig="–",
-                                           rig_eta=clock(remaining))
+                                           rig_eta="–")
         console.print(f"[dim]{RIG_CLOCK_NOTE}[/]")
         self.keys = QuietKeys()
         self._shown = ExitStack()
@@ -87,13 +81,22 @@ class ProgressDisplay(Display):
         finally:
             self.__enter__()
 
-    def point_done(self, step: Step, volts: np.ndarray, station_time_s: float, settle_s: float) -> None:
-        last = f"p={step.pitch_deg:g}° r={step.roll_deg:g}° {settle_s:.1f} s"
-        remaining = self.after.get(step.seq, 0.0)
-        self.progress.update(self.task, advance=1, last=last, rig=clock(station_time_s),
-                             rig_eta=clock(remaining))
+    def __call__(self, event: RunEvent) -> None:
+        if isinstance(event, PointMeasured):
+            settled = "" if event.settle_s is None else f" {event.settle_s:.1f} s"
+            self.progress.update(self.task, completed=event.points_done, rig=clock(event.rig_time_s),
+                                 last=f"p={event.pitch_deg:g}° r={event.roll_deg:g}°{settled}")
+        elif isinstance(event, Status):  # the ETA: the plan's estimate of what remains
+            self.progress.update(self.task, completed=event.points_done,
+                                 rig_eta="–" if event.eta_s is None else clock(event.eta_s))
+        elif isinstance(event, Fault):
+            self.notice(f"[bold red]Fault:[/] {event.message}")
+        elif isinstance(event, Stopped) and event.failed is not None:
+            self.notice(f"[bold red]STOP FAILED:[/] {event.failed}; make the table safe by hand")
+        elif isinstance(event, Discarded) and not event.faulted:
+            self.notice(f"[yellow]Point {event.seq} measured again:[/] {event.reason}")
 
-    def message(self, text: str) -> None:
+    def notice(self, text: str) -> None:
         self.progress.console.print(text)
 
 

@@ -96,6 +96,7 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
     end of a complete run issue its certificate and report (``certificate``: their settings) into
     the run's journal (``journal``: a resumed run's, which its folder names; else --db's)."""
     from labcal.commands.console import ProgressDisplay, coefficients_with_standard_errors, format_duration
+    from labcal.run.events import EventBus
     from labcal.run.interrupts import StopSignal
     from labcal.run.journal import db_path
     from labcal.run.operator import OperatorDeclined
@@ -104,8 +105,10 @@ def run_and_report(args, runner, run_dir: Path, plan: Plan, est: Estimate, done:
     journal = journal or db_path(args.db)
     err.print(f"Run directory: {run_dir}")
     try:
-        with ProgressDisplay(err, plan.n_points, est.per_step_s, done) as display:
-            result: RunResult = runner(display)
+        with ProgressDisplay(err, plan.n_points, done) as display:
+            events = EventBus()  # the journal is subscribed first, by the runner
+            events.subscribe(display, kinds=display.KINDS)
+            result: RunResult = runner(events, display, est.forecast())
     except KeyboardInterrupt as exc:
         why = f" ({exc.reason})" if isinstance(exc, StopSignal) else ""
         tables = _stop_failure(exc).removeprefix("; ") or "tables stopped"
@@ -189,6 +192,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise LabcalError("--emulate needs --station FILE: it starts the emulators that file points at")
     if args.rig and not args.sim:
         raise LabcalError("--rig describes the rig of --sim; an emulated station has [emulation.rig]")
+    if args.pace is not None and not args.sim:
+        raise LabcalError(PACE_SIM_ONLY)
     plan, plan_text = load_plan(args.plan)
     if args.replicates is not None:  # the journal keeps the plan that actually runs
         plan = Plan.model_validate({**plan.model_dump(), "replicates": args.replicates})
@@ -197,7 +202,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
         bench = None
         if args.sim:
-            setup = sim_station(args.rig, args.seed)
+            setup = sim_station(args.rig, args.seed, pace=args.pace)
             settings = sequencer_settings_for_run(args, setup)
             cert_settings = certificate_settings_for_run(args, None, "command line")
         else:
@@ -236,9 +241,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         operator = make_operator(args)
         run_dir = new_run_dir(args.out, plan)
         with Journal(db_path(args.db), durable=not args.sim) as journal:
-            return run_and_report(args, lambda display: calibrate(
-                plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, display,
-                setup.metadata, args.serial, args.operator, steps), run_dir, plan, est, 0, cert_settings)
+            return run_and_report(args, lambda events, terminal, forecast: calibrate(
+                plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, events,
+                setup.metadata, args.serial, args.operator, steps, terminal=terminal, forecast=forecast),
+                run_dir, plan, est, 0, cert_settings)
 
 
 def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Path | None,
@@ -295,6 +301,8 @@ def cmd_resume(args: argparse.Namespace) -> int:
             err.print(f"[yellow]note:[/] {note}")
         run_name = f"run {ctx.run_id} in {run_dir}"
         snapshot = read_snapshot(ctx.station_text, run_name, ctx.software_version)
+        if args.pace is not None and snapshot is not None:
+            raise LabcalError(f"{run_name} runs on a station, not the simulated rig: {PACE_SIM_ONLY}")
         if ctx.complete:
             settings = certificate_settings_for_run(args, snapshot.config.certificate if snapshot else None,
                                                     "the run's station")
@@ -316,7 +324,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
         if snapshot is None:
             ctx.journal.relax()  # a dry run: as when it started
             setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start,
-                                tables_at=tables_at)
+                                tables_at=tables_at, pace=args.pace)
             certificate = CertificateSettings()
         else:
             resumed_on = new_station[0] if new_station else snapshot.config
@@ -337,9 +345,9 @@ def cmd_resume(args: argparse.Namespace) -> int:
             ctx.journal.event(ctx.run_id, "device_identity", "the devices that answered on resuming",
                               bench.identities)
         cert_settings = certificate_settings_for_run(args, certificate, args.station or "the run's station")
-        return run_and_report(args, lambda display: execute(
-            ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, display,
-            steps),
+        return run_and_report(args, lambda events, terminal, forecast: execute(
+            ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, events,
+            steps, terminal=terminal, forecast=forecast),
             run_dir, ctx.plan, est, len(points), cert_settings, ctx.journal.path)
 
 
@@ -365,7 +373,14 @@ def finish_complete(args: argparse.Namespace, run_dir: Path, run_id: int,
     return 0
 
 
+PACE_SIM_ONLY = ("--pace paces the simulated rig (--sim) only; a station's devices keep real time, and its "
+                 "emulators run at --time-scale")
+
+
 def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--pace", type=TIME_SCALE, metavar="X",
+                   help="with --sim: run the simulated rig at X times real time (1: a rig second takes a "
+                        "wall second; default: as fast as it can)")
     p.add_argument("--yes", action="store_true", help="confirm every remount prompt automatically")
     p.add_argument("--answers", metavar="FILE", help="answer prompts from this file, one answer per line")
     add_db_option(p)

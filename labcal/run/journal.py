@@ -183,21 +183,22 @@ class Journal:
         assert run_id is not None  # an INSERT into a rowid table always sets lastrowid
         return run_id
 
-    def record_point(self, run_id: int, point: PointRecord, samples: NDArray | None) -> None:
-        """The point and its raw samples in one transaction."""
+    def record_point(self, run_id: int, point: PointRecord, samples: NDArray | None,
+                     utc: str | None = None) -> None:
+        """The point and its raw samples in one transaction (``utc``: when it was measured; now)."""
         names = [f.name for f in fields(PointRecord)]
         values = [getattr(point, n) for n in names]
         blob = None if samples is None else np.ascontiguousarray(samples, dtype="<f8").tobytes()
         self._transaction([
             (f"INSERT INTO points (run_id, {', '.join(names)}, utc, samples) VALUES "
-             f"(?, {', '.join('?' * len(names))}, ?, ?)", (run_id, *values, utc_now(), blob)),
+             f"(?, {', '.join('?' * len(names))}, ?, ?)", (run_id, *values, utc or utc_now(), blob)),
         ])
 
     def event(self, run_id: int, kind: str, message: str, data: dict | None = None,
-              station_time: float | None = None) -> None:
+              station_time: float | None = None, utc: str | None = None) -> None:
         self._transaction([("INSERT INTO events (run_id, utc, station_time, kind, message, data) "
                             "VALUES (?,?,?,?,?,?)",
-                            (run_id, utc_now(), station_time, kind, message,
+                            (run_id, utc or utc_now(), station_time, kind, message,
                              None if data is None else json.dumps(data)))])
 
     def finish(self, run_id: int, status: str, reason: str | None = None,

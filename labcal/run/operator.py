@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import sys
 from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal, Protocol
@@ -31,6 +32,21 @@ class OperatorDeclined(Exception):
 
 
 Heard = Callable[[str, str], None]  # (the reply, what it did) for a reply that kept a prompt open
+
+
+class Terminal:
+    """The terminal a run shares with its prompts: not an event, because a prompt must have the
+    terminal (a progress bar taken down, keys echoing) before it asks, and the answer to Ctrl-C is
+    said at once, from the signal handler, where nothing may be published or journaled. The console's
+    progress view is one (`labcal.commands.console.ProgressDisplay`); this one is a terminal with
+    nothing drawn on it."""
+
+    def pause(self) -> AbstractContextManager[object]:
+        """Context in which a prompt may use the terminal."""
+        return nullcontext()
+
+    def notice(self, text: str) -> None:
+        """Say ``text`` now (rich markup): what the first Ctrl-C did."""
 
 
 class Operator(Protocol):

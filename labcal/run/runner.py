@@ -6,6 +6,7 @@ people and other programs read, rewritten whenever the run stops for any reason.
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from dataclasses import dataclass
@@ -21,15 +22,18 @@ from labcal.config.settings import SequencerSettings
 from labcal.errors import LabcalError
 from labcal.run import exports
 from labcal.run.devicelog import journaled_warnings
+from labcal.run.events import EventBus, Note
 from labcal.run.interrupts import Interrupts
 from labcal.run.journal import Journal, Manifest, sha256
+from labcal.run.journaling import subscribe_journal
 from labcal.run.lock import RunLock
-from labcal.run.operator import Operator
+from labcal.run.operator import Operator, Terminal
 from labcal.run.rundir import make_run_dir, open_run
-from labcal.run.sequencer import Display, RunOutcome, Sequencer, Step, schedule
+from labcal.run.sequencer import Forecast, RunOutcome, Sequencer, Step, schedule
 from labcal.run.station import Station
 
 MIN_POINTS_FOR_MOUNT_CHECK_FIT = 8
+log = logging.getLogger(__name__)
 
 
 def publish(journal: Journal, run_id: int, run_dir: Path, status: str, reason: str | None
@@ -83,56 +87,93 @@ def _provisional_fit(journal: Journal, run_id: int):
 
 
 def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: Station, operator: Operator,
-            settings: SequencerSettings, display: Display | None = None,
-            steps: list[Step] | None = None) -> RunResult:
+            settings: SequencerSettings, events: EventBus | None = None,
+            steps: list[Step] | None = None, *, terminal: Terminal | None = None,
+            forecast: Forecast | None = None) -> RunResult:
     """Run (or go on with) every step not yet in the journal, holding the run's lock; whatever
     happens, the exports are rewritten and the journal says how the run ended.
+
+    The run's events go to ``events``' subscribers (the console, a lab database sync, a notifier),
+    the journal subscribed first and durably here (`labcal.run.journaling`): it has each event
+    before anyone else hears of it. ``terminal``: what prompts borrow the terminal from;
+    ``forecast``: the plan's estimates (`labcal.run.estimate.Estimate.forecast`), for the statuses'
+    next remount and ETA (None without one).
 
     Rig time runs on from where the run was last heard of (`Journal.rig_time`): each segment's
     offset is journaled, time_s never goes back, and the station's clock must start there too (a
     simulated rig's virtual clock does: `labcal.bench.setup`). ``steps``: the schedule, if already made."""
-    display = display or Display()
+    bus = events if events is not None else EventBus()
+    terminal = terminal or Terminal()
     wall0 = time.perf_counter()
-    lock = RunLock(journal.path, run_id).acquire()  # released in the finally below, or with the process
-    steps = schedule(plan, settings) if steps is None else steps  # made once by the caller, if it did
-    committed = {p.seq for p in journal.points(run_id)}
-    offset = journal.rig_time(run_id)
-    journal.event(run_id, "segment", f"measuring from rig time {offset:.3f} s", {"offset_s": offset},
-                  station_time=offset)
-    status = "interrupted"
-    reason: str | None = "Ctrl-C"
+    journaling = subscribe_journal(bus, journal)
     try:
-        with Interrupts(lambda: display.message("[yellow]Ctrl-C: pausing after this point "
-                                                "(press again to stop the tables now)[/]")) as interrupts:
-            station.guard_exchanges(interrupts.critical)  # no device exchange is cut in half
-            try:
-                sequencer = Sequencer(plan, station, operator, journal, run_id, settings, display, interrupts,
-                                      offset_s=offset)
-                with journaled_warnings(sequencer.event):  # retries and reconnects are events of the run
-                    outcome = sequencer.run(steps, committed, _provisional_fit(journal, run_id))
-            finally:
-                station.guard_exchanges(None)
-        status, reason = "complete", None
-    except KeyboardInterrupt as exc:
-        reason = getattr(exc, "reason", reason)  # a StopSignal names what stopped the run
-        raise
-    except BaseException as exc:
-        status, reason = "stopped", str(exc) or type(exc).__name__
-        raise
-    finally:
+        lock = RunLock(journal.path, run_id).acquire()  # released in the finally below, or with the process
+        steps = schedule(plan, settings) if steps is None else steps  # made once by the caller, if it did
+        committed = {p.seq for p in journal.points(run_id)}
+        offset = journal.rig_time(run_id)
+        sequencer: Sequencer | None = None
+        ended: BaseException | None = None  # the news that ended the run, if it did not complete
+        status = "interrupted"
+        reason: str | None = "Ctrl-C"
         try:
-            derived = publish(journal, run_id, run_dir, status, reason)
+            bus.publish(Note(run_id=run_id, rig_time_s=offset, name="segment",
+                             message=f"measuring from rig time {offset:.3f} s", data={"offset_s": offset}))
+            with Interrupts(lambda: terminal.notice("[yellow]Ctrl-C: pausing after this point "
+                                                    "(press again to stop the tables now)[/]")) as interrupts:
+                station.guard_exchanges(interrupts.critical)  # no device exchange is cut in half
+                try:
+                    sequencer = Sequencer(plan, station, operator, journal, run_id, settings, events=bus,
+                                          terminal=terminal, interrupts=interrupts, offset_s=offset,
+                                          forecast=forecast)
+                    with journaled_warnings(sequencer.note):  # retries and reconnects are events of the run
+                        outcome = sequencer.run(steps, committed, _provisional_fit(journal, run_id))
+                finally:
+                    station.guard_exchanges(None)
+            status, reason = "complete", None
+        except KeyboardInterrupt as exc:
+            reason, ended = getattr(exc, "reason", reason), exc  # a StopSignal names what stopped the run
+            raise
+        except BaseException as exc:
+            status, reason, ended = "stopped", str(exc) or type(exc).__name__, exc
+            raise
         finally:
-            lock.release()
+            try:
+                derived = publish(journal, run_id, run_dir, status, reason)
+            except BaseException as exc:
+                ended = ended or exc
+                raise
+            finally:
+                try:
+                    if sequencer is not None:
+                        _say_how_it_ended(sequencer, journal, run_id, ended)
+                finally:
+                    lock.release()
+    finally:
+        bus.unsubscribe(journaling)
     assert derived.fit is not None  # publish raises for a run that cannot be fitted
     return RunResult(run_dir, run_id, outcome, derived.fit, time.perf_counter() - wall0, derived.device,
                      derived.model_note)
 
 
+def _say_how_it_ended(sequencer: Sequencer, journal: Journal, run_id: int,
+                      ended: BaseException | None) -> None:
+    """The final Status, as the journal has just recorded it (a run that could not be fitted is
+    "failed", one whose folder could not be written "stopped"). If it cannot be journaled while
+    other news is ending the run, that news is what the caller hears; the failure is logged."""
+    try:
+        row = journal.run(run_id)
+        sequencer.status("end", row.status, row.reason)
+    except Exception as exc:
+        if ended is None:
+            raise
+        log.warning("run %d's final status was not published: %s", run_id, exc)
+
+
 def calibrate(plan: Plan, plan_text: str, station: Station, station_text: str, operator: Operator,
-              settings: SequencerSettings, run_dir: Path, journal: Journal, display: Display | None = None,
+              settings: SequencerSettings, run_dir: Path, journal: Journal, events: EventBus | None = None,
               metadata: dict | None = None, serial: str | None = None,
-              operator_name: str | None = None, steps: list[Step] | None = None) -> RunResult:
+              operator_name: str | None = None, steps: list[Step] | None = None, *,
+              terminal: Terminal | None = None, forecast: Forecast | None = None) -> RunResult:
     """Start a new run: manifest first (its folder's files derived from it), then every point."""
     run_id = journal.start_run(Manifest(
         run_dir=os.path.abspath(run_dir), plan_name=plan.name, plan_text=plan_text, station_text=station_text,
@@ -146,7 +187,8 @@ def calibrate(plan: Plan, plan_text: str, station: Station, station_text: str, o
     except LabcalError:
         journal.finish(run_id, "failed", "its run folder could not be written")
         raise
-    return execute(journal, run_id, run_dir, plan, station, operator, settings, display, steps)
+    return execute(journal, run_id, run_dir, plan, station, operator, settings, events, steps,
+                   terminal=terminal, forecast=forecast)
 
 
 @dataclass(frozen=True)

@@ -1,16 +1,19 @@
-"""Executes a plan on a station: move, wait in position, settle, measure, journal, repeat.
+"""Executes a plan on a station: move, wait in position, settle, measure, report, repeat.
 
 The sequencer never knows whether a real rig or the simulator answers. Before anything moves,
 every angle of the run is checked against the tables' limits. Axes never move while a prompt is
-open. Each point is one journal transaction, committed before the next move. The first Ctrl-C
-pauses after the current point; the second stops the tables at once.
+open. The sequencer does not call its audiences: it publishes typed events (`labcal.run.events`)
+and the journal, their first and durable subscriber, commits each point in one transaction before
+the next move; the console, the lab database sync and a notifier subscribe besides. It still
+reads the journal (where the tables were last sent, the points so far). The first Ctrl-C pauses
+after the current point; the second stops the tables at once.
 """
 
 from __future__ import annotations
 
 import logging
 import sqlite3
-from contextlib import AbstractContextManager, nullcontext
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -20,11 +23,26 @@ from labcal.analysis.plan import Plan
 from labcal.config.settings import SequencerSettings
 from labcal.errors import LabcalError
 from labcal.run import settle_pool
+from labcal.run.events import (
+    Answer,
+    Discarded,
+    EventBus,
+    Fault,
+    Note,
+    Paused,
+    PointMeasured,
+    Prompt,
+    Resumed,
+    RunEvent,
+    Status,
+    Stopped,
+    mount_number,
+)
 from labcal.run.interrupts import Interrupts
 from labcal.run.journal import Journal, PointRecord
 from labcal.run.motion import Move, move_time, transient_after, transient_at_stop
 from labcal.run.mounting import CHECK_ATTITUDE, identify
-from labcal.run.operator import Operator, OperatorDeclined
+from labcal.run.operator import Operator, OperatorDeclined, Terminal
 from labcal.run.ordering import order_points
 from labcal.run.settle import Dwell, TailPool, dead_time, dwell, dwell_model
 from labcal.run.station import Station, StopFailed, TableState, mean_and_sd
@@ -94,18 +112,42 @@ def settle_cost(mount: Mount, settings: SequencerSettings):
     return cost
 
 
-class Display:
-    """What the sequencer reports as it goes; the console implementation draws a progress bar."""
+@dataclass(frozen=True)
+class Forecast:
+    """The plan's estimate of each step on the rig's clock (`labcal.run.estimate.Estimate.forecast`):
+    what a Status's live figures come from. For a mount's first step, ``prompt_s`` is the rig time
+    from the step's start to its remount prompt (the move to the load position), ``mount_s`` to the
+    end of the mounting (the operator's allowance and the mount check)."""
 
-    def pause(self) -> AbstractContextManager:
-        """Context in which a prompt may use the terminal."""
-        return nullcontext()
+    per_step_s: dict[int, float]
+    prompt_s: dict[int, float]
+    mount_s: dict[int, float]
 
-    def point_done(self, step: Step, volts: np.ndarray, station_time_s: float, settle_s: float) -> None:
-        pass
+    def ahead(self, todo: list[Step]) -> list[tuple[float | None, float]]:
+        """For each i, before ``todo[i]`` is measured (i = len(todo): after the last): the rig time
+        until the next remount prompt (None: none is left) and the rig time of the rest. The first
+        step of a segment prompts too (a resumed run confirms the mount). Computed once per run,
+        from the end, so that a day-long run's statuses cost nothing."""
+        figures: list[tuple[float | None, float]] = [(None, 0.0)]
+        next_prompt: float | None = None
+        rest = 0.0
+        for i in range(len(todo) - 1, -1, -1):
+            step = todo[i]
+            took = self.per_step_s.get(step.seq, 0.0)
+            if step.block_start or i == 0:
+                next_prompt = self.prompt_s.get(step.seq, 0.0)
+            elif next_prompt is not None:
+                next_prompt += took
+            rest += took
+            figures.append((next_prompt, rest))
+        return figures[::-1]
 
-    def message(self, text: str) -> None:
-        pass
+    def after_mount(self, step: Step, after: tuple[float | None, float]) -> tuple[float | None, float]:
+        """The figures once ``step``'s mounting is done, from ``after`` (`ahead`'s after the step):
+        its point is still to measure."""
+        left = self.per_step_s.get(step.seq, 0.0) - self.mount_s.get(step.seq, 0.0)
+        remount, rest = after
+        return (None if remount is None else remount + left), rest + left
 
 
 @dataclass
@@ -216,9 +258,11 @@ class Sequencer:
     journal: Journal
     run_id: int
     settings: SequencerSettings
-    display: Display = field(default_factory=Display)
+    events: EventBus = field(default_factory=EventBus)  # the journal subscribed first (`labcal.run.runner`)
+    terminal: Terminal = field(default_factory=Terminal)
     interrupts: Interrupts = field(default_factory=Interrupts)
     offset_s: float = 0.0  # rig time since the run began when this segment starts (0 unless resumed)
+    forecast: Forecast | None = None  # the plan's estimates, for the statuses' live figures
     _t0: float = 0.0
     moving: tuple[str, ...] = ()  # tables whose last stop failed: they may still be moving
     _at: Winding | None = None  # where the last move went (accumulated from home); None: unknown, locate it
@@ -228,6 +272,12 @@ class Sequencer:
     _sample_s: float = 0.0  # the voltmeter's time per sample, once measured
     _tail: TailPool | None = None  # model settling: the instrument's tail, pooled over its runs' points
     _pool_key: settle_pool.PoolKey | None = None  # where to keep _tail when the segment ends
+    _mount: int | None = None  # the mount on the plate (its number), once confirmed
+    _points_done: int = 0  # points of the run in the journal (ok and failed)
+    _points_total: int = 0
+    _ahead: list[tuple[float | None, float]] = field(default_factory=list)  # `Forecast.ahead` of the todo
+    _next: int = 0  # the index in the todo of the next step to measure
+    _todo: list[Step] = field(default_factory=list)
 
     # --- motion ----------------------------------------------------------------------------------
     def move(self, pitch: float, roll: float, winding: Winding | None = None) -> tuple[float, float]:
@@ -254,7 +304,7 @@ class Sequencer:
             legs.insert(0, ((start[0] + winding[0]) / 2, (start[1] + winding[1]) / 2))
         clock = self.station.clock
         for leg in legs:
-            self.event(MOVE_EVENT, f"pitch {start[0]:g}° → {leg[0]:g}°, roll {start[1]:g}° → {leg[1]:g}° "
+            self.note(MOVE_EVENT, f"pitch {start[0]:g}° → {leg[0]:g}°, roll {start[1]:g}° → {leg[1]:g}° "
                        "(accumulated from home)", pitch=[start[0], leg[0]], roll=[start[1], leg[1]])
             start_both(self.station, leg[0] % 360.0, leg[1] % 360.0, self.interrupts.critical,
                        (leg[0] - start[0], leg[1] - start[1]))
@@ -313,7 +363,7 @@ class Sequencer:
             return TailPool(s.tau_s, s.noise_v)
         state, note, keep = settle_pool.load(self.journal.db, key)
         self._pool_key = key if keep else None
-        self.event("settle_pool", note, pool_key=key.key, records=state.records if state else 0)
+        self.note("settle_pool", note, pool_key=key.key, records=state.records if state else 0)
         return TailPool(s.tau_s, s.noise_v, state)
 
     def _keep_pool(self) -> None:
@@ -326,29 +376,62 @@ class Sequencer:
         except (sqlite3.Error, LabcalError) as exc:
             log.warning("model settling's pool was not kept for the next run: %s", exc)
 
-    def event(self, kind: str, message: str, **data) -> None:
-        with self.interrupts.critical():
-            self.journal.event(self.run_id, kind, message, data or None, self.station.clock.now() - self._t0)
+    # --- what the run reports ----------------------------------------------------------------
+    def rig_time(self) -> float:
+        """Rig seconds since the run began (the journal's station_time)."""
+        return self.station.clock.now() - self._t0
+
+    def publish(self, event: RunEvent) -> None:
+        """To every subscriber; the journal's write inside the critical section (no stop cuts it)."""
+        self.events.publish(event, self.interrupts.critical)
+
+    def note(self, name: str, message: str, **data) -> None:
+        """Anything else the journal keeps, under its own kind (``name``)."""
+        self.publish(Note(run_id=self.run_id, rig_time_s=self.rig_time(), name=name, message=message,
+                          data=data or None))
+
+    def status(self, at: str, status: str = "running", reason: str | None = None) -> None:
+        """Where the run stands, before the next step (`Forecast.ahead`); ``at``: what occasioned it.
+        At the end (``status`` not running) no remount is ahead, whatever the forecast said."""
+        remount, eta = self._ahead[self._next] if self._ahead else (None, None)
+        if at == "mount" and self.forecast is not None:  # its prompt is past: the next one is ahead
+            remount, eta = self.forecast.after_mount(self._todo[self._next], self._ahead[self._next + 1])
+        if status != "running":
+            remount = None
+        self.publish(Status(run_id=self.run_id, rig_time_s=self.rig_time(),
+                            status=status, reason=reason, at=at,  # type: ignore[arg-type]
+                            points_done=self._points_done,
+                            points_total=self._points_total, mount=self._mount,
+                            next_remount_in_s=remount, eta_s=eta))
 
     # --- the operator ----------------------------------------------------------------------------
-    def ask(self, kind: str, question, *args) -> object:
-        """A prompt, with the tables still, its answer journaled."""
-        self.event("prompt", kind, args=[str(a) for a in args])
+    def ask(self, prompt: Prompt, question, *args) -> object:
+        """A prompt, with the tables still, and every answer to it published."""
+        self.publish(prompt)
+        what = prompt.what
 
-        def heard(reply: str, meaning: str) -> None:  # "n" and the like: journaled as they come
-            self.event("answer", f"{kind}: {reply!r} ({meaning}; the prompt stays open)")
+        def answer(reply: str, meaning: str, outcome: str) -> None:
+            self.publish(Answer(run_id=self.run_id, rig_time_s=self.rig_time(), what=what, reply=reply,
+                                meaning=meaning, outcome=outcome))  # type: ignore[arg-type]
 
-        self.operator.heard = heard
+        self.operator.heard = lambda reply, meaning: answer(reply, meaning, "open")  # "n": as they come
         try:
-            with self.display.pause(), self.interrupts.prompting():
-                answer = question(*args)
+            with self.terminal.pause(), self.interrupts.prompting():
+                reply = question(*args)
         except OperatorDeclined as exc:
-            self.event("answer", f"{kind}: declined", reason=str(exc))
+            answer("declined", str(exc), "declined")
             raise
         finally:
             self.operator.heard = None
-        self.event("answer", f"{kind}: {answer if answer is not None else 'confirmed'}")
-        return answer
+        text = str(reply) if reply is not None else "confirmed"
+        answer(text, text, "answered")
+        return reply
+
+    def prompt(self, what: str, message: str, args: tuple, mount: Mount | None = None,
+               step: int | None = None, n_steps: int | None = None) -> Prompt:
+        return Prompt(run_id=self.run_id, rig_time_s=self.rig_time(), what=what,  # type: ignore[arg-type]
+                      mount=None if mount is None else mount_number(mount.y_deg, mount.u_deg), step=step,
+                      n_steps=n_steps, message=message, args=tuple(str(a) for a in args))
 
     def mount(self, mount: Mount, step: int, n_steps: int, why: str,
               provisional: np.ndarray | None) -> None:
@@ -356,7 +439,10 @@ class Sequencer:
         note = why
         for _ in range(MOUNT_ATTEMPTS):
             self.move(*LOAD_POSITION)
-            self.ask("mount", self.operator.confirm_mount, mount, step, n_steps, note)
+            asked = f"mount {step} of {n_steps}: put the instrument on the {mount.describe()} ({mount})"
+            prompt = self.prompt("mount", asked + (f"; {note}" if note else ""), (mount, step, n_steps, note),
+                                 mount, step, n_steps)
+            self.ask(prompt, self.operator.confirm_mount, mount, step, n_steps, note)
             self.station.remounted(mount)
             verify = getattr(self.station.dmm, "verify", None)  # a DMM with a declared configuration
             if verify is not None:
@@ -367,25 +453,31 @@ class Sequencer:
             check = self.measure(mount, f"check:{mount}")
             seen = identify(mean_and_sd(check.scan)[0], provisional)
             if seen == mount:
-                self.event("mount", f"mount verified: {mount}")
+                self.note("mount", f"mount verified: {mount}")
                 return
             note = f"the instrument reads as if on the {seen.describe()}; please correct it"
-            self.event("fault", f"wrong mount: expected {mount}, reads as {seen}")
-            self.display.message(f"[bold red]Wrong mount:[/] {note}.")
+            self.publish(Fault(run_id=self.run_id, rig_time_s=self.rig_time(),
+                               message=f"wrong mount: expected {mount}, reads as {seen}"))
         raise OperatorDeclined(f"the instrument was not mounted as {mount.describe()} after "
                                f"{MOUNT_ATTEMPTS} attempts")
 
     def pause(self, why: str) -> None:
-        self.event("pause", why, may_be_moving=list(self.moving))
+        self.publish(Paused(run_id=self.run_id, rig_time_s=self.rig_time(), why=why,
+                            may_be_moving=self.moving))
         try:
-            choice = self.ask("pause", self.operator.after_pause, why, self.moving)
+            tables = (f"; the stop did not reach the {', '.join(self.moving)} table(s)" if self.moving
+                      else "; the tables are still")
+            choice = self.ask(self.prompt("pause", f"paused ({why}){tables}", (why, self.moving)),
+                              self.operator.after_pause, why, self.moving)
         except OperatorDeclined as exc:  # nobody answered (an unattended run): the pause's cause ended it
             raise OperatorDeclined(f"{why}; paused, and {exc}") from None
         if choice == "abort":
             raise OperatorDeclined(f"operator aborted the run after a pause ({why})")
         self.interrupts.resumed()
         self.moving = ()  # the operator has seen to the tables
-        self.event("resume", "operator resumed after the pause")
+        self.publish(Resumed(run_id=self.run_id, rig_time_s=self.rig_time(),
+                             why="operator resumed after the pause"))
+        self.status("resume")
 
     # --- the run ---------------------------------------------------------------------------------
     def run(self, steps: list[Step], committed: set[int], provisional=lambda: None) -> RunOutcome:
@@ -395,10 +487,16 @@ class Sequencer:
         self._t0 = self.station.clock.now() - self.offset_s  # one clock per run, across resumes
         todo = [s for s in steps if s.seq not in committed]
         blocks = [s for s in steps if s.block_start]
+        self._points_done, self._points_total = len(steps) - len(todo), len(steps)
+        self._ahead = self.forecast.ahead(todo) if self.forecast is not None else []
+        self._todo = todo
         mounted: Mount | None = None
         failed = 0
+        self._next = 0
+        self.status("start")
         try:
-            for step in todo:
+            for k, step in enumerate(todo):
+                self._next = k
                 if step.block_start or mounted is None:
                     if not step.block_start:
                         why = "confirm the mount to resume the run"
@@ -409,7 +507,11 @@ class Sequencer:
                     index = sum(1 for b in blocks if b.seq <= step.seq)
                     self.until_done(self.mount, step.mount, index, len(blocks), why, provisional())
                     mounted = step.mount
+                    self._mount = mount_number(step.mount.y_deg, step.mount.u_deg)
+                    self.status("mount")
                 failed += self.until_done(self.point, step)
+                self._next = k + 1
+                self.status("point")
                 if self.interrupts.pause_requested:
                     self.pause("Ctrl-C")
         except BaseException as exc:
@@ -432,24 +534,23 @@ class Sequencer:
             except StopFailed as failed:
                 self.moving = failed.tables
                 log.warning("STOP FAILED after %s: %s", why, failed)
-                self.display.message(f"[bold red]STOP FAILED:[/] {failed}; make the table safe by hand")
                 cause.add_note(f"STOP FAILED: {failed}")
-                self.event("stop", f"stop failed: {failed}", may_be_moving=list(failed.tables),
-                           cause=why)
+                self.publish(Stopped(run_id=self.run_id, rig_time_s=self.rig_time(), cause=why,
+                                     failed=str(failed), may_be_moving=failed.tables))
                 return
             self.moving = ()
             log.info("both tables stopped after %s", why)
-            self.event("stop", "both tables stopped", cause=why)
+            self.publish(Stopped(run_id=self.run_id, rig_time_s=self.rig_time(), cause=why))
 
     def discard(self, step: Step, attempt: int, result: Dwell, why: str, faulted: bool) -> None:
         """Journal a window the tables did not vouch for, with its readings (nothing taken is lost)."""
         mean, sd = result.estimate or mean_and_sd(result.scan)
-        then = "the run pauses" if faulted else "measured again"
-        self.event("discarded", f"point {step.seq}: readings discarded, {then}: {why}", seq=step.seq,
-                   attempt=attempt, reason=why, volts=[float(v) for v in mean], sd=[float(v) for v in sd],
-                   samples=[[None if np.isnan(v) else float(v) for v in row] for row in raw_samples(result)])
-        if not faulted:
-            self.display.message(f"[yellow]Point {step.seq} measured again:[/] {why}")
+        self.publish(Discarded(
+            run_id=self.run_id, rig_time_s=self.rig_time(), seq=step.seq, attempt=attempt, reason=why,
+            faulted=faulted, volts=(float(mean[0]), float(mean[1]), float(mean[2])),
+            sd=(float(sd[0]), float(sd[1]), float(sd[2])),
+            samples=tuple(tuple(None if np.isnan(v) else float(v) for v in row)
+                          for row in raw_samples(result))))
 
     def until_done(self, action, *args):
         """Do ``action(*args)``; on a device fault stop the tables, say what happened and pause: the
@@ -461,8 +562,7 @@ class Sequencer:
                 raise
             except LabcalError as fault:
                 self.stop_tables(fault)
-                self.event("fault", str(fault))
-                self.display.message(f"[bold red]Fault:[/] {fault}")
+                self.publish(Fault(run_id=self.run_id, rig_time_s=self.rig_time(), message=str(fault)))
                 self.pause(f"fault: {fault}")
 
     def tables(self) -> tuple[TableState, TableState]:
@@ -487,7 +587,7 @@ class Sequencer:
                 if why or result.verdict.settled:
                     break
                 if attempt == 1:
-                    self.event("retry",
+                    self.note("retry",
                                f"point {step.seq} did not settle ({result.verdict.reason}); retrying")
             if why is None:
                 break
@@ -511,13 +611,18 @@ class Sequencer:
             sd_vx=float(sd[0]), sd_vy=float(sd[1]), sd_vz=float(sd[2]), temp_c=temp,
             settle_s=result.settle_s, settle_verdict=result.verdict.reason,
         )
-        with self.interrupts.critical():
-            self.journal.record_point(self.run_id, record, raw)
-        self.display.point_done(step, mean, record.t_end, result.settle_s)
+        self._points_done += 1
+        self.publish(PointMeasured(
+            run_id=self.run_id, rig_time_s=record.t_end, seq=step.seq, replicate=step.replicate,
+            mount=mount_number(step.mount.y_deg, step.mount.u_deg), pitch_deg=step.pitch_deg,
+            roll_deg=step.roll_deg, volts=(float(mean[0]), float(mean[1]), float(mean[2])),
+            settle_s=result.settle_s, ok=ok,
+            points_done=self._points_done, points_total=self._points_total, record=record, samples=raw))
         if ok:
             return 0
         policy = self.settings.on_failure
-        self.event("fault", f"point {step.seq} failed: {result.verdict.reason}", policy=policy)
+        self.publish(Fault(run_id=self.run_id, rig_time_s=self.rig_time(),
+                           message=f"point {step.seq} failed: {result.verdict.reason}", policy=policy))
         if policy == "abort":
             raise PolicyAbort(f"point {step.seq} (pitch {step.pitch_deg:g}°, roll {step.roll_deg:g}°) did "
                               f"not settle: {result.verdict.reason}; run stopped (on_failure = abort)")
