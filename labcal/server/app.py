@@ -36,11 +36,11 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 from fastapi.templating import Jinja2Templates
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.engine import Engine
 
 from labcal.errors import LabcalError
-from labcal.run.schema import runs
+from labcal.run.schema import points, runs
 from labcal.server import lab, users
 from labcal.server.approve import NotHere, approve
 from labcal.server.plot import residual_png
@@ -233,13 +233,19 @@ def create_app(settings: ServerSettings) -> FastAPI:
         found = read(lab.progress, run_id)
         if found is None:
             return page(request, "error.html", user, status=404, message=f"No run {run_id} in the lab database.")
-        recent = [e for e in read(lab.run_events, run_id) if e["kind"] not in QUIET_KINDS][-30:]
-        return page(request, "run.html", user, run=found, recent=recent, message=message)
+        journal = read(lab.run_events, run_id)
+        recent = [e for e in journal if e["kind"] not in QUIET_KINDS][-30:]
+        seq = read(lambda conn: conn.execute(select(func.max(points.c.seq)).where(points.c.run_id == run_id))
+                   .scalar())
+        after = f"{-1 if seq is None else seq}:{journal[-1]['id'] if journal else 0}"
+        return page(request, "run.html", user, run=found, recent=recent, message=message, after=after)
 
     @app.get("/runs/{run_id}/stream")
     def page_stream(run_id: int, request: Request, user: Annotated[users.User, Depends(page_user)],
-                    last_event_id: Annotated[str | None, Header()] = None) -> Response:
-        return stream_response(request, run_id, last_event_id)
+                    last_event_id: Annotated[str | None, Header()] = None, after: str | None = None) -> Response:
+        # ``after``: where the page's own rendering left off (EventSource sends Last-Event-ID only
+        # when it reconnects, and then that wins)
+        return stream_response(request, run_id, last_event_id or after)
 
     @app.get("/runs/{run_id}/residuals.png")
     def page_residuals(run_id: int, user: Annotated[users.User, Depends(page_user)]) -> Response:

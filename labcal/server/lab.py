@@ -9,9 +9,11 @@ per step of the schedule), ``points_ok`` those measured. ``points_total`` is the
 schedule (replicates × mounts × points, `labcal.run.sequencer.schedule`'s blocks).
 
 The next remount and the ETA come from the run's latest ``status`` event where the run journals one
-(its ``next_remount_in_s`` and ``eta_s`` are the rig's own estimates); otherwise they are estimated
-here from the plan and the rig time the run has taken so far per point, and say so
-(``estimate: "points"``). A run that is not running has neither.
+(`labcal.run.events.Status`, journaled at each milestone: a mount confirmed, a resume): its
+``next_remount_in_s`` and ``eta_s`` are the plan's estimates on the rig's clock at that moment, less
+the rig time since (the latest point's end) — ``estimate: "status"``. A run journaled without them is
+estimated here from the plan and the rig time per point so far, and says so (``estimate:
+"points"``). A run that is not running has neither.
 """
 
 from __future__ import annotations
@@ -103,8 +105,19 @@ def stations(conn: Connection) -> list[dict]:
 
 
 def _event_json(row: Any) -> dict:
+    data = _json(row.data)
     return {"id": row.id, "utc": row.utc, "station_time": row.station_time, "kind": row.kind,
-            "message": row.message, "data": _json(row.data)}
+            "message": row.message, "data": data, "text": _text(row.kind, row.message, data)}
+
+
+def _text(kind: str, message: str, data: Any) -> str:
+    """The event in words for people: a prompt with what it asks (its arguments), else its message."""
+    if kind == PROMPT_KIND and isinstance(data, dict) and isinstance(data.get("args"), list):
+        args = [str(a) for a in data["args"] if str(a)]
+        if message == "mount" and len(args) >= 3:
+            return f"mount {args[1]} of {args[2]}: {args[0]}"
+        return f"{message}: {', '.join(args)}" if args else message
+    return message
 
 
 EVENT_COLUMNS = (events.c.id, events.c.utc, events.c.station_time, events.c.kind, events.c.message,
@@ -140,9 +153,13 @@ def _ahead(conn: Connection, row: Any, counts: tuple[int, int, int | None], rig_
         return none
     status = _latest(conn, row.id, STATUS_KIND)
     data = status["data"] if status and isinstance(status["data"], dict) else None
-    if data is not None and "next_remount_in_s" in data:
-        return {"next_remount_in_s": data.get("next_remount_in_s"), "eta_s": data.get("eta_s"),
-                "estimate": "status"}
+    if data is not None and data.get("status") == RUNNING and status is not None:
+        # the run's own estimate at its last milestone (a mount confirmed, a resume), less the rig
+        # time that has passed since (its latest point's end)
+        since = max(0.0, (rig_s or 0.0) - (status["station_time"] or 0.0))
+        remount, eta = data.get("next_remount_in_s"), data.get("eta_s")
+        return {"next_remount_in_s": None if remount is None else max(0.0, remount - since),
+                "eta_s": None if eta is None else max(0.0, eta - since), "estimate": "status"}
     shape = plan_shape(row.plan_text)
     done, _, last_seq = counts
     if shape is None or last_seq is None or not rig_s or rig_s <= 0:

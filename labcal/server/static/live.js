@@ -46,13 +46,13 @@
     time.textContent = (item.utc || "").slice(11, 19);
     const kind = document.createElement("b");
     kind.textContent = item.kind;
-    li.append(time, " ", kind, " " + item.message);
+    li.append(time, " ", kind, " " + (item.text || item.message));
     const list = $("events");
     list.append(li);
     while (list.children.length > 30) { list.removeChild(list.firstChild); }
   }
 
-  const source = new EventSource("/runs/" + id + "/stream");
+  const source = new EventSource("/runs/" + id + "/stream?after=" + encodeURIComponent(run.dataset.after));
   source.addEventListener("progress", (e) => show(JSON.parse(e.data)));
   for (const kind of ["prompt", "fault", "answer", "mount", "pause", "resume", "stop", "retry", "link",
                       "discarded", "interrupted"]) {
