@@ -114,9 +114,10 @@ def create_app(settings: ServerSettings) -> FastAPI:
             return JSONResponse({"detail": "sign in first"}, status_code=401)
         return RedirectResponse(f"/login?next={quote(str(exc.args[0]))}", status_code=303)
 
-    def page(request: Request, name: str, user: users.User | None, status: int = 200, **context: Any) -> Response:
+    def page(request: Request, template: str, user: users.User | None, status: int = 200, **context: Any
+             ) -> Response:
         session = getattr(request.state, "session", None)
-        return templates.TemplateResponse(request, name, {"user": user, "csrf": session.csrf if session else "",
+        return templates.TemplateResponse(request, template, {"user": user, "csrf": session.csrf if session else "",
                                                           "lab_db": settings.where, **context},
                                           status_code=status)
 
