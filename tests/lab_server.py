@@ -37,7 +37,7 @@ def served(db: str, *extra: str) -> Iterator[str]:
         assert server.stdout is not None
         line = server.stdout.readline()
         found = re.search(r"http://127\.0\.0\.1:\d+", line)
-        assert found, f"labcal serve printed {line!r}; stderr: {server.stderr.read() if server.stderr else ''}"
+        assert found, f"labcal serve printed {line!r}; stderr: {server.stderr and server.stderr.read()}"
         yield found[0]
     finally:
         server.send_signal(signal.SIGINT)
@@ -52,8 +52,8 @@ def served(db: str, *extra: str) -> Iterator[str]:
 def paced_run(db: str, out: Path, pace: float, plan: str = "one-mount-16", serial: str = "ACC-0107"
               ) -> Iterator[subprocess.Popen]:
     """A simulated run at ``pace`` × real time, journaling into ``db`` while the test watches."""
-    run = subprocess.Popen([LABCAL, "run", "--sim", "--yes", "--no-report", "--pace", str(pace), "--plan", plan,
-                            "--serial", serial, "--db", db, "--out", str(out)],
+    run = subprocess.Popen([LABCAL, "run", "--sim", "--yes", "--no-report", "--pace", str(pace),
+                            "--plan", plan, "--serial", serial, "--db", db, "--out", str(out)],
                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         yield run

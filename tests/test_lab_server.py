@@ -43,12 +43,16 @@ def _get(lab, path: str, token: str | None) -> httpx.Response:
     return httpx.get(lab["url"] + path, headers=headers, timeout=10)
 
 
-@pytest.mark.parametrize("path", ["/api/runs", "/api/runs/1", "/api/runs/1/stream", "/api/runs/1/residuals.png"])
+API = ["/api/runs", "/api/runs/1", "/api/runs/1/stream", "/api/runs/1/residuals.png"]
+
+
+@pytest.mark.parametrize("path", API)
 def test_the_api_refuses_a_request_without_a_valid_token(lab, path):
     assert _get(lab, path, None).status_code == 401
     assert _get(lab, path, "not-a-token").status_code == 401
     assert _get(lab, path, lab["tokens"]["vic"][:-1]).status_code == 401  # one character short
-    basic = httpx.get(lab["url"] + path, headers={"Authorization": f"Basic {lab['tokens']['vic']}"}, timeout=10)
+    basic = httpx.get(lab["url"] + path, headers={"Authorization": f"Basic {lab['tokens']['vic']}"},
+                      timeout=10)
     assert basic.status_code == 401
     assert _get(lab, path, None).headers["www-authenticate"] == "Bearer"
 
@@ -69,7 +73,8 @@ def test_api_runs_are_the_journals_runs(lab):
     assert found.status_code == 200
     listed = {r["id"]: r for r in found.json()["runs"]}
     with sqlite3.connect(lab["db"]) as conn:
-        rows = conn.execute("SELECT id, status, instrument_serial, metadata, plan_text, operator FROM runs").fetchall()
+        rows = conn.execute("SELECT id, status, instrument_serial, metadata, plan_text, operator "
+                            "FROM runs").fetchall()
         done = dict(conn.execute("SELECT run_id, count(*) FROM points GROUP BY run_id").fetchall())
     assert sorted(listed) == sorted(r[0] for r in rows) == [1, 2]
     for run_id, status, serial, metadata, plan_text, operator in rows:
@@ -86,7 +91,8 @@ def test_a_runs_detail_holds_its_journal_events(lab):
     detail = _get(lab, "/api/runs/2", lab["tokens"]["tom"]).json()
     with sqlite3.connect(lab["db"]) as conn:
         events = conn.execute("SELECT id, kind, message FROM events WHERE run_id = 2 ORDER BY id").fetchall()
-        last = conn.execute("SELECT y_deg, u_deg FROM points WHERE run_id = 2 ORDER BY seq DESC LIMIT 1").fetchone()
+        last = conn.execute("SELECT y_deg, u_deg FROM points WHERE run_id = 2 "
+                            "ORDER BY seq DESC LIMIT 1").fetchone()
     assert [(e["id"], e["kind"], e["message"]) for e in detail["events"]] == events
     assert detail["next_remount_in_s"] is None  # finished: no remount ahead
     assert detail["mount"] == {"y_deg": last[0], "u_deg": last[1]}
@@ -166,7 +172,8 @@ def test_the_session_cookie_is_httponly_strict_and_renewed_at_sign_in(lab):
     client = httpx.Client(base_url=lab["url"], timeout=15)
     form = client.get("/login")
     before = client.cookies["labcal_session"]
-    signed = client.post("/login", data={"name": "vic", "password": PASSWORD["vic"], "csrf": _csrf(form.text)})
+    signed = client.post("/login", data={"name": "vic", "password": PASSWORD["vic"],
+                                         "csrf": _csrf(form.text)})
     cookie = signed.headers["set-cookie"]
     assert "HttpOnly" in cookie and "SameSite=strict" in cookie.replace("Strict", "strict")
     assert client.cookies["labcal_session"] != before  # a new session id at sign-in
@@ -185,14 +192,16 @@ def test_every_form_refuses_a_post_without_its_csrf_token(lab, csrf):
     assert client.get("/").status_code == 200  # still signed in: nothing happened
     stranger = httpx.Client(base_url=lab["url"], timeout=15)
     stranger.get("/login")
-    assert stranger.post("/login", data={**data, "name": "ada", "password": PASSWORD["ada"]}).status_code == 403
+    tried = stranger.post("/login", data={**data, "name": "ada", "password": PASSWORD["ada"]})
+    assert tried.status_code == 403
     assert client.post("/logout", data={"csrf": good}).status_code == 303
     assert client.get("/", follow_redirects=False).status_code == 303  # signed out on the server
 
 
 def test_a_wrong_password_signs_nobody_in(lab):
     client = httpx.Client(base_url=lab["url"], timeout=15)
-    refused = client.post("/login", data={"name": "ada", "password": "guess", "csrf": _csrf(client.get("/login").text)})
+    csrf = _csrf(client.get("/login").text)
+    refused = client.post("/login", data={"name": "ada", "password": "guess", "csrf": csrf})
     assert refused.status_code == 401 and "Wrong name or password" in refused.text
     assert client.get("/", follow_redirects=False).status_code == 303
 

@@ -42,14 +42,15 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="labcal-shots-") as tmp:
         base = Path(tmp)
         db = str(base / "lab.sqlite")
-        labcal("run", "--sim", "--yes", "--no-report", "--seed", "3", "--serial", "ACC-0042", "--operator", "J. Doe",
-               "--plan", "one-mount-16", "--db", db, "--out", str(base / "done"))
+        labcal("run", "--sim", "--yes", "--no-report", "--seed", "3", "--serial", "ACC-0042",
+               "--operator", "J. Doe", "--plan", "one-mount-16", "--db", db, "--out", str(base / "done"))
         labcal("user", "add", "A. Metrologist", "--role", "approver", "--password", PASSWORD, "--db", db)
         live = subprocess.Popen([LABCAL, "run", "--sim", "--yes", "--no-report", "--pace", str(args.pace),
                                  "--serial", "ACC-0107", "--operator", "R. Tech", "--db", db,
                                  "--out", str(base / "live")],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        server = subprocess.Popen([LABCAL, "serve", "--port", "0", "--db", db], stdout=subprocess.PIPE, text=True)
+        server = subprocess.Popen([LABCAL, "serve", "--port", "0", "--db", db], stdout=subprocess.PIPE,
+                                  text=True)
         try:
             assert server.stdout is not None
             url = re.search(r"http://[\d.]+:\d+", server.stdout.readline())

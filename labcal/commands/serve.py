@@ -19,8 +19,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     settings = settings_for(args.db, args.key, args.poll)
 
     def listening(url: str) -> None:
-        sys.stdout.write(f"labcal lab server on {url} (lab database {settings.where}"
-                         f"{'; signing with ' + str(settings.key) if settings.key else ''}); Ctrl-C stops it\n")
+        signing = f"; signing with {settings.key}" if settings.key else ""
+        sys.stdout.write(f"labcal lab server on {url} (lab database {settings.where}{signing}); "
+                         "Ctrl-C stops it\n")
         sys.stdout.flush()
     serve(settings, args.host, args.port, listening)
     return 0
@@ -33,7 +34,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "streams of the runs. Reads the lab database only; approving signs with "
                                    f"--key. Needs {LAB_EXTRA}.")
     p.add_argument("--host", default="127.0.0.1",
-                   help="address to listen on (default 127.0.0.1: this machine only; 0.0.0.0: the lab's network)")
+                   help="address to listen on (default 127.0.0.1: this machine only; 0.0.0.0: the lab's "
+                        "network)")
     p.add_argument("--port", type=int, default=8024, help="port (default 8024; 0: any free port, printed)")
     p.add_argument("--db", default=None, metavar="URL",
                    help="the lab database: a path, sqlite:///PATH or postgresql://USER@HOST:PORT/DB "

@@ -8,7 +8,8 @@ import sys
 from labcal.commands.common import out, print_json
 from labcal.errors import LabcalError
 
-ROLES = ("technician", "approver", "viewer")  # as labcal.server.users.ROLES, without importing argon2 for --help
+# as labcal.server.users.ROLES, without importing argon2 for --help
+ROLES = ("technician", "approver", "viewer")
 
 
 def _engine(option: str | None, create: bool):

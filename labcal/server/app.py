@@ -20,7 +20,8 @@ per new point (``point``) and per journaled event (named by its kind: ``prompt``
 last event's id seen — so a client that reconnects with ``Last-Event-ID`` resumes where it left off.
 """
 
-# No `from __future__ import annotations`: FastAPI reads the routes' annotations (Depends on local functions) at definition time.
+# No `from __future__ import annotations`: FastAPI reads the routes' annotations (Depends on local
+# functions) when they are defined.
 
 import asyncio
 import json
@@ -117,9 +118,8 @@ def create_app(settings: ServerSettings) -> FastAPI:
     def page(request: Request, template: str, user: users.User | None, status: int = 200, **context: Any
              ) -> Response:
         session = getattr(request.state, "session", None)
-        return templates.TemplateResponse(request, template, {"user": user, "csrf": session.csrf if session else "",
-                                                          "lab_db": settings.where, **context},
-                                          status_code=status)
+        values = {"user": user, "csrf": session.csrf if session else "", "lab_db": settings.where, **context}
+        return templates.TemplateResponse(request, template, values, status_code=status)
 
     # --- the API ---------------------------------------------------------------------------------
     @app.get("/api/runs")
@@ -233,7 +233,8 @@ def create_app(settings: ServerSettings) -> FastAPI:
                  message: str | None = None) -> Response:
         found = read(lab.progress, run_id)
         if found is None:
-            return page(request, "error.html", user, status=404, message=f"No run {run_id} in the lab database.")
+            return page(request, "error.html", user, status=404,
+                        message=f"No run {run_id} in the lab database.")
         journal = read(lab.run_events, run_id)
         recent = [e for e in journal if e["kind"] not in QUIET_KINDS][-30:]
         seq = read(lambda conn: conn.execute(select(func.max(points.c.seq)).where(points.c.run_id == run_id))
@@ -243,7 +244,8 @@ def create_app(settings: ServerSettings) -> FastAPI:
 
     @app.get("/runs/{run_id}/stream")
     def page_stream(run_id: int, request: Request, user: Annotated[users.User, Depends(page_user)],
-                    last_event_id: Annotated[str | None, Header()] = None, after: str | None = None) -> Response:
+                    last_event_id: Annotated[str | None, Header()] = None, after: str | None = None
+                    ) -> Response:
         # ``after``: where the page's own rendering left off (EventSource sends Last-Event-ID only
         # when it reconnects, and then that wins)
         return stream_response(request, run_id, last_event_id or after)
@@ -262,7 +264,8 @@ def create_app(settings: ServerSettings) -> FastAPI:
                         message=f"{user.name} is a {user.role}; only an approver approves certificates.")
         # The electronic signature (21 CFR Part 11 §11.200): the signer gives their password again.
         if users.by_password(eng, user.name, password) is None:
-            return run_page_message(request, run_id, user, "The password is not yours: nothing was signed.", 401)
+            return run_page_message(request, run_id, user, "The password is not yours: nothing was signed.",
+                                    401)
         try:
             done = approve_as(run_id, user)
         except HTTPException as exc:
@@ -271,7 +274,8 @@ def create_app(settings: ServerSettings) -> FastAPI:
                                 f"Certificate {done.number} approved by {done.by} ({done.role}) at "
                                 f"{done.approved_utc}: signed.", 200)
 
-    def run_page_message(request: Request, run_id: int, user: users.User, message: str, status: int) -> Response:
+    def run_page_message(request: Request, run_id: int, user: users.User, message: str, status: int
+                         ) -> Response:
         response = run_page(request, run_id, user, message)
         response.status_code = status
         return response

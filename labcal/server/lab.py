@@ -137,8 +137,8 @@ def progress(conn: Connection, run_id: int) -> dict | None:
         return None
     counts = _counts(conn, [run_id]).get(run_id, (0, 0, None))
     summary = _summary(row, counts)
-    last = conn.execute(select(points.c.y_deg, points.c.u_deg, points.c.t_end).where(points.c.run_id == run_id)
-                        .order_by(points.c.seq.desc()).limit(1)).first()
+    last = conn.execute(select(points.c.y_deg, points.c.u_deg, points.c.t_end)
+                        .where(points.c.run_id == run_id).order_by(points.c.seq.desc()).limit(1)).first()
     summary["mount"] = None if last is None else {"y_deg": last.y_deg, "u_deg": last.u_deg}
     fault = _latest(conn, run_id, FAULT_KIND)
     summary["last_fault"] = None if fault is None else {"utc": fault["utc"], "message": fault["message"]}
@@ -167,7 +167,7 @@ def _ahead(conn: Connection, row: Any, counts: tuple[int, int, int | None], rig_
     position = last_seq + 1  # the next step of the schedule
     per_point = rig_s / position  # rig seconds per step so far, remounts included
     total = row.points_total or shape.total
-    boundary = -(-position // shape.block) * shape.block  # the next block's first step (this one, if it opens one)
+    boundary = -(-position // shape.block) * shape.block  # the next block's first step (or this one)
     remount = None if boundary >= total else max(0.0, (boundary - position) * per_point)
     return {"next_remount_in_s": remount, "eta_s": max(0, total - position) * per_point, "estimate": "points"}
 

@@ -26,7 +26,8 @@ def readings(conn: Connection, run_id: int) -> Readings | None:
     """The run's measured points as Readings, as `labcal.run.journal.Journal.readings` gives them."""
     rows = conn.execute(select(points.c.replicate, points.c.y_deg, points.c.u_deg, points.c.pitch_deg,
                                points.c.roll_deg, points.c.vx, points.c.vy, points.c.vz, points.c.temp_c)
-                        .where(points.c.run_id == run_id, points.c.status == "ok").order_by(points.c.seq)).all()
+                        .where(points.c.run_id == run_id, points.c.status == "ok")
+                        .order_by(points.c.seq)).all()
     if not rows:
         return None
     a = np.array([r[:8] for r in rows], dtype=float)

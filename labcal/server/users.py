@@ -158,7 +158,8 @@ def by_password(eng: Engine, name: str, password: str) -> User | None:
 
     hasher = _hasher()
     with eng.connect() as conn:
-        row = conn.execute(select(*COLUMNS, users.c.password_hash).where(users.c.name == name.strip())).first()
+        row = conn.execute(select(*COLUMNS, users.c.password_hash)
+                           .where(users.c.name == name.strip())).first()
     if not _DUMMY:
         _DUMMY.append(hasher.hash(secrets.token_hex(16)))
     stored = _DUMMY[0] if row is None else row[-1]
