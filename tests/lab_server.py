@@ -4,6 +4,7 @@ on a free port of 127.0.0.1 (it prints its URL), users added by `labcal user add
 
 from __future__ import annotations
 
+import io
 import json
 import re
 import signal
@@ -11,7 +12,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, redirect_stdout
 from pathlib import Path
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
@@ -22,10 +23,14 @@ def labcal(*args: str) -> subprocess.CompletedProcess:
 
 
 def add_user(db: str, name: str, role: str, password: str) -> str:
-    """Add a user through the command line; their API token."""
-    done = labcal("user", "add", name, "--role", role, "--password", password, "--db", db, "--json")
-    assert done.returncode == 0, done.stderr
-    return json.loads(done.stdout)["token"]
+    """Add a user through the command line (in this process: a labcal process takes seconds to start
+    on a loaded machine); their API token."""
+    from labcal.cli import main
+
+    printed = io.StringIO()
+    with redirect_stdout(printed):
+        assert main(["user", "add", name, "--role", role, "--password", password, "--db", db, "--json"]) == 0
+    return json.loads(printed.getvalue())["token"]
 
 
 @contextmanager

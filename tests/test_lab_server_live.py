@@ -1,0 +1,157 @@
+"""The lab server while runs go on: the event stream of a paced run (each point as it is journaled,
+resumed after a reconnection with Last-Event-ID), the run page counting up in a real browser without a
+reload, and the same API on PostgreSQL.
+
+Every run is a real `labcal run --sim --pace` process journaling into the database the server reads
+(`labcal serve` in a process of its own, tests/lab_server.py); the values are compared with the journal
+as sqlite3 reads it."""
+
+from __future__ import annotations
+
+import json
+import re
+import sqlite3
+import time
+
+import httpx
+from lab_server import add_user, paced_run, served, wait_for
+
+from labcal.cli import main
+
+PACE = 120.0  # four-mount-64 at 120 × real time: a point about every quarter second, some 16 s in all
+PLAN, TOTAL = "four-mount-64", 64
+
+
+def _journaled(db: str, run_id: int = 1) -> int:
+    """Points the run has journaled, as sqlite3 reads the file (0 before the run exists)."""
+    try:
+        with sqlite3.connect(db) as conn:
+            return int(conn.execute("SELECT count(*) FROM points WHERE run_id = ?", (run_id,)).fetchone()[0])
+    except sqlite3.OperationalError:  # not created yet
+        return 0
+
+
+def _run_exists(db: str) -> bool:
+    try:
+        with sqlite3.connect(db) as conn:
+            return conn.execute("SELECT count(*) FROM runs").fetchone()[0] > 0
+    except sqlite3.OperationalError:
+        return False
+
+
+def _sse(response: httpx.Response, deadline: float):
+    """(id, event, data) of each server-sent event, until ``deadline`` (monotonic)."""
+    fields: dict[str, str] = {}
+    for line in response.iter_lines():
+        if time.monotonic() > deadline:
+            raise AssertionError("the stream sent too little before the deadline")
+        if line == "":
+            if "data" in fields:
+                yield fields.get("id"), fields.get("event", "message"), json.loads(fields["data"])
+            fields = {}
+        elif not line.startswith(":") and ":" in line:
+            key, _, value = line.partition(":")
+            fields[key] = value.removeprefix(" ")
+
+
+def _points(url: str, token: str, want: int, last_event_id: str | None = None,
+            timeout_s: float = 25.0) -> list[tuple[str, dict]]:
+    headers = {"Authorization": f"Bearer {token}"}
+    if last_event_id:
+        headers["Last-Event-ID"] = last_event_id
+    found: list[tuple[str, dict]] = []
+    deadline = time.monotonic() + timeout_s
+    with httpx.stream("GET", url + "/api/runs/1/stream", headers=headers, timeout=timeout_s) as response:
+        assert response.status_code == 200
+        assert response.headers["content-type"].startswith("text/event-stream")
+        for event_id, kind, data in _sse(response, deadline):
+            if kind == "point":
+                found.append((event_id, data))
+                if len(found) == want:
+                    break
+    return found
+
+
+def test_the_stream_sends_each_point_as_it_is_journaled_and_resumes(tmp_path):
+    db = str(tmp_path / "lab.sqlite")
+    token = add_user(db, "vic", "viewer", "pw")
+    with served(db) as url, paced_run(db, tmp_path / "run", PACE, PLAN):
+        wait_for(lambda: _journaled(db) >= 1, 30, "the run's first point")
+        at_connect = _journaled(db)
+        first = _points(url, token, want=at_connect + 3)
+        seqs = [data["seq"] for _, data in first]
+        assert seqs == list(range(len(seqs)))  # every point once, in order, none missing
+        assert seqs[-1] >= at_connect + 2  # and points journaled after the client connected came too
+        with sqlite3.connect(db) as conn:
+            rows = dict(conn.execute("SELECT seq, vx FROM points WHERE run_id = 1").fetchall())
+        assert all(data["vx"] == rows[data["seq"]] for _, data in first)  # the journal's values
+        # A client that reconnects with the last id it saw gets the points after it, none again.
+        resumed = _points(url, token, want=2, last_event_id=first[-1][0])
+        assert [data["seq"] for _, data in resumed] == [seqs[-1] + 1, seqs[-1] + 2]
+
+
+def test_the_run_page_counts_up_without_a_reload(browser, tmp_path):
+    db = str(tmp_path / "lab.sqlite")
+    add_user(db, "ada", "approver", "ada's passphrase")
+    with served(db) as url, paced_run(db, tmp_path / "run", PACE, PLAN):
+        page = browser.new_page()
+        try:
+            page.goto(url + "/login")
+            page.fill("input[name=name]", "ada")
+            page.fill("input[name=password]", "ada's passphrase")
+            page.click("button[type=submit]")
+            page.wait_for_url(url + "/")
+            wait_for(lambda: _run_exists(db), 30, "the run to start")
+            page.goto(url + "/runs/1")
+            page.evaluate("window.notReloaded = true")
+            shown = page.text_content("#count") or ""
+            assert re.fullmatch(rf"\s*\d+ / {TOTAL}\s*", shown), shown
+            before = int(page.text_content("#done") or "-1")
+            page.wait_for_timeout(3000)  # seconds apart: six points or so at this pace
+            page.wait_for_function("n => Number(document.getElementById('done').textContent) > n", arg=before,
+                                   timeout=20_000)
+            after = int(page.text_content("#done") or "-1")
+            assert after > before
+            assert page.evaluate("window.notReloaded") is True  # the same page, updated in place
+            assert after <= _journaled(db) <= TOTAL  # it shows what the journal holds, never more
+        finally:
+            page.close()
+
+
+def test_the_api_on_postgresql(postgres_url, tmp_path):
+    """The schema made by the migrations on PostgreSQL, the rows of a real sim run copied into it, the
+    users added by `labcal user add --db postgresql://…`: /api/runs says what the SQLite journal says."""
+    from sqlalchemy import create_engine, select
+
+    from labcal.run import migrations
+    from labcal.run.schema import events, points, runs
+
+    db = str(tmp_path / "lab.sqlite")
+    add_user(db, "nobody", "viewer", "x")  # the file at the head, so that its rows copy whole
+    assert main(["run", "--sim", "--yes", "--no-report", "--seed", "4", "--serial", "ACC-7", "--db", db,
+                 "--out", str(tmp_path / "run")]) == 0
+    pg = create_engine(postgres_url.replace("postgresql://", "postgresql+psycopg://"))
+    with pg.begin() as conn:
+        migrations.upgrade(conn)
+    source = create_engine(f"sqlite:///{db}")
+    with source.connect() as read, pg.begin() as write:
+        for table in (runs, points, events):
+            write.execute(table.insert(), [dict(r._mapping) for r in read.execute(select(table))])
+    source.dispose()
+    pg.dispose()
+    token = add_user(postgres_url, "vic", "viewer", "pw")
+    with served(postgres_url) as url:
+        auth = {"Authorization": f"Bearer {token}"}
+        assert httpx.get(url + "/api/runs", timeout=10).status_code == 401
+        listed = httpx.get(url + "/api/runs", headers=auth, timeout=10).json()["runs"]
+        with sqlite3.connect(db) as conn:
+            row = conn.execute("SELECT id, status, instrument_serial FROM runs").fetchone()
+            done = conn.execute("SELECT count(*) FROM points").fetchone()[0]
+            kinds = [k for (k,) in conn.execute("SELECT kind FROM events ORDER BY id")]
+        assert [(r["id"], r["status"], r["serial"], r["points_done"], r["points_total"]) for r in listed] == \
+            [(row[0], row[1], row[2], done, 64)]
+        detail = httpx.get(url + "/api/runs/1", headers=auth, timeout=10).json()
+        assert [e["kind"] for e in detail["events"]] == kinds
+        streamed = _points(url, token, want=3)
+        assert [data["seq"] for _, data in streamed] == [0, 1, 2]
+
