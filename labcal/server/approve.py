@@ -64,5 +64,6 @@ def approve(run_dir: str, user: str, key: Path | None, db_file: Path | None) -> 
         result = approve_run(run_dir, user, role, key, db_file)
     approval = result.certificate.approval
     assert approval is not None  # approve_run signs or refuses
-    return Approved(result.certificate.number, approval.by, approval.role,
-                    approval.approved_utc.isoformat(), str(result.certificate_path))
+    stated = result.certificate.to_json()["approval"]  # the time as the certificate states it
+    return Approved(result.certificate.number, approval.by, approval.role, stated["approved_utc"],
+                    str(result.certificate_path))
