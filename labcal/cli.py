@@ -12,6 +12,7 @@ from labcal.commands import (
     attitude,
     certificate,
     config,
+    db,
     device,
     export,
     fit,
@@ -24,6 +25,7 @@ from labcal.commands import (
     sim,
     simulate,
     station,
+    sync,
     user,
 )
 from labcal.commands.common import EXIT_INTERRUPTED, EXIT_USER_ERROR, err
@@ -37,7 +39,7 @@ from labcal.errors import LabcalError
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, runs, device, station, sim, export,
-                  config, certificate, serve, user)
+                  config, certificate, db, sync, serve, user)
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -120,7 +122,9 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_BROKEN_PIPE
     except LabcalError as exc:
-        err.print(f"[bold red]labcal: error:[/] {exc}")
+        from rich.markup import escape
+
+        err.print(f"[bold red]labcal: error:[/] {escape(str(exc))}")  # "pip install 'labcal[lab]'" as written
         return EXIT_USER_ERROR
     except KeyboardInterrupt as exc:
         err.print("[bold red]interrupted[/]")

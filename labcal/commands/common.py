@@ -88,9 +88,9 @@ def print_changes(flagged: list[str], tally: str, rule: str, plot: str | None) -
 
 
 def add_db_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--db", metavar="PATH",
-                   help="the lab's SQLite database (default: $LABCAL_DB, else the lab file's database; "
-                        "see `labcal config path`)")
+    p.add_argument("--db", metavar="PATH|URL",
+                   help="the lab database: a SQLite file, or postgresql://USER@HOST:PORT/DBNAME (default: "
+                        "$LABCAL_DB, else the lab file's database; see `labcal config path`)")
 
 
 def bounded(kind: type[int] | type[float], lo: float | None = None, hi: float | None = None, *,

@@ -182,6 +182,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from labcal.run.rundir import new_run_dir
     from labcal.run.runner import calibrate
     from labcal.run.sequencer import check_limits, schedule
+    from labcal.run.sync import sending
 
     if not args.sim and not args.station:
         raise LabcalError("no station given: use --sim for a dry run on the simulated rig, or --station FILE "
@@ -195,6 +196,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.pace is not None and not args.sim:
         raise LabcalError(PACE_SIM_ONLY)
     plan, plan_text = load_plan(args.plan)
+    if not args.dry_run:  # a lab database behind or ahead of this labcal: refused before anything moves
+        from labcal.run.sync import ready
+
+        ready(args.db, _note)
     if args.replicates is not None:  # the journal keeps the plan that actually runs
         plan = Plan.model_validate({**plan.model_dump(), "replicates": args.replicates})
         plan_text = plan_toml(plan)
@@ -240,11 +245,18 @@ def cmd_run(args: argparse.Namespace) -> int:
             setup.metadata["device_identity"] = bench.identities  # the manifest's metadata and run.json
         operator = make_operator(args)
         run_dir = new_run_dir(args.out, plan)
-        with Journal(db_path(args.db), durable=not args.sim) as journal:
+        with Journal(db_path(args.db), durable=not args.sim) as journal, \
+                sending(args.db, journal.path, _note):
             return run_and_report(args, lambda events, terminal, forecast: calibrate(
                 plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, events,
                 setup.metadata, args.serial, args.operator, steps, terminal=terminal, forecast=forecast),
                 run_dir, plan, est, 0, cert_settings)
+
+
+def _note(line: str) -> None:
+    from rich.markup import escape
+
+    err.print(f"[yellow]note:[/] {escape(line)}")
 
 
 def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Path | None,
@@ -289,6 +301,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
     from labcal.run.journal import sha256
     from labcal.run.runner import execute, open_for_resume
     from labcal.run.sequencer import check_limits, schedule
+    from labcal.run.sync import sending
     from labcal.run.winding import left_at
 
     run_dir = Path(args.run)
@@ -345,6 +358,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
             ctx.journal.event(ctx.run_id, "device_identity", "the devices that answered on resuming",
                               bench.identities)
         cert_settings = certificate_settings_for_run(args, certificate, args.station or "the run's station")
+        stack.enter_context(sending(args.db, ctx.journal.path, _note))
         return run_and_report(args, lambda events, terminal, forecast: execute(
             ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, events,
             steps, terminal=terminal, forecast=forecast),

@@ -13,7 +13,9 @@ folder. A relative `database` is relative to the file that names it.
 
 Example::
 
-    database = "/srv/lab/labcal.sqlite"
+    database = "/srv/lab/labcal.sqlite"   # or postgresql://labcal@labserver:5432/lab
+    journal = "/var/lib/labcal/journal.sqlite"   # with a server: this station's own journal
+    station = "bench-2"   # this station's name in the lab database
 
     [laboratory]
     name = "Example Calibration Laboratory"
@@ -41,8 +43,11 @@ from labcal.errors import LabcalError
 
 CONFIG_ENV = "LABCAL_CONFIG"
 DB_ENV = "LABCAL_DB"
+JOURNAL_ENV = "LABCAL_JOURNAL"
+STATION_ENV = "LABCAL_STATION"
 FILE_NAME = "lab.toml"
 DB_NAME = "labcal.sqlite"
+JOURNAL_NAME = "journal.sqlite"
 
 
 class Laboratory(BaseModel):
@@ -66,7 +71,14 @@ class LabFile(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     database: str | None = Field(default=None,
-                                 description="the lab's SQLite database (relative: to this file)")
+                                 description="the lab database: a SQLite file (relative: to this file), "
+                                             "sqlite:///PATH, or postgresql://USER@HOST:PORT/DBNAME")
+    journal: str | None = Field(default=None,
+                                description="with a PostgreSQL lab database, this station's local journal "
+                                            "(SQLite; relative: to this file)")
+    station: str | None = Field(default=None,
+                                description="this station's name in the lab database (default: the "
+                                            "computer's name)")
     laboratory: Laboratory = Field(default_factory=Laboratory)
     certificate: CertificateSettings = Field(default_factory=CertificateSettings,
                                              description="default tolerances and usage envelope")
@@ -91,27 +103,71 @@ class LabConfig:
             return self.file.certificate.model_copy(update={"laboratory": self.laboratory.stated})
         return self.file.certificate
 
-    def database(self, option: str | Path | None = None) -> Path:
+    def database(self, option: str | Path | None = None) -> Path | ServerDatabase:
         """The lab database: --db, else $LABCAL_DB, else this file's `database`, else the user's
         data folder — never a path relative to the current folder unless one was given."""
         if option:
-            return database_path(str(option), "--db")
+            return database_location(str(option), "--db")
         if os.environ.get(DB_ENV):
-            return database_path(os.environ[DB_ENV], f"${DB_ENV}")
+            return database_location(os.environ[DB_ENV], f"${DB_ENV}")
         if self.file.database:
-            given = database_path(self.file.database, f"{self.path or FILE_NAME}: database").expanduser()
-            return given if given.is_absolute() or self.path is None else self.path.parent / given
+            given = database_location(self.file.database, f"{self.path or FILE_NAME}: database")
+            return given if isinstance(given, ServerDatabase) else self._relative(given)
         return data_home() / "labcal" / DB_NAME
+
+    def journal(self) -> Path:
+        """Where this station journals its runs when the lab database is a server: $LABCAL_JOURNAL,
+        else this file's `journal`, else the user's data folder. Every reading is on this disk
+        before the server sees it, so a run never waits for the server (`labcal.lab.sync`)."""
+        if os.environ.get(JOURNAL_ENV):
+            return Path(os.environ[JOURNAL_ENV]).expanduser()
+        if self.file.journal:
+            return self._relative(Path(self.file.journal))
+        return data_home() / "labcal" / JOURNAL_NAME
+
+    def station(self) -> str:
+        """This station's name in the lab database: $LABCAL_STATION, else this file's `station`, else
+        the computer's name (one station per computer unless told otherwise)."""
+        import socket
+
+        return os.environ.get(STATION_ENV) or self.file.station or socket.gethostname()
+
+    def _relative(self, given: Path) -> Path:
+        given = given.expanduser()
+        return given if given.is_absolute() or self.path is None else self.path.parent / given
 
 
 SERVER_SCHEMES = ("postgresql", "postgres", "postgresql+psycopg")
+DRIVER_HINT = "pip install 'labcal[lab]'"
 
 
-def database_path(location: str, source: str) -> Path:
-    """The SQLite file a database location names: a path, or a URL `sqlite:///PATH` (SQLAlchemy's
-    form: three slashes then the path, so `sqlite:////srv/lab.sqlite` is absolute). Any other
-    `SCHEME://` is refused in one line rather than taken for a folder name: a PostgreSQL lab server
-    (issue 24) is not supported by this labcal yet, and an unknown scheme is a typing error."""
+@dataclass(frozen=True)
+class ServerDatabase:
+    """A lab database on a PostgreSQL server, as given (``postgresql://USER@HOST:PORT/DBNAME``)."""
+
+    url: str
+    source: str  # where it was given (--db, $LABCAL_DB, the lab file), for the messages
+
+    @property
+    def sqlalchemy_url(self) -> str:
+        """The URL SQLAlchemy opens it with: psycopg 3, whatever the scheme's spelling."""
+        return "postgresql+psycopg://" + self.url.partition("://")[2]
+
+    def __str__(self) -> str:
+        """The URL without a password (it is printed, and may be logged)."""
+        scheme, _, rest = self.url.partition("://")
+        who, at, where = rest.rpartition("@")
+        if at and ":" in who:
+            who = who.split(":", 1)[0] + ":***"
+        return f"{scheme}://{who}{at}{where}"
+
+
+def database_location(location: str, source: str) -> Path | ServerDatabase:
+    """What a database location names: a SQLite file (a path, or a URL `sqlite:///PATH`,
+    SQLAlchemy's form: three slashes then the path, so `sqlite:////srv/lab.sqlite` is absolute), or
+    a PostgreSQL server (`postgresql://USER@HOST:PORT/DBNAME`), refused in one line when its driver
+    (psycopg 3) is not installed. Any other `SCHEME://` is refused in one line rather than taken for
+    a folder name: it is a typing error."""
     scheme, sep, rest = location.partition("://")
     if not sep:
         return Path(location)
@@ -121,10 +177,18 @@ def database_path(location: str, source: str) -> Path:
                               "and a relative path, or four and an absolute one)")
         return Path(rest[1:])
     if scheme in SERVER_SCHEMES:
-        raise LabcalError(f"{source}: {location!r} is a PostgreSQL server, which this labcal cannot use "
-                          "yet; give the lab database as a path or sqlite:///PATH")
-    raise LabcalError(f"{source}: unknown database scheme {scheme!r} in {location!r}; give a path or "
-                      "sqlite:///PATH")
+        server = ServerDatabase(location, source)
+        if not rest.partition("/")[2]:
+            raise LabcalError(f"{source}: {server} names no database; write "
+                              "postgresql://USER@HOST:PORT/DBNAME")
+        import importlib.util
+
+        if importlib.util.find_spec("psycopg") is None:
+            raise LabcalError(f"{source}: {server} is a PostgreSQL server, and its driver (psycopg 3) is not "
+                              f"installed; {DRIVER_HINT}")
+        return server
+    raise LabcalError(f"{source}: unknown database scheme {scheme!r} in {location!r}; give a path, "
+                      "sqlite:///PATH or postgresql://USER@HOST:PORT/DBNAME")
 
 
 def _home_dir(env: str, posix: str, mac: str, windows_env: str) -> Path:

@@ -24,17 +24,25 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal.analysis.readings import Readings
-from labcal.config.lab import database_path, load_lab_config
+from labcal.config.lab import ServerDatabase, database_location, load_lab_config
 from labcal.errors import LabcalError
 from labcal.run import labdb
 
 
-def db_path(option: str | Path | None = None) -> Path:
+def lab_database(option: str | Path | None = None) -> Path | ServerDatabase:
     """The lab database: --db, else $LABCAL_DB, else the lab file's, else the user's data folder
     (`labcal.config.lab.LabConfig.database`) — not a folder relative to where the command started."""
     if option:
-        return database_path(str(option), "--db")
+        return database_location(str(option), "--db")
     return load_lab_config().database()
+
+
+def db_path(option: str | Path | None = None) -> Path:
+    """The SQLite file this station journals in: the lab database itself when it is a SQLite file
+    (no copy, nothing to send), else the station's local journal (`LabConfig.journal`), whose
+    records `labcal.lab.sync` sends to the lab's server."""
+    found = lab_database(option)
+    return found if isinstance(found, Path) else load_lab_config().journal()
 
 
 def sha256(text: str) -> str:

@@ -1,22 +1,24 @@
-"""The lab database: one SQLite file, one schema, owned here, versioned and migrated on open.
+"""The lab database: one schema (`labcal.run.schema`), one migration history (Alembic,
+`labcal.run.migrations`), for a SQLite file and for a PostgreSQL server alike; opened here only.
 
-Every run of the lab (the journal: ``runs``, ``points``, ``events``) and every certificate issued
-(``certificates``) live in one file (`labcal.run.journal.db_path`). The journal and the history
-each used to create their own tables in it; now both open it through `connect`, which is the only
-place that knows the schema. ``PRAGMA user_version`` is its version, and `MIGRATIONS` is the
-ordered list of steps from each version to the next.
+Opening never migrates. A new database (a missing or empty SQLite file, an empty PostgreSQL
+database) is created at the newest revision by the same Alembic steps an upgrade runs, so the
+README's first command needs no setup and a new database and an upgraded one cannot differ. A
+database at the newest revision opens; one behind it (an older Alembic revision, or a file of the
+labcal before Alembic, which carried its schema version 0–5 as ``PRAGMA user_version``) or ahead of
+it (written by a newer labcal) is refused in one line saying what to do, before a run moves
+anything: `labcal db upgrade`, or upgrade labcal. A file made or upgraded here carries
+``user_version`` `ALEMBIC_USER_VERSION`, which the labcal before Alembic refuses as newer.
 
-Version 0 is the schema as labcal created it before it was versioned: tables made with
-``CREATE TABLE IF NOT EXISTS`` by whichever of the journal or the history opened the file first,
-so a version-0 file may hold all four tables, only the journal's, only ``certificates``, or none.
-`BASELINE` (idempotent) brings any of those to the full version-0 schema, and the migrations take
-it from there; a new file goes the same way, so a new database and a migrated one cannot differ.
-
-On open, a file older than this labcal is migrated in one transaction, under SQLite's write lock
-(so two programs opening it at once migrate it once), after a consistent copy of it is written
-beside it as ``<name>.v<old>.bak`` with SQLite's online backup (correct for a WAL database whose
-latest pages are still in the -wal file). A failure rolls every step back: the file stays at its
-old version, and says so in one line. A file newer than this labcal is refused, untouched.
+`upgrade` (``labcal db upgrade``) migrates a SQLite file in one transaction, under SQLite's write
+lock (so two programs upgrading it at once upgrade it once), after a consistent copy of it is
+written beside it as ``<name>.v<revision>.bak`` with SQLite's online backup (correct for a WAL
+database whose latest pages are still in the -wal file). A failure rolls every step back: the file
+stays at its old revision, and says so in one line. A pre-Alembic file at user_version N is
+stamped at revision N first; a version-0 file may hold only some of its tables (the journal and the
+history each created their own, whichever opened it first), so `BASELINE` (idempotent) completes it
+before. A PostgreSQL database is upgraded in one transaction too (its DDL is transactional), under
+an advisory lock; its backups are the lab's (pg_dump).
 
 Reads and writes name their columns (no ``SELECT *``, no ``INSERT … VALUES`` without a column
 list), so a migration that adds a column never breaks the code that came before it.
@@ -27,15 +29,21 @@ from __future__ import annotations
 import os
 import shutil
 import sqlite3
-import uuid
-from collections.abc import Callable
 from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from labcal.config.files import size_text
+from labcal.config.lab import DRIVER_HINT, ServerDatabase
 from labcal.errors import LabcalError
+from labcal.run.migrations import HEAD
 
+if TYPE_CHECKING:
+    from sqlalchemy.engine import Connection, Engine
+
+ALEMBIC_USER_VERSION = 6  # > 5: the labcal before Alembic refuses an Alembic-kept file as newer
+PG_LOCK = 0x6C616263  # "labc": the advisory lock that serialises creating and upgrading on a server
 # Version 0, exactly as the unversioned labcal created it (journal.py and history.py, a8863ee).
 BASELINE: tuple[str, ...] = (
     """CREATE TABLE IF NOT EXISTS runs (
@@ -73,116 +81,65 @@ BASELINE: tuple[str, ...] = (
 
 
 @dataclass(frozen=True)
-class Migration:
-    """One step: from version ``version - 1`` to ``version``, inside the caller's transaction.
+class Revision:
+    """Where a database's schema is: ``revision`` (None: empty, nothing in it), and whether it is a
+    file of the labcal before Alembic (its revision read from ``PRAGMA user_version``)."""
 
-    ``apply`` must not commit (no ``executescript``, which commits first): the whole chain of
-    steps commits together or not at all.
-    """
+    revision: str | None
+    legacy: bool = False
 
-    version: int
-    why: str
-    apply: Callable[[sqlite3.Connection], None]
+    @property
+    def behind(self) -> bool:
+        return self.revision is not None and self.revision.isdigit() and self.revision < HEAD \
+            and len(self.revision) == len(HEAD)
 
+    @property
+    def ahead(self) -> bool:
+        return self.revision is not None and self.revision != HEAD and not self.behind
 
-def _v1_events_by_run(db: sqlite3.Connection) -> None:
-    db.execute("CREATE INDEX events_by_run ON events (run_id, id)")
-
-
-def _v2_run_identity_and_exports(db: sqlite3.Connection) -> None:
-    db.execute("ALTER TABLE runs ADD COLUMN uuid TEXT")
-    for (run_id,) in db.execute("SELECT id FROM runs").fetchall():
-        db.execute("UPDATE runs SET uuid=? WHERE id=?", (str(uuid.uuid4()), run_id))
-    db.execute("CREATE UNIQUE INDEX runs_by_uuid ON runs (uuid)")
-    db.execute("CREATE TABLE run_exports (run_id INTEGER NOT NULL REFERENCES runs(id), name TEXT NOT NULL, "
-               "sha256 TEXT NOT NULL, PRIMARY KEY (run_id, name))")
+    def __str__(self) -> str:
+        if self.revision is None:
+            return "empty"
+        return f"{self.revision} (user_version {int(self.revision)}, before Alembic)" if self.legacy \
+            else self.revision
 
 
-def _v3_device_estimates(db: sqlite3.Connection) -> None:
-    db.execute("""CREATE TABLE device_estimates (
-    device_id TEXT NOT NULL,
-    source TEXT NOT NULL,
-    calibrated_utc TEXT NOT NULL,
-    stored_utc TEXT NOT NULL,
-    document TEXT NOT NULL,
-    PRIMARY KEY (device_id, source)
-)""")
-    db.execute("CREATE INDEX device_estimates_by_date ON device_estimates (device_id, calibrated_utc)")
+def backup_path(path: Path, revision: str) -> Path:
+    """Where the copy made before upgrading from ``revision`` goes: beside the database."""
+    return path.with_name(f"{path.name}.v{revision}.bak")
 
 
-def _v4_approvers(db: sqlite3.Connection) -> None:
-    # One row per registration: a revoked row stays (it names who signed the certificates of the
-    # past); a name is active at most once and a key is registered once, ever, so that a key can
-    # never sign under two names and a revoked key never comes back.
-    db.execute("""CREATE TABLE approvers (
-    id INTEGER PRIMARY KEY,
-    name TEXT NOT NULL,
-    role TEXT NOT NULL,
-    public_key TEXT NOT NULL,
-    key_id TEXT NOT NULL UNIQUE,
-    added_utc TEXT NOT NULL,
-    revoked_utc TEXT
-)""")
-    db.execute("CREATE UNIQUE INDEX approvers_active_name ON approvers (name) WHERE revoked_utc IS NULL")
+def revision_of(db: sqlite3.Connection) -> Revision:
+    """A SQLite file's revision, read with plain SQL (no Alembic: every open asks)."""
+    names = {row[0] for row in db.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+    if "alembic_version" in names:
+        row = db.execute("SELECT version_num FROM alembic_version").fetchone()
+        return Revision(row[0] if row else None)
+    if not names:
+        return Revision(None)
+    version = int(db.execute("PRAGMA user_version").fetchone()[0])
+    return Revision(f"{version:04d}" if version <= 5 else f"user_version {version}", legacy=True)
 
 
-def _v5_settle_pools(db: sqlite3.Connection) -> None:
-    db.execute("""CREATE TABLE settle_pools (
-    pool_key TEXT PRIMARY KEY,
-    identity TEXT NOT NULL,
-    records INTEGER NOT NULL,
-    sources TEXT NOT NULL,
-    mismatch TEXT NOT NULL,
-    sums BLOB NOT NULL,
-    updated_utc TEXT NOT NULL
-)""")
+def refusal(where: object, found: Revision, db_option: str) -> LabcalError:
+    """The one line for a database behind or ahead of this labcal."""
+    if found.ahead:
+        return LabcalError(f"{where}: the lab database is at schema {found}, newer than this labcal's "
+                           f"({HEAD}); upgrade labcal")
+    backup = " (it backs the file up beside it first)" if isinstance(where, Path) else \
+        " (back the database up first: pg_dump)"
+    return LabcalError(f"{where}: the lab database is at schema {found}, older than this labcal's ({HEAD}); "
+                       f"run: labcal db upgrade{db_option}{backup}")
 
 
-MIGRATIONS: tuple[Migration, ...] = (
-    Migration(1, "index events by run: `Journal.events(run)` (the audit trail of prompts, faults, "
-                 "retries and pauses) read the whole lab's events table for every run, and "
-                 "events.run_id is a foreign key that SQLite advises indexing (points are already "
-                 "indexed by their primary key (run_id, seq)). An index only, so the previous labcal "
-                 "still reads and writes a version-1 file.", _v1_events_by_run),
-    Migration(2, "run identity and export hashes: a run gets a UUID (runs.uuid, written into its "
-                 "run.json), so a run folder whose database was restored or re-created (ids reused) is "
-                 "recognised as another run's; run_exports keeps the SHA-256 of every file labcal last "
-                 "wrote into a run folder, so a missing, stale or hand-edited export is detected and "
-                 "rewritten from the journal. Existing runs get a UUID here. Additive only.",
-              _v2_run_identity_and_exports),
-    Migration(3, "the calibration device's own history (issue 12): each run's device-model estimate of "
-                 "the misalignments a…k per calibration-device id, for `labcal device history`. A new "
-                 "table only, so the previous labcal still reads and writes a version-2 file.",
-              _v3_device_estimates),
-    Migration(4, "approvers registered by the lab (issue 23): name, role and Ed25519 public key of each "
-                 "person who may approve a certificate, with the time of registration and of revocation, "
-                 "so that `certificate approve` and `attitude --cert` accept only signatures by a "
-                 "registered, unrevoked key under its own name and role. A new table only.",
-              _v4_approvers),
-    Migration(5, "model settling's pooled step records (issue 27): per instrument (or type) and station, "
-                 "the sums `labcal.run.settle.TailPool` keeps over its records, so that a run starts with "
-                 "the records of the runs before it (`labcal.run.settle_pool`). A new table only, so the "
-                 "previous labcal still reads and writes a version-3 file.", _v5_settle_pools),
-)
-SCHEMA_VERSION = MIGRATIONS[-1].version
+def _db_option(where: object) -> str:
+    return f" --db {where}" if isinstance(where, Path) else ""
 
 
-def backup_path(path: Path, version: int) -> Path:
-    """Where the copy made before migrating from ``version`` goes: beside the database."""
-    return path.with_name(f"{path.name}.v{version}.bak")
-
-
-def version_of(db: sqlite3.Connection) -> int:
-    return int(db.execute("PRAGMA user_version").fetchone()[0])
-
-
-def connect(path: str | Path, migrations: tuple[Migration, ...] = MIGRATIONS) -> sqlite3.Connection:
-    """Open the lab database at the current schema (its folder made if need be): WAL,
-    synchronous=FULL, foreign keys on, autocommit (callers open their own transactions), migrated
-    first if older.
-
-    ``migrations`` is the schema's history; only tests give another one (a step that fails).
-    """
+def connect(path: str | Path) -> sqlite3.Connection:
+    """Open the lab database file at the current schema (its folder made if need be): WAL,
+    synchronous=FULL, foreign keys on, autocommit (callers open their own transactions). A new
+    file is created at the newest revision; one behind or ahead is refused (`refusal`)."""
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -196,7 +153,12 @@ def connect(path: str | Path, migrations: tuple[Migration, ...] = MIGRATIONS) ->
         db.execute("PRAGMA journal_mode=WAL")  # readers never block the journal's writer
         db.execute("PRAGMA synchronous=FULL")  # a committed point survives a power cut
         db.execute("PRAGMA foreign_keys=ON")
-        migrate(db, path, migrations)
+        found = revision_of(db)
+        if found.revision is None:
+            _upgrade_sqlite(path, create_only=True)
+            found = revision_of(db)
+        if found.revision != HEAD:
+            raise refusal(path, found, _db_option(path))
     except sqlite3.Error as exc:
         db.close()
         raise failure(path, exc) from None
@@ -243,50 +205,6 @@ def _free_bytes(folder: Path) -> int:
         return 0
 
 
-def migrate(db: sqlite3.Connection, path: Path, migrations: tuple[Migration, ...] = MIGRATIONS) -> int:
-    """Bring the open database to the last version of ``migrations``; returns the version found.
-
-    Nothing to do (the usual case) costs one pragma. Otherwise, under the write lock: read the
-    version again (another program may have just migrated it), back the file up if it holds
-    anything, and apply the baseline and every later step in one transaction.
-    """
-    target = migrations[-1].version if migrations else 0
-    found = version_of(db)
-    if found == target:
-        return found
-    if found > target:
-        raise _newer(path, found, target)
-    db.execute("BEGIN IMMEDIATE")
-    try:
-        found = version_of(db)  # another program may have migrated it while we waited for the lock
-        if found < target:
-            if db.execute("SELECT count(*) FROM sqlite_master").fetchone()[0]:
-                _backup(path, backup_path(path, found))
-            if found == 0:
-                for statement in BASELINE:
-                    db.execute(statement)
-            for step in migrations:
-                if step.version > found:
-                    step.apply(db)
-            db.execute(f"PRAGMA user_version = {int(target)}")
-        db.execute("COMMIT")
-    except BaseException as exc:
-        if db.in_transaction:  # some errors (a full disk) have rolled it back already
-            db.execute("ROLLBACK")
-        if isinstance(exc, sqlite3.Error):
-            raise LabcalError(f"{path}: cannot migrate the lab database from schema {found} to {target} "
-                              f"({exc}); the file is unchanged") from None
-        raise
-    if found > target:
-        raise _newer(path, found, target)
-    return found
-
-
-def _newer(path: Path, found: int, target: int) -> LabcalError:
-    return LabcalError(f"{path}: lab database schema {found} is newer than this labcal ({target}); "
-                       "upgrade labcal")
-
-
 def _backup(path: Path, target: Path) -> None:
     """A consistent copy of the database (WAL included) at ``target``, written whole or not at all.
 
@@ -304,3 +222,214 @@ def _backup(path: Path, target: Path) -> None:
         partial.unlink(missing_ok=True)
         raise LabcalError(f"{target}: cannot back up the lab database before migrating it ({exc}); "
                           "nothing was changed") from None
+
+
+# --- upgrading -----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Upgraded:
+    """What `upgrade` did: the revision found, the one reached, the copy written first (SQLite)."""
+
+    found: Revision
+    reached: str
+    backup: Path | None
+
+
+def _sqlite_engine(path: Path) -> Engine:
+    """A SQLAlchemy engine on the file whose transactions are SQLite's own, begun with BEGIN
+    IMMEDIATE (the write lock at once), so that DDL is inside them and a failure rolls all back
+    (SQLAlchemy's recipe for pysqlite: the driver's own transaction handling is switched off)."""
+    from sqlalchemy import create_engine, event
+    from sqlalchemy.pool import NullPool
+
+    engine = create_engine(f"sqlite:///{path}", poolclass=NullPool, connect_args={"timeout": 10.0})
+
+    @event.listens_for(engine, "connect")
+    def _autocommit_driver(dbapi_connection, _record) -> None:  # type: ignore[no-untyped-def]
+        dbapi_connection.isolation_level = None
+
+    @event.listens_for(engine, "begin")
+    def _write_lock(connection) -> None:  # type: ignore[no-untyped-def]
+        connection.exec_driver_sql("BEGIN IMMEDIATE")
+
+    return engine
+
+
+def _steps(connection: Connection, found: Revision) -> None:
+    """From ``found`` to the newest revision, inside the caller's transaction: a pre-Alembic file
+    completed (version 0) and stamped at its version first."""
+    from labcal.run import migrations
+
+    if found.legacy:
+        if found.revision == "0000":
+            for statement in BASELINE:
+                connection.exec_driver_sql(statement)
+        migrations.stamp(connection, found.revision or "0000")
+    migrations.upgrade(connection)
+
+
+def _upgrade_sqlite(path: Path, create_only: bool = False) -> Upgraded:
+    """Bring the file to the newest revision under its write lock (``create_only``: only if it is
+    empty; anything else found once the lock is held is left for the caller to judge)."""
+    from sqlalchemy.exc import SQLAlchemyError
+
+    engine = _sqlite_engine(path)
+    found = Revision(None)
+    backup = None
+    try:
+        with engine.connect() as connection:
+            with connection.begin():
+                raw = connection.connection.driver_connection
+                assert isinstance(raw, sqlite3.Connection)
+                found = revision_of(raw)  # again, under the lock: another program may have done it
+                if found.ahead:
+                    raise refusal(path, found, "")
+                if found.revision == HEAD or (create_only and found.revision is not None):
+                    return Upgraded(found, found.revision or HEAD, None)
+                if found.revision is not None:
+                    backup = backup_path(path, found.revision)
+                    _backup(path, backup)
+                _steps(connection, found)
+                connection.exec_driver_sql(f"PRAGMA user_version = {ALEMBIC_USER_VERSION}")
+    except (SQLAlchemyError, sqlite3.Error) as exc:
+        original = getattr(exc, "orig", None) or exc
+        if isinstance(original, sqlite3.Error) and found.revision is None:
+            raise failure(path, original) from None
+        raise LabcalError(f"{path}: cannot upgrade the lab database from schema {found} to {HEAD} "
+                          f"({_first_line(original)}); the file is unchanged") from None
+    finally:
+        engine.dispose()
+    return Upgraded(found, HEAD, backup)
+
+
+def _first_line(exc: BaseException) -> str:
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+
+
+def server_engine(server: ServerDatabase, connect_timeout_s: float = 5.0) -> Engine:
+    """A SQLAlchemy engine on the lab's PostgreSQL server (psycopg 3); nothing is opened yet.
+    Every connection gives up after ``connect_timeout_s`` (a run's sender and `labcal sync` must
+    not hang on a server that is gone)."""
+    try:
+        from sqlalchemy import create_engine
+
+        return create_engine(server.sqlalchemy_url, pool_pre_ping=True,
+                             connect_args={"connect_timeout": max(1, round(connect_timeout_s))})
+    except ImportError:
+        raise LabcalError(f"{server.source}: {server} is a PostgreSQL server, and its driver (psycopg 3) is "
+                          f"not installed; {DRIVER_HINT}") from None
+
+
+def unreachable(server: ServerDatabase, exc: BaseException) -> LabcalError:
+    """One line for a server that cannot be reached or refuses us."""
+    why = _first_line(getattr(exc, "orig", None) or exc)
+    return LabcalError(f"{server}: cannot reach the lab database ({why}); "
+                       "check that its server is running and reachable, then run the command again")
+
+
+def _server_revision(connection: Connection) -> Revision:
+    from sqlalchemy import inspect, text
+
+    names = set(inspect(connection).get_table_names())
+    if "alembic_version" in names:
+        row = connection.execute(text("SELECT version_num FROM alembic_version")).fetchone()
+        return Revision(row[0] if row else None)
+    return Revision(None) if not names else Revision("unknown tables, no alembic_version")
+
+
+def _upgrade_server(server: ServerDatabase, create_only: bool = False) -> Upgraded:
+    from sqlalchemy import text
+    from sqlalchemy.exc import SQLAlchemyError
+
+    engine = server_engine(server)
+    try:
+        with engine.begin() as connection:
+            connection.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": PG_LOCK})
+            found = _server_revision(connection)
+            if found.ahead:
+                raise refusal(server, found, "")
+            if found.revision == HEAD or (create_only and found.revision is not None):
+                return Upgraded(found, found.revision or HEAD, None)
+            _steps(connection, found)
+    except SQLAlchemyError as exc:
+        from sqlalchemy.exc import DBAPIError
+
+        if isinstance(exc, DBAPIError) and exc.connection_invalidated or _is_connection_error(exc):
+            raise unreachable(server, exc) from None
+        raise LabcalError(f"{server}: cannot upgrade the lab database to {HEAD} ({_first_line(exc)}); "
+                          "nothing was changed") from None
+    finally:
+        engine.dispose()
+    return Upgraded(found, HEAD, None)
+
+
+def _is_connection_error(exc: BaseException) -> bool:
+    from sqlalchemy.exc import OperationalError
+
+    return isinstance(exc, OperationalError)
+
+
+def upgrade(where: Path | ServerDatabase) -> Upgraded:
+    """`labcal db upgrade`: the lab database at the newest revision (see the module's docstring)."""
+    if isinstance(where, ServerDatabase):
+        return _upgrade_server(where)
+    if not where.exists():
+        connect(where).close()  # created at the newest revision: nothing to upgrade
+        return Upgraded(Revision(None), HEAD, None)
+    return _upgrade_sqlite(where)
+
+
+def status(where: Path | ServerDatabase) -> Revision:
+    """`labcal db status`: the revision the lab database is at (nothing changed, nothing created)."""
+    if isinstance(where, ServerDatabase):
+        engine = server_engine(where)
+        try:
+            with engine.connect() as connection:
+                return _server_revision(connection)
+        except Exception as exc:
+            if _is_connection_error(exc):
+                raise unreachable(where, exc) from None
+            raise
+        finally:
+            engine.dispose()
+    if not where.exists():
+        return Revision(None)
+    try:
+        with closing(sqlite3.connect(f"file:{where}?mode=ro", uri=True, timeout=10.0)) as db:
+            return revision_of(db)
+    except sqlite3.Error as exc:
+        raise failure(where, exc) from None
+
+
+def lab_engine(db: str | Path | None = None) -> Engine:
+    """The lab database (--db, else $LABCAL_DB, else the lab file's `database`, else the user's data
+    folder) as a SQLAlchemy engine, for those who read it as a whole (the lab server): a new one is
+    created at the newest revision; one behind or ahead is refused in one line (`LabcalError`); a
+    server that cannot be reached too. The tables are `labcal.run.schema`'s."""
+    from labcal.run.journal import lab_database
+
+    where = lab_database(db)
+    if isinstance(where, Path):
+        connect(where).close()  # created if new, refused if behind or ahead
+        from sqlalchemy import create_engine
+
+        return create_engine(f"sqlite:///{where}", connect_args={"timeout": 10.0})
+    return open_server(where)
+
+
+def open_server(server: ServerDatabase) -> Engine:
+    """An engine on the lab's server at the newest revision: an empty database is created at it,
+    one behind or ahead refused, an unreachable server refused (each in one line)."""
+    _upgrade_server(server, create_only=True)
+    engine = server_engine(server)
+    try:
+        with engine.connect() as connection:
+            found = _server_revision(connection)
+    except Exception as exc:
+        engine.dispose()
+        if _is_connection_error(exc):
+            raise unreachable(server, exc) from None
+        raise
+    if found.revision != HEAD:
+        engine.dispose()
+        raise refusal(server, found, "")
+    return engine

@@ -88,7 +88,9 @@ events = Table(
     Column("kind", Text, nullable=False),
     Column("message", Text, nullable=False),
     Column("data", Text),
+    Column("origin_id", Integer),  # revision 0007: its id in the station's journal (NULL there)
     Index("events_by_run", "run_id", "id"),
+    Index("events_by_origin", "run_id", "origin_id", unique=True),
 )
 
 certificates = Table(
@@ -162,5 +164,26 @@ users = Table(
     Column("disabled_utc", Text),
 )
 
+# Revision 0007: in a station's journal, how far its records have been sent to each lab database
+# (`labcal.lab.sync`): ``target`` names the database, ``name`` the table (points, events,
+# certificates), ``position`` the last rowid sent; and each run's id in that database, with what
+# was last sent of its status ("status|reason|ended_utc|points_total|station").
+sync_cursors = Table(
+    "sync_cursors", METADATA,
+    Column("target", Text, nullable=False),
+    Column("name", Text, nullable=False),
+    Column("position", Integer, nullable=False),
+    PrimaryKeyConstraint("target", "name"),
+)
+
+sync_runs = Table(
+    "sync_runs", METADATA,
+    Column("target", Text, nullable=False),
+    Column("run_id", Integer, ForeignKey("runs.id"), nullable=False),
+    Column("lab_run_id", Integer, nullable=False),
+    Column("sent", Text, nullable=False),
+    PrimaryKeyConstraint("target", "run_id"),
+)
+
 __all__ = ["METADATA", "approvers", "certificates", "device_estimates", "events", "points", "run_exports",
-           "runs", "settle_pools", "users"]
+           "runs", "settle_pools", "sync_cursors", "sync_runs", "users"]

@@ -1,0 +1,52 @@
+"""`labcal sync`: send this station's journal to the lab's PostgreSQL database now (what a run sends
+as it goes, and catches up after an outage by itself; `labcal.run.sync`)."""
+
+from __future__ import annotations
+
+import argparse
+
+from labcal.commands.common import add_db_option, out, print_json
+
+
+def cmd_sync(args: argparse.Namespace) -> int:
+    from labcal.config.lab import ServerDatabase
+    from labcal.run import labdb
+    from labcal.run.journal import db_path, lab_database
+    from labcal.run.sync import Sender, is_outage
+
+    where = lab_database(args.db)
+    if not isinstance(where, ServerDatabase):
+        out.print(f"{where}: the lab database is this SQLite file itself; nothing to send")
+        return 0
+    journal = db_path(args.db)
+    labdb.open_server(where).dispose()  # reachable, at this labcal's schema (created if empty)
+    if not journal.exists():
+        out.print(f"{journal}: no journal on this station yet (it is $LABCAL_JOURNAL, else the lab file's "
+                  "journal); nothing to send")
+        return 0
+    sender = Sender(journal, where)
+    try:
+        sent = sender.push()
+    except Exception as exc:
+        if is_outage(exc):
+            raise labdb.unreachable(where, exc) from None
+        raise
+    finally:
+        sender.close()
+    if args.json:
+        print_json({"database": str(where), "journal": str(journal), "sent": sent.offered,
+                    "new": sent.stored})
+        return 0
+    if sent.total == 0:
+        out.print(f"{where}: nothing to send; everything in {journal} is there")
+    else:
+        new = ", ".join(f"{sent.stored[n]} {n}" for n in sent.stored)
+        out.print(f"{where}: sent {sent} from {journal} ({new} new there)")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("sync", help="send this station's journal to the lab's PostgreSQL database now")
+    add_db_option(p)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_sync)

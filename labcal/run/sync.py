@@ -1,0 +1,357 @@
+"""Every journaled record reaches the lab's PostgreSQL database exactly once (issue 24).
+
+With a server as the lab database, each station journals in a SQLite file of its own
+(`labcal.config.lab.LabConfig.journal`): a reading is on the station's disk, committed, before the
+next move, whatever the network does. `Sender.push` sends what the journal holds and the server
+does not yet: runs (found by their uuid: the server numbers runs of every station, so a station's
+run id is not the lab's), their points (key: the lab's run id and the point's seq), events (key:
+the lab's run id and the event's id in the journal, ``events.origin_id``) and certificates (key:
+their id). Every insert is ``ON CONFLICT DO NOTHING`` (a run's status an upsert), so sending a record
+twice (the server committed, the cursor's update did not) stores it once. The journal keeps how far
+it has sent to each server (``sync_cursors``: the last rowid of each table; ``sync_runs``: each
+run's lab id and the status last sent), written only after the server has committed.
+
+During a run, `sending` runs a `Sender` on a thread of its own, which reads the journal through its
+own connection (WAL: it never blocks the run's writer) twice a second, so a run never waits for the
+server. An outage is said once (on the console and as a journal event of the run); the thread
+retries with a growing pause (0.5 s to 10 s) and catches up when the server is back. At the end of
+the run it sends what it can for a few seconds and says what is left for ``labcal sync``.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import closing, contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from labcal.config.lab import ServerDatabase, load_lab_config
+from labcal.errors import LabcalError
+from labcal.run import labdb, schema
+
+if TYPE_CHECKING:
+    from sqlalchemy.engine import Connection, Engine
+
+POINT_COLUMNS = tuple(c.name for c in schema.points.columns if c.name != "run_id")
+RUN_COLUMNS = tuple(c.name for c in schema.runs.columns if c.name not in ("id", "station", "points_total"))
+EVENT_COLUMNS = ("utc", "station_time", "kind", "message", "data")
+CERTIFICATE_COLUMNS = tuple(c.name for c in schema.certificates.columns)
+BATCH = 500  # rows per statement: a catch-up after a long outage goes in bounded transactions
+POLL_S = 0.5  # how often the sender looks at the journal during a run
+BACKOFF_MAX_S = 10.0
+FLUSH_S = 5.0  # what the end of a run waits for the server, at most
+
+
+@dataclass
+class Sent:
+    """What one push sent: rows offered to the server per table, and rows it did not have yet."""
+
+    offered: dict[str, int] = field(default_factory=lambda: dict.fromkeys(("runs", "points", "events",
+                                                                            "certificates"), 0))
+    stored: dict[str, int] = field(default_factory=lambda: dict.fromkeys(("runs", "points", "events",
+                                                                           "certificates"), 0))
+
+    def add(self, other: Sent) -> None:
+        for name in self.offered:
+            self.offered[name] += other.offered[name]
+            self.stored[name] += other.stored[name]
+
+    @property
+    def total(self) -> int:
+        return sum(self.offered.values())
+
+    def __str__(self) -> str:
+        return ", ".join(f"{self.offered[n]} {n}" for n in self.offered)
+
+
+def target_of(server: ServerDatabase) -> str:
+    """The name a journal's cursors give a lab database: its URL without a password."""
+    return str(server)
+
+
+class Sender:
+    """Sends a station's journal to one lab database (see the module's docstring)."""
+
+    def __init__(self, journal: Path, server: ServerDatabase, station: str | None = None,
+                 engine: Engine | None = None):
+        self.journal = journal
+        self.server = server
+        self.target = target_of(server)
+        self.station = station or load_lab_config().station()
+        self.engine = engine or labdb.server_engine(server)
+        self._totals: dict[int, int | None] = {}
+
+    def close(self) -> None:
+        self.engine.dispose()
+
+    def _local(self) -> sqlite3.Connection:
+        return labdb.connect(self.journal)
+
+    def pending(self) -> dict[str, int]:
+        """Records of the journal not yet sent to this lab database, per table."""
+        with closing(self._local()) as db:
+            marks = self._cursors(db)
+            out = {"runs": len(self._runs_to_send(db))}
+            for name, key in (("points", "rowid"), ("events", "id"), ("certificates", "rowid")):
+                out[name] = db.execute(f"SELECT count(*) FROM {name} WHERE {key} > ?",
+                                       (marks.get(name, 0),)).fetchone()[0]
+            return out
+
+    def _cursors(self, db: sqlite3.Connection) -> dict[str, int]:
+        return dict(db.execute("SELECT name, position FROM sync_cursors WHERE target=?", (self.target,)))
+
+    def _runs_to_send(self, db: sqlite3.Connection) -> list[tuple]:
+        """Runs the server has not seen, or whose status it has not seen: (local id, state, lab id)."""
+        rows = db.execute(
+            "SELECT r.id, r.status, r.reason, r.ended_utc, s.sent, s.lab_run_id FROM runs r "
+            "LEFT JOIN sync_runs s ON s.run_id = r.id AND s.target = ? ORDER BY r.id", (self.target,))
+        return [(run_id, state, lab_id) for run_id, status, reason, ended, sent, lab_id in rows
+                if (state := f"{status}|{reason or ''}|{ended or ''}") != sent]
+
+    def _points_total(self, db: sqlite3.Connection, run_id: int, plan_text: str) -> int | None:
+        if run_id not in self._totals:
+            from labcal.config.plans import parse_plan
+
+            try:
+                self._totals[run_id] = parse_plan(plan_text, f"run {run_id}").n_points
+            except LabcalError:
+                self._totals[run_id] = None
+        return self._totals[run_id]
+
+    def push(self) -> Sent:
+        """Send everything pending, in batches, each committed on the server before the journal's
+        cursor moves. Raises the server's error (SQLAlchemy's) when it cannot be reached."""
+        sent = Sent()
+        with closing(self._local()) as db:
+            while True:
+                step = self._push_once(db)
+                sent.add(step)
+                if step.total == 0:
+                    return sent
+
+    def _push_once(self, db: sqlite3.Connection) -> Sent:
+        from sqlalchemy.dialects.postgresql import insert
+
+        sent = Sent()
+        marks = self._cursors(db)
+        runs = self._runs_to_send(db)[:BATCH]
+        lab_ids = dict(db.execute("SELECT run_id, lab_run_id FROM sync_runs WHERE target=?", (self.target,)))
+        moved: dict[str, int] = {}
+        run_rows = []
+        with self.engine.begin() as server:
+            for run_id, state, _ in runs:
+                row = db.execute(f"SELECT {', '.join(RUN_COLUMNS)}, station FROM runs WHERE id=?",
+                                 (run_id,)).fetchone()
+                values = dict(zip(RUN_COLUMNS, row[:-1], strict=True))
+                values["station"] = row[-1] or self.station
+                values["points_total"] = self._points_total(db, run_id, values["plan_text"])
+                statement = insert(schema.runs).values(**values).on_conflict_do_update(
+                    index_elements=["uuid"],
+                    set_={"status": values["status"], "reason": values["reason"],
+                          "ended_utc": values["ended_utc"], "points_total": values["points_total"]})
+                lab_id = server.execute(statement.returning(schema.runs.c.id)).scalar_one()
+                lab_ids[run_id] = lab_id
+                run_rows.append((self.target, run_id, lab_id, state))
+            sent.offered["runs"] = sent.stored["runs"] = len(run_rows)
+            moved_points, sent.offered["points"], sent.stored["points"] = self._send_rows(
+                server, db, "points", "rowid", marks.get("points", 0), POINT_COLUMNS, lab_ids,
+                lambda rows: insert(schema.points).values(rows).on_conflict_do_nothing(
+                    index_elements=["run_id", "seq"]))
+            moved_events, sent.offered["events"], sent.stored["events"] = self._send_rows(
+                server, db, "events", "id", marks.get("events", 0), EVENT_COLUMNS, lab_ids,
+                lambda rows: insert(schema.events).values(rows).on_conflict_do_nothing(
+                    index_elements=["run_id", "origin_id"]), origin=True)
+            moved_certs, sent.offered["certificates"], sent.stored["certificates"] = self._send_rows(
+                server, db, "certificates", "rowid", marks.get("certificates", 0), CERTIFICATE_COLUMNS,
+                None, lambda rows: insert(schema.certificates).values(rows).on_conflict_do_nothing(
+                    index_elements=["certificate_id"]))
+        for name, position in (("points", moved_points), ("events", moved_events),
+                               ("certificates", moved_certs)):
+            if position is not None:
+                moved[name] = position
+        if run_rows or moved:  # the server has committed: now the journal may say so
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                db.executemany("INSERT INTO sync_runs (target, run_id, lab_run_id, sent) VALUES (?,?,?,?) "
+                               "ON CONFLICT (target, run_id) DO UPDATE SET lab_run_id=excluded.lab_run_id, "
+                               "sent=excluded.sent", run_rows)
+                db.executemany("INSERT INTO sync_cursors (target, name, position) VALUES (?,?,?) "
+                               "ON CONFLICT (target, name) DO UPDATE SET position=excluded.position",
+                               [(self.target, n, p) for n, p in moved.items()])
+                db.execute("COMMIT")
+            except BaseException:
+                if db.in_transaction:
+                    db.execute("ROLLBACK")
+                raise
+        return sent
+
+    def _send_rows(self, server: Connection, db: sqlite3.Connection, table: str, key: str, after: int,
+                   columns: tuple[str, ...], lab_ids: dict[int, int] | None,
+                   statement: Callable[[list[dict]], object], origin: bool = False
+                   ) -> tuple[int | None, int, int]:
+        """One batch of ``table``'s rows after ``after``: (the new cursor or None, offered, stored).
+        A row whose run the server does not know yet (started after this pass read the runs) ends
+        the batch before it: the next pass sends its run first."""
+        run_column = "run_id, " if lab_ids is not None else ""
+        rows = db.execute(f"SELECT {key}, {run_column}{', '.join(columns)} FROM {table} WHERE {key} > ? "
+                          f"ORDER BY {key} LIMIT ?", (after, BATCH)).fetchall()
+        values: list[dict] = []
+        last = None
+        for row in rows:
+            record = dict(zip(columns, row[2:] if lab_ids is not None else row[1:], strict=True))
+            if lab_ids is not None:
+                if row[1] not in lab_ids:
+                    break
+                record["run_id"] = lab_ids[row[1]]
+            if origin:
+                record["origin_id"] = row[0]
+            values.append(record)
+            last = row[0]
+        if not values:
+            return None, 0, 0
+        result = server.execute(statement(values))  # type: ignore[call-overload]
+        stored = result.rowcount if result.rowcount is not None and result.rowcount >= 0 else len(values)
+        return last, len(values), stored
+
+
+def is_outage(exc: BaseException) -> bool:
+    """A server that cannot be reached (or went away mid-transaction): retried, not fatal."""
+    from sqlalchemy.exc import DBAPIError, OperationalError
+
+    return isinstance(exc, OperationalError) or (isinstance(exc, DBAPIError) and exc.connection_invalidated)
+
+
+class Background:
+    """A `Sender` on a thread of its own during a run (see the module's docstring)."""
+
+    def __init__(self, sender: Sender, say: Callable[[str], None], run_event: Callable[[str], None]):
+        self.sender = sender
+        self.say = say
+        self.run_event = run_event
+        self.sent = Sent()
+        self.down_since: float | None = None
+        self.outages = 0
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="labcal-sync", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def wake(self) -> None:
+        """A record was journaled: send it now rather than at the next poll."""
+        self._wake.set()
+
+    def _attempt(self) -> bool:
+        try:
+            self.sent.add(self.sender.push())
+        except Exception as exc:
+            if not is_outage(exc):
+                raise
+            if self.down_since is None:
+                self.down_since = time.monotonic()
+                self.outages += 1
+                if self.outages == 1:
+                    why = labdb._first_line(getattr(exc, "orig", None) or exc)
+                    line = (f"the lab database {self.sender.server} is unreachable ({why}); the run goes "
+                            "on measuring, and its records are sent when it is back (or with labcal sync)")
+                    self.say(line)
+                    self.run_event(line)
+            return False
+        if self.down_since is not None:
+            self.down_since = None
+        return True
+
+    def _loop(self) -> None:
+        pause = POLL_S
+        while not self._stop.is_set():
+            try:
+                pause = POLL_S if self._attempt() else min(pause * 2, BACKOFF_MAX_S)
+            except Exception as exc:  # never stops the run: said once, and the run goes on
+                self.say(f"sending to the lab database stopped ({labdb._first_line(exc)}); the journal "
+                         "keeps every record: run labcal sync")
+                return
+            self._wake.wait(pause)
+            self._wake.clear()
+
+    def finish(self, within_s: float = FLUSH_S) -> dict[str, int]:
+        """Stop the thread, send what can be sent within ``within_s``, and return what is left."""
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(within_s)
+        deadline = time.monotonic() + within_s
+        while time.monotonic() < deadline:
+            try:
+                if self._attempt():
+                    break
+            except Exception:  # noqa: BLE001 - said below as what is left
+                break
+            time.sleep(0.2)
+        try:
+            return self.sender.pending()
+        finally:
+            self.sender.close()
+
+
+def _run_event(journal: Path) -> Callable[[str], None]:
+    """A journal event on the newest running run (the one this process measures)."""
+    def record(message: str) -> None:
+        try:
+            with closing(labdb.connect(journal)) as db:
+                row = db.execute("SELECT max(id) FROM runs WHERE status='running'").fetchone()
+                if row and row[0] is not None:
+                    db.execute("INSERT INTO events (run_id, utc, kind, message) VALUES (?,?,?,?)",
+                               (row[0], _utc(), "lab_database", message))
+        except (LabcalError, sqlite3.Error):
+            pass  # the console has said it; the journal's own writer is what matters
+    return record
+
+
+def _utc() -> str:
+    from labcal.run.journal import utc_now
+
+    return utc_now()
+
+
+def ready(db: str | Path | None, say: Callable[[str], None]) -> None:
+    """Before a run moves anything: the journal current (created if new), and a server that can be
+    reached at this labcal's schema (created if empty). A server behind or ahead refuses the run
+    in one line; one that cannot be reached does not (the run never waits for it): said once."""
+    from labcal.run.journal import db_path, lab_database
+
+    labdb.connect(db_path(db)).close()
+    where = lab_database(db)
+    if isinstance(where, Path):
+        return
+    try:
+        labdb.open_server(where).dispose()
+    except LabcalError as exc:
+        if "cannot reach" not in str(exc):
+            raise
+        say(f"{exc.args[0].split('; check')[0]}; the run goes on, its records are sent when it is back "
+            "(or with labcal sync)")
+
+
+@contextmanager
+def sending(db: str | Path | None, journal: Path, say: Callable[[str], None]) -> Iterator[Background | None]:
+    """During a run: its records sent to the lab's server as they are written (nothing to do when the
+    lab database is the journal itself, a SQLite file). At the end, what is left is said."""
+    from labcal.run.journal import lab_database
+
+    where = lab_database(db)
+    if isinstance(where, Path):
+        yield None
+        return
+    background = Background(Sender(journal, where), say, _run_event(journal))
+    background.start()
+    try:
+        yield background
+    finally:
+        left = background.finish()
+        if any(left.values()):
+            say(f"not yet in the lab database {where}: " + ", ".join(f"{n} {k}" for k, n in left.items())
+                + "; they stay in the journal " f"{journal}: run labcal sync when the server is back")
