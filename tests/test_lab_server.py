@@ -228,11 +228,17 @@ def test_the_approver_signs_with_the_password_again(lab):
 
 
 def test_serve_refuses_a_database_behind_its_schema_in_one_line(tmp_path):
+    from sqlalchemy import create_engine
+
+    from labcal.run import migrations
+
     db = str(tmp_path / "lab.sqlite")
-    assert main(["run", "--sim", "--yes", "--no-report", "--plan", "one-mount-16", "--db", db,
-                 "--out", str(tmp_path / "run")]) == 0
+    old = create_engine(f"sqlite:///{db}")
+    with old.begin() as conn:
+        migrations.upgrade(conn, "0006")  # the lab's first revision with users, one behind this labcal
+    old.dispose()
     done = labcal("serve", "--port", "0", "--db", db)
     assert done.returncode == 2 and done.stdout == ""
-    assert len(done.stderr.strip().splitlines()) == 1 and "labcal user add" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1 and "labcal db upgrade" in done.stderr
     missing = labcal("serve", "--port", "0", "--db", str(tmp_path / "none.sqlite"))
     assert missing.returncode == 2 and "no lab database there" in missing.stderr

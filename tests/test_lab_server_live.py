@@ -127,7 +127,6 @@ def test_the_api_on_postgresql(postgres_url, tmp_path):
     from labcal.run.schema import events, points, runs
 
     db = str(tmp_path / "lab.sqlite")
-    add_user(db, "nobody", "viewer", "x")  # the file at the head, so that its rows copy whole
     assert main(["run", "--sim", "--yes", "--no-report", "--seed", "4", "--serial", "ACC-7", "--db", db,
                  "--out", str(tmp_path / "run")]) == 0
     pg = create_engine(postgres_url.replace("postgresql://", "postgresql+psycopg://"))

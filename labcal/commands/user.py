@@ -18,13 +18,7 @@ def _engine(option: str | None, create: bool):
     except ImportError as exc:
         raise LabcalError(f"labcal user needs the lab server's packages ({exc.name} is missing): "
                           "pip install 'labcal[lab]'") from None
-    where = db.location(option)
-    eng = db.engine(where, must_exist=not create)
-    if create:
-        db.upgrade(eng)  # a new lab database, or the users table added to the lab's
-    else:
-        db.check_head(eng, where)
-    return eng
+    return db.open_lab(option, must_exist=not create).engine  # `user add` may create the lab database
 
 
 def _password(given: str | None) -> str:

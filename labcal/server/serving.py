@@ -22,15 +22,12 @@ def settings_for(db_option: str | None, key: str | None, poll_s: float = 0.5) ->
     check the signing key now rather than at the first approval."""
     from labcal.documents.approval import load_private_key
 
-    where = db.location(db_option)
-    eng = db.engine(where)
-    db.check_head(eng, where)
+    lab = db.open_lab(db_option, must_exist=True)
     key_path = None
     if key is not None:
         key_path = Path(key)
         load_private_key(key_path)  # one line now for a missing, unreadable or too-open key
-    db_file = None if eng.dialect.name != "sqlite" else Path(db.url_of(where).removeprefix("sqlite:///"))
-    return ServerSettings(engine=eng, where=db.shown(where), key=key_path, db_file=db_file, poll_s=poll_s)
+    return ServerSettings(engine=lab.engine, where=lab.shown, key=key_path, db_file=lab.file, poll_s=poll_s)
 
 
 def listen(host: str, port: int) -> socket.socket:
