@@ -102,7 +102,9 @@ def add(eng: Engine, name: str, role: str, password: str) -> tuple[User, str]:
             if conn.execute(select(users.c.id).where(users.c.name == name)).first() is not None:
                 raise LabcalError(f"{name}: already a user (`labcal user list`); a user is never re-added "
                                   "(choose another name)")
-            user_id = conn.execute(users.insert().values(**row)).inserted_primary_key[0]
+            key = conn.execute(users.insert().values(**row)).inserted_primary_key
+            assert key is not None  # an INSERT of one row into a table with a primary key
+            user_id = key[0]
     except IntegrityError:  # added meanwhile by someone else
         raise LabcalError(f"{name}: added meanwhile by someone else (`labcal user list`)") from None
     return User(int(user_id), name, role, row["created_utc"], None), token
