@@ -55,13 +55,14 @@ def _sse(response: httpx.Response, deadline: float):
 
 
 def _points(url: str, token: str, want: int, last_event_id: str | None = None,
-            timeout_s: float = 25.0) -> list[tuple[str, dict]]:
+            timeout_s: float = 25.0, run_id: int = 1) -> list[tuple[str, dict]]:
     headers = {"Authorization": f"Bearer {token}"}
     if last_event_id:
         headers["Last-Event-ID"] = last_event_id
     found: list[tuple[str, dict]] = []
     deadline = time.monotonic() + timeout_s
-    with httpx.stream("GET", url + "/api/runs/1/stream", headers=headers, timeout=timeout_s) as response:
+    stream = f"{url}/api/runs/{run_id}/stream"
+    with httpx.stream("GET", stream, headers=headers, timeout=timeout_s) as response:
         assert response.status_code == 200
         assert response.headers["content-type"].startswith("text/event-stream")
         for event_id, kind, data in _sse(response, deadline):
@@ -118,39 +119,35 @@ def test_the_run_page_counts_up_without_a_reload(browser, tmp_path):
             page.close()
 
 
-def test_the_api_on_postgresql(postgres_url, tmp_path):
-    """The schema made by the migrations on PostgreSQL, the rows of a real sim run copied into it, the
-    users added by `labcal user add --db postgresql://…`: /api/runs says what the SQLite journal says."""
-    from sqlalchemy import create_engine, select
-
-    from labcal.run import migrations
-    from labcal.run.schema import events, points, runs
-
-    db = str(tmp_path / "lab.sqlite")
-    assert main(["run", "--sim", "--yes", "--no-report", "--seed", "4", "--serial", "ACC-7", "--db", db,
-                 "--out", str(tmp_path / "run")]) == 0
-    pg = create_engine(postgres_url.replace("postgresql://", "postgresql+psycopg://"))
-    with pg.begin() as conn:
-        migrations.upgrade(conn)
-    source = create_engine(f"sqlite:///{db}")
-    with source.connect() as read, pg.begin() as write:
-        for table in (runs, points, events):
-            write.execute(table.insert(), [dict(r._mapping) for r in read.execute(select(table))])
-    source.dispose()
-    pg.dispose()
+def test_the_api_on_postgresql(postgres_url, tmp_path, monkeypatch):
+    """A station journaling into the lab's PostgreSQL (its local journal sent by labcal's sync), users
+    added by `labcal user add --db postgresql://…`: /api/runs and the stream say what the station's
+    journal says, read with sqlite3."""
+    journal = tmp_path / "station" / "journal.sqlite"
+    (tmp_path / "lab.toml").write_text("")
+    station = {"LABCAL_JOURNAL": str(journal), "LABCAL_STATION": "bench-2",
+               "LABCAL_CONFIG": str(tmp_path / "lab.toml"), "XDG_DATA_HOME": str(tmp_path / "data")}
+    for name, value in station.items():
+        monkeypatch.setenv(name, value)
     token = add_user(postgres_url, "vic", "viewer", "pw")
+    assert main(["run", "--sim", "--yes", "--no-report", "--seed", "4", "--serial", "ACC-7",
+                 "--db", postgres_url, "--out", str(tmp_path / "run")]) == 0
+    with sqlite3.connect(journal) as conn:
+        row = conn.execute("SELECT status, instrument_serial FROM runs").fetchone()
+        done = conn.execute("SELECT count(*) FROM points").fetchone()[0]
+        kinds = [k for (k,) in conn.execute("SELECT kind FROM events ORDER BY id")]
     with served(postgres_url) as url:
         auth = {"Authorization": f"Bearer {token}"}
         assert httpx.get(url + "/api/runs", timeout=10).status_code == 401
-        listed = httpx.get(url + "/api/runs", headers=auth, timeout=10).json()["runs"]
-        with sqlite3.connect(db) as conn:
-            row = conn.execute("SELECT id, status, instrument_serial FROM runs").fetchone()
-            done = conn.execute("SELECT count(*) FROM points").fetchone()[0]
-            kinds = [k for (k,) in conn.execute("SELECT kind FROM events ORDER BY id")]
-        assert [(r["id"], r["status"], r["serial"], r["points_done"], r["points_total"]) for r in listed] == \
-            [(row[0], row[1], row[2], done, 64)]
-        detail = httpx.get(url + "/api/runs/1", headers=auth, timeout=10).json()
-        assert [e["kind"] for e in detail["events"]] == kinds
-        streamed = _points(url, token, want=3)
-        assert [data["seq"] for _, data in streamed] == [0, 1, 2]
 
+        def listed() -> list[dict]:
+            runs = httpx.get(url + "/api/runs", headers=auth, timeout=10).json()["runs"]
+            return runs if runs and runs[0]["points_done"] == done else []
+        runs = wait_for(listed, 30, "the station's points on the server")
+        got = [(r["status"], r["serial"], r["station"], r["points_done"], r["points_total"]) for r in runs]
+        assert got == [(row[0], row[1], "bench-2", done, TOTAL)]
+        run_id = runs[0]["id"]
+        detail = httpx.get(f"{url}/api/runs/{run_id}", headers=auth, timeout=10).json()
+        assert [e["kind"] for e in detail["events"]] == kinds
+        streamed = _points(url, token, want=3, run_id=run_id)
+        assert [data["seq"] for _, data in streamed] == [0, 1, 2]
