@@ -83,6 +83,7 @@ def test_api_runs_are_the_journals_runs(lab):
         got = listed[run_id]
         assert (got["status"], got["serial"], got["operator"]) == (status, serial, operator)
         assert got["station"] == json.loads(metadata)["station"]
+        assert got["simulated"] is True  # `labcal run --sim`: said on every run it concerns
         assert (got["points_done"], got["points_total"]) == (done[run_id], total)
     assert (listed[1]["points_total"], listed[2]["points_total"]) == (64, 16)  # four-mount-64, one-mount-16
 
@@ -219,7 +220,7 @@ def test_a_viewer_reads_the_pages_but_may_not_approve(lab):
 def test_the_approver_signs_with_the_password_again(lab):
     client = _signed_in(lab, "ada")
     page = client.get("/runs/1")
-    assert "Approve the certificate" in page.text
+    assert "never approved" in page.text and "Approve the certificate" not in page.text  # a dry run
     wrong = client.post("/runs/1/approve", data={"csrf": _csrf(page.text), "password": "not hers"})
     assert wrong.status_code == 401 and "nothing was signed" in wrong.text
     # a simulated run without a certificate: the server has no key and the folder holds no draft

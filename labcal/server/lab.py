@@ -71,15 +71,29 @@ def _counts(conn: Connection, run_ids: list[int] | None = None) -> dict[int, tup
 
 SUMMARY = (runs.c.id, runs.c.status, runs.c.station, runs.c.metadata, runs.c.instrument_serial,
            runs.c.operator, runs.c.plan_name, runs.c.plan_text, runs.c.points_total, runs.c.started_utc,
-           runs.c.ended_utc, runs.c.reason, runs.c.run_dir)
+           runs.c.ended_utc, runs.c.reason, runs.c.run_dir, runs.c.station_text)
+
+
+def simulated(metadata: Any, station_text: str | None) -> bool:
+    """A dry run (simulated rig or emulators), by the rule `labcal.run.record.RunRecord.simulated`
+    applies to the same journaled fields: shown on the pages so that nobody mistakes one for a
+    calibration (approving it is refused by the approval itself, whatever a page shows)."""
+    if isinstance(metadata, dict) and "simulated_truth" in metadata:
+        return True
+    station = _json(station_text)
+    if not isinstance(station, dict):
+        return False
+    return station.get("kind") == "simulated rig" or bool(station.get("emulate"))
 
 
 def _summary(row: Any, counts: tuple[int, int, int | None]) -> dict:
     shape = plan_shape(row.plan_text)
     total = row.points_total if row.points_total is not None else (shape.total if shape else None)
-    station = row.station or (_json(row.metadata) or {}).get("station")
+    metadata = _json(row.metadata) or {}
+    station = row.station or metadata.get("station")
     done, ok, _ = counts
-    return {"id": row.id, "status": row.status, "station": station, "serial": row.instrument_serial,
+    return {"id": row.id, "status": row.status, "simulated": simulated(metadata, row.station_text),
+            "station": station, "serial": row.instrument_serial,
             "operator": row.operator, "plan": row.plan_name, "points_done": done, "points_ok": ok,
             "points_failed": done - ok, "points_total": total, "started_utc": row.started_utc,
             "ended_utc": row.ended_utc, "reason": row.reason, "run_dir": row.run_dir}

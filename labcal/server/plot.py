@@ -66,7 +66,8 @@ def residual_png(conn: Connection, run_id: int) -> bytes | None:
             ax.grid(True, lw=0.3)
             if j == 2:
                 ax.set_xlabel(label)
-        axes[j, 1].set_title(f"RMS {rms[j]:.3g} µV", fontsize=9, loc="right")
+        shown = f"{rms[j] / 1000:.3g} mV" if rms[j] >= 1000 else f"{rms[j]:.3g} µV"
+        axes[j, 1].set_title(f"RMS {shown}", fontsize=9, loc="right")
     fig.suptitle(f"Run {run_id}: residuals of the linear fit (V = B + gᵀS) to the {len(found)} readings "
                  "in the lab database", fontsize=10)
     out = io.BytesIO()
