@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import re
 import shutil
+import sqlite3
 import subprocess
 import sys
 import tempfile
@@ -25,6 +26,20 @@ PASSWORD = "screenshot-only"
 
 def labcal(*args: str, **kwargs) -> subprocess.CompletedProcess:
     return subprocess.run([LABCAL, *args], check=True, capture_output=True, text=True, timeout=300, **kwargs)
+
+
+def points_of(db: str, run_id: int, at_least: int, within_s: float) -> int:
+    """Wait (bounded) until the run has journaled ``at_least`` points; how many it has."""
+    deadline = time.monotonic() + within_s
+    while True:
+        try:
+            with sqlite3.connect(db) as conn:
+                found = conn.execute("SELECT count(*) FROM points WHERE run_id = ?", (run_id,)).fetchone()[0]
+        except sqlite3.OperationalError:
+            found = 0
+        if found >= at_least or time.monotonic() > deadline:
+            return int(found)
+        time.sleep(0.2)
 
 
 def main() -> int:
@@ -63,7 +78,7 @@ def main() -> int:
                 page.fill("input[name=password]", PASSWORD)
                 page.click("button[type=submit]")
                 page.wait_for_url(url[0] + "/")
-                time.sleep(8 * 25 / args.pace)  # some points and a few journal lines into the run
+                points_of(db, 2, at_least=6, within_s=120)  # some points and journal lines into the run
                 page.reload()
                 page.screenshot(path=str(out / "lab.png"), full_page=True)
                 page.goto(url[0] + "/runs/2")
