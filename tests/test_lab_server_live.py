@@ -14,6 +14,7 @@ import sqlite3
 import time
 
 import httpx
+import pytest
 from lab_server import add_user, paced_run, served, wait_for
 
 from labcal.cli import main
@@ -56,20 +57,29 @@ def _sse(response: httpx.Response, deadline: float):
 
 def _points(url: str, token: str, want: int, last_event_id: str | None = None,
             timeout_s: float = 25.0, run_id: int = 1) -> list[tuple[str, dict]]:
+    """The first ``want`` point events of the run's stream, with their ids."""
+    return [(i, data) for i, kind, data in _messages(url, token, want, last_event_id, timeout_s, run_id)
+            if kind == "point"][:want]
+
+
+def _messages(url: str, token: str, want: int, last_event_id: str | None = None,
+              timeout_s: float = 25.0, run_id: int = 1) -> list[tuple[str, str, dict]]:
+    """Every event of the run's stream until ``want`` points and the progress after them have come."""
     headers = {"Authorization": f"Bearer {token}"}
     if last_event_id:
         headers["Last-Event-ID"] = last_event_id
-    found: list[tuple[str, dict]] = []
+    found: list[tuple[str, str, dict]] = []
+    points = 0
     deadline = time.monotonic() + timeout_s
     stream = f"{url}/api/runs/{run_id}/stream"
     with httpx.stream("GET", stream, headers=headers, timeout=timeout_s) as response:
         assert response.status_code == 200
         assert response.headers["content-type"].startswith("text/event-stream")
         for event_id, kind, data in _sse(response, deadline):
-            if kind == "point":
-                found.append((event_id, data))
-                if len(found) == want:
-                    break
+            found.append((event_id, kind, data))
+            points += kind == "point"
+            if points >= want and kind == "progress":  # the batch's summary closes it
+                break
     return found
 
 
@@ -79,16 +89,38 @@ def test_the_stream_sends_each_point_as_it_is_journaled_and_resumes(tmp_path):
     with served(db) as url, paced_run(db, tmp_path / "run", PACE, PLAN):
         wait_for(lambda: _journaled(db) >= 1, 30, "the run's first point")
         at_connect = _journaled(db)
-        first = _points(url, token, want=at_connect + 3)
+        messages = _messages(url, token, want=at_connect + 3)
+        first = [(i, data) for i, kind, data in messages if kind == "point"]
         seqs = [data["seq"] for _, data in first]
         assert seqs == list(range(len(seqs)))  # every point once, in order, none missing
         assert seqs[-1] >= at_connect + 2  # and points journaled after the client connected came too
         with sqlite3.connect(db) as conn:
             rows = dict(conn.execute("SELECT seq, vx FROM points WHERE run_id = 1").fetchall())
         assert all(data["vx"] == rows[data["seq"]] for _, data in first)  # the journal's values
+        _progress_is_the_journals(messages)
         # A client that reconnects with the last id it saw gets the points after it, none again.
         resumed = _points(url, token, want=2, last_event_id=first[-1][0])
         assert [data["seq"] for _, data in resumed] == [seqs[-1] + 1, seqs[-1] + 2]
+
+
+def _progress_is_the_journals(messages: list[tuple[str, str, dict]]) -> None:
+    """Each `progress` event states the points sent before it, and the next remount as the run's own
+    status event (journaled at the mount) gave it, less the rig time since: worked out here from the
+    stream's own point and status events (the journal's rows)."""
+    done, last_end, status, checked = 0, 0.0, None, 0
+    for _, kind, data in messages:
+        if kind == "point":
+            done, last_end = data["seq"] + 1, data["t_end"]
+        elif kind == "status":
+            status = data
+        elif kind == "progress" and data["status"] == "running" and done:
+            assert data["points_done"] == done
+            assert status is not None and data["estimate"] == "status"
+            remount = status["data"]["next_remount_in_s"]
+            expected = None if remount is None else max(0.0, remount - (last_end - status["station_time"]))
+            assert data["next_remount_in_s"] == pytest.approx(expected, abs=1e-9)
+            checked += 1
+    assert checked >= 1
 
 
 def test_the_run_page_counts_up_without_a_reload(browser, tmp_path):

@@ -49,6 +49,7 @@ from labcal.server.sessions import COOKIE, Session, Sessions, csrf_ok
 
 HERE = Path(__file__).parent
 KEEP_ALIVE_S = 15.0
+USER_CHECK_S = 5.0  # how soon an open stream of a user disabled meanwhile ends
 BATCH = 500  # rows per poll and kind: a client far behind catches up in bounded steps
 STATUS_CLASS = {"running": "running", "complete": "complete", "interrupted": "stopped", "stopped": "stopped",
                 "failed": "failed"}
@@ -136,7 +137,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
     @app.get("/api/runs/{run_id}/stream")
     def api_stream(run_id: int, request: Request, user: Annotated[users.User, Depends(api_user)],
                    last_event_id: Annotated[str | None, Header()] = None) -> Response:
-        return stream_response(request, run_id, last_event_id)
+        return stream_response(request, run_id, last_event_id, user)
 
     @app.post("/api/runs/{run_id}/approve")
     def api_approve(run_id: int, user: Annotated[users.User, Depends(api_approver)]) -> dict:
@@ -165,19 +166,26 @@ def create_app(settings: ServerSettings) -> FastAPI:
         return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=60"})
 
     # --- streams ---------------------------------------------------------------------------------
-    def stream_response(request: Request, run_id: int, last_event_id: str | None) -> Response:
+    def stream_response(request: Request, run_id: int, last_event_id: str | None, user: users.User
+                        ) -> Response:
         if read(lab.progress, run_id) is None:
             raise HTTPException(404, f"no run {run_id} in the lab database")
-        return StreamingResponse(events_of(request, run_id, cursor_of(last_event_id)),
+        return StreamingResponse(events_of(request, run_id, cursor_of(last_event_id), user.name),
                                  media_type="text/event-stream",
                                  headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
-    async def events_of(request: Request, run_id: int, cursor: tuple[int, int]) -> AsyncIterator[str]:
+    async def events_of(request: Request, run_id: int, cursor: tuple[int, int], user: str
+                        ) -> AsyncIterator[str]:
         yield "retry: 2000\n\n"
         status: str | None = None
-        quiet_since = time.monotonic()
+        quiet_since = checked = time.monotonic()
         first = True
         while not await request.is_disconnected():
+            if time.monotonic() - checked > USER_CHECK_S:  # a user disabled meanwhile hears no more
+                found = await run_in_threadpool(users.named, eng, user)
+                if found is None or not found.active:
+                    return
+                checked = time.monotonic()
             messages, cursor, status = await run_in_threadpool(changes, eng, run_id, cursor, status, first)
             first = False
             for message in messages:
@@ -248,7 +256,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
                     ) -> Response:
         # ``after``: where the page's own rendering left off (EventSource sends Last-Event-ID only
         # when it reconnects, and then that wins)
-        return stream_response(request, run_id, last_event_id or after)
+        return stream_response(request, run_id, last_event_id or after, user)
 
     @app.get("/runs/{run_id}/residuals.png")
     def page_residuals(run_id: int, user: Annotated[users.User, Depends(page_user)]) -> Response:
