@@ -243,3 +243,16 @@ def test_serve_refuses_a_database_behind_its_schema_in_one_line(tmp_path):
     assert len(done.stderr.strip().splitlines()) == 1 and "labcal db upgrade" in done.stderr
     missing = labcal("serve", "--port", "0", "--db", str(tmp_path / "none.sqlite"))
     assert missing.returncode == 2 and "no lab database there" in missing.stderr
+    assert not (tmp_path / "none.sqlite").exists()  # the server creates nothing
+
+
+def test_serve_refuses_a_key_it_cannot_sign_with_and_a_port_in_use(lab, tmp_path):
+    key = tmp_path / "lab.key"
+    key.write_text("not a key")
+    key.chmod(0o600)
+    for args, why in ((["--key", str(tmp_path / "absent.key")], "no such private key"),
+                      (["--key", str(key)], "not an unencrypted PEM private key"),
+                      (["--port", lab["url"].rsplit(":", 1)[1]], "cannot listen there")):
+        done = labcal("serve", "--db", lab["db"], *args)
+        assert done.returncode == 2 and done.stdout == "", done.stderr
+        assert len(done.stderr.strip().splitlines()) == 1 and why in done.stderr
