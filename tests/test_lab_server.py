@@ -256,3 +256,28 @@ def test_serve_refuses_a_key_it_cannot_sign_with_and_a_port_in_use(lab, tmp_path
         done = labcal("serve", "--db", lab["db"], *args)
         assert done.returncode == 2 and done.stdout == "", done.stderr
         assert len(done.stderr.strip().splitlines()) == 1 and why in done.stderr
+
+
+def test_user_add_asks_for_the_password_when_none_is_given(lab):
+    """Without --password it is asked for twice (getpass: without echo on a terminal; here, with no
+    terminal, from stdin) and refused when empty or when the two differ, adding nobody."""
+    import subprocess
+
+    from lab_server import LABCAL
+
+    def add(name: str, typed: str) -> subprocess.CompletedProcess:
+        return subprocess.run([LABCAL, "user", "add", name, "--role", "viewer", "--db", lab["db"]],
+                              input=typed, capture_output=True, text=True, timeout=60, start_new_session=True)
+    asked = add("hal", "hal's pw\nhal's pw\n")
+    assert asked.returncode == 0, asked.stderr
+    assert re.fullmatch(r"[A-Za-z0-9_-]{43}\n", asked.stdout) and "hal's pw" not in asked.stdout
+    client = httpx.Client(base_url=lab["url"], timeout=15)
+    csrf = _csrf(client.get("/login").text)
+    signed = client.post("/login", data={"name": "hal", "password": "hal's pw", "csrf": csrf})
+    assert signed.status_code == 303
+    for name, typed, why in (("ian", "\n", "may not be empty"), ("jo", "one\ntwo\n", "differ")):
+        refused = add(name, typed)
+        assert refused.returncode == 2 and refused.stdout == "" and why in refused.stderr
+    shown = labcal("user", "list", "--json", "--db", lab["db"]).stdout
+    listed = {u["name"] for u in json.loads(shown)["users"]}
+    assert "hal" in listed and not {"ian", "jo"} & listed
