@@ -21,10 +21,12 @@ from labcal.commands import (
     report,
     run,
     runs,
+    serve,
     sim,
     simulate,
     station,
     sync,
+    user,
 )
 from labcal.commands.common import EXIT_INTERRUPTED, EXIT_USER_ERROR, err
 from labcal.commands.logfile import add_log_options, logging_to
@@ -37,7 +39,7 @@ from labcal.errors import LabcalError
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, runs, device, station, sim, export,
-                  config, certificate, db, sync)
+                  config, certificate, db, sync, serve, user)
 
 
 class OneLineParser(argparse.ArgumentParser):

@@ -1,0 +1,217 @@
+"""What the server reads from the lab database: runs, their progress, their events; pure reads.
+
+Everything here is a SELECT through `labcal.run.schema`'s tables, on SQLite or PostgreSQL alike;
+nothing is written (a reader must never change what it shows, DESIGN.md §4).
+
+Progress is the journal's: ``points_done`` counts the points journaled (measured or failed, each once
+per step of the schedule), ``points_ok`` those measured. ``points_total`` is the run's own
+(`runs.points_total`) or, for a run journaled before the lab columns, the length of its plan's
+schedule (replicates × mounts × points, `labcal.run.sequencer.schedule`'s blocks).
+
+The next remount and the ETA come from the run's latest ``status`` event where the run journals one
+(`labcal.run.events.Status`, journaled at each milestone: a mount confirmed, a resume): its
+``next_remount_in_s`` and ``eta_s`` are the plan's estimates on the rig's clock at that moment, less
+the rig time since (the latest point's end) — ``estimate: "status"``. A run journaled without them is
+estimated here from the plan and the rig time per point so far, and says so (``estimate:
+"points"``). A run that is not running has neither.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import Any
+
+from sqlalchemy import case, func, select
+from sqlalchemy.engine import Connection
+
+from labcal.run.schema import events, points, runs
+
+RUNNING = "running"
+STATUS_KIND, FAULT_KIND, PROMPT_KIND = "status", "fault", "prompt"
+
+
+@dataclass(frozen=True)
+class PlanShape:
+    """How a run's schedule is laid out: blocks of ``block`` points, one mount each, ``total`` points."""
+
+    total: int
+    block: int
+
+
+def plan_shape(plan_text: str) -> PlanShape | None:
+    """The schedule's shape from the plan as journaled (None: a plan this labcal cannot read)."""
+    from labcal.config.plans import parse_plan
+    from labcal.errors import LabcalError
+
+    try:
+        plan = parse_plan(plan_text, "the run's plan")
+    except (LabcalError, ValueError):
+        return None
+    return PlanShape(plan.replicates * len(plan.mounts) * len(plan.points), len(plan.points))
+
+
+def _json(text: str | None) -> Any:
+    if not text:
+        return None
+    try:
+        return json.loads(text)
+    except ValueError:
+        return None
+
+
+def _counts(conn: Connection, run_ids: list[int] | None = None) -> dict[int, tuple[int, int, int | None]]:
+    """Per run: points journaled, points measured, the last step's seq."""
+    ok = func.sum(case((points.c.status == "ok", 1), else_=0))
+    query = select(points.c.run_id, func.count(), ok, func.max(points.c.seq)).group_by(points.c.run_id)
+    if run_ids is not None:
+        query = query.where(points.c.run_id.in_(run_ids))
+    return {r: (int(n), int(k or 0), s) for r, n, k, s in conn.execute(query)}
+
+
+SUMMARY = (runs.c.id, runs.c.status, runs.c.station, runs.c.metadata, runs.c.instrument_serial,
+           runs.c.operator, runs.c.plan_name, runs.c.plan_text, runs.c.points_total, runs.c.started_utc,
+           runs.c.ended_utc, runs.c.reason, runs.c.run_dir, runs.c.station_text)
+
+
+def simulated(metadata: Any, station_text: str | None) -> bool:
+    """A dry run (simulated rig or emulators), by the rule `labcal.run.record.RunRecord.simulated`
+    applies to the same journaled fields: shown on the pages so that nobody mistakes one for a
+    calibration (approving it is refused by the approval itself, whatever a page shows)."""
+    if isinstance(metadata, dict) and "simulated_truth" in metadata:
+        return True
+    station = _json(station_text)
+    if not isinstance(station, dict):
+        return False
+    return station.get("kind") == "simulated rig" or bool(station.get("emulate"))
+
+
+def _summary(row: Any, counts: tuple[int, int, int | None]) -> dict:
+    shape = plan_shape(row.plan_text)
+    total = row.points_total if row.points_total is not None else (shape.total if shape else None)
+    metadata = _json(row.metadata) or {}
+    station = row.station or metadata.get("station")
+    done, ok, _ = counts
+    return {"id": row.id, "status": row.status, "simulated": simulated(metadata, row.station_text),
+            "station": station, "serial": row.instrument_serial,
+            "operator": row.operator, "plan": row.plan_name, "points_done": done, "points_ok": ok,
+            "points_failed": done - ok, "points_total": total, "started_utc": row.started_utc,
+            "ended_utc": row.ended_utc, "reason": row.reason, "run_dir": row.run_dir}
+
+
+def list_runs(conn: Connection) -> list[dict]:
+    """Every run of the lab, newest first, with its progress."""
+    counts = _counts(conn)
+    rows = conn.execute(select(*SUMMARY).order_by(runs.c.id.desc())).all()
+    return [_summary(r, counts.get(r.id, (0, 0, None))) for r in rows]
+
+
+def stations(conn: Connection) -> list[dict]:
+    """Every station that has journaled a run, with its current run: the one running (the newest,
+    if several), else its newest; stations in name order."""
+    current: dict[str, dict] = {}
+    for run in list_runs(conn):  # newest first
+        name = run["station"] or "(unnamed station)"
+        held = current.get(name)
+        if held is None or (held["status"] != RUNNING and run["status"] == RUNNING):
+            current[name] = run
+    return [{"station": name, "run": current[name]} for name in sorted(current)]
+
+
+def _event_json(row: Any) -> dict:
+    data = _json(row.data)
+    return {"id": row.id, "utc": row.utc, "station_time": row.station_time, "kind": row.kind,
+            "message": row.message, "data": data, "text": _text(row.kind, row.message, data)}
+
+
+def _text(kind: str, message: str, data: Any) -> str:
+    """The event in words for people: a prompt with what it asks (its arguments), else its message."""
+    if kind == PROMPT_KIND and isinstance(data, dict) and isinstance(data.get("args"), list):
+        args = [str(a) for a in data["args"] if str(a)]
+        if message == "mount" and len(args) >= 3:
+            return f"mount {args[1]} of {args[2]}: {args[0]}"
+        return f"{message}: {', '.join(args)}" if args else message
+    return message
+
+
+EVENT_COLUMNS = (events.c.id, events.c.utc, events.c.station_time, events.c.kind, events.c.message,
+                 events.c.data)
+
+
+def _latest(conn: Connection, run_id: int, kind: str) -> dict | None:
+    row = conn.execute(select(*EVENT_COLUMNS).where(events.c.run_id == run_id, events.c.kind == kind)
+                       .order_by(events.c.id.desc()).limit(1)).first()
+    return None if row is None else _event_json(row)
+
+
+def progress(conn: Connection, run_id: int) -> dict | None:
+    """The run's summary with where it stands: mount, next remount, ETA, last fault (None: no run)."""
+    row = conn.execute(select(*SUMMARY).where(runs.c.id == run_id)).first()
+    if row is None:
+        return None
+    counts = _counts(conn, [run_id]).get(run_id, (0, 0, None))
+    summary = _summary(row, counts)
+    last = conn.execute(select(points.c.y_deg, points.c.u_deg, points.c.t_end)
+                        .where(points.c.run_id == run_id).order_by(points.c.seq.desc()).limit(1)).first()
+    summary["mount"] = None if last is None else {"y_deg": last.y_deg, "u_deg": last.u_deg}
+    fault = _latest(conn, run_id, FAULT_KIND)
+    summary["last_fault"] = None if fault is None else {"utc": fault["utc"], "message": fault["message"]}
+    summary.update(_ahead(conn, row, counts, None if last is None else last.t_end))
+    return summary
+
+
+def _ahead(conn: Connection, row: Any, counts: tuple[int, int, int | None], rig_s: float | None) -> dict:
+    """next_remount_in_s and eta_s (rig seconds), and what they are estimated from."""
+    none = {"next_remount_in_s": None, "eta_s": None, "estimate": None}
+    if row.status != RUNNING:
+        return none
+    status = _latest(conn, row.id, STATUS_KIND)
+    data = status["data"] if status and isinstance(status["data"], dict) else None
+    if data is not None and data.get("status") == RUNNING and status is not None:
+        # the run's own estimate at its last milestone (a mount confirmed, a resume), less the rig
+        # time that has passed since (its latest point's end)
+        since = max(0.0, (rig_s or 0.0) - (status["station_time"] or 0.0))
+        remount, eta = data.get("next_remount_in_s"), data.get("eta_s")
+        return {"next_remount_in_s": None if remount is None else max(0.0, remount - since),
+                "eta_s": None if eta is None else max(0.0, eta - since), "estimate": "status"}
+    shape = plan_shape(row.plan_text)
+    done, _, last_seq = counts
+    if shape is None or last_seq is None or not rig_s or rig_s <= 0:
+        return none
+    position = last_seq + 1  # the next step of the schedule
+    per_point = rig_s / position  # rig seconds per step so far, remounts included
+    total = row.points_total or shape.total
+    boundary = -(-position // shape.block) * shape.block  # the next block's first step (or this one)
+    remount = None if boundary >= total else max(0.0, (boundary - position) * per_point)
+    return {"next_remount_in_s": remount, "eta_s": max(0, total - position) * per_point, "estimate": "points"}
+
+
+def run_events(conn: Connection, run_id: int, after: int = 0, limit: int | None = None) -> list[dict]:
+    """The run's journaled events after event id ``after``, oldest first."""
+    query = (select(*EVENT_COLUMNS).where(events.c.run_id == run_id, events.c.id > after)
+             .order_by(events.c.id))
+    if limit is not None:
+        query = query.limit(limit)
+    return [_event_json(r) for r in conn.execute(query)]
+
+
+POINT_COLUMNS = (points.c.seq, points.c.replicate, points.c.y_deg, points.c.u_deg, points.c.pitch_deg,
+                 points.c.roll_deg, points.c.status, points.c.t_end, points.c.utc, points.c.vx, points.c.vy,
+                 points.c.vz)
+
+
+def run_points(conn: Connection, run_id: int, after: int = -1, limit: int | None = None) -> list[dict]:
+    """The run's journaled points with seq above ``after`` (raw samples left out), in order."""
+    query = (select(*POINT_COLUMNS).where(points.c.run_id == run_id, points.c.seq > after)
+             .order_by(points.c.seq))
+    if limit is not None:
+        query = query.limit(limit)
+    return [dict(r._mapping) for r in conn.execute(query)]
+
+
+def run_detail(conn: Connection, run_id: int) -> dict | None:
+    """`GET /api/runs/{id}`: the run's progress and every event it journaled."""
+    found = progress(conn, run_id)
+    if found is not None:
+        found["events"] = run_events(conn, run_id)
+    return found

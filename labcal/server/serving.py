@@ -1,0 +1,65 @@
+"""Starting the lab server: the settings from the command line, uvicorn on a socket of our own.
+
+The socket is bound before uvicorn starts so that ``--port 0`` (a free port the system picks) can be
+printed as a URL before the first request: tests and scripts read that line to find the server.
+"""
+
+from __future__ import annotations
+
+import socket
+from collections.abc import Callable
+from pathlib import Path
+
+from labcal.errors import LabcalError
+from labcal.server import db
+from labcal.server.app import ServerSettings, create_app
+
+GRACE_S = 2.0  # open event streams are cut this long after Ctrl-C
+
+
+def settings_for(db_option: str | None, key: str | None, poll_s: float = 0.5) -> ServerSettings:
+    """Open the lab database (read only by the server: refused unless at this labcal's schema) and
+    check the signing key now rather than at the first approval."""
+    from labcal.documents.approval import load_private_key
+
+    lab = db.open_lab(db_option, must_exist=True)
+    key_path = None
+    if key is not None:
+        key_path = Path(key)
+        load_private_key(key_path)  # one line now for a missing, unreadable or too-open key
+    return ServerSettings(engine=lab.engine, where=lab.shown, key=key_path, db_file=lab.file, poll_s=poll_s)
+
+
+def listen(host: str, port: int) -> socket.socket:
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError as exc:
+        sock.close()
+        raise LabcalError(f"{host}:{port}: cannot listen there ({exc.strerror}); choose another --port "
+                          "(0: any free one)") from None
+    sock.listen(128)
+    return sock
+
+
+def url_of(sock: socket.socket) -> str:
+    host, port = sock.getsockname()[:2]
+    return f"http://{f'[{host}]' if ':' in host else host}:{port}"
+
+
+def serve(settings: ServerSettings, host: str, port: int, listening: Callable[[str], None]) -> None:
+    """Serve until Ctrl-C; ``listening`` is told the URL once the socket is bound."""
+    import uvicorn
+
+    sock = listen(host, port)
+    config = uvicorn.Config(create_app(settings), log_level="warning", timeout_graceful_shutdown=int(GRACE_S),
+                            proxy_headers=False, server_header=False)
+    server = uvicorn.Server(config)
+    listening(url_of(sock))
+    try:
+        server.run(sockets=[sock])
+    finally:
+        sock.close()
+        settings.engine.dispose()

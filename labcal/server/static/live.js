@@ -1,0 +1,61 @@
+// The run page's live part: the session-authenticated event stream of this run (no library, no
+// build step). Every "progress" event carries the run's progress; journal events are listed.
+(function () {
+  "use strict";
+  const run = document.getElementById("run");
+  if (!run || !window.EventSource) { return; }
+  const id = run.dataset.run;
+  const $ = (name) => document.getElementById(name);
+  const QUIET = new Set(["move", "status", "settle_pool", "segment", "progress", "point", "run"]);
+
+  function duration(s) {
+    if (s === null || s === undefined) { return "—"; }
+    s = Math.round(s);
+    if (s < 60) { return s + " s"; }
+    if (s < 3600) { return Math.floor(s / 60) + " min " + String(s % 60).padStart(2, "0") + " s"; }
+    return Math.floor(s / 3600) + " h " + String(Math.floor(s % 3600 / 60)).padStart(2, "0") + " min";
+  }
+
+  function show(p) {
+    $("done").textContent = p.points_done;
+    $("total").textContent = p.points_total === null ? "?" : p.points_total;
+    const fill = run.querySelector(".fill");
+    if (fill && p.points_total) { fill.style.width = (100 * p.points_done / p.points_total).toFixed(1) + "%"; }
+    $("mount").textContent = p.mount ? "y " + p.mount.y_deg + "°, u " + p.mount.u_deg + "°" : "—";
+    $("remount").textContent = p.next_remount_in_s !== null ? "in " + duration(p.next_remount_in_s)
+      : (p.status === "running" ? "none left" : "—");
+    $("eta").textContent = duration(p.eta_s);
+    $("failed").textContent = p.points_failed;
+    const fault = $("fault");
+    fault.textContent = p.last_fault ? p.last_fault.message : "none";
+    fault.className = p.last_fault ? "alert" : "";
+    const status = $("status");
+    status.textContent = p.status;
+    if (p.status !== run.dataset.status) {
+      if (run.dataset.status === "running") { window.setTimeout(() => window.location.reload(), 1000); }
+      run.dataset.status = p.status;
+    }
+  }
+
+  function listed(e) {
+    const item = JSON.parse(e.data);
+    if (QUIET.has(item.kind) || !item.message) { return; }
+    const li = document.createElement("li");
+    li.className = item.kind;
+    const time = document.createElement("time");
+    time.textContent = (item.utc || "").slice(11, 19);
+    const kind = document.createElement("b");
+    kind.textContent = item.kind;
+    li.append(time, " ", kind, " " + (item.text || item.message));
+    const list = $("events");
+    list.append(li);
+    while (list.children.length > 30) { list.removeChild(list.firstChild); }
+  }
+
+  const source = new EventSource("/runs/" + id + "/stream?after=" + encodeURIComponent(run.dataset.after));
+  source.addEventListener("progress", (e) => show(JSON.parse(e.data)));
+  for (const kind of ["prompt", "fault", "answer", "mount", "pause", "resume", "stop", "retry", "link",
+                      "discarded", "interrupted"]) {
+    source.addEventListener(kind, listed);
+  }
+})();

@@ -1,0 +1,173 @@
+"""The lab server's users: who may read, who may approve; shared by `labcal user` and the server.
+
+Each user has a role — ``viewer`` reads, ``technician`` reads (and runs at the bench, which the
+server does not do), ``approver`` reads and approves certificates — a password for the web login and
+an API token for programs (``Authorization: Bearer TOKEN``).
+
+Neither is kept in clear (`labcal.run.schema.users`):
+
+- the password under argon2id (argon2-cffi, its default cost: 64 MiB, 3 passes), because people
+  choose guessable passwords and a stolen table must make each guess expensive;
+- the token as the SHA-256 of 32 random bytes (`secrets.token_urlsafe`). A slow hash buys nothing
+  there: a guess must find one of 2²⁵⁶ values, which no speed of hashing makes feasible, and the fast
+  hash lets the server find the user by the token's hash with one indexed lookup per request instead
+  of trying every user's argon2 hash. The token is shown once, when the user is added.
+
+A user is never deleted: ``disable`` keeps the row with its time (it names who approved what), and a
+disabled user's password, token and open web sessions stop working at once.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import secrets
+from dataclasses import dataclass
+from datetime import UTC, datetime
+
+from sqlalchemy import select, update
+from sqlalchemy.engine import Engine
+from sqlalchemy.exc import IntegrityError
+
+from labcal.errors import LabcalError
+from labcal.run.schema import users
+
+ROLES = ("technician", "approver", "viewer")
+APPROVER = "approver"
+NAME_MAX = 64
+
+
+@dataclass(frozen=True)
+class User:
+    id: int
+    name: str
+    role: str
+    created_utc: str
+    disabled_utc: str | None
+
+    @property
+    def active(self) -> bool:
+        return self.disabled_utc is None
+
+    @property
+    def may_approve(self) -> bool:
+        return self.active and self.role == APPROVER
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "role": self.role, "created_utc": self.created_utc,
+                "disabled_utc": self.disabled_utc, "active": self.active}
+
+
+def _hasher():
+    from argon2 import PasswordHasher
+
+    return PasswordHasher()
+
+
+def token_hash(token: str) -> str:
+    """What the database keeps of an API token: its SHA-256, hex."""
+    return hashlib.sha256(token.encode("utf-8")).hexdigest()
+
+
+def _now() -> str:
+    return datetime.now(UTC).isoformat(timespec="seconds")
+
+
+def _valid_name(name: str) -> str:
+    name = name.strip()
+    if not name or len(name) > NAME_MAX or not name.isprintable():
+        raise LabcalError(f"{name!r}: a user name is 1 to {NAME_MAX} printable characters")
+    return name
+
+
+def _valid_role(role: str) -> str:
+    if role not in ROLES:
+        raise LabcalError(f"{role!r}: the role is one of {', '.join(ROLES)}")
+    return role
+
+
+COLUMNS = (users.c.id, users.c.name, users.c.role, users.c.created_utc, users.c.disabled_utc)
+
+
+def add(eng: Engine, name: str, role: str, password: str) -> tuple[User, str]:
+    """Add ``name`` with ``role`` and ``password``; returns the user and their API token, which is
+    not kept and cannot be shown again."""
+    name, role = _valid_name(name), _valid_role(role)
+    if not password:
+        raise LabcalError("the password may not be empty")
+    token = secrets.token_urlsafe(32)  # 32 random bytes
+    row = {"name": name, "role": role, "password_hash": _hasher().hash(password),
+           "token_hash": token_hash(token), "created_utc": _now(), "disabled_utc": None}
+    try:
+        with eng.begin() as conn:
+            if conn.execute(select(users.c.id).where(users.c.name == name)).first() is not None:
+                raise LabcalError(f"{name}: already a user (`labcal user list`); a user is never re-added "
+                                  "(choose another name)")
+            key = conn.execute(users.insert().values(**row)).inserted_primary_key
+            assert key is not None  # an INSERT of one row into a table with a primary key
+            user_id = key[0]
+    except IntegrityError:  # added meanwhile by someone else
+        raise LabcalError(f"{name}: added meanwhile by someone else (`labcal user list`)") from None
+    return User(int(user_id), name, role, row["created_utc"], None), token
+
+
+def listed(eng: Engine) -> list[User]:
+    """Every user, active and disabled, in the order they were added."""
+    with eng.connect() as conn:
+        return [User(*r) for r in conn.execute(select(*COLUMNS).order_by(users.c.id))]
+
+
+def named(eng: Engine, name: str) -> User | None:
+    with eng.connect() as conn:
+        row = conn.execute(select(*COLUMNS).where(users.c.name == name)).first()
+    return None if row is None else User(*row)
+
+
+def disable(eng: Engine, name: str) -> User:
+    """Disable ``name``: their password, token and sessions stop working; the row stays."""
+    when = _now()
+    with eng.begin() as conn:
+        done = conn.execute(update(users).where(users.c.name == name, users.c.disabled_utc.is_(None))
+                            .values(disabled_utc=when))
+        if done.rowcount != 1:
+            row = conn.execute(select(users.c.disabled_utc).where(users.c.name == name)).first()
+            if row is not None:
+                raise LabcalError(f"{name}: already disabled on {row[0]}")
+            known = [r[0] for r in conn.execute(select(users.c.name).order_by(users.c.id))]
+            raise LabcalError(f"{name}: no such user; users: {', '.join(known) if known else 'none'}")
+    found = named(eng, name)
+    assert found is not None
+    return found
+
+
+def by_token(eng: Engine, token: str) -> User | None:
+    """The active user whose API token this is, else None."""
+    if not token:
+        return None
+    with eng.connect() as conn:
+        row = conn.execute(select(*COLUMNS).where(users.c.token_hash == token_hash(token))).first()
+    user = None if row is None else User(*row)
+    return user if user is not None and user.active else None
+
+
+# A hash of a password nobody has: a name that does not exist costs the same argon2 verification as
+# one that does, so the login's timing does not tell which names exist.
+_DUMMY: list[str] = []
+
+
+def by_password(eng: Engine, name: str, password: str) -> User | None:
+    """The active user ``name`` if ``password`` is theirs, else None."""
+    from argon2.exceptions import InvalidHashError, VerificationError
+
+    hasher = _hasher()
+    with eng.connect() as conn:
+        row = conn.execute(select(*COLUMNS, users.c.password_hash)
+                           .where(users.c.name == name.strip())).first()
+    if not _DUMMY:
+        _DUMMY.append(hasher.hash(secrets.token_hex(16)))
+    stored = _DUMMY[0] if row is None else row[-1]
+    try:
+        hasher.verify(stored, password)
+    except (VerificationError, InvalidHashError):
+        return None
+    user = None if row is None else User(*row[:-1])
+    return user if user is not None and user.active else None

@@ -1,0 +1,84 @@
+"""The lab server as the lab runs it, for the server's tests: `labcal serve` in a process of its own
+on a free port of 127.0.0.1 (it prints its URL), users added by `labcal user add`, simulated runs by
+`labcal run --sim` (paced: `--pace`), each a real process writing the same lab database."""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, redirect_stdout
+from pathlib import Path
+
+LABCAL = str(Path(sys.executable).with_name("labcal"))
+
+
+def labcal(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([LABCAL, *args], capture_output=True, text=True, timeout=120)
+
+
+def add_user(db: str, name: str, role: str, password: str) -> str:
+    """Add a user through the command line (in this process: a labcal process takes seconds to start
+    on a loaded machine); their API token."""
+    from labcal.cli import main
+
+    printed = io.StringIO()
+    with redirect_stdout(printed):
+        assert main(["user", "add", name, "--role", role, "--password", password, "--db", db, "--json"]) == 0
+    return json.loads(printed.getvalue())["token"]
+
+
+@contextmanager
+def served(db: str, *extra: str) -> Iterator[str]:
+    """`labcal serve --port 0` on ``db``; yields its URL, stops it (Ctrl-C) at the end."""
+    server = subprocess.Popen([LABCAL, "serve", "--port", "0", "--db", db, "--poll", "0.2", *extra],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert server.stdout is not None
+        line = server.stdout.readline()
+        found = re.search(r"http://127\.0\.0\.1:\d+", line)
+        assert found, f"labcal serve printed {line!r}; stderr: {server.stderr and server.stderr.read()}"
+        yield found[0]
+    finally:
+        server.send_signal(signal.SIGINT)
+        try:
+            server.communicate(timeout=15)
+        except subprocess.TimeoutExpired:
+            server.kill()
+            server.communicate()
+
+
+@contextmanager
+def paced_run(db: str, out: Path, pace: float, plan: str = "one-mount-16", serial: str = "ACC-0107"
+              ) -> Iterator[subprocess.Popen]:
+    """A simulated run at ``pace`` × real time, journaling into ``db`` while the test watches."""
+    run = subprocess.Popen([LABCAL, "run", "--sim", "--yes", "--no-report", "--pace", str(pace),
+                            "--plan", plan, "--serial", serial, "--db", db, "--out", str(out)],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        yield run
+    finally:
+        if run.poll() is None:
+            run.send_signal(signal.SIGINT)
+            try:
+                run.communicate(timeout=20)
+            except subprocess.TimeoutExpired:
+                run.kill()
+                run.communicate()
+
+
+def wait_for(condition: Callable[[], object], timeout_s: float, what: str, every_s: float = 0.2) -> object:
+    """Poll ``condition`` until it is truthy (returned) or ``timeout_s`` passes (fails, saying what)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        found = condition()
+        if found:
+            return found
+        if time.monotonic() > deadline:
+            raise AssertionError(f"waited {timeout_s:g} s for {what}")
+        time.sleep(every_s)
