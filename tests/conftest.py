@@ -18,11 +18,13 @@ from labcal.sim.direct import simulate_readings
 def lab_database(tmp_path, monkeypatch):
     """Every test (and every labcal it starts) journals into its own database, never runs/."""
     monkeypatch.setenv("LABCAL_DB", str(tmp_path / "labcal.sqlite"))
+    monkeypatch.setenv("LABCAL_JOURNAL", str(tmp_path / "journal.sqlite"))  # with a lab server: the station's
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "runtime"))  # its station locks are the test's own
     monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))  # never the developer's own lab file
     monkeypatch.setenv("XDG_CONFIG_DIRS", str(tmp_path / "site-config"))
     monkeypatch.delenv("LABCAL_CONFIG", raising=False)
     monkeypatch.delenv("LABCAL_NOTIFY", raising=False)  # nor the developer's notifications (issue 24)
+    monkeypatch.delenv("LABCAL_STATION", raising=False)  # the computer's name, unless a test names one
     # and works in its own folder: a run's default runs/ lands there, and `python -m labcal.cli` finds
     # the installed labcal, not the source tree's labcal/ (which lacks drivers/ and sim/) beside it.
     # Not under mutation testing (tools/mutation.py): mutmut's trampoline reads its configuration

@@ -257,19 +257,38 @@ def test_an_unwarmed_run_with_yes_is_refused_before_anything_moves(tmp_path, cap
     assert to_tables and set(to_tables) == {"1TS", "2TS"}, to_tables
 
 
-def test_an_attended_run_asks_whether_to_go_on(tmp_path, capsys, monkeypatch):
-    """At the terminal an unmet item is a question; 'n' (or nothing) stops, nothing moved."""
-    (tmp_path / "a-file").write_text("")
-    monkeypatch.setattr("sys.stdin", io.StringIO("n\n"))
-    code, _, err = cli(capsys, "run", "--sim", "--no-report", "--db", str(tmp_path / "a-file" / "j.sqlite"),
-                       "--out", str(tmp_path / "run"))
+def test_an_attended_run_asks_whether_to_go_on(tmp_path, capsys, monkeypatch, lab_database, no_leaks):  # noqa: F811
+    """At the terminal an unmet item is a question; 'n' (or nothing) stops, nothing moved. Here the
+    warm-up: the station asks 30 min, and the technician leaves the power-on time unsaid."""
+    path = private_file("smc100-tcp", tmp_path, "\n[instrument]\nwarm_up_min = 30\n")
+    monkeypatch.setattr("sys.stdin", io.StringIO("\nn\n"))
+    code, _, err = cli(capsys, "run", "--station", str(path), *EMULATE, "--no-report", "--out",
+                       str(tmp_path / "run"))
     assert code == 2
-    assert "1 item(s) not met (lab database). Go on anyway? (y/N)" in err
+    assert "1 item(s) not met (warm-up). Go on anyway? (y/N)" in err
     # (the answer read from a pipe is not echoed: the error line follows the question on its line)
-    assert err.strip().splitlines()[-1].endswith("(y/N) labcal: error: pre-run checklist: lab database: "
-                                                 f"{tmp_path / 'a-file'}: cannot create the database folder "
-                                                 "(File exists); nothing was moved")
+    assert err.strip().splitlines()[-1].endswith(
+        "(y/N) labcal: error: pre-run checklist: warm-up: the station asks 30 min after power-on and "
+        "nobody said when the instrument was switched on: give --powered-on HH:MM, or --warmed-up; "
+        "nothing was moved")
     assert not (tmp_path / "run").exists()
+    with sqlite3.connect(lab_database) as db:
+        assert db.execute("SELECT count(*) FROM runs").fetchone() == (0,)
+
+
+def test_an_unreachable_lab_server_is_a_warning_not_a_refusal(tmp_path, capsys):
+    """A run never waits for the lab's server: the checklist says it cannot be reached and that the
+    records will follow, and the item does not stop the run."""
+    from services import free_port
+
+    url = f"postgresql://labcal@127.0.0.1:{free_port()}/lab"  # nothing listens there
+    code, out, err = cli(capsys, "station", "check", str(private_file("az-modbus-tcp", tmp_path)), *EMULATE,
+                         "--db", url, "--json")
+    doc = json.loads(out)
+    by = {i["item"]: i for i in doc["checklist"]}
+    assert by["lab database"]["status"] == "warning", by["lab database"]
+    assert "cannot reach the lab database" in by["lab database"]["message"]
+    assert "send its records when the server is back" in by["lab database"]["message"]
 
 
 def test_the_warm_up_question_at_the_terminal(tmp_path, capsys, monkeypatch, lab_database, no_leaks):  # noqa: F811

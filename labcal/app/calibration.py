@@ -253,7 +253,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
     from labcal.run.rundir import new_run_dir
     from labcal.run.runner import calibrate
     from labcal.run.sequencer import check_limits, schedule
-    from labcal.run.sync import sending
+    from labcal.run.sync import ready, sending
 
     if not args.sim and not args.station:
         raise LabcalError("no station given: use --sim for a dry run on the simulated rig, or --station FILE "
@@ -267,10 +267,6 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
     if args.pace is not None and not args.sim:
         raise LabcalError(PACE_SIM_ONLY)
     plan, plan_text = load_plan(args.plan)
-    if not args.dry_run:  # a lab database behind or ahead of this labcal: refused before anything moves
-        from labcal.run.sync import ready
-
-        ready(args.db)
     if args.replicates is not None:  # the journal keeps the plan that actually runs
         plan = Plan.model_validate({**plan.model_dump(), "replicates": args.replicates})
         plan_text = plan_toml(plan)
@@ -310,6 +306,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
         est = estimate(plan, settings, setup.timing, steps)
         if args.dry_run:
             return Estimated(plan, est)
+        ready(args.db)  # a lab database behind or ahead of this labcal: refused before anything moves
         setup.metadata["estimated_rig_time_s"] = est.total_s  # run.json: the estimate beside the actual
         check_limits(setup.station, steps, settings.check_mount)  # first: homing moves a table too
         run_dir = new_run_dir(args.out, plan)  # a bad --out is one line before the checklist

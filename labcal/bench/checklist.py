@@ -33,6 +33,7 @@ from labcal.errors import LabcalError
 
 if TYPE_CHECKING:
     from labcal.bench.hardware import Bench
+    from labcal.config.lab import ServerDatabase
     from labcal.config.station import InstrumentSettings, StationFile
     from labcal.config.uncertainty import Traceability
     from labcal.run.station import Station
@@ -226,20 +227,31 @@ def free_disk(journal_folder: Path, run_folder: Path, points: int, samples: int)
     return Item("free disk", worst, "; ".join(lines) + f" ({points} points){what}")  # type: ignore[arg-type]
 
 
-def lab_database(path: Path) -> Item:
-    """The lab database opens as a run opens it."""
-    from labcal.run.labdb import connect
+def lab_database(path: Path, server: ServerDatabase | None = None) -> Item:
+    """The journal opens as a run opens it; the lab's server, where there is one, answers at this
+    labcal's schema. A server that cannot be reached is a warning, not a failure: a run never waits
+    for it (its records stay in the journal and are sent when it is back)."""
+    from labcal.run.labdb import Unreachable, connect, open_server
 
     try:
         connect(path).close()
     except LabcalError as exc:
         return Item("lab database", "fail", str(exc))
-    return Item("lab database", "ok", f"{path} opens")
+    if server is None:
+        return Item("lab database", "ok", f"{path} opens")
+    try:
+        open_server(server).dispose()
+    except Unreachable as exc:
+        return Item("lab database", "warning", f"{exc}; the run would measure into {path} and send its "
+                                               "records when the server is back (or with labcal sync)")
+    except LabcalError as exc:
+        return Item("lab database", "fail", str(exc))
+    return Item("lab database", "ok", f"{server} answers; this station journals into {path}")
 
 
 def run_checklist(config: StationFile | None, bench: Bench | None, station: Station | None, *, db: Path,
                   run_folder: Path, points: int, samples: int, power: PowerOn, now: datetime,
-                  unsaid: Status = "fail") -> list[Item]:
+                  unsaid: Status = "fail", server: ServerDatabase | None = None) -> list[Item]:
     """Every item, for a station file's bench (``config``, ``bench``) or the simulated rig (``station``).
     Nothing moves."""
     return [
@@ -248,7 +260,7 @@ def run_checklist(config: StationFile | None, bench: Bench | None, station: Stat
         tables_homed(bench, station),
         dmm(bench),
         free_disk(db.parent, run_folder, points, samples),
-        lab_database(db),
+        lab_database(db, server),
     ]
 
 

@@ -226,6 +226,7 @@ def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, 
     from labcal.commands.common import err
     from labcal.errors import LabcalError
     from labcal.run.journal import db_path
+    from labcal.run.labdb import lab_server
 
     now = datetime.now().astimezone()
     power = power_on_given(args, now)
@@ -247,7 +248,7 @@ def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, 
             except LabcalError as exc:
                 err.print(f"[yellow]{exc}[/]")
     items = run_checklist(config, bench, station, db=db_path(args.db), run_folder=Path(args.out or "runs"),
-                          points=points, samples=samples, power=power, now=now)
+                          points=points, samples=samples, power=power, now=now, server=lab_server(args.db))
     print_checklist(err, items)
     record = {"items": [i.to_json() for i in items], "went_on_regardless": False,
               "powered_on": None if power.at is None else power.at.isoformat(timespec="minutes"),

@@ -61,6 +61,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     from labcal.config.station import load_station
     from labcal.config.uncertainty import overdue_standards
     from labcal.run.journal import db_path
+    from labcal.run.labdb import lab_server
 
     config, _ = load_station(args.station)
     now = datetime.now().astimezone()
@@ -73,7 +74,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         reports = bench.check(reset_alarms=args.reset_alarms)
         items = run_checklist(config, bench, None, db=db_path(args.db), run_folder=Path(args.out or "runs"),
                               points=plan.n_points, samples=config.sequencer.settle.samples, power=power,
-                              now=now, unsaid="warning")
+                              now=now, unsaid="warning", server=lab_server(args.db))
     failed = [r for r in reports if r["problem"]]
     if args.json:
         print_json({"station": config.description or args.station, "ok": not failed and not unmet(items),

@@ -16,15 +16,15 @@ def cmd_sync(args: argparse.Namespace) -> int:
     from labcal.run.sync import Sender, is_outage
 
     where = lab_database(args.db)
+    nothing = {"database": str(where), "journal": str(where), "sent": {}, "new": {}}
     if not isinstance(where, ServerDatabase):
-        out.print(f"{where}: the lab database is this SQLite file itself; nothing to send")
-        return 0
+        return said(args, nothing, f"{where}: the lab database is this SQLite file itself; nothing to send")
     journal = db_path(args.db)
     labdb.open_server(where).dispose()  # reachable, at this labcal's schema (created if empty)
     if not journal.exists():
-        out.print(f"{journal}: no journal on this station yet (it is $LABCAL_JOURNAL, else the lab file's "
-                  "journal); nothing to send")
-        return 0
+        return said(args, {**nothing, "journal": str(journal)},
+                    f"{journal}: no journal on this station yet (it is $LABCAL_JOURNAL, else the lab file's "
+                    "journal); nothing to send")
     sender = Sender(journal, where)
     try:
         sent = sender.push()
@@ -46,8 +46,17 @@ def cmd_sync(args: argparse.Namespace) -> int:
     return 0
 
 
+def said(args: argparse.Namespace, doc: dict, line: str) -> int:
+    """Nothing to send: the line, or with --json the same document as a sync that sent nothing."""
+    if args.json:
+        print_json(doc)
+    else:
+        out.print(line)
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("sync", help="send this station's journal to the lab's PostgreSQL database now")
     add_db_option(p)
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--json", action="store_true", help="print what was sent as JSON on stdout")
     p.set_defaults(func=cmd_sync)

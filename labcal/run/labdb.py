@@ -50,6 +50,12 @@ def lab_database(option: str | Path | None = None) -> Path | ServerDatabase:
     return load_lab_config().database()
 
 
+def lab_server(option: str | Path | None = None) -> ServerDatabase | None:
+    """The lab's server database, where the lab database is one (None: a SQLite file, the journal)."""
+    where = lab_database(option)
+    return None if isinstance(where, Path) else where
+
+
 ALEMBIC_USER_VERSION = 6  # > 5: the labcal before Alembic refuses an Alembic-kept file as newer
 PG_LOCK = 0x6C616263  # "labc": the advisory lock that serialises creating and upgrading on a server
 # Version 0, exactly as the unversioned labcal created it (journal.py and history.py, a8863ee).
