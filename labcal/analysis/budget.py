@@ -93,6 +93,9 @@ class TypeBInputs:
     # Standard uncertainties (rad, normal) of the device misalignments a…k where a device model
     # estimated them (`fit --model device`); empty: the row is absent.
     device_misalignment: dict[str, float] = field(default_factory=dict)
+    # Where they are not this run's estimates but a plan's device correction (issue 27): the estimate
+    # they come from, in words (""; the device model of this run estimated them).
+    device_misalignment_source: str = ""
 
 
 @dataclass(frozen=True)
@@ -304,7 +307,12 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
                            max(b.device_misalignment.values()) / ARCSEC, "arcsec", tuple(
                                _b(_grouped(cal, (name,), _membership(everything), linear=True), u, "normal")
                                for name, u in b.device_misalignment.items()),
-                           note="the device model's estimates of a…k, applied as corrections: each one's "
+                           note=("not measured in this run: corrected for from "
+                                 f"{b.device_misalignment_source} (the plan's device correction); each "
+                                 "one's standard uncertainty as the plan carries it, through the fit's "
+                                 "projection (their correlations are not carried)")
+                           if b.device_misalignment_source else
+                                "the device model's estimates of a…k, applied as corrections: each one's "
                                 "standard uncertainty from the joint fit, through the fit's projection "
                                 "(their correlations are not carried)"))
     rows.append(Source(LOCAL_GRAVITY, "B", "rectangular", LOCAL_GRAVITY_U, "g", (), added=True,

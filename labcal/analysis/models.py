@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from labcal.analysis.kinematics import nominal_gravity
+from labcal.analysis.kinematics import Misalignment, gravity, nominal_gravity
 from labcal.errors import LabcalError
 
 BASE_NAMES = ("B", "S_x", "S_y", "S_z")
@@ -41,6 +41,14 @@ class Points:
     def nominal_gravity(self) -> NDArray[np.float64]:
         return nominal_gravity(np.radians(self.pitch_deg), np.radians(self.roll_deg),
                                np.radians(self.y_deg), np.radians(self.u_deg))
+
+    def gravity(self, device: Misalignment | None = None) -> NDArray[np.float64]:
+        """The gravity the instrument saw: nominal, or with the calibration device's known
+        misalignments ``device`` (Soto eq. 11, row 3 of KM)."""
+        if device is None:
+            return self.nominal_gravity()
+        return gravity(np.radians(self.pitch_deg), np.radians(self.roll_deg), np.radians(self.y_deg),
+                       np.radians(self.u_deg), device)
 
 
 def _temperature(points: Points, t_ref: float) -> tuple[tuple[str, ...], NDArray[np.float64]]:
@@ -70,6 +78,10 @@ class Model:
     extensions: tuple[str, ...] = ()
     t_ref: float = 20.0
     dropped: tuple[str, ...] = ()  # extension terms the plan cannot estimate (aliased), left out
+    # The calibration device's misalignments a…k where they are known, not identified by the plan (a
+    # plan's device correction, issue 27): the regressors are the gravity they give, so the fit is
+    # Soto's linear one with the device model's misalignments held at these values. None: nominal g.
+    device: Misalignment | None = None
 
     def __post_init__(self) -> None:
         unknown = [e for e in self.extensions if e not in EXTENSIONS]
@@ -83,7 +95,7 @@ class Model:
 
     def design(self, points: Points) -> tuple[tuple[str, ...], NDArray[np.float64]]:
         """Regressor names and the design matrix F (K×L)."""
-        g = points.nominal_gravity()
+        g = points.gravity(self.device)
         names, cols = list(BASE_NAMES), [np.ones((len(g), 1)), g]
         for ext in self.extensions:
             ext_names, ext_cols = EXTENSIONS[ext](points, self.t_ref)

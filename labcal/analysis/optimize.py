@@ -83,6 +83,7 @@ class DeviceCorrection:
     value_rad: dict[str, float]
     u_rad: dict[str, float]  # what the plan carries as the Type B input
     U_rad: dict[str, float] = field(default_factory=dict)  # the estimate's own U (95 %), as stated
+    calibrated_utc: str = ""  # when the source run calibrated
 
 
 @dataclass(frozen=True)

@@ -245,7 +245,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
     for the run, then the shared sequence."""
     from labcal.analysis.plan import Plan
     from labcal.bench.setup import hardware_station, prepare, sim_station
-    from labcal.config.plans import load_plan, plan_toml
+    from labcal.config.plans import correction_toml, load_plan, plan_correction, plan_toml
     from labcal.run.estimate import estimate
     from labcal.run.interrupts import stop_signals_raise
     from labcal.run.journal import Journal, db_path
@@ -267,9 +267,10 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
     if args.pace is not None and not args.sim:
         raise LabcalError(PACE_SIM_ONLY)
     plan, plan_text = load_plan(args.plan)
+    correction = plan_correction(plan_text, args.plan)  # the device's misalignments it corrects for
     if args.replicates is not None:  # the journal keeps the plan that actually runs
         plan = Plan.model_validate({**plan.model_dump(), "replicates": args.replicates})
-        plan_text = plan_toml(plan)
+        plan_text = plan_toml(plan) + ("" if correction is None else "\n" + correction_toml(correction))
     with ExitStack() as stack:
         stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
         notifications = stack.enter_context(lab_notifications(lambda line: front.say(line, markup=False)))
@@ -307,6 +308,11 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
         if args.dry_run:
             return Estimated(plan, est)
         ready(args.db)  # a lab database behind or ahead of this labcal: refused before anything moves
+        if correction is not None:  # still this station's device, still in control: else nothing moves
+            from labcal.documents.device_history import check_correction, station_device_id
+
+            check_correction(correction, station_device_id(
+                {"station": setup.station.description, **setup.metadata}, args.sim or args.emulate), args.db)
         setup.metadata["estimated_rig_time_s"] = est.total_s  # run.json: the estimate beside the actual
         check_limits(setup.station, steps, settings.check_mount)  # first: homing moves a table too
         run_dir = new_run_dir(args.out, plan)  # a bad --out is one line before the checklist

@@ -35,15 +35,16 @@ def cmd_show(args: argparse.Namespace) -> int:
 
     from labcal.config.plans import load_plan
 
-    plan, text = load_plan(args.plan, device_corrections=True)
+    plan, text = load_plan(args.plan)
     correction = relied_on(text)
     if args.json:
         print_json({**plan.model_dump(), **({"device_correction": correction} if correction else {})})
         return 0
     out.print(f"[bold]{plan.name}[/] — {plan.description}")
     if correction:
-        out.print(f"[yellow]relies on device {correction.get('device_id')}'s misalignments from "
-                  f"{correction.get('source')} instead of remounting;[/] {CORRECTION_NOTE}")
+        out.print(f"[yellow]relies on device {correction['device_id']}'s misalignments from "
+                  f"{correction['source']} ({correction['calibrated_utc']}) instead of remounting:[/] "
+                  f"{CORRECTION_NOTE}")
     out.print(f"{plan.replicates} replicate(s) × {len(plan.mounts)} mount(s) × "
               f"{len(plan.points)} points = {plan.n_points} points")
     for i, mount in enumerate(plan.mount_list, 1):
@@ -59,12 +60,10 @@ def cmd_show(args: argparse.Namespace) -> int:
 
 def relied_on(text: str) -> dict | None:
     """The ``[device_correction]`` table of a plan written by `plan optimize --device`, or None."""
-    import tomllib
+    from labcal.config.plans import plan_correction
 
-    from labcal.config.plans import DEVICE_CORRECTION
-
-    table = tomllib.loads(text).get(DEVICE_CORRECTION)  # the text has been parsed once already
-    return table if isinstance(table, dict) else None
+    table = plan_correction(text, "the plan")  # validated once already, by load_plan
+    return None if table is None else table.model_dump()
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
@@ -117,7 +116,7 @@ def cmd_merit(args: argparse.Namespace) -> int:
     from labcal.analysis import design
     from labcal.config.plans import load_plan
 
-    plan, _ = load_plan(args.plan, device_corrections=True)
+    plan, _ = load_plan(args.plan)
     pitches = [p for p, _ in plan.points]
     calibration_range = tuple(args.pitch_range) if args.pitch_range else (min(pitches), max(pitches))
     v = design.figure_of_merit(plan, calibration_range)
@@ -176,7 +175,7 @@ def cmd_audit(args: argparse.Namespace) -> int:
     from labcal.analysis.device_model import Geometry, identifiability
     from labcal.config.plans import load_plan
 
-    plan, _ = load_plan(args.plan, device_corrections=True)
+    plan, _ = load_plan(args.plan)
     leaks = audit(plan)
     summary = audit_summary(leaks)
     ident = identifiability(Geometry.of_plan(plan.points, plan.mounts))
@@ -340,8 +339,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 # --- plan optimize (issue 27 §2) -----------------------------------------------------------------
-CORRECTION_NOTE = ("labcal run cannot apply device corrections yet: it refuses a plan that relies on them "
-                   "until a later change applies them in the run and states them on the certificate")
+CORRECTION_NOTE = ("labcal run checks that the station's calibration device is that device and its history "
+                   "is still in control, fits with the misalignments held at the estimate's values, carries "
+                   "their u in the budget and states the correction on the certificate")
 NORMAL_K = 1.96  # a device estimate's U95 back to u: its k is t₀.₉₇₅ at many degrees of freedom
 
 
@@ -427,7 +427,8 @@ def device_correction(device_id: str, db):
                             {n: last.value_arcsec[n] * ARCSEC for n in MISALIGNMENT_NAMES},
                             {n: math.hypot(last.U_arcsec[n] / NORMAL_K, delta[n] / math.sqrt(2)) * ARCSEC
                              for n in MISALIGNMENT_NAMES},
-                            {n: last.U_arcsec[n] * ARCSEC for n in MISALIGNMENT_NAMES}), ""
+                            {n: last.U_arcsec[n] * ARCSEC for n in MISALIGNMENT_NAMES},
+                            last.calibrated_utc), ""
 
 
 def optimized_plan_toml(plan, e, correction, target_deg: float, reference) -> str:
@@ -435,7 +436,8 @@ def optimized_plan_toml(plan, e, correction, target_deg: float, reference) -> st
     import math
 
     from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES
-    from labcal.config.plans import DEVICE_CORRECTION, plan_toml
+    from labcal.config.corrections import DeviceCorrectionTable
+    from labcal.config.plans import correction_toml, plan_toml
 
     head = [f"# Written by labcal plan optimize --target-attitude-u95-deg {target_deg:g}.",
             f"# Run it with --samples {e.candidate.samples} (the measurement window it was planned with).",
@@ -446,17 +448,13 @@ def optimized_plan_toml(plan, e, correction, target_deg: float, reference) -> st
     body = plan_toml(plan)
     if correction is None:
         return "\n".join(head) + "\n" + body
-    head.append(f"# It relies on the device corrections below; {CORRECTION_NOTE}.")
-    values = ", ".join(f"{n} = {correction.value_rad[n] / ARCSEC!r}" for n in MISALIGNMENT_NAMES)
-    us = ", ".join(f"{n} = {correction.u_rad[n] / ARCSEC!r}" for n in MISALIGNMENT_NAMES)
-    big_us = ", ".join(f"{n} = {correction.U_rad[n] / ARCSEC!r}" for n in MISALIGNMENT_NAMES)
-    return ("\n".join(head) + "\n" + body + f"\n[{DEVICE_CORRECTION}]\n"
-            "# the device's misalignments a…k (Soto Table 1) to correct the readings' gravity for, from its\n"
-            "# latest in-control estimate (run `source`): its values and their U (95 %) as the device\n"
-            "# history states them; u: the standard uncertainty carried as a Type B input,\n"
-            "# √((U/1.96)² + Δ²/2) with Δ the change from the estimate before it\n"
-            f'device_id = "{correction.device_id}"\nsource = "{correction.source}"\n'
-            f"value_arcsec = {{ {values} }}\nU_arcsec = {{ {big_us} }}\nu_arcsec = {{ {us} }}\n")
+    head.append(f"# It relies on the device correction below: {CORRECTION_NOTE}.")
+    table = DeviceCorrectionTable(
+        device_id=correction.device_id, source=correction.source, calibrated_utc=correction.calibrated_utc,
+        value_arcsec={n: correction.value_rad[n] / ARCSEC for n in MISALIGNMENT_NAMES},
+        U_arcsec={n: correction.U_rad[n] / ARCSEC for n in MISALIGNMENT_NAMES},
+        u_arcsec={n: correction.u_rad[n] / ARCSEC for n in MISALIGNMENT_NAMES})
+    return "\n".join(head) + "\n" + body + "\n" + correction_toml(table)
 
 
 def cmd_optimize(args: argparse.Namespace) -> int:
@@ -516,6 +514,7 @@ def cmd_optimize(args: argparse.Namespace) -> int:
            "rig_time_ratio": chosen.rig_time_s / reference.rig_time_s,
            "device_correction": None if not relies or correction is None else {
                "device_id": correction.device_id, "source": correction.source,
+               "calibrated_utc": correction.calibrated_utc,
                "value_arcsec": {n: v / ARCSEC for n, v in correction.value_rad.items()},
                "U_arcsec": {n: v / ARCSEC for n, v in correction.U_rad.items()},
                "u_arcsec": {n: v / ARCSEC for n, v in correction.u_rad.items()}},
@@ -533,7 +532,7 @@ def cmd_optimize(args: argparse.Namespace) -> int:
               f"(four-mount-64: {math.degrees(reference.u95_rad):.5f}°)")
     if relies and correction is not None:
         out.print(f"it relies on device {correction.device_id}'s misalignments from {correction.source} "
-                  f"instead of remounting; {CORRECTION_NOTE}")
+                  f"({correction.calibrated_utc}) instead of remounting: {CORRECTION_NOTE}")
     if args.out:
         out.print(f"written to {args.out}; run it with --samples {c.samples}")
     if args.frontier:

@@ -3,6 +3,7 @@ and a plan written back as TOML (generated designs, a run's plan with its replic
 
 from __future__ import annotations
 
+import json
 import tomllib
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -11,6 +12,7 @@ from labcal.errors import LabcalError
 
 if TYPE_CHECKING:  # the model (pydantic, numpy) is imported where a plan is read: not by `plan list`
     from labcal.analysis.plan import Plan
+    from labcal.config.corrections import DeviceCorrectionTable
 
 PLAN_SUFFIX = ".toml"
 
@@ -38,36 +40,49 @@ def shipped_plan_summaries() -> list[dict]:
     return summaries
 
 
-DEVICE_CORRECTION = "device_correction"  # the table of the device corrections a plan relies on
-CANNOT_CORRECT = "this plan relies on device corrections that labcal run cannot apply yet"
+DEVICE_CORRECTION = "device_correction"  # the table of the device correction a plan relies on
 
 
-def parse_plan(text: str, source: str, device_corrections: bool = False) -> Plan:
-    """Parse and validate plan TOML; errors name the source and the field. A plan with a
-    ``[device_correction]`` table (`labcal plan optimize --device`) counts on corrections no run applies
-    yet: refused, unless the caller only reads it (``device_corrections``: `labcal plan show`, audit)."""
+def _toml(text: str) -> dict:
+    try:
+        return tomllib.loads(text)
+    except (tomllib.TOMLDecodeError, RecursionError):
+        return {}  # parse_model says what is wrong with it, in its one line
+
+
+def parse_plan(text: str, source: str) -> Plan:
+    """Parse and validate plan TOML; errors name the source and the field. A ``[device_correction]``
+    table (`plan_correction`) is validated too: a run of the plan applies it."""
     from labcal.analysis.plan import Plan
     from labcal.config.files import parse_model, validate_model
 
-    try:
-        data = tomllib.loads(text)
-    except (tomllib.TOMLDecodeError, RecursionError):
-        data = {}  # parse_model says what is wrong with it, in its one line
+    data = _toml(text)
     if DEVICE_CORRECTION in data:
-        if not device_corrections:
-            raise LabcalError(f"{source}: {CANNOT_CORRECT}")
+        plan_correction(text, source)
         return validate_model({k: v for k, v in data.items() if k != DEVICE_CORRECTION}, Plan, source)
     return parse_model(text, Plan, source)
 
 
-def load_plan(name_or_path: str, device_corrections: bool = False) -> tuple[Plan, str]:
+def plan_correction(text: str, source: str) -> DeviceCorrectionTable | None:
+    """The plan's device correction, validated (one line naming the field where it is not), or None
+    for a plan that identifies or cancels the misalignments itself."""
+    from labcal.config.corrections import DeviceCorrectionTable
+    from labcal.config.files import validate_model
+
+    table = _toml(text).get(DEVICE_CORRECTION)
+    if table is None:
+        return None
+    return validate_model(table, DeviceCorrectionTable, f"{source}: [{DEVICE_CORRECTION}]")
+
+
+def load_plan(name_or_path: str) -> tuple[Plan, str]:
     """A plan by file path or by the name of a shipped plan; returns the plan and its TOML text."""
     path = Path(name_or_path)
     if path.suffix == PLAN_SUFFIX or path.exists():
         from labcal.config.files import read_text
 
         text = read_text(path, "plan")
-        return parse_plan(text, str(path), device_corrections), text
+        return parse_plan(text, str(path)), text
     plans = shipped_plans()
     if name_or_path not in plans:
         raise LabcalError(
@@ -94,3 +109,19 @@ def plan_toml(plan: Plan) -> str:
         f"mounts = [{', '.join(f'[{num(y)}, {num(u)}]' for y, u in plan.mounts)}]\n"
         f"points = [\n    {pairs(plan.points)},\n]\n"
     )
+
+
+def correction_toml(table: DeviceCorrectionTable) -> str:
+    """The ``[device_correction]`` table as TOML (floats written so they read back exactly)."""
+    def row(values: dict[str, float]) -> str:
+        return ", ".join(f"{n} = {float(v)!r}" for n, v in values.items())
+
+    return (f"[{DEVICE_CORRECTION}]\n"
+            "# the device's misalignments a…k (Soto Table 1) to correct the readings' gravity for, from its\n"
+            "# latest in-control estimate (run `source`, calibrated `calibrated_utc`): its values and their\n"
+            "# U (95 %) as the device history states them; u: the standard uncertainty carried as a Type B\n"
+            "# input, √((U/1.96)² + Δ²/2) with Δ the change from the estimate before it\n"
+            f"device_id = {json.dumps(table.device_id)}\nsource = {json.dumps(table.source)}\n"
+            f"calibrated_utc = {json.dumps(table.calibrated_utc)}\n"
+            f"value_arcsec = {{ {row(table.value_arcsec)} }}\nU_arcsec = {{ {row(table.U_arcsec)} }}\n"
+            f"u_arcsec = {{ {row(table.u_arcsec)} }}\n")

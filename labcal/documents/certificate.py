@@ -37,6 +37,7 @@ from labcal.analysis.attitude import Calibration, CovariancePart, calibration_fr
 from labcal.config.files import MAX_DEPTH, check_depth, one_line, read_text, write_json
 from labcal.documents.certificate_sections import (
     BudgetInputs,
+    DeviceCorrectionRecord,
     Extensions,
     Identifiability,
     Intrinsic,
@@ -464,6 +465,7 @@ class Certificate(Strict):
     replaces: str | None = Field(default=None, exclude_if=_absent)
     approval: Approval | None = Field(default=None, exclude_if=_absent)
     device: DeviceSection | None = Field(default=None, exclude_if=_absent)
+    device_correction: DeviceCorrectionRecord | None = Field(default=None, exclude_if=_absent)
     digest: Digest
 
     @property

@@ -213,3 +213,22 @@ class BudgetInputs(Recorded):
     bias_tempco_v_per_k: float
     sensitivity_tempco_per_k: float
     device_misalignment: dict[str, float]
+    # The estimate a plan's device correction took them from (issue 27); absent: this run's device model
+    device_misalignment_source: str | None = None
+
+
+# --- a plan's device correction (issue 27) --------------------------------------------------------
+class DeviceCorrectionRecord(Strict):
+    """The calibration device's misalignments a…k were not measured in this run: the plan's
+    ``[device_correction]`` held them at an earlier estimate of the device's (its history in the lab
+    database, in control when the run started), each value with its U (95 %) as the history states it
+    and the standard uncertainty u the budget carries as a Type B input (arcseconds)."""
+
+    device_id: str
+    source: str  # the run the estimate came from
+    calibrated_utc: str  # when that run calibrated
+    value_arcsec: dict[str, float]
+    U_arcsec: dict[str, float]
+    u_arcsec: dict[str, float]
+    statement: str
+

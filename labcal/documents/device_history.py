@@ -19,6 +19,7 @@ from typing import Any
 
 from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.kinematics import MISALIGNMENT_NAMES
+from labcal.config.corrections import DeviceCorrectionTable
 from labcal.documents.history import stored_rows
 from labcal.documents.plotfile import check_folder, save
 from labcal.errors import LabcalError
@@ -46,10 +47,41 @@ class DeviceEstimate:
 
 
 def device_id_of(record: RunRecord) -> str:
-    recorded = record.meta.get("device_id")
+    return station_device_id(record.meta, record.simulated)
+
+
+def station_device_id(metadata: dict, simulated: bool) -> str:
+    """The calibration device's id as a run records it: ``device_id`` in its metadata, else SIMULATED for
+    a dry run, else the station's description."""
+    recorded = metadata.get("device_id")
     if recorded:
         return str(recorded)
-    return "SIMULATED" if record.simulated else str(record.meta.get("station") or "UNNAMED")
+    return "SIMULATED" if simulated else str(metadata.get("station") or "UNNAMED")
+
+
+def check_correction(correction: DeviceCorrectionTable, device_id: str, db: str | Path | None = None) -> None:
+    """Whether a plan's device correction still applies to the station about to run it (issue 27):
+    the station's calibration device is the one corrected for, and its history still has the estimate
+    the correction took with no flagged change (`RULE`) from it to the latest. One LabcalError line
+    where not: the plan's misalignments would then not be the device's."""
+    wanted = correction.device_id
+    if device_id != wanted:
+        raise LabcalError(f"this plan corrects for calibration device {wanted}'s misalignments but this "
+                          f"station's device is {device_id}: plan again with labcal plan optimize --device "
+                          f"{device_id}, or run a plan that identifies them (four-mount-64)")
+    estimates = estimates_for(wanted, db)
+    sources = [e.source for e in estimates]
+    if correction.source not in sources:
+        raise LabcalError(f"device {wanted}'s history has no estimate from {correction.source}, which this "
+                          f"plan's correction took; plan again with labcal plan optimize --device {wanted}")
+    moved = [c for c in changes(estimates[sources.index(correction.source):]) if c.flagged]
+    if moved:
+        first = moved[0]
+        names = ", ".join(c.name for c in moved if (c.before, c.after) == (first.before, first.after))
+        raise LabcalError(f"device {wanted} changed since {correction.source}, whose estimate this plan "
+                          f"corrects for: {names} moved between {first.before} and {first.after} beyond "
+                          "√(U₁² + U₂²); measure its misalignments again with a plan that identifies them "
+                          "(four-mount-64)")
 
 
 def estimate_of(record: RunRecord, fit: DeviceFit) -> DeviceEstimate:

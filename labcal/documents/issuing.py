@@ -32,6 +32,7 @@ from labcal.analysis.kinematics import gravity
 from labcal.analysis.models import BASE_NAMES
 from labcal.config.json_values import json_safe
 from labcal.config.lab import certificate_settings
+from labcal.config.plans import plan_correction
 from labcal.config.readings_csv import coefficient_units
 from labcal.config.settings import CertificateSettings
 from labcal.config.station import CertificateSection, load_certificate_settings
@@ -380,6 +381,9 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
     notice = SIMULATED_NOTICE if record.simulated else None
     statements = [notice] * (notice is not None) + list(STATEMENTS) \
         + ([model_note[0].upper() + model_note[1:] + "."] if model_note else [])
+    correction = plan_correction(record.plan_text, f"{run_dir}: the run's plan") if device is None else None
+    if correction is not None:  # the misalignments the plan's mounts do not identify, corrected for
+        statements.append(correction.statement())
     statements += overdue_standards(admin.traceability, datetime.fromisoformat(calibrated).date())
     operator = _recorded(meta.get("operator"), operator, "operator", run_dir)
     if replaced is not None:
@@ -421,6 +425,8 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
         "plan_audit": _plan_audit(record, settings).model_dump(),
         "attitude": envelope.model_dump(),
         "device": None if device is None else _device_section(device, model_note or ""),
+        "device_correction": None if correction is None else {
+            **correction.model_dump(), "statement": correction.statement()},
         "conformity": None if (c := _conformity(X, np.array(expanded.U), uncertainty, settings)) is None
         else c.model_dump(),
         "uncertainty_budget": uncertainty.model_dump(),

@@ -13,11 +13,10 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from labcal.analysis.device_fit import DeviceFit, preferred_fit
-from labcal.analysis.fit import Fit, fit_readings
+from labcal.analysis.device_fit import DeviceFit
+from labcal.analysis.fit import Fit
 from labcal.config.files import write_atomic
 from labcal.config.settings import CertificateSettings
-from labcal.config.station import stated_angle_errors
 from labcal.documents.administration import ItemGiven
 from labcal.documents.certificate import Certificate, read_certificate, write_certificate
 from labcal.documents.device_history import store_device_estimate
@@ -28,6 +27,7 @@ from labcal.documents.report_pdf import render_pdf
 from labcal.documents.report_tables import Table
 from labcal.documents.uncertainty import bench_section, type_b_inputs
 from labcal.errors import LabcalError
+from labcal.run.exports import run_fits
 from labcal.run.record import RunRecord, load_run
 
 CERTIFICATE = "certificate.json"
@@ -120,8 +120,7 @@ def fitted(record: RunRecord) -> tuple[Fit, DeviceFit | None, str]:
     them the run's fit.json holds: those `load_run` derived fit.json from, else fitted here."""
     if record.fit is not None:
         return record.fit, record.device, record.model_note
-    fit = fit_readings(record.readings)
-    return fit, *preferred_fit(record.readings, fit, stated_angle_errors(record.station_text))
+    return run_fits(record.readings, record.plan_text, record.station_text)
 
 
 def _issued(path: Path) -> Certificate | None:

@@ -32,6 +32,7 @@ from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES
 from labcal.analysis.montecarlo import monte_carlo
 from labcal.analysis.remounting import mount_scatter
 from labcal.config.files import validate_model
+from labcal.config.plans import plan_correction
 from labcal.config.settings import CertificateSettings
 from labcal.config.station import CertificateSection, load_certificate_section
 from labcal.documents.certificate import (
@@ -75,10 +76,15 @@ def bench_section(record: RunRecord, station: str | Path | None) -> CertificateS
 def type_b_inputs(section: CertificateSection, record: RunRecord, device: DeviceFit | None = None
                   ) -> TypeBInputs:
     """The bench's inputs in SI; the temperature half-range is the run's own (none without a channel);
-    the device misalignments' standard uncertainties where the ``device`` model estimated them."""
+    the device misalignments' standard uncertainties where the ``device`` model estimated them, or
+    where the run's plan corrected for them (its ``[device_correction]``'s u, issue 27)."""
     noise_u = None if device is None else np.sqrt(np.diag(device.noise_covariance)[:len(MISALIGNMENT_NAMES)])
     device_misalignment = {} if noise_u is None else {
         name: float(u) for name, u in zip(MISALIGNMENT_NAMES, noise_u, strict=True)}
+    correction = plan_correction(record.plan_text, f"{record.directory}: the run's plan")
+    corrected = device is None and correction is not None
+    if corrected:
+        device_misalignment = correction.u_rad()
     u = section.uncertainty
     t = record.readings.temp_c
     unit = record.readings.units
@@ -100,7 +106,8 @@ def type_b_inputs(section: CertificateSection, record: RunRecord, device: Device
         common=section.dmm.common_inputs(u.common),
         temperature_half_range_k=0.0 if t is None else float(np.ptp(t)) / 2,
         bias_tempco_v_per_k=u.bias_tempco, sensitivity_tempco_per_k=u.sensitivity_tempco,
-        device_misalignment=device_misalignment)
+        device_misalignment=device_misalignment,
+        device_misalignment_source=correction.describe() if corrected and correction else "")
 
 
 def envelope(settings: CertificateSettings) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -219,7 +226,8 @@ def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: Certifica
     totals = _totals(p)
     checks = _monte_carlo(cal, rows, p, trials, seed) if trials > 0 else None
     doc = {k: (dict(v) if isinstance(v, dict) else v) for k, v in vars(inputs).items()
-           if not (k == "output_unit" and v == "V")}  # volts: as certificates always said it
+           if not (k == "output_unit" and v == "V")  # volts: as certificates always said it
+           and not (k == "device_misalignment_source" and not v)}  # a device model's own: as before
     return UncertaintyBudget(
         method=METHOD, inputs=BudgetInputs.model_validate(doc), rows=_rows(rows, p), totals=totals,
         coefficients=CoefficientBudgetRecord(

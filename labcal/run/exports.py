@@ -19,9 +19,12 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from labcal.analysis.device_fit import DeviceFit, preferred_fit
-from labcal.analysis.fit import Fit, fit_readings
+from labcal.analysis.fit import Fit, fit_readings, reference_temperature
+from labcal.analysis.models import Model
+from labcal.analysis.readings import Readings
 from labcal.config.files import write_atomic
 from labcal.config.json_values import json_safe
+from labcal.config.plans import plan_correction
 from labcal.config.readings_csv import ReadingsWriter, coefficient_units
 from labcal.config.station import output_units, stated_angle_errors
 from labcal.errors import LabcalError
@@ -62,13 +65,10 @@ def derive(journal: Journal, row: RunRow, status: str | None = None, reason: str
     if points:
         readings = replace(journal.readings(row.id), units=units)
         try:
-            fit = fit_readings(readings)
+            fit, device, note = run_fits(readings, row.plan_text, row.station_text)
         except LabcalError:
             fit = None  # too few points so far for a fit
     if fit is not None:
-        # fit.json holds the device model where the points identify it, else the linear fit
-        # with the tables' index and wobble as the run's station states them (issue 23)
-        device, note = preferred_fit(readings, fit, stated_angle_errors(row.station_text))
         doc = fit.to_json() if device is None else device.to_json()
         doc["notes"] = [note, *doc.get("notes", [])]
         if units != "V":  # as `labcal fit --units` states it: B in these, S in these per g
@@ -84,6 +84,20 @@ def derive(journal: Journal, row: RunRow, status: str | None = None, reason: str
             "settings": row.settings, **{k: v for k, v in row.metadata.items() if k != "station"}}
     files[RUN] = _json(info)
     return Derived(files, fit, device, note)
+
+
+def run_fits(readings: Readings, plan_text: str, station_text: str) -> tuple[Fit, DeviceFit | None, str]:
+    """A run's fits and the line saying which of them fit.json holds. A plan with a device correction
+    (issue 27): the linear fit on the gravity its misalignments give (held at the correction's values,
+    what the remounts it leaves out would have identified; Soto eq. 11), no device model. Else the
+    device model where the points identify it, with the tables' index and wobble as the run's station
+    states them (issue 23), or the linear fit. LabcalError where the readings cannot be fitted."""
+    correction = plan_correction(plan_text, "the run's plan")
+    if correction is not None:
+        model = Model(t_ref=reference_temperature(readings), device=correction.misalignment())
+        return fit_readings(readings, model), None, correction.model_note()
+    fit = fit_readings(readings)
+    return fit, *preferred_fit(readings, fit, stated_angle_errors(station_text))
 
 
 def station_description(row: RunRow) -> str:
