@@ -55,7 +55,7 @@ class DeviceCorrectionTable(BaseModel):
         """Which model a run of the plan fits, and why (fit.json's first note, the certificate's
         statement)."""
         return ("linear model on the gravity the calibration device's misalignments a…k give, held at "
-                f"{self.describe()} (the plan's [device_correction]): this run's mounts do not identify "
+                f"{self.describe()} (the plan's device correction): this run's mounts do not identify "
                 "them, and their uncertainty is a Type B input of the budget")
 
     def statement(self) -> str:

@@ -142,12 +142,17 @@ NO_ROLL = 1e-9  # |(g_y, g_z)| below which the nominal attitude is at a pole (pi
 def inferred_attitude(cert: Certificate, record: RunRecord) -> dict[str, np.ndarray]:
     """Pitch and roll inferred from every calibration reading against the attitude the instrument
     had: the table angles mapped through the mount and, where the certificate is built on the device
-    model, through the device's estimated misalignments (its coefficients are corrected for them, so
+    model or a plan's device correction, through the device's misalignments (its coefficients are corrected for them, so
     the nominal attitude would show the device's own error), in degrees."""
     r = record.readings
     p, q, y, u = (np.radians(a) for a in (r.pitch_deg, r.roll_deg, r.y_deg, r.u_deg))
-    device = NO_MISALIGNMENT if cert.device is None else Misalignment.from_degrees(
-        **{name: m.value_arcsec / 3600.0 for name, m in cert.device.misalignments.items()})
+    device = NO_MISALIGNMENT
+    if cert.device is not None:
+        device = Misalignment.from_degrees(
+            **{name: m.value_arcsec / 3600.0 for name, m in cert.device.misalignments.items()})
+    elif cert.device_correction is not None:  # a plan's device correction: the fit's gravity had it too
+        device = Misalignment.from_degrees(
+            **{name: v / 3600.0 for name, v in cert.device_correction.value_arcsec.items()})
     g = gravity(p, q, y, u, device)
     nominal_pitch = np.degrees(np.arcsin(np.clip(g[:, 0], -1, 1)))
     nominal_roll = np.degrees(np.arctan2(g[:, 1], g[:, 2]))
