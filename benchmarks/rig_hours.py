@@ -18,8 +18,11 @@
 3. The optimized plan (`labcal plan optimize`, issue 27 §2) for X = 1.5 × four-mount-64's predicted
    worst attitude U95: its predicted rig hours (the station's timing model of `labcal run --dry-run`)
    next to four-mount-64's and 481 × 6's, without a device history (the four mounts stay) and with
-   the simulated device characterised by two earlier four-mount-64 runs (fewer mounts; such a plan
-   relies on device corrections that `labcal run` cannot apply yet, so it is timed, not run).
+   the simulated device characterised by two earlier four-mount-64 runs (fewer mounts, relying on
+   the device's correction). Then for real on the simulated rig: two `labcal run --sim --yes`
+   four-mount-64 runs characterise the device, `plan optimize --device SIMULATED` for X = 1.5 × the
+   first run's certificate's worst attitude U95, and `labcal run --sim --plan` of it: the runs' rig
+   time (run.json) side by side, and the certificates' U95 against X.
 
 Usage: python benchmarks/rig_hours.py [--seed N] [--only 64|481|tour|optimized]
 """
@@ -249,6 +252,51 @@ def optimized(seed: int) -> None:
                   f"searched {doc['candidates']} candidates in {time.perf_counter() - wall:.1f} s")
 
 
+def corrected_run() -> None:
+    """Run the corrected plan for real on the simulated rig (issue 27 §2): its rig time and U95 next to
+    four-mount-64's run on the same rig, every run through `labcal run` itself."""
+    import contextlib
+
+    from labcal.cli import main as labcal
+    from labcal.documents.certificate import read_certificate
+
+    def quiet(argv: list[str]) -> str:
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+            code = labcal(argv)
+        assert code == 0, argv
+        return out.getvalue()
+
+    def worst(run: Path) -> float:
+        a = read_certificate(run / "certificate.json").attitude
+        return max(a.pitch_U95_max_deg, a.roll_U95_max_deg)
+
+    def rig_time(run: Path) -> float:
+        return float(json.loads((run / "run.json").read_text(encoding="utf-8"))["rig_time_s"])
+
+    print("Run on the simulated rig (labcal run --sim --yes): four-mount-64 against the corrected plan")
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        db = str(folder / "lab.sqlite")
+        wall = time.perf_counter()
+        for name in ("first", "second"):  # the same rig twice: the device's history, in control
+            quiet(["run", "--sim", "--yes", "--db", db, "--out", str(folder / name)])
+        target = 1.5 * worst(folder / "first")
+        doc = json.loads(quiet(["plan", "optimize", "--target-attitude-u95-deg", repr(target), "--device",
+                                "SIMULATED", "--db", db, "--out", str(folder / "fast.toml"), "--json"]))
+        quiet(["run", "--sim", "--yes", "--db", db, "--plan", str(folder / "fast.toml"), "--samples",
+               str(doc["samples"]), "--out", str(folder / "fast")])
+        t64, tfast = rig_time(folder / "first"), rig_time(folder / "fast")
+        print(f"  four-mount-64 run                   {t64 / 3600:6.3f} h  certificate U95 "
+              f"{worst(folder / 'first'):.5f}°")
+        print(f"  corrected plan run                  {tfast / 3600:6.3f} h  certificate U95 "
+              f"{worst(folder / 'fast'):.5f}° ≤ X = {target:.5f}°: {worst(folder / 'fast') <= target}; "
+              f"{tfast / t64:.3f}× four-mount-64's rig time (target ≤ 0.45×); "
+              f"{len(doc['mounts'])} mount(s) × {doc['points']} points, {doc['samples']} samples "
+              f"(predicted {doc['rig_time_ratio']:.3f}×); "
+              f"three runs in {time.perf_counter() - wall:.1f} s of wall time")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -259,6 +307,7 @@ def main() -> None:
         tours(args.seed)
     if args.only in (None, "optimized"):
         optimized(args.seed)
+        corrected_run()
     if args.only in (None, "64"):
         plan, text = load_plan("four-mount-64")
         hours("four-mount-64", plan, text, args.seed, 5)
