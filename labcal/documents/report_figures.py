@@ -142,8 +142,8 @@ NO_ROLL = 1e-9  # |(g_y, g_z)| below which the nominal attitude is at a pole (pi
 def inferred_attitude(cert: Certificate, record: RunRecord) -> dict[str, np.ndarray]:
     """Pitch and roll inferred from every calibration reading against the attitude the instrument
     had: the table angles mapped through the mount and, where the certificate is built on the device
-    model or a plan's device correction, through the device's misalignments (its coefficients are corrected for them, so
-    the nominal attitude would show the device's own error), in degrees."""
+    model or a plan's device correction, through the device's misalignments (its coefficients are
+    corrected for them, so the nominal attitude would show the device's own error), in degrees."""
     r = record.readings
     p, q, y, u = (np.radians(a) for a in (r.pitch_deg, r.roll_deg, r.y_deg, r.u_deg))
     device = NO_MISALIGNMENT

@@ -81,9 +81,9 @@ def type_b_inputs(section: CertificateSection, record: RunRecord, device: Device
     noise_u = None if device is None else np.sqrt(np.diag(device.noise_covariance)[:len(MISALIGNMENT_NAMES)])
     device_misalignment = {} if noise_u is None else {
         name: float(u) for name, u in zip(MISALIGNMENT_NAMES, noise_u, strict=True)}
-    correction = plan_correction(record.plan_text, f"{record.directory}: the run's plan")
-    corrected = device is None and correction is not None
-    if corrected:
+    correction = None if device is not None else \
+        plan_correction(record.plan_text, f"{record.directory}: the run's plan")
+    if correction is not None:  # the plan's misalignments, corrected for: their u as it carries it
         device_misalignment = correction.u_rad()
     u = section.uncertainty
     t = record.readings.temp_c
@@ -107,7 +107,7 @@ def type_b_inputs(section: CertificateSection, record: RunRecord, device: Device
         temperature_half_range_k=0.0 if t is None else float(np.ptp(t)) / 2,
         bias_tempco_v_per_k=u.bias_tempco, sensitivity_tempco_per_k=u.sensitivity_tempco,
         device_misalignment=device_misalignment,
-        device_misalignment_source=correction.describe() if corrected and correction else "")
+        device_misalignment_source="" if correction is None else correction.describe())
 
 
 def envelope(settings: CertificateSettings) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
