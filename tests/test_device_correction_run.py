@@ -285,3 +285,22 @@ def test_an_in_control_correction_runs_and_says_which_estimate_it_used(tmp_path,
     # the journal keeps the plan with its correction: the certificate is derived from it
     journaled = (run_dir / "plan.toml").read_text(encoding="utf-8")
     assert plan_correction(journaled, "plan") == correction_of(latest)
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda t: t.replace('calibrated_utc = "2026-02-01T00:00:00+00:00"\n', ""),
+     "[device_correction]: calibrated_utc: Field required"),
+    (lambda t: t.replace("u_arcsec = { a = ", "u_arcsec = { a = -"), "an uncertainty cannot be negative"),
+    (lambda t: t.replace("value_arcsec = { a = ", "value_arcsec = { q = 1.0, a = "),
+     "needs exactly the misalignments a, b, d, e, f, k"),
+])
+def test_a_malformed_correction_is_one_line_naming_the_field(edit, words, tmp_path, capsys):
+    db = tmp_path / "lab.sqlite"
+    latest = stored(db, "run-2", "2026-02-01T00:00:00+00:00", 36.5)
+    plan_file, run_dir = tmp_path / "plan.toml", tmp_path / "run"
+    plan_file.write_text(edit(plan_with(correction_of(latest))), encoding="utf-8")
+    code = main(["run", "--sim", "--yes", "--db", str(db), "--plan", str(plan_file), "--out", str(run_dir)])
+    assert code == 2
+    line = one_line(capsys.readouterr().err)
+    assert str(plan_file) in line and words in line
+    assert not run_dir.exists()

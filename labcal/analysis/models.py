@@ -51,21 +51,24 @@ class Points:
                        np.radians(self.u_deg), device)
 
 
-def _temperature(points: Points, t_ref: float) -> tuple[tuple[str, ...], NDArray[np.float64]]:
+def _temperature(points: Points, t_ref: float, g: NDArray[np.float64]
+                 ) -> tuple[tuple[str, ...], NDArray[np.float64]]:
     if points.temp_c is None:
         raise LabcalError("the temperature extension needs a temp_c column in the readings")
     dt = (points.temp_c - t_ref)[:, None]
-    g = points.nominal_gravity()
     return ("dB/dT", "dS_x/dT", "dS_y/dT", "dS_z/dT"), np.hstack([dt, dt * g])
 
 
-def _harmonics(points: Points, t_ref: float) -> tuple[tuple[str, ...], NDArray[np.float64]]:
+def _harmonics(points: Points, t_ref: float, g: NDArray[np.float64]
+               ) -> tuple[tuple[str, ...], NDArray[np.float64]]:
     p, r = np.radians(points.pitch_deg), np.radians(points.roll_deg)
     cols = np.column_stack([np.sin(2 * p), np.cos(2 * p), np.sin(2 * r), np.cos(2 * r)])
     return ("sin 2α", "cos 2α", "sin 2R", "cos 2R"), cols
 
 
-EXTENSIONS: dict[str, Callable[[Points, float], tuple[tuple[str, ...], NDArray[np.float64]]]] = {
+# Each extension's regressors from the points, the reference temperature and the base model's gravity
+EXTENSIONS: dict[str, Callable[[Points, float, NDArray[np.float64]],
+                               tuple[tuple[str, ...], NDArray[np.float64]]]] = {
     "temperature": _temperature,
     "harmonics": _harmonics,
 }
@@ -98,7 +101,7 @@ class Model:
         g = points.gravity(self.device)
         names, cols = list(BASE_NAMES), [np.ones((len(g), 1)), g]
         for ext in self.extensions:
-            ext_names, ext_cols = EXTENSIONS[ext](points, self.t_ref)
+            ext_names, ext_cols = EXTENSIONS[ext](points, self.t_ref, g)
             keep = [i for i, n in enumerate(ext_names) if n not in self.dropped]
             names += [ext_names[i] for i in keep]
             cols.append(ext_cols[:, keep])
