@@ -85,8 +85,12 @@ def cmd_verify(args: argparse.Namespace) -> int:
     if args.json:
         print_json(v.to_json())
         return 0
-    out.print(f"{v.file}: signature valid against {v.verified_against} — certificate {v.number}, approved by "
-              f"{v.approved_by} ({v.role}) on {v.approved_utc:%Y-%m-%d %H:%M} UTC"
+    who = (f"approved by {v.approved_by} ({v.role})" if v.through_server is None else
+           f"approved by {v.approved_by} (an approver of the lab server, user {v.through_server['user_id']}, "
+           f"{v.through_server['authentication']}) through the lab server's key "
+           f"({v.through_server['signer']})")
+    out.print(f"{v.file}: signature valid against {v.verified_against} — certificate {v.number}, {who} on "
+              f"{v.approved_utc:%Y-%m-%d %H:%M} UTC"
               + (f"; DCC {v.dcc} is the one signed" if v.dcc is not None else "; no DCC signed with it"))
     return 0
 
