@@ -79,3 +79,10 @@ def test_a_persons_key_never_signs_for_someone_else_and_the_servers_never_as_a_p
     as_person = problems(lab["kids"]["lab server"], "lab server", "lab server", lab["db"])
     assert "signs only for an approver signed in" in " ".join(as_person)
     assert problems(lab["kids"]["carol"], "carol", "Technical manager", lab["db"]) == []  # her own: as before
+
+
+def test_the_command_lines_server_role_is_the_registrys():
+    from labcal.app.certificates import SERVER_ROLE
+    from labcal.documents.approvers import SERVER_ROLE as REGISTRY_ROLE
+
+    assert SERVER_ROLE == REGISTRY_ROLE == "lab server"

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from labcal.errors import LabcalError
 
 Authentication = Literal["password re-entered", "API token"]  # as labcal.documents.certificate's
+SERVER_ROLE = "lab server"  # as labcal.documents.approvers.SERVER_ROLE, without importing it at start-up
 
 if TYPE_CHECKING:
     from labcal.documents.approvers import Approver
