@@ -107,3 +107,21 @@ def test_labcal_config_shows_where_notifications_go_and_no_token(tmp_path, capsy
     assert main(["config", "show", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["notify"] == []
 
+
+
+def test_the_lab_servers_key_comes_from_the_lab_file_unless_given(lab_file, tmp_path, capsys):
+    """`server_key` is relative to the lab file, checked when the server starts (a missing key is one
+    line), and --key goes over it."""
+    from labcal.app.server_approval import server_key
+    from labcal.errors import LabcalError
+
+    assert server_key(None) is None  # the file names none: the server approves nothing
+    lab_file.write_text(LAB.replace('database = "data/lab.sqlite"',
+                                    'database = "data/lab.sqlite"\nserver_key = "keys/server.key"'))
+    with pytest.raises(LabcalError, match="server.key"):
+        server_key(None)  # named but not there
+    (lab_file.parent / "keys").mkdir()
+    assert main(["certificate", "keygen", "--out", str(lab_file.parent / "keys" / "server")]) == 0
+    assert main(["certificate", "keygen", "--out", str(tmp_path / "other")]) == 0
+    assert server_key(None) == lab_file.parent / "keys" / "server.key"
+    assert server_key(str(tmp_path / "other.key")) == tmp_path / "other.key"

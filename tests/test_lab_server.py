@@ -19,19 +19,24 @@ from lab_server import add_user, labcal, served
 
 from labcal.cli import main
 
+STATIONS = {1: "bench 1", 2: "bench 2 (west)"}  # run id: the LABCAL_STATION it ran under
 PASSWORD = {"ada": "ada's long passphrase", "tom": "tom-pw-1", "vic": "vic-pw-2", "dan": "dan-pw-3"}
 
 
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory):
-    """Two complete simulated runs (the four-mount and the one-mount plan) in one lab database, four
-    users (approver, technician, viewer, and one to disable), and the server on it."""
+    """Two complete simulated runs (the four-mount and the one-mount plan) of two stations
+    (LABCAL_STATION) in one SQLite lab database, four users (approver, technician, viewer, and one to
+    disable), and the server on it."""
     base = tmp_path_factory.mktemp("lab")
     db = str(base / "lab.sqlite")
-    assert main(["run", "--sim", "--yes", "--no-report", "--seed", "1", "--serial", "ACC-1", "--db", db,
-                 "--out", str(base / "four")]) == 0
-    assert main(["run", "--sim", "--yes", "--no-report", "--seed", "2", "--plan", "one-mount-16",
-                 "--operator", "R. Tech", "--db", db, "--out", str(base / "one")]) == 0
+    with pytest.MonkeyPatch.context() as env:
+        env.setenv("LABCAL_STATION", STATIONS[1])
+        assert main(["run", "--sim", "--yes", "--no-report", "--seed", "1", "--serial", "ACC-1", "--db", db,
+                     "--out", str(base / "four")]) == 0
+        env.setenv("LABCAL_STATION", STATIONS[2])
+        assert main(["run", "--sim", "--yes", "--no-report", "--seed", "2", "--plan", "one-mount-16",
+                     "--operator", "R. Tech", "--db", db, "--out", str(base / "one")]) == 0
     roles = {"ada": "approver", "tom": "technician", "vic": "viewer", "dan": "viewer"}
     tokens = {name: add_user(db, name, role, PASSWORD[name]) for name, role in roles.items()}
     with served(db) as url:
@@ -67,25 +72,39 @@ def test_approving_needs_a_token_and_the_approver_role(lab):
 
 
 def test_api_runs_are_the_journals_runs(lab):
-    """Every run's id, status, station, serial and points done against the journal read by sqlite3,
-    and points_total against the plan's TOML read by tomllib (replicates × mounts × points)."""
+    """Every run's id, status, serial and points done against the journal read by sqlite3, its
+    station as LABCAL_STATION named it when it ran, and points_total against the plan's TOML read by
+    tomllib (replicates × mounts × points) — on a SQLite lab database, which no sync fills in."""
     found = _get(lab, "/api/runs", lab["tokens"]["vic"])
     assert found.status_code == 200
     listed = {r["id"]: r for r in found.json()["runs"]}
     with sqlite3.connect(lab["db"]) as conn:
-        rows = conn.execute("SELECT id, status, instrument_serial, metadata, plan_text, operator "
-                            "FROM runs").fetchall()
+        rows = conn.execute("SELECT id, status, instrument_serial, plan_text, operator FROM runs").fetchall()
         done = dict(conn.execute("SELECT run_id, count(*) FROM points GROUP BY run_id").fetchall())
     assert sorted(listed) == sorted(r[0] for r in rows) == [1, 2]
-    for run_id, status, serial, metadata, plan_text, operator in rows:
+    for run_id, status, serial, plan_text, operator in rows:
         plan = tomllib.loads(plan_text)
         total = plan.get("replicates", 1) * len(plan["mounts"]) * len(plan["points"])
         got = listed[run_id]
         assert (got["status"], got["serial"], got["operator"]) == (status, serial, operator)
-        assert got["station"] == json.loads(metadata)["station"]
+        assert got["station"] == STATIONS[run_id]
         assert got["simulated"] is True  # `labcal run --sim`: said on every run it concerns
         assert (got["points_done"], got["points_total"]) == (done[run_id], total)
     assert (listed[1]["points_total"], listed[2]["points_total"]) == (64, 16)  # four-mount-64, one-mount-16
+
+
+def test_two_stations_show_as_two_cards_on_the_lab_page(lab):
+    """`/` shows each station that journaled a run, under the name it ran with, with its run's
+    "done / total" (the plans' sizes: 64 and 16 points)."""
+    with httpx.Client(base_url=lab["url"], timeout=10) as client:
+        form = client.get("/login")
+        csrf = re.search(r'name="csrf" value="([^"]+)"', form.text)[1]
+        client.post("/login", data={"name": "vic", "password": PASSWORD["vic"], "csrf": csrf})
+        page = client.get("/")
+    assert page.status_code == 200
+    cards = re.findall(r'<h2>([^<]+?)(?: <small|</h2>).*?<div class="count"><span>(\d+)</span> / (\d+)</div>',
+                       page.text, re.S)
+    assert sorted(cards) == [("bench 1", "64", "64"), ("bench 2 (west)", "16", "16")]
 
 
 def test_a_runs_detail_holds_its_journal_events(lab):
@@ -178,7 +197,7 @@ def test_the_session_cookie_is_httponly_strict_and_renewed_at_sign_in(lab):
     cookie = signed.headers["set-cookie"]
     assert "HttpOnly" in cookie and "SameSite=strict" in cookie.replace("Strict", "strict")
     assert client.cookies["labcal_session"] != before  # a new session id at sign-in
-    assert client.get("/").status_code == 200 and "simulated rig" in client.get("/").text
+    assert client.get("/").status_code == 200 and STATIONS[1] in client.get("/").text
     forged = httpx.get(lab["url"] + "/", cookies={"labcal_session": before[:-1] + "0"}, timeout=10)
     assert forged.status_code == 303
 

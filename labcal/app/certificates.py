@@ -14,9 +14,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from datetime import date, datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 from labcal.errors import LabcalError
+
+Authentication = Literal["password re-entered", "API token"]  # as labcal.documents.certificate's
+SERVER_ROLE = "lab server"  # as labcal.documents.approvers.SERVER_ROLE, without importing it at start-up
 
 if TYPE_CHECKING:
     from labcal.documents.approvers import Approver
@@ -108,13 +111,22 @@ def issue_certificate(request: IssueCertificate) -> Issued:
 
 
 @dataclass(frozen=True)
+class SignedFor:
+    """The key is the lab server's, signing for an approver signed in to it (`labcal.app.server_approval`)."""
+
+    user_id: int  # the approver among the server's users
+    authentication: Authentication  # how they authenticated for this signing
+
+
+@dataclass(frozen=True)
 class ApproveCertificate:
     run_dir: str
     by: str
     role: str
-    key: str  # the approver's private key (PEM)
+    key: str  # the approver's private key (PEM), or the lab server's (``signed_for``)
     db: str | None = None
     station: str | None = None  # the station file the certificate was issued with, if not the journaled
+    signed_for: SignedFor | None = None
 
 
 @dataclass(frozen=True)
@@ -136,8 +148,10 @@ def approve_certificate(request: ApproveCertificate) -> Approved:
     approved certificate; one line naming every reason it may not be signed."""
     from labcal.documents.approving import approve_run
 
+    signed_for = (None if request.signed_for is None
+                  else (request.signed_for.user_id, request.signed_for.authentication))
     return Approved(approve_run(request.run_dir, request.by, request.role, request.key, request.db,
-                                request.station))
+                                request.station, signed_for))
 
 
 @dataclass(frozen=True)
@@ -157,17 +171,20 @@ class Verified:
     approved_utc: datetime
     verified_against: str
     dcc: str | None
+    signed: str  # who approved and through what, in words (`labcal.documents.approvers.signed_note`)
+    through_server: dict[str, Any] | None  # the lab server's signature for the approver (None: their own key)
 
     def to_json(self) -> dict[str, Any]:
         return {"file": self.file, "valid": True, "number": self.number, "approved_by": self.approved_by,
                 "role": self.role, "approved_utc": self.approved_utc.isoformat(),
-                "verified_against": self.verified_against, "dcc": self.dcc}
+                "verified_against": self.verified_against, "dcc": self.dcc, "signed": self.signed,
+                "through_server": self.through_server}
 
 
 def verify_certificate(request: VerifyCertificate) -> Verified:
     """A certificate's signature checked (and its DCC's digest); one line when it fails. A read."""
     from labcal.documents.approval import check_dcc, load_public_key, verify
-    from labcal.documents.approvers import verify_registered
+    from labcal.documents.approvers import signed_note, verify_registered
     from labcal.documents.dcc import DCC_FILE
 
     cert = (verify_registered(request.file, request.db) if request.public_key is None
@@ -180,7 +197,8 @@ def verify_certificate(request: VerifyCertificate) -> Verified:
         check_dcc(cert, dcc)
     against = "the registered key" if request.public_key is None else "the given public key"
     return Verified(request.file, cert.number, approval.by, approval.role, approval.approved_utc,
-                    against, None if dcc is None else str(dcc))
+                    against, None if dcc is None else str(dcc), signed_note(cert),
+                    None if approval.server is None else approval.server.model_dump())
 
 
 @dataclass(frozen=True)

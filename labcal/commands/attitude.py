@@ -42,10 +42,11 @@ def cmd_attitude(args: argparse.Namespace) -> int:
 
     cal, standing = calibration_in_use(args.cert, args.db, args.unverified)
     unverified = standing is not None and standing["approved"] and not standing["verified"]
-    if standing is not None and not standing["verified"]:
+    if standing is not None:  # a draft or an unverified one: a warning; a verified one: who and through what
         from rich.markup import escape
 
-        err.print(f"[yellow]note:[/] {escape(str(args.cert))}: {escape(standing['note'])}")
+        prefix = "certificate:" if standing["verified"] else "[yellow]note:[/]"
+        err.print(f"{prefix} {escape(str(args.cert))}: {escape(standing['note'])}")
     source = args.csv
     if source is None:  # voltages on standard input (never a device: /dev/zero would fill memory)
         text = read_stream(sys.stdin, "standard input", "voltages")

@@ -40,13 +40,17 @@ def cmd_approve(args: argparse.Namespace) -> int:
 
 
 def cmd_approvers_add(args: argparse.Namespace) -> int:
-    from labcal.app.certificates import AddApprover, add_approver
+    from labcal.app.certificates import SERVER_ROLE, AddApprover, add_approver
 
     a = add_approver(AddApprover(args.name, args.role, args.public_key, args.db))
     if args.json:
         print_json(a.to_json())
         return 0
-    out.print(f"{a.name} ({a.role}) may approve certificates with key {a.key_id[:12]}…")
+    if a.role == SERVER_ROLE:
+        out.print(f"{a.name}: the lab server's key {a.key_id[:12]}… (`labcal serve --key`) signs for every "
+                  "approver signed in to the server, and as nobody itself")
+    else:
+        out.print(f"{a.name} ({a.role}) may approve certificates with key {a.key_id[:12]}…")
     return 0
 
 
@@ -85,8 +89,12 @@ def cmd_verify(args: argparse.Namespace) -> int:
     if args.json:
         print_json(v.to_json())
         return 0
-    out.print(f"{v.file}: signature valid against {v.verified_against} — certificate {v.number}, approved by "
-              f"{v.approved_by} ({v.role}) on {v.approved_utc:%Y-%m-%d %H:%M} UTC"
+    who = (f"approved by {v.approved_by} ({v.role})" if v.through_server is None else
+           f"approved by {v.approved_by} (an approver of the lab server, user {v.through_server['user_id']}, "
+           f"{v.through_server['authentication']}) through the lab server's key "
+           f"({v.through_server['signer']})")
+    out.print(f"{v.file}: signature valid against {v.verified_against} — certificate {v.number}, {who} on "
+              f"{v.approved_utc:%Y-%m-%d %H:%M} UTC"
               + (f"; DCC {v.dcc} is the one signed" if v.dcc is not None else "; no DCC signed with it"))
     return 0
 
@@ -136,7 +144,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     which = approvers.add_subparsers(dest="approvers_verb", required=True, metavar="VERB")
     add = which.add_parser("add", help="register an approver's public key")
     add.add_argument("name", metavar="NAME", help="the approver's name, as `approve --by` gives it")
-    add.add_argument("--role", required=True, metavar="ROLE", help="the approver's role")
+    add.add_argument("--role", required=True, metavar="ROLE",
+                     help="the approver's role; 'lab server' for the key `labcal serve` signs with for "
+                          "every approver signed in to it (it then signs as nobody itself)")
     add.add_argument("--public-key", required=True, metavar="FILE", help="their public key (PEM, .pub)")
     add_db_option(add)
     add.add_argument("--json", action="store_true", help="print as JSON on stdout")

@@ -1,4 +1,4 @@
-"""`labcal serve`: the lab server (`labcal.server`)."""
+"""`labcal serve`: the lab server (`labcal.server`, on the use cases of `labcal.app.lab`)."""
 
 from __future__ import annotations
 
@@ -20,7 +20,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     def listening(url: str) -> None:
         signing = f"; signing with {settings.key}" if settings.key else ""
-        sys.stdout.write(f"labcal lab server on {url} (lab database {settings.where}{signing}); "
+        where = settings.lab.shown
+        sys.stdout.write(f"labcal lab server on {url} (lab database {where}{signing}); "
                          "Ctrl-C stops it\n")
         sys.stdout.flush()
     serve(settings, args.host, args.port, listening)
@@ -41,8 +42,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the lab database: a path, sqlite:///PATH or postgresql://USER@HOST:PORT/DB "
                         "(default $LABCAL_DB, else the lab file's)")
     p.add_argument("--key", default=None, metavar="FILE",
-                   help="the lab's private key (PEM) for approvals, registered with `labcal certificate "
-                        "approvers add`")
+                   help="the lab's private key (PEM) for approvals (default: the lab file's server_key), "
+                        "registered with `labcal certificate approvers add \"lab server\" --role \"lab "
+                        "server\"` (signs for every approver) or under one approver's name (signs for them "
+                        "only)")
     p.add_argument("--poll", type=float, default=0.5, metavar="S",
                    help="how often the live streams look for new readings (seconds, default 0.5)")
     p.set_defaults(func=cmd_serve)

@@ -1,4 +1,4 @@
-"""`labcal user`: the lab server's users (`labcal.server.users`)."""
+"""`labcal user`: the lab server's users (`labcal.app.users`)."""
 
 from __future__ import annotations
 
@@ -8,17 +8,17 @@ import sys
 from labcal.commands.common import out, print_json
 from labcal.errors import LabcalError
 
-# as labcal.server.users.ROLES, without importing argon2 for --help
+# as labcal.app.users.ROLES, without importing argon2 for --help
 ROLES = ("technician", "approver", "viewer")
 
 
-def _engine(option: str | None, create: bool):
+def _lab(option: str | None, create: bool):
     try:
-        from labcal.server import db
+        from labcal.app.labdatabase import OpenLab, open_lab
     except ImportError as exc:
         raise LabcalError(f"labcal user needs the lab server's packages ({exc.name} is missing): "
                           "pip install 'labcal[lab]'") from None
-    return db.open_lab(option, must_exist=not create).engine  # `user add` may create the lab database
+    return open_lab(OpenLab(option, must_exist=not create))  # `user add` may create the lab database
 
 
 def _password(given: str | None) -> str:
@@ -37,10 +37,15 @@ def _password(given: str | None) -> str:
 
 
 def cmd_add(args: argparse.Namespace) -> int:
-    from labcal.server import users
+    from labcal.app import users
 
     password = _password(args.password)  # before the database is touched
-    user, token = users.add(_engine(args.db, create=True), args.name, args.role, password)
+    lab = _lab(args.db, create=True)
+    try:
+        added = users.add(lab, users.AddUser(args.name, args.role, password))
+    finally:
+        lab.close()
+    user, token = added.user, added.token
     if args.json:
         print_json({**user.to_json(), "token": token})
         return 0
@@ -51,9 +56,13 @@ def cmd_add(args: argparse.Namespace) -> int:
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    from labcal.server import users
+    from labcal.app import users
 
-    found = users.listed(_engine(args.db, create=False))
+    lab = _lab(args.db, create=False)
+    try:
+        found = users.listed(lab)
+    finally:
+        lab.close()
     if args.json:
         print_json({"users": [u.to_json() for u in found]})
         return 0
@@ -66,9 +75,13 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 
 def cmd_disable(args: argparse.Namespace) -> int:
-    from labcal.server import users
+    from labcal.app import users
 
-    u = users.disable(_engine(args.db, create=False), args.name)
+    lab = _lab(args.db, create=False)
+    try:
+        u = users.disable(lab, args.name)
+    finally:
+        lab.close()
     if args.json:
         print_json(u.to_json())
         return 0

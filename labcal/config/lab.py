@@ -81,6 +81,11 @@ class LabFile(BaseModel):
     station: str | None = Field(default=None,
                                 description="this station's name in the lab database (default: the "
                                             "computer's name)")
+    server_key: str | None = Field(default=None,
+                                   description="the lab server's private key (PEM; relative: to this file) "
+                                               "for approvals, when `labcal serve` is given no --key; "
+                                               "registered with `labcal certificate approvers add "
+                                               "--role \"lab server\"`")
     laboratory: Laboratory = Field(default_factory=Laboratory)
     certificate: CertificateSettings = Field(default_factory=CertificateSettings,
                                              description="default tolerances and usage envelope")
@@ -128,6 +133,10 @@ class LabConfig:
             given = database_location(self.file.database, f"{self.path or FILE_NAME}: database")
             return given if isinstance(given, ServerDatabase) else self._relative(given)
         return data_home() / "labcal" / DB_NAME
+
+    def server_key(self) -> Path | None:
+        """The lab server's signing key as this file names it (None: it names none)."""
+        return None if not self.file.server_key else self._relative(Path(self.file.server_key))
 
     def journal(self) -> Path:
         """Where this station journals its runs when the lab database is a server: $LABCAL_JOURNAL,

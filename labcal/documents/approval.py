@@ -117,9 +117,10 @@ def load_public_key(path: str | Path) -> Ed25519PublicKey:
 
 # --- approving and verifying ---------------------------------------------------------------------
 def approve(cert: Certificate, by: str, role: str, key: Ed25519PrivateKey,
-            when: datetime | None = None) -> Certificate:
+            when: datetime | None = None, server: dict | None = None) -> Certificate:
     """The certificate approved by ``by`` (``role``) and signed with ``key``, sealed again; the
-    signature covers the DCC that `dcc_document` makes of it (its SHA-256 is in the approval)."""
+    signature covers the DCC that `dcc_document` makes of it (its SHA-256 is in the approval).
+    ``server``: the key is the lab server's, signing for ``by`` (`certificate.ServerSignature`)."""
     from labcal.documents.dcc import dcc_document
 
     if cert.approval is not None:
@@ -127,9 +128,12 @@ def approve(cert: Certificate, by: str, role: str, key: Ed25519PrivateKey,
                           "is a new revision (`labcal report` issues it)")
     if not by.strip() or not role.strip():
         raise LabcalError("give the approver's name (--by) and role (--role)")
-    approval = {"by": by.strip(), "role": role.strip(),
-                "approved_utc": (when or datetime.now(UTC)).isoformat(timespec="seconds"),
-                "algorithm": ALGORITHM, "key_id": key_id(key.public_key()), "signature": ""}
+    approval: dict[str, object] = {
+        "by": by.strip(), "role": role.strip(),
+        "approved_utc": (when or datetime.now(UTC)).isoformat(timespec="seconds"),
+        "algorithm": ALGORITHM, "key_id": key_id(key.public_key()), "signature": ""}
+    if server is not None:
+        approval["server"] = server
     unsigned = {k: v for k, v in cert.to_json().items() if k != "digest"}
     # The DCC states who approved (not the signature nor its own digest): make it once to hash it.
     approval["dcc_sha256"] = dcc_sha256(dcc_document(seal({**unsigned, "approval": approval})))

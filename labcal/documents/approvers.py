@@ -25,12 +25,16 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 from labcal.analysis.attitude import Calibration
 from labcal.config.files import read_text
 from labcal.documents.approval import key_id, load_public_key, signature_holds, signed_certificate
-from labcal.documents.certificate import Certificate, certificate_from_doc, parse_json
+from labcal.documents.certificate import Certificate, ServerSignature, certificate_from_doc, parse_json
 from labcal.errors import LabcalError
 from labcal.run import labdb
 from labcal.run.journal import db_path
 
 COLUMNS = "name, role, public_key, key_id, added_utc, revoked_utc"
+# The role a lab server's key is registered with: it signs only for an approver signed in to the
+# server (`labcal.app.server_approval`), never as a person of its own.
+SERVER_ROLE = "lab server"
+APPROVER_USER_ROLE = "approver"  # the server users' role that may approve (`labcal.app.users`)
 
 
 @dataclass(frozen=True)
@@ -130,9 +134,16 @@ def _rows(conn: sqlite3.Connection, where: str, params: tuple) -> list[Approver]
     return [Approver(*row) for row in conn.execute(f"SELECT {COLUMNS} FROM approvers {where}", params)]
 
 
-def problems(kid: str, name: str, role: str, db: str | Path | None = None) -> list[str]:
+def problems(kid: str, name: str, role: str, db: str | Path | None = None,
+             server: ServerSignature | None = None, when: str | None = None) -> list[str]:
     """Why a key with id ``kid`` may not sign (or have signed) as ``name`` (``role``): not registered,
-    revoked, registered to another name or another role. Empty: it may."""
+    revoked, registered to another name or another role. Empty: it may.
+
+    With ``server`` (the approval says the lab server's key signed for ``name``), the key must be
+    registered with the role `SERVER_ROLE` under the name ``server.signer``, and ``name`` must have
+    been, at ``when`` (the approval's time, ISO 8601 UTC), an active user of the lab server with the
+    role approver and the id ``server.user_id`` (`server_user_problems`). A key registered as the lab
+    server's signs nothing without ``server``: it is nobody's own signature."""
     approver = by_key(kid, db)
     if approver is None:
         return [f"key {kid[:12]}… is not registered (a lab administrator registers it: `labcal certificate "
@@ -140,11 +151,58 @@ def problems(kid: str, name: str, role: str, db: str | Path | None = None) -> li
     found = []
     if not approver.active:
         found.append(f"key {kid[:12]}… of {approver.name} was revoked on {approver.revoked_utc}")
-    if approver.name != name.strip():
-        found.append(f"key {kid[:12]}… is registered to {approver.name!r}, not {name.strip()!r}")
-    if approver.role != role.strip():
-        found.append(f"{approver.name}'s registered role is {approver.role!r}, not {role.strip()!r}")
+    if server is None:
+        if approver.role == SERVER_ROLE:
+            found.append(f"key {kid[:12]}… is the lab server's ({approver.name!r}): it signs only for an "
+                         "approver signed in to the lab server (`labcal serve`), never as a person")
+            return found
+        if approver.name != name.strip():
+            found.append(f"key {kid[:12]}… is registered to {approver.name!r}, not {name.strip()!r}")
+        if approver.role != role.strip():
+            found.append(f"{approver.name}'s registered role is {approver.role!r}, not {role.strip()!r}")
+        return found
+    if approver.role != SERVER_ROLE:
+        found.append(f"key {kid[:12]}… is registered to {approver.name!r} as a person ({approver.role!r}), "
+                     f"not as the lab server's (--role {SERVER_ROLE!r}): it signs only as {approver.name!r}")
+    elif approver.name != server.signer:
+        found.append(f"key {kid[:12]}… is registered as {approver.name!r}, not {server.signer!r}")
+    if role.strip() != APPROVER_USER_ROLE:
+        found.append(f"a signature through the lab server is an approver's, not a {role.strip()!r}'s")
+    found += server_user_problems(server.user_id, name.strip(), when, db)
     return found
+
+
+def server_user_problems(user_id: int, name: str, when: str | None, db: str | Path | None = None
+                         ) -> list[str]:
+    """Why user ``user_id`` named ``name`` could not approve at ``when`` (None: now) through the lab
+    server: no such user, another name, not an approver, added after or disabled before. A user's
+    name and role never change and a user is never deleted (`labcal.app.users`), so the users table
+    says what they were at any time."""
+    path = db_path(db)
+    if not path.is_file():
+        return [f"no lab database at {path} to say who user {user_id} is"]
+    with closing(labdb.connect(path)) as conn:
+        row = conn.execute("SELECT name, role, created_utc, disabled_utc FROM users WHERE id = ?",
+                           (user_id,)).fetchone()
+    if row is None:
+        return [f"the lab server has no user {user_id} ({name!r})"]
+    user, user_role, created, disabled = row
+    at = _instant(when) if when is not None else datetime.now(UTC)
+    found = []
+    if user != name:
+        found.append(f"the lab server's user {user_id} is {user!r}, not {name!r}")
+    if user_role != APPROVER_USER_ROLE:
+        found.append(f"{user!r} is a {user_role} of the lab server, not an approver")
+    if _instant(created) > at:
+        found.append(f"{user!r} became a user of the lab server on {created}, after {at.isoformat()}")
+    if disabled is not None and _instant(disabled) <= at:
+        found.append(f"{user!r} was disabled on {disabled}, before {at.isoformat()}")
+    return found
+
+
+def _instant(text: str) -> datetime:
+    found = datetime.fromisoformat(text)
+    return found if found.tzinfo is not None else found.replace(tzinfo=UTC)
 
 
 def verify_registered(path: str | Path, db: str | Path | None = None) -> Certificate:
@@ -158,10 +216,21 @@ def verify_registered(path: str | Path, db: str | Path | None = None) -> Certifi
     registered = by_key(approval.key_id, db)
     if registered is not None:
         signature_holds(doc, cert, registered.public_key(), source)
-    reasons = problems(approval.key_id, approval.by, approval.role, db)
+    reasons = problems(approval.key_id, approval.by, approval.role, db, approval.server,
+                       approval.approved_utc.isoformat())
     if reasons:
         raise LabcalError(f"{source}: signature not accepted: {'; '.join(reasons)}")
     return cert
+
+
+def signed_note(cert: Certificate) -> str:
+    """Who approved a verified certificate, and through what, in words."""
+    a = cert.approval
+    assert a is not None
+    if a.server is None:
+        return f"signed by {a.by} ({a.role}), a registered approver"
+    return (f"approved by {a.by} (user {a.server.user_id} of the lab server, an approver; "
+            f"{a.server.authentication}), signed with the lab server's registered key ({a.server.signer})")
 
 
 # --- using a certificate ----------------------------------------------------------------------------
@@ -184,8 +253,7 @@ def calibration_in_use(path: str | Path, db: str | Path | None = None, unverifie
     if cert.approval is not None:
         try:
             verify_registered(path, db)
-            standing.update(verified=True, note=f"signed by {cert.approval.by} ({cert.approval.role}), "
-                                                "a registered approver")
+            standing.update(verified=True, note=signed_note(cert))
         except LabcalError as exc:
             if not unverified:
                 raise

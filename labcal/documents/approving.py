@@ -23,7 +23,7 @@ from labcal.config.settings import CertificateSettings
 from labcal.documents import approvers
 from labcal.documents.administration import ItemGiven
 from labcal.documents.approval import approve, key_id, load_private_key
-from labcal.documents.certificate import Certificate, read_certificate
+from labcal.documents.certificate import Authentication, Certificate, ServerSignature, read_certificate
 from labcal.documents.issuing import build_certificate
 from labcal.documents.report import CERTIFICATE, RunOutputs, fitted, replaced_by, write_documents
 from labcal.documents.uncertainty import bench_section, type_b_inputs
@@ -84,11 +84,20 @@ def _sections(paths: list[str]) -> str:
 
 
 def approve_run(run_dir: str | Path, by: str, role: str, key_path: str | Path, db: str | Path | None = None,
-                station: str | Path | None = None) -> RunOutputs:
+                station: str | Path | None = None, signed_for: tuple[int, Authentication] | None = None
+                ) -> RunOutputs:
     """Sign the run's draft certificate and write every document again, or one line naming every
     reason it may not be signed: a simulated run, a draft the journal does not reproduce, a key that
-    is not registered, revoked, or registered to another name or role."""
+    is not registered, revoked, or registered to another name or role.
+
+    ``signed_for``: (user id, how they authenticated) — the key is the lab server's, signing for
+    ``by``, an approver signed in to it (`labcal.app.server_approval`); the approval says so."""
     key = load_private_key(key_path)  # before anything is read or written
+    server = None
+    if signed_for is not None:
+        registered = approvers.by_key(key_id(key.public_key()), db)
+        server = ServerSignature(signer=registered.name if registered is not None else "(unregistered)",
+                                 user_id=signed_for[0], meaning="approved", authentication=signed_for[1])
     record = load_run(run_dir)
     path = Path(run_dir) / CERTIFICATE
     reasons = [SIMULATED] if record.simulated else []
@@ -113,10 +122,10 @@ def approve_run(run_dir: str | Path, by: str, role: str, key_path: str | Path, d
                                f"{_sections(found)}): edited after issue, or issued with another "
                                f"station file (give it with --station) or another labcal; "
                                f"`labcal report {run_dir}` issues it again")
-    reasons += approvers.problems(key_id(key.public_key()), by, role, db)
+    reasons += approvers.problems(key_id(key.public_key()), by, role, db, server)
     if reasons:
         raise LabcalError(f"{run_dir}: not approved: " + "; ".join(reasons))
     assert draft is not None
-    cert = approve(draft, by, role, key)
+    cert = approve(draft, by, role, key, server=None if server is None else server.model_dump())
     fit, device, _ = fitted(record)
     return write_documents(cert, record, fit, device, db)

@@ -412,6 +412,21 @@ class RunStory(Strict):
     omitted: int = Field(ge=0)
 
 
+Authentication = Literal["password re-entered", "API token"]  # how an approver authenticated to sign
+
+
+class ServerSignature(Strict):
+    """The approval was signed by the lab server's key for an approver signed in to it
+    (`labcal.app.server_approval`): which registered server key signed, for which of the server's
+    users, with what meaning (21 CFR Part 11 §11.50) and how the approver authenticated for this
+    signing (§11.200)."""
+
+    signer: str = Field(min_length=1)  # the server key's registered name
+    user_id: int = Field(ge=1)  # the approver among the lab server's users (`labcal user list`)
+    meaning: Literal["approved"]
+    authentication: Authentication
+
+
 class Approval(Strict):
     """Who approved the certificate (ISO/IEC 17025 §7.8.2.1 o) and their Ed25519 signature over the
     canonical content (`labcal.documents.approval`)."""
@@ -424,6 +439,8 @@ class Approval(Strict):
     signature: str
     # SHA-256 of the DCC written with the approval, signed with the rest (None: approved before)
     dcc_sha256: str | None = Field(default=None, pattern="^[0-9a-f]{64}$", exclude_if=_absent)
+    # Signed by the lab server's key for ``by`` (None: by ``by``'s own key), signed with the rest
+    server: ServerSignature | None = Field(default=None, exclude_if=_absent)
 
 
 class Digest(Strict):

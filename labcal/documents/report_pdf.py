@@ -26,6 +26,10 @@ def render_pdf(cert: Certificate, figs: list[DrawnFigure], extra: tuple[Table, .
     signature = [("Approved by", f"{a.by} ({a.role})" if a else "not yet approved — DRAFT"),
                  ("Date", f"{a.approved_utc:%Y-%m-%d %H:%M} UTC" if a else "—"),
                  ("Electronic signature", f"{a.algorithm}, key {a.key_id[:16]}…" if a else "—"),
+                 *([("Signed through", f"the lab server's key ({a.server.signer}) for user "
+                                      f"{a.server.user_id}, {a.server.authentication}; "
+                                      f"meaning: {a.server.meaning}")]
+                   if a is not None and a.server is not None else []),
                  ("Certificate content", f"sha256 {cert.digest.value}")]
     return render(CertificateDocument(
         heading=f"{SIMULATED_WORD} — Calibration certificate" if cert.notice else "Calibration certificate",

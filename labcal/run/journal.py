@@ -60,6 +60,29 @@ class Manifest:
     instrument_serial: str | None = None
     device_id: str | None = None
     operator: str | None = None
+    station: str | None = None  # the station's name in the lab (None: `station_name`)
+    points_total: int | None = None  # steps of the run's schedule (None: counted from the plan)
+
+
+def station_name() -> str:
+    """This station's name in the lab database, by the lab file's rule (`LabConfig.station`):
+    $LABCAL_STATION, else the lab file's ``station``, else the computer's name.
+
+    Not the station file's name nor its description: a station file describes wiring (drivers,
+    ports, gearing) and several benches may share one, or one bench change files when a device is
+    swapped, while the lab names the bench — the computer that drives it, unless told otherwise."""
+    return load_lab_config().station()
+
+
+def schedule_length(plan_text: str) -> int | None:
+    """Every step of the run's schedule (replicates × mounts × points), or None for a plan this
+    labcal cannot read (a run journaled by another version)."""
+    from labcal.config.plans import parse_plan
+
+    try:
+        return parse_plan(plan_text, "the run's plan").n_points
+    except (LabcalError, ValueError):
+        return None
 
 
 @dataclass(frozen=True)
@@ -173,13 +196,19 @@ class Journal:
 
     # --- writing ---------------------------------------------------------------------------------
     def start_run(self, m: Manifest) -> int:
+        """Journal a new run. It names its station and its number of steps here, in the journal
+        itself, so that the lab's view (`labcal serve`) shows them on a SQLite lab database as on a
+        server, where `labcal.run.sync` copies them."""
         run_id = self._transaction([(
             "INSERT INTO runs (run_dir, plan_name, plan_text, plan_hash, station_text, station_hash,"
             " software_version, instrument_serial, device_id, operator, settings, metadata,"
-            " started_utc, status, uuid) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,'running',?)",
+            " started_utc, status, uuid, station, points_total)"
+            " VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,'running',?,?,?)",
             (m.run_dir, m.plan_name, m.plan_text, sha256(m.plan_text), m.station_text,
              sha256(m.station_text), m.software_version, m.instrument_serial, m.device_id, m.operator,
-             json.dumps(m.settings), json.dumps(m.metadata), utc_now(), str(uuid.uuid4())),
+             json.dumps(m.settings), json.dumps(m.metadata), utc_now(), str(uuid.uuid4()),
+             m.station or station_name(),
+             m.points_total if m.points_total is not None else schedule_length(m.plan_text)),
         )])
         assert run_id is not None  # an INSERT into a rowid table always sets lastrowid
         return run_id

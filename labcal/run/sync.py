@@ -38,7 +38,7 @@ if TYPE_CHECKING:
     from sqlalchemy.engine import Connection, Engine
 
 POINT_COLUMNS = tuple(c.name for c in schema.points.columns if c.name != "run_id")
-RUN_COLUMNS = tuple(c.name for c in schema.runs.columns if c.name not in ("id", "station", "points_total"))
+RUN_COLUMNS = tuple(c.name for c in schema.runs.columns if c.name not in ("id", "station"))
 EVENT_COLUMNS = ("utc", "station_time", "kind", "message", "data")
 CERTIFICATE_COLUMNS = tuple(c.name for c in schema.certificates.columns)
 BATCH = 500  # rows per statement: a catch-up after a long outage goes in bounded transactions
@@ -84,7 +84,6 @@ class Sender:
         self.target = target_of(server)
         self.station = station or load_lab_config().station()
         self.engine = engine or labdb.server_engine(server)
-        self._totals: dict[int, int | None] = {}
         self._schema_checked = False
 
     def close(self) -> None:
@@ -114,16 +113,6 @@ class Sender:
         return [(run_id, state, lab_id) for run_id, status, reason, ended, sent, lab_id in rows
                 if (state := f"{status}|{reason or ''}|{ended or ''}") != sent]
 
-    def _points_total(self, db: sqlite3.Connection, run_id: int, plan_text: str) -> int | None:
-        if run_id not in self._totals:
-            from labcal.config.plans import parse_plan
-
-            try:
-                self._totals[run_id] = parse_plan(plan_text, f"run {run_id}").n_points
-            except LabcalError:
-                self._totals[run_id] = None
-        return self._totals[run_id]
-
     def push(self) -> Sent:
         """Send everything pending, in batches, each committed on the server before the journal's
         cursor moves. Raises the server's error (SQLAlchemy's) when it cannot be reached."""
@@ -152,8 +141,9 @@ class Sender:
                 row = db.execute(f"SELECT {', '.join(RUN_COLUMNS)}, station FROM runs WHERE id=?",
                                  (run_id,)).fetchone()
                 values = dict(zip(RUN_COLUMNS, row[:-1], strict=True))
+                # as journaled (`Journal.start_run`); a run journaled before runs named their
+                # station was journaled here, at this station
                 values["station"] = row[-1] or self.station
-                values["points_total"] = self._points_total(db, run_id, values["plan_text"])
                 statement = insert(schema.runs).values(**values).on_conflict_do_update(
                     index_elements=["uuid"],
                     set_={"status": values["status"], "reason": values["reason"],

@@ -18,6 +18,10 @@ per new point (``point``) and per journaled event (named by its kind: ``prompt``
 ``status``, …), one ``run`` event when the run's status changes, and after each batch one
 ``progress`` event with the run's progress. Every event carries an id — the last point's seq and the
 last event's id seen — so a client that reconnects with ``Last-Event-ID`` resumes where it left off.
+
+Everything it reads or writes is a use case of the application layer (`labcal.app.lab`,
+`labcal.app.users`, `labcal.app.server_approval`); this module is HTTP only: routes, who is asking,
+sessions and CSRF, templates and the framing of the event streams.
 """
 
 # No `from __future__ import annotations`: FastAPI reads the routes' annotations (Depends on local
@@ -37,30 +41,25 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 from fastapi.templating import Jinja2Templates
-from sqlalchemy import func, select
-from sqlalchemy.engine import Engine
 
+from labcal.app import lab, users
+from labcal.app.certificates import Authentication
+from labcal.app.labdatabase import LabDatabase
+from labcal.app.server_approval import ApproveAsUser, NotHere, approve_as_user
 from labcal.errors import LabcalError
-from labcal.run.schema import points, runs
-from labcal.server import lab, users
-from labcal.server.approve import NotHere, approve
-from labcal.server.plot import residual_png
 from labcal.server.sessions import COOKIE, Session, Sessions, csrf_ok
 
 HERE = Path(__file__).parent
 KEEP_ALIVE_S = 15.0
 USER_CHECK_S = 5.0  # how soon an open stream of a user disabled meanwhile ends
-BATCH = 500  # rows per poll and kind: a client far behind catches up in bounded steps
 STATUS_CLASS = {"running": "running", "complete": "complete", "interrupted": "stopped", "stopped": "stopped",
                 "failed": "failed"}
 
 
 @dataclass
 class ServerSettings:
-    engine: Engine
-    where: str  # the lab database as named (for messages)
+    lab: LabDatabase
     key: Path | None = None  # the lab's signing key
-    db_file: Path | None = None  # the SQLite lab file, where the lab database is one
     poll_s: float = 0.5
     sessions: Sessions = field(default_factory=Sessions)
 
@@ -76,17 +75,13 @@ def create_app(settings: ServerSettings) -> FastAPI:
     templates.env.filters["mount"] = mount_text
     templates.env.globals["status_class"] = lambda s: STATUS_CLASS.get(s, "other")
     app.mount("/static", StaticFiles(directory=str(HERE / "static")), name="static")
-    eng, sessions = settings.engine, settings.sessions
+    db, sessions = settings.lab, settings.sessions
     app.state.sessions = sessions
-
-    def read(fn, *args: Any) -> Any:
-        with eng.connect() as conn:
-            return fn(conn, *args)
 
     # --- who is asking ---------------------------------------------------------------------------
     def api_user(authorization: Annotated[str | None, Header()] = None) -> users.User:
         scheme, _, token = (authorization or "").partition(" ")
-        user = users.by_token(eng, token.strip()) if scheme.lower() == "bearer" else None
+        user = users.by_token(db, token.strip()) if scheme.lower() == "bearer" else None
         if user is None:
             raise HTTPException(401, "give a valid API token: Authorization: Bearer TOKEN (`labcal user add` "
                                      "prints one)", headers={"WWW-Authenticate": "Bearer"})
@@ -102,7 +97,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
 
     def page_user(request: Request) -> users.User:
         session = session_of(request)
-        user = users.named(eng, session.user) if session is not None and session.user else None
+        user = users.named(db, session.user) if session is not None and session.user else None
         if user is None or not user.active:
             if session is not None and session.user:
                 sessions.end(session)
@@ -119,17 +114,17 @@ def create_app(settings: ServerSettings) -> FastAPI:
     def page(request: Request, template: str, user: users.User | None, status: int = 200, **context: Any
              ) -> Response:
         session = getattr(request.state, "session", None)
-        values = {"user": user, "csrf": session.csrf if session else "", "lab_db": settings.where, **context}
+        values = {"user": user, "csrf": session.csrf if session else "", "lab_db": db.shown, **context}
         return templates.TemplateResponse(request, template, values, status_code=status)
 
     # --- the API ---------------------------------------------------------------------------------
     @app.get("/api/runs")
     def api_runs(user: Annotated[users.User, Depends(api_user)]) -> dict:
-        return {"runs": read(lab.list_runs)}
+        return {"runs": lab.lab_runs(db)}
 
     @app.get("/api/runs/{run_id}")
     def api_run(run_id: int, user: Annotated[users.User, Depends(api_user)]) -> dict:
-        found = read(lab.run_detail, run_id)
+        found = lab.run_detail(db, run_id)
         if found is None:
             raise HTTPException(404, f"no run {run_id} in the lab database")
         return found
@@ -141,26 +136,26 @@ def create_app(settings: ServerSettings) -> FastAPI:
 
     @app.post("/api/runs/{run_id}/approve")
     def api_approve(run_id: int, user: Annotated[users.User, Depends(api_approver)]) -> dict:
-        done = approve_as(run_id, user)
-        return done.__dict__
+        done = approve_as(run_id, user, "API token")
+        return done.to_json()
 
     @app.get("/api/runs/{run_id}/residuals.png")
     def api_residuals(run_id: int, user: Annotated[users.User, Depends(api_user)]) -> Response:
         return residuals(run_id)
 
-    def approve_as(run_id: int, user: users.User) -> Any:
-        run_dir = read(lambda conn: conn.execute(select(runs.c.run_dir).where(runs.c.id == run_id)).scalar())
-        if run_dir is None:
-            raise HTTPException(404, f"no run {run_id} in the lab database")
+    def approve_as(run_id: int, user: users.User, authentication: Authentication) -> Any:
         try:
-            return approve(run_dir, user.name, settings.key, settings.db_file)
+            done = approve_as_user(db, ApproveAsUser(run_id, user, settings.key, authentication))
         except NotHere as exc:
             raise HTTPException(409, str(exc)) from None
         except LabcalError as exc:
             raise HTTPException(409, str(exc)) from None
+        if done is None:
+            raise HTTPException(404, f"no run {run_id} in the lab database")
+        return done
 
     def residuals(run_id: int) -> Response:
-        png = read(residual_png, run_id)
+        png = lab.residual_plot(db, run_id)
         if png is None:
             raise HTTPException(404, f"run {run_id} has too few readings to fit")
         return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=60"})
@@ -168,13 +163,13 @@ def create_app(settings: ServerSettings) -> FastAPI:
     # --- streams ---------------------------------------------------------------------------------
     def stream_response(request: Request, run_id: int, last_event_id: str | None, user: users.User
                         ) -> Response:
-        if read(lab.progress, run_id) is None:
+        if lab.run_progress(db, run_id) is None:
             raise HTTPException(404, f"no run {run_id} in the lab database")
         return StreamingResponse(events_of(request, run_id, cursor_of(last_event_id), user.name),
                                  media_type="text/event-stream",
                                  headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
-    async def events_of(request: Request, run_id: int, cursor: tuple[int, int], user: str
+    async def events_of(request: Request, run_id: int, cursor: lab.Cursor, user: str
                         ) -> AsyncIterator[str]:
         yield "retry: 2000\n\n"
         status: str | None = None
@@ -182,12 +177,13 @@ def create_app(settings: ServerSettings) -> FastAPI:
         first = True
         while not await request.is_disconnected():
             if time.monotonic() - checked > USER_CHECK_S:  # a user disabled meanwhile hears no more
-                found = await run_in_threadpool(users.named, eng, user)
+                found = await run_in_threadpool(users.named, db, user)
                 if found is None or not found.active:
                     return
                 checked = time.monotonic()
-            messages, cursor, status = await run_in_threadpool(changes, eng, run_id, cursor, status, first)
-            first = False
+            batch = await run_in_threadpool(lab.next_batch, db, lab.NextBatch(run_id, cursor, status, first))
+            messages = [sse(item.kind, item.data, item.cursor) for item in batch.items]
+            cursor, status, first = batch.cursor, batch.status, False
             for message in messages:
                 yield message
             if messages:
@@ -212,7 +208,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
         session = session_of(request)
         if not csrf_ok(session, csrf):
             return forbidden_csrf(request)
-        user = users.by_password(eng, name, password)
+        user = users.by_password(db, name, password)
         if user is None:
             request.state.session = session
             return page(request, "login.html", None, status=401, next=safe_next(next), failed=True, name=name)
@@ -234,21 +230,18 @@ def create_app(settings: ServerSettings) -> FastAPI:
 
     @app.get("/", response_class=HTMLResponse)
     def index(request: Request, user: Annotated[users.User, Depends(page_user)]) -> Response:
-        return page(request, "index.html", user, stations=read(lab.stations), runs=read(lab.list_runs)[:50])
+        overview = lab.lab_overview(db)
+        return page(request, "index.html", user, stations=overview.stations, runs=overview.runs)
 
     @app.get("/runs/{run_id}", response_class=HTMLResponse)
     def run_page(request: Request, run_id: int, user: Annotated[users.User, Depends(page_user)],
                  message: str | None = None) -> Response:
-        found = read(lab.progress, run_id)
-        if found is None:
+        view = lab.run_view(db, run_id)
+        if view is None:
             return page(request, "error.html", user, status=404,
                         message=f"No run {run_id} in the lab database.")
-        journal = read(lab.run_events, run_id)
-        recent = [e for e in journal if e["kind"] not in QUIET_KINDS][-30:]
-        seq = read(lambda conn: conn.execute(select(func.max(points.c.seq)).where(points.c.run_id == run_id))
-                   .scalar())
-        after = f"{-1 if seq is None else seq}:{journal[-1]['id'] if journal else 0}"
-        return page(request, "run.html", user, run=found, recent=recent, message=message, after=after)
+        return page(request, "run.html", user, run=view.run, recent=view.recent, message=message,
+                    after=event_id_of(view.cursor))
 
     @app.get("/runs/{run_id}/stream")
     def page_stream(run_id: int, request: Request, user: Annotated[users.User, Depends(page_user)],
@@ -271,16 +264,16 @@ def create_app(settings: ServerSettings) -> FastAPI:
             return page(request, "error.html", user, status=403,
                         message=f"{user.name} is a {user.role}; only an approver approves certificates.")
         # The electronic signature (21 CFR Part 11 §11.200): the signer gives their password again.
-        if users.by_password(eng, user.name, password) is None:
+        if users.by_password(db, user.name, password) is None:
             return run_page_message(request, run_id, user, "The password is not yours: nothing was signed.",
                                     401)
         try:
-            done = approve_as(run_id, user)
+            done = approve_as(run_id, user, "password re-entered")
         except HTTPException as exc:
             return run_page_message(request, run_id, user, f"Not approved: {exc.detail}", exc.status_code)
         return run_page_message(request, run_id, user,
                                 f"Certificate {done.number} approved by {done.by} ({done.role}) at "
-                                f"{done.approved_utc}: signed.", 200)
+                                f"{done.approved_utc}: signed with {done.signed_by}.", 200)
 
     def run_page_message(request: Request, run_id: int, user: users.User, message: str, status: int
                          ) -> Response:
@@ -294,9 +287,6 @@ def create_app(settings: ServerSettings) -> FastAPI:
                             status_code=403)
 
     return app
-
-
-QUIET_KINDS = frozenset({"move", "status", "settle_pool", "segment"})  # many per run: the page lists the rest
 
 
 def set_cookie(request: Request, response: Response, session: Session) -> None:
@@ -313,40 +303,22 @@ def safe_next(target: str) -> str:
     return target if target.startswith("/") and not target.startswith("//") and "\\" not in target else "/"
 
 
-def cursor_of(last_event_id: str | None) -> tuple[int, int]:
+def cursor_of(last_event_id: str | None) -> lab.Cursor:
     """(last point seq, last event id) from a Last-Event-ID; a new client starts at the beginning."""
     try:
         seq, event_id = (last_event_id or "").split(":")
-        return int(seq), int(event_id)
+        return lab.Cursor(int(seq), int(event_id))
     except ValueError:
-        return -1, 0
+        return lab.Cursor()
 
 
-def sse(kind: str, data: Any, cursor: tuple[int, int]) -> str:
-    return f"id: {cursor[0]}:{cursor[1]}\nevent: {kind}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n"
+def event_id_of(cursor: lab.Cursor) -> str:
+    """The SSE event id that names ``cursor`` (what `cursor_of` reads back)."""
+    return f"{cursor.seq}:{cursor.event_id}"
 
 
-def changes(eng: Engine, run_id: int, cursor: tuple[int, int], status: str | None, first: bool
-            ) -> tuple[list[str], tuple[int, int], str | None]:
-    """The messages for what the run journaled after ``cursor``, the new cursor and the run's status."""
-    seq, event_id = cursor
-    messages: list[str] = []
-    with eng.connect() as conn:
-        for point in lab.run_points(conn, run_id, seq, BATCH):
-            seq = point["seq"]
-            messages.append(sse("point", point, (seq, event_id)))
-        for event in lab.run_events(conn, run_id, event_id, BATCH):
-            event_id = event["id"]
-            messages.append(sse(event["kind"], event, (seq, event_id)))
-        now = lab.progress(conn, run_id)
-    if now is not None and now["status"] != status:
-        if status is not None:
-            messages.append(sse("run", {"status": now["status"], "reason": now["reason"]}, (seq, event_id)))
-        status = now["status"]
-        first = True
-    if now is not None and (messages or first):
-        messages.append(sse("progress", now, (seq, event_id)))
-    return messages, (seq, event_id), status
+def sse(kind: str, data: Any, cursor: lab.Cursor) -> str:
+    return f"id: {event_id_of(cursor)}\nevent: {kind}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n"
 
 
 def duration(seconds: float | None) -> str:

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import socket
 from collections.abc import Callable
-from pathlib import Path
 
+from labcal.app.labdatabase import OpenLab, open_lab
+from labcal.app.server_approval import server_key
 from labcal.errors import LabcalError
-from labcal.server import db
 from labcal.server.app import ServerSettings, create_app
 
 GRACE_S = 2.0  # open event streams are cut this long after Ctrl-C
@@ -19,15 +19,10 @@ GRACE_S = 2.0  # open event streams are cut this long after Ctrl-C
 
 def settings_for(db_option: str | None, key: str | None, poll_s: float = 0.5) -> ServerSettings:
     """Open the lab database (read only by the server: refused unless at this labcal's schema) and
-    check the signing key now rather than at the first approval."""
-    from labcal.documents.approval import load_private_key
-
-    lab = db.open_lab(db_option, must_exist=True)
-    key_path = None
-    if key is not None:
-        key_path = Path(key)
-        load_private_key(key_path)  # one line now for a missing, unreadable or too-open key
-    return ServerSettings(engine=lab.engine, where=lab.shown, key=key_path, db_file=lab.file, poll_s=poll_s)
+    check the signing key (``key``: --key, else the lab file's ``server_key``) now rather than at the
+    first approval."""
+    lab = open_lab(OpenLab(db_option, must_exist=True))
+    return ServerSettings(lab=lab, key=server_key(key), poll_s=poll_s)
 
 
 def listen(host: str, port: int) -> socket.socket:
@@ -62,4 +57,4 @@ def serve(settings: ServerSettings, host: str, port: int, listening: Callable[[s
         server.run(sockets=[sock])
     finally:
         sock.close()
-        settings.engine.dispose()
+        settings.lab.close()

@@ -1,4 +1,5 @@
-"""The lab server's users: who may read, who may approve; shared by `labcal user` and the server.
+"""The lab server's users: who may read, who may approve; the use cases of `labcal user` and of the
+server's sign-in (add, list, disable; authenticate a password, resolve an API token).
 
 Each user has a role — ``viewer`` reads, ``technician`` reads (and runs at the bench, which the
 server does not do), ``approver`` reads and approves certificates — a password for the web login and
@@ -25,9 +26,9 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 
 from sqlalchemy import select, update
-from sqlalchemy.engine import Engine
 from sqlalchemy.exc import IntegrityError
 
+from labcal.app.labdatabase import LabDatabase
 from labcal.errors import LabcalError
 from labcal.run.schema import users
 
@@ -88,17 +89,29 @@ def _valid_role(role: str) -> str:
 COLUMNS = (users.c.id, users.c.name, users.c.role, users.c.created_utc, users.c.disabled_utc)
 
 
-def add(eng: Engine, name: str, role: str, password: str) -> tuple[User, str]:
-    """Add ``name`` with ``role`` and ``password``; returns the user and their API token, which is
-    not kept and cannot be shown again."""
-    name, role = _valid_name(name), _valid_role(role)
+@dataclass(frozen=True)
+class AddUser:
+    name: str
+    role: str  # one of ROLES
+    password: str  # for the web login (never stored: its argon2id hash is)
+
+
+@dataclass(frozen=True)
+class AddedUser:
+    user: User
+    token: str  # the API token: not kept, shown this once
+
+
+def add(lab: LabDatabase, request: AddUser) -> AddedUser:
+    """Add the user; returns them with their API token, which is not kept and cannot be shown again."""
+    name, role, password = _valid_name(request.name), _valid_role(request.role), request.password
     if not password:
         raise LabcalError("the password may not be empty")
     token = secrets.token_urlsafe(32)  # 32 random bytes
     row = {"name": name, "role": role, "password_hash": _hasher().hash(password),
            "token_hash": token_hash(token), "created_utc": _now(), "disabled_utc": None}
     try:
-        with eng.begin() as conn:
+        with lab.engine.begin() as conn:
             if conn.execute(select(users.c.id).where(users.c.name == name)).first() is not None:
                 raise LabcalError(f"{name}: already a user (`labcal user list`); a user is never re-added "
                                   "(choose another name)")
@@ -107,25 +120,25 @@ def add(eng: Engine, name: str, role: str, password: str) -> tuple[User, str]:
             user_id = key[0]
     except IntegrityError:  # added meanwhile by someone else
         raise LabcalError(f"{name}: added meanwhile by someone else (`labcal user list`)") from None
-    return User(int(user_id), name, role, row["created_utc"], None), token
+    return AddedUser(User(int(user_id), name, role, row["created_utc"], None), token)
 
 
-def listed(eng: Engine) -> list[User]:
+def listed(lab: LabDatabase) -> list[User]:
     """Every user, active and disabled, in the order they were added."""
-    with eng.connect() as conn:
+    with lab.engine.connect() as conn:
         return [User(*r) for r in conn.execute(select(*COLUMNS).order_by(users.c.id))]
 
 
-def named(eng: Engine, name: str) -> User | None:
-    with eng.connect() as conn:
+def named(lab: LabDatabase, name: str) -> User | None:
+    with lab.engine.connect() as conn:
         row = conn.execute(select(*COLUMNS).where(users.c.name == name)).first()
     return None if row is None else User(*row)
 
 
-def disable(eng: Engine, name: str) -> User:
+def disable(lab: LabDatabase, name: str) -> User:
     """Disable ``name``: their password, token and sessions stop working; the row stays."""
     when = _now()
-    with eng.begin() as conn:
+    with lab.engine.begin() as conn:
         done = conn.execute(update(users).where(users.c.name == name, users.c.disabled_utc.is_(None))
                             .values(disabled_utc=when))
         if done.rowcount != 1:
@@ -134,16 +147,16 @@ def disable(eng: Engine, name: str) -> User:
                 raise LabcalError(f"{name}: already disabled on {row[0]}")
             known = [r[0] for r in conn.execute(select(users.c.name).order_by(users.c.id))]
             raise LabcalError(f"{name}: no such user; users: {', '.join(known) if known else 'none'}")
-    found = named(eng, name)
+    found = named(lab, name)
     assert found is not None
     return found
 
 
-def by_token(eng: Engine, token: str) -> User | None:
+def by_token(lab: LabDatabase, token: str) -> User | None:
     """The active user whose API token this is, else None."""
     if not token:
         return None
-    with eng.connect() as conn:
+    with lab.engine.connect() as conn:
         row = conn.execute(select(*COLUMNS).where(users.c.token_hash == token_hash(token))).first()
     user = None if row is None else User(*row)
     return user if user is not None and user.active else None
@@ -154,12 +167,12 @@ def by_token(eng: Engine, token: str) -> User | None:
 _DUMMY: list[str] = []
 
 
-def by_password(eng: Engine, name: str, password: str) -> User | None:
+def by_password(lab: LabDatabase, name: str, password: str) -> User | None:
     """The active user ``name`` if ``password`` is theirs, else None."""
     from argon2.exceptions import InvalidHashError, VerificationError
 
     hasher = _hasher()
-    with eng.connect() as conn:
+    with lab.engine.connect() as conn:
         row = conn.execute(select(*COLUMNS, users.c.password_hash)
                            .where(users.c.name == name.strip())).first()
     if not _DUMMY:

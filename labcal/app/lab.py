@@ -1,4 +1,11 @@
-"""What the server reads from the lab database: runs, their progress, their events; pure reads.
+"""The lab's view, as the lab server shows it: every station and its current run, a run's progress
+and events, the next batch of a run's live stream, a finished run's residual plot; pure reads.
+
+The server (`labcal.server`) turns these into JSON, pages and server-sent events and calls nothing
+below this layer. The public use cases take the open lab database (`labcal.app.labdatabase`) and a
+run id or a typed request; the runs and events they return are the API's JSON objects (their field
+names are the API's: `GET /api/runs`, `GET /api/runs/{id}`), built here once for the API, the pages
+and the streams alike.
 
 Everything here is a SELECT through `labcal.run.schema`'s tables, on SQLite or PostgreSQL alike;
 nothing is written (a reader must never change what it shows, DESIGN.md §4).
@@ -20,12 +27,18 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import case, func, select
-from sqlalchemy.engine import Connection
 
+from labcal.app.labdatabase import LabDatabase
 from labcal.run.schema import events, points, runs
+
+if TYPE_CHECKING:
+    from sqlalchemy.engine import Connection
+
+RunJson = dict[str, Any]  # a run as the API states it
+EventJson = dict[str, Any]  # a journaled event as the API states it
 
 RUNNING = "running"
 STATUS_KIND, FAULT_KIND, PROMPT_KIND = "status", "fault", "prompt"
@@ -99,18 +112,18 @@ def _summary(row: Any, counts: tuple[int, int, int | None]) -> dict:
             "ended_utc": row.ended_utc, "reason": row.reason, "run_dir": row.run_dir}
 
 
-def list_runs(conn: Connection) -> list[dict]:
+def _list_runs(conn: Connection) -> list[dict]:
     """Every run of the lab, newest first, with its progress."""
     counts = _counts(conn)
     rows = conn.execute(select(*SUMMARY).order_by(runs.c.id.desc())).all()
     return [_summary(r, counts.get(r.id, (0, 0, None))) for r in rows]
 
 
-def stations(conn: Connection) -> list[dict]:
+def _stations(conn: Connection) -> list[dict]:
     """Every station that has journaled a run, with its current run: the one running (the newest,
     if several), else its newest; stations in name order."""
     current: dict[str, dict] = {}
-    for run in list_runs(conn):  # newest first
+    for run in _list_runs(conn):  # newest first
         name = run["station"] or "(unnamed station)"
         held = current.get(name)
         if held is None or (held["status"] != RUNNING and run["status"] == RUNNING):
@@ -144,7 +157,7 @@ def _latest(conn: Connection, run_id: int, kind: str) -> dict | None:
     return None if row is None else _event_json(row)
 
 
-def progress(conn: Connection, run_id: int) -> dict | None:
+def _progress(conn: Connection, run_id: int) -> dict | None:
     """The run's summary with where it stands: mount, next remount, ETA, last fault (None: no run)."""
     row = conn.execute(select(*SUMMARY).where(runs.c.id == run_id)).first()
     if row is None:
@@ -186,7 +199,7 @@ def _ahead(conn: Connection, row: Any, counts: tuple[int, int, int | None], rig_
     return {"next_remount_in_s": remount, "eta_s": max(0, total - position) * per_point, "estimate": "points"}
 
 
-def run_events(conn: Connection, run_id: int, after: int = 0, limit: int | None = None) -> list[dict]:
+def _run_events(conn: Connection, run_id: int, after: int = 0, limit: int | None = None) -> list[dict]:
     """The run's journaled events after event id ``after``, oldest first."""
     query = (select(*EVENT_COLUMNS).where(events.c.run_id == run_id, events.c.id > after)
              .order_by(events.c.id))
@@ -200,7 +213,7 @@ POINT_COLUMNS = (points.c.seq, points.c.replicate, points.c.y_deg, points.c.u_de
                  points.c.vz)
 
 
-def run_points(conn: Connection, run_id: int, after: int = -1, limit: int | None = None) -> list[dict]:
+def _run_points(conn: Connection, run_id: int, after: int = -1, limit: int | None = None) -> list[dict]:
     """The run's journaled points with seq above ``after`` (raw samples left out), in order."""
     query = (select(*POINT_COLUMNS).where(points.c.run_id == run_id, points.c.seq > after)
              .order_by(points.c.seq))
@@ -209,9 +222,135 @@ def run_points(conn: Connection, run_id: int, after: int = -1, limit: int | None
     return [dict(r._mapping) for r in conn.execute(query)]
 
 
-def run_detail(conn: Connection, run_id: int) -> dict | None:
-    """`GET /api/runs/{id}`: the run's progress and every event it journaled."""
-    found = progress(conn, run_id)
-    if found is not None:
-        found["events"] = run_events(conn, run_id)
-    return found
+# --- the use cases ------------------------------------------------------------------------------
+QUIET_KINDS = frozenset({"move", "status", "settle_pool", "segment"})  # many per run: a page lists the rest
+RECENT = 30  # events a run's page lists
+BATCH = 500  # rows per stream batch and kind: a client far behind catches up in bounded steps
+
+
+@dataclass(frozen=True)
+class Overview:
+    """The lab at a glance (`/`): each station with its current run, and the latest runs."""
+
+    stations: tuple[dict, ...]  # {"station": name, "run": RunJson}, in name order
+    runs: tuple[RunJson, ...]  # newest first
+
+
+def lab_runs(lab: LabDatabase) -> list[RunJson]:
+    """Every run of the lab, newest first, with its progress (`GET /api/runs`)."""
+    with lab.engine.connect() as conn:
+        return _list_runs(conn)
+
+
+def lab_overview(lab: LabDatabase, latest: int = 50) -> Overview:
+    """Every station that has journaled a run, with its current run (the one running, the newest if
+    several, else its newest), and the ``latest`` runs."""
+    with lab.engine.connect() as conn:
+        return Overview(tuple(_stations(conn)), tuple(_list_runs(conn)[:latest]))
+
+
+def run_progress(lab: LabDatabase, run_id: int) -> RunJson | None:
+    """The run's summary with where it stands: mount, next remount, ETA, last fault (None: no run)."""
+    with lab.engine.connect() as conn:
+        return _progress(conn, run_id)
+
+
+def run_detail(lab: LabDatabase, run_id: int) -> RunJson | None:
+    """`GET /api/runs/{id}`: the run's progress and every event it journaled (None: no run)."""
+    with lab.engine.connect() as conn:
+        found = _progress(conn, run_id)
+        if found is not None:
+            found["events"] = _run_events(conn, run_id)
+        return found
+
+
+@dataclass(frozen=True)
+class Cursor:
+    """Where a reader of a run's stream stands: the last point's seq and the last event's id seen."""
+
+    seq: int = -1
+    event_id: int = 0
+
+
+@dataclass(frozen=True)
+class RunView:
+    """A run's page: its progress, its latest events worth a person's eye, and where the page's
+    live stream starts (what the page shows already)."""
+
+    run: RunJson
+    recent: tuple[EventJson, ...]
+    cursor: Cursor
+
+
+def run_view(lab: LabDatabase, run_id: int) -> RunView | None:
+    with lab.engine.connect() as conn:
+        found = _progress(conn, run_id)
+        if found is None:
+            return None
+        journal = _run_events(conn, run_id)
+        seq = conn.execute(select(func.max(points.c.seq)).where(points.c.run_id == run_id)).scalar()
+    recent = [e for e in journal if e["kind"] not in QUIET_KINDS][-RECENT:]
+    cursor = Cursor(-1 if seq is None else seq, journal[-1]["id"] if journal else 0)
+    return RunView(found, tuple(recent), cursor)
+
+
+@dataclass(frozen=True)
+class NextBatch:
+    run_id: int
+    cursor: Cursor  # what the reader has seen
+    status: str | None  # the run's status as the reader last heard it (None: not yet)
+    first: bool = False  # the reader's first batch: always ends with the run's progress
+
+
+@dataclass(frozen=True)
+class StreamItem:
+    kind: str  # "point", an event's kind ("prompt", "fault", "status", …), "run" or "progress"
+    data: dict
+    cursor: Cursor  # where a reader stands once it has this item
+
+
+@dataclass(frozen=True)
+class Batch:
+    items: tuple[StreamItem, ...]
+    cursor: Cursor
+    status: str | None
+
+
+def next_batch(lab: LabDatabase, request: NextBatch) -> Batch:
+    """What the run journaled after the reader's cursor: one item per new point and per journaled
+    event (at most `BATCH` of each), one ``run`` item when the run's status changed since the reader
+    heard it, and after any news (or on a first batch) one ``progress`` item."""
+    seq, event_id = request.cursor.seq, request.cursor.event_id
+    status, first = request.status, request.first
+    items: list[StreamItem] = []
+    with lab.engine.connect() as conn:
+        for point in _run_points(conn, request.run_id, seq, BATCH):
+            seq = point["seq"]
+            items.append(StreamItem("point", point, Cursor(seq, event_id)))
+        for event in _run_events(conn, request.run_id, event_id, BATCH):
+            event_id = event["id"]
+            items.append(StreamItem(event["kind"], event, Cursor(seq, event_id)))
+        now = _progress(conn, request.run_id)
+    cursor = Cursor(seq, event_id)
+    if now is not None and now["status"] != status:
+        if status is not None:
+            items.append(StreamItem("run", {"status": now["status"], "reason": now["reason"]}, cursor))
+        status = now["status"]
+        first = True
+    if now is not None and (items or first):
+        items.append(StreamItem("progress", now, cursor))
+    return Batch(tuple(items), cursor, status)
+
+
+def run_folder(lab: LabDatabase, run_id: int) -> str | None:
+    """Where the run's folder is, as its station journaled it (None: no such run)."""
+    with lab.engine.connect() as conn:
+        return conn.execute(select(runs.c.run_dir).where(runs.c.id == run_id)).scalar()
+
+
+def residual_plot(lab: LabDatabase, run_id: int) -> bytes | None:
+    """PNG of the linear fit's residuals of the run's readings (None: too few readings to fit)."""
+    from labcal.app.residuals import residual_png
+
+    with lab.engine.connect() as conn:
+        return residual_png(conn, run_id)

@@ -1,0 +1,124 @@
+"""A certificate approved through the lab server: the signed-in approver's decision, the lab's key.
+
+The server holds one private key (`labcal serve --key FILE`, or the lab file's ``server_key``),
+registered in the lab database like an approver's. Two registrations are possible, and the server
+signs accordingly:
+
+- **the lab server's key** (``labcal certificate approvers add "lab server" --role "lab server"
+  --public-key FILE.pub``, `labcal.documents.approvers.SERVER_ROLE`): the server signs *for* the
+  approver who is signed in. The certificate names that approver (``by``: their name; ``role``:
+  "approver", their role among the server's users) and says how: ``approval.server`` holds the
+  server key's registered name, the approver's user id, the meaning of the signature ("approved")
+  and how the approver authenticated for this signing ("password re-entered" on the page, or "API
+  token"). 21 CFR Part 11 §11.50 asks a signed record to show the signer's printed name, the date
+  and time, and the meaning: the first two are ``by`` and ``approved_utc``, the third
+  ``server.meaning``; §11.200 asks that the signature be the signer's own — here the signer is
+  identified by the server's authentication, and the key only attests that the server saw it.
+  Verifying accepts such a signature only while the key is registered and unrevoked with the role
+  "lab server", and only when the user it names was, at the time stated, an active server user with
+  the role approver (`labcal.documents.approvers.problems`). Several approvers share one server key.
+- **a person's key** (registered under their name and job title): the server signs as that person
+  only, as `labcal certificate approve --key` would; any other approver is refused with the
+  registry's reason (a key never signs under a name it is not registered to).
+
+Approving is `labcal.app.certificates.approve_certificate` on the run's folder — the same use case as
+`labcal certificate approve`: it rebuilds what it signs from the journal, refuses a simulated run, an
+edited draft, an unregistered or revoked key, and writes the certificate, DCC and report again.
+
+The run's folder must be reachable from the server (the same path, on a shared disk); otherwise the
+answer says where to approve instead. Approvals are serialised: two approvers pressing the button at
+once produce one approval and one "already approved".
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from labcal.app.certificates import ApproveCertificate, Authentication, SignedFor, approve_certificate
+from labcal.app.lab import run_folder
+from labcal.app.labdatabase import LabDatabase
+from labcal.app.users import User
+from labcal.errors import LabcalError
+
+CERTIFICATE = "certificate.json"
+_ONE_AT_A_TIME = threading.Lock()
+
+
+class NotHere(LabcalError):
+    """The approval cannot be made by this server (folder not reachable, no key, no SQLite lab file)."""
+
+
+@dataclass(frozen=True)
+class ApproveAsUser:
+    run_id: int
+    user: User  # the authenticated user (the server has checked they are an active approver)
+    key: Path | None  # the server's signing key
+    authentication: Authentication  # how the user authenticated for this signing
+
+
+@dataclass(frozen=True)
+class ServerApproved:
+    number: str
+    by: str
+    role: str
+    approved_utc: str
+    certificate: str
+    signed_by: str  # whose key signed: the approver's own, or the lab server's for them
+
+    def to_json(self) -> dict[str, Any]:
+        return {"number": self.number, "by": self.by, "role": self.role, "approved_utc": self.approved_utc,
+                "certificate": self.certificate, "signed_by": self.signed_by}
+
+
+def server_key(given: str | None) -> Path | None:
+    """The server's signing key — ``given`` (--key), else the lab file's ``server_key``, else none —
+    checked now rather than at the first approval (one line for a missing, unreadable or too-open
+    key)."""
+    from labcal.config.lab import load_lab_config
+    from labcal.documents.approval import load_private_key
+
+    path = Path(given) if given is not None else load_lab_config().server_key()
+    if path is not None:
+        load_private_key(path)
+    return path
+
+
+def approve_as_user(lab: LabDatabase, request: ApproveAsUser) -> ServerApproved | None:
+    """Approve the run's certificate for the authenticated approver with the server's key (None: no
+    such run); one line on any refusal."""
+    from labcal.documents.approval import key_id, load_private_key
+    from labcal.documents.approvers import SERVER_ROLE, by_key
+
+    run_dir = run_folder(lab, request.run_id)
+    if run_dir is None:
+        return None
+    user, key, db_file = request.user, request.key, lab.file
+    where = (f"approve it where its folder is: labcal certificate approve {run_dir} --by {user.name!r} "
+             "--role ROLE --key KEYFILE")
+    if not (Path(run_dir) / CERTIFICATE).is_file():
+        raise NotHere(f"{run_dir}: the run's folder (its {CERTIFICATE}) is not reachable from this server; "
+                      f"{where}")
+    if key is None:
+        raise NotHere(f"this server has no signing key (start it with labcal serve --key FILE, or set "
+                      f"server_key in the lab file); {where}")
+    if db_file is None:
+        raise NotHere(f"this server approves only on a SQLite lab database for now; {where}")
+    registered = by_key(key_id(load_private_key(key).public_key()), db_file)
+    if registered is not None and registered.role == SERVER_ROLE:
+        role, signed_for = user.role, SignedFor(user.id, request.authentication)
+    else:  # a person's key (or none registered: the approval says so)
+        role, signed_for = (registered.role if registered is not None else user.role), None
+    with _ONE_AT_A_TIME:
+        done = approve_certificate(ApproveCertificate(run_dir, user.name, role, str(key), str(db_file),
+                                                      signed_for=signed_for))
+    cert = done.outputs.certificate
+    approval = cert.approval
+    assert approval is not None  # approve_run signs or refuses
+    stated = cert.to_json()["approval"]  # the time as the certificate states it
+    signer = (f"the lab server's key ({registered.name}) for {approval.by}"
+              if signed_for is not None and registered is not None else f"{approval.by}'s own key")
+    return ServerApproved(cert.number, approval.by, approval.role, stated["approved_utc"],
+                          str(done.outputs.certificate_path), signer)
