@@ -116,8 +116,9 @@ class Requests:
 
     def figures(self) -> dict[str, float | int | dict[str, int] | list[str]]:
         ms = np.array(self.latencies) * 1e3 if self.latencies else np.array([np.nan])
-        return {"requests": self.made, "errors": self.errors, "non_200": {str(k): v for k, v in self.non_200.items()},
-                "timeouts": self.timeouts, "failures": self.failures[:5],
+        return {"requests": self.made, "errors": self.errors,
+                "non_200": {str(k): v for k, v in self.non_200.items()}, "timeouts": self.timeouts,
+                "failures": self.failures[:5],
                 "p50_ms": float(np.percentile(ms, 50)), "p95_ms": float(np.percentile(ms, 95)),
                 "p99_ms": float(np.percentile(ms, 99)), "max_ms": float(ms.max())}
 
@@ -150,7 +151,8 @@ def stop(process: subprocess.Popen) -> None:
 
 
 async def poll(url: str, floor: str, token: str, stations: list[subprocess.Popen], rate: float,
-               timeout_s: float, limit_s: float, sse: bool) -> tuple[Requests, Requests, dict[int, list[int]], bool]:
+               timeout_s: float, limit_s: float, sse: bool
+               ) -> tuple[Requests, Requests, dict[int, list[int]], bool]:
     """The client: requests on schedule until every station has exited (True) or ``limit_s`` (False).
     Each goes to the lab server and, with the size of its answer, to the floor."""
     lab, bare = Requests(), Requests()
@@ -253,7 +255,8 @@ def server_points(url: str) -> list[tuple]:
     with psycopg.connect(url) as conn:
         rows = conn.execute(f"SELECT r.uuid, {', '.join('p.' + c for c in POINT_COLUMNS)} FROM points p "
                             "JOIN runs r ON r.id = p.run_id").fetchall()
-    return [(row[0], *(bytes(v) if isinstance(v, (bytes, memoryview)) else v for v in row[1:])) for row in rows]
+    return [(row[0], *(bytes(v) if isinstance(v, (bytes, memoryview)) else v for v in row[1:]))
+            for row in rows]
 
 
 def readings(url: str, journals: list[Path]) -> dict[str, int]:
@@ -293,7 +296,8 @@ def paces(journals: list[Path], pace: float) -> list[dict[str, object]]:
                                  (run_id, run_id)).fetchone()[0] or 0.0
                 wall = (utc(ended) - utc(started)).total_seconds() if ended else float("nan")
                 found.append({"station": station or journal.parent.name, "status": status, "rig_s": rig,
-                              "paced_s": rig / pace, "wall_s": wall, "ratio": wall / (rig / pace) if rig else None})
+                              "paced_s": rig / pace, "wall_s": wall,
+                              "ratio": wall / (rig / pace) if rig else None})
     return found
 
 
@@ -339,8 +343,9 @@ def main(argv: list[str] | None = None) -> int:
                      "--plan", options.plan, "--seed", str(n + 1), "--out", str(work / name / "run")],
                     env=env, stdout=subprocess.DEVNULL, stderr=(work / f"{name}.err").open("w")))
             processes.extend(stations)
-            lab, bare, streamed, all_done = asyncio.run(poll(
-                lab_url, floor_url, token, stations, options.rate, options.timeout, options.limit, options.sse))
+            lab, bare, streamed, all_done = asyncio.run(poll(lab_url, floor_url, token, stations,
+                                                             options.rate, options.timeout, options.limit,
+                                                             options.sse))
             failed = []
             for name, station in zip(names, stations, strict=True):
                 stop(station)
@@ -349,7 +354,8 @@ def main(argv: list[str] | None = None) -> int:
                     failed.append(f"{name}: exit {station.returncode}: {stderr.strip()[-300:]}")
             counted = readings(url, [j for j in journals if j.exists()])
             runs = paces([j for j in journals if j.exists()], options.pace)
-            points_streamed = {str(k): {"points": len(v), "distinct": len(set(v))} for k, v in streamed.items()}
+            points_streamed = {str(k): {"points": len(v), "distinct": len(set(v))}
+                               for k, v in streamed.items()}
     finally:
         for process in processes:
             stop(process)
