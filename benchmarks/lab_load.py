@@ -15,10 +15,11 @@ What it sets up, all on this machine and on 127.0.0.1 only:
   stations are then stopped and the benchmark fails); with ``--sse`` it also holds one event stream
   (``/api/runs/{id}/stream``) per run and counts the points each brings.
 
-The floor: the same client sends each request, at the same moment, to a trivial HTTP server too
-(http.server in a process of its own, HTTP/1.1 keep-alive like uvicorn), which answers a fixed JSON
-body of the same size as the lab server's answer to that request. Both see the same machine, the
-same stations and the same client, so the ratio of the two latencies is the lab server's own cost.
+The floor: as soon as the lab server has answered, the same client sends the same request to a
+trivial HTTP server too (http.server in a process of its own, HTTP/1.1 keep-alive like uvicorn),
+which answers a fixed JSON body of the size of the lab server's answer. Both see the same machine,
+the same stations and the same client at the same moments, so the ratio of the two latencies is
+the lab server's own cost.
 
 The report: requests made, latency p50/p95/p99/max of each (and the ratios), errors (an answer
 other than 200, or none within ``--timeout``), each run's wall time against its rig time / X (the
@@ -102,6 +103,7 @@ class Requests:
     """What one side (the lab server or the floor) answered."""
 
     latencies: list[float] = field(default_factory=list)  # seconds, answers with status 200
+    by_kind: dict[str, list[float]] = field(default_factory=dict)  # the same, per request kind
     non_200: dict[int, int] = field(default_factory=dict)
     timeouts: int = 0
     failures: list[str] = field(default_factory=list)  # connection errors and the like, each said
@@ -120,7 +122,11 @@ class Requests:
                 "non_200": {str(k): v for k, v in self.non_200.items()}, "timeouts": self.timeouts,
                 "failures": self.failures[:5],
                 "p50_ms": float(np.percentile(ms, 50)), "p95_ms": float(np.percentile(ms, 95)),
-                "p99_ms": float(np.percentile(ms, 99)), "max_ms": float(ms.max())}
+                "p99_ms": float(np.percentile(ms, 99)), "max_ms": float(ms.max()),
+                "by_request": {kind: {"requests": len(values),
+                                      "p50_ms": float(np.percentile(values, 50)) * 1e3,
+                                      "p95_ms": float(np.percentile(values, 95)) * 1e3}
+                               for kind, values in self.by_kind.items()}}
 
 
 def call(command: list[str], env: dict[str, str] | None = None) -> str:
@@ -165,6 +171,7 @@ async def poll(url: str, floor: str, token: str, stations: list[subprocess.Popen
 
     async def one(client: httpx.AsyncClient, path: str) -> None:
         size = 2
+        kind = "/api/runs" if path == "/api/runs" else "/api/runs/{id}"
         t0 = time.perf_counter()
         try:
             answer = await client.get(url + path, headers=headers)
@@ -173,6 +180,7 @@ async def poll(url: str, floor: str, token: str, stations: list[subprocess.Popen
                 lab.non_200[answer.status_code] = lab.non_200.get(answer.status_code, 0) + 1
             else:
                 lab.latencies.append(elapsed)
+                lab.by_kind.setdefault(kind, []).append(elapsed)
                 size = len(answer.content)
                 if path == "/api/runs":
                     ids[:] = sorted(run["id"] for run in answer.json()["runs"])
@@ -187,6 +195,7 @@ async def poll(url: str, floor: str, token: str, stations: list[subprocess.Popen
                 bare.non_200[answer.status_code] = bare.non_200.get(answer.status_code, 0) + 1
             else:
                 bare.latencies.append(time.perf_counter() - t0)
+                bare.by_kind.setdefault(kind, []).append(bare.latencies[-1])
         except httpx.TimeoutException:
             bare.timeouts += 1
         except httpx.HTTPError as error:
@@ -313,6 +322,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true")
     options = parser.parse_args(argv)
     began = time.perf_counter()
+    load_before = os.getloadavg()[0]
     cluster = Cluster()
     processes: list[subprocess.Popen] = []
     try:
@@ -365,7 +375,8 @@ def main(argv: list[str] | None = None) -> int:
     pace_ratios = [r["ratio"] for r in runs if r["ratio"] is not None]
     result = {
         "stations": options.stations, "plan": options.plan, "pace": options.pace, "rate": options.rate,
-        "sse": options.sse, "wall_s": time.perf_counter() - began, "all_done_within_limit": all_done,
+        "sse": options.sse, "wall_s": time.perf_counter() - began, "cores": os.cpu_count(),
+        "load_1min": {"before": load_before, "after": os.getloadavg()[0]}, "all_done_within_limit": all_done,
         "stations_failed": failed, "lab_server": lab_f, "floor": bare_f, "ratio": ratios,
         "runs": runs, "pace_ratio_max": max(pace_ratios, default=None), "readings": counted,
         "streamed": points_streamed,
@@ -382,11 +393,16 @@ def main(argv: list[str] | None = None) -> int:
 def report(r: dict) -> None:
     lab, floor, ratio, c = r["lab_server"], r["floor"], r["ratio"], r["readings"]
     print(f"{r['stations']} stations, {r['plan']} at pace {r['pace']:g}, API polled {r['rate']:g}/s"
-          f"{' with one event stream per run' if r['sse'] else ''}: {r['wall_s']:.0f} s in all")
+          f"{' with one event stream per run' if r['sse'] else ''}: {r['wall_s']:.0f} s in all; "
+          f"{r['cores']} cores, load average {r['load_1min']['before']:.1f} before, "
+          f"{r['load_1min']['after']:.1f} after")
     for name, f in (("lab server", lab), ("floor", floor)):
         print(f"  {name:10} {f['requests']} requests, p50 {f['p50_ms']:.1f} ms, p95 {f['p95_ms']:.1f} ms, "
               f"p99 {f['p99_ms']:.1f} ms, max {f['max_ms']:.1f} ms; errors {f['errors']} "
               f"(non-200 {sum(f['non_200'].values())}, timeouts {f['timeouts']})")
+        for kind, k in f["by_request"].items():
+            print(f"    {kind:14} {k['requests']} requests, p50 {k['p50_ms']:.1f} ms, "
+                  f"p95 {k['p95_ms']:.1f} ms")
         for failure in f["failures"]:
             print(f"    {failure}")
     print(f"  ratio      p50 {ratio['p50']:.1f}×, p95 {ratio['p95']:.1f}×, p99 {ratio['p99']:.1f}×, "
