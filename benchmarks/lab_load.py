@@ -53,6 +53,7 @@ from contextlib import closing
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -116,7 +117,7 @@ class Requests:
     def errors(self) -> int:
         return self.made - len(self.latencies)
 
-    def figures(self) -> dict[str, float | int | dict[str, int] | list[str]]:
+    def figures(self) -> dict[str, Any]:
         ms = np.array(self.latencies) * 1e3 if self.latencies else np.array([np.nan])
         return {"requests": self.made, "errors": self.errors,
                 "non_200": {str(k): v for k, v in self.non_200.items()}, "timeouts": self.timeouts,
@@ -292,7 +293,7 @@ def utc(text: str) -> datetime:
     return datetime.fromisoformat(text)
 
 
-def paces(journals: list[Path], pace: float) -> list[dict[str, object]]:
+def paces(journals: list[Path], pace: float) -> list[dict[str, Any]]:
     """Each run's wall time (its journal's started→ended UTC) against its rig time / pace (the last
     rig time the journal holds: a point's end or an event)."""
     found = []
@@ -371,7 +372,7 @@ def main(argv: list[str] | None = None) -> int:
             stop(process)
         cluster.stop()
     lab_f, bare_f = lab.figures(), bare.figures()
-    ratios = {q: lab_f[f"{q}_ms"] / bare_f[f"{q}_ms"] for q in ("p50", "p95", "p99", "max")}  # type: ignore[operator]
+    ratios = {q: lab_f[f"{q}_ms"] / bare_f[f"{q}_ms"] for q in ("p50", "p95", "p99", "max")}
     pace_ratios = [r["ratio"] for r in runs if r["ratio"] is not None]
     result = {
         "stations": options.stations, "plan": options.plan, "pace": options.pace, "rate": options.rate,
@@ -390,7 +391,7 @@ def main(argv: list[str] | None = None) -> int:
     return 1 if bad else 0
 
 
-def report(r: dict) -> None:
+def report(r: dict[str, Any]) -> None:
     lab, floor, ratio, c = r["lab_server"], r["floor"], r["ratio"], r["readings"]
     print(f"{r['stations']} stations, {r['plan']} at pace {r['pace']:g}, API polled {r['rate']:g}/s"
           f"{' with one event stream per run' if r['sse'] else ''}: {r['wall_s']:.0f} s in all; "
