@@ -77,15 +77,13 @@ from urllib.parse import parse_qs, urlsplit
 
 class Fixed(BaseHTTPRequestHandler):
     protocol_version = "HTTP/1.1"  # keep-alive, as uvicorn does
+    disable_nagle_algorithm = True  # TCP_NODELAY, as asyncio (uvicorn) sets it
 
     def do_GET(self):
         size = int(parse_qs(urlsplit(self.path).query).get("size", ["2"])[0])
         body = b'{"pad":"' + b"x" * max(0, size - 10) + b'"}'
-        self.send_response(200)
-        self.send_header("Content-Type", "application/json")
-        self.send_header("Content-Length", str(len(body)))
-        self.end_headers()
-        self.wfile.write(body)
+        head = f"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: {len(body)}\r\n\r\n"
+        self.wfile.write(head.encode() + body)  # one write: headers and body in the same segments
 
     def log_message(self, *args):
         pass
