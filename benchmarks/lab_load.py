@@ -103,6 +103,7 @@ class Requests:
 
     latencies: list[float] = field(default_factory=list)  # seconds, answers with status 200
     by_kind: dict[str, list[float]] = field(default_factory=dict)  # the same, per request kind
+    sizes: dict[str, list[int]] = field(default_factory=dict)  # bytes of each answer, per kind
     non_200: dict[int, int] = field(default_factory=dict)
     timeouts: int = 0
     failures: list[str] = field(default_factory=list)  # connection errors and the like, each said
@@ -124,7 +125,9 @@ class Requests:
                 "p99_ms": float(np.percentile(ms, 99)), "max_ms": float(ms.max()),
                 "by_request": {kind: {"requests": len(values),
                                       "p50_ms": float(np.percentile(values, 50)) * 1e3,
-                                      "p95_ms": float(np.percentile(values, 95)) * 1e3}
+                                      "p95_ms": float(np.percentile(values, 95)) * 1e3,
+                                      "mean_bytes": float(np.mean(self.sizes[kind])) if kind in self.sizes
+                                      else None}
                                for kind, values in self.by_kind.items()}}
 
 
@@ -181,6 +184,7 @@ async def poll(url: str, floor: str, token: str, stations: list[subprocess.Popen
                 lab.latencies.append(elapsed)
                 lab.by_kind.setdefault(kind, []).append(elapsed)
                 size = len(answer.content)
+                lab.sizes.setdefault(kind, []).append(size)
                 if path == "/api/runs":
                     ids[:] = sorted(run["id"] for run in answer.json()["runs"])
         except httpx.TimeoutException:
@@ -400,8 +404,9 @@ def report(r: dict[str, Any]) -> None:
               f"p99 {f['p99_ms']:.1f} ms, max {f['max_ms']:.1f} ms; errors {f['errors']} "
               f"(non-200 {sum(f['non_200'].values())}, timeouts {f['timeouts']})")
         for kind, k in f["by_request"].items():
+            size = f", {k['mean_bytes']:.0f} bytes on average" if k["mean_bytes"] else ""
             print(f"    {kind:14} {k['requests']} requests, p50 {k['p50_ms']:.1f} ms, "
-                  f"p95 {k['p95_ms']:.1f} ms")
+                  f"p95 {k['p95_ms']:.1f} ms{size}")
         for failure in f["failures"]:
             print(f"    {failure}")
     print(f"  ratio      p50 {ratio['p50']:.1f}×, p95 {ratio['p95']:.1f}×, p99 {ratio['p99']:.1f}×, "
