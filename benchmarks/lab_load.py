@@ -167,7 +167,11 @@ async def poll(url: str, floor: str, token: str, stations: list[subprocess.Popen
     streamed: dict[int, list[int]] = {}
     ids: list[int] = []
     headers = {"Authorization": f"Bearer {token}"}
-    limits = httpx.Limits(max_connections=100, max_keepalive_connections=20)
+    # An idle pooled connection is dropped by the client after 2 s, before uvicorn's own 5 s
+    # keep-alive timeout closes it: at httpx's default (5 s, the same) a request sometimes went out
+    # on a connection the server was closing at that moment and failed (ReadError), which is the
+    # client's race, not the server's fault. Any error left is the server's.
+    limits = httpx.Limits(max_connections=100, max_keepalive_connections=20, keepalive_expiry=2.0)
     tasks: set[asyncio.Task] = set()
     streams: dict[int, asyncio.Task] = {}
 
