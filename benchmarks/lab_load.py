@@ -21,6 +21,10 @@ which answers a fixed JSON body of the size of the lab server's answer. Both see
 the same stations and the same client at the same moments, so the ratio of the two latencies is
 the lab server's own cost.
 
+Then two figures that tell the server's cost apart from the machine's: the CPU time `labcal serve`
+used while the stations ran (per request), and, once they have finished, ``--quiet`` (30) requests
+of each kind one at a time, each with its floor.
+
 The report: requests made, latency p50/p95/p99/max of each (and the ratios), errors (an answer
 other than 200, or none within ``--timeout``), each run's wall time against its rig time / X (the
 journal's own clocks: ``runs.started_utc``→``ended_utc`` against the last rig time it journaled), and
@@ -295,6 +299,37 @@ def readings(url: str, journals: list[Path]) -> dict[str, int]:
             "different": different, "unexpected": sum(1 for key in seen if key not in expected)}
 
 
+def cpu_seconds(pid: int) -> float:
+    """User and system CPU time a process has used so far (/proc: Linux)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def quiet(url: str, floor: str, token: str, n: int) -> dict[str, dict[str, float]]:
+    """Once the stations have finished: ``n`` requests of each kind one at a time, each followed by
+    the floor's of the same size, so the server's cost per request shows without the stations'
+    load (the machine's other users remain)."""
+    headers = {"Authorization": f"Bearer {token}"}
+    times: dict[str, list[float]] = {"/api/runs": [], "/api/runs/{id}": [], "floor /api/runs": [],
+                                     "floor /api/runs/{id}": []}
+    with httpx.Client(timeout=30) as client:
+        ids = [run["id"] for run in client.get(url + "/api/runs", headers=headers).json()["runs"]]
+        if not ids:
+            return {}
+        for i in range(n):
+            one = f"/api/runs/{ids[i % len(ids)]}"
+            for kind, path in (("/api/runs", "/api/runs"), ("/api/runs/{id}", one)):
+                t0 = time.perf_counter()
+                answer = client.get(url + path, headers=headers)
+                times[kind].append(time.perf_counter() - t0)
+                answer.raise_for_status()
+                t0 = time.perf_counter()
+                client.get(f"{floor}{path}?size={len(answer.content)}").raise_for_status()
+                times["floor " + kind].append(time.perf_counter() - t0)
+    return {kind: {"p50_ms": float(np.percentile(v, 50)) * 1e3, "p95_ms": float(np.percentile(v, 95)) * 1e3}
+            for kind, v in times.items()}
+
+
 def utc(text: str) -> datetime:
     return datetime.fromisoformat(text)
 
@@ -326,6 +361,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sse", action="store_true", help="also hold one event stream per run")
     parser.add_argument("--timeout", type=float, default=5.0, help="seconds a request may take")
     parser.add_argument("--limit", type=float, default=600.0, help="seconds the stations may take")
+    parser.add_argument("--quiet", type=int, default=30,
+                        help="requests of each kind one at a time once the stations have finished")
     parser.add_argument("--json", action="store_true")
     options = parser.parse_args(argv)
     began = time.perf_counter()
@@ -360,6 +397,7 @@ def main(argv: list[str] | None = None) -> int:
                      "--plan", options.plan, "--seed", str(n + 1), "--out", str(work / name / "run")],
                     env=env, stdout=subprocess.DEVNULL, stderr=(work / f"{name}.err").open("w")))
             processes.extend(stations)
+            cpu_before, load_began = cpu_seconds(server.pid), time.perf_counter()
             lab, bare, streamed, all_done = asyncio.run(poll(lab_url, floor_url, token, stations,
                                                              options.rate, options.timeout, options.limit,
                                                              options.sse))
@@ -369,7 +407,14 @@ def main(argv: list[str] | None = None) -> int:
                 stderr = (work / f"{name}.err").read_text()
                 if station.returncode or "not yet in the lab database" in stderr or "unreachable" in stderr:
                     failed.append(f"{name}: exit {station.returncode}: {stderr.strip()[-300:]}")
+            server_cpu = {"cpu_s": cpu_seconds(server.pid) - cpu_before,
+                          "wall_s": time.perf_counter() - load_began}
             counted = readings(url, [j for j in journals if j.exists()])
+            cpu_before = cpu_seconds(server.pid)
+            one_at_a_time = quiet(lab_url, floor_url, token, options.quiet)
+            if one_at_a_time:
+                one_at_a_time["server_cpu_ms_per_request"] = {
+                    "mean_ms": 1e3 * (cpu_seconds(server.pid) - cpu_before) / (2 * options.quiet + 1)}
             runs = paces([j for j in journals if j.exists()], options.pace)
             points_streamed = {str(k): {"points": len(v), "distinct": len(set(v))}
                                for k, v in streamed.items()}
@@ -386,7 +431,7 @@ def main(argv: list[str] | None = None) -> int:
         "load_1min": {"before": load_before, "after": os.getloadavg()[0]}, "all_done_within_limit": all_done,
         "stations_failed": failed, "lab_server": lab_f, "floor": bare_f, "ratio": ratios,
         "runs": runs, "pace_ratio_max": max(pace_ratios, default=None), "readings": counted,
-        "streamed": points_streamed,
+        "streamed": points_streamed, "server_cpu": server_cpu, "one_at_a_time": one_at_a_time,
     }
     bad = (counted["lost"] or counted["doubled"] or counted["different"] or counted["unexpected"] or failed
            or not all_done or lab.errors or len(runs) != options.stations)
@@ -420,6 +465,17 @@ def report(r: dict[str, Any]) -> None:
               f"/ {r['pace']:g} = {run['paced_s']:.1f} s ({run['ratio']:.2f}×)")
     print(f"  readings: {c['journaled']} journaled, {c['in_postgresql']} in PostgreSQL; lost {c['lost']}, "
           f"doubled {c['doubled']}, different {c['different']}, unexpected {c['unexpected']}")
+    cpu = r["server_cpu"]
+    print(f"  labcal serve used {cpu['cpu_s']:.1f} CPU s in {cpu['wall_s']:.0f} s "
+          f"({100 * cpu['cpu_s'] / cpu['wall_s']:.0f} % of a core), "
+          f"{1e3 * cpu['cpu_s'] / max(1, lab['requests']):.0f} ms per request")
+    q = r["one_at_a_time"]
+    if q:
+        print("  after the runs, one request at a time: " + "; ".join(
+            f"{kind} p50 {q[kind]['p50_ms']:.1f} ms (floor {q['floor ' + kind]['p50_ms']:.1f} ms), "
+            f"p95 {q[kind]['p95_ms']:.1f} ms (floor {q['floor ' + kind]['p95_ms']:.1f} ms)"
+            for kind in ("/api/runs", "/api/runs/{id}"))
+            + f"; labcal serve's CPU {q['server_cpu_ms_per_request']['mean_ms']:.1f} ms per request (mean)")
     for run_id, s in r["streamed"].items():
         print(f"  stream of run {run_id}: {s['points']} points ({s['distinct']} distinct)")
     for failure in r["stations_failed"]:
