@@ -285,7 +285,12 @@ def readings(url: str, journals: list[Path]) -> dict[str, int]:
     expected: dict[tuple[str, int], tuple] = {}
     for journal in journals:
         expected.update(journal_points(journal))
-    found = server_points(url)
+    return compare(expected, server_points(url))
+
+
+def compare(expected: dict[tuple[str, int], tuple], found: list[tuple]) -> dict[str, int]:
+    """The counts of `readings`: ``expected`` keyed by (run uuid, seq) with the point's columns from
+    seq on, ``found`` the server's rows (run uuid, then the same columns)."""
     seen: dict[tuple[str, int], int] = {}
     different = 0
     for row in found:

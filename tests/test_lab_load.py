@@ -40,3 +40,17 @@ def test_three_paced_stations_under_polling_lose_and_double_nothing():
     assert all(run["status"] == "complete" for run in result["runs"])
     assert len(result["streamed"]) == STATIONS
     assert all(s == {"points": POINTS, "distinct": POINTS} for s in result["streamed"].values())
+
+
+def test_the_benchmark_counts_readings_lost_doubled_different_and_unexpected():
+    """The comparison the benchmark exits 1 on, on rows made here: run "a" journaled seq 0, 1, 2;
+    the server has 0 twice, 1 with another vx, no 2, and a seq 7 no journal has."""
+    sys.path.insert(0, str(BENCHMARK.parent))
+    from lab_load import compare
+
+    journal = {("a", 0): (0, 1.0), ("a", 1): (1, 2.0), ("a", 2): (2, 3.0)}
+    server = [("a", 0, 1.0), ("a", 0, 1.0), ("a", 1, 2.5), ("a", 7, 9.0)]
+    assert compare(journal, server) == {"journaled": 3, "in_postgresql": 4, "lost": 1, "doubled": 1,
+                                        "different": 1, "unexpected": 1}
+    assert compare(journal, [("a", 2, 3.0), ("a", 0, 1.0), ("a", 1, 2.0)]) == {
+        "journaled": 3, "in_postgresql": 3, "lost": 0, "doubled": 0, "different": 0, "unexpected": 0}
