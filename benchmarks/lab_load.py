@@ -33,7 +33,7 @@ psycopg, each (run uuid, seq) compared column by column. Lost, doubled, differen
 readings, a failed station, or a request error make the exit status 1.
 
 Defaults: 8 stations, plan four-mount-64 (1960 rig seconds), pace 30 (65 s of wall time per run),
-10 requests/s, 5 s timeout, no streams: about 1.5 minutes in all on an idle two-core machine.
+10 requests/s, 5 s timeout, no streams: 1.5 to 2 minutes in all on a busy two-core machine.
 
 Usage: python benchmarks/lab_load.py [--stations 8] [--plan four-mount-64] [--pace 30] [--rate 10]
        [--sse] [--timeout 5] [--limit 600] [--json]
