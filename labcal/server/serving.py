@@ -26,8 +26,11 @@ def settings_for(db_option: str | None, key: str | None, poll_s: float = 0.5) ->
 
 
 def listen(host: str, port: int) -> socket.socket:
+    """The server's socket, bound before uvicorn starts (so that --port 0's choice can be printed).
+    Made with IPPROTO_TCP named: asyncio sets TCP_NODELAY only on sockets whose proto says TCP, and
+    without it every answer waited for the client's delayed ACK, 40 ms (benchmarks/lab_load.py)."""
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     try:
         sock.bind((host, port))
