@@ -239,11 +239,11 @@ class ModbusLink:
         since, self._cut_since = self._cut_since, None
         if since is None or not self.client.connected:
             return
-        port = getattr(self.client, "socket", None)
-        if self.turnaround_s == 0.0 or not hasattr(port, "reset_input_buffer"):
+        discard = getattr(getattr(self.client, "socket", None), "reset_input_buffer", None)
+        if self.turnaround_s == 0.0 or discard is None:
             self.close()
             return
-        quiet_line(self._waiting, port.reset_input_buffer, since, self.timeout_s, self.where)
+        quiet_line(self._waiting, discard, since, self.timeout_s, self.where)
 
     def _recover(self) -> None:
         """Let a late reply arrive, then reopen the port: the reopened port starts with empty
