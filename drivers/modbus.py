@@ -21,7 +21,14 @@ from pymodbus.exceptions import ConnectionException, ModbusIOException
 from pymodbus.pdu import ExceptionResponse, ModbusPDU
 
 from labcal.drivers.errors import BadReply, Busy, NoReply, PortClosed, Rejected
-from labcal.drivers.transport import open_serial, reconnect, retried, uninterruptible
+from labcal.drivers.transport import (
+    awaiting_reply,
+    open_serial,
+    quiet_line,
+    reconnect,
+    retried,
+    uninterruptible,
+)
 from labcal.run.station import CriticalSection
 
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())  # our errors say it in one line
@@ -127,6 +134,7 @@ class ModbusLink:
         self.turnaround_s = 0.0  # serial lines: the wait after a broadcast (a gateway keeps its own)
         self._quiet_until = 0.0  # no request before this (monotonic): the turnaround of a broadcast
         self._broadcast: tuple[int, int] | None = None  # the last broadcast (address, value)
+        self._cut_since: float | None = None  # a stop cut a wait for a reply short: when (monotonic)
 
     @classmethod
     def serial(cls, port: str, *, baudrate: int, bytesize: int, parity: str, stopbits: int,
@@ -184,6 +192,7 @@ class ModbusLink:
         if (address, value) == self._broadcast and time.monotonic() < self._quiet_until:
             return  # the same broadcast just went out (two drives of one bus each asked for it)
         with uninterruptible(self.critical):
+            self._take_back()
             if not self.client.connected:
                 reconnect(self.open_port, 0.0, self.where)  # one attempt: the stop's confirmation retries
             try:
@@ -200,10 +209,15 @@ class ModbusLink:
             if (wait := self._quiet_until - time.monotonic()) > 0:
                 time.sleep(wait)
             self._broadcast = None
+            self._take_back()
             if not self.client.connected:
                 reconnect(self.open_port, self.reconnect_s, self.where)
             try:
-                response = request()
+                with awaiting_reply(self.critical):  # pymodbus writes the request at once, then waits
+                    response = request()
+            except KeyboardInterrupt:  # a stop cut the wait short: the next frame takes the line back
+                self._cut_since = time.monotonic()
+                raise
             except ConnectionException as exc:
                 self.close()
                 raise PortClosed(f"{self.where} closed ({exc})") from None
@@ -217,11 +231,30 @@ class ModbusLink:
 
         return retried(once, self.tries, self._recover, self.critical, what=self.where)
 
+    def _take_back(self) -> None:
+        """The bus after a stop cut a wait for a reply short. Over TCP the connection is dropped and
+        the next frame goes out on a new one (a late reply, matched by transaction id on the old one,
+        is never read). On a serial line, where a live unit's reply may be on its way and nothing must
+        be sent over it, the line is taken back once quiet (`quiet_line`), what arrived discarded."""
+        since, self._cut_since = self._cut_since, None
+        if since is None or not self.client.connected:
+            return
+        discard = getattr(getattr(self.client, "socket", None), "reset_input_buffer", None)
+        if self.turnaround_s == 0.0 or discard is None:
+            self.close()
+            return
+        quiet_line(self._waiting, discard, since, self.timeout_s, self.where)
+
     def _recover(self) -> None:
         """Let a late reply arrive, then reopen the port: the reopened port starts with empty
         buffers, so a late reply is never taken for the answer to the next request (RTU has no
         transaction ids to tell them apart)."""
-        time.sleep(min(self.timeout_s, 0.5))
+        try:
+            with awaiting_reply(self.critical):
+                time.sleep(min(self.timeout_s, 0.5))
+        except KeyboardInterrupt:
+            self._cut_since = time.monotonic()
+            raise
         late = self._waiting()
         log.warning("%s: reopening the port%s", self.where,
                     f" ({late} late byte(s) discarded with it)" if late else " before the next try")

@@ -33,6 +33,11 @@ log = logging.getLogger(__name__)
 BACKOFF_FIRST_S = 0.05
 BACKOFF_MAX_S = 1.0
 SLICE_S = 0.02  # streams return what arrived within this; callers loop until their own deadline
+CUT_QUIET_S = 0.05  # after a stop cut the wait for a reply short, the line is taken back once it has been
+# quiet this long since the request or the last byte: a live device's reply starts within a few
+# milliseconds (SMC100 and AZ answer within 10 ms of the request's end; an RTU frame's bytes are at most
+# t1.5 apart, Modbus over Serial Line V1.02 §2.5.1.1), so a reply on its way ends first and nothing is
+# sent over it on a shared line; a dead controller's silence costs only this
 
 
 @contextmanager
@@ -66,6 +71,34 @@ def uninterruptible(critical: CriticalSection | None = None) -> Iterator[None]:
         signal.signal(signal.SIGINT, signal.default_int_handler)
     if pending:
         raise KeyboardInterrupt
+
+
+@contextmanager
+def awaiting_reply(critical: CriticalSection | None) -> Iterator[None]:
+    """The part of an exchange that waits for the reply, its request on the line: during a run a
+    stop is raised here at once instead of after the reply timeout (the caller then takes the line
+    back before its next frame, `quiet_line`). Outside a run, or off the main thread: nothing."""
+    if critical is not None and threading.current_thread() is threading.main_thread():
+        with critical(awaiting_reply=True):
+            yield
+    else:
+        yield
+
+
+def quiet_line(waiting: Callable[[], int], discard: Callable[[], object], since: float, timeout_s: float,
+               where: str) -> None:
+    """After a wait for a reply was cut short: wait until no byte has arrived for `CUT_QUIET_S`
+    since ``since`` (the request's end) or the last byte (``waiting()``: bytes received so far),
+    at most ``timeout_s``, then ``discard`` what arrived, so that the next frame neither runs into a
+    late reply on a shared line nor takes it for its own answer."""
+    seen, quiet_from, give_up = waiting(), since, time.monotonic() + timeout_s
+    while (now := time.monotonic()) < min(quiet_from + CUT_QUIET_S, give_up):
+        time.sleep(min(SLICE_S / 4, quiet_from + CUT_QUIET_S - now))
+        if (count := waiting()) != seen:
+            seen, quiet_from = count, time.monotonic()
+    if seen:
+        log.warning("%s: %d byte(s) of a reply cut short by a stop discarded", where, seen)
+    discard()
 
 
 def retried(exchange: Callable[[], T], tries: int, recover: Callable[[], None],
@@ -280,6 +313,8 @@ class LineTransport:
         self._buffer = b""
         self.critical: CriticalSection | None = None  # the run's, while a run drives this link
         self.opens = 0
+        self._cut_since: float | None = None  # a stop cut a wait for a reply short: the request's end
+        self._last_write = 0.0
 
     def _open(self) -> Stream:
         if self._stream is None:
@@ -297,11 +332,29 @@ class LineTransport:
 
     def write_line(self, text: str) -> None:
         stream = self._open()
+        if self._cut_since is not None:
+            self._take_back(stream)
         log.debug("%s > %s", self.where, text)
         try:
             stream.write(text.encode("ascii") + self.eol)
         except OSError as exc:
             raise self._lost(exc) from None
+        self._last_write = time.monotonic()
+
+    def _take_back(self, stream: Stream) -> None:
+        """The line after a stop cut a wait for its reply short (`quiet_line`): a controller's
+        reply on its way ends and is discarded before the next line goes out."""
+        since, self._cut_since = self._cut_since, None
+        arrived = [self._buffer]
+
+        def waiting() -> int:
+            try:
+                arrived.append(stream.read_some())
+            except OSError:
+                pass
+            return sum(map(len, arrived))
+
+        quiet_line(waiting, lambda: setattr(self, "_buffer", b""), since or 0.0, self.timeout_s, self.where)
 
     def read_line(self, timeout_s: float | None = None) -> str:
         """The next line without its terminator; NoReply on silence, BadReply on a partial line
@@ -309,17 +362,22 @@ class LineTransport:
         timeout = self.timeout_s if timeout_s is None else timeout_s
         stream = self._open()
         deadline = time.monotonic() + timeout
-        while b"\n" not in self._buffer:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                partial, self._buffer = self._buffer, b""
-                if partial:
-                    raise BadReply(f"incomplete reply {partial[:40]!r} after {timeout:g} s")
-                raise NoReply(f"no reply within {timeout:g} s")
-            try:
-                self._buffer += stream.read_some()
-            except OSError as exc:
-                raise self._lost(exc) from None
+        try:
+            with awaiting_reply(self.critical):
+                while b"\n" not in self._buffer:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        partial, self._buffer = self._buffer, b""
+                        if partial:
+                            raise BadReply(f"incomplete reply {partial[:40]!r} after {timeout:g} s")
+                        raise NoReply(f"no reply within {timeout:g} s")
+                    try:
+                        self._buffer += stream.read_some()
+                    except OSError as exc:
+                        raise self._lost(exc) from None
+        except KeyboardInterrupt:  # a stop cut the wait short: the next line takes the line back first
+            self._cut_since = self._last_write
+            raise
         raw, _, self._buffer = self._buffer.partition(b"\n")
         return ascii_line(raw, self.where)
 
@@ -336,13 +394,17 @@ class LineTransport:
         now = time.monotonic()
         quiet_until, give_up = now + self.timeout_s, now + 3 * self.timeout_s
         try:
-            while now < min(quiet_until, give_up):
-                if late := self._stream.read_some():
-                    log.warning("%s: late reply discarded: %r", self.where, late[:60])
-                    quiet_until = time.monotonic() + self.timeout_s
-                now = time.monotonic()
+            with awaiting_reply(self.critical):  # a stop need not wait for a dead controller's silence
+                while now < min(quiet_until, give_up):
+                    if late := self._stream.read_some():
+                        log.warning("%s: late reply discarded: %r", self.where, late[:60])
+                        quiet_until = time.monotonic() + self.timeout_s
+                    now = time.monotonic()
         except OSError:
             self.close()
+        except KeyboardInterrupt:
+            self._cut_since = time.monotonic()
+            raise
 
     def close(self) -> None:
         if self._stream is not None:

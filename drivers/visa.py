@@ -15,7 +15,7 @@ import logging
 from typing import Any
 
 from labcal.drivers.errors import LinkLost, NoReply, PortClosed
-from labcal.drivers.transport import ascii_line, reconnect
+from labcal.drivers.transport import ascii_line, awaiting_reply, reconnect
 from labcal.run.station import CriticalSection
 
 log = logging.getLogger(__name__)
@@ -112,7 +112,11 @@ class VisaLink:
         instrument = self._open()
         instrument.timeout = max(1, round(timeout * 1000))
         try:
-            raw = bytes(instrument.read_raw())
+            with awaiting_reply(self.critical):
+                raw = bytes(instrument.read_raw())
+        except KeyboardInterrupt:  # a stop cut the wait short: reopened before the next question, so the
+            self.close()  # late reply is not taken for its answer (the driver verifies a reopened device)
+            raise
         except pyvisa.errors.VisaIOError as exc:
             if exc.error_code == pyvisa.constants.StatusCode.error_timeout:
                 raise NoReply(f"no reply within {timeout:g} s") from None

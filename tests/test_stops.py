@@ -224,3 +224,28 @@ def test_a_signal_while_the_tables_are_being_stopped_is_kept_for_after_the_stop(
         with pytest.raises(StopSignal) as stop, interrupts.critical():
             reached.append("fault journaled")
     assert reached == ["roll told to stop", "fault journaled"] and stop.value.reason == "SIGTERM"
+
+
+def test_a_stop_cuts_the_wait_for_a_reply_short_but_never_a_request():
+    """Inside an exchange a stop is deferred while the request goes out (a frame cut in half would
+    be garbage on a shared line) and raised at once where the exchange only waits for its reply
+    (`critical(awaiting_reply=True)`): a dead controller no longer holds the stop for its timeout.
+    While the tables are being stopped, even the wait for a reply keeps it for later."""
+    from labcal.run.interrupts import Interrupts, StopSignal
+
+    reached = []
+    with Interrupts() as interrupts:
+        with pytest.raises(StopSignal) as stop, interrupts.critical():
+            os.kill(os.getpid(), signal.SIGTERM)
+            reached.append("request written")
+            with interrupts.critical(awaiting_reply=True):
+                reached.append("reply awaited")  # never: the deferred stop is raised on entering
+        with pytest.raises(StopSignal), interrupts.critical(), interrupts.critical(awaiting_reply=True):
+            os.kill(os.getpid(), signal.SIGTERM)
+            reached.append("reply read")  # never: raised at once, mid-wait
+        with interrupts.stopping(), interrupts.critical(awaiting_reply=True):
+            os.kill(os.getpid(), signal.SIGTERM)
+            reached.append("stop confirmed")
+        with pytest.raises(StopSignal), interrupts.critical():
+            reached.append("journaled")
+    assert reached == ["request written", "stop confirmed", "journaled"] and stop.value.reason == "SIGTERM"

@@ -22,8 +22,8 @@ if TYPE_CHECKING:  # the simulator and the drivers are imported where a station 
     from labcal.bench.hardware import Bench
     from labcal.config.emulation import InstrumentTruth
     from labcal.config.settings import SettleSettings
-    from labcal.config.station import StationFile
-    from labcal.run.estimate import Timing
+    from labcal.config.station import AzSettings, Smc100Settings, StationFile
+    from labcal.run.estimate import LinkTiming, Timing
     from labcal.run.station import Station
 
 REMOUNT_ALLOWANCE_S = 300.0  # the operator's time for one remount, for estimates on real hardware
@@ -88,14 +88,63 @@ def links_fixed(config: StationFile, source: str) -> None:
                               "the station file at the addresses `labcal sim serve` printed")
 
 
-def station_timing(config: StationFile) -> Timing:
+def station_timing(config: StationFile, time_scale: float = 1.0) -> Timing:
     """A station file's pace for estimates on real hardware: one DMM sweep of its channels per sample,
-    the operator's remount allowance (`labcal run --dry-run`, `labcal plan optimize`)."""
+    the operator's remount allowance (`labcal run --dry-run`, `labcal plan optimize`), its links."""
     from labcal.drivers.keysight_34970a import channel_time_s
     from labcal.run.estimate import Timing
 
     sweep_s = (3 + bool(config.dmm.temperature_channel)) * channel_time_s(config.dmm.nplc, config.dmm.line_hz)
-    return Timing(clamp_s=0.0, sample_s=sweep_s, remount_s=REMOUNT_ALLOWANCE_S)
+    return Timing(clamp_s=0.0, sample_s=sweep_s, remount_s=REMOUNT_ALLOWANCE_S,
+                  link=link_timing(config, time_scale))
+
+
+# One exchange's latency beyond its bytes on the line: the host's system calls and scheduling, a
+# USB-serial adapter's or the network's delivery, the device's parsing. Measured through the drivers
+# on the emulators (whose devices answer at once): 0.3 ms median, 1.5 ms mean on a loaded two-core
+# host; a real controller adds its own few milliseconds, and a real bench's clock is the wall's.
+EXCHANGE_LATENCY_S = 1.5e-3
+# what the sequencer's exchanges are, counted from the drivers (labcal.drivers):
+START_EXCHANGES = {"oriental-az": 2, "newport-smc100": 3}  # position read, then DDO write / PA + TE
+FRAME_BYTES = {"oriental-az": 8 + 13, "newport-smc100": 5 + 11}  # a status read: request and reply
+# (FC 03 of 4 registers: 8 bytes out, 5 + 8 back; "1TS" CR LF out, "1TS000028" CR LF back)
+AZ_REPLY_BYTES = 10  # the mean reply of the sequencer's AZ exchanges: status 13, position 9, move 8 bytes
+DMM_VERIFY_EXCHANGES = 12  # at each mount: *ESR?, SYST:ERR? and the configuration's ten queries back
+
+
+def link_timing(config: StationFile, time_scale: float = 1.0) -> LinkTiming:
+    """The station's links, priced in the rig's seconds. On an emulated station the rig's clock runs
+    ``time_scale`` times faster than the wall's, and the host's and the drivers' own waits (the
+    latency, the Modbus RTU silent interval before each request, pymodbus's look for the end of a
+    reply) are the wall's: they count ``time_scale`` times. Bytes on a serial line take their
+    characters' time (as the emulated DMM's RS-232 paces them, in the rig's time)."""
+    from labcal.config.station import AzSettings
+    from labcal.drivers.keysight_34970a import OUTPUT_S, READING_CHARS
+    from labcal.drivers.modbus import silent_interval_s
+    from labcal.run.estimate import LinkTiming
+
+    def exchange_s(settings: AzSettings | Smc100Settings) -> float:
+        bits = 1 + settings.bytesize + (settings.parity != "N") + settings.stopbits
+        serial = not settings.tcp
+        wire = FRAME_BYTES[settings.driver] * bits / settings.baudrate if serial else 0.0
+        waits = EXCHANGE_LATENCY_S
+        if isinstance(settings, AzSettings) and serial:  # pymodbus polls the port every 4 characters,
+            poll = max(4 * bits / settings.baudrate, 1e-3)  # 1 ms at least, and takes a reply once its
+            # length stays put for a poll; over socket:// (a serial-device server) pyserial's in_waiting
+            # says only whether a byte waits, so each of the reply's bytes takes a poll of its own
+            polls = AZ_REPLY_BYTES if (settings.port or "").startswith("socket://") else 2
+            waits += silent_interval_s(settings.baudrate, bits) + polls * poll
+        return wire + time_scale * waits
+
+    dmm = config.dmm
+    char_s = 10 / dmm.baudrate if dmm.serial_line else 0.0  # 8N1
+    channels = 3 + bool(dmm.temperature_channel)
+    return LinkTiming(
+        table_s=(exchange_s(config.pitch) + exchange_s(config.roll)) / 2,
+        start_exchanges=START_EXCHANGES[config.pitch.driver] + START_EXCHANGES[config.roll.driver],
+        poll_s=(config.pitch.poll_s + config.roll.poll_s) / 2, dmm_s=time_scale * EXCHANGE_LATENCY_S,
+        fetch_per_sample_s=channels * (READING_CHARS * char_s + OUTPUT_S),
+        verify_exchanges=DMM_VERIFY_EXCHANGES)
 
 
 def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emulate: bool = False,
@@ -125,7 +174,8 @@ def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emul
             rig.pitch.place(tables_at[0])
             rig.roll.place(tables_at[1])
         snapshot.update(time_scale=emulation.time_scale, seed=rig.seed)
-        timing = Timing(clamp_s=rig.config.clamp_s, sample_s=sweep_s, remount_s=0.0)
+        timing = Timing(clamp_s=rig.config.clamp_s, sample_s=sweep_s, remount_s=0.0,
+                        link=link_timing(config, emulation.time_scale))
         pooling = config.sequencer.settle.model_dump(include={"pool", "instrument_type"})
         settle = known_settle(rig.instrument).model_copy(update=pooling)  # the station says whose records
         clock, hooks = emulation.rig.clock, emulation.hooks()

@@ -2,9 +2,15 @@
 
 Per point: both tables' trapezoidal moves (the longer one) and the clamp, the part of the dead
 time the clamp does not overlap (the transient the move leaves, labcal.run.settle), and one window
-of samples; per mounting: the operator's remount
-allowance and the mount check. The settle test usually accepts the first window, so this is also
-close to what a run with settle detection takes.
+of samples; per mounting: the operator's remount allowance and the mount check. The settle test
+usually accepts the first window, so this is also close to what a run with settle detection takes.
+
+On a station reached through its links, each point also waits for the exchanges the sequencer makes
+while nothing moves and the DMM does not integrate (`LinkTiming`, counted from the sequencer and the
+drivers as they do them): the commands that start both moves (the moves run from their answers), the
+status polls that find the tables in position and their positions read back (hidden in the dead time
+when it is longer), the DMM's trigger, its readings' transfer and its error check around the window,
+both tables' status and position after it; at each mount, the DMM's configuration read back.
 """
 
 from __future__ import annotations
@@ -24,12 +30,45 @@ from labcal.run.settle import dead_time
 
 
 @dataclass(frozen=True)
+class LinkTiming:
+    """What the station's links add, in the rig's seconds (`labcal.bench.setup.link_timing` prices
+    them from the station file: baud rates, frame sizes, the protocols' silent intervals and the
+    exchanges' latency). Zero everywhere: a simulated rig, which exchanges no bytes."""
+
+    table_s: float = 0.0  # one table exchange, request out to reply in (the two tables' mean)
+    start_exchanges: int = 0  # both tables', to start a move: each one's position read, its move command
+    # (+ the SMC100's TE after it)
+    poll_s: float = 0.0  # the tables' status polling interval while they move
+    dmm_s: float = 0.0  # one DMM query, out and back
+    fetch_per_sample_s: float = 0.0  # one sample's readings over the DMM's line (FETC?'s reply)
+    verify_exchanges: int = 0  # the DMM's configuration read back at each mount
+
+    def starting_s(self) -> float:
+        """Both tables' start commands: the moves' profiles run from the second one's answer."""
+        return self.start_exchanges * self.table_s
+
+    def finding_s(self) -> float:
+        """From the end of the motion to both positions read back: half a polling cycle (status,
+        then `poll_s`) until a status reply says in position, its position read, and half the time
+        the other table's status and position still to read (it was waited for second)."""
+        return (self.poll_s + self.table_s) / 2 + self.table_s + self.table_s
+
+    def window_s(self, samples: int) -> float:
+        """Around each window: TRIG:COUN and INIT written (half a query each), *OPC? answered at the
+        end of the scan, FETC? (its readings at the line's rate), SYST:ERR?; then both tables'
+        status and position."""
+        return 4 * self.dmm_s + samples * self.fetch_per_sample_s + 4 * self.table_s
+
+
+@dataclass(frozen=True)
 class Timing:
-    """The rig's pace: table motion, clamp, one DMM sample, one remount by the operator."""
+    """The rig's pace: table motion, clamp, one DMM sample, one remount by the operator, and the
+    station's links."""
 
     clamp_s: float
     sample_s: float
     remount_s: float
+    link: LinkTiming = LinkTiming()
 
 
 @dataclass(frozen=True)
@@ -54,17 +93,19 @@ class Estimate:
 def estimate(plan: Plan, settings: SequencerSettings, timing: Timing,
              steps: list[Step] | None = None) -> Estimate:
     """``steps``: the run's schedule, if already made."""
-    s = settings.settle
-    window_s = s.samples * timing.sample_s
+    s, link = settings.settle, timing.link
+    window_s = s.samples * timing.sample_s + link.window_s(s.samples)
 
     def move_and_settle(a: NDArray, b: NDArray, mount: Mount) -> tuple[float, float]:
-        """The move with its clamp, and the dead time the clamp does not overlap."""
-        move = float(move_time(a, b, settings.speed_dps, settings.accel_dps2))
+        """The move with its start commands, its clamp and the polls that find it in position, and
+        the dead time (from the motion's end) they do not overlap."""
+        move = float(move_time(a, b, settings.speed_dps, settings.accel_dps2)) + link.starting_s()
+        found = timing.clamp_s + link.finding_s()
         if s.fixed_dwell_s is not None:
-            return move + timing.clamp_s, s.fixed_dwell_s
+            return move + found, s.fixed_dwell_s
         lag = float(transient_at_stop(a, b, mount, settings.speed_dps, settings.accel_dps2, s.tau_s))
         dead = float(dead_time(lag * s.sensitivity_v_per_g, s, timing.sample_s))
-        return move + timing.clamp_s, max(0.0, dead - timing.clamp_s)
+        return move + found, max(0.0, dead - found)
 
     per_step, prompt, mount_s, moves, settling, mounting = {}, {}, {}, 0.0, 0.0, 0.0
     where: NDArray[np.float64] = np.array(LOAD_POSITION, dtype=float)
@@ -73,8 +114,9 @@ def estimate(plan: Plan, settings: SequencerSettings, timing: Timing,
         t_mount = 0.0
         if step.block_start:
             to_load = move_time(where, np.array(LOAD_POSITION), settings.speed_dps, settings.accel_dps2)
-            prompt[step.seq] = float(to_load) + timing.clamp_s  # the move to the load position, clamped
-            t_mount = float(to_load) + timing.remount_s + timing.clamp_s
+            prompt[step.seq] = float(to_load) + link.starting_s() + timing.clamp_s + link.finding_s()
+            t_mount = (float(to_load) + link.starting_s() + timing.remount_s + timing.clamp_s
+                       + link.finding_s() + link.verify_exchanges * link.dmm_s)
             if settings.check_mount:
                 t_mount += sum(move_and_settle(np.array(LOAD_POSITION), np.array(CHECK_ATTITUDE),
                                                step.mount)) + window_s

@@ -5,7 +5,11 @@ Ctrl-C: without a handler they would end the process with the tables still movin
 marked "running" in the journal.
 
 No stop cuts a journal transaction or a device exchange in half: inside a `critical()` section it
-is deferred to the section's end. While the tables are being stopped (`stopping()`), a signal is
+is deferred to the section's end, save while an exchange only waits for its reply
+(`critical(awaiting_reply=True)`): a dead controller would hold the stop for its whole reply timeout,
+so there the stop is raised at once, and the link takes the line back before its next frame (it
+lets a reply on its way end, then discards it: `labcal.drivers.transport.LineTransport`,
+`labcal.drivers.modbus.ModbusLink`). While the tables are being stopped (`stopping()`), a signal is
 only noted, so that an impatient third Ctrl-C cannot keep the second table from getting its stop;
 it is raised at the next critical section's end (a stop after a fault is followed by journaling
 the fault, before the pause prompt).
@@ -43,6 +47,7 @@ class Interrupts:
         self._prompting = False
         self._stopping = False
         self._depth = 0
+        self._awaiting = 0  # inside an exchange's wait for its reply, where a stop is raised at once
         self._deferred: StopSignal | None = None
         self._on_first = on_first
         self._previous: dict[int, SignalHandler] = {}  # the handlers to put back
@@ -72,7 +77,7 @@ class Interrupts:
             reason = signal.Signals(signum).name
         self.count = max(self.count, 2)
         stop = StopSignal(signum, reason)
-        if self._stopping or (self._depth and not self._prompting):
+        if self._stopping or (self._depth and not self._prompting and not self._awaiting):
             self._deferred = self._deferred or stop  # raised where it cuts neither a stop nor an exchange
         else:
             raise stop
@@ -104,13 +109,21 @@ class Interrupts:
             self._stopping = False
 
     @contextmanager
-    def critical(self) -> Iterator[None]:
-        """A section that must complete: a stop arriving inside is raised when it ends."""
+    def critical(self, *, awaiting_reply: bool = False) -> Iterator[None]:
+        """A section that must complete: a stop arriving inside is raised when it ends.
+        ``awaiting_reply``: the part of an exchange that only waits for the device's reply, its
+        request already on the line; a stop arriving there, or deferred until then, is raised at
+        once (waiting out a dead controller's reply timeout would delay the live table's stop)."""
         self._depth += 1
+        self._awaiting += awaiting_reply
         try:
+            if awaiting_reply and self._deferred is not None and not self._stopping:
+                stop, self._deferred = self._deferred, None
+                raise stop
             yield
         finally:
             self._depth -= 1
+            self._awaiting -= awaiting_reply
             if self._depth == 0 and self._deferred is not None and not self._stopping:
                 stop, self._deferred = self._deferred, None
                 raise stop

@@ -21,8 +21,15 @@ from labcal.run.winding import Reach
 
 STILL_WITHIN_S = 30.0  # a stopped table decelerating from full speed is still long before this
 STILL_POLL_S = 0.05
-CriticalSection = Callable[[], AbstractContextManager[None]]
-"""A section a stop must not cut in half (the run's Ctrl-C handler defers a stop to its end)."""
+
+
+class CriticalSection(Protocol):
+    """A section a stop must not cut in half (the run's Ctrl-C handler defers a stop to its end);
+    ``awaiting_reply=True``: the wait for a device's reply, which a stop does cut short
+    (`labcal.run.interrupts.Interrupts.critical`)."""
+
+    def __call__(self, *, awaiting_reply: bool = False) -> AbstractContextManager[None]: ...
+
 
 
 @dataclass(frozen=True)
