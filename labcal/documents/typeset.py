@@ -240,8 +240,15 @@ def render(doc: CertificateDocument) -> bytes:
                                  topMargin=margin + 4 * mm, bottomMargin=margin, title=doc.title,
                                  subject=doc.subject, author="labcal", creator="labcal",
                                  initialFontName=regular, initialFontSize=BODY_PT)  # no Helvetica
-    template.build(story(), onFirstPage=decorate(), onLaterPages=decorate(),
-                   canvasmaker=_counting_canvas(page_of))
+    from reportlab import rl_config
+
+    ascii85 = rl_config.useA85
+    rl_config.useA85 = 0  # binary streams: ASCII85 (reportlab's default, in pure Python without its
+    try:  # optional C accelerator) makes the file a quarter larger and took half a second per report
+        template.build(story(), onFirstPage=decorate(), onLaterPages=decorate(),
+                       canvasmaker=_counting_canvas(page_of))
+    finally:
+        rl_config.useA85 = ascii85
     return out.getvalue()
 
 
