@@ -63,7 +63,20 @@ class _Version(argparse.Action):
         parser.exit(message=f"labcal {__version__}\n")
 
 
+def _translate_once() -> None:
+    """argparse translates the same three strings for each of the ~50 parsers of labcal's tree, and
+    gettext looks on disk for a catalogue at every call: the same answers, asked 150 times, were a
+    third of building the parser (`labcal --help`). Asked once per string now; the language is the
+    process's, as before."""
+    import functools
+    import gettext
+
+    if not hasattr(getattr(argparse, "_", None), "cache_info"):  # once per process
+        setattr(argparse, "_", functools.lru_cache(maxsize=None)(gettext.gettext))  # noqa: B010
+
+
 def build_parser() -> argparse.ArgumentParser:
+    _translate_once()
     parser = OneLineParser(
         prog="labcal", formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Calibrate three-axis accelerometer attitude instruments on a two-axis "
