@@ -199,6 +199,45 @@ def test_a_new_file_is_created_at_the_newest_revision_without_setup(tmp_path):
     assert status.returncode == 0 and f"schema {HEAD}" in status.stdout and "current" in status.stdout
 
 
+def test_a_new_file_is_the_file_alembics_steps_make(tmp_path):
+    """A new journal is written from a script (no Alembic at every run): it must hold exactly what an
+    empty file brought to the newest revision by Alembic's own steps holds — every table, index and
+    row, and the user_version — and the shipped script must be that file's dump."""
+    by_alembic = tmp_path / "alembic" / "labcal.sqlite"
+    by_alembic.parent.mkdir()
+    migrations_run = labdb.upgrade  # on an existing empty file: Alembic's steps, no script
+    by_alembic.touch()
+    assert migrations_run(by_alembic).reached == HEAD
+    new = tmp_path / "new" / "labcal.sqlite"
+    labdb.connect(new).close()
+    assert dump(new) == dump(by_alembic) and dump(new)
+    assert user_version(new) == user_version(by_alembic) == 6
+    assert labdb.HEAD_SCRIPT.read_text(encoding="utf-8") == labdb.alembic_head_script(tmp_path), \
+        f"{labdb.HEAD_SCRIPT.name} is not the newest revision's dump: rewrite it (labdb.alembic_head_script)"
+
+
+def test_files_created_at_once_are_created_once(tmp_path):
+    """Two programs creating the same new file at once: one creates it, the other finds it made."""
+    path = tmp_path / "labcal.sqlite"
+    errors: list[BaseException] = []
+
+    def create() -> None:
+        try:
+            labdb.connect(path).close()
+        except BaseException as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=create) for _ in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(30)
+    assert not errors
+    assert alembic_revision(path) == HEAD
+    with closing(raw(path)) as con:
+        assert con.execute("SELECT count(*) FROM alembic_version").fetchone()[0] == 1
+
+
 def version_0(tmp_path: Path, tables: tuple[str, ...]) -> Path:
     """A version-0 file with only some of the tables, made with the old labcal's own statements."""
     path = tmp_path / f"only-{'-'.join(tables) or 'nothing'}.sqlite"

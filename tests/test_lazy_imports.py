@@ -37,7 +37,12 @@ def test_help_and_plan_list_import_none_of_the_heavy_libraries():
     assert imported_by("plan", "list") == []
     assert imported_by("fit", "--help") == []
     # lighter, but a third of --help's own import time when they were on its path
-    assert imported_by("--help", among=("logging", "tomllib")) == []
+    assert imported_by("--help", among=("logging", "tomllib", "dataclasses", "inspect")) == []
+    # the lab database's and the lab server's libraries: none is needed to print the help
+    assert imported_by("--help", among=SERVER) == []
+
+
+SERVER = ("sqlalchemy", "alembic", "apprise", "fastapi", "uvicorn", "starlette", "argon2", "psycopg")
 
 
 def test_the_fit_help_names_every_model_extension():
@@ -52,3 +57,13 @@ def test_a_dry_run_without_report_draws_nothing(tmp_path):
                         str(tmp_path / "lab.sqlite"), among=("scipy", "matplotlib"))
     assert "scipy.special" in found and "scipy.optimize" in found
     assert not [m for m in found if m.startswith(("matplotlib", "scipy.stats"))]
+
+
+def test_a_dry_run_loads_no_driver_server_or_document_library(tmp_path):
+    """A simulated run on a SQLite lab database (a new file: created without replaying the migrations)
+    needs no instrument driver, nothing of the lab server, and with --no-report no document."""
+    among = (*SERVER, "pymodbus", "pyvisa", "serial", "reportlab", "lxml", "labcal.drivers.oriental_az",
+             "labcal.drivers.modbus", "labcal.documents.certificate", "labcal.documents.history")
+    found = imported_by("run", "--sim", "--yes", "--no-report", "--out", str(tmp_path / "run"), "--db",
+                        str(tmp_path / "lab.sqlite"), among=among)
+    assert found == []

@@ -13,3 +13,7 @@ Reads are pure: listing runs, reading a run's log, the histories, verifying a ce
 exporting a run to another folder change neither a run folder nor the lab database. The use
 cases that write say so in their names: rebuilding a run folder, issuing, approving, running.
 """
+
+# The statuses a run can be listed by. Here, not in `labcal.app.runs`, so that `labcal --help` (whose
+# `runs --status` offers them) does not load that module and dataclasses with it.
+STATUSES = ("running", "complete", "stopped", "interrupted", "failed")

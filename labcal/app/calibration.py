@@ -226,16 +226,18 @@ def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Esti
             raise
         raise LabcalError(f"{exc}{_stop_failure(exc)}; {points_on_disk(run_dir)} reading(s) kept in "
                           f"{run_dir}; continue with: labcal resume {run_dir}") from None
+    record = None  # the finished run as its journal has it, read (and its fits made) once for both
     if result.device is not None:  # the device's estimate is the run's, whether or not a report is made
         from labcal.documents.device_history import store_device_estimate
         from labcal.run.record import load_run
 
-        store_device_estimate(load_run(run_dir), result.device, db)
+        record = load_run(run_dir)
+        store_device_estimate(record, result.device, db)
     issued = None
     if not no_report:
         from labcal.documents.report import write_run_outputs
 
-        issued = write_run_outputs(run_dir, certificate, db=journal)
+        issued = write_run_outputs(run_dir, certificate, db=journal, record=record)
     return Finished(run_dir, result, est, journal, issued)
 
 

@@ -7,8 +7,6 @@ from pathlib import Path
 
 from labcal.errors import LabcalError
 
-STATUSES = ("running", "complete", "stopped", "interrupted", "failed")
-
 
 @dataclass(frozen=True)
 class ListRuns:

@@ -136,9 +136,6 @@ def standards(traceability: Iterable[Traceability] | None, today: date) -> Item:
 def tables_homed(bench: Bench | None, station: Station | None) -> Item:
     """Each table's referenced state, as its controller reports it. A table the run homes first
     (NOT REFERENCED, no error) is a warning: homing moves it to its home switch."""
-    from labcal.drivers.errors import DriverError
-    from labcal.drivers.oriental_az import AzAxis
-
     name = "tables homed"
     if bench is None:
         if station is None:
@@ -147,6 +144,10 @@ def tables_homed(bench: Bench | None, station: Station | None) -> Item:
         if faults:
             return Item(name, "fail", "; ".join(faults))
         return Item(name, "ok", "simulated tables: homed")
+    # the drivers (pymodbus) only for a bench: a simulated run loads none of them
+    from labcal.drivers.errors import DriverError
+    from labcal.drivers.oriental_az import AzAxis
+
     found: list[tuple[Status, str]] = []
     for axis in bench.axes:
         try:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 from labcal.commands.common import add_db_option, bounded, bounded_field, err, out, print_json
@@ -68,6 +67,7 @@ def relied_on(text: str) -> dict | None:
 
 def cmd_generate(args: argparse.Namespace) -> int:
     import os
+    from pathlib import Path
 
     from pydantic import ValidationError
 
@@ -460,6 +460,7 @@ def optimized_plan_toml(plan, e, correction, target_deg: float, reference) -> st
 def cmd_optimize(args: argparse.Namespace) -> int:
     import math
     import os
+    from pathlib import Path
 
     from labcal.analysis import optimize
     from labcal.analysis.kinematics import ARCSEC

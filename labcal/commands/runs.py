@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from labcal.app.runs import STATUSES
+from labcal.app import STATUSES
 from labcal.commands.common import add_db_option, out, print_json
 
 

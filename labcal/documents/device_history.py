@@ -20,7 +20,6 @@ from typing import Any
 from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.kinematics import MISALIGNMENT_NAMES
 from labcal.config.corrections import DeviceCorrectionTable
-from labcal.documents.history import stored_rows
 from labcal.documents.plotfile import check_folder, save
 from labcal.errors import LabcalError
 from labcal.run import labdb
@@ -116,6 +115,8 @@ def store(estimate: DeviceEstimate, db: str | Path | None = None) -> Path:
 
 def estimates_for(device_id: str, db: str | Path | None = None) -> list[DeviceEstimate]:
     """The device's estimates, oldest calibration first."""
+    from labcal.documents.history import stored_rows  # with the certificates: not on a run's path
+
     path, rows = stored_rows(
         db, "SELECT document FROM device_estimates WHERE device_id = ? ORDER BY calibrated_utc, source",
         device_id, "SELECT DISTINCT device_id FROM device_estimates ORDER BY 1",

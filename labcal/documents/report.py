@@ -71,12 +71,14 @@ class RunOutputs:
 def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None = None, *,
                       serial: str | None = None, operator: str | None = None,
                       db: str | Path | None = None, station: str | Path | None = None,
-                      monte_carlo: int = 0, item: ItemGiven | None = None) -> RunOutputs:
+                      monte_carlo: int = 0, item: ItemGiven | None = None,
+                      record: RunRecord | None = None) -> RunOutputs:
     """Certificate, report and history entry of a finished run (called at the end of `labcal run`
     and by `labcal report`); ``db`` None means $LABCAL_DB or the lab file's database. The Type B
     inputs come from ``station`` (a station file), else the station the run was journaled with;
-    ``monte_carlo`` trials check the budget by JCGM 101."""
-    record = load_run(run_dir)
+    ``monte_carlo`` trials check the budget by JCGM 101. ``record``: the run as `load_run` read it
+    just before (the end of a run: read once for the device's estimate and for this, not fitted twice)."""
+    record = record or load_run(run_dir)
     fit, device, model_note = fitted(record)
     section = bench_section(record, station)
     inputs = type_b_inputs(section, record, device)

@@ -170,7 +170,7 @@ def connect(path: str | Path) -> sqlite3.Connection:
         db.execute("PRAGMA foreign_keys=ON")
         found = revision_of(db)
         if found.revision is None:
-            _upgrade_sqlite(path, create_only=True)
+            _create_sqlite(db)
             found = revision_of(db)
         if found.revision != HEAD:
             raise refusal(path, found, _db_option(path))
@@ -282,9 +282,8 @@ def _steps(connection: Connection, found: Revision) -> None:
     migrations.upgrade(connection)
 
 
-def _upgrade_sqlite(path: Path, create_only: bool = False) -> Upgraded:
-    """Bring the file to the newest revision under its write lock (``create_only``: only if it is
-    empty; anything else found once the lock is held is left for the caller to judge)."""
+def _upgrade_sqlite(path: Path) -> Upgraded:
+    """Bring the file to the newest revision under its write lock."""
     from sqlalchemy.exc import SQLAlchemyError
 
     engine = _sqlite_engine(path)
@@ -298,8 +297,8 @@ def _upgrade_sqlite(path: Path, create_only: bool = False) -> Upgraded:
                 found = revision_of(raw)  # again, under the lock: another program may have done it
                 if found.ahead:
                     raise refusal(path, found, "")
-                if found.revision == HEAD or (create_only and found.revision is not None):
-                    return Upgraded(found, found.revision or HEAD, None)
+                if found.revision == HEAD:
+                    return Upgraded(found, HEAD, None)
                 if found.revision is not None:
                     backup = backup_path(path, found.revision)
                     _backup(path, backup)
@@ -314,6 +313,54 @@ def _upgrade_sqlite(path: Path, create_only: bool = False) -> Upgraded:
     finally:
         engine.dispose()
     return Upgraded(found, HEAD, backup)
+
+
+# --- a new file -----------------------------------------------------------------------------------
+HEAD_SCRIPT = Path(__file__).with_name("migrations") / "head.sqlite.sql"
+
+
+def head_statements(script: str) -> list[str]:
+    """The SQL statements of a script, one per entry (a statement may span lines)."""
+    statements, pending = [], ""
+    for line in script.splitlines(keepends=True):
+        pending += line
+        if sqlite3.complete_statement(pending):
+            statements.append(pending.strip())
+            pending = ""
+    return statements
+
+
+def _create_sqlite(db: sqlite3.Connection) -> None:
+    """An empty file brought to the newest revision by `HEAD_SCRIPT`, under the file's write lock
+    (two programs creating it at once create it once; anything found once the lock is held is left
+    for the caller to judge). The script is the dump of a file that Alembic's steps created
+    (`alembic_head_script`; a test keeps the two equal, statement by statement), so a new file is the
+    file an upgrade makes, without loading SQLAlchemy and Alembic and replaying every migration in
+    each new journal."""
+    statements = head_statements(HEAD_SCRIPT.read_text(encoding="utf-8"))
+    db.execute("BEGIN IMMEDIATE")
+    try:
+        if revision_of(db).revision is None:
+            for statement in statements:
+                db.execute(statement)
+            db.execute(f"PRAGMA user_version = {ALEMBIC_USER_VERSION}")
+        db.execute("COMMIT")
+    except BaseException:
+        db.execute("ROLLBACK")
+        raise
+
+
+def alembic_head_script(folder: Path) -> str:
+    """What `HEAD_SCRIPT` must hold: the dump (schema and rows) of an empty file in ``folder`` brought
+    to the newest revision by Alembic's steps, as `labcal db upgrade` runs them.
+    Rewrite it after adding a migration:
+    ``python -c "from pathlib import Path; import tempfile; from labcal.run import labdb;
+    labdb.HEAD_SCRIPT.write_text(labdb.alembic_head_script(Path(tempfile.mkdtemp())))"``."""
+    path = folder / "head.sqlite"
+    _upgrade_sqlite(path)
+    with closing(sqlite3.connect(path)) as db:
+        lines = [line for line in db.iterdump() if line not in ("BEGIN TRANSACTION;", "COMMIT;")]
+    return "".join(f"{line}\n" for line in lines)
 
 
 def _first_line(exc: BaseException) -> str:

@@ -31,16 +31,13 @@ from typing import TYPE_CHECKING
 
 from labcal.config.lab import ServerDatabase, load_lab_config
 from labcal.errors import LabcalError
-from labcal.run import labdb, schema
+from labcal.run import labdb
 from labcal.run.labdb import lab_database
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Connection, Engine
 
-POINT_COLUMNS = tuple(c.name for c in schema.points.columns if c.name != "run_id")
-RUN_COLUMNS = tuple(c.name for c in schema.runs.columns if c.name not in ("id", "station"))
 EVENT_COLUMNS = ("utc", "station_time", "kind", "message", "data")
-CERTIFICATE_COLUMNS = tuple(c.name for c in schema.certificates.columns)
 BATCH = 500  # rows per statement: a catch-up after a long outage goes in bounded transactions
 POLL_S = 0.5  # how often the sender looks at the journal during a run
 BACKOFF_MAX_S = 10.0
@@ -128,7 +125,15 @@ class Sender:
                     return sent
 
     def _push_once(self, db: sqlite3.Connection) -> Sent:
+        # SQLAlchemy's tables only here, where a server is written: a run on a SQLite lab database
+        # (the journal itself) imports neither them nor SQLAlchemy
         from sqlalchemy.dialects.postgresql import insert
+
+        from labcal.run import schema
+
+        point_columns = tuple(c.name for c in schema.points.columns if c.name != "run_id")
+        run_columns = tuple(c.name for c in schema.runs.columns if c.name not in ("id", "station"))
+        certificate_columns = tuple(c.name for c in schema.certificates.columns)
 
         sent = Sent()
         marks = self._cursors(db)
@@ -138,9 +143,9 @@ class Sender:
         run_rows = []
         with self.engine.begin() as server:
             for run_id, state, _ in runs:
-                row = db.execute(f"SELECT {', '.join(RUN_COLUMNS)}, station FROM runs WHERE id=?",
+                row = db.execute(f"SELECT {', '.join(run_columns)}, station FROM runs WHERE id=?",
                                  (run_id,)).fetchone()
-                values = dict(zip(RUN_COLUMNS, row[:-1], strict=True))
+                values = dict(zip(run_columns, row[:-1], strict=True))
                 # as journaled (`Journal.start_run`); a run journaled before runs named their
                 # station was journaled here, at this station
                 values["station"] = row[-1] or self.station
@@ -153,7 +158,7 @@ class Sender:
                 run_rows.append((self.target, run_id, lab_id, state))
             sent.offered["runs"] = sent.stored["runs"] = len(run_rows)
             moved_points, sent.offered["points"], sent.stored["points"] = self._send_rows(
-                server, db, "points", "rowid", marks.get("points", 0), POINT_COLUMNS, lab_ids,
+                server, db, "points", "rowid", marks.get("points", 0), point_columns, lab_ids,
                 lambda rows: insert(schema.points).values(rows).on_conflict_do_nothing(
                     index_elements=["run_id", "seq"]))
             moved_events, sent.offered["events"], sent.stored["events"] = self._send_rows(
@@ -161,7 +166,7 @@ class Sender:
                 lambda rows: insert(schema.events).values(rows).on_conflict_do_nothing(
                     index_elements=["run_id", "origin_id"]), origin=True)
             moved_certs, sent.offered["certificates"], sent.stored["certificates"] = self._send_rows(
-                server, db, "certificates", "rowid", marks.get("certificates", 0), CERTIFICATE_COLUMNS,
+                server, db, "certificates", "rowid", marks.get("certificates", 0), certificate_columns,
                 None, lambda rows: insert(schema.certificates).values(rows).on_conflict_do_nothing(
                     index_elements=["certificate_id"]))
         for name, position in (("points", moved_points), ("events", moved_events),

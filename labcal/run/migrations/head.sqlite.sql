@@ -1,0 +1,142 @@
+CREATE TABLE alembic_version (
+	version_num VARCHAR(32) NOT NULL, 
+	CONSTRAINT alembic_version_pkc PRIMARY KEY (version_num)
+);
+INSERT INTO "alembic_version" VALUES('0007');
+CREATE TABLE approvers (
+	id INTEGER NOT NULL, 
+	name TEXT NOT NULL, 
+	role TEXT NOT NULL, 
+	public_key TEXT NOT NULL, 
+	key_id TEXT NOT NULL, 
+	added_utc TEXT NOT NULL, 
+	revoked_utc TEXT, 
+	PRIMARY KEY (id), 
+	UNIQUE (key_id)
+);
+CREATE TABLE certificates (
+	certificate_id TEXT NOT NULL, 
+	serial TEXT NOT NULL, 
+	calibrated_utc TEXT NOT NULL, 
+	issued_utc TEXT NOT NULL, 
+	sha256 TEXT NOT NULL, 
+	document TEXT NOT NULL, 
+	PRIMARY KEY (certificate_id)
+);
+CREATE TABLE device_estimates (
+	device_id TEXT NOT NULL, 
+	source TEXT NOT NULL, 
+	calibrated_utc TEXT NOT NULL, 
+	stored_utc TEXT NOT NULL, 
+	document TEXT NOT NULL, 
+	PRIMARY KEY (device_id, source)
+);
+CREATE TABLE events (
+	id INTEGER NOT NULL, 
+	run_id INTEGER NOT NULL, 
+	utc TEXT NOT NULL, 
+	station_time FLOAT, 
+	kind TEXT NOT NULL, 
+	message TEXT NOT NULL, 
+	data TEXT, origin_id INTEGER, 
+	PRIMARY KEY (id), 
+	FOREIGN KEY(run_id) REFERENCES runs (id)
+);
+CREATE TABLE points (
+	run_id INTEGER NOT NULL, 
+	seq INTEGER NOT NULL, 
+	replicate INTEGER NOT NULL, 
+	y_deg FLOAT NOT NULL, 
+	u_deg FLOAT NOT NULL, 
+	pitch_deg FLOAT NOT NULL, 
+	roll_deg FLOAT NOT NULL, 
+	pitch_read FLOAT, 
+	roll_read FLOAT, 
+	attempt INTEGER NOT NULL, 
+	status TEXT NOT NULL, 
+	t_start FLOAT, 
+	t_end FLOAT, 
+	utc TEXT NOT NULL, 
+	n_samples INTEGER NOT NULL, 
+	vx FLOAT, 
+	vy FLOAT, 
+	vz FLOAT, 
+	sd_vx FLOAT, 
+	sd_vy FLOAT, 
+	sd_vz FLOAT, 
+	temp_c FLOAT, 
+	settle_s FLOAT, 
+	settle_verdict TEXT, 
+	samples BLOB, 
+	PRIMARY KEY (run_id, seq), 
+	FOREIGN KEY(run_id) REFERENCES runs (id)
+);
+CREATE TABLE run_exports (
+	run_id INTEGER NOT NULL, 
+	name TEXT NOT NULL, 
+	sha256 TEXT NOT NULL, 
+	PRIMARY KEY (run_id, name), 
+	FOREIGN KEY(run_id) REFERENCES runs (id)
+);
+CREATE TABLE runs (
+	id INTEGER NOT NULL, 
+	run_dir TEXT NOT NULL, 
+	plan_name TEXT NOT NULL, 
+	plan_text TEXT NOT NULL, 
+	plan_hash TEXT NOT NULL, 
+	station_text TEXT NOT NULL, 
+	station_hash TEXT NOT NULL, 
+	software_version TEXT NOT NULL, 
+	instrument_serial TEXT, 
+	device_id TEXT, 
+	operator TEXT, 
+	settings TEXT NOT NULL, 
+	metadata TEXT NOT NULL, 
+	started_utc TEXT NOT NULL, 
+	status TEXT NOT NULL, 
+	reason TEXT, 
+	ended_utc TEXT, uuid TEXT, station TEXT, points_total INTEGER, 
+	PRIMARY KEY (id)
+);
+CREATE TABLE settle_pools (
+	pool_key TEXT NOT NULL, 
+	identity TEXT NOT NULL, 
+	records INTEGER NOT NULL, 
+	sources TEXT NOT NULL, 
+	mismatch TEXT NOT NULL, 
+	sums BLOB NOT NULL, 
+	updated_utc TEXT NOT NULL, 
+	PRIMARY KEY (pool_key)
+);
+CREATE TABLE sync_cursors (
+	target TEXT NOT NULL, 
+	name TEXT NOT NULL, 
+	position INTEGER NOT NULL, 
+	PRIMARY KEY (target, name)
+);
+CREATE TABLE sync_runs (
+	target TEXT NOT NULL, 
+	run_id INTEGER NOT NULL, 
+	lab_run_id INTEGER NOT NULL, 
+	sent TEXT NOT NULL, 
+	PRIMARY KEY (target, run_id), 
+	FOREIGN KEY(run_id) REFERENCES runs (id)
+);
+CREATE TABLE users (
+	id INTEGER NOT NULL, 
+	name TEXT NOT NULL, 
+	role TEXT NOT NULL, 
+	password_hash TEXT NOT NULL, 
+	token_hash TEXT NOT NULL, 
+	created_utc TEXT NOT NULL, 
+	disabled_utc TEXT, 
+	PRIMARY KEY (id), 
+	UNIQUE (name), 
+	UNIQUE (token_hash)
+);
+CREATE INDEX certificates_by_serial ON certificates (serial, calibrated_utc);
+CREATE INDEX events_by_run ON events (run_id, id);
+CREATE UNIQUE INDEX runs_by_uuid ON runs (uuid);
+CREATE INDEX device_estimates_by_date ON device_estimates (device_id, calibrated_utc);
+CREATE UNIQUE INDEX approvers_active_name ON approvers (name) WHERE revoked_utc IS NULL;
+CREATE UNIQUE INDEX events_by_origin ON events (run_id, origin_id);
