@@ -11,6 +11,7 @@ test extra (`pip install -e '.[test]'`) and `apt-get install chromium`.
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import shutil
 import sqlite3
@@ -24,8 +25,14 @@ LABCAL = str(Path(sys.executable).with_name("labcal"))
 PASSWORD = "screenshot-only"
 
 
-def labcal(*args: str, **kwargs) -> subprocess.CompletedProcess:
-    return subprocess.run([LABCAL, *args], check=True, capture_output=True, text=True, timeout=300, **kwargs)
+def labcal(*args: str, station: str | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([LABCAL, *args], check=True, capture_output=True, text=True, timeout=300,
+                          env=at(station))
+
+
+def at(station: str | None) -> dict[str, str]:
+    """The environment of a labcal started at ``station`` (its name in the lab database)."""
+    return {**os.environ, **({"LABCAL_STATION": station} if station else {})}
 
 
 def points_of(db: str, run_id: int, at_least: int, within_s: float) -> int:
@@ -58,12 +65,14 @@ def main() -> int:
         base = Path(tmp)
         db = str(base / "lab.sqlite")
         labcal("run", "--sim", "--yes", "--no-report", "--seed", "3", "--serial", "ACC-0042",
-               "--operator", "J. Doe", "--plan", "one-mount-16", "--db", db, "--out", str(base / "done"))
+               "--operator", "J. Doe", "--plan", "one-mount-16", "--db", db, "--out", str(base / "done"),
+               station="bench 1 (east)")
         labcal("user", "add", "A. Metrologist", "--role", "approver", "--password", PASSWORD, "--db", db)
         live = subprocess.Popen([LABCAL, "run", "--sim", "--yes", "--no-report", "--pace", str(args.pace),
                                  "--serial", "ACC-0107", "--operator", "R. Tech", "--db", db,
                                  "--out", str(base / "live")],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                env=at("bench 2 (west)"))
         server = subprocess.Popen([LABCAL, "serve", "--port", "0", "--db", db], stdout=subprocess.PIPE,
                                   text=True)
         try:
