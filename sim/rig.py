@@ -76,6 +76,13 @@ class SimRig:
 
         Exact for an input held constant over each step: x ← u + (x − u)·exp(−dt/τ). While a
         table moves the input is sampled at the midpoints of steps of τ/10.
+
+        The number of steps must not depend on where the rig's clock stands: a 5 s motion is 100
+        steps whether it ends at rig time 1400 s or 2049 s, where (t_still − t0)/(τ/10) rounds to
+        100.0000000000045 and a bare ceil made it 101, a grid whose midpoint-rule error differs by
+        ~3e-11 V in the next window mean; a resumed run, whose clock runs on from another instant,
+        then measured a point otherwise than the uninterrupted run (the soak, point 44). So a
+        quotient within rounding (1e-9 step) of a whole number is that number.
         """
         t0, tau = self._t_filter, self.instrument.tau_s
         if t <= t0:
@@ -83,7 +90,7 @@ class SimRig:
         moving = self.pitch.moving_between(t0, t) or self.roll.moving_between(t0, t)
         if moving:
             t_still = min(t, max(self.pitch.motion_end, self.roll.motion_end))
-            n = max(1, math.ceil((t_still - t0) / (tau / 10)))
+            n = max(1, math.ceil((t_still - t0) / (tau / 10) - 1e-9))  # not the clock's rounding
             edges = np.linspace(t0, t_still, n + 1)
             mids = 0.5 * (edges[:-1] + edges[1:])
             inputs = self.true_gravity(self.pitch.angle_at(mids), self.roll.angle_at(mids))

@@ -104,3 +104,34 @@ def test_noisy_four_mount_run_recovers_a_non_ideal_truth(tmp_path):
     assert np.all(np.abs(z) < 3), z
     # the noise model is honest too: S_E ≈ 50 µV/√10 per averaged point
     assert np.allclose(fit.ls.residual_se, 50e-6 / math.sqrt(10), rtol=0.25)
+
+
+def test_a_move_is_integrated_alike_wherever_the_rigs_clock_stands():
+    """The same move, the same readings, whatever rig time it starts at: a resumed run's clock runs
+    on from another instant than the uninterrupted run's, and the soak compares their readings.
+
+    At rig time 2044.4635931025139 s (where the soak's resumed segment began point 44's move) a 5 s
+    motion's (t_still − t0)/(τ/10) rounds to 100.00000000000455, and a bare ceil integrated it in 101
+    steps instead of 100: 7e-8 V one second after the motion here. Otherwise only the rounding of rig
+    times differs: below 8192 s (a soaked 64-point run's clock stays below it) an ulp is at most
+    1.8e-12 s; times the output's rate one second after a 90° move (the transient, ≲ 0.1 V/s by
+    then) that is ~2e-13 V, so 1e-12 V is allowed. The reference is the same rig at rig time 0,
+    where every quotient is exact; 200 other instants of the same range besides."""
+    config = RigConfig(instrument=InstrumentTruth(noise_v=2e-5, tau_s=0.5), lab_temp_swing_c=0.0)
+
+    def reading(start: float) -> np.ndarray:
+        clock = VirtualClock(start)
+        rig = SimRig(config, seed=11, clock=clock)
+        rig.pitch.place(90.0)
+        rig.roll.place(90.0)
+        rig.set_mount(Mount(0, 180))
+        rig.pitch.move_to(180.0, travel_deg=90.0)  # the soak's move to its point 44
+        rig.roll.move_to(0.0, travel_deg=-90.0)
+        clock.advance_to(rig.pitch.motion_end + 1.0)
+        rig.at_point("44")
+        return rig.read(10).volts
+
+    reference = reading(0.0)
+    starts = [2044.4635931025139, *np.random.default_rng(44).uniform(1.0, 8000.0, 200)]
+    worst = max(float(np.abs(reading(s) - reference).max()) for s in starts)
+    assert worst <= 1e-12, worst
