@@ -14,6 +14,22 @@ from labcal.config.emulation import InstrumentTruth
 from labcal.sim.direct import simulate_readings
 
 
+@pytest.fixture(scope="session", autouse=True)
+def neutral_folder(tmp_path_factory):
+    """Module and session fixtures (which start before `lab_database` below) work in a folder of
+    their own too: a `python -m labcal.cli` they start from the checkout would import the source
+    tree's labcal/ rather than the installed one."""
+    if "MUTANT_UNDER_TEST" in os.environ:  # mutmut reads its configuration from the checkout
+        yield
+        return
+    before = os.getcwd()
+    os.chdir(tmp_path_factory.mktemp("cwd"))
+    try:
+        yield
+    finally:
+        os.chdir(before)
+
+
 @pytest.fixture(autouse=True)
 def lab_database(tmp_path, monkeypatch):
     """Every test (and every labcal it starts) journals into its own database, never runs/."""

@@ -609,16 +609,17 @@ def test_exchanges_are_critical_sections_of_a_run(smc):
 
     emulation, bench = smc
     entered: list[int] = []
+    waits: list[int] = []  # the waits for a reply, which a stop may cut short (issue 22)
 
     @contextmanager
-    def section():
-        entered.append(len(emulation.faults["pitch"].recent))
+    def section(awaiting_reply: bool = False):
+        (waits if awaiting_reply else entered).append(len(emulation.faults["pitch"].recent))
         yield
 
     bench.pitch.link.critical = section
     try:
         assert bench.pitch.ask("VA?") == "20"  # the emulator's power-up speed
-        assert len(entered) == 1
+        assert len(entered) == 1 and len(waits) >= 1
         bench.pitch.do("VA10")
         assert len(entered) == 2
     finally:
