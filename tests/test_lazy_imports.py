@@ -30,7 +30,8 @@ def imported_by(*argv: str, among: tuple[str, ...] = HEAVY) -> list[str]:
     code = PROBE.replace("ARGS", repr(list(argv))).replace("HEAVY", repr(among))
     # not measured by coverage.py (CI's `patch = subprocess` starts it in every Python process it
     # sees, and it imports dataclasses, tomllib and inspect itself)
-    env = {k: v for k, v in os.environ.items() if k not in ("COVERAGE_PROCESS_CONFIG", "COVERAGE_PROCESS_START")}
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("COVERAGE_PROCESS_CONFIG", "COVERAGE_PROCESS_START")}
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
                           check=True, env=env)
     return json.loads(proc.stderr.strip().splitlines()[-1])
