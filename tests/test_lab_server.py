@@ -154,6 +154,16 @@ def test_user_add_prints_the_token_alone_on_its_line_and_refuses_an_empty_passwo
     assert "fay" not in {u["name"] for u in listed} and {"eve", "ada"} <= {u["name"] for u in listed}
 
 
+
+def test_a_user_refused_creates_no_lab_database(tmp_path):
+    """`user add` may create the lab database, but not for a request it refuses."""
+    db = tmp_path / "new.sqlite"
+    for name, role, password in (("", "viewer", "pw"), ("hal", "boss", "pw"), ("hal", "viewer", "")):
+        done = labcal("user", "add", name, "--role", role, "--password", password, "--db", str(db))
+        assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+        assert not db.exists(), (name, role, password)
+
+
 def test_a_disabled_user_is_out(lab):
     token = lab["tokens"]["dan"]
     assert _get(lab, "/api/runs", token).status_code == 200
@@ -271,7 +281,10 @@ def test_serve_refuses_a_key_it_cannot_sign_with_and_a_port_in_use(lab, tmp_path
     key.chmod(0o600)
     for args, why in ((["--key", str(tmp_path / "absent.key")], "no such private key"),
                       (["--key", str(key)], "not an unencrypted PEM private key"),
-                      (["--port", lab["url"].rsplit(":", 1)[1]], "cannot listen there")):
+                      (["--port", lab["url"].rsplit(":", 1)[1]], "cannot listen there"),
+                      (["--port", "99999"], "argument --port: 99999 is out of range"),
+                      (["--poll", "0"], "argument --poll: 0 is out of range"),
+                      (["--host", "no-such-host.invalid"], "no-such-host.invalid:8024: cannot listen there")):
         done = labcal("serve", "--db", lab["db"], *args)
         assert done.returncode == 2 and done.stdout == "", done.stderr
         assert len(done.stderr.strip().splitlines()) == 1 and why in done.stderr

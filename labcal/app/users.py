@@ -95,6 +95,13 @@ class AddUser:
     role: str  # one of ROLES
     password: str  # for the web login (never stored: its argon2id hash is)
 
+    def __post_init__(self) -> None:
+        """Refused when made, before any database is opened (or created)."""
+        _valid_name(self.name)
+        _valid_role(self.role)
+        if not self.password:
+            raise LabcalError("the password may not be empty")
+
 
 @dataclass(frozen=True)
 class AddedUser:
@@ -105,8 +112,6 @@ class AddedUser:
 def add(lab: LabDatabase, request: AddUser) -> AddedUser:
     """Add the user; returns them with their API token, which is not kept and cannot be shown again."""
     name, role, password = _valid_name(request.name), _valid_role(request.role), request.password
-    if not password:
-        raise LabcalError("the password may not be empty")
     token = secrets.token_urlsafe(32)  # 32 random bytes
     row = {"name": name, "role": role, "password_hash": _hasher().hash(password),
            "token_hash": token_hash(token), "created_utc": _now(), "disabled_utc": None}

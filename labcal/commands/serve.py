@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from labcal.commands.common import EXIT_USER_ERROR, err
+from labcal.commands.common import EXIT_USER_ERROR, bounded, err
 
 LAB_EXTRA = "pip install 'labcal[lab]'"
 
@@ -37,7 +37,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1: this machine only; 0.0.0.0: the lab's "
                         "network)")
-    p.add_argument("--port", type=int, default=8024, help="port (default 8024; 0: any free port, printed)")
+    p.add_argument("--port", type=bounded(int, 0, 65535), default=8024,
+                   help="port (default 8024; 0: any free port, printed)")
     p.add_argument("--db", default=None, metavar="URL",
                    help="the lab database: a path, sqlite:///PATH or postgresql://USER@HOST:PORT/DB "
                         "(default $LABCAL_DB, else the lab file's)")
@@ -46,6 +47,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "registered with `labcal certificate approvers add \"lab server\" --role \"lab "
                         "server\"` (signs for every approver) or under one approver's name (signs for them "
                         "only)")
-    p.add_argument("--poll", type=float, default=0.5, metavar="S",
+    p.add_argument("--poll", type=bounded(float, 0.05, 60), default=0.5, metavar="S",
                    help="how often the live streams look for new readings (seconds, default 0.5)")
     p.set_defaults(func=cmd_serve)

@@ -39,10 +39,10 @@ def _password(given: str | None) -> str:
 def cmd_add(args: argparse.Namespace) -> int:
     from labcal.app import users
 
-    password = _password(args.password)  # before the database is touched
+    request = users.AddUser(args.name, args.role, _password(args.password))  # before the database is touched
     lab = _lab(args.db, create=True)
     try:
-        added = users.add(lab, users.AddUser(args.name, args.role, password))
+        added = users.add(lab, request)
     finally:
         lab.close()
     user, token = added.user, added.token
