@@ -61,18 +61,14 @@ from typing import Any
 
 import httpx
 import numpy as np
-import psycopg
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
+from lab_readings import journal_points, server_points  # noqa: E402  (sqlite3 and psycopg, not labcal)
 from services import Cluster  # noqa: E402  (the test suite's private PostgreSQL)
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 ENV = {k: v for k, v in os.environ.items() if not k.startswith("LABCAL_")}
-# Every column of a point (the journal's names on both sides), compared value by value.
-POINT_COLUMNS = ("seq", "replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", "pitch_read", "roll_read",
-                 "attempt", "status", "t_start", "t_end", "utc", "n_samples", "vx", "vy", "vz", "sd_vx",
-                 "sd_vy", "sd_vz", "temp_c", "settle_s", "settle_verdict", "samples")
 
 FLOOR_SERVER = r"""
 import sys
@@ -259,24 +255,6 @@ async def poll(url: str, floor: str, token: str, stations: list[subprocess.Popen
             task.cancel()
         await asyncio.gather(*streams.values(), return_exceptions=True)
     return lab, bare, streamed, all_done
-
-
-def journal_points(journal: Path) -> dict[tuple[str, int], tuple]:
-    """Every point of a station's journal by (run uuid, seq): sqlite3 only."""
-    with closing(sqlite3.connect(journal)) as db:
-        rows = db.execute(f"SELECT r.uuid, {', '.join('p.' + c for c in POINT_COLUMNS)} FROM points p "
-                          "JOIN runs r ON r.id = p.run_id").fetchall()
-    return {(row[0], row[1]): tuple(bytes(v) if isinstance(v, (bytes, memoryview)) else v for v in row[1:])
-            for row in rows}
-
-
-def server_points(url: str) -> list[tuple]:
-    """Every point in PostgreSQL with its run's uuid, duplicates kept (they are what is counted)."""
-    with psycopg.connect(url) as conn:
-        rows = conn.execute(f"SELECT r.uuid, {', '.join('p.' + c for c in POINT_COLUMNS)} FROM points p "
-                            "JOIN runs r ON r.id = p.run_id").fetchall()
-    return [(row[0], *(bytes(v) if isinstance(v, (bytes, memoryview)) else v for v in row[1:]))
-            for row in rows]
 
 
 def readings(url: str, journals: list[Path]) -> dict[str, int]:

@@ -20,12 +20,10 @@ from pathlib import Path
 
 import psycopg
 import pytest
+from lab_readings import journal_points, server_points
 from services import free_port
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
-POINT_COLUMNS = ("seq", "replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", "pitch_read", "roll_read",
-                 "attempt", "status", "t_start", "t_end", "utc", "n_samples", "vx", "vy", "vz", "sd_vx",
-                 "sd_vy", "sd_vz", "temp_c", "settle_s", "settle_verdict", "samples")
 MOUNT_POINTS = 16  # four-mount-64 (the default plan): 4 mounts × 16 points = 64, one replicate
 MOUNTS = 4
 CERTIFICATE = "certificate_id, serial, calibrated_utc, issued_utc, sha256, document"
@@ -42,24 +40,6 @@ def env_for(tmp_path: Path, url: str, station: str) -> dict[str, str]:
 def lab_file(tmp_path: Path) -> Path:
     (tmp_path / "lab.toml").write_text("")
     return tmp_path / "lab.toml"
-
-
-def journal_points(journal: Path) -> dict[tuple[str, int], tuple]:
-    """Every point of a station's journal, keyed by (run uuid, seq): sqlite3 only."""
-    with closing(sqlite3.connect(journal)) as db:
-        rows = db.execute(f"SELECT r.uuid, {', '.join('p.' + c for c in POINT_COLUMNS)} FROM points p "
-                          "JOIN runs r ON r.id = p.run_id").fetchall()
-    return {(row[0], row[1]): tuple(bytes(v) if isinstance(v, (bytes, memoryview)) else v for v in row[1:])
-            for row in rows}
-
-
-def server_points(url: str) -> list[tuple]:
-    """Every point on the server, with its run's uuid (duplicates kept: they are what we count)."""
-    with psycopg.connect(url) as conn:
-        rows = conn.execute(f"SELECT r.uuid, {', '.join('p.' + c for c in POINT_COLUMNS)} FROM points p "
-                            "JOIN runs r ON r.id = p.run_id").fetchall()
-    return [(row[0], *(bytes(v) if isinstance(v, (bytes, memoryview)) else v for v in row[1:]))
-            for row in rows]
 
 
 def assert_exactly_once(url: str, journals: list[Path]) -> int:
