@@ -33,6 +33,17 @@ def add_user(db: str, name: str, role: str, password: str) -> str:
     return json.loads(printed.getvalue())["token"]
 
 
+def ctrl_c(process: subprocess.Popen, timeout_s: float) -> None:
+    """Stop a labcal process as a user would (Ctrl-C; nothing if it has ended), killed if it has not
+    ended within ``timeout_s``."""
+    process.send_signal(signal.SIGINT)  # nothing once it has ended (Popen knows)
+    try:
+        process.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.communicate()
+
+
 @contextmanager
 def served(db: str, *extra: str) -> Iterator[str]:
     """`labcal serve --port 0` on ``db``; yields its URL, stops it (Ctrl-C) at the end."""
@@ -45,12 +56,7 @@ def served(db: str, *extra: str) -> Iterator[str]:
         assert found, f"labcal serve printed {line!r}; stderr: {server.stderr and server.stderr.read()}"
         yield found[0]
     finally:
-        server.send_signal(signal.SIGINT)
-        try:
-            server.communicate(timeout=15)
-        except subprocess.TimeoutExpired:
-            server.kill()
-            server.communicate()
+        ctrl_c(server, 15)
 
 
 @contextmanager
@@ -63,13 +69,7 @@ def paced_run(db: str, out: Path, pace: float, plan: str = "one-mount-16", seria
     try:
         yield run
     finally:
-        if run.poll() is None:
-            run.send_signal(signal.SIGINT)
-            try:
-                run.communicate(timeout=20)
-            except subprocess.TimeoutExpired:
-                run.kill()
-                run.communicate()
+        ctrl_c(run, 20)
 
 
 def wait_for(condition: Callable[[], object], timeout_s: float, what: str, every_s: float = 0.2) -> object:
