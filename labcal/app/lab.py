@@ -324,22 +324,35 @@ def next_batch(lab: LabDatabase, request: NextBatch) -> Batch:
     status, first = request.status, request.first
     items: list[StreamItem] = []
     with lab.engine.connect() as conn:
-        for point in _run_points(conn, request.run_id, seq, BATCH):
-            seq = point["seq"]
-            items.append(StreamItem("point", point, Cursor(seq, event_id)))
-        for event in _run_events(conn, request.run_id, event_id, BATCH):
-            event_id = event["id"]
-            items.append(StreamItem(event["kind"], event, Cursor(seq, event_id)))
-        now = _progress(conn, request.run_id)
+        for _ in range(3):  # until the progress is read from nothing newer than the items carry
+            for point in _run_points(conn, request.run_id, seq, BATCH):
+                seq = point["seq"]
+                items.append(StreamItem("point", point, Cursor(seq, event_id)))
+            for event in _run_events(conn, request.run_id, event_id, BATCH):
+                event_id = event["id"]
+                items.append(StreamItem(event["kind"], event, Cursor(seq, event_id)))
+            now = _progress(conn, request.run_id)
+            # Rows are only ever added: if none lies beyond the cursor now, none did while the
+            # progress was read, so it states exactly what the reader has been sent.
+            consistent = _newest(conn, request.run_id) == (seq, event_id)
+            if consistent:
+                break
     cursor = Cursor(seq, event_id)
     if now is not None and now["status"] != status:
         if status is not None:
             items.append(StreamItem("run", {"status": now["status"], "reason": now["reason"]}, cursor))
         status = now["status"]
         first = True
-    if now is not None and (items or first):
+    if now is not None and consistent and (items or first):  # else the next batch carries it
         items.append(StreamItem("progress", now, cursor))
     return Batch(tuple(items), cursor, status)
+
+
+def _newest(conn: Connection, run_id: int) -> tuple[int, int]:
+    """The run's last journaled point's seq and last event's id (-1 and 0 when none: a new cursor)."""
+    seq = conn.execute(select(func.max(points.c.seq)).where(points.c.run_id == run_id)).scalar()
+    event_id = conn.execute(select(func.max(events.c.id)).where(events.c.run_id == run_id)).scalar()
+    return (-1 if seq is None else int(seq), 0 if event_id is None else int(event_id))
 
 
 def run_folder(lab: LabDatabase, run_id: int) -> str | None:
