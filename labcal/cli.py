@@ -6,28 +6,11 @@ import argparse
 import os
 import re
 import sys
+from collections.abc import Collection
+from importlib import import_module
 from typing import NoReturn
 
-from labcal.commands import (
-    attitude,
-    certificate,
-    config,
-    db,
-    device,
-    export,
-    fit,
-    history,
-    plan,
-    report,
-    run,
-    runs,
-    serve,
-    sim,
-    simulate,
-    station,
-    sync,
-    user,
-)
+from labcal.commands import COMMANDS
 from labcal.commands.common import EXIT_INTERRUPTED, EXIT_USER_ERROR, err
 from labcal.commands.logfile import add_log_options, logging_to
 from labcal.errors import LabcalError
@@ -37,9 +20,6 @@ from labcal.errors import LabcalError
 # 2.5× slower in its checks. Read by OpenBLAS when numpy loads, which no import above does; the
 # environment still wins.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-
-COMMAND_GROUPS = (run, fit, simulate, plan, attitude, report, history, runs, device, station, sim, export,
-                  config, certificate, db, sync, serve, user)
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -63,7 +43,10 @@ class _Version(argparse.Action):
         parser.exit(message=f"labcal {__version__}\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: Collection[str] | None = None) -> argparse.ArgumentParser:
+    """The command line. With ``only`` (the words of the command line), only the commands named
+    there are built, with their modules imported; every other one is listed by its name and help,
+    which is all `labcal --help` shows of it (`labcal.commands.COMMANDS`)."""
     parser = OneLineParser(
         prog="labcal", formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Calibrate three-axis accelerometer attitude instruments on a two-axis "
@@ -73,8 +56,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action=_Version)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for group in COMMAND_GROUPS:
-        group.register(sub)
+    wanted = None if only is None else {COMMANDS[word][0] for word in only if word in COMMANDS}
+    added: set[str] = set()
+    for name, (module, summary) in COMMANDS.items():
+        if wanted is not None and module not in wanted:
+            sub.add_parser(name, help=summary, add_help=False)  # listed; never parsed, as not named
+        elif module not in added:
+            import_module(f"labcal.commands.{module}").register(sub)
+            added.add(module)
     add_log_options(parser)
     return parser
 
@@ -108,9 +97,10 @@ EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE, what a shell reports for a writer whose
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
+    parser = build_parser(only=set(argv))  # a word that names a command is the command, or harmless
     try:
-        args = parser.parse_args(_attach_negative_lists(parser, sys.argv[1:] if argv is None else argv))
+        args = parser.parse_args(_attach_negative_lists(parser, argv))
     except SystemExit as exc:  # --help, --version, or a wrong option (its one line is printed)
         return exc.code if isinstance(exc.code, int) else EXIT_USER_ERROR
     try:

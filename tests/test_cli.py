@@ -127,6 +127,19 @@ def test_every_command_and_sub_command_has_help():
         assert "-h, --help" in done.stdout and done.stderr == "", (path, done.stderr)
 
 
+def test_help_lists_exactly_what_the_whole_command_line_has():
+    """`labcal --help` builds no command's parser (it lists them from `labcal.commands.COMMANDS`):
+    its text is the same as the whole command line's, command for command, and a command named on
+    the line gets its whole parser however it is placed there."""
+    whole = build_parser()
+    listed = build_parser(only={"--help"})
+    assert listed.format_help() == whole.format_help()
+    sub = next(a for a in whole._actions if isinstance(a, argparse._SubParsersAction))
+    assert len(sub.choices) == 20  # counted by hand in the help text above
+    assert build_parser(only={"--log-level", "debug", "log"}).parse_args(
+        ["--log-level", "debug", "log", "7", "--json"]).json is True
+
+
 # --- bad input: one line, exit 2, no traceback -------------------------------------------
 READINGS_HEADER = ",".join(CONTRACT)
 GOOD_ROW = "1,0,0,0,0,0.1,0.2,1.0"

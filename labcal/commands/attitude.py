@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     import numpy as np
 
+from labcal.commands import summary
 from labcal.commands.common import add_db_option, keep_freed_memory, outcome_of_checks
 
 CHUNK_ROWS = 10_000  # rows formatted and written at a time: output memory stays flat
@@ -132,7 +133,7 @@ def write_json_rows(table: dict[str, np.ndarray], methods: list[str], dof: int, 
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("attitude", help="pitch and roll with uncertainty from voltages",
+    p = sub.add_parser("attitude", help=summary("attitude"),
                        description="Convert voltages (CSV columns vx,vy,vz) to pitch and roll using a "
                                    "calibration: Soto's closed form (eqs. 5–7) and weighted least squares "
                                    "on the unit sphere (Tripp eqs. 99–104), each with standard "

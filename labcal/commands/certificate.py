@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 
+from labcal.commands import summary
 from labcal.commands.common import add_db_option, out, print_json
 
 
@@ -106,7 +107,7 @@ APPROVE_HELP = ("Sign RUN_DIR/certificate.json and its DCC, regenerate the repor
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("certificate", help="approve (sign) a certificate, verify a signature, make keys",
+    p = sub.add_parser("certificate", help=summary("certificate"),
                        description="An issued certificate is a DRAFT until approved: `approve` signs it with "
                                    "the approver's Ed25519 private key; `verify` checks a certificate.json "
                                    "against the laboratory's public key and fails on any change.")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from labcal.commands import summary
 from labcal.commands.common import out, print_json
 
 
@@ -47,7 +48,7 @@ def cmd_show(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("config", help="the lab-wide configuration file: where it is and what it says",
+    p = sub.add_parser("config", help=summary("config"),
                        description="The lab file holds the lab database's location, the laboratory's name, "
                                    "address and accreditation, and the certificates' default tolerances and "
                                    "usage envelope. It is $LABCAL_CONFIG, else lab.toml in the user's "

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 
+from labcal.commands import summary
 from labcal.commands.common import add_db_option, out, print_json
 
 
@@ -49,7 +50,7 @@ def cmd_db_status(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("db", help="the lab database's schema: its revision, and upgrading it")
+    p = sub.add_parser("db", help=summary("db"))
     actions = p.add_subparsers(dest="db_command", required=True, metavar="ACTION")
     up = actions.add_parser("upgrade", help="bring the lab database to this labcal's schema (a SQLite file "
                                             "is copied beside itself first; all steps or none)")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from labcal.commands import summary
 from labcal.commands.common import add_db_option, print_history, print_json
 
 
@@ -19,7 +20,7 @@ def cmd_history(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    device = sub.add_parser("device", help="the calibration device's own history",
+    device = sub.add_parser("device", help=summary("device"),
                             description="What every calibration has measured of the calibration device "
                                         "itself: its misalignments a, b, d, e, f, k (Soto Table 1).")
     actions = device.add_subparsers(dest="device_command", required=True, metavar="ACTION")

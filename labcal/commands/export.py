@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from labcal.commands import summary
 from labcal.commands.common import add_db_option, err, print_json
 
 
@@ -29,7 +30,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("export", help="rebuild a run folder from the journal, or copy it elsewhere (--out)",
+    p = sub.add_parser("export", help=summary("export"),
                        description="Check a run folder against the journal and rewrite every file that is "
                                    "missing, out of date or edited (an edited one is kept as NAME.edited): "
                                    "plan.toml, readings.csv, fit.json, run.json. Given a run id, recreates "

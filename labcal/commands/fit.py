@@ -6,6 +6,7 @@ import argparse
 import math
 from typing import TYPE_CHECKING
 
+from labcal.commands import summary
 from labcal.commands.common import bounded, keep_freed_memory, out, outcome_of_checks, print_json
 from labcal.errors import LabcalError
 
@@ -270,7 +271,7 @@ def _units(text: str) -> str:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("fit", help="fit calibration coefficients to a readings CSV",
+    p = sub.add_parser("fit", help=summary("fit"),
                        description="Least-squares fit of V = B + gᵀS on the nominal gravity "
                                    "(Soto eqs. 13–21) with standard errors, full covariance, replicated-"
                                    "calibration analysis (Tripp & Tcheng §8) and, on request, the coning "

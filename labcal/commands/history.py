@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from labcal.commands import summary
 from labcal.commands.common import add_db_option, out, print_history, print_json
 
 
@@ -18,7 +19,7 @@ def cmd_history(args: argparse.Namespace) -> int:
     print_history(history)
     return 0
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("history", help="an instrument's coefficients over time, drift flagged",
+    p = sub.add_parser("history", help=summary("history"),
                        description="Every certificate of an instrument from the lab's database, "
                                    "oldest first: each coefficient with its expanded uncertainty, and a flag "
                                    "wherever it changed between consecutive calibrations by more than the "

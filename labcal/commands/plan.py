@@ -6,6 +6,7 @@ import argparse
 import sys
 from typing import TYPE_CHECKING
 
+from labcal.commands import summary
 from labcal.commands.common import add_db_option, bounded, bounded_field, err, out, print_json
 from labcal.errors import LabcalError
 
@@ -239,7 +240,7 @@ def angle_list(text: str) -> list[float]:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    plan = sub.add_parser("plan", help="list, show and design calibration plans",
+    plan = sub.add_parser("plan", help=summary("plan"),
                           description="Calibration plans shipped with labcal or in your own files; "
                                       "experimental designs (Tripp & Tcheng §4, §7) and their audit.")
     actions = plan.add_subparsers(dest="plan_command", required=True, metavar="ACTION")

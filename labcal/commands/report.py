@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING
 
+from labcal.commands import summary
 from labcal.commands.common import add_db_option, bounded, err, out, print_json
 
 if TYPE_CHECKING:
@@ -69,7 +70,7 @@ def _day(text: str):
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("report", help="certificate and report of a finished run; stores it in the history",
+    p = sub.add_parser("report", help=summary("report"),
                        description="Regenerate certificate.json, report.html (self-contained) and report.pdf "
                                    "in a run directory from its readings, plan and run record, and store the "
                                    "certificate in the lab's database. Tolerances come from the command line "

@@ -7,6 +7,7 @@ import argparse
 from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
 
+from labcal.commands import summary
 from labcal.commands.common import (
     EXIT_INTERRUPTED,
     EXIT_STOPPED,
@@ -195,7 +196,7 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("run", help="run a calibration (on the simulated rig with --sim, or on a --station)",
+    p = sub.add_parser("run", help=summary("run"),
                        description="Run a calibration plan: check every angle against the limits, move the "
                                    "tables, prompt for each remount and verify it, settle, record every "
                                    "point in the journal, fit the coefficients. Ctrl-C once pauses after "
@@ -243,7 +244,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     _common(p)
     p.set_defaults(func=cmd_run)
 
-    r = sub.add_parser("resume", help="continue an interrupted run where it stopped",
+    r = sub.add_parser("resume", help=summary("resume"),
                        description="Continue a run after Ctrl-C, a fault, a killed process or a power cut: "
                                    "checks the plan hash and the station, asks to confirm the mount, and "
                                    "goes on at the first point not in the journal.")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 
 from labcal.app import STATUSES
+from labcal.commands import summary
 from labcal.commands.common import add_db_option, out, print_json
 
 
@@ -74,7 +75,7 @@ def _message(event: dict) -> str:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("runs", help="list the lab's runs (id, instrument, plan, status, start, points)",
+    p = sub.add_parser("runs", help=summary("runs"),
                        description="Every run journaled in the lab's database, oldest first: id, "
                                    "instrument, plan, status, start, points committed, operator.")
     p.add_argument("--serial", metavar="SERIAL", help="only this instrument's runs")
@@ -84,7 +85,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print as JSON on stdout")
     p.set_defaults(func=cmd_runs)
 
-    p = sub.add_parser("log", help="a run's journaled events: prompts, answers, retries, faults, pauses",
+    p = sub.add_parser("log", help=summary("log"),
                        description="The events journaled during a run, in order, with their UTC time and "
                                    "the rig's clock: prompts and answers, retries, faults, pauses, resumes.")
     p.add_argument("run", metavar="RUN", help="run id (see labcal runs) or run directory")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from labcal.commands import summary
 from labcal.commands.common import EXIT_USER_ERROR, bounded, err
 
 LAB_EXTRA = "pip install 'labcal[lab]'"
@@ -29,7 +30,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("serve", help="the lab server: every station's runs live, the API, approvals",
+    p = sub.add_parser("serve", help=summary("serve"),
                        description="Serve the lab database over HTTP: pages (sign in with a user of `labcal "
                                    "user add`), a JSON API (Authorization: Bearer TOKEN) and live event "
                                    "streams of the runs. Reads the lab database only; approving signs with "

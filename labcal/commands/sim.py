@@ -11,6 +11,7 @@ import argparse
 import signal
 import sys
 
+from labcal.commands import summary
 from labcal.commands.common import SEED, TIME_SCALE, TIME_SCALE_HELP, err, out, print_json
 
 HELP = ("commands: mount Y U | fault DEVICE KIND [COUNT] (KIND: no-reply, late-reply, garbled, truncated, "
@@ -86,7 +87,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("sim", help="protocol emulators of a station's devices",
+    p = sub.add_parser("sim", help=summary("sim"),
                        description="Emulators of the station's tables and DMM that speak the real protocols.")
     sim_sub = p.add_subparsers(dest="sim_command", required=True, metavar="SUBCOMMAND")
     serve = sim_sub.add_parser(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING
 
+from labcal.commands import summary
 from labcal.commands.common import SEED, bounded, err, print_json
 from labcal.errors import LabcalError
 
@@ -76,7 +77,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("simulate", help="write readings straight from a plan and a truth",
+    p = sub.add_parser("simulate", help=summary("simulate"),
                        description="Readings from a plan and a known truth, no sequencer: exact "
                                    "with --noise 0 and no index/wobble errors.")
     p.add_argument("--plan", default="four-mount-64", help="plan name or .toml file")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from contextlib import ExitStack
 
+from labcal.commands import summary
 from labcal.commands.common import (
     TIME_SCALE,
     TIME_SCALE_HELP,
@@ -106,7 +107,7 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("station", help="example stations; check that a station's devices answer",
+    p = sub.add_parser("station", help=summary("station"),
                        description="Station files say which driver runs each table and the DMM, on which "
                                    "port, with which settings (see `labcal station list`).")
     station_sub = p.add_subparsers(dest="station_command", required=True, metavar="SUBCOMMAND")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 
+from labcal.commands import summary
 from labcal.commands.common import add_db_option, out, print_json
 
 
@@ -56,7 +57,7 @@ def said(args: argparse.Namespace, doc: dict, line: str) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("sync", help="send this station's journal to the lab's PostgreSQL database now")
+    p = sub.add_parser("sync", help=summary("sync"))
     add_db_option(p)
     p.add_argument("--json", action="store_true", help="print what was sent as JSON on stdout")
     p.set_defaults(func=cmd_sync)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from labcal.commands import summary
 from labcal.commands.common import out, print_json
 from labcal.errors import LabcalError
 
@@ -90,7 +91,7 @@ def cmd_disable(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("user", help="the lab server's users: add, list, disable",
+    p = sub.add_parser("user", help=summary("user"),
                        description="Users of the lab server (`labcal serve`): a viewer reads, a technician "
                                    "reads, an approver also approves certificates. Each has a password for "
                                    "the web login and an API token; both are stored only as hashes.")
