@@ -68,7 +68,11 @@ def _certified_residuals(cert, record) -> np.ndarray:
 
 
 def _labelled(ax) -> None:
-    labels = [ax.get_xlabel(), ax.get_ylabel()] + ([ax.get_zlabel()] if hasattr(ax, "get_zlabel") else [])
+    """Every axis labelled with its unit; an x axis shared with the panel below (its ticks shown
+    only there) is labelled there instead."""
+    shown_x = any(t.get_visible() and t.get_text() for t in ax.get_xticklabels())
+    labels = [ax.get_ylabel()] + ([ax.get_xlabel()] if shown_x else []) + \
+        ([ax.get_zlabel()] if hasattr(ax, "get_zlabel") else [])
     for label in labels:
         assert re.search(r"\(.+\)", label), f"axis label {label!r} has no unit"
 

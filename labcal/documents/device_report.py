@@ -67,7 +67,7 @@ def residuals_side_by_side(fit: DeviceFit, record: RunRecord) -> Figure:
 
     fig = Figure(figsize=(11, 10))
     fig.subplots_adjust(left=0.08, right=0.98, top=0.92, bottom=0.06, hspace=0.42, wspace=0.25)
-    axes = fig.subplots(3, 4, squeeze=False)
+    axes = fig.subplots(3, 4, squeeze=False, sharex="col", sharey="row")  # ticks once per column and row
     models = (("linear", fit.linear.ls.residuals), ("device", fit.residuals))
     for j, sensor in enumerate(SENSORS):
         for col, ((name, resid), (angle, label)) in enumerate(
@@ -76,11 +76,11 @@ def residuals_side_by_side(fit: DeviceFit, record: RunRecord) -> Figure:
             ax.plot(angle, resid[:, j] * 1e6, "o", ms=3)
             ax.axhline(0.0, color="k", lw=0.6)
             ax.set_title(f"{sensor}: {name} model vs {label}", fontsize=9, y=TITLE_Y)
-            ax.set_xlabel(f"table {label} (°)")
+            if j == len(SENSORS) - 1:
+                ax.set_xlabel(f"table {label} (°)")
             ax.grid(alpha=0.3)
         axes[j, 0].set_ylabel(f"residual v_{sensor} (µV)")
         lim = np.max(np.abs(fit.linear.ls.residuals[:, j])) * 1.1e6
-        for ax in axes[j]:
-            ax.set_ylim(-lim, lim)
+        axes[j, 0].set_ylim(-lim, lim)  # the row's
     fig.suptitle("Residuals of the linear model and of the device model (same scale per sensor)")
     return fig

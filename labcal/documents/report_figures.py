@@ -110,7 +110,7 @@ def residual_figure(fit: Fit, record: RunRecord, device: DeviceFit | None = None
     name, equation, resid = certified_residuals(fit, device)
     fig = Figure(figsize=(11, 10))
     fig.subplots_adjust(left=0.08, right=0.98, top=0.90, bottom=0.06, hspace=0.42, wspace=0.22)
-    axes = fig.subplots(3, 2, squeeze=False)
+    axes = fig.subplots(3, 2, squeeze=False, sharex="col")  # the angle's ticks once, under each column
     rms = np.sqrt(np.mean(resid**2, axis=0))
     for col, (angle, label) in enumerate(((r.pitch_deg, "pitch α"), (r.roll_deg, "roll R"))):
         dense = np.linspace(angle.min(), angle.max(), 361)
@@ -125,7 +125,8 @@ def residual_figure(fit: Fit, record: RunRecord, device: DeviceFit | None = None
             for (mount, mask), colour in zip(_mount_masks(record), MOUNT_COLOURS, strict=False):
                 ax.plot(angle[mask], resid[mask, j] * factor, "o", ms=4, color=colour, label=f"mount {mount}")
             ax.axhline(0.0, color="k", lw=0.6)
-            ax.set_xlabel(f"table {label} (°)")
+            if j == len(SENSORS) - 1:
+                ax.set_xlabel(f"table {label} (°)")
             ax.set_ylabel(f"residual v_{sensor} − v̂_{sensor} ({unit})")
             ax.set_title(f"sensor {sensor}: residuals against {label.split()[0]}; RMS "
                          f"{in_volts(float(rms[j]), r.units)}", y=TITLE_Y)
