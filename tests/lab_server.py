@@ -72,6 +72,28 @@ def paced_run(db: str, out: Path, pace: float, plan: str = "one-mount-16", seria
         ctrl_c(run, 20)
 
 
+WCAG = {"runOnly": {"type": "tag", "values": ["wcag2a", "wcag2aa", "wcag21a", "wcag21aa"]},
+        "resultTypes": ["violations"]}
+
+
+def valid_html(text: str, where: str) -> None:
+    """The HTML as the server sent it, parsed by html5lib in strict mode (the WHATWG algorithm)."""
+    import html5lib
+
+    try:
+        html5lib.HTMLParser(strict=True).parse(text)
+    except html5lib.html5parser.ParseError as exc:
+        raise AssertionError(f"{where}: not valid HTML ({exc})") from None
+
+
+def accessible(page, where: str) -> None:
+    """No WCAG 2.1 A or AA violation that axe-core finds in the page as the browser shows it."""
+    from axe_playwright_python.sync_playwright import Axe
+
+    results = Axe().run(page, options=WCAG)
+    assert results.violations_count == 0, f"{where}:\n{results.generate_report()}"
+
+
 def wait_for(condition: Callable[[], object], timeout_s: float, what: str, every_s: float = 0.2) -> object:
     """Poll ``condition`` until it is truthy (returned) or ``timeout_s`` passes (fails, saying what)."""
     deadline = time.monotonic() + timeout_s

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from lab_server import add_user, served
+from lab_server import accessible, add_user, served
 from simulated_runs import bench_run
 
 from labcal.cli import main
@@ -37,10 +37,12 @@ def test_the_approver_signs_on_the_page_with_their_password(browser, tmp_path):
             page.click("button[type=submit]")
             page.wait_for_url(url + "/runs/1")
             assert page.is_visible("img.plot")  # the finished run's residuals
+            accessible(page, "the run's page with its approval form")
             sign = "form[action='/runs/1/approve']"
             page.fill(f"{sign} input[name=password]", "not her passphrase")
             page.click(f"{sign} button[type=submit]")
             assert "nothing was signed" in (page.text_content("#message") or "")
+            accessible(page, "a refused signature's answer")
             assert "approval" not in json.loads(cert_path.read_text())
             page.fill(f"{sign} input[name=password]", "ada's passphrase")
             page.click(f"{sign} button[type=submit]")

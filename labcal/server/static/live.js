@@ -1,5 +1,23 @@
-// The run page's live part: the session-authenticated event stream of this run (no library, no
-// build step). Every "progress" event carries the run's progress; journal events are listed.
+// The pages' live parts (no library, no build step).
+//
+// The lab's overview: every 15 s the page is fetched again and its stations and runs replace the
+// ones shown, in place: no timed reload (WCAG 2.2.1), so the reader keeps their place and focus.
+(function () {
+  "use strict";
+  const lab = document.getElementById("lab");
+  if (!lab || !window.fetch || !window.DOMParser) { return; }
+  window.setInterval(async () => {
+    try {
+      const answer = await fetch(window.location.href, {credentials: "same-origin"});
+      const fresh = answer.ok && new DOMParser().parseFromString(await answer.text(), "text/html")
+        .getElementById("lab");  // none on the sign-in page a lapsed session is sent to
+      if (fresh) { lab.replaceChildren(...fresh.childNodes); }
+    } catch (e) { /* the server is away for now: the next round asks again */ }
+  }, 15000);
+})();
+
+// The run page: the session-authenticated event stream of this run. Every "progress" event carries
+// the run's progress; journal events are listed.
 (function () {
   "use strict";
   const run = document.getElementById("run");
