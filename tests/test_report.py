@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from lab_server import accessible, valid_html
 from simulated_runs import simulated_run
 
 from labcal.analysis.kinematics import NO_MISALIGNMENT, Misalignment, gravity
@@ -82,6 +83,17 @@ def _marker_data(ax) -> tuple[np.ndarray, np.ndarray]:
     lines = [line for line in ax.get_lines() if line.get_marker() not in ("None", "", None)]
     return (np.concatenate([line.get_xdata() for line in lines]),
             np.concatenate([line.get_ydata() for line in lines]))
+
+
+def test_the_html_report_is_valid_html_and_accessible(outputs, browser):
+    """The report a reader opens: html5lib's strict parser and axe-core in Chromium (WCAG 2.1 A, AA)."""
+    valid_html(outputs.html_path.read_text(encoding="utf-8"), "report.html")
+    page = browser.new_page()
+    try:
+        page.goto(outputs.html_path.as_uri())
+        accessible(page, "report.html")
+    finally:
+        page.close()
 
 
 def test_residual_plots_hold_every_residual_of_the_certified_model_and_both_bands(outputs, drawn):
