@@ -41,7 +41,7 @@ RunJson = dict[str, Any]  # a run as the API states it
 EventJson = dict[str, Any]  # a journaled event as the API states it
 
 RUNNING = "running"
-STATUS_KIND, FAULT_KIND, PROMPT_KIND = "status", "fault", "prompt"
+STATUS_KIND, FAULT_KIND, PROMPT_KIND, ANSWER_KIND = "status", "fault", "prompt", "answer"
 
 
 @dataclass(frozen=True)
@@ -121,14 +121,16 @@ def _list_runs(conn: Connection) -> list[dict]:
 
 def _stations(conn: Connection) -> list[dict]:
     """Every station that has journaled a run, with its current run: the one running (the newest,
-    if several), else its newest; stations in name order."""
+    if several; with where it stands, as `run_progress` says: the prompt it waits at, its next
+    remount, its last fault), else its newest; stations in name order."""
     current: dict[str, dict] = {}
     for run in _list_runs(conn):  # newest first
         name = run["station"] or "(unnamed station)"
         held = current.get(name)
         if held is None or (held["status"] != RUNNING and run["status"] == RUNNING):
             current[name] = run
-    return [{"station": name, "run": current[name]} for name in sorted(current)]
+    return [{"station": name, "run": _progress(conn, run["id"]) or run if run["status"] == RUNNING else run}
+            for name, run in sorted(current.items())]
 
 
 def _event_json(row: Any) -> dict:
@@ -143,6 +145,8 @@ def _text(kind: str, message: str, data: Any) -> str:
         args = [str(a) for a in data["args"] if str(a)]
         if message == "mount" and len(args) >= 3:
             return f"mount {args[1]} of {args[2]}: {args[0]}"
+        if message == "pause" and args:  # its arguments: why, and the tables that may still move
+            return f"paused: {args[0]}"
         return f"{message}: {', '.join(args)}" if args else message
     return message
 
@@ -169,8 +173,22 @@ def _progress(conn: Connection, run_id: int) -> dict | None:
     summary["mount"] = None if last is None else {"y_deg": last.y_deg, "u_deg": last.u_deg}
     fault = _latest(conn, run_id, FAULT_KIND)
     summary["last_fault"] = None if fault is None else {"utc": fault["utc"], "message": fault["message"]}
+    summary["waiting"] = _waiting(conn, run_id) if row.status == RUNNING else None
     summary.update(_ahead(conn, row, counts, None if last is None else last.t_end))
     return summary
+
+
+def _waiting(conn: Connection, run_id: int) -> dict | None:
+    """The prompt the run waits at for someone at the station (a remount, a pause), None when none
+    is open: its newest prompt while nothing but answers has been journaled since. An answer that
+    closes a prompt is followed at once by what it lets happen (a move, a resume, a stop); one that
+    keeps it open ("not yet") is not."""
+    prompt = _latest(conn, run_id, PROMPT_KIND)
+    if prompt is None:
+        return None
+    since = conn.execute(select(events.c.id).where(events.c.run_id == run_id, events.c.id > prompt["id"],
+                                                   events.c.kind != ANSWER_KIND).limit(1)).first()
+    return None if since is not None else {"utc": prompt["utc"], "text": prompt["text"]}
 
 
 def _ahead(conn: Connection, row: Any, counts: tuple[int, int, int | None], rig_s: float | None) -> dict:

@@ -41,9 +41,12 @@
     if (fill && p.points_total) { fill.style.width = (100 * p.points_done / p.points_total).toFixed(1) + "%"; }
     $("mount").textContent = p.mount ? "y " + p.mount.y_deg + "°, u " + p.mount.u_deg + "°" : "—";
     $("remount").textContent = p.next_remount_in_s !== null ? "in " + duration(p.next_remount_in_s)
-      : (p.status === "running" ? "none left" : "—");
+      : (p.eta_s !== null ? "none left" : "—");  // no estimate yet: nothing is known
     $("eta").textContent = duration(p.eta_s);
     $("failed").textContent = p.points_failed;
+    const waiting = $("waiting");
+    waiting.textContent = p.waiting ? p.waiting.text + " (since " + p.waiting.utc.slice(11, 19) + " UTC)" : "nothing";
+    waiting.className = p.waiting ? "alert" : "";
     const fault = $("fault");
     fault.textContent = p.last_fault ? p.last_fault.message : "none";
     fault.className = p.last_fault ? "alert" : "";

@@ -1,0 +1,66 @@
+"""A station waiting for its technician says so on the lab server: the remount prompt and the pause
+prompt of a real `labcal run` (no --yes: the answers typed on its stdin, as at the terminal), as the
+API and the lab's overview show them, and nothing once the prompt is answered."""
+
+from __future__ import annotations
+
+import re
+import signal
+import sqlite3
+import subprocess
+
+import httpx
+from lab_server import LABCAL, add_user, ctrl_c, served, wait_for
+
+
+def _events(db: str) -> list[tuple[str, str]]:
+    with sqlite3.connect(db) as conn:
+        try:
+            return conn.execute("SELECT kind, message FROM events ORDER BY id").fetchall()
+        except sqlite3.OperationalError:  # not created yet
+            return []
+
+
+def test_a_run_waiting_at_a_prompt_says_so_until_it_is_answered(tmp_path):
+    db = str(tmp_path / "lab.sqlite")
+    token = add_user(db, "tom", "technician", "tom's passphrase")
+    run = subprocess.Popen([LABCAL, "run", "--sim", "--no-report", "--pace", "20", "--plan", "one-mount-16",
+                            "--db", db, "--out", str(tmp_path / "run")],
+                           stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                           text=True)
+    assert run.stdin is not None
+    try:
+        with served(db) as url, httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"},
+                                             timeout=15) as api:
+            def waiting() -> dict | None:
+                answer = api.get("/api/runs/1")
+                return answer.json()["waiting"] if answer.status_code == 200 else None
+
+            def typed(line: str) -> None:
+                run.stdin.write(line + "\n")
+                run.stdin.flush()
+
+            at = wait_for(waiting, 60, "the remount prompt")
+            assert at["text"] == "mount 1 of 1: y=0°, u=0°"
+            with httpx.Client(base_url=url, timeout=15) as page:  # the technician's overview in a browser
+                form = page.get("/login").text
+                csrf = re.search(r'name="csrf" value="([^"]+)"', form)
+                assert csrf is not None
+                page.post("/login", data={"name": "tom", "password": "tom's passphrase", "csrf": csrf[1]})
+                assert "Waiting at the station: mount 1 of 1: y=0°, u=0°" in page.get("/").text
+            typed("n")  # not yet: the prompt stays open
+            wait_for(lambda: ("answer", "mount: 'n' (not yet; the prompt stays open)") in _events(db), 30,
+                     "the answer 'n'")
+            assert waiting() == at
+            typed("y")
+            wait_for(lambda: waiting() is None, 30, "the prompt to close")
+            assert ("answer", "mount: confirmed") in _events(db)
+            wait_for(lambda: api.get("/api/runs/1").json()["points_done"] >= 2, 60, "two points")
+            run.send_signal(signal.SIGINT)  # once: a pause, and the pause prompt
+            paused = wait_for(waiting, 30, "the pause prompt")
+            assert paused["text"] == "paused: Ctrl-C"
+            typed("a")  # abort: the run ends stopped, nothing waits any more
+            assert run.wait(timeout=60) != 0
+            assert api.get("/api/runs/1").json()["waiting"] is None
+    finally:
+        ctrl_c(run, 20)
