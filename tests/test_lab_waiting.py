@@ -1,6 +1,7 @@
 """A station waiting for its technician says so on the lab server: the remount prompt and the pause
 prompt of a real `labcal run` (no --yes: the answers typed on its stdin, as at the terminal), as the
-API and the lab's overview show them, and nothing once the prompt is answered."""
+API and the lab's overview show them, and nothing once the prompt is answered; and when the lab last
+heard from it, as the journal has it."""
 
 from __future__ import annotations
 
@@ -19,6 +20,12 @@ def _events(db: str) -> list[tuple[str, str]]:
             return conn.execute("SELECT kind, message FROM events ORDER BY id").fetchall()
         except sqlite3.OperationalError:  # not created yet
             return []
+
+
+def _last_journaled(db: str) -> str:
+    with sqlite3.connect(db) as conn:
+        heard = [conn.execute(f"SELECT max(utc) FROM {t}").fetchone()[0] for t in ("points", "events")]
+    return max(h for h in heard if h)
 
 
 def test_a_run_waiting_at_a_prompt_says_so_until_it_is_answered(tmp_path):
@@ -47,7 +54,9 @@ def test_a_run_waiting_at_a_prompt_says_so_until_it_is_answered(tmp_path):
                 csrf = re.search(r'name="csrf" value="([^"]+)"', form)
                 assert csrf is not None
                 page.post("/login", data={"name": "tom", "password": "tom's passphrase", "csrf": csrf[1]})
-                assert "Waiting at the station: mount 1 of 1: y=0°, u=0°" in page.get("/").text
+                overview = page.get("/").text
+                assert "Waiting at the station: mount 1 of 1: y=0°, u=0°" in overview
+                assert f"<dt>Last heard</dt><dd>{_last_journaled(db)[11:19]} UTC</dd>" in overview
             typed("n")  # not yet: the prompt stays open
             wait_for(lambda: ("answer", "mount: 'n' (not yet; the prompt stays open)") in _events(db), 30,
                      "the answer 'n'")
@@ -61,6 +70,7 @@ def test_a_run_waiting_at_a_prompt_says_so_until_it_is_answered(tmp_path):
             assert paused["text"] == "paused: Ctrl-C"
             typed("a")  # abort: the run ends stopped, nothing waits any more
             assert run.wait(timeout=60) != 0
-            assert api.get("/api/runs/1").json()["waiting"] is None
+            ended = api.get("/api/runs/1").json()
+            assert ended["waiting"] is None and ended["last_heard_utc"] == _last_journaled(db)
     finally:
         ctrl_c(run, 20)

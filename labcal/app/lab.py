@@ -174,8 +174,18 @@ def _progress(conn: Connection, run_id: int) -> dict | None:
     fault = _latest(conn, run_id, FAULT_KIND)
     summary["last_fault"] = None if fault is None else {"utc": fault["utc"], "message": fault["message"]}
     summary["waiting"] = _waiting(conn, run_id) if row.status == RUNNING else None
+    summary["last_heard_utc"] = _last_heard(conn, run_id)
     summary.update(_ahead(conn, row, counts, None if last is None else last.t_end))
     return summary
+
+
+def _last_heard(conn: Connection, run_id: int) -> str | None:
+    """When the run last journaled anything (a point or an event), UTC. A station that has gone
+    quiet (its process killed, a power cut) leaves its run "running" until it is resumed; this says
+    since when nothing has come from it."""
+    heard = [conn.execute(select(func.max(table.c.utc)).where(table.c.run_id == run_id)).scalar()
+             for table in (points, events)]
+    return max((t for t in heard if t), default=None)  # both ISO 8601 in UTC, as the journal writes them
 
 
 def _waiting(conn: Connection, run_id: int) -> dict | None:
@@ -252,6 +262,7 @@ class Overview:
 
     stations: tuple[dict, ...]  # {"station": name, "run": RunJson}, in name order
     runs: tuple[RunJson, ...]  # newest first
+    as_of_utc: str  # when it was read: what each running station's "last heard" compares with
 
 
 def lab_runs(lab: LabDatabase) -> list[RunJson]:
@@ -263,8 +274,10 @@ def lab_runs(lab: LabDatabase) -> list[RunJson]:
 def lab_overview(lab: LabDatabase, latest: int = 50) -> Overview:
     """Every station that has journaled a run, with its current run (the one running, the newest if
     several, else its newest), and the ``latest`` runs."""
+    from labcal.run.journal import utc_now
+
     with lab.engine.connect() as conn:
-        return Overview(tuple(_stations(conn)), tuple(_list_runs(conn)[:latest]))
+        return Overview(tuple(_stations(conn)), tuple(_list_runs(conn)[:latest]), utc_now())
 
 
 def run_progress(lab: LabDatabase, run_id: int) -> RunJson | None:

@@ -231,7 +231,8 @@ def create_app(settings: ServerSettings) -> FastAPI:
     @app.get("/", response_class=HTMLResponse)
     def index(request: Request, user: Annotated[users.User, Depends(page_user)]) -> Response:
         overview = lab.lab_overview(db)
-        return page(request, "index.html", user, stations=overview.stations, runs=overview.runs)
+        return page(request, "index.html", user, stations=overview.stations, runs=overview.runs,
+                    as_of_utc=overview.as_of_utc)
 
     @app.get("/runs/{run_id}", response_class=HTMLResponse)
     def run_page(request: Request, run_id: int, user: Annotated[users.User, Depends(page_user)],
