@@ -47,7 +47,7 @@
     const waiting = $("waiting");
     waiting.textContent = p.waiting ? p.waiting.text + " (since " + p.waiting.utc.slice(11, 19) + " UTC)" : "nothing";
     waiting.className = p.waiting ? "alert" : "";
-    $("heard").textContent = (p.last_heard_utc ? p.last_heard_utc.slice(11, 19) : "—") + " UTC";
+    $("heard").textContent = p.last_heard_utc ? p.last_heard_utc.slice(11, 19) + " UTC" : "—";
     const fault = $("fault");
     fault.textContent = p.last_fault ? p.last_fault.message : "none";
     fault.className = p.last_fault ? "alert" : "";
