@@ -61,6 +61,10 @@ def test_a_run_waiting_at_a_prompt_says_so_until_it_is_answered(tmp_path):
             wait_for(lambda: ("answer", "mount: 'n' (not yet; the prompt stays open)") in _events(db), 30,
                      "the answer 'n'")
             assert waiting() == at
+            with sqlite3.connect(db) as conn:  # another writer's event meanwhile, as the sync writes one
+                conn.execute("INSERT INTO events (run_id, utc, kind, message) VALUES (1, ?, 'lab_database', "
+                             "'the lab database is unreachable')", (at["utc"],))
+            assert waiting() == at  # it answers nothing: the station still waits
             typed("y")
             wait_for(lambda: waiting() is None, 30, "the prompt to close")
             assert ("answer", "mount: confirmed") in _events(db)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from lab_server import accessible, valid_html
+from lab_server import accessible, parses_cleanly
 from simulated_runs import simulated_run
 
 from labcal.analysis.kinematics import NO_MISALIGNMENT, Misalignment, gravity
@@ -85,9 +85,9 @@ def _marker_data(ax) -> tuple[np.ndarray, np.ndarray]:
             np.concatenate([line.get_ydata() for line in lines]))
 
 
-def test_the_html_report_is_valid_html_and_accessible(outputs, browser):
+def test_the_html_report_parses_cleanly_and_is_accessible(outputs, browser):
     """The report a reader opens: html5lib's strict parser and axe-core in Chromium (WCAG 2.1 A, AA)."""
-    valid_html(outputs.html_path.read_text(encoding="utf-8"), "report.html")
+    parses_cleanly(outputs.html_path.read_text(encoding="utf-8"), "report.html")
     page = browser.new_page()
     try:
         page.goto(outputs.html_path.as_uri())

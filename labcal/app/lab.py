@@ -143,8 +143,8 @@ def _text(kind: str, message: str, data: Any) -> str:
     """The event in words for people: a prompt with what it asks (its arguments), else its message."""
     if kind == PROMPT_KIND and isinstance(data, dict) and isinstance(data.get("args"), list):
         args = [str(a) for a in data["args"] if str(a)]
-        if message == "mount" and len(args) >= 3:
-            return f"mount {args[1]} of {args[2]}: {args[0]}"
+        if message == "mount" and len(args) >= 3:  # where, which of how many, a note when asked again
+            return f"mount {args[1]} of {args[2]}: {args[0]}" + (f" ({args[3]})" if len(args) > 3 else "")
         if message == "pause" and args:  # its arguments: why, and the tables that may still move
             return f"paused: {args[0]}"
         return f"{message}: {', '.join(args)}" if args else message
@@ -190,15 +190,19 @@ def _last_heard(conn: Connection, run_id: int) -> str | None:
 
 def _waiting(conn: Connection, run_id: int) -> dict | None:
     """The prompt the run waits at for someone at the station (a remount, a pause), None when none
-    is open: its newest prompt while nothing but answers has been journaled since. An answer that
-    closes a prompt is followed at once by what it lets happen (a move, a resume, a stop); one that
-    keeps it open ("not yet") is not."""
+    is open: its newest prompt until an answer closes it. An answer that keeps it open ("not yet",
+    a reply that is not one of the answers) says so in its journal line (`STAYS_OPEN`); other
+    writers' events in between (the lab database's sync, an export) close nothing."""
+    from labcal.run.events import STAYS_OPEN
+
     prompt = _latest(conn, run_id, PROMPT_KIND)
     if prompt is None:
         return None
-    since = conn.execute(select(events.c.id).where(events.c.run_id == run_id, events.c.id > prompt["id"],
-                                                   events.c.kind != ANSWER_KIND).limit(1)).first()
-    return None if since is not None else {"utc": prompt["utc"], "text": prompt["text"]}
+    answers = conn.execute(select(events.c.message).where(
+        events.c.run_id == run_id, events.c.id > prompt["id"], events.c.kind == ANSWER_KIND)).scalars()
+    if any(STAYS_OPEN not in message for message in answers):
+        return None
+    return {"utc": prompt["utc"], "text": prompt["text"]}
 
 
 def _ahead(conn: Connection, row: Any, counts: tuple[int, int, int | None], rig_s: float | None) -> dict:

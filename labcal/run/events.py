@@ -104,6 +104,9 @@ class Prompt(RunEvent):
         return "prompt", self.what, {"args": list(self.args)}
 
 
+STAYS_OPEN = "the prompt stays open"  # in the journal's line of an answer that does not close its prompt
+
+
 class Answer(RunEvent):
     """A reply to a prompt: one that keeps it open ("n"), the one that closes it, or none (declined:
     the operator stopped the run there, or an unattended run had no answer left)."""
@@ -116,7 +119,7 @@ class Answer(RunEvent):
 
     def journal_entry(self) -> JournalEntry:
         if self.outcome == "open":
-            return "answer", f"{self.what}: {self.reply!r} ({self.meaning}; the prompt stays open)", None
+            return "answer", f"{self.what}: {self.reply!r} ({self.meaning}; {STAYS_OPEN})", None
         if self.outcome == "declined":
             return "answer", f"{self.what}: declined", {"reason": self.meaning}
         return "answer", f"{self.what}: {self.reply}", None

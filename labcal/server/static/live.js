@@ -1,19 +1,28 @@
 // The pages' live parts (no library, no build step).
 //
-// The lab's overview: every 15 s the page is fetched again and its stations and runs replace the
-// ones shown, in place: no timed reload (WCAG 2.2.1), so the reader keeps their place and focus.
+// The lab's overview: 15 s after the last answer the page is fetched again and its stations and
+// runs replace the ones shown, in place: no timed reload (WCAG 2.2.1). A link that had the focus
+// gets it back, so a keyboard user keeps their place; one answer at a time, never an older over a newer.
 (function () {
   "use strict";
   const lab = document.getElementById("lab");
   if (!lab || !window.fetch || !window.DOMParser) { return; }
-  window.setInterval(async () => {
+  async function refresh() {
     try {
-      const answer = await fetch(window.location.href, {credentials: "same-origin"});
+      const answer = await fetch(window.location.href,
+                                 {credentials: "same-origin", signal: AbortSignal.timeout(10000)});
       const fresh = answer.ok && new DOMParser().parseFromString(await answer.text(), "text/html")
         .getElementById("lab");  // none on the sign-in page a lapsed session is sent to
-      if (fresh) { lab.replaceChildren(...fresh.childNodes); }
+      if (fresh) {
+        const focused = lab.contains(document.activeElement) ? document.activeElement.getAttribute("href") : null;
+        lab.replaceChildren(...fresh.childNodes);
+        const again = focused && lab.querySelector('a[href="' + CSS.escape(focused) + '"]');
+        if (again) { again.focus(); }
+      }
     } catch (e) { /* the server is away for now: the next round asks again */ }
-  }, 15000);
+    window.setTimeout(refresh, 15000);
+  }
+  window.setTimeout(refresh, 15000);
 })();
 
 // The run page: the session-authenticated event stream of this run. Every "progress" event carries
@@ -45,7 +54,7 @@
     $("eta").textContent = duration(p.eta_s);
     $("failed").textContent = p.points_failed;
     const waiting = $("waiting");
-    waiting.textContent = p.waiting ? p.waiting.text + " (since " + p.waiting.utc.slice(11, 19) + " UTC)" : "nothing";
+    waiting.textContent = p.waiting ? p.waiting.text + " since " + p.waiting.utc.slice(11, 19) + " UTC" : "nothing";
     waiting.className = p.waiting ? "alert" : "";
     $("heard").textContent = p.last_heard_utc ? p.last_heard_utc.slice(11, 19) + " UTC" : "—";
     const fault = $("fault");
