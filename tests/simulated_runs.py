@@ -12,7 +12,9 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from labcal.cli import main
-from labcal.config.emulation import default_instrument
+from labcal.config.emulation import RigConfig, default_instrument
+
+SAMPLES_OF_A_RUN = 10  # SettleSettings.samples: a dry run's points average this many samples
 
 
 def rig_with_bias_shift(path: Path, shift_v: tuple[float, float, float]) -> Path:
@@ -63,3 +65,32 @@ def bench_run(run_dir: Path, db: Path, serial: str, plan: str = "one-mount-16") 
         serve.communicate(timeout=20)
     assert code == 0
     return run_dir
+
+
+def characterised_device(db: Path, seeds: tuple[int, ...]) -> None:
+    """Earlier four-mount-64 runs of the simulated rig's device, one per seed (the simulator's
+    readings, fitted as a run fits them: the device model told the tables' stated index and wobble),
+    stored in ``db``'s device history as `labcal run` stores them (device "SIMULATED")."""
+    import math
+
+    import numpy as np
+
+    from labcal.analysis.device_fit import AngleErrors, fit_device
+    from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, IndexWobble
+    from labcal.config.plans import load_plan
+    from labcal.documents import device_history
+    from labcal.documents.device_history import DeviceEstimate
+    from labcal.sim.direct import simulate_readings
+
+    plan, _ = load_plan("four-mount-64")
+    rig = RigConfig()
+    truth, device = rig.instrument, rig.device
+    stated = AngleErrors(*(np.array([device.index_arcsec, device.wobble_arcsec] * 2) * ARCSEC))
+    for n, seed in enumerate(seeds, start=1):
+        readings = simulate_readings(plan, truth, device.misalignment(),
+                                     IndexWobble(device.index_arcsec, device.wobble_arcsec, seed),
+                                     truth.noise_v / math.sqrt(SAMPLES_OF_A_RUN), seed)
+        doc = fit_device(readings, angle_errors=stated).to_json()["misalignments"]
+        device_history.store(DeviceEstimate("SIMULATED", f"2026-0{n}-01T00:00:00+00:00", f"run-{n}",
+                                            {m: doc[m]["value_arcsec"] for m in MISALIGNMENT_NAMES},
+                                            {m: doc[m]["U_arcsec"] for m in MISALIGNMENT_NAMES}), db)

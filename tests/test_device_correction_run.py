@@ -20,11 +20,11 @@ import tomllib
 
 import numpy as np
 import pytest
+from simulated_runs import characterised_device
 
 from labcal.analysis.attitude import LOCAL_GRAVITY_U, sphere_least_squares
 from labcal.analysis.attitude import Calibration as AttitudeCalibration
 from labcal.analysis.budget import calibration_of, propagate, sources
-from labcal.analysis.device_fit import AngleErrors, fit_device
 from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, IndexWobble, Misalignment, gravity
 from labcal.analysis.plan import Plan
 from labcal.cli import main
@@ -125,31 +125,13 @@ def test_a_run_of_the_corrected_plan_applies_the_correction_and_states_it(tmp_pa
 
 
 # --- (b) Monte Carlo of simulated runs of the corrected plan -----------------------------------------
-def characterised(db) -> None:
-    """Two earlier four-mount-64 runs of the simulated device (simulator's readings, the device model
-    a run fits), stored as `labcal run` stores them."""
-    from labcal.config.plans import load_plan
-
-    plan, _ = load_plan("four-mount-64")
-    truth, device = RIG.instrument, RIG.device
-    stated = AngleErrors(*(np.array([device.index_arcsec, device.wobble_arcsec] * 2) * ARCSEC))
-    for n, seed in enumerate((21, 22), start=1):
-        readings = simulate_readings(plan, truth, device.misalignment(),
-                                     IndexWobble(device.index_arcsec, device.wobble_arcsec, seed),
-                                     truth.noise_v / math.sqrt(10), seed)
-        doc = fit_device(readings, angle_errors=stated).to_json()["misalignments"]
-        device_history.store(DeviceEstimate("SIMULATED", f"2026-0{n}-01T00:00:00+00:00", f"run-{n}",
-                                            {m: doc[m]["value_arcsec"] for m in MISALIGNMENT_NAMES},
-                                            {m: doc[m]["U_arcsec"] for m in MISALIGNMENT_NAMES}), db)
-
-
 @pytest.fixture(scope="module")
 def corrected_plan(tmp_path_factory):
     """The plan `plan optimize --device SIMULATED` writes for an attitude U95 of 0.0025° (about 1.5 ×
     four-mount-64's on this rig), its text and the window it names."""
     folder = tmp_path_factory.mktemp("corrected")
     db, out = folder / "lab.sqlite", folder / "fast.toml"
-    characterised(db)
+    characterised_device(db, (21, 22))
     assert main(["plan", "optimize", "--target-attitude-u95-deg", "0.0025", "--device", "SIMULATED",
                  "--db", str(db), "--out", str(out)]) == 0
     text = out.read_text(encoding="utf-8")

@@ -16,11 +16,11 @@ import tomllib
 
 import numpy as np
 import pytest
+from simulated_runs import characterised_device
 
 from labcal.analysis import optimize
 from labcal.analysis.attitude import LOCAL_GRAVITY_U, sphere_least_squares
 from labcal.analysis.attitude import Calibration as AttitudeCalibration
-from labcal.analysis.device_fit import AngleErrors, fit_device
 from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, IndexWobble, Misalignment, gravity
 from labcal.cli import main
 from labcal.config.emulation import RigConfig
@@ -31,23 +31,6 @@ from labcal.documents.device_history import DeviceEstimate
 from labcal.sim.direct import simulate_readings
 
 RIG = RigConfig()  # the simulated rig of `labcal run --sim`: the optimizer's default bench
-SAMPLES_OF_A_RUN = 10  # SettleSettings.samples: the history's runs averaged this many samples
-
-
-def history_db(path) -> None:
-    """Two earlier four-mount-64 runs of the simulated device, fitted as a run fits them (the device
-    model told the tables' stated index and wobble), stored as `labcal run` stores them."""
-    plan, _ = load_plan("four-mount-64")
-    truth, device = RIG.instrument, RIG.device
-    stated = AngleErrors(*(np.array([device.index_arcsec, device.wobble_arcsec] * 2) * ARCSEC))
-    for n, seed in enumerate((11, 12), start=1):
-        readings = simulate_readings(plan, truth, device.misalignment(),
-                                     IndexWobble(device.index_arcsec, device.wobble_arcsec, seed),
-                                     truth.noise_v / math.sqrt(SAMPLES_OF_A_RUN), seed)
-        doc = fit_device(readings, angle_errors=stated).to_json()["misalignments"]
-        device_history.store(DeviceEstimate("SIMULATED", f"2026-0{n}-01T00:00:00+00:00", f"run-{n}",
-                                            {m: doc[m]["value_arcsec"] for m in MISALIGNMENT_NAMES},
-                                            {m: doc[m]["U_arcsec"] for m in MISALIGNMENT_NAMES}), path)
 
 
 def four_mount_64_u95_deg() -> float:
@@ -67,7 +50,7 @@ def optimized(tmp_path_factory):
     """The plan `plan optimize --device SIMULATED` writes for X = 1.5 × four-mount-64's U95."""
     folder = tmp_path_factory.mktemp("optimize")
     db, out = folder / "lab.sqlite", folder / "fast.toml"
-    history_db(db)
+    characterised_device(db, (11, 12))
     target = 1.5 * four_mount_64_u95_deg()
     code = main(["plan", "optimize", "--target-attitude-u95-deg", repr(target), "--device", "SIMULATED",
                  "--db", str(db), "--out", str(out), "--json"])
@@ -182,7 +165,7 @@ def test_a_target_no_candidate_reaches_is_one_line_naming_the_best(capsys):
 def test_bad_options_are_one_line_exit_2(args, words, tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("LABCAL_DB", str(tmp_path / "lab.sqlite"))
     if "NO-SUCH" in args:
-        history_db(tmp_path / "lab.sqlite")  # a database that knows another device
+        characterised_device(tmp_path / "lab.sqlite", (11, 12))  # a database that knows another device
     station = tmp_path / "broken.toml"
     station.write_text("[pitch\nnot toml", encoding="utf-8")
     out = tmp_path / "never.toml"
