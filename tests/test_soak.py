@@ -71,12 +71,17 @@ def readings(path: Path) -> np.ndarray:
     return np.array([[float(r[c]) for c in ("vx", "vy", "vz", "time_s")] for r in rows])
 
 
-@pytest.mark.slow
-def test_sigkill_in_every_phase_then_resume_leaves_one_consistent_run(tmp_path):
-    env = {**os.environ, "LABCAL_DB": str(tmp_path / "ref.sqlite")}
-    reference = subprocess.run([LABCAL, "run", *BASE, "--yes", "--no-report", "--out", str(tmp_path / "ref")],
+def uninterrupted(run_dir: Path) -> None:
+    """The run the soaked one is compared with: the same plan and seed, never interrupted."""
+    env = {**os.environ, "LABCAL_DB": str(run_dir.with_suffix(".sqlite"))}
+    reference = subprocess.run([LABCAL, "run", *BASE, "--yes", "--no-report", "--out", str(run_dir)],
                                capture_output=True, text=True, timeout=120, env=env)
     assert reference.returncode == 0, reference.stderr
+
+
+@pytest.mark.slow
+def test_sigkill_in_every_phase_then_resume_leaves_one_consistent_run(tmp_path):
+    uninterrupted(tmp_path / "ref")
 
     db, run_dir = tmp_path / "soak.sqlite", tmp_path / "soak"
     env = {**os.environ, "LABCAL_DB": str(db)}
@@ -200,10 +205,7 @@ def test_kills_at_chosen_journal_states_then_resume_reproduce_every_other_point(
     (the same on f6969bc, before the run events). A resume's first point may differ (the soak's
     bound, 4 sigma/sqrt(N)); every other point is the same reading but for the fading of that
     first point's history (the soak's comment: 2.8e-12 V)."""
-    env = {**os.environ, "LABCAL_DB": str(tmp_path / "ref.sqlite")}
-    reference = subprocess.run([LABCAL, "run", *BASE, "--yes", "--no-report", "--out", str(tmp_path / "ref")],
-                               capture_output=True, text=True, timeout=120, env=env)
-    assert reference.returncode == 0, reference.stderr
+    uninterrupted(tmp_path / "ref")
     db, run_dir = tmp_path / "soak.sqlite", tmp_path / "soak"
     env = {**os.environ, "LABCAL_DB": str(db)}
     command = ["run", *BASE, "--out", str(run_dir)]
