@@ -117,17 +117,13 @@ def test_the_server_key_signs_for_no_one_else(lab, capsys):
     assert _approval(lab, 3) is None
 
 
-def test_a_key_registered_as_a_person_signs_for_nobody_else(lab):
-    with served(str(lab["db"]), "--key", str(lab["base"] / "carol.key")) as url:
-        refused = _approve(url, 3, lab["tokens"]["bob"])
+@pytest.mark.parametrize("key,approver,refusal", [
+    ("carol.key", "bob", "registered to 'carol'"),  # a key registered as a person signs for nobody else
+    ("old.key", "ada", "was revoked"),  # a revoked server key signs for nobody
+])
+def test_a_server_key_that_may_not_sign_for_the_approver_is_refused(lab, key, approver, refusal):
+    with served(str(lab["db"]), "--key", str(lab["base"] / key)) as url:
+        refused = _approve(url, 3, lab["tokens"][approver])
     assert refused.status_code == 409
-    assert "registered to 'carol'" in refused.json()["detail"]
-    assert _approval(lab, 3) is None
-
-
-def test_a_revoked_server_key_is_refused(lab):
-    with served(str(lab["db"]), "--key", str(lab["base"] / "old.key")) as url:
-        refused = _approve(url, 3, lab["tokens"]["ada"])
-    assert refused.status_code == 409
-    assert "was revoked" in refused.json()["detail"]
+    assert refusal in refused.json()["detail"]
     assert _approval(lab, 3) is None
