@@ -100,8 +100,10 @@ def simulated(metadata: Any, station_text: str | None) -> bool:
 
 
 def _summary(row: Any, counts: tuple[int, int, int | None]) -> dict:
-    shape = plan_shape(row.plan_text)
-    total = row.points_total if row.points_total is not None else (shape.total if shape else None)
+    total = row.points_total
+    if total is None:  # a run journaled before the lab columns: its plan's length
+        shape = plan_shape(row.plan_text)
+        total = shape.total if shape else None
     metadata = _json(row.metadata) or {}
     station = row.station or metadata.get("station")
     done, ok, _ = counts
@@ -119,12 +121,12 @@ def _list_runs(conn: Connection) -> list[dict]:
     return [_summary(r, counts.get(r.id, (0, 0, None))) for r in rows]
 
 
-def _stations(conn: Connection) -> list[dict]:
+def _stations(conn: Connection, listed: list[dict]) -> list[dict]:
     """Every station that has journaled a run, with its current run: the one running (the newest,
     if several; with where it stands, as `run_progress` says: the prompt it waits at, its next
-    remount, its last fault), else its newest; stations in name order."""
+    remount, its last fault), else its newest; stations in name order. ``listed``: `_list_runs`."""
     current: dict[str, dict] = {}
-    for run in _list_runs(conn):  # newest first
+    for run in listed:  # newest first
         name = run["station"] or "(unnamed station)"
         held = current.get(name)
         if held is None or (held["status"] != RUNNING and run["status"] == RUNNING):
@@ -281,7 +283,8 @@ def lab_overview(lab: LabDatabase, latest: int = 50) -> Overview:
     from labcal.run.journal import utc_now
 
     with lab.engine.connect() as conn:
-        return Overview(tuple(_stations(conn)), tuple(_list_runs(conn)[:latest]), utc_now())
+        listed = _list_runs(conn)
+        return Overview(tuple(_stations(conn, listed)), tuple(listed[:latest]), utc_now())
 
 
 def run_progress(lab: LabDatabase, run_id: int) -> RunJson | None:
