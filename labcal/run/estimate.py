@@ -95,17 +95,19 @@ def estimate(plan: Plan, settings: SequencerSettings, timing: Timing,
     """``steps``: the run's schedule, if already made."""
     s, link = settings.settle, timing.link
     window_s = s.samples * timing.sample_s + link.window_s(s.samples)
+    found = timing.clamp_s + link.finding_s()  # from a motion's end: clamped, in position, read back
+
+    def travel(a: NDArray, b: NDArray) -> float:
+        """The move with its start commands, its clamp and the polls that find it in position."""
+        return float(move_time(a, b, settings.speed_dps, settings.accel_dps2)) + link.starting_s() + found
 
     def move_and_settle(a: NDArray, b: NDArray, mount: Mount) -> tuple[float, float]:
-        """The move with its start commands, its clamp and the polls that find it in position, and
-        the dead time (from the motion's end) they do not overlap."""
-        move = float(move_time(a, b, settings.speed_dps, settings.accel_dps2)) + link.starting_s()
-        found = timing.clamp_s + link.finding_s()
+        """`travel`, and the dead time (from the motion's end) that its clamp and polls do not overlap."""
         if s.fixed_dwell_s is not None:
-            return move + found, s.fixed_dwell_s
+            return travel(a, b), s.fixed_dwell_s
         lag = float(transient_at_stop(a, b, mount, settings.speed_dps, settings.accel_dps2, s.tau_s))
         dead = float(dead_time(lag * s.sensitivity_v_per_g, s, timing.sample_s))
-        return move + found, max(0.0, dead - found)
+        return travel(a, b), max(0.0, dead - found)
 
     per_step, prompt, mount_s, moves, settling, mounting = {}, {}, {}, 0.0, 0.0, 0.0
     where: NDArray[np.float64] = np.array(LOAD_POSITION, dtype=float)
@@ -113,10 +115,8 @@ def estimate(plan: Plan, settings: SequencerSettings, timing: Timing,
     for step in steps:
         t_mount = 0.0
         if step.block_start:
-            to_load = move_time(where, np.array(LOAD_POSITION), settings.speed_dps, settings.accel_dps2)
-            prompt[step.seq] = float(to_load) + link.starting_s() + timing.clamp_s + link.finding_s()
-            t_mount = (float(to_load) + link.starting_s() + timing.remount_s + timing.clamp_s
-                       + link.finding_s() + link.verify_exchanges * link.dmm_s)
+            prompt[step.seq] = travel(where, np.array(LOAD_POSITION))  # the tables still at the prompt
+            t_mount = prompt[step.seq] + timing.remount_s + link.verify_exchanges * link.dmm_s
             if settings.check_mount:
                 t_mount += sum(move_and_settle(np.array(LOAD_POSITION), np.array(CHECK_ATTITUDE),
                                                step.mount)) + window_s
