@@ -1,2 +1,2 @@
 """Hardware drivers, one module per device protocol, each behind `labcal.station.RotaryAxis`
-or `labcal.station.Voltmeter` (DESIGN.md §4)."""
+or `labcal.station.Voltmeter` (docs/design.md §4)."""

@@ -4,7 +4,7 @@ calibration's, with no valid row flagged — at the pole too, where roll is unde
 estimators may state one direction two ways — and a row 5 % off is still flagged.
 
 The voltages are made here from the fit's own B and S and the textbook gravity vector
-g = |g|·[sin p, cos p sin r, cos p cos r] (DESIGN.md §2), noise-free where an estimate is held to
+g = |g|·[sin p, cos p sin r, cos p cos r] (docs/design.md §2), noise-free where an estimate is held to
 its U95 (any miss is then bias, not chance), with the calibration's reading noise where the checks'
 false alarms are counted."""
 

@@ -1,4 +1,4 @@
-"""Interfaces others rely on (DESIGN.md §5) keep the names the README documents.
+"""Interfaces others rely on (docs/design.md §5) keep the names the README documents.
 
 The expected names are read from the README, the document users and other programs go by, not
 from the code's own constants: a rename inside labcal that changed an identifier on the wire or

@@ -1,7 +1,7 @@
 """Tripp & Tcheng's per-sensor model v = b + S·(u·g) as a change of variables of the linear fit.
 
 Column j of S is sensor j's sensitivity vector s = S·u; the coning angle Ω is its angle from
-the nominal axis and the azimuth A the direction of the tilt (unit vectors of DESIGN.md §3,
+the nominal axis and the azimuth A the direction of the tilt (unit vectors of docs/design.md §3,
 Tripp eqs. 2, 4, 5). The covariance follows through the Jacobian of that map. No iterative
 solver is needed, and near Ω = 0 the azimuth is undefined and reported as such.
 """

@@ -1,5 +1,5 @@
 """The device model: the instrument and the calibration device's six misalignments in one
-regression (Soto's promised Part 2; DESIGN.md §3), and what a plan can identify of it.
+regression (Soto's promised Part 2; docs/design.md §3), and what a plan can identify of it.
 
 V = B + g_true(p, r, y, u; a, b, d, e, f, k)ᵀ S with g_true from the kinematics of Soto eq. 11
 (`labcal.analysis.kinematics`). Parameters θ = [a, b, d, e, f, k (rad); B (3); S (9, in the

@@ -120,7 +120,7 @@ class Fit:
         }
 
     def to_json(self) -> dict[str, Any]:
-        """The linear fit JSON contract of DESIGN.md §5, plus the statistics behind it."""
+        """The linear fit JSON contract of docs/design.md §5, plus the statistics behind it."""
         n_base = len(BASE_NAMES)
         doc = {
             "model": "linear",

@@ -1,4 +1,4 @@
-"""Instrument models as regressor sets over the one least-squares core (DESIGN.md §3).
+"""Instrument models as regressor sets over the one least-squares core (docs/design.md §3).
 
 The base model is Soto's [1 gᵀ]; extensions are extra regressors: temperature-corrected
 offset and sensitivity, and the 2α / 2R harmonics Tripp & Tcheng see in their residuals.

@@ -1,5 +1,5 @@
 """Calibration points as arrays: what every fit takes (`labcal.config.readings_csv` reads and
-writes them as the readings CSV of DESIGN.md §5)."""
+writes them as the readings CSV of docs/design.md §5)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The one linear least-squares core every model uses (DESIGN.md §3).
+"""The one linear least-squares core every model uses (docs/design.md §3).
 
 Solved by a thin QR factorisation, never the normal equations: the normal equations
 square the design's condition number, which costs digits a calibration cannot spare.

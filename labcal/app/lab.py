@@ -8,7 +8,7 @@ names are the API's: `GET /api/runs`, `GET /api/runs/{id}`), built here once for
 and the streams alike.
 
 Everything here is a SELECT through `labcal.run.schema`'s tables, on SQLite or PostgreSQL alike;
-nothing is written (a reader must never change what it shows, DESIGN.md §4).
+nothing is written (a reader must never change what it shows, docs/design.md §4).
 
 Progress is the journal's: ``points_done`` counts the points journaled (measured or failed, each once
 per step of the schedule), ``points_ok`` those measured. ``points_total`` is the run's own

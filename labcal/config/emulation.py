@@ -31,7 +31,7 @@ class InstrumentTruth(BaseModel):
     """True coefficients and imperfections. B in V; S (3×3) in V/g, column j = sensor j.
 
     Static model V = B + gᵀS (Soto eq. 4), or equivalently per sensor v = b + S·(u·g) with the
-    coning unit vectors of DESIGN.md §3 (Tripp eqs. 2, 4, 5). On top: a first-order low-pass
+    coning unit vectors of docs/design.md §3 (Tripp eqs. 2, 4, 5). On top: a first-order low-pass
     output, white noise, slow offset drift and temperature coefficients."""
 
     model_config = ConfigDict(extra="forbid")

@@ -1,4 +1,4 @@
-"""The readings CSV (DESIGN.md §5): one row per calibration point, header required.
+"""The readings CSV (docs/design.md §5): one row per calibration point, header required.
 
 Required columns: replicate,y_deg,u_deg,pitch_deg,roll_deg,vx,vy,vz; optional temp_c;
 any other column is ignored on reading. Every error names the file, the line and the column.

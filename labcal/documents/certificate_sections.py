@@ -89,7 +89,7 @@ class SimulatedTruth(Recorded):
 
 # --- the fit (fit.layout, fit.extensions, fit.replication) -----------------------------------------
 class Layout(Strict):
-    """How the coefficient arrays are laid out, in words (DESIGN.md §5)."""
+    """How the coefficient arrays are laid out, in words (docs/design.md §5)."""
 
     rows: list[str]
     columns: list[str]

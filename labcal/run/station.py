@@ -1,7 +1,7 @@
 """The two small interfaces the sequencer drives, and the station that bundles them.
 
 Hardware drivers (`labcal.drivers`) and the simulated rig (`labcal.sim`) both implement
-them, so the sequencer cannot tell which it talks to (DESIGN.md §4).
+them, so the sequencer cannot tell which it talks to (docs/design.md §4).
 """
 
 from __future__ import annotations
