@@ -2,7 +2,7 @@
 read-back.
 
 A driver supplies four device exchanges (status, angle, go to an absolute angle, halt); this base
-turns them into `labcal.station.RotaryAxis`. A move is checked against the table's reach (its soft
+turns them into `labcal.run.station.RotaryAxis`. A move is checked against the table's reach (its soft
 limits and its cable wrap, `labcal.run.winding`) before anything is sent, goes the way round the
 caller chose (``travel_deg``), and is only over when the device reports it in position *and* the
 position read back lies within the tolerance of the target.
@@ -41,7 +41,7 @@ def wrapped(delta_deg: float) -> float:
 
 
 class IndexAxis(ABC):
-    """An index table behind `labcal.station.RotaryAxis`."""
+    """An index table behind `labcal.run.station.RotaryAxis`."""
 
     model = "index table"
     counts_turns = True  # its angle is unwrapped: its accumulated rotation from home (an AZ with wrap: not)

@@ -156,7 +156,7 @@ def stamp(fields: Sequence[str]) -> datetime:
 
 
 class Keysight34970A:
-    """A scanning DMM behind `labcal.station.Voltmeter`."""
+    """A scanning DMM behind `labcal.run.station.Voltmeter`."""
 
     model = "Keysight 34970A"
 

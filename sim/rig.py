@@ -104,7 +104,7 @@ class SimRig:
         self._t_filter = t
 
     def read(self, n_samples: int) -> Scan:
-        """n consecutive DMM samples (implements `labcal.station.Voltmeter`)."""
+        """n consecutive DMM samples (implements `labcal.run.station.Voltmeter`)."""
         t_int = self.config.nplc / self.config.line_hz
         times = self.clock.now() + (np.arange(n_samples) + 0.5) * t_int
         self.clock.sleep(n_samples * t_int)

@@ -20,7 +20,7 @@ __all__ = ["SimAxis", "trapezoid_duration", "trapezoid_travel"]  # the tables mo
 
 
 class SimAxis:
-    """A simulated index table on the rig's clock (implements `labcal.station.RotaryAxis`)."""
+    """A simulated index table on the rig's clock (implements `labcal.run.station.RotaryAxis`)."""
 
     def __init__(self, name: str, clock: RigClock, speed_dps: float = 20.0,
                  accel_dps2: float = 40.0, clamp_s: float = 1.0,

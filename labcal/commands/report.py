@@ -13,7 +13,7 @@ if TYPE_CHECKING:
 
 
 def rich_table(t) -> RichTable:
-    """A report table (`labcal.report.Table`) for the terminal. Its text is the report's, not rich
+    """A report table (`labcal.documents.report_tables.Table`) for the terminal. Its text is the report's, not rich
     markup: escaped, so that "[certificate]" (a station file's section) is printed, not eaten."""
     from rich.markup import escape
     from rich.table import Table as RichTable

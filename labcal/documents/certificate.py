@@ -110,7 +110,7 @@ class Environment(Strict):
 
 
 class FitSection(Strict):
-    """The fit JSON contract (docs/design.md §5) as `labcal.fit.Fit.to_json` writes it, so that
+    """The fit JSON contract (docs/design.md §5) as `labcal.analysis.fit.Fit.to_json` writes it, so that
     `labcal attitude --cert` reads a certificate exactly as it reads a fit."""
 
     model: Literal["linear", "device"]  # device: the coefficients of the device model (DeviceSection)

@@ -33,7 +33,7 @@ from labcal.run.labdb import lab_database
 def db_path(option: str | Path | None = None) -> Path:
     """The SQLite file this station journals in: the lab database itself when it is a SQLite file
     (no copy, nothing to send), else the station's local journal (`LabConfig.journal`), whose
-    records `labcal.lab.sync` sends to the lab's server."""
+    records `labcal.run.sync` sends to the lab's server."""
     found = lab_database(option)
     return found if isinstance(found, Path) else load_lab_config().journal()
 

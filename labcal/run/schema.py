@@ -165,7 +165,7 @@ users = Table(
 )
 
 # Revision 0007: in a station's journal, how far its records have been sent to each lab database
-# (`labcal.lab.sync`): ``target`` names the database, ``name`` the table (points, events,
+# (`labcal.run.sync`): ``target`` names the database, ``name`` the table (points, events,
 # certificates), ``position`` the last rowid sent; and each run's id in that database, with what
 # was last sent of its status ("status|reason|ended_utc|points_total|station").
 sync_cursors = Table(

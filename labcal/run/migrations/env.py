@@ -1,4 +1,4 @@
-"""Alembic's environment: always called by labcal with an open connection (`labcal.run.migrate`),
+"""Alembic's environment: always called by labcal with an open connection (`labcal.run.labdb.upgrade`),
 never from an alembic.ini, so that the lab database's location is labcal's to resolve."""
 
 from __future__ import annotations
