@@ -1,6 +1,6 @@
-"""Interfaces others rely on (docs/design.md §5) keep the names the README documents.
+"""Interfaces others rely on (docs/design.md §5) keep the names the user documents state.
 
-The expected names are read from the README, the document users and other programs go by, not
+The expected names are read from the documents (docs/user/), what users and other programs go by, not
 from the code's own constants: a rename inside labcal that changed an identifier on the wire or
 on disk fails here.
 """
@@ -13,13 +13,14 @@ import subprocess
 import sys
 from pathlib import Path
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+CERTIFICATES = Path(__file__).resolve().parents[1] / "docs" / "user" / "certificates.md"
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 
 
-def test_a_certificate_carries_the_schema_id_the_readme_documents(tmp_path):
-    documented = re.search(r"\*\*Certificate\*\* \(schema `([^`]+)`\)", README.read_text(encoding="utf-8"))
-    assert documented, "the README no longer states the certificate schema"
+def test_a_certificate_carries_the_schema_id_the_documents_state(tmp_path):
+    documented = re.search(r"\*\*Certificate\*\* \(schema `([^`]+)`\)",
+                           CERTIFICATES.read_text(encoding="utf-8"))
+    assert documented, "docs/user/certificates.md no longer states the certificate schema"
     run_dir = tmp_path / "run"
     done = subprocess.run([LABCAL, "run", "--sim", "--yes", "--seed", "2", "--plan", "one-mount-16",
                            "--out", str(run_dir)], capture_output=True, text=True, timeout=300)

@@ -191,9 +191,3 @@ def test_report_tables_print_their_text_not_rich_markup():
                                    "Give a [certificate] section in the station file.")))
     text = " ".join(console.file.getvalue().split())
     assert "a [certificate] section" in text and "[b]none[/b]" in text
-
-
-def test_readme_links_nothing_outside_the_repository():
-    from pathlib import Path
-
-    assert "../shared" not in (Path(__file__).parents[1] / "README.md").read_text()
