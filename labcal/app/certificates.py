@@ -23,6 +23,7 @@ SERVER_ROLE = "lab server"  # as labcal.documents.approvers.SERVER_ROLE, without
 
 if TYPE_CHECKING:
     from labcal.documents.approvers import Approver
+    from labcal.documents.certificate import Certificate
     from labcal.documents.report import RunOutputs
     from labcal.documents.report_tables import Table
 
@@ -261,3 +262,10 @@ def list_approvers(request: ListApprovers) -> Approvers:
     from labcal.documents import approvers
 
     return Approvers(tuple(approvers.listed(request.db)))
+
+
+def read_certificate(path: str | Path) -> Certificate:
+    """A certificate.json as its typed model, checked against its schema and its digest. A read."""
+    from labcal.documents.certificate import read_certificate as read
+
+    return read(path)

@@ -267,3 +267,10 @@ def run_checklist(config: StationFile | None, bench: Bench | None, station: Stat
 
 def unmet(items: Iterable[Item]) -> list[Item]:
     return [item for item in items if item.status == "fail"]
+
+
+def refusal(failed: list[Item]) -> LabcalError:
+    """The one line a run is refused with when items are not met and nobody said to go on."""
+    return LabcalError(f"pre-run checklist: {failed[0].name}: {failed[0].why}"
+                       + (f" (and {len(failed) - 1} more item(s) not met)" if len(failed) > 1 else "")
+                       + "; nothing was moved")

@@ -222,7 +222,7 @@ def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, 
     asked. Returns what the run journals of it (its metadata: run.json, the manifest)."""
     from pathlib import Path
 
-    from labcal.bench.checklist import PowerOn, parse_power_on, run_checklist, unmet
+    from labcal.bench.checklist import PowerOn, parse_power_on, refusal, run_checklist, unmet
     from labcal.commands.common import err
     from labcal.errors import LabcalError
     from labcal.run.journal import db_path
@@ -265,6 +265,4 @@ def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, 
             go_on = ""
         if go_on in ("y", "yes"):
             return {**record, "went_on_regardless": True}
-    raise LabcalError(f"pre-run checklist: {failed[0].name}: {failed[0].why}"
-                      + (f" (and {len(failed) - 1} more item(s) not met)" if len(failed) > 1 else "")
-                      + "; nothing was moved")
+    raise refusal(failed)
