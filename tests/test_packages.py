@@ -18,6 +18,7 @@ from labcal.analysis.packages import (
     inferred_covariance,
     output,
     output_sd,
+    package_problem,
     pitch_at_roll,
     pitch_without_roll,
     sd_pitch_at_roll,
@@ -245,3 +246,22 @@ def test_u95_of_pitch_with_independent_roll_covers_95_percent():
                                                    (np.array(u**2 - u_noise**2), np.inf)])
             hits += abs(alpha_hat - alpha) <= float(t_quantile(0.975, nu)) * u
         assert 0.93 <= hits / trials <= 0.97, (np.degrees([alpha, roll]), hits / trials)
+
+
+@pytest.mark.parametrize("package,roll_in_use,pitch,roll,why", [
+    ("two-axis-xy", "inferred", (-60, 60), (-180, 180), "singular"),  # §6.4: R = ±90°
+    ("two-axis-xy", "inferred", (-89, 89), (-80, 80), None),
+    ("two-axis-xz", "inferred", (-60, 60), (-30, 30), "singular"),  # §6.5: R = 0°
+    ("two-axis-xz", "inferred", (-60, 60), (30, 150), None),  # §6.5's usable roll range
+    ("two-axis-xz", "table", (-90, 90), (-180, 180), "pitch -90°, roll -90°"),  # eq. 98: {±90°, ±90°}
+    ("two-axis-xz", "table", (-90, 90), (0, 80), None),
+    ("single-axis", "sensor", (-90, 60), (-180, 180), "pitch -90°"),  # eq. 81 at α = ±90°
+    ("single-axis", "sensor", (-89, 89), (-180, 180), None),
+    ("single-axis", "none", (-60, 60), (-10, 10), "roll 0 only"),  # eq. 1
+    ("single-axis", "none", (-60, 60), (0, 0), None),
+    ("single-axis", "inferred", (-60, 60), (0, 0), "cannot infer roll"),
+    ("three-axis", "inferred", (-90, 90), (-180, 180), None),  # eq. 108: pitch bounded everywhere
+])
+def test_package_problem_over_a_usage_envelope(package, roll_in_use, pitch, roll, why):
+    problem = package_problem(package, roll_in_use, pitch, roll)
+    assert problem is None if why is None else why in problem

@@ -245,3 +245,62 @@ def usable_box(sensors: Sequence[Sensor], sigma_v: Sequence[float], limit: float
         raise LabcalError(f"the package cannot infer pitch and roll within {np.degrees(limit):.3g}° even "
                           "at the level attitude")
     return UsableBox(best[1] * step, best[2] * step, limit)
+
+
+# --- can a package be used over a usage envelope? ---------------------------------------------------
+def _envelope(lo: float, hi: float, step: float) -> Array:
+    n = max(int(np.ceil((hi - lo) / step - 1e-9)), 1)
+    return np.radians(np.linspace(lo, hi, n + 1))
+
+
+def _where(alpha: Array, roll: Array, bad: NDArray[np.bool_]) -> str:
+    i = np.argwhere(bad)[0]
+    return f"pitch {np.degrees(alpha[tuple(i)]):.4g}°, roll {np.degrees(roll[tuple(i)]):.4g}°"
+
+
+def package_problem(package: str, roll_in_use: str, usage_pitch_deg: tuple[float, float],
+                    usage_roll_deg: tuple[float, float], step_deg: float = 1.0) -> str | None:
+    """Why a package, with roll obtained as ``roll_in_use``, cannot give its angles over the usage
+    envelope (pitch × roll ranges, °), or None. Judged on the nominal package (Ω = 0, the singular
+    loci of every real one lie within its small Ω of these, Tripp Figs. 9, 11) on a ``step_deg`` grid
+    with the ends included:
+
+    - without roll (single-axis, eq. 1): only at roll 0, and eq. 78 is unbounded at α = ±90°;
+    - at a measured roll: where f_α·f_αᵀ = 0 (eq. 81 at α = ±90°; eq. 98 at {±90°, ±90°} for x–z);
+    - inferred by a two-axis package: where det F_z changes sign or vanishes (eqs. 86, 94): the x–y
+      package at α = ±90° and R = ±90°, the x–z package at α = ±90° and R = 0°, ±180°;
+    - a single sensor cannot infer roll at all; the three-axis package can everywhere but at ±90°,
+      where roll is undefined and says so (eq. 106)."""
+    axes = PACKAGES[package]
+    nominal = [Sensor(a, 0.0, 1.0) for a in axes]
+    alpha, roll = np.meshgrid(_envelope(*usage_pitch_deg, step_deg), _envelope(*usage_roll_deg, step_deg),
+                              indexing="ij")
+    if roll_in_use == "none":
+        if package != "single-axis":
+            return (f"a {package} package is not used without roll; roll_in_use \"none\" is a single-axis "
+                    "sensor's")
+        if usage_roll_deg != (0.0, 0.0):
+            return ("a single-axis package used without roll measures pitch at roll 0 only (Tripp eq. 1), "
+                    f"but the usage envelope spans roll {usage_roll_deg[0]:g}..{usage_roll_deg[1]:g}°")
+        roll_in_use = "table"  # at R = 0 known: the same f_α (eq. 17)
+    if roll_in_use in ("table", "sensor"):
+        moment = np.sum([derivatives(s, alpha, roll)[0] ** 2 for s in nominal], axis=0)
+        bad = np.asarray(moment <= 1e-12)
+        if bad.any():
+            return (f"the {package} package cannot infer pitch at {_where(alpha, roll, bad)} of the usage "
+                    "envelope: no output changes with pitch there (f_α = 0, Tripp eqs. 81, 96–98)")
+        return None
+    if len(axes) == 1:
+        return ("a single-axis package cannot infer roll: it is used without roll or at a roll measured by "
+                "the table or a sensor")
+    if len(axes) == 3:
+        return None
+    det = determinant(nominal, alpha, roll)
+    scale = np.max(np.abs(det))
+    zero = np.abs(det) <= 1e-9 * scale
+    if zero.any() or (det.min() < 0 < det.max()):
+        where = zero if zero.any() else np.sign(det) != np.sign(det.flat[np.argmax(np.abs(det))])
+        return (f"the {package} package cannot infer pitch and roll together over the usage envelope: its "
+                f"Jacobian F_z (Tripp eqs. 86, 94) is singular near {_where(alpha, roll, where)}; narrow the "
+                "certificate's usage_pitch_deg / usage_roll_deg, or use it at a measured roll")
+    return None

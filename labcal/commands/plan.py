@@ -192,11 +192,12 @@ def cmd_audit(args: argparse.Namespace) -> int:
     leaks = audit(plan)
     summary = audit_summary(leaks)
     ident = identifiability(Geometry.of_plan(plan.points, plan.mounts))
+    package = package_verdict(args.station) if args.station else None
     if args.json:
         print_json({"plan": plan.name, "zero_below": LEAK_ZERO,
                     "rows": ["B", "S row g_x", "S row g_y", "S row g_z"],
                     "per_radian": {n: d.tolist() for n, d in leaks.items()}, "summary": summary,
-                    "identifiability": ident.to_json()})
+                    "identifiability": ident.to_json(), **({"package": package} if package else {})})
         return 0
     table = Table(title=f"{plan.name}: change of X per radian of CD misalignment (first order)")
     table.caption = "cancelled: no leakage into B or the off-diagonal of S (ideal instrument)"
@@ -214,7 +215,38 @@ def cmd_audit(args: argparse.Namespace) -> int:
     else:
         out.print("[green]device model:[/] this plan identifies all six misalignments with the instrument; "
                   "labcal fit uses the device model on its readings")
+    if package:
+        axes = ", ".join(package["axes"])
+        sd = package["roll_sd_deg"]
+        roll = package["roll_in_use"] + (f" (σ_R {sd:g}°)" if sd else "")
+        head = f"instrument package: {package['package']} ({axes}), roll in use: {roll}"
+        if package["problem"]:
+            out.print(f"[red]{head}: refused[/] — {package['problem']}")
+        else:
+            out.print(f"[green]{head}:[/] the plan determines b, S, Ω and A of each of its sensors, and the "
+                      "package gives its angles over the certificate's usage envelope"
+                      + ("" if package["package"] == "three-axis" else
+                         "; labcal run fits and certifies three-axis packages only"))
     return 0
+
+
+def package_verdict(station: str) -> dict:
+    """The station's instrument package, how it obtains roll in use, and why it cannot be used over the
+    certificate's usage envelope (None when it can). Every plan labcal accepts determines [1, gᵀ] of
+    each sensor (rank 4), hence every sensor's b, S, Ω and A (Tripp eq. 8)."""
+    from labcal.analysis.packages import PACKAGES, package_problem
+    from labcal.config.lab import certificate_settings
+    from labcal.config.station import load_station
+
+    config, _ = load_station(station)
+    envelope = certificate_settings(config.certificate, station)  # as labcal run judges it
+    inst = config.instrument
+    roll = inst.roll_source
+    assert roll is not None  # required of a single axis by the station file's validation
+    return {"package": inst.package, "axes": list(PACKAGES[inst.package]), "roll_in_use": roll,
+            "roll_sd_deg": inst.roll_sd_deg, "usage_pitch_deg": list(envelope.usage_pitch_deg),
+            "usage_roll_deg": list(envelope.usage_roll_deg),
+            "problem": package_problem(inst.package, roll, envelope.usage_pitch_deg, envelope.usage_roll_deg)}
 
 
 def identifiability_table(name: str, ident) -> Table:
@@ -333,6 +365,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                        "misalignment's uncertainty per µg of noise, and the mount to add "
                                        "for each one it cannot see.")
     p.add_argument("plan", help="plan name or .toml file")
+    p.add_argument("--station", metavar="FILE",
+                   help="also judge the station's [instrument] package (Tripp & Tcheng §6) over its "
+                        "certificate's usage envelope: what labcal run refuses before anything moves")
     p.add_argument("--json", action="store_true", help="print as JSON on stdout")
     p.set_defaults(func=cmd_audit)
 
