@@ -265,3 +265,15 @@ def test_u95_of_pitch_with_independent_roll_covers_95_percent():
 def test_package_problem_over_a_usage_envelope(package, roll_in_use, pitch, roll, why):
     problem = package_problem(package, roll_in_use, pitch, roll)
     assert problem is None if why is None else why in problem
+
+
+def test_figures_7_and_8_as_section_6_3_describes_them():
+    """§6.3 on Figs. 7–8 (Ω = 1°, A = 90°): with σ_R 1 and 10 times the pitch sensor's uncertainty
+    the inferred pitch's hardly varies with roll, with 100 times it does; and it is about 15 % greater
+    at α = 30° than at α = 0°."""
+    single = [Sensor("x", 0.0, 1.0, 1.0 * DEG, 90 * DEG)]
+    roll = np.radians(np.linspace(0, 180, 181))
+    spread = {k: np.ptp(sd_pitch_at_roll(single, [1.0], 0.0, roll, k)) for k in (1, 10, 100)}
+    assert spread[1] < 0.001 and spread[10] < 0.02 and spread[100] > 0.5
+    at_30, at_0 = (sd_pitch_at_roll(single, [1.0], a, 0.0, 1.0) for a in (30 * DEG, 0.0))
+    assert at_30 / at_0 == pytest.approx(1.15, abs=0.01)

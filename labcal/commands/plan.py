@@ -152,7 +152,11 @@ def cmd_merit(args: argparse.Namespace) -> int:
 
 
 def plot_merit(plan, calibration_range, usage, path: str) -> None:
-    """Normalised output standard deviation against pitch: mean over roll, with its roll spread."""
+    """One figure: the plan's normalised output standard deviation against pitch (Tripp Figs. 1–5),
+    and the inferred-angle standard deviations of Tripp Figs. 6–8 and 10(a) — the single-axis sensor
+    without roll on this plan (eq. 78), the single-axis sensor at an independently measured roll
+    (eq. 81, Ω = 1°, A = 90°) against pitch and against roll, and the x–y package (eq. 90, Ω = 1°,
+    A_x = 90°, A_y = 0°, σ_y = σ_x) against roll at five pitches."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -160,23 +164,66 @@ def plot_merit(plan, calibration_range, usage, path: str) -> None:
     import numpy as np
 
     from labcal.analysis.design import normalised_variance
-    from labcal.documents.plotfile import save
+    from labcal.analysis.packages import Sensor, inferred_covariance, sd_pitch_at_roll, sd_pitch_without_roll
+    from labcal.documents.plotfile import check_folder, save
 
+    check_folder(path)
     lo, hi = calibration_range
     pitch = np.linspace(lo, hi, 721)
     sd = np.sqrt(normalised_variance(plan, pitch[:, None], np.arange(72)[None, :] * 5.0))
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, axes = plt.subplots(2, 3, figsize=(15, 8.5))
+    ax = axes[0, 0]
     ax.plot(pitch, sd.mean(axis=1), label="mean over roll")
     ax.fill_between(pitch, sd.min(axis=1), sd.max(axis=1), alpha=0.3, label="range over roll")
     if usage:
         ax.axvspan(*usage, color="grey", alpha=0.15, label="usage range")
-    ax.set_xlabel("pitch α (°)")
-    ax.set_ylabel("σ_v · √K / σ_E")
-    ax.set_title(f"{plan.name}: normalised output standard deviation", parse_math=False)  # names as written
-    ax.legend()
-    ax.grid(alpha=0.3)
+    ax.set(xlabel="pitch α (°)", ylabel="σ_v · √K / σ_E")
+    ax.set_title(f"{plan.name}: predicted output", parse_math=False)  # names as written
+    ax.legend(fontsize=8)
+
+    ax = axes[0, 1]  # Fig. 6: this plan's σ_v at roll 0 through eq. 78 (φ = 0, S = 1)
+    inner = pitch[np.abs(pitch) < 85]
+    sigma_v = np.sqrt(normalised_variance(plan, inner, np.zeros_like(inner)))
+    ax.semilogy(inner, sd_pitch_without_roll(sigma_v, 1.0, 0.0, np.radians(inner)))
+    ax.set(xlabel="pitch α (°)", ylabel="σ_α̂ · S√K / σ_E")
+    ax.set_title("single axis without roll (Tripp Fig. 6, eq. 78)", parse_math=False)
+
+    single = [Sensor("x", 0.0, 1.0, np.radians(1.0), np.radians(90.0))]
+    ax = axes[0, 2]  # Fig. 7
+    alpha = np.linspace(-85, 85, 341)
+    for ratio in (1, 10):
+        ax.semilogy(alpha, sd_pitch_at_roll(single, [1.0], np.radians(alpha), np.radians(45.0), ratio),
+                    label=f"σ_R = {ratio} σ_v/S")
+    ax.set(xlabel="pitch α (°)", ylabel="σ_α̂ · S / σ_v")
+    ax.set_title("single axis at measured roll 45° (Tripp Fig. 7, eq. 81)", parse_math=False)
+    ax.legend(fontsize=8)
+
+    ax = axes[1, 0]  # Fig. 8
+    roll = np.linspace(0, 180, 361)
+    for ratio in (1, 10, 100):
+        ax.plot(roll, sd_pitch_at_roll(single, [1.0], 0.0, np.radians(roll), ratio),
+                label=f"σ_R = {ratio} σ_v/S")
+    ax.set(xlabel="roll R (°)", ylabel="σ_α̂ · S / σ_v")
+    ax.set_title("single axis at measured roll, α = 0 (Tripp Fig. 8)", parse_math=False)
+    ax.legend(fontsize=8)
+
+    package = [Sensor("x", 0.0, 1.0, np.radians(1.0), np.radians(90.0)),
+               Sensor("y", 0.0, 1.0, np.radians(1.0))]
+    roll = np.linspace(-180, 180, 721)
+    for a in (0, 20, 40, 60, 80):  # Fig. 10(a)
+        cov = inferred_covariance(package, [1.0, 1.0], np.radians(a), np.radians(roll))
+        axes[1, 1].semilogy(roll, np.sqrt(cov[:, 0, 0]), label=f"α = {a}°")
+        axes[1, 2].semilogy(roll, np.sqrt(cov[:, 1, 1]), label=f"α = {a}°")
+    for ax, angle in ((axes[1, 1], "α̂"), (axes[1, 2], "R̂")):
+        ax.set(xlabel="roll R (°)", ylabel=f"σ_{angle} · S / σ_v", ylim=(0.5, 1e3))
+        which = "pitch" if angle == "α̂" else "roll"
+        ax.set_title(f"x–y package: inferred {which} (Tripp Fig. 10(a), eq. 90)", parse_math=False)
+        ax.legend(fontsize=8)
+    for ax in axes.flat:
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
     try:
-        save(fig, path, dpi=120, bbox_inches="tight")
+        save(fig, path, dpi=110, bbox_inches="tight")
     finally:
         plt.close(fig)
 
