@@ -3,6 +3,8 @@ a sensor calibrated with roll over ±30° in six replications while the temperat
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -28,7 +30,7 @@ def design_9_2_1(replicates: int = 6) -> tuple[np.ndarray, np.ndarray, np.ndarra
     pitch, roll = (a.ravel() for a in np.meshgrid(np.arange(-30, 31, 5.0), np.arange(-180, 181, 15.0),
                                                   indexing="ij"))
     assert len(pitch) == 325
-    rep = np.repeat(np.arange(replicates), len(pitch))
+    rep = np.repeat(np.arange(1, replicates + 1), len(pitch))
     pitch, roll = np.tile(pitch, replicates), np.tile(roll, replicates)
     run = np.linspace(0.0, 1.0, len(rep))
     temp = 21.0 + 0.5 * (1 - np.cos(np.pi * run))  # 21 → 22 °C
@@ -109,3 +111,34 @@ def test_temperature_corrected_tests_hold_their_size():
     rates = {"lack of fit": result.classical.significant.mean(),
              **{d.name: d.test.significant.mean() for d in result.drift}}
     assert all(0.03 <= rate <= 0.07 for rate in rates.values()), rates
+
+
+def test_labcal_fit_reports_table_2_with_the_temperature_terms(tmp_path, capsys):
+    """`labcal fit --extend temperature` on the drifting calibration: Table 2's columns, per sensor,
+    and the sensitivity drift of the uncorrected fit gone. (--allow-outliers: the gross-error check
+    holds |(V − B)S⁻¹| to 1 g without the temperature terms, and a 3e-4/°C sensitivity over 1 °C
+    moves it 1.7e-4, beyond its 5e-5.)"""
+    from rich.console import Console
+
+    from labcal.cli import main
+    from labcal.commands.fit import replication_table
+    from labcal.config.readings_csv import write_readings
+
+    rep, pitch, roll, temp = design_9_2_1()
+    path = tmp_path / "readings.csv"
+    write_readings(path, readings(rep, pitch, roll, temp, volts(pitch, roll, temp, np.random.default_rng(5))))
+    fit = ["fit", str(path), "--model", "linear", "--extend", "temperature", "--allow-outliers", "--json"]
+    assert main(fit) == 0
+    doc = json.loads(capsys.readouterr().out)
+    x = doc["replication"]["x"]
+    assert not x["drift"]["sensitivity"]["significant"] and x["drift"]["sensitivity"]["sigma_drift"] >= 0
+    table = Console(width=250, record=True)
+    table.print(replication_table(doc["replication"], "V", doc["residual_standard_error"]))
+    text = table.export_text()
+    for column in ("σ_E", "σ_bias", "σ_prec", "T_bias", "(F_bias)95", "σ_b", "σ_S", "T_b", "T_S", "(F_bS)95"):
+        assert column in text
+    x_row = next(line for line in text.splitlines() if line.strip("│ ").startswith("x "))
+    assert f"{doc['residual_standard_error'][0]:.3g}" in x_row
+    # the 95 % limits Tripp Table 2 prints for the design of §9.2.1 (row 28(b)): 1.15 and 2.22
+    assert round(x["lack_of_fit"]["critical_95"], 2) == 1.15
+    assert round(x["drift"]["sensitivity"]["critical_95"], 2) == 2.22
