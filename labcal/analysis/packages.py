@@ -190,22 +190,26 @@ def determinant(sensors: Sequence[Sensor], alpha: ArrayLike, roll: ArrayLike) ->
     return np.asarray(F[..., 0, 0] * F[..., 1, 1] - F[..., 0, 1] * F[..., 1, 0], dtype=float)
 
 
-def infer(sensors: Sequence[Sensor], v: ArrayLike, start: tuple[float, float] = (0.0, 0.0)
-          ) -> tuple[float, float]:
-    """(α̂, R̂) from a two-sensor package's outputs by Newton–Raphson on eqs. 14–16 (Tripp §6.2),
-    from ``start``. A singular or non-converging Jacobian is refused: near it no solution exists."""
-    z = np.array(start, dtype=float)
+def infer(sensors: Sequence[Sensor], v: ArrayLike, start: tuple[float, float] = (0.0, 0.0)) -> Array:
+    """(α̂, R̂) (…, 2) from a two-sensor package's outputs v (…, 2) by Newton–Raphson on eqs. 14–16
+    (Tripp §6.2), every row from ``start``. A singular Jacobian or no convergence is refused: near
+    a singular locus no solution exists (§6.4)."""
     target = np.asarray(v, dtype=float)
+    rows = target.reshape(-1, len(sensors))
+    z = np.tile(np.asarray(start, dtype=float), (len(rows), 1))
+    scale = max(abs(s.S) for s in sensors) ** 2
     for _ in range(NEWTON_ITERATIONS):
-        residual = target - np.array([output(s, z[0], z[1]) for s in sensors])
-        F = jacobian(sensors, z[0], z[1])
-        if abs(np.linalg.det(F)) < 1e-12 * max(abs(s.S) for s in sensors) ** 2:
-            raise LabcalError(f"pitch {np.degrees(z[0]):.3g}°, roll {np.degrees(z[1]):.3g}°: the package's "
-                              "Jacobian is singular there; pitch and roll cannot both be inferred")
-        step = np.linalg.solve(F.T, residual)  # δv = δz·F
+        residual = rows - np.stack([output(s, z[:, 0], z[:, 1]) for s in sensors], axis=-1)
+        F = jacobian(sensors, z[:, 0], z[:, 1])  # (n, 2, 2)
+        singular = np.abs(np.linalg.det(F)) < 1e-12 * scale
+        if singular.any():
+            a, r = np.degrees(z[np.argmax(singular)])
+            raise LabcalError(f"pitch {a:.3g}°, roll {r:.3g}°: the package's Jacobian is singular there; "
+                              "pitch and roll cannot both be inferred")
+        step = np.linalg.solve(np.swapaxes(F, -1, -2), residual[..., None])[..., 0]  # δv = δz·F
         z = z + step
         if np.max(np.abs(step)) < NEWTON_TOLERANCE:
-            return float(z[0]), float(z[1])
+            return np.asarray(z.reshape(target.shape), dtype=float)
     raise LabcalError("pitch and roll did not converge from the package's outputs: the attitude is near a "
                       "singularity of its Jacobian")
 
