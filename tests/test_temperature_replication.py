@@ -113,6 +113,19 @@ def test_temperature_corrected_tests_hold_their_size():
     assert all(0.03 <= rate <= 0.07 for rate in rates.values()), rates
 
 
+def test_a_temperature_read_once_per_replicate_is_an_offset_drift_it_takes_a_degree_of_freedom_from():
+    """Temperature constant within each replicate: the offset's temperature term is a combination of
+    per-replicate offsets, so the offset drift test has R − 2 degrees of freedom left, not R − 1."""
+    rep, pitch, roll, _ = design_9_2_1()
+    temp = 21.0 + 0.2 * rep
+    r = readings(rep, pitch, roll, temp, volts(pitch, roll, temp, np.random.default_rng(3)))
+    result = fit_readings(r, Model(("temperature",), t_ref=float(temp.mean()))).replication
+    assert result is not None
+    drift = {d.name: d for d in result.drift}
+    assert drift["offset"].test.df_num == 4 and drift["sensitivity"].test.df_num == 4
+    assert np.all(np.isfinite(drift["offset"].test.statistic))
+
+
 def test_labcal_fit_reports_table_2_with_the_temperature_terms(tmp_path, capsys):
     """`labcal fit --extend temperature` on the drifting calibration: Table 2's columns, per sensor,
     and the sensitivity drift of the uncorrected fit gone. (--allow-outliers: the gross-error check

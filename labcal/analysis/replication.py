@@ -237,8 +237,8 @@ def analyse_with_covariates(design: NDArray[np.float64], y: NDArray[np.float64],
     - pure error: a mean per point, + T (N − G − q degrees of freedom);
     - lack of fit: the point columns J + T against it (G − p);
     - drift: J + T + a per-replicate offset, or a per-replicate scale of the fitted sensitivity
-      direction (g·ŝ/|ŝ|), each against J + T (R − 1), over the residual of the model that lets every
-      replicate have its own J coefficients (+ point means, + T).
+      direction (g·ŝ/|ŝ|), each against J + T (R − 1, less what T already spans), over the residual of
+      the model that lets every replicate have its own J coefficients (+ point means, + T).
     σ_prec and σ_bias follow `analyse_points`; a drift's σ is the one-way variance component,
     (MS_drift − MS_e)/(Σh²/R) with h its regressor. Tests that correct the readings by a γ fitted
     first and then test them as `analyse` does are not exact: γ takes up part of any trend between
@@ -277,29 +277,34 @@ def analyse_with_covariates(design: NDArray[np.float64], y: NDArray[np.float64],
     coef = np.linalg.lstsq(design, y, rcond=None)[0]
     resid = y - design @ coef
 
-    def extra_ms(blocks: list[NDArray[np.float64]], mix: NDArray[np.float64]) -> NDArray[np.float64]:
+    def extra_ms(blocks: list[NDArray[np.float64]], mix: NDArray[np.float64]
+                 ) -> tuple[NDArray[np.float64], int]:
         """Per column c: the mean square that the R − 1 regressors Σ_k mix[k, c]·blocks[k] add to the
         common fit — its residual's projection on them once they are taken about the fit (Frisch–
-        Waugh), all columns at once."""
+        Waugh), all columns at once — and their degrees of freedom: fewer than R − 1 where the
+        covariates already span part of them (a temperature read once per replicate is an offset
+        per replicate)."""
         e = np.stack([x - design @ np.linalg.lstsq(design, x, rcond=None)[0] for x in blocks])  # K, N, R−1
         gram = np.einsum("kna,lnb->klab", e, e)
         a = np.einsum("kc,lc,klab->cab", mix, mix, gram)
         b = np.einsum("kc,kna,nc->ca", mix, e, resid)
-        x = np.linalg.solve(a, b[..., None])[..., 0]
-        return np.asarray(np.einsum("ca,ca->c", b, x) / (n_reps - 1), dtype=float)
+        scale = np.max(np.abs(a), axis=(1, 2), keepdims=True)
+        rank = int(np.min(np.linalg.matrix_rank(a / np.where(scale > 0, scale, 1.0), tol=1e-10)))
+        x = np.einsum("cab,cb->ca", np.linalg.pinv(a, rcond=1e-10, hermitian=True), b)
+        return np.asarray(np.einsum("ca,ca->c", b, x) / max(rank, 1), dtype=float), rank
 
     s_coef = coef[:n_coef][sensitivity]
     direction = s_coef / np.linalg.norm(s_coef, axis=0)  # each column's own sensitivity direction
     j_s = j[:, sensitivity]
     h_sens = j_s @ direction
     tests = {
-        "offset": (extra_ms([one_hot[:, 1:]], np.ones((1, n_cols))), np.full(n_cols, n_obs / n_reps)),
-        "sensitivity": (extra_ms([j_s[:, [k]] * one_hot[:, 1:] for k in range(j_s.shape[1])], direction),
+        "offset": (*extra_ms([one_hot[:, 1:]], np.ones((1, n_cols))), np.full(n_cols, n_obs / n_reps)),
+        "sensitivity": (*extra_ms([j_s[:, [k]] * one_hot[:, 1:] for k in range(j_s.shape[1])], direction),
                         np.sum(h_sens**2, axis=0) / n_reps),
     }
-    drift = tuple(DriftTest(name, FTest(ratio(ms, ms_e), n_reps - 1, df_e),
+    drift = tuple(DriftTest(name, FTest(ratio(ms, ms_e) if df else np.full(n_cols, np.nan), max(df, 1), df_e),
                             np.sqrt(np.maximum(0.0, (ms - ms_e) / weight)))
-                  for name, (ms, weight) in tests.items())
+                  for name, (ms, df, weight) in tests.items())
     drifting = np.any([d.test.significant for d in drift], axis=0)
     ms_star, df_star = np.where(drifting, ms_e, ms_pe), np.where(drifting, df_e, df_pe)
     counts = np.bincount(groups, minlength=n_groups).astype(float)[:, None]
