@@ -14,6 +14,7 @@ from labcal.analysis.design import (
     fractional_size,
     make_plan,
     normalised_variance,
+    tripp_table_1,
     tumble,
 )
 from labcal.config.plans import load_plan, parse_plan, plan_toml
@@ -29,6 +30,52 @@ def test_table_1_figure_of_merit(pitch_max, v_sqrt, v_r_sqrt):
     assert round(figure_of_merit(plan, (-pitch_max, pitch_max)) ** 0.5, 3) == v_sqrt
     if v_r_sqrt is not None:
         assert round(figure_of_merit(plan, (-30, 30)) ** 0.5, 3) == v_r_sqrt
+
+
+# Tripp Table 1, all eight columns (M = 64, N = 33; column 9: M = 65), as printed:
+# column, V^½ over the calibration range, V_R^½ over the usage range and that range.
+TABLE_1_ALL = [(2, 1.989, None, None), (3, 1.993, 1.927, (-30, 30)), (4, 2.008, 2.222, (-30, 30)),
+               (5, 1.993, 2.174, (-30, 30)), (6, 2.127, 1.811, (-10, 10)), (7, 1.937, 1.834, (-10, 10)),
+               (8, 1.941, 1.912, (-10, 10)), (9, 1.989, None, None)]
+
+
+@pytest.mark.parametrize("column,v_sqrt,v_r_sqrt,usage", TABLE_1_ALL)
+def test_plan_generate_makes_each_design_of_table_1_and_merit_gives_its_printed_values(
+        tmp_path, capsys, column, v_sqrt, v_r_sqrt, usage):
+    import json
+
+    from labcal.cli import main
+
+    path = tmp_path / f"column-{column}.toml"
+    assert main(["plan", "generate", "tripp-table-1", "--column", str(column), "--out", str(path),
+                 "--json"]) == 0
+    written = json.loads(capsys.readouterr().out)
+    assert written["points_per_mount"] == (33 * 65 if column == 9 else 33 * 64)
+    assert written["usage_pitch"] == (None if usage is None else list(usage))
+    merit = ["plan", "merit", str(path), "--json"]
+    assert main(merit + ([] if usage is None else ["--usage-pitch", *map(str, usage)])) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert round(doc["V_sqrt"], 3) == v_sqrt
+    assert (doc["V_R_sqrt"] is None) if v_r_sqrt is None else round(doc["V_R_sqrt"], 3) == v_r_sqrt
+
+
+def test_table_1_d0_designs_are_spaced_as_section_5_3_2_describes():
+    """§5.3.2: Fig. 3 top has 1° steps within ±10° and 4° steps beyond ±14°; Fig. 3 bottom 1° steps
+    beyond ±20° and 4° steps within ±16°; Fig. 4 every point at ±30° but one at 0°; Fig. 5 rolls
+    uniform over −180..180° with 180° repeated."""
+    def pitches(column):
+        return sorted({p for p, _ in tripp_table_1(column).points()})
+
+    top = pitches(6)
+    assert [a for a in top if abs(a) <= 10] == list(range(-10, 11))
+    assert [a for a in top if a >= 14] == [14, 18, 22, 26, 30]
+    bottom = pitches(7)
+    assert [a for a in bottom if a >= 20] == list(range(20, 31))
+    assert [a for a in bottom if 0 <= a <= 16] == [0, 4, 8, 12, 16]
+    ends = [p for p, _ in tripp_table_1(8).points()]
+    assert ends.count(-30) == ends.count(30) == 16 * 64 and ends.count(0) == 64
+    rolls = sorted({r for _, r in tripp_table_1(9).points()})
+    assert len(rolls) == 65 and rolls[0] == -180 and rolls[-1] == 180 and np.allclose(np.diff(rolls), 5.625)
 
 
 def test_six_point_tumble_normalised_sd_is_2_everywhere_eq_69():

@@ -4,7 +4,8 @@ of how each calibration-device misalignment leaks into the fitted coefficients (
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -30,9 +31,60 @@ def d0(pitch_deg: list[float], n_roll: int) -> list[tuple[float, float]]:
     return [(float(p), float(r)) for p in pitch_deg for r in uniform_roll(n_roll)]
 
 
-def d1(pitch_max: float, n_pitch: int, n_roll: int) -> list[tuple[float, float]]:
-    """Design D1: N pitches uniform over [−α_max, α_max] crossed with M uniform rolls."""
-    return d0(list(np.linspace(-pitch_max, pitch_max, n_pitch)), n_roll)
+def d1(pitch_max: float, n_pitch: int, n_roll: int, roll_closed: bool = False) -> list[tuple[float, float]]:
+    """Design D1: N pitches uniform over [−α_max, α_max] crossed with M uniform rolls; with
+    ``roll_closed`` the M rolls span [−180°, 180°] ends included, the roll point repeated at 180° of
+    Tripp's Fig. 5 (convenient on a table that turns through the full circle)."""
+    pitch = np.linspace(-pitch_max, pitch_max, n_pitch)
+    if not roll_closed:
+        return d0(list(pitch), n_roll)
+    return [(float(p), float(r)) for p in pitch for r in np.linspace(-180.0, 180.0, n_roll)]
+
+
+def _mirrored(half: list[float]) -> list[float]:
+    """A pitch set symmetric about 0 from its non-negative half."""
+    return sorted({-a for a in half} | set(half))
+
+
+# Tripp Table 1 (M = 64, N = 33 unless stated): column → (figure, design, its points, calibration
+# pitch range, usage pitch range of V_R or None). Columns 6 and 7 are described in §5.3.2 by their
+# spacings (1° steps within ±10°, 4° steps beyond ±14°; and 1° steps beyond ±20°, 4° steps within
+# ±16°): those spacings give 31 pitches, and the N = 33 of the table is reached by the one pitch
+# pair that splits the gap between the two spacings evenly (±12°; ±18°).
+_D0_CENTRE = _mirrored([*range(0, 11), 12, 14, 18, 22, 26, 30])
+_D0_ENDS = _mirrored([0, 4, 8, 12, 16, 18, *range(20, 31)])
+_D0_BOUNDARY = [-30.0] * 16 + [0.0] + [30.0] * 16
+
+
+class TableColumn(NamedTuple):
+    figure: str
+    design: str
+    points: Callable[[], list[tuple[float, float]]]
+    calibration_pitch: tuple[float, float]
+    usage_pitch: tuple[float, float] | None  # the range of V_R, where the table gives one
+
+
+TRIPP_TABLE_1: dict[int, TableColumn] = {
+    2: TableColumn("Figure 2(a)", "D1", lambda: d1(30, 33, 64), (-30, 30), None),
+    3: TableColumn("Figure 2(b)", "D1", lambda: d1(45, 33, 64), (-45, 45), (-30, 30)),
+    4: TableColumn("Figure 2(c)", "D1", lambda: d1(90, 33, 64), (-90, 90), (-30, 30)),
+    5: TableColumn("Figure 2(d)", "D1", lambda: d1(180, 33, 64), (-180, 180), (-30, 30)),
+    6: TableColumn("Figure 3 (top)", "D0, pitch points concentrated between -10° and 10°",
+                   lambda: d0(_D0_CENTRE, 64), (-30, 30), (-10, 10)),
+    7: TableColumn("Figure 3 (bottom)", "D0, pitch points concentrated between -30° to -20° and 20° to 30°",
+                   lambda: d0(_D0_ENDS, 64), (-30, 30), (-10, 10)),
+    8: TableColumn("Figure 4", "D0, pitch points concentrated at -30° and 30°",
+                   lambda: d0(_D0_BOUNDARY, 64), (-30, 30), (-10, 10)),
+    9: TableColumn("Figure 5", "D1, M = 65 with the roll repeated at 180°",
+                   lambda: d1(30, 33, 65, roll_closed=True), (-30, 30), None),
+}
+
+
+def tripp_table_1(column: int) -> TableColumn:
+    """The design of Tripp Table 1's ``column`` (2..9)."""
+    if column not in TRIPP_TABLE_1:
+        raise LabcalError(f"Tripp Table 1 has designs in columns 2..9, not {column}")
+    return TRIPP_TABLE_1[column]
 
 
 def tumble() -> list[tuple[float, float]]:

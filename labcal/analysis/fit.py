@@ -24,6 +24,7 @@ from labcal.analysis.replication import (
     Replication,
     analyse,
     analyse_points,
+    analyse_with_covariates,
     noise_free,
 )
 
@@ -189,11 +190,13 @@ def fit_readings(readings: Readings, model: Model | None = None) -> Fit:
         ls = least_squares(design, readings.volts)
         groups = readings.points.groups
         if replicated:
-            if np.allclose(design, design[readings.points.first][groups], rtol=0, atol=1e-12):
+            per_point = np.all(np.isclose(design, design[readings.points.first][groups], rtol=0, atol=1e-12),
+                               axis=0)
+            if per_point.all():
                 replication = analyse(design, readings.volts, groups, readings.replicate)
-            else:
-                notes.append("replication analysis skipped: temperature terms differ between replicates "
-                             "of the same point")
+            else:  # temperature terms: corrected within points first (Tripp Table 2 footnote b)
+                replication = analyse_with_covariates(design, readings.volts, groups, readings.replicate,
+                                                      per_point)
     fit = Fit(model, names, ls, replication)
     exact = fit.noise_free(readings)
     if np.any(exact):

@@ -226,6 +226,96 @@ def analyse(design: NDArray[np.float64], y: NDArray[np.float64], groups: NDArray
                           sensitivity)
 
 
+def analyse_with_covariates(design: NDArray[np.float64], y: NDArray[np.float64], groups: NDArray[np.intp],
+                            replicate: NDArray[np.int_], per_point: NDArray[np.bool_],
+                            sensitivity: slice = slice(1, 4)) -> Replication | None:
+    """`analyse` when some regressors change between readings of one point (``per_point`` False: the
+    temperature terms of a temperature-corrected calibration, Tripp Table 2 footnote b).
+
+    Point means are no longer the pure-error model, so every test is the extra-sum-of-squares F test
+    between nested least-squares models that all carry the covariates T (q of them, rank counted):
+    - pure error: a mean per point, + T (N − G − q degrees of freedom);
+    - lack of fit: the point columns J + T against it (G − p);
+    - drift: J + T + a per-replicate offset, or a per-replicate scale of the fitted sensitivity
+      direction (g·ŝ/|ŝ|), each against J + T (R − 1, less what T already spans), over the residual of
+      the model that lets every replicate have its own J coefficients (+ point means, + T).
+    σ_prec and σ_bias follow `analyse_points`; a drift's σ is the one-way variance component,
+    (MS_drift − MS_e)/(Σh²/R) with h its regressor. Tests that correct the readings by a γ fitted
+    first and then test them as `analyse` does are not exact: γ takes up part of any trend between
+    replicates, and its own error moves whole replicates (tests/test_temperature_replication.py)."""
+    y = y if y.ndim == 2 else y[:, None]
+    n_obs, n_cols = y.shape
+    n_groups = int(groups.max()) + 1
+    reps, rep_index = distinct(replicate)
+    n_reps = len(reps)
+    j, t = design[:, per_point], design[:, ~per_point]
+    n_coef = j.shape[1]
+
+    def within(a: NDArray[np.float64]) -> NDArray[np.float64]:
+        return a - np.take(_group_means(a, groups, n_groups), groups, axis=0)
+
+    def sse(x: NDArray[np.float64], target: NDArray[np.float64]) -> tuple[NDArray[np.float64], int]:
+        coef, _, rank, _ = np.linalg.lstsq(x, target, rcond=None)
+        resid = target - x @ coef
+        return np.einsum("ij,ij->j", resid, resid), int(rank)
+
+    t_w, y_w = within(t), within(y)
+    ss_pe, q = sse(t_w, y_w)
+    df_pe, df_lof = n_obs - n_groups - q, n_groups - n_coef
+    if n_reps < 2 or df_pe <= 0 or df_lof <= 0:
+        return None
+    ss_fit, _ = sse(design, y)
+    ms_lof, ms_pe = (ss_fit - ss_pe) / df_lof, ss_pe / df_pe
+    one_hot = (rep_index[:, None] == np.arange(n_reps)[None, :]).astype(float)
+    all_drift = np.hstack([within(j * one_hot[:, [k]]) for k in range(n_reps)] + [t_w])
+    ss_e, rank_e = sse(all_drift, y_w)
+    df_e = n_obs - n_groups - rank_e
+    ms_e = ss_e / df_e
+    exact = noise_free(np.sqrt(ms_pe), np.max(np.abs(y), axis=0))
+    ratio = _ratio_where(~exact)
+
+    coef = np.linalg.lstsq(design, y, rcond=None)[0]
+    resid = y - design @ coef
+
+    def extra_ms(blocks: list[NDArray[np.float64]], mix: NDArray[np.float64]
+                 ) -> tuple[NDArray[np.float64], int]:
+        """Per column c: the mean square that the R − 1 regressors Σ_k mix[k, c]·blocks[k] add to the
+        common fit — its residual's projection on them once they are taken about the fit (Frisch–
+        Waugh), all columns at once — and their degrees of freedom: fewer than R − 1 where the
+        covariates already span part of them (a temperature read once per replicate is an offset
+        per replicate)."""
+        e = np.stack([x - design @ np.linalg.lstsq(design, x, rcond=None)[0] for x in blocks])  # K, N, R−1
+        gram = np.einsum("kna,lnb->klab", e, e)
+        a = np.einsum("kc,lc,klab->cab", mix, mix, gram)
+        b = np.einsum("kc,kna,nc->ca", mix, e, resid)
+        scale = np.max(np.abs(a), axis=(1, 2), keepdims=True)
+        rank = int(np.min(np.linalg.matrix_rank(a / np.where(scale > 0, scale, 1.0), tol=1e-10)))
+        x = np.einsum("cab,cb->ca", np.linalg.pinv(a, rcond=1e-10, hermitian=True), b)
+        return np.asarray(np.einsum("ca,ca->c", b, x) / max(rank, 1), dtype=float), rank
+
+    s_coef = coef[:n_coef][sensitivity]
+    direction = s_coef / np.linalg.norm(s_coef, axis=0)  # each column's own sensitivity direction
+    j_s = j[:, sensitivity]
+    h_sens = j_s @ direction
+    tests = {
+        "offset": (*extra_ms([one_hot[:, 1:]], np.ones((1, n_cols))), np.full(n_cols, n_obs / n_reps)),
+        "sensitivity": (*extra_ms([j_s[:, [k]] * one_hot[:, 1:] for k in range(j_s.shape[1])], direction),
+                        np.sum(h_sens**2, axis=0) / n_reps),
+    }
+    drift = tuple(DriftTest(name, FTest(ratio(ms, ms_e) if df else np.full(n_cols, np.nan), max(df, 1), df_e),
+                            np.sqrt(np.maximum(0.0, (ms - ms_e) / weight)))
+                  for name, (ms, df, weight) in tests.items())
+    drifting = np.any([d.test.significant for d in drift], axis=0)
+    ms_star, df_star = np.where(drifting, ms_e, ms_pe), np.where(drifting, df_e, df_pe)
+    counts = np.bincount(groups, minlength=n_groups).astype(float)[:, None]
+    j_m = j[first_rows(groups, n_groups)]
+    moment_inv = np.linalg.pinv(j_m.T @ (counts * j_m))
+    c_bias = (n_obs - np.trace(moment_inv @ (j_m.T @ (counts**2 * j_m)))) / df_lof
+    return Replication(n_groups, n_reps, ms_lof, FTest(ratio(ms_lof, ms_star), df_lof, df_star),
+                       FTest(ratio(ms_lof, ms_pe), df_lof, df_pe), FTest(ratio(ms_lof, ms_e), df_lof, df_e),
+                       np.sqrt(ms_star), np.sqrt(np.maximum(0.0, (ms_lof - ms_star) / c_bias)), drift)
+
+
 def analyse_points(j_m: NDArray[np.float64], cells: Cells,
                    sensitivity: slice = slice(1, 4)) -> Replication | None:
     """`analyse` given one design row per distinct point (``j_m``, G×L) and the observations'

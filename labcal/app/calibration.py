@@ -23,7 +23,7 @@ if TYPE_CHECKING:
     from labcal.bench.hardware import Bench
     from labcal.bench.setup import StationSetup
     from labcal.config.settings import CertificateSettings, SequencerSettings
-    from labcal.config.station import StationFile
+    from labcal.config.station import InstrumentSettings, StationFile
     from labcal.documents.report import RunOutputs
     from labcal.run.estimate import Estimate
     from labcal.run.events import RunEvent
@@ -287,6 +287,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
             assert args.station is not None
             config, _ = load_station(args.station)
             cert_settings = certificate_settings_for_run(args, config.certificate, args.station)
+            check_package(config.instrument, cert_settings, args.station, args.plan)  # before anything moves
             if not args.emulate and not args.serial and not args.no_report and not args.dry_run:
                 raise LabcalError("a calibration on real hardware needs the instrument's --serial for its "
                                   "certificate (or --no-report)")
@@ -331,6 +332,23 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
                 setup.metadata, args.serial, args.operator, steps, terminal=terminal, forecast=forecast),
                 run_dir, plan, est, 0, args.db, args.no_report, cert_settings,
                 notifier=RunNotifier(notifications, station_label(setup.metadata), run_dir), sender=sender)
+
+
+def check_package(instrument: InstrumentSettings, envelope: CertificateSettings, station: str, plan: str
+                  ) -> None:
+    """Refuse a package that cannot give its angles over the certificate's usage envelope (Tripp §6),
+    and any package but the three-axis one, whose fit and certificate are the ones a run makes."""
+    from labcal.analysis.packages import package_problem
+
+    roll = instrument.roll_source
+    assert roll is not None  # the station file's validation requires it for a single axis
+    problem = package_problem(instrument.package, roll, envelope.usage_pitch_deg, envelope.usage_roll_deg)
+    if problem:
+        raise LabcalError(f"{station}: {problem} (labcal plan audit {plan} --station {station})")
+    if instrument.package != "three-axis":
+        raise LabcalError(f"{station}: [instrument] package = {instrument.package!r}: labcal run fits and "
+                          "certifies three-axis packages only; plan and audit it with labcal plan audit "
+                          f"{plan} --station {station}")
 
 
 def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Path | None, front: FrontEnd,

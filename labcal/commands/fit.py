@@ -126,7 +126,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if model == "coning":
         out.print(coning_table(coning(fit), readings.units))
     if fit.replication is not None:
-        out.print(replication_table(doc["replication"], readings.units))
+        out.print(replication_table(doc["replication"], readings.units, doc["residual_standard_error"]))
     k = t_quantile(0.5 + args.level / 2, fit.variance_dof)  # the half-widths' coverage factor
     for p in doc.get("predictions", []):
         out.print(f"at pitch {p['pitch_deg']:g}°, roll {p['roll_deg']:g}°, mount y={p['y_deg']:g} "
@@ -184,7 +184,8 @@ def fit_device_model(args: argparse.Namespace, readings, chosen: str | None, che
     for note in doc.get("notes", []):
         out.print(f"[yellow]note:[/] {note}")
     if fit.linear.replication is not None:
-        out.print(replication_table(fit.linear.to_json()["replication"], readings.units))
+        linear = fit.linear.to_json()
+        out.print(replication_table(linear["replication"], readings.units, linear["residual_standard_error"]))
     for sensor, r in doc.get("replication", {}).items():
         before, after = r["lack_of_fit_linear"], r["lack_of_fit_device"]
         def n(x, spec: str) -> str:  # NaN or None: undefined (noise-free readings)
@@ -238,14 +239,17 @@ def coning_table(sensors, units: str = "V") -> Table:
     return table
 
 
-def replication_table(rep: dict, units: str = "V") -> Table:
+def replication_table(rep: dict, units: str = "V", sigma_e: list[float] | None = None) -> Table:
+    """Tripp & Tcheng Table 2's columns per sensor: σ_E, σ_bias, σ_prec; the bias test T_bias against
+    its 95 % limit F_bias; the offset and sensitivity drifts σ_b, σ_S and their tests T_b, T_S against
+    their 95 % limit F_bS."""
     from rich.table import Table
 
     table = Table(title="Replicated calibration (Tripp Table 2)")
-    for col in ("sensor", f"σ_prec ({units})", f"σ_bias ({units})", "lack of fit F (df) crit",
-                "offset drift F", "sens. drift F"):
+    for col in ("sensor", f"σ_E ({units})", f"σ_bias ({units})", f"σ_prec ({units})", "T_bias (df)",
+                "(F_bias)95", f"σ_b ({units})", f"σ_S ({units}/g)", "T_b", "T_S", "(F_bS)95"):
         table.add_column(col, justify="right")
-    for sensor, r in rep.items():
+    for j, (sensor, r) in enumerate(rep.items()):
         lof, off, sens = r["lack_of_fit"], r["drift"].get("offset"), r["drift"].get("sensitivity")
 
         def statistic(t) -> str:  # None or NaN: undefined (no pure error to test against)
@@ -254,10 +258,16 @@ def replication_table(rep: dict, units: str = "V") -> Table:
 
         def flag(t):
             return "—" if t is None else statistic(t)
-        table.add_row(sensor, f"{r['sigma_prec']:.3g}", f"{r['sigma_bias']:.3g}",
-                      f"{statistic(lof)} ({lof['df'][0]}, {lof['df'][1]}) {lof['critical_95']:.3g}",
-                      flag(off), flag(sens))
-    table.caption = "* significant at 5 %; undefined: no pure error (noise-free readings)"
+
+        def size(t):
+            return "—" if t is None or t.get("sigma_drift") is None else f"{t['sigma_drift']:.3g}"
+        table.add_row(sensor, "—" if sigma_e is None else f"{sigma_e[j]:.3g}", f"{r['sigma_bias']:.3g}",
+                      f"{r['sigma_prec']:.3g}", f"{statistic(lof)} ({lof['df'][0]}, {lof['df'][1]})",
+                      f"{lof['critical_95']:.3g}", size(off), size(sens), flag(off), flag(sens),
+                      "—" if off is None else f"{off['critical_95']:.3g}")
+    table.caption = ("* significant at 5 %; undefined: no pure error (noise-free readings). σ_bias is the "
+                     "standard deviation of a point's bias (labcal's convention; Table 2's is √ of its share "
+                     "of σ_E²)")
     return table
 
 

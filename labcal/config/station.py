@@ -250,6 +250,43 @@ class InstrumentSettings(BaseModel):
         default="V", description="the outputs' unit: V, mV, counts or m/s2 (as `labcal fit --units`)")
     warm_up_min: float | None = Field(default=None, gt=0, le=7 * 24 * 60, description=(
         "minutes the instrument must be powered before a run (its data sheet's warm-up time)"))
+    package: Literal["three-axis", "two-axis-xy", "two-axis-xz", "single-axis"] = Field(
+        default="three-axis", description="the axes its accelerometers lie along: three-axis (x, y, z), "
+        "two-axis-xy, two-axis-xz or single-axis (x), Tripp & Tcheng §6")
+    roll_in_use: Literal["inferred", "none", "table", "sensor"] | None = Field(
+        default=None, description="how roll is obtained where the instrument is used: inferred from its "
+        "own outputs (the default with two or three axes), none (pitch at roll 0 only, single-axis), or "
+        "measured independently by the roll table or a roll sensor (with roll_sd_deg)")
+    roll_sd_deg: float | None = Field(default=None, gt=0, le=10, description=(
+        "standard deviation σ_R (°) of the independently measured roll (Tripp eq. 81)"))
+
+    @model_validator(mode="after")
+    def _roll_stated(self):
+        """A package's roll in use is part of what its certificate states: a single sensor cannot infer
+        roll, so it must say how roll is obtained; a measured roll brings its σ_R, and only then."""
+        roll = self.roll_source
+        if roll is None:
+            raise ValueError("a single-axis package cannot infer roll: state roll_in_use = \"none\" (pitch "
+                             "at roll 0), \"table\" or \"sensor\" (roll measured independently, with "
+                             "roll_sd_deg)")
+        if roll == "none" and self.package != "single-axis":
+            raise ValueError(f"roll_in_use = \"none\" is for a single-axis package; a {self.package} package "
+                             "infers roll or is used at a measured roll")
+        measured = roll in ("table", "sensor")
+        if measured and self.roll_sd_deg is None:
+            raise ValueError(f"roll_in_use = \"{roll}\" needs roll_sd_deg, the measured roll's standard "
+                             "deviation (°)")
+        if not measured and self.roll_sd_deg is not None:
+            raise ValueError("roll_sd_deg is for a roll measured by the table or a sensor, not "
+                             f"roll_in_use = \"{roll}\"")
+        return self
+
+    @property
+    def roll_source(self) -> str | None:
+        """roll_in_use as given, else inferred for a package of two or three axes."""
+        if self.roll_in_use is not None:
+            return self.roll_in_use
+        return None if self.package == "single-axis" else "inferred"
 
     @field_validator("units", mode="before")
     @classmethod
