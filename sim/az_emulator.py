@@ -268,6 +268,9 @@ class AzServer:
         self.gaps: list[float] = []  # RTU: silence before each request since the last frame, s
         self.dropped = 0  # RTU requests dropped for starting within t3.5
         self.after_broadcast: list[float] = []  # RTU: silence before the first request after each broadcast
+        # every request heard, as (monotonic time, unit, function code, address): what reached the
+        # drives, whoever sent it (a test checks from here what a run did or did not send)
+        self.received: list[tuple[float, int, int, int]] = []
         self._broadcast_heard = False
         self._last_rx = 0.0  # when the last bytes arrived (RTU)
         self._line_quiet_from: float | None = None  # when our last reply left
@@ -339,6 +342,9 @@ class AzServer:
 
     # --- faults and semantics ---------------------------------------------------------------
     def _trace_pdu(self, sending: bool, pdu: ModbusPDU) -> ModbusPDU:
+        if not sending:
+            heard = (time.monotonic(), pdu.dev_id, pdu.function_code, getattr(pdu, "address", 0))
+            self.received.append(heard)
         if not sending and pdu.dev_id == BROADCAST:
             self._current = self._request_gap = None  # every drive executes it; no reply leaves, so
             if self.endpoint.kind != "tcp":  # the line is quiet from the frame's last bytes

@@ -56,6 +56,9 @@ class LineServer:
         self.device, self.endpoint, self.faults = device, endpoint, faults
         self.char_s = char_s
         self.errors: list[BaseException] = []  # emulator bugs, kept for tests to see
+        # every request line heard, as (monotonic time, line): what reached the device, whoever
+        # sent it (a test checks from here what a run did or did not send)
+        self.received: list[tuple[float, str]] = []
         self._listener: socket.socket | None = None
         self._pty: PtyPair | None = None
         self._channels: dict[int, _Channel] = {}
@@ -149,6 +152,7 @@ class LineServer:
                     print(f"labcal emulator: {type(exc).__name__}: {exc}", file=sys.stderr)
 
     def _request(self, channel: _Channel, line: str) -> None:
+        self.received.append((time.monotonic(), line))
         name = self.device.route(line)
         injector = self.faults.get(name)
         fault = injector.take(line) if injector else None
