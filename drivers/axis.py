@@ -57,6 +57,7 @@ class IndexAxis(ABC):
         self.tolerance_arcsec = tolerance_arcsec
         self.poll_s = poll_s
         self._target: float | None = None
+        self._window: object | None = None  # the device's fault memory as the window opened (`window_opens`)
 
     # --- the device's part ------------------------------------------------------------------
     @abstractmethod
@@ -84,6 +85,16 @@ class IndexAxis(ABC):
     @abstractmethod
     def identify(self) -> str:
         """Who answers, in words (model, address, firmware where the device says)."""
+
+    def _fault_memory(self) -> object | None:
+        """What the device keeps of its faults, read now (an alarm history, a controller state);
+        None where it keeps nothing."""
+        return None
+
+    def _fault_since(self, memory: object, status: AxisStatus) -> str | None:
+        """The fault the device remembers since it kept ``memory`` (`_fault_memory`), in words;
+        None when it remembers none. ``status``: the status just read."""
+        return None
 
     def not_ready_why(self) -> str:
         """What keeps a table without a fault from being ready, where its controller can say
@@ -130,6 +141,7 @@ class IndexAxis(ABC):
                 raise OutOfLimits(f"a turn of {travel_deg:+g}° to {angle_deg:g}° from {here:g}° would leave "
                                   f"the soft limits [{self.limits[0]:g}°, {self.limits[1]:g}°]", self.device)
         self._target = target
+        self._window = None  # a window's trace is of that window: the next one is noted afresh
         self._go(target, target - here)
 
     def wait_in_position(self, timeout_s: float) -> float:
@@ -169,13 +181,20 @@ class IndexAxis(ABC):
     def winding(self) -> float | None:
         return self.angle() if self.counts_turns else None
 
+    def window_opens(self) -> None:
+        """Note the device's fault memory as a measurement window opens: `state` then reports any
+        fault it remembers since (until the next move)."""
+        self._window = self._fault_memory()
+
     def state(self) -> TableState:
-        """Status, then position, against the last commanded target and the station's tolerance."""
+        """Status, then position, against the last commanded target and the station's tolerance;
+        then, since a window opened (`window_opens`), the device's memory of a fault in between."""
         status = self.status()
         here = self.angle()
         off = None if self._target is None else wrapped(here - self._target) * ARCSEC_PER_DEG
+        trace = None if self._window is None else self._fault_since(self._window, status)
         return TableState(self.device, status.fault, status.moving, status.in_position, here % 360.0, off,
-                          self.tolerance_arcsec, status.words)
+                          self.tolerance_arcsec, status.words, trace)
 
     def stop(self) -> None:
         """Tell the device to stop; a stop that fails is logged as a WARNING and raised."""

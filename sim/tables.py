@@ -111,6 +111,9 @@ class SimAxis:
         journal's moves say which turn they are on (what a dry run then exercises)."""
         return None
 
+    def window_opens(self) -> None:
+        """A simulated table has no faults to remember."""
+
     def state(self) -> TableState:
         now = self.clock.now()
         here = float(self.angle_at(now))

@@ -568,6 +568,12 @@ class Sequencer:
                 self.publish(Fault(run_id=self.run_id, rig_time_s=self.rig_time(), message=str(fault)))
                 self.pause(f"fault: {fault}")
 
+    def window_opens(self) -> None:
+        """Both tables note their fault memory: `tables` after the window then reports a fault
+        raised and cleared inside it (a status read before and after cannot see one)."""
+        self.station.pitch.window_opens()
+        self.station.roll.window_opens()
+
     def tables(self) -> tuple[TableState, TableState]:
         """Both tables' status and position, read now."""
         return self.station.pitch.state(), self.station.roll.state()
@@ -585,6 +591,7 @@ class Sequencer:
             for attempt in (1, 2):
                 t_start = self.station.clock.now() - self._t0
                 before = () if attempt == 1 else self.tables()  # () : verified by the move
+                self.window_opens()
                 result = self.measure(step.mount, f"{step.seq}:{attempt}")
                 why, faulted = unvouched(before, self.tables())
                 if why or result.verdict.settled:
