@@ -194,7 +194,7 @@ class IndexAxis(ABC):
         off = None if self._target is None else wrapped(here - self._target) * ARCSEC_PER_DEG
         trace = None if self._window is None else self._fault_since(self._window, status)
         return TableState(self.device, status.fault, status.moving, status.in_position, here % 360.0, off,
-                          self.tolerance_arcsec, status.words, trace)
+                          self.tolerance_arcsec, status.words, trace, status.needs_homing)
 
     def stop(self) -> None:
         """Tell the device to stop; a stop that fails is logged as a WARNING and raised."""

@@ -114,6 +114,9 @@ class SimAxis:
     def window_opens(self) -> None:
         """A simulated table has no faults to remember."""
 
+    def prepare(self) -> None:
+        """A simulated table never loses its reference: nothing to do."""
+
     def state(self) -> TableState:
         now = self.clock.now()
         here = float(self.angle_at(now))

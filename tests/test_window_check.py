@@ -244,3 +244,27 @@ def test_a_fault_raised_and_cleared_inside_the_window_discards_it(station, maste
     message, data = discarded[0]
     assert f"{table} table" in message and trace in message and "measured again" in message, message
     assert len(data["samples"]) > 0  # the window's readings are kept, as discarded
+
+
+def smc_power_cycle(emulation: Emulation, table: str) -> None:
+    """The table's SMC100 controller is switched off and on: it comes back NOT REFERENCED (0Ah)."""
+    for _, _, server in emulation.servers.values():
+        if isinstance(server, LineServer) and isinstance(server.device, Smc100Emulator):
+            server.device.power_cycle(table)
+
+
+def test_a_table_power_cycled_in_the_window_is_homed_at_the_pause_and_the_run_completes(tmp_path, no_leaks):  # noqa: F811
+    """The pitch SMC100 is power-cycled as point 5's window opens: it comes back NOT REFERENCED and
+    refuses PA (error H) until homed. Before, "r" at the pause moved again, was refused, and paused
+    again for good. Now the pause says the table lost its reference and that resuming homes it; one
+    "r" homes it (OR), and the run completes with all sixteen points."""
+    points, events, ended = run_with("smc100-serial", smc_power_cycle, "pitch", tmp_path, "y\nr\n")
+    assert ended is None, ended
+    assert [seq for seq, *_ in points] == list(range(16)) and all(status == "ok" for _, status, *_ in points)
+    discarded = [(m, d) for k, m, d in events if k == "discarded"]
+    assert len(discarded) == 1 and "NOT REFERENCED from reset (0Ah)" in discarded[0][0]
+    pauses = [m for k, m, _ in events if k == "pause"]
+    assert len(pauses) == 1, pauses
+    assert "the pitch table lost its reference: resuming homes it first" in pauses[0], pauses[0]
+    homed = [m for k, m, _ in events if k == "home"]
+    assert homed == ["homing the pitch table, which had lost its reference"]

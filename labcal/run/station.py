@@ -48,6 +48,7 @@ class TableState:
     # a fault the controller remembers since the measurement window opened (`RotaryAxis.window_opens`)
     # though it reports none now: an alarm raised and reset, a stage disabled and enabled again
     trace: str | None = None
+    needs_homing: bool = False  # its controller lost its reference (a power cycle): homing restores it
 
     def problem(self) -> str | None:
         """Why a window measured with the table in this state cannot be kept; None if it can."""
@@ -72,6 +73,10 @@ class RotaryAxis(Protocol):
     def state(self) -> TableState:
         """Status and position, read now (no motion); with the trace of any fault the controller
         remembers since `window_opens` (until the next move)."""
+
+    def prepare(self) -> None:
+        """Make the table ready to move, as a run does before its first move: home it where its
+        controller has lost its reference (it moves!), enable it, set its speeds."""
 
     def window_opens(self) -> None:
         """A measurement window opens: note what the controller keeps of its faults (an alarm
