@@ -21,7 +21,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from labcal.drivers.errors import BadReply, Busy, DeviceFault, NoReply, Rejected, on_device
+from labcal.drivers.errors import TRANSIENT, BadReply, Busy, DeviceFault, NoReply, Rejected, on_device
 from labcal.drivers.transport import Lines, retried
 from labcal.run.station import Scan
 
@@ -206,12 +206,19 @@ class Keysight34970A:
 
     def _exchange(self, exchange: Callable[[], T]) -> T:
         with on_device(self.device):
-            return retried(exchange, self.tries, self._recover, self.link.critical, self.device)
+            try:
+                return retried(exchange, self.tries, self._recover, self.link.critical, self.device)
+            except TRANSIENT:
+                self.link.drop_connection()  # whoever asks next (a resumed run) asks on a new one
+                self._suspect = True
+                raise
 
     def _recover(self) -> None:
-        """Between tries: drain late replies, and have the next try verify the unit first (silence
-        may be a unit that was powered off and on: back to its defaults, and on RS-232 deaf until
-        ``SYST:REM``)."""
+        """Between tries: a network connection is dropped (the next try opens a new one: a
+        half-open connection would swallow every try), late replies are drained, and the next try
+        verifies the unit first (silence may be a unit that was powered off and on: back to its
+        defaults, and on RS-232 deaf until ``SYST:REM``)."""
+        self.link.drop_connection()
         self.link.drain()
         self._suspect = True
 

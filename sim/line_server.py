@@ -62,6 +62,8 @@ class LineServer:
         self._listener: socket.socket | None = None
         self._pty: PtyPair | None = None
         self._channels: dict[int, _Channel] = {}
+        self._forgotten: list[_Channel] = []  # half-open connections: open here, never read again
+        self._forget = False  # `forget_connections` asked; done by the serving thread
         self._reopen_at: float | None = None
         self._closed = False
         self._wake_r, self._wake_w = os.pipe()
@@ -83,11 +85,19 @@ class LineServer:
             self._listener = listener
             self.endpoint = self.endpoint.bound(listener.getsockname()[1])
 
+    def forget_connections(self) -> None:
+        """The device, or a switch on the way, forgets every open network connection without a
+        word to the other end (no FIN, no reset): their sockets stay open here, never read again,
+        so the other end's requests are sent without error and never answered (a half-open
+        connection). New connections are served as before. Takes effect as the next request arrives."""
+        self._forget = True
+
     def _close_port(self) -> None:
-        for channel in list(self._channels.values()):
+        for channel in [*self._channels.values(), *self._forgotten]:
             with contextlib.suppress(OSError):
                 channel.close()
         self._channels.clear()
+        self._forgotten.clear()
         if self._listener is not None:
             self._listener.close()
             self._listener = None
@@ -110,6 +120,12 @@ class LineServer:
             ready, _, _ = select.select(watched, [], [], timeout)
             if self._wake_r in ready:
                 return
+            if self._forget:
+                self._forget = False
+                if self._listener is not None:  # a pty is no connection to forget
+                    self._forgotten += self._channels.values()
+                    self._channels.clear()
+                continue
             for item in ready:
                 if item is self._listener:
                     self._accept()

@@ -65,7 +65,7 @@ def creep(arcsec: float) -> Callable[[Emulation, str], None]:
 
 
 def run_with(station: str, inject: Callable[[Emulation, str], None], table: str, tmp_path,
-             answers: str, time_scale: float = TIME_SCALE
+             answers: str, time_scale: float = TIME_SCALE, **changes: dict
              ) -> tuple[list[tuple], list[tuple[str, str, dict]], BaseException | None]:
     """one-mount-16 through the drivers; ``inject`` acts on ``table`` as point SEQ's window begins
     (once). Returns the journaled points (seq, status, roll_read, pitch_read), the events, and what
@@ -73,7 +73,7 @@ def run_with(station: str, inject: Callable[[Emulation, str], None], table: str,
     plan, text = load_plan("one-mount-16")
     (tmp_path / "answers.txt").write_text(answers)
     ended = None
-    with emulated(station, tmp_path, time_scale) as (emulation, bench):
+    with emulated(station, tmp_path, time_scale, **changes) as (emulation, bench):
         hooks = emulation.hooks()
         done = []
 
@@ -268,3 +268,28 @@ def test_a_table_power_cycled_in_the_window_is_homed_at_the_pause_and_the_run_co
     assert "the pitch table lost its reference: resuming homes it first" in pauses[0], pauses[0]
     homed = [m for k, m, _ in events if k == "home"]
     assert homed == ["homing the pitch table, which had lost its reference"]
+
+
+def dmm_forgets_its_connection(emulation: Emulation, table: str) -> None:
+    """The DMM (or a switch on the way) forgets the run's TCP connection without a word: the
+    connection stays writable and is never answered again (half-open); a new one is served."""
+    for _, _, server in emulation.servers.values():
+        if isinstance(server, LineServer) and server.device.__class__.__name__ == "Keysight34970AEmulator":
+            server.forget_connections()
+
+
+def test_a_half_open_dmm_connection_is_reopened_and_the_run_completes(tmp_path, no_leaks):  # noqa: F811
+    """The DMM's LAN connection goes half-open as point 5's window opens. Before, every try, and
+    every "r" at the pause that followed, went out on the same dead socket and timed out again.
+    Now the SCPI link drops the connection after a failed try and the next opens a new one (as the
+    Modbus TCP link does); the unit's configuration is verified on it and the run completes with
+    all sixteen points, no window lost."""
+    # NPLC 1: a scan's *OPC? waits for 10 sweeps of 4 channels at 20 ms, not 200 ms: a failed one
+    # costs its timeout of seconds, not tens of seconds
+    points, events, ended = run_with("az-modbus-tcp", dmm_forgets_its_connection, "pitch", tmp_path, "y\nr\n",
+                                     dmm={"nplc": 1})
+    assert ended is None, ended
+    assert [seq for seq, *_ in points] == list(range(16)) and all(status == "ok" for _, status, *_ in points)
+    assert not [m for k, m, _ in events if k == "discarded"]
+    reopened = [m for k, m, _ in events if "closing the connection; the next exchange opens a new one" in m]
+    assert reopened, [(k, m) for k, m, _ in events if k not in ("point", "status", "move")]
