@@ -35,6 +35,12 @@ MAX_ERRORS = 20  # the 34970A's error queue holds 10; never loop for ever on a c
 # "+1.23456789E+00,2026,01,01,12,00,01.234,101,"
 READING_CHARS = 45
 STAMP_FIELDS = 6  # an absolute time stamp is yyyy,mm,dd,hh,mm,ss.sss (FORMat:READing:TIME:TYPE ABS)
+# Each reading exactly as the unit writes it, with the fields `commands` turns on (User's Guide,
+# FORMat:READing and "Reading format": the reading SD.DDDDDDDDESDD, an overload +9.90000000E+37; the
+# absolute time stamp yyyy,mm,dd,hh,mm,ss.sss; the channel number ccc; hardware_protocols.md §3.1
+# "Reply formats"). A byte lost on the line may leave a number that still parses (+5.01318258E+00
+# read as +5.0131828E+00): only the fixed width of every field tells it from the one sent.
+READING_FORMAT = re.compile(r"[+-]\d\.\d{8}E[+-]\d{2},\d{4},\d{2},\d{2},\d{2},\d{2},\d{2}\.\d{3},\d{3}")
 PON = 128  # *ESR? bit 7, power on: set when the unit powers up, cleared by *CLS or by reading it
 # (IEEE 488.2 standard event register; 34970A User's Guide, status system, *ESR?)
 POWERED_ON = "it was powered off and on (*ESR? power-on bit)"
@@ -99,6 +105,10 @@ def parse_readings(line: str, scan_list: Sequence[int], sweeps: int, previous: d
     expected = width * sweeps * len(scan_list)
     if len(fields) % width:
         raise BadReply(f"reply {line[:60]!r} is not readings, time stamps and channel numbers")
+    for k in range(0, len(fields), width):
+        if not READING_FORMAT.fullmatch(text := ",".join(fields[k:k + width])):
+            raise BadReply(f"reading {k // width + 1} {text[:60]!r} is not as the unit writes it (a byte "
+                           "lost or changed on the line?)")
     try:
         values = [float(f) for f in fields[0::width]]
         channels = [int(f) for f in fields[width - 1::width]]
@@ -112,6 +122,10 @@ def parse_readings(line: str, scan_list: Sequence[int], sweeps: int, previous: d
         raise BadReply(f"{len(fields) // width} readings in the reply, {expected // width} expected")
     if channels != list(scan_list) * sweeps:
         raise BadReply(f"readings from channels {sorted(set(channels))[:8]}, scan list {list(scan_list)}")
+    for k in range(1, len(stamps)):  # the unit takes its readings one after another, each ≥ 1 ms apart
+        if stamps[k] <= stamps[k - 1]:
+            raise BadReply(f"reading {k + 1} is stamped {stamps[k]:%H:%M:%S.%f}, not after the one before "
+                           f"it ({stamps[k - 1]:%H:%M:%S.%f})")
     if not all(math.isfinite(v) for v in values):
         raise BadReply("a reading is not a finite number")
     return np.array(values).reshape(sweeps, len(scan_list)), stamps

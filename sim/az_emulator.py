@@ -37,7 +37,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 from labcal.config.emulation import FaultKind
 from labcal.sim.emulated_rig import EmulatedRig
 from labcal.sim.endpoint import Endpoint
-from labcal.sim.faults import Fault, FaultInjector, garble
+from labcal.sim.faults import Fault, FaultInjector, drop_byte, garble
 from labcal.sim.ptys import PtyPair
 
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())
@@ -381,6 +381,8 @@ class AzServer:
             return packet[:2] + b"\xa5\x5a" + packet[4:] if self.endpoint.kind == "tcp" else garble(packet)
         if kind == FaultKind.TRUNCATED:
             return packet[:len(packet) // 2]
+        if kind == FaultKind.DROPPED_BYTE and fault is not None:
+            return drop_byte(packet, fault)
         return packet
 
     def _time_rtu(self, sending: bool) -> None:

@@ -20,7 +20,7 @@ from typing import Protocol
 
 from labcal.config.emulation import FaultKind
 from labcal.sim.endpoint import Endpoint
-from labcal.sim.faults import FaultInjector, garble
+from labcal.sim.faults import FaultInjector, drop_byte, garble
 from labcal.sim.ptys import PtyPair
 
 
@@ -201,6 +201,8 @@ class LineServer:
         data = reply.encode("ascii")
         if kind == FaultKind.GARBLED:
             data = garble(data)
+        if kind == FaultKind.DROPPED_BYTE and fault is not None:
+            data = drop_byte(data, fault)
         if kind == FaultKind.TRUNCATED:
             channel.send(data[:len(data) // 2])
             return

@@ -243,3 +243,13 @@ def test_a_dmm_reset_while_the_operator_remounts_is_found_at_the_mount(tmp_path,
     path = private_file("smc100-serial", tmp_path, at_mount, QUICK)
     log = recovered_run(capsys, path, tmp_path / "run")
     assert "at the mount: it was powered off and on (*ESR? power-on bit); configuring it again" in log, log
+
+
+def test_a_reading_short_of_a_byte_is_not_kept_and_the_window_is_taken_again(tmp_path, capsys, no_leaks):  # noqa: F811
+    """End to end on RS-232: one byte of a mid-run FETC? reply is lost, the
+    first reading's 8th significant digit, leaving a number that still parses. Before, it was kept.
+    Now every reading is checked against the width the unit writes it in: the scan is taken again,
+    the run completes with every point and the fit is the truth to 0.1 mV."""
+    dropped = faults('device = "dmm"\nkind = "dropped-byte"\nmatch = "FETC"\nafter = 30')
+    log = recovered_run(capsys, private_file("smc100-serial", tmp_path, dropped, QUICK), tmp_path / "run")
+    assert log.count("is not as the unit writes it") == 1, log

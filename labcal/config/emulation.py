@@ -160,6 +160,7 @@ class FaultKind(StrEnum):
     LOST_REQUEST = "lost-request"
     TRUNCATED = "truncated"
     POWER_CYCLE = "power-cycle"
+    DROPPED_BYTE = "dropped-byte"
 
 
 class FaultSpec(BaseModel):
