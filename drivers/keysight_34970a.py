@@ -358,6 +358,22 @@ class Keysight34970A:
         was reset or changed is configured again. Returns what was found wrong (empty: nothing)."""
         return self._exchange(lambda: self._ensure(why))
 
+    def _no_scan(self) -> BadReply:
+        """What ``FETC?`` finding no scan (-230) after ``INIT`` means: the ``INIT`` was lost, or the
+        unit was reset since it arrived (``*RST`` from another controller, or a power cycle: the
+        reset empties the memory and the scan list, User's Guide, *RST and "Power-on and reset
+        state"). Its scan list tells the two apart; either way the scan is taken again, the
+        unit's configuration verified first."""
+        try:
+            listed = channels_of(definite_block(self._ask("ROUT:SCAN?")))
+        except (NoReply, BadReply):
+            listed = None  # unreadable: the retry's verification finds out
+        if listed == []:
+            return ScanRefused("no scan in memory after INIT (error -230) and no scan list: the unit was "
+                               "reset during the scan (*RST from another controller, or a power cycle); "
+                               "verifying its configuration", self.device)
+        return StaleScan("no scan in memory after INIT (error -230): the INIT was lost")
+
     def scan_time_s(self, sweeps: int) -> float:
         """How long the unit needs for ``sweeps`` sweeps of the scan list."""
         return sweeps * len(self.scan_list) * channel_time_s(self.nplc, self.line_hz)
@@ -391,7 +407,7 @@ class Keysight34970A:
                 self._check("the scan")
             except ScpiError as exc:
                 if exc.code == NO_DATA:
-                    raise StaleScan("no scan in memory after INIT (error -230): the INIT was lost") from None
+                    raise self._no_scan() from None
                 # a unit reset since the last scan (no scan list, another format) refuses it: the
                 # next try verifies its configuration first
                 raise ScanRefused(f"{exc.args[0].removeprefix(f'{self.device}: ')}; verifying the unit's "

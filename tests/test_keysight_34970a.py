@@ -344,3 +344,29 @@ def test_readings_stamped_out_of_order_are_refused():
                "+4.99990000E+00,2026,01,01,12,00,01.900,103")
     with pytest.raises(BadReply, match="reading 2 is stamped 12:00:01.100000, not after the one before it"):
         parse_readings(swapped, [101, 102, 103], 1)
+
+
+def test_a_reset_from_another_controller_during_a_scan_is_named_as_one(dmm, caplog):
+    """Another controller sends *RST between a scan's INIT and its FETC?: the memory and the scan list are
+    emptied (User's Guide, *RST), so FETC? finds no scan (-230), as after a lost INIT. The unit's
+    empty scan list tells the two apart: the first report says it was reset, not that the INIT
+    was lost; its configuration is restored and the scan taken again."""
+    emulation, meter = dmm
+    meter.read(2)
+    another = unit(emulation)
+    resets: list[str] = []
+
+    def reset_then_fetch(line: str, handle=another.handle) -> str | None:
+        if line.startswith("FETC") and not resets:  # once, as the scan is fetched
+            resets.append(line)
+            handle("*RST")
+        return handle(line)
+    another.handle = reset_then_fetch  # type: ignore[method-assign]
+    try:
+        scan = meter.read(2)
+    finally:
+        del another.handle
+    assert scan.volts.shape == (2, 3) and resets == ["FETC?"]
+    assert "the unit was reset during the scan (*RST from another controller" in caplog.text, caplog.text
+    assert "the INIT was lost" not in caplog.text
+    assert meter.differences() == []
