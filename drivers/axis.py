@@ -21,6 +21,7 @@ from labcal.run.winding import Reach
 log = logging.getLogger(__name__)
 ARCSEC_PER_DEG = 3600.0
 START_GRACE_S = 1.0  # a device may report its old in-position state this long after a move starts
+STALL_S = 2.0  # still, short of its target and not in position this long: stalled, not settling
 
 
 @dataclass(frozen=True)
@@ -145,14 +146,22 @@ class IndexAxis(ABC):
         self._go(target, target - here)
 
     def wait_in_position(self, timeout_s: float) -> float:
-        """Poll until in position and on target; returns the position read back (0..360°)."""
+        """Poll until in position and on target; returns the position read back (0..360°). A table
+        that stands still short of its target without its controller saying in position (a bind
+        the controller cannot close, with no alarm yet) is a stall after `STALL_S`: said then, not
+        at the end of the move's timeout."""
         start = self.clock.now()
         deadline = start + timeout_s
+        still: tuple[float, float] | None = None  # (since when, at what angle) it has stood still off target
         while True:
             expired = self.clock.now() >= deadline
             status = self.status()
             if status.fault:
                 raise DeviceFault(status.fault, self.device)
+            if not status.moving and not status.in_position and self._target is not None:
+                still = self._stalled(still, start, status.words)
+            else:
+                still = None
             if status.in_position and not status.moving:
                 here = self.angle()
                 if self._target is None:
@@ -174,6 +183,25 @@ class IndexAxis(ABC):
                 raise DeviceFault(f"not in position {timeout_s:g} s after the move to "
                                   f"{(self._target or 0.0) % 360.0:g}° began ({status.words})", self.device)
             self.clock.sleep(self.poll_s)
+
+    def _stalled(self, still: tuple[float, float] | None, start: float, words: str
+                 ) -> tuple[float, float] | None:
+        """One poll of a table that is neither moving nor in position: where it stands, and since
+        when, while it stands off its target; `DeviceFault` once it has stood there `STALL_S`
+        (after the start's grace, in which a device may still report the state before the move)."""
+        assert self._target is not None
+        now, here = self.clock.now(), self.angle()
+        off = wrapped(here - self._target) * ARCSEC_PER_DEG
+        if abs(off) <= self.tolerance_arcsec:
+            return None  # on target: settling, clamping
+        if still is None or abs(wrapped(here - still[1])) * ARCSEC_PER_DEG > self.tolerance_arcsec / 10:
+            return now, here  # still getting there
+        if now - still[0] >= STALL_S and now - start > START_GRACE_S:
+            raise DeviceFault(f"stalled at {here % 360.0:.5f}°, {off:+.1f}″ from the target "
+                              f"{self._target % 360.0:g}° (tolerance {self.tolerance_arcsec:g}″): not moving "
+                              f"and not in position for {now - still[0]:.1f} s ({words}); check for a bind, "
+                              "the clamp or the coupling", self.device)
+        return still
 
     def position(self) -> float:
         return self.angle() % 360.0

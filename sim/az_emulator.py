@@ -136,6 +136,11 @@ class AzUnit:
     preset: int = 0  # the preset-position parameter
     command: int = 0  # command position, steps
     maintenance: dict[int, int] = field(default_factory=dict)
+    # a bind: each move stops this many steps short of its target, a deviation the drive cannot
+    # close, so IN-POS stays off (it turns on once the deviation is within the IN-POS output band:
+    # §2.1 simulator checklist, "IN-POS=1 when |cmd-fb| <= the in-position band") and MOVE is off
+    stall_steps: int = 0
+    stalled: bool = False  # the last move ended short (stall_steps)
 
     @property
     def steps_per_turn(self) -> int:
@@ -165,7 +170,7 @@ class AzDrives:
             bits |= Out.READY
         if moving:
             bits |= Out.MOVE
-        elif now >= axis.motion_end + axis.clamp_s and not unit.alarm:
+        elif now >= axis.motion_end + axis.clamp_s and not unit.alarm and not unit.stalled:
             bits |= Out.IN_POS
         return int(bits)
 
@@ -245,6 +250,11 @@ class AzDrives:
             current = self._steps(unit)
             axis.move_to(angle + (position - current) / unit.steps_per_degree, "direct")
             unit.command = position
+        unit.stalled = unit.stall_steps != 0
+        if unit.stalled:  # the same move, ending short of its target the way it came
+            end = float(axis.angle_at(axis.motion_end))
+            axis.move_to(end - (1.0 if end >= angle else -1.0) * unit.stall_steps / unit.steps_per_degree,
+                         "direct")
 
 
 def _listen_failure(endpoint: Endpoint, exc: RuntimeError) -> OSError:
