@@ -59,6 +59,7 @@ class IndexAxis(ABC):
         self.poll_s = poll_s
         self._target: float | None = None
         self._window: object | None = None  # the device's fault memory as the window opened (`window_opens`)
+        self.commanded = False  # this process has told the table to move (a move, a homing)
 
     # --- the device's part ------------------------------------------------------------------
     @abstractmethod
@@ -142,6 +143,7 @@ class IndexAxis(ABC):
                 raise OutOfLimits(f"a turn of {travel_deg:+g}° to {angle_deg:g}° from {here:g}° would leave "
                                   f"the soft limits [{self.limits[0]:g}°, {self.limits[1]:g}°]", self.device)
         self._target = target
+        self.commanded = True
         self._window = None  # a window's trace is of that window: the next one is noted afresh
         self._go(target, target - here)
 

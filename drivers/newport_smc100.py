@@ -292,6 +292,7 @@ class Smc100Axis(IndexAxis):
         if errors and state not in NOT_REFERENCED:
             raise DeviceFault(describe_state(errors, state), self.device)
         if state in NOT_REFERENCED:
+            self.commanded = True
             self.do("OR", safe=False)
             self._target = None
             started = self.clock.now()

@@ -185,3 +185,25 @@ def test_a_refused_run_sends_nothing_to_the_devices_of_a_lan_bench(name, tmp_pat
     assert second.returncode == 2 and second.stdout == "", second.stdout
     assert second.stderr.count("\n") == 1 and "one run per station at a time" in second.stderr, second.stderr
     assert heard == {server.address: [] for server in servers}
+
+
+def test_a_run_refused_before_any_table_moved_writes_nothing_to_the_tables(tmp_path, no_leaks):  # noqa: F811
+    """A run on a LAN bench (emulators served at fixed addresses) whose DMM refuses its configuration
+    as the run prepares (the checklist's went through: SCPI -222 the second time): refused in one
+    line. Before, it then stopped the tables it had never moved, with two broadcast STOP frames
+    (function 06 to address 0) and each drive's stop and release on the gateway, which stop tables
+    another process drives (one whose station lock this one cannot see: another computer). Now the
+    gateway hears only the reads of the checklist and of the preparation: no write at all."""
+    refused = ('\n[[emulation.faults]]\ndevice = "dmm"\nkind = "exception"\nmatch = "^CONF:VOLT"\n'
+               'after = 1\ncount = 5\ncode = -222\n')
+    station = private_file("az-modbus-tcp", tmp_path, refused, "timeout_s = 0.2\nreconnect_s = 0")
+    with Emulation(load_station(station)[0], time_scale=TIME_SCALE) as emulation:
+        gateway = next(server for _, _, server in emulation.servers.values() if hasattr(server, "drives"))
+        second = subprocess.run([LABCAL, "run", "--station", str(station), "--no-report", "--yes", "--db",
+                                 str(tmp_path / "lab.sqlite"), "--out", str(tmp_path / "run")],
+                                capture_output=True, text=True, timeout=120)
+        heard = [function for _, _, function, _ in gateway.received]
+    assert second.returncode == 2, second.stderr
+    assert second.stderr.strip().splitlines()[-1].startswith("labcal: error: dmm (Keysight 34970A")
+    assert 'SCPI error -222 "Data out of range"' in second.stderr
+    assert heard and set(heard) == {0x03}, heard  # reads (function 03) only: no 06, no 10h
