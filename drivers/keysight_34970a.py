@@ -358,7 +358,7 @@ class Keysight34970A:
         was reset or changed is configured again. Returns what was found wrong (empty: nothing)."""
         return self._exchange(lambda: self._ensure(why))
 
-    def _no_scan(self) -> BadReply:
+    def _no_scan(self) -> StaleScan | ScanRefused:
         """What ``FETC?`` finding no scan (-230) after ``INIT`` means: the ``INIT`` was lost, or the
         unit was reset since it arrived (``*RST`` from another controller, or a power cycle: the
         reset empties the memory and the scan list, User's Guide, *RST and "Power-on and reset
