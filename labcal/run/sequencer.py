@@ -470,8 +470,8 @@ class Sequencer:
         prompt says that resuming homes them, and they are homed before the run goes on."""
         if home:
             which = " and ".join(axis.name for axis in home) + (" tables" if len(home) > 1 else " table")
-            it = "them" if len(home) > 1 else "it"
-            why += (f"; the {which} lost its reference: resuming homes {it} first ({it} moves to the home "
+            its, it, moves = ("their", "them", "they move") if len(home) > 1 else ("its", "it", "it moves")
+            why += (f"; the {which} lost {its} reference: resuming homes {it} first ({moves} to the home "
                     "switch), then the run goes on")
         self.publish(Paused(run_id=self.run_id, rig_time_s=self.rig_time(), why=why,
                             may_be_moving=self.moving))
