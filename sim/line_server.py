@@ -26,6 +26,7 @@ from labcal.sim.ptys import PtyPair
 
 class LineDevice(Protocol):
     eol: bytes
+    networked: bool  # on TCP, the device's own network interface (a LAN DMM), not a serial-device server
 
     def route(self, line: str) -> str:
         """The name of the device a request addresses (whose faults apply)."""
@@ -38,6 +39,9 @@ class LineDevice(Protocol):
 
     def alarm(self, name: str, code: int | str | None) -> None:
         """Raise the device's alarm on the named device."""
+
+    def power_cycle(self, name: str) -> None:
+        """Switch the named device off and on (its power-on state)."""
 
 
 class _Channel:
@@ -184,10 +188,8 @@ class LineServer:
         if kind == FaultKind.LOST_REQUEST:
             return
         if kind == FaultKind.POWER_CYCLE:
-            power_cycle = getattr(self.device, "power_cycle", None)  # FaultSpec allows it on the DMM only
-            if power_cycle is not None:
-                power_cycle()
-            if self._listener is not None:  # its network interface restarts: connections are gone
+            self.device.power_cycle(name)
+            if self._listener is not None and self.device.networked:  # its LAN interface restarts too
                 for fd, other in list(self._channels.items()):
                     self._channels.pop(fd)
                     with contextlib.suppress(OSError):

@@ -58,6 +58,7 @@ class Positioner:
 
 class Smc100Emulator:
     eol = b"\r\n"
+    networked = False  # on TCP through a serial-device server, which a controller's power cycle leaves up
 
     def __init__(self, rig: EmulatedRig, positioners: dict[int, Positioner]):
         self.rig = rig
