@@ -21,6 +21,7 @@ from labcal.run.winding import Reach
 log = logging.getLogger(__name__)
 ARCSEC_PER_DEG = 3600.0
 START_GRACE_S = 1.0  # a device may report its old in-position state this long after a move starts
+STALL_S = 2.0  # still, short of its target and not in position this long: stalled, not settling
 
 
 @dataclass(frozen=True)
@@ -57,6 +58,8 @@ class IndexAxis(ABC):
         self.tolerance_arcsec = tolerance_arcsec
         self.poll_s = poll_s
         self._target: float | None = None
+        self._window: object | None = None  # the device's fault memory as the window opened (`window_opens`)
+        self.commanded = False  # this process has told the table to move (a move, a homing)
 
     # --- the device's part ------------------------------------------------------------------
     @abstractmethod
@@ -84,6 +87,16 @@ class IndexAxis(ABC):
     @abstractmethod
     def identify(self) -> str:
         """Who answers, in words (model, address, firmware where the device says)."""
+
+    def _fault_memory(self) -> object | None:
+        """What the device keeps of its faults, read now (an alarm history, a controller state);
+        None where it keeps nothing."""
+        return None
+
+    def _fault_since(self, memory: object, status: AxisStatus) -> str | None:
+        """The fault the device remembers since it kept ``memory`` (`_fault_memory`), in words;
+        None when it remembers none. ``status``: the status just read."""
+        return None
 
     def not_ready_why(self) -> str:
         """What keeps a table without a fault from being ready, where its controller can say
@@ -130,17 +143,27 @@ class IndexAxis(ABC):
                 raise OutOfLimits(f"a turn of {travel_deg:+g}° to {angle_deg:g}° from {here:g}° would leave "
                                   f"the soft limits [{self.limits[0]:g}°, {self.limits[1]:g}°]", self.device)
         self._target = target
+        self.commanded = True
+        self._window = None  # a window's trace is of that window: the next one is noted afresh
         self._go(target, target - here)
 
     def wait_in_position(self, timeout_s: float) -> float:
-        """Poll until in position and on target; returns the position read back (0..360°)."""
+        """Poll until in position and on target; returns the position read back (0..360°). A table
+        that stands still short of its target without its controller saying in position (a bind
+        the controller cannot close, with no alarm yet) is a stall after `STALL_S`: said then, not
+        at the end of the move's timeout."""
         start = self.clock.now()
         deadline = start + timeout_s
+        still: tuple[float, float] | None = None  # (since when, at what angle) it has stood still off target
         while True:
             expired = self.clock.now() >= deadline
             status = self.status()
             if status.fault:
                 raise DeviceFault(status.fault, self.device)
+            if not status.moving and not status.in_position and self._target is not None:
+                still = self._stalled(still, start, status.words)
+            else:
+                still = None
             if status.in_position and not status.moving:
                 here = self.angle()
                 if self._target is None:
@@ -163,19 +186,45 @@ class IndexAxis(ABC):
                                   f"{(self._target or 0.0) % 360.0:g}° began ({status.words})", self.device)
             self.clock.sleep(self.poll_s)
 
+    def _stalled(self, still: tuple[float, float] | None, start: float, words: str
+                 ) -> tuple[float, float] | None:
+        """One poll of a table that is neither moving nor in position: where it stands, and since
+        when, while it stands off its target; `DeviceFault` once it has stood there `STALL_S`
+        (after the start's grace, in which a device may still report the state before the move)."""
+        assert self._target is not None
+        now, here = self.clock.now(), self.angle()
+        off = wrapped(here - self._target) * ARCSEC_PER_DEG
+        if abs(off) <= self.tolerance_arcsec:
+            return None  # on target: settling, clamping
+        if still is None or abs(wrapped(here - still[1])) * ARCSEC_PER_DEG > self.tolerance_arcsec / 10:
+            return now, here  # still getting there
+        if now - still[0] >= STALL_S and now - start > START_GRACE_S:
+            raise DeviceFault(f"stalled at {here % 360.0:.5f}°, {off:+.1f}″ from the target "
+                              f"{self._target % 360.0:g}° (tolerance {self.tolerance_arcsec:g}″): not moving "
+                              f"and not in position for {now - still[0]:.1f} s ({words}); check for a bind, "
+                              "the clamp or the coupling", self.device)
+        return still
+
     def position(self) -> float:
         return self.angle() % 360.0
 
     def winding(self) -> float | None:
         return self.angle() if self.counts_turns else None
 
+    def window_opens(self) -> None:
+        """Note the device's fault memory as a measurement window opens: `state` then reports any
+        fault it remembers since (until the next move)."""
+        self._window = self._fault_memory()
+
     def state(self) -> TableState:
-        """Status, then position, against the last commanded target and the station's tolerance."""
+        """Status, then position, against the last commanded target and the station's tolerance;
+        then, since a window opened (`window_opens`), the device's memory of a fault in between."""
         status = self.status()
         here = self.angle()
         off = None if self._target is None else wrapped(here - self._target) * ARCSEC_PER_DEG
+        trace = None if self._window is None else self._fault_since(self._window, status)
         return TableState(self.device, status.fault, status.moving, status.in_position, here % 360.0, off,
-                          self.tolerance_arcsec, status.words)
+                          self.tolerance_arcsec, status.words, trace, status.needs_homing)
 
     def stop(self) -> None:
         """Tell the device to stop; a stop that fails is logged as a WARNING and raised."""

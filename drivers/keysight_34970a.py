@@ -21,7 +21,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from labcal.drivers.errors import BadReply, Busy, DeviceFault, NoReply, Rejected, on_device
+from labcal.drivers.errors import TRANSIENT, BadReply, Busy, DeviceFault, NoReply, Rejected, on_device
 from labcal.drivers.transport import Lines, retried
 from labcal.run.station import Scan
 
@@ -35,6 +35,12 @@ MAX_ERRORS = 20  # the 34970A's error queue holds 10; never loop for ever on a c
 # "+1.23456789E+00,2026,01,01,12,00,01.234,101,"
 READING_CHARS = 45
 STAMP_FIELDS = 6  # an absolute time stamp is yyyy,mm,dd,hh,mm,ss.sss (FORMat:READing:TIME:TYPE ABS)
+# Each reading exactly as the unit writes it, with the fields `commands` turns on (User's Guide,
+# FORMat:READing and "Reading format": the reading SD.DDDDDDDDESDD, an overload +9.90000000E+37; the
+# absolute time stamp yyyy,mm,dd,hh,mm,ss.sss; the channel number ccc; hardware_protocols.md §3.1
+# "Reply formats"). A byte lost on the line may leave a number that still parses (+5.01318258E+00
+# read as +5.0131828E+00): only the fixed width of every field tells it from the one sent.
+READING_FORMAT = re.compile(r"[+-]\d\.\d{8}E[+-]\d{2},\d{4},\d{2},\d{2},\d{2},\d{2},\d{2}\.\d{3},\d{3}")
 PON = 128  # *ESR? bit 7, power on: set when the unit powers up, cleared by *CLS or by reading it
 # (IEEE 488.2 standard event register; 34970A User's Guide, status system, *ESR?)
 POWERED_ON = "it was powered off and on (*ESR? power-on bit)"
@@ -99,6 +105,10 @@ def parse_readings(line: str, scan_list: Sequence[int], sweeps: int, previous: d
     expected = width * sweeps * len(scan_list)
     if len(fields) % width:
         raise BadReply(f"reply {line[:60]!r} is not readings, time stamps and channel numbers")
+    for k in range(0, len(fields), width):
+        if not READING_FORMAT.fullmatch(text := ",".join(fields[k:k + width])):
+            raise BadReply(f"reading {k // width + 1} {text[:60]!r} is not as the unit writes it (a byte "
+                           "lost or changed on the line?)")
     try:
         values = [float(f) for f in fields[0::width]]
         channels = [int(f) for f in fields[width - 1::width]]
@@ -112,6 +122,10 @@ def parse_readings(line: str, scan_list: Sequence[int], sweeps: int, previous: d
         raise BadReply(f"{len(fields) // width} readings in the reply, {expected // width} expected")
     if channels != list(scan_list) * sweeps:
         raise BadReply(f"readings from channels {sorted(set(channels))[:8]}, scan list {list(scan_list)}")
+    for k in range(1, len(stamps)):  # the unit takes its readings one after another, each ≥ 1 ms apart
+        if stamps[k] <= stamps[k - 1]:
+            raise BadReply(f"reading {k + 1} is stamped {stamps[k]:%H:%M:%S.%f}, not after the one before "
+                           f"it ({stamps[k - 1]:%H:%M:%S.%f})")
     if not all(math.isfinite(v) for v in values):
         raise BadReply("a reading is not a finite number")
     return np.array(values).reshape(sweeps, len(scan_list)), stamps
@@ -206,12 +220,19 @@ class Keysight34970A:
 
     def _exchange(self, exchange: Callable[[], T]) -> T:
         with on_device(self.device):
-            return retried(exchange, self.tries, self._recover, self.link.critical, self.device)
+            try:
+                return retried(exchange, self.tries, self._recover, self.link.critical, self.device)
+            except TRANSIENT:
+                self.link.drop_connection()  # whoever asks next (a resumed run) asks on a new one
+                self._suspect = True
+                raise
 
     def _recover(self) -> None:
-        """Between tries: drain late replies, and have the next try verify the unit first (silence
-        may be a unit that was powered off and on: back to its defaults, and on RS-232 deaf until
-        ``SYST:REM``)."""
+        """Between tries: a network connection is dropped (the next try opens a new one: a
+        half-open connection would swallow every try), late replies are drained, and the next try
+        verifies the unit first (silence may be a unit that was powered off and on: back to its
+        defaults, and on RS-232 deaf until ``SYST:REM``)."""
+        self.link.drop_connection()
         self.link.drain()
         self._suspect = True
 
@@ -337,6 +358,22 @@ class Keysight34970A:
         was reset or changed is configured again. Returns what was found wrong (empty: nothing)."""
         return self._exchange(lambda: self._ensure(why))
 
+    def _no_scan(self) -> StaleScan | ScanRefused:
+        """What ``FETC?`` finding no scan (-230) after ``INIT`` means: the ``INIT`` was lost, or the
+        unit was reset since it arrived (``*RST`` from another controller, or a power cycle: the
+        reset empties the memory and the scan list, User's Guide, *RST and "Power-on and reset
+        state"). Its scan list tells the two apart; either way the scan is taken again, the
+        unit's configuration verified first."""
+        try:
+            listed = channels_of(definite_block(self._ask("ROUT:SCAN?")))
+        except (NoReply, BadReply):
+            listed = None  # unreadable: the retry's verification finds out
+        if listed == []:
+            return ScanRefused("no scan in memory after INIT (error -230) and no scan list: the unit was "
+                               "reset during the scan (*RST from another controller, or a power cycle); "
+                               "verifying its configuration", self.device)
+        return StaleScan("no scan in memory after INIT (error -230): the INIT was lost")
+
     def scan_time_s(self, sweeps: int) -> float:
         """How long the unit needs for ``sweeps`` sweeps of the scan list."""
         return sweeps * len(self.scan_list) * channel_time_s(self.nplc, self.line_hz)
@@ -370,7 +407,7 @@ class Keysight34970A:
                 self._check("the scan")
             except ScpiError as exc:
                 if exc.code == NO_DATA:
-                    raise StaleScan("no scan in memory after INIT (error -230): the INIT was lost") from None
+                    raise self._no_scan() from None
                 # a unit reset since the last scan (no scan list, another format) refuses it: the
                 # next try verifies its configuration first
                 raise ScanRefused(f"{exc.args[0].removeprefix(f'{self.device}: ')}; verifying the unit's "

@@ -111,6 +111,7 @@ class Smc100Axis(IndexAxis):
         self.home_timeout_s = home_timeout_s
         self.tries = retries + 1
         self._unread_te = False  # a `send_stop` whose TE is still in the controller
+        self._last_ts: tuple[int, int] | None = None  # (positioner errors, state) of the last TS read
 
     # --- exchanges --------------------------------------------------------------------------
     def _error_code(self) -> str:
@@ -155,7 +156,7 @@ class Smc100Axis(IndexAxis):
 
     # --- the axis ---------------------------------------------------------------------------
     def status(self) -> AxisStatus:
-        errors, state = self.ask("TS", parse_state)
+        errors, state = self._last_ts = self.ask("TS", parse_state)
         words = describe_state(errors, state)
         fault = None
         if errors or state in DISABLE or state in NOT_REFERENCED or state not in STATES:
@@ -166,6 +167,27 @@ class Smc100Axis(IndexAxis):
 
     def angle(self) -> float:
         return self.ask("TP", parse_number)
+
+    def _fault_memory(self) -> tuple[int, int]:
+        """The controller's state as the window opens (``TS``): the state it is left in names the
+        transition that led there (manual §2.2 state table: 33h READY from MOVING after a move,
+        34h READY from DISABLE after MM0 then MM1), so a disable and re-enable inside the window,
+        or a homing, leaves a READY state other than this one."""
+        return self.ask("TS", parse_state)
+
+    def _fault_since(self, memory: object, status: AxisStatus) -> str | None:
+        assert isinstance(memory, tuple)
+        opened_errors, opened = memory
+        if opened_errors:
+            return f"as the measurement window opened it reported {describe_state(opened_errors, opened)}"
+        if self._last_ts is None or status.fault or status.moving:
+            return None  # the status says what is wrong already
+        errors, state = self._last_ts
+        if state == opened:
+            return None
+        return (f"its controller went from {describe_state(0, opened)} to {describe_state(errors, state)} "
+                "during the measurement window: it was disabled, homed or moved by something other than "
+                "this run")
 
     def _go(self, target_deg: float, travel_deg: float = 0.0) -> None:
         """``PA`` once, then ``TE``; the stage counts turns, so the unwrapped target is the way round.
@@ -270,6 +292,7 @@ class Smc100Axis(IndexAxis):
         if errors and state not in NOT_REFERENCED:
             raise DeviceFault(describe_state(errors, state), self.device)
         if state in NOT_REFERENCED:
+            self.commanded = True
             self.do("OR", safe=False)
             self._target = None
             started = self.clock.now()

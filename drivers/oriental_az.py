@@ -30,6 +30,7 @@ INPUT_REF = 0x007C  # driver input command (reference), latched; bits in the low
 STATUS = 0x007E  # driver output status; the present alarm follows at 0x0080
 ALARM = 0x0080
 ALARM_HISTORY = 0x0082  # ten pairs, newest first
+HISTORY = 10
 COMM_ERROR = 0x00AC
 COMMAND_POSITION = 0x00C6
 FEEDBACK_POSITION = 0x00CC
@@ -240,6 +241,32 @@ class AzAxis(IndexAxis):
 
     def alarm(self) -> int:
         return words_int32(*self._read(ALARM, 2))
+
+    def alarm_history(self) -> tuple[int, ...]:
+        """The drive's alarm history 1..10, newest first (0 where empty), in one read of its ten
+        pairs (hardware_protocols.md §2.1, 0082h–0095h): an alarm stays in it after a reset, by
+        this master or any other."""
+        words = self._read(ALARM_HISTORY, 2 * HISTORY)
+        return tuple(words_int32(*words[i:i + 2]) for i in range(0, 2 * HISTORY, 2))
+
+    def _fault_memory(self) -> tuple[int, ...]:
+        return self.alarm_history()
+
+    def _fault_since(self, memory: object, status: AxisStatus) -> str | None:
+        """An alarm the history gained since ``memory`` (the history as the window opened; a new
+        alarm goes in first and pushes the rest down), or a history cleared meanwhile. The present
+        alarm, if any, is the status's fault already."""
+        assert isinstance(memory, tuple)
+        now = self.alarm_history()
+        if now == memory:
+            return None
+        shifts = range(1, HISTORY + 1)
+        new = next((now[:shift] for shift in shifts if now[shift:] == memory[:HISTORY - shift]), None)
+        if new is None:
+            return "its alarm history changed during the measurement window (cleared by another master?)"
+        raised = ", ".join(f"{code:02X}h ({ALARMS.get(code, 'unknown alarm')})" for code in new)
+        reset = "" if status.fault else ", and was reset since"
+        return f"alarm {raised} was raised during the measurement window (alarm history){reset}"
 
     def reset_alarm(self) -> None:
         self._pulse(ALARM_RESET)

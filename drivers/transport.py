@@ -170,6 +170,10 @@ class Lines(Protocol):
 
     def drain(self) -> None: ...
 
+    def drop_connection(self) -> None:
+        """After a failed exchange: a network connection is closed, so that the next exchange
+        opens a new one; a serial line is left open."""
+
     def close(self) -> None: ...
 
 
@@ -255,6 +259,7 @@ class SerialStream:
 
     def __init__(self, url: str, *, baudrate: int, bytesize: int, parity: str, stopbits: float,
                  xonxoff: bool, timeout_s: float):
+        self.network = url.lower().startswith(("socket://", "rfc2217://"))  # a serial-device server
         self.port = open_serial(url, baudrate=baudrate, bytesize=bytesize, parity=parity, stopbits=stopbits,
                                 xonxoff=xonxoff, timeout=SLICE_S, write_timeout=timeout_s)
 
@@ -277,6 +282,8 @@ class SerialStream:
 
 class TcpStream:
     """A raw TCP connection (SCPI on port 5025, a serial-device server)."""
+
+    network = True
 
     def __init__(self, host: str, port: int, timeout_s: float):
         self.sock = socket.create_connection((host, port), timeout=timeout_s)
@@ -405,6 +412,15 @@ class LineTransport:
         except KeyboardInterrupt:
             self._cut_since = time.monotonic()
             raise
+
+    def drop_connection(self) -> None:
+        """After a failed exchange, a network connection is closed and the next exchange opens a
+        new one, as a Modbus TCP link does between tries: a connection the device (or a switch on the
+        way) has forgotten without a word stays writable and never answers again (half-open), and a
+        late reply on the old one is never read. A serial line stays open (`drain` clears it)."""
+        if self._stream is not None and getattr(self._stream, "network", False):
+            log.warning("%s: closing the connection; the next exchange opens a new one", self.where)
+            self.close()
 
     def close(self) -> None:
         if self._stream is not None:

@@ -155,6 +155,13 @@ class VisaLink:
                 return
             now = time.monotonic()
 
+    def drop_connection(self) -> None:
+        """After a failed exchange, a network resource (``TCPIP…``) is closed and the next exchange
+        opens it again: a half-open connection never answers again. A serial one stays open."""
+        if self._instrument is not None and self.resource.upper().startswith("TCPIP"):
+            log.warning("%s: closing the connection; the next exchange opens a new one", self.where)
+            self.close()
+
     def close(self) -> None:
         if self._instrument is not None:
             try:

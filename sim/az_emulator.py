@@ -37,7 +37,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 from labcal.config.emulation import FaultKind
 from labcal.sim.emulated_rig import EmulatedRig
 from labcal.sim.endpoint import Endpoint
-from labcal.sim.faults import Fault, FaultInjector, garble
+from labcal.sim.faults import Fault, FaultInjector, drop_byte, garble
 from labcal.sim.ptys import PtyPair
 
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())
@@ -136,6 +136,11 @@ class AzUnit:
     preset: int = 0  # the preset-position parameter
     command: int = 0  # command position, steps
     maintenance: dict[int, int] = field(default_factory=dict)
+    # a bind: each move stops this many steps short of its target, a deviation the drive cannot
+    # close, so IN-POS stays off (it turns on once the deviation is within the IN-POS output band:
+    # §2.1 simulator checklist, "IN-POS=1 when |cmd-fb| <= the in-position band") and MOVE is off
+    stall_steps: int = 0
+    stalled: bool = False  # the last move ended short (stall_steps)
 
     @property
     def steps_per_turn(self) -> int:
@@ -165,7 +170,7 @@ class AzDrives:
             bits |= Out.READY
         if moving:
             bits |= Out.MOVE
-        elif now >= axis.motion_end + axis.clamp_s and not unit.alarm:
+        elif now >= axis.motion_end + axis.clamp_s and not unit.alarm and not unit.stalled:
             bits |= Out.IN_POS
         return int(bits)
 
@@ -245,6 +250,11 @@ class AzDrives:
             current = self._steps(unit)
             axis.move_to(angle + (position - current) / unit.steps_per_degree, "direct")
             unit.command = position
+        unit.stalled = unit.stall_steps != 0
+        if unit.stalled:  # the same move, ending short of its target the way it came
+            end = float(axis.angle_at(axis.motion_end))
+            axis.move_to(end - (1.0 if end >= angle else -1.0) * unit.stall_steps / unit.steps_per_degree,
+                         "direct")
 
 
 def _listen_failure(endpoint: Endpoint, exc: RuntimeError) -> OSError:
@@ -268,6 +278,9 @@ class AzServer:
         self.gaps: list[float] = []  # RTU: silence before each request since the last frame, s
         self.dropped = 0  # RTU requests dropped for starting within t3.5
         self.after_broadcast: list[float] = []  # RTU: silence before the first request after each broadcast
+        # every request heard, as (monotonic time, unit, function code, address): what reached the
+        # drives, whoever sent it (a test checks from here what a run did or did not send)
+        self.received: list[tuple[float, int, int, int]] = []
         self._broadcast_heard = False
         self._last_rx = 0.0  # when the last bytes arrived (RTU)
         self._line_quiet_from: float | None = None  # when our last reply left
@@ -339,6 +352,9 @@ class AzServer:
 
     # --- faults and semantics ---------------------------------------------------------------
     def _trace_pdu(self, sending: bool, pdu: ModbusPDU) -> ModbusPDU:
+        if not sending:
+            heard = (time.monotonic(), pdu.dev_id, pdu.function_code, getattr(pdu, "address", 0))
+            self.received.append(heard)
         if not sending and pdu.dev_id == BROADCAST:
             self._current = self._request_gap = None  # every drive executes it; no reply leaves, so
             if self.endpoint.kind != "tcp":  # the line is quiet from the frame's last bytes
@@ -375,6 +391,8 @@ class AzServer:
             return packet[:2] + b"\xa5\x5a" + packet[4:] if self.endpoint.kind == "tcp" else garble(packet)
         if kind == FaultKind.TRUNCATED:
             return packet[:len(packet) // 2]
+        if kind == FaultKind.DROPPED_BYTE and fault is not None:
+            return drop_byte(packet, fault)
         return packet
 
     def _time_rtu(self, sending: bool) -> None:

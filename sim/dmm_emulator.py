@@ -134,6 +134,7 @@ def channel_s(nplc: float, line_hz: float) -> float:
 
 class Keysight34970AEmulator:
     eol = b"\n"
+    networked = True  # a 34972A on the LAN: a power cycle drops its connections
 
     def __init__(self, rig: EmulatedRig, wiring: dict[int, int | str], name: str = "dmm",
                  serial_line: bool = False):
@@ -184,7 +185,7 @@ class Keysight34970AEmulator:
     def alarm(self, name: str, code: int | str | None) -> None:
         self.overload_next = True
 
-    def power_cycle(self) -> None:
+    def power_cycle(self, name: str = "dmm") -> None:
         """Switched off and on: the power-on state (User's Guide, "Power-on and reset state": the
         *RST defaults, no scan list), the error queue empty, the power-on bit set, and on RS-232
         back in local until SYST:REM. The reading memory is cleared too (a simplification: the

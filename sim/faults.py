@@ -14,6 +14,8 @@ Each emulated device has a `FaultInjector`. The emulator asks it about every req
   drops a frame whose CRC fails, Modbus over Serial Line V1.02 §2.5.1.2), so nothing is done and
   nothing is answered;
 - ``truncated``: only the first half of the reply arrives;
+- ``dropped-byte``: one byte of the reply is lost on the line (an RS-232 overrun), the byte at
+  index ``code`` (default 8: a mantissa digit of a SCPI reading such as ``+5.01318258E+00``);
 - ``power-cycle``: the device is switched off and on as the request arrives (the request is lost;
   the DMM only): back to its power-on state, and a network connection to it is dropped.
 """
@@ -35,7 +37,8 @@ class Fault:
     after: int = 0  # matching requests let through first
     match: str | None = None  # regular expression searched in the request's description
     delay_s: float = 1.0  # late-reply
-    code: int | str | None = None  # alarm / exception: the device's code (each device has a default)
+    code: int | str | None = None  # alarm / exception: the device's code (each device has a default);
+    # dropped-byte: the index of the byte lost
     reopen_s: float | None = None  # close-port: reopen after this long; None: stays closed
     seen: int = field(default=0, repr=False)
 
@@ -82,6 +85,15 @@ class FaultInjector:
     def count(self, kind: FaultKind) -> int:
         with self._lock:
             return sum(1 for applied, _ in self.applied if applied == kind)
+
+
+DROPPED_AT = 8  # dropped-byte's default: "+5.01318258E+00" → "+5.0131828E+00", a number still
+
+
+def drop_byte(data: bytes, fault: Fault) -> bytes:
+    """The reply without one byte (`FaultKind.DROPPED_BYTE`), at the fault's ``code`` index."""
+    at = fault.code if isinstance(fault.code, int) else DROPPED_AT
+    return data[:at] + data[at + 1:] if 0 <= at < len(data) else data
 
 
 def garble(data: bytes) -> bytes:

@@ -20,12 +20,13 @@ from typing import Protocol
 
 from labcal.config.emulation import FaultKind
 from labcal.sim.endpoint import Endpoint
-from labcal.sim.faults import FaultInjector, garble
+from labcal.sim.faults import FaultInjector, drop_byte, garble
 from labcal.sim.ptys import PtyPair
 
 
 class LineDevice(Protocol):
     eol: bytes
+    networked: bool  # on TCP, the device's own network interface (a LAN DMM), not a serial-device server
 
     def route(self, line: str) -> str:
         """The name of the device a request addresses (whose faults apply)."""
@@ -38,6 +39,9 @@ class LineDevice(Protocol):
 
     def alarm(self, name: str, code: int | str | None) -> None:
         """Raise the device's alarm on the named device."""
+
+    def power_cycle(self, name: str) -> None:
+        """Switch the named device off and on (its power-on state)."""
 
 
 class _Channel:
@@ -56,9 +60,14 @@ class LineServer:
         self.device, self.endpoint, self.faults = device, endpoint, faults
         self.char_s = char_s
         self.errors: list[BaseException] = []  # emulator bugs, kept for tests to see
+        # every request line heard, as (monotonic time, line): what reached the device, whoever
+        # sent it (a test checks from here what a run did or did not send)
+        self.received: list[tuple[float, str]] = []
         self._listener: socket.socket | None = None
         self._pty: PtyPair | None = None
         self._channels: dict[int, _Channel] = {}
+        self._forgotten: list[_Channel] = []  # half-open connections: open here, never read again
+        self._forget = False  # `forget_connections` asked; done by the serving thread
         self._reopen_at: float | None = None
         self._closed = False
         self._wake_r, self._wake_w = os.pipe()
@@ -80,11 +89,19 @@ class LineServer:
             self._listener = listener
             self.endpoint = self.endpoint.bound(listener.getsockname()[1])
 
+    def forget_connections(self) -> None:
+        """The device, or a switch on the way, forgets every open network connection without a
+        word to the other end (no FIN, no reset): their sockets stay open here, never read again,
+        so the other end's requests are sent without error and never answered (a half-open
+        connection). New connections are served as before. Takes effect as the next request arrives."""
+        self._forget = True
+
     def _close_port(self) -> None:
-        for channel in list(self._channels.values()):
+        for channel in [*self._channels.values(), *self._forgotten]:
             with contextlib.suppress(OSError):
                 channel.close()
         self._channels.clear()
+        self._forgotten.clear()
         if self._listener is not None:
             self._listener.close()
             self._listener = None
@@ -107,6 +124,12 @@ class LineServer:
             ready, _, _ = select.select(watched, [], [], timeout)
             if self._wake_r in ready:
                 return
+            if self._forget:
+                self._forget = False
+                if self._listener is not None:  # a pty is no connection to forget
+                    self._forgotten += self._channels.values()
+                    self._channels.clear()
+                continue
             for item in ready:
                 if item is self._listener:
                     self._accept()
@@ -149,6 +172,7 @@ class LineServer:
                     print(f"labcal emulator: {type(exc).__name__}: {exc}", file=sys.stderr)
 
     def _request(self, channel: _Channel, line: str) -> None:
+        self.received.append((time.monotonic(), line))
         name = self.device.route(line)
         injector = self.faults.get(name)
         fault = injector.take(line) if injector else None
@@ -164,10 +188,8 @@ class LineServer:
         if kind == FaultKind.LOST_REQUEST:
             return
         if kind == FaultKind.POWER_CYCLE:
-            power_cycle = getattr(self.device, "power_cycle", None)  # FaultSpec allows it on the DMM only
-            if power_cycle is not None:
-                power_cycle()
-            if self._listener is not None:  # its network interface restarts: connections are gone
+            self.device.power_cycle(name)
+            if self._listener is not None and self.device.networked:  # its LAN interface restarts too
                 for fd, other in list(self._channels.items()):
                     self._channels.pop(fd)
                     with contextlib.suppress(OSError):
@@ -181,6 +203,8 @@ class LineServer:
         data = reply.encode("ascii")
         if kind == FaultKind.GARBLED:
             data = garble(data)
+        if kind == FaultKind.DROPPED_BYTE and fault is not None:
+            data = drop_byte(data, fault)
         if kind == FaultKind.TRUNCATED:
             channel.send(data[:len(data) // 2])
             return

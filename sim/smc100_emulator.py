@@ -58,6 +58,7 @@ class Positioner:
 
 class Smc100Emulator:
     eol = b"\r\n"
+    networked = False  # on TCP through a serial-device server, which a controller's power cycle leaves up
 
     def __init__(self, rig: EmulatedRig, positioners: dict[int, Positioner]):
         self.rig = rig
@@ -84,6 +85,20 @@ class Smc100Emulator:
                     p.errors |= int(code) if isinstance(code, int) else FOLLOWING_ERROR
                     p.state = DISABLE_FROM_MOVING if p.state in MOVING else DISABLE_FROM_READY
                     self.rig.axis(p.name).stop()
+
+    def power_cycle(self, name: str) -> None:
+        """The controller of table ``name`` switched off and on: the stage stops where it is and
+        the controller comes up NOT REFERENCED from reset (0Ah, the power-up state of §2.2's state
+        diagram), no error kept, its speed and acceleration back to the stored ones (VA and AC set
+        by command are not saved outside CONFIGURATION). It takes no PA until homed (error H).
+        (Its position counter is left reading the stage's angle: a simplification.)"""
+        stored = Positioner(name)
+        for p in self.positioners.values():
+            if p.name == name:
+                with self.rig.lock:
+                    self.rig.axis(p.name).stop()
+                    p.state, p.errors, p.last_error = POWER_UP, 0, "@"
+                    p.speed, p.accel = stored.speed, stored.accel
 
     def handle(self, line: str) -> str | None:
         match = COMMAND.fullmatch(line.replace(" ", ""))

@@ -111,6 +111,12 @@ class SimAxis:
         journal's moves say which turn they are on (what a dry run then exercises)."""
         return None
 
+    def window_opens(self) -> None:
+        """A simulated table has no faults to remember."""
+
+    def prepare(self) -> None:
+        """A simulated table never loses its reference: nothing to do."""
+
     def state(self) -> TableState:
         now = self.clock.now()
         here = float(self.angle_at(now))

@@ -243,3 +243,36 @@ def test_a_dmm_reset_while_the_operator_remounts_is_found_at_the_mount(tmp_path,
     path = private_file("smc100-serial", tmp_path, at_mount, QUICK)
     log = recovered_run(capsys, path, tmp_path / "run")
     assert "at the mount: it was powered off and on (*ESR? power-on bit); configuring it again" in log, log
+
+
+def test_a_reading_short_of_a_byte_is_not_kept_and_the_window_is_taken_again(tmp_path, capsys, no_leaks):  # noqa: F811
+    """End to end on RS-232: one byte of a mid-run FETC? reply is lost, the
+    first reading's 8th significant digit, leaving a number that still parses. Before, it was kept.
+    Now every reading is checked against the width the unit writes it in: the scan is taken again,
+    the run completes with every point and the fit is the truth to 0.1 mV."""
+    dropped = faults('device = "dmm"\nkind = "dropped-byte"\nmatch = "FETC"\nafter = 30')
+    log = recovered_run(capsys, private_file("smc100-serial", tmp_path, dropped, QUICK), tmp_path / "run")
+    assert log.count("is not as the unit writes it") == 1, log
+
+
+def test_an_smc100_power_cycled_mid_run_is_homed_after_one_r(tmp_path, capsys, no_leaks):  # noqa: F811
+    """The pitch SMC100 is switched off and on as a status request reaches it mid-run (that request
+    is lost): it comes back NOT REFERENCED (0Ah) and refuses PA (error H). The run stops the tables
+    and pauses; the pause says the pitch table lost its reference and that resuming homes it. One
+    "r" (the answers' second line) homes it and the run completes with every point. Before, "r"
+    moved again, was refused, and the run paused for good."""
+    cycle = faults('device = "pitch"\nkind = "power-cycle"\nmatch = "^1TS"\nafter = 60')
+    station = private_file("smc100-serial", tmp_path, cycle, QUICK)
+    answers = tmp_path / "answers.txt"
+    answers.write_text("y\nr\n")
+    run_dir = tmp_path / "run"
+    code, out, err = cli(capsys, "run", "--station", str(station), *EMULATE, "--plan", "one-mount-16",
+                         "--answers", str(answers), "--out", str(run_dir), "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["points"] == 16 and summary["points_failed"] == 0
+    flat = " ".join(err.split())
+    assert "the pitch table lost its reference: resuming homes it first" in flat, err
+    log = cli(capsys, "log", str(run_dir), "--json")[1]
+    assert log.count("homing the pitch table, which had lost its reference") == 1, log
+    assert log.count("NOT REFERENCED from reset (0Ah)") >= 1

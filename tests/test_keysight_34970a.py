@@ -312,3 +312,61 @@ def test_a_long_fast_scan_is_waited_for_on_a_network_link(tmp_path, no_leaks):  
         bench.dmm.configure()
         assert bench.dmm.deadlines_s(3000)[1] == pytest.approx(0.1 + 1.5 * 12000 * 0.002)
         assert bench.dmm.read(3000).volts.shape == (3000, 3)
+
+
+def test_a_reading_that_lost_a_byte_but_still_parses_is_scanned_again(dmm, caplog):
+    """One byte of the FETC? reply is lost on the line: the first reading's 8th significant digit
+    ("+5.01318258E+00" arriving as "+5.0131828E+00": still a number, off by up to 1.6 standard
+    errors of a point's mean where the lost digit is the 4th or 5th decimal). Every reading is checked
+    against the width the unit writes it in (SD.DDDDDDDDESDD, yyyy,mm,dd,hh,mm,ss.sss, ccc: User's
+    Guide, "Reading format"), so the reply is refused and the scan taken again; the scan returned
+    is the second one, whole."""
+    emulation, meter = dmm
+    meter.read(2)
+    fault = emulation.faults["dmm"].add(Fault(FaultKind.DROPPED_BYTE, match="FETC"))
+    scan = meter.read(3)
+    assert emulation.faults["dmm"].count(FaultKind.DROPPED_BYTE) == 1 and fault.seen == 1
+    assert scan.volts.shape == (3, 3)
+    assert "reading 1 " in caplog.text and "is not as the unit writes it" in caplog.text, caplog.text
+    reply = unit(emulation).handle("FETC?")  # the scan as the unit sent it: its first reading, short a byte
+    first = reply.split(",")[0]
+    shortened = first[:8] + first[9:]
+    assert float(shortened) != float(first)  # a number still: only its width gives it away
+    assert scan.volts[0, 0] == float(first)  # the scan taken again, as the unit sent it
+
+
+def test_readings_stamped_out_of_order_are_refused():
+    """Each reading is stamped after the one before it (the unit takes them one after another):
+    a reply whose second reading is stamped before its first is not the unit's, whatever parses."""
+    from labcal.drivers.keysight_34970a import parse_readings
+
+    swapped = ("+1.00000000E+00,2026,01,01,12,00,01.500,101,-2.50000000E-01,2026,01,01,12,00,01.100,102,"
+               "+4.99990000E+00,2026,01,01,12,00,01.900,103")
+    with pytest.raises(BadReply, match="reading 2 is stamped 12:00:01.100000, not after the one before it"):
+        parse_readings(swapped, [101, 102, 103], 1)
+
+
+def test_a_reset_from_another_controller_during_a_scan_is_named_as_one(dmm, caplog):
+    """Another controller sends *RST between a scan's INIT and its FETC?: the memory and the scan list are
+    emptied (User's Guide, *RST), so FETC? finds no scan (-230), as after a lost INIT. The unit's
+    empty scan list tells the two apart: the first report says it was reset, not that the INIT
+    was lost; its configuration is restored and the scan taken again."""
+    emulation, meter = dmm
+    meter.read(2)
+    another = unit(emulation)
+    resets: list[str] = []
+
+    def reset_then_fetch(line: str, handle=another.handle) -> str | None:
+        if line.startswith("FETC") and not resets:  # once, as the scan is fetched
+            resets.append(line)
+            handle("*RST")
+        return handle(line)
+    another.handle = reset_then_fetch  # type: ignore[method-assign]
+    try:
+        scan = meter.read(2)
+    finally:
+        del another.handle
+    assert scan.volts.shape == (2, 3) and resets == ["FETC?"]
+    assert "the unit was reset during the scan (*RST from another controller" in caplog.text, caplog.text
+    assert "the INIT was lost" not in caplog.text
+    assert meter.differences() == []

@@ -200,3 +200,26 @@ def test_stop_after_an_exchange_torn_by_ctrl_c(az_slow):
     assert table.motion_end <= now and 0 < abs(float(table.angle_at(now))) < 179
     assert not pitch.status().moving
     assert abs(wrapped(pitch.angle() - float(table.angle_at(now)))) <= 1e-3  # one step is 0.001°
+
+
+def test_a_table_that_stalls_short_of_its_target_is_named_long_before_the_move_timeout(az_slow):
+    """A bind stops the roll table 3 steps (10.8″) short of 45°: the drive turns MOVE off and, the
+    deviation outside its IN-POS band, never IN-POS on, and raises no alarm (yet). Before, the run
+    waited out the whole move timeout (30 s here) for an IN-POS that never came. Now the table,
+    standing still off its target and not in position for 2 s, is called stalled, with where it
+    stands: within a few seconds of the move's end."""
+    emulation, bench = az_slow
+    server = next(s for _, _, s in emulation.servers.values() if hasattr(s, "drives"))
+    unit = next(u for u in server.drives.units.values() if u.name == "roll")
+    unit.stall_steps = 3
+    clock = emulation.rig.clock
+    start = clock.now()
+    bench.roll.move_to(45.0)
+    with pytest.raises(DeviceFault, match=r"stalled at 44\.99700°, -10\.8″ from the target 45°") as raised:
+        bench.roll.wait_in_position(30.0)
+    took = clock.now() - start
+    # named as a stall, not as the timeout's "not in position 30 s after the move began": the move
+    # lasts 45° / 20 °/s + 1 s of ramps ≈ 3.3 s, then 2 s still; the rest is the exchanges' time,
+    # which a loaded machine multiplies by the 20-fold time scale (so no tighter bound than 30 s)
+    assert took < 30.0, took
+    assert "not moving and not in position" in str(raised.value)

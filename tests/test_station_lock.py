@@ -19,7 +19,8 @@ import pytest
 from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.config.station import load_station
-from labcal.run.lock import link_key, station_locks
+from labcal.run.lock import StationLock, link_key, station_locks
+from labcal.sim.emulation import Emulation
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 EMULATE = ["--emulate", "--time-scale", str(TIME_SCALE), "--no-report"]
@@ -161,3 +162,48 @@ def test_the_lock_of_an_emulated_run_holds_the_addresses_its_emulators_chose(tmp
     finally:
         first.kill()
         first.wait(timeout=30)
+
+
+@pytest.mark.parametrize("name", ["az-modbus-tcp", "smc100-tcp"])
+def test_a_refused_run_sends_nothing_to_the_devices_of_a_lan_bench(name, tmp_path, no_leaks):  # noqa: F811
+    """A LAN bench (emulators served at fixed addresses, as `labcal sim serve` serves them) held by
+    another run: a second `labcal run` on it is refused in one line, and the emulators' own logs of
+    every request they heard (Modbus frames on the gateway, command lines on the SMC100 chain and
+    the DMM) hold nothing from it: the lock is taken before any device is opened or written."""
+    station = private_file(name, tmp_path, link="timeout_s = 0.2\nreconnect_s = 0")
+    config = load_station(station)[0]
+    db = tmp_path / "lab.sqlite"
+    links = {settings.bus: settings.where for settings in config.devices().values()}
+    with Emulation(config, time_scale=TIME_SCALE) as emulation, \
+            StationLock(station_locks(db), links, str(station)):  # the run holding the station
+        servers = [server for _, _, server in emulation.servers.values()]
+        assert len(servers) == 2  # the tables' bus and the DMM's link
+        second = subprocess.run([LABCAL, "run", "--station", str(station), "--no-report", "--yes", "--db",
+                                 str(db), "--out", str(tmp_path / "second")],
+                                capture_output=True, text=True, timeout=120)
+        heard = {server.address: list(server.received) for server in servers}
+    assert second.returncode == 2 and second.stdout == "", second.stdout
+    assert second.stderr.count("\n") == 1 and "one run per station at a time" in second.stderr, second.stderr
+    assert heard == {server.address: [] for server in servers}
+
+
+def test_a_run_refused_before_any_table_moved_writes_nothing_to_the_tables(tmp_path, no_leaks):  # noqa: F811
+    """A run on a LAN bench (emulators served at fixed addresses) whose DMM refuses its configuration
+    as the run prepares (the checklist's went through: SCPI -222 the second time): refused in one
+    line. Before, it then stopped the tables it had never moved, with two broadcast STOP frames
+    (function 06 to address 0) and each drive's stop and release on the gateway, which stop tables
+    another process drives (one whose station lock this one cannot see: another computer). Now the
+    gateway hears only the reads of the checklist and of the preparation: no write at all."""
+    refused = ('\n[[emulation.faults]]\ndevice = "dmm"\nkind = "exception"\nmatch = "^CONF:VOLT"\n'
+               'after = 1\ncount = 5\ncode = -222\n')
+    station = private_file("az-modbus-tcp", tmp_path, refused, "timeout_s = 0.2\nreconnect_s = 0")
+    with Emulation(load_station(station)[0], time_scale=TIME_SCALE) as emulation:
+        gateway = next(server for _, _, server in emulation.servers.values() if hasattr(server, "drives"))
+        second = subprocess.run([LABCAL, "run", "--station", str(station), "--no-report", "--yes", "--db",
+                                 str(tmp_path / "lab.sqlite"), "--out", str(tmp_path / "run")],
+                                capture_output=True, text=True, timeout=120)
+        heard = [function for _, _, function, _ in gateway.received]
+    assert second.returncode == 2, second.stderr
+    assert second.stderr.strip().splitlines()[-1].startswith("labcal: error: dmm (Keysight 34970A")
+    assert 'SCPI error -222 "Data out of range"' in second.stderr
+    assert heard and set(heard) == {0x03}, heard  # reads (function 03) only: no 06, no 10h

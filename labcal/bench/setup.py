@@ -238,10 +238,14 @@ def station_for_resume(snapshot: StationSnapshot, run_name: str, stack: ExitStac
 
 def prepare(bench: Bench, station: Station, say: Callable[[str], None]) -> None:
     """Home and enable the tables and configure the DMM; a stop reaches the tables if that fails
-    (``say`` tells the operator what is being done, and a stop that failed too)."""
+    after a table was told to move (a homing; ``say`` tells the operator what is being done, and a
+    stop that failed too). A run refused before any table was told to move sends no stop: a stop
+    on a shared bus (a broadcast on a gateway) would stop tables another process drives."""
     try:
         bench.prepare(say=say)
     except BaseException as exc:
+        if not any(axis.commanded for axis in bench.axes):
+            raise
         try:
             station.stop()
         except LabcalError as stop_error:

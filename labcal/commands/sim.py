@@ -15,7 +15,7 @@ from labcal.commands import summary
 from labcal.commands.common import SEED, TIME_SCALE, TIME_SCALE_HELP, err, out, print_json
 
 HELP = ("commands: mount Y U | fault DEVICE KIND [COUNT] (KIND: no-reply, late-reply, garbled, truncated, "
-        "lost-request, alarm, exception, close-port) | status | quit")
+        "lost-request, alarm, exception, close-port, dropped-byte) | status | quit")
 
 
 def console_command(emulation, line: str) -> str:

@@ -12,7 +12,7 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from labcal.analysis.kinematics import MISALIGNMENT_NAMES, Misalignment
 from labcal.config.files import load_model
@@ -160,6 +160,7 @@ class FaultKind(StrEnum):
     LOST_REQUEST = "lost-request"
     TRUNCATED = "truncated"
     POWER_CYCLE = "power-cycle"
+    DROPPED_BYTE = "dropped-byte"
 
 
 class FaultSpec(BaseModel):
@@ -176,11 +177,6 @@ class FaultSpec(BaseModel):
     code: int | str | None = None
     reopen_s: float | None = Field(default=None, ge=0)
 
-    @model_validator(mode="after")
-    def _power_cycle(self):
-        if self.kind == FaultKind.POWER_CYCLE and self.device != "dmm":
-            raise ValueError("a power-cycle fault is emulated on the dmm only")
-        return self
 
 
 class EmulationSettings(BaseModel):

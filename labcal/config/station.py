@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Annotated, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
-from labcal.config.emulation import EmulationSettings, RigConfig
+from labcal.config.emulation import EmulationSettings, FaultKind, RigConfig
 from labcal.config.files import parse_model, read_text, validate_model
 from labcal.config.settings import CertificateSettings, SequencerSettings
 from labcal.config.uncertainty import Traceability, UncertaintyInputs
@@ -336,6 +336,17 @@ class StationFile(BaseModel):
                 raise ValueError(f"pitch and roll share {pitch.where}: give them the same line settings")
             if self.address(pitch) == self.address(roll):
                 raise ValueError(f"pitch and roll share {pitch.where} and address {self.address(pitch)}")
+        return self
+
+    @model_validator(mode="after")
+    def _power_cycles(self):
+        """The emulators switch off and on the DMM and an SMC100 controller (back NOT REFERENCED);
+        an AZ drive's power cycle is not emulated."""
+        for spec in self.emulation.faults:
+            device = getattr(self, spec.device)
+            if spec.kind == FaultKind.POWER_CYCLE and isinstance(device, AzSettings):
+                raise ValueError(f"a power-cycle fault is emulated on the dmm and on SMC100 controllers, not "
+                                 f"on the {spec.device} table's AZ drive")
         return self
 
     @staticmethod

@@ -45,7 +45,7 @@ from labcal.run.mounting import CHECK_ATTITUDE, identify
 from labcal.run.operator import Operator, OperatorDeclined, Terminal
 from labcal.run.ordering import order_points
 from labcal.run.settle import Dwell, TailPool, dead_time, dwell, dwell_model
-from labcal.run.station import Station, StopFailed, TableState, mean_and_sd
+from labcal.run.station import RotaryAxis, Station, StopFailed, TableState, mean_and_sd
 from labcal.run.winding import MOVE_EVENT, last_move, locate, plan_windings
 
 Winding = tuple[float, float]  # each table's accumulated rotation from home, degrees (pitch, roll)
@@ -278,6 +278,7 @@ class Sequencer:
     _ahead: list[tuple[float | None, float]] = field(default_factory=list)  # `Forecast.ahead` of the todo
     _next: int = 0  # the index in the todo of the next step to measure
     _todo: list[Step] = field(default_factory=list)
+    _home: tuple[RotaryAxis, ...] = ()  # tables to home before the next action (agreed at a pause)
 
     # --- motion ----------------------------------------------------------------------------------
     def move(self, pitch: float, roll: float, winding: Winding | None = None) -> tuple[float, float]:
@@ -464,7 +465,14 @@ class Sequencer:
         raise OperatorDeclined(f"the instrument was not mounted as {mount.describe()} after "
                                f"{MOUNT_ATTEMPTS} attempts")
 
-    def pause(self, why: str) -> None:
+    def pause(self, why: str, home: tuple[RotaryAxis, ...] = ()) -> None:
+        """Ask the operator to resume or abort. ``home``: tables that lost their reference; the
+        prompt says that resuming homes them, and they are homed before the run goes on."""
+        if home:
+            which = " and ".join(axis.name for axis in home) + (" tables" if len(home) > 1 else " table")
+            its, it, moves = ("their", "them", "they move") if len(home) > 1 else ("its", "it", "it moves")
+            why += (f"; the {which} lost {its} reference: resuming homes {it} first ({moves} to the home "
+                    "switch), then the run goes on")
         self.publish(Paused(run_id=self.run_id, rig_time_s=self.rig_time(), why=why,
                             may_be_moving=self.moving))
         try:
@@ -478,6 +486,7 @@ class Sequencer:
             raise OperatorDeclined(f"operator aborted the run after a pause ({why})")
         self.interrupts.resumed()
         self.moving = ()  # the operator has seen to the tables
+        self._home = home
         self.publish(Resumed(run_id=self.run_id, rig_time_s=self.rig_time(),
                              why="operator resumed after the pause"))
         self.status("resume")
@@ -560,13 +569,42 @@ class Sequencer:
         operator fixes the cause and resumes (the action is done again) or aborts (resumable later)."""
         while True:
             try:
+                self.home_lost()
                 return action(*args)
             except PolicyAbort:
                 raise
             except LabcalError as fault:
                 self.stop_tables(fault)
                 self.publish(Fault(run_id=self.run_id, rig_time_s=self.rig_time(), message=str(fault)))
-                self.pause(f"fault: {fault}")
+                self.pause(f"fault: {fault}", self.lost_reference())
+
+    def lost_reference(self) -> tuple[RotaryAxis, ...]:
+        """The tables, stopped, whose controllers say they lost their reference (a power cycle); a
+        table that cannot be read is left to the fault's own words."""
+        if self.moving:
+            return ()
+        lost = []
+        for axis in (self.station.pitch, self.station.roll):
+            try:
+                if axis.state().needs_homing:
+                    lost.append(axis)
+            except LabcalError:
+                continue
+        return tuple(lost)
+
+    def home_lost(self) -> None:
+        """Home the tables the operator agreed to home at the pause, before anything else moves."""
+        home, self._home = self._home, ()
+        for axis in home:
+            self.note("home", f"homing the {axis.name} table, which had lost its reference")
+            self._at = None  # homing moves it: the next move reads where it is
+            axis.prepare()
+
+    def window_opens(self) -> None:
+        """Both tables note their fault memory: `tables` after the window then reports a fault
+        raised and cleared inside it (a status read before and after cannot see one)."""
+        self.station.pitch.window_opens()
+        self.station.roll.window_opens()
 
     def tables(self) -> tuple[TableState, TableState]:
         """Both tables' status and position, read now."""
@@ -585,6 +623,7 @@ class Sequencer:
             for attempt in (1, 2):
                 t_start = self.station.clock.now() - self._t0
                 before = () if attempt == 1 else self.tables()  # () : verified by the move
+                self.window_opens()
                 result = self.measure(step.mount, f"{step.seq}:{attempt}")
                 why, faulted = unvouched(before, self.tables())
                 if why or result.verdict.settled:

@@ -45,11 +45,17 @@ class TableState:
     off_arcsec: float | None  # position − the commanded one, folded; None when nothing was commanded
     tolerance_arcsec: float  # the station's in_position_arcsec
     words: str  # the controller's own status, for people
+    # a fault the controller remembers since the measurement window opened (`RotaryAxis.window_opens`)
+    # though it reports none now: an alarm raised and reset, a stage disabled and enabled again
+    trace: str | None = None
+    needs_homing: bool = False  # its controller lost its reference (a power cycle): homing restores it
 
     def problem(self) -> str | None:
         """Why a window measured with the table in this state cannot be kept; None if it can."""
         if self.fault:
             return f"{self.device}: {self.fault}"
+        if self.trace:
+            return f"{self.device}: {self.trace}"
         if self.moving:
             return f"{self.device}: moving ({self.words})"
         if self.off_arcsec is not None and abs(self.off_arcsec) > self.tolerance_arcsec:
@@ -65,7 +71,17 @@ class RotaryAxis(Protocol):
     reach: Reach  # the accumulated rotation from home it may have: its cable wrap and soft limits
 
     def state(self) -> TableState:
-        """Status and position, read now (no motion)."""
+        """Status and position, read now (no motion); with the trace of any fault the controller
+        remembers since `window_opens` (until the next move)."""
+
+    def prepare(self) -> None:
+        """Make the table ready to move, as a run does before its first move: home it where its
+        controller has lost its reference (it moves!), enable it, set its speeds."""
+
+    def window_opens(self) -> None:
+        """A measurement window opens: note what the controller keeps of its faults (an alarm
+        history, its state), so that `state` after the window sees a fault raised and cleared inside
+        it, which a status read before and after cannot."""
 
     def move_to(self, angle_deg: float, *, travel_deg: float | None = None) -> None:
         """Start a move to an absolute angle; returns at once. ``travel_deg``: the signed turn the
