@@ -65,11 +65,13 @@ def test_the_frontier_keeps_only_the_undominated():
 
 
 def test_without_a_correction_fewer_mounts_are_never_offered():
-    """The misalignments must be identified (four mounts) or known: one mount without a correction is
-    no candidate at all."""
-    c = optimize.Candidate(((0.0, 0.0),), TUMBLE, 10)
+    """The misalignments must be identified (four mounts) or known and seen: three mounts without a
+    correction are no candidate at all, with one they are; one mount is none even with a correction
+    (it never sees e, f or k, so a run could not notice them move)."""
+    c = optimize.Candidate(((0.0, 0.0), (180.0, 0.0), (0.0, 180.0)), TUMBLE, 10)
     assert optimize.evaluate(c, bench(), None, 0.0) is None
     known = optimize.DeviceCorrection("CD", "run-1", dict.fromkeys("abdefk", 0.0),
                                       dict.fromkeys("abdefk", 1 * ARCSEC))
     result = optimize.evaluate(c, bench(), known, 0.0)
     assert result is not None and not result.identified
+    assert optimize.evaluate(optimize.Candidate(((0.0, 0.0),), TUMBLE, 10), bench(), known, 0.0) is None

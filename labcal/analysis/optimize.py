@@ -43,8 +43,9 @@ from labcal.analysis.budget import (
     propagate,
     sources,
 )
+from labcal.analysis.correction_check import sensitivity
 from labcal.analysis.design import FOUR_MOUNTS, grid
-from labcal.analysis.device_fit import angle_error_shapes
+from labcal.analysis.device_fit import AngleErrors, angle_error_shapes
 from labcal.analysis.device_model import Geometry, identifiability
 from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, nominal_gravity
 from labcal.analysis.models import Points
@@ -55,8 +56,14 @@ N_COEFFICIENTS = 4  # per sensor: B and the three sensitivities
 CANDIDATE_STEP_DEG = 30.0  # the articulation grid: 62 distinct attitudes, every one on the 1° index grid
 SIZES = (6, 8, 12, 16, 24, 32, 48, 64)  # articulations per mount
 WINDOWS = (4, 10, 20, 40)  # DMM samples per point (4: the sequencer's least, `SettleSettings.samples`)
+# One mount, two, three and four. A plan relying on a device correction must see every misalignment it
+# corrects for (`correction_check`): one mount never sees e, f, k, and each pair reverses only two of
+# them (fore/aft e and f, top/bottom e and k, both f and k), so with a correction three mounts covering
+# both reversals are the fewest that may do without the four; the smaller sets stay as candidates that
+# the check turns down, so the search says why.
 MOUNT_SETS: tuple[tuple[tuple[float, float], ...], ...] = (
-    ((0.0, 0.0),), ((0.0, 0.0), (180.0, 180.0)), tuple(FOUR_MOUNTS))
+    ((0.0, 0.0),), ((0.0, 0.0), (180.0, 180.0)), ((0.0, 0.0), (180.0, 0.0), (0.0, 180.0)),
+    tuple(FOUR_MOUNTS))
 SEARCH_GRID_STEP_DEG = 15.0  # the envelope during the search; the chosen plan is checked on the certificate's
 
 
@@ -185,6 +192,21 @@ def identified_u(c: Candidate, bench: Bench, reading_var: NDArray[np.float64]) -
     return {n: ident.u_per_ug[n] * noise_ug * ARCSEC for n in MISALIGNMENT_NAMES}
 
 
+def corrected_u(c: Candidate, bench: Bench, correction: DeviceCorrection) -> dict[str, float] | None:
+    """The u (rad) a run of ``c`` carries for each misalignment it corrects for: the larger of the
+    correction's own and a third of the change the run's check detects with 95 % power
+    (`correction_check.Sensitivity.budget_u`); None where the run cannot see one of them at all."""
+    b = bench.type_b
+    sens = sensitivity(Geometry.of_plan(list(c.points), list(c.mounts)), bench.X,
+                       np.full(3, bench.noise_v / np.sqrt(c.samples)),
+                       np.array([correction.value_rad[n] for n in MISALIGNMENT_NAMES]),
+                       AngleErrors(b.pitch_index, b.pitch_wobble, b.roll_index, b.roll_wobble))
+    u = sens.budget_u(np.array([correction.u_rad[n] for n in MISALIGNMENT_NAMES]))
+    if not np.all(np.isfinite(u)):
+        return None
+    return {n: float(v) for n, v in zip(MISALIGNMENT_NAMES, u, strict=True)}
+
+
 def predicted_u95(c: Candidate, bench: Bench, correction: DeviceCorrection | None,
                   pitch: NDArray[np.float64], roll: NDArray[np.float64]) -> tuple[Propagated, bool] | None:
     """Pitch and roll U95 (rad) a run of ``c`` is expected to state at these attitudes (radians), from
@@ -192,7 +214,8 @@ def predicted_u95(c: Candidate, bench: Bench, correction: DeviceCorrection | Non
     its misalignments would be left in the coefficients (neither identified by the plan nor known)."""
     cal = predicted_calibration(c, bench)
     identified = identified_u(c, bench, cal.reading_var) if len(c.mounts) == len(FOUR_MOUNTS) else None
-    device_u = identified if identified is not None else None if correction is None else correction.u_rad
+    device_u = identified if identified is not None else None if correction is None else \
+        corrected_u(c, bench, correction)
     if device_u is None:
         return None
     rows = sources(cal, replace(bench.type_b, device_misalignment=dict(device_u)))

@@ -235,9 +235,18 @@ def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Esti
         store_device_estimate(record, result.device, db)
     issued = None
     if not no_report:
+        from labcal.documents.device_history import DeviceMoved
         from labcal.documents.report import write_run_outputs
 
-        issued = write_run_outputs(run_dir, certificate, db=journal, record=record)
+        try:
+            issued = write_run_outputs(run_dir, certificate, db=journal, record=record)
+        except DeviceMoved as exc:  # journaled for the lab, then the one line to the technician
+            from labcal.run.journal import Journal
+
+            with Journal(journal) as book:
+                book.event(result.run_id, "device_moved", str(exc),
+                           {"changes": [c.to_json() for c in exc.changes]})
+            raise
     return Finished(run_dir, result, est, journal, issued)
 
 

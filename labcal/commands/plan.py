@@ -432,7 +432,8 @@ def device_correction(device_id: str, db):
                             last.calibrated_utc), ""
 
 
-def optimized_plan_toml(plan, e, correction, target_deg: float, reference) -> str:
+def optimized_plan_toml(plan, e, correction, target_deg: float, reference,
+                        budget_u: dict[str, float] | None = None) -> str:
     """The plan file: the plan, what was predicted for it, and the device corrections it relies on."""
     import math
 
@@ -454,7 +455,8 @@ def optimized_plan_toml(plan, e, correction, target_deg: float, reference) -> st
         device_id=correction.device_id, source=correction.source, calibrated_utc=correction.calibrated_utc,
         value_arcsec={n: correction.value_rad[n] / ARCSEC for n in MISALIGNMENT_NAMES},
         U_arcsec={n: correction.U_rad[n] / ARCSEC for n in MISALIGNMENT_NAMES},
-        u_arcsec={n: correction.u_rad[n] / ARCSEC for n in MISALIGNMENT_NAMES})
+        u_arcsec={n: (budget_u or correction.u_rad)[n] / ARCSEC for n in MISALIGNMENT_NAMES},
+        u_history_arcsec={n: correction.u_rad[n] / ARCSEC for n in MISALIGNMENT_NAMES})
     return "\n".join(head) + "\n" + body + "\n" + correction_toml(table)
 
 
@@ -494,6 +496,8 @@ def cmd_optimize(args: argparse.Namespace) -> int:
     chosen = optimize.choose(found, bench, correction, target)
     c = chosen.candidate
     relies = not chosen.identified  # (`search` offers such a plan only with a correction)
+    # the u its run carries: the correction's, or a third of the change the run's check detects (95 %)
+    budget_u = optimize.corrected_u(c, bench, correction) if relies and correction is not None else None
     plan = Plan(name=Path(args.out).stem if args.out else "optimized",
                 description=f"optimized for attitude U95 ≤ {args.target_attitude_u95_deg:g}° "
                             f"(labcal plan optimize, {c.samples} samples per point)",
@@ -502,7 +506,7 @@ def cmd_optimize(args: argparse.Namespace) -> int:
         try:
             with open(args.out, "x", encoding="utf-8") as f:
                 f.write(optimized_plan_toml(plan, chosen, correction if relies else None,
-                                            args.target_attitude_u95_deg, reference))
+                                            args.target_attitude_u95_deg, reference, budget_u))
         except OSError as exc:
             raise LabcalError(f"{args.out}: cannot write plan ({exc.strerror})") from None
     if args.frontier:
@@ -519,7 +523,8 @@ def cmd_optimize(args: argparse.Namespace) -> int:
                "calibrated_utc": correction.calibrated_utc,
                "value_arcsec": {n: v / ARCSEC for n, v in correction.value_rad.items()},
                "U_arcsec": {n: v / ARCSEC for n, v in correction.U_rad.items()},
-               "u_arcsec": {n: v / ARCSEC for n, v in correction.u_rad.items()}},
+               "u_arcsec": {n: v / ARCSEC for n, v in (budget_u or correction.u_rad).items()},
+               "u_history_arcsec": {n: v / ARCSEC for n, v in correction.u_rad.items()}},
            "candidates": len(found), "out": args.out}
     if args.json:
         print_json(doc)

@@ -17,7 +17,12 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+
+from labcal.analysis.correction_check import FALSE_ALARM, Change
 from labcal.analysis.device_fit import DeviceFit
+from labcal.analysis.fit import Fit
 from labcal.analysis.kinematics import MISALIGNMENT_NAMES
 from labcal.config.corrections import DeviceCorrectionTable
 from labcal.documents.plotfile import check_folder, save
@@ -27,6 +32,74 @@ from labcal.run.journal import db_path
 from labcal.run.record import RunRecord
 
 RULE = "|Δ| > √(U₁² + U₂²): a change larger than the combined expanded uncertainty (95 %)"
+IDENTIFYING_PLAN = "four-mount-64"  # the built-in plan whose mounts identify all six misalignments
+
+
+class DeviceMoved(LabcalError):
+    """A corrected run saw the calibration device's misalignments move since the estimate its plan
+    corrects for: no certificate is issued from the correction. ``changes``: the check's verdicts."""
+
+    def __init__(self, message: str, changes: list[Change]) -> None:
+        super().__init__(message)
+        self.changes = changes
+
+
+def correction_changes(record: RunRecord, fit: Fit, correction: DeviceCorrectionTable) -> list[Change]:
+    """The run's check of the misalignments its plan corrects for (`analysis.correction_check.check`):
+    each one the run sees, its change since the correction's estimate and the verdict; the tables'
+    index and wobble as the run's station states them."""
+    from labcal.analysis.correction_check import check
+    from labcal.analysis.device_fit import PointMeans
+    from labcal.config.station import stated_angle_errors
+
+    names, held = MISALIGNMENT_NAMES, correction.misalignment()
+    noise = window_noise(record)
+    return check(PointMeans.of(record.readings), fit.ls.residuals, fit.coefficients,
+                 fit.ls.residual_se if noise is None else noise,
+                 np.array([getattr(held, n) for n in names]),
+                 np.array([correction.u_history_rad()[n] for n in names]),
+                 np.array([correction.u_rad()[n] for n in names]), stated_angle_errors(record.station_text))
+
+
+def window_noise(record: RunRecord) -> NDArray[np.float64] | None:
+    """Each sensor's noise of one reading (a window's mean), from the scatter within the windows that
+    readings.csv records (sd of the samples, their number): √(mean of sd²/n). The noise the plan was
+    priced with; the residuals would count the tables' per-angle errors, which the check adds as
+    their own term, a second time. None where the file does not record them (readings imported)."""
+    from labcal.config.readings_csv import read_numeric_csv
+    from labcal.run.rundir import READINGS
+
+    wanted = ("n_samples", "sd_vx", "sd_vy", "sd_vz")
+    try:
+        cols = read_numeric_csv(record.directory / READINGS, "readings", wanted)
+    except LabcalError:
+        return None
+    n = cols["n_samples"]
+    if len(n) == 0 or np.any(n < 2):
+        return None
+    sd = np.column_stack([cols[c] for c in wanted[1:]])
+    return np.asarray(np.sqrt(np.mean(sd**2 / n[:, None], axis=0)), dtype=float)
+
+
+def refuse_if_moved(record: RunRecord, fit: Fit) -> list[Change]:
+    """The run's check where its plan corrects for the device (else []); `DeviceMoved` (one line naming
+    the largest change and the plan that identifies the device again) where a change is detected."""
+    from labcal.config.plans import plan_correction
+
+    correction = plan_correction(record.plan_text, f"{record.directory}: the run's plan")
+    if correction is None:
+        return []
+    found = correction_changes(record, fit, correction)
+    moved = sorted((c for c in found if c.detected), key=lambda c: -abs(c.z))
+    if moved:
+        also = "" if len(moved) == 1 else f" (and {', '.join(c.name for c in moved[1:])})"
+        since = f"its estimate of run {correction.source} ({correction.calibrated_utc})"
+        raise DeviceMoved(
+            f"no certificate from this run's device correction: {moved[0].describe(since)}{also}, beyond its "
+            f"check's {100 * FALSE_ALARM:g} % false-alarm limit; identify the device again with a plan that "
+            f"does (labcal run --plan {IDENTIFYING_PLAN}), then plan with labcal plan optimize --device "
+            f"{correction.device_id}", found)
+    return found
 
 
 @dataclass(frozen=True)
