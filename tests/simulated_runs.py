@@ -67,10 +67,19 @@ def bench_run(run_dir: Path, db: Path, serial: str, plan: str = "one-mount-16") 
     return run_dir
 
 
+def days_ago(days: float) -> str:
+    """An ISO 8601 UTC time this many days before now, to the second: a device history's estimates must
+    be recent enough to be used and on distinct days to count as distinct sittings."""
+    from datetime import timedelta
+
+    return (datetime.now(UTC).replace(microsecond=0) - timedelta(days=days)).isoformat()
+
+
 def characterised_device(db: Path, seeds: tuple[int, ...]) -> None:
     """Earlier four-mount-64 runs of the simulated rig's device, one per seed (the simulator's
     readings, fitted as a run fits them: the device model told the tables' stated index and wobble),
-    stored in ``db``'s device history as `labcal run` stores them (device "SIMULATED")."""
+    stored in ``db``'s device history as `labcal run` stores them (device "SIMULATED"), ten days apart,
+    the last ten days ago: distinct sittings, well within a correction's age limit."""
     import math
 
     import numpy as np
@@ -91,6 +100,6 @@ def characterised_device(db: Path, seeds: tuple[int, ...]) -> None:
                                      IndexWobble(device.index_arcsec, device.wobble_arcsec, seed),
                                      truth.noise_v / math.sqrt(SAMPLES_OF_A_RUN), seed)
         doc = fit_device(readings, angle_errors=stated).to_json()["misalignments"]
-        device_history.store(DeviceEstimate("SIMULATED", f"2026-0{n}-01T00:00:00+00:00", f"run-{n}",
+        device_history.store(DeviceEstimate("SIMULATED", days_ago(10 * (len(seeds) - n + 1)), f"run-{n}",
                                             {m: doc[m]["value_arcsec"] for m in MISALIGNMENT_NAMES},
                                             {m: doc[m]["U_arcsec"] for m in MISALIGNMENT_NAMES}), db)

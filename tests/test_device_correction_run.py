@@ -20,7 +20,7 @@ import tomllib
 
 import numpy as np
 import pytest
-from simulated_runs import characterised_device
+from simulated_runs import characterised_device, days_ago
 
 from labcal.analysis.attitude import LOCAL_GRAVITY_U, sphere_least_squares
 from labcal.analysis.attitude import Calibration as AttitudeCalibration
@@ -66,13 +66,14 @@ def truth_at_the_run(run_dir) -> np.ndarray:
 
 @pytest.mark.slow
 def test_a_run_of_the_corrected_plan_applies_the_correction_and_states_it(tmp_path, capsys):
-    """Two four-mount-64 dry runs of the same rig characterise its device; `plan optimize --device
-    SIMULATED` for 1.5 × the first run's worst attitude U95 leaves out remounts; its run completes on
-    the same rig, fits with the misalignments corrected for, is within U of the simulator's truth,
-    states a U95 within the target and takes ≤ 0.45× four-mount-64's rig time."""
+    """Two earlier sittings (other seeds, other days) and a four-mount-64 dry run today characterise the
+    rig's device; `plan optimize --device SIMULATED` for 1.5 × that run's worst attitude U95 leaves out
+    a remount; its run completes on the same rig, fits with the misalignments corrected for, is within
+    U of the simulator's truth, states a U95 within the target and takes less rig time."""
     db = str(tmp_path / "lab.sqlite")
-    for name in ("first", "second"):
-        assert main(["run", "--sim", "--yes", "--db", db, "--out", str(tmp_path / name)]) == 0
+    characterised_device(tmp_path / "lab.sqlite", (31, 32))
+    assert main(["run", "--sim", "--yes", "--db", db, "--out", str(tmp_path / "first")]) == 0
+    assert main(["run", "--sim", "--yes", "--db", db, "--out", str(tmp_path / "second"), "--no-report"]) == 0
     reference = read_certificate(tmp_path / "first" / "certificate.json")
     target = 1.5 * max(reference.attitude.pitch_U95_max_deg, reference.attitude.roll_U95_max_deg)
     plan_file, run_dir = tmp_path / "fast.toml", tmp_path / "fast"
@@ -89,7 +90,8 @@ def test_a_run_of_the_corrected_plan_applies_the_correction_and_states_it(tmp_pa
 
     cert = read_certificate(run_dir / "certificate.json")  # schema and digest checked
     history = {e.source: e for e in device_history.estimates_for("SIMULATED", db)}
-    assert set(history) == {"first", "second"}  # the corrected run identifies nothing: stores nothing
+    # the corrected run identifies nothing: stores nothing
+    assert set(history) == {"run-1", "run-2", "first", "second"}
     second = history["second"]
     c = cert.device_correction
     assert c is not None and cert.device is None and cert.fit.model == "linear"
@@ -255,7 +257,8 @@ def test_the_fit_holds_the_misalignments_at_the_corrections_values(corrected_pla
 
 # --- (c) refusals before anything moves --------------------------------------------------------------
 def plan_with(correction: DeviceCorrectionTable) -> str:
-    plan = Plan(name="one-mount", mounts=[(0, 0)],
+    """Three mounts (fore/aft and top/bottom reversals): they see every misalignment corrected for."""
+    plan = Plan(name="three-mounts", mounts=[(0, 0), (180, 0), (0, 180)],
                 points=[(p, r) for p in (-60, 0, 60) for r in (0, 90, 180, 270)])
     return plan_toml(plan) + "\n" + correction_toml(correction)
 
@@ -283,11 +286,11 @@ def correction_of(e: DeviceEstimate, device_id: str = "SIMULATED") -> DeviceCorr
 ])
 def test_a_correction_that_no_longer_applies_is_refused_before_anything_moves(case, words, tmp_path, capsys):
     db = tmp_path / "lab.sqlite"
-    stored(db, "run-1", "2026-01-01T00:00:00+00:00", 36.0)
-    latest = stored(db, "run-2", "2026-02-01T00:00:00+00:00", 36.5)  # |Δ| 0.5″ < √2″: in control
+    stored(db, "run-1", days_ago(40), 36.0)
+    latest = stored(db, "run-2", days_ago(10), 36.5)  # |Δ| 0.5″ < √2″: in control
     correction = correction_of(latest, "CD-7" if case == "another device" else "SIMULATED")
     if case == "changed since":  # a later run found a moved by 3″ > √(1² + 1²)
-        stored(db, "run-3", "2026-03-01T00:00:00+00:00", 39.5)
+        stored(db, "run-3", days_ago(5), 39.5)
     if case == "not in the history":
         correction = correction.model_copy(update={"source": "run-9"})
     plan_file, run_dir = tmp_path / "plan.toml", tmp_path / "run"
@@ -303,12 +306,29 @@ def test_a_correction_that_no_longer_applies_is_refused_before_anything_moves(ca
         assert "runs" not in tables or conn.execute("SELECT COUNT(*) FROM runs").fetchone()[0] == 0
 
 
+def test_a_corrected_plan_that_cannot_see_what_it_corrects_is_refused_before_anything_moves(tmp_path,
+                                                                                           capsys):
+    """One mount never sees e, f or k: a run of it could not notice them move, so it does not start."""
+    db = tmp_path / "lab.sqlite"
+    stored(db, "run-1", days_ago(40), 36.0)
+    latest = stored(db, "run-2", days_ago(10), 36.5)
+    plan = Plan(name="one-mount", mounts=[(0, 0)],
+                points=[(p, r) for p in (-60, 0, 60) for r in (0, 90, 180, 270)])
+    plan_file, run_dir = tmp_path / "plan.toml", tmp_path / "run"
+    plan_file.write_text(plan_toml(plan) + "\n" + correction_toml(correction_of(latest)), encoding="utf-8")
+    code = main(["run", "--sim", "--yes", "--db", str(db), "--plan", str(plan_file), "--out", str(run_dir)])
+    assert code == 2
+    line = one_line(capsys.readouterr().err)
+    assert "its mounts cannot see e, f, k: a run could not notice them move" in line
+    assert not run_dir.exists()
+
+
 def test_an_in_control_correction_runs_and_says_which_estimate_it_used(tmp_path, capsys):
     """The same history without the change since: the run goes ahead, fit.json's first note names the
     estimate, and a later change of the history does not alter the finished run's certificate."""
     db = tmp_path / "lab.sqlite"
-    stored(db, "run-1", "2026-01-01T00:00:00+00:00", 36.0)
-    latest = stored(db, "run-2", "2026-02-01T00:00:00+00:00", 36.5)
+    stored(db, "run-1", days_ago(40), 36.0)
+    latest = stored(db, "run-2", days_ago(10), 36.5)
     plan_file, run_dir = tmp_path / "plan.toml", tmp_path / "run"
     plan_file.write_text(plan_with(correction_of(latest)), encoding="utf-8")
     assert main(["run", "--sim", "--yes", "--db", str(db), "--plan", str(plan_file), "--out", str(run_dir),
@@ -316,14 +336,14 @@ def test_an_in_control_correction_runs_and_says_which_estimate_it_used(tmp_path,
     fit = json.loads((run_dir / "fit.json").read_text(encoding="utf-8"))
     assert fit["model"] == "linear"
     assert fit["notes"][0].startswith("linear model on the gravity the calibration device's misalignments")
-    assert "estimate from run run-2 (calibrated 2026-02-01T00:00:00+00:00)" in fit["notes"][0]
+    assert f"estimate from run run-2 (calibrated {latest.calibrated_utc})" in fit["notes"][0]
     # the journal keeps the plan with its correction: the certificate is derived from it
     journaled = (run_dir / "plan.toml").read_text(encoding="utf-8")
     assert plan_correction(journaled, "plan") == correction_of(latest)
 
 
 @pytest.mark.parametrize("edit, words", [
-    (lambda t: t.replace('calibrated_utc = "2026-02-01T00:00:00+00:00"\n', ""),
+    (lambda t: "\n".join(row for row in t.splitlines() if not row.startswith("calibrated_utc = ")) + "\n",
      "[device_correction]: calibrated_utc: Field required"),
     (lambda t: t.replace("u_arcsec = { a = ", "u_arcsec = { a = -"), "an uncertainty cannot be negative"),
     (lambda t: t.replace("value_arcsec = { a = ", "value_arcsec = { q = 1.0, a = "),
@@ -331,7 +351,7 @@ def test_an_in_control_correction_runs_and_says_which_estimate_it_used(tmp_path,
 ])
 def test_a_malformed_correction_is_one_line_naming_the_field(edit, words, tmp_path, capsys):
     db = tmp_path / "lab.sqlite"
-    latest = stored(db, "run-2", "2026-02-01T00:00:00+00:00", 36.5)
+    latest = stored(db, "run-2", days_ago(10), 36.5)
     plan_file, run_dir = tmp_path / "plan.toml", tmp_path / "run"
     plan_file.write_text(edit(plan_with(correction_of(latest))), encoding="utf-8")
     code = main(["run", "--sim", "--yes", "--db", str(db), "--plan", str(plan_file), "--out", str(run_dir)])

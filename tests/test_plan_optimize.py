@@ -95,7 +95,8 @@ def test_plan_show_says_what_the_plan_relies_on(optimized, capsys):
     _, out, _ = optimized
     assert main(["plan", "show", str(out)]) == 0  # shown, with what it relies on
     shown = " ".join(capsys.readouterr().out.split())  # however the terminal wraps it
-    assert "relies on device SIMULATED's misalignments from run-2 (2026-02-01T00:00:00+00:00)" in shown
+    latest = device_history.estimates_for("SIMULATED", optimized[2])[-1]
+    assert f"relies on device SIMULATED's misalignments from run-2 ({latest.calibrated_utc})" in shown
     assert main(["plan", "show", str(out), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["device_correction"]["source"] == "run-2"

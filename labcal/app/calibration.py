@@ -323,7 +323,8 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
             from labcal.documents.device_history import check_correction, station_device_id
 
             check_correction(correction, station_device_id(
-                {"station": setup.station.description, **setup.metadata}, args.sim or args.emulate), args.db)
+                {"station": setup.station.description, **setup.metadata}, args.sim or args.emulate), args.db,
+                plan)
         setup.metadata["estimated_rig_time_s"] = est.total_s  # run.json: the estimate beside the actual
         check_limits(setup.station, steps, settings.check_mount)  # first: homing moves a table too
         run_dir = new_run_dir(args.out, plan)  # a bad --out is one line before the checklist

@@ -343,7 +343,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 CORRECTION_NOTE = ("labcal run checks that the station's calibration device is that device and its history "
                    "is still in control, fits with the misalignments held at the estimate's values, carries "
                    "their u in the budget and states the correction on the certificate")
-NORMAL_K = 1.96  # a device estimate's U95 back to u: its k is t₀.₉₇₅ at many degrees of freedom
 
 
 def _type_b(section, temperature_half_range_k: float):
@@ -404,32 +403,10 @@ def planning_bench(station: str | None):
 
 
 def device_correction(device_id: str, db):
-    """The device's misalignments where its history knows them: at least two estimates and no flagged
-    change between the last two (in control). The latest estimate, each with u² = (U/k)² plus half the
-    square of the last change (the history's own reproducibility). (None, why) where not known."""
-    import math
+    """The device's misalignments where its history knows them (`device_history.correction_for`)."""
+    from labcal.documents.device_history import correction_for
 
-    from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES
-    from labcal.analysis.optimize import DeviceCorrection
-    from labcal.documents.device_history import changes, estimates_for
-
-    estimates = estimates_for(device_id, db)  # an unknown device: one line naming the known ones
-    if len(estimates) < 2:
-        return None, (f"device {device_id} has {len(estimates)} estimate(s); two are needed to judge it in "
-                      "control")
-    last = estimates[-1]
-    moved = [c for c in changes(estimates[-2:]) if c.flagged]
-    if moved:
-        return None, (f"device {device_id} changed between {moved[0].before} and {moved[0].after} "
-                      f"({', '.join(c.name for c in moved)} beyond √(U₁² + U₂²)); its misalignments are not "
-                      "known")
-    delta = {c.name: c.delta_arcsec for c in changes(estimates[-2:])}
-    return DeviceCorrection(device_id, last.source,
-                            {n: last.value_arcsec[n] * ARCSEC for n in MISALIGNMENT_NAMES},
-                            {n: math.hypot(last.U_arcsec[n] / NORMAL_K, delta[n] / math.sqrt(2)) * ARCSEC
-                             for n in MISALIGNMENT_NAMES},
-                            {n: last.U_arcsec[n] * ARCSEC for n in MISALIGNMENT_NAMES},
-                            last.calibrated_utc), ""
+    return correction_for(device_id, db)
 
 
 def optimized_plan_toml(plan, e, correction, target_deg: float, reference,
