@@ -67,7 +67,8 @@ def truth_at_the_run(run_dir) -> np.ndarray:
 @pytest.mark.slow
 def test_a_run_of_the_corrected_plan_applies_the_correction_and_states_it(tmp_path, capsys):
     """Two earlier sittings (other seeds, other days) and a four-mount-64 dry run today characterise the
-    rig's device; `plan optimize --device SIMULATED` for 1.5 × that run's worst attitude U95 leaves out
+    rig's device; `plan optimize --device SIMULATED` for 3.5 × that run's worst attitude U95 (where the
+    correction pays: about 2.2 × four-mount-64's predicted) leaves out
     a remount; its run completes on the same rig, fits with the misalignments corrected for, is within
     U of the simulator's truth, states a U95 within the target and takes less rig time."""
     db = str(tmp_path / "lab.sqlite")
@@ -75,7 +76,7 @@ def test_a_run_of_the_corrected_plan_applies_the_correction_and_states_it(tmp_pa
     assert main(["run", "--sim", "--yes", "--db", db, "--out", str(tmp_path / "first")]) == 0
     assert main(["run", "--sim", "--yes", "--db", db, "--out", str(tmp_path / "second"), "--no-report"]) == 0
     reference = read_certificate(tmp_path / "first" / "certificate.json")
-    target = 1.5 * max(reference.attitude.pitch_U95_max_deg, reference.attitude.roll_U95_max_deg)
+    target = 3.5 * max(reference.attitude.pitch_U95_max_deg, reference.attitude.roll_U95_max_deg)
     plan_file, run_dir = tmp_path / "fast.toml", tmp_path / "fast"
     capsys.readouterr()
     assert main(["plan", "optimize", "--target-attitude-u95-deg", repr(target), "--device", "SIMULATED",
@@ -140,7 +141,7 @@ def test_a_run_that_sees_the_device_moved_issues_no_certificate_from_the_correct
     db = tmp_path / "lab.sqlite"
     characterised_device(db, (21, 22))
     plan_file = tmp_path / "fast.toml"
-    assert main(["plan", "optimize", "--target-attitude-u95-deg", "0.0025", "--device", "SIMULATED",
+    assert main(["plan", "optimize", "--target-attitude-u95-deg", "0.0052", "--device", "SIMULATED",
                  "--db", str(db), "--out", str(plan_file)]) == 0
     text = plan_file.read_text(encoding="utf-8")
     samples = text.split("Run it with --samples ")[1].split()[0]
@@ -178,12 +179,13 @@ def test_a_run_that_sees_the_device_moved_issues_no_certificate_from_the_correct
 # --- (b) Monte Carlo of simulated runs of the corrected plan -----------------------------------------
 @pytest.fixture(scope="module")
 def corrected_plan(tmp_path_factory):
-    """The plan `plan optimize --device SIMULATED` writes for an attitude U95 of 0.0025° (about 1.5 ×
-    four-mount-64's on this rig), its text and the window it names."""
+    """The plan `plan optimize --device SIMULATED` writes for an attitude U95 of 0.0052° (about 2.2 ×
+    four-mount-64's predicted on this rig, where relying on the correction pays), its text and the
+    window it names."""
     folder = tmp_path_factory.mktemp("corrected")
     db, out = folder / "lab.sqlite", folder / "fast.toml"
     characterised_device(db, (21, 22))
-    assert main(["plan", "optimize", "--target-attitude-u95-deg", "0.0025", "--device", "SIMULATED",
+    assert main(["plan", "optimize", "--target-attitude-u95-deg", "0.0052", "--device", "SIMULATED",
                  "--db", str(db), "--out", str(out)]) == 0
     text = out.read_text(encoding="utf-8")
     samples = int(text.split("Run it with --samples ")[1].split()[0])

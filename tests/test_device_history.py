@@ -64,15 +64,16 @@ def test_a_dry_run_stores_the_simulated_device(tmp_path, capsys):
 
 # --- sittings, ageing and expiry of a device correction --------------------------------------------
 def dated(source: str, days: float, a: float, U: float = 1.96) -> DeviceEstimate:
-    """An estimate of CD-7 ``days`` before now (u = U/1.96 = 1″ unless told)."""
-    from datetime import UTC, datetime, timedelta
+    """An estimate of CD-7 at 01:00 UTC plus the fraction of ``days``, that many whole days before
+    today (whatever the hour now: two estimates of one day stay on one day); u = U/1.96 = 1″."""
+    from datetime import UTC, datetime, time, timedelta
 
-    when = (datetime.now(UTC).replace(microsecond=0) - timedelta(days=days)).isoformat()
-    return estimate(source, when, a, U)
+    day = datetime.combine(datetime.now(UTC).date(), time(1), tzinfo=UTC) - timedelta(days=int(days))
+    return estimate(source, (day + timedelta(days=days - int(days))).isoformat(), a, U)
 
 
 @pytest.mark.parametrize(("history", "sittings"), [
-    ([("run-1", 3.0, 40.0), ("run-2", 3.0 - 1 / 24, 40.2)], 1),  # one hour apart: one day, one sitting
+    ([("run-1", 3.0, 40.0), ("run-2", 3.0 + 1 / 24, 40.2)], 1),  # 01:00 and 02:00 of one day: one sitting
     ([("run-1", 20.0, 40.0), ("run-2", 10.0, 40.0)], 1),  # the same values: the same readings again
     ([("run-1", 20.0, 40.0), ("run-2", 10.0, 40.2)], 2),
 ])
@@ -101,9 +102,10 @@ def test_a_corrections_u_grows_with_its_age_at_the_walk_rate_of_its_history(tmp_
     db = tmp_path / "lab.sqlite"
     for source, days, a in (("run-1", 70.0, 40.0), ("run-2", 40.0, 42.5), ("run-3", 10.0, 45.0)):
         device_history.store(dated(source, days, a), db)
-    correction, why = device_history.correction_for("CD-7", db)
+    today = device_history.calibrated(dated("now", 0.0, 0.0))  # 01:00 UTC today: ten days after run-3
+    correction, why = device_history.correction_for("CD-7", db, now=today)
     assert why == "" and correction is not None
-    assert correction.u_rad["a"] / ARCSEC == pytest.approx(1.5546, abs=0.0005)  # the age is ±1 s
+    assert correction.u_rad["a"] / ARCSEC == pytest.approx(1.5546, abs=0.0001)
     assert correction.u_rad["b"] / ARCSEC == pytest.approx(1.0, rel=1e-6)
 
 
@@ -155,7 +157,8 @@ def test_a_correction_past_its_age_or_its_uses_is_not_offered_and_its_plan_is_re
     db = tmp_path / "lab.sqlite"
     device_history.store(dated("run-1", 60.0, 40.0), db)
     device_history.store(dated("run-2", 40.0, 40.2), db)
-    correction, why = device_history.correction_for("CD-7", db)
+    today = device_history.calibrated(dated("now", 0.0, 0.0))  # 01:00 UTC today: 40 days after run-2
+    correction, why = device_history.correction_for("CD-7", db, now=today)
     assert correction is None
     assert "run-2 is 40 days old, past the lab's 30-day limit" in why and f"--plan {IDENTIFYING_PLAN}" in why
     device_history.store(dated("run-3", 5.0, 40.1), db)

@@ -22,7 +22,7 @@ def test_predicted_covariance_of_the_tumble_is_sigma_squared_over_the_moment_mat
     """Six cardinal attitudes, one mount, noise only: FᵀF = diag(6, 2, 2, 2) (Σ g gᵀ = 2I, Σ g = 0),
     so var B = σ²/6, var S_ii = σ²/2 with σ² = σ_s²/N (Tripp & Tcheng eq. 50)."""
     c = optimize.Candidate(((0.0, 0.0),), TUMBLE, 16)
-    cal = optimize.predicted_calibration(c, bench())
+    cal = optimize.predicted_calibration(c, bench(), quantile=None)
     sigma2 = (20e-6) ** 2 / 16
     assert cal.reading_var == pytest.approx(np.full(3, sigma2), rel=1e-12)
     for j in range(3):
@@ -36,9 +36,9 @@ def test_table_errors_raise_the_predicted_residual_variance_but_not_beyond_their
     u = 2″/√3 (I − H shrinks, and each shape's columns carry u² at a point), over K − 4 dof."""
     c = optimize.Candidate(((0.0, 0.0),), tuple(optimize.d_optimal_sequence(
         [(0.0, 0.0)], optimize.candidate_articulations(), 24)), 10)
-    quiet = optimize.predicted_calibration(c, bench()).reading_var
+    quiet = optimize.predicted_calibration(c, bench(), quantile=None).reading_var
     tables = bench(pitch_index=2 * ARCSEC, roll_index=2 * ARCSEC)
-    noisy = optimize.predicted_calibration(c, tables).reading_var
+    noisy = optimize.predicted_calibration(c, tables, quantile=None).reading_var
     added = noisy - quiet
     ceiling = 2 * (5.0 * 2 * ARCSEC / np.sqrt(3)) ** 2 * 24 / (24 - 4)
     assert np.all(added > 0) and np.all(added < ceiling)
