@@ -20,7 +20,7 @@ import tomllib
 
 import numpy as np
 import pytest
-from simulated_runs import characterised_device, days_ago
+from simulated_runs import characterised_device, corrected_runs_under_a_step, days_ago
 
 from labcal.analysis.attitude import LOCAL_GRAVITY_U, sphere_least_squares
 from labcal.analysis.attitude import Calibration as AttitudeCalibration
@@ -361,3 +361,31 @@ def test_a_malformed_correction_is_one_line_naming_the_field(edit, words, tmp_pa
     line = one_line(capsys.readouterr().err)
     assert str(plan_file) in line and words in line
     assert not run_dir.exists()
+
+
+@pytest.mark.slow
+def test_a_moved_device_leaves_no_corrected_certificate_under_90_percent_coverage(corrected_plan):
+    """A step of ±4 u in any one misalignment, or of 3 u in all six, after the estimate (u: the plan's):
+    in 50 simulated runs per case, no certificate is issued from the correction that covers less than
+    90 % of new readings (pitch or roll) — each run is refused by its check or covers; and with
+    nothing moved, the check refuses at most 5 of 50 (its false alarm is ≤ 1 %)."""
+    from labcal.analysis.kinematics import MISALIGNMENT_NAMES
+
+    text, _, _, _ = corrected_plan
+    correction = plan_correction(text, "the plan")
+    assert correction is not None
+    u = correction.u_arcsec
+    steps = [{n: sign * 4 * u[n]} for n in MISALIGNMENT_NAMES for sign in (1, -1)]
+    steps.append({n: 3 * u[n] for n in MISALIGNMENT_NAMES})
+    failures = []
+    for i, step in enumerate(steps):
+        runs = corrected_runs_under_a_step(text, step, 50, 60000 + 1000 * i, new_readings=100)
+        for refused, coverage in runs:
+            if not refused and coverage < 0.90:
+                failures.append((step, coverage))
+    print(f"issued corrected certificates under 90 % coverage: {len(failures)} of {50 * len(steps)} runs "
+          "(target 0)")
+    assert not failures, failures
+    unmoved = corrected_runs_under_a_step(text, {}, 50, 90000, new_readings=100)
+    assert sum(r for r, _ in unmoved) <= 5
+    assert all(c >= 0.90 for r, c in unmoved if not r)
