@@ -18,11 +18,12 @@
 3. The optimized plan (`labcal plan optimize`, issue 27 §2) for X = 1.5 × four-mount-64's predicted
    worst attitude U95: its predicted rig hours (the station's timing model of `labcal run --dry-run`)
    next to four-mount-64's and 481 × 6's, without a device history (the four mounts stay) and with
-   the simulated device characterised by two earlier four-mount-64 runs (fewer mounts, relying on
-   the device's correction). Then for real on the simulated rig: two `labcal run --sim --yes`
-   four-mount-64 runs characterise the device, `plan optimize --device SIMULATED` for X = 1.5 × the
-   first run's certificate's worst attitude U95, and `labcal run --sim --plan` of it: the runs' rig
-   time (run.json) side by side, and the certificates' U95 against X.
+   the simulated device characterised by two earlier four-mount-64 runs in two sittings (other seeds,
+   other days; fewer mounts where relying on the device's correction pays). Then for real on the
+   simulated rig: the two earlier sittings and a `labcal run --sim --yes` four-mount-64 run today,
+   `plan optimize --device SIMULATED` for X = 1.5 × that run's certificate's worst attitude U95, and
+   `labcal run --sim --plan` of it: the runs' rig time (run.json) side by side, and the certificates'
+   U95 against X.
 
 Usage: python benchmarks/rig_hours.py [--seed N] [--only 64|481|tour|optimized]
 """
