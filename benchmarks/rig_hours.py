@@ -18,11 +18,12 @@
 3. The optimized plan (`labcal plan optimize`, issue 27 §2) for X = 1.5 × four-mount-64's predicted
    worst attitude U95: its predicted rig hours (the station's timing model of `labcal run --dry-run`)
    next to four-mount-64's and 481 × 6's, without a device history (the four mounts stay) and with
-   the simulated device characterised by two earlier four-mount-64 runs (fewer mounts, relying on
-   the device's correction). Then for real on the simulated rig: two `labcal run --sim --yes`
-   four-mount-64 runs characterise the device, `plan optimize --device SIMULATED` for X = 1.5 × the
-   first run's certificate's worst attitude U95, and `labcal run --sim --plan` of it: the runs' rig
-   time (run.json) side by side, and the certificates' U95 against X.
+   the simulated device characterised by two earlier four-mount-64 runs in two sittings (other seeds,
+   other days; fewer mounts where relying on the device's correction pays). Then for real on the
+   simulated rig: the two earlier sittings and a `labcal run --sim --yes` four-mount-64 run today,
+   `plan optimize --device SIMULATED` for X = 1.5 × that run's certificate's worst attitude U95, and
+   `labcal run --sim --plan` of it: the runs' rig time (run.json) side by side, and the certificates'
+   U95 against X.
 
 Usage: python benchmarks/rig_hours.py [--seed N] [--only 64|481|tour|optimized]
 """
@@ -202,14 +203,10 @@ def optimized(seed: int) -> None:
     import math
 
     from labcal.analysis import optimize
-    from labcal.analysis.device_fit import AngleErrors, fit_device
-    from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, IndexWobble
     from labcal.bench.setup import sim_station
     from labcal.cli import main as labcal
     from labcal.commands.plan import planning_bench
-    from labcal.documents.device_history import DeviceEstimate, store
     from labcal.run.estimate import estimate
-    from labcal.sim.direct import simulate_readings
 
     rig = RigConfig()
     setup = sim_station(None, rig.seed)
@@ -228,16 +225,7 @@ def optimized(seed: int) -> None:
     print(f"  481-point grid × 6                  {h481:6.3f} h")
     with tempfile.TemporaryDirectory() as tmp:
         db = Path(tmp) / "lab.sqlite"
-        truth, device = rig.instrument, rig.device
-        stated = AngleErrors(*(np.array([device.index_arcsec, device.wobble_arcsec] * 2) * ARCSEC))
-        for n, s in enumerate((seed, seed + 1), start=1):
-            readings = simulate_readings(fm64, truth, device.misalignment(),
-                                         IndexWobble(device.index_arcsec, device.wobble_arcsec, s),
-                                         truth.noise_v / math.sqrt(settings.settle.samples), s)
-            doc = fit_device(readings, angle_errors=stated).to_json()["misalignments"]
-            store(DeviceEstimate("SIMULATED", f"2026-0{n}-01T00:00:00+00:00", f"run-{n}",
-                                 {m: doc[m]["value_arcsec"] for m in MISALIGNMENT_NAMES},
-                                 {m: doc[m]["U_arcsec"] for m in MISALIGNMENT_NAMES}), db)
+        characterise(db, (seed, seed + 1))
         for label, extra in (("optimized, no device history", []),
                              ("optimized, device characterised", ["--device", "SIMULATED", "--db", str(db)])):
             wall = time.perf_counter()
@@ -250,6 +238,35 @@ def optimized(seed: int) -> None:
                   f"{doc['rig_time_ratio']:.3f}× four-mount-64 (target ≤ 0.45× with a characterised device); "
                   f"{len(doc['mounts'])} mount(s) × {doc['points']} points, {doc['samples']} samples; "
                   f"searched {doc['candidates']} candidates in {time.perf_counter() - wall:.1f} s")
+
+
+def days_ago(days: float) -> str:
+    from datetime import UTC, datetime, timedelta
+
+    return (datetime.now(UTC).replace(microsecond=0) - timedelta(days=days)).isoformat()
+
+
+def characterise(db: Path, seeds: tuple[int, int]) -> None:
+    """Two earlier four-mount-64 estimates of the simulated device, ten days apart, in ``db``."""
+    import math
+
+    from labcal.analysis.device_fit import AngleErrors, fit_device
+    from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, IndexWobble
+    from labcal.documents.device_history import DeviceEstimate, store
+    from labcal.sim.direct import simulate_readings
+
+    rig = RigConfig()
+    truth, device = rig.instrument, rig.device
+    fm64, _ = load_plan("four-mount-64")
+    stated = AngleErrors(*(np.array([device.index_arcsec, device.wobble_arcsec] * 2) * ARCSEC))
+    for n, s in enumerate(seeds, start=1):
+        readings = simulate_readings(fm64, truth, device.misalignment(),
+                                     IndexWobble(device.index_arcsec, device.wobble_arcsec, s),
+                                     truth.noise_v / math.sqrt(10), s)
+        doc = fit_device(readings, angle_errors=stated).to_json()["misalignments"]
+        store(DeviceEstimate("SIMULATED", days_ago(10 * (3 - n)), f"run-{n}",
+                             {m: doc[m]["value_arcsec"] for m in MISALIGNMENT_NAMES},
+                             {m: doc[m]["U_arcsec"] for m in MISALIGNMENT_NAMES}), db)
 
 
 def corrected_run() -> None:
@@ -279,8 +296,10 @@ def corrected_run() -> None:
         folder = Path(tmp)
         db = str(folder / "lab.sqlite")
         wall = time.perf_counter()
-        for name in ("first", "second"):  # the same rig twice: the device's history, in control
-            quiet(["run", "--sim", "--yes", "--db", db, "--out", str(folder / name)])
+        # two earlier sittings of other seeds on other days (runs of one seed, or of one day, are one
+        # sitting: no evidence the device is in control), then four-mount-64 today, the reference
+        characterise(Path(db), (11, 12))
+        quiet(["run", "--sim", "--yes", "--db", db, "--out", str(folder / "first")])
         target = 1.5 * worst(folder / "first")
         doc = json.loads(quiet(["plan", "optimize", "--target-attitude-u95-deg", repr(target), "--device",
                                 "SIMULATED", "--db", db, "--out", str(folder / "fast.toml"), "--json"]))

@@ -67,10 +67,19 @@ def bench_run(run_dir: Path, db: Path, serial: str, plan: str = "one-mount-16") 
     return run_dir
 
 
+def days_ago(days: float) -> str:
+    """An ISO 8601 UTC time this many days before now, to the second: a device history's estimates must
+    be recent enough to be used and on distinct days to count as distinct sittings."""
+    from datetime import timedelta
+
+    return (datetime.now(UTC).replace(microsecond=0) - timedelta(days=days)).isoformat()
+
+
 def characterised_device(db: Path, seeds: tuple[int, ...]) -> None:
     """Earlier four-mount-64 runs of the simulated rig's device, one per seed (the simulator's
     readings, fitted as a run fits them: the device model told the tables' stated index and wobble),
-    stored in ``db``'s device history as `labcal run` stores them (device "SIMULATED")."""
+    stored in ``db``'s device history as `labcal run` stores them (device "SIMULATED"), ten days apart,
+    the last ten days ago: distinct sittings, well within a correction's age limit."""
     import math
 
     import numpy as np
@@ -91,6 +100,75 @@ def characterised_device(db: Path, seeds: tuple[int, ...]) -> None:
                                      IndexWobble(device.index_arcsec, device.wobble_arcsec, seed),
                                      truth.noise_v / math.sqrt(SAMPLES_OF_A_RUN), seed)
         doc = fit_device(readings, angle_errors=stated).to_json()["misalignments"]
-        device_history.store(DeviceEstimate("SIMULATED", f"2026-0{n}-01T00:00:00+00:00", f"run-{n}",
+        device_history.store(DeviceEstimate("SIMULATED", days_ago(10 * (len(seeds) - n + 1)), f"run-{n}",
                                             {m: doc[m]["value_arcsec"] for m in MISALIGNMENT_NAMES},
                                             {m: doc[m]["U_arcsec"] for m in MISALIGNMENT_NAMES}), db)
+
+
+def corrected_runs_under_a_step(text: str, step_arcsec: dict[str, float], runs: int, seed: int,
+                                new_readings: int = 200, checked: bool = True) -> list[tuple[bool, float]]:
+    """``runs`` simulated runs of the corrected plan ``text`` on a device whose misalignments moved by
+    ``step_arcsec`` since the correction's estimate (its truth also drawn about the estimate with the
+    correction's own u): each run's readings from the simulator (a new table of index errors and
+    wobble per run, the instrument's noise over the plan's window), fitted as `labcal run` fits them,
+    its check made as the run makes it (`correction_check.check`, the window noise and the rig's
+    stated tables). Per run: (refused, coverage), the coverage being the smaller of pitch's and roll's
+    share of ``new_readings`` new readings at random attitudes in the envelope (pitch ±60°, any roll)
+    whose attitude error lies within the certificate's U95 (its budget: the simulator's Type B inputs,
+    the plan's u). ``checked`` False: no check (what a run did before it made one)."""
+    import math
+    import tomllib
+
+    import numpy as np
+
+    from labcal.analysis.attitude import LOCAL_GRAVITY_U, sphere_least_squares
+    from labcal.analysis.attitude import Calibration as AttitudeCalibration
+    from labcal.analysis.budget import calibration_of, propagate, sources
+    from labcal.analysis.correction_check import check
+    from labcal.analysis.device_fit import AngleErrors, PointMeans
+    from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, IndexWobble, Misalignment, gravity
+    from labcal.analysis.plan import Plan
+    from labcal.commands.plan import planning_bench
+    from labcal.config.plans import plan_correction
+    from labcal.run.exports import run_fits
+    from labcal.sim.direct import simulate_readings
+
+    correction = plan_correction(text, "the plan")
+    assert correction is not None
+    plan = Plan.model_validate({k: v for k, v in tomllib.loads(text).items() if k != "device_correction"})
+    samples = int(text.split("Run it with --samples ")[1].split()[0])
+    bench, _, _ = planning_bench(None)
+    inputs = bench.type_b.__class__(**{**vars(bench.type_b), "device_misalignment": correction.u_rad(),
+                                      "device_misalignment_source": correction.describe()})
+    rig = RigConfig()
+    truth, device = rig.instrument, rig.device
+    stated = AngleErrors(*(np.array([device.index_arcsec, device.wobble_arcsec] * 2) * ARCSEC))
+    noise = truth.noise_v / math.sqrt(samples)
+    held = np.array([correction.value_arcsec[n] for n in MISALIGNMENT_NAMES]) * ARCSEC
+    own = np.array([correction.u_history_rad()[n] for n in MISALIGNMENT_NAMES])
+    budget = np.array([correction.u_rad()[n] for n in MISALIGNMENT_NAMES])
+    step = np.array([step_arcsec.get(n, 0.0) for n in MISALIGNMENT_NAMES]) * ARCSEC
+    rng = np.random.default_rng(seed)
+    out = []
+    for trial in range(runs):
+        drawn = held + rng.normal(0.0, own) + step
+        readings = simulate_readings(plan, truth, Misalignment(*drawn),
+                                     IndexWobble(device.index_arcsec, device.wobble_arcsec, seed + trial),
+                                     noise, seed + trial)
+        fit, _, _ = run_fits(readings, text, "")
+        verdicts = check(PointMeans.of(readings), fit.ls.residuals, fit.coefficients, np.full(3, noise), held,
+                         own, budget, stated)
+        if checked and any(v.detected for v in verdicts):
+            out.append((True, float("nan")))
+            continue
+        cal = calibration_of(fit, readings)
+        pitch = np.radians(rng.uniform(-60, 60, new_readings))
+        roll = np.radians(rng.uniform(-180, 180, new_readings))
+        U = propagate(cal, sources(cal, inputs), pitch, roll).U
+        volts = truth.static_volts(gravity(pitch, roll, 0.0, 0.0)) + rng.normal(0.0, noise, (new_readings, 3))
+        att = sphere_least_squares(AttitudeCalibration(fit.coefficients, cal.covariance,
+                                                       np.sqrt(cal.reading_var), int(cal.dof[0])),
+                                   volts, LOCAL_GRAVITY_U)
+        error = np.column_stack([att.pitch - pitch, np.angle(np.exp(1j * (att.roll - roll)))])
+        out.append((False, float(np.min(np.mean(np.abs(error) <= U, axis=0)))))
+    return out

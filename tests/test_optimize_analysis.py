@@ -22,7 +22,7 @@ def test_predicted_covariance_of_the_tumble_is_sigma_squared_over_the_moment_mat
     """Six cardinal attitudes, one mount, noise only: FᵀF = diag(6, 2, 2, 2) (Σ g gᵀ = 2I, Σ g = 0),
     so var B = σ²/6, var S_ii = σ²/2 with σ² = σ_s²/N (Tripp & Tcheng eq. 50)."""
     c = optimize.Candidate(((0.0, 0.0),), TUMBLE, 16)
-    cal = optimize.predicted_calibration(c, bench())
+    cal = optimize.predicted_calibration(c, bench(), quantile=None)
     sigma2 = (20e-6) ** 2 / 16
     assert cal.reading_var == pytest.approx(np.full(3, sigma2), rel=1e-12)
     for j in range(3):
@@ -36,9 +36,9 @@ def test_table_errors_raise_the_predicted_residual_variance_but_not_beyond_their
     u = 2″/√3 (I − H shrinks, and each shape's columns carry u² at a point), over K − 4 dof."""
     c = optimize.Candidate(((0.0, 0.0),), tuple(optimize.d_optimal_sequence(
         [(0.0, 0.0)], optimize.candidate_articulations(), 24)), 10)
-    quiet = optimize.predicted_calibration(c, bench()).reading_var
+    quiet = optimize.predicted_calibration(c, bench(), quantile=None).reading_var
     tables = bench(pitch_index=2 * ARCSEC, roll_index=2 * ARCSEC)
-    noisy = optimize.predicted_calibration(c, tables).reading_var
+    noisy = optimize.predicted_calibration(c, tables, quantile=None).reading_var
     added = noisy - quiet
     ceiling = 2 * (5.0 * 2 * ARCSEC / np.sqrt(3)) ** 2 * 24 / (24 - 4)
     assert np.all(added > 0) and np.all(added < ceiling)
@@ -65,11 +65,13 @@ def test_the_frontier_keeps_only_the_undominated():
 
 
 def test_without_a_correction_fewer_mounts_are_never_offered():
-    """The misalignments must be identified (four mounts) or known: one mount without a correction is
-    no candidate at all."""
-    c = optimize.Candidate(((0.0, 0.0),), TUMBLE, 10)
+    """The misalignments must be identified (four mounts) or known and seen: three mounts without a
+    correction are no candidate at all, with one they are; one mount is none even with a correction
+    (it never sees e, f or k, so a run could not notice them move)."""
+    c = optimize.Candidate(((0.0, 0.0), (180.0, 0.0), (0.0, 180.0)), TUMBLE, 10)
     assert optimize.evaluate(c, bench(), None, 0.0) is None
     known = optimize.DeviceCorrection("CD", "run-1", dict.fromkeys("abdefk", 0.0),
                                       dict.fromkeys("abdefk", 1 * ARCSEC))
     result = optimize.evaluate(c, bench(), known, 0.0)
     assert result is not None and not result.identified
+    assert optimize.evaluate(optimize.Candidate(((0.0, 0.0),), TUMBLE, 10), bench(), known, 0.0) is None

@@ -43,8 +43,9 @@ from labcal.analysis.budget import (
     propagate,
     sources,
 )
+from labcal.analysis.correction_check import sensitivity
 from labcal.analysis.design import FOUR_MOUNTS, grid
-from labcal.analysis.device_fit import angle_error_shapes
+from labcal.analysis.device_fit import AngleErrors, angle_error_shapes
 from labcal.analysis.device_model import Geometry, identifiability
 from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, nominal_gravity
 from labcal.analysis.models import Points
@@ -55,8 +56,15 @@ N_COEFFICIENTS = 4  # per sensor: B and the three sensitivities
 CANDIDATE_STEP_DEG = 30.0  # the articulation grid: 62 distinct attitudes, every one on the 1° index grid
 SIZES = (6, 8, 12, 16, 24, 32, 48, 64)  # articulations per mount
 WINDOWS = (4, 10, 20, 40)  # DMM samples per point (4: the sequencer's least, `SettleSettings.samples`)
+# One mount, two, three and four. A plan relying on a device correction must see every misalignment it
+# corrects for (`correction_check`): one mount never sees e, f, k, and each pair reverses only two of
+# them (fore/aft e and f, top/bottom e and k, both f and k), so with a correction three mounts covering
+# both reversals are the fewest that may do without the four; the smaller sets stay as candidates that
+# the check turns down, so the search says why.
 MOUNT_SETS: tuple[tuple[tuple[float, float], ...], ...] = (
-    ((0.0, 0.0),), ((0.0, 0.0), (180.0, 180.0)), tuple(FOUR_MOUNTS))
+    ((0.0, 0.0),), ((0.0, 0.0), (180.0, 180.0)), ((0.0, 0.0), (180.0, 0.0), (0.0, 180.0)),
+    tuple(FOUR_MOUNTS))
+PROMISE = 0.95  # the share of a plan's runs whose stated U95 is within the target it was chosen for
 SEARCH_GRID_STEP_DEG = 15.0  # the envelope during the search; the chosen plan is checked on the certificate's
 
 
@@ -124,15 +132,26 @@ def _points(c: Candidate) -> Points:
     return Points.at(*rows.T)
 
 
-def _residual_variance(points: Points, X: NDArray[np.float64], design: NDArray[np.float64],
-                       b: TypeBInputs) -> NDArray[np.float64]:
-    """Per sensor, E[eᵀe]/(K − L) that the tables' index and wobble errors and the remounts leave in the
-    residuals of the fit: each input of the budget's (one per table angle for a rough table, harmonics
-    1–3 for a smooth one; the mean of the two, as the budget bounds by their sum) through I − H."""
+def _residual_covariance(points: Points, X: NDArray[np.float64], design: NDArray[np.float64],
+                         b: TypeBInputs, noise_var: float, held_u: dict[str, float] | None = None
+                         ) -> NDArray[np.float64]:
+    """Per sensor, the covariance (3 × K × K) of the fit's residuals: the noise σ²(I − H), plus what the
+    tables' index and wobble errors and the remounts leave there, each input of the budget's (one per
+    table angle for a rough table, harmonics 1–3 for a smooth one; the mean of the two, as the budget
+    bounds by their sum) through I − H; and, for a plan that holds the misalignments at a correction
+    (``held_u``: its own u per misalignment, rad), the correction's error, one offset of each for every
+    point, which the coefficients absorb only in part. Its trace over K − L is E[s²]; it also gives
+    s²'s spread."""
     k = len(design)
     hat = design @ np.linalg.pinv(design)
     rest = np.eye(k) - hat
-    total = np.zeros(3)
+    total = np.repeat((noise_var * rest)[None], 3, axis=0)
+
+    def add(dv: NDArray[np.float64], basis: NDArray[np.float64], var: float) -> None:
+        for j in range(3):
+            r = rest @ (dv[:, j:j + 1] * basis)  # K × m
+            total[j] += var * (r @ r.T)
+
     pitch_shapes = angle_error_shapes(np.radians(points.pitch_deg))
     roll_shapes = angle_error_shapes(np.radians(points.roll_deg))
     for names, shapes, half in ((("a",), pitch_shapes, b.pitch_index),
@@ -144,32 +163,56 @@ def _residual_variance(points: Points, X: NDArray[np.float64], design: NDArray[n
         for name in names:
             dv = _gravity_derivative(points, name) @ X[1:]  # (K, 3) per radian
             for basis, share in shapes:
-                r = rest @ (dv[:, None, :] * basis[:, :, None]).reshape(k, -1)
-                total += 0.5 * (half / SQRT3) ** 2 * share * np.sum(r.reshape(k, -1, 3) ** 2, axis=(0, 1))
+                add(dv, basis, 0.5 * (half / SQRT3) ** 2 * share)
     if b.mount_repeatability > 0:
         keys = np.column_stack([np.mod(points.y_deg, 360.0), np.mod(points.u_deg, 360.0)])
         _, installation = np.unique(keys, axis=0, return_inverse=True)
         basis = _membership(np.asarray(installation).ravel())
         for name in ("e", "f", "k"):
-            dv = _gravity_derivative(points, name) @ X[1:]
-            r = rest @ (dv[:, None, :] * basis[:, :, None]).reshape(k, -1)
-            total += (b.mount_repeatability / SQRT3) ** 2 * np.sum(r.reshape(k, -1, 3) ** 2, axis=(0, 1))
-    return total / max(k - N_COEFFICIENTS, 1)
+            add(_gravity_derivative(points, name) @ X[1:], basis, (b.mount_repeatability / SQRT3) ** 2)
+    for name, u in (held_u or {}).items():
+        add(_gravity_derivative(points, name) @ X[1:], np.ones((k, 1)), u**2)
+    return total
 
 
-def predicted_calibration(c: Candidate, bench: Bench) -> Calibration:
-    """The budget's view of the fit a run of ``c`` is expected to give (one replicate)."""
+def residual_variance_quantile(covariance: NDArray[np.float64], dof: int, p: float | None
+                               ) -> NDArray[np.float64]:
+    """Per sensor, E[s²] = tr Σ/ν, or where ``p`` is given s²'s p-quantile: s² is a quadratic form in
+    normal errors, Var s² = 2 tr Σ²/ν², taken as a scaled χ² with Satterthwaite's ν_eff = 2E²/Var
+    (the tables' errors, shared by every point at an angle, give s² far fewer degrees of freedom than
+    the K − L of white noise, so its upper quantile lies further out)."""
+    from scipy.special import chdtri
+
+    mean = np.einsum("jii->j", covariance) / dof
+    if p is None:
+        return np.asarray(mean, dtype=float)
+    var = 2.0 * np.einsum("jik,jki->j", covariance, covariance) / dof**2
+    nu = 2.0 * mean**2 / np.maximum(var, 1e-300)
+    return np.asarray(mean * chdtri(nu, 1.0 - p) / nu, dtype=float)
+
+
+def predicted_calibration(c: Candidate, bench: Bench, quantile: float | None = PROMISE,
+                          held_u: dict[str, float] | None = None) -> Calibration:
+    """The budget's view of the fit a run of ``c`` gives (one replicate): its residual variance at
+    its ``quantile`` over runs (None: its expectation); ``held_u``: the u of a correction the fit holds
+    the misalignments at (`_residual_covariance`)."""
     points = _points(c)
     g = nominal_gravity(*(np.radians(a) for a in (points.pitch_deg, points.roll_deg, points.y_deg,
                                                   points.u_deg)))
     design = np.column_stack([np.ones(len(g)), g])
     inverse = np.linalg.inv(design.T @ design)  # R⁻¹ (Tripp eq. 50)
-    reading_var = bench.noise_v**2 / c.samples + _residual_variance(points, bench.X, design, bench.type_b)
+    dof = len(g) - N_COEFFICIENTS
+    # The run states U95 from its own residual variance s², which scatters from run to run: predicted
+    # at its ``quantile``, the plan's stated U95 is within the target in that share of its runs (U95
+    # grows with s²), not only in an average run.
+    reading_var = residual_variance_quantile(
+        _residual_covariance(points, bench.X, design, bench.type_b, bench.noise_v**2 / c.samples, held_u),
+        dof, quantile)
     keys = np.column_stack([np.mod(points.y_deg, 360.0), np.mod(points.u_deg, 360.0)])
     _, installation = np.unique(keys, axis=0, return_inverse=True)
     return Calibration(X=bench.X, covariance=reading_var[:, None, None] * inverse[None],
                        reading_var=reading_var,
-                       dof=np.full(3, float(len(g) - N_COEFFICIENTS)), projection=(inverse @ design.T)[:4],
+                       dof=np.full(3, float(dof)), projection=(inverse @ design.T)[:4],
                        points=points, installation=np.asarray(installation, dtype=int).ravel())
 
 
@@ -185,14 +228,31 @@ def identified_u(c: Candidate, bench: Bench, reading_var: NDArray[np.float64]) -
     return {n: ident.u_per_ug[n] * noise_ug * ARCSEC for n in MISALIGNMENT_NAMES}
 
 
+def corrected_u(c: Candidate, bench: Bench, correction: DeviceCorrection) -> dict[str, float] | None:
+    """The u (rad) a run of ``c`` carries for each misalignment it corrects for: the larger of the
+    correction's own and a third of the change the run's check detects with 95 % power
+    (`correction_check.Sensitivity.budget_u`); None where the run cannot see one of them at all."""
+    b = bench.type_b
+    sens = sensitivity(Geometry.of_plan(list(c.points), list(c.mounts)), bench.X,
+                       np.full(3, bench.noise_v / np.sqrt(c.samples)),
+                       np.array([correction.value_rad[n] for n in MISALIGNMENT_NAMES]),
+                       AngleErrors(b.pitch_index, b.pitch_wobble, b.roll_index, b.roll_wobble))
+    u = sens.budget_u(np.array([correction.u_rad[n] for n in MISALIGNMENT_NAMES]))
+    if not np.all(np.isfinite(u)):
+        return None
+    return {n: float(v) for n, v in zip(MISALIGNMENT_NAMES, u, strict=True)}
+
+
 def predicted_u95(c: Candidate, bench: Bench, correction: DeviceCorrection | None,
                   pitch: NDArray[np.float64], roll: NDArray[np.float64]) -> tuple[Propagated, bool] | None:
     """Pitch and roll U95 (rad) a run of ``c`` is expected to state at these attitudes (radians), from
     the budget's rows and `budget.propagate`, and whether the plan identifies a…k itself; None where
     its misalignments would be left in the coefficients (neither identified by the plan nor known)."""
-    cal = predicted_calibration(c, bench)
-    identified = identified_u(c, bench, cal.reading_var) if len(c.mounts) == len(FOUR_MOUNTS) else None
-    device_u = identified if identified is not None else None if correction is None else correction.u_rad
+    four = len(c.mounts) == len(FOUR_MOUNTS)
+    cal = predicted_calibration(c, bench, held_u=None if four or correction is None else correction.u_rad)
+    identified = identified_u(c, bench, cal.reading_var) if four else None
+    device_u = identified if identified is not None else None if correction is None else \
+        corrected_u(c, bench, correction)
     if device_u is None:
         return None
     rows = sources(cal, replace(bench.type_b, device_misalignment=dict(device_u)))

@@ -235,9 +235,18 @@ def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Esti
         store_device_estimate(record, result.device, db)
     issued = None
     if not no_report:
+        from labcal.documents.device_history import DeviceMoved
         from labcal.documents.report import write_run_outputs
 
-        issued = write_run_outputs(run_dir, certificate, db=journal, record=record)
+        try:
+            issued = write_run_outputs(run_dir, certificate, db=journal, record=record)
+        except DeviceMoved as exc:  # journaled for the lab, then the one line to the technician
+            from labcal.run.journal import Journal
+
+            with Journal(journal) as book:
+                book.event(result.run_id, "device_moved", str(exc),
+                           {"changes": [c.to_json() for c in exc.changes]})
+            raise
     return Finished(run_dir, result, est, journal, issued)
 
 
@@ -315,7 +324,8 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
             from labcal.documents.device_history import check_correction, station_device_id
 
             check_correction(correction, station_device_id(
-                {"station": setup.station.description, **setup.metadata}, args.sim or args.emulate), args.db)
+                {"station": setup.station.description, **setup.metadata}, args.sim or args.emulate), args.db,
+                plan)
         setup.metadata["estimated_rig_time_s"] = est.total_s  # run.json: the estimate beside the actual
         check_limits(setup.station, steps, settings.check_mount)  # first: homing moves a table too
         run_dir = new_run_dir(args.out, plan)  # a bad --out is one line before the checklist

@@ -446,7 +446,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 CORRECTION_NOTE = ("labcal run checks that the station's calibration device is that device and its history "
                    "is still in control, fits with the misalignments held at the estimate's values, carries "
                    "their u in the budget and states the correction on the certificate")
-NORMAL_K = 1.96  # a device estimate's U95 back to u: its k is t₀.₉₇₅ at many degrees of freedom
 
 
 def _type_b(section, temperature_half_range_k: float):
@@ -507,35 +506,14 @@ def planning_bench(station: str | None):
 
 
 def device_correction(device_id: str, db):
-    """The device's misalignments where its history knows them: at least two estimates and no flagged
-    change between the last two (in control). The latest estimate, each with u² = (U/k)² plus half the
-    square of the last change (the history's own reproducibility). (None, why) where not known."""
-    import math
+    """The device's misalignments where its history knows them (`device_history.correction_for`)."""
+    from labcal.documents.device_history import correction_for
 
-    from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES
-    from labcal.analysis.optimize import DeviceCorrection
-    from labcal.documents.device_history import changes, estimates_for
-
-    estimates = estimates_for(device_id, db)  # an unknown device: one line naming the known ones
-    if len(estimates) < 2:
-        return None, (f"device {device_id} has {len(estimates)} estimate(s); two are needed to judge it in "
-                      "control")
-    last = estimates[-1]
-    moved = [c for c in changes(estimates[-2:]) if c.flagged]
-    if moved:
-        return None, (f"device {device_id} changed between {moved[0].before} and {moved[0].after} "
-                      f"({', '.join(c.name for c in moved)} beyond √(U₁² + U₂²)); its misalignments are not "
-                      "known")
-    delta = {c.name: c.delta_arcsec for c in changes(estimates[-2:])}
-    return DeviceCorrection(device_id, last.source,
-                            {n: last.value_arcsec[n] * ARCSEC for n in MISALIGNMENT_NAMES},
-                            {n: math.hypot(last.U_arcsec[n] / NORMAL_K, delta[n] / math.sqrt(2)) * ARCSEC
-                             for n in MISALIGNMENT_NAMES},
-                            {n: last.U_arcsec[n] * ARCSEC for n in MISALIGNMENT_NAMES},
-                            last.calibrated_utc), ""
+    return correction_for(device_id, db)
 
 
-def optimized_plan_toml(plan, e, correction, target_deg: float, reference) -> str:
+def optimized_plan_toml(plan, e, correction, target_deg: float, reference,
+                        budget_u: dict[str, float] | None = None) -> str:
     """The plan file: the plan, what was predicted for it, and the device corrections it relies on."""
     import math
 
@@ -557,7 +535,8 @@ def optimized_plan_toml(plan, e, correction, target_deg: float, reference) -> st
         device_id=correction.device_id, source=correction.source, calibrated_utc=correction.calibrated_utc,
         value_arcsec={n: correction.value_rad[n] / ARCSEC for n in MISALIGNMENT_NAMES},
         U_arcsec={n: correction.U_rad[n] / ARCSEC for n in MISALIGNMENT_NAMES},
-        u_arcsec={n: correction.u_rad[n] / ARCSEC for n in MISALIGNMENT_NAMES})
+        u_arcsec={n: (budget_u or correction.u_rad)[n] / ARCSEC for n in MISALIGNMENT_NAMES},
+        u_history_arcsec={n: correction.u_rad[n] / ARCSEC for n in MISALIGNMENT_NAMES})
     return "\n".join(head) + "\n" + body + "\n" + correction_toml(table)
 
 
@@ -597,6 +576,8 @@ def cmd_optimize(args: argparse.Namespace) -> int:
     chosen = optimize.choose(found, bench, correction, target)
     c = chosen.candidate
     relies = not chosen.identified  # (`search` offers such a plan only with a correction)
+    # the u its run carries: the correction's, or a third of the change the run's check detects (95 %)
+    budget_u = optimize.corrected_u(c, bench, correction) if relies and correction is not None else None
     plan = Plan(name=Path(args.out).stem if args.out else "optimized",
                 description=f"optimized for attitude U95 ≤ {args.target_attitude_u95_deg:g}° "
                             f"(labcal plan optimize, {c.samples} samples per point)",
@@ -605,7 +586,7 @@ def cmd_optimize(args: argparse.Namespace) -> int:
         try:
             with open(args.out, "x", encoding="utf-8") as f:
                 f.write(optimized_plan_toml(plan, chosen, correction if relies else None,
-                                            args.target_attitude_u95_deg, reference))
+                                            args.target_attitude_u95_deg, reference, budget_u))
         except OSError as exc:
             raise LabcalError(f"{args.out}: cannot write plan ({exc.strerror})") from None
     if args.frontier:
@@ -622,7 +603,8 @@ def cmd_optimize(args: argparse.Namespace) -> int:
                "calibrated_utc": correction.calibrated_utc,
                "value_arcsec": {n: v / ARCSEC for n, v in correction.value_rad.items()},
                "U_arcsec": {n: v / ARCSEC for n, v in correction.U_rad.items()},
-               "u_arcsec": {n: v / ARCSEC for n, v in correction.u_rad.items()}},
+               "u_arcsec": {n: v / ARCSEC for n, v in (budget_u or correction.u_rad).items()},
+               "u_history_arcsec": {n: v / ARCSEC for n, v in correction.u_rad.items()}},
            "candidates": len(found), "out": args.out}
     if args.json:
         print_json(doc)

@@ -24,18 +24,24 @@ class DeviceCorrectionTable(BaseModel):
     value_arcsec: dict[str, float]
     U_arcsec: dict[str, float]
     u_arcsec: dict[str, float]
+    # The correction's own u (the history's, aged to the plan's writing) where ``u_arcsec`` is larger:
+    # the budget's u covers the change a run of the plan would miss (`analysis.correction_check`); the
+    # run's check judges a change against this one. Absent (plans written before): ``u_arcsec``.
+    u_history_arcsec: dict[str, float] | None = None
 
-    @field_validator("value_arcsec", "U_arcsec", "u_arcsec")
+    @field_validator("value_arcsec", "U_arcsec", "u_arcsec", "u_history_arcsec")
     @classmethod
-    def _six(cls, values: dict[str, float]) -> dict[str, float]:
+    def _six(cls, values: dict[str, float] | None) -> dict[str, float] | None:
+        if values is None:
+            return None
         if set(values) != set(MISALIGNMENT_NAMES):
             raise ValueError(f"needs exactly the misalignments {', '.join(MISALIGNMENT_NAMES)}")
         return {n: values[n] for n in MISALIGNMENT_NAMES}
 
-    @field_validator("U_arcsec", "u_arcsec")
+    @field_validator("U_arcsec", "u_arcsec", "u_history_arcsec")
     @classmethod
-    def _not_negative(cls, values: dict[str, float]) -> dict[str, float]:
-        if any(v < 0 for v in values.values()):
+    def _not_negative(cls, values: dict[str, float] | None) -> dict[str, float] | None:
+        if values is not None and any(v < 0 for v in values.values()):
             raise ValueError("an uncertainty cannot be negative")
         return values
 
@@ -46,6 +52,11 @@ class DeviceCorrectionTable(BaseModel):
     def u_rad(self) -> dict[str, float]:
         """Each one's standard uncertainty (radians): the budget's device-misalignment input."""
         return {n: v * ARCSEC for n, v in self.u_arcsec.items()}
+
+    def u_history_rad(self) -> dict[str, float]:
+        """The correction's own standard uncertainty (radians): what a run's check judges a change by."""
+        own = self.u_arcsec if self.u_history_arcsec is None else self.u_history_arcsec
+        return {n: v * ARCSEC for n, v in own.items()}
 
     def describe(self) -> str:
         """The estimate in words: 'device D's estimate from run R (calibrated T)'."""
@@ -63,7 +74,10 @@ class DeviceCorrectionTable(BaseModel):
         with each value and its u."""
         values = "; ".join(f"{n} = {self.value_arcsec[n]:.2f}″ (u = {self.u_arcsec[n]:.2f}″)"
                            for n in MISALIGNMENT_NAMES)
+        checked = "" if self.u_history_arcsec is None else (
+            " This run checked them: none moved by more than its test detects (a change of 3 u with 95 % "
+            "probability); each u is the larger of the estimate's own (aged) and a third of that change.")
         return (f"The calibration device's misalignments were not measured in this run: they were corrected "
                 f"for from {self.describe()}: {values}; their standard uncertainties enter the uncertainty "
-                "budget as the Type B row \"device misalignment estimates\".")
+                "budget as the Type B row \"device misalignment estimates\"." + checked)
 

@@ -69,6 +69,18 @@ class Laboratory(BaseModel):
         return ", ".join(part for part in (self.name, self.address) if part)
 
 
+class CorrectionLimits(BaseModel):
+    """When a device correction (a plan's ``[device_correction]``) expires: past this age of the estimate
+    it took, or after this many runs have used it. Its u grows with age at the rate the device's history
+    shows (`analysis.device_ageing`); past these limits the device is identified again instead."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    max_age_days: float = Field(default=90.0, gt=0, allow_inf_nan=False,
+                                description="days from the estimate's calibration after which it is not used")
+    max_uses: int = Field(default=20, ge=1, description="runs that may correct from one estimate")
+
+
 class LabFile(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -89,6 +101,8 @@ class LabFile(BaseModel):
     laboratory: Laboratory = Field(default_factory=Laboratory)
     certificate: CertificateSettings = Field(default_factory=CertificateSettings,
                                              description="default tolerances and usage envelope")
+    device_correction: CorrectionLimits = Field(default_factory=CorrectionLimits,
+                                                description="when a device correction expires")
     notify: list[str] = Field(default_factory=list,
                               description="apprise URLs told of each remount, pause and run's end "
                                           "(issue 24); $LABCAL_NOTIFY goes over it")

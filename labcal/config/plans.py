@@ -119,9 +119,12 @@ def correction_toml(table: DeviceCorrectionTable) -> str:
     return (f"[{DEVICE_CORRECTION}]\n"
             "# the device's misalignments a…k (Soto Table 1) to correct the readings' gravity for, from its\n"
             "# latest in-control estimate (run `source`, calibrated `calibrated_utc`): its values and their\n"
-            "# U (95 %) as the device history states them; u: the standard uncertainty carried as a Type B\n"
-            "# input, √((U/1.96)² + Δ²/2) with Δ the change from the estimate before it\n"
+            "# U (95 %) as the device history states them; u_history: the correction's own standard\n"
+            "# uncertainty, aged to when the plan was written; u: the one carried as a Type B input, the\n"
+            "# larger of u_history and a third of the change this plan's run detects with 95 % power\n"
             f"device_id = {json.dumps(table.device_id)}\nsource = {json.dumps(table.source)}\n"
             f"calibrated_utc = {json.dumps(table.calibrated_utc)}\n"
             f"value_arcsec = {{ {row(table.value_arcsec)} }}\nU_arcsec = {{ {row(table.U_arcsec)} }}\n"
-            f"u_arcsec = {{ {row(table.u_arcsec)} }}\n")
+            f"u_arcsec = {{ {row(table.u_arcsec)} }}\n"
+            + ("" if table.u_history_arcsec is None
+               else f"u_history_arcsec = {{ {row(table.u_history_arcsec)} }}\n"))

@@ -17,8 +17,14 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+
+from labcal.analysis.correction_check import FALSE_ALARM, Change
 from labcal.analysis.device_fit import DeviceFit
+from labcal.analysis.fit import Fit
 from labcal.analysis.kinematics import MISALIGNMENT_NAMES
+from labcal.analysis.plan import Plan
 from labcal.config.corrections import DeviceCorrectionTable
 from labcal.documents.plotfile import check_folder, save
 from labcal.errors import LabcalError
@@ -27,6 +33,74 @@ from labcal.run.journal import db_path
 from labcal.run.record import RunRecord
 
 RULE = "|Δ| > √(U₁² + U₂²): a change larger than the combined expanded uncertainty (95 %)"
+IDENTIFYING_PLAN = "four-mount-64"  # the built-in plan whose mounts identify all six misalignments
+
+
+class DeviceMoved(LabcalError):
+    """A corrected run saw the calibration device's misalignments move since the estimate its plan
+    corrects for: no certificate is issued from the correction. ``changes``: the check's verdicts."""
+
+    def __init__(self, message: str, changes: list[Change]) -> None:
+        super().__init__(message)
+        self.changes = changes
+
+
+def correction_changes(record: RunRecord, fit: Fit, correction: DeviceCorrectionTable) -> list[Change]:
+    """The run's check of the misalignments its plan corrects for (`analysis.correction_check.check`):
+    each one the run sees, its change since the correction's estimate and the verdict; the tables'
+    index and wobble as the run's station states them."""
+    from labcal.analysis.correction_check import check
+    from labcal.analysis.device_fit import PointMeans
+    from labcal.config.station import stated_angle_errors
+
+    names, held = MISALIGNMENT_NAMES, correction.misalignment()
+    noise = window_noise(record)
+    return check(PointMeans.of(record.readings), fit.ls.residuals, fit.coefficients,
+                 fit.ls.residual_se if noise is None else noise,
+                 np.array([getattr(held, n) for n in names]),
+                 np.array([correction.u_history_rad()[n] for n in names]),
+                 np.array([correction.u_rad()[n] for n in names]), stated_angle_errors(record.station_text))
+
+
+def window_noise(record: RunRecord) -> NDArray[np.float64] | None:
+    """Each sensor's noise of one reading (a window's mean), from the scatter within the windows that
+    readings.csv records (sd of the samples, their number): √(mean of sd²/n). The noise the plan was
+    priced with; the residuals would count the tables' per-angle errors, which the check adds as
+    their own term, a second time. None where the file does not record them (readings imported)."""
+    from labcal.config.readings_csv import read_numeric_csv
+    from labcal.run.rundir import READINGS
+
+    wanted = ("n_samples", "sd_vx", "sd_vy", "sd_vz")
+    try:
+        cols = read_numeric_csv(record.directory / READINGS, "readings", wanted)
+    except LabcalError:
+        return None
+    n = cols["n_samples"]
+    if len(n) == 0 or np.any(n < 2):
+        return None
+    sd = np.column_stack([cols[c] for c in wanted[1:]])
+    return np.asarray(np.sqrt(np.mean(sd**2 / n[:, None], axis=0)), dtype=float)
+
+
+def refuse_if_moved(record: RunRecord, fit: Fit) -> list[Change]:
+    """The run's check where its plan corrects for the device (else []); `DeviceMoved` (one line naming
+    the largest change and the plan that identifies the device again) where a change is detected."""
+    from labcal.config.plans import plan_correction
+
+    correction = plan_correction(record.plan_text, f"{record.directory}: the run's plan")
+    if correction is None:
+        return []
+    found = correction_changes(record, fit, correction)
+    moved = sorted((c for c in found if c.detected), key=lambda c: -abs(c.z))
+    if moved:
+        also = "" if len(moved) == 1 else f" (and {', '.join(c.name for c in moved[1:])})"
+        since = f"its estimate of run {correction.source} ({correction.calibrated_utc})"
+        raise DeviceMoved(
+            f"no certificate from this run's device correction: {moved[0].describe(since)}{also}, beyond its "
+            f"check's {100 * FALSE_ALARM:g} % false-alarm limit; identify the device again with a plan that "
+            f"does (labcal run --plan {IDENTIFYING_PLAN}), then plan with labcal plan optimize --device "
+            f"{correction.device_id}", found)
+    return found
 
 
 @dataclass(frozen=True)
@@ -58,11 +132,112 @@ def station_device_id(metadata: dict, simulated: bool) -> str:
     return "SIMULATED" if simulated else str(metadata.get("station") or "UNNAMED")
 
 
-def check_correction(correction: DeviceCorrectionTable, device_id: str, db: str | Path | None = None) -> None:
+NORMAL_K = 1.96  # U → u of an estimate: its U is stated at 95 % with the device fit's many dof
+
+
+def calibrated(estimate: DeviceEstimate) -> datetime:
+    """When the estimate's run calibrated (UTC; a time without a zone is read as UTC)."""
+    try:
+        t = datetime.fromisoformat(estimate.calibrated_utc)
+    except ValueError:
+        raise LabcalError(f"device {estimate.device_id}'s estimate from {estimate.source} has no readable "
+                          f"calibration time ({estimate.calibrated_utc!r})") from None
+    return t if t.tzinfo is not None else t.replace(tzinfo=UTC)
+
+
+def in_sittings(estimates: list[DeviceEstimate]) -> list[DeviceEstimate]:
+    """The history's distinct sittings, each by its latest estimate (`analysis.device_ageing.sittings`):
+    estimates of one UTC day, or of the same readings, are one piece of evidence, not several."""
+    from labcal.analysis.device_ageing import sittings
+
+    found = sittings([calibrated(e) for e in estimates],
+                     [np.array([e.value_arcsec[n] for n in MISALIGNMENT_NAMES]) for e in estimates])
+    return [estimates[i] for i in found.kept]
+
+
+def correction_uses(device_id: str, source: str, db: str | Path | None = None) -> int:
+    """How many complete runs journaled in ``db`` corrected from ``device_id``'s estimate ``source``."""
+    from labcal.config.plans import DEVICE_CORRECTION, plan_correction
+
+    path = db_path(db)
+    if not path.is_file():
+        return 0
+    with closing(labdb.connect(path)) as conn:
+        rows = conn.execute("SELECT plan_text FROM runs WHERE status = 'complete' AND plan_text LIKE ?",
+                            (f"%[{DEVICE_CORRECTION}]%",)).fetchall()
+    used = 0
+    for (text,) in rows:
+        try:
+            c = plan_correction(text, "a journaled plan")
+        except LabcalError:
+            continue
+        used += c is not None and (c.device_id, c.source) == (device_id, source)
+    return used
+
+
+def expired(device_id: str, source: str, calibrated_at: datetime, db: str | Path | None,
+            now: datetime | None = None) -> str | None:
+    """Why a correction from this estimate may no longer be used (the lab file's limits: its age, its
+    number of uses), or None."""
+    from labcal.config.lab import load_lab_config
+
+    limits = load_lab_config().file.device_correction
+    age = ((now or datetime.now(UTC)) - calibrated_at).total_seconds() / 86400.0
+    again = (f"identify the device again with a plan that does (labcal run --plan {IDENTIFYING_PLAN}), then "
+             f"plan with labcal plan optimize --device {device_id}")
+    if age > limits.max_age_days:
+        return (f"device {device_id}'s estimate from {source} is {age:.0f} days old, past the lab's "
+                f"{limits.max_age_days:g}-day limit for a correction; {again}")
+    uses = correction_uses(device_id, source, db)
+    if uses >= limits.max_uses:
+        return (f"device {device_id}'s estimate from {source} has corrected {uses} runs, the lab's limit "
+                f"({limits.max_uses}); {again}")
+    return None
+
+
+def correction_for(device_id: str, db: str | Path | None = None, now: datetime | None = None):
+    """The device's misalignments where its history knows them, as `analysis.optimize.DeviceCorrection`:
+    two sittings at least, no flagged change between the last two (`RULE`), the latest not expired;
+    each u aged by the history's random walk (`analysis.device_ageing`) to ``now``. (None, why) where
+    not known."""
+    from labcal.analysis.device_ageing import walk_rate
+    from labcal.analysis.kinematics import ARCSEC
+    from labcal.analysis.optimize import DeviceCorrection
+
+    estimates = estimates_for(device_id, db)  # an unknown device: one line naming the known ones
+    kept = in_sittings(estimates)
+    if len(kept) < 2:
+        return None, (f"device {device_id} has {len(estimates)} estimate(s) from {len(kept)} sitting(s); two "
+                      "sittings (different days, different readings) are needed to judge it in control")
+    moved = [c for c in changes(kept[-2:]) if c.flagged]
+    if moved:
+        return None, (f"device {device_id} changed between {moved[0].before} and {moved[0].after} "
+                      f"({', '.join(c.name for c in moved)} beyond √(U₁² + U₂²)); its misalignments are not "
+                      "known")
+    last = kept[-1]
+    why = expired(device_id, last.source, calibrated(last), db, now)
+    if why:
+        return None, why
+    rate = walk_rate([calibrated(e) for e in kept],
+                     [np.array([e.value_arcsec[n] for n in MISALIGNMENT_NAMES]) for e in kept],
+                     [np.array([e.U_arcsec[n] / NORMAL_K for n in MISALIGNMENT_NAMES]) for e in kept])
+    age = ((now or datetime.now(UTC)) - calibrated(last)).total_seconds() / 86400.0
+    u = rate.aged_u(np.array([last.U_arcsec[n] / NORMAL_K for n in MISALIGNMENT_NAMES]), age)
+    return DeviceCorrection(device_id, last.source,
+                            {n: last.value_arcsec[n] * ARCSEC for n in MISALIGNMENT_NAMES},
+                            {n: float(v) * ARCSEC for n, v in zip(MISALIGNMENT_NAMES, u, strict=True)},
+                            {n: last.U_arcsec[n] * ARCSEC for n in MISALIGNMENT_NAMES},
+                            last.calibrated_utc), ""
+
+
+def check_correction(correction: DeviceCorrectionTable, device_id: str, db: str | Path | None = None,
+                     plan: Plan | None = None) -> None:
     """Whether a plan's device correction still applies to the station about to run it (issue 27):
     the station's calibration device is the one corrected for, and its history still has the estimate
-    the correction took with no flagged change (`RULE`) from it to the latest. One LabcalError line
-    where not: the plan's misalignments would then not be the device's."""
+    the correction took with no flagged change (`RULE`) from it to the latest; the estimate is not
+    expired (`expired`); and the plan's points see every misalignment it corrects for, so that its run
+    can notice one move (`analysis.correction_check`). One LabcalError line where not: the plan's
+    misalignments would then not be the device's, or not known to be."""
     wanted = correction.device_id
     if device_id != wanted:
         raise LabcalError(f"this plan corrects for calibration device {wanted}'s misalignments but this "
@@ -81,6 +256,23 @@ def check_correction(correction: DeviceCorrectionTable, device_id: str, db: str 
                           f"corrects for: {names} moved between {first.before} and {first.after} beyond "
                           "√(U₁² + U₂²); measure its misalignments again with a plan that identifies them "
                           "(four-mount-64)")
+    why = expired(wanted, correction.source, calibrated(estimates[sources.index(correction.source)]), db)
+    if why:
+        raise LabcalError(why)
+    if plan is not None:
+        from labcal.analysis.correction_check import sensitivity
+        from labcal.analysis.device_model import Geometry
+
+        unit = np.vstack([np.zeros(3), np.eye(3)])  # what is seen is geometry: any instrument, any noise
+        held = correction.misalignment()
+        seen = sensitivity(Geometry.of_plan(list(plan.points), list(plan.mounts)), unit, np.ones(3),
+                           np.array([getattr(held, n) for n in MISALIGNMENT_NAMES])).observable
+        unseen = [n for n in MISALIGNMENT_NAMES if n not in seen]
+        if unseen:
+            raise LabcalError(f"this plan corrects for device {wanted}'s misalignments but its mounts cannot "
+                              f"see {', '.join(unseen)}: a run could not notice them move; add mounts (three "
+                              "that reverse fore/aft and top/bottom), or plan with labcal plan optimize "
+                              f"--device {wanted}")
 
 
 def estimate_of(record: RunRecord, fit: DeviceFit) -> DeviceEstimate:

@@ -426,7 +426,7 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
         "attitude": envelope.model_dump(),
         "device": None if device is None else _device_section(device, model_note or ""),
         "device_correction": None if correction is None else {
-            **correction.model_dump(), "statement": correction.statement()},
+            **correction.model_dump(exclude={"u_history_arcsec"}), "statement": correction.statement()},
         "conformity": None if (c := _conformity(X, np.array(expanded.U), uncertainty, settings)) is None
         else c.model_dump(),
         "uncertainty_budget": uncertainty.model_dump(),

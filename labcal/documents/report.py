@@ -80,6 +80,10 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
     just before (the end of a run: read once for the device's estimate and for this, not fitted twice)."""
     record = record or load_run(run_dir)
     fit, device, model_note = fitted(record)
+    if device is None:  # a plan that corrects for the device: not from a correction the run saw move
+        from labcal.documents.device_history import refuse_if_moved
+
+        refuse_if_moved(record, fit)
     section = bench_section(record, station)
     inputs = type_b_inputs(section, record, device)
     revision, replaced = 1, None
