@@ -56,6 +56,17 @@ class SimRig:
         mis = self.misalignment + self._mount_error + self.index_wobble.misalignment(p, r)
         return gravity(p, r, y, u, mis)
 
+    def output_angles(self, t: NDArray | float) -> tuple[NDArray, NDArray]:
+        """Where the tables' outputs are at rig time(s) t: their motors' angles plus any slip of a
+        clamp or coupling (`RigConfig.output_slips`), which the drives do not see."""
+        pitch, roll = self.pitch.angle_at(t), self.roll.angle_at(t)
+        for slip in self.config.output_slips:
+            if slip.table == "pitch":
+                pitch = pitch + slip.offset(t)
+            else:
+                roll = roll + slip.offset(t)
+        return pitch, roll
+
     def _still_gravity(self, pitch_deg: float, roll_deg: float) -> NDArray:
         """`true_gravity`, remembered while the tables stand still and the mount is unchanged (a
         DMM scan asks the same question for every sample)."""
@@ -93,13 +104,13 @@ class SimRig:
             n = max(1, math.ceil((t_still - t0) / (tau / 10) - 1e-9))  # not the clock's rounding
             edges = np.linspace(t0, t_still, n + 1)
             mids = 0.5 * (edges[:-1] + edges[1:])
-            inputs = self.true_gravity(self.pitch.angle_at(mids), self.roll.angle_at(mids))
+            inputs = self.true_gravity(*self.output_angles(mids))
             decay = math.exp(-(edges[1] - edges[0]) / tau)
             x = self._g_filtered
             for u in inputs:
                 x = u + (x - u) * decay
             self._g_filtered, t0 = x, t_still
-        u = self._still_gravity(float(self.pitch.angle_at(t)), float(self.roll.angle_at(t)))
+        u = self._still_gravity(*(float(a) for a in self.output_angles(t)))
         self._g_filtered = u + (self._g_filtered - u) * math.exp(-(t - t0) / tau)
         self._t_filter = t
 
@@ -131,7 +142,7 @@ class SimRig:
         """`sample_at` while both tables stand still, in closed form: the output relaxes towards the
         still gravity u as u + (x − u)·e^{−(t − t₀)/τ}, every sample at once."""
         self._advance_filter(float(times[0]))
-        u = self._still_gravity(float(self.pitch.angle_at(times[0])), float(self.roll.angle_at(times[0])))
+        u = self._still_gravity(*(float(a) for a in self.output_angles(times[0])))
         fade = np.exp(-(times - times[0]) / self.instrument.tau_s)[:, None]
         outputs = u + (self._g_filtered - u) * fade
         self._g_filtered, self._t_filter = outputs[-1], float(times[-1])
@@ -155,7 +166,7 @@ class SimRig:
             e, f, k = self._rng.normal(0.0, scatter, 3)
             self._mount_error = Misalignment(e=e, f=f, k=k)
         self._t_filter = self.clock.now()
-        self._g_filtered = self.true_gravity(self.pitch.position(), self.roll.position())
+        self._g_filtered = self.true_gravity(*self.output_angles(self.clock.now()))
 
     def at_point(self, key: str) -> None:
         """Draw this point's noise from the seed and the point's identity, not from one stream, so
