@@ -70,7 +70,7 @@ class Wiring:
 
 
 AS_STATED = Wiring()
-WIRINGS = [Wiring(e, p, r, c) for e, p, r in itertools.product((False, True), repeat=3)
+WIRINGS = [Wiring(e, p, r, (c[0], c[1], c[2])) for e, p, r in itertools.product((False, True), repeat=3)
            for c in itertools.permutations(range(3))]
 
 
