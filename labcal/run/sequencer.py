@@ -718,7 +718,8 @@ class Sequencer:
                 why, faulted = unvouched(before, self.tables())
                 if why or result.verdict.settled:
                     break
-                if attempt == 1:
+                if attempt == 1:  # the window the settle test refused is kept with its samples
+                    self.discard(step, attempt, result, f"did not settle: {result.verdict.reason}", False)
                     self.note("retry",
                                f"point {step.seq} did not settle ({result.verdict.reason}); retrying")
             if why is None:
