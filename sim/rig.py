@@ -47,6 +47,7 @@ class SimRig:
         self._gravity = np.zeros(3)
         self._t_filter = 0.0
         self._g_filtered = self.true_gravity(0.0, 0.0)
+        self._slipped: dict[int, float] = {}  # when each output slip keyed to a point happened
 
     # --- physics -------------------------------------------------------------------------
     def true_gravity(self, pitch_deg: NDArray | float, roll_deg: NDArray | float) -> NDArray:
@@ -60,11 +61,12 @@ class SimRig:
         """Where the tables' outputs are at rig time(s) t: their motors' angles plus any slip of a
         clamp or coupling (`RigConfig.output_slips`), which the drives do not see."""
         pitch, roll = self.pitch.angle_at(t), self.roll.angle_at(t)
-        for slip in self.config.output_slips:
+        for i, slip in enumerate(self.config.output_slips):
+            at = self._slipped.get(i, math.inf) if slip.at_point is not None else None
             if slip.table == "pitch":
-                pitch = pitch + slip.offset(t)
+                pitch = pitch + slip.offset(t, at)
             else:
-                roll = roll + slip.offset(t)
+                roll = roll + slip.offset(t, at)
         return pitch, roll
 
     def _still_gravity(self, pitch_deg: float, roll_deg: float) -> NDArray:
@@ -172,6 +174,10 @@ class SimRig:
         """Draw this point's noise from the seed and the point's identity, not from one stream, so
         that a resumed run measures every point as the uninterrupted run would have."""
         self._noise = np.random.default_rng([self.seed, zlib.crc32(key.encode())])
+        for i, slip in enumerate(self.config.output_slips):
+            if slip.at_point == key and i not in self._slipped:
+                self._catch_up()
+                self._slipped[i] = self.clock.now()
 
     def station(self) -> Station:
         return Station(pitch=self.pitch, roll=self.roll, dmm=self, clock=self.clock,

@@ -131,11 +131,14 @@ class OutputSlip(BaseModel):
     degrees: float
     at_s: float = Field(default=0.0, ge=0)
     until_s: float | None = Field(default=None, ge=0)
+    at_point: str | None = Field(default=None, description="instead of at_s: as the window of this point "
+                                 "begins (its key, 'SEQ:ATTEMPT', e.g. '6:1'), whenever that is")
 
-    def offset(self, t: NDArray | float) -> NDArray:
-        """The output's slip (degrees) at rig time(s) t."""
+    def offset(self, t: NDArray | float, at_s: float | None = None) -> NDArray:
+        """The output's slip (degrees) at rig time(s) t; ``at_s``: when it slipped, if not ``self.at_s``."""
         t = np.asarray(t, dtype=float)
-        on = (t >= self.at_s) & (t < (np.inf if self.until_s is None else self.until_s))
+        start = self.at_s if at_s is None else at_s
+        on = (t >= start) & (t < (np.inf if self.until_s is None else self.until_s))
         return np.where(on, self.degrees, 0.0)
 
 

@@ -127,6 +127,5 @@ def closure(before: tuple[list[float], int], after: tuple[list[float], int], set
     j = int(np.argmax(np.abs(diff)))
     if not abs(diff[j]) > limit * sd:
         return None
-    return (f"sensor {SENSORS[j]} reads {diff[j] * 1e3:+.3g} mV otherwise than when this mount was "
-            f"checked ({abs(diff[j]) / sd:.3g} times the scatter the station declares for a return, "
-            f"limit {limit:.3g})")
+    return (f"sensor {SENSORS[j]} reads {diff[j] * 1e3:+.3g} mV otherwise ({abs(diff[j]) / sd:.3g} times "
+            f"the scatter the station declares for a return, limit {limit:.3g})")

@@ -539,6 +539,8 @@ class Sequencer:
                     self.status("mount")
                 failed += self.until_done(self.point, step)
                 self._next = k + 1
+                if k + 1 == len(todo) or todo[k + 1].block_start:
+                    self.close_block(step.mount)
                 self.status("point")
                 if self.interrupts.pause_requested:
                     self.pause("Ctrl-C")
@@ -605,6 +607,34 @@ class Sequencer:
                 found[Mount(*data["mount"])] = (data["volts"], int(data["samples"]))
         return found
 
+    def check_again(self, mount: Mount) -> tuple[list[float], int]:
+        """Measure the mount's check attitude again, journaled as a closure: the mean volts, samples."""
+        self.move(*CHECK_ATTITUDE)
+        scan = self.measure(mount, f"closure:{mount}").scan
+        volts = [float(v) for v in mean_and_sd(scan)[0]]
+        self.note("closure", f"the check attitude on {mount} measured again",
+                  mount=[mount.y_deg, mount.u_deg], volts=volts, samples=len(scan.volts))
+        return volts, len(scan.volts)
+
+    def close_block(self, mount: Mount) -> None:
+        """After a mount's last point, return to its check attitude: the reading must be what its mount
+        check gave (`labcal.run.checks.closure`). A table, clamp or coupling that slipped during the
+        mount moves it by |S|·slip, and the drives cannot see it (their position sensors are on the
+        motors); the readings since are at another attitude than the plan's, and the run ends with
+        no certificate, every reading kept."""
+        before = self.checked().get(mount) if self.settings.check_mount else None
+        if before is None:
+            return
+        now = self.until_done(self.check_again, mount)
+        moved = closure(before, now, self.settings.settle.model_dump(),
+                        self.journal.run(self.run_id).station_text, remounted=False)
+        if moved:
+            pitch, roll = CHECK_ATTITUDE
+            why = (f"the rig is not where it was when {mount} was checked: back at its check attitude (pitch "
+                   f"{pitch:g}°, roll {roll:g}°) {moved}; a table, its clamp or its coupling slipped?")
+            self.publish(Fault(run_id=self.run_id, rig_time_s=self.rig_time(), message=why))
+            raise ReadingsRefused(f"issued no certificate: {why}")
+
     def remeasure(self, named: list[Step], first_seq: int, listed: str) -> None:
         """Measure each of ``named`` once more as a new point (seq from ``first_seq``), in the mount on
         the plate first; a new reading that settled supersedes the one it re-measures.
@@ -631,11 +661,7 @@ class Sequencer:
                                 self._provisional() if callable(self._provisional) else None)
                 self._mounted, self._mount = mount, mount_number(mount.y_deg, mount.u_deg)
             else:
-                self.until_done(self.move, *CHECK_ATTITUDE)
-                scan = self.until_done(self.measure, mount, f"closure:{mount}").scan
-                self.note("closure", f"the check attitude on {mount} measured again",
-                          mount=[mount.y_deg, mount.u_deg], volts=[float(v) for v in mean_and_sd(scan)[0]],
-                          samples=len(scan.volts))
+                self.until_done(self.check_again, mount)
             if mount not in before:
                 raise ReadingsRefused(f"{refused}, and {mount} has no mount check to return to")
             moved = closure(before[mount], self.checked()[mount], self.settings.settle.model_dump(),
