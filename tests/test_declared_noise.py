@@ -151,3 +151,37 @@ def test_fit_with_the_station_refuses_a_slipped_table_and_accepts_good_readings(
     code, out, err = cli(capsys, "fit", str(slipped), "--station", str(station))
     assert code == 2
     assert "against the station: the readings scatter" in out and "failed the gross-error checks" in err
+
+
+def test_a_return_to_the_check_attitude_flags_a_slip_and_good_returns_at_no_more_than_the_stated_rate():
+    """`labcal.run.checks.closure` on the simulated rig's station (tables stopping within ±5″): 2000
+    good returns — each table stopped anywhere within its tolerance on both visits, the DMM's noise
+    on both readings, worked through g = [sin p, cos p sin r, cos p cos r] by hand — are refused
+    within the binomial bound of its 0.5 %; a 0.05° roll slip on the way back (≈ 3.5 mV) always is."""
+    import json
+
+    from labcal.config.emulation import RigConfig
+    from labcal.run.checks import closure
+    from labcal.run.mounting import CHECK_ATTITUDE
+
+    station = json.dumps({"kind": "simulated rig", "seed": 0, "rig": RigConfig().model_dump()})
+    settle = {"noise_v": NOISE_V, "sensitivity_v_per_g": float(np.max(np.abs(TRUTH.S)))}
+    rng = np.random.default_rng(11)
+
+    def reading(pitch_err: float, roll_err: float) -> list[float]:
+        p, r = math.radians(CHECK_ATTITUDE[0] + pitch_err), math.radians(CHECK_ATTITUDE[1] + roll_err)
+        g = np.array([math.sin(p), math.cos(p) * math.sin(r), math.cos(p) * math.cos(r)])
+        volts = np.asarray(TRUTH.B) + g @ np.asarray(TRUTH.S) + rng.normal(0, NOISE_V / math.sqrt(SAMPLES), 3)
+        return volts.tolist()
+
+    def stop() -> float:
+        return float(rng.uniform(-5, 5)) / 3600  # degrees
+
+    trials = 2000
+    refused = sum(closure((reading(stop(), stop()), SAMPLES), (reading(stop(), stop()), SAMPLES), settle,
+                          station, remounted=False) is not None for _ in range(trials))
+    assert refused <= binom.ppf(0.999, trials, NOISE_ALPHA), refused
+    for _ in range(20):
+        moved = closure((reading(stop(), stop()), SAMPLES), (reading(stop(), stop() + SLIP_DEG), SAMPLES),
+                        settle, station, remounted=False)
+        assert moved is not None and "mV otherwise" in moved
