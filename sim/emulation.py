@@ -44,6 +44,8 @@ class Emulation:
         self.time_scale = time_scale or settings.time_scale
         seed = settings.seed if seed is None else seed
         self.rig = EmulatedRig(settings.rig, self.time_scale, seed, start_s)
+        # which rig table the device configured as each table drives: its own, unless they are exchanged
+        self.drives = {"pitch": "roll", "roll": "pitch"} if settings.tables_exchanged else {}
         self.faults = {name: FaultInjector() for name in ("pitch", "roll", "dmm")}
         for spec in settings.faults:
             self.faults[spec.device].add(Fault(**spec.model_dump(exclude={"device"})))
@@ -84,12 +86,12 @@ class Emulation:
         endpoint = Endpoint.of(names[0], first)
         try:
             if isinstance(first, AzSettings):
-                units = {s.unit: AzUnit(n, s.steps_per_degree, s.wrap)
+                units = {s.unit: AzUnit(self.drives.get(n, n), s.steps_per_degree, s.wrap)
                          for n, s in ((n, config.devices()[n]) for n in names) if isinstance(s, AzSettings)}
                 server: Server = AzServer(AzDrives(self.rig, units), endpoint, self.faults)
                 protocol = "Modbus TCP" if endpoint.kind == "tcp" else "Modbus RTU"
             elif isinstance(first, Smc100Settings):
-                controllers = {s.address: Positioner(n, limits=s.limits_deg or NO_LIMITS)
+                controllers = {s.address: Positioner(self.drives.get(n, n), limits=s.limits_deg or NO_LIMITS)
                                for n, s in ((n, config.devices()[n]) for n in names)
                                if isinstance(s, Smc100Settings)}
                 server = LineServer(Smc100Emulator(self.rig, controllers), endpoint, self.faults)

@@ -47,6 +47,7 @@ class SimRig:
         self._gravity = np.zeros(3)
         self._t_filter = 0.0
         self._g_filtered = self.true_gravity(0.0, 0.0)
+        self._slipped: dict[int, float] = {}  # when each output slip keyed to a point happened
 
     # --- physics -------------------------------------------------------------------------
     def true_gravity(self, pitch_deg: NDArray | float, roll_deg: NDArray | float) -> NDArray:
@@ -55,6 +56,18 @@ class SimRig:
         y, u = self.mount.radians
         mis = self.misalignment + self._mount_error + self.index_wobble.misalignment(p, r)
         return gravity(p, r, y, u, mis)
+
+    def output_angles(self, t: NDArray | float) -> tuple[NDArray, NDArray]:
+        """Where the tables' outputs are at rig time(s) t: their motors' angles plus any slip of a
+        clamp or coupling (`RigConfig.output_slips`), which the drives do not see."""
+        pitch, roll = self.pitch.angle_at(t), self.roll.angle_at(t)
+        for i, slip in enumerate(self.config.output_slips):
+            at = self._slipped.get(i, math.inf) if slip.at_point is not None else None
+            if slip.table == "pitch":
+                pitch = pitch + slip.offset(t, at)
+            else:
+                roll = roll + slip.offset(t, at)
+        return pitch, roll
 
     def _still_gravity(self, pitch_deg: float, roll_deg: float) -> NDArray:
         """`true_gravity`, remembered while the tables stand still and the mount is unchanged (a
@@ -93,13 +106,13 @@ class SimRig:
             n = max(1, math.ceil((t_still - t0) / (tau / 10) - 1e-9))  # not the clock's rounding
             edges = np.linspace(t0, t_still, n + 1)
             mids = 0.5 * (edges[:-1] + edges[1:])
-            inputs = self.true_gravity(self.pitch.angle_at(mids), self.roll.angle_at(mids))
+            inputs = self.true_gravity(*self.output_angles(mids))
             decay = math.exp(-(edges[1] - edges[0]) / tau)
             x = self._g_filtered
             for u in inputs:
                 x = u + (x - u) * decay
             self._g_filtered, t0 = x, t_still
-        u = self._still_gravity(float(self.pitch.angle_at(t)), float(self.roll.angle_at(t)))
+        u = self._still_gravity(*(float(a) for a in self.output_angles(t)))
         self._g_filtered = u + (self._g_filtered - u) * math.exp(-(t - t0) / tau)
         self._t_filter = t
 
@@ -131,7 +144,7 @@ class SimRig:
         """`sample_at` while both tables stand still, in closed form: the output relaxes towards the
         still gravity u as u + (x − u)·e^{−(t − t₀)/τ}, every sample at once."""
         self._advance_filter(float(times[0]))
-        u = self._still_gravity(float(self.pitch.angle_at(times[0])), float(self.roll.angle_at(times[0])))
+        u = self._still_gravity(*(float(a) for a in self.output_angles(times[0])))
         fade = np.exp(-(times - times[0]) / self.instrument.tau_s)[:, None]
         outputs = u + (self._g_filtered - u) * fade
         self._g_filtered, self._t_filter = outputs[-1], float(times[-1])
@@ -155,12 +168,16 @@ class SimRig:
             e, f, k = self._rng.normal(0.0, scatter, 3)
             self._mount_error = Misalignment(e=e, f=f, k=k)
         self._t_filter = self.clock.now()
-        self._g_filtered = self.true_gravity(self.pitch.position(), self.roll.position())
+        self._g_filtered = self.true_gravity(*self.output_angles(self.clock.now()))
 
     def at_point(self, key: str) -> None:
         """Draw this point's noise from the seed and the point's identity, not from one stream, so
         that a resumed run measures every point as the uninterrupted run would have."""
         self._noise = np.random.default_rng([self.seed, zlib.crc32(key.encode())])
+        for i, slip in enumerate(self.config.output_slips):
+            if slip.at_point == key and i not in self._slipped:
+                self._catch_up()
+                self._slipped[i] = self.clock.now()
 
     def station(self) -> Station:
         return Station(pitch=self.pitch, roll=self.roll, dmm=self, clock=self.clock,

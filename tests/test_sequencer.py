@@ -177,7 +177,8 @@ def test_limits_are_checked_before_anything_moves(tmp_path):
 
 def test_a_point_that_never_settles_is_retried_then_handled_by_the_policy(tmp_path):
     """The rig's noise is 20 µV; the sequencer is told to expect 2 µV, so no window ever passes
-    the scatter test: each point is retried once, recorded as failed, and the policy decides."""
+    the scatter test: each point is retried once, recorded as failed, and the policy decides. The
+    window the test refused first is journaled as discarded, with its samples: nothing taken is lost."""
     tight = SettleSettings(noise_v=2e-6, max_dwell_s=6)
     with pytest.raises(LabcalError, match="finished without enough good points to fit"):
         run_on_rig(SimRig(RigConfig(), seed=6), "one-mount-16", tmp_path,
@@ -185,8 +186,11 @@ def test_a_point_that_never_settles_is_retried_then_handled_by_the_policy(tmp_pa
     with Journal(tmp_path / "journal.sqlite") as journal:
         failed = journal.points(1, status="failed")
         retries = [e for e in journal.events(1) if e["kind"] == "retry"]
+        discarded = [e["data"] for e in journal.events(1) if e["kind"] == "discarded"]
         assert journal.run(1).status == "failed"
     assert len(failed) == 16 and len(retries) == 16
+    assert sorted(d["seq"] for d in discarded) == sorted(p.seq for p in failed)
+    assert all(d["attempt"] == 1 and len(d["samples"]) >= tight.samples for d in discarded)
     assert all(p.attempt == 2 and p.settle_verdict != "settled" for p in failed)
     (tmp_path / "abort").mkdir()
     with pytest.raises(LabcalError, match="did not settle.*on_failure = abort"):

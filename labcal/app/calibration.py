@@ -183,6 +183,16 @@ PACE_SIM_ONLY = ("--pace paces the simulated rig (--sim) only; a station's devic
                  "emulators run at --time-scale")
 
 
+def _run_status(run_dir: Path) -> str | None:
+    """The status run.json states (None where it cannot be read)."""
+    import json
+
+    try:
+        return json.loads((run_dir / "run.json").read_text(encoding="utf-8")).get("status")
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
 def _noted(front: FrontEnd) -> Callable[[str], None]:
     """A note for the operator from elsewhere (the lab server's sender): plain text, no markup."""
     return lambda line: front.say(f"note: {line}", markup=False)
@@ -224,8 +234,10 @@ def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Esti
     except LabcalError as exc:
         if not (run_dir / "run.json").exists():  # the run never started (or its folder is gone)
             raise
-        raise LabcalError(f"{exc}{_stop_failure(exc)}; {points_on_disk(run_dir)} reading(s) kept in "
-                          f"{run_dir}; continue with: labcal resume {run_dir}") from None
+        kept = f"{exc}{_stop_failure(exc)}; {points_on_disk(run_dir)} reading(s) kept in {run_dir}"
+        if _run_status(run_dir) == "failed":  # measured to the end: a resume has nothing left to measure
+            raise LabcalError(kept) from None
+        raise LabcalError(f"{kept}; continue with: labcal resume {run_dir}") from None
     record = None  # the finished run as its journal has it, read (and its fits made) once for both
     if result.device is not None:  # the device's estimate is the run's, whether or not a report is made
         from labcal.documents.device_history import store_device_estimate

@@ -64,6 +64,34 @@ def choose_model(args: argparse.Namespace, readings) -> tuple[str, str | None]:
     return model, note
 
 
+def against_station(args: argparse.Namespace, readings, fit, doc: dict, flags: list) -> list:
+    """--station FILE: the residual against what the station declares (`labcal.analysis.declared_noise`:
+    its settle noise per sample and samples per point, its tables' index and wobble), in ``doc`` as
+    "declared_noise"; the readings it names that the gross-error ``flags`` do not already."""
+    if not args.station:
+        return []
+    from labcal.analysis.declared_noise import NO_ANGLE_ERRORS, Declared, noise_check
+    from labcal.analysis.device_fit import AngleErrors
+    from labcal.config.station import load_station
+
+    config, _ = load_station(args.station)
+    if readings.units != "V":
+        raise LabcalError(f"--station: the station declares its noise in volts, the readings are in "
+                          f"{readings.units}")
+    u, settle = config.uncertainty, config.sequencer.settle
+    errors = AngleErrors(u.pitch_index, u.pitch_wobble, u.roll_index, u.roll_wobble)
+    if not errors:
+        doc["declared_noise"] = {"made": False, "summary": NO_ANGLE_ERRORS}
+        return []
+    declared = Declared.of(settle.noise_v, settle.samples, errors)
+    check = noise_check(readings, fit.coefficients[1:], declared)
+    doc["declared_noise"] = {"made": True, **check.to_json(), "summary": check.summary(readings.units)}
+    if check.passed:
+        return []
+    seen = {f.row for f in flags}
+    return [f for f in check.flags if f.row not in seen]
+
+
 def cmd_fit(args: argparse.Namespace) -> int:
     keep_freed_memory()
     import numpy as np
@@ -97,6 +125,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         doc.setdefault("notes", []).insert(0, chosen)
     flags = fit_flags(readings, fit)
     doc["gross_errors"] = [f.to_json() for f in flags]
+    flags += against_station(args, readings, fit, doc, flags)
     at = [parse_at(a) for a in args.at or []]
     if at:
         points = Points.at(*np.array(at).T)
@@ -123,6 +152,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         out.print(terms)
     for note in doc.get("notes", []):
         out.print(f"[yellow]note:[/] {note}")
+    if "declared_noise" in doc:
+        out.print(f"against the station: {doc['declared_noise']['summary']}", markup=False)
     if model == "coning":
         out.print(coning_table(coning(fit), readings.units))
     if fit.replication is not None:
@@ -160,6 +191,7 @@ def fit_device_model(args: argparse.Namespace, readings, chosen: str | None, che
     # what physics guarantees, whichever model is fitted (the same linear fit: the same flags)
     flags = checked[1] if checked else fit_flags(readings, fit.linear)
     doc["gross_errors"] = [f.to_json() for f in flags]
+    flags = [*flags, *against_station(args, readings, fit.linear, doc, flags)]
     if args.index_errors:
         from labcal.analysis.index_errors import fit_index_errors
 
@@ -183,6 +215,8 @@ def fit_device_model(args: argparse.Namespace, readings, chosen: str | None, che
         out.print(table)
     for note in doc.get("notes", []):
         out.print(f"[yellow]note:[/] {note}")
+    if "declared_noise" in doc:
+        out.print(f"against the station: {doc['declared_noise']['summary']}", markup=False)
     if fit.linear.replication is not None:
         linear = fit.linear.to_json()
         out.print(replication_table(linear["replication"], readings.units, linear["residual_standard_error"]))
@@ -313,5 +347,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--units", type=_units, metavar="V|mV|counts|m/s2",
                    help="the outputs' unit (default: what the readings file states, else V); B is then in "
                         "it and S per g in it, and only volts are held to a DMM's range")
+    p.add_argument("--station", metavar="FILE",
+                   help="also hold the residual to what this station file declares: its [sequencer.settle] "
+                        "noise_v and samples, its [uncertainty] table index and wobble (a χ² test at a 1 %% "
+                        "false-alarm rate, with the readings it cannot explain named)")
     p.add_argument("--json", action="store_true", help="print the fit as JSON on stdout")
     p.set_defaults(func=cmd_fit)

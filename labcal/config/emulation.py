@@ -119,6 +119,29 @@ class DeviceTruth(BaseModel):
         return Misalignment.from_degrees(**self.misalignment_deg)
 
 
+class OutputSlip(BaseModel):
+    """A table's output slipping against its motor: a clamp or a coupling gives way by ``degrees``
+    at rig time ``at_s`` and is re-seated at ``until_s`` (None: not during the run). The drive's
+    position sensor is on the motor (an AZ's ABZO sensor, an SMC100's encoder), so the table's
+    position and status do not see it; only the instrument does."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    table: Literal["pitch", "roll"]
+    degrees: float
+    at_s: float = Field(default=0.0, ge=0)
+    until_s: float | None = Field(default=None, ge=0)
+    at_point: str | None = Field(default=None, description="instead of at_s: as the window of this point "
+                                 "begins (its key, 'SEQ:ATTEMPT', e.g. '6:1'), whenever that is")
+
+    def offset(self, t: NDArray | float, at_s: float | None = None) -> NDArray:
+        """The output's slip (degrees) at rig time(s) t; ``at_s``: when it slipped, if not ``self.at_s``."""
+        t = np.asarray(t, dtype=float)
+        start = self.at_s if at_s is None else at_s
+        on = (t >= start) & (t < (np.inf if self.until_s is None else self.until_s))
+        return np.where(on, self.degrees, 0.0)
+
+
 class RigConfig(BaseModel):
     """Everything about the simulated rig; defaults describe a plausible lab."""
 
@@ -142,6 +165,8 @@ class RigConfig(BaseModel):
     lab_temp_swing_c: float = Field(default=0.3, ge=0)
     lab_temp_period_h: float = Field(default=6.0, gt=0)
     seed: int = 0
+    output_slips: list[OutputSlip] = Field(default_factory=list, description="faults: a table's output "
+                                           "slipping against its motor, unseen by its drive")
 
 
 def load_rig_config(path: str | Path) -> RigConfig:
@@ -188,3 +213,6 @@ class EmulationSettings(BaseModel):
     seed: int | None = Field(default=None, description="the rig's random seed (default: the rig's own)")
     rig: RigConfig = Field(default_factory=RigConfig)
     faults: list[FaultSpec] = Field(default_factory=list)
+    tables_exchanged: bool = Field(default=False, description="fault: the controller at each table's address "
+                                   "drives the other table (a station file whose addresses are swapped "
+                                   "against its devices; both answer alike)")

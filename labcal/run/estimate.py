@@ -2,7 +2,8 @@
 
 Per point: both tables' trapezoidal moves (the longer one) and the clamp, the part of the dead
 time the clamp does not overlap (the transient the move leaves, labcal.run.settle), and one window
-of samples; per mounting: the operator's remount allowance and the mount check. The settle test
+of samples; per mounting: the operator's remount allowance, the mount check and the return to its
+attitude after the mount's last point. The settle test
 usually accepts the first window, so this is also close to what a run with settle detection takes.
 
 On a station reached through its links, each point also waits for the exchanges the sequencer makes
@@ -112,10 +113,13 @@ def estimate(plan: Plan, settings: SequencerSettings, timing: Timing,
     per_step, prompt, mount_s, moves, settling, mounting = {}, {}, {}, 0.0, 0.0, 0.0
     where: NDArray[np.float64] = np.array(LOAD_POSITION, dtype=float)
     steps = schedule(plan, settings) if steps is None else steps
-    for step in steps:
+    for i, step in enumerate(steps):
         t_mount = 0.0
+        if step.block_start and i and settings.check_mount:  # the last mount's return to its check
+            t_mount += sum(move_and_settle(where, np.array(CHECK_ATTITUDE), steps[i - 1].mount)) + window_s
+            where = np.array(CHECK_ATTITUDE)
         if step.block_start:
-            prompt[step.seq] = travel(where, np.array(LOAD_POSITION))  # the tables still at the prompt
+            prompt[step.seq] = t_mount + travel(where, np.array(LOAD_POSITION))  # the tables still then
             t_mount = prompt[step.seq] + timing.remount_s + link.verify_exchanges * link.dmm_s
             if settings.check_mount:
                 t_mount += sum(move_and_settle(np.array(LOAD_POSITION), np.array(CHECK_ATTITUDE),
@@ -129,4 +133,8 @@ def estimate(plan: Plan, settings: SequencerSettings, timing: Timing,
         per_step[step.seq] = float(t_mount + t_move + t_settle + window_s)
         moves, settling, mounting = moves + t_move, settling + t_settle, mounting + float(t_mount)
         where = target
+    if steps and settings.check_mount:  # the last mount's return to its check attitude
+        closing = sum(move_and_settle(where, np.array(CHECK_ATTITUDE), steps[-1].mount)) + window_s
+        per_step[steps[-1].seq] += closing
+        mounting += closing
     return Estimate(per_step, moves, settling, window_s * len(steps), mounting, prompt, mount_s)

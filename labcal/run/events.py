@@ -175,8 +175,8 @@ class Stopped(RunEvent):
 
 
 class Discarded(RunEvent):
-    """A window the tables did not vouch for, journaled with its readings (nothing taken is lost):
-    the point is measured again, or (``faulted``) the run pauses."""
+    """A window the tables did not vouch for or the settle test refused, journaled with its readings
+    (nothing taken is lost): the point is measured again, or (``faulted``) the run pauses."""
 
     kind: Literal["discarded"] = "discarded"
     seq: int

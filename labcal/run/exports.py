@@ -71,6 +71,8 @@ def derive(journal: Journal, row: RunRow, status: str | None = None, reason: str
     if fit is not None:
         doc = fit.to_json() if device is None else device.to_json()
         doc["notes"] = [note, *doc.get("notes", [])]
+        if (status or row.status) == "failed":  # the coefficients of readings that failed: no certificate
+            doc["notes"].insert(0, f"the run failed and issues no certificate: {reason or row.reason}")
         if units != "V":  # as `labcal fit --units` states it: B in these, S in these per g
             doc["units"] = units
             doc["layout"] = {**doc["layout"], "units": coefficient_units(units)}

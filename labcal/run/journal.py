@@ -224,6 +224,11 @@ class Journal:
              f"(?, {', '.join('?' * len(names))}, ?, ?)", (run_id, *values, utc or utc_now(), blob)),
         ])
 
+    def supersede(self, run_id: int, seq: int) -> None:
+        """A point measured again in its own right (a check of the run's readings named it): its
+        reading stays, marked superseded, and no fit or export uses it."""
+        self._transaction([("UPDATE points SET status='superseded' WHERE run_id=? AND seq=?", (run_id, seq))])
+
     def event(self, run_id: int, kind: str, message: str, data: dict | None = None,
               station_time: float | None = None, utc: str | None = None) -> None:
         self._transaction([("INSERT INTO events (run_id, utc, station_time, kind, message, data) "

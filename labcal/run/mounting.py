@@ -1,34 +1,98 @@
-"""Is the instrument mounted the way the plan says? Checked before any point of a mount is kept.
+"""Is the instrument mounted the way the plan says, and is the station wired the way its file says?
+Checked at the start of a run and after every remount, before any point of a mount is kept.
 
-At level all four mounts look alike to x (g along z only separates top from bottom), so the
-check attitude is pitch 30°, roll 30°, where the four mounts' gravity vectors differ in sign on
-at least two axes. The reading is turned into g with the calibration so far when there is one,
-otherwise with the nominal instrument (B ≈ 0, S ≈ s·I, s > 0): only signs need to be right.
+One reading of gravity at one attitude answers both, if the attitude is chosen so that nothing a
+mistake can do leaves the reading alone. Gravity on the first mount is g = [sin p, cos p sin r,
+cos p cos r] (Soto §5); at pitch 33°, roll 76° that is [0.545, 0.814, 0.203]:
+
+- the tables exchanged (their addresses or cables swapped: the pitch command turns the roll table)
+  give [sin r, cos r sin p, cos r cos p] = [0.970, 0.132, 0.203]. A check where p = r, such as
+  (30°, 30°), is the same either way: it proves nothing;
+- a table turning the wrong way reverses one component (sin p, or sin r in y), none of which is near
+  zero;
+- the DMM's channels in another order permute three components of distinct sizes;
+- each mount reverses two components (`MOUNTS`).
+
+Every combination of these that is not the plan's own reads at least 0.38 g from it (a grid search
+over the attitudes, every mount; the test recomputes the separations): ~1.9 V at 5 V/g, against
+microvolts of noise. Two combinations gravity cannot tell apart at any attitude: both tables
+reversed turns the instrument 180° about z, which is the fore-and-aft mount (y = 180°); so the
+reading says "reads as if on that mount". The readings are turned into g with the calibration so
+far when there is one, otherwise with the nominal instrument (B ≈ 0, S ≈ s·I, s > 0).
 """
 
 from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from labcal.analysis.kinematics import MOUNTS, Mount, mount_gravity
 
-CHECK_ATTITUDE = (30.0, 30.0)
+CHECK_ATTITUDE = (33.0, 76.0)
+SENSORS = "xyz"
+TIE = 1e-9  # g: hypotheses this close are the same reading (rounding), the simplest one is named
 
 
-def expected_gravity(mount: Mount) -> NDArray:
-    return mount_gravity(*CHECK_ATTITUDE, mount)
+@dataclass(frozen=True)
+class Wiring:
+    """How the station might really be wired: the tables exchanged, a table turning the wrong way
+    (its sense reversed), and which of the instrument's sensors each DMM channel (x, y, z) reads."""
+
+    exchanged: bool = False
+    pitch_reversed: bool = False
+    roll_reversed: bool = False
+    channels: tuple[int, int, int] = (0, 1, 2)
+
+    @property
+    def faults(self) -> list[str]:
+        """What is wrong, in words, one phrase each (none: the station is as its file says)."""
+        found = []
+        if self.exchanged:
+            found.append("the tables look exchanged: pitch moves what the plan calls roll (check the "
+                         "tables' addresses or cables)")
+        for name, reversed_ in (("pitch", self.pitch_reversed), ("roll", self.roll_reversed)):
+            if reversed_:
+                found.append(f"the {name} table turns the wrong way (its sense is reversed)")
+        if self.channels != (0, 1, 2):
+            read = ", ".join(SENSORS[c] for c in self.channels)
+            found.append(f"the DMM's channels look exchanged: its x, y, z channels read the instrument's "
+                         f"{read}")
+        return found
+
+    def gravity(self, pitch_deg: float, roll_deg: float, mount: Mount) -> NDArray[np.float64]:
+        """The gravity each DMM channel reads when the plan commands (pitch, roll) on ``mount``."""
+        pitch, roll = (roll_deg, pitch_deg) if self.exchanged else (pitch_deg, roll_deg)
+        pitch, roll = -pitch if self.pitch_reversed else pitch, -roll if self.roll_reversed else roll
+        return mount_gravity(pitch, roll, mount)[list(self.channels)]
 
 
-def identify(volts: NDArray, provisional: NDArray | None = None) -> Mount:
-    """The mount whose check-attitude gravity best matches the mean voltages. ``provisional`` is
-    an X (4×3) fitted from the points measured so far, if any."""
+AS_STATED = Wiring()
+WIRINGS = [Wiring(e, p, r, (c[0], c[1], c[2])) for e, p, r in itertools.product((False, True), repeat=3)
+           for c in itertools.permutations(range(3))]
+
+
+def expected_gravity(mount: Mount, wiring: Wiring = AS_STATED) -> NDArray[np.float64]:
+    return wiring.gravity(*CHECK_ATTITUDE, mount)
+
+
+def identify(volts: NDArray, provisional: NDArray | None = None, stated: Mount | None = None
+             ) -> tuple[Mount, Wiring]:
+    """The mount and wiring whose check-attitude gravity best matches the mean voltages; among those
+    that read alike, the one with the fewest faults, on the ``stated`` mount if it is one of them.
+    ``provisional`` is an X (4×3) fitted from the points measured so far, if any."""
     volts = np.asarray(volts, float)
     if provisional is not None:
         g = np.linalg.solve(provisional[1:].T, volts - provisional[0])
     else:
         g = volts / np.linalg.norm(volts)
-    return min(MOUNTS, key=lambda m: float(np.linalg.norm(g - expected_gravity(m))))
+    candidates = sorted(((m, w) for w in WIRINGS for m in MOUNTS),
+                        key=lambda c: (len(c[1].faults), c[0] != stated))
+    distance = [float(np.linalg.norm(g - expected_gravity(m, w))) for m, w in candidates]
+    best = min(distance)
+    return next(c for c, d in zip(candidates, distance, strict=True) if d <= best + TIE)
 
 
 def drawing(mount: Mount) -> list[str]:

@@ -29,7 +29,7 @@ from labcal.run.journaling import subscribe_journal
 from labcal.run.lock import RunLock
 from labcal.run.operator import Operator, Terminal
 from labcal.run.rundir import make_run_dir, open_run
-from labcal.run.sequencer import Forecast, RunOutcome, Sequencer, Step, schedule
+from labcal.run.sequencer import Forecast, ReadingsRefused, RunOutcome, Sequencer, Step, schedule
 from labcal.run.station import Station
 
 MIN_POINTS_FOR_MOUNT_CHECK_FIT = 8
@@ -132,6 +132,9 @@ def execute(journal: Journal, run_id: int, run_dir: Path, plan: Plan, station: S
             status, reason = "complete", None
         except KeyboardInterrupt as exc:
             reason, ended = getattr(exc, "reason", reason), exc  # a StopSignal names what stopped the run
+            raise
+        except ReadingsRefused as exc:  # every point measured, and the readings fail their checks
+            status, reason, ended = "failed", str(exc), exc
             raise
         except BaseException as exc:
             status, reason, ended = "stopped", str(exc) or type(exc).__name__, exc

@@ -14,15 +14,17 @@ from __future__ import annotations
 import logging
 import sqlite3
 from contextlib import nullcontext
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from labcal.analysis.kinematics import Mount
 from labcal.analysis.plan import Plan
 from labcal.config.settings import SequencerSettings
+from labcal.config.station import output_units
 from labcal.errors import LabcalError
 from labcal.run import settle_pool
+from labcal.run.checks import Verdict, check_readings, closure
 from labcal.run.events import (
     Answer,
     Discarded,
@@ -60,6 +62,16 @@ class PolicyAbort(LabcalError):
 
 class TableFault(LabcalError):
     """A table reported a fault around a measurement window: the run stops the tables and pauses."""
+
+
+class StationMiswired(LabcalError):
+    """The mount check reads the tables exchanged, a table reversed or the DMM's channels out of order
+    (`labcal.run.mounting`): the run stops the tables and pauses before any point of the mount."""
+
+
+class ReadingsRefused(LabcalError):
+    """The run's readings fail the checks of their fit after the points named were measured again:
+    the run ends "failed", every reading kept, with no certificate."""
 
 
 MOUNT_ATTEMPTS = 3
@@ -279,6 +291,8 @@ class Sequencer:
     _next: int = 0  # the index in the todo of the next step to measure
     _todo: list[Step] = field(default_factory=list)
     _home: tuple[RotaryAxis, ...] = ()  # tables to home before the next action (agreed at a pause)
+    _mounted: Mount | None = None  # the mount on the plate, once confirmed
+    _provisional: object = None  # `run`'s provisional(): an X from the points so far, for a mount check
 
     # --- motion ----------------------------------------------------------------------------------
     def move(self, pitch: float, roll: float, winding: Winding | None = None) -> tuple[float, float]:
@@ -439,7 +453,9 @@ class Sequencer:
 
     def mount(self, mount: Mount, step: int, n_steps: int, why: str,
               provisional: np.ndarray | None) -> None:
-        """Move to the load position, have the operator mount, and verify the mount from gravity."""
+        """Move to the load position, have the operator mount, and verify the mount from gravity. The
+        check's reading is journaled with the mount's note: a return to it later (`verify`) shows
+        whether the rig is still where it was."""
         note = why
         for _ in range(MOUNT_ATTEMPTS):
             self.move(*LOAD_POSITION)
@@ -455,11 +471,19 @@ class Sequencer:
                 return
             self.move(*CHECK_ATTITUDE)
             check = self.measure(mount, f"check:{mount}")
-            seen = identify(mean_and_sd(check.scan)[0], provisional)
+            volts = mean_and_sd(check.scan)[0]
+            seen, wiring = identify(volts, provisional, mount)
+            if wiring.faults:  # no remount mends it: the station's file or cables must change
+                raise StationMiswired(f"the mount check on {mount} (pitch {CHECK_ATTITUDE[0]:g}°, roll "
+                                      f"{CHECK_ATTITUDE[1]:g}°): {'; '.join(wiring.faults)}")
             if seen == mount:
-                self.note("mount", f"mount verified: {mount}")
+                self.note("mount", f"mount verified: {mount}", mount=[mount.y_deg, mount.u_deg],
+                          check_deg=list(CHECK_ATTITUDE), volts=[float(v) for v in volts],
+                          samples=len(check.scan.volts))
                 return
             note = f"the instrument reads as if on the {seen.describe()}; please correct it"
+            if seen.u_deg == mount.u_deg:  # turned 180° about z: both tables reversed read so too
+                note += " (if it is mounted as asked, both tables turn the wrong way)"
             self.publish(Fault(run_id=self.run_id, rig_time_s=self.rig_time(),
                                message=f"wrong mount: expected {mount}, reads as {seen}"))
         raise OperatorDeclined(f"the instrument was not mounted as {mount.describe()} after "
@@ -505,6 +529,7 @@ class Sequencer:
         mounted: Mount | None = None
         failed = 0
         self._next = 0
+        self._provisional = provisional
         self.status("start")
         try:
             for k, step in enumerate(todo):
@@ -518,14 +543,17 @@ class Sequencer:
                         why = ""
                     index = sum(1 for b in blocks if b.seq <= step.seq)
                     self.until_done(self.mount, step.mount, index, len(blocks), why, provisional())
-                    mounted = step.mount
+                    mounted = self._mounted = step.mount
                     self._mount = mount_number(step.mount.y_deg, step.mount.u_deg)
                     self.status("mount")
                 failed += self.until_done(self.point, step)
                 self._next = k + 1
+                if k + 1 == len(todo) or todo[k + 1].block_start:
+                    self.close_block(step.mount)
                 self.status("point")
                 if self.interrupts.pause_requested:
                     self.pause("Ctrl-C")
+            self.verify(steps)
         except BaseException as exc:
             self.stop_tables(exc)
             raise
@@ -533,6 +561,133 @@ class Sequencer:
             self._keep_pool()
         recorded = len(self.journal.points(self.run_id, status="ok"))
         return RunOutcome(recorded, failed, self.station.clock.now() - self._t0)  # since the run began
+
+    # --- the readings judged -------------------------------------------------------------------
+    def judge(self) -> tuple[Verdict | None, list[PointRecord]]:
+        """The checks of the run's good points (`labcal.run.checks`), and those points in the
+        readings' order; None where they cannot be fitted yet (the run's end says so)."""
+        row = self.journal.run(self.run_id)
+        points = self.journal.points(self.run_id, status="ok")
+        settle = self.settings.settle.model_dump()
+        try:
+            readings = replace(self.journal.readings(self.run_id), units=output_units(row.station_text))
+            return check_readings(readings, row.plan_text, row.station_text, settle), points
+        except LabcalError:
+            return None, points
+
+    def verify(self, steps: list[Step]) -> None:
+        """Judge the run's readings as `labcal fit` judges a readings file, before the run can end
+        complete. The points a check names are measured once more (`remeasure`), each new reading in
+        the place of the one it re-measures; readings that still fail end the run with no certificate
+        (`ReadingsRefused`), every reading kept. A resumed run that re-measured already does not again."""
+        verdict, points = self.judge()
+        if verdict is None or verdict.passed:
+            if verdict is not None:
+                self.note("checks", "the readings pass the checks of their fit"
+                          + (f"; {verdict.note}" if verdict.note else " and the declared noise"))
+            return
+        named = [steps[points[r - 1].seq] for r in verdict.rows if points[r - 1].seq < len(steps)]
+        again = any(p.seq >= len(steps) for p in self.journal.points(self.run_id))
+        why = verdict.summary()
+        self.publish(Fault(run_id=self.run_id, rig_time_s=self.rig_time(),
+                           message=f"the readings fail the checks of their fit: {why}"))
+        listed = ", ".join(str(s.seq) for s in named)
+        if not named or again:
+            raise ReadingsRefused(f"issued no certificate: the readings fail the checks of their fit"
+                                  f"{f' (point(s) {listed})' if listed else ''}: {why}")
+        self.note("checks", f"measuring point(s) {listed} again: {why}", points=[s.seq for s in named])
+        self.remeasure(named, len(steps), listed)
+        verdict, points = self.judge()
+        if verdict is None or verdict.passed:
+            self.note("checks", f"the readings pass the checks of their fit once point(s) {listed} were "
+                      "measured again")
+            return
+        still = ", ".join(str(points[r - 1].seq) for r in verdict.rows)
+        still = f" (point(s) {still})" if still else ""
+        raise ReadingsRefused(f"issued no certificate: point(s) {listed} failed the checks of their fit, and "
+                              f"measured again the readings still fail them{still}: {verdict.summary()}")
+
+    def checked(self) -> dict[Mount, tuple[list[float], int]]:
+        """The last mount check's reading of each mount, as the journal has it (mean volts, samples)."""
+        found = {}
+        for event in self.journal.events(self.run_id):
+            data = event["data"] or {}
+            if event["kind"] in ("mount", "closure") and "volts" in data:
+                found[Mount(*data["mount"])] = (data["volts"], int(data["samples"]))
+        return found
+
+    def check_again(self, mount: Mount) -> tuple[list[float], int]:
+        """Measure the mount's check attitude again, journaled as a closure: the mean volts, samples."""
+        self.move(*CHECK_ATTITUDE)
+        scan = self.measure(mount, f"closure:{mount}").scan
+        volts = [float(v) for v in mean_and_sd(scan)[0]]
+        self.note("closure", f"the check attitude on {mount} measured again",
+                  mount=[mount.y_deg, mount.u_deg], volts=volts, samples=len(scan.volts))
+        return volts, len(scan.volts)
+
+    def close_block(self, mount: Mount) -> None:
+        """After a mount's last point, return to its check attitude: the reading must be what its mount
+        check gave (`labcal.run.checks.closure`). A table, clamp or coupling that slipped during the
+        mount moves it by |S|·slip, and the drives cannot see it (their position sensors are on the
+        motors); the readings since are at another attitude than the plan's, and the run ends with
+        no certificate, every reading kept."""
+        before = self.checked().get(mount) if self.settings.check_mount else None
+        if before is None:
+            return
+        now = self.until_done(self.check_again, mount)
+        moved = closure(before, now, self.settings.settle.model_dump(),
+                        self.journal.run(self.run_id).station_text, remounted=False)
+        if moved:
+            pitch, roll = CHECK_ATTITUDE
+            why = (f"the rig is not where it was when {mount} was checked: back at its check attitude (pitch "
+                   f"{pitch:g}°, roll {roll:g}°) {moved}; a table, its clamp or its coupling slipped?")
+            self.publish(Fault(run_id=self.run_id, rig_time_s=self.rig_time(), message=why))
+            raise ReadingsRefused(f"issued no certificate: {why}")
+
+    def remeasure(self, named: list[Step], first_seq: int, listed: str) -> None:
+        """Measure each of ``named`` once more as a new point (seq from ``first_seq``), in the mount on
+        the plate first; a new reading that settled supersedes the one it re-measures.
+
+        Only a fault that has passed can be measured away: a table or coupling that slipped and stays
+        slipped makes the new readings agree with the later ones and not with the earlier, whichever
+        the checks named. So each mount's check attitude is measured again first (after a remount:
+        by its mount check) and compared with its reading when the mount was checked
+        (`labcal.run.checks.closure`); a rig that is not where it was refuses the run. Without a
+        mount check nothing tells the two apart: the run is refused."""
+        refused = f"issued no certificate: point(s) {listed} fail the checks of their fit"
+        if not self.settings.check_mount:
+            raise ReadingsRefused(f"{refused}, and without the mount check (--no-mount-check) measuring them "
+                                  "again cannot show that the rig is still where it was")
+        before = self.checked()
+        mounts = list(dict.fromkeys([s.mount for s in named if s.mount == self._mounted] +
+                                    [s.mount for s in named]))
+        self._points_total += len(named)
+        seq = first_seq
+        for i, mount in enumerate(mounts):
+            remounted = mount != self._mounted
+            if remounted:
+                self.until_done(self.mount, mount, i + 1, len(mounts), "re-seat it to measure points again",
+                                self._provisional() if callable(self._provisional) else None)
+                self._mounted, self._mount = mount, mount_number(mount.y_deg, mount.u_deg)
+            else:
+                self.until_done(self.check_again, mount)
+            if mount not in before:
+                raise ReadingsRefused(f"{refused}, and {mount} has no mount check to return to")
+            moved = closure(before[mount], self.checked()[mount], self.settings.settle.model_dump(),
+                            self.journal.run(self.run_id).station_text, remounted)
+            if moved:
+                pitch, roll = CHECK_ATTITUDE
+                raise ReadingsRefused(f"{refused}, and the rig is not where it was: at the check attitude "
+                                      f"(pitch {pitch:g}°, roll {roll:g}°) on {mount}, {moved}; a table, "
+                                      "its clamp or its coupling slipped?")
+            for old in (s for s in named if s.mount == mount):
+                new = Step(seq, old.replicate, old.mount, old.pitch_deg, old.roll_deg, block_start=False)
+                seq += 1
+                if not self.until_done(self.point, new):  # it settled: it takes the old one's place
+                    with self.interrupts.critical():
+                        self.journal.supersede(self.run_id, old.seq)
+                    self.note("remeasured", f"point {old.seq} measured again as point {new.seq}",
+                              seq=old.seq, by=new.seq)
 
     def stop_tables(self, cause: BaseException) -> None:
         """Stop both tables, uninterrupted, and journal whether the stop reached them. A failed
@@ -628,7 +783,8 @@ class Sequencer:
                 why, faulted = unvouched(before, self.tables())
                 if why or result.verdict.settled:
                     break
-                if attempt == 1:
+                if attempt == 1:  # the window the settle test refused is kept with its samples
+                    self.discard(step, attempt, result, f"did not settle: {result.verdict.reason}", False)
                     self.note("retry",
                                f"point {step.seq} did not settle ({result.verdict.reason}); retrying")
             if why is None:
