@@ -19,7 +19,7 @@ import pytest
 from labcal.cli import build_parser, main
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
-CONTRACT = ("replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", "vx", "vy", "vz")  # README, docs/design.md
+CONTRACT = ("replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", "vx", "vy", "vz")  # docs/design.md §5
 MISALIGN = "a=0.3,b=-0.2,d=0.1,e=0.4,f=-0.3,k=0.2"
 
 

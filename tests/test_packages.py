@@ -161,7 +161,7 @@ def test_eq_90_agrees_with_monte_carlo_of_the_newton_inference():
     cov = inferred_covariance(package, sigma, alpha, roll)
     assert np.allclose(z.std(axis=0, ddof=1), np.sqrt(np.diag(cov)), rtol=0.04)
     corr = cov[0, 1] / np.sqrt(cov[0, 0] * cov[1, 1])
-    assert float(np.corrcoef(z[:, 0], z[:, 1])[0, 1]) == pytest.approx(corr, abs=0.06)  # SE (1 − ρ²)/√n ≈ 0.02
+    assert float(np.corrcoef(z[:, 0], z[:, 1])[0, 1]) == pytest.approx(corr, abs=0.06)  # SE ≈ 0.02
 
 
 def test_newton_refuses_the_singular_attitude():

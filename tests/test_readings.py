@@ -23,7 +23,7 @@ def test_round_trip_is_bit_exact(tmp_path):
         assert np.array_equal(getattr(back, name), getattr(readings, name)), name
     assert back.temp_c is None
     header = (tmp_path / "r.csv").read_text().splitlines()[0]
-    assert header == "replicate,y_deg,u_deg,pitch_deg,roll_deg,vx,vy,vz"  # the contract of README/docs/design.md
+    assert header == "replicate,y_deg,u_deg,pitch_deg,roll_deg,vx,vy,vz"  # docs/design.md §5
 
 
 def test_extra_columns_in_any_order_are_ignored_and_temperature_is_read(tmp_path):

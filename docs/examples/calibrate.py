@@ -12,5 +12,6 @@ folder = Path(sys.argv[1] if len(sys.argv) > 1 else "runs")
 finished = labcal.run(sim=True, plan="one-mount-16", seed=7, out=str(folder), say=print)
 assert isinstance(finished, labcal.Finished), finished  # an unattended simulated run ends complete
 certificate = labcal.read_certificate(finished.run_dir / "certificate.json")
-print(f"certificate {certificate.certificate_id}: largest pitch U95 {certificate.attitude.pitch_U95_max_deg:.5f}°")
+largest = certificate.attitude.pitch_U95_max_deg
+print(f"certificate {certificate.certificate_id}: largest pitch U95 {largest:.5f}°")
 print(f"the run's {labcal.open_run(finished.run_dir).points} points are in {finished.journal}")

@@ -13,8 +13,9 @@ if TYPE_CHECKING:
 
 
 def rich_table(t) -> RichTable:
-    """A report table (`labcal.documents.report_tables.Table`) for the terminal. Its text is the report's, not rich
-    markup: escaped, so that "[certificate]" (a station file's section) is printed, not eaten."""
+    """A report table (`labcal.documents.report_tables.Table`) for the terminal. Its text is the
+    report's, not rich markup: escaped, so that "[certificate]" (a station file's section) is printed,
+    not eaten."""
     from rich.markup import escape
     from rich.table import Table as RichTable
 
