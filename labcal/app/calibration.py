@@ -330,7 +330,16 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
                 plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, events,
                 setup.metadata, args.serial, args.operator, steps, terminal=terminal, forecast=forecast),
                 run_dir, plan, est, 0, args.db, args.no_report, cert_settings,
-                notifier=RunNotifier(notifications, station_label(setup.metadata), run_dir), sender=sender)
+                notifier=RunNotifier(notifications, station_label(setup.metadata), run_dir,
+                                     _lab_label(journal.path, args.db)), sender=sender)
+
+
+def _lab_label(journal: Path, db: str | Path | None) -> Callable[[int], str]:
+    """How a notification names the run: by the lab's number (its provisional label until the lab
+    has numbered it), as every bench, page and API answer does."""
+    from labcal.run.labquery import lab_number_of
+
+    return lambda run_id: lab_number_of(journal, run_id, db)
 
 
 def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Path | None, front: FrontEnd,
@@ -446,7 +455,8 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
             ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, events,
             steps, terminal=terminal, forecast=forecast),
             run_dir, ctx.plan, est, len(points), args.db, args.no_report, cert_settings, ctx.journal.path,
-            notifier=RunNotifier(notifications, station_label(ctx.metadata), run_dir), sender=sender)
+            notifier=RunNotifier(notifications, station_label(ctx.metadata), run_dir,
+                                 _lab_label(ctx.journal.path, args.db)), sender=sender)
 
 
 def finish_complete(args: ResumeRun, run_dir: Path, run_id: int,

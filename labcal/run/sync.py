@@ -44,14 +44,41 @@ BACKOFF_MAX_S = 10.0
 FLUSH_S = 5.0  # what the end of a run waits for the server, at most
 
 
+@dataclass(frozen=True)
+class Record:
+    """A table of the lab's records other than runs, sent whole and again whenever it changes: its
+    key, and the columns whose values change when the record does (its state, kept per lab database
+    in the journal's ``sync_sent`` once the lab has committed it)."""
+
+    table: str
+    key: tuple[str, ...]
+    state: tuple[str, ...]
+
+
+# A certificate re-stored under its id (approved, re-issued) has a new digest; an estimate stored
+# again from the same run a new storing time; an approver revoked a revocation time; a settle pool a
+# new update time.
+RECORDS = (
+    Record("certificates", ("certificate_id",), ("sha256", "issued_utc")),
+    Record("device_estimates", ("device_id", "source"), ("stored_utc",)),
+    Record("approvers", ("key_id",), ("revoked_utc",)),
+    Record("settle_pools", ("pool_key",), ("updated_utc",)),
+)
+NAMES = ("runs", "points", "events", *(r.table for r in RECORDS))
+SEP = "char(31)"  # between a composite key's parts (never in a device id, run uuid or date)
+
+
+def _joined(columns: tuple[str, ...]) -> str:
+    """SQLite text of several columns, one value: what `sync_sent` keeps of a key or a state."""
+    return f" || {SEP} || ".join(f"coalesce(CAST(t.{c} AS TEXT), '')" for c in columns)
+
+
 @dataclass
 class Sent:
     """What one push sent: rows offered to the server per table, and rows it did not have yet."""
 
-    offered: dict[str, int] = field(default_factory=lambda: dict.fromkeys(("runs", "points", "events",
-                                                                            "certificates"), 0))
-    stored: dict[str, int] = field(default_factory=lambda: dict.fromkeys(("runs", "points", "events",
-                                                                           "certificates"), 0))
+    offered: dict[str, int] = field(default_factory=lambda: dict.fromkeys(NAMES, 0))
+    stored: dict[str, int] = field(default_factory=lambda: dict.fromkeys(NAMES, 0))
 
     def add(self, other: Sent) -> None:
         for name in self.offered:
@@ -94,10 +121,26 @@ class Sender:
         with closing(self._local()) as db:
             marks = self._cursors(db)
             out = {"runs": len(self._runs_to_send(db))}
-            for name, key in (("points", "rowid"), ("events", "id"), ("certificates", "rowid")):
+            for name, key in (("points", "rowid"), ("events", "id")):
                 out[name] = db.execute(f"SELECT count(*) FROM {name} WHERE {key} > ?",
                                        (marks.get(name, 0),)).fetchone()[0]
+            for record in RECORDS:
+                out[record.table] = len(self._records_to_send(db, record, None))
             return out
+
+    def _records_to_send(self, db: sqlite3.Connection, record: Record, limit: int | None
+                         ) -> list[tuple]:
+        """A record table's rows whose state this lab database has not committed: (key, state, row)."""
+        from labcal.run import schema
+
+        columns = [c.name for c in schema.METADATA.tables[record.table].columns if c.name != "id"]
+        key, state = _joined(record.key), _joined(record.state)
+        rows = db.execute(
+            f"SELECT {key}, {state}, {', '.join('t.' + c for c in columns)} FROM {record.table} t "
+            f"LEFT JOIN sync_sent s ON s.target = ? AND s.name = ? AND s.key = {key} "
+            f"WHERE s.state IS NULL OR s.state != {state} ORDER BY t.rowid LIMIT ?",
+            (self.target, record.table, -1 if limit is None else limit)).fetchall()
+        return [(row[0], row[1], dict(zip(columns, row[2:], strict=True))) for row in rows]
 
     def _cursors(self, db: sqlite3.Connection) -> dict[str, int]:
         return dict(db.execute("SELECT name, position FROM sync_cursors WHERE target=?", (self.target,)))
@@ -122,6 +165,10 @@ class Sender:
                 step = self._push_once(db)
                 sent.add(step)
                 if step.total == 0:
+                    # everything the journal holds is in the lab: what a bench that cannot reach
+                    # it later names as the age of its own view
+                    db.execute("INSERT INTO sync_targets (target, synced_utc) VALUES (?, ?) ON CONFLICT "
+                               "(target) DO UPDATE SET synced_utc=excluded.synced_utc", (self.target, _utc()))
                     return sent
 
     def _push_once(self, db: sqlite3.Connection) -> Sent:
@@ -133,7 +180,6 @@ class Sender:
 
         point_columns = tuple(c.name for c in schema.points.columns if c.name != "run_id")
         run_columns = tuple(c.name for c in schema.runs.columns if c.name not in ("id", "station"))
-        certificate_columns = tuple(c.name for c in schema.certificates.columns)
 
         sent = Sent()
         marks = self._cursors(db)
@@ -149,11 +195,7 @@ class Sender:
                 # as journaled (`Journal.start_run`); a run journaled before runs named their
                 # station was journaled here, at this station
                 values["station"] = row[-1] or self.station
-                statement = insert(schema.runs).values(**values).on_conflict_do_update(
-                    index_elements=["uuid"],
-                    set_={"status": values["status"], "reason": values["reason"],
-                          "ended_utc": values["ended_utc"], "points_total": values["points_total"]})
-                lab_id = server.execute(statement.returning(schema.runs.c.id)).scalar_one()
+                lab_id = lab_number(server, values)
                 lab_ids[run_id] = lab_id
                 run_rows.append((self.target, run_id, lab_id, state))
             sent.offered["runs"] = sent.stored["runs"] = len(run_rows)
@@ -165,15 +207,16 @@ class Sender:
                 server, db, "events", "id", marks.get("events", 0), EVENT_COLUMNS, lab_ids,
                 lambda rows: insert(schema.events).values(rows).on_conflict_do_nothing(
                     index_elements=["run_id", "origin_id"]), origin=True)
-            moved_certs, sent.offered["certificates"], sent.stored["certificates"] = self._send_rows(
-                server, db, "certificates", "rowid", marks.get("certificates", 0), certificate_columns,
-                None, lambda rows: insert(schema.certificates).values(rows).on_conflict_do_nothing(
-                    index_elements=["certificate_id"]))
-        for name, position in (("points", moved_points), ("events", moved_events),
-                               ("certificates", moved_certs)):
+            records = []
+            for record in RECORDS:
+                pending = self._records_to_send(db, record, BATCH)
+                sent.offered[record.table] = len(pending)
+                sent.stored[record.table] = send_records(server, record, [row for _, _, row in pending])
+                records += [(self.target, record.table, key, state) for key, state, _ in pending]
+        for name, position in (("points", moved_points), ("events", moved_events)):
             if position is not None:
                 moved[name] = position
-        if run_rows or moved:  # the server has committed: now the journal may say so
+        if run_rows or moved or records:  # the server has committed: now the journal may say so
             db.execute("BEGIN IMMEDIATE")
             try:
                 db.executemany("INSERT INTO sync_runs (target, run_id, lab_run_id, sent) VALUES (?,?,?,?) "
@@ -182,6 +225,8 @@ class Sender:
                 db.executemany("INSERT INTO sync_cursors (target, name, position) VALUES (?,?,?) "
                                "ON CONFLICT (target, name) DO UPDATE SET position=excluded.position",
                                [(self.target, n, p) for n, p in moved.items()])
+                db.executemany("INSERT INTO sync_sent (target, name, key, state) VALUES (?,?,?,?) "
+                               "ON CONFLICT (target, name, key) DO UPDATE SET state=excluded.state", records)
                 db.execute("COMMIT")
             except BaseException:
                 if db.in_transaction:
@@ -216,6 +261,75 @@ class Sender:
         result = server.execute(statement(values))  # type: ignore[call-overload]
         stored = result.rowcount if result.rowcount is not None and result.rowcount >= 0 else len(values)
         return last, len(values), stored
+
+
+RUN_NUMBER_LOCK = 0x6C616272  # "labr": serialises numbering the lab's runs (one transaction at a time)
+
+
+def lab_number(server: Connection, values: dict) -> int:
+    """The lab's number of a run (``values``: its journaled columns), given the first time any bench
+    sends it and never again: a run the lab knows (by its uuid) keeps its number and has its status
+    updated; a new one gets the next number, one more than the highest, under a lock held until the
+    sending transaction commits, so the lab's runs are numbered 1, 2, 3 … in the order they reached
+    it, without a gap (a database sequence would leave one at every rolled-back or conflicting insert)."""
+    from sqlalchemy import func, select, text, update
+
+    from labcal.run.schema import runs
+
+    def known() -> int | None:
+        return server.execute(select(runs.c.id).where(runs.c.uuid == values["uuid"])).scalar()
+
+    status = {name: values[name] for name in ("status", "reason", "ended_utc", "points_total")}
+    number = known()
+    if number is None:
+        server.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": RUN_NUMBER_LOCK})
+        number = known()  # sent meanwhile by another process of this bench (a run's sender, labcal sync)
+    if number is not None:
+        server.execute(update(runs).where(runs.c.id == number).values(**status))
+        return number
+    number = int(server.execute(select(func.coalesce(func.max(runs.c.id), 0) + 1)).scalar_one())
+    server.execute(runs.insert().values(id=number, **values))
+    # the column's own sequence follows, so that nothing else inserting a run takes a number twice
+    server.execute(text("SELECT setval(pg_get_serial_sequence('runs', 'id'), :n)"), {"n": number})
+    return number
+
+
+def send_records(server: Connection, record: Record, rows: list[dict]) -> int:
+    """Records into the lab database, each stored once under its key; one sent again because it
+    changed replaces the lab's copy (a certificate approved or re-issued under its id, an estimate
+    stored again, a pool that grew) unless the lab's is newer, and an approver's revocation is kept.
+    Returns how many rows the lab database changed."""
+    if not rows:
+        return 0
+    from sqlalchemy import update
+    from sqlalchemy.dialects.postgresql import insert
+
+    from labcal.run import schema
+
+    table = schema.METADATA.tables[record.table]
+    statement = insert(table).values(rows)
+    if record.table == "approvers":
+        # a name active twice (two benches registered two keys for it offline) is refused by the
+        # lab's unique index: the first registration stands, as it would have on one database
+        stored = _count(server.execute(statement.on_conflict_do_nothing()), len(rows))
+        for row in rows:
+            if row["revoked_utc"] is not None:
+                stored += _count(server.execute(
+                    update(table).where(table.c.key_id == row["key_id"], table.c.revoked_utc.is_(None))
+                    .values(revoked_utc=row["revoked_utc"])), 1)
+        return stored
+    # a certificate whose digest differs; an estimate or a pool stored later than the lab's copy
+    newer = (table.c.sha256 != statement.excluded.sha256 if record.table == "certificates" else
+             table.c[record.state[0]] < statement.excluded[record.state[0]])
+    changed = {c.name: statement.excluded[c.name] for c in table.columns if c.name not in record.key}
+    upsert = statement.on_conflict_do_update(index_elements=list(record.key), set_=changed, where=newer)
+    return _count(server.execute(upsert), len(rows))
+
+
+def _count(result: object, at_most: int) -> int:
+    """Rows a statement changed (where the driver cannot say: every row it was given)."""
+    count = getattr(result, "rowcount", None)
+    return count if isinstance(count, int) and count >= 0 else at_most
 
 
 def is_outage(exc: BaseException) -> bool:
