@@ -411,9 +411,11 @@ def device_correction(device_id: str, db):
 
     from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES
     from labcal.analysis.optimize import DeviceCorrection
-    from labcal.documents.device_history import changes, estimates_for
+    from labcal.documents.device_history import changes, estimates_read
 
-    estimates = estimates_for(device_id, db)  # an unknown device: one line naming the known ones
+    estimates, stale = estimates_read(device_id, db)  # an unknown device: one line naming the known ones
+    if stale:
+        err.print(stale, markup=False)
     if len(estimates) < 2:
         return None, (f"device {device_id} has {len(estimates)} estimate(s); two are needed to judge it in "
                       "control")

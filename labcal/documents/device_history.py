@@ -114,16 +114,21 @@ def store(estimate: DeviceEstimate, db: str | Path | None = None) -> Path:
 
 
 def estimates_for(device_id: str, db: str | Path | None = None) -> list[DeviceEstimate]:
-    """The device's estimates, oldest calibration first."""
+    """The device's estimates, oldest calibration first (`estimates_read`)."""
+    return estimates_read(device_id, db)[0]
+
+
+def estimates_read(device_id: str, db: str | Path | None = None) -> tuple[list[DeviceEstimate], str | None]:
+    """The device's estimates, oldest calibration first: every bench's, where the lab database is a
+    server; and the line saying the lab could not be reached (None: read from it)."""
     from labcal.documents.history import stored_rows  # with the certificates: not on a run's path
 
-    path, rows = stored_rows(
-        db, "SELECT document FROM device_estimates WHERE device_id = ? ORDER BY calibrated_utc, source",
-        device_id, "SELECT DISTINCT device_id FROM device_estimates ORDER BY 1",
+    stored = stored_rows(
+        db, "device_estimates", "device_id", device_id, ("document",), ("calibrated_utc", "source"),
         f"no device estimates for {device_id!r}", "known devices",
         "a finished run stores its device estimate there")
     found = []
-    for (text,) in rows:
+    for (text,) in stored.rows:
         try:
             doc = json.loads(text)
             mis = doc["misalignments"]
@@ -131,8 +136,9 @@ def estimates_for(device_id: str, db: str | Path | None = None) -> list[DeviceEs
                                         {n: float(mis[n]["value_arcsec"]) for n in MISALIGNMENT_NAMES},
                                         {n: float(mis[n]["U_arcsec"]) for n in MISALIGNMENT_NAMES}))
         except (ValueError, KeyError, TypeError) as exc:
-            raise LabcalError(f"{path}: a device estimate of {device_id!r} is damaged ({exc})") from None
-    return found
+            raise LabcalError(f"{stored.shown}: a device estimate of {device_id!r} is damaged "
+                              f"({exc})") from None
+    return found, stored.stale
 
 
 @dataclass(frozen=True)

@@ -337,3 +337,41 @@ def lab_number_of(journal: Path, run_id: int, db: str | Path | None = None) -> s
 
 def is_server(db: str | Path | None) -> bool:
     return isinstance(lab_database(db), ServerDatabase)
+
+
+# --- the lab's records: certificates, device estimates, approvers, settle pools -------------------
+@dataclass(frozen=True)
+class Rows:
+    """A read of one of the lab's record tables: its rows, and where they were read."""
+
+    rows: list[tuple]
+    source: Source
+    exists: bool = True  # False: no database to read (a SQLite lab file not made yet)
+
+
+def records(db: str | Path | None, table: str, columns: tuple[str, ...], where: dict[str, Any] | None = None,
+            order: tuple[str, ...] = (), *, must_exist: bool = True) -> Rows:
+    """``columns`` of ``table``'s rows whose columns equal ``where``'s values, ordered by ``order``.
+    A SQLite lab database that does not exist raises (``must_exist``) or holds no rows."""
+    from sqlalchemy import select
+
+    from labcal.run.schema import METADATA
+
+    t = METADATA.tables[table]
+    query = select(*(t.c[c] for c in columns)).where(*(t.c[k] == v for k, v in (where or {}).items()))
+    query = query.order_by(*(t.c[c] for c in order))
+    with reading(db, must_exist=must_exist) as (conn, source):
+        return Rows([] if conn is None else [tuple(r) for r in conn.execute(query)], source, conn is not None)
+
+
+def distinct(db: str | Path | None, table: str, column: str) -> list[str]:
+    """Every value of ``column`` in ``table``, sorted (what a refusal names as known)."""
+    from sqlalchemy import select
+
+    from labcal.run.schema import METADATA
+
+    t = METADATA.tables[table]
+    with reading(db, must_exist=False) as (conn, _):
+        if conn is None:
+            return []
+        return [str(v) for v in conn.execute(select(t.c[column]).distinct().order_by(t.c[column])).scalars()]

@@ -473,3 +473,30 @@ def sending(db: str | Path | None, journal: Path, say: Callable[[str], None]) ->
         if any(left.values()):
             say(f"not yet in the lab database {where}: " + ", ".join(f"{n} {k}" for k, n in left.items())
                 + "; they stay in the journal " f"{journal}: run labcal sync when the server is back")
+
+
+def send_now(db: str | Path | None) -> str | None:
+    """What this bench has just recorded (an approver registered or revoked, a certificate approved)
+    sent to the lab's server at once, so that every bench sees it now; None when sent (or when the
+    lab database is the journal itself), else the one line saying it waits for ``labcal sync``."""
+    from labcal.run.journal import db_path
+
+    where = lab_database(db)
+    journal = db_path(db)
+    if isinstance(where, Path) or not journal.is_file():
+        return None
+    try:
+        sender = Sender(journal, where)
+    except LabcalError as exc:
+        return f"{exc}; the journal {journal} keeps it for labcal sync"
+    try:
+        sender.push()
+    except Exception as exc:
+        if not is_outage(exc):
+            raise
+        why = labdb._first_line(getattr(exc, "orig", None) or exc)
+        return (f"the lab database {where} is unreachable ({why}); the journal {journal} keeps it for "
+                "labcal sync")
+    finally:
+        sender.close()
+    return None
