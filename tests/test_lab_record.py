@@ -4,6 +4,12 @@ database (tests/services.py's private cluster), and what each bench reads.
 - Run numbers: the lab numbers a run once, when it first reaches it, without gaps, and every bench's
   `labcal runs --json` and the server's `/api/runs` give each run the same number; a run the lab has
   not seen yet is shown by its provisional label until it is sent.
+- Everything reaches the lab exactly once: an approver registered at bench 3 approves and verifies a
+  certificate of bench 1's, the approved certificate replaces the draft in the lab, and repeated and
+  interrupted syncs store each run, point, event, certificate, estimate, approver and pool once.
+- Every bench reads the lab: ACC-0042 calibrated at two benches shows both calibrations, its drift
+  flagged, in `labcal history` at either; bench 2's device estimates drive `plan optimize --device`
+  after its journal is deleted.
 
 Every expectation is read independently of the code under test where it can be: the lab database
 with psycopg and plain SQL, the journals with sqlite3.
@@ -39,23 +45,30 @@ class Bench:
         (tmp_path / "lab.toml").write_text("")
         self.config = tmp_path / "lab.toml"
 
-    def labcal(self, *args: str, db: str | None = None) -> tuple[int, str, str]:
-        """A labcal command at this bench (in this process: a new Python per command takes seconds)."""
+    def here(self, db: str | None = None) -> None:
+        """The environment of this bench (its lab file would say the same)."""
         for name, value in (("LABCAL_DB", db or self.url), ("LABCAL_JOURNAL", str(self.journal)),
                             ("LABCAL_STATION", self.name), ("LABCAL_CONFIG", str(self.config)),
                             ("LABCAL_NOTIFY", "")):
             self.monkeypatch.setenv(name, value)
+
+    def labcal(self, *args: str, db: str | None = None) -> tuple[int, str, str]:
+        """A labcal command at this bench (in this process: a new Python per command takes seconds)."""
+        self.here(db)
         out, err = io.StringIO(), io.StringIO()
         with redirect_stdout(out), redirect_stderr(err):
             code = main(list(args))
         return code, out.getvalue(), err.getvalue()
 
-    def run(self, db: str | None = None) -> None:
+    def run(self, db: str | None = None, *extra: str, report: bool = False, seed: int | None = None) -> Path:
+        """A dry run of ACC-0042 at this bench (one mount, no report unless asked); its folder."""
         self.runs += 1
-        code, _, err = self.labcal("run", "--sim", "--yes", "--no-report", "--plan", PLAN, "--seed",
-                                   str(self.runs), "--serial", SERIAL, "--out",
-                                   str(self.folder / f"run{self.runs}"), db=db)
+        folder = self.folder / f"run{self.runs}"
+        options = ("--plan", PLAN, "--no-report") if not report else ()
+        code, _, err = self.labcal("run", "--sim", "--yes", *options, "--seed", str(seed or self.runs),
+                                   "--serial", SERIAL, "--out", str(folder), *extra, db=db)
         assert code == 0, err
+        return folder
 
     def listed(self) -> tuple[list[dict], str]:
         code, out, err = self.labcal("runs", "--json", "--db", self.url)
@@ -155,3 +168,116 @@ def test_a_bench_that_cannot_reach_the_lab_lists_its_own_runs_by_their_lab_numbe
     assert "last in step with the lab" in lines[0] and str(one.journal) in lines[0]
     assert [(r["id"], r["uuid"]) for r in listed] == [(n, u) for n, u, s in lab_numbers(one.url)
                                                        if s == "bench-1"]
+
+
+def lab_count(url: str, table: str) -> int:
+    with psycopg.connect(url) as conn:
+        return int(conn.execute(f"SELECT count(*) FROM {table}").fetchone()[0])
+
+
+def journal_count(journals: list[Path], table: str) -> int:
+    total = 0
+    for journal in journals:
+        with closing(sqlite3.connect(journal)) as db:
+            total += int(db.execute(f"SELECT count(*) FROM {table}").fetchone()[0])
+    return total
+
+
+TABLES = ("runs", "points", "events", "certificates", "device_estimates", "approvers", "settle_pools")
+NAME, ROLE = "A. Metrologist", "Technical manager"
+
+
+@pytest.mark.slow
+def test_an_approver_registered_at_bench_3_approves_at_bench_1_and_everything_is_in_the_lab_once(
+        tmp_path, postgres_url, monkeypatch):
+    from simulated_runs import bench_run
+
+    one = Bench(tmp_path, "bench-1", postgres_url, monkeypatch)
+    three = Bench(tmp_path, "bench-3", postgres_url, monkeypatch)
+    code, _, err = three.labcal("certificate", "keygen", "--out", str(tmp_path / "approver"))
+    assert code == 0, err
+    code, _, err = three.labcal("certificate", "approvers", "add", NAME, "--role", ROLE, "--public-key",
+                                str(tmp_path / "approver.pub"))
+    assert code == 0 and err == "", err  # in the lab at once: nothing left for labcal sync
+    assert lab_count(postgres_url, "approvers") == 1
+
+    one.here()
+    run = bench_run(tmp_path / "bench-1" / "run", postgres_url, SERIAL)  # through the drivers: signable
+    code, _, err = one.labcal("certificate", "approvers", "list", "--json")
+    assert code == 0 and NAME in _, err  # bench 1 knows bench 3's registration
+    code, _, err = one.labcal("certificate", "approve", str(run), "--by", NAME, "--role", ROLE, "--key",
+                              str(tmp_path / "approver.key"))
+    assert code == 0 and err == "", err
+    code, out, err = one.labcal("certificate", "verify", str(run / "certificate.json"), "--json")
+    assert code == 0 and json.loads(out)["verified_against"] == "the registered key", err
+    signed = json.loads((run / "certificate.json").read_text())
+    with psycopg.connect(postgres_url) as conn:
+        stored = conn.execute("SELECT document FROM certificates WHERE certificate_id = %s",
+                              (signed["certificate_id"],)).fetchone()[0]
+    assert json.loads(stored)["approval"] == signed["approval"]  # the approved one, not the draft
+
+    journals = [one.journal, three.journal]
+    expected = {t: journal_count(journals, t) for t in TABLES}
+    assert expected["approvers"] == 1 and expected["certificates"] == 1 and expected["runs"] == 1
+    for _ in range(2):
+        code, out, err = one.labcal("sync")
+        assert code == 0 and "nothing to send" in out, err
+    # the lab committed every batch but the journal lost what it noted of them (a kill between the
+    # two commits): everything is offered again, and nothing is stored twice
+    with closing(sqlite3.connect(one.journal)) as db, db:
+        for table in ("sync_sent", "sync_cursors", "sync_runs", "sync_targets"):
+            db.execute(f"DELETE FROM {table}")
+    code, out, err = one.labcal("sync", "--json")
+    sent = json.loads(out)
+    assert code == 0 and sent["sent"]["points"] == journal_count([one.journal], "points"), err
+    assert sum(sent["new"].values()) == 0
+    assert {t: lab_count(postgres_url, t) for t in TABLES} == expected
+    assert lab_numbers(postgres_url)[0][0] == 1
+
+
+@pytest.mark.slow
+def test_acc_0042_calibrated_at_two_benches_shows_both_calibrations_and_its_drift_at_either(benches,
+                                                                                          tmp_path):
+    from simulated_runs import rig_with_bias_shift
+
+    one, two = benches
+    one.run(report=True, seed=3)
+    shifted = rig_with_bias_shift(tmp_path / "shifted.toml", (0.005, 0.0, 0.0))  # 5 mV on x: far beyond U
+    two.run(None, "--rig", str(shifted), report=True, seed=4)
+    documents = []
+    for bench in (one, two):
+        code, out, err = bench.labcal("history", SERIAL, "--include-simulated", "--json")
+        assert code == 0, err
+        documents.append(json.loads(out))
+    assert documents[0] == documents[1]
+    history = documents[0]
+    assert len(history["calibrations"]) == 2
+    flagged = {(f["coefficient"], f["sensor"]) for f in history["flagged"]}
+    assert ("B", "x") in flagged
+    bias_x = [c["coefficients"][0][0] for c in history["calibrations"]]
+    assert abs(bias_x[1] - bias_x[0] - 0.005) < 0.001  # the shift, as both calibrations measured it
+
+
+@pytest.mark.slow
+def test_bench_2s_device_estimates_drive_plan_optimize_after_its_journal_is_deleted(benches):
+    from labcal.commands.plan import device_correction
+
+    _, two = benches
+    two.run(report=True, seed=1)
+    last = two.run(report=True, seed=2)
+    with psycopg.connect(two.url) as conn:
+        sources = [r[0] for r in conn.execute("SELECT source FROM device_estimates "
+                                              "WHERE device_id = 'SIMULATED' ORDER BY calibrated_utc")]
+    assert sources == ["run1", last.name]
+    two.journal.unlink()
+    for wal in two.journal.parent.glob("journal.sqlite-*"):
+        wal.unlink()
+    two.here()
+    correction, why = device_correction("SIMULATED", None)
+    assert correction is not None, why
+    assert correction.source == last.name
+    # a loose target: the quickest plan, which leaves the misalignments to the lab's estimate
+    code, out, err = two.labcal("plan", "optimize", "--device", "SIMULATED", "--target-attitude-u95-deg", "1",
+                                "--json")
+    assert code == 0, err
+    assert json.loads(out)["device_correction"]["source"] == last.name
