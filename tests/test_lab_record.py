@@ -202,6 +202,7 @@ def test_an_approver_registered_at_bench_3_approves_at_bench_1_and_everything_is
     assert lab_count(postgres_url, "approvers") == 1
 
     one.here()
+    one.folder.mkdir(parents=True, exist_ok=True)
     run = bench_run(tmp_path / "bench-1" / "run", postgres_url, SERIAL)  # through the drivers: signable
     code, _, err = one.labcal("certificate", "approvers", "list", "--json")
     assert code == 0 and NAME in _, err  # bench 1 knows bench 3's registration

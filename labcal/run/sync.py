@@ -195,10 +195,11 @@ class Sender:
                 # as journaled (`Journal.start_run`); a run journaled before runs named their
                 # station was journaled here, at this station
                 values["station"] = row[-1] or self.station
-                lab_id = lab_number(server, values)
+                lab_id, new = lab_number(server, values)
                 lab_ids[run_id] = lab_id
                 run_rows.append((self.target, run_id, lab_id, state))
-            sent.offered["runs"] = sent.stored["runs"] = len(run_rows)
+                sent.stored["runs"] += new
+            sent.offered["runs"] = len(run_rows)
             moved_points, sent.offered["points"], sent.stored["points"] = self._send_rows(
                 server, db, "points", "rowid", marks.get("points", 0), point_columns, lab_ids,
                 lambda rows: insert(schema.points).values(rows).on_conflict_do_nothing(
@@ -258,7 +259,9 @@ class Sender:
             last = row[0]
         if not values:
             return None, 0, 0
-        result = server.execute(statement(values))  # type: ignore[call-overload]
+        # SQLAlchemy reports an INSERT's rowcount only when asked to keep it
+        result = server.execute(statement(values).execution_options(  # type: ignore[attr-defined]
+            preserve_rowcount=True))
         stored = result.rowcount if result.rowcount is not None and result.rowcount >= 0 else len(values)
         return last, len(values), stored
 
@@ -266,12 +269,13 @@ class Sender:
 RUN_NUMBER_LOCK = 0x6C616272  # "labr": serialises numbering the lab's runs (one transaction at a time)
 
 
-def lab_number(server: Connection, values: dict) -> int:
+def lab_number(server: Connection, values: dict) -> tuple[int, bool]:
     """The lab's number of a run (``values``: its journaled columns), given the first time any bench
     sends it and never again: a run the lab knows (by its uuid) keeps its number and has its status
     updated; a new one gets the next number, one more than the highest, under a lock held until the
     sending transaction commits, so the lab's runs are numbered 1, 2, 3 … in the order they reached
-    it, without a gap (a database sequence would leave one at every rolled-back or conflicting insert)."""
+    it, without a gap (a database sequence would leave one at every rolled-back or conflicting insert).
+    Returns the number, and whether the run is new to the lab."""
     from sqlalchemy import func, select, text, update
 
     from labcal.run.schema import runs
@@ -286,12 +290,12 @@ def lab_number(server: Connection, values: dict) -> int:
         number = known()  # sent meanwhile by another process of this bench (a run's sender, labcal sync)
     if number is not None:
         server.execute(update(runs).where(runs.c.id == number).values(**status))
-        return number
+        return number, False
     number = int(server.execute(select(func.coalesce(func.max(runs.c.id), 0) + 1)).scalar_one())
     server.execute(runs.insert().values(id=number, **values))
     # the column's own sequence follows, so that nothing else inserting a run takes a number twice
     server.execute(text("SELECT setval(pg_get_serial_sequence('runs', 'id'), :n)"), {"n": number})
-    return number
+    return number, True
 
 
 def send_records(server: Connection, record: Record, rows: list[dict]) -> int:
@@ -311,7 +315,8 @@ def send_records(server: Connection, record: Record, rows: list[dict]) -> int:
     if record.table == "approvers":
         # a name active twice (two benches registered two keys for it offline) is refused by the
         # lab's unique index: the first registration stands, as it would have on one database
-        stored = _count(server.execute(statement.on_conflict_do_nothing()), len(rows))
+        kept = statement.on_conflict_do_nothing().execution_options(preserve_rowcount=True)
+        stored = _count(server.execute(kept), len(rows))
         for row in rows:
             if row["revoked_utc"] is not None:
                 stored += _count(server.execute(
@@ -323,7 +328,7 @@ def send_records(server: Connection, record: Record, rows: list[dict]) -> int:
              table.c[record.state[0]] < statement.excluded[record.state[0]])
     changed = {c.name: statement.excluded[c.name] for c in table.columns if c.name not in record.key}
     upsert = statement.on_conflict_do_update(index_elements=list(record.key), set_=changed, where=newer)
-    return _count(server.execute(upsert), len(rows))
+    return _count(server.execute(upsert.execution_options(preserve_rowcount=True)), len(rows))
 
 
 def _count(result: object, at_most: int) -> int:
