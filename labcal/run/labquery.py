@@ -375,3 +375,33 @@ def distinct(db: str | Path | None, table: str, column: str) -> list[str]:
         if conn is None:
             return []
         return [str(v) for v in conn.execute(select(t.c[column]).distinct().order_by(t.c[column])).scalars()]
+
+
+def journal_run(db: str | Path | None, number: int) -> int:
+    """This bench's journal row of the lab's run ``number`` (a run measured here: its readings and
+    folder are this bench's to export and report). On a SQLite lab database the number is the row;
+    on a server the journal's ``sync_runs`` says which, and a run of another bench is one line
+    naming that bench."""
+    from sqlalchemy import select
+
+    from labcal.run.journal import db_path
+    from labcal.run.schema import runs, sync_runs
+    from labcal.run.sync import target_of
+
+    where = lab_database(db)
+    if isinstance(where, Path):
+        return number
+    journal = db_path(db)
+    if journal.is_file():
+        with _sqlite(journal) as conn:
+            found = conn.execute(select(sync_runs.c.run_id).where(sync_runs.c.target == target_of(where),
+                                                                  sync_runs.c.lab_run_id == number)).scalar()
+        if found is not None:
+            return int(found)
+    with reading(db, must_exist=False) as (conn, source):
+        station = None if conn is None or source.stale else \
+            conn.execute(select(runs.c.station).where(runs.c.id == number)).first()
+    if station is not None:
+        raise LabcalError(f"run {number} was measured at {station[0] or 'another bench'}: its folder is that "
+                          "bench's (run the command there)")
+    raise LabcalError(f"no run {number} of this bench in {journal} nor in {where}; labcal runs lists them")
