@@ -66,6 +66,19 @@ RECORDS = (
 )
 NAMES = ("runs", "points", "events", *(r.table for r in RECORDS))
 SEP = "char(31)"  # between a composite key's parts (never in a device id, run uuid or date)
+UNIT = "\x1f"  # the same character, as Python writes it (`_text_of`)
+
+
+def _text_of(values: tuple | list) -> str:
+    """Several values as one text, as `_joined` makes it in SQLite (NULL: empty)."""
+    return UNIT.join("" if v is None else str(v) for v in values)
+
+
+def and_all(table: object, columns: tuple[str, ...], values: list[str]) -> object:
+    """The SQL condition that a row's ``columns`` equal ``values`` (a key split at `UNIT`)."""
+    from sqlalchemy import and_
+
+    return and_(*(table.c[c] == v for c, v in zip(columns, values, strict=True)))  # type: ignore[attr-defined]
 
 
 def _joined(columns: tuple[str, ...]) -> str:
@@ -170,6 +183,57 @@ class Sender:
                     db.execute("INSERT INTO sync_targets (target, synced_utc) VALUES (?, ?) ON CONFLICT "
                                "(target) DO UPDATE SET synced_utc=excluded.synced_utc", (self.target, _utc()))
                     return sent
+
+    def pull(self) -> dict[str, int]:
+        """The lab's records (every bench's certificates, device estimates, approvers and settle
+        pools) copied into this journal where it lacks them or holds a copy the lab has since changed
+        (and this bench has not: a change of its own not yet sent is never overwritten), so that a
+        bench that later cannot reach the lab still works from what it last had, and a run starts
+        from the lab's settle pool. Returns the rows copied per table."""
+        if not self._schema_checked:
+            labdb.open_server(self.server).dispose()
+            self._schema_checked = True
+        with closing(self._local()) as db, self.engine.connect() as server:
+            return {record.table: self._pull_record(db, server, record) for record in RECORDS}
+
+    def _pull_record(self, db: sqlite3.Connection, server: Connection, record: Record) -> int:
+        from sqlalchemy import or_, select
+
+        from labcal.run import schema
+
+        table = schema.METADATA.tables[record.table]
+        n = len(record.key)
+        lab = {_text_of(row[:n]): _text_of(row[n:])
+               for row in server.execute(select(*(table.c[c] for c in record.key + record.state)))}
+        key, state = _joined(record.key), _joined(record.state)
+        mine = dict(db.execute(f"SELECT {key}, {state} FROM {record.table} t"))
+        sent = dict(db.execute("SELECT key, state FROM sync_sent WHERE target = ? AND name = ?",
+                               (self.target, record.table)))
+        wanted = [k for k, v in lab.items()
+                  if k not in mine or (mine[k] == sent.get(k) and mine[k] != v)]
+        columns = [c.name for c in table.columns if c.name != "id"]
+        rows: list[tuple] = []
+        for part in range(0, len(wanted), BATCH):
+            match = [and_all(table, record.key, k.split(UNIT)) for k in wanted[part:part + BATCH]]
+            query = select(*(table.c[c] for c in columns)).where(or_(*match))
+            rows += [tuple(r) for r in server.execute(query)]
+        if not rows:
+            return 0
+        at = [columns.index(c) for c in record.key + record.state]
+        states = [(self.target, record.table, _text_of([r[i] for i in at[:n]]),
+                   _text_of([r[i] for i in at[n:]])) for r in rows]
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            db.executemany(f"INSERT OR REPLACE INTO {record.table} ({', '.join(columns)}) VALUES "
+                           f"({', '.join('?' * len(columns))})", rows)
+            db.executemany("INSERT INTO sync_sent (target, name, key, state) VALUES (?,?,?,?) "
+                           "ON CONFLICT (target, name, key) DO UPDATE SET state=excluded.state", states)
+            db.execute("COMMIT")
+        except BaseException:
+            if db.in_transaction:
+                db.execute("ROLLBACK")
+            raise
+        return len(rows)
 
     def _push_once(self, db: sqlite3.Connection) -> Sent:
         # SQLAlchemy's tables only here, where a server is written: a run on a SQLite lab database
@@ -447,6 +511,31 @@ def ready(db: str | Path | None) -> None:
 
     labdb.connect(db_path(db)).close()
     check_server(db)
+    receive(db)
+
+
+def receive(db: str | Path | None) -> dict[str, int]:
+    """The lab's records this bench lacks copied into its journal (`Sender.pull`): before a run, so
+    that it starts from the lab's settle pool and device history. A server that cannot be reached is
+    not waited for (the run starts from what the journal last had)."""
+    from labcal.run.journal import db_path
+
+    where = lab_database(db)
+    journal = db_path(db)
+    if isinstance(where, Path) or not journal.is_file():
+        return {}
+    try:
+        sender = Sender(journal, where)
+    except labdb.Unreachable:
+        return {}
+    try:
+        return sender.pull()
+    except Exception as exc:
+        if not is_outage(exc):
+            raise
+        return {}
+    finally:
+        sender.close()
 
 
 def check_server(db: str | Path | None) -> None:
