@@ -108,7 +108,8 @@ def _summary(row: Any, counts: tuple[int, int, int | None]) -> dict:
     station = row.station or metadata.get("station")
     done, ok, _ = counts
     # named as `labcal runs --json` names them: the lab's run number is ``id`` everywhere
-    return {"id": row.id, "label": str(row.id), "uuid": row.uuid, "status": row.status, "simulated": simulated(metadata, row.station_text),
+    return {"id": row.id, "label": str(row.id), "uuid": row.uuid, "status": row.status,
+            "simulated": simulated(metadata, row.station_text),
             "station": station, "serial": row.instrument_serial,
             "operator": row.operator, "plan": row.plan_name, "points_done": done, "points_ok": ok,
             "points_failed": done - ok, "points_total": total, "started_utc": row.started_utc,

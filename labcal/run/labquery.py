@@ -201,7 +201,7 @@ def _numbers(conn: Connection, target: str) -> dict[int, int]:
 
     from labcal.run.schema import sync_runs
 
-    return dict(conn.execute(select(sync_runs.c.run_id, sync_runs.c.lab_run_id)  # type: ignore[arg-type]
+    return dict(conn.execute(select(sync_runs.c.run_id, sync_runs.c.lab_run_id)
                              .where(sync_runs.c.target == target)).all())
 
 

@@ -27,7 +27,7 @@ from collections.abc import Callable, Iterator
 from contextlib import closing, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from labcal.config.lab import ServerDatabase, load_lab_config
 from labcal.errors import LabcalError
@@ -74,11 +74,11 @@ def _text_of(values: tuple | list) -> str:
     return UNIT.join("" if v is None else str(v) for v in values)
 
 
-def and_all(table: object, columns: tuple[str, ...], values: list[str]) -> object:
+def and_all(table: Any, columns: tuple[str, ...], values: list[str]) -> Any:
     """The SQL condition that a row's ``columns`` equal ``values`` (a key split at `UNIT`)."""
     from sqlalchemy import and_
 
-    return and_(*(table.c[c] == v for c, v in zip(columns, values, strict=True)))  # type: ignore[attr-defined]
+    return and_(*(table.c[c] == v for c, v in zip(columns, values, strict=True)))
 
 
 def _joined(columns: tuple[str, ...]) -> str:
