@@ -1,15 +1,19 @@
-"""Every journaled record reaches the lab's PostgreSQL database exactly once (issue 24).
+"""Every journaled record reaches the lab's PostgreSQL database exactly once.
 
 With a server as the lab database, each station journals in a SQLite file of its own
 (`labcal.config.lab.LabConfig.journal`): a reading is on the station's disk, committed, before the
 next move, whatever the network does. `Sender.push` sends what the journal holds and the server
-does not yet: runs (found by their uuid: the server numbers runs of every station, so a station's
-run id is not the lab's), their points (key: the lab's run id and the point's seq), events (key:
-the lab's run id and the event's id in the journal, ``events.origin_id``) and certificates (key:
-their id). Every insert is ``ON CONFLICT DO NOTHING`` (a run's status an upsert), so sending a record
-twice (the server committed, the cursor's update did not) stores it once. The journal keeps how far
-it has sent to each server (``sync_cursors``: the last rowid of each table; ``sync_runs``: each
-run's lab id and the status last sent), written only after the server has committed.
+does not yet: runs (found by their uuid, and numbered by the lab the first time any bench sends
+them: `lab_number`), their points (key: the lab's run number and the point's seq), events (key: the
+lab's run number and the event's id in the journal, ``events.origin_id``), and the lab's other
+records (`RECORDS`: certificates, device estimates, approvers, settle pools, each under its own key,
+sent again whenever it changes: a certificate approved or re-issued under its id, a revocation, a
+pool that grew). Every insert is ``ON CONFLICT DO NOTHING`` or an upsert, so sending a record twice
+(the server committed, the journal's note of it did not) stores it once. The journal keeps how far
+it has sent to each server (``sync_cursors``: the last rowid of points and events; ``sync_runs``:
+each run's lab number and the status last sent; ``sync_sent``: each record's state last sent),
+written only after the server has committed. `Sender.pull` brings the other way what the lab holds
+of every bench's records, so that a bench that loses the lab works from what it last had.
 
 During a run, `sending` runs a `Sender` on a thread of its own, which reads the journal through its
 own connection (WAL: it never blocks the run's writer) twice a second, so a run never waits for the
