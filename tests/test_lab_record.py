@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import io
 import json
+import re
 import sqlite3
 from contextlib import closing, redirect_stderr, redirect_stdout
 from pathlib import Path
@@ -251,6 +252,27 @@ def test_an_approver_registered_at_bench_3_approves_at_bench_1_and_everything_is
     assert sum(sent["new"].values()) == 0
     assert {t: lab_count(postgres_url, t) for t in TABLES} == expected
     assert lab_numbers(postgres_url)[0][0] == 1
+
+    # the lab server on this PostgreSQL database cannot approve yet: its page offers no form that
+    # would only fail, and says why
+    from fastapi.testclient import TestClient
+
+    from labcal.app.labdatabase import OpenLab, open_lab
+    from labcal.server.app import ServerSettings, create_app
+
+    assert main(["user", "add", "ada", "--role", "approver", "--password", "a long passphrase 2", "--db",
+                 postgres_url]) == 0
+    lab = open_lab(OpenLab(postgres_url))
+    try:
+        with TestClient(create_app(ServerSettings(lab, key=tmp_path / "approver.key"))) as client:
+            form = client.get("/login")
+            csrf = re.search(r'name="csrf" value="([^"]+)"', form.text)[1]
+            client.post("/login", data={"name": "ada", "password": "a long passphrase 2", "csrf": csrf})
+            page = client.get("/runs/1")
+    finally:
+        lab.close()
+    assert page.status_code == 200 and "Approve the certificate" not in page.text
+    assert 'action="/runs/1/approve"' not in page.text and "cannot approve this run" in page.text
 
 
 @pytest.mark.slow

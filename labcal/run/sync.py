@@ -46,6 +46,7 @@ BATCH = 500  # rows per statement: a catch-up after a long outage goes in bounde
 POLL_S = 0.5  # how often the sender looks at the journal during a run
 BACKOFF_MAX_S = 10.0
 FLUSH_S = 5.0  # what the end of a run waits for the server, at most
+IN_STEP_S = 60.0  # how often a sender with nothing to send notes that the journal is in step
 
 
 @dataclass(frozen=True)
@@ -126,6 +127,7 @@ class Sender:
         self.station = station or load_lab_config().station()
         self.engine = engine or labdb.server_engine(server)
         self._schema_checked = False
+        self._in_step = -IN_STEP_S - 1.0  # when the journal last noted it was in step with the lab
 
     def close(self) -> None:
         self.engine.dispose()
@@ -183,9 +185,13 @@ class Sender:
                 sent.add(step)
                 if step.total == 0:
                     # everything the journal holds is in the lab: what a bench that cannot reach
-                    # it later names as the age of its own view
-                    db.execute("INSERT INTO sync_targets (target, synced_utc) VALUES (?, ?) ON CONFLICT "
-                               "(target) DO UPDATE SET synced_utc=excluded.synced_utc", (self.target, _utc()))
+                    # it later names as the age of its own view (noted at most once a minute while
+                    # nothing changes: a run's sender pushes twice a second)
+                    if sent.total or time.monotonic() - self._in_step > IN_STEP_S:
+                        db.execute("INSERT INTO sync_targets (target, synced_utc) VALUES (?, ?) ON CONFLICT "
+                                   "(target) DO UPDATE SET synced_utc=excluded.synced_utc",
+                                   (self.target, _utc()))
+                        self._in_step = time.monotonic()
                     return sent
 
     def pull(self) -> dict[str, int]:
