@@ -29,6 +29,7 @@ import pytest
 from services import free_port
 
 from labcal.cli import main
+from labcal.run.labquery import lab_number_of
 
 PLAN = "one-mount-16"
 SERIAL = "ACC-0042"
@@ -127,9 +128,12 @@ def test_two_benches_show_the_same_gap_free_run_numbers_as_the_api(benches):
     unsent = journal_uuids(two.journal)[-1]
     assert [r["id"] for r in listed] == [1, 2, 3, None] and not err
     assert listed[-1]["uuid"] == unsent and listed[-1]["label"] == f"{unsent[:8]} (provisional)"
+    # how a notification names it: by the same label (bench 2's journal row 2)
+    assert lab_number_of(two.journal, 2, two.url) == f"{unsent[:8]} (provisional)"
     one.run()  # number 4: bench 2's run reaches the lab after it, and is numbered after it
     code, out, err = two.labcal("sync")
     assert code == 0, err
+    assert lab_number_of(two.journal, 2, two.url) == "5" and lab_number_of(two.journal, 1, two.url) == "2"
 
     lab = lab_numbers(one.url)
     assert [n for n, _, _ in lab] == [1, 2, 3, 4, 5]  # without a gap, though each status was sent many times

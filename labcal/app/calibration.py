@@ -403,7 +403,7 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
         record_folder(ctx.journal, ctx.journal.run(ctx.run_id), run_dir, "resume")
         for note in ctx.notes:
             front.say(f"[yellow]note:[/] {note}")
-        run_name = f"run {ctx.run_id} in {run_dir}"
+        run_name = f"run {_lab_label(ctx.journal.path, args.db)(ctx.run_id)} in {run_dir}"
         snapshot = read_snapshot(ctx.station_text, run_name, ctx.software_version)
         if args.pace is not None and snapshot is not None:
             raise LabcalError(f"{run_name} runs on a station, not the simulated rig: {PACE_SIM_ONLY}")
