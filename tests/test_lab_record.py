@@ -339,3 +339,17 @@ def test_bench_2s_device_estimates_drive_plan_optimize_after_its_journal_is_dele
                                 "--json")
     assert code == 0, err
     assert json.loads(out)["device_correction"]["source"] == last.name
+
+
+def test_a_run_at_bench_2_starts_from_the_settle_pool_bench_1_left_in_the_lab(benches):
+    """The same simulated station and instrument at both benches share one settle pool: bench 1's
+    run keeps its step records in the lab, and bench 2's next run starts with them."""
+    one, two = benches
+    one.run(None, "--settle", "model")
+    with psycopg.connect(one.url) as conn:
+        records = conn.execute("SELECT records FROM settle_pools").fetchall()
+    assert len(records) == 1 and records[0][0] > 0
+    two.run(None, "--settle", "model", seed=2)  # another noise realisation
+    with closing(sqlite3.connect(two.journal)) as db:
+        note = db.execute("SELECT message FROM events WHERE kind = 'settle_pool'").fetchone()[0]
+    assert note.startswith(f"model settling starts with {records[0][0]} step records of 1 earlier run"), note
