@@ -148,6 +148,12 @@ def test_two_benches_show_the_same_gap_free_run_numbers_as_the_api(benches):
     assert [{k: r[k] for k in ("id", "uuid", "station")} for r in reversed(served)] == expected
     assert all(r["serial"] == SERIAL and r["points_ok"] == 16 for r in served)
 
+    # its folder is bench 2's: exported there by its lab number, refused at bench 1 naming bench 2
+    code, out, err = two.labcal("export", "5", "--out", str(two.folder / "copy"), "--json")
+    assert code == 0 and (json.loads(out)["id"], json.loads(out)["uuid"]) == (5, unsent), err
+    code, out, err = one.labcal("export", "5", "--out", str(one.folder / "copy"))
+    assert code == 2 and "measured at bench-2" in err and len(err.strip().splitlines()) == 1, err
+
     code, out, err = one.labcal("log", "5", "--json")  # bench 2's run, read at bench 1 from the lab
     log = json.loads(out)
     assert code == 0 and log["id"] == 5 and log["uuid"] == unsent and log["station"] == "bench-2"
