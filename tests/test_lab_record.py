@@ -117,6 +117,7 @@ def api_runs(url: str) -> list[dict]:
     return response.json()["runs"]
 
 
+@pytest.mark.slow  # five dry runs at two benches: about 20 s
 def test_two_benches_show_the_same_gap_free_run_numbers_as_the_api(benches):
     one, two = benches
     offline = f"postgresql://labcal@127.0.0.1:{free_port()}/lab"  # nothing listens: bench 2 cut off
@@ -347,6 +348,7 @@ def test_bench_2s_device_estimates_drive_plan_optimize_after_its_journal_is_dele
     assert json.loads(out)["device_correction"]["source"] == last.name
 
 
+@pytest.mark.slow  # two dry runs with model settling: about 15 s
 def test_a_run_at_bench_2_starts_from_the_settle_pool_bench_1_left_in_the_lab(benches):
     """The same simulated station and instrument at both benches share one settle pool: bench 1's
     run keeps its step records in the lab, and bench 2's next run starts with them."""
