@@ -78,7 +78,7 @@ def unchanged(lab):
 def test_list_runs_reads_only(unchanged):
     _, db = unchanged
     found = list_runs(ListRuns(str(db)))
-    assert [(r.id, r.instrument, r.status) for r in found.runs] == [(1, SERIAL, "complete"),
+    assert [(r.id, r.serial, r.status) for r in found.runs] == [(1, SERIAL, "complete"),
                                                                     (2, SERIAL, "complete")]
     assert list_runs(ListRuns(str(db), statuses=("interrupted",))).runs == ()
 
@@ -94,7 +94,7 @@ def test_a_missing_database_is_listed_empty_and_not_created(tmp_path):
 def test_read_log_reads_only(unchanged):
     base, db = unchanged
     by_id, by_folder = read_log(ReadLog("2", str(db))), read_log(ReadLog(str(base / "bench")))
-    assert by_id == by_folder and by_id.points == 16 and by_id.run_dir == str(base / "bench")
+    assert by_id == by_folder and by_id.points_ok == 16 and by_id.run_dir == str(base / "bench")
     assert any(e["kind"] == "prompt" for e in by_id.events)
 
 

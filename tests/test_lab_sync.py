@@ -224,7 +224,7 @@ def test_a_server_database_behind_is_refused_until_labcal_db_upgrade(tmp_path, p
     up = labcal(env, "db", "upgrade")
     assert up.returncode == 0, up.stderr
     with psycopg.connect(postgres_url) as conn:
-        assert conn.execute("SELECT version_num FROM alembic_version").fetchone()[0] == "0007"
+        assert conn.execute("SELECT version_num FROM alembic_version").fetchone()[0] == migrations.HEAD
         assert conn.execute("SELECT count(*) FROM information_schema.columns WHERE table_name = 'events' "
                             "AND column_name = 'origin_id'").fetchone()[0] == 1
 
@@ -285,7 +285,11 @@ def test_a_sender_fills_an_empty_server_database_and_sends_nothing_twice(tmp_pat
         second = sender.push()
     finally:
         sender.close()
-    assert first.offered == {"runs": 1, "points": MOUNTS * MOUNT_POINTS, "events": events, "certificates": 1}
+    with closing(sqlite3.connect(journal)) as db:
+        records = {name: db.execute(f"SELECT count(*) FROM {name}").fetchone()[0]
+                   for name in ("device_estimates", "approvers", "settle_pools")}
+    assert first.offered == {"runs": 1, "points": MOUNTS * MOUNT_POINTS, "events": events, "certificates": 1,
+                             **records}
     assert first.stored == first.offered
     assert second.total == 0
     assert assert_exactly_once(postgres_url, [journal]) == MOUNTS * MOUNT_POINTS

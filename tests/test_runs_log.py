@@ -25,7 +25,7 @@ def test_runs_lists_and_filters_and_log_shows_prompts_and_answers(tmp_path, caps
 
     code, out, _ = _run(capsys, monkeypatch, "runs", "--json")
     runs = json.loads(out)["runs"]
-    summary = [(r["id"], r["instrument"], r["status"], r["points"], r["operator"]) for r in runs]
+    summary = [(r["id"], r["serial"], r["status"], r["points_ok"], r["operator"]) for r in runs]
     assert code == 0 and summary == [(1, "ACC-7", "complete", 64, "A. Tech"), (2, None, "stopped", 16, None)]
     assert runs[1]["run_dir"] == str(stopped) and runs[0]["plan"] == "four-mount-64"
     code, out, _ = _run(capsys, monkeypatch, "runs", "--status", "stopped", "--json")
@@ -54,7 +54,7 @@ def test_runs_and_log_without_a_database(tmp_path, capsys, monkeypatch):
     code, _, err = _run(capsys, monkeypatch, "log", "3", "--db", str(db))
     assert code == 2 and "no lab database here" in err
     code, _, err = _run(capsys, monkeypatch, "log", str(tmp_path / "nope"))
-    assert code == 2 and "neither a run id (see labcal runs) nor a run directory" in err
+    assert code == 2 and "neither a run number (see labcal runs), a run's uuid nor a run directory" in err
 
 
 def test_a_killed_run_is_listed_as_interrupted_and_found_by_that_status(tmp_path, capsys, monkeypatch):

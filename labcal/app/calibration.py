@@ -353,7 +353,16 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
                 plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, events,
                 setup.metadata, args.serial, args.operator, steps, terminal=terminal, forecast=forecast),
                 run_dir, plan, est, 0, args.db, args.no_report, cert_settings,
-                notifier=RunNotifier(notifications, station_label(setup.metadata), run_dir), sender=sender)
+                notifier=RunNotifier(notifications, station_label(setup.metadata), run_dir,
+                                     _lab_label(journal.path, args.db)), sender=sender)
+
+
+def _lab_label(journal: Path, db: str | Path | None) -> Callable[[int], str]:
+    """How a notification names the run: by the lab's number (its provisional label until the lab
+    has numbered it), as every bench, page and API answer does."""
+    from labcal.run.labquery import lab_number_of
+
+    return lambda run_id: lab_number_of(journal, run_id, db)
 
 
 def check_package(instrument: InstrumentSettings, envelope: CertificateSettings, station: str, plan: str
@@ -434,7 +443,7 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
         record_folder(ctx.journal, ctx.journal.run(ctx.run_id), run_dir, "resume")
         for note in ctx.notes:
             front.say(f"[yellow]note:[/] {note}")
-        run_name = f"run {ctx.run_id} in {run_dir}"
+        run_name = f"run {_lab_label(ctx.journal.path, args.db)(ctx.run_id)} in {run_dir}"
         snapshot = read_snapshot(ctx.station_text, run_name, ctx.software_version)
         if args.pace is not None and snapshot is not None:
             raise LabcalError(f"{run_name} runs on a station, not the simulated rig: {PACE_SIM_ONLY}")
@@ -486,7 +495,8 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
             ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, events,
             steps, terminal=terminal, forecast=forecast),
             run_dir, ctx.plan, est, len(points), args.db, args.no_report, cert_settings, ctx.journal.path,
-            notifier=RunNotifier(notifications, station_label(ctx.metadata), run_dir), sender=sender)
+            notifier=RunNotifier(notifications, station_label(ctx.metadata), run_dir,
+                                 _lab_label(ctx.journal.path, args.db)), sender=sender)
 
 
 def finish_complete(args: ResumeRun, run_dir: Path, run_id: int,

@@ -269,3 +269,13 @@ def read_certificate(path: str | Path) -> Certificate:
     from labcal.documents.certificate import read_certificate as read
 
     return read(path)
+
+
+def share_with_lab(db: str | None) -> str | None:
+    """What this bench has just recorded (a registration, a revocation, an approved certificate) sent
+    to the lab's server now, so that every bench sees it at once; None when it is there (or when the
+    lab database is a SQLite file, this bench's own), else the one line saying it waits for
+    ``labcal sync`` (nothing is lost: the journal keeps it)."""
+    from labcal.run.sync import send_now
+
+    return send_now(db)

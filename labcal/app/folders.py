@@ -40,6 +40,18 @@ class FolderWritten:
     status: str
     notes: tuple[str, ...]  # what was rewritten, and why
     recorded: str | None = None  # a rebuild that moved the run's folder: the folder it was recorded in
+    label: str = ""  # the run as the lab names it (`labcal.run.labquery.run_label`)
+
+    @property
+    def number(self) -> int | None:
+        """The lab's run number (None: the lab has not numbered it yet)."""
+        return int(self.label) if self.label.isdigit() else None
+
+
+def _label(journal: Journal, run_id: int, db: str | None) -> str:
+    from labcal.run.labquery import lab_number_of
+
+    return lab_number_of(journal.path, run_id, db)
 
 
 def _target(folder: Path, row) -> None:
@@ -77,7 +89,8 @@ def export_run(request: ExportRun) -> FolderWritten:
         fresh = not (folder / RUN).exists()  # else an earlier copy: what differed is said
         _target(folder, row)
         notes, _ = exports.sync(journal, row, folder, remember=False)
-    return FolderWritten(row.id, row.uuid, folder, row.status, () if fresh else tuple(notes))
+        label = _label(journal, row.id, request.db)
+    return FolderWritten(row.id, row.uuid, folder, row.status, () if fresh else tuple(notes), label=label)
 
 
 def rebuild_run_folder(request: RebuildRunFolder) -> FolderWritten:
@@ -95,7 +108,8 @@ def rebuild_run_folder(request: RebuildRunFolder) -> FolderWritten:
         _target(folder, row)
         notes, _ = exports.sync(journal, row, folder)
         moved = record_folder(journal, row, folder, "export", "run folder recreated in {}" if created else "")
-    return FolderWritten(row.id, row.uuid, folder, row.status, tuple(notes), moved)
+        label = _label(journal, row.id, request.db)
+    return FolderWritten(row.id, row.uuid, folder, row.status, tuple(notes), moved, label)
 
 
 def record_folder(journal: Journal, row: RunRow, folder: Path, kind: str, message: str = "") -> str | None:

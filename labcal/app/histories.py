@@ -33,6 +33,7 @@ class History:
     rule: str
     document: dict[str, Any]
     plot: str | None = None
+    stale: str | None = None  # the lab could not be reached: read from this bench's journal, this old
 
 
 @dataclass(frozen=True)
@@ -47,9 +48,9 @@ def instrument_history(request: InstrumentHistory) -> History:
     """Every certificate of an instrument, oldest first, each coefficient ± U, drift flagged."""
     from labcal.analysis.fit import ROW_NAMES, SENSORS
     from labcal.documents.certificate import format_result
-    from labcal.documents.history import RULE, certificates_for, changes, history_json, plot_history
+    from labcal.documents.history import RULE, certificates_read, changes, history_json, plot_history
 
-    certs = certificates_for(request.serial, request.db, request.include_simulated)
+    certs, stale = certificates_read(request.serial, request.db, request.include_simulated)
     found = changes(certs)
     if request.plot:
         plot_history(request.serial, certs, found, request.plot)
@@ -67,7 +68,7 @@ def instrument_history(request: InstrumentHistory) -> History:
     lines = tuple(f"{ch.name} from {ch.before} to {ch.after}: Δ = {ch.delta:+.3g}, "
                   f"limit k·√(u₁²+u₂²) = {ch.limit:.2g} (k = {ch.k:.2f})" for ch in found if ch.flagged)
     return History(request.serial, entries, tables, lines, f"{len(certs)} calibration(s)", RULE,
-                   history_json(request.serial, certs, found), request.plot)
+                   history_json(request.serial, certs, found), request.plot, stale)
 
 
 @dataclass(frozen=True)
@@ -80,9 +81,9 @@ class DeviceHistory:
 def device_history(request: DeviceHistory) -> History:
     """Every device-model estimate of a calibration device, oldest first, each ± U, changes flagged."""
     from labcal.analysis.kinematics import MISALIGNMENT_NAMES
-    from labcal.documents.device_history import RULE, changes, estimates_for, history_json, plot_history
+    from labcal.documents.device_history import RULE, changes, estimates_read, history_json, plot_history
 
-    estimates = estimates_for(request.device_id, request.db)
+    estimates, stale = estimates_read(request.device_id, request.db)
     found = changes(estimates)
     if request.plot:
         plot_history(request.device_id, estimates, found, request.plot)
@@ -97,4 +98,4 @@ def device_history(request: DeviceHistory) -> History:
     lines = tuple(f"{ch.name} from {ch.before} to {ch.after}: Δ = {ch.delta_arcsec:+.2f}″, "
                   f"limit √(U₁²+U₂²) = {ch.limit_arcsec:.2f}″" for ch in found if ch.flagged)
     return History(request.device_id, (), (table,), lines, f"{len(estimates)} estimate(s)", RULE,
-                   history_json(request.device_id, estimates, found), request.plot)
+                   history_json(request.device_id, estimates, found), request.plot, stale)

@@ -22,11 +22,14 @@ def existing(db: str | Path | None) -> Path:
 
 def open_named(run: str, db: str | Path | None) -> tuple[Journal, RunRow, Path | None]:
     """The journal (open: the caller closes it), the run's row, and the folder when ``run`` named
-    one (a run id names none: its folder may be gone; the journal has all of it)."""
+    one (a run number names none: its folder may be gone; the journal has all of it). A number is the
+    lab's (`labcal runs`), as every command names runs."""
     if run.isdigit():
+        from labcal.run.labquery import journal_run
+
         journal = Journal(existing(db))
         try:
-            return journal, journal.run(int(run)), None
+            return journal, journal.run(journal_run(db, int(run))), None
         except BaseException:
             journal.close()
             raise

@@ -84,7 +84,7 @@ def _counts(conn: Connection, run_ids: list[int] | None = None) -> dict[int, tup
 
 SUMMARY = (runs.c.id, runs.c.status, runs.c.station, runs.c.metadata, runs.c.instrument_serial,
            runs.c.operator, runs.c.plan_name, runs.c.plan_text, runs.c.points_total, runs.c.started_utc,
-           runs.c.ended_utc, runs.c.reason, runs.c.run_dir, runs.c.station_text)
+           runs.c.ended_utc, runs.c.reason, runs.c.run_dir, runs.c.station_text, runs.c.uuid)
 
 
 def simulated(metadata: Any, station_text: str | None) -> bool:
@@ -107,7 +107,9 @@ def _summary(row: Any, counts: tuple[int, int, int | None]) -> dict:
     metadata = _json(row.metadata) or {}
     station = row.station or metadata.get("station")
     done, ok, _ = counts
-    return {"id": row.id, "status": row.status, "simulated": simulated(metadata, row.station_text),
+    # named as `labcal runs --json` names them: the lab's run number is ``id`` everywhere
+    return {"id": row.id, "label": str(row.id), "uuid": row.uuid, "status": row.status,
+            "simulated": simulated(metadata, row.station_text),
             "station": station, "serial": row.instrument_serial,
             "operator": row.operator, "plan": row.plan_name, "points_done": done, "points_ok": ok,
             "points_failed": done - ok, "points_total": total, "started_utc": row.started_utc,

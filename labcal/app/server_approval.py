@@ -86,6 +86,28 @@ def server_key(given: str | None) -> Path | None:
     return path
 
 
+def _cannot(lab: LabDatabase, run_dir: str, key: Path | None, name: str) -> str | None:
+    """Why this server cannot approve the run whose folder is ``run_dir`` (None: it can try; the
+    approval itself may still refuse, naming its reasons)."""
+    where = (f"approve it where its folder is: labcal certificate approve {run_dir} --by {name!r} "
+             "--role ROLE --key KEYFILE")
+    if not (Path(run_dir) / CERTIFICATE).is_file():
+        return f"{run_dir}: the run's folder (its {CERTIFICATE}) is not reachable from this server; {where}"
+    if key is None:
+        return (f"this server has no signing key (start it with labcal serve --key FILE, or set server_key "
+                f"in the lab file); {where}")
+    if lab.file is None:
+        return f"this server approves only on a SQLite lab database for now; {where}"
+    return None
+
+
+def approval_refused(lab: LabDatabase, run_id: int, key: Path | None, name: str) -> str | None:
+    """Why this server cannot approve run ``run_id`` for ``name``, in one line, or None when it can
+    try: a page offers its approval form only where approval can succeed."""
+    run_dir = run_folder(lab, run_id)
+    return None if run_dir is None else _cannot(lab, run_dir, key, name)
+
+
 def approve_as_user(lab: LabDatabase, request: ApproveAsUser) -> ServerApproved | None:
     """Approve the run's certificate for the authenticated approver with the server's key (None: no
     such run); one line on any refusal."""
@@ -96,16 +118,10 @@ def approve_as_user(lab: LabDatabase, request: ApproveAsUser) -> ServerApproved 
     if run_dir is None:
         return None
     user, key, db_file = request.user, request.key, lab.file
-    where = (f"approve it where its folder is: labcal certificate approve {run_dir} --by {user.name!r} "
-             "--role ROLE --key KEYFILE")
-    if not (Path(run_dir) / CERTIFICATE).is_file():
-        raise NotHere(f"{run_dir}: the run's folder (its {CERTIFICATE}) is not reachable from this server; "
-                      f"{where}")
-    if key is None:
-        raise NotHere(f"this server has no signing key (start it with labcal serve --key FILE, or set "
-                      f"server_key in the lab file); {where}")
-    if db_file is None:
-        raise NotHere(f"this server approves only on a SQLite lab database for now; {where}")
+    why = _cannot(lab, run_dir, key, user.name)
+    if why is not None:
+        raise NotHere(why)
+    assert key is not None and db_file is not None  # else `_cannot` says why
     registered = by_key(key_id(load_private_key(key).public_key()), db_file)
     if registered is not None and registered.role == SERVER_ROLE:
         role, signed_for = user.role, SignedFor(user.id, request.authentication)

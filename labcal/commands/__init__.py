@@ -14,7 +14,7 @@ COMMANDS = {  # name: (module, one-line help), in the order `labcal --help` list
     "attitude": ("attitude", "pitch and roll with uncertainty from voltages"),
     "report": ("report", "certificate and report of a finished run; stores it in the history"),
     "history": ("history", "an instrument's coefficients over time, drift flagged"),
-    "runs": ("runs", "list the lab's runs (id, instrument, plan, status, start, points)"),
+    "runs": ("runs", "list the lab's runs (lab number, serial, plan, status, start, points)"),
     "log": ("runs", "a run's journaled events: prompts, answers, retries, faults, pauses"),
     "device": ("device", "the calibration device's own history"),
     "station": ("station", "example stations; check that a station's devices answer"),

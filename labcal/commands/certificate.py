@@ -6,7 +6,16 @@ from __future__ import annotations
 import argparse
 
 from labcal.commands import summary
-from labcal.commands.common import add_db_option, out, print_json
+from labcal.commands.common import add_db_option, err, out, print_json
+
+
+def _share(db: str | None) -> None:
+    """Send what the command recorded to the lab's server now; one line on stderr when it cannot."""
+    from labcal.app.certificates import share_with_lab
+
+    unsent = share_with_lab(db)
+    if unsent:
+        err.print(unsent, markup=False)
 
 
 def cmd_keygen(args: argparse.Namespace) -> int:
@@ -28,6 +37,7 @@ def cmd_approve(args: argparse.Namespace) -> int:
 
     approved = approve_certificate(ApproveCertificate(args.run_dir, args.by, args.role, args.key, args.db,
                                                       args.station))
+    _share(args.db)
     if args.json:
         print_json(approved.to_json())
         return 0
@@ -44,6 +54,7 @@ def cmd_approvers_add(args: argparse.Namespace) -> int:
     from labcal.app.certificates import SERVER_ROLE, AddApprover, add_approver
 
     a = add_approver(AddApprover(args.name, args.role, args.public_key, args.db))
+    _share(args.db)
     if args.json:
         print_json(a.to_json())
         return 0
@@ -75,6 +86,7 @@ def cmd_approvers_revoke(args: argparse.Namespace) -> int:
     from labcal.app.certificates import RevokeApprover, revoke_approver
 
     a = revoke_approver(RevokeApprover(args.name, args.db))
+    _share(args.db)
     if args.json:
         print_json(a.to_json())
         return 0

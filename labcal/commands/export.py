@@ -14,17 +14,18 @@ def cmd_export(args: argparse.Namespace) -> int:
     result = (export_run(ExportRun(args.run, args.out, args.db)) if args.out
               else rebuild_run_folder(RebuildRunFolder(args.run, args.db)))
     if args.json:
-        print_json({"run_id": result.run_id, "run_uuid": result.run_uuid, "folder": str(result.folder),
-                    "status": result.status, "notes": list(result.notes), "copy": bool(args.out)})
+        print_json({"id": result.number, "label": result.label, "uuid": result.run_uuid,
+                    "folder": str(result.folder), "status": result.status, "notes": list(result.notes),
+                    "copy": bool(args.out)})
         return 0
     for note in result.notes:
         err.print(f"[yellow]note:[/] {note}")
     if args.out:
-        err.print(f"run {result.run_id} ({result.status}): a copy in {result.folder}, from the journal; the "
+        err.print(f"run {result.label} ({result.status}): a copy in {result.folder}, from the journal; the "
                   f"run's folder is unchanged (`labcal export {result.folder}` makes this copy the run's "
                   "folder)")
         return 0
-    err.print(f"run {result.run_id} ({result.status}): {result.folder} matches the journal"
+    err.print(f"run {result.label} ({result.status}): {result.folder} matches the journal"
               + ("" if result.status == "complete" else f"; `labcal resume {result.folder}` goes on with it"))
     return 0
 
@@ -38,7 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "it. --out DIR writes a copy into DIR and changes neither the run's "
                                    "folder nor the lab database; `labcal export DIR` then makes DIR the "
                                    "run's folder.")
-    p.add_argument("run", metavar="RUN", help="a run folder, or a run id in the lab database")
+    p.add_argument("run", metavar="RUN", help="a run folder, or a run number (see labcal runs)")
     p.add_argument("--out", metavar="DIR", help="write a copy of the run's folder here (the run's own "
                                                 "folder and the lab database are left as they are)")
     add_db_option(p)

@@ -509,7 +509,7 @@ def device_correction(device_id: str, db):
     """The device's misalignments where its history knows them (`device_history.correction_for`)."""
     from labcal.documents.device_history import correction_for
 
-    return correction_for(device_id, db)
+    return correction_for(device_id, db, said=lambda line: err.print(line, markup=False))
 
 
 def optimized_plan_toml(plan, e, correction, target_deg: float, reference,

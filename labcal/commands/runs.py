@@ -7,7 +7,7 @@ import argparse
 
 from labcal.app import STATUSES
 from labcal.commands import summary
-from labcal.commands.common import add_db_option, out, print_json
+from labcal.commands.common import add_db_option, err, out, print_json
 
 
 def _when(utc: str | None) -> str:
@@ -18,26 +18,29 @@ def cmd_runs(args: argparse.Namespace) -> int:
     from labcal.app.runs import ListRuns, list_runs
 
     found = list_runs(ListRuns(args.db, args.serial, tuple(args.status or ())))
-    path, runs = found.database, found.runs
+    where, runs = found.database, found.runs
+    if found.stale:
+        err.print(found.stale, markup=False)
     if args.json:
-        print_json({"database": str(path), "runs": [r.to_json() for r in runs]})
+        print_json({"database": where, "runs": [r.to_json() for r in runs]})
         return 0
     if not runs:
-        where = "" if found.exists else " (it does not exist yet)"
+        missing = "" if found.exists else " (it does not exist yet)"
         matching = " matching" if args.serial or args.status else ""
-        out.print(f"no runs{matching} in {path}{where}", markup=False, soft_wrap=True)  # a path is not broken
+        # a path is not broken
+        out.print(f"no runs{matching} in {where}{missing}", markup=False, soft_wrap=True)
         return 0
     from rich.table import Table
 
-    table = Table(title=f"Runs in {path}", box=None, pad_edge=False)  # 80 columns
-    for col in ("id", "instrument", "plan", "status", "started UTC", "points", "operator"):
+    table = Table(title=f"Runs in {where}", box=None, pad_edge=False)  # 80 columns
+    for col in ("id", "serial", "plan", "status", "started UTC", "points", "operator"):
         table.add_column(col, justify="right" if col in ("id", "points") else "left", min_width=len(col),
                          no_wrap=col in ("plan", "status", "started UTC"))
     for r in runs:
         failed = f" (+{r.points_failed} failed)" if r.points_failed else ""
-        table.add_row(str(r.id), r.instrument or "—", r.plan, r.status, _when(r.started_utc)[:16],
-                      f"{r.points}{failed}", r.operator or "—")
-    table.caption = "labcal log ID: a run's events; --json: its run directory too"
+        table.add_row(r.label, r.serial or "—", r.plan, r.status, _when(r.started_utc)[:16],
+                      f"{r.points_ok}{failed}", r.operator or "—")
+    table.caption = "labcal log ID: a run's events; --json: its station and run directory too"
     out.print(table)
     return 0
 
@@ -47,13 +50,15 @@ def cmd_log(args: argparse.Namespace) -> int:
     from labcal.commands.console import format_duration
 
     run = read_log(ReadLog(args.run, args.db))
+    if run.stale:
+        err.print(run.stale, markup=False)
     if args.json:
         print_json(run.to_json())
         return 0
     ended = f", ended {_when(run.ended_utc)}" if run.ended_utc else ""
     reason = f" ({run.reason})" if run.reason else ""
-    out.print(f"run {run.run_id}: {run.plan}, instrument {run.instrument or '—'}, operator "
-              f"{run.operator or '—'}; {run.status}{reason}; {run.points} point(s); started "
+    out.print(f"run {run.label}: {run.plan}, instrument {run.serial or '—'}, operator "
+              f"{run.operator or '—'}; {run.status}{reason}; {run.points_ok} point(s); started "
               f"{_when(run.started_utc)} UTC{ended}; {run.run_dir}", markup=False)
     if not run.events:
         out.print("no events journaled", markup=False)
@@ -76,8 +81,10 @@ def _message(event: dict) -> str:
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("runs", help=summary("runs"),
-                       description="Every run journaled in the lab's database, oldest first: id, "
-                                   "instrument, plan, status, start, points committed, operator.")
+                       description="Every run in the lab's database, by the lab's run number (the same "
+                                   "at every bench and on the lab server's pages): number, instrument "
+                                   "serial, plan, status, start, points committed, operator. A bench's run "
+                                   "the lab has not seen yet is listed last, by its provisional label.")
     p.add_argument("--serial", metavar="SERIAL", help="only this instrument's runs")
     p.add_argument("--status", choices=STATUSES, action="append",
                    help="only runs in this status (repeatable)")
@@ -88,7 +95,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("log", help=summary("log"),
                        description="The events journaled during a run, in order, with their UTC time and "
                                    "the rig's clock: prompts and answers, retries, faults, pauses, resumes.")
-    p.add_argument("run", metavar="RUN", help="run id (see labcal runs) or run directory")
+    p.add_argument("run", metavar="RUN",
+                   help="run number (see labcal runs), a run's uuid (its first 8 digits will do) or "
+                        "run directory")
     add_db_option(p)
     p.add_argument("--json", action="store_true", help="print as JSON on stdout")
     p.set_defaults(func=cmd_log)

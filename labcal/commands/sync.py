@@ -17,7 +17,7 @@ def cmd_sync(args: argparse.Namespace) -> int:
     from labcal.run.sync import Sender, is_outage
 
     where = lab_database(args.db)
-    nothing = {"database": str(where), "journal": str(where), "sent": {}, "new": {}}
+    nothing = {"database": str(where), "journal": str(where), "sent": {}, "new": {}, "received": {}}
     if not isinstance(where, ServerDatabase):
         return said(args, nothing, f"{where}: the lab database is this SQLite file itself; nothing to send")
     journal = db_path(args.db)
@@ -29,6 +29,7 @@ def cmd_sync(args: argparse.Namespace) -> int:
     sender = Sender(journal, where)
     try:
         sent = sender.push()
+        received = sender.pull()  # every bench's records, for when the lab cannot be reached
     except Exception as exc:
         if is_outage(exc) and not isinstance(exc, labdb.Unreachable):
             raise labdb.unreachable(where, exc) from None
@@ -37,13 +38,16 @@ def cmd_sync(args: argparse.Namespace) -> int:
         sender.close()
     if args.json:
         print_json({"database": str(where), "journal": str(journal), "sent": sent.offered,
-                    "new": sent.stored})
+                    "new": sent.stored, "received": received})
         return 0
     if sent.total == 0:
         out.print(f"{where}: nothing to send; everything in {journal} is there")
     else:
         new = ", ".join(f"{sent.stored[n]} {n}" for n in sent.stored)
         out.print(f"{where}: sent {sent} from {journal} ({new} new there)")
+    if any(received.values()):
+        out.print(f"{where}: received " + ", ".join(f"{n} {t}" for t, n in received.items() if n)
+                  + f" of other benches into {journal}")
     return 0
 
 

@@ -75,7 +75,10 @@ def add(name: str, role: str, public_key_file: str | Path, db: str | Path | None
     kid = key_id(public)
     path = db_path(db)
     with closing(labdb.connect(path)) as conn:
-        for known in _rows(conn, "WHERE key_id = ? OR (name = ? AND revoked_utc IS NULL)", (kid, name)):
+        # the lab's registry (every bench's registrations, where the lab is a server) and this
+        # bench's own, not yet sent
+        for known in _lab(db, key_id=kid) + _lab(db, name=name, active=True) + \
+                _rows(conn, "WHERE key_id = ? OR (name = ? AND revoked_utc IS NULL)", (kid, name)):
             if known.key_id == kid:
                 state = "registered" if known.active else f"revoked on {known.revoked_utc}"
                 raise LabcalError(f"{public_key_file}: this key (id {kid[:12]}…) is already {state} for "
@@ -95,39 +98,56 @@ def add(name: str, role: str, public_key_file: str | Path, db: str | Path | None
 
 
 def revoke(name: str, db: str | Path | None = None) -> Approver:
-    """Revoke ``name``'s active key: it approves and verifies nothing from now on."""
+    """Revoke ``name``'s active key: it approves and verifies nothing from now on. The revocation is
+    journaled with the registration it revokes (registered at another bench: copied here first), so
+    that the lab database receives it as it receives every record of this bench."""
     path = db_path(db)
     with closing(labdb.connect(path)) as conn:
-        active = _rows(conn, "WHERE name = ? AND revoked_utc IS NULL", (name,))
+        active = _lab(db, name=name, active=True) or \
+            _rows(conn, "WHERE name = ? AND revoked_utc IS NULL", (name,))
         if not active:
-            names = [a.name for a in _rows(conn, "WHERE revoked_utc IS NULL", ())]
+            names = [a.name for a in _lab(db, active=True)]
             raise LabcalError(f"{name}: no active approver of that name in {path}; active: "
                               f"{', '.join(names) if names else 'none'}")
+        a = active[0]
         when = _now()
-        conn.execute("UPDATE approvers SET revoked_utc = ? WHERE name = ? AND revoked_utc IS NULL",
-                     (when, name))
-    a = active[0]
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            conn.execute(f"INSERT INTO approvers ({COLUMNS}) VALUES (?, ?, ?, ?, ?, ?) "
+                         "ON CONFLICT DO NOTHING",
+                         (a.name, a.role, a.public_key_pem, a.key_id, a.added_utc, None))
+            conn.execute("UPDATE approvers SET revoked_utc = ? WHERE key_id = ? AND revoked_utc IS NULL",
+                         (when, a.key_id))
+            conn.execute("COMMIT")
+        except BaseException:
+            if conn.in_transaction:
+                conn.execute("ROLLBACK")
+            raise
     return Approver(a.name, a.role, a.public_key_pem, a.key_id, a.added_utc, when)
 
 
 def listed(db: str | Path | None = None) -> list[Approver]:
     """Every registration, active and revoked, in the order they were made (a missing database:
-    none, and nothing is created)."""
-    path = db_path(db)
-    if not path.is_file():
-        return []
-    with closing(labdb.connect(path)) as conn:
-        return _rows(conn, "ORDER BY id", ())
+    none, and nothing is created): the lab's, where the lab database is a server."""
+    return _lab(db)
 
 
 def by_key(kid: str, db: str | Path | None = None) -> Approver | None:
-    """The registration of the key with id ``kid`` (active or revoked), if any."""
-    path = db_path(db)
-    if not path.is_file():
-        return None
-    with closing(labdb.connect(path)) as conn:
-        found = _rows(conn, "WHERE key_id = ?", (kid,))
+    """The registration of the key with id ``kid`` (active or revoked), if any, in the lab's registry."""
+    found = _lab(db, key_id=kid)
     return found[0] if found else None
+
+
+def _lab(db: str | Path | None, key_id: str | None = None, name: str | None = None, active: bool = False
+         ) -> list[Approver]:
+    """Registrations as the lab database holds them (`labcal.run.labquery`: a bench that cannot
+    reach it reads its own journal's), optionally of one key or one name, or only the active ones."""
+    from labcal.run.labquery import records
+
+    where = {k: v for k, v in (("key_id", key_id), ("name", name)) if v is not None}
+    rows = records(db, "approvers", tuple(COLUMNS.split(", ")), where, ("id",), must_exist=False).rows
+    found = [Approver(*row) for row in rows]
+    return [a for a in found if a.active] if active else found
 
 
 def _rows(conn: sqlite3.Connection, where: str, params: tuple) -> list[Approver]:
@@ -178,12 +198,13 @@ def server_user_problems(user_id: int, name: str, when: str | None, db: str | Pa
     server: no such user, another name, not an approver, added after or disabled before. A user's
     name and role never change and a user is never deleted (`labcal.app.users`), so the users table
     says what they were at any time."""
-    path = db_path(db)
-    if not path.is_file():
-        return [f"no lab database at {path} to say who user {user_id} is"]
-    with closing(labdb.connect(path)) as conn:
-        row = conn.execute("SELECT name, role, created_utc, disabled_utc FROM users WHERE id = ?",
-                           (user_id,)).fetchone()
+    from labcal.run.labquery import records
+
+    found_rows = records(db, "users", ("name", "role", "created_utc", "disabled_utc"), {"id": user_id},
+                         must_exist=False)
+    if not found_rows.exists:
+        return [f"no lab database at {found_rows.source.shown} to say who user {user_id} is"]
+    row = found_rows.rows[0] if found_rows.rows else None
     if row is None:
         return [f"the lab server has no user {user_id} ({name!r})"]
     user, user_role, created, disabled = row

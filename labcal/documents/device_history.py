@@ -11,6 +11,7 @@ plan cannot is not stored (there is nothing to store). The device id is what the
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from contextlib import closing
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -195,16 +196,19 @@ def expired(device_id: str, source: str, calibrated_at: datetime, db: str | Path
     return None
 
 
-def correction_for(device_id: str, db: str | Path | None = None, now: datetime | None = None):
+def correction_for(device_id: str, db: str | Path | None = None, now: datetime | None = None,
+                   said: Callable[[str], None] | None = None):
     """The device's misalignments where its history knows them, as `analysis.optimize.DeviceCorrection`:
     two sittings at least, no flagged change between the last two (`RULE`), the latest not expired;
     each u aged by the history's random walk (`analysis.device_ageing`) to ``now``. (None, why) where
-    not known."""
+    not known. ``said`` hears the line saying the lab could not be reached (`estimates_read`)."""
     from labcal.analysis.device_ageing import walk_rate
     from labcal.analysis.kinematics import ARCSEC
     from labcal.analysis.optimize import DeviceCorrection
 
-    estimates = estimates_for(device_id, db)  # an unknown device: one line naming the known ones
+    estimates, stale = estimates_read(device_id, db)  # an unknown device: one line naming the known ones
+    if stale and said is not None:
+        said(stale)
     kept = in_sittings(estimates)
     if len(kept) < 2:
         return None, (f"device {device_id} has {len(estimates)} estimate(s) from {len(kept)} sitting(s); two "
@@ -306,16 +310,21 @@ def store(estimate: DeviceEstimate, db: str | Path | None = None) -> Path:
 
 
 def estimates_for(device_id: str, db: str | Path | None = None) -> list[DeviceEstimate]:
-    """The device's estimates, oldest calibration first."""
+    """The device's estimates, oldest calibration first (`estimates_read`)."""
+    return estimates_read(device_id, db)[0]
+
+
+def estimates_read(device_id: str, db: str | Path | None = None) -> tuple[list[DeviceEstimate], str | None]:
+    """The device's estimates, oldest calibration first: every bench's, where the lab database is a
+    server; and the line saying the lab could not be reached (None: read from it)."""
     from labcal.documents.history import stored_rows  # with the certificates: not on a run's path
 
-    path, rows = stored_rows(
-        db, "SELECT document FROM device_estimates WHERE device_id = ? ORDER BY calibrated_utc, source",
-        device_id, "SELECT DISTINCT device_id FROM device_estimates ORDER BY 1",
+    stored = stored_rows(
+        db, "device_estimates", "device_id", device_id, ("document",), ("calibrated_utc", "source"),
         f"no device estimates for {device_id!r}", "known devices",
         "a finished run stores its device estimate there")
     found = []
-    for (text,) in rows:
+    for (text,) in stored.rows:
         try:
             doc = json.loads(text)
             mis = doc["misalignments"]
@@ -323,8 +332,9 @@ def estimates_for(device_id: str, db: str | Path | None = None) -> list[DeviceEs
                                         {n: float(mis[n]["value_arcsec"]) for n in MISALIGNMENT_NAMES},
                                         {n: float(mis[n]["U_arcsec"]) for n in MISALIGNMENT_NAMES}))
         except (ValueError, KeyError, TypeError) as exc:
-            raise LabcalError(f"{path}: a device estimate of {device_id!r} is damaged ({exc})") from None
-    return found
+            raise LabcalError(f"{stored.shown}: a device estimate of {device_id!r} is damaged "
+                              f"({exc})") from None
+    return found, stored.stale
 
 
 @dataclass(frozen=True)

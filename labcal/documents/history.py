@@ -54,44 +54,63 @@ def stored_digest(certificate_id: str, db: str | Path | None = None) -> str | No
     return None if row is None else row[0]
 
 
-def stored_rows(db: str | Path | None, select: str, key: str, known: str, missing: str, known_label: str,
-                stored_by: str) -> tuple[Path, list[tuple]]:
-    """The lab database's rows for one instrument or calibration device (``select`` with ``key``);
-    a missing database, or a key it does not hold, is one line naming what it does hold (``known``).
-    The instrument's and the device's histories both read through here."""
-    path = db_path(db)
-    if not path.is_file():
-        raise LabcalError(f"{path}: no such database; {stored_by} (or give --db / set LABCAL_DB)")
-    with closing(labdb.connect(path)) as conn:
-        rows = conn.execute(select, (key,)).fetchall()
-        if not rows:
-            held = [k for (k,) in conn.execute(known)]
-            raise LabcalError(f"{missing} in {path}; {known_label}: {', '.join(held) if held else 'none'}")
-    return path, rows
+@dataclass(frozen=True)
+class Stored:
+    """An instrument's or a device's rows as the lab database holds them: where they were read
+    (``shown``), and the line saying the lab could not be reached (None: read from the lab)."""
+
+    shown: str
+    rows: list[tuple]
+    stale: str | None
+
+
+def stored_rows(db: str | Path | None, table: str, column: str, key: str, columns: tuple[str, ...],
+                order: tuple[str, ...], missing: str, known_label: str, stored_by: str) -> Stored:
+    """The lab database's rows for one instrument or calibration device (``column`` = ``key``):
+    every bench's, where the lab is a server (`labcal.run.labquery`); a missing database, or a key
+    it does not hold, is one line naming what it does hold. The instrument's and the device's
+    histories both read through here."""
+    from labcal.run import labquery
+
+    found = labquery.records(db, table, columns, {column: key}, order, must_exist=False)
+    if not found.exists:
+        raise LabcalError(f"{found.source.shown}: no such database; {stored_by} (or give --db / set "
+                          "LABCAL_DB)")
+    if not found.rows:
+        held = ", ".join(labquery.distinct(db, table, column)) or "none"
+        raise LabcalError(f"{missing} in {found.source.shown}; {known_label}: {held}")
+    return Stored(found.source.shown, found.rows, found.source.stale)
 
 
 def certificates_for(serial: str, db: str | Path | None = None, include_simulated: bool = False
                      ) -> list[Certificate]:
-    """The instrument's certificates, oldest calibration first, each verified. A dry run's
-    certificate is left out unless ``include_simulated`` (or the serial is the simulator's own):
-    a simulated calibration must never pass for one of the real instrument."""
-    path, rows = stored_rows(
-        db, "SELECT certificate_id, document FROM certificates WHERE serial = ? "
-            "ORDER BY calibrated_utc, certificate_id", serial,
-        "SELECT DISTINCT serial FROM certificates ORDER BY serial",
+    """The instrument's certificates, oldest calibration first, each verified (`certificates_read`)."""
+    return certificates_read(serial, db, include_simulated)[0]
+
+
+def certificates_read(serial: str, db: str | Path | None = None, include_simulated: bool = False
+                      ) -> tuple[list[Certificate], str | None]:
+    """The instrument's certificates, oldest calibration first, each verified, and the line saying
+    the lab could not be reached (None: read from it). A dry run's certificate is left out unless
+    ``include_simulated`` (or the serial is the simulator's own): a simulated calibration must never
+    pass for one of the real instrument."""
+    found = stored_rows(
+        db, "certificates", "serial", serial, ("certificate_id", "document"),
+        ("calibrated_utc", "certificate_id"),
         f"no certificates for instrument {serial!r}", "known serials",
         "`labcal report RUN` stores certificates there")
-    certs = [certificate_from_doc(parse_json(doc, f"{path}: certificate {cid}"), f"{path}: certificate {cid}")
-             for cid, doc in rows]
+    where = found.shown
+    certs = [certificate_from_doc(parse_json(doc, f"{where}: certificate {cid}"),
+                                  f"{where}: certificate {cid}") for cid, doc in found.rows]
     replaced = {c.replaces for c in certs if c.replaces}
     certs = [c for c in certs if c.number not in replaced]  # a correction stands for the one it replaces
     if include_simulated or serial == SIMULATED_SERIAL:
-        return certs
+        return certs, found.stale
     real = [c for c in certs if not c.station.simulated]
     if not real:
-        raise LabcalError(f"instrument {serial!r} has only simulated certificates in {path} ({len(certs)} "
+        raise LabcalError(f"instrument {serial!r} has only simulated certificates in {where} ({len(certs)} "
                           "dry run(s)); give --include-simulated to see them")
-    return real
+    return real, found.stale
 
 
 @dataclass(frozen=True)

@@ -203,10 +203,12 @@ class RunNotifier:
 
     KINDS = KINDS
 
-    def __init__(self, notifications: Notifications, station: str, run_dir: Path) -> None:
+    def __init__(self, notifications: Notifications, station: str, run_dir: Path,
+                 label: Callable[[int], str] = str) -> None:
         self.notifications = notifications
         self.station = station
         self.run_dir = run_dir
+        self.label = label  # the run's number as the lab gives it (`labcal.run.labquery.lab_number_of`)
 
     def handle(self, event: RunEvent) -> None:
         message = self.compose(event)
@@ -215,16 +217,17 @@ class RunNotifier:
 
     def compose(self, event: RunEvent) -> Message | None:
         """The notification an event makes, if any: a mount prompt, a pause, the run's end."""
-        who = f"labcal {self.station}, run {event.run_id}"
+        run = self.label(event.run_id)
+        who = f"labcal {self.station}, run {run}"
         if isinstance(event, Prompt) and event.what == "mount":
-            return self._mount(who, event)
+            return self._mount(who, run, event)
         if isinstance(event, Paused):
-            return self._paused(who, event)
+            return self._paused(who, run, event)
         if isinstance(event, Status) and event.at == "end":
-            return self._finished(who, event)
+            return self._finished(who, run, event)
         return None
 
-    def _mount(self, who: str, event: Prompt) -> Message:
+    def _mount(self, who: str, run: str, event: Prompt) -> Message:
         which = f"mount {event.step} of {event.n_steps}" if event.step is not None else "a mount"
         where = ""
         if event.mount is not None:
@@ -232,18 +235,18 @@ class RunNotifier:
             where = f" on the {mount.describe()} ({mount})"
         note = event.args[3] if len(event.args) == 4 else ""  # (mount, step, n_steps, note), as journaled
         note = f" ({note})" if note else ""  # a replicate's re-seat, a wrong mount to correct
-        return Message(which, f"labcal run {event.run_id}: {which}",
+        return Message(which, f"labcal run {run}: {which}",
                        f"{who}: {which}: remount the instrument{where}{note}; the tables wait until the "
                        "operator confirms it at the station")
 
-    def _paused(self, who: str, event: Paused) -> Message:
+    def _paused(self, who: str, run: str, event: Paused) -> Message:
         tables = (f"the stop did not reach the {', '.join(event.may_be_moving)} table(s): it may still be "
                   "moving" if event.may_be_moving else "the tables are still")
-        return Message("the pause", f"labcal run {event.run_id}: paused",
+        return Message("the pause", f"labcal run {run}: paused",
                        f"{who}: paused ({event.why}); {tables}; every reading so far is saved, and the run "
                        "waits for the operator to resume or abort it at the station")
 
-    def _finished(self, who: str, event: Status) -> Message:
+    def _finished(self, who: str, run: str, event: Status) -> Message:
         counted = f"{event.points_done} of {event.points_total} points"
         if event.status == "complete":
             figures = fit_figures(self.run_dir)
@@ -252,7 +255,7 @@ class RunNotifier:
             verdict = f"{event.status} ({event.reason or 'no reason given'}), {counted}"
             if event.status in ("stopped", "interrupted"):
                 verdict += f"; labcal resume {self.run_dir} continues it"
-        return Message("the end", f"labcal run {event.run_id}: finished, {event.status}",
+        return Message("the end", f"labcal run {run}: finished, {event.status}",
                        f"{who}: finished: {verdict}")
 
 

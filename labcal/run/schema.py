@@ -185,5 +185,24 @@ sync_runs = Table(
     PrimaryKeyConstraint("target", "run_id"),
 )
 
+# Revision 0009: in a station's journal, the state of each record (certificates, device estimates,
+# approvers, settle pools) last sent to each lab database (``key``: the record's key, ``state``: the
+# columns that change when it does), and when everything had last been sent there (``synced_utc``):
+# how old a bench's own view is when it cannot reach the lab.
+sync_sent = Table(
+    "sync_sent", METADATA,
+    Column("target", Text, nullable=False),
+    Column("name", Text, nullable=False),
+    Column("key", Text, nullable=False),
+    Column("state", Text, nullable=False),
+    PrimaryKeyConstraint("target", "name", "key"),
+)
+
+sync_targets = Table(
+    "sync_targets", METADATA,
+    Column("target", Text, primary_key=True),
+    Column("synced_utc", Text, nullable=False),
+)
+
 __all__ = ["METADATA", "approvers", "certificates", "device_estimates", "events", "points", "run_exports",
-           "runs", "settle_pools", "sync_cursors", "sync_runs", "users"]
+           "runs", "settle_pools", "sync_cursors", "sync_runs", "sync_sent", "sync_targets", "users"]

@@ -1,15 +1,19 @@
-"""Every journaled record reaches the lab's PostgreSQL database exactly once (issue 24).
+"""Every journaled record reaches the lab's PostgreSQL database exactly once.
 
 With a server as the lab database, each station journals in a SQLite file of its own
 (`labcal.config.lab.LabConfig.journal`): a reading is on the station's disk, committed, before the
 next move, whatever the network does. `Sender.push` sends what the journal holds and the server
-does not yet: runs (found by their uuid: the server numbers runs of every station, so a station's
-run id is not the lab's), their points (key: the lab's run id and the point's seq), events (key:
-the lab's run id and the event's id in the journal, ``events.origin_id``) and certificates (key:
-their id). Every insert is ``ON CONFLICT DO NOTHING`` (a run's status an upsert), so sending a record
-twice (the server committed, the cursor's update did not) stores it once. The journal keeps how far
-it has sent to each server (``sync_cursors``: the last rowid of each table; ``sync_runs``: each
-run's lab id and the status last sent), written only after the server has committed.
+does not yet: runs (found by their uuid, and numbered by the lab the first time any bench sends
+them: `lab_number`), their points (key: the lab's run number and the point's seq), events (key: the
+lab's run number and the event's id in the journal, ``events.origin_id``), and the lab's other
+records (`RECORDS`: certificates, device estimates, approvers, settle pools, each under its own key,
+sent again whenever it changes: a certificate approved or re-issued under its id, a revocation, a
+pool that grew). Every insert is ``ON CONFLICT DO NOTHING`` or an upsert, so sending a record twice
+(the server committed, the journal's note of it did not) stores it once. The journal keeps how far
+it has sent to each server (``sync_cursors``: the last rowid of points and events; ``sync_runs``:
+each run's lab number and the status last sent; ``sync_sent``: each record's state last sent),
+written only after the server has committed. `Sender.pull` brings the other way what the lab holds
+of every bench's records, so that a bench that loses the lab works from what it last had.
 
 During a run, `sending` runs a `Sender` on a thread of its own, which reads the journal through its
 own connection (WAL: it never blocks the run's writer) twice a second, so a run never waits for the
@@ -27,7 +31,7 @@ from collections.abc import Callable, Iterator
 from contextlib import closing, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from labcal.config.lab import ServerDatabase, load_lab_config
 from labcal.errors import LabcalError
@@ -42,16 +46,57 @@ BATCH = 500  # rows per statement: a catch-up after a long outage goes in bounde
 POLL_S = 0.5  # how often the sender looks at the journal during a run
 BACKOFF_MAX_S = 10.0
 FLUSH_S = 5.0  # what the end of a run waits for the server, at most
+IN_STEP_S = 60.0  # how often a sender with nothing to send notes that the journal is in step
+
+
+@dataclass(frozen=True)
+class Record:
+    """A table of the lab's records other than runs, sent whole and again whenever it changes: its
+    key, and the columns whose values change when the record does (its state, kept per lab database
+    in the journal's ``sync_sent`` once the lab has committed it)."""
+
+    table: str
+    key: tuple[str, ...]
+    state: tuple[str, ...]
+
+
+# A certificate re-stored under its id (approved, re-issued) has a new digest; an estimate stored
+# again from the same run a new storing time; an approver revoked a revocation time; a settle pool a
+# new update time.
+RECORDS = (
+    Record("certificates", ("certificate_id",), ("sha256", "issued_utc")),
+    Record("device_estimates", ("device_id", "source"), ("stored_utc",)),
+    Record("approvers", ("key_id",), ("revoked_utc",)),
+    Record("settle_pools", ("pool_key",), ("updated_utc",)),
+)
+NAMES = ("runs", "points", "events", *(r.table for r in RECORDS))
+SEP = "char(31)"  # between a composite key's parts (never in a device id, run uuid or date)
+UNIT = "\x1f"  # the same character, as Python writes it (`_text_of`)
+
+
+def _text_of(values: tuple | list) -> str:
+    """Several values as one text, as `_joined` makes it in SQLite (NULL: empty)."""
+    return UNIT.join("" if v is None else str(v) for v in values)
+
+
+def and_all(table: Any, columns: tuple[str, ...], values: list[str]) -> Any:
+    """The SQL condition that a row's ``columns`` equal ``values`` (a key split at `UNIT`)."""
+    from sqlalchemy import and_
+
+    return and_(*(table.c[c] == v for c, v in zip(columns, values, strict=True)))
+
+
+def _joined(columns: tuple[str, ...]) -> str:
+    """SQLite text of several columns, one value: what `sync_sent` keeps of a key or a state."""
+    return f" || {SEP} || ".join(f"coalesce(CAST(t.{c} AS TEXT), '')" for c in columns)
 
 
 @dataclass
 class Sent:
     """What one push sent: rows offered to the server per table, and rows it did not have yet."""
 
-    offered: dict[str, int] = field(default_factory=lambda: dict.fromkeys(("runs", "points", "events",
-                                                                            "certificates"), 0))
-    stored: dict[str, int] = field(default_factory=lambda: dict.fromkeys(("runs", "points", "events",
-                                                                           "certificates"), 0))
+    offered: dict[str, int] = field(default_factory=lambda: dict.fromkeys(NAMES, 0))
+    stored: dict[str, int] = field(default_factory=lambda: dict.fromkeys(NAMES, 0))
 
     def add(self, other: Sent) -> None:
         for name in self.offered:
@@ -82,6 +127,7 @@ class Sender:
         self.station = station or load_lab_config().station()
         self.engine = engine or labdb.server_engine(server)
         self._schema_checked = False
+        self._in_step = -IN_STEP_S - 1.0  # when the journal last noted it was in step with the lab
 
     def close(self) -> None:
         self.engine.dispose()
@@ -94,10 +140,26 @@ class Sender:
         with closing(self._local()) as db:
             marks = self._cursors(db)
             out = {"runs": len(self._runs_to_send(db))}
-            for name, key in (("points", "rowid"), ("events", "id"), ("certificates", "rowid")):
+            for name, key in (("points", "rowid"), ("events", "id")):
                 out[name] = db.execute(f"SELECT count(*) FROM {name} WHERE {key} > ?",
                                        (marks.get(name, 0),)).fetchone()[0]
+            for record in RECORDS:
+                out[record.table] = len(self._records_to_send(db, record, None))
             return out
+
+    def _records_to_send(self, db: sqlite3.Connection, record: Record, limit: int | None
+                         ) -> list[tuple]:
+        """A record table's rows whose state this lab database has not committed: (key, state, row)."""
+        from labcal.run import schema
+
+        columns = [c.name for c in schema.METADATA.tables[record.table].columns if c.name != "id"]
+        key, state = _joined(record.key), _joined(record.state)
+        rows = db.execute(
+            f"SELECT {key}, {state}, {', '.join('t.' + c for c in columns)} FROM {record.table} t "
+            f"LEFT JOIN sync_sent s ON s.target = ? AND s.name = ? AND s.key = {key} "
+            f"WHERE s.state IS NULL OR s.state != {state} ORDER BY t.rowid LIMIT ?",
+            (self.target, record.table, -1 if limit is None else limit)).fetchall()
+        return [(row[0], row[1], dict(zip(columns, row[2:], strict=True))) for row in rows]
 
     def _cursors(self, db: sqlite3.Connection) -> dict[str, int]:
         return dict(db.execute("SELECT name, position FROM sync_cursors WHERE target=?", (self.target,)))
@@ -122,7 +184,66 @@ class Sender:
                 step = self._push_once(db)
                 sent.add(step)
                 if step.total == 0:
+                    # everything the journal holds is in the lab: what a bench that cannot reach
+                    # it later names as the age of its own view (noted at most once a minute while
+                    # nothing changes: a run's sender pushes twice a second)
+                    if sent.total or time.monotonic() - self._in_step > IN_STEP_S:
+                        db.execute("INSERT INTO sync_targets (target, synced_utc) VALUES (?, ?) ON CONFLICT "
+                                   "(target) DO UPDATE SET synced_utc=excluded.synced_utc",
+                                   (self.target, _utc()))
+                        self._in_step = time.monotonic()
                     return sent
+
+    def pull(self) -> dict[str, int]:
+        """The lab's records (every bench's certificates, device estimates, approvers and settle
+        pools) copied into this journal where it lacks them or holds a copy the lab has since changed
+        (and this bench has not: a change of its own not yet sent is never overwritten), so that a
+        bench that later cannot reach the lab still works from what it last had, and a run starts
+        from the lab's settle pool. Returns the rows copied per table."""
+        if not self._schema_checked:
+            labdb.open_server(self.server).dispose()
+            self._schema_checked = True
+        with closing(self._local()) as db, self.engine.connect() as server:
+            return {record.table: self._pull_record(db, server, record) for record in RECORDS}
+
+    def _pull_record(self, db: sqlite3.Connection, server: Connection, record: Record) -> int:
+        from sqlalchemy import or_, select
+
+        from labcal.run import schema
+
+        table = schema.METADATA.tables[record.table]
+        n = len(record.key)
+        lab = {_text_of(row[:n]): _text_of(row[n:])
+               for row in server.execute(select(*(table.c[c] for c in record.key + record.state)))}
+        key, state = _joined(record.key), _joined(record.state)
+        mine = dict(db.execute(f"SELECT {key}, {state} FROM {record.table} t"))
+        sent = dict(db.execute("SELECT key, state FROM sync_sent WHERE target = ? AND name = ?",
+                               (self.target, record.table)))
+        wanted = [k for k, v in lab.items()
+                  if k not in mine or (mine[k] == sent.get(k) and mine[k] != v)]
+        columns = [c.name for c in table.columns if c.name != "id"]
+        rows: list[tuple] = []
+        for part in range(0, len(wanted), BATCH):
+            match = [and_all(table, record.key, k.split(UNIT)) for k in wanted[part:part + BATCH]]
+            query = select(*(table.c[c] for c in columns)).where(or_(*match))
+            rows += [tuple(r) for r in server.execute(query)]
+        if not rows:
+            return 0
+        at = [columns.index(c) for c in record.key + record.state]
+        states = [(self.target, record.table, _text_of([r[i] for i in at[:n]]),
+                   _text_of([r[i] for i in at[n:]])) for r in rows]
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            db.executemany(f"INSERT OR REPLACE INTO {record.table} ({', '.join(columns)}) VALUES "
+                           f"({', '.join('?' * len(columns))})", rows)
+            db.executemany("INSERT INTO sync_sent (target, name, key, state) VALUES (?,?,?,?) "
+                           "ON CONFLICT (target, name, key) DO UPDATE SET state=excluded.state", states)
+            db.execute("COMMIT")
+        except BaseException:
+            if db.in_transaction:
+                db.execute("ROLLBACK")
+            raise
+        return len(rows)
 
     def _push_once(self, db: sqlite3.Connection) -> Sent:
         # SQLAlchemy's tables only here, where a server is written: a run on a SQLite lab database
@@ -133,7 +254,6 @@ class Sender:
 
         point_columns = tuple(c.name for c in schema.points.columns if c.name != "run_id")
         run_columns = tuple(c.name for c in schema.runs.columns if c.name not in ("id", "station"))
-        certificate_columns = tuple(c.name for c in schema.certificates.columns)
 
         sent = Sent()
         marks = self._cursors(db)
@@ -149,14 +269,11 @@ class Sender:
                 # as journaled (`Journal.start_run`); a run journaled before runs named their
                 # station was journaled here, at this station
                 values["station"] = row[-1] or self.station
-                statement = insert(schema.runs).values(**values).on_conflict_do_update(
-                    index_elements=["uuid"],
-                    set_={"status": values["status"], "reason": values["reason"],
-                          "ended_utc": values["ended_utc"], "points_total": values["points_total"]})
-                lab_id = server.execute(statement.returning(schema.runs.c.id)).scalar_one()
+                lab_id, new = lab_number(server, values)
                 lab_ids[run_id] = lab_id
                 run_rows.append((self.target, run_id, lab_id, state))
-            sent.offered["runs"] = sent.stored["runs"] = len(run_rows)
+                sent.stored["runs"] += new
+            sent.offered["runs"] = len(run_rows)
             moved_points, sent.offered["points"], sent.stored["points"] = self._send_rows(
                 server, db, "points", "rowid", marks.get("points", 0), point_columns, lab_ids,
                 lambda rows: insert(schema.points).values(rows).on_conflict_do_nothing(
@@ -165,15 +282,16 @@ class Sender:
                 server, db, "events", "id", marks.get("events", 0), EVENT_COLUMNS, lab_ids,
                 lambda rows: insert(schema.events).values(rows).on_conflict_do_nothing(
                     index_elements=["run_id", "origin_id"]), origin=True)
-            moved_certs, sent.offered["certificates"], sent.stored["certificates"] = self._send_rows(
-                server, db, "certificates", "rowid", marks.get("certificates", 0), certificate_columns,
-                None, lambda rows: insert(schema.certificates).values(rows).on_conflict_do_nothing(
-                    index_elements=["certificate_id"]))
-        for name, position in (("points", moved_points), ("events", moved_events),
-                               ("certificates", moved_certs)):
+            records = []
+            for record in RECORDS:
+                pending = self._records_to_send(db, record, BATCH)
+                sent.offered[record.table] = len(pending)
+                sent.stored[record.table] = send_records(server, record, [row for _, _, row in pending])
+                records += [(self.target, record.table, key, state) for key, state, _ in pending]
+        for name, position in (("points", moved_points), ("events", moved_events)):
             if position is not None:
                 moved[name] = position
-        if run_rows or moved:  # the server has committed: now the journal may say so
+        if run_rows or moved or records:  # the server has committed: now the journal may say so
             db.execute("BEGIN IMMEDIATE")
             try:
                 db.executemany("INSERT INTO sync_runs (target, run_id, lab_run_id, sent) VALUES (?,?,?,?) "
@@ -182,6 +300,8 @@ class Sender:
                 db.executemany("INSERT INTO sync_cursors (target, name, position) VALUES (?,?,?) "
                                "ON CONFLICT (target, name) DO UPDATE SET position=excluded.position",
                                [(self.target, n, p) for n, p in moved.items()])
+                db.executemany("INSERT INTO sync_sent (target, name, key, state) VALUES (?,?,?,?) "
+                               "ON CONFLICT (target, name, key) DO UPDATE SET state=excluded.state", records)
                 db.execute("COMMIT")
             except BaseException:
                 if db.in_transaction:
@@ -213,9 +333,82 @@ class Sender:
             last = row[0]
         if not values:
             return None, 0, 0
-        result = server.execute(statement(values))  # type: ignore[call-overload]
+        # SQLAlchemy reports an INSERT's rowcount only when asked to keep it
+        result = server.execute(statement(values).execution_options(  # type: ignore[attr-defined]
+            preserve_rowcount=True))
         stored = result.rowcount if result.rowcount is not None and result.rowcount >= 0 else len(values)
         return last, len(values), stored
+
+
+RUN_NUMBER_LOCK = 0x6C616272  # "labr": serialises numbering the lab's runs (one transaction at a time)
+
+
+def lab_number(server: Connection, values: dict) -> tuple[int, bool]:
+    """The lab's number of a run (``values``: its journaled columns), given the first time any bench
+    sends it and never again: a run the lab knows (by its uuid) keeps its number and has its status
+    updated; a new one gets the next number, one more than the highest, under a lock held until the
+    sending transaction commits, so the lab's runs are numbered 1, 2, 3 … in the order they reached
+    it, without a gap (a database sequence would leave one at every rolled-back or conflicting insert).
+    Returns the number, and whether the run is new to the lab."""
+    from sqlalchemy import func, select, text, update
+
+    from labcal.run.schema import runs
+
+    def known() -> int | None:
+        return server.execute(select(runs.c.id).where(runs.c.uuid == values["uuid"])).scalar()
+
+    status = {name: values[name] for name in ("status", "reason", "ended_utc", "points_total")}
+    number = known()
+    if number is None:
+        server.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": RUN_NUMBER_LOCK})
+        number = known()  # sent meanwhile by another process of this bench (a run's sender, labcal sync)
+    if number is not None:
+        server.execute(update(runs).where(runs.c.id == number).values(**status))
+        return number, False
+    number = int(server.execute(select(func.coalesce(func.max(runs.c.id), 0) + 1)).scalar_one())
+    server.execute(runs.insert().values(id=number, **values))
+    # the column's own sequence follows, so that nothing else inserting a run takes a number twice
+    server.execute(text("SELECT setval(pg_get_serial_sequence('runs', 'id'), :n)"), {"n": number})
+    return number, True
+
+
+def send_records(server: Connection, record: Record, rows: list[dict]) -> int:
+    """Records into the lab database, each stored once under its key; one sent again because it
+    changed replaces the lab's copy (a certificate approved or re-issued under its id, an estimate
+    stored again, a pool that grew) unless the lab's is newer, and an approver's revocation is kept.
+    Returns how many rows the lab database changed."""
+    if not rows:
+        return 0
+    from sqlalchemy import update
+    from sqlalchemy.dialects.postgresql import insert
+
+    from labcal.run import schema
+
+    table = schema.METADATA.tables[record.table]
+    statement = insert(table).values(rows)
+    if record.table == "approvers":
+        # a name active twice (two benches registered two keys for it offline) is refused by the
+        # lab's unique index: the first registration stands, as it would have on one database
+        kept = statement.on_conflict_do_nothing().execution_options(preserve_rowcount=True)
+        stored = _count(server.execute(kept), len(rows))
+        for row in rows:
+            if row["revoked_utc"] is not None:
+                stored += _count(server.execute(
+                    update(table).where(table.c.key_id == row["key_id"], table.c.revoked_utc.is_(None))
+                    .values(revoked_utc=row["revoked_utc"])), 1)
+        return stored
+    # a certificate whose digest differs; an estimate or a pool stored later than the lab's copy
+    newer = (table.c.sha256 != statement.excluded.sha256 if record.table == "certificates" else
+             table.c[record.state[0]] < statement.excluded[record.state[0]])
+    changed = {c.name: statement.excluded[c.name] for c in table.columns if c.name not in record.key}
+    upsert = statement.on_conflict_do_update(index_elements=list(record.key), set_=changed, where=newer)
+    return _count(server.execute(upsert.execution_options(preserve_rowcount=True)), len(rows))
+
+
+def _count(result: object, at_most: int) -> int:
+    """Rows a statement changed (where the driver cannot say: every row it was given)."""
+    count = getattr(result, "rowcount", None)
+    return count if isinstance(count, int) and count >= 0 else at_most
 
 
 def is_outage(exc: BaseException) -> bool:
@@ -328,6 +521,31 @@ def ready(db: str | Path | None) -> None:
 
     labdb.connect(db_path(db)).close()
     check_server(db)
+    receive(db)
+
+
+def receive(db: str | Path | None) -> dict[str, int]:
+    """The lab's records this bench lacks copied into its journal (`Sender.pull`): before a run, so
+    that it starts from the lab's settle pool and device history. A server that cannot be reached is
+    not waited for (the run starts from what the journal last had)."""
+    from labcal.run.journal import db_path
+
+    where = lab_database(db)
+    journal = db_path(db)
+    if isinstance(where, Path) or not journal.is_file():
+        return {}
+    try:
+        sender = Sender(journal, where)
+    except labdb.Unreachable:
+        return {}
+    try:
+        return sender.pull()
+    except Exception as exc:
+        if not is_outage(exc):
+            raise
+        return {}
+    finally:
+        sender.close()
 
 
 def check_server(db: str | Path | None) -> None:
@@ -359,3 +577,30 @@ def sending(db: str | Path | None, journal: Path, say: Callable[[str], None]) ->
         if any(left.values()):
             say(f"not yet in the lab database {where}: " + ", ".join(f"{n} {k}" for k, n in left.items())
                 + "; they stay in the journal " f"{journal}: run labcal sync when the server is back")
+
+
+def send_now(db: str | Path | None) -> str | None:
+    """What this bench has just recorded (an approver registered or revoked, a certificate approved)
+    sent to the lab's server at once, so that every bench sees it now; None when sent (or when the
+    lab database is the journal itself), else the one line saying it waits for ``labcal sync``."""
+    from labcal.run.journal import db_path
+
+    where = lab_database(db)
+    journal = db_path(db)
+    if isinstance(where, Path) or not journal.is_file():
+        return None
+    try:
+        sender = Sender(journal, where)
+    except LabcalError as exc:
+        return f"{exc}; the journal {journal} keeps it for labcal sync"
+    try:
+        sender.push()
+    except Exception as exc:
+        if not is_outage(exc):
+            raise
+        why = labdb._first_line(getattr(exc, "orig", None) or exc)
+        return (f"the lab database {where} is unreachable ({why}); the journal {journal} keeps it for "
+                "labcal sync")
+    finally:
+        sender.close()
+    return None

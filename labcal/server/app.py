@@ -45,7 +45,7 @@ from fastapi.templating import Jinja2Templates
 from labcal.app import lab, users
 from labcal.app.certificates import Authentication
 from labcal.app.labdatabase import LabDatabase
-from labcal.app.server_approval import ApproveAsUser, NotHere, approve_as_user
+from labcal.app.server_approval import ApproveAsUser, NotHere, approval_refused, approve_as_user
 from labcal.errors import LabcalError
 from labcal.server.sessions import COOKIE, Session, Sessions, csrf_ok
 
@@ -241,8 +241,10 @@ def create_app(settings: ServerSettings) -> FastAPI:
         if view is None:
             return page(request, "error.html", user, status=404,
                         message=f"No run {run_id} in the lab database.")
+        refused = approval_refused(db, run_id, settings.key, user.name) \
+            if user.may_approve and view.run["status"] == "complete" and not view.run["simulated"] else None
         return page(request, "run.html", user, run=view.run, recent=view.recent, message=message,
-                    after=event_id_of(view.cursor))
+                    after=event_id_of(view.cursor), refused=refused)
 
     @app.get("/runs/{run_id}/stream")
     def page_stream(run_id: int, request: Request, user: Annotated[users.User, Depends(page_user)],

@@ -2,7 +2,7 @@ CREATE TABLE alembic_version (
 	version_num VARCHAR(32) NOT NULL, 
 	CONSTRAINT alembic_version_pkc PRIMARY KEY (version_num)
 );
-INSERT INTO "alembic_version" VALUES('0007');
+INSERT INTO "alembic_version" VALUES('0009');
 CREATE TABLE approvers (
 	id INTEGER NOT NULL, 
 	name TEXT NOT NULL, 
@@ -121,6 +121,18 @@ CREATE TABLE sync_runs (
 	sent TEXT NOT NULL, 
 	PRIMARY KEY (target, run_id), 
 	FOREIGN KEY(run_id) REFERENCES runs (id)
+);
+CREATE TABLE sync_sent (
+	target TEXT NOT NULL, 
+	name TEXT NOT NULL, 
+	"key" TEXT NOT NULL, 
+	state TEXT NOT NULL, 
+	PRIMARY KEY (target, name, "key")
+);
+CREATE TABLE sync_targets (
+	target TEXT NOT NULL, 
+	synced_utc TEXT NOT NULL, 
+	PRIMARY KEY (target)
 );
 CREATE TABLE users (
 	id INTEGER NOT NULL, 
