@@ -75,6 +75,7 @@ class StartRun:
     seed: int | None = None
     out: str | None = None
     rig: str | None = None
+    instrument: Literal["three-axis", "two-axis-xy", "two-axis-xz", "single-axis"] | None = None
     samples: int | None = None
     fixed_dwell: float | None = None
     max_dwell: float | None = None
@@ -268,6 +269,9 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
         raise LabcalError("--rig describes the rig of --sim; an emulated station has [emulation.rig]")
     if args.pace is not None and not args.sim:
         raise LabcalError(PACE_SIM_ONLY)
+    if args.instrument and not args.sim:
+        raise LabcalError("--instrument chooses the simulated rig's package (--sim); a station's is its "
+                          "[instrument] package")
     plan, plan_text = load_plan(args.plan)
     correction = plan_correction(plan_text, args.plan)  # the device's misalignments it corrects for
     if args.replicates is not None:  # the journal keeps the plan that actually runs
@@ -278,7 +282,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
         notifications = stack.enter_context(lab_notifications(lambda line: front.say(line, markup=False)))
         bench = None
         if args.sim:
-            setup = sim_station(args.rig, args.seed, pace=args.pace)
+            setup = sim_station(args.rig, args.seed, pace=args.pace, package=args.instrument)
             settings = sequencer_settings_for_run(args, setup)
             cert_settings = certificate_settings_for_run(args, None, "command line")
         else:

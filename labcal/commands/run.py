@@ -218,6 +218,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="simulated or emulated rig's (and random order's) seed")
     p.add_argument("--out", help="run directory (default runs/<UTC time>-<plan>)")
     p.add_argument("--rig", help="TOML file describing the simulated rig (truth, noise, speeds)")
+    p.add_argument("--instrument", choices=["three-axis", "two-axis-xy", "two-axis-xz", "single-axis"],
+                   help="with --sim: the simulated instrument's sensor package (default: the rig's, "
+                        "three-axis)")
     p.add_argument("--samples", type=bounded_field("labcal.config.settings:SettleSettings", "samples"),
                    help="DMM samples per settle window, averaged per point (4..10000)")
     p.add_argument("--fixed-dwell", type=bounded(float, 0, 3600), metavar="S",

@@ -20,15 +20,37 @@ def expected_gravity(mount: Mount) -> NDArray:
     return mount_gravity(*CHECK_ATTITUDE, mount)
 
 
-def identify(volts: NDArray, provisional: NDArray | None = None) -> Mount:
+def identify(volts: NDArray, provisional: NDArray | None = None, expected: Mount | None = None) -> Mount:
     """The mount whose check-attitude gravity best matches the mean voltages. ``provisional`` is
-    an X (4×3) fitted from the points measured so far, if any."""
+    an X (4×3) fitted from the points measured so far, if any.
+
+    A package of fewer sensors (NaN in the outputs it lacks) is judged by the signs of the gravity
+    components its sensors see (0.43 g at least at the check attitude): an x–y or x–z package tells
+    the four mounts apart, a single x sensor only the x direction, so where mounts tie the
+    ``expected`` one is taken (`distinguishes` says whether the check could tell)."""
     volts = np.asarray(volts, float)
+    present = ~np.isnan(volts)
+    if not present.all():
+        if provisional is not None and provisional.shape[1] == present.sum():
+            volts = volts[present] - provisional[0]
+        else:
+            volts = volts[present]
+        signs = np.sign(volts)
+        return min(MOUNTS, key=lambda m: (int(np.sum(signs != np.sign(expected_gravity(m)[present]))),
+                                          m != expected))
     if provisional is not None:
         g = np.linalg.solve(provisional[1:].T, volts - provisional[0])
     else:
         g = volts / np.linalg.norm(volts)
     return min(MOUNTS, key=lambda m: float(np.linalg.norm(g - expected_gravity(m))))
+
+
+def distinguishes(volts: NDArray) -> bool:
+    """Whether the outputs present tell the four mounts apart at the check attitude (every package
+    but a single sensor's)."""
+    present = ~np.isnan(np.asarray(volts, float))
+    signs = {tuple(np.sign(expected_gravity(m)[present])) for m in MOUNTS}
+    return len(signs) == len(MOUNTS)
 
 
 def drawing(mount: Mount) -> list[str]:

@@ -12,6 +12,7 @@ after the current point; the second stops the tables at once.
 from __future__ import annotations
 
 import logging
+import math
 import sqlite3
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -41,7 +42,7 @@ from labcal.run.events import (
 from labcal.run.interrupts import Interrupts
 from labcal.run.journal import Journal, PointRecord
 from labcal.run.motion import Move, move_time, transient_after, transient_at_stop
-from labcal.run.mounting import CHECK_ATTITUDE, identify
+from labcal.run.mounting import CHECK_ATTITUDE, distinguishes, identify
 from labcal.run.operator import Operator, OperatorDeclined, Terminal
 from labcal.run.ordering import order_points
 from labcal.run.settle import Dwell, TailPool, dead_time, dwell, dwell_model
@@ -170,6 +171,12 @@ def unvouched(before: tuple[TableState, ...], after: tuple[TableState, ...]) -> 
         return None, False
     faulted, why = max(found, key=lambda item: item[0])
     return why, faulted
+
+
+def _read(value: float) -> float | None:
+    """A channel's mean or SD for the journal: None (NULL) for a sensor the package does not have,
+    whose channel the voltmeter leaves NaN."""
+    return None if math.isnan(value) else float(value)
 
 
 def raw_samples(result: Dwell) -> np.ndarray:
@@ -454,9 +461,11 @@ class Sequencer:
                 return
             self.move(*CHECK_ATTITUDE)
             check = self.measure(mount, f"check:{mount}")
-            seen = identify(mean_and_sd(check.scan)[0], provisional)
+            volts = mean_and_sd(check.scan)[0]
+            seen = identify(volts, provisional, mount)
             if seen == mount:
-                self.note("mount", f"mount verified: {mount}")
+                self.note("mount", f"mount verified: {mount}" if distinguishes(volts) else
+                          f"mount verified as far as a single sensor tells: its x direction ({mount})")
                 return
             note = f"the instrument reads as if on the {seen.describe()}; please correct it"
             self.publish(Fault(run_id=self.run_id, rig_time_s=self.rig_time(),
@@ -610,8 +619,8 @@ class Sequencer:
             pitch_deg=step.pitch_deg, roll_deg=step.roll_deg, pitch_read=pitch_read, roll_read=roll_read,
             attempt=attempt, status="ok" if ok else "failed", t_start=t_start,
             t_end=self.station.clock.now() - self._t0, n_samples=len(scan.volts),
-            vx=float(mean[0]), vy=float(mean[1]), vz=float(mean[2]),
-            sd_vx=float(sd[0]), sd_vy=float(sd[1]), sd_vz=float(sd[2]), temp_c=temp,
+            vx=_read(mean[0]), vy=_read(mean[1]), vz=_read(mean[2]),
+            sd_vx=_read(sd[0]), sd_vy=_read(sd[1]), sd_vz=_read(sd[2]), temp_c=temp,
             settle_s=result.settle_s, settle_verdict=result.verdict.reason,
         )
         self._points_done += 1
