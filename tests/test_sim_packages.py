@@ -4,6 +4,7 @@ temperature is corrected as Tripp §9.2.1 does."""
 
 from __future__ import annotations
 
+import json
 import math
 import sqlite3
 
@@ -130,3 +131,137 @@ def test_a_simulated_single_axis_calibration_drifting_one_degree_is_corrected_as
     t_s = coef[5] / se[5]  # dS_x/dT: Tripp Table 2's T_S of the main sensitivity
     assert abs(t_s) > float(t_quantile(0.975, corrected.variance_dof[0]))
     assert corrected.ls.residual_se[0] == pytest.approx(point_noise, rel=0.10)
+
+
+# --- the certificate's statement of a package (labcal.documents.package) --------------------------
+def _fitted(package: str, seed: int, noise: float = 2e-3):
+    """A package fitted from simulated readings over a D1 design (pitch −90..90° by 10°, roll
+    −180..165° by 15°, two replicates), the outputs the simulator's static model gives."""
+    from labcal.analysis.fit import fit_readings
+    from labcal.analysis.kinematics import nominal_gravity
+    from labcal.analysis.readings import Readings
+
+    truth = instrument(package)
+    pitch, roll = (a.ravel() for a in np.meshgrid(np.arange(-90, 91, 10.0), np.arange(-180, 180, 15.0),
+                                                  indexing="ij"))
+    pitch, roll = np.tile(pitch, 2), np.tile(roll, 2)
+    g = nominal_gravity(np.radians(pitch), np.radians(roll), 0.0, 0.0)
+    v = truth.static_volts(g) + np.random.default_rng(seed).normal(0.0, noise, size=g.shape)
+    v[:, [j for j in range(3) if j not in truth.channels]] = np.nan
+    zero = np.zeros(len(pitch))
+    rep = np.repeat([1, 2], len(pitch) // 2)
+    return fit_readings(Readings(replicate=rep, y_deg=zero, u_deg=zero, pitch_deg=pitch, roll_deg=roll,
+                                 volts=v))
+
+
+def _linear_output(fit, j: int, alpha, roll):
+    """The fitted sensor's output B + s·g at (α, R) (rad), written out here from labcal's linear
+    model, not from Tripp's eqs. 14-16."""
+    g = np.array([np.sin(alpha), np.cos(alpha) * np.sin(roll), np.cos(alpha) * np.cos(roll)])
+    return fit.coefficients[0, j] + np.tensordot(fit.coefficients[1:, j], g, axes=1)
+
+
+def test_a_single_axis_certificate_states_pitch_u95_at_a_measured_roll_as_eqs_80_to_82_give():
+    """The stated U95 of pitch at a roll the table sets (σ_R = 0.05°), recomputed by hand at the
+    attitude the section names: σ_v from the fit's covariance and reading SD (fᵀCf + s²), f_α and
+    f_R by central differences of the fitted linear output, σ_α = √(σ_v² + f_R²σ_R²)/|f_α| (the
+    linearised inversion of eq. 79) times k; and the worst attitude is at the envelope's pitch edge."""
+    from labcal.documents.package import package_section
+
+    fit = _fitted("single-axis", 1)
+    sec = package_section(fit, "single-axis", "table", 0.05, (-60.0, 60.0), (-30.0, 30.0))
+    assert sec.equations.endswith("79-82") and sec.pitch_u95_at_deg is not None
+    a, r = np.radians(sec.pitch_u95_at_deg)
+    h = 1e-6
+    f_a = (_linear_output(fit, 0, a + h, r) - _linear_output(fit, 0, a - h, r)) / (2 * h)
+    f_r = (_linear_output(fit, 0, a, r + h) - _linear_output(fit, 0, a, r - h)) / (2 * h)
+    f = np.array([1.0, np.sin(a), np.cos(a) * np.sin(r), np.cos(a) * np.cos(r)])
+    sigma_v2 = f @ fit.covariance(0)[:4, :4] @ f + fit.new_measurement_variance()[0]
+    sigma = np.sqrt(sigma_v2 + (f_r * np.radians(0.05)) ** 2) / abs(f_a)
+    assert sec.pitch_u95_deg == pytest.approx(np.degrees(sec.k * sigma), rel=1e-5)
+    assert abs(sec.pitch_u95_at_deg[0]) == 60.0  # cos α smallest at the envelope's pitch edge (eq. 81)
+    assert sec.k == pytest.approx(float(t_quantile(0.975, fit.variance_dof[0])))
+    none = package_section(fit, "single-axis", "none", None, (-60.0, 60.0), (-30.0, 30.0))
+    assert none.usage_roll_deg == (0.0, 0.0) and none.equations.endswith("76-78")
+    assert none.pitch_u95_deg < sec.pitch_u95_deg  # no roll error, roll 0 only
+
+
+def test_a_two_axis_xy_certificates_usable_range_holds_its_u95_by_monte_carlo_and_avoids_the_singularity():
+    """An x–y package fitted from noisy readings: its stated usable range (U95 ≤ 0.5°) lies clear of
+    the attitudes where det F_z vanishes (R = ±90°, α = ±90°, Tripp eq. 86 — det computed here by
+    central differences of the fitted linear outputs) and, at its centre, corners and edge
+    midpoints, Monte Carlo of the use (coefficients drawn from their covariance, a new reading's
+    noise, pitch and roll inferred by Newton–Raphson) keeps both angles' 95th percentile error
+    within the stated limit (2000 draws each; tolerance 10 %: the percentile's own scatter); one
+    degree beyond the range's pitch edge, at the roll edge, the stated limit is exceeded, as the
+    range's largest-area rule says some attitude just outside must."""
+    from labcal.analysis.packages import from_linear, infer
+    from labcal.documents.package import package_section
+
+    fit = _fitted("two-axis-xy", 2)
+    sec = package_section(fit, "two-axis-xy", "inferred", None, (-60.0, 60.0), (-60.0, 60.0), 0.5)
+    assert sec.usable_pitch_deg is not None and sec.usable_roll_deg is not None
+    p_max, r_max = sec.usable_pitch_deg[1], sec.usable_roll_deg[1]
+    assert 0 < p_max < 90 and 0 < r_max < 90
+
+    a, r = np.meshgrid(np.radians(np.linspace(-p_max, p_max, 61)), np.radians(np.linspace(-r_max, r_max, 61)),
+                       indexing="ij")
+    h = 1e-6
+
+    def grad(j):
+        return ((_linear_output(fit, j, a + h, r) - _linear_output(fit, j, a - h, r)) / (2 * h),
+                (_linear_output(fit, j, a, r + h) - _linear_output(fit, j, a, r - h)) / (2 * h))
+
+    (xa, xr), (ya, yr) = grad(0), grad(1)
+    det = xa * yr - xr * ya
+    assert np.all(np.sign(det) == np.sign(det[30, 30])) and np.min(np.abs(det)) > 0.05 * np.abs(det[30, 30])
+
+    rng = np.random.default_rng(86)
+    reading = np.sqrt(fit.new_measurement_variance())
+    n = 2000
+    draws = [rng.multivariate_normal(np.concatenate([[fit.coefficients[0, j]], fit.coefficients[1:, j]]),
+                                     fit.covariance(j)[:4, :4], size=n) for j in range(2)]
+
+    def u95(alpha_deg, roll_deg):
+        al, ro = np.radians(alpha_deg), np.radians(roll_deg)
+        g = np.array([np.sin(al), np.cos(al) * np.sin(ro), np.cos(al) * np.cos(ro)])
+        v = np.column_stack([d[:, 0] + d[:, 1:] @ g + rng.normal(0, reading[j], n)
+                             for j, d in enumerate(draws)])
+        sensors = [from_linear(fit.coefficients[0, j], fit.coefficients[1:, j], "xy"[j]) for j in range(2)]
+        z = infer(sensors, v, (al, ro))
+        return np.degrees(np.percentile(np.abs(z - [al, ro]), 95, axis=0))
+
+    for at in ((0, 0), (p_max, r_max), (-p_max, -r_max), (p_max, 0), (0, -r_max), (-p_max, r_max)):
+        assert np.all(u95(*at) <= 0.5 * 1.10), (at, u95(*at))
+    beyond = max(u95(p_max + 1, r_max).max(), u95(p_max, r_max + 1).max())
+    assert beyond > 0.5 * 0.9
+
+
+def test_labcal_run_sim_single_axis_runs_end_to_end_with_its_package_statement(tmp_path, capsys):
+    """`labcal run --sim --instrument single-axis`: the journal holds vx only (vy, vz NULL), fit.json
+    one column, and package.json states pitch's U95 at the roll the table sets, with σ_R the roll
+    table's ±2″ index error as uniform bounds (2″/√3), by Tripp eqs. 79-82."""
+    from emulators import cli
+
+    code, out, err = cli(capsys, "run", "--sim", "--instrument", "single-axis", "--yes", "--out",
+                         str(tmp_path / "run"), "--db", str(tmp_path / "lab.sqlite"))
+    assert code == 0, err
+    with sqlite3.connect(tmp_path / "lab.sqlite") as db:
+        rows = db.execute("SELECT vx, vy, vz FROM points").fetchall()
+    assert len(rows) == 64 and all(x is not None and y is None and z is None for x, y, z in rows)
+    fit = json.loads((tmp_path / "run" / "fit.json").read_text())
+    assert fit["layout"]["columns"] == ["sensor x"]
+    statement = json.loads((tmp_path / "run" / "package.json").read_text())
+    assert statement["package"] == "single-axis" and statement["roll_in_use"] == "table"
+    assert statement["roll_sd_deg"] == pytest.approx(2 / 3600 / math.sqrt(3))
+    assert statement["equations"] == "Tripp & Tcheng eqs. 79-82" and statement["pitch_u95_deg"] > 0
+    said = " ".join((out + err).split())  # the operator's console wraps lines
+    assert "Pitch is inferred from the x sensor(s) at the roll the table sets" in said
+    assert not (tmp_path / "run" / "certificate.json").exists()  # the three-axis certificate is not its
+
+
+def test_instrument_is_the_simulated_rigs_option_only(tmp_path, capsys):
+    from emulators import cli
+
+    code, _, err = cli(capsys, "run", "--station", "bench", "--instrument", "single-axis", "--dry-run")
+    assert code == 2 and err.count("\n") == 1 and "--instrument" in err

@@ -218,6 +218,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="simulated or emulated rig's (and random order's) seed")
     p.add_argument("--out", help="run directory (default runs/<UTC time>-<plan>)")
     p.add_argument("--rig", help="TOML file describing the simulated rig (truth, noise, speeds)")
+    p.add_argument("--thermal-gate", nargs=2, type=bounded(float, 0, 86400, lo_open=True),
+                   metavar=("RATE", "HOLD"),
+                   help="before each mount's points, wait until the instrument's temperature changes by "
+                        "less than RATE °C/min over HOLD s (default: the station's [instrument] "
+                        "thermal_gate, else none)")
     p.add_argument("--instrument", choices=["three-axis", "two-axis-xy", "two-axis-xz", "single-axis"],
                    help="with --sim: the simulated instrument's sensor package (default: the rig's, "
                         "three-axis)")

@@ -14,6 +14,9 @@ package's own fitted coefficients and their covariance, never copied from the pa
 
 from __future__ import annotations
 
+import json
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
 
 from labcal.analysis.distributions import t_quantile
@@ -25,8 +28,15 @@ from labcal.analysis.packages import (
     sd_pitch_at_roll,
     usable_box,
 )
+from labcal.config.files import write_atomic
+from labcal.config.settings import CertificateSettings
 from labcal.documents.certificate import PackageSection, TrippSensor
 from labcal.errors import LabcalError
+
+if TYPE_CHECKING:
+    from labcal.run.record import RunRecord
+
+STATEMENT = "package.json"  # in the run directory: a package's certificate statement
 
 GRID_STEP_DEG = 1.0  # the usage envelope is judged on this grid, its ends included
 DEFAULT_LIMIT_DEG = 0.1  # a two-axis package's U95 limit for its usable range, when none is stated
@@ -60,7 +70,7 @@ def package_section(fit: Fit, package: str, roll_in_use: str, roll_sd_deg: float
     k = float(t_quantile(0.975, int(np.min(fit.variance_dof))))
     described = {s.axis: TrippSensor(b=s.b, S=s.S, omega_deg=float(np.degrees(s.omega)),
                                      azimuth_deg=float(np.degrees(s.azimuth))) for s in sensors}
-    common = {"package": package, "sensors": list(fit.sensors), "coefficients": described,
+    common: dict[str, Any] = {"package": package, "sensors": list(fit.sensors), "coefficients": described,
               "roll_in_use": roll_in_use, "roll_sd_deg": roll_sd_deg, "k": k}
     if roll_in_use == "inferred":
         if len(sensors) != 2:
@@ -72,7 +82,8 @@ def package_section(fit: Fit, package: str, roll_in_use: str, roll_sd_deg: float
         box = usable_box(sensors, sigma_v, np.radians(limit / k))
         pitch, roll = float(np.degrees(box.pitch)), float(np.degrees(box.roll))
         return PackageSection(
-            **common, equations="Tripp & Tcheng eqs. 83-90 (x-y) / 91-95 (x-z): pitch and roll together",
+            **common, equations=("Tripp & Tcheng eqs. 83-90" if package == "two-axis-xy" else
+                                 "Tripp & Tcheng eqs. 91-95 with eq. 90"),
             u95_limit_deg=limit, usable_pitch_deg=(-pitch, pitch), usable_roll_deg=(-roll, roll),
             statement=(f"Pitch and roll are inferred together from the {' and '.join(fit.sensors)} sensors; "
                        f"both have U95 ≤ {limit:g}° (k = {k:.3g}) over pitch ±{pitch:g}° × roll ±{roll:g}°, "
@@ -85,15 +96,39 @@ def package_section(fit: Fit, package: str, roll_in_use: str, roll_sd_deg: float
     sigma = sd_pitch_at_roll(sensors, output_sds(fit, alpha, roll), alpha, roll, sigma_roll)
     worst = np.unravel_index(int(np.argmax(sigma)), sigma.shape)
     u95 = float(np.degrees(k * sigma[worst]))
-    at = (float(np.degrees(alpha[worst])), float(np.degrees(roll[worst])))
-    how = {"none": "used without roll (roll 0)", "table": f"at the roll the table sets (σ_R = {roll_sd_deg:g}°)",
-           "sensor": f"at the roll a roll sensor measures (σ_R = {roll_sd_deg:g}°)"}[roll_in_use]
-    equations = ("Tripp & Tcheng eqs. 76-78" if roll_in_use == "none" else
-                 "Tripp & Tcheng eqs. 79-82" if len(sensors) == 1 else "Tripp & Tcheng eqs. 96-98 with eq. 80")
+    at = (round(float(np.degrees(alpha[worst])), 9), round(float(np.degrees(roll[worst])), 9))
+    sd = f"σ_R = {roll_sd_deg or 0.0:g}°"
+    how = {"none": "used without roll (roll 0)", "table": f"at the roll the table sets ({sd})",
+           "sensor": f"at the roll a roll sensor measures ({sd})"}[roll_in_use]
+    equations = "Tripp & Tcheng " + ("eqs. 76-78" if roll_in_use == "none" else
+                                     "eqs. 79-82" if len(sensors) == 1 else "eqs. 96-98 with eq. 80")
     return PackageSection(
         **common, equations=equations, pitch_u95_deg=u95, pitch_u95_at_deg=at,
         usage_pitch_deg=usage_pitch_deg, usage_roll_deg=usage_roll_deg,
-        statement=(f"Pitch is inferred from the {' and '.join(fit.sensors)} sensor(s) {how}; its U95 is at most "
+        statement=(f"Pitch is inferred from the {' and '.join(fit.sensors)} sensor(s) {how}; its U95 is "
+                   "at most "
                    f"{u95:.3g}° (k = {k:.3g}) over pitch {usage_pitch_deg[0]:g}..{usage_pitch_deg[1]:g}° × "
                    f"roll {usage_roll_deg[0]:g}..{usage_roll_deg[1]:g}°, largest at pitch {at[0]:g}°, "
                    f"roll {at[1]:g}°."))
+
+
+def package_of(sensors: tuple[str, ...]) -> str:
+    """The package whose sensors these are."""
+    return {("x",): "single-axis", ("x", "y"): "two-axis-xy", ("x", "z"): "two-axis-xz"}[sensors]
+
+
+def write_package_statement(record: RunRecord, settings: CertificateSettings | None = None) -> PackageSection:
+    """A finished package run's statement (`package_section` of its fit, how roll is obtained as
+    the run recorded it), written as ``package.json`` in its run directory."""
+    settings = settings or CertificateSettings()
+    fit = record.fit
+    if fit is None:
+        raise LabcalError(f"{record.directory}: the run has no fit")
+    use = record.meta.get("package") or {}
+    package = package_of(fit.sensors)
+    roll_in_use = use.get("roll_in_use") or ("table" if package == "single-axis" else "inferred")
+    section = package_section(fit, package, roll_in_use, use.get("roll_sd_deg"), settings.usage_pitch_deg,
+                              settings.usage_roll_deg, settings.attitude_u95_max_deg)
+    write_atomic(record.directory / STATEMENT,
+                 (json.dumps(section.model_dump(mode="json"), indent=2, ensure_ascii=False) + "\n").encode())
+    return section

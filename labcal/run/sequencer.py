@@ -49,6 +49,7 @@ from labcal.run.settle import Dwell, TailPool, dead_time, dwell, dwell_model
 from labcal.run.station import Station, StopFailed, TableState, mean_and_sd
 from labcal.run.winding import MOVE_EVENT, last_move, locate, plan_windings
 
+THERMAL_SAMPLES = 4  # DMM samples averaged per temperature read of the thermal gate
 Winding = tuple[float, float]  # each table's accumulated rotation from home, degrees (pitch, roll)
 
 LOAD_POSITION = (0.0, 0.0)  # tables level while the operator remounts
@@ -457,6 +458,7 @@ class Sequencer:
             verify = getattr(self.station.dmm, "verify", None)  # a DMM with a declared configuration
             if verify is not None:
                 verify("at the mount")
+            self.wait_thermal()
             if not self.settings.check_mount:
                 return
             self.move(*CHECK_ATTITUDE)
@@ -472,6 +474,45 @@ class Sequencer:
                                message=f"wrong mount: expected {mount}, reads as {seen}"))
         raise OperatorDeclined(f"the instrument was not mounted as {mount.describe()} after "
                                f"{MOUNT_ATTEMPTS} attempts")
+
+    def wait_thermal(self) -> float:
+        """The thermal gate (`ThermalGate`): read the instrument's temperature every ``poll_s`` until
+        the least-squares slope of the reads over the last ``hold_s`` is within the limit (at least
+        ``hold_s`` of reads: the rate must be seen to stay low), or ``max_wait_s`` has passed; the
+        wait is journaled. Returns the seconds waited."""
+        gate = self.settings.thermal_gate
+        if gate is None:
+            return 0.0
+        clock, dmm = self.station.clock, self.station.dmm
+        if not dmm.measures_temperature:
+            self.note("thermal", "thermal gate skipped: the station reads no instrument temperature")
+            return 0.0
+        t0 = clock.now()
+        times: list[float] = []
+        temps: list[float] = []
+        rate = math.inf
+        while True:
+            scan = dmm.read(THERMAL_SAMPLES)
+            assert scan.temp_c is not None
+            times.append(clock.now() - t0)
+            temps.append(float(np.mean(scan.temp_c)))
+            spanning = [i for i, t in enumerate(times) if times[-1] - t >= gate.hold_s - 1e-9]
+            if spanning:  # the reads since the last one at least hold_s ago
+                first = spanning[-1]
+                rate = 60 * float(np.polyfit(times[first:], temps[first:], 1)[0])
+                if abs(rate) <= gate.rate_c_per_min:
+                    break
+            if times[-1] >= gate.max_wait_s:
+                break
+            clock.sleep(gate.poll_s)
+        waited = clock.now() - t0
+        settled = abs(rate) <= gate.rate_c_per_min
+        self.note("thermal", (f"thermal gate: waited {waited:.0f} s; the temperature " +
+                              (f"settled ({gate.describe()})" if settled else
+                               f"had not settled ({gate.describe()}) after the gate's {gate.max_wait_s:g} s; "
+                               "going on")) + f" at {temps[-1]:.3f} °C, {rate:+.3g} °C/min",
+                  waited_s=waited, temp_c=temps[-1], rate_c_per_min=rate, settled=settled)
+        return waited
 
     def pause(self, why: str) -> None:
         self.publish(Paused(run_id=self.run_id, rig_time_s=self.rig_time(), why=why,
