@@ -258,6 +258,13 @@ def test_labcal_run_sim_single_axis_runs_end_to_end_with_its_package_statement(t
     said = " ".join((out + err).split())  # the operator's console wraps lines
     assert "Pitch is inferred from the x sensor(s) at the roll the table sets" in said
     assert not (tmp_path / "run" / "certificate.json").exists()  # the three-axis certificate is not its
+    with sqlite3.connect(tmp_path / "lab.sqlite") as db:
+        low, high, mean = db.execute("SELECT MIN(temp_c), MAX(temp_c), AVG(temp_c) FROM points "
+                                     "WHERE status = 'ok'").fetchone()
+    assert statement["temperature_c"] == pytest.approx([low, high])
+    assert statement["t_ref_c"] == pytest.approx(mean)  # the coefficients refer to the run's mean
+    code, _, err = cli(capsys, "report", str(tmp_path / "run"), "--db", str(tmp_path / "lab.sqlite"))
+    assert code == 2 and err.count("\n") == 1 and "package.json" in err
 
 
 def test_instrument_is_the_simulated_rigs_option_only(tmp_path, capsys):

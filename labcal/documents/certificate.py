@@ -269,6 +269,10 @@ class PackageSection(Strict):
     u95_limit_deg: float | None = Field(default=None, exclude_if=_absent)
     usable_pitch_deg: tuple[float, float] | None = Field(default=None, exclude_if=_absent)
     usable_roll_deg: tuple[float, float] | None = Field(default=None, exclude_if=_absent)
+    # the calibration's temperatures and the model's reference temperature (where its temperature
+    # terms are centred, Tripp Table 2 footnote b; the run's mean temperature)
+    temperature_c: tuple[float, float] | None = Field(default=None, exclude_if=_absent)
+    t_ref_c: float | None = Field(default=None, exclude_if=_absent)
     statement: str
 
 

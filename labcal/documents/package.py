@@ -129,6 +129,13 @@ def write_package_statement(record: RunRecord, settings: CertificateSettings | N
     roll_in_use = use.get("roll_in_use") or ("table" if package == "single-axis" else "inferred")
     section = package_section(fit, package, roll_in_use, use.get("roll_sd_deg"), settings.usage_pitch_deg,
                               settings.usage_roll_deg, settings.attitude_u95_max_deg)
+    temps = record.readings.temp_c
+    if temps is not None:
+        low, high = float(np.min(temps)), float(np.max(temps))
+        section = section.model_copy(update={
+            "temperature_c": (low, high), "t_ref_c": fit.model.t_ref,
+            "statement": f"{section.statement} Calibrated at {low:.2f}..{high:.2f} °C; the model's reference "
+                         f"temperature is {fit.model.t_ref:.2f} °C."})
     write_atomic(record.directory / STATEMENT,
                  (json.dumps(section.model_dump(mode="json"), indent=2, ensure_ascii=False) + "\n").encode())
     return section
