@@ -272,3 +272,30 @@ def test_instrument_is_the_simulated_rigs_option_only(tmp_path, capsys):
 
     code, _, err = cli(capsys, "run", "--station", "bench", "--instrument", "single-axis", "--dry-run")
     assert code == 2 and err.count("\n") == 1 and "--instrument" in err
+
+
+def test_a_single_axis_statements_pitch_u95_covers_95_percent_by_monte_carlo():
+    """At the attitude where the statement's U95 is largest: the true sensor drawn about the fitted
+    one from its covariance, a new reading's noise, and the table's roll off by σ_R = 0.05°; pitch
+    inferred from the fitted sensor at the roll read (eq. 79, written out here from the linear model
+    by Newton's method on α) is within the stated U95 95 ± 2 % of 4000 draws (standard error 0.35 %)."""
+    from labcal.documents.package import package_section
+
+    fit = _fitted("single-axis", 7)
+    sec = package_section(fit, "single-axis", "table", 0.05, (-60.0, 60.0), (-30.0, 30.0))
+    assert sec.pitch_u95_at_deg is not None and sec.pitch_u95_deg is not None
+    alpha, roll = np.radians(sec.pitch_u95_at_deg)
+    rng = np.random.default_rng(81)
+    n = 4000
+    coef = np.concatenate([[fit.coefficients[0, 0]], fit.coefficients[1:, 0]])
+    true = rng.multivariate_normal(coef, fit.covariance(0)[:4, :4], size=n)
+    g = np.array([np.sin(alpha), np.cos(alpha) * np.sin(roll), np.cos(alpha) * np.cos(roll)])
+    v = true[:, 0] + true[:, 1:] @ g + rng.normal(0, np.sqrt(fit.new_measurement_variance()[0]), n)
+    roll_read = roll + np.radians(0.05) * rng.normal(size=n)
+    a = np.full(n, alpha)
+    across = coef[2] * np.sin(roll_read) + coef[3] * np.cos(roll_read)  # s_y·sin R + s_z·cos R
+    for _ in range(20):  # Newton on v = B + s·g(α, R_read) in α
+        model = coef[0] + coef[1] * np.sin(a) + np.cos(a) * across
+        a = a + (v - model) / (coef[1] * np.cos(a) - np.sin(a) * across)
+    covered = np.mean(np.abs(np.degrees(a - alpha)) <= sec.pitch_u95_deg)
+    assert 0.93 <= covered <= 0.97, covered
