@@ -8,6 +8,7 @@ import json
 import math
 import sqlite3
 
+import pytest
 from conftest import run_on_rig
 
 from labcal.config.emulation import DeviceTruth, InstrumentTruth, RigConfig
@@ -69,3 +70,28 @@ def test_the_estimate_includes_the_thermal_gates_least_wait_at_every_mount():
     gated = estimate(plan, SequencerSettings(thermal_gate=GATE), timing)
     assert gated.total_s - free.total_s == 4 * 300.0
     assert gated.mounting_s - free.mounting_s == 4 * 300.0 and gated.thermal_s == 4 * 300.0
+
+
+def test_a_dry_run_shows_the_thermal_gates_wait(tmp_path, capsys):
+    """`labcal run --sim --thermal-gate 0.05 300 --dry-run --json`: 1200 s more than without, all of it
+    the gate's (four mounts of four-mount-64, 300 s each)."""
+    from emulators import cli
+
+    code, out, err = cli(capsys, "run", "--sim", "--dry-run", "--json")
+    assert code == 0, err
+    free = json.loads(out)
+    code, out, err = cli(capsys, "run", "--sim", "--dry-run", "--json", "--thermal-gate", "0.05", "300")
+    assert code == 0, err
+    gated = json.loads(out)
+    assert gated["thermal_gate_s"] == 1200.0 and "thermal_gate_s" not in free
+    assert gated["total_s"] - free["total_s"] == 1200.0
+
+
+def test_a_station_files_thermal_gate_is_validated_with_the_file(tmp_path):
+    """[instrument] thermal_gate is read with the station file; a rate of zero is refused there."""
+    from labcal.config.station import InstrumentSettings
+
+    given = {"thermal_gate": {"rate_c_per_min": 0.05, "hold_s": 300}}
+    assert InstrumentSettings.model_validate(given).thermal_gate == GATE
+    with pytest.raises(ValueError, match="rate_c_per_min"):
+        InstrumentSettings.model_validate({"thermal_gate": {"rate_c_per_min": 0, "hold_s": 300}})

@@ -79,6 +79,8 @@ def print_estimate(estimated: Estimated, as_json: bool) -> None:
         "plan": plan.name, "points": plan.n_points, "total_s": est.total_s,
         "estimated_rig_time_s": est.total_s, "moves_s": est.moves_s, "settling_s": est.settling_s,
         "averaging_s": est.averaging_s, "mounting_s": est.mounting_s}
+    if est.thermal_s:
+        doc["thermal_gate_s"] = est.thermal_s
     if as_json:
         print_json(doc)
         return
@@ -86,6 +88,9 @@ def print_estimate(estimated: Estimated, as_json: bool) -> None:
               "on this station:")
     for part in ("moves", "settling", "averaging", "mounting"):
         out.print(f"  {part:<10} {format_duration(doc[part + '_s'])}")
+    if est.thermal_s:
+        out.print(f"  (of which the thermal gate's least wait {format_duration(est.thermal_s)}: its hold at "
+                  "every mount)")
     out.print("(mounting includes the operator's remount allowance and the mount checks; nothing moved)")
 
 
