@@ -299,3 +299,18 @@ def test_a_single_axis_statements_pitch_u95_covers_95_percent_by_monte_carlo():
         a = a + (v - model) / (coef[1] * np.cos(a) - np.sin(a) * across)
     covered = np.mean(np.abs(np.degrees(a - alpha)) <= sec.pitch_u95_deg)
     assert 0.93 <= covered <= 0.97, covered
+
+
+@pytest.mark.parametrize(("package", "equations", "field"), [
+    ("two-axis-xy", "Tripp & Tcheng eqs. 83-90", "usable_pitch_deg"),
+    ("two-axis-xz", "Tripp & Tcheng eqs. 96-98 with eq. 80", "pitch_u95_deg")])
+def test_labcal_run_sim_two_axis_states_its_package(tmp_path, capsys, package, equations, field):
+    """An x–y package infers roll and states its usable range; an x–z package, singular at roll 0
+    (eq. 94), is stated at the roll the table sets (eqs. 96-98)."""
+    from emulators import cli
+
+    code, _, err = cli(capsys, "run", "--sim", "--instrument", package, "--yes", "--out",
+                       str(tmp_path / "run"), "--db", str(tmp_path / "lab.sqlite"))
+    assert code == 0, err
+    statement = json.loads((tmp_path / "run" / "package.json").read_text())
+    assert statement["package"] == package and statement["equations"] == equations and field in statement

@@ -358,10 +358,11 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
 
 
 def sim_package_use(package: str, rig: dict) -> dict:
-    """How the simulated rig's package is used: a single sensor at the roll the roll table sets,
-    whose standard deviation is the table's index error (the rig's ±index_arcsec taken as uniform
-    bounds); two sensors infer roll themselves."""
-    if package != "single-axis":
+    """How the simulated rig's package is used: an x–y package infers roll itself (Tripp §6.4); a
+    single sensor and an x–z package (whose F_z is singular at roll 0, Tripp eq. 94, so that it is
+    used over pitch at a known roll, §6.5) at the roll the roll table sets, whose standard deviation
+    is the table's index error (the rig's ±index_arcsec taken as uniform bounds)."""
+    if package == "two-axis-xy":
         return {"package": package, "roll_in_use": "inferred", "roll_sd_deg": None}
     index_deg = rig["device"]["index_arcsec"] / 3600
     return {"package": package, "roll_in_use": "table", "roll_sd_deg": index_deg / 3 ** 0.5}

@@ -126,7 +126,7 @@ def write_package_statement(record: RunRecord, settings: CertificateSettings | N
         raise LabcalError(f"{record.directory}: the run has no fit")
     use = record.meta.get("package") or {}
     package = package_of(fit.sensors)
-    roll_in_use = use.get("roll_in_use") or ("table" if package == "single-axis" else "inferred")
+    roll_in_use = use.get("roll_in_use") or ("inferred" if package == "two-axis-xy" else "table")
     section = package_section(fit, package, roll_in_use, use.get("roll_sd_deg"), settings.usage_pitch_deg,
                               settings.usage_roll_deg, settings.attitude_u95_max_deg)
     temps = record.readings.temp_c
