@@ -314,3 +314,15 @@ def test_labcal_run_sim_two_axis_states_its_package(tmp_path, capsys, package, e
     assert code == 0, err
     statement = json.loads((tmp_path / "run" / "package.json").read_text())
     assert statement["package"] == package and statement["equations"] == equations and field in statement
+
+
+def test_a_package_whose_statement_cannot_be_made_keeps_its_complete_run(tmp_path, capsys):
+    """An x–y package with a U95 limit no attitude meets (1e-6°): the run completes, its readings
+    and fit are kept, and the end says in one line why there is no statement."""
+    from emulators import cli
+
+    code, out, err = cli(capsys, "run", "--sim", "--instrument", "two-axis-xy", "--yes", "--tolerance-deg",
+                         "1e-6", "--out", str(tmp_path / "run"), "--db", str(tmp_path / "lab.sqlite"))
+    assert code == 0, err
+    assert (tmp_path / "run" / "fit.json").exists() and not (tmp_path / "run" / "package.json").exists()
+    assert "no package statement: the package cannot infer pitch and roll" in " ".join((out + err).split())

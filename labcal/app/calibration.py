@@ -248,8 +248,11 @@ def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Esti
         from labcal.documents.package import STATEMENT, write_package_statement
         from labcal.run.record import load_run
 
-        section = write_package_statement(record or load_run(run_dir), certificate)
-        front.say(f"{section.statement} ({run_dir / STATEMENT})", markup=False)
+        try:
+            section = write_package_statement(record or load_run(run_dir), certificate)
+            front.say(f"{section.statement} ({run_dir / STATEMENT})", markup=False)
+        except LabcalError as exc:  # the run is complete and kept: only its statement cannot be made
+            front.say(f"no package statement: {exc}", markup=False)
     elif not no_report:
         from labcal.documents.report import write_run_outputs
 
