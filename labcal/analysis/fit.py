@@ -283,7 +283,6 @@ def _estimable(design: NDArray[np.float64], n_base: int) -> NDArray[np.int_]:
 
 def extension_tests(readings: Readings) -> list[ExtensionTest]:
     """F test of each model extension added alone to the base model."""
-
     t_ref = reference_temperature(readings)
     points = readings_points(readings)
     _, base_design = Model().design(points)
