@@ -81,8 +81,13 @@ class SimRig:
         self._advance_filter(self.clock.now())
 
     def lab_temperature(self, t: NDArray | float) -> NDArray | float:
-        c = self.config
-        return c.lab_temp_c + c.lab_temp_swing_c * np.sin(2 * math.pi * t / (c.lab_temp_period_h * 3600))
+        """The instrument's temperature at rig time t: the lab's (its daily swing and any steady
+        drift) plus the instrument's own warm-up since switch-on at rig time 0, decaying
+        exponentially."""
+        c, inst = self.config, self.instrument
+        lab = c.lab_temp_c + c.lab_temp_swing_c * np.sin(2 * math.pi * t / (c.lab_temp_period_h * 3600)) \
+            + c.lab_temp_drift_c_per_h * np.asarray(t) / 3600
+        return lab + inst.warmup_c * np.exp(-np.asarray(t) / inst.warmup_tau_s) if inst.warmup_c else lab
 
     def _advance_filter(self, t: float) -> None:
         """Carry the instrument's first-order output response forward to time t.
@@ -138,7 +143,15 @@ class SimRig:
             temps[i] = self.lab_temperature(t)
             volts[i] = self.instrument.static_volts(self._g_filtered, t, temps[i])
         volts += self._noise.normal(0.0, self.instrument.noise_v, size=volts.shape)
-        return Scan(volts=volts, temp_c=temps)
+        return Scan(volts=self._package(volts), temp_c=temps)
+
+    def _package(self, volts: NDArray) -> NDArray:
+        """The outputs as the DMM reads them: a package's absent sensors have no channel, NaN
+        (drawn and discarded, so that a package's present channels see the noise of the three-axis
+        instrument's at the same seed)."""
+        absent = [i for i in range(3) if i not in self.instrument.channels]
+        volts[:, absent] = np.nan
+        return volts
 
     def _still_scan(self, times: NDArray) -> Scan:
         """`sample_at` while both tables stand still, in closed form: the output relaxes towards the
@@ -151,7 +164,7 @@ class SimRig:
         temps = np.asarray(self.lab_temperature(times), dtype=float)
         volts = self.instrument.static_volts(outputs, times, temps)
         volts += self._noise.normal(0.0, self.instrument.noise_v, size=volts.shape)
-        return Scan(volts=volts, temp_c=temps)
+        return Scan(volts=self._package(volts), temp_c=temps)
 
     def remounted(self, mount: Mount) -> None:
         """The simulated technician remounts the instrument; takes operator time."""

@@ -27,6 +27,7 @@ from labcal.analysis.replication import (
     analyse_with_covariates,
     noise_free,
 )
+from labcal.errors import LabcalError
 
 SENSORS = ("x", "y", "z")
 ROW_NAMES = BASE_NAMES
@@ -57,6 +58,7 @@ class Fit:
     ls: LeastSquares
     replication: Replication | None = None
     notes: tuple[str, ...] = field(default=())
+    sensors: tuple[str, ...] = SENSORS  # the columns: a package's sensors (Tripp & Tcheng §6)
 
     # --- coefficients and their uncertainty -------------------------------------------------
     @property
@@ -131,13 +133,13 @@ class Fit:
             "degrees_of_freedom": self.ls.dof,
             "n_points": self.ls.n_obs,
             "parameters": list(self.names),
-            "covariance": [self.covariance(j).tolist() for j in range(len(SENSORS))],
+            "covariance": [self.covariance(j).tolist() for j in range(len(self.sensors))],
             "uncertainty_basis": self.variance_basis,
             "reading_sd": np.sqrt(self.new_measurement_variance()).tolist(),
             "uncertainty_dof": self.variance_dof.tolist(),
             "layout": {
                 "rows": ["B", "S row g_x", "S row g_y", "S row g_z"],
-                "columns": ["sensor x", "sensor y", "sensor z"],
+                "columns": [f"sensor {s}" for s in self.sensors],
                 "units": "V (bias), V/g (sensitivity)",
             },
         }
@@ -148,7 +150,7 @@ class Fit:
                 "standard_errors": self.stderr[n_base:].tolist(),
             }
         if self.replication is not None:
-            doc["replication"] = {s: self.replication.to_json(j) for j, s in enumerate(SENSORS)}
+            doc["replication"] = {s: self.replication.to_json(j) for j, s in enumerate(self.sensors)}
         if self.notes:
             doc["notes"] = list(self.notes)
         return doc
@@ -165,8 +167,33 @@ def fit_readings(readings: Readings, model: Model | None = None) -> Fit:
     Where every regressor is a function of the calibration point (no temperature term) the fit is
     made on the point means weighted by their counts: the same normal equations (Σ c·f fᵀ = FᵀF,
     Σ c·f v̄ = FᵀV), so the same coefficients and covariance, with a design row per point instead of
-    per reading; the residuals are still every reading's."""
+    per reading; the residuals are still every reading's.
+
+    A package of fewer than three sensors (Tripp & Tcheng §6.1–6.5) has NaN outputs in the columns of
+    the sensors it lacks: each present sensor is fitted alone (v = b + s·g, Tripp eq. 8 in labcal's
+    linear form), which is what the multivariate fit does column by column anyway."""
     model = model or Model(t_ref=reference_temperature(readings))
+    sensors = present_sensors(readings.volts)
+    if len(sensors) < len(SENSORS):
+        columns = [SENSORS.index(s) for s in sensors]
+        return _fit(replace(readings, volts=readings.volts[:, columns]), model, sensors)
+    return _fit(readings, model, SENSORS)
+
+
+def present_sensors(volts: NDArray[np.float64]) -> tuple[str, ...]:
+    """The sensors whose outputs were read: a column all NaN is a sensor the package does not have;
+    a column NaN in some rows only is refused (a reading lost, not a sensor absent)."""
+    absent = np.all(np.isnan(volts), axis=0)
+    if np.any(np.isnan(volts[:, ~absent])):
+        raise LabcalError("some readings lack an output their other readings have: every reading of a "
+                          "sensor the package has needs its output")
+    if absent.all():
+        raise LabcalError("no sensor's output was read")
+    return tuple(s for s, a in zip(SENSORS, absent, strict=True) if not a)
+
+
+def _fit(readings: Readings, model: Model, sensors: tuple[str, ...]) -> Fit:
+    """`fit_readings` of the columns of ``sensors``."""
     points = readings.points if model.per_point else None
     where = readings_points(readings, None if points is None else points.first)
     weight = None if points is None else np.sqrt(points.counts)[:, None]
@@ -200,16 +227,16 @@ def fit_readings(readings: Readings, model: Model | None = None) -> Fit:
     fit = Fit(model, names, ls, replication)
     exact = fit.noise_free(readings)
     if np.any(exact):
-        sensors = ", ".join(s for s, e in zip(SENSORS, exact, strict=True) if e)
-        notes.append(f"{NOISE_FREE} for sensor(s) {sensors}: the model fits them to floating-point "
+        which = ", ".join(s for s, e in zip(sensors, exact, strict=True) if e)
+        notes.append(f"{NOISE_FREE} for sensor(s) {which}: the model fits them to floating-point "
                      f"rounding (residual standard error ≤ {NUMERIC_RESOLUTION:g} of the largest reading), "
                      "as a simulation without noise does; their uncertainties are at that rounding, and the "
                      "gross-error, lack-of-fit and drift tests, which compare against noise, are not made")
     if np.any(fit.bias_significant):
-        sensors = ", ".join(s for s, b in zip(SENSORS, fit.bias_significant, strict=True) if b)
-        notes.append(f"significant lack of fit (bias) for sensor(s) {sensors} at {ALPHA:.0%}: their "
+        which = ", ".join(s for s, b in zip(sensors, fit.bias_significant, strict=True) if b)
+        notes.append(f"significant lack of fit (bias) for sensor(s) {which} at {ALPHA:.0%}: their "
                      "coefficient uncertainties are scaled by the lack-of-fit mean square")
-    return Fit(model, names, ls, replication, tuple(notes))
+    return Fit(model, names, ls, replication, tuple(notes), sensors)
 
 
 @dataclass(frozen=True)
@@ -256,8 +283,6 @@ def _estimable(design: NDArray[np.float64], n_base: int) -> NDArray[np.int_]:
 
 def extension_tests(readings: Readings) -> list[ExtensionTest]:
     """F test of each model extension added alone to the base model."""
-    from labcal.errors import LabcalError
-
     t_ref = reference_temperature(readings)
     points = readings_points(readings)
     _, base_design = Model().design(points)

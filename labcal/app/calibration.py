@@ -10,6 +10,7 @@ comes back as a typed outcome; printing it is the front end's business.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from contextlib import AbstractContextManager, ExitStack
 from dataclasses import dataclass
@@ -22,7 +23,7 @@ if TYPE_CHECKING:
     from labcal.analysis.plan import Plan
     from labcal.bench.hardware import Bench
     from labcal.bench.setup import StationSetup
-    from labcal.config.settings import CertificateSettings, SequencerSettings
+    from labcal.config.settings import CertificateSettings, SequencerSettings, ThermalGate
     from labcal.config.station import InstrumentSettings, StationFile
     from labcal.documents.report import RunOutputs
     from labcal.run.estimate import Estimate
@@ -75,6 +76,7 @@ class StartRun:
     seed: int | None = None
     out: str | None = None
     rig: str | None = None
+    instrument: Literal["three-axis", "two-axis-xy", "two-axis-xz", "single-axis"] | None = None
     samples: int | None = None
     fixed_dwell: float | None = None
     max_dwell: float | None = None
@@ -91,6 +93,7 @@ class StartRun:
     no_report: bool = False
     tolerance_deg: float | None = None
     usage_pitch: tuple[float, float] | None = None
+    thermal_gate: tuple[float, float] | None = None  # °C/min, s
 
 
 @dataclass(frozen=True)
@@ -148,18 +151,23 @@ class AlreadyComplete:
 
 
 def sequencer_settings_for_run(args: StartRun, setup: StationSetup, speed: float = 20.0,
-                               accel: float = 40.0) -> SequencerSettings:
+                               accel: float = 40.0, station_gate: ThermalGate | None = None
+                               ) -> SequencerSettings:
+    """The run's sequencer settings: the options over the station's (``station_gate``: its
+    [instrument] thermal_gate; --thermal-gate overrides it)."""
     from labcal.config.files import validate_model
-    from labcal.config.settings import SequencerSettings, SettleSettings
+    from labcal.config.settings import SequencerSettings, SettleSettings, ThermalGate
 
     settle = validate_model({**setup.settle.model_dump(), **{
         k: v for k, v in (("samples", args.samples), ("fixed_dwell_s", args.fixed_dwell),
                           ("max_dwell_s", args.max_dwell),
                           ("mode", args.settle)) if v is not None}}, SettleSettings,
         "command line: settle")  # validated: the options and the station file share one range
+    gate = None if args.thermal_gate is None else ThermalGate(rate_c_per_min=args.thermal_gate[0],
+                                                                hold_s=args.thermal_gate[1])
     return SequencerSettings(settle=settle, order=args.order, seed=args.seed or 0,
                              on_failure=args.on_failure, check_mount=not args.no_mount_check,
-                             speed_dps=speed, accel_dps2=accel)
+                             speed_dps=speed, accel_dps2=accel, thermal_gate=gate or station_gate)
 
 
 def certificate_settings_for_run(args: StartRun | ResumeRun, station: CertificateSettings | None,
@@ -246,7 +254,18 @@ def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Esti
         record = load_run(run_dir)
         store_device_estimate(record, result.device, db)
     issued = None
-    if not no_report:
+    if not no_report and result.fit.sensors != ("x", "y", "z"):
+        # a package of fewer sensors (Tripp & Tcheng §6.1-6.5): its statement, not the three-axis
+        # certificate, whose attitude budget and envelope are the three-axis estimator's
+        from labcal.documents.package import STATEMENT, write_package_statement
+        from labcal.run.record import load_run
+
+        try:
+            section = write_package_statement(record or load_run(run_dir), certificate)
+            front.say(f"{section.statement} ({run_dir / STATEMENT})", markup=False)
+        except LabcalError as exc:  # the run is complete and kept: only its statement cannot be made
+            front.say(f"no package statement: {exc}", markup=False)
+    elif not no_report:
         from labcal.documents.device_history import DeviceMoved
         from labcal.documents.report import write_run_outputs
 
@@ -289,6 +308,9 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
         raise LabcalError("--rig describes the rig of --sim; an emulated station has [emulation.rig]")
     if args.pace is not None and not args.sim:
         raise LabcalError(PACE_SIM_ONLY)
+    if args.instrument and not args.sim:
+        raise LabcalError("--instrument chooses the simulated rig's package (--sim); a station's is its "
+                          "[instrument] package")
     plan, plan_text = load_plan(args.plan)
     correction = plan_correction(plan_text, args.plan)  # the device's misalignments it corrects for
     if args.replicates is not None:  # the journal keeps the plan that actually runs
@@ -299,7 +321,10 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
         notifications = stack.enter_context(lab_notifications(lambda line: front.say(line, markup=False)))
         bench = None
         if args.sim:
-            setup = sim_station(args.rig, args.seed, pace=args.pace)
+            setup = sim_station(args.rig, args.seed, pace=args.pace, package=args.instrument)
+            package = json.loads(setup.text)["rig"]["instrument"]["package"]
+            if package != "three-axis":  # how its angles are obtained in use, for its statement
+                setup.metadata["package"] = sim_package_use(package, json.loads(setup.text)["rig"])
             settings = sequencer_settings_for_run(args, setup)
             cert_settings = certificate_settings_for_run(args, None, "command line")
         else:
@@ -320,7 +345,8 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
                 lock_station(stack, config, args.station, args.db, front, chosen=bench.config)
             pitch, roll = config.pitch, config.roll  # the slower table sets the pace of the estimates
             settings = sequencer_settings_for_run(args, setup, min(pitch.speed_dps, roll.speed_dps),
-                                                  min(pitch.accel_dps2, roll.accel_dps2))
+                                                  min(pitch.accel_dps2, roll.accel_dps2),
+                                                  config.instrument.thermal_gate)
             settings = settings.model_copy(update={
                 "move_timeout_s": config.sequencer.move_timeout_s,
                 "position_tolerance_deg": config.sequencer.position_tolerance_deg})
@@ -365,10 +391,21 @@ def _lab_label(journal: Path, db: str | Path | None) -> Callable[[int], str]:
     return lambda run_id: lab_number_of(journal, run_id, db)
 
 
+def sim_package_use(package: str, rig: dict) -> dict:
+    """How the simulated rig's package is used: an x–y package infers roll itself (Tripp §6.4); a
+    single sensor and an x–z package (whose F_z is singular at roll 0, Tripp eq. 94, so that it is
+    used over pitch at a known roll, §6.5) at the roll the roll table sets, whose standard deviation
+    is the table's index error (the rig's ±index_arcsec taken as uniform bounds)."""
+    if package == "two-axis-xy":
+        return {"package": package, "roll_in_use": "inferred", "roll_sd_deg": None}
+    index_deg = rig["device"]["index_arcsec"] / 3600
+    return {"package": package, "roll_in_use": "table", "roll_sd_deg": index_deg / 3 ** 0.5}
+
+
 def check_package(instrument: InstrumentSettings, envelope: CertificateSettings, station: str, plan: str
                   ) -> None:
     """Refuse a package that cannot give its angles over the certificate's usage envelope (Tripp §6),
-    and any package but the three-axis one, whose fit and certificate are the ones a run makes."""
+    and on a station's devices any package but the three-axis one (its DMM reads three channels)."""
     from labcal.analysis.packages import package_problem
 
     roll = instrument.roll_source
@@ -377,8 +414,9 @@ def check_package(instrument: InstrumentSettings, envelope: CertificateSettings,
     if problem:
         raise LabcalError(f"{station}: {problem} (labcal plan audit {plan} --station {station})")
     if instrument.package != "three-axis":
-        raise LabcalError(f"{station}: [instrument] package = {instrument.package!r}: labcal run fits and "
-                          "certifies three-axis packages only; plan and audit it with labcal plan audit "
+        raise LabcalError(f"{station}: [instrument] package = {instrument.package!r}: on a station's devices "
+                          "labcal run measures three-axis packages only (a package of fewer sensors runs on "
+                          "the simulated rig: --sim --instrument); plan and audit it with labcal plan audit "
                           f"{plan} --station {station}")
 
 

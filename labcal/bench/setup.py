@@ -42,11 +42,13 @@ class StationSetup:
 
 def sim_station(rig_file: str | None, seed: int | None, snapshot: str | None = None,
                 start_time_s: float = 0.0, tables_at: tuple[float, float] | None = None,
-                pace: float | None = None) -> StationSetup:
+                pace: float | None = None, package: str | None = None) -> StationSetup:
     """The simulated rig, from a rig file or from a journal snapshot (resume); ``tables_at``: where
     a resumed run's tables were left, accumulated from home (`labcal.run.winding.left_at`);
     ``pace``: run at that many times real time (None: as fast as it can). The pace is not part of
-    the snapshot: it changes how long a run takes on the wall's clock, not what it measures."""
+    the snapshot: it changes how long a run takes on the wall's clock, not what it measures.
+    ``package``: the simulated instrument's sensor package instead of the rig file's (it is part of
+    the snapshot: a resume reads the same channels)."""
     from labcal.config.emulation import RigConfig, load_rig_config
     from labcal.config.files import validate_model
     from labcal.run.estimate import Timing
@@ -58,6 +60,9 @@ def sim_station(rig_file: str | None, seed: int | None, snapshot: str | None = N
         config, seed = validate_model(doc["rig"], RigConfig, "the journaled simulated rig"), doc["seed"]
     else:
         config = load_rig_config(rig_file) if rig_file else RigConfig()
+        if package is not None:
+            config = config.model_copy(update={"instrument": config.instrument.model_copy(
+                update={"package": package})})
     clock = VirtualClock(start_time_s) if pace is None else PacedClock(pace, start_time_s)
     rig = SimRig(config, seed=seed, clock=clock)
     if tables_at is not None:

@@ -126,13 +126,13 @@ def coefficients_with_standard_errors(fit: Fit, title: str = "Fitted coefficient
     `labcal.documents.report_tables.coefficients_with_expanded_uncertainty`, states ± U95 instead)."""
     table = Table(title=f"{title}, ± u (k=1)", box=box.SIMPLE_HEAD, pad_edge=False)  # fits 80 columns
     table.add_column("row", no_wrap=True)
-    for name in SENSORS:
+    for name in fit.sensors:
         table.add_column(f"sensor {name}", justify="right")  # wrapped, never cut, on a narrow terminal
     se = fit.stderr
     for i, row in enumerate(ROW_NAMES):
         unit = units if i == 0 else f"{units}/g"
         table.add_row(f"{row} ({unit})", *(with_standard_error(fit.coefficients[i, j], se[i, j])
-                                           for j in range(3)))
+                                           for j in range(len(fit.sensors))))
     table.add_row(f"S_E ({units})", *(f"{s:.3g}" for s in fit.ls.residual_se))
     basis = "; ".join(sorted({f"{b} ({d} df)" for b, d in zip(fit.variance_basis, fit.variance_dof,
                                                                   strict=True)}))
@@ -148,13 +148,13 @@ def extension_terms(fit: Fit) -> Table | None:
     table = Table(title=f"Extension terms (t_ref = {fit.model.t_ref:.2f} °C), ± u (k=1)", box=box.SIMPLE_HEAD,
                   pad_edge=False)
     table.add_column("term")
-    for name in SENSORS:
+    for name in fit.sensors:
         table.add_column(f"sensor {name}", justify="right")
     se = fit.stderr
     for i, term in enumerate(fit.names[n_base:], start=n_base):
         unit = {"dB/dT": "V/°C"}.get(term, "V/(g·°C)" if term.startswith("dS") else "V")
         table.add_row(f"{term} ({unit})",
-                      *(with_standard_error(fit.ls.coef[i, j], se[i, j]) for j in range(3)))
+                      *(with_standard_error(fit.ls.coef[i, j], se[i, j]) for j in range(len(fit.sensors))))
     return table
 
 

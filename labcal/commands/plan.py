@@ -273,7 +273,8 @@ def cmd_audit(args: argparse.Namespace) -> int:
             out.print(f"[green]{head}:[/] the plan determines b, S, Ω and A of each of its sensors, and the "
                       "package gives its angles over the certificate's usage envelope"
                       + ("" if package["package"] == "three-axis" else
-                         "; labcal run fits and certifies three-axis packages only"))
+                         "; on a station's devices labcal run measures three-axis packages only (this one "
+                         "runs on the simulated rig: --sim --instrument)"))
     return 0
 
 

@@ -79,6 +79,8 @@ def print_estimate(estimated: Estimated, as_json: bool) -> None:
         "plan": plan.name, "points": plan.n_points, "total_s": est.total_s,
         "estimated_rig_time_s": est.total_s, "moves_s": est.moves_s, "settling_s": est.settling_s,
         "averaging_s": est.averaging_s, "mounting_s": est.mounting_s}
+    if est.thermal_s:
+        doc["thermal_gate_s"] = est.thermal_s
     if as_json:
         print_json(doc)
         return
@@ -86,6 +88,9 @@ def print_estimate(estimated: Estimated, as_json: bool) -> None:
               "on this station:")
     for part in ("moves", "settling", "averaging", "mounting"):
         out.print(f"  {part:<10} {format_duration(doc[part + '_s'])}")
+    if est.thermal_s:
+        out.print(f"  (of which the thermal gate's least wait {format_duration(est.thermal_s)}: its hold at "
+                  "every mount)")
     out.print("(mounting includes the operator's remount allowance and the mount checks; nothing moved)")
 
 
@@ -218,6 +223,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="simulated or emulated rig's (and random order's) seed")
     p.add_argument("--out", help="run directory (default runs/<UTC time>-<plan>)")
     p.add_argument("--rig", help="TOML file describing the simulated rig (truth, noise, speeds)")
+    p.add_argument("--thermal-gate", nargs=2, type=bounded(float, 0, 86400, lo_open=True),
+                   metavar=("RATE", "HOLD"),
+                   help="before each mount's points, wait until the instrument's temperature changes by "
+                        "less than RATE °C/min over HOLD s (default: the station's [instrument] "
+                        "thermal_gate, else none)")
+    p.add_argument("--instrument", choices=["three-axis", "two-axis-xy", "two-axis-xz", "single-axis"],
+                   help="with --sim: the simulated instrument's sensor package (default: the rig's, "
+                        "three-axis)")
     p.add_argument("--samples", type=bounded_field("labcal.config.settings:SettleSettings", "samples"),
                    help="DMM samples per settle window, averaged per point (4..10000)")
     p.add_argument("--fixed-dwell", type=bounded(float, 0, 3600), metavar="S",

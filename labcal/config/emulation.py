@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from labcal.analysis.kinematics import MISALIGNMENT_NAMES, Misalignment
+from labcal.analysis.packages import PACKAGES
 from labcal.config.files import load_model
 
 
@@ -44,6 +45,17 @@ class InstrumentTruth(BaseModel):
     tc_bias_v_per_c: list[float] = Field(default=[0.0, 0.0, 0.0], min_length=3, max_length=3)
     tc_scale_per_c: list[float] = Field(default=[0.0, 0.0, 0.0], min_length=3, max_length=3)
     t_ref_c: float = 20.0
+    package: Literal["three-axis", "two-axis-xy", "two-axis-xz", "single-axis"] = Field(
+        default="three-axis", description="which of the three sensors the package has (Tripp & Tcheng "
+        "§6.1–6.6: x; x, y; x, z; x, y, z): a DMM channel each, the others are not read")
+    warmup_c: float = Field(default=0.0, description="the instrument's own heating above the lab at "
+                            "switch-on, decaying with warmup_tau_s (a warm-up the thermal gate waits out)")
+    warmup_tau_s: float = Field(default=1800.0, gt=0)
+
+    @property
+    def channels(self) -> tuple[int, ...]:
+        """The columns (0 x, 1 y, 2 z) of the sensors the package has."""
+        return tuple("xyz".index(a) for a in PACKAGES[self.package])
 
     @field_validator("S")
     @classmethod
@@ -164,6 +176,8 @@ class RigConfig(BaseModel):
     lab_temp_c: float = 21.0
     lab_temp_swing_c: float = Field(default=0.3, ge=0)
     lab_temp_period_h: float = Field(default=6.0, gt=0)
+    lab_temp_drift_c_per_h: float = Field(default=0.0, description="a steady rise (or fall) of the lab's "
+                                          "temperature on top of its swing")
     seed: int = 0
     output_slips: list[OutputSlip] = Field(default_factory=list, description="faults: a table's output "
                                            "slipping against its motor, unseen by its drive")

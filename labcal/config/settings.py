@@ -45,6 +45,23 @@ class SettleSettings(BaseModel):
         return self
 
 
+class ThermalGate(BaseModel):
+    """Before each mount's points, wait until the instrument's temperature changes by less than
+    ``rate_c_per_min`` over ``hold_s`` (the least-squares slope of the temperatures read every
+    ``poll_s`` within that span): a warm-up, or the handling of a remount, settles first, so that
+    the temperature terms need correct only a slow drift (Tripp & Tcheng §9.2.1, Table 2 footnote b)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    rate_c_per_min: float = Field(default=0.05, gt=0)
+    hold_s: float = Field(default=300.0, gt=0, le=86400)
+    poll_s: float = Field(default=30.0, gt=0, le=3600, description="time between temperature reads")
+    max_wait_s: float = Field(default=7200.0, gt=0, description="then the run goes on, and says so")
+
+    def describe(self) -> str:
+        return f"< {self.rate_c_per_min:g} °C/min over {self.hold_s:g} s"
+
+
 class SequencerSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -58,6 +75,7 @@ class SequencerSettings(BaseModel):
         default="skip", description="what to do with a point that does not settle after one retry")
     speed_dps: float = Field(default=20.0, gt=0, description="table speed, for ordering and estimates")
     accel_dps2: float = Field(default=40.0, gt=0)
+    thermal_gate: ThermalGate | None = Field(default=None, exclude_if=lambda gate: gate is None)
 
 
 class CertificateSettings(BaseModel):

@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 
 from labcal.config.emulation import EmulationSettings, FaultKind, RigConfig
 from labcal.config.files import parse_model, read_text, validate_model
-from labcal.config.settings import CertificateSettings, SequencerSettings
+from labcal.config.settings import CertificateSettings, SequencerSettings, ThermalGate
 from labcal.config.uncertainty import Traceability, UncertaintyInputs
 from labcal.errors import LabcalError
 
@@ -259,6 +259,9 @@ class InstrumentSettings(BaseModel):
         "measured independently by the roll table or a roll sensor (with roll_sd_deg)")
     roll_sd_deg: float | None = Field(default=None, gt=0, le=10, description=(
         "standard deviation σ_R (°) of the independently measured roll (Tripp eq. 81)"))
+    thermal_gate: ThermalGate | None = Field(default=None, description=(
+        "before each mount's points, wait until the instrument's temperature changes by less than "
+        "rate_c_per_min over hold_s, e.g. { rate_c_per_min = 0.05, hold_s = 300 }"))
 
     @model_validator(mode="after")
     def _roll_stated(self):

@@ -239,6 +239,43 @@ class AttitudeEnvelope(Strict):
     closed_form: ClosedFormEnvelope | None = Field(default=None, exclude_if=_absent)
 
 
+class TrippSensor(Strict):
+    """One sensor of a package in Tripp & Tcheng's terms (eq. 8): offset b, sensitivity S (signed as
+    their eqs. 14-16 read), coning angle Ω and azimuth A."""
+
+    b: float
+    S: float
+    omega_deg: float
+    azimuth_deg: float
+
+
+class PackageSection(Strict):
+    """A package of fewer than three sensors (Tripp & Tcheng §6.1-6.5): how its angles are obtained
+    in use and their uncertainty, from its own coefficients (`labcal.documents.package`)."""
+
+    package: Literal["single-axis", "two-axis-xy", "two-axis-xz"]
+    sensors: list[str]
+    coefficients: dict[str, TrippSensor]
+    roll_in_use: Literal["inferred", "none", "table", "sensor"]
+    roll_sd_deg: float | None
+    equations: str
+    k: float
+    # pitch at a known roll (none, table, sensor): the largest U95 over the usage envelope
+    pitch_u95_deg: float | None = Field(default=None, exclude_if=_absent)
+    pitch_u95_at_deg: tuple[float, float] | None = Field(default=None, exclude_if=_absent)
+    usage_pitch_deg: tuple[float, float] | None = Field(default=None, exclude_if=_absent)
+    usage_roll_deg: tuple[float, float] | None = Field(default=None, exclude_if=_absent)
+    # pitch and roll inferred together: the usable range where both U95 stay within the limit
+    u95_limit_deg: float | None = Field(default=None, exclude_if=_absent)
+    usable_pitch_deg: tuple[float, float] | None = Field(default=None, exclude_if=_absent)
+    usable_roll_deg: tuple[float, float] | None = Field(default=None, exclude_if=_absent)
+    # the calibration's temperatures and the model's reference temperature (where its temperature
+    # terms are centred, Tripp Table 2 footnote b; the run's mean temperature)
+    temperature_c: tuple[float, float] | None = Field(default=None, exclude_if=_absent)
+    t_ref_c: float | None = Field(default=None, exclude_if=_absent)
+    statement: str
+
+
 class Check(Strict):
     quantity: str
     value: float
@@ -483,6 +520,7 @@ class Certificate(Strict):
     approval: Approval | None = Field(default=None, exclude_if=_absent)
     device: DeviceSection | None = Field(default=None, exclude_if=_absent)
     device_correction: DeviceCorrectionRecord | None = Field(default=None, exclude_if=_absent)
+    package: PackageSection | None = Field(default=None, exclude_if=_absent)
     digest: Digest
 
     @property

@@ -66,6 +66,7 @@ class SequencerRecord(Recorded):
     on_failure: str
     speed_dps: float
     accel_dps2: float
+    thermal_gate: dict[str, float] | None = None  # absent: no gate (or issued before it existed)
 
 
 class Endpoint(Strict):

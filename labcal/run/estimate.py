@@ -81,6 +81,7 @@ class Estimate:
     mounting_s: float
     prompt_s: dict[int, float] = field(default_factory=dict)  # a mount's first step: its start to the prompt
     mount_s: dict[int, float] = field(default_factory=dict)  # … to the end of the mount (check included)
+    thermal_s: float = 0.0  # the thermal gate's least wait, within mounting_s
 
     @property
     def total_s(self) -> float:
@@ -110,7 +111,7 @@ def estimate(plan: Plan, settings: SequencerSettings, timing: Timing,
         dead = float(dead_time(lag * s.sensitivity_v_per_g, s, timing.sample_s))
         return travel(a, b), max(0.0, dead - found)
 
-    per_step, prompt, mount_s, moves, settling, mounting = {}, {}, {}, 0.0, 0.0, 0.0
+    per_step, prompt, mount_s, moves, settling, mounting, thermal = {}, {}, {}, 0.0, 0.0, 0.0, 0.0
     where: NDArray[np.float64] = np.array(LOAD_POSITION, dtype=float)
     steps = schedule(plan, settings) if steps is None else steps
     for i, step in enumerate(steps):
@@ -121,6 +122,9 @@ def estimate(plan: Plan, settings: SequencerSettings, timing: Timing,
         if step.block_start:
             prompt[step.seq] = t_mount + travel(where, np.array(LOAD_POSITION))  # the tables still then
             t_mount = prompt[step.seq] + timing.remount_s + link.verify_exchanges * link.dmm_s
+            if settings.thermal_gate is not None:  # the least it waits: the rate seen low for hold_s
+                t_mount += settings.thermal_gate.hold_s
+                thermal += settings.thermal_gate.hold_s
             if settings.check_mount:
                 t_mount += sum(move_and_settle(np.array(LOAD_POSITION), np.array(CHECK_ATTITUDE),
                                                step.mount)) + window_s
@@ -137,4 +141,4 @@ def estimate(plan: Plan, settings: SequencerSettings, timing: Timing,
         closing = sum(move_and_settle(where, np.array(CHECK_ATTITUDE), steps[-1].mount)) + window_s
         per_step[steps[-1].seq] += closing
         mounting += closing
-    return Estimate(per_step, moves, settling, window_s * len(steps), mounting, prompt, mount_s)
+    return Estimate(per_step, moves, settling, window_s * len(steps), mounting, prompt, mount_s, thermal)

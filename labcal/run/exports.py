@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from labcal.analysis.device_fit import DeviceFit, preferred_fit
-from labcal.analysis.fit import Fit, fit_readings, reference_temperature
+from labcal.analysis.fit import SENSORS, Fit, fit_readings, reference_temperature
 from labcal.analysis.models import Model
 from labcal.analysis.readings import Readings
 from labcal.config.files import write_atomic
@@ -99,6 +99,9 @@ def run_fits(readings: Readings, plan_text: str, station_text: str) -> tuple[Fit
         model = Model(t_ref=reference_temperature(readings), device=correction.misalignment())
         return fit_readings(readings, model), None, correction.model_note()
     fit = fit_readings(readings)
+    if fit.sensors != SENSORS:  # the device model needs three sensors' gravity to see the misalignments
+        return fit, None, (f"linear model of the {', '.join(fit.sensors)} sensor(s) the package has, each "
+                           "v = b + s·g (Tripp & Tcheng eq. 8)")
     return fit, *preferred_fit(readings, fit, stated_angle_errors(station_text))
 
 

@@ -334,7 +334,7 @@ class Journal:
             replicate=np.array([p.replicate for p in pts]),
             y_deg=np.array([p.y_deg for p in pts]), u_deg=np.array([p.u_deg for p in pts]),
             pitch_deg=np.array([p.pitch_deg for p in pts]), roll_deg=np.array([p.roll_deg for p in pts]),
-            volts=np.array([[p.vx, p.vy, p.vz] for p in pts]),
+            volts=np.array([[p.vx, p.vy, p.vz] for p in pts], dtype=float),  # NULL: NaN, an absent sensor
             temp_c=None if any(t is None for t in temps) else np.array(temps),
         )
 

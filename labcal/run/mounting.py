@@ -82,8 +82,23 @@ def identify(volts: NDArray, provisional: NDArray | None = None, stated: Mount |
              ) -> tuple[Mount, Wiring]:
     """The mount and wiring whose check-attitude gravity best matches the mean voltages; among those
     that read alike, the one with the fewest faults, on the ``stated`` mount if it is one of them.
-    ``provisional`` is an X (4×3) fitted from the points measured so far, if any."""
+    ``provisional`` is an X (4×3) fitted from the points measured so far, if any.
+
+    A package of fewer sensors (NaN in the outputs it lacks) is judged by the signs of the gravity
+    components its sensors see (0.2 g at least at the check attitude), its wiring taken as stated:
+    an x–y or x–z package tells the four mounts apart, a single x sensor only the x direction, so
+    where mounts tie the ``stated`` one is taken (`distinguishes` says whether the check could tell)."""
     volts = np.asarray(volts, float)
+    present = ~np.isnan(volts)
+    if not present.all():
+        if provisional is not None and provisional.shape[1] == present.sum():
+            volts = volts[present] - provisional[0]
+        else:
+            volts = volts[present]
+        signs = np.sign(volts)
+        mount = min(MOUNTS, key=lambda m: (int(np.sum(signs != np.sign(expected_gravity(m)[present]))),
+                                           m != stated))
+        return mount, AS_STATED
     if provisional is not None:
         g = np.linalg.solve(provisional[1:].T, volts - provisional[0])
     else:
@@ -93,6 +108,14 @@ def identify(volts: NDArray, provisional: NDArray | None = None, stated: Mount |
     distance = [float(np.linalg.norm(g - expected_gravity(m, w))) for m, w in candidates]
     best = min(distance)
     return next(c for c, d in zip(candidates, distance, strict=True) if d <= best + TIE)
+
+
+def distinguishes(volts: NDArray) -> bool:
+    """Whether the outputs present tell the four mounts apart at the check attitude (every package
+    but a single sensor's)."""
+    present = ~np.isnan(np.asarray(volts, float))
+    signs = {tuple(np.sign(expected_gravity(m)[present])) for m in MOUNTS}
+    return len(signs) == len(MOUNTS)
 
 
 def drawing(mount: Mount) -> list[str]:

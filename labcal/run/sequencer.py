@@ -12,6 +12,7 @@ after the current point; the second stops the tables at once.
 from __future__ import annotations
 
 import logging
+import math
 import sqlite3
 from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
@@ -43,13 +44,14 @@ from labcal.run.events import (
 from labcal.run.interrupts import Interrupts
 from labcal.run.journal import Journal, PointRecord
 from labcal.run.motion import Move, move_time, transient_after, transient_at_stop
-from labcal.run.mounting import CHECK_ATTITUDE, identify
+from labcal.run.mounting import CHECK_ATTITUDE, distinguishes, identify
 from labcal.run.operator import Operator, OperatorDeclined, Terminal
 from labcal.run.ordering import order_points
 from labcal.run.settle import Dwell, TailPool, dead_time, dwell, dwell_model
 from labcal.run.station import RotaryAxis, Station, StopFailed, TableState, mean_and_sd
 from labcal.run.winding import MOVE_EVENT, last_move, locate, plan_windings
 
+THERMAL_SAMPLES = 4  # DMM samples averaged per temperature read of the thermal gate
 Winding = tuple[float, float]  # each table's accumulated rotation from home, degrees (pitch, roll)
 
 LOAD_POSITION = (0.0, 0.0)  # tables level while the operator remounts
@@ -182,6 +184,12 @@ def unvouched(before: tuple[TableState, ...], after: tuple[TableState, ...]) -> 
         return None, False
     faulted, why = max(found, key=lambda item: item[0])
     return why, faulted
+
+
+def _read(value: float) -> float | None:
+    """A channel's mean or SD for the journal: None (NULL) for a sensor the package does not have,
+    whose channel the voltmeter leaves NaN."""
+    return None if math.isnan(value) else float(value)
 
 
 def raw_samples(result: Dwell) -> np.ndarray:
@@ -467,6 +475,7 @@ class Sequencer:
             verify = getattr(self.station.dmm, "verify", None)  # a DMM with a declared configuration
             if verify is not None:
                 verify("at the mount")
+            self.wait_thermal()
             if not self.settings.check_mount:
                 return
             self.move(*CHECK_ATTITUDE)
@@ -477,9 +486,10 @@ class Sequencer:
                 raise StationMiswired(f"the mount check on {mount} (pitch {CHECK_ATTITUDE[0]:g}°, roll "
                                       f"{CHECK_ATTITUDE[1]:g}°): {'; '.join(wiring.faults)}")
             if seen == mount:
-                self.note("mount", f"mount verified: {mount}", mount=[mount.y_deg, mount.u_deg],
-                          check_deg=list(CHECK_ATTITUDE), volts=[float(v) for v in volts],
-                          samples=len(check.scan.volts))
+                self.note("mount", f"mount verified: {mount}" if distinguishes(volts) else
+                          f"mount verified as far as a single sensor tells: its x direction ({mount})",
+                          mount=[mount.y_deg, mount.u_deg], check_deg=list(CHECK_ATTITUDE),
+                          volts=[float(v) for v in volts], samples=len(check.scan.volts))
                 return
             note = f"the instrument reads as if on the {seen.describe()}; please correct it"
             if seen.u_deg == mount.u_deg:  # turned 180° about z: both tables reversed read so too
@@ -488,6 +498,45 @@ class Sequencer:
                                message=f"wrong mount: expected {mount}, reads as {seen}"))
         raise OperatorDeclined(f"the instrument was not mounted as {mount.describe()} after "
                                f"{MOUNT_ATTEMPTS} attempts")
+
+    def wait_thermal(self) -> float:
+        """The thermal gate (`ThermalGate`): read the instrument's temperature every ``poll_s`` until
+        the least-squares slope of the reads over the last ``hold_s`` is within the limit (at least
+        ``hold_s`` of reads: the rate must be seen to stay low), or ``max_wait_s`` has passed; the
+        wait is journaled. Returns the seconds waited."""
+        gate = self.settings.thermal_gate
+        if gate is None:
+            return 0.0
+        clock, dmm = self.station.clock, self.station.dmm
+        if not dmm.measures_temperature:
+            self.note("thermal", "thermal gate skipped: the station reads no instrument temperature")
+            return 0.0
+        t0 = clock.now()
+        times: list[float] = []
+        temps: list[float] = []
+        rate = math.inf
+        while True:
+            scan = dmm.read(THERMAL_SAMPLES)
+            assert scan.temp_c is not None
+            times.append(clock.now() - t0)
+            temps.append(float(np.mean(scan.temp_c)))
+            spanning = [i for i, t in enumerate(times) if times[-1] - t >= gate.hold_s - 1e-9]
+            if spanning:  # the reads since the last one at least hold_s ago
+                first = spanning[-1]
+                rate = 60 * float(np.polyfit(times[first:], temps[first:], 1)[0])
+                if abs(rate) <= gate.rate_c_per_min:
+                    break
+            if times[-1] >= gate.max_wait_s:
+                break
+            clock.sleep(gate.poll_s)
+        waited = clock.now() - t0
+        settled = abs(rate) <= gate.rate_c_per_min
+        self.note("thermal", (f"thermal gate: waited {waited:.0f} s; the temperature " +
+                              (f"settled ({gate.describe()})" if settled else
+                               f"had not settled ({gate.describe()}) after the gate's {gate.max_wait_s:g} s; "
+                               "going on")) + f" at {temps[-1]:.3f} °C, {rate:+.3g} °C/min",
+                  waited_s=waited, temp_c=temps[-1], rate_c_per_min=rate, settled=settled)
+        return waited
 
     def pause(self, why: str, home: tuple[RotaryAxis, ...] = ()) -> None:
         """Ask the operator to resume or abort. ``home``: tables that lost their reference; the
@@ -805,8 +854,8 @@ class Sequencer:
             pitch_deg=step.pitch_deg, roll_deg=step.roll_deg, pitch_read=pitch_read, roll_read=roll_read,
             attempt=attempt, status="ok" if ok else "failed", t_start=t_start,
             t_end=self.station.clock.now() - self._t0, n_samples=len(scan.volts),
-            vx=float(mean[0]), vy=float(mean[1]), vz=float(mean[2]),
-            sd_vx=float(sd[0]), sd_vy=float(sd[1]), sd_vz=float(sd[2]), temp_c=temp,
+            vx=_read(mean[0]), vy=_read(mean[1]), vz=_read(mean[2]),
+            sd_vx=_read(sd[0]), sd_vy=_read(sd[1]), sd_vz=_read(sd[2]), temp_c=temp,
             settle_s=result.settle_s, settle_verdict=result.verdict.reason,
         )
         self._points_done += 1
