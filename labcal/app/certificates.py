@@ -46,6 +46,7 @@ class IssueCertificate:
     manufacturer: str | None = None
     model: str | None = None
     received: date | None = None
+    in_use_samples: int | None = None  # samples a reading in use averages (None: the calibration's window)
 
 
 @dataclass(frozen=True)
@@ -95,7 +96,7 @@ def issue_certificate(request: IssueCertificate) -> Issued:
                           "to about 1 %), or leave it out")
     settings = load_settings(request.station, attitude_u95_max_deg=request.tolerance_deg,
                              bias_max_v=request.bias_max_v, usage_pitch_deg=request.usage_pitch,
-                             usage_roll_deg=request.usage_roll)
+                             usage_roll_deg=request.usage_roll, in_use_samples=request.in_use_samples)
     result = write_run_outputs(request.run_dir, settings, serial=request.serial, operator=request.operator,
                                db=request.db, station=request.station, monte_carlo=request.monte_carlo,
                                item=ItemGiven(request.customer, request.manufacturer, request.model,

@@ -324,6 +324,19 @@ class CovariancePartRecord(Strict):
         return CovariancePart(np.array(self.matrix, dtype=float), dof, self.label)
 
 
+class InUseReading(Strict):
+    """What the budget's new-reading row assumes of a reading of the instrument in use: the mean of
+    ``samples`` samples, each scattering by the pooled within-window standard deviation of the
+    calibration (per channel, in the outputs' unit) with its degrees of freedom."""
+
+    samples: int = Field(ge=1)
+    stated: bool  # True: stated for this certificate; False: the calibration's window length
+    sample_sd: list[float]
+    degrees_of_freedom: float
+    windows: int = Field(ge=1)
+    statement: str
+
+
 class UncertaintyBudget(Strict):
     method: str
     inputs: BudgetInputs
@@ -335,6 +348,9 @@ class UncertaintyBudget(Strict):
     # The complete covariance the totals come from; `labcal attitude --cert` and every other output
     # state the attitude U95 from it (absent in certificates issued before: their fit's Type A).
     covariance: list[CovariancePartRecord] | None = Field(default=None, exclude_if=_absent)
+    # The averaging a reading in use is assumed to have (absent: certificates whose new-reading row is
+    # the fit's residual, issued before, or from readings that do not carry their windows' scatter).
+    in_use: InUseReading | None = Field(default=None, exclude_if=_absent)
 
     def parts(self) -> tuple[CovariancePart, ...]:
         return tuple(p.part() for p in self.covariance or [])
@@ -574,7 +590,9 @@ def parse_json(text: str, source: str):
     except json.JSONDecodeError as exc:
         rest = text.rstrip()[exc.pos:]
         # cut inside a number ("0." or "1e-") or a literal ("tr"): the parser stops at its last character
-        if not rest or _CUT_TOKEN.fullmatch(rest) or exc.msg.startswith("Unterminated string"):
+        # or inside a \uXXXX escape of a non-ASCII character ("\u22")
+        cut_escape = exc.msg.startswith("Invalid \\uXXXX escape") and len(rest) < 6
+        if not rest or _CUT_TOKEN.fullmatch(rest) or exc.msg.startswith("Unterminated string") or cut_escape:
             raise LabcalError(f"{source}: not valid JSON: the file is truncated (it stops at line "
                               f"{text.rstrip().count(chr(10)) + 1} before the document ends)") from None
         raise LabcalError(f"{source}: not valid JSON ({exc.msg} at line {exc.lineno})") from None

@@ -30,6 +30,7 @@ from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.fit import Fit
 from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES
 from labcal.analysis.montecarlo import monte_carlo
+from labcal.analysis.readings import Readings
 from labcal.analysis.remounting import mount_scatter
 from labcal.config.files import validate_model
 from labcal.config.plans import plan_correction
@@ -40,6 +41,7 @@ from labcal.documents.certificate import (
     BudgetTotal,
     CoefficientBudgetRecord,
     CovariancePartRecord,
+    InUseReading,
     MonteCarloCheck,
     UncertaintyBudget,
 )
@@ -205,12 +207,14 @@ def _statement(totals: list[BudgetTotal], checks: list[MonteCarloCheck] | None) 
     return text
 
 
-def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: CertificateSettings,
-           trials: int = 0, seed: int = 0, device: DeviceFit | None = None) -> UncertaintyBudget:
-    """The certificate's budget section for a run's fit, or for its ``device`` model where the
-    certificate is built on it; ``trials`` > 0 adds the Monte Carlo check."""
-    readings = record.readings
-    cal = calibration_of(fit, readings) if device is None else calibration_of_device(device, readings)
+def budget_rows(readings: Readings, fit: Fit, inputs: TypeBInputs, device: DeviceFit | None = None,
+                in_use_samples: int | None = None) -> tuple[Calibration, list[Source], TypeBInputs]:
+    """The budget's view of a fit of ``readings`` (or of its ``device`` model), its rows and the inputs
+    they were made from: the tables' index and wobble the device model was fitted with, and the mount
+    scatter the replicates show, over the station file's. ``in_use_samples``: the samples a reading
+    in use averages (None: the calibration's window length)."""
+    cal = calibration_of(fit, readings, in_use_samples) if device is None else \
+        calibration_of_device(device, readings, in_use_samples)
     if device is not None and device.angle_errors is not None:
         # the tables' index and wobble the device model was fitted with are the budget's table rows
         a = device.angle_errors
@@ -219,7 +223,14 @@ def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: Certifica
     scatter = mount_scatter(readings, cal.X)
     if scatter is not None:  # the replicates say how the seating scatters: they win over the station file
         inputs = replace(inputs, mount_repeatability_sd=scatter.sd_rad, mount_repeatability_dof=scatter.dof)
-    rows = sources(cal, inputs)
+    return cal, sources(cal, inputs), inputs
+
+
+def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: CertificateSettings,
+           trials: int = 0, seed: int = 0, device: DeviceFit | None = None) -> UncertaintyBudget:
+    """The certificate's budget section for a run's fit, or for its ``device`` model where the
+    certificate is built on it; ``trials`` > 0 adds the Monte Carlo check."""
+    cal, rows, inputs = budget_rows(record.readings, fit, inputs, device, settings.in_use_samples)
     pitch, roll = envelope(settings)
     p = propagate(cal, rows, pitch, roll)
     coef = coefficient_budget(rows)
@@ -229,6 +240,7 @@ def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: Certifica
            if not (k == "output_unit" and v == "V")  # volts: as certificates always said it
            and not (k == "device_misalignment_source" and not v)}  # a device model's own: as before
     return UncertaintyBudget(
+        in_use=in_use_reading(cal, inputs.output_unit),
         method=METHOD, inputs=BudgetInputs.model_validate(doc), rows=_rows(rows, p), totals=totals,
         coefficients=CoefficientBudgetRecord(
             u_c=coef.u_c.tolist(), nu_eff=[[_finite(x) for x in row] for row in coef.nu_eff],
@@ -237,6 +249,24 @@ def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: Certifica
         monte_carlo=checks, statement=_statement(totals, checks),
         covariance=[CovariancePartRecord(label=part.label, degrees_of_freedom=_finite(part.dof),
                                          matrix=part.matrix.tolist()) for part in covariance_parts(rows)])
+
+
+def in_use_reading(cal: Calibration, unit: str) -> InUseReading | None:
+    """The averaging in use the new-reading row assumes, in words for the certificate (None: the row is
+    the fit's residual)."""
+    rep, samples = cal.repeatability, cal.in_use_samples_or_calibration
+    if rep is None or samples is None:
+        return None
+    how = ("as stated for this certificate" if cal.in_use_samples
+           else "as in this calibration's windows")
+    return InUseReading(
+        samples=samples, stated=cal.in_use_samples is not None, sample_sd=rep.sample_sd.tolist(),
+        degrees_of_freedom=rep.dof, windows=rep.windows,
+        statement=(f"The uncertainty of pitch and roll applies to a reading of the instrument in use that is "
+                   f"the mean of {samples} samples of each output ({how}). A reading of fewer samples "
+                   f"scatters more: its own term grows as 1/√N from {max(rep.sample_sd):.3g} {unit} per "
+                   f"sample (the pooled scatter inside the calibration's {rep.windows} windows, "
+                   f"ν = {rep.dof:.0f})."))
 
 
 def stated_U95_arcsec(b: UncertaintyBudget, angle: str) -> float | None:
