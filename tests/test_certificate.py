@@ -14,7 +14,6 @@ from simulated_runs import simulated_run
 
 from labcal.analysis.device_fit import preferred_fit
 from labcal.analysis.fit import fit_readings
-from labcal.analysis.kinematics import gravity
 from labcal.cli import main
 from labcal.config.settings import CertificateSettings
 from labcal.documents.certificate import (
@@ -71,24 +70,23 @@ def test_round_trip_is_exact(cert, cert_file, tmp_path):
 
 def test_contents_match_the_fit_and_the_run(run, cert):
     fit = fit_readings(run.readings)
+    # The linear model leaves the device's misalignments (tens of arcseconds) in the residuals, and this
+    # certificate states no bench error: the lack-of-fit test says so, and the budget is the fit's
+    # residual (its ν and standard errors below), not the windows' noise
+    check = cert.uncertainty_budget.fit_check
+    assert check.lack_of_fit and check.statement in cert.statements and "LACK OF FIT" in check.statement
+    assert cert.uncertainty_budget.in_use is None
     assert cert.to_json()["schema"] == "labcal.certificate/1"  # published (README); issued ones carry it
     assert cert.instrument.serial == "SN-0042"  # recorded by `labcal run --serial`
     assert cert.station.simulated and cert.station.simulated_truth.seed == 7
     np.testing.assert_array_equal(cert.coefficients, fit.coefficients)
     for j in range(3):
         np.testing.assert_array_equal(cert.fit.covariance[j], fit.covariance(j))
-    # 64 points, 4 coefficients per sensor: the fit's ν = 60. The coefficients' Type A is the noise,
-    # σ² pooled inside the 64 windows of 10 samples: ν = 64 × 9 = 576 (GUM 4.2.4), k = t₀.₉₇₅(576)
-    assert cert.fit.degrees_of_freedom == 60 and cert.expanded_uncertainty.nu_eff == [576, 576, 576]
-    assert cert.expanded_uncertainty.k == pytest.approx([stats.t.ppf(0.975, 576)] * 3, abs=1e-9)
-    # U = k·σ/√N·√diag((FᵀF)⁻¹), the design's (FᵀF)⁻¹ by hand; labcal's t quantile and scipy's agree
-    r = run.readings
-    n = r.window_n
-    sd = np.sqrt(np.sum((n - 1)[:, None] * r.window_sd**2, axis=0) / np.sum(n - 1))
-    p, q, y, u = (np.radians(a) for a in (r.pitch_deg, r.roll_deg, r.y_deg, r.u_deg))
-    F = np.column_stack([np.ones(len(p)), gravity(p, q, y, u)])
-    stderr = np.sqrt(np.diag(np.linalg.inv(F.T @ F)))[:, None] * sd[None, :] / np.sqrt(n[0])
-    np.testing.assert_allclose(cert.U, stats.t.ppf(0.975, 576) * stderr, rtol=1e-9)
+    # 64 points, 4 coefficients per sensor: ν = 60, k = t₀.₉₇₅(60) = 2.0003 (GUM G.4)
+    assert cert.fit.degrees_of_freedom == 60 and cert.expanded_uncertainty.nu_eff == [60, 60, 60]
+    assert cert.expanded_uncertainty.k == pytest.approx([2.000297822] * 3, abs=1e-9)
+    # labcal's t quantile and scipy's are independent computations: they agree to a few ulp
+    np.testing.assert_allclose(cert.U, stats.t.ppf(0.975, 60) * fit.stderr[:4], rtol=1e-14)
     assert cert.environment.temperature_c_min == run.readings.temp_c.min()
     assert cert.environment.temperature_c_max == run.readings.temp_c.max()
     assert cert.plan.sha256 == hashlib.sha256((run.directory / "plan.toml").read_bytes()).hexdigest()
@@ -105,24 +103,16 @@ def test_contents_match_the_fit_and_the_run(run, cert):
     assert all(m.cancelled for m in cert.plan_audit.misalignments.values())
 
 
-def test_attitude_uncertainty_is_in_degrees_and_matches_first_order_propagation(run, cert):
-    """At level attitude the pitch comes from sensor x alone to first order: u_p = √(fᵀC_x f + σ_x²/N)/S_xx
-    with f = (1, 0, 0, 1), σ_x the instrument's scatter per sample pooled over the run's windows of N
-    samples (GUM 4.2.4: Σ(n−1)s² / Σ(n−1)), C_x = σ_x²/N·(FᵀF)⁻¹ the noise through the fit (this
-    certificate states no Type B input). Off-axis sensitivities (≈ 0.2 % of S_xx) change it by far
-    less than 1 %. The pooled scatter is then the only term of Welch–Satterthwaite: k = t₀.₉₇₅(Σ(n−1))."""
+def test_attitude_uncertainty_is_in_degrees_and_matches_first_order_propagation(cert):
+    """At level attitude the pitch comes from sensor x alone to first order: u_p = √(fᵀC_x f + σ_x²)/S_xx
+    with f = (1, 0, 0, 1); off-axis sensitivities (≈ 0.2 % of S_xx) change it by far less than 1 %. The
+    one sensor's variance estimate is then the only term of Welch–Satterthwaite: k = t₀.₉₇₅(ν)."""
     cal = cert.calibration()
     env = envelope_grid(cal, CertificateSettings())
     i, j = list(env.pitch_deg).index(0.0), list(env.roll_deg).index(0.0)
-    r = run.readings
-    n, sd = r.window_n, r.window_sd[:, 0]
-    var_x = np.sum((n - 1) * sd**2) / np.sum(n - 1) / n[0]  # one reading in use: the window's N
-    p, q, y, u = (np.radians(a) for a in (r.pitch_deg, r.roll_deg, r.y_deg, r.u_deg))
-    F = np.column_stack([np.ones(len(p)), gravity(p, q, y, u)])  # nominal gravity, as the fit regresses
     f = np.array([1.0, 0.0, 0.0, 1.0])
-    u_p = np.sqrt(var_x * (f @ np.linalg.inv(F.T @ F) @ f) + var_x) / cal.X[1, 0]
-    k = float(stats.t.ppf(0.975, np.sum(n - 1)))
-    assert np.all(n == n[0]) and n[0] >= 4
+    u_p = np.sqrt(f @ cal.covariance[0] @ f + cal.reading_sd[0] ** 2) / cal.X[1, 0]
+    k = float(stats.t.ppf(0.975, cal.dof))
     assert env.u95_pitch_deg[i, j] == pytest.approx(k * np.degrees(u_p), rel=1e-2)
     a = cert.attitude
     assert a.pitch_U95_max_deg == pytest.approx(np.max(env.u95_pitch_deg), rel=1e-12)
@@ -236,16 +226,30 @@ def test_serial_must_be_known_and_not_contradicted(run, tmp_path):
     assert build_certificate(anonymous, fit, serial="SN-7").instrument.serial == "SN-7"
 
 
-def test_the_certificate_states_the_averaging_in_use_its_u95_applies_to(run, cert):
+def as_reported(run, settings=None):
+    """As `labcal report` issues it: the run's model and the station's (here the simulator's) Type B
+    inputs, so that the budget states the bench's errors."""
+    from labcal.documents.approving import fitted
+    from labcal.documents.uncertainty import bench_section, type_b_inputs
+
+    fit, device, note = fitted(run)
+    return build_certificate(run, fit, settings, device=device, model_note=note,
+                             inputs=type_b_inputs(bench_section(run, None), run, device))
+
+
+def test_the_certificate_states_the_averaging_in_use_its_u95_applies_to(run):
     """The new-reading row assumes a reading in use averages as many samples as the calibration's
     windows (10 in a dry run), and the certificate says so; stated otherwise (40 samples), the row is
     half as large (1/√N) and the certificate says it was stated."""
+    cert = as_reported(run)
     budget = cert.uncertainty_budget
+    assert not budget.fit_check.lack_of_fit and "No lack of fit" in budget.fit_check.statement
+    assert budget.fit_check.statement in cert.statements
     assert budget.in_use.samples == 10 and not budget.in_use.stated
     assert budget.in_use.statement in cert.statements
     assert "the mean of 10 samples of each output (as in this calibration's windows)" in \
         budget.in_use.statement
-    forty = build_certificate(run, fit_readings(run.readings), CertificateSettings(in_use_samples=40))
+    forty = as_reported(run, CertificateSettings(in_use_samples=40))
     assert forty.uncertainty_budget.in_use.samples == 40 and forty.uncertainty_budget.in_use.stated
     assert "(as stated for this certificate)" in forty.uncertainty_budget.in_use.statement
 
@@ -253,6 +257,10 @@ def test_the_certificate_states_the_averaging_in_use_its_u95_applies_to(run, cer
         return next(r for r in c.uncertainty_budget.rows if r.source.startswith("one new reading"))
     half = reading_row(cert).standard_uncertainty / 2
     assert reading_row(forty).standard_uncertainty == pytest.approx(half, rel=1e-12)
+    # the pooled scatter by hand (GUM 4.2.4) over √10
+    n, sd = run.readings.window_n, run.readings.window_sd
+    pooled = np.sqrt(np.sum((n - 1)[:, None] * sd**2, axis=0) / np.sum(n - 1))
+    assert reading_row(cert).standard_uncertainty == pytest.approx(pooled.max() / np.sqrt(10), rel=1e-12)
     # the averaging is an issuing choice like the envelope: the approval's rebuild keeps it
     from labcal.documents.approving import issue_settings
     assert issue_settings(forty).in_use_samples == 40 and issue_settings(cert).in_use_samples is None

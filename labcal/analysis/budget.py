@@ -268,6 +268,47 @@ def _b(jac_x: NDArray[np.float64], u: float, distribution: Distribution = "recta
     return Component(jac_x, np.zeros((3, jac_x.shape[1])), u, np.inf, distribution)
 
 
+Shapes = tuple[tuple[NDArray[np.float64], float], ...]  # a table error's bases over its angles
+
+
+def _table_inputs(cal: Calibration, b: TypeBInputs) -> tuple[tuple[str, tuple[str, ...], Shapes, float], ...]:
+    """Each table error: its row's label, the misalignments it moves, its shapes over the table's
+    angles (`angle_error_shapes`) and its stated half-width."""
+    pitch_shapes = angle_error_shapes(np.radians(cal.points.pitch_deg))
+    roll_shapes = angle_error_shapes(np.radians(cal.points.roll_deg))
+    return (("pitch table index accuracy", ("a",), pitch_shapes, b.pitch_index),
+            ("pitch table wobble", ("d", "f"), pitch_shapes, b.pitch_wobble),
+            ("roll table index accuracy", ("f",), roll_shapes, b.roll_index),
+            ("roll table wobble", ("e", "k"), roll_shapes, b.roll_wobble))
+
+
+def _reading_shift(cal: Calibration, name: str) -> NDArray[np.float64]:
+    """How every reading moves (K × 3) per radian of misalignment ``name`` at its point."""
+    return np.asarray(_gravity_derivative(cal.points, name) @ cal.X[1:], dtype=float)
+
+
+def bench_in_readings(cal: Calibration, b: TypeBInputs) -> dict[str, NDArray[np.float64]]:
+    """The bench's stated errors that differ from point to point, as they enter the readings, by group
+    ("tables": index and wobble in both shapes; "seating": the plate at each mounting), each K × 3 × m,
+    one column per elementary input times its u, as their budget rows carry them (a reading moves by
+    ∂g/∂misalignment · S). What is common to every point (the DMM's gain and offset, temperature at
+    one setting) the fit absorbs; it leaves no residual to judge."""
+    k = len(cal.installation)
+    tables = []
+    for _, names, ((rough, _), (smooth, share)), half in _table_inputs(cal, b):
+        for basis, u in ((rough, half / SQRT3), (smooth, half / SQRT3 * np.sqrt(share))):
+            if u > 0:
+                tables += [_reading_shift(cal, name)[:, :, None] * basis[:, None, :] * u for name in names]
+    seat = b.mount_repeatability / SQRT3 if b.mount_repeatability_sd is None else b.mount_repeatability_sd
+    seating = []
+    if seat > 0:
+        member = _membership(cal.installation)
+        seating = [_reading_shift(cal, name)[:, :, None] * member[:, None, :] * seat
+                   for name in ("e", "f", "k")]
+    return {name: np.concatenate(columns, axis=2) if columns else np.zeros((k, 3, 0))
+            for name, columns in (("tables", tables), ("seating", seating))}
+
+
 def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
     """Every row of the budget, in the order the certificate lists them."""
     X = cal.X
@@ -314,13 +355,7 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
         rows.append(Source("DMM noise", "B", "normal", b.dmm_noise_v, b.output_unit,
                            (_b(noise.reshape(12, -1), b.dmm_noise_v, "normal"),), added=False,
                            note="included in the fit's Type A (the residuals contain it); not added again"))
-    pitch_shapes = angle_error_shapes(np.radians(cal.points.pitch_deg))
-    roll_shapes = angle_error_shapes(np.radians(cal.points.roll_deg))
-    for label, names, shapes, half in (
-            ("pitch table index accuracy", ("a",), pitch_shapes, b.pitch_index),
-            ("pitch table wobble", ("d", "f"), pitch_shapes, b.pitch_wobble),
-            ("roll table index accuracy", ("f",), roll_shapes, b.roll_index),
-            ("roll table wobble", ("e", "k"), roll_shapes, b.roll_wobble)):
+    for label, names, shapes, half in _table_inputs(cal, b):
         (rough, _), (smooth, share) = shapes
         rows.append(Source(label, "B", "rectangular", half / SQRT3 / ARCSEC, "arcsec",
                            (_b(_grouped(cal, names, rough), half / SQRT3),
@@ -349,11 +384,17 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
                        note="temperature coefficients × half the range observed during the run"))
     if b.device_misalignment:
         everything = np.zeros(len(cal.installation), dtype=int)
+        # this run's device model, its coefficients' Type A from the windows' noise through its whole
+        # gain: the noise the misalignments' estimates carry into X is in that row already
+        inside = cal.noise_type_a and cal.reading_projection is not None and not b.device_misalignment_source
         rows.append(Source("device misalignment estimates", "B", "normal",
                            max(b.device_misalignment.values()) / ARCSEC, "arcsec", tuple(
                                _b(_grouped(cal, (name,), _membership(everything), linear=True), u, "normal")
-                               for name, u in b.device_misalignment.items()),
-                           note=("not measured in this run: corrected for from "
+                               for name, u in b.device_misalignment.items()), added=not inside,
+                           note="the device model's estimates of a…k, re-estimated with the coefficients: "
+                                "their noise is in the coefficients' Type A (through the model's gain); "
+                                "shown, not added again" if inside else
+                                ("not measured in this run: corrected for from "
                                  f"{b.device_misalignment_source} (the plan's device correction); each "
                                  "one's standard uncertainty as the plan carries it, through the fit's "
                                  "projection (their correlations are not carried)")

@@ -337,6 +337,31 @@ class InUseReading(Strict):
     statement: str
 
 
+class BenchCheck(Strict):
+    """One group of the bench's stated errors, tested: its variance in the residuals over the stated."""
+
+    ratio: float
+    p_value: float
+
+
+class FitCheck(Strict):
+    """The lack-of-fit test of the fit's residuals against the noise (pooled within-window scatter)
+    and the station's stated bench errors, and the drift test of the outputs over the run
+    (`labcal.analysis.lack_of_fit`)."""
+
+    statistic: float  # Q / ν₁
+    degrees_of_freedom: tuple[float, float]
+    p_value: float
+    bench: dict[str, BenchCheck]
+    alpha: float
+    lack_of_fit: bool  # the flag: True where any of the tests is significant
+    drift_statistic: float
+    drift_degrees_of_freedom: int
+    drift_p_value: float
+    drift: bool
+    statement: str
+
+
 class UncertaintyBudget(Strict):
     method: str
     inputs: BudgetInputs
@@ -351,6 +376,9 @@ class UncertaintyBudget(Strict):
     # The averaging a reading in use is assumed to have (absent: certificates whose new-reading row is
     # the fit's residual, issued before, or from readings that do not carry their windows' scatter).
     in_use: InUseReading | None = Field(default=None, exclude_if=_absent)
+    # The lack-of-fit and drift tests (absent: certificates issued before, or readings without their
+    # windows' scatter, which give the tests no pure error)
+    fit_check: FitCheck | None = Field(default=None, exclude_if=_absent)
 
     def parts(self) -> tuple[CovariancePart, ...]:
         return tuple(p.part() for p in self.covariance or [])
