@@ -40,6 +40,9 @@ from labcal.analysis.fit import Fit, readings_points
 from labcal.analysis.readings import Readings
 
 ALPHA = 0.01  # false alarms on a clean bench: at most one calibration in a hundred
+# Readings beyond which the test is not made: its matrices are (3 × readings) × (the bench's inputs); a
+# day's replicated calibration has a few thousand readings, a file of a million is not a calibration run
+MAX_READINGS = 20_000
 
 
 @dataclass(frozen=True)
@@ -94,61 +97,64 @@ def lack_of_fit(residuals: NDArray[np.float64], jacobian: NDArray[np.float64], n
     variance ``noise_var`` (K × 3, with ``noise_dof`` degrees of freedom), and the bench's stated
     errors in the readings by group, ``bench`` (name → K × 3 × m, each column one input times its u).
 
-    Whitened by the Cholesky factor of C = N + BBᵀ the residuals' generalised least-squares part e
-    (what no change of the fitted parameters explains) is N(0, P) under the model, P the whitened
-    residual maker: Q = ‖e‖² ~ χ²(3K − p); a group's score statistic T = ‖Aᵀe‖² (A its whitened
-    columns) has mean tr(AᵀPA) and variance 2 tr((AᵀPA)²) — the locally most powerful test that the
-    group's variance exceeds the stated one."""
-    from scipy.linalg import cho_factor, solve_triangular
-
+    With C = N + BBᵀ the readings' covariance under the model, M = C⁻¹ − C⁻¹J(JᵀC⁻¹J)⁻¹JᵀC⁻¹ keeps what
+    no change of the fitted parameters explains: Q = rᵀMr ~ χ²(3K − p) (the generalised least-squares
+    residual sum of squares); a group's score statistic T = ‖B_gᵀMr‖² has mean tr(B_gᵀMB_g) and
+    variance 2 tr((B_gᵀMB_g)²) — the locally most powerful test that the group's variance exceeds the
+    stated one. C⁻¹ is applied by the Woodbury identity through N (diagonal) and the m × m matrix
+    I + BᵀN⁻¹B, so nothing of size 3K × 3K is formed: a day's replicated run has thousands of readings."""
     k = residuals.shape[0]
     n = 3 * k
     groups = {name: b.reshape(n, -1) for name, b in bench.items() if b.size}
     B = np.concatenate(list(groups.values()), axis=1) if groups else np.zeros((n, 0))
-    C = np.diag(noise_var.reshape(n)) + B @ B.T
-    L, _ = cho_factor(C, lower=True)
-    L = np.tril(L)
+    n_inv = 1.0 / noise_var.reshape(n)
+    core = np.linalg.inv(np.eye(B.shape[1]) + (B.T * n_inv) @ B)
 
-    def whiten(m: NDArray[np.float64]) -> NDArray[np.float64]:
-        return np.asarray(solve_triangular(L, m, lower=True), dtype=float)
+    def c_inv(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        nx = x * n_inv[:, None]
+        return np.asarray(nx - (B * n_inv[:, None]) @ (core @ (B.T @ nx)), dtype=float)
 
-    Jw = whiten(jacobian.reshape(n, -1))
-    u, sv, _ = np.linalg.svd(Jw, full_matrices=False)
-    U = u[:, sv > 1e-10 * sv.max()]  # the directions the fit absorbs
+    J = jacobian.reshape(n, -1)
+    cj = c_inv(J)
+    gram = J.T @ cj
+    rank = int(np.linalg.matrix_rank(gram, hermitian=True))
+    gram_inv = np.linalg.pinv(gram, hermitian=True)
 
-    def residual(m: NDArray[np.float64]) -> NDArray[np.float64]:
-        return m - U @ (U.T @ m)
+    def m(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.asarray(c_inv(x) - cj @ (gram_inv @ (cj.T @ x)), dtype=float)
 
-    e = residual(whiten(residuals.reshape(n)))
-    nu1 = float(n - U.shape[1])
-    q = float(e @ e)
+    r = residuals.reshape(n, 1)
+    mr = m(r)[:, 0]
+    nu1 = float(n - rank)
+    q = float(r[:, 0] @ mr)
     tests = []
     for name, columns in groups.items():
-        A = whiten(columns)
-        PA = residual(A)
-        G = A.T @ PA  # AᵀPA
-        t = float(np.sum((A.T @ e) ** 2))
-        mean, var = float(np.trace(G)), 2.0 * float(np.sum(G * G))
+        g = columns.T @ m(columns)  # B_gᵀ M B_g
+        t = float(np.sum((columns.T @ mr) ** 2))
+        mean, var = float(np.trace(g)), 2.0 * float(np.sum(g * g))
         tests.append(BenchTest(name, t / mean if mean > 0 else 1.0, _scaled_chi2_sf(t, mean, var)))
-    # a linear trend of each output in measurement order, seen through the fit and weighed by C⁻¹
+    # a linear trend of each output in measurement order, in the same metric: (tᵀMr)ᵀ(tᵀMt)⁻¹(tᵀMr)
     order = (np.arange(k, dtype=float) - (k - 1) / 2) / max(k - 1, 1)
     trend = np.zeros((k, 3, 3))
     for c in range(3):
         trend[:, c, c] = order
-    T = residual(whiten(trend.reshape(n, 3)))
-    beta, _, rank, _ = np.linalg.lstsq(T, e, rcond=None)
-    drift = float(np.sum((T @ beta) ** 2))
+    t3 = trend.reshape(n, 3)
+    info = t3.T @ m(t3)
+    score = t3.T @ mr
+    drift_dof = int(np.linalg.matrix_rank(info, hermitian=True))
+    drift = float(score @ np.linalg.pinv(info, hermitian=True) @ score)
     return LackOfFit(q / nu1, (nu1, float(noise_dof)), float(f_sf(q / nu1, nu1, noise_dof)), tuple(tests),
-                     drift, int(rank), 1.0 - chi2_cdf(drift, int(rank)) if rank else 1.0, alpha)
+                     drift, drift_dof, 1.0 - chi2_cdf(drift, drift_dof) if drift_dof else 1.0, alpha)
 
 
 def fit_lack_of_fit(cal: Calibration, inputs: TypeBInputs, readings: Readings, fit: Fit,
                     device: DeviceFit | None = None, alpha: float = ALPHA) -> LackOfFit | None:
     """The test of the certificate's fit (``device`` where it is built on the device model): its
     residuals and Jacobian, the pooled within-window scatter as the noise, the budget's point-to-point
-    Type B inputs as the bench. None where the readings do not carry their windows' scatter."""
+    Type B inputs as the bench. None where the readings do not carry their windows' scatter, or are
+    more than `MAX_READINGS`."""
     rep = cal.repeatability
-    if rep is None or readings.window_n is None:
+    if rep is None or readings.window_n is None or len(readings) > MAX_READINGS:
         return None
     noise = rep.sample_sd[None, :] ** 2 / np.asarray(readings.window_n, dtype=float)[:, None]
     if device is not None:
