@@ -268,6 +268,21 @@ def test_the_certificate_states_the_averaging_in_use_its_u95_applies_to(run):
 
 @pytest.mark.parametrize("value", ["0", "-3", "2.5", "many"])
 def test_an_in_use_averaging_that_is_no_count_of_samples_is_one_line(run, value, capsys):
-    assert main(["report", str(run.directory), "--in-use-samples", value]) == 2
+    assert main(["report", str(run.directory), "--in-use-samples", value, "--db", "unused.sqlite"]) == 2
     err = capsys.readouterr().err
     assert "--in-use-samples" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_labcal_report_states_the_lack_of_fit_and_drift_tests(tmp_path, capsys):
+    """`labcal report --json` carries the certificate's fit check; the report's HTML states it."""
+    run_dir = simulated_run(tmp_path / "run", tmp_path / "lab.sqlite", seed=8)
+    capsys.readouterr()
+    assert main(["report", str(run_dir), "--db", str(tmp_path / "lab.sqlite"), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    cert = read_certificate(run_dir / "certificate.json")
+    check = cert.uncertainty_budget.fit_check
+    assert doc["fit_check"]["lack_of_fit"] == check.lack_of_fit and doc["fit_check"]["drift"] == check.drift
+    readings = load_run(run_dir).readings
+    assert doc["fit_check"]["degrees_of_freedom"][1] == np.sum(readings.window_n - 1)
+    html = (run_dir / "report.html").read_text(encoding="utf-8")
+    assert "Drift test (a trend of each output over the run" in html

@@ -57,11 +57,18 @@ class Issued:
 
     @property
     def notes(self) -> tuple[str, ...]:
-        return self.outputs.notes
+        """The outputs' notes, and the lack-of-fit or drift test's statement where either is flagged:
+        the technician reads it at the console, not only in the certificate."""
+        budget = self.outputs.certificate.uncertainty_budget
+        check = None if budget is None else budget.fit_check
+        flagged = (check.statement,) if check is not None and (check.lack_of_fit or check.drift) else ()
+        return self.outputs.notes + flagged
 
     def to_json(self) -> dict[str, Any]:
         result, cert = self.outputs, self.outputs.certificate
+        check = None if cert.uncertainty_budget is None else cert.uncertainty_budget.fit_check
         return {
+            "fit_check": None if check is None else check.model_dump(mode="json"),
             "certificate_id": cert.certificate_id, "serial": cert.instrument.serial,
             "certificate": str(result.certificate_path), "report_html": str(result.html_path),
             "report_pdf": str(result.pdf_path), "database": str(result.database),
