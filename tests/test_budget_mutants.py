@@ -584,7 +584,9 @@ def test_each_row_says_on_the_certificate_what_it_computed(cal):
     assert common["DMM accuracy, % of range"].note == WORDING["DMM accuracy, % of range"]
     assert _row(sources(cal, TypeBInputs()), "DMM accuracy, % of reading").note == \
         "independent between the channels"  # no conditions stated: no dangling "; "
-    assert rows["one new reading (instrument repeatability)"].note == ""
+    # readings without their windows' scatter: the row is the fit's residual, and says so
+    assert rows["one new reading (instrument repeatability)"].note.startswith(
+        "the fit's residual standard error: the readings do not carry the scatter inside their windows")
     assert (rows["DMM noise"].unit, rows["device misalignment estimates"].unit) == ("V", "arcsec")
     assert rows["local gravity"].added is True
     scattered = _row(sources(cal, TypeBInputs(mount_repeatability_sd=ARCSEC)), "mount repeatability")

@@ -70,6 +70,12 @@ def test_round_trip_is_exact(cert, cert_file, tmp_path):
 
 def test_contents_match_the_fit_and_the_run(run, cert):
     fit = fit_readings(run.readings)
+    # The linear model leaves the device's misalignments (tens of arcseconds) in the residuals, and this
+    # certificate states no bench error: the lack-of-fit test says so, and the budget is the fit's
+    # residual (its ν and standard errors below), not the windows' noise
+    check = cert.uncertainty_budget.fit_check
+    assert check.lack_of_fit and check.statement in cert.statements and "LACK OF FIT" in check.statement
+    assert cert.uncertainty_budget.in_use is None
     assert cert.to_json()["schema"] == "labcal.certificate/1"  # published (README); issued ones carry it
     assert cert.instrument.serial == "SN-0042"  # recorded by `labcal run --serial`
     assert cert.station.simulated and cert.station.simulated_truth.seed == 7
@@ -218,3 +224,65 @@ def test_serial_must_be_known_and_not_contradicted(run, tmp_path):
     with pytest.raises(LabcalError, match="does not record the instrument's serial number; give --serial"):
         build_certificate(anonymous, fit)
     assert build_certificate(anonymous, fit, serial="SN-7").instrument.serial == "SN-7"
+
+
+def as_reported(run, settings=None):
+    """As `labcal report` issues it: the run's model and the station's (here the simulator's) Type B
+    inputs, so that the budget states the bench's errors."""
+    from labcal.documents.approving import fitted
+    from labcal.documents.uncertainty import bench_section, type_b_inputs
+
+    fit, device, note = fitted(run)
+    return build_certificate(run, fit, settings, device=device, model_note=note,
+                             inputs=type_b_inputs(bench_section(run, None), run, device))
+
+
+def test_the_certificate_states_the_averaging_in_use_its_u95_applies_to(run):
+    """The new-reading row assumes a reading in use averages as many samples as the calibration's
+    windows (10 in a dry run), and the certificate says so; stated otherwise (40 samples), the row is
+    half as large (1/√N) and the certificate says it was stated."""
+    cert = as_reported(run)
+    budget = cert.uncertainty_budget
+    assert not budget.fit_check.lack_of_fit and "No lack of fit" in budget.fit_check.statement
+    assert budget.fit_check.statement in cert.statements
+    assert budget.in_use.samples == 10 and not budget.in_use.stated
+    assert budget.in_use.statement in cert.statements
+    assert "the mean of 10 samples of each output (as in this calibration's windows)" in \
+        budget.in_use.statement
+    forty = as_reported(run, CertificateSettings(in_use_samples=40))
+    assert forty.uncertainty_budget.in_use.samples == 40 and forty.uncertainty_budget.in_use.stated
+    assert "(as stated for this certificate)" in forty.uncertainty_budget.in_use.statement
+
+    def reading_row(c):
+        return next(r for r in c.uncertainty_budget.rows if r.source.startswith("one new reading"))
+    half = reading_row(cert).standard_uncertainty / 2
+    assert reading_row(forty).standard_uncertainty == pytest.approx(half, rel=1e-12)
+    # the pooled scatter by hand (GUM 4.2.4) over √10
+    n, sd = run.readings.window_n, run.readings.window_sd
+    pooled = np.sqrt(np.sum((n - 1)[:, None] * sd**2, axis=0) / np.sum(n - 1))
+    assert reading_row(cert).standard_uncertainty == pytest.approx(pooled.max() / np.sqrt(10), rel=1e-12)
+    # the averaging is an issuing choice like the envelope: the approval's rebuild keeps it
+    from labcal.documents.approving import issue_settings
+    assert issue_settings(forty).in_use_samples == 40 and issue_settings(cert).in_use_samples is None
+
+
+@pytest.mark.parametrize("value", ["0", "-3", "2.5", "many"])
+def test_an_in_use_averaging_that_is_no_count_of_samples_is_one_line(run, value, capsys):
+    assert main(["report", str(run.directory), "--in-use-samples", value, "--db", "unused.sqlite"]) == 2
+    err = capsys.readouterr().err
+    assert "--in-use-samples" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_labcal_report_states_the_lack_of_fit_and_drift_tests(tmp_path, capsys):
+    """`labcal report --json` carries the certificate's fit check; the report's HTML states it."""
+    run_dir = simulated_run(tmp_path / "run", tmp_path / "lab.sqlite", seed=8)
+    capsys.readouterr()
+    assert main(["report", str(run_dir), "--db", str(tmp_path / "lab.sqlite"), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    cert = read_certificate(run_dir / "certificate.json")
+    check = cert.uncertainty_budget.fit_check
+    assert doc["fit_check"]["lack_of_fit"] == check.lack_of_fit and doc["fit_check"]["drift"] == check.drift
+    readings = load_run(run_dir).readings
+    assert doc["fit_check"]["degrees_of_freedom"][1] == np.sum(readings.window_n - 1)
+    html = (run_dir / "report.html").read_text(encoding="utf-8")
+    assert "Drift test (a trend of each output over the run" in html

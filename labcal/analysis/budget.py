@@ -53,6 +53,7 @@ from labcal.analysis.fit import Fit, readings_points
 from labcal.analysis.kinematics import ARCSEC, Misalignment, gravity
 from labcal.analysis.models import Points
 from labcal.analysis.readings import Readings
+from labcal.analysis.repeatability import Repeatability, repeatability
 
 Distribution = Literal["normal", "rectangular", "t"]
 SQRT3 = float(np.sqrt(3.0))
@@ -148,22 +149,41 @@ class Calibration:
     # re-estimates the misalignments with X, so a bench error reaches X through its own projection
     # (None: the linear fit's, P per sensor).
     reading_projection: NDArray[np.float64] | None = None
+    # The instrument's own repeatability (the pooled scatter inside the calibration's windows) and the
+    # samples a reading in use averages: the new-reading row. None: the readings do not carry their
+    # windows' scatter, and one new reading's variance is ``reading_var`` (the fit's residual).
+    repeatability: Repeatability | None = None
+    in_use_samples: int | None = None
+    noise_type_a: bool = False  # the coefficients' Type A is the windows' noise (`with_noise_covariance`)
+
+    @property
+    def in_use_samples_or_calibration(self) -> int | None:
+        """The samples a reading in use averages: as stated, else the calibration's window length."""
+        if self.repeatability is None:
+            return None
+        return self.in_use_samples or self.repeatability.window_samples
 
 
-def calibration_of(fit: Fit, readings: Readings) -> Calibration:
-    """The budget's view of a fit of these readings."""
+def calibration_of(fit: Fit, readings: Readings, in_use_samples: int | None = None, noise: bool = True
+                   ) -> Calibration:
+    """The budget's view of a fit of these readings; ``in_use_samples``: the samples a reading in use
+    averages (None: as many as the calibration's windows); ``noise``: the coefficients' Type A from
+    the windows' scatter where the readings carry it (`with_noise_covariance`), else the fit's."""
     points = readings_points(readings)
     _, design = fit.model.design(points)
     keys = np.column_stack([readings.replicate, np.mod(readings.y_deg, 360.0), np.mod(readings.u_deg, 360.0)])
     _, installation = np.unique(np.round(keys, 6), axis=0, return_inverse=True)
-    return Calibration(
+    cal = Calibration(
         X=fit.coefficients, covariance=np.stack([fit.covariance(j)[:4, :4] for j in range(3)]),
         reading_var=fit.new_measurement_variance(), dof=fit.variance_dof.astype(float),
         projection=(fit.ls.cov_unscaled @ design.T)[:4], points=points,
-        installation=np.asarray(installation, dtype=int).ravel())
+        installation=np.asarray(installation, dtype=int).ravel(), repeatability=repeatability(readings),
+        in_use_samples=in_use_samples)
+    return with_noise_covariance(cal, readings) if noise else cal
 
 
-def calibration_of_device(device: DeviceFit, readings: Readings) -> Calibration:
+def calibration_of_device(device: DeviceFit, readings: Readings, in_use_samples: int | None = None
+                          ) -> Calibration:
     """The budget's view of a device-model fit: X and one new reading's variance are the device
     model's; the Type A covariance is the device model's noise share conditional on a…k (what the
     readings' noise does to X with the misalignments held at their estimates); the misalignments' own
@@ -175,10 +195,37 @@ def calibration_of_device(device: DeviceFit, readings: Readings) -> Calibration:
     rest = slice(N_MIS, None)
     conditional = cov[rest, rest] - cov[rest, m] @ np.linalg.pinv(cov[m, m]) @ cov[m, rest]
     per_sensor = np.stack([conditional[np.ix_(idx, idx)] for idx in (np.arange(4) * 3 + j for j in range(3))])
-    return replace(calibration_of(device.linear, readings), X=device.coefficients, covariance=per_sensor,
-                   reading_var=device.reading_sd() ** 2, dof=np.full(3, float(device.dof)),
-                   estimator_covariance=np.stack([device.sensor_covariance(j) for j in range(3)]),
-                   reading_projection=device.reading_projection(readings)[N_MIS:])
+    return with_noise_covariance(replace(
+        calibration_of(device.linear, readings, in_use_samples, noise=False), X=device.coefficients,
+        covariance=per_sensor, reading_var=device.reading_sd() ** 2, dof=np.full(3, float(device.dof)),
+        estimator_covariance=np.stack([device.sensor_covariance(j) for j in range(3)]),
+        reading_projection=device.reading_projection(readings)[N_MIS:]), readings)
+
+
+def with_noise_covariance(cal: Calibration, readings: Readings) -> Calibration:
+    """The coefficients' Type A from the instrument's noise alone, where the readings carry their
+    windows' scatter: each point's mean scatters by s_j²/n_k (s_j the pooled within-window scatter,
+    `labcal.analysis.repeatability`), carried to X by the fit's own gain ∂X/∂V, with the pooled
+    scatter's degrees of freedom. The residual variance the fit scales (FᵀF)⁻¹ by also holds the
+    bench's errors — the tables' per-angle errors, the plate's seating — which the budget's Type B
+    rows already carry to X through the same gain (a four-mount plan cancels most of them there);
+    scaled by it, those errors were counted twice. The attitude estimator keeps its weights (the
+    certificate's fit covariance), so that `labcal attitude` and the budget use one estimator."""
+    rep = cal.repeatability
+    if rep is None or readings.window_n is None:
+        return cal
+    var_mean = rep.sample_sd[None, :] ** 2 / np.asarray(readings.window_n, dtype=float)[:, None]  # (K, 3)
+    if cal.reading_projection is not None:
+        gain = cal.reading_projection  # (12, K, 3)
+    else:  # the linear fit: sensor j's coefficients move with sensor j's readings only
+        gain = np.zeros((12, cal.projection.shape[1], 3))
+        for j in range(3):
+            gain[np.arange(4) * 3 + j, :, j] = cal.projection
+    cov = np.einsum("akc,bkc,kc->ab", gain, gain, var_mean)
+    per_sensor = np.stack([cov[np.ix_(idx, idx)] for idx in (np.arange(4) * 3 + j for j in range(3))])
+    return replace(cal, covariance=per_sensor, dof=np.full(3, rep.dof), noise_type_a=True,
+                   estimator_covariance=cal.covariance if cal.estimator_covariance is None
+                   else cal.estimator_covariance)
 
 
 def _gravity_derivative(points: Points, name: str) -> NDArray[np.float64]:
@@ -221,28 +268,68 @@ def _b(jac_x: NDArray[np.float64], u: float, distribution: Distribution = "recta
     return Component(jac_x, np.zeros((3, jac_x.shape[1])), u, np.inf, distribution)
 
 
+Shapes = tuple[tuple[NDArray[np.float64], float], ...]  # a table error's bases over its angles
+
+
+def _table_inputs(cal: Calibration, b: TypeBInputs) -> tuple[tuple[str, tuple[str, ...], Shapes, float], ...]:
+    """Each table error: its row's label, the misalignments it moves, its shapes over the table's
+    angles (`angle_error_shapes`) and its stated half-width."""
+    pitch_shapes = angle_error_shapes(np.radians(cal.points.pitch_deg))
+    roll_shapes = angle_error_shapes(np.radians(cal.points.roll_deg))
+    return (("pitch table index accuracy", ("a",), pitch_shapes, b.pitch_index),
+            ("pitch table wobble", ("d", "f"), pitch_shapes, b.pitch_wobble),
+            ("roll table index accuracy", ("f",), roll_shapes, b.roll_index),
+            ("roll table wobble", ("e", "k"), roll_shapes, b.roll_wobble))
+
+
+def _reading_shift(cal: Calibration, name: str) -> NDArray[np.float64]:
+    """How every reading moves (K × 3) per radian of misalignment ``name`` at its point."""
+    return np.asarray(_gravity_derivative(cal.points, name) @ cal.X[1:], dtype=float)
+
+
+def bench_in_readings(cal: Calibration, b: TypeBInputs) -> dict[str, NDArray[np.float64]]:
+    """The bench's stated errors that differ from point to point, as they enter the readings, by group
+    ("tables": index and wobble in both shapes; "seating": the plate at each mounting), each K × 3 × m,
+    one column per elementary input times its u, as their budget rows carry them (a reading moves by
+    ∂g/∂misalignment · S). What is common to every point (the DMM's gain and offset, temperature at
+    one setting) the fit absorbs; it leaves no residual to judge."""
+    k = len(cal.installation)
+    tables = []
+    for _, names, ((rough, _), (smooth, share)), half in _table_inputs(cal, b):
+        for basis, u in ((rough, half / SQRT3), (smooth, half / SQRT3 * np.sqrt(share))):
+            if u > 0:
+                tables += [_reading_shift(cal, name)[:, :, None] * basis[:, None, :] * u for name in names]
+    seat = b.mount_repeatability / SQRT3 if b.mount_repeatability_sd is None else b.mount_repeatability_sd
+    seating = []
+    if seat > 0:
+        member = _membership(cal.installation)
+        seating = [_reading_shift(cal, name)[:, :, None] * member[:, None, :] * seat
+                   for name in ("e", "f", "k")]
+    return {name: np.concatenate(columns, axis=2) if columns else np.zeros((k, 3, 0))
+            for name, columns in (("tables", tables), ("seating", seating))}
+
+
 def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
     """Every row of the budget, in the order the certificate lists them."""
     X = cal.X
     rows: list[Source] = []
     # Type A: the fit's coefficient covariance (residual SE or lack-of-fit mean square, as the fit
     # chose), one component per sensor because each sensor has its own degrees of freedom.
+    from_noise = cal.noise_type_a
     fit_parts = []
     for j in range(3):
         jac = np.zeros((4, 3, 4))
         jac[:, j, :] = _factor(cal.covariance[j])
         fit_parts.append(Component(jac.reshape(12, 4), np.zeros((3, 4)), 1.0, float(cal.dof[j]), "t",
-                                   f"residual variance {'xyz'[j]}"))
+                                   f"{'within-window' if from_noise else 'residual'} variance {'xyz'[j]}"))
     u_bias = float(np.sqrt(cal.covariance[:, 0, 0].max()))
     rows.append(Source("calibration fit (coefficients)", "A", "t", u_bias, "V (u of B, largest)",
                        tuple(fit_parts),
-                       note="residual standard error, or the lack-of-fit mean square where replication "
+                       note="the instrument's noise (the pooled scatter inside the windows) through the "
+                            "fit; the bench's errors are the Type B rows below" if from_noise else
+                            "residual standard error, or the lack-of-fit mean square where replication "
                             "shows bias (Tripp & Tcheng §8)"))
-    rows.append(Source("one new reading (instrument repeatability)", "A", "t",
-                       float(np.sqrt(cal.reading_var.max())), b.output_unit, tuple(
-                           Component(np.zeros((12, 1)), np.eye(3)[:, [j]] * np.sqrt(cal.reading_var[j]), 1.0,
-                                     float(cal.dof[j]), "t", f"residual variance {'xyz'[j]}")
-                           for j in range(3))))
+    rows.append(new_reading(cal, b.output_unit))
     # The DMM: gain (% of reading) and offset (% of range), systematic over the run; per channel
     # independent, or one error common to the three channels where the station declares it so.
     offset = np.zeros((4, 3))
@@ -268,13 +355,7 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
         rows.append(Source("DMM noise", "B", "normal", b.dmm_noise_v, b.output_unit,
                            (_b(noise.reshape(12, -1), b.dmm_noise_v, "normal"),), added=False,
                            note="included in the fit's Type A (the residuals contain it); not added again"))
-    pitch_shapes = angle_error_shapes(np.radians(cal.points.pitch_deg))
-    roll_shapes = angle_error_shapes(np.radians(cal.points.roll_deg))
-    for label, names, shapes, half in (
-            ("pitch table index accuracy", ("a",), pitch_shapes, b.pitch_index),
-            ("pitch table wobble", ("d", "f"), pitch_shapes, b.pitch_wobble),
-            ("roll table index accuracy", ("f",), roll_shapes, b.roll_index),
-            ("roll table wobble", ("e", "k"), roll_shapes, b.roll_wobble)):
+    for label, names, shapes, half in _table_inputs(cal, b):
         (rough, _), (smooth, share) = shapes
         rows.append(Source(label, "B", "rectangular", half / SQRT3 / ARCSEC, "arcsec",
                            (_b(_grouped(cal, names, rough), half / SQRT3),
@@ -303,11 +384,17 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
                        note="temperature coefficients × half the range observed during the run"))
     if b.device_misalignment:
         everything = np.zeros(len(cal.installation), dtype=int)
+        # this run's device model, its coefficients' Type A from the windows' noise through its whole
+        # gain: the noise the misalignments' estimates carry into X is in that row already
+        inside = cal.noise_type_a and cal.reading_projection is not None and not b.device_misalignment_source
         rows.append(Source("device misalignment estimates", "B", "normal",
                            max(b.device_misalignment.values()) / ARCSEC, "arcsec", tuple(
                                _b(_grouped(cal, (name,), _membership(everything), linear=True), u, "normal")
-                               for name, u in b.device_misalignment.items()),
-                           note=("not measured in this run: corrected for from "
+                               for name, u in b.device_misalignment.items()), added=not inside,
+                           note="the device model's estimates of a…k, re-estimated with the coefficients: "
+                                "their noise is in the coefficients' Type A (through the model's gain); "
+                                "shown, not added again" if inside else
+                                ("not measured in this run: corrected for from "
                                  f"{b.device_misalignment_source} (the plan's device correction); each "
                                  "one's standard uncertainty as the plan carries it, through the fit's "
                                  "projection (their correlations are not carried)")
@@ -321,6 +408,34 @@ def sources(cal: Calibration, b: TypeBInputs) -> list[Source]:
                             "|g| as unknown within that (a prior), so it follows the direction; its share "
                             "is what the prior leaves in pitch and roll"))
     return rows
+
+
+def new_reading(cal: Calibration, unit: str) -> Source:
+    """One new reading of the instrument in use: its own repeatability at the averaging used in
+    service, s/√N with s the pooled within-window scatter of the calibration's samples and ν its
+    degrees of freedom (GUM 4.2.3–4.2.4; `labcal.analysis.repeatability`), not the calibration's
+    residual, which also holds the tables' per-angle errors: those exist only at the bench and reach
+    every later reading through the coefficients, as the table rows. Readings that do not carry
+    their windows' scatter fall back to the residual variance, as a certificate always stated it."""
+    rep, samples = cal.repeatability, cal.in_use_samples_or_calibration
+    if rep is None or samples is None:
+        return Source("one new reading (instrument repeatability)", "A", "t",
+                      float(np.sqrt(cal.reading_var.max())), unit, tuple(
+                          Component(np.zeros((12, 1)), np.eye(3)[:, [j]] * np.sqrt(cal.reading_var[j]), 1.0,
+                                    float(cal.dof[j]), "t", f"residual variance {'xyz'[j]}")
+                          for j in range(3)),
+                      note="the fit's residual standard error: the readings do not carry the scatter "
+                           "inside their windows, so the instrument's own repeatability is not known "
+                           "apart from the bench's errors")
+    sd = np.sqrt(rep.reading_variance(samples))
+    stated = "as stated for this certificate" if cal.in_use_samples else "as in the calibration's windows"
+    return Source("one new reading (instrument repeatability)", "A", "t", float(sd.max()), unit, tuple(
+        Component(np.zeros((12, 1)), np.eye(3)[:, [j]] * sd[j], 1.0, rep.dof, "t",
+                  f"within-window variance {'xyz'[j]}") for j in range(3)),
+        note=f"a reading in use averages {samples} samples ({stated}): s/√{samples}, s the pooled scatter "
+             f"of the samples inside the calibration's {rep.windows} windows (largest channel "
+             f"{rep.sample_sd.max():.3g} {unit} per sample, ν = {rep.dof:.0f}); the tables' errors "
+             "enter through the coefficients only (their rows)")
 
 
 # --- propagation to pitch and roll --------------------------------------------------------------

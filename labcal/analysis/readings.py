@@ -47,6 +47,11 @@ class Readings:
     volts: NDArray[np.float64]  # (n, 3): vx, vy, vz
     temp_c: NDArray[np.float64] | None = None
     units: str = "V"  # the outputs' unit (V, mV, counts, m/s2): B is in it, S in it per g
+    # Each point's window as the sequencer averaged it: the samples' standard deviation per channel
+    # (ddof 1; n×3) and their number (n,). None where the readings do not say (a readings CSV without
+    # the audit columns, a simulation of window means): the instrument's repeatability is then unknown.
+    window_sd: NDArray[np.float64] | None = None
+    window_n: NDArray[np.float64] | None = None
 
     def __len__(self) -> int:
         return len(self.replicate)

@@ -47,6 +47,7 @@ class IssueCertificate:
     manufacturer: str | None = None
     model: str | None = None
     received: date | None = None
+    in_use_samples: int | None = None  # samples a reading in use averages (None: the calibration's window)
 
 
 @dataclass(frozen=True)
@@ -57,11 +58,18 @@ class Issued:
 
     @property
     def notes(self) -> tuple[str, ...]:
-        return self.outputs.notes
+        """The outputs' notes, and the lack-of-fit or drift test's statement where either is flagged:
+        the technician reads it at the console, not only in the certificate."""
+        budget = self.outputs.certificate.uncertainty_budget
+        check = None if budget is None else budget.fit_check
+        flagged = (check.statement,) if check is not None and (check.lack_of_fit or check.drift) else ()
+        return self.outputs.notes + flagged
 
     def to_json(self) -> dict[str, Any]:
         result, cert = self.outputs, self.outputs.certificate
+        check = None if cert.uncertainty_budget is None else cert.uncertainty_budget.fit_check
         return {
+            "fit_check": None if check is None else check.model_dump(mode="json"),
             "certificate_id": cert.certificate_id, "serial": cert.instrument.serial,
             "certificate": str(result.certificate_path), "report_html": str(result.html_path),
             "report_pdf": str(result.pdf_path), "database": str(result.database),
@@ -96,7 +104,7 @@ def issue_certificate(request: IssueCertificate) -> Issued:
                           "to about 1 %), or leave it out")
     settings = load_settings(request.station, attitude_u95_max_deg=request.tolerance_deg,
                              bias_max_v=request.bias_max_v, usage_pitch_deg=request.usage_pitch,
-                             usage_roll_deg=request.usage_roll)
+                             usage_roll_deg=request.usage_roll, in_use_samples=request.in_use_samples)
     result = write_run_outputs(request.run_dir, settings, serial=request.serial, operator=request.operator,
                                db=request.db, station=request.station, monte_carlo=request.monte_carlo,
                                item=ItemGiven(request.customer, request.manufacturer, request.model,

@@ -138,6 +138,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
             for i, p in enumerate(at)]
     if args.test_extensions:
         doc["extension_tests"] = {t.name: t.to_json() for t in extension_tests(readings)}
+    doc["lack_of_fit"] = lack_of_fit_doc(readings, fit)
     if args.json:
         print_json(doc)
         return outcome_of_checks(flags, args.allow_outliers, args.readings)
@@ -174,6 +175,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
             verdict = ", ".join(f"{s} {'warranted' if w else 'not warranted'} (p = {p:.2g})"
                                 for s, w, p in zip(SENSORS, test["warranted"], test["p_value"], strict=True))
             out.print(f"extension {name}: F test with df {tuple(test['df'])}: {verdict}")
+    print_lack_of_fit(doc["lack_of_fit"])
     return outcome_of_checks(flags, args.allow_outliers, args.readings)
 
 
@@ -206,6 +208,7 @@ def fit_device_model(args: argparse.Namespace, readings, chosen: str | None, che
         from labcal.analysis.fit import extension_tests
 
         doc["extension_tests"] = {t.name: t.to_json() for t in extension_tests(readings)}
+    doc["lack_of_fit"] = lack_of_fit_doc(readings, fit.linear, fit, index, wobble)
     if args.json:
         print_json(doc)
         return outcome_of_checks(flags, args.allow_outliers, args.readings)
@@ -230,7 +233,52 @@ def fit_device_model(args: argparse.Namespace, readings, chosen: str | None, che
                   f"(p = {n(after['p_value'], '.2g')}), linear → device model")
     if args.index_errors:
         out.print(index_error_text(doc["index_errors"]))
+    print_lack_of_fit(doc["lack_of_fit"])
     return outcome_of_checks(flags, args.allow_outliers, args.readings)
+
+
+def lack_of_fit_doc(readings, fit, device=None, index: float = 0.0, wobble: float = 0.0) -> dict:
+    """The lack-of-fit and drift tests of the fit (`labcal.analysis.lack_of_fit`) against the noise the
+    readings' windows show and the tables' stated index and wobble (--table-index, --table-wobble):
+    a flag, not a failure of the command — the coefficients are what the readings give, and the
+    certificate of a run states the same flag."""
+    from labcal.analysis.budget import TypeBInputs, calibration_of, calibration_of_device
+    from labcal.analysis.lack_of_fit import MAX_READINGS, fit_lack_of_fit
+
+    if len(readings) > MAX_READINGS:
+        return {"tested": False, "reason": f"more than {MAX_READINGS} readings: not a calibration run"}
+    cal = calibration_of(fit, readings) if device is None else calibration_of_device(device, readings)
+    check = fit_lack_of_fit(cal, TypeBInputs(pitch_index=index, pitch_wobble=wobble, roll_index=index,
+                                             roll_wobble=wobble), readings, fit, device)
+    if check is None:
+        return {"tested": False, "reason": "the readings do not carry their windows' scatter (the audit "
+                                           "columns n_samples, sd_vx, sd_vy, sd_vz labcal writes)"}
+    return {"tested": True, "significant": check.significant, "statistic": check.statistic,
+            "df": list(check.dof), "p_value": check.p_value, "alpha": check.alpha,
+            "bench": {b.name: {"ratio": b.ratio, "p_value": b.p_value} for b in check.bench},
+            "bench_errors_stated": bool(index or wobble),
+            "drift": {"significant": check.drift_significant, "chi2": check.drift_statistic,
+                      "df": check.drift_dof, "p_value": check.drift_p_value}}
+
+
+def print_lack_of_fit(doc: dict) -> None:
+    """One line for the lack-of-fit test and one for the drift test."""
+    if not doc["tested"]:
+        out.print(f"lack of fit: not tested — {doc['reason']}")
+        return
+    against = "the windows' noise" + (" and the tables' stated index and wobble" if doc["bench_errors_stated"]
+                                      else " alone (no bench error stated: --table-index, --table-wobble)")
+    df = tuple(round(d) for d in doc["df"])
+    figures = f"Q/ν = {doc['statistic']:.3g}, df {df}, p = {doc['p_value']:.2g}"
+    if doc["significant"]:
+        out.print(f"[bold red]LACK OF FIT[/] against {against} ({figures}): the residuals hold an effect the "
+                  "model or the stated errors leave out")
+    else:
+        out.print(f"lack of fit: none against {against} ({figures})")
+    d = doc["drift"]
+    out.print(("[bold red]DRIFT[/]" if d["significant"] else "drift: none") +
+              f" (trend of each output over the readings' order, χ² {d['chi2']:.3g}, df {d['df']}, "
+              f"p = {d['p_value']:.2g})")
 
 
 def index_error_text(doc: dict | None) -> str:

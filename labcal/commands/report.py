@@ -38,7 +38,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         tuple(args.usage_pitch) if args.usage_pitch else None,
         tuple(args.usage_roll) if args.usage_roll else None,
         args.monte_carlo, args.serial, args.operator, args.customer, args.manufacturer, args.model,
-        args.received))
+        args.received, args.in_use_samples))
     for note in issued.notes:
         err.print(f"[yellow]note:[/] {note}")
     if args.json:
@@ -86,6 +86,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="usage envelope pitch range in ° (default -60 60)")
     p.add_argument("--usage-roll", type=float, nargs=2, metavar=("MIN", "MAX"),
                    help="usage envelope roll range in ° (default -180 180)")
+    p.add_argument("--in-use-samples", type=bounded(int, 1, 1_000_000), metavar="N",
+                   help="samples a reading of the instrument in use averages (default: as many as the "
+                        "calibration's windows); the certificate states it, and its U95 applies to it")
     p.add_argument("--station", metavar="FILE",
                    help="station TOML whose [certificate] section sets laboratory, tolerances and usage "
                         "envelope, and whose [uncertainty] and [[traceability]] give the Type B inputs "

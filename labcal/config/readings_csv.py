@@ -263,12 +263,32 @@ def read_readings(path: str | Path, units: str | None = None) -> Readings:
         raise LabcalError(f"{path}: the file states its outputs in {stated}, --units says {units}; leave out "
                           "--units or correct the file")
     cols = read.columns
+    windows = _windows(Path(path), read, len(cols["replicate"]))
     return Readings(
         replicate=cols["replicate"].astype(int),
         y_deg=cols["y_deg"], u_deg=cols["u_deg"], pitch_deg=cols["pitch_deg"], roll_deg=cols["roll_deg"],
         volts=np.column_stack([cols["vx"], cols["vy"], cols["vz"]]),
         temp_c=cols.get("temp_c"), units=units or stated or "V",
+        window_sd=None if windows is None else windows[0], window_n=None if windows is None else windows[1],
     )
+
+
+WINDOWS = ("n_samples", "sd_vx", "sd_vy", "sd_vz")  # the audit columns that say how each point scattered
+
+
+def _windows(path: Path, read: _Csv, rows: int) -> tuple[NDArray, NDArray] | None:
+    """Each point's window, from the audit columns labcal writes (the samples' sd per output and their
+    number), where every row has them as plain numbers; else None — they are an audit, not the
+    contract's columns, so a file whose audit is incomplete is read without them, never refused."""
+    if not all(c in read.header for c in WINDOWS):
+        return None
+    got = _read_clean(path, WINDOWS, (), read.text, len(read.comments))
+    if got is None or len(got[0]["n_samples"]) != rows:
+        return None
+    n, sd = got[0]["n_samples"], np.column_stack([got[0][c] for c in WINDOWS[1:]])
+    if np.any(n < 1) or np.any(n != np.floor(n)) or np.any(sd < 0):
+        return None
+    return sd, n
 
 
 def write_readings(path: str | Path, readings: Readings) -> None:

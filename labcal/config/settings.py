@@ -90,6 +90,9 @@ class CertificateSettings(BaseModel):
     usage_pitch_deg: tuple[float, float] = (-60.0, 60.0)
     usage_roll_deg: tuple[float, float] = (-180.0, 180.0)
     grid_step_deg: float = Field(default=5.0, gt=0, le=45)
+    in_use_samples: int | None = Field(default=None, ge=1, le=1_000_000, description=(
+        "samples a reading of the instrument in use averages, for the new-reading row of the budget "
+        "(default: as many as the calibration's windows)"))
 
     @model_validator(mode="after")
     def _envelope(self) -> CertificateSettings:

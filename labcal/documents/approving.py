@@ -43,7 +43,13 @@ def issue_settings(draft: Certificate) -> CertificateSettings:
         attitude_u95_max_deg=next((c.limit for c in checks if c.unit == "°"), None),
         bias_max_v=next((c.limit for c in checks if c.unit == "V"), None),
         usage_pitch_deg=draft.attitude.usage_pitch_deg, usage_roll_deg=draft.attitude.usage_roll_deg,
-        grid_step_deg=draft.attitude.grid_step_deg)
+        grid_step_deg=draft.attitude.grid_step_deg, in_use_samples=_stated_in_use(draft))
+
+
+def _stated_in_use(draft: Certificate) -> int | None:
+    """The in-use averaging the draft states where it was stated for it (None: the calibration's)."""
+    in_use = draft.uncertainty_budget.in_use if draft.uncertainty_budget else None
+    return in_use.samples if in_use is not None and in_use.stated else None
 
 
 def rebuild(record: RunRecord, draft: Certificate, station: str | Path | None = None) -> Certificate:

@@ -361,6 +361,44 @@ class CovariancePartRecord(Strict):
         return CovariancePart(np.array(self.matrix, dtype=float), dof, self.label)
 
 
+class InUseReading(Strict):
+    """What the budget's new-reading row assumes of a reading of the instrument in use: the mean of
+    ``samples`` samples, each scattering by the pooled within-window standard deviation of the
+    calibration (per channel, in the outputs' unit) with its degrees of freedom."""
+
+    samples: int = Field(ge=1)
+    stated: bool  # True: stated for this certificate; False: the calibration's window length
+    sample_sd: list[float]
+    degrees_of_freedom: float
+    windows: int = Field(ge=1)
+    statement: str
+
+
+class BenchCheck(Strict):
+    """One group of the bench's stated errors, tested: its variance in the residuals over the stated."""
+
+    ratio: float
+    p_value: float
+
+
+class FitCheck(Strict):
+    """The lack-of-fit test of the fit's residuals against the noise (pooled within-window scatter)
+    and the station's stated bench errors, and the drift test of the outputs over the run
+    (`labcal.analysis.lack_of_fit`)."""
+
+    statistic: float  # Q / ν₁
+    degrees_of_freedom: tuple[float, float]
+    p_value: float
+    bench: dict[str, BenchCheck]
+    alpha: float
+    lack_of_fit: bool  # the flag: True where any of the tests is significant
+    drift_statistic: float
+    drift_degrees_of_freedom: int
+    drift_p_value: float
+    drift: bool
+    statement: str
+
+
 class UncertaintyBudget(Strict):
     method: str
     inputs: BudgetInputs
@@ -372,6 +410,12 @@ class UncertaintyBudget(Strict):
     # The complete covariance the totals come from; `labcal attitude --cert` and every other output
     # state the attitude U95 from it (absent in certificates issued before: their fit's Type A).
     covariance: list[CovariancePartRecord] | None = Field(default=None, exclude_if=_absent)
+    # The averaging a reading in use is assumed to have (absent: certificates whose new-reading row is
+    # the fit's residual, issued before, or from readings that do not carry their windows' scatter).
+    in_use: InUseReading | None = Field(default=None, exclude_if=_absent)
+    # The lack-of-fit and drift tests (absent: certificates issued before, or readings without their
+    # windows' scatter, which give the tests no pure error)
+    fit_check: FitCheck | None = Field(default=None, exclude_if=_absent)
 
     def parts(self) -> tuple[CovariancePart, ...]:
         return tuple(p.part() for p in self.covariance or [])
@@ -612,7 +656,9 @@ def parse_json(text: str, source: str):
     except json.JSONDecodeError as exc:
         rest = text.rstrip()[exc.pos:]
         # cut inside a number ("0." or "1e-") or a literal ("tr"): the parser stops at its last character
-        if not rest or _CUT_TOKEN.fullmatch(rest) or exc.msg.startswith("Unterminated string"):
+        # or inside a \uXXXX escape of a non-ASCII character ("\u22")
+        cut_escape = exc.msg.startswith("Invalid \\uXXXX escape") and len(rest) < 6
+        if not rest or _CUT_TOKEN.fullmatch(rest) or exc.msg.startswith("Unterminated string") or cut_escape:
             raise LabcalError(f"{source}: not valid JSON: the file is truncated (it stops at line "
                               f"{text.rstrip().count(chr(10)) + 1} before the document ends)") from None
         raise LabcalError(f"{source}: not valid JSON ({exc.msg} at line {exc.lineno})") from None

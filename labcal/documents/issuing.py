@@ -384,6 +384,10 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
     correction = plan_correction(record.plan_text, f"{run_dir}: the run's plan") if device is None else None
     if correction is not None:  # the misalignments the plan's mounts do not identify, corrected for
         statements.append(correction.statement())
+    if uncertainty.in_use is not None:  # what the new-reading row assumes of a reading in use
+        statements.append(uncertainty.in_use.statement)
+    if uncertainty.fit_check is not None:  # the lack-of-fit flag and the drift test's verdict
+        statements.append(uncertainty.fit_check.statement)
     statements += overdue_standards(admin.traceability, datetime.fromisoformat(calibrated).date())
     operator = _recorded(meta.get("operator"), operator, "operator", run_dir)
     if replaced is not None:

@@ -6,7 +6,7 @@ Carlo check (`labcal.analysis.montecarlo`), as the `UncertaintyBudget` section a
 from __future__ import annotations
 
 import json
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -29,17 +29,22 @@ from labcal.analysis.design import grid
 from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.fit import Fit
 from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES
+from labcal.analysis.lack_of_fit import LackOfFit, fit_lack_of_fit
 from labcal.analysis.montecarlo import monte_carlo
+from labcal.analysis.readings import Readings
 from labcal.analysis.remounting import mount_scatter
 from labcal.config.files import validate_model
 from labcal.config.plans import plan_correction
 from labcal.config.settings import CertificateSettings
 from labcal.config.station import CertificateSection, load_certificate_section
 from labcal.documents.certificate import (
+    BenchCheck,
     BudgetRow,
     BudgetTotal,
     CoefficientBudgetRecord,
     CovariancePartRecord,
+    FitCheck,
+    InUseReading,
     MonteCarloCheck,
     UncertaintyBudget,
 )
@@ -73,14 +78,21 @@ def bench_section(record: RunRecord, station: str | Path | None) -> CertificateS
     return with_simulator_inputs(section, record.station_text, record.meta.get("settings") or {})
 
 
+def device_misalignment_u(device: DeviceFit | None) -> dict[str, float]:
+    """The standard uncertainty (rad) of each misalignment a…k the ``device`` model estimated (its
+    noise share), the budget's device-misalignment row; empty without a device model."""
+    if device is None:
+        return {}
+    noise_u = np.sqrt(np.diag(device.noise_covariance)[:len(MISALIGNMENT_NAMES)])
+    return {name: float(u) for name, u in zip(MISALIGNMENT_NAMES, noise_u, strict=True)}
+
+
 def type_b_inputs(section: CertificateSection, record: RunRecord, device: DeviceFit | None = None
                   ) -> TypeBInputs:
     """The bench's inputs in SI; the temperature half-range is the run's own (none without a channel);
     the device misalignments' standard uncertainties where the ``device`` model estimated them, or
     where the run's plan corrected for them (its ``[device_correction]``'s u, issue 27)."""
-    noise_u = None if device is None else np.sqrt(np.diag(device.noise_covariance)[:len(MISALIGNMENT_NAMES)])
-    device_misalignment = {} if noise_u is None else {
-        name: float(u) for name, u in zip(MISALIGNMENT_NAMES, noise_u, strict=True)}
+    device_misalignment = device_misalignment_u(device)
     correction = None if device is not None else \
         plan_correction(record.plan_text, f"{record.directory}: the run's plan")
     if correction is not None:  # the plan's misalignments, corrected for: their u as it carries it
@@ -205,12 +217,41 @@ def _statement(totals: list[BudgetTotal], checks: list[MonteCarloCheck] | None) 
     return text
 
 
-def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: CertificateSettings,
-           trials: int = 0, seed: int = 0, device: DeviceFit | None = None) -> UncertaintyBudget:
-    """The certificate's budget section for a run's fit, or for its ``device`` model where the
-    certificate is built on it; ``trials`` > 0 adds the Monte Carlo check."""
-    readings = record.readings
-    cal = calibration_of(fit, readings) if device is None else calibration_of_device(device, readings)
+@dataclass(frozen=True)
+class BudgetView:
+    """The budget's view of a fit, its rows, the inputs they were made from, and the lack-of-fit and
+    drift tests of the fit against the noise and the stated bench errors (None: not testable)."""
+
+    cal: Calibration
+    rows: list[Source]
+    inputs: TypeBInputs
+    check: LackOfFit | None
+
+
+def budget_view(readings: Readings, fit: Fit, inputs: TypeBInputs, device: DeviceFit | None = None,
+                in_use_samples: int | None = None) -> BudgetView:
+    """The budget of a fit of ``readings`` (or of its ``device`` model), tested first. Its Type A rows
+    are the instrument's noise (the windows' scatter) where the residuals are what that noise and the
+    station's stated errors explain; where the lack-of-fit test finds more, something the model or the
+    statement misses is in the residuals, and the budget takes them as before — the fit's residual for
+    the coefficients' Type A and for the new reading (Tripp & Tcheng §8 take the lack-of-fit mean
+    square where replication shows bias, for the same reason) — and the certificate says so."""
+    cal, rows, used = _budget_rows(readings, fit, inputs, device, in_use_samples)
+    check = fit_lack_of_fit(cal, used, readings, fit, device)
+    if check is not None and check.significant:
+        cal, rows, used = _budget_rows(replace(readings, window_sd=None, window_n=None), fit, inputs, device,
+                                       in_use_samples)
+    return BudgetView(cal, rows, used, check)
+
+
+def _budget_rows(readings: Readings, fit: Fit, inputs: TypeBInputs, device: DeviceFit | None = None,
+                 in_use_samples: int | None = None) -> tuple[Calibration, list[Source], TypeBInputs]:
+    """The budget's view of a fit of ``readings`` (or of its ``device`` model), its rows and the inputs
+    they were made from: the tables' index and wobble the device model was fitted with, and the mount
+    scatter the replicates show, over the station file's. ``in_use_samples``: the samples a reading
+    in use averages (None: the calibration's window length)."""
+    cal = calibration_of(fit, readings, in_use_samples) if device is None else \
+        calibration_of_device(device, readings, in_use_samples)
     if device is not None and device.angle_errors is not None:
         # the tables' index and wobble the device model was fitted with are the budget's table rows
         a = device.angle_errors
@@ -219,7 +260,15 @@ def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: Certifica
     scatter = mount_scatter(readings, cal.X)
     if scatter is not None:  # the replicates say how the seating scatters: they win over the station file
         inputs = replace(inputs, mount_repeatability_sd=scatter.sd_rad, mount_repeatability_dof=scatter.dof)
-    rows = sources(cal, inputs)
+    return cal, sources(cal, inputs), inputs
+
+
+def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: CertificateSettings,
+           trials: int = 0, seed: int = 0, device: DeviceFit | None = None) -> UncertaintyBudget:
+    """The certificate's budget section for a run's fit, or for its ``device`` model where the
+    certificate is built on it; ``trials`` > 0 adds the Monte Carlo check."""
+    view = budget_view(record.readings, fit, inputs, device, settings.in_use_samples)
+    cal, rows, inputs = view.cal, view.rows, view.inputs
     pitch, roll = envelope(settings)
     p = propagate(cal, rows, pitch, roll)
     coef = coefficient_budget(rows)
@@ -229,6 +278,7 @@ def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: Certifica
            if not (k == "output_unit" and v == "V")  # volts: as certificates always said it
            and not (k == "device_misalignment_source" and not v)}  # a device model's own: as before
     return UncertaintyBudget(
+        in_use=in_use_reading(cal, inputs.output_unit), fit_check=fit_check(view.check),
         method=METHOD, inputs=BudgetInputs.model_validate(doc), rows=_rows(rows, p), totals=totals,
         coefficients=CoefficientBudgetRecord(
             u_c=coef.u_c.tolist(), nu_eff=[[_finite(x) for x in row] for row in coef.nu_eff],
@@ -237,6 +287,54 @@ def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: Certifica
         monte_carlo=checks, statement=_statement(totals, checks),
         covariance=[CovariancePartRecord(label=part.label, degrees_of_freedom=_finite(part.dof),
                                          matrix=part.matrix.tolist()) for part in covariance_parts(rows)])
+
+
+def fit_check(check: LackOfFit | None) -> FitCheck | None:
+    """The lack-of-fit and drift tests as the certificate states them."""
+    if check is None:
+        return None
+    nu1, nu2 = check.dof
+    groups = "; ".join(f"{b.name} {b.ratio:.2f}× their stated variance (p = {b.p_value:.2g})"
+                       for b in check.bench)
+    tested = (f"Lack-of-fit test of the residuals against the instrument's noise (the scatter inside the "
+              f"windows) and the station's stated bench errors: Q/ν = {check.statistic:.3g} (ν = {nu1:.0f}, "
+              f"{nu2:.0f}), p = {check.p_value:.2g}" + (f"; {groups}" if groups else "") +
+              f" (each at {check.alpha:g}/{check.tests}). ")
+    if check.significant:
+        verdict = ("LACK OF FIT: the residuals hold more than the noise and the stated errors explain — an "
+                   "effect the model or the station's statement leaves out (a table worse than stated, an "
+                   "unstated seating scatter, a drift, a nonlinearity). The budget takes the fit's residual "
+                   "for the coefficients and for a new reading instead of the noise; find the cause before "
+                   "relying on these coefficients.")
+    else:
+        verdict = "No lack of fit: the model and the stated errors explain the residuals."
+    drift = (f" Drift test (a trend of each output over the run, χ² with {check.drift_dof} degrees of "
+             f"freedom): {check.drift_statistic:.3g}, p = {check.drift_p_value:.2g}: "
+             + ("DRIFT — the outputs moved during the run." if check.drift_significant else "no drift."))
+    return FitCheck(
+        statistic=check.statistic, degrees_of_freedom=(nu1, nu2), p_value=check.p_value,
+        bench={b.name: BenchCheck(ratio=b.ratio, p_value=b.p_value) for b in check.bench},
+        alpha=check.alpha, lack_of_fit=check.significant, drift_statistic=check.drift_statistic,
+        drift_degrees_of_freedom=check.drift_dof, drift_p_value=check.drift_p_value,
+        drift=check.drift_significant, statement=tested + verdict + drift)
+
+
+def in_use_reading(cal: Calibration, unit: str) -> InUseReading | None:
+    """The averaging in use the new-reading row assumes, in words for the certificate (None: the row is
+    the fit's residual)."""
+    rep, samples = cal.repeatability, cal.in_use_samples_or_calibration
+    if rep is None or samples is None:
+        return None
+    how = ("as stated for this certificate" if cal.in_use_samples
+           else "as in this calibration's windows")
+    return InUseReading(
+        samples=samples, stated=cal.in_use_samples is not None, sample_sd=rep.sample_sd.tolist(),
+        degrees_of_freedom=rep.dof, windows=rep.windows,
+        statement=(f"The uncertainty of pitch and roll applies to a reading of the instrument in use that is "
+                   f"the mean of {samples} samples of each output ({how}). A reading of fewer samples "
+                   f"scatters more: its own term grows as 1/√N from {max(rep.sample_sd):.3g} {unit} per "
+                   f"sample (the pooled scatter inside the calibration's {rep.windows} windows, "
+                   f"ν = {rep.dof:.0f})."))
 
 
 def stated_U95_arcsec(b: UncertaintyBudget, angle: str) -> float | None:

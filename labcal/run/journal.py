@@ -336,5 +336,7 @@ class Journal:
             pitch_deg=np.array([p.pitch_deg for p in pts]), roll_deg=np.array([p.roll_deg for p in pts]),
             volts=np.array([[p.vx, p.vy, p.vz] for p in pts], dtype=float),  # NULL: NaN, an absent sensor
             temp_c=None if any(t is None for t in temps) else np.array(temps),
+            window_sd=np.array([[p.sd_vx, p.sd_vy, p.sd_vz] for p in pts], dtype=float),
+            window_n=np.array([p.n_samples for p in pts], dtype=float),
         )
 
