@@ -26,6 +26,7 @@ import hashlib
 import json
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 FORM = "labcal.journal-chain/1"
@@ -169,7 +170,7 @@ def check(run: str, run_values: Mapping[str, object], manifest: str | None,
     if recomputed != manifest:
         return ChainCheck(run, run_uuid, True, problem=(
             f"the manifest of {run} differs from the journal's chain: its digest {recomputed[:16]}… ≠ "
-            f"{manifest[:16]}… journaled; refused"))
+            f"{manifest[:16]}… journaled"))
     ordered = sorted(records, key=lambda r: (r.link is None, r.link or 0))
     digests = [manifest]
     for record in ordered:
@@ -177,16 +178,16 @@ def check(run: str, run_values: Mapping[str, object], manifest: str | None,
         if record.link is None or record.digest is None:
             return ChainCheck(run, run_uuid, True, tuple(digests), (
                 f"{record.label} of {run} carries no digest in a chained run: it was added outside "
-                "the journal; refused"))
+                "the journal"))
         if record.link != expected_link:
             return ChainCheck(run, run_uuid, True, tuple(digests), (
                 f"record {expected_link} of {run}'s chain is missing (the next is {record.label}, record "
-                f"{record.link}): a record was deleted from the journal; refused"))
+                f"{record.link}): a record was deleted from the journal"))
         mine = digest(record.kind, run_uuid, record.link, digests[-1], record.values)
         if mine != record.digest:
             return ChainCheck(run, run_uuid, True, tuple(digests), (
                 f"{record.label} of {run} differs from the journal's chain: its digest {mine[:16]}… ≠ "
-                f"{record.digest[:16]}… journaled; refused"))
+                f"{record.digest[:16]}… journaled"))
         digests.append(record.digest)
     return ChainCheck(run, run_uuid, True, tuple(digests))
 
@@ -232,3 +233,40 @@ def check_server(connection: Any, run_id: int, run: str | None = None) -> ChainC
     records = (_records("point", POINT_COLUMNS, connection.execute(text(points_sql), {"run": run_id}))
                + _records("event", EVENT_COLUMNS, connection.execute(text(events_sql), {"run": run_id})))
     return check(run or f"run {run_id}", values, row[-1], records)
+
+
+def copies(db: str | Path | None, run_uuid: str) -> list[tuple[str, ChainCheck]]:
+    """The run's chain recomputed in every database this station knows that holds it, as (where,
+    check): the lab's server, when the lab database is one and can be reached, and the station's
+    journal (the lab database itself when that is a SQLite file). Nothing is created or changed."""
+    from contextlib import closing
+
+    from labcal.run import labdb
+    from labcal.run.journal import db_path
+
+    found: list[tuple[str, ChainCheck]] = []
+    server = labdb.lab_server(db)
+    if server is not None:
+        try:
+            engine = labdb.open_server(server)
+        except labdb.Unreachable:
+            engine = None
+        if engine is not None:
+            from sqlalchemy import text
+
+            try:
+                with engine.connect() as connection:
+                    row = connection.execute(text("SELECT id FROM runs WHERE uuid = :u"),
+                                             {"u": run_uuid}).first()
+                    if row is not None:
+                        lab_run = f"run {row[0]} of the lab"
+                        found.append((str(server), check_server(connection, row[0], lab_run)))
+            finally:
+                engine.dispose()
+    journal = db_path(db)
+    if journal.is_file():
+        with closing(labdb.connect(journal)) as con:
+            row = con.execute("SELECT id FROM runs WHERE uuid = ?", (run_uuid,)).fetchone()
+            if row is not None:
+                found.append((str(journal), check_sqlite(con, row[0])))
+    return found
