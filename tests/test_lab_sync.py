@@ -224,7 +224,7 @@ def test_a_server_database_behind_is_refused_until_labcal_db_upgrade(tmp_path, p
     up = labcal(env, "db", "upgrade")
     assert up.returncode == 0, up.stderr
     with psycopg.connect(postgres_url) as conn:
-        assert conn.execute("SELECT version_num FROM alembic_version").fetchone()[0] == "0007"
+        assert conn.execute("SELECT version_num FROM alembic_version").fetchone()[0] == migrations.HEAD
         assert conn.execute("SELECT count(*) FROM information_schema.columns WHERE table_name = 'events' "
                             "AND column_name = 'origin_id'").fetchone()[0] == 1
 
