@@ -13,11 +13,14 @@ import hashlib
 import json
 import shutil
 import sqlite3
+import stat
 from contextlib import closing
 from pathlib import Path
 
+import httpx
 import psycopg
 import pytest
+from lab_server import add_user, served
 from simulated_runs import bench_run
 
 from labcal.cli import main
@@ -279,3 +282,47 @@ def test_a_point_edited_by_postgresqls_superuser_is_named_by_verify_and_approve_
     shutil.copytree(draft, base / "run")
     said = one_line(capsys, approve(base)[:-2] + ["--db", postgres_url])
     assert "not approved" in said and f"point 5 of run {lab_run} of the lab differs" in said
+
+
+# --- the lab server --------------------------------------------------------------------------------------
+def server_approves(base: Path, user: str = "A. Metrologist") -> httpx.Response:
+    """The approver, signed in to `labcal serve` on the copy's lab file with their own key as the
+    server's, approves the copy's run through the API."""
+    token = add_user(str(base / "lab.sqlite"), user, "approver", "pw")
+    with served(str(base / "lab.sqlite"), "--key", str(base / "approver.key")) as url:
+        return httpx.post(f"{url}/api/runs/{run_id(base)}/approve",
+                          headers={"Authorization": f"Bearer {token}"}, timeout=120)
+
+
+def test_the_server_refuses_to_sign_a_run_whose_point_was_edited(issued, tmp_path):
+    base = copy_of(issued, tmp_path)
+    edit(base, "UPDATE points SET vx = vx + 0.0005 WHERE run_id=? AND seq=5", run_id(base))
+    refused = server_approves(base)
+    assert refused.status_code == 409
+    assert f"point 5 of run {run_id(base)} differs from the journal's chain" in refused.json()["detail"]
+    assert json.loads((base / "run" / "certificate.json").read_text()).get("approval") is None
+
+
+@pytest.mark.parametrize("loose", ["lab.sqlite", "."])
+def test_the_server_signs_nothing_from_a_sqlite_lab_database_others_may_write(issued, tmp_path, loose):
+    base = copy_of(issued, tmp_path)
+    (base / loose).chmod(0o664 if loose != "." else 0o775)
+    refused = server_approves(base)
+    assert refused.status_code == 409
+    detail = refused.json()["detail"]
+    assert len(detail.splitlines()) == 1 and "others may write this SQLite lab database" in detail
+    assert detail.endswith(f"chmod go-w {base / 'lab.sqlite' if loose != '.' else base}")
+    assert json.loads((base / "run" / "certificate.json").read_text()).get("approval") is None
+
+
+def test_a_new_lab_database_and_its_folder_are_its_owners_only(tmp_path):
+    from labcal.run.journal import Journal
+
+    folder = tmp_path / "new" / "lab"
+    with Journal(folder / "lab.sqlite") as journal:
+        journal.db.execute("CREATE TABLE scratch (x)")  # a write: the -wal file exists now
+        files = [folder / "lab.sqlite", folder / "lab.sqlite-wal"]
+        assert all(f.exists() for f in files)
+        assert {f.name: stat.S_IMODE(f.stat().st_mode) for f in files} == dict.fromkeys(
+            (f.name for f in files), 0o600)
+    assert stat.S_IMODE(folder.stat().st_mode) == 0o700

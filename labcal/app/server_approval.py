@@ -23,7 +23,11 @@ signs accordingly:
 
 Approving is `labcal.app.certificates.approve_certificate` on the run's folder — the same use case as
 `labcal certificate approve`: it rebuilds what it signs from the journal, refuses a simulated run, an
-edited draft, an unregistered or revoked key, and writes the certificate, DCC and report again.
+edited draft, a journal whose chain of digests does not hold (`labcal.run.chain`), a run journaled
+before digests, an unregistered or revoked key, and writes the certificate, DCC and report again.
+
+On SQLite the lab database is one machine, one trust domain: the server approves only from a file
+(and folder) that only its owner may write, since whoever may write it may add a user or an approver.
 
 The run's folder must be reachable from the server (the same path, on a shared disk); otherwise the
 answer says where to approve instead. Approvals are serialised: two approvers pressing the button at
@@ -91,6 +95,7 @@ def approve_as_user(lab: LabDatabase, request: ApproveAsUser) -> ServerApproved 
     such run); one line on any refusal."""
     from labcal.documents.approval import key_id, load_private_key
     from labcal.documents.approvers import SERVER_ROLE, by_key
+    from labcal.run.labdb import others_may_write
 
     run_dir = run_folder(lab, request.run_id)
     if run_dir is None:
@@ -106,6 +111,10 @@ def approve_as_user(lab: LabDatabase, request: ApproveAsUser) -> ServerApproved 
                       f"server_key in the lab file); {where}")
     if db_file is None:
         raise NotHere(f"this server approves only on a SQLite lab database for now; {where}")
+    loose = others_may_write(Path(db_file))
+    if loose is not None:  # whoever may write the file may write its users, approvers and journal
+        raise NotHere(f"{db_file}: others may write this SQLite lab database, so its users, approvers and "
+                      f"readings are not the lab's to vouch for; the server signs nothing from it: {loose}")
     registered = by_key(key_id(load_private_key(key).public_key()), db_file)
     if registered is not None and registered.role == SERVER_ROLE:
         role, signed_for = user.role, SignedFor(user.id, request.authentication)
