@@ -189,3 +189,29 @@ def test_a_bench_role_syncs_its_journal_end_to_end(lab):
     done = labcal(tmp_path, "sync", db=bench)
     assert done.returncode == 0, done.stderr
     assert "nothing to send" in " ".join(done.stdout.split())
+
+
+def test_the_servers_role_reads_the_lab_and_appends_no_reading(lab, tmp_path):
+    admin, bench, run_id, _ = lab
+    secret = "a-password-typed-by-the-administrator"
+    done = labcal(tmp_path, "db", "grant-server", "web", "--db", admin, "--password-stdin", db=admin,
+                  stdin=secret + "\n")
+    assert done.returncode == 0, done.stderr
+    server = done.stdout.strip().splitlines()[-1]
+    assert server == f"postgresql://labcal_server_web@{admin.rpartition('@')[2]}"
+    assert secret not in done.stdout + done.stderr
+    with psycopg.connect(server) as conn:
+        assert conn.execute("SELECT count(*) FROM users").fetchone() == (0,)
+        assert conn.execute("SELECT count(*) FROM points WHERE run_id = %s", (run_id,)).fetchone() == (16,)
+    assert "permission denied for table points" in denied(server, "UPDATE points SET vx = 0")
+    assert "permission denied for table runs" in denied(
+        server, "INSERT INTO runs (run_dir, plan_name, plan_text, plan_hash, station_text, station_hash, "
+                "software_version, settings, metadata, started_utc, status) VALUES "
+                "('x', 'p', 'p', 'h', 's', 'h', 'v', '{}', '{}', '2026-01-01', 'running')")
+    assert "permission denied for table users" in denied(
+        server, "INSERT INTO users (name, role, password_hash, token_hash, created_utc) "
+                "VALUES ('mallory', 'approver', 'x', 'y', '2026-01-01')")
+    with psycopg.connect(admin) as conn:
+        verifier = conn.execute("SELECT rolpassword FROM pg_authid WHERE rolname = %s",
+                                ("labcal_server_web",)).fetchone()
+    assert verifier[0].startswith("SCRAM-SHA-256$4096:")

@@ -34,6 +34,7 @@ def cmd_db_upgrade(args: argparse.Namespace) -> int:
 
 
 def cmd_db_grant_station(args: argparse.Namespace) -> int:
+    """`labcal db grant-station` and `labcal db grant-server`."""
     import sys
     from pathlib import Path
 
@@ -43,8 +44,9 @@ def cmd_db_grant_station(args: argparse.Namespace) -> int:
 
     admin = lab_server(args.db)
     if admin is None:
-        raise LabcalError("labcal db grant-station is for a PostgreSQL lab database (--db postgresql://ADMIN@"
-                          "HOST/DB); a SQLite lab database is one machine, one trust domain: it has no roles")
+        raise LabcalError(f"labcal db {args.db_command} is for a PostgreSQL lab database (--db "
+                          "postgresql://ADMIN@HOST/DB); a SQLite lab database is one machine, one trust "
+                          "domain: it has no roles")
     if args.password_stdin and args.password_file:
         raise LabcalError("give --password-stdin or --password-file, not both")
     password = None
@@ -52,19 +54,21 @@ def cmd_db_grant_station(args: argparse.Namespace) -> int:
         password = sys.stdin.readline().rstrip("\r\n")
         if not password:
             raise LabcalError("--password-stdin: no password on the first line of the standard input")
-    done = roles.grant_station(admin, args.name, password,
-                               Path(args.password_file) if args.password_file else None)
+    grant = roles.grant_server if args.db_command == "grant-server" else roles.grant_station
+    done = grant(admin, args.name, password, Path(args.password_file) if args.password_file else None)
     if args.json:
         print_json({"station": done.station, "role": done.role, "url": done.url,
                     "password_file": None if done.password_file is None else str(done.password_file),
                     "password_set": done.password_set})
         return 0
-    how = (f"its password is in {done.password_file} (readable by you only): give it to the bench as its "
+    who = "the bench" if args.db_command == "grant-station" else "the server"
+    how = (f"its password is in {done.password_file} (readable by you only): give it to {who} as its "
            "PGPASSFILE" if done.password_file is not None else
            "its password is the one given" if done.password_set else
            "it has no password: the server's pg_hba.conf must authenticate it (cert, peer, or trust)")
-    out.print(f"station {done.station!r}: role {done.role} may append this station's runs, points and events "
-              f"and read the lab's record; {how}. The bench sets LABCAL_DB to:")
+    may = ("may append this station's runs, points and events and read the lab's record"
+           if args.db_command == "grant-station" else "reads the lab database and alone writes approvals")
+    out.print(f"{done.station!r}: role {done.role} {may}; {how}. {who.capitalize()} sets LABCAL_DB to:")
     out.print(done.url, soft_wrap=True)  # one line whatever the terminal's width: it is copied as is
     return 0
 
@@ -96,17 +100,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_db_option(up)
     up.add_argument("--json", action="store_true")
     up.set_defaults(func=cmd_db_upgrade)
-    gs = actions.add_parser("grant-station", help="(PostgreSQL, as the administrator) a role for a bench: "
-                                                 "it appends only its station's runs; prints the bench's URL "
-                                                 "last")
-    gs.add_argument("name", metavar="NAME", help="the station's name (its LABCAL_STATION)")
-    gs.add_argument("--password-file", metavar="FILE", help="make a password and write it to FILE (new, "
-                                                            "owner-only, libpq's PGPASSFILE form)")
-    gs.add_argument("--password-stdin", action="store_true", help="read the role's password from the first "
-                                                                  "line of the standard input")
-    add_db_option(gs)
-    gs.add_argument("--json", action="store_true")
-    gs.set_defaults(func=cmd_db_grant_station)
+    grants = {"grant-station": ("a role for a bench: it appends only its station's runs", "NAME",
+                                "the station's name (its LABCAL_STATION)"),
+              "grant-server": ("a role for the lab server: it reads everything and alone writes approvals",
+                               "NAME", "a name for the server's role (labcal_server_NAME)")}
+    for action, (what, metavar, name_help) in grants.items():
+        g = actions.add_parser(action, help=f"(PostgreSQL, as the administrator) {what}; prints its "
+                                            "LABCAL_DB URL last")
+        g.add_argument("name", metavar=metavar, help=name_help)
+        g.add_argument("--password-file", metavar="FILE", help="make a password and write it to FILE (new, "
+                                                               "owner-only, libpq's PGPASSFILE form)")
+        g.add_argument("--password-stdin", action="store_true",
+                       help="read the role's password from the first line of the standard input")
+        add_db_option(g)
+        g.add_argument("--json", action="store_true")
+        g.set_defaults(func=cmd_db_grant_station)
     st = actions.add_parser("status", help="the lab database's schema revision and this labcal's")
     add_db_option(st)
     st.add_argument("--json", action="store_true")

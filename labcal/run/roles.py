@@ -112,14 +112,14 @@ def setup(connection: Connection) -> None:
         connection.exec_driver_sql(statement)
 
 
-def role_name(station: str) -> str:
-    """The bench role of a station: ``labcal_bench_`` and the name in lower-case letters, digits and
-    underscores (PostgreSQL's unquoted identifiers), at most 63 bytes."""
-    slug = re.sub(r"[^a-z0-9_]+", "_", station.strip().lower()).strip("_")
+def role_name(name: str, prefix: str = BENCH_PREFIX) -> str:
+    """The role of a bench (``labcal_bench_``) or a server: the prefix and the name in lower-case
+    letters, digits and underscores (PostgreSQL's unquoted identifiers), at most 63 bytes."""
+    slug = re.sub(r"[^a-z0-9_]+", "_", name.strip().lower()).strip("_")
     if not slug:
-        raise LabcalError(f"{station!r}: give the station's name (letters or digits), as its bench's "
-                          "LABCAL_STATION or lab file says")
-    return (BENCH_PREFIX + slug)[:63]
+        raise LabcalError(f"{name!r}: give a name of letters or digits (a station's as its bench's "
+                          "LABCAL_STATION or lab file says)")
+    return (prefix + slug)[:63]
 
 
 def scram_verifier(password: str, salt: bytes | None = None, iterations: int = 4096) -> str:
@@ -153,9 +153,9 @@ def pgpass_line(admin: ServerDatabase, role: str, password: str) -> str:
 
 @dataclass(frozen=True)
 class Granted:
-    station: str
+    station: str  # the station's name (a server's: the name given)
     role: str
-    url: str  # for the bench's LABCAL_DB, without a password
+    url: str  # for the bench's (or the server's) LABCAL_DB, without a password
     password_file: Path | None  # where its password was written (owner-only), if one was made
     password_set: bool
 
@@ -179,6 +179,18 @@ def grant_station(admin: ServerDatabase, station: str, password: str | None = No
     a member of ``labcal_bench``, mapped to the station; with ``password`` (given) or a new one
     written to ``password_file`` in libpq's password-file form; with neither, no password (for a
     server that authenticates benches otherwise: certificates, peer, or a trusted network)."""
+    return _grant(admin, station, BENCH, role_name(station), password, password_file)
+
+
+def grant_server(admin: ServerDatabase, name: str, password: str | None = None,
+                 password_file: Path | None = None) -> Granted:
+    """The lab server's role (``labcal_server_NAME``, a member of ``labcal_server``), as `grant_station`
+    makes a bench's: it reads the whole lab database and alone writes the approvals."""
+    return _grant(admin, name, SERVER, role_name(name, SERVER + "_"), password, password_file)
+
+
+def _grant(admin: ServerDatabase, name: str, group: str, role: str, password: str | None,
+           password_file: Path | None) -> Granted:
     import secrets
 
     from sqlalchemy import text
@@ -186,7 +198,6 @@ def grant_station(admin: ServerDatabase, station: str, password: str | None = No
 
     from labcal.run import labdb
 
-    role = role_name(station)
     if password_file is not None and password is None:
         password = secrets.token_urlsafe(24)
         if password_file.exists():
@@ -198,24 +209,25 @@ def grant_station(admin: ServerDatabase, station: str, password: str | None = No
         with engine.begin() as connection:
             other = connection.execute(text("SELECT station FROM station_roles WHERE role = :r"),
                                        {"r": role}).scalar_one_or_none()
-            if other is not None and other != station:
-                raise LabcalError(f"{station!r}: its role {role} already belongs to the station {other!r}; "
+            if other is not None and other != name:
+                raise LabcalError(f"{name!r}: its role {role} already belongs to the station {other!r}; "
                                   "give the station a name that differs in letters or digits")
             connection.exec_driver_sql(create_role(role, "LOGIN"))
             connection.exec_driver_sql(f"ALTER ROLE {role} LOGIN NOSUPERUSER NOCREATEDB NOCREATEROLE "
                                        "NOBYPASSRLS")
-            connection.exec_driver_sql(f"GRANT {BENCH} TO {role}")
+            connection.exec_driver_sql(f"GRANT {group} TO {role}")
             if password is not None:  # the verifier is base64 with $ and :, never a quote
                 connection.exec_driver_sql(f"ALTER ROLE {role} PASSWORD '{scram_verifier(password)}'")
-            connection.execute(text("INSERT INTO station_roles (role, station) VALUES (:r, :s) "
-                                    "ON CONFLICT (role) DO UPDATE SET station = excluded.station"),
-                               {"r": role, "s": station})
+            if group == BENCH:
+                connection.execute(text("INSERT INTO station_roles (role, station) VALUES (:r, :s) "
+                                        "ON CONFLICT (role) DO UPDATE SET station = excluded.station"),
+                                   {"r": role, "s": name})
     except SQLAlchemyError as exc:
-        raise LabcalError(f"{admin}: cannot grant the station {station!r} a role "
+        raise LabcalError(f"{admin}: cannot grant {name!r} a role "
                           f"({labdb._first_line(getattr(exc, 'orig', None) or exc)}); run this as the lab "
                           "database's administrator (its owner, allowed to create roles)") from None
     finally:
         engine.dispose()
     if password_file is not None and password is not None:
         write_owner_only(password_file, pgpass_line(admin, role, password))
-    return Granted(station, role, bench_url(admin, role), password_file, password is not None)
+    return Granted(name, role, bench_url(admin, role), password_file, password is not None)
