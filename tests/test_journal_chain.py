@@ -326,3 +326,35 @@ def test_a_new_lab_database_and_its_folder_are_its_owners_only(tmp_path):
         assert {f.name: stat.S_IMODE(f.stat().st_mode) for f in files} == dict.fromkeys(
             (f.name for f in files), 0o600)
     assert stat.S_IMODE(folder.stat().st_mode) == 0o700
+
+
+# --- the writer -------------------------------------------------------------------------------------------
+def test_records_written_through_two_connections_and_a_reopened_journal_form_one_unbroken_chain(tmp_path):
+    """The run's writer and the sync thread's outage event (another connection), then a resume in
+    a new process, all append to one chain; integers written into REAL columns hash as the floats
+    they read back as."""
+    import numpy as np
+
+    from labcal.run.chain import check_sqlite
+    from labcal.run.journal import Journal, Manifest, PointRecord
+
+    def point(seq: int) -> PointRecord:
+        return PointRecord(seq, 1, 0, 90, 0, 0, None, None, 1, "ok", float(seq), seq + 0.5, 2, 1, 0, -1,
+                           None, None, None, 21.5, 1.5, "settled")
+
+    path = tmp_path / "journal.sqlite"
+    with Journal(path) as writer, Journal(path) as sender:
+        run = writer.start_run(Manifest("run", "p", "plan", "{}", "1", {"a": 1}, {}, station="bench-1"))
+        writer.record_point(run, point(0), np.ones((2, 4)))
+        sender.event(run, "lab_database", "the lab database is unreachable")
+        writer.record_point(run, point(1), None)
+        writer.event(run, "pause", "operator paused", {"why": "coffee"}, 12.0)
+    with Journal(path) as resumed:
+        resumed.reopen(run)
+        resumed.event(run, "resume", "resumed")
+        resumed.record_point(run, point(2), np.zeros((2, 4)))
+    with closing(sqlite3.connect(path)) as db:
+        check = check_sqlite(db, run)
+        links = db.execute("SELECT link FROM points WHERE run_id=:r UNION ALL SELECT link FROM events "
+                           "WHERE run_id=:r ORDER BY 1", {"r": run}).fetchall()
+    assert check.intact and check.records == 6 and links == [(n,) for n in range(1, 7)]
