@@ -9,6 +9,11 @@ them), and signs only a draft that the rebuild reproduces. Everything a draft st
 from the measurement — fit, uncertainties, budget, conformity, story — is recomputed, so an edited
 value shows as a difference whatever the editor did to the digest.
 
+The journal itself is checked too: its chain of digests (`labcal.run.chain`) is recomputed, in the
+station's journal and in the lab server's copy of the run, and must hold up to the head the draft
+states, which the signature then covers; a run journaled before digests is approved only when the
+approver says so (``--unchained``).
+
 A simulated run is never approved, a key must be registered, unrevoked, and registered to the name
 and role given (`labcal.documents.approvers`). Every reason that applies is named in one line, so
 the approver learns at once everything that stands in the way.
