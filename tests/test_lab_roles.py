@@ -171,24 +171,37 @@ def test_a_bench_role_cannot_append_a_run_or_a_point_for_another_station(lab, tm
     assert done.returncode == 0
     assert "row-level security" in done.stderr and "journal keeps every record" in done.stderr
     with psycopg.connect(admin) as conn:
-        assert conn.execute("SELECT count(*) FROM runs").fetchone() == (1,)
+        assert conn.execute("SELECT count(*) FROM runs WHERE station = 'bench-2'").fetchone() == (0,)
 
 
 def test_a_bench_role_syncs_its_journal_end_to_end(lab):
-    admin, bench, run_id, tmp_path = lab
+    """The run of the fixture reached the lab as it was measured; a second run, made while the lab
+    could not be reached, reaches it by `labcal sync` as the bench's role: every point, with the
+    digests the journal wrote."""
     import sqlite3
     from contextlib import closing
 
-    with closing(sqlite3.connect(tmp_path / "bench-1" / "journal.sqlite")) as db:
-        journal = db.execute("SELECT seq, vx, vy, vz, link, digest FROM points ORDER BY seq").fetchall()
-    with psycopg.connect(admin) as conn:
-        lab_points = conn.execute("SELECT seq, vx, vy, vz, link, digest FROM points WHERE run_id = %s "
-                                  "ORDER BY seq", (run_id,)).fetchall()
-        status = conn.execute("SELECT status FROM runs WHERE id = %s", (run_id,)).fetchone()
-    assert lab_points == journal and len(journal) == 16 and status == ("complete",)
+    from services import free_port
+
+    admin, bench, run_id, tmp_path = lab
+    away = bench.replace(bench.rpartition("@")[2].split("/")[0], f"127.0.0.1:{free_port()}")
+    offline = labcal(tmp_path, "run", "--sim", "--yes", "--no-report", "--plan", "one-mount-16", "--out",
+                     str(tmp_path / "bench-1" / "offline"), db=away)
+    assert offline.returncode == 0 and "unreachable" in offline.stderr, offline.stderr
     done = labcal(tmp_path, "sync", db=bench)
     assert done.returncode == 0, done.stderr
-    assert "nothing to send" in " ".join(done.stdout.split())
+    assert "16 points" in " ".join(done.stdout.split()), done.stdout
+    with closing(sqlite3.connect(tmp_path / "bench-1" / "journal.sqlite")) as db:
+        journal = db.execute("SELECT r.uuid, p.seq, p.vx, p.vy, p.vz, p.link, p.digest FROM points p "
+                             "JOIN runs r ON r.id = p.run_id ORDER BY r.uuid, p.seq").fetchall()
+    with psycopg.connect(admin) as conn:
+        lab_points = conn.execute("SELECT r.uuid, p.seq, p.vx, p.vy, p.vz, p.link, p.digest FROM points p "
+                                  "JOIN runs r ON r.id = p.run_id WHERE r.station = 'bench-1' "
+                                  "ORDER BY r.uuid, p.seq").fetchall()
+        statuses = conn.execute("SELECT status FROM runs WHERE station = 'bench-1'").fetchall()
+    assert lab_points == journal and len(journal) == 32 and statuses == [("complete",), ("complete",)]
+    again = labcal(tmp_path, "sync", db=bench)
+    assert again.returncode == 0 and "nothing to send" in " ".join(again.stdout.split())
 
 
 def test_the_servers_role_reads_the_lab_and_appends_no_reading(lab, tmp_path):
