@@ -228,3 +228,18 @@ def test_the_servers_role_reads_the_lab_and_appends_no_reading(lab, tmp_path):
         verifier = conn.execute("SELECT rolpassword FROM pg_authid WHERE rolname = %s",
                                 ("labcal_server_web",)).fetchone()
     assert verifier[0].startswith("SCRAM-SHA-256$4096:")
+
+
+def test_the_lab_server_serves_the_benchs_runs_connected_as_its_own_role(lab, tmp_path):
+    import httpx
+    from lab_server import add_user, served
+
+    admin, _, run_id, _ = lab
+    done = labcal(tmp_path, "db", "grant-server", "lab-web", "--db", admin, db=admin)
+    assert done.returncode == 0, done.stderr
+    server = done.stdout.strip().splitlines()[-1]
+    token = add_user(admin, "vic", "viewer", "vic-pw")  # users are the administrator's to add
+    with served(server) as url:
+        runs = httpx.get(f"{url}/api/runs", headers={"Authorization": f"Bearer {token}"}, timeout=30)
+    assert runs.status_code == 200, runs.text
+    assert run_id in [r["id"] for r in runs.json()["runs"]]
