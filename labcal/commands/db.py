@@ -11,15 +11,22 @@ from labcal.commands.common import add_db_option, out, print_json
 
 
 def cmd_db_upgrade(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
     from labcal.run import labdb
     from labcal.run.labdb import lab_database
 
     where = lab_database(args.db)
     done = labdb.upgrade(where)
+    roles = None
+    if not isinstance(where, Path):  # a server: who may write what, as this labcal says
+        from labcal.run.roles import set_up
+
+        roles = set_up(where)
     if args.json:
         print_json({"database": str(where), "found": done.found.revision, "legacy": done.found.legacy,
                     "revision": done.reached, "backup": None if done.backup is None else str(done.backup),
-                    "roles": done.roles})
+                    "roles": roles})
         return 0
     if done.found.revision is None:
         out.print(f"{where}: created at schema {done.reached}")
@@ -28,8 +35,8 @@ def cmd_db_upgrade(args: argparse.Namespace) -> int:
     else:
         copy = "" if done.backup is None else f"; the file as it was is kept in {done.backup}"
         out.print(f"{where}: upgraded from schema {done.found} to {done.reached}{copy}")
-    if done.roles is not None:
-        out.print(f"{where}: {done.roles}")
+    if roles is not None:
+        out.print(f"{where}: {roles}")
     return 0
 
 

@@ -241,11 +241,12 @@ def copies(db: str | Path | None, run_uuid: str) -> list[tuple[str, ChainCheck]]
     journal (the lab database itself when that is a SQLite file). Nothing is created or changed."""
     from contextlib import closing
 
+    from labcal.config.lab import load_lab_config
     from labcal.run import labdb
-    from labcal.run.journal import db_path
 
     found: list[tuple[str, ChainCheck]] = []
-    server = labdb.lab_server(db)
+    where = labdb.lab_database(db)
+    server = None if isinstance(where, Path) else where
     if server is not None:
         try:
             engine = labdb.open_server(server)
@@ -263,7 +264,7 @@ def copies(db: str | Path | None, run_uuid: str) -> list[tuple[str, ChainCheck]]
                         found.append((str(server), check_server(connection, row[0], lab_run)))
             finally:
                 engine.dispose()
-    journal = db_path(db)
+    journal = where if isinstance(where, Path) else load_lab_config().journal()  # as `journal.db_path`
     if journal.is_file():
         with closing(labdb.connect(journal)) as con:
             row = con.execute("SELECT id FROM runs WHERE uuid = ?", (run_uuid,)).fetchone()

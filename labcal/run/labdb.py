@@ -194,10 +194,8 @@ def owner_only(path: Path) -> None:
             raise LabcalError(f"{path.parent}: cannot create the database folder ({exc.strerror})") from None
     try:
         os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
-    except FileExistsError:
-        pass
     except OSError:
-        pass  # a read-only folder, say: sqlite3 says what is wrong, in `failure`'s words
+        pass  # it exists; or a read-only folder, say, which sqlite3 reports in `failure`'s words
 
 
 def others_may_write(path: Path) -> str | None:
@@ -279,7 +277,6 @@ class Upgraded:
     found: Revision
     reached: str
     backup: Path | None
-    roles: str | None = None  # on a server: whether the bench and server roles were set up
 
 
 def _sqlite_engine(path: Path) -> Engine:
@@ -440,19 +437,15 @@ def _upgrade_server(server: ServerDatabase, create_only: bool = False) -> Upgrad
     from sqlalchemy.exc import SQLAlchemyError
 
     engine = server_engine(server)
-    roles_note = None
     try:
         with engine.begin() as connection:
             connection.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": PG_LOCK})
             found = _server_revision(connection)
             if found.ahead:
                 raise refusal(server, found, "")
-            if create_only and found.revision is not None:
-                return Upgraded(found, found.revision, None)
-            if found.revision != HEAD:
-                _steps(connection, found)
-            if not create_only:  # `labcal db upgrade`: who may write what, as this labcal says
-                roles_note = _setup_roles(connection)
+            if found.revision == HEAD or (create_only and found.revision is not None):
+                return Upgraded(found, found.revision or HEAD, None)
+            _steps(connection, found)
     except SQLAlchemyError as exc:
         from sqlalchemy.exc import DBAPIError
 
@@ -462,24 +455,7 @@ def _upgrade_server(server: ServerDatabase, create_only: bool = False) -> Upgrad
                           "nothing was changed") from None
     finally:
         engine.dispose()
-    return Upgraded(found, HEAD, None, roles_note)
-
-
-def _setup_roles(connection: Connection) -> str:
-    """The bench and server roles and their policies (`labcal.run.roles`), in a savepoint: a user who
-    may upgrade the schema but not create roles upgrades it, and is told what is left undone."""
-    from sqlalchemy.exc import DBAPIError
-
-    from labcal.run import roles
-
-    try:
-        with connection.begin_nested():
-            roles.setup(connection)
-    except DBAPIError as exc:
-        return (f"the roles {roles.BENCH} and {roles.SERVER} and their policies are not set up "
-                f"({_first_line(getattr(exc, 'orig', None) or exc)}); run labcal db upgrade as the lab "
-                "database's administrator")
-    return f"the roles {roles.BENCH} and {roles.SERVER} and their grants and policies are set up"
+    return Upgraded(found, HEAD, None)
 
 
 def _is_connection_error(exc: BaseException) -> bool:

@@ -112,6 +112,31 @@ def setup(connection: Connection) -> None:
         connection.exec_driver_sql(statement)
 
 
+def set_up(server: ServerDatabase) -> str:
+    """`setup` on the lab's server, under the lock its schema is upgraded under (`labcal db upgrade`,
+    once the schema is current), in one line: set up, or why not (a user who may upgrade the schema
+    but not create roles is told what is left undone, and nothing of it is done)."""
+    from sqlalchemy import text
+    from sqlalchemy.exc import DBAPIError
+
+    from labcal.run import labdb
+
+    engine = labdb.server_engine(server)
+    try:
+        with engine.begin() as connection:
+            connection.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": labdb.PG_LOCK})
+            setup(connection)
+    except DBAPIError as exc:
+        if exc.connection_invalidated or labdb._is_connection_error(exc):
+            raise labdb.unreachable(server, exc) from None
+        return (f"the roles {BENCH} and {SERVER} and their policies are not set up "
+                f"({labdb._first_line(getattr(exc, 'orig', None) or exc)}); run labcal db upgrade as the lab "
+                "database's administrator")
+    finally:
+        engine.dispose()
+    return f"the roles {BENCH} and {SERVER} and their grants and policies are set up"
+
+
 def role_name(name: str, prefix: str = BENCH_PREFIX) -> str:
     """The role of a bench (``labcal_bench_``) or a server: the prefix and the name in lower-case
     letters, digits and underscores (PostgreSQL's unquoted identifiers), at most 63 bytes."""
@@ -204,6 +229,9 @@ def _grant(admin: ServerDatabase, name: str, group: str, role: str, password: st
             raise LabcalError(f"{password_file}: already exists; a password file is never overwritten "
                               "(choose another)")
     labdb.upgrade(admin)  # the schema current, the groups and their policies in place
+    note = set_up(admin)
+    if "not set up" in note:
+        raise LabcalError(f"{admin}: {note}")
     engine = labdb.server_engine(admin)
     try:
         with engine.begin() as connection:
