@@ -106,12 +106,13 @@ def chain_reasons(record: RunRecord, draft: Certificate | None, db: str | Path |
             f"{check.run} was {UNCHAINED}: nothing shows its readings unedited (give --unchained to "
             "approve it all the same, or measure it again)"]
     stated = None if draft is None or draft.data.journal is None else draft.data.journal.model_dump()
-    reasons = [why for why in [check.problem if stated is None else check.against(stated)] if why]
+    problem = check.problem if stated is None else check.against(stated)
+    reasons = [] if problem is None else [problem]
     if stated is not None and not reasons:
         for where, copy in copies(db, check.run_uuid):  # the lab's copy too, where it has one
-            problem = copy.against(stated)
-            if problem is not None:
-                reasons.append(f"{where}: {problem}")
+            elsewhere = copy.against(stated)
+            if elsewhere is not None:
+                reasons.append(f"{where}: {elsewhere}")
     return reasons
 
 
