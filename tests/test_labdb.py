@@ -131,8 +131,10 @@ def test_previous_database_is_refused_then_upgraded_resumed_and_its_certificate_
     proc = labcal(db, "resume", str(v0 / "stopped"), "--yes", "--no-report")
     assert proc.returncode == 0, proc.stderr
     after = point_rows(db, stopped_run)
-    assert len(after) == 64 and all(p[-1] is not None for p in after)  # 48 more, samples kept
-    assert after[:16] == earlier  # every earlier reading (values, samples, times) unchanged
+    width = len(earlier[0])  # the old file's columns, samples last (later revisions add columns after)
+    assert len(after) == 64 and all(p[width - 1] is not None for p in after)  # 48 more, samples kept
+    assert [p[:width] for p in after[:16]] == earlier  # every earlier reading (values, samples, times)
+    assert all(p[width:] == (None, None) for p in after)  # a run journaled before digests stays unchained
     with closing(raw(db)) as con:
         assert con.execute("SELECT status FROM runs WHERE id=?", (stopped_run,)).fetchone() == ("complete",)
     assert json.loads((v0 / "stopped" / "run.json").read_text())["status"] == "complete"

@@ -179,18 +179,20 @@ KILL_AT = """
 import os, signal, sys
 from labcal.run import journal
 seq, phase, armed = int(os.environ["KILL_SEQ"]), os.environ["KILL_PHASE"], []
-commit = journal.Journal._transaction
-def killing(self, statements):
-    done = commit(self, statements)
-    sql, args = statements[0]
-    if sql.startswith("INSERT INTO points") and args[1] == seq:
+record_point, event = journal.Journal.record_point, journal.Journal.event
+def killing_point(self, run_id, point, *args, **kwargs):
+    done = record_point(self, run_id, point, *args, **kwargs)  # committed when it returns
+    if point.seq == seq:
         armed.append(True)
         if phase == "point":
             os.kill(os.getpid(), signal.SIGKILL)
-    elif armed and sql.startswith("INSERT INTO events") and args[3] == "move":
+    return done
+def killing_event(self, run_id, kind, *args, **kwargs):
+    done = event(self, run_id, kind, *args, **kwargs)
+    if armed and kind == "move":
         os.kill(os.getpid(), signal.SIGKILL)
     return done
-journal.Journal._transaction = killing
+journal.Journal.record_point, journal.Journal.event = killing_point, killing_event
 from labcal.cli import main
 sys.argv[0] = "labcal"
 sys.exit(main())

@@ -136,6 +136,7 @@ class ApproveCertificate:
     db: str | None = None
     station: str | None = None  # the station file the certificate was issued with, if not the journaled
     signed_for: SignedFor | None = None
+    unchained: bool = False  # a run journaled before digests may be signed (the approver was told)
 
 
 @dataclass(frozen=True)
@@ -160,7 +161,7 @@ def approve_certificate(request: ApproveCertificate) -> Approved:
     signed_for = (None if request.signed_for is None
                   else (request.signed_for.user_id, request.signed_for.authentication))
     return Approved(approve_run(request.run_dir, request.by, request.role, request.key, request.db,
-                                request.station, signed_for))
+                                request.station, signed_for, request.unchained))
 
 
 @dataclass(frozen=True)
@@ -182,18 +183,21 @@ class Verified:
     dcc: str | None
     signed: str  # who approved and through what, in words (`labcal.documents.approvers.signed_note`)
     through_server: dict[str, Any] | None  # the lab server's signature for the approver (None: their own key)
+    journal: str = ""  # what the run's journal says: its chain holds up to the signed head, or why unchecked
 
     def to_json(self) -> dict[str, Any]:
         return {"file": self.file, "valid": True, "number": self.number, "approved_by": self.approved_by,
                 "role": self.role, "approved_utc": self.approved_utc.isoformat(),
                 "verified_against": self.verified_against, "dcc": self.dcc, "signed": self.signed,
-                "through_server": self.through_server}
+                "through_server": self.through_server, "journal": self.journal}
 
 
 def verify_certificate(request: VerifyCertificate) -> Verified:
-    """A certificate's signature checked (and its DCC's digest); one line when it fails. A read."""
+    """A certificate's signature checked (and its DCC's digest), and its run's journal recomputed up
+    to the chain's head it states; one line when either fails. A read."""
     from labcal.documents.approval import check_dcc, load_public_key, verify
     from labcal.documents.approvers import signed_note, verify_registered
+    from labcal.documents.approving import journal_verdict
     from labcal.documents.dcc import DCC_FILE
 
     cert = (verify_registered(request.file, request.db) if request.public_key is None
@@ -204,10 +208,11 @@ def verify_certificate(request: VerifyCertificate) -> Verified:
            Path(request.file).with_name(DCC_FILE) if approval.dcc_sha256 else None)
     if dcc is not None:
         check_dcc(cert, dcc)
+    journal = journal_verdict(cert, request.db, request.file)
     against = "the registered key" if request.public_key is None else "the given public key"
     return Verified(request.file, cert.number, approval.by, approval.role, approval.approved_utc,
                     against, None if dcc is None else str(dcc), signed_note(cert),
-                    None if approval.server is None else approval.server.model_dump())
+                    None if approval.server is None else approval.server.model_dump(), journal)
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,11 @@ signs accordingly:
 
 Approving is `labcal.app.certificates.approve_certificate` on the run's folder — the same use case as
 `labcal certificate approve`: it rebuilds what it signs from the journal, refuses a simulated run, an
-edited draft, an unregistered or revoked key, and writes the certificate, DCC and report again.
+edited draft, a journal whose chain of digests does not hold (`labcal.run.chain`), a run journaled
+before digests, an unregistered or revoked key, and writes the certificate, DCC and report again.
+
+On SQLite the lab database is one machine, one trust domain: the server approves only from a file
+(and folder) that only its owner may write, since whoever may write it may add a user or an approver.
 
 The run's folder must be reachable from the server (the same path, on a shared disk); otherwise the
 answer says where to approve instead. Approvals are serialised: two approvers pressing the button at
@@ -98,6 +102,12 @@ def _cannot(lab: LabDatabase, run_dir: str, key: Path | None, name: str) -> str 
                 f"in the lab file); {where}")
     if lab.file is None:
         return f"this server approves only on a SQLite lab database for now; {where}"
+    from labcal.run.labdb import others_may_write
+
+    loose = others_may_write(lab.file)
+    if loose is not None:  # whoever may write the file may write its users, approvers and journal
+        return (f"{lab.file}: others may write this SQLite lab database, so its users, approvers and "
+                f"readings are not the lab's to vouch for; the server signs nothing from it: {loose}")
     return None
 
 

@@ -36,7 +36,7 @@ def cmd_approve(args: argparse.Namespace) -> int:
     from labcal.app.certificates import ApproveCertificate, approve_certificate
 
     approved = approve_certificate(ApproveCertificate(args.run_dir, args.by, args.role, args.key, args.db,
-                                                      args.station))
+                                                      args.station, unchained=args.unchained))
     _share(args.db)
     if args.json:
         print_json(approved.to_json())
@@ -108,7 +108,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
            f"({v.through_server['signer']})")
     out.print(f"{v.file}: signature valid against {v.verified_against} — certificate {v.number}, {who} on "
               f"{v.approved_utc:%Y-%m-%d %H:%M} UTC"
-              + (f"; DCC {v.dcc} is the one signed" if v.dcc is not None else "; no DCC signed with it"))
+              + (f"; DCC {v.dcc} is the one signed" if v.dcc is not None else "; no DCC signed with it")
+              + f"; {v.journal}")
     return 0
 
 
@@ -138,6 +139,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     approve.add_argument("--station", metavar="STATION", help="the station file `labcal report --station` "
                                                               "took the Type B inputs from (default: the "
                                                               "station the run was journaled with)")
+    approve.add_argument("--unchained", action="store_true",
+                         help="approve a run journaled before digests (its journal is not tamper-evident; "
+                              "the certificate then states no chain)")
     add_db_option(approve)
     approve.add_argument("--json", action="store_true", help="print as JSON on stdout")
     approve.set_defaults(func=cmd_approve)

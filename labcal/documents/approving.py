@@ -9,6 +9,11 @@ them), and signs only a draft that the rebuild reproduces. Everything a draft st
 from the measurement — fit, uncertainties, budget, conformity, story — is recomputed, so an edited
 value shows as a difference whatever the editor did to the digest.
 
+The journal itself is checked too: its chain of digests (`labcal.run.chain`) is recomputed, in the
+station's journal and in the lab server's copy of the run, and must hold up to the head the draft
+states, which the signature then covers; a run journaled before digests is approved only when the
+approver says so (``--unchained``).
+
 A simulated run is never approved, a key must be registered, unrevoked, and registered to the name
 and role given (`labcal.documents.approvers`). Every reason that applies is named in one line, so
 the approver learns at once everything that stands in the way.
@@ -28,6 +33,7 @@ from labcal.documents.issuing import build_certificate
 from labcal.documents.report import CERTIFICATE, RunOutputs, fitted, replaced_by, write_documents
 from labcal.documents.uncertainty import bench_section, type_b_inputs
 from labcal.errors import LabcalError
+from labcal.run.chain import UNCHAINED, copies
 from labcal.run.record import RunRecord, load_run
 
 RELATIVE = 1e-9  # numbers a rebuild reproduces agree to rounding; an edit is far larger
@@ -53,7 +59,9 @@ def _stated_in_use(draft: Certificate) -> int | None:
 
 
 def rebuild(record: RunRecord, draft: Certificate, station: str | Path | None = None) -> Certificate:
-    """The certificate `labcal report` makes of the journal's run with the draft's issuing choices."""
+    """The certificate `labcal report` makes of the journal's run with the draft's issuing choices
+    (the journal's chain stated over as many records as the draft's: records journaled after the
+    draft was issued leave what it states true)."""
     fit, device, model_note = fitted(record)
     section = bench_section(record, station)
     admin = draft.administration
@@ -65,7 +73,8 @@ def rebuild(record: RunRecord, draft: Certificate, station: str | Path | None = 
         issued_utc=draft.issued_utc, inputs=type_b_inputs(section, record, device),
         monte_carlo=checks[0].trials if checks else 0, revision=draft.revision or 1, replaces=draft.replaces,
         section=section, item=item, device=device, model_note=model_note,
-        replaced=replaced_by(record.directory, draft))
+        replaced=replaced_by(record.directory, draft),
+        journal_records=draft.data.journal.records if draft.data.journal is not None else None)
 
 
 def differences(a: object, b: object, path: str = "") -> list[str]:
@@ -89,15 +98,41 @@ def _sections(paths: list[str]) -> str:
     return ", ".join(first.values())
 
 
+def chain_reasons(record: RunRecord, draft: Certificate | None, db: str | Path | None,
+                  unchained: bool = False) -> list[str]:
+    """Why the run's journal does not stand behind the draft (`labcal.run.chain`): a record of the
+    station's journal, or of the lab server's copy of the run, that differs from the chain; a chain
+    whose head is not the draft's; a run journaled before digests, unless ``unchained`` (the
+    approver has been told, and the certificate then states no chain)."""
+    check = record.chain
+    if check is None:
+        return []
+    if not check.chained:
+        return [] if unchained else [
+            f"{check.run} was {UNCHAINED}: nothing shows its readings unedited (give --unchained to "
+            "approve it all the same, or measure it again)"]
+    stated = None if draft is None or draft.data.journal is None else draft.data.journal.model_dump()
+    problem = check.problem if stated is None else check.against(stated)
+    reasons = [] if problem is None else [problem]
+    if stated is not None and not reasons:
+        for where, copy in copies(db, check.run_uuid):  # the lab's copy too, where it has one
+            elsewhere = copy.against(stated)
+            if elsewhere is not None:
+                reasons.append(f"{where}: {elsewhere}")
+    return reasons
+
+
 def approve_run(run_dir: str | Path, by: str, role: str, key_path: str | Path, db: str | Path | None = None,
-                station: str | Path | None = None, signed_for: tuple[int, Authentication] | None = None
-                ) -> RunOutputs:
+                station: str | Path | None = None, signed_for: tuple[int, Authentication] | None = None,
+                unchained: bool = False) -> RunOutputs:
     """Sign the run's draft certificate and write every document again, or one line naming every
-    reason it may not be signed: a simulated run, a draft the journal does not reproduce, a key that
-    is not registered, revoked, or registered to another name or role.
+    reason it may not be signed: a simulated run, a journal whose chain of digests does not hold or
+    is not the draft's, a draft the journal does not reproduce, a key that is not registered,
+    revoked, or registered to another name or role.
 
     ``signed_for``: (user id, how they authenticated) — the key is the lab server's, signing for
-    ``by``, an approver signed in to it (`labcal.app.server_approval`); the approval says so."""
+    ``by``, an approver signed in to it (`labcal.app.server_approval`); the approval says so.
+    ``unchained``: a run journaled before digests may be signed (never through the server)."""
     key = load_private_key(key_path)  # before anything is read or written
     server = None
     if signed_for is not None:
@@ -115,6 +150,8 @@ def approve_run(run_dir: str | Path, by: str, role: str, key_path: str | Path, d
     if draft is not None and draft.approval is not None:
         raise LabcalError(f"certificate {draft.number} is already approved by {draft.approval.by}; a change "
                           "is a new revision (`labcal report` issues it)")
+    chained = chain_reasons(record, draft, db, unchained)
+    reasons += chained
     if draft is not None:
         try:
             rebuilt = rebuild(record, draft, station)
@@ -123,6 +160,8 @@ def approve_run(run_dir: str | Path, by: str, role: str, key_path: str | Path, d
         else:
             found = differences({k: v for k, v in draft.to_json().items() if k != "digest"},
                                 {k: v for k, v in rebuilt.to_json().items() if k != "digest"})
+            if chained:  # said above, record by record
+                found = [f for f in found if not f.startswith("data.journal")]
             if found:
                 reasons.append(f"certificate.json is not what the journal gives (differs in "
                                f"{_sections(found)}): edited after issue, or issued with another "
@@ -135,3 +174,23 @@ def approve_run(run_dir: str | Path, by: str, role: str, key_path: str | Path, d
     cert = approve(draft, by, role, key, server=None if server is None else server.model_dump())
     fit, device, _ = fitted(record)
     return write_documents(cert, record, fit, device, db)
+
+
+def journal_verdict(cert: Certificate, db: str | Path | None, source: str) -> str:
+    """What the journal says of a signed certificate's run, in one clause (`certificate verify`):
+    its chain recomputed in every database here that holds the run, up to the head the certificate
+    states. A record that differs, or a head that is not the stated one, is one LabcalError line
+    naming it; a run journaled before digests is said to be so, neither passed nor failed."""
+    stated = cert.data.journal
+    if stated is None:
+        return f"its run was {UNCHAINED}"
+    found = copies(db, stated.run_uuid)
+    for where, check in found:
+        problem = check.against(stated.model_dump())
+        if problem is not None:
+            raise LabcalError(f"{source}: {where}: {problem}")
+    if not found:
+        return (f"its journal was not checked: no database here holds its run {stated.run_uuid} (--db names "
+                "the lab database)")
+    return "; ".join(f"{where}: {check.run}'s journal holds up to the signed head ({stated.records} records, "
+                     f"{stated.head[:16]}…)" for where, check in found)

@@ -96,10 +96,26 @@ class PlanRecord(Strict):
         return self
 
 
+def _absent(value: object) -> bool:
+    return value is None
+
+
+class JournalChainRecord(Strict):
+    """The run's journal as a chain of digests (`labcal.run.chain`): its first ``records`` records
+    after the manifest end in ``head``. Signed with the rest, it ties the approval to the journal's
+    every record, not only to the readings the fit used."""
+
+    run_uuid: str = Field(min_length=1)
+    records: int = Field(ge=0)
+    head: str = Field(pattern="^[0-9a-f]{64}$")
+
+
 class DataRecord(Strict):
     readings_sha256: str = Field(pattern="^[0-9a-f]{64}$")
     n_points: int = Field(ge=1)
     replicates: int = Field(ge=1)
+    # None: the run was journaled before digests (and certificates issued before it state none)
+    journal: JournalChainRecord | None = Field(default=None, exclude_if=_absent)
 
 
 class Environment(Strict):
@@ -199,10 +215,6 @@ class PlanAudit(Strict):
     zero_below: float
     misalignments: dict[str, Leak]
     figure_of_merit_usage_sqrt: float
-
-
-def _absent(value: object) -> bool:
-    return value is None
 
 
 class ClosedFormEnvelope(Strict):

@@ -346,7 +346,7 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
                       monte_carlo: int = 0, revision: int = 1, replaces: str | None = None,
                       section: CertificateSection | None = None, item: ItemGiven | None = None,
                       device: DeviceFit | None = None, model_note: str | None = None,
-                      replaced: Certificate | None = None) -> Certificate:
+                      replaced: Certificate | None = None, journal_records: int | None = None) -> Certificate:
     """The sealed certificate of a run's fit. ``serial``/``operator`` fill in what the run did not
     record (and may not contradict it); a dry run's instrument is SIMULATED. ``inputs``: the bench's
     Type B inputs (none: a Type A budget); ``monte_carlo``: trials of the JCGM 101 check (0: none);
@@ -418,7 +418,8 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
                  "toml": record.plan_text, "replicates": record.plan.replicates,
                  "mounts": record.plan.mounts, "points": record.plan.points},
         "data": {"readings_sha256": record.readings_sha256, "n_points": len(record.readings),
-                 "replicates": int(len(np.unique(record.readings.replicate)))},
+                 "replicates": int(len(np.unique(record.readings.replicate))),
+                 "journal": None if record.chain is None else record.chain.statement(journal_records)},
         "environment": _environment(record).model_dump(),
         "method": METHOD if device is None else METHOD_DEVICE,
         "statements": statements,

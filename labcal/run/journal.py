@@ -16,6 +16,7 @@ import hashlib
 import json
 import sqlite3
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 from datetime import UTC, datetime
 from pathlib import Path
@@ -26,7 +27,7 @@ from numpy.typing import NDArray
 from labcal.analysis.readings import Readings
 from labcal.config.lab import load_lab_config
 from labcal.errors import LabcalError
-from labcal.run import labdb
+from labcal.run import chain, labdb
 from labcal.run.labdb import lab_database
 
 
@@ -173,12 +174,14 @@ class Journal:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _transaction(self, statements: list[tuple[str, tuple]]) -> int | None:
-        """Run statements atomically; a crash leaves all of them or none."""
+    def _transaction(self, statements: list[tuple[str, tuple]] | Callable[[], list[tuple[str, tuple]]]
+                     ) -> int | None:
+        """Run statements atomically; a crash leaves all of them or none. A callable makes them
+        under the write lock (what they write depends on what the journal holds)."""
         last = None
         try:
             self.db.execute("BEGIN IMMEDIATE")
-            for sql, args in statements:
+            for sql, args in (statements() if callable(statements) else statements):
                 last = self.db.execute(sql, args).lastrowid
             self.db.execute("COMMIT")
         except BaseException as exc:
@@ -198,31 +201,58 @@ class Journal:
     def start_run(self, m: Manifest) -> int:
         """Journal a new run. It names its station and its number of steps here, in the journal
         itself, so that the lab's view (`labcal serve`) shows them on a SQLite lab database as on a
-        server, where `labcal.run.sync` copies them."""
+        server, where `labcal.run.sync` copies them. Its manifest's digest begins the run's chain
+        (`labcal.run.chain`)."""
+        values = {"uuid": str(uuid.uuid4()), "plan_name": m.plan_name, "plan_text": m.plan_text,
+                  "station_text": m.station_text, "software_version": m.software_version,
+                  "instrument_serial": m.instrument_serial, "device_id": m.device_id, "operator": m.operator,
+                  "settings": json.dumps(m.settings), "metadata": json.dumps(m.metadata),
+                  "started_utc": utc_now(), "station": m.station or station_name()}
         run_id = self._transaction([(
             "INSERT INTO runs (run_dir, plan_name, plan_text, plan_hash, station_text, station_hash,"
             " software_version, instrument_serial, device_id, operator, settings, metadata,"
-            " started_utc, status, uuid, station, points_total)"
-            " VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,'running',?,?,?)",
+            " started_utc, status, uuid, station, points_total, digest)"
+            " VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,'running',?,?,?,?)",
             (m.run_dir, m.plan_name, m.plan_text, sha256(m.plan_text), m.station_text,
              sha256(m.station_text), m.software_version, m.instrument_serial, m.device_id, m.operator,
-             json.dumps(m.settings), json.dumps(m.metadata), utc_now(), str(uuid.uuid4()),
-             m.station or station_name(),
-             m.points_total if m.points_total is not None else schedule_length(m.plan_text)),
+             values["settings"], values["metadata"], values["started_utc"], values["uuid"], values["station"],
+             m.points_total if m.points_total is not None else schedule_length(m.plan_text),
+             chain.manifest_digest(values)),
         )])
         assert run_id is not None  # an INSERT into a rowid table always sets lastrowid
         return run_id
 
+    def _link(self, run_id: int, kind: str, values: dict[str, object]) -> tuple[int | None, str | None]:
+        """The next record's link and digest in its run's chain, read inside the writing transaction
+        (another connection may have appended to the run: the sender's outage event); (None, None)
+        for a run journaled before digests, which stays unchained."""
+        run = self.db.execute("SELECT uuid, digest FROM runs WHERE id=?", (run_id,)).fetchone()
+        if run is None or run[1] is None:
+            return None, None
+        head = self.db.execute(
+            "SELECT link, digest FROM (SELECT link, digest FROM points WHERE run_id=:r AND link IS NOT NULL"
+            " ORDER BY link DESC LIMIT 1) UNION ALL SELECT link, digest FROM (SELECT link, digest FROM events"
+            " WHERE run_id=:r AND link IS NOT NULL ORDER BY link DESC LIMIT 1) ORDER BY link DESC LIMIT 1",
+            {"r": run_id}).fetchone()
+        link, previous = (1, run[1]) if head is None else (head[0] + 1, head[1])
+        return link, chain.digest(kind, run[0], link, previous, values)
+
     def record_point(self, run_id: int, point: PointRecord, samples: NDArray | None,
                      utc: str | None = None) -> None:
-        """The point and its raw samples in one transaction (``utc``: when it was measured; now)."""
+        """The point and its raw samples in one transaction (``utc``: when it was measured; now),
+        chained to the run's previous record."""
         names = [f.name for f in fields(PointRecord)]
-        values = [getattr(point, n) for n in names]
-        blob = None if samples is None else np.ascontiguousarray(samples, dtype="<f8").tobytes()
-        self._transaction([
-            (f"INSERT INTO points (run_id, {', '.join(names)}, utc, samples) VALUES "
-             f"(?, {', '.join('?' * len(names))}, ?, ?)", (run_id, *values, utc or utc_now(), blob)),
-        ])
+        values: dict[str, object] = {n: getattr(point, n) for n in names}
+        values["utc"] = utc or utc_now()
+        values["samples"] = None if samples is None else np.ascontiguousarray(samples, dtype="<f8").tobytes()
+        columns = [*names, "utc", "samples"]
+
+        def statements() -> list[tuple[str, tuple]]:
+            link, digest = self._link(run_id, "point", values)
+            return [(f"INSERT INTO points (run_id, {', '.join(columns)}, link, digest) VALUES "
+                     f"(?, {', '.join('?' * len(columns))}, ?, ?)",
+                     (run_id, *(values[c] for c in columns), link, digest))]
+        self._transaction(statements)
 
     def supersede(self, run_id: int, seq: int) -> None:
         """A point measured again in its own right (a check of the run's readings named it): its
@@ -231,10 +261,17 @@ class Journal:
 
     def event(self, run_id: int, kind: str, message: str, data: dict | None = None,
               station_time: float | None = None, utc: str | None = None) -> None:
-        self._transaction([("INSERT INTO events (run_id, utc, station_time, kind, message, data) "
-                            "VALUES (?,?,?,?,?,?)",
-                            (run_id, utc or utc_now(), station_time, kind, message,
-                             None if data is None else json.dumps(data)))])
+        """One event of the run, chained to its previous record."""
+        values: dict[str, object] = {"utc": utc or utc_now(), "station_time": station_time, "kind": kind,
+                                     "message": message, "data": None if data is None else json.dumps(data)}
+
+        def statements() -> list[tuple[str, tuple]]:
+            link, digest = self._link(run_id, "event", values)
+            return [("INSERT INTO events (run_id, utc, station_time, kind, message, data, link, digest) "
+                     "VALUES (?,?,?,?,?,?,?,?)",
+                     (run_id, values["utc"], values["station_time"], kind, message, values["data"], link,
+                      digest))]
+        self._transaction(statements)
 
     def finish(self, run_id: int, status: str, reason: str | None = None,
                exports: dict[str, str] | None = None) -> None:

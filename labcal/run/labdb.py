@@ -156,10 +156,7 @@ def connect(path: str | Path) -> sqlite3.Connection:
     synchronous=FULL, foreign keys on, autocommit (callers open their own transactions). A new
     file is created at the newest revision; one behind or ahead is refused (`refusal`)."""
     path = Path(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise LabcalError(f"{path.parent}: cannot create the database folder ({exc.strerror})") from None
+    owner_only(path)
     try:
         db = sqlite3.connect(path, timeout=10.0, isolation_level=None)
     except sqlite3.Error as exc:
@@ -181,6 +178,38 @@ def connect(path: str | Path) -> sqlite3.Connection:
         db.close()
         raise
     return db
+
+
+def owner_only(path: Path) -> None:
+    """A new database file (journal, lab file, backup) readable and writable by its owner only, in a
+    folder only its owner may enter where labcal makes the folder: a SQLite lab database is one
+    machine, one trust domain, and its files say so from the start (SQLite gives the -wal and -shm
+    files the database file's permissions). An existing file or folder is left as it is."""
+    if not path.parent.exists():
+        try:
+            path.parent.mkdir(parents=True, mode=0o700)
+        except FileExistsError:
+            pass
+        except OSError as exc:
+            raise LabcalError(f"{path.parent}: cannot create the database folder ({exc.strerror})") from None
+    try:
+        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+    except OSError:
+        pass  # it exists; or a read-only folder, say, which sqlite3 reports in `failure`'s words
+
+
+def others_may_write(path: Path) -> str | None:
+    """The chmod that would keep others from writing a SQLite lab database (None: only its owner
+    may): group or others may write the file, its -wal or -shm, or the folder it is in (where a
+    file can be replaced)."""
+    for item in (path, path.with_name(path.name + "-wal"), path.with_name(path.name + "-shm"), path.parent):
+        try:
+            mode = item.stat().st_mode
+        except FileNotFoundError:
+            continue
+        if mode & 0o022:
+            return f"chmod go-w {item}"
+    return None
 
 
 def failure(path: Path, exc: sqlite3.Error) -> LabcalError:
@@ -229,6 +258,7 @@ def _backup(path: Path, target: Path) -> None:
     """
     partial = target.with_name(target.name + ".partial")
     try:
+        owner_only(partial)
         with closing(sqlite3.connect(path, timeout=10.0)) as source, \
                 closing(sqlite3.connect(partial)) as copy:
             source.backup(copy)

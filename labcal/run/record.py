@@ -20,6 +20,7 @@ from labcal.config.plans import parse_plan
 from labcal.config.station import output_units
 from labcal.errors import LabcalError
 from labcal.run import exports
+from labcal.run.chain import ChainCheck, check_sqlite
 from labcal.run.lock import held_by
 from labcal.run.rundir import open_run, read_run_json
 
@@ -41,6 +42,7 @@ class RunRecord:
     fit: Fit | None = None
     device: DeviceFit | None = None  # the device model, where the points identify it
     model_note: str = ""  # which model fit.json holds, and why
+    chain: ChainCheck | None = None  # the journal's chain of digests, recomputed (`labcal.run.chain`)
 
     @property
     def simulated(self) -> bool:
@@ -86,9 +88,12 @@ def load_run(run_dir: str | Path) -> RunRecord:
         points = journal.points(row.id, status="ok")
         readings = replace(journal.readings(row.id), units=output_units(row.station_text))
         events = tuple(journal.events(row.id))
+        chain = check_sqlite(journal.db, row.id)
+    if chain.problem is not None:
+        notes.append(f"the journal was changed after it was written: {chain.problem}")
     plan = parse_plan(row.plan_text, f"run {row.id} plan")
     meta = {**info, **row.metadata, "status": row.status, "reason": row.reason,
             "started_utc": row.started_utc, "ended_utc": row.ended_utc, "settings": row.settings,
             "instrument_serial": row.instrument_serial, "operator": row.operator}
     return RunRecord(run_dir, readings, readings_digest(points), plan, row.plan_text, meta, tuple(notes),
-                     row.station_text, events, derived.fit, derived.device, derived.model_note)
+                     row.station_text, events, derived.fit, derived.device, derived.model_note, chain)

@@ -50,6 +50,8 @@ runs = Table(
     # revision 0006: the lab as a whole
     Column("station", Text),  # the station's name (its lab-wide identity), for the lab's view
     Column("points_total", Integer),  # every point of the run's schedule, for "N / TOTAL"
+    # revision 0008: the digest of the run's manifest, link 0 of its chain (`labcal.run.chain`)
+    Column("digest", Text),
     Index("runs_by_uuid", "uuid", unique=True),
 )
 
@@ -76,7 +78,10 @@ points = Table(
     Column("settle_s", Float),
     Column("settle_verdict", Text),
     Column("samples", LargeBinary),
+    Column("link", Integer),  # revision 0008: its place in the run's chain, and its chained digest
+    Column("digest", Text),
     PrimaryKeyConstraint("run_id", "seq"),
+    Index("points_by_link", "run_id", "link", unique=True),
 )
 
 events = Table(
@@ -89,8 +94,11 @@ events = Table(
     Column("message", Text, nullable=False),
     Column("data", Text),
     Column("origin_id", Integer),  # revision 0007: its id in the station's journal (NULL there)
+    Column("link", Integer),  # revision 0008: its place in the run's chain, and its chained digest
+    Column("digest", Text),
     Index("events_by_run", "run_id", "id"),
     Index("events_by_origin", "run_id", "origin_id", unique=True),
+    Index("events_by_link", "run_id", "link", unique=True),
 )
 
 certificates = Table(
@@ -185,6 +193,14 @@ sync_runs = Table(
     PrimaryKeyConstraint("target", "run_id"),
 )
 
+# Revision 0008: on a PostgreSQL lab database, the station each bench's role may append runs for
+# (`labcal db grant-station`); row-level security keys on it. Empty on SQLite.
+station_roles = Table(
+    "station_roles", METADATA,
+    Column("role", Text, primary_key=True),
+    Column("station", Text, nullable=False),
+)
+
 # Revision 0009: in a station's journal, the state of each record (certificates, device estimates,
 # approvers, settle pools) last sent to each lab database (``key``: the record's key, ``state``: the
 # columns that change when it does), and when everything had last been sent there (``synced_utc``):
@@ -205,4 +221,5 @@ sync_targets = Table(
 )
 
 __all__ = ["METADATA", "approvers", "certificates", "device_estimates", "events", "points", "run_exports",
-           "runs", "settle_pools", "sync_cursors", "sync_runs", "sync_sent", "sync_targets", "users"]
+           "runs", "settle_pools", "station_roles", "sync_cursors", "sync_runs", "sync_sent", "sync_targets",
+           "users"]

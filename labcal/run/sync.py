@@ -41,7 +41,7 @@ from labcal.run.labdb import lab_database
 if TYPE_CHECKING:
     from sqlalchemy.engine import Connection, Engine
 
-EVENT_COLUMNS = ("utc", "station_time", "kind", "message", "data")
+EVENT_COLUMNS = ("utc", "station_time", "kind", "message", "data", "link", "digest")
 BATCH = 500  # rows per statement: a catch-up after a long outage goes in bounded transactions
 POLL_S = 0.5  # how often the sender looks at the journal during a run
 BACKOFF_MAX_S = 10.0
@@ -495,21 +495,16 @@ class Background:
 def _run_event(journal: Path) -> Callable[[str], None]:
     """A journal event on the newest running run (the one this process measures)."""
     def record(message: str) -> None:
-        try:
-            with closing(labdb.connect(journal)) as db:
-                row = db.execute("SELECT max(id) FROM runs WHERE status='running'").fetchone()
+        from labcal.run.journal import Journal
+
+        try:  # through the journal's writer: the event takes its place in the run's chain
+            with Journal(journal) as writer:
+                row = writer.db.execute("SELECT max(id) FROM runs WHERE status='running'").fetchone()
                 if row and row[0] is not None:
-                    db.execute("INSERT INTO events (run_id, utc, kind, message) VALUES (?,?,?,?)",
-                               (row[0], _utc(), "lab_database", message))
+                    writer.event(row[0], "lab_database", message)
         except (LabcalError, sqlite3.Error):
             pass  # the console has said it; the journal's own writer is what matters
     return record
-
-
-def _utc() -> str:
-    from labcal.run.journal import utc_now
-
-    return utc_now()
 
 
 def ready(db: str | Path | None) -> None:

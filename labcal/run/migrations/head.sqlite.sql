@@ -38,7 +38,7 @@ CREATE TABLE events (
 	station_time FLOAT, 
 	kind TEXT NOT NULL, 
 	message TEXT NOT NULL, 
-	data TEXT, origin_id INTEGER, 
+	data TEXT, origin_id INTEGER, link INTEGER, digest TEXT, 
 	PRIMARY KEY (id), 
 	FOREIGN KEY(run_id) REFERENCES runs (id)
 );
@@ -67,7 +67,7 @@ CREATE TABLE points (
 	temp_c FLOAT, 
 	settle_s FLOAT, 
 	settle_verdict TEXT, 
-	samples BLOB, 
+	samples BLOB, link INTEGER, digest TEXT, 
 	PRIMARY KEY (run_id, seq), 
 	FOREIGN KEY(run_id) REFERENCES runs (id)
 );
@@ -95,7 +95,7 @@ CREATE TABLE runs (
 	started_utc TEXT NOT NULL, 
 	status TEXT NOT NULL, 
 	reason TEXT, 
-	ended_utc TEXT, uuid TEXT, station TEXT, points_total INTEGER, 
+	ended_utc TEXT, uuid TEXT, station TEXT, points_total INTEGER, digest TEXT, 
 	PRIMARY KEY (id)
 );
 CREATE TABLE settle_pools (
@@ -107,6 +107,11 @@ CREATE TABLE settle_pools (
 	sums BLOB NOT NULL, 
 	updated_utc TEXT NOT NULL, 
 	PRIMARY KEY (pool_key)
+);
+CREATE TABLE station_roles (
+	role TEXT NOT NULL, 
+	station TEXT NOT NULL, 
+	PRIMARY KEY (role)
 );
 CREATE TABLE sync_cursors (
 	target TEXT NOT NULL, 
@@ -152,3 +157,5 @@ CREATE UNIQUE INDEX runs_by_uuid ON runs (uuid);
 CREATE INDEX device_estimates_by_date ON device_estimates (device_id, calibrated_utc);
 CREATE UNIQUE INDEX approvers_active_name ON approvers (name) WHERE revoked_utc IS NULL;
 CREATE UNIQUE INDEX events_by_origin ON events (run_id, origin_id);
+CREATE UNIQUE INDEX points_by_link ON points (run_id, link);
+CREATE UNIQUE INDEX events_by_link ON events (run_id, link);
