@@ -733,10 +733,10 @@ class Sequencer:
                 new = Step(seq, old.replicate, old.mount, old.pitch_deg, old.roll_deg, block_start=False)
                 seq += 1
                 if not self.until_done(self.point, new):  # it settled: it takes the old one's place
-                    with self.interrupts.critical():
+                    with self.interrupts.critical():  # the chained event first: it vouches for the mark
+                        self.note("remeasured", f"point {old.seq} measured again as point {new.seq}",
+                                  seq=old.seq, by=new.seq)
                         self.journal.supersede(self.run_id, old.seq)
-                    self.note("remeasured", f"point {old.seq} measured again as point {new.seq}",
-                              seq=old.seq, by=new.seq)
 
     def stop_tables(self, cause: BaseException) -> None:
         """Stop both tables, uninterrupted, and journal whether the stop reached them. A failed

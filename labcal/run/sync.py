@@ -599,3 +599,9 @@ def send_now(db: str | Path | None) -> str | None:
     finally:
         sender.close()
     return None
+
+
+def _utc() -> str:
+    from labcal.run.journal import utc_now
+
+    return utc_now()
