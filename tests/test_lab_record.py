@@ -27,6 +27,7 @@ from pathlib import Path
 import psycopg
 import pytest
 from services import free_port
+from simulated_runs import days_ago
 
 from labcal.cli import main
 from labcal.run.labquery import lab_number_of
@@ -334,6 +335,11 @@ def test_bench_2s_device_estimates_drive_plan_optimize_after_its_journal_is_dele
         sources = [r[0] for r in conn.execute("SELECT source FROM device_estimates "
                                               "WHERE device_id = 'SIMULATED' ORDER BY calibrated_utc")]
     assert sources == ["run1", last.name]
+    earlier = days_ago(3)  # two estimates of one day are one sitting: the first from three days before
+    with psycopg.connect(two.url) as conn:
+        conn.execute("UPDATE device_estimates SET calibrated_utc = %s, document = "
+                     "jsonb_set(document::jsonb, '{calibrated_utc}', to_jsonb(%s::text))::text "
+                     "WHERE source = 'run1'", (earlier, earlier))
     two.journal.unlink()
     for wal in two.journal.parent.glob("journal.sqlite-*"):
         wal.unlink()

@@ -42,9 +42,15 @@ SERVER = "labcal_server"
 BENCH_PREFIX = "labcal_bench_"
 
 # What each group may do, table by table (a table this labcal's schema lacks is passed over)
+# The approvers register is read by every bench (`certificate verify` and `attitude --cert` check a
+# signature against it): names, roles and public keys, nothing secret; only the administrator writes it.
 BENCH_READS = ("alembic_version", "runs", "points", "events", "certificates", "run_exports",
-               "device_estimates", "settle_pools", "station_roles")
-BENCH_APPENDS = ("runs", "points", "events", "certificates")
+               "device_estimates", "settle_pools", "station_roles", "approvers")
+BENCH_APPENDS = ("runs", "points", "events", "certificates", "device_estimates", "settle_pools")
+# What a bench sends again when it changes (the sync's records): a certificate approved at the bench
+# with a registered approver's own key (its signature, not the role, vouches for it), a device estimate
+# stored again, a settle pool that grew. Row-level security does not yet tie these to the station.
+BENCH_REPLACES = ("certificates", "device_estimates", "settle_pools")
 BENCH_CLOSES_RUNS = ("status", "reason", "ended_utc", "points_total")  # what a sync updates of its run
 SERVER_WRITES = ("certificates", "approvals")
 SEQUENCES = (("runs", "id"), ("events", "id"))  # serial keys a bench's inserts draw from
@@ -80,10 +86,14 @@ def grants(tables: set[str]) -> list[str]:
                   f"GRANT SELECT ON {present(BENCH_READS)} TO {BENCH}",
                   f"GRANT INSERT ON {present(BENCH_APPENDS)} TO {BENCH}",
                   f"GRANT UPDATE ({', '.join(BENCH_CLOSES_RUNS)}) ON runs TO {BENCH}",
+                  f"GRANT UPDATE ON {present(BENCH_REPLACES)} TO {BENCH}",
                   f"GRANT SELECT ON {', '.join(sorted(tables))} TO {SERVER}",
                   f"GRANT INSERT, UPDATE ON {present(SERVER_WRITES)} TO {SERVER}"]
     statements += [f"GRANT USAGE ON SEQUENCE {sequence} TO {BENCH}" for sequence in
                    (f"{table}_{column}_seq" for table, column in SEQUENCES)]
+    # the lab's run number is max + 1 under a lock, and the column's sequence is moved past it
+    # (`labcal.run.sync.lab_number`): setval needs UPDATE on the sequence
+    statements.append(f"GRANT UPDATE ON SEQUENCE runs_id_seq TO {BENCH}")
     for table in sorted({t for t, _, _ in POLICIES}):
         statements.append(f"ALTER TABLE {table} ENABLE ROW LEVEL SECURITY")
     for table, name, definition in POLICIES:

@@ -411,6 +411,13 @@ def _count(result: object, at_most: int) -> int:
     return count if isinstance(count, int) and count >= 0 else at_most
 
 
+def is_refusal(exc: BaseException) -> bool:
+    """The lab's server refused this bench's role a table (SQLSTATE 42501, insufficient privilege):
+    what a bench may write is the administrator's grant (`labcal.run.roles`), not retried."""
+    original = getattr(exc, "orig", None) or exc
+    return getattr(original, "sqlstate", None) == "42501"
+
+
 def is_outage(exc: BaseException) -> bool:
     """A server that cannot be reached (or went away mid-transaction): retried, not fatal."""
     from sqlalchemy.exc import DBAPIError, OperationalError
@@ -536,7 +543,7 @@ def receive(db: str | Path | None) -> dict[str, int]:
     try:
         return sender.pull()
     except Exception as exc:
-        if not is_outage(exc):
+        if not (is_outage(exc) or is_refusal(exc)):
             raise
         return {}
     finally:
@@ -591,9 +598,12 @@ def send_now(db: str | Path | None) -> str | None:
     try:
         sender.push()
     except Exception as exc:
+        why = labdb._first_line(getattr(exc, "orig", None) or exc)
+        if is_refusal(exc):
+            return (f"the lab database {where} refuses this bench's role that change ({why}): the lab's "
+                    f"administrator makes it there; the journal {journal} keeps it")
         if not is_outage(exc):
             raise
-        why = labdb._first_line(getattr(exc, "orig", None) or exc)
         return (f"the lab database {where} is unreachable ({why}); the journal {journal} keeps it for "
                 "labcal sync")
     finally:
