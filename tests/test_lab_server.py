@@ -199,14 +199,19 @@ def test_pages_need_a_sign_in(lab):
 
 
 def test_the_session_cookie_is_httponly_strict_and_renewed_at_sign_in(lab):
+    """No session before sign-in (the form's CSRF token is a cookie of its own); a new session id at
+    every sign-in; a forged one is refused."""
     client = httpx.Client(base_url=lab["url"], timeout=15)
     form = client.get("/login")
-    before = client.cookies["labcal_session"]
+    assert "labcal_session" not in client.cookies and "labcal_login" in client.cookies
     signed = client.post("/login", data={"name": "vic", "password": PASSWORD["vic"],
                                          "csrf": _csrf(form.text)})
     cookie = signed.headers["set-cookie"]
     assert "HttpOnly" in cookie and "SameSite=strict" in cookie.replace("Strict", "strict")
-    assert client.cookies["labcal_session"] != before  # a new session id at sign-in
+    before = client.cookies["labcal_session"]
+    again = client.post("/login", data={"name": "vic", "password": PASSWORD["vic"],
+                                        "csrf": _csrf(client.get("/login").text)})
+    assert again.status_code == 303 and client.cookies["labcal_session"] != before  # renewed
     assert client.get("/").status_code == 200 and STATIONS[1] in client.get("/").text
     forged = httpx.get(lab["url"] + "/", cookies={"labcal_session": before[:-1] + "0"}, timeout=10)
     assert forged.status_code == 303

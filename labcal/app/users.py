@@ -21,19 +21,24 @@ disabled user's password, token and open web sessions stop working at once.
 from __future__ import annotations
 
 import hashlib
+import logging
 import secrets
+import threading
 from dataclasses import dataclass
 from datetime import UTC, datetime
 
 from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 
+from labcal.app import audit
 from labcal.app.labdatabase import LabDatabase
 from labcal.errors import LabcalError
 from labcal.run.schema import users
 
+LOG = logging.getLogger("labcal.server")
 ROLES = ("technician", "approver", "viewer")
 APPROVER = "approver"
+VIEWER = "viewer"
 NAME_MAX = 64
 
 
@@ -125,6 +130,7 @@ def add(lab: LabDatabase, request: AddUser) -> AddedUser:
             user_id = key[0]
     except IntegrityError:  # added meanwhile by someone else
         raise LabcalError(f"{name}: added meanwhile by someone else (`labcal user list`)") from None
+    audit.record(lab, audit.by_command(audit.USER_ADDED, name, f"role {role}"))
     return AddedUser(User(int(user_id), name, role, row["created_utc"], None), token)
 
 
@@ -152,6 +158,7 @@ def disable(lab: LabDatabase, name: str) -> User:
                 raise LabcalError(f"{name}: already disabled on {row[0]}")
             known = [r[0] for r in conn.execute(select(users.c.name).order_by(users.c.id))]
             raise LabcalError(f"{name}: no such user; users: {', '.join(known) if known else 'none'}")
+    audit.record(lab, audit.by_command(audit.USER_DISABLED, name))
     found = named(lab, name)
     assert found is not None
     return found
@@ -170,22 +177,92 @@ def by_token(lab: LabDatabase, token: str) -> User | None:
 # A hash of a password nobody has: a name that does not exist costs the same argon2 verification as
 # one that does, so the login's timing does not tell which names exist.
 _DUMMY: list[str] = []
+# argon2id at its default cost holds 64 MiB while it runs: at most this many at once in a process,
+# so that a crowd of sign-ins cannot take the server's memory (40 at once took 2.6 GiB) nor every
+# worker thread; the others are told to come back (`Busy`) rather than queued.
+HASHES_AT_ONCE = 2
+_HASHING = threading.BoundedSemaphore(HASHES_AT_ONCE)
+
+
+class Busy(LabcalError):
+    """Every password-hashing slot is in use: try again in a moment."""
 
 
 def by_password(lab: LabDatabase, name: str, password: str) -> User | None:
-    """The active user ``name`` if ``password`` is theirs, else None."""
+    """The active user ``name`` if ``password`` is theirs, else None; `Busy` when `HASHES_AT_ONCE`
+    hashes are already running. No throttling: the server asks `check_password`."""
     from argon2.exceptions import InvalidHashError, VerificationError
 
     hasher = _hasher()
     with lab.engine.connect() as conn:
         row = conn.execute(select(*COLUMNS, users.c.password_hash)
                            .where(users.c.name == name.strip())).first()
-    if not _DUMMY:
-        _DUMMY.append(hasher.hash(secrets.token_hex(16)))
-    stored = _DUMMY[0] if row is None else row[-1]
+    if not _HASHING.acquire(blocking=False):
+        raise Busy("the server is checking other passwords; try again in a moment")
     try:
+        if not _DUMMY:
+            _DUMMY.append(hasher.hash(secrets.token_hex(16)))
+        stored = _DUMMY[0] if row is None else row[-1]
         hasher.verify(stored, password)
     except (VerificationError, InvalidHashError):
         return None
+    finally:
+        _HASHING.release()
     user = None if row is None else User(*row[:-1])
     return user if user is not None and user.active else None
+
+
+@dataclass(frozen=True)
+class PasswordCheck:
+    name: str
+    password: str
+    client: str | None  # where the attempt comes from (for the audit trail)
+    signature: bool = False  # the password given again to sign an approval (not a sign-in)
+
+
+@dataclass(frozen=True)
+class Checked:
+    user: User | None  # None: refused
+    locked: bool = False  # refused unheard: the account is locked (`labcal user unlock`)
+    wait_s: float = 0.0  # the account must wait this long before its next guess
+    heard: bool = False  # the password was checked (and was wrong, when there is no user)
+
+
+def check_password(lab: LabDatabase, request: PasswordCheck) -> Checked:
+    """A password checked for a sign-in or a signature, throttled per account: after
+    `audit.FREE_FAILURES` consecutive failures each guess must wait (doubling), after
+    `audit.LOCK_AFTER` the account is locked until an administrator unlocks it. A refused guess is
+    not hashed at all. Every check is in the audit trail; failures are also logged."""
+    account = request.name.strip()
+    state = audit.account_state(lab, account)
+    if state.locked:
+        return Checked(None, locked=True)
+    if state.wait_s > 0:
+        return Checked(None, wait_s=state.wait_s)
+    user = by_password(lab, account, request.password)
+    what = "signature" if request.signature else "sign-in"
+    if user is not None:
+        audit.record(lab, audit.Entry(audit.SIGNATURE_GIVEN if request.signature else audit.SIGNED_IN,
+                                      account, account, request.client))
+        return Checked(user, heard=True)
+    failures = state.failures + 1
+    kind = audit.SIGNATURE_FAILED if request.signature else audit.SIGN_IN_FAILED
+    audit.record(lab, audit.Entry(kind, account, None, request.client, f"failure {failures} in a row"))
+    LOG.warning("%s of %r from %s failed (%d in a row)", what, account, request.client, failures)
+    if failures >= audit.LOCK_AFTER:
+        audit.record(lab, audit.Entry(audit.LOCKED, account, None, request.client,
+                                      f"{failures} failed password checks in a row"))
+        LOG.warning("%r locked out after %d failed password checks in a row", account, failures)
+        return Checked(None, locked=True, heard=True)
+    return Checked(None, wait_s=audit.wait_after(failures), heard=True)
+
+
+def unlock(lab: LabDatabase, name: str) -> audit.AccountState:
+    """Lift ``name``'s lockout (and forget their run of failures), by the command line; their state
+    before."""
+    if named(lab, name) is None:
+        raise LabcalError(f"{name}: no such user (`labcal user list`)")
+    before = audit.account_state(lab, name)
+    audit.record(lab, audit.by_command(audit.UNLOCKED, name, "was locked" if before.locked
+                                       else f"after {before.failures} failures in a row"))
+    return before

@@ -2,7 +2,7 @@ CREATE TABLE alembic_version (
 	version_num VARCHAR(32) NOT NULL, 
 	CONSTRAINT alembic_version_pkc PRIMARY KEY (version_num)
 );
-INSERT INTO "alembic_version" VALUES('0007');
+INSERT INTO "alembic_version" VALUES('0010');
 CREATE TABLE approvers (
 	id INTEGER NOT NULL, 
 	name TEXT NOT NULL, 
@@ -13,6 +13,19 @@ CREATE TABLE approvers (
 	revoked_utc TEXT, 
 	PRIMARY KEY (id), 
 	UNIQUE (key_id)
+);
+CREATE TABLE audit (
+	id INTEGER NOT NULL, 
+	utc TEXT NOT NULL, 
+	kind TEXT NOT NULL, 
+	account TEXT, 
+	actor TEXT, 
+	client TEXT, 
+	detail TEXT, 
+	prev TEXT NOT NULL, 
+	digest TEXT NOT NULL, 
+	PRIMARY KEY (id), 
+	UNIQUE (prev)
 );
 CREATE TABLE certificates (
 	certificate_id TEXT NOT NULL, 
@@ -129,7 +142,7 @@ CREATE TABLE users (
 	password_hash TEXT NOT NULL, 
 	token_hash TEXT NOT NULL, 
 	created_utc TEXT NOT NULL, 
-	disabled_utc TEXT, 
+	disabled_utc TEXT, token_utc TEXT, 
 	PRIMARY KEY (id), 
 	UNIQUE (name), 
 	UNIQUE (token_hash)
@@ -140,3 +153,4 @@ CREATE UNIQUE INDEX runs_by_uuid ON runs (uuid);
 CREATE INDEX device_estimates_by_date ON device_estimates (device_id, calibrated_utc);
 CREATE UNIQUE INDEX approvers_active_name ON approvers (name) WHERE revoked_utc IS NULL;
 CREATE UNIQUE INDEX events_by_origin ON events (run_id, origin_id);
+CREATE INDEX audit_by_account ON audit (account, id);
