@@ -34,8 +34,8 @@ def lab(tmp_path_factory):
     assert main(["certificate", "keygen", "--out", str(base / "lab")]) == 0
     assert main(["certificate", "approvers", "add", "ada", "--role", "Technical manager", "--public-key",
                  str(base / "lab.pub"), "--db", str(db)]) == 0
-    tokens = {"ada": add_user(str(db), "ada", "approver", "ada-pw"),
-              "vic": add_user(str(db), "vic", "viewer", "vic-pw")}
+    tokens = {"ada": add_user(str(db), "ada", "approver", "ada's passphrase"),
+              "vic": add_user(str(db), "vic", "viewer", "vic's passphrase")}
     with served(str(db), "--key", str(base / "lab.key")) as url:
         yield {"url": url, "db": db, "run_dir": run_dir, "tokens": tokens}
 

@@ -52,7 +52,7 @@ RESETS = (SIGNED_IN, SIGNATURE_GIVEN, UNLOCKED, PASSWORD_CHANGED)  # the end of 
 
 FREE_FAILURES = 3  # consecutive failures an account may have before it must wait
 MAX_WAIT_S = 300.0  # the longest wait between two guesses, before the lockout
-LOCK_AFTER = 10  # consecutive failures that lock the account until an administrator unlocks it
+LOCK_AFTER = 6  # consecutive failures that lock the account until an administrator unlocks it
 APPEND_TRIES = 20
 
 

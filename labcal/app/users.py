@@ -22,10 +22,13 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import os
 import secrets
 import threading
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
+from functools import cache
+from pathlib import Path
 
 from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
@@ -40,6 +43,13 @@ ROLES = ("technician", "approver", "viewer")
 APPROVER = "approver"
 VIEWER = "viewer"
 NAME_MAX = 64
+# OWASP ASVS 4.0.3 V2.1: a length floor and no common password, no composition rules. An approver's
+# password signs certificates: 12 characters (V2.1.1); the others' only read: 8 (NIST SP 800-63B
+# §5.1.1.2's floor).
+MIN_LENGTH = {APPROVER: 12}
+MIN_LENGTH_OTHERS = 8
+COMMON = Path(__file__).with_name("common_passwords.txt")
+TOKEN_DAYS = 365  # an API token older than this no longer works (`labcal user token` issues a new one)
 
 
 @dataclass(frozen=True)
@@ -85,6 +95,22 @@ def _valid_name(name: str) -> str:
     return name
 
 
+@cache
+def _common() -> frozenset[str]:
+    lines = COMMON.read_text(encoding="utf-8").splitlines()
+    return frozenset(line.casefold() for line in lines if line and not line.startswith("#"))
+
+
+def password_problem(password: str, role: str, name: str) -> str | None:
+    """Why ``password`` may not be ``name``'s (a ``role``), or None."""
+    least = MIN_LENGTH.get(role, MIN_LENGTH_OTHERS)
+    if len(password) < least:
+        return f"a password of a{'n' if role[0] in 'aeiou' else ''} {role} has at least {least} characters"
+    if password.casefold() in _common() or password.casefold() == name.strip().casefold():
+        return "that password is among the most common ones (or is the name): choose another"
+    return None
+
+
 def _valid_role(role: str) -> str:
     if role not in ROLES:
         raise LabcalError(f"{role!r}: the role is one of {', '.join(ROLES)}")
@@ -106,6 +132,9 @@ class AddUser:
         _valid_role(self.role)
         if not self.password:
             raise LabcalError("the password may not be empty")
+        problem = password_problem(self.password, self.role, self.name)
+        if problem:
+            raise LabcalError(f"{problem}; nothing was added")
 
 
 @dataclass(frozen=True)
@@ -118,8 +147,11 @@ def add(lab: LabDatabase, request: AddUser) -> AddedUser:
     """Add the user; returns them with their API token, which is not kept and cannot be shown again."""
     name, role, password = _valid_name(request.name), _valid_role(request.role), request.password
     token = secrets.token_urlsafe(32)  # 32 random bytes
-    row = {"name": name, "role": role, "password_hash": _hasher().hash(password),
-           "token_hash": token_hash(token), "created_utc": _now(), "disabled_utc": None}
+    with _HASHING:
+        hashed = _hasher().hash(password)
+    now = _now()
+    row = {"name": name, "role": role, "password_hash": hashed, "token_hash": token_hash(token),
+           "created_utc": now, "disabled_utc": None, "token_utc": now}
     try:
         with lab.engine.begin() as conn:
             if conn.execute(select(users.c.id).where(users.c.name == name)).first() is not None:
@@ -164,14 +196,54 @@ def disable(lab: LabDatabase, name: str) -> User:
     return found
 
 
-def by_token(lab: LabDatabase, token: str) -> User | None:
-    """The active user whose API token this is, else None."""
+def by_token(lab: LabDatabase, token: str, days: float = TOKEN_DAYS) -> User | None:
+    """The active user whose API token this is, if it was issued less than ``days`` ago; else None."""
     if not token:
         return None
     with lab.engine.connect() as conn:
-        row = conn.execute(select(*COLUMNS).where(users.c.token_hash == token_hash(token))).first()
-    user = None if row is None else User(*row)
-    return user if user is not None and user.active else None
+        row = conn.execute(select(*COLUMNS, users.c.token_utc)
+                           .where(users.c.token_hash == token_hash(token))).first()
+    if row is None:
+        return None
+    user, issued = User(*row[:-1]), datetime.fromisoformat(row[-1] or row.created_utc)
+    if datetime.now(UTC) - issued > timedelta(days=days):
+        return None
+    return user if user.active else None
+
+
+def _existing(lab: LabDatabase, name: str) -> User:
+    found = named(lab, name)
+    if found is None:
+        raise LabcalError(f"{name}: no such user (`labcal user list`)")
+    return found
+
+
+def change_password(lab: LabDatabase, name: str, password: str) -> User:
+    """Give ``name`` a new password (by the command line): the policy holds, the old one stops
+    working, and the account's run of failures (and a lockout) ends."""
+    user = _existing(lab, name)
+    problem = password_problem(password, user.role, name)
+    if problem:
+        raise LabcalError(f"{problem}; the password is unchanged")
+    with _HASHING:
+        hashed = _hasher().hash(password)
+    with lab.engine.begin() as conn:
+        conn.execute(update(users).where(users.c.name == name).values(password_hash=hashed))
+    audit.record(lab, audit.by_command(audit.PASSWORD_CHANGED, name))
+    return user
+
+
+def new_token(lab: LabDatabase, name: str) -> AddedUser:
+    """Issue ``name`` a new API token (by the command line); the old one stops working at once."""
+    user = _existing(lab, name)
+    if not user.active:
+        raise LabcalError(f"{name}: disabled on {user.disabled_utc}; a disabled user gets no token")
+    token = secrets.token_urlsafe(32)
+    with lab.engine.begin() as conn:
+        conn.execute(update(users).where(users.c.name == name)
+                     .values(token_hash=token_hash(token), token_utc=_now()))
+    audit.record(lab, audit.by_command(audit.TOKEN_ISSUED, name, "the previous token no longer works"))
+    return AddedUser(user, token)
 
 
 # A hash of a password nobody has: a name that does not exist costs the same argon2 verification as
@@ -179,8 +251,9 @@ def by_token(lab: LabDatabase, token: str) -> User | None:
 _DUMMY: list[str] = []
 # argon2id at its default cost holds 64 MiB while it runs: at most this many at once in a process,
 # so that a crowd of sign-ins cannot take the server's memory (40 at once took 2.6 GiB) nor every
-# worker thread; the others are told to come back (`Busy`) rather than queued.
-HASHES_AT_ONCE = 2
+# worker thread, and half the cores stay free for everyone else (argon2 releases the GIL and takes a
+# core while it runs); the others are told to come back (`Busy`) rather than queued.
+HASHES_AT_ONCE = max(1, (os.cpu_count() or 2) // 2)
 _HASHING = threading.BoundedSemaphore(HASHES_AT_ONCE)
 
 
@@ -260,8 +333,7 @@ def check_password(lab: LabDatabase, request: PasswordCheck) -> Checked:
 def unlock(lab: LabDatabase, name: str) -> audit.AccountState:
     """Lift ``name``'s lockout (and forget their run of failures), by the command line; their state
     before."""
-    if named(lab, name) is None:
-        raise LabcalError(f"{name}: no such user (`labcal user list`)")
+    _existing(lab, name)
     before = audit.account_state(lab, name)
     audit.record(lab, audit.by_command(audit.UNLOCKED, name, "was locked" if before.locked
                                        else f"after {before.failures} failures in a row"))

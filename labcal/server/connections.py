@@ -23,7 +23,9 @@ from collections import OrderedDict
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 HEAD_S = 10.0
-RESERVED_FILES = 128  # kept for the database, the templates, the static files and the logs
+BACKLOG = 64  # connections asyncio may accept in one go, before any of them is counted here
+RESERVED_FILES = 128 + BACKLOG  # kept for the database, the templates, the static files and the logs,
+# and for the connections accepted but not yet counted
 WANTED_FILES = 65_536
 
 

@@ -22,7 +22,7 @@ from labcal.app.labdatabase import OpenLab, open_lab
 from labcal.app.server_approval import server_key
 from labcal.errors import LabcalError
 from labcal.server.app import ServerSettings, create_app
-from labcal.server.connections import connection_limit, guarded_protocol
+from labcal.server.connections import BACKLOG, connection_limit, guarded_protocol
 from labcal.server.sessions import IDLE_S, Sessions
 
 GRACE_S = 2.0  # open event streams are cut this long after Ctrl-C
@@ -100,7 +100,7 @@ def listen(host: str, port: int) -> socket.socket:
         sock.close()
         raise LabcalError(f"{host}:{port}: cannot listen there ({exc.strerror}); choose another --port "
                           "(0: any free one)") from None
-    sock.listen(128)
+    sock.listen(BACKLOG)
     return sock
 
 
@@ -119,7 +119,7 @@ def serve(settings: ServerSettings, host: str, port: int, listening: Callable[[s
     config = uvicorn.Config(create_app(settings), log_level="warning", timeout_graceful_shutdown=int(GRACE_S),
                             proxy_headers=proxy is not None, forwarded_allow_ips=proxy or "127.0.0.1",
                             server_header=False, timeout_keep_alive=KEEP_ALIVE_S,
-                            http=guarded_protocol(connection_limit()),
+                            http=guarded_protocol(connection_limit()), backlog=BACKLOG,
                             ssl_certfile=transport.certfile, ssl_keyfile=transport.keyfile)
     server = uvicorn.Server(config)
     listening(url_of(sock, transport.tls))
