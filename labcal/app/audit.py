@@ -25,7 +25,7 @@ import socket
 from dataclasses import dataclass
 from datetime import UTC, datetime
 
-from sqlalchemy import desc, select
+from sqlalchemy import desc, func, select
 from sqlalchemy.exc import IntegrityError
 
 from labcal.app.labdatabase import LabDatabase
@@ -133,6 +133,11 @@ def newest(lab: LabDatabase, limit: int = 200, before: int | None = None) -> lis
         query = query.where(audit.c.id < before)
     with lab.engine.connect() as conn:
         return [_row(r) for r in conn.execute(query)]
+
+
+def count(lab: LabDatabase) -> int:
+    with lab.engine.connect() as conn:
+        return int(conn.execute(select(func.count()).select_from(audit)).scalar_one())
 
 
 def verify(lab: LabDatabase) -> int | None:

@@ -13,6 +13,22 @@ if TYPE_CHECKING:
 
     from labcal.app.histories import History
 
+def literal(value: object) -> str:
+    """``value`` as Rich prints it, character for character: a serial ``ACC[/x]`` or a folder
+    ``run[1]`` is text, not markup (unescaped, the first crashed the console after a run)."""
+    from rich.markup import escape
+
+    return escape(str(value))
+
+
+def command_line(*words: object) -> str:
+    """A command to copy into a shell: each word quoted as the shell needs it (`shlex.quote`), then
+    made literal for Rich."""
+    import shlex
+
+    return literal(shlex.join(str(w) for w in words))
+
+
 EXIT_USER_ERROR = 2
 EXIT_STOPPED = 1
 EXIT_INTERRUPTED = 130

@@ -43,11 +43,19 @@ def _password(args: argparse.Namespace, done: str = "nothing was added") -> str:
         return os.environ[PASSWORD_ENV]
     import getpass
 
+    def ask(prompt: str) -> str:
+        if sys.stdin.isatty():
+            return getpass.getpass(prompt)  # without echo
+        line = sys.stdin.readline()  # piped: the lines as given
+        if not line:
+            raise EOFError
+        return line.rstrip("\r\n")
+
     try:
-        first = getpass.getpass("Password for the web login: ")
+        first = ask("Password for the web login: ")
         if not first:
             raise LabcalError(f"the password may not be empty; {done}")
-        if getpass.getpass("The same password again: ") != first:
+        if ask("The same password again: ") != first:
             raise LabcalError(f"the two passwords differ; {done}")
     except EOFError:
         raise LabcalError(f"no password given: type it at a terminal, or give it on stdin (--password-stdin) "

@@ -151,6 +151,16 @@ def _db_option(where: object) -> str:
     return f" --db {where}" if isinstance(where, Path) else ""
 
 
+def _owner_only(path: Path) -> None:
+    """A new database file readable and writable by its owner only: it holds the lab server's
+    password and token hashes (SQLite gives its -wal and -shm files the same permissions). A lab
+    whose accounts share one file opens it to their group by hand (``chmod 660``, ``chgrp``)."""
+    try:
+        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+    except OSError:  # there already; or sqlite3 says why, in its own words, just after
+        pass
+
+
 def connect(path: str | Path) -> sqlite3.Connection:
     """Open the lab database file at the current schema (its folder made if need be): WAL,
     synchronous=FULL, foreign keys on, autocommit (callers open their own transactions). A new
@@ -160,6 +170,7 @@ def connect(path: str | Path) -> sqlite3.Connection:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise LabcalError(f"{path.parent}: cannot create the database folder ({exc.strerror})") from None
+    _owner_only(path)
     try:
         db = sqlite3.connect(path, timeout=10.0, isolation_level=None)
     except sqlite3.Error as exc:

@@ -204,5 +204,5 @@ audit = Table(
     Index("audit_by_account", "account", "id"),
 )
 
-__all__ = ["METADATA", "approvers", "audit", "certificates", "device_estimates", "events", "points", "run_exports",
-           "runs", "settle_pools", "sync_cursors", "sync_runs", "users"]
+__all__ = ["METADATA", "approvers", "audit", "certificates", "device_estimates", "events", "points",
+           "run_exports", "runs", "settle_pools", "sync_cursors", "sync_runs", "users"]

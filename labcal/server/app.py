@@ -61,6 +61,7 @@ STATUS_CLASS = {"running": "running", "complete": "complete", "interrupted": "st
                 "failed": "failed"}
 MAX_ID = 2**63 - 1  # the largest id the databases store (a larger one names nothing: 404)
 RunId = Annotated[int, PathParam(ge=0, le=MAX_ID)]
+AUDIT_ROWS = 200  # rows on the audit page
 BODY_MAX = 16 * 1024  # the largest request body: the forms are a few fields (refused before it is read)
 
 
@@ -112,8 +113,8 @@ def create_app(settings: ServerSettings) -> FastAPI:
 
     def refused(request: Request, user: users.User | None, status: int, what: str) -> None:
         client = client_of(request)
-        if settings.throttle.note_refusal(client):  # at most one row a minute per client address
-            name = user.name if user else None
+        name = user.name if user else None
+        if settings.throttle.note_refusal(f"{client} {name or ''}"):  # a row a minute per client and user
             audit.record(db, audit.Entry(audit.REFUSED, name, name, client,
                                          f"{status} {request.method} {request.url.path}: {what}"))
 
@@ -320,6 +321,16 @@ def create_app(settings: ServerSettings) -> FastAPI:
         overview = lab.lab_overview(db)
         return page(request, "index.html", user, stations=overview.stations, runs=overview.runs,
                     as_of_utc=overview.as_of_utc)
+
+    @app.get("/audit", response_class=HTMLResponse)
+    def audit_page(request: Request, user: Annotated[users.User, Depends(page_user)]) -> Response:
+        """The audit trail, for approvers (who answer for what the server signed)."""
+        if not user.may_approve:
+            refused(request, user, 403, "the audit trail, as a " + user.role)
+            return page(request, "error.html", user, status=403,
+                        message=f"{user.name} is a {user.role}; only an approver reads the audit trail.")
+        return page(request, "audit.html", user, rows=audit.newest(db, AUDIT_ROWS), broken=audit.verify(db),
+                    total=audit.count(db))
 
     @app.get("/runs/{run_id}", response_class=HTMLResponse)
     def run_page(request: Request, run_id: RunId, user: Annotated[users.User, Depends(page_user)]

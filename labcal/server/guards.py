@@ -33,8 +33,9 @@ class ClientThrottle:
         self._lock = threading.Lock()
 
     def note_refusal(self, client: str, every_s: float = 60.0) -> bool:
-        """Should a refusal (401, 403) to ``client`` go into the audit trail? At most one a minute
-        per address: a flood of wrong tokens is one row a minute, not a write per request."""
+        """Should a refusal (401, 403) to ``client`` (an address and a user) go into the audit trail?
+        At most one a minute for each: a flood of wrong tokens is one row a minute, not a write per
+        request."""
         now = time.monotonic()
         with self._lock:
             last = self._noted.get(client)
