@@ -154,6 +154,7 @@ def test_a_database_password_is_never_printed(tmp_path):
     done = labcal("serve", "--port", "0", "--db", url)
     assert done.returncode == 2 and "s3cret" not in done.stderr + done.stdout, done.stderr
     assert "127.0.0.1:1" in done.stderr  # the rest of the location is still said
+    assert "visible to every account" in done.stderr.splitlines()[0]  # and the command line is warned of
 
 
 def test_the_audit_trail_page_is_for_approvers_and_its_chain_is_checked(lab):
@@ -170,3 +171,18 @@ def test_the_audit_trail_page_is_for_approvers_and_its_chain_is_checked(lab):
     assert "row 2 does not follow" in altered.text
     printed = labcal("user", "audit", "--db", db)
     assert printed.returncode == 2 and "row 2 does not follow" in printed.stderr
+
+
+def test_changes_to_the_register_of_approvers_are_in_the_audit_trail(tmp_path):
+    db = str(tmp_path / "lab.sqlite")
+    add_user(db, "ada", "approver", PASSWORD["ada"])
+    assert labcal("certificate", "keygen", "--out", str(tmp_path / "ada")).returncode == 0
+    added = labcal("certificate", "approvers", "add", "ada", "--role", "Technical manager", "--public-key",
+                   str(tmp_path / "ada.pub"), "--db", db)
+    assert added.returncode == 0, added.stderr
+    assert labcal("certificate", "approvers", "revoke", "ada", "--db", db).returncode == 0
+    with sqlite3.connect(db) as conn:
+        rows = conn.execute("SELECT account, detail FROM audit WHERE kind = 'approver changed' ORDER BY id"
+                            ).fetchall()
+    assert [r[0] for r in rows] == ["ada", "ada"]
+    assert "Technical manager" in rows[0][1] and "revoked" in rows[1][1]

@@ -128,6 +128,16 @@ def add_power_on_options(p: argparse.ArgumentParser) -> None:
                             "station's warm-up time (journaled with the run)")
 
 
+def warn_if_secret_in(db_option: str | None) -> None:
+    """One line when --db carries a password: every account on this machine reads a command line
+    (``ps``)."""
+    from labcal.config.lab import redacted
+
+    if db_option and redacted(db_option) != db_option:
+        sys.stderr.write("warning: the password in --db is visible to every account on this machine (ps); "
+                         "keep it in ~/.pgpass or $PGPASSWORD, or give the URL in $LABCAL_DB\n")
+
+
 def add_db_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--db", metavar="PATH|URL",
                    help="the lab database: a SQLite file, or postgresql://USER@HOST:PORT/DBNAME (default: "

@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from labcal.commands import summary
-from labcal.commands.common import EXIT_USER_ERROR, bounded, err
+from labcal.commands.common import EXIT_USER_ERROR, bounded, err, warn_if_secret_in
 
 LAB_EXTRA = "pip install 'labcal[lab]'"
 
@@ -17,6 +17,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     except ImportError as exc:
         err.print(f"labcal serve needs the lab server's packages ({exc.name} is missing): {LAB_EXTRA}")
         return EXIT_USER_ERROR
+    warn_if_secret_in(args.db)
     transport = Transport(args.certfile, args.keyfile, args.forwarded_allow_ips)
     settings = settings_for(args.db, args.key, args.poll, tuple(args.server_name), args.host,
                             args.session_idle * 60.0)

@@ -7,7 +7,7 @@ import os
 import sys
 
 from labcal.commands import summary
-from labcal.commands.common import out, print_json
+from labcal.commands.common import out, print_json, warn_if_secret_in
 from labcal.errors import LabcalError
 
 # as labcal.app.users.ROLES, without importing argon2 for --help
@@ -16,6 +16,7 @@ PASSWORD_ENV = "LABCAL_PASSWORD"
 
 
 def _lab(option: str | None, create: bool):
+    warn_if_secret_in(option)
     try:
         from labcal.app.labdatabase import OpenLab, open_lab
     except ImportError as exc:
