@@ -157,6 +157,7 @@ def _p95_ms(samples: list[float]) -> float:
     return statistics.quantiles(samples, n=20)[-1] * 1000
 
 
+@pytest.mark.slow  # a load test: in CI's step of its own, on a machine not running the suite
 def test_forty_sign_ins_at_once_keep_the_server_small_and_the_api_quick(lab):
     """40 concurrent POST /login (argon2 at 64 MiB each: the review saw 2.6 GiB and the API at 1.4 s):
     at most two hashes run at once, the rest are told 503 at once; the server's peak RSS stays under
@@ -222,6 +223,7 @@ def test_a_gigabyte_form_is_refused_before_it_is_read(lab):
         assert _rss_peak_mib(server.pid) < 500
 
 
+@pytest.mark.slow  # a load test: in CI's step of its own, on a machine not running the suite
 def test_eleven_hundred_unfinished_request_heads_do_not_stop_the_server(lab):
     """1,100 connections that start a request head and never finish it, against a server allowed
     1,024 open files (the review's machine: it stopped answering and logged a traceback per
@@ -254,6 +256,7 @@ def test_eleven_hundred_unfinished_request_heads_do_not_stop_the_server(lab):
     assert "Traceback" not in log.read_text()
 
 
+@pytest.mark.slow  # a load test: in CI's step of its own, on a machine not running the suite
 def test_one_viewers_eight_hundred_streams_do_not_slow_another_user(lab):
     """800 event streams opened by one viewer (the review's took the API to 4.7 s): a user holds at
     most eight, the others are refused at once (429); meanwhile another user's API p95 stays under
