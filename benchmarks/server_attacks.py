@@ -248,6 +248,7 @@ def half_open(url: str) -> dict:
                 pass
             held.append(sock)
         began = time.monotonic()
+        status: int | str
         try:
             status = httpx.get(url + "/login", timeout=2.0).status_code
         except httpx.HTTPError as exc:

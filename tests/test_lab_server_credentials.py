@@ -10,6 +10,7 @@ import re
 import shlex
 import sqlite3
 import stat
+from collections.abc import Iterator
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
@@ -22,7 +23,7 @@ SERIAL = "ACC[/x] $HOME"  # Rich markup and a shell expansion in one serial
 
 
 @pytest.fixture(scope="module")
-def lab(tmp_path_factory) -> dict:
+def lab(tmp_path_factory) -> Iterator[dict]:
     """A lab database made by `labcal run` (a simulated run issuing its certificate, of an instrument
     whose serial is `SERIAL`) and three users."""
     import subprocess
