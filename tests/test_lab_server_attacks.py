@@ -335,3 +335,27 @@ def test_the_approval_message_is_not_taken_from_the_url(lab):
         assert _sign_in(client, "ada", PASSWORD["ada"]).status_code == 303
         page = client.get("/runs/1", params={"message": "Certificate approved: call 555-0100"})
     assert "555-0100" not in page.text
+
+
+def test_a_users_closed_streams_are_given_back(lab):
+    """Eight streams opened and closed — some before their first event — and eight more open: the
+    cap counts streams open, not streams ever opened."""
+    from lab_server import wait_for
+
+    headers = {"Authorization": f"Bearer {lab['tokens']['vic']}"}
+    with serving(lab["db"]) as (url, _), httpx.Client(base_url=url, timeout=10, headers=headers) as client:
+        for i in range(8):
+            response = client.send(client.build_request("GET", "/api/runs/1/stream"), stream=True)
+            assert response.status_code == 200
+            if i % 2:
+                next(response.iter_lines())  # the first event read; the others closed unread
+            response.close()
+
+        def eight_again() -> bool:
+            opened = [client.send(client.build_request("GET", "/api/runs/1/stream"), stream=True)
+                      for _ in range(8)]
+            ok = all(r.status_code == 200 for r in opened)
+            for r in opened:
+                r.close()
+            return ok
+        wait_for(eight_again, 10, "eight streams open again after eight closed")

@@ -30,7 +30,7 @@ sessions and CSRF, templates and the framing of the event streams.
 import asyncio
 import json
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
@@ -45,6 +45,7 @@ from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Resp
 from fastapi.staticfiles import StaticFiles
 from fastapi.templating import Jinja2Templates
 from starlette.middleware.trustedhost import TrustedHostMiddleware
+from starlette.types import Receive, Scope, Send
 
 from labcal.app import audit, lab, users
 from labcal.app.certificates import Authentication
@@ -213,18 +214,12 @@ def create_app(settings: ServerSettings) -> FastAPI:
             raise HTTPException(429, f"{user.name} has {settings.streams.per_user} live streams open "
                                      "already; close one (a page of a run) first",
                                 headers={"Retry-After": "10"}) from None
-        return StreamingResponse(events_of(request, run_id, cursor, user.name),
-                                 media_type="text/event-stream",
-                                 headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+        return HeldStream(lambda: settings.streams.give_back(user.name),
+                          events_of(request, run_id, cursor, user.name), media_type="text/event-stream",
+                          headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
     async def events_of(request: Request, run_id: int, cursor: lab.Cursor, user: str
                         ) -> AsyncIterator[str]:
-        with settings.streams.held(user):  # given back however the stream ends
-            async for message in stream_events(request, run_id, cursor, user):
-                yield message
-
-    async def stream_events(request: Request, run_id: int, cursor: lab.Cursor, user: str
-                            ) -> AsyncIterator[str]:
         yield "retry: 2000\n\n"
         status: str | None = None
         quiet_since = checked = time.monotonic()
@@ -396,6 +391,21 @@ def create_app(settings: ServerSettings) -> FastAPI:
                             status_code=403)
 
     return app
+
+
+class HeldStream(StreamingResponse):
+    """A stream that gives its place back (``release``) however it ends: finished, cancelled when
+    the client goes, or before its first event (a generator that never started runs no cleanup)."""
+
+    def __init__(self, release: Callable[[], None], *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.release = release
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            self.release()
 
 
 def for_role(run: dict, user: users.User) -> dict:

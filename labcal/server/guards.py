@@ -11,8 +11,6 @@ from __future__ import annotations
 import threading
 import time
 from collections import OrderedDict, deque
-from collections.abc import Iterator
-from contextlib import contextmanager
 
 from starlette.datastructures import MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -97,13 +95,6 @@ class StreamQuota:
                 self._open[user] = left
             else:
                 self._open.pop(user, None)
-
-    @contextmanager
-    def held(self, user: str) -> Iterator[None]:
-        try:
-            yield
-        finally:
-            self.give_back(user)
 
 
 # Nothing is loaded from elsewhere and nothing runs inline: scripts, styles and images come from
