@@ -86,8 +86,9 @@ def test_guessing_a_password_waits_then_locks_the_account_until_an_administrator
     """Three wrong passwords are heard at once (people mistype); then each guess must wait 1 s, 2 s,
     4 s (429 with Retry-After, unheard: even the right password is refused meanwhile); the sixth
     wrong one locks the account, which the right password does not open; `labcal user unlock` does.
-    Every failure, the lockout and the unlock are in the audit trail, chained."""
-    with serving(lab["db"]) as (url, _), httpx.Client(base_url=url, timeout=15) as client:
+    Every failure, the lockout and the unlock are in the audit trail, chained, and in the server's log."""
+    log = lab["base"] / "serve.log"
+    with serving(lab["db"], log=log) as (url, _), httpx.Client(base_url=url, timeout=15) as client:
         statuses = [_sign_in(client, "ada", f"guess {i}").status_code for i in range(3)]
         assert statuses == [401, 401, 401]
         for wait in (1, 2, 4):
@@ -105,6 +106,8 @@ def test_guessing_a_password_waits_then_locks_the_account_until_an_administrator
     assert kinds[-9:] == ["sign-in failed"] * 6 + ["locked out", "unlocked", "signed in"]
     assert {r[4] for r in rows if r[1] == "sign-in failed"} == {"127.0.0.1"}  # from where
     assert _chain_holds(rows)
+    logged = log.read_text()
+    assert logged.count("sign-in of 'ada' from 127.0.0.1 failed") == 6 and "'ada' locked out" in logged
 
 
 def test_a_client_guessing_across_many_names_is_slowed_without_locking_anyone(lab):

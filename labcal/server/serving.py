@@ -109,12 +109,27 @@ def url_of(sock: socket.socket, tls: bool = False) -> str:
     return f"{'https' if tls else 'http'}://{f'[{host}]' if ':' in host else host}:{port}"
 
 
+def log_to_stderr() -> None:
+    """The server's own warnings (failed sign-ins, lockouts: `labcal.app.users`) on stderr, one line
+    each with the time, beside uvicorn's."""
+    import logging
+
+    logger = logging.getLogger("labcal.server")
+    if not logger.handlers:
+        handler = logging.StreamHandler()
+        handler.setFormatter(logging.Formatter("%(asctime)s labcal serve: %(message)s"))
+        logger.addHandler(handler)
+        logger.setLevel(logging.WARNING)
+        logger.propagate = False
+
+
 def serve(settings: ServerSettings, host: str, port: int, listening: Callable[[str], None],
           transport: Transport = Transport()) -> None:
     """Serve until Ctrl-C; ``listening`` is told the URL once the socket is bound."""
     import uvicorn
 
     sock = listen(host, port)
+    log_to_stderr()
     proxy = transport.forwarded_allow_ips
     config = uvicorn.Config(create_app(settings), log_level="warning", timeout_graceful_shutdown=int(GRACE_S),
                             proxy_headers=proxy is not None, forwarded_allow_ips=proxy or "127.0.0.1",
