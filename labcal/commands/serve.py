@@ -39,8 +39,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("serve", help=summary("serve"),
                        description="Serve the lab database over HTTP: pages (sign in with a user of `labcal "
                                    "user add`), a JSON API (Authorization: Bearer TOKEN) and live event "
-                                   "streams of the runs. Reads the lab database only; approving signs with "
-                                   f"--key. Needs {LAB_EXTRA}.")
+                                   "streams of the runs. Reads the lab database and writes only its audit "
+                                   f"trail; approving signs with --key. Needs {LAB_EXTRA}. Before serving "
+                                   "the lab's network: docs/user/deploying-the-lab-server.md.")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1: this machine only; 0.0.0.0: the lab's "
                         "network)")
