@@ -98,6 +98,8 @@ def test_guessing_a_password_waits_then_locks_the_account_until_an_administrator
             assert _sign_in(client, "ada", f"guess after {wait}").status_code in (401, 429)
         locked = _sign_in(client, "ada", PASSWORD["ada"])
         assert locked.status_code == 429 and "locked" in locked.text
+        listed = json.loads(labcal("user", "list", "--json", "--db", lab["db"]).stdout)["users"]
+        assert {u["name"]: u["locked"] for u in listed} == {"ada": True, "vic": False, "tom": False}
         unlocked = labcal("user", "unlock", "ada", "--db", lab["db"])
         assert unlocked.returncode == 0 and "was locked out" in unlocked.stdout, unlocked.stderr
         assert _sign_in(client, "ada", PASSWORD["ada"]).status_code == 303

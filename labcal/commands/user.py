@@ -84,21 +84,24 @@ def cmd_add(args: argparse.Namespace) -> int:
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    from labcal.app import users
+    from labcal.app import audit, users
 
     lab = _lab(args.db, create=False)
     try:
         found = users.listed(lab)
+        locked = {u.name: audit.account_state(lab, u.name).locked for u in found}
     finally:
         lab.close()
     if args.json:
-        print_json({"users": [u.to_json() for u in found]})
+        print_json({"users": [{**u.to_json(), "locked": locked[u.name]} for u in found]})
         return 0
     if not found:
         out.print("no users (`labcal user add NAME --role viewer`)")
     for u in found:
         state = "active" if u.active else f"disabled {u.disabled_utc}"
-        out.print(f"{u.name}\t{u.role}\tadded {u.created_utc}\t{state}")
+        if locked[u.name]:
+            state += ", locked out (`labcal user unlock`)"
+        out.print(f"{u.name}\t{u.role}\tadded {u.created_utc}\t{state}", markup=False)
     return 0
 
 
