@@ -364,3 +364,30 @@ def test_a_users_closed_streams_are_given_back(lab):
                 r.close()
             return ok
         wait_for(eight_again, 10, "eight streams open again after eight closed")
+
+
+def test_forty_requests_for_a_residual_plot_draw_it_once(lab):
+    """40 requests at once for one finished run's residual plot (the review's took 18 s: each drew
+    its own fit and figure, ~0.4 s of CPU): one drawing serves them all — the same bytes, in less
+    time than 40 drawings would take by a wide margin (8 s: twenty times one drawing on a busy
+    machine, half of the review's figure)."""
+    headers = {"Authorization": f"Bearer {lab['tokens']['vic']}"}
+    with serving(lab["db"]) as (url, _):
+        clients = [httpx.Client(base_url=url, timeout=60, headers=headers) for _ in range(40)]
+        for client in clients:
+            client.get("/api/runs")  # connected before the clock starts
+        start = threading.Barrier(40)
+
+        def fetch(client: httpx.Client) -> bytes:
+            start.wait()
+            answer = client.get("/api/runs/1/residuals.png")
+            assert answer.status_code == 200
+            return answer.content
+        began = time.monotonic()
+        with ThreadPoolExecutor(40) as pool:
+            pngs = list(pool.map(fetch, clients))
+        took = time.monotonic() - began
+        for client in clients:
+            client.close()
+    assert len(set(pngs)) == 1 and pngs[0][:8] == b"\x89PNG\r\n\x1a\n"
+    assert took < 8.0, f"40 plots took {took:.1f} s"
