@@ -93,6 +93,7 @@ def test_guessing_a_password_waits_then_locks_the_account_until_an_administrator
         assert statuses == [401, 401, 401]
         for wait in (1, 2, 4):
             early = _sign_in(client, "ada", PASSWORD["ada"])  # unheard: the right one too
+            # Retry-After rounds up: the whole wait, unless a second went by since the last guess
             assert early.status_code == 429 and int(early.headers["retry-after"]) == wait, early.text
             time.sleep(wait + 0.2)
             assert _sign_in(client, "ada", f"guess after {wait}").status_code in (401, 429)

@@ -29,6 +29,7 @@ sessions and CSRF, templates and the framing of the event streams.
 
 import asyncio
 import json
+import math
 import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
@@ -258,7 +259,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
         response.set_cookie(LOGIN_COOKIE, token, httponly=True, samesite="strict", path="/login",
                             secure=request.url.scheme == "https")
         if retry_after_s is not None:
-            response.headers["Retry-After"] = str(max(1, round(retry_after_s)))
+            response.headers["Retry-After"] = retry_after(retry_after_s)
         return response
 
     @app.post("/login")
@@ -369,7 +370,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
         if isinstance(checked, Refused):
             response = run_page_message(request, run_id, user, checked.message, checked.status)
             if checked.retry_after_s is not None:
-                response.headers["Retry-After"] = str(max(1, round(checked.retry_after_s)))
+                response.headers["Retry-After"] = retry_after(checked.retry_after_s)
             return response
         try:
             done = approve_as(request, run_id, user, "password re-entered")
@@ -420,6 +421,11 @@ class Refused:
     status: int  # 401 wrong, 429 throttled or locked, 503 too many being checked
     message: str
     retry_after_s: float | None = None
+
+
+def retry_after(seconds: float) -> str:
+    """A Retry-After in whole seconds, rounded up: a client that obeys it is heard."""
+    return str(max(1, math.ceil(seconds)))
 
 
 def client_of(request: Request) -> str:
