@@ -358,8 +358,8 @@ def main(argv: list[str] | None = None) -> int:
             url = cluster.url(cluster.create_database())
             (work / "lab.toml").write_text("")
             call([LABCAL, "db", "upgrade", "--db", url])
-            token = json.loads(call([LABCAL, "user", "add", "bench-viewer", "--role", "viewer", "--password",
-                                     "load bench", "--db", url, "--json"]))["token"]
+            token = json.loads(call([LABCAL, "user", "add", "bench-viewer", "--role", "viewer", "--db", url,
+                                     "--json"], {**ENV, "LABCAL_PASSWORD": "load bench"}))["token"]
             server = subprocess.Popen([LABCAL, "serve", "--port", "0", "--db", url], stdout=subprocess.PIPE,
                                       stderr=subprocess.PIPE, text=True, env=ENV)
             processes.append(server)

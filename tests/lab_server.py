@@ -15,21 +15,26 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager, redirect_stdout
 from pathlib import Path
 
+import pytest
+
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 
 
-def labcal(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([LABCAL, *args], capture_output=True, text=True, timeout=120)
+def labcal(*args: str, typed: str | None = None) -> subprocess.CompletedProcess:
+    """A labcal command in a process of its own, without a terminal (``typed``: its stdin)."""
+    return subprocess.run([LABCAL, *args], capture_output=True, text=True, timeout=120,
+                          input=typed if typed is not None else "", start_new_session=True)
 
 
 def add_user(db: str, name: str, role: str, password: str) -> str:
     """Add a user through the command line (in this process: a labcal process takes seconds to start
-    on a loaded machine); their API token."""
+    on a loaded machine), the password in $LABCAL_PASSWORD; their API token."""
     from labcal.cli import main
 
     printed = io.StringIO()
-    with redirect_stdout(printed):
-        assert main(["user", "add", name, "--role", role, "--password", password, "--db", db, "--json"]) == 0
+    with redirect_stdout(printed), pytest.MonkeyPatch.context() as env:
+        env.setenv("LABCAL_PASSWORD", password)
+        assert main(["user", "add", name, "--role", role, "--db", db, "--json"]) == 0
     return json.loads(printed.getvalue())["token"]
 
 
@@ -47,16 +52,34 @@ def ctrl_c(process: subprocess.Popen, timeout_s: float) -> None:
 @contextmanager
 def served(db: str, *extra: str) -> Iterator[str]:
     """`labcal serve --port 0` on ``db``; yields its URL, stops it (Ctrl-C) at the end."""
+    with serving(db, *extra) as (url, _):
+        yield url
+
+
+@contextmanager
+def serving(db: str, *extra: str, files: int | None = None, log: Path | None = None
+            ) -> Iterator[tuple[str, subprocess.Popen]]:
+    """`labcal serve --port 0` on ``db``: its URL and its process. ``files``: the process's open-file
+    limit (soft and hard), as on a machine that allows no more; ``log``: a file for its stderr."""
+    def limited() -> None:
+        if files is not None:
+            import resource
+
+            resource.setrlimit(resource.RLIMIT_NOFILE, (files, files))
+
+    stderr = open(log, "w") if log is not None else subprocess.PIPE  # noqa: SIM115 (closed below)
     server = subprocess.Popen([LABCAL, "serve", "--port", "0", "--db", db, "--poll", "0.2", *extra],
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                              stdout=subprocess.PIPE, stderr=stderr, text=True, preexec_fn=limited)
     try:
         assert server.stdout is not None
         line = server.stdout.readline()
-        found = re.search(r"http://127\.0\.0\.1:\d+", line)
+        found = re.search(r"https?://127\.0\.0\.1:\d+", line)
         assert found, f"labcal serve printed {line!r}; stderr: {server.stderr and server.stderr.read()}"
-        yield found[0]
+        yield found[0], server
     finally:
         ctrl_c(server, 15)
+        if log is not None:
+            stderr.close()  # type: ignore[union-attr]
 
 
 @contextmanager

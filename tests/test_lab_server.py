@@ -11,6 +11,7 @@ import hashlib
 import json
 import re
 import sqlite3
+import subprocess
 import tomllib
 
 import httpx
@@ -140,26 +141,28 @@ def test_the_users_table_keeps_no_password_nor_token_in_clear(lab):
 
 
 def test_user_add_prints_the_token_alone_on_its_line_and_refuses_an_empty_password(lab):
-    done = labcal("user", "add", "eve", "--role", "viewer", "--password", "pw", "--db", lab["db"])
+    def add(name: str, role: str, password: str) -> subprocess.CompletedProcess:
+        return labcal("user", "add", name, "--role", role, "--password-stdin", "--db", lab["db"],
+                      typed=password + "\n")
+    done = add("eve", "viewer", "eve's password")
     assert done.returncode == 0, done.stderr
     assert re.fullmatch(r"[A-Za-z0-9_-]{43}\n", done.stdout)  # 32 bytes, URL-safe base64, alone
     assert _get(lab, "/api/runs", done.stdout.strip()).status_code == 200
-    again = labcal("user", "add", "eve", "--role", "viewer", "--password", "pw", "--db", lab["db"])
-    empty = labcal("user", "add", "fay", "--role", "viewer", "--password", "", "--db", lab["db"])
-    role = labcal("user", "add", "gus", "--role", "boss", "--password", "x", "--db", lab["db"])
-    for refused in (again, empty, role):
+    for refused in (add("eve", "viewer", "eve's password"), add("fay", "viewer", ""),
+                    add("gus", "boss", "gus's password")):
         assert refused.returncode == 2 and refused.stdout == ""
         assert len(refused.stderr.strip().splitlines()) == 1 and "Traceback" not in refused.stderr
     listed = json.loads(labcal("user", "list", "--json", "--db", lab["db"]).stdout)["users"]
     assert "fay" not in {u["name"] for u in listed} and {"eve", "ada"} <= {u["name"] for u in listed}
 
 
-
 def test_a_user_refused_creates_no_lab_database(tmp_path):
     """`user add` may create the lab database, but not for a request it refuses."""
     db = tmp_path / "new.sqlite"
-    for name, role, password in (("", "viewer", "pw"), ("hal", "boss", "pw"), ("hal", "viewer", "")):
-        done = labcal("user", "add", name, "--role", role, "--password", password, "--db", str(db))
+    for name, role, password in (("", "viewer", "a password"), ("hal", "boss", "a password"),
+                                 ("hal", "viewer", "")):
+        done = labcal("user", "add", name, "--role", role, "--password-stdin", "--db", str(db),
+                      typed=password + "\n")
         assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
         assert not db.exists(), (name, role, password)
 
@@ -199,14 +202,19 @@ def test_pages_need_a_sign_in(lab):
 
 
 def test_the_session_cookie_is_httponly_strict_and_renewed_at_sign_in(lab):
+    """No session before sign-in (the form's CSRF token is a cookie of its own); a new session id at
+    every sign-in; a forged one is refused."""
     client = httpx.Client(base_url=lab["url"], timeout=15)
     form = client.get("/login")
-    before = client.cookies["labcal_session"]
+    assert "labcal_session" not in client.cookies and "labcal_login" in client.cookies
     signed = client.post("/login", data={"name": "vic", "password": PASSWORD["vic"],
                                          "csrf": _csrf(form.text)})
     cookie = signed.headers["set-cookie"]
     assert "HttpOnly" in cookie and "SameSite=strict" in cookie.replace("Strict", "strict")
-    assert client.cookies["labcal_session"] != before  # a new session id at sign-in
+    before = client.cookies["labcal_session"]
+    again = client.post("/login", data={"name": "vic", "password": PASSWORD["vic"],
+                                        "csrf": _csrf(client.get("/login").text)})
+    assert again.status_code == 303 and client.cookies["labcal_session"] != before  # renewed
     assert client.get("/").status_code == 200 and STATIONS[1] in client.get("/").text
     forged = httpx.get(lab["url"] + "/", cookies={"labcal_session": before[:-1] + "0"}, timeout=10)
     assert forged.status_code == 303

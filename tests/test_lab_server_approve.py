@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import json
 import shutil
+import sqlite3
 from contextlib import redirect_stdout
 
 import httpx
@@ -34,8 +35,8 @@ def lab(tmp_path_factory):
     assert main(["certificate", "keygen", "--out", str(base / "lab")]) == 0
     assert main(["certificate", "approvers", "add", "ada", "--role", "Technical manager", "--public-key",
                  str(base / "lab.pub"), "--db", str(db)]) == 0
-    tokens = {"ada": add_user(str(db), "ada", "approver", "ada-pw"),
-              "vic": add_user(str(db), "vic", "viewer", "vic-pw")}
+    tokens = {"ada": add_user(str(db), "ada", "approver", "ada's passphrase"),
+              "vic": add_user(str(db), "vic", "viewer", "vic's passphrase")}
     with served(str(db), "--key", str(base / "lab.key")) as url:
         yield {"url": url, "db": db, "run_dir": run_dir, "tokens": tokens}
 
@@ -66,6 +67,11 @@ def test_only_an_approver_approves_and_the_certificate_names_them(lab):
     assert verified["valid"] is True and verified["approved_by"] == "ada"
     again = _approve(lab, 1, lab["tokens"]["ada"])
     assert again.status_code == 409 and "already approved" in again.json()["detail"]
+    with sqlite3.connect(lab["db"]) as conn:  # the audit trail: the approval, and vic's 403 before it
+        kinds = conn.execute("SELECT kind, account, client, detail FROM audit WHERE kind IN ('approved', "
+                             "'refused') ORDER BY id").fetchall()
+    assert [(k, a) for k, a, _, _ in kinds] == [("refused", None), ("refused", "vic"), ("approved", "ada")]
+    assert kinds[-1][2] == "127.0.0.1" and done.json()["number"] in kinds[-1][3]
 
 
 def test_a_run_whose_folder_is_out_of_reach_is_approved_where_it_is(lab):

@@ -85,7 +85,7 @@ def _messages(url: str, token: str, want: int, last_event_id: str | None = None,
 
 def test_the_stream_sends_each_point_as_it_is_journaled_and_resumes(tmp_path):
     db = str(tmp_path / "lab.sqlite")
-    token = add_user(db, "vic", "viewer", "pw")
+    token = add_user(db, "vic", "viewer", "vic's passphrase")
     with served(db) as url, paced_run(db, tmp_path / "run", PACE, PLAN):
         wait_for(lambda: _journaled(db) >= 1, 30, "the run's first point")
         at_connect = _journaled(db)
@@ -161,7 +161,7 @@ def test_the_api_on_postgresql(postgres_url, tmp_path, monkeypatch):
                "LABCAL_CONFIG": str(tmp_path / "lab.toml"), "XDG_DATA_HOME": str(tmp_path / "data")}
     for name, value in station.items():
         monkeypatch.setenv(name, value)
-    token = add_user(postgres_url, "vic", "viewer", "pw")
+    token = add_user(postgres_url, "vic", "viewer", "vic's passphrase")
     assert main(["run", "--sim", "--yes", "--no-report", "--seed", "4", "--serial", "ACC-7",
                  "--db", postgres_url, "--out", str(tmp_path / "run")]) == 0
     with sqlite3.connect(journal) as conn:

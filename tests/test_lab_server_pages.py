@@ -5,8 +5,8 @@ rules, unique ids among them): no violation.
 
 The pages: the sign-in form, the lab's overview with a finished, a stopped and a running
 station (each status in its colours), the overview again after it has updated itself in place, a
-finished run (its residual plot; a dry run has no approval form), a running run (updating live) and
-a run that does not exist (the error page)."""
+finished run (its residual plot; a dry run has no approval form), a running run (updating live), a
+run that does not exist (the error page) and the audit trail."""
 
 from __future__ import annotations
 
@@ -62,6 +62,7 @@ def test_every_page_parses_cleanly_and_has_no_accessibility_violation(browser, t
                                    arg=shown, timeout=20_000)
             accessible(page, "/runs/3 after updates")
             check("/runs/99", 404)
+            check("/audit")  # the approver's audit trail: the sign-in above is its newest row
         finally:
             page.close()
 

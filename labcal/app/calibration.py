@@ -222,7 +222,7 @@ def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Esti
     from labcal.run.rundir import points_on_disk
 
     journal = journal or db_path(db)
-    front.say(f"Run directory: {run_dir}")
+    front.say(f"Run directory: {run_dir}", markup=False)  # a folder named run[1] is a name, not markup
     try:
         with front.display(plan.n_points, done) as (display, terminal):
             events = EventBus()
@@ -437,7 +437,7 @@ def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Pat
         return
     lock = stack.enter_context(StationLock(station_locks(db_path(db)), links, name))
     for note in lock.notes:
-        front.say(f"[yellow]note:[/] {note}")
+        front.say(f"note: {note}", markup=False)
 
 
 def ambient_entered(args: StartRun) -> dict[str, float | str]:
@@ -480,7 +480,7 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
         # a copy (`labcal export RUN --out DIR`) resumed is the run's folder from now on
         record_folder(ctx.journal, ctx.journal.run(ctx.run_id), run_dir, "resume")
         for note in ctx.notes:
-            front.say(f"[yellow]note:[/] {note}")
+            front.say(f"note: {note}", markup=False)
         run_name = f"run {_lab_label(ctx.journal.path, args.db)(ctx.run_id)} in {run_dir}"
         snapshot = read_snapshot(ctx.station_text, run_name, ctx.software_version)
         if args.pace is not None and snapshot is not None:

@@ -261,13 +261,31 @@ class Approvers:
 def add_approver(request: AddApprover) -> Approver:
     from labcal.documents import approvers
 
-    return approvers.add(request.name, request.role, request.public_key, request.db)
+    added = approvers.add(request.name, request.role, request.public_key, request.db)
+    _audited(request.db, f"registered as {request.role} with key {added.key_id[:16]}", request.name)
+    return added
 
 
 def revoke_approver(request: RevokeApprover) -> Approver:
     from labcal.documents import approvers
 
-    return approvers.revoke(request.name, request.db)
+    revoked = approvers.revoke(request.name, request.db)
+    _audited(request.db, f"key {revoked.key_id[:16]} revoked", request.name)
+    return revoked
+
+
+def _audited(db: str | None, detail: str, name: str) -> None:
+    """A change to the register of approvers, in the audit trail of the file that holds the register
+    (the SQLite lab database, or the station's journal)."""
+    from labcal.app import audit
+    from labcal.app.labdatabase import OpenLab, open_lab
+    from labcal.run.journal import db_path
+
+    lab = open_lab(OpenLab(str(db_path(db)), must_exist=True))
+    try:
+        audit.record(lab, audit.by_command(audit.APPROVER_CHANGED, name, detail))
+    finally:
+        lab.close()
 
 
 def list_approvers(request: ListApprovers) -> Approvers:

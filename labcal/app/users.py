@@ -21,20 +21,35 @@ disabled user's password, token and open web sessions stop working at once.
 from __future__ import annotations
 
 import hashlib
+import logging
+import os
 import secrets
+import threading
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
+from functools import cache
+from pathlib import Path
 
 from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 
+from labcal.app import audit
 from labcal.app.labdatabase import LabDatabase
 from labcal.errors import LabcalError
 from labcal.run.schema import users
 
+LOG = logging.getLogger("labcal.server")
 ROLES = ("technician", "approver", "viewer")
 APPROVER = "approver"
+VIEWER = "viewer"
 NAME_MAX = 64
+# OWASP ASVS 4.0.3 V2.1: a length floor and no common password, no composition rules. An approver's
+# password signs certificates: 12 characters (V2.1.1); the others' only read: 8 (NIST SP 800-63B
+# §5.1.1.2's floor).
+MIN_LENGTH = {APPROVER: 12}
+MIN_LENGTH_OTHERS = 8
+COMMON = Path(__file__).with_name("common_passwords.txt")
+TOKEN_DAYS = 365  # an API token older than this no longer works (`labcal user token` issues a new one)
 
 
 @dataclass(frozen=True)
@@ -80,6 +95,22 @@ def _valid_name(name: str) -> str:
     return name
 
 
+@cache
+def _common() -> frozenset[str]:
+    lines = COMMON.read_text(encoding="utf-8").splitlines()
+    return frozenset(line.casefold() for line in lines if line and not line.startswith("#"))
+
+
+def password_problem(password: str, role: str, name: str) -> str | None:
+    """Why ``password`` may not be ``name``'s (a ``role``), or None."""
+    least = MIN_LENGTH.get(role, MIN_LENGTH_OTHERS)
+    if len(password) < least:
+        return f"a password of a{'n' if role[0] in 'aeiou' else ''} {role} has at least {least} characters"
+    if password.casefold() in _common() or password.casefold() == name.strip().casefold():
+        return "that password is among the most common ones (or is the name): choose another"
+    return None
+
+
 def _valid_role(role: str) -> str:
     if role not in ROLES:
         raise LabcalError(f"{role!r}: the role is one of {', '.join(ROLES)}")
@@ -101,6 +132,9 @@ class AddUser:
         _valid_role(self.role)
         if not self.password:
             raise LabcalError("the password may not be empty")
+        problem = password_problem(self.password, self.role, self.name)
+        if problem:
+            raise LabcalError(f"{problem}; nothing was added")
 
 
 @dataclass(frozen=True)
@@ -113,8 +147,11 @@ def add(lab: LabDatabase, request: AddUser) -> AddedUser:
     """Add the user; returns them with their API token, which is not kept and cannot be shown again."""
     name, role, password = _valid_name(request.name), _valid_role(request.role), request.password
     token = secrets.token_urlsafe(32)  # 32 random bytes
-    row = {"name": name, "role": role, "password_hash": _hasher().hash(password),
-           "token_hash": token_hash(token), "created_utc": _now(), "disabled_utc": None}
+    with _HASHING:
+        hashed = _hasher().hash(password)
+    now = _now()
+    row = {"name": name, "role": role, "password_hash": hashed, "token_hash": token_hash(token),
+           "created_utc": now, "disabled_utc": None, "token_utc": now}
     try:
         with lab.engine.begin() as conn:
             if conn.execute(select(users.c.id).where(users.c.name == name)).first() is not None:
@@ -125,6 +162,7 @@ def add(lab: LabDatabase, request: AddUser) -> AddedUser:
             user_id = key[0]
     except IntegrityError:  # added meanwhile by someone else
         raise LabcalError(f"{name}: added meanwhile by someone else (`labcal user list`)") from None
+    audit.record(lab, audit.by_command(audit.USER_ADDED, name, f"role {role}"))
     return AddedUser(User(int(user_id), name, role, row["created_utc"], None), token)
 
 
@@ -152,40 +190,151 @@ def disable(lab: LabDatabase, name: str) -> User:
                 raise LabcalError(f"{name}: already disabled on {row[0]}")
             known = [r[0] for r in conn.execute(select(users.c.name).order_by(users.c.id))]
             raise LabcalError(f"{name}: no such user; users: {', '.join(known) if known else 'none'}")
+    audit.record(lab, audit.by_command(audit.USER_DISABLED, name))
     found = named(lab, name)
     assert found is not None
     return found
 
 
-def by_token(lab: LabDatabase, token: str) -> User | None:
-    """The active user whose API token this is, else None."""
+def by_token(lab: LabDatabase, token: str, days: float = TOKEN_DAYS) -> User | None:
+    """The active user whose API token this is, if it was issued less than ``days`` ago; else None."""
     if not token:
         return None
     with lab.engine.connect() as conn:
-        row = conn.execute(select(*COLUMNS).where(users.c.token_hash == token_hash(token))).first()
-    user = None if row is None else User(*row)
-    return user if user is not None and user.active else None
+        row = conn.execute(select(*COLUMNS, users.c.token_utc)
+                           .where(users.c.token_hash == token_hash(token))).first()
+    if row is None:
+        return None
+    user, issued = User(*row[:-1]), datetime.fromisoformat(row[-1] or row.created_utc)
+    if datetime.now(UTC) - issued > timedelta(days=days):
+        return None
+    return user if user.active else None
+
+
+def _existing(lab: LabDatabase, name: str) -> User:
+    found = named(lab, name)
+    if found is None:
+        raise LabcalError(f"{name}: no such user (`labcal user list`)")
+    return found
+
+
+def change_password(lab: LabDatabase, name: str, password: str) -> User:
+    """Give ``name`` a new password (by the command line): the policy holds, the old one stops
+    working, and the account's run of failures (and a lockout) ends."""
+    user = _existing(lab, name)
+    problem = password_problem(password, user.role, name)
+    if problem:
+        raise LabcalError(f"{problem}; the password is unchanged")
+    with _HASHING:
+        hashed = _hasher().hash(password)
+    with lab.engine.begin() as conn:
+        conn.execute(update(users).where(users.c.name == name).values(password_hash=hashed))
+    audit.record(lab, audit.by_command(audit.PASSWORD_CHANGED, name))
+    return user
+
+
+def new_token(lab: LabDatabase, name: str) -> AddedUser:
+    """Issue ``name`` a new API token (by the command line); the old one stops working at once."""
+    user = _existing(lab, name)
+    if not user.active:
+        raise LabcalError(f"{name}: disabled on {user.disabled_utc}; a disabled user gets no token")
+    token = secrets.token_urlsafe(32)
+    with lab.engine.begin() as conn:
+        conn.execute(update(users).where(users.c.name == name)
+                     .values(token_hash=token_hash(token), token_utc=_now()))
+    audit.record(lab, audit.by_command(audit.TOKEN_ISSUED, name, "the previous token no longer works"))
+    return AddedUser(user, token)
 
 
 # A hash of a password nobody has: a name that does not exist costs the same argon2 verification as
 # one that does, so the login's timing does not tell which names exist.
 _DUMMY: list[str] = []
+# argon2id at its default cost holds 64 MiB while it runs: at most this many at once in a process,
+# so that a crowd of sign-ins cannot take the server's memory (40 at once took 2.6 GiB) nor every
+# worker thread, and half the cores stay free for everyone else (argon2 releases the GIL and takes a
+# core while it runs); the others are told to come back (`Busy`) rather than queued.
+HASHES_AT_ONCE = max(1, (os.cpu_count() or 2) // 2)
+_HASHING = threading.BoundedSemaphore(HASHES_AT_ONCE)
+
+
+class Busy(LabcalError):
+    """Every password-hashing slot is in use: try again in a moment."""
 
 
 def by_password(lab: LabDatabase, name: str, password: str) -> User | None:
-    """The active user ``name`` if ``password`` is theirs, else None."""
+    """The active user ``name`` if ``password`` is theirs, else None; `Busy` when `HASHES_AT_ONCE`
+    hashes are already running. No throttling: the server asks `check_password`."""
     from argon2.exceptions import InvalidHashError, VerificationError
 
     hasher = _hasher()
     with lab.engine.connect() as conn:
         row = conn.execute(select(*COLUMNS, users.c.password_hash)
                            .where(users.c.name == name.strip())).first()
-    if not _DUMMY:
-        _DUMMY.append(hasher.hash(secrets.token_hex(16)))
-    stored = _DUMMY[0] if row is None else row[-1]
+    if not _HASHING.acquire(blocking=False):
+        raise Busy("the server is checking other passwords; try again in a moment")
     try:
+        if not _DUMMY:
+            _DUMMY.append(hasher.hash(secrets.token_hex(16)))
+        stored = _DUMMY[0] if row is None else row[-1]
         hasher.verify(stored, password)
     except (VerificationError, InvalidHashError):
         return None
+    finally:
+        _HASHING.release()
     user = None if row is None else User(*row[:-1])
     return user if user is not None and user.active else None
+
+
+@dataclass(frozen=True)
+class PasswordCheck:
+    name: str
+    password: str
+    client: str | None  # where the attempt comes from (for the audit trail)
+    signature: bool = False  # the password given again to sign an approval (not a sign-in)
+
+
+@dataclass(frozen=True)
+class Checked:
+    user: User | None  # None: refused
+    locked: bool = False  # refused unheard: the account is locked (`labcal user unlock`)
+    wait_s: float = 0.0  # the account must wait this long before its next guess
+    heard: bool = False  # the password was checked (and was wrong, when there is no user)
+
+
+def check_password(lab: LabDatabase, request: PasswordCheck) -> Checked:
+    """A password checked for a sign-in or a signature, throttled per account: after
+    `audit.FREE_FAILURES` consecutive failures each guess must wait (doubling), after
+    `audit.LOCK_AFTER` the account is locked until an administrator unlocks it. A refused guess is
+    not hashed at all. Every check is in the audit trail; failures are also logged."""
+    account = request.name.strip()
+    state = audit.account_state(lab, account)
+    if state.locked:
+        return Checked(None, locked=True)
+    if state.wait_s > 0:
+        return Checked(None, wait_s=state.wait_s)
+    user = by_password(lab, account, request.password)
+    what = "signature" if request.signature else "sign-in"
+    if user is not None:
+        audit.record(lab, audit.Entry(audit.SIGNATURE_GIVEN if request.signature else audit.SIGNED_IN,
+                                      account, account, request.client))
+        return Checked(user, heard=True)
+    failures = state.failures + 1
+    kind = audit.SIGNATURE_FAILED if request.signature else audit.SIGN_IN_FAILED
+    audit.record(lab, audit.Entry(kind, account, None, request.client, f"failure {failures} in a row"))
+    LOG.warning("%s of %r from %s failed (%d in a row)", what, account, request.client, failures)
+    if failures >= audit.LOCK_AFTER:
+        audit.record(lab, audit.Entry(audit.LOCKED, account, None, request.client,
+                                      f"{failures} failed password checks in a row"))
+        LOG.warning("%r locked out after %d failed password checks in a row", account, failures)
+        return Checked(None, locked=True, heard=True)
+    return Checked(None, wait_s=audit.wait_after(failures), heard=True)
+
+
+def unlock(lab: LabDatabase, name: str) -> audit.AccountState:
+    """Lift ``name``'s lockout (and forget their run of failures), by the command line; their state
+    before."""
+    _existing(lab, name)
+    before = audit.account_state(lab, name)
+    audit.record(lab, audit.by_command(audit.UNLOCKED, name, "was locked" if before.locked
+                                       else f"after {before.failures} failures in a row"))
+    return before

@@ -13,6 +13,22 @@ if TYPE_CHECKING:
 
     from labcal.app.histories import History
 
+def literal(value: object) -> str:
+    """``value`` as Rich prints it, character for character: a serial ``ACC[/x]`` or a folder
+    ``run[1]`` is text, not markup (unescaped, the first crashed the console after a run)."""
+    from rich.markup import escape
+
+    return escape(str(value))
+
+
+def command_line(*words: object) -> str:
+    """A command to copy into a shell: each word quoted as the shell needs it (`shlex.quote`), then
+    made literal for Rich."""
+    import shlex
+
+    return literal(shlex.join(str(w) for w in words))
+
+
 EXIT_USER_ERROR = 2
 EXIT_STOPPED = 1
 EXIT_INTERRUPTED = 130
@@ -110,6 +126,16 @@ def add_power_on_options(p: argparse.ArgumentParser) -> None:
     group.add_argument("--warmed-up", action="store_true",
                        help="the instrument has warmed up (e.g. left on overnight): go on whatever the "
                             "station's warm-up time (journaled with the run)")
+
+
+def warn_if_secret_in(db_option: str | None) -> None:
+    """One line when --db carries a password: every account on this machine reads a command line
+    (``ps``)."""
+    from labcal.config.lab import redacted
+
+    if db_option and redacted(db_option) != db_option:
+        sys.stderr.write("warning: the password in --db is visible to every account on this machine (ps); "
+                         "keep it in ~/.pgpass or $PGPASSWORD, or give the URL in $LABCAL_DB\n")
 
 
 def add_db_option(p: argparse.ArgumentParser) -> None:

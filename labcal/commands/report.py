@@ -6,7 +6,7 @@ import argparse
 from typing import TYPE_CHECKING
 
 from labcal.commands import summary
-from labcal.commands.common import add_db_option, bounded, err, out, print_json
+from labcal.commands.common import add_db_option, bounded, command_line, err, literal, out, print_json
 
 if TYPE_CHECKING:
     from rich.table import Table as RichTable
@@ -47,12 +47,13 @@ def cmd_report(args: argparse.Namespace) -> int:
     result, cert = issued.outputs, issued.outputs.certificate
     for table in issued.tables:
         out.print(rich_table(table))
-    out.print(f"Certificate {cert.number}: {result.certificate_path}")
+    out.print(f"Certificate {literal(cert.number)}: {literal(result.certificate_path)}")
     if issued.changed is not None:
         out.print(escape(issued.changed[0].upper() + issued.changed[1:]))
-    out.print(f"Report: {result.html_path}, {result.pdf_path}")
-    out.print(f"Digital Calibration Certificate: {result.dcc_path}")
-    out.print(f"Stored in {result.database} (see `labcal history {cert.instrument.serial}`)")
+    out.print(f"Report: {literal(result.html_path)}, {literal(result.pdf_path)}")
+    out.print(f"Digital Calibration Certificate: {literal(result.dcc_path)}")
+    history = command_line("labcal", "history", cert.instrument.serial)
+    out.print(f"Stored in {literal(result.database)} (see `{history}`)")
     return 0
 
 

@@ -17,7 +17,9 @@ from labcal.commands.common import (
     add_power_on_options,
     bounded,
     bounded_field,
+    command_line,
     err,
+    literal,
     out,
     print_json,
 )
@@ -103,11 +105,13 @@ def run_and_report(args, ended: Ended | Finished) -> int:
         run_dir = ended.run_dir
         if ended.how == "interrupted":
             why = f" ({ended.why})" if ended.why else ""
-            err.print(f"[bold red]interrupted[/]{why}: {ended.tables}; {ended.points_kept} reading(s) kept "
-                      f"in {run_dir}; continue with: labcal resume {run_dir}")
+            err.print(f"[bold red]interrupted[/]{literal(why)}: {literal(ended.tables)}; {ended.points_kept} "
+                      f"reading(s) kept in {literal(run_dir)}; continue with: "
+                      f"{command_line('labcal', 'resume', run_dir)}")
             return 128 + ended.signum if ended.signum is not None else EXIT_INTERRUPTED  # 130 for Ctrl-C
-        err.print(f"[bold yellow]stopped[/]: {ended.why}{ended.tables}; {ended.points_kept} reading(s) "
-                  f"kept in {run_dir}; continue with: labcal resume {run_dir}")
+        err.print(f"[bold yellow]stopped[/]: {literal(ended.why)}{literal(ended.tables)}; "
+                  f"{ended.points_kept} reading(s) kept in {literal(run_dir)}; continue with: "
+                  f"{command_line('labcal', 'resume', run_dir)}")
         return EXIT_STOPPED
     result, run_dir, est, issued, journal = (ended.result, ended.run_dir, ended.estimate, ended.issued,
                                              ended.journal)
@@ -131,7 +135,7 @@ def run_and_report(args, ended: Ended | Finished) -> int:
     else:
         out.print(coefficients_with_standard_errors(result.fit))
     for note in (result.model_note, *result.fit.notes):
-        out.print(f"[yellow]note:[/] {note}")
+        out.print(f"[yellow]note:[/] {literal(note)}")
     failed = f", {o.points_failed} failed (see the journal)" if o.points_failed else ""
     out.print(f"{o.points_recorded} points{failed} in {result.wall_s:.2f} s of wall time; the rig's clock "
               f"says {format_duration(o.station_time_s)} (remount allowances included).")
@@ -141,11 +145,12 @@ def run_and_report(args, ended: Ended | Finished) -> int:
         if conformity is not None:
             verdict = "[green]PASS[/]" if conformity.passed else "[red]FAIL[/]"
             out.print(f"Verdict against the tolerances: [bold]{verdict}[/]")
-    out.print(f"Files in {run_dir}/: {files}; journal {journal}")
+    out.print(f"Files in {literal(run_dir)}/: {literal(files)}; journal {literal(journal)}")
     if issued is not None:
         cert = issued.certificate
-        out.print(f"Certificate {cert.certificate_id} issued: {issued.certificate_path}; stored in "
-                  f"{issued.database} (labcal history {cert.instrument.serial})")
+        out.print(f"Certificate {literal(cert.certificate_id)} issued: {literal(issued.certificate_path)}; "
+                  f"stored in {literal(issued.database)} "
+                  f"({command_line('labcal', 'history', cert.instrument.serial)})")
     return 0
 
 

@@ -3,17 +3,20 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from labcal.commands import summary
-from labcal.commands.common import out, print_json
+from labcal.commands.common import out, print_json, warn_if_secret_in
 from labcal.errors import LabcalError
 
 # as labcal.app.users.ROLES, without importing argon2 for --help
 ROLES = ("technician", "approver", "viewer")
+PASSWORD_ENV = "LABCAL_PASSWORD"
 
 
 def _lab(option: str | None, create: bool):
+    warn_if_secret_in(option)
     try:
         from labcal.app.labdatabase import OpenLab, open_lab
     except ImportError as exc:
@@ -22,25 +25,49 @@ def _lab(option: str | None, create: bool):
     return open_lab(OpenLab(option, must_exist=not create))  # `user add` may create the lab database
 
 
-def _password(given: str | None) -> str:
-    if given is not None:
+def _password(args: argparse.Namespace, done: str = "nothing was added") -> str:
+    """The new password: from stdin (--password-stdin), $LABCAL_PASSWORD, else asked twice (without
+    echo at a terminal). Never from the command line, where every local account sees it (``ps``):
+    --password still works, with a warning, for the scripts that use it."""
+    if args.password is not None:
+        sys.stderr.write(f"warning: --password is visible to every account on this machine (ps); use "
+                         f"--password-stdin or {PASSWORD_ENV}\n")
+        if not args.password:
+            raise LabcalError(f"--password may not be empty; {done}")
+        return args.password
+    if args.password_stdin:
+        given = sys.stdin.readline().rstrip("\r\n")
         if not given:
-            raise LabcalError("--password may not be empty")
+            raise LabcalError(f"no password on stdin (--password-stdin); {done}")
         return given
+    if os.environ.get(PASSWORD_ENV):
+        return os.environ[PASSWORD_ENV]
     import getpass
 
-    first = getpass.getpass("Password for the web login: ")
-    if not first:
-        raise LabcalError("the password may not be empty; nothing was added")
-    if getpass.getpass("The same password again: ") != first:
-        raise LabcalError("the two passwords differ; nothing was added")
+    def ask(prompt: str) -> str:
+        if sys.stdin.isatty():
+            return getpass.getpass(prompt)  # without echo
+        line = sys.stdin.readline()  # piped: the lines as given
+        if not line:
+            raise EOFError
+        return line.rstrip("\r\n")
+
+    try:
+        first = ask("Password for the web login: ")
+        if not first:
+            raise LabcalError(f"the password may not be empty; {done}")
+        if ask("The same password again: ") != first:
+            raise LabcalError(f"the two passwords differ; {done}")
+    except EOFError:
+        raise LabcalError(f"no password given: type it at a terminal, or give it on stdin (--password-stdin) "
+                          f"or in {PASSWORD_ENV}; {done}") from None
     return first
 
 
 def cmd_add(args: argparse.Namespace) -> int:
     from labcal.app import users
 
-    request = users.AddUser(args.name, args.role, _password(args.password))  # before the database is touched
+    request = users.AddUser(args.name, args.role, _password(args))  # before the database is touched
     lab = _lab(args.db, create=True)
     try:
         added = users.add(lab, request)
@@ -57,21 +84,24 @@ def cmd_add(args: argparse.Namespace) -> int:
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    from labcal.app import users
+    from labcal.app import audit, users
 
     lab = _lab(args.db, create=False)
     try:
         found = users.listed(lab)
+        locked = {u.name: audit.account_state(lab, u.name).locked for u in found}
     finally:
         lab.close()
     if args.json:
-        print_json({"users": [u.to_json() for u in found]})
+        print_json({"users": [{**u.to_json(), "locked": locked[u.name]} for u in found]})
         return 0
     if not found:
         out.print("no users (`labcal user add NAME --role viewer`)")
     for u in found:
         state = "active" if u.active else f"disabled {u.disabled_utc}"
-        out.print(f"{u.name}\t{u.role}\tadded {u.created_utc}\t{state}")
+        if locked[u.name]:
+            state += ", locked out (`labcal user unlock`)"
+        out.print(f"{u.name}\t{u.role}\tadded {u.created_utc}\t{state}", markup=False)
     return 0
 
 
@@ -90,6 +120,70 @@ def cmd_disable(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_passwd(args: argparse.Namespace) -> int:
+    from labcal.app import users
+
+    password = _password(args, "the password is unchanged")
+    lab = _lab(args.db, create=False)
+    try:
+        u = users.change_password(lab, args.name, password)
+    finally:
+        lab.close()
+    out.print(f"{u.name}'s password changed: the old one no longer works, and a lockout is lifted")
+    return 0
+
+
+def cmd_token(args: argparse.Namespace) -> int:
+    from labcal.app import users
+
+    lab = _lab(args.db, create=False)
+    try:
+        issued = users.new_token(lab, args.name)
+    finally:
+        lab.close()
+    if args.json:
+        print_json({**issued.user.to_json(), "token": issued.token})
+        return 0
+    sys.stderr.write(f"{issued.user.name}'s new API token, shown this once (the old one no longer works; "
+                     f"this one for {users.TOKEN_DAYS} days):\n")
+    sys.stdout.write(issued.token + "\n")
+    return 0
+
+
+def cmd_unlock(args: argparse.Namespace) -> int:
+    from labcal.app import users
+
+    lab = _lab(args.db, create=False)
+    try:
+        before = users.unlock(lab, args.name)
+    finally:
+        lab.close()
+    was = "was locked out" if before.locked else f"had {before.failures} failed password(s) in a row"
+    out.print(f"{args.name} {was}; unlocked: their next password is heard")
+    return 0
+
+
+def cmd_audit(args: argparse.Namespace) -> int:
+    from labcal.app import audit
+
+    lab = _lab(args.db, create=False)
+    try:
+        broken = audit.verify(lab)
+        rows = audit.newest(lab, args.last)
+    finally:
+        lab.close()
+    if args.json:
+        print_json({"chain_intact": broken is None, "first_broken_id": broken,
+                    "rows": [r.to_json() for r in rows]})
+    else:
+        for r in reversed(rows):
+            out.print(f"{r.utc}\t{r.kind}\t{r.account or '-'}\tby {r.actor or 'anonymous'}\tfrom "
+                      f"{r.client or '-'}\t{r.detail or ''}", markup=False)
+    if broken is not None:
+        raise LabcalError(f"the audit trail was altered: row {broken} does not follow the row before it")
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("user", help=summary("user"),
                        description="Users of the lab server (`labcal serve`): a viewer reads, a technician "
@@ -100,8 +194,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add = verbs.add_parser("add", help="add a user; prints their API token once")
     add.add_argument("name", metavar="NAME")
     add.add_argument("--role", required=True, choices=ROLES)
-    add.add_argument("--password", default=None, metavar="PW",
-                     help="the web login's password (default: asked for, without echo)")
+    _password_options(add)
     add.add_argument("--db", default=None, metavar="URL", help=db_help)
     add.add_argument("--json", action="store_true", help="print as JSON on stdout (the token under 'token')")
     add.set_defaults(func=cmd_add)
@@ -114,3 +207,32 @@ def register(sub: argparse._SubParsersAction) -> None:
     disable.add_argument("--db", default=None, metavar="URL", help=db_help)
     disable.add_argument("--json", action="store_true", help="print as JSON on stdout")
     disable.set_defaults(func=cmd_disable)
+    passwd = verbs.add_parser("passwd", help="give a user a new password (lifts a lockout)")
+    passwd.add_argument("name", metavar="NAME")
+    _password_options(passwd)
+    passwd.add_argument("--db", default=None, metavar="URL", help=db_help)
+    passwd.set_defaults(func=cmd_passwd)
+    token = verbs.add_parser("token", help="issue a user a new API token (the old one stops working)")
+    token.add_argument("name", metavar="NAME")
+    token.add_argument("--db", default=None, metavar="URL", help=db_help)
+    token.add_argument("--json", action="store_true",
+                       help="print as JSON on stdout (the token under 'token')")
+    token.set_defaults(func=cmd_token)
+    unlock = verbs.add_parser("unlock", help="lift a user's lockout after repeated wrong passwords")
+    unlock.add_argument("name", metavar="NAME")
+    unlock.add_argument("--db", default=None, metavar="URL", help=db_help)
+    unlock.set_defaults(func=cmd_unlock)
+    trail = verbs.add_parser("audit", help="the audit trail's newest rows, and whether its chain is intact "
+                                           "(exit 2 if not)")
+    trail.add_argument("--last", type=int, default=50, metavar="N", help="how many rows (default 50)")
+    trail.add_argument("--db", default=None, metavar="URL", help=db_help)
+    trail.add_argument("--json", action="store_true", help="print as JSON on stdout")
+    trail.set_defaults(func=cmd_audit)
+
+
+def _password_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--password-stdin", action="store_true",
+                   help=f"read the password from the first line of stdin (else ${PASSWORD_ENV}, else asked "
+                        "for, without echo)")
+    p.add_argument("--password", default=None, metavar="PW",
+                   help="deprecated: visible to every local account (ps); use --password-stdin")

@@ -192,11 +192,31 @@ class ServerDatabase:
 
     def __str__(self) -> str:
         """The URL without a password (it is printed, and may be logged)."""
-        scheme, _, rest = self.url.partition("://")
-        who, at, where = rest.rpartition("@")
-        if at and ":" in who:
-            who = who.split(":", 1)[0] + ":***"
-        return f"{scheme}://{who}{at}{where}"
+        return redacted(self.url)
+
+
+SECRET_PARAMETERS = ("password", "passwd", "pwd", "secret", "token", "key")  # libpq's sslpassword too
+
+
+def redacted(url: str) -> str:
+    """``url`` as it may be shown or logged: the password of its user part and the value of every
+    query parameter that names a secret (``?password=``, ``sslpassword=``, ``sslkey=``, a token)
+    replaced by ``***``. The one place a URL loses its credentials."""
+    from urllib.parse import parse_qsl, urlencode
+
+    scheme, sep, rest = url.partition("://")
+    if not sep:
+        return url
+    rest, hashmark, fragment = rest.partition("#")
+    rest, question, query = rest.partition("?")
+    who, at, where = rest.rpartition("@")
+    if at and ":" in who:
+        who = who.split(":", 1)[0] + ":***"
+    if question:
+        pairs = [(k, "***" if any(s in k.lower() for s in SECRET_PARAMETERS) else v)
+                 for k, v in parse_qsl(query, keep_blank_values=True)]
+        query = urlencode(pairs, safe="*/:")
+    return f"{scheme}://{who}{at}{where}{question}{query}{hashmark}{'***' if fragment else ''}"
 
 
 def database_location(location: str, source: str) -> Path | ServerDatabase:

@@ -53,6 +53,7 @@ BENCH_APPENDS = ("runs", "points", "events", "certificates", "device_estimates",
 BENCH_REPLACES = ("certificates", "device_estimates", "settle_pools")
 BENCH_CLOSES_RUNS = ("status", "reason", "ended_utc", "points_total")  # what a sync updates of its run
 SERVER_WRITES = ("certificates", "approvals")
+SERVER_APPENDS = ("audit",)  # its audit trail: sign-ins, failures, lockouts, refusals, approvals
 SEQUENCES = (("runs", "id"), ("events", "id"))  # serial keys a bench's inserts draw from
 OWN_STATION = "(SELECT s.station FROM station_roles s WHERE s.role = current_user)"
 
@@ -89,6 +90,9 @@ def grants(tables: set[str]) -> list[str]:
                   f"GRANT UPDATE ON {present(BENCH_REPLACES)} TO {BENCH}",
                   f"GRANT SELECT ON {', '.join(sorted(tables))} TO {SERVER}",
                   f"GRANT INSERT, UPDATE ON {present(SERVER_WRITES)} TO {SERVER}"]
+    if "audit" in tables:
+        statements += [f"GRANT INSERT ON {present(SERVER_APPENDS)} TO {SERVER}",
+                       f"GRANT USAGE ON SEQUENCE audit_id_seq TO {SERVER}"]
     statements += [f"GRANT USAGE ON SEQUENCE {sequence} TO {BENCH}" for sequence in
                    (f"{table}_{column}_seq" for table, column in SEQUENCES)]
     # the lab's run number is max + 1 under a lock, and the column's sequence is moved past it

@@ -170,6 +170,7 @@ users = Table(
     Column("token_hash", Text, nullable=False, unique=True),
     Column("created_utc", Text, nullable=False),
     Column("disabled_utc", Text),
+    Column("token_utc", Text),  # revision 0010: when the API token was issued (NULL: when added)
 )
 
 # Revision 0007: in a station's journal, how far its records have been sent to each lab database
@@ -220,6 +221,24 @@ sync_targets = Table(
     Column("synced_utc", Text, nullable=False),
 )
 
-__all__ = ["METADATA", "approvers", "certificates", "device_estimates", "events", "points", "run_exports",
-           "runs", "settle_pools", "station_roles", "sync_cursors", "sync_runs", "sync_sent", "sync_targets",
-           "users"]
+# Revision 0010: the lab server's audit trail (`labcal.app.audit`): sign-ins, failures, lockouts,
+# refusals, approvals and changes to users and approvers; who (``actor``) did what (``kind``) to
+# which ``account``, when and from where (``client``). ``digest`` is the SHA-256 of the row and of
+# ``prev``, the previous row's digest (unique: one successor per row), so an edit breaks the chain.
+audit = Table(
+    "audit", METADATA,
+    Column("id", Integer, primary_key=True),
+    Column("utc", Text, nullable=False),
+    Column("kind", Text, nullable=False),
+    Column("account", Text),
+    Column("actor", Text),
+    Column("client", Text),
+    Column("detail", Text),
+    Column("prev", Text, nullable=False, unique=True),
+    Column("digest", Text, nullable=False),
+    Index("audit_by_account", "account", "id"),
+)
+
+__all__ = ["METADATA", "approvers", "audit", "certificates", "device_estimates", "events", "points",
+           "run_exports", "runs", "settle_pools", "station_roles", "sync_cursors", "sync_runs", "sync_sent",
+           "sync_targets", "users"]

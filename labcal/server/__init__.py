@@ -7,10 +7,15 @@ stations, runs, progress, the next remount, events, the stream's next batch, the
 `users` (add, list, disable; a password or an API token to a user) and `server_approval` (a
 certificate approved for the signed-in approver with the lab's key). What is here:
 
-- `sessions` the web login's signed session cookies and their CSRF tokens;
+- `sessions` the web login's signed session cookies and their CSRF tokens (and the sign-in form's,
+  which needs no session);
+- `guards` what keeps it answering under attack, in memory: password failures per client address,
+  event streams per user, the security headers of every answer;
 - `app` the ASGI application (FastAPI): the routes of the JSON API, the server-sent event streams
-  (their framing) and the pages (templates);
-- `serving` the socket and uvicorn.
+  (their framing), the pages (templates) and the audit trail's page;
+- `connections` uvicorn's h11 protocol with a deadline for request heads and a ceiling of
+  connections under the open-file limit;
+- `serving` the socket, TLS or a trusted proxy, and uvicorn.
 
 FastAPI rather than bare Starlette: the API's authentication and roles are dependencies declared once
 per route (a route cannot forget them without it showing in its signature), path parameters are

@@ -29,31 +29,42 @@ sessions and CSRF, templates and the framing of the event streams.
 
 import asyncio
 import json
+import math
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
 from urllib.parse import quote
 
 from fastapi import Depends, FastAPI, Form, Header, HTTPException, Request
+from fastapi import Path as PathParam
 from fastapi.concurrency import run_in_threadpool
+from fastapi.exception_handlers import request_validation_exception_handler
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 from fastapi.templating import Jinja2Templates
+from starlette.middleware.trustedhost import TrustedHostMiddleware
+from starlette.types import Receive, Scope, Send
 
-from labcal.app import lab, users
+from labcal.app import audit, lab, users
 from labcal.app.certificates import Authentication
 from labcal.app.labdatabase import LabDatabase
 from labcal.app.server_approval import ApproveAsUser, NotHere, approval_refused, approve_as_user
 from labcal.errors import LabcalError
-from labcal.server.sessions import COOKIE, Session, Sessions, csrf_ok
+from labcal.server.guards import ClientThrottle, SecurityHeaders, StreamQuota, TooManyStreams
+from labcal.server.sessions import COOKIE, LOGIN_COOKIE, Session, Sessions, csrf_ok
 
 HERE = Path(__file__).parent
 KEEP_ALIVE_S = 15.0
 USER_CHECK_S = 5.0  # how soon an open stream of a user disabled meanwhile ends
 STATUS_CLASS = {"running": "running", "complete": "complete", "interrupted": "stopped", "stopped": "stopped",
                 "failed": "failed"}
+MAX_ID = 2**63 - 1  # the largest id the databases store (a larger one names nothing: 404)
+RunId = Annotated[int, PathParam(ge=0, le=MAX_ID)]
+AUDIT_ROWS = 200  # rows on the audit page
+BODY_MAX = 16 * 1024  # the largest request body: the forms are a few fields (refused before it is read)
 
 
 @dataclass
@@ -62,6 +73,9 @@ class ServerSettings:
     key: Path | None = None  # the lab's signing key
     poll_s: float = 0.5
     sessions: Sessions = field(default_factory=Sessions)
+    hosts: tuple[str, ...] = ()  # the Host header's accepted values (empty: any)
+    throttle: ClientThrottle = field(default_factory=ClientThrottle)
+    streams: StreamQuota = field(default_factory=StreamQuota)
 
 
 class SignIn(Exception):
@@ -69,7 +83,11 @@ class SignIn(Exception):
 
 
 def create_app(settings: ServerSettings) -> FastAPI:
-    app = FastAPI(title="labcal lab server", docs_url=None, redoc_url=None, openapi_url=None)
+    app = FastAPI(title="labcal lab server", docs_url=None, redoc_url=None, openapi_url=None,
+                  max_body_size=BODY_MAX)
+    if settings.hosts:  # a request naming another host (DNS rebinding, a forged link) is refused
+        app.add_middleware(TrustedHostMiddleware, allowed_hosts=list(settings.hosts))
+    app.add_middleware(SecurityHeaders)  # outermost: every answer, the refusals too
     templates = Jinja2Templates(directory=str(HERE / "templates"))
     templates.env.filters["duration"] = duration
     templates.env.filters["mount"] = mount_text
@@ -79,18 +97,35 @@ def create_app(settings: ServerSettings) -> FastAPI:
     app.state.sessions = sessions
 
     # --- who is asking ---------------------------------------------------------------------------
-    def api_user(authorization: Annotated[str | None, Header()] = None) -> users.User:
+    def api_user(request: Request, authorization: Annotated[str | None, Header()] = None) -> users.User:
         scheme, _, token = (authorization or "").partition(" ")
         user = users.by_token(db, token.strip()) if scheme.lower() == "bearer" else None
         if user is None:
+            if authorization:  # a credential that is wrong (no credential at all is not worth a row)
+                refused(request, None, 401, "a wrong or expired API token")
             raise HTTPException(401, "give a valid API token: Authorization: Bearer TOKEN (`labcal user add` "
                                      "prints one)", headers={"WWW-Authenticate": "Bearer"})
         return user
 
-    def api_approver(user: Annotated[users.User, Depends(api_user)]) -> users.User:
+    def api_approver(request: Request, user: Annotated[users.User, Depends(api_user)]) -> users.User:
         if not user.may_approve:
+            refused(request, user, 403, "approving, as a " + user.role)
             raise HTTPException(403, f"{user.name} is a {user.role}; only an approver approves certificates")
         return user
+
+    def refused(request: Request, user: users.User | None, status: int, what: str) -> None:
+        client = client_of(request)
+        name = user.name if user else None
+        if settings.throttle.note_refusal(f"{client} {name or ''}"):  # a row a minute per client and user
+            audit.record(db, audit.Entry(audit.REFUSED, name, name, client,
+                                         f"{status} {request.method} {request.url.path}: {what}"))
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, exc: RequestValidationError) -> Response:
+        """A path naming no integer in the databases' range names nothing: 404, like an absent run."""
+        if any(error.get("loc", ("",))[0] == "path" for error in exc.errors()):
+            return JSONResponse({"detail": "no such run in the lab database"}, status_code=404)
+        return await request_validation_exception_handler(request, exc)
 
     def session_of(request: Request) -> Session | None:
         return sessions.get(request.cookies.get(COOKIE))
@@ -114,36 +149,39 @@ def create_app(settings: ServerSettings) -> FastAPI:
     def page(request: Request, template: str, user: users.User | None, status: int = 200, **context: Any
              ) -> Response:
         session = getattr(request.state, "session", None)
-        values = {"user": user, "csrf": session.csrf if session else "", "lab_db": db.shown, **context}
+        # where the database is: for the lab's staff, not for viewers nor anonymous visitors
+        shown = db.shown if user is not None and user.role != users.VIEWER else None
+        values = {"user": user, "csrf": session.csrf if session else "", "lab_db": shown, **context}
         return templates.TemplateResponse(request, template, values, status_code=status)
 
     # --- the API ---------------------------------------------------------------------------------
     @app.get("/api/runs")
     def api_runs(user: Annotated[users.User, Depends(api_user)]) -> dict:
-        return {"runs": lab.lab_runs(db)}
+        return {"runs": [for_role(run, user) for run in lab.lab_runs(db)]}
 
     @app.get("/api/runs/{run_id}")
-    def api_run(run_id: int, user: Annotated[users.User, Depends(api_user)]) -> dict:
+    def api_run(run_id: RunId, user: Annotated[users.User, Depends(api_user)]) -> dict:
         found = lab.run_detail(db, run_id)
         if found is None:
             raise HTTPException(404, f"no run {run_id} in the lab database")
-        return found
+        return for_role(found, user)
 
     @app.get("/api/runs/{run_id}/stream")
-    def api_stream(run_id: int, request: Request, user: Annotated[users.User, Depends(api_user)],
+    def api_stream(run_id: RunId, request: Request, user: Annotated[users.User, Depends(api_user)],
                    last_event_id: Annotated[str | None, Header()] = None) -> Response:
         return stream_response(request, run_id, last_event_id, user)
 
     @app.post("/api/runs/{run_id}/approve")
-    def api_approve(run_id: int, user: Annotated[users.User, Depends(api_approver)]) -> dict:
-        done = approve_as(run_id, user, "API token")
+    def api_approve(request: Request, run_id: RunId, user: Annotated[users.User, Depends(api_approver)]
+                    ) -> dict:
+        done = approve_as(request, run_id, user, "API token")
         return done.to_json()
 
     @app.get("/api/runs/{run_id}/residuals.png")
-    def api_residuals(run_id: int, user: Annotated[users.User, Depends(api_user)]) -> Response:
+    def api_residuals(run_id: RunId, user: Annotated[users.User, Depends(api_user)]) -> Response:
         return residuals(run_id)
 
-    def approve_as(run_id: int, user: users.User, authentication: Authentication) -> Any:
+    def approve_as(request: Request, run_id: int, user: users.User, authentication: Authentication) -> Any:
         try:
             done = approve_as_user(db, ApproveAsUser(run_id, user, settings.key, authentication))
         except NotHere as exc:
@@ -152,6 +190,9 @@ def create_app(settings: ServerSettings) -> FastAPI:
             raise HTTPException(409, str(exc)) from None
         if done is None:
             raise HTTPException(404, f"no run {run_id} in the lab database")
+        audit.record(db, audit.Entry(audit.APPROVED, user.name, user.name, client_of(request),
+                                     f"run {run_id}: certificate {done.number} ({authentication}), signed "
+                                     f"with {done.signed_by}"))
         return done
 
     def residuals(run_id: int) -> Response:
@@ -163,11 +204,20 @@ def create_app(settings: ServerSettings) -> FastAPI:
     # --- streams ---------------------------------------------------------------------------------
     def stream_response(request: Request, run_id: int, last_event_id: str | None, user: users.User
                         ) -> Response:
+        cursor = cursor_of(last_event_id)
+        if cursor is None:
+            raise HTTPException(404, f"{last_event_id!r}: no such position in run {run_id}'s stream")
         if lab.run_progress(db, run_id) is None:
             raise HTTPException(404, f"no run {run_id} in the lab database")
-        return StreamingResponse(events_of(request, run_id, cursor_of(last_event_id), user.name),
-                                 media_type="text/event-stream",
-                                 headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+        try:
+            settings.streams.take(user.name)
+        except TooManyStreams:
+            raise HTTPException(429, f"{user.name} has {settings.streams.per_user} live streams open "
+                                     "already; close one (a page of a run) first",
+                                headers={"Retry-After": "10"}) from None
+        return HeldStream(lambda: settings.streams.give_back(user.name),
+                          events_of(request, run_id, cursor, user.name), media_type="text/event-stream",
+                          headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
     async def events_of(request: Request, run_id: int, cursor: lab.Cursor, user: str
                         ) -> AsyncIterator[str]:
@@ -196,26 +246,60 @@ def create_app(settings: ServerSettings) -> FastAPI:
     # --- pages -----------------------------------------------------------------------------------
     @app.get("/login", response_class=HTMLResponse)
     def login_form(request: Request, next: str = "/") -> Response:
-        session = session_of(request) or sessions.open()
-        request.state.session = session
-        response = page(request, "login.html", None, next=safe_next(next), failed=False)
-        set_cookie(request, response, session)
+        return login_page(request, next, 200)
+
+    def login_page(request: Request, next: str, status: int, alert: str | None = None, name: str = "",
+                   retry_after_s: float | None = None) -> Response:
+        """The sign-in form: no session (anonymous visitors cost no memory), a signed double-submit
+        CSRF token in a cookie of its own and in the form."""
+        token = sessions.login_token(request.cookies.get(LOGIN_COOKIE))
+        response = templates.TemplateResponse(
+            request, "login.html", {"user": None, "csrf": token, "next": safe_next(next), "alert": alert,
+                                    "name": name}, status_code=status)
+        response.set_cookie(LOGIN_COOKIE, token, httponly=True, samesite="strict", path="/login",
+                            secure=request.url.scheme == "https")
+        if retry_after_s is not None:
+            response.headers["Retry-After"] = retry_after(retry_after_s)
         return response
 
     @app.post("/login")
     def login(request: Request, name: Annotated[str, Form()], password: Annotated[str, Form()],
               csrf: Annotated[str, Form()] = "", next: Annotated[str, Form()] = "/") -> Response:
-        session = session_of(request)
-        if not csrf_ok(session, csrf):
+        if not sessions.login_token_ok(request.cookies.get(LOGIN_COOKIE), csrf):
             return forbidden_csrf(request)
-        user = users.by_password(db, name, password)
-        if user is None:
-            request.state.session = session
-            return page(request, "login.html", None, status=401, next=safe_next(next), failed=True, name=name)
-        fresh = sessions.sign_in(session, user.name)
+        checked = check_password(request, users.PasswordCheck(name, password, client_of(request)))
+        if isinstance(checked, Refused):
+            return login_page(request, next, checked.status, checked.message, name, checked.retry_after_s)
+        fresh = sessions.sign_in(session_of(request), checked.name)
         response = RedirectResponse(safe_next(next), status_code=303)
         set_cookie(request, response, fresh)
+        response.delete_cookie(LOGIN_COOKIE, path="/login")
         return response
+
+    def check_password(request: Request, attempt: users.PasswordCheck) -> users.User | Refused:
+        """A password checked, throttled per client address here and per account in the lab database
+        (`users.check_password`); the refusal as the pages say it."""
+        client = attempt.client or "?"
+        wait = settings.throttle.wait_s(client)
+        if wait > 0:
+            return Refused(429, f"Too many wrong passwords from your address: try again in {wait:.0f} s.",
+                           wait)
+        try:
+            checked = users.check_password(db, attempt)
+        except users.Busy:
+            return Refused(503, "The server is busy checking other passwords: try again in a moment.", 1.0)
+        if checked.user is not None:
+            return checked.user
+        if checked.heard:
+            settings.throttle.failed(client)
+        if checked.locked:
+            return Refused(429, "This account is locked after repeated wrong passwords; an administrator "
+                                "lifts the lock (labcal user unlock NAME).")
+        if checked.heard:
+            return Refused(401, "Wrong name or password." if not attempt.signature
+                           else "The password is not yours: nothing was signed.")
+        return Refused(429, f"Too many wrong passwords for this account: try again in "
+                            f"{checked.wait_s:.0f} s.", checked.wait_s)
 
     @app.post("/logout")
     def logout(request: Request, csrf: Annotated[str, Form()] = "") -> Response:
@@ -234,9 +318,24 @@ def create_app(settings: ServerSettings) -> FastAPI:
         return page(request, "index.html", user, stations=overview.stations, runs=overview.runs,
                     as_of_utc=overview.as_of_utc)
 
+    @app.get("/audit", response_class=HTMLResponse)
+    def audit_page(request: Request, user: Annotated[users.User, Depends(page_user)]) -> Response:
+        """The audit trail, for approvers (who answer for what the server signed)."""
+        if not user.may_approve:
+            refused(request, user, 403, "the audit trail, as a " + user.role)
+            return page(request, "error.html", user, status=403,
+                        message=f"{user.name} is a {user.role}; only an approver reads the audit trail.")
+        return page(request, "audit.html", user, rows=audit.newest(db, AUDIT_ROWS), broken=audit.verify(db),
+                    total=audit.count(db))
+
     @app.get("/runs/{run_id}", response_class=HTMLResponse)
-    def run_page(request: Request, run_id: int, user: Annotated[users.User, Depends(page_user)],
-                 message: str | None = None) -> Response:
+    def run_page(request: Request, run_id: RunId, user: Annotated[users.User, Depends(page_user)]
+                 ) -> Response:
+        return run_page_of(request, run_id, user, None)
+
+    def run_page_of(request: Request, run_id: int, user: users.User, message: str | None) -> Response:
+        """A run's page; ``message``: the answer to the approval just made (never from the URL, where
+        anyone could write a message above the form and send the link)."""
         view = lab.run_view(db, run_id)
         if view is None:
             return page(request, "error.html", user, status=404,
@@ -247,7 +346,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
                     after=event_id_of(view.cursor), refused=refused)
 
     @app.get("/runs/{run_id}/stream")
-    def page_stream(run_id: int, request: Request, user: Annotated[users.User, Depends(page_user)],
+    def page_stream(run_id: RunId, request: Request, user: Annotated[users.User, Depends(page_user)],
                     last_event_id: Annotated[str | None, Header()] = None, after: str | None = None
                     ) -> Response:
         # ``after``: where the page's own rendering left off (EventSource sends Last-Event-ID only
@@ -255,23 +354,28 @@ def create_app(settings: ServerSettings) -> FastAPI:
         return stream_response(request, run_id, last_event_id or after, user)
 
     @app.get("/runs/{run_id}/residuals.png")
-    def page_residuals(run_id: int, user: Annotated[users.User, Depends(page_user)]) -> Response:
+    def page_residuals(run_id: RunId, user: Annotated[users.User, Depends(page_user)]) -> Response:
         return residuals(run_id)
 
     @app.post("/runs/{run_id}/approve", response_class=HTMLResponse)
-    def page_approve(request: Request, run_id: int, user: Annotated[users.User, Depends(page_user)],
+    def page_approve(request: Request, run_id: RunId, user: Annotated[users.User, Depends(page_user)],
                      password: Annotated[str, Form()] = "", csrf: Annotated[str, Form()] = "") -> Response:
         if not csrf_ok(request.state.session, csrf):
             return forbidden_csrf(request)
         if not user.may_approve:
+            refused(request, user, 403, "approving, as a " + user.role)
             return page(request, "error.html", user, status=403,
                         message=f"{user.name} is a {user.role}; only an approver approves certificates.")
         # The electronic signature (21 CFR Part 11 §11.200): the signer gives their password again.
-        if users.by_password(db, user.name, password) is None:
-            return run_page_message(request, run_id, user, "The password is not yours: nothing was signed.",
-                                    401)
+        checked = check_password(request, users.PasswordCheck(user.name, password, client_of(request),
+                                                               signature=True))
+        if isinstance(checked, Refused):
+            response = run_page_message(request, run_id, user, checked.message, checked.status)
+            if checked.retry_after_s is not None:
+                response.headers["Retry-After"] = retry_after(checked.retry_after_s)
+            return response
         try:
-            done = approve_as(run_id, user, "password re-entered")
+            done = approve_as(request, run_id, user, "password re-entered")
         except HTTPException as exc:
             return run_page_message(request, run_id, user, f"Not approved: {exc.detail}", exc.status_code)
         return run_page_message(request, run_id, user,
@@ -280,7 +384,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
 
     def run_page_message(request: Request, run_id: int, user: users.User, message: str, status: int
                          ) -> Response:
-        response = run_page(request, run_id, user, message)
+        response = run_page_of(request, run_id, user, message)
         response.status_code = status
         return response
 
@@ -290,6 +394,45 @@ def create_app(settings: ServerSettings) -> FastAPI:
                             status_code=403)
 
     return app
+
+
+class HeldStream(StreamingResponse):
+    """A stream that gives its place back (``release``) however it ends: finished, cancelled when
+    the client goes, or before its first event (a generator that never started runs no cleanup)."""
+
+    def __init__(self, release: Callable[[], None], *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.release = release
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            self.release()
+
+
+def for_role(run: dict, user: users.User) -> dict:
+    """A run as ``user`` may see it: a viewer is not told where its folder is on the station's disk."""
+    return run if user.role != users.VIEWER else {k: v for k, v in run.items() if k != "run_dir"}
+
+
+@dataclass(frozen=True)
+class Refused:
+    """A password not checked or not right, as the pages say it."""
+
+    status: int  # 401 wrong, 429 throttled or locked, 503 too many being checked
+    message: str
+    retry_after_s: float | None = None
+
+
+def retry_after(seconds: float) -> str:
+    """A Retry-After in whole seconds, rounded up: a client that obeys it is heard."""
+    return str(max(1, math.ceil(seconds)))
+
+
+def client_of(request: Request) -> str:
+    """The client's address (a trusted proxy's X-Forwarded-For, when there is one: uvicorn's)."""
+    return request.client.host if request.client else "?"
 
 
 def set_cookie(request: Request, response: Response, session: Session) -> None:
@@ -306,13 +449,15 @@ def safe_next(target: str) -> str:
     return target if target.startswith("/") and not target.startswith("//") and "\\" not in target else "/"
 
 
-def cursor_of(last_event_id: str | None) -> lab.Cursor:
-    """(last point seq, last event id) from a Last-Event-ID; a new client starts at the beginning."""
+def cursor_of(last_event_id: str | None) -> lab.Cursor | None:
+    """(last point seq, last event id) from a Last-Event-ID; a new client starts at the beginning.
+    None: a position beyond any the databases can hold."""
     try:
         seq, event_id = (last_event_id or "").split(":")
-        return lab.Cursor(int(seq), int(event_id))
+        cursor = lab.Cursor(int(seq), int(event_id))
     except ValueError:
         return lab.Cursor()
+    return cursor if -MAX_ID <= cursor.seq <= MAX_ID and -MAX_ID <= cursor.event_id <= MAX_ID else None
 
 
 def event_id_of(cursor: lab.Cursor) -> str:

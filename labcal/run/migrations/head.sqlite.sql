@@ -2,7 +2,7 @@ CREATE TABLE alembic_version (
 	version_num VARCHAR(32) NOT NULL, 
 	CONSTRAINT alembic_version_pkc PRIMARY KEY (version_num)
 );
-INSERT INTO "alembic_version" VALUES('0009');
+INSERT INTO "alembic_version" VALUES('0010');
 CREATE TABLE approvers (
 	id INTEGER NOT NULL, 
 	name TEXT NOT NULL, 
@@ -13,6 +13,19 @@ CREATE TABLE approvers (
 	revoked_utc TEXT, 
 	PRIMARY KEY (id), 
 	UNIQUE (key_id)
+);
+CREATE TABLE audit (
+	id INTEGER NOT NULL, 
+	utc TEXT NOT NULL, 
+	kind TEXT NOT NULL, 
+	account TEXT, 
+	actor TEXT, 
+	client TEXT, 
+	detail TEXT, 
+	prev TEXT NOT NULL, 
+	digest TEXT NOT NULL, 
+	PRIMARY KEY (id), 
+	UNIQUE (prev)
 );
 CREATE TABLE certificates (
 	certificate_id TEXT NOT NULL, 
@@ -146,7 +159,7 @@ CREATE TABLE users (
 	password_hash TEXT NOT NULL, 
 	token_hash TEXT NOT NULL, 
 	created_utc TEXT NOT NULL, 
-	disabled_utc TEXT, 
+	disabled_utc TEXT, token_utc TEXT, 
 	PRIMARY KEY (id), 
 	UNIQUE (name), 
 	UNIQUE (token_hash)
@@ -159,3 +172,4 @@ CREATE UNIQUE INDEX approvers_active_name ON approvers (name) WHERE revoked_utc 
 CREATE UNIQUE INDEX events_by_origin ON events (run_id, origin_id);
 CREATE UNIQUE INDEX points_by_link ON points (run_id, link);
 CREATE UNIQUE INDEX events_by_link ON events (run_id, link);
+CREATE INDEX audit_by_account ON audit (account, id);
