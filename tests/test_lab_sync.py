@@ -23,6 +23,8 @@ import pytest
 from lab_readings import journal_points, server_points
 from services import free_port
 
+from labcal.run.migrations import HEAD
+
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 MOUNT_POINTS = 16  # four-mount-64 (the default plan): 4 mounts × 16 points = 64, one replicate
 MOUNTS = 4
@@ -224,7 +226,7 @@ def test_a_server_database_behind_is_refused_until_labcal_db_upgrade(tmp_path, p
     up = labcal(env, "db", "upgrade")
     assert up.returncode == 0, up.stderr
     with psycopg.connect(postgres_url) as conn:
-        assert conn.execute("SELECT version_num FROM alembic_version").fetchone()[0] == "0007"
+        assert conn.execute("SELECT version_num FROM alembic_version").fetchone()[0] == HEAD
         assert conn.execute("SELECT count(*) FROM information_schema.columns WHERE table_name = 'events' "
                             "AND column_name = 'origin_id'").fetchone()[0] == 1
 

@@ -46,6 +46,16 @@ class CommandLine:
 
         return before_run(self.args, bench, station, points, samples)
 
+    def unregistered(self, serial: str) -> bool:
+        if self.args.yes or self.args.answers:  # nobody is asked
+            return False
+        try:
+            answer = err.input(f"{serial!r} is not in the lab's instrument register. Calibrate it anyway, "
+                               "as an ad-hoc serial? (y/N) ", markup=False)
+        except EOFError:
+            answer = ""
+        return answer.strip().lower() in ("y", "yes")
+
     @contextmanager
     def display(self, total: int, done: int):
         """The progress bar, which is also the terminal the prompts pause it for."""

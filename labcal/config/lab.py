@@ -69,6 +69,16 @@ class Laboratory(BaseModel):
         return ", ".join(part for part in (self.name, self.address) if part)
 
 
+class InstrumentsSection(BaseModel):
+    """The lab file's ``[instruments]``: what a run does with a serial the register does not hold."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    allow_adhoc: bool = Field(default=False,
+                              description="let a run certify a serial the instrument register does not "
+                                          "hold without asking (with --yes or in a script, too)")
+
+
 class LabFile(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -89,6 +99,7 @@ class LabFile(BaseModel):
     laboratory: Laboratory = Field(default_factory=Laboratory)
     certificate: CertificateSettings = Field(default_factory=CertificateSettings,
                                              description="default tolerances and usage envelope")
+    instruments: InstrumentsSection = Field(default_factory=InstrumentsSection)
     notify: list[str] = Field(default_factory=list,
                               description="apprise URLs told of each remount, pause and run's end "
                                           "(issue 24); $LABCAL_NOTIFY goes over it")

@@ -1,0 +1,253 @@
+"""The lab's instrument register, due dates and recall, and the serial a run certifies, checked
+before anything moves: real `labcal` processes and the app's use cases against a real SQLite lab
+database (and one register on the private PostgreSQL cluster). Every expected date is computed here
+by hand from the certificate the run wrote."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from datetime import date, datetime, timedelta
+from pathlib import Path
+
+import pytest
+from services import postgres_cluster, postgres_url  # noqa: F401 - fixtures
+from simulated_runs import simulated_run
+from test_notify import endpoint
+
+from labcal.app.calibration import StartRun, run_serial
+from labcal.app.instruments import (
+    Calibration,
+    checked_serial,
+    interval_days,
+    serial_for_run,
+    suggested_interval,
+)
+from labcal.app.labdatabase import OpenLab, open_lab
+from labcal.errors import LabcalError
+
+LABCAL = str(Path(sys.executable).with_name("labcal"))
+
+
+def labcal(*args: str, check: int | None = 0) -> subprocess.CompletedProcess:
+    done = subprocess.run([LABCAL, *args], capture_output=True, text=True, timeout=120)
+    if check is not None:
+        assert done.returncode == check, done.stderr
+    return done
+
+
+def as_json(*args: str) -> dict:
+    return json.loads(labcal(*args, "--json").stdout)
+
+
+class Front:
+    """A front end that records what the run says and answers the ad-hoc question as told."""
+
+    def __init__(self, answer: bool = False) -> None:
+        self.lines: list[str] = []
+        self.answer = answer
+        self.asked: list[str] = []
+
+    def say(self, text: str, markup: bool = True) -> None:
+        self.lines.append(text)
+
+    def unregistered(self, serial: str) -> bool:
+        self.asked.append(serial)
+        return self.answer
+
+
+# --- the serial, before anything moves ------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_a_serial_with_a_trailing_space_is_certified_without_it_and_says_so(tmp_path):
+    done = labcal("run", "--sim", "--yes", "--seed", "3", "--serial", "ACC-0042 ",
+                  "--out", str(tmp_path / "run"))
+    assert "surrounding whitespace removed, certified as 'ACC-0042'" in done.stderr
+    cert = json.loads((tmp_path / "run" / "certificate.json").read_text(encoding="utf-8"))
+    assert cert["instrument"]["serial"] == "ACC-0042"
+    dcc = (tmp_path / "run" / "certificate.dcc.xml").read_text(encoding="utf-8")
+    assert ">ACC-0042<" in dcc and "ACC-0042 <" not in dcc
+
+
+def test_a_serial_with_a_line_break_is_refused_in_one_line_before_any_run_folder(tmp_path):
+    done = labcal("run", "--sim", "--yes", "--serial", "ACC-\n0042", "--out", str(tmp_path / "run"), check=2)
+    assert done.stderr.count("\n") == 1 and "control character" in done.stderr
+    assert "Traceback" not in done.stderr
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("given", ["", "   ", "ACC\t0042", "ACC\x000042", "A" * 65])
+def test_an_empty_or_unprintable_or_overlong_serial_is_refused(given):
+    with pytest.raises(LabcalError):
+        checked_serial(given)
+
+
+def test_a_clean_serial_passes_unchanged_without_a_note():
+    assert checked_serial("ACC-0042") == ("ACC-0042", None)
+
+
+def test_with_an_empty_register_any_serial_is_taken_as_before(lab_database):
+    found = serial_for_run("whatever-1", None)
+    assert (found.serial, found.unregistered, found.notes) == ("whatever-1", False, [])
+
+
+def test_a_serial_in_another_case_takes_the_registers_spelling(lab_database):
+    labcal("instrument", "add", "ACC-0042", "--interval", "12m")
+    found = serial_for_run(" acc-0042", None)
+    assert found.serial == "ACC-0042" and not found.unregistered
+    assert any("registered as 'ACC-0042'" in note for note in found.notes)
+
+
+def test_an_unregistered_serial_is_refused_with_yes_and_nothing_moves(tmp_path):
+    labcal("instrument", "add", "ACC-0042")
+    done = labcal("run", "--sim", "--yes", "--serial", "ACC-0043", "--out", str(tmp_path / "run"), check=2)
+    assert "not in the lab's instrument register" in done.stderr and done.stderr.count("\n") == 1
+    assert not (tmp_path / "run").exists()
+
+
+def test_an_unregistered_serial_is_asked_about_and_taken_when_the_technician_says_so(lab_database):
+    labcal("instrument", "add", "ACC-0042")
+    yes, no = Front(answer=True), Front(answer=False)
+    assert run_serial(StartRun(sim=True, serial="ACC-0043"), yes) == "ACC-0043"  # type: ignore[arg-type]
+    assert yes.asked == ["ACC-0043"]
+    with pytest.raises(LabcalError, match="not in the lab's instrument register"):
+        run_serial(StartRun(sim=True, serial="ACC-0043"), no)  # type: ignore[arg-type]
+
+
+def test_the_lab_file_may_allow_ad_hoc_serials_without_asking(lab_database, tmp_path):
+    (tmp_path / "config" / "labcal").mkdir(parents=True)
+    (tmp_path / "config" / "labcal" / "lab.toml").write_text("[instruments]\nallow_adhoc = true\n",
+                                                              encoding="utf-8")
+    labcal("instrument", "add", "ACC-0042")
+    front = Front(answer=False)
+    assert run_serial(StartRun(sim=True, serial="ACC-0043"), front) == "ACC-0043"  # type: ignore[arg-type]
+    assert front.asked == [] and any("allows ad-hoc serials" in line for line in front.lines)
+
+
+# --- the register ---------------------------------------------------------------------------------
+
+
+def test_the_register_adds_lists_searches_shows_and_edits_by_any_case_of_the_serial():
+    labcal("instrument", "add", "ACC-0042", "--model", "AX-3", "--customer", "Acme Aero", "--interval", "1y",
+           "--location", "rack 4")
+    labcal("instrument", "add", "ZT-7", "--model", "Tilt-2", "--customer", "Zenith", "--interval", "90d")
+    assert [i["serial"] for i in as_json("instrument", "list")["instruments"]] == ["ACC-0042", "ZT-7"]
+    def found(text: str) -> list[str]:
+        return [i["serial"] for i in as_json("instrument", "list", "--search", text)["instruments"]]
+
+    assert found("ACME") == ["ACC-0042"] and found("tilt") == ["ZT-7"]
+    assert as_json("instrument", "list", "--search", "_")["instruments"] == []  # a wildcard is a character
+    again = labcal("instrument", "add", "acc-0042", check=2)
+    assert "already registered as ACC-0042" in again.stderr
+    edited = as_json("instrument", "edit", "acc-0042", "--status", "out-for-repair", "--interval", "6m")
+    assert (edited["serial"], edited["status"]) == ("ACC-0042", "out-for-repair")
+    assert edited["interval_days"] == round(6 * 365.25 / 12)  # 182.625 days → 183
+    shown = as_json("instrument", "show", "ACC-0042")
+    assert (shown["customer"], shown["location"], shown["last_calibration"]) == ("Acme Aero", "rack 4", None)
+    missing = labcal("instrument", "show", "NOPE-1", check=2)
+    assert "no such instrument" in missing.stderr
+
+
+@pytest.mark.parametrize(("text", "days"), [("365d", 365), ("12m", 365), ("1y", 365), ("2y", 730), ("1m", 30),
+                                             ("30D", 30)])
+def test_an_interval_is_read_in_days_months_or_years(text, days):
+    assert interval_days(text) == days  # a month 365.25/12 = 30.44 days, a year 365.25, rounded
+
+
+@pytest.mark.parametrize("text", ["0d", "12", "twelve months", "-3d", "1.5y"])
+def test_an_interval_that_is_not_one_is_refused(text):
+    with pytest.raises(LabcalError):
+        interval_days(text)
+
+
+def test_a_bad_status_or_interval_is_refused_before_the_database_is_created(tmp_path, lab_database):
+    done = labcal("instrument", "add", "ACC-0042", "--interval", "soon", check=2)
+    assert "--interval" in done.stderr and not lab_database.exists()
+
+
+# --- due dates and the staircase ------------------------------------------------------------------
+
+
+def calibrated_on(run: Path) -> date:
+    cert = json.loads((run / "certificate.json").read_text(encoding="utf-8"))
+    return datetime.fromisoformat(cert["calibrated_utc"]).date()
+
+
+def test_next_due_is_the_last_calibration_plus_the_interval_a_dry_run_none(tmp_path, lab_database):
+    labcal("instrument", "add", "ACC-0042", "--interval", "365d")
+    run = simulated_run(tmp_path / "cal", lab_database, seed=5, serial="ACC-0042")
+    on = calibrated_on(run)
+    real_only = as_json("instrument", "show", "ACC-0042", "--on", on.isoformat())
+    assert real_only["last_calibration"] is None and real_only["next_due"] == on.isoformat()  # never: due now
+    shown = as_json("instrument", "show", "acc-0042", "--include-simulated", "--on", on.isoformat())
+    assert shown["last_calibration"]["date"] == on.isoformat()
+    assert shown["next_due"] == (on + timedelta(days=365)).isoformat()
+
+
+def test_due_lists_overdue_and_due_soon_soonest_first_and_leaves_out_the_rest(tmp_path, lab_database):
+    labcal("instrument", "add", "OLD-1", "--interval", "30d")
+    labcal("instrument", "add", "NEVER-1", "--interval", "1y")  # never calibrated: due on the day asked
+    labcal("instrument", "add", "LATER-1", "--interval", "1y")
+    labcal("instrument", "add", "RETIRED-1", "--interval", "30d", "--status", "retired")
+    labcal("instrument", "add", "NOINTERVAL-1")
+    on = calibrated_on(simulated_run(tmp_path / "a", lab_database, seed=6, serial="OLD-1"))
+    simulated_run(tmp_path / "b", lab_database, seed=7, serial="LATER-1")
+    asked = on + timedelta(days=40)  # OLD-1 fell due on day 30: 10 days overdue; LATER-1 due on day ~365
+    doc = as_json("due", "--within", "30d", "--on", asked.isoformat(), "--include-simulated")
+    rows = [(d["serial"], d["due"], d["days_left"], d["overdue"]) for d in doc["due"]]
+    assert rows == [("OLD-1", (on + timedelta(days=30)).isoformat(), -10, True),
+                    ("NEVER-1", asked.isoformat(), 0, False)]
+    text = labcal("due", "--within", "30d", "--on", asked.isoformat(), "--include-simulated").stdout
+    assert "OLD-1" in text and "OVERDUE 10 d" in text and "LATER-1" not in text
+
+
+def test_due_notify_sends_one_notification_per_instrument_falling_due(monkeypatch):
+    labcal("instrument", "add", "ACC-0042", "--interval", "1y", "--customer", "Acme Aero")
+    labcal("instrument", "add", "ZT-7", "--interval", "1y")
+    labcal("instrument", "add", "ZT-8")  # no interval: never due
+    with endpoint() as (url, inbox):
+        monkeypatch.setenv("LABCAL_NOTIFY", url)
+        doc = as_json("due", "--notify", "--on", "2027-03-01")
+        bodies = inbox.wait_for(2)
+    assert doc["notifications"] == {"sent": 2, "failed": 0}
+    assert sum("ACC-0042" in b and "Acme Aero" in b for b in bodies) == 1
+    assert sum("ZT-7" in b for b in bodies) == 1
+
+
+def test_due_notify_without_a_notification_url_says_so_in_one_line():
+    labcal("instrument", "add", "ACC-0042", "--interval", "1y")
+    done = labcal("due", "--notify", check=2)
+    assert "no notification URLs" in done.stderr and done.stderr.count("\n") == 1
+
+
+def test_the_staircase_lengthens_after_in_tolerance_and_shortens_after_out_of_tolerance():
+    """ILAC-G24:2007 method 1: one step per calibration, by the lab's factors ×1.25 and ×0.5."""
+    def history(result: bool | None) -> list[Calibration]:
+        return [Calibration("c1", date(2025, 1, 31), True), Calibration("c2", date(2026, 1, 31), result)]
+
+    assert suggested_interval(360, history(True)) == 450  # 360 × 1.25
+    assert suggested_interval(360, history(False)) == 180  # 360 × 0.5
+    assert suggested_interval(360, history(None)) is None  # nothing to judge by
+    assert suggested_interval(None, history(True)) is None
+    assert suggested_interval(360, []) is None
+
+
+# --- PostgreSQL -----------------------------------------------------------------------------------
+
+
+def test_the_register_on_the_labs_postgresql_server_is_one_instrument_whatever_the_case(postgres_url):  # noqa: F811
+    lab = open_lab(OpenLab(postgres_url, must_exist=False))
+    try:
+        from labcal.app import instruments
+
+        instruments.add(lab, "ACC-0042", instruments.InstrumentFields(customer="Acme 100%", interval="12m"))
+        with pytest.raises(LabcalError, match="already registered as ACC-0042"):
+            instruments.add(lab, "acc-0042", instruments.InstrumentFields())
+        assert [i.serial for i in instruments.listed(lab, "100%")] == ["ACC-0042"]
+        assert instruments.listed(lab, "0%x") == []
+        assert instruments.registered(lab, "Acc-0042").interval_days == 365
+    finally:
+        lab.close()
+    assert serial_for_run("acc-0042", postgres_url).serial == "ACC-0042"
