@@ -13,6 +13,7 @@ class ListRuns:
     db: str | None = None
     serial: str | None = None
     statuses: tuple[str, ...] = ()  # only runs in one of these (empty: all)
+    attention: bool = False  # only runs an approver must look at (`attention`)
 
 
 @dataclass(frozen=True)
@@ -30,6 +31,7 @@ class RunLine:
     points_failed: int
     operator: str | None
     run_dir: str
+    attention: tuple[str, ...] = ()  # what an approver must know (`attention`); listed with --attention
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -52,6 +54,21 @@ def seen_status(db: Path, status: str, run_id: int) -> str:
     return status
 
 
+def attention(metadata: dict) -> tuple[str, ...]:
+    """What an approver must know of how a run was measured, from its journaled checklist: the items
+    it went on regardless of (as the certificate states them, `checklist_overrides`), and a
+    reference standard the checklist found overdue or unnamed."""
+    from labcal.documents.issuing import checklist_overrides
+
+    checklist = metadata.get("checklist")
+    found = [f"went on regardless: {item}" for item in checklist_overrides(checklist)]
+    if isinstance(checklist, dict):
+        found += [f"{i.get('item')}: {i.get('message')}" for i in checklist.get("items") or []
+                  if isinstance(i, dict) and i.get("item") == "reference standards"
+                  and i.get("status") == "warning"]
+    return tuple(found)
+
+
 def list_runs(request: ListRuns) -> RunList:
     """The lab's runs, oldest first; a missing database is an empty list, and is not created."""
     from labcal.run.journal import Journal, db_path
@@ -66,10 +83,12 @@ def list_runs(request: ListRuns) -> RunList:
         # an interrupted run may still say "running" in the journal: ask for both, then sort out
         asked = wanted + (("running",) if "interrupted" in wanted else ())
         rows = journal.runs(request.serial, asked)
+        noted = {r.id: attention(journal.run(r.id).metadata) for r in rows} if request.attention else {}
     lines = [RunLine(r.id, r.instrument_serial, r.plan_name, seen_status(path, r.status, r.id), r.reason,
-                     r.started_utc, r.ended_utc, r.points_ok, r.points_failed, r.operator, r.run_dir)
-             for r in rows]
-    return RunList(path, True, tuple(r for r in lines if not wanted or r.status in wanted))
+                     r.started_utc, r.ended_utc, r.points_ok, r.points_failed, r.operator, r.run_dir,
+                     noted.get(r.id, ())) for r in rows]
+    return RunList(path, True, tuple(r for r in lines if (not wanted or r.status in wanted)
+                                     and (not request.attention or r.attention)))
 
 
 @dataclass(frozen=True)

@@ -17,14 +17,14 @@ def _when(utc: str | None) -> str:
 def cmd_runs(args: argparse.Namespace) -> int:
     from labcal.app.runs import ListRuns, list_runs
 
-    found = list_runs(ListRuns(args.db, args.serial, tuple(args.status or ())))
+    found = list_runs(ListRuns(args.db, args.serial, tuple(args.status or ()), args.attention))
     path, runs = found.database, found.runs
     if args.json:
         print_json({"database": str(path), "runs": [r.to_json() for r in runs]})
         return 0
     if not runs:
         where = "" if found.exists else " (it does not exist yet)"
-        matching = " matching" if args.serial or args.status else ""
+        matching = " matching" if args.serial or args.status or args.attention else ""
         out.print(f"no runs{matching} in {path}{where}", markup=False, soft_wrap=True)  # a path is not broken
         return 0
     from rich.table import Table
@@ -39,6 +39,9 @@ def cmd_runs(args: argparse.Namespace) -> int:
                       f"{r.points}{failed}", r.operator or "—")
     table.caption = "labcal log ID: a run's events; --json: its run directory too"
     out.print(table)
+    for r in runs:  # what the approver must know, under the table: a reason is a sentence, not a cell
+        for why in r.attention:
+            out.print(f"run {r.id}: {why}", markup=False)
     return 0
 
 
@@ -81,6 +84,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--serial", metavar="SERIAL", help="only this instrument's runs")
     p.add_argument("--status", choices=STATUSES, action="append",
                    help="only runs in this status (repeatable)")
+    p.add_argument("--attention", action="store_true",
+                   help="only runs an approver must look at: ones that went on past an unmet pre-run "
+                        "checklist item, or with a reference standard overdue (each reason listed)")
     add_db_option(p)
     p.add_argument("--json", action="store_true", help="print as JSON on stdout")
     p.set_defaults(func=cmd_runs)
