@@ -135,8 +135,11 @@ def run_and_report(args, ended: Ended | Finished) -> int:
             out.print(table)
     else:
         out.print(coefficients_with_standard_errors(result.fit))
-    for note in (result.model_note, *result.fit.notes):
-        out.print(f"[yellow]note:[/] {note}")
+    from rich.markup import escape
+
+    hint = f"; `labcal fit {run_dir / 'readings.csv'} --model linear` gives Soto's linear fit"
+    for note in (result.model_note + (hint if result.device is not None else ""), *result.fit.notes):
+        out.print(f"[yellow]note:[/] {escape(note)}")
     failed = f", {o.points_failed} failed (see the journal)" if o.points_failed else ""
     out.print(f"{o.points_recorded} points{failed} in {result.wall_s:.2f} s of wall time; the rig's clock "
               f"says {format_duration(o.station_time_s)} (remount allowances included).")
@@ -146,6 +149,9 @@ def run_and_report(args, ended: Ended | Finished) -> int:
         if conformity is not None:
             verdict = "[green]PASS[/]" if conformity.passed else "[red]FAIL[/]"
             out.print(f"Verdict against the tolerances: [bold]{verdict}[/]")
+        else:  # the certificate says only that none was given; how to give one is the technician's
+            out.print("[yellow]note:[/] no statement of conformity: give --tolerance-deg (and optionally "
+                      "--bias-max-v) or a \\[certificate] section in the station file")
     out.print(f"Files in {run_dir}/: {files}; journal {journal}")
     if issued is not None:
         cert = issued.certificate
