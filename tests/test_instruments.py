@@ -37,8 +37,29 @@ def labcal(*args: str, check: int | None = 0) -> subprocess.CompletedProcess:
     return done
 
 
-def as_json(*args: str) -> dict:
-    return json.loads(labcal(*args, "--json").stdout)
+class InProcess:
+    """`labcal ARGS` in this process (the same command line, without a Python start-up per call)."""
+
+    def __init__(self, capsys) -> None:
+        self.capsys = capsys
+
+    def __call__(self, *args: str, check: int | None = 0) -> subprocess.CompletedProcess:
+        from labcal.cli import main
+
+        self.capsys.readouterr()  # what came before (a simulated run's own output) is not this command's
+        code = main(list(args))
+        got = self.capsys.readouterr()
+        if check is not None:
+            assert code == check, got.err
+        return subprocess.CompletedProcess(list(args), code, got.out, got.err)
+
+    def json(self, *args: str) -> dict:
+        return json.loads(self(*args, "--json").stdout)
+
+
+@pytest.fixture
+def lc(capsys) -> InProcess:
+    return InProcess(capsys)
 
 
 class Front:
@@ -93,8 +114,8 @@ def test_with_an_empty_register_any_serial_is_taken_as_before(lab_database):
     assert (found.serial, found.unregistered, found.notes) == ("whatever-1", False, [])
 
 
-def test_a_serial_in_another_case_takes_the_registers_spelling(lab_database):
-    labcal("instrument", "add", "ACC-0042", "--interval", "12m")
+def test_a_serial_in_another_case_takes_the_registers_spelling(lc, lab_database):
+    lc("instrument", "add", "ACC-0042", "--interval", "12m")
     found = serial_for_run(" acc-0042", None)
     assert found.serial == "ACC-0042" and not found.unregistered
     assert any("registered as 'ACC-0042'" in note for note in found.notes)
@@ -107,8 +128,8 @@ def test_an_unregistered_serial_is_refused_with_yes_and_nothing_moves(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
-def test_an_unregistered_serial_is_asked_about_and_taken_when_the_technician_says_so(lab_database):
-    labcal("instrument", "add", "ACC-0042")
+def test_an_unregistered_serial_is_asked_about_and_taken_when_the_technician_says_so(lc, lab_database):
+    lc("instrument", "add", "ACC-0042")
     yes, no = Front(answer=True), Front(answer=False)
     assert run_serial(StartRun(sim=True, serial="ACC-0043"), yes) == "ACC-0043"  # type: ignore[arg-type]
     assert yes.asked == ["ACC-0043"]
@@ -116,11 +137,11 @@ def test_an_unregistered_serial_is_asked_about_and_taken_when_the_technician_say
         run_serial(StartRun(sim=True, serial="ACC-0043"), no)  # type: ignore[arg-type]
 
 
-def test_the_lab_file_may_allow_ad_hoc_serials_without_asking(lab_database, tmp_path):
+def test_the_lab_file_may_allow_ad_hoc_serials_without_asking(lc, lab_database, tmp_path):
     (tmp_path / "config" / "labcal").mkdir(parents=True)
     (tmp_path / "config" / "labcal" / "lab.toml").write_text("[instruments]\nallow_adhoc = true\n",
                                                               encoding="utf-8")
-    labcal("instrument", "add", "ACC-0042")
+    lc("instrument", "add", "ACC-0042")
     front = Front(answer=False)
     assert run_serial(StartRun(sim=True, serial="ACC-0043"), front) == "ACC-0043"  # type: ignore[arg-type]
     assert front.asked == [] and any("allows ad-hoc serials" in line for line in front.lines)
@@ -129,24 +150,24 @@ def test_the_lab_file_may_allow_ad_hoc_serials_without_asking(lab_database, tmp_
 # --- the register ---------------------------------------------------------------------------------
 
 
-def test_the_register_adds_lists_searches_shows_and_edits_by_any_case_of_the_serial():
-    labcal("instrument", "add", "ACC-0042", "--model", "AX-3", "--customer", "Acme Aero", "--interval", "1y",
+def test_the_register_adds_lists_searches_shows_and_edits_by_any_case_of_the_serial(lc):
+    lc("instrument", "add", "ACC-0042", "--model", "AX-3", "--customer", "Acme Aero", "--interval", "1y",
            "--location", "rack 4")
-    labcal("instrument", "add", "ZT-7", "--model", "Tilt-2", "--customer", "Zenith", "--interval", "90d")
-    assert [i["serial"] for i in as_json("instrument", "list")["instruments"]] == ["ACC-0042", "ZT-7"]
+    lc("instrument", "add", "ZT-7", "--model", "Tilt-2", "--customer", "Zenith", "--interval", "90d")
+    assert [i["serial"] for i in lc.json("instrument", "list")["instruments"]] == ["ACC-0042", "ZT-7"]
     def found(text: str) -> list[str]:
-        return [i["serial"] for i in as_json("instrument", "list", "--search", text)["instruments"]]
+        return [i["serial"] for i in lc.json("instrument", "list", "--search", text)["instruments"]]
 
     assert found("ACME") == ["ACC-0042"] and found("tilt") == ["ZT-7"]
-    assert as_json("instrument", "list", "--search", "_")["instruments"] == []  # a wildcard is a character
-    again = labcal("instrument", "add", "acc-0042", check=2)
+    assert lc.json("instrument", "list", "--search", "_")["instruments"] == []  # a wildcard is a character
+    again = lc("instrument", "add", "acc-0042", check=2)
     assert "already registered as ACC-0042" in again.stderr
-    edited = as_json("instrument", "edit", "acc-0042", "--status", "out-for-repair", "--interval", "6m")
+    edited = lc.json("instrument", "edit", "acc-0042", "--status", "out-for-repair", "--interval", "6m")
     assert (edited["serial"], edited["status"]) == ("ACC-0042", "out-for-repair")
     assert edited["interval_days"] == round(6 * 365.25 / 12)  # 182.625 days → 183
-    shown = as_json("instrument", "show", "ACC-0042")
+    shown = lc.json("instrument", "show", "ACC-0042")
     assert (shown["customer"], shown["location"], shown["last_calibration"]) == ("Acme Aero", "rack 4", None)
-    missing = labcal("instrument", "show", "NOPE-1", check=2)
+    missing = lc("instrument", "show", "NOPE-1", check=2)
     assert "no such instrument" in missing.stderr
 
 
@@ -175,50 +196,50 @@ def calibrated_on(run: Path) -> date:
     return datetime.fromisoformat(cert["calibrated_utc"]).date()
 
 
-def test_next_due_is_the_last_calibration_plus_the_interval_a_dry_run_none(tmp_path, lab_database):
-    labcal("instrument", "add", "ACC-0042", "--interval", "365d")
+def test_next_due_is_the_last_calibration_plus_the_interval_a_dry_run_none(lc, tmp_path, lab_database):
+    lc("instrument", "add", "ACC-0042", "--interval", "365d")
     run = simulated_run(tmp_path / "cal", lab_database, seed=5, serial="ACC-0042")
     on = calibrated_on(run)
-    real_only = as_json("instrument", "show", "ACC-0042", "--on", on.isoformat())
+    real_only = lc.json("instrument", "show", "ACC-0042", "--on", on.isoformat())
     assert real_only["last_calibration"] is None and real_only["next_due"] == on.isoformat()  # never: due now
-    shown = as_json("instrument", "show", "acc-0042", "--include-simulated", "--on", on.isoformat())
+    shown = lc.json("instrument", "show", "acc-0042", "--include-simulated", "--on", on.isoformat())
     assert shown["last_calibration"]["date"] == on.isoformat()
     assert shown["next_due"] == (on + timedelta(days=365)).isoformat()
 
 
-def test_due_lists_overdue_and_due_soon_soonest_first_and_leaves_out_the_rest(tmp_path, lab_database):
-    labcal("instrument", "add", "OLD-1", "--interval", "30d")
-    labcal("instrument", "add", "NEVER-1", "--interval", "1y")  # never calibrated: due on the day asked
-    labcal("instrument", "add", "LATER-1", "--interval", "1y")
-    labcal("instrument", "add", "RETIRED-1", "--interval", "30d", "--status", "retired")
-    labcal("instrument", "add", "NOINTERVAL-1")
+def test_due_lists_overdue_and_due_soon_soonest_first_and_leaves_out_the_rest(lc, tmp_path, lab_database):
+    lc("instrument", "add", "OLD-1", "--interval", "30d")
+    lc("instrument", "add", "NEVER-1", "--interval", "1y")  # never calibrated: due on the day asked
+    lc("instrument", "add", "LATER-1", "--interval", "1y")
+    lc("instrument", "add", "RETIRED-1", "--interval", "30d", "--status", "retired")
+    lc("instrument", "add", "NOINTERVAL-1")
     on = calibrated_on(simulated_run(tmp_path / "a", lab_database, seed=6, serial="OLD-1"))
     simulated_run(tmp_path / "b", lab_database, seed=7, serial="LATER-1")
     asked = on + timedelta(days=40)  # OLD-1 fell due on day 30: 10 days overdue; LATER-1 due on day ~365
-    doc = as_json("due", "--within", "30d", "--on", asked.isoformat(), "--include-simulated")
+    doc = lc.json("due", "--within", "30d", "--on", asked.isoformat(), "--include-simulated")
     rows = [(d["serial"], d["due"], d["days_left"], d["overdue"]) for d in doc["due"]]
     assert rows == [("OLD-1", (on + timedelta(days=30)).isoformat(), -10, True),
                     ("NEVER-1", asked.isoformat(), 0, False)]
-    text = labcal("due", "--within", "30d", "--on", asked.isoformat(), "--include-simulated").stdout
+    text = lc("due", "--within", "30d", "--on", asked.isoformat(), "--include-simulated").stdout
     assert "OLD-1" in text and "OVERDUE 10 d" in text and "LATER-1" not in text
 
 
-def test_due_notify_sends_one_notification_per_instrument_falling_due(monkeypatch):
-    labcal("instrument", "add", "ACC-0042", "--interval", "1y", "--customer", "Acme Aero")
-    labcal("instrument", "add", "ZT-7", "--interval", "1y")
-    labcal("instrument", "add", "ZT-8")  # no interval: never due
+def test_due_notify_sends_one_notification_per_instrument_falling_due(lc, monkeypatch):
+    lc("instrument", "add", "ACC-0042", "--interval", "1y", "--customer", "Acme Aero")
+    lc("instrument", "add", "ZT-7", "--interval", "1y")
+    lc("instrument", "add", "ZT-8")  # no interval: never due
     with endpoint() as (url, inbox):
         monkeypatch.setenv("LABCAL_NOTIFY", url)
-        doc = as_json("due", "--notify", "--on", "2027-03-01")
+        doc = lc.json("due", "--notify", "--on", "2027-03-01")
         bodies = inbox.wait_for(2)
     assert doc["notifications"] == {"sent": 2, "failed": 0}
     assert sum("ACC-0042" in b and "Acme Aero" in b for b in bodies) == 1
     assert sum("ZT-7" in b for b in bodies) == 1
 
 
-def test_due_notify_without_a_notification_url_says_so_in_one_line():
-    labcal("instrument", "add", "ACC-0042", "--interval", "1y")
-    done = labcal("due", "--notify", check=2)
+def test_due_notify_without_a_notification_url_says_so_in_one_line(lc):
+    lc("instrument", "add", "ACC-0042", "--interval", "1y")
+    done = lc("due", "--notify", check=2)
     assert "no notification URLs" in done.stderr and done.stderr.count("\n") == 1
 
 
