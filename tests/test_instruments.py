@@ -131,7 +131,8 @@ def test_an_unregistered_serial_is_refused_with_yes_and_nothing_moves(tmp_path):
 def test_an_unregistered_serial_is_asked_about_and_taken_when_the_technician_says_so(lc, lab_database):
     lc("instrument", "add", "ACC-0042")
     yes, no = Front(answer=True), Front(answer=False)
-    assert run_serial(StartRun(sim=True, serial="ACC-0043"), yes) == "ACC-0043"  # type: ignore[arg-type]
+    assert run_serial(StartRun(sim=True, serial="ACC-0043"), yes) == (  # type: ignore[arg-type]
+        "ACC-0043", "not in the instrument register; the operator said to calibrate it as an ad-hoc serial")
     assert yes.asked == ["ACC-0043"]
     with pytest.raises(LabcalError, match="not in the lab's instrument register"):
         run_serial(StartRun(sim=True, serial="ACC-0043"), no)  # type: ignore[arg-type]
@@ -143,8 +144,13 @@ def test_the_lab_file_may_allow_ad_hoc_serials_without_asking(lc, lab_database, 
                                                               encoding="utf-8")
     lc("instrument", "add", "ACC-0042")
     front = Front(answer=False)
-    assert run_serial(StartRun(sim=True, serial="ACC-0043"), front) == "ACC-0043"  # type: ignore[arg-type]
+    assert run_serial(StartRun(sim=True, serial="ACC-0043"), front) == (  # type: ignore[arg-type]
+        "ACC-0043", "not in the instrument register; the lab file allows ad-hoc serials")
     assert front.asked == [] and any("allows ad-hoc serials" in line for line in front.lines)
+    simulated_run(tmp_path / "run", lab_database, seed=9, serial="ACC-0043")  # --yes: not asked, taken
+    runs = lc.json("runs", "--attention")["runs"]
+    assert [r["attention"] for r in runs] == [
+        ["serial not in the instrument register; the lab file allows ad-hoc serials"]]
 
 
 # --- the register ---------------------------------------------------------------------------------

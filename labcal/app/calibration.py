@@ -272,7 +272,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
         raise LabcalError("--rig describes the rig of --sim; an emulated station has [emulation.rig]")
     if args.pace is not None and not args.sim:
         raise LabcalError(PACE_SIM_ONLY)
-    serial = run_serial(args, front)  # before the station is opened: a bad serial costs no rig time
+    serial, adhoc = run_serial(args, front)  # before the station is opened: a bad serial costs no rig time
     plan, plan_text = load_plan(args.plan)
     correction = plan_correction(plan_text, args.plan)  # the device's misalignments it corrects for
     if args.replicates is not None:  # the journal keeps the plan that actually runs
@@ -308,6 +308,8 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
             settings = settings.model_copy(update={
                 "move_timeout_s": config.sequencer.move_timeout_s,
                 "position_tolerance_deg": config.sequencer.position_tolerance_deg})
+        if adhoc:  # run.json and the journal: why a serial the register lacks was certified
+            setup.metadata["unregistered_serial"] = adhoc
         ambient = ambient_entered(args)
         if ambient:
             setup.metadata["ambient"] = ambient  # the manifest's metadata: the certificate quotes it
@@ -339,30 +341,35 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
                 notifier=RunNotifier(notifications, station_label(setup.metadata), run_dir), sender=sender)
 
 
-def run_serial(args: StartRun, front: FrontEnd) -> str | None:
+ADHOC_ALLOWED = "not in the instrument register; the lab file allows ad-hoc serials"
+ADHOC_ASKED = "not in the instrument register; the operator said to calibrate it as an ad-hoc serial"
+
+
+def run_serial(args: StartRun, front: FrontEnd) -> tuple[str | None, str | None]:
     """The serial the run certifies (`labcal.app.instruments`): whitespace around it stripped with a
     note, a control character refused, the register's spelling taken; a serial the register (when it
     holds any instrument) lacks is asked about, and refused where nobody is asked unless the lab file
-    allows ad-hoc serials. A dry run only cleans it (it certifies nothing, and opens no database)."""
+    allows ad-hoc serials — then also why it was taken (`ADHOC_ALLOWED`, `ADHOC_ASKED`; None: it is
+    registered, or the register is empty). A dry run only cleans it (it certifies nothing, and opens
+    no database)."""
     if args.serial is None:
-        return None
+        return None, None
     from labcal.app.instruments import checked_serial, serial_for_run
 
     if args.dry_run:
-        return checked_serial(args.serial)[0]
+        return checked_serial(args.serial)[0], None
     found = serial_for_run(args.serial, args.db)
     for note in found.notes:
         front.say(f"note: {note}", markup=False)
     if not found.unregistered:
-        return found.serial
+        return found.serial, None
     from labcal.config.lab import load_lab_config
 
     if load_lab_config().file.instruments.allow_adhoc:
-        front.say(f"note: {found.serial!r} is not in the instrument register; the lab file allows ad-hoc "
-                  "serials ([instruments] allow_adhoc)", markup=False)
-        return found.serial
+        front.say(f"note: {found.serial!r} is {ADHOC_ALLOWED} ([instruments] allow_adhoc)", markup=False)
+        return found.serial, ADHOC_ALLOWED
     if front.unregistered(found.serial):
-        return found.serial
+        return found.serial, ADHOC_ASKED
     raise LabcalError(f"{found.serial!r} is not in the lab's instrument register (nothing moved): "
                       f"register it with `labcal instrument add {found.serial}`, check the serial with "
                       "`labcal instrument list --search TEXT`, or allow ad-hoc serials in the lab file "

@@ -57,7 +57,8 @@ def seen_status(db: Path, status: str, run_id: int) -> str:
 def attention(metadata: dict) -> tuple[str, ...]:
     """What an approver must know of how a run was measured, from its journaled checklist: the items
     it went on regardless of (as the certificate states them, `checklist_overrides`), and a
-    reference standard the checklist found overdue or unnamed."""
+    reference standard the checklist found overdue or unnamed, and a serial the instrument register
+    did not hold."""
     from labcal.documents.issuing import checklist_overrides
 
     checklist = metadata.get("checklist")
@@ -66,6 +67,8 @@ def attention(metadata: dict) -> tuple[str, ...]:
         found += [f"{i.get('item')}: {i.get('message')}" for i in checklist.get("items") or []
                   if isinstance(i, dict) and i.get("item") == "reference standards"
                   and i.get("status") == "warning"]
+    if metadata.get("unregistered_serial"):
+        found.append(f"serial {metadata['unregistered_serial']}")
     return tuple(found)
 
 
