@@ -278,3 +278,23 @@ def test_the_register_on_the_labs_postgresql_server_is_one_instrument_whatever_t
     finally:
         lab.close()
     assert serial_for_run("acc-0042", postgres_url).serial == "ACC-0042"
+
+
+def test_a_run_recorded_with_a_trailing_space_in_its_serial_is_mended_by_report(lc, tmp_path, lab_database):
+    """A run journaled by a labcal before serials were checked holds "ACC-0042 " (set here in its
+    journal row and run.json, as that labcal wrote them): `labcal report RUN --serial ACC-0042`
+    issues the certificate and a schema-valid DCC for ACC-0042 rather than refusing the two as
+    different serials."""
+    import sqlite3
+
+    lc("run", "--sim", "--yes", "--no-report", "--seed", "2", "--serial", "ACC-0042", "--out",
+       str(tmp_path / "run"))
+    with sqlite3.connect(lab_database) as db:
+        db.execute("UPDATE runs SET instrument_serial = 'ACC-0042 '")
+    run_json = tmp_path / "run" / "run.json"
+    run_json.write_text(json.dumps({**json.loads(run_json.read_text(encoding="utf-8")),
+                                    "instrument_serial": "ACC-0042 "}), encoding="utf-8")
+    lc("report", str(tmp_path / "run"), "--serial", "ACC-0042")
+    cert = json.loads((tmp_path / "run" / "certificate.json").read_text(encoding="utf-8"))
+    assert cert["instrument"]["serial"] == "ACC-0042"
+    assert ">ACC-0042<" in (tmp_path / "run" / "certificate.dcc.xml").read_text(encoding="utf-8")

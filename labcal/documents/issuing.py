@@ -173,10 +173,14 @@ def _closed_form_envelope(cal: Calibration, settings: CertificateSettings, spher
 
 # --- building a certificate from a run -------------------------------------------------------------
 def _recorded(meta_value, given: str | None, what: str, run_dir: Path) -> str | None:
-    """A value the run recorded, or the one given on the command line; never two different ones."""
-    if given and meta_value and given != meta_value:
+    """A value the run recorded, or the one given on the command line; never two different ones.
+    Whitespace around either is no difference and is dropped: a run recorded before serials were
+    checked may hold "ACC-0042 ", which its certificate (and the DCC's schema) must not carry."""
+    recorded = meta_value.strip() if isinstance(meta_value, str) else meta_value
+    given = given.strip() if given else given
+    if given and recorded and given != recorded:
         raise LabcalError(f"{run_dir}: the run records {what} {meta_value!r}; {given!r} disagrees")
-    return given or meta_value or None
+    return given or recorded or None
 
 
 def _expanded(fit_dof: NDArray, budget: UncertaintyBudget) -> Expanded:
