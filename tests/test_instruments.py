@@ -213,6 +213,19 @@ def test_next_due_is_the_last_calibration_plus_the_interval_a_dry_run_none(lc, t
     assert shown["next_due"] == (on + timedelta(days=365)).isoformat()
 
 
+def test_show_suggests_the_staircase_interval_from_the_last_verdict(lc, tmp_path):
+    """ILAC-G24 method 1 on real certificates: a verdict of PASS (1° tolerance, far above the U95 of
+    a few arcseconds) lengthens 360 days to 360 × 1.25 = 450; FAIL (0.0001°, 0.36″, below it) shortens
+    them to 360 × 0.5 = 180."""
+    for serial, tolerance, suggested in (("PASS-1", "1", 450), ("FAIL-1", "0.0001", 180)):
+        lc("instrument", "add", serial, "--interval", "360d")
+        lc("run", "--sim", "--yes", "--seed", "5", "--serial", serial, "--tolerance-deg", tolerance,
+           "--out", str(tmp_path / serial))
+        shown = lc.json("instrument", "show", serial, "--include-simulated")
+        assert shown["last_calibration"]["in_tolerance"] is (suggested > 360)
+        assert shown["suggested_interval_days"] == suggested
+
+
 def test_due_lists_overdue_and_due_soon_soonest_first_and_leaves_out_the_rest(lc, tmp_path, lab_database):
     lc("instrument", "add", "OLD-1", "--interval", "30d")
     lc("instrument", "add", "NEVER-1", "--interval", "1y")  # never calibrated: due on the day asked

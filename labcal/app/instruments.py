@@ -20,9 +20,11 @@ instrument's interval; one never calibrated is due now. The suggested interval f
 instrument was found in tolerance and shortened when it was not. ILAC-G24 leaves the step sizes to
 the lab; labcal's are `LENGTHEN` and `SHORTEN` (shortening harder than lengthening: an instrument
 found out of tolerance has put every result since its last calibration in doubt, an early
-calibration only costs a calibration). "In tolerance" is the certificate's conformity verdict where it
-has one; without one, no coefficient's change from the calibration before exceeding the combined
-expanded uncertainty (the history's drift rule).
+calibration only costs a calibration). "In tolerance" is the certificate's conformity verdict; a
+certificate without one (no tolerance given) is not judged, and suggests nothing. The history's drift
+flags are not used as a verdict: they test each of the twelve coefficients at 95 %, so a perfectly
+stable instrument shows at least one flag in about 1 − 0.95¹² ≈ 46 % of consecutive calibrations, and
+the staircase would halve its interval on noise.
 """
 
 from __future__ import annotations
@@ -37,7 +39,6 @@ from labcal.errors import LabcalError
 
 if TYPE_CHECKING:
     from labcal.app.labdatabase import LabDatabase
-    from labcal.documents.certificate import Certificate
     from labcal.run.instruments import Instrument
 
 STATUSES = ("active", "retired", "out-for-repair")
@@ -165,7 +166,7 @@ class Calibration:
 
     certificate_id: str
     on: date  # the calibration's date (UTC)
-    in_tolerance: bool | None  # None: neither a verdict nor a calibration before it to judge drift by
+    in_tolerance: bool | None  # the certificate's conformity verdict (None: no tolerance was given)
 
     def to_json(self) -> dict:
         return {"certificate_id": self.certificate_id, "date": self.on.isoformat(),
@@ -184,17 +185,7 @@ def calibrations(serial: str, db: str | None, include_simulated: bool = False) -
     except LabcalError:  # no certificate, or only dry runs': never calibrated
         return []
     return [Calibration(c.certificate_id, c.calibrated_utc.date(),
-                        _in_tolerance(c, certs[i - 1] if i else None)) for i, c in enumerate(certs)]
-
-
-def _in_tolerance(cert: Certificate, before: Certificate | None) -> bool | None:
-    if cert.conformity is not None:
-        return cert.conformity.passed
-    if before is None:
-        return None
-    from labcal.documents.history import changes
-
-    return not any(change.flagged for change in changes([before, cert]))
+                        None if c.conformity is None else c.conformity.passed) for c in certs]
 
 
 def suggested_interval(interval: int | None, history: list[Calibration]) -> int | None:
