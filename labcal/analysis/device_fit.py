@@ -460,15 +460,19 @@ def fit_device(readings: Readings, linear: Fit | None = None, angle_errors: Angl
                      evaluations, tuple(notes), angle_errors if angle_errors else None, angle_cov)
 
 
+LINEAR_HINT = "--model linear for Soto's linear fit"  # the technician's, not the certificate's
+
+
 def default_model(readings: Readings) -> tuple[str, str]:
     """Which model a calibration's readings deserve — the device model where the points identify all
-    six misalignments, else the linear one — and the one line that says so (and why)."""
+    six misalignments, else the linear one — and the one line that says so (and why). The line is
+    also the certificate's statement, so it names no command-line option (`LINEAR_HINT` is said
+    where a technician reads it)."""
     ident = identifiability(PointMeans.of(readings).where)
     problem = ident.problem()
     if problem is None:
         return "device", ("device model: the plan identifies all six calibration-device misalignments "
-                          f"(rank {ident.rank}, condition {ident.condition:.3g}); --model linear for Soto's "
-                          "linear fit")
+                          f"(rank {ident.rank}, condition {ident.condition:.3g})")
     return "linear", f"linear model: this plan cannot identify the device misalignments ({problem})"
 
 

@@ -57,6 +57,10 @@ class FrontEnd(Protocol):
         """The pre-run checklist (`labcal.bench.checklist`), shown before anything moves; what the
         run journals of it. An unmet item raises LabcalError unless whoever is there says to go on."""
 
+    def unregistered(self, serial: str) -> bool:
+        """Whether to calibrate ``serial``, which the lab's instrument register does not hold: asked at
+        the terminal; False where nobody is asked (--yes, a script)."""
+
     def display(self, total: int, done: int) -> AbstractContextManager[tuple[Display, Terminal]]:
         """The view of the run's progress while it measures (subscribed to the run's events), and the
         terminal the run's prompts use."""
@@ -311,6 +315,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
     if args.instrument and not args.sim:
         raise LabcalError("--instrument chooses the simulated rig's package (--sim); a station's is its "
                           "[instrument] package")
+    serial, adhoc = run_serial(args, front)  # before the station is opened: a bad serial costs no rig time
     plan, plan_text = load_plan(args.plan)
     correction = plan_correction(plan_text, args.plan)  # the device's misalignments it corrects for
     if args.replicates is not None:  # the journal keeps the plan that actually runs
@@ -350,6 +355,8 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
             settings = settings.model_copy(update={
                 "move_timeout_s": config.sequencer.move_timeout_s,
                 "position_tolerance_deg": config.sequencer.position_tolerance_deg})
+        if adhoc:  # run.json and the journal: why a serial the register lacks was certified
+            setup.metadata["unregistered_serial"] = adhoc
         ambient = ambient_entered(args)
         if ambient:
             setup.metadata["ambient"] = ambient  # the manifest's metadata: the certificate quotes it
@@ -377,7 +384,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
                 sending(args.db, journal.path, _noted(front)) as sender:
             return run_and_finish(front, lambda events, terminal, forecast: calibrate(
                 plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, events,
-                setup.metadata, args.serial, args.operator, steps, terminal=terminal, forecast=forecast),
+                setup.metadata, serial, args.operator, steps, terminal=terminal, forecast=forecast),
                 run_dir, plan, est, 0, args.db, args.no_report, cert_settings,
                 notifier=RunNotifier(notifications, station_label(setup.metadata), run_dir,
                                      _lab_label(journal.path, args.db)), sender=sender)
@@ -400,6 +407,41 @@ def sim_package_use(package: str, rig: dict) -> dict:
         return {"package": package, "roll_in_use": "inferred", "roll_sd_deg": None}
     index_deg = rig["device"]["index_arcsec"] / 3600
     return {"package": package, "roll_in_use": "table", "roll_sd_deg": index_deg / 3 ** 0.5}
+
+
+ADHOC_ALLOWED = "not in the instrument register; the lab file allows ad-hoc serials"
+ADHOC_ASKED = "not in the instrument register; the operator said to calibrate it as an ad-hoc serial"
+
+
+def run_serial(args: StartRun, front: FrontEnd) -> tuple[str | None, str | None]:
+    """The serial the run certifies (`labcal.app.instruments`): whitespace around it stripped with a
+    note, a control character refused, the register's spelling taken; a serial the register (when it
+    holds any instrument) lacks is asked about, and refused where nobody is asked unless the lab file
+    allows ad-hoc serials — then also why it was taken (`ADHOC_ALLOWED`, `ADHOC_ASKED`; None: it is
+    registered, or the register is empty). A dry run only cleans it (it certifies nothing, and opens
+    no database)."""
+    if args.serial is None:
+        return None, None
+    from labcal.app.instruments import checked_serial, serial_for_run
+
+    if args.dry_run:
+        return checked_serial(args.serial)[0], None
+    found = serial_for_run(args.serial, args.db)
+    for note in found.notes:
+        front.say(f"note: {note}", markup=False)
+    if not found.unregistered:
+        return found.serial, None
+    from labcal.config.lab import load_lab_config
+
+    if load_lab_config().file.instruments.allow_adhoc:
+        front.say(f"note: {found.serial!r} is {ADHOC_ALLOWED} ([instruments] allow_adhoc)", markup=False)
+        return found.serial, ADHOC_ALLOWED
+    if front.unregistered(found.serial):
+        return found.serial, ADHOC_ASKED
+    raise LabcalError(f"{found.serial!r} is not in the lab's instrument register (nothing moved): "
+                      f"register it with `labcal instrument add {found.serial}`, check the serial with "
+                      "`labcal instrument list --search TEXT`, or allow ad-hoc serials in the lab file "
+                      "([instruments] allow_adhoc = true)")
 
 
 def check_package(instrument: InstrumentSettings, envelope: CertificateSettings, station: str, plan: str

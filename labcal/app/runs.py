@@ -14,6 +14,7 @@ class ListRuns:
     db: str | None = None
     serial: str | None = None
     statuses: tuple[str, ...] = ()  # only runs in one of these (empty: all)
+    attention: bool = False  # only runs an approver must look at (`attention`)
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,7 @@ class RunLine:
     points_failed: int
     operator: str | None
     run_dir: str
+    attention: tuple[str, ...] = ()  # what an approver must know (`attention`); listed with --attention
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -59,12 +61,40 @@ def seen_status(db: Path, status: str, run_id: int) -> str:
     return status
 
 
-def _line(run: LabRun, journal: Path | None) -> RunLine:
+def attention(metadata: dict) -> tuple[str, ...]:
+    """What an approver must know of how a run was measured, from its journaled checklist: the items
+    it went on regardless of (as the certificate states them, `checklist_overrides`), and a
+    reference standard the checklist found overdue or unnamed, and a serial the instrument register
+    did not hold."""
+    from labcal.documents.issuing import checklist_overrides
+
+    checklist = metadata.get("checklist")
+    found = [f"went on regardless: {item}" for item in checklist_overrides(checklist)]
+    if isinstance(checklist, dict):
+        found += [f"{i.get('item')}: {i.get('message')}" for i in checklist.get("items") or []
+                  if isinstance(i, dict) and i.get("item") == "reference standards"
+                  and i.get("status") == "warning"]
+    if metadata.get("unregistered_serial"):
+        found.append(f"serial {metadata['unregistered_serial']}")
+    return tuple(found)
+
+
+def _line(run: LabRun, journal: Path | None, noted: bool) -> RunLine:
     status = run.status if run.local_id is None or journal is None else \
         seen_status(journal, run.status, run.local_id)
     return RunLine(run.number, run.label, run.uuid, run.station, run.serial, run.plan, status,
                    run.reason, run.started_utc, run.ended_utc, run.points_ok, run.points_failed,
-                   run.operator, run.run_dir)
+                   run.operator, run.run_dir, attention(_metadata(run)) if noted else ())
+
+
+def _metadata(run: LabRun) -> dict:
+    import json
+
+    try:
+        found = json.loads(run.metadata or "{}")
+    except ValueError:
+        return {}
+    return found if isinstance(found, dict) else {}
 
 
 def list_runs(request: ListRuns) -> RunList:
@@ -76,10 +106,10 @@ def list_runs(request: ListRuns) -> RunList:
     # an interrupted run may still say "running" in the journal: ask for both, then sort out
     asked = wanted + (("running",) if "interrupted" in wanted else ())
     found, source = lab_runs(request.db, request.serial, asked)
-    lines = [_line(r, source.journal) for r in found]
+    lines = [_line(r, source.journal, request.attention) for r in found]
     exists = source.journal is not None or source.target is not None and source.stale is None
-    return RunList(source.shown, exists, tuple(r for r in lines if not wanted or r.status in wanted),
-                   source.stale)
+    return RunList(source.shown, exists, tuple(r for r in lines if (not wanted or r.status in wanted)
+                                               and (not request.attention or r.attention)), source.stale)
 
 
 @dataclass(frozen=True)

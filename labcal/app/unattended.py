@@ -86,6 +86,11 @@ class Unattended:
         return {"items": [item.to_json() for item in items], "went_on_regardless": False,
                 "powered_on": None, "warmed_up_stated": False}
 
+    def unregistered(self, serial: str) -> bool:
+        """Nobody is there to say that an unregistered serial is meant: refused (unless the lab file
+        allows ad-hoc serials, which is decided before this is asked)."""
+        return False
+
     @contextmanager
     def display(self, total: int, done: int) -> Iterator[tuple[_Silent, Terminal]]:
         from labcal.run.operator import Terminal

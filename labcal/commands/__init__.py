@@ -26,6 +26,8 @@ COMMANDS = {  # name: (module, one-line help), in the order `labcal --help` list
     "sync": ("sync", "send this station's journal to the lab's PostgreSQL database now"),
     "serve": ("serve", "the lab server: every station's runs live, the API, approvals"),
     "user": ("user", "the lab server's users: add, list, disable"),
+    "instrument": ("instrument", "the lab's instrument register: add, list, show, edit"),
+    "due": ("instrument", "instruments overdue or falling due; --notify sends the recall"),
 }
 
 

@@ -46,7 +46,7 @@ def singular_sensitivity(X, source: str) -> None:
 
 def choose_model(args: argparse.Namespace, readings) -> tuple[str, str | None]:
     """The model to fit and, when it was chosen for the user, the one line saying why."""
-    from labcal.analysis.device_fit import default_model
+    from labcal.analysis.device_fit import LINEAR_HINT, default_model
 
     if args.index_errors and args.model not in (None, "device"):
         raise LabcalError("--index-errors extends the device model; leave out --model or give --model device")
@@ -61,7 +61,7 @@ def choose_model(args: argparse.Namespace, readings) -> tuple[str, str | None]:
     model, note = default_model(readings)
     if model == "device" and (args.extend or args.at):
         return "linear", "linear model: --extend and --at need it (--model device fits the misalignments)"
-    return model, note
+    return model, note + ("; " + LINEAR_HINT if model == "device" else "")
 
 
 def against_station(args: argparse.Namespace, readings, fit, doc: dict, flags: list) -> list:

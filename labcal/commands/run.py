@@ -48,6 +48,16 @@ class CommandLine:
 
         return before_run(self.args, bench, station, points, samples)
 
+    def unregistered(self, serial: str) -> bool:
+        if self.args.yes or self.args.answers:  # nobody is asked
+            return False
+        try:
+            answer = err.input(f"{serial!r} is not in the lab's instrument register. Calibrate it anyway, "
+                               "as an ad-hoc serial? (y/N) ", markup=False)
+        except EOFError:
+            answer = ""
+        return answer.strip().lower() in ("y", "yes")
+
     @contextmanager
     def display(self, total: int, done: int):
         """The progress bar, which is also the terminal the prompts pause it for."""
@@ -134,7 +144,11 @@ def run_and_report(args, ended: Ended | Finished) -> int:
             out.print(table)
     else:
         out.print(coefficients_with_standard_errors(result.fit))
-    for note in (result.model_note, *result.fit.notes):
+    import shlex
+
+    linear = shlex.join(["labcal", "fit", str(run_dir / "readings.csv"), "--model", "linear"])
+    hint = f"; `{linear}` gives Soto's linear fit"
+    for note in (result.model_note + (hint if result.device is not None else ""), *result.fit.notes):
         out.print(f"[yellow]note:[/] {literal(note)}")
     failed = f", {o.points_failed} failed (see the journal)" if o.points_failed else ""
     out.print(f"{o.points_recorded} points{failed} in {result.wall_s:.2f} s of wall time; the rig's clock "
@@ -145,6 +159,9 @@ def run_and_report(args, ended: Ended | Finished) -> int:
         if conformity is not None:
             verdict = "[green]PASS[/]" if conformity.passed else "[red]FAIL[/]"
             out.print(f"Verdict against the tolerances: [bold]{verdict}[/]")
+        else:  # the certificate says only that none was given; how to give one is the technician's
+            out.print("[yellow]note:[/] no statement of conformity: give --tolerance-deg (and optionally "
+                      "--bias-max-v) or a \\[certificate] section in the station file")
     out.print(f"Files in {literal(run_dir)}/: {literal(files)}; journal {literal(journal)}")
     if issued is not None:
         cert = issued.certificate

@@ -17,7 +17,7 @@ def _when(utc: str | None) -> str:
 def cmd_runs(args: argparse.Namespace) -> int:
     from labcal.app.runs import ListRuns, list_runs
 
-    found = list_runs(ListRuns(args.db, args.serial, tuple(args.status or ())))
+    found = list_runs(ListRuns(args.db, args.serial, tuple(args.status or ()), args.attention))
     where, runs = found.database, found.runs
     if found.stale:
         err.print(found.stale, markup=False)
@@ -26,7 +26,7 @@ def cmd_runs(args: argparse.Namespace) -> int:
         return 0
     if not runs:
         missing = "" if found.exists else " (it does not exist yet)"
-        matching = " matching" if args.serial or args.status else ""
+        matching = " matching" if args.serial or args.status or args.attention else ""
         # a path is not broken
         out.print(f"no runs{matching} in {where}{missing}", markup=False, soft_wrap=True)
         return 0
@@ -42,6 +42,9 @@ def cmd_runs(args: argparse.Namespace) -> int:
                       f"{r.points_ok}{failed}", r.operator or "—")
     table.caption = "labcal log ID: a run's events; --json: its station and run directory too"
     out.print(table)
+    for r in runs:  # what the approver must know, under the table: a reason is a sentence, not a cell
+        for why in r.attention:
+            out.print(f"run {r.id}: {why}", markup=False)
     return 0
 
 
@@ -88,6 +91,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--serial", metavar="SERIAL", help="only this instrument's runs")
     p.add_argument("--status", choices=STATUSES, action="append",
                    help="only runs in this status (repeatable)")
+    p.add_argument("--attention", action="store_true",
+                   help="only runs an approver must look at: ones that went on past an unmet pre-run "
+                        "checklist item, or with a reference standard overdue (each reason listed)")
     add_db_option(p)
     p.add_argument("--json", action="store_true", help="print as JSON on stdout")
     p.set_defaults(func=cmd_runs)

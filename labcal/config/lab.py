@@ -81,6 +81,16 @@ class CorrectionLimits(BaseModel):
     max_uses: int = Field(default=20, ge=1, description="runs that may correct from one estimate")
 
 
+class InstrumentsSection(BaseModel):
+    """The lab file's ``[instruments]``: what a run does with a serial the register does not hold."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    allow_adhoc: bool = Field(default=False,
+                              description="let a run certify a serial the instrument register does not "
+                                          "hold without asking (with --yes or in a script, too)")
+
+
 class LabFile(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -103,6 +113,7 @@ class LabFile(BaseModel):
                                              description="default tolerances and usage envelope")
     device_correction: CorrectionLimits = Field(default_factory=CorrectionLimits,
                                                 description="when a device correction expires")
+    instruments: InstrumentsSection = Field(default_factory=InstrumentsSection)
     notify: list[str] = Field(default_factory=list,
                               description="apprise URLs told of each remount, pause and run's end "
                                           "(issue 24); $LABCAL_NOTIFY goes over it")

@@ -173,10 +173,14 @@ def _closed_form_envelope(cal: Calibration, settings: CertificateSettings, spher
 
 # --- building a certificate from a run -------------------------------------------------------------
 def _recorded(meta_value, given: str | None, what: str, run_dir: Path) -> str | None:
-    """A value the run recorded, or the one given on the command line; never two different ones."""
-    if given and meta_value and given != meta_value:
+    """A value the run recorded, or the one given on the command line; never two different ones.
+    Whitespace around either is no difference and is dropped: a run recorded before serials were
+    checked may hold "ACC-0042 ", which its certificate (and the DCC's schema) must not carry."""
+    recorded = meta_value.strip() if isinstance(meta_value, str) else meta_value
+    given = given.strip() if given else given
+    if given and recorded and given != recorded:
         raise LabcalError(f"{run_dir}: the run records {what} {meta_value!r}; {given!r} disagrees")
-    return given or meta_value or None
+    return given or recorded or None
 
 
 def _expanded(fit_dof: NDArray, budget: UncertaintyBudget) -> Expanded:
@@ -340,6 +344,26 @@ def kept_identification(previous: Certificate | None, item: ItemGiven, serial: s
     return item, serial or previous.instrument.serial, operator or previous.operator
 
 
+def checklist_overrides(checklist: object) -> list[str]:
+    """The pre-run checklist items a run went on regardless of (run.json's ``checklist``: unmet, and
+    the operator said to go on), each as "item: what was found". The approver signs what the run was
+    measured under, so the certificate states them; nothing when the run met its checklist."""
+    if not isinstance(checklist, dict) or not checklist.get("went_on_regardless"):
+        return []
+    items = checklist.get("items") or []
+    return [f"{i.get('item')}: {i.get('message')}" for i in items
+            if isinstance(i, dict) and i.get("status") == "fail"]
+
+
+def override_statement(checklist: object) -> list[str]:
+    """The certificate's statement of `checklist_overrides` (none: an empty list)."""
+    found = checklist_overrides(checklist)
+    if not found:
+        return []
+    return ["The pre-run checklist was not met and the calibration went on at the operator's decision: "
+            + "; ".join(item.rstrip(".") for item in found) + "."]
+
+
 def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings | None = None, *,
                       serial: str | None = None, operator: str | None = None,
                       issued_utc: datetime | None = None, inputs: TypeBInputs | None = None,
@@ -379,8 +403,8 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
         raise LabcalError(f"{run_dir}: run.json started_utc {calibrated!r} is not an ISO 8601 time") from None
     admin = administration(record, section or CertificateSection(), item or ItemGiven(), serial)
     notice = SIMULATED_NOTICE if record.simulated else None
-    statements = [notice] * (notice is not None) + list(STATEMENTS) \
-        + ([model_note[0].upper() + model_note[1:] + "."] if model_note else [])
+    statements = [notice] * (notice is not None) + override_statement(meta.get("checklist")) \
+        + list(STATEMENTS) + ([model_note[0].upper() + model_note[1:] + "."] if model_note else [])
     correction = plan_correction(record.plan_text, f"{run_dir}: the run's plan") if device is None else None
     if correction is not None:  # the misalignments the plan's mounts do not identify, corrected for
         statements.append(correction.statement())

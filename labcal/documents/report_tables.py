@@ -83,8 +83,7 @@ def conformity_table(cert: Certificate) -> Table:
     c = cert.conformity
     if c is None:
         return Table("Statement of conformity", ["verdict"], [[verdict_text(cert)]],
-                     "Give --tolerance-deg (and optionally --bias-max-v) or a [certificate] section in the "
-                     "station file.")
+                     "No tolerance was given for this calibration, so no conformity is stated.")
     rows = [[k.quantity, f"{format_uncertainty(k.value)} {k.unit}", f"{k.limit:g} {k.unit}",
              "pass" if k.passed else "FAIL"] for k in c.checks]
     emphasis = {(i, 3) for i, k in enumerate(c.checks) if not k.passed}

@@ -162,6 +162,7 @@ class LabRun:
     operator: str | None
     run_dir: str
     local_id: int | None
+    metadata: str | None = None  # the run's journaled metadata (JSON): its checklist, its serial's note
 
     @property
     def label(self) -> str:
@@ -180,7 +181,7 @@ def _run_query() -> Any:
     return (select(runs.c.id, runs.c.uuid, runs.c.station, runs.c.instrument_serial, runs.c.plan_name,
                    runs.c.status, runs.c.reason, runs.c.started_utc, runs.c.ended_utc,
                    func.coalesce(counts.c.ok, 0).label("ok"), func.coalesce(counts.c.done, 0).label("done"),
-                   runs.c.operator, runs.c.run_dir)
+                   runs.c.operator, runs.c.run_dir, runs.c.metadata)
             .outerjoin(counts, counts.c.run_id == runs.c.id).order_by(runs.c.id))
 
 
@@ -208,7 +209,7 @@ def _numbers(conn: Connection, target: str) -> dict[int, int]:
 def _lab_run(row: Any, number: int | None, local_id: int | None) -> LabRun:
     return LabRun(number, row.uuid, row.station, row.instrument_serial, row.plan_name, row.status, row.reason,
                   row.started_utc, row.ended_utc, int(row.ok), int(row.done) - int(row.ok), row.operator,
-                  row.run_dir, local_id)
+                  row.run_dir, local_id, row.metadata)
 
 
 def lab_runs(db: str | Path | None, serial: str | None = None, statuses: tuple[str, ...] = ()

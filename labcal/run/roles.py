@@ -45,7 +45,7 @@ BENCH_PREFIX = "labcal_bench_"
 # The approvers register is read by every bench (`certificate verify` and `attitude --cert` check a
 # signature against it): names, roles and public keys, nothing secret; only the administrator writes it.
 BENCH_READS = ("alembic_version", "runs", "points", "events", "certificates", "run_exports",
-               "device_estimates", "settle_pools", "station_roles", "approvers")
+               "device_estimates", "settle_pools", "station_roles", "approvers", "instruments")
 BENCH_APPENDS = ("runs", "points", "events", "certificates", "device_estimates", "settle_pools")
 # What a bench sends again when it changes (the sync's records): a certificate approved at the bench
 # with a registered approver's own key (its signature, not the role, vouches for it), a device estimate

@@ -239,6 +239,26 @@ audit = Table(
     Index("audit_by_account", "account", "id"),
 )
 
-__all__ = ["METADATA", "approvers", "audit", "certificates", "device_estimates", "events", "points",
-           "run_exports", "runs", "settle_pools", "station_roles", "sync_cursors", "sync_runs", "sync_sent",
-           "sync_targets", "users"]
+# Revision 0011: the instrument register (`labcal.run.instruments`). ``serial_key`` is the serial
+# case-folded (unique), so a serial differing only in case is the same instrument; ``serial`` keeps the
+# register's spelling, which a run takes. ``interval_days`` NULL: no calibration interval set yet.
+instruments = Table(
+    "instruments", METADATA,
+    Column("id", Integer, primary_key=True),
+    Column("serial", Text, nullable=False),
+    Column("serial_key", Text, nullable=False, unique=True),
+    Column("model", Text, nullable=False, server_default=""),
+    Column("manufacturer", Text, nullable=False, server_default=""),
+    Column("customer", Text, nullable=False, server_default=""),
+    Column("owner", Text, nullable=False, server_default=""),
+    Column("location", Text, nullable=False, server_default=""),
+    Column("interval_days", Integer),
+    Column("status", Text, nullable=False, server_default="active"),
+    Column("notes", Text, nullable=False, server_default=""),
+    Column("created_utc", Text, nullable=False),
+    Column("updated_utc", Text, nullable=False),
+)
+
+__all__ = ["METADATA", "approvers", "audit", "certificates", "device_estimates", "events", "instruments",
+           "points", "run_exports", "runs", "settle_pools", "station_roles", "sync_cursors", "sync_runs",
+           "sync_sent", "sync_targets", "users"]

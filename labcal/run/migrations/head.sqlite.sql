@@ -2,7 +2,7 @@ CREATE TABLE alembic_version (
 	version_num VARCHAR(32) NOT NULL, 
 	CONSTRAINT alembic_version_pkc PRIMARY KEY (version_num)
 );
-INSERT INTO "alembic_version" VALUES('0010');
+INSERT INTO "alembic_version" VALUES('0011');
 CREATE TABLE approvers (
 	id INTEGER NOT NULL, 
 	name TEXT NOT NULL, 
@@ -54,6 +54,23 @@ CREATE TABLE events (
 	data TEXT, origin_id INTEGER, link INTEGER, digest TEXT, 
 	PRIMARY KEY (id), 
 	FOREIGN KEY(run_id) REFERENCES runs (id)
+);
+CREATE TABLE instruments (
+	id INTEGER NOT NULL, 
+	serial TEXT NOT NULL, 
+	serial_key TEXT NOT NULL, 
+	model TEXT DEFAULT '' NOT NULL, 
+	manufacturer TEXT DEFAULT '' NOT NULL, 
+	customer TEXT DEFAULT '' NOT NULL, 
+	owner TEXT DEFAULT '' NOT NULL, 
+	location TEXT DEFAULT '' NOT NULL, 
+	interval_days INTEGER, 
+	status TEXT DEFAULT 'active' NOT NULL, 
+	notes TEXT DEFAULT '' NOT NULL, 
+	created_utc TEXT NOT NULL, 
+	updated_utc TEXT NOT NULL, 
+	PRIMARY KEY (id), 
+	UNIQUE (serial_key)
 );
 CREATE TABLE points (
 	run_id INTEGER NOT NULL, 
