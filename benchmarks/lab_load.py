@@ -359,7 +359,7 @@ def main(argv: list[str] | None = None) -> int:
             (work / "lab.toml").write_text("")
             call([LABCAL, "db", "upgrade", "--db", url])
             token = json.loads(call([LABCAL, "user", "add", "bench-viewer", "--role", "viewer", "--db", url,
-                                     "--json"], {**ENV, "LABCAL_PASSWORD": "load bench"}))["token"]
+                                     "--json"], {**ENV, "LABCAL_PASSWORD": "load bench passphrase"}))["token"]
             server = subprocess.Popen([LABCAL, "serve", "--port", "0", "--db", url], stdout=subprocess.PIPE,
                                       stderr=subprocess.PIPE, text=True, env=ENV)
             processes.append(server)

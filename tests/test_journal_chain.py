@@ -288,7 +288,7 @@ def test_a_point_edited_by_postgresqls_superuser_is_named_by_verify_and_approve_
 def server_approves(base: Path, user: str = "A. Metrologist") -> httpx.Response:
     """The approver, signed in to `labcal serve` on the copy's lab file with their own key as the
     server's, approves the copy's run through the API."""
-    token = add_user(str(base / "lab.sqlite"), user, "approver", "pw")
+    token = add_user(str(base / "lab.sqlite"), user, "approver", "a long passphrase")
     with served(str(base / "lab.sqlite"), "--key", str(base / "approver.key")) as url:
         return httpx.post(f"{url}/api/runs/{run_id(base)}/approve",
                           headers={"Authorization": f"Bearer {token}"}, timeout=120)

@@ -242,7 +242,7 @@ def test_the_lab_server_serves_the_benchs_runs_connected_as_its_own_role(lab, tm
     done = labcal(tmp_path, "db", "grant-server", "lab-web", "--db", admin, db=admin)
     assert done.returncode == 0, done.stderr
     server = done.stdout.strip().splitlines()[-1]
-    token = add_user(admin, "vic", "viewer", "vic-pw")  # users are the administrator's to add
+    token = add_user(admin, "vic", "viewer", "vic's passphrase")  # users are the administrator's to add
     with served(server) as url:
         runs = httpx.get(f"{url}/api/runs", headers={"Authorization": f"Bearer {token}"}, timeout=30)
     assert runs.status_code == 200, runs.text

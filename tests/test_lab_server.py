@@ -21,7 +21,8 @@ from lab_server import add_user, labcal, served
 from labcal.cli import main
 
 STATIONS = {1: "bench 1", 2: "bench 2 (west)"}  # run id: the LABCAL_STATION it ran under
-PASSWORD = {"ada": "ada's long passphrase", "tom": "tom-pw-1", "vic": "vic-pw-2", "dan": "dan-pw-3"}
+PASSWORD = {"ada": "ada's long passphrase", "tom": "tom's passphrase 1", "vic": "vic's passphrase 2",
+            "dan": "dan's passphrase 3"}
 
 
 @pytest.fixture(scope="module")

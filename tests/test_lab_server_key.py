@@ -27,7 +27,7 @@ from labcal.documents.report import write_run_outputs
 # three bench runs through the drivers, each with its report, and three servers: about a minute on two cores
 pytestmark = pytest.mark.slow
 
-PASSWORD = {"ada": "ada's passphrase", "bob": "bob's passphrase", "tom": "tom-pw-3"}
+PASSWORD = {"ada": "ada's passphrase", "bob": "bob's passphrase", "tom": "tom's passphrase 3"}
 
 
 @pytest.fixture(scope="module")

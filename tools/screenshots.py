@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
-PASSWORD = "screenshot-only"
+PASSWORD = "screenshot-only passphrase"
 
 
 def labcal(*args: str, station: str | None = None) -> subprocess.CompletedProcess:
