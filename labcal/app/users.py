@@ -102,7 +102,8 @@ def _common() -> frozenset[str]:
 def password_problem(password: str, role: str, name: str) -> str | None:
     """Why ``password`` may not be ``name``'s (a ``role``), or None."""
     if len(password) < MIN_LENGTH:
-        return f"a password of a{'n' if role[0] in 'aeiou' else ''} {role} has at least {MIN_LENGTH} characters"
+        article = "an" if role[0] in "aeiou" else "a"
+        return f"a password of {article} {role} has at least {MIN_LENGTH} characters"
     if password.casefold() in _common() or password.casefold() == name.strip().casefold():
         return "that password is among the most common ones (or is the name): choose another"
     return None
