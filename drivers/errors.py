@@ -52,6 +52,16 @@ class DeviceFault(DriverError):
     """The device reports a fault state (alarm, disabled stage, overload) or missed its target."""
 
 
+class Overloaded(DeviceFault):
+    """A channel read the overload value. The scan's readings ride with the fault (``readings``:
+    samples × channels, volts, the overload value where it was read), so that the run journals the
+    window it discards, as it does every other."""
+
+    def __init__(self, message: str, device: str | None, readings: object):
+        super().__init__(message, device)
+        self.readings = readings
+
+
 class OutOfLimits(DriverError):
     """A move was refused before anything was sent: the target lies outside the soft limits."""
 

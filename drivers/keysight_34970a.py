@@ -21,7 +21,16 @@ from typing import TypeVar
 
 import numpy as np
 
-from labcal.drivers.errors import TRANSIENT, BadReply, Busy, DeviceFault, NoReply, Rejected, on_device
+from labcal.drivers.errors import (
+    TRANSIENT,
+    BadReply,
+    Busy,
+    DeviceFault,
+    NoReply,
+    Overloaded,
+    Rejected,
+    on_device,
+)
 from labcal.drivers.transport import Lines, retried
 from labcal.run.station import Scan
 
@@ -418,7 +427,7 @@ class Keysight34970A:
         readings = self._exchange(once)
         for column, channel in enumerate(self.scan_list):
             if np.any(np.abs(readings[:, column]) >= OVERLOAD):
-                raise DeviceFault(f"channel {channel} overloaded (+9.9E+37): check the range "
-                                  f"({self.range_v:g} V) and the wiring", self.device)
+                raise Overloaded(f"channel {channel} overloaded (+9.9E+37): check the range "
+                                 f"({self.range_v:g} V) and the wiring", self.device, readings)
         volts = readings[:, :3]
         return Scan(volts=volts, temp_c=readings[:, 3] if self.measures_temperature else None)

@@ -276,3 +276,24 @@ def test_an_smc100_power_cycled_mid_run_is_homed_after_one_r(tmp_path, capsys, n
     log = cli(capsys, "log", str(run_dir), "--json")[1]
     assert log.count("homing the pitch table, which had lost its reference") == 1, log
     assert log.count("NOT REFERENCED from reset (0Ah)") >= 1
+
+
+def test_an_overloaded_scan_is_journaled_with_its_readings_before_the_pause(tmp_path, capsys, no_leaks):  # noqa: F811
+    """The DMM reads channel 101 as an overload (+9.90000000E+37, the 34970A's overload reading) in
+    one scan: the run pauses on it, and the journal keeps that window as discarded with its samples,
+    the overload value among them, as it keeps every window it does not use."""
+    import sqlite3
+    from contextlib import closing
+
+    code, err = run_with_a_fault(capsys, tmp_path, "smc100-serial",
+                                 'device = "dmm"\nkind = "alarm"\nmatch = "FETC"\nafter = 6', "y\na\n")
+    assert code == 1, err
+    assert "overloaded (+9.9E+37)" in err
+    journal = json.loads((tmp_path / "run" / "run.json").read_text())["journal"]
+    with closing(sqlite3.connect(journal)) as db:
+        found = [json.loads(data) for (data,) in db.execute(
+            "SELECT data FROM events WHERE kind = 'discarded' AND message LIKE '%overloaded%'")]
+    assert len(found) == 1
+    samples = np.array(found[0]["samples"], dtype=float)
+    assert samples.shape[0] >= 1 and samples.shape[1] >= 3
+    assert np.any(samples[:, 0] >= 9.9e37) and np.all(np.abs(samples[:, 1:3]) < 10)  # only x overloaded

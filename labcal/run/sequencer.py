@@ -768,6 +768,20 @@ class Sequencer:
             samples=tuple(tuple(None if np.isnan(v) else float(v) for v in row)
                           for row in raw_samples(result))))
 
+    def discard_refused(self, step: Step, attempt: int, fault: LabcalError) -> None:
+        """Journal the readings of a scan the voltmeter refused (a driver's fault that carries them as
+        ``readings``, samples × channels: an overload), as a discarded window before the run pauses."""
+        readings = getattr(fault, "readings", None)
+        if readings is None:
+            return
+        rows = np.atleast_2d(np.asarray(readings, dtype=float))
+        volts = rows[:, :3]
+        self.publish(Discarded(
+            run_id=self.run_id, rig_time_s=self.rig_time(), seq=step.seq, attempt=attempt, reason=str(fault),
+            faulted=True, volts=tuple(float(v) for v in volts.mean(axis=0)),  # type: ignore[arg-type]
+            sd=tuple(float(v) for v in volts.std(axis=0, ddof=1 if len(volts) > 1 else 0)),  # type: ignore[arg-type]
+            samples=tuple(tuple(None if np.isnan(v) else float(v) for v in row) for row in rows)))
+
     def until_done(self, action, *args):
         """Do ``action(*args)``; on a device fault stop the tables, say what happened and pause: the
         operator fixes the cause and resumes (the action is done again) or aborts (resumable later)."""
@@ -828,7 +842,11 @@ class Sequencer:
                 t_start = self.station.clock.now() - self._t0
                 before = () if attempt == 1 else self.tables()  # () : verified by the move
                 self.window_opens()
-                result = self.measure(step.mount, f"{step.seq}:{attempt}")
+                try:
+                    result = self.measure(step.mount, f"{step.seq}:{attempt}")
+                except LabcalError as fault:  # a scan refused with its readings (an overload): kept
+                    self.discard_refused(step, attempt, fault)
+                    raise
                 why, faulted = unvouched(before, self.tables())
                 if why or result.verdict.settled:
                     break
