@@ -37,11 +37,22 @@ class SettleSettings(BaseModel):
         "truth), every instrument of `instrument_type`, or none (each run pools only its own)")
     instrument_type: str | None = Field(default=None, min_length=1, description="with pool = \"type\": the "
                                         "type of every instrument calibrated on this station")
+    prior: Literal["none", "type", "station"] = Field(
+        default="none", description="model settling: a new instrument's pool starts from the step records "
+        "of every instrument of `instrument_type` on this station (\"type\") or of every instrument on it "
+        "(\"station\"), worth `prior_records` records; each record of the instrument's own earlier runs "
+        "replaces one of them. Only where the station's instruments share their time constant and tail")
+    prior_records: int = Field(default=640, ge=1, le=100000, description="with prior: how many step records "
+                               "the type's or station's records count as in a new instrument's pool")
 
     @model_validator(mode="after")
     def _type_named(self) -> SettleSettings:
-        if self.pool == "type" and self.instrument_type is None:
-            raise ValueError('pool = "type" needs instrument_type (the instruments\' type, as one name)')
+        if (self.pool == "type" or self.prior == "type") and self.instrument_type is None:
+            raise ValueError(f'{"pool" if self.pool == "type" else "prior"} = "type" needs instrument_type '
+                             "(the instruments' type, as one name)")
+        if self.prior != "none" and self.pool != "instrument":
+            raise ValueError(f'prior = "{self.prior}" needs pool = "instrument" (a prior is other '
+                             "instruments' records, for one instrument's pool)")
         return self
 
 
