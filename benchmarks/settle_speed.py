@@ -16,7 +16,8 @@ move the sequencer actually made,
   starting settled;
 - the window of N samples (one sample per DMM integration) starts at the first instant, on a
   1 ms grid, at which the tables are clamped (motion end + clamp) and the transient's bias on
-  the *window mean* is at most σ/√N on every sensor — the noise of the point's mean.
+  the *window mean* is at most ℓ·σ/√N on every sensor (σ/√N: the noise of the point's mean; ℓ:
+  the ``leftover`` the run was told, 0.1 by default).
 
 bound = motion + (window start − motion end) + N·sample time. Also printed: the largest
 coefficient difference between the settle-detection run and the long wait, in the long wait's
@@ -91,7 +92,7 @@ def point_bound(a: tuple[float, float], b: tuple[float, float], mount, rig: RigC
     # x ← g + (x − g)·fade over each step (exact for an input held over it), summed in one go
     x = x * fade**n + (1 - fade) * (fade ** np.arange(n - 1, -1, -1)) @ g_in
     left = np.abs(x - g_end) * settle.sensitivity_v_per_g  # V, per sensor, at motion end
-    target = settle.noise_v / np.sqrt(settle.samples)
+    target = settle.leftover * settle.noise_v / np.sqrt(settle.samples)  # the criterion the run was told
     sample_times = (np.arange(settle.samples) + 0.5) * sample_s
     # candidate window starts after motion end, from the clamp on (no sample counts before it)
     starts = rig.clamp_s + GRID_S * np.arange(int(20 * tau / GRID_S) + 1)

@@ -117,23 +117,16 @@ class TruthfulRig(SimRig):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.truth: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        self._key: str | None = None
 
     def at_point(self, key: str) -> None:
+        """In position, before the point's dead time: the settled output, and the transient left."""
         super().at_point(key)
-        self._key = key
-
-    def read(self, n_samples: int) -> object:
-        if self._key is not None:
-            t = self.clock.now()
-            self._advance_filter(t)
-            u = self._still_gravity(float(self.pitch.angle_at(t)), float(self.roll.angle_at(t)))
-            temp = self.lab_temperature(t)
-            settled = self.instrument.static_volts(u, t, temp)
-            now = self.instrument.static_volts(self._g_filtered, t, temp)
-            self.truth[self._key] = (settled, now - settled)
-            self._key = None
-        return super().read(n_samples)
+        t = self.clock.now()
+        self._advance_filter(t)
+        u = self._still_gravity(float(self.pitch.angle_at(t)), float(self.roll.angle_at(t)))
+        temp = self.lab_temperature(t)
+        settled = self.instrument.static_volts(u, t, temp)
+        self.truth[key] = (settled, self.instrument.static_volts(self._g_filtered, t, temp) - settled)
 
 
 def steady_rig(k: int | None = None) -> RigConfig:
@@ -149,7 +142,7 @@ def steady_rig(k: int | None = None) -> RigConfig:
     return base.model_copy(update={"lab_temp_swing_c": 0.0, "instrument": inst})
 
 
-def dry_run(rig: RigConfig, seed: int, mode: str, db, tmp_path, name: str):
+def dry_run(rig: RigConfig, seed: int, mode: str, db, tmp_path, name: str, **options):
     """A dry run as `labcal run --sim` keys it; its points, settle seconds and (signed leftover,
     transient at in-position) per model-settled channel, from the simulator's truth."""
     plan, text = load_plan("four-mount-64")
@@ -157,7 +150,8 @@ def dry_run(rig: RigConfig, seed: int, mode: str, db, tmp_path, name: str):
     station_text = json.dumps({"kind": "simulated rig", "seed": seed, "rig": rig.model_dump()},
                               sort_keys=True)
     settle = TYPED.model_copy(update={"mode": mode, "instrument_type": "SIM-5V",
-                                      "sensitivity_v_per_g": float(np.max(np.abs(rig.instrument.S)))})
+                                      "sensitivity_v_per_g": float(np.max(np.abs(rig.instrument.S))),
+                                      **options})
     settings = SequencerSettings(settle=settle, speed_dps=rig.speed_dps, accel_dps2=rig.accel_dps2)
     with Journal(db) as journal:
         result = calibrate(plan, text, sim.station(), station_text, AutoOperator(Console(file=io.StringIO())),
@@ -176,7 +170,8 @@ def dry_run(rig: RigConfig, seed: int, mode: str, db, tmp_path, name: str):
 @pytest.mark.slow
 def test_a_new_instruments_third_run_settles_in_065_of_the_conventional_time_unbiased(tmp_path):
     """Ten runs of other instruments of the type, then three of a new one: its third run's summed
-    settle time against a conventional run of the same seed (≤ 0.65×), and the readings model
+    settle time against a conventional run of the same seed (≤ 0.65×; the conventional rule as the
+    target was set against it, its dead time at σ/√N: the default's tenth costs more), and the readings model
     settling accepted, against the simulator's settled output: their mean leftover along each
     transient's sign below 0.1 σ/√N (σ/√N: the noise of a reading). The mean is over every
     model-settled channel of every run with a transient left at in-position above σ/√N (~1500: its
@@ -187,7 +182,8 @@ def test_a_new_instruments_third_run_settles_in_065_of_the_conventional_time_unb
     for k in range(TYPE_RUNS):
         leftovers += dry_run(steady_rig(k), 101 + k, "model", db, tmp_path, f"type-{k}")[2]
     seed = 2
-    _, conventional, _ = dry_run(rig, seed + 2, "detect", tmp_path / "conventional.sqlite", tmp_path, "conv")
+    _, conventional, _ = dry_run(rig, seed + 2, "detect", tmp_path / "conventional.sqlite", tmp_path, "conv",
+                                 leftover=1.0)
     ratios = []
     for k in range(3):
         points, spent, left = dry_run(rig, seed + k, "model", db, tmp_path, f"new-{k}")

@@ -24,6 +24,9 @@ class SettleSettings(BaseModel):
     sensitivity_v_per_g: float = Field(default=5.0, gt=0, description="nominal, to size a step in volts")
     samples: int = Field(default=10, ge=4, le=10000, description="samples in the test window = averaged")
     k_sigma: float = Field(default=3.0, gt=0, description="significance of the slope and halves tests")
+    leftover: float = Field(default=0.1, gt=0, le=1, description="the transient a window's mean may keep "
+                            "after the dead time, in σ/√N (the noise of a reading): 0.1 keeps its bias out "
+                            "of the budget (1: the dead time of labcal ≤ 0.9, +2 to +3 µV on average)")
     max_dwell_s: float = Field(default=60.0, gt=0, description="give up on a point after this dwell")
     fixed_dwell_s: float | None = Field(default=None, ge=0,
                                         description="dwell this long and take one window, no test")

@@ -8,9 +8,10 @@ the stop carries a bias Δv·e^{−t_w/τ}·m, with m = mean over the window of 
 counted from the start of its sweep, where a scanning DMM's first channel integrates (counted from
 the sweep's middle, the first channel's first sample kept 3–9σ of transient on the emulated 34970A
 and a third of the first windows failed the slope test). The
-dead time is the t_w at which that bias is the noise of the mean, σ/√N: no test on noisy samples
-could resolve a smaller transient, and a larger one would bias the point. It runs from the motion's
-end, so the clamp overlaps it. Then a window is accepted when, on every channel, (1) its
+dead time is the t_w at which that bias is a tenth (``leftover``) of the noise of the mean, σ/√N:
+no test on noisy samples could resolve even σ/√N, but a bias that size, always along the move, is
+not noise and would belong in the budget; a tenth of it changes no expanded uncertainty. It runs
+from the motion's end, so the clamp overlaps it. Then a window is accepted when, on every channel, (1) its
 least-squares slope is not significantly different from zero, (2) its two half-window means agree,
 and (3) its scatter is consistent with the noise model: the safety net for a sensor slower than
 its settings say. The accepted window is the measurement, so settling costs no averaging time.
@@ -61,9 +62,15 @@ def window_fade(settings: SettleSettings, sample_s: float) -> float:
 
 
 def dead_time(transient_v: ArrayLike, settings: SettleSettings, sample_s: float = 0.0) -> NDArray | float:
-    """τ·ln(Δv·m/(σ/√N)), at least 0: how long after the motion ends a window must start for the
-    transient Δv left at the stop to bias its mean by no more than σ/√N."""
-    target = settings.noise_v / math.sqrt(settings.samples)
+    """τ·ln(Δv·m/(ℓ·σ/√N)), at least 0: how long after the motion ends a window must start for the
+    transient Δv left at the stop to bias its mean by no more than ℓ·σ/√N (ℓ: ``leftover``).
+
+    ℓ = 1 (σ/√N, the most no test on the window could resolve) left +2 to +3 µV on average in
+    every reading of four-mount-64 (σ/√N = 6.3 µV), always along the move: a bias, not noise, that
+    the fit cannot average out and the budget did not carry. ℓ = 0.1 keeps it below a tenth of a
+    reading's noise, where leaving it out of the budget changes no expanded uncertainty, for
+    τ·ln 10 (1.15 s at τ = 0.5 s) more per point after a move that leaves a transient."""
+    target = settings.leftover * settings.noise_v / math.sqrt(settings.samples)
     ratio = np.asarray(transient_v, dtype=float) * window_fade(settings, sample_s) / target
     t = settings.tau_s * np.log(np.maximum(ratio, 1.0))
     return t if t.ndim else float(t)
