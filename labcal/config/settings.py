@@ -24,6 +24,10 @@ class SettleSettings(BaseModel):
     sensitivity_v_per_g: float = Field(default=5.0, gt=0, description="nominal, to size a step in volts")
     samples: int = Field(default=10, ge=4, le=10000, description="samples in the test window = averaged")
     k_sigma: float = Field(default=3.0, gt=0, description="significance of the slope and halves tests")
+    off_axis_arcsec: float = Field(default=60.0, ge=0, le=3600, description="how far gravity may sit off "
+                                   "the axis a table turns it about (the device's misalignments, the mount): "
+                                   "a roll at pitch ±90°, which nominally leaves no transient, leaves this "
+                                   "much of the roll's lag")
     leftover: float = Field(default=0.1, gt=0, le=1, description="the transient a window's mean may keep "
                             "after the dead time, in σ/√N (the noise of a reading): 0.1 keeps its bias out "
                             "of the budget (1: the dead time of labcal ≤ 0.9, +2 to +3 µV on average)")

@@ -12,6 +12,7 @@ after the current point; the second stops the tables at once.
 from __future__ import annotations
 
 import logging
+import math
 import sqlite3
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -107,7 +108,8 @@ def settle_cost(mount: Mount, settings: SequencerSettings):
     s = settings.settle
 
     def cost(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        lag = transient_at_stop(a, b, mount, settings.speed_dps, settings.accel_dps2, s.tau_s)
+        lag = transient_at_stop(a, b, mount, settings.speed_dps, settings.accel_dps2, s.tau_s,
+                                math.radians(s.off_axis_arcsec / 3600))
         return np.asarray(dead_time(lag * s.sensitivity_v_per_g, s))
     return cost
 
@@ -342,7 +344,7 @@ class Sequencer:
         last move's alone; once the window is taken, the output is settled to its criterion."""
         s, (_, _, motion_end) = self.settings.settle, self._last_move
         lag_g = transient_after(self._moves, mount, self.settings.speed_dps, self.settings.accel_dps2,
-                                s.tau_s)
+                                s.tau_s, off_axis_rad=math.radians(s.off_axis_arcsec / 3600))
         self._moves = []
         self.station.at_point(key)
         with self.interrupts.critical():
