@@ -9,7 +9,10 @@
    least a window that waits out the transient can cost, from the rig's own physics: between
    remounts, motion included). Also each run's summed per-point settle time from the journal, the
    points the model settled, and the largest coefficient difference from the conventional run
-   of the same seed in its SE.
+   of the same seed in its SE. Model runs are also put beside the conventional rule of old (dead
+   time at σ/√N, the nominal transient alone), which the settling targets were first set against.
+   ``--prior``: before the instrument's runs, ten runs of other instruments of its type (their own
+   coefficients, the same τ and noise), whose records start its pool (``prior = "type"``).
 2. The point order: per mount, the tour `--order shortest` takes (move and settling seconds from
    the load position through every point, `labcal.run.tour`) against the Held–Karp lower bound,
    and the tour the previous `shortest` made (nearest neighbour and a 2-opt pass, kept below as
@@ -25,7 +28,7 @@
    `labcal run --sim --plan` of it: the runs' rig time (run.json) side by side, and the certificates'
    U95 against X.
 
-Usage: python benchmarks/rig_hours.py [--seed N] [--only 64|481|tour|optimized]
+Usage: python benchmarks/rig_hours.py [--seed N] [--only 64|481|tour|optimized] [--prior] [--model-runs R]
 """
 
 from __future__ import annotations
