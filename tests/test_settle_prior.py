@@ -94,9 +94,9 @@ def check_prior_sums(db: sqlite3.Connection, one, two) -> None:
     records(second, 25, rng)
     add_to_prior(db, one, first)
     add_to_prior(db, two, second)
-    state, note, keep = load_prior(db, prior_prior := prior_key(row(sim(3, 5.1), run="run-3"), TYPED),
+    state, note, keep = load_prior(db, third := prior_key(row(sim(3, 5.1), run="run-3"), TYPED),
                                    "the QA-700 instruments")
-    assert prior_prior is not None and keep and state is not None and state.records == 65
+    assert third is not None and keep and state is not None and state.records == 65
     assert "65 step records of 2 earlier run(s)" in note
     assert np.allclose(state.sums, first.own_state().sums + second.own_state().sums)
     # a run that already added records (a resumed one) goes on without the prior, so none counts twice
