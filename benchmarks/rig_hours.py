@@ -9,7 +9,10 @@
    least a window that waits out the transient can cost, from the rig's own physics: between
    remounts, motion included). Also each run's summed per-point settle time from the journal, the
    points the model settled, and the largest coefficient difference from the conventional run
-   of the same seed in its SE.
+   of the same seed in its SE. Model runs are also put beside the conventional rule of old (dead
+   time at σ/√N, the nominal transient alone), which the settling targets were first set against.
+   ``--prior``: before the instrument's runs, ten runs of other instruments of its type (their own
+   coefficients, the same τ and noise), whose records start its pool (``prior = "type"``).
 2. The point order: per mount, the tour `--order shortest` takes (move and settling seconds from
    the load position through every point, `labcal.run.tour`) against the Held–Karp lower bound,
    and the tour the previous `shortest` made (nearest neighbour and a 2-opt pass, kept below as
@@ -25,7 +28,7 @@
    `labcal run --sim --plan` of it: the runs' rig time (run.json) side by side, and the certificates'
    U95 against X.
 
-Usage: python benchmarks/rig_hours.py [--seed N] [--only 64|481|tour|optimized]
+Usage: python benchmarks/rig_hours.py [--seed N] [--only 64|481|tour|optimized] [--prior] [--model-runs R]
 """
 
 from __future__ import annotations
@@ -66,7 +69,7 @@ def steady_rig() -> RigConfig:
         update={"drift_v_per_h": [0.0, 0.0, 0.0]})})
 
 
-def dry_run(plan, text: str, rig: RigConfig, seed: int, mode: str, db: Path, out: Path):
+def dry_run(plan, text: str, rig: RigConfig, seed: int, mode: str, db: Path, out: Path, **settle_options):
     """One dry run into the lab database ``db``; the station text is the one `labcal run --sim`
     journals (`labcal.bench.setup.sim_station`), which keys model settling's pool."""
     inst = rig.instrument
@@ -75,7 +78,7 @@ def dry_run(plan, text: str, rig: RigConfig, seed: int, mode: str, db: Path, out
                               sort_keys=True)
     settle = SequencerSettings().settle.model_copy(update={
         "tau_s": inst.tau_s, "noise_v": inst.noise_v, "mode": mode,
-        "sensitivity_v_per_g": float(np.max(np.abs(inst.S)))})
+        "sensitivity_v_per_g": float(np.max(np.abs(inst.S))), **settle_options})
     settings = SequencerSettings(settle=settle, speed_dps=rig.speed_dps, accel_dps2=rig.accel_dps2)
     with Journal(db) as journal:
         result = calibrate(plan, text, sim.station(), station_text, AutoOperator(Console(file=io.StringIO())),
@@ -112,27 +115,57 @@ def line(label: str, s: dict, reference: dict | None, z: float | None) -> str:
     return text + (f"  coefficients vs conventional ≤ {z:.2f} SE" if z is not None else "")
 
 
-def hours(label: str, plan, text: str, seed: int, model_runs: int) -> None:
+def sibling(rig: RigConfig, k: int) -> RigConfig:
+    """Another instrument of the default one's type: the same τ and noise, its own coefficients
+    (bias within ±5 mV, sensitivity within ±0.5 %, drawn from ``k``)."""
+    rng = np.random.default_rng(1000 + k)
+    inst = rig.instrument
+    S = np.array(inst.S) * (1 + rng.uniform(-0.005, 0.005, 3))
+    B = np.array(inst.B) + rng.uniform(-0.005, 0.005, 3)
+    return rig.model_copy(update={"instrument": inst.model_copy(update={"S": S.tolist(), "B": B.tolist()})})
+
+
+# the station says its instruments share τ and tail
+PRIOR = {"prior": "type", "instrument_type": "SIM-5V"}
+TYPE_RUNS = 10  # earlier runs of other instruments of the type: 680 records, over the default prior_records
+
+
+def hours(label: str, plan, text: str, seed: int, model_runs: int, prior: bool = False) -> None:
     """A conventional run with the seed of the third model run, and model runs 1…model_runs of one
-    instrument (seeds seed, seed + 1, …), pooled in one lab database."""
+    instrument (seeds seed, seed + 1, …), pooled in one lab database. ``prior``: first TYPE_RUNS runs
+    of other instruments of its type (seeds 101…), and the instrument's pool starts from theirs."""
     rig = steady_rig()
     paired = seed + 2  # the third model run's seed: the conventional run shares it
-    print(f"{label}: rig hours, time between remounts against the physical bound, settling")
+    options = PRIOR if prior else {}
+    print(f"{label}: rig hours, time between remounts against the physical bound, settling"
+          + (f" (prior: {TYPE_RUNS} runs of other instruments of the type)" if prior else ""))
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         conv_result, points, settle, _ = dry_run(plan, text, rig, paired, "detect", folder / "conv.sqlite",
                                                  folder / "conv")
         conventional = summary(points, rig, settle)
         print(line(f"conventional (seed {paired})", conventional, None, None))
+        # the rule the settling targets were set against: dead time at σ/√N, nominal transient alone
+        _, points, settle, _ = dry_run(plan, text, rig, paired, "detect", folder / "old.sqlite",
+                                       folder / "old", leftover=1.0, off_axis_arcsec=0.0)
+        old = summary(points, rig, settle)
+        print(line(f"conventional, rule of old (seed {paired})", old, None, None))
+        for k in range(TYPE_RUNS if prior else 0):
+            dry_run(plan, text, sibling(rig, k), 101 + k, "model", folder / "pool.sqlite",
+                    folder / f"type-{k}", **options)
         for k in range(model_runs):
             result, points, settle, pooled = dry_run(plan, text, rig, seed + k, "model",
-                                                     folder / "pool.sqlite", folder / f"model-{k}")
+                                                     folder / "pool.sqlite", folder / f"model-{k}", **options)
             z = None
             if seed + k == paired:
                 z = float(np.max(np.abs(result.fit.coefficients - conv_result.fit.coefficients)
                                  / conv_result.fit.stderr))
             name = f"model run {k + 1} (seed {seed + k}, {pooled} records pooled)"
-            print(line(name, summary(points, rig, settle), conventional, z))
+            this = summary(points, rig, settle)
+            text_line = line(name, this, conventional, z) + f" ({this['settle'] / old['settle']:.3f}× old)"
+            if k == 2:
+                text_line += "  (target ≤ 0.65× the rule of old)"
+            print(text_line)
 
 
 def old_shortest(points: np.ndarray, start: np.ndarray, cost: Callable) -> list[int]:
@@ -321,6 +354,10 @@ def main() -> None:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--only", choices=("64", "481", "tour", "optimized"))
+    parser.add_argument("--model-runs", type=int, default=5,
+                        help="four-mount-64's model runs of one instrument")
+    parser.add_argument("--prior", action="store_true", help="four-mount-64: the instrument's pool starts "
+                        "from the records of earlier runs of other instruments of its type")
     args = parser.parse_args()
     if args.only in (None, "tour"):
         tours(args.seed)
@@ -329,7 +366,7 @@ def main() -> None:
         corrected_run()
     if args.only in (None, "64"):
         plan, text = load_plan("four-mount-64")
-        hours("four-mount-64", plan, text, args.seed, 5)
+        hours("four-mount-64", plan, text, args.seed, args.model_runs, args.prior)
     if args.only in (None, "481"):
         tripp = make_plan("tripp-481", "", grid(-180, 180, 10, -180, 180, 30), four_mounts=False,
                           replicates=6)

@@ -16,7 +16,9 @@ move the sequencer actually made,
   starting settled;
 - the window of N samples (one sample per DMM integration) starts at the first instant, on a
   1 ms grid, at which the tables are clamped (motion end + clamp) and the transient's bias on
-  the *window mean* is at most σ/√N on every sensor — the noise of the point's mean.
+  the *window mean* is at most ℓ·σ/√N on every sensor (σ/√N: the noise of the point's mean; ℓ:
+  the ``leftover`` the run was told, 0.1 by default), with the transient of gravity off the tables'
+  axes by the ``off_axis_arcsec`` the run was told added (the tables' own lag times it).
 
 bound = motion + (window start − motion end) + N·sample time. Also printed: the largest
 coefficient difference between the settle-detection run and the long wait, in the long wait's
@@ -91,7 +93,13 @@ def point_bound(a: tuple[float, float], b: tuple[float, float], mount, rig: RigC
     # x ← g + (x − g)·fade over each step (exact for an input held over it), summed in one go
     x = x * fade**n + (1 - fade) * (fade ** np.arange(n - 1, -1, -1)) @ g_in
     left = np.abs(x - g_end) * settle.sensitivity_v_per_g  # V, per sensor, at motion end
-    target = settle.noise_v / np.sqrt(settle.samples)
+    # gravity off the tables' axes by the allowance the run was told turns on a cone of that
+    # half-angle: the tables' own lag (rad) times it, on every sensor
+    angles_in = np.radians(np.column_stack([pitch, roll]))
+    angle_lag = np.radians(a) * fade**n + (1 - fade) * (fade ** np.arange(n - 1, -1, -1)) @ angles_in
+    left = left + (np.radians(settle.off_axis_arcsec / 3600) * np.max(np.abs(angle_lag - np.radians(
+        np.asarray(a) + np.asarray(travel)))) * settle.sensitivity_v_per_g)
+    target = settle.leftover * settle.noise_v / np.sqrt(settle.samples)  # the criterion the run was told
     sample_times = (np.arange(settle.samples) + 0.5) * sample_s
     # candidate window starts after motion end, from the clamp on (no sample counts before it)
     starts = rig.clamp_s + GRID_S * np.arange(int(20 * tau / GRID_S) + 1)

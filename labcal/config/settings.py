@@ -24,6 +24,13 @@ class SettleSettings(BaseModel):
     sensitivity_v_per_g: float = Field(default=5.0, gt=0, description="nominal, to size a step in volts")
     samples: int = Field(default=10, ge=4, le=10000, description="samples in the test window = averaged")
     k_sigma: float = Field(default=3.0, gt=0, description="significance of the slope and halves tests")
+    off_axis_arcsec: float = Field(default=60.0, ge=0, le=3600, description="how far gravity may sit off "
+                                   "the axis a table turns it about (the device's misalignments, the mount): "
+                                   "a roll at pitch ±90°, which nominally leaves no transient, leaves this "
+                                   "much of the roll's lag")
+    leftover: float = Field(default=0.1, gt=0, le=1, description="the transient a window's mean may keep "
+                            "after the dead time, in σ/√N (the noise of a reading): 0.1 keeps its bias out "
+                            "of the budget (1: the dead time of labcal ≤ 0.9, +2 to +3 µV on average)")
     max_dwell_s: float = Field(default=60.0, gt=0, description="give up on a point after this dwell")
     fixed_dwell_s: float | None = Field(default=None, ge=0,
                                         description="dwell this long and take one window, no test")
@@ -37,11 +44,22 @@ class SettleSettings(BaseModel):
         "truth), every instrument of `instrument_type`, or none (each run pools only its own)")
     instrument_type: str | None = Field(default=None, min_length=1, description="with pool = \"type\": the "
                                         "type of every instrument calibrated on this station")
+    prior: Literal["none", "type", "station"] = Field(
+        default="none", description="model settling: a new instrument's pool starts from the step records "
+        "of every instrument of `instrument_type` on this station (\"type\") or of every instrument on it "
+        "(\"station\"), worth `prior_records` records; each record of the instrument's own earlier runs "
+        "replaces one of them. Only where the station's instruments share their time constant and tail")
+    prior_records: int = Field(default=640, ge=1, le=100000, description="with prior: how many step records "
+                               "the type's or station's records count as in a new instrument's pool")
 
     @model_validator(mode="after")
     def _type_named(self) -> SettleSettings:
-        if self.pool == "type" and self.instrument_type is None:
-            raise ValueError('pool = "type" needs instrument_type (the instruments\' type, as one name)')
+        if (self.pool == "type" or self.prior == "type") and self.instrument_type is None:
+            raise ValueError(f'{"pool" if self.pool == "type" else "prior"} = "type" needs instrument_type '
+                             "(the instruments' type, as one name)")
+        if self.prior != "none" and self.pool != "instrument":
+            raise ValueError(f'prior = "{self.prior}" needs pool = "instrument" (a prior is other '
+                             "instruments' records, for one instrument's pool)")
         return self
 
 

@@ -52,6 +52,10 @@ class SettleRecord(Recorded):
     mode: str | None = None  # "detect" or "model" (absent: issued before model settling)
     pool: str | None = None  # whose step records model settling starts with (absent: before pools)
     instrument_type: str | None = None
+    prior: str | None = None  # whose other instruments' records a new one's pool starts from
+    prior_records: int | None = None
+    leftover: float | None = None  # the transient a reading may keep, in σ/√N (absent: σ/√N)
+    off_axis_arcsec: float | None = None  # gravity off the tables' axes the dead time allows for (absent: 0)
 
 
 class SequencerRecord(Recorded):

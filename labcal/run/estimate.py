@@ -16,6 +16,7 @@ both tables' status and position after it; at each mount, the DMM's configuratio
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -107,7 +108,8 @@ def estimate(plan: Plan, settings: SequencerSettings, timing: Timing,
         """`travel`, and the dead time (from the motion's end) that its clamp and polls do not overlap."""
         if s.fixed_dwell_s is not None:
             return travel(a, b), s.fixed_dwell_s
-        lag = float(transient_at_stop(a, b, mount, settings.speed_dps, settings.accel_dps2, s.tau_s))
+        lag = float(transient_at_stop(a, b, mount, settings.speed_dps, settings.accel_dps2, s.tau_s,
+                                      math.radians(s.off_axis_arcsec / 3600)))
         dead = float(dead_time(lag * s.sensitivity_v_per_g, s, timing.sample_s))
         return travel(a, b), max(0.0, dead - found)
 

@@ -80,7 +80,7 @@ Move = tuple[tuple[float, float], tuple[float, float], float]  # (from, to) accu
 
 
 def transient_after(moves: Sequence[Move], mount: Mount, speed: float, accel: float, tau: float,
-                    steps_per_tau: int = 50) -> float:
+                    steps_per_tau: int = 50, off_axis_rad: float = 0.0) -> float:
     """Largest |output − settled output| over the three sensors, in g, when both tables have
     stopped after ``moves`` on ``mount``: each (from, to, start time), the tables going straight
     from one accumulated angle to the other, still between moves (the output fading towards the
@@ -88,18 +88,25 @@ def transient_after(moves: Sequence[Move], mount: Mount, speed: float, accel: fl
     the last move is sized by, every move since the last measured window counted (a resumed run's
     long move to the load position, a long move's legs), not the last one alone. Nominal gravity
     along the trapezoids, through the first-order lag integrated in steps of τ/50 (exact for an
-    input held over each step; the midpoint rule's error is ~1e-4 relative)."""
+    input held over each step; the midpoint rule's error is ~1e-4 relative).
+
+    Plus ``off_axis_rad`` times the tables' own lag (rad): gravity off the axis a table turns it
+    about by that angle (the device's misalignments, the mount) turns on a cone of that half-angle,
+    which the nominal model cannot see — a roll at pitch ±90° leaves it as the only transient."""
     y, u = mount.radians
     output: NDArray | None = None
+    angles = np.zeros(2)  # the tables' angles through the same lag, rad
     end = np.zeros(2)
     still_since = 0.0
     for a, b, t_start in moves:
         start, end = np.radians(a), np.radians(b)
         here = nominal_gravity(start[0], start[1], y, u)
         if output is None:
-            output = here
+            output, angles = here, start.copy()
         else:  # still at a since the last move ended
-            output = here + (output - here) * math.exp(-max(t_start - still_since, 0.0) / tau)
+            fade_still = math.exp(-max(t_start - still_since, 0.0) / tau)
+            output = here + (output - here) * fade_still
+            angles = start + (angles - start) * fade_still
         travel = np.asarray(b, dtype=float) - np.asarray(a, dtype=float)
         motion = float(np.max(trapezoid_duration(travel, speed, accel)))
         still_since = t_start + motion
@@ -112,9 +119,11 @@ def transient_after(moves: Sequence[Move], mount: Mount, speed: float, accel: fl
         fade = math.exp(-motion / n / tau)
         weights = (1 - fade) * fade ** np.arange(n - 1, -1, -1)  # x ← g + (x − g)·fade, step by step
         output = output * fade**n + weights @ nominal_gravity(pitch, roll, y, u)
+        angles = angles * fade**n + weights @ np.column_stack([pitch, roll])
     if output is None:
         return 0.0
-    return float(np.max(np.abs(output - nominal_gravity(end[0], end[1], y, u))))
+    off_axis = off_axis_rad * float(np.max(np.abs(angles - end)))
+    return float(np.max(np.abs(output - nominal_gravity(end[0], end[1], y, u)))) + off_axis
 
 
 def transient_left(a: tuple[float, float], b: tuple[float, float], mount: Mount, speed: float,
@@ -127,10 +136,11 @@ def transient_left(a: tuple[float, float], b: tuple[float, float], mount: Mount,
 
 
 def transient_at_stop(a: ArrayLike, b: ArrayLike, mount: Mount, speed: float, accel: float,
-                      tau: float) -> NDArray:
+                      tau: float, off_axis_rad: float = 0.0) -> NDArray:
     """`transient_left` in closed form for many moves at once (…×2 degrees), to plan with: each
     table's lag at its own stop, faded until the later table stops, then gravity at the target
-    against gravity at the target less the lag (linear in the lag: a few % off after fast moves)."""
+    against gravity at the target less the lag (linear in the lag: a few % off after fast moves);
+    plus ``off_axis_rad`` times the larger table lag, as in `transient_after`."""
     travel = shortest_way(a, b)
     ends = trapezoid_duration(travel, speed, accel)
     faded = np.exp(-(np.max(ends, axis=-1, keepdims=True) - ends) / tau)  # until the later stop
@@ -140,4 +150,4 @@ def transient_at_stop(a: ArrayLike, b: ArrayLike, mount: Mount, speed: float, ac
     y, u = mount.radians
     here = nominal_gravity(target[..., 0], target[..., 1], y, u)
     there = nominal_gravity(trailing[..., 0], trailing[..., 1], y, u)
-    return np.max(np.abs(here - there), axis=-1)
+    return np.max(np.abs(here - there), axis=-1) + off_axis_rad * np.max(np.abs(np.radians(lag)), axis=-1)

@@ -121,7 +121,8 @@ def settle_cost(mount: Mount, settings: SequencerSettings):
     s = settings.settle
 
     def cost(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        lag = transient_at_stop(a, b, mount, settings.speed_dps, settings.accel_dps2, s.tau_s)
+        lag = transient_at_stop(a, b, mount, settings.speed_dps, settings.accel_dps2, s.tau_s,
+                                math.radians(s.off_axis_arcsec / 3600))
         return np.asarray(dead_time(lag * s.sensitivity_v_per_g, s))
     return cost
 
@@ -292,6 +293,7 @@ class Sequencer:
     _sample_s: float = 0.0  # the voltmeter's time per sample, once measured
     _tail: TailPool | None = None  # model settling: the instrument's tail, pooled over its runs' points
     _pool_key: settle_pool.PoolKey | None = None  # where to keep _tail when the segment ends
+    _prior_key: settle_pool.PoolKey | None = None  # where to add this segment's records for other instruments
     _mount: int | None = None  # the mount on the plate (its number), once confirmed
     _points_done: int = 0  # points of the run in the journal (ok and failed)
     _points_total: int = 0
@@ -363,7 +365,7 @@ class Sequencer:
         last move's alone; once the window is taken, the output is settled to its criterion."""
         s, (_, _, motion_end) = self.settings.settle, self._last_move
         lag_g = transient_after(self._moves, mount, self.settings.speed_dps, self.settings.accel_dps2,
-                                s.tau_s)
+                                s.tau_s, off_axis_rad=math.radians(s.off_axis_arcsec / 3600))
         self._moves = []
         self.station.at_point(key)
         with self.interrupts.critical():
@@ -379,23 +381,37 @@ class Sequencer:
 
     def _start_pool(self) -> TailPool:
         """Model settling's pool, with the step records of the instrument's earlier runs on this
-        station where the lab database has them (`labcal.run.settle_pool`); the journal says which."""
-        s = self.settings.settle
-        key = settle_pool.pool_key(self.journal.run(self.run_id), s)
+        station where the lab database has them (`labcal.run.settle_pool`), and where the station
+        says so its type's or station's records as a prior; the journal says which."""
+        s, row = self.settings.settle, self.journal.run(self.run_id)
+        key = settle_pool.pool_key(row, s)
         if key is None:
             return TailPool(s.tau_s, s.noise_v)
         state, note, keep = settle_pool.load(self.journal.db, key)
         self._pool_key = key if keep else None
-        self.note("settle_pool", note, pool_key=key.key, records=state.records if state else 0)
-        return TailPool(s.tau_s, s.noise_v, state)
+        prior, prior_key = None, settle_pool.prior_key(row, s)
+        if prior_key is not None:
+            whose = (f"the {s.instrument_type} instruments" if s.prior == "type" else "every instrument")
+            prior, prior_note, keep_prior = settle_pool.load_prior(self.journal.db, prior_key, whose)
+            self._prior_key = prior_key if keep_prior else None
+            note += f"; {prior_note}"
+        pool = TailPool(s.tau_s, s.noise_v, state, prior, s.prior_records)
+        if pool.lent:
+            note += f", counted as {pool.lent:.0f} records"
+        self.note("settle_pool", note, pool_key=key.key, records=state.records if state else 0,
+                  prior_records=pool.lent)
+        return pool
 
     def _keep_pool(self) -> None:
         """Keep the pool for the instrument's next run (or this one's resume). A database that
         refuses it costs the next run its head start, never this run's points: warned, not raised."""
-        if self._tail is None or self._pool_key is None:
+        if self._tail is None:
             return
         try:
-            settle_pool.save(self.journal.db, self._pool_key, self._tail)
+            if self._pool_key is not None:
+                settle_pool.save(self.journal.db, self._pool_key, self._tail)
+            if self._prior_key is not None:
+                settle_pool.add_to_prior(self.journal.db, self._prior_key, self._tail)
         except (sqlite3.Error, LabcalError) as exc:
             log.warning("model settling's pool was not kept for the next run: %s", exc)
 

@@ -8,9 +8,10 @@ the stop carries a bias Δv·e^{−t_w/τ}·m, with m = mean over the window of 
 counted from the start of its sweep, where a scanning DMM's first channel integrates (counted from
 the sweep's middle, the first channel's first sample kept 3–9σ of transient on the emulated 34970A
 and a third of the first windows failed the slope test). The
-dead time is the t_w at which that bias is the noise of the mean, σ/√N: no test on noisy samples
-could resolve a smaller transient, and a larger one would bias the point. It runs from the motion's
-end, so the clamp overlaps it. Then a window is accepted when, on every channel, (1) its
+dead time is the t_w at which that bias is a tenth (``leftover``) of the noise of the mean, σ/√N:
+no test on noisy samples could resolve even σ/√N, but a bias that size, always along the move, is
+not noise and would belong in the budget; a tenth of it changes no expanded uncertainty. It runs
+from the motion's end, so the clamp overlaps it. Then a window is accepted when, on every channel, (1) its
 least-squares slope is not significantly different from zero, (2) its two half-window means agree,
 and (3) its scatter is consistent with the noise model: the safety net for a sensor slower than
 its settings say. The accepted window is the measurement, so settling costs no averaging time.
@@ -61,9 +62,15 @@ def window_fade(settings: SettleSettings, sample_s: float) -> float:
 
 
 def dead_time(transient_v: ArrayLike, settings: SettleSettings, sample_s: float = 0.0) -> NDArray | float:
-    """τ·ln(Δv·m/(σ/√N)), at least 0: how long after the motion ends a window must start for the
-    transient Δv left at the stop to bias its mean by no more than σ/√N."""
-    target = settings.noise_v / math.sqrt(settings.samples)
+    """τ·ln(Δv·m/(ℓ·σ/√N)), at least 0: how long after the motion ends a window must start for the
+    transient Δv left at the stop to bias its mean by no more than ℓ·σ/√N (ℓ: ``leftover``).
+
+    ℓ = 1 (σ/√N, the most no test on the window could resolve) left +2 to +3 µV on average in
+    every reading of four-mount-64 (σ/√N = 6.3 µV), always along the move: a bias, not noise, that
+    the fit cannot average out and the budget did not carry. ℓ = 0.1 keeps it below a tenth of a
+    reading's noise, where leaving it out of the budget changes no expanded uncertainty, for
+    τ·ln 10 (1.15 s at τ = 0.5 s) more per point after a move that leaves a transient."""
+    target = settings.leftover * settings.noise_v / math.sqrt(settings.samples)
     ratio = np.asarray(transient_v, dtype=float) * window_fade(settings, sample_s) / target
     t = settings.tau_s * np.log(np.maximum(ratio, 1.0))
     return t if t.ndim else float(t)
@@ -199,27 +206,58 @@ class TailPool:
     database by `labcal.run.settle_pool`): they count as the run's own, and a mismatch they saw
     stays seen. Once the run has POOL_MIN records of its own, they are also checked against the
     history (their own τ̂ and slow-tail estimate, two-sample, at Z_DETECT; and a slow tail in them
-    alone): an instrument that changed under the same key stops the pool vouching, as a mismatch."""
+    alone): an instrument that changed under the same key stops the pool vouching, as a mismatch.
 
-    def __init__(self, tau_guess: float, noise_v: float, history: PoolState | None = None):
+    A new instrument's pool may also start from other instruments' records (``prior``: its type's
+    or its station's, where the station says they share τ and tail), scaled to count as
+    ``prior_records`` records less the instrument's own earlier ones: each record of its own
+    replaces one of the prior's, so its own runs overtake the prior and then leave it out. The
+    prior joins the history in that check, so an instrument unlike its type stops the pool vouching
+    once it has POOL_MIN records of its own. It is never kept in the instrument's state."""
+
+    def __init__(self, tau_guess: float, noise_v: float, history: PoolState | None = None,
+                 prior: PoolState | None = None, prior_records: int = 0):
         self.taus = tau_guess * np.geomspace(*TAU_RANGE, TAU_GRID)
         self.noise_v = noise_v
-        self.records = 0
+        self.records = 0  # the instrument's own: its earlier runs' and this run's
         self.mismatch = ""  # why the pool stopped vouching for the model, once it has
         # per grid τ: rss, x·x, x·d, d·d, x·r, d·r (x: the slow shape, d: ∂/∂τ, both times a)
         self._sums = np.zeros((6, TAU_GRID))
         self._own = np.zeros((6, TAU_GRID))  # this run's records alone
         self.own_records = 0
         self._prior: PoolState | None = None
+        for state in (history, prior):
+            if state is not None and state.sums.shape != self._sums.shape:
+                raise ValueError(f"a pool's sums are {state.sums.shape}, not {self._sums.shape}")
         if history is not None and history.records:
-            if history.sums.shape != self._sums.shape:
-                raise ValueError(f"a pool's sums are {history.sums.shape}, not {self._sums.shape}")
             self._prior = history
             self._sums, self.records, self.mismatch = history.sums.copy(), history.records, history.mismatch
+        # other instruments' records (the type's, the station's), scaled to fill the pool up to
+        # prior_records: each of the instrument's own earlier records replaces one of them
+        self.lent = 0.0  # how many records the prior counts as
+        self._lent = np.zeros((6, TAU_GRID))
+        if prior is not None and prior.records and prior_records > self.records:
+            self.lent = float(min(prior.records, prior_records - self.records))
+            self._lent = prior.sums * (self.lent / prior.records)
+            before = self._prior.sums if self._prior is not None else np.zeros_like(self._lent)
+            self._prior = PoolState(before + self._lent, round(self.records + self.lent), self.mismatch)
+
+    @property
+    def pooled(self) -> float:
+        """The records the pool's estimates rest on: the instrument's own and what the prior counts as."""
+        return self.records + self.lent
+
+    def _all(self) -> NDArray:
+        return self._sums + self._lent
 
     def state(self) -> PoolState:
-        """Everything the pool knows, to be kept for the instrument's next run."""
+        """Everything the pool knows of its own instrument (the prior left out), to be kept for the
+        instrument's next run."""
         return PoolState(self._sums.copy(), self.records, self.mismatch)
+
+    def own_state(self) -> PoolState:
+        """This run's records alone: what it adds to its type's and station's records."""
+        return PoolState(self._own.copy(), self.own_records, self.mismatch)
 
     def add(self, volts: NDArray, t: NDArray) -> None:
         """One point's record: (n, channels) samples at t seconds after the motion ended."""
@@ -238,7 +276,7 @@ class TailPool:
         self._own += record
         self.records += 1
         self.own_records += 1
-        if self.records >= POOL_MIN and not self.mismatch:
+        if self.pooled >= POOL_MIN and not self.mismatch:
             tau = self.tau()
             if tau is None:
                 self.mismatch = "model: τ outside its search range (pooled)"
@@ -258,7 +296,7 @@ class TailPool:
             return "model: τ outside its search range (this run's records)"
         if abs(z := (own[0] - before[0]) / math.hypot(own[1], before[1])) >= Z_DETECT:
             return f"model: this run's τ differs from the earlier runs' (z = {z:+.1f})"
-        i = int(np.argmin(self._sums[0]))
+        i = int(np.argmin(self._all()[0]))
         (b_own, se_own), (b_before, se_before) = _slow_of(self._own, i), _slow_of(self._prior.sums, i)
         if abs(z := b_own / (self.noise_v * se_own)) >= Z_DETECT:
             return f"model: a slow tail in this run's records (z = {z:+.1f})"
@@ -269,15 +307,16 @@ class TailPool:
 
     def tau(self) -> tuple[float, float] | None:
         """(τ̂, its SE) from the pooled sums, or None when the minimum is on the range's edge."""
-        return _tau_of(self._sums, self.taus, self.noise_v)
+        return _tau_of(self._all(), self.taus, self.noise_v)
 
     def _at_tau(self) -> list[float]:
         """x·x, x·d, d·d, x·r, d·r at the grid τ nearest τ̂."""
-        return self._sums[1:, int(np.argmin(self._sums[0]))].tolist()
+        sums = self._all()
+        return sums[1:, int(np.argmin(sums[0]))].tolist()
 
     def slow_z(self) -> float:
         """The pooled score for a slow tail, in its standard deviations (0 before POOL_MIN)."""
-        if self.records < POOL_MIN:
+        if self.pooled < POOL_MIN:
             return 0.0
         xx, xd, dd, xr, dr = self._at_tau()
         return (xr - xd * dr / dd) / (self.noise_v * math.sqrt(max(xx - xd**2 / dd, 1e-300)))
@@ -324,7 +363,7 @@ def fit_tail(volts: NDArray, t: NDArray, pool: TailPool, samples: int) -> TailFi
     target = pool.noise_v / math.sqrt(samples)
     if pool.mismatch:
         return TailFit(volts.mean(axis=0), np.full(k, np.inf), Verdict(False, pool.mismatch))
-    if pool.records < POOL_MIN or (found := pool.tau()) is None:
+    if pool.pooled < POOL_MIN or (found := pool.tau()) is None:
         return TailFit(volts.mean(axis=0), np.full(k, np.inf), Verdict(False, "model: τ not pooled yet"))
     tau, tau_se = found
     design = np.column_stack([np.ones(n), np.exp(-t / tau)])

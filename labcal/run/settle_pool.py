@@ -56,6 +56,23 @@ def pool_key(row: RunRow, settle: SettleSettings) -> PoolKey | None:
     """Whose pool a run shares (module docstring); None when the station pools nothing across runs."""
     if settle.pool == "none":
         return None
+    instrument: dict[str, object] = ({"type": settle.instrument_type} if settle.pool == "type"
+                                     else {"serial": row.instrument_serial or "SIMULATED"})
+    return _key(row, settle, instrument, True)
+
+
+def prior_key(row: RunRow, settle: SettleSettings) -> PoolKey | None:
+    """Where the records of every instrument of the run's type on its station (``prior = "type"``)
+    or of every instrument on it (``"station"``) are summed; None without a prior. A simulated
+    instrument's truth is left out: the prior is across instruments."""
+    if settle.prior == "none":
+        return None
+    whose = {"type": settle.instrument_type} if settle.prior == "type" else {"station": "every instrument"}
+    prior: dict[str, object] = {"prior": whose}
+    return _key(row, settle, prior, False)
+
+
+def _key(row: RunRow, settle: SettleSettings, instrument: dict[str, object], with_truth: bool) -> PoolKey:
     try:
         snapshot = json.loads(row.station_text)
     except ValueError:  # not a snapshot labcal wrote: the text itself is the station
@@ -81,9 +98,7 @@ def pool_key(row: RunRow, settle: SettleSettings) -> PoolKey | None:
             rig.pop("seed", None)
             station["emulated rig"] = rig
             noise = f"seed {snapshot.get('seed')}"
-    instrument: dict[str, object] = ({"type": settle.instrument_type} if settle.pool == "type"
-                  else {"serial": row.instrument_serial or "SIMULATED"})
-    if truth is not None:
+    if truth is not None and with_truth:
         instrument["simulated truth"] = truth
     identity = {"instrument": instrument, "station": station,
                 "sums": {"layout": LAYOUT, "tau_s": settle.tau_s, "noise_v": settle.noise_v}}
@@ -95,21 +110,22 @@ def _sources(text: str) -> list[dict]:
     return list(json.loads(text))
 
 
-def load(db: sqlite3.Connection, key: PoolKey) -> tuple[PoolState | None, str, bool]:
+def load(db: sqlite3.Connection, key: PoolKey, whose: str = "this instrument"
+         ) -> tuple[PoolState | None, str, bool]:
     """The pool the earlier runs left under ``key`` (None: start empty), one line saying what it
     holds, and whether this run may keep its records there (not when it repeats a seed's noise)."""
     row = db.execute("SELECT records, sources, mismatch, sums FROM settle_pools WHERE pool_key=?",
                      (key.key,)).fetchone()
     if row is None:
-        return None, "model settling: no earlier runs of this instrument on this station", True
+        return None, f"model settling: no earlier runs of {whose} on this station", True
     records, sources, mismatch, blob = row
     if key.noise is not None and any(s.get("noise") == key.noise and s.get("run") != key.run
                                      for s in _sources(sources)):
-        return None, (f"model settling: the pool of earlier runs already holds {key.noise}'s noise; "
-                      "this dry run repeats it and starts without them"), False
+        return None, (f"model settling: the records of {whose}'s earlier runs already hold "
+                      f"{key.noise}'s noise; this dry run repeats it and starts without them"), False
     sums = np.load(io.BytesIO(blob), allow_pickle=False)
     runs = len({s.get("run") for s in _sources(sources)})
-    note = f"model settling starts with {records} step records of {runs} earlier run(s)"
+    note = f"model settling starts with {records} step records of {runs} earlier run(s) of {whose}"
     return PoolState(sums, int(records), str(mismatch)), note + (f"; {mismatch}" if mismatch else ""), True
 
 
@@ -132,6 +148,48 @@ def save(db: sqlite3.Connection, key: PoolKey, pool: TailPool) -> None:
                    "sums=excluded.sums, updated_utc=excluded.updated_utc",
                    (key.key, json.dumps(key.identity, sort_keys=True, default=str), state.records,
                     json.dumps(sources), state.mismatch, buffer.getvalue(), utc_now()))
+        db.execute("COMMIT")
+    except BaseException:
+        if db.in_transaction:
+            db.execute("ROLLBACK")
+        raise
+
+
+def load_prior(db: sqlite3.Connection, key: PoolKey, whose: str) -> tuple[PoolState | None, str, bool]:
+    """`load` for a prior (``key``: `prior_key`). A resumed run finds its own earlier records in the
+    prior as well as in its instrument's pool: it goes on without the prior rather than count them
+    twice (and still adds what it takes from now on)."""
+    row = db.execute("SELECT sources FROM settle_pools WHERE pool_key=?", (key.key,)).fetchone()
+    if row is not None and any(s.get("run") == key.run for s in _sources(row[0])):
+        return None, f"model settling: {whose} already hold this run's records; it goes on without them", True
+    return load(db, key, whose)
+
+
+def add_to_prior(db: sqlite3.Connection, key: PoolKey, pool: TailPool) -> None:
+    """Add this run's own records to its type's or station's (``key``: `prior_key`), in one
+    transaction; only for a run that `load` allowed to. Every segment of a run adds the records it
+    took (a resumed run's pool starts again from its saved history), so none counts twice. A run
+    whose pool saw a mismatch adds nothing: its instrument is not one the prior may speak for."""
+    own = pool.own_state()
+    if own.records == 0 or own.mismatch:
+        return
+    db.execute("BEGIN IMMEDIATE")
+    try:
+        row = db.execute("SELECT records, sources, sums FROM settle_pools WHERE pool_key=?",
+                         (key.key,)).fetchone()
+        sums, records, sources = own.sums, own.records, [{"run": key.run, "noise": key.noise}]
+        if row is not None:
+            sums = sums + np.load(io.BytesIO(row[2]), allow_pickle=False)
+            records += int(row[0])
+            sources = _sources(row[1]) + sources
+        buffer = io.BytesIO()
+        np.save(buffer, sums, allow_pickle=False)
+        db.execute("INSERT INTO settle_pools (pool_key, identity, records, sources, mismatch, sums, "
+                   "updated_utc) VALUES (?, ?, ?, ?, '', ?, ?) ON CONFLICT (pool_key) DO UPDATE SET "
+                   "records=excluded.records, sources=excluded.sources, sums=excluded.sums, "
+                   "updated_utc=excluded.updated_utc",
+                   (key.key, json.dumps(key.identity, sort_keys=True, default=str), records,
+                    json.dumps(sources), buffer.getvalue(), utc_now()))
         db.execute("COMMIT")
     except BaseException:
         if db.in_transaction:
