@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 from sqlalchemy import case, func, select
 
 from labcal.app.labdatabase import LabDatabase
+from labcal.config.snapshot import is_simulated, parse_snapshot
 from labcal.run.schema import events, points, runs
 
 if TYPE_CHECKING:
@@ -88,15 +89,10 @@ SUMMARY = (runs.c.id, runs.c.status, runs.c.station, runs.c.metadata, runs.c.ins
 
 
 def simulated(metadata: Any, station_text: str | None) -> bool:
-    """A dry run (simulated rig or emulators), by the rule `labcal.run.record.RunRecord.simulated`
-    applies to the same journaled fields: shown on the pages so that nobody mistakes one for a
+    """A dry run (simulated rig or emulators), by the rule a run's record applies
+    (`labcal.config.snapshot.is_simulated`): shown on the pages so that nobody mistakes one for a
     calibration (approving it is refused by the approval itself, whatever a page shows)."""
-    if isinstance(metadata, dict) and "simulated_truth" in metadata:
-        return True
-    station = _json(station_text)
-    if not isinstance(station, dict):
-        return False
-    return station.get("kind") == "simulated rig" or bool(station.get("emulate"))
+    return is_simulated(metadata, parse_snapshot(station_text))
 
 
 def _summary(row: Any, counts: tuple[int, int, int | None]) -> dict:

@@ -17,7 +17,7 @@ from labcal.analysis.fit import Fit
 from labcal.analysis.plan import Plan
 from labcal.analysis.readings import Readings
 from labcal.config.plans import parse_plan
-from labcal.config.station import output_units
+from labcal.config.snapshot import StationSnapshot, is_simulated, output_units, parse_snapshot
 from labcal.errors import LabcalError
 from labcal.run import exports
 from labcal.run.lock import held_by
@@ -41,18 +41,13 @@ class RunRecord:
     fit: Fit | None = None
     device: DeviceFit | None = None  # the device model, where the points identify it
     model_note: str = ""  # which model fit.json holds, and why
+    station: StationSnapshot | None = None  # ``station_text`` parsed; None where it is not a snapshot
 
     @property
     def simulated(self) -> bool:
         """A dry run: on the simulated rig or its emulators, by its metadata or its station snapshot
         (either is enough: a run folder's run.json edited cannot make the journal's station real)."""
-        if "simulated_truth" in self.meta:
-            return True
-        try:
-            doc = json.loads(self.station_text) if self.station_text else {}
-        except json.JSONDecodeError:
-            return False
-        return isinstance(doc, dict) and (doc.get("kind") == "simulated rig" or bool(doc.get("emulate")))
+        return is_simulated(self.meta, self.station)
 
 
 def readings_digest(points) -> str:
@@ -84,11 +79,12 @@ def load_run(run_dir: str | Path) -> RunRecord:
         notes, derived = exports.check(journal, row, run_dir)
         info = read_run_json(run_dir)
         points = journal.points(row.id, status="ok")
-        readings = replace(journal.readings(row.id), units=output_units(row.station_text))
+        station = parse_snapshot(row.station_text)
+        readings = replace(journal.readings(row.id), units=output_units(station))
         events = tuple(journal.events(row.id))
     plan = parse_plan(row.plan_text, f"run {row.id} plan")
     meta = {**info, **row.metadata, "status": row.status, "reason": row.reason,
             "started_utc": row.started_utc, "ended_utc": row.ended_utc, "settings": row.settings,
             "instrument_serial": row.instrument_serial, "operator": row.operator}
     return RunRecord(run_dir, readings, readings_digest(points), plan, row.plan_text, meta, tuple(notes),
-                     row.station_text, events, derived.fit, derived.device, derived.model_note)
+                     row.station_text, events, derived.fit, derived.device, derived.model_note, station)

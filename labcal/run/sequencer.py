@@ -22,7 +22,7 @@ import numpy as np
 from labcal.analysis.kinematics import Mount
 from labcal.analysis.plan import Plan
 from labcal.config.settings import SequencerSettings
-from labcal.config.station import output_units
+from labcal.config.snapshot import output_units, parse_snapshot
 from labcal.errors import LabcalError
 from labcal.run import settle_pool
 from labcal.run.checks import Verdict, check_readings, closure
@@ -619,8 +619,9 @@ class Sequencer:
         points = self.journal.points(self.run_id, status="ok")
         settle = self.settings.settle.model_dump()
         try:
-            readings = replace(self.journal.readings(self.run_id), units=output_units(row.station_text))
-            return check_readings(readings, row.plan_text, row.station_text, settle), points
+            station = parse_snapshot(row.station_text)
+            readings = replace(self.journal.readings(self.run_id), units=output_units(station))
+            return check_readings(readings, row.plan_text, station, settle), points
         except LabcalError:
             return None, points
 
@@ -685,7 +686,7 @@ class Sequencer:
             return
         now = self.until_done(self.check_again, mount)
         moved = closure(before, now, self.settings.settle.model_dump(),
-                        self.journal.run(self.run_id).station_text, remounted=False)
+                        parse_snapshot(self.journal.run(self.run_id).station_text), remounted=False)
         if moved:
             pitch, roll = CHECK_ATTITUDE
             why = (f"the rig is not where it was when {mount} was checked: back at its check attitude (pitch "
@@ -723,7 +724,7 @@ class Sequencer:
             if mount not in before:
                 raise ReadingsRefused(f"{refused}, and {mount} has no mount check to return to")
             moved = closure(before[mount], self.checked()[mount], self.settings.settle.model_dump(),
-                            self.journal.run(self.run_id).station_text, remounted)
+                            parse_snapshot(self.journal.run(self.run_id).station_text), remounted)
             if moved:
                 pitch, roll = CHECK_ATTITUDE
                 raise ReadingsRefused(f"{refused}, and the rig is not where it was: at the check attitude "
