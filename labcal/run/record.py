@@ -35,13 +35,12 @@ class RunRecord:
     plan_text: str
     meta: dict  # run.json: station, settings, dates, status, identities, simulated truth
     notes: tuple[str, ...] = ()  # how the folder differs from the journal (said, not repaired)
-    station_text: str = ""  # the journal's snapshot of the station the run used (JSON)
+    station: StationSnapshot | None = None  # the journal's snapshot of the station the run used
     events: tuple[dict, ...] = ()  # the journal's events: prompts, answers, faults, retries, pauses
     # The fits fit.json was derived from (checking the folder fits them): issuing reuses them
     fit: Fit | None = None
     device: DeviceFit | None = None  # the device model, where the points identify it
     model_note: str = ""  # which model fit.json holds, and why
-    station: StationSnapshot | None = None  # ``station_text`` parsed; None where it is not a snapshot
 
     @property
     def simulated(self) -> bool:
@@ -87,4 +86,4 @@ def load_run(run_dir: str | Path) -> RunRecord:
             "started_utc": row.started_utc, "ended_utc": row.ended_utc, "settings": row.settings,
             "instrument_serial": row.instrument_serial, "operator": row.operator}
     return RunRecord(run_dir, readings, readings_digest(points), plan, row.plan_text, meta, tuple(notes),
-                     row.station_text, events, derived.fit, derived.device, derived.model_note, station)
+                     station, events, derived.fit, derived.device, derived.model_note)
