@@ -29,10 +29,12 @@ import json
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from pydantic import ValidationError
 from sqlalchemy import case, func, select
 
 from labcal.app.labdatabase import LabDatabase
 from labcal.config.snapshot import is_simulated, parse_snapshot
+from labcal.run.events import JournaledPrompt
 from labcal.run.schema import events, points, runs
 
 if TYPE_CHECKING:
@@ -141,13 +143,11 @@ def _event_json(row: Any) -> dict:
 
 def _text(kind: str, message: str, data: Any) -> str:
     """The event in words for people: a prompt with what it asks (its arguments), else its message."""
-    if kind == PROMPT_KIND and isinstance(data, dict) and isinstance(data.get("args"), list):
-        args = [str(a) for a in data["args"] if str(a)]
-        if message == "mount" and len(args) >= 3:  # where, which of how many, a note when asked again
-            return f"mount {args[1]} of {args[2]}: {args[0]}" + (f" ({args[3]})" if len(args) > 3 else "")
-        if message == "pause" and args:  # its arguments: why, and the tables that may still move
-            return f"paused: {args[0]}"
-        return f"{message}: {', '.join(args)}" if args else message
+    if kind == PROMPT_KIND and isinstance(data, dict):
+        try:
+            return JournaledPrompt.read(message, data).text()
+        except ValidationError:  # not a prompt labcal journaled: its message
+            return message
     return message
 
 

@@ -454,10 +454,12 @@ class Sequencer:
         return reply
 
     def prompt(self, what: str, message: str, args: tuple, mount: Mount | None = None,
-               step: int | None = None, n_steps: int | None = None) -> Prompt:
+               step: int | None = None, n_steps: int | None = None, note: str = "", why: str = "",
+               may_be_moving: tuple[str, ...] = ()) -> Prompt:
         return Prompt(run_id=self.run_id, rig_time_s=self.rig_time(), what=what,  # type: ignore[arg-type]
                       mount=None if mount is None else mount_number(mount.y_deg, mount.u_deg), step=step,
-                      n_steps=n_steps, message=message, args=tuple(str(a) for a in args))
+                      n_steps=n_steps, message=message, where="" if mount is None else str(mount), note=note,
+                      why=why, may_be_moving=may_be_moving, args=tuple(str(a) for a in args))
 
     def mount(self, mount: Mount, step: int, n_steps: int, why: str,
               provisional: np.ndarray | None) -> None:
@@ -469,7 +471,7 @@ class Sequencer:
             self.move(*LOAD_POSITION)
             asked = f"mount {step} of {n_steps}: put the instrument on the {mount.describe()} ({mount})"
             prompt = self.prompt("mount", asked + (f"; {note}" if note else ""), (mount, step, n_steps, note),
-                                 mount, step, n_steps)
+                                 mount, step, n_steps, note=note)
             self.ask(prompt, self.operator.confirm_mount, mount, step, n_steps, note)
             self.station.remounted(mount)
             verify = getattr(self.station.dmm, "verify", None)  # a DMM with a declared configuration
@@ -551,7 +553,8 @@ class Sequencer:
         try:
             tables = (f"; the stop did not reach the {', '.join(self.moving)} table(s)" if self.moving
                       else "; the tables are still")
-            choice = self.ask(self.prompt("pause", f"paused ({why}){tables}", (why, self.moving)),
+            choice = self.ask(self.prompt("pause", f"paused ({why}){tables}", (why, self.moving), why=why,
+                                          may_be_moving=self.moving),
                               self.operator.after_pause, why, self.moving)
         except OperatorDeclined as exc:  # nobody answered (an unattended run): the pause's cause ended it
             raise OperatorDeclined(f"{why}; paused, and {exc}") from None
