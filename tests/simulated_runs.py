@@ -155,7 +155,7 @@ def corrected_runs_under_a_step(text: str, step_arcsec: dict[str, float], runs: 
         readings = simulate_readings(plan, truth, Misalignment(*drawn),
                                      IndexWobble(device.index_arcsec, device.wobble_arcsec, seed + trial),
                                      noise, seed + trial)
-        fit, _, _ = run_fits(readings, text, "")
+        fit, _, _ = run_fits(readings, text, None)
         verdicts = check(PointMeans.of(readings), fit.ls.residuals, fit.coefficients, np.full(3, noise), held,
                          own, budget, stated)
         if checked and any(v.detected for v in verdicts):

@@ -220,7 +220,7 @@ def test_serial_must_be_known_and_not_contradicted(run, tmp_path):
     with pytest.raises(LabcalError, match="the run records instrument serial 'SN-0042'; 'SN-9' disagrees"):
         build_certificate(run, fit, serial="SN-9")
     anonymous = replace(run, meta={k: v for k, v in run.meta.items()  # as a bench's run without a serial
-                                   if k not in ("instrument_serial", "simulated_truth")}, station_text="")
+                                   if k not in ("instrument_serial", "simulated_truth")}, station=None)
     with pytest.raises(LabcalError, match="does not record the instrument's serial number; give --serial"):
         build_certificate(anonymous, fit)
     assert build_certificate(anonymous, fit, serial="SN-7").instrument.serial == "SN-7"

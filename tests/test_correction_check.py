@@ -64,7 +64,7 @@ def detection_rate(plan: Plan, change: np.ndarray, trials: int, seed: int, table
         truth = HELD + rng.normal(0.0, U_HISTORY) + change
         table = IndexWobble(DEVICE.index_arcsec, DEVICE.wobble_arcsec, seed + trial) if tables else None
         readings = simulate_readings(plan, TRUTH, Misalignment(*truth), table, NOISE, seed + trial)
-        fit, device, _ = run_fits(readings, text, "")
+        fit, device, _ = run_fits(readings, text, None)
         assert device is None
         found = cc.check(PointMeans.of(readings), fit.ls.residuals, fit.coefficients, np.full(3, NOISE), HELD,
                          U_HISTORY, u_budget, errors)

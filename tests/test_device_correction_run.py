@@ -220,7 +220,7 @@ def test_monte_carlo_of_runs_of_the_corrected_plan_covers_its_u95(corrected_plan
                                 for n, u in correction.u_history_rad().items()})
         table = IndexWobble(device.index_arcsec, device.wobble_arcsec, seed)
         readings = simulate_readings(plan, truth, drawn, table, noise, seed)
-        fit, dev, _ = run_fits(readings, text, "")
+        fit, dev, _ = run_fits(readings, text, None)
         assert dev is None and fit.model.device is not None
         cal = calibration_of(fit, readings)
         pitch, roll = np.radians(rng.uniform(-60, 60, 5)), np.radians(rng.uniform(-180, 180, 5))
@@ -250,9 +250,9 @@ def test_the_fit_holds_the_misalignments_at_the_corrections_values(corrected_pla
     assert correction is not None
     plan = Plan.model_validate({k: v for k, v in tomllib.loads(text).items() if k != "device_correction"})
     readings = simulate_readings(plan, RIG.instrument, correction.misalignment())
-    fit, _, note = run_fits(readings, text, "")
+    fit, _, note = run_fits(readings, text, None)
     assert np.max(np.abs(fit.coefficients - RIG.instrument.X)) < 1e-10
-    nominal, _, _ = run_fits(readings, plan_toml(plan), "")
+    nominal, _, _ = run_fits(readings, plan_toml(plan), None)
     assert np.max(np.abs(nominal.coefficients - RIG.instrument.X)) > 1e-5
     assert "held at device SIMULATED's estimate from run run-2" in note
 

@@ -196,14 +196,14 @@ def test_fit_command_takes_the_tables_stated_errors(tmp_path, capsys):
 
 
 def test_a_run_s_station_states_the_tables_errors():
-    from labcal.config.station import stated_angle_errors
+    from labcal.config.snapshot import parse_snapshot, stated_angle_errors
 
     rig = {"kind": "simulated rig", "seed": 1,
            "rig": {"device": {"index_arcsec": 1.5, "wobble_arcsec": 0.5}}}
-    errors = stated_angle_errors(json.dumps(rig))
+    errors = stated_angle_errors(parse_snapshot(json.dumps(rig)))
     assert errors == AngleErrors(1.5 * ARCSEC, 0.5 * ARCSEC, 1.5 * ARCSEC, 0.5 * ARCSEC)
     table = {"pitch_index": "2 arcsec", "roll_wobble": "1 arcsec"}
-    station = {"kind": "station", "station": {"uncertainty": table}}
-    assert stated_angle_errors(json.dumps(station)) == AngleErrors(pitch_index=2 * ARCSEC, roll_wobble=ARCSEC)
-    assert stated_angle_errors(json.dumps({"kind": "station", "station": {}})) is None  # states none
-    assert stated_angle_errors("") is None
+    station = parse_snapshot(json.dumps({"kind": "station", "station": {"uncertainty": table}}))
+    assert stated_angle_errors(station) == AngleErrors(pitch_index=2 * ARCSEC, roll_wobble=ARCSEC)
+    assert stated_angle_errors(parse_snapshot(json.dumps({"kind": "station", "station": {}}))) is None
+    assert stated_angle_errors(parse_snapshot("")) is None  # states none, and no snapshot

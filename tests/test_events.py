@@ -123,8 +123,10 @@ def test_each_event_is_the_journal_row_it_always_was():
          ("answer", "mount: confirmed", None)),
         (Answer(**at, what="pause", reply="declined", meaning="no answers left", outcome="declined"),
          ("answer", "pause: declined", {"reason": "no answers left"})),
-        (Prompt(**at, what="pause", message="paused (Ctrl-C)", args=("Ctrl-C", "()")),
-         ("prompt", "pause", {"args": ["Ctrl-C", "()"]})),
+        (Prompt(**at, what="pause", message="paused (Ctrl-C)", why="Ctrl-C", args=("Ctrl-C", "()")),
+         ("prompt", "pause", {"args": ["Ctrl-C", "()"], "mount": None, "step": None, "n_steps": None,
+                              "message": "paused (Ctrl-C)", "where": "", "note": "", "why": "Ctrl-C",
+                              "may_be_moving": []})),
         (Paused(**at, why="Ctrl-C"), ("pause", "Ctrl-C", {"may_be_moving": []})),
         (Resumed(**at, why="operator resumed after the pause"),
          ("resume", "operator resumed after the pause", None)),
@@ -145,6 +147,28 @@ def test_each_event_is_the_journal_row_it_always_was():
     for event, row in rows:
         assert event.journal_entry() == row
         assert list(event.journal_entry()[2] or {}) == list(row[2] or {})  # the JSON keeps its key order
+
+
+def test_a_prompt_reads_back_by_name_and_from_an_older_journal_by_position():
+    """A prompt journaled with its named fields and one journaled before them (positional ``args``
+    only, an empty note left out) read back the same, and say the same to people."""
+    from labcal.run.events import JournaledPrompt
+
+    at = {"run_id": 1, "rig_time_s": 5.0}
+    asked = Prompt(**at, what="mount", mount=2, step=2, n_steps=8, message="mount 2 of 8", where="y=0 u=90",
+                   note="re-seat", args=("y=0 u=90", "2", "8", "re-seat"))
+    kind, what, data = asked.journal_entry()
+    named = JournaledPrompt.read(what, data)
+    older = JournaledPrompt.read("mount", {"args": ["y=0 u=90", "2", "8", "re-seat"]})
+    assert (named.where, named.step, named.n_steps, named.note) == ("y=0 u=90", 2, 8, "re-seat")
+    assert named.text() == older.text() == "mount 2 of 8: y=0 u=90 (re-seat)"
+    first = JournaledPrompt.read("mount", {"args": ["y=0 u=0", "1", "8", ""]})
+    assert first.text() == "mount 1 of 8: y=0 u=0"
+    paused = Prompt(**at, what="pause", message="paused (Ctrl-C)", why="Ctrl-C", may_be_moving=("roll",),
+                    args=("Ctrl-C", "('roll',)"))
+    assert JournaledPrompt.read("pause", paused.journal_entry()[2] or {}).text() == "paused: Ctrl-C"
+    assert JournaledPrompt.read("pause", {"args": ["Ctrl-C", "()"]}).text() == "paused: Ctrl-C"
+    assert JournaledPrompt.read("pause", {}).text() == "pause"
 
 
 # --- a simulated run's events -----------------------------------------------------------------------

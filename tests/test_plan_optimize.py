@@ -293,7 +293,7 @@ def delivered_u95(out, trials: int) -> np.ndarray:
         readings = simulate_readings(plan, truth, drawn,
                                      IndexWobble(device.index_arcsec, device.wobble_arcsec, seed),
                                      truth.noise_v / math.sqrt(samples), seed)
-        fit, _, _ = run_fits(readings, text, "")
+        fit, _, _ = run_fits(readings, text, None)
         cal = calibration_of(fit, readings)
         stated.append(float(np.nanmax(propagate(cal, sources(cal, inputs), pitch, roll).U)))
     return np.array(stated)

@@ -88,11 +88,12 @@ def test_the_dry_run_budget_lists_the_simulators_sources_at_their_sizes(dry):
 
 def test_a_real_station_keeps_its_own_inputs(tmp_path):
     """The simulator's inputs are a dry run's only: a station of real devices keeps its file's."""
+    from labcal.config.snapshot import parse_snapshot
     from labcal.config.station import CertificateSection
     from labcal.documents.simulated import with_simulator_inputs
 
     section = CertificateSection()
-    station = json.dumps({"kind": "station", "station": {}, "emulate": False})
+    station = parse_snapshot(json.dumps({"kind": "station", "station": {}, "emulate": False}))
     assert with_simulator_inputs(section, station, {}) is section
 
 

@@ -197,8 +197,6 @@ PACE_SIM_ONLY = ("--pace paces the simulated rig (--sim) only; a station's devic
 
 def _run_status(run_dir: Path) -> str | None:
     """The status run.json states (None where it cannot be read)."""
-    import json
-
     try:
         return json.loads((run_dir / "run.json").read_text(encoding="utf-8")).get("status")
     except (OSError, ValueError, AttributeError):
@@ -292,6 +290,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
     from labcal.analysis.plan import Plan
     from labcal.bench.setup import hardware_station, prepare, sim_station
     from labcal.config.plans import correction_toml, load_plan, plan_correction, plan_toml
+    from labcal.config.snapshot import SimulatedRigSnapshot
     from labcal.run.estimate import estimate
     from labcal.run.interrupts import stop_signals_raise
     from labcal.run.journal import Journal, db_path
@@ -327,9 +326,10 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
         bench = None
         if args.sim:
             setup = sim_station(args.rig, args.seed, pace=args.pace, package=args.instrument)
-            package = json.loads(setup.text)["rig"]["instrument"]["package"]
+            journaled = SimulatedRigSnapshot.model_validate_json(setup.text)
+            package = journaled.rig_config().instrument.package
             if package != "three-axis":  # how its angles are obtained in use, for its statement
-                setup.metadata["package"] = sim_package_use(package, json.loads(setup.text)["rig"])
+                setup.metadata["package"] = sim_package_use(package, journaled.rig)
             settings = sequencer_settings_for_run(args, setup)
             cert_settings = certificate_settings_for_run(args, None, "command line")
         else:

@@ -29,9 +29,12 @@ import json
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from pydantic import ValidationError
 from sqlalchemy import case, func, select
 
 from labcal.app.labdatabase import LabDatabase
+from labcal.config.snapshot import is_simulated, parse_snapshot
+from labcal.run.events import JournaledPrompt
 from labcal.run.schema import events, points, runs
 
 if TYPE_CHECKING:
@@ -88,15 +91,10 @@ SUMMARY = (runs.c.id, runs.c.status, runs.c.station, runs.c.metadata, runs.c.ins
 
 
 def simulated(metadata: Any, station_text: str | None) -> bool:
-    """A dry run (simulated rig or emulators), by the rule `labcal.run.record.RunRecord.simulated`
-    applies to the same journaled fields: shown on the pages so that nobody mistakes one for a
+    """A dry run (simulated rig or emulators), by the rule a run's record applies
+    (`labcal.config.snapshot.is_simulated`): shown on the pages so that nobody mistakes one for a
     calibration (approving it is refused by the approval itself, whatever a page shows)."""
-    if isinstance(metadata, dict) and "simulated_truth" in metadata:
-        return True
-    station = _json(station_text)
-    if not isinstance(station, dict):
-        return False
-    return station.get("kind") == "simulated rig" or bool(station.get("emulate"))
+    return is_simulated(metadata, parse_snapshot(station_text))
 
 
 def _summary(row: Any, counts: tuple[int, int, int | None]) -> dict:
@@ -145,13 +143,11 @@ def _event_json(row: Any) -> dict:
 
 def _text(kind: str, message: str, data: Any) -> str:
     """The event in words for people: a prompt with what it asks (its arguments), else its message."""
-    if kind == PROMPT_KIND and isinstance(data, dict) and isinstance(data.get("args"), list):
-        args = [str(a) for a in data["args"] if str(a)]
-        if message == "mount" and len(args) >= 3:  # where, which of how many, a note when asked again
-            return f"mount {args[1]} of {args[2]}: {args[0]}" + (f" ({args[3]})" if len(args) > 3 else "")
-        if message == "pause" and args:  # its arguments: why, and the tables that may still move
-            return f"paused: {args[0]}"
-        return f"{message}: {', '.join(args)}" if args else message
+    if kind == PROMPT_KIND and isinstance(data, dict):
+        try:
+            return JournaledPrompt.read(message, data).text()
+        except ValidationError:  # not a prompt labcal journaled: its message
+            return message
     return message
 
 

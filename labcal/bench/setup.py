@@ -22,6 +22,7 @@ if TYPE_CHECKING:  # the simulator and the drivers are imported where a station 
     from labcal.bench.hardware import Bench
     from labcal.config.emulation import InstrumentTruth
     from labcal.config.settings import SettleSettings
+    from labcal.config.snapshot import StationFileSnapshot
     from labcal.config.station import AzSettings, Smc100Settings, StationFile
     from labcal.run.estimate import LinkTiming, Timing
     from labcal.run.station import Station
@@ -50,14 +51,14 @@ def sim_station(rig_file: str | None, seed: int | None, snapshot: str | None = N
     ``package``: the simulated instrument's sensor package instead of the rig file's (it is part of
     the snapshot: a resume reads the same channels)."""
     from labcal.config.emulation import RigConfig, load_rig_config
-    from labcal.config.files import validate_model
+    from labcal.config.snapshot import SimulatedRigSnapshot
     from labcal.run.estimate import Timing
     from labcal.sim.clock import PacedClock, VirtualClock
     from labcal.sim.rig import SimRig
 
     if snapshot is not None:  # validated by today's model: defaults fill the fields added since
-        doc = json.loads(snapshot)
-        config, seed = validate_model(doc["rig"], RigConfig, "the journaled simulated rig"), doc["seed"]
+        journaled = SimulatedRigSnapshot.model_validate_json(snapshot)
+        config, seed = journaled.rig_config(), journaled.seed
     else:
         config = load_rig_config(rig_file) if rig_file else RigConfig()
         if package is not None:
@@ -193,38 +194,29 @@ def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emul
     return StationSetup(bench.station(**hooks), text, metadata, timing, settle), bench
 
 
-@dataclass(frozen=True)
-class StationSnapshot:
-    """What the journal keeps of a station file's station, validated with today's models."""
-
-    config: StationFile
-    emulate: bool
-    time_scale: float | None
-    seed: int | None
-
-
-def read_snapshot(text: str, run_name: str, started_with: str) -> StationSnapshot | None:
+def read_snapshot(text: str, run_name: str, started_with: str) -> StationFileSnapshot | None:
     """The station a journaled run started on; None for the simulated rig (``--sim``). Validated
     with today's models, so that fields added since take their defaults; one that no longer
     validates is one line naming the field (``run_name``: the run; ``started_with``: its labcal)."""
     from pydantic import ValidationError
 
     from labcal.config.files import one_line
+    from labcal.config.snapshot import StationFileSnapshot, parse_snapshot
     from labcal.config.station import StationFile
 
-    doc = json.loads(text)
-    if doc.get("kind") != "station":
+    snapshot = parse_snapshot(text)
+    if not isinstance(snapshot, StationFileSnapshot):
         return None
     try:
-        config = StationFile.model_validate(doc["station"])
+        snapshot.config  # noqa: B018 - validated here, so that one that no longer is says so in one line
     except ValidationError as exc:
         raise LabcalError(f"{run_name}: the station it started on no longer validates "
                           f"({one_line(exc, StationFile)}); resume it with labcal {started_with}, "
                           "which started it") from None
-    return StationSnapshot(config, doc["emulate"], doc.get("time_scale"), doc.get("seed"))
+    return snapshot
 
 
-def station_for_resume(snapshot: StationSnapshot, run_name: str, stack: ExitStack, start_time_s: float,
+def station_for_resume(snapshot: StationFileSnapshot, run_name: str, stack: ExitStack, start_time_s: float,
                        new: tuple[StationFile, str] | None = None,
                        tables_at: tuple[float, float] | None = None) -> tuple[StationSetup, Bench]:
     """The station a journaled run goes on with: the one it started on, or ``new`` (a station

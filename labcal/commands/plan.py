@@ -478,7 +478,7 @@ def planning_bench(station: str | None):
     if station is None:
         from labcal.bench.setup import sim_station
         from labcal.config.emulation import RigConfig
-        from labcal.documents.simulated import simulator_inputs
+        from labcal.config.snapshot import simulator_inputs
 
         rig = RigConfig()
         setup = sim_station(None, rig.seed)

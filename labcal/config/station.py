@@ -10,18 +10,15 @@ from __future__ import annotations
 from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, ClassVar, Literal
+from typing import Annotated, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
-from labcal.config.emulation import EmulationSettings, FaultKind, RigConfig
-from labcal.config.files import parse_model, read_text, validate_model
+from labcal.config.emulation import EmulationSettings, FaultKind
+from labcal.config.files import parse_model, read_text
 from labcal.config.settings import CertificateSettings, SequencerSettings, ThermalGate
 from labcal.config.uncertainty import Traceability, UncertaintyInputs
 from labcal.errors import LabcalError
-
-if TYPE_CHECKING:
-    from labcal.analysis.device_fit import AngleErrors
 
 # The 34970A's settable integration times (power-line cycles) and DC volts ranges: others are
 # answered with error -222 (34970A/34972A User's Guide, DC voltage measurements).
@@ -464,46 +461,3 @@ def load_station(name_or_path: str | Path) -> tuple[StationFile, str]:
                           f"examples: {', '.join(examples)}")
     text = examples[str(name_or_path)].read_text(encoding="utf-8")
     return parse_model(text, StationFile, f"station {name_or_path}"), text
-
-
-def journaled_snapshot(station_text: str | None) -> dict | None:
-    """A run's journaled station snapshot as a document (``kind``: "station" or "simulated rig");
-    None where there is none or it is not one (a run journaled before snapshots were kept)."""
-    import json
-
-    try:
-        doc = json.loads(station_text) if station_text else {}
-    except json.JSONDecodeError:
-        return None
-    return doc if isinstance(doc, dict) else None
-
-
-def stated_angle_errors(station_text: str) -> AngleErrors | None:
-    """The tables' index accuracy and wobble for the device model's covariance, from a run's journaled
-    station: a station file's ``[uncertainty]`` table, or the simulated rig's own amplitudes (its
-    errors are bounded by them: the half-widths). None where neither states any."""
-    from labcal.analysis.device_fit import AngleErrors
-    from labcal.analysis.kinematics import ARCSEC
-
-    doc = journaled_snapshot(station_text)
-    if doc is None:
-        return None
-    if doc.get("kind") == "station":
-        u = validate_model(doc["station"], CertificateSection, "the run's station").uncertainty
-        errors = AngleErrors(u.pitch_index, u.pitch_wobble, u.roll_index, u.roll_wobble)
-    elif doc.get("kind") == "simulated rig":
-        device = validate_model(doc["rig"], RigConfig, "the journaled simulated rig").device
-        index, wobble = device.index_arcsec * ARCSEC, device.wobble_arcsec * ARCSEC
-        errors = AngleErrors(index, wobble, index, wobble)
-    else:
-        return None
-    return errors if errors else None
-
-
-def output_units(station_text: str) -> str:
-    """The unit a run's outputs were read in, from its journaled station: a station file's
-    ``[instrument] units``; volts for the simulated rig and for runs journaled before the key."""
-    doc = journaled_snapshot(station_text)
-    if doc is None or doc.get("kind") != "station":
-        return "V"
-    return validate_model(doc["station"], CertificateSection, "the run's station").instrument.units

@@ -12,11 +12,11 @@ its station-file settings and says so.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from datetime import date
 
 from labcal.config.lab import load_lab_config
+from labcal.config.snapshot import StationFileSnapshot
 from labcal.config.station import CertificateSection
 from labcal.documents.certificate import Administration, Equipment, Item, LaboratoryRecord, TraceabilityRecord
 from labcal.run.record import RunRecord
@@ -60,14 +60,10 @@ def _identified(role: str, description: str, fields: dict | None) -> Equipment:
 
 def _equipment(record: RunRecord) -> list[Equipment]:
     identities = journaled_identities(record)
-    try:
-        doc = json.loads(record.station_text) if record.station_text else {}
-    except json.JSONDecodeError:
-        doc = {}
-    if not isinstance(doc, dict) or doc.get("kind") != "station":
+    if not isinstance(record.station, StationFileSnapshot):
         return [Equipment(role="calibration device and DMM", description="simulated rig (a dry run)",
                           identity=None)]
-    station = doc["station"]
+    station = record.station.station
     found = []
     for role in ("pitch", "roll", "dmm"):
         device = station.get(role, {})

@@ -52,7 +52,7 @@ def correction_changes(record: RunRecord, fit: Fit, correction: DeviceCorrection
     index and wobble as the run's station states them."""
     from labcal.analysis.correction_check import check
     from labcal.analysis.device_fit import PointMeans
-    from labcal.config.station import stated_angle_errors
+    from labcal.config.snapshot import stated_angle_errors
 
     names, held = MISALIGNMENT_NAMES, correction.misalignment()
     noise = window_noise(record)
@@ -60,7 +60,7 @@ def correction_changes(record: RunRecord, fit: Fit, correction: DeviceCorrection
                  fit.ls.residual_se if noise is None else noise,
                  np.array([getattr(held, n) for n in names]),
                  np.array([correction.u_history_rad()[n] for n in names]),
-                 np.array([correction.u_rad()[n] for n in names]), stated_angle_errors(record.station_text))
+                 np.array([correction.u_rad()[n] for n in names]), stated_angle_errors(record.station))
 
 
 def window_noise(record: RunRecord) -> NDArray[np.float64] | None:

@@ -130,7 +130,7 @@ def fitted(record: RunRecord) -> tuple[Fit, DeviceFit | None, str]:
     them the run's fit.json holds: those `load_run` derived fit.json from, else fitted here."""
     if record.fit is not None:
         return record.fit, record.device, record.model_note
-    return run_fits(record.readings, record.plan_text, record.station_text)
+    return run_fits(record.readings, record.plan_text, record.station)
 
 
 def _issued(path: Path) -> Certificate | None:

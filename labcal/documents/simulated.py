@@ -25,53 +25,19 @@ residuals, so in the fit's Type A.
 
 from __future__ import annotations
 
-import math
-
-from labcal.config.station import CertificateSection, journaled_snapshot
-from labcal.config.uncertainty import UncertaintyInputs
+from labcal.config.snapshot import StationSnapshot, simulator_inputs
+from labcal.config.station import CertificateSection
 
 NOTICE = ("SIMULATED: these results come from a dry run on labcal's simulated rig or its device emulators, "
           "not from a calibration of a real instrument; they may not be used for measurements and are never "
           "approved")
 
 
-def simulator_rig(station_text: str) -> dict | None:
-    """The simulated rig (its rig-file settings) a run's journaled station snapshot describes: the
-    simulated rig of `run --sim`, or the emulators' rig of `run --station … --emulate`; None for a
-    station of real devices."""
-    doc = journaled_snapshot(station_text)
-    if doc is None:
-        return None
-    if doc.get("kind") == "simulated rig":
-        return doc.get("rig") or {}
-    if doc.get("kind") == "station" and doc.get("emulate"):
-        return ((doc.get("station") or {}).get("emulation") or {}).get("rig") or {}
-    return None
-
-
-def simulator_inputs(rig: dict, samples: int) -> UncertaintyInputs:
-    """The Type B inputs the simulated ``rig`` really applies (the module docstring says how each one
-    is read), for readings averaged over ``samples`` samples."""
-    from labcal.config.emulation import RigConfig
-
-    config = RigConfig.model_validate(rig)  # defaults fill what an older snapshot leaves out
-    device, inst = config.device, config.instrument
-    arcsec = lambda x: f"{x!r} arcsec"  # noqa: E731 - the station file's own notation
-    return UncertaintyInputs.model_validate({
-        "pitch_index": arcsec(device.index_arcsec), "roll_index": arcsec(device.index_arcsec),
-        "pitch_wobble": arcsec(device.wobble_arcsec), "roll_wobble": arcsec(device.wobble_arcsec),
-        "mount_repeatability": arcsec(math.sqrt(3) * device.mount_repeat_arcsec),
-        "dmm_noise": f"{inst.noise_v / math.sqrt(max(samples, 1))!r} V",
-        "bias_tempco": f"{max(abs(x) for x in inst.tc_bias_v_per_c)!r} V/K",
-        "sensitivity_tempco": f"{max(abs(x) for x in inst.tc_scale_per_c)!r} 1/K",
-    })
-
-
-def with_simulator_inputs(section: CertificateSection, station_text: str, settings: dict
+def with_simulator_inputs(section: CertificateSection, station: StationSnapshot | None, settings: dict
                           ) -> CertificateSection:
     """``section`` with the simulator's own Type B inputs where the run was simulated (``settings``:
     the run's sequencer settings, for the samples per reading); unchanged for real devices."""
-    rig = simulator_rig(station_text)
+    rig = None if station is None else station.simulator_rig()
     if rig is None:
         return section
     samples = int(((settings or {}).get("settle") or {}).get("samples") or 1)

@@ -5,7 +5,6 @@ Carlo check (`labcal.analysis.montecarlo`), as the `UncertaintyBudget` section a
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
@@ -33,9 +32,9 @@ from labcal.analysis.lack_of_fit import LackOfFit, fit_lack_of_fit
 from labcal.analysis.montecarlo import monte_carlo
 from labcal.analysis.readings import Readings
 from labcal.analysis.remounting import mount_scatter
-from labcal.config.files import validate_model
 from labcal.config.plans import plan_correction
 from labcal.config.settings import CertificateSettings
+from labcal.config.snapshot import StationFileSnapshot
 from labcal.config.station import CertificateSection, load_certificate_section
 from labcal.documents.certificate import (
     BenchCheck,
@@ -67,15 +66,11 @@ def bench_section(record: RunRecord, station: str | Path | None) -> CertificateS
     journaled with; a dry run's Type B inputs are the simulator's (`labcal.documents.simulated`)."""
     if station is not None:
         return load_certificate_section(station)
-    try:
-        doc = json.loads(record.station_text) if record.station_text else {}
-    except json.JSONDecodeError:
-        doc = {}
     section = CertificateSection()
-    if isinstance(doc, dict) and doc.get("kind") == "station":
-        section = validate_model(doc["station"], CertificateSection, f"{record.directory}: the run's station")
+    if isinstance(record.station, StationFileSnapshot):
+        section = record.station.section(f"{record.directory}: the run's station")
     # a dry run: the simulator's own error sources at their simulated sizes (issue 23)
-    return with_simulator_inputs(section, record.station_text, record.meta.get("settings") or {})
+    return with_simulator_inputs(section, record.station, record.meta.get("settings") or {})
 
 
 def device_misalignment_u(device: DeviceFit | None) -> dict[str, float]:

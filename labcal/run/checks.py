@@ -25,9 +25,12 @@ from labcal.analysis.declared_noise import (
 from labcal.analysis.gross_errors import SENSORS, Flag, fit_flags, implausible_volts, t_threshold
 from labcal.analysis.kinematics import ARCSEC
 from labcal.analysis.readings import Readings
-from labcal.config.emulation import RigConfig
-from labcal.config.files import validate_model
-from labcal.config.station import CertificateSection, journaled_snapshot, stated_angle_errors
+from labcal.config.snapshot import (
+    SimulatedRigSnapshot,
+    StationFileSnapshot,
+    StationSnapshot,
+    stated_angle_errors,
+)
 from labcal.errors import LabcalError
 from labcal.run.exports import run_fits
 
@@ -64,25 +67,26 @@ class Verdict:
         return "; ".join(parts)
 
 
-def declared_of(settle: dict, station_text: str) -> Declared | None:
+def declared_of(settle: dict, station: StationSnapshot | None) -> Declared | None:
     """What the run's station declares: its settle settings' noise per sample and samples per point
     (as journaled with the run), its tables' stated index and wobble errors; None where it states no
     angle errors (`NO_ANGLE_ERRORS`)."""
-    errors = stated_angle_errors(station_text)
+    errors = stated_angle_errors(station)
     return None if errors is None else Declared.of(settle["noise_v"], settle["samples"], errors)
 
 
-def check_readings(readings: Readings, plan_text: str, station_text: str, settle: dict) -> Verdict:
+def check_readings(readings: Readings, plan_text: str, station: StationSnapshot | None,
+                   settle: dict) -> Verdict:
     """Every check of ``readings`` (a run's good points, one row each). LabcalError where they cannot
     be fitted at all (too few points): nothing to judge them by."""
     implausible_volts(readings.volts, readings.units)
-    fit, _, _ = run_fits(readings, plan_text, station_text)
+    fit, _, _ = run_fits(readings, plan_text, station)
     flags = list(fit_flags(readings, fit))
     if readings.units != "V":
         units = readings.units
         return Verdict(tuple(flags), None, f"the noise is declared in volts, the readings are in {units}")
     try:
-        declared = declared_of(settle, station_text)
+        declared = declared_of(settle, station)
     except (KeyError, TypeError, ValueError) as exc:
         raise LabcalError(f"the run's settle settings do not state its noise ({exc})") from None
     if declared is None:
@@ -93,24 +97,21 @@ def check_readings(readings: Readings, plan_text: str, station_text: str, settle
     return Verdict(tuple(flags), noise)
 
 
-def repeatability_rad(station_text: str) -> tuple[float, float]:
+def repeatability_rad(station: StationSnapshot | None) -> tuple[float, float]:
     """What the run's station states of returning to an attitude, as ± half-widths in rad: where a
     table stops (its in-position tolerance; the simulated tables', 5″) and how the plate re-seats
     the instrument at a remount (its mount repeatability, each of pitch, roll and yaw)."""
-    doc = journaled_snapshot(station_text) or {}
-    if doc.get("kind") == "station":
-        tables = [doc["station"].get(name, {}) for name in ("pitch", "roll")]
+    if isinstance(station, StationFileSnapshot):
+        tables = [station.station.get(name, {}) for name in ("pitch", "roll")]
         stop = max(float(t.get("in_position_arcsec", IN_POSITION_ARCSEC)) for t in tables) * ARCSEC
-        stated = validate_model(doc["station"], CertificateSection, "the run's station").uncertainty
-        return stop, float(stated.mount_repeatability)
-    if doc.get("kind") == "simulated rig":
-        rig = validate_model(doc["rig"], RigConfig, "the journaled simulated rig")
-        return IN_POSITION_ARCSEC * ARCSEC, rig.device.mount_repeat_arcsec * ARCSEC
+        return stop, float(station.section().uncertainty.mount_repeatability)
+    if isinstance(station, SimulatedRigSnapshot):
+        return IN_POSITION_ARCSEC * ARCSEC, station.rig_config().device.mount_repeat_arcsec * ARCSEC
     return IN_POSITION_ARCSEC * ARCSEC, 0.0
 
 
 def closure(before: tuple[list[float], int], after: tuple[list[float], int], settle: dict,
-            station_text: str, remounted: bool, alpha: float = NOISE_ALPHA) -> str | None:
+            station: StationSnapshot | None, remounted: bool, alpha: float = NOISE_ALPHA) -> str | None:
     """Why the rig is not where it was when a reading (``before``: mean volts and samples) was taken
     at the same attitude as ``after`` (None: it is). The difference of the two scatters by the
     DMM's noise of both, both tables' stops (rectangular, GUM 4.3.7) and, across a remount, the
@@ -118,7 +119,7 @@ def closure(before: tuple[list[float], int], after: tuple[list[float], int], set
     |S|·θ (|S| the settle settings' sensitivity). The tables' index errors are the same at the same
     angle and cancel. A table or coupling that slipped since moves it by |S|·slip."""
     (v0, n0), (v1, n1) = before, after
-    stop, seat = repeatability_rad(station_text)
+    stop, seat = repeatability_rad(station)
     noise_v, reach = float(settle["noise_v"]), float(settle["sensitivity_v_per_g"])
     angle_var = 4 * (stop * RECTANGULAR) ** 2 + (6 * (seat * RECTANGULAR) ** 2 if remounted else 0.0)
     sd = float(np.sqrt(noise_v**2 / n0 + noise_v**2 / n1 + reach**2 * angle_var))

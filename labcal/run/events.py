@@ -19,7 +19,8 @@ while a subscriber runs) always propagate: they are how a run is stopped.
 
 Every event the journal keeps maps to exactly one row of its events table (`RunEvent.journal_entry`)
 with the kind, message and data the journal had before events existed, so that `labcal log`, the
-certificate's story and the lab database read the same story.
+certificate's story and the lab database read the same story; a prompt's data adds its named
+fields beside the positional ``args`` it always kept (`JournaledPrompt` reads either).
 """
 
 from __future__ import annotations
@@ -98,10 +99,54 @@ class Prompt(RunEvent):
     step: int | None = None  # mount ``step`` of ``n_steps`` (a "mount" prompt)
     n_steps: int | None = None
     message: str  # what the operator is told, in plain words
-    args: tuple[str, ...] = ()  # the prompt's arguments, as the journal keeps them
+    where: str = ""  # the mount asked for, as the operator is shown it (a "mount" prompt)
+    note: str = ""  # why the mount is asked (again): a replicate's re-seat, a wrong mount to correct
+    why: str = ""  # what paused the run (a "pause" prompt)
+    may_be_moving: tuple[str, ...] = ()  # tables whose stop failed (a "pause" prompt)
+    args: tuple[str, ...] = ()  # the same, positionally, as journals before the named fields kept them
 
     def journal_entry(self) -> JournalEntry:
-        return "prompt", self.what, {"args": list(self.args)}
+        named = self.model_dump(mode="json", exclude={"run_id", "rig_time_s", "utc", "kind", "what", "args"})
+        return "prompt", self.what, {"args": list(self.args), **named}
+
+
+class JournaledPrompt(BaseModel):
+    """A prompt read back from the journal (its events-table message and data): by its named fields,
+    or, in a journal from before they were kept, by its positional ``args``: a mount's where, step,
+    of how many and the note when asked again; a pause's why and the tables that may still move."""
+
+    model_config = ConfigDict(frozen=True)
+
+    what: str
+    where: str = ""
+    step: int | None = None
+    n_steps: int | None = None
+    note: str = ""
+    why: str = ""
+    args: tuple[str, ...] = ()  # as journaled, empty ones left out
+
+    @classmethod
+    def read(cls, what: str, data: dict[str, Any]) -> JournaledPrompt:
+        """``what`` and ``data``: the events-table row's message and data (a pydantic ValidationError
+        where they are not a prompt labcal journaled)."""
+        args = tuple(str(a) for a in data.get("args") or () if str(a))
+        if "where" in data or "why" in data:  # the named fields, kept since they were added
+            return cls.model_validate({**data, "what": what, "args": args})
+        positional: dict[str, Any] = {}
+        if what == "mount" and len(args) >= 3:
+            positional = dict(zip(("where", "step", "n_steps", "note"), args, strict=False))
+        elif what == "pause" and args:
+            positional = {"why": args[0]}
+        return cls.model_validate({**positional, "what": what, "args": args})
+
+    def text(self) -> str:
+        """The prompt in words for people: what it asks."""
+        if self.what == "mount" and self.step is not None:
+            note = f" ({self.note})" if self.note else ""
+            return f"mount {self.step} of {self.n_steps}: {self.where}{note}"
+        if self.what == "pause" and self.why:
+            return f"paused: {self.why}"
+        return f"{self.what}: {', '.join(self.args)}" if self.args else self.what
 
 
 STAYS_OPEN = "the prompt stays open"  # in the journal's line of an answer that does not close its prompt

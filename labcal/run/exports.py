@@ -26,7 +26,7 @@ from labcal.config.files import write_atomic
 from labcal.config.json_values import json_safe
 from labcal.config.plans import plan_correction
 from labcal.config.readings_csv import ReadingsWriter, coefficient_units
-from labcal.config.station import output_units, stated_angle_errors
+from labcal.config.snapshot import StationSnapshot, output_units, parse_snapshot, stated_angle_errors
 from labcal.errors import LabcalError
 from labcal.run.journal import Journal, RunRow
 from labcal.run.rundir import FIT, PLAN, READINGS, RUN, identity
@@ -58,14 +58,15 @@ def derive(journal: Journal, row: RunRow, status: str | None = None, reason: str
         writer.append(replicate=p.replicate, y_deg=p.y_deg, u_deg=p.u_deg, pitch_deg=p.pitch_deg,
                       roll_deg=p.roll_deg, volts=[p.vx, p.vy, p.vz], temp_c=p.temp_c,
                       sd=[p.sd_vx, p.sd_vy, p.sd_vz], n_samples=p.n_samples, time_s=p.t_end)
-    units = output_units(row.station_text)  # the station's [instrument] units; volts unless it says
+    snapshot = parse_snapshot(row.station_text)
+    units = output_units(snapshot)  # the station's [instrument] units; volts unless it says
     stated = "" if units == "V" else f"# units = {units}\n"  # `labcal fit` reads it; volts: as before
     files = {PLAN: row.plan_text.encode("utf-8"), READINGS: (stated + writer.text()).encode("utf-8")}
     fit, device, note = None, None, ""
     if points:
         readings = replace(journal.readings(row.id), units=units)
         try:
-            fit, device, note = run_fits(readings, row.plan_text, row.station_text)
+            fit, device, note = run_fits(readings, row.plan_text, snapshot)
         except LabcalError:
             fit = None  # too few points so far for a fit
     if fit is not None:
@@ -88,7 +89,8 @@ def derive(journal: Journal, row: RunRow, status: str | None = None, reason: str
     return Derived(files, fit, device, note)
 
 
-def run_fits(readings: Readings, plan_text: str, station_text: str) -> tuple[Fit, DeviceFit | None, str]:
+def run_fits(readings: Readings, plan_text: str, station: StationSnapshot | None
+             ) -> tuple[Fit, DeviceFit | None, str]:
     """A run's fits and the line saying which of them fit.json holds. A plan with a device correction
     (issue 27): the linear fit on the gravity its misalignments give (held at the correction's values,
     what the remounts it leaves out would have identified; Soto eq. 11), no device model. Else the
@@ -102,7 +104,7 @@ def run_fits(readings: Readings, plan_text: str, station_text: str) -> tuple[Fit
     if fit.sensors != SENSORS:  # the device model needs three sensors' gravity to see the misalignments
         return fit, None, (f"linear model of the {', '.join(fit.sensors)} sensor(s) the package has, each "
                            "v = b + s·g (Tripp & Tcheng eq. 8)")
-    return fit, *preferred_fit(readings, fit, stated_angle_errors(station_text))
+    return fit, *preferred_fit(readings, fit, stated_angle_errors(station))
 
 
 def station_description(row: RunRow) -> str:
@@ -110,11 +112,8 @@ def station_description(row: RunRow) -> str:
     its snapshot)."""
     if row.metadata.get("station"):
         return str(row.metadata["station"])
-    try:
-        kind = json.loads(row.station_text).get("kind")
-    except (ValueError, AttributeError):
-        kind = None
-    return str(kind or "the station in the journal's snapshot")
+    snapshot = parse_snapshot(row.station_text)
+    return snapshot.kind if snapshot is not None else "the station in the journal's snapshot"
 
 
 def _json(doc: dict) -> bytes:

@@ -233,8 +233,7 @@ class RunNotifier:
         if event.mount is not None:
             mount = MOUNTS[event.mount - 1]  # Soto Table 3's numbering (`labcal.run.events.mount_number`)
             where = f" on the {mount.describe()} ({mount})"
-        note = event.args[3] if len(event.args) == 4 else ""  # (mount, step, n_steps, note), as journaled
-        note = f" ({note})" if note else ""  # a replicate's re-seat, a wrong mount to correct
+        note = f" ({event.note})" if event.note else ""  # a replicate's re-seat, a wrong mount to correct
         return Message(which, f"labcal run {run}: {which}",
                        f"{who}: {which}: remount the instrument{where}{note}; the tables wait until the "
                        "operator confirms it at the station")

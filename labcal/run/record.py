@@ -17,7 +17,7 @@ from labcal.analysis.fit import Fit
 from labcal.analysis.plan import Plan
 from labcal.analysis.readings import Readings
 from labcal.config.plans import parse_plan
-from labcal.config.station import output_units
+from labcal.config.snapshot import StationSnapshot, is_simulated, output_units, parse_snapshot
 from labcal.errors import LabcalError
 from labcal.run import exports
 from labcal.run.chain import ChainCheck, check_sqlite
@@ -36,7 +36,7 @@ class RunRecord:
     plan_text: str
     meta: dict  # run.json: station, settings, dates, status, identities, simulated truth
     notes: tuple[str, ...] = ()  # how the folder differs from the journal (said, not repaired)
-    station_text: str = ""  # the journal's snapshot of the station the run used (JSON)
+    station: StationSnapshot | None = None  # the journal's snapshot of the station the run used
     events: tuple[dict, ...] = ()  # the journal's events: prompts, answers, faults, retries, pauses
     # The fits fit.json was derived from (checking the folder fits them): issuing reuses them
     fit: Fit | None = None
@@ -48,13 +48,7 @@ class RunRecord:
     def simulated(self) -> bool:
         """A dry run: on the simulated rig or its emulators, by its metadata or its station snapshot
         (either is enough: a run folder's run.json edited cannot make the journal's station real)."""
-        if "simulated_truth" in self.meta:
-            return True
-        try:
-            doc = json.loads(self.station_text) if self.station_text else {}
-        except json.JSONDecodeError:
-            return False
-        return isinstance(doc, dict) and (doc.get("kind") == "simulated rig" or bool(doc.get("emulate")))
+        return is_simulated(self.meta, self.station)
 
 
 def readings_digest(points) -> str:
@@ -86,7 +80,8 @@ def load_run(run_dir: str | Path) -> RunRecord:
         notes, derived = exports.check(journal, row, run_dir)
         info = read_run_json(run_dir)
         points = journal.points(row.id, status="ok")
-        readings = replace(journal.readings(row.id), units=output_units(row.station_text))
+        station = parse_snapshot(row.station_text)
+        readings = replace(journal.readings(row.id), units=output_units(station))
         events = tuple(journal.events(row.id))
         chain = check_sqlite(journal.db, row.id)
     if chain.problem is not None:
@@ -96,4 +91,4 @@ def load_run(run_dir: str | Path) -> RunRecord:
             "started_utc": row.started_utc, "ended_utc": row.ended_utc, "settings": row.settings,
             "instrument_serial": row.instrument_serial, "operator": row.operator}
     return RunRecord(run_dir, readings, readings_digest(points), plan, row.plan_text, meta, tuple(notes),
-                     row.station_text, events, derived.fit, derived.device, derived.model_note, chain)
+                     station, events, derived.fit, derived.device, derived.model_note, chain)

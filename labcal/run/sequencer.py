@@ -22,7 +22,7 @@ import numpy as np
 from labcal.analysis.kinematics import Mount
 from labcal.analysis.plan import Plan
 from labcal.config.settings import SequencerSettings
-from labcal.config.station import output_units
+from labcal.config.snapshot import output_units, parse_snapshot
 from labcal.errors import LabcalError
 from labcal.run import settle_pool
 from labcal.run.checks import Verdict, check_readings, closure
@@ -470,10 +470,12 @@ class Sequencer:
         return reply
 
     def prompt(self, what: str, message: str, args: tuple, mount: Mount | None = None,
-               step: int | None = None, n_steps: int | None = None) -> Prompt:
+               step: int | None = None, n_steps: int | None = None, note: str = "", why: str = "",
+               may_be_moving: tuple[str, ...] = ()) -> Prompt:
         return Prompt(run_id=self.run_id, rig_time_s=self.rig_time(), what=what,  # type: ignore[arg-type]
                       mount=None if mount is None else mount_number(mount.y_deg, mount.u_deg), step=step,
-                      n_steps=n_steps, message=message, args=tuple(str(a) for a in args))
+                      n_steps=n_steps, message=message, where="" if mount is None else str(mount), note=note,
+                      why=why, may_be_moving=may_be_moving, args=tuple(str(a) for a in args))
 
     def mount(self, mount: Mount, step: int, n_steps: int, why: str,
               provisional: np.ndarray | None) -> None:
@@ -485,7 +487,7 @@ class Sequencer:
             self.move(*LOAD_POSITION)
             asked = f"mount {step} of {n_steps}: put the instrument on the {mount.describe()} ({mount})"
             prompt = self.prompt("mount", asked + (f"; {note}" if note else ""), (mount, step, n_steps, note),
-                                 mount, step, n_steps)
+                                 mount, step, n_steps, note=note)
             self.ask(prompt, self.operator.confirm_mount, mount, step, n_steps, note)
             self.station.remounted(mount)
             verify = getattr(self.station.dmm, "verify", None)  # a DMM with a declared configuration
@@ -567,7 +569,8 @@ class Sequencer:
         try:
             tables = (f"; the stop did not reach the {', '.join(self.moving)} table(s)" if self.moving
                       else "; the tables are still")
-            choice = self.ask(self.prompt("pause", f"paused ({why}){tables}", (why, self.moving)),
+            choice = self.ask(self.prompt("pause", f"paused ({why}){tables}", (why, self.moving), why=why,
+                                          may_be_moving=self.moving),
                               self.operator.after_pause, why, self.moving)
         except OperatorDeclined as exc:  # nobody answered (an unattended run): the pause's cause ended it
             raise OperatorDeclined(f"{why}; paused, and {exc}") from None
@@ -635,8 +638,9 @@ class Sequencer:
         points = self.journal.points(self.run_id, status="ok")
         settle = self.settings.settle.model_dump()
         try:
-            readings = replace(self.journal.readings(self.run_id), units=output_units(row.station_text))
-            return check_readings(readings, row.plan_text, row.station_text, settle), points
+            station = parse_snapshot(row.station_text)
+            readings = replace(self.journal.readings(self.run_id), units=output_units(station))
+            return check_readings(readings, row.plan_text, station, settle), points
         except LabcalError:
             return None, points
 
@@ -701,7 +705,7 @@ class Sequencer:
             return
         now = self.until_done(self.check_again, mount)
         moved = closure(before, now, self.settings.settle.model_dump(),
-                        self.journal.run(self.run_id).station_text, remounted=False)
+                        parse_snapshot(self.journal.run(self.run_id).station_text), remounted=False)
         if moved:
             pitch, roll = CHECK_ATTITUDE
             why = (f"the rig is not where it was when {mount} was checked: back at its check attitude (pitch "
@@ -739,7 +743,7 @@ class Sequencer:
             if mount not in before:
                 raise ReadingsRefused(f"{refused}, and {mount} has no mount check to return to")
             moved = closure(before[mount], self.checked()[mount], self.settings.settle.model_dump(),
-                            self.journal.run(self.run_id).station_text, remounted)
+                            parse_snapshot(self.journal.run(self.run_id).station_text), remounted)
             if moved:
                 pitch, roll = CHECK_ATTITUDE
                 raise ReadingsRefused(f"{refused}, and the rig is not where it was: at the check attitude "
