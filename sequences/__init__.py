@@ -1,1 +1,1 @@
-"""Calibration plan files (data). Found by name through `labcal.plan.shipped_plans`."""
+"""Calibration plan files (data). Found by name through `labcal.config.plans.shipped_plans`."""

@@ -26,7 +26,7 @@ def lab(tmp_path):
     db = tmp_path / "lab.sqlite"
     opened = open_lab(OpenLab(str(db), must_exist=False))
     try:
-        ids = {name: add(opened, AddUser(name, role, "pw")).user.id
+        ids = {name: add(opened, AddUser(name, role, "a long passphrase")).user.id
                for name, role in (("ada", "approver"), ("tom", "technician"))}
     finally:
         opened.close()

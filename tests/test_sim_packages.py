@@ -74,15 +74,15 @@ def test_a_single_sensor_checks_the_mount_by_its_x_direction_only(tmp_path):
     for mount in MOUNTS:
         g = expected_gravity(mount)
         volts = np.array([5 * g[0], np.nan, np.nan])
-        assert identify(volts, None, mount) == mount
+        assert identify(volts, None, mount)[0] == mount
         wrong_x = [m for m in MOUNTS if np.sign(expected_gravity(m)[0]) != np.sign(g[0])]
-        assert all(identify(volts, None, m) != m for m in wrong_x)
+        assert all(identify(volts, None, m)[0] != m for m in wrong_x)
         assert not distinguishes(volts)
         for kept in ((0, 1), (0, 2)):  # x–y and x–z: the four mounts differ in sign on the two axes
             two = np.full(3, np.nan)
             two[list(kept)] = 5 * g[list(kept)]
             assert distinguishes(two)
-            assert all(identify(two, None, m) == mount for m in MOUNTS)
+            assert all(identify(two, None, m)[0] == mount for m in MOUNTS)
 
 
 @pytest.mark.slow

@@ -68,7 +68,7 @@ def test_the_estimate_includes_the_thermal_gates_least_wait_at_every_mount():
     timing = Timing(clamp_s=1.0, sample_s=0.2, remount_s=300.0)
     free = estimate(plan, SequencerSettings(), timing)
     gated = estimate(plan, SequencerSettings(thermal_gate=GATE), timing)
-    assert gated.total_s - free.total_s == 4 * 300.0
+    assert gated.total_s - free.total_s == pytest.approx(4 * 300.0, abs=1e-6)
     assert gated.mounting_s - free.mounting_s == 4 * 300.0 and gated.thermal_s == 4 * 300.0
 
 

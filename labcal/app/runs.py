@@ -79,7 +79,7 @@ def attention(metadata: dict) -> tuple[str, ...]:
     return tuple(found)
 
 
-def _line(run: LabRun, journal: Path | None, noted: bool) -> RunLine:
+def _line(run: LabRun, journal: Path | None, noted: bool = False) -> RunLine:
     status = run.status if run.local_id is None or journal is None else \
         seen_status(journal, run.status, run.local_id)
     return RunLine(run.number, run.label, run.uuid, run.station, run.serial, run.plan, status,

@@ -185,13 +185,12 @@ def owner_only(path: Path) -> None:
     folder only its owner may enter where labcal makes the folder: a SQLite lab database is one
     machine, one trust domain, and its files say so from the start (SQLite gives the -wal and -shm
     files the database file's permissions). An existing file or folder is left as it is."""
-    if not path.parent.exists():
+    if not path.parent.is_dir():
         try:
             path.parent.mkdir(parents=True, mode=0o700)
-        except FileExistsError:
-            pass
         except OSError as exc:
-            raise LabcalError(f"{path.parent}: cannot create the database folder ({exc.strerror})") from None
+            if not path.parent.is_dir():  # not one made meanwhile by another process: a file there, say
+                raise LabcalError(f"{path.parent}: cannot create the database folder ({exc.strerror})") from None
     try:
         os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
     except OSError:
