@@ -498,7 +498,7 @@ class Sequencer:
                 return
             self.move(*CHECK_ATTITUDE)
             check = self.measure(mount, f"check:{mount}")
-            volts = mean_and_sd(check.scan)[0]
+            volts = (check.estimate or mean_and_sd(check.scan))[0]
             seen, wiring = identify(volts, provisional, mount)
             if wiring.faults:  # no remount mends it: the station's file or cables must change
                 raise StationMiswired(f"the mount check on {mount} (pitch {CHECK_ATTITUDE[0]:g}°, roll "
@@ -688,8 +688,9 @@ class Sequencer:
     def check_again(self, mount: Mount) -> tuple[list[float], int]:
         """Measure the mount's check attitude again, journaled as a closure: the mean volts, samples."""
         self.move(*CHECK_ATTITUDE)
-        scan = self.measure(mount, f"closure:{mount}").scan
-        volts = [float(v) for v in mean_and_sd(scan)[0]]
+        result = self.measure(mount, f"closure:{mount}")
+        scan = result.scan  # the settled reading, as a point's: model settling's estimate where it made one
+        volts = [float(v) for v in (result.estimate or mean_and_sd(scan))[0]]
         self.note("closure", f"the check attitude on {mount} measured again",
                   mount=[mount.y_deg, mount.u_deg], volts=volts, samples=len(scan.volts))
         return volts, len(scan.volts)
