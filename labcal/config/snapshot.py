@@ -140,6 +140,18 @@ def stated_angle_errors(snapshot: StationSnapshot | None) -> AngleErrors | None:
     return errors if errors else None
 
 
+def stated_mount_repeatability(snapshot: StationSnapshot | None) -> float:
+    """The ± half-width (rad) of each of the plate's pitch, roll and yaw at a remount, as the station
+    file's ``[uncertainty]`` states it, or the simulated rig's own seating scatter; 0 where unstated."""
+    if isinstance(snapshot, StationFileSnapshot):
+        u = snapshot.section().uncertainty
+    elif isinstance(snapshot, SimulatedRigSnapshot):
+        u = simulator_inputs(snapshot.rig, 1)
+    else:
+        return 0.0
+    return float(u.mount_repeatability)
+
+
 def output_units(snapshot: StationSnapshot | None) -> str:
     """The unit a run's outputs were read in: a station file's ``[instrument] units``; volts for the
     simulated rig and for runs journaled before the key."""

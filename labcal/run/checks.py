@@ -10,7 +10,7 @@ certificate.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -30,6 +30,7 @@ from labcal.config.snapshot import (
     StationFileSnapshot,
     StationSnapshot,
     stated_angle_errors,
+    stated_mount_repeatability,
 )
 from labcal.errors import LabcalError
 from labcal.run.exports import run_fits
@@ -72,7 +73,12 @@ def declared_of(settle: dict, station: StationSnapshot | None) -> Declared | Non
     (as journaled with the run), its tables' stated index and wobble errors; None where it states no
     angle errors (`NO_ANGLE_ERRORS`)."""
     errors = stated_angle_errors(station)
-    return None if errors is None else Declared.of(settle["noise_v"], settle["samples"], errors)
+    if errors is None:
+        return None
+    declared = Declared.of(settle["noise_v"], settle["samples"], errors)
+    seating = stated_mount_repeatability(station)  # each remount seats the plate anew: pitch, roll, yaw
+    return declared if not seating else replace(declared, angle_half_widths=(*declared.angle_half_widths,
+                                                                                (seating, 3)))
 
 
 def check_readings(readings: Readings, plan_text: str, station: StationSnapshot | None,

@@ -190,7 +190,8 @@ def owner_only(path: Path) -> None:
             path.parent.mkdir(parents=True, mode=0o700)
         except OSError as exc:
             if not path.parent.is_dir():  # not made meanwhile by another process: a file there
-                raise LabcalError(f"{path.parent}: cannot create the database folder ({exc.strerror})") from None
+                raise LabcalError(f"{path.parent}: cannot create the database folder "
+                                  f"({exc.strerror})") from None
     try:
         os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
     except OSError:
