@@ -183,9 +183,10 @@ def settle_sum(result) -> float:
 def test_a_pooled_history_lets_four_mount_64_settle_by_the_model(tmp_path, capsys):
     """Four model runs of one simulated instrument (seeds 1–4), then a fifth: it starts with the
     288 records of the four (the journal says so: 4 × (64 points, 4 mount checks, 4 returns to
-    them)), the pool vouches from its start, so its summed settle time is well below a conventional run of the same seed (measured 0.80× at 272 records;
-    0.9 leaves room for the seeds' noise), and its coefficients lie within 3 SE of that run's.
-    A run of another simulated instrument (τ 0.6 s) starts with no records."""
+    them)), the pool vouches from its start, so its summed settle time is well below a conventional
+    run of the same seed (measured 0.80× at 272 records; 0.9 leaves room for the seeds' noise), and
+    its coefficients lie within 3 SE of that run's. A run of another simulated instrument (τ 0.6 s)
+    starts with no records."""
     model, conventional = history_then_pair(tmp_path, capsys, 4, 1)
     assert "starts with 288 step records of 4 earlier run(s)" in model[1][1][0]
     settled = [v for _, v in model[1][0] if v.startswith("settled (model")]
