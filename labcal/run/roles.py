@@ -42,11 +42,11 @@ SERVER = "labcal_server"
 BENCH_PREFIX = "labcal_bench_"
 
 # What each group may do, table by table (a table this labcal's schema lacks is passed over)
-BENCH_READS = ("alembic_version", "runs", "points", "events", "certificates", "run_exports",
-               "device_estimates", "settle_pools", "station_roles")
+BENCH_READS = ("alembic_version", "runs", "points", "events", "certificates", "certificate_files",
+               "run_exports", "device_estimates", "settle_pools", "station_roles")
 BENCH_APPENDS = ("runs", "points", "events", "certificates")
 BENCH_CLOSES_RUNS = ("status", "reason", "ended_utc", "points_total")  # what a sync updates of its run
-SERVER_WRITES = ("certificates", "approvals")
+SERVER_WRITES = ("certificates", "approvals", "certificate_files")
 SEQUENCES = (("runs", "id"), ("events", "id"))  # serial keys a bench's inserts draw from
 OWN_STATION = "(SELECT s.station FROM station_roles s WHERE s.role = current_user)"
 

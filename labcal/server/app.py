@@ -45,7 +45,13 @@ from fastapi.templating import Jinja2Templates
 from labcal.app import lab, users
 from labcal.app.certificates import Authentication
 from labcal.app.labdatabase import LabDatabase
-from labcal.app.server_approval import ApproveAsUser, NotHere, approval_refused, approve_as_user
+from labcal.app.server_approval import (
+    ApproveAsUser,
+    NotHere,
+    approval_refused,
+    approve_as_user,
+    approved_file,
+)
 from labcal.errors import LabcalError
 from labcal.server.sessions import COOKIE, Session, Sessions, csrf_ok
 
@@ -138,6 +144,13 @@ def create_app(settings: ServerSettings) -> FastAPI:
     def api_approve(run_id: int, user: Annotated[users.User, Depends(api_approver)]) -> dict:
         done = approve_as(run_id, user, "API token")
         return done.to_json()
+
+    @app.get("/api/runs/{run_id}/approved/{name}")
+    def api_approved(run_id: int, name: str, user: Annotated[users.User, Depends(api_user)]) -> Response:
+        found = approved_file(db, run_id, name)
+        if found is None:
+            raise HTTPException(404, f"no {name} of run {run_id} approved by the lab server")
+        return Response(found[1], media_type=found[0])
 
     @app.get("/api/runs/{run_id}/residuals.png")
     def api_residuals(run_id: int, user: Annotated[users.User, Depends(api_user)]) -> Response:

@@ -2,7 +2,7 @@ CREATE TABLE alembic_version (
 	version_num VARCHAR(32) NOT NULL, 
 	CONSTRAINT alembic_version_pkc PRIMARY KEY (version_num)
 );
-INSERT INTO "alembic_version" VALUES('0009');
+INSERT INTO "alembic_version" VALUES('0016');
 CREATE TABLE approvers (
 	id INTEGER NOT NULL, 
 	name TEXT NOT NULL, 
@@ -13,6 +13,15 @@ CREATE TABLE approvers (
 	revoked_utc TEXT, 
 	PRIMARY KEY (id), 
 	UNIQUE (key_id)
+);
+CREATE TABLE certificate_files (
+	certificate_id TEXT NOT NULL, 
+	run_uuid TEXT NOT NULL, 
+	name TEXT NOT NULL, 
+	sha256 TEXT NOT NULL, 
+	content BLOB NOT NULL, 
+	stored_utc TEXT NOT NULL, 
+	PRIMARY KEY (certificate_id, name)
 );
 CREATE TABLE certificates (
 	certificate_id TEXT NOT NULL, 
@@ -159,3 +168,4 @@ CREATE UNIQUE INDEX approvers_active_name ON approvers (name) WHERE revoked_utc 
 CREATE UNIQUE INDEX events_by_origin ON events (run_id, origin_id);
 CREATE UNIQUE INDEX points_by_link ON points (run_id, link);
 CREATE UNIQUE INDEX events_by_link ON events (run_id, link);
+CREATE INDEX certificate_files_by_run ON certificate_files (run_uuid);

@@ -1,0 +1,145 @@
+"""Approving on a PostgreSQL lab database (tests/services.py's private cluster): a bench measures a run
+through the real drivers and syncs it; `labcal serve`, connected as the server's own role, approves it
+through `POST /api/runs/{id}/approve` from the lab's own copy of the run, keeps the signed certificate,
+DCC and report in the lab database, serves the certificate, and `labcal certificate verify` says it is
+valid; the bench's folder receives them on `labcal sync`. A point edited in the lab database as its
+superuser makes the approval refuse, naming the point, and signs nothing.
+
+What is expected is read independently of the code under test: the lab database with psycopg and
+plain SQL, the files with hashlib, the certificate by `labcal certificate verify`."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import shutil
+from contextlib import redirect_stderr, redirect_stdout
+from pathlib import Path
+
+import httpx
+import psycopg
+import pytest
+from lab_server import add_user, served
+from simulated_runs import bench_run
+
+from labcal.cli import main
+
+SERIAL = "ACC-0042"
+FILES = {"certificate.json", "certificate.dcc.xml", "report.pdf", "report.html"}
+
+
+def labcal(*args: str) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    with redirect_stdout(out), redirect_stderr(err):
+        code = main(list(args))
+    return code, out.getvalue(), err.getvalue()
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory, postgres_cluster):
+    """One bench (its journal, its folder) that measured and synced two runs, and `labcal serve` on the
+    lab database as the server's role, with the lab server's key registered."""
+    base = tmp_path_factory.mktemp("pg-approve")
+    url = postgres_cluster.url(postgres_cluster.create_database())
+    patch = pytest.MonkeyPatch()
+    (base / "lab.toml").write_text("")
+    environment = {"LABCAL_DB": url, "LABCAL_JOURNAL": str(base / "bench" / "journal.sqlite"),
+                   "LABCAL_STATION": "bench-1", "LABCAL_CONFIG": str(base / "lab.toml"), "LABCAL_NOTIFY": ""}
+    for name, value in environment.items():
+        patch.setenv(name, value)
+    (base / "bench").mkdir()
+    runs = [bench_run(base / "bench" / f"run{n}", url, SERIAL) for n in (1, 2)]  # with their drafts
+    assert labcal("sync")[0] == 0
+    assert labcal("certificate", "keygen", "--out", str(base / "server"))[0] == 0
+    code, _, err = labcal("certificate", "approvers", "add", "lab server", "--role", "lab server",
+                          "--public-key", str(base / "server.pub"))
+    assert code == 0, err
+    code, out, err = labcal("db", "grant-server", "labserver")
+    assert code == 0, err
+    server_url = out.strip().splitlines()[-1]
+    assert server_url.startswith("postgresql://labcal_server_labserver@")
+    tokens = {"ada": add_user(url, "ada", "approver", "a long passphrase 1")}
+    try:
+        with served(server_url, "--key", str(base / "server.key")) as served_at:
+            yield {"url": served_at, "db": url, "runs": runs, "tokens": tokens, "base": base,
+                   "environment": environment}
+    finally:
+        patch.undo()
+
+
+@pytest.fixture
+def bench(lab, monkeypatch):
+    """The bench's environment for a test (each test's own is set afresh by conftest)."""
+    for name, value in lab["environment"].items():
+        monkeypatch.setenv(name, value)
+    return lab
+
+
+def approve(lab, run_id: int) -> httpx.Response:
+    return httpx.post(f"{lab['url']}/api/runs/{run_id}/approve",
+                      headers={"Authorization": f"Bearer {lab['tokens']['ada']}"}, timeout=180)
+
+
+def kept(url: str) -> dict[str, tuple[str, bytes]]:
+    with psycopg.connect(url) as conn:
+        return {name: (sha, bytes(content)) for name, sha, content in
+                conn.execute("SELECT name, sha256, content FROM certificate_files")}
+
+
+def test_the_server_signs_the_labs_own_copy_and_the_bench_receives_it_on_sync(bench):
+    lab = bench
+    assert kept(lab["db"]) == {}
+    done = approve(lab, 1)
+    assert done.status_code == 200, done.text
+    assert done.json()["by"] == "ada"
+    files = kept(lab["db"])
+    assert set(files) == FILES
+    assert all(hashlib.sha256(content).hexdigest() == sha for sha, content in files.values())
+    signed = json.loads(files["certificate.json"][1])
+    assert signed["approval"]["by"] == "ada" and signed["approval"]["server"]["authentication"] == "API token"
+
+    downloads = lab["base"] / "downloads"
+    downloads.mkdir()
+    for name in FILES:  # as a customer downloads them from the server
+        got = httpx.get(f"{lab['url']}/api/runs/1/approved/{name}",
+                        headers={"Authorization": f"Bearer {lab['tokens']['ada']}"}, timeout=30)
+        assert got.status_code == 200 and got.content == files[name][1], name
+        (downloads / name).write_bytes(got.content)
+    downloaded = downloads / "certificate.json"
+    code, out, err = labcal("certificate", "verify", str(downloaded), "--json")
+    assert code == 0 and json.loads(out)["valid"] is True, err
+
+    folder = lab["runs"][0]
+    assert json.loads((folder / "certificate.json").read_text()).get("approval") is None  # a draft still
+    code, out, err = labcal("sync", "--json")
+    assert code == 0 and json.loads(out)["received"]["approved certificate files"] == 4, err
+    for name in FILES:
+        assert (folder / name).read_bytes() == files[name][1], name
+    code, out, err = labcal("certificate", "verify", str(folder / "certificate.json"), "--json")
+    assert code == 0 and json.loads(out)["approved_by"] == "ada", err
+
+    again = approve(lab, 1)
+    assert again.status_code == 409 and "already approved by ada" in again.json()["detail"]
+    assert kept(lab["db"]).keys() == FILES  # nothing added by the refusal
+
+
+def test_a_point_edited_in_the_lab_database_is_named_and_nothing_is_signed(lab):
+    with psycopg.connect(lab["db"]) as conn:
+        run = conn.execute("SELECT id FROM runs ORDER BY id DESC LIMIT 1").fetchone()[0]
+        seq = conn.execute("SELECT min(seq) + 3 FROM points WHERE run_id = %s", (run,)).fetchone()[0]
+        conn.execute("UPDATE points SET vx = vx + 0.0005 WHERE run_id = %s AND seq = %s", (run, seq))
+    before = kept(lab["db"])
+    refused = approve(lab, run)
+    assert refused.status_code == 409
+    detail = refused.json()["detail"]
+    assert len(detail.splitlines()) == 1 and f"point {seq} of run {run} of the lab" in detail, detail
+    assert kept(lab["db"]) == before
+
+
+def test_a_folder_named_elsewhere_does_not_matter_the_labs_copy_is_what_is_read(lab, tmp_path):
+    shutil.rmtree(lab["runs"][1])  # the second run's folder is gone: the lab's copy is the record
+    page = httpx.get(f"{lab['url']}/api/runs/2", headers={"Authorization": f"Bearer {lab['tokens']['ada']}"},
+                     timeout=30)
+    assert page.status_code == 200
+    assert Path(lab["runs"][1]).exists() is False
