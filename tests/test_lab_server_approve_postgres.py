@@ -13,9 +13,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import shutil
 from contextlib import redirect_stderr, redirect_stdout
-from pathlib import Path
 
 import httpx
 import psycopg
@@ -24,6 +22,8 @@ from lab_server import add_user, served
 from simulated_runs import bench_run
 
 from labcal.cli import main
+
+pytestmark = pytest.mark.slow  # three runs through the drivers and a server: about 30 s
 
 SERIAL = "ACC-0042"
 FILES = {"certificate.json", "certificate.dcc.xml", "report.pdf", "report.html"}
@@ -38,8 +38,9 @@ def labcal(*args: str) -> tuple[int, str, str]:
 
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory, postgres_cluster):
-    """One bench (its journal, its folder) that measured and synced two runs, and `labcal serve` on the
-    lab database as the server's role, with the lab server's key registered."""
+    """One bench (its journal, its folder) that measured and synced three runs, and `labcal serve` on the
+    lab database as the server's role, with the lab server's key registered. Each test approves a run
+of its own (1, 2, 3), so that they hold in any order."""
     base = tmp_path_factory.mktemp("pg-approve")
     url = postgres_cluster.url(postgres_cluster.create_database())
     patch = pytest.MonkeyPatch()
@@ -49,7 +50,7 @@ def lab(tmp_path_factory, postgres_cluster):
     for name, value in environment.items():
         patch.setenv(name, value)
     (base / "bench").mkdir()
-    runs = [bench_run(base / "bench" / f"run{n}", url, SERIAL) for n in (1, 2)]  # with their drafts
+    runs = [bench_run(base / "bench" / f"run{n}", url, SERIAL) for n in (1, 2, 3)]  # with drafts
     assert labcal("sync")[0] == 0
     assert labcal("certificate", "keygen", "--out", str(base / "server"))[0] == 0
     code, _, err = labcal("certificate", "approvers", "add", "lab server", "--role", "lab server",
@@ -81,19 +82,21 @@ def approve(lab, run_id: int) -> httpx.Response:
                       headers={"Authorization": f"Bearer {lab['tokens']['ada']}"}, timeout=180)
 
 
-def kept(url: str) -> dict[str, tuple[str, bytes]]:
+def kept(url: str, run_id: int) -> dict[str, tuple[str, bytes]]:
+    """The files the lab database keeps of run ``run_id``'s approved certificate, read with plain SQL."""
     with psycopg.connect(url) as conn:
-        return {name: (sha, bytes(content)) for name, sha, content in
-                conn.execute("SELECT name, sha256, content FROM certificate_files")}
+        return {name: (sha, bytes(content)) for name, sha, content in conn.execute(
+            "SELECT name, sha256, content FROM certificate_files WHERE run_uuid = "
+            "(SELECT uuid FROM runs WHERE id = %s)", (run_id,))}
 
 
 def test_the_server_signs_the_labs_own_copy_and_the_bench_receives_it_on_sync(bench):
     lab = bench
-    assert kept(lab["db"]) == {}
+    assert kept(lab["db"], 1) == {}
     done = approve(lab, 1)
     assert done.status_code == 200, done.text
     assert done.json()["by"] == "ada"
-    files = kept(lab["db"])
+    files = kept(lab["db"], 1)
     assert set(files) == FILES
     assert all(hashlib.sha256(content).hexdigest() == sha for sha, content in files.values())
     signed = json.loads(files["certificate.json"][1])
@@ -121,25 +124,75 @@ def test_the_server_signs_the_labs_own_copy_and_the_bench_receives_it_on_sync(be
 
     again = approve(lab, 1)
     assert again.status_code == 409 and "already approved by ada" in again.json()["detail"]
-    assert kept(lab["db"]).keys() == FILES  # nothing added by the refusal
+    assert kept(lab["db"], 1).keys() == FILES  # nothing added by the refusal
 
 
 def test_a_point_edited_in_the_lab_database_is_named_and_nothing_is_signed(lab):
+    run = 3
     with psycopg.connect(lab["db"]) as conn:
-        run = conn.execute("SELECT id FROM runs ORDER BY id DESC LIMIT 1").fetchone()[0]
-        seq = conn.execute("SELECT min(seq) + 3 FROM points WHERE run_id = %s", (run,)).fetchone()[0]
-        conn.execute("UPDATE points SET vx = vx + 0.0005 WHERE run_id = %s AND seq = %s", (run, seq))
-    before = kept(lab["db"])
-    refused = approve(lab, run)
+        seq, vx = conn.execute("SELECT seq, vx FROM points WHERE run_id = %s ORDER BY seq OFFSET 3 LIMIT 1",
+                               (run,)).fetchone()
+        conn.execute("UPDATE points SET vx = %s WHERE run_id = %s AND seq = %s", (vx + 0.0005, run, seq))
+    try:
+        refused = approve(lab, run)
+    finally:  # as it was (a float read back exactly: both are IEEE doubles)
+        with psycopg.connect(lab["db"]) as conn:
+            conn.execute("UPDATE points SET vx = %s WHERE run_id = %s AND seq = %s", (vx, run, seq))
     assert refused.status_code == 409
     detail = refused.json()["detail"]
     assert len(detail.splitlines()) == 1 and f"point {seq} of run {run} of the lab" in detail, detail
-    assert kept(lab["db"]) == before
+    assert kept(lab["db"], run) == {}
 
 
-def test_a_folder_named_elsewhere_does_not_matter_the_labs_copy_is_what_is_read(lab, tmp_path):
-    shutil.rmtree(lab["runs"][1])  # the second run's folder is gone: the lab's copy is the record
-    page = httpx.get(f"{lab['url']}/api/runs/2", headers={"Authorization": f"Bearer {lab['tokens']['ada']}"},
-                     timeout=30)
-    assert page.status_code == 200
-    assert Path(lab["runs"][1]).exists() is False
+def test_a_server_killed_mid_approval_leaves_no_half_approved_certificate(bench):
+    """`labcal serve` killed (SIGKILL) while it holds the approval's transaction open: the lab keeps
+    nothing of the approval, and the approval made again afterwards is whole."""
+    import os
+    import re
+    import signal
+    import subprocess
+    import threading
+    import time
+
+    from lab_server import LABCAL
+
+    lab, run = bench, 2
+    server = subprocess.Popen([LABCAL, "serve", "--port", "0", "--db", lab["db"], "--poll", "0.2", "--key",
+                               str(lab["base"] / "server.key")], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True)
+    try:
+        assert server.stdout is not None
+        url = re.search(r"http://127\.0\.0\.1:\d+", server.stdout.readline())[0]
+        answers: list = []
+
+        def ask() -> None:
+            try:
+                answers.append(approve({**lab, "url": url}, run))
+            except httpx.HTTPError as exc:
+                answers.append(exc)
+
+        asking = threading.Thread(target=ask)
+        asking.start()
+        held = False
+        with psycopg.connect(lab["db"], autocommit=True) as conn:
+            for _ in range(3000):  # the approval's advisory lock: its transaction is open
+                locks = conn.execute("SELECT count(*) FROM pg_locks WHERE locktype = 'advisory'").fetchone()
+                held = locks[0] > 0
+                if held or answers:
+                    break
+                time.sleep(0.01)
+        os.kill(server.pid, signal.SIGKILL)
+        asking.join(60)
+    finally:
+        server.kill()
+        server.communicate(timeout=20)
+    assert held, f"the approval ended before it could be interrupted: {answers}"
+    assert isinstance(answers[0], httpx.HTTPError)  # no answer: the server died
+    assert kept(lab["db"], run) == {}
+    with psycopg.connect(lab["db"]) as conn:
+        drafts = conn.execute("SELECT document FROM certificates WHERE document LIKE "
+                              "'%%' || (SELECT uuid FROM runs WHERE id = %s) || '%%'", (run,)).fetchall()
+    assert len(drafts) == 1 and json.loads(drafts[0][0]).get("approval") is None  # the bench's draft
+    done = approve(lab, run)  # the module's server, still up
+    assert done.status_code == 200, done.text
+    assert set(kept(lab["db"], run)) == FILES
