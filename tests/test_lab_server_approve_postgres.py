@@ -13,6 +13,8 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import re
+import shutil
 from contextlib import redirect_stderr, redirect_stdout
 
 import httpx
@@ -122,6 +124,20 @@ def test_the_server_signs_the_labs_own_copy_and_the_bench_receives_it_on_sync(be
     code, out, err = labcal("certificate", "verify", str(folder / "certificate.json"), "--json")
     assert code == 0 and json.loads(out)["approved_by"] == "ada", err
 
+    shutil.rmtree(folder)  # the folder lost: `labcal export RUN` makes it again, the approval with it
+    code, _, err = labcal("export", "1")
+    assert code == 0, err
+    assert all((folder / name).read_bytes() == files[name][1] for name in FILES)
+    code, out, err = labcal("certificate", "verify", str(folder / "certificate.json"), "--json")
+    assert code == 0 and json.loads(out)["valid"] is True, err
+
+    with httpx.Client(base_url=lab["url"], timeout=30) as browser:  # the run page, signed in
+        csrf = re.search(r'name="csrf" value="([^"]+)"', browser.get("/login").text)[1]
+        browser.post("/login", data={"name": "ada", "password": "a long passphrase 1", "csrf": csrf})
+        page = browser.get("/runs/1").text
+    assert f"approved by ada (approver) at {signed['approval']['approved_utc']}" in page
+    assert 'action="/runs/1/approve"' not in page
+
     again = approve(lab, 1)
     assert again.status_code == 409 and "already approved by ada" in again.json()["detail"]
     assert kept(lab["db"], 1).keys() == FILES  # nothing added by the refusal
@@ -148,7 +164,6 @@ def test_a_server_killed_mid_approval_leaves_no_half_approved_certificate(bench)
     """`labcal serve` killed (SIGKILL) while it holds the approval's transaction open: the lab keeps
     nothing of the approval, and the approval made again afterwards is whole."""
     import os
-    import re
     import signal
     import subprocess
     import threading
