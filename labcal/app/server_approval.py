@@ -21,14 +21,20 @@ signs accordingly:
   only, as `labcal certificate approve --key` would; any other approver is refused with the
   registry's reason (a key never signs under a name it is not registered to).
 
-Approving is `labcal.app.certificates.approve_certificate` on the run's folder — the same use case as
-`labcal certificate approve`: it rebuilds what it signs from the journal, refuses a simulated run, an
-edited draft, a journal whose chain of digests does not hold (`labcal.run.chain`), a run journaled
-before digests, an unregistered or revoked key, and writes the certificate, DCC and report again.
+On SQLite, approving is `labcal.app.certificates.approve_certificate` on the run's folder — the
+use case of `labcal certificate approve`: it rebuilds what it signs from the journal, refuses a
+simulated run, an edited draft, a journal whose chain of digests does not hold (`labcal.run.chain`),
+a run journaled before digests, an unregistered or revoked key, and writes the certificate, DCC and
+report again.
+
+On PostgreSQL the lab database is the record: the server signs the lab database's own copy of the
+run the approver named (its runs, points and events rows and the draft its bench synced; never a
+folder), recomputes the lab's chain of digests, and keeps the signed certificate, its DCC and its
+report in the lab database in one transaction (`labcal.documents.approving.approve_lab_run`); the
+bench's folder receives them on its next `labcal sync` or `labcal export RUN`.
 
 On SQLite the lab database is one machine, one trust domain: the server approves only from a file
 (and folder) that only its owner may write, since whoever may write it may add a user or an approver.
-
 The run's folder must be reachable from the server (the same path, on a shared disk); otherwise the
 answer says where to approve instead. Approvals are serialised: two approvers pressing the button at
 once produce one approval and one "already approved".
@@ -54,7 +60,8 @@ _ONE_AT_A_TIME = threading.Lock()
 
 
 class NotHere(LabcalError):
-    """The approval cannot be made by this server (folder not reachable, no key, no SQLite lab file)."""
+    """The approval cannot be made by this server (folder not reachable, no key, a SQLite file others
+    may write)."""
 
 
 @dataclass(frozen=True)
