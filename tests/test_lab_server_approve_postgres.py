@@ -15,7 +15,8 @@ import io
 import json
 import re
 import shutil
-from contextlib import redirect_stderr, redirect_stdout
+import sqlite3
+from contextlib import closing, redirect_stderr, redirect_stdout
 
 import httpx
 import psycopg
@@ -104,6 +105,10 @@ def test_the_server_signs_the_labs_own_copy_and_the_bench_receives_it_on_sync(be
     signed = json.loads(files["certificate.json"][1])
     assert signed["approval"]["by"] == "ada" and signed["approval"]["server"]["authentication"] == "API token"
 
+    with psycopg.connect(lab["db"]) as conn:  # the approved certificate in place of the draft
+        stored = conn.execute("SELECT document FROM certificates WHERE certificate_id = %s",
+                              (signed["certificate_id"],)).fetchone()[0]
+    assert json.loads(stored)["approval"] == signed["approval"]
     downloads = lab["base"] / "downloads"
     downloads.mkdir()
     for name in FILES:  # as a customer downloads them from the server
@@ -121,6 +126,10 @@ def test_the_server_signs_the_labs_own_copy_and_the_bench_receives_it_on_sync(be
     assert code == 0 and json.loads(out)["received"]["approved certificate files"] == 4, err
     for name in FILES:
         assert (folder / name).read_bytes() == files[name][1], name
+    with closing(sqlite3.connect(lab["environment"]["LABCAL_JOURNAL"])) as journal:  # its history too
+        copied = journal.execute("SELECT document FROM certificates WHERE certificate_id = ?",
+                                 (signed["certificate_id"],)).fetchone()[0]
+    assert json.loads(copied)["approval"] == signed["approval"]
     code, out, err = labcal("certificate", "verify", str(folder / "certificate.json"), "--json")
     assert code == 0 and json.loads(out)["approved_by"] == "ada", err
 

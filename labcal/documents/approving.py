@@ -248,6 +248,9 @@ def approve_lab_run(server: ServerDatabase, run_id: int, by: str, role: str, key
             files = {name: (folder_path / name).read_bytes()
                      for name in (DCC_FILE, REPORT_HTML, REPORT_PDF, CERTIFICATE)}
             lab_certificates.store_files(connection, cert.certificate_id, check.run_uuid, files)
+            lab_certificates.replace_draft(connection, cert.certificate_id, cert.instrument.serial,
+                                           cert.calibrated_utc.isoformat(), cert.issued_utc.isoformat(),
+                                           cert.digest.value, cert.model_dump_json(indent=2))
     finally:
         engine.dispose()
     return cert

@@ -139,6 +139,23 @@ def store_files(connection: Connection, certificate_id: str, run_uuid: str, file
         for name, content in files.items()])
 
 
+def replace_draft(connection: Connection, certificate_id: str, serial: str, calibrated_utc: str,
+                  issued_utc: str, sha256: str, document: str) -> None:
+    """The approved certificate in place of its draft in the lab's certificates (in the caller's
+    transaction): every bench's history then shows it approved, and each bench's journal receives it
+    on its next sync, as a bench's own approval reaches the lab."""
+    from sqlalchemy.dialects.postgresql import insert
+
+    from labcal.run.schema import certificates
+
+    values = {"certificate_id": certificate_id, "serial": serial, "calibrated_utc": calibrated_utc,
+              "issued_utc": issued_utc, "sha256": sha256, "document": document}
+    statement = insert(certificates).values(**values)
+    connection.execute(statement.on_conflict_do_update(
+        index_elements=[certificates.c.certificate_id],
+        set_={k: statement.excluded[k] for k in values if k != "certificate_id"}))
+
+
 def files_of(connection: Connection, run_uuid: str) -> dict[str, bytes]:
     """The approved certificate's files the lab keeps for the run (empty: none approved there), each
     checked against the digest stored with it."""
