@@ -21,12 +21,12 @@ from contextlib import closing, redirect_stderr, redirect_stdout
 import httpx
 import psycopg
 import pytest
-from lab_server import add_user, served
+from lab_server import accessible, add_user, parses_cleanly, served
 from simulated_runs import bench_run
 
 from labcal.cli import main
 
-pytestmark = pytest.mark.slow  # three runs through the drivers and a server: about 30 s
+pytestmark = pytest.mark.slow  # four runs through the drivers and a server: about 40 s
 
 SERIAL = "ACC-0042"
 FILES = {"certificate.json", "certificate.dcc.xml", "report.pdf", "report.html"}
@@ -41,9 +41,9 @@ def labcal(*args: str) -> tuple[int, str, str]:
 
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory, postgres_cluster):
-    """One bench (its journal, its folder) that measured and synced three runs, and `labcal serve` on the
+    """One bench (its journal, its folder) that measured and synced four runs, and `labcal serve` on the
     lab database as the server's role, with the lab server's key registered. Each test approves a run
-of its own (1, 2, 3), so that they hold in any order."""
+of its own (1, 2, 3, 4), so that they hold in any order."""
     base = tmp_path_factory.mktemp("pg-approve")
     url = postgres_cluster.url(postgres_cluster.create_database())
     patch = pytest.MonkeyPatch()
@@ -53,7 +53,7 @@ of its own (1, 2, 3), so that they hold in any order."""
     for name, value in environment.items():
         patch.setenv(name, value)
     (base / "bench").mkdir()
-    runs = [bench_run(base / "bench" / f"run{n}", url, SERIAL) for n in (1, 2, 3)]  # with drafts
+    runs = [bench_run(base / "bench" / f"run{n}", url, SERIAL) for n in (1, 2, 3, 4)]  # with drafts
     assert labcal("sync")[0] == 0
     assert labcal("certificate", "keygen", "--out", str(base / "server"))[0] == 0
     code, _, err = labcal("certificate", "approvers", "add", "lab server", "--role", "lab server",
@@ -220,3 +220,41 @@ def test_a_server_killed_mid_approval_leaves_no_half_approved_certificate(bench)
     done = approve(lab, run)  # the module's server, still up
     assert done.status_code == 200, done.text
     assert set(kept(lab["db"], run)) == FILES
+
+
+def test_an_approver_approves_in_chromium_and_downloads_a_certificate_that_verifies(bench, browser):
+    lab, run = bench, 4
+    page = browser.new_page(accept_downloads=True)
+    try:
+        page.goto(lab["url"] + "/login")
+        page.fill("input[name=name]", "ada")
+        page.fill("input[name=password]", "a long passphrase 1")
+        page.click("button[type=submit]")
+        page.wait_for_url(lab["url"] + "/")
+        page.goto(f"{lab['url']}/runs/{run}")
+        page.fill(f"form[action='/runs/{run}/approve'] input[name=password]", "a long passphrase 1")
+        page.click(f"form[action='/runs/{run}/approve'] button[type=submit]")
+        page.wait_for_selector("#message")
+        assert "approved by ada" in (page.text_content("#message") or "")
+        shown = page.goto(f"{lab['url']}/runs/{run}")  # the page as anyone sees it afterwards
+        assert shown is not None
+        parses_cleanly(shown.text(), "an approved run's page")
+        accessible(page, "an approved run's page")
+        assert page.query_selector(f"form[action='/runs/{run}/approve']") is None
+        assert "approved by ada (approver)" in (page.text_content("#approved") or "")
+        downloads = lab["base"] / "chromium"
+        downloads.mkdir()
+        for name in FILES:
+            with page.expect_download() as waiting:
+                page.click(f"#approved a[href='/runs/{run}/approved/{name}']")
+            waiting.value.save_as(downloads / name)
+    finally:
+        page.close()
+    files = kept(lab["db"], run)
+    assert all((downloads / name).read_bytes() == files[name][1] for name in FILES)
+    code, out, err = labcal("certificate", "verify", str(downloads / "certificate.json"), "--json")
+    assert code == 0 and json.loads(out)["approved_by"] == "ada", err
+    assert labcal("sync")[0] == 0
+    folder = lab["runs"][3]
+    code, out, err = labcal("certificate", "verify", str(folder / "certificate.json"), "--json")
+    assert code == 0 and json.loads(out)["valid"] is True, err

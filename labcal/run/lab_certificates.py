@@ -174,6 +174,16 @@ def files_of(connection: Connection, run_uuid: str) -> dict[str, bytes]:
     return found
 
 
+def file_names(connection: Connection, run_uuid: str) -> list[str]:
+    """The names of the approved certificate's files the lab keeps for the run, sorted."""
+    from sqlalchemy import select
+
+    from labcal.run.schema import certificate_files
+
+    return sorted(connection.execute(select(certificate_files.c.name)
+                                     .where(certificate_files.c.run_uuid == run_uuid)).scalars())
+
+
 def write_files(run_dir: Path, files: dict[str, bytes]) -> list[str]:
     """Write the approved files into a run's folder (atomically each, the certificate last); the
     names written (a file already identical is left alone)."""

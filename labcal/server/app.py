@@ -147,10 +147,14 @@ def create_app(settings: ServerSettings) -> FastAPI:
 
     @app.get("/api/runs/{run_id}/approved/{name}")
     def api_approved(run_id: int, name: str, user: Annotated[users.User, Depends(api_user)]) -> Response:
+        return approved(run_id, name)
+
+    def approved(run_id: int, name: str) -> Response:
         found = approved_file(db, run_id, name)
         if found is None:
             raise HTTPException(404, f"no {name} of run {run_id} approved by the lab server")
-        return Response(found[1], media_type=found[0])
+        return Response(found[1], media_type=found[0],
+                        headers={"Content-Disposition": f'attachment; filename="{name}"'})
 
     @app.get("/api/runs/{run_id}/residuals.png")
     def api_residuals(run_id: int, user: Annotated[users.User, Depends(api_user)]) -> Response:
@@ -270,6 +274,10 @@ def create_app(settings: ServerSettings) -> FastAPI:
     @app.get("/runs/{run_id}/residuals.png")
     def page_residuals(run_id: int, user: Annotated[users.User, Depends(page_user)]) -> Response:
         return residuals(run_id)
+
+    @app.get("/runs/{run_id}/approved/{name}")
+    def page_approved(run_id: int, name: str, user: Annotated[users.User, Depends(page_user)]) -> Response:
+        return approved(run_id, name)
 
     @app.post("/runs/{run_id}/approve", response_class=HTMLResponse)
     def page_approve(request: Request, run_id: int, user: Annotated[users.User, Depends(page_user)],
