@@ -258,3 +258,19 @@ def test_an_approver_approves_in_chromium_and_downloads_a_certificate_that_verif
     folder = lab["runs"][3]
     code, out, err = labcal("certificate", "verify", str(folder / "certificate.json"), "--json")
     assert code == 0 and json.loads(out)["valid"] is True, err
+
+
+def test_only_the_servers_role_writes_the_approved_files(bench):
+    """A bench's role reads the lab's approved files (its sync writes them into its folders) and can
+    neither add nor change one; the server's role adds them."""
+    code, out, err = labcal("db", "grant-station", "bench-9")
+    assert code == 0, err
+    bench_url = out.strip().splitlines()[-1]
+    row = ("ACC-FORGED-1", "00000000-0000-0000-0000-000000000000", "certificate.json", "0" * 64, b"{}", "now")
+    with psycopg.connect(bench_url) as conn:
+        conn.execute("SELECT count(*) FROM certificate_files").fetchone()
+        with pytest.raises(psycopg.errors.InsufficientPrivilege):
+            conn.execute("INSERT INTO certificate_files (certificate_id, run_uuid, name, sha256, content, "
+                         "stored_utc) VALUES (%s, %s, %s, %s, %s, %s)", row)
+    with psycopg.connect(bench_url) as conn, pytest.raises(psycopg.errors.InsufficientPrivilege):
+        conn.execute("UPDATE certificate_files SET content = %s", (b"{}",))
