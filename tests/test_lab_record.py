@@ -265,8 +265,8 @@ def test_an_approver_registered_at_bench_3_approves_at_bench_1_and_everything_is
     assert {t: lab_count(postgres_url, t) for t in TABLES} == expected
     assert lab_numbers(postgres_url)[0][0] == 1
 
-    # the lab server on this PostgreSQL database cannot approve yet: its page offers no form that
-    # would only fail, and says why
+    # the lab server's page says who approved the run and when, and offers no form that would only
+    # be refused
     from fastapi.testclient import TestClient
 
     from labcal.app.labdatabase import OpenLab, open_lab
@@ -284,7 +284,8 @@ def test_an_approver_registered_at_bench_3_approves_at_bench_1_and_everything_is
     finally:
         lab.close()
     assert page.status_code == 200 and "Approve the certificate" not in page.text
-    assert 'action="/runs/1/approve"' not in page.text and "cannot approve this run" in page.text
+    assert 'action="/runs/1/approve"' not in page.text
+    assert f"approved by {NAME} ({ROLE}) at {signed['approval']['approved_utc']}" in page.text
 
 
 @pytest.mark.slow

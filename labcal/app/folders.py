@@ -109,7 +109,29 @@ def rebuild_run_folder(request: RebuildRunFolder) -> FolderWritten:
         notes, _ = exports.sync(journal, row, folder)
         moved = record_folder(journal, row, folder, "export", "run folder recreated in {}" if created else "")
         label = _label(journal, row.id, request.db)
+    notes += _approved_by_the_lab(folder, row.uuid, request.db)
     return FolderWritten(row.id, row.uuid, folder, row.status, tuple(notes), moved, label)
+
+
+def _approved_by_the_lab(folder: Path, run_uuid: str | None, db: str | None) -> list[str]:
+    """The certificate the lab server approved for the run, with its DCC and report, written into
+    its folder (a note naming them); nothing where the lab is not a server or cannot be reached."""
+    from labcal.run import labdb
+    from labcal.run.lab_certificates import files_of, write_files
+
+    where = labdb.lab_database(db)
+    if isinstance(where, Path) or run_uuid is None:
+        return []
+    try:
+        engine = labdb.open_server(where)
+    except labdb.Unreachable:
+        return []
+    try:
+        with engine.connect() as connection:
+            written = write_files(folder, files_of(connection, run_uuid))
+    finally:
+        engine.dispose()
+    return [f"the lab server's approved {', '.join(written)} written"] if written else []
 
 
 def record_folder(journal: Journal, row: RunRow, folder: Path, kind: str, message: str = "") -> str | None:

@@ -319,12 +319,16 @@ class RunView:
 
 
 def run_view(lab: LabDatabase, run_id: int) -> RunView | None:
+    from labcal.run.lab_certificates import approved_by, file_names
+
     with lab.engine.connect() as conn:
         found = _progress(conn, run_id)
         if found is None:
             return None
         journal = _run_events(conn, run_id)
         seq = conn.execute(select(func.max(points.c.seq)).where(points.c.run_id == run_id)).scalar()
+        found["approval"] = approved_by(conn, run_id)  # who approved its certificate, and when
+        found["approved_files"] = file_names(conn, found["uuid"]) if found.get("uuid") else []
     recent = [e for e in journal if e["kind"] not in QUIET_KINDS][-RECENT:]
     cursor = Cursor(-1 if seq is None else seq, journal[-1]["id"] if journal else 0)
     return RunView(found, tuple(recent), cursor)

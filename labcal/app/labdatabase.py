@@ -22,6 +22,8 @@ from labcal.errors import LabcalError
 if TYPE_CHECKING:
     from sqlalchemy.engine import Engine
 
+    from labcal.config.lab import ServerDatabase
+
 
 @dataclass(frozen=True)
 class OpenLab:
@@ -36,6 +38,7 @@ class LabDatabase:
     engine: Engine
     shown: str  # the location for people (a server's URL without its password)
     file: Path | None  # the SQLite file, where the lab database is one
+    server: ServerDatabase | None = None  # the PostgreSQL server, where the lab database is one
 
     def close(self) -> None:
         self.engine.dispose()
@@ -49,4 +52,5 @@ def open_lab(request: OpenLab) -> LabDatabase:
     if isinstance(where, Path) and request.must_exist and not where.is_file():
         raise LabcalError(f"{where}: no lab database there; give --db or set LABCAL_DB to the lab's database "
                           "(a labcal run creates it)")
-    return LabDatabase(lab_engine(request.db), str(where), where if isinstance(where, Path) else None)
+    return LabDatabase(lab_engine(request.db), str(where), where if isinstance(where, Path) else None,
+                       None if isinstance(where, Path) else where)

@@ -21,14 +21,20 @@ signs accordingly:
   only, as `labcal certificate approve --key` would; any other approver is refused with the
   registry's reason (a key never signs under a name it is not registered to).
 
-Approving is `labcal.app.certificates.approve_certificate` on the run's folder — the same use case as
-`labcal certificate approve`: it rebuilds what it signs from the journal, refuses a simulated run, an
-edited draft, a journal whose chain of digests does not hold (`labcal.run.chain`), a run journaled
-before digests, an unregistered or revoked key, and writes the certificate, DCC and report again.
+On SQLite, approving is `labcal.app.certificates.approve_certificate` on the run's folder — the
+use case of `labcal certificate approve`: it rebuilds what it signs from the journal, refuses a
+simulated run, an edited draft, a journal whose chain of digests does not hold (`labcal.run.chain`),
+a run journaled before digests, an unregistered or revoked key, and writes the certificate, DCC and
+report again.
+
+On PostgreSQL the lab database is the record: the server signs the lab database's own copy of the
+run the approver named (its runs, points and events rows and the draft its bench synced; never a
+folder), recomputes the lab's chain of digests, and keeps the signed certificate, its DCC and its
+report in the lab database in one transaction (`labcal.documents.approving.approve_lab_run`); the
+bench's folder receives them on its next `labcal sync` or `labcal export RUN`.
 
 On SQLite the lab database is one machine, one trust domain: the server approves only from a file
 (and folder) that only its owner may write, since whoever may write it may add a user or an approver.
-
 The run's folder must be reachable from the server (the same path, on a shared disk); otherwise the
 answer says where to approve instead. Approvals are serialised: two approvers pressing the button at
 once produce one approval and one "already approved".
@@ -41,6 +47,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from sqlalchemy import select
+
 from labcal.app.certificates import ApproveCertificate, Authentication, SignedFor, approve_certificate
 from labcal.app.lab import run_folder
 from labcal.app.labdatabase import LabDatabase
@@ -52,7 +60,8 @@ _ONE_AT_A_TIME = threading.Lock()
 
 
 class NotHere(LabcalError):
-    """The approval cannot be made by this server (folder not reachable, no key, no SQLite lab file)."""
+    """The approval cannot be made by this server (folder not reachable, no key, a SQLite file others
+    may write)."""
 
 
 @dataclass(frozen=True)
@@ -92,16 +101,17 @@ def server_key(given: str | None) -> Path | None:
 
 def _cannot(lab: LabDatabase, run_dir: str, key: Path | None, name: str) -> str | None:
     """Why this server cannot approve the run whose folder is ``run_dir`` (None: it can try; the
-    approval itself may still refuse, naming its reasons)."""
+    approval itself may still refuse, naming its reasons). On PostgreSQL the lab database's own copy
+    of the run is what is signed, so where its folder is does not matter."""
     where = (f"approve it where its folder is: labcal certificate approve {run_dir} --by {name!r} "
              "--role ROLE --key KEYFILE")
-    if not (Path(run_dir) / CERTIFICATE).is_file():
+    if lab.server is None and not (Path(run_dir) / CERTIFICATE).is_file():
         return f"{run_dir}: the run's folder (its {CERTIFICATE}) is not reachable from this server; {where}"
     if key is None:
         return (f"this server has no signing key (start it with labcal serve --key FILE, or set server_key "
                 f"in the lab file); {where}")
     if lab.file is None:
-        return f"this server approves only on a SQLite lab database for now; {where}"
+        return None
     from labcal.run.labdb import others_may_write
 
     loose = others_may_write(lab.file)
@@ -127,24 +137,50 @@ def approve_as_user(lab: LabDatabase, request: ApproveAsUser) -> ServerApproved 
     run_dir = run_folder(lab, request.run_id)
     if run_dir is None:
         return None
-    user, key, db_file = request.user, request.key, lab.file
+    user, key = request.user, request.key
     why = _cannot(lab, run_dir, key, user.name)
     if why is not None:
         raise NotHere(why)
-    assert key is not None and db_file is not None  # else `_cannot` says why
-    registered = by_key(key_id(load_private_key(key).public_key()), db_file)
+    assert key is not None  # else `_cannot` says why
+    db = str(lab.file) if lab.server is None else lab.server.url
+    registered = by_key(key_id(load_private_key(key).public_key()), db)
     if registered is not None and registered.role == SERVER_ROLE:
         role, signed_for = user.role, SignedFor(user.id, request.authentication)
     else:  # a person's key (or none registered: the approval says so)
         role, signed_for = (registered.role if registered is not None else user.role), None
     with _ONE_AT_A_TIME:
-        done = approve_certificate(ApproveCertificate(run_dir, user.name, role, str(key), str(db_file),
-                                                      signed_for=signed_for))
-    cert = done.outputs.certificate
+        if lab.server is not None:  # the lab's own copy of the run, and the files kept there
+            from labcal.documents.approving import approve_lab_run
+
+            server = None if signed_for is None else (signed_for.user_id, signed_for.authentication)
+            cert = approve_lab_run(lab.server, request.run_id, user.name, role, key, server)
+            where = f"{lab.shown} (run {request.run_id}'s {CERTIFICATE})"
+        else:
+            done = approve_certificate(ApproveCertificate(run_dir, user.name, role, str(key), db,
+                                                          signed_for=signed_for))
+            cert, where = done.outputs.certificate, str(done.outputs.certificate_path)
     approval = cert.approval
     assert approval is not None  # approve_run signs or refuses
     stated = cert.to_json()["approval"]  # the time as the certificate states it
     signer = (f"the lab server's key ({registered.name}) for {approval.by}"
               if signed_for is not None and registered is not None else f"{approval.by}'s own key")
-    return ServerApproved(cert.number, approval.by, approval.role, stated["approved_utc"],
-                          str(done.outputs.certificate_path), signer)
+    return ServerApproved(cert.number, approval.by, approval.role, stated["approved_utc"], where, signer)
+
+
+MEDIA = {CERTIFICATE: "application/json", "certificate.dcc.xml": "application/xml",
+         "report.pdf": "application/pdf", "report.html": "text/html; charset=utf-8"}
+
+
+def approved_file(lab: LabDatabase, run_id: int, name: str) -> tuple[str, bytes] | None:
+    """A file of run ``run_id``'s certificate as the lab server approved it and the lab keeps it
+    (the signed certificate.json, certificate.dcc.xml, report.pdf, report.html), with its media
+    type; None: no such file, or none approved there."""
+    from labcal.run.lab_certificates import files_of
+    from labcal.run.schema import runs
+
+    if name not in MEDIA:
+        return None
+    with lab.engine.connect() as conn:
+        uuid = conn.execute(select(runs.c.uuid).where(runs.c.id == run_id)).scalar()
+        content = None if uuid is None else files_of(conn, uuid).get(name)
+    return None if content is None else (MEDIA[name], content)

@@ -24,13 +24,16 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+
+from labcal.config.lab import ServerDatabase
 from labcal.config.settings import CertificateSettings
 from labcal.documents import approvers
 from labcal.documents.administration import ItemGiven
 from labcal.documents.approval import approve, key_id, load_private_key
 from labcal.documents.certificate import Authentication, Certificate, ServerSignature, read_certificate
 from labcal.documents.issuing import build_certificate
-from labcal.documents.report import CERTIFICATE, RunOutputs, fitted, replaced_by, write_documents
+from labcal.documents.report import CERTIFICATE, RunOutputs, fitted, replaced_by, write_documents, write_file
 from labcal.documents.uncertainty import bench_section, type_b_inputs
 from labcal.errors import LabcalError
 from labcal.run.chain import UNCHAINED, copies
@@ -141,16 +144,30 @@ def approve_run(run_dir: str | Path, by: str, role: str, key_path: str | Path, d
                                  user_id=signed_for[0], meaning="approved", authentication=signed_for[1])
     record = load_run(run_dir)
     path = Path(run_dir) / CERTIFICATE
-    reasons = [SIMULATED] if record.simulated else []
     draft: Certificate | None = None
+    unreadable = None
     try:
         draft = read_certificate(path)
     except LabcalError as exc:
-        reasons.append(f"certificate.json cannot be signed ({str(exc).removeprefix(f'{path}: ')})")
+        unreadable = f"certificate.json cannot be signed ({str(exc).removeprefix(f'{path}: ')})"
+    chained = chain_reasons(record, draft, db, unchained)
+    cert = _sign(record, draft, unreadable, chained, by, role, key, db, station, server, str(run_dir),
+                 f"`labcal report {run_dir}` issues it again")
+    fit, device, _ = fitted(record)
+    return write_documents(cert, record, fit, device, db)
+
+
+def _sign(record: RunRecord, draft: Certificate | None, unreadable: str | None, chained: list[str], by: str,
+          role: str, key: Ed25519PrivateKey, db: str | Path | None, station: str | Path | None,
+          server: ServerSignature | None, where: str, reissue: str) -> Certificate:
+    """The draft signed, or one line naming every reason it may not be (``chained``: the chain's,
+    said already): the rule both a folder's approval and the lab server's approval follow."""
+    reasons = [SIMULATED] if record.simulated else []
+    if unreadable is not None:
+        reasons.append(unreadable)
     if draft is not None and draft.approval is not None:
         raise LabcalError(f"certificate {draft.number} is already approved by {draft.approval.by}; a change "
                           "is a new revision (`labcal report` issues it)")
-    chained = chain_reasons(record, draft, db, unchained)
     reasons += chained
     if draft is not None:
         try:
@@ -165,15 +182,78 @@ def approve_run(run_dir: str | Path, by: str, role: str, key_path: str | Path, d
             if found:
                 reasons.append(f"certificate.json is not what the journal gives (differs in "
                                f"{_sections(found)}): edited after issue, or issued with another "
-                               f"station file (give it with --station) or another labcal; "
-                               f"`labcal report {run_dir}` issues it again")
+                               f"station file (give it with --station) or another labcal; {reissue}")
     reasons += approvers.problems(key_id(key.public_key()), by, role, db, server)
     if reasons:
-        raise LabcalError(f"{run_dir}: not approved: " + "; ".join(reasons))
+        raise LabcalError(f"{where}: not approved: " + "; ".join(reasons))
     assert draft is not None
-    cert = approve(draft, by, role, key, server=None if server is None else server.model_dump())
-    fit, device, _ = fitted(record)
-    return write_documents(cert, record, fit, device, db)
+    return approve(draft, by, role, key, server=None if server is None else server.model_dump())
+
+
+def approve_lab_run(server: ServerDatabase, run_id: int, by: str, role: str, key_path: str | Path,
+                    signed_for: tuple[int, Authentication] | None = None) -> Certificate:
+    """Sign run ``run_id`` of a PostgreSQL lab database from the lab's own copy of it — its runs,
+    points and events rows and the draft its bench synced, never a folder — and keep the signed
+    certificate, its DCC and its report there, all in one transaction: a server stopped anywhere
+    in between leaves the draft as it was and nothing of the approval. The same refusals as a
+    folder's approval (`approve_run`), the lab's chain of digests recomputed and held to the head
+    the draft states; a run journaled before digests is never approved here."""
+    import tempfile
+
+    from labcal.documents.dcc import DCC_FILE, write_dcc
+    from labcal.documents.report import REPORT_HTML, REPORT_PDF, write_report
+    from labcal.run import lab_certificates, labdb
+
+    key = load_private_key(key_path)  # before anything is read or written
+    db = str(server.url)
+    server_signature = None
+    if signed_for is not None:
+        registered = approvers.by_key(key_id(key.public_key()), db)
+        server_signature = ServerSignature(
+            signer=registered.name if registered is not None else "(unregistered)", user_id=signed_for[0],
+            meaning="approved", authentication=signed_for[1])
+    where = lab_certificates.lab_label(run_id)
+    engine = labdb.open_server(server)
+    try:
+        with engine.begin() as connection, tempfile.TemporaryDirectory(prefix="labcal-approve-") as folder:
+            lab_certificates.lock_run(connection, run_id)
+            record = lab_certificates.lab_record(connection, run_id, Path(folder))
+            check = record.chain
+            assert check is not None  # the lab's copy is always checked
+            done = lab_certificates.approved_by(connection, run_id)
+            if done is not None:
+                raise LabcalError(f"{where} is already approved by {done.get('by')} "
+                                  f"({done.get('approved_utc')}); a change is a new revision")
+            text = lab_certificates.draft_document(connection, record.meta.get("instrument_serial"),
+                                                   check.run_uuid)
+            draft, unreadable = None, None
+            if text is None:
+                unreadable = ("no draft certificate of it has reached the lab database (`labcal report` at "
+                              "its bench issues it, `labcal sync` sends it)")
+            else:
+                try:
+                    draft = Certificate.model_validate_json(text)
+                except ValueError as exc:
+                    unreadable = f"the lab's draft cannot be read ({str(exc).splitlines()[0]})"
+            chained = chain_reasons(record, draft, None) if check.chained else [
+                f"{check.run} was {UNCHAINED}: the lab server approves only a chained run (approve it at its "
+                "bench with labcal certificate approve --unchained)"]
+            cert = _sign(record, draft, unreadable, chained, by, role, key, db, None, server_signature, where,
+                         "`labcal report` at its bench issues it again and `labcal sync` sends it")
+            fit, device, _ = fitted(record)
+            folder_path = Path(folder)
+            write_dcc(folder_path / DCC_FILE, cert)
+            write_report(folder_path, cert, record, fit, device)
+            write_file(folder_path / CERTIFICATE, cert)
+            files = {name: (folder_path / name).read_bytes()
+                     for name in (DCC_FILE, REPORT_HTML, REPORT_PDF, CERTIFICATE)}
+            lab_certificates.store_files(connection, cert.certificate_id, check.run_uuid, files)
+            lab_certificates.replace_draft(connection, cert.certificate_id, cert.instrument.serial,
+                                           cert.calibrated_utc.isoformat(), cert.issued_utc.isoformat(),
+                                           cert.digest.value, cert.model_dump_json(indent=2))
+    finally:
+        engine.dispose()
+    return cert
 
 
 def journal_verdict(cert: Certificate, db: str | Path | None, source: str) -> str:

@@ -363,17 +363,21 @@ class Journal:
 
     def readings(self, run_id: int) -> Readings:
         """The committed good points as Readings (the export behind readings.csv and the fit)."""
-        pts = self.points(run_id, status="ok")
-        if not pts:
-            raise LabcalError(f"run {run_id} has no readings yet")
-        temps = [p.temp_c for p in pts]
-        return Readings(
-            replicate=np.array([p.replicate for p in pts]),
-            y_deg=np.array([p.y_deg for p in pts]), u_deg=np.array([p.u_deg for p in pts]),
-            pitch_deg=np.array([p.pitch_deg for p in pts]), roll_deg=np.array([p.roll_deg for p in pts]),
-            volts=np.array([[p.vx, p.vy, p.vz] for p in pts], dtype=float),  # NULL: NaN, an absent sensor
-            temp_c=None if any(t is None for t in temps) else np.array(temps),
-            window_sd=np.array([[p.sd_vx, p.sd_vy, p.sd_vz] for p in pts], dtype=float),
-            window_n=np.array([p.n_samples for p in pts], dtype=float),
-        )
+        return readings_of(self.points(run_id, status="ok"), f"run {run_id}")
+
+
+def readings_of(pts: list[PointRecord], run: str) -> Readings:
+    """Committed good points as Readings, wherever they were read (a journal, the lab's copy)."""
+    if not pts:
+        raise LabcalError(f"{run} has no readings yet")
+    temps = [p.temp_c for p in pts]
+    return Readings(
+        replicate=np.array([p.replicate for p in pts]),
+        y_deg=np.array([p.y_deg for p in pts]), u_deg=np.array([p.u_deg for p in pts]),
+        pitch_deg=np.array([p.pitch_deg for p in pts]), roll_deg=np.array([p.roll_deg for p in pts]),
+        volts=np.array([[p.vx, p.vy, p.vz] for p in pts], dtype=float),  # NULL: NaN, an absent sensor
+        temp_c=None if any(t is None for t in temps) else np.array(temps),
+        window_sd=np.array([[p.sd_vx, p.sd_vy, p.sd_vz] for p in pts], dtype=float),
+        window_n=np.array([p.n_samples for p in pts], dtype=float),
+    )
 

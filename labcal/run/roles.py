@@ -44,15 +44,16 @@ BENCH_PREFIX = "labcal_bench_"
 # What each group may do, table by table (a table this labcal's schema lacks is passed over)
 # The approvers register is read by every bench (`certificate verify` and `attitude --cert` check a
 # signature against it): names, roles and public keys, nothing secret; only the administrator writes it.
-BENCH_READS = ("alembic_version", "runs", "points", "events", "certificates", "run_exports",
-               "device_estimates", "settle_pools", "station_roles", "approvers", "instruments")
+# The files of a certificate the server approved are read by the bench that measured the run.
+BENCH_READS = ("alembic_version", "runs", "points", "events", "certificates", "certificate_files",
+               "run_exports", "device_estimates", "settle_pools", "station_roles", "approvers", "instruments")
 BENCH_APPENDS = ("runs", "points", "events", "certificates", "device_estimates", "settle_pools")
 # What a bench sends again when it changes (the sync's records): a certificate approved at the bench
 # with a registered approver's own key (its signature, not the role, vouches for it), a device estimate
 # stored again, a settle pool that grew. Row-level security does not yet tie these to the station.
 BENCH_REPLACES = ("certificates", "device_estimates", "settle_pools")
 BENCH_CLOSES_RUNS = ("status", "reason", "ended_utc", "points_total")  # what a sync updates of its run
-SERVER_WRITES = ("certificates", "approvals")
+SERVER_WRITES = ("certificates", "approvals", "certificate_files")
 SERVER_APPENDS = ("audit",)  # its audit trail: sign-ins, failures, lockouts, refusals, approvals
 SEQUENCES = (("runs", "id"), ("events", "id"))  # serial keys a bench's inserts draw from
 OWN_STATION = "(SELECT s.station FROM station_roles s WHERE s.role = current_user)"

@@ -259,6 +259,21 @@ instruments = Table(
     Column("updated_utc", Text, nullable=False),
 )
 
-__all__ = ["METADATA", "approvers", "audit", "certificates", "device_estimates", "events", "instruments",
-           "points", "run_exports", "runs", "settle_pools", "station_roles", "sync_cursors", "sync_runs",
-           "sync_sent", "sync_targets", "users"]
+# Revision 0012: the files of a certificate the lab server approved on a PostgreSQL lab database (the
+# signed certificate.json, its DCC, the report's PDF and HTML), written by the server's role alone in
+# the approval's transaction; the bench that measured the run receives them on its next sync.
+certificate_files = Table(
+    "certificate_files", METADATA,
+    Column("certificate_id", Text, nullable=False),
+    Column("run_uuid", Text, nullable=False),
+    Column("name", Text, nullable=False),
+    Column("sha256", Text, nullable=False),
+    Column("content", LargeBinary, nullable=False),
+    Column("stored_utc", Text, nullable=False),
+    PrimaryKeyConstraint("certificate_id", "name"),
+    Index("certificate_files_by_run", "run_uuid"),
+)
+
+__all__ = ["METADATA", "approvers", "audit", "certificate_files", "certificates", "device_estimates", "events",
+           "instruments", "points", "run_exports", "runs", "settle_pools", "station_roles", "sync_cursors",
+           "sync_runs", "sync_sent", "sync_targets", "users"]

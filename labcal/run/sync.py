@@ -204,7 +204,24 @@ class Sender:
             labdb.open_server(self.server).dispose()
             self._schema_checked = True
         with closing(self._local()) as db, self.engine.connect() as server:
-            return {record.table: self._pull_record(db, server, record) for record in RECORDS}
+            pulled = {record.table: self._pull_record(db, server, record) for record in RECORDS}
+            pulled["approved certificate files"] = self._pull_approved(db, server)
+        return pulled
+
+    def _pull_approved(self, db: sqlite3.Connection, server: Connection) -> int:
+        """The files of certificates the lab server approved (`labcal.run.lab_certificates`) written
+        into the folders of this bench's runs; how many files were written."""
+        from sqlalchemy import select
+
+        from labcal.run.lab_certificates import files_of, write_files
+        from labcal.run.schema import certificate_files
+
+        approved = set(server.execute(select(certificate_files.c.run_uuid).distinct()).scalars())
+        written = 0
+        for uuid, run_dir in db.execute("SELECT uuid, run_dir FROM runs WHERE status = 'complete'"):
+            if uuid in approved and Path(run_dir).is_dir():
+                written += len(write_files(Path(run_dir), files_of(server, uuid)))
+        return written
 
     def _pull_record(self, db: sqlite3.Connection, server: Connection, record: Record) -> int:
         from sqlalchemy import or_, select

@@ -51,7 +51,13 @@ from starlette.types import Receive, Scope, Send
 from labcal.app import audit, lab, users
 from labcal.app.certificates import Authentication
 from labcal.app.labdatabase import LabDatabase
-from labcal.app.server_approval import ApproveAsUser, NotHere, approval_refused, approve_as_user
+from labcal.app.server_approval import (
+    ApproveAsUser,
+    NotHere,
+    approval_refused,
+    approve_as_user,
+    approved_file,
+)
 from labcal.errors import LabcalError
 from labcal.server.guards import ClientThrottle, SecurityHeaders, StreamQuota, TooManyStreams
 from labcal.server.sessions import COOKIE, LOGIN_COOKIE, Session, Sessions, csrf_ok
@@ -176,6 +182,17 @@ def create_app(settings: ServerSettings) -> FastAPI:
                     ) -> dict:
         done = approve_as(request, run_id, user, "API token")
         return done.to_json()
+
+    @app.get("/api/runs/{run_id}/approved/{name}")
+    def api_approved(run_id: int, name: str, user: Annotated[users.User, Depends(api_user)]) -> Response:
+        return approved(run_id, name)
+
+    def approved(run_id: int, name: str) -> Response:
+        found = approved_file(db, run_id, name)
+        if found is None:
+            raise HTTPException(404, f"no {name} of run {run_id} approved by the lab server")
+        return Response(found[1], media_type=found[0],
+                        headers={"Content-Disposition": f'attachment; filename="{name}"'})
 
     @app.get("/api/runs/{run_id}/residuals.png")
     def api_residuals(run_id: RunId, user: Annotated[users.User, Depends(api_user)]) -> Response:
@@ -356,6 +373,10 @@ def create_app(settings: ServerSettings) -> FastAPI:
     @app.get("/runs/{run_id}/residuals.png")
     def page_residuals(run_id: RunId, user: Annotated[users.User, Depends(page_user)]) -> Response:
         return residuals(run_id)
+
+    @app.get("/runs/{run_id}/approved/{name}")
+    def page_approved(run_id: int, name: str, user: Annotated[users.User, Depends(page_user)]) -> Response:
+        return approved(run_id, name)
 
     @app.post("/runs/{run_id}/approve", response_class=HTMLResponse)
     def page_approve(request: Request, run_id: RunId, user: Annotated[users.User, Depends(page_user)],

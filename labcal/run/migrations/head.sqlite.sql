@@ -2,7 +2,7 @@ CREATE TABLE alembic_version (
 	version_num VARCHAR(32) NOT NULL, 
 	CONSTRAINT alembic_version_pkc PRIMARY KEY (version_num)
 );
-INSERT INTO "alembic_version" VALUES('0011');
+INSERT INTO "alembic_version" VALUES('0012');
 CREATE TABLE approvers (
 	id INTEGER NOT NULL, 
 	name TEXT NOT NULL, 
@@ -26,6 +26,15 @@ CREATE TABLE audit (
 	digest TEXT NOT NULL, 
 	PRIMARY KEY (id), 
 	UNIQUE (prev)
+);
+CREATE TABLE certificate_files (
+	certificate_id TEXT NOT NULL, 
+	run_uuid TEXT NOT NULL, 
+	name TEXT NOT NULL, 
+	sha256 TEXT NOT NULL, 
+	content BLOB NOT NULL, 
+	stored_utc TEXT NOT NULL, 
+	PRIMARY KEY (certificate_id, name)
 );
 CREATE TABLE certificates (
 	certificate_id TEXT NOT NULL, 
@@ -190,3 +199,4 @@ CREATE UNIQUE INDEX events_by_origin ON events (run_id, origin_id);
 CREATE UNIQUE INDEX points_by_link ON points (run_id, link);
 CREATE UNIQUE INDEX events_by_link ON events (run_id, link);
 CREATE INDEX audit_by_account ON audit (account, id);
+CREATE INDEX certificate_files_by_run ON certificate_files (run_uuid);
