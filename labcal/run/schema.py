@@ -274,6 +274,6 @@ certificate_files = Table(
     Index("certificate_files_by_run", "run_uuid"),
 )
 
-__all__ = ["METADATA", "approvers", "audit", "certificate_files", "certificates", "device_estimates", "events",
-           "instruments", "points", "run_exports", "runs", "settle_pools", "station_roles", "sync_cursors",
-           "sync_runs", "sync_sent", "sync_targets", "users"]
+__all__ = ["METADATA", "approvers", "audit", "certificate_files", "certificates", "device_estimates",
+           "events", "instruments", "points", "run_exports", "runs", "settle_pools", "station_roles",
+           "sync_cursors", "sync_runs", "sync_sent", "sync_targets", "users"]
