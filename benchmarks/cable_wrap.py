@@ -1,4 +1,4 @@
-"""How far the tables wind their cables over a dry run (issue 22, item 3).
+"""How far the tables wind their cables over a dry run.
 
 Each table's accumulated rotation from home, lowest and highest, over `labcal run --sim --yes`
 (four-mount-64) and over the 481-point grid × 4 mounts (`--replicates R`, default 1). Measured at

@@ -1,4 +1,4 @@
-"""Coverage of the device model's U when the tables wobble (issue 23, item 1).
+"""Coverage of the device model's U when the tables wobble.
 
 Usage: python benchmarks/device_coverage.py [--trials 1000] [--index 1] [--wobble 2] [--noise 5e-6]
                                             [--replicates 1 3] [--stated]

@@ -1,4 +1,4 @@
-"""False change flags of the device history (issue 23, item 1): N dry runs of the same simulated rig
+"""False change flags of the device history: N dry runs of the same simulated rig
 (`labcal run --sim`, which reports and stores the estimate; seeds 1…N: the same misalignments, new
 index and wobble harmonics and noise each run), then `labcal device history SIMULATED`: how many of
 the 6·(N − 1) consecutive pairs are flagged. With U that covers at 95 % a pair of independent
@@ -6,7 +6,7 @@ estimates is flagged about 5 % of the time (fewer where U is conservative).
 
 Usage: python benchmarks/device_history_flags.py [--runs 8] [--unstated]
 
---unstated fits the device model without the rig's index and wobble, as labcal did before issue 23.
+--unstated fits the device model without the rig's index and wobble, as labcal once did.
 """
 
 from __future__ import annotations

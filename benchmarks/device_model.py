@@ -1,4 +1,4 @@
-"""The device model (issue 12): fit time on a day-long calibration, recovered misalignments, coverage.
+"""The device model: fit time on a day-long calibration, recovered misalignments, coverage.
 
 Usage: python benchmarks/device_model.py [--trials 1000] [--repeat 5]
 

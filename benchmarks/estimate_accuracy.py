@@ -1,4 +1,4 @@
-"""The duration estimate against the run (issue 26: "within 5 % of the actual run").
+"""The duration estimate against the run.
 
 Each example station, emulated through the real drivers, runs one mount's plan (`one-mount-16`)
 and the simulated rig the default plan; each line prints the estimate `labcal run` printed at the

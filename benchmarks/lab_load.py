@@ -1,4 +1,4 @@
-"""The lab under load (issue 24): paced stations into one server and one PostgreSQL, polled 10×/s.
+"""The lab under load: paced stations into one server and one PostgreSQL, polled 10×/s.
 
 What it sets up, all on this machine and on 127.0.0.1 only:
 - a private PostgreSQL cluster (tests/services.py's `Cluster`: initdb into a temporary folder, as the

@@ -1,9 +1,9 @@
-"""Rig hours of a calibration (issue 27), in one run: where they go and how near their bounds.
+"""Rig hours of a calibration, in one run: where they go and how near their bounds.
 
 1. Rig hours of four-mount-64 and of Tripp & Tcheng's 481-point grid × 6 replicates, dry runs on
    the default simulated rig (lab temperature steady, no drift: only settling tells runs apart, as
    in `settle_model.py`), conventional settling and model settling (`--settle model`): the
-   instrument's first run (no pooled history: what model settling did before issue 27) and its
+   instrument's first run (no pooled history: what model settling did before) and its
    third (and for four-mount-64 every run up to the fifth), the earlier runs' step records pooled
    in the lab database. Each against the independent physical bound of `settle_speed.py` (the
    least a window that waits out the transient can cost, from the rig's own physics: between
@@ -18,7 +18,7 @@
    and the tour the previous `shortest` made (nearest neighbour and a 2-opt pass, kept below as
    the "before"), with the time each takes to build.
 
-3. The optimized plan (`labcal plan optimize`, issue 27 §2) for X = 1.5 × four-mount-64's predicted
+3. The optimized plan (`labcal plan optimize`) for X = 1.5 × four-mount-64's predicted
    worst attitude U95: its predicted rig hours (the station's timing model of `labcal run --dry-run`)
    next to four-mount-64's and 481 × 6's, without a device history (the four mounts stay) and with
    the simulated device characterised by two earlier four-mount-64 runs in two sittings (other seeds,
@@ -169,7 +169,7 @@ def hours(label: str, plan, text: str, seed: int, model_runs: int, prior: bool =
 
 
 def old_shortest(points: np.ndarray, start: np.ndarray, cost: Callable) -> list[int]:
-    """The `shortest` order before issue 27 (labcal 36283d8), verbatim but for the cost function:
+    """The `shortest` order of labcal 36283d8, verbatim but for the cost function:
     nearest neighbour, then 2-opt passes whose gain ignored the reversed stretch's own cost."""
     n = len(points)
     a, b = points[:, None, :], points[None, :, :]
@@ -303,7 +303,7 @@ def characterise(db: Path, seeds: tuple[int, int]) -> None:
 
 
 def corrected_run() -> None:
-    """Run the corrected plan for real on the simulated rig (issue 27 §2): its rig time and U95 next to
+    """Run the corrected plan for real on the simulated rig: its rig time and U95 next to
     four-mount-64's run on the same rig, every run through `labcal run` itself."""
     import contextlib
 

@@ -39,7 +39,7 @@ def lab_database(tmp_path, monkeypatch):
     monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))  # never the developer's own lab file
     monkeypatch.setenv("XDG_CONFIG_DIRS", str(tmp_path / "site-config"))
     monkeypatch.delenv("LABCAL_CONFIG", raising=False)
-    monkeypatch.delenv("LABCAL_NOTIFY", raising=False)  # nor the developer's notifications (issue 24)
+    monkeypatch.delenv("LABCAL_NOTIFY", raising=False)  # nor the developer's notifications
     monkeypatch.delenv("LABCAL_STATION", raising=False)  # the computer's name, unless a test names one
     # and works in its own folder: a run's default runs/ lands there, and `python -m labcal.cli` finds
     # the installed labcal, not the source tree's labcal/ (which lacks drivers/ and sim/) beside it.

@@ -1,4 +1,4 @@
-"""The fault table of issue 11: every injected fault kind on every protocol, through `labcal run
+"""The fault table: every injected fault kind on every protocol, through `labcal run
 --emulate` and `labcal resume` exactly as a technician runs them (in this process, real drivers on
 the emulators written from the manuals). For each: did the run complete or pause, how many pauses,
 points lost or doubled against the plan, and whether `labcal resume` completed.

@@ -1,4 +1,4 @@
-"""The application layer (`labcal.app`, issue 25): each use case called with a typed request, no
+"""The application layer (`labcal.app`): each use case called with a typed request, no
 argparse; and every read pure — a run folder's files (names, bytes, mtimes) and the lab database's
 bytes are the same after it as before, by hashes taken here."""
 
@@ -143,7 +143,7 @@ def test_an_edited_export_is_reported_not_rewritten(lab, tmp_path):
 
 
 def test_export_to_another_folder_leaves_the_run_and_the_database_as_they_were(unchanged, tmp_path):
-    """The regression of issue 25: `labcal export RUN --out OTHER` re-pointed the run to OTHER."""
+    """A regression: `labcal export RUN --out OTHER` re-pointed the run to OTHER."""
     base, db = unchanged
     written = export_run(ExportRun("1", str(tmp_path / "other"), str(db)))
     assert written.folder == tmp_path / "other" and written.notes == ()

@@ -1,4 +1,4 @@
-"""Approval bound to the journal and to registered people (issue 23, item 5): approvers are
+"""Approval bound to the journal and to registered people: approvers are
 registered in the lab database; `certificate approve` rebuilds the certificate from the journal and
 refuses, in one line naming every reason, an edited draft (even with a recomputed digest), a key
 that is not registered or is revoked, a name or role that is not the key's, and a simulated run; the

@@ -1,4 +1,4 @@
-"""`labcal attitude` where local gravity differs from the calibration's (issue 26): both estimators
+"""`labcal attitude` where local gravity differs from the calibration's: both estimators
 state the direction of gravity, within their U95 of the truth for |g| within ±2e-4 of the
 calibration's, with no valid row flagged — at the pole too, where roll is undefined and the two
 estimators may state one direction two ways — and a row 5 % off is still flagged.

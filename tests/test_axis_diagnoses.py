@@ -1,4 +1,4 @@
-"""What the tables' drivers say when something goes wrong (issue 22, item 9's axis parts), through
+"""What the tables' drivers say when something goes wrong, through
 the real drivers on the emulators: a lost stop acknowledgement is not a stall; "the tables are
 still" only once their status says so (a stop decelerates: AZ STOP input and SMC100 ``ST``,
 hardware_protocols.md §2.1 "Stop (decelerate)" and §2.2 "Stop"); the SMC100 homing timeout says

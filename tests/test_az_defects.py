@@ -1,4 +1,4 @@
-"""Defects the vendor-document emulators showed in the AZ driver and the Modbus link (issue 11),
+"""Defects the vendor-document emulators showed in the AZ driver and the Modbus link,
 each against the emulator written from the manuals: a STOP input left on, busy devices and
 gateways, the RTU silent interval, and why a port does not open."""
 

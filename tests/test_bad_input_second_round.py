@@ -1,4 +1,4 @@
-"""Bad input, second round (issue 26): each gets one line naming the file or option, exit 2, and
+"""Bad input, second round: each gets one line naming the file or option, exit 2, and
 changes nothing — a readings file that is not a regular file (a pipe with no writer or a stalling
 one, a device), `simulate --out` onto an existing file, a receipt date in the future, an AZ
 emulator whose port is taken, readings that make S singular."""

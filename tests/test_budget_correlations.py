@@ -1,4 +1,4 @@
-"""Correlations in the budget (issue 23, item 3): the DMM's gain may be one error common to the three
+"""Correlations in the budget: the DMM's gain may be one error common to the three
 channels (a scanning DMM reads them through one ADC) or independent per channel. Each row is checked
 against the GUM formula u_i = |c_i|·u(x_i) with the sensitivity c_i found here by perturbing the
 coefficients and inferring the attitude again, and the stated U95 against a Monte Carlo of the

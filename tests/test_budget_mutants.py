@@ -1,4 +1,4 @@
-"""The GUM budget row by row against values derived without it (issue 21, docs/mutation.md).
+"""The GUM budget row by row against values derived without it (docs/mutation.md).
 
 Coefficients: each bench error is applied to noise-free readings as the bench would make it (a table
 off by δ at one angle, a plate seated off by δ for one mounting, a DMM reading ε too high), the
@@ -101,7 +101,7 @@ def _u_of(half_width: float, names: tuple[str, ...], groups: np.ndarray) -> np.n
 
 def _u_of_table(half_width: float, names: tuple[str, ...], groups: np.ndarray, angle_deg: np.ndarray
                 ) -> np.ndarray:
-    """A table error in its two shapes (issue 23): a rough table, one rectangular error ±half_width per
+    """A table error in its two shapes: a rough table, one rectangular error ±half_width per
     table angle (u = a/√3), and a smooth one, six harmonic amplitudes of u²/3 each; independent, so
     their variances add."""
     rough = _u_of(half_width, names, groups)

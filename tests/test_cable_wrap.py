@@ -1,4 +1,4 @@
-"""Cable wrap (issue 22, item 3): tables without slip rings keep their accumulated rotation from
+"""Cable wrap: tables without slip rings keep their accumulated rotation from
 home within ±cable_wrap_deg, over a whole run and across a resume; a plan that cannot is refused
 before anything moves. The windings are checked against the emulators' own record of where their
 tables turned (`SimAxis.record`: the unwrapped angle at every start and end of a move), not

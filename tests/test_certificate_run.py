@@ -63,7 +63,7 @@ def test_the_default_dry_run_is_certified_on_the_device_model_it_fitted(tmp_path
     for name, m in cert.device.misalignments.items():
         assert abs(truth[name] * 3600) >= 18  # the rig's default is realistic: tens of arcseconds
         # The ±2″ index errors and wobble the rig adds at each table angle bias each estimate by up to
-        # about their amplitude; the device model now carries them (issue 23), so its U covers that.
+        # about their amplitude; the device model now carries them, so its U covers that.
         assert abs(m.value_arcsec - truth[name] * 3600) <= m.U_arcsec, (name, m, truth[name] * 3600)
         assert m.U_arcsec == pytest.approx(cert.device.coverage_factor_95 * m.u_arcsec)
     # the budget's device-misalignment row is the readings' share of their u (the fit without the

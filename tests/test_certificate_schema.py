@@ -1,4 +1,4 @@
-"""The typed certificate and its published JSON Schema (issue 25).
+"""The typed certificate and its published JSON Schema.
 
 Certificates written before the sections were typed (tests/data/certificates, by f6969bc's labcal;
 tests/data/v0, by a8863ee's) must read back through the models to the very bytes they were issued

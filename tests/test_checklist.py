@@ -1,4 +1,4 @@
-"""The pre-run checklist (issue 26): each item ok and failing on real station objects (the simulated
+"""The pre-run checklist: each item ok and failing on real station objects (the simulated
 rig, and the emulated stations through the real drivers), `station check --json`, a run refused
 before anything moves, and a station's output units reaching fit.json and the certificate.
 

@@ -218,7 +218,7 @@ def test_run_sim_yes_end_to_end(tmp_path):
     summary = json.loads(proc.stdout)
     assert summary["points"] == 64 and summary["wall_time_s"] < 10
     assert summary["simulated_rig_time_s"] > 20 * 60  # 64 points and 4 remounts take real time
-    # device.json too: the device estimate is the run's, report or not (issue 26)
+    # device.json too: the device estimate is the run's, report or not
     assert {p.name for p in run_dir.iterdir()} == {"readings.csv", "fit.json", "plan.toml", "run.json",
                                                    "device.json"}
     assert proc.stderr.count("(--yes: confirmed)") == 4

@@ -1,4 +1,4 @@
-"""Where the lab database is (issue 24's interface): a path, `sqlite:///PATH` or
+"""Where the lab database is: a path, `sqlite:///PATH` or
 `postgresql://USER@HOST:PORT/DBNAME` in --db, $LABCAL_DB or the lab file; any other `SCHEME://` is
 one line, never a folder named after it."""
 

@@ -1,4 +1,4 @@
-"""A run of a plan that relies on a device correction (issue 27 §2): `labcal run` checks the correction
+"""A run of a plan that relies on a device correction: `labcal run` checks the correction
 still applies, fits with the calibration device's misalignments held at its values and carries their u
 as a Type B input, and the certificate, the report and the DCC say so.
 

@@ -1,4 +1,4 @@
-"""The calibration device's history (issue 12): estimates stored per device id, changes flagged."""
+"""The calibration device's history: estimates stored per device id, changes flagged."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The device model (issue 12): the calibration device's misalignments estimated with the instrument.
+"""The device model: the calibration device's misalignments estimated with the instrument.
 
 Expected values come from the simulator's truth (`labcal.sim.direct`, the kinematics of Soto eq. 11
 with known misalignments), from finite differences, or from the identifiability table of the issue;
@@ -63,7 +63,7 @@ def test_noise_free_recovery_of_large_misalignments(seed):
     assert np.max(np.abs(fit.coefficients - truth.X)) < 1e-12
 
 
-# --- identifiability: the table of issue 12 ---------------------------------------------------------
+# --- identifiability: which mounts identify which misalignment ------------------------------------------
 def antisymmetric(direction, first: str, second: str) -> bool:
     return set(direction.combination) == {first, second} and \
         direction.combination[first] == pytest.approx(-direction.combination[second], abs=1e-9) and \

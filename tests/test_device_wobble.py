@@ -1,4 +1,4 @@
-"""The device model when the tables wobble (issue 23, item 1): the tables' stated index and wobble
+"""The device model when the tables wobble: the tables' stated index and wobble
 errors are per-point angle errors, one per table angle, and enter the misalignments' and coefficients'
 covariance. Checked three ways: the covariance against refitting perturbed readings (the GUM formula
 u² = Σ cᵢ²uᵢ² with each cᵢ found by a refit, not by the code's projection), coverage by Monte Carlo

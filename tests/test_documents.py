@@ -46,3 +46,18 @@ def test_no_document_points_outside_the_repository():
     pages = [REPOSITORY / "README.md", *sorted((REPOSITORY / "docs").rglob("*.md"))]
     outside = [page.name for page in pages if "../shared" in page.read_text(encoding="utf-8")]
     assert not outside
+
+
+def test_no_code_cites_an_issue_number_a_clone_cannot_read():
+    import labcal
+    import labcal.drivers
+    import labcal.sim
+
+    folders = {Path(package.__file__).resolve().parent for package in (labcal, labcal.drivers, labcal.sim)}
+    files = [path for folder in folders for path in folder.rglob("*.py")]
+    files += [path for folder in ("tests", "benchmarks", "tools")
+              for path in (REPOSITORY / folder).rglob("*.py")]
+    cited = [f"{path.name}:{number}" for path in files
+             for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
+             if re.search(r"\bissues? \d+", line) and path.name != "test_documents.py"]
+    assert not cited, "cite the paper, the manual or docs/ instead: " + ", ".join(cited)

@@ -59,7 +59,7 @@ def test_a_four_mount_calibration_through_the_drivers_recovers_the_truth(station
     X = np.array(summary["fit"]["coefficients"])
     assert summary["points"] == 64 and summary["points_failed"] == 0 and meta["status"] == "complete"
     assert np.max(np.abs(X - truth)) < 1e-4
-    # issue 22 item 4: the DMM's >10 GΩ input is declared; a 10 MΩ one on the 5 kΩ outputs would
+    # the DMM's >10 GΩ input is declared; a 10 MΩ one on the 5 kΩ outputs would
     # make every sensitivity 10e6/(10e6 + 5e3) - 1 = -500 ppm off (the 1e-4 V/g above is 20 ppm)
     assert np.max(np.abs(np.diag(X[1:]) / np.diag(truth[1:]) - 1)) < 50e-6
     assert err.count("(--yes: confirmed)") == 4 and "preparing the pitch table" in err

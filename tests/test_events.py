@@ -1,5 +1,5 @@
-"""The run's events (issue 25): the bus's two tiers, subscribers that fail, the event stream of a
-simulated run against its journal and its schedule; and `labcal run --sim --pace X` (issue 24)."""
+"""The run's events: the bus's two tiers, subscribers that fail, the event stream of a
+simulated run against its journal and its schedule; and `labcal run --sim --pace X`."""
 
 from __future__ import annotations
 

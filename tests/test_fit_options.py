@@ -1,4 +1,4 @@
-"""Fit options on the shipped plans, honest digits and progress (issue 15)."""
+"""Fit options on the shipped plans, honest digits and progress."""
 
 from __future__ import annotations
 

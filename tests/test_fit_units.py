@@ -1,4 +1,4 @@
-"""`labcal fit` for instruments that do not speak volts (issue 26): --units V|mV|counts|m/s2, or
+"""`labcal fit` for instruments that do not speak volts: --units V|mV|counts|m/s2, or
 the readings file's "# units = …" line or units column. Sensitivities are then per g in those
 units, only volts are held to a DMM's range, and an out-of-range volt names --units.
 

@@ -1,4 +1,4 @@
-"""Seeded fuzz of the readings parser, `labcal fit` and `labcal attitude --csv` (issue 26): on any
+"""Seeded fuzz of the readings parser, `labcal fit` and `labcal attitude --csv`: on any
 fuzzed readings file each exits 0 or 2 — never a traceback, never a stray warning — and the parser
 accepts the file or refuses it in one line. `fuzz_readings` says how the files are made; a
 failure names the seed that rebuilds its file. The ordinary suite runs a sample and the seeds

@@ -1,4 +1,4 @@
-"""Gross-error checks (issue 15): good data is flagged at no more than the stated rate (Monte Carlo),
+"""Gross-error checks: good data is flagged at no more than the stated rate (Monte Carlo),
 and the blunders a technician makes are flagged, by row."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """The journal's every write and read, checked against what was put in by hand, the published SHA-256
-test vectors (FIPS 180-2) and the raw bytes and pragmas read back with sqlite3 itself (issue 21,
-docs/mutation.md)."""
+test vectors (FIPS 180-2) and the raw bytes and pragmas read back with sqlite3 itself
+(docs/mutation.md)."""
 
 from __future__ import annotations
 

@@ -205,7 +205,7 @@ def test_the_high_impedance_input_is_declared_and_a_10_megohm_input_reads_500_pp
     volts = "(@101,102,103)"
     assert meter.link.query(f"INP:IMP:AUTO? {volts}") == "1,1,1"  # the driver's configuration sent it
     assert _loading(emulation, meter) == pytest.approx(10e9 / (10e9 + 5e3), abs=20e-6)
-    meter.link.write_line(f"INP:IMP:AUTO OFF,{volts}")  # labcal before issue 22: the reset default
+    meter.link.write_line(f"INP:IMP:AUTO OFF,{volts}")  # labcal once did: the reset default
     assert _loading(emulation, meter) == pytest.approx(10e6 / (10e6 + 5e3), abs=20e-6)
     assert 10e6 / (10e6 + 5e3) == pytest.approx(1 - 500e-6, abs=1e-6)
 

@@ -91,7 +91,7 @@ def test_a_missing_labcal_config_file_is_one_line(tmp_path, monkeypatch, capsys)
 
 
 def test_labcal_config_shows_where_notifications_go_and_no_token(tmp_path, capsys, monkeypatch):
-    """The lab file's ``notify`` (issue 24) by scheme only (an apprise URL holds its service's token),
+    """The lab file's ``notify`` by scheme only (an apprise URL holds its service's token),
     and $LABCAL_NOTIFY over it, even empty."""
     lab = tmp_path / "lab.toml"
     lab.write_text('notify = ["tgram://123456:SECRET/42", "json://127.0.0.1:8080/hook"]\n')

@@ -1,4 +1,4 @@
-"""The load benchmark (benchmarks/lab_load.py, issue 24) in small: three paced stations into one
+"""The load benchmark (benchmarks/lab_load.py) in small: three paced stations into one
 `labcal serve` and one private PostgreSQL while its client polls the API 10×/s and holds an event
 stream per run. Every reading each station journaled is in PostgreSQL exactly once with equal
 values, no request failed, and each stream brought each point of its run once.

@@ -1,4 +1,4 @@
-"""The lab server (issue 24) against a lab database of real simulated runs: tokens (401), roles (403),
+"""The lab server against a lab database of real simulated runs: tokens (401), roles (403),
 the runs the API lists compared with the journal as sqlite3 reads it, the web login's session
 cookie and CSRF checks, and what the users table keeps (hashes only).
 

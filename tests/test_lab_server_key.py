@@ -1,4 +1,4 @@
-"""One lab server key for every approver (issue 24): the key is registered with the role "lab server",
+"""One lab server key for every approver: the key is registered with the role "lab server",
 the server signs with it for the approver who is signed in, and the certificate names that approver,
 their user id among the server's users, the meaning and how they authenticated; `labcal certificate
 verify` accepts it and says who approved and through what. Refused: a technician, a key registered as

@@ -1,4 +1,4 @@
-"""A PostgreSQL lab database (issue 24), against a real PostgreSQL server (tests/services.py): every
+"""A PostgreSQL lab database, against a real PostgreSQL server (tests/services.py): every
 reading journaled by a station reaches it exactly once — from three stations at once, through a
 10 s outage of the server mid-run, and by `labcal sync` after a run made while it was down — and
 the one-line refusals of a database behind or ahead, an unknown scheme, a missing driver and an

@@ -1,4 +1,4 @@
-"""Serial line settings the operating system refuses (issue 22 item 8): one line naming the device,
+"""Serial line settings the operating system refuses: one line naming the device,
 the port and the setting, exit 2, no traceback; the port is not reopened for the reconnect budget
 (it would be refused the same way)."""
 

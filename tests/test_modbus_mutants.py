@@ -1,4 +1,4 @@
-"""The Modbus link's arithmetic and reply checks against the specifications (issue 21, docs/mutation.md):
+"""The Modbus link's arithmetic and reply checks against the specifications (docs/mutation.md):
 t3.5 from Modbus over Serial Line V1.02 §2.5.1.1 (3.5 character times, 1.75 ms above 19200 Bd), the
 exception codes of the Modbus Application Protocol V1.1b3 §7, two's complement by hand. The clock of
 the silent interval is a fake one, so nothing here depends on how busy the machine is; late bytes sit

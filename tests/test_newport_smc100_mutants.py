@@ -1,4 +1,4 @@
-"""The SMC100's replies decoded as the manual documents them (issue 21, docs/mutation.md).
+"""The SMC100's replies decoded as the manual documents them (docs/mutation.md).
 
 Every expected value is transcribed from hardware_protocols.md §2.2 ("Controller states", "Positioner
 error bits", "Command error codes", reply syntax `1TP` → `1TP45.00012`); where the driver spells out an
@@ -278,7 +278,7 @@ def test_prepare_refuses_a_stage_with_a_positioner_error(smc_slow):
     assert str(err.value) == f"{device}: DISABLE from MOVING (3Dh), positioner error: following error"
 
 
-# --- issue 21 after the merges: software limits, stops to every table, a lost PA acknowledgement --
+# --- software limits, stops to every table, a lost PA acknowledgement --
 import re  # noqa: E402
 import time  # noqa: E402
 
@@ -609,7 +609,7 @@ def test_exchanges_are_critical_sections_of_a_run(smc):
 
     emulation, bench = smc
     entered: list[int] = []
-    waits: list[int] = []  # the waits for a reply, which a stop may cut short (issue 22)
+    waits: list[int] = []  # the waits for a reply, which a stop may cut short
 
     @contextmanager
     def section(awaiting_reply: bool = False):

@@ -1,4 +1,4 @@
-"""Notifications through apprise (issue 24), received for real: apprise's ``json://`` posts each one
+"""Notifications through apprise, received for real: apprise's ``json://`` posts each one
 to an HTTP endpoint this test serves on a free port. The texts expected are written here from the
 plan and the station chosen (Soto Table 3's mounts in the technician's words), the run's own files
 (run.json, fit.json) and the emulated alarm's meaning in the AZ manual — never from the notifier."""

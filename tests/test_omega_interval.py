@@ -1,4 +1,4 @@
-"""Ω's 95 % interval (issue 23 item 6): Ω ≥ 0 is the length of a 2-D vector, so Ω̂ ± 1.96·u covers a
+"""Ω's 95 % interval: Ω ≥ 0 is the length of a 2-D vector, so Ω̂ ± 1.96·u covers a
 true Ω of 0 only 85 % of the time. The interval from the length's own distribution (noncentral F,
 Rice with σ estimated) covers at least 95 %: Monte Carlo of whole calibrations, at Ω = 0 and near it.
 The distribution function is checked against scipy (a second library)."""

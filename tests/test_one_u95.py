@@ -1,4 +1,4 @@
-"""One attitude U95 (issue 23, item 2): `labcal attitude --cert`, certificate.json (its budget and its
+"""One attitude U95: `labcal attitude --cert`, certificate.json (its budget and its
 attitude envelope), the report and the DCC state the same U95 for the same attitude, and it is the
 complete one — Type A and the station's Type B — not the fit's Type A alone."""
 

@@ -1,5 +1,5 @@
 """The AZ driver's words and registers against the register map, alarm table and reference frames of
-hardware_protocols.md §2.1 (issue 21, docs/mutation.md): each expected value is transcribed from there."""
+hardware_protocols.md §2.1 (docs/mutation.md): each expected value is transcribed from there."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""`labcal plan optimize` (issue 27 §2): the quickest plan whose predicted attitude U95 meets a target.
+"""`labcal plan optimize`: the quickest plan whose predicted attitude U95 meets a target.
 
 The expectations do not come from the optimizer: the rig time of the plan it writes is timed by the
 run's own estimate (`labcal.run.estimate`, what `labcal run --dry-run` prints) against four-mount-64's;

@@ -1,4 +1,4 @@
-"""The least-squares core at its edges, each expected value worked by hand in the test (issue 21).
+"""The least-squares core at its edges, each expected value worked by hand in the test.
 
 Written against the mutants that survived the regression tests (docs/mutation.md): a square design,
 the covariance of one column, float32 input, badly scaled columns, a column of rounding noise, and the

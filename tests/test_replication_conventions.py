@@ -1,4 +1,4 @@
-"""σ_bias: labcal's convention against Tripp & Tcheng's Table 2 (issue 23 item 6), and noise-free
+"""σ_bias: labcal's convention against Tripp & Tcheng's Table 2, and noise-free
 replicated readings accepted with a note.
 
 The two conventions (labcal.analysis.replication's docstring derives them): labcal's σ̂_bias² =

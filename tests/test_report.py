@@ -183,7 +183,7 @@ def test_html_is_one_self_contained_file(outputs):
     text = outputs.html_path.read_text(encoding="utf-8")
     assert not re.search(r"https?://|<link|<script|url\(", text)
     images = re.findall(r'<img alt="[^"]*" src="data:image/png;base64,([^"]+)"', text)
-    # four figures, and the device model's residuals: four-mount-64 identifies the device (issue 12)
+    # four figures, and the device model's residuals: four-mount-64 identifies the device
     assert len(images) == 5 and all(base64.b64decode(i)[:8] == b"\x89PNG\r\n\x1a\n" for i in images)
     for t in tables(outputs.certificate):
         assert t.title.replace("&", "&amp;") in text

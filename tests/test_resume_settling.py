@@ -1,4 +1,4 @@
-"""The first point after a resume meets the same settle criterion as every other (issue 22, item 10).
+"""The first point after a resume meets the same settle criterion as every other.
 
 A resumed run reaches its first point from the load position, and on a real bench nothing resets
 the instrument's output while the operator confirms the mount: the long move to the load position

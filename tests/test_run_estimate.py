@@ -1,4 +1,4 @@
-"""The duration a run is estimated to take on the rig's clock (issue 26, Commands): one figure,
+"""The duration a run is estimated to take on the rig's clock: one figure,
 the one `--dry-run` prints, kept in run.json and in `labcal run --json` as estimated_rig_time_s
 beside the rig time the run took."""
 
@@ -30,7 +30,7 @@ def test_the_estimate_is_the_dry_runs_and_is_kept_beside_the_actual(station, tmp
     assert kept["estimated_rig_time_s"] == dry["total_s"]
 
 
-ESTIMATE_WITHIN = 0.05  # issue 26: "within 5 % of the actual run"
+ESTIMATE_WITHIN = 0.05  # the estimate's promise: within 5 % of the actual run
 
 
 @pytest.mark.slow

@@ -1,4 +1,4 @@
-"""What a run records about itself (issue 26): where its folder is (absolute, so that `labcal
+"""What a run records about itself: where its folder is (absolute, so that `labcal
 export RUN_ID` finds it from any folder), why it stopped (`labcal log`), every answer at a prompt,
 and the device estimate whether or not a report is made."""
 

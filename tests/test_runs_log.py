@@ -1,4 +1,4 @@
-"""`labcal runs` and `labcal log RUN` (issue 15): the lab's runs and one run's journaled events."""
+"""`labcal runs` and `labcal log RUN`: the lab's runs and one run's journaled events."""
 
 from __future__ import annotations
 
@@ -42,8 +42,8 @@ def test_runs_lists_and_filters_and_log_shows_prompts_and_answers(tmp_path, caps
     code, out, _ = _run(capsys, monkeypatch, "log", "2", "--json")  # by id
     events = json.loads(out)["events"]
     kinds = [e["kind"] for e in events]
-    assert kinds[0] == "segment"  # the run's clock starts (its offset is journaled: issue 16)
-    # the tables go to the load position (each move journaled before it starts: issue 22), then the prompt
+    assert kinds[0] == "segment"  # the run's clock starts (its offset is journaled:)
+    # the tables go to the load position (each move journaled before it starts:), then the prompt
     assert kinds[1:4] == ["move", "prompt", "answer"] and all(e["utc"] for e in events)
 
 

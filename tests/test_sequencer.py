@@ -286,7 +286,7 @@ def test_a_device_fault_with_nobody_to_answer_stops_and_keeps_every_point(tmp_pa
     setup.station.roll.move_to = failing_move
     answers = tmp_path / "answers.txt"
     answers.write_text("y\n")  # mount 1 only: the pause finds no answer
-    # the fault is why the run stopped; the unanswered pause comes second (issue 26)
+    # the fault is why the run stopped; the unanswered pause comes second
     with pytest.raises(OperatorDeclined, match=r"^fault: roll table \(simulated\): alarm 0x30 overload; "
                                                "paused, and the answers file has no answer left for this "
                                                "prompt$"):

@@ -1,4 +1,4 @@
-"""Simulated stays simulated (issue 23, item 4): a dry run's certificate.json, report (HTML and PDF)
+"""Simulated stays simulated: a dry run's certificate.json, report (HTML and PDF)
 and DCC say so first; its budget lists the simulator's own error sources at the sizes the rig applies
 them; `certificate approve` refuses it (tests/test_approvers.py shows the one line)."""
 

@@ -1,4 +1,4 @@
-"""One run per station at a time (issue 22 item 7): across processes, for serial and TCP links,
+"""One run per station at a time: across processes, for serial and TCP links,
 held while the run waits at a prompt; a second run is one line naming the station and who holds it;
 a lock left by a killed process is taken over with a note; an address another emulator serves is
 one line, not pymodbus's traceback."""

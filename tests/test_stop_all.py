@@ -1,4 +1,4 @@
-"""Stop all at once (issue 22, item 2): a stop goes to every table before any is waited for, so a
+"""Stop all at once: a stop goes to every table before any is waited for, so a
 controller that obeys but never replies (a dead one) delays nothing: the live table is stopped
 within 0.5 s whatever the other does. Through the real drivers on the emulators; latencies are the
 emulators' record of when each stop command reached its table (`stops`), in the rig's time, from
@@ -29,7 +29,7 @@ from labcal.sim.faults import Fault
 # controller before the live table's would arrive after 0.6 s and fail the bound; one that waits
 # for none needs a few milliseconds of work, the rest of the 0.5 s is scheduling margin.
 TIMEOUT_S = 0.6
-BOUND_S = 0.5  # issue 22: the live table is stopped within 0.5 s whatever the other does
+BOUND_S = 0.5  # the live table is stopped within 0.5 s whatever the other does
 LINK = {"timeout_s": TIMEOUT_S, "retries": 2, "reconnect_s": 0.5}
 DEAD = 10**6  # requests a dead controller executes without replying: all of them
 
@@ -148,8 +148,8 @@ def test_a_run_whose_controller_dies_stops_the_other_table_at_once(station, dead
     assert len(pauses) == 1 and f"{dead} table" in pauses[0] and "no reply" in pauses[0]
 
 
-# A stop signal while an exchange with the dead controller waits for its reply (issue 22: "the live
-# table is stopped within 0.5 s whatever the other does"). Before, the stop was deferred to the
+# A stop signal while an exchange with the dead controller waits for its reply (the live
+# table is stopped within 0.5 s whatever the other does). Before, the stop was deferred to the
 # exchange's end, one reply timeout (0.6 s here) and on SMC100 the TE that explains the silence
 # (another 0.6 s) later. Now the wait for a reply is cut by the stop; the line is taken back once it
 # has been quiet for the cut's grace (a live device's reply on its way ends first) and the stops go

@@ -36,7 +36,7 @@ def test_the_same_driver_scans_through_pyvisa_py(station, tmp_path, no_leaks):  
         with Bench(config, emulation.rig.clock) as bench:
             assert isinstance(bench.dmm.link, VisaLink) and bench.dmm.device.endswith(f"VISA {resource})")
             assert bench.dmm.identify().startswith("Keysight Technologies,34970A,")
-            if dmm.port is not None:  # issue 22 item 9: the station's XON/XOFF reaches the port itself
+            if dmm.port is not None:  # the station's XON/XOFF reaches the port itself
                 instrument = bench.dmm.link._instrument
                 port = instrument.visalib.sessions[instrument.session].interface
                 iflag = termios.tcgetattr(port.fd)[0]

@@ -1,4 +1,4 @@
-"""Readings kept only while both tables vouch for them (issue 22, item 1): the sequencer reads each
+"""Readings kept only while both tables vouch for them: the sequencer reads each
 table's status and position before and after every measurement window. A window during which a
 table faulted (an AZ alarm, an SMC100 following error or disable) is journaled as discarded and the
 run pauses with one line naming the table and what it reported; a window during which a table crept

@@ -1,4 +1,4 @@
-"""Every wrong input gets one line (issue 15): the options that used to end in a traceback or were
+"""Every wrong input gets one line: the options that used to end in a traceback or were
 accepted silently, each refused in one line naming the option and its valid range, exit 2."""
 
 from __future__ import annotations
@@ -153,7 +153,7 @@ def test_closed_form_pitch_uncertainty_is_undefined_at_the_pole_never_huge(tmp_p
     main(["attitude", "--cert", fit_json, "--csv", str(volts), "--allow-outliers"])
     row = next(csv.DictReader(io.StringIO(capsys.readouterr().out)))
     # asin has no usable slope where g_x is clipped: the closed form's linear uncertainty is stated
-    # as undefined (issue 13), the sphere estimator's stays a small number
+    # as undefined, the sphere estimator's stays a small number
     assert row["cf_u_pitch_deg"].lower() in ("", "nan", "undefined")
     assert 0 < float(row["ls_u_pitch_deg"]) < 0.1
 

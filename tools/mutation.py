@@ -1,4 +1,4 @@
-"""Mutation testing of the modules whose arithmetic and bytes a certificate rests on (issue 21 item 4).
+"""Mutation testing of the modules whose arithmetic and bytes a certificate rests on.
 
 Run from the repository root, in the test venv with the ``mutation`` extra (mutmut 3)::
 
@@ -63,7 +63,7 @@ TARGETS: dict[str, Target] = {
     "modbus": Target("labcal/drivers/modbus.py",
                      ("tests/test_modbus_frames.py", "tests/test_az_defects.py", "tests/test_transcripts.py",
                       "tests/test_driver_logging.py")),
-    # the stops, window checks and diagnoses of issue 22 are tested through both drivers
+    # the stops, window checks and diagnoses are tested through both drivers
     "newport_smc100": Target("labcal/drivers/newport_smc100.py",
                              ("tests/test_newport_smc100.py", "tests/test_transcripts.py",
                               "tests/test_stop_all.py", "tests/test_axis_diagnoses.py")),

@@ -94,7 +94,7 @@ class TypeBInputs:
     # Standard uncertainties (rad, normal) of the device misalignments a…k where a device model
     # estimated them (`fit --model device`); empty: the row is absent.
     device_misalignment: dict[str, float] = field(default_factory=dict)
-    # Where they are not this run's estimates but a plan's device correction (issue 27): the estimate
+    # Where they are not this run's estimates but a plan's device correction: the estimate
     # they come from, in words (""; the device model of this run estimated them).
     device_misalignment_source: str = ""
 

@@ -255,7 +255,7 @@ class DeviceFit:
         return sd
 
     def to_json(self) -> dict[str, Any]:
-        """The device fit JSON contract (issue 12): the linear layout for `coefficients`, plus the
+        """The device fit JSON contract: the linear layout for `coefficients`, plus the
         misalignments in arcseconds, the full correlation, identifiability and the tests."""
         k = self.k95
         se = self.stderr

@@ -1,4 +1,4 @@
-"""Per-angle index errors of the two tables, estimated beside the device model (issue 12, item 5).
+"""Per-angle index errors of the two tables, estimated beside the device model.
 
 A table that stops at an angle errs the same way every time it returns there: the pitch table's
 index error at pitch pᵢ adds to the pitch misalignment a at every point at pᵢ (prot(p)·prot(a) is

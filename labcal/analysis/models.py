@@ -82,7 +82,7 @@ class Model:
     t_ref: float = 20.0
     dropped: tuple[str, ...] = ()  # extension terms the plan cannot estimate (aliased), left out
     # The calibration device's misalignments a…k where they are known, not identified by the plan (a
-    # plan's device correction, issue 27): the regressors are the gravity they give, so the fit is
+    # plan's device correction): the regressors are the gravity they give, so the fit is
     # Soto's linear one with the device model's misalignments held at these values. None: nominal g.
     device: Misalignment | None = None
 

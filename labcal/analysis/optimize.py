@@ -1,4 +1,4 @@
-"""Plan for the uncertainty the customer needs (issue 27 §2): the predicted attitude U95 of a candidate
+"""Plan for the uncertainty the customer needs: the predicted attitude U95 of a candidate
 plan before anything moves, and a small search for the quickest plan that reaches a target.
 
 Prediction. A candidate is mounts × articulations (pitch, roll) × a measurement window of N DMM

@@ -5,7 +5,7 @@ bias: pure error is the scatter about the point means, lack of fit the distance 
 means from the model. Drift between replicates is tested on per-replicate fits. Everything is
 vectorised over the columns of Y (one per sensor, or one per Monte Carlo trial).
 
-σ_bias: two conventions, and why labcal follows the first (issue 23). Model (metrology_stats.md
+σ_bias: two conventions, and why labcal follows the first. Model (metrology_stats.md
 §2.1): y_ri = f(x_i; θ) + β_i + ε_ri over m points, R replicates, N = mR readings, p coefficients,
 with point biases β_i (variance σ_bias², repeated in every replicate) and precision errors ε_ri
 (variance σ_prec²). With H the m×m hat matrix of the points, SS_LOF = R‖(I − H)(β + ε̄)‖², and

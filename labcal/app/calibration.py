@@ -229,7 +229,7 @@ def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Esti
         with front.display(plan.n_points, done) as (display, terminal):
             events = EventBus()
             events.subscribe(display, kinds=display.KINDS)
-            if notifier is not None:  # remounts, pauses and the end, through apprise (issue 24)
+            if notifier is not None:  # remounts, pauses and the end, through apprise
                 events.subscribe(notifier.handle, kinds=notifier.KINDS)
             if sender is not None:  # a record journaled: sent to the lab's server now, not at the next poll
                 events.subscribe(lambda _: sender.wake())

@@ -298,7 +298,7 @@ def package_verdict(station: str) -> dict:
 
 
 def identifiability_table(name: str, ident) -> Table:
-    """Rank, condition and each misalignment's uncertainty per µg of reading noise (issue 12)."""
+    """Rank, condition and each misalignment's uncertainty per µg of reading noise."""
     import math
 
     from rich.table import Table
@@ -443,7 +443,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_optimize)
 
 
-# --- plan optimize (issue 27 §2) -----------------------------------------------------------------
+# --- plan optimize -----------------------------------------------------------------
 CORRECTION_NOTE = ("labcal run checks that the station's calibration device is that device and its history "
                    "is still in control, fits with the misalignments held at the estimate's values, carries "
                    "their u in the budget and states the correction on the certificate")

@@ -1,4 +1,4 @@
-"""A plan's device correction (issue 27 §2): the ``[device_correction]`` table `labcal plan optimize
+"""A plan's device correction: the ``[device_correction]`` table `labcal plan optimize
 --device` writes where the calibration device's misalignments are known from its in-control history,
 read into a validated model, and written back as TOML."""
 

@@ -116,7 +116,7 @@ class LabFile(BaseModel):
     instruments: InstrumentsSection = Field(default_factory=InstrumentsSection)
     notify: list[str] = Field(default_factory=list,
                               description="apprise URLs told of each remount, pause and run's end "
-                                          "(issue 24); $LABCAL_NOTIFY goes over it")
+                                          "; $LABCAL_NOTIFY goes over it")
 
 
 @dataclass(frozen=True)

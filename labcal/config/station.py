@@ -22,7 +22,7 @@ from labcal.errors import LabcalError
 
 # The 34970A's settable integration times (power-line cycles) and DC volts ranges: others are
 # answered with error -222 (34970A/34972A User's Guide, DC voltage measurements).
-DEFAULT_CABLE_WRAP_DEG = 360.0  # a table without slip rings: a turn either way from home (issue 22)
+DEFAULT_CABLE_WRAP_DEG = 360.0  # a table without slip rings: a turn either way from home
 NPLC_VALUES = (0.02, 0.2, 1.0, 2.0, 10.0, 20.0, 100.0, 200.0)
 RANGES_V = (0.1, 1.0, 10.0, 100.0, 300.0)
 

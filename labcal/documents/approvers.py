@@ -1,5 +1,5 @@
 """The people who may approve a certificate: name, role and Ed25519 public key, registered in the lab
-database by a lab administrator (issue 23).
+database by a lab administrator.
 
 A signature alone proves only that someone holding some key signed; the registry says whose key it
 is. `certificate approve` signs only with a registered, unrevoked key under the name and role it is

@@ -1,4 +1,4 @@
-"""Approving a run's certificate: the use case behind `labcal certificate approve` (issue 23).
+"""Approving a run's certificate: the use case behind `labcal certificate approve`.
 
 What is signed must be what the journal says. The draft in the run folder is a file anybody with
 access can edit, and its SHA-256 digest can be recomputed by whoever edits it, so approval does not

@@ -163,7 +163,7 @@ class Misalignment(Strict):
 
 
 class DeviceSection(Strict):
-    """The calibration device estimated with the instrument (issue 12): its six misalignments with
+    """The calibration device estimated with the instrument: its six misalignments with
     U at the device model's k, the instrument's intrinsic parameters, what the plan identifies, the
     F test that judged the model, and θ's full covariance (θ in `parameters` order, misalignments in
     rad², B in V², S in (V/g)²). Present where the certificate is built on the device model."""
@@ -544,7 +544,7 @@ class Digest(Strict):
 class Certificate(Strict):
     model_config = ConfigDict(validate_by_alias=True, validate_by_name=True, serialize_by_alias=True)
 
-    # First, so that the document's first line says it: a dry run's results are simulated (issue 23)
+    # First, so that the document's first line says it: a dry run's results are simulated
     notice: str | None = Field(default=None, exclude_if=_absent)
     schema_id: Literal["labcal.certificate/1"] = Field(alias="schema")
     certificate_id: str

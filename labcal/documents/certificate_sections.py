@@ -218,11 +218,11 @@ class BudgetInputs(Recorded):
     bias_tempco_v_per_k: float
     sensitivity_tempco_per_k: float
     device_misalignment: dict[str, float]
-    # The estimate a plan's device correction took them from (issue 27); absent: this run's device model
+    # The estimate a plan's device correction took them from; absent: this run's device model
     device_misalignment_source: str | None = None
 
 
-# --- a plan's device correction (issue 27) --------------------------------------------------------
+# --- a plan's device correction --------------------------------------------------------
 class DeviceCorrectionRecord(Strict):
     """The calibration device's misalignments a…k were not measured in this run: the plan's
     ``[device_correction]`` held them at an earlier estimate of the device's (its history in the lab

@@ -1,7 +1,7 @@
 """The calibration device's own history: every device-model estimate of its misalignments a…k,
 stored per calibration-device id in the lab database (table ``device_estimates``, `labcal.run.labdb`),
 and the changes between consecutive estimates that exceed their combined expanded uncertainty —
-the lab's health chart for its rotary tables (issue 12).
+the lab's health chart for its rotary tables.
 
 Each estimate comes from a finished run whose plan identifies all six misalignments; a run whose
 plan cannot is not stored (there is nothing to store). The device id is what the run recorded
@@ -236,7 +236,7 @@ def correction_for(device_id: str, db: str | Path | None = None, now: datetime |
 
 def check_correction(correction: DeviceCorrectionTable, device_id: str, db: str | Path | None = None,
                      plan: Plan | None = None) -> None:
-    """Whether a plan's device correction still applies to the station about to run it (issue 27):
+    """Whether a plan's device correction still applies to the station about to run it:
     the station's calibration device is the one corrected for, and its history still has the estimate
     the correction took with no flagged change (`RULE`) from it to the latest; the estimate is not
     expired (`expired`); and the plan's points see every misalignment it corrects for, so that its run

@@ -1,4 +1,4 @@
-"""The device model in a run's documents (issue 12): the calibration device's misalignments with U,
+"""The device model in a run's documents: the calibration device's misalignments with U,
 the instrument's intrinsic parameters, and the residuals of the linear and the device model side by
 side. Kept apart from the certificate's own tables so that the certificate can change without it:
 `labcal.documents.report` appends these where a run's plan identifies the device.

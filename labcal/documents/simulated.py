@@ -1,4 +1,4 @@
-"""Simulated stays simulated (issue 23): what a dry run's documents say about it, and the Type B
+"""Simulated stays simulated: what a dry run's documents say about it, and the Type B
 inputs of its budget.
 
 A dry run's readings come from labcal's simulated rig (`labcal run --sim`) or from its device

@@ -69,7 +69,7 @@ def bench_section(record: RunRecord, station: str | Path | None) -> CertificateS
     section = CertificateSection()
     if isinstance(record.station, StationFileSnapshot):
         section = record.station.section(f"{record.directory}: the run's station")
-    # a dry run: the simulator's own error sources at their simulated sizes (issue 23)
+    # a dry run: the simulator's own error sources at their simulated sizes
     return with_simulator_inputs(section, record.station, record.meta.get("settings") or {})
 
 
@@ -86,7 +86,7 @@ def type_b_inputs(section: CertificateSection, record: RunRecord, device: Device
                   ) -> TypeBInputs:
     """The bench's inputs in SI; the temperature half-range is the run's own (none without a channel);
     the device misalignments' standard uncertainties where the ``device`` model estimated them, or
-    where the run's plan corrected for them (its ``[device_correction]``'s u, issue 27)."""
+    where the run's plan corrected for them (its ``[device_correction]``'s u)."""
     device_misalignment = device_misalignment_u(device)
     correction = None if device is not None else \
         plan_correction(record.plan_text, f"{record.directory}: the run's plan")

@@ -40,7 +40,7 @@ class Derived:
 
     files: dict[str, bytes]
     fit: Fit | None
-    device: DeviceFit | None = None  # the device model, where the points identify it (issue 12)
+    device: DeviceFit | None = None  # the device model, where the points identify it
     model_note: str = ""  # which model fit.json holds, and why
 
 
@@ -92,10 +92,10 @@ def derive(journal: Journal, row: RunRow, status: str | None = None, reason: str
 def run_fits(readings: Readings, plan_text: str, station: StationSnapshot | None
              ) -> tuple[Fit, DeviceFit | None, str]:
     """A run's fits and the line saying which of them fit.json holds. A plan with a device correction
-    (issue 27): the linear fit on the gravity its misalignments give (held at the correction's values,
+   : the linear fit on the gravity its misalignments give (held at the correction's values,
     what the remounts it leaves out would have identified; Soto eq. 11), no device model. Else the
     device model where the points identify it, with the tables' index and wobble as the run's station
-    states them (issue 23), or the linear fit. LabcalError where the readings cannot be fitted."""
+    states them, or the linear fit. LabcalError where the readings cannot be fitted."""
     correction = plan_correction(plan_text, "the run's plan")
     if correction is not None:
         model = Model(t_ref=reference_temperature(readings), device=correction.misalignment())

@@ -1,5 +1,5 @@
 """Notifications through apprise: the technician learns of a remount, a pause or the end of a run
-without standing at the station's terminal (issue 24).
+without standing at the station's terminal.
 
 `LABCAL_NOTIFY` (comma-separated apprise URLs) or the lab file's ``notify`` names where they go
 (`labcal.config.lab.LabConfig.notify_urls`). The run's events reach a `RunNotifier`, a subscriber

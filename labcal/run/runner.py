@@ -70,7 +70,7 @@ class RunResult:
     outcome: RunOutcome
     fit: Fit
     wall_s: float
-    device: DeviceFit | None = None  # the device model, where the plan identifies it (issue 12)
+    device: DeviceFit | None = None  # the device model, where the plan identifies it
     model_note: str = ""  # which model fit.json holds, and why
 
 

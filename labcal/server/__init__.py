@@ -1,4 +1,4 @@
-"""The lab server (issue 24): one HTTP server for the whole lab, reading the lab database.
+"""The lab server: one HTTP server for the whole lab, reading the lab database.
 
 `labcal serve` runs it (`labcal.commands.serve` stays a thin front). This package is HTTP only and
 calls the application layer and nothing below it (an import contract says so): what it shows and

@@ -1,4 +1,4 @@
-"""The lab server's ASGI application: JSON API, server-sent event streams, pages (issue 24).
+"""The lab server's ASGI application: JSON API, server-sent event streams, pages.
 
 Two ways in, never mixed:
 

@@ -1,5 +1,5 @@
 """Make tests/data/certificates/: certificate.json files as labcal wrote them before the certificate's
-sections were typed (commit f6969bc, issue 25), so that the typed model is tested against documents
+sections were typed (commit f6969bc), so that the typed model is tested against documents
 it did not write. Not run by the tests; run by hand, once, from the repository root, with that
 labcal installed in .venv:
 

@@ -1,4 +1,4 @@
-"""The calibration device's own history (issue 12): each run's device-model estimate of the
+"""The calibration device's own history: each run's device-model estimate of the
 misalignments a…k per calibration-device id, for `labcal device history`.
 
 Revision ID: 0003

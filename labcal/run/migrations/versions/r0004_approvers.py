@@ -1,4 +1,4 @@
-"""Approvers registered by the lab (issue 23): name, role and Ed25519 public key of each person who
+"""Approvers registered by the lab: name, role and Ed25519 public key of each person who
 may approve a certificate. A name is active at most once; a key is registered once, ever.
 
 Revision ID: 0004

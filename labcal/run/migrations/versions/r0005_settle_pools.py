@@ -1,4 +1,4 @@
-"""Model settling's pooled step records (issue 27): per instrument (or type) and station, the sums
+"""Model settling's pooled step records: per instrument (or type) and station, the sums
 `labcal.run.settle.TailPool` keeps, so that a run starts with the records of the runs before it.
 
 Revision ID: 0005

@@ -1,4 +1,4 @@
-"""The lab as a whole (issue 24): each run names its station and its number of points (the lab's
+"""The lab as a whole: each run names its station and its number of points (the lab's
 view shows "N / TOTAL" per station), and the lab server's users, with their password and API token
 kept only as hashes.
 

@@ -1,4 +1,4 @@
-"""Every journaled record reaches the lab database exactly once (issue 24): an event keeps the id
+"""Every journaled record reaches the lab database exactly once: an event keeps the id
 it has in its station's journal (``events.origin_id``, unique per run), so sending it again after
 an outage adds nothing; and a station's journal keeps, per lab database it sends to, how far it has
 sent (``sync_cursors``: the last points rowid, events id and certificates rowid sent) and which lab
