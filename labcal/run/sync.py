@@ -253,8 +253,7 @@ class Sender:
         try:
             db.executemany(f"INSERT OR REPLACE INTO {record.table} ({', '.join(columns)}) VALUES "
                            f"({', '.join('?' * len(columns))})", rows)
-            db.executemany("INSERT INTO sync_sent (target, name, key, state) VALUES (?,?,?,?) "
-                           "ON CONFLICT (target, name, key) DO UPDATE SET state=excluded.state", states)
+            db.executemany(SENT, states)
             db.execute("COMMIT")
         except BaseException:
             if db.in_transaction:
@@ -317,8 +316,7 @@ class Sender:
                 db.executemany("INSERT INTO sync_cursors (target, name, position) VALUES (?,?,?) "
                                "ON CONFLICT (target, name) DO UPDATE SET position=excluded.position",
                                [(self.target, n, p) for n, p in moved.items()])
-                db.executemany("INSERT INTO sync_sent (target, name, key, state) VALUES (?,?,?,?) "
-                               "ON CONFLICT (target, name, key) DO UPDATE SET state=excluded.state", records)
+                db.executemany(SENT, records)
                 db.execute("COMMIT")
             except BaseException:
                 if db.in_transaction:
@@ -626,6 +624,11 @@ def send_now(db: str | Path | None) -> str | None:
     finally:
         sender.close()
     return None
+
+
+# what a journal notes of a record it sent to, or received from, a lab database: its state there
+SENT = ("INSERT INTO sync_sent (target, name, key, state) VALUES (?,?,?,?) "
+        "ON CONFLICT (target, name, key) DO UPDATE SET state=excluded.state")
 
 
 def _utc() -> str:
