@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 
 from labcal.config.files import write_atomic
 from labcal.config.plans import parse_plan
-from labcal.config.station import output_units
+from labcal.config.snapshot import output_units, parse_snapshot
 from labcal.errors import LabcalError
 from labcal.run.chain import check_server
 from labcal.run.exports import station_description
@@ -70,7 +70,8 @@ def lab_record(connection: Connection, run_id: int, directory: Path) -> RunRecor
     good = [PointRecord(**dict(zip(names, r, strict=True))) for r in connection.execute(
         select(*(points.c[n] for n in names)).where(points.c.run_id == run_id, points.c.status == "ok")
         .order_by(points.c.seq))]
-    readings = replace(readings_of(good, label), units=output_units(row.station_text))
+    station = parse_snapshot(row.station_text)
+    readings = replace(readings_of(good, label), units=output_units(station))
     said = connection.execute(select(events.c.utc, events.c.station_time, events.c.kind, events.c.message,
                                      events.c.data).where(events.c.run_id == run_id).order_by(events.c.id))
     logged = tuple({"utc": u, "station_time": t, "kind": k, "message": m,
@@ -86,7 +87,7 @@ def lab_record(connection: Connection, run_id: int, directory: Path) -> RunRecor
             "instrument_serial": row.instrument_serial, "operator": row.operator}
     plan = parse_plan(row.plan_text, f"{label} plan")
     return RunRecord(directory, readings, readings_digest(good), plan, row.plan_text, meta, tuple(notes),
-                     row.station_text, logged, chain=chain)
+                     station, logged, chain=chain)
 
 
 def draft_document(connection: Connection, serial: str | None, run_uuid: str) -> str | None:
