@@ -309,14 +309,14 @@ def test_user_add_asks_for_the_password_when_none_is_given(lab):
     def add(name: str, typed: str) -> subprocess.CompletedProcess:
         return subprocess.run([LABCAL, "user", "add", name, "--role", "viewer", "--db", lab["db"]],
                               input=typed, capture_output=True, text=True, timeout=60, start_new_session=True)
-    asked = add("hal", "hal's pw\nhal's pw\n")
+    asked = add("hal", "hal's passphrase\nhal's passphrase\n")
     assert asked.returncode == 0, asked.stderr
-    assert re.fullmatch(r"[A-Za-z0-9_-]{43}\n", asked.stdout) and "hal's pw" not in asked.stdout
+    assert re.fullmatch(r"[A-Za-z0-9_-]{43}\n", asked.stdout) and "hal's passphrase" not in asked.stdout
     client = httpx.Client(base_url=lab["url"], timeout=15)
     csrf = _csrf(client.get("/login").text)
-    signed = client.post("/login", data={"name": "hal", "password": "hal's pw", "csrf": csrf})
+    signed = client.post("/login", data={"name": "hal", "password": "hal's passphrase", "csrf": csrf})
     assert signed.status_code == 303
-    for name, typed, why in (("ian", "\n", "may not be empty"), ("jo", "one\ntwo\n", "differ")):
+    for name, typed, why in (("ian", "\n", "may not be empty"), ("jo", "one passphrase\ntwo passphrase\n", "differ")):
         refused = add(name, typed)
         assert refused.returncode == 2 and refused.stdout == "" and why in refused.stderr
     shown = labcal("user", "list", "--json", "--db", lab["db"]).stdout

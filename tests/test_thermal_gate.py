@@ -69,7 +69,8 @@ def test_the_estimate_includes_the_thermal_gates_least_wait_at_every_mount():
     free = estimate(plan, SequencerSettings(), timing)
     gated = estimate(plan, SequencerSettings(thermal_gate=GATE), timing)
     assert gated.total_s - free.total_s == pytest.approx(4 * 300.0, abs=1e-6)
-    assert gated.mounting_s - free.mounting_s == 4 * 300.0 and gated.thermal_s == 4 * 300.0
+    assert gated.mounting_s - free.mounting_s == pytest.approx(4 * 300.0, abs=1e-6)
+    assert gated.thermal_s == 4 * 300.0
 
 
 def test_a_dry_run_shows_the_thermal_gates_wait(tmp_path, capsys):

@@ -14,4 +14,4 @@ assert isinstance(finished, labcal.Finished), finished  # an unattended simulate
 certificate = labcal.read_certificate(finished.run_dir / "certificate.json")
 largest = certificate.attitude.pitch_U95_max_deg
 print(f"certificate {certificate.certificate_id}: largest pitch U95 {largest:.5f}°")
-print(f"the run's {labcal.open_run(finished.run_dir).points} points are in {finished.journal}")
+print(f"the run's {labcal.open_run(finished.run_dir).points_ok} points are in {finished.journal}")

@@ -616,9 +616,9 @@ class Sequencer:
                     self.status("mount")
                 failed += self.until_done(self.point, step)
                 self._next = k + 1
+                self.status("point")  # before the return below: its forecast counts that return
                 if k + 1 == len(todo) or todo[k + 1].block_start:
                     self.close_block(step.mount)
-                self.status("point")
                 if self.interrupts.pause_requested:
                     self.pause("Ctrl-C")
             self.verify(steps)
