@@ -316,7 +316,8 @@ def test_user_add_asks_for_the_password_when_none_is_given(lab):
     csrf = _csrf(client.get("/login").text)
     signed = client.post("/login", data={"name": "hal", "password": "hal's passphrase", "csrf": csrf})
     assert signed.status_code == 303
-    for name, typed, why in (("ian", "\n", "may not be empty"), ("jo", "one passphrase\ntwo passphrase\n", "differ")):
+    for name, typed, why in (("ian", "\n", "may not be empty"),
+                             ("jo", "one passphrase\ntwo passphrase\n", "differ")):
         refused = add(name, typed)
         assert refused.returncode == 2 and refused.stdout == "" and why in refused.stderr
     shown = labcal("user", "list", "--json", "--db", lab["db"]).stdout
