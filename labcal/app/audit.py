@@ -173,9 +173,15 @@ def account_state(lab: LabDatabase, account: str, now: datetime | None = None) -
     kinds = (*FAILURES, *RESETS, LOCKED)
     query = (select(audit.c.kind, audit.c.utc).where(audit.c.account == account, audit.c.kind.in_(kinds))
              .order_by(desc(audit.c.id)).limit(LOCK_AFTER + 1))
+    # locked until a reset follows the lock: a wrong guess heard after the lock (one that began before
+    # it, in parallel) does not lift it
+    last_lock_or_reset = (select(audit.c.kind).where(audit.c.account == account,
+                                                     audit.c.kind.in_((*RESETS, LOCKED)))
+                          .order_by(desc(audit.c.id)).limit(1))
     with lab.engine.connect() as conn:
         rows = conn.execute(query).all()
-    if rows and rows[0][0] == LOCKED:
+        locked = conn.execute(last_lock_or_reset).scalar() == LOCKED
+    if locked:
         return AccountState(LOCK_AFTER, True, 0.0)
     failures = 0
     for kind, _ in rows:

@@ -26,7 +26,6 @@ from labcal.analysis.gross_errors import SENSORS, Flag, fit_flags, implausible_v
 from labcal.analysis.kinematics import ARCSEC
 from labcal.analysis.readings import Readings
 from labcal.config.snapshot import (
-    SimulatedRigSnapshot,
     StationFileSnapshot,
     StationSnapshot,
     stated_angle_errors,
@@ -111,9 +110,7 @@ def repeatability_rad(station: StationSnapshot | None) -> tuple[float, float]:
         tables = [station.station.get(name, {}) for name in ("pitch", "roll")]
         stop = max(float(t.get("in_position_arcsec", IN_POSITION_ARCSEC)) for t in tables) * ARCSEC
         return stop, float(station.section().uncertainty.mount_repeatability)
-    if isinstance(station, SimulatedRigSnapshot):
-        return IN_POSITION_ARCSEC * ARCSEC, station.rig_config().device.mount_repeat_arcsec * ARCSEC
-    return IN_POSITION_ARCSEC * ARCSEC, 0.0
+    return IN_POSITION_ARCSEC * ARCSEC, stated_mount_repeatability(station)  # the rig's, as a half-width
 
 
 def closure(before: tuple[list[float], int], after: tuple[list[float], int], settle: dict,
@@ -131,7 +128,7 @@ def closure(before: tuple[list[float], int], after: tuple[list[float], int], set
     sd = float(np.sqrt(noise_v**2 / n0 + noise_v**2 / n1 + reach**2 * angle_var))
     diff = np.asarray(v1, dtype=float) - np.asarray(v0, dtype=float)
     limit = t_threshold(3, np.inf, alpha)
-    j = int(np.argmax(np.abs(diff)))
+    j = int(np.nanargmax(np.abs(diff)))  # a package's absent sensors (NaN) are passed over
     if not abs(diff[j]) > limit * sd:
         return None
     return (f"sensor {SENSORS[j]} reads {diff[j] * 1e3:+.3g} mV otherwise ({abs(diff[j]) / sd:.3g} times "

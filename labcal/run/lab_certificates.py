@@ -66,16 +66,20 @@ def lab_record(connection: Connection, run_id: int, directory: Path) -> RunRecor
     if row.status != "complete":
         why = f" ({row.reason})" if row.reason else ""
         raise LabcalError(f"{label} is {row.status}{why}; only a complete run gets a certificate")
-    names = [f.name for f in fields(PointRecord)]
-    good = [PointRecord(**dict(zip(names, r, strict=True))) for r in connection.execute(
-        select(*(points.c[n] for n in names)).where(points.c.run_id == run_id, points.c.status == "ok")
-        .order_by(points.c.seq))]
-    station = parse_snapshot(row.station_text)
-    readings = replace(readings_of(good, label), units=output_units(station))
     said = connection.execute(select(events.c.utc, events.c.station_time, events.c.kind, events.c.message,
                                      events.c.data).where(events.c.run_id == run_id).order_by(events.c.id))
     logged = tuple({"utc": u, "station_time": t, "kind": k, "message": m,
                     "data": json.loads(d) if d else None} for u, t, k, m, d in said)
+    # a point measured again in its own right: the lab's copy keeps it as sent (measured), and the
+    # run's chained `remeasured` event says which reading replaced it, as the journal's mark does
+    superseded = {int(e["data"]["seq"]) for e in logged
+                  if e["kind"] == "remeasured" and isinstance(e["data"], dict) and "seq" in e["data"]}
+    names = [f.name for f in fields(PointRecord)]
+    good = [p for p in (PointRecord(**dict(zip(names, r, strict=True))) for r in connection.execute(
+        select(*(points.c[n] for n in names)).where(points.c.run_id == run_id, points.c.status == "ok")
+        .order_by(points.c.seq))) if p.seq not in superseded]
+    station = parse_snapshot(row.station_text)
+    readings = replace(readings_of(good, label), units=output_units(station))
     chain = check_server(connection, run_id, label)
     notes = [] if chain.problem is None else [f"the lab's copy was changed after it was written: "
                                               f"{chain.problem}"]
@@ -97,7 +101,9 @@ def draft_document(connection: Connection, serial: str | None, run_uuid: str) ->
 
     from labcal.run.schema import certificates
 
-    rows = connection.execute(select(certificates.c.document).where(certificates.c.serial == serial)
+    # by the run it states, not its serial: a serial stripped or given at issue need not be the run's
+    rows = connection.execute(select(certificates.c.document)
+                              .where(certificates.c.document.contains(run_uuid))
                               .order_by(certificates.c.issued_utc.desc())).scalars()
     for document in rows:
         journal = ((json.loads(document).get("data") or {}).get("journal") or {})
@@ -189,7 +195,7 @@ def write_files(run_dir: Path, files: dict[str, bytes]) -> list[str]:
     """Write the approved files into a run's folder (atomically each, the certificate last); the
     names written (a file already identical is left alone)."""
     written = []
-    for name in sorted(files, key=lambda n: FILES.index(n) if n in FILES else -1):
+    for name in sorted((n for n in files if n in FILES), key=FILES.index):  # no other name lands there
         path = run_dir / name
         if path.is_file() and path.read_bytes() == files[name]:
             continue

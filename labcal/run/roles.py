@@ -94,6 +94,8 @@ def grants(tables: set[str]) -> list[str]:
     if "audit" in tables:
         statements += [f"GRANT INSERT ON {present(SERVER_APPENDS)} TO {SERVER}",
                        f"GRANT USAGE ON SEQUENCE audit_id_seq TO {SERVER}"]
+    if "users" in tables:  # who the server signed for, and when they could (`certificate verify`): no hashes
+        statements.append(f"GRANT SELECT (id, name, role, created_utc, disabled_utc) ON users TO {BENCH}")
     statements += [f"GRANT USAGE ON SEQUENCE {sequence} TO {BENCH}" for sequence in
                    (f"{table}_{column}_seq" for table, column in SEQUENCES)]
     # the lab's run number is max + 1 under a lock, and the column's sequence is moved past it

@@ -80,6 +80,13 @@ MOUNT_ATTEMPTS = 3
 MEASURE_AGAIN = 2  # windows of one point a table's state may discard before the run pauses on it
 
 
+
+def finite(values) -> list[float | None]:
+    """Values for an event's JSON: a package's absent sensors (NaN) and an unknown rate (infinity) as
+    null, which every JSON reader takes (``NaN`` and ``Infinity`` are not JSON)."""
+    return [float(v) if math.isfinite(float(v)) else None for v in values]
+
+
 @dataclass(frozen=True)
 class Step:
     seq: int
@@ -507,7 +514,7 @@ class Sequencer:
                 self.note("mount", f"mount verified: {mount}" if distinguishes(volts) else
                           f"mount verified as far as a single sensor tells: its x direction ({mount})",
                           mount=[mount.y_deg, mount.u_deg], check_deg=list(CHECK_ATTITUDE),
-                          volts=[float(v) for v in volts], samples=len(check.scan.volts))
+                          volts=finite(volts), samples=len(check.scan.volts))
                 return
             note = f"the instrument reads as if on the {seen.describe()}; please correct it"
             if seen.u_deg == mount.u_deg:  # turned 180° about z: both tables reversed read so too
@@ -553,7 +560,7 @@ class Sequencer:
                               (f"settled ({gate.describe()})" if settled else
                                f"had not settled ({gate.describe()}) after the gate's {gate.max_wait_s:g} s; "
                                "going on")) + f" at {temps[-1]:.3f} °C, {rate:+.3g} °C/min",
-                  waited_s=waited, temp_c=temps[-1], rate_c_per_min=rate, settled=settled)
+                  waited_s=waited, temp_c=temps[-1], rate_c_per_min=finite([rate])[0], settled=settled)
         return waited
 
     def pause(self, why: str, home: tuple[RotaryAxis, ...] = ()) -> None:
@@ -640,6 +647,10 @@ class Sequencer:
         try:
             station = parse_snapshot(row.station_text)
             readings = replace(self.journal.readings(self.run_id), units=output_units(station))
+            if np.isnan(readings.volts).any():  # a package of fewer sensors: the checks are three sensors'
+                self.note("checks", "the end-of-run checks of the readings are made for three-sensor "
+                          "packages only; this package's readings were not judged by them")
+                return None, points
             return check_readings(readings, row.plan_text, station, settle), points
         except LabcalError:
             return None, points
@@ -692,7 +703,7 @@ class Sequencer:
         scan = result.scan  # the settled reading, as a point's: model settling's estimate where it made one
         volts = [float(v) for v in (result.estimate or mean_and_sd(scan))[0]]
         self.note("closure", f"the check attitude on {mount} measured again",
-                  mount=[mount.y_deg, mount.u_deg], volts=volts, samples=len(scan.volts))
+                  mount=[mount.y_deg, mount.u_deg], volts=finite(volts), samples=len(scan.volts))
         return volts, len(scan.volts)
 
     def close_block(self, mount: Mount) -> None:
