@@ -22,7 +22,7 @@ def test_the_example_in_the_documents_calibrates_and_reads_its_certificate(tmp_p
     done = subprocess.run([sys.executable, str(EXAMPLE), str(tmp_path / "run")], capture_output=True,
                           text=True, timeout=300, cwd=tmp_path)
     assert done.returncode == 0, done.stderr
-    assert len(EXAMPLE.read_text(encoding="utf-8").splitlines()) <= 20
+    assert len(EXAMPLE.read_text(encoding="utf-8").splitlines()) <= 15
     certificate = json.loads((tmp_path / "run" / "certificate.json").read_text(encoding="utf-8"))
     assert f"certificate {certificate['certificate_id']}:" in done.stdout
     largest = certificate["attitude"]["pitch_U95_max_deg"]

@@ -1,7 +1,5 @@
-"""A simulated calibration through labcal's Python API, and its certificate read back.
-
-    python docs/examples/calibrate.py [FOLDER]
-"""
+"""A simulated calibration through labcal's Python API, and its certificate read back
+(python docs/examples/calibrate.py [FOLDER])."""
 
 import sys
 from pathlib import Path
