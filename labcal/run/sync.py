@@ -37,6 +37,7 @@ from labcal.config.lab import ServerDatabase, load_lab_config
 from labcal.errors import LabcalError
 from labcal.run import labdb
 from labcal.run.labdb import lab_database
+from labcal.run.roles import BENCH_CLOSES_RUNS
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Connection, Engine
@@ -380,7 +381,7 @@ def lab_number(server: Connection, values: dict) -> tuple[int, bool]:
     def known() -> int | None:
         return server.execute(select(runs.c.id).where(runs.c.uuid == values["uuid"])).scalar()
 
-    status = {name: values[name] for name in ("status", "reason", "ended_utc", "points_total")}
+    status = {name: values[name] for name in BENCH_CLOSES_RUNS}  # what a bench's role may update of its run
     number = known()
     if number is None:
         server.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": RUN_NUMBER_LOCK})
