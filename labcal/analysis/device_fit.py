@@ -356,7 +356,7 @@ def _solve(theta0: NDArray[np.float64], data: PointMeans,
         cost = 2 * float(result.cost)
         raise LabcalError(f"the device model did not converge in {MAX_EVALUATIONS} evaluations (its cost "
                           f"was still falling at {cost:.6g}); the readings may not come from this plan's "
-                          "geometry, or the misalignments are not small: fit with --model linear")
+                          "geometry, or the misalignments are not small: fit with {0} linear", "model")
     return np.asarray(result.x, dtype=float), int(result.nfev)
 
 
@@ -431,7 +431,7 @@ def fit_device(readings: Readings, linear: Fit | None = None, angle_errors: Angl
         name = MISALIGNMENT_NAMES[int(np.argmax(np.abs(theta[:N_MIS])))]
         raise LabcalError(f"the device model's misalignment {name} came out at {worst:.3g}°, beyond its "
                           f"small-angle validity ({SMALL_ANGLE_LIMIT_DEG:g}°); check the mounts and angles "
-                          "in the readings, or fit with --model linear")
+                          "in the readings, or fit with {0} linear", "model")
     dof = 3 * n - N_PARAMETERS
     weighted_sse = float(np.sum((resid / sd) ** 2))
     scale = weighted_sse / dof if dof > 0 else float("nan")

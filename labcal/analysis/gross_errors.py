@@ -311,7 +311,8 @@ def implausible_volts(volts: NDArray[np.float64], units: str = "V") -> None:
         values = f"reading {i + 1}: ({', '.join(f'{v:.3g}' for v in volts[i])}) {units}"
         if units in ("V", "mV"):
             raise LabcalError(f"{values} is beyond any DMM range (|V| ≤ {VOLTS_MAX:g} V){more}; correct or "
-                              "remove it, or give --units (mV, counts, m/s2) if the outputs are not volts")
+                              "remove it, or give {0} (mV, counts, m/s2) if the outputs are not volts",
+                              "units")
         raise LabcalError(f"{values} is beyond any instrument's output (|x| ≤ {limit:g} {units}){more}; "
                           "correct or remove it")
 

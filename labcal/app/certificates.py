@@ -100,8 +100,8 @@ def issue_certificate(request: IssueCertificate) -> Issued:
     )
 
     if request.monte_carlo and not 100 <= request.monte_carlo <= 1_000_000:
-        raise LabcalError(f"--monte-carlo {request.monte_carlo}: give 100 … 1000000 trials (10000 gives U95 "
-                          "to about 1 %), or leave it out")
+        raise LabcalError(f"{{0}} {request.monte_carlo}: give 100 … 1000000 trials (10000 gives U95 "
+                          "to about 1 %), or leave it out", "monte_carlo")
     settings = load_settings(request.station, attitude_u95_max_deg=request.tolerance_deg,
                              bias_max_v=request.bias_max_v, usage_pitch_deg=request.usage_pitch,
                              usage_roll_deg=request.usage_roll, in_use_samples=request.in_use_samples)

@@ -59,11 +59,11 @@ def _target(folder: Path, row) -> None:
     from labcal.run.rundir import RUN, check_identity, read_run_json
 
     if folder.exists() and not folder.is_dir():
-        raise LabcalError(f"{folder}: exists and is not a folder; give another --out")
+        raise LabcalError(f"{folder}: exists and is not a folder; give another {{0}}", "out")
     if (folder / RUN).exists():  # a folder that shows another run is never written over
         check_identity(folder, read_run_json(folder), row)
     elif folder.exists() and any(folder.iterdir()):
-        raise LabcalError(f"{folder}: folder is not empty and is no run's; give an empty or new --out")
+        raise LabcalError(f"{folder}: folder is not empty and is no run's; give an empty or new {{0}}", "out")
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -14,9 +14,11 @@ def existing(db: str | Path | None) -> Path:
     """The lab database's path; one line when there is none (a read must not create one)."""
     path = db_path(db)
     if path.exists() and not path.is_file():
-        raise LabcalError(f"{path}: not a database file; --db or $LABCAL_DB names the lab's database")
+        raise LabcalError(f"{path}: not a database file; {{0}} or $LABCAL_DB names the lab's database",
+                          "db")
     if not path.exists():
-        raise LabcalError(f"{path}: no lab database here; --db or $LABCAL_DB names the lab's database")
+        raise LabcalError(f"{path}: no lab database here; {{0}} or $LABCAL_DB names the lab's database",
+                          "db")
     return path
 
 

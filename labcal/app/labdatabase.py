@@ -50,7 +50,7 @@ def open_lab(request: OpenLab) -> LabDatabase:
 
     where = lab_database(request.db)
     if isinstance(where, Path) and request.must_exist and not where.is_file():
-        raise LabcalError(f"{where}: no lab database there; give --db or set LABCAL_DB to the lab's database "
-                          "(a labcal run creates it)")
+        raise LabcalError(f"{where}: no lab database there; give {{0}} or set LABCAL_DB to the lab's "
+                          "database (a labcal run creates it)", "db")
     return LabDatabase(lab_engine(request.db), str(where), where if isinstance(where, Path) else None,
                        None if isinstance(where, Path) else where)

@@ -90,8 +90,8 @@ def links_fixed(config: StationFile, source: str) -> None:
     for name, link in config.devices().items():
         if link.chosen_by_emulators:
             raise LabcalError(f"{source}: {name}'s link {link.where} is one the emulators choose as they "
-                              "start (any free port, a pty of their own); use --emulate, or point a copy of "
-                              "the station file at the addresses `labcal sim serve` printed")
+                              "start (any free port, a pty of their own); use {0}, or point a copy of "
+                              "the station file at the addresses `labcal sim serve` printed", "emulate")
 
 
 def station_timing(config: StationFile, time_scale: float = 1.0) -> Timing:
@@ -228,7 +228,7 @@ def station_for_resume(snapshot: StationFileSnapshot, run_name: str, stack: Exit
         if differences:
             raise LabcalError(f"{source} is not the bench {run_name} started on: {'; '.join(differences)}; a "
                               "resumed run may change only links, timeouts and retries: correct the file, or "
-                              "omit --station to resume on the run's own station")
+                              "omit {0} to resume on the run's own station", "station")
     return hardware_station(config, source, stack, emulate=snapshot.emulate, time_scale=snapshot.time_scale,
                             seed=snapshot.seed, start_time_s=start_time_s, tables_at=tables_at)
 

@@ -260,8 +260,8 @@ def read_readings(path: str | Path, units: str | None = None) -> Readings:
     read = _read_csv(path, "readings", REQUIRED, OPTIONAL, _check_angles)
     stated = _units_of(Path(path), read)
     if units is not None and stated is not None and units != stated:
-        raise LabcalError(f"{path}: the file states its outputs in {stated}, --units says {units}; leave out "
-                          "--units or correct the file")
+        raise LabcalError(f"{path}: the file states its outputs in {stated}, {{0}} says {units}; leave out "
+                          "{0} or correct the file", "units")
     cols = read.columns
     windows = _windows(Path(path), read, len(cols["replicate"]))
     return Readings(

@@ -59,7 +59,8 @@ def keygen(prefix: str | Path) -> tuple[Path, Path]:
     private_path, public_path = Path(f"{prefix}.key"), Path(f"{prefix}.pub")
     for path in (private_path, public_path):
         if path.exists():
-            raise LabcalError(f"{path}: already exists; a key is never overwritten (choose another --out)")
+            raise LabcalError(f"{path}: already exists; a key is never overwritten (choose another {{0}})",
+                              "out")
     key = Ed25519PrivateKey.generate()
     pem = key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
                             serialization.NoEncryption())
@@ -127,7 +128,7 @@ def approve(cert: Certificate, by: str, role: str, key: Ed25519PrivateKey,
         raise LabcalError(f"certificate {cert.number} is already approved by {cert.approval.by}; a change "
                           "is a new revision (`labcal report` issues it)")
     if not by.strip() or not role.strip():
-        raise LabcalError("give the approver's name (--by) and role (--role)")
+        raise LabcalError("give the approver's name ({0}) and role ({1})", "by", "role")
     approval: dict[str, object] = {
         "by": by.strip(), "role": role.strip(),
         "approved_utc": (when or datetime.now(UTC)).isoformat(timespec="seconds"),

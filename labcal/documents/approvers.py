@@ -68,7 +68,7 @@ def add(name: str, role: str, public_key_file: str | Path, db: str | Path | None
     """Register ``name`` (``role``) with the public key in ``public_key_file``."""
     name, role = name.strip(), role.strip()
     if not name or not role:
-        raise LabcalError("give the approver's name and --role (neither may be empty)")
+        raise LabcalError("give the approver's name and {0} (neither may be empty)", "role")
     public = load_public_key(public_key_file)
     pem = public.public_bytes(serialization.Encoding.PEM,
                               serialization.PublicFormat.SubjectPublicKeyInfo).decode("ascii")

@@ -74,8 +74,8 @@ def stored_rows(db: str | Path | None, table: str, column: str, key: str, column
 
     found = labquery.records(db, table, columns, {column: key}, order, must_exist=False)
     if not found.exists:
-        raise LabcalError(f"{found.source.shown}: no such database; {stored_by} (or give --db / set "
-                          "LABCAL_DB)")
+        raise LabcalError(f"{found.source.shown}: no such database; {stored_by} (or give {{0}} / set "
+                          "LABCAL_DB)", "db")
     if not found.rows:
         held = ", ".join(labquery.distinct(db, table, column)) or "none"
         raise LabcalError(f"{missing} in {found.source.shown}; {known_label}: {held}")
@@ -109,7 +109,7 @@ def certificates_read(serial: str, db: str | Path | None = None, include_simulat
     real = [c for c in certs if not c.station.simulated]
     if not real:
         raise LabcalError(f"instrument {serial!r} has only simulated certificates in {where} ({len(certs)} "
-                          "dry run(s)); give --include-simulated to see them")
+                          "dry run(s)); give {0} to see them", "include_simulated")
     return real, found.stale
 
 

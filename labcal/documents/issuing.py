@@ -383,7 +383,8 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
     serial = _recorded(meta.get("instrument_serial"), serial, "instrument serial", run_dir) \
         or (SIMULATED_SERIAL if record.simulated else None)
     if serial is None:
-        raise LabcalError(f"{run_dir}: the run does not record the instrument's serial number; give --serial")
+        raise LabcalError(f"{run_dir}: the run does not record the instrument's serial number; give {{0}}",
+                          "serial")
     calibrated = meta.get("started_utc")
     if not calibrated:
         raise LabcalError(f"{run_dir}: run.json has no started_utc; the calibration date is unknown")

@@ -228,7 +228,7 @@ def failure(path: Path, exc: sqlite3.Error) -> LabcalError:
     cannot_write = path.exists() and not (os.access(path, os.W_OK) and os.access(path.parent, os.W_OK))
     if code == sqlite3.SQLITE_READONLY or "readonly" in text or "read-only" in text or cannot_write:
         return LabcalError(f"{path}: the lab database is read-only ({text}); make the file and its folder "
-                           "writable (or give --db / set LABCAL_DB to a writable copy) and run it again")
+                           "writable (or give {0} / set LABCAL_DB to a writable copy) and run it again", "db")
     damaged = code in (sqlite3.SQLITE_CORRUPT, sqlite3.SQLITE_NOTADB)
     if damaged or "malformed" in text or "not a database" in text:
         return LabcalError(f"{path}: the lab database is damaged ({text}); check it with sqlite3 {path} "

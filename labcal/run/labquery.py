@@ -100,8 +100,8 @@ def reading(db: str | Path | None, *, must_exist: bool = True) -> Iterator[tuple
     if isinstance(where, Path):
         if not where.is_file():
             if must_exist:
-                raise LabcalError(f"{where}: no lab database here; --db or $LABCAL_DB names the lab's "
-                                  "database")
+                raise LabcalError(f"{where}: no lab database here; {{0}} or $LABCAL_DB names the lab's "
+                                  "database", "db")
             yield None, Source(str(where))
             return
         with _sqlite(where) as conn:

@@ -42,9 +42,10 @@ def new_run_dir(out: str | None, plan: Plan) -> Path:
     else:
         path = Path(out)
     if path.exists() and not path.is_dir():
-        raise LabcalError(f"{path}: exists and is not a directory; --out names a new or empty run directory")
+        raise LabcalError(f"{path}: exists and is not a directory; {{0}} names a new or empty run directory",
+                          "out")
     if path.exists() and any(path.iterdir()):
-        raise LabcalError(f"{path}: run directory exists and is not empty; choose another --out")
+        raise LabcalError(f"{path}: run directory exists and is not empty; choose another {{0}}", "out")
     return path
 
 
@@ -125,7 +126,8 @@ def recorded_folder(journal: Journal, row: RunRow) -> Path:
     except (LabcalError, OSError):
         pass
     raise LabcalError(f"run {row.id}: its folder was recorded as {row.run_dir}, relative to the folder the "
-                      "run was started in, which the journal does not say; run this there, or give --out DIR")
+                      "run was started in, which the journal does not say; run this there, or give {0} DIR",
+                      "out")
 
 
 def check_identity(run_dir: Path, info: dict, row: RunRow) -> None:

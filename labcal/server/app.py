@@ -53,7 +53,6 @@ from labcal.app.certificates import Authentication
 from labcal.app.labdatabase import LabDatabase
 from labcal.app.server_approval import (
     ApproveAsUser,
-    NotHere,
     approval_refused,
     approve_as_user,
     approved_file,
@@ -201,10 +200,8 @@ def create_app(settings: ServerSettings) -> FastAPI:
     def approve_as(request: Request, run_id: int, user: users.User, authentication: Authentication) -> Any:
         try:
             done = approve_as_user(db, ApproveAsUser(run_id, user, settings.key, authentication))
-        except NotHere as exc:
-            raise HTTPException(409, str(exc)) from None
-        except LabcalError as exc:
-            raise HTTPException(409, str(exc)) from None
+        except LabcalError as exc:  # NotHere included: this server cannot make the approval
+            raise HTTPException(409, str(exc.spelled("web"))) from None
         if done is None:
             raise HTTPException(404, f"no run {run_id} in the lab database")
         audit.record(db, audit.Entry(audit.APPROVED, user.name, user.name, client_of(request),

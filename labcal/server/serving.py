@@ -37,7 +37,8 @@ class Transport:
 
     def __post_init__(self) -> None:
         if (self.certfile is None) != (self.keyfile is None):
-            raise LabcalError("give --certfile and --keyfile together (the certificate and its private key)")
+            raise LabcalError("give {0} and {1} together (the certificate and its private key)", "certfile",
+                              "keyfile")
         if self.certfile is not None and self.keyfile is not None:
             context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
             try:
@@ -98,8 +99,8 @@ def listen(host: str, port: int) -> socket.socket:
         sock.bind((host, port))
     except OSError as exc:
         sock.close()
-        raise LabcalError(f"{host}:{port}: cannot listen there ({exc.strerror}); choose another --port "
-                          "(0: any free one)") from None
+        raise LabcalError(f"{host}:{port}: cannot listen there ({exc.strerror}); choose another {{0}} "
+                          "(0: any free one)", "port") from None
     sock.listen(BACKLOG)
     return sock
 
