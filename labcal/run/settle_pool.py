@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from labcal.config.settings import SettleSettings
+from labcal.config.snapshot import SimulatedRigSnapshot, StationFileSnapshot, parse_snapshot
 from labcal.config.station import LinkSettings
 from labcal.run.journal import RunRow, utc_now
 from labcal.run.settle import SLOW, TAU_GRID, TAU_RANGE, PoolState, TailPool
@@ -73,31 +74,30 @@ def prior_key(row: RunRow, settle: SettleSettings) -> PoolKey | None:
 
 
 def _key(row: RunRow, settle: SettleSettings, instrument: dict[str, object], with_truth: bool) -> PoolKey:
-    try:
-        snapshot = json.loads(row.station_text)
-    except ValueError:  # not a snapshot labcal wrote: the text itself is the station
-        snapshot = {"kind": "text", "station": {"text": row.station_text}}
-    if not isinstance(snapshot, dict):
-        snapshot = {"kind": "text", "station": {"text": row.station_text}}
+    snapshot = parse_snapshot(row.station_text)
     truth: object = None
     noise: str | None = None
-    if snapshot.get("kind") == "simulated rig":
-        rig = dict(snapshot["rig"])
+    station: dict[str, object]
+    if isinstance(snapshot, SimulatedRigSnapshot):
+        rig = dict(snapshot.rig)
         truth = rig.pop("instrument", None)
         rig.pop("seed", None)
-        station: dict = {"simulated rig": rig}
-        noise = f"seed {snapshot.get('seed')}"
-    else:
-        described = snapshot.get("station", {})
+        station = {"simulated rig": rig}
+        noise = f"seed {snapshot.seed}"
+    elif isinstance(snapshot, StationFileSnapshot):
+        described = snapshot.station
         station = {name: {k: v for k, v in (described.get(name) or {}).items() if k not in LINK_FIELDS}
-                   for name in ("pitch", "roll", "dmm")} if "text" not in described else dict(described)
+                   for name in ("pitch", "roll", "dmm")}
         station["identities"] = row.metadata.get("device_identity")
-        if snapshot.get("emulate"):
-            rig = dict((described.get("emulation") or {}).get("rig") or {})
+        emulated = snapshot.simulator_rig()
+        if emulated is not None:
+            rig = dict(emulated)
             truth = rig.pop("instrument", None)
             rig.pop("seed", None)
             station["emulated rig"] = rig
-            noise = f"seed {snapshot.get('seed')}"
+            noise = f"seed {snapshot.seed}"
+    else:  # not a snapshot labcal wrote: the text itself is the station
+        station = {"text": row.station_text, "identities": row.metadata.get("device_identity")}
     if truth is not None and with_truth:
         instrument["simulated truth"] = truth
     identity = {"instrument": instrument, "station": station,
