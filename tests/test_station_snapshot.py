@@ -73,3 +73,23 @@ def test_a_run_is_simulated_by_its_metadata_or_its_snapshot():
     real = parse_snapshot(json.dumps({"kind": "station", "station": {}, "emulate": False}))
     assert is_simulated({}, rig) and not is_simulated({}, real)
     assert is_simulated({"simulated_truth": {}}, real)  # the metadata alone is enough
+
+
+def test_no_module_but_the_snapshot_model_decodes_the_journaled_station_text():
+    """Parse once, read by attribute: a ``json.loads`` of ``station_text`` anywhere else would be a
+    second reader of the snapshot's keys, free to drift from the model."""
+    import ast
+
+    import labcal
+
+    package = Path(labcal.__file__).parent
+    decoders = []
+    for module in sorted(package.rglob("*.py")):
+        if module.name == "snapshot.py" and module.parent.name == "config":
+            continue
+        for node in ast.walk(ast.parse(module.read_text(encoding="utf-8"))):
+            called = node.func if isinstance(node, ast.Call) else None
+            decodes = isinstance(called, ast.Attribute) and called.attr == "loads"
+            if decodes and "station_text" in ast.unparse(node):
+                decoders.append(f"{module.relative_to(package)}:{node.lineno}")
+    assert decoders == []
