@@ -402,7 +402,8 @@ def run_folder(lab: LabDatabase, run_id: int) -> str | None:
 
 
 def residual_plot(lab: LabDatabase, run_id: int) -> bytes | None:
-    """PNG of the linear fit's residuals of the run's readings (None: too few readings to fit)."""
+    """PNG of the run's residuals under its certificate's model (the readings so far under the linear fit,
+    while it runs); None: too few readings to fit."""
     from labcal.app.residuals import residual_png
 
     with lab.engine.connect() as conn:
