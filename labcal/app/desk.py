@@ -37,7 +37,7 @@ from sqlalchemy import select
 
 from labcal.app.lab import _summary, simulated
 from labcal.app.labdatabase import LabDatabase
-from labcal.app.residuals import certified_residuals
+from labcal.app.residuals import certified_residuals, residual_png
 from labcal.app.runs import attention
 from labcal.documents.certificate import Certificate, certificate_from_doc, format_result
 from labcal.errors import LabcalError
@@ -254,7 +254,7 @@ def run_results(lab: LabDatabase, run_id: int) -> Results | None:
                                 c.number in replaced, documents_of(conn, c, row.run_dir))
                        for c in reversed(revisions))
         faults = _faults(conn, run_id)
-        shown = certified_residuals(conn, run_id)
+        shown = certified_residuals(conn, run_id, cert)
     unit = cert.output_unit
     X, U = cert.coefficients, cert.U
     rows = tuple((COEFFICIENTS[i], tuple(format_result(float(X[i, j]), float(U[i, j])) for j in range(3)))
@@ -305,3 +305,12 @@ def certificate_document(lab: LabDatabase, certificate_id: str, name: str) -> tu
         if signed is None or hashlib.sha256(written).hexdigest() == signed:
             return MEDIA[name], written
     return None
+
+
+def residual_plot(lab: LabDatabase, run_id: int) -> bytes | None:
+    """PNG of the run's residuals under its certificate's model (`labcal.app.residuals`; the readings
+    so far under the linear fit while it has none); None: too few readings to fit."""
+    with lab.engine.connect() as conn:
+        uuid = conn.execute(select(runs.c.uuid).where(runs.c.id == run_id)).scalar()
+        cert = _current(run_revisions(conn, uuid)) if uuid else None
+        return residual_png(conn, run_id, cert)

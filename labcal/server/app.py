@@ -214,7 +214,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
         return done
 
     def residuals(run_id: int) -> Response:
-        png = lab.residual_plot(db, run_id)
+        png = desk.residual_plot(db, run_id)
         if png is None:
             raise HTTPException(404, f"run {run_id} has too few readings to fit")
         return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=60"})
