@@ -20,7 +20,9 @@ per new point (``point``) and per journaled event (named by its kind: ``prompt``
 last event's id seen — so a client that reconnects with ``Last-Event-ID`` resumes where it left off.
 
 Everything it reads or writes is a use case of the application layer (`labcal.app.lab`,
-`labcal.app.users`, `labcal.app.server_approval`); this module is HTTP only: routes, who is asking,
+`labcal.app.users`, `labcal.app.server_approval`; the approver's desk, a run's certificate and its
+documents `labcal.app.desk`; the instrument register and what falls due
+`labcal.app.instrument_pages`); this module is HTTP only: routes, who is asking,
 sessions and CSRF, templates and the framing of the event streams.
 """
 
