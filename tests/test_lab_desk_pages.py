@@ -25,6 +25,7 @@ import uuid
 from datetime import UTC, date, datetime, timedelta
 from pathlib import Path
 
+import numpy as np
 import pytest
 from lab_server import accessible, add_user, parses_cleanly, served
 from simulated_runs import bench_run
@@ -121,6 +122,43 @@ def _rows(page, table: str) -> list[str]:
     return page.eval_on_selector_all(f"{table} tbody tr", "rows => rows.map(r => r.dataset.serial)")
 
 
+def _rx(x):
+    c, s = np.cos(x), np.sin(x)
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def _ry(x):
+    c, s = np.cos(x), np.sin(x)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+def _rz(x):
+    c, s = np.cos(x), np.sin(x)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+def _device_model_residuals(run_dir: Path, cert: dict) -> np.ndarray:
+    """Each reading of the run folder's readings.csv less B + gᵀS, with the certificate's B and S and
+    the gravity its misalignments give, written out here from Soto eq. 11 and §4's signs (prot[x] =
+    Ry(−x), rrot[x] = Rx(x), yrot[x] = Rz(−x); g is row 3 of KM), not through labcal (K×3, V)."""
+    rows = np.genfromtxt(run_dir / "readings.csv", delimiter=",", names=True)
+    m = {n: np.radians(v["value_arcsec"] / 3600) for n, v in cert["device"]["misalignments"].items()}
+    B, S = np.array(cert["fit"]["coefficients"][0]), np.array(cert["fit"]["coefficients"][1:])
+    out = []
+    for r in rows:
+        p, rl, y, u = np.radians([r["pitch_deg"], r["roll_deg"], r["y_deg"], r["u_deg"]])
+        km = (_rx(m["b"]) @ _ry(-p) @ _ry(-m["a"]) @ _rz(-m["d"]) @ _rx(rl) @ _rx(m["f"]) @ _ry(-m["e"])
+              @ _rz(-m["k"]) @ _rz(-y) @ _rx(u))
+        out.append(np.array([r["vx"], r["vy"], r["vz"]]) - B - km[2] @ S)
+    return np.array(out)
+
+
+def _micro(text: str) -> float:
+    """A voltage as the page writes it ("21 µV", "1.2 mV"), in µV."""
+    value, unit = text.split()
+    return float(value) * {"µV": 1.0, "mV": 1e3, "V": 1e6}[unit]
+
+
 def _texts(page, selector: str) -> list[str]:
     return page.eval_on_selector_all(selector, "cells => cells.map(c => c.textContent)")
 
@@ -209,6 +247,10 @@ def test_the_device_model_run_page_shows_residuals_within_twice_the_certificates
         # the RMS of K residuals with L = 15 parameters fitted (12 + 6 misalignments − the 3 the
         # plan leaves unidentified is not assumed: any L) is S_E·√((K − L)/K) < S_E
         assert all(r < 1.0 for r in ratios)
+        # and they are the certificate's model applied to the readings the run folder holds
+        mine = np.sqrt(np.mean(_device_model_residuals(lab["device"], issued) ** 2, axis=0)) * 1e6
+        shown_rms = [_micro(t) for t in _texts(page, "#residual-rms tbody tr:first-child td")]
+        assert shown_rms == pytest.approx(mine, rel=0.01), (shown_rms, mine)  # the page rounds to 3 digits
         assert page.is_visible("img.plot")
         png = page.request.get(lab["url"] + "/runs/2/residuals.png")
         assert png.status == 200 and png.headers["content-type"] == "image/png"
