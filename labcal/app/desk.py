@@ -35,19 +35,19 @@ from typing import TYPE_CHECKING
 import numpy as np
 from sqlalchemy import select
 
-from labcal.app.lab import _summary, simulated
+from labcal.analysis.fit import ROW_NAMES
+from labcal.app.lab import SUMMARY, _counts, _summary, simulated
 from labcal.app.labdatabase import LabDatabase
 from labcal.app.residuals import certified_residuals, residual_png
 from labcal.app.runs import attention
 from labcal.documents.certificate import Certificate, certificate_from_doc, format_result
 from labcal.errors import LabcalError
+from labcal.run.lab_certificates import approved_by
 from labcal.run.schema import certificate_files, certificates, events, runs
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Connection
 
-SENSORS = ("x", "y", "z")
-COEFFICIENTS = ("B", "S row g_x", "S row g_y", "S row g_z")  # the certificate's rows (`fit.ROW_NAMES`)
 CERTIFICATE, DCC, PDF, HTML = "certificate.json", "certificate.dcc.xml", "report.pdf", "report.html"
 MEDIA = {CERTIFICATE: "application/json", DCC: "application/xml", PDF: "application/pdf",
          HTML: "text/html; charset=utf-8"}
@@ -142,14 +142,17 @@ class Queue:
 
 def queue(lab: LabDatabase, dry_runs: bool = False) -> Queue:
     """The complete runs whose certificate is not approved, oldest first; dry runs (never approved)
-    counted, and listed too when ``dry_runs``."""
-    from labcal.app.lab import SUMMARY, _counts
-
+    counted, and listed too when ``dry_runs``. A run the lab holds an approved certificate of
+    (`labcal.run.lab_certificates.approved_by`: read, not verified — its page verifies what it shows)
+    is passed over before any certificate is parsed, so the queue costs what is waiting, not the
+    lab's history."""
     waiting, dry = [], 0
     with lab.engine.connect() as conn:
         rows = conn.execute(select(*SUMMARY).where(runs.c.status == "complete").order_by(runs.c.id)).all()
         counts = _counts(conn, [r.id for r in rows])
         for row in rows:
+            if approved_by(conn, row.id) is not None:
+                continue
             revisions = run_revisions(conn, row.uuid) if row.uuid else []
             cert = _current(revisions)
             if cert is not None and cert.approval is not None:
@@ -257,7 +260,7 @@ def run_results(lab: LabDatabase, run_id: int) -> Results | None:
         shown = certified_residuals(conn, run_id, cert)
     unit = cert.output_unit
     X, U = cert.coefficients, cert.U
-    rows = tuple((COEFFICIENTS[i], tuple(format_result(float(X[i, j]), float(U[i, j])) for j in range(3)))
+    rows = tuple((ROW_NAMES[i], tuple(format_result(float(X[i, j]), float(U[i, j])) for j in range(3)))
                  for i in range(4))
     se = np.array(cert.fit.residual_standard_error, dtype=float)
     rms = ratio = None

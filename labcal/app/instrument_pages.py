@@ -16,7 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from datetime import date
 
-from sqlalchemy import select
+from sqlalchemy import func, select
 
 from labcal.app import instruments
 from labcal.app.desk import approval_of, documents_of, parsed_certificate
@@ -105,8 +105,9 @@ def instrument_page(lab: LabDatabase, serial: str, today: date) -> InstrumentPag
     registered = card.instrument.serial
     listed = []
     with lab.engine.connect() as conn:
+        # in any case: a certificate issued as acc-0042 before the register held ACC-0042 is its too
         rows = conn.execute(select(certificates.c.certificate_id, certificates.c.document)
-                            .where(certificates.c.serial == registered)).all()
+                            .where(func.lower(certificates.c.serial) == registered.lower())).all()
         certs = [c for c in (parsed_certificate(d, f"certificate {cid}") for cid, d in rows) if c is not None]
         replaced = {c.replaces for c in certs if c.replaces}
         for c in sorted(certs, key=lambda c: (c.calibrated_utc, c.issued_utc), reverse=True):

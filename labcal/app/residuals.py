@@ -151,7 +151,8 @@ def _certified(conn: Connection, run_id: int, cert: Certificate) -> CertifiedRes
         return CertifiedResiduals(model, equation, np.asarray(residuals)[:, :3], r.pitch_deg, r.roll_deg,
                                   r.units)
     mis, model, equation = stated
-    g = gravity(*(np.radians(a) for a in (r.pitch_deg, r.roll_deg, r.y_deg, r.u_deg)), mis)
+    pitch, roll, y, u = (np.radians(a) for a in (r.pitch_deg, r.roll_deg, r.y_deg, r.u_deg))
+    g = gravity(pitch, roll, y, u, mis)
     X = cert.coefficients
     return CertifiedResiduals(model, equation, r.volts[:, :3] - X[0] - g @ X[1:], r.pitch_deg, r.roll_deg,
                               r.units)
