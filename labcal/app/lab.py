@@ -1,5 +1,6 @@
 """The lab's view, as the lab server shows it: every station and its current run, a run's progress
-and events, the next batch of a run's live stream, a finished run's residual plot; pure reads.
+and events, the next batch of a run's live stream; pure reads (a run's residual plot and its
+certificate are `labcal.app.desk`'s).
 
 The server (`labcal.server`) turns these into JSON, pages and server-sent events and calls nothing
 below this layer. The public use cases take the open lab database (`labcal.app.labdatabase`) and a
@@ -400,10 +401,3 @@ def run_folder(lab: LabDatabase, run_id: int) -> str | None:
     with lab.engine.connect() as conn:
         return conn.execute(select(runs.c.run_dir).where(runs.c.id == run_id)).scalar()
 
-
-def residual_plot(lab: LabDatabase, run_id: int) -> bytes | None:
-    """PNG of the linear fit's residuals of the run's readings (None: too few readings to fit)."""
-    from labcal.app.residuals import residual_png
-
-    with lab.engine.connect() as conn:
-        return residual_png(conn, run_id)

@@ -1,10 +1,20 @@
-"""A finished run's residual plot, drawn from the points in the lab database.
+"""A run's residuals and their plot, from the points in the lab database.
 
 The server may not reach the run's folder (another station's disk), but the lab database holds every
-reading: the plot is the linear fit's residuals (`labcal.analysis.fit.fit_readings`, the fit
-`labcal fit` and the certificate start from), per sensor against pitch and against roll, in µV. It
-is the run's data as journaled, not the certificate's statement (that is the report's, in the run's
-folder), and its heading says so.
+reading. A run with a certificate shows the residuals of the model that certificate states, with
+the values it states: each reading of the lab's own copy of the run
+(`labcal.run.lab_certificates.lab_record`) less ``B + gᵀS``, with the certificate's B and S and the
+gravity its model gives — through the device's misalignments where it rests on the device model
+(Soto eq. 11, the six misalignments its device section states) or on a device correction (the
+correction's values), nominal gravity otherwise (Soto eq. 4). Nothing is fitted again: the residuals
+are the certificate's, in a few milliseconds. A certificate whose model holds more than that (the
+temperature or harmonic terms, a two-axis package) is refitted as the report fits it
+(`labcal.documents.report.fitted`).
+
+The linear fit's residuals next to a device-model certificate hold the device's misalignments, forty
+times the certificate's scatter, and read as a bad calibration. A run without a certificate (still
+running, or not issued) is plotted under the linear fit (`labcal.analysis.fit.fit_readings`) of the
+readings so far, and its heading says so.
 """
 
 from __future__ import annotations
@@ -12,14 +22,19 @@ from __future__ import annotations
 import io
 import threading
 from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.engine import Connection
 
+from labcal.analysis.kinematics import NO_MISALIGNMENT, Misalignment, gravity
 from labcal.analysis.readings import Readings
+from labcal.documents.certificate import Certificate
 from labcal.errors import LabcalError
-from labcal.run.schema import points
+from labcal.run.schema import points, runs
 
 SENSORS = ("x", "y", "z")
 
@@ -39,38 +54,119 @@ def readings(conn: Connection, run_id: int) -> Readings | None:
                     temp_c=None if any(t is None for t in temps) else np.array(temps, dtype=float))
 
 
-CACHED = 64  # plots kept (about 100 kB each)
-_CACHE: OrderedDict[tuple, bytes | None] = OrderedDict()
+CACHED = 64  # plots (about 100 kB each) and residuals kept
+_CACHE: OrderedDict[tuple, Any] = OrderedDict()  # plots (PNG bytes) and residuals, by `_state`
 _CACHE_LOCK = threading.Lock()
 _DRAWING = threading.Lock()  # one plot drawn at a time: the others wait, then find theirs drawn
 
 
-def residual_png(conn: Connection, run_id: int) -> bytes | None:
-    """PNG of the linear fit's residuals (None: too few readings to fit), drawn once per state of the
-    run — its number of measured points and its last one — however many ask for it at once: a plot
-    costs a fit and a Matplotlib figure (~0.4 s of CPU), and 40 requests for it took 18 s."""
+def _state(conn: Connection, run_id: int, cert: Certificate | None) -> tuple:
+    """What a run's residuals depend on: the database, the run, its status, its number of measured
+    points and its last one, and the certificate they are judged by."""
     count, last = conn.execute(select(func.count(), func.max(points.c.seq))
                                .where(points.c.run_id == run_id, points.c.status == "ok")).one()
-    key = (conn.engine.url.render_as_string(hide_password=True), run_id, count, last)
+    status = conn.execute(select(runs.c.status).where(runs.c.id == run_id)).scalar()
+    digest = None if cert is None else cert.digest.value
+    return conn.engine.url.render_as_string(hide_password=True), run_id, status, count, last, digest
+
+
+def _cached(key: tuple, make: Any) -> Any:
     with _CACHE_LOCK:
         if key in _CACHE:
             _CACHE.move_to_end(key)
             return _CACHE[key]
+    found = make()
+    with _CACHE_LOCK:
+        _CACHE[key] = found
+        while len(_CACHE) > CACHED:
+            _CACHE.popitem(last=False)
+    return found
+
+
+def residual_png(conn: Connection, run_id: int, cert: Certificate | None) -> bytes | None:
+    """PNG of the run's residuals under ``cert``'s model (None: the linear fit of the readings so far;
+    None returned: too few readings to fit), drawn once per `_state` however many ask for it at
+    once: a plot costs a Matplotlib figure (~0.4 s of CPU), and 40 requests for it took 18 s."""
+    key = ("png", *_state(conn, run_id, cert))
     with _DRAWING:
-        with _CACHE_LOCK:
-            if key in _CACHE:
-                return _CACHE[key]
-        png = _draw(conn, run_id)
-        with _CACHE_LOCK:
-            _CACHE[key] = png
-            while len(_CACHE) > CACHED:
-                _CACHE.popitem(last=False)
-    return png
+        return _cached(key, lambda: _draw(conn, run_id, cert))
 
 
-def _draw(conn: Connection, run_id: int) -> bytes | None:
+@dataclass(frozen=True)
+class CertifiedResiduals:
+    """Every reading's residual under the model a run's certificate states."""
+
+    model: str  # "device model", "linear model", …
+    equation: str
+    residuals: Any  # K×3 array, in the readings' unit
+    pitch_deg: Any
+    roll_deg: Any
+    unit: str
+
+
+def certified_residuals(conn: Connection, run_id: int, cert: Certificate) -> CertifiedResiduals | None:
+    """The residuals of the model ``cert`` states, with its values, of the lab database's own copy of
+    run ``run_id`` (None: not complete, or its readings cannot be read)."""
+    return _cached(("residuals", *_state(conn, run_id, cert)), lambda: _certified(conn, run_id, cert))
+
+
+def _gravity_misalignment(cert: Certificate) -> tuple[Misalignment, str, str] | None:
+    """The misalignments the certificate's gravity goes through, its model's name and equation; None
+    where its model holds more than B and S on that gravity."""
+    if cert.fit.extensions is not None or cert.package is not None:
+        return None
+    if cert.device is not None:
+        values = {n: m.value_arcsec for n, m in cert.device.misalignments.items()}
+        return (Misalignment.from_degrees(**{n: v / 3600.0 for n, v in values.items()}), "device model",
+                "V = B + g(p, r, y, u; a, b, d, e, f, k)ᵀS, Soto eq. 11, the certificate's misalignments")
+    if cert.device_correction is not None:
+        values = cert.device_correction.value_arcsec
+        return (Misalignment.from_degrees(**{n: v / 3600.0 for n, v in values.items()}),
+                "linear model on the device correction's gravity",
+                "V = B + g(p, r, y, u; the correction's a…k)ᵀS, Soto eq. 11")
+    return NO_MISALIGNMENT, "linear model", "V = B + gᵀS on nominal gravity, Soto eq. 4"
+
+
+def _certified(conn: Connection, run_id: int, cert: Certificate) -> CertifiedResiduals | None:
+    from labcal.run.lab_certificates import lab_record
+
+    run_dir = conn.execute(select(runs.c.run_dir).where(runs.c.id == run_id)).scalar()
+    if run_dir is None:
+        return None
+    try:
+        record = lab_record(conn, run_id, Path(run_dir))
+    except (LabcalError, ValueError):
+        return None
+    r = record.readings
+    stated = _gravity_misalignment(cert)
+    if stated is None:  # more than B and S: refitted as the report fits it (the report's modules
+        from labcal.documents.report import fitted  # load only for such a certificate)
+        from labcal.documents.report_figures import certified_residuals as of_fit
+
+        try:
+            fit, device, _ = fitted(record)
+        except LabcalError:
+            return None
+        model, equation, residuals = of_fit(fit, device)
+        return CertifiedResiduals(model, equation, np.asarray(residuals)[:, :3], r.pitch_deg, r.roll_deg,
+                                  r.units)
+    mis, model, equation = stated
+    pitch, roll, y, u = (np.radians(a) for a in (r.pitch_deg, r.roll_deg, r.y_deg, r.u_deg))
+    g = gravity(pitch, roll, y, u, mis)
+    X = cert.coefficients
+    return CertifiedResiduals(model, equation, r.volts[:, :3] - X[0] - g @ X[1:], r.pitch_deg, r.roll_deg,
+                              r.units)
+
+
+def _shown(conn: Connection, run_id: int, cert: Certificate | None) -> tuple[CertifiedResiduals, str] | None:
+    """What the plot shows and its heading: the certificate's model, else the linear fit of the
+    readings so far."""
     from labcal.analysis.fit import fit_readings
 
+    certified = None if cert is None else certified_residuals(conn, run_id, cert)
+    if certified is not None:
+        return certified, (f"Run {run_id}: residuals of the {certified.model} its certificate states "
+                           f"({cert.number if cert else ''})")
     found = readings(conn, run_id)
     if found is None:
         return None
@@ -78,7 +174,19 @@ def _draw(conn: Connection, run_id: int) -> bytes | None:
         fit = fit_readings(found)
     except LabcalError:
         return None
-    residuals = fit.ls.residuals[:, :3] * 1e6  # µV
+    linear = CertifiedResiduals("linear model", "V = B + gᵀS", fit.ls.residuals[:, :3], found.pitch_deg,
+                                found.roll_deg, found.units)
+    return linear, (f"Run {run_id}: residuals of the linear fit (V = B + gᵀS) to the {len(found)} "
+                    "readings so far (no certificate yet)")
+
+
+def _draw(conn: Connection, run_id: int, cert: Certificate | None) -> bytes | None:
+    from labcal.documents.report_figures import volt_unit
+
+    shown = _shown(conn, run_id, cert)
+    if shown is None:
+        return None
+    found, heading = shown
     import matplotlib
 
     matplotlib.use("Agg")
@@ -86,20 +194,20 @@ def _draw(conn: Connection, run_id: int) -> bytes | None:
 
     fig = Figure(figsize=(9, 6.5), dpi=100, layout="constrained")
     axes = fig.subplots(3, 2, sharex="col")
+    residuals = np.asarray(found.residuals, dtype=float)
     rms = np.sqrt(np.mean(residuals**2, axis=0))
     for j, sensor in enumerate(SENSORS):
+        factor, unit = volt_unit(float(np.max(np.abs(residuals[:, j]))), found.unit)
         for k, (angle, label) in enumerate(((found.pitch_deg, "pitch (°)"), (found.roll_deg, "roll (°)"))):
             ax = axes[j, k]
             ax.axhline(0.0, color="#888", lw=0.8)
-            ax.plot(angle, residuals[:, j], "o", ms=3, color="#1f5f99")
-            ax.set_ylabel(f"{sensor}: residual (µV)" if k == 0 else "")
+            ax.plot(angle, residuals[:, j] * factor, "o", ms=3, color="#1f5f99")
+            ax.set_ylabel(f"{sensor}: residual ({unit})" if k == 0 else "")
             ax.grid(True, lw=0.3)
             if j == 2:
                 ax.set_xlabel(label)
-        shown = f"{rms[j] / 1000:.3g} mV" if rms[j] >= 1000 else f"{rms[j]:.3g} µV"
-        axes[j, 1].set_title(f"RMS {shown}", fontsize=9, loc="right")
-    fig.suptitle(f"Run {run_id}: residuals of the linear fit (V = B + gᵀS) to the {len(found)} readings "
-                 "in the lab database", fontsize=10)
+        axes[j, 1].set_title(f"RMS {rms[j] * factor:.3g} {unit}", fontsize=9, loc="right")
+    fig.suptitle(heading, fontsize=10)
     out = io.BytesIO()
     fig.savefig(out, format="png")
     return out.getvalue()

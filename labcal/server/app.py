@@ -20,7 +20,9 @@ per new point (``point``) and per journaled event (named by its kind: ``prompt``
 last event's id seen — so a client that reconnects with ``Last-Event-ID`` resumes where it left off.
 
 Everything it reads or writes is a use case of the application layer (`labcal.app.lab`,
-`labcal.app.users`, `labcal.app.server_approval`); this module is HTTP only: routes, who is asking,
+`labcal.app.users`, `labcal.app.server_approval`; the approver's desk, a run's certificate and its
+documents `labcal.app.desk`; the instrument register and what falls due
+`labcal.app.instrument_pages`); this module is HTTP only: routes, who is asking,
 sessions and CSRF, templates and the framing of the event streams.
 """
 
@@ -33,6 +35,7 @@ import math
 import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
+from datetime import date
 from pathlib import Path
 from typing import Annotated, Any
 from urllib.parse import quote
@@ -48,7 +51,7 @@ from fastapi.templating import Jinja2Templates
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 from starlette.types import Receive, Scope, Send
 
-from labcal.app import audit, lab, users
+from labcal.app import audit, desk, instrument_pages, lab, users
 from labcal.app.certificates import Authentication
 from labcal.app.labdatabase import LabDatabase
 from labcal.app.server_approval import (
@@ -210,7 +213,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
         return done
 
     def residuals(run_id: int) -> Response:
-        png = lab.residual_plot(db, run_id)
+        png = desk.residual_plot(db, run_id)
         if png is None:
             raise HTTPException(404, f"run {run_id} has too few readings to fit")
         return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=60"})
@@ -356,8 +359,50 @@ def create_app(settings: ServerSettings) -> FastAPI:
                         message=f"No run {run_id} in the lab database.")
         refused = approval_refused(db, run_id, settings.key, user.name) \
             if user.may_approve and view.run["status"] == "complete" and not view.run["simulated"] else None
+        results = desk.run_results(db, run_id) if view.run["status"] == "complete" else None
         return page(request, "run.html", user, run=view.run, recent=view.recent, message=message,
-                    after=event_id_of(view.cursor), refused=refused)
+                    after=event_id_of(view.cursor), refused=refused, results=results)
+
+    @app.get("/queue", response_class=HTMLResponse)
+    def queue_page(request: Request, user: Annotated[users.User, Depends(page_user)], dry: bool = False
+                   ) -> Response:
+        """The approver's desk: the certificates waiting for approval, what needs attention in each."""
+        return page(request, "queue.html", user, queue=desk.queue(db, dry), dry=dry)
+
+    @app.get("/instruments", response_class=HTMLResponse)
+    def instruments_page(request: Request, user: Annotated[users.User, Depends(page_user)], q: str = ""
+                         ) -> Response:
+        search = q.strip()[:instrument_pages.SEARCH_MAX]
+        return page(request, "instruments.html", user, q=search, today=date.today(),
+                    rows=instrument_pages.register(db, search or None, date.today()))
+
+    @app.get("/instruments/{serial:path}", response_class=HTMLResponse)
+    def instrument_page(request: Request, serial: str, user: Annotated[users.User, Depends(page_user)]
+                        ) -> Response:
+        try:
+            shown = instrument_pages.instrument_page(db, serial, date.today())
+        except LabcalError as exc:
+            return page(request, "error.html", user, status=404, message=str(exc))
+        return page(request, "instrument.html", user, shown=shown, today=date.today())
+
+    @app.get("/due", response_class=HTMLResponse)
+    def due_page(request: Request, user: Annotated[users.User, Depends(page_user)], within: str = "30d"
+                 ) -> Response:
+        try:
+            found = instrument_pages.due(db, within, date.today())
+        except LabcalError as exc:
+            return page(request, "error.html", user, status=400, message=str(exc))
+        return page(request, "due.html", user, due=found, within=within.strip(), today=date.today())
+
+    @app.get("/certificates/{certificate_id:path}/{name}")
+    def certificate_file(certificate_id: str, name: str, user: Annotated[users.User, Depends(page_user)]
+                         ) -> Response:
+        found = desk.certificate_document(db, certificate_id, name)
+        if found is None:
+            raise HTTPException(404, f"no {name} of certificate {certificate_id} in the lab database")
+        saved = download_name(certificate_id, name)
+        return Response(found[1], media_type=found[0],
+                        headers={"Content-Disposition": f'attachment; filename="{saved}"'})
 
     @app.get("/runs/{run_id}/stream")
     def page_stream(run_id: RunId, request: Request, user: Annotated[users.User, Depends(page_user)],
@@ -497,6 +542,13 @@ def duration(seconds: float | None) -> str:
     if s < 3600:
         return f"{s // 60} min {s % 60:02d} s"
     return f"{s // 3600} h {s % 3600 // 60:02d} min"
+
+
+def download_name(certificate_id: str, name: str) -> str:
+    """A downloaded document's file name: the certificate's number before the document's name, with
+    nothing but letters, digits, dots, dashes and underscores (a header value is no place for quotes)."""
+    safe = "".join(c if c.isascii() and (c.isalnum() or c in "._-") else "_" for c in certificate_id)
+    return f"{safe}-{name}"
 
 
 def mount_text(mount: dict | None) -> str:

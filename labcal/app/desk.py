@@ -1,0 +1,319 @@
+"""The approver's desk: the certificates waiting for approval with what needs an approver's eye, and
+what a finished run's certificate states, as the lab server's pages show them; pure reads.
+
+An approver must not sign blind. The queue lists every complete run of the lab whose certificate is
+not approved yet, each with what stands out in how it was measured and what it states: the checklist
+items it went on regardless of, an overdue or unnamed reference standard, an unregistered serial
+(`labcal.app.runs.attention`, the rule `labcal runs --attention` applies), and, from the journal and
+the certificate, faults during the run, a device correction used in place of remounts, and a
+conformity verdict that failed.
+
+A run's results are its certificate's own: the model the certificate rests on (the device model
+where the plan identifies it, else the linear fit), its coefficients ± U (95 %), the attitude U95 over
+the usage envelope, the verdict, who approved it and when, and every revision's documents. The
+residuals shown beside them are recomputed from the lab database's own copy of the run under that
+same model (`labcal.documents.report.fitted`, the fit the certificate was issued from): a page that
+showed the linear fit's residuals next to a device-model certificate would show a scatter forty
+times larger than the certificate's.
+
+Documents per revision: the certificate JSON as the lab database holds it; the DCC and the report as
+the lab server kept them when it approved (PostgreSQL), else the run folder's where it is reachable
+and its certificate is this very revision (same digest); the DCC is otherwise written from the JSON
+(`labcal.documents.dcc.dcc_document`, a function of the certificate alone), and checked against the
+digest an approval signed for it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from sqlalchemy import select
+
+from labcal.analysis.fit import ROW_NAMES
+from labcal.app.lab import SUMMARY, _counts, _summary, simulated
+from labcal.app.labdatabase import LabDatabase
+from labcal.app.residuals import certified_residuals, residual_png
+from labcal.app.runs import attention
+from labcal.documents.certificate import Certificate, certificate_from_doc, format_result
+from labcal.errors import LabcalError
+from labcal.run.lab_certificates import approved_by
+from labcal.run.schema import certificate_files, certificates, events, runs
+
+if TYPE_CHECKING:
+    from sqlalchemy.engine import Connection
+
+CERTIFICATE, DCC, PDF, HTML = "certificate.json", "certificate.dcc.xml", "report.pdf", "report.html"
+MEDIA = {CERTIFICATE: "application/json", DCC: "application/xml", PDF: "application/pdf",
+         HTML: "text/html; charset=utf-8"}
+DOCUMENTS = (PDF, DCC, CERTIFICATE)  # what a revision offers, in the order a page lists them
+
+
+# --- reading certificates -------------------------------------------------------------------------
+def parsed_certificate(document: str | bytes, where: str) -> Certificate | None:
+    """A stored certificate verified (schema and digest); None where it is not one that reads back."""
+    try:
+        return certificate_from_doc(json.loads(document), where)
+    except (LabcalError, ValueError):
+        return None
+
+
+def _states_run(cert: Certificate, run_uuid: str) -> bool:
+    return cert.data.journal is not None and cert.data.journal.run_uuid == run_uuid
+
+
+def run_revisions(conn: Connection, run_uuid: str) -> list[Certificate]:
+    """Every certificate the lab holds for the run (each revision, and its approved form where the
+    server approved on PostgreSQL), oldest issue first; one per certificate id, the approved one
+    where both are held."""
+    found: dict[str, Certificate] = {}
+    rows = conn.execute(select(certificates.c.certificate_id, certificates.c.document)
+                        .where(certificates.c.document.contains(run_uuid))).all()
+    stored = conn.execute(select(certificate_files.c.certificate_id, certificate_files.c.content).where(
+        certificate_files.c.run_uuid == run_uuid, certificate_files.c.name == CERTIFICATE)).all()
+    for cid, document in [*rows, *((c, bytes(d)) for c, d in stored)]:
+        cert = parsed_certificate(document, f"certificate {cid}")
+        if cert is None or not _states_run(cert, run_uuid):
+            continue
+        held = found.get(cert.certificate_id)
+        if held is None or (held.approval is None and cert.approval is not None):
+            found[cert.certificate_id] = cert
+    return sorted(found.values(), key=lambda c: (c.issued_utc, c.revision or 1))
+
+
+def _current(revisions: list[Certificate]) -> Certificate | None:
+    """The revision in force: the newest that no other replaces."""
+    replaced = {c.replaces for c in revisions if c.replaces}
+    live = [c for c in revisions if c.number not in replaced] or revisions
+    return live[-1] if live else None
+
+
+# --- what needs an approver's eye ------------------------------------------------------------------
+def needs_attention(metadata: dict, faults: Iterable[str], cert: Certificate | None) -> tuple[str, ...]:
+    """What an approver must know before signing: `labcal.app.runs.attention`'s (overrides, reference
+    standards, serial), then the run's faults, a device correction used, a failed verdict."""
+    found = list(attention(metadata))
+    faults = list(faults)
+    if faults:
+        found.append(f"{len(faults)} fault(s) during the run: " + "; ".join(faults[:3])
+                     + ("; …" if len(faults) > 3 else ""))
+    if cert is not None and cert.device_correction is not None:
+        found.append("a device correction was used in place of the remounts that identify the device")
+    if cert is not None and cert.conformity is not None and not cert.conformity.passed:
+        failed = [c for c in cert.conformity.checks if not c.passed]
+        found.append("out of tolerance: " + "; ".join(
+            f"{c.quantity} {c.value:.3g} {c.unit} > {c.limit:.3g} {c.unit}" for c in failed))
+    return tuple(found)
+
+
+def _faults(conn: Connection, run_id: int) -> list[str]:
+    query = select(events.c.message).where(events.c.run_id == run_id, events.c.kind == "fault")
+    return list(conn.execute(query.order_by(events.c.id)).scalars())
+
+
+def _metadata(text: str | None) -> dict:
+    try:
+        found = json.loads(text or "{}")
+    except ValueError:
+        return {}
+    return found if isinstance(found, dict) else {}
+
+
+@dataclass(frozen=True)
+class Waiting:
+    """A complete run whose certificate nobody has approved yet, as the queue lists it."""
+
+    run: dict  # the run as the API states it (`labcal.app.lab`)
+    number: str | None  # the certificate's number with its revision (None: no certificate issued yet)
+    issued_utc: str | None
+    attention: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Queue:
+    waiting: tuple[Waiting, ...]  # oldest run first: the one waiting longest
+    dry_runs: int  # complete dry runs, never approved (listed only when asked)
+
+
+def queue(lab: LabDatabase, dry_runs: bool = False) -> Queue:
+    """The complete runs whose certificate is not approved, oldest first; dry runs (never approved)
+    counted, and listed too when ``dry_runs``. A run the lab holds an approved certificate of
+    (`labcal.run.lab_certificates.approved_by`: read, not verified — its page verifies what it shows)
+    is passed over before any certificate is parsed, so the queue costs what is waiting, not the
+    lab's history."""
+    waiting, dry = [], 0
+    with lab.engine.connect() as conn:
+        rows = conn.execute(select(*SUMMARY).where(runs.c.status == "complete").order_by(runs.c.id)).all()
+        counts = _counts(conn, [r.id for r in rows])
+        for row in rows:
+            if approved_by(conn, row.id) is not None:
+                continue
+            revisions = run_revisions(conn, row.uuid) if row.uuid else []
+            cert = _current(revisions)
+            if cert is not None and cert.approval is not None:
+                continue
+            metadata = _metadata(row.metadata)
+            if simulated(metadata, row.station_text):
+                dry += 1
+                if not dry_runs:
+                    continue
+            run = _summary(row, counts.get(row.id, (0, 0, None)))
+            waiting.append(Waiting(run, None if cert is None else cert.number,
+                                   None if cert is None else cert.issued_utc.isoformat(),
+                                   needs_attention(metadata, _faults(conn, row.id), cert)))
+    return Queue(tuple(waiting), dry)
+
+
+# --- a run's results, as its certificate states them -----------------------------------------------
+@dataclass(frozen=True)
+class Revision:
+    certificate_id: str
+    number: str
+    issued_utc: str
+    approval: dict | None  # by, role, approved_utc (None: a draft)
+    replaced: bool  # another revision replaces it
+    documents: tuple[str, ...]  # the names the lab can give of it (`DOCUMENTS`)
+
+
+@dataclass(frozen=True)
+class Results:
+    """What a finished run's certificate states, and its model's residuals recomputed."""
+
+    number: str
+    model: str  # "device model" or "linear model …"
+    equation: str
+    unit: str  # the outputs' unit
+    coefficients: tuple[tuple[str, tuple[str, ...]], ...]  # (row, per sensor "value ± U")
+    residual_se: tuple[str, ...]  # the certificate's residual standard error per sensor
+    residual_rms: tuple[str, ...] | None  # the shown residuals' RMS per sensor (None: not recomputed)
+    residual_ratio: tuple[float, ...] | None  # shown RMS / the certificate's residual standard error
+    pitch_u95: str  # the attitude's U95 over the usage envelope (max)
+    roll_u95: str | None
+    verdict: str | None  # None: no tolerance given, no statement of conformity
+    passed: bool | None
+    attention: tuple[str, ...]
+    approval: dict | None
+    revisions: tuple[Revision, ...]
+
+
+def _in_unit(value: float, unit: str) -> str:
+    from labcal.documents.report_figures import in_volts
+
+    return in_volts(value, unit)
+
+
+def _verdict(cert: Certificate) -> tuple[str | None, bool | None]:
+    if cert.conformity is None:
+        return None, None
+    checks = "; ".join(f"{c.quantity} {c.value:.3g} {c.unit} (limit {c.limit:.3g} {c.unit}): "
+                       f"{'pass' if c.passed else 'FAIL'}" for c in cert.conformity.checks)
+    return ("PASS" if cert.conformity.passed else "FAIL") + f" — {checks}", cert.conformity.passed
+
+
+def documents_of(conn: Connection, cert: Certificate, run_dir: str | None) -> tuple[str, ...]:
+    names = set(conn.execute(select(certificate_files.c.name)
+                             .where(certificate_files.c.certificate_id == cert.certificate_id)).scalars())
+    if run_dir and _folder_holds(Path(run_dir), cert):
+        names |= {n for n in (PDF, DCC) if (Path(run_dir) / n).is_file()}
+    names |= {CERTIFICATE, DCC}  # the JSON is held; the DCC is written from it
+    return tuple(n for n in DOCUMENTS if n in names)
+
+
+def _folder_holds(run_dir: Path, cert: Certificate) -> bool:
+    """The run folder's certificate is this revision, as issued (its digest), so its report is too."""
+    try:
+        doc = json.loads((run_dir / CERTIFICATE).read_bytes())
+    except (OSError, ValueError):
+        return False
+    return isinstance(doc, dict) and (doc.get("digest") or {}).get("value") == cert.digest.value \
+        and doc.get("certificate_id") == cert.certificate_id
+
+
+def approval_of(cert: Certificate) -> dict | None:
+    if cert.approval is None:
+        return None
+    stated = cert.to_json()["approval"]
+    return {"by": stated["by"], "role": stated["role"], "approved_utc": stated["approved_utc"]}
+
+
+def run_results(lab: LabDatabase, run_id: int) -> Results | None:
+    """A complete run's certificate as the lab holds it (None: no run, or no certificate yet)."""
+    with lab.engine.connect() as conn:
+        row = conn.execute(select(runs.c.uuid, runs.c.run_dir, runs.c.metadata)
+                           .where(runs.c.id == run_id)).first()
+        if row is None or row.uuid is None:
+            return None
+        revisions = run_revisions(conn, row.uuid)
+        cert = _current(revisions)
+        if cert is None:
+            return None
+        replaced = {c.replaces for c in revisions if c.replaces}
+        listed = tuple(Revision(c.certificate_id, c.number, c.issued_utc.isoformat(), approval_of(c),
+                                c.number in replaced, documents_of(conn, c, row.run_dir))
+                       for c in reversed(revisions))
+        faults = _faults(conn, run_id)
+        shown = certified_residuals(conn, run_id, cert)
+    unit = cert.output_unit
+    X, U = cert.coefficients, cert.U
+    rows = tuple((ROW_NAMES[i], tuple(format_result(float(X[i, j]), float(U[i, j])) for j in range(3)))
+                 for i in range(4))
+    se = np.array(cert.fit.residual_standard_error, dtype=float)
+    rms = ratio = None
+    if shown is not None:
+        values = np.sqrt(np.mean(shown.residuals ** 2, axis=0))
+        rms = tuple(_in_unit(float(v), unit) for v in values)
+        ratio = tuple(float(v / s) if s > 0 else float("inf") for v, s in zip(values, se, strict=True))
+    name, equation = (shown.model, shown.equation) if shown is not None else (
+        "device model" if cert.fit.model == "device" else "linear model", "")
+    verdict, passed = _verdict(cert)
+    roll = cert.attitude.roll_U95_max_deg
+    return Results(cert.number, name, equation, unit, rows, tuple(_in_unit(float(s), unit) for s in se),
+                   rms, ratio, f"{cert.attitude.pitch_U95_max_deg * 3600:.3g}″",
+                   None if roll is None else f"{roll * 3600:.3g}″", verdict, passed,
+                   needs_attention(_metadata(row.metadata), faults, cert), approval_of(cert), listed)
+
+
+# --- a revision's documents --------------------------------------------------------------------------
+def certificate_document(lab: LabDatabase, certificate_id: str, name: str) -> tuple[str, bytes] | None:
+    """One document of one certificate revision, with its media type (None: no such revision, or the
+    lab cannot give that document of it; see the module for where each comes from)."""
+    from labcal.documents.dcc import dcc_document
+
+    if name not in MEDIA:
+        return None
+    with lab.engine.connect() as conn:
+        stored = conn.execute(select(certificate_files.c.content, certificate_files.c.sha256).where(
+            certificate_files.c.certificate_id == certificate_id, certificate_files.c.name == name)).first()
+        if stored is not None and hashlib.sha256(bytes(stored.content)).hexdigest() == stored.sha256:
+            return MEDIA[name], bytes(stored.content)
+        document = conn.execute(select(certificates.c.document)
+                                .where(certificates.c.certificate_id == certificate_id)).scalar()
+        cert = None if document is None else parsed_certificate(document, f"certificate {certificate_id}")
+        if cert is None:
+            return None
+        run_dir = None if cert.data.journal is None else conn.execute(
+            select(runs.c.run_dir).where(runs.c.uuid == cert.data.journal.run_uuid)).scalar()
+    if name == CERTIFICATE:
+        return MEDIA[name], str(document).encode("utf-8")
+    if run_dir and _folder_holds(Path(run_dir), cert) and (Path(run_dir) / name).is_file():
+        return MEDIA[name], (Path(run_dir) / name).read_bytes()
+    if name == DCC:
+        written = dcc_document(cert)
+        signed = cert.approval.dcc_sha256 if cert.approval is not None else None
+        if signed is None or hashlib.sha256(written).hexdigest() == signed:
+            return MEDIA[name], written
+    return None
+
+
+def residual_plot(lab: LabDatabase, run_id: int) -> bytes | None:
+    """PNG of the run's residuals under its certificate's model (`labcal.app.residuals`; the readings
+    so far under the linear fit while it has none); None: too few readings to fit."""
+    with lab.engine.connect() as conn:
+        uuid = conn.execute(select(runs.c.uuid).where(runs.c.id == run_id)).scalar()
+        cert = _current(run_revisions(conn, uuid)) if uuid else None
+        return residual_png(conn, run_id, cert)
