@@ -94,17 +94,20 @@ def lab_record(connection: Connection, run_id: int, directory: Path) -> RunRecor
                      station, logged, chain=chain)
 
 
-def draft_document(connection: Connection, serial: str | None, run_uuid: str) -> str | None:
+def draft_document(connection: Connection, serial: str | None, run_uuid: str, lock: bool = False
+                   ) -> str | None:
     """The newest certificate the lab holds for the run (the draft its bench issued and synced), as
-    JSON text; None when no bench has sent one."""
+    JSON text; None when no bench has sent one. ``lock``: its rows locked until the caller's
+    transaction ends (an approval), so that a draft the bench re-issues meanwhile is either the one
+    read here or arrives after the approval, never lost between the two."""
     from sqlalchemy import select
 
     from labcal.run.schema import certificates
 
     # by the run it states, not its serial: a serial stripped or given at issue need not be the run's
-    rows = connection.execute(select(certificates.c.document)
-                              .where(certificates.c.document.contains(run_uuid))
-                              .order_by(certificates.c.issued_utc.desc())).scalars()
+    query = (select(certificates.c.document).where(certificates.c.document.contains(run_uuid))
+             .order_by(certificates.c.issued_utc.desc()))
+    rows = connection.execute(query.with_for_update() if lock else query).scalars()
     for document in rows:
         journal = ((json.loads(document).get("data") or {}).get("journal") or {})
         if journal.get("run_uuid") == run_uuid:
