@@ -287,7 +287,7 @@ def test_a_sender_fills_an_empty_server_database_and_sends_nothing_twice(tmp_pat
         sender.close()
     with closing(sqlite3.connect(journal)) as db:
         records = {name: db.execute(f"SELECT count(*) FROM {name}").fetchone()[0]
-                   for name in ("device_estimates", "approvers", "settle_pools")}
+                   for name in ("device_estimates", "approvers", "settle_pools", "audit")}
     assert first.offered == {"runs": 1, "points": MOUNTS * MOUNT_POINTS, "events": events, "certificates": 1,
                              **records}
     assert first.stored == first.offered

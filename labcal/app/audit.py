@@ -19,17 +19,15 @@ with a row of their own (`labcal user unlock`).
 from __future__ import annotations
 
 import getpass
-import hashlib
-import json
 import socket
 from dataclasses import dataclass
 from datetime import UTC, datetime
 
 from sqlalchemy import desc, func, select
-from sqlalchemy.exc import IntegrityError
 
 from labcal.app.labdatabase import LabDatabase
 from labcal.errors import LabcalError
+from labcal.run.chain import append_audit, audit_digest
 from labcal.run.schema import audit
 
 # What a row records (``kind``)
@@ -53,7 +51,6 @@ RESETS = (SIGNED_IN, SIGNATURE_GIVEN, UNLOCKED, PASSWORD_CHANGED)  # the end of 
 FREE_FAILURES = 3  # consecutive failures an account may have before it must wait
 MAX_WAIT_S = 300.0  # the longest wait between two guesses, before the lockout
 LOCK_AFTER = 6  # consecutive failures that lock the account until an administrator unlocks it
-APPEND_TRIES = 20
 
 
 @dataclass(frozen=True)
@@ -84,8 +81,7 @@ class Row:
 
 def digest_of(prev: str, utc: str, entry: Entry) -> str:
     """SHA-256 (hex) of the previous digest and this row's fields, as canonical JSON."""
-    fields = [prev, utc, entry.kind, entry.account, entry.actor, entry.client, entry.detail]
-    return hashlib.sha256(json.dumps(fields, separators=(",", ":"), ensure_ascii=False).encode()).hexdigest()
+    return audit_digest(prev, utc, entry.kind, entry.account, entry.actor, entry.client, entry.detail)
 
 
 def _now() -> str:
@@ -103,19 +99,15 @@ def by_command(kind: str, account: str | None, detail: str | None = None) -> Ent
 
 def record(lab: LabDatabase, entry: Entry) -> str:
     """Append ``entry`` after the newest row; its digest."""
-    for _ in range(APPEND_TRIES):
-        try:
-            with lab.engine.begin() as conn:
-                last = conn.execute(select(audit.c.digest).order_by(desc(audit.c.id)).limit(1)).first()
-                prev, utc = ("" if last is None else last[0]), _now()
-                digest = digest_of(prev, utc, entry)
-                conn.execute(audit.insert().values(
-                    utc=utc, kind=entry.kind, account=entry.account, actor=entry.actor, client=entry.client,
-                    detail=entry.detail, prev=prev, digest=digest))
-            return digest
-        except IntegrityError:  # another writer appended after the same row: follow theirs
-            continue
-    raise LabcalError(f"the audit trail is being written by too many at once; {entry.kind} not recorded")
+    try:
+        with lab.engine.begin() as conn:
+            digest = append_audit(conn, _now(), entry.kind, entry.account, entry.actor, entry.client,
+                                  entry.detail)
+    except RuntimeError:
+        raise LabcalError(f"the audit trail is being written by too many at once; {entry.kind} not recorded"
+                          ) from None
+    assert digest is not None  # a row of no origin is always appended
+    return digest
 
 
 def _row(r) -> Row:

@@ -17,7 +17,8 @@ def cmd_sync(args: argparse.Namespace) -> int:
     from labcal.run.sync import Sender, is_outage
 
     where = lab_database(args.db)
-    nothing = {"database": str(where), "journal": str(where), "sent": {}, "new": {}, "received": {}}
+    nothing = {"database": str(where), "journal": str(where), "sent": {}, "new": {}, "received": {},
+               "refused": {}}
     if not isinstance(where, ServerDatabase):
         return said(args, nothing, f"{where}: the lab database is this SQLite file itself; nothing to send")
     journal = db_path(args.db)
@@ -38,13 +39,18 @@ def cmd_sync(args: argparse.Namespace) -> int:
         sender.close()
     if args.json:
         print_json({"database": str(where), "journal": str(journal), "sent": sent.offered,
-                    "new": sent.stored, "received": received})
+                    "new": sent.stored, "received": received, "refused": sent.refused})
         return 0
-    if sent.total == 0:
+    if sent.total == 0 and not sent.refused:
         out.print(f"{where}: nothing to send; everything in {journal} is there")
-    else:
+    elif sent.total:
         new = ", ".join(f"{sent.stored[n]} {n}" for n in sent.stored)
         out.print(f"{where}: sent {sent} from {journal} ({new} new there)")
+    if sent.refused:
+        what = ", ".join(f"{n} {t}" for t, n in sent.refused.items())
+        out.print(f"{where}: refused this bench's role {what} ({sent.why}): an approver is the lab's "
+                  "administrator's to register, an approved "
+                  f"certificate the lab server's to write; they stay in {journal}")
     if any(received.values()):
         out.print(f"{where}: received " + ", ".join(f"{n} {t}" for t, n in received.items() if n)
                   + f" of other benches into {journal}")

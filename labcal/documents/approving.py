@@ -225,7 +225,7 @@ def approve_lab_run(server: ServerDatabase, run_id: int, by: str, role: str, key
                 raise LabcalError(f"{where} is already approved by {done.get('by')} "
                                   f"({done.get('approved_utc')}); a change is a new revision")
             text = lab_certificates.draft_document(connection, record.meta.get("instrument_serial"),
-                                                   check.run_uuid)
+                                                   check.run_uuid, lock=True)
             draft, unreadable = None, None
             if text is None:
                 unreadable = ("no draft certificate of it has reached the lab database (`labcal report` at "

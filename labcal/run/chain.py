@@ -293,3 +293,44 @@ def copies(db: str | Path | None, run_uuid: str) -> list[tuple[str, ChainCheck]]
             if row is not None:
                 found.append((str(journal), check_sqlite(con, row[0])))
     return found
+
+
+# --- the audit trail's chain (`labcal.app.audit`) ------------------------------------------------
+AUDIT_TRIES = 20  # appends raced by other writers after the same row before giving up
+
+
+def audit_digest(prev: str, utc: str, kind: str, account: str | None, actor: str | None, client: str | None,
+                 detail: str | None) -> str:
+    """SHA-256 (hex) of an audit row: the previous row's digest and this row's fields, as canonical
+    JSON (a list, no spaces, non-ASCII as it is)."""
+    fields = [prev, utc, kind, account, actor, client, detail]
+    return hashlib.sha256(json.dumps(fields, separators=(",", ":"), ensure_ascii=False).encode()).hexdigest()
+
+
+def append_audit(connection: Any, utc: str, kind: str, account: str | None, actor: str | None,
+                 client: str | None, detail: str | None, origin: str | None = None) -> str | None:
+    """Append one row to the audit trail after its newest (in the caller's transaction, each try in a
+    savepoint): its digest, or None when a row of that ``origin`` is there already (a bench's row
+    copied once). ``prev`` is unique, so two writers cannot both follow one row: the one that loses
+    appends again after the other's. Raises `RuntimeError` after `AUDIT_TRIES` lost races."""
+    from sqlalchemy import desc, select
+    from sqlalchemy.exc import IntegrityError
+
+    from labcal.run.schema import audit
+
+    for _ in range(AUDIT_TRIES):
+        try:
+            with connection.begin_nested():
+                if origin is not None and connection.execute(
+                        select(audit.c.id).where(audit.c.origin == origin)).first() is not None:
+                    return None
+                last = connection.execute(select(audit.c.digest).order_by(desc(audit.c.id)).limit(1)).first()
+                prev = "" if last is None else last[0]
+                digest = audit_digest(prev, utc, kind, account, actor, client, detail)
+                connection.execute(audit.insert().values(
+                    utc=utc, kind=kind, account=account, actor=actor, client=client, detail=detail, prev=prev,
+                    digest=digest, origin=origin))
+            return digest
+        except IntegrityError:  # another writer appended after the same row, or the same origin meanwhile
+            continue
+    raise RuntimeError("the audit trail is being written by too many at once")

@@ -13,19 +13,17 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import fields, replace
+from dataclasses import fields
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from labcal.config.files import write_atomic
-from labcal.config.plans import parse_plan
-from labcal.config.snapshot import output_units, parse_snapshot
 from labcal.errors import LabcalError
 from labcal.run.chain import check_server
 from labcal.run.exports import station_description
 from labcal.run.journal import PointRecord, RunRow, readings_of
-from labcal.run.record import RunRecord, readings_digest
+from labcal.run.record import RunRecord, run_record
 from labcal.run.rundir import identity
 
 if TYPE_CHECKING:
@@ -78,33 +76,29 @@ def lab_record(connection: Connection, run_id: int, directory: Path) -> RunRecor
     good = [p for p in (PointRecord(**dict(zip(names, r, strict=True))) for r in connection.execute(
         select(*(points.c[n] for n in names)).where(points.c.run_id == run_id, points.c.status == "ok")
         .order_by(points.c.seq))) if p.seq not in superseded]
-    station = parse_snapshot(row.station_text)
-    readings = replace(readings_of(good, label), units=output_units(station))
     chain = check_server(connection, run_id, label)
-    notes = [] if chain.problem is None else [f"the lab's copy was changed after it was written: "
-                                              f"{chain.problem}"]
+    # what run.json says of the run (`labcal.run.exports`), which the lab keeps no copy of
     info = {"labcal_version": row.software_version, **identity(row), "plan": row.plan_name,
             "station": station_description(row), "settings": row.settings,
             **{k: v for k, v in row.metadata.items() if k != "station"}}
-    meta = {**info, **row.metadata, "status": row.status, "reason": row.reason,
-            "started_utc": row.started_utc, "ended_utc": row.ended_utc, "settings": row.settings,
-            "instrument_serial": row.instrument_serial, "operator": row.operator}
-    plan = parse_plan(row.plan_text, f"{label} plan")
-    return RunRecord(directory, readings, readings_digest(good), plan, row.plan_text, meta, tuple(notes),
-                     station, logged, chain=chain)
+    return run_record(directory, row, info, good, readings_of(good, label), logged, chain, [], label,
+                      "the lab's copy")
 
 
-def draft_document(connection: Connection, serial: str | None, run_uuid: str) -> str | None:
+def draft_document(connection: Connection, serial: str | None, run_uuid: str, lock: bool = False
+                   ) -> str | None:
     """The newest certificate the lab holds for the run (the draft its bench issued and synced), as
-    JSON text; None when no bench has sent one."""
+    JSON text; None when no bench has sent one. ``lock``: its rows locked until the caller's
+    transaction ends (an approval), so that a draft the bench re-issues meanwhile is either the one
+    read here or arrives after the approval, never lost between the two."""
     from sqlalchemy import select
 
     from labcal.run.schema import certificates
 
     # by the run it states, not its serial: a serial stripped or given at issue need not be the run's
-    rows = connection.execute(select(certificates.c.document)
-                              .where(certificates.c.document.contains(run_uuid))
-                              .order_by(certificates.c.issued_utc.desc())).scalars()
+    query = (select(certificates.c.document).where(certificates.c.document.contains(run_uuid))
+             .order_by(certificates.c.issued_utc.desc()))
+    rows = connection.execute(query.with_for_update() if lock else query).scalars()
     for document in rows:
         journal = ((json.loads(document).get("data") or {}).get("journal") or {})
         if journal.get("run_uuid") == run_uuid:

@@ -21,6 +21,7 @@ from labcal.config.snapshot import StationSnapshot, is_simulated, output_units, 
 from labcal.errors import LabcalError
 from labcal.run import exports
 from labcal.run.chain import ChainCheck, check_sqlite
+from labcal.run.journal import PointRecord, RunRow
 from labcal.run.lock import held_by
 from labcal.run.rundir import open_run, read_run_json
 
@@ -80,15 +81,27 @@ def load_run(run_dir: str | Path) -> RunRecord:
         notes, derived = exports.check(journal, row, run_dir)
         info = read_run_json(run_dir)
         points = journal.points(row.id, status="ok")
-        station = parse_snapshot(row.station_text)
-        readings = replace(journal.readings(row.id), units=output_units(station))
+        readings = journal.readings(row.id)
         events = tuple(journal.events(row.id))
         chain = check_sqlite(journal.db, row.id)
+    return run_record(run_dir, row, info, points, readings, events, chain, notes, f"run {row.id}",
+                      "the journal", derived)
+
+
+def run_record(directory: Path, row: RunRow, info: dict, points: list[PointRecord], readings: Readings,
+               events: tuple[dict, ...], chain: ChainCheck, notes: list[str], label: str, copy: str,
+               derived: exports.Derived | None = None) -> RunRecord:
+    """A run as a `RunRecord`, from wherever it was read — a station's journal and its folder's run.json
+    (`load_run`), or the lab database's copy (`labcal.run.lab_certificates.lab_record`): the journal's
+    row stated over run.json's ``info``, the readings in the station's output unit, the chain's problem
+    (if any) noted as a change to ``copy``. ``label`` names the run in the plan's errors."""
+    station = parse_snapshot(row.station_text)
     if chain.problem is not None:
-        notes.append(f"the journal was changed after it was written: {chain.problem}")
-    plan = parse_plan(row.plan_text, f"run {row.id} plan")
+        notes = [*notes, f"{copy} was changed after it was written: {chain.problem}"]
     meta = {**info, **row.metadata, "status": row.status, "reason": row.reason,
             "started_utc": row.started_utc, "ended_utc": row.ended_utc, "settings": row.settings,
             "instrument_serial": row.instrument_serial, "operator": row.operator}
-    return RunRecord(run_dir, readings, readings_digest(points), plan, row.plan_text, meta, tuple(notes),
-                     station, events, derived.fit, derived.device, derived.model_note, chain)
+    fits = (derived.fit, derived.device, derived.model_note) if derived is not None else (None, None, "")
+    return RunRecord(directory, replace(readings, units=output_units(station)), readings_digest(points),
+                     parse_plan(row.plan_text, f"{label} plan"), row.plan_text, meta, tuple(notes), station,
+                     events, *fits, chain)

@@ -6,8 +6,9 @@ Two group roles, made by `labcal db upgrade` (idempotently, with every grant and
   (runs, points, events, certificates, device estimates, settle pools) and appends to it only what
   its own station measured: row-level security lets it insert a run only under its own station's
   name (``station_roles`` maps its role to that name) and points and events only into its own
-  station's runs, and update only its own runs' status (a run's end). It cannot update or delete a
-  point or an event, and it has no privilege at all on users, approvers, approvals or any table not
+  station's runs, and update only its own runs' status (a run's end); it appends and re-issues only its
+  own station's draft certificates, never an approved one. It cannot update or delete a point or an
+  event, and it has no privilege at all on users, approvers, approvals or any table not
   named here — a table added later is closed to it until a grant says otherwise.
 - ``labcal_server``, the lab server's: it reads everything (it signs users in and checks approvers)
   and alone writes the approvals (the approved certificates).
@@ -48,15 +49,21 @@ BENCH_PREFIX = "labcal_bench_"
 BENCH_READS = ("alembic_version", "runs", "points", "events", "certificates", "certificate_files",
                "run_exports", "device_estimates", "settle_pools", "station_roles", "approvers", "instruments")
 BENCH_APPENDS = ("runs", "points", "events", "certificates", "device_estimates", "settle_pools")
-# What a bench sends again when it changes (the sync's records): a certificate approved at the bench
-# with a registered approver's own key (its signature, not the role, vouches for it), a device estimate
-# stored again, a settle pool that grew. Row-level security does not yet tie these to the station.
+# What a bench sends again when it changes (the sync's records): its own station's draft certificate
+# re-issued (row-level security: `OWN_DRAFT`), a device estimate stored again, a settle pool that grew.
+# Row-level security does not yet tie the estimates and pools to the station.
 BENCH_REPLACES = ("certificates", "device_estimates", "settle_pools")
 BENCH_CLOSES_RUNS = ("status", "reason", "ended_utc", "points_total")  # what a sync updates of its run
 SERVER_WRITES = ("certificates", "approvals", "certificate_files")
 SERVER_APPENDS = ("audit",)  # its audit trail: sign-ins, failures, lockouts, refusals, approvals
 SEQUENCES = (("runs", "id"), ("events", "id"))  # serial keys a bench's inserts draw from
 OWN_STATION = "(SELECT s.station FROM station_roles s WHERE s.role = current_user)"
+# A certificate row is judged by its document alone (the columns beside it are copies a bench could
+# set apart from it): a draft carries no "approval"; its run is the one its journal chain names.
+# A draft of a run journaled before digests names no run, so it belongs to no station: the lab's
+# administrator, not a bench's role, sends it.
+OWN_DRAFT = ("((document::jsonb -> 'approval') IS NULL AND EXISTS (SELECT 1 FROM runs r WHERE "
+             f"r.uuid = document::jsonb #>> '{{data,journal,run_uuid}}' AND r.station = {OWN_STATION}))")
 
 POLICIES: tuple[tuple[str, str, str], ...] = (  # (table, name, definition after "ON table")
     ("runs", "labcal_read", f"FOR SELECT TO {BENCH}, {SERVER} USING (true)"),
@@ -69,6 +76,13 @@ POLICIES: tuple[tuple[str, str, str], ...] = (  # (table, name, definition after
     ("events", "labcal_read", f"FOR SELECT TO {BENCH}, {SERVER} USING (true)"),
     ("events", "labcal_bench_append", f"FOR INSERT TO {BENCH} WITH CHECK (EXISTS (SELECT 1 FROM runs r "
                                       f"WHERE r.id = events.run_id AND r.station = {OWN_STATION}))"),
+    # a bench appends and re-issues its own station's drafts; an approved certificate, whoever's run
+    # it is, is the server's alone (an upsert over one is refused, a plain UPDATE finds no row)
+    ("certificates", "labcal_read", f"FOR SELECT TO {BENCH}, {SERVER} USING (true)"),
+    ("certificates", "labcal_bench_append", f"FOR INSERT TO {BENCH} WITH CHECK {OWN_DRAFT}"),
+    ("certificates", "labcal_bench_redraft",
+     f"FOR UPDATE TO {BENCH} USING {OWN_DRAFT} WITH CHECK {OWN_DRAFT}"),
+    ("certificates", "labcal_server_approve", f"FOR ALL TO {SERVER} USING (true) WITH CHECK (true)"),
 )
 
 

@@ -236,7 +236,11 @@ audit = Table(
     Column("detail", Text),
     Column("prev", Text, nullable=False, unique=True),
     Column("digest", Text, nullable=False),
+    # revision 0014: a row copied from a bench's journal (an approver changed there) names its digest
+    # in that journal: unique, so that a sync appends it once
+    Column("origin", Text),
     Index("audit_by_account", "account", "id"),
+    Index("audit_by_origin", "origin", unique=True),
 )
 
 # Revision 0011: the instrument register (`labcal.run.instruments`). ``serial_key`` is the serial
@@ -271,7 +275,7 @@ certificate_files = Table(
     Column("content", LargeBinary, nullable=False),
     Column("stored_utc", Text, nullable=False),
     PrimaryKeyConstraint("certificate_id", "name"),
-    Index("certificate_files_by_run", "run_uuid"),
+    Index("certificate_files_by_run", "run_uuid", "name", unique=True),  # revision 0014: once per run
 )
 
 __all__ = ["METADATA", "approvers", "audit", "certificate_files", "certificates", "device_estimates",

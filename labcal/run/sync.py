@@ -70,7 +70,7 @@ RECORDS = (
     Record("approvers", ("key_id",), ("revoked_utc",)),
     Record("settle_pools", ("pool_key",), ("updated_utc",)),
 )
-NAMES = ("runs", "points", "events", *(r.table for r in RECORDS))
+NAMES = ("runs", "points", "events", *(r.table for r in RECORDS), "audit")
 SEP = "char(31)"  # between a composite key's parts (never in a device id, run uuid or date)
 UNIT = "\x1f"  # the same character, as Python writes it (`_text_of`)
 
@@ -94,15 +94,22 @@ def _joined(columns: tuple[str, ...]) -> str:
 
 @dataclass
 class Sent:
-    """What one push sent: rows offered to the server per table, and rows it did not have yet."""
+    """What one push sent: rows offered to the server per table, rows it did not have yet, and the
+    records it refused this bench's role (``refused``, with PostgreSQL's first reason: an approved
+    certificate, an approver; they stay in the journal, never offered twice in one push)."""
 
     offered: dict[str, int] = field(default_factory=lambda: dict.fromkeys(NAMES, 0))
     stored: dict[str, int] = field(default_factory=lambda: dict.fromkeys(NAMES, 0))
+    refused: dict[str, int] = field(default_factory=dict)
+    why: str | None = None
 
     def add(self, other: Sent) -> None:
         for name in self.offered:
             self.offered[name] += other.offered[name]
             self.stored[name] += other.stored[name]
+        for name, n in other.refused.items():
+            self.refused[name] = self.refused.get(name, 0) + n
+        self.why = self.why or other.why
 
     @property
     def total(self) -> int:
@@ -146,11 +153,14 @@ class Sender:
                                        (marks.get(name, 0),)).fetchone()[0]
             for record in RECORDS:
                 out[record.table] = len(self._records_to_send(db, record, None))
+            out["audit"] = db.execute("SELECT count(*) FROM audit WHERE id > ?", (marks.get("audit", 0),)
+                                      ).fetchone()[0]
             return out
 
-    def _records_to_send(self, db: sqlite3.Connection, record: Record, limit: int | None
-                         ) -> list[tuple]:
-        """A record table's rows whose state this lab database has not committed: (key, state, row)."""
+    def _records_to_send(self, db: sqlite3.Connection, record: Record, limit: int | None,
+                         passed: frozenset[str] = frozenset()) -> list[tuple]:
+        """A record table's rows whose state this lab database has not committed, but for the keys
+        ``passed`` over (refused earlier in this push): (key, state, row)."""
         from labcal.run import schema
 
         columns = [c.name for c in schema.METADATA.tables[record.table].columns if c.name != "id"]
@@ -158,9 +168,11 @@ class Sender:
         rows = db.execute(
             f"SELECT {key}, {state}, {', '.join('t.' + c for c in columns)} FROM {record.table} t "
             f"LEFT JOIN sync_sent s ON s.target = ? AND s.name = ? AND s.key = {key} "
-            f"WHERE s.state IS NULL OR s.state != {state} ORDER BY t.rowid LIMIT ?",
-            (self.target, record.table, -1 if limit is None else limit)).fetchall()
-        return [(row[0], row[1], dict(zip(columns, row[2:], strict=True))) for row in rows]
+            f"WHERE s.state IS NULL OR s.state != {state} ORDER BY t.rowid",
+            (self.target, record.table)).fetchall()
+        found = [(row[0], row[1], dict(zip(columns, row[2:], strict=True))) for row in rows
+                 if row[0] not in passed]
+        return found if limit is None else found[:limit]
 
     def _cursors(self, db: sqlite3.Connection) -> dict[str, int]:
         return dict(db.execute("SELECT name, position FROM sync_cursors WHERE target=?", (self.target,)))
@@ -180,9 +192,10 @@ class Sender:
             labdb.open_server(self.server).dispose()
             self._schema_checked = True
         sent = Sent()
+        passed: dict[str, set[str]] = {name: set() for name in NAMES}
         with closing(self._local()) as db:
             while True:
-                step = self._push_once(db)
+                step = self._push_once(db, passed)
                 sent.add(step)
                 if step.total == 0:
                     # everything the journal holds is in the lab: what a bench that cannot reach
@@ -233,12 +246,7 @@ class Sender:
         n = len(record.key)
         lab = {_text_of(row[:n]): _text_of(row[n:])
                for row in server.execute(select(*(table.c[c] for c in record.key + record.state)))}
-        key, state = _joined(record.key), _joined(record.state)
-        mine = dict(db.execute(f"SELECT {key}, {state} FROM {record.table} t"))
-        sent = dict(db.execute("SELECT key, state FROM sync_sent WHERE target = ? AND name = ?",
-                               (self.target, record.table)))
-        wanted = [k for k, v in lab.items()
-                  if k not in mine or (mine[k] == sent.get(k) and mine[k] != v)]
+        wanted = list(self._taken(db, record, lab))
         columns = [c.name for c in table.columns if c.name != "id"]
         rows: list[tuple] = []
         for part in range(0, len(wanted), BATCH):
@@ -248,21 +256,35 @@ class Sender:
         if not rows:
             return 0
         at = [columns.index(c) for c in record.key + record.state]
-        states = [(self.target, record.table, _text_of([r[i] for i in at[:n]]),
-                   _text_of([r[i] for i in at[n:]])) for r in rows]
+        keyed = [(_text_of([r[i] for i in at[:n]]), _text_of([r[i] for i in at[n:]]), r) for r in rows]
+        # the journal's write lock taken, each record is judged again: another process of this bench
+        # (`labcal report` re-issuing a draft, an approval) may have changed it since it was read, and
+        # a change of its own not yet sent is never overwritten
         db.execute("BEGIN IMMEDIATE")
         try:
+            still = self._taken(db, record, {k: v for k, v, _ in keyed})
+            taken = [(k, v, r) for k, v, r in keyed if k in still]
             db.executemany(f"INSERT OR REPLACE INTO {record.table} ({', '.join(columns)}) VALUES "
-                           f"({', '.join('?' * len(columns))})", rows)
-            db.executemany(SENT, states)
+                           f"({', '.join('?' * len(columns))})", [r for _, _, r in taken])
+            db.executemany(SENT, [(self.target, record.table, k, v) for k, v, _ in taken])
             db.execute("COMMIT")
         except BaseException:
             if db.in_transaction:
                 db.execute("ROLLBACK")
             raise
-        return len(rows)
+        return len(taken)
 
-    def _push_once(self, db: sqlite3.Connection) -> Sent:
+    def _taken(self, db: sqlite3.Connection, record: Record, lab: dict[str, str]) -> set[str]:
+        """The keys of the records (``lab``: key → the lab's state) whose lab copy the journal takes: it
+        lacks the record, or holds it as it was last sent or received (no change of this bench's own
+        waiting to be sent) and the lab's copy has changed since."""
+        key, state = _joined(record.key), _joined(record.state)
+        mine = dict(db.execute(f"SELECT {key}, {state} FROM {record.table} t"))
+        sent = dict(db.execute("SELECT key, state FROM sync_sent WHERE target = ? AND name = ?",
+                               (self.target, record.table)))
+        return {k for k, v in lab.items() if k not in mine or (mine[k] == sent.get(k) and mine[k] != v)}
+
+    def _push_once(self, db: sqlite3.Connection, passed: dict[str, set[str]]) -> Sent:
         # SQLAlchemy's tables only here, where a server is written: a run on a SQLite lab database
         # (the journal itself) imports neither them nor SQLAlchemy
         from sqlalchemy.dialects.postgresql import insert
@@ -301,19 +323,14 @@ class Sender:
                     index_elements=["run_id", "origin_id"]), origin=True)
             records = []
             for record in RECORDS:
-                pending = self._records_to_send(db, record, BATCH)
-                sent.offered[record.table] = len(pending)
-                rows = [row for _, _, row in pending]
-                try:  # a table this bench's role may not write (its approvers) is passed over, not the rest
-                    with server.begin_nested():
-                        sent.stored[record.table] = send_records(server, record, rows)
-                except Exception as exc:
-                    if not is_refusal(exc):
-                        raise
-                    sent.stored[record.table] = 0
-                    continue
-                records += [(self.target, record.table, key, state) for key, state, _ in pending]
-        for name, position in (("points", moved_points), ("events", moved_events)):
+                pending = self._records_to_send(db, record, BATCH, frozenset(passed[record.table]))
+                accepted, sent.stored[record.table] = self._send_allowed(server, record, pending, sent,
+                                                                         passed[record.table])
+                sent.offered[record.table] = len(accepted)
+                records += [(self.target, record.table, key, state) for key, state, _ in accepted]
+            moved_audit, sent.offered["audit"], sent.stored["audit"] = self._send_audit(
+                server, db, marks.get("audit", 0), sent, passed["audit"])
+        for name, position in (("points", moved_points), ("events", moved_events), ("audit", moved_audit)):
             if position is not None:
                 moved[name] = position
         if run_rows or moved or records:  # the server has committed: now the journal may say so
@@ -332,6 +349,63 @@ class Sender:
                     db.execute("ROLLBACK")
                 raise
         return sent
+
+    @staticmethod
+    def _send_allowed(server: Connection, record: Record, pending: list[tuple], sent: Sent,
+                      passed: set[str]) -> tuple[list[tuple], int]:
+        """``pending`` records sent, each batch in a savepoint; where PostgreSQL refuses this bench's
+        role the batch (an approver, an approved certificate: `labcal.run.roles`), each record is
+        sent alone and only the refused ones are passed over (noted in ``sent`` and ``passed``),
+        never the rest nor the push. Returns the records stored and how many rows changed."""
+        if not pending:
+            return [], 0
+        try:
+            with server.begin_nested():
+                return pending, send_records(server, record, [row for _, _, row in pending])
+        except Exception as exc:
+            if not is_refusal(exc):
+                raise
+        accepted, stored = [], 0
+        for item in pending:
+            try:
+                with server.begin_nested():
+                    stored += send_records(server, record, [item[2]])
+                accepted.append(item)
+            except Exception as exc:
+                if not is_refusal(exc):
+                    raise
+                passed.add(item[0])
+                sent.refused[record.table] = sent.refused.get(record.table, 0) + 1
+                sent.why = sent.why or labdb._first_line(getattr(exc, "orig", None) or exc)
+        return accepted, stored
+
+    @staticmethod
+    def _send_audit(server: Connection, db: sqlite3.Connection, after: int, sent: Sent, passed: set[str]
+                    ) -> tuple[int | None, int, int]:
+        """The journal's audit rows after ``after`` (an approver registered or revoked at this bench)
+        appended to the lab's audit trail, each chained after the lab's newest row and named by the
+        digest it has in the journal (``origin``, unique: a row sent again is not appended again):
+        (the new cursor or None, offered, appended). A role that may not write the audit trail (a
+        bench's: it may not change the approvers either) has them passed over, once per push."""
+        from labcal.run.chain import append_audit
+
+        rows = [] if passed else db.execute(
+            "SELECT id, utc, kind, account, actor, client, detail, digest FROM audit WHERE id > ? "
+            "ORDER BY id LIMIT ?", (after, BATCH)).fetchall()
+        if not rows:
+            return None, 0, 0
+        try:
+            with server.begin_nested():
+                appended = sum(append_audit(server, utc, kind, account, actor, client, detail, origin=digest)
+                               is not None for _, utc, kind, account, actor, client, detail, digest in rows)
+        except Exception as exc:
+            if not is_refusal(exc):
+                raise
+            passed.update(str(row[0]) for row in rows)
+            sent.refused["audit"] = sent.refused.get("audit", 0) + len(rows)
+            sent.why = sent.why or labdb._first_line(getattr(exc, "orig", None) or exc)
+            return None, 0, 0
+        return rows[-1][0], len(rows), appended
 
     def _send_rows(self, server: Connection, db: sqlite3.Connection, table: str, key: str, after: int,
                    columns: tuple[str, ...], lab_ids: dict[int, int] | None,
@@ -421,9 +495,19 @@ def send_records(server: Connection, record: Record, rows: list[dict]) -> int:
                     update(table).where(table.c.key_id == row["key_id"], table.c.revoked_utc.is_(None))
                     .values(revoked_utc=row["revoked_utc"])), 1)
         return stored
-    # a certificate whose digest differs; an estimate or a pool stored later than the lab's copy
-    newer = (table.c.sha256 != statement.excluded.sha256 if record.table == "certificates" else
-             table.c[record.state[0]] < statement.excluded[record.state[0]])
+    # a certificate whose digest differs, but never a draft over an approved one (the lab's record of
+    # the approval, whichever role sends it); an estimate or a pool stored later than the lab's copy
+    if record.table == "certificates":
+        from sqlalchemy import and_, or_
+        from sqlalchemy.dialects.postgresql import JSONB
+
+        def approved(document: Any) -> Any:
+            return document.cast(JSONB)["approval"].is_not(None)
+
+        newer = and_(table.c.sha256 != statement.excluded.sha256,
+                     or_(~approved(table.c.document), approved(statement.excluded.document)))
+    else:
+        newer = table.c[record.state[0]] < statement.excluded[record.state[0]]
     changed = {c.name: statement.excluded[c.name] for c in table.columns if c.name not in record.key}
     upsert = statement.on_conflict_do_update(index_elements=list(record.key), set_=changed, where=newer)
     return _count(server.execute(upsert.execution_options(preserve_rowcount=True)), len(rows))
@@ -620,19 +704,25 @@ def send_now(db: str | Path | None) -> str | None:
     except LabcalError as exc:
         return f"{exc}; the journal {journal} keeps it for labcal sync"
     try:
-        sender.push()
+        sent = sender.push()
     except Exception as exc:
         why = labdb._first_line(getattr(exc, "orig", None) or exc)
         if is_refusal(exc):
-            return (f"the lab database {where} refuses this bench's role that change ({why}): the lab's "
-                    f"administrator makes it there; the journal {journal} keeps it")
+            return refused_line(where, why, journal)
         if not is_outage(exc):
             raise
         return (f"the lab database {where} is unreachable ({why}); the journal {journal} keeps it for "
                 "labcal sync")
     finally:
         sender.close()
-    return None
+    return None if not sent.refused else refused_line(where, sent.why, journal)
+
+
+def refused_line(where: ServerDatabase, why: str | None, journal: Path) -> str:
+    """What a bench is told of a change the lab refuses its role (an approver registered or revoked,
+    a certificate approved at the bench: the administrator's and the lab server's to write)."""
+    return (f"the lab database {where} refuses this bench's role that change ({why}): the lab's "
+            f"administrator makes it there (an approval: the lab server); the journal {journal} keeps it")
 
 
 # what a journal notes of a record it sent to, or received from, a lab database: its state there
