@@ -236,7 +236,7 @@ audit = Table(
     Column("detail", Text),
     Column("prev", Text, nullable=False, unique=True),
     Column("digest", Text, nullable=False),
-    # revision 0014: a row copied from a bench's journal (an approver changed there) names its digest
+    # revision 0013: a row copied from a bench's journal (an approver changed there) names its digest
     # in that journal: unique, so that a sync appends it once
     Column("origin", Text),
     Index("audit_by_account", "account", "id"),
@@ -275,7 +275,7 @@ certificate_files = Table(
     Column("content", LargeBinary, nullable=False),
     Column("stored_utc", Text, nullable=False),
     PrimaryKeyConstraint("certificate_id", "name"),
-    Index("certificate_files_by_run", "run_uuid", "name", unique=True),  # revision 0014: once per run
+    Index("certificate_files_by_run", "run_uuid", "name", unique=True),  # revision 0013: once per run
 )
 
 __all__ = ["METADATA", "approvers", "audit", "certificate_files", "certificates", "device_estimates",

@@ -7,7 +7,7 @@ is kept once.
 - ``certificate_files_by_run`` becomes unique over (run_uuid, name): one approved file of each name
   per run, whichever approval (or process) stores it.
 
-Revision ID: 0014
+Revision ID: 0013
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from __future__ import annotations
 import sqlalchemy as sa
 from alembic import op
 
-revision = "0014"
+revision = "0013"
 down_revision = "0012"
 branch_labels = None
 depends_on = None
