@@ -121,20 +121,6 @@ def _list_runs(conn: Connection) -> list[dict]:
     return [_summary(r, counts.get(r.id, (0, 0, None))) for r in rows]
 
 
-def _stations(conn: Connection, listed: list[dict]) -> list[dict]:
-    """Every station that has journaled a run, with its current run: the one running (the newest,
-    if several; with where it stands, as `run_progress` says: the prompt it waits at, its next
-    remount, its last fault), else its newest; stations in name order. ``listed``: `_list_runs`."""
-    current: dict[str, dict] = {}
-    for run in listed:  # newest first
-        name = run["station"] or "(unnamed station)"
-        held = current.get(name)
-        if held is None or (held["status"] != RUNNING and run["status"] == RUNNING):
-            current[name] = run
-    return [{"station": name, "run": _progress(conn, run["id"]) or run if run["status"] == RUNNING else run}
-            for name, run in sorted(current.items())]
-
-
 def _event_json(row: Any) -> dict:
     data = _json(row.data)
     return {"id": row.id, "utc": row.utc, "station_time": row.station_time, "kind": row.kind,
@@ -260,29 +246,10 @@ RECENT = 30  # events a run's page lists
 BATCH = 500  # rows per stream batch and kind: a client far behind catches up in bounded steps
 
 
-@dataclass(frozen=True)
-class Overview:
-    """The lab at a glance (`/`): each station with its current run, and the latest runs."""
-
-    stations: tuple[dict, ...]  # {"station": name, "run": RunJson}, in name order
-    runs: tuple[RunJson, ...]  # newest first
-    as_of_utc: str  # when it was read: what each running station's "last heard" compares with
-
-
 def lab_runs(lab: LabDatabase) -> list[RunJson]:
     """Every run of the lab, newest first, with its progress (`GET /api/runs`)."""
     with lab.engine.connect() as conn:
         return _list_runs(conn)
-
-
-def lab_overview(lab: LabDatabase, latest: int = 50) -> Overview:
-    """Every station that has journaled a run, with its current run (the one running, the newest if
-    several, else its newest), and the ``latest`` runs."""
-    from labcal.run.journal import utc_now
-
-    with lab.engine.connect() as conn:
-        listed = _list_runs(conn)
-        return Overview(tuple(_stations(conn, listed)), tuple(listed[:latest]), utc_now())
 
 
 def run_progress(lab: LabDatabase, run_id: int) -> RunJson | None:
