@@ -154,15 +154,29 @@ def _progress(conn: Connection, run_id: int) -> dict | None:
         return None
     counts = _counts(conn, [run_id]).get(run_id, (0, 0, None))
     summary = _summary(row, counts)
-    last = conn.execute(select(points.c.y_deg, points.c.u_deg, points.c.t_end)
+    last = conn.execute(select(points.c.y_deg, points.c.u_deg, points.c.t_end, points.c.utc)
                         .where(points.c.run_id == run_id).order_by(points.c.seq.desc()).limit(1)).first()
-    summary["mount"] = None if last is None else {"y_deg": last.y_deg, "u_deg": last.u_deg}
+    summary["mount"] = _mount(conn, run_id, last)
     fault = _latest(conn, run_id, FAULT_KIND)
     summary["last_fault"] = None if fault is None else {"utc": fault["utc"], "message": fault["message"]}
     summary["waiting"] = _waiting(conn, run_id) if row.status == RUNNING else None
     summary["last_heard_utc"] = _last_heard(conn, run_id)
     summary.update(_ahead(conn, row, counts, None if last is None else last.t_end))
     return summary
+
+
+def _mount(conn: Connection, run_id: int, last: Any) -> dict | None:
+    """The mount on the plate: the latest point's, unless a remount was confirmed since (the status
+    the run journals then names the mount, Soto Table 3's number) and no point has been measured on
+    it yet."""
+    from labcal.analysis.kinematics import MOUNTS
+
+    status = _latest(conn, run_id, STATUS_KIND)
+    number = status["data"].get("mount") if status and isinstance(status["data"], dict) else None
+    if number in (1, 2, 3, 4) and status is not None and (last is None or status["utc"] > last.utc):
+        mounted = MOUNTS[number - 1]
+        return {"y_deg": mounted.y_deg, "u_deg": mounted.u_deg}
+    return None if last is None else {"y_deg": last.y_deg, "u_deg": last.u_deg}
 
 
 def _last_heard(conn: Connection, run_id: int) -> str | None:

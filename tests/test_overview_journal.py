@@ -1,0 +1,85 @@
+"""The overview and a run's progress read from real journals: the mount a confirmed remount put on
+the plate before its first point, and a bench registered in the lab's PostgreSQL before its first
+run.
+
+The journal "just after mount 2 was confirmed" is a finished dry run's journal cut at that moment:
+the journal only ever appends, so deleting every row written after the status it journaled then
+leaves exactly what the lab read at that moment (the run still running)."""
+
+from __future__ import annotations
+
+import re
+import sqlite3
+
+import httpx
+from lab_server import add_user, served
+
+from labcal.app.lab import run_progress
+from labcal.app.labdatabase import OpenLab, open_lab
+from labcal.app.overview import lab_overview
+from labcal.app.station_state import Silence
+from labcal.cli import main
+
+HOUR = Silence(floor_s=3600.0)  # the journal was written seconds ago: never "not heard from" here
+
+
+def _cut_after_second_mount(db: str) -> tuple[tuple[float, float], tuple[float, float]]:
+    """Cut run 1's journal just after its second mount was confirmed; the mount of its latest point
+    then and of the first point it measured next (y°, u°), as the journal has them."""
+    with sqlite3.connect(db) as conn:
+        event_id, utc = conn.execute(
+            "SELECT id, utc FROM events WHERE run_id = 1 AND kind = 'status' "
+            "AND message LIKE 'running: 16 of %' ORDER BY id LIMIT 1").fetchone()
+        before = conn.execute("SELECT y_deg, u_deg FROM points WHERE utc <= ? ORDER BY seq DESC LIMIT 1",
+                              (utc,)).fetchone()
+        after = conn.execute("SELECT y_deg, u_deg FROM points WHERE utc > ? ORDER BY seq LIMIT 1",
+                             (utc,)).fetchone()
+        conn.execute("DELETE FROM events WHERE id > ?", (event_id,))
+        conn.execute("DELETE FROM points WHERE utc > ?", (utc,))
+        conn.execute("UPDATE runs SET status = 'running', ended_utc = NULL, reason = NULL")
+    return tuple(before), tuple(after)
+
+
+def test_a_confirmed_remount_is_the_mount_shown_before_its_first_point(tmp_path, monkeypatch):
+    db = str(tmp_path / "lab.sqlite")
+    monkeypatch.setenv("LABCAL_STATION", "bench 5")
+    assert main(["run", "--sim", "--yes", "--no-report", "--seed", "5", "--serial", "ACC-0005", "--db", db,
+                 "--out", str(tmp_path / "run")]) == 0
+    before, after = _cut_after_second_mount(db)
+    assert before != after  # four-mount-64: the second mount is another orientation
+    lab = open_lab(OpenLab(db))
+    try:
+        progress = run_progress(lab, 1)
+        assert progress is not None and progress["points_done"] == 16
+        assert (progress["mount"]["y_deg"], progress["mount"]["u_deg"]) == after
+        (station,) = lab_overview(lab, HOUR).stations
+    finally:
+        lab.close()
+    assert station["station"] == "bench 5" and station["state"] == "running"
+    # Soto Table 3's numbering: 1 (0°, 0°), 2 (180°, 0°), 3 (0°, 180°), 4 (180°, 180°)
+    number = {(0.0, 0.0): 1, (180.0, 0.0): 2, (0.0, 180.0): 3, (180.0, 180.0): 4}[after]
+    assert station["mount"] == {"number": number, "y_deg": after[0], "u_deg": after[1]}
+
+
+def test_a_bench_registered_in_the_lab_database_shows_idle_before_its_first_run(postgres_url, tmp_path,
+                                                                               monkeypatch):
+    """`labcal db grant-station 'bench 9'` on the lab's PostgreSQL: the overview lists bench 9, idle,
+    with no run, beside bench 2, whose run is complete."""
+    (tmp_path / "lab.toml").write_text("")
+    for name, value in {"LABCAL_JOURNAL": str(tmp_path / "journal.sqlite"), "LABCAL_STATION": "bench 2",
+                        "LABCAL_CONFIG": str(tmp_path / "lab.toml"),
+                        "XDG_DATA_HOME": str(tmp_path / "data")}.items():
+        monkeypatch.setenv(name, value)
+    assert main(["db", "grant-station", "bench 9", "--db", postgres_url, "--json"]) == 0
+    add_user(postgres_url, "vic", "viewer", "vic's passphrase")
+    assert main(["run", "--sim", "--yes", "--no-report", "--plan", "one-mount-16", "--db", postgres_url,
+                 "--out", str(tmp_path / "run")]) == 0
+    with served(postgres_url) as url, httpx.Client(base_url=url, timeout=15) as page:
+        csrf = re.search(r'name="csrf" value="([^"]+)"', page.get("/login").text)
+        assert csrf is not None
+        page.post("/login", data={"name": "vic", "password": "vic's passphrase", "csrf": csrf[1]})
+        shown = page.get("/").text
+    card = r'<h2>([^<]+?)(?: <small[^>]*>simulated</small>)?</h2><span class="badge state-(\w+)">'
+    cards = re.findall(card, shown)
+    assert cards == [("bench 2", "complete"), ("bench 9", "idle")], shown
+    assert "Registered; no run yet." in shown
