@@ -71,7 +71,7 @@ def test_a_bench_registered_in_the_lab_database_shows_idle_before_its_first_run(
                         "XDG_DATA_HOME": str(tmp_path / "data")}.items():
         monkeypatch.setenv(name, value)
     assert main(["db", "grant-station", "bench 9", "--db", postgres_url, "--json"]) == 0
-    add_user(postgres_url, "vic", "viewer", "vic's passphrase")
+    token = add_user(postgres_url, "vic", "viewer", "vic's passphrase")
     assert main(["run", "--sim", "--yes", "--no-report", "--plan", "one-mount-16", "--db", postgres_url,
                  "--out", str(tmp_path / "run")]) == 0
     with served(postgres_url) as url, httpx.Client(base_url=url, timeout=15) as page:
@@ -79,6 +79,11 @@ def test_a_bench_registered_in_the_lab_database_shows_idle_before_its_first_run(
         assert csrf is not None
         page.post("/login", data={"name": "vic", "password": "vic's passphrase", "csrf": csrf[1]})
         shown = page.get("/").text
+        stations = httpx.get(url + "/api/stations", headers={"Authorization": f"Bearer {token}"},
+                             timeout=15).json()["stations"]
+    assert [(s["station"], s["state"], s["label"]) for s in stations] == [
+        ("bench 2", "complete", "complete"), ("bench 9", "idle", "idle")]
+    assert stations[1]["run"] is None and "run_dir" not in stations[0]["run"]  # a viewer's: no folder
     card = r'<h2>([^<]+?)(?: <small[^>]*>simulated</small>)?</h2><span class="badge state-(\w+)">'
     cards = re.findall(card, shown)
     assert cards == [("bench 2", "complete"), ("bench 9", "idle")], shown

@@ -169,6 +169,13 @@ def create_app(settings: ServerSettings) -> FastAPI:
     def api_runs(user: Annotated[users.User, Depends(api_user)]) -> dict:
         return {"runs": [for_role(run, user) for run in lab.lab_runs(db)]}
 
+    @app.get("/api/stations")
+    def api_stations(user: Annotated[users.User, Depends(api_user)]) -> dict:
+        """Every bench the lab knows with its state, as the overview shows it."""
+        found = overview.lab_overview(db, settings.silence)
+        stations = [{**s, "run": for_role(s["run"], user) if s["run"] else None} for s in found.stations]
+        return {"as_of_utc": found.as_of_utc, "stations": stations}
+
     @app.get("/api/runs/{run_id}")
     def api_run(run_id: RunId, user: Annotated[users.User, Depends(api_user)]) -> dict:
         found = lab.run_detail(db, run_id)
