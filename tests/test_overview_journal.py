@@ -12,6 +12,7 @@ import re
 import sqlite3
 
 import httpx
+import pytest
 from lab_server import add_user, served
 
 from labcal.app.lab import run_progress
@@ -88,3 +89,36 @@ def test_a_bench_registered_in_the_lab_database_shows_idle_before_its_first_run(
     cards = re.findall(card, shown)
     assert cards == [("bench 2", "complete"), ("bench 9", "idle")], shown
     assert "Registered; no run yet." in shown
+
+
+@pytest.mark.parametrize(("utc", "shown"), [
+    ("2026-11-27T09:41:07.250+00:00", "2026-11-27 09:41 UTC (10:41 CET)"),  # winter: UTC+1
+    ("2026-07-01T23:30:00.000+00:00", "2026-07-01 23:30 UTC (01:30 CEST)"),  # summer: UTC+2, the next day
+    (None, "—")])
+def test_times_are_shown_in_utc_and_in_the_labs_local_time_beside_it(utc, shown, monkeypatch):
+    """The server's zone is the lab's (TZ); Berlin's offsets are the EU's summer-time rule's."""
+    import time
+
+    from labcal.server.app import clock
+
+    monkeypatch.setenv("TZ", "Europe/Berlin")
+    time.tzset()
+    try:
+        assert clock(utc) == shown
+    finally:
+        monkeypatch.undo()
+        time.tzset()
+
+
+def test_a_lab_on_utc_is_shown_in_utc_alone(monkeypatch):
+    import time
+
+    from labcal.server.app import clock
+
+    monkeypatch.setenv("TZ", "UTC")
+    time.tzset()
+    try:
+        assert clock("2026-11-27T09:41:07.250+00:00", seconds=True) == "2026-11-27 09:41:07 UTC"
+    finally:
+        monkeypatch.undo()
+        time.tzset()
