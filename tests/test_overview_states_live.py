@@ -1,7 +1,8 @@
 """The lab overview in Chromium while real benches run: a bench whose process is killed (SIGKILL,
 as a power cut or the OOM killer would) shows as "not heard from", without an ETA, within two
 minutes; a bench at a remount prompt shows in its own state with how long it has waited, counted
-from the prompt's time in the journal.
+from the prompt's time in the journal; an emulated station paused on its drive's alarm shows
+"paused on a fault" until the technician aborts it.
 
 Every bench is a real `labcal run --sim --pace` process journaling into the SQLite lab database
 that `labcal serve` (a process of its own) reads. The server is told a short least silence
@@ -10,6 +11,7 @@ that `labcal serve` (a process of its own) reads. The server is told a short lea
 from __future__ import annotations
 
 import os
+import re
 import signal
 import sqlite3
 import subprocess
@@ -122,5 +124,54 @@ def test_a_bench_at_a_remount_prompt_is_waiting_for_a_person_with_the_minutes_wa
                 accessible(page, "/ with a bench waiting")
             finally:
                 page.close()
+    finally:
+        ctrl_c(bench, 20)
+
+
+@pytest.mark.slow
+def test_a_bench_paused_on_a_fault_shows_the_fault_until_it_is_stopped(tmp_path):
+    """An emulated AZ station whose roll drive raises alarm 10h mid-run (AZ manual: excessive position
+    deviation): the run pauses, and the overview says "paused on a fault" with the alarm, as the API
+    does; the technician aborts at the station, and the bench is idle, its run stopped, the fault
+    still shown as not cleared (nothing went past it)."""
+    import httpx
+    from emulators import private_file
+
+    alarm = '\n[[emulation.faults]]\ndevice = "roll"\nkind = "alarm"\ncode = 16\nafter = 150\n'
+    station = private_file("az-modbus-rtu", tmp_path, alarm, "timeout_s = 0.1\nreconnect_s = 1")
+    db = str(tmp_path / "lab.sqlite")
+    token = add_user(db, "ada", "approver", "ada's passphrase")
+    bench = subprocess.Popen([LABCAL, "run", "--station", str(station), "--emulate", "--time-scale", "1000",
+                              "--no-report", "--db", db, "--out", str(tmp_path / "run")],
+                             stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                             text=True, env={**os.environ, "LABCAL_STATION": "bench 6"})
+    assert bench.stdin is not None
+    bench.stdin.write("y\ny\ny\ny\n")  # every mount confirmed; what is left over is not an answer to a pause
+    bench.stdin.flush()
+    try:
+        with served(db, "--silent-after", str(SILENT_AFTER_S)) as url, \
+                httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"}, timeout=15) as api:
+            def bench_in(state: str) -> dict | None:
+                found = api.get("/api/stations").json()["stations"]
+                return found[0] if found and found[0]["state"] == state else None
+
+            paused = wait_for(lambda: bench_in("fault"), 120, "the bench paused on the alarm")
+            assert isinstance(paused, dict) and paused["label"] == "paused on a fault"
+            assert "alarm 10h (excessive position deviation)" in paused["fault"]["message"]
+            assert paused["fault"]["cleared_utc"] is None and paused["done_at_utc"] is None
+            with httpx.Client(base_url=url, timeout=15) as page:
+                csrf = re.search(r'name="csrf" value="([^"]+)"', page.get("/login").text)
+                assert csrf is not None
+                page.post("/login", data={"name": "ada", "password": "ada's passphrase", "csrf": csrf[1]})
+                shown = page.get("/").text
+            assert '<span class="badge state-fault">paused on a fault</span>' in shown
+            waited = r'Paused on a fault for <span data-since="[^"]+">[^<]+</span>: roll table'
+            assert re.search(waited, shown), shown
+            bench.stdin.write("a\n")  # abort at the station
+            bench.stdin.flush()
+            assert bench.wait(timeout=60) != 0
+            stopped = wait_for(lambda: bench_in("idle"), 30, "the bench idle after the abort")
+            assert isinstance(stopped, dict) and stopped["run"]["status"] == "stopped"
+            assert stopped["fault"]["cleared_utc"] is None
     finally:
         ctrl_c(bench, 20)
