@@ -122,3 +122,37 @@ def test_a_lab_on_utc_is_shown_in_utc_alone(monkeypatch):
     finally:
         monkeypatch.undo()
         time.tzset()
+
+
+@pytest.mark.slow
+def test_a_paced_runs_done_at_is_its_eta_at_the_pace_it_keeps(tmp_path):
+    """A simulated run paced at 20 × real time: the rig's clock runs 20 times faster than the wall's,
+    so the run is done eta_s / 20 wall seconds after its latest point, not eta_s (the rig's clock).
+    The tolerance (25 %) allows for the process's own time per point on a busy machine, which the pace
+    does not include; the rig's clock taken as the wall's would be 1900 % off."""
+    from datetime import datetime
+
+    from lab_server import paced_run, wait_for
+
+    db = str(tmp_path / "lab.sqlite")
+
+    def points() -> int:
+        try:
+            with sqlite3.connect(db) as conn:
+                return int(conn.execute("SELECT count(*) FROM points").fetchone()[0])
+        except sqlite3.OperationalError:
+            return 0
+
+    with paced_run(db, tmp_path / "run", 20.0, "four-mount-64"):
+        wait_for(lambda: points() >= 6, 60, "six points")
+        lab = open_lab(OpenLab(db))
+        try:
+            progress = run_progress(lab, 1)
+        finally:
+            lab.close()
+    assert progress is not None and progress["status"] == "running" and progress["eta_s"] > 0
+    with sqlite3.connect(db) as conn:
+        (last,) = conn.execute("SELECT utc FROM points ORDER BY seq LIMIT 1 OFFSET ?",
+                               (progress["points_done"] - 1,)).fetchone()  # the latest when it was read
+    wall_s = (datetime.fromisoformat(progress["done_at_utc"]) - datetime.fromisoformat(last)).total_seconds()
+    assert wall_s == pytest.approx(progress["eta_s"] / 20.0, rel=0.25)

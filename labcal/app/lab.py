@@ -27,12 +27,14 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
+from datetime import datetime
 from typing import TYPE_CHECKING, Any
 
 from pydantic import ValidationError
 from sqlalchemy import case, func, select
 
 from labcal.app.labdatabase import LabDatabase
+from labcal.app.station_state import PACE_POINTS, Heard, on_the_wall
 from labcal.config.snapshot import is_simulated, parse_snapshot
 from labcal.run.events import JournaledPrompt
 from labcal.run.schema import events, points, runs
@@ -162,7 +164,20 @@ def _progress(conn: Connection, run_id: int) -> dict | None:
     summary["waiting"] = _waiting(conn, run_id) if row.status == RUNNING else None
     summary["last_heard_utc"] = _last_heard(conn, run_id)
     summary.update(_ahead(conn, row, counts, None if last is None else last.t_end))
+    summary["done_at_utc"] = None if summary["waiting"] else _done_at(conn, run_id, summary["eta_s"])
     return summary
+
+
+def _done_at(conn: Connection, run_id: int, eta_s: float | None) -> str | None:
+    """When the run will be done on the wall clock: its ETA on the rig's clock at the pace the rig's
+    clock has kept against the wall's over its latest points (`labcal.app.station_state.on_the_wall`)."""
+    if eta_s is None:
+        return None
+    latest = conn.execute(select(points.c.utc, points.c.t_end).where(points.c.run_id == run_id)
+                          .order_by(points.c.seq.desc()).limit(PACE_POINTS)).all()
+    heard = [Heard(datetime.fromisoformat(r.utc), "point", data={"t_end": r.t_end}) for r in reversed(latest)]
+    when = on_the_wall(heard, eta_s)
+    return None if when is None else when.isoformat(timespec="milliseconds")
 
 
 def _mount(conn: Connection, run_id: int, last: Any) -> dict | None:

@@ -162,13 +162,18 @@ def replay(status: str | None, timeline: Iterable[Heard], now: datetime, silence
         return replace(nothing, state=State.FAULT if waiting.fault else State.WAITING, waiting=waiting)
     if last_heard is not None and (now - last_heard).total_seconds() > limit:
         return replace(nothing, state=State.SILENT)
-    done_at = next_remount = None
-    ratio = _clock_ratio(recent)
-    if ratio is not None:
-        start = recent[-1].utc
-        done_at = None if eta_rig_s is None else _after(start, eta_rig_s * ratio)
-        next_remount = None if remount_rig_s is None else _after(start, remount_rig_s * ratio)
-    return replace(nothing, state=State.RUNNING, done_at=done_at, next_remount_at=next_remount)
+    return replace(nothing, state=State.RUNNING, done_at=on_the_wall(recent, eta_rig_s),
+                   next_remount_at=on_the_wall(recent, remount_rig_s))
+
+
+def on_the_wall(points: Sequence[Heard], rig_s: float | None) -> datetime | None:
+    """When ``rig_s`` more seconds of the rig's clock, counted from the latest of ``points``, will
+    have passed on the wall clock (None: no estimate, or fewer than two points to measure the rig's
+    pace by)."""
+    ratio = _clock_ratio(points[-PACE_POINTS:])
+    if rig_s is None or ratio is None:
+        return None
+    return _after(points[-1].utc, rig_s * ratio)
 
 
 def _cleared(fault: Fault | None, utc: datetime) -> Fault | None:

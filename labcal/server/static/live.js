@@ -57,6 +57,15 @@ function duration(s) {
   const $ = (name) => document.getElementById(name);
   const QUIET = new Set(["move", "status", "settle_pool", "segment", "progress", "point", "run"]);
 
+  // A UTC time as the server's pages write it, with this computer's local time beside it where it differs.
+  function clock(utc) {
+    if (!utc) { return "—"; }
+    const when = new Date(utc);
+    const local = when.getTimezoneOffset() === 0 ? ""
+      : " (" + when.toLocaleTimeString([], {hour: "2-digit", minute: "2-digit", hour12: false}) + " local)";
+    return utc.slice(11, 16) + " UTC" + local;
+  }
+
   function show(p) {
     $("done").textContent = p.points_done;
     $("total").textContent = p.points_total === null ? "?" : p.points_total;
@@ -66,6 +75,7 @@ function duration(s) {
     $("remount").textContent = p.next_remount_in_s !== null ? "in " + duration(p.next_remount_in_s)
       : (p.eta_s !== null ? "none left" : "—");  // no estimate yet: nothing is known
     $("eta").textContent = duration(p.eta_s);
+    $("done-at").textContent = clock(p.done_at_utc);
     $("failed").textContent = p.points_failed;
     const waiting = $("waiting");
     waiting.textContent = p.waiting ? p.waiting.text + " since " + p.waiting.utc.slice(11, 19) + " UTC" : "nothing";
