@@ -1,5 +1,6 @@
-"""The lab's view, as the lab server shows it: every station and its current run, a run's progress
-and events, the next batch of a run's live stream, a finished run's residual plot; pure reads.
+"""The lab's view, as the lab server shows it: the lab's runs, a run's progress and events, the next
+batch of a run's live stream, a finished run's residual plot; pure reads (every bench and its
+state: `labcal.app.overview`).
 
 The server (`labcal.server`) turns these into JSON, pages and server-sent events and calls nothing
 below this layer. The public use cases take the open lab database (`labcal.app.labdatabase`) and a
