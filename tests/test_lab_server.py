@@ -50,7 +50,7 @@ def _get(lab, path: str, token: str | None) -> httpx.Response:
     return httpx.get(lab["url"] + path, headers=headers, timeout=10)
 
 
-API = ["/api/runs", "/api/runs/1", "/api/runs/1/stream", "/api/runs/1/residuals.png"]
+API = ["/api/runs", "/api/runs/1", "/api/runs/1/stream", "/api/runs/1/residuals.png", "/api/stations"]
 
 
 @pytest.mark.parametrize("path", API)

@@ -55,8 +55,10 @@ def test_a_run_waiting_at_a_prompt_says_so_until_it_is_answered(tmp_path):
                 assert csrf is not None
                 page.post("/login", data={"name": "tom", "password": "tom's passphrase", "csrf": csrf[1]})
                 overview = page.get("/").text
-                assert "Waiting at the station: mount 1 of 1: y=0°, u=0°" in overview
-                assert f"<dt>Last heard</dt><dd>{_last_journaled(db)[11:19]} UTC</dd>" in overview
+                waited = r'Waiting for a person for <span data-since="[^"]+">\d+ (s|min \d\d s)</span>: '
+                assert re.search(waited + "mount 1 of 1: y=0°, u=0°", overview), overview
+                assert '<span class="badge state-waiting">waiting for a person</span>' in overview
+                assert f"<dt>Last heard</dt><dd>{_last_journaled(db)[11:19]} UTC" in overview
             typed("n")  # not yet: the prompt stays open
             wait_for(lambda: ("answer", "mount: 'n' (not yet; the prompt stays open)") in _events(db), 30,
                      "the answer 'n'")

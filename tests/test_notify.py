@@ -21,6 +21,8 @@ from labcal.config.plans import load_plan
 from labcal.run.notify import Message, Notifications
 
 EMULATE = ["--emulate", "--time-scale", "1000", "--no-report"]
+BENCH = "bench 4 (north)"  # the bench's name in the lab database ($LABCAL_STATION)
+SERVER_URL = "https://lab.example.org/labcal"
 
 
 class Inbox:
@@ -79,31 +81,66 @@ def journaled_points(db: Path, run_id: int) -> int:
         return con.execute("SELECT count(*) FROM points WHERE run_id = ?", (run_id,)).fetchone()[0]
 
 
-def test_a_simulated_run_notifies_each_remount_and_its_end(tmp_path, capsys, monkeypatch):
-    """`labcal run --sim --yes`: one notification per mount of four-mount-64 (the plan's order in
-    a first replicate), naming the station, the mount and the run, then "finished" with the verdict
-    and the fit's residual standard errors as the run's fit.json states them."""
+def lab_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, server_url: str = SERVER_URL) -> None:
+    """A lab file naming the lab server's public address, and this bench's name in $LABCAL_STATION."""
+    lab = tmp_path / "lab.toml"
+    lab.write_text(f'server_url = "{server_url}"\n', encoding="utf-8")
+    monkeypatch.setenv("LABCAL_CONFIG", str(lab))
+    monkeypatch.setenv("LABCAL_STATION", BENCH)
+
+
+def test_an_attended_run_notifies_each_remount_naming_the_bench_run_serial_and_page(tmp_path, capsys,
+                                                                                   monkeypatch):
+    """`labcal run --sim` answered from a file (someone confirms each mount): one notification per
+    mount of four-mount-64 (the plan's order in a first replicate), each naming the bench as
+    $LABCAL_STATION does (a dry run marked so), the run's number, the serial, and linking to the run's
+    page under the lab file's server_url; then "finished" with the verdict and the fit's residual
+    standard errors as the run's fit.json states them."""
     plan, _ = load_plan("four-mount-64")
+    lab_file(tmp_path, monkeypatch)
+    answers = tmp_path / "answers.txt"
+    answers.write_text("y\n" * len(plan.mounts), encoding="utf-8")
     with endpoint() as (url, inbox):
         monkeypatch.setenv("LABCAL_NOTIFY", url)
-        code, out, err = cli(capsys, "run", "--sim", "--yes", "--no-report", "--plan", "four-mount-64",
-                             "--out", str(tmp_path / "run"), "--json")
+        code, out, err = cli(capsys, "run", "--sim", "--answers", str(answers), "--no-report", "--plan",
+                             "four-mount-64", "--serial", "ACC-0042", "--out", str(tmp_path / "run"),
+                             "--json")
         assert code == 0, err
         run_id = json.loads(out)["run_id"]
         bodies = inbox.wait_for(len(plan.mounts) + 1)  # close() drained the queue: all are in already
     assert len(bodies) == len(plan.mounts) + 1, bodies
-    who = f"labcal simulated rig, run {run_id}: "
+    who = f"labcal {BENCH} (simulated), run {run_id} (ACC-0042): "
+    page = f"\n{SERVER_URL}/runs/{run_id}"
     for step, ((y, u), body) in enumerate(zip(plan.mounts, bodies, strict=False), 1):
-        assert body.startswith(who), body
+        assert body.startswith(who) and body.endswith(page), body
         assert f"mount {step} of {len(plan.mounts)}: remount the instrument on the {described(y, u)}" in body
     fit = json.loads((tmp_path / "run" / "fit.json").read_text())
     rse = ", ".join(f"{axis} {value * 1e3:.3g} mV"
                     for axis, value in zip("xyz", fit["residual_standard_error"], strict=True))
     n = plan.n_points
     assert bodies[-1] == (f"{who}finished: complete, {n} of {n} points; {fit['model']} fit of {n} points: "
-                          f"residual standard error {rse}")
-    assert [doc["title"] for doc in inbox.received][-1] == f"labcal run {run_id}: finished, complete"
+                          f"residual standard error {rse}{page}")
+    titles = [doc["title"] for doc in inbox.received]
+    assert titles[-1] == f"labcal run {run_id} on {BENCH}: finished, complete"
     assert "notification" not in err  # every one was sent: nothing to warn of
+
+
+def test_an_unattended_run_asks_nobody_for_a_remount(tmp_path, capsys, monkeypatch):
+    """`labcal run --sim --yes`: the rig remounts itself, so the only notification is the run's end
+    (no link: the lab file gives no server address)."""
+    lab_file(tmp_path, monkeypatch)
+    (tmp_path / "lab.toml").write_text("", encoding="utf-8")  # a lab file without server_url
+    with endpoint() as (url, inbox):
+        monkeypatch.setenv("LABCAL_NOTIFY", url)
+        code, out, err = cli(capsys, "run", "--sim", "--yes", "--no-report", "--plan", "four-mount-64",
+                             "--out", str(tmp_path / "run"), "--json")
+        assert code == 0, err
+        bodies = inbox.wait_for(1)
+    run_id = json.loads(out)["run_id"]
+    assert len(bodies) == 1, bodies
+    who = f"labcal {BENCH} (simulated), run {run_id}: "
+    assert bodies[0].startswith(f"{who}finished: complete, 64 of 64 points"), bodies
+    assert "remount" not in bodies[0] and "http" not in bodies[0]
 
 
 def test_a_fault_pause_is_notified_with_the_fault(tmp_path, capsys, monkeypatch, no_leaks):  # noqa: F811
@@ -114,6 +151,7 @@ def test_a_fault_pause_is_notified_with_the_fault(tmp_path, capsys, monkeypatch,
     station = private_file("az-modbus-rtu", tmp_path, alarm, "timeout_s = 0.1\nreconnect_s = 1")
     answers = tmp_path / "answers.txt"
     answers.write_text("y\ny\ny\ny\na\n")
+    monkeypatch.setenv("LABCAL_STATION", BENCH)
     with endpoint() as (url, inbox):
         monkeypatch.setenv("LABCAL_NOTIFY", url)
         code, _, err = cli(capsys, "run", "--station", str(station), *EMULATE, "--answers", str(answers),
@@ -121,7 +159,7 @@ def test_a_fault_pause_is_notified_with_the_fault(tmp_path, capsys, monkeypatch,
         bodies = inbox.bodies()
     assert code == 1, err
     run_id = json.loads((tmp_path / "run" / "run.json").read_text())["run_id"]
-    who = f"labcal station az-modbus-rtu, run {run_id}: "
+    who = f"labcal {BENCH} (simulated), run {run_id}: "  # the bench, not its station file
     paused = [b for b in bodies if b.startswith(f"{who}paused (fault: ")]
     assert len(paused) == 1, bodies
     assert "roll table" in paused[0] and "alarm 10h (excessive position deviation)" in paused[0]
@@ -174,7 +212,7 @@ def test_an_endpoint_that_fails_costs_the_run_nothing_and_says_so_once(where, tm
     assert json.loads((tmp_path / "run" / "run.json").read_text())["status"] == "complete"
     warnings = [line for line in err.splitlines() if "notification" in line]
     assert len(warnings) == 1, err
-    assert warnings[0].startswith("notification not sent (mount 1 of 4)") and "the run goes on" in warnings[0]
+    assert warnings[0].startswith("notification not sent (the end)") and "the run goes on" in warnings[0]
 
 
 @pytest.mark.parametrize("given", ["env", "lab file"])
@@ -256,6 +294,7 @@ def test_a_run_stopped_at_a_remount_and_resumed_notifies_under_its_own_number(tm
     answers = tmp_path / "answers.txt"
     answers.write_text("y\nstop\n")
     run_dir = tmp_path / "run"
+    monkeypatch.setenv("LABCAL_STATION", BENCH)
     with endpoint() as (url, inbox):
         monkeypatch.setenv("LABCAL_NOTIFY", url)
         code, _, err = cli(capsys, "run", "--sim", "--answers", str(answers), "--no-report",
@@ -263,11 +302,12 @@ def test_a_run_stopped_at_a_remount_and_resumed_notifies_under_its_own_number(tm
         assert code == 1, err
         first = len(inbox.received)
         stopped = json.loads((run_dir / "run.json").read_text())  # the run's own record of how it ended
-        code, _, err = cli(capsys, "resume", str(run_dir), "--yes", "--no-report")
+        answers.write_text("y\n" * len(plan.mounts), encoding="utf-8")  # someone confirms each mount
+        code, _, err = cli(capsys, "resume", str(run_dir), "--answers", str(answers), "--no-report")
         assert code == 0, err
         bodies = inbox.bodies()
     run_id = json.loads((run_dir / "run.json").read_text())["run_id"]
-    who = f"labcal simulated rig, run {run_id}: "
+    who = f"labcal {BENCH} (simulated), run {run_id}: "
     assert all(b.startswith(who) for b in bodies), bodies
     n = len(plan.mounts)
     (y1, u1), (y2, u2) = plan.mounts[:2]
@@ -289,10 +329,10 @@ def test_what_a_pause_and_the_ends_say():
     """The words of a pause whose stop failed, and of the ends that are not complete, from events
     made here: the reasons and counts come through as given, with how to continue where one can."""
     from labcal.run.events import Paused, Status
-    from labcal.run.notify import RunNotifier
+    from labcal.run.notify import RunName, RunNotifier
 
-    notifier = RunNotifier(Notifications([], "test", print), "station bench-2", Path("/srv/runs/r7"))
-    who = "labcal station bench-2, run 7: "
+    notifier = RunNotifier(Notifications([], "test", print), RunName("bench-2"), Path("/srv/runs/r7"))
+    who = "labcal bench-2, run 7: "
     paused = notifier.compose(Paused(run_id=7, rig_time_s=5.0, why="fault: roll table: no reply",
                                      may_be_moving=("roll",)))
     assert paused is not None and paused.body == (
@@ -310,3 +350,26 @@ def test_what_a_pause_and_the_ends_say():
     for at in ("start", "point", "mount", "resume"):  # a run going on is no news
         assert notifier.compose(Status(run_id=7, rig_time_s=1.0, status="running", at=at, points_done=1,
                                        points_total=64)) is None
+
+
+def test_a_run_links_to_its_page_only_once_the_lab_has_numbered_it():
+    """A run the lab has numbered links to /runs/NUMBER under the server's address (a trailing slash
+    or not); a provisional label (8 hex digits of the uuid, until the bench reaches the lab) names no
+    page; without server_url there is no link."""
+    from labcal.run.notify import RunName
+
+    assert RunName("bench-2", "ACC-1", "https://lab.example.org/").link("17") == "https://lab.example.org/runs/17"
+    assert RunName("bench-2", None, "http://10.0.0.5:8024").link("3") == "http://10.0.0.5:8024/runs/3"
+    assert RunName("bench-2", None, "https://lab.example.org").link("0c1f9a2e (provisional)") is None
+    assert RunName("bench-2").link("17") is None
+    named = RunName("bench-2", "ACC-1", simulated=True).who("17")
+    assert named == "labcal bench-2 (simulated), run 17 (ACC-1)"
+
+
+def test_a_server_url_that_is_not_a_web_address_is_refused_before_anything_moves(tmp_path, capsys,
+                                                                                 monkeypatch):
+    lab_file(tmp_path, monkeypatch, server_url="lab.example.org")  # no scheme: no link could work
+    code, out, err = cli(capsys, "run", "--sim", "--yes", "--out", str(tmp_path / "run"))
+    assert code == 2 and out == ""
+    assert err.strip().count("\n") == 0 and "server_url" in err, err
+    assert not (tmp_path / "run").exists()

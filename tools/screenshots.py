@@ -2,8 +2,10 @@
 
     .venv/bin/python tools/screenshots.py [--out docs/screenshots]
 
-Everything is real and local: a lab database in a temporary folder, a finished simulated run and a
-paced one in progress (`labcal run --sim --pace`), `labcal serve` on a free port of 127.0.0.1, and
+Everything is real and local: a lab database in a temporary folder, a finished simulated run, a
+paced one in progress (`labcal run --sim --pace`), one waiting at its first remount prompt (no
+--yes: nobody answers it) and one killed (SIGKILL) after a few points, shown as not heard from
+(`labcal serve --silent-after 10`), `labcal serve` on a free port of 127.0.0.1, and
 Debian's Chromium driven by Playwright, signed in through the login form as an approver. Needs the
 test extra (`pip install -e '.[test]'`) and `apt-get install chromium`.
 """
@@ -14,6 +16,7 @@ import argparse
 import os
 import re
 import shutil
+import signal
 import sqlite3
 import subprocess
 import sys
@@ -35,13 +38,14 @@ def at(station: str | None) -> dict[str, str]:
     return {**os.environ, **({"LABCAL_STATION": station} if station else {})}
 
 
-def points_of(db: str, run_id: int, at_least: int, within_s: float) -> int:
-    """Wait (bounded) until the run has journaled ``at_least`` points; how many it has."""
+def points_of(db: str, station: str, at_least: int, within_s: float) -> int:
+    """Wait (bounded) until the station's runs have journaled ``at_least`` points; how many they have."""
     deadline = time.monotonic() + within_s
     while True:
         try:
             with sqlite3.connect(db) as conn:
-                found = conn.execute("SELECT count(*) FROM points WHERE run_id = ?", (run_id,)).fetchone()[0]
+                found = conn.execute("SELECT count(*) FROM points p JOIN runs r ON r.id = p.run_id "
+                                     "WHERE r.station = ?", (station,)).fetchone()[0]
         except sqlite3.OperationalError:
             found = 0
         if found >= at_least or time.monotonic() > deadline:
@@ -52,7 +56,7 @@ def points_of(db: str, run_id: int, at_least: int, within_s: float) -> int:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "screenshots"))
-    parser.add_argument("--pace", type=float, default=25.0, help="the live run's pace (rig × wall time)")
+    parser.add_argument("--pace", type=float, default=12.0, help="the live run's pace (rig × wall time)")
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -73,8 +77,21 @@ def main() -> int:
                                  "--out", str(base / "live")],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                 env=at("bench 2 (west)"))
-        server = subprocess.Popen([LABCAL, "serve", "--port", "0", "--db", db], stdout=subprocess.PIPE,
-                                  text=True)
+        points_of(db, "bench 2 (west)", at_least=1, within_s=120)  # run 2 is the live one (run.png)
+        killed = subprocess.Popen([LABCAL, "run", "--sim", "--yes", "--no-report", "--pace", str(args.pace),
+                                   "--serial", "ACC-0310", "--operator", "J. Doe", "--db", db,
+                                   "--out", str(base / "killed")], stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL, env=at("bench 4 (annex)"))
+        points_of(db, "bench 4 (annex)", at_least=5, within_s=120)
+        killed.send_signal(signal.SIGKILL)  # its run stays "running" in the journal: only silence tells
+        waiting = subprocess.Popen([LABCAL, "run", "--sim", "--no-report", "--pace", str(args.pace),
+                                    "--serial", "ACC-0211", "--operator", "M. Ops", "--db", db,
+                                    "--out", str(base / "waiting")], stdin=subprocess.PIPE,
+                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                   env=at("bench 3 (mezzanine)"))
+        server = subprocess.Popen([LABCAL, "serve", "--port", "0", "--db", db, "--silent-after", "10"],
+                                  stdout=subprocess.PIPE, text=True,
+                                  env={**os.environ, "TZ": "Europe/Berlin"})  # a lab's local time beside UTC
         try:
             assert server.stdout is not None
             url = re.search(r"http://[\d.]+:\d+", server.stdout.readline())
@@ -87,7 +104,8 @@ def main() -> int:
                 page.fill("input[name=password]", PASSWORD)
                 page.click("button[type=submit]")
                 page.wait_for_url(url[0] + "/")
-                points_of(db, 2, at_least=6, within_s=120)  # some points and journal lines into the run
+                points_of(db, "bench 2 (west)", at_least=6, within_s=120)  # some points and journal lines
+                page.wait_for_timeout(12_000)  # the killed bench silent past --silent-after
                 page.reload()
                 page.screenshot(path=str(out / "lab.png"), full_page=True)
                 page.goto(url[0] + "/runs/2")
@@ -95,7 +113,7 @@ def main() -> int:
                 page.screenshot(path=str(out / "run.png"), full_page=True)
                 browser.close()
         finally:
-            for process in (server, live):
+            for process in (server, live, waiting, killed):
                 process.terminate()
                 process.wait(timeout=30)
     print(f"{out / 'lab.png'}\n{out / 'run.png'}")

@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from labcal.documents.report import RunOutputs
     from labcal.run.estimate import Estimate
     from labcal.run.events import RunEvent
-    from labcal.run.notify import RunNotifier
+    from labcal.run.notify import RunName, RunNotifier
     from labcal.run.operator import Operator, Terminal
     from labcal.run.runner import RunResult
     from labcal.run.station import Station
@@ -294,7 +294,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
     from labcal.run.estimate import estimate
     from labcal.run.interrupts import stop_signals_raise
     from labcal.run.journal import Journal, db_path
-    from labcal.run.notify import RunNotifier, lab_notifications, station_label
+    from labcal.run.notify import RunNotifier, lab_notifications
     from labcal.run.rundir import new_run_dir
     from labcal.run.runner import calibrate
     from labcal.run.sequencer import check_limits, schedule
@@ -386,8 +386,21 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
                 plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, events,
                 setup.metadata, serial, args.operator, steps, terminal=terminal, forecast=forecast),
                 run_dir, plan, est, 0, args.db, args.no_report, cert_settings,
-                notifier=RunNotifier(notifications, station_label(setup.metadata), run_dir,
-                                     _lab_label(journal.path, args.db)), sender=sender)
+                notifier=RunNotifier(notifications, _run_name(setup.metadata, setup.text, serial), run_dir,
+                                     _lab_label(journal.path, args.db), not operator.confirms_mounts),
+                sender=sender)
+
+
+def _run_name(metadata: dict, station_text: str, serial: str | None) -> RunName:
+    """How the run's notifications name it: this bench as the lab database names it, the serial, and
+    the lab server's page of the run where the lab file gives the server's address."""
+    from labcal.config.lab import load_lab_config
+    from labcal.config.snapshot import is_simulated, parse_snapshot
+    from labcal.run.notify import RunName
+
+    lab = load_lab_config()
+    return RunName(lab.station(), serial, lab.file.server_url,
+                   is_simulated(metadata, parse_snapshot(station_text)))
 
 
 def _lab_label(journal: Path, db: str | Path | None) -> Callable[[int], str]:
@@ -505,7 +518,7 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
     from labcal.run.estimate import estimate
     from labcal.run.interrupts import stop_signals_raise
     from labcal.run.journal import sha256
-    from labcal.run.notify import RunNotifier, lab_notifications, station_label
+    from labcal.run.notify import RunNotifier, lab_notifications
     from labcal.run.runner import execute, open_for_resume
     from labcal.run.sequencer import check_limits, schedule
     from labcal.run.sync import check_server, sending
@@ -571,12 +584,13 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
                               bench.identities)
         cert_settings = certificate_settings_for_run(args, certificate, args.station or "the run's station")
         sender = stack.enter_context(sending(args.db, ctx.journal.path, _noted(front)))
+        name = _run_name(ctx.metadata, ctx.station_text, ctx.journal.run(ctx.run_id).instrument_serial)
         return run_and_finish(front, lambda events, terminal, forecast: execute(
             ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, events,
             steps, terminal=terminal, forecast=forecast),
             run_dir, ctx.plan, est, len(points), args.db, args.no_report, cert_settings, ctx.journal.path,
-            notifier=RunNotifier(notifications, station_label(ctx.metadata), run_dir,
-                                 _lab_label(ctx.journal.path, args.db)), sender=sender)
+            notifier=RunNotifier(notifications, name, run_dir, _lab_label(ctx.journal.path, args.db),
+                                 not operator.confirms_mounts), sender=sender)
 
 
 def finish_complete(args: ResumeRun, run_dir: Path, run_id: int,

@@ -1,6 +1,6 @@
-"""The lab's view, as the lab server shows it: every station and its current run, a run's progress
-and events, the next batch of a run's live stream; pure reads (a run's residual plot and its
-certificate are `labcal.app.desk`'s).
+"""The lab's view, as the lab server shows it: the lab's runs, a run's progress and events, the next
+batch of a run's live stream; pure reads (every bench and its state: `labcal.app.overview`; a run's
+residual plot and its certificate: `labcal.app.desk`).
 
 The server (`labcal.server`) turns these into JSON, pages and server-sent events and calls nothing
 below this layer. The public use cases take the open lab database (`labcal.app.labdatabase`) and a
@@ -28,12 +28,14 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
+from datetime import datetime
 from typing import TYPE_CHECKING, Any
 
 from pydantic import ValidationError
 from sqlalchemy import case, func, select
 
 from labcal.app.labdatabase import LabDatabase
+from labcal.app.station_state import PACE_POINTS, Heard, on_the_wall
 from labcal.config.snapshot import is_simulated, parse_snapshot
 from labcal.run.events import JournaledPrompt
 from labcal.run.schema import events, points, runs
@@ -122,20 +124,6 @@ def _list_runs(conn: Connection) -> list[dict]:
     return [_summary(r, counts.get(r.id, (0, 0, None))) for r in rows]
 
 
-def _stations(conn: Connection, listed: list[dict]) -> list[dict]:
-    """Every station that has journaled a run, with its current run: the one running (the newest,
-    if several; with where it stands, as `run_progress` says: the prompt it waits at, its next
-    remount, its last fault), else its newest; stations in name order. ``listed``: `_list_runs`."""
-    current: dict[str, dict] = {}
-    for run in listed:  # newest first
-        name = run["station"] or "(unnamed station)"
-        held = current.get(name)
-        if held is None or (held["status"] != RUNNING and run["status"] == RUNNING):
-            current[name] = run
-    return [{"station": name, "run": _progress(conn, run["id"]) or run if run["status"] == RUNNING else run}
-            for name, run in sorted(current.items())]
-
-
 def _event_json(row: Any) -> dict:
     data = _json(row.data)
     return {"id": row.id, "utc": row.utc, "station_time": row.station_time, "kind": row.kind,
@@ -169,15 +157,42 @@ def _progress(conn: Connection, run_id: int) -> dict | None:
         return None
     counts = _counts(conn, [run_id]).get(run_id, (0, 0, None))
     summary = _summary(row, counts)
-    last = conn.execute(select(points.c.y_deg, points.c.u_deg, points.c.t_end)
+    last = conn.execute(select(points.c.y_deg, points.c.u_deg, points.c.t_end, points.c.utc)
                         .where(points.c.run_id == run_id).order_by(points.c.seq.desc()).limit(1)).first()
-    summary["mount"] = None if last is None else {"y_deg": last.y_deg, "u_deg": last.u_deg}
+    summary["mount"] = _mount(conn, run_id, last)
     fault = _latest(conn, run_id, FAULT_KIND)
     summary["last_fault"] = None if fault is None else {"utc": fault["utc"], "message": fault["message"]}
     summary["waiting"] = _waiting(conn, run_id) if row.status == RUNNING else None
     summary["last_heard_utc"] = _last_heard(conn, run_id)
     summary.update(_ahead(conn, row, counts, None if last is None else last.t_end))
+    summary["done_at_utc"] = None if summary["waiting"] else _done_at(conn, run_id, summary["eta_s"])
     return summary
+
+
+def _done_at(conn: Connection, run_id: int, eta_s: float | None) -> str | None:
+    """When the run will be done on the wall clock: its ETA on the rig's clock at the pace the rig's
+    clock has kept against the wall's over its latest points (`labcal.app.station_state.on_the_wall`)."""
+    if eta_s is None:
+        return None
+    latest = conn.execute(select(points.c.utc, points.c.t_end).where(points.c.run_id == run_id)
+                          .order_by(points.c.seq.desc()).limit(PACE_POINTS)).all()
+    heard = [Heard(datetime.fromisoformat(r.utc), "point", data={"t_end": r.t_end}) for r in reversed(latest)]
+    when = on_the_wall(heard, eta_s)
+    return None if when is None else when.isoformat(timespec="milliseconds")
+
+
+def _mount(conn: Connection, run_id: int, last: Any) -> dict | None:
+    """The mount on the plate: the latest point's, unless a remount was confirmed since (the status
+    the run journals then names the mount, Soto Table 3's number) and no point has been measured on
+    it yet."""
+    from labcal.analysis.kinematics import MOUNTS
+
+    status = _latest(conn, run_id, STATUS_KIND)
+    number = status["data"].get("mount") if status and isinstance(status["data"], dict) else None
+    if number in (1, 2, 3, 4) and status is not None and (last is None or status["utc"] > last.utc):
+        mounted = MOUNTS[number - 1]
+        return {"y_deg": mounted.y_deg, "u_deg": mounted.u_deg}
+    return None if last is None else {"y_deg": last.y_deg, "u_deg": last.u_deg}
 
 
 def _last_heard(conn: Connection, run_id: int) -> str | None:
@@ -261,29 +276,10 @@ RECENT = 30  # events a run's page lists
 BATCH = 500  # rows per stream batch and kind: a client far behind catches up in bounded steps
 
 
-@dataclass(frozen=True)
-class Overview:
-    """The lab at a glance (`/`): each station with its current run, and the latest runs."""
-
-    stations: tuple[dict, ...]  # {"station": name, "run": RunJson}, in name order
-    runs: tuple[RunJson, ...]  # newest first
-    as_of_utc: str  # when it was read: what each running station's "last heard" compares with
-
-
 def lab_runs(lab: LabDatabase) -> list[RunJson]:
     """Every run of the lab, newest first, with its progress (`GET /api/runs`)."""
     with lab.engine.connect() as conn:
         return _list_runs(conn)
-
-
-def lab_overview(lab: LabDatabase, latest: int = 50) -> Overview:
-    """Every station that has journaled a run, with its current run (the one running, the newest if
-    several, else its newest), and the ``latest`` runs."""
-    from labcal.run.journal import utc_now
-
-    with lab.engine.connect() as conn:
-        listed = _list_runs(conn)
-        return Overview(tuple(_stations(conn, listed)), tuple(listed[:latest]), utc_now())
 
 
 def run_progress(lab: LabDatabase, run_id: int) -> RunJson | None:

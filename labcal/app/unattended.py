@@ -28,6 +28,7 @@ class _Confirms:
     """An operator that confirms every mount and stops at every pause (`labcal.run.operator.Operator`)."""
 
     heard: Heard | None = None  # nothing is typed at an unattended station
+    confirms_mounts = True
 
     def __init__(self, say: Callable[[str], None]):
         self.say = say

@@ -20,7 +20,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     warn_if_secret_in(args.db)
     transport = Transport(args.certfile, args.keyfile, args.forwarded_allow_ips)
     settings = settings_for(args.db, args.key, args.poll, tuple(args.server_name), args.host,
-                            args.session_idle * 60.0)
+                            args.session_idle * 60.0, args.silent_after)
 
     def listening(url: str) -> None:
         warning = exposure_warning(args.host, transport)  # once listening (not before a refusal)
@@ -71,4 +71,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "level 2; sessions end after 12 h in any case)")
     p.add_argument("--poll", type=bounded(float, 0.05, 60), default=0.5, metavar="S",
                    help="how often the live streams look for new readings (seconds, default 0.5)")
+    p.add_argument("--silent-after", type=bounded(float, 1, 86400), default=60, metavar="S",
+                   help="seconds without a word from a running bench (and never less than five of its "
+                        "usual intervals between points) after which the overview shows it as not heard "
+                        "from: its process killed, its computer off (default 60)")
     p.set_defaults(func=cmd_serve)

@@ -17,6 +17,7 @@ Example::
     journal = "/var/lib/labcal/journal.sqlite"   # with a server: this station's own journal
     station = "bench-2"   # this station's name in the lab database
     notify = ["mailto://user:app-password@example.com"]  # apprise URLs: remounts, pauses, run ends
+    server_url = "https://lab.example.org"   # the lab server: notifications link to each run's page
 
     [laboratory]
     name = "Example Calibration Laboratory"
@@ -117,6 +118,10 @@ class LabFile(BaseModel):
     notify: list[str] = Field(default_factory=list,
                               description="apprise URLs told of each remount, pause and run's end "
                                           "; $LABCAL_NOTIFY goes over it")
+    server_url: str | None = Field(default=None, pattern=r"^https?://[^\s/]+(/\S*)?$",
+                                   description="the lab server's address as people reach it "
+                                               "(https://lab.example.org): notifications link to each "
+                                               "run's page there")
 
 
 @dataclass(frozen=True)

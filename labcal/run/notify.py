@@ -6,11 +6,18 @@ without standing at the station's terminal.
 of the run's event bus like the console view (the sequencer never imports this module), which puts
 three of them into words:
 
-- a remount prompt: "labcal station bench-2, run 7: mount 3 of 4 (bottom side of the plate, x
-  sensor pointing forward; y=0°, u=180°): remount the instrument";
-- a pause: "… run 7: paused: fault: roll table …: alarm 10h …";
-- the run's end: "… run 7: finished: complete, 64 of 64 points; …the fit's figures" (or failed,
-  stopped, interrupted, and why).
+- a remount prompt: "labcal bench-2, run 7 (ACC-0042): mount 3 of 4: remount the instrument on the
+  bottom side of the plate, x sensor pointing forward (y=0°, u=180°)…";
+- a pause: "… run 7 (ACC-0042): paused (fault: roll table …: alarm 10h …)…";
+- the run's end: "… run 7 (ACC-0042): finished: complete, 64 of 64 points; …the fit's figures" (or
+  failed, stopped, interrupted, and why).
+
+Each names the run as the lab does (`RunName`): the bench (the station's name in the lab database,
+as the lab's overview shows it, not the station file it uses), the lab's run number, the
+instrument's serial, and, where the lab file gives the lab server's public address
+(``server_url``), a link to the run's page on its last line. A run nobody attends (--yes, a script)
+is remounted by whoever confirms its prompts (the simulated rig, a fixture): no notification asks a
+person for a remount nobody will make.
 
 A notification is never worth a reading. `Notifications` sends from a worker thread of its own
 through a queue, so the run's thread only appends to a list: a slow or dead endpoint costs the run
@@ -174,14 +181,26 @@ class Notifications:
         self.close()
 
 
-def station_label(metadata: dict[str, Any]) -> str:
-    """How a notification names the station: "station NAME", NAME the station file's name without
-    its folder and ``.toml`` (or the shipped example's name), as the run's metadata keeps it; the
-    simulated rig (no station file) is "simulated rig"."""
-    source = metadata.get("station_file")
-    if not source:
-        return "simulated rig"
-    return f"station {Path(str(source)).name.removesuffix('.toml')}"
+@dataclass(frozen=True)
+class RunName:
+    """How a run's notifications name it: ``bench``, the station's name in the lab database (marked
+    "(simulated)" for a dry run), the instrument's ``serial``, and the lab server's public address
+    (``server_url``, None: no link)."""
+
+    bench: str
+    serial: str | None = None
+    server_url: str | None = None
+    simulated: bool = False
+
+    def who(self, run: str) -> str:
+        bench = f"{self.bench} (simulated)" if self.simulated else self.bench
+        return f"labcal {bench}, run {run}" + (f" ({self.serial})" if self.serial else "")
+
+    def link(self, run: str) -> str | None:
+        """The run's page, once the lab has numbered the run (a provisional label names no page)."""
+        if not self.server_url or not run.isdigit():
+            return None
+        return f"{self.server_url.rstrip('/')}/runs/{run}"
 
 
 def fit_figures(run_dir: Path) -> str:
@@ -203,12 +222,13 @@ class RunNotifier:
 
     KINDS = KINDS
 
-    def __init__(self, notifications: Notifications, station: str, run_dir: Path,
-                 label: Callable[[int], str] = str) -> None:
+    def __init__(self, notifications: Notifications, name: RunName, run_dir: Path,
+                 label: Callable[[int], str] = str, attended: bool = True) -> None:
         self.notifications = notifications
-        self.station = station
+        self.name = name
         self.run_dir = run_dir
         self.label = label  # the run's number as the lab gives it (`labcal.run.labquery.lab_number_of`)
+        self.attended = attended  # False: nobody is asked to remount (--yes, a script)
 
     def handle(self, event: RunEvent) -> None:
         message = self.compose(event)
@@ -216,16 +236,21 @@ class RunNotifier:
             self.notifications.send(message)
 
     def compose(self, event: RunEvent) -> Message | None:
-        """The notification an event makes, if any: a mount prompt, a pause, the run's end."""
+        """The notification an event makes, if any: a mount prompt (when someone is asked), a pause,
+        the run's end; with the link to the run's page on its last line."""
         run = self.label(event.run_id)
-        who = f"labcal {self.station}, run {run}"
-        if isinstance(event, Prompt) and event.what == "mount":
-            return self._mount(who, run, event)
-        if isinstance(event, Paused):
-            return self._paused(who, run, event)
-        if isinstance(event, Status) and event.at == "end":
-            return self._finished(who, run, event)
-        return None
+        who = self.name.who(run)
+        message = None
+        if isinstance(event, Prompt) and event.what == "mount" and self.attended:
+            message = self._mount(who, run, event)
+        elif isinstance(event, Paused):
+            message = self._paused(who, run, event)
+        elif isinstance(event, Status) and event.at == "end":
+            message = self._finished(who, run, event)
+        link = self.name.link(run)
+        if message is None or link is None:
+            return message
+        return Message(message.what, message.title, f"{message.body}\n{link}")
 
     def _mount(self, who: str, run: str, event: Prompt) -> Message:
         which = f"mount {event.step} of {event.n_steps}" if event.step is not None else "a mount"
@@ -234,14 +259,14 @@ class RunNotifier:
             mount = MOUNTS[event.mount - 1]  # Soto Table 3's numbering (`labcal.run.events.mount_number`)
             where = f" on the {mount.describe()} ({mount})"
         note = f" ({event.note})" if event.note else ""  # a replicate's re-seat, a wrong mount to correct
-        return Message(which, f"labcal run {run}: {which}",
+        return Message(which, f"labcal run {run} on {self.name.bench}: {which}",
                        f"{who}: {which}: remount the instrument{where}{note}; the tables wait until the "
                        "operator confirms it at the station")
 
     def _paused(self, who: str, run: str, event: Paused) -> Message:
         tables = (f"the stop did not reach the {', '.join(event.may_be_moving)} table(s): it may still be "
                   "moving" if event.may_be_moving else "the tables are still")
-        return Message("the pause", f"labcal run {run}: paused",
+        return Message("the pause", f"labcal run {run} on {self.name.bench}: paused",
                        f"{who}: paused ({event.why}); {tables}; every reading so far is saved, and the run "
                        "waits for the operator to resume or abort it at the station")
 
@@ -254,7 +279,7 @@ class RunNotifier:
             verdict = f"{event.status} ({event.reason or 'no reason given'}), {counted}"
             if event.status in ("stopped", "interrupted"):
                 verdict += f"; labcal resume {self.run_dir} continues it"
-        return Message("the end", f"labcal run {run}: finished, {event.status}",
+        return Message("the end", f"labcal run {run} on {self.name.bench}: finished, {event.status}",
                        f"{who}: finished: {verdict}")
 
 

@@ -51,6 +51,7 @@ class Terminal:
 
 class Operator(Protocol):
     heard: Heard | None  # told of every reply that keeps a prompt open, so the journal has each answer
+    confirms_mounts: bool  # True: confirms each remount itself (--yes): nobody is asked to make one
 
     def confirm_mount(self, mount: Mount, step: int, n_steps: int, note: str = "") -> None:
         """Return once the instrument is mounted as asked; raise OperatorDeclined to stop."""
@@ -172,6 +173,7 @@ class _Asking:
 
     console: Console
     heard: Heard | None = None
+    confirms_mounts = False
 
     def answer(self, question: str) -> str:
         raise NotImplementedError
@@ -267,6 +269,8 @@ class ScriptedOperator(_Asking):
 class AutoOperator(ConsoleOperator):
     """--yes: confirms every remount itself, saying so. A pause (someone pressed Ctrl-C) still
     asks at the console, since the person who pressed it is there."""
+
+    confirms_mounts = True
 
     def confirm_mount(self, mount: Mount, step: int, n_steps: int, note: str = "") -> None:
         self.say(mount_request(mount, step, n_steps, note) + " [dim](--yes: confirmed)[/]")

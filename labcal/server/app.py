@@ -35,7 +35,7 @@ import math
 import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
-from datetime import date
+from datetime import UTC, date, datetime, timedelta
 from pathlib import Path
 from typing import Annotated, Any
 from urllib.parse import quote
@@ -51,7 +51,7 @@ from fastapi.templating import Jinja2Templates
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 from starlette.types import Receive, Scope, Send
 
-from labcal.app import audit, desk, instrument_pages, lab, users
+from labcal.app import audit, desk, instrument_pages, lab, overview, users
 from labcal.app.certificates import Authentication
 from labcal.app.labdatabase import LabDatabase
 from labcal.app.server_approval import (
@@ -60,6 +60,7 @@ from labcal.app.server_approval import (
     approve_as_user,
     approved_file,
 )
+from labcal.app.station_state import Silence
 from labcal.errors import LabcalError
 from labcal.server.guards import ClientThrottle, SecurityHeaders, StreamQuota, TooManyStreams
 from labcal.server.sessions import COOKIE, LOGIN_COOKIE, Session, Sessions, csrf_ok
@@ -84,6 +85,7 @@ class ServerSettings:
     hosts: tuple[str, ...] = ()  # the Host header's accepted values (empty: any)
     throttle: ClientThrottle = field(default_factory=ClientThrottle)
     streams: StreamQuota = field(default_factory=StreamQuota)
+    silence: Silence = field(default_factory=Silence)  # when a running bench is "not heard from"
 
 
 class SignIn(Exception):
@@ -99,6 +101,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
     templates = Jinja2Templates(directory=str(HERE / "templates"))
     templates.env.filters["duration"] = duration
     templates.env.filters["mount"] = mount_text
+    templates.env.filters["clock"] = clock
     templates.env.globals["status_class"] = lambda s: STATUS_CLASS.get(s, "other")
     app.mount("/static", StaticFiles(directory=str(HERE / "static")), name="static")
     db, sessions = settings.lab, settings.sessions
@@ -166,6 +169,13 @@ def create_app(settings: ServerSettings) -> FastAPI:
     @app.get("/api/runs")
     def api_runs(user: Annotated[users.User, Depends(api_user)]) -> dict:
         return {"runs": [for_role(run, user) for run in lab.lab_runs(db)]}
+
+    @app.get("/api/stations")
+    def api_stations(user: Annotated[users.User, Depends(api_user)]) -> dict:
+        """Every bench the lab knows with its state, as the overview shows it."""
+        found = overview.lab_overview(db, settings.silence)
+        stations = [{**s, "run": for_role(s["run"], user) if s["run"] else None} for s in found.stations]
+        return {"as_of_utc": found.as_of_utc, "stations": stations}
 
     @app.get("/api/runs/{run_id}")
     def api_run(run_id: RunId, user: Annotated[users.User, Depends(api_user)]) -> dict:
@@ -331,9 +341,9 @@ def create_app(settings: ServerSettings) -> FastAPI:
 
     @app.get("/", response_class=HTMLResponse)
     def index(request: Request, user: Annotated[users.User, Depends(page_user)]) -> Response:
-        overview = lab.lab_overview(db)
-        return page(request, "index.html", user, stations=overview.stations, runs=overview.runs,
-                    as_of_utc=overview.as_of_utc)
+        found = overview.lab_overview(db, settings.silence)
+        return page(request, "index.html", user, stations=found.stations, runs=found.runs,
+                    as_of_utc=found.as_of_utc)
 
     @app.get("/audit", response_class=HTMLResponse)
     def audit_page(request: Request, user: Annotated[users.User, Depends(page_user)]) -> Response:
@@ -551,7 +561,24 @@ def download_name(certificate_id: str, name: str) -> str:
     return f"{safe}-{name}"
 
 
+def clock(utc: str | None, seconds: bool = False) -> str:
+    """A UTC time (ISO 8601) as the lab reads it: UTC, and beside it the server's local time (the
+    lab's) where that is another zone: "14:05 UTC (15:05 CET)"; the date too when it is not today's."""
+    if not utc:
+        return "—"
+    when = datetime.fromisoformat(utc)
+    when = when.replace(tzinfo=UTC) if when.tzinfo is None else when.astimezone(UTC)
+    local = when.astimezone()
+    shape = "%H:%M:%S" if seconds else "%H:%M"
+    day = "" if when.date() == datetime.now(UTC).date() else when.strftime("%Y-%m-%d ")
+    text = f"{day}{when.strftime(shape)} UTC"
+    if local.utcoffset() != timedelta(0):
+        text += f" ({local.strftime(shape)} {local.strftime('%Z') or local.strftime('%z')})"
+    return text
+
+
 def mount_text(mount: dict | None) -> str:
     if not mount:
         return "—"
-    return f"y {mount['y_deg']:g}°, u {mount['u_deg']:g}°"
+    angles = f"y {mount['y_deg']:g}°, u {mount['u_deg']:g}°"
+    return f"{mount['number']} ({angles})" if mount.get("number") else angles

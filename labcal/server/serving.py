@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 from labcal.app.labdatabase import OpenLab, open_lab
 from labcal.app.server_approval import server_key
+from labcal.app.station_state import Silence
 from labcal.errors import LabcalError
 from labcal.server.app import ServerSettings, create_app
 from labcal.server.connections import BACKLOG, connection_limit, guarded_protocol
@@ -53,13 +54,16 @@ class Transport:
 
 
 def settings_for(db_option: str | None, key: str | None, poll_s: float = 0.5, names: tuple[str, ...] = (),
-                 host: str = "127.0.0.1", session_idle_s: float = IDLE_S) -> ServerSettings:
+                 host: str = "127.0.0.1", session_idle_s: float = IDLE_S,
+                 silent_after_s: float | None = None) -> ServerSettings:
     """Open the lab database (read only by the server: refused unless at this labcal's schema) and
     check the signing key (``key``: --key, else the lab file's ``server_key``) now rather than at the
-    first approval. ``names``: the names the server is reached by, beyond ``host`` itself."""
+    first approval. ``names``: the names the server is reached by, beyond ``host`` itself.
+    ``silent_after_s``: the least silence after which a running bench is not heard from."""
     lab = open_lab(OpenLab(db_option, must_exist=True))
+    silence = Silence() if silent_after_s is None else Silence(floor_s=silent_after_s)
     return ServerSettings(lab=lab, key=server_key(key), poll_s=poll_s, hosts=hosts_for(host, names),
-                          sessions=Sessions(idle_s=session_idle_s))
+                          sessions=Sessions(idle_s=session_idle_s), silence=silence)
 
 
 def loopback(host: str) -> bool:

@@ -1,12 +1,33 @@
 // The pages' live parts (no library, no build step).
+
+// Seconds as people read them (the server's `duration` filter, the same words): 45 s, 12 min 05 s, 2 h 05 min.
+function duration(s) {
+  "use strict";
+  if (s === null || s === undefined) { return "—"; }
+  s = Math.round(s);
+  if (s < 60) { return s + " s"; }
+  if (s < 3600) { return Math.floor(s / 60) + " min " + String(s % 60).padStart(2, "0") + " s"; }
+  return Math.floor(s / 3600) + " h " + String(Math.floor(s % 3600 / 60)).padStart(2, "0") + " min";
+}
 //
 // The lab's overview: 15 s after the last answer the page is fetched again and its stations and
 // runs replace the ones shown, in place: no timed reload (WCAG 2.2.1). A link that had the focus
 // gets it back, so a keyboard user keeps their place; one answer at a time, never an older over a newer.
+// How long a bench has waited for a person, or been silent, counts on between updates: each such
+// duration names its start (data-since, UTC) and is counted again every 5 s on this computer's clock.
 (function () {
   "use strict";
   const lab = document.getElementById("lab");
-  if (!lab || !window.fetch || !window.DOMParser) { return; }
+  if (!lab) { return; }
+  function ages() {
+    for (const shown of lab.querySelectorAll("[data-since]")) {
+      const since = Date.parse(shown.dataset.since);
+      if (!Number.isNaN(since)) { shown.textContent = duration(Math.max(0, Date.now() - since) / 1000); }
+    }
+  }
+  ages();
+  window.setInterval(ages, 5000);
+  if (!window.fetch || !window.DOMParser) { return; }
   async function refresh() {
     try {
       const answer = await fetch(window.location.href,
@@ -16,6 +37,7 @@
       if (fresh) {
         const focused = lab.contains(document.activeElement) ? document.activeElement.getAttribute("href") : null;
         lab.replaceChildren(...fresh.childNodes);
+        ages();
         const again = focused && lab.querySelector('a[href="' + CSS.escape(focused) + '"]');
         if (again) { again.focus(); }
       }
@@ -35,12 +57,13 @@
   const $ = (name) => document.getElementById(name);
   const QUIET = new Set(["move", "status", "settle_pool", "segment", "progress", "point", "run"]);
 
-  function duration(s) {
-    if (s === null || s === undefined) { return "—"; }
-    s = Math.round(s);
-    if (s < 60) { return s + " s"; }
-    if (s < 3600) { return Math.floor(s / 60) + " min " + String(s % 60).padStart(2, "0") + " s"; }
-    return Math.floor(s / 3600) + " h " + String(Math.floor(s % 3600 / 60)).padStart(2, "0") + " min";
+  // A UTC time as the server's pages write it, with this computer's local time beside it where it differs.
+  function clock(utc) {
+    if (!utc) { return "—"; }
+    const when = new Date(utc);
+    const local = when.getTimezoneOffset() === 0 ? ""
+      : " (" + when.toLocaleTimeString([], {hour: "2-digit", minute: "2-digit", hour12: false}) + " local)";
+    return utc.slice(11, 16) + " UTC" + local;
   }
 
   function show(p) {
@@ -52,6 +75,7 @@
     $("remount").textContent = p.next_remount_in_s !== null ? "in " + duration(p.next_remount_in_s)
       : (p.eta_s !== null ? "none left" : "—");  // no estimate yet: nothing is known
     $("eta").textContent = duration(p.eta_s);
+    $("done-at").textContent = clock(p.done_at_utc);
     $("failed").textContent = p.points_failed;
     const waiting = $("waiting");
     waiting.textContent = p.waiting ? p.waiting.text + " since " + p.waiting.utc.slice(11, 19) + " UTC" : "nothing";

@@ -1,0 +1,117 @@
+"""The lab at a glance (`/`): every bench the lab knows, with its state in one word and what a person
+walking the lab needs from it, and the latest runs; pure reads.
+
+A bench is known by its runs (the station each journaled under) and, on a PostgreSQL lab database,
+by its role (`labcal db grant-station NAME`, the ``station_roles`` table): a bench granted its role
+shows, idle, before its first run. Each bench's state is a replay of its current run's journal
+(`labcal.app.station_state`): the current run is the one running (the newest, if several), else its
+newest.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import TYPE_CHECKING, Any
+
+from sqlalchemy import select
+
+from labcal.app.lab import RUNNING, RunJson, _json, _list_runs, _progress
+from labcal.app.labdatabase import LabDatabase
+from labcal.app.station_state import (
+    PACE_POINTS,
+    TIMELINE_KINDS,
+    Heard,
+    Silence,
+    StationView,
+    mount_angles,
+    replay,
+)
+from labcal.run.schema import events, points, station_roles
+
+if TYPE_CHECKING:
+    from sqlalchemy.engine import Connection
+
+UNNAMED = "(unnamed station)"
+
+
+@dataclass(frozen=True)
+class Overview:
+    """The lab at a glance: each bench with its state and current run, and the latest runs."""
+
+    stations: tuple[dict, ...]  # see `station_json`, in name order
+    runs: tuple[RunJson, ...]  # newest first
+    as_of_utc: str  # when it was read: what every "since" and "for" on the page is counted to
+
+
+def lab_overview(lab: LabDatabase, silence: Silence | None = None, latest: int = 50) -> Overview:
+    """Every bench the lab knows with its state and current run, and the ``latest`` runs."""
+    now, silence = datetime.now(UTC), silence or Silence()
+    with lab.engine.connect() as conn:
+        listed = _list_runs(conn)
+        current: dict[str, dict | None] = {name: None for name in _registered(conn)}
+        for run in listed:  # newest first
+            name = run["station"] or UNNAMED
+            held = current.get(name)
+            if held is None or (held["status"] != RUNNING and run["status"] == RUNNING):
+                current[name] = run
+        stations = tuple(_station(conn, name, run, now, silence) for name, run in sorted(current.items()))
+    return Overview(stations, tuple(listed[:latest]), now.isoformat(timespec="milliseconds"))
+
+
+def _registered(conn: Connection) -> list[str]:
+    """The benches granted a role of their own (none on SQLite, where nothing grants one)."""
+    return list(conn.execute(select(station_roles.c.station).distinct()).scalars())
+
+
+def _station(conn: Connection, name: str, run: dict | None, now: datetime, silence: Silence) -> dict:
+    if run is None:
+        return station_json(name, None, replay(None, (), now, silence), now)
+    progress = _progress(conn, run["id"]) if run["status"] == RUNNING else None
+    shown = progress or run
+    view = replay(run["status"], timeline(conn, run["id"]), now, silence,
+                  eta_rig_s=shown.get("eta_s"), remount_rig_s=shown.get("next_remount_in_s"),
+                  last_heard=_utc(shown.get("last_heard_utc")))
+    return station_json(name, shown, view, now)
+
+
+def timeline(conn: Connection, run_id: int) -> list[Heard]:
+    """What the replay reads of a run: its events of `TIMELINE_KINDS` and its latest points, in the
+    order journaled (the two tables' UTC stamps, which one clock wrote)."""
+    found = [Heard(_utc(r.utc), r.kind, r.message, _dict(_json(r.data))) for r in conn.execute(
+        select(events.c.utc, events.c.kind, events.c.message, events.c.data)
+        .where(events.c.run_id == run_id, events.c.kind.in_(TIMELINE_KINDS)).order_by(events.c.id))]
+    latest = conn.execute(select(points.c.utc, points.c.t_end, points.c.y_deg, points.c.u_deg)
+                          .where(points.c.run_id == run_id).order_by(points.c.seq.desc()).limit(PACE_POINTS))
+    found += [Heard(_utc(r.utc), "point", data={"t_end": r.t_end, "y_deg": r.y_deg, "u_deg": r.u_deg})
+              for r in reversed(list(latest))]
+    return sorted(found, key=lambda heard: heard.utc)  # stable: each table's own order among equal stamps
+
+
+def station_json(name: str, run: RunJson | None, view: StationView, now: datetime) -> dict:
+    """A bench as the overview states it (times in UTC, ISO 8601; durations in wall seconds)."""
+    fault, waiting = view.fault, view.waiting
+    return {"station": name, "run": run, "state": view.state.value, "label": view.label,
+            "waiting": None if waiting is None else {"utc": _iso(waiting.utc), "text": waiting.text,
+                                                     "for_s": view.waited_s(now)},
+            "mount": mount_angles(view.mount),
+            "fault": None if fault is None else {"utc": _iso(fault.utc), "message": fault.message,
+                                                 "cleared_utc": _iso(fault.cleared_utc)},
+            "last_heard_utc": _iso(view.last_heard), "silent_s": view.silent_s(now),
+            "silent_after_s": view.silent_after_s, "interval_s": view.interval_s,
+            "done_at_utc": _iso(view.done_at), "next_remount_utc": _iso(view.next_remount_at)}
+
+
+def _utc(text: str | None) -> Any:
+    if not text:
+        return None
+    found = datetime.fromisoformat(text)
+    return found if found.tzinfo is not None else found.replace(tzinfo=UTC)
+
+
+def _iso(when: datetime | None) -> str | None:
+    return None if when is None else when.astimezone(UTC).isoformat(timespec="milliseconds")
+
+
+def _dict(found: Any) -> dict | None:
+    return found if isinstance(found, dict) else None
