@@ -42,6 +42,7 @@ from labcal.analysis.budget import (
     _membership,
     propagate,
     sources,
+    windows_noise_covariance,
 )
 from labcal.analysis.correction_check import sensitivity
 from labcal.analysis.design import FOUR_MOUNTS, grid
@@ -49,6 +50,7 @@ from labcal.analysis.device_fit import AngleErrors, angle_error_shapes
 from labcal.analysis.device_model import Geometry, identifiability
 from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, nominal_gravity
 from labcal.analysis.models import Points
+from labcal.analysis.repeatability import Repeatability
 from labcal.errors import LabcalError
 
 SQRT3 = float(np.sqrt(3.0))
@@ -79,6 +81,7 @@ class Bench:
     usage_pitch_deg: tuple[float, float] = (-60.0, 60.0)
     usage_roll_deg: tuple[float, float] = (-180.0, 180.0)
     grid_step_deg: float = 5.0
+    in_use_samples: int | None = None  # the certificate's averaging in use (None: the plan's window)
 
 
 @dataclass(frozen=True)
@@ -191,40 +194,66 @@ def residual_variance_quantile(covariance: NDArray[np.float64], dof: int, p: flo
     return np.asarray(mean * chdtri(nu, 1.0 - p) / nu, dtype=float)
 
 
+def repeatability_quantile(c: Candidate, bench: Bench, p: float | None) -> Repeatability | None:
+    """The pooled within-window scatter a run of ``c`` will state (`labcal.analysis.repeatability`):
+    σ per sample over K windows of N samples, ν = K(N − 1) degrees of freedom; at its ``p``-quantile
+    over runs (s² = σ²χ²_ν/ν, GUM G.3: the scatter of a Type A estimate with its degrees of freedom),
+    or σ itself (None); the p-quantile of the stated U95 where it is the channels' joint one. None where the
+    windows are single samples (no scatter inside them)."""
+    from scipy.special import chdtri  # deferred as in `residual_variance_quantile`
+
+    k = c.n_points
+    dof = k * (c.samples - 1)
+    if dof <= 0:
+        return None
+    # the stated U95 grows with each channel's s, and the three channels scatter independently: all
+    # three lie within their p^(1/3)-quantile in a share p of the runs, and then so does the U95
+    scale = 1.0 if p is None else float(chdtri(dof, 1.0 - p ** (1.0 / 3.0))) / dof
+    return Repeatability(np.full(3, bench.noise_v * np.sqrt(scale)), float(dof), k, c.samples)
+
+
 def predicted_calibration(c: Candidate, bench: Bench, quantile: float | None = PROMISE,
                           held_u: dict[str, float] | None = None) -> Calibration:
-    """The budget's view of the fit a run of ``c`` gives (one replicate): its residual variance at
-    its ``quantile`` over runs (None: its expectation); ``held_u``: the u of a correction the fit holds
-    the misalignments at (`_residual_covariance`)."""
+    """The budget's view of the fit a run of ``c`` gives (one replicate), as the certificate builds it
+    (`budget.with_noise_covariance`, `budget.new_reading`): the coefficients' Type A and one reading in
+    use from the instrument's noise, its pooled within-window scatter at its ``quantile`` over runs
+    (`repeatability_quantile`; None: σ itself); the bench's errors enter as the Type B rows. The fit's
+    residual variance (its expectation; ``held_u``: the u of a correction the fit holds the
+    misalignments at, `_residual_covariance`) is what the estimator weights by, as the certificate's
+    fit covariance, and the whole budget where the windows carry no scatter."""
     points = _points(c)
     g = nominal_gravity(*(np.radians(a) for a in (points.pitch_deg, points.roll_deg, points.y_deg,
                                                   points.u_deg)))
     design = np.column_stack([np.ones(len(g)), g])
     inverse = np.linalg.inv(design.T @ design)  # R⁻¹ (Tripp eq. 50)
     dof = len(g) - N_COEFFICIENTS
-    # The run states U95 from its own residual variance s², which scatters from run to run: predicted
-    # at its ``quantile``, the plan's stated U95 is within the target in that share of its runs (U95
-    # grows with s²), not only in an average run.
-    reading_var = residual_variance_quantile(
+    residual = residual_variance_quantile(
         _residual_covariance(points, bench.X, design, bench.type_b, bench.noise_v**2 / c.samples, held_u),
-        dof, quantile)
+        dof, None)
     keys = np.column_stack([np.mod(points.y_deg, 360.0), np.mod(points.u_deg, 360.0)])
     _, installation = np.unique(keys, axis=0, return_inverse=True)
-    return Calibration(X=bench.X, covariance=reading_var[:, None, None] * inverse[None],
-                       reading_var=reading_var,
-                       dof=np.full(3, float(dof)), projection=(inverse @ design.T)[:4],
-                       points=points, installation=np.asarray(installation, dtype=int).ravel())
+    fitted = Calibration(X=bench.X, covariance=residual[:, None, None] * inverse[None], reading_var=residual,
+                         dof=np.full(3, float(dof)), projection=(inverse @ design.T)[:4], points=points,
+                         installation=np.asarray(installation, dtype=int).ravel(),
+                         in_use_samples=bench.in_use_samples)
+    rep = repeatability_quantile(c, bench, quantile)
+    if rep is None:
+        return fitted
+    return windows_noise_covariance(fitted, rep, np.full(len(g), float(c.samples)))
 
 
-def identified_u(c: Candidate, bench: Bench, reading_var: NDArray[np.float64]) -> dict[str, float] | None:
+def identified_u(c: Candidate, bench: Bench, cal: Calibration) -> dict[str, float] | None:
     """Each misalignment's standard uncertainty (rad) where the device model identifies a…k from
-    ``c``'s points with the instrument (`device_model.identifiability`, per µg of reading noise), else
+    ``c``'s points with the instrument (`device_model.identifiability`, per µg of a point's noise: the
+    windows' scatter over N samples where ``cal`` has it, as the device model's noise share), else
     None."""
     ident = identifiability(Geometry.of_plan(list(c.points), list(c.mounts)))
     if ident.problem():
         return None
     sensitivity = float(np.mean(np.abs(np.diag(bench.X[1:]))))
-    noise_ug = float(np.sqrt(np.max(reading_var))) / sensitivity * 1e6
+    rep = cal.repeatability
+    point_var = cal.reading_var if rep is None else rep.reading_variance(c.samples)
+    noise_ug = float(np.sqrt(np.max(point_var))) / sensitivity * 1e6
     return {n: ident.u_per_ug[n] * noise_ug * ARCSEC for n in MISALIGNMENT_NAMES}
 
 
@@ -250,7 +279,7 @@ def predicted_u95(c: Candidate, bench: Bench, correction: DeviceCorrection | Non
     its misalignments would be left in the coefficients (neither identified by the plan nor known)."""
     four = len(c.mounts) == len(FOUR_MOUNTS)
     cal = predicted_calibration(c, bench, held_u=None if four or correction is None else correction.u_rad)
-    identified = identified_u(c, bench, cal.reading_var) if four else None
+    identified = identified_u(c, bench, cal) if four else None
     device_u = identified if identified is not None else None if correction is None else \
         corrected_u(c, bench, correction)
     if device_u is None:
