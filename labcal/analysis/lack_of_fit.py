@@ -167,4 +167,29 @@ def fit_lack_of_fit(cal: Calibration, inputs: TypeBInputs, readings: Readings, f
         for c in range(3):
             jac[:, c, c * design.shape[1]:(c + 1) * design.shape[1]] = design
         residuals = fit.ls.residuals
-    return lack_of_fit(residuals, jac, noise, bench_in_readings(cal, inputs), rep.dof, alpha)
+    bench = bench_in_readings(cal, inputs)
+    warmth = temperature_in_readings(cal, inputs, readings)
+    if warmth is not None:
+        bench["temperature"] = warmth
+    return lack_of_fit(residuals, jac, noise, bench, rep.dof, alpha)
+
+
+def temperature_in_readings(cal: Calibration, inputs: TypeBInputs, readings: Readings
+                            ) -> NDArray[np.float64] | None:
+    """How the stated temperature coefficients move each reading with its point's temperature about
+    the run's mean (K × 3 × 6: per channel its bias, tc_b·ΔT_k, and its sensitivity, tc_s·ΔT_k·(v − B)),
+    each coefficient an input whose standard uncertainty is its stated size (either sign): the
+    temperature row of the budget bounds the same effect by the run's range, but over a run the
+    temperature moves from point to point, and with long windows the readings see it. None where the
+    readings carry no temperature or no coefficient is stated."""
+    t = readings.temp_c
+    tc_b, tc_s = inputs.bias_tempco_v_per_k, inputs.sensitivity_tempco_per_k
+    if t is None or not (tc_b > 0 or tc_s > 0) or not np.all(np.isfinite(t)):
+        return None
+    dt = np.asarray(t, dtype=float) - float(np.mean(t))
+    k = len(dt)
+    columns = np.zeros((k, 3, 6))
+    for c in range(3):
+        columns[:, c, c] = tc_b * dt
+        columns[:, c, 3 + c] = tc_s * dt * (readings.volts[:, c] - cal.X[0, c])
+    return columns
