@@ -4,7 +4,8 @@ the target X in at least 95 % of the runs.
 The prediction is checked against what it did not compute: each run is simulated on the bench with its
 realistic errors (`labcal.sim.direct.simulate_readings`: the instrument's noise per sample over each
 window, a new table's index errors and wobble per run, the plate seated anew at each mounting, the
-instrument's drift over the run, and for a corrected plan the device's true misalignments drawn about
+instrument's drift over the run, the lab's temperature ±0.15 K about its mean through the instrument's
+temperature coefficients, and for a corrected plan the device's true misalignments drawn about
 the correction with the correction's own u), fitted as `labcal run` fits it and budgeted as its
 certificate is (`labcal.documents.uncertainty.budget_view`, the lack-of-fit test and its fall-back
 included), and its stated U95 is the largest over the certificate's envelope grid. Fixed seeds.
@@ -19,12 +20,13 @@ import numpy as np
 import pytest
 
 from labcal.analysis import optimize
-from labcal.analysis.budget import propagate
+from labcal.analysis.budget import TypeBInputs, propagate
 from labcal.analysis.device_fit import preferred_fit
 from labcal.analysis.fit import fit_readings, reference_temperature
-from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, IndexWobble, Misalignment
+from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, IndexWobble, Misalignment, gravity
 from labcal.analysis.models import Model
 from labcal.analysis.plan import Plan
+from labcal.analysis.readings import Readings
 from labcal.commands.plan import planning_bench
 from labcal.config.plans import load_plan
 from labcal.documents.uncertainty import budget_view, device_misalignment_u
@@ -89,20 +91,41 @@ def delivered(e: optimize.Evaluated, correction: optimize.DeviceCorrection | Non
         readings = simulate_readings(plan, truth, true_mis,
                                      IndexWobble(device.index_arcsec, device.wobble_arcsec, seed),
                                      truth.noise_v, seed, effects)
+        readings = warmed(readings, true_mis, seed)
         if budget_u is None:  # as `labcal run` fits a plan that identifies the device
             fit = fit_readings(readings)
             model, _ = preferred_fit(readings, fit, SIM.angle_errors())
-            inputs = replace(b.type_b, device_misalignment=device_misalignment_u(model))
+            inputs = replace(observed(b, readings), device_misalignment=device_misalignment_u(model))
         else:  # held at the correction, its u the plan's
             assert correction is not None
             fit = fit_readings(readings, Model(t_ref=reference_temperature(readings),
                                                device=Misalignment(**correction.value_rad)))
             model = None
-            inputs = replace(b.type_b, device_misalignment=budget_u,
+            inputs = replace(observed(b, readings), device_misalignment=budget_u,
                              device_misalignment_source="the plan's device correction")
         view = budget_view(readings, fit, inputs, model)
         stated.append(float(np.nanmax(propagate(view.cal, view.rows, pitch, roll).U)))
     return np.array(stated)
+
+
+def warmed(readings: Readings, misalignment: Misalignment, seed: int) -> Readings:
+    """The readings with the lab's temperature moving ±0.15 K over the run (a phase per seed), each
+    reading moved by the true instrument's temperature coefficients (bias, and sensitivity times the
+    gravity it reads), as the simulated rig's instrument does."""
+    truth = SIM.rig.instrument
+    k = len(readings.volts)
+    temp = 20.0 + 0.15 * np.sin(2 * np.pi * (np.arange(k) / k + seed / 7.0))
+    g = gravity(*(np.radians(a) for a in (readings.pitch_deg, readings.roll_deg, readings.y_deg,
+                                          readings.u_deg)), misalignment)
+    shift = (temp - 20.0)[:, None] * (np.asarray(truth.tc_bias_v_per_c)
+                                      + np.asarray(truth.tc_scale_per_c) * (g @ np.asarray(truth.S)))
+    return replace(readings, volts=readings.volts + shift, temp_c=temp)
+
+
+def observed(b: optimize.Bench, readings: Readings) -> TypeBInputs:
+    """The run's Type B inputs: the temperature's half-range the run observed, as a certificate's."""
+    assert readings.temp_c is not None
+    return replace(b.type_b, temperature_half_range_k=float(np.ptp(readings.temp_c)) / 2)
 
 
 def device_correction() -> optimize.DeviceCorrection:
