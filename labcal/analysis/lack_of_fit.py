@@ -5,8 +5,9 @@ r = R·ε, R = I − J(JᵀWJ)⁻¹JᵀW the residual maker of the fit's Jacobia
 every point). What the budget says ε is: the instrument's noise, each point's mean scattering by
 s_c²/n_k (s_c the pooled scatter inside the windows, `labcal.analysis.repeatability` — pure error,
 even in a single pass, because the samples of one window repeat the point), and the bench's stated
-errors — the tables' index and wobble at each angle, the plate's seating at each mounting — as the
-budget's Type B inputs carry them into the readings (B, 3K × m, one column per elementary input
+errors — the tables' index and wobble at each angle, the plate's seating at each mounting, and the
+instrument's stated temperature coefficients through each point's temperature about the run's mean —
+as the budget's Type B inputs carry them into the readings (B, 3K × m, one column per elementary input
 scaled by its u). Under that model r has covariance Σ = R(N + BBᵀ)Rᵀ, and
 
     Q = rᵀ Σ⁺ r  ~  χ²(ν₁),  ν₁ = rank Σ = 3K − p,
