@@ -2,12 +2,18 @@
 plan before anything moves, and a small search for the quickest plan that reaches a target.
 
 Prediction. A candidate is mounts × articulations (pitch, roll) × a measurement window of N DMM
-samples. Its calibration is predicted as the budget would see the run's fit (`labcal.analysis.budget`):
-the moment matrix R = FᵀF of the nominal design (Tripp & Tcheng §3.2, eqs. 49–50), the coefficients'
-covariance σ²R⁻¹ per sensor, and one new reading's variance σ², where σ² is what the residual variance
-of such a run is expected to be: the instrument's noise per sample over the window, σ_s²/N, plus the
-share of the tables' index and wobble errors and of the remounts that the fit cannot absorb (their
-Type B inputs as the budget has them, each through I − H of the design: E[eᵀe]/(K − L)). The Type B
+samples. Its calibration is predicted as its certificate's budget will see the run's fit
+(`labcal.analysis.budget`), by the same rules: the moment matrix R = FᵀF of the nominal design (Tripp &
+Tcheng §3.2, eqs. 49–50), the coefficients' Type A σ²R⁻¹ per sensor with σ² = σ_s²/N the instrument's
+noise over the window (`budget.windows_noise_covariance`), and one reading in use, σ_s²/N over the
+averaging in use (`budget.new_reading`), both with the pooled within-window scatter's K(N − 1) degrees
+of freedom; the bench's errors (the tables' index and wobble, the plate's seating, the device's
+misalignments) reach the attitude only through the coefficients, as Type B rows. A run states its U95
+from its own estimate s of σ_s, which scatters from run to run (s² = σ_s²χ²_ν/ν): predicted with each
+channel's s at its 0.95^(1/3) quantile, the plan's certificates state a U95 within the target in at
+least 95 % of its runs (the three channels scatter independently, and the U95 grows with each). The
+fit's expected residual variance (the noise plus what of the bench's errors the fit cannot absorb,
+each through I − H) sets only the estimator's weights, as a run's fit covariance does. The Type B
 rows are the budget's own (`budget.sources`), and the attitude U95 over the usage envelope comes from
 `budget.propagate`, that is `attitude.combined_uncertainty` with `attitude.sphere_sensitivity`: the one
 estimator every stated U95 comes from, here given a predicted instead of a fitted calibration.
@@ -143,8 +149,8 @@ def _residual_covariance(points: Points, X: NDArray[np.float64], design: NDArray
     table angle for a rough table, harmonics 1–3 for a smooth one; the mean of the two, as the budget
     bounds by their sum) through I − H; and, for a plan that holds the misalignments at a correction
     (``held_u``: its own u per misalignment, rad), the correction's error, one offset of each for every
-    point, which the coefficients absorb only in part. Its trace over K − L is E[s²]; it also gives
-    s²'s spread."""
+    point, which the coefficients absorb only in part. Its trace over K − L is E[s²]: what the
+    attitude estimator weights the sensors by, as it weights by a run's fit."""
     k = len(design)
     hat = design @ np.linalg.pinv(design)
     rest = np.eye(k) - hat
@@ -178,20 +184,9 @@ def _residual_covariance(points: Points, X: NDArray[np.float64], design: NDArray
     return total
 
 
-def residual_variance_quantile(covariance: NDArray[np.float64], dof: int, p: float | None
-                               ) -> NDArray[np.float64]:
-    """Per sensor, E[s²] = tr Σ/ν, or where ``p`` is given s²'s p-quantile: s² is a quadratic form in
-    normal errors, Var s² = 2 tr Σ²/ν², taken as a scaled χ² with Satterthwaite's ν_eff = 2E²/Var
-    (the tables' errors, shared by every point at an angle, give s² far fewer degrees of freedom than
-    the K − L of white noise, so its upper quantile lies further out)."""
-    from scipy.special import chdtri
-
-    mean = np.einsum("jii->j", covariance) / dof
-    if p is None:
-        return np.asarray(mean, dtype=float)
-    var = 2.0 * np.einsum("jik,jki->j", covariance, covariance) / dof**2
-    nu = 2.0 * mean**2 / np.maximum(var, 1e-300)
-    return np.asarray(mean * chdtri(nu, 1.0 - p) / nu, dtype=float)
+def expected_residual_variance(covariance: NDArray[np.float64], dof: int) -> NDArray[np.float64]:
+    """Per sensor, E[s²] = tr Σ/ν of the fit's residual variance (Σ from `_residual_covariance`)."""
+    return np.asarray(np.einsum("jii->j", covariance) / dof, dtype=float)
 
 
 def repeatability_quantile(c: Candidate, bench: Bench, p: float | None) -> Repeatability | None:
@@ -200,7 +195,8 @@ def repeatability_quantile(c: Candidate, bench: Bench, p: float | None) -> Repea
     over runs (s² = σ²χ²_ν/ν, GUM G.3: the scatter of a Type A estimate with its degrees of freedom),
     or σ itself (None); the p-quantile of the stated U95 where it is the channels' joint one. None where the
     windows are single samples (no scatter inside them)."""
-    from scipy.special import chdtri  # deferred as in `residual_variance_quantile`
+    # deferred: the plan commands that predict nothing (plan list, --help) start without scipy
+    from scipy.special import chdtri
 
     k = c.n_points
     dof = k * (c.samples - 1)
@@ -227,9 +223,9 @@ def predicted_calibration(c: Candidate, bench: Bench, quantile: float | None = P
     design = np.column_stack([np.ones(len(g)), g])
     inverse = np.linalg.inv(design.T @ design)  # R⁻¹ (Tripp eq. 50)
     dof = len(g) - N_COEFFICIENTS
-    residual = residual_variance_quantile(
-        _residual_covariance(points, bench.X, design, bench.type_b, bench.noise_v**2 / c.samples, held_u),
-        dof, None)
+    covariance = _residual_covariance(points, bench.X, design, bench.type_b, bench.noise_v**2 / c.samples,
+                                      held_u)
+    residual = expected_residual_variance(covariance, dof)
     keys = np.column_stack([np.mod(points.y_deg, 360.0), np.mod(points.u_deg, 360.0)])
     _, installation = np.unique(keys, axis=0, return_inverse=True)
     fitted = Calibration(X=bench.X, covariance=residual[:, None, None] * inverse[None], reading_var=residual,
