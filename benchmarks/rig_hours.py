@@ -271,6 +271,41 @@ def optimized(seed: int) -> None:
                   f"{doc['rig_time_ratio']:.3f}× four-mount-64 (target ≤ 0.45× with a characterised device); "
                   f"{len(doc['mounts'])} mount(s) × {doc['points']} points, {doc['samples']} samples; "
                   f"searched {doc['candidates']} candidates in {time.perf_counter() - wall:.1f} s")
+        floor(bench, settings, setup.timing, db, ref)
+
+
+def floor(bench, settings, timing, db: Path, ref) -> None:
+    """Why a characterised device does not bring X = 1.5 × four-mount-64's U95 under 0.45× of its rig
+    time: the quickest plan of each mount set (6 points, 4 samples), its rig time and its predicted U95
+    against X. One mount and two never see all of e, f, k (no change of them is detectable: the
+    correction cannot be relied on); three mounts see them, but carry each at a third of the change
+    their run detects with 95 % power; four mounts identify them."""
+    import math
+
+    from labcal.analysis import optimize
+    from labcal.analysis.kinematics import ARCSEC
+    from labcal.analysis.plan import Plan
+    from labcal.commands.plan import device_correction
+    from labcal.run.estimate import estimate
+    from labcal.run.sequencer import schedule
+
+    correction, _ = device_correction("SIMULATED", str(db))
+    target = 1.5 * ref.u95_rad
+    grid_ = optimize.candidate_articulations()
+    fm64, _ = load_plan("four-mount-64")
+    t64 = estimate(fm64, settings, timing, schedule(fm64, settings)).total_s
+    print("  the quickest plan of each mount set (6 points per mount, 4 samples), against X:")
+    for mounts in optimize.MOUNT_SETS:
+        c = optimize.Candidate(mounts, tuple(optimize.d_optimal_sequence(mounts, grid_, 6)), 4)
+        plan = Plan(name="floor", mounts=list(c.mounts), points=list(c.points))
+        run = settings.model_copy(update={"settle": settings.settle.model_copy(update={"samples": 4})})
+        ratio = estimate(plan, run, timing, schedule(plan, run)).total_s / t64
+        e = optimize.evaluate(c, bench, correction, 0.0)
+        said = ("sees no change of e, f or k: not offered" if e is None else
+                f"U95 {e.u95_rad / target:.2f}× X ({math.degrees(e.u95_rad):.5f}°)"
+                + ("" if e.identified else ", the misalignments' row "
+                   f"{max(optimize.corrected_u(c, bench, correction).values()) / ARCSEC:.1f}″ at most"))
+        print(f"    {len(mounts)} mount(s): {ratio:.3f}× four-mount-64's rig time; {said}")
 
 
 def days_ago(days: float) -> str:
@@ -324,7 +359,7 @@ def corrected_run() -> None:
     def rig_time(run: Path) -> float:
         return float(json.loads((run / "run.json").read_text(encoding="utf-8"))["rig_time_s"])
 
-    print("Run on the simulated rig (labcal run --sim --yes): four-mount-64 against the corrected plan")
+    print("Run on the simulated rig (labcal run --sim --yes): four-mount-64 against the plan optimize chose")
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         db = str(folder / "lab.sqlite")
@@ -341,7 +376,7 @@ def corrected_run() -> None:
         t64, tfast = rig_time(folder / "first"), rig_time(folder / "fast")
         print(f"  four-mount-64 run                   {t64 / 3600:6.3f} h  certificate U95 "
               f"{worst(folder / 'first'):.5f}°")
-        print(f"  corrected plan run                  {tfast / 3600:6.3f} h  certificate U95 "
+        print(f"  the plan optimize chose, run       {tfast / 3600:6.3f} h  certificate U95 "
               f"{worst(folder / 'fast'):.5f}° ≤ X = {target:.5f}°: {worst(folder / 'fast') <= target}; "
               f"{tfast / t64:.3f}× four-mount-64's rig time (target ≤ 0.45×); "
               f"{len(doc['mounts'])} mount(s) × {doc['points']} points, {doc['samples']} samples "

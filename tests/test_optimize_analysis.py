@@ -3,6 +3,8 @@ each against what a hand derivation gives."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -20,14 +22,36 @@ def bench(**type_b) -> optimize.Bench:
 
 def test_predicted_covariance_of_the_tumble_is_sigma_squared_over_the_moment_matrix():
     """Six cardinal attitudes, one mount, noise only: FᵀF = diag(6, 2, 2, 2) (Σ g gᵀ = 2I, Σ g = 0),
-    so var B = σ²/6, var S_ii = σ²/2 with σ² = σ_s²/N (Tripp & Tcheng eq. 50)."""
+    so var B = σ²/6, var S_ii = σ²/2 with σ² = σ_s²/N (Tripp & Tcheng eq. 50); the noise is known from
+    the scatter inside the six windows of 16 samples, with 6 × 15 = 90 degrees of freedom."""
     c = optimize.Candidate(((0.0, 0.0),), TUMBLE, 16)
     cal = optimize.predicted_calibration(c, bench(), quantile=None)
     sigma2 = (20e-6) ** 2 / 16
-    assert cal.reading_var == pytest.approx(np.full(3, sigma2), rel=1e-12)
+    assert cal.reading_var == pytest.approx(np.full(3, sigma2), rel=1e-12)  # the fit's residual
     for j in range(3):
         assert np.diag(cal.covariance[j]) == pytest.approx([sigma2 / 6] + [sigma2 / 2] * 3, rel=1e-9)
-    assert cal.dof == pytest.approx(np.full(3, 2.0))  # six points, four coefficients
+    assert cal.dof == pytest.approx(np.full(3, 90.0))
+
+
+def test_a_reading_in_use_is_predicted_as_the_certificate_states_it():
+    """The new-reading row is the instrument's noise over the averaging in use, σ_s/√N (N the plan's
+    window, or the certificate's stated averaging), not the fit's residual, which here also holds a
+    2″ index error of each table; at the 95 % promise each channel's s is at its 0.95^(1/3) quantile
+    of σ_s²·χ²_ν/ν (ν = 6 × 15), 2.121 standard normal deviates of χ²_ν/ν ≈ N(1, 2/ν) out, to first
+    order: the three channels scatter independently."""
+    c = optimize.Candidate(((0.0, 0.0),), TUMBLE, 16)
+    tables = bench(pitch_index=2 * ARCSEC, roll_index=2 * ARCSEC)
+    row = "one new reading (instrument repeatability)"
+
+    def reading_u(b: optimize.Bench, quantile: float | None) -> float:
+        cal = optimize.predicted_calibration(c, b, quantile=quantile)
+        [source] = [s for s in optimize.sources(cal, b.type_b) if s.name == row]
+        return source.u
+
+    assert reading_u(tables, None) == pytest.approx(20e-6 / 4, rel=1e-12)
+    assert reading_u(replace(tables, in_use_samples=100), None) == pytest.approx(20e-6 / 10, rel=1e-12)
+    scale = (reading_u(tables, 0.95) / reading_u(tables, None)) ** 2
+    assert scale == pytest.approx(1 + 2.121 * np.sqrt(2 / 90), rel=0.03)  # the χ² skew: 2 %
 
 
 def test_table_errors_raise_the_predicted_residual_variance_but_not_beyond_their_size():

@@ -47,13 +47,16 @@ def four_mount_64_u95_deg() -> float:
 
 @pytest.fixture(scope="module")
 def optimized(tmp_path_factory):
-    """The plan `plan optimize --device SIMULATED` writes for X = 2.2 × four-mount-64's U95: loose enough
+    """The plan `plan optimize --device SIMULATED` writes for X = 6 × four-mount-64's U95: loose enough
     that relying on the correction pays (at 1.5 × it does not:
-    `test_at_one_and_a_half_times_four_mount_64_the_correction_does_not_pay`)."""
+    `test_at_one_and_a_half_times_four_mount_64_the_correction_does_not_pay`). Four-mount-64's U95 is
+    that of a reading in use, mostly the instrument's own noise; a corrected plan carries each
+    misalignment at a third of the change its run would detect with 95 % power, 2–4″ on this rig,
+    which alone is about five times that."""
     folder = tmp_path_factory.mktemp("optimize")
     db, out = folder / "lab.sqlite", folder / "fast.toml"
     characterised_device(db, (11, 12))
-    target = 2.2 * four_mount_64_u95_deg()
+    target = 6.0 * four_mount_64_u95_deg()
     code = main(["plan", "optimize", "--target-attitude-u95-deg", repr(target), "--device", "SIMULATED",
                  "--db", str(db), "--out", str(out), "--json"])
     assert code == 0
@@ -95,8 +98,9 @@ def test_optimized_plan_is_quicker_than_four_mount_64_within_the_target(optimize
 
 def test_at_one_and_a_half_times_four_mount_64_the_correction_does_not_pay(tmp_path, capsys):
     """With the device characterised (two sittings), X = 1.5 × four-mount-64's U95: a plan relying on the
-    correction must see every misalignment (three mounts at least) and its residuals carry the
-    correction's own error, so the quickest within X keeps the four mounts."""
+    correction must see every misalignment (three mounts at least), and its u of each is a third of
+    the change its run detects with 95 % power (2–4″ here), whose row alone exceeds X; so the quickest
+    within X keeps the four mounts."""
     db, out = tmp_path / "lab.sqlite", tmp_path / "plan.toml"
     characterised_device(db, (11, 12))
     target = 1.5 * four_mount_64_u95_deg()
@@ -165,11 +169,10 @@ def test_monte_carlo_of_simulated_runs_covers_the_predicted_u95(optimized):
     _, out, _ = optimized
     coverage, rms = monte_carlo(out, 60)
     assert np.all(coverage >= 0.93), coverage  # pitch and roll each
-    # and not by an absurd margin: for a normal error within U95 = 1.96 u the RMS ratio is 0.51. Here
-    # about 0.04: the prediction is the U95 a run states in 95 % of runs (its residual variance at
-    # that quantile, the correction's error in it), and the "one new reading" row still takes that
-    # residual variance (the tables' errors and the correction's: about ten times a new reading's
-    # noise), where these new readings carry the instrument's noise only
+    # and not by an absurd margin: for a normal error within U95 = 1.96 u the RMS ratio is 0.51. A
+    # corrected plan's is far below: its U95 is mostly the misalignments' row, each at a third of the
+    # change its run would detect with 95 % power (the change it may miss), where these simulated runs
+    # draw the device at the rig's own, which the correction knows within its history's u
     print(f"RMS(error / predicted U95) = {rms:.3f} (0.51 for a U95 that is 1.96 u)")
     assert rms > 0.02
 
@@ -261,51 +264,3 @@ def test_a_device_that_changed_is_not_relied_on(tmp_path, capsys):
     assert "device CD-9 changed between run-1 and run-2 (a beyond" in captured.err
     plan, _ = load_plan(str(out))  # no correction in it
     assert len(plan.mounts) == 4
-
-
-def delivered_u95(out, trials: int) -> np.ndarray:
-    """The attitude U95 (rad, worst over the certificate's envelope grid, pitch and roll) the
-    certificates of ``trials`` simulated runs of the corrected plan in ``out`` state: the device's
-    truth drawn about the correction with its own u, a new table per run, each run fitted as `labcal
-    run` fits it (`run_fits`) and its budget the certificate's (`calibration_of`, `sources`,
-    `propagate`, the simulated rig's Type B inputs and the plan's u)."""
-    from labcal.analysis.budget import calibration_of, propagate, sources
-    from labcal.commands.plan import planning_bench
-    from labcal.config.plans import plan_correction
-    from labcal.run.exports import run_fits
-
-    text = out.read_text(encoding="utf-8")
-    plan = parse_plan(text, str(out))
-    samples = int(text.split("Run it with --samples ")[1].split()[0])
-    correction = plan_correction(text, str(out))
-    assert correction is not None
-    bench, _, _ = planning_bench(None)
-    inputs = bench.type_b.__class__(**{**vars(bench.type_b), "device_misalignment": correction.u_rad(),
-                                      "device_misalignment_source": correction.describe()})
-    pitch, roll = optimize.envelope_attitudes(bench)
-    truth, device = RIG.instrument, RIG.device
-    rng = np.random.default_rng(95)
-    stated = []
-    for trial in range(trials):
-        seed = 3000 + trial
-        drawn = Misalignment(**{n: correction.value_arcsec[n] * ARCSEC + rng.normal(0.0, u)
-                                for n, u in correction.u_history_rad().items()})
-        readings = simulate_readings(plan, truth, drawn,
-                                     IndexWobble(device.index_arcsec, device.wobble_arcsec, seed),
-                                     truth.noise_v / math.sqrt(samples), seed)
-        fit, _, _ = run_fits(readings, text, None)
-        cal = calibration_of(fit, readings)
-        stated.append(float(np.nanmax(propagate(cal, sources(cal, inputs), pitch, roll).U)))
-    return np.array(stated)
-
-
-@pytest.mark.slow
-def test_the_optimized_plan_keeps_its_promise_in_95_percent_of_its_runs(optimized):
-    """The plan was chosen for U95 ≤ X predicted at the 95th percentile of its run's residual variance
-    (σ²·χ²₀.₉₅,ν/ν): 100 simulated runs of it state a U95 within X in ≥ 95 % of them, less 3 binomial
-    standard deviations (2.2 %)."""
-    target, out, _ = optimized
-    stated = delivered_u95(out, 100)
-    within = float(np.mean(stated <= math.radians(target)))
-    print(f"optimized plan's certificates within X: {100 * within:.0f} % of 100 runs (target ≥ 95 %)")
-    assert within >= 0.95 - 3 * math.sqrt(0.95 * 0.05 / 100)

@@ -211,10 +211,17 @@ def with_noise_covariance(cal: Calibration, readings: Readings) -> Calibration:
     rows already carry to X through the same gain (a four-mount plan cancels most of them there);
     scaled by it, those errors were counted twice. The attitude estimator keeps its weights (the
     certificate's fit covariance), so that `labcal attitude` and the budget use one estimator."""
-    rep = cal.repeatability
-    if rep is None or readings.window_n is None:
+    if cal.repeatability is None or readings.window_n is None:
         return cal
-    var_mean = rep.sample_sd[None, :] ** 2 / np.asarray(readings.window_n, dtype=float)[:, None]  # (K, 3)
+    return windows_noise_covariance(cal, cal.repeatability, np.asarray(readings.window_n, dtype=float))
+
+
+def windows_noise_covariance(cal: Calibration, rep: Repeatability, window_n: NDArray[np.float64]
+                             ) -> Calibration:
+    """`with_noise_covariance`'s rule for windows of ``window_n`` samples (K,) scattering as ``rep``
+    says: also what a plan's prediction of its certificate uses (`labcal.analysis.optimize`), so that
+    the two cannot differ."""
+    var_mean = rep.sample_sd[None, :] ** 2 / window_n[:, None]  # (K, 3)
     if cal.reading_projection is not None:
         gain = cal.reading_projection  # (12, K, 3)
     else:  # the linear fit: sensor j's coefficients move with sensor j's readings only
@@ -223,7 +230,7 @@ def with_noise_covariance(cal: Calibration, readings: Readings) -> Calibration:
             gain[np.arange(4) * 3 + j, :, j] = cal.projection
     cov = np.einsum("akc,bkc,kc->ab", gain, gain, var_mean)
     per_sensor = np.stack([cov[np.ix_(idx, idx)] for idx in (np.arange(4) * 3 + j for j in range(3))])
-    return replace(cal, covariance=per_sensor, dof=np.full(3, rep.dof), noise_type_a=True,
+    return replace(cal, covariance=per_sensor, dof=np.full(3, rep.dof), noise_type_a=True, repeatability=rep,
                    estimator_covariance=cal.covariance if cal.estimator_covariance is None
                    else cal.estimator_covariance)
 

@@ -5,8 +5,9 @@ r = R·ε, R = I − J(JᵀWJ)⁻¹JᵀW the residual maker of the fit's Jacobia
 every point). What the budget says ε is: the instrument's noise, each point's mean scattering by
 s_c²/n_k (s_c the pooled scatter inside the windows, `labcal.analysis.repeatability` — pure error,
 even in a single pass, because the samples of one window repeat the point), and the bench's stated
-errors — the tables' index and wobble at each angle, the plate's seating at each mounting — as the
-budget's Type B inputs carry them into the readings (B, 3K × m, one column per elementary input
+errors — the tables' index and wobble at each angle, the plate's seating at each mounting, and the
+instrument's stated temperature coefficients through each point's temperature about the run's mean —
+as the budget's Type B inputs carry them into the readings (B, 3K × m, one column per elementary input
 scaled by its u). Under that model r has covariance Σ = R(N + BBᵀ)Rᵀ, and
 
     Q = rᵀ Σ⁺ r  ~  χ²(ν₁),  ν₁ = rank Σ = 3K − p,
@@ -167,4 +168,29 @@ def fit_lack_of_fit(cal: Calibration, inputs: TypeBInputs, readings: Readings, f
         for c in range(3):
             jac[:, c, c * design.shape[1]:(c + 1) * design.shape[1]] = design
         residuals = fit.ls.residuals
-    return lack_of_fit(residuals, jac, noise, bench_in_readings(cal, inputs), rep.dof, alpha)
+    bench = bench_in_readings(cal, inputs)
+    warmth = temperature_in_readings(cal, inputs, readings)
+    if warmth is not None:
+        bench["temperature"] = warmth
+    return lack_of_fit(residuals, jac, noise, bench, rep.dof, alpha)
+
+
+def temperature_in_readings(cal: Calibration, inputs: TypeBInputs, readings: Readings
+                            ) -> NDArray[np.float64] | None:
+    """How the stated temperature coefficients move each reading with its point's temperature about
+    the run's mean (K × 3 × 6: per channel its bias, tc_b·ΔT_k, and its sensitivity, tc_s·ΔT_k·(v − B)),
+    each coefficient an input whose standard uncertainty is its stated size (either sign): the
+    temperature row of the budget bounds the same effect by the run's range, but over a run the
+    temperature moves from point to point, and with long windows the readings see it. None where the
+    readings carry no temperature or no coefficient is stated."""
+    t = readings.temp_c
+    tc_b, tc_s = inputs.bias_tempco_v_per_k, inputs.sensitivity_tempco_per_k
+    if t is None or not (tc_b > 0 or tc_s > 0) or not np.all(np.isfinite(t)):
+        return None
+    dt = np.asarray(t, dtype=float) - float(np.mean(t))
+    k = len(dt)
+    columns = np.zeros((k, 3, 6))
+    for c in range(3):
+        columns[:, c, c] = tc_b * dt
+        columns[:, c, 3 + c] = tc_s * dt * (readings.volts[:, c] - cal.X[0, c])
+    return columns

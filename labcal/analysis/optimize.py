@@ -2,12 +2,18 @@
 plan before anything moves, and a small search for the quickest plan that reaches a target.
 
 Prediction. A candidate is mounts × articulations (pitch, roll) × a measurement window of N DMM
-samples. Its calibration is predicted as the budget would see the run's fit (`labcal.analysis.budget`):
-the moment matrix R = FᵀF of the nominal design (Tripp & Tcheng §3.2, eqs. 49–50), the coefficients'
-covariance σ²R⁻¹ per sensor, and one new reading's variance σ², where σ² is what the residual variance
-of such a run is expected to be: the instrument's noise per sample over the window, σ_s²/N, plus the
-share of the tables' index and wobble errors and of the remounts that the fit cannot absorb (their
-Type B inputs as the budget has them, each through I − H of the design: E[eᵀe]/(K − L)). The Type B
+samples. Its calibration is predicted as its certificate's budget will see the run's fit
+(`labcal.analysis.budget`), by the same rules: the moment matrix R = FᵀF of the nominal design (Tripp &
+Tcheng §3.2, eqs. 49–50), the coefficients' Type A σ²R⁻¹ per sensor with σ² = σ_s²/N the instrument's
+noise over the window (`budget.windows_noise_covariance`), and one reading in use, σ_s²/N over the
+averaging in use (`budget.new_reading`), both with the pooled within-window scatter's K(N − 1) degrees
+of freedom; the bench's errors (the tables' index and wobble, the plate's seating, the device's
+misalignments) reach the attitude only through the coefficients, as Type B rows. A run states its U95
+from its own estimate s of σ_s, which scatters from run to run (s² = σ_s²χ²_ν/ν): predicted with each
+channel's s at its 0.95^(1/3) quantile, the plan's certificates state a U95 within the target in at
+least 95 % of its runs (the three channels scatter independently, and the U95 grows with each). The
+fit's expected residual variance (the noise plus what of the bench's errors the fit cannot absorb,
+each through I − H) sets only the estimator's weights, as a run's fit covariance does. The Type B
 rows are the budget's own (`budget.sources`), and the attitude U95 over the usage envelope comes from
 `budget.propagate`, that is `attitude.combined_uncertainty` with `attitude.sphere_sensitivity`: the one
 estimator every stated U95 comes from, here given a predicted instead of a fitted calibration.
@@ -42,6 +48,7 @@ from labcal.analysis.budget import (
     _membership,
     propagate,
     sources,
+    windows_noise_covariance,
 )
 from labcal.analysis.correction_check import sensitivity
 from labcal.analysis.design import FOUR_MOUNTS, grid
@@ -49,6 +56,7 @@ from labcal.analysis.device_fit import AngleErrors, angle_error_shapes
 from labcal.analysis.device_model import Geometry, identifiability
 from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, nominal_gravity
 from labcal.analysis.models import Points
+from labcal.analysis.repeatability import Repeatability
 from labcal.errors import LabcalError
 
 SQRT3 = float(np.sqrt(3.0))
@@ -79,6 +87,7 @@ class Bench:
     usage_pitch_deg: tuple[float, float] = (-60.0, 60.0)
     usage_roll_deg: tuple[float, float] = (-180.0, 180.0)
     grid_step_deg: float = 5.0
+    in_use_samples: int | None = None  # the certificate's averaging in use (None: the plan's window)
 
 
 @dataclass(frozen=True)
@@ -140,8 +149,8 @@ def _residual_covariance(points: Points, X: NDArray[np.float64], design: NDArray
     table angle for a rough table, harmonics 1–3 for a smooth one; the mean of the two, as the budget
     bounds by their sum) through I − H; and, for a plan that holds the misalignments at a correction
     (``held_u``: its own u per misalignment, rad), the correction's error, one offset of each for every
-    point, which the coefficients absorb only in part. Its trace over K − L is E[s²]; it also gives
-    s²'s spread."""
+    point, which the coefficients absorb only in part. Its trace over K − L is E[s²]: what the
+    attitude estimator weights the sensors by, as it weights by a run's fit."""
     k = len(design)
     hat = design @ np.linalg.pinv(design)
     rest = np.eye(k) - hat
@@ -175,56 +184,72 @@ def _residual_covariance(points: Points, X: NDArray[np.float64], design: NDArray
     return total
 
 
-def residual_variance_quantile(covariance: NDArray[np.float64], dof: int, p: float | None
-                               ) -> NDArray[np.float64]:
-    """Per sensor, E[s²] = tr Σ/ν, or where ``p`` is given s²'s p-quantile: s² is a quadratic form in
-    normal errors, Var s² = 2 tr Σ²/ν², taken as a scaled χ² with Satterthwaite's ν_eff = 2E²/Var
-    (the tables' errors, shared by every point at an angle, give s² far fewer degrees of freedom than
-    the K − L of white noise, so its upper quantile lies further out)."""
+def expected_residual_variance(covariance: NDArray[np.float64], dof: int) -> NDArray[np.float64]:
+    """Per sensor, E[s²] = tr Σ/ν of the fit's residual variance (Σ from `_residual_covariance`)."""
+    return np.asarray(np.einsum("jii->j", covariance) / dof, dtype=float)
+
+
+def repeatability_quantile(c: Candidate, bench: Bench, p: float | None) -> Repeatability | None:
+    """The pooled within-window scatter a run of ``c`` will state (`labcal.analysis.repeatability`):
+    σ per sample over K windows of N samples, ν = K(N − 1) degrees of freedom; at its ``p``-quantile
+    over runs (s² = σ²χ²_ν/ν, GUM G.3: the scatter of a Type A estimate with its degrees of freedom),
+    or σ itself (None); the p-quantile of the stated U95 where it is the channels' joint one. None where the
+    windows are single samples (no scatter inside them)."""
+    # deferred: the plan commands that predict nothing (plan list, --help) start without scipy
     from scipy.special import chdtri
 
-    mean = np.einsum("jii->j", covariance) / dof
-    if p is None:
-        return np.asarray(mean, dtype=float)
-    var = 2.0 * np.einsum("jik,jki->j", covariance, covariance) / dof**2
-    nu = 2.0 * mean**2 / np.maximum(var, 1e-300)
-    return np.asarray(mean * chdtri(nu, 1.0 - p) / nu, dtype=float)
+    k = c.n_points
+    dof = k * (c.samples - 1)
+    if dof <= 0:
+        return None
+    # the stated U95 grows with each channel's s, and the three channels scatter independently: all
+    # three lie within their p^(1/3)-quantile in a share p of the runs, and then so does the U95
+    scale = 1.0 if p is None else float(chdtri(dof, 1.0 - p ** (1.0 / 3.0))) / dof
+    return Repeatability(np.full(3, bench.noise_v * np.sqrt(scale)), float(dof), k, c.samples)
 
 
 def predicted_calibration(c: Candidate, bench: Bench, quantile: float | None = PROMISE,
                           held_u: dict[str, float] | None = None) -> Calibration:
-    """The budget's view of the fit a run of ``c`` gives (one replicate): its residual variance at
-    its ``quantile`` over runs (None: its expectation); ``held_u``: the u of a correction the fit holds
-    the misalignments at (`_residual_covariance`)."""
+    """The budget's view of the fit a run of ``c`` gives (one replicate), as the certificate builds it
+    (`budget.with_noise_covariance`, `budget.new_reading`): the coefficients' Type A and one reading in
+    use from the instrument's noise, its pooled within-window scatter at its ``quantile`` over runs
+    (`repeatability_quantile`; None: σ itself); the bench's errors enter as the Type B rows. The fit's
+    residual variance (its expectation; ``held_u``: the u of a correction the fit holds the
+    misalignments at, `_residual_covariance`) is what the estimator weights by, as the certificate's
+    fit covariance, and the whole budget where the windows carry no scatter."""
     points = _points(c)
     g = nominal_gravity(*(np.radians(a) for a in (points.pitch_deg, points.roll_deg, points.y_deg,
                                                   points.u_deg)))
     design = np.column_stack([np.ones(len(g)), g])
     inverse = np.linalg.inv(design.T @ design)  # R⁻¹ (Tripp eq. 50)
     dof = len(g) - N_COEFFICIENTS
-    # The run states U95 from its own residual variance s², which scatters from run to run: predicted
-    # at its ``quantile``, the plan's stated U95 is within the target in that share of its runs (U95
-    # grows with s²), not only in an average run.
-    reading_var = residual_variance_quantile(
-        _residual_covariance(points, bench.X, design, bench.type_b, bench.noise_v**2 / c.samples, held_u),
-        dof, quantile)
+    covariance = _residual_covariance(points, bench.X, design, bench.type_b, bench.noise_v**2 / c.samples,
+                                      held_u)
+    residual = expected_residual_variance(covariance, dof)
     keys = np.column_stack([np.mod(points.y_deg, 360.0), np.mod(points.u_deg, 360.0)])
     _, installation = np.unique(keys, axis=0, return_inverse=True)
-    return Calibration(X=bench.X, covariance=reading_var[:, None, None] * inverse[None],
-                       reading_var=reading_var,
-                       dof=np.full(3, float(dof)), projection=(inverse @ design.T)[:4],
-                       points=points, installation=np.asarray(installation, dtype=int).ravel())
+    fitted = Calibration(X=bench.X, covariance=residual[:, None, None] * inverse[None], reading_var=residual,
+                         dof=np.full(3, float(dof)), projection=(inverse @ design.T)[:4], points=points,
+                         installation=np.asarray(installation, dtype=int).ravel(),
+                         in_use_samples=bench.in_use_samples)
+    rep = repeatability_quantile(c, bench, quantile)
+    if rep is None:
+        return fitted
+    return windows_noise_covariance(fitted, rep, np.full(len(g), float(c.samples)))
 
 
-def identified_u(c: Candidate, bench: Bench, reading_var: NDArray[np.float64]) -> dict[str, float] | None:
+def identified_u(c: Candidate, bench: Bench, cal: Calibration) -> dict[str, float] | None:
     """Each misalignment's standard uncertainty (rad) where the device model identifies a…k from
-    ``c``'s points with the instrument (`device_model.identifiability`, per µg of reading noise), else
+    ``c``'s points with the instrument (`device_model.identifiability`, per µg of a point's noise: the
+    windows' scatter over N samples where ``cal`` has it, as the device model's noise share), else
     None."""
     ident = identifiability(Geometry.of_plan(list(c.points), list(c.mounts)))
     if ident.problem():
         return None
     sensitivity = float(np.mean(np.abs(np.diag(bench.X[1:]))))
-    noise_ug = float(np.sqrt(np.max(reading_var))) / sensitivity * 1e6
+    rep = cal.repeatability
+    point_var = cal.reading_var if rep is None else rep.reading_variance(c.samples)
+    noise_ug = float(np.sqrt(np.max(point_var))) / sensitivity * 1e6
     return {n: ident.u_per_ug[n] * noise_ug * ARCSEC for n in MISALIGNMENT_NAMES}
 
 
@@ -250,7 +275,7 @@ def predicted_u95(c: Candidate, bench: Bench, correction: DeviceCorrection | Non
     its misalignments would be left in the coefficients (neither identified by the plan nor known)."""
     four = len(c.mounts) == len(FOUR_MOUNTS)
     cal = predicted_calibration(c, bench, held_u=None if four or correction is None else correction.u_rad)
-    identified = identified_u(c, bench, cal.reading_var) if four else None
+    identified = identified_u(c, bench, cal) if four else None
     device_u = identified if identified is not None else None if correction is None else \
         corrected_u(c, bench, correction)
     if device_u is None:

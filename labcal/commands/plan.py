@@ -488,7 +488,8 @@ def planning_bench(station: str | None):
         inst = rig.instrument
         envelope = CertificateSettings()
         bench = Bench(inst.X, inst.noise_v, _type_b(section, rig.lab_temp_swing_c),
-                      envelope.usage_pitch_deg, envelope.usage_roll_deg, envelope.grid_step_deg)
+                      envelope.usage_pitch_deg, envelope.usage_roll_deg, envelope.grid_step_deg,
+                      envelope.in_use_samples)
         return bench, setup.timing, settings
     from labcal.bench.setup import station_timing
     from labcal.config.station import load_certificate_section, load_station
@@ -502,7 +503,7 @@ def planning_bench(station: str | None):
     X = np.vstack([np.zeros(3), s.sensitivity_v_per_g * np.eye(3)])
     envelope = section.certificate
     bench = Bench(X, s.noise_v, _type_b(section, 0.0), envelope.usage_pitch_deg, envelope.usage_roll_deg,
-                  envelope.grid_step_deg)
+                  envelope.grid_step_deg, envelope.in_use_samples)
     return bench, station_timing(config), settings
 
 
