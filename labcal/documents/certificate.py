@@ -147,12 +147,14 @@ class FitSection(Strict):
 
     @model_validator(mode="after")
     def _shapes(self) -> FitSection:
-        n = len(self.parameters)
-        _shape(self.coefficients, (4, 3), "coefficients")
-        _shape(self.standard_errors, (4, 3), "standard_errors")
-        _shape(self.covariance, (3, n, n), "covariance")
+        n, m = len(self.parameters), len(self.layout.columns)  # m sensors: 3, or a package's 1 or 2
+        if not 1 <= m <= 3:
+            raise ValueError(f"layout has {m} sensor columns; a package has 1 to 3 sensors")
+        _shape(self.coefficients, (4, m), "coefficients")
+        _shape(self.standard_errors, (4, m), "standard_errors")
+        _shape(self.covariance, (m, n, n), "covariance")
         for name in ("residual_standard_error", "reading_sd", "uncertainty_dof", "uncertainty_basis"):
-            _shape(getattr(self, name), (3,), name)
+            _shape(getattr(self, name), (m,), name)
         return self
 
 
@@ -195,9 +197,10 @@ class Expanded(Strict):
 
     @model_validator(mode="after")
     def _shapes(self) -> Expanded:
-        _shape(self.U, (4, 3), "U")
-        _shape(self.k, (3,), "k")
-        _shape(self.nu_eff, (3,), "nu_eff")
+        m = np.shape(self.U)[1] if np.ndim(self.U) == 2 else 0  # one column per sensor
+        _shape(self.U, (4, max(m, 1)), "U")
+        _shape(self.k, (m,), "k")
+        _shape(self.nu_eff, (m,), "nu_eff")
         return self
 
 
@@ -579,6 +582,17 @@ class Certificate(Strict):
     package: PackageSection | None = Field(default=None, exclude_if=_absent)
     digest: Digest
 
+    @model_validator(mode="after")
+    def _package(self) -> Certificate:
+        """A certificate of fewer than three sensors is a package's, and says so in its section."""
+        columns = len(self.fit.layout.columns)
+        if self.package is None and columns != 3:
+            raise ValueError(f"a fit of {columns} sensor(s) needs the package section that says how its "
+                             "angles are obtained")
+        if self.package is not None and len(self.package.sensors) != columns:
+            raise ValueError(f"the package states {len(self.package.sensors)} sensor(s), the fit {columns}")
+        return self
+
     @property
     def output_unit(self) -> str:
         """The instrument's output unit (V, mV, counts, m/s2) as the fit's layout states it ("counts
@@ -589,6 +603,11 @@ class Certificate(Strict):
     def number(self) -> str:
         """The certificate number with its revision, as printed (ISO/IEC 17025 §7.8.2.1 c)."""
         return f"{self.certificate_id} rev. {self.revision or 1}"
+
+    @property
+    def sensors(self) -> tuple[str, ...]:
+        """The sensors the coefficients' columns are ("sensor x" → "x"), in order."""
+        return tuple(c.removeprefix("sensor ") for c in self.fit.layout.columns)
 
     @property
     def draft(self) -> bool:
@@ -609,12 +628,25 @@ class Certificate(Strict):
     def calibration(self) -> Calibration:
         """The calibration `labcal attitude` uses: the fit's coefficients and weights, and the budget's
         complete covariance where the certificate states one."""
+        if self.package is not None:
+            raise LabcalError(f"certificate {self.certificate_id} is of a {self.package.package} package: "
+                              "its "
+                              "angles are inferred as its package section states (labcal attitude reads it), "
+                              "not by the three-axis estimator")
         cal = calibration_from_json(self.fit.model_dump(), self.certificate_id)
         parts = self.uncertainty_budget.parts() if self.uncertainty_budget is not None else ()
         return replace(cal, parts=parts) if parts else cal
 
     def coefficient_covariance(self) -> NDArray:
-        """The complete 12×12 covariance of vec(X) (row-major), Type A and B, across channels."""
+        """The complete 12×12 covariance of vec(X) (row-major), Type A and B, across channels; a
+        package's (4m × 4m for its m sensors) is its fit's, each sensor fitted on its own."""
+        if self.package is not None:
+            m = len(self.fit.layout.columns)
+            cov = np.zeros((4 * m, 4 * m))
+            for j, block in enumerate(self.fit.covariance):
+                idx = np.arange(4) * m + j
+                cov[np.ix_(idx, idx)] = np.array(block)[:4, :4]
+            return cov
         parts = self.calibration().uncertainty_parts
         return np.sum([p.matrix[:12, :12] for p in parts], axis=0)
 
