@@ -34,6 +34,7 @@ from pydantic import (
 )
 
 from labcal.analysis.attitude import Calibration, CovariancePart, calibration_from_json
+from labcal.analysis.packages import PackageCalibration, Sensor
 from labcal.config.files import MAX_DEPTH, check_depth, one_line, read_text, write_json
 from labcal.documents.certificate_sections import (
     BudgetInputs,
@@ -636,6 +637,24 @@ class Certificate(Strict):
         cal = calibration_from_json(self.fit.model_dump(), self.certificate_id)
         parts = self.uncertainty_budget.parts() if self.uncertainty_budget is not None else ()
         return replace(cal, parts=parts) if parts else cal
+
+    def package_calibration(self) -> PackageCalibration:
+        """What `labcal attitude` uses of a package's certificate: its sensors as its package section
+        states them, its coefficients' covariance and a new reading's SD for σ_v, k, how roll is
+        obtained in use (σ_R) and the usable range where pitch and roll are inferred together."""
+        p = self.package
+        if p is None:
+            raise LabcalError(f"certificate {self.certificate_id} is of a three-axis instrument, not a "
+                              "package")
+        sensors = tuple(Sensor(a, c.b, c.S, math.radians(c.omega_deg), math.radians(c.azimuth_deg))
+                        for a, c in ((a, p.coefficients[a]) for a in p.sensors))
+        usable = None
+        if p.usable_pitch_deg is not None and p.usable_roll_deg is not None:
+            usable = (tuple(np.radians(p.usable_pitch_deg)), tuple(np.radians(p.usable_roll_deg)))
+        return PackageCalibration(
+            p.package, sensors, np.array([np.array(c)[:4, :4] for c in self.fit.covariance]),
+            np.array(self.fit.reading_sd), p.k, p.roll_in_use, math.radians(p.roll_sd_deg or 0.0),
+            usable)
 
     def coefficient_covariance(self) -> NDArray:
         """The complete 12×12 covariance of vec(X) (row-major), Type A and B, across channels; a
