@@ -4,6 +4,7 @@ values are made here from the paper's equations written out, never by the code u
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from pathlib import Path
@@ -148,3 +149,33 @@ def test_attitude_of_an_x_y_package_inside_its_usable_range_and_refused_outside(
                        str(tmp_path / "out.csv"), "--db", str(run / "lab.sqlite"))
     last = err.rstrip("\n").rsplit("\n", 1)[-1]
     assert code == 2 and last.startswith("labcal: error: row 2: pitch") and "usable range" in last
+
+
+def test_a_package_certificate_is_signed_with_its_dcc_and_verifies(runs, tmp_path):
+    """A package's certificate approved with an Ed25519 key (`approve`; `labcal certificate approve`
+    refuses a dry run, so the signing is called directly): the signature verifies with the public
+    key, covers the DCC made of it (valid against PTB's schema), and an edit to the package section
+    after signing is refused even with the seal recomputed."""
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+
+    from labcal.documents.approval import approve, verify
+    from labcal.documents.certificate import certificate_from_doc, content_digest, write_certificate
+    from labcal.documents.dcc import dcc_document, validation_error
+    from labcal.errors import LabcalError
+
+    cert = read_certificate(runs["two-axis-xy"] / "run" / "certificate.json")
+    key = Ed25519PrivateKey.generate()
+    signed = approve(cert, "A. Metrologist", "Technical manager", key)
+    path = write_certificate(tmp_path / "certificate.json", signed)
+    assert verify(path, key.public_key()).package == cert.package
+    dcc = dcc_document(signed)
+    assert validation_error(dcc) is None
+    assert signed.approval is not None
+    assert signed.approval.dcc_sha256 == hashlib.sha256(dcc).hexdigest()
+    doc = json.loads(path.read_text())
+    doc["package"]["usable_roll_deg"] = [-89.0, 89.0]  # a wider range than was computed and signed
+    doc["digest"]["value"] = content_digest(doc)
+    certificate_from_doc(doc, "edited")  # the seal alone would accept it
+    (tmp_path / "edited.json").write_text(json.dumps(doc))
+    with pytest.raises(LabcalError, match="signature does not match"):
+        verify(tmp_path / "edited.json", key.public_key())
