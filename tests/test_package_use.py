@@ -179,3 +179,25 @@ def test_a_package_certificate_is_signed_with_its_dcc_and_verifies(runs, tmp_pat
     (tmp_path / "edited.json").write_text(json.dumps(doc))
     with pytest.raises(LabcalError, match="signature does not match"):
         verify(tmp_path / "edited.json", key.public_key())
+
+
+def test_an_instruments_history_of_package_certificates_compares_only_the_sensors_it_has(tmp_path, capsys):
+    """Two single-axis runs of one instrument (the dry run's serial): `labcal history` lists both,
+    judges the change of the x sensor's four coefficients only (Δ written out here from the two
+    certificates), and plots them."""
+    from labcal.cli import main
+
+    for name in ("first", "second"):
+        assert main(["run", "--sim", "--instrument", "single-axis", "--yes", "--seed", str(len(name)),
+                     "--out", str(tmp_path / name), "--db", str(tmp_path / "lab.sqlite")]) == 0
+    capsys.readouterr()
+    code, out, err = cli(capsys, "history", "SIMULATED", "--include-simulated", "--json", "--db",
+                         str(tmp_path / "lab.sqlite"), "--plot", str(tmp_path / "history.png"))
+    assert code == 0, err
+    doc = json.loads(out)
+    assert [c["sensors"] for c in doc["calibrations"]] == [["x"], ["x"]]
+    first, second = (read_certificate(tmp_path / n / "certificate.json") for n in ("first", "second"))
+    assert {c["sensor"] for c in doc["changes"]} == {"x"} and len(doc["changes"]) == 4
+    delta = np.array(second.fit.coefficients)[:, 0] - np.array(first.fit.coefficients)[:, 0]
+    assert np.allclose([c["delta"] for c in doc["changes"]], delta, rtol=1e-12, atol=0)
+    assert (tmp_path / "history.png").stat().st_size > 0

@@ -610,6 +610,13 @@ class Certificate(Strict):
         """The sensors the coefficients' columns are ("sensor x" → "x"), in order."""
         return tuple(c.removeprefix("sensor ") for c in self.fit.layout.columns)
 
+    def by_sensor(self, values: NDArray) -> NDArray:
+        """``values`` (rows × this certificate's sensors) in the three sensors' columns x, y, z, NaN
+        in those of sensors a package has not: certificates of one instrument side by side."""
+        full = np.full((np.shape(values)[0], 3), np.nan)
+        full[:, ["xyz".index(s) for s in self.sensors]] = values
+        return full
+
     @property
     def draft(self) -> bool:
         return self.approval is None
