@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from labcal.analysis.coning import _AXES
+from labcal.analysis.fit import Fit
 from labcal.analysis.kinematics import nominal_gravity
 from labcal.errors import LabcalError
 
@@ -49,6 +50,18 @@ class Sensor:
     S: float
     omega: float = 0.0
     azimuth: float = 0.0
+
+
+def sensors_of(fit: Fit) -> list[Sensor]:
+    """Tripp's [b, S, Ω, A] of every sensor the fit has (eq. 8), from its linear columns."""
+    return [from_linear(fit.coefficients[0, j], fit.coefficients[1:, j], axis)
+            for j, axis in enumerate(fit.sensors)]
+
+
+def package_of(sensors: tuple[str, ...]) -> str:
+    """The package whose sensors these are."""
+    return {("x",): "single-axis", ("x", "y"): "two-axis-xy", ("x", "z"): "two-axis-xz",
+            ("x", "y", "z"): "three-axis"}[sensors]
 
 
 def without_roll(b: float, S: float, phi: float) -> Sensor:

@@ -124,7 +124,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if chosen:
         doc.setdefault("notes", []).insert(0, chosen)
     if fit.sensors != SENSORS:  # a package: its sensors as Tripp & Tcheng state them (eq. 8)
-        from labcal.documents.package import package_of, sensors_of
+        from labcal.analysis.packages import package_of, sensors_of
 
         doc["package"] = {"package": package_of(fit.sensors), "sensors": {
             s.axis: {"b": s.b, "S": s.S, "omega_deg": float(np.degrees(s.omega)),

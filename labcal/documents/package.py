@@ -22,11 +22,11 @@ import numpy as np
 from labcal.analysis.distributions import t_quantile
 from labcal.analysis.fit import Fit
 from labcal.analysis.packages import (
-    Sensor,
-    from_linear,
     inferred_covariance,
     output_sd,
+    package_of,
     sd_pitch_at_roll,
+    sensors_of,
     usable_box,
 )
 from labcal.config.settings import CertificateSettings
@@ -47,12 +47,6 @@ if TYPE_CHECKING:
 
 GRID_STEP_DEG = 1.0  # the usage envelope is judged on this grid, its ends included
 DEFAULT_LIMIT_DEG = 0.1  # a two-axis package's U95 limit for its usable range, when none is stated
-
-
-def sensors_of(fit: Fit) -> list[Sensor]:
-    """Tripp's [b, S, Ω, A] of every sensor the fit has (eq. 8), from its linear columns."""
-    return [from_linear(fit.coefficients[0, j], fit.coefficients[1:, j], axis)
-            for j, axis in enumerate(fit.sensors)]
 
 
 def output_sds(fit: Fit, alpha: np.ndarray, roll: np.ndarray) -> list[np.ndarray]:
@@ -285,11 +279,6 @@ def package_budget(fit: Fit, section: PackageSection, inputs: dict[str, Any], un
             k=[k_coef.tolist()] * 4, U=(se * k_coef[None, :]).tolist(),
             contributions={"Type A (the fit)": se.tolist()}),
         statement=f"Combined standard uncertainty of every added source; {parts_said}.")
-
-
-def package_of(sensors: tuple[str, ...]) -> str:
-    """The package whose sensors these are."""
-    return {("x",): "single-axis", ("x", "y"): "two-axis-xy", ("x", "z"): "two-axis-xz"}[sensors]
 
 
 def record_section(record: RunRecord, fit: Fit, settings: CertificateSettings) -> PackageSection:
