@@ -201,3 +201,22 @@ def test_an_instruments_history_of_package_certificates_compares_only_the_sensor
     delta = np.array(second.fit.coefficients)[:, 0] - np.array(first.fit.coefficients)[:, 0]
     assert np.allclose([c["delta"] for c in doc["changes"]], delta, rtol=1e-12, atol=0)
     assert (tmp_path / "history.png").stat().st_size > 0
+
+
+def test_the_lab_servers_residual_figure_of_a_package_run_draws_its_sensors(runs):
+    """The residual figure the lab server serves for a run, drawn from the journal's points: a
+    single-axis run's has one row of plots (the x sensor's), a PNG."""
+    import io
+
+    from PIL import Image
+    from sqlalchemy import create_engine
+
+    from labcal.app.residuals import _draw
+
+    engine = create_engine(f"sqlite:///{runs['single-axis'] / 'lab.sqlite'}")
+    with engine.connect() as conn:
+        png = _draw(conn, 1)
+    engine.dispose()
+    assert png is not None
+    width, height = Image.open(io.BytesIO(png)).size
+    assert width == 900 and height < 650 * 0.6  # one sensor's row of the three-sensor figure's height

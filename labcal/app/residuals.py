@@ -21,8 +21,6 @@ from labcal.analysis.readings import Readings
 from labcal.errors import LabcalError
 from labcal.run.schema import points
 
-SENSORS = ("x", "y", "z")
-
 
 def readings(conn: Connection, run_id: int) -> Readings | None:
     """The run's measured points as Readings, as `labcal.run.journal.Journal.readings` gives them."""
@@ -78,23 +76,24 @@ def _draw(conn: Connection, run_id: int) -> bytes | None:
         fit = fit_readings(found)
     except LabcalError:
         return None
-    residuals = fit.ls.residuals[:, :3] * 1e6  # µV
+    residuals = fit.ls.residuals[:, :3] * 1e6  # µV, one column per sensor the package has
+    sensors = fit.sensors
     import matplotlib
 
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(9, 6.5), dpi=100, layout="constrained")
-    axes = fig.subplots(3, 2, sharex="col")
+    fig = Figure(figsize=(9, 6.5 * (len(sensors) + 0.5) / 3.5), dpi=100, layout="constrained")
+    axes = fig.subplots(len(sensors), 2, sharex="col", squeeze=False)
     rms = np.sqrt(np.mean(residuals**2, axis=0))
-    for j, sensor in enumerate(SENSORS):
+    for j, sensor in enumerate(sensors):
         for k, (angle, label) in enumerate(((found.pitch_deg, "pitch (°)"), (found.roll_deg, "roll (°)"))):
             ax = axes[j, k]
             ax.axhline(0.0, color="#888", lw=0.8)
             ax.plot(angle, residuals[:, j], "o", ms=3, color="#1f5f99")
             ax.set_ylabel(f"{sensor}: residual (µV)" if k == 0 else "")
             ax.grid(True, lw=0.3)
-            if j == 2:
+            if j == len(sensors) - 1:
                 ax.set_xlabel(label)
         shown = f"{rms[j] / 1000:.3g} mV" if rms[j] >= 1000 else f"{rms[j]:.3g} µV"
         axes[j, 1].set_title(f"RMS {shown}", fontsize=9, loc="right")
