@@ -193,3 +193,53 @@ def test_u95_of_pitch_at_a_measured_roll_covers_95_percent_after_a_drifting_six_
                                                    (np.array(u**2 - u_noise**2), np.inf)])
             hits += abs(a_hat - alpha) <= float(t_quantile(0.975, nu)) * u
         assert 0.93 <= hits / trials <= 0.97, (np.degrees([alpha, roll_use]), hits / trials)
+
+
+def test_u95_of_pitch_from_an_x_z_package_at_a_measured_roll_covers_95_percent():
+    """An x–z package (Tripp §6.5) calibrated on a D1 design (pitch −90..90° by 15°, roll by 30°,
+    two replicates) with Gaussian output noise, used at a roll measured with σ_R = 0.3°: pitch by
+    least squares in α from both outputs (eq. 96) is within U95 = k·σ (eqs. 96–97 with eq. 80's roll
+    term; σ_v of each sensor from its fit) of the truth 95 ± 2 % of 2000 calibrations, at an attitude
+    where the x sensor carries pitch and one near pitch 80° where the z sensor does."""
+    from labcal.analysis.packages import pitch_at_known_roll
+
+    x_true = Sensor("x", 0.01, 2.0, 0.5 * DEG, 70 * DEG)
+    z_true = Sensor("z", -0.02, -1.8, 0.8 * DEG, 200 * DEG)
+    noise, sigma_r = (3e-4, 5e-4), 0.3 * DEG
+    pitch, roll = (x.ravel() for x in np.meshgrid(np.arange(-90, 91, 15.0), np.arange(-180, 180, 30.0),
+                                                  indexing="ij"))
+    pitch, roll = np.radians(np.tile(pitch, 2)), np.radians(np.tile(roll, 2))
+    g = np.column_stack([np.sin(pitch), np.cos(pitch) * np.sin(roll), np.cos(pitch) * np.cos(roll)])
+    design = np.column_stack([np.ones(len(g)), g])
+    rng = np.random.default_rng(96)
+    trials = 2000
+
+    def eq_2_and_5(alpha, r):
+        """Tripp eqs. 2 and 5 typed here: the two sensors' outputs."""
+        vx = x_true.b + x_true.S * (np.cos(x_true.omega) * np.sin(alpha)
+                                    - np.sin(x_true.omega) * np.cos(alpha) * np.sin(r + x_true.azimuth))
+        om, A = z_true.omega, z_true.azimuth
+        vz = z_true.b - z_true.S * (np.cos(om) * np.cos(r) * np.cos(alpha) - np.sin(om) * (
+            np.cos(A) * np.sin(alpha) - np.sin(A) * np.sin(r) * np.cos(alpha)))
+        return vx, vz
+
+    clean = eq_2_and_5(pitch, roll)
+    fits = [least_squares(design, c[:, None] + s * rng.normal(size=(len(c), trials)))
+            for c, s in zip(clean, noise, strict=True)]
+    for alpha, roll_use in ((20 * DEG, 50 * DEG), (80 * DEG, 30 * DEG)):
+        new = [v + s * rng.normal(size=trials)
+               for v, s in zip(eq_2_and_5(alpha, roll_use), noise, strict=True)]
+        roll_read = roll_use + sigma_r * rng.normal(size=trials)
+        hits = 0
+        for t in range(trials):
+            sensors = [from_linear(f.coef[0, t], f.coef[1:, t], axis)
+                       for f, axis in zip(fits, "xz", strict=True)]
+            a_hat = float(pitch_at_known_roll(sensors, [[new[0][t], new[1][t]]], roll_read[t])[0])
+            sd = [float(output_sd(f.cov_unscaled * f.residual_se[t] ** 2, f.residual_se[t], a_hat,
+                                  roll_read[t])) for f in fits]
+            u = float(sd_pitch_at_roll(sensors, sd, a_hat, roll_read[t], sigma_r))
+            u_noise = float(sd_pitch_at_roll(sensors, sd, a_hat, roll_read[t]))
+            nu = welch_satterthwaite(np.array(u), [(np.array(u_noise**2), float(fits[0].dof)),
+                                                   (np.array(u**2 - u_noise**2), np.inf)])
+            hits += abs(a_hat - alpha) <= float(t_quantile(0.975, nu)) * u
+        assert 0.93 <= hits / trials <= 0.97, (np.degrees([alpha, roll_use]), hits / trials)
