@@ -72,6 +72,7 @@ def _invert(coef: np.ndarray, v: np.ndarray, alpha0: float, roll0: float) -> np.
     return z
 
 
+@pytest.mark.slow
 def test_a_two_axis_xy_certificates_usable_range_holds_its_u95_and_excludes_the_singular_jacobian(
         xy_certificate):
     """The certificate of a simulated x–y run states a usable range where both inferred angles' U95
@@ -195,6 +196,7 @@ def test_u95_of_pitch_at_a_measured_roll_covers_95_percent_after_a_drifting_six_
         assert 0.93 <= hits / trials <= 0.97, (np.degrees([alpha, roll_use]), hits / trials)
 
 
+@pytest.mark.slow
 def test_u95_of_pitch_from_an_x_z_package_at_a_measured_roll_covers_95_percent():
     """An x–z package (Tripp §6.5) calibrated on a D1 design (pitch −90..90° by 15°, roll by 30°,
     two replicates) with Gaussian output noise, used at a roll measured with σ_R = 0.3°: pitch by

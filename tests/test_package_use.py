@@ -181,6 +181,7 @@ def test_a_package_certificate_is_signed_with_its_dcc_and_verifies(runs, tmp_pat
         verify(tmp_path / "edited.json", key.public_key())
 
 
+@pytest.mark.slow
 def test_an_instruments_history_of_package_certificates_compares_only_the_sensors_it_has(tmp_path, capsys):
     """Two single-axis runs of one instrument (the dry run's serial): `labcal history` lists both,
     judges the change of the x sensor's four coefficients only (Δ written out here from the two
