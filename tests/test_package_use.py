@@ -221,3 +221,24 @@ def test_the_lab_servers_residual_figure_of_a_package_run_draws_its_sensors(runs
     assert png is not None
     width, height = Image.open(io.BytesIO(png)).size
     assert width == 900 and height < 650 * 0.6  # one sensor's row of the three-sensor figure's height
+
+
+def test_a_package_run_whose_pitch_table_slipped_is_judged_by_its_checks_and_issues_no_certificate(
+        tmp_path, capsys):
+    """A single-axis run whose pitch table's output slips 0.05° from rig time 1200 s (in the second
+    mount) on: the end-of-run checks of the package's x sensor (its residual against the declared
+    noise) find the readings scatter far beyond what the station declares, the points they name are
+    measured again, and the run ends in one line with no certificate, every reading kept."""
+    import sqlite3
+
+    (tmp_path / "rig.toml").write_text('[[output_slips]]\ntable = "pitch"\ndegrees = 0.05\nat_s = 1200.0\n')
+    code, _, err = cli(capsys, "run", "--sim", "--instrument", "single-axis", "--yes", "--seed", "1", "--rig",
+                       str(tmp_path / "rig.toml"), "--out", str(tmp_path / "run"), "--db",
+                       str(tmp_path / "j.db"))
+    last = err.rstrip("\n").rsplit("\n", 1)[-1]
+    assert code == 2 and "issued no certificate" in last and "reading(s) kept" in last
+    assert not (tmp_path / "run" / "certificate.json").exists()
+    with sqlite3.connect(tmp_path / "j.db") as db:
+        checks = [m for (m,) in db.execute("SELECT message FROM events WHERE kind = 'checks' ORDER BY id")]
+        assert db.execute("SELECT COUNT(*) FROM points").fetchone()[0] > 64  # the named points, again
+    assert checks[0].startswith("measuring point(s)") and "sensor x" in checks[0]
