@@ -297,3 +297,27 @@ def test_u95_holds_inside_the_usable_box_of_a_coned_x_y_package():
         covered = np.abs(z - [alpha, roll]) <= 1.96 * sd
         assert np.all((covered.mean(axis=0) >= 0.93) & (covered.mean(axis=0) <= 0.97)), (
             np.degrees([alpha, roll]), covered.mean(axis=0))
+
+
+def test_a_package_used_without_roll_infers_pitch_by_eq_76_and_refuses_a_measured_roll():
+    """A single-axis calibration used without roll (Tripp eq. 1): pitch from eq. 76 written out
+    here, its U95 k·σ_v/(S|cos(α − φ)|) (eq. 78) with σ_v from the covariance at roll 0; a roll given
+    to it is refused in one line, and a package used at a measured roll needs one."""
+    from labcal.analysis.packages import PackageCalibration, package_attitude
+
+    b, S, phi = 0.02, 1.9, 0.4 * DEG
+    cov = np.diag([1e-8, 2e-8, 3e-8, 3e-8])
+    sensor = (without_roll(b, S, phi),)
+    cal = PackageCalibration("single-axis", sensor, cov[None], np.array([1e-4]), 2.01, "none")
+    v = np.array([[0.02], [1.0], [-0.7]])
+    att = package_attitude(cal, v)
+    expected = np.arcsin((v[:, 0] - b) / S) + phi  # eq. 76
+    assert np.allclose(att.pitch, expected, atol=1e-13) and np.all(att.roll == 0)
+    f = np.stack([np.ones(3), np.sin(expected), np.zeros(3), np.cos(expected)], axis=-1)  # g at roll 0
+    sigma_v = np.sqrt(np.einsum("ij,jk,ik->i", f, cov, f) + 1e-8)
+    assert np.allclose(att.U_pitch, 2.01 * sigma_v / (S * np.abs(np.cos(expected - phi))), rtol=1e-10)
+    with pytest.raises(LabcalError, match="without roll"):
+        package_attitude(cal, v, roll=np.radians(10.0))
+    at_table = PackageCalibration("single-axis", sensor, cov[None], np.array([1e-4]), 2.01, "table", 1e-4)
+    with pytest.raises(LabcalError, match="give it"):
+        package_attitude(at_table, v)

@@ -237,34 +237,54 @@ def test_a_two_axis_xy_certificates_usable_range_holds_its_u95_by_monte_carlo_an
     assert beyond > 0.5 * 0.9
 
 
-def test_labcal_run_sim_single_axis_runs_end_to_end_with_its_package_statement(tmp_path, capsys):
+def test_labcal_run_sim_single_axis_ends_in_a_sealed_certificate_with_its_package(tmp_path, capsys):
     """`labcal run --sim --instrument single-axis`: the journal holds vx only (vy, vz NULL), fit.json
-    one column, and package.json states pitch's U95 at the roll the table sets, with σ_R the roll
-    table's ±2″ index error as uniform bounds (2″/√3), by Tripp eqs. 79-82."""
+    one column, and the run ends in the sealed certificate (digest verified on reading), its DCC
+    (valid against PTB's schema, one result per sensor the package has) and its report, the
+    certificate's package section stating pitch's U95 at the roll the table sets, with σ_R the roll
+    table's ±2″ index error as uniform bounds (2″/√3), by Tripp eqs. 79-82; its budget's pitch
+    total is that U95; the end-of-run checks judged the package's readings."""
+    from xml.etree import ElementTree as ET
+
     from emulators import cli
+
+    from labcal.documents.certificate import read_certificate
+    from labcal.documents.dcc import validation_error
 
     code, out, err = cli(capsys, "run", "--sim", "--instrument", "single-axis", "--yes", "--out",
                          str(tmp_path / "run"), "--db", str(tmp_path / "lab.sqlite"))
     assert code == 0, err
     with sqlite3.connect(tmp_path / "lab.sqlite") as db:
         rows = db.execute("SELECT vx, vy, vz FROM points").fetchall()
+        checks = [m for (m,) in db.execute("SELECT message FROM events WHERE kind = 'checks'")]
     assert len(rows) == 64 and all(x is not None and y is None and z is None for x, y, z in rows)
+    assert checks and checks[-1].startswith("the readings pass the checks of their fit; the x sensor(s)")
     fit = json.loads((tmp_path / "run" / "fit.json").read_text())
     assert fit["layout"]["columns"] == ["sensor x"]
-    statement = json.loads((tmp_path / "run" / "package.json").read_text())
-    assert statement["package"] == "single-axis" and statement["roll_in_use"] == "table"
-    assert statement["roll_sd_deg"] == pytest.approx(2 / 3600 / math.sqrt(3))
-    assert statement["equations"] == "Tripp & Tcheng eqs. 79-82" and statement["pitch_u95_deg"] > 0
-    said = " ".join((out + err).split())  # the operator's console wraps lines
-    assert "Pitch is inferred from the x sensor(s) at the roll the table sets" in said
-    assert not (tmp_path / "run" / "certificate.json").exists()  # the three-axis certificate is not its
+    cert = read_certificate(tmp_path / "run" / "certificate.json")
+    statement = cert.package
+    assert statement is not None and statement.package == "single-axis" and statement.roll_in_use == "table"
+    assert statement.roll_sd_deg == pytest.approx(2 / 3600 / math.sqrt(3))
+    assert statement.equations == "Tripp & Tcheng eqs. 79-82" and statement.pitch_u95_deg > 0
+    assert np.shape(cert.fit.coefficients) == (4, 1) and np.shape(cert.U) == (4, 1)
+    assert cert.uncertainty_budget is not None
+    (total,) = cert.uncertainty_budget.totals  # pitch only: a single sensor does not infer roll
+    assert total.angle == "pitch" and total.U95_arcsec == pytest.approx(statement.pitch_u95_deg * 3600)
+    assert cert.attitude.pitch_U95_max_deg == pytest.approx(statement.pitch_u95_deg)
+    assert cert.attitude.roll_U95_max_deg is None
+    dcc = (tmp_path / "run" / "certificate.dcc.xml").read_bytes()
+    assert validation_error(dcc) is None
+    labels = [e.text for e in ET.fromstring(dcc).iter("{https://ptb.de/si}label")]
+    assert "B_x" in labels and not any(label.endswith(("_y", "_z")) for label in labels if label)
+    assert (tmp_path / "run" / "report.pdf").stat().st_size > 0
     with sqlite3.connect(tmp_path / "lab.sqlite") as db:
         low, high, mean = db.execute("SELECT MIN(temp_c), MAX(temp_c), AVG(temp_c) FROM points "
                                      "WHERE status = 'ok'").fetchone()
-    assert statement["temperature_c"] == pytest.approx([low, high])
-    assert statement["t_ref_c"] == pytest.approx(mean)  # the coefficients refer to the run's mean
+    assert statement.temperature_c == pytest.approx([low, high])
+    assert statement.t_ref_c == pytest.approx(mean)  # the coefficients refer to the run's mean
     code, _, err = cli(capsys, "report", str(tmp_path / "run"), "--db", str(tmp_path / "lab.sqlite"))
-    assert code == 2 and err.count("\n") == 1 and "package.json" in err
+    assert code == 0, err
+    assert read_certificate(tmp_path / "run" / "certificate.json").package == statement
 
 
 def test_instrument_is_the_simulated_rigs_option_only(tmp_path, capsys):
@@ -309,20 +329,26 @@ def test_labcal_run_sim_two_axis_states_its_package(tmp_path, capsys, package, e
     (eq. 94), is stated at the roll the table sets (eqs. 96-98)."""
     from emulators import cli
 
+    from labcal.documents.certificate import read_certificate
+
     code, _, err = cli(capsys, "run", "--sim", "--instrument", package, "--yes", "--out",
                        str(tmp_path / "run"), "--db", str(tmp_path / "lab.sqlite"))
     assert code == 0, err
-    statement = json.loads((tmp_path / "run" / "package.json").read_text())
+    statement = read_certificate(tmp_path / "run" / "certificate.json").to_json()["package"]
     assert statement["package"] == package and statement["equations"] == equations and field in statement
 
 
-def test_a_package_whose_statement_cannot_be_made_keeps_its_complete_run(tmp_path, capsys):
+def test_a_package_whose_certificate_cannot_be_made_keeps_its_complete_run(tmp_path, capsys):
     """An x–y package with a U95 limit no attitude meets (1e-6°): the run completes, its readings
-    and fit are kept, and the end says in one line why there is no statement."""
+    and fit are kept, and it ends in one line saying why there is no certificate."""
     from emulators import cli
 
     code, out, err = cli(capsys, "run", "--sim", "--instrument", "two-axis-xy", "--yes", "--tolerance-deg",
                          "1e-6", "--out", str(tmp_path / "run"), "--db", str(tmp_path / "lab.sqlite"))
-    assert code == 0, err
-    assert (tmp_path / "run" / "fit.json").exists() and not (tmp_path / "run" / "package.json").exists()
-    assert "no package statement: the package cannot infer pitch and roll" in " ".join((out + err).split())
+    last = err.rstrip("\n").rsplit("\n", 1)[-1]  # the console's progress is on stderr before it
+    assert code == 2 and last.startswith("labcal: error: the two-axis-xy package cannot infer pitch and roll "
+                                         "with U95 ≤ 1e-06°"), err
+    assert "Traceback" not in out + err
+    assert (tmp_path / "run" / "fit.json").exists() and not (tmp_path / "run" / "certificate.json").exists()
+    with sqlite3.connect(tmp_path / "lab.sqlite") as db:
+        assert db.execute("SELECT COUNT(*) FROM points WHERE status = 'ok'").fetchone() == (64,)

@@ -35,7 +35,8 @@ def first_point_and_notes(tmp_path) -> tuple[float, list[dict]]:
     with sqlite3.connect(tmp_path / "journal.sqlite") as db:
         first = db.execute("SELECT MIN(t_start) FROM points").fetchone()[0]
         notes = [{"message": m, "data": json.loads(d)}
-                 for m, d in db.execute("SELECT message, data FROM events WHERE kind = 'thermal'")]
+                 for m, d in db.execute("SELECT message, data FROM events WHERE kind = 'thermal'")
+                 if "waited_s" in json.loads(d)]  # each wait's end (its beginning is journaled too)
     return first, notes
 
 

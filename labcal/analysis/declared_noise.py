@@ -76,9 +76,10 @@ class NoiseCheck:
     chi2: float
     dof: int
     limit: float
-    sd: NDArray[np.float64]  # (3,) declared σ per sensor, V
-    residual_se: NDArray[np.float64]  # (3,) what is left, per sensor, V
+    sd: NDArray[np.float64]  # (m,) declared σ per sensor, V
+    residual_se: NDArray[np.float64]  # (m,) what is left, per sensor, V
     flags: list[Flag] = field(default_factory=list)
+    sensors: tuple[str, ...] = SENSORS  # the sensors judged: a package's, where it has fewer than three
 
     @property
     def passed(self) -> bool:
@@ -88,7 +89,8 @@ class NoiseCheck:
         """One line: how far the scatter is from the declared one, and the test that says so."""
         ratio = self.residual_se / self.sd
         j = int(np.argmax(ratio))
-        return (f"the readings scatter {ratio[j]:.3g} times what the station declares (sensor {SENSORS[j]}: "
+        return (f"the readings scatter {ratio[j]:.3g} times what the station declares "
+                f"(sensor {self.sensors[j]}: "
                 f"residual SE {self.residual_se[j]:.3g} {units} against {self.sd[j]:.3g} {units}; χ² "
                 f"{self.chi2:.4g} on {self.dof} degrees of freedom, limit {self.limit:.4g} at a "
                 f"{NOISE_ALPHA:.1%} false-alarm rate)")
@@ -102,44 +104,48 @@ class NoiseCheck:
 def noise_check(readings: Readings, sensitivity: NDArray[np.float64], declared: Declared,
                 alpha: float = NOISE_ALPHA) -> NoiseCheck:
     """Judge ``readings`` (one row per point mean) against ``declared``; ``sensitivity`` is S of a
-    fit of them (3×3), which sizes both the declared σ and the misalignments' effect. The readings
+    fit of them (3×m: m = 3, or a package's sensors, whose absent outputs are NaN), which sizes both
+    the declared σ and the misalignments' effect. The readings
     it flags are those the least squares cannot explain however few of them it leaves out
     (`_culprits`): one reading far off pulls the fit, and the others' residuals, with it."""
     s = np.asarray(sensitivity, dtype=float)
+    present = np.asarray(~np.isnan(readings.volts).all(axis=0))
+    sensors = tuple(a for a, here in zip(SENSORS, present, strict=True) if here)
     sd = declared.sd(s)
-    design, observed = _stacked(readings, s, sd)
+    design, observed = _stacked(readings, s, sd, present)
     keep = np.ones(len(readings), dtype=bool)
     z, dof = _standardised(design, observed, keep)
     if dof < 1:
-        return NoiseCheck(0.0, dof, float("inf"), sd, np.zeros(3))
+        return NoiseCheck(0.0, dof, float("inf"), sd, np.zeros(len(sensors)), sensors=sensors)
     chi2 = float(np.sum(z**2))
     limit = chi2_quantile(1.0 - alpha, dof)
-    residual_se = sd * np.sqrt(np.sum(z**2, axis=0) / (dof / 3))
+    residual_se = sd * np.sqrt(np.sum(z**2, axis=0) / (dof / len(sensors)))
     per_reading = t_threshold(z.size, np.inf, alpha)
     flags = []
     if chi2 > limit or np.max(np.abs(z)) > per_reading:
         for i in _culprits(design, observed, alpha):
             j = int(np.argmax(np.abs(z[i])))
-            flags.append(Flag(i + 1, "noise", f"sensor {SENSORS[j]}: residual {z[i, j] * sd[j]:+.3g} "
+            flags.append(Flag(i + 1, "noise", f"sensor {sensors[j]}: residual {z[i, j] * sd[j]:+.3g} "
                               f"{readings.units} is {abs(z[i, j]):.3g} times what the station declares "
                               f"({sd[j]:.2g} {readings.units})"))
-    return NoiseCheck(chi2, dof, limit, sd, residual_se, flags)
+    return NoiseCheck(chi2, dof, limit, sd, residual_se, flags, sensors)
 
 
-def _stacked(readings: Readings, s: NDArray[np.float64], sd: NDArray[np.float64]
+def _stacked(readings: Readings, s: NDArray[np.float64], sd: NDArray[np.float64], present: NDArray[np.bool_]
              ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """The weighted design (K, 3, 18) and readings (K, 3): per sensor [1 gᵀ]·Xⱼ, plus the six
-    misalignments δ, common to the three sensors, through (∂g/∂δ)·Sⱼ."""
+    """The weighted design (K, m, 4m + 6) and readings (K, m) of the m sensors ``present``: per
+    sensor [1 gᵀ]·Xⱼ, plus the six misalignments δ, common to the sensors, through (∂g/∂δ)·Sⱼ."""
     p, r = np.radians(readings.pitch_deg), np.radians(readings.roll_deg)
     y, u = np.radians(readings.y_deg), np.radians(readings.u_deg)
     g = nominal_gravity(p, r, y, u)  # (K, 3)
     _, dg = gravity_jacobian(p, r, y, u)  # (K, 6, 3)
-    design = np.zeros((len(g), 3, 18))
-    for j in range(3):
+    m = s.shape[1]
+    design = np.zeros((len(g), m, 4 * m + 6))
+    for j in range(m):
         design[:, j, 4 * j] = 1.0
         design[:, j, 4 * j + 1: 4 * j + 4] = g
-        design[:, j, 12:] = dg @ s[:, j]
-    return design / sd[None, :, None], readings.volts / sd[None, :]
+        design[:, j, 4 * m:] = dg @ s[:, j]
+    return design / sd[None, :, None], readings.volts[:, present] / sd[None, :]
 
 
 def _standardised(design: NDArray[np.float64], observed: NDArray[np.float64], keep: NDArray[np.bool_]
@@ -147,10 +153,11 @@ def _standardised(design: NDArray[np.float64], observed: NDArray[np.float64], ke
     """Residuals in units of σ (K, 3; zero where not kept) of the least squares of the kept readings,
     and its degrees of freedom (a rank-deficient plan, one mount: e, f, k confounded with S, loses
     those it cannot identify)."""
-    a, b = design[keep].reshape(-1, 18), observed[keep].reshape(-1)
+    m = observed.shape[1]
+    a, b = design[keep].reshape(-1, design.shape[2]), observed[keep].reshape(-1)
     coef, _, rank, _ = np.linalg.lstsq(a, b, rcond=None)
     z = np.zeros_like(observed)
-    z[keep] = (b - a @ coef).reshape(-1, 3)
+    z[keep] = (b - a @ coef).reshape(-1, m)
     return z, b.size - int(rank)
 
 
@@ -165,7 +172,7 @@ def _culprits(design: NDArray[np.float64], observed: NDArray[np.float64], alpha:
             break
         worst = int(np.argmax(np.max(np.abs(z), axis=1)))
         if (np.sum(z**2) <= chi2_quantile(1.0 - alpha, dof)
-                and np.max(np.abs(z)) <= t_threshold(int(keep.sum()) * 3, np.inf, alpha)):
+                and np.max(np.abs(z)) <= t_threshold(int(keep.sum()) * observed.shape[1], np.inf, alpha)):
             return out
         keep[worst] = False
         out.append(worst)

@@ -468,6 +468,11 @@ def default_model(readings: Readings) -> tuple[str, str]:
     six misalignments, else the linear one — and the one line that says so (and why). The line is
     also the certificate's statement, so it names no command-line option (`LINEAR_HINT` is said
     where a technician reads it)."""
+    absent = np.asarray(np.isnan(readings.volts).all(axis=0))
+    if absent.any():  # a package of fewer sensors (Tripp & Tcheng §6): no gravity vector to see δ in
+        present = ", ".join(s for s, gone in zip(SENSORS, absent, strict=True) if not gone)
+        return "linear", (f"linear model of the {present} sensor(s) the package has, each v = b + s·g "
+                          "(Tripp & Tcheng eq. 8): the device model needs three sensors' gravity")
     ident = identifiability(PointMeans.of(readings).where)
     problem = ident.problem()
     if problem is None:

@@ -68,7 +68,10 @@ class Fit:
 
     def noise_free(self, readings: Readings) -> NDArray[np.bool_]:
         """Per sensor: the readings fit to floating-point rounding (a simulation without noise)."""
-        return noise_free(self.ls.residual_se, np.max(np.abs(readings.volts), axis=0))
+        volts = readings.volts
+        if volts.shape[1] != len(self.ls.residual_se):  # a package's readings with every output: its own
+            volts = volts[:, [SENSORS.index(s) for s in self.sensors]]
+        return noise_free(self.ls.residual_se, np.max(np.abs(volts), axis=0))
 
     @property
     def bias_significant(self) -> NDArray[np.bool_]:

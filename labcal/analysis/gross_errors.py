@@ -18,7 +18,7 @@ positively dependent ones here). `tests/test_gross_errors.py` checks that rate b
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -215,7 +215,8 @@ def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA, base_fit: Least
                                                           readings.volts, full, index, n_groups, batches)
     usable = determined & np.all(residual_se > 0, axis=1)
     sizes = np.bincount(index, minlength=n_groups)
-    limits = {int(n): float(chi2_quantile(1.0 - sidak_per_test(n_groups, alpha), 3 * int(n)))
+    limits = {int(n): float(chi2_quantile(1.0 - sidak_per_test(n_groups, alpha),
+                                                    readings.volts.shape[1] * int(n)))
               for n in np.unique(sizes[usable])}  # one bisection per group size, not per group
     limit = np.array([limits.get(int(n), np.inf) for n in sizes])
     # each point's nominal gravity on the first mount: on the others it is this with axes reversed
@@ -264,7 +265,8 @@ def mount_flags(readings: Readings, alpha: float = FAMILY_ALPHA, base_fit: Least
 
 def residual_flags(design: NDArray[np.float64], ls: LeastSquares,
                    skip: set[int] | frozenset[int] = frozenset(), alpha: float = FAMILY_ALPHA,
-                   rows: NDArray[np.intp] | None = None, units: str = "V") -> tuple[list[Flag], float]:
+                   rows: NDArray[np.intp] | None = None, units: str = "V", sensors: tuple[str, ...] = SENSORS
+                   ) -> tuple[list[Flag], float]:
     """Externally studentised residuals beyond the family-wise Student t threshold (over every
     reading and sensor) of the fit ``ls`` of ``design``; returns the flags and the threshold.
     ``design`` has a row per reading, or one per point with ``rows`` the point of every reading
@@ -287,7 +289,7 @@ def residual_flags(design: NDArray[np.float64], ls: LeastSquares,
             if start + int(i) + 1 in skip:
                 continue
             flags.append(Flag(start + int(i) + 1, "residual",
-                              f"sensor {SENSORS[j]}: residual {eb[i, j]:+.3g} {units} is {abs(t[i, j]):.3g} "
+                              f"sensor {sensors[j]}: residual {eb[i, j]:+.3g} {units} is {abs(t[i, j]):.3g} "
                               f"times its standard error (limit {limit:.3g}, studentised)"))
     return flags, limit
 
@@ -302,6 +304,7 @@ def implausible_volts(volts: NDArray[np.float64], units: str = "V") -> None:
     volts beyond any DMM range, other units beyond their `OUTPUT_MAX`. The volts' message names
     --units: counts or m/s² read as volts are the usual cause."""
     limit = OUTPUT_MAX[units]
+    volts = volts[:, ~np.isnan(volts).all(axis=0)]  # a package's absent sensors: not outputs at all
     if np.max(volts, initial=-np.inf) <= limit and np.min(volts, initial=np.inf) >= -limit:
         return  # two reductions say so for a clean file (a NaN fails both comparisons)
     bad = np.flatnonzero(~np.all(np.abs(volts) <= limit, axis=1))
@@ -329,15 +332,18 @@ def fit_flags(readings: Readings, fit: Fit, alpha: float = FAMILY_ALPHA) -> list
     remount otherwise shows as dozens of gravity and residual flags)."""
     if np.all(fit.noise_free(readings)):
         return []  # every reading fits to rounding: none is a gross error, and there is no noise to test with
-    cal = calibration_of(fit)
+    if readings.volts.shape[1] != len(fit.sensors):  # a package's: judged by the outputs it has
+        readings = replace(readings, volts=readings.volts[:, [SENSORS.index(s) for s in fit.sensors]])
     rows = readings.points.groups if fit.model.per_point else None
     _, design = fit.model.design(readings_points(readings, None if rows is None else readings.points.first))
     mount = mount_flags(readings, alpha, fit.ls if fit.names == BASE_NAMES else None)
     seen = {f.row for f in mount}
-    gravity = [f for f in gravity_flags(cal, readings.volts, lambda i: _describe(readings, i), alpha)
-               if f.row not in seen]
+    gravity = []  # |g| = 1 is a check of three sensors' outputs together: a package of fewer has no |g|
+    if len(fit.sensors) == 3:
+        gravity = [f for f in gravity_flags(calibration_of(fit), readings.volts,
+                                            lambda i: _describe(readings, i), alpha) if f.row not in seen]
     seen |= {f.row for f in gravity}
-    residual, _ = residual_flags(design, fit.ls, seen, alpha, rows, readings.units)
+    residual, _ = residual_flags(design, fit.ls, seen, alpha, rows, readings.units, fit.sensors)
     return mount + gravity + residual
 
 

@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from labcal.analysis.coning import _AXES
+from labcal.analysis.fit import Fit
 from labcal.analysis.kinematics import nominal_gravity
 from labcal.errors import LabcalError
 
@@ -49,6 +50,18 @@ class Sensor:
     S: float
     omega: float = 0.0
     azimuth: float = 0.0
+
+
+def sensors_of(fit: Fit) -> list[Sensor]:
+    """Tripp's [b, S, Ω, A] of every sensor the fit has (eq. 8), from its linear columns."""
+    return [from_linear(fit.coefficients[0, j], fit.coefficients[1:, j], axis)
+            for j, axis in enumerate(fit.sensors)]
+
+
+def package_of(sensors: tuple[str, ...]) -> str:
+    """The package whose sensors these are."""
+    return {("x",): "single-axis", ("x", "y"): "two-axis-xy", ("x", "z"): "two-axis-xz",
+            ("x", "y", "z"): "three-axis"}[sensors]
 
 
 def without_roll(b: float, S: float, phi: float) -> Sensor:
@@ -190,13 +203,14 @@ def determinant(sensors: Sequence[Sensor], alpha: ArrayLike, roll: ArrayLike) ->
     return np.asarray(F[..., 0, 0] * F[..., 1, 1] - F[..., 0, 1] * F[..., 1, 0], dtype=float)
 
 
-def infer(sensors: Sequence[Sensor], v: ArrayLike, start: tuple[float, float] = (0.0, 0.0)) -> Array:
+def infer(sensors: Sequence[Sensor], v: ArrayLike, start: ArrayLike = (0.0, 0.0)) -> Array:
     """(α̂, R̂) (…, 2) from a two-sensor package's outputs v (…, 2) by Newton–Raphson on eqs. 14–16
-    (Tripp §6.2), every row from ``start``. A singular Jacobian or no convergence is refused: near
+    (Tripp §6.2), every row from ``start`` (one (α, R), or one per row). A singular Jacobian or no
+    convergence is refused: near
     a singular locus no solution exists (§6.4)."""
     target = np.asarray(v, dtype=float)
     rows = target.reshape(-1, len(sensors))
-    z = np.tile(np.asarray(start, dtype=float), (len(rows), 1))
+    z = np.broadcast_to(np.asarray(start, dtype=float), (len(rows), 2)).copy()  # one, or one per row
     scale = max(abs(s.S) for s in sensors) ** 2
     for _ in range(NEWTON_ITERATIONS):
         residual = rows - np.stack([output(s, z[:, 0], z[:, 1]) for s in sensors], axis=-1)
@@ -308,3 +322,107 @@ def package_problem(package: str, roll_in_use: str, usage_pitch_deg: tuple[float
                 f"Jacobian F_z (Tripp eqs. 86, 94) is singular near {_where(alpha, roll, where)}; narrow the "
                 "certificate's usage_pitch_deg / usage_roll_deg, or use it at a measured roll")
     return None
+
+
+# --- a package in use: its angles from its outputs (Tripp §6.1-6.5) ----------------------------------
+@dataclass(frozen=True)
+class PackageCalibration:
+    """What a package's certificate gives its use: each sensor's [b, S, Ω, A] and, for σ_v, its linear
+    coefficients' covariance (B, s; 4×4 per sensor) and a new reading's standard deviation; k, how
+    roll is obtained in use with its σ_R (rad), and where pitch and roll may be inferred together."""
+
+    package: str
+    sensors: tuple[Sensor, ...]
+    covariance: Array  # (m, 4, 4)
+    reading_sd: Array  # (m,)
+    k: float
+    roll_in_use: str
+    roll_sd: float = 0.0
+    usable: tuple[tuple[float, float], tuple[float, float]] | None = None  # (pitch, roll) ranges, rad
+
+
+@dataclass(frozen=True)
+class PackageAttitude:
+    """Inferred pitch and roll (rad) with their U95 = k·σ; roll as given where the package does not
+    infer it (its U95 NaN: the roll's own uncertainty is its measurement's)."""
+
+    pitch: Array
+    roll: Array
+    U_pitch: Array
+    U_roll: Array
+    k: float
+
+
+def pitch_at_known_roll(sensors: Sequence[Sensor], v: ArrayLike, roll: ArrayLike) -> Array:
+    """Pitch from one or more sensors' outputs at a known roll: eq. 79 for the single x sensor; for
+    the x–z package the least-squares solution in α alone (Tripp §6.5, eq. 96), by Gauss–Newton from
+    atan2 of the two outputs' pitch components."""
+    outputs = np.asarray(v, dtype=float).reshape(-1, len(sensors))
+    r = np.broadcast_to(np.asarray(roll, dtype=float), outputs.shape[:1])
+    if len(sensors) == 1:
+        return pitch_at_roll(outputs[:, 0], sensors[0], r)
+    x, z = sensors
+    sin_a = (outputs[:, 0] - x.b) / x.S
+    cos_a = -(outputs[:, 1] - z.b) / z.S * np.cos(r)  # f_z ≈ −S_z cos R cos α (eq. 16 at Ω = 0)
+    a = np.arctan2(sin_a, cos_a)
+    for _ in range(NEWTON_ITERATIONS):
+        residual = outputs - np.stack([output(s, a, r) for s in sensors], axis=-1)
+        f_a = np.stack([derivatives(s, a, r)[0] for s in sensors], axis=-1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = np.sum(f_a * residual, axis=-1) / np.sum(f_a**2, axis=-1)
+        a = a + step
+        if np.all(np.abs(step[np.isfinite(step)]) < NEWTON_TOLERANCE):
+            break
+    return np.asarray(a, dtype=float)
+
+
+def _output_sds(cal: PackageCalibration, alpha: Array, roll: Array) -> list[Array]:
+    return [output_sd(cal.covariance[j], cal.reading_sd[j], alpha, roll) for j in range(len(cal.sensors))]
+
+
+def package_attitude(cal: PackageCalibration, v: ArrayLike, roll: ArrayLike | None = None,
+                     roll_sd: float | None = None) -> PackageAttitude:
+    """A package's angles from its outputs v (n × m, its sensors' order), as its certificate says they
+    are obtained: without roll (eqs. 76-78), at a roll measured in use, ``roll`` (rad, one or per row)
+    with σ_R ``roll_sd`` or the certificate's (eqs. 79-82, 96-98), or pitch and roll together (eq. 90,
+    Newton-Raphson), refused outside the usable range the certificate states."""
+    outputs = np.asarray(v, dtype=float).reshape(-1, len(cal.sensors))
+    n = len(outputs)
+    nan = np.full(n, np.nan)
+    if cal.roll_in_use == "inferred":
+        if roll is not None:
+            raise LabcalError(f"the {cal.package} package infers roll from its own outputs; leave out the "
+                              "measured roll")
+        x, y = cal.sensors
+        a0 = np.arcsin(np.clip((outputs[:, 0] - x.b) / x.S, -1, 1))
+        across = np.clip(-(outputs[:, 1] - y.b) / y.S / np.maximum(np.cos(a0), 1e-6), -1, 1)
+        r0 = np.arcsin(across) if y.axis == "y" else np.arccos(-across)
+        z = infer(cal.sensors, outputs, np.column_stack([a0, r0]))
+        alpha, r = z[:, 0], z[:, 1]
+        assert cal.usable is not None
+        (p_lo, p_hi), (r_lo, r_hi) = cal.usable
+        tol = 1e-9  # rad: the range's ends are in it
+        outside = ~((p_lo - tol <= alpha) & (alpha <= p_hi + tol) & (r_lo - tol <= r) & (r <= r_hi + tol))
+        if outside.any():
+            i = int(np.argmax(outside))
+            raise LabcalError(
+                f"row {i + 1}: pitch {np.degrees(alpha[i]):.4g}°, roll {np.degrees(r[i]):.4g}° is outside "
+                f"the {cal.package} package's usable range (pitch {np.degrees(p_lo):g}.."
+                f"{np.degrees(p_hi):g}° × roll {np.degrees(r_lo):g}..{np.degrees(r_hi):g}°, where its "
+                "certificate states U95; Tripp & Tcheng §6.4): its Jacobian approaches singular there")
+        cov = inferred_covariance(cal.sensors, _output_sds(cal, alpha, r), alpha, r)
+        return PackageAttitude(alpha, r, cal.k * np.sqrt(cov[:, 0, 0]), cal.k * np.sqrt(cov[:, 1, 1]), cal.k)
+    if cal.roll_in_use == "none":
+        if roll is not None and np.any(np.asarray(roll) != 0):
+            raise LabcalError(f"the {cal.package} package is certified for use without roll (roll 0, Tripp "
+                              "eq. 1); a measured roll needs a certificate that states how roll is obtained")
+        r, sigma_r = np.zeros(n), 0.0
+    else:
+        if roll is None:
+            raise LabcalError(f"the {cal.package} package's pitch is inferred at a roll measured in use (the "
+                              f"{cal.roll_in_use}): give it (--roll-deg, or a roll_deg column)")
+        r = np.broadcast_to(np.asarray(roll, dtype=float), (n,)).copy()
+        sigma_r = cal.roll_sd if roll_sd is None else roll_sd
+    alpha = pitch_at_known_roll(cal.sensors, outputs, r)
+    sigma = sd_pitch_at_roll(cal.sensors, _output_sds(cal, alpha, r), alpha, r, sigma_r)
+    return PackageAttitude(alpha, r, cal.k * sigma, nan, cal.k)

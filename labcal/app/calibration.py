@@ -256,18 +256,7 @@ def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Esti
         record = load_run(run_dir)
         store_device_estimate(record, result.device, db)
     issued = None
-    if not no_report and result.fit.sensors != ("x", "y", "z"):
-        # a package of fewer sensors (Tripp & Tcheng §6.1-6.5): its statement, not the three-axis
-        # certificate, whose attitude budget and envelope are the three-axis estimator's
-        from labcal.documents.package import STATEMENT, write_package_statement
-        from labcal.run.record import load_run
-
-        try:
-            section = write_package_statement(record or load_run(run_dir), certificate)
-            front.say(f"{section.statement} ({run_dir / STATEMENT})", markup=False)
-        except LabcalError as exc:  # the run is complete and kept: only its statement cannot be made
-            front.say(f"no package statement: {exc}", markup=False)
-    elif not no_report:
+    if not no_report:
         from labcal.documents.device_history import DeviceMoved
         from labcal.documents.report import write_run_outputs
 

@@ -199,6 +199,7 @@ class Results:
     attention: tuple[str, ...]
     approval: dict | None
     revisions: tuple[Revision, ...]
+    sensors: tuple[str, ...] = ("x", "y", "z")  # the columns: a package's sensors (Tripp & Tcheng §6)
 
 
 def _in_unit(value: float, unit: str) -> str:
@@ -260,8 +261,10 @@ def run_results(lab: LabDatabase, run_id: int) -> Results | None:
         shown = certified_residuals(conn, run_id, cert)
     unit = cert.output_unit
     X, U = cert.coefficients, cert.U
-    rows = tuple((ROW_NAMES[i], tuple(format_result(float(X[i, j]), float(U[i, j])) for j in range(3)))
-                 for i in range(4))
+    sensors = cert.sensors
+    rows = tuple((ROW_NAMES[i], tuple(format_result(float(X[i, j]), float(U[i, j]))
+                                      for j in range(len(sensors))))
+                 for i in range(min(len(ROW_NAMES), X.shape[0])))
     se = np.array(cert.fit.residual_standard_error, dtype=float)
     rms = ratio = None
     if shown is not None:
@@ -275,7 +278,7 @@ def run_results(lab: LabDatabase, run_id: int) -> Results | None:
     return Results(cert.number, name, equation, unit, rows, tuple(_in_unit(float(s), unit) for s in se),
                    rms, ratio, f"{cert.attitude.pitch_U95_max_deg * 3600:.3g}″",
                    None if roll is None else f"{roll * 3600:.3g}″", verdict, passed,
-                   needs_attention(_metadata(row.metadata), faults, cert), approval_of(cert), listed)
+                   needs_attention(_metadata(row.metadata), faults, cert), approval_of(cert), listed, sensors)
 
 
 # --- a revision's documents --------------------------------------------------------------------------

@@ -46,6 +46,8 @@ class InstrumentHistory:
 
 def instrument_history(request: InstrumentHistory) -> History:
     """Every certificate of an instrument, oldest first, each coefficient ± U, drift flagged."""
+    import numpy as np
+
     from labcal.analysis.fit import ROW_NAMES, SENSORS
     from labcal.documents.certificate import format_result
     from labcal.documents.history import RULE, certificates_read, changes, history_json, plot_history
@@ -59,12 +61,19 @@ def instrument_history(request: InstrumentHistory) -> History:
                     + ("  (simulated: a dry run)" if c.station.simulated else "")
                     for n, c in enumerate(certs, start=1))
     columns = ("#", *(f"{row} ({'V' if i == 0 else 'V/g'})" for i, row in enumerate(ROW_NAMES)))
+    def cell(c, i: int, j: int) -> Cell:
+        """A coefficient ± U, or a dash where the certificate's package has not that sensor."""
+        X, U = c.by_sensor(c.coefficients), c.by_sensor(c.U)
+        if np.isnan(X[i, j]):
+            return Cell("—")
+        return Cell(format_result(X[i, j], U[i, j]), (c.certificate_id, i, j) in flagged)
+
+    present = [j for j, s in enumerate(SENSORS) if any(s in c.sensors for c in certs)] or [0, 1, 2]
     tables = tuple(HistoryTable(
-        f"sensor {sensor}: coefficients ± U (95 %)", columns,
-        tuple((Cell(str(n)), *(Cell(format_result(c.coefficients[i, j], c.U[i, j]),
-                                    (c.certificate_id, i, j) in flagged) for i in range(len(ROW_NAMES))))
+        f"sensor {SENSORS[j]}: coefficients ± U (95 %)", columns,
+        tuple((Cell(str(n)), *(cell(c, i, j) for i in range(len(ROW_NAMES))))
               for n, c in enumerate(certs, start=1)))
-        for j, sensor in enumerate(SENSORS))
+        for j in present)
     lines = tuple(f"{ch.name} from {ch.before} to {ch.after}: Δ = {ch.delta:+.3g}, "
                   f"limit k·√(u₁²+u₂²) = {ch.limit:.2g} (k = {ch.k:.2f})" for ch in found if ch.flagged)
     return History(request.serial, entries, tables, lines, f"{len(certs)} calibration(s)", RULE,

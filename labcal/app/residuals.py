@@ -36,8 +36,6 @@ from labcal.documents.certificate import Certificate
 from labcal.errors import LabcalError
 from labcal.run.schema import points, runs
 
-SENSORS = ("x", "y", "z")
-
 
 def readings(conn: Connection, run_id: int) -> Readings | None:
     """The run's measured points as Readings, as `labcal.run.journal.Journal.readings` gives them."""
@@ -98,10 +96,11 @@ class CertifiedResiduals:
 
     model: str  # "device model", "linear model", …
     equation: str
-    residuals: Any  # K×3 array, in the readings' unit
+    residuals: Any  # K × sensors array, in the readings' unit
     pitch_deg: Any
     roll_deg: Any
     unit: str
+    sensors: tuple[str, ...] = ("x", "y", "z")  # the columns: a package's sensors (Tripp & Tcheng §6)
 
 
 def certified_residuals(conn: Connection, run_id: int, cert: Certificate) -> CertifiedResiduals | None:
@@ -148,8 +147,8 @@ def _certified(conn: Connection, run_id: int, cert: Certificate) -> CertifiedRes
         except LabcalError:
             return None
         model, equation, residuals = of_fit(fit, device)
-        return CertifiedResiduals(model, equation, np.asarray(residuals)[:, :3], r.pitch_deg, r.roll_deg,
-                                  r.units)
+        return CertifiedResiduals(model, equation, np.asarray(residuals)[:, :len(fit.sensors)], r.pitch_deg,
+                                  r.roll_deg, r.units, fit.sensors)
     mis, model, equation = stated
     pitch, roll, y, u = (np.radians(a) for a in (r.pitch_deg, r.roll_deg, r.y_deg, r.u_deg))
     g = gravity(pitch, roll, y, u, mis)
@@ -174,8 +173,8 @@ def _shown(conn: Connection, run_id: int, cert: Certificate | None) -> tuple[Cer
         fit = fit_readings(found)
     except LabcalError:
         return None
-    linear = CertifiedResiduals("linear model", "V = B + gᵀS", fit.ls.residuals[:, :3], found.pitch_deg,
-                                found.roll_deg, found.units)
+    linear = CertifiedResiduals("linear model", "V = B + gᵀS", fit.ls.residuals[:, :len(fit.sensors)],
+                                found.pitch_deg, found.roll_deg, found.units, fit.sensors)
     return linear, (f"Run {run_id}: residuals of the linear fit (V = B + gᵀS) to the {len(found)} "
                     "readings so far (no certificate yet)")
 
@@ -192,11 +191,11 @@ def _draw(conn: Connection, run_id: int, cert: Certificate | None) -> bytes | No
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(9, 6.5), dpi=100, layout="constrained")
-    axes = fig.subplots(3, 2, sharex="col")
+    fig = Figure(figsize=(9, 6.5 * (len(found.sensors) + 0.5) / 3.5), dpi=100, layout="constrained")
+    axes = fig.subplots(len(found.sensors), 2, sharex="col", squeeze=False)
     residuals = np.asarray(found.residuals, dtype=float)
     rms = np.sqrt(np.mean(residuals**2, axis=0))
-    for j, sensor in enumerate(SENSORS):
+    for j, sensor in enumerate(found.sensors):
         factor, unit = volt_unit(float(np.max(np.abs(residuals[:, j]))), found.unit)
         for k, (angle, label) in enumerate(((found.pitch_deg, "pitch (°)"), (found.roll_deg, "roll (°)"))):
             ax = axes[j, k]
@@ -204,7 +203,7 @@ def _draw(conn: Connection, run_id: int, cert: Certificate | None) -> bytes | No
             ax.plot(angle, residuals[:, j] * factor, "o", ms=3, color="#1f5f99")
             ax.set_ylabel(f"{sensor}: residual ({unit})" if k == 0 else "")
             ax.grid(True, lw=0.3)
-            if j == 2:
+            if j == len(found.sensors) - 1:
                 ax.set_xlabel(label)
         axes[j, 1].set_title(f"RMS {rms[j] * factor:.3g} {unit}", fontsize=9, loc="right")
     fig.suptitle(heading, fontsize=10)

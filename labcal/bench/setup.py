@@ -102,7 +102,7 @@ def station_timing(config: StationFile, time_scale: float = 1.0) -> Timing:
 
     sweep_s = (3 + bool(config.dmm.temperature_channel)) * channel_time_s(config.dmm.nplc, config.dmm.line_hz)
     return Timing(clamp_s=0.0, sample_s=sweep_s, remount_s=REMOUNT_ALLOWANCE_S,
-                  link=link_timing(config, time_scale))
+                  link=link_timing(config, time_scale), temperature=bool(config.dmm.temperature_channel))
 
 
 # One exchange's latency beyond its bytes on the line: the host's system calls and scheduling, a
@@ -181,7 +181,7 @@ def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emul
             rig.roll.place(tables_at[1])
         snapshot.update(time_scale=emulation.time_scale, seed=rig.seed)
         timing = Timing(clamp_s=rig.config.clamp_s, sample_s=sweep_s, remount_s=0.0,
-                        link=link_timing(config, emulation.time_scale))
+                        link=link_timing(config, emulation.time_scale), temperature=timing.temperature)
         pooling = config.sequencer.settle.model_dump(include={"pool", "instrument_type"})
         settle = known_settle(rig.instrument).model_copy(update=pooling)  # the station says whose records
         clock, hooks = emulation.rig.clock, emulation.hooks()

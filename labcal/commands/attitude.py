@@ -11,6 +11,7 @@ if TYPE_CHECKING:
 
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, keep_freed_memory, outcome_of_checks
+from labcal.errors import LabcalError
 
 CHUNK_ROWS = 10_000  # rows formatted and written at a time: output memory stays flat
 METHODS = {"closed": "closed_form", "sphere": "sphere_least_squares"}
@@ -42,6 +43,11 @@ def cmd_attitude(args: argparse.Namespace) -> int:
     from labcal.documents.approvers import calibration_in_use
 
     cal, standing = calibration_in_use(args.cert, args.db, args.unverified)
+    if not isinstance(cal, attitude.Calibration):  # a sensor package's certificate (Tripp & Tcheng §6)
+        return package_attitude_command(args, cal, standing)
+    if args.roll_deg is not None or args.roll_sd_deg is not None:
+        raise LabcalError("--roll-deg and --roll-sd-deg are for a package that infers pitch at a measured "
+                          f"roll; {args.cert} is a three-axis instrument's, which infers roll itself")
     unverified = standing is not None and standing["approved"] and not standing["verified"]
     if standing is not None:  # a draft or an unverified one: a warning; a verified one: who and through what
         from rich.markup import escape
@@ -80,6 +86,63 @@ def cmd_attitude(args: argparse.Namespace) -> int:
             sys.stdout.write(f"# UNVERIFIED certificate {args.cert}: {standing['note']}\n")
         write_csv_rows(table)
     return outcome_of_checks(flags, args.allow_outliers, args.csv or "standard input")
+
+
+def package_attitude_command(args: argparse.Namespace, cal, standing: dict | None) -> int:
+    """`labcal attitude` with a sensor package's certificate: the outputs of the sensors it has (vx, and
+    vy or vz), pitch as it states (without roll, at a roll measured in use: --roll-deg or a roll_deg
+    column, with --roll-sd-deg or its σ_R; or pitch and roll together within its usable range)."""
+    import json
+    import tempfile
+    from pathlib import Path
+
+    import numpy as np
+
+    from labcal.analysis.packages import package_attitude
+    from labcal.commands.common import err
+    from labcal.config.readings_csv import read_numeric_csv
+    from labcal.config.streams import read_stream
+
+    if standing is not None:
+        from rich.markup import escape
+
+        prefix = "certificate:" if standing["verified"] else "[yellow]note:[/]"
+        err.print(f"{prefix} {escape(str(args.cert))}: {escape(standing['note'])}")
+    if args.method != "both":
+        raise LabcalError(f"--method chooses a three-axis estimator; the {cal.package} package's angles are "
+                          "inferred as its certificate states")
+    columns = tuple(f"v{s.axis}" for s in cal.sensors)
+    source = args.csv
+    if source is None:
+        text = read_stream(sys.stdin, "standard input", "voltages")
+        with tempfile.NamedTemporaryFile("w", suffix=".csv", delete=False) as tmp:
+            tmp.write(text)
+        source = tmp.name
+    try:
+        cols = read_numeric_csv(source, "voltages", columns, ("roll_deg",))
+    finally:
+        if args.csv is None:
+            Path(source).unlink()
+    if "roll_deg" in cols and args.roll_deg is not None:
+        raise LabcalError("the roll is given twice: a roll_deg column and --roll-deg; give one")
+    roll = cols.get("roll_deg", None if args.roll_deg is None else np.array(args.roll_deg))
+    att = package_attitude(cal, np.column_stack([cols[c] for c in columns]),
+                           None if roll is None else np.radians(roll),
+                           None if args.roll_sd_deg is None else np.radians(args.roll_sd_deg))
+    deg = np.degrees
+    table = {"pitch_deg": deg(att.pitch), "roll_deg": deg(att.roll), "U95_pitch_deg": deg(att.U_pitch),
+             "U95_roll_deg": deg(att.U_roll), "k": np.full(len(att.pitch), att.k)}
+    if args.json:
+        rows = [{k: (float(v[i]) if np.isfinite(v[i]) else None) for k, v in table.items()}
+                for i in range(len(att.pitch))]
+        sys.stdout.write(json.dumps({"package": cal.package, "roll_in_use": cal.roll_in_use,
+                                     "coverage": "U95 = k·σ (Tripp & Tcheng §6), k = t₀.₉₇₅ of the fit's "
+                                                 "degrees of freedom; U95_roll null where roll is not "
+                                                 "inferred",
+                                     "certificate": standing, "rows": rows}) + "\n")
+    else:
+        write_csv_rows(table)
+    return 0
 
 
 def write_csv_rows(table: dict[str, np.ndarray]) -> None:
@@ -144,6 +207,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--csv", help="voltages CSV (default: standard input)")
     p.add_argument("--method", choices=["closed", "sphere", "both"], default="both",
                    help="estimator(s) to report (default %(default)s)")
+    p.add_argument("--roll-deg", type=float, metavar="DEG",
+                   help="a sensor package used at a measured roll (its certificate says the table or a roll "
+                        "sensor): the roll, for every row (or a roll_deg column in the CSV)")
+    p.add_argument("--roll-sd-deg", type=float, metavar="DEG",
+                   help="that roll's standard deviation σ_R (default: the one the certificate states)")
     p.add_argument("--allow-outliers", action="store_true",
                    help="exit 0 even when rows fail the gross-error checks (|g| ≠ 1 g; the two methods "
                         "disagree); they are listed on stderr either way")

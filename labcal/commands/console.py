@@ -21,7 +21,7 @@ from rich.table import Table
 
 from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit
 from labcal.run.events import Discarded, Fault, PointMeasured, RunEvent, Status, Stopped
-from labcal.run.operator import QuietKeys, Terminal
+from labcal.run.operator import GATE_KEY, QuietKeys, Terminal
 
 if TYPE_CHECKING:
     from labcal.bench.checklist import Item, PowerOn
@@ -69,6 +69,9 @@ class ProgressDisplay(Terminal):
                                            rig_eta="–")
         console.print(f"[dim]{RIG_CLOCK_NOTE}[/]")
         self.keys = QuietKeys()
+        if self.keys.fd is not None:  # a terminal to type at: what its keys do during the run
+            console.print(f"[dim]keys: {GATE_KEY} holds the run at the thermal gate before its next point; "
+                          "Ctrl-C pauses after the current point[/]")
         self._shown = ExitStack()
 
     def __enter__(self) -> ProgressDisplay:
@@ -107,6 +110,9 @@ class ProgressDisplay(Terminal):
 
     def notice(self, text: str) -> None:
         self.progress.console.print(text)
+
+    def typed(self) -> str:
+        return self.keys.typed()
 
 
 def with_standard_error(value: float, se: float) -> str:

@@ -123,6 +123,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
     doc["units"] = readings.units  # B and S_E in these, S in these per g
     if chosen:
         doc.setdefault("notes", []).insert(0, chosen)
+    if fit.sensors != SENSORS:  # a package: its sensors as Tripp & Tcheng state them (eq. 8)
+        from labcal.analysis.packages import package_of, sensors_of
+
+        doc["package"] = {"package": package_of(fit.sensors), "sensors": {
+            s.axis: {"b": s.b, "S": s.S, "omega_deg": float(np.degrees(s.omega)),
+                     "azimuth_deg": float(np.degrees(s.azimuth))} for s in sensors_of(fit)}}
     flags = fit_flags(readings, fit)
     doc["gross_errors"] = [f.to_json() for f in flags]
     flags += against_station(args, readings, fit, doc, flags)
@@ -153,6 +159,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
         out.print(terms)
     for note in doc.get("notes", []):
         out.print(f"[yellow]note:[/] {note}")
+    if "package" in doc:
+        said = "; ".join(f"sensor {a}: b = {c['b']:.6g}, S = {c['S']:.6g}, Ω = {c['omega_deg']:.4g}°, "
+                         f"A = {c['azimuth_deg']:.4g}°" for a, c in doc["package"]["sensors"].items())
+        out.print(f"{doc['package']['package']} package (Tripp & Tcheng eq. 8): {said}", markup=False)
     if "declared_noise" in doc:
         out.print(f"against the station: {doc['declared_noise']['summary']}", markup=False)
     if model == "coning":
@@ -163,7 +173,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     for p in doc.get("predictions", []):
         out.print(f"at pitch {p['pitch_deg']:g}°, roll {p['roll_deg']:g}°, mount y={p['y_deg']:g} "
                   f"u={p['u_deg']:g}, {p['level']:.1%} intervals:")
-        for j, (s, v, c, q) in enumerate(zip(SENSORS, p["volts"], p["confidence_half_width"],
+        for j, (s, v, c, q) in enumerate(zip(fit.sensors, p["volts"], p["confidence_half_width"],
                                              p["prediction_half_width"], strict=True)):
             value = with_standard_error(v, c / k[j]).split(" ±")[0]  # to the digits its SE supports
             out.print(f"  v{s} = {value} {readings.units}; confidence ± {c:.2g}, prediction ± {q:.2g} "
@@ -173,7 +183,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
             out.print(f"extension {name}: not tested — {test['reason']}")
         else:
             verdict = ", ".join(f"{s} {'warranted' if w else 'not warranted'} (p = {p:.2g})"
-                                for s, w, p in zip(SENSORS, test["warranted"], test["p_value"], strict=True))
+                                for s, w, p in zip(fit.sensors, test["warranted"], test["p_value"],
+                                                   strict=True))
             out.print(f"extension {name}: F test with df {tuple(test['df'])}: {verdict}")
     print_lack_of_fit(doc["lack_of_fit"])
     return outcome_of_checks(flags, args.allow_outliers, args.readings)
@@ -218,6 +229,10 @@ def fit_device_model(args: argparse.Namespace, readings, chosen: str | None, che
         out.print(table)
     for note in doc.get("notes", []):
         out.print(f"[yellow]note:[/] {note}")
+    if "package" in doc:
+        said = "; ".join(f"sensor {a}: b = {c['b']:.6g}, S = {c['S']:.6g}, Ω = {c['omega_deg']:.4g}°, "
+                         f"A = {c['azimuth_deg']:.4g}°" for a, c in doc["package"]["sensors"].items())
+        out.print(f"{doc['package']['package']} package (Tripp & Tcheng eq. 8): {said}", markup=False)
     if "declared_noise" in doc:
         out.print(f"against the station: {doc['declared_noise']['summary']}", markup=False)
     if fit.linear.replication is not None:
@@ -247,6 +262,10 @@ def lack_of_fit_doc(readings, fit, device=None, index: float = 0.0, wobble: floa
 
     if len(readings) > MAX_READINGS:
         return {"tested": False, "reason": f"more than {MAX_READINGS} readings: not a calibration run"}
+    if len(fit.sensors) < 3:  # the test weighs the three sensors' residuals together (their |g|)
+        return {"tested": False, "reason": f"a package of the {', '.join(fit.sensors)} sensor(s): the test "
+                                           "is made of three sensors' residuals together; Table 2's "
+                                           "replicated analysis above tests each sensor's lack of fit"}
     cal = calibration_of(fit, readings) if device is None else calibration_of_device(device, readings)
     check = fit_lack_of_fit(cal, TypeBInputs(pitch_index=index, pitch_wobble=wobble, roll_index=index,
                                              roll_wobble=wobble), readings, fit, device)

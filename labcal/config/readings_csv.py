@@ -120,7 +120,9 @@ def _leading_comments(path: Path, text: str | None) -> list[str]:
 
 
 def _read_csv(path: str | Path, kind: str, required: tuple[str, ...], optional: tuple[str, ...] = (),
-              check=None) -> _Csv:
+              check=None, absent: tuple[str, ...] = ()) -> _Csv:
+    """``absent``: required columns that may be empty on every row (NaN), never on some rows only: the
+    outputs of the sensors a package does not have (Tripp & Tcheng §6)."""
     from labcal.config.streams import kind_of, read_pipe
 
     path = Path(path)
@@ -170,13 +172,22 @@ def _read_csv(path: str | Path, kind: str, required: tuple[str, ...], optional: 
         where = f"{path}: line {line_no}"
         if len(row) < len(header):
             raise LabcalError(f"{where}: {len(row)} fields, the header has {len(header)}")
-        values = {c: _number(row[i], f"{where}, column {c}") for c, i in index.items()}
+        values = {c: math.nan if c in absent and not row[i].strip() else
+                  _number(row[i], f"{where}, column {c}") for c, i in index.items()}
         if check:
             check({c: np.array([v]) for c, v in values.items()}, lambda _, where=where: where)
         rows.append([values[c] for c in wanted])
     if not rows:
         raise LabcalError(f"{path}: header only, no data rows")
     data = np.array(rows)
+    for c in absent:  # a sensor a package has not is empty throughout; one it has, nowhere
+        empty = np.isnan(data[:, wanted.index(c)])
+        if empty.any() and not empty.all():
+            k = int(np.argmax(empty)) if empty.sum() < len(empty) / 2 else int(np.argmin(empty))
+            raise LabcalError(f"{path}: data row {k + 1}, column {c}: "
+                              + ("empty; every point needs a value here" if empty[k] else
+                                 "a value, where the column is empty on most rows")
+                              + " (a sensor the package has not is empty on every row, one it has on none)")
     return _Csv({c: data[:, k] for k, c in enumerate(wanted)}, comments, header, text)
 
 
@@ -257,7 +268,7 @@ def read_readings(path: str | Path, units: str | None = None) -> Readings:
 
     The outputs' unit is ``units`` (from --units), else what the file states ("# units = mV" before
     the header, or a units column), else volts; --units and the file must not disagree."""
-    read = _read_csv(path, "readings", REQUIRED, OPTIONAL, _check_angles)
+    read = _read_csv(path, "readings", REQUIRED, OPTIONAL, _check_angles, absent=("vy", "vz"))
     stated = _units_of(Path(path), read)
     if units is not None and stated is not None and units != stated:
         raise LabcalError(f"{path}: the file states its outputs in {stated}, {{0}} says {units}; leave out "

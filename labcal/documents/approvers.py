@@ -23,6 +23,7 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
 from labcal.analysis.attitude import Calibration
+from labcal.analysis.packages import PackageCalibration
 from labcal.config.files import read_text
 from labcal.documents.approval import key_id, load_public_key, signature_holds, signed_certificate
 from labcal.documents.certificate import Certificate, ServerSignature, certificate_from_doc, parse_json
@@ -256,8 +257,9 @@ def signed_note(cert: Certificate) -> str:
 
 # --- using a certificate ----------------------------------------------------------------------------
 def calibration_in_use(path: str | Path, db: str | Path | None = None, unverified: bool = False
-                       ) -> tuple[Calibration, dict | None]:
-    """The calibration in a fit JSON or a certificate, for converting voltages, and what the
+                       ) -> tuple[Calibration | PackageCalibration, dict | None]:
+    """The calibration in a fit JSON or a certificate (a package's, `PackageCalibration`, where the
+    certificate is of a sensor package), for converting voltages, and what the
     certificate's standing is (None: a fit JSON, no certificate). An approved certificate is used only
     if its signature is by a key registered in the lab database to the name and role it states
     (`verify_registered`); ``unverified`` uses it anyway, and the standing says so and why."""
@@ -279,4 +281,4 @@ def calibration_in_use(path: str | Path, db: str | Path | None = None, unverifie
             if not unverified:
                 raise
             standing["note"] = f"UNVERIFIED (used with --unverified): {exc}"
-    return cert.calibration(), standing
+    return (cert.calibration() if cert.package is None else cert.package_calibration()), standing

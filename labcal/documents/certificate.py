@@ -34,6 +34,7 @@ from pydantic import (
 )
 
 from labcal.analysis.attitude import Calibration, CovariancePart, calibration_from_json
+from labcal.analysis.packages import PackageCalibration, Sensor
 from labcal.config.files import MAX_DEPTH, check_depth, one_line, read_text, write_json
 from labcal.documents.certificate_sections import (
     BudgetInputs,
@@ -147,12 +148,14 @@ class FitSection(Strict):
 
     @model_validator(mode="after")
     def _shapes(self) -> FitSection:
-        n = len(self.parameters)
-        _shape(self.coefficients, (4, 3), "coefficients")
-        _shape(self.standard_errors, (4, 3), "standard_errors")
-        _shape(self.covariance, (3, n, n), "covariance")
+        n, m = len(self.parameters), len(self.layout.columns)  # m sensors: 3, or a package's 1 or 2
+        if not 1 <= m <= 3:
+            raise ValueError(f"layout has {m} sensor columns; a package has 1 to 3 sensors")
+        _shape(self.coefficients, (4, m), "coefficients")
+        _shape(self.standard_errors, (4, m), "standard_errors")
+        _shape(self.covariance, (m, n, n), "covariance")
         for name in ("residual_standard_error", "reading_sd", "uncertainty_dof", "uncertainty_basis"):
-            _shape(getattr(self, name), (3,), name)
+            _shape(getattr(self, name), (m,), name)
         return self
 
 
@@ -195,9 +198,10 @@ class Expanded(Strict):
 
     @model_validator(mode="after")
     def _shapes(self) -> Expanded:
-        _shape(self.U, (4, 3), "U")
-        _shape(self.k, (3,), "k")
-        _shape(self.nu_eff, (3,), "nu_eff")
+        m = np.shape(self.U)[1] if np.ndim(self.U) == 2 else 0  # one column per sensor
+        _shape(self.U, (4, max(m, 1)), "U")
+        _shape(self.k, (m,), "k")
+        _shape(self.nu_eff, (m,), "nu_eff")
         return self
 
 
@@ -579,6 +583,17 @@ class Certificate(Strict):
     package: PackageSection | None = Field(default=None, exclude_if=_absent)
     digest: Digest
 
+    @model_validator(mode="after")
+    def _package(self) -> Certificate:
+        """A certificate of fewer than three sensors is a package's, and says so in its section."""
+        columns = len(self.fit.layout.columns)
+        if self.package is None and columns != 3:
+            raise ValueError(f"a fit of {columns} sensor(s) needs the package section that says how its "
+                             "angles are obtained")
+        if self.package is not None and len(self.package.sensors) != columns:
+            raise ValueError(f"the package states {len(self.package.sensors)} sensor(s), the fit {columns}")
+        return self
+
     @property
     def output_unit(self) -> str:
         """The instrument's output unit (V, mV, counts, m/s2) as the fit's layout states it ("counts
@@ -589,6 +604,18 @@ class Certificate(Strict):
     def number(self) -> str:
         """The certificate number with its revision, as printed (ISO/IEC 17025 §7.8.2.1 c)."""
         return f"{self.certificate_id} rev. {self.revision or 1}"
+
+    @property
+    def sensors(self) -> tuple[str, ...]:
+        """The sensors the coefficients' columns are ("sensor x" → "x"), in order."""
+        return tuple(c.removeprefix("sensor ") for c in self.fit.layout.columns)
+
+    def by_sensor(self, values: NDArray) -> NDArray:
+        """``values`` (rows × this certificate's sensors) in the three sensors' columns x, y, z, NaN
+        in those of sensors a package has not: certificates of one instrument side by side."""
+        full = np.full((np.shape(values)[0], 3), np.nan)
+        full[:, ["xyz".index(s) for s in self.sensors]] = values
+        return full
 
     @property
     def draft(self) -> bool:
@@ -609,12 +636,43 @@ class Certificate(Strict):
     def calibration(self) -> Calibration:
         """The calibration `labcal attitude` uses: the fit's coefficients and weights, and the budget's
         complete covariance where the certificate states one."""
+        if self.package is not None:
+            raise LabcalError(f"certificate {self.certificate_id} is of a {self.package.package} package: "
+                              "its "
+                              "angles are inferred as its package section states (labcal attitude reads it), "
+                              "not by the three-axis estimator")
         cal = calibration_from_json(self.fit.model_dump(), self.certificate_id)
         parts = self.uncertainty_budget.parts() if self.uncertainty_budget is not None else ()
         return replace(cal, parts=parts) if parts else cal
 
+    def package_calibration(self) -> PackageCalibration:
+        """What `labcal attitude` uses of a package's certificate: its sensors as its package section
+        states them, its coefficients' covariance and a new reading's SD for σ_v, k, how roll is
+        obtained in use (σ_R) and the usable range where pitch and roll are inferred together."""
+        p = self.package
+        if p is None:
+            raise LabcalError(f"certificate {self.certificate_id} is of a three-axis instrument, not a "
+                              "package")
+        sensors = tuple(Sensor(a, c.b, c.S, math.radians(c.omega_deg), math.radians(c.azimuth_deg))
+                        for a, c in ((a, p.coefficients[a]) for a in p.sensors))
+        usable = None
+        if p.usable_pitch_deg is not None and p.usable_roll_deg is not None:
+            usable = (tuple(np.radians(p.usable_pitch_deg)), tuple(np.radians(p.usable_roll_deg)))
+        return PackageCalibration(
+            p.package, sensors, np.array([np.array(c)[:4, :4] for c in self.fit.covariance]),
+            np.array(self.fit.reading_sd), p.k, p.roll_in_use, math.radians(p.roll_sd_deg or 0.0),
+            usable)
+
     def coefficient_covariance(self) -> NDArray:
-        """The complete 12×12 covariance of vec(X) (row-major), Type A and B, across channels."""
+        """The complete 12×12 covariance of vec(X) (row-major), Type A and B, across channels; a
+        package's (4m × 4m for its m sensors) is its fit's, each sensor fitted on its own."""
+        if self.package is not None:
+            m = len(self.fit.layout.columns)
+            cov = np.zeros((4 * m, 4 * m))
+            for j, block in enumerate(self.fit.covariance):
+                idx = np.arange(4) * m + j
+                cov[np.ix_(idx, idx)] = np.array(block)[:4, :4]
+            return cov
         parts = self.calibration().uncertainty_parts
         return np.sum([p.matrix[:12, :12] for p in parts], axis=0)
 

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 from lxml import etree
 
-from labcal.analysis.fit import ROW_NAMES, SENSORS
+from labcal.analysis.fit import ROW_NAMES
 from labcal.config.files import write_atomic
 from labcal.documents.certificate import Certificate
 from labcal.errors import LabcalError
@@ -130,7 +130,8 @@ def _administrative(root: ET.Element, cert: Certificate) -> None:
     _d(core, "performanceLocation", "laboratory")
     _d(core, "issueDate", cert.issued_utc.date().isoformat())
     item = _d(_d(admin, "items"), "item")
-    _text(item, "name", "three-axis accelerometer attitude instrument")
+    _text(item, "name", "three-axis accelerometer attitude instrument" if cert.package is None else
+          f"{cert.package.package} accelerometer attitude sensor package (sensors {', '.join(cert.sensors)})")
     _text(_d(item, "manufacturer"), "name", a.item.manufacturer if a else "")
     if a is not None and a.item.model:
         _d(item, "model", a.item.model)
@@ -175,7 +176,7 @@ def _results(root: ET.Element, cert: Certificate) -> None:
     X, U = cert.coefficients, cert.U
     k = cert.expanded_uncertainty.k
     spoken, units, covariance_units = DSI_UNITS[cert.output_unit]
-    for j, sensor in enumerate(SENSORS):
+    for j, sensor in enumerate(cert.sensors):
         entry = _d(results, "result")
         _text(entry, "name", f"sensor {sensor}: bias ({spoken}) and sensitivity to the acceleration "
                              f"components a_x, a_y, a_z ({spoken} per m s⁻², fitted per g and stated per "
@@ -188,7 +189,7 @@ def _results(root: ET.Element, cert: Certificate) -> None:
             _s(real, "unit", units[i])
             _expanded(real, U[i, j] * PER_UNIT[i], k[j])
         # the complete covariance (Type A and B) that U above comes from, not the fit's Type A alone
-        idx = np.arange(4) * 3 + j
+        idx = np.arange(4) * len(cert.sensors) + j
         covariance = cert.coefficient_covariance()[np.ix_(idx, idx)] * np.outer(PER_UNIT, PER_UNIT)
         region = _s(values, "ellipsoidalRegion")
         matrix = _s(region, "covarianceMatrix")
@@ -203,7 +204,9 @@ def _results(root: ET.Element, cert: Certificate) -> None:
     for total in cert.uncertainty_budget.totals if cert.uncertainty_budget else []:
         entry = _d(results, "result")
         _text(entry, "name", f"expanded uncertainty of inferred {total.angle}, largest over the usage "
-                             "envelope")
+                             "envelope" if cert.package is None else
+              f"expanded uncertainty of inferred {total.angle}, largest over the region the package section "
+              f"states ({cert.package.statement})")
         real = _s(_d(_d(entry, "data"), "quantity"), "real")
         _s(real, "label", f"U95 {total.angle}")
         _s(real, "value", _number(total.U95_arcsec / 3600))

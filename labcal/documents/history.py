@@ -149,15 +149,18 @@ def changes(certs: list[Certificate]) -> list[Change]:
     """Every coefficient's change between consecutive calibrations, judged by the drift rule."""
     found = []
     for a, b in zip(certs, certs[1:], strict=False):
-        ua, ub = a.standard_uncertainty, b.standard_uncertainty
-        nu_a, nu_b = (np.array(c.expanded_uncertainty.nu_eff, float)[None, :] for c in (a, b))
+        # by sensor: a package's absent sensors NaN, and not compared (a change needs both)
+        ua, ub = a.by_sensor(a.standard_uncertainty), b.by_sensor(b.standard_uncertainty)
+        nu_a, nu_b = (c.by_sensor(np.array(c.expanded_uncertainty.nu_eff, float)[None, :]) for c in (a, b))
         var = ua**2 + ub**2
         with np.errstate(invalid="ignore"):  # u = 0 (noise-free data): ν = ∞, any change is flagged
             nu = np.where(var > 0, var**2 / (ua**4 / nu_a + ub**4 / nu_b), np.inf)  # WS, GUM eq. G.2b
         k = t_quantile(0.5 + COVERAGE / 2, nu)
-        delta = b.coefficients - a.coefficients
+        delta = b.by_sensor(b.coefficients) - a.by_sensor(a.coefficients)
         for i in range(delta.shape[0]):
             for j in range(delta.shape[1]):
+                if np.isnan(delta[i, j]):
+                    continue
                 found.append(Change(i, j, a.certificate_id, b.certificate_id, float(delta[i, j]),
                                     float(np.sqrt(var[i, j])), float(nu[i, j]), float(k[i, j])))
     return found
@@ -170,7 +173,7 @@ def history_json(serial: str, certs: list[Certificate], found: list[Change]) -> 
                           "simulated": c.station.simulated,
                           "digest": c.digest.value, "coefficients": c.fit.coefficients,
                           "standard_uncertainty": c.fit.standard_errors, "U": c.expanded_uncertainty.U,
-                          "k": c.expanded_uncertainty.k} for c in certs],
+                          "k": c.expanded_uncertainty.k, "sensors": list(c.sensors)} for c in certs],
         "rows": ["B", "S row g_x", "S row g_y", "S row g_z"], "columns": ["sensor x", "sensor y", "sensor z"],
         "changes": [c.to_json() for c in found],
         "flagged": [c.to_json() for c in found if c.flagged],
@@ -184,8 +187,8 @@ def plot_history(serial: str, certs: list[Certificate], found: list[Change], pat
 
     check_folder(path)
     dates = [c.calibrated_utc for c in certs]
-    X = np.array([c.coefficients for c in certs])
-    U = np.array([c.U for c in certs])
+    X = np.array([c.by_sensor(c.coefficients) for c in certs])  # a package's absent sensors: gaps
+    U = np.array([c.by_sensor(c.U) for c in certs])
     index = {c.certificate_id: n for n, c in enumerate(certs)}
     fig = Figure(figsize=(12, 10))
     fig.subplots_adjust(left=0.09, right=0.98, top=0.93, bottom=0.08, hspace=0.3, wspace=0.42)

@@ -58,8 +58,9 @@ from labcal.documents.certificate import (
     UncertaintyBudget,
     seal,
 )
+from labcal.documents.package import package_documents
 from labcal.documents.simulated import NOTICE as SIMULATED_NOTICE
-from labcal.documents.uncertainty import budget, stated_U95_arcsec
+from labcal.documents.uncertainty import budget, inputs_record, stated_U95_arcsec
 from labcal.errors import LabcalError
 from labcal.run.record import RunRecord
 from labcal.run.winding import MOVE_EVENT
@@ -183,7 +184,7 @@ def _recorded(meta_value, given: str | None, what: str, run_dir: Path) -> str | 
     return given or recorded or None
 
 
-def _expanded(fit_dof: NDArray, budget: UncertaintyBudget) -> Expanded:
+def _expanded(fit_dof: NDArray, budget: UncertaintyBudget, sensors: tuple[str, ...] = SENSORS) -> Expanded:
     """U = k·u_c of every coefficient, u_c from the whole budget (Type A and B); per sensor the
     smallest Welch–Satterthwaite ν_eff of its coefficients, truncated (GUM G.4.1 note 1), sets k.
     With no Type B input this is the fit's own ν and standard error."""
@@ -191,7 +192,7 @@ def _expanded(fit_dof: NDArray, budget: UncertaintyBudget) -> Expanded:
     nu_min = nu_coef.min(axis=0)
     nu = np.where(np.isfinite(nu_min), np.floor(np.nan_to_num(nu_min) + 1e-6), fit_dof).astype(int)
     k = t_quantile(0.5 + COVERAGE / 2, nu)
-    ks = ", ".join(f"{s}: k = {kj:.2f} at ν_eff = {n}" for s, kj, n in zip(SENSORS, k, nu, strict=True))
+    ks = ", ".join(f"{s}: k = {kj:.2f} at ν_eff = {n}" for s, kj, n in zip(sensors, k, nu, strict=True))
     statement = ("The reported expanded uncertainty is the combined standard uncertainty of the budget's "
                  f"sources multiplied by the coverage factor k = t₀.₉₇₅(ν_eff) ({ks}), which for a "
                  "t-distribution corresponds to a coverage probability of approximately 95 %.")
@@ -209,8 +210,8 @@ def _plan_audit(record: RunRecord, settings: CertificateSettings) -> PlanAudit:
         figure_of_merit_usage_sqrt=figure_of_merit(record.plan, settings.usage_pitch_deg) ** 0.5)
 
 
-def _conformity(X: NDArray, U: NDArray, budget: UncertaintyBudget, settings: CertificateSettings
-                ) -> Conformity | None:
+def _conformity(X: NDArray, U: NDArray, budget: UncertaintyBudget, settings: CertificateSettings,
+                sensors: tuple[str, ...] = SENSORS) -> Conformity | None:
     checks, rules = [], []
     tol = settings.attitude_u95_max_deg
     if tol is not None:
@@ -226,7 +227,7 @@ def _conformity(X: NDArray, U: NDArray, budget: UncertaintyBudget, settings: Cer
     if settings.bias_max_v is not None:
         rules.append("a bias passes when |B| + U(B) does not exceed its limit (guarded acceptance with guard "
                      "band w = U, ILAC-G8)")
-        for j, s in enumerate(SENSORS):
+        for j, s in enumerate(sensors):
             value = abs(float(X[0, j])) + float(U[0, j])
             checks.append(Check(quantity=f"|B_{s}| + U(B_{s})", value=value, limit=settings.bias_max_v,
                                 unit="V", passed=value <= settings.bias_max_v))
@@ -276,6 +277,13 @@ METHOD_DEVICE = ("Device model: V = B + g(p, r, y, u; a, b, d, e, f, k)ᵀS (Sot
                  "Each sensor's readings are weighted by its noise (replicate scatter where there are "
                  "replicates). Attitude uncertainties propagate the coefficient covariance and one new "
                  "reading's variance (Tripp & Tcheng eqs. 99–104).")
+METHOD_PACKAGE = ("Linear model v = B + gᵀs fitted per sensor of the package by least squares on the nominal "
+                  "gravity of each calibration point (Tripp & Tcheng 1999 eq. 8 in linear form, with the "
+                  "temperature terms of their Table 2 where the fit has them); each sensor's offset b, "
+                  "sensitivity S, coning angle Ω and azimuth A (eqs. 2, 4, 5) follow from its column. "
+                  "Standard uncertainties of the coefficients are Type A, as for a three-sensor instrument. "
+                  "The package's angles, and how roll is obtained in use, are its package section's: "
+                  "Tripp & Tcheng §6.1-6.5, from this calibration's own coefficients and covariance.")
 STATEMENTS = ("The results relate only to the item calibrated.",
               "Coefficient covariances are given in full in the JSON certificate; the attitude uncertainty "
               "depends on them.")
@@ -392,12 +400,18 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
     if record.readings.units != "V":  # the instrument's output units (its station's [instrument] units)
         fit_doc["layout"] = {**fit_doc["layout"], "units": coefficient_units(record.readings.units)}
     seed = int(record.readings_sha256[:8], 16)  # the same run gives the same Monte Carlo draws
-    uncertainty = budget(record, fit, inputs or TypeBInputs(), settings, monte_carlo, seed, device)
+    package = None
+    if len(fit.sensors) < 3:  # a package of fewer sensors: its angles as Tripp & Tcheng §6.1-6.5 infer them
+        package, envelope, uncertainty = package_documents(record, fit, settings,
+                                                           inputs_record(inputs or TypeBInputs()))
+    else:
+        uncertainty = budget(record, fit, inputs or TypeBInputs(), settings, monte_carlo, seed, device)
+        # the envelope states the budget's U95: the complete covariance, through the one function
+        cal = replace(calibration_from_json(fit_doc, run_dir), parts=uncertainty.parts())
+        envelope = attitude_envelope(cal, settings)
     X = fit.coefficients if device is None else device.coefficients
-    expanded = _expanded(fit.variance_dof if device is None else np.full(3, device.dof), uncertainty)
-    # the envelope states the budget's U95: the complete covariance, through the one function
-    cal = replace(calibration_from_json(fit_doc, run_dir), parts=uncertainty.parts())
-    envelope = attitude_envelope(cal, settings)
+    expanded = _expanded(fit.variance_dof if device is None else np.full(3, device.dof), uncertainty,
+                         fit.sensors)
     try:
         stamp = datetime.fromisoformat(calibrated).astimezone(UTC).strftime("%Y%m%dT%H%M%SZ")
     except (TypeError, ValueError):
@@ -446,7 +460,7 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
                  "replicates": int(len(np.unique(record.readings.replicate))),
                  "journal": None if record.chain is None else record.chain.statement(journal_records)},
         "environment": _environment(record).model_dump(),
-        "method": METHOD if device is None else METHOD_DEVICE,
+        "method": METHOD_PACKAGE if package is not None else METHOD if device is None else METHOD_DEVICE,
         "statements": statements,
         "administration": admin.model_dump(),
         "story": _story(record).model_dump(),
@@ -457,8 +471,9 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
         "device": None if device is None else _device_section(device, model_note or ""),
         "device_correction": None if correction is None else {
             **correction.model_dump(exclude={"u_history_arcsec"}), "statement": correction.statement()},
-        "conformity": None if (c := _conformity(X, np.array(expanded.U), uncertainty, settings)) is None
-        else c.model_dump(),
+        "conformity": None if (c := _conformity(X, np.array(expanded.U), uncertainty, settings,
+                                                 fit.sensors)) is None else c.model_dump(),
+        "package": None if package is None else package.model_dump(),
         "uncertainty_budget": uncertainty.model_dump(),
     }
     return seal(content)

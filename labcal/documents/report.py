@@ -79,10 +79,6 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
     ``monte_carlo`` trials check the budget by JCGM 101. ``record``: the run as `load_run` read it
     just before (the end of a run: read once for the device's estimate and for this, not fitted twice)."""
     record = record or load_run(run_dir)
-    if record.fit is not None and len(record.fit.sensors) < 3:
-        raise LabcalError(f"{run_dir}: a package of the {', '.join(record.fit.sensors)} sensor(s) only: its "
-                          "statement is package.json (written at the end of its run), not the three-axis "
-                          "certificate, whose attitude budget needs three sensors")
     fit, device, model_note = fitted(record)
     if device is None:  # a plan that corrects for the device: not from a correction the run saw move
         from labcal.documents.device_history import refuse_if_moved

@@ -24,6 +24,7 @@ from labcal.analysis.models import Points
 from labcal.config.settings import CertificateSettings
 from labcal.documents.certificate import Certificate
 from labcal.documents.issuing import envelope_grid
+from labcal.documents.package import region_parts
 from labcal.run.record import RunRecord
 
 if TYPE_CHECKING:
@@ -75,7 +76,7 @@ def residual_heading(fit: Fit, device: DeviceFit | None, unit: str = "V") -> str
     (``unit``: the readings' unit)."""
     name, equation, resid = certified_residuals(fit, device)
     rms = np.sqrt(np.mean(resid**2, axis=0))
-    each = ", ".join(f"{s} {in_volts(float(v), unit)}" for s, v in zip(SENSORS, rms, strict=True))
+    each = ", ".join(f"{s} {in_volts(float(v), unit)}" for s, v in zip(fit.sensors, rms, strict=True))
     return (f"Residuals per sensor of the {name} ({equation}), with 95 % confidence and prediction bands; "
             f"residual RMS {each}")
 
@@ -108,14 +109,16 @@ def residual_figure(fit: Fit, record: RunRecord, device: DeviceFit | None = None
 
     r = record.readings
     name, equation, resid = certified_residuals(fit, device)
-    fig = Figure(figsize=(11, 10))
+    sensors = fit.sensors if device is None else SENSORS  # a package's: the sensors it has
+    fig = Figure(figsize=(11, 10 * (len(sensors) + 0.6) / 3.6))
     fig.subplots_adjust(left=0.08, right=0.98, top=0.90, bottom=0.06, hspace=0.42, wspace=0.22)
-    axes = fig.subplots(3, 2, squeeze=False, sharex="col")  # the angle's ticks once, under each column
+    # the angle's ticks once, under each column
+    axes = fig.subplots(len(sensors), 2, squeeze=False, sharex="col")
     rms = np.sqrt(np.mean(resid**2, axis=0))
     for col, (angle, label) in enumerate(((r.pitch_deg, "pitch α"), (r.roll_deg, "roll R"))):
         dense = np.linspace(angle.min(), angle.max(), 361)
         prediction, confidence = _bands(fit, device, dense, col)
-        for j, sensor in enumerate(SENSORS):
+        for j, sensor in enumerate(sensors):
             factor, unit = volt_unit(max(float(np.max(np.abs(resid[:, j]))), float(np.max(prediction[:, j]))),
                                      r.units)
             ax = axes[j, col]
@@ -125,7 +128,7 @@ def residual_figure(fit: Fit, record: RunRecord, device: DeviceFit | None = None
             for (mount, mask), colour in zip(_mount_masks(record), MOUNT_COLOURS, strict=False):
                 ax.plot(angle[mask], resid[mask, j] * factor, "o", ms=4, color=colour, label=f"mount {mount}")
             ax.axhline(0.0, color="k", lw=0.6)
-            if j == len(SENSORS) - 1:
+            if j == len(sensors) - 1:
                 ax.set_xlabel(f"table {label} (°)")
             ax.set_ylabel(f"residual v_{sensor} − v̂_{sensor} ({unit})")
             ax.set_title(f"sensor {sensor}: residuals against {label.split()[0]}; RMS "
@@ -260,10 +263,47 @@ def envelope_figure(cert: Certificate) -> Figure:
     return fig
 
 
+def package_envelope_figure(cert: Certificate, fit: Fit) -> Figure:
+    """A package's inferred angles' U95 against pitch over the region its section states (largest
+    and RMS over roll), from the same parts as its budget (Tripp & Tcheng eqs. 78, 81, 90, 96)."""
+    from matplotlib.figure import Figure
+
+    section = cert.package
+    assert section is not None
+    parts = region_parts(fit, section)
+    pitch_deg = np.degrees(parts.alpha[:, 0])
+    angles = {"pitch": parts.pitch} | ({} if parts.roll_sd is None else {"roll": parts.roll_sd})
+    fig = Figure(figsize=(5.5 * len(angles), 4.5))
+    fig.subplots_adjust(**WIDE)
+    axes = np.atleast_1d(fig.subplots(1, len(angles)))
+    for ax, (angle, by_source) in zip(axes, angles.items(), strict=True):
+        u95 = section.k * np.degrees(np.sqrt(sum(p**2 for p in by_source.values())))
+        ax.plot(pitch_deg, u95.max(axis=1), "-o", ms=3, label="largest over roll")
+        ax.plot(pitch_deg, np.sqrt(np.mean(u95**2, axis=1)), "--", label="RMS over roll")
+        if section.u95_limit_deg is not None:
+            ax.axhline(section.u95_limit_deg, color="tab:red", lw=1,
+                       label=f"limit {section.u95_limit_deg:g}°")
+        ax.set_xlabel("pitch of the package (°)")
+        ax.set_ylabel(f"U95 of inferred {angle} (°)")
+        ax.set_title(f"{angle}: 95 % expanded uncertainty", fontsize=10, y=TITLE_Y)
+        ax.set_ylim(bottom=0)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    low, high = np.degrees(parts.roll[0, [0, -1]])
+    fig.suptitle(f"{section.package}: attitude uncertainty over roll {low:g}…{high:g}° ({section.equations})")
+    return fig
+
+
 def figures(cert: Certificate, record: RunRecord, fit: Fit, device: DeviceFit | None = None
             ) -> list[tuple[str, Figure]]:
     """``device``: the device model the certificate rests on (None: the linear fit); the residual
-    figure shows that model's residuals, as the certificate states it."""
+    figure shows that model's residuals, as the certificate states it. A package's certificate
+    shows its own envelope: its angles are not the three-axis estimator's."""
+    if cert.package is not None:
+        return [(residual_heading(fit, device, record.readings.units), residual_figure(fit, record, device)),
+                ("Attitude uncertainty over the region the package section states",
+                 package_envelope_figure(cert, fit)),
+                ("The plan's points on the gravity sphere", sphere_figure(record))]
     return [
         (residual_heading(fit, device, record.readings.units), residual_figure(fit, record, device)),
         ("Errors of the attitude inferred from each calibration reading",

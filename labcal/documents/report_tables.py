@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from labcal.analysis.fit import ROW_NAMES, SENSORS
+from labcal.analysis.fit import ROW_NAMES
 from labcal.config.uncertainty import overdue_standards as overdue
 from labcal.documents.certificate import Certificate, format_result, format_uncertainty
 from labcal.documents.certificate_sections import Replication
@@ -122,14 +122,25 @@ def coefficients_with_expanded_uncertainty(cert: Certificate) -> Table:
     e = cert.expanded_uncertainty
     output = cert.output_unit
     units = UNITS if output == "V" else (output, *[f"{output}/g"] * 3)
-    rows = [[f"{name} ({unit})", *(format_result(X[i, j], U[i, j]) for j in range(3))]
+    rows = [[f"{name} ({unit})", *(format_result(X[i, j], U[i, j]) for j in range(len(cert.sensors)))]
             for i, (name, unit) in enumerate(zip(ROW_NAMES, units, strict=True))]
     rows.append([f"S_E ({output})", *(format_uncertainty(s) for s in cert.fit.residual_standard_error)])
     rows.append(["k", *(f"{k:.2f}" for k in e.k)])
     rows.append(["ν_eff", *(str(n) for n in e.nu_eff)])
     rows.append(["basis of u", *cert.fit.uncertainty_basis])
     return Table("Coefficients X = [Bᵀ; S] with expanded uncertainty (y ± U)",
-                 ["coefficient", *(f"sensor {s}" for s in SENSORS)], rows, e.statement)
+                 ["coefficient", *(f"sensor {s}" for s in cert.sensors)], rows, e.statement)
+
+
+def package_table(cert: Certificate) -> Table:
+    """A package's sensors in Tripp & Tcheng's terms (eq. 8) and how its angles are obtained in use."""
+    p = cert.package
+    assert p is not None
+    rows = [[f"sensor {axis}", f"{c.b:.6g}", f"{c.S:.6g}", f"{c.omega_deg:.4g}", f"{c.azimuth_deg:.4g}"]
+            for axis, c in p.coefficients.items()]
+    return Table(f"The {p.package} package (Tripp & Tcheng §6; {p.equations})",
+                 ["sensor", f"b ({cert.output_unit})", f"S ({cert.output_unit}/g)", "Ω (°)", "A (°)"], rows,
+                 p.statement)
 
 
 def replication_table(cert: Certificate) -> Table:
@@ -226,7 +237,9 @@ def story_table(cert: Certificate) -> Table:
 
 
 def tables(cert: Certificate) -> list[Table]:
-    return [identification_table(cert), conformity_table(cert), attitude_table(cert), budget_table(cert),
+    package = [] if cert.package is None else [package_table(cert)]
+    return [identification_table(cert), conformity_table(cert), *package, attitude_table(cert),
+            budget_table(cert),
             coefficients_with_expanded_uncertainty(cert), replication_table(cert), audit_table(cert),
             story_table(cert)]
 

@@ -258,6 +258,13 @@ def _budget_rows(readings: Readings, fit: Fit, inputs: TypeBInputs, device: Devi
     return cal, sources(cal, inputs), inputs
 
 
+def inputs_record(inputs: TypeBInputs) -> dict:
+    """The bench's Type B inputs as a certificate's budget records them."""
+    return {k: (dict(v) if isinstance(v, dict) else v) for k, v in vars(inputs).items()
+            if not (k == "output_unit" and v == "V")  # volts: as certificates always said it
+            and not (k == "device_misalignment_source" and not v)}  # a device model's own: as before
+
+
 def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: CertificateSettings,
            trials: int = 0, seed: int = 0, device: DeviceFit | None = None) -> UncertaintyBudget:
     """The certificate's budget section for a run's fit, or for its ``device`` model where the
@@ -269,12 +276,10 @@ def budget(record: RunRecord, fit: Fit, inputs: TypeBInputs, settings: Certifica
     coef = coefficient_budget(rows)
     totals = _totals(p)
     checks = _monte_carlo(cal, rows, p, trials, seed) if trials > 0 else None
-    doc = {k: (dict(v) if isinstance(v, dict) else v) for k, v in vars(inputs).items()
-           if not (k == "output_unit" and v == "V")  # volts: as certificates always said it
-           and not (k == "device_misalignment_source" and not v)}  # a device model's own: as before
     return UncertaintyBudget(
         in_use=in_use_reading(cal, inputs.output_unit), fit_check=fit_check(view.check),
-        method=METHOD, inputs=BudgetInputs.model_validate(doc), rows=_rows(rows, p), totals=totals,
+        method=METHOD, inputs=BudgetInputs.model_validate(inputs_record(inputs)), rows=_rows(rows, p),
+        totals=totals,
         coefficients=CoefficientBudgetRecord(
             u_c=coef.u_c.tolist(), nu_eff=[[_finite(x) for x in row] for row in coef.nu_eff],
             k=coef.k.tolist(), U=coef.U.tolist(),

@@ -84,22 +84,26 @@ def check_readings(readings: Readings, plan_text: str, station: StationSnapshot 
                    settle: dict) -> Verdict:
     """Every check of ``readings`` (a run's good points, one row each). LabcalError where they cannot
     be fitted at all (too few points): nothing to judge them by."""
-    implausible_volts(readings.volts, readings.units)
+    present = ~np.isnan(readings.volts).all(axis=0)  # a package's sensors: the absent ones are all NaN
+    implausible_volts(readings.volts[:, present], readings.units)
     fit, _, _ = run_fits(readings, plan_text, station)
     flags = list(fit_flags(readings, fit))
+    package = "" if present.all() else (f"the {', '.join(fit.sensors)} sensor(s) of a package were judged by "
+                                        "their residuals and the declared noise; |g| = 1 needs three sensors")
     if readings.units != "V":
         units = readings.units
-        return Verdict(tuple(flags), None, f"the noise is declared in volts, the readings are in {units}")
+        return Verdict(tuple(flags), None, "; ".join(filter(None, (
+            package, f"the noise is declared in volts, the readings are in {units}"))))
     try:
         declared = declared_of(settle, station)
     except (KeyError, TypeError, ValueError) as exc:
         raise LabcalError(f"the run's settle settings do not state its noise ({exc})") from None
     if declared is None:
-        return Verdict(tuple(flags), None, NO_ANGLE_ERRORS)
+        return Verdict(tuple(flags), None, "; ".join(filter(None, (package, NO_ANGLE_ERRORS))))
     noise = noise_check(readings, fit.coefficients[1:], declared)
     seen = {f.row for f in flags}
     flags += [f for f in noise.flags if f.row not in seen]
-    return Verdict(tuple(flags), noise)
+    return Verdict(tuple(flags), noise, package)
 
 
 def repeatability_rad(station: StationSnapshot | None) -> tuple[float, float]:

@@ -71,6 +71,7 @@ class Timing:
     sample_s: float
     remount_s: float
     link: LinkTiming = LinkTiming()
+    temperature: bool = True  # the station reads the instrument's temperature: a thermal gate waits
 
 
 @dataclass(frozen=True)
@@ -124,7 +125,7 @@ def estimate(plan: Plan, settings: SequencerSettings, timing: Timing,
         if step.block_start:
             prompt[step.seq] = t_mount + travel(where, np.array(LOAD_POSITION))  # the tables still then
             t_mount = prompt[step.seq] + timing.remount_s + link.verify_exchanges * link.dmm_s
-            if settings.thermal_gate is not None:  # the least it waits: the rate seen low for hold_s
+            if settings.thermal_gate is not None and timing.temperature:  # its least wait: hold_s
                 t_mount += settings.thermal_gate.hold_s
                 thermal += settings.thermal_gate.hold_s
             if settings.check_mount:

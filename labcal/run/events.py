@@ -266,7 +266,7 @@ class Status(RunEvent):
     kind: Literal["status"] = "status"
     status: RunStatus
     reason: str | None = None
-    at: Literal["start", "point", "mount", "resume", "end"]
+    at: Literal["start", "point", "mount", "thermal", "resume", "end"]  # thermal: waiting at the gate
     points_done: int
     points_total: int
     mount: int | None = Field(default=None, ge=1, le=4)  # the mount on the plate (None: none yet)
@@ -274,7 +274,7 @@ class Status(RunEvent):
     eta_s: float | None = None  # None: no estimate given (a run started without one)
 
     def journal_entry(self) -> JournalEntry | None:
-        if self.at in ("start", "point"):
+        if self.at in ("start", "point", "thermal"):  # the gate's wait is journaled as its own note
             return None
         figures = self.model_dump(include={"status", "reason", "at", "points_done", "points_total", "mount",
                                            "next_remount_in_s", "eta_s"})

@@ -48,6 +48,14 @@ class Terminal:
     def notice(self, text: str) -> None:
         """Say ``text`` now (rich markup): what the first Ctrl-C did."""
 
+    def typed(self) -> str:
+        """The keys typed at the terminal since the last call, while nothing asks (`GATE_KEY`: the
+        operator asks for the thermal gate before the next point); none where nobody types."""
+        return ""
+
+
+GATE_KEY = "g"  # typed during a run: hold it at the thermal gate before its next point
+
 
 class Operator(Protocol):
     heard: Heard | None  # told of every reply that keeps a prompt open, so the journal has each answer
@@ -154,6 +162,24 @@ class QuietKeys:
         except (termios.error, OSError):
             self.saved = None
         return self
+
+    def typed(self) -> str:
+        """What was typed and is waiting, read without waiting (while the keys are quiet: a prompt
+        reads its own answer); nothing where stdin is not this process's terminal."""
+        if self.fd is None or self.saved is None:
+            return ""
+        import select
+
+        keys = b""
+        try:
+            while select.select([self.fd], [], [], 0)[0] and len(keys) < 1024:
+                chunk = os.read(self.fd, 64)
+                if not chunk:
+                    break
+                keys += chunk
+        except OSError:
+            return ""
+        return keys.decode("utf-8", "replace")
 
     def __exit__(self, exc_type: type[BaseException] | None = None, exc: BaseException | None = None,
                  tb: TracebackType | None = None) -> None:

@@ -45,7 +45,7 @@ from labcal.run.interrupts import Interrupts
 from labcal.run.journal import Journal, PointRecord
 from labcal.run.motion import Move, move_time, transient_after, transient_at_stop
 from labcal.run.mounting import CHECK_ATTITUDE, distinguishes, identify
-from labcal.run.operator import Operator, OperatorDeclined, Terminal
+from labcal.run.operator import GATE_KEY, Operator, OperatorDeclined, Terminal
 from labcal.run.ordering import order_points
 from labcal.run.settle import Dwell, TailPool, dead_time, dwell, dwell_model
 from labcal.run.station import RotaryAxis, Station, StopFailed, TableState, mean_and_sd
@@ -437,13 +437,18 @@ class Sequencer:
                           data=data or None))
 
     def status(self, at: str, status: str = "running", reason: str | None = None,
-               rig_time_s: float | None = None) -> None:
+               rig_time_s: float | None = None, waiting_s: float = 0.0, mounting: bool = False) -> None:
         """Where the run stands, before the next step (`Forecast.ahead`); ``at``: what occasioned it.
         At the end (``status`` not running) no remount is ahead, whatever the forecast said.
-        ``rig_time_s``: when, if not now."""
+        ``rig_time_s``: when, if not now. ``waiting_s``: the least wait still ahead before the next
+        step (the thermal gate's), added to the forecast; ``mounting``: said within a mount, whose
+        prompt is past (as at "mount")."""
         remount, eta = self._ahead[self._next] if self._ahead else (None, None)
-        if at == "mount" and self.forecast is not None:  # its prompt is past: the next one is ahead
+        if (at == "mount" or mounting) and self.forecast is not None:  # its prompt is past
             remount, eta = self.forecast.after_mount(self._todo[self._next], self._ahead[self._next + 1])
+        if waiting_s:
+            remount = None if remount is None else remount + waiting_s
+            eta = None if eta is None else eta + waiting_s
         if status != "running":
             remount = None
         when = self.rig_time() if rig_time_s is None else rig_time_s
@@ -500,7 +505,7 @@ class Sequencer:
             verify = getattr(self.station.dmm, "verify", None)  # a DMM with a declared configuration
             if verify is not None:
                 verify("at the mount")
-            self.wait_thermal()
+            self.wait_thermal(mounting=True)
             if not self.settings.check_mount:
                 return
             self.move(*CHECK_ATTITUDE)
@@ -524,18 +529,28 @@ class Sequencer:
         raise OperatorDeclined(f"the instrument was not mounted as {mount.describe()} after "
                                f"{MOUNT_ATTEMPTS} attempts")
 
-    def wait_thermal(self) -> float:
+    def wait_thermal(self, mounting: bool = False, on_demand: bool = False) -> float:
         """The thermal gate (`ThermalGate`): read the instrument's temperature every ``poll_s`` until
         the least-squares slope of the reads over the last ``hold_s`` is within the limit (at least
-        ``hold_s`` of reads: the rate must be seen to stay low), or ``max_wait_s`` has passed; the
-        wait is journaled. Returns the seconds waited."""
+        ``hold_s`` of reads: the rate must be seen to stay low), or ``max_wait_s`` has passed. The
+        wait is journaled as it begins and ends; at each read the status says the least wait left
+        (so the ETA counts it), and a Ctrl-C pauses it as it pauses a point (a second stops at
+        once). ``mounting``: before a mount's points, ``on_demand``: asked for by the operator
+        during the run. Returns the seconds waited."""
         gate = self.settings.thermal_gate
+        asked = " (asked for during the run)" if on_demand else ""
         if gate is None:
+            if on_demand:
+                self.note("thermal", "thermal gate asked for, but the run has none ([instrument] "
+                          "thermal_gate, --thermal-gate)", on_demand=True)
             return 0.0
         clock, dmm = self.station.clock, self.station.dmm
         if not dmm.measures_temperature:
-            self.note("thermal", "thermal gate skipped: the station reads no instrument temperature")
+            self.note("thermal", f"thermal gate{asked} skipped: the station reads no instrument temperature",
+                      on_demand=on_demand)
             return 0.0
+        self.note("thermal", f"thermal gate{asked}: waiting until the temperature settles "
+                  f"({gate.describe()})", on_demand=on_demand, waiting=True)
         t0 = clock.now()
         times: list[float] = []
         temps: list[float] = []
@@ -553,14 +568,19 @@ class Sequencer:
                     break
             if times[-1] >= gate.max_wait_s:
                 break
+            left = max(gate.hold_s - times[-1], gate.poll_s)  # the least wait left: the hold, or a poll
+            self.status("thermal", waiting_s=min(left, gate.max_wait_s - times[-1]), mounting=mounting)
+            if self.interrupts.pause_requested:
+                self.pause("Ctrl-C during the thermal gate's wait")
             clock.sleep(gate.poll_s)
         waited = clock.now() - t0
         settled = abs(rate) <= gate.rate_c_per_min
-        self.note("thermal", (f"thermal gate: waited {waited:.0f} s; the temperature " +
+        self.note("thermal", (f"thermal gate{asked}: waited {waited:.0f} s; the temperature " +
                               (f"settled ({gate.describe()})" if settled else
                                f"had not settled ({gate.describe()}) after the gate's {gate.max_wait_s:g} s; "
                                "going on")) + f" at {temps[-1]:.3f} °C, {rate:+.3g} °C/min",
-                  waited_s=waited, temp_c=temps[-1], rate_c_per_min=finite([rate])[0], settled=settled)
+                  waited_s=waited, temp_c=temps[-1], rate_c_per_min=finite([rate])[0], settled=settled,
+                  on_demand=on_demand)
         return waited
 
     def pause(self, why: str, home: tuple[RotaryAxis, ...] = ()) -> None:
@@ -628,6 +648,9 @@ class Sequencer:
                     self.close_block(step.mount)
                 if self.interrupts.pause_requested:
                     self.pause("Ctrl-C")
+                if GATE_KEY in self.terminal.typed().lower() and k + 1 < len(todo) \
+                        and not todo[k + 1].block_start:  # a mount's own gate comes before its points
+                    self.wait_thermal(on_demand=True)
             self.verify(steps)
         except BaseException as exc:
             self.stop_tables(exc)
@@ -647,10 +670,6 @@ class Sequencer:
         try:
             station = parse_snapshot(row.station_text)
             readings = replace(self.journal.readings(self.run_id), units=output_units(station))
-            if np.isnan(readings.volts).any():  # a package of fewer sensors: the checks are three sensors'
-                self.note("checks", "the end-of-run checks of the readings are made for three-sensor "
-                          "packages only; this package's readings were not judged by them")
-                return None, points
             return check_readings(readings, row.plan_text, station, settle), points
         except LabcalError:
             return None, points
