@@ -204,19 +204,23 @@ def test_an_instruments_history_of_package_certificates_compares_only_the_sensor
     assert (tmp_path / "history.png").stat().st_size > 0
 
 
-def test_the_lab_servers_residual_figure_of_a_package_run_draws_its_sensors(runs):
-    """The residual figure the lab server serves for a run, drawn from the journal's points: a
-    single-axis run's has one row of plots (the x sensor's), a PNG."""
+@pytest.mark.parametrize("certified", [False, True], ids=["readings so far", "under its certificate"])
+def test_the_lab_servers_residual_figure_of_a_package_run_draws_its_sensors(runs, certified):
+    """The residual figure the lab server serves for a run, drawn from the journal's points (the
+    linear fit so far, or the model its certificate states): a single-axis run's has one row of
+    plots (the x sensor's), a PNG."""
     import io
 
     from PIL import Image
     from sqlalchemy import create_engine
 
     from labcal.app.residuals import _draw
+    from labcal.documents.certificate import read_certificate
 
+    cert = read_certificate(runs["single-axis"] / "run" / "certificate.json") if certified else None
     engine = create_engine(f"sqlite:///{runs['single-axis'] / 'lab.sqlite'}")
     with engine.connect() as conn:
-        png = _draw(conn, 1)
+        png = _draw(conn, 1, cert)
     engine.dispose()
     assert png is not None
     width, height = Image.open(io.BytesIO(png)).size
