@@ -28,7 +28,7 @@ def main() -> None:
     parser.add_argument("--unstated", action="store_true")
     args = parser.parse_args()
     if args.unstated:
-        from labcal.run import exports
+        from labcal.store import exports
         exports.stated_angle_errors = lambda text: None  # type: ignore[assignment]
     with tempfile.TemporaryDirectory() as tmp:
         db = Path(tmp) / "lab.sqlite"

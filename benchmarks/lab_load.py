@@ -7,7 +7,7 @@ What it sets up, all on this machine and on 127.0.0.1 only:
 - ``--stations`` (default 8) `labcal run --sim --yes --no-report --pace X --plan PLAN` processes at
   once, each with its own journal (``LABCAL_JOURNAL``) and name (``LABCAL_STATION`` bench-1 …
   bench-N), all with the same ``LABCAL_DB`` URL: each journals locally and its sender pushes every
-  record to PostgreSQL (labcal/run/sync.py), which the server reads;
+  record to PostgreSQL (labcal/store/sync.py), which the server reads;
 - meanwhile a client polls the API at ``--rate`` (default 10) requests per second in all, open loop
   (a request leaves on schedule whether or not the one before has come back, so a slow answer does
   not hide the ones behind it): ``GET /api/runs``, then ``GET /api/runs/{id}`` of each run it

@@ -50,7 +50,6 @@ from labcal.analysis.kinematics import Mount
 from labcal.config.emulation import RigConfig
 from labcal.config.plans import load_plan, plan_toml
 from labcal.config.settings import SequencerSettings
-from labcal.run.journal import Journal
 from labcal.run.motion import move_time
 from labcal.run.operator import AutoOperator
 from labcal.run.runner import calibrate
@@ -58,6 +57,7 @@ from labcal.run.sequencer import LOAD_POSITION, settle_cost
 from labcal.run.tour import cost_matrix, move_and_settle, path_length, path_lower_bound, shortest_path
 from labcal.sim.clock import VirtualClock
 from labcal.sim.rig import SimRig
+from labcal.store.journal import Journal
 
 sys.path.insert(0, str(Path(__file__).parent))
 from settle_speed import point_bound  # noqa: E402  (the independent bound, one copy)

@@ -30,11 +30,11 @@ from rich.console import Console
 from labcal.config.emulation import RigConfig
 from labcal.config.plans import load_plan
 from labcal.config.settings import SequencerSettings
-from labcal.run.journal import Journal
 from labcal.run.operator import AutoOperator
 from labcal.run.runner import calibrate
 from labcal.sim.clock import VirtualClock
 from labcal.sim.rig import SimRig
+from labcal.store.journal import Journal
 
 NOISE_V = 20e-6
 

@@ -37,8 +37,8 @@ from labcal.analysis.kinematics import Mount
 from labcal.config.emulation import RigConfig
 from labcal.config.plans import load_plan, plan_toml
 from labcal.config.settings import SettleSettings
+from labcal.devices.station import mean_and_sd
 from labcal.run.settle import TailPool, dwell, dwell_model
-from labcal.run.station import mean_and_sd
 from labcal.sim.clock import VirtualClock
 from labcal.sim.tail_sensor import TailSensor
 

@@ -48,11 +48,11 @@ from labcal.analysis.kinematics import Mount, gravity
 from labcal.config.emulation import RigConfig
 from labcal.config.plans import load_plan, plan_toml
 from labcal.config.settings import SequencerSettings
-from labcal.run.journal import Journal
 from labcal.run.operator import AutoOperator
 from labcal.run.runner import calibrate
 from labcal.sim.clock import VirtualClock
 from labcal.sim.rig import SimRig
+from labcal.store.journal import Journal
 
 DT_FRACTION = 200  # lag integration step: τ / 200
 GRID_S = 1e-3  # window start resolution

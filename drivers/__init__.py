@@ -1,2 +1,2 @@
-"""Hardware drivers, one module per device protocol, each behind `labcal.run.station.RotaryAxis`
-or `labcal.run.station.Voltmeter` (docs/design.md §4)."""
+"""Hardware drivers, one module per device protocol, each behind `labcal.devices.station.RotaryAxis`
+or `labcal.devices.station.Voltmeter` (docs/design.md §4)."""

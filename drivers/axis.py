@@ -2,8 +2,8 @@
 read-back.
 
 A driver supplies four device exchanges (status, angle, go to an absolute angle, halt); this base
-turns them into `labcal.run.station.RotaryAxis`. A move is checked against the table's reach (its soft
-limits and its cable wrap, `labcal.run.winding`) before anything is sent, goes the way round the
+turns them into `labcal.devices.station.RotaryAxis`. A move is checked against the table's reach (its soft
+limits and its cable wrap, `labcal.devices.winding`) before anything is sent, goes the way round the
 caller chose (``travel_deg``), and is only over when the device reports it in position *and* the
 position read back lies within the tolerance of the target.
 """
@@ -14,9 +14,9 @@ import logging
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
+from labcal.devices.station import Clock, TableState
+from labcal.devices.winding import Reach
 from labcal.drivers.errors import DeviceFault, OutOfLimits
-from labcal.run.station import Clock, TableState
-from labcal.run.winding import Reach
 
 log = logging.getLogger(__name__)
 ARCSEC_PER_DEG = 3600.0
@@ -42,7 +42,7 @@ def wrapped(delta_deg: float) -> float:
 
 
 class IndexAxis(ABC):
-    """An index table behind `labcal.run.station.RotaryAxis`."""
+    """An index table behind `labcal.devices.station.RotaryAxis`."""
 
     model = "index table"
     counts_turns = True  # its angle is unwrapped: its accumulated rotation from home (an AZ with wrap: not)

@@ -21,6 +21,7 @@ from typing import TypeVar
 
 import numpy as np
 
+from labcal.devices.station import Scan
 from labcal.drivers.errors import (
     TRANSIENT,
     BadReply,
@@ -32,7 +33,6 @@ from labcal.drivers.errors import (
     on_device,
 )
 from labcal.drivers.transport import Lines, retried
-from labcal.run.station import Scan
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
@@ -179,7 +179,7 @@ def stamp(fields: Sequence[str]) -> datetime:
 
 
 class Keysight34970A:
-    """A scanning DMM behind `labcal.run.station.Voltmeter`."""
+    """A scanning DMM behind `labcal.devices.station.Voltmeter`."""
 
     model = "Keysight 34970A"
 

@@ -20,6 +20,7 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusIOException
 from pymodbus.pdu import ExceptionResponse, ModbusPDU
 
+from labcal.devices.station import CriticalSection
 from labcal.drivers.errors import BadReply, Busy, NoReply, PortClosed, Rejected
 from labcal.drivers.transport import (
     awaiting_reply,
@@ -29,7 +30,6 @@ from labcal.drivers.transport import (
     retried,
     uninterruptible,
 )
-from labcal.run.station import CriticalSection
 
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())  # our errors say it in one line
 log = logging.getLogger(__name__)

@@ -15,10 +15,10 @@ import re
 from collections.abc import Callable
 from typing import TypeVar, overload
 
+from labcal.devices.station import Clock
 from labcal.drivers.axis import AxisStatus, IndexAxis
 from labcal.drivers.errors import TRANSIENT, BadReply, DeviceFault, NoReply, Rejected, on_device
 from labcal.drivers.transport import LineTransport, retried
-from labcal.run.station import Clock
 
 EOL = b"\r\n"
 T = TypeVar("T")

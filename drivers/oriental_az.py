@@ -12,10 +12,10 @@ from __future__ import annotations
 import logging
 from enum import IntEnum, IntFlag
 
+from labcal.devices.station import Clock
 from labcal.drivers.axis import AxisStatus, IndexAxis
 from labcal.drivers.errors import TRANSIENT, DeviceFault, DriverError, on_device
 from labcal.drivers.modbus import ModbusLink, int32_words, words_int32
-from labcal.run.station import Clock
 
 log = logging.getLogger(__name__)
 HALF_TURN_DEG = 180.0  # from here on, a wrapping drive is told the way round (FWD or RVS)

@@ -24,8 +24,8 @@ from typing import Any, Protocol, TypeVar
 
 import serial
 
+from labcal.devices.station import CriticalSection
 from labcal.drivers.errors import TRANSIENT, BadReply, LinkLost, NoReply, PortClosed, SettingsRefused
-from labcal.run.station import CriticalSection
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)

@@ -14,9 +14,9 @@ from __future__ import annotations
 import logging
 from typing import Any
 
+from labcal.devices.station import CriticalSection
 from labcal.drivers.errors import LinkLost, NoReply, PortClosed
 from labcal.drivers.transport import ascii_line, awaiting_reply, reconnect
-from labcal.run.station import CriticalSection
 
 log = logging.getLogger(__name__)
 QUIET_S = 0.05  # draining: read in slices this long until the line has been quiet for a timeout

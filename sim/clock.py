@@ -5,7 +5,7 @@ from typing import Protocol
 
 
 class RigClock(Protocol):
-    """What the simulated rig and its tables need of a clock: `labcal.run.station.Clock`, and a
+    """What the simulated rig and its tables need of a clock: `labcal.devices.station.Clock`, and a
     way to let time pass up to a given instant. `VirtualClock`, `PacedClock` and `ScaledClock` are."""
 
     def now(self) -> float: ...

@@ -5,7 +5,7 @@ not its linearisation).
 One trial is one calibration and its use: a new table (index errors and wobble drawn afresh, at the
 rig's amplitudes), the device's misalignments, the plate seated anew at each mounting, the
 instrument's per-sample noise over each window and its drift over the run (`labcal.sim.direct`); the
-fit and budget a certificate of those readings states (`labcal.run.exports.run_fits`' model choice,
+fit and budget a certificate of those readings states (`labcal.store.exports.run_fits`' model choice,
 `labcal.documents.uncertainty.budget_view`); then new readings of the instrument in use at random
 attitudes of the usage envelope — the true instrument at the true attitude, each reading the mean of
 the samples the certificate assumes — turned into pitch and roll by the sphere estimator, as

@@ -13,8 +13,8 @@ from numpy.typing import NDArray
 
 from labcal.analysis.kinematics import ARCSEC, IndexWobble, Misalignment, Mount, gravity
 from labcal.config.emulation import InstrumentTruth, RigConfig
-from labcal.run.station import Scan, Station
-from labcal.run.winding import Reach
+from labcal.devices.station import Scan, Station
+from labcal.devices.winding import Reach
 from labcal.sim.clock import RigClock, VirtualClock
 from labcal.sim.tables import SimAxis
 
@@ -122,7 +122,7 @@ class SimRig:
         self._t_filter = t
 
     def read(self, n_samples: int) -> Scan:
-        """n consecutive DMM samples (implements `labcal.run.station.Voltmeter`)."""
+        """n consecutive DMM samples (implements `labcal.devices.station.Voltmeter`)."""
         t_int = self.config.nplc / self.config.line_hz
         times = self.clock.now() + (np.arange(n_samples) + 0.5) * t_int
         self.clock.sleep(n_samples * t_int)

@@ -10,17 +10,17 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
+from labcal.devices.station import TableState
+from labcal.devices.winding import Reach
 from labcal.errors import LabcalError
 from labcal.run.motion import trapezoid_duration, trapezoid_travel
-from labcal.run.station import TableState
-from labcal.run.winding import Reach
 from labcal.sim.clock import RigClock
 
 __all__ = ["SimAxis", "trapezoid_duration", "trapezoid_travel"]  # the tables move by labcal's profile
 
 
 class SimAxis:
-    """A simulated index table on the rig's clock (implements `labcal.run.station.RotaryAxis`)."""
+    """A simulated index table on the rig's clock (implements `labcal.devices.station.RotaryAxis`)."""
 
     def __init__(self, name: str, clock: RigClock, speed_dps: float = 20.0,
                  accel_dps2: float = 40.0, clamp_s: float = 1.0,

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from labcal.run.station import Scan
+from labcal.devices.station import Scan
 from labcal.sim.clock import VirtualClock
 
 

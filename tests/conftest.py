@@ -99,9 +99,9 @@ def run_on_rig(rig, plan_name: str, tmp_path, settings=None, events=None, operat
     """A whole calibration of a shipped plan on a SimRig, journaled under tmp_path."""
     from labcal.config.plans import load_plan
     from labcal.config.settings import SequencerSettings
-    from labcal.run.journal import Journal
     from labcal.run.operator import AutoOperator
     from labcal.run.runner import calibrate
+    from labcal.store.journal import Journal
 
     plan, text = load_plan(plan_name)
     run_dir = tmp_path / "run"

@@ -1,5 +1,5 @@
 """The schema steps labcal applied to its SQLite files before Alembic kept the history, verbatim
-from `labcal/run/labdb.py` as it was (commit 9c7cfd8, ``MIGRATIONS``): version N of a file was
+from `labcal/store/labdb.py` as it was (commit 9c7cfd8, ``MIGRATIONS``): version N of a file was
 ``PRAGMA user_version = N``. Kept here, apart from labcal, to make the files the labcal of then
 wrote, so that tests can check what this labcal does with them."""
 

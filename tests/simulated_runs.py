@@ -130,8 +130,8 @@ def corrected_runs_under_a_step(text: str, step_arcsec: dict[str, float], runs: 
     from labcal.analysis.plan import Plan
     from labcal.commands.plan import planning_bench
     from labcal.config.plans import plan_correction
-    from labcal.run.exports import run_fits
     from labcal.sim.direct import simulate_readings
+    from labcal.store.exports import run_fits
 
     correction = plan_correction(text, "the plan")
     assert correction is not None

@@ -32,7 +32,7 @@ from labcal.app.histories import DeviceHistory, InstrumentHistory, device_histor
 from labcal.app.runs import ListRuns, ReadLog, list_runs, read_log
 from labcal.cli import main
 from labcal.errors import LabcalError
-from labcal.run.record import load_run
+from labcal.store.record import load_run
 
 SERIAL = "ACC-0042"
 EXPORTS = ("plan.toml", "readings.csv", "fit.json", "run.json")

@@ -16,9 +16,9 @@ import pytest
 from pypdf import PdfReader
 from simulated_runs import bench_run
 
+from labcal.app.run_documents import write_run_outputs
 from labcal.cli import main
 from labcal.documents.certificate import certificate_from_doc, content_digest, read_certificate
-from labcal.documents.report import write_run_outputs
 
 SERIAL = "ACC-0042"  # the bench run's instrument
 
@@ -149,7 +149,7 @@ def test_administrative_contents_come_from_the_lab_file_station_file_and_command
     from labcal.config.station import load_certificate_section, shipped_stations
     from labcal.documents.administration import ItemGiven
     from labcal.documents.issuing import build_certificate
-    from labcal.run.record import load_run
+    from labcal.store.record import load_run
 
     lab_file = tmp_path / "lab.toml"
     lab_file.write_text('[laboratory]\nname = "Example Lab"\naddress = "1 Metrology Way"\n'
@@ -237,9 +237,9 @@ def test_the_journal_story_is_in_the_certificate_and_the_report(issued, tmp_path
     from labcal.analysis.fit import fit_readings
     from labcal.documents.issuing import build_certificate
     from labcal.documents.report_tables import story_table
-    from labcal.run.journal import Journal
-    from labcal.run.record import load_run
-    from labcal.run.rundir import read_run_json
+    from labcal.store.journal import Journal
+    from labcal.store.record import load_run
+    from labcal.store.rundir import read_run_json
 
     base = tmp_path / "lab"
     shutil.copytree(issued[0], base)
@@ -349,7 +349,7 @@ def test_the_residual_page_names_the_linear_model_and_each_sensors_rms(issued):
 
     import numpy as np
 
-    from labcal.run.record import load_run
+    from labcal.store.record import load_run
 
     base, pages = issued
     cert = read_certificate(base / "run" / "certificate.json")

@@ -18,14 +18,14 @@ from labcal.bench.setup import known_settle, prepare
 from labcal.config.emulation import FaultKind
 from labcal.config.plans import load_plan
 from labcal.config.settings import SequencerSettings
+from labcal.devices.station import StopFailed
 from labcal.drivers.errors import DeviceFault
 from labcal.drivers.oriental_az import INPUT_REF, Input
-from labcal.run.journal import Journal
 from labcal.run.operator import OperatorDeclined, ScriptedOperator
 from labcal.run.runner import calibrate
-from labcal.run.station import StopFailed
 from labcal.sim.az_emulator import AzServer
 from labcal.sim.faults import Fault
+from labcal.store.journal import Journal
 
 QUICK = {"timeout_s": 0.1, "retries": 2, "reconnect_s": 0.5}
 STOP_BIT = 1 << 5  # the STOP input, bit 5 of the reference input command (hardware_protocols.md §2.1)

@@ -112,7 +112,7 @@ def test_swapped_smc100_addresses_are_named_at_the_first_mount_check_before_any_
            "moves what the plan calls roll (check the tables' addresses or cables)" in err, err
     run = json.loads((tmp_path / "run" / "run.json").read_text())
     assert run["points_recorded"] == 0 and run["status"] == "stopped"
-    from labcal.run.journal import Journal
+    from labcal.store.journal import Journal
 
     with Journal(tmp_path / "j.db") as journal:
         events = journal.events(1)

@@ -12,8 +12,8 @@ import pytest
 from emulators import cli, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.config.station import StationFile
+from labcal.devices.winding import Reach, locate, plan_windings
 from labcal.errors import LabcalError
-from labcal.run.winding import Reach, locate, plan_windings
 from labcal.sim.emulation import Emulation
 
 EMULATE = ["--emulate", "--time-scale", "1000", "--no-report"]

@@ -25,7 +25,7 @@ from labcal.documents.certificate import (
 )
 from labcal.documents.issuing import build_certificate, envelope_grid, load_settings
 from labcal.errors import LabcalError
-from labcal.run.record import load_run
+from labcal.store.record import load_run
 
 
 @pytest.fixture(scope="module")
@@ -91,8 +91,8 @@ def test_contents_match_the_fit_and_the_run(run, cert):
     assert cert.environment.temperature_c_max == run.readings.temp_c.max()
     assert cert.plan.sha256 == hashlib.sha256((run.directory / "plan.toml").read_bytes()).hexdigest()
     # the data digest names the journal's committed points, which the readings.csv export mirrors
-    from labcal.run.journal import Journal
-    from labcal.run.record import readings_digest
+    from labcal.store.journal import Journal
+    from labcal.store.record import readings_digest
 
     info = json.loads((run.directory / "run.json").read_text())
     with Journal(info["journal"]) as journal:
@@ -229,7 +229,7 @@ def test_serial_must_be_known_and_not_contradicted(run, tmp_path):
 def as_reported(run, settings=None):
     """As `labcal report` issues it: the run's model and the station's (here the simulator's) Type B
     inputs, so that the budget states the bench's errors."""
-    from labcal.documents.approving import fitted
+    from labcal.app.approving import fitted
     from labcal.documents.uncertainty import bench_section, type_b_inputs
 
     fit, device, note = fitted(run)
@@ -262,7 +262,7 @@ def test_the_certificate_states_the_averaging_in_use_its_u95_applies_to(run):
     pooled = np.sqrt(np.sum((n - 1)[:, None] * sd**2, axis=0) / np.sum(n - 1))
     assert reading_row(cert).standard_uncertainty == pytest.approx(pooled.max() / np.sqrt(10), rel=1e-12)
     # the averaging is an issuing choice like the envelope: the approval's rebuild keeps it
-    from labcal.documents.approving import issue_settings
+    from labcal.app.approving import issue_settings
     assert issue_settings(forty).in_use_samples == 40 and issue_settings(cert).in_use_samples is None
 
 

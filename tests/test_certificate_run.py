@@ -13,9 +13,9 @@ from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fi
 from labcal.config.station import CertificateSection
 from labcal.documents.administration import ItemGiven, administration
 from labcal.documents.certificate import read_certificate
-from labcal.run.record import load_run
 from labcal.sim.dmm_emulator import IDN
 from labcal.sim.smc100_emulator import VERSION
+from labcal.store.record import load_run
 
 
 def test_an_emulated_run_certifies_the_identities_the_emulators_reported(tmp_path, capsys, no_leaks):  # noqa: F811

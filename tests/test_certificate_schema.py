@@ -167,7 +167,7 @@ def test_a_fit_with_extensions_is_certified_under_the_schema(fresh, validator):
     from labcal.analysis.fit import fit_readings
     from labcal.analysis.models import Model
     from labcal.documents.issuing import build_certificate
-    from labcal.run.record import load_run
+    from labcal.store.record import load_run
 
     record = load_run(fresh.parent)
     fit = fit_readings(record.readings, Model(extensions=("temperature",), t_ref=20.0))

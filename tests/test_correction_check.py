@@ -23,8 +23,8 @@ from labcal.analysis.plan import Plan
 from labcal.config.corrections import DeviceCorrectionTable
 from labcal.config.emulation import RigConfig
 from labcal.config.plans import correction_toml, plan_toml
-from labcal.run.exports import run_fits
 from labcal.sim.direct import simulate_readings
+from labcal.store.exports import run_fits
 
 RIG = RigConfig()
 TRUTH, DEVICE = RIG.instrument, RIG.device

@@ -34,8 +34,8 @@ from labcal.config.plans import correction_toml, plan_correction, plan_toml
 from labcal.documents import device_history
 from labcal.documents.certificate import read_certificate
 from labcal.documents.device_history import DeviceEstimate
-from labcal.run.exports import run_fits
 from labcal.sim.direct import simulate_readings
+from labcal.store.exports import run_fits
 
 RIG = RigConfig()  # the simulated rig of `labcal run --sim`
 ROW = "device misalignment estimates"  # the budget's row of the device's misalignments

@@ -166,7 +166,7 @@ def test_a_correction_past_its_age_or_its_uses_is_not_offered_and_its_plan_is_re
     assert correction_uses("CD-7", "run-3", db) == 0
     from labcal.config.corrections import DeviceCorrectionTable
     from labcal.config.plans import correction_toml
-    from labcal.run.journal import Journal, Manifest
+    from labcal.store.journal import Journal, Manifest
 
     table = DeviceCorrectionTable(device_id="CD-7", source="run-3", calibrated_utc="x",
                                   value_arcsec=dict.fromkeys(NAMES, 0.0), U_arcsec=dict.fromkeys(NAMES, 1.0),

@@ -49,10 +49,10 @@ def names_in(path: Path) -> list[tuple[int, str]]:
 
 def test_the_pattern_finds_a_quoted_name_and_the_check_tells_a_live_one_from_a_dead_one(tmp_path):
     sample = tmp_path / "sample.py"
-    sample.write_text('"""See `labcal.run.station.RotaryAxis` and `labcal.station.RotaryAxis`,\n'
+    sample.write_text('"""See `labcal.devices.station.RotaryAxis` and `labcal.station.RotaryAxis`,\n'
                       'not labcal.sqlite."""\n')
     found = [name for _, name in names_in(sample)]
-    assert found == ["labcal.run.station.RotaryAxis", "labcal.station.RotaryAxis"]
+    assert found == ["labcal.devices.station.RotaryAxis", "labcal.station.RotaryAxis"]
     assert resolves(found[0]) and not resolves(found[1])
 
 

@@ -30,10 +30,10 @@ from labcal.run.events import (
     Status,
     Stopped,
 )
-from labcal.run.journal import Journal, PointRecord
 from labcal.run.operator import AutoOperator
 from labcal.run.runner import calibrate
 from labcal.run.sequencer import schedule
+from labcal.store.journal import Journal, PointRecord
 
 
 def note(i: int) -> Note:

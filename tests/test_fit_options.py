@@ -17,9 +17,9 @@ from labcal.config.emulation import InstrumentTruth
 from labcal.config.plans import load_plan
 from labcal.config.settings import SequencerSettings
 from labcal.run.events import PointMeasured, Status
-from labcal.run.journal import PointRecord
 from labcal.run.sequencer import Forecast, schedule
 from labcal.sim.direct import simulate_readings
+from labcal.store.journal import PointRecord
 
 
 def test_omega_near_zero_is_flagged_because_its_interval_undercovers():

@@ -21,7 +21,7 @@ from labcal.analysis.fit import fit_readings
 from labcal.cli import main
 from labcal.documents.history import RULE, certificates_for, changes, store
 from labcal.documents.issuing import build_certificate
-from labcal.run.record import load_run
+from labcal.store.record import load_run
 
 SERIAL = "SN-1001"
 SHIFT_V = 1e-4
@@ -83,7 +83,7 @@ def test_history_command_json_and_plot(lab, tmp_path, capsys):
 
 
 def test_database_path_option_environment_and_default(lab, monkeypatch, capsys):
-    from labcal.run.journal import db_path
+    from labcal.store.journal import db_path
 
     monkeypatch.setenv("LABCAL_DB", str(lab))
     assert main(["history", SERIAL, "--include-simulated", "--json"]) == 0  # $LABCAL_DB when there is no --db

@@ -23,7 +23,7 @@ from labcal.config.plans import load_plan
 from labcal.config.readings_csv import read_readings
 from labcal.config.station import load_certificate_settings, load_station
 from labcal.documents.certificate import load_calibration, read_certificate
-from labcal.run.rundir import open_run
+from labcal.store.rundir import open_run
 
 STATIONS = Path(__file__).parent.parent / "stations"
 STATIC_LAB = Path(__file__).parent / "data" / "rig_static_lab.toml"

@@ -39,13 +39,13 @@ def test_planted_forbidden_imports_break_the_contracts_that_name_them(tmp_path):
     assert clean.returncode == 0, clean.stdout[-2000:]
 
     with (site / "labcal" / "drivers" / "visa.py").open("a") as driver:
-        driver.write("\nimport labcal.run.labdb  # noqa\n")
-    (site / "labcal" / "commands" / "brand_new.py").write_text("import labcal.run.journal  # noqa\n")
+        driver.write("\nimport labcal.store.labdb  # noqa\n")
+    (site / "labcal" / "commands" / "brand_new.py").write_text("import labcal.store.journal  # noqa\n")
     (site / "labcal" / "app" / "brand_new.py").write_text("import labcal.sim.rig  # noqa\n")
     planted = lint(site)
     report = " ".join(planted.stdout.split())
     assert planted.returncode != 0
-    assert "Drivers know only the station interfaces, cable wrap and errors BROKEN" in report
+    assert "Drivers know only the device interfaces (labcal.devices) and errors BROKEN" in report
     assert "call the application layer and nothing below it BROKEN" in report
     assert "import the simulator BROKEN" in report
     assert report.count("BROKEN") == 3, report[-3000:]

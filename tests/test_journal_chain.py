@@ -23,8 +23,8 @@ import pytest
 from lab_server import add_user, served
 from simulated_runs import bench_run
 
+from labcal.app.run_documents import write_run_outputs
 from labcal.cli import main
-from labcal.documents.report import write_run_outputs
 
 SERIAL = "ACC-0042"
 APPROVER = ["--by", "A. Metrologist", "--role", "Technical manager"]
@@ -182,7 +182,7 @@ def test_an_event_deleted_from_the_journal_is_named_as_missing(issued, tmp_path,
 def test_every_digest_recomputed_after_an_edit_still_fails_against_the_signed_head(issued, tmp_path, capsys):
     """A forger who recomputes the whole chain after editing a point: each record holds, but the chain
     no longer ends in the head the approval signed."""
-    from labcal.run import chain  # the forger's tool: labcal's own writer of digests
+    from labcal.store import chain  # the forger's tool: labcal's own writer of digests
 
     base = copy_of(issued, tmp_path)
     assert main(approve(base)) == 0
@@ -244,7 +244,7 @@ def test_digests_stripped_after_approval_do_not_pass_for_a_run_journaled_before_
 def test_a_point_edited_by_postgresqls_superuser_is_named_by_verify_and_approve_refuses(
         issued, tmp_path, postgres_url, monkeypatch, capsys):
     from labcal.config.lab import ServerDatabase
-    from labcal.run.sync import Sender
+    from labcal.store.sync import Sender
 
     base = copy_of(issued, tmp_path)
     journal = base / "lab.sqlite"
@@ -316,7 +316,7 @@ def test_the_server_signs_nothing_from_a_sqlite_lab_database_others_may_write(is
 
 
 def test_a_new_lab_database_and_its_folder_are_its_owners_only(tmp_path):
-    from labcal.run.journal import Journal
+    from labcal.store.journal import Journal
 
     folder = tmp_path / "new" / "lab"
     with Journal(folder / "lab.sqlite") as journal:
@@ -335,8 +335,8 @@ def test_records_written_through_two_connections_and_a_reopened_journal_form_one
     they read back as."""
     import numpy as np
 
-    from labcal.run.chain import check_sqlite
-    from labcal.run.journal import Journal, Manifest, PointRecord
+    from labcal.store.chain import check_sqlite
+    from labcal.store.journal import Journal, Manifest, PointRecord
 
     def point(seq: int) -> PointRecord:
         return PointRecord(seq, 1, 0, 90, 0, 0, None, None, 1, "ok", float(seq), seq + 0.5, 2, 1, 0, -1,

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from labcal.errors import LabcalError
-from labcal.run.journal import Journal, Manifest, PointRecord, db_path, sha256, utc_now
+from labcal.store.journal import Journal, Manifest, PointRecord, db_path, sha256, utc_now
 
 SHA_ABC = "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad"  # FIPS 180-2, B.1
 SHA_EMPTY = "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855"

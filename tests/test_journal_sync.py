@@ -10,12 +10,12 @@ import subprocess
 import sys
 import textwrap
 
-from labcal.run.journal import Journal
+from labcal.store.journal import Journal
 
 WRITER = textwrap.dedent("""
     import os, signal, sys
     import numpy as np
-    from labcal.run.journal import Journal, Manifest, PointRecord
+    from labcal.store.journal import Journal, Manifest, PointRecord
     journal = Journal(sys.argv[1], durable=False)
     run_id = journal.start_run(Manifest(run_dir="r", plan_name="p", plan_text="t", station_text="s",
                                         software_version="0", settings={}, metadata={}))

@@ -20,10 +20,10 @@ import pytest
 from labcal.cli import main
 from labcal.config.files import write_atomic
 from labcal.errors import LabcalError
-from labcal.run import labdb
-from labcal.run.journal import Journal
-from labcal.run.lock import RunLock, held_by
-from labcal.run.rundir import new_run_dir, slug
+from labcal.store import labdb
+from labcal.store.journal import Journal
+from labcal.store.lock import RunLock, held_by
+from labcal.store.rundir import new_run_dir, slug
 
 STATIC_LAB = str(Path(__file__).parent / "data" / "rig_static_lab.toml")
 
@@ -164,7 +164,7 @@ def test_a_second_process_is_refused_with_who_holds_the_run(tmp_path, capsys):
     with sqlite3.connect(db) as con:  # as if the run were still measuring
         con.execute("UPDATE runs SET status='running'")
     holder = subprocess.Popen([sys.executable, "-c", (
-        "import sys, time; from pathlib import Path; from labcal.run.lock import RunLock\n"
+        "import sys, time; from pathlib import Path; from labcal.store.lock import RunLock\n"
         f"with RunLock(Path({str(db)!r}), 1):\n    print('held', flush=True); time.sleep(60)")],
         stdout=subprocess.PIPE, text=True)
     try:

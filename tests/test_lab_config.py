@@ -11,7 +11,7 @@ import pytest
 from labcal.cli import main
 from labcal.config.lab import certificate_settings, load_lab_config
 from labcal.config.settings import CertificateSettings
-from labcal.run.journal import db_path
+from labcal.store.journal import db_path
 
 LAB = """database = "data/lab.sqlite"
 [laboratory]

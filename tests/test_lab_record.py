@@ -30,7 +30,7 @@ from services import free_port
 from simulated_runs import days_ago
 
 from labcal.cli import main
-from labcal.run.labquery import lab_number_of
+from labcal.store.labquery import lab_number_of
 
 PLAN = "one-mount-16"
 SERIAL = "ACC-0042"

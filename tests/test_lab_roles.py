@@ -109,7 +109,7 @@ def test_the_password_verifier_answers_rfc_7677s_published_exchange():
     """RFC 7677 §3: user "user", password "pencil", salt W22ZaJ0SNY7soEsUEjb6gQ==, 4096 iterations; the
     client's proof and the server's signature over the exchange are published. A verifier that holds
     the right StoredKey and ServerKey reproduces both."""
-    from labcal.run.roles import scram_verifier
+    from labcal.store.roles import scram_verifier
 
     verifier = scram_verifier("pencil", base64.b64decode("W22ZaJ0SNY7soEsUEjb6gQ=="))
     mechanism, iterations_salt, keys = verifier.split("$")

@@ -269,7 +269,7 @@ def test_the_approver_signs_with_the_password_again(lab):
 def test_serve_refuses_a_database_behind_its_schema_in_one_line(tmp_path):
     from sqlalchemy import create_engine
 
-    from labcal.run import migrations
+    from labcal.store import migrations
 
     db = str(tmp_path / "lab.sqlite")
     old = create_engine(f"sqlite:///{db}")

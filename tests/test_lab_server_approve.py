@@ -19,8 +19,8 @@ import pytest
 from lab_server import add_user, served
 from simulated_runs import bench_run
 
+from labcal.app.run_documents import write_run_outputs
 from labcal.cli import main
-from labcal.documents.report import write_run_outputs
 
 
 @pytest.fixture(scope="module")

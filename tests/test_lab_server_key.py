@@ -21,8 +21,8 @@ import pytest
 from lab_server import add_user, served
 from simulated_runs import bench_run
 
+from labcal.app.run_documents import write_run_outputs
 from labcal.cli import main
-from labcal.documents.report import write_run_outputs
 
 # three bench runs through the drivers, each with its report, and three servers: about a minute on two cores
 pytestmark = pytest.mark.slow

@@ -14,8 +14,8 @@ import pytest
 from lab_server import accessible, add_user, served
 from simulated_runs import bench_run
 
+from labcal.app.run_documents import write_run_outputs
 from labcal.cli import main
-from labcal.documents.report import write_run_outputs
 
 
 @pytest.mark.slow  # a bench run through the drivers, its report and an approval: some 35 s on two cores

@@ -207,7 +207,7 @@ def labcal(env: dict[str, str], *args: str) -> subprocess.CompletedProcess:
 def test_a_server_database_behind_is_refused_until_labcal_db_upgrade(tmp_path, postgres_url, lab_file):
     import sqlalchemy as sa
 
-    from labcal.run import migrations
+    from labcal.store import migrations
 
     engine = sa.create_engine(postgres_url.replace("postgresql://", "postgresql+psycopg://"))
     with engine.begin() as connection:
@@ -268,7 +268,7 @@ def test_a_sender_fills_an_empty_server_database_and_sends_nothing_twice(tmp_pat
     """A journal made with a SQLite lab database (the same schema) sent to an empty server database,
     as a run's sender does when the server was away at the start: the schema is created first."""
     from labcal.config.lab import ServerDatabase
-    from labcal.run.sync import Sender
+    from labcal.store.sync import Sender
 
     journal = tmp_path / "lab.sqlite"
     env = env_for(tmp_path, str(journal), "bench")

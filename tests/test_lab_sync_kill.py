@@ -32,7 +32,7 @@ import psycopg
 import pytest
 from services import free_port
 
-from labcal.run.sync import RUN_NUMBER_LOCK
+from labcal.store.sync import RUN_NUMBER_LOCK
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 pytestmark = pytest.mark.slow  # a simulated run and six syncs as processes: about 20 s

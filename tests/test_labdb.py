@@ -29,8 +29,8 @@ import labcal as labcal_package
 from labcal.cli import main
 from labcal.documents.history import certificates_for, store
 from labcal.errors import LabcalError
-from labcal.run import labdb, migrations
-from labcal.run.journal import Journal, Manifest, PointRecord
+from labcal.store import labdb, migrations
+from labcal.store.journal import Journal, Manifest, PointRecord
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 V0 = Path(__file__).parent / "data" / "v0"
@@ -339,7 +339,7 @@ def test_no_statement_depends_on_column_order():
                 offenders += [f"{path.relative_to(SOURCE)}: {m.group(0)}"
                               for m in re.finditer(pattern, text, re.IGNORECASE)]
     assert offenders == []
-    assert any("INSERT INTO points (run_id, " in s for s in sql_strings(SOURCE / "run" / "journal.py"))
+    assert any("INSERT INTO points (run_id, " in s for s in sql_strings(SOURCE / "store" / "journal.py"))
 
 
 def test_point_columns_are_the_journal_record():

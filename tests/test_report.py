@@ -18,14 +18,15 @@ from lab_server import accessible, parses_cleanly
 from simulated_runs import simulated_run
 
 from labcal.analysis.kinematics import NO_MISALIGNMENT, Misalignment, gravity
+from labcal.app.run_documents import write_run_outputs
 from labcal.cli import main
 from labcal.config.settings import CertificateSettings
 from labcal.documents.certificate import read_certificate
 from labcal.documents.issuing import build_certificate
-from labcal.documents.report import fitted, write_run_outputs
+from labcal.documents.report import fitted
 from labcal.documents.report_figures import envelope_figure, figures, inferred_attitude
 from labcal.documents.report_tables import tables
-from labcal.run.record import load_run
+from labcal.store.record import load_run
 
 TOLERANCE_DEG = 0.01
 

@@ -12,9 +12,10 @@ from matplotlib.image import imread
 from simulated_runs import simulated_run
 
 from labcal.analysis.fit import fit_readings
+from labcal.app import run_documents
 from labcal.documents import report, report_figures
 from labcal.documents.issuing import build_certificate
-from labcal.run.record import load_run
+from labcal.store.record import load_run
 
 
 def test_each_figure_is_drawn_once_and_the_html_and_pdf_carry_the_same_pixels(tmp_path, monkeypatch):
@@ -57,5 +58,5 @@ def test_issuing_fits_the_device_model_once(tmp_path, monkeypatch):
     calls = []
     original = device_fit.fit_device
     monkeypatch.setattr(device_fit, "fit_device", lambda *a, **k: calls.append(1) or original(*a, **k))
-    outputs = report.write_run_outputs(run_dir, db=tmp_path / "lab.sqlite")
+    outputs = run_documents.write_run_outputs(run_dir, db=tmp_path / "lab.sqlite")
     assert len(calls) == 1 and outputs.certificate.device is not None

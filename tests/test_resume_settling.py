@@ -26,15 +26,15 @@ from labcal.analysis.kinematics import Mount, nominal_gravity
 from labcal.config.emulation import RigConfig
 from labcal.config.plans import plan_toml
 from labcal.config.settings import SequencerSettings, SettleSettings
+from labcal.devices.station import Station
+from labcal.devices.winding import left_at
 from labcal.run.events import EventBus
-from labcal.run.journal import Journal
 from labcal.run.motion import transient_after, transient_left, trapezoid_duration, trapezoid_travel
 from labcal.run.operator import AutoOperator
 from labcal.run.runner import calibrate, execute, open_for_resume
-from labcal.run.station import Station
-from labcal.run.winding import left_at
 from labcal.sim.clock import VirtualClock
 from labcal.sim.rig import SimRig
+from labcal.store.journal import Journal
 
 SPEED, ACCEL, TAU = 20.0, 40.0, 0.5
 NOISE_V, SAMPLES = 20e-6, 10

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
 
-from labcal.run.journal import Journal
+from labcal.store.journal import Journal
 
 QUICK = "timeout_s = 0.1\nreconnect_s = 1"  # the injected fault costs timeouts: keep them short
 DMM_GONE = '\n[[emulation.faults]]\ndevice = "dmm"\nkind = "close-port"\nafter = 40\nmatch = "FETC"\n'

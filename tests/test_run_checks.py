@@ -20,7 +20,7 @@ import pytest
 from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.config.emulation import default_instrument
-from labcal.run.journal import Journal
+from labcal.store.journal import Journal
 
 pytestmark = pytest.mark.slow  # three dry runs with their reports: ~20 s together
 TRUTH = default_instrument()

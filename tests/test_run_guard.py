@@ -18,9 +18,9 @@ from labcal.config.settings import SequencerSettings
 from labcal.config.station import load_station
 from labcal.run.events import EventBus
 from labcal.run.interrupts import Interrupts
-from labcal.run.journal import Journal
 from labcal.run.operator import AutoOperator
 from labcal.run.runner import calibrate
+from labcal.store.journal import Journal
 
 
 class LinkWatcher:

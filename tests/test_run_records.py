@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 from labcal.cli import main
-from labcal.run.journal import Journal
+from labcal.store.journal import Journal
 
 
 def _run(capsys, monkeypatch, *args, stdin: str = "") -> tuple[int, str, str]:

@@ -1,6 +1,6 @@
 """The lab database's schema: one history (Alembic) that arrives at one schema (SQLAlchemy's
-`labcal.run.schema.METADATA`) on SQLite and PostgreSQL alike, and that matches, table by table, what
-labcal's SQLite files held before Alembic kept the history (`labcal.run.labdb`'s SQL, written before
+`labcal.store.schema.METADATA`) on SQLite and PostgreSQL alike, and that matches, table by table, what
+labcal's SQLite files held before Alembic kept the history (`labcal.store.labdb`'s SQL, written before
 either of the others: the independent reference here)."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import pytest
 import sqlalchemy as sa
 from legacy_schema import legacy_file
 
-from labcal.run import migrations
-from labcal.run.schema import METADATA
+from labcal.store import migrations
+from labcal.store.schema import METADATA
 
 
 def affinity(declared: str) -> str:

@@ -17,14 +17,14 @@ from labcal.bench.setup import sim_station
 from labcal.config.emulation import RigConfig
 from labcal.config.plans import load_plan
 from labcal.config.settings import SequencerSettings, SettleSettings
+from labcal.devices.winding import left_at
 from labcal.errors import LabcalError
 from labcal.run.events import EventBus
-from labcal.run.journal import Journal
 from labcal.run.operator import AutoOperator, OperatorDeclined, ScriptedOperator
 from labcal.run.runner import calibrate, execute, open_for_resume
 from labcal.run.sequencer import schedule
-from labcal.run.winding import left_at
 from labcal.sim.rig import SimRig
+from labcal.store.journal import Journal
 
 STATIC_LAB = str(Path(__file__).parent / "data" / "rig_static_lab.toml")
 

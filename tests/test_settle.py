@@ -11,9 +11,9 @@ from labcal.analysis.distributions import chi2_quantile
 from labcal.analysis.kinematics import Mount
 from labcal.config.emulation import RigConfig
 from labcal.config.settings import SettleSettings
+from labcal.devices.station import mean_and_sd
 from labcal.run.motion import transient_at_stop, transient_left, trapezoid_lag
 from labcal.run.settle import POOL_MIN, TailPool, dead_time, dwell, dwell_model
-from labcal.run.station import mean_and_sd
 from labcal.sim.clock import VirtualClock
 from labcal.sim.rig import SimRig
 from labcal.sim.tail_sensor import TailSensor

@@ -11,12 +11,12 @@ import pytest
 
 from labcal.cli import main
 from labcal.config.settings import SettleSettings
-from labcal.run import labdb
-from labcal.run.journal import RunRow
 from labcal.run.settle import POOL_MIN, TailPool
 from labcal.run.settle_pool import load, pool_key, save
 from labcal.sim.clock import VirtualClock
 from labcal.sim.tail_sensor import TailSensor
+from labcal.store import labdb
+from labcal.store.journal import RunRow
 
 MODEL = SettleSettings(tau_s=0.5, noise_v=20e-6, samples=10, mode="model")
 STEP_V = np.array([0.5, -0.25, 0.1])

@@ -17,8 +17,6 @@ from labcal.analysis.kinematics import Mount
 from labcal.config.emulation import RigConfig
 from labcal.config.plans import load_plan
 from labcal.config.settings import SequencerSettings, SettleSettings
-from labcal.run import labdb
-from labcal.run.journal import Journal, RunRow
 from labcal.run.motion import transient_after
 from labcal.run.operator import AutoOperator
 from labcal.run.runner import calibrate
@@ -26,6 +24,8 @@ from labcal.run.settle import POOL_MIN, TailPool
 from labcal.run.settle_pool import add_to_prior, load_prior, pool_key, prior_key
 from labcal.sim.clock import VirtualClock
 from labcal.sim.rig import SimRig
+from labcal.store import labdb
+from labcal.store.journal import Journal, RunRow
 
 TYPED = SettleSettings(tau_s=0.5, noise_v=20e-6, samples=10, mode="model", prior="type",
                        instrument_type="QA-700")

@@ -17,8 +17,8 @@ from labcal.analysis.fit import fit_readings, reference_temperature
 from labcal.analysis.models import Model
 from labcal.config.emulation import DeviceTruth, InstrumentTruth, RigConfig
 from labcal.config.settings import SequencerSettings, SettleSettings
-from labcal.run.journal import Journal
 from labcal.sim.rig import SimRig
+from labcal.store.journal import Journal
 
 QUIET_DEVICE = DeviceTruth(misalignment_deg={}, index_arcsec=0, wobble_arcsec=0)
 NOISE = 50e-6  # V rms per DMM sample

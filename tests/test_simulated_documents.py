@@ -13,9 +13,9 @@ import pytest
 from pypdf import PdfReader
 from simulated_runs import simulated_run
 
+from labcal.app.run_documents import write_run_outputs
 from labcal.config.emulation import default_instrument
 from labcal.documents.certificate import read_certificate
-from labcal.documents.report import write_run_outputs
 
 DATA = Path(__file__).parent / "data" / "dcc"
 DCC_NS = "{https://ptb.de/dcc}"

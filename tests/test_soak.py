@@ -23,8 +23,8 @@ import numpy as np
 import pytest
 
 from labcal.documents.report import outputs_in_place
-from labcal.run import exports
-from labcal.run.rundir import open_run
+from labcal.store import exports
+from labcal.store.rundir import open_run
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 STATIC_LAB = str(Path(__file__).parent / "data" / "rig_static_lab.toml")
@@ -177,7 +177,7 @@ def test_sigkill_in_every_phase_then_resume_leaves_one_consistent_run(tmp_path):
 # after it ("move"): a journal state the soak's kills reach only by chance, reached every time.
 KILL_AT = """
 import os, signal, sys
-from labcal.run import journal
+from labcal.store import journal
 seq, phase, armed = int(os.environ["KILL_SEQ"]), os.environ["KILL_PHASE"], []
 record_point, event = journal.Journal.record_point, journal.Journal.event
 def killing_point(self, run_id, point, *args, **kwargs):

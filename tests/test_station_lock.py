@@ -19,8 +19,8 @@ import pytest
 from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.config.station import load_station
-from labcal.run.lock import StationLock, link_key, station_locks
 from labcal.sim.emulation import Emulation
+from labcal.store.lock import StationLock, link_key, station_locks
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 EMULATE = ["--emulate", "--time-scale", str(TIME_SCALE), "--no-report"]

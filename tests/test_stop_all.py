@@ -17,13 +17,13 @@ from labcal.bench.setup import known_settle, prepare
 from labcal.config.emulation import FaultKind
 from labcal.config.plans import load_plan
 from labcal.config.settings import SequencerSettings
-from labcal.run.journal import Journal
+from labcal.devices.station import StopFailed
 from labcal.run.operator import OperatorDeclined, ScriptedOperator
 from labcal.run.runner import calibrate
-from labcal.run.station import StopFailed
 from labcal.sim.az_emulator import AzServer
 from labcal.sim.emulation import Emulation
 from labcal.sim.faults import Fault
+from labcal.store.journal import Journal
 
 # A reply timeout longer than the bound: a stop that waited for even one reply of the dead
 # controller before the live table's would arrive after 0.6 s and fail the bound; one that waits

@@ -21,9 +21,9 @@ from emulators import TIME_SCALE, cli, emulated, no_leaks, private_file  # noqa:
 from labcal.bench.setup import prepare
 from labcal.config.plans import load_plan
 from labcal.config.settings import SequencerSettings
-from labcal.run.journal import Journal
 from labcal.run.operator import AutoOperator
 from labcal.run.runner import calibrate
+from labcal.store.journal import Journal
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 

@@ -48,8 +48,8 @@ def calibrate_on(rig_: SimRig, tmp_path, settings: SequencerSettings, events: Ev
                  terminal: Terminal | None = None, plan_name: str = "four-mount-64"):
     from conftest import quiet_console
 
-    from labcal.run.journal import Journal
     from labcal.run.runner import calibrate
+    from labcal.store.journal import Journal
 
     plan, text = load_plan(plan_name)
     (tmp_path / "run").mkdir(exist_ok=True)

@@ -15,13 +15,13 @@ import pytest
 from modbus_crc import with_crc
 from transcripts import Transcript, lines
 
+from labcal.devices.station import SystemClock
 from labcal.drivers.errors import DeviceFault, NoReply, Rejected
 from labcal.drivers.keysight_34970a import Keysight34970A
 from labcal.drivers.modbus import ModbusLink
 from labcal.drivers.newport_smc100 import Smc100Axis
 from labcal.drivers.oriental_az import AzAxis
 from labcal.drivers.transport import LineTransport
-from labcal.run.station import SystemClock
 
 
 def hexes(text: str) -> bytes:

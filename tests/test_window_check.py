@@ -25,13 +25,13 @@ from pymodbus.client import ModbusTcpClient
 from labcal.bench.setup import known_settle, prepare
 from labcal.config.plans import load_plan
 from labcal.config.settings import SequencerSettings
-from labcal.run.journal import Journal
 from labcal.run.operator import OperatorDeclined, ScriptedOperator
 from labcal.run.runner import calibrate
 from labcal.sim.az_emulator import AzServer
 from labcal.sim.emulation import Emulation
 from labcal.sim.line_server import LineServer
 from labcal.sim.smc100_emulator import Smc100Emulator
+from labcal.store.journal import Journal
 
 SEQ = 5  # the point whose window the fault lands in (of one-mount-16's sixteen)
 TOLERANCE_ARCSEC = 5.0  # the example stations' in_position_arcsec (the default)

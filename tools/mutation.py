@@ -59,7 +59,8 @@ TARGETS: dict[str, Target] = {
     "budget": Target("labcal/analysis/budget.py", ("tests/test_budget.py",)),
     # test_labdb (migrations), test_history and test_run_guard also open a journal, but spend minutes per
     # mutant on migrated databases and certificates; the journal's own tests decide its mutants.
-    "journal": Target("labcal/run/journal.py", ("tests/test_journal_truth.py", "tests/test_journal_sync.py")),
+    "journal": Target("labcal/store/journal.py",
+                      ("tests/test_journal_truth.py", "tests/test_journal_sync.py")),
     "modbus": Target("labcal/drivers/modbus.py",
                      ("tests/test_modbus_frames.py", "tests/test_az_defects.py", "tests/test_transcripts.py",
                       "tests/test_driver_logging.py")),

@@ -1,6 +1,6 @@
 """The lab server's audit trail: sign-ins and their failures, lockouts and unlocks, refusals (401,
 403), approvals, and every change to the users and the approvers — what happened, to which account,
-who did it, when and from where — in the lab database (`labcal.run.schema.audit`).
+who did it, when and from where — in the lab database (`labcal.store.schema.audit`).
 
 Tamper-evident: each row's ``digest`` is the SHA-256 of the previous row's digest (``prev``) and of
 the row's own fields, so changing, removing or inserting a row breaks the chain from there on
@@ -27,8 +27,8 @@ from sqlalchemy import desc, func, select
 
 from labcal.app.labdatabase import LabDatabase
 from labcal.errors import LabcalError
-from labcal.run.chain import append_audit, audit_digest
-from labcal.run.schema import audit
+from labcal.store.chain import append_audit, audit_digest
+from labcal.store.schema import audit
 
 # What a row records (``kind``)
 SIGNED_IN = "signed in"

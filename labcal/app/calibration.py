@@ -25,14 +25,14 @@ if TYPE_CHECKING:
     from labcal.bench.setup import StationSetup
     from labcal.config.settings import CertificateSettings, SequencerSettings, ThermalGate
     from labcal.config.station import InstrumentSettings, StationFile
+    from labcal.devices.station import Station
     from labcal.documents.report import RunOutputs
     from labcal.run.estimate import Estimate
     from labcal.run.events import RunEvent
     from labcal.run.notify import RunName, RunNotifier
     from labcal.run.operator import Operator, Terminal
     from labcal.run.runner import RunResult
-    from labcal.run.station import Station
-    from labcal.run.sync import Background
+    from labcal.store.sync import Background
 
 
 class Display(Protocol):
@@ -219,9 +219,9 @@ def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Esti
     resumed run's, which its folder names; else ``db``'s)."""
     from labcal.run.events import EventBus
     from labcal.run.interrupts import StopSignal
-    from labcal.run.journal import db_path
     from labcal.run.operator import OperatorDeclined
-    from labcal.run.rundir import points_on_disk
+    from labcal.store.journal import db_path
+    from labcal.store.rundir import points_on_disk
 
     journal = journal or db_path(db)
     front.say(f"Run directory: {run_dir}", markup=False)  # a folder named run[1] is a name, not markup
@@ -251,19 +251,19 @@ def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Esti
     record = None  # the finished run as its journal has it, read (and its fits made) once for both
     if result.device is not None:  # the device's estimate is the run's, whether or not a report is made
         from labcal.documents.device_history import store_device_estimate
-        from labcal.run.record import load_run
+        from labcal.store.record import load_run
 
         record = load_run(run_dir)
         store_device_estimate(record, result.device, db)
     issued = None
     if not no_report:
+        from labcal.app.run_documents import write_run_outputs
         from labcal.documents.device_history import DeviceMoved
-        from labcal.documents.report import write_run_outputs
 
         try:
             issued = write_run_outputs(run_dir, certificate, db=journal, record=record)
         except DeviceMoved as exc:  # journaled for the lab, then the one line to the technician
-            from labcal.run.journal import Journal
+            from labcal.store.journal import Journal
 
             with Journal(journal) as book:
                 book.event(result.run_id, "device_moved", str(exc),
@@ -282,12 +282,12 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
     from labcal.config.snapshot import SimulatedRigSnapshot
     from labcal.run.estimate import estimate
     from labcal.run.interrupts import stop_signals_raise
-    from labcal.run.journal import Journal, db_path
     from labcal.run.notify import RunNotifier, lab_notifications
-    from labcal.run.rundir import new_run_dir
     from labcal.run.runner import calibrate
     from labcal.run.sequencer import check_limits, schedule
-    from labcal.run.sync import ready, sending
+    from labcal.store.journal import Journal, db_path
+    from labcal.store.rundir import new_run_dir
+    from labcal.store.sync import ready, sending
 
     if not args.sim and not args.station:
         raise LabcalError("no station given: use --sim for a dry run on the simulated rig, or --station FILE "
@@ -395,7 +395,7 @@ def _run_name(metadata: dict, station_text: str, serial: str | None) -> RunName:
 def _lab_label(journal: Path, db: str | Path | None) -> Callable[[int], str]:
     """How a notification names the run: by the lab's number (its provisional label until the lab
     has numbered it), as every bench, page and API answer does."""
-    from labcal.run.labquery import lab_number_of
+    from labcal.store.labquery import lab_number_of
 
     return lambda run_id: lab_number_of(journal, run_id, db)
 
@@ -471,8 +471,8 @@ def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Pat
     taken over, with a note. A link the emulators choose (port 0, ``pty:NAME``) is no address
     yet: it is held once they have chosen it, by a second call with ``chosen``, the station as
     they serve it (`Emulation.station_config`)."""
-    from labcal.run.journal import db_path
-    from labcal.run.lock import StationLock, station_locks
+    from labcal.store.journal import db_path
+    from labcal.store.lock import StationLock, station_locks
 
     links = {(chosen.devices()[n] if chosen is not None else s).bus:
              (chosen.devices()[n] if chosen is not None else s).where
@@ -504,14 +504,14 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
     from labcal.bench.setup import prepare, read_snapshot, sim_station, station_for_resume
     from labcal.config.settings import CertificateSettings
     from labcal.config.station import load_station
+    from labcal.devices.winding import left_at
     from labcal.run.estimate import estimate
     from labcal.run.interrupts import stop_signals_raise
-    from labcal.run.journal import sha256
     from labcal.run.notify import RunNotifier, lab_notifications
     from labcal.run.runner import execute, open_for_resume
     from labcal.run.sequencer import check_limits, schedule
-    from labcal.run.sync import check_server, sending
-    from labcal.run.winding import left_at
+    from labcal.store.journal import sha256
+    from labcal.store.sync import check_server, sending
 
     run_dir = Path(args.run)
     check_server(args.db)  # a lab server behind or ahead of this labcal: refused before anything changes
@@ -586,7 +586,8 @@ def finish_complete(args: ResumeRun, run_dir: Path, run_id: int,
                     settings: CertificateSettings, journal: Path) -> AlreadyComplete:
     """A complete run resumed: its exports were checked and repaired; its certificate and report are
     issued again if any of them is missing or not the history's (a kill during `labcal report`)."""
-    from labcal.documents.report import outputs_in_place, write_run_outputs
+    from labcal.app.run_documents import write_run_outputs
+    from labcal.documents.report import outputs_in_place
 
     if args.no_report or outputs_in_place(run_dir, db=journal):
         return AlreadyComplete(run_id, run_dir, None)

@@ -89,9 +89,9 @@ class Issued:
 def issue_certificate(request: IssueCertificate) -> Issued:
     """Issue (or issue again) a complete run's certificate and report; one line for a run that is
     not complete, not this journal's, or settings that are wrong."""
+    from labcal.app.run_documents import write_run_outputs
     from labcal.documents.administration import ItemGiven
     from labcal.documents.issuing import load_settings
-    from labcal.documents.report import write_run_outputs
     from labcal.documents.report_tables import (
         attitude_table,
         budget_table,
@@ -156,7 +156,7 @@ class Approved:
 def approve_certificate(request: ApproveCertificate) -> Approved:
     """Sign the run's draft certificate and its DCC, write the report without DRAFT and store the
     approved certificate; one line naming every reason it may not be signed."""
-    from labcal.documents.approving import approve_run
+    from labcal.app.approving import approve_run
 
     signed_for = (None if request.signed_for is None
                   else (request.signed_for.user_id, request.signed_for.authentication))
@@ -195,9 +195,9 @@ class Verified:
 def verify_certificate(request: VerifyCertificate) -> Verified:
     """A certificate's signature checked (and its DCC's digest), and its run's journal recomputed up
     to the chain's head it states; one line when either fails. A read."""
+    from labcal.app.approving import journal_verdict
     from labcal.documents.approval import check_dcc, load_public_key, verify
     from labcal.documents.approvers import signed_note, verify_registered
-    from labcal.documents.approving import journal_verdict
     from labcal.documents.dcc import DCC_FILE
 
     cert = (verify_registered(request.file, request.db) if request.public_key is None
@@ -279,7 +279,7 @@ def _audited(db: str | None, detail: str, name: str) -> None:
     (the SQLite lab database, or the station's journal)."""
     from labcal.app import audit
     from labcal.app.labdatabase import OpenLab, open_lab
-    from labcal.run.journal import db_path
+    from labcal.store.journal import db_path
 
     lab = open_lab(OpenLab(str(db_path(db)), must_exist=True))
     try:
@@ -307,6 +307,6 @@ def share_with_lab(db: str | None) -> str | None:
     to the lab's server now, so that every bench sees it at once; None when it is there (or when the
     lab database is a SQLite file, this bench's own), else the one line saying it waits for
     ``labcal sync`` (nothing is lost: the journal keeps it)."""
-    from labcal.run.sync import send_now
+    from labcal.store.sync import send_now
 
     return send_now(db)

@@ -42,8 +42,8 @@ from labcal.app.residuals import certified_residuals, residual_png
 from labcal.app.runs import attention
 from labcal.documents.certificate import Certificate, certificate_from_doc, format_result
 from labcal.errors import LabcalError
-from labcal.run.lab_certificates import approved_by
-from labcal.run.schema import certificate_files, certificates, events, runs
+from labcal.store.lab_certificates import approved_by
+from labcal.store.schema import certificate_files, certificates, events, runs
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Connection
@@ -143,7 +143,7 @@ class Queue:
 def queue(lab: LabDatabase, dry_runs: bool = False) -> Queue:
     """The complete runs whose certificate is not approved, oldest first; dry runs (never approved)
     counted, and listed too when ``dry_runs``. A run the lab holds an approved certificate of
-    (`labcal.run.lab_certificates.approved_by`: read, not verified — its page verifies what it shows)
+    (`labcal.store.lab_certificates.approved_by`: read, not verified — its page verifies what it shows)
     is passed over before any certificate is parsed, so the queue costs what is waiting, not the
     lab's history."""
     waiting, dry = [], 0

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 from labcal.errors import LabcalError
 
 if TYPE_CHECKING:
-    from labcal.run.journal import Journal, RunRow
+    from labcal.store.journal import Journal, RunRow
 
 
 @dataclass(frozen=True)
@@ -40,7 +40,7 @@ class FolderWritten:
     status: str
     notes: tuple[str, ...]  # what was rewritten, and why
     recorded: str | None = None  # a rebuild that moved the run's folder: the folder it was recorded in
-    label: str = ""  # the run as the lab names it (`labcal.run.labquery.run_label`)
+    label: str = ""  # the run as the lab names it (`labcal.store.labquery.run_label`)
 
     @property
     def number(self) -> int | None:
@@ -49,14 +49,14 @@ class FolderWritten:
 
 
 def _label(journal: Journal, run_id: int, db: str | None) -> str:
-    from labcal.run.labquery import lab_number_of
+    from labcal.store.labquery import lab_number_of
 
     return lab_number_of(journal.path, run_id, db)
 
 
 def _target(folder: Path, row) -> None:
     """A folder a run's files may be written into: new, empty, or one that shows this very run."""
-    from labcal.run.rundir import RUN, check_identity, read_run_json
+    from labcal.store.rundir import RUN, check_identity, read_run_json
 
     if folder.exists() and not folder.is_dir():
         raise LabcalError(f"{folder}: exists and is not a folder; give another {{0}}", "out")
@@ -75,8 +75,8 @@ def export_run(request: ExportRun) -> FolderWritten:
     lab database are left as they were: the run stays recorded where it was (`rebuild_run_folder`
     of the copy makes the copy the run's folder)."""
     from labcal.app.journals import open_named
-    from labcal.run import exports
-    from labcal.run.rundir import RUN
+    from labcal.store import exports
+    from labcal.store.rundir import RUN
 
     journal, row, named = open_named(request.run, request.db)
     folder = Path(request.out)
@@ -98,8 +98,8 @@ def rebuild_run_folder(request: RebuildRunFolder) -> FolderWritten:
     of date or edited (an edited one kept as NAME.edited); a deleted folder is made again. A folder
     given by its path that the journal records elsewhere becomes the run's folder (journaled)."""
     from labcal.app.journals import open_named
-    from labcal.run import exports
-    from labcal.run.rundir import RUN, recorded_folder
+    from labcal.store import exports
+    from labcal.store.rundir import RUN, recorded_folder
 
     journal, row, named = open_named(request.run, request.db)
     with journal:
@@ -116,8 +116,8 @@ def rebuild_run_folder(request: RebuildRunFolder) -> FolderWritten:
 def _approved_by_the_lab(folder: Path, run_uuid: str | None, db: str | None) -> list[str]:
     """The certificate the lab server approved for the run, with its DCC and report, written into
     its folder (a note naming them); nothing where the lab is not a server or cannot be reached."""
-    from labcal.run import labdb
-    from labcal.run.lab_certificates import files_of, write_files
+    from labcal.store import labdb
+    from labcal.store.lab_certificates import files_of, write_files
 
     where = labdb.lab_database(db)
     if isinstance(where, Path) or run_uuid is None:

@@ -23,8 +23,8 @@ from labcal.app.desk import approval_of, documents_of, parsed_certificate
 from labcal.app.histories import History, InstrumentHistory, instrument_history
 from labcal.app.labdatabase import LabDatabase
 from labcal.errors import LabcalError
-from labcal.run.instruments import Instrument
-from labcal.run.schema import certificates, runs
+from labcal.store.instruments import Instrument
+from labcal.store.schema import certificates, runs
 
 SOON_DAYS = 30  # the register marks an instrument due within this many days
 SEARCH_MAX = 100  # the longest search the register takes (a serial is at most 64 characters)

@@ -39,7 +39,7 @@ from labcal.errors import LabcalError
 
 if TYPE_CHECKING:
     from labcal.app.labdatabase import LabDatabase
-    from labcal.run.instruments import Instrument
+    from labcal.store.instruments import Instrument
 
 STATUSES = ("active", "retired", "out-for-repair")
 LENGTHEN = 1.25  # ILAC-G24 method 1: the interval after an in-tolerance calibration, × this
@@ -119,14 +119,14 @@ class InstrumentFields:
 
 def add(lab: LabDatabase, serial: str, fields: InstrumentFields) -> Instrument:
     """Register an instrument (one line if its serial is registered already, in any case)."""
-    from labcal.run import instruments
+    from labcal.store import instruments
 
     clean, _ = checked_serial(serial)
     return instruments.insert(lab.engine, clean, fields.values())
 
 
 def edit(lab: LabDatabase, serial: str, fields: InstrumentFields) -> Instrument:
-    from labcal.run import instruments
+    from labcal.store import instruments
 
     values = fields.values()
     if not values:
@@ -138,7 +138,7 @@ def edit(lab: LabDatabase, serial: str, fields: InstrumentFields) -> Instrument:
 
 
 def listed(lab: LabDatabase, search: str | None = None) -> list[Instrument]:
-    from labcal.run import instruments
+    from labcal.store import instruments
 
     return instruments.listed(lab.engine, search.strip() if search else None)
 
@@ -149,7 +149,7 @@ def _unregistered(lab: LabDatabase, serial: str) -> LabcalError:
 
 
 def registered(lab: LabDatabase, serial: str) -> Instrument:
-    from labcal.run import instruments
+    from labcal.store import instruments
 
     found = instruments.find(lab.engine, checked_serial(serial)[0])
     if found is None:
@@ -316,8 +316,8 @@ def serial_for_run(serial: str, db: str | None) -> RunSerial:
     """The serial a run certifies (see the module): cleaned, in the register's spelling where it is
     registered, and whether the register (when it holds any instrument) lacks it."""
     from labcal.app.labdatabase import OpenLab, open_lab
-    from labcal.run import instruments
-    from labcal.run.labdb import Unreachable
+    from labcal.store import instruments
+    from labcal.store.labdb import Unreachable
 
     clean, note = checked_serial(serial)
     notes = [note] if note else []

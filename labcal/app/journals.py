@@ -6,8 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from labcal.errors import LabcalError
-from labcal.run.journal import Journal, RunRow, db_path
-from labcal.run.rundir import open_run
+from labcal.store.journal import Journal, RunRow, db_path
+from labcal.store.rundir import open_run
 
 
 def existing(db: str | Path | None) -> Path:
@@ -27,7 +27,7 @@ def open_named(run: str, db: str | Path | None) -> tuple[Journal, RunRow, Path |
     one (a run number names none: its folder may be gone; the journal has all of it). A number is the
     lab's (`labcal runs`), as every command names runs."""
     if run.isdigit():
-        from labcal.run.labquery import journal_run
+        from labcal.store.labquery import journal_run
 
         journal = Journal(existing(db))
         try:

@@ -8,7 +8,7 @@ run id or a typed request; the runs and events they return are the API's JSON ob
 names are the API's: `GET /api/runs`, `GET /api/runs/{id}`), built here once for the API, the pages
 and the streams alike.
 
-Everything here is a SELECT through `labcal.run.schema`'s tables, on SQLite or PostgreSQL alike;
+Everything here is a SELECT through `labcal.store.schema`'s tables, on SQLite or PostgreSQL alike;
 nothing is written (a reader must never change what it shows, docs/design.md §4).
 
 Progress is the journal's: ``points_done`` counts the points journaled (measured or failed, each once
@@ -38,7 +38,7 @@ from labcal.app.labdatabase import LabDatabase
 from labcal.app.station_state import PACE_POINTS, Heard, on_the_wall
 from labcal.config.snapshot import is_simulated, parse_snapshot
 from labcal.run.events import JournaledPrompt
-from labcal.run.schema import events, points, runs
+from labcal.store.schema import events, points, runs
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Connection
@@ -316,7 +316,7 @@ class RunView:
 
 
 def run_view(lab: LabDatabase, run_id: int) -> RunView | None:
-    from labcal.run.lab_certificates import approved_by, file_names
+    from labcal.store.lab_certificates import approved_by, file_names
 
     with lab.engine.connect() as conn:
         found = _progress(conn, run_id)

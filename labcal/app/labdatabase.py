@@ -1,9 +1,9 @@
-"""Opening the lab database for the lab server and `labcal user`: `labcal.run.labdb.lab_engine`, plus
+"""Opening the lab database for the lab server and `labcal user`: `labcal.store.labdb.lab_engine`, plus
 the two things the server needs to know about where it is.
 
 A location is what ``--db``, `LABCAL_DB` or the lab file's ``database`` says (a path,
 ``sqlite:///PATH`` or ``postgresql://USER@HOST:PORT/DBNAME``), resolved as every labcal command
-resolves it (`labcal.run.labdb.lab_database`). `lab_engine` creates a new database at the newest
+resolves it (`labcal.store.labdb.lab_database`). `lab_engine` creates a new database at the newest
 schema and refuses, in one line, one that is behind (``labcal db upgrade``) or ahead.
 
 The server only reads: it refuses a SQLite path where there is no file rather than create an empty
@@ -46,7 +46,7 @@ class LabDatabase:
 
 def open_lab(request: OpenLab) -> LabDatabase:
     """The lab database, at this labcal's schema; one line when it is missing, behind or ahead."""
-    from labcal.run.labdb import lab_database, lab_engine
+    from labcal.store.labdb import lab_database, lab_engine
 
     where = lab_database(request.db)
     if isinstance(where, Path) and request.must_exist and not where.is_file():

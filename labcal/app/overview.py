@@ -27,7 +27,7 @@ from labcal.app.station_state import (
     mount_angles,
     replay,
 )
-from labcal.run.schema import events, points, station_roles
+from labcal.store.schema import events, points, station_roles
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Connection

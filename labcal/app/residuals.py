@@ -3,7 +3,7 @@
 The server may not reach the run's folder (another station's disk), but the lab database holds every
 reading. A run with a certificate shows the residuals of the model that certificate states, with
 the values it states: each reading of the lab's own copy of the run
-(`labcal.run.lab_certificates.lab_record`) less ``B + gᵀS``, with the certificate's B and S and the
+(`labcal.store.lab_certificates.lab_record`) less ``B + gᵀS``, with the certificate's B and S and the
 gravity its model gives — through the device's misalignments where it rests on the device model
 (Soto eq. 11, the six misalignments its device section states) or on a device correction (the
 correction's values), nominal gravity otherwise (Soto eq. 4). Nothing is fitted again: the residuals
@@ -34,11 +34,11 @@ from labcal.analysis.kinematics import NO_MISALIGNMENT, Misalignment, gravity
 from labcal.analysis.readings import Readings
 from labcal.documents.certificate import Certificate
 from labcal.errors import LabcalError
-from labcal.run.schema import points, runs
+from labcal.store.schema import points, runs
 
 
 def readings(conn: Connection, run_id: int) -> Readings | None:
-    """The run's measured points as Readings, as `labcal.run.journal.Journal.readings` gives them."""
+    """The run's measured points as Readings, as `labcal.store.journal.Journal.readings` gives them."""
     rows = conn.execute(select(points.c.replicate, points.c.y_deg, points.c.u_deg, points.c.pitch_deg,
                                points.c.roll_deg, points.c.vx, points.c.vy, points.c.vz, points.c.temp_c)
                         .where(points.c.run_id == run_id, points.c.status == "ok")
@@ -127,7 +127,7 @@ def _gravity_misalignment(cert: Certificate) -> tuple[Misalignment, str, str] | 
 
 
 def _certified(conn: Connection, run_id: int, cert: Certificate) -> CertifiedResiduals | None:
-    from labcal.run.lab_certificates import lab_record
+    from labcal.store.lab_certificates import lab_record
 
     run_dir = conn.execute(select(runs.c.run_dir).where(runs.c.id == run_id)).scalar()
     if run_dir is None:

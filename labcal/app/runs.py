@@ -6,7 +6,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from labcal.errors import LabcalError
-from labcal.run.labquery import LabRun
+from labcal.store.labquery import LabRun
 
 
 @dataclass(frozen=True)
@@ -54,7 +54,7 @@ class RunList:
 def seen_status(db: Path, status: str, run_id: int) -> str:
     """The journal's status, except that a "running" run whose lock nobody holds was interrupted:
     its process ended without closing it (a kill, a power cut). `labcal resume` goes on with it."""
-    from labcal.run.lock import held_by
+    from labcal.store.lock import held_by
 
     if status == "running" and held_by(db, run_id) is None:
         return "interrupted"
@@ -100,7 +100,7 @@ def _metadata(run: LabRun) -> dict:
 def list_runs(request: ListRuns) -> RunList:
     """The lab's runs in the order the lab numbered them (this bench's runs it has not seen yet
     last); a missing database is an empty list, and is not created."""
-    from labcal.run.labquery import lab_runs
+    from labcal.store.labquery import lab_runs
 
     wanted = request.statuses
     # an interrupted run may still say "running" in the journal: ask for both, then sort out
@@ -153,9 +153,9 @@ def _run_of(request: ReadLog) -> tuple[str | None, int | None, str | None]:
         return request.db, int(request.run), None
     if Path(request.run).is_dir():
         from labcal.app.journals import existing
-        from labcal.run.journal import Journal
-        from labcal.run.labquery import is_server
-        from labcal.run.rundir import read_run_json
+        from labcal.store.journal import Journal
+        from labcal.store.labquery import is_server
+        from labcal.store.rundir import read_run_json
 
         info = read_run_json(Path(request.run))
         try:
@@ -174,7 +174,7 @@ def _run_of(request: ReadLog) -> tuple[str | None, int | None, str | None]:
 
 def read_log(request: ReadLog) -> RunLog:
     """A run's journaled events in order: prompts and answers, retries, faults, pauses, resumes."""
-    from labcal.run.labquery import run_events
+    from labcal.store.labquery import run_events
 
     db, number, uuid = _run_of(request)
     found, source = run_events(db, number, uuid)

@@ -23,14 +23,14 @@ signs accordingly:
 
 On SQLite, approving is `labcal.app.certificates.approve_certificate` on the run's folder — the
 use case of `labcal certificate approve`: it rebuilds what it signs from the journal, refuses a
-simulated run, an edited draft, a journal whose chain of digests does not hold (`labcal.run.chain`),
+simulated run, an edited draft, a journal whose chain of digests does not hold (`labcal.store.chain`),
 a run journaled before digests, an unregistered or revoked key, and writes the certificate, DCC and
 report again.
 
 On PostgreSQL the lab database is the record: the server signs the lab database's own copy of the
 run the approver named (its runs, points and events rows and the draft its bench synced; never a
 folder), recomputes the lab's chain of digests, and keeps the signed certificate, its DCC and its
-report in the lab database in one transaction (`labcal.documents.approving.approve_lab_run`); the
+report in the lab database in one transaction (`labcal.app.approving.approve_lab_run`); the
 bench's folder receives them on its next `labcal sync` or `labcal export RUN`.
 
 On SQLite the lab database is one machine, one trust domain: the server approves only from a file
@@ -112,7 +112,7 @@ def _cannot(lab: LabDatabase, run_dir: str, key: Path | None, name: str) -> str 
                 f"in the lab file); {where}")
     if lab.file is None:
         return None
-    from labcal.run.labdb import others_may_write
+    from labcal.store.labdb import others_may_write
 
     loose = others_may_write(lab.file)
     if loose is not None:  # whoever may write the file may write its users, approvers and journal
@@ -150,7 +150,7 @@ def approve_as_user(lab: LabDatabase, request: ApproveAsUser) -> ServerApproved 
         role, signed_for = (registered.role if registered is not None else user.role), None
     with _ONE_AT_A_TIME:
         if lab.server is not None:  # the lab's own copy of the run, and the files kept there
-            from labcal.documents.approving import approve_lab_run
+            from labcal.app.approving import approve_lab_run
 
             server = None if signed_for is None else (signed_for.user_id, signed_for.authentication)
             cert = approve_lab_run(lab.server, request.run_id, user.name, role, key, server)
@@ -175,8 +175,8 @@ def approved_file(lab: LabDatabase, run_id: int, name: str) -> tuple[str, bytes]
     """A file of run ``run_id``'s certificate as the lab server approved it and the lab keeps it
     (the signed certificate.json, certificate.dcc.xml, report.pdf, report.html), with its media
     type; None: no such file, or none approved there."""
-    from labcal.run.lab_certificates import files_of
-    from labcal.run.schema import runs
+    from labcal.store.lab_certificates import files_of
+    from labcal.store.schema import runs
 
     if name not in MEDIA:
         return None

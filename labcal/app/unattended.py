@@ -17,9 +17,9 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from labcal.analysis.kinematics import Mount
     from labcal.bench.hardware import Bench
+    from labcal.devices.station import Station
     from labcal.run.events import RunEvent
     from labcal.run.operator import Heard, PauseChoice, Terminal
-    from labcal.run.station import Station
 
 LOG = logging.getLogger("labcal.run")
 
@@ -73,8 +73,8 @@ class Unattended:
 
     def checklist(self, bench: Bench | None, station: Station, points: int, samples: int) -> dict:
         from labcal.bench.checklist import PowerOn, refusal, run_checklist, unmet
-        from labcal.run.journal import db_path
-        from labcal.run.labdb import lab_server
+        from labcal.store.journal import db_path
+        from labcal.store.labdb import lab_server
 
         config = None if bench is None else bench.config
         items = run_checklist(config, bench, station, db=db_path(self.db),

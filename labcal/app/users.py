@@ -5,7 +5,7 @@ Each user has a role — ``viewer`` reads, ``technician`` reads (and runs at the
 server does not do), ``approver`` reads and approves certificates — a password for the web login and
 an API token for programs (``Authorization: Bearer TOKEN``).
 
-Neither is kept in clear (`labcal.run.schema.users`):
+Neither is kept in clear (`labcal.store.schema.users`):
 
 - the password under argon2id (argon2-cffi, its default cost: 64 MiB, 3 passes), because people
   choose guessable passwords and a stolen table must make each guess expensive;
@@ -36,7 +36,7 @@ from sqlalchemy.exc import IntegrityError
 from labcal.app import audit
 from labcal.app.labdatabase import LabDatabase
 from labcal.errors import LabcalError
-from labcal.run.schema import users
+from labcal.store.schema import users
 
 LOG = logging.getLogger("labcal.server")
 ROLES = ("technician", "approver", "viewer")

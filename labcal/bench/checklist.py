@@ -15,7 +15,7 @@ Each item is ok, warning or fail, with one line saying what was found and what t
   verification); the manual's excerpt (hardware_protocols.md §3.1) documents no self-test query,
   so ``*TST?`` is not sent;
 - free disk: the journal's folder and the run folder against an estimate of what the run writes;
-- lab database: opened as a run opens it (`labcal.run.labdb.connect`), its one-line error if not.
+- lab database: opened as a run opens it (`labcal.store.labdb.connect`), its one-line error if not.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ if TYPE_CHECKING:
     from labcal.config.lab import ServerDatabase
     from labcal.config.station import InstrumentSettings, StationFile
     from labcal.config.uncertainty import Traceability
-    from labcal.run.station import Station
+    from labcal.devices.station import Station
 
 Status = Literal["ok", "warning", "fail"]
 CHANNELS_STORED = 4  # x, y, z and temperature: the most a point's raw samples hold
@@ -232,7 +232,7 @@ def lab_database(path: Path, server: ServerDatabase | None = None) -> Item:
     """The journal opens as a run opens it; the lab's server, where there is one, answers at this
     labcal's schema. A server that cannot be reached is a warning, not a failure: a run never waits
     for it (its records stay in the journal and are sent when it is back)."""
-    from labcal.run.labdb import Unreachable, connect, open_server
+    from labcal.store.labdb import Unreachable, connect, open_server
 
     try:
         connect(path).close()

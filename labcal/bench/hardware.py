@@ -13,6 +13,7 @@ from labcal.config.station import (
     StationFile,
     tcp_address,
 )
+from labcal.devices.station import Clock, CriticalSection, Station, SystemClock
 from labcal.drivers.axis import IndexAxis
 from labcal.drivers.errors import DriverError
 from labcal.drivers.keysight_34970a import EOL as SCPI_EOL
@@ -23,7 +24,6 @@ from labcal.drivers.newport_smc100 import Smc100Axis
 from labcal.drivers.oriental_az import AzAxis
 from labcal.drivers.transport import LineTransport, SerialStream, TcpStream
 from labcal.drivers.visa import VisaLink
-from labcal.run.station import Clock, CriticalSection, Station, SystemClock
 
 Link = TypeVar("Link", ModbusLink, LineTransport)
 

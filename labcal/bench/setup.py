@@ -2,7 +2,7 @@
 drivers, on the emulators it points at with `--emulate`.
 
 These factories are the one production path into `labcal.sim`: everything else drives a station
-through the interfaces of `labcal.run.station` and cannot tell a simulator from hardware. Each
+through the interfaces of `labcal.devices.station` and cannot tell a simulator from hardware. Each
 factory also says what the journal keeps of the station (its snapshot), so that `labcal resume`
 rebuilds the same one, and the station's pace for the estimates.
 """
@@ -24,8 +24,8 @@ if TYPE_CHECKING:  # the simulator and the drivers are imported where a station 
     from labcal.config.settings import SettleSettings
     from labcal.config.snapshot import StationFileSnapshot
     from labcal.config.station import AzSettings, Smc100Settings, StationFile
+    from labcal.devices.station import Station
     from labcal.run.estimate import LinkTiming, Timing
-    from labcal.run.station import Station
 
 REMOUNT_ALLOWANCE_S = 300.0  # the operator's time for one remount, for estimates on real hardware
 
@@ -45,7 +45,7 @@ def sim_station(rig_file: str | None, seed: int | None, snapshot: str | None = N
                 start_time_s: float = 0.0, tables_at: tuple[float, float] | None = None,
                 pace: float | None = None, package: str | None = None) -> StationSetup:
     """The simulated rig, from a rig file or from a journal snapshot (resume); ``tables_at``: where
-    a resumed run's tables were left, accumulated from home (`labcal.run.winding.left_at`);
+    a resumed run's tables were left, accumulated from home (`labcal.devices.winding.left_at`);
     ``pace``: run at that many times real time (None: as fast as it can). The pace is not part of
     the snapshot: it changes how long a run takes on the wall's clock, not what it measures.
     ``package``: the simulated instrument's sensor package instead of the rig file's (it is part of

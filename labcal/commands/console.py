@@ -26,7 +26,7 @@ from labcal.run.operator import GATE_KEY, QuietKeys, Terminal
 if TYPE_CHECKING:
     from labcal.bench.checklist import Item, PowerOn
     from labcal.bench.hardware import Bench
-    from labcal.run.station import Station
+    from labcal.devices.station import Station
 
 
 def format_duration(seconds: float) -> str:
@@ -231,8 +231,8 @@ def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, 
     from labcal.bench.checklist import PowerOn, parse_power_on, refusal, run_checklist, unmet
     from labcal.commands.common import err
     from labcal.errors import LabcalError
-    from labcal.run.journal import db_path
-    from labcal.run.labdb import lab_server
+    from labcal.store.journal import db_path
+    from labcal.store.labdb import lab_server
 
     now = datetime.now().astimezone()
     power = power_on_given(args, now)

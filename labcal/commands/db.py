@@ -1,5 +1,5 @@
 """`labcal db upgrade` and `labcal db status`: the lab database's schema revision, and bringing it
-to this labcal's (`labcal.run.labdb`). Opening a database never migrates it: a command refuses one
+to this labcal's (`labcal.store.labdb`). Opening a database never migrates it: a command refuses one
 behind or ahead in one line, and this is the command that line names."""
 
 from __future__ import annotations
@@ -13,14 +13,14 @@ from labcal.commands.common import add_db_option, out, print_json
 def cmd_db_upgrade(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from labcal.run import labdb
-    from labcal.run.labdb import lab_database
+    from labcal.store import labdb
+    from labcal.store.labdb import lab_database
 
     where = lab_database(args.db)
     done = labdb.upgrade(where)
     roles = None
     if not isinstance(where, Path):  # a server: who may write what, as this labcal says
-        from labcal.run.roles import set_up
+        from labcal.store.roles import set_up
 
         roles = set_up(where)
     if args.json:
@@ -46,8 +46,8 @@ def cmd_db_grant_station(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from labcal.errors import LabcalError
-    from labcal.run import roles
-    from labcal.run.labdb import lab_server
+    from labcal.store import roles
+    from labcal.store.labdb import lab_server
 
     admin = lab_server(args.db)
     if admin is None:
@@ -81,9 +81,9 @@ def cmd_db_grant_station(args: argparse.Namespace) -> int:
 
 
 def cmd_db_status(args: argparse.Namespace) -> int:
-    from labcal.run import labdb
-    from labcal.run.labdb import lab_database
-    from labcal.run.migrations import HEAD
+    from labcal.store import labdb
+    from labcal.store.labdb import lab_database
+    from labcal.store.migrations import HEAD
 
     where = lab_database(args.db)
     found = labdb.status(where)

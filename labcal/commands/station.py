@@ -61,8 +61,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     from labcal.config.plans import load_plan
     from labcal.config.station import load_station
     from labcal.config.uncertainty import overdue_standards
-    from labcal.run.journal import db_path
-    from labcal.run.labdb import lab_server
+    from labcal.store.journal import db_path
+    from labcal.store.labdb import lab_server
 
     config, _ = load_station(args.station)
     now = datetime.now().astimezone()

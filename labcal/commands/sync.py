@@ -1,5 +1,5 @@
 """`labcal sync`: send this station's journal to the lab's PostgreSQL database now (what a run sends
-as it goes, and catches up after an outage by itself; `labcal.run.sync`)."""
+as it goes, and catches up after an outage by itself; `labcal.store.sync`)."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ from labcal.commands.common import add_db_option, out, print_json
 
 def cmd_sync(args: argparse.Namespace) -> int:
     from labcal.config.lab import ServerDatabase
-    from labcal.run import labdb
-    from labcal.run.journal import db_path
-    from labcal.run.labdb import lab_database
-    from labcal.run.sync import Sender, is_outage
+    from labcal.store import labdb
+    from labcal.store.journal import db_path
+    from labcal.store.labdb import lab_database
+    from labcal.store.sync import Sender, is_outage
 
     where = lab_database(args.db)
     nothing = {"database": str(where), "journal": str(where), "sent": {}, "new": {}, "received": {},

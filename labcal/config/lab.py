@@ -171,7 +171,7 @@ class LabConfig:
     def journal(self) -> Path:
         """Where this station journals its runs when the lab database is a server: $LABCAL_JOURNAL,
         else this file's `journal`, else the user's data folder. Every reading is on this disk
-        before the server sees it, so a run never waits for the server (`labcal.run.sync`)."""
+        before the server sees it, so a run never waits for the server (`labcal.store.sync`)."""
         if os.environ.get(JOURNAL_ENV):
             return Path(os.environ[JOURNAL_ENV]).expanduser()
         if self.file.journal:

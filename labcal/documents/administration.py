@@ -19,7 +19,7 @@ from labcal.config.lab import load_lab_config
 from labcal.config.snapshot import StationFileSnapshot
 from labcal.config.station import CertificateSection
 from labcal.documents.certificate import Administration, Equipment, Item, LaboratoryRecord, TraceabilityRecord
-from labcal.run.record import RunRecord
+from labcal.store.record import RunRecord
 
 NOT_READ = "not read from the device"
 

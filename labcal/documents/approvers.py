@@ -28,8 +28,8 @@ from labcal.config.files import read_text
 from labcal.documents.approval import key_id, load_public_key, signature_holds, signed_certificate
 from labcal.documents.certificate import Certificate, ServerSignature, certificate_from_doc, parse_json
 from labcal.errors import LabcalError
-from labcal.run import labdb
-from labcal.run.journal import db_path
+from labcal.store import labdb
+from labcal.store.journal import db_path
 
 COLUMNS = "name, role, public_key, key_id, added_utc, revoked_utc"
 # The role a lab server's key is registered with: it signs only for an approver signed in to the
@@ -141,9 +141,9 @@ def by_key(kid: str, db: str | Path | None = None) -> Approver | None:
 
 def _lab(db: str | Path | None, key_id: str | None = None, name: str | None = None, active: bool = False
          ) -> list[Approver]:
-    """Registrations as the lab database holds them (`labcal.run.labquery`: a bench that cannot
+    """Registrations as the lab database holds them (`labcal.store.labquery`: a bench that cannot
     reach it reads its own journal's), optionally of one key or one name, or only the active ones."""
-    from labcal.run.labquery import records
+    from labcal.store.labquery import records
 
     where = {k: v for k, v in (("key_id", key_id), ("name", name)) if v is not None}
     rows = records(db, "approvers", tuple(COLUMNS.split(", ")), where, ("id",), must_exist=False).rows
@@ -199,7 +199,7 @@ def server_user_problems(user_id: int, name: str, when: str | None, db: str | Pa
     server: no such user, another name, not an approver, added after or disabled before. A user's
     name and role never change and a user is never deleted (`labcal.app.users`), so the users table
     says what they were at any time."""
-    from labcal.run.labquery import records
+    from labcal.store.labquery import records
 
     found_rows = records(db, "users", ("name", "role", "created_utc", "disabled_utc"), {"id": user_id},
                          must_exist=False)

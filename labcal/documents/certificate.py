@@ -72,7 +72,7 @@ class Instrument(Strict):
 
 class StationRecord(Strict):
     """What the certificate records of the calibration device and how the sequencer ran it (not the
-    live station the sequencer drives, `labcal.run.station.Station`); a dry run keeps the
+    live station the sequencer drives, `labcal.devices.station.Station`); a dry run keeps the
     simulator's truth."""
 
     description: str
@@ -102,7 +102,7 @@ def _absent(value: object) -> bool:
 
 
 class JournalChainRecord(Strict):
-    """The run's journal as a chain of digests (`labcal.run.chain`): its first ``records`` records
+    """The run's journal as a chain of digests (`labcal.store.chain`): its first ``records`` records
     after the manifest end in ``head``. Signed with the rest, it ties the approval to the journal's
     every record, not only to the readings the fit used."""
 

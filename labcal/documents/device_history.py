@@ -1,5 +1,5 @@
 """The calibration device's own history: every device-model estimate of its misalignments a…k,
-stored per calibration-device id in the lab database (table ``device_estimates``, `labcal.run.labdb`),
+stored per calibration-device id in the lab database (table ``device_estimates``, `labcal.store.labdb`),
 and the changes between consecutive estimates that exceed their combined expanded uncertainty —
 the lab's health chart for its rotary tables.
 
@@ -29,9 +29,9 @@ from labcal.analysis.plan import Plan
 from labcal.config.corrections import DeviceCorrectionTable
 from labcal.documents.plotfile import check_folder, save
 from labcal.errors import LabcalError
-from labcal.run import labdb
-from labcal.run.journal import db_path
-from labcal.run.record import RunRecord
+from labcal.store import labdb
+from labcal.store.journal import db_path
+from labcal.store.record import RunRecord
 
 RULE = "|Δ| > √(U₁² + U₂²): a change larger than the combined expanded uncertainty (95 %)"
 IDENTIFYING_PLAN = "four-mount-64"  # the built-in plan whose mounts identify all six misalignments
@@ -69,7 +69,7 @@ def window_noise(record: RunRecord) -> NDArray[np.float64] | None:
     priced with; the residuals would count the tables' per-angle errors, which the check adds as
     their own term, a second time. None where the file does not record them (readings imported)."""
     from labcal.config.readings_csv import read_numeric_csv
-    from labcal.run.rundir import READINGS
+    from labcal.store.rundir import READINGS
 
     wanted = ("n_samples", "sd_vx", "sd_vy", "sd_vz")
     try:

@@ -12,7 +12,7 @@ import numpy as np
 
 from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.fit import SENSORS
-from labcal.run.record import RunRecord
+from labcal.store.record import RunRecord
 
 if TYPE_CHECKING:  # matplotlib only where a figure is drawn: a run stores device.json without it
     from matplotlib.figure import Figure

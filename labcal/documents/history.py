@@ -1,7 +1,7 @@
 """Every certificate in the lab's SQLite database, and each instrument's coefficients over time.
 
 The database is shared with the run journal; its schema (the ``certificates`` table among the
-others), version and migrations are `labcal.run.labdb`'s, and every statement here names its
+others), version and migrations are `labcal.store.labdb`'s, and every statement here names its
 columns. Its path: the --db option, else $LABCAL_DB, else the lab file's (`labcal.config.lab`).
 A stored certificate is the exact JSON issued; reading it back verifies schema and digest, so
 history never shows a value that was altered in the database.
@@ -25,8 +25,8 @@ from labcal.documents.certificate import COVERAGE, Certificate, certificate_from
 from labcal.documents.issuing import SIMULATED_SERIAL
 from labcal.documents.plotfile import check_folder, save
 from labcal.errors import LabcalError
-from labcal.run import labdb
-from labcal.run.journal import db_path
+from labcal.store import labdb
+from labcal.store.journal import db_path
 
 RULE = "|Δ| > k·√(u₁² + u₂²), k = t₀.₉₇₅(ν) at the Welch–Satterthwaite ν of the difference"
 
@@ -67,10 +67,10 @@ class Stored:
 def stored_rows(db: str | Path | None, table: str, column: str, key: str, columns: tuple[str, ...],
                 order: tuple[str, ...], missing: str, known_label: str, stored_by: str) -> Stored:
     """The lab database's rows for one instrument or calibration device (``column`` = ``key``):
-    every bench's, where the lab is a server (`labcal.run.labquery`); a missing database, or a key
+    every bench's, where the lab is a server (`labcal.store.labquery`); a missing database, or a key
     it does not hold, is one line naming what it does hold. The instrument's and the device's
     histories both read through here."""
-    from labcal.run import labquery
+    from labcal.store import labquery
 
     found = labquery.records(db, table, columns, {column: key}, order, must_exist=False)
     if not found.exists:

@@ -37,6 +37,7 @@ from labcal.config.readings_csv import coefficient_units
 from labcal.config.settings import CertificateSettings
 from labcal.config.station import CertificateSection, load_certificate_settings
 from labcal.config.uncertainty import overdue_standards
+from labcal.devices.winding import MOVE_EVENT
 from labcal.documents.administration import ItemGiven, administration
 from labcal.documents.certificate import (
     COVERAGE,
@@ -62,8 +63,7 @@ from labcal.documents.package import package_documents
 from labcal.documents.simulated import NOTICE as SIMULATED_NOTICE
 from labcal.documents.uncertainty import budget, inputs_record, stated_U95_arcsec
 from labcal.errors import LabcalError
-from labcal.run.record import RunRecord
-from labcal.run.winding import MOVE_EVENT
+from labcal.store.record import RunRecord
 
 SIMULATED_SERIAL = "SIMULATED"  # a dry run's instrument is the simulator's, whatever the seed
 

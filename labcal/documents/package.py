@@ -43,7 +43,7 @@ from labcal.documents.certificate_sections import BudgetInputs
 from labcal.errors import LabcalError
 
 if TYPE_CHECKING:
-    from labcal.run.record import RunRecord
+    from labcal.store.record import RunRecord
 
 GRID_STEP_DEG = 1.0  # the usage envelope is judged on this grid, its ends included
 DEFAULT_LIMIT_DEG = 0.1  # a two-axis package's U95 limit for its usable range, when none is stated

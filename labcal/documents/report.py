@@ -10,25 +10,21 @@ drawn once and carried by the HTML page (`labcal.documents.report_html`) and the
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.fit import Fit
 from labcal.config.files import write_atomic
-from labcal.config.settings import CertificateSettings
-from labcal.documents.administration import ItemGiven
 from labcal.documents.certificate import Certificate, read_certificate, write_certificate
 from labcal.documents.device_history import store_device_estimate
-from labcal.documents.issuing import build_certificate, changed_fields, identification, kept_identification
 from labcal.documents.report_figures import draw, figures
 from labcal.documents.report_html import render_html
 from labcal.documents.report_pdf import render_pdf
 from labcal.documents.report_tables import Table
-from labcal.documents.uncertainty import bench_section, type_b_inputs
 from labcal.errors import LabcalError
-from labcal.run.exports import run_fits
-from labcal.run.record import RunRecord, load_run
+from labcal.store.exports import run_fits
+from labcal.store.record import RunRecord, load_run
 
 CERTIFICATE = "certificate.json"
 REPORT_HTML = "report.html"
@@ -68,46 +64,6 @@ class RunOutputs:
     changes: tuple[str, ...] = ()  # its identification fields that differ, in words
 
 
-def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None = None, *,
-                      serial: str | None = None, operator: str | None = None,
-                      db: str | Path | None = None, station: str | Path | None = None,
-                      monte_carlo: int = 0, item: ItemGiven | None = None,
-                      record: RunRecord | None = None) -> RunOutputs:
-    """Certificate, report and history entry of a finished run (called at the end of `labcal run`
-    and by `labcal report`); ``db`` None means $LABCAL_DB or the lab file's database. The Type B
-    inputs come from ``station`` (a station file), else the station the run was journaled with;
-    ``monte_carlo`` trials check the budget by JCGM 101. ``record``: the run as `load_run` read it
-    just before (the end of a run: read once for the device's estimate and for this, not fitted twice)."""
-    record = record or load_run(run_dir)
-    fit, device, model_note = fitted(record)
-    if device is None:  # a plan that corrects for the device: not from a correction the run saw move
-        from labcal.documents.device_history import refuse_if_moved
-
-        refuse_if_moved(record, fit)
-    section = bench_section(record, station)
-    inputs = type_b_inputs(section, record, device)
-    revision, replaced = 1, None
-    previous = _issued(record.directory / CERTIFICATE)
-    if previous is not None and previous.approval is not None:
-        # An approved certificate is never changed: what follows is a correction, a new revision
-        # naming the one it replaces; the approved one stays beside it and in the history.
-        revision, replaced = (previous.revision or 1) + 1, previous
-        write_file(record.directory / f"certificate.rev{previous.revision or 1}.json", previous)
-    elif previous is not None and (previous.revision or 1) > 1:
-        # a revision's draft reported again is still that revision, replacing the same approved one
-        revision, replaced = previous.revision or 1, replaced_by(record.directory, previous)
-    item, serial, operator = kept_identification(previous, item or ItemGiven(), serial, operator)
-    cert = build_certificate(record, fit, settings, serial=serial, operator=operator, inputs=inputs,
-                             monte_carlo=monte_carlo, revision=revision,
-                             replaces=None if replaced is None else replaced.number, section=section,
-                             item=item, device=device, model_note=model_note, replaced=replaced)
-    outputs = write_documents(cert, record, fit, device, db)
-    if previous is None:
-        return outputs
-    return replace(outputs, compared_with=previous.number,
-                   changes=tuple(changed_fields(identification(previous), identification(cert))))
-
-
 def replaced_by(directory: Path, cert: Certificate) -> Certificate | None:
     """The approved certificate a revision replaces, as kept beside it in the run directory
     (``certificate.revN.json``); None for a first issue."""
@@ -127,16 +83,6 @@ def fitted(record: RunRecord) -> tuple[Fit, DeviceFit | None, str]:
     if record.fit is not None:
         return record.fit, record.device, record.model_note
     return run_fits(record.readings, record.plan_text, record.station)
-
-
-def _issued(path: Path) -> Certificate | None:
-    """The certificate already in the run directory, if one is there and reads back intact."""
-    if not path.is_file():
-        return None
-    try:
-        return read_certificate(path)
-    except LabcalError:
-        return None  # a damaged draft is replaced; an approved one would have read back
 
 
 def write_file(path: Path, cert: Certificate) -> Path:

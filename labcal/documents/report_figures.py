@@ -25,7 +25,7 @@ from labcal.config.settings import CertificateSettings
 from labcal.documents.certificate import Certificate
 from labcal.documents.issuing import envelope_grid
 from labcal.documents.package import region_parts
-from labcal.run.record import RunRecord
+from labcal.store.record import RunRecord
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure

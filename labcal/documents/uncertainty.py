@@ -49,7 +49,7 @@ from labcal.documents.certificate import (
 )
 from labcal.documents.certificate_sections import BudgetInputs
 from labcal.documents.simulated import with_simulator_inputs
-from labcal.run.record import RunRecord
+from labcal.store.record import RunRecord
 
 ANGLES: tuple[Literal["pitch", "roll"], ...] = ("pitch", "roll")
 AGREEMENT = 0.05  # linear and Monte Carlo U95 agree when within 5 % (the criterion)

@@ -2,7 +2,7 @@
 
 The same checks, by the same functions: the gross-error checks of the fit (|g| = 1, each reading
 against its mount, studentised residuals: `labcal.analysis.gross_errors.fit_flags`) on the fit the
-run's exports make (`labcal.run.exports.run_fits`), and the residual against what the run's station
+run's exports make (`labcal.store.exports.run_fits`), and the residual against what the run's station
 declares of its scatter (`labcal.analysis.declared_noise`). A reading that fails is named by its
 point; the sequencer measures those points once more, and a run whose readings still fail issues no
 certificate.
@@ -32,7 +32,7 @@ from labcal.config.snapshot import (
     stated_mount_repeatability,
 )
 from labcal.errors import LabcalError
-from labcal.run.exports import run_fits
+from labcal.store.exports import run_fits
 
 IN_POSITION_ARCSEC = 5.0  # a table's default read-back tolerance (the station file's in_position_arcsec)
 

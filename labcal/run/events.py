@@ -34,7 +34,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, field_validator
 
-from labcal.run.journal import PointRecord, utc_now
+from labcal.store.journal import PointRecord, utc_now
 
 log = logging.getLogger(__name__)
 

@@ -9,7 +9,7 @@ the journal, the lab database and a live view agree on when something happened.
 from __future__ import annotations
 
 from labcal.run.events import EventBus, PointMeasured, RunEvent, Subscription
-from labcal.run.journal import Journal
+from labcal.store.journal import Journal
 
 
 class JournalSubscriber:

@@ -227,7 +227,7 @@ class RunNotifier:
         self.notifications = notifications
         self.name = name
         self.run_dir = run_dir
-        self.label = label  # the run's number as the lab gives it (`labcal.run.labquery.lab_number_of`)
+        self.label = label  # the run's number as the lab gives it (`labcal.store.labquery.lab_number_of`)
         self.attended = attended  # False: nobody is asked to remount (--yes, a script)
 
     def handle(self, event: RunEvent) -> None:

@@ -20,9 +20,9 @@ from typing import Any, Literal, Protocol
 from rich.console import Console
 
 from labcal.analysis.kinematics import Mount
+from labcal.devices.station import may_be_moving
 from labcal.errors import LabcalError
 from labcal.run.mounting import drawing
-from labcal.run.station import may_be_moving
 
 PauseChoice = Literal["resume", "abort"]
 

@@ -1,6 +1,6 @@
 """A calibration run: its journal entry, its exports, and resuming it.
 
-The journal (SQLite) is the source of truth; the run directory (`labcal.run.rundir`) holds what
+The journal (SQLite) is the source of truth; the run directory (`labcal.store.rundir`) holds what
 people and other programs read, rewritten whenever the run stops for any reason.
 """
 
@@ -19,18 +19,18 @@ from labcal.analysis.plan import Plan
 from labcal.config.files import validate_model
 from labcal.config.plans import parse_plan
 from labcal.config.settings import SequencerSettings
+from labcal.devices.station import Station
 from labcal.errors import LabcalError
-from labcal.run import exports
 from labcal.run.devicelog import journaled_warnings
 from labcal.run.events import EventBus, Note
 from labcal.run.interrupts import Interrupts
-from labcal.run.journal import Journal, Manifest, sha256
 from labcal.run.journaling import subscribe_journal
-from labcal.run.lock import RunLock
 from labcal.run.operator import Operator, Terminal
-from labcal.run.rundir import make_run_dir, open_run
 from labcal.run.sequencer import Forecast, ReadingsRefused, RunOutcome, Sequencer, Step, schedule
-from labcal.run.station import Station
+from labcal.store import exports
+from labcal.store.journal import Journal, Manifest, sha256
+from labcal.store.lock import RunLock
+from labcal.store.rundir import make_run_dir, open_run
 
 MIN_POINTS_FOR_MOUNT_CHECK_FIT = 8
 log = logging.getLogger(__name__)

@@ -23,6 +23,8 @@ from labcal.analysis.kinematics import Mount
 from labcal.analysis.plan import Plan
 from labcal.config.settings import SequencerSettings
 from labcal.config.snapshot import output_units, parse_snapshot
+from labcal.devices.station import RotaryAxis, Station, StopFailed, TableState, mean_and_sd
+from labcal.devices.winding import MOVE_EVENT, last_move, locate, plan_windings
 from labcal.errors import LabcalError
 from labcal.run import settle_pool
 from labcal.run.checks import Verdict, check_readings, closure
@@ -42,14 +44,12 @@ from labcal.run.events import (
     mount_number,
 )
 from labcal.run.interrupts import Interrupts
-from labcal.run.journal import Journal, PointRecord
 from labcal.run.motion import Move, move_time, transient_after, transient_at_stop
 from labcal.run.mounting import CHECK_ATTITUDE, distinguishes, identify
 from labcal.run.operator import GATE_KEY, Operator, OperatorDeclined, Terminal
 from labcal.run.ordering import order_points
 from labcal.run.settle import Dwell, TailPool, dead_time, dwell, dwell_model
-from labcal.run.station import RotaryAxis, Station, StopFailed, TableState, mean_and_sd
-from labcal.run.winding import MOVE_EVENT, last_move, locate, plan_windings
+from labcal.store.journal import Journal, PointRecord
 
 THERMAL_SAMPLES = 4  # DMM samples averaged per temperature read of the thermal gate
 Winding = tuple[float, float]  # each table's accumulated rotation from home, degrees (pitch, roll)
@@ -209,7 +209,7 @@ def raw_samples(result: Dwell) -> np.ndarray:
 
 def check_limits(station: Station, steps: list[Step], check_mount: bool = True) -> dict[int, Winding]:
     """Every angle the run will visit, against each table's limits and cable wrap, before anything
-    moves; returns each step's winding, planned for the whole run (`labcal.run.winding`)."""
+    moves; returns each step's winding, planned for the whole run (`labcal.devices.winding`)."""
     angles = {
         station.pitch: [s.pitch_deg for s in steps] + [LOAD_POSITION[0], CHECK_ATTITUDE[0]],
         station.roll: [s.roll_deg for s in steps] + [LOAD_POSITION[1], CHECK_ATTITUDE[1]],
@@ -356,7 +356,7 @@ class Sequencer:
     def locate(self) -> Winding:
         """Where the tables are, in accumulated degrees from home: as a device that counts turns says
         (homing it unwound its cables), else its position read back placed on the last move the
-        journal has (`labcal.run.winding.locate`)."""
+        journal has (`labcal.devices.winding.locate`)."""
         last = last_move(self.journal.events(self.run_id))
         found = []
         for i, axis in enumerate((self.station.pitch, self.station.roll)):

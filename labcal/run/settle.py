@@ -45,7 +45,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from labcal.analysis.distributions import chi2_quantile
 from labcal.config.settings import SettleSettings
-from labcal.run.station import Clock, Scan, Voltmeter
+from labcal.devices.station import Clock, Scan, Voltmeter
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,7 @@
 The settling model needs a hundred-odd step records before it can rule out a slow tail
 (`labcal.run.settle.TailPool`), so a 64-point run never got there. The pool's sums are the
 instrument's, not the run's: kept in the lab database (table ``settle_pools``, migration 4 of
-`labcal.run.labdb`), a run starts with the records of the runs before it.
+`labcal.store.labdb`), a run starts with the records of the runs before it.
 
 Which runs share a pool is its key, the SHA-256 of a canonical identity:
 - the instrument: its serial (``pool = "instrument"``, the default) or the station's
@@ -38,8 +38,8 @@ import numpy as np
 from labcal.config.settings import SettleSettings
 from labcal.config.snapshot import SimulatedRigSnapshot, StationFileSnapshot, parse_snapshot
 from labcal.config.station import LinkSettings
-from labcal.run.journal import RunRow, utc_now
 from labcal.run.settle import SLOW, TAU_GRID, TAU_RANGE, PoolState, TailPool
+from labcal.store.journal import RunRow, utc_now
 
 LAYOUT = f"tailpool/1 grid={TAU_GRID} range={TAU_RANGE[0]:g}-{TAU_RANGE[1]:g} slow={SLOW:g}"
 LINK_FIELDS = frozenset(LinkSettings.model_fields) | {"visa", "visa_library"}

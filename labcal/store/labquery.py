@@ -9,11 +9,11 @@ sent to the lab: ``sync_targets``); a run's lab number, where the lab has given 
 the journal (``sync_runs``), so a run keeps its number offline, and a run the lab has not seen yet
 is shown by its provisional label (`run_label`).
 
-Run numbers are the lab's (`labcal.run.sync.lab_number`): given once, by the lab database, when a
+Run numbers are the lab's (`labcal.store.sync.lab_number`): given once, by the lab database, when a
 run first reaches it, gap-free and the same on every bench, page and API answer. The journal's own
 row ids are never shown as a run's number where the lab is a server.
 
-Every query is SQLAlchemy Core over `labcal.run.schema`'s tables, on either backend alike.
+Every query is SQLAlchemy Core over `labcal.store.schema`'s tables, on either backend alike.
 """
 
 from __future__ import annotations
@@ -28,8 +28,8 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 from labcal.config.lab import ServerDatabase
 from labcal.errors import LabcalError
-from labcal.run import labdb
-from labcal.run.labdb import lab_database
+from labcal.store import labdb
+from labcal.store.labdb import lab_database
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Connection, Engine
@@ -93,8 +93,8 @@ def _sqlite(path: Path) -> Iterator[Connection]:
 def reading(db: str | Path | None, *, must_exist: bool = True) -> Iterator[tuple[Connection | None, Source]]:
     """A connection to the lab database for reads, and where it is. On a server that cannot be
     reached: this bench's journal instead (None when it has none), with the line saying so."""
-    from labcal.run.journal import db_path
-    from labcal.run.sync import target_of
+    from labcal.store.journal import db_path
+    from labcal.store.sync import target_of
 
     where = lab_database(db)
     if isinstance(where, Path):
@@ -130,7 +130,7 @@ def reading(db: str | Path | None, *, must_exist: bool = True) -> Iterator[tuple
 def _synced(conn: Connection, target: str) -> str | None:
     from sqlalchemy import select
 
-    from labcal.run.schema import sync_targets
+    from labcal.store.schema import sync_targets
 
     return conn.execute(select(sync_targets.c.synced_utc).where(sync_targets.c.target == target)).scalar()
 
@@ -173,7 +173,7 @@ def _run_query() -> Any:
     """Every run with its points counted (measured, and journaled in all), in the lab's order."""
     from sqlalchemy import case, func, select
 
-    from labcal.run.schema import points, runs
+    from labcal.store.schema import points, runs
 
     ok = func.sum(case((points.c.status == "ok", 1), else_=0))
     counts = (select(points.c.run_id, func.count().label("done"), ok.label("ok"))
@@ -186,7 +186,7 @@ def _run_query() -> Any:
 
 
 def _run_rows(conn: Connection, serial: str | None, statuses: tuple[str, ...]) -> list[Any]:
-    from labcal.run.schema import runs
+    from labcal.store.schema import runs
 
     query = _run_query()
     if serial is not None:
@@ -200,7 +200,7 @@ def _numbers(conn: Connection, target: str) -> dict[int, int]:
     """This journal's runs as the lab numbered them: {journal row id: lab number}."""
     from sqlalchemy import select
 
-    from labcal.run.schema import sync_runs
+    from labcal.store.schema import sync_runs
 
     return dict(conn.execute(select(sync_runs.c.run_id, sync_runs.c.lab_run_id)
                              .where(sync_runs.c.target == target)).all())
@@ -259,7 +259,7 @@ class RunEvents:
 def _events(conn: Connection, run_id: int) -> list[dict]:
     from sqlalchemy import select
 
-    from labcal.run.schema import events
+    from labcal.store.schema import events
 
     rows = conn.execute(select(events.c.utc, events.c.station_time, events.c.kind, events.c.message,
                                events.c.data).where(events.c.run_id == run_id).order_by(events.c.id))
@@ -271,7 +271,7 @@ def run_events(db: str | Path | None, number: int | None = None, uuid: str | Non
                ) -> tuple[RunEvents, Source]:
     """One run and its journaled events, by its lab number or (a run not numbered yet, or named by
     its folder) its uuid; one line when the lab holds no such run."""
-    from labcal.run.schema import runs
+    from labcal.store.schema import runs
 
     with reading(db) as (conn, source):
         assert conn is not None  # reading(must_exist=True) raises instead
@@ -292,7 +292,7 @@ def run_events(db: str | Path | None, number: int | None = None, uuid: str | Non
 
 
 def _journal_run(source: Source, uuid: str) -> tuple[RunEvents, Source]:
-    from labcal.run.schema import runs
+    from labcal.store.schema import runs
 
     assert source.journal is not None
     engine = _sqlite_engine(source.journal)
@@ -321,7 +321,7 @@ def lab_number_of(journal: Path, run_id: int, db: str | Path | None = None) -> s
     import sqlite3
     from contextlib import closing
 
-    from labcal.run.sync import target_of
+    from labcal.store.sync import target_of
 
     where = lab_database(db)
     try:
@@ -356,7 +356,7 @@ def records(db: str | Path | None, table: str, columns: tuple[str, ...], where: 
     A SQLite lab database that does not exist raises (``must_exist``) or holds no rows."""
     from sqlalchemy import select
 
-    from labcal.run.schema import METADATA
+    from labcal.store.schema import METADATA
 
     t = METADATA.tables[table]
     query = select(*(t.c[c] for c in columns)).where(*(t.c[k] == v for k, v in (where or {}).items()))
@@ -369,7 +369,7 @@ def distinct(db: str | Path | None, table: str, column: str) -> list[str]:
     """Every value of ``column`` in ``table``, sorted (what a refusal names as known)."""
     from sqlalchemy import select
 
-    from labcal.run.schema import METADATA
+    from labcal.store.schema import METADATA
 
     t = METADATA.tables[table]
     with reading(db, must_exist=False) as (conn, _):
@@ -385,9 +385,9 @@ def journal_run(db: str | Path | None, number: int) -> int:
     naming that bench."""
     from sqlalchemy import select
 
-    from labcal.run.journal import db_path
-    from labcal.run.schema import runs, sync_runs
-    from labcal.run.sync import target_of
+    from labcal.store.journal import db_path
+    from labcal.store.schema import runs, sync_runs
+    from labcal.store.sync import target_of
 
     where = lab_database(db)
     if isinstance(where, Path):

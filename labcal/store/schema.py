@@ -1,6 +1,6 @@
 """The lab database's schema, once, for SQLite and PostgreSQL alike (SQLAlchemy Core).
 
-`METADATA` is the schema at the newest revision; `labcal/run/migrations/` (Alembic) is its history,
+`METADATA` is the schema at the newest revision; `labcal/store/migrations/` (Alembic) is its history,
 revision by revision, and is what creates and upgrades a database of either backend: a new database
 and an upgraded one cannot differ, because both are made by the same steps. A test checks that the
 migrations arrive at exactly `METADATA` (tables, columns, types, indexes), so neither can drift.
@@ -50,7 +50,7 @@ runs = Table(
     # revision 0006: the lab as a whole
     Column("station", Text),  # the station's name (its lab-wide identity), for the lab's view
     Column("points_total", Integer),  # every point of the run's schedule, for "N / TOTAL"
-    # revision 0008: the digest of the run's manifest, link 0 of its chain (`labcal.run.chain`)
+    # revision 0008: the digest of the run's manifest, link 0 of its chain (`labcal.store.chain`)
     Column("digest", Text),
     Index("runs_by_uuid", "uuid", unique=True),
 )
@@ -174,7 +174,7 @@ users = Table(
 )
 
 # Revision 0007: in a station's journal, how far its records have been sent to each lab database
-# (`labcal.run.sync`): ``target`` names the database, ``name`` the table (points, events,
+# (`labcal.store.sync`): ``target`` names the database, ``name`` the table (points, events,
 # certificates), ``position`` the last rowid sent; and each run's id in that database, with what
 # was last sent of its status ("status|reason|ended_utc|points_total|station").
 sync_cursors = Table(
@@ -243,7 +243,7 @@ audit = Table(
     Index("audit_by_origin", "origin", unique=True),
 )
 
-# Revision 0011: the instrument register (`labcal.run.instruments`). ``serial_key`` is the serial
+# Revision 0011: the instrument register (`labcal.store.instruments`). ``serial_key`` is the serial
 # case-folded (unique), so a serial differing only in case is the same instrument; ``serial`` keeps the
 # register's spelling, which a run takes. ``interval_days`` NULL: no calibration interval set yet.
 instruments = Table(

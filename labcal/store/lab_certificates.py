@@ -3,8 +3,8 @@ from it — what an approval on a PostgreSQL lab database reads and writes.
 
 The lab database is the record: the server approves the run an approver named from the runs, points
 and events rows the lab holds, never from a folder (whose run.json could name any journal). `lab_record`
-builds the same `RunRecord` that `labcal.run.record.load_run` builds from a journal, with the lab's
-chain of digests recomputed (`labcal.run.chain.check_server`); the signed certificate, its DCC and the
+builds the same `RunRecord` that `labcal.store.record.load_run` builds from a journal, with the lab's
+chain of digests recomputed (`labcal.store.chain.check_server`); the signed certificate, its DCC and the
 report are kept in ``certificate_files`` in the same transaction, and a bench writes them into its run
 folder from there (`files_of`, `write_files`).
 """
@@ -20,11 +20,11 @@ from typing import TYPE_CHECKING
 
 from labcal.config.files import write_atomic
 from labcal.errors import LabcalError
-from labcal.run.chain import check_server
-from labcal.run.exports import station_description
-from labcal.run.journal import PointRecord, RunRow, readings_of
-from labcal.run.record import RunRecord, run_record
-from labcal.run.rundir import identity
+from labcal.store.chain import check_server
+from labcal.store.exports import station_description
+from labcal.store.journal import PointRecord, RunRow, readings_of
+from labcal.store.record import RunRecord, run_record
+from labcal.store.rundir import identity
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Connection
@@ -51,7 +51,7 @@ def lab_record(connection: Connection, run_id: int, directory: Path) -> RunRecor
     ``directory``; an unknown or unfinished run is one line."""
     from sqlalchemy import select
 
-    from labcal.run.schema import events, points, runs
+    from labcal.store.schema import events, points, runs
 
     columns = [f.name for f in fields(RunRow)]
     found = connection.execute(select(*(runs.c[c] for c in columns)).where(runs.c.id == run_id)).first()
@@ -77,7 +77,7 @@ def lab_record(connection: Connection, run_id: int, directory: Path) -> RunRecor
         select(*(points.c[n] for n in names)).where(points.c.run_id == run_id, points.c.status == "ok")
         .order_by(points.c.seq))) if p.seq not in superseded]
     chain = check_server(connection, run_id, label)
-    # what run.json says of the run (`labcal.run.exports`), which the lab keeps no copy of
+    # what run.json says of the run (`labcal.store.exports`), which the lab keeps no copy of
     info = {"labcal_version": row.software_version, **identity(row), "plan": row.plan_name,
             "station": station_description(row), "settings": row.settings,
             **{k: v for k, v in row.metadata.items() if k != "station"}}
@@ -93,7 +93,7 @@ def draft_document(connection: Connection, serial: str | None, run_uuid: str, lo
     read here or arrives after the approval, never lost between the two."""
     from sqlalchemy import select
 
-    from labcal.run.schema import certificates
+    from labcal.store.schema import certificates
 
     # by the run it states, not its serial: a serial stripped or given at issue need not be the run's
     query = (select(certificates.c.document).where(certificates.c.document.contains(run_uuid))
@@ -112,7 +112,7 @@ def approved_by(connection: Connection, run_id: int) -> dict | None:
     certificate synced to ``certificates``; None while only a draft (or nothing) is there."""
     from sqlalchemy import select
 
-    from labcal.run.schema import certificate_files, runs
+    from labcal.store.schema import certificate_files, runs
 
     found = connection.execute(select(runs.c.uuid, runs.c.instrument_serial)
                                .where(runs.c.id == run_id)).first()
@@ -131,7 +131,7 @@ def store_files(connection: Connection, certificate_id: str, run_uuid: str, file
     """Keep an approved certificate's files in the lab database (in the caller's transaction)."""
     from sqlalchemy import insert
 
-    from labcal.run.schema import certificate_files
+    from labcal.store.schema import certificate_files
 
     now = datetime.now(UTC).isoformat()
     connection.execute(insert(certificate_files), [
@@ -147,7 +147,7 @@ def replace_draft(connection: Connection, certificate_id: str, serial: str, cali
     on its next sync, as a bench's own approval reaches the lab."""
     from sqlalchemy.dialects.postgresql import insert
 
-    from labcal.run.schema import certificates
+    from labcal.store.schema import certificates
 
     values = {"certificate_id": certificate_id, "serial": serial, "calibrated_utc": calibrated_utc,
               "issued_utc": issued_utc, "sha256": sha256, "document": document}
@@ -162,7 +162,7 @@ def files_of(connection: Connection, run_uuid: str) -> dict[str, bytes]:
     checked against the digest stored with it."""
     from sqlalchemy import select
 
-    from labcal.run.schema import certificate_files
+    from labcal.store.schema import certificate_files
 
     found: dict[str, bytes] = {}
     for name, sha, content in connection.execute(select(
@@ -179,7 +179,7 @@ def file_names(connection: Connection, run_uuid: str) -> list[str]:
     """The names of the approved certificate's files the lab keeps for the run, sorted."""
     from sqlalchemy import select
 
-    from labcal.run.schema import certificate_files
+    from labcal.store.schema import certificate_files
 
     return sorted(connection.execute(select(certificate_files.c.name)
                                      .where(certificate_files.c.run_uuid == run_uuid)).scalars())

@@ -6,7 +6,7 @@ first, then one transaction per point with its raw samples, and the events of th
 and answers, faults, retries, pauses). WAL mode with synchronous=FULL: a committed point
 survives a killed process and a power cut. readings.csv and fit.json are exports of it.
 
-The tables are `labcal.run.labdb`'s, which versions and migrates the file on open; every
+The tables are `labcal.store.labdb`'s, which versions and migrates the file on open; every
 statement here names its columns, so a column added by a later schema breaks no read or write.
 """
 
@@ -27,14 +27,14 @@ from numpy.typing import NDArray
 from labcal.analysis.readings import Readings
 from labcal.config.lab import load_lab_config
 from labcal.errors import LabcalError
-from labcal.run import chain, labdb
-from labcal.run.labdb import lab_database
+from labcal.store import chain, labdb
+from labcal.store.labdb import lab_database
 
 
 def db_path(option: str | Path | None = None) -> Path:
     """The SQLite file this station journals in: the lab database itself when it is a SQLite file
     (no copy, nothing to send), else the station's local journal (`LabConfig.journal`), whose
-    records `labcal.run.sync` sends to the lab's server."""
+    records `labcal.store.sync` sends to the lab's server."""
     found = lab_database(option)
     return found if isinstance(found, Path) else load_lab_config().journal()
 
@@ -201,8 +201,8 @@ class Journal:
     def start_run(self, m: Manifest) -> int:
         """Journal a new run. It names its station and its number of steps here, in the journal
         itself, so that the lab's view (`labcal serve`) shows them on a SQLite lab database as on a
-        server, where `labcal.run.sync` copies them. Its manifest's digest begins the run's chain
-        (`labcal.run.chain`)."""
+        server, where `labcal.store.sync` copies them. Its manifest's digest begins the run's chain
+        (`labcal.store.chain`)."""
         values = {"uuid": str(uuid.uuid4()), "plan_name": m.plan_name, "plan_text": m.plan_text,
                   "station_text": m.station_text, "software_version": m.software_version,
                   "instrument_serial": m.instrument_serial, "device_id": m.device_id, "operator": m.operator,

@@ -16,8 +16,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal.analysis.kinematics import Mount
+from labcal.devices.winding import Reach
 from labcal.errors import LabcalError
-from labcal.run.winding import Reach
 
 STILL_WITHIN_S = 30.0  # a stopped table decelerating from full speed is still long before this
 STILL_POLL_S = 0.05
@@ -85,7 +85,7 @@ class RotaryAxis(Protocol):
 
     def move_to(self, angle_deg: float, *, travel_deg: float | None = None) -> None:
         """Start a move to an absolute angle; returns at once. ``travel_deg``: the signed turn the
-        caller chose for it (`labcal.run.winding`: which way round its cables allow); None: the
+        caller chose for it (`labcal.devices.winding`: which way round its cables allow); None: the
         shortest way round within the reach."""
 
     def wait_in_position(self, timeout_s: float) -> float:
@@ -96,7 +96,7 @@ class RotaryAxis(Protocol):
 
     def winding(self) -> float | None:
         """Its accumulated rotation from home, where the device counts turns (None where it does
-        not: then the journal's moves say which turn it is on, `labcal.run.winding.locate`)."""
+        not: then the journal's moves say which turn it is on, `labcal.devices.winding.locate`)."""
 
     def send_stop(self) -> None:
         """Put a stop on its way at once, waiting for no reply (`Station.stop` sends every table's

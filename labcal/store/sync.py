@@ -35,9 +35,9 @@ from typing import TYPE_CHECKING, Any
 
 from labcal.config.lab import ServerDatabase, load_lab_config
 from labcal.errors import LabcalError
-from labcal.run import labdb
-from labcal.run.labdb import lab_database
-from labcal.run.roles import BENCH_CLOSES_RUNS
+from labcal.store import labdb
+from labcal.store.labdb import lab_database
+from labcal.store.roles import BENCH_CLOSES_RUNS
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Connection, Engine
@@ -161,7 +161,7 @@ class Sender:
                          passed: frozenset[str] = frozenset()) -> list[tuple]:
         """A record table's rows whose state this lab database has not committed, but for the keys
         ``passed`` over (refused earlier in this push): (key, state, row)."""
-        from labcal.run import schema
+        from labcal.store import schema
 
         columns = [c.name for c in schema.METADATA.tables[record.table].columns if c.name != "id"]
         key, state = _joined(record.key), _joined(record.state)
@@ -223,12 +223,12 @@ class Sender:
         return pulled
 
     def _pull_approved(self, db: sqlite3.Connection, server: Connection) -> int:
-        """The files of certificates the lab server approved (`labcal.run.lab_certificates`) written
+        """The files of certificates the lab server approved (`labcal.store.lab_certificates`) written
         into the folders of this bench's runs; how many files were written."""
         from sqlalchemy import select
 
-        from labcal.run.lab_certificates import files_of, write_files
-        from labcal.run.schema import certificate_files
+        from labcal.store.lab_certificates import files_of, write_files
+        from labcal.store.schema import certificate_files
 
         approved = set(server.execute(select(certificate_files.c.run_uuid).distinct()).scalars())
         written = 0
@@ -240,7 +240,7 @@ class Sender:
     def _pull_record(self, db: sqlite3.Connection, server: Connection, record: Record) -> int:
         from sqlalchemy import or_, select
 
-        from labcal.run import schema
+        from labcal.store import schema
 
         table = schema.METADATA.tables[record.table]
         n = len(record.key)
@@ -289,7 +289,7 @@ class Sender:
         # (the journal itself) imports neither them nor SQLAlchemy
         from sqlalchemy.dialects.postgresql import insert
 
-        from labcal.run import schema
+        from labcal.store import schema
 
         point_columns = tuple(c.name for c in schema.points.columns if c.name != "run_id")
         run_columns = tuple(c.name for c in schema.runs.columns if c.name not in ("id", "station"))
@@ -354,7 +354,7 @@ class Sender:
     def _send_allowed(server: Connection, record: Record, pending: list[tuple], sent: Sent,
                       passed: set[str]) -> tuple[list[tuple], int]:
         """``pending`` records sent, each batch in a savepoint; where PostgreSQL refuses this bench's
-        role the batch (an approver, an approved certificate: `labcal.run.roles`), each record is
+        role the batch (an approver, an approved certificate: `labcal.store.roles`), each record is
         sent alone and only the refused ones are passed over (noted in ``sent`` and ``passed``),
         never the rest nor the push. Returns the records stored and how many rows changed."""
         if not pending:
@@ -387,7 +387,7 @@ class Sender:
         digest it has in the journal (``origin``, unique: a row sent again is not appended again):
         (the new cursor or None, offered, appended). A role that may not write the audit trail (a
         bench's: it may not change the approvers either) has them passed over, once per push."""
-        from labcal.run.chain import append_audit
+        from labcal.store.chain import append_audit
 
         rows = [] if passed else db.execute(
             "SELECT id, utc, kind, account, actor, client, detail, digest FROM audit WHERE id > ? "
@@ -450,7 +450,7 @@ def lab_number(server: Connection, values: dict) -> tuple[int, bool]:
     Returns the number, and whether the run is new to the lab."""
     from sqlalchemy import func, select, text, update
 
-    from labcal.run.schema import runs
+    from labcal.store.schema import runs
 
     def known() -> int | None:
         return server.execute(select(runs.c.id).where(runs.c.uuid == values["uuid"])).scalar()
@@ -480,7 +480,7 @@ def send_records(server: Connection, record: Record, rows: list[dict]) -> int:
     from sqlalchemy import update
     from sqlalchemy.dialects.postgresql import insert
 
-    from labcal.run import schema
+    from labcal.store import schema
 
     table = schema.METADATA.tables[record.table]
     statement = insert(table).values(rows)
@@ -521,7 +521,7 @@ def _count(result: object, at_most: int) -> int:
 
 def is_refusal(exc: BaseException) -> bool:
     """The lab's server refused this bench's role a table (SQLSTATE 42501, insufficient privilege):
-    what a bench may write is the administrator's grant (`labcal.run.roles`), not retried."""
+    what a bench may write is the administrator's grant (`labcal.store.roles`), not retried."""
     original = getattr(exc, "orig", None) or exc
     return getattr(original, "sqlstate", None) == "42501"
 
@@ -610,7 +610,7 @@ class Background:
 def _run_event(journal: Path) -> Callable[[str], None]:
     """A journal event on the newest running run (the one this process measures)."""
     def record(message: str) -> None:
-        from labcal.run.journal import Journal
+        from labcal.store.journal import Journal
 
         try:  # through the journal's writer: the event takes its place in the run's chain
             with Journal(journal) as writer:
@@ -627,7 +627,7 @@ def ready(db: str | Path | None) -> None:
     reached at this labcal's schema (created if empty). A server behind or ahead refuses the run
     in one line; one that cannot be reached does not (the run never waits for it): the run's
     sender says so, once."""
-    from labcal.run.journal import db_path
+    from labcal.store.journal import db_path
 
     labdb.connect(db_path(db)).close()
     check_server(db)
@@ -638,7 +638,7 @@ def receive(db: str | Path | None) -> dict[str, int]:
     """The lab's records this bench lacks copied into its journal (`Sender.pull`): before a run, so
     that it starts from the lab's settle pool and device history. A server that cannot be reached is
     not waited for (the run starts from what the journal last had)."""
-    from labcal.run.journal import db_path
+    from labcal.store.journal import db_path
 
     where = lab_database(db)
     journal = db_path(db)
@@ -693,7 +693,7 @@ def send_now(db: str | Path | None) -> str | None:
     """What this bench has just recorded (an approver registered or revoked, a certificate approved)
     sent to the lab's server at once, so that every bench sees it now; None when sent (or when the
     lab database is the journal itself), else the one line saying it waits for ``labcal sync``."""
-    from labcal.run.journal import db_path
+    from labcal.store.journal import db_path
 
     where = lab_database(db)
     journal = db_path(db)
@@ -731,6 +731,6 @@ SENT = ("INSERT INTO sync_sent (target, name, key, state) VALUES (?,?,?,?) "
 
 
 def _utc() -> str:
-    from labcal.run.journal import utc_now
+    from labcal.store.journal import utc_now
 
     return utc_now()

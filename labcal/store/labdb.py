@@ -1,5 +1,5 @@
-"""The lab database: one schema (`labcal.run.schema`), one migration history (Alembic,
-`labcal.run.migrations`), for a SQLite file and for a PostgreSQL server alike; opened here only.
+"""The lab database: one schema (`labcal.store.schema`), one migration history (Alembic,
+`labcal.store.migrations`), for a SQLite file and for a PostgreSQL server alike; opened here only.
 
 Opening never migrates. A new database (a missing or empty SQLite file, an empty PostgreSQL
 database) is created at the newest revision by the same Alembic steps an upgrade runs, so the
@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING
 from labcal.config.files import size_text
 from labcal.config.lab import DRIVER_HINT, ServerDatabase, database_location, load_lab_config
 from labcal.errors import LabcalError
-from labcal.run.migrations import HEAD
+from labcal.store.migrations import HEAD
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Connection, Engine
@@ -302,7 +302,7 @@ def _sqlite_engine(path: Path) -> Engine:
 def _steps(connection: Connection, found: Revision) -> None:
     """From ``found`` to the newest revision, inside the caller's transaction: a pre-Alembic file
     completed (version 0) and stamped at its version first."""
-    from labcal.run import migrations
+    from labcal.store import migrations
 
     if found.legacy:
         if found.revision == "0000":
@@ -500,7 +500,7 @@ def lab_engine(db: str | Path | None = None) -> Engine:
     """The lab database (--db, else $LABCAL_DB, else the lab file's `database`, else the user's data
     folder) as a SQLAlchemy engine, for those who read it as a whole (the lab server): a new one is
     created at the newest revision; one behind or ahead is refused in one line (`LabcalError`); a
-    server that cannot be reached too. The tables are `labcal.run.schema`'s."""
+    server that cannot be reached too. The tables are `labcal.store.schema`'s."""
     where = lab_database(db)
     if isinstance(where, Path):
         connect(where).close()  # created if new, refused if behind or ahead

@@ -1,11 +1,11 @@
-"""The instrument register's rows in the lab database (`labcal.run.schema.instruments`): the only
+"""The instrument register's rows in the lab database (`labcal.store.schema.instruments`): the only
 SQL the register has. An instrument is found by its serial whatever its case: ``serial_key`` is the
 serial case-folded (`serial_key`), unique, so ``acc-0042`` and ``ACC-0042`` are one row, kept under
 the spelling it was registered with.
 
 The rules on what a serial, an interval or a status may be are the use cases' (`labcal.app.instruments`);
 this module stores and reads what they hand it. Works on SQLite and PostgreSQL alike (SQLAlchemy
-Core on the engine `labcal.run.labdb.lab_engine` gives).
+Core on the engine `labcal.store.labdb.lab_engine` gives).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from sqlalchemy import func, or_, select, update
 from sqlalchemy.exc import IntegrityError
 
 from labcal.errors import LabcalError
-from labcal.run.schema import instruments
+from labcal.store.schema import instruments
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Engine

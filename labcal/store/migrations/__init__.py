@@ -1,4 +1,4 @@
-"""Alembic's migration scripts for the lab database (`labcal.run.schema`): one history for SQLite and
+"""Alembic's migration scripts for the lab database (`labcal.store.schema`): one history for SQLite and
 PostgreSQL. Revisions 0000–0005 are the schema versions SQLite files carried as ``PRAGMA
 user_version`` before Alembic kept the history; 0006 on are the lab's."""
 

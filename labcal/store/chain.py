@@ -8,7 +8,7 @@ or breaks the sequence of links; and an editor who recomputes every digest after
 the chain's head, which a certificate states and its approval signs. So the journal is
 tamper-evident, not tamper-proof: the signature on the head is what a forger cannot redo.
 
-The canonical form is defined once, here, for the writer (`labcal.run.journal.Journal`) and for
+The canonical form is defined once, here, for the writer (`labcal.store.journal.Journal`) and for
 every verifier, on either backend: a record's values are taken by their column's type (a REAL read
 back from SQLite or a double precision from PostgreSQL is the same float; an int written into a
 REAL column reads back as a float), floats in their shortest round-trip form (Python's ``repr``,
@@ -264,7 +264,7 @@ def copies(db: str | Path | None, run_uuid: str) -> list[tuple[str, ChainCheck]]
     from contextlib import closing
 
     from labcal.config.lab import load_lab_config
-    from labcal.run import labdb
+    from labcal.store import labdb
 
     found: list[tuple[str, ChainCheck]] = []
     where = labdb.lab_database(db)
@@ -316,7 +316,7 @@ def append_audit(connection: Any, utc: str, kind: str, account: str | None, acto
     from sqlalchemy import desc, select
     from sqlalchemy.exc import IntegrityError
 
-    from labcal.run.schema import audit
+    from labcal.store.schema import audit
 
     for _ in range(AUDIT_TRIES):
         try:

@@ -28,8 +28,8 @@ from labcal.config.plans import plan_correction
 from labcal.config.readings_csv import ReadingsWriter, coefficient_units
 from labcal.config.snapshot import StationSnapshot, output_units, parse_snapshot, stated_angle_errors
 from labcal.errors import LabcalError
-from labcal.run.journal import Journal, RunRow
-from labcal.run.rundir import FIT, PLAN, READINGS, RUN, identity
+from labcal.store.journal import Journal, RunRow
+from labcal.store.rundir import FIT, PLAN, READINGS, RUN, identity
 
 EXPORTS = (PLAN, READINGS, FIT, RUN)  # in the order written: run.json, which names the run, last
 

@@ -113,7 +113,7 @@ def grants(tables: set[str]) -> list[str]:
     statements += [f"GRANT USAGE ON SEQUENCE {sequence} TO {BENCH}" for sequence in
                    (f"{table}_{column}_seq" for table, column in SEQUENCES)]
     # the lab's run number is max + 1 under a lock, and the column's sequence is moved past it
-    # (`labcal.run.sync.lab_number`): setval needs UPDATE on the sequence
+    # (`labcal.store.sync.lab_number`): setval needs UPDATE on the sequence
     statements.append(f"GRANT UPDATE ON SEQUENCE runs_id_seq TO {BENCH}")
     for table in sorted({t for t, _, _ in POLICIES}):
         statements.append(f"ALTER TABLE {table} ENABLE ROW LEVEL SECURITY")
@@ -150,7 +150,7 @@ def set_up(server: ServerDatabase) -> str:
     from sqlalchemy import text
     from sqlalchemy.exc import DBAPIError
 
-    from labcal.run import labdb
+    from labcal.store import labdb
 
     engine = labdb.server_engine(server)
     try:
@@ -252,7 +252,7 @@ def _grant(admin: ServerDatabase, name: str, group: str, role: str, password: st
     from sqlalchemy import text
     from sqlalchemy.exc import SQLAlchemyError
 
-    from labcal.run import labdb
+    from labcal.store import labdb
 
     if password_file is not None and password is None:
         password = secrets.token_urlsafe(24)

@@ -19,11 +19,11 @@ from labcal.analysis.readings import Readings
 from labcal.config.plans import parse_plan
 from labcal.config.snapshot import StationSnapshot, is_simulated, output_units, parse_snapshot
 from labcal.errors import LabcalError
-from labcal.run import exports
-from labcal.run.chain import ChainCheck, check_sqlite
-from labcal.run.journal import PointRecord, RunRow
-from labcal.run.lock import held_by
-from labcal.run.rundir import open_run, read_run_json
+from labcal.store import exports
+from labcal.store.chain import ChainCheck, check_sqlite
+from labcal.store.journal import PointRecord, RunRow
+from labcal.store.lock import held_by
+from labcal.store.rundir import open_run, read_run_json
 
 
 @dataclass(frozen=True)
@@ -43,7 +43,7 @@ class RunRecord:
     fit: Fit | None = None
     device: DeviceFit | None = None  # the device model, where the points identify it
     model_note: str = ""  # which model fit.json holds, and why
-    chain: ChainCheck | None = None  # the journal's chain of digests, recomputed (`labcal.run.chain`)
+    chain: ChainCheck | None = None  # the journal's chain of digests, recomputed (`labcal.store.chain`)
 
     @property
     def simulated(self) -> bool:
@@ -63,7 +63,7 @@ def load_run(run_dir: str | Path) -> RunRecord:
     """Read a run from its journal; a missing, unfinished, foreign or malformed run is one
     LabcalError line. A read: it changes neither the folder nor the journal. The folder's exports
     are checked against the journal on the way and a missing, stale or edited one is named in the
-    notes (`labcal.run.exports.check`); rewriting them is its own use case (`labcal export RUN`,
+    notes (`labcal.store.exports.check`); rewriting them is its own use case (`labcal export RUN`,
     `labcal.app.folders.rebuild_run_folder`)."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -92,7 +92,7 @@ def run_record(directory: Path, row: RunRow, info: dict, points: list[PointRecor
                events: tuple[dict, ...], chain: ChainCheck, notes: list[str], label: str, copy: str,
                derived: exports.Derived | None = None) -> RunRecord:
     """A run as a `RunRecord`, from wherever it was read — a station's journal and its folder's run.json
-    (`load_run`), or the lab database's copy (`labcal.run.lab_certificates.lab_record`): the journal's
+    (`load_run`), or the lab database's copy (`labcal.store.lab_certificates.lab_record`): the journal's
     row stated over run.json's ``info``, the readings in the station's output unit, the chain's problem
     (if any) noted as a change to ``copy``. ``label`` names the run in the plan's errors."""
     station = parse_snapshot(row.station_text)

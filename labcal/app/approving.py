@@ -9,7 +9,7 @@ them), and signs only a draft that the rebuild reproduces. Everything a draft st
 from the measurement — fit, uncertainties, budget, conformity, story — is recomputed, so an edited
 value shows as a difference whatever the editor did to the digest.
 
-The journal itself is checked too: its chain of digests (`labcal.run.chain`) is recomputed, in the
+The journal itself is checked too: its chain of digests (`labcal.store.chain`) is recomputed, in the
 station's journal and in the lab server's copy of the run, and must hold up to the head the draft
 states, which the signature then covers; a run journaled before digests is approved only when the
 approver says so (``--unchained``).
@@ -36,8 +36,8 @@ from labcal.documents.issuing import build_certificate
 from labcal.documents.report import CERTIFICATE, RunOutputs, fitted, replaced_by, write_documents, write_file
 from labcal.documents.uncertainty import bench_section, type_b_inputs
 from labcal.errors import LabcalError
-from labcal.run.chain import UNCHAINED, copies
-from labcal.run.record import RunRecord, load_run
+from labcal.store.chain import UNCHAINED, copies
+from labcal.store.record import RunRecord, load_run
 
 RELATIVE = 1e-9  # numbers a rebuild reproduces agree to rounding; an edit is far larger
 SIMULATED = ("the run is simulated (a dry run on the simulated rig or its emulators): its readings are not a "
@@ -103,7 +103,7 @@ def _sections(paths: list[str]) -> str:
 
 def chain_reasons(record: RunRecord, draft: Certificate | None, db: str | Path | None,
                   unchained: bool = False) -> list[str]:
-    """Why the run's journal does not stand behind the draft (`labcal.run.chain`): a record of the
+    """Why the run's journal does not stand behind the draft (`labcal.store.chain`): a record of the
     station's journal, or of the lab server's copy of the run, that differs from the chain; a chain
     whose head is not the draft's; a run journaled before digests, unless ``unchained`` (the
     approver has been told, and the certificate then states no chain)."""
@@ -202,7 +202,7 @@ def approve_lab_run(server: ServerDatabase, run_id: int, by: str, role: str, key
 
     from labcal.documents.dcc import DCC_FILE, write_dcc
     from labcal.documents.report import REPORT_HTML, REPORT_PDF, write_report
-    from labcal.run import lab_certificates, labdb
+    from labcal.store import lab_certificates, labdb
 
     key = load_private_key(key_path)  # before anything is read or written
     db = str(server.url)

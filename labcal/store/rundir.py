@@ -2,7 +2,7 @@
 
 plan.toml (the plan that ran), run.json (which journal and run — its UUID, plan hash, serial and
 start time — and how the run ended), and the exports readings.csv and fit.json. The journal stays
-the source of truth: every file here is derived from it (`labcal.run.exports` writes them,
+the source of truth: every file here is derived from it (`labcal.store.exports` writes them,
 atomically), and a folder is trusted only when its run.json names the journal row it came from
 (`check_identity`). Results (certificate, report, history) find a finished run through this module
 without importing the sequencer.
@@ -18,7 +18,7 @@ from pathlib import Path
 
 from labcal.analysis.plan import Plan
 from labcal.errors import LabcalError
-from labcal.run.journal import Journal, RunRow
+from labcal.store.journal import Journal, RunRow
 
 READINGS = "readings.csv"
 FIT = "fit.json"

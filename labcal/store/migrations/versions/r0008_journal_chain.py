@@ -1,7 +1,7 @@
 """The journal is tamper-evident, and each bench of a PostgreSQL lab is a role of its own.
 
 Every record of a run carries ``digest``, the SHA-256 of its canonical form chained to the record
-before it, and ``link``, its place in the run's chain (`labcal.run.chain`); the run's manifest
+before it, and ``link``, its place in the run's chain (`labcal.store.chain`); the run's manifest
 begins the chain (``runs.digest``, link 0). Records journaled before this revision keep NULL in
 both: their runs are "journaled before digests", said so, never passed as intact. A link is unique
 within its run, which also makes finding a run's last record one index lookup for the writer.
