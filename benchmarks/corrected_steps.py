@@ -40,7 +40,7 @@ from labcal.config.plans import plan_correction  # noqa: E402
 def corrected_plan(folder: Path) -> str:
     """The plan file `plan optimize --device SIMULATED` writes for X = 6 × four-mount-64's U95."""
     from labcal.analysis import optimize
-    from labcal.commands.plan import planning_bench
+    from labcal.app.planning import planning_bench
     from labcal.config.plans import load_plan
 
     db, out = folder / "lab.sqlite", folder / "fast.toml"

@@ -236,9 +236,9 @@ def optimized(seed: int) -> None:
     import math
 
     from labcal.analysis import optimize
+    from labcal.app.planning import planning_bench
     from labcal.bench.setup import sim_station
     from labcal.cli import main as labcal
-    from labcal.commands.plan import planning_bench
     from labcal.run.estimate import estimate
 
     rig = RigConfig()

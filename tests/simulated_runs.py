@@ -128,7 +128,7 @@ def corrected_runs_under_a_step(text: str, step_arcsec: dict[str, float], runs: 
     from labcal.analysis.device_fit import AngleErrors, PointMeans
     from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, IndexWobble, Misalignment, gravity
     from labcal.analysis.plan import Plan
-    from labcal.commands.plan import planning_bench
+    from labcal.app.planning import planning_bench
     from labcal.config.plans import plan_correction
     from labcal.sim.direct import simulate_readings
     from labcal.store.exports import run_fits

@@ -203,7 +203,7 @@ def test_monte_carlo_of_runs_of_the_corrected_plan_covers_its_u95(corrected_plan
     certificate's (the simulator's Type B inputs, the plan's u), five new readings per run at random
     attitudes in the envelope; the attitude error against the simulator's attitude lies within U95
     in ≥ 93 % of cases for pitch and for roll."""
-    from labcal.commands.plan import planning_bench
+    from labcal.app.planning import planning_bench
 
     text, samples, _, _ = corrected_plan
     correction = plan_correction(text, "the plan")

@@ -327,7 +327,7 @@ def test_acc_0042_calibrated_at_two_benches_shows_both_calibrations_and_its_drif
 
 @pytest.mark.slow
 def test_bench_2s_device_estimates_drive_plan_optimize_after_its_journal_is_deleted(benches):
-    from labcal.commands.plan import device_correction
+    from labcal.app.planning import device_correction
 
     _, two = benches
     two.run(report=True, seed=1)

@@ -35,7 +35,7 @@ RIG = RigConfig()  # the simulated rig of `labcal run --sim`: the optimizer's de
 
 def four_mount_64_u95_deg() -> float:
     """The target's basis: four-mount-64's worst predicted attitude U95 on the simulated rig."""
-    from labcal.commands.plan import planning_bench
+    from labcal.app.planning import planning_bench
 
     bench, _, settings = planning_bench(None)
     plan, _ = load_plan("four-mount-64")
@@ -128,7 +128,7 @@ def monte_carlo(out, trials: int) -> tuple[np.ndarray, float]:
     predicted U95, over ``trials`` simulated runs of the plan in ``out``, a new table (index and wobble)
     per run, five new readings per run at random attitudes in the envelope (pitch ±60°, any roll);
     and the RMS of error / U95."""
-    from labcal.commands.plan import planning_bench
+    from labcal.app.planning import planning_bench
 
     text = out.read_text(encoding="utf-8")
     plan = parse_plan(text, str(out))

@@ -6,6 +6,7 @@ import argparse
 import sys
 from typing import TYPE_CHECKING
 
+from labcal.app.planning import CORRECTION_NOTE
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, bounded, bounded_field, err, out, print_json
 from labcal.errors import LabcalError
@@ -239,6 +240,8 @@ def cmd_audit(args: argparse.Namespace) -> int:
     leaks = audit(plan)
     summary = audit_summary(leaks)
     ident = identifiability(Geometry.of_plan(plan.points, plan.mounts))
+    from labcal.app.planning import package_verdict
+
     package = package_verdict(args.station) if args.station else None
     if args.json:
         print_json({"plan": plan.name, "zero_below": LEAK_ZERO,
@@ -276,25 +279,6 @@ def cmd_audit(args: argparse.Namespace) -> int:
                          "; on a station's devices labcal run measures three-axis packages only (this one "
                          "runs on the simulated rig: --sim --instrument)"))
     return 0
-
-
-def package_verdict(station: str) -> dict:
-    """The station's instrument package, how it obtains roll in use, and why it cannot be used over the
-    certificate's usage envelope (None when it can). Every plan labcal accepts determines [1, gᵀ] of
-    each sensor (rank 4), hence every sensor's b, S, Ω and A (Tripp eq. 8)."""
-    from labcal.analysis.packages import PACKAGES, package_problem
-    from labcal.config.lab import certificate_settings
-    from labcal.config.station import load_station
-
-    config, _ = load_station(station)
-    envelope = certificate_settings(config.certificate, station)  # as labcal run judges it
-    inst = config.instrument
-    roll = inst.roll_source
-    assert roll is not None  # required of a single axis by the station file's validation
-    return {"package": inst.package, "axes": list(PACKAGES[inst.package]), "roll_in_use": roll,
-            "roll_sd_deg": inst.roll_sd_deg, "usage_pitch_deg": list(envelope.usage_pitch_deg),
-            "usage_roll_deg": list(envelope.usage_roll_deg),
-            "problem": package_problem(inst.package, roll, envelope.usage_pitch_deg, envelope.usage_roll_deg)}
 
 
 def identifiability_table(name: str, ident) -> Table:
@@ -444,155 +428,19 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 # --- plan optimize -----------------------------------------------------------------
-CORRECTION_NOTE = ("labcal run checks that the station's calibration device is that device and its history "
-                   "is still in control, fits with the misalignments held at the estimate's values, carries "
-                   "their u in the budget and states the correction on the certificate")
-
-
-def _type_b(section, temperature_half_range_k: float):
-    """The budget's Type B inputs from a station's (or the simulator's) inputs, before a run: the
-    mapping `labcal.documents.uncertainty.type_b_inputs` makes from a finished run's, with the
-    temperature range given instead of observed."""
-    from labcal.analysis.budget import TypeBInputs
-
-    u = section.uncertainty
-    return TypeBInputs(
-        dmm_reading=u.dmm_reading, dmm_range_v=u.dmm_range * section.dmm.range_v, dmm_noise_v=u.dmm_noise,
-        pitch_index=u.pitch_index, pitch_wobble=u.pitch_wobble, roll_index=u.roll_index,
-        roll_wobble=u.roll_wobble, mount_repeatability=u.mount_repeatability,
-        common=section.dmm.common_inputs(u.common), temperature_half_range_k=temperature_half_range_k,
-        bias_tempco_v_per_k=u.bias_tempco, sensitivity_tempco_per_k=u.sensitivity_tempco)
-
-
-def planning_bench(station: str | None):
-    """The prediction's bench, the station's timing model and its sequencer settings: the simulated
-    rig of `labcal run --sim` (its instrument, its Type B inputs as a dry run's certificate states them,
-    its lab's temperature swing as the half-range), or a station file's (nominal instrument from its
-    [sequencer.settle], its [uncertainty] and [certificate] envelope, temperature not predicted)."""
-    import numpy as np
-
-    from labcal.analysis.optimize import Bench
-    from labcal.config.settings import CertificateSettings, SequencerSettings
-    from labcal.config.station import CertificateSection
-
-    if station is None:
-        from labcal.bench.setup import sim_station
-        from labcal.config.emulation import RigConfig
-        from labcal.config.snapshot import simulator_inputs
-
-        rig = RigConfig()
-        setup = sim_station(None, rig.seed)
-        settings = SequencerSettings(settle=setup.settle, speed_dps=rig.speed_dps, accel_dps2=rig.accel_dps2)
-        section = CertificateSection().model_copy(update={
-            "uncertainty": simulator_inputs(rig.model_dump(), setup.settle.samples)})
-        inst = rig.instrument
-        envelope = CertificateSettings()
-        bench = Bench(inst.X, inst.noise_v, _type_b(section, rig.lab_temp_swing_c),
-                      envelope.usage_pitch_deg, envelope.usage_roll_deg, envelope.grid_step_deg,
-                      envelope.in_use_samples)
-        return bench, setup.timing, settings
-    from labcal.bench.setup import station_timing
-    from labcal.config.station import load_certificate_section, load_station
-
-    config, _ = load_station(station)
-    section = load_certificate_section(station)
-    s = config.sequencer.settle
-    settings = config.sequencer.model_copy(update={
-        "speed_dps": min(config.pitch.speed_dps, config.roll.speed_dps),
-        "accel_dps2": min(config.pitch.accel_dps2, config.roll.accel_dps2)})
-    X = np.vstack([np.zeros(3), s.sensitivity_v_per_g * np.eye(3)])
-    envelope = section.certificate
-    bench = Bench(X, s.noise_v, _type_b(section, 0.0), envelope.usage_pitch_deg, envelope.usage_roll_deg,
-                  envelope.grid_step_deg, envelope.in_use_samples)
-    return bench, station_timing(config), settings
-
-
-def device_correction(device_id: str, db):
-    """The device's misalignments where its history knows them (`device_history.correction_for`)."""
-    from labcal.documents.device_history import correction_for
-
-    return correction_for(device_id, db, said=lambda line: err.print(line, markup=False))
-
-
-def optimized_plan_toml(plan, e, correction, target_deg: float, reference,
-                        budget_u: dict[str, float] | None = None) -> str:
-    """The plan file: the plan, what was predicted for it, and the device corrections it relies on."""
-    import math
-
-    from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES
-    from labcal.config.corrections import DeviceCorrectionTable
-    from labcal.config.plans import correction_toml, plan_toml
-
-    head = [f"# Written by labcal plan optimize --target-attitude-u95-deg {target_deg:g}.",
-            f"# Run it with --samples {e.candidate.samples} (the measurement window it was planned with).",
-            f"# Predicted: rig time {e.rig_time_s:.0f} s ({e.rig_time_s / reference.rig_time_s:.3f}× "
-            f"four-mount-64's {reference.rig_time_s:.0f} s), attitude U95 {math.degrees(e.u95_rad):.5f}° "
-            f"(pitch {e.u95_pitch_rad / ARCSEC:.2f}″, roll {e.u95_roll_rad / ARCSEC:.2f}″) over the usage "
-            "envelope."]
-    body = plan_toml(plan)
-    if correction is None:
-        return "\n".join(head) + "\n" + body
-    head.append(f"# It relies on the device correction below: {CORRECTION_NOTE}.")
-    table = DeviceCorrectionTable(
-        device_id=correction.device_id, source=correction.source, calibrated_utc=correction.calibrated_utc,
-        value_arcsec={n: correction.value_rad[n] / ARCSEC for n in MISALIGNMENT_NAMES},
-        U_arcsec={n: correction.U_rad[n] / ARCSEC for n in MISALIGNMENT_NAMES},
-        u_arcsec={n: (budget_u or correction.u_rad)[n] / ARCSEC for n in MISALIGNMENT_NAMES},
-        u_history_arcsec={n: correction.u_rad[n] / ARCSEC for n in MISALIGNMENT_NAMES})
-    return "\n".join(head) + "\n" + body + "\n" + correction_toml(table)
-
-
 def cmd_optimize(args: argparse.Namespace) -> int:
     import math
-    import os
-    from pathlib import Path
 
-    from labcal.analysis import optimize
     from labcal.analysis.kinematics import ARCSEC
-    from labcal.analysis.plan import Plan
-    from labcal.config.plans import load_plan
-    from labcal.run.estimate import estimate
-    from labcal.run.sequencer import schedule
+    from labcal.app.planning import optimize_plan
 
-    if args.out and os.path.lexists(args.out):  # a plan file may be the record of a past calibration
-        raise LabcalError(f"{args.out}: exists; choose another --out (or delete it first)")
-    bench, timing, settings = planning_bench(args.station)
-    correction, why = (None, "") if args.device is None else device_correction(args.device, args.db)
-    steps: dict = {}
-
-    def rig_time(c) -> float:
-        """The station's timing model (`labcal run --dry-run`), the tour of `--order shortest` included."""
-        plan = Plan(name="candidate", mounts=list(c.mounts), points=list(c.points))
-        window = settings.settle.model_copy(update={"samples": c.samples})
-        run = settings.model_copy(update={"settle": window})
-        if (c.mounts, c.points) not in steps:  # the tour does not depend on the window
-            steps[(c.mounts, c.points)] = schedule(plan, run)
-        return estimate(plan, run, timing, steps[(c.mounts, c.points)]).total_s
-
-    fm64, _ = load_plan("four-mount-64")
-    ref = optimize.Candidate(tuple(fm64.mounts), tuple(fm64.points), settings.settle.samples)
-    reference = optimize.evaluate(ref, bench, None, rig_time(ref))
-    assert reference is not None  # four mounts identify a…k
-    target = math.radians(args.target_attitude_u95_deg)
-    found = optimize.search(bench, correction, rig_time)
-    chosen = optimize.choose(found, bench, correction, target)
+    result = optimize_plan(args.target_attitude_u95_deg, args.station, args.device, args.db, args.out,
+                           said=lambda line: err.print(line, markup=False))
+    chosen, reference = result.chosen, result.reference
+    correction, budget_u = result.correction, result.budget_u
     c = chosen.candidate
-    relies = not chosen.identified  # (`search` offers such a plan only with a correction)
-    # the u its run carries: the correction's, or a third of the change the run's check detects (95 %)
-    budget_u = optimize.corrected_u(c, bench, correction) if relies and correction is not None else None
-    plan = Plan(name=Path(args.out).stem if args.out else "optimized",
-                description=f"optimized for attitude U95 ≤ {args.target_attitude_u95_deg:g}° "
-                            f"(labcal plan optimize, {c.samples} samples per point)",
-                mounts=list(c.mounts), points=list(c.points))
-    if args.out:
-        try:
-            with open(args.out, "x", encoding="utf-8") as f:
-                f.write(optimized_plan_toml(plan, chosen, correction if relies else None,
-                                            args.target_attitude_u95_deg, reference, budget_u))
-        except OSError as exc:
-            raise LabcalError(f"{args.out}: cannot write plan ({exc.strerror})") from None
     if args.frontier:
-        plot_frontier(found, chosen, reference, target, args.frontier)
+        plot_frontier(result.found, chosen, reference, result.target_rad, args.frontier)
     doc = {"mounts": [list(m) for m in c.mounts], "points": len(c.points), "samples": c.samples,
            "rig_time_s": chosen.rig_time_s, "u95_deg": math.degrees(chosen.u95_rad),
            "u95_pitch_deg": math.degrees(chosen.u95_pitch_rad),
@@ -600,26 +448,26 @@ def cmd_optimize(args: argparse.Namespace) -> int:
            "target_u95_deg": args.target_attitude_u95_deg,
            "four_mount_64": {"rig_time_s": reference.rig_time_s, "u95_deg": math.degrees(reference.u95_rad)},
            "rig_time_ratio": chosen.rig_time_s / reference.rig_time_s,
-           "device_correction": None if not relies or correction is None else {
+           "device_correction": None if correction is None else {
                "device_id": correction.device_id, "source": correction.source,
                "calibrated_utc": correction.calibrated_utc,
                "value_arcsec": {n: v / ARCSEC for n, v in correction.value_rad.items()},
                "U_arcsec": {n: v / ARCSEC for n, v in correction.U_rad.items()},
                "u_arcsec": {n: v / ARCSEC for n, v in (budget_u or correction.u_rad).items()},
                "u_history_arcsec": {n: v / ARCSEC for n, v in correction.u_rad.items()}},
-           "candidates": len(found), "out": args.out}
+           "candidates": len(result.found), "out": args.out}
     if args.json:
         print_json(doc)
         return 0
-    if why:
-        err.print(f"[yellow]note:[/] {why}; planned with the four mounts that identify them")
+    if result.why:
+        err.print(f"[yellow]note:[/] {result.why}; planned with the four mounts that identify them")
     out.print(f"optimized plan: {len(c.mounts)} mount(s) × {len(c.points)} points, {c.samples} samples per "
               f"point: predicted rig time {chosen.rig_time_s:.0f} s = {doc['rig_time_ratio']:.3f}× "
               f"four-mount-64's {reference.rig_time_s:.0f} s; predicted attitude U95 "
               f"{doc['u95_deg']:.5f}° (pitch {chosen.u95_pitch_rad / ARCSEC:.2f}″, roll "
               f"{chosen.u95_roll_rad / ARCSEC:.2f}″) ≤ {args.target_attitude_u95_deg:g}° "
               f"(four-mount-64: {math.degrees(reference.u95_rad):.5f}°)")
-    if relies and correction is not None:
+    if correction is not None:
         out.print(f"it relies on device {correction.device_id}'s misalignments from {correction.source} "
                   f"({correction.calibrated_utc}) instead of remounting: {CORRECTION_NOTE}")
     if args.out:
