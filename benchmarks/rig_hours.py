@@ -285,7 +285,7 @@ def floor(bench, settings, timing, db: Path, ref) -> None:
     from labcal.analysis import optimize
     from labcal.analysis.kinematics import ARCSEC
     from labcal.analysis.plan import Plan
-    from labcal.commands.plan import device_correction
+    from labcal.app.planning import device_correction
     from labcal.run.estimate import estimate
     from labcal.run.sequencer import schedule
 

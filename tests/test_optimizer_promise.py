@@ -27,7 +27,7 @@ from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES, IndexWobble, 
 from labcal.analysis.models import Model
 from labcal.analysis.plan import Plan
 from labcal.analysis.readings import Readings
-from labcal.commands.plan import planning_bench
+from labcal.app.planning import planning_bench
 from labcal.config.plans import load_plan
 from labcal.documents.uncertainty import budget_view, device_misalignment_u
 from labcal.run.estimate import estimate
