@@ -24,32 +24,25 @@ import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from sqlalchemy import func, select
-from sqlalchemy.engine import Connection
 
 from labcal.analysis.kinematics import NO_MISALIGNMENT, Misalignment, gravity
 from labcal.analysis.readings import Readings
 from labcal.documents.certificate import Certificate
 from labcal.errors import LabcalError
-from labcal.store.schema import points, runs
+from labcal.store.journal import readings_of
+from labcal.store.lab_points import ok_points, points_state, run_status_and_folder
+
+if TYPE_CHECKING:
+    from labcal.store.handles import Connection
 
 
 def readings(conn: Connection, run_id: int) -> Readings | None:
     """The run's measured points as Readings, as `labcal.store.journal.Journal.readings` gives them."""
-    rows = conn.execute(select(points.c.replicate, points.c.y_deg, points.c.u_deg, points.c.pitch_deg,
-                               points.c.roll_deg, points.c.vx, points.c.vy, points.c.vz, points.c.temp_c)
-                        .where(points.c.run_id == run_id, points.c.status == "ok")
-                        .order_by(points.c.seq)).all()
-    if not rows:
-        return None
-    a = np.array([r[:8] for r in rows], dtype=float)
-    temps = [r[8] for r in rows]
-    return Readings(replicate=a[:, 0].astype(int), y_deg=a[:, 1], u_deg=a[:, 2], pitch_deg=a[:, 3],
-                    roll_deg=a[:, 4], volts=a[:, 5:8],
-                    temp_c=None if any(t is None for t in temps) else np.array(temps, dtype=float))
+    good = ok_points(conn, run_id)
+    return readings_of(good, f"run {run_id}") if good else None
 
 
 CACHED = 64  # plots (about 100 kB each) and residuals kept
@@ -61,11 +54,9 @@ _DRAWING = threading.Lock()  # one plot drawn at a time: the others wait, then f
 def _state(conn: Connection, run_id: int, cert: Certificate | None) -> tuple:
     """What a run's residuals depend on: the database, the run, its status, its number of measured
     points and its last one, and the certificate they are judged by."""
-    count, last = conn.execute(select(func.count(), func.max(points.c.seq))
-                               .where(points.c.run_id == run_id, points.c.status == "ok")).one()
-    status = conn.execute(select(runs.c.status).where(runs.c.id == run_id)).scalar()
+    status, _ = run_status_and_folder(conn, run_id)
     digest = None if cert is None else cert.digest.value
-    return conn.engine.url.render_as_string(hide_password=True), run_id, status, count, last, digest
+    return (*points_state(conn, run_id), status, digest)
 
 
 def _cached(key: tuple, make: Any) -> Any:
@@ -129,7 +120,7 @@ def _gravity_misalignment(cert: Certificate) -> tuple[Misalignment, str, str] | 
 def _certified(conn: Connection, run_id: int, cert: Certificate) -> CertifiedResiduals | None:
     from labcal.store.lab_certificates import lab_record
 
-    run_dir = conn.execute(select(runs.c.run_dir).where(runs.c.id == run_id)).scalar()
+    _, run_dir = run_status_and_folder(conn, run_id)
     if run_dir is None:
         return None
     try:

@@ -6,10 +6,11 @@ database opened (`labcal.store.labdb`) and the bench roles' grants (`labcal.stor
 journal, the events' first and durable record (`labcal.store.journal`), its chain of digests
 (`labcal.store.chain`) and its sending to the lab's PostgreSQL (`labcal.store.sync`); the reads of
 what the lab knows (`labcal.store.labquery`, `labcal.store.lab_certificates`,
-`labcal.store.instruments`); and a run's folder, whose files are exports of the journal
-(`labcal.store.rundir`, `labcal.store.exports`, `labcal.store.record`, `labcal.store.lock`).
+`labcal.store.lab_points`, `labcal.store.instruments`); and a run's folder, whose files are exports of
+the journal (`labcal.store.rundir`, `labcal.store.exports`, `labcal.store.record`, `labcal.store.lock`).
 
 The run machinery (`labcal.run`), the documents and the application layer call it; only modules
 here import sqlite3, SQLAlchemy, Alembic or psycopg (an import contract in ``pyproject.toml`` says
-so, naming the few exceptions left).
+so, naming the few exceptions left). A caller names the handles it passes back (a connection, an
+engine) from `labcal.store.handles`.
 """

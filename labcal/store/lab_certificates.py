@@ -22,7 +22,8 @@ from labcal.config.files import write_atomic
 from labcal.errors import LabcalError
 from labcal.store.chain import check_server
 from labcal.store.exports import station_description
-from labcal.store.journal import PointRecord, RunRow, readings_of
+from labcal.store.journal import RunRow, readings_of
+from labcal.store.lab_points import ok_points
 from labcal.store.record import RunRecord, run_record
 from labcal.store.rundir import identity
 
@@ -51,7 +52,7 @@ def lab_record(connection: Connection, run_id: int, directory: Path) -> RunRecor
     ``directory``; an unknown or unfinished run is one line."""
     from sqlalchemy import select
 
-    from labcal.store.schema import events, points, runs
+    from labcal.store.schema import events, runs
 
     columns = [f.name for f in fields(RunRow)]
     found = connection.execute(select(*(runs.c[c] for c in columns)).where(runs.c.id == run_id)).first()
@@ -72,10 +73,7 @@ def lab_record(connection: Connection, run_id: int, directory: Path) -> RunRecor
     # run's chained `remeasured` event says which reading replaced it, as the journal's mark does
     superseded = {int(e["data"]["seq"]) for e in logged
                   if e["kind"] == "remeasured" and isinstance(e["data"], dict) and "seq" in e["data"]}
-    names = [f.name for f in fields(PointRecord)]
-    good = [p for p in (PointRecord(**dict(zip(names, r, strict=True))) for r in connection.execute(
-        select(*(points.c[n] for n in names)).where(points.c.run_id == run_id, points.c.status == "ok")
-        .order_by(points.c.seq))) if p.seq not in superseded]
+    good = [p for p in ok_points(connection, run_id) if p.seq not in superseded]
     chain = check_server(connection, run_id, label)
     # what run.json says of the run (`labcal.store.exports`), which the lab keeps no copy of
     info = {"labcal_version": row.software_version, **identity(row), "plan": row.plan_name,
