@@ -23,12 +23,10 @@ import socket
 from dataclasses import dataclass
 from datetime import UTC, datetime
 
-from sqlalchemy import desc, func, select
-
 from labcal.app.labdatabase import LabDatabase
 from labcal.errors import LabcalError
+from labcal.store import audit as trail
 from labcal.store.chain import append_audit, audit_digest
-from labcal.store.schema import audit
 
 # What a row records (``kind``)
 SIGNED_IN = "signed in"
@@ -114,34 +112,24 @@ def _row(r) -> Row:
     return Row(*r)
 
 
-COLUMNS = (audit.c.id, audit.c.utc, audit.c.kind, audit.c.account, audit.c.actor, audit.c.client,
-           audit.c.detail, audit.c.prev, audit.c.digest)
-
-
 def newest(lab: LabDatabase, limit: int = 200, before: int | None = None) -> list[Row]:
     """The newest ``limit`` rows (before the row id ``before``), newest first."""
-    query = select(*COLUMNS).order_by(desc(audit.c.id)).limit(limit)
-    if before is not None:
-        query = query.where(audit.c.id < before)
-    with lab.engine.connect() as conn:
-        return [_row(r) for r in conn.execute(query)]
+    return [_row(r) for r in trail.newest(lab.engine, limit, before)]
 
 
 def count(lab: LabDatabase) -> int:
-    with lab.engine.connect() as conn:
-        return int(conn.execute(select(func.count()).select_from(audit)).scalar_one())
+    return trail.count(lab.engine)
 
 
 def verify(lab: LabDatabase) -> int | None:
     """The id of the first row that does not follow from the one before it (None: the chain holds)."""
     prev = ""
-    with lab.engine.connect() as conn:
-        for r in conn.execute(select(*COLUMNS).order_by(audit.c.id)):
-            row = _row(r)
-            entry = Entry(row.kind, row.account, row.actor, row.client, row.detail)
-            if row.prev != prev or row.digest != digest_of(prev, row.utc, entry):
-                return row.id
-            prev = row.digest
+    for r in trail.in_order(lab.engine):
+        row = _row(r)
+        entry = Entry(row.kind, row.account, row.actor, row.client, row.detail)
+        if row.prev != prev or row.digest != digest_of(prev, row.utc, entry):
+            return row.id
+        prev = row.digest
     return None
 
 
@@ -163,16 +151,11 @@ def wait_after(failures: int) -> float:
 def account_state(lab: LabDatabase, account: str, now: datetime | None = None) -> AccountState:
     """``account``'s consecutive failures, whether it is locked and how long its next guess waits."""
     kinds = (*FAILURES, *RESETS, LOCKED)
-    query = (select(audit.c.kind, audit.c.utc).where(audit.c.account == account, audit.c.kind.in_(kinds))
-             .order_by(desc(audit.c.id)).limit(LOCK_AFTER + 1))
     # locked until a reset follows the lock: a wrong guess heard after the lock (one that began before
     # it, in parallel) does not lift it
-    last_lock_or_reset = (select(audit.c.kind).where(audit.c.account == account,
-                                                     audit.c.kind.in_((*RESETS, LOCKED)))
-                          .order_by(desc(audit.c.id)).limit(1))
-    with lab.engine.connect() as conn:
-        rows = conn.execute(query).all()
-        locked = conn.execute(last_lock_or_reset).scalar() == LOCKED
+    rows, last_lock_or_reset = trail.account_rows(lab.engine, account, kinds, LOCK_AFTER + 1,
+                                                  (*RESETS, LOCKED))
+    locked = last_lock_or_reset == LOCKED
     if locked:
         return AccountState(LOCK_AFTER, True, 0.0)
     failures = 0
