@@ -20,9 +20,8 @@ from typing import TYPE_CHECKING
 from labcal.errors import LabcalError
 
 if TYPE_CHECKING:
-    from sqlalchemy.engine import Engine
-
     from labcal.config.lab import ServerDatabase
+    from labcal.store.handles import Engine
 
 
 @dataclass(frozen=True)
