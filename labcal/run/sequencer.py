@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import logging
 import math
-import sqlite3
 from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 
@@ -415,11 +414,12 @@ class Sequencer:
         if self._tail is None:
             return
         try:
-            if self._pool_key is not None:
-                settle_pool.save(self.journal.db, self._pool_key, self._tail)
-            if self._prior_key is not None:
-                settle_pool.add_to_prior(self.journal.db, self._prior_key, self._tail)
-        except (sqlite3.Error, LabcalError) as exc:
+            with self.journal.refusals():
+                if self._pool_key is not None:
+                    settle_pool.save(self.journal.db, self._pool_key, self._tail)
+                if self._prior_key is not None:
+                    settle_pool.add_to_prior(self.journal.db, self._prior_key, self._tail)
+        except LabcalError as exc:  # a JournalError among them
             log.warning("model settling's pool was not kept for the next run: %s", exc)
 
     # --- what the run reports ----------------------------------------------------------------

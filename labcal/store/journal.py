@@ -16,7 +16,8 @@ import hashlib
 import json
 import sqlite3
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, fields
 from datetime import UTC, datetime
 from pathlib import Path
@@ -152,6 +153,11 @@ class RunSummary:
     points_failed: int
 
 
+class JournalError(LabcalError):
+    """The journal's database refused a read or a write (a full disk, a read-only, locked or damaged
+    file): one line naming the file and what to do (`labcal.store.labdb.failure`)."""
+
+
 class Journal:
     def __init__(self, path: str | Path, durable: bool = True):
         self.path = Path(path)
@@ -167,6 +173,15 @@ class Journal:
 
     def close(self) -> None:
         self.db.close()
+
+    @contextmanager
+    def refusals(self) -> Iterator[None]:
+        """Raise what the database refuses inside the block as `JournalError`, so that a caller that
+        may go on without the write (the run machinery) catches one error type, not the driver's."""
+        try:
+            yield
+        except sqlite3.Error as exc:
+            raise JournalError(str(labdb.failure(self.path, exc))) from exc
 
     def __enter__(self) -> Journal:
         return self
