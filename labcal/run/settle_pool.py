@@ -30,8 +30,8 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import sqlite3
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -39,7 +39,12 @@ from labcal.config.settings import SettleSettings
 from labcal.config.snapshot import SimulatedRigSnapshot, StationFileSnapshot, parse_snapshot
 from labcal.config.station import LinkSettings
 from labcal.run.settle import SLOW, TAU_GRID, TAU_RANGE, PoolState, TailPool
-from labcal.store.journal import RunRow, utc_now
+from labcal.store import settle_pools
+from labcal.store.journal import RunRow
+from labcal.store.settle_pools import PoolRow
+
+if TYPE_CHECKING:
+    from labcal.store.handles import SQLiteConnection
 
 LAYOUT = f"tailpool/1 grid={TAU_GRID} range={TAU_RANGE[0]:g}-{TAU_RANGE[1]:g} slow={SLOW:g}"
 LINK_FIELDS = frozenset(LinkSettings.model_fields) | {"visa", "visa_library"}
@@ -110,15 +115,14 @@ def _sources(text: str) -> list[dict]:
     return list(json.loads(text))
 
 
-def load(db: sqlite3.Connection, key: PoolKey, whose: str = "this instrument"
+def load(db: SQLiteConnection, key: PoolKey, whose: str = "this instrument"
          ) -> tuple[PoolState | None, str, bool]:
     """The pool the earlier runs left under ``key`` (None: start empty), one line saying what it
     holds, and whether this run may keep its records there (not when it repeats a seed's noise)."""
-    row = db.execute("SELECT records, sources, mismatch, sums FROM settle_pools WHERE pool_key=?",
-                     (key.key,)).fetchone()
+    row = settle_pools.read(db, key.key)
     if row is None:
         return None, f"model settling: no earlier runs of {whose} on this station", True
-    records, sources, mismatch, blob = row
+    records, sources, mismatch, blob = row.records, row.sources, row.mismatch, row.sums
     if key.noise is not None and any(s.get("noise") == key.noise and s.get("run") != key.run
                                      for s in _sources(sources)):
         return None, (f"model settling: the records of {whose}'s earlier runs already hold "
@@ -129,7 +133,7 @@ def load(db: sqlite3.Connection, key: PoolKey, whose: str = "this instrument"
     return PoolState(sums, int(records), str(mismatch)), note + (f"; {mismatch}" if mismatch else ""), True
 
 
-def save(db: sqlite3.Connection, key: PoolKey, pool: TailPool) -> None:
+def save(db: SQLiteConnection, key: PoolKey, pool: TailPool) -> None:
     """Keep ``pool`` (the history it started with and this run's records) under ``key``, in one
     transaction; only for a run that `load` allowed to."""
     if pool.own_records == 0:
@@ -137,35 +141,26 @@ def save(db: sqlite3.Connection, key: PoolKey, pool: TailPool) -> None:
     state = pool.state()
     buffer = io.BytesIO()
     np.save(buffer, state.sums, allow_pickle=False)
-    db.execute("BEGIN IMMEDIATE")
-    try:
-        row = db.execute("SELECT sources FROM settle_pools WHERE pool_key=?", (key.key,)).fetchone()
-        sources = [s for s in _sources(row[0]) if s.get("run") != key.run] if row else []
+
+    def kept(row: PoolRow | None) -> PoolRow:
+        sources = [s for s in _sources(row.sources) if s.get("run") != key.run] if row else []
         sources.append({"run": key.run, "noise": key.noise})
-        db.execute("INSERT INTO settle_pools (pool_key, identity, records, sources, mismatch, sums, "
-                   "updated_utc) VALUES (?, ?, ?, ?, ?, ?, ?) ON CONFLICT (pool_key) DO UPDATE SET "
-                   "records=excluded.records, sources=excluded.sources, mismatch=excluded.mismatch, "
-                   "sums=excluded.sums, updated_utc=excluded.updated_utc",
-                   (key.key, json.dumps(key.identity, sort_keys=True, default=str), state.records,
-                    json.dumps(sources), state.mismatch, buffer.getvalue(), utc_now()))
-        db.execute("COMMIT")
-    except BaseException:
-        if db.in_transaction:
-            db.execute("ROLLBACK")
-        raise
+        return PoolRow(state.records, json.dumps(sources), state.mismatch, buffer.getvalue())
+
+    settle_pools.replace(db, key.key, json.dumps(key.identity, sort_keys=True, default=str), kept)
 
 
-def load_prior(db: sqlite3.Connection, key: PoolKey, whose: str) -> tuple[PoolState | None, str, bool]:
+def load_prior(db: SQLiteConnection, key: PoolKey, whose: str) -> tuple[PoolState | None, str, bool]:
     """`load` for a prior (``key``: `prior_key`). A resumed run finds its own earlier records in the
     prior as well as in its instrument's pool: it goes on without the prior rather than count them
     twice (and still adds what it takes from now on)."""
-    row = db.execute("SELECT sources FROM settle_pools WHERE pool_key=?", (key.key,)).fetchone()
-    if row is not None and any(s.get("run") == key.run for s in _sources(row[0])):
+    row = settle_pools.read(db, key.key)
+    if row is not None and any(s.get("run") == key.run for s in _sources(row.sources)):
         return None, f"model settling: {whose} already hold this run's records; it goes on without them", True
     return load(db, key, whose)
 
 
-def add_to_prior(db: sqlite3.Connection, key: PoolKey, pool: TailPool) -> None:
+def add_to_prior(db: SQLiteConnection, key: PoolKey, pool: TailPool) -> None:
     """Add this run's own records to its type's or station's (``key``: `prior_key`), in one
     transaction; only for a run that `load` allowed to. Every segment of a run adds the records it
     took (a resumed run's pool starts again from its saved history), so none counts twice. A run
@@ -173,25 +168,15 @@ def add_to_prior(db: sqlite3.Connection, key: PoolKey, pool: TailPool) -> None:
     own = pool.own_state()
     if own.records == 0 or own.mismatch:
         return
-    db.execute("BEGIN IMMEDIATE")
-    try:
-        row = db.execute("SELECT records, sources, sums FROM settle_pools WHERE pool_key=?",
-                         (key.key,)).fetchone()
+
+    def added(row: PoolRow | None) -> PoolRow:
         sums, records, sources = own.sums, own.records, [{"run": key.run, "noise": key.noise}]
         if row is not None:
-            sums = sums + np.load(io.BytesIO(row[2]), allow_pickle=False)
-            records += int(row[0])
-            sources = _sources(row[1]) + sources
+            sums = sums + np.load(io.BytesIO(row.sums), allow_pickle=False)
+            records += row.records
+            sources = _sources(row.sources) + sources
         buffer = io.BytesIO()
         np.save(buffer, sums, allow_pickle=False)
-        db.execute("INSERT INTO settle_pools (pool_key, identity, records, sources, mismatch, sums, "
-                   "updated_utc) VALUES (?, ?, ?, ?, '', ?, ?) ON CONFLICT (pool_key) DO UPDATE SET "
-                   "records=excluded.records, sources=excluded.sources, sums=excluded.sums, "
-                   "updated_utc=excluded.updated_utc",
-                   (key.key, json.dumps(key.identity, sort_keys=True, default=str), records,
-                    json.dumps(sources), buffer.getvalue(), utc_now()))
-        db.execute("COMMIT")
-    except BaseException:
-        if db.in_transaction:
-            db.execute("ROLLBACK")
-        raise
+        return PoolRow(records, json.dumps(sources), row.mismatch if row else "", buffer.getvalue())
+
+    settle_pools.replace(db, key.key, json.dumps(key.identity, sort_keys=True, default=str), added)
