@@ -13,9 +13,7 @@ signs under two names); a name has at most one active key.
 
 from __future__ import annotations
 
-import sqlite3
-from contextlib import closing
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -28,10 +26,10 @@ from labcal.config.files import read_text
 from labcal.documents.approval import key_id, load_public_key, signature_holds, signed_certificate
 from labcal.documents.certificate import Certificate, ServerSignature, certificate_from_doc, parse_json
 from labcal.errors import LabcalError
-from labcal.store import labdb
+from labcal.store import approvers as register
 from labcal.store.journal import db_path
 
-COLUMNS = "name, role, public_key, key_id, added_utc, revoked_utc"
+COLUMNS = ", ".join(register.COLUMNS)
 # The role a lab server's key is registered with: it signs only for an approver signed in to the
 # server (`labcal.app.server_approval`), never as a person of its own.
 SERVER_ROLE = "lab server"
@@ -75,26 +73,21 @@ def add(name: str, role: str, public_key_file: str | Path, db: str | Path | None
                               serialization.PublicFormat.SubjectPublicKeyInfo).decode("ascii")
     kid = key_id(public)
     path = db_path(db)
-    with closing(labdb.connect(path)) as conn:
-        # the lab's registry (every bench's registrations, where the lab is a server) and this
-        # bench's own, not yet sent
-        for known in _lab(db, key_id=kid) + _lab(db, name=name, active=True) + \
-                _rows(conn, "WHERE key_id = ? OR (name = ? AND revoked_utc IS NULL)", (kid, name)):
-            if known.key_id == kid:
-                state = "registered" if known.active else f"revoked on {known.revoked_utc}"
-                raise LabcalError(f"{public_key_file}: this key (id {kid[:12]}…) is already {state} for "
-                                  f"{known.name}; a key is registered once (make a new pair with `labcal "
-                                  "certificate keygen`)")
-            raise LabcalError(f"{name}: already registered with key {known.key_id[:12]}…; `labcal "
-                              f"certificate approvers revoke {name!r}` first to give them a new key")
-        approver = Approver(name, role, pem, kid, _now(), None)
-        try:
-            conn.execute(f"INSERT INTO approvers ({COLUMNS}) VALUES (?, ?, ?, ?, ?, ?)",
-                         (approver.name, approver.role, approver.public_key_pem, approver.key_id,
-                          approver.added_utc, approver.revoked_utc))
-        except sqlite3.IntegrityError:  # another administrator registered the same name or key meanwhile
-            raise LabcalError(f"{name}: registered meanwhile by someone else; `labcal certificate approvers "
-                              "list` says by whom") from None
+    # the lab's registry (every bench's registrations, where the lab is a server) and this
+    # bench's own, not yet sent
+    for known in _lab(db, key_id=kid) + _lab(db, name=name, active=True) + \
+            [Approver(*r) for r in register.same_key_or_active_name(path, kid, name)]:
+        if known.key_id == kid:
+            state = "registered" if known.active else f"revoked on {known.revoked_utc}"
+            raise LabcalError(f"{public_key_file}: this key (id {kid[:12]}…) is already {state} for "
+                              f"{known.name}; a key is registered once (make a new pair with `labcal "
+                              "certificate keygen`)")
+        raise LabcalError(f"{name}: already registered with key {known.key_id[:12]}…; `labcal "
+                          f"certificate approvers revoke {name!r}` first to give them a new key")
+    approver = Approver(name, role, pem, kid, _now(), None)
+    if not register.insert(path, astuple(approver)):  # another administrator registered it meanwhile
+        raise LabcalError(f"{name}: registered meanwhile by someone else; `labcal certificate approvers "
+                          "list` says by whom")
     return approver
 
 
@@ -103,27 +96,14 @@ def revoke(name: str, db: str | Path | None = None) -> Approver:
     journaled with the registration it revokes (registered at another bench: copied here first), so
     that the lab database receives it as it receives every record of this bench."""
     path = db_path(db)
-    with closing(labdb.connect(path)) as conn:
-        active = _lab(db, name=name, active=True) or \
-            _rows(conn, "WHERE name = ? AND revoked_utc IS NULL", (name,))
-        if not active:
-            names = [a.name for a in _lab(db, active=True)]
-            raise LabcalError(f"{name}: no active approver of that name in {path}; active: "
-                              f"{', '.join(names) if names else 'none'}")
-        a = active[0]
-        when = _now()
-        conn.execute("BEGIN IMMEDIATE")
-        try:
-            conn.execute(f"INSERT INTO approvers ({COLUMNS}) VALUES (?, ?, ?, ?, ?, ?) "
-                         "ON CONFLICT DO NOTHING",
-                         (a.name, a.role, a.public_key_pem, a.key_id, a.added_utc, None))
-            conn.execute("UPDATE approvers SET revoked_utc = ? WHERE key_id = ? AND revoked_utc IS NULL",
-                         (when, a.key_id))
-            conn.execute("COMMIT")
-        except BaseException:
-            if conn.in_transaction:
-                conn.execute("ROLLBACK")
-            raise
+    active = _lab(db, name=name, active=True) or [Approver(*r) for r in register.active(path, name)]
+    if not active:
+        names = [a.name for a in _lab(db, active=True)]
+        raise LabcalError(f"{name}: no active approver of that name in {path}; active: "
+                          f"{', '.join(names) if names else 'none'}")
+    a = active[0]
+    when = _now()
+    register.revoke(path, astuple(a), when)
     return Approver(a.name, a.role, a.public_key_pem, a.key_id, a.added_utc, when)
 
 
@@ -149,10 +129,6 @@ def _lab(db: str | Path | None, key_id: str | None = None, name: str | None = No
     rows = records(db, "approvers", tuple(COLUMNS.split(", ")), where, ("id",), must_exist=False).rows
     found = [Approver(*row) for row in rows]
     return [a for a in found if a.active] if active else found
-
-
-def _rows(conn: sqlite3.Connection, where: str, params: tuple) -> list[Approver]:
-    return [Approver(*row) for row in conn.execute(f"SELECT {COLUMNS} FROM approvers {where}", params)]
 
 
 def problems(kid: str, name: str, role: str, db: str | Path | None = None,
