@@ -30,13 +30,10 @@ from datetime import UTC, datetime, timedelta
 from functools import cache
 from pathlib import Path
 
-from sqlalchemy import select, update
-from sqlalchemy.exc import IntegrityError
-
 from labcal.app import audit
 from labcal.app.labdatabase import LabDatabase
 from labcal.errors import LabcalError
-from labcal.store.schema import users
+from labcal.store import users as accounts
 
 LOG = logging.getLogger("labcal.server")
 ROLES = ("technician", "approver", "viewer")
@@ -115,7 +112,6 @@ def _valid_role(role: str) -> str:
     return role
 
 
-COLUMNS = (users.c.id, users.c.name, users.c.role, users.c.created_utc, users.c.disabled_utc)
 
 
 @dataclass(frozen=True)
@@ -151,43 +147,34 @@ def add(lab: LabDatabase, request: AddUser) -> AddedUser:
     row = {"name": name, "role": role, "password_hash": hashed, "token_hash": token_hash(token),
            "created_utc": now, "disabled_utc": None, "token_utc": now}
     try:
-        with lab.engine.begin() as conn:
-            if conn.execute(select(users.c.id).where(users.c.name == name)).first() is not None:
-                raise LabcalError(f"{name}: already a user (`labcal user list`); a user is never re-added "
-                                  "(choose another name)")
-            key = conn.execute(users.insert().values(**row)).inserted_primary_key
-            assert key is not None  # an INSERT of one row into a table with a primary key
-            user_id = key[0]
-    except IntegrityError:  # added meanwhile by someone else
-        raise LabcalError(f"{name}: added meanwhile by someone else (`labcal user list`)") from None
+        user_id = accounts.insert(lab.engine, row)
+    except accounts.NameTaken as taken:
+        if taken.meanwhile:  # added meanwhile by someone else
+            raise LabcalError(f"{name}: added meanwhile by someone else (`labcal user list`)") from None
+        raise LabcalError(f"{name}: already a user (`labcal user list`); a user is never re-added "
+                          "(choose another name)") from None
     audit.record(lab, audit.by_command(audit.USER_ADDED, name, f"role {role}"))
     return AddedUser(User(int(user_id), name, role, row["created_utc"], None), token)
 
 
 def listed(lab: LabDatabase) -> list[User]:
     """Every user, active and disabled, in the order they were added."""
-    with lab.engine.connect() as conn:
-        return [User(*r) for r in conn.execute(select(*COLUMNS).order_by(users.c.id))]
+    return [User(*r) for r in accounts.every(lab.engine)]
 
 
 def named(lab: LabDatabase, name: str) -> User | None:
-    with lab.engine.connect() as conn:
-        row = conn.execute(select(*COLUMNS).where(users.c.name == name)).first()
+    row = accounts.named(lab.engine, name)
     return None if row is None else User(*row)
 
 
 def disable(lab: LabDatabase, name: str) -> User:
     """Disable ``name``: their password, token and sessions stop working; the row stays."""
     when = _now()
-    with lab.engine.begin() as conn:
-        done = conn.execute(update(users).where(users.c.name == name, users.c.disabled_utc.is_(None))
-                            .values(disabled_utc=when))
-        if done.rowcount != 1:
-            row = conn.execute(select(users.c.disabled_utc).where(users.c.name == name)).first()
-            if row is not None:
-                raise LabcalError(f"{name}: already disabled on {row[0]}")
-            known = [r[0] for r in conn.execute(select(users.c.name).order_by(users.c.id))]
-            raise LabcalError(f"{name}: no such user; users: {', '.join(known) if known else 'none'}")
+    done, disabled, known = accounts.disable(lab.engine, name, when)
+    if not done:
+        if disabled is not None:
+            raise LabcalError(f"{name}: already disabled on {disabled}")
+        raise LabcalError(f"{name}: no such user; users: {', '.join(known) if known else 'none'}")
     audit.record(lab, audit.by_command(audit.USER_DISABLED, name))
     found = named(lab, name)
     assert found is not None
@@ -198,12 +185,11 @@ def by_token(lab: LabDatabase, token: str, days: float = TOKEN_DAYS) -> User | N
     """The active user whose API token this is, if it was issued less than ``days`` ago; else None."""
     if not token:
         return None
-    with lab.engine.connect() as conn:
-        row = conn.execute(select(*COLUMNS, users.c.token_utc)
-                           .where(users.c.token_hash == token_hash(token))).first()
+    row = accounts.with_token(lab.engine, token_hash(token))
     if row is None:
         return None
-    user, issued = User(*row[:-1]), datetime.fromisoformat(row[-1] or row.created_utc)
+    user = User(*row[0])
+    issued = datetime.fromisoformat(row[1] or user.created_utc)
     if datetime.now(UTC) - issued > timedelta(days=days):
         return None
     return user if user.active else None
@@ -225,8 +211,7 @@ def change_password(lab: LabDatabase, name: str, password: str) -> User:
         raise LabcalError(f"{problem}; the password is unchanged")
     with _HASHING:
         hashed = _hasher().hash(password)
-    with lab.engine.begin() as conn:
-        conn.execute(update(users).where(users.c.name == name).values(password_hash=hashed))
+    accounts.change(lab.engine, name, password_hash=hashed)
     audit.record(lab, audit.by_command(audit.PASSWORD_CHANGED, name))
     return user
 
@@ -237,9 +222,7 @@ def new_token(lab: LabDatabase, name: str) -> AddedUser:
     if not user.active:
         raise LabcalError(f"{name}: disabled on {user.disabled_utc}; a disabled user gets no token")
     token = secrets.token_urlsafe(32)
-    with lab.engine.begin() as conn:
-        conn.execute(update(users).where(users.c.name == name)
-                     .values(token_hash=token_hash(token), token_utc=_now()))
+    accounts.change(lab.engine, name, token_hash=token_hash(token), token_utc=_now())
     audit.record(lab, audit.by_command(audit.TOKEN_ISSUED, name, "the previous token no longer works"))
     return AddedUser(user, token)
 
@@ -265,9 +248,7 @@ def by_password(lab: LabDatabase, name: str, password: str) -> User | None:
     from argon2.exceptions import InvalidHashError, VerificationError
 
     hasher = _hasher()
-    with lab.engine.connect() as conn:
-        row = conn.execute(select(*COLUMNS, users.c.password_hash)
-                           .where(users.c.name == name.strip())).first()
+    row = accounts.with_password(lab.engine, name.strip())
     if not _HASHING.acquire(blocking=False):
         raise Busy("the server is checking other passwords; try again in a moment")
     try:
@@ -279,7 +260,7 @@ def by_password(lab: LabDatabase, name: str, password: str) -> User | None:
         return None
     finally:
         _HASHING.release()
-    user = None if row is None else User(*row[:-1])
+    user = None if row is None else User(*row[0])
     return user if user is not None and user.active else None
 
 
