@@ -47,8 +47,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import select
-
 from labcal.app.certificates import ApproveCertificate, Authentication, SignedFor, approve_certificate
 from labcal.app.lab import run_folder
 from labcal.app.labdatabase import LabDatabase
@@ -175,12 +173,9 @@ def approved_file(lab: LabDatabase, run_id: int, name: str) -> tuple[str, bytes]
     """A file of run ``run_id``'s certificate as the lab server approved it and the lab keeps it
     (the signed certificate.json, certificate.dcc.xml, report.pdf, report.html), with its media
     type; None: no such file, or none approved there."""
-    from labcal.store.lab_certificates import files_of
-    from labcal.store.schema import runs
+    from labcal.store.lab_certificates import approved_files
 
     if name not in MEDIA:
         return None
-    with lab.engine.connect() as conn:
-        uuid = conn.execute(select(runs.c.uuid).where(runs.c.id == run_id)).scalar()
-        content = None if uuid is None else files_of(conn, uuid).get(name)
+    content = approved_files(lab.engine, run_id).get(name)
     return None if content is None else (MEDIA[name], content)

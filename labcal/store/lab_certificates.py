@@ -28,7 +28,7 @@ from labcal.store.record import RunRecord, run_record
 from labcal.store.rundir import identity
 
 if TYPE_CHECKING:
-    from sqlalchemy.engine import Connection
+    from sqlalchemy.engine import Connection, Engine
 
 # What a server's approval keeps, in the order a bench writes them (the certificate, which says the
 # run is approved, last: a bench killed while writing leaves a draft, never a half-approved folder)
@@ -171,6 +171,17 @@ def files_of(connection: Connection, run_uuid: str) -> dict[str, bytes]:
             raise LabcalError(f"the lab's {name} of run {run_uuid} does not match its stored digest")
         found[name] = data
     return found
+
+
+def approved_files(engine: Engine, run_id: int) -> dict[str, bytes]:
+    """`files_of` the lab's run ``run_id`` (empty: no such run, or none approved there)."""
+    from sqlalchemy import select
+
+    from labcal.store.schema import runs
+
+    with engine.connect() as connection:
+        uuid = connection.execute(select(runs.c.uuid).where(runs.c.id == run_id)).scalar()
+        return {} if uuid is None else files_of(connection, uuid)
 
 
 def file_names(connection: Connection, run_uuid: str) -> list[str]:
