@@ -36,12 +36,13 @@ import numpy as np
 from sqlalchemy import select
 
 from labcal.analysis.fit import ROW_NAMES
-from labcal.app.lab import SUMMARY, _counts, _summary, simulated
+from labcal.app.lab import _summary, simulated
 from labcal.app.labdatabase import LabDatabase
 from labcal.app.residuals import certified_residuals, residual_png
 from labcal.app.runs import attention
 from labcal.documents.certificate import Certificate, certificate_from_doc, format_result
 from labcal.errors import LabcalError
+from labcal.store import lab_view
 from labcal.store.lab_certificates import approved_by
 from labcal.store.schema import certificate_files, certificates, events, runs
 
@@ -148,8 +149,9 @@ def queue(lab: LabDatabase, dry_runs: bool = False) -> Queue:
     lab's history."""
     waiting, dry = [], 0
     with lab.engine.connect() as conn:
-        rows = conn.execute(select(*SUMMARY).where(runs.c.status == "complete").order_by(runs.c.id)).all()
-        counts = _counts(conn, [r.id for r in rows])
+        rows = conn.execute(select(*lab_view.SUMMARY).where(runs.c.status == "complete")
+                            .order_by(runs.c.id)).all()
+        counts = lab_view.counts(conn, [r.id for r in rows])
         for row in rows:
             if approved_by(conn, row.id) is not None:
                 continue

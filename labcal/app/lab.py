@@ -32,16 +32,15 @@ from datetime import datetime
 from typing import TYPE_CHECKING, Any
 
 from pydantic import ValidationError
-from sqlalchemy import case, func, select
 
 from labcal.app.labdatabase import LabDatabase
 from labcal.app.station_state import PACE_POINTS, Heard, on_the_wall
 from labcal.config.snapshot import is_simulated, parse_snapshot
 from labcal.run.events import JournaledPrompt
-from labcal.store.schema import events, points, runs
+from labcal.store import lab_view
 
 if TYPE_CHECKING:
-    from sqlalchemy.engine import Connection
+    from labcal.store.handles import Connection
 
 RunJson = dict[str, Any]  # a run as the API states it
 EventJson = dict[str, Any]  # a journaled event as the API states it
@@ -79,20 +78,6 @@ def _json(text: str | None) -> Any:
         return None
 
 
-def _counts(conn: Connection, run_ids: list[int] | None = None) -> dict[int, tuple[int, int, int | None]]:
-    """Per run: points journaled, points measured, the last step's seq."""
-    ok = func.sum(case((points.c.status == "ok", 1), else_=0))
-    query = select(points.c.run_id, func.count(), ok, func.max(points.c.seq)).group_by(points.c.run_id)
-    if run_ids is not None:
-        query = query.where(points.c.run_id.in_(run_ids))
-    return {r: (int(n), int(k or 0), s) for r, n, k, s in conn.execute(query)}
-
-
-SUMMARY = (runs.c.id, runs.c.status, runs.c.station, runs.c.metadata, runs.c.instrument_serial,
-           runs.c.operator, runs.c.plan_name, runs.c.plan_text, runs.c.points_total, runs.c.started_utc,
-           runs.c.ended_utc, runs.c.reason, runs.c.run_dir, runs.c.station_text, runs.c.uuid)
-
-
 def simulated(metadata: Any, station_text: str | None) -> bool:
     """A dry run (simulated rig or emulators), by the rule a run's record applies
     (`labcal.config.snapshot.is_simulated`): shown on the pages so that nobody mistakes one for a
@@ -119,8 +104,8 @@ def _summary(row: Any, counts: tuple[int, int, int | None]) -> dict:
 
 def _list_runs(conn: Connection) -> list[dict]:
     """Every run of the lab, newest first, with its progress."""
-    counts = _counts(conn)
-    rows = conn.execute(select(*SUMMARY).order_by(runs.c.id.desc())).all()
+    counts = lab_view.counts(conn)
+    rows = lab_view.summaries(conn)
     return [_summary(r, counts.get(r.id, (0, 0, None))) for r in rows]
 
 
@@ -140,25 +125,19 @@ def _text(kind: str, message: str, data: Any) -> str:
     return message
 
 
-EVENT_COLUMNS = (events.c.id, events.c.utc, events.c.station_time, events.c.kind, events.c.message,
-                 events.c.data)
-
-
 def _latest(conn: Connection, run_id: int, kind: str) -> dict | None:
-    row = conn.execute(select(*EVENT_COLUMNS).where(events.c.run_id == run_id, events.c.kind == kind)
-                       .order_by(events.c.id.desc()).limit(1)).first()
+    row = lab_view.latest_event(conn, run_id, kind)
     return None if row is None else _event_json(row)
 
 
 def _progress(conn: Connection, run_id: int) -> dict | None:
     """The run's summary with where it stands: mount, next remount, ETA, last fault (None: no run)."""
-    row = conn.execute(select(*SUMMARY).where(runs.c.id == run_id)).first()
+    row = lab_view.summary(conn, run_id)
     if row is None:
         return None
-    counts = _counts(conn, [run_id]).get(run_id, (0, 0, None))
+    counts = lab_view.counts(conn, [run_id]).get(run_id, (0, 0, None))
     summary = _summary(row, counts)
-    last = conn.execute(select(points.c.y_deg, points.c.u_deg, points.c.t_end, points.c.utc)
-                        .where(points.c.run_id == run_id).order_by(points.c.seq.desc()).limit(1)).first()
+    last = lab_view.last_point(conn, run_id)
     summary["mount"] = _mount(conn, run_id, last)
     fault = _latest(conn, run_id, FAULT_KIND)
     summary["last_fault"] = None if fault is None else {"utc": fault["utc"], "message": fault["message"]}
@@ -174,8 +153,7 @@ def _done_at(conn: Connection, run_id: int, eta_s: float | None) -> str | None:
     clock has kept against the wall's over its latest points (`labcal.app.station_state.on_the_wall`)."""
     if eta_s is None:
         return None
-    latest = conn.execute(select(points.c.utc, points.c.t_end).where(points.c.run_id == run_id)
-                          .order_by(points.c.seq.desc()).limit(PACE_POINTS)).all()
+    latest = lab_view.latest_points(conn, run_id, PACE_POINTS)
     heard = [Heard(datetime.fromisoformat(r.utc), "point", data={"t_end": r.t_end}) for r in reversed(latest)]
     when = on_the_wall(heard, eta_s)
     return None if when is None else when.isoformat(timespec="milliseconds")
@@ -199,8 +177,7 @@ def _last_heard(conn: Connection, run_id: int) -> str | None:
     """When the run last journaled anything (a point or an event), UTC. A station that has gone
     quiet (its process killed, a power cut) leaves its run "running" until it is resumed; this says
     since when nothing has come from it."""
-    heard = [conn.execute(select(func.max(table.c.utc)).where(table.c.run_id == run_id)).scalar()
-             for table in (points, events)]
+    heard = lab_view.last_written(conn, run_id)
     return max((t for t in heard if t), default=None)  # both ISO 8601 in UTC, as the journal writes them
 
 
@@ -214,8 +191,7 @@ def _waiting(conn: Connection, run_id: int) -> dict | None:
     prompt = _latest(conn, run_id, PROMPT_KIND)
     if prompt is None:
         return None
-    answers = conn.execute(select(events.c.message).where(
-        events.c.run_id == run_id, events.c.id > prompt["id"], events.c.kind == ANSWER_KIND)).scalars()
+    answers = lab_view.answers_after(conn, run_id, prompt["id"], ANSWER_KIND)
     if any(STAYS_OPEN not in message for message in answers):
         return None
     return {"utc": prompt["utc"], "text": prompt["text"]}
@@ -249,25 +225,12 @@ def _ahead(conn: Connection, row: Any, counts: tuple[int, int, int | None], rig_
 
 def _run_events(conn: Connection, run_id: int, after: int = 0, limit: int | None = None) -> list[dict]:
     """The run's journaled events after event id ``after``, oldest first."""
-    query = (select(*EVENT_COLUMNS).where(events.c.run_id == run_id, events.c.id > after)
-             .order_by(events.c.id))
-    if limit is not None:
-        query = query.limit(limit)
-    return [_event_json(r) for r in conn.execute(query)]
-
-
-POINT_COLUMNS = (points.c.seq, points.c.replicate, points.c.y_deg, points.c.u_deg, points.c.pitch_deg,
-                 points.c.roll_deg, points.c.status, points.c.t_end, points.c.utc, points.c.vx, points.c.vy,
-                 points.c.vz)
+    return [_event_json(r) for r in lab_view.events_after(conn, run_id, after, limit)]
 
 
 def _run_points(conn: Connection, run_id: int, after: int = -1, limit: int | None = None) -> list[dict]:
     """The run's journaled points with seq above ``after`` (raw samples left out), in order."""
-    query = (select(*POINT_COLUMNS).where(points.c.run_id == run_id, points.c.seq > after)
-             .order_by(points.c.seq))
-    if limit is not None:
-        query = query.limit(limit)
-    return [dict(r._mapping) for r in conn.execute(query)]
+    return lab_view.points_after(conn, run_id, after, limit)
 
 
 # --- the use cases ------------------------------------------------------------------------------
@@ -323,11 +286,11 @@ def run_view(lab: LabDatabase, run_id: int) -> RunView | None:
         if found is None:
             return None
         journal = _run_events(conn, run_id)
-        seq = conn.execute(select(func.max(points.c.seq)).where(points.c.run_id == run_id)).scalar()
+        seq, _ = lab_view.newest(conn, run_id)
         found["approval"] = approved_by(conn, run_id)  # who approved its certificate, and when
         found["approved_files"] = file_names(conn, found["uuid"]) if found.get("uuid") else []
     recent = [e for e in journal if e["kind"] not in QUIET_KINDS][-RECENT:]
-    cursor = Cursor(-1 if seq is None else seq, journal[-1]["id"] if journal else 0)
+    cursor = Cursor(seq, journal[-1]["id"] if journal else 0)
     return RunView(found, tuple(recent), cursor)
 
 
@@ -371,7 +334,7 @@ def next_batch(lab: LabDatabase, request: NextBatch) -> Batch:
             now = _progress(conn, request.run_id)
             # Rows are only ever added: if none lies beyond the cursor now, none did while the
             # progress was read, so it states exactly what the reader has been sent.
-            consistent = _newest(conn, request.run_id) == (seq, event_id)
+            consistent = lab_view.newest(conn, request.run_id) == (seq, event_id)
             if consistent:
                 break
     cursor = Cursor(seq, event_id)
@@ -385,15 +348,7 @@ def next_batch(lab: LabDatabase, request: NextBatch) -> Batch:
     return Batch(tuple(items), cursor, status)
 
 
-def _newest(conn: Connection, run_id: int) -> tuple[int, int]:
-    """The run's last journaled point's seq and last event's id (-1 and 0 when none: a new cursor)."""
-    seq = conn.execute(select(func.max(points.c.seq)).where(points.c.run_id == run_id)).scalar()
-    event_id = conn.execute(select(func.max(events.c.id)).where(events.c.run_id == run_id)).scalar()
-    return (-1 if seq is None else int(seq), 0 if event_id is None else int(event_id))
-
-
 def run_folder(lab: LabDatabase, run_id: int) -> str | None:
     """Where the run's folder is, as its station journaled it (None: no such run)."""
-    with lab.engine.connect() as conn:
-        return conn.execute(select(runs.c.run_dir).where(runs.c.id == run_id)).scalar()
+    return lab_view.run_dir(lab.engine, run_id)
 
