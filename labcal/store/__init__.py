@@ -11,6 +11,6 @@ the journal (`labcal.store.rundir`, `labcal.store.exports`, `labcal.store.record
 
 The run machinery (`labcal.run`), the documents and the application layer call it; only modules
 here import sqlite3, SQLAlchemy, Alembic or psycopg (an import contract in ``pyproject.toml`` says
-so, naming the few exceptions left). A caller names the handles it passes back (a connection, an
-engine) from `labcal.store.handles`.
+so, without exceptions). A caller names the handles it passes back (a connection, an engine) from
+`labcal.store.handles`.
 """
