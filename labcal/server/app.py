@@ -392,7 +392,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
         try:
             shown = instrument_pages.instrument_page(db, serial, date.today())
         except LabcalError as exc:
-            return page(request, "error.html", user, status=404, message=str(exc))
+            return page(request, "error.html", user, status=404, message=str(exc.spelled("web")))
         return page(request, "instrument.html", user, shown=shown, today=date.today())
 
     @app.get("/due", response_class=HTMLResponse)
@@ -401,7 +401,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
         try:
             found = instrument_pages.due(db, within, date.today())
         except LabcalError as exc:
-            return page(request, "error.html", user, status=400, message=str(exc))
+            return page(request, "error.html", user, status=400, message=str(exc.spelled("web")))
         return page(request, "due.html", user, due=found, within=within.strip(), today=date.today())
 
     @app.get("/certificates/{certificate_id:path}/{name}")
