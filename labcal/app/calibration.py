@@ -365,6 +365,8 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
         if args.dry_run:
             return Estimated(plan, est)
         ready(args.db)  # a lab database behind or ahead of this labcal: refused before anything moves
+        # an overdue reference standard stops the run here unless an approver's override holds
+        setup.metadata.update(run_standards([] if bench is None else bench.config.standards, args.db, front))
         if correction is not None:  # still this station's device, still in control: else nothing moves
             from labcal.documents.device_history import check_correction, station_device_id
 
@@ -442,6 +444,26 @@ def run_serial(args: StartRun, front: FrontEnd) -> tuple[str | None, str | None]
                       f"register it with `labcal instrument add {found.serial}`, check the serial with "
                       "`labcal instrument list --search TEXT`, or allow ad-hoc serials in the lab file "
                       "([instruments] allow_adhoc = true)")
+
+
+def run_standards(named: list[str], db: str | None, front: FrontEnd) -> dict:
+    """The reference standards the run uses, checked before anything moves (`labcal.app.standards`):
+    an overdue one without an approver's override stops it in one line; what the run journals of them."""
+    from datetime import datetime
+
+    from labcal.app.standards import standards_for_run
+    from labcal.run.journal import station_name
+
+    found = standards_for_run(named, station_name(), db, datetime.now().astimezone().date())
+    for note in found.notes:
+        front.say(f"note: {note}", markup=False)
+    for held in found.overrides:
+        front.say(f"note: reference standard {held['serial']} is overdue (due {held['due_on']}); the run "
+                  f"goes on under {held['approver']}'s override until {held['valid_until']}: "
+                  f"{held['reason']}",
+                  markup=False)
+    return {key: value for key, value in (("standards", found.used), ("standard_overrides", found.overrides))
+            if value}
 
 
 def check_package(instrument: InstrumentSettings, envelope: CertificateSettings, station: str, plan: str

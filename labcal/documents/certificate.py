@@ -478,6 +478,17 @@ class TraceabilityRecord(Strict):
     due: date
 
 
+class OverrideRecord(Strict):
+    """A decision to go on regardless that the run was measured under (`labcal.documents.overrides`): an
+    unmet checklist item, an overdue reference standard under an approver's override, a fault accepted."""
+
+    kind: str
+    what: str
+    by: str | None
+    reason: str | None
+    utc: str | None
+
+
 class Administration(Strict):
     """ISO/IEC 17025 §7.8.2.1 administrative contents a run alone does not say."""
 
@@ -577,6 +588,7 @@ class Certificate(Strict):
     device: DeviceSection | None = Field(default=None, exclude_if=_absent)
     device_correction: DeviceCorrectionRecord | None = Field(default=None, exclude_if=_absent)
     package: PackageSection | None = Field(default=None, exclude_if=_absent)
+    overrides: list[OverrideRecord] | None = Field(default=None, exclude_if=_absent)
     digest: Digest
 
     @property

@@ -58,6 +58,7 @@ from labcal.documents.certificate import (
     UncertaintyBudget,
     seal,
 )
+from labcal.documents.overrides import checklist_overrides, run_overrides
 from labcal.documents.simulated import NOTICE as SIMULATED_NOTICE
 from labcal.documents.uncertainty import budget, stated_U95_arcsec
 from labcal.errors import LabcalError
@@ -344,17 +345,6 @@ def kept_identification(previous: Certificate | None, item: ItemGiven, serial: s
     return item, serial or previous.instrument.serial, operator or previous.operator
 
 
-def checklist_overrides(checklist: object) -> list[str]:
-    """The pre-run checklist items a run went on regardless of (run.json's ``checklist``: unmet, and
-    the operator said to go on), each as "item: what was found". The approver signs what the run was
-    measured under, so the certificate states them; nothing when the run met its checklist."""
-    if not isinstance(checklist, dict) or not checklist.get("went_on_regardless"):
-        return []
-    items = checklist.get("items") or []
-    return [f"{i.get('item')}: {i.get('message')}" for i in items
-            if isinstance(i, dict) and i.get("status") == "fail"]
-
-
 def override_statement(checklist: object) -> list[str]:
     """The certificate's statement of `checklist_overrides` (none: an empty list)."""
     found = checklist_overrides(checklist)
@@ -413,6 +403,8 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
     if uncertainty.fit_check is not None:  # the lack-of-fit flag and the drift test's verdict
         statements.append(uncertainty.fit_check.statement)
     statements += overdue_standards(admin.traceability, datetime.fromisoformat(calibrated).date())
+    overrides = run_overrides(meta, record.events)  # the checklist's are stated above, in its own words
+    statements += [o.sentence() for o in overrides if o.kind in ("reference standard", "fault accepted")]
     operator = _recorded(meta.get("operator"), operator, "operator", run_dir)
     if replaced is not None:
         changes = changed_fields(identification(replaced),
@@ -459,5 +451,6 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
         "conformity": None if (c := _conformity(X, np.array(expanded.U), uncertainty, settings)) is None
         else c.model_dump(),
         "uncertainty_budget": uncertainty.model_dump(),
+        "overrides": [o.to_json() for o in overrides] or None,
     }
     return seal(content)

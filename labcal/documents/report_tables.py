@@ -225,10 +225,22 @@ def story_table(cert: Certificate) -> Table:
                  caption, emphasis)
 
 
+def overrides_table(cert: Certificate) -> Table:
+    """The technician's section: every decision to go on regardless that the run was measured under
+    (`labcal.documents.overrides`), with who decided, why and when."""
+    found = cert.overrides or []
+    rows = [[o.kind, o.what, o.by or "—", o.reason or "—", (o.utc or "—").replace("T", " ")[:19]]
+            for o in found]
+    return Table("For the laboratory: overrides the run was measured under",
+                 ["override", "what", "by", "reason", "when (UTC)"], rows,
+                 "Each is also stated among the certificate's statements; the journal keeps the record.",
+                 {(i, 0) for i in range(len(rows))})
+
+
 def tables(cert: Certificate) -> list[Table]:
     return [identification_table(cert), conformity_table(cert), attitude_table(cert), budget_table(cert),
             coefficients_with_expanded_uncertainty(cert), replication_table(cert), audit_table(cert),
-            story_table(cert)]
+            story_table(cert), *([overrides_table(cert)] if cert.overrides else [])]
 
 
 def status_text(cert: Certificate) -> str:

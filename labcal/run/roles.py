@@ -46,7 +46,8 @@ BENCH_PREFIX = "labcal_bench_"
 # signature against it): names, roles and public keys, nothing secret; only the administrator writes it.
 # The files of a certificate the server approved are read by the bench that measured the run.
 BENCH_READS = ("alembic_version", "runs", "points", "events", "certificates", "certificate_files",
-               "run_exports", "device_estimates", "settle_pools", "station_roles", "approvers", "instruments")
+               "run_exports", "device_estimates", "settle_pools", "station_roles", "approvers", "instruments",
+               "standards", "standard_overrides")
 BENCH_APPENDS = ("runs", "points", "events", "certificates", "device_estimates", "settle_pools")
 # What a bench sends again when it changes (the sync's records): a certificate approved at the bench
 # with a registered approver's own key (its signature, not the role, vouches for it), a device estimate

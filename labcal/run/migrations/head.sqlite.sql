@@ -2,7 +2,7 @@ CREATE TABLE alembic_version (
 	version_num VARCHAR(32) NOT NULL, 
 	CONSTRAINT alembic_version_pkc PRIMARY KEY (version_num)
 );
-INSERT INTO "alembic_version" VALUES('0012');
+INSERT INTO "alembic_version" VALUES('0013');
 CREATE TABLE approvers (
 	id INTEGER NOT NULL, 
 	name TEXT NOT NULL, 
@@ -147,6 +147,38 @@ CREATE TABLE settle_pools (
 	updated_utc TEXT NOT NULL, 
 	PRIMARY KEY (pool_key)
 );
+CREATE TABLE standard_overrides (
+	id INTEGER NOT NULL, 
+	standard_key TEXT NOT NULL, 
+	due_on TEXT NOT NULL, 
+	valid_until TEXT NOT NULL, 
+	reason TEXT NOT NULL, 
+	approver TEXT NOT NULL, 
+	role TEXT NOT NULL, 
+	key_id TEXT NOT NULL, 
+	signature TEXT NOT NULL, 
+	recorded_utc TEXT NOT NULL, 
+	PRIMARY KEY (id)
+);
+CREATE TABLE standards (
+	id INTEGER NOT NULL, 
+	serial TEXT NOT NULL, 
+	serial_key TEXT NOT NULL, 
+	kind TEXT NOT NULL, 
+	model TEXT DEFAULT '' NOT NULL, 
+	manufacturer TEXT DEFAULT '' NOT NULL, 
+	certificate TEXT NOT NULL, 
+	issued_by TEXT DEFAULT '' NOT NULL, 
+	calibrated_on TEXT NOT NULL, 
+	due_on TEXT NOT NULL, 
+	bench TEXT DEFAULT '' NOT NULL, 
+	status TEXT DEFAULT 'active' NOT NULL, 
+	notes TEXT DEFAULT '' NOT NULL, 
+	created_utc TEXT NOT NULL, 
+	updated_utc TEXT NOT NULL, 
+	PRIMARY KEY (id), 
+	UNIQUE (serial_key)
+);
 CREATE TABLE station_roles (
 	role TEXT NOT NULL, 
 	station TEXT NOT NULL, 
@@ -200,3 +232,4 @@ CREATE UNIQUE INDEX points_by_link ON points (run_id, link);
 CREATE UNIQUE INDEX events_by_link ON events (run_id, link);
 CREATE INDEX audit_by_account ON audit (account, id);
 CREATE INDEX certificate_files_by_run ON certificate_files (run_uuid);
+CREATE INDEX standard_overrides_by_standard ON standard_overrides (standard_key, due_on);
