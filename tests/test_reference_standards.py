@@ -188,3 +188,24 @@ def test_a_benchs_role_on_postgresql_reads_the_standards_but_cannot_write_an_ove
 
     with pytest.raises(LabcalError, match="MY-DMM-7"):
         standards_for_run([], "bench-1", granted, date(2026, 1, 1))
+
+
+def test_the_approvers_view_lists_a_fault_resumed_after_but_not_a_pause_for_ctrl_c(lc, tmp_path):
+    """The journal's own words: the sequencer pauses on a device fault with "fault: …", and an answered
+    pause journals "operator resumed after the pause" (a Ctrl-C pause is not a fault accepted)."""
+    from labcal.app.runs import ReadLog, overrides_of
+    from labcal.run.journal import Journal
+    from labcal.run.rundir import read_run_json
+
+    lc("run", "--sim", "--yes", "--seed", "5", "--plan", "one-mount-16", "--no-report", "--operator", "Bo",
+       "--out", str(tmp_path / "run"))
+    info = read_run_json(tmp_path / "run")
+    with Journal(Path(info["journal"])) as journal:
+        for kind, message in (("pause", "operator paused"), ("resume", "operator resumed after the pause"),
+                              ("fault", "pitch: no answer within 0.5 s"),
+                              ("pause", "fault: pitch: no answer within 0.5 s"),
+                              ("resume", "operator resumed after the pause")):
+            journal.event(info["run_id"], kind, message, station_time=10.0)
+    [accepted] = overrides_of(ReadLog(str(tmp_path / "run")))
+    assert (accepted.kind, accepted.by) == ("fault accepted", "Bo")
+    assert "fault: pitch: no answer within 0.5 s" in accepted.what
