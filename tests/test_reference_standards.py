@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 import sqlite3
-from datetime import date, datetime, timedelta
+from datetime import UTC, date, datetime, timedelta
 from pathlib import Path
 
 import psycopg
@@ -98,6 +98,11 @@ def test_an_approvers_override_lets_the_run_go_on_and_every_document_states_it(l
 
     pdf = " ".join(" ".join(page.extract_text() for page in PdfReader(folder / "report.pdf").pages).split())
     assert REASON in pdf and "overrides the run was measured under" in pdf
+    # dates as people write them (%B: the C locale's English month), the JSON keeping ISO 8601
+    calibrated = datetime.fromisoformat(cert["calibrated_utc"]).astimezone(UTC)
+    due = TODAY - timedelta(days=1)
+    assert f"{calibrated.day} {calibrated:%B %Y}, {calibrated:%H:%M} UTC" in pdf
+    assert f"due {due.day} {due:%B %Y}" in pdf
     html = (folder / "report.html").read_text(encoding="utf-8")
     assert REASON in html and "overrides the run was measured under" in html
     # the approver's view reads the same override from the lab database, by the lab's run number

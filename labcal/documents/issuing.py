@@ -131,8 +131,8 @@ def attitude_envelope(cal: Calibration, settings: CertificateSettings) -> Attitu
     i, j = int(np.searchsorted(env.pitch_deg, p_at[0])), int(np.searchsorted(env.roll_deg, p_at[1]))
     return AttitudeEnvelope(
         method="weighted least squares on the unit sphere (Tripp & Tcheng eqs. 99–104) with local |g| "
-               f"taken as unknown within ±{LOCAL_GRAVITY_TOLERANCE:g} of the calibration's (as `labcal "
-               "attitude` estimates), one new reading, top-forward mount; u_c from the complete "
+               f"taken as unknown within ±{LOCAL_GRAVITY_TOLERANCE:g} of the calibration's (as the "
+               "attitude is estimated in use), one new reading, top-forward mount; u_c from the complete "
                "covariance of the coefficients and the reading (the uncertainty budget's Type A and "
                "Type B parts, with their correlations), U95 = k·u_c with k = t₀.₉₇₅(ν_eff) at each "
                "attitude (k stated: at the largest pitch U95)",
@@ -157,8 +157,8 @@ def _closed_form_envelope(cal: Calibration, settings: CertificateSettings, spher
     i = int(np.searchsorted(env.pitch_deg, sphere_at[0]))
     j = int(np.searchsorted(env.roll_deg, sphere_at[1]))
     ratio = env.u95_pitch_deg[i, j] / sphere_pitch_max
-    statement = ("`labcal attitude` prints both estimators by default (columns cf_ closed form, ls_ "
-                 "least squares on the sphere; --method chooses one); this certificate's budget and "
+    statement = ("In use, labcal gives both estimators (the closed form, and least squares on the "
+                 "sphere); this certificate's budget and "
                  f"conformity are for the sphere estimator. At pitch {sphere_at[0]:g}°, roll "
                  f"{sphere_at[1]:g}° the closed form's pitch U95 is "
                  + (f"{ratio:.2g}× the sphere estimator's." if np.isfinite(ratio) else "undefined.")

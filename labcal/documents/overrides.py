@@ -13,6 +13,9 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
+from datetime import date
+
+from labcal.config.dates import written_date
 
 FAULT_PAUSE = "fault: "  # how the sequencer's pause on a device fault begins its reason
 OPERATOR_RESUMED = "operator resumed"  # the resume event of an answered pause (not `labcal resume`'s)
@@ -60,6 +63,14 @@ def _checklist(meta: dict) -> list[Override]:
     return found
 
 
+def _day(text: object) -> str:
+    """An ISO date as people write it (as journaled; anything else as it is)."""
+    try:
+        return written_date(date.fromisoformat(str(text)))
+    except ValueError:
+        return str(text)
+
+
 def _standards(meta: dict) -> list[Override]:
     found = []
     for held in meta.get("standard_overrides") or []:
@@ -67,8 +78,8 @@ def _standards(meta: dict) -> list[Override]:
             continue
         found.append(Override(
             "reference standard",
-            f"reference standard {held.get('serial')} was overdue (due {held.get('due_on')}) and used under "
-            f"an override valid until {held.get('valid_until')}",
+            f"reference standard {held.get('serial')} was overdue (due {_day(held.get('due_on'))}) and used "
+            f"under an override valid until {_day(held.get('valid_until'))}",
             f"{held.get('approver')} ({held.get('role')})", str(held.get("reason") or ""),
             held.get("recorded_utc")))
     return found
