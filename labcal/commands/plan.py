@@ -658,7 +658,8 @@ def plot_frontier(found, chosen, reference, target: float, path: str) -> None:
     ax.scatter([math.degrees(chosen.u95_rad)], [chosen.rig_time_s / 60], marker="o", s=80, facecolor="none",
                edgecolor="tab:red", label="chosen")
     ax.set_xlabel("predicted attitude U95, worst over the envelope (°), as --target-attitude-u95-deg")
-    top = ax.secondary_xaxis("top", functions=(lambda deg: deg * 3600, lambda arcsec: arcsec / 3600))
+    top = ax.secondary_xaxis("top", functions=(lambda deg: np.multiply(deg, 3600.0),
+                                               lambda arcsec: np.divide(arcsec, 3600.0)))
     top.set_xlabel("(″)")
     ax.set_ylabel("predicted rig time (min)")
     ax.set_title("labcal plan optimize: rig time against U95", parse_math=False)
