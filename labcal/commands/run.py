@@ -166,7 +166,7 @@ def run_and_report(args, ended: Ended | Finished) -> int:
     out.print(f"Files in {literal(run_dir)}/: {literal(files)}; journal {literal(journal)}")
     if issued is not None:
         cert = issued.certificate
-        out.print(f"Certificate {literal(cert.certificate_id)} issued: {literal(issued.certificate_path)}; "
+        out.print(f"Certificate {literal(cert.number)} issued: {literal(issued.certificate_path)}; "
                   f"stored in {literal(issued.database)} "
                   f"({command_line('labcal', 'history', cert.instrument.serial)})")
     return 0

@@ -589,6 +589,7 @@ class Certificate(Strict):
     device_correction: DeviceCorrectionRecord | None = Field(default=None, exclude_if=_absent)
     package: PackageSection | None = Field(default=None, exclude_if=_absent)
     overrides: list[OverrideRecord] | None = Field(default=None, exclude_if=_absent)
+    lab_number: str | None = Field(default=None, exclude_if=_absent)  # the lab's own number, if it numbers
     digest: Digest
 
     @property
@@ -599,8 +600,9 @@ class Certificate(Strict):
 
     @property
     def number(self) -> str:
-        """The certificate number with its revision, as printed (ISO/IEC 17025 §7.8.2.1 c)."""
-        return f"{self.certificate_id} rev. {self.revision or 1}"
+        """The certificate number with its revision, as printed (ISO/IEC 17025 §7.8.2.1 c): the lab's own
+        number where the lab numbers its certificates (`labcal.documents.numbering`), else labcal's id."""
+        return f"{self.lab_number or self.certificate_id} rev. {self.revision or 1}"
 
     @property
     def draft(self) -> bool:

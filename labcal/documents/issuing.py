@@ -360,7 +360,8 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
                       monte_carlo: int = 0, revision: int = 1, replaces: str | None = None,
                       section: CertificateSection | None = None, item: ItemGiven | None = None,
                       device: DeviceFit | None = None, model_note: str | None = None,
-                      replaced: Certificate | None = None, journal_records: int | None = None) -> Certificate:
+                      replaced: Certificate | None = None, journal_records: int | None = None,
+                      lab_number: str | None = None) -> Certificate:
     """The sealed certificate of a run's fit. ``serial``/``operator`` fill in what the run did not
     record (and may not contradict it); a dry run's instrument is SIMULATED. ``inputs``: the bench's
     Type B inputs (none: a Type A budget); ``monte_carlo``: trials of the JCGM 101 check (0: none);
@@ -452,5 +453,6 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
         else c.model_dump(),
         "uncertainty_budget": uncertainty.model_dump(),
         "overrides": [o.to_json() for o in overrides] or None,
+        "lab_number": lab_number,
     }
     return seal(content)

@@ -101,10 +101,15 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
         # a revision's draft reported again is still that revision, replacing the same approved one
         revision, replaced = previous.revision or 1, replaced_by(record.directory, previous)
     item, serial, operator = kept_identification(previous, item or ItemGiven(), serial, operator)
+    from labcal.documents.numbering import lab_number
+
+    number = (previous.lab_number if previous is not None and previous.lab_number else
+              lab_number(record, serial, db))  # a run keeps its number through reissues and revisions
     cert = build_certificate(record, fit, settings, serial=serial, operator=operator, inputs=inputs,
                              monte_carlo=monte_carlo, revision=revision,
                              replaces=None if replaced is None else replaced.number, section=section,
-                             item=item, device=device, model_note=model_note, replaced=replaced)
+                             item=item, device=device, model_note=model_note, replaced=replaced,
+                             lab_number=number)
     outputs = write_documents(cert, record, fit, device, db)
     if previous is None:
         return outputs

@@ -22,6 +22,7 @@ from sqlalchemy import (
     PrimaryKeyConstraint,
     Table,
     Text,
+    UniqueConstraint,
     text,
 )
 
@@ -311,6 +312,20 @@ standard_overrides = Table(
     Index("standard_overrides_by_standard", "standard_key", "due_on"),
 )
 
-__all__ = ["METADATA", "approvers", "audit", "certificate_files", "certificates", "device_estimates",
-           "events", "instruments", "points", "run_exports", "runs", "settle_pools", "standard_overrides",
-           "standards", "station_roles", "sync_cursors", "sync_runs", "sync_sent", "sync_targets", "users"]
+# The lab's own certificate numbers (`labcal.run.certificate_numbers`): one per run, gap-free within
+# a scope (the calibration's year, or 0 for one sequence).
+certificate_numbers = Table(
+    "certificate_numbers", METADATA,
+    Column("id", Integer, primary_key=True),
+    Column("scope", Integer, nullable=False),
+    Column("seq", Integer, nullable=False),
+    Column("number", Text, nullable=False, unique=True),
+    Column("run_uuid", Text, nullable=False, unique=True),
+    Column("assigned_utc", Text, nullable=False),
+    UniqueConstraint("scope", "seq", name="certificate_numbers_in_scope"),
+)
+
+__all__ = ["METADATA", "approvers", "audit", "certificate_files", "certificate_numbers", "certificates",
+           "device_estimates", "events", "instruments", "points", "run_exports", "runs", "settle_pools",
+           "standard_overrides", "standards", "station_roles", "sync_cursors", "sync_runs", "sync_sent",
+           "sync_targets", "users"]

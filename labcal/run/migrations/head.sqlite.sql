@@ -36,6 +36,18 @@ CREATE TABLE certificate_files (
 	stored_utc TEXT NOT NULL, 
 	PRIMARY KEY (certificate_id, name)
 );
+CREATE TABLE certificate_numbers (
+	id INTEGER NOT NULL, 
+	scope INTEGER NOT NULL, 
+	seq INTEGER NOT NULL, 
+	number TEXT NOT NULL, 
+	run_uuid TEXT NOT NULL, 
+	assigned_utc TEXT NOT NULL, 
+	PRIMARY KEY (id), 
+	CONSTRAINT certificate_numbers_in_scope UNIQUE (scope, seq), 
+	UNIQUE (number), 
+	UNIQUE (run_uuid)
+);
 CREATE TABLE certificates (
 	certificate_id TEXT NOT NULL, 
 	serial TEXT NOT NULL, 

@@ -11,6 +11,11 @@ its status and notes.
 until which day it holds, the reason, the approver's name, role and key id, and the Ed25519 signature
 over the rest. Appended, never changed.
 
+``certificate_numbers``: the lab's own certificate numbers (the lab file's ``[laboratory]
+certificate_number``), one per run (``run_uuid``, unique: a run's reissues and revisions keep its
+number), counted without a gap within a ``scope`` (the year, or 0 for one sequence): ``seq`` is
+unique in its scope.
+
 Revision ID: 0013
 """
 
@@ -58,9 +63,20 @@ def upgrade() -> None:
         sa.Column("recorded_utc", sa.Text, nullable=False),
     )
     op.create_index("standard_overrides_by_standard", "standard_overrides", ["standard_key", "due_on"])
+    op.create_table(
+        "certificate_numbers",
+        sa.Column("id", sa.Integer, primary_key=True),
+        sa.Column("scope", sa.Integer, nullable=False),
+        sa.Column("seq", sa.Integer, nullable=False),
+        sa.Column("number", sa.Text, nullable=False, unique=True),
+        sa.Column("run_uuid", sa.Text, nullable=False, unique=True),
+        sa.Column("assigned_utc", sa.Text, nullable=False),
+        sa.UniqueConstraint("scope", "seq", name="certificate_numbers_in_scope"),
+    )
 
 
 def downgrade() -> None:
+    op.drop_table("certificate_numbers")
     op.drop_index("standard_overrides_by_standard", table_name="standard_overrides")
     op.drop_table("standard_overrides")
     op.drop_table("standards")
