@@ -168,6 +168,8 @@ def record_override(request: RecordOverride, today: date) -> tuple[Standard, Ove
     """An approver's override for the standard ``serial`` (see the module): refused in one line unless
     the key is an active approver's registered under that name and role, the reason is given, and the
     last day is today or later and within `MAX_OVERRIDE_DAYS`."""
+    from sqlalchemy.exc import SQLAlchemyError
+
     from labcal.app.labdatabase import OpenLab, open_lab
     from labcal.documents.approval import key_id, load_private_key
     from labcal.documents.approvers import problems
@@ -201,11 +203,7 @@ def record_override(request: RecordOverride, today: date) -> tuple[Standard, Ove
                                     base64.b64encode(signature).decode("ascii"), recorded)
         try:
             standards.add_override(lab.engine, row)
-        except Exception as exc:  # a bench's role on the lab's server may not write one
-            from sqlalchemy.exc import SQLAlchemyError
-
-            if not isinstance(exc, SQLAlchemyError):
-                raise
+        except SQLAlchemyError as exc:  # a bench's role on the lab's server may not write one
             raise LabcalError(f"{lab.shown}: the override was not recorded "
                               f"({str(getattr(exc, 'orig', exc)).strip().splitlines()[0]}); record it as the "
                               "lab database's administrator, not a bench's role") from None
