@@ -214,3 +214,30 @@ def test_the_approvers_view_lists_a_fault_resumed_after_but_not_a_pause_for_ctrl
     [accepted] = overrides_of(ReadLog(str(tmp_path / "run")))
     assert (accepted.kind, accepted.by) == ("fault accepted", "Bo")
     assert "fault: pitch: no answer within 0.5 s" in accepted.what
+
+
+def test_a_standard_fallen_due_since_the_run_began_stops_its_resume_until_an_override(lc, tmp_path,
+                                                                                     monkeypatch):
+    monkeypatch.setenv("LABCAL_STATION", "bench-1")
+    answers = tmp_path / "answers"
+    answers.write_text("y\nstop\n", encoding="utf-8")  # the first mount confirmed, stopped at the second
+    folder = str(tmp_path / "run")
+    stopped = lc("run", "--sim", "--answers", str(answers), "--seed", "5", "--serial", "ACC-0042", "--out",
+                 folder, check=None)
+    assert "stopped" in stopped.stderr
+    kept = points_journaled(tmp_path / "labcal.sqlite")
+    assert kept > 0
+    lc("standard", "add", "MY-DMM-7", "--kind", "dmm", "--certificate", "CAL-2025-118", "--calibrated",
+       (TODAY - timedelta(days=366)).isoformat(), "--due", (TODAY - timedelta(days=1)).isoformat(),
+       "--bench", "bench-1")
+    refused = lc("resume", folder, "--yes", check=2)
+    assert "MY-DMM-7" in refused.stderr and "nothing was moved" in refused.stderr
+    assert points_journaled(tmp_path / "labcal.sqlite") == kept
+    lc("certificate", "keygen", "--out", str(tmp_path / "ann"))
+    lc("certificate", "approvers", "add", "Ann Lee", "--role", "Technical manager", "--public-key",
+       str(tmp_path / "ann.pub"))
+    lc("standard", "override", "MY-DMM-7", "--reason", REASON, "--by", "Ann Lee", "--role",
+       "Technical manager", "--key", str(tmp_path / "ann.key"))
+    lc("resume", folder, "--yes")
+    cert = json.loads((tmp_path / "run" / "certificate.json").read_text(encoding="utf-8"))
+    assert [(o["kind"], o["reason"]) for o in cert["overrides"]] == [("reference standard", REASON)]

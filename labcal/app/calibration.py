@@ -581,6 +581,8 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
             certificate = (new_station[0] if new_station else snapshot.config).certificate
         steps = schedule(ctx.plan, ctx.settings)
         est = estimate(ctx.plan, ctx.settings, setup.timing, steps)
+        # a standard that fell due since the run started stops it here too, unless an override holds
+        checked = run_standards([] if bench is None else bench.config.standards, args.db, front)
         if bench is not None:
             check_limits(setup.station, steps)
             prepare(bench, setup.station, front.say)
@@ -588,6 +590,11 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
         ctx.journal.reopen(ctx.run_id)
         ctx.journal.event(ctx.run_id, "resume",
                           f"resumed after {len(points)} committed point(s) {on_station}", station_record)
+        from labcal.documents.overrides import STANDARD_OVERRIDE_EVENT
+
+        for held in checked.get("standard_overrides", []):  # the certificate states it with the run's own
+            ctx.journal.event(ctx.run_id, STANDARD_OVERRIDE_EVENT, f"resumed under {held['approver']}'s "
+                              f"override for the overdue reference standard {held['serial']}", held)
         if bench is not None:
             ctx.journal.event(ctx.run_id, "device_identity", "the devices that answered on resuming",
                               bench.identities)

@@ -71,11 +71,17 @@ def _day(text: object) -> str:
         return str(text)
 
 
-def _standards(meta: dict) -> list[Override]:
-    found = []
-    for held in meta.get("standard_overrides") or []:
-        if not isinstance(held, dict):
+STANDARD_OVERRIDE_EVENT = "standard_override"  # journaled where a resumed run goes on under one
+
+
+def _standards(meta: dict, events: Iterable[dict]) -> list[Override]:
+    """The overrides a run started under (its metadata) and those it resumed under (its events), once each."""
+    found, seen = [], set()
+    resumed = [e.get("data") for e in events if e.get("kind") == STANDARD_OVERRIDE_EVENT]
+    for held in [*(meta.get("standard_overrides") or []), *resumed]:
+        if not isinstance(held, dict) or (held.get("serial"), held.get("recorded_utc")) in seen:
             continue
+        seen.add((held.get("serial"), held.get("recorded_utc")))
         found.append(Override(
             "reference standard",
             f"reference standard {held.get('serial')} was overdue (due {_day(held.get('due_on'))}) and used "
@@ -102,4 +108,5 @@ def _faults(events: Iterable[dict], operator: str | None) -> list[Override]:
 
 def run_overrides(meta: dict, events: Iterable[dict] = ()) -> list[Override]:
     """Every override of a run (see the module), checklist first, then standards, then faults in order."""
-    return [*_checklist(meta), *_standards(meta), *_faults(events, meta.get("operator"))]
+    events = list(events)
+    return [*_checklist(meta), *_standards(meta, events), *_faults(events, meta.get("operator"))]
