@@ -166,9 +166,10 @@ def test_administrative_contents_come_from_the_lab_file_station_file_and_command
     assert a.item.model == "AX-3" and a.item.received == date(2026, 11, 20) and a.item.serial == SERIAL
     assert [t.certificate for t in a.traceability] == ["CAL-2026-0193", "ANG-2026-0041"]
     # said as the PDF's first page and `labcal station check` say it (one function)
-    calibrated = cert.calibrated_utc.date().isoformat()
+    day = cert.calibrated_utc.date()  # dates as people write them (%B: the C locale's English month)
+    calibrated = f"{day.day} {day:%B %Y}"
     assert ("Reference standard DMM (34972A) (Keysight 34972A, serial MY00000000, certificate CAL-2026-0193) "
-            f"was overdue for calibration: due 2020-01-01, used {calibrated}.") in cert.statements
+            f"was overdue for calibration: due 1 January 2020, used {calibrated}.") in cert.statements
     assert not any("ANG-2026-0041" in s for s in cert.statements)  # due 2027-03-31: in date
     assert "The results relate only to the item calibrated." in cert.statements
     assert cert.number.endswith("rev. 1") and cert.draft

@@ -79,7 +79,7 @@ def test_reference_standards_in_date_and_overdue():
     overdue = checklist.standards([standard(date(2026, 11, 25))], today)
     assert overdue.status == "warning"
     assert overdue.why.startswith("Reference standard DMM (Keysight 34970A MY1, certificate C-7) is overdue "
-                                  "for calibration: due 2026-11-25, today 2026-11-26.")
+                                  "for calibration: due 25 November 2026, today 26 November 2026.")
     assert checklist.standards([standard(today)], today).status == "ok"  # due today is not yet overdue
     assert checklist.standards([], today).status == "warning"  # the certificate would name none
     assert checklist.standards(None, today).status == "ok"  # the simulated rig

@@ -135,7 +135,7 @@ def test_help_lists_exactly_what_the_whole_command_line_has():
     listed = build_parser(only={"--help"})
     assert listed.format_help() == whole.format_help()
     sub = next(a for a in whole._actions if isinstance(a, argparse._SubParsersAction))
-    assert len(sub.choices) == 22  # counted by hand in the help text above
+    assert len(sub.choices) == 23  # counted by hand in the help text above
     assert build_parser(only={"--log-level", "debug", "log"}).parse_args(
         ["--log-level", "debug", "log", "7", "--json"]).json is True
 
@@ -314,5 +314,5 @@ def test_a_complete_run_issues_its_certificate_and_report(tmp_path, capsys):
     assert code == 0 and len(json.loads(stdout)["calibrations"]) == 1
     code, _, stderr = run_cli(capsys, "run", "--sim", "--yes", "--plan", "one-mount-16",
                               "--tolerance-deg", "-1", "--out", str(tmp_path / "r2"))
-    assert code == 2 and "argument --tolerance-deg: -1 is out of range; expected a number x" in stderr
+    assert code == 2 and "argument --tolerance-deg: -1 is out of range; expected an angle 0 < x" in stderr
     assert not (tmp_path / "r2").exists()  # refused before the run began

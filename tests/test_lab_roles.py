@@ -25,7 +25,7 @@ LABCAL = str(Path(sys.executable).with_name("labcal"))
 # What a bench may do, as the lab's roles page states it: read these, and nothing else at all
 BENCH_READS = {"alembic_version", "runs", "points", "events", "certificates", "run_exports",
                "device_estimates", "settle_pools", "station_roles", "approvers", "instruments",
-               "certificate_files"}
+               "certificate_files", "standards", "standard_overrides", "certificate_numbers"}
 
 
 def labcal(tmp_path: Path, *args: str, db: str, station: str = "bench-1",

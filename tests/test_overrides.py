@@ -62,15 +62,21 @@ def test_only_the_unmet_items_of_a_run_that_went_on_are_stated():
 
 
 def test_the_customers_certificate_carries_no_command_line_hints_and_the_console_does(tmp_path, capsys):
-    """The device model's note and the missing-tolerance caption reach the certificate and report
-    without an option to type; `labcal run` says the options to the technician instead."""
+    """The device model's note and the missing-tolerance caption reach the certificate (its JSON and
+    its PDF) without an option to type; `labcal run` says the options to the technician, and so does
+    the HTML report's technician's section, and only there."""
     code, out, err = cli(capsys, "run", "--sim", "--yes", "--seed", "8", "--out", str(tmp_path / "run"),
                          "--db", str(tmp_path / "lab.sqlite"))
     assert code == 0, err
     cert = json.loads((tmp_path / "run" / "certificate.json").read_text(encoding="utf-8"))
     report = (tmp_path / "run" / "report.html").read_text(encoding="utf-8")
-    for text in (*cert["statements"], report):
-        assert "--model" not in text and "--tolerance-deg" not in text
+    customers, _, technicians = report.partition("<h2>For the laboratory: technician&#x27;s notes</h2>")
+    from pypdf import PdfReader
+
+    pdf = " ".join(page.extract_text() for page in PdfReader(tmp_path / "run" / "report.pdf").pages)
+    for text in (*cert["statements"], customers, pdf):
+        assert "--model" not in text and "--tolerance-deg" not in text and "Give --" not in text
+    assert "--model linear` gives Soto" in technicians and "--tolerance-deg" in technicians
     console = " ".join(out.split())  # the terminal wraps lines
     assert "--model linear` gives Soto's linear fit" in console
     assert "no statement of conformity: give --tolerance-deg" in console

@@ -209,9 +209,9 @@ def test_check_warns_of_an_overdue_reference_standard(tmp_path, capsys, no_leaks
                  '\n[[traceability]]\nequipment = "index tables"\nidentity = "T-1"\ncertificate = '
                  '"ANG-NEW-1"\nissued_by = "a lab"\ndue = 2999-12-31\n')
     station = private_file("smc100-tcp", tmp_path, extra=standards)
-    today = date.today().isoformat()
+    day = date.today()  # as people write dates (%B: the C locale's English month)
     expected = ("Reference standard reference DMM (Keysight 34970A, serial MY1, certificate CAL-OLD-7) is "
-                f"overdue for calibration: due 2020-01-01, today {today}.")
+                f"overdue for calibration: due 1 January 2020, today {day.day} {day:%B %Y}.")
     code, out, err = cli(capsys, "station", "check", str(station), "--emulate", "--time-scale",
                          str(TIME_SCALE), "--json")
     assert code == 0, err

@@ -77,7 +77,8 @@ def rebuild(record: RunRecord, draft: Certificate, station: str | Path | None = 
         monte_carlo=checks[0].trials if checks else 0, revision=draft.revision or 1, replaces=draft.replaces,
         section=section, item=item, device=device, model_note=model_note,
         replaced=replaced_by(record.directory, draft),
-        journal_records=draft.data.journal.records if draft.data.journal is not None else None)
+        journal_records=draft.data.journal.records if draft.data.journal is not None else None,
+        lab_number=draft.lab_number)
 
 
 def differences(a: object, b: object, path: str = "") -> list[str]:

@@ -354,6 +354,8 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
         if args.dry_run:
             return Estimated(plan, est)
         ready(args.db)  # a lab database behind or ahead of this labcal: refused before anything moves
+        # an overdue reference standard stops the run here unless an approver's override holds
+        setup.metadata.update(run_standards([] if bench is None else bench.config.standards, args.db, front))
         if correction is not None:  # still this station's device, still in control: else nothing moves
             from labcal.documents.device_history import check_correction, station_device_id
 
@@ -444,6 +446,26 @@ def run_serial(args: StartRun, front: FrontEnd) -> tuple[str | None, str | None]
                       f"register it with `labcal instrument add {found.serial}`, check the serial with "
                       "`labcal instrument list --search TEXT`, or allow ad-hoc serials in the lab file "
                       "([instruments] allow_adhoc = true)")
+
+
+def run_standards(named: list[str], db: str | None, front: FrontEnd) -> dict:
+    """The reference standards the run uses, checked before anything moves (`labcal.app.standards`):
+    an overdue one without an approver's override stops it in one line; what the run journals of them."""
+    from datetime import datetime
+
+    from labcal.app.standards import standards_for_run
+    from labcal.store.journal import station_name
+
+    found = standards_for_run(named, station_name(), db, datetime.now().astimezone().date())
+    for note in found.notes:
+        front.say(f"note: {note}", markup=False)
+    for held in found.overrides:
+        front.say(f"note: reference standard {held['serial']} is overdue (due {held['due_on']}); the run "
+                  f"goes on under {held['approver']}'s override until {held['valid_until']}: "
+                  f"{held['reason']}",
+                  markup=False)
+    return {key: value for key, value in (("standards", found.used), ("standard_overrides", found.overrides))
+            if value}
 
 
 def check_package(instrument: InstrumentSettings, envelope: CertificateSettings, station: str, plan: str
@@ -561,6 +583,8 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
             certificate = (new_station[0] if new_station else snapshot.config).certificate
         steps = schedule(ctx.plan, ctx.settings)
         est = estimate(ctx.plan, ctx.settings, setup.timing, steps)
+        # a standard that fell due since the run started stops it here too, unless an override holds
+        checked = run_standards([] if bench is None else bench.config.standards, args.db, front)
         if bench is not None:
             check_limits(setup.station, steps)
             prepare(bench, setup.station, front.say)
@@ -568,6 +592,11 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
         ctx.journal.reopen(ctx.run_id)
         ctx.journal.event(ctx.run_id, "resume",
                           f"resumed after {len(points)} committed point(s) {on_station}", station_record)
+        from labcal.documents.overrides import STANDARD_OVERRIDE_EVENT
+
+        for held in checked.get("standard_overrides", []):  # the certificate states it with the run's own
+            ctx.journal.event(ctx.run_id, STANDARD_OVERRIDE_EVENT, f"resumed under {held['approver']}'s "
+                              f"override for the overdue reference standard {held['serial']}", held)
         if bench is not None:
             ctx.journal.event(ctx.run_id, "device_identity", "the devices that answered on resuming",
                               bench.identities)

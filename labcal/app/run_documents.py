@@ -14,6 +14,7 @@ from labcal.config.settings import CertificateSettings
 from labcal.documents.administration import ItemGiven
 from labcal.documents.certificate import Certificate, read_certificate
 from labcal.documents.issuing import build_certificate, changed_fields, identification, kept_identification
+from labcal.documents.numbering import lab_number
 from labcal.documents.report import CERTIFICATE, RunOutputs, fitted, replaced_by, write_documents, write_file
 from labcal.documents.uncertainty import bench_section, type_b_inputs
 from labcal.errors import LabcalError
@@ -49,10 +50,13 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
         # a revision's draft reported again is still that revision, replacing the same approved one
         revision, replaced = previous.revision or 1, replaced_by(record.directory, previous)
     item, serial, operator = kept_identification(previous, item or ItemGiven(), serial, operator)
+    number = (previous.lab_number if previous is not None and previous.lab_number else
+              lab_number(record, serial, db))  # a run keeps its number through reissues and revisions
     cert = build_certificate(record, fit, settings, serial=serial, operator=operator, inputs=inputs,
                              monte_carlo=monte_carlo, revision=revision,
                              replaces=None if replaced is None else replaced.number, section=section,
-                             item=item, device=device, model_note=model_note, replaced=replaced)
+                             item=item, device=device, model_note=model_note, replaced=replaced,
+                             lab_number=number)
     outputs = write_documents(cert, record, fit, device, db)
     if previous is None:
         return outputs

@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from labcal.errors import LabcalError
 from labcal.store.labquery import LabRun
+
+if TYPE_CHECKING:
+    from labcal.documents.overrides import Override
 
 
 @dataclass(frozen=True)
@@ -64,9 +69,9 @@ def seen_status(db: Path, status: str, run_id: int) -> str:
 def attention(metadata: dict) -> tuple[str, ...]:
     """What an approver must know of how a run was measured, from its journaled checklist: the items
     it went on regardless of (as the certificate states them, `checklist_overrides`), and a
-    reference standard the checklist found overdue or unnamed, and a serial the instrument register
-    did not hold."""
-    from labcal.documents.issuing import checklist_overrides
+    reference standard the checklist found overdue or unnamed, an overdue registered standard used under
+    an approver's override, and a serial the instrument register did not hold."""
+    from labcal.documents.overrides import checklist_overrides, run_overrides
 
     checklist = metadata.get("checklist")
     found = [f"went on regardless: {item}" for item in checklist_overrides(checklist)]
@@ -74,6 +79,7 @@ def attention(metadata: dict) -> tuple[str, ...]:
         found += [f"{i.get('item')}: {i.get('message')}" for i in checklist.get("items") or []
                   if isinstance(i, dict) and i.get("item") == "reference standards"
                   and i.get("status") == "warning"]
+    found += [o.sentence() for o in run_overrides(metadata) if o.kind == "reference standard"]
     if metadata.get("unregistered_serial"):
         found.append(f"serial {metadata['unregistered_serial']}")
     return tuple(found)
@@ -182,3 +188,24 @@ def read_log(request: ReadLog) -> RunLog:
     return RunLog(run.id, run.label, run.uuid, run.station, run.status, run.reason, run.plan, run.serial,
                   run.operator, run.run_dir, run.started_utc, run.ended_utc, run.points_ok,
                   tuple(found.events), source.stale)
+
+
+def overrides_in(run: LabRun, events: Iterable[dict]) -> tuple[Override, ...]:
+    """Every override a run was measured under (`labcal.documents.overrides`: the warm-up and other
+    checklist items gone on regardless of, overdue standards used under an approver's override, faults
+    accepted), from its row in the lab database and its journaled events, as its certificate states them."""
+    from labcal.documents.overrides import run_overrides
+
+    meta = {**_metadata(run), "operator": run.operator, "started_utc": run.started_utc}
+    return tuple(run_overrides(meta, events))
+
+
+def overrides_of(request: ReadLog) -> tuple[Override, ...]:
+    """`overrides_in` of the run ``request.run`` names (a lab run number, a uuid or a run folder), read
+    from the lab database (or this bench's journal where the lab cannot be reached): what the approver's
+    view shows of a run before it is signed."""
+    from labcal.store.labquery import run_events
+
+    db, number, uuid = _run_of(request)
+    found, _ = run_events(db, number, uuid)
+    return overrides_in(found.run, found.events)

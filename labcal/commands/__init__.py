@@ -28,6 +28,7 @@ COMMANDS = {  # name: (module, one-line help), in the order `labcal --help` list
     "user": ("user", "the lab server's users: add, list, disable"),
     "instrument": ("instrument", "the lab's instrument register: add, list, show, edit"),
     "due": ("instrument", "instruments overdue or falling due; --notify sends the recall"),
+    "standard": ("standard", "the lab's reference standards; an approver's override for an overdue one"),
 }
 
 

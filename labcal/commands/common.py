@@ -174,6 +174,49 @@ def bounded(kind: type[int] | type[float], lo: float | None = None, hi: float | 
     return convert
 
 
+# The largest attitude U95 (and tolerance on it) a calibration of these instruments is plausibly asked
+# for: they reach arcseconds to a few hundredths of a degree. A bare number above it is refused, as
+# the likely slip of arcseconds written as degrees (7.5 meant as 7.5″ is 3600 times too loose).
+PLAUSIBLE_U95_MAX_DEG = 1.0
+
+
+def angle_deg(hi: float, plausible_max: float = PLAUSIBLE_U95_MAX_DEG) -> Callable[[str], float]:
+    """An argparse ``type`` for a positive angle in degrees that may also carry its unit, where a slip
+    between degrees and arcseconds is likely: ``0.002`` and ``0.002deg`` (or ``°``) are degrees,
+    ``7.5arcsec`` (or ``"``, ``″``), ``0.5arcmin``, ``mrad``, ``µrad``, ``rad`` are converted to
+    degrees. A number given without a unit above ``plausible_max`` degrees is refused in one line that
+    names the likely slip; one with a unit is taken as written, up to ``hi`` degrees."""
+    expected = (f"expected an angle 0 < x ≤ {hi:g}°: degrees (0.002 or 0.002deg) or with its unit "
+                "(7.5arcsec, 7.5\", 0.5arcmin, 40urad)")
+
+    def convert(text: str) -> float:
+        import re
+
+        from labcal.config.uncertainty import UNITS  # pydantic: only when the option is given
+
+        found = re.fullmatch(r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(\S*)\s*", text)
+        if found is None:
+            raise argparse.ArgumentTypeError(f"{text} is not an angle; {expected}")
+        number, unit = float(found[1]), found[2]
+        units = UNITS["angle"]
+        if unit and unit not in units:
+            raise argparse.ArgumentTypeError(f"{text!r}: {unit!r} is not a unit of angle; use one of "
+                                             f"{', '.join(units)}")
+        degrees = number if not unit else number * units[unit] / units["deg"]
+        if not (math.isfinite(degrees) and 0 < degrees <= hi):
+            raise argparse.ArgumentTypeError(f"{text} is out of range; {expected}")
+        if not unit and degrees > plausible_max:
+            meant = degrees / 3600  # the number as arcseconds, in degrees
+            raise argparse.ArgumentTypeError(
+                f"{text} is read as {text}° ({degrees * 3600:g}″), far above any attitude U95 a calibration "
+                f"reaches (at most {plausible_max:g}°); if you meant {text} arcseconds, write {text}arcsec "
+                f"(= {meant:.3g}°)")
+        return degrees
+
+    convert.__name__ = "an angle"
+    return convert
+
+
 SEED = bounded(int, 0, 2**32 - 1)
 TIME_SCALE = bounded(float, 0, 100_000, lo_open=True)  # what the emulators accept (sim/emulation.py)
 

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 from labcal.app.planning import CORRECTION_NOTE
 from labcal.commands import summary
-from labcal.commands.common import add_db_option, bounded, bounded_field, err, out, print_json
+from labcal.commands.common import add_db_option, angle_deg, bounded, bounded_field, err, out, print_json
 from labcal.errors import LabcalError
 
 if TYPE_CHECKING:
@@ -413,9 +413,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                                        "≤ the target over the usage envelope. Fewer than four mounts only "
                                        "with --device whose history knows its misalignments; "
                                        + CORRECTION_NOTE + ".")
-    p.add_argument("--target-attitude-u95-deg", type=bounded(float, 0, 90, lo_open=True), required=True,
+    p.add_argument("--target-attitude-u95-deg", type=angle_deg(90), required=True,
                    metavar="X",
-                   help="largest attitude U95 (°) allowed anywhere in the usage envelope, 0 < X ≤ 90")
+                   help="largest attitude U95 allowed anywhere in the usage envelope: degrees (0.002 or "
+                        "0.002deg), or with its unit (7.5arcsec); a bare number above 1° is refused as "
+                        "arcseconds written as degrees")
     p.add_argument("--station", metavar="FILE", help="station file (default: the simulated rig of --sim)")
     p.add_argument("--device", metavar="ID",
                    help="calibration-device id whose in-control history may replace remounts (dry runs: "
@@ -478,31 +480,36 @@ def cmd_optimize(args: argparse.Namespace) -> int:
 
 
 def plot_frontier(found, chosen, reference, target: float, path: str) -> None:
-    """Every candidate's predicted rig time against its U95, the frontier, the target and the choice."""
+    """Every candidate's predicted rig time against its U95, the frontier, the target and the choice.
+    U95 in degrees, the unit of --target-attitude-u95-deg, with arcseconds on the top axis."""
+    import math
+
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from labcal.analysis.kinematics import ARCSEC
     from labcal.analysis.optimize import frontier
     from labcal.documents.plotfile import save
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for mounts, colour in ((1, "tab:blue"), (2, "tab:orange"), (4, "tab:green")):
-        pts = np.array([(e.u95_rad / ARCSEC, e.rig_time_s / 60) for e in found
+        pts = np.array([(math.degrees(e.u95_rad), e.rig_time_s / 60) for e in found
                         if len(e.candidate.mounts) == mounts])
         if len(pts):
             ax.scatter(pts[:, 0], pts[:, 1], s=12, color=colour, alpha=0.5, label=f"{mounts} mount(s)")
-    front = np.array([(e.u95_rad / ARCSEC, e.rig_time_s / 60) for e in frontier(found)])
+    front = np.array([(math.degrees(e.u95_rad), e.rig_time_s / 60) for e in frontier(found)])
     ax.step(front[:, 0], front[:, 1], where="post", color="black", lw=1, label="frontier")
-    ax.axvline(target / ARCSEC, color="tab:red", ls="--", label="target")
-    ax.scatter([reference.u95_rad / ARCSEC], [reference.rig_time_s / 60], marker="*", s=120, color="grey",
-               label="four-mount-64")
-    ax.scatter([chosen.u95_rad / ARCSEC], [chosen.rig_time_s / 60], marker="o", s=80, facecolor="none",
+    ax.axvline(math.degrees(target), color="tab:red", ls="--", label=f"target {math.degrees(target):.4g}°")
+    ax.scatter([math.degrees(reference.u95_rad)], [reference.rig_time_s / 60], marker="*", s=120,
+               color="grey", label="four-mount-64")
+    ax.scatter([math.degrees(chosen.u95_rad)], [chosen.rig_time_s / 60], marker="o", s=80, facecolor="none",
                edgecolor="tab:red", label="chosen")
-    ax.set_xlabel("predicted attitude U95, worst over the envelope (″)")
+    ax.set_xlabel("predicted attitude U95, worst over the envelope (°), as --target-attitude-u95-deg")
+    top = ax.secondary_xaxis("top", functions=(lambda deg: np.multiply(deg, 3600.0),
+                                               lambda arcsec: np.divide(arcsec, 3600.0)))
+    top.set_xlabel("(″)")
     ax.set_ylabel("predicted rig time (min)")
     ax.set_title("labcal plan optimize: rig time against U95", parse_math=False)
     ax.legend(fontsize=8)

@@ -6,7 +6,16 @@ import argparse
 from typing import TYPE_CHECKING
 
 from labcal.commands import summary
-from labcal.commands.common import add_db_option, bounded, command_line, err, literal, out, print_json
+from labcal.commands.common import (
+    add_db_option,
+    angle_deg,
+    bounded,
+    command_line,
+    err,
+    literal,
+    out,
+    print_json,
+)
 
 if TYPE_CHECKING:
     from rich.table import Table as RichTable
@@ -79,8 +88,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "or a station file's [certificate] section (the command line wins).")
     p.add_argument("run_dir", metavar="RUN_DIR", help="a complete run directory (readings.csv, plan.toml, "
                                                       "run.json)")
-    p.add_argument("--tolerance-deg", type=bounded(float, 0, 180, lo_open=True), metavar="X",
-                   help="pass when the largest U95 of pitch and of roll over the usage envelope is ≤ X°")
+    p.add_argument("--tolerance-deg", type=angle_deg(180), metavar="X",
+                   help="pass when the largest U95 of pitch and of roll over the usage envelope is ≤ X: "
+                        "degrees, or with its unit (7.5arcsec)")
     p.add_argument("--bias-max-v", type=bounded(float, 0, 1000, lo_open=True), metavar="V",
                    help="pass a sensor's bias when |B| + U(B) ≤ V")
     p.add_argument("--usage-pitch", type=float, nargs=2, metavar=("MIN", "MAX"),

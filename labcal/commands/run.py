@@ -15,6 +15,7 @@ from labcal.commands.common import (
     TIME_SCALE,
     add_db_option,
     add_power_on_options,
+    angle_deg,
     bounded,
     bounded_field,
     command_line,
@@ -165,7 +166,7 @@ def run_and_report(args, ended: Ended | Finished) -> int:
     out.print(f"Files in {literal(run_dir)}/: {literal(files)}; journal {literal(journal)}")
     if issued is not None:
         cert = issued.certificate
-        out.print(f"Certificate {literal(cert.certificate_id)} issued: {literal(issued.certificate_path)}; "
+        out.print(f"Certificate {literal(cert.number)} issued: {literal(issued.certificate_path)}; "
                   f"stored in {literal(issued.database)} "
                   f"({command_line('labcal', 'history', cert.instrument.serial)})")
     return 0
@@ -213,8 +214,9 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     p.add_argument("--no-report", action="store_true",
                    help="skip the certificate and report at the end (labcal report RUN makes them later)")
-    p.add_argument("--tolerance-deg", type=bounded(float, 0, 180, lo_open=True), metavar="DEG",
-                   help="pass/fail tolerance on the attitude U95 over the usage envelope")
+    p.add_argument("--tolerance-deg", type=angle_deg(180), metavar="DEG",
+                   help="pass/fail tolerance on the attitude U95 over the usage envelope: degrees, or with "
+                        "its unit (7.5arcsec)")
     p.add_argument("--usage-pitch", type=float, nargs=2, metavar=("MIN", "MAX"),
                    help="usage pitch range for the attitude uncertainty (default -60 60)")
     p.add_argument("--pace", type=TIME_SCALE, metavar="X",

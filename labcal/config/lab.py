@@ -37,7 +37,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from labcal.config.files import parse_model, read_text
 from labcal.config.settings import CertificateSettings
@@ -63,6 +63,25 @@ class Laboratory(BaseModel):
     accreditation_id: str = Field(default="", description="accreditation body and number, if accredited")
     country_code: str = Field(default="", pattern="^([A-Z]{2})?$", description="ISO 3166-1 alpha-2, e.g. DE "
                               "(the Digital Calibration Certificate needs it)")
+    code: str = Field(default="", pattern=r"^[A-Za-z0-9._-]*$",
+                      description="the laboratory's short code, {lab} in certificate_number")
+    certificate_number: str = Field(default="", description="the lab's certificate numbers, e.g. "
+                                    "\"{lab}-{year}-{seq:04d}\": {seq} the lab-wide sequence (each year anew "
+                                    "where {year} is in it), {year} the calibration's, {lab} the code; "
+                                    "empty: labcal's own identifier")
+
+    @model_validator(mode="after")
+    def _numbering(self):
+        """A numbering format that makes a number: known fields only, {seq} among them, {lab} only with a
+        code (checked at load, so a typo is one line now, not a failed certificate after a run)."""
+        if not self.certificate_number:
+            return self
+        from labcal.config.numbering import number_problem
+
+        problem = number_problem(self.certificate_number, self.code)
+        if problem:
+            raise ValueError(f"certificate_number {self.certificate_number!r}: {problem}")
+        return self
 
     @property
     def stated(self) -> str:

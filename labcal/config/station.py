@@ -323,6 +323,10 @@ class StationFile(BaseModel):
                                            "of the uncertainty budget, each with its unit")
     traceability: list[Traceability] = Field(default_factory=list, description="reference standards: "
                                              "certificate number and due date")
+    standards: list[str] = Field(default_factory=list, description="serials of the lab's registered "
+                                 "reference standards this station uses besides those registered to its "
+                                 "bench (`labcal standard add SERIAL --bench NAME`); an overdue one stops a "
+                                 "run")
 
     @model_validator(mode="after")
     def _buses(self):

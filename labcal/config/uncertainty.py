@@ -22,6 +22,8 @@ from typing import Annotated, Literal, Protocol
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer
 
+from labcal.config.dates import written_date
+
 # Units by kind, to SI (rad, 1, V, 1/K, V/K); the first SI-like one is how a value is written back
 # (the journal keeps a station as JSON and validates it again on resume).
 UNITS: dict[str, dict[str, float]] = {
@@ -131,5 +133,6 @@ def overdue_standards(standards: Iterable[Standard], on: date, today: bool = Fal
     check`, before a run uses it). One function, so the two never disagree about what is overdue."""
     when = "today" if today else "used"
     return [f"Reference standard {t.equipment} ({t.identity}, certificate {t.certificate}) "
-            f"{'is' if today else 'was'} overdue for calibration: due {t.due:%Y-%m-%d}, {when} {on:%Y-%m-%d}."
+            f"{'is' if today else 'was'} overdue for calibration: due {written_date(t.due)}, {when} "
+            f"{written_date(on)}."
             for t in standards if t.due < on]

@@ -88,6 +88,14 @@ def _ambient(recorded: object) -> str | None:
     return text + (f" ({recorded['source']})" if recorded.get("source") else "")
 
 
+def _registered_standards(meta: dict) -> list[TraceabilityRecord]:
+    """The lab's registered reference standards the run used, as it journaled them
+    (`labcal.app.standards.traceability_entry`)."""
+    fields = TraceabilityRecord.model_fields
+    return [TraceabilityRecord(**{k: v for k, v in s.items() if k in fields})
+            for s in meta.get("standards") or [] if isinstance(s, dict)]
+
+
 def administration(record: RunRecord, section: CertificateSection, given: ItemGiven, serial: str
                    ) -> Administration:
     meta = record.meta
@@ -104,5 +112,6 @@ def administration(record: RunRecord, section: CertificateSection, given: ItemGi
                   model=given.model or meta.get("model") or "", serial=serial,
                   received=date.fromisoformat(received) if isinstance(received, str) else received),
         equipment=_equipment(record),
-        traceability=[TraceabilityRecord(**t.model_dump()) for t in section.traceability],
+        traceability=[*(TraceabilityRecord(**t.model_dump()) for t in section.traceability),
+                      *_registered_standards(meta)],
         ambient=str(ambient))

@@ -482,6 +482,17 @@ class TraceabilityRecord(Strict):
     due: date
 
 
+class OverrideRecord(Strict):
+    """A decision to go on regardless that the run was measured under (`labcal.documents.overrides`): an
+    unmet checklist item, an overdue reference standard under an approver's override, a fault accepted."""
+
+    kind: str
+    what: str
+    by: str | None
+    reason: str | None
+    utc: str | None
+
+
 class Administration(Strict):
     """ISO/IEC 17025 §7.8.2.1 administrative contents a run alone does not say."""
 
@@ -581,6 +592,8 @@ class Certificate(Strict):
     device: DeviceSection | None = Field(default=None, exclude_if=_absent)
     device_correction: DeviceCorrectionRecord | None = Field(default=None, exclude_if=_absent)
     package: PackageSection | None = Field(default=None, exclude_if=_absent)
+    overrides: list[OverrideRecord] | None = Field(default=None, exclude_if=_absent)
+    lab_number: str | None = Field(default=None, exclude_if=_absent)  # the lab's own number, if it numbers
     digest: Digest
 
     @model_validator(mode="after")
@@ -602,8 +615,9 @@ class Certificate(Strict):
 
     @property
     def number(self) -> str:
-        """The certificate number with its revision, as printed (ISO/IEC 17025 §7.8.2.1 c)."""
-        return f"{self.certificate_id} rev. {self.revision or 1}"
+        """The certificate number with its revision, as printed (ISO/IEC 17025 §7.8.2.1 c): the lab's own
+        number where the lab numbers its certificates (`labcal.documents.numbering`), else labcal's id."""
+        return f"{self.lab_number or self.certificate_id} rev. {self.revision or 1}"
 
     @property
     def sensors(self) -> tuple[str, ...]:

@@ -59,6 +59,7 @@ from labcal.documents.certificate import (
     UncertaintyBudget,
     seal,
 )
+from labcal.documents.overrides import checklist_overrides, run_overrides
 from labcal.documents.package import package_documents
 from labcal.documents.simulated import NOTICE as SIMULATED_NOTICE
 from labcal.documents.uncertainty import budget, inputs_record, stated_U95_arcsec
@@ -131,8 +132,8 @@ def attitude_envelope(cal: Calibration, settings: CertificateSettings) -> Attitu
     i, j = int(np.searchsorted(env.pitch_deg, p_at[0])), int(np.searchsorted(env.roll_deg, p_at[1]))
     return AttitudeEnvelope(
         method="weighted least squares on the unit sphere (Tripp & Tcheng eqs. 99–104) with local |g| "
-               f"taken as unknown within ±{LOCAL_GRAVITY_TOLERANCE:g} of the calibration's (as `labcal "
-               "attitude` estimates), one new reading, top-forward mount; u_c from the complete "
+               f"taken as unknown within ±{LOCAL_GRAVITY_TOLERANCE:g} of the calibration's (as the "
+               "attitude is estimated in use), one new reading, top-forward mount; u_c from the complete "
                "covariance of the coefficients and the reading (the uncertainty budget's Type A and "
                "Type B parts, with their correlations), U95 = k·u_c with k = t₀.₉₇₅(ν_eff) at each "
                "attitude (k stated: at the largest pitch U95)",
@@ -157,8 +158,8 @@ def _closed_form_envelope(cal: Calibration, settings: CertificateSettings, spher
     i = int(np.searchsorted(env.pitch_deg, sphere_at[0]))
     j = int(np.searchsorted(env.roll_deg, sphere_at[1]))
     ratio = env.u95_pitch_deg[i, j] / sphere_pitch_max
-    statement = ("`labcal attitude` prints both estimators by default (columns cf_ closed form, ls_ "
-                 "least squares on the sphere; --method chooses one); this certificate's budget and "
+    statement = ("In use, labcal gives both estimators (the closed form, and least squares on the "
+                 "sphere); this certificate's budget and "
                  f"conformity are for the sphere estimator. At pitch {sphere_at[0]:g}°, roll "
                  f"{sphere_at[1]:g}° the closed form's pitch U95 is "
                  + (f"{ratio:.2g}× the sphere estimator's." if np.isfinite(ratio) else "undefined.")
@@ -352,17 +353,6 @@ def kept_identification(previous: Certificate | None, item: ItemGiven, serial: s
     return item, serial or previous.instrument.serial, operator or previous.operator
 
 
-def checklist_overrides(checklist: object) -> list[str]:
-    """The pre-run checklist items a run went on regardless of (run.json's ``checklist``: unmet, and
-    the operator said to go on), each as "item: what was found". The approver signs what the run was
-    measured under, so the certificate states them; nothing when the run met its checklist."""
-    if not isinstance(checklist, dict) or not checklist.get("went_on_regardless"):
-        return []
-    items = checklist.get("items") or []
-    return [f"{i.get('item')}: {i.get('message')}" for i in items
-            if isinstance(i, dict) and i.get("status") == "fail"]
-
-
 def override_statement(checklist: object) -> list[str]:
     """The certificate's statement of `checklist_overrides` (none: an empty list)."""
     found = checklist_overrides(checklist)
@@ -378,7 +368,8 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
                       monte_carlo: int = 0, revision: int = 1, replaces: str | None = None,
                       section: CertificateSection | None = None, item: ItemGiven | None = None,
                       device: DeviceFit | None = None, model_note: str | None = None,
-                      replaced: Certificate | None = None, journal_records: int | None = None) -> Certificate:
+                      replaced: Certificate | None = None, journal_records: int | None = None,
+                      lab_number: str | None = None) -> Certificate:
     """The sealed certificate of a run's fit. ``serial``/``operator`` fill in what the run did not
     record (and may not contradict it); a dry run's instrument is SIMULATED. ``inputs``: the bench's
     Type B inputs (none: a Type A budget); ``monte_carlo``: trials of the JCGM 101 check (0: none);
@@ -428,6 +419,8 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
     if uncertainty.fit_check is not None:  # the lack-of-fit flag and the drift test's verdict
         statements.append(uncertainty.fit_check.statement)
     statements += overdue_standards(admin.traceability, datetime.fromisoformat(calibrated).date())
+    overrides = run_overrides(meta, record.events)  # the checklist's are stated above, in its own words
+    statements += [o.sentence() for o in overrides if o.kind in ("reference standard", "fault accepted")]
     operator = _recorded(meta.get("operator"), operator, "operator", run_dir)
     if replaced is not None:
         changes = changed_fields(identification(replaced),
@@ -475,5 +468,7 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
                                                  fit.sensors)) is None else c.model_dump(),
         "package": None if package is None else package.model_dump(),
         "uncertainty_budget": uncertainty.model_dump(),
+        "overrides": [o.to_json() for o in overrides] or None,
+        "lab_number": lab_number,
     }
     return seal(content)

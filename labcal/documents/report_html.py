@@ -10,7 +10,14 @@ import html
 
 from labcal.documents.certificate import Certificate
 from labcal.documents.report_figures import DrawnFigure
-from labcal.documents.report_tables import SIMULATED_WORD, Table, status_text, tables, verdict_text
+from labcal.documents.report_tables import (
+    SIMULATED_WORD,
+    Table,
+    status_text,
+    tables,
+    technician_notes,
+    verdict_text,
+)
 
 CSS = """
 body{font-family:system-ui,-apple-system,"Segoe UI",sans-serif;max-width:1100px;margin:2em auto;color:#111;
@@ -55,7 +62,8 @@ def render_html(cert: Certificate, figs: list[DrawnFigure], extra: tuple[Table, 
              f"instrument {html.escape(cert.instrument.serial)} · "
              f"<strong>{html.escape(status_text(cert))}</strong></p>"
              f"<p class=\"verdict {css_class}\">{html.escape(verdict)}</p>"]
-    parts += [_html_table(t) for t in (*tables(cert), *extra)]
+    notes = technician_notes(cert)
+    parts += [_html_table(t) for t in (*tables(cert), *extra, *([notes] if notes else []))]
     parts.append("<h2>Method</h2>" + "".join(f"<p>{html.escape(p)}</p>" for p in
                                              (cert.method, *cert.statements, *cert.fit.notes)))
     for fig in figs:

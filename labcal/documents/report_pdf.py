@@ -4,6 +4,7 @@ same tables and figures as the HTML page.
 
 from __future__ import annotations
 
+from labcal.config.dates import written_time_utc
 from labcal.documents.certificate import Certificate
 from labcal.documents.report_figures import DrawnFigure
 from labcal.documents.report_tables import (
@@ -24,7 +25,7 @@ def render_pdf(cert: Certificate, figs: list[DrawnFigure], extra: tuple[Table, .
 
     a = cert.approval
     signature = [("Approved by", f"{a.by} ({a.role})" if a else "not yet approved — DRAFT"),
-                 ("Date", f"{a.approved_utc:%Y-%m-%d %H:%M} UTC" if a else "—"),
+                 ("Date", written_time_utc(a.approved_utc) if a else "—"),
                  ("Electronic signature", f"{a.algorithm}, key {a.key_id[:16]}…" if a else "—"),
                  *([("Signed through", f"the lab server's key ({a.server.signer}) for user "
                                       f"{a.server.user_id}, {a.server.authentication}; "

@@ -6,8 +6,10 @@ ways — HTML (`labcal.documents.report_html`), PDF (`labcal.documents.report_pd
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 
 from labcal.analysis.fit import ROW_NAMES
+from labcal.config.dates import written_date, written_time_utc
 from labcal.config.uncertainty import overdue_standards as overdue
 from labcal.documents.certificate import Certificate, format_result, format_uncertainty
 from labcal.documents.certificate_sections import Replication
@@ -43,8 +45,8 @@ def identification_table(cert: Certificate) -> Table:
                                                            "of a real instrument)" if cert.station.simulated
                                                            else "")],
         ["operator", cert.operator or "not recorded"],
-        ["calibrated (UTC)", cert.calibrated_utc.isoformat()],
-        ["issued (UTC)", cert.issued_utc.isoformat()],
+        ["calibrated", written_time_utc(cert.calibrated_utc)],
+        ["issued", written_time_utc(cert.issued_utc)],
         ["plan", f"{plan.name}: {len(plan.points)} points × {len(plan.mounts)} mount(s) × "
                  f"{plan.replicates} replicate(s); sha256 {plan.sha256[:16]}…"],
         ["readings", f"{data.n_points} points in {data.replicates} replicate(s); sha256 "
@@ -61,11 +63,11 @@ def identification_table(cert: Certificate) -> Table:
         item = " ".join(p for p in (a.item.manufacturer, a.item.model) if p)
         rows[2:2] = [["customer", a.customer or "not stated"],
                      ["item", f"{item or 'instrument'}, serial {a.item.serial}; received "
-                              f"{a.item.received.isoformat() if a.item.received else 'date not recorded'}"]]
+                              f"{written_date(a.item.received) if a.item.received else 'date not recorded'}"]]
         rows += [["equipment", "; ".join(f"{e.role}: {e.description} ({e.reported()})"
                                          for e in a.equipment)],
                  ["traceability", "; ".join(f"{t.equipment} {t.identity}: certificate {t.certificate} "
-                                            f"({t.issued_by}), due {t.due.isoformat()}"
+                                            f"({t.issued_by}), due {written_date(t.due)}"
                                             for t in a.traceability)
                   or "no reference standards recorded (station file [[traceability]])"],
                  ["ambient conditions", a.ambient]]
@@ -236,19 +238,50 @@ def story_table(cert: Certificate) -> Table:
                  caption, emphasis)
 
 
+def overrides_table(cert: Certificate) -> Table:
+    """The technician's section: every decision to go on regardless that the run was measured under
+    (`labcal.documents.overrides`), with who decided, why and when."""
+    found = cert.overrides or []
+    rows = [[o.kind, o.what, o.by or "—", o.reason or "—",
+             "—" if o.utc is None else written_time_utc(datetime.fromisoformat(o.utc))] for o in found]
+    return Table("For the laboratory: overrides the run was measured under",
+                 ["override", "what", "by", "reason", "when"], rows,
+                 "Each is also stated among the certificate's statements; the journal keeps the record.",
+                 {(i, 0) for i in range(len(rows))})
+
+
+def technician_notes(cert: Certificate) -> Table | None:
+    """The technician's section of the HTML report, never on the customer's certificate (the PDF): what
+    to run next, with the commands and options (none: nothing to do)."""
+    rows = []
+    if cert.conformity is None:
+        rows.append(["no statement of conformity", "give a tolerance: `labcal report RUN --tolerance-deg "
+                     "DEG` (and optionally --bias-max-v V), or a [certificate] section in the station file"])
+    if cert.device is not None:
+        rows.append(["built on the device model", "`labcal fit RUN/readings.csv --model linear` gives Soto's "
+                     "linear fit of the same readings"])
+    for line in overdue_standards(cert):
+        rows.append(["overdue reference standard", f"{line} Recalibrate it and record the new certificate: "
+                     "`labcal standard edit SERIAL --certificate … --calibrated … --due …`"])
+    if not rows:
+        return None
+    return Table("For the laboratory: technician's notes", ["about", "what to do"], rows,
+                 "In this report only; the customer's certificate (the PDF) carries no commands.")
+
+
 def tables(cert: Certificate) -> list[Table]:
     package = [] if cert.package is None else [package_table(cert)]
     return [identification_table(cert), conformity_table(cert), *package, attitude_table(cert),
             budget_table(cert),
             coefficients_with_expanded_uncertainty(cert), replication_table(cert), audit_table(cert),
-            story_table(cert)]
+            story_table(cert), *([overrides_table(cert)] if cert.overrides else [])]
 
 
 def status_text(cert: Certificate) -> str:
     if cert.approval is None:
         return "DRAFT — not approved"
     a = cert.approval
-    return f"approved by {a.by} ({a.role}) on {a.approved_utc:%Y-%m-%d}"
+    return f"approved by {a.by} ({a.role}) on {written_date(a.approved_utc.astimezone(UTC))}"
 
 
 def overdue_standards(cert: Certificate) -> list[str]:

@@ -10,8 +10,9 @@ is typeset here from the same tables, paragraphs and figures.
 Layout: A4 portrait, DejaVu Sans (it ships with matplotlib and has every character the certificate
 uses: σ, ν, ″, ᵀ, −, …), subset-embedded by reportlab; no text under 8 pt; table cells are
 paragraphs, so long values (an address, a customer's name, a path) wrap within their column instead
-of shrinking; every page has a header with the certificate number and status and a footer "page X
-of Y"; a draft carries DRAFT across every page; the last text page ends with the signature block.
+of shrinking; every page has a header with the certificate number and status (wrapped onto more
+lines where a long serial makes it wider than the page, never shrunk) and a footer "page X of Y";
+a draft carries DRAFT across every page; the last text page ends with the signature block.
 """
 
 from __future__ import annotations
@@ -222,7 +223,9 @@ def render(doc: CertificateDocument) -> bytes:
             canvas.saveState()
             canvas.setFont(bold, SMALL_PT)
             canvas.setFillColor(HexColor(RED) if doc.draft else HexColor("#000000"))
-            canvas.drawString(margin, page_h - margin + 2 * mm, f"{doc.heading} {doc.number} — {doc.status}")
+            lines = wrapped(f"{doc.heading} {doc.number} — {doc.status}", bold, SMALL_PT, page_w - 2 * margin)
+            for k, line in enumerate(reversed(lines)):  # upwards from the header's line, into the margin
+                canvas.drawString(margin, page_h - margin + 2 * mm + k * SMALL_PT * 1.25, line)
             canvas.setFont(regular, SMALL_PT)
             canvas.setFillColor(HexColor("#000000"))
             canvas.drawString(margin, margin - 8 * mm, doc.subject)
@@ -250,6 +253,33 @@ def render(doc: CertificateDocument) -> bytes:
     finally:
         rl_config.useA85 = ascii85
     return out.getvalue()
+
+
+def wrapped(text: str, font: str, size: float, width: float) -> list[str]:
+    """``text`` in lines no wider than ``width`` points in ``font`` at ``size`` (reportlab's metrics), broken
+    at spaces, and within a word longer than a line (a long serial, a certificate number) between
+    characters."""
+    from reportlab.pdfbase.pdfmetrics import stringWidth
+
+    def fits(line: str) -> bool:
+        return stringWidth(line, font, size) <= width
+
+    lines: list[str] = []
+    line = ""
+    for word in text.split(" "):
+        candidate = f"{line} {word}" if line else word
+        if fits(candidate):
+            line = candidate
+            continue
+        if line:
+            lines.append(line)
+        line = ""
+        while not fits(word):  # break the word itself: as many characters as fit on each line
+            cut = next((n for n in range(len(word), 0, -1) if fits(word[:n])), 1)
+            lines.append(word[:cut])
+            word = word[cut:]
+        line = word
+    return [*lines, line] if line or not lines else lines
 
 
 def _counting_canvas(finish_page: Callable[[Any, int], None]) -> type:

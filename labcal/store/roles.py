@@ -47,8 +47,11 @@ BENCH_PREFIX = "labcal_bench_"
 # signature against it): names, roles and public keys, nothing secret; only the administrator writes it.
 # The files of a certificate the server approved are read by the bench that measured the run.
 BENCH_READS = ("alembic_version", "runs", "points", "events", "certificates", "certificate_files",
-               "run_exports", "device_estimates", "settle_pools", "station_roles", "approvers", "instruments")
-BENCH_APPENDS = ("runs", "points", "events", "certificates", "device_estimates", "settle_pools")
+               "run_exports", "device_estimates", "settle_pools", "station_roles", "approvers", "instruments",
+               "standards", "standard_overrides", "certificate_numbers")
+# a bench numbers the certificates of its runs in the lab's one gap-free sequence (a run's number, once)
+BENCH_APPENDS = ("runs", "points", "events", "certificates", "device_estimates", "settle_pools",
+                 "certificate_numbers")
 # What a bench sends again when it changes (the sync's records): its own station's draft certificate
 # re-issued (row-level security: `OWN_DRAFT`), a device estimate stored again, a settle pool that grew.
 # Row-level security does not yet tie the estimates and pools to the station.
@@ -56,7 +59,8 @@ BENCH_REPLACES = ("certificates", "device_estimates", "settle_pools")
 BENCH_CLOSES_RUNS = ("status", "reason", "ended_utc", "points_total")  # what a sync updates of its run
 SERVER_WRITES = ("certificates", "approvals", "certificate_files")
 SERVER_APPENDS = ("audit",)  # its audit trail: sign-ins, failures, lockouts, refusals, approvals
-SEQUENCES = (("runs", "id"), ("events", "id"))  # serial keys a bench's inserts draw from
+# serial keys a bench's inserts draw from
+SEQUENCES = (("runs", "id"), ("events", "id"), ("certificate_numbers", "id"))
 OWN_STATION = "(SELECT s.station FROM station_roles s WHERE s.role = current_user)"
 # A certificate row is judged by its document alone (the columns beside it are copies a bench could
 # set apart from it): a draft carries no "approval"; its run is the one its journal chain names.

@@ -22,6 +22,7 @@ from sqlalchemy import (
     PrimaryKeyConstraint,
     Table,
     Text,
+    UniqueConstraint,
     text,
 )
 
@@ -278,6 +279,57 @@ certificate_files = Table(
     Index("certificate_files_by_run", "run_uuid", "name", unique=True),  # revision 0013: once per run
 )
 
-__all__ = ["METADATA", "approvers", "audit", "certificate_files", "certificates", "device_estimates",
-           "events", "instruments", "points", "run_exports", "runs", "settle_pools", "station_roles",
-           "sync_cursors", "sync_runs", "sync_sent", "sync_targets", "users"]
+# Revision 0014: the lab's reference standards (`labcal.store.standards`), found by serial whatever its case
+# as instruments are; dates are ISO (YYYY-MM-DD); ``bench`` is the station (its name in the lab database)
+# that uses the standard, empty for none. An override is an approver's signed permission to run on an
+# overdue standard, against the due date it was overdue by, until ``valid_until``; appended only.
+standards = Table(
+    "standards", METADATA,
+    Column("id", Integer, primary_key=True),
+    Column("serial", Text, nullable=False),
+    Column("serial_key", Text, nullable=False, unique=True),
+    Column("kind", Text, nullable=False),
+    Column("model", Text, nullable=False, server_default=""),
+    Column("manufacturer", Text, nullable=False, server_default=""),
+    Column("certificate", Text, nullable=False),
+    Column("issued_by", Text, nullable=False, server_default=""),
+    Column("calibrated_on", Text, nullable=False),
+    Column("due_on", Text, nullable=False),
+    Column("bench", Text, nullable=False, server_default=""),
+    Column("status", Text, nullable=False, server_default="active"),
+    Column("notes", Text, nullable=False, server_default=""),
+    Column("created_utc", Text, nullable=False),
+    Column("updated_utc", Text, nullable=False),
+)
+standard_overrides = Table(
+    "standard_overrides", METADATA,
+    Column("id", Integer, primary_key=True),
+    Column("standard_key", Text, nullable=False),
+    Column("due_on", Text, nullable=False),
+    Column("valid_until", Text, nullable=False),
+    Column("reason", Text, nullable=False),
+    Column("approver", Text, nullable=False),
+    Column("role", Text, nullable=False),
+    Column("key_id", Text, nullable=False),
+    Column("signature", Text, nullable=False),
+    Column("recorded_utc", Text, nullable=False),
+    Index("standard_overrides_by_standard", "standard_key", "due_on"),
+)
+
+# The lab's own certificate numbers (`labcal.store.certificate_numbers`): one per run, gap-free within
+# a scope (the calibration's year, or 0 for one sequence).
+certificate_numbers = Table(
+    "certificate_numbers", METADATA,
+    Column("id", Integer, primary_key=True),
+    Column("scope", Integer, nullable=False),
+    Column("seq", Integer, nullable=False),
+    Column("number", Text, nullable=False, unique=True),
+    Column("run_uuid", Text, nullable=False, unique=True),
+    Column("assigned_utc", Text, nullable=False),
+    UniqueConstraint("scope", "seq", name="certificate_numbers_in_scope"),
+)
+
+__all__ = ["METADATA", "approvers", "audit", "certificate_files", "certificate_numbers", "certificates",
+           "device_estimates", "events", "instruments", "points", "run_exports", "runs", "settle_pools",
+           "standard_overrides", "standards", "station_roles", "sync_cursors", "sync_runs", "sync_sent",
+           "sync_targets", "users"]

@@ -2,7 +2,7 @@ CREATE TABLE alembic_version (
 	version_num VARCHAR(32) NOT NULL, 
 	CONSTRAINT alembic_version_pkc PRIMARY KEY (version_num)
 );
-INSERT INTO "alembic_version" VALUES('0013');
+INSERT INTO "alembic_version" VALUES('0014');
 CREATE TABLE approvers (
 	id INTEGER NOT NULL, 
 	name TEXT NOT NULL, 
@@ -35,6 +35,18 @@ CREATE TABLE certificate_files (
 	content BLOB NOT NULL, 
 	stored_utc TEXT NOT NULL, 
 	PRIMARY KEY (certificate_id, name)
+);
+CREATE TABLE certificate_numbers (
+	id INTEGER NOT NULL, 
+	scope INTEGER NOT NULL, 
+	seq INTEGER NOT NULL, 
+	number TEXT NOT NULL, 
+	run_uuid TEXT NOT NULL, 
+	assigned_utc TEXT NOT NULL, 
+	PRIMARY KEY (id), 
+	CONSTRAINT certificate_numbers_in_scope UNIQUE (scope, seq), 
+	UNIQUE (number), 
+	UNIQUE (run_uuid)
 );
 CREATE TABLE certificates (
 	certificate_id TEXT NOT NULL, 
@@ -147,6 +159,38 @@ CREATE TABLE settle_pools (
 	updated_utc TEXT NOT NULL, 
 	PRIMARY KEY (pool_key)
 );
+CREATE TABLE standard_overrides (
+	id INTEGER NOT NULL, 
+	standard_key TEXT NOT NULL, 
+	due_on TEXT NOT NULL, 
+	valid_until TEXT NOT NULL, 
+	reason TEXT NOT NULL, 
+	approver TEXT NOT NULL, 
+	role TEXT NOT NULL, 
+	key_id TEXT NOT NULL, 
+	signature TEXT NOT NULL, 
+	recorded_utc TEXT NOT NULL, 
+	PRIMARY KEY (id)
+);
+CREATE TABLE standards (
+	id INTEGER NOT NULL, 
+	serial TEXT NOT NULL, 
+	serial_key TEXT NOT NULL, 
+	kind TEXT NOT NULL, 
+	model TEXT DEFAULT '' NOT NULL, 
+	manufacturer TEXT DEFAULT '' NOT NULL, 
+	certificate TEXT NOT NULL, 
+	issued_by TEXT DEFAULT '' NOT NULL, 
+	calibrated_on TEXT NOT NULL, 
+	due_on TEXT NOT NULL, 
+	bench TEXT DEFAULT '' NOT NULL, 
+	status TEXT DEFAULT 'active' NOT NULL, 
+	notes TEXT DEFAULT '' NOT NULL, 
+	created_utc TEXT NOT NULL, 
+	updated_utc TEXT NOT NULL, 
+	PRIMARY KEY (id), 
+	UNIQUE (serial_key)
+);
 CREATE TABLE station_roles (
 	role TEXT NOT NULL, 
 	station TEXT NOT NULL, 
@@ -201,3 +245,4 @@ CREATE UNIQUE INDEX events_by_link ON events (run_id, link);
 CREATE INDEX audit_by_account ON audit (account, id);
 CREATE UNIQUE INDEX audit_by_origin ON audit (origin);
 CREATE UNIQUE INDEX certificate_files_by_run ON certificate_files (run_uuid, name);
+CREATE INDEX standard_overrides_by_standard ON standard_overrides (standard_key, due_on);
