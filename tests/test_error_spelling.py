@@ -44,3 +44,17 @@ def test_the_command_line_asks_for_the_option(tmp_path):
     assert done.returncode == 2, done.stderr
     assert "--out" in done.stderr and "out=" not in done.stderr
     assert len(done.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize(("options", "fields"), [
+    ({}, ("sim", "station", "emulate")),
+    ({"sim": True, "station": "bench.toml"}, ("sim", "station")),
+    ({"emulate": True, "sim": True}, ("emulate", "station")),
+], ids=["no station", "both", "emulate without a station"])
+def test_each_refusal_before_a_run_names_keyword_arguments_from_python(options, fields):
+    """The start-up refusals a script meets first say ``sim=``/``station=``, never ``--sim``."""
+    with pytest.raises(LabcalError) as refused:
+        labcal.api.run(**options)
+    assert refused.value.options == fields
+    assert "--" not in str(refused.value)
+    assert all(f"{field}=" in str(refused.value) for field in fields)

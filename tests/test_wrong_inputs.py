@@ -27,8 +27,8 @@ def one_line_error(capsys, *args: str) -> str:
                                               "number x with 0 ≤ x ≤ 3600"),
     (["run", "--sim", "--max-dwell", "nan"], "argument --max-dwell: nan is not a finite number"),
     (["run", "--sim", "--seed", "-1"], "argument --seed: -1 is out of range"),
-    (["report", "somewhere", "--tolerance-deg", "inf"], "argument --tolerance-deg: inf is not a finite "
-                                                        "number; expected a number x with 0 < x ≤ 180"),
+    (["report", "somewhere", "--tolerance-deg", "inf"], "argument --tolerance-deg: inf is not an angle; "
+                                                        "expected an angle 0 < x ≤ 180°"),
     (["plan", "generate", "d1", "--n-pitch", "0", "--n-roll", "4", "--pitch-max", "60", "--out", "x.toml"],
      "argument --n-pitch: 0 is out of range; expected a whole number x with 1 ≤ x ≤ 361"),
     (["plan", "generate", "d1", "--n-pitch", "5", "--n-roll", "4", "--pitch-max", "200", "--out", "x.toml"],

@@ -290,19 +290,22 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
     from labcal.store.sync import ready, sending
 
     if not args.sim and not args.station:
-        raise LabcalError("no station given: use --sim for a dry run on the simulated rig, or --station FILE "
-                          "for a station's devices (add --emulate to run them on their emulators)")
+        raise LabcalError("no station given: use {0} for a dry run on the simulated rig, or {1} FILE "
+                          "for a station's devices (add {2} to run them on their emulators)",
+                          "sim", "station", "emulate")
     if args.sim and args.station:
-        raise LabcalError("give --sim (the simulated rig) or --station FILE, not both")
+        raise LabcalError("give {0} (the simulated rig) or {1} FILE, not both", "sim", "station")
     if args.emulate and not args.station:
-        raise LabcalError("--emulate needs --station FILE: it starts the emulators that file points at")
+        raise LabcalError("{0} needs {1} FILE: it starts the emulators that file points at", "emulate",
+                          "station")
     if args.rig and not args.sim:
-        raise LabcalError("--rig describes the rig of --sim; an emulated station has [emulation.rig]")
+        raise LabcalError("{0} describes the rig of {1}; an emulated station has [emulation.rig]",
+                          "rig", "sim")
     if args.pace is not None and not args.sim:
         raise LabcalError(PACE_SIM_ONLY)
     if args.instrument and not args.sim:
-        raise LabcalError("--instrument chooses the simulated rig's package (--sim); a station's is its "
-                          "[instrument] package")
+        raise LabcalError("{0} chooses the simulated rig's package ({1}); a station's is its "
+                          "[instrument] package", "instrument", "sim")
     serial, adhoc = run_serial(args, front)  # before the station is opened: a bad serial costs no rig time
     plan, plan_text = load_plan(args.plan)
     correction = plan_correction(plan_text, args.plan)  # the device's misalignments it corrects for
@@ -329,8 +332,8 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
             cert_settings = certificate_settings_for_run(args, config.certificate, args.station)
             check_package(config.instrument, cert_settings, args.station, args.plan)  # before anything moves
             if not args.emulate and not args.serial and not args.no_report and not args.dry_run:
-                raise LabcalError("a calibration on real hardware needs the instrument's --serial for its "
-                                  "certificate (or --no-report)")
+                raise LabcalError("a calibration on real hardware needs the instrument's {0} for its "
+                                  "certificate (or {1})", "serial", "no_report")
             if not args.dry_run:  # before an emulator or a device is opened, held until the end
                 lock_station(stack, config, args.station, args.db, front)
             setup, bench = hardware_station(config, args.station, stack, emulate=args.emulate,
@@ -560,8 +563,8 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
         new_station, on_station, station_record = None, "on the station it started on", None
         if args.station:
             if snapshot is None:
-                raise LabcalError(f"{run_name} is a dry run on the simulated rig (--sim): it resumes on that "
-                                  "rig; omit --station")
+                raise LabcalError(f"{run_name} is a dry run on the simulated rig ({{0}}): it resumes on that "
+                                  "rig; omit {1}", "sim", "station")
             new_config, new_text = load_station(args.station)
             new_station = (new_config, args.station)
             on_station = f"on station file {args.station} (sha256 {sha256(new_text)[:12]})"

@@ -55,13 +55,13 @@ def checked_serial(text: str) -> tuple[str, str | None]:
     line break inside."""
     serial = text.strip()
     if not serial:
-        raise LabcalError("--serial is empty; give the instrument's serial as on its label")
+        raise LabcalError("{0} is empty; give the instrument's serial as on its label", "serial")
     if not serial.isprintable():
         bad = next(c for c in serial if not c.isprintable())
-        raise LabcalError(f"--serial {text!r} holds a control character ({bad!r}); give the serial on one "
-                          "line, as on the instrument's label")
+        raise LabcalError(f"{{0}} {text!r} holds a control character ({bad!r}); give the serial on one "
+                          "line, as on the instrument's label", "serial")
     if len(serial) > SERIAL_MAX:
-        raise LabcalError(f"--serial {serial[:20]!r}…: a serial is at most {SERIAL_MAX} characters")
+        raise LabcalError(f"{{0}} {serial[:20]!r}…: a serial is at most {SERIAL_MAX} characters", "serial")
     note = (None if serial == text else
             f"serial {text!r}: surrounding whitespace removed, certified as {serial!r}")
     return serial, note
@@ -79,7 +79,7 @@ def interval_days(text: str, option: str = "--interval") -> int:
 
 def _status(status: str) -> str:
     if status not in STATUSES:
-        raise LabcalError(f"--status {status!r}: one of {', '.join(STATUSES)}")
+        raise LabcalError(f"{{0}} {status!r}: one of {', '.join(STATUSES)}", "status")
     return status
 
 
@@ -130,7 +130,8 @@ def edit(lab: LabDatabase, serial: str, fields: InstrumentFields) -> Instrument:
 
     values = fields.values()
     if not values:
-        raise LabcalError("nothing to change: give --model, --customer, --interval, --status, … ")
+        raise LabcalError("nothing to change: give {0}, {1}, {2}, {3}, … ", "model", "customer", "interval",
+                          "status")
     found = instruments.change(lab.engine, checked_serial(serial)[0], values)
     if found is None:
         raise _unregistered(lab, serial)
