@@ -85,7 +85,7 @@ def _attention(db: str | None, found: list[LabRun], source: Source) -> dict[int,
     from labcal.run.schema import runs
 
     def read(conn: Connection, wanted: dict[int, LabRun], by_uuid: bool) -> dict[int, tuple[str, ...]]:
-        noted = {}
+        noted: dict[int, tuple[str, ...]] = {}
         for at, run in wanted.items():
             where = runs.c.uuid == run.uuid if by_uuid else runs.c.id == run.local_id
             row = conn.execute(select(runs.c.id, runs.c.uuid, runs.c.metadata).where(where)).first()
@@ -94,10 +94,11 @@ def _attention(db: str | None, found: list[LabRun], source: Source) -> dict[int,
         return noted
 
     lab = {at: r for at, r in enumerate(found) if r.uuid}
-    noted, _ = from_lab(db, lambda conn: read(conn, lab, True), {})
+    none: dict[int, tuple[str, ...]] = {}
+    noted, _ = from_lab(db, lambda conn: read(conn, lab, True), none)
     rest = {at: r for at, r in enumerate(found) if at not in noted and r.local_id is not None}
     if rest and source.journal is not None:
-        more, _ = from_lab(str(source.journal), lambda conn: read(conn, rest, False), {})
+        more, _ = from_lab(str(source.journal), lambda conn: read(conn, rest, False), none)
         noted |= more
     return noted
 
