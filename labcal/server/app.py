@@ -390,6 +390,13 @@ def create_app(settings: ServerSettings) -> FastAPI:
         return page(request, "instruments.html", user, q=search, today=date.today(),
                     rows=instrument_pages.register(db, search or None, date.today()))
 
+    @app.get("/instruments/{serial:path}/coefficients.png")
+    def instrument_coefficients(serial: str, user: Annotated[users.User, Depends(page_user)]) -> Response:
+        png = instrument_pages.coefficients_png(db, serial)
+        if png is None:
+            raise HTTPException(404, f"{serial}: no registered instrument with a calibration to plot")
+        return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=60"})
+
     @app.get("/instruments/{serial:path}", response_class=HTMLResponse)
     def instrument_page(request: Request, serial: str, user: Annotated[users.User, Depends(page_user)]
                         ) -> Response:
