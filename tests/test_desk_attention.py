@@ -1,5 +1,5 @@
-"""What the approver's desk says needs attention in a run: first exactly what `labcal runs
---attention` says (one rule: the same function's lines, in its order), then the faults journaled
+"""What the approver's desk says needs attention in a run: first what the run's journaled metadata
+says (its checklist's overrides, in the checklist's order), then the faults journaled
 during the run, a device correction used in place of remounts, and each conformity check that failed
 (a passed check is not named); nothing for a clean run. The certificates are the stored test
 certificate with a section set and sealed anew, as an issue would seal it."""
@@ -9,8 +9,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from labcal.app.desk import needs_attention
-from labcal.app.runs import attention
+from labcal.app.desk import checklist_attention, needs_attention
 from labcal.documents.certificate import seal
 
 STORED = Path(__file__).parent / "data" / "certificates" / "simulated.json"
@@ -42,7 +41,7 @@ def test_the_command_lines_come_first_then_faults_correction_and_failed_checks()
                         device_correction=correction)
     faults = ["DMM timeout", "pitch stalled", "roll stalled", "DMM garbled reply", "DMM timeout"]
     found = needs_attention(OVERRIDDEN, faults, cert)
-    same = attention(OVERRIDDEN)
+    same = checklist_attention(OVERRIDDEN)
     assert same == ("went on regardless: warm-up: warmed up 3 min of the 30 the station declares",)
     assert found[:len(same)] == same
     assert found[len(same):] == (

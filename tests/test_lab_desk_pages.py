@@ -214,6 +214,11 @@ def test_an_instruments_page_lists_its_calibrations_documents_and_drift(lab, bro
         second_b = "#drift table:first-of-type tbody tr:nth-child(2) td:nth-child(2).flagged"
         assert page.locator(second_b).count() == 1
         assert page.locator("#drift table:not(:first-of-type) td.flagged").count() == 0
+        # the plot of the same: loaded by the browser (a decoded image has a width), served as a PNG
+        plot = page.locator("#drift img#coefficients-plot")
+        assert plot.evaluate("img => img.complete && img.naturalWidth > 0")
+        png = page.request.get(lab["url"] + plot.get_attribute("src"))
+        assert png.status == 200 and png.headers["content-type"] == "image/png"
 
         _check(page, lab["url"], "/instruments/ACC-0042")  # the bench run: its run, its documents
         assert page.locator("#calibrations a[href='/runs/1']").count() == 1
@@ -294,7 +299,8 @@ def test_the_queue_shows_what_needs_attention_and_signing_takes_the_run_off_it(l
 def test_a_viewer_reads_every_new_page_and_nobody_signed_out_does(lab, browser):
     import httpx
 
-    for path in ("/queue", "/instruments", "/instruments/ACC-0042", "/due", "/runs/2"):
+    for path in ("/queue", "/instruments", "/instruments/ACC-0042", "/due", "/runs/2",
+                 f"/instruments/{DRIFTED}/coefficients.png"):
         answer = httpx.get(lab["url"] + path, follow_redirects=False, timeout=30)
         assert answer.status_code == 303 and answer.headers["location"].startswith("/login"), path
     page = _signed_in(browser, lab["url"], "vic", "vic's passphrase")
@@ -304,5 +310,7 @@ def test_a_viewer_reads_every_new_page_and_nobody_signed_out_does(lab, browser):
             assert response is not None and response.status == 200, path
         nav = page.eval_on_selector_all("header nav a", "links => links.map(a => a.getAttribute('href'))")
         assert {"/queue", "/instruments", "/due"} <= set(nav)
+        png = page.request.get(lab["url"] + f"/instruments/{DRIFTED}/coefficients.png")
+        assert png.status == 200 and png.headers["content-type"] == "image/png"
     finally:
         page.close()

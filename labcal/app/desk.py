@@ -4,9 +4,9 @@ what a finished run's certificate states, as the lab server's pages show them; p
 An approver must not sign blind. The queue lists every complete run of the lab whose certificate is
 not approved yet, each with what stands out in how it was measured and what it states: the checklist
 items it went on regardless of, an overdue or unnamed reference standard, an unregistered serial
-(`labcal.app.runs.attention`, the rule `labcal runs --attention` applies), and, from the journal and
-the certificate, faults during the run, a device correction used in place of remounts, and a
-conformity verdict that failed.
+and, from the journal and the certificate, faults during the run, a device correction used in place
+of remounts, and a conformity verdict that failed. That is one rule, `run_attention`, read from the
+lab record: `labcal runs --attention` applies the same.
 
 A run's results are its certificate's own: the model the certificate rests on (the device model
 where the plan identifies it, else the linear fit), its coefficients ± U (95 %), the attitude U95 over
@@ -39,8 +39,8 @@ from labcal.analysis.fit import ROW_NAMES
 from labcal.app.lab import _summary, simulated
 from labcal.app.labdatabase import LabDatabase
 from labcal.app.residuals import certified_residuals, residual_png
-from labcal.app.runs import attention
 from labcal.documents.certificate import Certificate, certificate_from_doc, format_result
+from labcal.documents.overrides import checklist_overrides, run_overrides
 from labcal.errors import LabcalError
 from labcal.store import lab_view
 from labcal.store.lab_certificates import approved_by
@@ -95,10 +95,28 @@ def _current(revisions: list[Certificate]) -> Certificate | None:
 
 
 # --- what needs an approver's eye ------------------------------------------------------------------
+def checklist_attention(metadata: dict) -> tuple[str, ...]:
+    """What the run's journaled metadata says an approver must know of how it was measured: the
+    checklist items it went on regardless of (as the certificate states them, `checklist_overrides`),
+    a reference standard the checklist found overdue or unnamed, an overdue registered standard used
+    under an approver's override, and a serial the instrument register did not hold."""
+    checklist = metadata.get("checklist")
+    found = [f"went on regardless: {item}" for item in checklist_overrides(checklist)]
+    if isinstance(checklist, dict):
+        found += [f"{i.get('item')}: {i.get('message')}" for i in checklist.get("items") or []
+                  if isinstance(i, dict) and i.get("item") == "reference standards"
+                  and i.get("status") == "warning"]
+    found += [o.sentence() for o in run_overrides(metadata) if o.kind == "reference standard"]
+    if metadata.get("unregistered_serial"):
+        found.append(f"serial {metadata['unregistered_serial']}")
+    return tuple(found)
+
+
 def needs_attention(metadata: dict, faults: Iterable[str], cert: Certificate | None) -> tuple[str, ...]:
-    """What an approver must know before signing: `labcal.app.runs.attention`'s (overrides, reference
-    standards, serial), then the run's faults, a device correction used, a failed verdict."""
-    found = list(attention(metadata))
+    """What an approver must know before signing, in this order: the metadata's (`checklist_attention`:
+    overrides, reference standards, serial), then the run's faults, a device correction used, a
+    failed verdict."""
+    found = list(checklist_attention(metadata))
     faults = list(faults)
     if faults:
         found.append(f"{len(faults)} fault(s) during the run: " + "; ".join(faults[:3])
@@ -110,6 +128,17 @@ def needs_attention(metadata: dict, faults: Iterable[str], cert: Certificate | N
         found.append("out of tolerance: " + "; ".join(
             f"{c.quantity} {c.value:.3g} {c.unit} > {c.limit:.3g} {c.unit}" for c in failed))
     return tuple(found)
+
+
+def run_attention(conn: Connection, run_id: int, run_uuid: str | None, metadata: str | None,
+                  revisions: list[Certificate] | None = None) -> tuple[str, ...]:
+    """The one rule for what needs an approver's eye in a run, read from the lab record on ``conn``
+    (the run's row ``run_id``, its journaled metadata, its fault events, its current certificate):
+    what the desk's queue and run page show and what `labcal runs --attention` lists. ``revisions``:
+    the run's certificates where the caller has read them already (`run_revisions`)."""
+    if revisions is None:
+        revisions = run_revisions(conn, run_uuid) if run_uuid else []
+    return needs_attention(_metadata(metadata), _faults(conn, run_id), _current(revisions))
 
 
 def _faults(conn: Connection, run_id: int) -> list[str]:
@@ -167,7 +196,7 @@ def queue(lab: LabDatabase, dry_runs: bool = False) -> Queue:
             run = _summary(row, counts.get(row.id, (0, 0, None)))
             waiting.append(Waiting(run, None if cert is None else cert.number,
                                    None if cert is None else cert.issued_utc.isoformat(),
-                                   needs_attention(metadata, _faults(conn, row.id), cert)))
+                                   run_attention(conn, row.id, row.uuid, row.metadata, revisions)))
     return Queue(tuple(waiting), dry)
 
 
@@ -259,7 +288,7 @@ def run_results(lab: LabDatabase, run_id: int) -> Results | None:
         listed = tuple(Revision(c.certificate_id, c.number, c.issued_utc.isoformat(), approval_of(c),
                                 c.number in replaced, documents_of(conn, c, row.run_dir))
                        for c in reversed(revisions))
-        faults = _faults(conn, run_id)
+        noted = run_attention(conn, run_id, row.uuid, row.metadata, revisions)
         shown = certified_residuals(conn, run_id, cert)
     unit = cert.output_unit
     X, U = cert.coefficients, cert.U
@@ -280,7 +309,7 @@ def run_results(lab: LabDatabase, run_id: int) -> Results | None:
     return Results(cert.number, name, equation, unit, rows, tuple(_in_unit(float(s), unit) for s in se),
                    rms, ratio, f"{cert.attitude.pitch_U95_max_deg * 3600:.3g}″",
                    None if roll is None else f"{roll * 3600:.3g}″", verdict, passed,
-                   needs_attention(_metadata(row.metadata), faults, cert), approval_of(cert), listed, sensors)
+                   noted, approval_of(cert), listed, sensors)
 
 
 # --- a revision's documents --------------------------------------------------------------------------

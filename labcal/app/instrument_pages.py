@@ -8,13 +8,17 @@ and the suggested interval are `labcal instrument show`'s and `labcal due`'s (`l
 the last real calibration + the interval, ILAC-G24 method 1 for the suggestion), the drift flags are
 `labcal history`'s (`labcal.app.histories.instrument_history`: a change larger than the combined
 expanded uncertainty). A dry run's certificate is listed on the instrument's page, marked, but never
-makes an instrument current.
+makes an instrument current. The coefficients' plot is `labcal history --plot`'s figure.
 """
 
 from __future__ import annotations
 
+import tempfile
+import threading
 from dataclasses import dataclass
 from datetime import date
+from functools import lru_cache
+from pathlib import Path
 
 from sqlalchemy import func, select
 
@@ -126,3 +130,30 @@ def instrument_page(lab: LabDatabase, serial: str, today: date) -> InstrumentPag
         history, why = None, str(exc)
     return InstrumentPage(card, tuple(listed), history, why)
 
+
+
+_DRAWING = threading.Lock()  # one plot drawn at a time: the others wait, then find theirs drawn
+
+
+def coefficients_png(lab: LabDatabase, serial: str) -> bytes | None:
+    """PNG of each coefficient ± U over the instrument's real calibrations, a change beyond the combined
+    expanded uncertainty in red (`labcal history --plot`'s figure); None: not registered, or no real
+    calibration. Drawn once per set of certificates (a figure costs about half a second of CPU)."""
+    db = location(lab)
+    try:
+        registered = instruments.registered(lab, serial).serial
+        history = instrument_history(InstrumentHistory(registered, db))
+    except LabcalError:
+        return None
+    digests = tuple(c["digest"] for c in history.document["calibrations"])
+    with _DRAWING:
+        return _drawn(db, registered, digests)
+
+
+@lru_cache(maxsize=16)
+def _drawn(db: str, serial: str, digests: tuple[str, ...]) -> bytes:
+    """The plot of ``serial``'s history while its certificates are ``digests`` (the cache's key)."""
+    with tempfile.TemporaryDirectory(prefix="labcal-plot-") as folder:
+        path = Path(folder) / "coefficients.png"
+        instrument_history(InstrumentHistory(serial, db, plot=str(path)))
+        return path.read_bytes()

@@ -6,6 +6,11 @@ by its role (`labcal db grant-station NAME`, the ``station_roles`` table): a ben
 shows, idle, before its first run. Each bench's state is a replay of its current run's journal
 (`labcal.app.station_state`): the current run is the one running (the newest, if several), else its
 newest.
+
+A run is shown in the same words wherever it is listed (`run_state`): one the journal says is
+running is what the replay of its journal makes of it (running, waiting for a person, paused on a
+fault, not heard from: a killed bench's run still says "running" in the journal), any other by the
+status the journal closed it with (complete, stopped, failed, …).
 """
 
 from __future__ import annotations
@@ -19,10 +24,12 @@ from sqlalchemy import select
 from labcal.app.lab import RUNNING, RunJson, _json, _list_runs, _progress
 from labcal.app.labdatabase import LabDatabase
 from labcal.app.station_state import (
+    LABELS,
     PACE_POINTS,
     TIMELINE_KINDS,
     Heard,
     Silence,
+    State,
     StationView,
     mount_angles,
     replay,
@@ -40,7 +47,7 @@ class Overview:
     """The lab at a glance: each bench with its state and current run, and the latest runs."""
 
     stations: tuple[dict, ...]  # see `station_json`, in name order
-    runs: tuple[RunJson, ...]  # newest first
+    runs: tuple[RunJson, ...]  # newest first, each with its ``state`` and ``state_label`` (`run_state`)
     as_of_utc: str  # when it was read: what every "since" and "for" on the page is counted to
 
 
@@ -56,7 +63,28 @@ def lab_overview(lab: LabDatabase, silence: Silence | None = None, latest: int =
             if held is None or (held["status"] != RUNNING and run["status"] == RUNNING):
                 current[name] = run
         stations = tuple(_station(conn, name, run, now, silence) for name, run in sorted(current.items()))
-    return Overview(stations, tuple(listed[:latest]), now.isoformat(timespec="milliseconds"))
+        replayed = {s["run"]["id"]: s["state"] for s in stations if s["run"] is not None}
+        shown = tuple(_with_state(conn, r, replayed.get(r["id"]), now, silence) for r in listed[:latest])
+    return Overview(stations, shown, now.isoformat(timespec="milliseconds"))
+
+
+def run_state(lab: LabDatabase, run: RunJson, silence: Silence | None = None) -> dict[str, str]:
+    """The run's state as the overview states it (its ``state`` and ``state_label``): see the module."""
+    with lab.engine.connect() as conn:
+        return _state(conn, run, None, datetime.now(UTC), silence or Silence())
+
+
+def _state(conn: Connection, run: RunJson, replayed: str | None, now: datetime, silence: Silence
+           ) -> dict[str, str]:
+    if run["status"] != RUNNING:
+        return {"state": run["status"], "state_label": run["status"]}
+    state = State(replayed) if replayed is not None else _replayed(conn, run, now, silence)[1].state
+    return {"state": state.value, "state_label": LABELS[state]}
+
+
+def _with_state(conn: Connection, run: RunJson, replayed: str | None, now: datetime, silence: Silence
+                ) -> RunJson:
+    return {**run, **_state(conn, run, replayed, now, silence)}
 
 
 def _registered(conn: Connection) -> list[str]:
@@ -67,12 +95,17 @@ def _registered(conn: Connection) -> list[str]:
 def _station(conn: Connection, name: str, run: dict | None, now: datetime, silence: Silence) -> dict:
     if run is None:
         return station_json(name, None, replay(None, (), now, silence), now)
+    return station_json(name, *_replayed(conn, run, now, silence), now)
+
+
+def _replayed(conn: Connection, run: RunJson, now: datetime, silence: Silence) -> tuple[RunJson, StationView]:
+    """The run with where it stands (its progress, while running), and the replay of its journal."""
     progress = _progress(conn, run["id"]) if run["status"] == RUNNING else None
     shown = progress or run
     view = replay(run["status"], timeline(conn, run["id"]), now, silence,
                   eta_rig_s=shown.get("eta_s"), remount_rig_s=shown.get("next_remount_in_s"),
                   last_heard=_utc(shown.get("last_heard_utc")))
-    return station_json(name, shown, view, now)
+    return shown, view
 
 
 def timeline(conn: Connection, run_id: int) -> list[Heard]:

@@ -8,10 +8,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from labcal.errors import LabcalError
-from labcal.store.labquery import LabRun
+from labcal.store.labquery import LabRun, Source
 
 if TYPE_CHECKING:
     from labcal.documents.overrides import Override
+    from labcal.store.handles import Connection
 
 
 @dataclass(frozen=True)
@@ -19,7 +20,7 @@ class ListRuns:
     db: str | None = None
     serial: str | None = None
     statuses: tuple[str, ...] = ()  # only runs in one of these (empty: all)
-    attention: bool = False  # only runs an approver must look at (`attention`)
+    attention: bool = False  # only runs an approver must look at (`labcal.app.desk.run_attention`)
 
 
 @dataclass(frozen=True)
@@ -42,7 +43,7 @@ class RunLine:
     points_failed: int
     operator: str | None
     run_dir: str
-    attention: tuple[str, ...] = ()  # what an approver must know (`attention`); listed with --attention
+    attention: tuple[str, ...] = ()  # what an approver must know (`labcal.app.desk.run_attention`)
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -66,31 +67,39 @@ def seen_status(db: Path, status: str, run_id: int) -> str:
     return status
 
 
-def attention(metadata: dict) -> tuple[str, ...]:
-    """What an approver must know of how a run was measured, from its journaled checklist: the items
-    it went on regardless of (as the certificate states them, `checklist_overrides`), and a
-    reference standard the checklist found overdue or unnamed, an overdue registered standard used under
-    an approver's override, and a serial the instrument register did not hold."""
-    from labcal.documents.overrides import checklist_overrides, run_overrides
-
-    checklist = metadata.get("checklist")
-    found = [f"went on regardless: {item}" for item in checklist_overrides(checklist)]
-    if isinstance(checklist, dict):
-        found += [f"{i.get('item')}: {i.get('message')}" for i in checklist.get("items") or []
-                  if isinstance(i, dict) and i.get("item") == "reference standards"
-                  and i.get("status") == "warning"]
-    found += [o.sentence() for o in run_overrides(metadata) if o.kind == "reference standard"]
-    if metadata.get("unregistered_serial"):
-        found.append(f"serial {metadata['unregistered_serial']}")
-    return tuple(found)
-
-
-def _line(run: LabRun, journal: Path | None, noted: bool = False) -> RunLine:
+def _line(run: LabRun, journal: Path | None, noted: tuple[str, ...] = ()) -> RunLine:
     status = run.status if run.local_id is None or journal is None else \
         seen_status(journal, run.status, run.local_id)
     return RunLine(run.number, run.label, run.uuid, run.station, run.serial, run.plan, status,
                    run.reason, run.started_utc, run.ended_utc, run.points_ok, run.points_failed,
-                   run.operator, run.run_dir, attention(_metadata(run)) if noted else ())
+                   run.operator, run.run_dir, noted)
+
+
+def _attention(db: str | None, found: list[LabRun], source: Source) -> dict[int, tuple[str, ...]]:
+    """What needs an approver's eye in each of ``found`` (by its place in the list), by the desk's one
+    rule (`labcal.app.desk.run_attention`) on the lab record the list was read from: the lab
+    database, or this bench's journal for a run the lab has not seen yet (or cannot be reached)."""
+    # deferred: the desk reads certificates (pydantic, numpy); a plain `labcal runs` need not load them
+    from labcal.app.desk import run_attention
+    from labcal.store.lab_view import run_row
+    from labcal.store.labquery import from_lab
+
+    def read(conn: Connection, wanted: dict[int, LabRun], by_uuid: bool) -> dict[int, tuple[str, ...]]:
+        noted: dict[int, tuple[str, ...]] = {}
+        for at, run in wanted.items():
+            row = run_row(conn, uuid=run.uuid) if by_uuid else run_row(conn, local_id=run.local_id)
+            if row is not None:
+                noted[at] = run_attention(conn, row.id, row.uuid, row.metadata)
+        return noted
+
+    lab = {at: r for at, r in enumerate(found) if r.uuid}
+    none: dict[int, tuple[str, ...]] = {}
+    noted, _ = from_lab(db, lambda conn: read(conn, lab, True), none)
+    rest = {at: r for at, r in enumerate(found) if at not in noted and r.local_id is not None}
+    if rest and source.journal is not None:
+        more, _ = from_lab(str(source.journal), lambda conn: read(conn, rest, False), none)
+        noted |= more
+    return noted
 
 
 def _metadata(run: LabRun) -> dict:
@@ -112,7 +121,8 @@ def list_runs(request: ListRuns) -> RunList:
     # an interrupted run may still say "running" in the journal: ask for both, then sort out
     asked = wanted + (("running",) if "interrupted" in wanted else ())
     found, source = lab_runs(request.db, request.serial, asked)
-    lines = [_line(r, source.journal, request.attention) for r in found]
+    noted = _attention(request.db, found, source) if request.attention else {}
+    lines = [_line(r, source.journal, noted.get(at, ())) for at, r in enumerate(found)]
     exists = source.journal is not None or source.target is not None and source.stale is None
     return RunList(source.shown, exists, tuple(r for r in lines if (not wanted or r.status in wanted)
                                                and (not request.attention or r.attention)), source.stale)

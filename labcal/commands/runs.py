@@ -92,8 +92,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--status", choices=STATUSES, action="append",
                    help="only runs in this status (repeatable)")
     p.add_argument("--attention", action="store_true",
-                   help="only runs an approver must look at: ones that went on past an unmet pre-run "
-                        "checklist item, or with a reference standard overdue (each reason listed)")
+                   help="only runs an approver must look at, each reason listed (the approval queue's "
+                        "rule): an unmet pre-run checklist item gone past, a reference standard overdue, "
+                        "faults during the run, a device correction used, a failed verdict")
     add_db_option(p)
     p.add_argument("--json", action="store_true", help="print as JSON on stdout")
     p.set_defaults(func=cmd_runs)

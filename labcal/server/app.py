@@ -60,7 +60,7 @@ from labcal.app.server_approval import (
     approve_as_user,
     approved_file,
 )
-from labcal.app.station_state import Silence
+from labcal.app.station_state import Silence, State
 from labcal.errors import LabcalError
 from labcal.server.guards import ClientThrottle, SecurityHeaders, StreamQuota, TooManyStreams
 from labcal.server.sessions import COOKIE, LOGIN_COOKIE, Session, Sessions, csrf_ok
@@ -103,6 +103,9 @@ def create_app(settings: ServerSettings) -> FastAPI:
     templates.env.filters["mount"] = mount_text
     templates.env.filters["clock"] = clock
     templates.env.globals["status_class"] = lambda s: STATUS_CLASS.get(s, "other")
+    # a run's state (`labcal.app.overview.run_state`): the replay's states have their own colours
+    templates.env.globals["state_class"] = \
+        lambda s: f"state-{s}" if s in set(State) else STATUS_CLASS.get(s, "other")
     app.mount("/static", StaticFiles(directory=str(HERE / "static")), name="static")
     db, sessions = settings.lab, settings.sessions
     app.state.sessions = sessions
@@ -371,7 +374,8 @@ def create_app(settings: ServerSettings) -> FastAPI:
             if user.may_approve and view.run["status"] == "complete" and not view.run["simulated"] else None
         results = desk.run_results(db, run_id) if view.run["status"] == "complete" else None
         return page(request, "run.html", user, run=view.run, recent=view.recent, message=message,
-                    after=event_id_of(view.cursor), refused=refused, results=results)
+                    after=event_id_of(view.cursor), refused=refused, results=results,
+                    state=overview.run_state(db, view.run, settings.silence))
 
     @app.get("/queue", response_class=HTMLResponse)
     def queue_page(request: Request, user: Annotated[users.User, Depends(page_user)], dry: bool = False
@@ -385,6 +389,13 @@ def create_app(settings: ServerSettings) -> FastAPI:
         search = q.strip()[:instrument_pages.SEARCH_MAX]
         return page(request, "instruments.html", user, q=search, today=date.today(),
                     rows=instrument_pages.register(db, search or None, date.today()))
+
+    @app.get("/instruments/{serial:path}/coefficients.png")
+    def instrument_coefficients(serial: str, user: Annotated[users.User, Depends(page_user)]) -> Response:
+        png = instrument_pages.coefficients_png(db, serial)
+        if png is None:
+            raise HTTPException(404, f"{serial}: no registered instrument with a calibration to plot")
+        return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=60"})
 
     @app.get("/instruments/{serial:path}", response_class=HTMLResponse)
     def instrument_page(request: Request, serial: str, user: Annotated[users.User, Depends(page_user)]

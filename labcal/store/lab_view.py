@@ -104,3 +104,10 @@ def run_dir(engine: Engine, run_id: int) -> str | None:
     """Where the run's folder is, as its station journaled it (None: no such run)."""
     with engine.connect() as conn:
         return conn.execute(select(runs.c.run_dir).where(runs.c.id == run_id)).scalar()
+
+
+def run_row(conn: Connection, *, uuid: str | None = None, local_id: int | None = None) -> Any | None:
+    """A run's ``id``, ``uuid`` and journaled ``metadata`` by its uuid (the lab's) or its id in this
+    database (a bench's journal); None: not here."""
+    where = runs.c.uuid == uuid if uuid is not None else runs.c.id == local_id
+    return conn.execute(select(runs.c.id, runs.c.uuid, runs.c.metadata).where(where)).first()

@@ -84,9 +84,15 @@ function duration(s) {
     const fault = $("fault");
     fault.textContent = p.last_fault ? p.last_fault.message : "none";
     fault.className = p.last_fault ? "alert" : "";
+    // the badge states the run's state as the server derived it (a silent run is "not heard from");
+    // a change of status, or a silent run heard again, is shown by deriving it anew
+    if (run.dataset.state === "silent" && p.last_heard_utc !== run.dataset.heard) {
+      window.location.reload();
+      return;
+    }
     const status = $("status");
-    status.textContent = p.status;
     if (p.status !== run.dataset.status) {
+      status.textContent = p.status;
       if (run.dataset.status === "running") { window.setTimeout(() => window.location.reload(), 1000); }
       run.dataset.status = p.status;
     }
