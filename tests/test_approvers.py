@@ -17,7 +17,7 @@ import sqlite3
 from pathlib import Path
 
 import pytest
-from emulators import cli
+from cli import cli
 from simulated_runs import bench_run, simulated_run
 
 from labcal.cli import main

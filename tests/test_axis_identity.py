@@ -11,7 +11,8 @@ import math
 
 import numpy as np
 import pytest
-from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
+from cli import cli
+from emulators import TIME_SCALE, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.analysis.kinematics import Mount
 from labcal.config.emulation import default_instrument

@@ -8,7 +8,8 @@ import sqlite3
 
 import numpy as np
 import pytest
-from emulators import bench_fixtures, cli, emulated, no_leaks, private_file  # noqa: F401 - fixture
+from cli import cli
+from emulators import bench_fixtures, emulated, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.bench.hardware import Bench
 from labcal.config.emulation import FaultKind

@@ -14,13 +14,12 @@ import time
 from pathlib import Path
 
 import pytest
+from cli import labcal
 from emulators import free_port, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.cli import main
 from labcal.config import streams
 from labcal.config.station import load_station, tcp_address
-
-LABCAL = [sys.executable, "-m", "labcal.cli"]
 
 
 def one_line_error(capsys, *args: str) -> str:
@@ -29,10 +28,6 @@ def one_line_error(capsys, *args: str) -> str:
     assert code == 2, captured
     assert "Traceback" not in captured.err and len(captured.err.strip().splitlines()) == 1, captured.err
     return captured.err
-
-
-def labcal(*args: str, timeout: float = 30, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run([*LABCAL, *args], capture_output=True, text=True, timeout=timeout, **kw)
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,8 @@ from __future__ import annotations
 import json
 
 import pytest
-from emulators import cli, no_leaks, private_file  # noqa: F401 - fixture
+from cli import cli
+from emulators import no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.config.station import StationFile
 from labcal.errors import LabcalError

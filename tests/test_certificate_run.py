@@ -8,7 +8,8 @@ import hashlib
 import json
 
 import pytest
-from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
+from cli import cli
+from emulators import TIME_SCALE, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.config.station import CertificateSection
 from labcal.documents.administration import ItemGiven, administration

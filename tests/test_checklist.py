@@ -14,7 +14,8 @@ import sqlite3
 from datetime import date, datetime, timedelta, timezone
 
 import pytest
-from emulators import TIME_SCALE, cli, emulated, no_leaks, private_file  # noqa: F401 - fixture
+from cli import cli
+from emulators import TIME_SCALE, emulated, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.bench import checklist
 from labcal.bench.checklist import Item, PowerOn

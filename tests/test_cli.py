@@ -7,7 +7,6 @@ import csv
 import json
 import signal
 import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -15,34 +14,24 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli import LABCAL, cli, labcal
 
-from labcal.cli import build_parser, main
+from labcal.cli import build_parser
 
-LABCAL = str(Path(sys.executable).with_name("labcal"))
 CONTRACT = ("replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", "vx", "vy", "vz")  # docs/design.md §5
 MISALIGN = "a=0.3,b=-0.2,d=0.1,e=0.4,f=-0.3,k=0.2"
-
-
-def run_cli(capsys, *args: str) -> tuple[int, str, str]:
-    code = main(list(args))
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
-
-
-def labcal(*args: str, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run([LABCAL, *args], capture_output=True, text=True, timeout=120, **kw)
 
 
 # --- contracts -----------------------------------------------------------------------------
 def test_simulate_then_fit_four_mounts_cancels_every_misalignment(tmp_path, capsys):
     out = tmp_path / "r.csv"
-    code, _, _ = run_cli(capsys, "simulate", "--plan", "four-mount-64", "--misalign", MISALIGN,
+    code, _, _ = cli(capsys, "simulate", "--plan", "four-mount-64", "--misalign", MISALIGN,
                          "--noise", "0", "--seed", "1", "--out", str(out))
     assert code == 0
     with out.open() as f:
         header = next(csv.reader(f))
     assert tuple(header[:8]) == CONTRACT
-    code, stdout, _ = run_cli(capsys, "fit", str(out), "--model", "linear", "--json")  # Soto's Part 1
+    code, stdout, _ = cli(capsys, "fit", str(out), "--model", "linear", "--json")  # Soto's Part 1
     assert code == 0
     doc = json.loads(stdout)
     assert doc["model"] == "linear"
@@ -59,8 +48,8 @@ def test_simulate_then_fit_four_mounts_cancels_every_misalignment(tmp_path, caps
 
 def test_simulate_one_mount_leaks_e_f_k(tmp_path, capsys):
     out = tmp_path / "r.csv"
-    run_cli(capsys, "simulate", "--plan", "one-mount-16", "--misalign", MISALIGN, "--out", str(out))
-    _, stdout, _ = run_cli(capsys, "fit", str(out), "--json")
+    cli(capsys, "simulate", "--plan", "one-mount-16", "--misalign", MISALIGN, "--out", str(out))
+    _, stdout, _ = cli(capsys, "fit", str(out), "--json")
     X = np.array(json.loads(stdout)["coefficients"])
     e, f, k = np.radians([0.4, -0.3, 0.2])
     # Soto eq. 33 to first order (second-order terms ≤ 5e-5 for 0.4° angles)
@@ -73,9 +62,9 @@ def test_simulate_with_truth_file_and_noise(tmp_path, capsys):
     truth = tmp_path / "truth.toml"
     truth.write_text("B = [0.01, -0.02, 0.03]\nS = [[5.0, 0.01, 0.0], [0.0, 5.1, 0.0], [0.0, 0.0, 4.9]]\n")
     out = tmp_path / "r.csv"
-    run_cli(capsys, "simulate", "--truth", str(truth), "--noise", "1e-5", "--seed", "4",
+    cli(capsys, "simulate", "--truth", str(truth), "--noise", "1e-5", "--seed", "4",
             "--index-error", "2", "--wobble", "3", "--out", str(out))
-    _, stdout, _ = run_cli(capsys, "fit", str(out), "--json")
+    _, stdout, _ = cli(capsys, "fit", str(out), "--json")
     doc = json.loads(stdout)
     X, se = np.array(doc["coefficients"]), np.array(doc["standard_errors"])
     assert np.all(np.abs(X[0] - [0.01, -0.02, 0.03]) < 4 * se[0] + 1e-6)
@@ -83,10 +72,10 @@ def test_simulate_with_truth_file_and_noise(tmp_path, capsys):
 
 
 def test_plan_list_and_show(capsys):
-    code, stdout, _ = run_cli(capsys, "plan", "list", "--json")
+    code, stdout, _ = cli(capsys, "plan", "list", "--json")
     plans = {p["name"]: p for p in json.loads(stdout)["plans"]}
     assert code == 0 and plans["four-mount-64"]["points"] == 64 and plans["one-mount-16"]["points"] == 16
-    code, stdout, _ = run_cli(capsys, "plan", "show", "four-mount-64")
+    code, stdout, _ = cli(capsys, "plan", "show", "four-mount-64")
     assert code == 0 and "bottom side of the plate, x sensor pointing backward" in stdout
 
 
@@ -158,7 +147,7 @@ GOOD_ROW = "1,0,0,0,0,0.1,0.2,1.0"
 def test_bad_readings(tmp_path, capsys, content, expected):
     path = tmp_path / "bad.csv"
     path.write_text(content)
-    code, stdout, stderr = run_cli(capsys, "fit", str(path))
+    code, stdout, stderr = cli(capsys, "fit", str(path))
     assert code == 2 and stdout == ""
     assert expected in stderr and str(path) in stderr or expected == "singular" and expected in stderr
     assert stderr.strip().count("\n") == 0 and "Traceback" not in stderr
@@ -181,7 +170,7 @@ PLAN_HEAD = 'name = "x"\nmounts = [[0, 0]]\n'
 def test_bad_plans(tmp_path, capsys, content, expected):
     path = tmp_path / "plan.toml"
     path.write_text(content)
-    code, stdout, stderr = run_cli(capsys, "plan", "show", str(path))
+    code, stdout, stderr = cli(capsys, "plan", "show", str(path))
     assert code == 2 and stdout == ""
     assert expected in stderr and str(path) in stderr
     assert stderr.strip().count("\n") == 0
@@ -198,14 +187,14 @@ def test_bad_plans(tmp_path, capsys, content, expected):
 ])
 def test_bad_arguments(tmp_path, capsys, monkeypatch, args, expected):
     monkeypatch.chdir(tmp_path)
-    code, stdout, stderr = run_cli(capsys, *args)
+    code, stdout, stderr = cli(capsys, *args)
     assert code == 2 and stdout == "" and expected in stderr
     assert stderr.strip().count("\n") == 0
 
 
 def test_run_refuses_a_used_directory(tmp_path, capsys):
     (tmp_path / "old.csv").write_text("x")
-    code, _, stderr = run_cli(capsys, "run", "--sim", "--yes", "--out", str(tmp_path))
+    code, _, stderr = cli(capsys, "run", "--sim", "--yes", "--out", str(tmp_path))
     assert code == 2 and "exists and is not empty" in stderr
     assert (tmp_path / "old.csv").read_text() == "x"
 
@@ -290,7 +279,7 @@ def test_rig_file_sets_the_simulated_rig(tmp_path, capsys):
     rig = tmp_path / "rig.toml"
     rig.write_text("remount_s = 0\nspeed_dps = 40\n[device]\nmisalignment_deg = {}\n"
                    "[instrument]\nB = [0.1, 0.2, 0.3]\nnoise_v = 1e-6\n")
-    code, stdout, _ = run_cli(capsys, "run", "--sim", "--yes", "--json", "--no-report", "--rig", str(rig),
+    code, stdout, _ = cli(capsys, "run", "--sim", "--yes", "--json", "--no-report", "--rig", str(rig),
                               "--out", str(tmp_path / "run"))
     assert code == 0
     summary = json.loads(stdout)
@@ -298,21 +287,21 @@ def test_rig_file_sets_the_simulated_rig(tmp_path, capsys):
     assert np.allclose(summary["fit"]["coefficients"][0], [0.1, 0.2, 0.3], atol=2e-5)
     bad = tmp_path / "bad.toml"
     bad.write_text("speed_dps = -1\n")
-    code, _, stderr = run_cli(capsys, "run", "--sim", "--rig", str(bad), "--out", str(tmp_path / "r2"))
+    code, _, stderr = cli(capsys, "run", "--sim", "--rig", str(bad), "--out", str(tmp_path / "r2"))
     assert code == 2 and "speed_dps: Input should be greater than 0" in stderr
 
 
 def test_a_complete_run_issues_its_certificate_and_report(tmp_path, capsys):
     run_dir = tmp_path / "run"
-    code, stdout, _ = run_cli(capsys, "run", "--sim", "--yes", "--json", "--plan", "one-mount-16",
+    code, stdout, _ = cli(capsys, "run", "--sim", "--yes", "--json", "--plan", "one-mount-16",
                               "--tolerance-deg", "0.5", "--out", str(run_dir))
     assert code == 0
     summary = json.loads(stdout)
     assert summary["certificate"] == str(run_dir / "certificate.json") and summary["verdict"] == "pass"
     assert {"certificate.json", "report.html", "report.pdf"} <= {p.name for p in run_dir.iterdir()}
-    code, stdout, _ = run_cli(capsys, "history", "SIMULATED", "--json")
+    code, stdout, _ = cli(capsys, "history", "SIMULATED", "--json")
     assert code == 0 and len(json.loads(stdout)["calibrations"]) == 1
-    code, _, stderr = run_cli(capsys, "run", "--sim", "--yes", "--plan", "one-mount-16",
+    code, _, stderr = cli(capsys, "run", "--sim", "--yes", "--plan", "one-mount-16",
                               "--tolerance-deg", "-1", "--out", str(tmp_path / "r2"))
     assert code == 2 and "argument --tolerance-deg: -1 is out of range; expected a number x" in stderr
     assert not (tmp_path / "r2").exists()  # refused before the run began

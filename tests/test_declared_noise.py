@@ -104,7 +104,7 @@ def test_the_declared_scatter_is_the_noise_and_the_tables_rotations_by_hand():
 
 def test_readings_in_another_unit_than_the_noise_are_named_so(tmp_path, capsys):
     """`labcal fit --station` on readings in mV: one line, exit 2 (the noise is declared in volts)."""
-    from emulators import cli
+    from cli import cli
 
     data = readings(1)
     path = tmp_path / "r.csv"
@@ -139,7 +139,7 @@ def test_fit_with_the_station_refuses_a_slipped_table_and_accepts_good_readings(
     slipped table's exits 2 with the scatter against the declared one."""
     import json
 
-    from emulators import cli
+    from cli import cli
 
     station = station_file(tmp_path)
     good, slipped = tmp_path / "good.csv", tmp_path / "slipped.csv"

@@ -9,7 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
+from cli import cli
+from emulators import TIME_SCALE, no_leaks, private_file  # noqa: F401 - fixture
 
 LABCAL = str(Path(sys.executable).with_name("labcal"))
 LOG_LINE = re.compile(r"^\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z (DEBUG|INFO|WARNING|ERROR) (\S+): (.*)$")

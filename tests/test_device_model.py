@@ -11,6 +11,7 @@ import json
 
 import numpy as np
 import pytest
+from cli import cli
 
 from labcal.analysis.device_fit import fit_device
 from labcal.analysis.device_model import (
@@ -210,45 +211,37 @@ def test_json_contract():
 
 
 # --- the command line --------------------------------------------------------------------------------
-def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
-    from labcal.cli import main
-
-    code = main(list(argv))
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
-
-
 def test_fit_chooses_the_device_model_where_the_plan_identifies_it(tmp_path, capsys):
     four, one = tmp_path / "four.csv", tmp_path / "one.csv"
     for plan, path in (("four-mount-64", four), ("one-mount-16", one)):
-        assert run_cli(capsys, "simulate", "--plan", plan, "--misalign", "a=0.01,k=-0.01", "--noise", "1e-5",
+        assert cli(capsys, "simulate", "--plan", plan, "--misalign", "a=0.01,k=-0.01", "--noise", "1e-5",
                        "--out", str(path))[0] == 0
-    code, stdout, _ = run_cli(capsys, "fit", str(four), "--json")
+    code, stdout, _ = cli(capsys, "fit", str(four), "--json")
     doc = json.loads(stdout)
     assert code == 0 and doc["model"] == "device" and doc["notes"][0].startswith("device model: the plan")
     a = doc["misalignments"]["a"]
     assert a["value_arcsec"] == pytest.approx(36, abs=5 * a["u_arcsec"])  # 0.01° = 36″
-    code, stdout, _ = run_cli(capsys, "fit", str(one), "--json")
+    code, stdout, _ = cli(capsys, "fit", str(one), "--json")
     doc = json.loads(stdout)
     assert code == 0 and doc["model"] == "linear"
     assert doc["notes"][0].startswith("linear model: this plan cannot identify the device misalignments (")
-    code, _, err = run_cli(capsys, "fit", str(one), "--model", "device")
+    code, _, err = cli(capsys, "fit", str(one), "--model", "device")
     assert code == 2 and "confounded with" in err and "add a mount on the" in err
-    code, stdout, _ = run_cli(capsys, "fit", str(four), "--model", "linear", "--json")
+    code, stdout, _ = cli(capsys, "fit", str(four), "--model", "linear", "--json")
     assert code == 0 and json.loads(stdout)["model"] == "linear"
-    code, stdout, _ = run_cli(capsys, "fit", str(four))
+    code, stdout, _ = cli(capsys, "fit", str(four))
     assert code == 0 and "Calibration-device misalignments" in stdout and "Intrinsic parameters" in stdout
 
 
 def test_plan_audit_has_the_identifiability_section(tmp_path, capsys):
-    code, stdout, _ = run_cli(capsys, "plan", "audit", "four-mount-64", "--json")
+    code, stdout, _ = cli(capsys, "plan", "audit", "four-mount-64", "--json")
     ident = json.loads(stdout)["identifiability"]
     assert code == 0 and ident["rank"] == 18 and ident["confounded"] == []
     assert set(ident["u_arcsec_per_ug_noise"]) == set(MISALIGNMENT_NAMES)
     plan = tmp_path / "fore-aft.toml"
     plan.write_text('name = "fore-aft"\nmounts = [[0, 0], [180, 0]]\n'
                     f"points = {[list(p) for p in SOTO_POINTS]}\n")
-    code, stdout, _ = run_cli(capsys, "plan", "audit", str(plan))
+    code, stdout, _ = cli(capsys, "plan", "audit", str(plan))
     assert code == 0 and "rank 17 of 18" in stdout
     text = " ".join(stdout.split())  # rich wraps long lines
     assert "k is confounded with S_xy − S_yx: add a mount on the bottom side of the plate" in text
@@ -309,15 +302,15 @@ def test_attitude_from_the_device_model_is_tighter_and_still_covers():
 
 def test_attitude_command_reads_the_device_fit(tmp_path, capsys):
     readings, fit_json, volts = tmp_path / "r.csv", tmp_path / "fit.json", tmp_path / "v.csv"
-    assert run_cli(capsys, "simulate", "--misalign", "a=60arcsec,e=-60arcsec,k=40arcsec", "--noise", "2e-5",
+    assert cli(capsys, "simulate", "--misalign", "a=60arcsec,e=-60arcsec,k=40arcsec", "--noise", "2e-5",
                    "--out", str(readings))[0] == 0
-    code, stdout, _ = run_cli(capsys, "fit", str(readings), "--json")
+    code, stdout, _ = cli(capsys, "fit", str(readings), "--json")
     assert code == 0 and json.loads(stdout)["model"] == "device"
     fit_json.write_text(stdout)
     g = np.sin(np.radians(10.0)), np.cos(np.radians(10.0)) * np.sin(np.radians(20.0)), \
         np.cos(np.radians(10.0)) * np.cos(np.radians(20.0))  # what the ideal instrument (B = 0, S = I) reads
     volts.write_text("vx,vy,vz\n" + ",".join(f"{v:.9f}" for v in g) + "\n")
-    code, stdout, _ = run_cli(capsys, "attitude", "--cert", str(fit_json), "--csv", str(volts), "--json")
+    code, stdout, _ = cli(capsys, "attitude", "--cert", str(fit_json), "--csv", str(volts), "--json")
     row = json.loads(stdout)["rows"][0]["sphere_least_squares"]
     assert code == 0 and row["pitch_deg"] == pytest.approx(10.0, abs=3 * row["u_pitch_deg"] + 1e-6)
     assert row["roll_deg"] == pytest.approx(20.0, abs=3 * row["u_roll_deg"] + 1e-6)
@@ -360,13 +353,13 @@ def test_per_angle_index_errors_recovered_noise_free():
 
 def test_index_errors_not_warranted_without_them(tmp_path, capsys):
     readings = tmp_path / "r.csv"
-    run_cli(capsys, "simulate", "--misalign", "a=40arcsec", "--noise", "2e-5", "--seed", "5",
+    cli(capsys, "simulate", "--misalign", "a=40arcsec", "--noise", "2e-5", "--seed", "5",
             "--out", str(readings))
-    code, stdout, _ = run_cli(capsys, "fit", str(readings), "--index-errors", "--json")
+    code, stdout, _ = cli(capsys, "fit", str(readings), "--index-errors", "--json")
     ext = json.loads(stdout)["index_errors"]
     assert code == 0 and ext["test"]["df"][0] == 6 and ext["pitch_table"]["contrasts_estimated"] == 3
     assert not ext["accepted"]  # p ≥ 0.05: a 5 % chance of failing for an unlucky seed; seed 5 is fixed
-    code, _, err = run_cli(capsys, "fit", str(readings), "--index-errors", "--model", "linear")
+    code, _, err = cli(capsys, "fit", str(readings), "--index-errors", "--model", "linear")
     assert code == 2 and "--index-errors extends the device model" in err
 
 

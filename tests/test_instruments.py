@@ -7,10 +7,10 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from datetime import date, datetime, timedelta
 from pathlib import Path
 
+import cli
 import pytest
 from services import postgres_cluster, postgres_url  # noqa: F401 - fixtures
 from simulated_runs import simulated_run
@@ -27,14 +27,10 @@ from labcal.app.instruments import (
 from labcal.app.labdatabase import OpenLab, open_lab
 from labcal.errors import LabcalError
 
-LABCAL = str(Path(sys.executable).with_name("labcal"))
-
 
 def labcal(*args: str, check: int | None = 0) -> subprocess.CompletedProcess:
-    done = subprocess.run([LABCAL, *args], capture_output=True, text=True, timeout=120)
-    if check is not None:
-        assert done.returncode == check, done.stderr
-    return done
+    """`labcal ARGS` in a process of its own that must succeed unless told otherwise."""
+    return cli.labcal(*args, check=check)
 
 
 class InProcess:

@@ -21,11 +21,12 @@ import io
 import json
 import re
 import sqlite3
-from contextlib import closing, redirect_stderr, redirect_stdout
+from contextlib import closing, redirect_stdout
 from pathlib import Path
 
 import psycopg
 import pytest
+from cli import in_process
 from services import free_port
 from simulated_runs import days_ago
 
@@ -58,10 +59,7 @@ class Bench:
     def labcal(self, *args: str, db: str | None = None) -> tuple[int, str, str]:
         """A labcal command at this bench (in this process: a new Python per command takes seconds)."""
         self.here(db)
-        out, err = io.StringIO(), io.StringIO()
-        with redirect_stdout(out), redirect_stderr(err):
-            code = main(list(args))
-        return code, out.getvalue(), err.getvalue()
+        return in_process(*args)
 
     def run(self, db: str | None = None, *extra: str, report: bool = False, seed: int | None = None) -> Path:
         """A dry run of ACC-0042 at this bench (one mount, no report unless asked); its folder."""

@@ -15,13 +15,12 @@ import hmac
 import os
 import stat
 import subprocess
-import sys
 from pathlib import Path
 
+import cli
 import psycopg
 import pytest
 
-LABCAL = str(Path(sys.executable).with_name("labcal"))
 # What a bench may do, as the lab's roles page states it: read these, and nothing else at all
 BENCH_READS = {"alembic_version", "runs", "points", "events", "certificates", "run_exports",
                "device_estimates", "settle_pools", "station_roles", "approvers", "instruments",
@@ -35,7 +34,7 @@ def labcal(tmp_path: Path, *args: str, db: str, station: str = "bench-1",
     env.update(LABCAL_DB=db, LABCAL_STATION=station, LABCAL_CONFIG=str(tmp_path / "lab.toml"),
                LABCAL_JOURNAL=str(tmp_path / station / "journal.sqlite"),
                XDG_DATA_HOME=str(tmp_path / "data"))
-    return subprocess.run([LABCAL, *args], capture_output=True, text=True, env=env, timeout=240, input=stdin)
+    return cli.labcal(*args, env=env, timeout=240, typed=stdin)
 
 
 def grant(tmp_path: Path, admin: str, station: str, *extra: str) -> str:

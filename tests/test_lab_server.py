@@ -16,7 +16,8 @@ import tomllib
 
 import httpx
 import pytest
-from lab_server import add_user, labcal, served
+from cli import labcal
+from lab_server import add_user, served
 
 from labcal.cli import main
 
@@ -304,7 +305,7 @@ def test_user_add_asks_for_the_password_when_none_is_given(lab):
     terminal, from stdin) and refused when empty or when the two differ, adding nobody."""
     import subprocess
 
-    from lab_server import LABCAL
+    from cli import LABCAL
 
     def add(name: str, typed: str) -> subprocess.CompletedProcess:
         return subprocess.run([LABCAL, "user", "add", name, "--role", "viewer", "--db", lab["db"]],

@@ -11,32 +11,24 @@ plain SQL, the files with hashlib, the certificate by `labcal certificate verify
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import re
 import shutil
 import sqlite3
-from contextlib import closing, redirect_stderr, redirect_stdout
+from contextlib import closing
 
 import httpx
 import psycopg
 import pytest
+from cli import LABCAL
+from cli import in_process as labcal
 from lab_server import accessible, add_user, parses_cleanly, served
 from simulated_runs import bench_run
-
-from labcal.cli import main
 
 pytestmark = pytest.mark.slow  # four runs through the drivers and a server: about 40 s
 
 SERIAL = "ACC-0042"
 FILES = {"certificate.json", "certificate.dcc.xml", "report.pdf", "report.html"}
-
-
-def labcal(*args: str) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    with redirect_stdout(out), redirect_stderr(err):
-        code = main(list(args))
-    return code, out.getvalue(), err.getvalue()
 
 
 @pytest.fixture(scope="module")
@@ -178,7 +170,6 @@ def test_a_server_killed_mid_approval_leaves_no_half_approved_certificate(bench)
     import threading
     import time
 
-    from lab_server import LABCAL
 
     lab, run = bench, 2
     server = subprocess.Popen([LABCAL, "serve", "--port", "0", "--db", lab["db"], "--poll", "0.2", "--key",

@@ -25,7 +25,8 @@ from pathlib import Path
 
 import httpx
 import pytest
-from lab_server import add_user, labcal, serving
+from cli import labcal
+from lab_server import add_user, serving
 
 from labcal.cli import main
 

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import httpx
 import pytest
-from lab_server import LABCAL, add_user, labcal, served
+from cli import LABCAL, labcal
+from lab_server import add_user, served
 
 PASSWORD = {"ada": "ada's long passphrase", "vic": "vic's passphrase", "tom": "tom's passphrase"}
 SERIAL = "ACC[/x] $HOME"  # Rich markup and a shell expansion in one serial

@@ -12,7 +12,8 @@ from datetime import UTC, datetime, timedelta
 
 import httpx
 import pytest
-from lab_server import add_user, labcal, served
+from cli import labcal
+from lab_server import add_user, served
 
 from labcal.server.serving import Transport, exposure_warning
 

@@ -18,12 +18,13 @@ import time
 from contextlib import closing
 from pathlib import Path
 
+import cli
 import psycopg
 import pytest
+from cli import LABCAL
 from lab_readings import journal_points, server_points
 from services import free_port
 
-LABCAL = str(Path(sys.executable).with_name("labcal"))
 MOUNT_POINTS = 16  # four-mount-64 (the default plan): 4 mounts × 16 points = 64, one replicate
 MOUNTS = 4
 CERTIFICATE = "certificate_id, serial, calibrated_utc, issued_utc, sha256, document"
@@ -201,7 +202,7 @@ def one_line_refusal(done: subprocess.CompletedProcess, *words: str) -> str:
 
 
 def labcal(env: dict[str, str], *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([LABCAL, *args], env=env, capture_output=True, text=True, timeout=60)
+    return cli.labcal(*args, env=env, timeout=60)
 
 
 def test_a_server_database_behind_is_refused_until_labcal_db_upgrade(tmp_path, postgres_url, lab_file):

@@ -11,7 +11,8 @@ import sqlite3
 import subprocess
 
 import httpx
-from lab_server import LABCAL, add_user, ctrl_c, served, wait_for
+from cli import LABCAL
+from lab_server import add_user, ctrl_c, served, wait_for
 
 
 def _events(db: str) -> list[tuple[str, str]]:

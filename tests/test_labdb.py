@@ -14,12 +14,12 @@ import re
 import shutil
 import sqlite3
 import subprocess
-import sys
 import threading
 from contextlib import closing
 from dataclasses import fields
 from pathlib import Path
 
+import cli
 import numpy as np
 import pytest
 from legacy_schema import legacy_file
@@ -32,7 +32,6 @@ from labcal.errors import LabcalError
 from labcal.run import labdb, migrations
 from labcal.run.journal import Journal, Manifest, PointRecord
 
-LABCAL = str(Path(sys.executable).with_name("labcal"))
 V0 = Path(__file__).parent / "data" / "v0"
 SOURCE = Path(labcal_package.__file__).parent  # the labcal under test: the source tree or the wheel
 
@@ -77,8 +76,7 @@ def point_rows(path: Path, run_id: int) -> list[tuple]:
 
 
 def labcal(db: Path, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([LABCAL, *args], capture_output=True, text=True, timeout=300,
-                          env={**os.environ, "LABCAL_DB": str(db)})
+    return cli.labcal(*args, timeout=300, env={**os.environ, "LABCAL_DB": str(db)})
 
 
 # --- (a) the previous labcal's database --------------------------------------------------------

@@ -7,7 +7,8 @@ from __future__ import annotations
 import time
 
 import pytest
-from emulators import cli, no_leaks, private_file  # noqa: F401 - fixture
+from cli import cli
+from emulators import no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.config.station import load_station
 from labcal.drivers.errors import SettingsRefused

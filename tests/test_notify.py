@@ -15,7 +15,8 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import pytest
-from emulators import cli, free_port, no_leaks, private_file  # noqa: F401 - fixture
+from cli import cli
+from emulators import free_port, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.config.plans import load_plan
 from labcal.run.notify import Message, Notifications

@@ -8,7 +8,8 @@ from __future__ import annotations
 import io
 import json
 
-from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
+from cli import cli
+from emulators import TIME_SCALE, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.documents.issuing import checklist_overrides, override_statement
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
-from emulators import cli
+from cli import cli
 
 from labcal.analysis.kinematics import ARCSEC, Misalignment, gravity
 from labcal.analysis.readings import Readings

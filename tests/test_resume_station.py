@@ -11,7 +11,8 @@ import sqlite3
 import tomllib
 from pathlib import Path
 
-from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
+from cli import cli
+from emulators import TIME_SCALE, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.run.journal import Journal
 

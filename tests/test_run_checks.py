@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
+from cli import cli
+from emulators import TIME_SCALE, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.config.emulation import default_instrument
 from labcal.run.journal import Journal

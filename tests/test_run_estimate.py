@@ -7,7 +7,8 @@ from __future__ import annotations
 import json
 
 import pytest
-from emulators import TIME_SCALE, cli, private_file
+from cli import cli
+from emulators import TIME_SCALE, private_file
 
 
 @pytest.mark.parametrize("station", ["--sim", "az-modbus-tcp"])

@@ -241,7 +241,7 @@ def test_labcal_run_sim_single_axis_runs_end_to_end_with_its_package_statement(t
     """`labcal run --sim --instrument single-axis`: the journal holds vx only (vy, vz NULL), fit.json
     one column, and package.json states pitch's U95 at the roll the table sets, with σ_R the roll
     table's ±2″ index error as uniform bounds (2″/√3), by Tripp eqs. 79-82."""
-    from emulators import cli
+    from cli import cli
 
     code, out, err = cli(capsys, "run", "--sim", "--instrument", "single-axis", "--yes", "--out",
                          str(tmp_path / "run"), "--db", str(tmp_path / "lab.sqlite"))
@@ -268,7 +268,7 @@ def test_labcal_run_sim_single_axis_runs_end_to_end_with_its_package_statement(t
 
 
 def test_instrument_is_the_simulated_rigs_option_only(tmp_path, capsys):
-    from emulators import cli
+    from cli import cli
 
     code, _, err = cli(capsys, "run", "--station", "bench", "--instrument", "single-axis", "--dry-run")
     assert code == 2 and err.count("\n") == 1 and "--instrument" in err
@@ -307,7 +307,7 @@ def test_a_single_axis_statements_pitch_u95_covers_95_percent_by_monte_carlo():
 def test_labcal_run_sim_two_axis_states_its_package(tmp_path, capsys, package, equations, field):
     """An x–y package infers roll and states its usable range; an x–z package, singular at roll 0
     (eq. 94), is stated at the roll the table sets (eqs. 96-98)."""
-    from emulators import cli
+    from cli import cli
 
     code, _, err = cli(capsys, "run", "--sim", "--instrument", package, "--yes", "--out",
                        str(tmp_path / "run"), "--db", str(tmp_path / "lab.sqlite"))
@@ -319,7 +319,7 @@ def test_labcal_run_sim_two_axis_states_its_package(tmp_path, capsys, package, e
 def test_a_package_whose_statement_cannot_be_made_keeps_its_complete_run(tmp_path, capsys):
     """An x–y package with a U95 limit no attitude meets (1e-6°): the run completes, its readings
     and fit are kept, and the end says in one line why there is no statement."""
-    from emulators import cli
+    from cli import cli
 
     code, out, err = cli(capsys, "run", "--sim", "--instrument", "two-axis-xy", "--yes", "--tolerance-deg",
                          "1e-6", "--out", str(tmp_path / "run"), "--db", str(tmp_path / "lab.sqlite"))

@@ -10,7 +10,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
+from cli import cli
+from emulators import TIME_SCALE, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.config.station import load_station, shipped_stations
 

@@ -16,7 +16,8 @@ import time
 from pathlib import Path
 
 import pytest
-from emulators import TIME_SCALE, cli, no_leaks, private_file  # noqa: F401 - fixture
+from cli import cli
+from emulators import TIME_SCALE, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.config.station import load_station
 from labcal.run.lock import StationLock, link_key, station_locks

@@ -15,8 +15,9 @@ import time
 from pathlib import Path
 
 import pytest
+from cli import cli
 from conftest import quiet_console
-from emulators import TIME_SCALE, cli, emulated, no_leaks, private_file  # noqa: F401 - fixture
+from emulators import TIME_SCALE, emulated, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.bench.setup import prepare
 from labcal.config.plans import load_plan

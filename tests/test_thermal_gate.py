@@ -76,7 +76,7 @@ def test_the_estimate_includes_the_thermal_gates_least_wait_at_every_mount():
 def test_a_dry_run_shows_the_thermal_gates_wait(tmp_path, capsys):
     """`labcal run --sim --thermal-gate 0.05 300 --dry-run --json`: 1200 s more than without, all of it
     the gate's (four mounts of four-mount-64, 300 s each)."""
-    from emulators import cli
+    from cli import cli
 
     code, out, err = cli(capsys, "run", "--sim", "--dry-run", "--json")
     assert code == 0, err

@@ -4,20 +4,14 @@
 from __future__ import annotations
 
 import subprocess
-import sys
-from pathlib import Path
 
 import pytest
+from cli import labcal
 from emulators import no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.config.station import shipped_stations
 
-LABCAL = str(Path(sys.executable).with_name("labcal"))
 STATION = shipped_stations()["az-modbus-tcp"].read_text(encoding="utf-8")
-
-
-def labcal(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([LABCAL, *args], capture_output=True, text=True, timeout=60, cwd=cwd)
 
 
 def refused(result: subprocess.CompletedProcess, expected_line: str) -> None:

@@ -10,7 +10,8 @@ import termios
 import time
 
 import pytest
-from emulators import cli, emulated, no_leaks, private_file  # noqa: F401 - fixture
+from cli import cli
+from emulators import emulated, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.bench.hardware import Bench
 from labcal.config.station import StationFile
