@@ -42,7 +42,7 @@ def simulated_run(run_dir: Path, db: Path, seed: int, *, rig: Path | None = None
 
 def bench_run(run_dir: Path, db: Path, serial: str, plan: str = "one-mount-16") -> Path:
     """A complete calibration through the real drivers against `labcal sim serve` in another process,
-    as against a bench (`tests/test_emulated_runs.py::test_a_run_on_hardware_served_by_another_process`):
+    as against a bench (`tests/run/test_emulated_runs.py::test_a_run_on_hardware_served_by_another_process`):
     labcal does not know the devices are emulated, so its journal holds no simulated truth — a run
     that may be approved. One mount (nobody remounts the served instrument), a fixed dwell (the
     system clock is not scaled)."""
