@@ -5,9 +5,12 @@ from __future__ import annotations
 import json
 import math
 import sqlite3
+from contextlib import closing
+from pathlib import Path
 
 import numpy as np
 import pytest
+from cli import in_process
 
 from labcal.cli import main
 from labcal.config.settings import SettleSettings
@@ -166,13 +169,40 @@ def run_sim(tmp_path, capsys, seed: int, mode: str, db: str, rig: str | None = N
     return summary, [rows, events]
 
 
-def history_then_pair(tmp_path, capsys, runs: int, seed: int):
-    """``runs`` model runs of four-mount-64 (seeds seed…), then the pair: the next seed by model
-    settling (pooled) and conventionally."""
-    for k in range(runs):
-        run_sim(tmp_path, capsys, seed + k, "model", "pool.sqlite")
-    model = run_sim(tmp_path, capsys, seed + runs, "model", "pool.sqlite")
-    conventional = run_sim(tmp_path, capsys, seed + runs, "detect", f"conv-{seed}.sqlite")
+HISTORY = 4  # model runs of four-mount-64, seeds 1…4, before the runs the tests compare
+
+
+@pytest.fixture(scope="module")
+def history(tmp_path_factory) -> Path:
+    """A lab database holding the pool of HISTORY model runs of one simulated instrument (seeds 1…4):
+    made once for the module (four whole runs), each test goes on from a copy of its own."""
+    folder = tmp_path_factory.mktemp("history")
+    with pytest.MonkeyPatch.context() as env:  # as the autouse lab_database fixture does for a test
+        for name in ("XDG_RUNTIME_DIR", "XDG_CONFIG_HOME", "XDG_CONFIG_DIRS"):
+            env.setenv(name, str(folder / name.lower()))
+        for name in ("LABCAL_CONFIG", "LABCAL_NOTIFY", "LABCAL_STATION", "LABCAL_JOURNAL"):
+            env.delenv(name, raising=False)
+        for seed in range(1, HISTORY + 1):
+            code, _, err = in_process("run", "--sim", "--yes", "--json", "--no-report", "--seed", str(seed),
+                                      "--settle", "model", "--db", str(folder / "pool.sqlite"), "--out",
+                                      str(folder / f"model-{seed}"))
+            assert code == 0, err
+    return folder / "pool.sqlite"
+
+
+def pool_copy(history: Path, tmp_path: Path) -> None:
+    """The module's history as this test's pool.sqlite (SQLite's backup: the WAL's pages included)."""
+    copy = tmp_path / "pool.sqlite"
+    with closing(sqlite3.connect(history)) as source, closing(sqlite3.connect(copy)) as target:
+        source.backup(target)
+
+
+def history_then_pair(tmp_path, capsys, history: Path, seed: int):
+    """The module's history of HISTORY model runs, then the pair: seed by model settling (pooled) and
+    conventionally."""
+    pool_copy(history, tmp_path)
+    model = run_sim(tmp_path, capsys, seed, "model", "pool.sqlite")
+    conventional = run_sim(tmp_path, capsys, seed, "detect", f"conv-{seed}.sqlite")
     return model, conventional
 
 
@@ -180,14 +210,14 @@ def settle_sum(result) -> float:
     return sum(s for s, _ in result[1][0])
 
 
-def test_a_pooled_history_lets_four_mount_64_settle_by_the_model(tmp_path, capsys):
+def test_a_pooled_history_lets_four_mount_64_settle_by_the_model(tmp_path, capsys, history):
     """Four model runs of one simulated instrument (seeds 1–4), then a fifth: it starts with the
     288 records of the four (the journal says so: 4 × (64 points, 4 mount checks, 4 returns to
     them)), the pool vouches from its start, so its summed settle time is well below a conventional
     run of the same seed (measured 0.80× at 272 records; 0.9 leaves room for the seeds' noise), and
     its coefficients lie within 3 SE of that run's. A run of another simulated instrument (τ 0.6 s)
     starts with no records."""
-    model, conventional = history_then_pair(tmp_path, capsys, 4, 1)
+    model, conventional = history_then_pair(tmp_path, capsys, history, HISTORY + 1)
     assert "starts with 288 step records of 4 earlier run(s)" in model[1][1][0]
     settled = [v for _, v in model[1][0] if v.startswith("settled (model")]
     assert len(settled) >= 30
@@ -201,12 +231,11 @@ def test_a_pooled_history_lets_four_mount_64_settle_by_the_model(tmp_path, capsy
     assert "no earlier runs of this instrument" in other[1][1][0]
 
 
-def paired_bias(tmp_path, capsys, pairs: int) -> tuple[float, float]:
-    """Mean and Monte Carlo SE over ``pairs`` paired runs (one history of four model runs, then
-    each pair: one seed by pooled model settling and conventionally) of the coefficients' paired
+def paired_bias(tmp_path, capsys, history: Path, pairs: int) -> tuple[float, float]:
+    """Mean and Monte Carlo SE over ``pairs`` paired runs (the module's history of four model runs,
+    then each pair: one seed by pooled model settling and conventionally) of the coefficients' paired
     difference in the conventional run's SE, on the coefficient where the mean is largest."""
-    for k in range(4):
-        run_sim(tmp_path, capsys, 1 + k, "model", "pool.sqlite")
+    pool_copy(history, tmp_path)
     diffs = []
     for k in range(pairs):
         seed = 100 + k
@@ -219,16 +248,16 @@ def paired_bias(tmp_path, capsys, pairs: int) -> tuple[float, float]:
     return float(d[:, worst].mean()), float(d[:, worst].std(ddof=1) / math.sqrt(pairs))
 
 
-def test_paired_runs_show_no_bias_of_pooled_model_settling(tmp_path, capsys):
+def test_paired_runs_show_no_bias_of_pooled_model_settling(tmp_path, capsys, history):
     """Three pairs: the mean paired difference, less three of its Monte Carlo SE, is within 0.1 SE
     of the coefficient (the pool grows between pairs: 272 records and more)."""
-    mean, mc_se = paired_bias(tmp_path, capsys, 3)
+    mean, mc_se = paired_bias(tmp_path, capsys, history, 3)
     assert abs(mean) - 3 * mc_se <= 0.1 and mc_se < 0.1
 
 
 @pytest.mark.slow
-def test_paired_runs_show_no_bias_of_pooled_model_settling_many(tmp_path, capsys):
-    mean, mc_se = paired_bias(tmp_path, capsys, 20)
+def test_paired_runs_show_no_bias_of_pooled_model_settling_many(tmp_path, capsys, history):
+    mean, mc_se = paired_bias(tmp_path, capsys, history, 20)
     assert abs(mean) - 3 * mc_se <= 0.1 and mc_se < 0.05
 
 
