@@ -33,6 +33,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import chdtri
 
 from labcal.analysis.budget import (
     Calibration,
@@ -181,8 +182,6 @@ def residual_variance_quantile(covariance: NDArray[np.float64], dof: int, p: flo
     normal errors, Var s² = 2 tr Σ²/ν², taken as a scaled χ² with Satterthwaite's ν_eff = 2E²/Var
     (the tables' errors, shared by every point at an angle, give s² far fewer degrees of freedom than
     the K − L of white noise, so its upper quantile lies further out)."""
-    from scipy.special import chdtri
-
     mean = np.einsum("jii->j", covariance) / dof
     if p is None:
         return np.asarray(mean, dtype=float)
