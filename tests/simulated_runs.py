@@ -27,15 +27,17 @@ def rig_with_bias_shift(path: Path, shift_v: tuple[float, float, float]) -> Path
 
 
 def simulated_run(run_dir: Path, db: Path, seed: int, *, rig: Path | None = None, plan: str | None = None,
-                  serial: str | None = None) -> Path:
+                  serial: str | None = None, report: bool = True) -> Path:
     """A complete dry run into ``run_dir`` journaled in ``db``; it starts in a new UTC second, so
-    consecutive runs have distinct calibration times (run.json keeps whole seconds)."""
+    consecutive runs have distinct calibration times (run.json keeps whole seconds). ``report=False``:
+    without its documents (--no-report), for a test that issues them itself — the certificate, report
+    and DCC are most of a dry run's time."""
     start = datetime.now(UTC).replace(microsecond=0)
     while datetime.now(UTC).replace(microsecond=0) == start:
         time.sleep(0.02)
     args = ["run", "--sim", "--yes", "--seed", str(seed), "--out", str(run_dir), "--db", str(db)]
     args += ["--rig", str(rig)] * (rig is not None) + ["--plan", plan] * (plan is not None)
-    args += ["--serial", serial] * (serial is not None)
+    args += ["--serial", serial] * (serial is not None) + ["--no-report"] * (not report)
     assert main(args) == 0
     return run_dir
 

@@ -23,7 +23,7 @@ SI = "{https://ptb.de/si}"
 @pytest.fixture(scope="module")
 def issued(tmp_path_factory):
     base = tmp_path_factory.mktemp("one-u95")
-    run_dir = simulated_run(base / "run", base / "lab.sqlite", seed=5)
+    run_dir = simulated_run(base / "run", base / "lab.sqlite", seed=5, report=False)  # issued just below
     assert main(["report", str(run_dir), "--station", str(STATION), "--db", str(base / "lab.sqlite")]) == 0
     return run_dir
 

@@ -18,7 +18,7 @@ from labcal.run.record import load_run
 
 
 def test_each_figure_is_drawn_once_and_the_html_and_pdf_carry_the_same_pixels(tmp_path, monkeypatch):
-    run_dir = simulated_run(tmp_path / "run", tmp_path / "lab.sqlite", seed=5)
+    run_dir = simulated_run(tmp_path / "run", tmp_path / "lab.sqlite", seed=5, report=False)
     record = load_run(run_dir)
     fit = fit_readings(record.readings)
     cert = build_certificate(record, fit, None)
@@ -53,7 +53,7 @@ def test_issuing_fits_the_device_model_once(tmp_path, monkeypatch):
     derived from them); the certificate and the report reuse those fits instead of fitting again."""
     from labcal.analysis import device_fit
 
-    run_dir = simulated_run(tmp_path / "run", tmp_path / "lab.sqlite", seed=5)
+    run_dir = simulated_run(tmp_path / "run", tmp_path / "lab.sqlite", seed=5, report=False)
     calls = []
     original = device_fit.fit_device
     monkeypatch.setattr(device_fit, "fit_device", lambda *a, **k: calls.append(1) or original(*a, **k))
