@@ -143,7 +143,7 @@ def test_the_lab_file_may_allow_ad_hoc_serials_without_asking(lc, lab_database, 
     assert run_serial(StartRun(sim=True, serial="ACC-0043"), front) == (  # type: ignore[arg-type]
         "ACC-0043", "not in the instrument register; the lab file allows ad-hoc serials")
     assert front.asked == [] and any("allows ad-hoc serials" in line for line in front.lines)
-    simulated_run(tmp_path / "run", lab_database, seed=9, serial="ACC-0043")  # --yes: not asked, taken
+    simulated_run(tmp_path / "run", lab_database, seed=9, serial="ACC-0043", report=False)  # --yes: taken
     runs = lc.json("runs", "--attention")["runs"]
     assert [r["attention"] for r in runs] == [
         ["serial not in the instrument register; the lab file allows ad-hoc serials"]]
