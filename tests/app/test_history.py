@@ -34,11 +34,11 @@ def lab(tmp_path_factory):
     base = tmp_path_factory.mktemp("history")
     db = base / "lab.sqlite"
     for n in (1, 2):
-        record = load_run(simulated_run(base / f"cal{n}", db, seed=20 + n, serial=SERIAL))
+        record = load_run(simulated_run(base / f"cal{n}", db, seed=20 + n, serial=SERIAL, report=False))
         fit = fit_readings(record.readings)  # on the model `labcal run` certifies: the device model
         store(build_certificate(record, fit, device=preferred_fit(record.readings, fit)[0]), db)
     shifted = rig_with_bias_shift(base / "shifted.toml", (SHIFT_V, 0.0, 0.0))
-    run_dir = simulated_run(base / "cal3", db, seed=23, rig=shifted, serial=SERIAL)
+    run_dir = simulated_run(base / "cal3", db, seed=23, rig=shifted, serial=SERIAL, report=False)
     assert main(["report", str(run_dir), "--db", str(db), "--json"]) == 0
     return db
 
