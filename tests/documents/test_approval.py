@@ -40,7 +40,7 @@ def issued(tmp_path_factory):
     """A run on a bench (a dry run is never approved), its draft certificate (the PDF's pages kept),
     and a key pair registered to the approver."""
     base = tmp_path_factory.mktemp("approval")
-    run_dir = bench_run(base / "run", base / "lab.sqlite", SERIAL)  # one mount, 16 points: quick
+    run_dir = bench_run(base / "run", base / "lab.sqlite", SERIAL, report=False)  # one mount; issued below
     pages = _pdf_pages(lambda: write_run_outputs(run_dir, db=base / "lab.sqlite"), run_dir / "report.pdf")
     assert main(["certificate", "keygen", "--out", str(base / "approver")]) == 0
     assert main(["certificate", "approvers", "add", "A. Metrologist", "--role", "Technical manager",
