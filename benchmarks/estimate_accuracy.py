@@ -6,7 +6,7 @@ start (`estimated_rig_time_s`, the same as `--dry-run`'s) against the rig time t
 rig's own clock (`simulated_rig_time_s`). An emulated station's rig clock runs --time-scale times
 faster than the wall's, so the host's own scheduling counts that many times over: on a busy host
 the runs take longer and the figures drift low. That is why this is a benchmark and not a test; the
-simulated rig's figure (no host time in it) is asserted by tests/test_run_estimate.py.
+simulated rig's figure (no host time in it) is asserted by tests/run/test_run_estimate.py.
 
 Usage: python benchmarks/estimate_accuracy.py [--time-scale 10] [--stations NAME ...]
 """

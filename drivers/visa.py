@@ -12,7 +12,11 @@ unless the station names a vendor's (a path to libvisa, or ``@ivi``). Lines are 
 from __future__ import annotations
 
 import logging
+import socket
+import time
 from typing import Any
+
+import pyvisa
 
 from labcal.devices.station import CriticalSection
 from labcal.drivers.errors import LinkLost, NoReply, PortClosed
@@ -24,8 +28,6 @@ QUIET_S = 0.05  # draining: read in slices this long until the line has been qui
 
 def resource_manager(library: str) -> Any:
     """The VISA library's resource manager; `LinkLost` naming the library when it cannot load."""
-    import pyvisa
-
     try:
         return pyvisa.ResourceManager(library)
     except (OSError, ValueError, pyvisa.errors.Error) as exc:
@@ -74,10 +76,6 @@ class VisaLink:
         for the previous one's acknowledgement, which the instrument delays (~40 ms a command).
         VISA's VI_ATTR_TCPIP_NODELAY says so; pyvisa-py accepts the attribute but cannot set it,
         so its session's socket is told directly."""
-        import socket
-
-        import pyvisa
-
         if not self.resource.upper().endswith("::SOCKET"):
             return
         try:
@@ -94,8 +92,6 @@ class VisaLink:
         return PortClosed(f"{self.where} went away ({exc})")
 
     def write_line(self, text: str) -> None:
-        import pyvisa
-
         instrument = self._open()
         log.debug("%s > %s", self.where, text)
         try:
@@ -106,8 +102,6 @@ class VisaLink:
     def read_line(self, timeout_s: float | None = None) -> str:
         """The next line without its terminator; NoReply on silence, BadReply on bytes that are
         not ASCII text."""
-        import pyvisa
-
         timeout = self.timeout_s if timeout_s is None else timeout_s
         instrument = self._open()
         instrument.timeout = max(1, round(timeout * 1000))
@@ -132,10 +126,6 @@ class VisaLink:
     def drain(self) -> None:
         """Discard input until the resource has been quiet for one timeout (three at most): a late
         reply must not be taken for the answer to the next question."""
-        import time
-
-        import pyvisa
-
         if self._instrument is None:
             return
         now = time.monotonic()

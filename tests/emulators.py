@@ -22,15 +22,6 @@ TIME_SCALE = 1000.0  # the default test time scale: a 30-minute calibration take
 MOTION_SCALE = 20.0  # slow enough to catch a table mid-move: a 90° move lasts 250 ms of wall time
 
 
-def cli(capsys, *args: str) -> tuple[int, str, str]:
-    """`labcal ARGS` in this process: exit code, stdout, stderr."""
-    from labcal.cli import main
-
-    code = main(list(args))
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
-
-
 def free_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))

@@ -9,21 +9,13 @@ import json
 import re
 import signal
 import subprocess
-import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager, redirect_stdout
 from pathlib import Path
 
 import pytest
-
-LABCAL = str(Path(sys.executable).with_name("labcal"))
-
-
-def labcal(*args: str, typed: str | None = None) -> subprocess.CompletedProcess:
-    """A labcal command in a process of its own, without a terminal (``typed``: its stdin)."""
-    return subprocess.run([LABCAL, *args], capture_output=True, text=True, timeout=120,
-                          input=typed if typed is not None else "", start_new_session=True)
+from cli import LABCAL
 
 
 def add_user(db: str, name: str, role: str, password: str) -> str:

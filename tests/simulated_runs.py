@@ -27,25 +27,28 @@ def rig_with_bias_shift(path: Path, shift_v: tuple[float, float, float]) -> Path
 
 
 def simulated_run(run_dir: Path, db: Path, seed: int, *, rig: Path | None = None, plan: str | None = None,
-                  serial: str | None = None) -> Path:
+                  serial: str | None = None, report: bool = True) -> Path:
     """A complete dry run into ``run_dir`` journaled in ``db``; it starts in a new UTC second, so
-    consecutive runs have distinct calibration times (run.json keeps whole seconds)."""
+    consecutive runs have distinct calibration times (run.json keeps whole seconds). ``report=False``:
+    without its documents (--no-report), for a test that issues them itself — the certificate, report
+    and DCC are most of a dry run's time."""
     start = datetime.now(UTC).replace(microsecond=0)
     while datetime.now(UTC).replace(microsecond=0) == start:
         time.sleep(0.02)
     args = ["run", "--sim", "--yes", "--seed", str(seed), "--out", str(run_dir), "--db", str(db)]
     args += ["--rig", str(rig)] * (rig is not None) + ["--plan", plan] * (plan is not None)
-    args += ["--serial", serial] * (serial is not None)
+    args += ["--serial", serial] * (serial is not None) + ["--no-report"] * (not report)
     assert main(args) == 0
     return run_dir
 
 
-def bench_run(run_dir: Path, db: Path, serial: str, plan: str = "one-mount-16") -> Path:
+def bench_run(run_dir: Path, db: Path, serial: str, plan: str = "one-mount-16", *,
+              report: bool = True) -> Path:
     """A complete calibration through the real drivers against `labcal sim serve` in another process,
-    as against a bench (`tests/test_emulated_runs.py::test_a_run_on_hardware_served_by_another_process`):
+    as against a bench (`tests/run/test_emulated_runs.py::test_a_run_on_hardware_served_by_another_process`):
     labcal does not know the devices are emulated, so its journal holds no simulated truth — a run
     that may be approved. One mount (nobody remounts the served instrument), a fixed dwell (the
-    system clock is not scaled)."""
+    system clock is not scaled). ``report=False``: without its documents, as `simulated_run`."""
     import signal
     import subprocess
     import sys
@@ -59,7 +62,8 @@ def bench_run(run_dir: Path, db: Path, serial: str, plan: str = "one-mount-16") 
     try:
         assert json.loads("".join(iter(serve.stdout.readline, "}\n")) + "}")["time_scale"] == 500
         code = main(["run", "--station", str(station), "--plan", plan, "--yes", "--serial", serial,
-                     "--fixed-dwell", "0.05", "--out", str(run_dir), "--db", str(db)])
+                     "--fixed-dwell", "0.05", "--out", str(run_dir), "--db", str(db),
+                     *["--no-report"] * (not report)])
     finally:
         serve.send_signal(signal.SIGINT)
         serve.communicate(timeout=20)

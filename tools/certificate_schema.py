@@ -1,6 +1,6 @@
 """Write schemas/certificate.schema.json: the JSON Schema of certificate.json, generated from the
 certificate's models (`labcal.documents.certificate.json_schema`). Run from the repository root
-after changing a model; tests/test_certificate_schema.py fails while the published file differs.
+after changing a model; tests/documents/test_certificate_schema.py fails while the published file differs.
 
     .venv/bin/python tools/certificate_schema.py
 """

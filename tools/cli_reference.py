@@ -1,6 +1,6 @@
 """Write docs/reference/cli.md: every command's and subcommand's `--help`, as the command line's own
 parsers print it, so that the reference cannot say what the parsers do not. Run from the repository
-root after changing an option; tests/test_documents.py fails while the file differs.
+root after changing an option; tests/repository/test_documents.py fails while the file differs.
 
     .venv/bin/python tools/cli_reference.py
 """

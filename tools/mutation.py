@@ -6,7 +6,7 @@ Run from the repository root, in the test venv with the ``mutation`` extra (mutm
     nice -n 15 .venv/bin/python tools/mutation.py                # every module below
     nice -n 15 .venv/bin/python tools/mutation.py regression     # one (or a few) of them
     .venv/bin/python tools/mutation.py --no-run --show budget    # the last run's score and survivors
-    nice -n 15 .venv/bin/python tools/mutation.py --baseline modbus  # without tests/test_modbus_mutants.py
+    nice -n 15 .venv/bin/python tools/mutation.py --baseline modbus  # without test_modbus_mutants.py
 
 Not part of CI: a module takes minutes, all of them together about an hour on a busy 2-core machine.
 
@@ -17,7 +17,7 @@ file's path, so it must see the tree as the wheel installs it. Here ``drivers/``
 hand them the unmutated file. So each module gets ``.mutation/<name>/`` holding ``labcal/`` with
 ``drivers/``, ``sim/``, ``sequences/`` and ``stations/`` placed where the wheel puts them, the tests, and a
 pyproject whose ``[tool.mutmut]`` mutates that one file and runs only the test files that cover it
-(its ``tests/test_<name>_mutants.py`` included) — minutes, not the hours of the whole suite per mutant.
+(its ``test_<name>_mutants.py`` included) — minutes, not the hours of the whole suite per mutant.
 Every run starts from scratch: mutmut would keep a survivor's verdict although the tests changed.
 
 Survivors reviewed as equivalent (no test can tell them from the original) are listed with the
@@ -46,7 +46,8 @@ EQUIVALENTS = ROOT / "tools" / "mutation_equivalents.toml"
 
 @dataclass(frozen=True)
 class Target:
-    """One module: its file as installed (inside labcal/) and the test files that exercise it."""
+    """One module: its file as installed (inside labcal/) and the test files that exercise it (by name,
+    in whichever folder of tests/ they are)."""
 
     installed: str
     tests: tuple[str, ...]
@@ -54,24 +55,23 @@ class Target:
 
 TARGETS: dict[str, Target] = {
     "regression": Target("labcal/analysis/regression.py",
-                         ("tests/test_regression.py", "tests/test_statistics.py",
-                          "tests/test_gross_errors.py")),
-    "budget": Target("labcal/analysis/budget.py", ("tests/test_budget.py",)),
+                         ("test_regression.py", "test_statistics.py",
+                          "test_gross_errors.py")),
+    "budget": Target("labcal/analysis/budget.py", ("test_budget.py",)),
     # test_labdb (migrations), test_history and test_run_guard also open a journal, but spend minutes per
     # mutant on migrated databases and certificates; the journal's own tests decide its mutants.
-    "journal": Target("labcal/store/journal.py",
-                      ("tests/test_journal_truth.py", "tests/test_journal_sync.py")),
+    "journal": Target("labcal/store/journal.py", ("test_journal_truth.py", "test_journal_sync.py")),
     "modbus": Target("labcal/drivers/modbus.py",
-                     ("tests/test_modbus_frames.py", "tests/test_az_defects.py", "tests/test_transcripts.py",
-                      "tests/test_driver_logging.py")),
+                     ("test_modbus_frames.py", "test_az_defects.py", "test_transcripts.py",
+                      "test_driver_logging.py")),
     # the stops, window checks and diagnoses are tested through both drivers
     "newport_smc100": Target("labcal/drivers/newport_smc100.py",
-                             ("tests/test_newport_smc100.py", "tests/test_transcripts.py",
-                              "tests/test_stop_all.py", "tests/test_axis_diagnoses.py")),
+                             ("test_newport_smc100.py", "test_transcripts.py",
+                              "test_stop_all.py", "test_axis_diagnoses.py")),
     "oriental_az": Target("labcal/drivers/oriental_az.py",
-                          ("tests/test_modbus_frames.py", "tests/test_az_defects.py",
-                           "tests/test_transcripts.py", "tests/test_oriental_az.py",
-                           "tests/test_stop_all.py", "tests/test_axis_diagnoses.py")),
+                          ("test_modbus_frames.py", "test_az_defects.py",
+                           "test_transcripts.py", "test_oriental_az.py",
+                           "test_stop_all.py", "test_axis_diagnoses.py")),
 }
 
 # Folders of the repository and where the wheel installs them (pyproject [tool.setuptools.package-dir]).
@@ -105,8 +105,8 @@ def stage(name: str, target: Target, baseline: bool = False) -> Path:
         shutil.rmtree(where / dest, ignore_errors=True)
     for source, dest in LAYOUT.items():
         shutil.copytree(ROOT / source, where / dest, ignore=ignore, dirs_exist_ok=True)
-    own = f"tests/test_{name}_mutants.py"
-    tests = [t for t in (*target.tests, *([] if baseline else [own])) if (ROOT / t).exists()]
+    wanted = (*target.tests, *([] if baseline else [f"test_{name}_mutants.py"]))
+    tests = [str(path.relative_to(ROOT)) for file in wanted for path in sorted((ROOT / "tests").rglob(file))]
     pyproject = (ROOT / "pyproject.toml").read_text()
     pyproject += (
         "\n[tool.mutmut]\n"

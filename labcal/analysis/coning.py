@@ -30,7 +30,7 @@ _AXES = {
 AZIMUTH_SIGNIFICANCE = 3.0  # Ω must exceed this many standard errors for A to mean anything
 OMEGA_NEAR_ZERO = (f"Ω is within {AZIMUTH_SIGNIFICANCE:g} standard errors of 0, where Ω ± k·u is no valid "
                    "interval: Ω ≥ 0 is the length of a 2-D vector, and at a true Ω of 0 the delta-method "
-                   "interval ±1.96·u covers it 85 % of the time, not 95 % (tests/test_fit_options.py); "
+                   "interval ±1.96·u covers it 85 % of the time, not 95 % (by Monte Carlo); "
                    "its 95 % interval is the one from the distribution of that length (omega_interval_95)")
 LEVEL = 0.95
 RICE_UP_TO = 30.0  # |τ|/σ beyond which the length is normal to 1e-3 and Ω ± t·u is the interval

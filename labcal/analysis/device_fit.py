@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.optimize import least_squares as minimise
 
 from labcal.analysis.device_model import (
     N_MIS,
@@ -338,8 +339,6 @@ def _solve(theta0: NDArray[np.float64], data: PointMeans,
     """Levenberg–Marquardt (scipy.optimize.least_squares, MINPACK's lmder) on the weighted residuals
     with the analytic Jacobian, scaled by its column norms. Refuses to return a fit that did not
     converge."""
-    from scipy.optimize import least_squares as minimise
-
     last: dict[bytes, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
 
     def weighted(theta: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

@@ -14,14 +14,13 @@ from functools import lru_cache
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy import special
 
 Array = NDArray[np.float64]
 
 
 def t_quantile(p: ArrayLike, dof: ArrayLike) -> Array:
     """Student t quantile: P(T ≤ x) = p; ν = ∞ gives the normal quantile, ν ≤ 0 or NaN gives NaN."""
-    from scipy import special
-
     nu, pv = np.asarray(dof, dtype=float), np.asarray(p, dtype=float)
     with np.errstate(invalid="ignore"):
         x = special.stdtrit(np.where(nu > 0, nu, np.nan), pv)
@@ -31,30 +30,22 @@ def t_quantile(p: ArrayLike, dof: ArrayLike) -> Array:
 
 def f_sf(x: ArrayLike, dfn: ArrayLike, dfd: ArrayLike) -> Array:
     """P(F > x) for F(dfn, dfd): the p-value of an F test."""
-    from scipy import special
-
     return np.asarray(special.fdtrc(dfn, dfd, np.maximum(np.asarray(x, dtype=float), 0.0)), dtype=float)
 
 
 def f_isf(alpha: ArrayLike, dfn: ArrayLike, dfd: ArrayLike) -> Array:
     """The F(dfn, dfd) value exceeded with probability alpha: the test's critical value."""
-    from scipy import special
-
     return np.asarray(special.fdtri(dfn, dfd, 1.0 - np.asarray(alpha, dtype=float)), dtype=float)
 
 
 def chi2_cdf(x: float, dof: int) -> float:
     """P(χ² ≤ x) with dof degrees of freedom."""
-    from scipy import special
-
     return float(special.chdtr(dof, max(x, 0.0)))
 
 
 @lru_cache(maxsize=64)  # the settle test asks for the same one at every window
 def chi2_quantile(p: float, dof: int) -> float:
     """χ² quantile: P(X ≤ x) = p with dof degrees of freedom."""
-    from scipy import special
-
     return float(special.chdtri(dof, 1.0 - p))
 
 
@@ -62,8 +53,6 @@ def noncentral_f2_cdf(x: ArrayLike, noncentrality: ArrayLike, dfd: float) -> Arr
     """P(F' ≤ x) for the noncentral F(2, dfd, λ): the distribution of |z|²/2 / (s²/σ²) for a
     2-vector z ~ N(μ, σ²I) with |μ|²/σ² = λ and s² on dfd degrees of freedom (the coning angle's
     interval, `labcal.analysis.coning`)."""
-    from scipy import special
-
     return np.asarray(special.ncfdtr(2.0, dfd, noncentrality, np.maximum(np.asarray(x, dtype=float), 0.0)),
                       dtype=float)
 

@@ -12,7 +12,7 @@ that good data raises a flag rarely, at a stated rate.
 
 Every threshold is a Šidák family-wise one: over all the tests of one check on one file, good data
 raises any flag with probability at most FAMILY_ALPHA (exactly for independent tests, less for the
-positively dependent ones here). `tests/test_gross_errors.py` checks that rate by Monte Carlo.
+positively dependent ones here). `tests/analysis/test_gross_errors.py` checks that rate by Monte Carlo.
 """
 
 from __future__ import annotations

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import special
 
 from labcal.analysis.budget import Calibration, TypeBInputs, bench_in_readings
 from labcal.analysis.device_fit import DeviceFit
@@ -84,8 +85,6 @@ class LackOfFit:
 def _scaled_chi2_sf(t: float, mean: float, var: float) -> float:
     """P(T > t) for a quadratic form of normals with this mean and variance, as a scaled χ²
     (Satterthwaite): T ≈ c·χ²(h), c = var / 2mean, h = 2mean² / var."""
-    from scipy import special
-
     if mean <= 0 or var <= 0:
         return 1.0
     c, h = var / (2 * mean), 2 * mean**2 / var

@@ -242,7 +242,7 @@ def analyse_with_covariates(design: NDArray[np.float64], y: NDArray[np.float64],
     σ_prec and σ_bias follow `analyse_points`; a drift's σ is the one-way variance component,
     (MS_drift − MS_e)/(Σh²/R) with h its regressor. Tests that correct the readings by a γ fitted
     first and then test them as `analyse` does are not exact: γ takes up part of any trend between
-    replicates, and its own error moves whole replicates (tests/test_temperature_replication.py)."""
+    replicates, and its own error moves whole replicates (tests/analysis/test_temperature_replication.py)."""
     y = y if y.ndim == 2 else y[:, None]
     n_obs, n_cols = y.shape
     n_groups = int(groups.max()) + 1

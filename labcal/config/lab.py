@@ -33,9 +33,11 @@ Example::
 from __future__ import annotations
 
 import os
+import socket
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from urllib.parse import parse_qsl, urlencode
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -200,8 +202,6 @@ class LabConfig:
     def station(self) -> str:
         """This station's name in the lab database: $LABCAL_STATION, else this file's `station`, else
         the computer's name (one station per computer unless told otherwise)."""
-        import socket
-
         return os.environ.get(STATION_ENV) or self.file.station or socket.gethostname()
 
     def _relative(self, given: Path) -> Path:
@@ -237,8 +237,6 @@ def redacted(url: str) -> str:
     """``url`` as it may be shown or logged: the password of its user part and the value of every
     query parameter that names a secret (``?password=``, ``sslpassword=``, ``sslkey=``, a token)
     replaced by ``***``. The one place a URL loses its credentials."""
-    from urllib.parse import parse_qsl, urlencode
-
     scheme, sep, rest = url.partition("://")
     if not sep:
         return url

@@ -8,6 +8,7 @@ import tomllib
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from labcal import sequences
 from labcal.errors import LabcalError
 
 if TYPE_CHECKING:  # the model (pydantic, numpy) is imported where a plan is read: not by `plan list`
@@ -21,8 +22,6 @@ def shipped_plans() -> dict[str, Path]:
     """The plans that ship with labcal, by name: the files beside the `labcal.sequences` package
     (a folder in every install labcal supports; importlib.resources would cost `labcal plan list`
     a sixth of its time to import)."""
-    from labcal import sequences
-
     folder = Path(sequences.__file__).parent
     return {path.name.removesuffix(PLAN_SUFFIX): path for path in sorted(folder.glob(f"*{PLAN_SUFFIX}"))}
 

@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 
 from labcal.config.emulation import EmulationSettings, FaultKind
 from labcal.config.files import parse_model, read_text
+from labcal.config.readings_csv import UNITS, unit_named
 from labcal.config.settings import CertificateSettings, SequencerSettings, ThermalGate
 from labcal.config.uncertainty import Traceability, UncertaintyInputs
 from labcal.errors import LabcalError
@@ -292,8 +293,6 @@ class InstrumentSettings(BaseModel):
     @classmethod
     def _spelled(cls, value: object) -> object:
         """"millivolts", "m/s^2", "LSB": spelled as a readings file's ``# units =`` line may be."""
-        from labcal.config.readings_csv import UNITS, unit_named
-
         if not isinstance(value, str):
             return value
         try:

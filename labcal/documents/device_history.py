@@ -21,17 +21,24 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from labcal.analysis.correction_check import FALSE_ALARM, Change
-from labcal.analysis.device_fit import DeviceFit
+from labcal.analysis.correction_check import FALSE_ALARM, Change, check
+from labcal.analysis.device_fit import DeviceFit, PointMeans
 from labcal.analysis.fit import Fit
-from labcal.analysis.kinematics import MISALIGNMENT_NAMES
+from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES
 from labcal.analysis.plan import Plan
 from labcal.config.corrections import DeviceCorrectionTable
+from labcal.config.files import write_json
+from labcal.config.lab import load_lab_config
+from labcal.config.plans import plan_correction
+from labcal.config.readings_csv import read_numeric_csv
+from labcal.config.snapshot import stated_angle_errors
+from labcal.documents.device_report import DEVICE_JSON, device_document
 from labcal.documents.plotfile import check_folder, save
 from labcal.errors import LabcalError
 from labcal.store import labdb
 from labcal.store.journal import db_path
 from labcal.store.record import RunRecord
+from labcal.store.rundir import READINGS
 
 RULE = "|Δ| > √(U₁² + U₂²): a change larger than the combined expanded uncertainty (95 %)"
 IDENTIFYING_PLAN = "four-mount-64"  # the built-in plan whose mounts identify all six misalignments
@@ -50,10 +57,6 @@ def correction_changes(record: RunRecord, fit: Fit, correction: DeviceCorrection
     """The run's check of the misalignments its plan corrects for (`analysis.correction_check.check`):
     each one the run sees, its change since the correction's estimate and the verdict; the tables'
     index and wobble as the run's station states them."""
-    from labcal.analysis.correction_check import check
-    from labcal.analysis.device_fit import PointMeans
-    from labcal.config.snapshot import stated_angle_errors
-
     names, held = MISALIGNMENT_NAMES, correction.misalignment()
     noise = window_noise(record)
     return check(PointMeans.of(record.readings), fit.ls.residuals, fit.coefficients,
@@ -68,9 +71,6 @@ def window_noise(record: RunRecord) -> NDArray[np.float64] | None:
     readings.csv records (sd of the samples, their number): √(mean of sd²/n). The noise the plan was
     priced with; the residuals would count the tables' per-angle errors, which the check adds as
     their own term, a second time. None where the file does not record them (readings imported)."""
-    from labcal.config.readings_csv import read_numeric_csv
-    from labcal.store.rundir import READINGS
-
     wanted = ("n_samples", "sd_vx", "sd_vy", "sd_vz")
     try:
         cols = read_numeric_csv(record.directory / READINGS, "readings", wanted)
@@ -86,8 +86,6 @@ def window_noise(record: RunRecord) -> NDArray[np.float64] | None:
 def refuse_if_moved(record: RunRecord, fit: Fit) -> list[Change]:
     """The run's check where its plan corrects for the device (else []); `DeviceMoved` (one line naming
     the largest change and the plan that identifies the device again) where a change is detected."""
-    from labcal.config.plans import plan_correction
-
     correction = plan_correction(record.plan_text, f"{record.directory}: the run's plan")
     if correction is None:
         return []
@@ -180,8 +178,6 @@ def expired(device_id: str, source: str, calibrated_at: datetime, db: str | Path
             now: datetime | None = None) -> str | None:
     """Why a correction from this estimate may no longer be used (the lab file's limits: its age, its
     number of uses), or None."""
-    from labcal.config.lab import load_lab_config
-
     limits = load_lab_config().file.device_correction
     age = ((now or datetime.now(UTC)) - calibrated_at).total_seconds() / 86400.0
     again = (f"identify the device again with a plan that does (labcal run --plan {IDENTIFYING_PLAN}), then "
@@ -203,7 +199,6 @@ def correction_for(device_id: str, db: str | Path | None = None, now: datetime |
     each u aged by the history's random walk (`analysis.device_ageing`) to ``now``. (None, why) where
     not known. ``said`` hears the line saying the lab could not be reached (`estimates_read`)."""
     from labcal.analysis.device_ageing import walk_rate
-    from labcal.analysis.kinematics import ARCSEC
     from labcal.analysis.optimize import DeviceCorrection
 
     estimates, stale = estimates_read(device_id, db)  # an unknown device: one line naming the known ones
@@ -290,9 +285,6 @@ def store_device_estimate(record: RunRecord, fit: DeviceFit, db: str | Path | No
     """A finished run's device estimate: into the lab database, and as device.json in the run folder
     (the device's misalignments with U and the instrument's intrinsic parameters, beside the
     certificate)."""
-    from labcal.config.files import write_json
-    from labcal.documents.device_report import DEVICE_JSON, device_document
-
     estimate = estimate_of(record, fit)
     write_json(record.directory / DEVICE_JSON, device_document(fit, estimate.device_id))
     return store(estimate, db)

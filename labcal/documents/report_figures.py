@@ -15,9 +15,12 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from PIL import Image
 
 from labcal.analysis.attitude import sphere_least_squares
 from labcal.analysis.device_fit import DeviceFit
+from labcal.analysis.device_model import Geometry, jacobian
 from labcal.analysis.fit import SENSORS, Fit
 from labcal.analysis.kinematics import NO_MISALIGNMENT, Misalignment, Mount, gravity
 from labcal.analysis.models import Points
@@ -90,8 +93,6 @@ def _bands(fit: Fit, device: DeviceFit | None, dense: np.ndarray, col: int) -> t
             Points.at(0.0, dense, temp_c=fit.model.t_ref)
         bands = fit.predict(at, 0.95)
         return bands["prediction"], bands["confidence"]
-    from labcal.analysis.device_model import Geometry, jacobian
-
     zero = np.zeros_like(dense)
     where = Geometry.from_degrees(dense, zero, zero, zero) if col == 0 else \
         Geometry.from_degrees(zero, dense, zero, zero)
@@ -203,7 +204,6 @@ def attitude_error_figure(cert: Certificate, record: RunRecord) -> Figure:
 
 def sphere_figure(record: RunRecord) -> Figure:
     """Where the plan's points lie on the unit gravity sphere, in the instrument's axes, per mount."""
-    import mpl_toolkits.mplot3d  # noqa: F401 - registers the 3-D projection
     from matplotlib.figure import Figure
 
     plan = record.plan
@@ -327,9 +327,6 @@ class DrawnFigure:
 
 def draw(title: str, fig: Figure) -> DrawnFigure:
     """One Agg drawing of ``fig``; the PNG is encoded from the same pixels."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from PIL import Image  # matplotlib's own image library; its imsave would write RGBA
-
     fig.set_dpi(FIGURE_DPI)
     canvas = FigureCanvasAgg(fig)
     canvas.draw()

@@ -15,14 +15,13 @@ from labcal.documents.report_tables import (
     tables,
     verdict_text,
 )
+from labcal.documents.typeset import CertificateDocument, render
 
 
 def render_pdf(cert: Certificate, figs: list[DrawnFigure], extra: tuple[Table, ...] = ()) -> bytes:
     """The certificate typeset (`labcal.documents.typeset`): identification and verdict first, every
     table, the method and statements, the signature block, then one page per figure (its PNG, as
     drawn for the HTML); every page says "page X of Y" and, until it is approved, DRAFT."""
-    from labcal.documents.typeset import CertificateDocument, render
-
     a = cert.approval
     signature = [("Approved by", f"{a.by} ({a.role})" if a else "not yet approved — DRAFT"),
                  ("Date", written_time_utc(a.approved_utc) if a else "—"),

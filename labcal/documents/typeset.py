@@ -25,6 +25,18 @@ from pathlib import Path
 from typing import Any, Protocol
 from xml.sax.saxutils import escape
 
+import matplotlib
+from reportlab import rl_config
+from reportlab.lib.colors import HexColor
+from reportlab.lib.pagesizes import A4
+from reportlab.lib.styles import ParagraphStyle
+from reportlab.lib.units import mm
+from reportlab.pdfbase import pdfmetrics
+from reportlab.pdfbase.pdfmetrics import stringWidth
+from reportlab.pdfbase.ttfonts import TTFont
+from reportlab.pdfgen.canvas import Canvas
+from reportlab.platypus import KeepTogether, Paragraph, Table, TableStyle
+
 BODY_PT = 9.0  # body text and table cells
 SMALL_PT = 8.0  # captions, header and footer: the smallest text on any page
 MARGIN_MM = 16.0
@@ -77,10 +89,6 @@ class CertificateDocument:
 def _fonts() -> tuple[str, str]:
     """Register DejaVu Sans and its bold from matplotlib's data folder (no font of the system is
     assumed); reportlab embeds the subset of glyphs a document uses."""
-    import matplotlib
-    from reportlab.pdfbase import pdfmetrics
-    from reportlab.pdfbase.ttfonts import TTFont
-
     folder = Path(matplotlib.get_data_path()) / "fonts" / "ttf"
     pdfmetrics.registerFont(TTFont("LabcalSans", str(folder / "DejaVuSans.ttf")))
     pdfmetrics.registerFont(TTFont("LabcalSans-Bold", str(folder / "DejaVuSans-Bold.ttf")))
@@ -90,9 +98,6 @@ def _fonts() -> tuple[str, str]:
 
 
 def _styles() -> dict[str, Any]:
-    from reportlab.lib.colors import HexColor
-    from reportlab.lib.styles import ParagraphStyle
-
     regular, bold = _fonts()
     return {
         "body": ParagraphStyle("body", fontName=regular, fontSize=BODY_PT, leading=BODY_PT * 1.3,
@@ -120,8 +125,6 @@ def _column_widths(t: TableLike, width: float, styles: dict[str, Any]) -> list[f
     wide as its longest cell; what is left of the frame goes to the columns whose text wraps, in
     proportion to what more they would take. Only a table whose words alone overflow the frame is
     scaled down to fit (and then breaks words)."""
-    from reportlab.pdfbase.pdfmetrics import stringWidth
-
     pad = 6.0  # left + right padding of a cell
 
     def measure(text: str, font: str) -> tuple[float, float]:
@@ -145,9 +148,6 @@ def _column_widths(t: TableLike, width: float, styles: dict[str, Any]) -> list[f
 
 def _table(t: TableLike, width: float, styles: dict[str, Any]) -> list[Any]:
     """A table whose cells wrap at word boundaries within the frame (`_column_widths`)."""
-    from reportlab.lib.colors import HexColor
-    from reportlab.platypus import KeepTogether, Paragraph, Table, TableStyle
-
     ncol = len(t.header)
     rows = [[Paragraph(_text(h), styles["head"]) for h in t.header]]
     rows += [[Paragraph(_text(row[j]) if j < len(row) else "", styles["cell"]) for j in range(ncol)]
@@ -179,9 +179,6 @@ def _figure(fig: FigureLike, width: float, height: float, styles: dict[str, Any]
 def render(doc: CertificateDocument) -> bytes:
     """The PDF's bytes, typeset once: each page's "of Y" is written when the document is saved and
     its number of pages known (`_counting_canvas`), not by typesetting everything twice."""
-    from reportlab.lib.colors import HexColor
-    from reportlab.lib.pagesizes import A4
-    from reportlab.lib.units import mm
     from reportlab.platypus import PageBreak, Paragraph, SimpleDocTemplate, Spacer, Table, TableStyle
 
     styles = _styles()
@@ -243,8 +240,6 @@ def render(doc: CertificateDocument) -> bytes:
                                  topMargin=margin + 4 * mm, bottomMargin=margin, title=doc.title,
                                  subject=doc.subject, author="labcal", creator="labcal",
                                  initialFontName=regular, initialFontSize=BODY_PT)  # no Helvetica
-    from reportlab import rl_config
-
     ascii85 = rl_config.useA85
     rl_config.useA85 = 0  # binary streams: ASCII85 (reportlab's default, in pure Python without its
     try:  # optional C accelerator) makes the file a quarter larger and took half a second per report
@@ -286,8 +281,6 @@ def _counting_canvas(finish_page: Callable[[Any, int], None]) -> type:
     """A reportlab canvas that holds each finished page until the document is saved, then lets
     ``finish_page(canvas, total)`` add what needs the number of pages (reportlab's own recipe for
     "page x of y" in one pass)."""
-    from reportlab.pdfgen.canvas import Canvas
-
     class CountingCanvas(Canvas):
         def __init__(self, *args: Any, **kwargs: Any) -> None:
             super().__init__(*args, **kwargs)

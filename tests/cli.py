@@ -1,0 +1,49 @@
+"""labcal's command line from a test, one way each: the installed executable in a process of its own
+(what a user runs: its start-up, its exit code, its streams), or the same command line in this process
+(a new Python per command takes seconds on a loaded machine)."""
+
+from __future__ import annotations
+
+import io
+import subprocess
+import sys
+from contextlib import redirect_stderr, redirect_stdout
+from pathlib import Path
+from typing import Any
+
+LABCAL = str(Path(sys.executable).with_name("labcal"))  # the console script installed beside this Python
+
+
+def labcal(*args: str, typed: str | None = None, check: int | None = None, timeout: float = 120,
+           **kw: Any) -> subprocess.CompletedProcess:
+    """``labcal ARGS`` in a process of its own, without a terminal: ``typed`` is its stdin (none unless
+    given), and it runs in a session of its own, so a signal meant for the tests never reaches it.
+    ``check``: the exit code it must end with (its stderr is the failure's message). ``kw`` go to
+    `subprocess.run` (``env``, ``cwd`` ...)."""
+    if "stdin" not in kw and "input" not in kw:
+        kw["input"] = typed if typed is not None else ""
+    kw.setdefault("start_new_session", True)
+    done = subprocess.run([LABCAL, *args], capture_output=True, text=True, timeout=timeout, **kw)
+    if check is not None:
+        assert done.returncode == check, done.stderr
+    return done
+
+
+def cli(capsys: Any, *args: str) -> tuple[int, str, str]:
+    """``labcal ARGS`` in this process, read through pytest's ``capsys``: exit code, stdout, stderr."""
+    from labcal.cli import main
+
+    code = main(list(args))
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def in_process(*args: str) -> tuple[int, str, str]:
+    """``labcal ARGS`` in this process where no ``capsys`` is at hand (a fixture of a wider scope):
+    exit code, stdout, stderr."""
+    from labcal.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with redirect_stdout(out), redirect_stderr(err):
+        code = main(list(args))
+    return code, out.getvalue(), err.getvalue()
