@@ -3,7 +3,7 @@ run-results.png, run-approved.png, instruments.png, instrument.png and due.png.
 
     .venv/bin/python tools/desk_screenshots.py [--out docs/screenshots]
 
-The pages are the ones `tests/test_lab_desk_pages.py` builds and checks in Chromium (a real lab
+The pages are the ones `tests/server/test_lab_desk_pages.py` builds and checks in Chromium (a real lab
 database, a calibration through the real drivers, a four-mount dry run on the device model, a
 register of 20 instruments, `labcal serve`): that test saves each page it has checked where
 $LABCAL_SCREENSHOTS points, so a screenshot is always of a page that passed. Needs the test extra

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from emulators import cli
+from cli import cli
 
 from labcal.analysis.distributions import t_quantile
 from labcal.documents.certificate import read_certificate

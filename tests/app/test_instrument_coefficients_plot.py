@@ -20,7 +20,7 @@ from labcal.cli import main
 from labcal.documents import history
 from labcal.documents.certificate import seal
 
-STORED = Path(__file__).parent / "data" / "certificates" / "simulated.json"
+STORED = Path(__file__).parent.parent / "data" / "certificates" / "simulated.json"
 RED = np.array([214, 39, 40]) / 255  # matplotlib's "tab:red" (#d62728), what a flagged change is drawn in
 
 

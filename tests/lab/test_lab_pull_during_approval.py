@@ -15,7 +15,6 @@ import hashlib
 import json
 import os
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -23,10 +22,10 @@ from pathlib import Path
 import httpx
 import psycopg
 import pytest
+from cli import LABCAL
 from lab_server import add_user, served
 from simulated_runs import bench_run
 
-LABCAL = str(Path(sys.executable).with_name("labcal"))
 SERIAL = "ACC-0042"
 FILES = {"certificate.json", "certificate.dcc.xml", "report.pdf", "report.html"}
 pytestmark = pytest.mark.slow  # a run through the drivers, a server, four syncs: about 40 s

@@ -19,7 +19,8 @@ import time
 from datetime import datetime, timedelta
 
 import pytest
-from lab_server import LABCAL, accessible, add_user, ctrl_c, parses_cleanly, served, wait_for
+from cli import LABCAL
+from lab_server import accessible, add_user, ctrl_c, parses_cleanly, served, wait_for
 
 SILENT_AFTER_S = 8.0  # the server's least silence: a paced run journals a point every second or so
 CARD = "a.card[href='/runs/1']"

@@ -15,7 +15,7 @@ import labcal
 import labcal.drivers
 import labcal.sim
 
-PYPROJECT = Path(__file__).resolve().parents[1] / "pyproject.toml"
+PYPROJECT = Path(__file__).resolve().parents[2] / "pyproject.toml"
 LINT = str(Path(sys.executable).with_name("lint-imports"))
 
 

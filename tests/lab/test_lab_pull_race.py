@@ -18,15 +18,14 @@ import json
 import os
 import sqlite3
 import subprocess
-import sys
 import time
 from contextlib import closing
 from pathlib import Path
 
 import psycopg
 import pytest
+from cli import LABCAL
 
-LABCAL = str(Path(sys.executable).with_name("labcal"))
 APPROVAL = {"by": "A. Metrologist", "role": "Technical manager", "approved_utc": "2026-11-27T10:00:00+00:00"}
 
 

@@ -14,16 +14,15 @@ import json
 import os
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import httpx
 import psycopg
 import pytest
+from cli import LABCAL
 from lab_server import add_user, served
 from simulated_runs import bench_run
 
-LABCAL = str(Path(sys.executable).with_name("labcal"))
 pytestmark = pytest.mark.slow  # two runs through the drivers and a server: about 40 s
 
 

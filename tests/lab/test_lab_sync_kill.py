@@ -23,18 +23,17 @@ import os
 import signal
 import sqlite3
 import subprocess
-import sys
 import time
 from contextlib import closing
 from pathlib import Path
 
 import psycopg
 import pytest
+from cli import LABCAL
 from services import free_port
 
 from labcal.store.sync import RUN_NUMBER_LOCK
 
-LABCAL = str(Path(sys.executable).with_name("labcal"))
 pytestmark = pytest.mark.slow  # a simulated run and six syncs as processes: about 20 s
 
 

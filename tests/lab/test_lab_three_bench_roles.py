@@ -19,19 +19,18 @@ import io
 import json
 import os
 import subprocess
-import sys
 from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import httpx
 import psycopg
 import pytest
+from cli import LABCAL
 from lab_server import add_user, served
 from simulated_runs import bench_run, days_ago, rig_with_bias_shift
 
 from labcal.cli import main
 
-LABCAL = str(Path(sys.executable).with_name("labcal"))
 SERIAL = "ACC-0042"
 NAME, ROLE = "A. Metrologist", "Technical manager"
 pytestmark = pytest.mark.slow  # two dry runs, one through the drivers, a server: about 60 s

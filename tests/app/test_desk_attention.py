@@ -12,7 +12,7 @@ from pathlib import Path
 from labcal.app.desk import checklist_attention, needs_attention
 from labcal.documents.certificate import seal
 
-STORED = Path(__file__).parent / "data" / "certificates" / "simulated.json"
+STORED = Path(__file__).parent.parent / "data" / "certificates" / "simulated.json"
 OVERRIDDEN = {"checklist": {"went_on_regardless": True, "items": [
     {"item": "warm-up", "status": "fail", "message": "warmed up 3 min of the 30 the station declares"},
     {"item": "DMM", "status": "ok", "message": "answers"}]}}
