@@ -47,3 +47,20 @@ def in_process(*args: str) -> tuple[int, str, str]:
     with redirect_stdout(out), redirect_stderr(err):
         code = main(list(args))
     return code, out.getvalue(), err.getvalue()
+
+
+def bench_env(folder: Path, db: str, station: str = "bench-1") -> dict[str, str]:
+    """The environment of a bench called ``station`` on the lab database ``db``, everything of it under
+    ``folder``: its journal, an empty lab file, its data folder; no LABCAL_* of the caller's leaks in."""
+    import os
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("LABCAL_")}
+    (folder / "lab.toml").touch()
+    env.update(LABCAL_DB=db, LABCAL_STATION=station, LABCAL_CONFIG=str(folder / "lab.toml"),
+               LABCAL_JOURNAL=str(folder / station / "journal.sqlite"), XDG_DATA_HOME=str(folder / "data"))
+    return env
+
+
+def at_bench(folder: Path, *args: str, db: str, station: str = "bench-1") -> subprocess.CompletedProcess:
+    """``labcal ARGS`` as the bench `bench_env` describes, in a process of its own."""
+    return labcal(*args, env=bench_env(folder, db, station), timeout=240)

@@ -11,7 +11,6 @@ Which certificate is approved and which run it states is written here by hand in
 from __future__ import annotations
 
 import json
-import os
 import sqlite3
 import subprocess
 import uuid
@@ -20,18 +19,13 @@ from pathlib import Path
 
 import psycopg
 import pytest
-from cli import LABCAL
+from cli import at_bench
 
 APPROVAL = {"by": "A. Metrologist", "role": "Technical manager", "approved_utc": "2026-11-27T10:00:00+00:00"}
 
 
 def labcal(tmp_path: Path, *args: str, db: str, station: str = "bench-1") -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("LABCAL_")}
-    (tmp_path / "lab.toml").touch()
-    env.update(LABCAL_DB=db, LABCAL_STATION=station, LABCAL_CONFIG=str(tmp_path / "lab.toml"),
-               LABCAL_JOURNAL=str(tmp_path / station / "journal.sqlite"),
-               XDG_DATA_HOME=str(tmp_path / "data"))
-    return subprocess.run([LABCAL, *args], capture_output=True, text=True, env=env, timeout=240)
+    return at_bench(tmp_path, *args, db=db, station=station)
 
 
 def refused(url: str, sql: str, args: tuple = ()) -> str:

@@ -15,7 +15,6 @@ is the same on every run, whatever the machine's speed.
 from __future__ import annotations
 
 import json
-import os
 import sqlite3
 import subprocess
 import time
@@ -24,23 +23,17 @@ from pathlib import Path
 
 import psycopg
 import pytest
-from cli import LABCAL
+from cli import LABCAL, at_bench, bench_env
 
 APPROVAL = {"by": "A. Metrologist", "role": "Technical manager", "approved_utc": "2026-11-27T10:00:00+00:00"}
 
 
 def environment(tmp_path: Path, db: str) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("LABCAL_")}
-    (tmp_path / "lab.toml").touch()
-    env.update(LABCAL_DB=db, LABCAL_STATION="bench-1", LABCAL_CONFIG=str(tmp_path / "lab.toml"),
-               LABCAL_JOURNAL=str(tmp_path / "bench-1" / "journal.sqlite"),
-               XDG_DATA_HOME=str(tmp_path / "data"))
-    return env
+    return bench_env(tmp_path, db)
 
 
 def labcal(tmp_path: Path, *args: str, db: str) -> subprocess.CompletedProcess:
-    return subprocess.run([LABCAL, *args], capture_output=True, text=True, env=environment(tmp_path, db),
-                          timeout=240)
+    return at_bench(tmp_path, *args, db=db)
 
 
 def wait_for(url: str, condition: str, what: str, timeout_s: float = 60.0) -> None:

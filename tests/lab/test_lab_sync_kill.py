@@ -29,7 +29,7 @@ from pathlib import Path
 
 import psycopg
 import pytest
-from cli import LABCAL
+from cli import LABCAL, at_bench, bench_env
 from services import free_port
 
 from labcal.store.sync import RUN_NUMBER_LOCK
@@ -38,17 +38,11 @@ pytestmark = pytest.mark.slow  # a simulated run and six syncs as processes: abo
 
 
 def environment(tmp_path: Path, db: str) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("LABCAL_")}
-    (tmp_path / "lab.toml").touch()
-    env.update(LABCAL_DB=db, LABCAL_STATION="bench-1", LABCAL_CONFIG=str(tmp_path / "lab.toml"),
-               LABCAL_JOURNAL=str(tmp_path / "bench-1" / "journal.sqlite"),
-               XDG_DATA_HOME=str(tmp_path / "data"))
-    return env
+    return bench_env(tmp_path, db)
 
 
 def labcal(tmp_path: Path, *args: str, db: str) -> subprocess.CompletedProcess:
-    return subprocess.run([LABCAL, *args], capture_output=True, text=True, env=environment(tmp_path, db),
-                          timeout=240)
+    return at_bench(tmp_path, *args, db=db)
 
 
 def seen(admin: str, condition: str, what: str, timeout_s: float = 60.0) -> None:
