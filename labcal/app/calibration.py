@@ -366,10 +366,11 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
             return Estimated(plan, est)
         ready(args.db)  # a lab database behind or ahead of this labcal: refused before anything moves
         if correction is not None:  # still this station's device, still in control: else nothing moves
+            from labcal.config.run_metadata import RunMetadata
             from labcal.documents.device_history import check_correction, station_device_id
 
-            check_correction(correction, station_device_id(
-                {"station": setup.station.description, **setup.metadata}, args.sim or args.emulate), args.db,
+            check_correction(correction, station_device_id(RunMetadata.written(
+                station=setup.station.description, **setup.metadata), args.sim or args.emulate), args.db,
                 plan)
         setup.metadata["estimated_rig_time_s"] = est.total_s  # run.json: the estimate beside the actual
         check_limits(setup.station, steps, settings.check_mount)  # first: homing moves a table too

@@ -27,6 +27,7 @@ from labcal.analysis.fit import Fit
 from labcal.analysis.kinematics import MISALIGNMENT_NAMES
 from labcal.analysis.plan import Plan
 from labcal.config.corrections import DeviceCorrectionTable
+from labcal.config.run_metadata import RunMetadata
 from labcal.documents.plotfile import check_folder, save
 from labcal.errors import LabcalError
 from labcal.run import labdb
@@ -124,13 +125,12 @@ def device_id_of(record: RunRecord) -> str:
     return station_device_id(record.meta, record.simulated)
 
 
-def station_device_id(metadata: dict, simulated: bool) -> str:
+def station_device_id(metadata: RunMetadata, simulated: bool) -> str:
     """The calibration device's id as a run records it: ``device_id`` in its metadata, else SIMULATED for
     a dry run, else the station's description."""
-    recorded = metadata.get("device_id")
-    if recorded:
-        return str(recorded)
-    return "SIMULATED" if simulated else str(metadata.get("station") or "UNNAMED")
+    if metadata.device_id:
+        return metadata.device_id
+    return "SIMULATED" if simulated else (metadata.station or "UNNAMED")
 
 
 NORMAL_K = 1.96  # U → u of an estimate: its U is stated at 95 % with the device fit's many dof
@@ -281,7 +281,7 @@ def check_correction(correction: DeviceCorrectionTable, device_id: str, db: str 
 
 def estimate_of(record: RunRecord, fit: DeviceFit) -> DeviceEstimate:
     doc = fit.to_json()["misalignments"]
-    return DeviceEstimate(device_id_of(record), str(record.meta.get("started_utc", "")),
+    return DeviceEstimate(device_id_of(record), str(record.meta.started_utc or ""),
                           record.directory.name, {n: doc[n]["value_arcsec"] for n in MISALIGNMENT_NAMES},
                           {n: doc[n]["U_arcsec"] for n in MISALIGNMENT_NAMES})
 

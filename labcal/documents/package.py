@@ -124,7 +124,7 @@ def write_package_statement(record: RunRecord, settings: CertificateSettings | N
     fit = record.fit
     if fit is None:
         raise LabcalError(f"{record.directory}: the run has no fit")
-    use = record.meta.get("package") or {}
+    use = record.meta.package or {}
     package = package_of(fit.sensors)
     roll_in_use = use.get("roll_in_use") or ("inferred" if package == "two-axis-xy" else "table")
     section = package_section(fit, package, roll_in_use, use.get("roll_sd_deg"), settings.usage_pitch_deg,

@@ -18,6 +18,7 @@ from labcal.analysis.fit import Fit, fit_readings
 from labcal.analysis.plan import Plan
 from labcal.config.files import validate_model
 from labcal.config.plans import parse_plan
+from labcal.config.run_metadata import RunMetadata
 from labcal.config.settings import SequencerSettings
 from labcal.errors import LabcalError
 from labcal.run import exports
@@ -180,10 +181,11 @@ def calibrate(plan: Plan, plan_text: str, station: Station, station_text: str, o
               operator_name: str | None = None, steps: list[Step] | None = None, *,
               terminal: Terminal | None = None, forecast: Forecast | None = None) -> RunResult:
     """Start a new run: manifest first (its folder's files derived from it), then every point."""
+    recorded = {"station": station.description, **(metadata or {})}
+    RunMetadata.written(**recorded)  # a misspelt or mistyped key fails here, before the journal keeps it
     run_id = journal.start_run(Manifest(
         run_dir=os.path.abspath(run_dir), plan_name=plan.name, plan_text=plan_text, station_text=station_text,
-        software_version=__version__, settings=settings.model_dump(),
-        metadata={"station": station.description, **(metadata or {})},
+        software_version=__version__, settings=settings.model_dump(), metadata=recorded,
         instrument_serial=serial, operator=operator_name))
     row = journal.run(run_id)
     try:
