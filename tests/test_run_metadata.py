@@ -101,10 +101,28 @@ def test_keys_a_newer_labcal_writes_survive_reading():
 
 
 def test_a_misspelt_key_fails_when_the_run_is_written():
+    creator = RunMetadata(station_file="bench.toml")
+    creator.ambeint = {"temperature_c": 21.0}  # type: ignore[attr-defined]  # the misspelling under test
     with pytest.raises(TypeError, match="no field ambeint"):
-        RunMetadata.written(station="bench 2", ambeint={"temperature_c": 21.0})
-    with pytest.raises(ValidationError):  # and a mistyped one
-        RunMetadata.written(station="bench 2", estimated_rig_time_s="an hour")
+        creator.with_station("bench 2").journaled()
+    with pytest.raises(ValidationError):  # and a mistyped value, as it is set
+        RunMetadata().estimated_rig_time_s = "an hour"  # type: ignore[assignment]
+
+
+def test_the_creator_journals_its_fields_in_the_order_they_were_always_written():
+    """The dict the creator built before the model, in its order (the runner put the station first),
+    written here by hand: the model's text is its `json.dumps`, byte for byte."""
+    before = {"station": "bench 2", "station_file": "bench.toml", "simulated_truth": {"seed": 3},
+              "unregistered_serial": "not in the register", "ambient": {"temperature_c": 21.0},
+              "estimated_rig_time_s": 512.5, "checklist": {"items": []},
+              "device_identity": {"dmm": {"model": "34970A"}}}
+    creator = RunMetadata(station_file="bench.toml", simulated_truth={"seed": 3})
+    creator.unregistered_serial = "not in the register"
+    creator.ambient = {"temperature_c": 21.0}
+    creator.estimated_rig_time_s = 512.5
+    creator.checklist = {"items": []}
+    creator.device_identity = {"dmm": {"model": "34970A"}}
+    assert json.dumps(creator.with_station("bench 2").journaled()) == json.dumps(before)
 
 
 def test_a_wrong_type_read_is_one_line_naming_the_field():

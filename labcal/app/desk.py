@@ -40,6 +40,7 @@ from labcal.app.lab import SUMMARY, _counts, _summary, simulated
 from labcal.app.labdatabase import LabDatabase
 from labcal.app.residuals import certified_residuals, residual_png
 from labcal.app.runs import attention
+from labcal.config.run_metadata import RunMetadata, listed_metadata
 from labcal.documents.certificate import Certificate, certificate_from_doc, format_result
 from labcal.errors import LabcalError
 from labcal.run.lab_certificates import approved_by
@@ -94,7 +95,8 @@ def _current(revisions: list[Certificate]) -> Certificate | None:
 
 
 # --- what needs an approver's eye ------------------------------------------------------------------
-def needs_attention(metadata: dict, faults: Iterable[str], cert: Certificate | None) -> tuple[str, ...]:
+def needs_attention(metadata: RunMetadata, faults: Iterable[str], cert: Certificate | None
+                    ) -> tuple[str, ...]:
     """What an approver must know before signing: `labcal.app.runs.attention`'s (overrides, reference
     standards, serial), then the run's faults, a device correction used, a failed verdict."""
     found = list(attention(metadata))
@@ -116,12 +118,6 @@ def _faults(conn: Connection, run_id: int) -> list[str]:
     return list(conn.execute(query.order_by(events.c.id)).scalars())
 
 
-def _metadata(text: str | None) -> dict:
-    try:
-        found = json.loads(text or "{}")
-    except ValueError:
-        return {}
-    return found if isinstance(found, dict) else {}
 
 
 @dataclass(frozen=True)
@@ -157,7 +153,7 @@ def queue(lab: LabDatabase, dry_runs: bool = False) -> Queue:
             cert = _current(revisions)
             if cert is not None and cert.approval is not None:
                 continue
-            metadata = _metadata(row.metadata)
+            metadata = listed_metadata(row.metadata)
             if simulated(metadata, row.station_text):
                 dry += 1
                 if not dry_runs:
@@ -275,7 +271,7 @@ def run_results(lab: LabDatabase, run_id: int) -> Results | None:
     return Results(cert.number, name, equation, unit, rows, tuple(_in_unit(float(s), unit) for s in se),
                    rms, ratio, f"{cert.attitude.pitch_U95_max_deg * 3600:.3g}″",
                    None if roll is None else f"{roll * 3600:.3g}″", verdict, passed,
-                   needs_attention(_metadata(row.metadata), faults, cert), approval_of(cert), listed)
+                   needs_attention(listed_metadata(row.metadata), faults, cert), approval_of(cert), listed)
 
 
 # --- a revision's documents --------------------------------------------------------------------------

@@ -36,6 +36,7 @@ from sqlalchemy import case, func, select
 
 from labcal.app.labdatabase import LabDatabase
 from labcal.app.station_state import PACE_POINTS, Heard, on_the_wall
+from labcal.config.run_metadata import RunMetadata, listed_metadata
 from labcal.config.snapshot import is_simulated, parse_snapshot
 from labcal.run.events import JournaledPrompt
 from labcal.run.schema import events, points, runs
@@ -93,7 +94,7 @@ SUMMARY = (runs.c.id, runs.c.status, runs.c.station, runs.c.metadata, runs.c.ins
            runs.c.ended_utc, runs.c.reason, runs.c.run_dir, runs.c.station_text, runs.c.uuid)
 
 
-def simulated(metadata: Any, station_text: str | None) -> bool:
+def simulated(metadata: RunMetadata, station_text: str | None) -> bool:
     """A dry run (simulated rig or emulators), by the rule a run's record applies
     (`labcal.config.snapshot.is_simulated`): shown on the pages so that nobody mistakes one for a
     calibration (approving it is refused by the approval itself, whatever a page shows)."""
@@ -105,8 +106,8 @@ def _summary(row: Any, counts: tuple[int, int, int | None]) -> dict:
     if total is None:  # a run journaled before the lab columns: its plan's length
         shape = plan_shape(row.plan_text)
         total = shape.total if shape else None
-    metadata = _json(row.metadata) or {}
-    station = row.station or metadata.get("station")
+    metadata = listed_metadata(row.metadata)
+    station = row.station or metadata.station
     done, ok, _ = counts
     # named as `labcal runs --json` names them: the lab's run number is ``id`` everywhere
     return {"id": row.id, "label": str(row.id), "uuid": row.uuid, "status": row.status,

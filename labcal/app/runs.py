@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from labcal.config.run_metadata import RunMetadata, listed_metadata
 from labcal.errors import LabcalError
 from labcal.run.labquery import LabRun
 
@@ -61,21 +62,21 @@ def seen_status(db: Path, status: str, run_id: int) -> str:
     return status
 
 
-def attention(metadata: dict) -> tuple[str, ...]:
+def attention(metadata: RunMetadata) -> tuple[str, ...]:
     """What an approver must know of how a run was measured, from its journaled checklist: the items
     it went on regardless of (as the certificate states them, `checklist_overrides`), and a
     reference standard the checklist found overdue or unnamed, and a serial the instrument register
     did not hold."""
     from labcal.documents.issuing import checklist_overrides
 
-    checklist = metadata.get("checklist")
+    checklist = metadata.checklist
     found = [f"went on regardless: {item}" for item in checklist_overrides(checklist)]
     if isinstance(checklist, dict):
         found += [f"{i.get('item')}: {i.get('message')}" for i in checklist.get("items") or []
                   if isinstance(i, dict) and i.get("item") == "reference standards"
                   and i.get("status") == "warning"]
-    if metadata.get("unregistered_serial"):
-        found.append(f"serial {metadata['unregistered_serial']}")
+    if metadata.unregistered_serial:
+        found.append(f"serial {metadata.unregistered_serial}")
     return tuple(found)
 
 
@@ -84,17 +85,7 @@ def _line(run: LabRun, journal: Path | None, noted: bool = False) -> RunLine:
         seen_status(journal, run.status, run.local_id)
     return RunLine(run.number, run.label, run.uuid, run.station, run.serial, run.plan, status,
                    run.reason, run.started_utc, run.ended_utc, run.points_ok, run.points_failed,
-                   run.operator, run.run_dir, attention(_metadata(run)) if noted else ())
-
-
-def _metadata(run: LabRun) -> dict:
-    import json
-
-    try:
-        found = json.loads(run.metadata or "{}")
-    except ValueError:
-        return {}
-    return found if isinstance(found, dict) else {}
+                   run.operator, run.run_dir, attention(listed_metadata(run.metadata)) if noted else ())
 
 
 def list_runs(request: ListRuns) -> RunList:

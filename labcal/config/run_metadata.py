@@ -10,8 +10,8 @@ row's own columns (dates, status, serial, operator, sequencer settings) and run.
 Journals written by an older labcal hold keys no longer written (``station_time_s``,
 ``wall_time_s``) and a newer one may hold keys this labcal does not know: they are kept as extra
 fields (``extra="allow"``), so that every journal still parses and nothing it holds is lost. A key
-the creator misspells fails at write time: it writes through `RunMetadata.written`, which refuses a
-key the model does not name.
+the creator misspells fails at write time: the run is started with `RunMetadata.journaled`, which
+refuses a key the model does not name.
 
 The stored text is unchanged for every key written before the model: `stored` dumps only the fields
 set, in the order the creator always wrote them (the station first), so that a run's manifest —
@@ -76,14 +76,13 @@ class RunMetadata(BaseModel):
         before the model."""
         return json.dumps(self.model_dump(exclude_unset=True))
 
-    @classmethod
-    def written(cls, **fields: Any) -> RunMetadata:
-        """Metadata as a run's creator writes it: a key the model does not name is refused here
-        (a misspelling), where reading keeps it (a newer journal's)."""
-        unknown = sorted(set(fields) - set(cls.model_fields))
-        if unknown:
-            raise TypeError(f"run metadata has no field {', '.join(unknown)}")
-        return cls(**fields)
+    def journaled(self) -> dict[str, Any]:
+        """The document a run's creator journals (`stored` is its text): a key the model does not
+        name is refused here (a misspelling: an attribute set that is no field), where reading keeps
+        it (a newer journal's)."""
+        if self.model_extra:
+            raise TypeError(f"run metadata has no field {', '.join(sorted(self.model_extra))}")
+        return self.model_dump(exclude_unset=True)
 
     def with_station(self, description: str) -> RunMetadata:
         """This metadata with the station's description first, as the journal stores it."""
@@ -100,6 +99,15 @@ def parse_run_metadata(data: str | dict | None, where: str = "the run's metadata
         first = exc.errors()[0] if isinstance(exc, ValidationError) else None
         said = f"{'.'.join(map(str, first['loc']))}: {first['msg']}" if first else str(exc)
         raise LabcalError(f"{where} does not read as run metadata ({said})") from None
+
+
+def listed_metadata(text: str | None) -> RunMetadata:
+    """A run's metadata as a list of the lab's runs reads it: one that no longer reads (not JSON, a
+    value of the wrong type) is read as nothing recorded, so that the list still shows every run."""
+    try:
+        return parse_run_metadata(text)
+    except LabcalError:
+        return RunMetadata()
 
 
 def json_schema() -> dict[str, Any]:

@@ -177,12 +177,11 @@ def _say_how_it_ended(sequencer: Sequencer, journal: Journal, run_id: int,
 
 def calibrate(plan: Plan, plan_text: str, station: Station, station_text: str, operator: Operator,
               settings: SequencerSettings, run_dir: Path, journal: Journal, events: EventBus | None = None,
-              metadata: dict | None = None, serial: str | None = None,
+              metadata: RunMetadata | None = None, serial: str | None = None,
               operator_name: str | None = None, steps: list[Step] | None = None, *,
               terminal: Terminal | None = None, forecast: Forecast | None = None) -> RunResult:
     """Start a new run: manifest first (its folder's files derived from it), then every point."""
-    recorded = {"station": station.description, **(metadata or {})}
-    RunMetadata.written(**recorded)  # a misspelt or mistyped key fails here, before the journal keeps it
+    recorded = (metadata or RunMetadata()).with_station(station.description).journaled()
     run_id = journal.start_run(Manifest(
         run_dir=os.path.abspath(run_dir), plan_name=plan.name, plan_text=plan_text, station_text=station_text,
         software_version=__version__, settings=settings.model_dump(), metadata=recorded,
