@@ -391,7 +391,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
                 sender=sender)
 
 
-def _run_name(metadata: RunMetadata | dict, station_text: str, serial: str | None) -> RunName:
+def _run_name(metadata: RunMetadata, station_text: str, serial: str | None) -> RunName:
     """How the run's notifications name it: this bench as the lab database names it, the serial, and
     the lab server's page of the run where the lab file gives the server's address."""
     from labcal.config.lab import load_lab_config

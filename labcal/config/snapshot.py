@@ -98,12 +98,10 @@ def parse_snapshot(text: str | None) -> StationSnapshot | None:
         return None
 
 
-def is_simulated(metadata: RunMetadata | dict | None, snapshot: StationSnapshot | None) -> bool:
-    """A dry run (the simulated rig or its emulators), by its metadata (typed, or the document its
-    creator is writing) or its station snapshot: either is enough, so that a run folder's metadata
-    edited cannot make the journal's station real."""
-    recorded = metadata.model_fields_set if isinstance(metadata, RunMetadata) else (metadata or {})
-    if "simulated_truth" in recorded:
+def is_simulated(metadata: RunMetadata, snapshot: StationSnapshot | None) -> bool:
+    """A dry run (the simulated rig or its emulators), by its metadata or its station snapshot: either
+    is enough, so that a run folder's metadata edited cannot make the journal's station real."""
+    if "simulated_truth" in metadata.model_fields_set:  # recorded, whatever its value
         return True
     return snapshot is not None and snapshot.simulated
 

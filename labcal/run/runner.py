@@ -18,7 +18,7 @@ from labcal.analysis.fit import Fit, fit_readings
 from labcal.analysis.plan import Plan
 from labcal.config.files import validate_model
 from labcal.config.plans import parse_plan
-from labcal.config.run_metadata import RunMetadata
+from labcal.config.run_metadata import RunMetadata, parse_run_metadata
 from labcal.config.settings import SequencerSettings
 from labcal.errors import LabcalError
 from labcal.run import exports
@@ -204,7 +204,7 @@ class ResumeContext:
     plan: Plan
     settings: SequencerSettings
     station_text: str
-    metadata: dict
+    metadata: RunMetadata
     software_version: str  # the labcal that started the run
     lock: RunLock  # held from before anything changes until the command ends
     status: str  # as found: "complete" (only the exports were checked), "running" (interrupted), …
@@ -245,5 +245,6 @@ def _resume_context(run_dir: Path, journal: Journal, row, lock: RunLock) -> Resu
         journal.event(row.id, "interrupted", "found running with nobody holding its lock")
     plan = parse_plan(row.plan_text, f"run {row.id} plan")
     settings = validate_model(row.settings, SequencerSettings, f"{run_dir}: run {row.id}'s settings")
-    return ResumeContext(journal, row.id, plan, settings, row.station_text, row.metadata,
+    return ResumeContext(journal, row.id, plan, settings, row.station_text,
+                         parse_run_metadata(row.metadata, f"{run_dir}: run {row.id}'s metadata"),
                          row.software_version, lock, row.status, tuple(notes))
