@@ -45,7 +45,7 @@ class RunMetadata(BaseModel):
     ambient: dict[str, float | str] | None = None  # the conditions the operator entered at the start
     estimated_rig_time_s: float | None = None  # the estimate, beside the actual in run.json
     checklist: dict[str, Any] | None = None  # the pre-run checklist, and who went on past an unmet item
-    device_identity: dict[str, dict[str, str]] | None = None  # what each device reported of itself
+    device_identity: dict[str, dict[str, Any]] | None = None  # role → what the device reported of itself
     # --- the journal's row, stated over the rest on reading ---
     status: str | None = None
     reason: str | None = None
