@@ -225,7 +225,7 @@ def approve_lab_run(server: ServerDatabase, run_id: int, by: str, role: str, key
             if done is not None:
                 raise LabcalError(f"{where} is already approved by {done.get('by')} "
                                   f"({done.get('approved_utc')}); a change is a new revision")
-            text = lab_certificates.draft_document(connection, record.meta.get("instrument_serial"),
+            text = lab_certificates.draft_document(connection, record.meta.instrument_serial,
                                                    check.run_uuid, lock=True)
             draft, unreadable = None, None
             if text is None:

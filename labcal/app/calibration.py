@@ -23,6 +23,7 @@ if TYPE_CHECKING:
     from labcal.analysis.plan import Plan
     from labcal.bench.hardware import Bench
     from labcal.bench.setup import StationSetup
+    from labcal.config.run_metadata import RunMetadata
     from labcal.config.settings import CertificateSettings, SequencerSettings, ThermalGate
     from labcal.config.station import InstrumentSettings, StationFile
     from labcal.devices.station import Station
@@ -321,7 +322,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
             journaled = SimulatedRigSnapshot.model_validate_json(setup.text)
             package = journaled.rig_config().instrument.package
             if package != "three-axis":  # how its angles are obtained in use, for its statement
-                setup.metadata["package"] = sim_package_use(package, journaled.rig)
+                setup.metadata.package = sim_package_use(package, journaled.rig)
             settings = sequencer_settings_for_run(args, setup)
             cert_settings = certificate_settings_for_run(args, None, "command line")
         else:
@@ -348,31 +349,32 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
                 "move_timeout_s": config.sequencer.move_timeout_s,
                 "position_tolerance_deg": config.sequencer.position_tolerance_deg})
         if adhoc:  # run.json and the journal: why a serial the register lacks was certified
-            setup.metadata["unregistered_serial"] = adhoc
+            setup.metadata.unregistered_serial = adhoc
         ambient = ambient_entered(args)
         if ambient:
-            setup.metadata["ambient"] = ambient  # the manifest's metadata: the certificate quotes it
+            setup.metadata.ambient = ambient  # the manifest's metadata: the certificate quotes it
         steps = schedule(plan, settings)  # once: the estimate, the limits and the run share it
         est = estimate(plan, settings, setup.timing, steps)
         if args.dry_run:
             return Estimated(plan, est)
         ready(args.db)  # a lab database behind or ahead of this labcal: refused before anything moves
         # an overdue reference standard stops the run here unless an approver's override holds
-        setup.metadata.update(run_standards([] if bench is None else bench.config.standards, args.db, front))
+        used = run_standards([] if bench is None else bench.config.standards, args.db, front)
+        for field, value in used.items():
+            setattr(setup.metadata, field, value)
         if correction is not None:  # still this station's device, still in control: else nothing moves
             from labcal.documents.device_history import check_correction, station_device_id
 
-            check_correction(correction, station_device_id(
-                {"station": setup.station.description, **setup.metadata}, args.sim or args.emulate), args.db,
-                plan)
-        setup.metadata["estimated_rig_time_s"] = est.total_s  # run.json: the estimate beside the actual
+            check_correction(correction, station_device_id(setup.metadata.with_station(
+                setup.station.description), args.sim or args.emulate), args.db, plan)
+        setup.metadata.estimated_rig_time_s = est.total_s  # run.json: the estimate beside the actual
         check_limits(setup.station, steps, settings.check_mount)  # first: homing moves a table too
         run_dir = new_run_dir(args.out, plan)  # a bad --out is one line before the checklist
-        setup.metadata["checklist"] = front.checklist(bench, setup.station, plan.n_points,
+        setup.metadata.checklist = front.checklist(bench, setup.station, plan.n_points,
                                                       settings.settle.samples)  # before anything moves
         if bench is not None:
             prepare(bench, setup.station, front.say)
-            setup.metadata["device_identity"] = bench.identities  # the manifest's metadata and run.json
+            setup.metadata.device_identity = bench.identities  # the manifest's metadata and run.json
         operator = front.operator()
         with Journal(db_path(args.db), durable=not args.sim) as journal, \
                 sending(args.db, journal.path, _noted(front)) as sender:
@@ -385,7 +387,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
                 sender=sender)
 
 
-def _run_name(metadata: dict, station_text: str, serial: str | None) -> RunName:
+def _run_name(metadata: RunMetadata, station_text: str, serial: str | None) -> RunName:
     """How the run's notifications name it: this bench as the lab database names it, the serial, and
     the lab server's page of the run where the lab file gives the server's address."""
     from labcal.config.lab import load_lab_config

@@ -39,6 +39,7 @@ from labcal.analysis.fit import ROW_NAMES
 from labcal.app.lab import _summary, simulated
 from labcal.app.labdatabase import LabDatabase
 from labcal.app.residuals import certified_residuals, residual_png
+from labcal.config.run_metadata import RunMetadata, listed_metadata
 from labcal.documents.certificate import Certificate, certificate_from_doc, format_result
 from labcal.documents.overrides import checklist_overrides, run_overrides
 from labcal.errors import LabcalError
@@ -95,24 +96,26 @@ def _current(revisions: list[Certificate]) -> Certificate | None:
 
 
 # --- what needs an approver's eye ------------------------------------------------------------------
-def checklist_attention(metadata: dict) -> tuple[str, ...]:
+def checklist_attention(metadata: RunMetadata) -> tuple[str, ...]:
     """What the run's journaled metadata says an approver must know of how it was measured: the
     checklist items it went on regardless of (as the certificate states them, `checklist_overrides`),
     a reference standard the checklist found overdue or unnamed, an overdue registered standard used
     under an approver's override, and a serial the instrument register did not hold."""
-    checklist = metadata.get("checklist")
+    checklist = metadata.checklist
     found = [f"went on regardless: {item}" for item in checklist_overrides(checklist)]
     if isinstance(checklist, dict):
         found += [f"{i.get('item')}: {i.get('message')}" for i in checklist.get("items") or []
                   if isinstance(i, dict) and i.get("item") == "reference standards"
                   and i.get("status") == "warning"]
-    found += [o.sentence() for o in run_overrides(metadata) if o.kind == "reference standard"]
-    if metadata.get("unregistered_serial"):
-        found.append(f"serial {metadata['unregistered_serial']}")
+    found += [o.sentence() for o in run_overrides(metadata)
+              if o.kind == "reference standard"]
+    if metadata.unregistered_serial:
+        found.append(f"serial {metadata.unregistered_serial}")
     return tuple(found)
 
 
-def needs_attention(metadata: dict, faults: Iterable[str], cert: Certificate | None) -> tuple[str, ...]:
+def needs_attention(metadata: RunMetadata, faults: Iterable[str], cert: Certificate | None
+                    ) -> tuple[str, ...]:
     """What an approver must know before signing, in this order: the metadata's (`checklist_attention`:
     overrides, reference standards, serial), then the run's faults, a device correction used, a
     failed verdict."""
@@ -138,7 +141,7 @@ def run_attention(conn: Connection, run_id: int, run_uuid: str | None, metadata:
     the run's certificates where the caller has read them already (`run_revisions`)."""
     if revisions is None:
         revisions = run_revisions(conn, run_uuid) if run_uuid else []
-    return needs_attention(_metadata(metadata), _faults(conn, run_id), _current(revisions))
+    return needs_attention(listed_metadata(metadata), _faults(conn, run_id), _current(revisions))
 
 
 def _faults(conn: Connection, run_id: int) -> list[str]:
@@ -146,12 +149,6 @@ def _faults(conn: Connection, run_id: int) -> list[str]:
     return list(conn.execute(query.order_by(events.c.id)).scalars())
 
 
-def _metadata(text: str | None) -> dict:
-    try:
-        found = json.loads(text or "{}")
-    except ValueError:
-        return {}
-    return found if isinstance(found, dict) else {}
 
 
 @dataclass(frozen=True)
@@ -188,7 +185,7 @@ def queue(lab: LabDatabase, dry_runs: bool = False) -> Queue:
             cert = _current(revisions)
             if cert is not None and cert.approval is not None:
                 continue
-            metadata = _metadata(row.metadata)
+            metadata = listed_metadata(row.metadata)
             if simulated(metadata, row.station_text):
                 dry += 1
                 if not dry_runs:

@@ -35,6 +35,7 @@ from pydantic import ValidationError
 
 from labcal.app.labdatabase import LabDatabase
 from labcal.app.station_state import PACE_POINTS, Heard, on_the_wall
+from labcal.config.run_metadata import RunMetadata, listed_metadata
 from labcal.config.snapshot import is_simulated, parse_snapshot
 from labcal.run.events import JournaledPrompt
 from labcal.store import lab_view
@@ -78,7 +79,7 @@ def _json(text: str | None) -> Any:
         return None
 
 
-def simulated(metadata: Any, station_text: str | None) -> bool:
+def simulated(metadata: RunMetadata, station_text: str | None) -> bool:
     """A dry run (simulated rig or emulators), by the rule a run's record applies
     (`labcal.config.snapshot.is_simulated`): shown on the pages so that nobody mistakes one for a
     calibration (approving it is refused by the approval itself, whatever a page shows)."""
@@ -90,8 +91,8 @@ def _summary(row: Any, counts: tuple[int, int, int | None]) -> dict:
     if total is None:  # a run journaled before the lab columns: its plan's length
         shape = plan_shape(row.plan_text)
         total = shape.total if shape else None
-    metadata = _json(row.metadata) or {}
-    station = row.station or metadata.get("station")
+    metadata = listed_metadata(row.metadata)
+    station = row.station or metadata.station
     done, ok, _ = counts
     # named as `labcal runs --json` names them: the lab's run number is ``id`` everywhere
     return {"id": row.id, "label": str(row.id), "uuid": row.uuid, "status": row.status,

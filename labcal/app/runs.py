@@ -7,6 +7,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from labcal.config.run_metadata import RunMetadata, listed_metadata
 from labcal.errors import LabcalError
 from labcal.store.labquery import LabRun, Source
 
@@ -102,14 +103,8 @@ def _attention(db: str | None, found: list[LabRun], source: Source) -> dict[int,
     return noted
 
 
-def _metadata(run: LabRun) -> dict:
-    import json
-
-    try:
-        found = json.loads(run.metadata or "{}")
-    except ValueError:
-        return {}
-    return found if isinstance(found, dict) else {}
+def _metadata(run: LabRun) -> RunMetadata:
+    return listed_metadata(run.metadata)
 
 
 def list_runs(request: ListRuns) -> RunList:
@@ -206,7 +201,7 @@ def overrides_in(run: LabRun, events: Iterable[dict]) -> tuple[Override, ...]:
     accepted), from its row in the lab database and its journaled events, as its certificate states them."""
     from labcal.documents.overrides import run_overrides
 
-    meta = {**_metadata(run), "operator": run.operator, "started_utc": run.started_utc}
+    meta = _metadata(run).model_copy(update={"operator": run.operator, "started_utc": run.started_utc})
     return tuple(run_overrides(meta, events))
 
 

@@ -21,6 +21,7 @@ from labcal.errors import LabcalError
 if TYPE_CHECKING:  # the simulator and the drivers are imported where a station of theirs is made
     from labcal.bench.hardware import Bench
     from labcal.config.emulation import InstrumentTruth
+    from labcal.config.run_metadata import RunMetadata
     from labcal.config.settings import SettleSettings
     from labcal.config.snapshot import StationFileSnapshot
     from labcal.config.station import AzSettings, Smc100Settings, StationFile
@@ -36,7 +37,7 @@ class StationSetup:
 
     station: Station
     text: str  # the snapshot the journal keeps; a resume must rebuild the same station from it
-    metadata: dict
+    metadata: RunMetadata  # what the run journals of itself; its creator adds to it before the start
     timing: Timing
     settle: SettleSettings
 
@@ -51,6 +52,7 @@ def sim_station(rig_file: str | None, seed: int | None, snapshot: str | None = N
     ``package``: the simulated instrument's sensor package instead of the rig file's (it is part of
     the snapshot: a resume reads the same channels)."""
     from labcal.config.emulation import RigConfig, load_rig_config
+    from labcal.config.run_metadata import RunMetadata
     from labcal.config.snapshot import SimulatedRigSnapshot
     from labcal.run.estimate import Timing
     from labcal.sim.clock import PacedClock, VirtualClock
@@ -74,7 +76,7 @@ def sim_station(rig_file: str | None, seed: int | None, snapshot: str | None = N
     text = json.dumps({"kind": "simulated rig", "seed": rig.seed, "rig": config.model_dump()}, sort_keys=True)
     timing = Timing(clamp_s=config.clamp_s, sample_s=config.nplc / config.line_hz, remount_s=config.remount_s)
     settle = known_settle(config.instrument)
-    return StationSetup(rig.station(), text, {"simulated_truth": truth}, timing, settle)
+    return StationSetup(rig.station(), text, RunMetadata(simulated_truth=truth), timing, settle)
 
 
 def known_settle(inst: InstrumentTruth) -> SettleSettings:
@@ -161,6 +163,7 @@ def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emul
     ``emulate``, started here and stopped with ``stack``). The journal keeps the file, so that a
     resume can rebuild the same station, or check that a new file describes the same bench."""
     from labcal.bench.hardware import Bench
+    from labcal.config.run_metadata import RunMetadata
     from labcal.run.estimate import Timing
 
     # injected faults are a test, not the station: a resume has none
@@ -169,7 +172,7 @@ def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emul
     timing = station_timing(config)
     sweep_s = timing.sample_s
     settle, clock, hooks = config.sequencer.settle, None, {}
-    metadata: dict[str, Any] = {"station_file": source}
+    metadata = RunMetadata(station_file=source)
     if emulate:
         from labcal.sim.emulation import Emulation
 
@@ -185,7 +188,7 @@ def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emul
         pooling = config.sequencer.settle.model_dump(include={"pool", "instrument_type"})
         settle = known_settle(rig.instrument).model_copy(update=pooling)  # the station says whose records
         clock, hooks = emulation.rig.clock, emulation.hooks()
-        metadata["simulated_truth"] = emulation.truth()
+        metadata.simulated_truth = emulation.truth()
         config = emulation.station_config
     else:
         links_fixed(config, source)

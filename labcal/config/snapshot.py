@@ -22,6 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from labcal.config.emulation import RigConfig
 from labcal.config.files import validate_model
+from labcal.config.run_metadata import RunMetadata
 from labcal.config.station import CertificateSection, StationFile
 from labcal.config.uncertainty import UncertaintyInputs
 
@@ -97,10 +98,10 @@ def parse_snapshot(text: str | None) -> StationSnapshot | None:
         return None
 
 
-def is_simulated(metadata: object, snapshot: StationSnapshot | None) -> bool:
+def is_simulated(metadata: RunMetadata, snapshot: StationSnapshot | None) -> bool:
     """A dry run (the simulated rig or its emulators), by its metadata or its station snapshot: either
     is enough, so that a run folder's metadata edited cannot make the journal's station real."""
-    if isinstance(metadata, dict) and "simulated_truth" in metadata:
+    if "simulated_truth" in metadata.model_fields_set:  # recorded, whatever its value
         return True
     return snapshot is not None and snapshot.simulated
 

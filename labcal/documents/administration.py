@@ -37,7 +37,7 @@ class ItemGiven:
 
 def journaled_identities(record: RunRecord) -> dict[str, dict]:
     """Role → the identity the run journaled last (at the start, then at each resume)."""
-    found = dict(record.meta.get("device_identity") or {})
+    found = dict(record.meta.device_identity or {})
     for event in record.events:
         if event["kind"] == "device_identity" and isinstance(event["data"], dict):
             found.update(event["data"])
@@ -93,23 +93,23 @@ def _registered_standards(meta: dict) -> list[TraceabilityRecord]:
     (`labcal.app.standards.traceability_entry`)."""
     fields = TraceabilityRecord.model_fields
     return [TraceabilityRecord(**{k: v for k, v in s.items() if k in fields})
-            for s in meta.get("standards") or [] if isinstance(s, dict)]
+            for s in meta.standards or [] if isinstance(s, dict)]
 
 
 def administration(record: RunRecord, section: CertificateSection, given: ItemGiven, serial: str
                    ) -> Administration:
     meta = record.meta
     lab = load_lab_config().laboratory
-    received = given.received or meta.get("received")
-    ambient = _ambient(meta.get("ambient")) or (
+    received = given.received or meta.received
+    ambient = _ambient(meta.ambient) or (
         "not recorded; the instrument's own temperature is under Environment"
         if record.readings.temp_c is not None else "not recorded")
     return Administration(
         laboratory=LaboratoryRecord(name=lab.name, address=lab.address,
                                     accreditation_id=lab.accreditation_id, country_code=lab.country_code),
-        customer=given.customer or meta.get("customer"),
-        item=Item(manufacturer=given.manufacturer or meta.get("manufacturer") or "",
-                  model=given.model or meta.get("model") or "", serial=serial,
+        customer=given.customer or meta.customer,
+        item=Item(manufacturer=given.manufacturer or meta.manufacturer or "",
+                  model=given.model or meta.model or "", serial=serial,
                   received=date.fromisoformat(received) if isinstance(received, str) else received),
         equipment=_equipment(record),
         traceability=[*(TraceabilityRecord(**t.model_dump()) for t in section.traceability),

@@ -31,6 +31,7 @@ from labcal.config.files import write_json
 from labcal.config.lab import load_lab_config
 from labcal.config.plans import plan_correction
 from labcal.config.readings_csv import read_numeric_csv
+from labcal.config.run_metadata import RunMetadata
 from labcal.config.snapshot import stated_angle_errors
 from labcal.documents.device_report import DEVICE_JSON, device_document
 from labcal.documents.plotfile import check_folder, save
@@ -122,13 +123,12 @@ def device_id_of(record: RunRecord) -> str:
     return station_device_id(record.meta, record.simulated)
 
 
-def station_device_id(metadata: dict, simulated: bool) -> str:
+def station_device_id(metadata: RunMetadata, simulated: bool) -> str:
     """The calibration device's id as a run records it: ``device_id`` in its metadata, else SIMULATED for
     a dry run, else the station's description."""
-    recorded = metadata.get("device_id")
-    if recorded:
-        return str(recorded)
-    return "SIMULATED" if simulated else str(metadata.get("station") or "UNNAMED")
+    if metadata.device_id:
+        return metadata.device_id
+    return "SIMULATED" if simulated else (metadata.station or "UNNAMED")
 
 
 NORMAL_K = 1.96  # U → u of an estimate: its U is stated at 95 % with the device fit's many dof
@@ -276,7 +276,7 @@ def check_correction(correction: DeviceCorrectionTable, device_id: str, db: str 
 
 def estimate_of(record: RunRecord, fit: DeviceFit) -> DeviceEstimate:
     doc = fit.to_json()["misalignments"]
-    return DeviceEstimate(device_id_of(record), str(record.meta.get("started_utc", "")),
+    return DeviceEstimate(device_id_of(record), str(record.meta.started_utc or ""),
                           record.directory.name, {n: doc[n]["value_arcsec"] for n in MISALIGNMENT_NAMES},
                           {n: doc[n]["U_arcsec"] for n in MISALIGNMENT_NAMES})
 

@@ -379,12 +379,12 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
     certificate this revision replaces, whose identification fields that differ are then stated."""
     settings = settings or CertificateSettings()
     meta, run_dir = record.meta, record.directory
-    serial = _recorded(meta.get("instrument_serial"), serial, "instrument serial", run_dir) \
+    serial = _recorded(meta.instrument_serial, serial, "instrument serial", run_dir) \
         or (SIMULATED_SERIAL if record.simulated else None)
     if serial is None:
         raise LabcalError(f"{run_dir}: the run does not record the instrument's serial number; give {{0}}",
                           "serial")
-    calibrated = meta.get("started_utc")
+    calibrated = meta.started_utc
     if not calibrated:
         raise LabcalError(f"{run_dir}: run.json has no started_utc; the calibration date is unknown")
     fit_doc = json_safe(fit.to_json() if device is None else _device_fit_doc(device, fit))
@@ -409,7 +409,7 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
         raise LabcalError(f"{run_dir}: run.json started_utc {calibrated!r} is not an ISO 8601 time") from None
     admin = administration(record, section or CertificateSection(), item or ItemGiven(), serial)
     notice = SIMULATED_NOTICE if record.simulated else None
-    statements = [notice] * (notice is not None) + override_statement(meta.get("checklist")) \
+    statements = [notice] * (notice is not None) + override_statement(meta.checklist) \
         + list(STATEMENTS) + ([model_note[0].upper() + model_note[1:] + "."] if model_note else [])
     correction = plan_correction(record.plan_text, f"{run_dir}: the run's plan") if device is None else None
     if correction is not None:  # the misalignments the plan's mounts do not identify, corrected for
@@ -419,9 +419,10 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
     if uncertainty.fit_check is not None:  # the lack-of-fit flag and the drift test's verdict
         statements.append(uncertainty.fit_check.statement)
     statements += overdue_standards(admin.traceability, datetime.fromisoformat(calibrated).date())
-    overrides = run_overrides(meta, record.events)  # the checklist's are stated above, in its own words
+    # the checklist's are stated above, in its own words
+    overrides = run_overrides(meta, record.events)
     statements += [o.sentence() for o in overrides if o.kind in ("reference standard", "fault accepted")]
-    operator = _recorded(meta.get("operator"), operator, "operator", run_dir)
+    operator = _recorded(meta.operator, operator, "operator", run_dir)
     if replaced is not None:
         changes = changed_fields(identification(replaced),
                                  _identification(settings.laboratory, admin, serial, operator))
@@ -437,15 +438,15 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
         "replaces": replaces,
         "labcal_version": __version__,
         "laboratory": settings.laboratory,
-        "instrument": {"serial": serial, "description": meta.get("instrument_description", "")},
+        "instrument": {"serial": serial, "description": meta.instrument_description or ""},
         "operator": operator,
         "calibrated_utc": calibrated,
-        "completed_utc": meta.get("ended_utc"),
+        "completed_utc": meta.ended_utc,
         "issued_utc": (issued_utc or datetime.now(UTC)).isoformat(timespec="seconds"),
-        "station": {"description": meta.get("station", ""), "device_id": meta.get("device_id"),
+        "station": {"description": meta.station or "", "device_id": meta.device_id,
                     "simulated": record.simulated,
-                    "sequencer_settings": meta.get("settings", {}),
-                    "simulated_truth": meta.get("simulated_truth")},
+                    "sequencer_settings": meta.settings or {},
+                    "simulated_truth": meta.simulated_truth},
         "plan": {"name": record.plan.name, "sha256": hashlib.sha256(record.plan_text.encode()).hexdigest(),
                  "toml": record.plan_text, "replicates": record.plan.replicates,
                  "mounts": record.plan.mounts, "points": record.plan.points},

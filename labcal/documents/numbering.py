@@ -30,7 +30,7 @@ def lab_number(record: RunRecord, serial: str | None, db: str | Path | None) -> 
     from labcal.store.certificate_numbers import assigned
 
     lab = load_lab_config().laboratory
-    uuid, started = record.meta.get("run_uuid"), record.meta.get("started_utc")
+    uuid, started = record.meta.run_uuid, record.meta.started_utc
     if not lab.certificate_number or not uuid or not started:
         return None  # (a run without its start is refused by the certificate, in one line)
     year = datetime.fromisoformat(str(started)).year
@@ -38,7 +38,7 @@ def lab_number(record: RunRecord, serial: str | None, db: str | Path | None) -> 
     simulated = record.simulated
     if simulated:  # a sequence of its own: below every year's (and the single sequence, 0)
         where = -1 - where
-    serial = serial or str(record.meta.get("instrument_serial") or "SIMULATED")
+    serial = serial or str(record.meta.instrument_serial or "SIMULATED")
 
     def make(seq: int) -> str:
         made = number(lab.certificate_number, lab.code, year, seq, serial)

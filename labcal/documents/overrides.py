@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass
 from datetime import date
 
 from labcal.config.dates import written_date
+from labcal.config.run_metadata import RunMetadata
 
 FAULT_PAUSE = "fault: "  # how the sequencer's pause on a device fault begins its reason
 OPERATOR_RESUMED = "operator resumed"  # the resume event of an answered pause (not `labcal resume`'s)
@@ -51,10 +52,10 @@ class Override:
             + "."
 
 
-def _checklist(meta: dict) -> list[Override]:
-    checklist = meta.get("checklist")
-    operator = meta.get("operator") or "the operator"
-    started = meta.get("started_utc")
+def _checklist(meta: RunMetadata) -> list[Override]:
+    checklist = meta.checklist
+    operator = meta.operator or "the operator"
+    started = meta.started_utc
     found = []
     for line in checklist_overrides(checklist):
         item, _, message = line.partition(": ")
@@ -74,11 +75,11 @@ def _day(text: object) -> str:
 STANDARD_OVERRIDE_EVENT = "standard_override"  # journaled where a resumed run goes on under one
 
 
-def _standards(meta: dict, events: Iterable[dict]) -> list[Override]:
+def _standards(meta: RunMetadata, events: Iterable[dict]) -> list[Override]:
     """The overrides a run started under (its metadata) and those it resumed under (its events), once each."""
     found, seen = [], set()
     resumed = [e.get("data") for e in events if e.get("kind") == STANDARD_OVERRIDE_EVENT]
-    for held in [*(meta.get("standard_overrides") or []), *resumed]:
+    for held in [*(meta.standard_overrides or []), *resumed]:
         if not isinstance(held, dict) or (held.get("serial"), held.get("recorded_utc")) in seen:
             continue
         seen.add((held.get("serial"), held.get("recorded_utc")))
@@ -106,7 +107,7 @@ def _faults(events: Iterable[dict], operator: str | None) -> list[Override]:
     return found
 
 
-def run_overrides(meta: dict, events: Iterable[dict] = ()) -> list[Override]:
+def run_overrides(meta: RunMetadata, events: Iterable[dict] = ()) -> list[Override]:
     """Every override of a run (see the module), checklist first, then standards, then faults in order."""
     events = list(events)
-    return [*_checklist(meta), *_standards(meta, events), *_faults(events, meta.get("operator"))]
+    return [*_checklist(meta), *_standards(meta, events), *_faults(events, meta.operator)]

@@ -18,6 +18,7 @@ from labcal.analysis.fit import Fit, fit_readings
 from labcal.analysis.plan import Plan
 from labcal.config.files import validate_model
 from labcal.config.plans import parse_plan
+from labcal.config.run_metadata import RunMetadata, parse_run_metadata
 from labcal.config.settings import SequencerSettings
 from labcal.devices.station import Station
 from labcal.errors import LabcalError
@@ -176,14 +177,14 @@ def _say_how_it_ended(sequencer: Sequencer, journal: Journal, run_id: int,
 
 def calibrate(plan: Plan, plan_text: str, station: Station, station_text: str, operator: Operator,
               settings: SequencerSettings, run_dir: Path, journal: Journal, events: EventBus | None = None,
-              metadata: dict | None = None, serial: str | None = None,
+              metadata: RunMetadata | None = None, serial: str | None = None,
               operator_name: str | None = None, steps: list[Step] | None = None, *,
               terminal: Terminal | None = None, forecast: Forecast | None = None) -> RunResult:
     """Start a new run: manifest first (its folder's files derived from it), then every point."""
+    recorded = (metadata or RunMetadata()).with_station(station.description).journaled()
     run_id = journal.start_run(Manifest(
         run_dir=os.path.abspath(run_dir), plan_name=plan.name, plan_text=plan_text, station_text=station_text,
-        software_version=__version__, settings=settings.model_dump(),
-        metadata={"station": station.description, **(metadata or {})},
+        software_version=__version__, settings=settings.model_dump(), metadata=recorded,
         instrument_serial=serial, operator=operator_name))
     row = journal.run(run_id)
     try:
@@ -203,7 +204,7 @@ class ResumeContext:
     plan: Plan
     settings: SequencerSettings
     station_text: str
-    metadata: dict
+    metadata: RunMetadata
     software_version: str  # the labcal that started the run
     lock: RunLock  # held from before anything changes until the command ends
     status: str  # as found: "complete" (only the exports were checked), "running" (interrupted), …
@@ -244,5 +245,6 @@ def _resume_context(run_dir: Path, journal: Journal, row, lock: RunLock) -> Resu
         journal.event(row.id, "interrupted", "found running with nobody holding its lock")
     plan = parse_plan(row.plan_text, f"run {row.id} plan")
     settings = validate_model(row.settings, SequencerSettings, f"{run_dir}: run {row.id}'s settings")
-    return ResumeContext(journal, row.id, plan, settings, row.station_text, row.metadata,
+    return ResumeContext(journal, row.id, plan, settings, row.station_text,
+                         parse_run_metadata(row.metadata, f"{run_dir}: run {row.id}'s metadata"),
                          row.software_version, lock, row.status, tuple(notes))

@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from labcal.config.run_metadata import parse_run_metadata
 from labcal.config.settings import SettleSettings
 from labcal.config.snapshot import SimulatedRigSnapshot, StationFileSnapshot, parse_snapshot
 from labcal.config.station import LinkSettings
@@ -93,7 +94,7 @@ def _key(row: RunRow, settle: SettleSettings, instrument: dict[str, object], wit
         described = snapshot.station
         station = {name: {k: v for k, v in (described.get(name) or {}).items() if k not in LINK_FIELDS}
                    for name in ("pitch", "roll", "dmm")}
-        station["identities"] = row.metadata.get("device_identity")
+        station["identities"] = parse_run_metadata(row.metadata).device_identity
         emulated = snapshot.simulator_rig()
         if emulated is not None:
             rig = dict(emulated)
@@ -102,7 +103,7 @@ def _key(row: RunRow, settle: SettleSettings, instrument: dict[str, object], wit
             station["emulated rig"] = rig
             noise = f"seed {snapshot.seed}"
     else:  # not a snapshot labcal wrote: the text itself is the station
-        station = {"text": row.station_text, "identities": row.metadata.get("device_identity")}
+        station = {"text": row.station_text, "identities": parse_run_metadata(row.metadata).device_identity}
     if truth is not None and with_truth:
         instrument["simulated truth"] = truth
     identity = {"instrument": instrument, "station": station,

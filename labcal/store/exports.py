@@ -26,6 +26,7 @@ from labcal.config.files import write_atomic
 from labcal.config.json_values import json_safe
 from labcal.config.plans import plan_correction
 from labcal.config.readings_csv import ReadingsWriter, coefficient_units
+from labcal.config.run_metadata import parse_run_metadata
 from labcal.config.snapshot import StationSnapshot, output_units, parse_snapshot, stated_angle_errors
 from labcal.errors import LabcalError
 from labcal.store.journal import Journal, RunRow
@@ -110,8 +111,9 @@ def run_fits(readings: Readings, plan_text: str, station: StationSnapshot | None
 def station_description(row: RunRow) -> str:
     """What the run's station was, from the journal (runs before it was journaled: from the kind of
     its snapshot)."""
-    if row.metadata.get("station"):
-        return str(row.metadata["station"])
+    recorded = parse_run_metadata(row.metadata, f"run {row.id}'s metadata").station
+    if recorded:
+        return recorded
     snapshot = parse_snapshot(row.station_text)
     return snapshot.kind if snapshot is not None else "the station in the journal's snapshot"
 

@@ -126,6 +126,8 @@ class RunRow:
     station_hash: str
     software_version: str
     settings: dict
+    # the stored document, key for key in its stored order: run.json copies it and the journal hashes
+    # run.json's bytes; readers parse it (`labcal.config.run_metadata.parse_run_metadata`)
     metadata: dict
     started_utc: str
     ended_utc: str | None

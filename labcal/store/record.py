@@ -17,6 +17,7 @@ from labcal.analysis.fit import Fit
 from labcal.analysis.plan import Plan
 from labcal.analysis.readings import Readings
 from labcal.config.plans import parse_plan
+from labcal.config.run_metadata import RunMetadata, parse_run_metadata
 from labcal.config.snapshot import StationSnapshot, is_simulated, output_units, parse_snapshot
 from labcal.errors import LabcalError
 from labcal.store import exports
@@ -35,7 +36,7 @@ class RunRecord:
     readings_sha256: str  # of the stored readings, so a certificate names the exact data it rests on
     plan: Plan
     plan_text: str
-    meta: dict  # run.json: station, settings, dates, status, identities, simulated truth
+    meta: RunMetadata  # the journal's metadata and row over run.json: station, settings, dates, status, …
     notes: tuple[str, ...] = ()  # how the folder differs from the journal (said, not repaired)
     station: StationSnapshot | None = None  # the journal's snapshot of the station the run used
     events: tuple[dict, ...] = ()  # the journal's events: prompts, answers, faults, retries, pauses
@@ -98,9 +99,10 @@ def run_record(directory: Path, row: RunRow, info: dict, points: list[PointRecor
     station = parse_snapshot(row.station_text)
     if chain.problem is not None:
         notes = [*notes, f"{copy} was changed after it was written: {chain.problem}"]
-    meta = {**info, **row.metadata, "status": row.status, "reason": row.reason,
-            "started_utc": row.started_utc, "ended_utc": row.ended_utc, "settings": row.settings,
-            "instrument_serial": row.instrument_serial, "operator": row.operator}
+    meta = parse_run_metadata({**info, **row.metadata, "status": row.status, "reason": row.reason,
+                               "started_utc": row.started_utc, "ended_utc": row.ended_utc,
+                               "settings": row.settings, "instrument_serial": row.instrument_serial,
+                               "operator": row.operator}, f"{label}'s metadata")
     fits = (derived.fit, derived.device, derived.model_note) if derived is not None else (None, None, "")
     return RunRecord(directory, replace(readings, units=output_units(station)), readings_digest(points),
                      parse_plan(row.plan_text, f"{label} plan"), row.plan_text, meta, tuple(notes), station,

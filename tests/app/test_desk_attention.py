@@ -10,12 +10,13 @@ import json
 from pathlib import Path
 
 from labcal.app.desk import checklist_attention, needs_attention
+from labcal.config.run_metadata import RunMetadata
 from labcal.documents.certificate import seal
 
 STORED = Path(__file__).parent.parent / "data" / "certificates" / "simulated.json"
-OVERRIDDEN = {"checklist": {"went_on_regardless": True, "items": [
+OVERRIDDEN = RunMetadata(checklist={"went_on_regardless": True, "items": [
     {"item": "warm-up", "status": "fail", "message": "warmed up 3 min of the 30 the station declares"},
-    {"item": "DMM", "status": "ok", "message": "answers"}]}}
+    {"item": "DMM", "status": "ok", "message": "answers"}]})
 
 
 def _certificate(**sections):
@@ -26,8 +27,8 @@ def _certificate(**sections):
 
 
 def test_a_clean_run_needs_nothing():
-    assert needs_attention({}, [], _certificate()) == ()
-    assert needs_attention({}, [], None) == ()  # no certificate issued yet
+    assert needs_attention(RunMetadata(), [], _certificate()) == ()
+    assert needs_attention(RunMetadata(), [], None) == ()  # no certificate issued yet
 
 
 def test_the_command_lines_come_first_then_faults_correction_and_failed_checks():

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from labcal.config.run_metadata import RunMetadata
 from labcal.config.snapshot import (
     SimulatedRigSnapshot,
     StationFileSnapshot,
@@ -65,14 +66,14 @@ def test_text_that_is_not_a_snapshot_is_none():
     """A run journaled before snapshots were kept, or with text of its own: no snapshot, not simulated."""
     for text in ("", None, "[station]\nname = 'x'", "[]", json.dumps({"kind": "bench"})):
         assert parse_snapshot(text) is None
-    assert not is_simulated({}, None)
+    assert not is_simulated(RunMetadata(), None)
 
 
 def test_a_run_is_simulated_by_its_metadata_or_its_snapshot():
     rig = parse_snapshot(json.dumps({"kind": "simulated rig", "seed": 1, "rig": {}}))
     real = parse_snapshot(json.dumps({"kind": "station", "station": {}, "emulate": False}))
-    assert is_simulated({}, rig) and not is_simulated({}, real)
-    assert is_simulated({"simulated_truth": {}}, real)  # the metadata alone is enough
+    assert is_simulated(RunMetadata(), rig) and not is_simulated(RunMetadata(), real)
+    assert is_simulated(RunMetadata(simulated_truth={}), real)  # the metadata alone is enough
 
 
 def test_no_module_but_the_snapshot_model_decodes_the_journaled_station_text():

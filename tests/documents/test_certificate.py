@@ -15,6 +15,7 @@ from simulated_runs import simulated_run
 from labcal.analysis.device_fit import preferred_fit
 from labcal.analysis.fit import fit_readings
 from labcal.cli import main
+from labcal.config.run_metadata import RunMetadata
 from labcal.config.settings import CertificateSettings
 from labcal.documents.certificate import (
     format_result,
@@ -219,8 +220,8 @@ def test_serial_must_be_known_and_not_contradicted(run, tmp_path):
     fit = fit_readings(run.readings)
     with pytest.raises(LabcalError, match="the run records instrument serial 'SN-0042'; 'SN-9' disagrees"):
         build_certificate(run, fit, serial="SN-9")
-    anonymous = replace(run, meta={k: v for k, v in run.meta.items()  # as a bench's run without a serial
-                                   if k not in ("instrument_serial", "simulated_truth")}, station=None)
+    anonymous = replace(run, meta=RunMetadata.model_validate(run.meta.model_dump(  # as a bench run: no serial
+        exclude_unset=True, exclude={"instrument_serial", "simulated_truth"})), station=None)
     with pytest.raises(LabcalError, match="does not record the instrument's serial number; give --serial"):
         build_certificate(anonymous, fit)
     assert build_certificate(anonymous, fit, serial="SN-7").instrument.serial == "SN-7"

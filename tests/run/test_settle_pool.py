@@ -57,7 +57,8 @@ def test_a_simulated_instrument_is_its_truth_not_its_seed_and_a_station_its_devi
     slower = json.loads(json.dumps(bench))
     slower["station"]["dmm"]["nplc"] = 1
     assert pool_key(row(slower, "ACC-7"), MODEL).key != key
-    assert pool_key(row(bench, "ACC-7", identity={"dmm": "34970A,MY1"}), MODEL).key != key  # another DMM
+    other_dmm = {"dmm": {"model": "Keysight 34970A", "identity": "KEYSIGHT,34970A,MY1,1.0"}}  # as journaled
+    assert pool_key(row(bench, "ACC-7", identity=other_dmm), MODEL).key != key
     assert pool_key(row(bench, "ACC-8"), MODEL).key != key
     by_type = MODEL.model_copy(update={"pool": "type", "instrument_type": "QA-700"})
     assert pool_key(row(bench, "ACC-7"), by_type).key == pool_key(row(bench, "ACC-8"), by_type).key
