@@ -109,7 +109,7 @@ class Bench:
                                   channels=dmm.channels, temperature_channel=dmm.temperature_channel,
                                   temperature_probe=dmm.temperature_probe, nplc=dmm.nplc, range_v=dmm.range_v,
                                   line_hz=dmm.line_hz, retries=dmm.retries, serial_line=dmm.serial_line,
-                                  baudrate=dmm.baudrate)
+                                  baudrate=dmm.baudrate, axes=config.instrument.axes)
 
     def _link(self, settings: LinkSettings, kind: type[Link], make: Callable[[], Link]) -> Link:
         """The one link of the settings' bus, made for its first device."""
