@@ -100,7 +100,8 @@ def station_timing(config: StationFile, time_scale: float = 1.0) -> Timing:
     from labcal.drivers.keysight_34970a import channel_time_s
     from labcal.run.estimate import Timing
 
-    sweep_s = (len(config.dmm.channels) + bool(config.dmm.temperature_channel)) * channel_time_s(config.dmm.nplc, config.dmm.line_hz)
+    dmm = config.dmm
+    sweep_s = (len(dmm.channels) + bool(dmm.temperature_channel)) * channel_time_s(dmm.nplc, dmm.line_hz)
     return Timing(clamp_s=0.0, sample_s=sweep_s, remount_s=REMOUNT_ALLOWANCE_S,
                   link=link_timing(config, time_scale), temperature=bool(config.dmm.temperature_channel))
 
