@@ -273,7 +273,7 @@ class Keysight34970A:
         return identity
 
     def commands(self) -> list[str]:
-        """The configuration, from a reset: DC volts at a fixed range and NPLC on the three
+        """The configuration, from a reset: DC volts at a fixed range and NPLC on the sensors'
         channels with the high-impedance input where the range has it, the temperature channel,
         the scan list, each reading's time of day and channel number."""
         volts = channel_list(self.channels)
