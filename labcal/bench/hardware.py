@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any, TypeVar
 
@@ -172,7 +173,8 @@ class Bench:
             report["identity"] = self.dmm.identify()
             self.dmm.configure()
             scan = self.dmm.read(1)
-            report["volts"] = scan.volts[0].tolist()
+            # null for a sensor the package lacks (it has no channel): JSON has no NaN
+            report["volts"] = [None if math.isnan(v) else v for v in scan.volts[0].tolist()]
             report["temp_c"] = None if scan.temp_c is None else float(scan.temp_c[0])
         except DriverError as exc:
             report["problem"] = str(exc)
