@@ -61,3 +61,34 @@ def test_a_package_on_a_stations_emulated_devices_ends_in_its_sealed_certificate
     assert cert.package is not None and cert.package.package == package
     assert cert.package.sensors == ["xyz"[j] for j in present]
     assert cert.package.roll_in_use == ("table" if package == "single-axis" else "inferred")
+
+
+@pytest.mark.slow
+def test_a_stopped_single_axis_run_resumes_on_its_one_channel_and_ends_in_its_certificate(
+        tmp_path, capsys, no_leaks):  # noqa: F811
+    """The example single-axis station, its DMM's port closed for good after 40 scans: the run stops
+    (the operator aborts at the pause), and `labcal resume` rebuilds the station from the journal,
+    scans the one channel again, keeps every reading taken, and ends in the single-axis certificate
+    with the roll in use the station stated."""
+    closes = '\n[[emulation.faults]]\ndevice = "dmm"\nkind = "close-port"\nafter = 40\nmatch = "FETC"\n'
+    path = private_file("single-axis-tcp", tmp_path, closes, "timeout_s = 0.1\nreconnect_s = 1")
+    run_dir, answers = tmp_path / "run", tmp_path / "answers.txt"
+    answers.write_text("y\ny\ny\na\n")
+    code, _, err = cli(capsys, "run", "--station", str(path), "--emulate", "--time-scale", str(TIME_SCALE),
+                       "--seed", "7", "--answers", str(answers), "--out", str(run_dir), "--db",
+                       str(tmp_path / "lab.sqlite"))
+    assert code == 1 and "continue with: labcal resume" in err, err
+    with (run_dir / "readings.csv").open() as f:
+        before = [line for line in f if not line.startswith("#")]
+    assert 16 < len(before) - 1 < 64
+    answers.write_text("y\ny\ny\n")
+    code, _, err = cli(capsys, "resume", str(run_dir), "--answers", str(answers), "--db",
+                       str(tmp_path / "lab.sqlite"))
+    assert code == 0, err
+    with (run_dir / "readings.csv").open() as f:
+        after = [line for line in f if not line.startswith("#")]
+    assert len(after) == 65 and set(before) <= set(after)  # the header and 64 points; none changed
+    cert = read_certificate(run_dir / "certificate.json")
+    assert cert.package is not None and cert.package.package == "single-axis"
+    assert cert.package.sensors == ["x"]
+    assert cert.package.roll_in_use == "table" and cert.package.roll_sd_deg == 0.001
