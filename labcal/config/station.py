@@ -390,6 +390,9 @@ class StationFile(BaseModel):
             for field in device.IDENTITY if device.driver == other.driver else ("driver",):
                 ours[f"{name}.{field}"] = getattr(device, field)
                 theirs[f"{name}.{field}"] = getattr(other, field)
+        # which sensors the DMM's channels read: the same channels wired to x, z are not x, y
+        ours["instrument.package"] = self.instrument.package
+        theirs["instrument.package"] = new.instrument.package
         if emulated:
             ours.update(leaves(self.emulation.rig.model_dump(mode="json"), "emulation.rig"))
             theirs.update(leaves(new.emulation.rig.model_dump(mode="json"), "emulation.rig"))

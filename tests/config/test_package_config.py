@@ -106,3 +106,13 @@ def test_a_station_whose_channel_list_does_not_match_its_package_is_refused_in_o
     n = channels.count(",") + 1
     assert code == 2 and f"[dmm] channels lists {n} channel(s)" in err and f"the {package} package has" in err
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_another_package_on_the_same_channels_is_another_bench_for_a_resume(tmp_path):
+    """Channels 101 and 102 reading an x–y package are not the same channels reading an x–z one: a
+    resume on such a file is refused naming the package (its channels alike, they go unnamed)."""
+    xy, _ = load_station(station_with(tmp_path, 'package = "two-axis-xy"', "usage_roll_deg = [-60, 60]"))
+    xz, _ = load_station(station_with(tmp_path, 'package = "two-axis-xz"\nroll_in_use = "table"\n'
+                                      "roll_sd_deg = 0.01", channels="[101, 102]"))
+    assert xy.identity_differences(xz, "new.toml") == [
+        "instrument.package: two-axis-xy in the run, two-axis-xz in new.toml"]
