@@ -1,6 +1,8 @@
 """Keysight (Agilent) 34970A / 34972A / DAQ970A data acquisition units over SCPI.
 
-Three DC-volts channels (and optionally a temperature channel) in one scan list; each `read` is
+A DC-volts channel per sensor of the instrument's package (x, y, z of a three-axis one; fewer of a
+single- or two-axis one, whose absent outputs a `Scan` carries as NaN) and optionally a temperature
+channel in one scan list; each `read` is
 ``TRIG:COUN n``, ``INIT``, ``*OPC?`` (answers when the sweeps are done), ``FETC?`` (readings stay
 in memory, so fetching again is safe) and ``SYST:ERR?``. Every reading carries its time of day
 (``FORM:READ:TIME ON``, ``TYPE ABS``), so a fetched scan is known to be the one just started: a
@@ -186,8 +188,13 @@ class Keysight34970A:
     def __init__(self, name: str, link: Lines, *, channels: Sequence[int] = (101, 102, 103),
                  temperature_channel: int | None = None, temperature_probe: str = "RTD,85",
                  nplc: float = 10.0, range_v: float = 10.0, line_hz: float = 50.0, retries: int = 2,
-                 serial_line: bool = False, baudrate: int | None = None):
+                 serial_line: bool = False, baudrate: int | None = None, axes: Sequence[int] = (0, 1, 2)):
+        """``axes``: the output columns (0 x, 1 y, 2 z) ``channels`` are wired to, one each: a
+        package without a sensor has no channel for it, and its column of every scan is NaN."""
+        if len(axes) != len(channels):
+            raise ValueError(f"{len(channels)} channels for {len(axes)} axes")
         self.name, self.link = name, link
+        self.axes = tuple(axes)
         self.device = f"{name} ({self.model}, {link.where})"
         self.channels = tuple(channels)
         self.temperature_channel = temperature_channel
@@ -266,7 +273,7 @@ class Keysight34970A:
         return identity
 
     def commands(self) -> list[str]:
-        """The configuration, from a reset: DC volts at a fixed range and NPLC on the three
+        """The configuration, from a reset: DC volts at a fixed range and NPLC on the sensors'
         channels with the high-impedance input where the range has it, the temperature channel,
         the scan list, each reading's time of day and channel number."""
         volts = channel_list(self.channels)
@@ -429,5 +436,7 @@ class Keysight34970A:
             if np.any(np.abs(readings[:, column]) >= OVERLOAD):
                 raise Overloaded(f"channel {channel} overloaded (+9.9E+37): check the range "
                                  f"({self.range_v:g} V) and the wiring", self.device, readings)
-        volts = readings[:, :3]
-        return Scan(volts=volts, temp_c=readings[:, 3] if self.measures_temperature else None)
+        n = len(self.channels)
+        volts = np.full((len(readings), 3), np.nan)
+        volts[:, list(self.axes)] = readings[:, :n]
+        return Scan(volts=volts, temp_c=readings[:, n] if self.measures_temperature else None)

@@ -43,7 +43,10 @@ class Emulation:
             raise LabcalError(f"time scale {time_scale:g} must be > 0 and ≤ 100000")
         self.time_scale = time_scale or settings.time_scale
         seed = settings.seed if seed is None else seed
-        self.rig = EmulatedRig(settings.rig, self.time_scale, seed, start_s)
+        # the emulated instrument is the one the station says is on its bench: its package's sensors
+        rig = settings.rig.model_copy(update={"instrument": settings.rig.instrument.model_copy(
+            update={"package": config.instrument.package})})
+        self.rig = EmulatedRig(rig, self.time_scale, seed, start_s)
         # which rig table the device configured as each table drives: its own, unless they are exchanged
         self.drives = {"pitch": "roll", "roll": "pitch"} if settings.tables_exchanged else {}
         self.faults = {name: FaultInjector() for name in ("pitch", "roll", "dmm")}
@@ -98,7 +101,7 @@ class Emulation:
                 protocol = "Newport SMC100 ASCII"
             else:
                 dmm = config.dmm
-                wiring: dict[int, int | str] = {c: i for i, c in enumerate(dmm.channels)}
+                wiring: dict[int, int | str] = dict(zip(dmm.channels, config.instrument.axes, strict=True))
                 if dmm.temperature_channel:
                     wiring[dmm.temperature_channel] = "temp"
                 serial_line = endpoint.kind == "pty"

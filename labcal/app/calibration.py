@@ -341,6 +341,8 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
                                             time_scale=args.time_scale, seed=args.seed)
             if not args.dry_run:  # the links the emulators chose, by the addresses they chose
                 lock_station(stack, config, args.station, args.db, front, chosen=bench.config)
+            if config.instrument.package != "three-axis":
+                setup.metadata["package"] = station_package_use(config.instrument)  # its statement
             pitch, roll = config.pitch, config.roll  # the slower table sets the pace of the estimates
             settings = sequencer_settings_for_run(args, setup, min(pitch.speed_dps, roll.speed_dps),
                                                   min(pitch.accel_dps2, roll.accel_dps2),
@@ -418,6 +420,13 @@ def sim_package_use(package: str, rig: dict) -> dict:
     return {"package": package, "roll_in_use": "table", "roll_sd_deg": index_deg / 3 ** 0.5}
 
 
+def station_package_use(instrument: InstrumentSettings) -> dict:
+    """How a station's package is used, as its ``[instrument]`` states it: roll inferred from its own
+    outputs, none (pitch at roll 0), or measured by the table or a sensor with its σ_R."""
+    return {"package": instrument.package, "roll_in_use": instrument.roll_source,
+            "roll_sd_deg": instrument.roll_sd_deg}
+
+
 ADHOC_ALLOWED = "not in the instrument register; the lab file allows ad-hoc serials"
 ADHOC_ASKED = "not in the instrument register; the operator said to calibrate it as an ad-hoc serial"
 
@@ -475,8 +484,7 @@ def run_standards(named: list[str], db: str | None, front: FrontEnd) -> dict:
 
 def check_package(instrument: InstrumentSettings, envelope: CertificateSettings, station: str, plan: str
                   ) -> None:
-    """Refuse a package that cannot give its angles over the certificate's usage envelope (Tripp §6),
-    and on a station's devices any package but the three-axis one (its DMM reads three channels)."""
+    """Refuse a package that cannot give its angles over the certificate's usage envelope (Tripp §6)."""
     from labcal.analysis.packages import package_problem
 
     roll = instrument.roll_source
@@ -484,11 +492,6 @@ def check_package(instrument: InstrumentSettings, envelope: CertificateSettings,
     problem = package_problem(instrument.package, roll, envelope.usage_pitch_deg, envelope.usage_roll_deg)
     if problem:
         raise LabcalError(f"{station}: {problem} (labcal plan audit {plan} --station {station})")
-    if instrument.package != "three-axis":
-        raise LabcalError(f"{station}: [instrument] package = {instrument.package!r}: on a station's devices "
-                          "labcal run measures three-axis packages only (a package of fewer sensors runs on "
-                          "the simulated rig: --sim --instrument); plan and audit it with labcal plan audit "
-                          f"{plan} --station {station}")
 
 
 def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Path | None, front: FrontEnd,

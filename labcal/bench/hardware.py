@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any, TypeVar
 
@@ -109,7 +110,7 @@ class Bench:
                                   channels=dmm.channels, temperature_channel=dmm.temperature_channel,
                                   temperature_probe=dmm.temperature_probe, nplc=dmm.nplc, range_v=dmm.range_v,
                                   line_hz=dmm.line_hz, retries=dmm.retries, serial_line=dmm.serial_line,
-                                  baudrate=dmm.baudrate)
+                                  baudrate=dmm.baudrate, axes=config.instrument.axes)
 
     def _link(self, settings: LinkSettings, kind: type[Link], make: Callable[[], Link]) -> Link:
         """The one link of the settings' bus, made for its first device."""
@@ -172,7 +173,8 @@ class Bench:
             report["identity"] = self.dmm.identify()
             self.dmm.configure()
             scan = self.dmm.read(1)
-            report["volts"] = scan.volts[0].tolist()
+            # null for a sensor the package lacks (it has no channel): JSON has no NaN
+            report["volts"] = [None if math.isnan(v) else v for v in scan.volts[0].tolist()]
             report["temp_c"] = None if scan.temp_c is None else float(scan.temp_c[0])
         except DriverError as exc:
             report["problem"] = str(exc)

@@ -102,7 +102,8 @@ def station_timing(config: StationFile, time_scale: float = 1.0) -> Timing:
     from labcal.drivers.keysight_34970a import channel_time_s
     from labcal.run.estimate import Timing
 
-    sweep_s = (3 + bool(config.dmm.temperature_channel)) * channel_time_s(config.dmm.nplc, config.dmm.line_hz)
+    dmm = config.dmm
+    sweep_s = (len(dmm.channels) + bool(dmm.temperature_channel)) * channel_time_s(dmm.nplc, dmm.line_hz)
     return Timing(clamp_s=0.0, sample_s=sweep_s, remount_s=REMOUNT_ALLOWANCE_S,
                   link=link_timing(config, time_scale), temperature=bool(config.dmm.temperature_channel))
 
@@ -146,7 +147,7 @@ def link_timing(config: StationFile, time_scale: float = 1.0) -> LinkTiming:
 
     dmm = config.dmm
     char_s = 10 / dmm.baudrate if dmm.serial_line else 0.0  # 8N1
-    channels = 3 + bool(dmm.temperature_channel)
+    channels = len(dmm.channels) + bool(dmm.temperature_channel)
     return LinkTiming(
         table_s=(exchange_s(config.pitch) + exchange_s(config.roll)) / 2,
         start_exchanges=START_EXCHANGES[config.pitch.driver] + START_EXCHANGES[config.roll.driver],

@@ -274,10 +274,7 @@ def cmd_audit(args: argparse.Namespace) -> int:
             out.print(f"[red]{head}: refused[/] — {package['problem']}")
         else:
             out.print(f"[green]{head}:[/] the plan determines b, S, Ω and A of each of its sensors, and the "
-                      "package gives its angles over the certificate's usage envelope"
-                      + ("" if package["package"] == "three-axis" else
-                         "; on a station's devices labcal run measures three-axis packages only (this one "
-                         "runs on the simulated rig: --sim --instrument)"))
+                      "package gives its angles over the certificate's usage envelope")
     return 0
 
 

@@ -39,7 +39,8 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 def _row(report: dict) -> tuple[str, str, str]:
     if report["device"] == "dmm" and "volts" in report:
-        reading = "  ".join(f"{axis} {v:+.6f} V" for axis, v in zip("xyz", report["volts"], strict=True))
+        reading = "  ".join(f"{axis} {v:+.6f} V" for axis, v in zip("xyz", report["volts"], strict=True)
+                            if v is not None)  # a package's sensors only
         if report.get("temp_c") is not None:
             reading += f"  {report['temp_c']:.2f} °C"
         return report.get("identity", ""), "scan ok", reading

@@ -14,6 +14,7 @@ from typing import Annotated, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
+from labcal.analysis.packages import PACKAGES
 from labcal.config.emulation import EmulationSettings, FaultKind
 from labcal.config.files import parse_model, read_text
 from labcal.config.readings_csv import UNITS, unit_named
@@ -176,7 +177,9 @@ class DmmSettings(LinkSettings):
     IDENTITY: ClassVar[tuple[str, ...]] = ("driver", "channels", "temperature_channel", "temperature_probe",
                                            "nplc", "range_v")
     driver: Literal["keysight-34970a"]
-    channels: tuple[int, int, int] = Field(default=(101, 102, 103), description="x, y, z outputs")
+    channels: tuple[int, ...] = Field(default=(101, 102, 103), min_length=1, max_length=3, description=(
+        "one channel per sensor of the instrument's package, in x, y, z order: x, y, z outputs of a "
+        "three-axis package, [x] of a single-axis one, [x, y] or [x, z] of a two-axis one"))
     temperature_channel: int | None = Field(default=None, description="optional temperature sensor channel")
     temperature_probe: str = Field(default="RTD,85",
                                    description="CONF:TEMP arguments, e.g. RTD,85 or THER,10000")
@@ -283,6 +286,11 @@ class InstrumentSettings(BaseModel):
         return self
 
     @property
+    def axes(self) -> tuple[int, ...]:
+        """The output columns (0 x, 1 y, 2 z) of the sensors the package has, a DMM channel each."""
+        return tuple("xyz".index(a) for a in PACKAGES[self.package])
+
+    @property
     def roll_source(self) -> str | None:
         """roll_in_use as given, else inferred for a package of two or three axes."""
         if self.roll_in_use is not None:
@@ -342,6 +350,18 @@ class StationFile(BaseModel):
         return self
 
     @model_validator(mode="after")
+    def _channels_per_sensor(self):
+        """The DMM reads one channel per sensor the package has: a channel more would be scanned
+        and never journaled, a channel less would leave a sensor unread."""
+        sensors = PACKAGES[self.instrument.package]
+        if len(self.dmm.channels) != len(sensors):
+            raise ValueError(f"[dmm] channels lists {len(self.dmm.channels)} channel(s) "
+                             f"({', '.join(map(str, self.dmm.channels))}); the {self.instrument.package} "
+                             f"package has {len(sensors)} sensor(s) ({', '.join(sensors)}): give one "
+                             "channel each, in that order")
+        return self
+
+    @model_validator(mode="after")
     def _power_cycles(self):
         """The emulators switch off and on the DMM and an SMC100 controller (back NOT REFERENCED);
         an AZ drive's power cycle is not emulated."""
@@ -370,6 +390,9 @@ class StationFile(BaseModel):
             for field in device.IDENTITY if device.driver == other.driver else ("driver",):
                 ours[f"{name}.{field}"] = getattr(device, field)
                 theirs[f"{name}.{field}"] = getattr(other, field)
+        # which sensors the DMM's channels read: the same channels wired to x, z are not x, y
+        ours["instrument.package"] = self.instrument.package
+        theirs["instrument.package"] = new.instrument.package
         if emulated:
             ours.update(leaves(self.emulation.rig.model_dump(mode="json"), "emulation.rig"))
             theirs.update(leaves(new.emulation.rig.model_dump(mode="json"), "emulation.rig"))

@@ -516,8 +516,12 @@ class Sequencer:
                 raise StationMiswired(f"the mount check on {mount} (pitch {CHECK_ATTITUDE[0]:g}°, roll "
                                       f"{CHECK_ATTITUDE[1]:g}°): {'; '.join(wiring.faults)}")
             if seen == mount:
-                self.note("mount", f"mount verified: {mount}" if distinguishes(volts) else
-                          f"mount verified as far as a single sensor tells: its x direction ({mount})",
+                said = (f"mount verified: {mount}" if distinguishes(volts) else
+                        f"mount verified as far as a single sensor tells: its x direction ({mount})")
+                if np.isnan(volts).any():  # `identify` judges a package by its signs, as wired
+                    said += ("; wiring taken as stated (exchanged or reversed tables and exchanged "
+                             "channels are told apart by three sensors only)")
+                self.note("mount", said,
                           mount=[mount.y_deg, mount.u_deg], check_deg=list(CHECK_ATTITUDE),
                           volts=finite(volts), samples=len(check.scan.volts))
                 return
