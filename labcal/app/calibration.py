@@ -342,7 +342,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
             if not args.dry_run:  # the links the emulators chose, by the addresses they chose
                 lock_station(stack, config, args.station, args.db, front, chosen=bench.config)
             if config.instrument.package != "three-axis":
-                setup.metadata["package"] = station_package_use(config.instrument)  # its statement
+                setup.metadata.package = station_package_use(config.instrument)  # its statement
             pitch, roll = config.pitch, config.roll  # the slower table sets the pace of the estimates
             settings = sequencer_settings_for_run(args, setup, min(pitch.speed_dps, roll.speed_dps),
                                                   min(pitch.accel_dps2, roll.accel_dps2),
