@@ -129,6 +129,10 @@ class QuietKeys:
     terminal this process has in the foreground (from the background, changing the terminal
     would stop the process with SIGTTOU)."""
 
+    # Keys `typed` read off the queue (to see the thermal gate's key) are gone from it, yet were typed
+    # ahead of the next prompt all the same: that prompt counts them with what it discards itself.
+    read_ahead = 0
+
     def __init__(self) -> None:
         self.fd: int | None = None
         self.saved: list[Any] | None = None
@@ -179,7 +183,14 @@ class QuietKeys:
                 keys += chunk
         except OSError:
             return ""
+        QuietKeys.read_ahead += len(keys)
         return keys.decode("utf-8", "replace")
+
+    @staticmethod
+    def take_read_ahead() -> int:
+        """How many keys `typed` read since the last prompt asked (and none from now on)."""
+        read, QuietKeys.read_ahead = QuietKeys.read_ahead, 0
+        return read
 
     def __exit__(self, exc_type: type[BaseException] | None = None, exc: BaseException | None = None,
                  tb: TracebackType | None = None) -> None:
@@ -265,7 +276,7 @@ class ConsoleOperator(_Asking):
             fd = sys.stdin.fileno()
         except (AttributeError, ValueError, OSError):  # no stdin, or one replaced by a test
             return 0
-        return discard_typeahead(fd) if os.isatty(fd) else 0
+        return discard_typeahead(fd) + QuietKeys.take_read_ahead() if os.isatty(fd) else 0
 
     def call(self) -> None:
         if self.console.is_terminal:  # a bell on a terminal; never a BEL byte in a log file
