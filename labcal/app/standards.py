@@ -295,9 +295,12 @@ def standards_for_run(named: list[str], bench: str, db: str | None, today: date)
     before anything moves: a named serial the register lacks, and an overdue standard without an override
     that holds (`override_problem`), are refused in one line. A lab server out of reach is a note (a run
     never waits for it), as the instrument register's check is."""
+    from labcal.store.labdb import Unreachable, empty_in_file
+
+    if not named and empty_in_file(db, "standards"):  # none registered in this lab file: none to check
+        return RunStandards()
     from labcal.app.labdatabase import OpenLab, open_lab
     from labcal.store import standards
-    from labcal.store.labdb import Unreachable
 
     try:
         lab = open_lab(OpenLab(db, must_exist=False))
