@@ -43,7 +43,7 @@ from labcal.documents.certificate import Certificate, certificate_from_doc, form
 from labcal.documents.overrides import checklist_overrides, run_overrides
 from labcal.errors import LabcalError
 from labcal.store import lab_view
-from labcal.store.lab_certificates import approved_by
+from labcal.store.lab_certificates import approved_runs
 from labcal.store.schema import certificate_files, certificates, events, runs
 
 if TYPE_CHECKING:
@@ -173,16 +173,17 @@ class Queue:
 def queue(lab: LabDatabase, dry_runs: bool = False) -> Queue:
     """The complete runs whose certificate is not approved, oldest first; dry runs (never approved)
     counted, and listed too when ``dry_runs``. A run the lab holds an approved certificate of
-    (`labcal.store.lab_certificates.approved_by`: read, not verified — its page verifies what it shows)
-    is passed over before any certificate is parsed, so the queue costs what is waiting, not the
-    lab's history."""
+    (`labcal.store.lab_certificates.approved_runs`, the revision in force: read, not verified — its
+    page verifies what it shows) is passed over before any certificate is verified, all of them found
+    in a fixed number of statements, so the queue costs what is waiting, not a search per run."""
     waiting, dry = [], 0
     with lab.engine.connect() as conn:
         rows = conn.execute(select(*lab_view.SUMMARY).where(runs.c.status == "complete")
                             .order_by(runs.c.id)).all()
         counts = lab_view.counts(conn, [r.id for r in rows])
+        approved = approved_runs(conn, [r.uuid for r in rows if r.uuid])
         for row in rows:
-            if approved_by(conn, row.id) is not None:
+            if row.uuid in approved:
                 continue
             revisions = run_revisions(conn, row.uuid) if row.uuid else []
             cert = _current(revisions)
