@@ -18,7 +18,8 @@ times larger than the certificate's.
 
 Documents per revision: the certificate JSON as the lab database holds it; the DCC and the report as
 the lab server kept them when it approved (PostgreSQL), else the run folder's where it is reachable
-and its certificate is this very revision (same digest); the DCC is otherwise written from the JSON
+and its certificate is this very revision (same digest) — a DCC there only if it is the one an
+approval signed (its SHA-256); the DCC is otherwise written from the JSON
 (`labcal.documents.dcc.dcc_document`, a function of the certificate alone), and checked against the
 digest an approval signed for it.
 """
@@ -335,11 +336,14 @@ def certificate_document(lab: LabDatabase, certificate_id: str, name: str) -> tu
             select(runs.c.run_dir).where(runs.c.uuid == cert.data.journal.run_uuid)).scalar()
     if name == CERTIFICATE:
         return MEDIA[name], str(document).encode("utf-8")
+    # an approval binds its DCC by digest: a folder's DCC edited since is not the one approved
+    signed = cert.approval.dcc_sha256 if cert.approval is not None else None
     if run_dir and _folder_holds(Path(run_dir), cert) and (Path(run_dir) / name).is_file():
-        return MEDIA[name], (Path(run_dir) / name).read_bytes()
+        found = (Path(run_dir) / name).read_bytes()
+        if name != DCC or signed is None or hashlib.sha256(found).hexdigest() == signed:
+            return MEDIA[name], found
     if name == DCC:
         written = dcc_document(cert)
-        signed = cert.approval.dcc_sha256 if cert.approval is not None else None
         if signed is None or hashlib.sha256(written).hexdigest() == signed:
             return MEDIA[name], written
     return None
