@@ -123,7 +123,7 @@ def _in_force(rows: Iterable[tuple[str, str]], run_uuids: Collection[str]) -> di
             run_uuid = ((document.get("data") or {}).get("journal") or {}).get("run_uuid")
         except (ValueError, AttributeError):
             continue
-        if run_uuid in run_uuids:
+        if isinstance(run_uuid, str) and run_uuid in run_uuids:
             order = (str(issued), int(document.get("revision") or 1))
             by_run.setdefault(run_uuid, []).append((order, document))
     found = {}
@@ -195,8 +195,10 @@ def approved_by(connection: Connection, run_id: int) -> dict | None:
     from labcal.store.schema import runs
 
     uuid = connection.execute(select(runs.c.uuid).where(runs.c.id == run_id)).scalar()
-    document = None if uuid is None else in_force(connection, uuid)
-    return None if document is None else _approvals(connection, {uuid: document}).get(uuid)
+    if uuid is None:
+        return None
+    document = in_force(connection, str(uuid))
+    return None if document is None else _approvals(connection, {str(uuid): document}).get(str(uuid))
 
 
 def approved_runs(connection: Connection, run_uuids: Collection[str]) -> dict[str, dict]:
@@ -298,3 +300,63 @@ def write_files(run_dir: Path, files: dict[str, bytes]) -> list[str]:
         write_atomic(path, files[name])
         written.append(name)
     return written
+
+
+def run_documents(connection: Connection, run_uuid: str) -> list[tuple[str, str | bytes]]:
+    """Every certificate document the lab holds that may be the run's (certificate id, document): the
+    certificates rows naming its uuid, and the server's signed copies kept for it; unverified."""
+    from sqlalchemy import select
+
+    from labcal.store.schema import certificate_files, certificates
+
+    rows = connection.execute(select(certificates.c.certificate_id, certificates.c.document)
+                              .where(certificates.c.document.contains(run_uuid))).all()
+    stored = connection.execute(select(certificate_files.c.certificate_id, certificate_files.c.content).where(
+        certificate_files.c.run_uuid == run_uuid, certificate_files.c.name == "certificate.json")).all()
+    return [*((c, d) for c, d in rows), *((c, bytes(d)) for c, d in stored)]
+
+
+def serial_documents(connection: Connection, serial: str) -> list[tuple[str, str]]:
+    """Every certificate (id, document) the lab holds under ``serial``, whatever its case (a
+    certificate issued as acc-0042 before the register held ACC-0042 is its too); unverified."""
+    from sqlalchemy import func, select
+
+    from labcal.store.schema import certificates
+
+    query = (select(certificates.c.certificate_id, certificates.c.document)
+             .where(func.lower(certificates.c.serial) == serial.lower()))
+    return [(c, d) for c, d in connection.execute(query)]
+
+
+def certificate_text(connection: Connection, certificate_id: str) -> str | None:
+    """The lab's certificates row's document of ``certificate_id`` (None: none)."""
+    from sqlalchemy import select
+
+    from labcal.store.schema import certificates
+
+    return connection.execute(select(certificates.c.document)
+                              .where(certificates.c.certificate_id == certificate_id)).scalar()
+
+
+def kept_names(connection: Connection, certificate_id: str) -> set[str]:
+    """The names of the files the server kept of certificate ``certificate_id`` when it approved it."""
+    from sqlalchemy import select
+
+    from labcal.store.schema import certificate_files
+
+    return set(connection.execute(select(certificate_files.c.name)
+                                  .where(certificate_files.c.certificate_id == certificate_id)).scalars())
+
+
+def kept_file(connection: Connection, certificate_id: str, name: str) -> bytes | None:
+    """The file ``name`` the server kept of certificate ``certificate_id``, where its stored digest
+    holds (None: none kept, or not intact)."""
+    from sqlalchemy import select
+
+    from labcal.store.schema import certificate_files
+
+    stored = connection.execute(select(certificate_files.c.content, certificate_files.c.sha256).where(
+        certificate_files.c.certificate_id == certificate_id, certificate_files.c.name == name)).first()
+    if stored is None or hashlib.sha256(bytes(stored.content)).hexdigest() != stored.sha256:
+        return None
+    return bytes(stored.content)
