@@ -26,6 +26,7 @@ from pathlib import Path
 
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
+from labcal.config.files import write_atomic
 from labcal.config.lab import ServerDatabase
 from labcal.config.settings import CertificateSettings
 from labcal.documents import approvers
@@ -236,6 +237,10 @@ def approve_lab_run(server: ServerDatabase, run_id: int, by: str, role: str, key
                     draft = Certificate.model_validate_json(text)
                 except ValueError as exc:
                     unreadable = f"the lab's draft cannot be read ({str(exc).splitlines()[0]})"
+            if draft is not None and draft.replaces:  # the approved revision it replaces, kept beside it
+                kept = lab_certificates.replaced_document(connection, check.run_uuid, draft.replaces)
+                if kept is not None:
+                    write_atomic(Path(folder) / f"certificate.rev{(draft.revision or 1) - 1}.json", kept)
             chained = chain_reasons(record, draft, None) if check.chained else [
                 f"{check.run} was {UNCHAINED}: the lab server approves only a chained run (approve it at its "
                 "bench with labcal certificate approve --unchained)"]

@@ -18,7 +18,8 @@ times larger than the certificate's.
 
 Documents per revision: the certificate JSON as the lab database holds it; the DCC and the report as
 the lab server kept them when it approved (PostgreSQL), else the run folder's where it is reachable
-and its certificate is this very revision (same digest); the DCC is otherwise written from the JSON
+and its certificate is this very revision (same digest) — a DCC there only if it is the one an
+approval signed (its SHA-256); the DCC is otherwise written from the JSON
 (`labcal.documents.dcc.dcc_document`, a function of the certificate alone), and checked against the
 digest an approval signed for it.
 """
@@ -33,7 +34,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from sqlalchemy import select
 
 from labcal.analysis.fit import ROW_NAMES
 from labcal.app.lab import _summary, simulated
@@ -43,12 +43,11 @@ from labcal.config.run_metadata import RunMetadata, listed_metadata
 from labcal.documents.certificate import Certificate, certificate_from_doc, format_result
 from labcal.documents.overrides import checklist_overrides, run_overrides
 from labcal.errors import LabcalError
-from labcal.store import lab_view
-from labcal.store.lab_certificates import approved_by
-from labcal.store.schema import certificate_files, certificates, events, runs
+from labcal.store import lab_certificates, lab_view
+from labcal.store.lab_certificates import approved_runs
 
 if TYPE_CHECKING:
-    from sqlalchemy.engine import Connection
+    from labcal.store.handles import Connection
 
 CERTIFICATE, DCC, PDF, HTML = "certificate.json", "certificate.dcc.xml", "report.pdf", "report.html"
 MEDIA = {CERTIFICATE: "application/json", DCC: "application/xml", PDF: "application/pdf",
@@ -74,11 +73,7 @@ def run_revisions(conn: Connection, run_uuid: str) -> list[Certificate]:
     server approved on PostgreSQL), oldest issue first; one per certificate id, the approved one
     where both are held."""
     found: dict[str, Certificate] = {}
-    rows = conn.execute(select(certificates.c.certificate_id, certificates.c.document)
-                        .where(certificates.c.document.contains(run_uuid))).all()
-    stored = conn.execute(select(certificate_files.c.certificate_id, certificate_files.c.content).where(
-        certificate_files.c.run_uuid == run_uuid, certificate_files.c.name == CERTIFICATE)).all()
-    for cid, document in [*rows, *((c, bytes(d)) for c, d in stored)]:
+    for cid, document in lab_certificates.run_documents(conn, run_uuid):
         cert = parsed_certificate(document, f"certificate {cid}")
         if cert is None or not _states_run(cert, run_uuid):
             continue
@@ -141,12 +136,7 @@ def run_attention(conn: Connection, run_id: int, run_uuid: str | None, metadata:
     the run's certificates where the caller has read them already (`run_revisions`)."""
     if revisions is None:
         revisions = run_revisions(conn, run_uuid) if run_uuid else []
-    return needs_attention(listed_metadata(metadata), _faults(conn, run_id), _current(revisions))
-
-
-def _faults(conn: Connection, run_id: int) -> list[str]:
-    query = select(events.c.message).where(events.c.run_id == run_id, events.c.kind == "fault")
-    return list(conn.execute(query.order_by(events.c.id)).scalars())
+    return needs_attention(listed_metadata(metadata), lab_view.faults(conn, run_id), _current(revisions))
 
 
 
@@ -170,16 +160,16 @@ class Queue:
 def queue(lab: LabDatabase, dry_runs: bool = False) -> Queue:
     """The complete runs whose certificate is not approved, oldest first; dry runs (never approved)
     counted, and listed too when ``dry_runs``. A run the lab holds an approved certificate of
-    (`labcal.store.lab_certificates.approved_by`: read, not verified — its page verifies what it shows)
-    is passed over before any certificate is parsed, so the queue costs what is waiting, not the
-    lab's history."""
+    (`labcal.store.lab_certificates.approved_runs`, the revision in force: read, not verified — its
+    page verifies what it shows) is passed over before any certificate is verified, all of them found
+    in a fixed number of statements, so the queue costs what is waiting, not a search per run."""
     waiting, dry = [], 0
     with lab.engine.connect() as conn:
-        rows = conn.execute(select(*lab_view.SUMMARY).where(runs.c.status == "complete")
-                            .order_by(runs.c.id)).all()
+        rows = lab_view.complete_runs(conn)
         counts = lab_view.counts(conn, [r.id for r in rows])
+        approved = approved_runs(conn, [r.uuid for r in rows if r.uuid])
         for row in rows:
-            if approved_by(conn, row.id) is not None:
+            if row.uuid in approved:
                 continue
             revisions = run_revisions(conn, row.uuid) if row.uuid else []
             cert = _current(revisions)
@@ -245,8 +235,7 @@ def _verdict(cert: Certificate) -> tuple[str | None, bool | None]:
 
 
 def documents_of(conn: Connection, cert: Certificate, run_dir: str | None) -> tuple[str, ...]:
-    names = set(conn.execute(select(certificate_files.c.name)
-                             .where(certificate_files.c.certificate_id == cert.certificate_id)).scalars())
+    names = lab_certificates.kept_names(conn, cert.certificate_id)
     if run_dir and _folder_holds(Path(run_dir), cert):
         names |= {n for n in (PDF, DCC) if (Path(run_dir) / n).is_file()}
     names |= {CERTIFICATE, DCC}  # the JSON is held; the DCC is written from it
@@ -273,8 +262,7 @@ def approval_of(cert: Certificate) -> dict | None:
 def run_results(lab: LabDatabase, run_id: int) -> Results | None:
     """A complete run's certificate as the lab holds it (None: no run, or no certificate yet)."""
     with lab.engine.connect() as conn:
-        row = conn.execute(select(runs.c.uuid, runs.c.run_dir, runs.c.metadata)
-                           .where(runs.c.id == run_id)).first()
+        row = lab_view.run_place(conn, run_id=run_id)
         if row is None or row.uuid is None:
             return None
         revisions = run_revisions(conn, row.uuid)
@@ -318,24 +306,26 @@ def certificate_document(lab: LabDatabase, certificate_id: str, name: str) -> tu
     if name not in MEDIA:
         return None
     with lab.engine.connect() as conn:
-        stored = conn.execute(select(certificate_files.c.content, certificate_files.c.sha256).where(
-            certificate_files.c.certificate_id == certificate_id, certificate_files.c.name == name)).first()
-        if stored is not None and hashlib.sha256(bytes(stored.content)).hexdigest() == stored.sha256:
-            return MEDIA[name], bytes(stored.content)
-        document = conn.execute(select(certificates.c.document)
-                                .where(certificates.c.certificate_id == certificate_id)).scalar()
+        stored = lab_certificates.kept_file(conn, certificate_id, name)
+        if stored is not None:
+            return MEDIA[name], stored
+        document = lab_certificates.certificate_text(conn, certificate_id)
         cert = None if document is None else parsed_certificate(document, f"certificate {certificate_id}")
         if cert is None:
             return None
-        run_dir = None if cert.data.journal is None else conn.execute(
-            select(runs.c.run_dir).where(runs.c.uuid == cert.data.journal.run_uuid)).scalar()
+        journal = cert.data.journal
+        place = None if journal is None else lab_view.run_place(conn, uuid=journal.run_uuid)
+        run_dir = None if place is None else place.run_dir
     if name == CERTIFICATE:
         return MEDIA[name], str(document).encode("utf-8")
+    # an approval binds its DCC by digest: a folder's DCC edited since is not the one approved
+    signed = cert.approval.dcc_sha256 if cert.approval is not None else None
     if run_dir and _folder_holds(Path(run_dir), cert) and (Path(run_dir) / name).is_file():
-        return MEDIA[name], (Path(run_dir) / name).read_bytes()
+        found = (Path(run_dir) / name).read_bytes()
+        if name != DCC or signed is None or hashlib.sha256(found).hexdigest() == signed:
+            return MEDIA[name], found
     if name == DCC:
         written = dcc_document(cert)
-        signed = cert.approval.dcc_sha256 if cert.approval is not None else None
         if signed is None or hashlib.sha256(written).hexdigest() == signed:
             return MEDIA[name], written
     return None
@@ -345,6 +335,7 @@ def residual_plot(lab: LabDatabase, run_id: int) -> bytes | None:
     """PNG of the run's residuals under its certificate's model (`labcal.app.residuals`; the readings
     so far under the linear fit while it has none); None: too few readings to fit."""
     with lab.engine.connect() as conn:
-        uuid = conn.execute(select(runs.c.uuid).where(runs.c.id == run_id)).scalar()
+        place = lab_view.run_place(conn, run_id=run_id)
+        uuid = None if place is None else place.uuid
         cert = _current(run_revisions(conn, uuid)) if uuid else None
         return residual_png(conn, run_id, cert)

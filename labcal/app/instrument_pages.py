@@ -20,15 +20,13 @@ from datetime import date
 from functools import lru_cache
 from pathlib import Path
 
-from sqlalchemy import func, select
-
 from labcal.app import instruments
 from labcal.app.desk import approval_of, documents_of, parsed_certificate
 from labcal.app.histories import History, InstrumentHistory, instrument_history
 from labcal.app.labdatabase import LabDatabase
 from labcal.errors import LabcalError
+from labcal.store import lab_certificates, lab_view
 from labcal.store.instruments import Instrument
-from labcal.store.schema import certificates, runs
 
 SOON_DAYS = 30  # the register marks an instrument due within this many days
 SEARCH_MAX = 100  # the longest search the register takes (a serial is at most 64 characters)
@@ -109,16 +107,13 @@ def instrument_page(lab: LabDatabase, serial: str, today: date) -> InstrumentPag
     registered = card.instrument.serial
     listed = []
     with lab.engine.connect() as conn:
-        # in any case: a certificate issued as acc-0042 before the register held ACC-0042 is its too
-        rows = conn.execute(select(certificates.c.certificate_id, certificates.c.document)
-                            .where(func.lower(certificates.c.serial) == registered.lower())).all()
+        rows = lab_certificates.serial_documents(conn, registered)  # in any case
         certs = [c for c in (parsed_certificate(d, f"certificate {cid}") for cid, d in rows) if c is not None]
         replaced = {c.replaces for c in certs if c.replaces}
         for c in sorted(certs, key=lambda c: (c.calibrated_utc, c.issued_utc), reverse=True):
             uuid = c.data.journal.run_uuid if c.data.journal is not None else None
-            run = None if uuid is None else conn.execute(
-                select(runs.c.id, runs.c.station, runs.c.run_dir).where(runs.c.uuid == uuid)).first()
-            run_id, bench, run_dir = (None, None, None) if run is None else tuple(run)
+            run = None if uuid is None else lab_view.run_place(conn, uuid=uuid)
+            run_id, bench, run_dir = (None, None, None) if run is None else (run.id, run.station, run.run_dir)
             listed.append(Calibrated(
                 c.certificate_id, c.number, c.calibrated_utc.isoformat(), c.issued_utc.isoformat(), run_id,
                 bench, c.station.description, c.fit.model, c.station.simulated,

@@ -19,8 +19,6 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Any
 
-from sqlalchemy import select
-
 from labcal.app.lab import RUNNING, RunJson, _json, _list_runs, _progress
 from labcal.app.labdatabase import LabDatabase
 from labcal.app.station_state import (
@@ -34,10 +32,10 @@ from labcal.app.station_state import (
     mount_angles,
     replay,
 )
-from labcal.store.schema import events, points, station_roles
+from labcal.store import lab_view
 
 if TYPE_CHECKING:
-    from sqlalchemy.engine import Connection
+    from labcal.store.handles import Connection
 
 UNNAMED = "(unnamed station)"
 
@@ -89,7 +87,7 @@ def _with_state(conn: Connection, run: RunJson, replayed: str | None, now: datet
 
 def _registered(conn: Connection) -> list[str]:
     """The benches granted a role of their own (none on SQLite, where nothing grants one)."""
-    return list(conn.execute(select(station_roles.c.station).distinct()).scalars())
+    return lab_view.registered_stations(conn)
 
 
 def _station(conn: Connection, name: str, run: dict | None, now: datetime, silence: Silence) -> dict:
@@ -111,13 +109,10 @@ def _replayed(conn: Connection, run: RunJson, now: datetime, silence: Silence) -
 def timeline(conn: Connection, run_id: int) -> list[Heard]:
     """What the replay reads of a run: its events of `TIMELINE_KINDS` and its latest points, in the
     order journaled (the two tables' UTC stamps, which one clock wrote)."""
-    found = [Heard(_utc(r.utc), r.kind, r.message, _dict(_json(r.data))) for r in conn.execute(
-        select(events.c.utc, events.c.kind, events.c.message, events.c.data)
-        .where(events.c.run_id == run_id, events.c.kind.in_(TIMELINE_KINDS)).order_by(events.c.id))]
-    latest = conn.execute(select(points.c.utc, points.c.t_end, points.c.y_deg, points.c.u_deg)
-                          .where(points.c.run_id == run_id).order_by(points.c.seq.desc()).limit(PACE_POINTS))
+    heard, latest = lab_view.timeline_rows(conn, run_id, TIMELINE_KINDS, PACE_POINTS)
+    found = [Heard(_utc(r.utc), r.kind, r.message, _dict(_json(r.data))) for r in heard]
     found += [Heard(_utc(r.utc), "point", data={"t_end": r.t_end, "y_deg": r.y_deg, "u_deg": r.u_deg})
-              for r in reversed(list(latest))]
+              for r in latest]
     return sorted(found, key=lambda heard: heard.utc)  # stable: each table's own order among equal stamps
 
 

@@ -48,6 +48,7 @@ from pathlib import Path
 from typing import Any
 
 from labcal.app.certificates import ApproveCertificate, Authentication, SignedFor, approve_certificate
+from labcal.app.desk import MEDIA
 from labcal.app.lab import run_folder
 from labcal.app.labdatabase import LabDatabase
 from labcal.app.users import User
@@ -163,10 +164,6 @@ def approve_as_user(lab: LabDatabase, request: ApproveAsUser) -> ServerApproved 
     signer = (f"the lab server's key ({registered.name}) for {approval.by}"
               if signed_for is not None and registered is not None else f"{approval.by}'s own key")
     return ServerApproved(cert.number, approval.by, approval.role, stated["approved_utc"], where, signer)
-
-
-MEDIA = {CERTIFICATE: "application/json", "certificate.dcc.xml": "application/xml",
-         "report.pdf": "application/pdf", "report.html": "text/html; charset=utf-8"}
 
 
 def approved_file(lab: LabDatabase, run_id: int, name: str) -> tuple[str, bytes] | None:

@@ -86,6 +86,7 @@ class ServerSettings:
     throttle: ClientThrottle = field(default_factory=ClientThrottle)
     streams: StreamQuota = field(default_factory=StreamQuota)
     silence: Silence = field(default_factory=Silence)  # when a running bench is "not heard from"
+    today: Callable[[], date] = date.today  # the day the register's and due pages count from
 
 
 class SignIn(Exception):
@@ -386,9 +387,9 @@ def create_app(settings: ServerSettings) -> FastAPI:
     @app.get("/instruments", response_class=HTMLResponse)
     def instruments_page(request: Request, user: Annotated[users.User, Depends(page_user)], q: str = ""
                          ) -> Response:
-        search = q.strip()[:instrument_pages.SEARCH_MAX]
-        return page(request, "instruments.html", user, q=search, today=date.today(),
-                    rows=instrument_pages.register(db, search or None, date.today()))
+        search, today = q.strip()[:instrument_pages.SEARCH_MAX], settings.today()
+        return page(request, "instruments.html", user, q=search, today=today,
+                    rows=instrument_pages.register(db, search or None, today))
 
     @app.get("/instruments/{serial:path}/coefficients.png")
     def instrument_coefficients(serial: str, user: Annotated[users.User, Depends(page_user)]) -> Response:
@@ -400,20 +401,22 @@ def create_app(settings: ServerSettings) -> FastAPI:
     @app.get("/instruments/{serial:path}", response_class=HTMLResponse)
     def instrument_page(request: Request, serial: str, user: Annotated[users.User, Depends(page_user)]
                         ) -> Response:
+        today = settings.today()
         try:
-            shown = instrument_pages.instrument_page(db, serial, date.today())
+            shown = instrument_pages.instrument_page(db, serial, today)
         except LabcalError as exc:
             return page(request, "error.html", user, status=404, message=str(exc.spelled("web")))
-        return page(request, "instrument.html", user, shown=shown, today=date.today())
+        return page(request, "instrument.html", user, shown=shown, today=today)
 
     @app.get("/due", response_class=HTMLResponse)
     def due_page(request: Request, user: Annotated[users.User, Depends(page_user)], within: str = "30d"
                  ) -> Response:
+        today = settings.today()
         try:
-            found = instrument_pages.due(db, within, date.today())
+            found = instrument_pages.due(db, within, today)
         except LabcalError as exc:
             return page(request, "error.html", user, status=400, message=str(exc.spelled("web")))
-        return page(request, "due.html", user, due=found, within=within.strip(), today=date.today())
+        return page(request, "due.html", user, due=found, within=within.strip(), today=today)
 
     @app.get("/certificates/{certificate_id:path}/{name}")
     def certificate_file(certificate_id: str, name: str, user: Annotated[users.User, Depends(page_user)]

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Collection, Iterable
 from dataclasses import fields
 from datetime import UTC, datetime
 from pathlib import Path
@@ -104,25 +105,114 @@ def draft_document(connection: Connection, serial: str | None, run_uuid: str, lo
     return None
 
 
-def approved_by(connection: Connection, run_id: int) -> dict | None:
-    """Who approved the run's certificate and when, as the lab knows it (its ``approval``: by, role,
-    approved_utc, …): the server's approval kept in ``certificate_files``, else a bench's approved
-    certificate synced to ``certificates``; None while only a draft (or nothing) is there."""
+def _number(document: dict) -> str:
+    """A certificate's number with its revision, as `labcal.documents.certificate.Certificate.number`
+    prints it (what a later revision's ``replaces`` names)."""
+    name = document.get("lab_number") or document.get("certificate_id")
+    return f"{name} rev. {document.get('revision') or 1}"
+
+
+def _in_force(rows: Iterable[tuple[str, str]], run_uuids: Collection[str]) -> dict[str, dict]:
+    """Of the certificates ``rows`` (issued_utc, document), the revision in force for each of the runs
+    ``run_uuids`` that has one, as its parsed JSON (read, not verified): the newest issue that no
+    other revision of the run replaces."""
+    by_run: dict[str, list[tuple[tuple[str, int], dict]]] = {}
+    for issued, text in rows:
+        try:
+            document = json.loads(text)
+            run_uuid = ((document.get("data") or {}).get("journal") or {}).get("run_uuid")
+        except (ValueError, AttributeError):
+            continue
+        if isinstance(run_uuid, str) and run_uuid in run_uuids:
+            order = (str(issued), int(document.get("revision") or 1))
+            by_run.setdefault(run_uuid, []).append((order, document))
+    found = {}
+    for run_uuid, held in by_run.items():
+        replaced = {d.get("replaces") for _, d in held if d.get("replaces")}
+        live = [(k, d) for k, d in held if _number(d) not in replaced] or held
+        found[run_uuid] = max(live, key=lambda kd: kd[0])[1]
+    return found
+
+
+def _approvals(connection: Connection, in_force: dict[str, dict]) -> dict[str, dict]:
+    """Who approved each run's certificate in force (its ``approval``), for the runs whose certificate
+    in force is approved: the server's signed copy in ``certificate_files`` where it kept one (one
+    statement for all of them), else the document's own (a bench's approval, synced)."""
     from sqlalchemy import select
 
-    from labcal.store.schema import certificate_files, runs
+    from labcal.store.schema import certificate_files
 
-    found = connection.execute(select(runs.c.uuid, runs.c.instrument_serial)
-                               .where(runs.c.id == run_id)).first()
-    if found is None or found.uuid is None:
+    ids = {str(d.get("certificate_id")): run_uuid for run_uuid, d in in_force.items()}
+    found = {run_uuid: d["approval"] for run_uuid, d in in_force.items() if d.get("approval")}
+    if ids:
+        for cid, content in connection.execute(select(certificate_files.c.certificate_id,
+                                                      certificate_files.c.content).where(
+                certificate_files.c.certificate_id.in_(ids), certificate_files.c.name == "certificate.json")):
+            approval = json.loads(bytes(content)).get("approval")
+            if approval:
+                found[ids[cid]] = approval
+    return found
+
+
+def in_force(connection: Connection, run_uuid: str) -> dict | None:
+    """The run's certificate in force (`_in_force`) as the lab holds it; None: none issued."""
+    from sqlalchemy import select
+
+    from labcal.store.schema import certificates
+
+    # by the run it states, not its serial: a serial stripped or given at issue need not be the run's
+    rows = connection.execute(select(certificates.c.issued_utc, certificates.c.document)
+                              .where(certificates.c.document.contains(run_uuid))).all()
+    return _in_force(rows, {run_uuid}).get(run_uuid)
+
+
+def replaced_document(connection: Connection, run_uuid: str, number: str) -> bytes | None:
+    """The run's certificate numbered ``number`` (a revision's ``replaces``) as the lab keeps it: the
+    server's signed copy where it approved that revision, else the lab's certificates row; None: the
+    lab holds no such revision of the run."""
+    from sqlalchemy import select
+
+    from labcal.store.schema import certificate_files, certificates
+
+    for text in connection.execute(select(certificates.c.document)
+                                   .where(certificates.c.document.contains(run_uuid))).scalars():
+        document = _in_force([("", text)], {run_uuid}).get(run_uuid)
+        if document is None or _number(document) != number:
+            continue
+        kept = connection.execute(select(certificate_files.c.content).where(
+            certificate_files.c.certificate_id == str(document.get("certificate_id")),
+            certificate_files.c.name == "certificate.json")).scalar()
+        return bytes(kept) if kept is not None else str(text).encode("utf-8")
+    return None
+
+
+def approved_by(connection: Connection, run_id: int) -> dict | None:
+    """Who approved the run's certificate in force and when, as the lab knows it (its ``approval``:
+    by, role, approved_utc, …); None while that revision is a draft (or nothing is there). A later
+    revision of an approved certificate is a draft again until it is approved itself."""
+    from sqlalchemy import select
+
+    from labcal.store.schema import runs
+
+    uuid = connection.execute(select(runs.c.uuid).where(runs.c.id == run_id)).scalar()
+    if uuid is None:
         return None
-    content = connection.execute(select(certificate_files.c.content).where(
-        certificate_files.c.run_uuid == found.uuid, certificate_files.c.name == "certificate.json")
-        .order_by(certificate_files.c.stored_utc.desc())).scalars().first()
-    if content is not None:
-        return json.loads(bytes(content)).get("approval")
-    document = draft_document(connection, found.instrument_serial, found.uuid)
-    return None if document is None else json.loads(document).get("approval")
+    document = in_force(connection, str(uuid))
+    return None if document is None else _approvals(connection, {str(uuid): document}).get(str(uuid))
+
+
+def approved_runs(connection: Connection, run_uuids: Collection[str]) -> dict[str, dict]:
+    """`approved_by` for many runs at once, by uuid (only the approved ones): two statements whatever
+    their number — the lab's certificates read once, not searched once per run."""
+    from sqlalchemy import select
+
+    from labcal.store.schema import certificates
+
+    wanted = set(run_uuids)
+    if not wanted:
+        return {}
+    rows = connection.execute(select(certificates.c.issued_utc, certificates.c.document)).all()
+    return _approvals(connection, _in_force(rows, wanted))
 
 
 def store_files(connection: Connection, certificate_id: str, run_uuid: str, files: dict[str, bytes]) -> None:
@@ -156,16 +246,19 @@ def replace_draft(connection: Connection, certificate_id: str, serial: str, cali
 
 
 def files_of(connection: Connection, run_uuid: str) -> dict[str, bytes]:
-    """The approved certificate's files the lab keeps for the run (empty: none approved there), each
-    checked against the digest stored with it."""
+    """The files the lab keeps of the run's certificate in force, approved by the server (empty: that
+    revision is not, or there is none), each checked against the digest stored with it."""
     from sqlalchemy import select
 
     from labcal.store.schema import certificate_files
 
+    document = in_force(connection, run_uuid)
+    if document is None:
+        return {}
     found: dict[str, bytes] = {}
     for name, sha, content in connection.execute(select(
             certificate_files.c.name, certificate_files.c.sha256, certificate_files.c.content)
-            .where(certificate_files.c.run_uuid == run_uuid).order_by(certificate_files.c.stored_utc)):
+            .where(certificate_files.c.certificate_id == str(document.get("certificate_id")))):
         data = bytes(content)
         if hashlib.sha256(data).hexdigest() != sha:
             raise LabcalError(f"the lab's {name} of run {run_uuid} does not match its stored digest")
@@ -185,13 +278,15 @@ def approved_files(engine: Engine, run_id: int) -> dict[str, bytes]:
 
 
 def file_names(connection: Connection, run_uuid: str) -> list[str]:
-    """The names of the approved certificate's files the lab keeps for the run, sorted."""
+    """The names of the files the lab keeps of the run's certificate in force, approved by the
+    server, sorted."""
     from sqlalchemy import select
 
     from labcal.store.schema import certificate_files
 
-    return sorted(connection.execute(select(certificate_files.c.name)
-                                     .where(certificate_files.c.run_uuid == run_uuid)).scalars())
+    document = in_force(connection, run_uuid)
+    return [] if document is None else sorted(connection.execute(select(certificate_files.c.name).where(
+        certificate_files.c.certificate_id == str(document.get("certificate_id")))).scalars())
 
 
 def write_files(run_dir: Path, files: dict[str, bytes]) -> list[str]:
@@ -205,3 +300,63 @@ def write_files(run_dir: Path, files: dict[str, bytes]) -> list[str]:
         write_atomic(path, files[name])
         written.append(name)
     return written
+
+
+def run_documents(connection: Connection, run_uuid: str) -> list[tuple[str, str | bytes]]:
+    """Every certificate document the lab holds that may be the run's (certificate id, document): the
+    certificates rows naming its uuid, and the server's signed copies kept for it; unverified."""
+    from sqlalchemy import select
+
+    from labcal.store.schema import certificate_files, certificates
+
+    rows = connection.execute(select(certificates.c.certificate_id, certificates.c.document)
+                              .where(certificates.c.document.contains(run_uuid))).all()
+    stored = connection.execute(select(certificate_files.c.certificate_id, certificate_files.c.content).where(
+        certificate_files.c.run_uuid == run_uuid, certificate_files.c.name == "certificate.json")).all()
+    return [*((c, d) for c, d in rows), *((c, bytes(d)) for c, d in stored)]
+
+
+def serial_documents(connection: Connection, serial: str) -> list[tuple[str, str]]:
+    """Every certificate (id, document) the lab holds under ``serial``, whatever its case (a
+    certificate issued as acc-0042 before the register held ACC-0042 is its too); unverified."""
+    from sqlalchemy import func, select
+
+    from labcal.store.schema import certificates
+
+    query = (select(certificates.c.certificate_id, certificates.c.document)
+             .where(func.lower(certificates.c.serial) == serial.lower()))
+    return [(c, d) for c, d in connection.execute(query)]
+
+
+def certificate_text(connection: Connection, certificate_id: str) -> str | None:
+    """The lab's certificates row's document of ``certificate_id`` (None: none)."""
+    from sqlalchemy import select
+
+    from labcal.store.schema import certificates
+
+    return connection.execute(select(certificates.c.document)
+                              .where(certificates.c.certificate_id == certificate_id)).scalar()
+
+
+def kept_names(connection: Connection, certificate_id: str) -> set[str]:
+    """The names of the files the server kept of certificate ``certificate_id`` when it approved it."""
+    from sqlalchemy import select
+
+    from labcal.store.schema import certificate_files
+
+    return set(connection.execute(select(certificate_files.c.name)
+                                  .where(certificate_files.c.certificate_id == certificate_id)).scalars())
+
+
+def kept_file(connection: Connection, certificate_id: str, name: str) -> bytes | None:
+    """The file ``name`` the server kept of certificate ``certificate_id``, where its stored digest
+    holds (None: none kept, or not intact)."""
+    from sqlalchemy import select
+
+    from labcal.store.schema import certificate_files
+
+    stored = connection.execute(select(certificate_files.c.content, certificate_files.c.sha256).where(
+        certificate_files.c.certificate_id == certificate_id, certificate_files.c.name == name)).first()
+    if stored is None or hashlib.sha256(bytes(stored.content)).hexdigest() != stored.sha256:
+        return None
+    return bytes(stored.content)

@@ -1,5 +1,6 @@
-"""The lab overview's queries over the lab database's runs, points and events: what the lab
-server's pages and API (`labcal.app.lab`) show of each run and its stream, read here.
+"""The lab overview's queries over the lab database's runs, points, events and benches' roles: what
+the lab server's pages and API (`labcal.app.lab`, `labcal.app.overview`, the approver's desk) show of
+each run and its stream, read here.
 
 Rows come back as SQLAlchemy rows read by attribute (``row.status``, ``row.plan_text``) under the
 names of the columns selected (`SUMMARY`, `EVENT_COLUMNS`, `POINT_COLUMNS`).
@@ -7,11 +8,12 @@ names of the columns selected (`SUMMARY`, `EVENT_COLUMNS`, `POINT_COLUMNS`).
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import case, func, select
 
-from labcal.store.schema import events, points, runs
+from labcal.store.schema import events, points, runs, station_roles
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Connection, Engine
@@ -111,3 +113,38 @@ def run_row(conn: Connection, *, uuid: str | None = None, local_id: int | None =
     database (a bench's journal); None: not here."""
     where = runs.c.uuid == uuid if uuid is not None else runs.c.id == local_id
     return conn.execute(select(runs.c.id, runs.c.uuid, runs.c.metadata).where(where)).first()
+
+
+def complete_runs(conn: Connection) -> list[Any]:
+    """Every complete run (`SUMMARY`), oldest first."""
+    return list(conn.execute(select(*SUMMARY).where(runs.c.status == "complete").order_by(runs.c.id)).all())
+
+
+def faults(conn: Connection, run_id: int) -> list[str]:
+    """The messages of the run's fault events, in the order journaled."""
+    query = select(events.c.message).where(events.c.run_id == run_id, events.c.kind == "fault")
+    return list(conn.execute(query.order_by(events.c.id)).scalars())
+
+
+def run_place(conn: Connection, *, uuid: str | None = None, run_id: int | None = None) -> Any | None:
+    """A run's ``id``, ``uuid``, ``station``, ``run_dir`` and journaled ``metadata``, by its uuid or its
+    id in the lab (None: not here)."""
+    where = runs.c.uuid == uuid if uuid is not None else runs.c.id == run_id
+    return conn.execute(select(runs.c.id, runs.c.uuid, runs.c.station, runs.c.run_dir, runs.c.metadata)
+                        .where(where)).first()
+
+
+def registered_stations(conn: Connection) -> list[str]:
+    """The benches granted a role of their own (none on SQLite, where nothing grants one)."""
+    return list(conn.execute(select(station_roles.c.station).distinct()).scalars())
+
+
+def timeline_rows(conn: Connection, run_id: int, kinds: Collection[str], n: int
+                  ) -> tuple[list[Any], list[Any]]:
+    """The run's events of ``kinds`` (``utc``, ``kind``, ``message``, ``data``), oldest first, and its
+    latest ``n`` points (``utc``, ``t_end``, ``y_deg``, ``u_deg``), oldest first."""
+    found = list(conn.execute(select(events.c.utc, events.c.kind, events.c.message, events.c.data).where(
+        events.c.run_id == run_id, events.c.kind.in_(kinds)).order_by(events.c.id)))
+    latest = conn.execute(select(points.c.utc, points.c.t_end, points.c.y_deg, points.c.u_deg)
+                          .where(points.c.run_id == run_id).order_by(points.c.seq.desc()).limit(n))
+    return found, list(reversed(list(latest)))

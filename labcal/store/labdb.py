@@ -400,7 +400,7 @@ def alembic_head_script(folder: Path) -> str:
     """What `HEAD_SCRIPT` must hold: the dump (schema and rows) of an empty file in ``folder`` brought
     to the newest revision by Alembic's steps, as `labcal db upgrade` runs them.
     Rewrite it after adding a migration:
-    ``python -c "from pathlib import Path; import tempfile; from labcal.run import labdb;
+    ``python -c "from pathlib import Path; import tempfile; from labcal.store import labdb;
     labdb.HEAD_SCRIPT.write_text(labdb.alembic_head_script(Path(tempfile.mkdtemp())))"``."""
     path = folder / "head.sqlite"
     _upgrade_sqlite(path)

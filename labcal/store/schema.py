@@ -276,7 +276,7 @@ certificate_files = Table(
     Column("content", LargeBinary, nullable=False),
     Column("stored_utc", Text, nullable=False),
     PrimaryKeyConstraint("certificate_id", "name"),
-    Index("certificate_files_by_run", "run_uuid", "name", unique=True),  # revision 0013: once per run
+    Index("certificate_files_by_run", "run_uuid", "name"),  # revision 0015: one set per revision, not per run
 )
 
 # Revision 0014: the lab's reference standards (`labcal.store.standards`), found by serial whatever its case

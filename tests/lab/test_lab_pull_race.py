@@ -116,13 +116,16 @@ def test_a_draft_re_issued_while_sync_receives_the_approval_is_not_overwritten(t
     assert journal_certificate(tmp_path, certificate_id) == ("a" * 64, approved)
 
 
-def test_the_lab_keeps_one_approved_file_of_each_name_per_run(postgres_url, tmp_path):
+def test_the_lab_keeps_one_approved_file_of_each_name_per_revision(postgres_url, tmp_path):
     assert labcal(tmp_path, "db", "upgrade", "--db", postgres_url, db=postgres_url).returncode == 0
     insert = ("INSERT INTO certificate_files (certificate_id, run_uuid, name, sha256, content, stored_utc) "
               "VALUES (%s, 'run-uuid', 'certificate.json', 'x', 'x', '2026-11-28')")
     with psycopg.connect(postgres_url) as conn:
         conn.execute(insert, ("ACC-0042-1",))
     with psycopg.connect(postgres_url) as conn, pytest.raises(psycopg.errors.UniqueViolation):
-        conn.execute(insert, ("ACC-0042-2",))  # a second approval of the run, by any process
+        conn.execute(insert, ("ACC-0042-1",))  # a second approval of the same revision, by any process
+    with psycopg.connect(postgres_url) as conn:  # a later revision of the run: its own approved set
+        conn.execute(insert, ("ACC-0042-1-R2",))
     with psycopg.connect(postgres_url) as conn:
-        assert conn.execute("SELECT certificate_id FROM certificate_files").fetchall() == [("ACC-0042-1",)]
+        kept = conn.execute("SELECT certificate_id FROM certificate_files ORDER BY certificate_id").fetchall()
+        assert kept == [("ACC-0042-1",), ("ACC-0042-1-R2",)]

@@ -35,13 +35,23 @@ def labcal(*args: str) -> tuple[int, str, str]:
 
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory, postgres_cluster):
+    yield from _desk(tmp_path_factory, postgres_cluster)
+
+
+@pytest.fixture(scope="module")
+def second_lab(tmp_path_factory, postgres_cluster):
+    """A lab of its own, so that its run's revisions do not depend on what another test approved."""
+    yield from _desk(tmp_path_factory, postgres_cluster)
+
+
+def _desk(tmp_path_factory, postgres_cluster):
     base = tmp_path_factory.mktemp("pg-desk")
     url = postgres_cluster.url(postgres_cluster.create_database())
     patch = pytest.MonkeyPatch()
     (base / "lab.toml").write_text("")
-    for name, value in {"LABCAL_DB": url, "LABCAL_JOURNAL": str(base / "bench" / "journal.sqlite"),
-                        "LABCAL_STATION": "bench-1", "LABCAL_CONFIG": str(base / "lab.toml"),
-                        "LABCAL_NOTIFY": ""}.items():
+    env = {"LABCAL_DB": url, "LABCAL_JOURNAL": str(base / "bench" / "journal.sqlite"),
+           "LABCAL_STATION": "bench-1", "LABCAL_CONFIG": str(base / "lab.toml"), "LABCAL_NOTIFY": ""}
+    for name, value in env.items():
         patch.setenv(name, value)
     try:
         (base / "bench").mkdir()
@@ -56,9 +66,19 @@ def lab(tmp_path_factory, postgres_cluster):
         server_url = out.strip().splitlines()[-1]
         token = add_user(url, "ada", "approver", PASSWORD)
         with served(server_url, "--key", str(base / "server.key")) as served_at:
-            yield {"url": served_at, "db": url, "token": token}
+            yield {"url": served_at, "db": url, "token": token, "run": base / "bench" / "run1",
+                   "env": env}
     finally:
         patch.undo()
+
+
+def _login(url: str) -> httpx.Client:
+    client = httpx.Client(base_url=url, timeout=60)
+    token = re.search(r'name="csrf" value="([^"]+)"', client.get("/login").text)
+    assert token is not None
+    signed = client.post("/login", data={"name": "ada", "password": PASSWORD, "csrf": token[1]})
+    assert signed.status_code == 303
+    return client
 
 
 def _kept(db: str) -> dict[str, str]:
@@ -69,11 +89,7 @@ def _kept(db: str) -> dict[str, str]:
 
 
 def test_an_approval_on_postgresql_leaves_the_queue_and_its_kept_documents_download(lab, browser):
-    client = httpx.Client(base_url=lab["url"], timeout=60)
-    token = re.search(r'name="csrf" value="([^"]+)"', client.get("/login").text)
-    assert token is not None
-    signed = client.post("/login", data={"name": "ada", "password": PASSWORD, "csrf": token[1]})
-    assert signed.status_code == 303
+    client = _login(lab["url"])
     queue = client.get("/queue").text
     assert 'data-run="1"' in queue and _kept(lab["db"]) == {}
     done = client.post("/api/runs/1/approve", headers={"Authorization": f"Bearer {lab['token']}"})
@@ -107,3 +123,29 @@ def test_an_approval_on_postgresql_leaves_the_queue_and_its_kept_documents_downl
             accessible(shown, path)
     finally:
         shown.close()
+
+
+def test_a_new_revision_of_a_server_approved_certificate_waits_on_the_queue_and_is_approved(second_lab,
+                                                                                          monkeypatch):
+    lab = second_lab
+    client = _login(lab["url"])
+    bearer = {"Authorization": f"Bearer {lab['token']}"}
+    first = client.post("/api/runs/1/approve", headers=bearer)
+    assert first.status_code == 200, first.text
+    assert 'data-run="1"' not in client.get("/queue").text
+    for name, value in lab["env"].items():  # the bench's, as the lab's setup had them
+        monkeypatch.setenv(name, value)
+    assert labcal("sync")[0] == 0  # the bench receives revision 1 approved
+    code, _, err = labcal("report", str(lab["run"]))  # and issues revision 2
+    assert code == 0, err
+    assert (lab["run"] / "certificate.rev1.json").is_file()
+    assert labcal("sync")[0] == 0
+
+    assert 'data-run="1"' in client.get("/queue").text
+    second = client.post("/api/runs/1/approve", headers=bearer)
+    assert second.status_code == 200, second.text
+    with psycopg.connect(lab["db"]) as conn:  # each revision's approved set kept, under its own id
+        kept = conn.execute("SELECT certificate_id, count(*) FROM certificate_files GROUP BY certificate_id"
+                            ).fetchall()
+    assert len(kept) == 2 and all(count >= 3 for _, count in kept)
+    assert 'data-run="1"' not in client.get("/queue").text

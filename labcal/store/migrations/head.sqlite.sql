@@ -2,7 +2,7 @@ CREATE TABLE alembic_version (
 	version_num VARCHAR(32) NOT NULL, 
 	CONSTRAINT alembic_version_pkc PRIMARY KEY (version_num)
 );
-INSERT INTO "alembic_version" VALUES('0014');
+INSERT INTO "alembic_version" VALUES('0015');
 CREATE TABLE approvers (
 	id INTEGER NOT NULL, 
 	name TEXT NOT NULL, 
@@ -244,5 +244,5 @@ CREATE UNIQUE INDEX points_by_link ON points (run_id, link);
 CREATE UNIQUE INDEX events_by_link ON events (run_id, link);
 CREATE INDEX audit_by_account ON audit (account, id);
 CREATE UNIQUE INDEX audit_by_origin ON audit (origin);
-CREATE UNIQUE INDEX certificate_files_by_run ON certificate_files (run_uuid, name);
 CREATE INDEX standard_overrides_by_standard ON standard_overrides (standard_key, due_on);
+CREATE INDEX certificate_files_by_run ON certificate_files (run_uuid, name);
