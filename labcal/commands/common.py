@@ -6,7 +6,10 @@ import argparse
 import math
 import sys
 from collections.abc import Callable
+from datetime import date, datetime
 from typing import TYPE_CHECKING, Any
+
+from labcal.errors import LabcalError
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -245,7 +248,6 @@ def outcome_of_checks(flags, allowed: bool, source: str) -> int:
     result is already printed, so nothing is lost) and fail unless ``allowed`` (--allow-outliers)."""
     if not flags:
         return 0
-    from labcal.errors import LabcalError
 
     for message in dict.fromkeys(f.message if f.check == "mount" else f"reading {f.row}: {f.message}"
                                  for f in flags):
@@ -255,3 +257,36 @@ def outcome_of_checks(flags, allowed: bool, source: str) -> int:
         return 0
     raise LabcalError(f"{source}: {len({f.row for f in flags})} reading(s) failed the gross-error checks "
                       "(listed above); check or re-measure them, or accept them with --allow-outliers")
+
+
+def lab_of(option: str | None, create: bool):
+    """The lab database a register command reads (``create``: or makes, for an addition)."""
+    from labcal.app.labdatabase import OpenLab, open_lab
+
+    return open_lab(OpenLab(option, must_exist=not create))
+
+
+def day_given(text: str | None) -> date:
+    """--on DATE, else today on this computer's calendar (a due date is a day where the lab is)."""
+    if text is None:
+        return datetime.now().astimezone().date()
+    try:
+        return date.fromisoformat(text)
+    except ValueError:
+        raise LabcalError(f"--on {text!r}: give a date as YYYY-MM-DD") from None
+
+
+def register_write(args: argparse.Namespace, write: Callable[[Any, str, Any], Any], fields: Any, *,
+                   create: bool, said: Callable[[Any, Any], str]) -> int:
+    """One register's addition or change (`labcal instrument add|edit`, `labcal standard add|edit`):
+    ``write(lab, serial, fields)`` on the lab database, then the row as JSON or ``said(row, lab)``."""
+    lab = lab_of(args.db, create)
+    try:
+        row = write(lab, args.serial, fields)
+    finally:
+        lab.close()
+    if args.json:
+        print_json(row.to_json())
+    else:
+        out.print(said(row, lab), markup=False)
+    return 0

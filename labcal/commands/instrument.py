@@ -4,30 +4,12 @@
 from __future__ import annotations
 
 import argparse
-from datetime import date, datetime
 
 from labcal.commands import summary
-from labcal.commands.common import add_db_option, err, out, print_json
-from labcal.errors import LabcalError
+from labcal.commands.common import add_db_option, day_given, err, lab_of, out, print_json, register_write
 
 STATUSES = ("active", "retired", "out-for-repair")  # as labcal.app.instruments.STATUSES, for --help
 SIMULATED_HELP = "count dry runs' certificates as calibrations too (as labcal history --include-simulated)"
-
-
-def _lab(option: str | None, create: bool):
-    from labcal.app.labdatabase import OpenLab, open_lab
-
-    return open_lab(OpenLab(option, must_exist=not create))
-
-
-def _on(text: str | None) -> date:
-    """--on DATE, else today on this computer's calendar (a due date is a day where the lab is)."""
-    if text is None:
-        return datetime.now().astimezone().date()
-    try:
-        return date.fromisoformat(text)
-    except ValueError:
-        raise LabcalError(f"--on {text!r}: give a date as YYYY-MM-DD") from None
 
 
 def _fields(args: argparse.Namespace):
@@ -51,37 +33,21 @@ def cmd_add(args: argparse.Namespace) -> int:
 
     fields = _fields(args)
     fields.values()  # checked before the database is opened (or created)
-    lab = _lab(args.db, create=True)
-    try:
-        added = instruments.add(lab, args.serial, fields)
-    finally:
-        lab.close()
-    if args.json:
-        print_json(added.to_json())
-    else:
-        out.print(f"{added.serial} registered in {lab.shown}", markup=False)
-    return 0
+    return register_write(args, instruments.add, fields, create=True,
+                          said=lambda i, lab: f"{i.serial} registered in {lab.shown}")
 
 
 def cmd_edit(args: argparse.Namespace) -> int:
     from labcal.app import instruments
 
-    lab = _lab(args.db, create=False)
-    try:
-        changed = instruments.edit(lab, args.serial, _fields(args))
-    finally:
-        lab.close()
-    if args.json:
-        print_json(changed.to_json())
-    else:
-        out.print(f"{changed.serial} updated", markup=False)
-    return 0
+    return register_write(args, instruments.edit, _fields(args), create=False,
+                          said=lambda i, lab: f"{i.serial} updated")
 
 
 def cmd_list(args: argparse.Namespace) -> int:
     from labcal.app import instruments
 
-    lab = _lab(args.db, create=False)
+    lab = lab_of(args.db, create=False)
     try:
         found = instruments.listed(lab, args.search)
     finally:
@@ -100,8 +66,8 @@ def cmd_list(args: argparse.Namespace) -> int:
 def cmd_show(args: argparse.Namespace) -> int:
     from labcal.app import instruments
 
-    today = _on(args.on)
-    lab = _lab(args.db, create=False)
+    today = day_given(args.on)
+    lab = lab_of(args.db, create=False)
     try:
         card = instruments.card(lab, args.serial, args.db, today, args.include_simulated)
     finally:
@@ -139,8 +105,8 @@ def cmd_show(args: argparse.Namespace) -> int:
 def cmd_due(args: argparse.Namespace) -> int:
     from labcal.app import instruments
 
-    today = _on(args.on)
-    lab = _lab(args.db, create=False)
+    today = day_given(args.on)
+    lab = lab_of(args.db, create=False)
     try:
         found = instruments.due(lab, args.db, args.within, today, args.include_simulated)
     finally:

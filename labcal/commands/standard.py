@@ -4,29 +4,11 @@
 from __future__ import annotations
 
 import argparse
-from datetime import date, datetime
 
 from labcal.commands import summary
-from labcal.commands.common import add_db_option, out, print_json
-from labcal.errors import LabcalError
+from labcal.commands.common import add_db_option, day_given, lab_of, out, print_json, register_write
 
 KINDS = ("dmm", "pitch-table", "roll-table", "reference-level", "other")  # as labcal.app.standards.KINDS
-
-
-def _lab(option: str | None, create: bool):
-    from labcal.app.labdatabase import OpenLab, open_lab
-
-    return open_lab(OpenLab(option, must_exist=not create))
-
-
-def _today(text: str | None) -> date:
-    """--on DATE, else today on this computer's calendar (a due date is a day where the lab is)."""
-    if text is None:
-        return datetime.now().astimezone().date()
-    try:
-        return date.fromisoformat(text)
-    except ValueError:
-        raise LabcalError(f"--on {text!r}: give a date as YYYY-MM-DD") from None
 
 
 def _fields(args: argparse.Namespace):
@@ -46,38 +28,23 @@ def cmd_add(args: argparse.Namespace) -> int:
 
     fields = _fields(args)
     fields.values()  # checked before the database is opened (or created)
-    lab = _lab(args.db, create=True)
-    try:
-        added = standards.add(lab, args.serial, fields)
-    finally:
-        lab.close()
-    if args.json:
-        print_json(added.to_json())
-    else:
-        out.print(f"{added.serial} registered in {lab.shown}: due {added.due_on.isoformat()}", markup=False)
-    return 0
+    return register_write(args, standards.add, fields, create=True,
+                          said=lambda s, lab: f"{s.serial} registered in {lab.shown}: due "
+                                              f"{s.due_on.isoformat()}")
 
 
 def cmd_edit(args: argparse.Namespace) -> int:
     from labcal.app import standards
 
-    lab = _lab(args.db, create=False)
-    try:
-        changed = standards.edit(lab, args.serial, _fields(args))
-    finally:
-        lab.close()
-    if args.json:
-        print_json(changed.to_json())
-    else:
-        out.print(f"{changed.serial} updated: due {changed.due_on.isoformat()}", markup=False)
-    return 0
+    return register_write(args, standards.edit, _fields(args), create=False,
+                          said=lambda s, lab: f"{s.serial} updated: due {s.due_on.isoformat()}")
 
 
 def cmd_list(args: argparse.Namespace) -> int:
     from labcal.app import standards
 
-    today = _today(args.on)
-    lab = _lab(args.db, create=False)
+    today = day_given(args.on)
+    lab = lab_of(args.db, create=False)
     try:
         found = standards.listed(lab, args.bench)
     finally:
@@ -97,8 +64,8 @@ def cmd_list(args: argparse.Namespace) -> int:
 def cmd_show(args: argparse.Namespace) -> int:
     from labcal.app import standards
 
-    today = _today(args.on)
-    lab = _lab(args.db, create=False)
+    today = day_given(args.on)
+    lab = lab_of(args.db, create=False)
     try:
         card = standards.card(lab, args.serial, today, args.db)
     finally:
@@ -127,7 +94,7 @@ def cmd_override(args: argparse.Namespace) -> int:
     from labcal.app.standards import RecordOverride, record_override
 
     standard, row = record_override(RecordOverride(args.serial, args.reason, args.by, args.role, args.key,
-                                                   args.until, args.db), _today(None))
+                                                   args.until, args.db), day_given(None))
     if args.json:
         from labcal.app.standards import override_json
 
