@@ -261,6 +261,7 @@ class TailPool:
 
     def add(self, volts: NDArray, t: NDArray) -> None:
         """One point's record: (n, channels) samples at t seconds after the motion ended."""
+        volts = volts[:, ~np.isnan(volts).all(axis=0)]  # a package's absent sensors record nothing
         e = np.exp(-t[None, :] / self.taus[:, None])  # (τ, n)
         channels = np.broadcast_to(volts.T, (TAU_GRID, *volts.T.shape))  # (τ, channel, n)
         amp = _line_fit(channels, e[:, None, :])[1]  # (τ, channel)
@@ -359,6 +360,9 @@ def fit_tail(volts: NDArray, t: NDArray, pool: TailPool, samples: int) -> TailFi
     the pool's, and judge it: the pool vouches for the model (no mismatch seen, and its upper
     bound on a slow tail biases this point by at most σ/(3√N)), the residuals are consistent with
     the noise model (χ²), and c's standard error, τ̂'s share included, is at most σ/√N."""
+    present = ~np.isnan(volts).all(axis=0)
+    if not present.all():  # a package's absent sensors (NaN columns): fitted on the ones it has
+        return _spread(fit_tail(volts[:, present], t, pool, samples), present)
     n, k = volts.shape
     target = pool.noise_v / math.sqrt(samples)
     if pool.mismatch:
@@ -379,6 +383,17 @@ def fit_tail(volts: NDArray, t: NDArray, pool: TailPool, samples: int) -> TailFi
     else:
         verdict = Verdict(True, f"settled (model, pooled τ = {tau:.4g} s)")
     return TailFit(c, se, verdict, a)
+
+
+def _spread(fit: TailFit, present: NDArray) -> TailFit:
+    """A fit of the present channels, NaN in the absent ones' places (as the record had them)."""
+    def full(values: NDArray) -> NDArray:
+        out = np.full(present.shape, np.nan)
+        out[present] = values
+        return out
+
+    return TailFit(full(fit.settled_v), full(fit.se_v), fit.verdict,
+                   None if fit.amplitude_v is None else full(fit.amplitude_v))
 
 
 def _samples_needed(t: NDArray, sample_s: float, pool: TailPool, fit: TailFit, samples: int,

@@ -238,3 +238,26 @@ def test_the_pooled_slow_tail_score_and_tau_se_are_honest_on_a_matched_sensor():
     assert abs(np.mean(scores)) <= 4 / math.sqrt(60)
     assert lo <= np.std(scores, ddof=1) <= hi
     assert lo <= np.std(tau_z, ddof=1) <= hi
+
+
+def test_a_packages_absent_sensor_neither_poisons_the_pool_nor_the_settled_values():
+    """A package's DMM records NaN for the sensors it lacks: the pool learns τ from the sensors it
+    has (the same τ̂ as records without that column, within its standard error of the true 0.5 s),
+    and a point's fit settles the present sensors and leaves NaN where there is no sensor."""
+    from labcal.run.settle import fit_tail
+
+    rng = np.random.default_rng(11)
+    with_gap, without = TailPool(MODEL.tau_s, MODEL.noise_v), TailPool(MODEL.tau_s, MODEL.noise_v)
+    t = 1.1 + 0.2 * np.arange(25)
+    for _ in range(40):
+        sensor = TailSensor(VirtualClock(1.0), rng.normal(0.0, 1.0, 3), STEP_V * rng.uniform(0.2, 1.0),
+                            ((1.0, 0.5),), 0.2, MODEL.noise_v, rng)
+        volts = sensor.read(25).volts
+        volts[:, 1] = np.nan  # an x–z package: no y sensor
+        with_gap.add(volts, t)
+        without.add(volts[:, [0, 2]], t)
+    assert not with_gap.mismatch
+    (tau, se), (tau_without, _) = with_gap.tau(), without.tau()
+    assert tau == tau_without and abs(tau - 0.5) <= 4 * se
+    fit = fit_tail(volts, t, with_gap, 25)
+    assert np.isnan(fit.settled_v[1]) and np.all(np.isfinite(fit.settled_v[[0, 2]]))
