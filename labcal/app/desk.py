@@ -41,7 +41,7 @@ from labcal.app.labdatabase import LabDatabase
 from labcal.app.residuals import certified_residuals, residual_png
 from labcal.config.run_metadata import RunMetadata, listed_metadata
 from labcal.documents.certificate import Certificate, certificate_from_doc, format_result
-from labcal.documents.overrides import checklist_overrides, run_overrides
+from labcal.documents.overrides import STANDARD_OVERRIDE_EVENT, checklist_overrides, run_overrides
 from labcal.errors import LabcalError
 from labcal.store import lab_certificates, lab_view
 from labcal.store.lab_certificates import approved_runs
@@ -91,30 +91,30 @@ def _current(revisions: list[Certificate]) -> Certificate | None:
 
 
 # --- what needs an approver's eye ------------------------------------------------------------------
-def checklist_attention(metadata: RunMetadata) -> tuple[str, ...]:
+def checklist_attention(metadata: RunMetadata, resumed: Iterable[dict] = ()) -> tuple[str, ...]:
     """What the run's journaled metadata says an approver must know of how it was measured: the
     checklist items it went on regardless of (as the certificate states them, `checklist_overrides`),
     a reference standard the checklist found overdue or unnamed, an overdue registered standard used
-    under an approver's override, and a serial the instrument register did not hold."""
+    under an approver's override (at the start, or on resuming: the ``resumed`` override events),
+    and a serial the instrument register did not hold."""
     checklist = metadata.checklist
     found = [f"went on regardless: {item}" for item in checklist_overrides(checklist)]
     if isinstance(checklist, dict):
         found += [f"{i.get('item')}: {i.get('message')}" for i in checklist.get("items") or []
                   if isinstance(i, dict) and i.get("item") == "reference standards"
                   and i.get("status") == "warning"]
-    found += [o.sentence() for o in run_overrides(metadata)
-              if o.kind == "reference standard"]
+    found += [o.sentence() for o in run_overrides(metadata, resumed) if o.kind == "reference standard"]
     if metadata.unregistered_serial:
         found.append(f"serial {metadata.unregistered_serial}")
     return tuple(found)
 
 
-def needs_attention(metadata: RunMetadata, faults: Iterable[str], cert: Certificate | None
-                    ) -> tuple[str, ...]:
+def needs_attention(metadata: RunMetadata, faults: Iterable[str], cert: Certificate | None,
+                    resumed: Iterable[dict] = ()) -> tuple[str, ...]:
     """What an approver must know before signing, in this order: the metadata's (`checklist_attention`:
     overrides, reference standards, serial), then the run's faults, a device correction used, a
     failed verdict."""
-    found = list(checklist_attention(metadata))
+    found = list(checklist_attention(metadata, resumed))
     faults = list(faults)
     if faults:
         found.append(f"{len(faults)} fault(s) during the run: " + "; ".join(faults[:3])
@@ -136,7 +136,9 @@ def run_attention(conn: Connection, run_id: int, run_uuid: str | None, metadata:
     the run's certificates where the caller has read them already (`run_revisions`)."""
     if revisions is None:
         revisions = run_revisions(conn, run_uuid) if run_uuid else []
-    return needs_attention(listed_metadata(metadata), lab_view.faults(conn, run_id), _current(revisions))
+    resumed = lab_view.events_of_kind(conn, run_id, STANDARD_OVERRIDE_EVENT)
+    return needs_attention(listed_metadata(metadata), lab_view.faults(conn, run_id), _current(revisions),
+                           resumed)
 
 
 

@@ -126,6 +126,16 @@ def faults(conn: Connection, run_id: int) -> list[str]:
     return list(conn.execute(query.order_by(events.c.id)).scalars())
 
 
+def events_of_kind(conn: Connection, run_id: int, kind: str) -> list[dict]:
+    """The run's events of one ``kind`` as the journal's readers take them (kind, message, data)."""
+    import json
+
+    rows = conn.execute(select(events.c.kind, events.c.message, events.c.data)
+                        .where(events.c.run_id == run_id, events.c.kind == kind).order_by(events.c.id))
+    return [{"kind": r.kind, "message": r.message, "data": json.loads(r.data) if r.data else None}
+            for r in rows]
+
+
 def run_place(conn: Connection, *, uuid: str | None = None, run_id: int | None = None) -> Any | None:
     """A run's ``id``, ``uuid``, ``station``, ``run_dir`` and journaled ``metadata``, by its uuid or its
     id in the lab (None: not here)."""
