@@ -10,11 +10,11 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
+from labcal.app.numbering import lab_number
 from labcal.config.settings import CertificateSettings
 from labcal.documents.administration import ItemGiven
 from labcal.documents.certificate import Certificate, read_certificate
 from labcal.documents.issuing import build_certificate, changed_fields, identification, kept_identification
-from labcal.documents.numbering import lab_number
 from labcal.documents.report import CERTIFICATE, RunOutputs, fitted, replaced_by, write_documents, write_file
 from labcal.documents.uncertainty import bench_section, type_b_inputs
 from labcal.errors import LabcalError

@@ -616,7 +616,7 @@ class Certificate(Strict):
     @property
     def number(self) -> str:
         """The certificate number with its revision, as printed (ISO/IEC 17025 §7.8.2.1 c): the lab's own
-        number where the lab numbers its certificates (`labcal.documents.numbering`), else labcal's id."""
+        number where the lab numbers its certificates (`labcal.app.numbering`), else labcal's id."""
         return f"{self.lab_number or self.certificate_id} rev. {self.revision or 1}"
 
     @property
