@@ -192,8 +192,9 @@ def _stop_failure(exc: BaseException) -> str:
     return "".join(f"; {note}" for note in getattr(exc, "__notes__", ()) if note.startswith("STOP FAILED"))
 
 
-PACE_SIM_ONLY = ("--pace paces the simulated rig (--sim) only; a station's devices keep real time, and its "
-                 "emulators run at --time-scale")
+PACE_SIM_ONLY = ("{0} paces the simulated rig ({1}) only; a station's devices keep real time, and its "
+                 "emulators run at {2}")
+PACE_FIELDS = ("pace", "sim", "time_scale")
 
 
 def _run_status(run_dir: Path) -> str | None:
@@ -245,10 +246,11 @@ def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Esti
     except LabcalError as exc:
         if not (run_dir / "run.json").exists():  # the run never started (or its folder is gone)
             raise
-        kept = f"{exc}{_stop_failure(exc)}; {points_on_disk(run_dir)} reading(s) kept in {run_dir}"
+        # the refusal's own fields kept (its message, not its command-line spelling): a front end spells them
+        kept = f"{exc.message}{_stop_failure(exc)}; {points_on_disk(run_dir)} reading(s) kept in {run_dir}"
         if _run_status(run_dir) == "failed":  # measured to the end: a resume has nothing left to measure
-            raise LabcalError(kept) from None
-        raise LabcalError(f"{kept}; continue with: labcal resume {run_dir}") from None
+            raise LabcalError(kept, *exc.options) from None
+        raise LabcalError(f"{kept}; continue with: labcal resume {run_dir}", *exc.options) from None
     record = None  # the finished run as its journal has it, read (and its fits made) once for both
     if result.device is not None:  # the device's estimate is the run's, whether or not a report is made
         from labcal.documents.device_history import store_device_estimate
@@ -303,7 +305,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
         raise LabcalError("{0} describes the rig of {1}; an emulated station has [emulation.rig]",
                           "rig", "sim")
     if args.pace is not None and not args.sim:
-        raise LabcalError(PACE_SIM_ONLY)
+        raise LabcalError(PACE_SIM_ONLY, *PACE_FIELDS)
     if args.instrument and not args.sim:
         raise LabcalError("{0} chooses the simulated rig's package ({1}); a station's is its "
                           "[instrument] package", "instrument", "sim")
@@ -558,7 +560,8 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
         run_name = f"run {_lab_label(ctx.journal.path, args.db)(ctx.run_id)} in {run_dir}"
         snapshot = read_snapshot(ctx.station_text, run_name, ctx.software_version)
         if args.pace is not None and snapshot is not None:
-            raise LabcalError(f"{run_name} runs on a station, not the simulated rig: {PACE_SIM_ONLY}")
+            raise LabcalError(f"{run_name} runs on a station, not the simulated rig: " + PACE_SIM_ONLY,
+                              *PACE_FIELDS)
         if ctx.complete:
             settings = certificate_settings_for_run(args, snapshot.config.certificate if snapshot else None,
                                                     "the run's station")

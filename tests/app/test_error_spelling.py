@@ -58,3 +58,12 @@ def test_each_refusal_before_a_run_names_keyword_arguments_from_python(options, 
     assert refused.value.options == fields
     assert "--" not in str(refused.value)
     assert all(f"{field}=" in str(refused.value) for field in fields)
+
+
+def test_pace_on_a_station_names_the_keyword_arguments_from_python():
+    """--pace is the simulated rig's: from Python the refusal says pace=, sim= and time_scale=."""
+    with pytest.raises(LabcalError) as refused:
+        labcal.api.run(station="bench.toml", pace=2.0)
+    assert refused.value.options == ("pace", "sim", "time_scale")
+    said = str(refused.value)
+    assert "pace= paces the simulated rig (sim=) only" in said and "--" not in said
