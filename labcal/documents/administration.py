@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from datetime import date
 
 from labcal.config.lab import load_lab_config
+from labcal.config.run_metadata import RunMetadata
 from labcal.config.snapshot import StationFileSnapshot
 from labcal.config.station import CertificateSection
 from labcal.documents.certificate import Administration, Equipment, Item, LaboratoryRecord, TraceabilityRecord
@@ -88,7 +89,7 @@ def _ambient(recorded: object) -> str | None:
     return text + (f" ({recorded['source']})" if recorded.get("source") else "")
 
 
-def _registered_standards(meta: dict) -> list[TraceabilityRecord]:
+def _registered_standards(meta: RunMetadata) -> list[TraceabilityRecord]:
     """The lab's registered reference standards the run used, as it journaled them
     (`labcal.app.standards.traceability_entry`)."""
     fields = TraceabilityRecord.model_fields

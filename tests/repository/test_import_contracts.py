@@ -49,3 +49,17 @@ def test_planted_forbidden_imports_break_the_contracts_that_name_them(tmp_path):
     assert "call the application layer and nothing below it BROKEN" in report
     assert "import the simulator BROKEN" in report
     assert report.count("BROKEN") == 3, report[-3000:]
+
+
+def test_every_command_module_is_one_the_independence_contract_names():
+    """A new command module stands alone only if the contract lists it: the list is checked against
+    the modules in labcal/commands (the shared ones, common and console, are what they may import)."""
+    import tomllib
+
+    root = Path(__file__).resolve().parents[2]
+    contracts = tomllib.loads((root / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["importlinter"]
+    [independence] = [c for c in contracts["contracts"] if c["type"] == "independence"]
+    shared = {"__init__", "common", "console"}
+    present = {f"labcal.commands.{p.stem}" for p in (root / "labcal" / "commands").glob("*.py")
+               if p.stem not in shared}
+    assert present == set(independence["modules"])
