@@ -27,7 +27,7 @@ def main() -> int:
     args = parser.parse_args()
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    test = ROOT / "tests" / "test_lab_desk_pages.py"
+    test = ROOT / "tests" / "server" / "test_lab_desk_pages.py"
     command = [sys.executable, "-m", "pytest", "-q", "-m", "slow", "-n", "0", "-p", "no:randomly", str(test)]
     done = subprocess.run(command, cwd=ROOT, env={**os.environ, "LABCAL_SCREENSHOTS": str(out)}, check=False)
     return done.returncode
