@@ -7,6 +7,8 @@ Works on SQLite and PostgreSQL alike (SQLAlchemy Core)."""
 
 from __future__ import annotations
 
+import random
+import time
 from collections.abc import Callable
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING
@@ -20,13 +22,16 @@ from labcal.store.schema import certificate_numbers
 if TYPE_CHECKING:
     from sqlalchemy.engine import Engine
 
-TRIES = 5  # benches numbering at the same moment: each loser counts again
+TRIES = 40  # benches numbering at the same moment: each loser counts again, after a random pause
+BACKOFF_S = 0.01  # the pause's scale: up to this many seconds times the tries lost so far
 
 
 def assigned(engine: Engine, run_uuid: str, scope: int, make: Callable[[int], str]) -> str:
     """The number of the run ``run_uuid``: the one it has, else ``make(seq)`` with the next ``seq`` of
     ``scope``, recorded."""
-    for _ in range(TRIES):
+    for lost in range(TRIES):
+        if lost:  # two losers retrying in step would collide again: spread them apart
+            time.sleep(random.uniform(0.0, BACKOFF_S * lost))
         try:
             with engine.begin() as conn:
                 held = conn.execute(select(certificate_numbers.c.number)
