@@ -115,7 +115,8 @@ def test_the_server_signs_the_labs_own_copy_and_the_bench_receives_it_on_sync(be
     folder = lab["runs"][0]
     assert json.loads((folder / "certificate.json").read_text()).get("approval") is None  # a draft still
     code, out, err = labcal("sync", "--json")
-    assert code == 0 and json.loads(out)["received"]["approved certificate files"] == 4, err
+    # this run's four files at least (the module's lab is shared: another test may have approved a run)
+    assert code == 0 and json.loads(out)["received"]["approved certificate files"] >= len(FILES), err
     for name in FILES:
         assert (folder / name).read_bytes() == files[name][1], name
     with closing(sqlite3.connect(lab["environment"]["LABCAL_JOURNAL"])) as journal:  # its history too
