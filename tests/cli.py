@@ -51,13 +51,15 @@ def in_process(*args: str) -> tuple[int, str, str]:
 
 def bench_env(folder: Path, db: str, station: str = "bench-1") -> dict[str, str]:
     """The environment of a bench called ``station`` on the lab database ``db``, everything of it under
-    ``folder``: its journal, an empty lab file, its data folder; no LABCAL_* of the caller's leaks in."""
+    ``folder``: its journal, an empty lab file, its data folder, no notifications; no LABCAL_* of the caller's
+    leaks in."""
     import os
 
     env = {k: v for k, v in os.environ.items() if not k.startswith("LABCAL_")}
     (folder / "lab.toml").touch()
     env.update(LABCAL_DB=db, LABCAL_STATION=station, LABCAL_CONFIG=str(folder / "lab.toml"),
-               LABCAL_JOURNAL=str(folder / station / "journal.sqlite"), XDG_DATA_HOME=str(folder / "data"))
+               LABCAL_JOURNAL=str(folder / station / "journal.sqlite"), LABCAL_NOTIFY="",
+               XDG_DATA_HOME=str(folder / "data"))
     return env
 
 

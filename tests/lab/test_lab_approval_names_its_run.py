@@ -11,7 +11,6 @@ certificate_files and checked by `labcal certificate verify`.
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -19,7 +18,7 @@ from pathlib import Path
 import httpx
 import psycopg
 import pytest
-from cli import LABCAL
+from cli import LABCAL, bench_env
 from lab_server import add_user, served
 from simulated_runs import bench_run
 
@@ -27,12 +26,7 @@ pytestmark = pytest.mark.slow  # two runs through the drivers and a server: abou
 
 
 def environment(tmp_path: Path, station: str, db: str) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("LABCAL_")}
-    (tmp_path / "lab.toml").touch()
-    env.update(LABCAL_DB=db, LABCAL_STATION=station, LABCAL_CONFIG=str(tmp_path / "lab.toml"),
-               LABCAL_JOURNAL=str(tmp_path / station / "journal.sqlite"), LABCAL_NOTIFY="",
-               XDG_DATA_HOME=str(tmp_path / "data"))
-    return env
+    return bench_env(tmp_path, db, station)
 
 
 def at(tmp_path: Path, station: str, db: str, *args: str) -> subprocess.CompletedProcess:
