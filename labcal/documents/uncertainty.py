@@ -70,7 +70,7 @@ def bench_section(record: RunRecord, station: str | Path | None) -> CertificateS
     if isinstance(record.station, StationFileSnapshot):
         section = record.station.section(f"{record.directory}: the run's station")
     # a dry run: the simulator's own error sources at their simulated sizes
-    return with_simulator_inputs(section, record.station, record.meta.settings or {})
+    return with_simulator_inputs(section, record.station, record.meta.settings)
 
 
 def device_misalignment_u(device: DeviceFit | None) -> dict[str, float]:

@@ -73,7 +73,7 @@ def test_a_run_is_simulated_by_its_metadata_or_its_snapshot():
     rig = parse_snapshot(json.dumps({"kind": "simulated rig", "seed": 1, "rig": {}}))
     real = parse_snapshot(json.dumps({"kind": "station", "station": {}, "emulate": False}))
     assert is_simulated(RunMetadata(), rig) and not is_simulated(RunMetadata(), real)
-    assert is_simulated(RunMetadata(simulated_truth={}), real)  # the metadata alone is enough
+    assert is_simulated(RunMetadata(simulated_truth=None), real)  # the metadata alone is enough, recorded
 
 
 def test_no_module_but_the_snapshot_model_decodes_the_journaled_station_text():
