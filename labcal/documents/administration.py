@@ -64,14 +64,14 @@ def _equipment(record: RunRecord) -> list[Equipment]:
     if not isinstance(record.station, StationFileSnapshot):
         return [Equipment(role="calibration device and DMM", description="simulated rig (a dry run)",
                           identity=None)]
-    station = record.station.station
     found = []
     for role in ("pitch", "roll", "dmm"):
-        device = station.get(role, {})
-        where = device.get("tcp") or device.get("port")
-        address = next((f"{k} {device[k]}" for k in ("unit", "address") if k in device), "")
-        settings = f", range {device['range_v']:g} V, {device['nplc']:g} PLC" if role == "dmm" else ""
-        description = f"{device.get('driver', '?')} {address} on {where}{settings}"
+        device = record.station.device(role)
+        where = device.tcp or device.port
+        address = next((f"{k} {n}" for k, n in (("unit", device.unit), ("address", device.address))
+                        if n is not None), "")
+        settings = f", range {device.range_v:g} V, {device.nplc:g} PLC" if role == "dmm" else ""
+        description = f"{device.driver or '?'} {address} on {where}{settings}"
         found.append(_identified("DMM" if role == "dmm" else f"{role} table", description,
                                  identities.get(role)))
     return found

@@ -111,8 +111,8 @@ def repeatability_rad(station: StationSnapshot | None) -> tuple[float, float]:
     table stops (its in-position tolerance; the simulated tables', 5″) and how the plate re-seats
     the instrument at a remount (its mount repeatability, each of pitch, roll and yaw)."""
     if isinstance(station, StationFileSnapshot):
-        tables = [station.station.get(name, {}) for name in ("pitch", "roll")]
-        stop = max(float(t.get("in_position_arcsec", IN_POSITION_ARCSEC)) for t in tables) * ARCSEC
+        stated = [station.device(name).in_position_arcsec for name in ("pitch", "roll")]
+        stop = max(IN_POSITION_ARCSEC if t is None else t for t in stated) * ARCSEC
         return stop, float(station.section().uncertainty.mount_repeatability)
     return IN_POSITION_ARCSEC * ARCSEC, stated_mount_repeatability(station)  # the rig's, as a half-width
 
