@@ -48,14 +48,16 @@ SCHEMA_FILE = "schemas/run-metadata.schema.json"
 
 # --- the certificate's records of the run (its station section) -------------------------------
 class Strict(BaseModel):
-    """A certificate section: no unknown field, immutable, no NaN or infinity (JSON has none)."""
+    """A record labcal alone writes (a certificate's section, a value of a run's metadata): no unknown
+    field, immutable, no NaN or infinity (JSON has none)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Recorded(Strict):
-    """A section as its producer wrote it: an optional field the document does not carry (it was
-    issued before the field existed) is left out when written again, so its bytes do not change."""
+    """A record as its producer wrote it: an optional field the document does not carry (it was
+    written before the field existed, or its producer had nothing to say) is left out when written
+    again, so its bytes do not change."""
 
     @model_serializer(mode="wrap")
     def _as_recorded(self, handler: SerializerFunctionWrapHandler, info: SerializationInfo) -> Any:
@@ -117,6 +119,7 @@ class SimulatedTruth(Recorded):
     seed: int
     time_scale: float | None = None  # emulated runs: emulated seconds per wall second
     endpoints: list[Endpoint] | None = None
+
 
 # --- what a run's creator journals, each value typed ----------------------------------------------
 class PackageUse(Strict):
