@@ -190,7 +190,7 @@ class Checklist(Recorded):
 
 
 class DeviceIdentity(Recorded):
-    """What a device reported of itself (`labcal.bench.hardware.Bench.identities`): its model and
+    """What a device reported of itself (a `labcal.bench.hardware.Bench`'s ``identities``): its model and
     identity line always, the rest as far as its manual documents one, each left out where it has
     none; anything more a device says is kept, as it said it."""
 
