@@ -21,9 +21,10 @@ from labcal.errors import LabcalError
 
 if TYPE_CHECKING:
     from labcal.analysis.plan import Plan
+    from labcal.app.standards import RunStandards
     from labcal.bench.hardware import Bench
     from labcal.bench.setup import StationSetup
-    from labcal.config.run_metadata import RunMetadata
+    from labcal.config.run_metadata import Ambient, Checklist, PackageUse, RunMetadata
     from labcal.config.settings import CertificateSettings, SequencerSettings, ThermalGate
     from labcal.config.station import InstrumentSettings, StationFile
     from labcal.devices.station import Station
@@ -54,7 +55,7 @@ class FrontEnd(Protocol):
     def operator(self) -> Operator:
         """Who answers the run's prompts."""
 
-    def checklist(self, bench: Bench | None, station: Station, points: int, samples: int) -> dict:
+    def checklist(self, bench: Bench | None, station: Station, points: int, samples: int) -> Checklist:
         """The pre-run checklist (`labcal.bench.checklist`), shown before anything moves; what the
         run journals of it. An unmet item raises LabcalError unless whoever is there says to go on."""
 
@@ -364,8 +365,10 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
         ready(args.db)  # a lab database behind or ahead of this labcal: refused before anything moves
         # an overdue reference standard stops the run here unless an approver's override holds
         used = run_standards([] if bench is None else bench.config.standards, args.db, front)
-        for field, value in used.items():
-            setattr(setup.metadata, field, value)
+        if used.used:  # journaled only where the run used any
+            setup.metadata.standards = used.used
+        if used.overrides:
+            setup.metadata.standard_overrides = used.overrides
         if correction is not None:  # still this station's device, still in control: else nothing moves
             from labcal.documents.device_history import check_correction, station_device_id
 
@@ -378,7 +381,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
                                                       settings.settle.samples)  # before anything moves
         if bench is not None:
             prepare(bench, setup.station, front.say)
-            setup.metadata.device_identity = bench.identities  # the manifest's metadata and run.json
+            setup.metadata.device_identity = dict(bench.identities)  # the manifest's metadata and run.json
         operator = front.operator()
         with Journal(db_path(args.db), durable=not args.sim) as journal, \
                 sending(args.db, journal.path, _noted(front)) as sender:
@@ -411,22 +414,26 @@ def _lab_label(journal: Path, db: str | Path | None) -> Callable[[int], str]:
     return lambda run_id: lab_number_of(journal, run_id, db)
 
 
-def sim_package_use(package: str, rig: dict) -> dict:
+def sim_package_use(package: str, rig: dict) -> PackageUse:
     """How the simulated rig's package is used: an x–y package infers roll itself (Tripp §6.4); a
     single sensor and an x–z package (whose F_z is singular at roll 0, Tripp eq. 94, so that it is
     used over pitch at a known roll, §6.5) at the roll the roll table sets, whose standard deviation
     is the table's index error (the rig's ±index_arcsec taken as uniform bounds)."""
+    from labcal.config.run_metadata import PackageUse
+
     if package == "two-axis-xy":
-        return {"package": package, "roll_in_use": "inferred", "roll_sd_deg": None}
+        return PackageUse(package=package, roll_in_use="inferred", roll_sd_deg=None)
     index_deg = rig["device"]["index_arcsec"] / 3600
-    return {"package": package, "roll_in_use": "table", "roll_sd_deg": index_deg / 3 ** 0.5}
+    return PackageUse(package=package, roll_in_use="table", roll_sd_deg=index_deg / 3 ** 0.5)
 
 
-def station_package_use(instrument: InstrumentSettings) -> dict:
+def station_package_use(instrument: InstrumentSettings) -> PackageUse:
     """How a station's package is used, as its ``[instrument]`` states it: roll inferred from its own
     outputs, none (pitch at roll 0), or measured by the table or a sensor with its σ_R."""
-    return {"package": instrument.package, "roll_in_use": instrument.roll_source,
-            "roll_sd_deg": instrument.roll_sd_deg}
+    from labcal.config.run_metadata import PackageUse
+
+    return PackageUse(package=instrument.package, roll_in_use=instrument.roll_source,
+                      roll_sd_deg=instrument.roll_sd_deg)
 
 
 ADHOC_ALLOWED = "not in the instrument register; the lab file allows ad-hoc serials"
@@ -464,7 +471,7 @@ def run_serial(args: StartRun, front: FrontEnd) -> tuple[str | None, str | None]
                       "([instruments] allow_adhoc = true)")
 
 
-def run_standards(named: list[str], db: str | None, front: FrontEnd) -> dict:
+def run_standards(named: list[str], db: str | None, front: FrontEnd) -> RunStandards:
     """The reference standards the run uses, checked before anything moves (`labcal.app.standards`):
     an overdue one without an approver's override stops it in one line; what the run journals of them."""
     from datetime import datetime
@@ -476,12 +483,10 @@ def run_standards(named: list[str], db: str | None, front: FrontEnd) -> dict:
     for note in found.notes:
         front.say(f"note: {note}", markup=False)
     for held in found.overrides:
-        front.say(f"note: reference standard {held['serial']} is overdue (due {held['due_on']}); the run "
-                  f"goes on under {held['approver']}'s override until {held['valid_until']}: "
-                  f"{held['reason']}",
+        front.say(f"note: reference standard {held.serial} is overdue (due {held.due_on}); the run "
+                  f"goes on under {held.approver}'s override until {held.valid_until}: {held.reason}",
                   markup=False)
-    return {key: value for key, value in (("standards", found.used), ("standard_overrides", found.overrides))
-            if value}
+    return found
 
 
 def check_package(instrument: InstrumentSettings, envelope: CertificateSettings, station: str, plan: str
@@ -516,17 +521,14 @@ def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Pat
         front.say(f"note: {note}", markup=False)
 
 
-def ambient_entered(args: StartRun) -> dict[str, float | str]:
+def ambient_entered(args: StartRun) -> Ambient | None:
     """The environmental conditions the operator entered at the start (ISO/IEC 17025 §7.8.2.1 i),
-    as the run journals them; empty when none was entered."""
-    found: dict[str, float | str] = {}
-    if args.ambient_temp is not None:
-        found["temperature_c"] = args.ambient_temp
-    if args.humidity is not None:
-        found["humidity_pct"] = args.humidity
-    if found:
-        found["source"] = "entered at the start of the run"
-    return found
+    as the run journals them; None when none was entered."""
+    from labcal.config.run_metadata import Ambient
+
+    entered = {k: v for k, v in (("temperature_c", args.ambient_temp), ("humidity_pct", args.humidity))
+               if v is not None}
+    return Ambient(**entered, source="entered at the start of the run") if entered else None
 
 
 def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyComplete:
@@ -605,12 +607,13 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
                           f"resumed after {len(points)} committed point(s) {on_station}", station_record)
         from labcal.documents.overrides import STANDARD_OVERRIDE_EVENT
 
-        for held in checked.get("standard_overrides", []):  # the certificate states it with the run's own
-            ctx.journal.event(ctx.run_id, STANDARD_OVERRIDE_EVENT, f"resumed under {held['approver']}'s "
-                              f"override for the overdue reference standard {held['serial']}", held)
+        for held in checked.overrides:  # the certificate states it with the run's own
+            ctx.journal.event(ctx.run_id, STANDARD_OVERRIDE_EVENT, f"resumed under {held.approver}'s "
+                              f"override for the overdue reference standard {held.serial}",
+                              held.model_dump(mode="json"))
         if bench is not None:
             ctx.journal.event(ctx.run_id, "device_identity", "the devices that answered on resuming",
-                              bench.identities)
+                              {role: said.model_dump(mode="json") for role, said in bench.identities.items()})
         cert_settings = certificate_settings_for_run(args, certificate, args.station or "the run's station")
         sender = stack.enter_context(sending(args.db, ctx.journal.path, _noted(front)))
         name = _run_name(ctx.metadata, ctx.station_text, ctx.journal.run(ctx.run_id).instrument_serial)

@@ -99,10 +99,9 @@ def checklist_attention(metadata: RunMetadata, resumed: Iterable[dict] = ()) -> 
     and a serial the instrument register did not hold."""
     checklist = metadata.checklist
     found = [f"went on regardless: {item}" for item in checklist_overrides(checklist)]
-    if isinstance(checklist, dict):
-        found += [f"{i.get('item')}: {i.get('message')}" for i in checklist.get("items") or []
-                  if isinstance(i, dict) and i.get("item") == "reference standards"
-                  and i.get("status") == "warning"]
+    if checklist is not None:
+        found += [f"{i.item}: {i.message}" for i in checklist.items
+                  if i.item == "reference standards" and i.status == "warning"]
     found += [o.sentence() for o in run_overrides(metadata, resumed) if o.kind == "reference standard"]
     if metadata.unregistered_serial:
         found.append(f"serial {metadata.unregistered_serial}")

@@ -35,17 +35,11 @@ CORRECTION_NOTE = ("labcal run checks that the station's calibration device is t
 
 def type_b(section, temperature_half_range_k: float):
     """The budget's Type B inputs from a station's (or the simulator's) inputs, before a run: the
-    mapping `labcal.documents.uncertainty.type_b_inputs` makes from a finished run's, with the
-    temperature range given instead of observed."""
-    from labcal.analysis.budget import TypeBInputs
+    mapping a finished run's certificate makes (`labcal.documents.uncertainty.section_type_b`), for
+    outputs in volts, with the temperature range given instead of observed."""
+    from labcal.documents.uncertainty import section_type_b
 
-    u = section.uncertainty
-    return TypeBInputs(
-        dmm_reading=u.dmm_reading, dmm_range_v=u.dmm_range * section.dmm.range_v, dmm_noise_v=u.dmm_noise,
-        pitch_index=u.pitch_index, pitch_wobble=u.pitch_wobble, roll_index=u.roll_index,
-        roll_wobble=u.roll_wobble, mount_repeatability=u.mount_repeatability,
-        common=section.dmm.common_inputs(u.common), temperature_half_range_k=temperature_half_range_k,
-        bias_tempco_v_per_k=u.bias_tempco, sensitivity_tempco_per_k=u.sensitivity_tempco)
+    return section_type_b(section, "V", temperature_half_range_k)
 
 
 def planning_bench(station: str | None):

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from datetime import date, timedelta
 from typing import TYPE_CHECKING
 
+from labcal.config.run_metadata import StandardOverride, StandardUsed
 from labcal.errors import LabcalError
 
 if TYPE_CHECKING:
@@ -277,17 +278,16 @@ def card(lab: LabDatabase, serial: str, today: date, db: str | None) -> Card:
 class RunStandards:
     """What a run journals of its standards: each used, and each override it runs under."""
 
-    used: list[dict] = field(default_factory=list)  # as a certificate's traceability entry, plus serial
-    overrides: list[dict] = field(default_factory=list)  # `override_json` plus the standard's serial
+    used: list[StandardUsed] = field(default_factory=list)
+    overrides: list[StandardOverride] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
 
 
-def traceability_entry(s: Standard) -> dict:
+def traceability_entry(s: Standard) -> StandardUsed:
     """A used standard as the certificate's traceability states it (`labcal.config.uncertainty.Traceability`,
     with its serial and calibration date)."""
-    return {"equipment": KINDS.get(s.kind, s.kind), "identity": s.identity, "certificate": s.certificate,
-            "issued_by": s.issued_by, "due": s.due_on.isoformat(), "serial": s.serial,
-            "calibrated_on": s.calibrated_on.isoformat()}
+    return StandardUsed(equipment=KINDS.get(s.kind, s.kind), identity=s.identity, certificate=s.certificate,
+                        issued_by=s.issued_by, due=s.due_on, serial=s.serial, calibrated_on=s.calibrated_on)
 
 
 def standards_for_run(named: list[str], bench: str, db: str | None, today: date) -> RunStandards:
@@ -323,7 +323,7 @@ def standards_for_run(named: list[str], bench: str, db: str | None, today: date)
             rows = standards.overrides(lab.engine, s.serial)
             holding = [row for row in reversed(rows) if override_problem(row, s, today, db) is None]
             if holding:
-                held.append({"serial": s.serial, **override_json(holding[0])})
+                held.append(StandardOverride(serial=s.serial, **override_json(holding[0])))
                 continue
             why = f"; its override {override_problem(rows[-1], s, today, db)}" if rows else ""
             blocked.append(f"{KINDS.get(s.kind, s.kind)} {s.serial} (certificate {s.certificate}) was due "

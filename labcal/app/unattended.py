@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from labcal.analysis.kinematics import Mount
     from labcal.bench.hardware import Bench
+    from labcal.config.run_metadata import Checklist
     from labcal.devices.station import Station
     from labcal.run.events import RunEvent
     from labcal.run.operator import Heard, PauseChoice, Terminal
@@ -71,8 +72,8 @@ class Unattended:
     def operator(self) -> _Confirms:
         return _Confirms(self.say)
 
-    def checklist(self, bench: Bench | None, station: Station, points: int, samples: int) -> dict:
-        from labcal.bench.checklist import PowerOn, refusal, run_checklist, unmet
+    def checklist(self, bench: Bench | None, station: Station, points: int, samples: int) -> Checklist:
+        from labcal.bench.checklist import PowerOn, journaled, refusal, run_checklist, unmet
         from labcal.store.journal import db_path
         from labcal.store.labdb import lab_server
 
@@ -84,8 +85,7 @@ class Unattended:
             self.say(f"checklist: {item.name}: {item.status}" + (f" ({item.why})" if item.why else ""))
         if unmet(items):
             raise refusal(unmet(items))
-        return {"items": [item.to_json() for item in items], "went_on_regardless": False,
-                "powered_on": None, "warmed_up_stated": False}
+        return journaled(items, PowerOn())
 
     def unregistered(self, serial: str) -> bool:
         """Nobody is there to say that an unregistered serial is meant: refused (unless the lab file

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 from labcal.config.files import size_text
+from labcal.config.run_metadata import Checklist, ChecklistItem
 from labcal.config.uncertainty import overdue_standards
 from labcal.errors import LabcalError
 
@@ -267,6 +268,15 @@ def run_checklist(config: StationFile | None, bench: Bench | None, station: Stat
 
 def unmet(items: Iterable[Item]) -> list[Item]:
     return [item for item in items if item.status == "fail"]
+
+
+def journaled(items: Iterable[Item], power: PowerOn, went_on_regardless: bool = False) -> Checklist:
+    """The checklist as the run journals it in its metadata: each item, whether the operator went
+    on past an unmet one, and what was said of the instrument's power."""
+    return Checklist(items=[ChecklistItem(item=i.name, status=i.status, message=i.why) for i in items],
+                     went_on_regardless=went_on_regardless,
+                     powered_on=None if power.at is None else power.at.isoformat(timespec="minutes"),
+                     warmed_up_stated=power.warmed_up)
 
 
 def refusal(failed: list[Item]) -> LabcalError:

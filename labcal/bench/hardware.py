@@ -6,6 +6,7 @@ import math
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+from labcal.config.run_metadata import DeviceIdentity
 from labcal.config.station import (
     AzSettings,
     DmmSettings,
@@ -72,23 +73,22 @@ def modbus_link(settings: LinkSettings) -> ModbusLink:
                              retries=settings.retries, reconnect_s=settings.reconnect_s)
 
 
-def dmm_identity(idn: str) -> dict[str, str]:
+def dmm_identity(idn: str) -> DeviceIdentity:
     """A 34970A-family ``*IDN?`` answer (maker, model, serial number, firmware) by field."""
     maker, model, serial, firmware = (field.strip() for field in idn.split(",", 3))
-    return {"model": f"{maker} {model}", "identity": idn, "maker": maker, "serial": serial,
-            "firmware": firmware}
+    return DeviceIdentity(model=f"{maker} {model}", identity=idn, maker=maker, serial=serial,
+                          firmware=firmware)
 
 
-def axis_identity(axis: IndexAxis) -> dict[str, str]:
+def axis_identity(axis: IndexAxis) -> DeviceIdentity:
     """A table's identity by field, as far as its manual documents one: the SMC100 answers ``ID?``
     (the stage) and ``VE`` (controller and firmware); the AZ register map has no product, serial
     or version register, so an AZ drive is named by its model and unit (confirmed by a status read)."""
     maker, _, model = axis.model.rpartition(" ")
-    found = {"model": axis.model, "identity": axis.identify(), "maker": maker}
     if isinstance(axis, Smc100Axis):
-        found["stage"] = axis.ask("ID?")
-        found["firmware"] = axis.ask("VE")
-    return found
+        return DeviceIdentity(model=axis.model, identity=axis.identify(), maker=maker, stage=axis.ask("ID?"),
+                              firmware=axis.ask("VE"))
+    return DeviceIdentity(model=axis.model, identity=axis.identify(), maker=maker)
 
 
 class Bench:
@@ -101,7 +101,7 @@ class Bench:
         self._links: dict[str, ModbusLink | LineTransport | VisaLink] = {}
         # who answered, as each device says it (read by `prepare`): a run journals these in its
         # metadata ("device_identity") and a resume as an event, for the certificate's traceability
-        self.identities: dict[str, dict[str, str]] = {}
+        self.identities: dict[str, DeviceIdentity] = {}
         self.pitch = self._axis("pitch", config.pitch)
         self.roll = self._axis("roll", config.roll)
         dmm = config.dmm
@@ -140,7 +140,7 @@ class Bench:
         controllers need it, and configure the DMM."""
         for axis in self.axes:
             self.identities[axis.name] = identity = axis_identity(axis)
-            say(f"preparing the {axis.name} table ({identity['identity']})")
+            say(f"preparing the {axis.name} table ({identity.identity})")
             axis.prepare()
         self.identities["dmm"] = dmm_identity(self.dmm.identify())
         self.dmm.configure()

@@ -52,7 +52,7 @@ def sim_station(rig_file: str | None, seed: int | None, snapshot: str | None = N
     ``package``: the simulated instrument's sensor package instead of the rig file's (it is part of
     the snapshot: a resume reads the same channels)."""
     from labcal.config.emulation import RigConfig, load_rig_config
-    from labcal.config.run_metadata import RunMetadata
+    from labcal.config.run_metadata import RunMetadata, SimulatedTruth
     from labcal.config.snapshot import SimulatedRigSnapshot
     from labcal.run.estimate import Timing
     from labcal.sim.clock import PacedClock, VirtualClock
@@ -71,8 +71,8 @@ def sim_station(rig_file: str | None, seed: int | None, snapshot: str | None = N
     if tables_at is not None:
         rig.pitch.place(tables_at[0])
         rig.roll.place(tables_at[1])
-    truth = {"coefficients": rig.instrument.X.tolist(),
-             "misalignment_deg": rig.misalignment.degrees(), "seed": rig.seed}
+    truth = SimulatedTruth(coefficients=rig.instrument.X.tolist(),
+                           misalignment_deg=rig.misalignment.degrees(), seed=rig.seed)
     text = json.dumps({"kind": "simulated rig", "seed": rig.seed, "rig": config.model_dump()}, sort_keys=True)
     timing = Timing(clamp_s=config.clamp_s, sample_s=config.nplc / config.line_hz, remount_s=config.remount_s)
     settle = known_settle(config.instrument)
@@ -164,7 +164,7 @@ def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emul
     ``emulate``, started here and stopped with ``stack``). The journal keeps the file, so that a
     resume can rebuild the same station, or check that a new file describes the same bench."""
     from labcal.bench.hardware import Bench
-    from labcal.config.run_metadata import RunMetadata
+    from labcal.config.run_metadata import RunMetadata, SimulatedTruth
     from labcal.run.estimate import Timing
 
     # injected faults are a test, not the station: a resume has none
@@ -189,7 +189,7 @@ def hardware_station(config: StationFile, source: str, stack: ExitStack, *, emul
         pooling = config.sequencer.settle.model_dump(include={"pool", "instrument_type"})
         settle = known_settle(rig.instrument).model_copy(update=pooling)  # the station says whose records
         clock, hooks = emulation.rig.clock, emulation.hooks()
-        metadata.simulated_truth = emulation.truth()
+        metadata.simulated_truth = SimulatedTruth.model_validate(emulation.truth())
         config = emulation.station_config
     else:
         links_fixed(config, source)

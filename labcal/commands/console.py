@@ -26,6 +26,7 @@ from labcal.run.operator import GATE_KEY, QuietKeys, Terminal
 if TYPE_CHECKING:
     from labcal.bench.checklist import Item, PowerOn
     from labcal.bench.hardware import Bench
+    from labcal.config.run_metadata import Checklist
     from labcal.devices.station import Station
 
 
@@ -220,7 +221,7 @@ def power_on_given(args: argparse.Namespace, now: datetime) -> PowerOn:
 
 
 def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, points: int,
-               samples: int) -> dict:
+               samples: int) -> Checklist:
     """The pre-run checklist of `labcal run`, shown before anything moves. An unmet item stops the
     run in one line (exit 2, nothing moved) unless the operator, asked at the terminal, says to go
     on; with --yes or --answers nobody is asked. Where the station asks for a warm-up and the
@@ -228,7 +229,7 @@ def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, 
     asked. Returns what the run journals of it (its metadata: run.json, the manifest)."""
     from pathlib import Path
 
-    from labcal.bench.checklist import PowerOn, parse_power_on, refusal, run_checklist, unmet
+    from labcal.bench.checklist import PowerOn, journaled, parse_power_on, refusal, run_checklist, unmet
     from labcal.commands.common import err
     from labcal.errors import LabcalError
     from labcal.store.journal import db_path
@@ -256,12 +257,9 @@ def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, 
     items = run_checklist(config, bench, station, db=db_path(args.db), run_folder=Path(args.out or "runs"),
                           points=points, samples=samples, power=power, now=now, server=lab_server(args.db))
     print_checklist(err, items)
-    record = {"items": [i.to_json() for i in items], "went_on_regardless": False,
-              "powered_on": None if power.at is None else power.at.isoformat(timespec="minutes"),
-              "warmed_up_stated": power.warmed_up}
     failed = unmet(items)
     if not failed:
-        return record
+        return journaled(items, power)
     names = ", ".join(i.name for i in failed)
     if attended:
         try:
@@ -270,5 +268,5 @@ def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, 
         except EOFError:
             go_on = ""
         if go_on in ("y", "yes"):
-            return {**record, "went_on_regardless": True}
+            return journaled(items, power, went_on_regardless=True)
     raise refusal(failed)

@@ -29,6 +29,7 @@ from labcal.commands.common import (
 # other commands, which import this module to build the parser, do not pay for it at start-up.
 if TYPE_CHECKING:
     from labcal.app.calibration import AlreadyComplete, Ended, Estimated, Finished
+    from labcal.config.run_metadata import Checklist
 
 
 class CommandLine:
@@ -44,7 +45,7 @@ class CommandLine:
     def operator(self):
         return make_operator(self.args)
 
-    def checklist(self, bench, station, points: int, samples: int) -> dict:
+    def checklist(self, bench, station, points: int, samples: int) -> Checklist:
         from labcal.commands.console import before_run
 
         return before_run(self.args, bench, station, points, samples)

@@ -51,6 +51,23 @@ class SimulatedRigSnapshot(BaseModel):
         return self.rig
 
 
+class JournaledDevice(BaseModel):
+    """One device of a journaled station file (its ``[pitch]``, ``[roll]`` or ``[dmm]``), as the
+    documents and the run's checks read it: the settings they name, each None where an older
+    journal's station lacks it, and every other setting kept as journaled."""
+
+    model_config = ConfigDict(extra="allow", frozen=True)
+
+    driver: str | None = None
+    unit: int | str | None = None  # an AZ drive's Modbus unit
+    address: int | str | None = None  # an SMC100's address on its RS-485 chain
+    tcp: str | None = None  # host:port where the link is a socket
+    port: str | None = None  # the serial port where it is a serial line
+    in_position_arcsec: float | None = None  # a table's read-back tolerance
+    range_v: float | None = None  # the DMM's range and integration time
+    nplc: float | None = None
+
+
 class StationFileSnapshot(BaseModel):
     """A station file's devices, through the drivers, on hardware or (``emulate``) on the emulators."""
 
@@ -69,6 +86,10 @@ class StationFileSnapshot(BaseModel):
     def section(self, where: str = "the run's station") -> CertificateSection:
         """What the certificate takes from the station file (``where``: how an error names it)."""
         return validate_model(self.station, CertificateSection, where)
+
+    def device(self, role: str) -> JournaledDevice:
+        """The station's ``role`` device (pitch, roll, dmm) as journaled (none: every setting None)."""
+        return JournaledDevice.model_validate(self.station.get(role) or {})
 
     @cached_property
     def config(self) -> StationFile:

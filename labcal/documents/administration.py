@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from datetime import date
 
 from labcal.config.lab import load_lab_config
-from labcal.config.run_metadata import RunMetadata
+from labcal.config.run_metadata import Ambient, DeviceIdentity, RunMetadata
 from labcal.config.snapshot import StationFileSnapshot
 from labcal.config.station import CertificateSection
 from labcal.documents.certificate import Administration, Equipment, Item, LaboratoryRecord, TraceabilityRecord
@@ -36,27 +36,27 @@ class ItemGiven:
     received: date | None = None
 
 
-def journaled_identities(record: RunRecord) -> dict[str, dict]:
-    """Role → the identity the run journaled last (at the start, then at each resume)."""
+def journaled_identities(record: RunRecord) -> dict[str, DeviceIdentity]:
+    """Role → the identity the run journaled last (at the start, then at each resume's
+    ``device_identity`` event, which journals the same documents)."""
     found = dict(record.meta.device_identity or {})
     for event in record.events:
-        if event["kind"] == "device_identity" and isinstance(event["data"], dict):
-            found.update(event["data"])
-    return {role: fields for role, fields in found.items() if isinstance(fields, dict)}
+        if event["kind"] == "device_identity":
+            found.update({role: DeviceIdentity.model_validate(said) for role, said in event["data"].items()})
+    return found
 
 
-def _identified(role: str, description: str, fields: dict | None) -> Equipment:
-    if not fields:
+def _identified(role: str, description: str, said: DeviceIdentity | None) -> Equipment:
+    if said is None:
         return Equipment(role=role, description=description, identity=NOT_READ)
-    maker = fields.get("maker") or None
-    model = str(fields.get("model", ""))
+    maker, model = said.maker or None, said.model
     if maker and model.startswith(maker):
         model = model[len(maker):].strip()
-    if fields.get("stage"):
-        model += f" with stage {fields['stage']}"
-    return Equipment(role=role, description=description, identity=fields.get("identity") or NOT_READ,
-                     maker=maker, model=model or None, serial=fields.get("serial") or None,
-                     firmware=fields.get("firmware") or None)
+    if said.stage:
+        model += f" with stage {said.stage}"
+    return Equipment(role=role, description=description, identity=said.identity or NOT_READ,
+                     maker=maker, model=model or None, serial=said.serial or None,
+                     firmware=said.firmware or None)
 
 
 def _equipment(record: RunRecord) -> list[Equipment]:
@@ -64,37 +64,36 @@ def _equipment(record: RunRecord) -> list[Equipment]:
     if not isinstance(record.station, StationFileSnapshot):
         return [Equipment(role="calibration device and DMM", description="simulated rig (a dry run)",
                           identity=None)]
-    station = record.station.station
     found = []
     for role in ("pitch", "roll", "dmm"):
-        device = station.get(role, {})
-        where = device.get("tcp") or device.get("port")
-        address = next((f"{k} {device[k]}" for k in ("unit", "address") if k in device), "")
-        settings = f", range {device['range_v']:g} V, {device['nplc']:g} PLC" if role == "dmm" else ""
-        description = f"{device.get('driver', '?')} {address} on {where}{settings}"
+        device = record.station.device(role)
+        where = device.tcp or device.port
+        address = next((f"{k} {n}" for k, n in (("unit", device.unit), ("address", device.address))
+                        if n is not None), "")
+        settings = f", range {device.range_v:g} V, {device.nplc:g} PLC" if role == "dmm" else ""
+        description = f"{device.driver or '?'} {address} on {where}{settings}"
         found.append(_identified("DMM" if role == "dmm" else f"{role} table", description,
                                  identities.get(role)))
     return found
 
 
-def _ambient(recorded: object) -> str | None:
+def _ambient(recorded: Ambient | None) -> str | None:
     """The run's ambient conditions in words (`labcal run --ambient-temp --humidity` journals them)."""
-    if not isinstance(recorded, dict):
-        return str(recorded) if recorded else None
-    t, rh = recorded.get("temperature_c"), recorded.get("humidity_pct")
+    if recorded is None:
+        return None
+    t, rh = recorded.temperature_c, recorded.humidity_pct
     if t is None and rh is None:
         return None
     text = (f"air temperature {'not recorded' if t is None else f'{t:g} °C'}, relative humidity "
             f"{'not recorded' if rh is None else f'{rh:g} %'}")
-    return text + (f" ({recorded['source']})" if recorded.get("source") else "")
+    return text + (f" ({recorded.source})" if recorded.source else "")
 
 
 def _registered_standards(meta: RunMetadata) -> list[TraceabilityRecord]:
     """The lab's registered reference standards the run used, as it journaled them
     (`labcal.app.standards.traceability_entry`)."""
-    fields = TraceabilityRecord.model_fields
-    return [TraceabilityRecord(**{k: v for k, v in s.items() if k in fields})
-            for s in meta.standards or [] if isinstance(s, dict)]
+    return [TraceabilityRecord(**s.model_dump(include=set(TraceabilityRecord.model_fields)))
+            for s in meta.standards or []]
 
 
 def administration(record: RunRecord, section: CertificateSection, given: ItemGiven, serial: str

@@ -36,6 +36,7 @@ from pydantic import (
 from labcal.analysis.attitude import Calibration, CovariancePart, calibration_from_json
 from labcal.analysis.packages import PackageCalibration, Sensor
 from labcal.config.files import MAX_DEPTH, check_depth, one_line, read_text, write_json
+from labcal.config.run_metadata import SequencerRecord, SimulatedTruth, Strict
 from labcal.documents.certificate_sections import (
     BudgetInputs,
     DeviceCorrectionRecord,
@@ -45,9 +46,6 @@ from labcal.documents.certificate_sections import (
     Layout,
     MisalignmentTest,
     Replication,
-    SequencerRecord,
-    SimulatedTruth,
-    Strict,
 )
 from labcal.errors import LabcalError
 

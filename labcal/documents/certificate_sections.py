@@ -1,5 +1,4 @@
-"""The certificate's records of what other parts of labcal computed: the sequencer's settings and a
-dry run's simulated truth (`labcal.config.settings`, `labcal.bench.setup`), the fit's layout,
+"""The certificate's records of what other parts of labcal computed: the fit's layout,
 extensions and replication analysis (`labcal.analysis.fit`, `labcal.analysis.replication`), the
 device model's intrinsic parameters, identifiability and F test (`labcal.analysis.device_fit`), and
 the uncertainty budget's Type B inputs (`labcal.analysis.budget.TypeBInputs`).
@@ -11,85 +10,15 @@ it wrote it: signatures are over the canonical JSON, so a certificate issued bef
 must serialise to the same bytes. A field added to a section after certificates were issued
 without it is optional and, where the document does not carry it, stays out of the document
 (`Recorded`); a field the document carries as null stays null.
+
+The sequencer's settings and a dry run's simulated truth are the run's own records, which the
+certificate states as the journal keeps them: their models, and the `Strict` and `Recorded` bases,
+are the run metadata's (`labcal.config.run_metadata`).
 """
 
 from __future__ import annotations
 
-from typing import Any
-
-from pydantic import BaseModel, ConfigDict, SerializationInfo, SerializerFunctionWrapHandler, model_serializer
-
-
-class Strict(BaseModel):
-    """A certificate section: no unknown field, immutable, no NaN or infinity (JSON has none)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
-
-class Recorded(Strict):
-    """A section as its producer wrote it: an optional field the document does not carry (it was
-    issued before the field existed) is left out when written again, so its bytes do not change."""
-
-    @model_serializer(mode="wrap")
-    def _as_recorded(self, handler: SerializerFunctionWrapHandler, info: SerializationInfo) -> Any:
-        data = handler(self)
-        fields = type(self).model_fields
-        return {k: v for k, v in data.items()
-                if k not in fields or fields[k].is_required() or k in self.model_fields_set}
-
-
-# --- how the sequencer ran (station.sequencer_settings) ----------------------------------------------
-class SettleRecord(Recorded):
-    """`labcal.config.settings.SettleSettings` as the run's journal kept it (validated there)."""
-
-    tau_s: float
-    noise_v: float
-    sensitivity_v_per_g: float
-    samples: int
-    k_sigma: float
-    max_dwell_s: float
-    fixed_dwell_s: float | None
-    mode: str | None = None  # "detect" or "model" (absent: issued before model settling)
-    pool: str | None = None  # whose step records model settling starts with (absent: before pools)
-    instrument_type: str | None = None
-    prior: str | None = None  # whose other instruments' records a new one's pool starts from
-    prior_records: int | None = None
-    leftover: float | None = None  # the transient a reading may keep, in σ/√N (absent: σ/√N)
-    off_axis_arcsec: float | None = None  # gravity off the tables' axes the dead time allows for (absent: 0)
-
-
-class SequencerRecord(Recorded):
-    """`labcal.config.settings.SequencerSettings` as the run's journal kept it."""
-
-    settle: SettleRecord
-    order: str
-    seed: int
-    move_timeout_s: float
-    position_tolerance_deg: float
-    check_mount: bool
-    on_failure: str
-    speed_dps: float
-    accel_dps2: float
-    thermal_gate: dict[str, float] | None = None  # absent: no gate (or issued before it existed)
-
-
-class Endpoint(Strict):
-    """Where an emulator listened (`sim.emulation.Emulation.endpoints`)."""
-
-    devices: list[str]
-    protocol: str
-    address: str
-
-
-class SimulatedTruth(Recorded):
-    """The simulated instrument and calibration device a dry run (or an emulated one) measured: the
-    truth its results can be compared with."""
-
-    coefficients: list[list[float]]
-    misalignment_deg: dict[str, float]
-    seed: int
-    time_scale: float | None = None  # emulated runs: emulated seconds per wall second
-    endpoints: list[Endpoint] | None = None
+from labcal.config.run_metadata import Recorded, Strict
 
 
 # --- the fit (fit.layout, fit.extensions, fit.replication) -----------------------------------------

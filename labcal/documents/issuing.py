@@ -34,6 +34,7 @@ from labcal.config.json_values import json_safe
 from labcal.config.lab import certificate_settings
 from labcal.config.plans import plan_correction
 from labcal.config.readings_csv import coefficient_units
+from labcal.config.run_metadata import Checklist
 from labcal.config.settings import CertificateSettings
 from labcal.config.station import CertificateSection, load_certificate_settings
 from labcal.config.uncertainty import overdue_standards
@@ -353,7 +354,7 @@ def kept_identification(previous: Certificate | None, item: ItemGiven, serial: s
     return item, serial or previous.instrument.serial, operator or previous.operator
 
 
-def override_statement(checklist: object) -> list[str]:
+def override_statement(checklist: Checklist | None) -> list[str]:
     """The certificate's statement of `checklist_overrides` (none: an empty list)."""
     found = checklist_overrides(checklist)
     if not found:
@@ -445,7 +446,7 @@ def build_certificate(record: RunRecord, fit: Fit, settings: CertificateSettings
         "issued_utc": (issued_utc or datetime.now(UTC)).isoformat(timespec="seconds"),
         "station": {"description": meta.station or "", "device_id": meta.device_id,
                     "simulated": record.simulated,
-                    "sequencer_settings": meta.settings or {},
+                    "sequencer_settings": meta.settings,
                     "simulated_truth": meta.simulated_truth},
         "plan": {"name": record.plan.name, "sha256": hashlib.sha256(record.plan_text.encode()).hexdigest(),
                  "toml": record.plan_text, "replicates": record.plan.replicates,

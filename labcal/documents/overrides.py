@@ -13,24 +13,19 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
-from datetime import date
 
 from labcal.config.dates import written_date
-from labcal.config.run_metadata import RunMetadata
+from labcal.config.run_metadata import Checklist, RunMetadata, StandardOverride
 
 FAULT_PAUSE = "fault: "  # how the sequencer's pause on a device fault begins its reason
 OPERATOR_RESUMED = "operator resumed"  # the resume event of an answered pause (not `labcal resume`'s)
 
 
-def checklist_overrides(checklist: object) -> list[str]:
+def checklist_overrides(checklist: Checklist | None) -> list[str]:
     """The pre-run checklist items a run went on regardless of (run.json's ``checklist``: unmet, and
     the operator said to go on), each as "item: what was found". The approver signs what the run was
     measured under, so the certificate states them; nothing when the run met its checklist."""
-    if not isinstance(checklist, dict) or not checklist.get("went_on_regardless"):
-        return []
-    items = checklist.get("items") or []
-    return [f"{i.get('item')}: {i.get('message')}" for i in items
-            if isinstance(i, dict) and i.get("status") == "fail"]
+    return [] if checklist is None else [f"{i.item}: {i.message}" for i in checklist.overridden()]
 
 
 @dataclass(frozen=True)
@@ -53,42 +48,37 @@ class Override:
 
 
 def _checklist(meta: RunMetadata) -> list[Override]:
-    checklist = meta.checklist
     operator = meta.operator or "the operator"
     started = meta.started_utc
     found = []
-    for line in checklist_overrides(checklist):
+    for line in checklist_overrides(meta.checklist):
         item, _, message = line.partition(": ")
         found.append(Override("warm-up" if item == "warm-up" else "checklist item", f"{item}: {message}",
                               operator, "the operator said to go on at the pre-run checklist", started))
     return found
 
 
-def _day(text: object) -> str:
-    """An ISO date as people write it (as journaled; anything else as it is)."""
-    try:
-        return written_date(date.fromisoformat(str(text)))
-    except ValueError:
-        return str(text)
-
-
 STANDARD_OVERRIDE_EVENT = "standard_override"  # journaled where a resumed run goes on under one
+
+
+def resumed_overrides(events: Iterable[dict]) -> list[StandardOverride]:
+    """The approvers' overrides a run resumed under, as its ``standard_override`` events journal them."""
+    return [StandardOverride.model_validate(e["data"]) for e in events
+            if e.get("kind") == STANDARD_OVERRIDE_EVENT]
 
 
 def _standards(meta: RunMetadata, events: Iterable[dict]) -> list[Override]:
     """The overrides a run started under (its metadata) and those it resumed under (its events), once each."""
     found, seen = [], set()
-    resumed = [e.get("data") for e in events if e.get("kind") == STANDARD_OVERRIDE_EVENT]
-    for held in [*(meta.standard_overrides or []), *resumed]:
-        if not isinstance(held, dict) or (held.get("serial"), held.get("recorded_utc")) in seen:
+    for held in [*(meta.standard_overrides or []), *resumed_overrides(events)]:
+        if (held.serial, held.recorded_utc) in seen:
             continue
-        seen.add((held.get("serial"), held.get("recorded_utc")))
+        seen.add((held.serial, held.recorded_utc))
         found.append(Override(
             "reference standard",
-            f"reference standard {held.get('serial')} was overdue (due {_day(held.get('due_on'))}) and used "
-            f"under an override valid until {_day(held.get('valid_until'))}",
-            f"{held.get('approver')} ({held.get('role')})", str(held.get("reason") or ""),
-            held.get("recorded_utc")))
+            f"reference standard {held.serial} was overdue (due {written_date(held.due_on)}) and used "
+            f"under an override valid until {written_date(held.valid_until)}",
+            f"{held.approver} ({held.role})", held.reason, held.recorded_utc))
     return found
 
 

@@ -284,11 +284,12 @@ def package_budget(fit: Fit, section: PackageSection, inputs: dict[str, Any], un
 def record_section(record: RunRecord, fit: Fit, settings: CertificateSettings) -> PackageSection:
     """A package run's section (`package_section` of its fit, how roll is obtained as the run
     recorded it), with the calibration's temperature range and the model's reference temperature."""
-    use = record.meta.package or {}
+    use = record.meta.package
     package = package_of(fit.sensors)
-    roll_in_use = use.get("roll_in_use") or ("inferred" if package == "two-axis-xy" else "table")
-    section = package_section(fit, package, roll_in_use, use.get("roll_sd_deg"), settings.usage_pitch_deg,
-                              settings.usage_roll_deg, settings.attitude_u95_max_deg)
+    roll_in_use = (use.roll_in_use if use else None) or ("inferred" if package == "two-axis-xy" else "table")
+    section = package_section(fit, package, roll_in_use, use.roll_sd_deg if use else None,
+                              settings.usage_pitch_deg, settings.usage_roll_deg,
+                              settings.attitude_u95_max_deg)
     temps = record.readings.temp_c
     if temps is not None:
         low, high = float(np.min(temps)), float(np.max(temps))

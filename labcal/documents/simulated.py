@@ -25,6 +25,7 @@ residuals, so in the fit's Type A.
 
 from __future__ import annotations
 
+from labcal.config.run_metadata import SequencerRecord
 from labcal.config.snapshot import StationSnapshot, simulator_inputs
 from labcal.config.station import CertificateSection
 
@@ -33,12 +34,12 @@ NOTICE = ("SIMULATED: these results come from a dry run on labcal's simulated ri
           "approved")
 
 
-def with_simulator_inputs(section: CertificateSection, station: StationSnapshot | None, settings: dict
-                          ) -> CertificateSection:
+def with_simulator_inputs(section: CertificateSection, station: StationSnapshot | None,
+                          settings: SequencerRecord | None) -> CertificateSection:
     """``section`` with the simulator's own Type B inputs where the run was simulated (``settings``:
     the run's sequencer settings, for the samples per reading); unchanged for real devices."""
     rig = None if station is None else station.simulator_rig()
     if rig is None:
         return section
-    samples = int(((settings or {}).get("settle") or {}).get("samples") or 1)
+    samples = 1 if settings is None else settings.settle.samples
     return section.model_copy(update={"uncertainty": simulator_inputs(rig, samples)})

@@ -70,7 +70,7 @@ def bench_section(record: RunRecord, station: str | Path | None) -> CertificateS
     if isinstance(record.station, StationFileSnapshot):
         section = record.station.section(f"{record.directory}: the run's station")
     # a dry run: the simulator's own error sources at their simulated sizes
-    return with_simulator_inputs(section, record.station, record.meta.settings or {})
+    return with_simulator_inputs(section, record.station, record.meta.settings)
 
 
 def device_misalignment_u(device: DeviceFit | None) -> dict[str, float]:
@@ -82,19 +82,12 @@ def device_misalignment_u(device: DeviceFit | None) -> dict[str, float]:
     return {name: float(u) for name, u in zip(MISALIGNMENT_NAMES, noise_u, strict=True)}
 
 
-def type_b_inputs(section: CertificateSection, record: RunRecord, device: DeviceFit | None = None
-                  ) -> TypeBInputs:
-    """The bench's inputs in SI; the temperature half-range is the run's own (none without a channel);
-    the device misalignments' standard uncertainties where the ``device`` model estimated them, or
-    where the run's plan corrected for them (its ``[device_correction]``'s u)."""
-    device_misalignment = device_misalignment_u(device)
-    correction = None if device is not None else \
-        plan_correction(record.plan_text, f"{record.directory}: the run's plan")
-    if correction is not None:  # the plan's misalignments, corrected for: their u as it carries it
-        device_misalignment = correction.u_rad()
+def section_type_b(section: CertificateSection, unit: str, temperature_half_range_k: float) -> TypeBInputs:
+    """The budget's Type B inputs in SI from what a bench states of itself (its station file's
+    [uncertainty] and DMM, or the simulator's own, `labcal.documents.simulated`), for outputs in
+    ``unit``: the one mapping, for a finished run's certificate (`type_b_inputs`) and for a plan's
+    prediction before any run (`labcal.app.planning`)."""
     u = section.uncertainty
-    t = record.readings.temp_c
-    unit = record.readings.units
     conditions = (f"{section.dmm.range_v:g} V range at {section.dmm.nplc:g} PLC"
                   + (" (the 34970A's published accuracy assumes ≥ 1 PLC: add its reading-speed error to "
                      "dmm_range)" if section.dmm.nplc < 1 else ""))
@@ -110,11 +103,24 @@ def type_b_inputs(section: CertificateSection, record: RunRecord, device: Device
         dmm_noise_v=u.dmm_noise * (volts or 0.0), dmm_conditions=conditions, output_unit=unit,
         pitch_index=u.pitch_index, pitch_wobble=u.pitch_wobble, roll_index=u.roll_index,
         roll_wobble=u.roll_wobble, mount_repeatability=u.mount_repeatability,
-        common=section.dmm.common_inputs(u.common),
-        temperature_half_range_k=0.0 if t is None else float(np.ptp(t)) / 2,
-        bias_tempco_v_per_k=u.bias_tempco, sensitivity_tempco_per_k=u.sensitivity_tempco,
-        device_misalignment=device_misalignment,
-        device_misalignment_source="" if correction is None else correction.describe())
+        common=section.dmm.common_inputs(u.common), temperature_half_range_k=temperature_half_range_k,
+        bias_tempco_v_per_k=u.bias_tempco, sensitivity_tempco_per_k=u.sensitivity_tempco)
+
+
+def type_b_inputs(section: CertificateSection, record: RunRecord, device: DeviceFit | None = None
+                  ) -> TypeBInputs:
+    """The bench's inputs in SI (`section_type_b`); the temperature half-range is the run's own (none
+    without a channel); the device misalignments' standard uncertainties where the ``device`` model
+    estimated them, or where the run's plan corrected for them (its ``[device_correction]``'s u)."""
+    device_misalignment = device_misalignment_u(device)
+    correction = None if device is not None else \
+        plan_correction(record.plan_text, f"{record.directory}: the run's plan")
+    if correction is not None:  # the plan's misalignments, corrected for: their u as it carries it
+        device_misalignment = correction.u_rad()
+    t = record.readings.temp_c
+    inputs = section_type_b(section, record.readings.units, 0.0 if t is None else float(np.ptp(t)) / 2)
+    return replace(inputs, device_misalignment=device_misalignment,
+                   device_misalignment_source="" if correction is None else correction.describe())
 
 
 def envelope(settings: CertificateSettings) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

@@ -25,13 +25,13 @@ from labcal.analysis.declared_noise import (
 from labcal.analysis.gross_errors import SENSORS, Flag, fit_flags, implausible_volts, t_threshold
 from labcal.analysis.kinematics import ARCSEC
 from labcal.analysis.readings import Readings
+from labcal.config.settings import SettleSettings
 from labcal.config.snapshot import (
     StationFileSnapshot,
     StationSnapshot,
     stated_angle_errors,
     stated_mount_repeatability,
 )
-from labcal.errors import LabcalError
 from labcal.store.exports import run_fits
 
 IN_POSITION_ARCSEC = 5.0  # a table's default read-back tolerance (the station file's in_position_arcsec)
@@ -67,21 +67,21 @@ class Verdict:
         return "; ".join(parts)
 
 
-def declared_of(settle: dict, station: StationSnapshot | None) -> Declared | None:
+def declared_of(settle: SettleSettings, station: StationSnapshot | None) -> Declared | None:
     """What the run's station declares: its settle settings' noise per sample and samples per point
     (as journaled with the run), its tables' stated index and wobble errors; None where it states no
     angle errors (`NO_ANGLE_ERRORS`)."""
     errors = stated_angle_errors(station)
     if errors is None:
         return None
-    declared = Declared.of(settle["noise_v"], settle["samples"], errors)
+    declared = Declared.of(settle.noise_v, settle.samples, errors)
     seating = stated_mount_repeatability(station)  # each remount seats the plate anew: pitch, roll, yaw
     return declared if not seating else replace(declared, angle_half_widths=(*declared.angle_half_widths,
                                                                                 (seating, 3)))
 
 
 def check_readings(readings: Readings, plan_text: str, station: StationSnapshot | None,
-                   settle: dict) -> Verdict:
+                   settle: SettleSettings) -> Verdict:
     """Every check of ``readings`` (a run's good points, one row each). LabcalError where they cannot
     be fitted at all (too few points): nothing to judge them by."""
     present = ~np.isnan(readings.volts).all(axis=0)  # a package's sensors: the absent ones are all NaN
@@ -94,10 +94,7 @@ def check_readings(readings: Readings, plan_text: str, station: StationSnapshot 
         units = readings.units
         return Verdict(tuple(flags), None, "; ".join(filter(None, (
             package, f"the noise is declared in volts, the readings are in {units}"))))
-    try:
-        declared = declared_of(settle, station)
-    except (KeyError, TypeError, ValueError) as exc:
-        raise LabcalError(f"the run's settle settings do not state its noise ({exc})") from None
+    declared = declared_of(settle, station)
     if declared is None:
         return Verdict(tuple(flags), None, "; ".join(filter(None, (package, NO_ANGLE_ERRORS))))
     noise = noise_check(readings, fit.coefficients[1:], declared)
@@ -111,13 +108,13 @@ def repeatability_rad(station: StationSnapshot | None) -> tuple[float, float]:
     table stops (its in-position tolerance; the simulated tables', 5″) and how the plate re-seats
     the instrument at a remount (its mount repeatability, each of pitch, roll and yaw)."""
     if isinstance(station, StationFileSnapshot):
-        tables = [station.station.get(name, {}) for name in ("pitch", "roll")]
-        stop = max(float(t.get("in_position_arcsec", IN_POSITION_ARCSEC)) for t in tables) * ARCSEC
+        stated = [station.device(name).in_position_arcsec for name in ("pitch", "roll")]
+        stop = max(IN_POSITION_ARCSEC if t is None else t for t in stated) * ARCSEC
         return stop, float(station.section().uncertainty.mount_repeatability)
     return IN_POSITION_ARCSEC * ARCSEC, stated_mount_repeatability(station)  # the rig's, as a half-width
 
 
-def closure(before: tuple[list[float], int], after: tuple[list[float], int], settle: dict,
+def closure(before: tuple[list[float], int], after: tuple[list[float], int], settle: SettleSettings,
             station: StationSnapshot | None, remounted: bool, alpha: float = NOISE_ALPHA) -> str | None:
     """Why the rig is not where it was when a reading (``before``: mean volts and samples) was taken
     at the same attitude as ``after`` (None: it is). The difference of the two scatters by the
@@ -127,7 +124,7 @@ def closure(before: tuple[list[float], int], after: tuple[list[float], int], set
     angle and cancel. A table or coupling that slipped since moves it by |S|·slip."""
     (v0, n0), (v1, n1) = before, after
     stop, seat = repeatability_rad(station)
-    noise_v, reach = float(settle["noise_v"]), float(settle["sensitivity_v_per_g"])
+    noise_v, reach = settle.noise_v, settle.sensitivity_v_per_g
     angle_var = 4 * (stop * RECTANGULAR) ** 2 + (6 * (seat * RECTANGULAR) ** 2 if remounted else 0.0)
     sd = float(np.sqrt(noise_v**2 / n0 + noise_v**2 / n1 + reach**2 * angle_var))
     diff = np.asarray(v1, dtype=float) - np.asarray(v0, dtype=float)

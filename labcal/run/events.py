@@ -287,6 +287,16 @@ Event = Annotated[PointMeasured | Prompt | Answer | Fault | Paused | Resumed | S
 EVENTS: TypeAdapter[Event] = TypeAdapter(Event)  # reads an event back from its JSON (a stream's client)
 KINDS = frozenset(cls.model_fields["kind"].default for cls in (PointMeasured, Prompt, Answer, Fault, Paused,
                                                                Resumed, Stopped, Discarded, Note, Status))
+SCHEMA_FILE = "schemas/run-events.schema.json"
+
+
+def json_schema() -> dict[str, Any]:
+    """The published JSON Schema (draft 2020-12) of a run's events as a subscriber's or a stream
+    client's JSON carries them (`RunEvent.model_dump_json`: a point without the journal's record and
+    samples), one kind each, told apart by ``kind``: `SCHEMA_FILE`, written by
+    tools/run_events_schema.py, so that a program that follows a run reads its events without labcal."""
+    return {"$schema": "https://json-schema.org/draft/2020-12/schema",
+            **EVENTS.json_schema(mode="serialization"), "title": "labcal run event"}
 
 Handler = Callable[[RunEvent], None]
 

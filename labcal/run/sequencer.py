@@ -670,11 +670,10 @@ class Sequencer:
         readings' order; None where they cannot be fitted yet (the run's end says so)."""
         row = self.journal.run(self.run_id)
         points = self.journal.points(self.run_id, status="ok")
-        settle = self.settings.settle.model_dump()
         try:
             station = parse_snapshot(row.station_text)
             readings = replace(self.journal.readings(self.run_id), units=output_units(station))
-            return check_readings(readings, row.plan_text, station, settle), points
+            return check_readings(readings, row.plan_text, station, self.settings.settle), points
         except LabcalError:
             return None, points
 
@@ -739,7 +738,7 @@ class Sequencer:
         if before is None:
             return
         now = self.until_done(self.check_again, mount)
-        moved = closure(before, now, self.settings.settle.model_dump(),
+        moved = closure(before, now, self.settings.settle,
                         parse_snapshot(self.journal.run(self.run_id).station_text), remounted=False)
         if moved:
             pitch, roll = CHECK_ATTITUDE
@@ -777,7 +776,7 @@ class Sequencer:
                 self.until_done(self.check_again, mount)
             if mount not in before:
                 raise ReadingsRefused(f"{refused}, and {mount} has no mount check to return to")
-            moved = closure(before[mount], self.checked()[mount], self.settings.settle.model_dump(),
+            moved = closure(before[mount], self.checked()[mount], self.settings.settle,
                             parse_snapshot(self.journal.run(self.run_id).station_text), remounted)
             if moved:
                 pitch, roll = CHECK_ATTITUDE

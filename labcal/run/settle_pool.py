@@ -94,7 +94,7 @@ def _key(row: RunRow, settle: SettleSettings, instrument: dict[str, object], wit
         described = snapshot.station
         station = {name: {k: v for k, v in (described.get(name) or {}).items() if k not in LINK_FIELDS}
                    for name in ("pitch", "roll", "dmm")}
-        station["identities"] = parse_run_metadata(row.metadata).device_identity
+        station["identities"] = _identities(row)
         emulated = snapshot.simulator_rig()
         if emulated is not None:
             rig = dict(emulated)
@@ -103,13 +103,20 @@ def _key(row: RunRow, settle: SettleSettings, instrument: dict[str, object], wit
             station["emulated rig"] = rig
             noise = f"seed {snapshot.seed}"
     else:  # not a snapshot labcal wrote: the text itself is the station
-        station = {"text": row.station_text, "identities": parse_run_metadata(row.metadata).device_identity}
+        station = {"text": row.station_text, "identities": _identities(row)}
     if truth is not None and with_truth:
         instrument["simulated truth"] = truth
     identity = {"instrument": instrument, "station": station,
                 "sums": {"layout": LAYOUT, "tau_s": settle.tau_s, "noise_v": settle.noise_v}}
     text = json.dumps(identity, sort_keys=True, separators=(",", ":"), default=str)
     return PoolKey(hashlib.sha256(text.encode()).hexdigest(), identity, row.uuid or str(row.id), noise)
+
+
+def _identities(row: RunRow) -> dict[str, dict] | None:
+    """The devices' identities the run journaled, as the documents it journaled (the pool's key hashes
+    their JSON, so it is the same key for every run of the same devices)."""
+    said = parse_run_metadata(row.metadata).device_identity
+    return None if said is None else {role: found.model_dump(mode="json") for role, found in said.items()}
 
 
 def _sources(text: str) -> list[dict]:

@@ -159,12 +159,13 @@ def test_a_return_to_the_check_attitude_flags_a_slip_and_good_returns_at_no_more
     on both readings, worked through g = [sin p, cos p sin r, cos p cos r] by hand — are refused
     within the binomial bound of its 0.5 %; a 0.05° roll slip on the way back (≈ 3.5 mV) always is."""
     from labcal.config.emulation import RigConfig
+    from labcal.config.settings import SettleSettings
     from labcal.config.snapshot import SimulatedRigSnapshot
     from labcal.run.checks import closure
     from labcal.run.mounting import CHECK_ATTITUDE
 
     station = SimulatedRigSnapshot(kind="simulated rig", seed=0, rig=RigConfig().model_dump())
-    settle = {"noise_v": NOISE_V, "sensitivity_v_per_g": float(np.max(np.abs(TRUTH.S)))}
+    settle = SettleSettings(noise_v=NOISE_V, sensitivity_v_per_g=float(np.max(np.abs(TRUTH.S))))
     rng = np.random.default_rng(11)
 
     def reading(pitch_err: float, roll_err: float) -> list[float]:

@@ -55,7 +55,8 @@ def test_an_overdue_standard_a_resumed_run_went_on_under_needs_the_approvers_eye
     """A resume journals its standard's override as an event, not in the run's metadata: the desk
     lists it as it lists one the run started under (the sentence the certificate states)."""
     held = {"serial": "DMM-1", "due_on": "2026-11-01", "valid_until": "2026-12-05", "approver": "Ann",
-            "role": "approver", "reason": "recalibration booked", "recorded_utc": "2026-11-20T09:00:00+00:00"}
+            "role": "approver", "reason": "recalibration booked", "key_id": "3013",
+            "recorded_utc": "2026-11-20T09:00:00+00:00"}  # as `labcal.app.standards.override_json` writes it
     said = ("Override (reference standard) by Ann (approver): reference standard DMM-1 was overdue (due "
             "1 November 2026) and used under an override valid until 5 December 2026; reason: "
             "recalibration booked.")

@@ -240,13 +240,13 @@ class Front:
         """The real checklist, unattended: an unmet item stops the run (as with --yes)."""
         from datetime import datetime
 
-        from labcal.bench.checklist import PowerOn, run_checklist, unmet
+        from labcal.bench.checklist import PowerOn, journaled, run_checklist, unmet
 
         now = datetime.now().astimezone()
         items = run_checklist(None, bench, station, db=self.tmp_path / "lab.sqlite", run_folder=self.tmp_path,
                               points=points, samples=samples, power=PowerOn(), now=now)
         assert not unmet(items), unmet(items)
-        return {"items": [item.to_json() for item in items]}
+        return journaled(items, PowerOn())
 
     def display(self, total, done):
         from contextlib import nullcontext

@@ -73,7 +73,7 @@ def test_a_run_is_simulated_by_its_metadata_or_its_snapshot():
     rig = parse_snapshot(json.dumps({"kind": "simulated rig", "seed": 1, "rig": {}}))
     real = parse_snapshot(json.dumps({"kind": "station", "station": {}, "emulate": False}))
     assert is_simulated(RunMetadata(), rig) and not is_simulated(RunMetadata(), real)
-    assert is_simulated(RunMetadata(simulated_truth={}), real)  # the metadata alone is enough
+    assert is_simulated(RunMetadata(simulated_truth=None), real)  # the metadata alone is enough, recorded
 
 
 def test_no_module_but_the_snapshot_model_decodes_the_journaled_station_text():
@@ -94,3 +94,23 @@ def test_no_module_but_the_snapshot_model_decodes_the_journaled_station_text():
             if decodes and "station_text" in ast.unparse(node):
                 decoders.append(f"{module.relative_to(package)}:{node.lineno}")
     assert decoders == []
+
+
+def test_a_journaled_stations_devices_read_by_attribute_none_where_an_older_journal_is_silent():
+    """The settings the documents and the run's checks name, as the station file journaled them (a
+    trimmed copy of an emulated az-modbus-tcp run's snapshot); a setting it lacks reads None, and
+    what it says beyond the named ones is kept as journaled."""
+    station = {"pitch": {"driver": "oriental-az", "unit": 1, "tcp": "127.0.0.1:0", "port": None,
+                         "in_position_arcsec": 5.0, "speed_dps": 20.0},
+               "roll": {"driver": "newport-smc100", "address": 2, "port": "/dev/ttyUSB0"},
+               "dmm": {"driver": "keysight-34970a", "tcp": "10.0.0.5:5025", "range_v": 10.0, "nplc": 1.0}}
+    snapshot = parse_snapshot(json.dumps({"kind": "station", "station": station, "emulate": False}))
+    assert isinstance(snapshot, StationFileSnapshot)
+    pitch, roll, dmm = (snapshot.device(role) for role in ("pitch", "roll", "dmm"))
+    assert (pitch.driver, pitch.unit, pitch.tcp or pitch.port, pitch.in_position_arcsec) == (
+        "oriental-az", 1, "127.0.0.1:0", 5.0)
+    assert (roll.address, roll.unit, roll.tcp or roll.port, roll.in_position_arcsec) == (
+        2, None, "/dev/ttyUSB0", None)
+    assert (dmm.range_v, dmm.nplc) == (10.0, 1.0)
+    assert pitch.model_extra == {"speed_dps": 20.0}
+    assert snapshot.device("thermometer").driver is None  # a role the station does not have

@@ -94,7 +94,7 @@ def test_a_real_station_keeps_its_own_inputs(tmp_path):
 
     section = CertificateSection()
     station = parse_snapshot(json.dumps({"kind": "station", "station": {}, "emulate": False}))
-    assert with_simulator_inputs(section, station, {}) is section
+    assert with_simulator_inputs(section, station, None) is section
 
 
 def test_the_dcc_states_sensitivities_per_metre_per_second_squared(dry):

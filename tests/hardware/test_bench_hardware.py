@@ -34,7 +34,7 @@ def test_every_device_identifies_itself(bench):
     bench.prepare(say=print)  # homes a table that is not referenced, enables it, configures the DMM
     print(bench.identities)
     assert set(bench.identities) == {"pitch", "roll", "dmm"}
-    assert all(identity["identity"] for identity in bench.identities.values())
+    assert all(identity.identity for identity in bench.identities.values())
 
 
 def test_status_and_one_scan(bench):

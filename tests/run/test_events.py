@@ -6,7 +6,9 @@ from __future__ import annotations
 import json
 import logging
 import time
+from pathlib import Path
 
+import jsonschema
 import numpy as np
 import pytest
 from conftest import quiet_console
@@ -18,6 +20,7 @@ from labcal.config.settings import SequencerSettings
 from labcal.run.estimate import estimate
 from labcal.run.events import (
     EVENTS,
+    SCHEMA_FILE,
     Answer,
     Discarded,
     EventBus,
@@ -29,6 +32,7 @@ from labcal.run.events import (
     Resumed,
     Status,
     Stopped,
+    json_schema,
 )
 from labcal.run.operator import AutoOperator
 from labcal.run.runner import calibrate
@@ -187,6 +191,42 @@ def sim_run(tmp_path, bus, plan_name="four-mount-64", seed=4):
     finally:
         journal.close()
     return result, steps, est
+
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_the_published_event_schema_is_the_one_the_models_generate():
+    """Edit an event's model and not the published file (tools/run_events_schema.py writes it): this fails."""
+    assert json.loads((ROOT / SCHEMA_FILE).read_text(encoding="utf-8")) == json_schema()
+
+
+def test_every_event_of_a_run_meets_the_published_schema_and_a_wrong_one_does_not(tmp_path):
+    """Checked with the `jsonschema` library (a second implementation of the checks) on what a
+    simulated run published, and on one event of each kind it did not (a fault, a pause ...)."""
+    schema = json.loads((ROOT / SCHEMA_FILE).read_text(encoding="utf-8"))
+    jsonschema.Draft202012Validator.check_schema(schema)
+    validator = jsonschema.Draft202012Validator(schema)
+    bus, events = EventBus(), []
+    bus.subscribe(events.append)
+    sim_run(tmp_path, bus, "one-mount-16")
+    others = [Answer(run_id=1, rig_time_s=2.0, what="pause", reply="", meaning="operator stopped",
+                     outcome="declined"),
+              Fault(run_id=1, rig_time_s=3.0, message="DMM timeout", policy="skip"),
+              Paused(run_id=1, rig_time_s=4.0, why="fault: DMM timeout", may_be_moving=("pitch",)),
+              Resumed(run_id=1, rig_time_s=5.0, why="operator resumed"),
+              Stopped(run_id=1, rig_time_s=6.0, cause="signal", failed="no answer", may_be_moving=("roll",)),
+              Discarded(run_id=1, rig_time_s=7.0, seq=3, attempt=1, reason="not settled", faulted=False,
+                        volts=(0.1, 0.2, 4.9), sd=(1e-5, 1e-5, 1e-5), samples=((0.1, 0.2, 4.9, None),)),
+              note(8)]
+    published = [json.loads(e.model_dump_json()) for e in [*events, *others]]
+    assert {doc["kind"] for doc in published} == {"point", "prompt", "answer", "fault", "pause", "resume",
+                                                  "stop", "discarded", "note", "status"}
+    assert [list(validator.iter_errors(doc)) for doc in published] == [[]] * len(published)
+    point = next(doc for doc in published if doc["kind"] == "point")
+    assert list(validator.iter_errors({**point, "mount": 5})) != []  # Soto Table 3 has four mounts
+    assert list(validator.iter_errors({**point, "kind": "points"})) != []
+    assert list(validator.iter_errors({k: v for k, v in point.items() if k != "volts"})) != []
 
 
 def test_the_event_stream_of_a_run_matches_its_journal_and_its_schedule(tmp_path):

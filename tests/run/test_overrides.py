@@ -11,6 +11,7 @@ import json
 from cli import cli
 from emulators import TIME_SCALE, no_leaks, private_file  # noqa: F401 - fixture
 
+from labcal.config.run_metadata import Checklist
 from labcal.documents.issuing import checklist_overrides, override_statement
 
 NO_STANDARDS = ("reference standards: the station names no reference standards ([[traceability]]): the "
@@ -50,15 +51,15 @@ def test_a_run_that_met_its_checklist_needs_no_attention(tmp_path, capsys):
 
 
 def test_only_the_unmet_items_of_a_run_that_went_on_are_stated():
-    checklist = {"went_on_regardless": True, "items": [
+    checklist = Checklist.model_validate({"went_on_regardless": True, "items": [
         {"item": "warm-up", "status": "fail", "message": "12 min of 30 since power-on."},
         {"item": "DMM", "status": "ok", "message": "configured"},
-        {"item": "reference standards", "status": "warning", "message": "overdue"}]}
+        {"item": "reference standards", "status": "warning", "message": "overdue"}]})
     assert checklist_overrides(checklist) == ["warm-up: 12 min of 30 since power-on."]
     assert override_statement(checklist) == [
         "The pre-run checklist was not met and the calibration went on at the operator's decision: "
         "warm-up: 12 min of 30 since power-on."]
-    assert override_statement({**checklist, "went_on_regardless": False}) == []
+    assert override_statement(checklist.model_copy(update={"went_on_regardless": False})) == []
     assert override_statement(None) == []
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import sqlite3
@@ -59,6 +60,11 @@ def test_a_simulated_instrument_is_its_truth_not_its_seed_and_a_station_its_devi
     assert pool_key(row(slower, "ACC-7"), MODEL).key != key
     other_dmm = {"dmm": {"model": "Keysight 34970A", "identity": "KEYSIGHT,34970A,MY1,1.0"}}  # as journaled
     assert pool_key(row(bench, "ACC-7", identity=other_dmm), MODEL).key != key
+    # the identities as journaled, the same documents (the pool of every earlier run keeps its key)
+    identified = pool_key(row(bench, "ACC-7", identity=other_dmm), MODEL)
+    assert identified.identity["station"]["identities"] == other_dmm
+    assert identified.key == hashlib.sha256(json.dumps(identified.identity, sort_keys=True,
+                                                       separators=(",", ":")).encode()).hexdigest()
     assert pool_key(row(bench, "ACC-8"), MODEL).key != key
     by_type = MODEL.model_copy(update={"pool": "type", "instrument_type": "QA-700"})
     assert pool_key(row(bench, "ACC-7"), by_type).key == pool_key(row(bench, "ACC-8"), by_type).key
