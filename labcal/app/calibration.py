@@ -14,10 +14,30 @@ import json
 from collections.abc import Callable
 from contextlib import AbstractContextManager, ExitStack
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal, Protocol
 
+from labcal.analysis.packages import package_problem
+from labcal.app.standards import standards_for_run
+from labcal.bench.setup import hardware_station, prepare, read_snapshot, sim_station, station_for_resume
+from labcal.config.files import validate_model
+from labcal.config.lab import certificate_settings, load_lab_config
+from labcal.config.plans import correction_toml, load_plan, plan_correction, plan_toml
+from labcal.config.snapshot import SimulatedRigSnapshot, is_simulated, parse_snapshot
+from labcal.config.station import load_station
+from labcal.devices.winding import left_at
 from labcal.errors import LabcalError
+from labcal.run.events import EventBus
+from labcal.run.interrupts import StopSignal, stop_signals_raise
+from labcal.run.operator import OperatorDeclined
+from labcal.run.runner import calibrate, execute, open_for_resume
+from labcal.run.sequencer import check_limits, schedule
+from labcal.store.journal import Journal, db_path, sha256, station_name
+from labcal.store.labquery import lab_number_of
+from labcal.store.lock import StationLock, station_locks
+from labcal.store.rundir import new_run_dir, points_on_disk
+from labcal.store.sync import check_server, ready, sending
 
 if TYPE_CHECKING:
     from labcal.analysis.plan import Plan
@@ -160,7 +180,6 @@ def sequencer_settings_for_run(args: StartRun, setup: StationSetup, speed: float
                                ) -> SequencerSettings:
     """The run's sequencer settings: the options over the station's (``station_gate``: its
     [instrument] thermal_gate; --thermal-gate overrides it)."""
-    from labcal.config.files import validate_model
     from labcal.config.settings import SequencerSettings, SettleSettings, ThermalGate
 
     settle = validate_model({**setup.settle.model_dump(), **{
@@ -179,8 +198,6 @@ def certificate_settings_for_run(args: StartRun | ResumeRun, station: Certificat
                                  source: str) -> CertificateSettings:
     """The lab file's certificate defaults, the station's [certificate] settings over them, and the
     command line's tolerances over both."""
-    from labcal.config.lab import certificate_settings
-
     usage = tuple(args.usage_pitch) if args.usage_pitch else None
     return certificate_settings(station, source).overridden(source, attitude_u95_max_deg=args.tolerance_deg,
                                                          usage_pitch_deg=usage)
@@ -219,12 +236,6 @@ def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Esti
     end into outcomes; at the end of a complete run store the device's estimate and issue its
     certificate and report (``certificate``: their settings) into the run's journal (``journal``: a
     resumed run's, which its folder names; else ``db``'s)."""
-    from labcal.run.events import EventBus
-    from labcal.run.interrupts import StopSignal
-    from labcal.run.operator import OperatorDeclined
-    from labcal.store.journal import db_path
-    from labcal.store.rundir import points_on_disk
-
     journal = journal or db_path(db)
     front.say(f"Run directory: {run_dir}", markup=False)  # a folder named run[1] is a name, not markup
     try:
@@ -280,17 +291,8 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
     emulators with ``emulate``): every angle checked before anything moves, the station locked
     for the run, then the shared sequence."""
     from labcal.analysis.plan import Plan
-    from labcal.bench.setup import hardware_station, prepare, sim_station
-    from labcal.config.plans import correction_toml, load_plan, plan_correction, plan_toml
-    from labcal.config.snapshot import SimulatedRigSnapshot
     from labcal.run.estimate import estimate
-    from labcal.run.interrupts import stop_signals_raise
     from labcal.run.notify import RunNotifier, lab_notifications
-    from labcal.run.runner import calibrate
-    from labcal.run.sequencer import check_limits, schedule
-    from labcal.store.journal import Journal, db_path
-    from labcal.store.rundir import new_run_dir
-    from labcal.store.sync import ready, sending
 
     if not args.sim and not args.station:
         raise LabcalError("no station given: use {0} for a dry run on the simulated rig, or {1} FILE "
@@ -394,8 +396,6 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
 def _run_name(metadata: RunMetadata, station_text: str, serial: str | None) -> RunName:
     """How the run's notifications name it: this bench as the lab database names it, the serial, and
     the lab server's page of the run where the lab file gives the server's address."""
-    from labcal.config.lab import load_lab_config
-    from labcal.config.snapshot import is_simulated, parse_snapshot
     from labcal.run.notify import RunName
 
     lab = load_lab_config()
@@ -406,8 +406,6 @@ def _run_name(metadata: RunMetadata, station_text: str, serial: str | None) -> R
 def _lab_label(journal: Path, db: str | Path | None) -> Callable[[int], str]:
     """How a notification names the run: by the lab's number (its provisional label until the lab
     has numbered it), as every bench, page and API answer does."""
-    from labcal.store.labquery import lab_number_of
-
     return lambda run_id: lab_number_of(journal, run_id, db)
 
 
@@ -451,8 +449,6 @@ def run_serial(args: StartRun, front: FrontEnd) -> tuple[str | None, str | None]
         front.say(f"note: {note}", markup=False)
     if not found.unregistered:
         return found.serial, None
-    from labcal.config.lab import load_lab_config
-
     if load_lab_config().file.instruments.allow_adhoc:
         front.say(f"note: {found.serial!r} is {ADHOC_ALLOWED} ([instruments] allow_adhoc)", markup=False)
         return found.serial, ADHOC_ALLOWED
@@ -467,11 +463,6 @@ def run_serial(args: StartRun, front: FrontEnd) -> tuple[str | None, str | None]
 def run_standards(named: list[str], db: str | None, front: FrontEnd) -> dict:
     """The reference standards the run uses, checked before anything moves (`labcal.app.standards`):
     an overdue one without an approver's override stops it in one line; what the run journals of them."""
-    from datetime import datetime
-
-    from labcal.app.standards import standards_for_run
-    from labcal.store.journal import station_name
-
     found = standards_for_run(named, station_name(), db, datetime.now().astimezone().date())
     for note in found.notes:
         front.say(f"note: {note}", markup=False)
@@ -487,8 +478,6 @@ def run_standards(named: list[str], db: str | None, front: FrontEnd) -> dict:
 def check_package(instrument: InstrumentSettings, envelope: CertificateSettings, station: str, plan: str
                   ) -> None:
     """Refuse a package that cannot give its angles over the certificate's usage envelope (Tripp §6)."""
-    from labcal.analysis.packages import package_problem
-
     roll = instrument.roll_source
     assert roll is not None  # the station file's validation requires it for a single axis
     problem = package_problem(instrument.package, roll, envelope.usage_pitch_deg, envelope.usage_roll_deg)
@@ -503,9 +492,6 @@ def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Pat
     taken over, with a note. A link the emulators choose (port 0, ``pty:NAME``) is no address
     yet: it is held once they have chosen it, by a second call with ``chosen``, the station as
     they serve it (`Emulation.station_config`)."""
-    from labcal.store.journal import db_path
-    from labcal.store.lock import StationLock, station_locks
-
     links = {(chosen.devices()[n] if chosen is not None else s).bus:
              (chosen.devices()[n] if chosen is not None else s).where
              for n, s in config.devices().items() if s.chosen_by_emulators == (chosen is not None)}
@@ -533,17 +519,9 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
     """Go on with an interrupted run at the first point not in the journal, on the station it
     started on or another station file of the same bench; then the shared sequence."""
     from labcal.app.folders import record_folder
-    from labcal.bench.setup import prepare, read_snapshot, sim_station, station_for_resume
     from labcal.config.settings import CertificateSettings
-    from labcal.config.station import load_station
-    from labcal.devices.winding import left_at
     from labcal.run.estimate import estimate
-    from labcal.run.interrupts import stop_signals_raise
     from labcal.run.notify import RunNotifier, lab_notifications
-    from labcal.run.runner import execute, open_for_resume
-    from labcal.run.sequencer import check_limits, schedule
-    from labcal.store.journal import sha256
-    from labcal.store.sync import check_server, sending
 
     run_dir = Path(args.run)
     check_server(args.db)  # a lab server behind or ahead of this labcal: refused before anything changes

@@ -42,6 +42,7 @@ from labcal.app.residuals import certified_residuals, residual_png
 from labcal.config.run_metadata import RunMetadata, listed_metadata
 from labcal.documents.certificate import Certificate, certificate_from_doc, format_result
 from labcal.documents.overrides import STANDARD_OVERRIDE_EVENT, checklist_overrides, run_overrides
+from labcal.documents.report_figures import in_volts
 from labcal.errors import LabcalError
 from labcal.store import lab_certificates, lab_view
 from labcal.store.lab_certificates import approved_runs
@@ -223,8 +224,6 @@ class Results:
 
 
 def _in_unit(value: float, unit: str) -> str:
-    from labcal.documents.report_figures import in_volts
-
     return in_volts(value, unit)
 
 

@@ -6,6 +6,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
+from labcal.analysis.fit import ROW_NAMES, SENSORS
+from labcal.analysis.kinematics import MISALIGNMENT_NAMES
+from labcal.documents.certificate import format_result
+from labcal.documents.history import RULE, certificates_read, changes, history_json, plot_history
+
 
 @dataclass(frozen=True)
 class Cell:
@@ -46,12 +53,6 @@ class InstrumentHistory:
 
 def instrument_history(request: InstrumentHistory) -> History:
     """Every certificate of an instrument, oldest first, each coefficient ± U, drift flagged."""
-    import numpy as np
-
-    from labcal.analysis.fit import ROW_NAMES, SENSORS
-    from labcal.documents.certificate import format_result
-    from labcal.documents.history import RULE, certificates_read, changes, history_json, plot_history
-
     certs, stale = certificates_read(request.serial, request.db, request.include_simulated)
     found = changes(certs)
     if request.plot:
@@ -89,7 +90,6 @@ class DeviceHistory:
 
 def device_history(request: DeviceHistory) -> History:
     """Every device-model estimate of a calibration device, oldest first, each ± U, changes flagged."""
-    from labcal.analysis.kinematics import MISALIGNMENT_NAMES
     from labcal.documents.device_history import RULE, changes, estimates_read, history_json, plot_history
 
     estimates, stale = estimates_read(request.device_id, request.db)

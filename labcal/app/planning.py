@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from labcal.config.plans import correction_toml, load_plan, plan_toml
 from labcal.errors import LabcalError
 
 if TYPE_CHECKING:
@@ -104,7 +105,6 @@ def optimized_plan_toml(plan, e, correction, target_deg: float, reference,
     """The plan file: the plan, what was predicted for it, and the device corrections it relies on."""
     from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES
     from labcal.config.corrections import DeviceCorrectionTable
-    from labcal.config.plans import correction_toml, plan_toml
 
     head = [f"# Written by labcal plan optimize --target-attitude-u95-deg {target_deg:g}.",
             f"# Run it with --samples {e.candidate.samples} (the measurement window it was planned with).",
@@ -166,7 +166,6 @@ def optimize_plan(target_u95_deg: float, station: str | None = None, device: str
     past calibration). ``device``: a calibration device whose in-control history may replace remounts."""
     from labcal.analysis import optimize
     from labcal.analysis.plan import Plan
-    from labcal.config.plans import load_plan
 
     if out and os.path.lexists(out):
         raise LabcalError(f"{out}: exists; choose another --out (or delete it first)")

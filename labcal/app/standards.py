@@ -27,6 +27,7 @@ from datetime import date, timedelta
 from typing import TYPE_CHECKING
 
 from labcal.errors import LabcalError
+from labcal.store.labdb import Unreachable, empty_in_file
 
 if TYPE_CHECKING:
     from labcal.app.labdatabase import LabDatabase
@@ -295,8 +296,6 @@ def standards_for_run(named: list[str], bench: str, db: str | None, today: date)
     before anything moves: a named serial the register lacks, and an overdue standard without an override
     that holds (`override_problem`), are refused in one line. A lab server out of reach is a note (a run
     never waits for it), as the instrument register's check is."""
-    from labcal.store.labdb import Unreachable, empty_in_file
-
     if not named and empty_in_file(db, "standards"):  # none registered in this lab file: none to check
         return RunStandards()
     from labcal.app.labdatabase import OpenLab, open_lab

@@ -14,6 +14,11 @@ from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from labcal.bench.checklist import PowerOn, refusal, run_checklist, unmet
+from labcal.run.operator import mount_request
+from labcal.store.journal import db_path
+from labcal.store.labdb import lab_server
+
 if TYPE_CHECKING:
     from labcal.analysis.kinematics import Mount
     from labcal.bench.hardware import Bench
@@ -34,8 +39,6 @@ class _Confirms:
         self.say = say
 
     def confirm_mount(self, mount: Mount, step: int, n_steps: int, note: str = "") -> None:
-        from labcal.run.operator import mount_request
-
         self.say(f"{mount_request(mount, step, n_steps, note)} (unattended: confirmed)")
 
     def after_pause(self, why: str, moving: tuple[str, ...] = ()) -> PauseChoice:
@@ -72,10 +75,6 @@ class Unattended:
         return _Confirms(self.say)
 
     def checklist(self, bench: Bench | None, station: Station, points: int, samples: int) -> dict:
-        from labcal.bench.checklist import PowerOn, refusal, run_checklist, unmet
-        from labcal.store.journal import db_path
-        from labcal.store.labdb import lab_server
-
         config = None if bench is None else bench.config
         items = run_checklist(config, bench, station, db=db_path(self.db),
                               run_folder=Path(self.out or "runs"), points=points, samples=samples,

@@ -29,7 +29,9 @@ from typing import TYPE_CHECKING, Literal
 
 from labcal.config.files import size_text
 from labcal.config.uncertainty import overdue_standards
+from labcal.drivers.errors import DriverError
 from labcal.errors import LabcalError
+from labcal.store.labdb import Unreachable, connect, open_server
 
 if TYPE_CHECKING:
     from labcal.bench.hardware import Bench
@@ -145,7 +147,6 @@ def tables_homed(bench: Bench | None, station: Station | None) -> Item:
             return Item(name, "fail", "; ".join(faults))
         return Item(name, "ok", "simulated tables: homed")
     # the drivers (pymodbus) only for a bench: a simulated run loads none of them
-    from labcal.drivers.errors import DriverError
     from labcal.drivers.oriental_az import AzAxis
 
     found: list[tuple[Status, str]] = []
@@ -175,8 +176,6 @@ def tables_homed(bench: Bench | None, station: Station | None) -> Item:
 
 def dmm(bench: Bench | None) -> Item:
     """The DMM identifies itself and holds the declared configuration, read back."""
-    from labcal.drivers.errors import DriverError
-
     name = "DMM"
     if bench is None:
         return Item(name, "ok", "simulated DMM: nothing to test")
@@ -232,8 +231,6 @@ def lab_database(path: Path, server: ServerDatabase | None = None) -> Item:
     """The journal opens as a run opens it; the lab's server, where there is one, answers at this
     labcal's schema. A server that cannot be reached is a warning, not a failure: a run never waits
     for it (its records stay in the journal and are sent when it is back)."""
-    from labcal.store.labdb import Unreachable, connect, open_server
-
     try:
         connect(path).close()
     except LabcalError as exc:

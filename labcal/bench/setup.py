@@ -16,7 +16,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from labcal.config.emulation import RigConfig, load_rig_config
+from labcal.config.files import one_line
+from labcal.config.snapshot import SimulatedRigSnapshot
 from labcal.errors import LabcalError
+from labcal.sim.clock import PacedClock, VirtualClock
+from labcal.sim.rig import SimRig
 
 if TYPE_CHECKING:  # the simulator and the drivers are imported where a station of theirs is made
     from labcal.bench.hardware import Bench
@@ -51,12 +56,8 @@ def sim_station(rig_file: str | None, seed: int | None, snapshot: str | None = N
     the snapshot: it changes how long a run takes on the wall's clock, not what it measures.
     ``package``: the simulated instrument's sensor package instead of the rig file's (it is part of
     the snapshot: a resume reads the same channels)."""
-    from labcal.config.emulation import RigConfig, load_rig_config
     from labcal.config.run_metadata import RunMetadata
-    from labcal.config.snapshot import SimulatedRigSnapshot
     from labcal.run.estimate import Timing
-    from labcal.sim.clock import PacedClock, VirtualClock
-    from labcal.sim.rig import SimRig
 
     if snapshot is not None:  # validated by today's model: defaults fill the fields added since
         journaled = SimulatedRigSnapshot.model_validate_json(snapshot)
@@ -204,7 +205,6 @@ def read_snapshot(text: str, run_name: str, started_with: str) -> StationFileSna
     validates is one line naming the field (``run_name``: the run; ``started_with``: its labcal)."""
     from pydantic import ValidationError
 
-    from labcal.config.files import one_line
     from labcal.config.snapshot import StationFileSnapshot, parse_snapshot
     from labcal.config.station import StationFile
 

@@ -9,8 +9,19 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     import numpy as np
 
+import json
+import math
+import tempfile
+from pathlib import Path
+
+from labcal.analysis import attitude
+from labcal.analysis.gross_errors import gravity_flags, methods_disagree
+from labcal.analysis.packages import package_attitude
 from labcal.commands import summary
-from labcal.commands.common import add_db_option, keep_freed_memory, outcome_of_checks
+from labcal.commands.common import add_db_option, err, keep_freed_memory, outcome_of_checks
+from labcal.config.readings_csv import read_numeric_csv
+from labcal.config.streams import read_stream
+from labcal.documents.approvers import calibration_in_use
 from labcal.errors import LabcalError
 
 CHUNK_ROWS = 10_000  # rows formatted and written at a time: output memory stays flat
@@ -31,16 +42,7 @@ def _columns(att, prefix: str) -> dict[str, np.ndarray]:
 
 def cmd_attitude(args: argparse.Namespace) -> int:
     keep_freed_memory()
-    import tempfile
-    from pathlib import Path
-
     import numpy as np
-
-    from labcal.analysis import attitude
-    from labcal.commands.common import err
-    from labcal.config.readings_csv import read_numeric_csv
-    from labcal.config.streams import read_stream
-    from labcal.documents.approvers import calibration_in_use
 
     cal, standing = calibration_in_use(args.cert, args.db, args.unverified)
     if not isinstance(cal, attitude.Calibration):  # a sensor package's certificate (Tripp & Tcheng §6)
@@ -66,8 +68,6 @@ def cmd_attitude(args: argparse.Namespace) -> int:
         if args.csv is None:
             Path(source).unlink()
     volts = np.column_stack([cols["vx"], cols["vy"], cols["vz"]])
-    from labcal.analysis.gross_errors import gravity_flags, methods_disagree
-
     methods = list(METHODS) if args.method == "both" else [args.method]
     # local gravity may differ from the calibration's: the sphere estimator takes |g| as 1 ± its
     # uncertainty, the gravity check tests only what lies beyond the tolerance
@@ -92,16 +92,7 @@ def package_attitude_command(args: argparse.Namespace, cal, standing: dict | Non
     """`labcal attitude` with a sensor package's certificate: the outputs of the sensors it has (vx, and
     vy or vz), pitch as it states (without roll, at a roll measured in use: --roll-deg or a roll_deg
     column, with --roll-sd-deg or its σ_R; or pitch and roll together within its usable range)."""
-    import json
-    import tempfile
-    from pathlib import Path
-
     import numpy as np
-
-    from labcal.analysis.packages import package_attitude
-    from labcal.commands.common import err
-    from labcal.config.readings_csv import read_numeric_csv
-    from labcal.config.streams import read_stream
 
     if standing is not None:
         from rich.markup import escape
@@ -169,9 +160,6 @@ def write_json_rows(table: dict[str, np.ndarray], methods: list[str], dof: int, 
                     standing: dict | None = None) -> None:
     """One JSON document, streamed: the rows are formatted a chunk at a time, never all held as
     Python objects (a hundred thousand rows of dicts took 700 MiB)."""
-    import json
-    import math
-
     names = {m: [k for k in table if k.startswith(PREFIX[m])] for m in methods}
     header = {"coverage": "U95 = k·u_c per row, u_c from the calibration's complete covariance (a "
                           "certificate's uncertainty budget: Type A and B with their correlations), "

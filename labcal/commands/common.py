@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import importlib
+import json
 import math
+import re
 import sys
 from collections.abc import Callable
 from datetime import date, datetime
@@ -91,8 +94,6 @@ def keep_freed_memory() -> None:
 
 def print_json(doc: dict) -> None:
     """One JSON document on stdout and nothing else (`--json`)."""
-    import json
-
     from labcal.config.json_values import json_safe
 
     sys.stdout.write(json.dumps(json_safe(doc), indent=2) + "\n")
@@ -193,8 +194,6 @@ def angle_deg(hi: float, plausible_max: float = PLAUSIBLE_U95_MAX_DEG) -> Callab
                 "(7.5arcsec, 7.5\", 0.5arcmin, 40urad)")
 
     def convert(text: str) -> float:
-        import re
-
         from labcal.config.uncertainty import UNITS  # pydantic: only when the option is given
 
         found = re.fullmatch(r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(\S*)\s*", text)
@@ -230,8 +229,6 @@ def bounded_field(model: str, field: str) -> Callable[[str], float]:
     only when the option is given: building the parser (`--help`) must not import pydantic."""
 
     def convert(text: str) -> float:
-        import importlib
-
         module, _, name = model.partition(":")
         info = getattr(importlib.import_module(module), name).model_fields[field]
         kind = int if info.annotation is int else float

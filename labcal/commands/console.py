@@ -6,11 +6,13 @@ import argparse
 from collections.abc import Iterable
 from contextlib import ExitStack, contextmanager
 from datetime import datetime
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 from rich import box
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -20,8 +22,12 @@ from rich.progress import (
 from rich.table import Table
 
 from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit
+from labcal.commands.common import err
+from labcal.errors import LabcalError
 from labcal.run.events import Discarded, Fault, PointMeasured, RunEvent, Status, Stopped
 from labcal.run.operator import GATE_KEY, QuietKeys, Terminal
+from labcal.store.journal import db_path
+from labcal.store.labdb import lab_server
 
 if TYPE_CHECKING:
     from labcal.bench.checklist import Item, PowerOn
@@ -204,8 +210,6 @@ CHECK_MARKS = {"ok": "[green]ok[/]", "warning": "[yellow]warning[/]", "fail": "[
 
 def print_checklist(console: Console, items: Iterable[Item]) -> None:
     """The pre-run checklist (`labcal.bench.checklist`), one line per item."""
-    from rich.markup import escape
-
     console.print("[bold]Pre-run checklist[/] (nothing moves):")
     for item in items:
         console.print(f"  {CHECK_MARKS[item.status]} {item.name}: {escape(item.why)}")
@@ -226,13 +230,7 @@ def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, 
     on; with --yes or --answers nobody is asked. Where the station asks for a warm-up and the
     command line did not say when the instrument was switched on, the operator at the terminal is
     asked. Returns what the run journals of it (its metadata: run.json, the manifest)."""
-    from pathlib import Path
-
     from labcal.bench.checklist import PowerOn, parse_power_on, refusal, run_checklist, unmet
-    from labcal.commands.common import err
-    from labcal.errors import LabcalError
-    from labcal.store.journal import db_path
-    from labcal.store.labdb import lab_server
 
     now = datetime.now().astimezone()
     power = power_on_given(args, now)

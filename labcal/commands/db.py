@@ -5,17 +5,18 @@ behind or ahead in one line, and this is the command that line names."""
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, out, print_json
+from labcal.errors import LabcalError
+from labcal.store import labdb
+from labcal.store.labdb import lab_database, lab_server
+from labcal.store.migrations import HEAD
 
 
 def cmd_db_upgrade(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from labcal.store import labdb
-    from labcal.store.labdb import lab_database
-
     where = lab_database(args.db)
     done = labdb.upgrade(where)
     roles = None
@@ -42,12 +43,7 @@ def cmd_db_upgrade(args: argparse.Namespace) -> int:
 
 def cmd_db_grant_station(args: argparse.Namespace) -> int:
     """`labcal db grant-station` and `labcal db grant-server`."""
-    import sys
-    from pathlib import Path
-
-    from labcal.errors import LabcalError
     from labcal.store import roles
-    from labcal.store.labdb import lab_server
 
     admin = lab_server(args.db)
     if admin is None:
@@ -81,10 +77,6 @@ def cmd_db_grant_station(args: argparse.Namespace) -> int:
 
 
 def cmd_db_status(args: argparse.Namespace) -> int:
-    from labcal.store import labdb
-    from labcal.store.labdb import lab_database
-    from labcal.store.migrations import HEAD
-
     where = lab_database(args.db)
     found = labdb.status(where)
     state = ("current" if found.revision == HEAD else "empty" if found.revision is None

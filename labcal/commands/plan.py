@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING
 
-from labcal.app.planning import CORRECTION_NOTE
+from labcal.app.planning import CORRECTION_NOTE, optimize_plan, package_verdict
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, angle_deg, bounded, bounded_field, err, out, print_json
+from labcal.config.plans import load_plan, plan_correction, plan_toml, shipped_plan_summaries
 from labcal.errors import LabcalError
 
 if TYPE_CHECKING:
@@ -17,8 +21,6 @@ if TYPE_CHECKING:
 
 def cmd_list(args: argparse.Namespace) -> int:
     """Plain text, not a rich table: listing two plans should not cost importing rich."""
-    from labcal.config.plans import shipped_plan_summaries  # tomllib: not on --help's path
-
     plans = shipped_plan_summaries()
     if args.json:
         print_json({"plans": plans})
@@ -33,8 +35,6 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 def cmd_show(args: argparse.Namespace) -> int:
     from rich.table import Table
-
-    from labcal.config.plans import load_plan
 
     plan, text = load_plan(args.plan)
     correction = relied_on(text)
@@ -61,22 +61,16 @@ def cmd_show(args: argparse.Namespace) -> int:
 
 def relied_on(text: str) -> dict | None:
     """The ``[device_correction]`` table of a plan written by `plan optimize --device`, or None."""
-    from labcal.config.plans import plan_correction
-
     table = plan_correction(text, "the plan")  # validated once already, by load_plan
     return None if table is None else table.model_dump()
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
-    import os
-    from pathlib import Path
-
     from pydantic import ValidationError
 
     from labcal.analysis import design
     from labcal.analysis.plan import Plan
     from labcal.config.files import one_line
-    from labcal.config.plans import plan_toml
 
     points = {
         "d1": lambda: design.d1(args.pitch_max, args.n_pitch, args.n_roll, args.roll_closed),
@@ -128,7 +122,6 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
 def cmd_merit(args: argparse.Namespace) -> int:
     from labcal.analysis import design
-    from labcal.config.plans import load_plan
 
     plan, _ = load_plan(args.plan)
     pitches = [p for p, _ in plan.points]
@@ -234,14 +227,11 @@ def cmd_audit(args: argparse.Namespace) -> int:
 
     from labcal.analysis.design import LEAK_ZERO, audit, audit_summary
     from labcal.analysis.device_model import Geometry, identifiability
-    from labcal.config.plans import load_plan
 
     plan, _ = load_plan(args.plan)
     leaks = audit(plan)
     summary = audit_summary(leaks)
     ident = identifiability(Geometry.of_plan(plan.points, plan.mounts))
-    from labcal.app.planning import package_verdict
-
     package = package_verdict(args.station) if args.station else None
     if args.json:
         print_json({"plan": plan.name, "zero_below": LEAK_ZERO,
@@ -280,8 +270,6 @@ def cmd_audit(args: argparse.Namespace) -> int:
 
 def identifiability_table(name: str, ident) -> Table:
     """Rank, condition and each misalignment's uncertainty per µg of reading noise."""
-    import math
-
     from rich.table import Table
 
     condition = "∞" if math.isinf(ident.condition) else f"{ident.condition:.3g}"
@@ -428,10 +416,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 # --- plan optimize -----------------------------------------------------------------
 def cmd_optimize(args: argparse.Namespace) -> int:
-    import math
-
     from labcal.analysis.kinematics import ARCSEC
-    from labcal.app.planning import optimize_plan
 
     result = optimize_plan(args.target_attitude_u95_deg, args.station, args.device, args.db, args.out,
                            said=lambda line: err.print(line, markup=False))
@@ -479,8 +464,6 @@ def cmd_optimize(args: argparse.Namespace) -> int:
 def plot_frontier(found, chosen, reference, target: float, path: str) -> None:
     """Every candidate's predicted rig time against its U95, the frontier, the target and the choice.
     U95 in degrees, the unit of --target-attitude-u95-deg, with arcseconds on the top axis."""
-    import math
-
     import matplotlib
 
     matplotlib.use("Agg")

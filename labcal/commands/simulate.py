@@ -3,11 +3,18 @@
 from __future__ import annotations
 
 import argparse
+import os
 from typing import TYPE_CHECKING
 
+from labcal.analysis.kinematics import IndexWobble
 from labcal.commands import summary
 from labcal.commands.common import SEED, bounded, err, print_json
+from labcal.config.emulation import InstrumentTruth
+from labcal.config.files import load_model
+from labcal.config.plans import load_plan
+from labcal.config.readings_csv import write_readings
 from labcal.errors import LabcalError
+from labcal.sim.direct import simulate_readings
 
 if TYPE_CHECKING:
     from labcal.analysis.kinematics import Misalignment
@@ -46,15 +53,6 @@ def parse_misalign(text: str) -> Misalignment:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    import os
-
-    from labcal.analysis.kinematics import IndexWobble
-    from labcal.config.emulation import InstrumentTruth
-    from labcal.config.files import load_model
-    from labcal.config.plans import load_plan
-    from labcal.config.readings_csv import write_readings
-    from labcal.sim.direct import simulate_readings
-
     if os.path.lexists(args.out) and not args.force:  # it may be a measured file: replace it only if told
         raise LabcalError(f"{args.out}: exists; choose another --out, or give --force to replace it")
     plan, _ = load_plan(args.plan)

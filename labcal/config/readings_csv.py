@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labcal.analysis.readings import Readings
+from labcal.config.files import read_text, write_atomic
 from labcal.errors import LabcalError
 
 REQUIRED = ("replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", "vx", "vy", "vz")
@@ -137,8 +138,6 @@ def _read_csv(path: str | Path, kind: str, required: tuple[str, ...], optional: 
             return _Csv(fast[0], comments, fast[1], piped)
         except LabcalError:
             pass  # say it with the exact line (blank lines are skipped above): read row by row
-
-    from labcal.config.files import read_text  # pydantic, which a clean file does not need
 
     text = read_text(path, kind) if piped is None else piped
     if not text.strip():
@@ -351,8 +350,6 @@ class ReadingsWriter:
         return self._file.getvalue()
 
     def close(self) -> None:
-        from labcal.config.files import write_atomic  # pydantic, which reading a clean file does not need
-
         write_atomic(self.path, self.text())
 
     def __enter__(self) -> ReadingsWriter:

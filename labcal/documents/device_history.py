@@ -29,7 +29,7 @@ from labcal.analysis.plan import Plan
 from labcal.config.corrections import DeviceCorrectionTable
 from labcal.config.files import write_json
 from labcal.config.lab import load_lab_config
-from labcal.config.plans import plan_correction
+from labcal.config.plans import DEVICE_CORRECTION, plan_correction
 from labcal.config.readings_csv import read_numeric_csv
 from labcal.config.run_metadata import RunMetadata
 from labcal.config.snapshot import stated_angle_errors
@@ -156,8 +156,6 @@ def in_sittings(estimates: list[DeviceEstimate]) -> list[DeviceEstimate]:
 
 def correction_uses(device_id: str, source: str, db: str | Path | None = None) -> int:
     """How many complete runs journaled in ``db`` corrected from ``device_id``'s estimate ``source``."""
-    from labcal.config.plans import DEVICE_CORRECTION, plan_correction
-
     path = db_path(db)
     if not path.is_file():
         return 0

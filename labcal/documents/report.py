@@ -16,7 +16,9 @@ from pathlib import Path
 from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.fit import Fit
 from labcal.config.files import write_atomic
+from labcal.documents import history
 from labcal.documents.certificate import Certificate, read_certificate, write_certificate
+from labcal.documents.dcc import DCC_FILE, write_dcc
 from labcal.documents.device_history import store_device_estimate
 from labcal.documents.report_figures import draw, figures
 from labcal.documents.report_html import render_html
@@ -95,9 +97,6 @@ def write_documents(cert: Certificate, record: RunRecord, fit: Fit, device: Devi
     """Every file an issue (or an approval) writes: certificate, report, history entry — through one
     function, so that making them one transaction changes one place. ``device``: the device model
     the certificate rests on (`fitted`), None where the linear model is used."""
-    from labcal.documents import history
-    from labcal.documents.dcc import DCC_FILE, write_dcc
-
     dcc_path = write_dcc(record.directory / DCC_FILE, cert)  # validated first: a bad one stops it all
     html_path, pdf_path = write_report(record.directory, cert, record, fit, device)
     # The history entry and the certificate file go together: the entry is committed first and the
@@ -114,9 +113,6 @@ def write_documents(cert: Certificate, record: RunRecord, fit: Fit, device: Devi
 def outputs_in_place(run_dir: str | Path, db: str | Path | None = None) -> bool:
     """Whether a complete run's certificate, its report and its history entry are all there and
     are of the run's current readings (after a kill during `labcal report` one may be missing)."""
-    from labcal.documents import history
-    from labcal.documents.dcc import DCC_FILE
-
     run_dir = Path(run_dir)
     if not all((run_dir / name).is_file() for name in (CERTIFICATE, DCC_FILE, REPORT_HTML, REPORT_PDF)):
         return False

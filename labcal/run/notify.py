@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from labcal.analysis.kinematics import MOUNTS
+from labcal.config.lab import load_lab_config
 from labcal.errors import LabcalError
 from labcal.run.events import Paused, Prompt, RunEvent, Status
 
@@ -287,7 +288,5 @@ def lab_notifications(warn: Warn) -> Notifications:
     """The notifications the lab asks for ($LABCAL_NOTIFY, else the lab file's ``notify``), their
     URLs checked by apprise now, before anything moves; with none, a `Notifications` that sends
     nothing."""
-    from labcal.config.lab import load_lab_config
-
     urls, source = load_lab_config().notify_urls()
     return Notifications(urls, source, warn)

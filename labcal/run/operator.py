@@ -10,6 +10,7 @@ prose wraps at word boundaries at its width; in a file or pipe each paragraph st
 from __future__ import annotations
 
 import os
+import select
 import sys
 from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
@@ -172,8 +173,6 @@ class QuietKeys:
         reads its own answer); nothing where stdin is not this process's terminal."""
         if self.fd is None or self.saved is None:
             return ""
-        import select
-
         keys = b""
         try:
             while select.select([self.fd], [], [], 0)[0] and len(keys) < 1024:

@@ -25,9 +25,13 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Iterable, Mapping, Sequence
+from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from labcal.config.lab import load_lab_config
+from labcal.store import labdb
 
 FORM = "labcal.journal-chain/1"
 UNCHAINED = "journaled before digests; not tamper-evident"
@@ -261,11 +265,6 @@ def copies(db: str | Path | None, run_uuid: str) -> list[tuple[str, ChainCheck]]
     """The run's chain recomputed in every database this station knows that holds it, as (where,
     check): the lab's server, when the lab database is one and can be reached, and the station's
     journal (the lab database itself when that is a SQLite file). Nothing is created or changed."""
-    from contextlib import closing
-
-    from labcal.config.lab import load_lab_config
-    from labcal.store import labdb
-
     found: list[tuple[str, ChainCheck]] = []
     where = labdb.lab_database(db)
     server = None if isinstance(where, Path) else where

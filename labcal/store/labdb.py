@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING
 from labcal.config.files import size_text
 from labcal.config.lab import DRIVER_HINT, ServerDatabase, database_location, load_lab_config
 from labcal.errors import LabcalError
+from labcal.store import migrations
 from labcal.store.migrations import HEAD
 
 if TYPE_CHECKING:
@@ -318,8 +319,6 @@ def _sqlite_engine(path: Path) -> Engine:
 def _steps(connection: Connection, found: Revision) -> None:
     """From ``found`` to the newest revision, inside the caller's transaction: a pre-Alembic file
     completed (version 0) and stamped at its version first."""
-    from labcal.store import migrations
-
     if found.legacy:
         if found.revision == "0000":
             for statement in BASELINE:

@@ -19,8 +19,9 @@ Every query is SQLAlchemy Core over `labcal.store.schema`'s tables, on either ba
 from __future__ import annotations
 
 import json
+import sqlite3
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -29,7 +30,9 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from labcal.config.lab import ServerDatabase
 from labcal.errors import LabcalError
 from labcal.store import labdb
+from labcal.store.journal import db_path
 from labcal.store.labdb import lab_database
+from labcal.store.sync import target_of
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Connection, Engine
@@ -93,9 +96,6 @@ def _sqlite(path: Path) -> Iterator[Connection]:
 def reading(db: str | Path | None, *, must_exist: bool = True) -> Iterator[tuple[Connection | None, Source]]:
     """A connection to the lab database for reads, and where it is. On a server that cannot be
     reached: this bench's journal instead (None when it has none), with the line saying so."""
-    from labcal.store.journal import db_path
-    from labcal.store.sync import target_of
-
     where = lab_database(db)
     if isinstance(where, Path):
         if not where.is_file():
@@ -318,11 +318,6 @@ def lab_number_of(journal: Path, run_id: int, db: str | Path | None = None) -> s
     """The label of this bench's run ``run_id`` as the lab knows it (a notification, a log line):
     its lab number where the journal has heard it, else its provisional label; on a SQLite lab
     database its own id."""
-    import sqlite3
-    from contextlib import closing
-
-    from labcal.store.sync import target_of
-
     where = lab_database(db)
     try:
         with closing(sqlite3.connect(f"file:{journal}?mode=ro", uri=True, timeout=5.0)) as conn:
@@ -385,9 +380,7 @@ def journal_run(db: str | Path | None, number: int) -> int:
     naming that bench."""
     from sqlalchemy import select
 
-    from labcal.store.journal import db_path
     from labcal.store.schema import runs, sync_runs
-    from labcal.store.sync import target_of
 
     where = lab_database(db)
     if isinstance(where, Path):

@@ -28,12 +28,14 @@ import hashlib
 import hmac
 import os
 import re
+import secrets
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from labcal.config.lab import ServerDatabase
 from labcal.errors import LabcalError
+from labcal.store import labdb
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Connection
@@ -154,8 +156,6 @@ def set_up(server: ServerDatabase) -> str:
     from sqlalchemy import text
     from sqlalchemy.exc import DBAPIError
 
-    from labcal.store import labdb
-
     engine = labdb.server_engine(server)
     try:
         with engine.begin() as connection:
@@ -251,12 +251,8 @@ def grant_server(admin: ServerDatabase, name: str, password: str | None = None,
 
 def _grant(admin: ServerDatabase, name: str, group: str, role: str, password: str | None,
            password_file: Path | None) -> Granted:
-    import secrets
-
     from sqlalchemy import text
     from sqlalchemy.exc import SQLAlchemyError
-
-    from labcal.store import labdb
 
     if password_file is not None and password is None:
         password = secrets.token_urlsafe(24)

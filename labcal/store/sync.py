@@ -36,6 +36,8 @@ from typing import TYPE_CHECKING, Any
 from labcal.config.lab import ServerDatabase, load_lab_config
 from labcal.errors import LabcalError
 from labcal.store import labdb
+from labcal.store.chain import append_audit
+from labcal.store.journal import Journal, db_path, utc_now
 from labcal.store.labdb import lab_database
 from labcal.store.roles import BENCH_CLOSES_RUNS
 
@@ -387,8 +389,6 @@ class Sender:
         digest it has in the journal (``origin``, unique: a row sent again is not appended again):
         (the new cursor or None, offered, appended). A role that may not write the audit trail (a
         bench's: it may not change the approvers either) has them passed over, once per push."""
-        from labcal.store.chain import append_audit
-
         rows = [] if passed else db.execute(
             "SELECT id, utc, kind, account, actor, client, detail, digest FROM audit WHERE id > ? "
             "ORDER BY id LIMIT ?", (after, BATCH)).fetchall()
@@ -610,8 +610,6 @@ class Background:
 def _run_event(journal: Path) -> Callable[[str], None]:
     """A journal event on the newest running run (the one this process measures)."""
     def record(message: str) -> None:
-        from labcal.store.journal import Journal
-
         try:  # through the journal's writer: the event takes its place in the run's chain
             with Journal(journal) as writer:
                 row = writer.db.execute("SELECT max(id) FROM runs WHERE status='running'").fetchone()
@@ -627,8 +625,6 @@ def ready(db: str | Path | None) -> None:
     reached at this labcal's schema (created if empty). A server behind or ahead refuses the run
     in one line; one that cannot be reached does not (the run never waits for it): the run's
     sender says so, once."""
-    from labcal.store.journal import db_path
-
     labdb.connect(db_path(db)).close()
     check_server(db)
     receive(db)
@@ -638,8 +634,6 @@ def receive(db: str | Path | None) -> dict[str, int]:
     """The lab's records this bench lacks copied into its journal (`Sender.pull`): before a run, so
     that it starts from the lab's settle pool and device history. A server that cannot be reached is
     not waited for (the run starts from what the journal last had)."""
-    from labcal.store.journal import db_path
-
     where = lab_database(db)
     journal = db_path(db)
     if isinstance(where, Path) or not journal.is_file():
@@ -693,8 +687,6 @@ def send_now(db: str | Path | None) -> str | None:
     """What this bench has just recorded (an approver registered or revoked, a certificate approved)
     sent to the lab's server at once, so that every bench sees it now; None when sent (or when the
     lab database is the journal itself), else the one line saying it waits for ``labcal sync``."""
-    from labcal.store.journal import db_path
-
     where = lab_database(db)
     journal = db_path(db)
     if isinstance(where, Path) or not journal.is_file():
@@ -731,6 +723,4 @@ SENT = ("INSERT INTO sync_sent (target, name, key, state) VALUES (?,?,?,?) "
 
 
 def _utc() -> str:
-    from labcal.store.journal import utc_now
-
     return utc_now()
