@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Literal, Protocol
 from labcal.analysis.packages import package_problem
 from labcal.app.standards import standards_for_run
 from labcal.bench.setup import hardware_station, prepare, read_snapshot, sim_station, station_for_resume
+from labcal.config import station as config_station
 from labcal.config.files import validate_model
 from labcal.config.lab import certificate_settings, load_lab_config
 from labcal.config.plans import correction_toml, load_plan, plan_correction, plan_toml
@@ -28,11 +29,13 @@ from labcal.config.snapshot import SimulatedRigSnapshot, is_simulated, parse_sna
 from labcal.config.station import load_station
 from labcal.devices.winding import left_at
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.run.events import EventBus
 from labcal.run.interrupts import StopSignal, stop_signals_raise
 from labcal.run.operator import OperatorDeclined
 from labcal.run.runner import calibrate, execute, open_for_resume
 from labcal.run.sequencer import check_limits, schedule
+from labcal.store import journal as store_journal
 from labcal.store.journal import Journal, db_path, sha256, station_name
 from labcal.store.labquery import lab_number_of
 from labcal.store.lock import StationLock, station_locks
@@ -40,20 +43,39 @@ from labcal.store.rundir import new_run_dir, points_on_disk
 from labcal.store.sync import check_server, ready, sending
 
 if TYPE_CHECKING:
+    from labcal.analysis import plan as analysis_plan
     from labcal.analysis.plan import Plan
+    from labcal.app import folders, instruments, run_documents
     from labcal.bench.hardware import Bench
     from labcal.bench.setup import StationSetup
+    from labcal.config import settings as config_settings
     from labcal.config.run_metadata import RunMetadata
     from labcal.config.settings import CertificateSettings, SequencerSettings, ThermalGate
     from labcal.config.station import InstrumentSettings, StationFile
     from labcal.devices.station import Station
+    from labcal.documents import device_history, overrides, report
     from labcal.documents.report import RunOutputs
+    from labcal.run import estimate as run_estimate
+    from labcal.run import notify
     from labcal.run.estimate import Estimate
     from labcal.run.events import RunEvent
     from labcal.run.notify import RunName, RunNotifier
     from labcal.run.operator import Operator, Terminal
     from labcal.run.runner import RunResult
+    from labcal.store import record as store_record
     from labcal.store.sync import Background
+else:
+    analysis_plan = lazy("labcal.analysis.plan")  # start-up without numpy, pydantic
+    config_settings = lazy("labcal.config.settings")  # start-up without pydantic
+    device_history = lazy("labcal.documents.device_history")  # start-up without scipy, numpy, pydantic
+    folders = lazy("labcal.app.folders")  # start-up without scipy, numpy, pydantic, …
+    instruments = lazy("labcal.app.instruments")  # start-up without matplotlib, scipy, numpy, …
+    notify = lazy("labcal.run.notify")  # start-up without scipy, numpy, pydantic
+    overrides = lazy("labcal.documents.overrides")  # start-up without pydantic
+    report = lazy("labcal.documents.report")  # start-up without matplotlib, scipy, numpy, …
+    run_documents = lazy("labcal.app.run_documents")  # start-up without matplotlib, scipy, numpy, …
+    run_estimate = lazy("labcal.run.estimate")  # start-up without scipy, numpy, pydantic, …
+    store_record = lazy("labcal.store.record")  # start-up without scipy, numpy, pydantic
 
 
 class Display(Protocol):
@@ -180,18 +202,26 @@ def sequencer_settings_for_run(args: StartRun, setup: StationSetup, speed: float
                                ) -> SequencerSettings:
     """The run's sequencer settings: the options over the station's (``station_gate``: its
     [instrument] thermal_gate; --thermal-gate overrides it)."""
-    from labcal.config.settings import SequencerSettings, SettleSettings, ThermalGate
-
     settle = validate_model({**setup.settle.model_dump(), **{
         k: v for k, v in (("samples", args.samples), ("fixed_dwell_s", args.fixed_dwell),
                           ("max_dwell_s", args.max_dwell),
-                          ("mode", args.settle)) if v is not None}}, SettleSettings,
+                          ("mode", args.settle)) if v is not None}}, config_settings.SettleSettings,
         "command line: settle")  # validated: the options and the station file share one range
-    gate = None if args.thermal_gate is None else ThermalGate(rate_c_per_min=args.thermal_gate[0],
-                                                                hold_s=args.thermal_gate[1])
-    return SequencerSettings(settle=settle, order=args.order, seed=args.seed or 0,
-                             on_failure=args.on_failure, check_mount=not args.no_mount_check,
-                             speed_dps=speed, accel_dps2=accel, thermal_gate=gate or station_gate)
+    gate = (
+        None
+        if args.thermal_gate is None
+        else config_settings.ThermalGate(rate_c_per_min=args.thermal_gate[0], hold_s=args.thermal_gate[1])
+    )
+    return config_settings.SequencerSettings(
+        settle=settle,
+        order=args.order,
+        seed=args.seed or 0,
+        on_failure=args.on_failure,
+        check_mount=not args.no_mount_check,
+        speed_dps=speed,
+        accel_dps2=accel,
+        thermal_gate=gate or station_gate,
+    )
 
 
 def certificate_settings_for_run(args: StartRun | ResumeRun, station: CertificateSettings | None,
@@ -264,24 +294,19 @@ def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Esti
         raise LabcalError(f"{kept}; continue with: labcal resume {run_dir}", *exc.options) from None
     record = None  # the finished run as its journal has it, read (and its fits made) once for both
     if result.device is not None:  # the device's estimate is the run's, whether or not a report is made
-        from labcal.documents.device_history import store_device_estimate
-        from labcal.store.record import load_run
-
-        record = load_run(run_dir)
-        store_device_estimate(record, result.device, db)
+        record = store_record.load_run(run_dir)
+        device_history.store_device_estimate(record, result.device, db)
     issued = None
     if not no_report:
-        from labcal.app.run_documents import write_run_outputs
-        from labcal.documents.device_history import DeviceMoved
-
         try:
-            issued = write_run_outputs(run_dir, certificate, db=journal, record=record)
-        except DeviceMoved as exc:  # journaled for the lab, then the one line to the technician
-            from labcal.store.journal import Journal
-
-            with Journal(journal) as book:
-                book.event(result.run_id, "device_moved", str(exc),
-                           {"changes": [c.to_json() for c in exc.changes]})
+            issued = run_documents.write_run_outputs(run_dir, certificate, db=journal, record=record)
+        except (
+            device_history.DeviceMoved
+        ) as exc:  # journaled for the lab, then the one line to the technician
+            with store_journal.Journal(journal) as book:
+                book.event(
+                    result.run_id, "device_moved", str(exc), {"changes": [c.to_json() for c in exc.changes]}
+                )
             raise
     return Finished(run_dir, result, est, journal, issued)
 
@@ -290,10 +315,6 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
     """A calibration on the simulated rig (``sim``) or a station file's devices (``station``, on its
     emulators with ``emulate``): every angle checked before anything moves, the station locked
     for the run, then the shared sequence."""
-    from labcal.analysis.plan import Plan
-    from labcal.run.estimate import estimate
-    from labcal.run.notify import RunNotifier, lab_notifications
-
     if not args.sim and not args.station:
         raise LabcalError("no station given: use {0} for a dry run on the simulated rig, or {1} FILE "
                           "for a station's devices (add {2} to run them on their emulators)",
@@ -315,11 +336,13 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
     plan, plan_text = load_plan(args.plan)
     correction = plan_correction(plan_text, args.plan)  # the device's misalignments it corrects for
     if args.replicates is not None:  # the journal keeps the plan that actually runs
-        plan = Plan.model_validate({**plan.model_dump(), "replicates": args.replicates})
+        plan = analysis_plan.Plan.model_validate({**plan.model_dump(), "replicates": args.replicates})
         plan_text = plan_toml(plan) + ("" if correction is None else "\n" + correction_toml(correction))
     with ExitStack() as stack:
         stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
-        notifications = stack.enter_context(lab_notifications(lambda line: front.say(line, markup=False)))
+        notifications = stack.enter_context(
+            notify.lab_notifications(lambda line: front.say(line, markup=False))
+        )
         bench = None
         if args.sim:
             setup = sim_station(args.rig, args.seed, pace=args.pace, package=args.instrument)
@@ -330,10 +353,8 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
             settings = sequencer_settings_for_run(args, setup)
             cert_settings = certificate_settings_for_run(args, None, "command line")
         else:
-            from labcal.config.station import load_station
-
             assert args.station is not None
-            config, _ = load_station(args.station)
+            config, _ = config_station.load_station(args.station)
             cert_settings = certificate_settings_for_run(args, config.certificate, args.station)
             check_package(config.instrument, cert_settings, args.station, args.plan)  # before anything moves
             if not args.emulate and not args.serial and not args.no_report and not args.dry_run:
@@ -360,7 +381,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
         if ambient:
             setup.metadata.ambient = ambient  # the manifest's metadata: the certificate quotes it
         steps = schedule(plan, settings)  # once: the estimate, the limits and the run share it
-        est = estimate(plan, settings, setup.timing, steps)
+        est = run_estimate.estimate(plan, settings, setup.timing, steps)
         if args.dry_run:
             return Estimated(plan, est)
         ready(args.db)  # a lab database behind or ahead of this labcal: refused before anything moves
@@ -369,10 +390,14 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
         for field, value in used.items():
             setattr(setup.metadata, field, value)
         if correction is not None:  # still this station's device, still in control: else nothing moves
-            from labcal.documents.device_history import check_correction, station_device_id
-
-            check_correction(correction, station_device_id(setup.metadata.with_station(
-                setup.station.description), args.sim or args.emulate), args.db, plan)
+            device_history.check_correction(
+                correction,
+                device_history.station_device_id(
+                    setup.metadata.with_station(setup.station.description), args.sim or args.emulate
+                ),
+                args.db,
+                plan,
+            )
         setup.metadata.estimated_rig_time_s = est.total_s  # run.json: the estimate beside the actual
         check_limits(setup.station, steps, settings.check_mount)  # first: homing moves a table too
         run_dir = new_run_dir(args.out, plan)  # a bad --out is one line before the checklist
@@ -384,23 +409,49 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
         operator = front.operator()
         with Journal(db_path(args.db), durable=not args.sim) as journal, \
                 sending(args.db, journal.path, _noted(front)) as sender:
-            return run_and_finish(front, lambda events, terminal, forecast: calibrate(
-                plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, events,
-                setup.metadata, serial, args.operator, steps, terminal=terminal, forecast=forecast),
-                run_dir, plan, est, 0, args.db, args.no_report, cert_settings,
-                notifier=RunNotifier(notifications, _run_name(setup.metadata, setup.text, serial), run_dir,
-                                     _lab_label(journal.path, args.db), not operator.confirms_mounts),
-                sender=sender)
+            return run_and_finish(
+                front,
+                lambda events, terminal, forecast: calibrate(
+                    plan,
+                    plan_text,
+                    setup.station,
+                    setup.text,
+                    operator,
+                    settings,
+                    run_dir,
+                    journal,
+                    events,
+                    setup.metadata,
+                    serial,
+                    args.operator,
+                    steps,
+                    terminal=terminal,
+                    forecast=forecast,
+                ),
+                run_dir,
+                plan,
+                est,
+                0,
+                args.db,
+                args.no_report,
+                cert_settings,
+                notifier=notify.RunNotifier(
+                    notifications,
+                    _run_name(setup.metadata, setup.text, serial),
+                    run_dir,
+                    _lab_label(journal.path, args.db),
+                    not operator.confirms_mounts,
+                ),
+                sender=sender,
+            )
 
 
 def _run_name(metadata: RunMetadata, station_text: str, serial: str | None) -> RunName:
     """How the run's notifications name it: this bench as the lab database names it, the serial, and
     the lab server's page of the run where the lab file gives the server's address."""
-    from labcal.run.notify import RunName
-
     lab = load_lab_config()
-    return RunName(lab.station(), serial, lab.file.server_url,
-                   is_simulated(metadata, parse_snapshot(station_text)))
+    return notify.RunName(lab.station(), serial, lab.file.server_url,
+                          is_simulated(metadata, parse_snapshot(station_text)))
 
 
 def _lab_label(journal: Path, db: str | Path | None) -> Callable[[int], str]:
@@ -440,11 +491,9 @@ def run_serial(args: StartRun, front: FrontEnd) -> tuple[str | None, str | None]
     no database)."""
     if args.serial is None:
         return None, None
-    from labcal.app.instruments import checked_serial, serial_for_run
-
     if args.dry_run:
-        return checked_serial(args.serial)[0], None
-    found = serial_for_run(args.serial, args.db)
+        return instruments.checked_serial(args.serial)[0], None
+    found = instruments.serial_for_run(args.serial, args.db)
     for note in found.notes:
         front.say(f"note: {note}", markup=False)
     if not found.unregistered:
@@ -518,21 +567,18 @@ def ambient_entered(args: StartRun) -> dict[str, float | str]:
 def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyComplete:
     """Go on with an interrupted run at the first point not in the journal, on the station it
     started on or another station file of the same bench; then the shared sequence."""
-    from labcal.app.folders import record_folder
-    from labcal.config.settings import CertificateSettings
-    from labcal.run.estimate import estimate
-    from labcal.run.notify import RunNotifier, lab_notifications
-
     run_dir = Path(args.run)
     check_server(args.db)  # a lab server behind or ahead of this labcal: refused before anything changes
     ctx = open_for_resume(run_dir)
     with ExitStack() as stack:
         stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
-        notifications = stack.enter_context(lab_notifications(lambda line: front.say(line, markup=False)))
+        notifications = stack.enter_context(
+            notify.lab_notifications(lambda line: front.say(line, markup=False))
+        )
         stack.callback(ctx.journal.close)
         stack.callback(ctx.lock.release)
         # a copy (`labcal export RUN --out DIR`) resumed is the run's folder from now on
-        record_folder(ctx.journal, ctx.journal.run(ctx.run_id), run_dir, "resume")
+        folders.record_folder(ctx.journal, ctx.journal.run(ctx.run_id), run_dir, "resume")
         for note in ctx.notes:
             front.say(f"note: {note}", markup=False)
         run_name = f"run {_lab_label(ctx.journal.path, args.db)(ctx.run_id)} in {run_dir}"
@@ -562,7 +608,7 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
             ctx.journal.relax()  # a dry run: as when it started
             setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start,
                                 tables_at=tables_at, pace=args.pace)
-            certificate = CertificateSettings()
+            certificate = config_settings.CertificateSettings()
         else:
             resumed_on = new_station[0] if new_station else snapshot.config
             lock_station(stack, resumed_on, args.station or run_name, ctx.journal.path, front)
@@ -571,7 +617,7 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
                          chosen=bench.config)
             certificate = (new_station[0] if new_station else snapshot.config).certificate
         steps = schedule(ctx.plan, ctx.settings)
-        est = estimate(ctx.plan, ctx.settings, setup.timing, steps)
+        est = run_estimate.estimate(ctx.plan, ctx.settings, setup.timing, steps)
         # a standard that fell due since the run started stops it here too, unless an override holds
         checked = run_standards([] if bench is None else bench.config.standards, args.db, front)
         if bench is not None:
@@ -581,11 +627,14 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
         ctx.journal.reopen(ctx.run_id)
         ctx.journal.event(ctx.run_id, "resume",
                           f"resumed after {len(points)} committed point(s) {on_station}", station_record)
-        from labcal.documents.overrides import STANDARD_OVERRIDE_EVENT
-
         for held in checked.get("standard_overrides", []):  # the certificate states it with the run's own
-            ctx.journal.event(ctx.run_id, STANDARD_OVERRIDE_EVENT, f"resumed under {held['approver']}'s "
-                              f"override for the overdue reference standard {held['serial']}", held)
+            ctx.journal.event(
+                ctx.run_id,
+                overrides.STANDARD_OVERRIDE_EVENT,
+                f"resumed under {held['approver']}'s "
+                f"override for the overdue reference standard {held['serial']}",
+                held,
+            )
         if bench is not None:
             ctx.journal.event(ctx.run_id, "device_identity", "the devices that answered on resuming",
                               bench.identities)
@@ -596,18 +645,15 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
             ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, events,
             steps, terminal=terminal, forecast=forecast),
             run_dir, ctx.plan, est, len(points), args.db, args.no_report, cert_settings, ctx.journal.path,
-            notifier=RunNotifier(notifications, name, run_dir, _lab_label(ctx.journal.path, args.db),
-                                 not operator.confirms_mounts), sender=sender)
+            notifier=notify.RunNotifier(notifications, name, run_dir, _lab_label(ctx.journal.path, args.db),
+                                        not operator.confirms_mounts), sender=sender)
 
 
 def finish_complete(args: ResumeRun, run_dir: Path, run_id: int,
                     settings: CertificateSettings, journal: Path) -> AlreadyComplete:
     """A complete run resumed: its exports were checked and repaired; its certificate and report are
     issued again if any of them is missing or not the history's (a kill during `labcal report`)."""
-    from labcal.app.run_documents import write_run_outputs
-    from labcal.documents.report import outputs_in_place
-
-    if args.no_report or outputs_in_place(run_dir, db=journal):
+    if args.no_report or report.outputs_in_place(run_dir, db=journal):
         return AlreadyComplete(run_id, run_dir, None)
-    issued = write_run_outputs(run_dir, settings, db=journal)
+    issued = run_documents.write_run_outputs(run_dir, settings, db=journal)
     return AlreadyComplete(run_id, run_dir, str(issued.certificate_path), issued.certificate.certificate_id)

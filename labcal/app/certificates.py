@@ -20,6 +20,8 @@ from labcal.app import audit
 from labcal.app.approving import approve_run, journal_verdict
 from labcal.app.labdatabase import OpenLab, open_lab
 from labcal.app.run_documents import write_run_outputs
+from labcal.documents import approval as documents_approval
+from labcal.documents import approvers as documents_approvers
 from labcal.documents.administration import ItemGiven
 from labcal.documents.approval import check_dcc, load_public_key, verify
 from labcal.documents.approvers import signed_note, verify_registered
@@ -229,10 +231,8 @@ class Keys:
 
 
 def make_keys(request: MakeKeys) -> Keys:
-    from labcal.documents.approval import key_id, keygen, load_public_key
-
-    private, public = keygen(request.out)
-    return Keys(private, public, key_id(load_public_key(public)))
+    private, public = documents_approval.keygen(request.out)
+    return Keys(private, public, documents_approval.key_id(documents_approval.load_public_key(public)))
 
 
 @dataclass(frozen=True)
@@ -260,17 +260,13 @@ class Approvers:
 
 
 def add_approver(request: AddApprover) -> Approver:
-    from labcal.documents import approvers
-
-    added = approvers.add(request.name, request.role, request.public_key, request.db)
+    added = documents_approvers.add(request.name, request.role, request.public_key, request.db)
     _audited(request.db, f"registered as {request.role} with key {added.key_id[:16]}", request.name)
     return added
 
 
 def revoke_approver(request: RevokeApprover) -> Approver:
-    from labcal.documents import approvers
-
-    revoked = approvers.revoke(request.name, request.db)
+    revoked = documents_approvers.revoke(request.name, request.db)
     _audited(request.db, f"key {revoked.key_id[:16]} revoked", request.name)
     return revoked
 
@@ -287,9 +283,7 @@ def _audited(db: str | None, detail: str, name: str) -> None:
 
 def list_approvers(request: ListApprovers) -> Approvers:
     """Every registration, active and revoked (a missing database: none, and nothing is created)."""
-    from labcal.documents import approvers
-
-    return Approvers(tuple(approvers.listed(request.db)))
+    return Approvers(tuple(documents_approvers.listed(request.db)))
 
 
 def read_certificate(path: str | Path) -> Certificate:

@@ -33,15 +33,20 @@ from matplotlib.figure import Figure
 from labcal.analysis.fit import fit_readings
 from labcal.analysis.kinematics import NO_MISALIGNMENT, Misalignment, gravity
 from labcal.analysis.readings import Readings
+from labcal.documents import report_figures
 from labcal.documents.certificate import Certificate
 from labcal.documents.report_figures import volt_unit
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.store.journal import readings_of
 from labcal.store.lab_certificates import lab_record
 from labcal.store.lab_points import ok_points, points_state, run_status_and_folder
 
 if TYPE_CHECKING:
+    from labcal.documents import report
     from labcal.store.handles import Connection
+else:
+    report = lazy("labcal.documents.report")  # load only for such a certificate)
 
 
 def readings(conn: Connection, run_id: int) -> Readings | None:
@@ -133,14 +138,11 @@ def _certified(conn: Connection, run_id: int, cert: Certificate) -> CertifiedRes
     r = record.readings
     stated = _gravity_misalignment(cert)
     if stated is None:  # more than B and S: refitted as the report fits it (the report's modules
-        from labcal.documents.report import fitted  # load only for such a certificate)
-        from labcal.documents.report_figures import certified_residuals as of_fit
-
         try:
-            fit, device, _ = fitted(record)
+            fit, device, _ = report.fitted(record)
         except LabcalError:
             return None
-        model, equation, residuals = of_fit(fit, device)
+        model, equation, residuals = report_figures.certified_residuals(fit, device)
         return CertifiedResiduals(model, equation, np.asarray(residuals)[:, :len(fit.sensors)], r.pitch_deg,
                                   r.roll_deg, r.units, fit.sensors)
     mis, model, equation = stated

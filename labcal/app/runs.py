@@ -11,13 +11,22 @@ from labcal.app.desk import run_attention
 from labcal.config.run_metadata import RunMetadata, listed_metadata
 from labcal.documents.overrides import run_overrides
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
+from labcal.store import labquery
 from labcal.store.lab_view import run_row
 from labcal.store.labquery import LabRun, Source, from_lab, lab_runs, run_events
 from labcal.store.lock import held_by
 
 if TYPE_CHECKING:
+    from labcal.app import journals
     from labcal.documents.overrides import Override
+    from labcal.store import journal as store_journal
+    from labcal.store import rundir
     from labcal.store.handles import Connection
+else:
+    journals = lazy("labcal.app.journals")  # start-up without scipy, numpy, pydantic
+    rundir = lazy("labcal.store.rundir")  # start-up without scipy, numpy, pydantic
+    store_journal = lazy("labcal.store.journal")  # start-up without scipy, numpy, pydantic
 
 
 @dataclass(frozen=True)
@@ -159,19 +168,14 @@ def _run_of(request: ReadLog) -> tuple[str | None, int | None, str | None]:
     if request.run.isdigit():
         return request.db, int(request.run), None
     if Path(request.run).is_dir():
-        from labcal.app.journals import existing
-        from labcal.store.journal import Journal
-        from labcal.store.labquery import is_server
-        from labcal.store.rundir import read_run_json
-
-        info = read_run_json(Path(request.run))
+        info = rundir.read_run_json(Path(request.run))
         try:
             journal, run_id = Path(str(info["journal"])), int(info["run_id"])
         except (KeyError, TypeError, ValueError):
             raise LabcalError(f"{request.run}: run.json does not name its journal and run id") from None
-        if not is_server(request.db):
+        if not labquery.is_server(request.db):
             return str(journal), run_id, None
-        with Journal(existing(journal)) as opened:
+        with store_journal.Journal(journals.existing(journal)) as opened:
             return request.db, None, opened.run(run_id).uuid or ""
     if len(request.run) >= 8 and set(request.run.lower()) <= UUID_DIGITS:
         return request.db, None, request.run.lower()

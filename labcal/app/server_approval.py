@@ -45,7 +45,7 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from labcal.app.certificates import ApproveCertificate, Authentication, SignedFor, approve_certificate
 from labcal.app.desk import MEDIA
@@ -56,8 +56,14 @@ from labcal.config.lab import load_lab_config
 from labcal.documents.approval import key_id, load_private_key
 from labcal.documents.approvers import SERVER_ROLE, by_key
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.store.lab_certificates import approved_files
 from labcal.store.labdb import others_may_write
+
+if TYPE_CHECKING:
+    from labcal.app import approving
+else:
+    approving = lazy("labcal.app.approving")  # start-up without matplotlib, scipy, numpy, …
 
 CERTIFICATE = "certificate.json"
 _ONE_AT_A_TIME = threading.Lock()
@@ -146,10 +152,8 @@ def approve_as_user(lab: LabDatabase, request: ApproveAsUser) -> ServerApproved 
         role, signed_for = (registered.role if registered is not None else user.role), None
     with _ONE_AT_A_TIME:
         if lab.server is not None:  # the lab's own copy of the run, and the files kept there
-            from labcal.app.approving import approve_lab_run
-
             server = None if signed_for is None else (signed_for.user_id, signed_for.authentication)
-            cert = approve_lab_run(lab.server, request.run_id, user.name, role, key, server)
+            cert = approving.approve_lab_run(lab.server, request.run_id, user.name, role, key, server)
             where = f"{lab.shown} (run {request.run_id}'s {CERTIFICATE})"
         else:
             done = approve_certificate(ApproveCertificate(run_dir, user.name, role, str(key), db,

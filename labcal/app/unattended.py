@@ -15,16 +15,22 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from labcal.bench.checklist import PowerOn, refusal, run_checklist, unmet
+from labcal.lazy import lazy
+from labcal.run import operator as run_operator
 from labcal.run.operator import mount_request
 from labcal.store.journal import db_path
 from labcal.store.labdb import lab_server
 
 if TYPE_CHECKING:
+    from rich import text as rich_text
+
     from labcal.analysis.kinematics import Mount
     from labcal.bench.hardware import Bench
     from labcal.devices.station import Station
     from labcal.run.events import RunEvent
     from labcal.run.operator import Heard, PauseChoice, Terminal
+else:
+    rich_text = lazy("rich.text")  # start-up without rich
 
 LOG = logging.getLogger("labcal.run")
 
@@ -64,9 +70,7 @@ class Unattended:
 
     def say(self, text: str, markup: bool = True) -> None:
         if markup:
-            from rich.text import Text
-
-            text = Text.from_markup(text).plain
+            text = rich_text.Text.from_markup(text).plain
         LOG.info("%s", text)
         if self._say is not None:
             self._say(text)
@@ -93,6 +97,4 @@ class Unattended:
 
     @contextmanager
     def display(self, total: int, done: int) -> Iterator[tuple[_Silent, Terminal]]:
-        from labcal.run.operator import Terminal
-
-        yield _Silent(), Terminal()
+        yield _Silent(), run_operator.Terminal()

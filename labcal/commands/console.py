@@ -24,15 +24,21 @@ from rich.table import Table
 from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit
 from labcal.commands.common import err
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.run.events import Discarded, Fault, PointMeasured, RunEvent, Status, Stopped
 from labcal.run.operator import GATE_KEY, QuietKeys, Terminal
 from labcal.store.journal import db_path
 from labcal.store.labdb import lab_server
 
 if TYPE_CHECKING:
+    from labcal.bench import checklist
     from labcal.bench.checklist import Item, PowerOn
     from labcal.bench.hardware import Bench
     from labcal.devices.station import Station
+    from labcal.documents import certificate
+else:
+    certificate = lazy("labcal.documents.certificate")  # start-up without scipy, numpy, pydantic
+    checklist = lazy("labcal.bench.checklist")  # start-up without pydantic
 
 
 def format_duration(seconds: float) -> str:
@@ -124,11 +130,9 @@ class ProgressDisplay(Terminal):
 def with_standard_error(value: float, se: float) -> str:
     """'value ± SE' to the digits the standard error supports (SE to two significant digits,
     the value rounded to the same decimal), as the certificate rounds (GUM 7.2.6)."""
-    from labcal.documents.certificate import format_result
-
     if not np.isfinite(se):
         return f"{value:+.7g}"
-    text = format_result(value, se)
+    text = certificate.format_result(value, se)
     return f"{'+' if not text.startswith('-') else ''}{text}"
 
 
@@ -217,10 +221,8 @@ def print_checklist(console: Console, items: Iterable[Item]) -> None:
 
 def power_on_given(args: argparse.Namespace, now: datetime) -> PowerOn:
     """What the command line says of the instrument's power (`labcal.bench.checklist.PowerOn`)."""
-    from labcal.bench.checklist import PowerOn, parse_power_on
-
-    at = None if args.powered_on is None else parse_power_on(args.powered_on, now)
-    return PowerOn(at, args.warmed_up)
+    at = None if args.powered_on is None else checklist.parse_power_on(args.powered_on, now)
+    return checklist.PowerOn(at, args.warmed_up)
 
 
 def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, points: int,
@@ -230,13 +232,11 @@ def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, 
     on; with --yes or --answers nobody is asked. Where the station asks for a warm-up and the
     command line did not say when the instrument was switched on, the operator at the terminal is
     asked. Returns what the run journals of it (its metadata: run.json, the manifest)."""
-    from labcal.bench.checklist import PowerOn, parse_power_on, refusal, run_checklist, unmet
-
     now = datetime.now().astimezone()
     power = power_on_given(args, now)
     config = None if bench is None else bench.config
     attended = not (args.yes or args.answers)
-    if attended and config is not None and config.instrument.warm_up_min and power == PowerOn():
+    if attended and config is not None and config.instrument.warm_up_min and power == checklist.PowerOn():
         while True:  # a typo is asked again; an empty answer (or none) leaves it unsaid
             try:
                 text = err.input(f"The instrument needs {config.instrument.warm_up_min:g} min of warm-up: "
@@ -244,20 +244,30 @@ def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, 
             except EOFError:
                 text = ""
             if text.lower() in ("", "warm"):
-                power = PowerOn(warmed_up=text.lower() == "warm")
+                power = checklist.PowerOn(warmed_up=text.lower() == "warm")
                 break
             try:
-                power = PowerOn(parse_power_on(text, now, "the answer"))
+                power = checklist.PowerOn(checklist.parse_power_on(text, now, "the answer"))
                 break
             except LabcalError as exc:
                 err.print(f"[yellow]{exc}[/]")
-    items = run_checklist(config, bench, station, db=db_path(args.db), run_folder=Path(args.out or "runs"),
-                          points=points, samples=samples, power=power, now=now, server=lab_server(args.db))
+    items = checklist.run_checklist(
+        config,
+        bench,
+        station,
+        db=db_path(args.db),
+        run_folder=Path(args.out or "runs"),
+        points=points,
+        samples=samples,
+        power=power,
+        now=now,
+        server=lab_server(args.db),
+    )
     print_checklist(err, items)
     record = {"items": [i.to_json() for i in items], "went_on_regardless": False,
               "powered_on": None if power.at is None else power.at.isoformat(timespec="minutes"),
               "warmed_up_stated": power.warmed_up}
-    failed = unmet(items)
+    failed = checklist.unmet(items)
     if not failed:
         return record
     names = ", ".join(i.name for i in failed)
@@ -269,4 +279,4 @@ def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, 
             go_on = ""
         if go_on in ("y", "yes"):
             return {**record, "went_on_regardless": True}
-    raise refusal(failed)
+    raise checklist.refusal(failed)

@@ -20,18 +20,20 @@ from labcal.commands.common import (
     out,
     print_json,
 )
+from labcal.lazy import lazy
 
 if TYPE_CHECKING:
+    from rich import table as _rich_table
     from rich.table import Table as RichTable
+else:
+    _rich_table = lazy("rich.table")  # start-up without rich
 
 
 def rich_table(t) -> RichTable:
     """A report table (`labcal.documents.report_tables.Table`) for the terminal. Its text is the
     report's, not rich markup: escaped, so that "[certificate]" (a station file's section) is printed,
     not eaten."""
-    from rich.table import Table as RichTable
-
-    table = RichTable(title=escape(t.title), caption=escape(t.caption) if t.caption else None)
+    table = _rich_table.Table(title=escape(t.title), caption=escape(t.caption) if t.caption else None)
     for h in t.header:
         table.add_column(escape(h), justify="right")
     for i, row in enumerate(t.rows):

@@ -9,7 +9,7 @@ from contextlib import contextmanager
 from dataclasses import fields
 from typing import TYPE_CHECKING, Any
 
-from labcal.commands import summary
+from labcal.commands import console, summary
 from labcal.commands.common import (
     EXIT_INTERRUPTED,
     EXIT_STOPPED,
@@ -32,12 +32,16 @@ from labcal.commands.console import (
     coefficients_with_standard_errors,
     format_duration,
 )
+from labcal.lazy import lazy
 from labcal.run.operator import AutoOperator, ConsoleOperator, ScriptedOperator
 
 # The run machinery (sequencer, journal, statistics) is imported where it is used, so that the
 # other commands, which import this module to build the parser, do not pay for it at start-up.
 if TYPE_CHECKING:
+    from labcal.app import calibration
     from labcal.app.calibration import AlreadyComplete, Ended, Estimated, Finished
+else:
+    calibration = lazy("labcal.app.calibration")  # start-up without scipy, numpy, pydantic, …
 
 
 class CommandLine:
@@ -108,9 +112,7 @@ def print_estimate(estimated: Estimated, as_json: bool) -> None:
 
 def run_and_report(args, ended: Ended | Finished) -> int:
     """How the run ended, in words and an exit code; a complete run's fit, files and certificate."""
-    from labcal.app.calibration import Ended
-
-    if isinstance(ended, Ended):
+    if isinstance(ended, calibration.Ended):
         run_dir = ended.run_dir
         if ended.how == "interrupted":
             why = f" ({ended.why})" if ended.why else ""
@@ -137,9 +139,7 @@ def run_and_report(args, ended: Ended | Finished) -> int:
                     else "pass" if issued.certificate.conformity.passed else "fail"})
         return 0
     if result.device is not None:
-        from labcal.commands.console import device_tables
-
-        for table in device_tables(result.device.to_json()):
+        for table in console.device_tables(result.device.to_json()):
             out.print(table)
     else:
         out.print(coefficients_with_standard_errors(result.fit))
@@ -169,20 +169,16 @@ def run_and_report(args, ended: Ended | Finished) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from labcal.app.calibration import Estimated, StartRun, start_run
-
-    ended = start_run(request(StartRun, args), CommandLine(args))
-    if isinstance(ended, Estimated):
+    ended = calibration.start_run(request(calibration.StartRun, args), CommandLine(args))
+    if isinstance(ended, calibration.Estimated):
         print_estimate(ended, args.json)
         return 0
     return run_and_report(args, ended)
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
-    from labcal.app.calibration import AlreadyComplete, ResumeRun, resume_run
-
-    ended = resume_run(request(ResumeRun, args), CommandLine(args))
-    if isinstance(ended, AlreadyComplete):
+    ended = calibration.resume_run(request(calibration.ResumeRun, args), CommandLine(args))
+    if isinstance(ended, calibration.AlreadyComplete):
         return finish_complete(args, ended)
     return run_and_report(args, ended)
 

@@ -6,6 +6,7 @@ import argparse
 import os
 from typing import TYPE_CHECKING
 
+from labcal.analysis import kinematics
 from labcal.analysis.kinematics import IndexWobble
 from labcal.commands import summary
 from labcal.commands.common import SEED, bounded, err, print_json
@@ -39,17 +40,15 @@ def parse_angle(name: str, text: str) -> float:
 
 def parse_misalign(text: str) -> Misalignment:
     """'a=60arcsec,k=0.01deg' (units arcsec/″ or deg/°; bare numbers are degrees) → Misalignment."""
-    from labcal.analysis.kinematics import MISALIGNMENT_NAMES, Misalignment
-
     angles: dict[str, float] = {}
     for part in filter(None, (p.strip() for p in text.split(","))):
         name, sep, value = part.partition("=")
         name = name.strip()
-        if not sep or name not in MISALIGNMENT_NAMES:
+        if not sep or name not in kinematics.MISALIGNMENT_NAMES:
             raise LabcalError(f"--misalign: {part!r} is not NAME=ANGLE with NAME one of "
-                              f"{', '.join(MISALIGNMENT_NAMES)} (e.g. a=60arcsec,k=0.01deg)")
+                              f"{', '.join(kinematics.MISALIGNMENT_NAMES)} (e.g. a=60arcsec,k=0.01deg)")
         angles[name] = parse_angle(name, value)
-    return Misalignment.from_degrees(**angles)
+    return kinematics.Misalignment.from_degrees(**angles)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:

@@ -86,9 +86,7 @@ def cmd_override(args: argparse.Namespace) -> int:
     standard, row = record_override(RecordOverride(args.serial, args.reason, args.by, args.role, args.key,
                                                    args.until, args.db), day_given(None))
     if args.json:
-        from labcal.app.standards import override_json
-
-        print_json({"serial": standard.serial, **override_json(row)})
+        print_json({"serial": standard.serial, **standards.override_json(row)})
     else:
         out.print(f"override recorded: runs may use {standard.serial} (due {standard.due_on.isoformat()}) "
                   f"until {row.valid_until.isoformat()}, by {row.approver} ({row.role}): {row.reason}",

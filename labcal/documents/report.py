@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.fit import Fit
@@ -25,8 +26,14 @@ from labcal.documents.report_html import render_html
 from labcal.documents.report_pdf import render_pdf
 from labcal.documents.report_tables import Table
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.store.exports import run_fits
 from labcal.store.record import RunRecord, load_run
+
+if TYPE_CHECKING:
+    from labcal.documents import device_report
+else:
+    device_report = lazy("labcal.documents.device_report")  # start-up without scipy, numpy, pydantic
 
 CERTIFICATE = "certificate.json"
 REPORT_HTML = "report.html"
@@ -40,11 +47,9 @@ def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit
     figures_drawn = figures(cert, record, fit, device)
     extra: tuple[Table, ...] = ()
     if device is not None:
-        from labcal.documents.device_report import device_rows, residuals_side_by_side
-
-        extra = tuple(Table(*parts) for parts in device_rows(device))
+        extra = tuple(Table(*parts) for parts in device_report.device_rows(device))
         figures_drawn.append(("Residuals of the linear and of the device model",
-                              residuals_side_by_side(device, record)))
+                              device_report.residuals_side_by_side(device, record)))
     figs = [draw(title, fig) for title, fig in figures_drawn]
     html_path, pdf_path = directory / REPORT_HTML, directory / REPORT_PDF
     write_atomic(html_path, render_html(cert, figs, extra))  # whole or not at all: a kill never cuts a report

@@ -19,10 +19,12 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import sqlalchemy
 from sqlalchemy import func, insert, select
 
 from labcal.config.files import write_atomic
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.store.chain import check_server
 from labcal.store.exports import station_description
 from labcal.store.journal import RunRow, readings_of
@@ -32,7 +34,10 @@ from labcal.store.rundir import identity
 from labcal.store.schema import certificate_files, certificates, events, runs
 
 if TYPE_CHECKING:
+    from sqlalchemy.dialects import postgresql
     from sqlalchemy.engine import Connection, Engine
+else:
+    postgresql = lazy("sqlalchemy.dialects.postgresql")  # start-up without sqlalchemy
 
 # What a server's approval keeps, in the order a bench writes them (the certificate, which says the
 # run is approved, last: a bench killed while writing leaves a draft, never a half-approved folder)
@@ -46,9 +51,9 @@ def lab_label(run_id: int) -> str:
 def lock_run(connection: Connection, run_id: int) -> None:
     """Serialise approvals of one run across every server process: a transaction-scoped advisory lock
     (the server's role may not lock the runs row itself, which it may not update)."""
-    from sqlalchemy import text
-
-    connection.execute(text("SELECT pg_advisory_xact_lock(:k)"), {"k": 0x1ABCA1 * 1_000_000 + run_id})
+    connection.execute(
+        sqlalchemy.text("SELECT pg_advisory_xact_lock(:k)"), {"k": 0x1ABCA1 * 1_000_000 + run_id}
+    )
 
 
 def lab_record(connection: Connection, run_id: int, directory: Path) -> RunRecord:
@@ -204,11 +209,9 @@ def replace_draft(connection: Connection, certificate_id: str, serial: str, cali
     """The approved certificate in place of its draft in the lab's certificates (in the caller's
     transaction): every bench's history then shows it approved, and each bench's journal receives it
     on its next sync, as a bench's own approval reaches the lab."""
-    from sqlalchemy.dialects.postgresql import insert
-
     values = {"certificate_id": certificate_id, "serial": serial, "calibrated_utc": calibrated_utc,
               "issued_utc": issued_utc, "sha256": sha256, "document": document}
-    statement = insert(certificates).values(**values)
+    statement = postgresql.insert(certificates).values(**values)
     connection.execute(statement.on_conflict_do_update(
         index_elements=[certificates.c.certificate_id],
         set_={k: statement.excluded[k] for k in values if k != "certificate_id"}))
