@@ -52,8 +52,6 @@ class VisaLink:
 
     def _open(self) -> Any:
         if self._instrument is None:
-            import pyvisa
-
             if self._manager is None:
                 self._manager = resource_manager(self.library)
 

@@ -8,12 +8,19 @@ import re
 import sys
 from collections.abc import Collection
 from importlib import import_module
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
+import labcal
 from labcal.commands import COMMANDS
 from labcal.commands.common import EXIT_INTERRUPTED, EXIT_USER_ERROR, err
 from labcal.commands.logfile import add_log_options, logging_to
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from rich import markup
+else:
+    markup = lazy("rich.markup")  # start-up without rich
 
 # labcal's matrices are a few columns wide (a million rows of 3 or 4): OpenBLAS's worker threads only
 # wait on each other over them, and on a shared 2-core machine they made `labcal fit` on 1e6 readings
@@ -38,9 +45,7 @@ class _Version(argparse.Action):
                          help="show program's version number and exit")
 
     def __call__(self, parser, namespace, values, option_string=None) -> None:
-        from labcal import __version__
-
-        parser.exit(message=f"labcal {__version__}\n")
+        parser.exit(message=f"labcal {labcal.__version__}\n")
 
 
 def build_parser(only: Collection[str] | None = None) -> argparse.ArgumentParser:
@@ -112,9 +117,8 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_BROKEN_PIPE
     except LabcalError as exc:
-        from rich.markup import escape
-
-        err.print(f"[bold red]labcal: error:[/] {escape(str(exc))}")  # "pip install 'labcal[lab]'" as written
+        # "pip install 'labcal[lab]'" as written, not as markup
+        err.print(f"[bold red]labcal: error:[/] {markup.escape(str(exc))}")
         return EXIT_USER_ERROR
     except KeyboardInterrupt as exc:
         err.print("[bold red]interrupted[/]")

@@ -27,6 +27,7 @@ on the correction. The plan optimizer prices this against rig time like every ot
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,6 +35,12 @@ from numpy.typing import NDArray
 from labcal.analysis.device_fit import AngleErrors, PointMeans, angle_error_shapes
 from labcal.analysis.device_model import N_MIS, Geometry, jacobian
 from labcal.analysis.kinematics import ARCSEC, MISALIGNMENT_NAMES
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from scipy import stats
+else:
+    stats = lazy("scipy.stats")  # start-up without scipy, numpy
 
 FALSE_ALARM = 0.01  # family-wise, over the observable misalignments of one run
 POWER = 0.95  # for a change of CHANGE_IN_U × u
@@ -43,9 +50,7 @@ RANK_TOLERANCE = 1e-8
 
 
 def _z(p: float) -> float:
-    from scipy.stats import norm
-
-    return float(norm.ppf(p))
+    return float(stats.norm.ppf(p))
 
 
 @dataclass(frozen=True)
@@ -72,11 +77,9 @@ class Sensitivity:
 
     def power(self, change: NDArray[np.float64], u_history: NDArray[np.float64]) -> NDArray[np.float64]:
         """Probability that a change of each misalignment by ``change`` (rad, one at a time) is detected."""
-        from scipy.stats import norm
-
         shift = np.abs(np.asarray(change, dtype=float)) / self.null_sd(u_history)
         c = self.critical
-        p = norm.cdf(shift - c) + norm.cdf(-shift - c)
+        p = stats.norm.cdf(shift - c) + stats.norm.cdf(-shift - c)
         return np.asarray(np.where(np.isfinite(self.run_sd), p, 0.0), dtype=float)
 
     def detectable(self, u_history: NDArray[np.float64]) -> NDArray[np.float64]:

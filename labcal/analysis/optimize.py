@@ -39,6 +39,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import chdtri
 
 from labcal.analysis.budget import (
     Calibration,
@@ -196,8 +197,6 @@ def repeatability_quantile(c: Candidate, bench: Bench, p: float | None) -> Repea
     or σ itself (None); the p-quantile of the stated U95 where it is the channels' joint one. None where the
     windows are single samples (no scatter inside them)."""
     # deferred: the plan commands that predict nothing (plan list, --help) start without scipy
-    from scipy.special import chdtri
-
     k = c.n_points
     dof = k * (c.samples - 1)
     if dof <= 0:

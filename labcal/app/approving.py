@@ -22,6 +22,7 @@ the approver learns at once everything that stands in the way.
 from __future__ import annotations
 
 import math
+import tempfile
 from pathlib import Path
 
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
@@ -33,10 +34,22 @@ from labcal.documents import approvers
 from labcal.documents.administration import ItemGiven
 from labcal.documents.approval import approve, key_id, load_private_key
 from labcal.documents.certificate import Authentication, Certificate, ServerSignature, read_certificate
+from labcal.documents.dcc import DCC_FILE, write_dcc
 from labcal.documents.issuing import build_certificate
-from labcal.documents.report import CERTIFICATE, RunOutputs, fitted, replaced_by, write_documents, write_file
+from labcal.documents.report import (
+    CERTIFICATE,
+    REPORT_HTML,
+    REPORT_PDF,
+    RunOutputs,
+    fitted,
+    replaced_by,
+    write_documents,
+    write_file,
+    write_report,
+)
 from labcal.documents.uncertainty import bench_section, type_b_inputs
 from labcal.errors import LabcalError
+from labcal.store import lab_certificates, labdb
 from labcal.store.chain import UNCHAINED, copies
 from labcal.store.record import RunRecord, load_run
 
@@ -200,12 +213,6 @@ def approve_lab_run(server: ServerDatabase, run_id: int, by: str, role: str, key
     in between leaves the draft as it was and nothing of the approval. The same refusals as a
     folder's approval (`approve_run`), the lab's chain of digests recomputed and held to the head
     the draft states; a run journaled before digests is never approved here."""
-    import tempfile
-
-    from labcal.documents.dcc import DCC_FILE, write_dcc
-    from labcal.documents.report import REPORT_HTML, REPORT_PDF, write_report
-    from labcal.store import lab_certificates, labdb
-
     key = load_private_key(key_path)  # before anything is read or written
     db = str(server.url)
     server_signature = None

@@ -14,27 +14,71 @@ import json
 from collections.abc import Callable
 from contextlib import AbstractContextManager, ExitStack
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal, Protocol
 
+from labcal.analysis.packages import package_problem
+from labcal.app.standards import standards_for_run
+from labcal.bench.setup import hardware_station, prepare, read_snapshot, sim_station, station_for_resume
+from labcal.config import station as config_station
+from labcal.config.files import validate_model
+from labcal.config.lab import certificate_settings, load_lab_config
+from labcal.config.plans import correction_toml, load_plan, plan_correction, plan_toml
+from labcal.config.snapshot import SimulatedRigSnapshot, is_simulated, parse_snapshot
+from labcal.config.station import load_station
+from labcal.devices.winding import left_at
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
+from labcal.run.events import EventBus
+from labcal.run.interrupts import StopSignal, stop_signals_raise
+from labcal.run.operator import OperatorDeclined
+from labcal.run.runner import calibrate, execute, open_for_resume
+from labcal.run.sequencer import check_limits, schedule
+from labcal.store import journal as store_journal
+from labcal.store.journal import Journal, db_path, sha256, station_name
+from labcal.store.labquery import lab_number_of
+from labcal.store.lock import StationLock, station_locks
+from labcal.store.rundir import new_run_dir, points_on_disk
+from labcal.store.sync import check_server, ready, sending
 
 if TYPE_CHECKING:
+    from labcal.analysis import plan as analysis_plan
     from labcal.analysis.plan import Plan
+    from labcal.app import folders, instruments, run_documents
     from labcal.app.standards import RunStandards
     from labcal.bench.hardware import Bench
     from labcal.bench.setup import StationSetup
+    from labcal.config import run_metadata
+    from labcal.config import settings as config_settings
     from labcal.config.run_metadata import Ambient, Checklist, PackageUse, RunMetadata
     from labcal.config.settings import CertificateSettings, SequencerSettings, ThermalGate
     from labcal.config.station import InstrumentSettings, StationFile
     from labcal.devices.station import Station
+    from labcal.documents import device_history, overrides, report
     from labcal.documents.report import RunOutputs
+    from labcal.run import estimate as run_estimate
+    from labcal.run import notify
     from labcal.run.estimate import Estimate
     from labcal.run.events import RunEvent
     from labcal.run.notify import RunName, RunNotifier
     from labcal.run.operator import Operator, Terminal
     from labcal.run.runner import RunResult
+    from labcal.store import record as store_record
     from labcal.store.sync import Background
+else:
+    analysis_plan = lazy("labcal.analysis.plan")  # start-up without numpy, pydantic
+    config_settings = lazy("labcal.config.settings")  # start-up without pydantic
+    device_history = lazy("labcal.documents.device_history")  # start-up without scipy, numpy, pydantic
+    folders = lazy("labcal.app.folders")  # start-up without scipy, numpy, pydantic, …
+    instruments = lazy("labcal.app.instruments")  # start-up without matplotlib, scipy, numpy, …
+    notify = lazy("labcal.run.notify")  # start-up without scipy, numpy, pydantic
+    overrides = lazy("labcal.documents.overrides")  # start-up without pydantic
+    report = lazy("labcal.documents.report")  # start-up without matplotlib, scipy, numpy, …
+    run_documents = lazy("labcal.app.run_documents")  # start-up without matplotlib, scipy, numpy, …
+    run_estimate = lazy("labcal.run.estimate")  # start-up without scipy, numpy, pydantic, …
+    run_metadata = lazy("labcal.config.run_metadata")  # start-up without pydantic
+    store_record = lazy("labcal.store.record")  # start-up without scipy, numpy, pydantic
 
 
 class Display(Protocol):
@@ -161,27 +205,32 @@ def sequencer_settings_for_run(args: StartRun, setup: StationSetup, speed: float
                                ) -> SequencerSettings:
     """The run's sequencer settings: the options over the station's (``station_gate``: its
     [instrument] thermal_gate; --thermal-gate overrides it)."""
-    from labcal.config.files import validate_model
-    from labcal.config.settings import SequencerSettings, SettleSettings, ThermalGate
-
     settle = validate_model({**setup.settle.model_dump(), **{
         k: v for k, v in (("samples", args.samples), ("fixed_dwell_s", args.fixed_dwell),
                           ("max_dwell_s", args.max_dwell),
-                          ("mode", args.settle)) if v is not None}}, SettleSettings,
+                          ("mode", args.settle)) if v is not None}}, config_settings.SettleSettings,
         "command line: settle")  # validated: the options and the station file share one range
-    gate = None if args.thermal_gate is None else ThermalGate(rate_c_per_min=args.thermal_gate[0],
-                                                                hold_s=args.thermal_gate[1])
-    return SequencerSettings(settle=settle, order=args.order, seed=args.seed or 0,
-                             on_failure=args.on_failure, check_mount=not args.no_mount_check,
-                             speed_dps=speed, accel_dps2=accel, thermal_gate=gate or station_gate)
+    gate = (
+        None
+        if args.thermal_gate is None
+        else config_settings.ThermalGate(rate_c_per_min=args.thermal_gate[0], hold_s=args.thermal_gate[1])
+    )
+    return config_settings.SequencerSettings(
+        settle=settle,
+        order=args.order,
+        seed=args.seed or 0,
+        on_failure=args.on_failure,
+        check_mount=not args.no_mount_check,
+        speed_dps=speed,
+        accel_dps2=accel,
+        thermal_gate=gate or station_gate,
+    )
 
 
 def certificate_settings_for_run(args: StartRun | ResumeRun, station: CertificateSettings | None,
                                  source: str) -> CertificateSettings:
     """The lab file's certificate defaults, the station's [certificate] settings over them, and the
     command line's tolerances over both."""
-    from labcal.config.lab import certificate_settings
-
     usage = tuple(args.usage_pitch) if args.usage_pitch else None
     return certificate_settings(station, source).overridden(source, attitude_u95_max_deg=args.tolerance_deg,
                                                          usage_pitch_deg=usage)
@@ -220,12 +269,6 @@ def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Esti
     end into outcomes; at the end of a complete run store the device's estimate and issue its
     certificate and report (``certificate``: their settings) into the run's journal (``journal``: a
     resumed run's, which its folder names; else ``db``'s)."""
-    from labcal.run.events import EventBus
-    from labcal.run.interrupts import StopSignal
-    from labcal.run.operator import OperatorDeclined
-    from labcal.store.journal import db_path
-    from labcal.store.rundir import points_on_disk
-
     journal = journal or db_path(db)
     front.say(f"Run directory: {run_dir}", markup=False)  # a folder named run[1] is a name, not markup
     try:
@@ -254,24 +297,19 @@ def run_and_finish(front: FrontEnd, runner, run_dir: Path, plan: Plan, est: Esti
         raise LabcalError(f"{kept}; continue with: labcal resume {run_dir}", *exc.options) from None
     record = None  # the finished run as its journal has it, read (and its fits made) once for both
     if result.device is not None:  # the device's estimate is the run's, whether or not a report is made
-        from labcal.documents.device_history import store_device_estimate
-        from labcal.store.record import load_run
-
-        record = load_run(run_dir)
-        store_device_estimate(record, result.device, db)
+        record = store_record.load_run(run_dir)
+        device_history.store_device_estimate(record, result.device, db)
     issued = None
     if not no_report:
-        from labcal.app.run_documents import write_run_outputs
-        from labcal.documents.device_history import DeviceMoved
-
         try:
-            issued = write_run_outputs(run_dir, certificate, db=journal, record=record)
-        except DeviceMoved as exc:  # journaled for the lab, then the one line to the technician
-            from labcal.store.journal import Journal
-
-            with Journal(journal) as book:
-                book.event(result.run_id, "device_moved", str(exc),
-                           {"changes": [c.to_json() for c in exc.changes]})
+            issued = run_documents.write_run_outputs(run_dir, certificate, db=journal, record=record)
+        except (
+            device_history.DeviceMoved
+        ) as exc:  # journaled for the lab, then the one line to the technician
+            with store_journal.Journal(journal) as book:
+                book.event(
+                    result.run_id, "device_moved", str(exc), {"changes": [c.to_json() for c in exc.changes]}
+                )
             raise
     return Finished(run_dir, result, est, journal, issued)
 
@@ -280,19 +318,6 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
     """A calibration on the simulated rig (``sim``) or a station file's devices (``station``, on its
     emulators with ``emulate``): every angle checked before anything moves, the station locked
     for the run, then the shared sequence."""
-    from labcal.analysis.plan import Plan
-    from labcal.bench.setup import hardware_station, prepare, sim_station
-    from labcal.config.plans import correction_toml, load_plan, plan_correction, plan_toml
-    from labcal.config.snapshot import SimulatedRigSnapshot
-    from labcal.run.estimate import estimate
-    from labcal.run.interrupts import stop_signals_raise
-    from labcal.run.notify import RunNotifier, lab_notifications
-    from labcal.run.runner import calibrate
-    from labcal.run.sequencer import check_limits, schedule
-    from labcal.store.journal import Journal, db_path
-    from labcal.store.rundir import new_run_dir
-    from labcal.store.sync import ready, sending
-
     if not args.sim and not args.station:
         raise LabcalError("no station given: use {0} for a dry run on the simulated rig, or {1} FILE "
                           "for a station's devices (add {2} to run them on their emulators)",
@@ -314,11 +339,13 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
     plan, plan_text = load_plan(args.plan)
     correction = plan_correction(plan_text, args.plan)  # the device's misalignments it corrects for
     if args.replicates is not None:  # the journal keeps the plan that actually runs
-        plan = Plan.model_validate({**plan.model_dump(), "replicates": args.replicates})
+        plan = analysis_plan.Plan.model_validate({**plan.model_dump(), "replicates": args.replicates})
         plan_text = plan_toml(plan) + ("" if correction is None else "\n" + correction_toml(correction))
     with ExitStack() as stack:
         stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
-        notifications = stack.enter_context(lab_notifications(lambda line: front.say(line, markup=False)))
+        notifications = stack.enter_context(
+            notify.lab_notifications(lambda line: front.say(line, markup=False))
+        )
         bench = None
         if args.sim:
             setup = sim_station(args.rig, args.seed, pace=args.pace, package=args.instrument)
@@ -329,10 +356,8 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
             settings = sequencer_settings_for_run(args, setup)
             cert_settings = certificate_settings_for_run(args, None, "command line")
         else:
-            from labcal.config.station import load_station
-
             assert args.station is not None
-            config, _ = load_station(args.station)
+            config, _ = config_station.load_station(args.station)
             cert_settings = certificate_settings_for_run(args, config.certificate, args.station)
             check_package(config.instrument, cert_settings, args.station, args.plan)  # before anything moves
             if not args.emulate and not args.serial and not args.no_report and not args.dry_run:
@@ -359,7 +384,7 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
         if ambient:
             setup.metadata.ambient = ambient  # the manifest's metadata: the certificate quotes it
         steps = schedule(plan, settings)  # once: the estimate, the limits and the run share it
-        est = estimate(plan, settings, setup.timing, steps)
+        est = run_estimate.estimate(plan, settings, setup.timing, steps)
         if args.dry_run:
             return Estimated(plan, est)
         ready(args.db)  # a lab database behind or ahead of this labcal: refused before anything moves
@@ -370,10 +395,14 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
         if used.overrides:
             setup.metadata.standard_overrides = used.overrides
         if correction is not None:  # still this station's device, still in control: else nothing moves
-            from labcal.documents.device_history import check_correction, station_device_id
-
-            check_correction(correction, station_device_id(setup.metadata.with_station(
-                setup.station.description), args.sim or args.emulate), args.db, plan)
+            device_history.check_correction(
+                correction,
+                device_history.station_device_id(
+                    setup.metadata.with_station(setup.station.description), args.sim or args.emulate
+                ),
+                args.db,
+                plan,
+            )
         setup.metadata.estimated_rig_time_s = est.total_s  # run.json: the estimate beside the actual
         check_limits(setup.station, steps, settings.check_mount)  # first: homing moves a table too
         run_dir = new_run_dir(args.out, plan)  # a bad --out is one line before the checklist
@@ -385,32 +414,54 @@ def start_run(args: StartRun, front: FrontEnd) -> Estimated | Ended | Finished:
         operator = front.operator()
         with Journal(db_path(args.db), durable=not args.sim) as journal, \
                 sending(args.db, journal.path, _noted(front)) as sender:
-            return run_and_finish(front, lambda events, terminal, forecast: calibrate(
-                plan, plan_text, setup.station, setup.text, operator, settings, run_dir, journal, events,
-                setup.metadata, serial, args.operator, steps, terminal=terminal, forecast=forecast),
-                run_dir, plan, est, 0, args.db, args.no_report, cert_settings,
-                notifier=RunNotifier(notifications, _run_name(setup.metadata, setup.text, serial), run_dir,
-                                     _lab_label(journal.path, args.db), not operator.confirms_mounts),
-                sender=sender)
+            return run_and_finish(
+                front,
+                lambda events, terminal, forecast: calibrate(
+                    plan,
+                    plan_text,
+                    setup.station,
+                    setup.text,
+                    operator,
+                    settings,
+                    run_dir,
+                    journal,
+                    events,
+                    setup.metadata,
+                    serial,
+                    args.operator,
+                    steps,
+                    terminal=terminal,
+                    forecast=forecast,
+                ),
+                run_dir,
+                plan,
+                est,
+                0,
+                args.db,
+                args.no_report,
+                cert_settings,
+                notifier=notify.RunNotifier(
+                    notifications,
+                    _run_name(setup.metadata, setup.text, serial),
+                    run_dir,
+                    _lab_label(journal.path, args.db),
+                    not operator.confirms_mounts,
+                ),
+                sender=sender,
+            )
 
 
 def _run_name(metadata: RunMetadata, station_text: str, serial: str | None) -> RunName:
     """How the run's notifications name it: this bench as the lab database names it, the serial, and
     the lab server's page of the run where the lab file gives the server's address."""
-    from labcal.config.lab import load_lab_config
-    from labcal.config.snapshot import is_simulated, parse_snapshot
-    from labcal.run.notify import RunName
-
     lab = load_lab_config()
-    return RunName(lab.station(), serial, lab.file.server_url,
-                   is_simulated(metadata, parse_snapshot(station_text)))
+    return notify.RunName(lab.station(), serial, lab.file.server_url,
+                          is_simulated(metadata, parse_snapshot(station_text)))
 
 
 def _lab_label(journal: Path, db: str | Path | None) -> Callable[[int], str]:
     """How a notification names the run: by the lab's number (its provisional label until the lab
     has numbered it), as every bench, page and API answer does."""
-    from labcal.store.labquery import lab_number_of
-
     return lambda run_id: lab_number_of(journal, run_id, db)
 
 
@@ -419,21 +470,17 @@ def sim_package_use(package: str, rig: dict) -> PackageUse:
     single sensor and an x–z package (whose F_z is singular at roll 0, Tripp eq. 94, so that it is
     used over pitch at a known roll, §6.5) at the roll the roll table sets, whose standard deviation
     is the table's index error (the rig's ±index_arcsec taken as uniform bounds)."""
-    from labcal.config.run_metadata import PackageUse
-
     if package == "two-axis-xy":
-        return PackageUse(package=package, roll_in_use="inferred", roll_sd_deg=None)
+        return run_metadata.PackageUse(package=package, roll_in_use="inferred", roll_sd_deg=None)
     index_deg = rig["device"]["index_arcsec"] / 3600
-    return PackageUse(package=package, roll_in_use="table", roll_sd_deg=index_deg / 3 ** 0.5)
+    return run_metadata.PackageUse(package=package, roll_in_use="table", roll_sd_deg=index_deg / 3 ** 0.5)
 
 
 def station_package_use(instrument: InstrumentSettings) -> PackageUse:
     """How a station's package is used, as its ``[instrument]`` states it: roll inferred from its own
     outputs, none (pitch at roll 0), or measured by the table or a sensor with its σ_R."""
-    from labcal.config.run_metadata import PackageUse
-
-    return PackageUse(package=instrument.package, roll_in_use=instrument.roll_source,
-                      roll_sd_deg=instrument.roll_sd_deg)
+    return run_metadata.PackageUse(package=instrument.package, roll_in_use=instrument.roll_source,
+                                   roll_sd_deg=instrument.roll_sd_deg)
 
 
 ADHOC_ALLOWED = "not in the instrument register; the lab file allows ad-hoc serials"
@@ -449,17 +496,13 @@ def run_serial(args: StartRun, front: FrontEnd) -> tuple[str | None, str | None]
     no database)."""
     if args.serial is None:
         return None, None
-    from labcal.app.instruments import checked_serial, serial_for_run
-
     if args.dry_run:
-        return checked_serial(args.serial)[0], None
-    found = serial_for_run(args.serial, args.db)
+        return instruments.checked_serial(args.serial)[0], None
+    found = instruments.serial_for_run(args.serial, args.db)
     for note in found.notes:
         front.say(f"note: {note}", markup=False)
     if not found.unregistered:
         return found.serial, None
-    from labcal.config.lab import load_lab_config
-
     if load_lab_config().file.instruments.allow_adhoc:
         front.say(f"note: {found.serial!r} is {ADHOC_ALLOWED} ([instruments] allow_adhoc)", markup=False)
         return found.serial, ADHOC_ALLOWED
@@ -474,11 +517,6 @@ def run_serial(args: StartRun, front: FrontEnd) -> tuple[str | None, str | None]
 def run_standards(named: list[str], db: str | None, front: FrontEnd) -> RunStandards:
     """The reference standards the run uses, checked before anything moves (`labcal.app.standards`):
     an overdue one without an approver's override stops it in one line; what the run journals of them."""
-    from datetime import datetime
-
-    from labcal.app.standards import standards_for_run
-    from labcal.store.journal import station_name
-
     found = standards_for_run(named, station_name(), db, datetime.now().astimezone().date())
     for note in found.notes:
         front.say(f"note: {note}", markup=False)
@@ -492,8 +530,6 @@ def run_standards(named: list[str], db: str | None, front: FrontEnd) -> RunStand
 def check_package(instrument: InstrumentSettings, envelope: CertificateSettings, station: str, plan: str
                   ) -> None:
     """Refuse a package that cannot give its angles over the certificate's usage envelope (Tripp §6)."""
-    from labcal.analysis.packages import package_problem
-
     roll = instrument.roll_source
     assert roll is not None  # the station file's validation requires it for a single axis
     problem = package_problem(instrument.package, roll, envelope.usage_pitch_deg, envelope.usage_roll_deg)
@@ -508,9 +544,6 @@ def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Pat
     taken over, with a note. A link the emulators choose (port 0, ``pty:NAME``) is no address
     yet: it is held once they have chosen it, by a second call with ``chosen``, the station as
     they serve it (`Emulation.station_config`)."""
-    from labcal.store.journal import db_path
-    from labcal.store.lock import StationLock, station_locks
-
     links = {(chosen.devices()[n] if chosen is not None else s).bus:
              (chosen.devices()[n] if chosen is not None else s).where
              for n, s in config.devices().items() if s.chosen_by_emulators == (chosen is not None)}
@@ -524,39 +557,26 @@ def lock_station(stack: ExitStack, config: StationFile, name: str, db: str | Pat
 def ambient_entered(args: StartRun) -> Ambient | None:
     """The environmental conditions the operator entered at the start (ISO/IEC 17025 §7.8.2.1 i),
     as the run journals them; None when none was entered."""
-    from labcal.config.run_metadata import Ambient
-
     entered = {k: v for k, v in (("temperature_c", args.ambient_temp), ("humidity_pct", args.humidity))
                if v is not None}
-    return Ambient(**entered, source="entered at the start of the run") if entered else None
+    return run_metadata.Ambient(**entered, source="entered at the start of the run") if entered else None
 
 
 def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyComplete:
     """Go on with an interrupted run at the first point not in the journal, on the station it
     started on or another station file of the same bench; then the shared sequence."""
-    from labcal.app.folders import record_folder
-    from labcal.bench.setup import prepare, read_snapshot, sim_station, station_for_resume
-    from labcal.config.settings import CertificateSettings
-    from labcal.config.station import load_station
-    from labcal.devices.winding import left_at
-    from labcal.run.estimate import estimate
-    from labcal.run.interrupts import stop_signals_raise
-    from labcal.run.notify import RunNotifier, lab_notifications
-    from labcal.run.runner import execute, open_for_resume
-    from labcal.run.sequencer import check_limits, schedule
-    from labcal.store.journal import sha256
-    from labcal.store.sync import check_server, sending
-
     run_dir = Path(args.run)
     check_server(args.db)  # a lab server behind or ahead of this labcal: refused before anything changes
     ctx = open_for_resume(run_dir)
     with ExitStack() as stack:
         stack.enter_context(stop_signals_raise())  # a SIGTERM while homing stops the tables too
-        notifications = stack.enter_context(lab_notifications(lambda line: front.say(line, markup=False)))
+        notifications = stack.enter_context(
+            notify.lab_notifications(lambda line: front.say(line, markup=False))
+        )
         stack.callback(ctx.journal.close)
         stack.callback(ctx.lock.release)
         # a copy (`labcal export RUN --out DIR`) resumed is the run's folder from now on
-        record_folder(ctx.journal, ctx.journal.run(ctx.run_id), run_dir, "resume")
+        folders.record_folder(ctx.journal, ctx.journal.run(ctx.run_id), run_dir, "resume")
         for note in ctx.notes:
             front.say(f"note: {note}", markup=False)
         run_name = f"run {_lab_label(ctx.journal.path, args.db)(ctx.run_id)} in {run_dir}"
@@ -586,7 +606,7 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
             ctx.journal.relax()  # a dry run: as when it started
             setup = sim_station(None, None, snapshot=ctx.station_text, start_time_s=start,
                                 tables_at=tables_at, pace=args.pace)
-            certificate = CertificateSettings()
+            certificate = config_settings.CertificateSettings()
         else:
             resumed_on = new_station[0] if new_station else snapshot.config
             lock_station(stack, resumed_on, args.station or run_name, ctx.journal.path, front)
@@ -595,7 +615,7 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
                          chosen=bench.config)
             certificate = (new_station[0] if new_station else snapshot.config).certificate
         steps = schedule(ctx.plan, ctx.settings)
-        est = estimate(ctx.plan, ctx.settings, setup.timing, steps)
+        est = run_estimate.estimate(ctx.plan, ctx.settings, setup.timing, steps)
         # a standard that fell due since the run started stops it here too, unless an override holds
         checked = run_standards([] if bench is None else bench.config.standards, args.db, front)
         if bench is not None:
@@ -605,12 +625,13 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
         ctx.journal.reopen(ctx.run_id)
         ctx.journal.event(ctx.run_id, "resume",
                           f"resumed after {len(points)} committed point(s) {on_station}", station_record)
-        from labcal.documents.overrides import STANDARD_OVERRIDE_EVENT
-
         for held in checked.overrides:  # the certificate states it with the run's own
-            ctx.journal.event(ctx.run_id, STANDARD_OVERRIDE_EVENT, f"resumed under {held.approver}'s "
-                              f"override for the overdue reference standard {held.serial}",
-                              held.model_dump(mode="json"))
+            ctx.journal.event(
+                ctx.run_id,
+                overrides.STANDARD_OVERRIDE_EVENT,
+                f"resumed under {held.approver}'s override for the overdue reference standard {held.serial}",
+                held.model_dump(mode="json"),
+            )
         if bench is not None:
             ctx.journal.event(ctx.run_id, "device_identity", "the devices that answered on resuming",
                               {role: said.model_dump(mode="json") for role, said in bench.identities.items()})
@@ -621,18 +642,15 @@ def resume_run(args: ResumeRun, front: FrontEnd) -> Ended | Finished | AlreadyCo
             ctx.journal, ctx.run_id, run_dir, ctx.plan, setup.station, operator, ctx.settings, events,
             steps, terminal=terminal, forecast=forecast),
             run_dir, ctx.plan, est, len(points), args.db, args.no_report, cert_settings, ctx.journal.path,
-            notifier=RunNotifier(notifications, name, run_dir, _lab_label(ctx.journal.path, args.db),
-                                 not operator.confirms_mounts), sender=sender)
+            notifier=notify.RunNotifier(notifications, name, run_dir, _lab_label(ctx.journal.path, args.db),
+                                        not operator.confirms_mounts), sender=sender)
 
 
 def finish_complete(args: ResumeRun, run_dir: Path, run_id: int,
                     settings: CertificateSettings, journal: Path) -> AlreadyComplete:
     """A complete run resumed: its exports were checked and repaired; its certificate and report are
     issued again if any of them is missing or not the history's (a kill during `labcal report`)."""
-    from labcal.app.run_documents import write_run_outputs
-    from labcal.documents.report import outputs_in_place
-
-    if args.no_report or outputs_in_place(run_dir, db=journal):
+    if args.no_report or report.outputs_in_place(run_dir, db=journal):
         return AlreadyComplete(run_id, run_dir, None)
-    issued = write_run_outputs(run_dir, settings, db=journal)
+    issued = run_documents.write_run_outputs(run_dir, settings, db=journal)
     return AlreadyComplete(run_id, run_dir, str(issued.certificate_path), issued.certificate.certificate_id)

@@ -16,7 +16,27 @@ from datetime import date, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
+from labcal.app import audit
+from labcal.app.approving import approve_run, journal_verdict
+from labcal.app.labdatabase import OpenLab, open_lab
+from labcal.app.run_documents import write_run_outputs
+from labcal.documents import approval as documents_approval
+from labcal.documents import approvers as documents_approvers
+from labcal.documents.administration import ItemGiven
+from labcal.documents.approval import check_dcc, load_public_key, verify
+from labcal.documents.approvers import signed_note, verify_registered
+from labcal.documents.certificate import read_certificate as read
+from labcal.documents.dcc import DCC_FILE
+from labcal.documents.issuing import load_settings
+from labcal.documents.report_tables import (
+    attitude_table,
+    budget_table,
+    coefficients_with_expanded_uncertainty,
+    conformity_table,
+)
 from labcal.errors import LabcalError
+from labcal.store.journal import db_path
+from labcal.store.sync import send_now
 
 Authentication = Literal["password re-entered", "API token"]  # as labcal.documents.certificate's
 SERVER_ROLE = "lab server"  # as labcal.documents.approvers.SERVER_ROLE, without importing it at start-up
@@ -89,16 +109,6 @@ class Issued:
 def issue_certificate(request: IssueCertificate) -> Issued:
     """Issue (or issue again) a complete run's certificate and report; one line for a run that is
     not complete, not this journal's, or settings that are wrong."""
-    from labcal.app.run_documents import write_run_outputs
-    from labcal.documents.administration import ItemGiven
-    from labcal.documents.issuing import load_settings
-    from labcal.documents.report_tables import (
-        attitude_table,
-        budget_table,
-        coefficients_with_expanded_uncertainty,
-        conformity_table,
-    )
-
     if request.monte_carlo and not 100 <= request.monte_carlo <= 1_000_000:
         raise LabcalError(f"{{0}} {request.monte_carlo}: give 100 … 1000000 trials (10000 gives U95 "
                           "to about 1 %), or leave it out", "monte_carlo")
@@ -156,8 +166,6 @@ class Approved:
 def approve_certificate(request: ApproveCertificate) -> Approved:
     """Sign the run's draft certificate and its DCC, write the report without DRAFT and store the
     approved certificate; one line naming every reason it may not be signed."""
-    from labcal.app.approving import approve_run
-
     signed_for = (None if request.signed_for is None
                   else (request.signed_for.user_id, request.signed_for.authentication))
     return Approved(approve_run(request.run_dir, request.by, request.role, request.key, request.db,
@@ -195,11 +203,6 @@ class Verified:
 def verify_certificate(request: VerifyCertificate) -> Verified:
     """A certificate's signature checked (and its DCC's digest), and its run's journal recomputed up
     to the chain's head it states; one line when either fails. A read."""
-    from labcal.app.approving import journal_verdict
-    from labcal.documents.approval import check_dcc, load_public_key, verify
-    from labcal.documents.approvers import signed_note, verify_registered
-    from labcal.documents.dcc import DCC_FILE
-
     cert = (verify_registered(request.file, request.db) if request.public_key is None
             else verify(request.file, load_public_key(request.public_key)))
     approval = cert.approval
@@ -228,10 +231,8 @@ class Keys:
 
 
 def make_keys(request: MakeKeys) -> Keys:
-    from labcal.documents.approval import key_id, keygen, load_public_key
-
-    private, public = keygen(request.out)
-    return Keys(private, public, key_id(load_public_key(public)))
+    private, public = documents_approval.keygen(request.out)
+    return Keys(private, public, documents_approval.key_id(documents_approval.load_public_key(public)))
 
 
 @dataclass(frozen=True)
@@ -259,17 +260,13 @@ class Approvers:
 
 
 def add_approver(request: AddApprover) -> Approver:
-    from labcal.documents import approvers
-
-    added = approvers.add(request.name, request.role, request.public_key, request.db)
+    added = documents_approvers.add(request.name, request.role, request.public_key, request.db)
     _audited(request.db, f"registered as {request.role} with key {added.key_id[:16]}", request.name)
     return added
 
 
 def revoke_approver(request: RevokeApprover) -> Approver:
-    from labcal.documents import approvers
-
-    revoked = approvers.revoke(request.name, request.db)
+    revoked = documents_approvers.revoke(request.name, request.db)
     _audited(request.db, f"key {revoked.key_id[:16]} revoked", request.name)
     return revoked
 
@@ -277,10 +274,6 @@ def revoke_approver(request: RevokeApprover) -> Approver:
 def _audited(db: str | None, detail: str, name: str) -> None:
     """A change to the register of approvers, in the audit trail of the file that holds the register
     (the SQLite lab database, or the station's journal)."""
-    from labcal.app import audit
-    from labcal.app.labdatabase import OpenLab, open_lab
-    from labcal.store.journal import db_path
-
     lab = open_lab(OpenLab(str(db_path(db)), must_exist=True))
     try:
         audit.record(lab, audit.by_command(audit.APPROVER_CHANGED, name, detail))
@@ -290,15 +283,11 @@ def _audited(db: str | None, detail: str, name: str) -> None:
 
 def list_approvers(request: ListApprovers) -> Approvers:
     """Every registration, active and revoked (a missing database: none, and nothing is created)."""
-    from labcal.documents import approvers
-
-    return Approvers(tuple(approvers.listed(request.db)))
+    return Approvers(tuple(documents_approvers.listed(request.db)))
 
 
 def read_certificate(path: str | Path) -> Certificate:
     """A certificate.json as its typed model, checked against its schema and its digest. A read."""
-    from labcal.documents.certificate import read_certificate as read
-
     return read(path)
 
 
@@ -307,6 +296,4 @@ def share_with_lab(db: str | None) -> str | None:
     to the lab's server now, so that every bench sees it at once; None when it is there (or when the
     lab database is a SQLite file, this bench's own), else the one line saying it waits for
     ``labcal sync`` (nothing is lost: the journal keeps it)."""
-    from labcal.store.sync import send_now
-
     return send_now(db)

@@ -42,12 +42,17 @@ from labcal.app.residuals import certified_residuals, residual_png
 from labcal.config.run_metadata import RunMetadata, listed_metadata
 from labcal.documents.certificate import Certificate, certificate_from_doc, format_result
 from labcal.documents.overrides import STANDARD_OVERRIDE_EVENT, checklist_overrides, run_overrides
+from labcal.documents.report_figures import in_volts
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.store import lab_certificates, lab_view
 from labcal.store.lab_certificates import approved_runs
 
 if TYPE_CHECKING:
+    from labcal.documents import dcc
     from labcal.store.handles import Connection
+else:
+    dcc = lazy("labcal.documents.dcc")  # start-up without scipy, numpy, pydantic, …
 
 CERTIFICATE, DCC, PDF, HTML = "certificate.json", "certificate.dcc.xml", "report.pdf", "report.html"
 MEDIA = {CERTIFICATE: "application/json", DCC: "application/xml", PDF: "application/pdf",
@@ -222,8 +227,6 @@ class Results:
 
 
 def _in_unit(value: float, unit: str) -> str:
-    from labcal.documents.report_figures import in_volts
-
     return in_volts(value, unit)
 
 
@@ -302,8 +305,6 @@ def run_results(lab: LabDatabase, run_id: int) -> Results | None:
 def certificate_document(lab: LabDatabase, certificate_id: str, name: str) -> tuple[str, bytes] | None:
     """One document of one certificate revision, with its media type (None: no such revision, or the
     lab cannot give that document of it; see the module for where each comes from)."""
-    from labcal.documents.dcc import dcc_document
-
     if name not in MEDIA:
         return None
     with lab.engine.connect() as conn:
@@ -326,7 +327,7 @@ def certificate_document(lab: LabDatabase, certificate_id: str, name: str) -> tu
         if name != DCC or signed is None or hashlib.sha256(found).hexdigest() == signed:
             return MEDIA[name], found
     if name == DCC:
-        written = dcc_document(cert)
+        written = dcc.dcc_document(cert)
         if signed is None or hashlib.sha256(written).hexdigest() == signed:
             return MEDIA[name], written
     return None

@@ -9,7 +9,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from labcal.app.journals import open_named
 from labcal.errors import LabcalError
+from labcal.store import exports, labdb
+from labcal.store.lab_certificates import files_of, write_files
+from labcal.store.labquery import lab_number_of
+from labcal.store.rundir import RUN, check_identity, read_run_json, recorded_folder
 
 if TYPE_CHECKING:
     from labcal.store.journal import Journal, RunRow
@@ -49,15 +54,11 @@ class FolderWritten:
 
 
 def _label(journal: Journal, run_id: int, db: str | None) -> str:
-    from labcal.store.labquery import lab_number_of
-
     return lab_number_of(journal.path, run_id, db)
 
 
 def _target(folder: Path, row) -> None:
     """A folder a run's files may be written into: new, empty, or one that shows this very run."""
-    from labcal.store.rundir import RUN, check_identity, read_run_json
-
     if folder.exists() and not folder.is_dir():
         raise LabcalError(f"{folder}: exists and is not a folder; give another {{0}}", "out")
     if (folder / RUN).exists():  # a folder that shows another run is never written over
@@ -74,10 +75,6 @@ def export_run(request: ExportRun) -> FolderWritten:
     """The run's files in another folder, as the journal gives them. The run's own folder and the
     lab database are left as they were: the run stays recorded where it was (`rebuild_run_folder`
     of the copy makes the copy the run's folder)."""
-    from labcal.app.journals import open_named
-    from labcal.store import exports
-    from labcal.store.rundir import RUN
-
     journal, row, named = open_named(request.run, request.db)
     folder = Path(request.out)
     with journal:
@@ -97,10 +94,6 @@ def rebuild_run_folder(request: RebuildRunFolder) -> FolderWritten:
     """Check the run's own folder against the journal and rewrite every file that is missing, out
     of date or edited (an edited one kept as NAME.edited); a deleted folder is made again. A folder
     given by its path that the journal records elsewhere becomes the run's folder (journaled)."""
-    from labcal.app.journals import open_named
-    from labcal.store import exports
-    from labcal.store.rundir import RUN, recorded_folder
-
     journal, row, named = open_named(request.run, request.db)
     with journal:
         folder = named if named is not None else recorded_folder(journal, row)
@@ -116,9 +109,6 @@ def rebuild_run_folder(request: RebuildRunFolder) -> FolderWritten:
 def _approved_by_the_lab(folder: Path, run_uuid: str | None, db: str | None) -> list[str]:
     """The certificate the lab server approved for the run, with its DCC and report, written into
     its folder (a note naming them); nothing where the lab is not a server or cannot be reached."""
-    from labcal.store import labdb
-    from labcal.store.lab_certificates import files_of, write_files
-
     where = labdb.lab_database(db)
     if isinstance(where, Path) or run_uuid is None:
         return []

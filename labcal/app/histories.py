@@ -4,7 +4,21 @@ over its runs: pure reads of the lab database (a plot, when asked for, is writte
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from labcal.analysis.fit import ROW_NAMES, SENSORS
+from labcal.analysis.kinematics import MISALIGNMENT_NAMES
+from labcal.documents.certificate import format_result
+from labcal.documents.history import RULE, certificates_read, changes, history_json, plot_history
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from labcal.documents import device_history as documents_device_history
+else:
+    # start-up without scipy, numpy, pydantic
+    documents_device_history = lazy("labcal.documents.device_history")
 
 
 @dataclass(frozen=True)
@@ -46,12 +60,6 @@ class InstrumentHistory:
 
 def instrument_history(request: InstrumentHistory) -> History:
     """Every certificate of an instrument, oldest first, each coefficient ± U, drift flagged."""
-    import numpy as np
-
-    from labcal.analysis.fit import ROW_NAMES, SENSORS
-    from labcal.documents.certificate import format_result
-    from labcal.documents.history import RULE, certificates_read, changes, history_json, plot_history
-
     certs, stale = certificates_read(request.serial, request.db, request.include_simulated)
     found = changes(certs)
     if request.plot:
@@ -89,13 +97,10 @@ class DeviceHistory:
 
 def device_history(request: DeviceHistory) -> History:
     """Every device-model estimate of a calibration device, oldest first, each ± U, changes flagged."""
-    from labcal.analysis.kinematics import MISALIGNMENT_NAMES
-    from labcal.documents.device_history import RULE, changes, estimates_read, history_json, plot_history
-
-    estimates, stale = estimates_read(request.device_id, request.db)
-    found = changes(estimates)
+    estimates, stale = documents_device_history.estimates_read(request.device_id, request.db)
+    found = documents_device_history.changes(estimates)
     if request.plot:
-        plot_history(request.device_id, estimates, found, request.plot)
+        documents_device_history.plot_history(request.device_id, estimates, found, request.plot)
     flagged = {(c.after, c.name) for c in found if c.flagged}
     table = HistoryTable(
         f"Calibration device {request.device_id}: misalignments (″) ± U (95 %)",
@@ -106,5 +111,14 @@ def device_history(request: DeviceHistory) -> History:
               for n, e in enumerate(estimates, start=1)))
     lines = tuple(f"{ch.name} from {ch.before} to {ch.after}: Δ = {ch.delta_arcsec:+.2f}″, "
                   f"limit √(U₁²+U₂²) = {ch.limit_arcsec:.2f}″" for ch in found if ch.flagged)
-    return History(request.device_id, (), (table,), lines, f"{len(estimates)} estimate(s)", RULE,
-                   history_json(request.device_id, estimates, found), request.plot, stale)
+    return History(
+        request.device_id,
+        (),
+        (table,),
+        lines,
+        f"{len(estimates)} estimate(s)",
+        documents_device_history.RULE,
+        documents_device_history.history_json(request.device_id, estimates, found),
+        request.plot,
+        stale,
+    )

@@ -35,7 +35,12 @@ from dataclasses import dataclass, field
 from datetime import date, timedelta
 from typing import TYPE_CHECKING
 
+from labcal.app.labdatabase import OpenLab, open_lab
+from labcal.documents.history import certificates_for
 from labcal.errors import LabcalError
+from labcal.run.notify import Message, lab_notifications
+from labcal.store import instruments
+from labcal.store.labdb import Unreachable
 
 if TYPE_CHECKING:
     from labcal.app.labdatabase import LabDatabase
@@ -119,15 +124,11 @@ class InstrumentFields:
 
 def add(lab: LabDatabase, serial: str, fields: InstrumentFields) -> Instrument:
     """Register an instrument (one line if its serial is registered already, in any case)."""
-    from labcal.store import instruments
-
     clean, _ = checked_serial(serial)
     return instruments.insert(lab.engine, clean, fields.values())
 
 
 def edit(lab: LabDatabase, serial: str, fields: InstrumentFields) -> Instrument:
-    from labcal.store import instruments
-
     values = fields.values()
     if not values:
         raise LabcalError("nothing to change: give {0}, {1}, {2}, {3}, … ", "model", "customer", "interval",
@@ -139,8 +140,6 @@ def edit(lab: LabDatabase, serial: str, fields: InstrumentFields) -> Instrument:
 
 
 def listed(lab: LabDatabase, search: str | None = None) -> list[Instrument]:
-    from labcal.store import instruments
-
     return instruments.listed(lab.engine, search.strip() if search else None)
 
 
@@ -150,8 +149,6 @@ def _unregistered(lab: LabDatabase, serial: str) -> LabcalError:
 
 
 def registered(lab: LabDatabase, serial: str) -> Instrument:
-    from labcal.store import instruments
-
     found = instruments.find(lab.engine, checked_serial(serial)[0])
     if found is None:
         raise _unregistered(lab, serial)
@@ -179,8 +176,6 @@ def calibrations(serial: str, db: str | None, include_simulated: bool = False) -
     module). Read through the history's reader (`labcal.documents.history.certificates_for`), which
     verifies each certificate and leaves out replaced revisions and, unless ``include_simulated``, dry
     runs (a simulated calibration never makes an instrument current); none is an empty list."""
-    from labcal.documents.history import certificates_for
-
     try:
         certs = certificates_for(serial, db, include_simulated)
     except LabcalError:  # no certificate, or only dry runs': never calibrated
@@ -290,8 +285,6 @@ def recall_text(item: Due) -> tuple[str, str]:
 def notify_due(items: list[Due], warn: Callable[[str], None]) -> tuple[int, int]:
     """One notification per instrument falling due, through the lab's apprise URLs (the runs' own
     sender, `labcal.run.notify`); (sent, failed). Refused in one line where no URL is configured."""
-    from labcal.run.notify import Message, lab_notifications
-
     with lab_notifications(warn) as notifications:
         if not notifications.urls:
             raise LabcalError("no notification URLs: set notify = [\"URL\", …] in the lab file or "
@@ -316,10 +309,6 @@ class RunSerial:
 def serial_for_run(serial: str, db: str | None) -> RunSerial:
     """The serial a run certifies (see the module): cleaned, in the register's spelling where it is
     registered, and whether the register (when it holds any instrument) lacks it."""
-    from labcal.app.labdatabase import OpenLab, open_lab
-    from labcal.store import instruments
-    from labcal.store.labdb import Unreachable
-
     clean, note = checked_serial(serial)
     notes = [note] if note else []
     try:

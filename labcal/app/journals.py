@@ -4,10 +4,17 @@ run.json names its journal and run. Opening for a read never creates a database.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.store.journal import Journal, RunRow, db_path
 from labcal.store.rundir import open_run
+
+if TYPE_CHECKING:
+    from labcal.store import labquery
+else:
+    labquery = lazy("labcal.store.labquery")  # start-up without scipy, numpy, pydantic
 
 
 def existing(db: str | Path | None) -> Path:
@@ -27,11 +34,9 @@ def open_named(run: str, db: str | Path | None) -> tuple[Journal, RunRow, Path |
     one (a run number names none: its folder may be gone; the journal has all of it). A number is the
     lab's (`labcal runs`), as every command names runs."""
     if run.isdigit():
-        from labcal.store.labquery import journal_run
-
         journal = Journal(existing(db))
         try:
-            return journal, journal.run(journal_run(db, int(run))), None
+            return journal, journal.run(labquery.journal_run(db, int(run))), None
         except BaseException:
             journal.close()
             raise

@@ -33,12 +33,16 @@ from typing import TYPE_CHECKING, Any
 
 from pydantic import ValidationError
 
+from labcal.analysis.kinematics import MOUNTS
 from labcal.app.labdatabase import LabDatabase
 from labcal.app.station_state import PACE_POINTS, Heard, on_the_wall
+from labcal.config.plans import parse_plan
 from labcal.config.run_metadata import RunMetadata, listed_metadata
 from labcal.config.snapshot import is_simulated, parse_snapshot
-from labcal.run.events import JournaledPrompt
+from labcal.errors import LabcalError
+from labcal.run.events import STAYS_OPEN, JournaledPrompt
 from labcal.store import lab_view
+from labcal.store.lab_certificates import approved_by, file_names
 
 if TYPE_CHECKING:
     from labcal.store.handles import Connection
@@ -60,9 +64,6 @@ class PlanShape:
 
 def plan_shape(plan_text: str) -> PlanShape | None:
     """The schedule's shape from the plan as journaled (None: a plan this labcal cannot read)."""
-    from labcal.config.plans import parse_plan
-    from labcal.errors import LabcalError
-
     try:
         plan = parse_plan(plan_text, "the run's plan")
     except (LabcalError, ValueError):
@@ -164,8 +165,6 @@ def _mount(conn: Connection, run_id: int, last: Any) -> dict | None:
     """The mount on the plate: the latest point's, unless a remount was confirmed since (the status
     the run journals then names the mount, Soto Table 3's number) and no point has been measured on
     it yet."""
-    from labcal.analysis.kinematics import MOUNTS
-
     status = _latest(conn, run_id, STATUS_KIND)
     number = status["data"].get("mount") if status and isinstance(status["data"], dict) else None
     if number in (1, 2, 3, 4) and status is not None and (last is None or status["utc"] > last.utc):
@@ -187,8 +186,6 @@ def _waiting(conn: Connection, run_id: int) -> dict | None:
     is open: its newest prompt until an answer closes it. An answer that keeps it open ("not yet",
     a reply that is not one of the answers) says so in its journal line (`STAYS_OPEN`); other
     writers' events in between (the lab database's sync, an export) close nothing."""
-    from labcal.run.events import STAYS_OPEN
-
     prompt = _latest(conn, run_id, PROMPT_KIND)
     if prompt is None:
         return None
@@ -280,8 +277,6 @@ class RunView:
 
 
 def run_view(lab: LabDatabase, run_id: int) -> RunView | None:
-    from labcal.store.lab_certificates import approved_by, file_names
-
     with lab.engine.connect() as conn:
         found = _progress(conn, run_id)
         if found is None:

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from labcal.errors import LabcalError
+from labcal.store.labdb import lab_database, lab_engine
 
 if TYPE_CHECKING:
     from labcal.config.lab import ServerDatabase
@@ -45,8 +46,6 @@ class LabDatabase:
 
 def open_lab(request: OpenLab) -> LabDatabase:
     """The lab database, at this labcal's schema; one line when it is missing, behind or ahead."""
-    from labcal.store.labdb import lab_database, lab_engine
-
     where = lab_database(request.db)
     if isinstance(where, Path) and request.must_exist and not where.is_file():
         raise LabcalError(f"{where}: no lab database there; give {{0}} or set LABCAL_DB to the lab's "

@@ -15,7 +15,10 @@ from __future__ import annotations
 from datetime import datetime
 from pathlib import Path
 
+from labcal.config.lab import load_lab_config
 from labcal.config.numbering import number, scope
+from labcal.store import labdb
+from labcal.store.certificate_numbers import assigned
 from labcal.store.record import RunRecord
 
 DRY_RUN_PREFIX = "SIMULATED-"
@@ -25,10 +28,6 @@ def lab_number(record: RunRecord, serial: str | None, db: str | Path | None) -> 
     """The run's number in the lab's format (None: the lab sets no format, or its server is out of
     reach). ``db``: where the certificate's history is kept (a SQLite lab database), unless the lab
     database is a server."""
-    from labcal.config.lab import load_lab_config
-    from labcal.store import labdb
-    from labcal.store.certificate_numbers import assigned
-
     lab = load_lab_config().laboratory
     uuid, started = record.meta.run_uuid, record.meta.started_utc
     if not lab.certificate_number or not uuid or not started:

@@ -26,17 +26,27 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import matplotlib
 import numpy as np
+from matplotlib.figure import Figure
 
+from labcal.analysis.fit import fit_readings
 from labcal.analysis.kinematics import NO_MISALIGNMENT, Misalignment, gravity
 from labcal.analysis.readings import Readings
+from labcal.documents import report_figures
 from labcal.documents.certificate import Certificate
+from labcal.documents.report_figures import volt_unit
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.store.journal import readings_of
+from labcal.store.lab_certificates import lab_record
 from labcal.store.lab_points import ok_points, points_state, run_status_and_folder
 
 if TYPE_CHECKING:
+    from labcal.documents import report
     from labcal.store.handles import Connection
+else:
+    report = lazy("labcal.documents.report")  # load only for such a certificate)
 
 
 def readings(conn: Connection, run_id: int) -> Readings | None:
@@ -118,8 +128,6 @@ def _gravity_misalignment(cert: Certificate) -> tuple[Misalignment, str, str] | 
 
 
 def _certified(conn: Connection, run_id: int, cert: Certificate) -> CertifiedResiduals | None:
-    from labcal.store.lab_certificates import lab_record
-
     _, run_dir = run_status_and_folder(conn, run_id)
     if run_dir is None:
         return None
@@ -130,14 +138,11 @@ def _certified(conn: Connection, run_id: int, cert: Certificate) -> CertifiedRes
     r = record.readings
     stated = _gravity_misalignment(cert)
     if stated is None:  # more than B and S: refitted as the report fits it (the report's modules
-        from labcal.documents.report import fitted  # load only for such a certificate)
-        from labcal.documents.report_figures import certified_residuals as of_fit
-
         try:
-            fit, device, _ = fitted(record)
+            fit, device, _ = report.fitted(record)
         except LabcalError:
             return None
-        model, equation, residuals = of_fit(fit, device)
+        model, equation, residuals = report_figures.certified_residuals(fit, device)
         return CertifiedResiduals(model, equation, np.asarray(residuals)[:, :len(fit.sensors)], r.pitch_deg,
                                   r.roll_deg, r.units, fit.sensors)
     mis, model, equation = stated
@@ -151,8 +156,6 @@ def _certified(conn: Connection, run_id: int, cert: Certificate) -> CertifiedRes
 def _shown(conn: Connection, run_id: int, cert: Certificate | None) -> tuple[CertifiedResiduals, str] | None:
     """What the plot shows and its heading: the certificate's model, else the linear fit of the
     readings so far."""
-    from labcal.analysis.fit import fit_readings
-
     certified = None if cert is None else certified_residuals(conn, run_id, cert)
     if certified is not None:
         return certified, (f"Run {run_id}: residuals of the {certified.model} its certificate states "
@@ -171,17 +174,11 @@ def _shown(conn: Connection, run_id: int, cert: Certificate | None) -> tuple[Cer
 
 
 def _draw(conn: Connection, run_id: int, cert: Certificate | None) -> bytes | None:
-    from labcal.documents.report_figures import volt_unit
-
     shown = _shown(conn, run_id, cert)
     if shown is None:
         return None
     found, heading = shown
-    import matplotlib
-
     matplotlib.use("Agg")
-    from matplotlib.figure import Figure
-
     fig = Figure(figsize=(9, 6.5 * (len(found.sensors) + 0.5) / 3.5), dpi=100, layout="constrained")
     axes = fig.subplots(len(found.sensors), 2, sharex="col", squeeze=False)
     residuals = np.asarray(found.residuals, dtype=float)

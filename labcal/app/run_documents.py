@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from labcal.app.numbering import lab_number
 from labcal.config.settings import CertificateSettings
@@ -18,7 +19,13 @@ from labcal.documents.issuing import build_certificate, changed_fields, identifi
 from labcal.documents.report import CERTIFICATE, RunOutputs, fitted, replaced_by, write_documents, write_file
 from labcal.documents.uncertainty import bench_section, type_b_inputs
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.store.record import RunRecord, load_run
+
+if TYPE_CHECKING:
+    from labcal.documents import device_history
+else:
+    device_history = lazy("labcal.documents.device_history")  # start-up without scipy, numpy, pydantic
 
 
 def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None = None, *,
@@ -34,9 +41,7 @@ def write_run_outputs(run_dir: str | Path, settings: CertificateSettings | None 
     record = record or load_run(run_dir)
     fit, device, model_note = fitted(record)
     if device is None:  # a plan that corrects for the device: not from a correction the run saw move
-        from labcal.documents.device_history import refuse_if_moved
-
-        refuse_if_moved(record, fit)
+        device_history.refuse_if_moved(record, fit)
     section = bench_section(record, station)
     inputs = type_b_inputs(section, record, device)
     revision, replaced = 1, None

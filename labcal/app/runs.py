@@ -7,13 +7,26 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from labcal.app.desk import run_attention
 from labcal.config.run_metadata import RunMetadata, listed_metadata
+from labcal.documents.overrides import run_overrides
 from labcal.errors import LabcalError
-from labcal.store.labquery import LabRun, Source
+from labcal.lazy import lazy
+from labcal.store import labquery
+from labcal.store.lab_view import run_row
+from labcal.store.labquery import LabRun, Source, from_lab, lab_runs, run_events
+from labcal.store.lock import held_by
 
 if TYPE_CHECKING:
+    from labcal.app import journals
     from labcal.documents.overrides import Override
+    from labcal.store import journal as store_journal
+    from labcal.store import rundir
     from labcal.store.handles import Connection
+else:
+    journals = lazy("labcal.app.journals")  # start-up without scipy, numpy, pydantic
+    rundir = lazy("labcal.store.rundir")  # start-up without scipy, numpy, pydantic
+    store_journal = lazy("labcal.store.journal")  # start-up without scipy, numpy, pydantic
 
 
 @dataclass(frozen=True)
@@ -61,8 +74,6 @@ class RunList:
 def seen_status(db: Path, status: str, run_id: int) -> str:
     """The journal's status, except that a "running" run whose lock nobody holds was interrupted:
     its process ended without closing it (a kill, a power cut). `labcal resume` goes on with it."""
-    from labcal.store.lock import held_by
-
     if status == "running" and held_by(db, run_id) is None:
         return "interrupted"
     return status
@@ -81,10 +92,6 @@ def _attention(db: str | None, found: list[LabRun], source: Source) -> dict[int,
     rule (`labcal.app.desk.run_attention`) on the lab record the list was read from: the lab
     database, or this bench's journal for a run the lab has not seen yet (or cannot be reached)."""
     # deferred: the desk reads certificates (pydantic, numpy); a plain `labcal runs` need not load them
-    from labcal.app.desk import run_attention
-    from labcal.store.lab_view import run_row
-    from labcal.store.labquery import from_lab
-
     def read(conn: Connection, wanted: dict[int, LabRun], by_uuid: bool) -> dict[int, tuple[str, ...]]:
         noted: dict[int, tuple[str, ...]] = {}
         for at, run in wanted.items():
@@ -110,8 +117,6 @@ def _metadata(run: LabRun) -> RunMetadata:
 def list_runs(request: ListRuns) -> RunList:
     """The lab's runs in the order the lab numbered them (this bench's runs it has not seen yet
     last); a missing database is an empty list, and is not created."""
-    from labcal.store.labquery import lab_runs
-
     wanted = request.statuses
     # an interrupted run may still say "running" in the journal: ask for both, then sort out
     asked = wanted + (("running",) if "interrupted" in wanted else ())
@@ -163,19 +168,14 @@ def _run_of(request: ReadLog) -> tuple[str | None, int | None, str | None]:
     if request.run.isdigit():
         return request.db, int(request.run), None
     if Path(request.run).is_dir():
-        from labcal.app.journals import existing
-        from labcal.store.journal import Journal
-        from labcal.store.labquery import is_server
-        from labcal.store.rundir import read_run_json
-
-        info = read_run_json(Path(request.run))
+        info = rundir.read_run_json(Path(request.run))
         try:
             journal, run_id = Path(str(info["journal"])), int(info["run_id"])
         except (KeyError, TypeError, ValueError):
             raise LabcalError(f"{request.run}: run.json does not name its journal and run id") from None
-        if not is_server(request.db):
+        if not labquery.is_server(request.db):
             return str(journal), run_id, None
-        with Journal(existing(journal)) as opened:
+        with store_journal.Journal(journals.existing(journal)) as opened:
             return request.db, None, opened.run(run_id).uuid or ""
     if len(request.run) >= 8 and set(request.run.lower()) <= UUID_DIGITS:
         return request.db, None, request.run.lower()
@@ -185,8 +185,6 @@ def _run_of(request: ReadLog) -> tuple[str | None, int | None, str | None]:
 
 def read_log(request: ReadLog) -> RunLog:
     """A run's journaled events in order: prompts and answers, retries, faults, pauses, resumes."""
-    from labcal.store.labquery import run_events
-
     db, number, uuid = _run_of(request)
     found, source = run_events(db, number, uuid)
     run = _line(found.run, source.journal)
@@ -199,8 +197,6 @@ def overrides_in(run: LabRun, events: Iterable[dict]) -> tuple[Override, ...]:
     """Every override a run was measured under (`labcal.documents.overrides`: the warm-up and other
     checklist items gone on regardless of, overdue standards used under an approver's override, faults
     accepted), from its row in the lab database and its journaled events, as its certificate states them."""
-    from labcal.documents.overrides import run_overrides
-
     meta = _metadata(run).model_copy(update={"operator": run.operator, "started_utc": run.started_utc})
     return tuple(run_overrides(meta, events))
 
@@ -209,8 +205,6 @@ def overrides_of(request: ReadLog) -> tuple[Override, ...]:
     """`overrides_in` of the run ``request.run`` names (a lab run number, a uuid or a run folder), read
     from the lab database (or this bench's journal where the lab cannot be reached): what the approver's
     view shows of a run before it is signed."""
-    from labcal.store.labquery import run_events
-
     db, number, uuid = _run_of(request)
     found, _ = run_events(db, number, uuid)
     return overrides_in(found.run, found.events)

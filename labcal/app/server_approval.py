@@ -45,14 +45,25 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from labcal.app.certificates import ApproveCertificate, Authentication, SignedFor, approve_certificate
 from labcal.app.desk import MEDIA
 from labcal.app.lab import run_folder
 from labcal.app.labdatabase import LabDatabase
 from labcal.app.users import User
+from labcal.config.lab import load_lab_config
+from labcal.documents.approval import key_id, load_private_key
+from labcal.documents.approvers import SERVER_ROLE, by_key
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
+from labcal.store.lab_certificates import approved_files
+from labcal.store.labdb import others_may_write
+
+if TYPE_CHECKING:
+    from labcal.app import approving
+else:
+    approving = lazy("labcal.app.approving")  # start-up without matplotlib, scipy, numpy, …
 
 CERTIFICATE = "certificate.json"
 _ONE_AT_A_TIME = threading.Lock()
@@ -89,9 +100,6 @@ def server_key(given: str | None) -> Path | None:
     """The server's signing key — ``given`` (--key), else the lab file's ``server_key``, else none —
     checked now rather than at the first approval (one line for a missing, unreadable or too-open
     key)."""
-    from labcal.config.lab import load_lab_config
-    from labcal.documents.approval import load_private_key
-
     path = Path(given) if given is not None else load_lab_config().server_key()
     if path is not None:
         load_private_key(path)
@@ -111,8 +119,6 @@ def _cannot(lab: LabDatabase, run_dir: str, key: Path | None, name: str) -> str 
                 f"in the lab file); {where}")
     if lab.file is None:
         return None
-    from labcal.store.labdb import others_may_write
-
     loose = others_may_write(lab.file)
     if loose is not None:  # whoever may write the file may write its users, approvers and journal
         return (f"{lab.file}: others may write this SQLite lab database, so its users, approvers and "
@@ -130,9 +136,6 @@ def approval_refused(lab: LabDatabase, run_id: int, key: Path | None, name: str)
 def approve_as_user(lab: LabDatabase, request: ApproveAsUser) -> ServerApproved | None:
     """Approve the run's certificate for the authenticated approver with the server's key (None: no
     such run); one line on any refusal."""
-    from labcal.documents.approval import key_id, load_private_key
-    from labcal.documents.approvers import SERVER_ROLE, by_key
-
     run_dir = run_folder(lab, request.run_id)
     if run_dir is None:
         return None
@@ -149,10 +152,8 @@ def approve_as_user(lab: LabDatabase, request: ApproveAsUser) -> ServerApproved 
         role, signed_for = (registered.role if registered is not None else user.role), None
     with _ONE_AT_A_TIME:
         if lab.server is not None:  # the lab's own copy of the run, and the files kept there
-            from labcal.app.approving import approve_lab_run
-
             server = None if signed_for is None else (signed_for.user_id, signed_for.authentication)
-            cert = approve_lab_run(lab.server, request.run_id, user.name, role, key, server)
+            cert = approving.approve_lab_run(lab.server, request.run_id, user.name, role, key, server)
             where = f"{lab.shown} (run {request.run_id}'s {CERTIFICATE})"
         else:
             done = approve_certificate(ApproveCertificate(run_dir, user.name, role, str(key), db,
@@ -170,8 +171,6 @@ def approved_file(lab: LabDatabase, run_id: int, name: str) -> tuple[str, bytes]
     """A file of run ``run_id``'s certificate as the lab server approved it and the lab keeps it
     (the signed certificate.json, certificate.dcc.xml, report.pdf, report.html), with its media
     type; None: no such file, or none approved there."""
-    from labcal.store.lab_certificates import approved_files
-
     if name not in MEDIA:
         return None
     content = approved_files(lab.engine, run_id).get(name)

@@ -28,10 +28,26 @@ from typing import TYPE_CHECKING
 
 from labcal.config.run_metadata import StandardOverride, StandardUsed
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
+from labcal.store.labdb import Unreachable, empty_in_file
 
 if TYPE_CHECKING:
+    from cryptography import exceptions
+
+    from labcal.app import instruments, labdatabase
     from labcal.app.labdatabase import LabDatabase
+    from labcal.documents import approval, approvers
+    from labcal.store import instruments as store_instruments
+    from labcal.store import standards
     from labcal.store.standards import OverrideRow, Standard
+else:
+    approval = lazy("labcal.documents.approval")  # start-up without scipy, numpy, pydantic, …
+    approvers = lazy("labcal.documents.approvers")  # start-up without scipy, numpy, pydantic, …
+    exceptions = lazy("cryptography.exceptions")  # start-up without cryptography
+    instruments = lazy("labcal.app.instruments")  # start-up without matplotlib, scipy, numpy, …
+    labdatabase = lazy("labcal.app.labdatabase")  # start-up without pydantic
+    standards = lazy("labcal.store.standards")  # start-up without sqlalchemy
+    store_instruments = lazy("labcal.store.instruments")  # start-up without sqlalchemy
 
 KINDS = {"dmm": "DMM", "pitch-table": "pitch table", "roll-table": "roll table",
          "reference-level": "reference level", "other": "reference standard"}  # --kind: as equipment is named
@@ -99,10 +115,7 @@ def _dates_in_order(calibrated: date, due: date) -> None:
 
 def add(lab: LabDatabase, serial: str, fields: StandardFields) -> Standard:
     """Register a standard (one line if its serial is registered already, or a required field is missing)."""
-    from labcal.app.instruments import checked_serial
-    from labcal.store import standards
-
-    clean, _ = checked_serial(serial)
+    clean, _ = instruments.checked_serial(serial)
     values = fields.values()
     missing = [o for o, k in (("--kind", "kind"), ("--certificate", "certificate"),
                               ("--calibrated", "calibrated_on"), ("--due", "due_on")) if not values.get(k)]
@@ -113,10 +126,7 @@ def add(lab: LabDatabase, serial: str, fields: StandardFields) -> Standard:
 
 
 def registered(lab: LabDatabase, serial: str) -> Standard:
-    from labcal.app.instruments import checked_serial
-    from labcal.store import standards
-
-    found = standards.find(lab.engine, checked_serial(serial)[0])
+    found = standards.find(lab.engine, instruments.checked_serial(serial)[0])
     if found is None:
         raise LabcalError(f"{serial.strip()!r}: no such standard in {lab.shown} (`labcal standard list`; "
                           f"`labcal standard add {serial.strip()} …` registers it)")
@@ -124,8 +134,6 @@ def registered(lab: LabDatabase, serial: str) -> Standard:
 
 
 def edit(lab: LabDatabase, serial: str, fields: StandardFields) -> Standard:
-    from labcal.store import standards
-
     values = fields.values()
     if not values:
         raise LabcalError("nothing to change: give --certificate, --calibrated, --due, --bench, … ")
@@ -137,8 +145,6 @@ def edit(lab: LabDatabase, serial: str, fields: StandardFields) -> Standard:
 
 
 def listed(lab: LabDatabase, bench: str | None = None) -> list[Standard]:
-    from labcal.store import standards
-
     return standards.listed(lab.engine, bench.strip() if bench else None)
 
 
@@ -169,12 +175,6 @@ def record_override(request: RecordOverride, today: date) -> tuple[Standard, Ove
     """An approver's override for the standard ``serial`` (see the module): refused in one line unless
     the key is an active approver's registered under that name and role, the reason is given, and the
     last day is today or later and within `MAX_OVERRIDE_DAYS`."""
-    from labcal.app.labdatabase import OpenLab, open_lab
-    from labcal.documents.approval import key_id, load_private_key
-    from labcal.documents.approvers import problems
-    from labcal.store import standards
-    from labcal.store.instruments import serial_key
-
     reason = _text(request.reason, "--reason")
     if len(reason) < 3:
         raise LabcalError("--reason: say why the run may use the overdue standard (the certificate "
@@ -186,17 +186,17 @@ def record_override(request: RecordOverride, today: date) -> tuple[Standard, Ove
         raise LabcalError(f"--until {until.isoformat()}: an override lasts from today to at most "
                           f"{MAX_OVERRIDE_DAYS} days ahead ({last.isoformat()}); "
                           "have the standard recalibrated")
-    key = load_private_key(request.key)
-    kid = key_id(key.public_key())
+    key = approval.load_private_key(request.key)
+    kid = approval.key_id(key.public_key())
     by, role = request.by.strip(), request.role.strip()
-    refused = problems(kid, by, role, request.db)
+    refused = approvers.problems(kid, by, role, request.db)
     if refused:
         raise LabcalError(f"only a registered approver records an override: {refused[0]}")
-    lab = open_lab(OpenLab(request.db, must_exist=True))
+    lab = labdatabase.open_lab(labdatabase.OpenLab(request.db, must_exist=True))
     try:
         standard = registered(lab, request.serial)
         recorded = standards.now_utc()
-        key_text = serial_key(standard.serial)
+        key_text = store_instruments.serial_key(standard.serial)
         signature = key.sign(override_payload(key_text, standard.due_on, until, reason, by, role, recorded))
         row = standards.OverrideRow(key_text, standard.due_on, until, reason, by, role, kid,
                                     base64.b64encode(signature).decode("ascii"), recorded)
@@ -214,25 +214,21 @@ def override_problem(row: OverrideRow, standard: Standard, today: date, db: str 
     """Why ``row`` does not let a run use ``standard`` today (None: it does): another due date than the
     standard's, expired, a signature that does not hold, or a key not an active approver's under the
     name and role the override states."""
-    from cryptography.exceptions import InvalidSignature
-
-    from labcal.documents.approvers import by_key, problems
-
     if row.due_on != standard.due_on:
         return (f"recorded against due date {row.due_on.isoformat()}, not the standard's "
                 f"{standard.due_on.isoformat()}")
     if row.valid_until < today:
         return f"expired on {row.valid_until.isoformat()}"
-    refused = problems(row.key_id, row.approver, row.role, db)
+    refused = approvers.problems(row.key_id, row.approver, row.role, db)
     if refused:
         return refused[0]
-    approver = by_key(row.key_id, db)
+    approver = approvers.by_key(row.key_id, db)
     assert approver is not None  # problems() says so when it is not registered
     try:
         approver.public_key().verify(base64.b64decode(row.signature), override_payload(
             row.standard_key, row.due_on, row.valid_until, row.reason, row.approver, row.role,
             row.recorded_utc))
-    except (InvalidSignature, ValueError):
+    except (exceptions.InvalidSignature, ValueError):
         return (f"its signature does not hold for {row.approver}'s key (the row was changed after it was "
                 "signed)")
     return None
@@ -264,8 +260,6 @@ def override_json(row: OverrideRow) -> dict:
 
 
 def card(lab: LabDatabase, serial: str, today: date, db: str | None) -> Card:
-    from labcal.store import standards
-
     found = registered(lab, serial)
     rows = standards.overrides(lab.engine, found.serial)
     return Card(found, today, [(row, override_problem(row, found, today, db)) for row in rows])
@@ -295,15 +289,10 @@ def standards_for_run(named: list[str], bench: str, db: str | None, today: date)
     before anything moves: a named serial the register lacks, and an overdue standard without an override
     that holds (`override_problem`), are refused in one line. A lab server out of reach is a note (a run
     never waits for it), as the instrument register's check is."""
-    from labcal.store.labdb import Unreachable, empty_in_file
-
     if not named and empty_in_file(db, "standards"):  # none registered in this lab file: none to check
         return RunStandards()
-    from labcal.app.labdatabase import OpenLab, open_lab
-    from labcal.store import standards
-
     try:
-        lab = open_lab(OpenLab(db, must_exist=False))
+        lab = labdatabase.open_lab(labdatabase.OpenLab(db, must_exist=False))
     except Unreachable as exc:
         return RunStandards(notes=[f"the reference standards were not checked: {exc}"])
     try:

@@ -14,13 +14,24 @@ from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from labcal.bench.checklist import PowerOn, journaled, refusal, run_checklist, unmet
+from labcal.lazy import lazy
+from labcal.run import operator as run_operator
+from labcal.run.operator import mount_request
+from labcal.store.journal import db_path
+from labcal.store.labdb import lab_server
+
 if TYPE_CHECKING:
+    from rich import text as rich_text
+
     from labcal.analysis.kinematics import Mount
     from labcal.bench.hardware import Bench
     from labcal.config.run_metadata import Checklist
     from labcal.devices.station import Station
     from labcal.run.events import RunEvent
     from labcal.run.operator import Heard, PauseChoice, Terminal
+else:
+    rich_text = lazy("rich.text")  # start-up without rich
 
 LOG = logging.getLogger("labcal.run")
 
@@ -35,8 +46,6 @@ class _Confirms:
         self.say = say
 
     def confirm_mount(self, mount: Mount, step: int, n_steps: int, note: str = "") -> None:
-        from labcal.run.operator import mount_request
-
         self.say(f"{mount_request(mount, step, n_steps, note)} (unattended: confirmed)")
 
     def after_pause(self, why: str, moving: tuple[str, ...] = ()) -> PauseChoice:
@@ -62,9 +71,7 @@ class Unattended:
 
     def say(self, text: str, markup: bool = True) -> None:
         if markup:
-            from rich.text import Text
-
-            text = Text.from_markup(text).plain
+            text = rich_text.Text.from_markup(text).plain
         LOG.info("%s", text)
         if self._say is not None:
             self._say(text)
@@ -73,10 +80,6 @@ class Unattended:
         return _Confirms(self.say)
 
     def checklist(self, bench: Bench | None, station: Station, points: int, samples: int) -> Checklist:
-        from labcal.bench.checklist import PowerOn, journaled, refusal, run_checklist, unmet
-        from labcal.store.journal import db_path
-        from labcal.store.labdb import lab_server
-
         config = None if bench is None else bench.config
         items = run_checklist(config, bench, station, db=db_path(self.db),
                               run_folder=Path(self.out or "runs"), points=points, samples=samples,
@@ -94,6 +97,4 @@ class Unattended:
 
     @contextmanager
     def display(self, total: int, done: int) -> Iterator[tuple[_Silent, Terminal]]:
-        from labcal.run.operator import Terminal
-
-        yield _Silent(), Terminal()
+        yield _Silent(), run_operator.Terminal()

@@ -30,6 +30,9 @@ from datetime import UTC, datetime, timedelta
 from functools import cache
 from pathlib import Path
 
+from argon2 import PasswordHasher
+from argon2.exceptions import InvalidHashError, VerificationError
+
 from labcal.app import audit
 from labcal.app.labdatabase import LabDatabase
 from labcal.errors import LabcalError
@@ -69,8 +72,6 @@ class User:
 
 
 def _hasher():
-    from argon2 import PasswordHasher
-
     return PasswordHasher()
 
 
@@ -245,8 +246,6 @@ class Busy(LabcalError):
 def by_password(lab: LabDatabase, name: str, password: str) -> User | None:
     """The active user ``name`` if ``password`` is theirs, else None; `Busy` when `HASHES_AT_ONCE`
     hashes are already running. No throttling: the server asks `check_password`."""
-    from argon2.exceptions import InvalidHashError, VerificationError
-
     hasher = _hasher()
     row = accounts.with_password(lab.engine, name.strip())
     if not _HASHING.acquire(blocking=False):

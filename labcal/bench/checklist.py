@@ -30,7 +30,10 @@ from typing import TYPE_CHECKING, Literal
 from labcal.config.files import size_text
 from labcal.config.run_metadata import Checklist, ChecklistItem
 from labcal.config.uncertainty import overdue_standards
+from labcal.drivers.errors import DriverError
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
+from labcal.store.labdb import Unreachable, connect, open_server
 
 if TYPE_CHECKING:
     from labcal.bench.hardware import Bench
@@ -38,6 +41,10 @@ if TYPE_CHECKING:
     from labcal.config.station import InstrumentSettings, StationFile
     from labcal.config.uncertainty import Traceability
     from labcal.devices.station import Station
+    from labcal.drivers import oriental_az
+else:
+    # the drivers (pymodbus) only for a bench: a simulated run loads none of them
+    oriental_az = lazy("labcal.drivers.oriental_az")
 
 Status = Literal["ok", "warning", "fail"]
 CHANNELS_STORED = 4  # x, y, z and temperature: the most a point's raw samples hold
@@ -145,10 +152,6 @@ def tables_homed(bench: Bench | None, station: Station | None) -> Item:
         if faults:
             return Item(name, "fail", "; ".join(faults))
         return Item(name, "ok", "simulated tables: homed")
-    # the drivers (pymodbus) only for a bench: a simulated run loads none of them
-    from labcal.drivers.errors import DriverError
-    from labcal.drivers.oriental_az import AzAxis
-
     found: list[tuple[Status, str]] = []
     for axis in bench.axes:
         try:
@@ -163,7 +166,7 @@ def tables_homed(bench: Bench | None, station: Station | None) -> Item:
         elif not status.ready and not status.moving:  # an AZ drive whose STOP input a lost release left on
             why = axis.not_ready_why() or "; it would start no move"
             found.append(("fail", f"{axis.name}: {status.words}{why}"))
-        elif isinstance(axis, AzAxis):
+        elif isinstance(axis, oriental_az.AzAxis):
             found.append(("ok", f"{axis.name}: {status.words}, absolute encoder, no alarm"))
         else:
             found.append(("ok", f"{axis.name}: {status.words}"))
@@ -176,8 +179,6 @@ def tables_homed(bench: Bench | None, station: Station | None) -> Item:
 
 def dmm(bench: Bench | None) -> Item:
     """The DMM identifies itself and holds the declared configuration, read back."""
-    from labcal.drivers.errors import DriverError
-
     name = "DMM"
     if bench is None:
         return Item(name, "ok", "simulated DMM: nothing to test")
@@ -233,8 +234,6 @@ def lab_database(path: Path, server: ServerDatabase | None = None) -> Item:
     """The journal opens as a run opens it; the lab's server, where there is one, answers at this
     labcal's schema. A server that cannot be reached is a warning, not a failure: a run never waits
     for it (its records stay in the journal and are sent when it is back)."""
-    from labcal.store.labdb import Unreachable, connect, open_server
-
     try:
         connect(path).close()
     except LabcalError as exc:

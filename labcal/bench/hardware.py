@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from labcal.config.run_metadata import DeviceIdentity
 from labcal.config.station import (
@@ -26,6 +26,12 @@ from labcal.drivers.newport_smc100 import Smc100Axis
 from labcal.drivers.oriental_az import AzAxis
 from labcal.drivers.transport import LineTransport, SerialStream, TcpStream
 from labcal.drivers.visa import VisaLink
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from pyvisa import constants
+else:
+    constants = lazy("pyvisa.constants")  # start-up without numpy, pyvisa
 
 Link = TypeVar("Link", ModbusLink, LineTransport)
 
@@ -50,14 +56,19 @@ def dmm_link(settings: DmmSettings) -> LineTransport | VisaLink:
         return line_transport(settings, SCPI_EOL)
     serial = {}
     if settings.serial_line:  # an ASRL resource takes the station's line settings
-        from pyvisa.constants import ControlFlow, Parity, StopBits
-
-        serial = {"baud_rate": settings.baudrate, "data_bits": settings.bytesize,
-                  "parity": {"N": Parity.none, "E": Parity.even, "O": Parity.odd}[settings.parity],
-                  "stop_bits": {1: StopBits.one, 2: StopBits.two}[settings.stopbits],
-                  # the 34970A's RS-232 factory setting is XON/XOFF (User's Guide p.192): without it
-                  # the unit's XOFF is read as data and a long reply overruns its buffer
-                  "flow_control": ControlFlow.xon_xoff if settings.xonxoff else ControlFlow.none}
+        serial = {
+            "baud_rate": settings.baudrate,
+            "data_bits": settings.bytesize,
+            "parity": {"N": constants.Parity.none, "E": constants.Parity.even, "O": constants.Parity.odd}[
+                settings.parity
+            ],
+            "stop_bits": {1: constants.StopBits.one, 2: constants.StopBits.two}[settings.stopbits],
+            # the 34970A's RS-232 factory setting is XON/XOFF (User's Guide p.192): without it
+            # the unit's XOFF is read as data and a long reply overruns its buffer
+            "flow_control": constants.ControlFlow.xon_xoff
+            if settings.xonxoff
+            else constants.ControlFlow.none,
+        }
     return VisaLink(settings.visa, library=settings.visa_library, eol=SCPI_EOL.decode(),
                     timeout_s=settings.timeout_s, reconnect_s=settings.reconnect_s, serial=serial)
 

@@ -6,11 +6,29 @@ import argparse
 import sys
 from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:
-    import numpy as np
+from labcal.lazy import lazy
 
+if TYPE_CHECKING:
+    import numpy
+    import numpy as np
+    from rich import markup
+else:
+    markup = lazy("rich.markup")  # start-up without rich
+    numpy = lazy("numpy")  # start-up without numpy
+
+import json
+import math
+import tempfile
+from pathlib import Path
+
+from labcal.analysis import attitude
+from labcal.analysis.gross_errors import gravity_flags, methods_disagree
+from labcal.analysis.packages import package_attitude
 from labcal.commands import summary
-from labcal.commands.common import add_db_option, keep_freed_memory, outcome_of_checks
+from labcal.commands.common import add_db_option, err, keep_freed_memory, outcome_of_checks
+from labcal.config.readings_csv import read_numeric_csv
+from labcal.config.streams import read_stream
+from labcal.documents.approvers import calibration_in_use
 from labcal.errors import LabcalError
 
 CHUNK_ROWS = 10_000  # rows formatted and written at a time: output memory stays flat
@@ -20,9 +38,7 @@ ROLL_UNDEFINED = "pitch is ±90° within its uncertainty: gravity lies along x a
 
 
 def _columns(att, prefix: str) -> dict[str, np.ndarray]:
-    import numpy as np
-
-    deg = np.degrees
+    deg = numpy.degrees
     return {f"{prefix}pitch_deg": deg(att.pitch), f"{prefix}roll_deg": deg(att.roll),
             f"{prefix}u_pitch_deg": deg(att.u_pitch), f"{prefix}u_roll_deg": deg(att.u_roll),
             f"{prefix}U95_pitch_deg": deg(att.U_pitch), f"{prefix}U95_roll_deg": deg(att.U_roll),
@@ -31,17 +47,6 @@ def _columns(att, prefix: str) -> dict[str, np.ndarray]:
 
 def cmd_attitude(args: argparse.Namespace) -> int:
     keep_freed_memory()
-    import tempfile
-    from pathlib import Path
-
-    import numpy as np
-
-    from labcal.analysis import attitude
-    from labcal.commands.common import err
-    from labcal.config.readings_csv import read_numeric_csv
-    from labcal.config.streams import read_stream
-    from labcal.documents.approvers import calibration_in_use
-
     cal, standing = calibration_in_use(args.cert, args.db, args.unverified)
     if not isinstance(cal, attitude.Calibration):  # a sensor package's certificate (Tripp & Tcheng §6)
         return package_attitude_command(args, cal, standing)
@@ -50,10 +55,8 @@ def cmd_attitude(args: argparse.Namespace) -> int:
                           f"roll; {args.cert} is a three-axis instrument's, which infers roll itself")
     unverified = standing is not None and standing["approved"] and not standing["verified"]
     if standing is not None:  # a draft or an unverified one: a warning; a verified one: who and through what
-        from rich.markup import escape
-
         prefix = "certificate:" if standing["verified"] else "[yellow]note:[/]"
-        err.print(f"{prefix} {escape(str(args.cert))}: {escape(standing['note'])}")
+        err.print(f"{prefix} {markup.escape(str(args.cert))}: {markup.escape(standing['note'])}")
     source = args.csv
     if source is None:  # voltages on standard input (never a device: /dev/zero would fill memory)
         text = read_stream(sys.stdin, "standard input", "voltages")
@@ -65,15 +68,13 @@ def cmd_attitude(args: argparse.Namespace) -> int:
     finally:
         if args.csv is None:
             Path(source).unlink()
-    volts = np.column_stack([cols["vx"], cols["vy"], cols["vz"]])
-    from labcal.analysis.gross_errors import gravity_flags, methods_disagree
-
+    volts = numpy.column_stack([cols["vx"], cols["vy"], cols["vz"]])
     methods = list(METHODS) if args.method == "both" else [args.method]
     # local gravity may differ from the calibration's: the sphere estimator takes |g| as 1 ± its
     # uncertainty, the gravity check tests only what lies beyond the tolerance
     estimate = {"closed": lambda: attitude.closed_form(cal, volts),
                 "sphere": lambda: attitude.sphere_least_squares(cal, volts, attitude.LOCAL_GRAVITY_U)}
-    with np.errstate(all="ignore"):  # a row of 1e308 V is flagged below, not a page of warnings
+    with numpy.errstate(all="ignore"):  # a row of 1e308 V is flagged below, not a page of warnings
         results = {m: estimate[m]() for m in methods}
         flags = gravity_flags(cal, volts, tolerance=attitude.LOCAL_GRAVITY_TOLERANCE)
         if len(methods) == 2:
@@ -92,22 +93,9 @@ def package_attitude_command(args: argparse.Namespace, cal, standing: dict | Non
     """`labcal attitude` with a sensor package's certificate: the outputs of the sensors it has (vx, and
     vy or vz), pitch as it states (without roll, at a roll measured in use: --roll-deg or a roll_deg
     column, with --roll-sd-deg or its σ_R; or pitch and roll together within its usable range)."""
-    import json
-    import tempfile
-    from pathlib import Path
-
-    import numpy as np
-
-    from labcal.analysis.packages import package_attitude
-    from labcal.commands.common import err
-    from labcal.config.readings_csv import read_numeric_csv
-    from labcal.config.streams import read_stream
-
     if standing is not None:
-        from rich.markup import escape
-
         prefix = "certificate:" if standing["verified"] else "[yellow]note:[/]"
-        err.print(f"{prefix} {escape(str(args.cert))}: {escape(standing['note'])}")
+        err.print(f"{prefix} {markup.escape(str(args.cert))}: {markup.escape(standing['note'])}")
     if args.method != "both":
         raise LabcalError(f"--method chooses a three-axis estimator; the {cal.package} package's angles are "
                           "inferred as its certificate states")
@@ -125,15 +113,15 @@ def package_attitude_command(args: argparse.Namespace, cal, standing: dict | Non
             Path(source).unlink()
     if "roll_deg" in cols and args.roll_deg is not None:
         raise LabcalError("the roll is given twice: a roll_deg column and --roll-deg; give one")
-    roll = cols.get("roll_deg", None if args.roll_deg is None else np.array(args.roll_deg))
-    att = package_attitude(cal, np.column_stack([cols[c] for c in columns]),
-                           None if roll is None else np.radians(roll),
-                           None if args.roll_sd_deg is None else np.radians(args.roll_sd_deg))
-    deg = np.degrees
+    roll = cols.get("roll_deg", None if args.roll_deg is None else numpy.array(args.roll_deg))
+    att = package_attitude(cal, numpy.column_stack([cols[c] for c in columns]),
+                           None if roll is None else numpy.radians(roll),
+                           None if args.roll_sd_deg is None else numpy.radians(args.roll_sd_deg))
+    deg = numpy.degrees
     table = {"pitch_deg": deg(att.pitch), "roll_deg": deg(att.roll), "U95_pitch_deg": deg(att.U_pitch),
-             "U95_roll_deg": deg(att.U_roll), "k": np.full(len(att.pitch), att.k)}
+             "U95_roll_deg": deg(att.U_roll), "k": numpy.full(len(att.pitch), att.k)}
     if args.json:
-        rows = [{k: (float(v[i]) if np.isfinite(v[i]) else None) for k, v in table.items()}
+        rows = [{k: (float(v[i]) if numpy.isfinite(v[i]) else None) for k, v in table.items()}
                 for i in range(len(att.pitch))]
         sys.stdout.write(json.dumps({"package": cal.package, "roll_in_use": cal.roll_in_use,
                                      "coverage": "U95 = k·σ (Tripp & Tcheng §6), k = t₀.₉₇₅ of the fit's "
@@ -147,31 +135,31 @@ def package_attitude_command(args: argparse.Namespace, cal, standing: dict | Non
 
 def write_csv_rows(table: dict[str, np.ndarray]) -> None:
     """The columns as CSV, a chunk of rows per write; a non-finite value is an empty cell."""
-    import numpy as np
-
     sys.stdout.write(",".join(["row", *table]) + "\n")
-    values = np.column_stack(list(table.values()))
+    values = numpy.column_stack(list(table.values()))
     line = "%d" + ",%.9g" * values.shape[1] + "\n"
     for start in range(0, len(values), CHUNK_ROWS):
         chunk = values[start:start + CHUNK_ROWS]
-        finite = np.isfinite(chunk).all(axis=1)
+        finite = numpy.isfinite(chunk).all(axis=1)
         if finite.all():  # one format operation for the whole chunk: a sixth faster than one per row
-            numbered = np.column_stack([np.arange(start + 1, start + len(chunk) + 1), chunk])
+            numbered = numpy.column_stack([numpy.arange(start + 1, start + len(chunk) + 1), chunk])
             sys.stdout.write((line * len(chunk)) % tuple(numbered.ravel().tolist()))
             continue
-        sys.stdout.write("".join(
-            line % (start + i + 1, *row) if finite[i]
-            else ",".join([str(start + i + 1), *(f"{v:.9g}" if np.isfinite(v) else "" for v in row)]) + "\n"
-            for i, row in enumerate(chunk.tolist())))
+        sys.stdout.write(
+            "".join(
+                line % (start + i + 1, *row)
+                if finite[i]
+                else ",".join([str(start + i + 1), *(f"{v:.9g}" if numpy.isfinite(v) else "" for v in row)])
+                + "\n"
+                for i, row in enumerate(chunk.tolist())
+            )
+        )
 
 
 def write_json_rows(table: dict[str, np.ndarray], methods: list[str], dof: int, flags: list,
                     standing: dict | None = None) -> None:
     """One JSON document, streamed: the rows are formatted a chunk at a time, never all held as
     Python objects (a hundred thousand rows of dicts took 700 MiB)."""
-    import json
-    import math
-
     names = {m: [k for k in table if k.startswith(PREFIX[m])] for m in methods}
     header = {"coverage": "U95 = k·u_c per row, u_c from the calibration's complete covariance (a "
                           "certificate's uncertainty budget: Type A and B with their correlations), "

@@ -5,22 +5,34 @@ from __future__ import annotations
 
 import argparse
 
+from labcal.app.certificates import (
+    SERVER_ROLE,
+    AddApprover,
+    ApproveCertificate,
+    ListApprovers,
+    MakeKeys,
+    RevokeApprover,
+    VerifyCertificate,
+    add_approver,
+    approve_certificate,
+    list_approvers,
+    make_keys,
+    revoke_approver,
+    share_with_lab,
+    verify_certificate,
+)
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, err, out, print_json
 
 
 def _share(db: str | None) -> None:
     """Send what the command recorded to the lab's server now; one line on stderr when it cannot."""
-    from labcal.app.certificates import share_with_lab
-
     unsent = share_with_lab(db)
     if unsent:
         err.print(unsent, markup=False)
 
 
 def cmd_keygen(args: argparse.Namespace) -> int:
-    from labcal.app.certificates import MakeKeys, make_keys
-
     keys = make_keys(MakeKeys(args.out))
     if args.json:
         print_json({"private_key": str(keys.private_key), "public_key": str(keys.public_key),
@@ -33,8 +45,6 @@ def cmd_keygen(args: argparse.Namespace) -> int:
 
 
 def cmd_approve(args: argparse.Namespace) -> int:
-    from labcal.app.certificates import ApproveCertificate, approve_certificate
-
     approved = approve_certificate(ApproveCertificate(args.run_dir, args.by, args.role, args.key, args.db,
                                                       args.station, unchained=args.unchained))
     _share(args.db)
@@ -51,8 +61,6 @@ def cmd_approve(args: argparse.Namespace) -> int:
 
 
 def cmd_approvers_add(args: argparse.Namespace) -> int:
-    from labcal.app.certificates import SERVER_ROLE, AddApprover, add_approver
-
     a = add_approver(AddApprover(args.name, args.role, args.public_key, args.db))
     _share(args.db)
     if args.json:
@@ -67,8 +75,6 @@ def cmd_approvers_add(args: argparse.Namespace) -> int:
 
 
 def cmd_approvers_list(args: argparse.Namespace) -> int:
-    from labcal.app.certificates import ListApprovers, list_approvers
-
     found = list_approvers(ListApprovers(args.db)).approvers
     if args.json:
         print_json({"approvers": [a.to_json() for a in found]})
@@ -83,8 +89,6 @@ def cmd_approvers_list(args: argparse.Namespace) -> int:
 
 
 def cmd_approvers_revoke(args: argparse.Namespace) -> int:
-    from labcal.app.certificates import RevokeApprover, revoke_approver
-
     a = revoke_approver(RevokeApprover(args.name, args.db))
     _share(args.db)
     if args.json:
@@ -96,8 +100,6 @@ def cmd_approvers_revoke(args: argparse.Namespace) -> int:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    from labcal.app.certificates import VerifyCertificate, verify_certificate
-
     v = verify_certificate(VerifyCertificate(args.file, args.public_key, args.dcc, args.db))
     if args.json:
         print_json(v.to_json())

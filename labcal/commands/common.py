@@ -3,32 +3,51 @@
 from __future__ import annotations
 
 import argparse
+import importlib
+import json
 import math
+import re
 import sys
 from collections.abc import Callable
 from datetime import date, datetime
 from typing import TYPE_CHECKING, Any
 
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 
 if TYPE_CHECKING:
+    import ctypes
+    import shlex
+
+    from rich import console, markup
+    from rich import table as rich_table
     from rich.console import Console
 
+    from labcal.app import labdatabase
     from labcal.app.histories import History
+    from labcal.config import json_values, uncertainty
+    from labcal.config import lab as config_lab
+else:
+    config_lab = lazy("labcal.config.lab")  # start-up without pydantic
+    console = lazy("rich.console")  # start-up without rich
+    ctypes = lazy("ctypes")  # start-up without ctypes
+    json_values = lazy("labcal.config.json_values")  # start-up without 3 more modules
+    labdatabase = lazy("labcal.app.labdatabase")  # start-up without pydantic
+    markup = lazy("rich.markup")  # start-up without rich
+    rich_table = lazy("rich.table")  # start-up without rich
+    shlex = lazy("shlex")  # start-up without shlex
+    uncertainty = lazy("labcal.config.uncertainty")  # pydantic: only when the option is given
+
 
 def literal(value: object) -> str:
     """``value`` as Rich prints it, character for character: a serial ``ACC[/x]`` or a folder
     ``run[1]`` is text, not markup (unescaped, the first crashed the console after a run)."""
-    from rich.markup import escape
-
-    return escape(str(value))
+    return markup.escape(str(value))
 
 
 def command_line(*words: object) -> str:
     """A command to copy into a shell: each word quoted as the shell needs it (`shlex.quote`), then
     made literal for Rich."""
-    import shlex
-
     return literal(shlex.join(str(w) for w in words))
 
 
@@ -48,11 +67,9 @@ class _LazyConsole:
         self._options = options
 
     def _become(self) -> Console:
-        from rich.console import Console
-
         options = self.__dict__.pop("_options")
-        self.__class__ = Console  # type: ignore[assignment]
-        Console.__init__(self, **options)  # type: ignore[arg-type]
+        self.__class__ = console.Console  # type: ignore[assignment]
+        console.Console.__init__(self, **options)  # type: ignore[arg-type]
         return self  # type: ignore[return-value]
 
     def __getattr__(self, name: str) -> Any:
@@ -80,8 +97,6 @@ def keep_freed_memory() -> None:
     Elsewhere than glibc there is no mallopt, and nothing is done."""
     if not sys.platform.startswith("linux"):
         return
-    import ctypes
-
     mallopt = getattr(ctypes.CDLL(None), "mallopt", None)
     if mallopt is not None:
         m_trim_threshold, m_mmap_threshold = -1, -3  # glibc's <malloc.h>
@@ -91,23 +106,17 @@ def keep_freed_memory() -> None:
 
 def print_json(doc: dict) -> None:
     """One JSON document on stdout and nothing else (`--json`)."""
-    import json
-
-    from labcal.config.json_values import json_safe
-
-    sys.stdout.write(json.dumps(json_safe(doc), indent=2) + "\n")
+    sys.stdout.write(json.dumps(json_values.json_safe(doc), indent=2) + "\n")
 
 
 def print_history(history: History) -> None:
     """A history (`labcal.app.histories`): its calibrations, its tables with each flagged change in
     red, each flagged change in words, the tally with the rule that flagged them, and where the plot
     went (the instrument's and the device's histories end alike)."""
-    from rich.table import Table
-
     for entry in history.entries:
         out.print(f"  {entry}")
     for t in history.tables:
-        table = Table(title=t.title)
+        table = rich_table.Table(title=t.title)
         for col in t.columns:
             table.add_column(col, justify="right")
         for row in t.rows:
@@ -134,9 +143,7 @@ def add_power_on_options(p: argparse.ArgumentParser) -> None:
 def warn_if_secret_in(db_option: str | None) -> None:
     """One line when --db carries a password: every account on this machine reads a command line
     (``ps``)."""
-    from labcal.config.lab import redacted
-
-    if db_option and redacted(db_option) != db_option:
+    if db_option and config_lab.redacted(db_option) != db_option:
         sys.stderr.write("warning: the password in --db is visible to every account on this machine (ps); "
                          "keep it in ~/.pgpass or $PGPASSWORD, or give the URL in $LABCAL_DB\n")
 
@@ -193,15 +200,11 @@ def angle_deg(hi: float, plausible_max: float = PLAUSIBLE_U95_MAX_DEG) -> Callab
                 "(7.5arcsec, 7.5\", 0.5arcmin, 40urad)")
 
     def convert(text: str) -> float:
-        import re
-
-        from labcal.config.uncertainty import UNITS  # pydantic: only when the option is given
-
         found = re.fullmatch(r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(\S*)\s*", text)
         if found is None:
             raise argparse.ArgumentTypeError(f"{text} is not an angle; {expected}")
         number, unit = float(found[1]), found[2]
-        units = UNITS["angle"]
+        units = uncertainty.UNITS["angle"]
         if unit and unit not in units:
             raise argparse.ArgumentTypeError(f"{text!r}: {unit!r} is not a unit of angle; use one of "
                                              f"{', '.join(units)}")
@@ -230,8 +233,6 @@ def bounded_field(model: str, field: str) -> Callable[[str], float]:
     only when the option is given: building the parser (`--help`) must not import pydantic."""
 
     def convert(text: str) -> float:
-        import importlib
-
         module, _, name = model.partition(":")
         info = getattr(importlib.import_module(module), name).model_fields[field]
         kind = int if info.annotation is int else float
@@ -261,9 +262,7 @@ def outcome_of_checks(flags, allowed: bool, source: str) -> int:
 
 def lab_of(option: str | None, create: bool):
     """The lab database a register command reads (``create``: or makes, for an addition)."""
-    from labcal.app.labdatabase import OpenLab, open_lab
-
-    return open_lab(OpenLab(option, must_exist=not create))
+    return labdatabase.open_lab(labdatabase.OpenLab(option, must_exist=not create))
 
 
 def day_given(text: str | None) -> date:

@@ -7,11 +7,10 @@ import sys
 
 from labcal.commands import summary
 from labcal.commands.common import out, print_json
+from labcal.config.lab import CONFIG_ENV, load_lab_config
 
 
 def cmd_path(args: argparse.Namespace) -> int:
-    from labcal.config.lab import CONFIG_ENV, load_lab_config
-
     lab = load_lab_config()
     if args.json:
         print_json({"path": None if lab.path is None else str(lab.path),
@@ -26,8 +25,6 @@ def cmd_path(args: argparse.Namespace) -> int:
 
 
 def cmd_show(args: argparse.Namespace) -> int:
-    from labcal.config.lab import load_lab_config
-
     lab = load_lab_config()
     laboratory, certificate = lab.laboratory.model_dump(), lab.certificate.model_dump(mode="json")
     path, database = None if lab.path is None else str(lab.path), str(lab.database())

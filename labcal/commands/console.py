@@ -6,11 +6,13 @@ import argparse
 from collections.abc import Iterable
 from contextlib import ExitStack, contextmanager
 from datetime import datetime
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 from rich import box
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -20,14 +22,24 @@ from rich.progress import (
 from rich.table import Table
 
 from labcal.analysis.fit import ROW_NAMES, SENSORS, Fit
+from labcal.commands.common import err
+from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.run.events import Discarded, Fault, PointMeasured, RunEvent, Status, Stopped
 from labcal.run.operator import GATE_KEY, QuietKeys, Terminal
+from labcal.store.journal import db_path
+from labcal.store.labdb import lab_server
 
 if TYPE_CHECKING:
+    from labcal.bench import checklist
     from labcal.bench.checklist import Item, PowerOn
     from labcal.bench.hardware import Bench
     from labcal.config.run_metadata import Checklist
     from labcal.devices.station import Station
+    from labcal.documents import certificate
+else:
+    certificate = lazy("labcal.documents.certificate")  # start-up without scipy, numpy, pydantic
+    checklist = lazy("labcal.bench.checklist")  # start-up without pydantic
 
 
 def format_duration(seconds: float) -> str:
@@ -119,11 +131,9 @@ class ProgressDisplay(Terminal):
 def with_standard_error(value: float, se: float) -> str:
     """'value ± SE' to the digits the standard error supports (SE to two significant digits,
     the value rounded to the same decimal), as the certificate rounds (GUM 7.2.6)."""
-    from labcal.documents.certificate import format_result
-
     if not np.isfinite(se):
         return f"{value:+.7g}"
-    text = format_result(value, se)
+    text = certificate.format_result(value, se)
     return f"{'+' if not text.startswith('-') else ''}{text}"
 
 
@@ -205,8 +215,6 @@ CHECK_MARKS = {"ok": "[green]ok[/]", "warning": "[yellow]warning[/]", "fail": "[
 
 def print_checklist(console: Console, items: Iterable[Item]) -> None:
     """The pre-run checklist (`labcal.bench.checklist`), one line per item."""
-    from rich.markup import escape
-
     console.print("[bold]Pre-run checklist[/] (nothing moves):")
     for item in items:
         console.print(f"  {CHECK_MARKS[item.status]} {item.name}: {escape(item.why)}")
@@ -214,10 +222,8 @@ def print_checklist(console: Console, items: Iterable[Item]) -> None:
 
 def power_on_given(args: argparse.Namespace, now: datetime) -> PowerOn:
     """What the command line says of the instrument's power (`labcal.bench.checklist.PowerOn`)."""
-    from labcal.bench.checklist import PowerOn, parse_power_on
-
-    at = None if args.powered_on is None else parse_power_on(args.powered_on, now)
-    return PowerOn(at, args.warmed_up)
+    at = None if args.powered_on is None else checklist.parse_power_on(args.powered_on, now)
+    return checklist.PowerOn(at, args.warmed_up)
 
 
 def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, points: int,
@@ -227,19 +233,11 @@ def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, 
     on; with --yes or --answers nobody is asked. Where the station asks for a warm-up and the
     command line did not say when the instrument was switched on, the operator at the terminal is
     asked. Returns what the run journals of it (its metadata: run.json, the manifest)."""
-    from pathlib import Path
-
-    from labcal.bench.checklist import PowerOn, journaled, parse_power_on, refusal, run_checklist, unmet
-    from labcal.commands.common import err
-    from labcal.errors import LabcalError
-    from labcal.store.journal import db_path
-    from labcal.store.labdb import lab_server
-
     now = datetime.now().astimezone()
     power = power_on_given(args, now)
     config = None if bench is None else bench.config
     attended = not (args.yes or args.answers)
-    if attended and config is not None and config.instrument.warm_up_min and power == PowerOn():
+    if attended and config is not None and config.instrument.warm_up_min and power == checklist.PowerOn():
         while True:  # a typo is asked again; an empty answer (or none) leaves it unsaid
             try:
                 text = err.input(f"The instrument needs {config.instrument.warm_up_min:g} min of warm-up: "
@@ -247,19 +245,29 @@ def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, 
             except EOFError:
                 text = ""
             if text.lower() in ("", "warm"):
-                power = PowerOn(warmed_up=text.lower() == "warm")
+                power = checklist.PowerOn(warmed_up=text.lower() == "warm")
                 break
             try:
-                power = PowerOn(parse_power_on(text, now, "the answer"))
+                power = checklist.PowerOn(checklist.parse_power_on(text, now, "the answer"))
                 break
             except LabcalError as exc:
                 err.print(f"[yellow]{exc}[/]")
-    items = run_checklist(config, bench, station, db=db_path(args.db), run_folder=Path(args.out or "runs"),
-                          points=points, samples=samples, power=power, now=now, server=lab_server(args.db))
+    items = checklist.run_checklist(
+        config,
+        bench,
+        station,
+        db=db_path(args.db),
+        run_folder=Path(args.out or "runs"),
+        points=points,
+        samples=samples,
+        power=power,
+        now=now,
+        server=lab_server(args.db),
+    )
     print_checklist(err, items)
-    failed = unmet(items)
+    failed = checklist.unmet(items)
     if not failed:
-        return journaled(items, power)
+        return checklist.journaled(items, power)
     names = ", ".join(i.name for i in failed)
     if attended:
         try:
@@ -268,5 +276,5 @@ def before_run(args: argparse.Namespace, bench: Bench | None, station: Station, 
         except EOFError:
             go_on = ""
         if go_on in ("y", "yes"):
-            return journaled(items, power, went_on_regardless=True)
-    raise refusal(failed)
+            return checklist.journaled(items, power, went_on_regardless=True)
+    raise checklist.refusal(failed)

@@ -5,24 +5,30 @@ behind or ahead in one line, and this is the command that line names."""
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, out, print_json
+from labcal.errors import LabcalError
+from labcal.lazy import lazy
+from labcal.store import labdb
+from labcal.store.labdb import lab_database, lab_server
+from labcal.store.migrations import HEAD
+
+if TYPE_CHECKING:
+    from labcal.store import roles as store_roles
+else:
+    store_roles = lazy("labcal.store.roles")  # start-up without pydantic
 
 
 def cmd_db_upgrade(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from labcal.store import labdb
-    from labcal.store.labdb import lab_database
-
     where = lab_database(args.db)
     done = labdb.upgrade(where)
     roles = None
     if not isinstance(where, Path):  # a server: who may write what, as this labcal says
-        from labcal.store.roles import set_up
-
-        roles = set_up(where)
+        roles = store_roles.set_up(where)
     if args.json:
         print_json({"database": str(where), "found": done.found.revision, "legacy": done.found.legacy,
                     "revision": done.reached, "backup": None if done.backup is None else str(done.backup),
@@ -42,13 +48,6 @@ def cmd_db_upgrade(args: argparse.Namespace) -> int:
 
 def cmd_db_grant_station(args: argparse.Namespace) -> int:
     """`labcal db grant-station` and `labcal db grant-server`."""
-    import sys
-    from pathlib import Path
-
-    from labcal.errors import LabcalError
-    from labcal.store import roles
-    from labcal.store.labdb import lab_server
-
     admin = lab_server(args.db)
     if admin is None:
         raise LabcalError(f"labcal db {args.db_command} is for a PostgreSQL lab database (--db "
@@ -61,7 +60,7 @@ def cmd_db_grant_station(args: argparse.Namespace) -> int:
         password = sys.stdin.readline().rstrip("\r\n")
         if not password:
             raise LabcalError("--password-stdin: no password on the first line of the standard input")
-    grant = roles.grant_server if args.db_command == "grant-server" else roles.grant_station
+    grant = store_roles.grant_server if args.db_command == "grant-server" else store_roles.grant_station
     done = grant(admin, args.name, password, Path(args.password_file) if args.password_file else None)
     if args.json:
         print_json({"station": done.station, "role": done.role, "url": done.url,
@@ -81,10 +80,6 @@ def cmd_db_grant_station(args: argparse.Namespace) -> int:
 
 
 def cmd_db_status(args: argparse.Namespace) -> int:
-    from labcal.store import labdb
-    from labcal.store.labdb import lab_database
-    from labcal.store.migrations import HEAD
-
     where = lab_database(args.db)
     found = labdb.status(where)
     state = ("current" if found.revision == HEAD else "empty" if found.revision is None

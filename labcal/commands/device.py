@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import argparse
 
+from labcal.app.histories import DeviceHistory, device_history
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, err, print_history, print_json
 
 
 def cmd_history(args: argparse.Namespace) -> int:
-    from labcal.app.histories import DeviceHistory, device_history
-
     history = device_history(DeviceHistory(args.device_id, args.db, args.plot))
     if history.stale:
         err.print(history.stale, markup=False)

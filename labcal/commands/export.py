@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import argparse
 
+from labcal.app.folders import ExportRun, RebuildRunFolder, export_run, rebuild_run_folder
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, err, print_json
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from labcal.app.folders import ExportRun, RebuildRunFolder, export_run, rebuild_run_folder
-
     result = (export_run(ExportRun(args.run, args.out, args.db)) if args.out
               else rebuild_run_folder(RebuildRunFolder(args.run, args.db)))
     if args.json:

@@ -9,9 +9,51 @@ from typing import TYPE_CHECKING
 from labcal.commands import summary
 from labcal.commands.common import bounded, keep_freed_memory, out, outcome_of_checks, print_json
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 
 if TYPE_CHECKING:
+    import numpy as np
+    from rich import box
+    from rich import table as rich_table
     from rich.table import Table
+
+    from labcal.analysis import (
+        attitude,
+        budget,
+        declared_noise,
+        device_fit,
+        distributions,
+        gross_errors,
+        index_errors,
+        kinematics,
+        lack_of_fit,
+        models,
+        packages,
+    )
+    from labcal.analysis import coning as analysis_coning
+    from labcal.analysis import fit as analysis_fit
+    from labcal.commands import console
+    from labcal.config import readings_csv, station
+else:
+    analysis_coning = lazy("labcal.analysis.coning")  # start-up without scipy, numpy
+    analysis_fit = lazy("labcal.analysis.fit")  # start-up without scipy, numpy
+    attitude = lazy("labcal.analysis.attitude")  # start-up without scipy, numpy
+    box = lazy("rich.box")  # start-up without rich
+    budget = lazy("labcal.analysis.budget")  # start-up without scipy, numpy
+    console = lazy("labcal.commands.console")  # rich, which --json does not need
+    declared_noise = lazy("labcal.analysis.declared_noise")  # start-up without scipy, numpy
+    device_fit = lazy("labcal.analysis.device_fit")  # start-up without scipy, numpy
+    distributions = lazy("labcal.analysis.distributions")  # start-up without scipy, numpy
+    gross_errors = lazy("labcal.analysis.gross_errors")  # start-up without scipy, numpy
+    index_errors = lazy("labcal.analysis.index_errors")  # start-up without scipy, numpy
+    kinematics = lazy("labcal.analysis.kinematics")  # start-up without numpy
+    lack_of_fit = lazy("labcal.analysis.lack_of_fit")  # start-up without scipy, numpy
+    models = lazy("labcal.analysis.models")  # start-up without numpy
+    np = lazy("numpy")  # start-up without numpy
+    packages = lazy("labcal.analysis.packages")  # start-up without scipy, numpy
+    readings_csv = lazy("labcal.config.readings_csv")  # start-up without scipy, numpy, pydantic
+    rich_table = lazy("rich.table")  # start-up without rich
+    station = lazy("labcal.config.station")  # start-up without scipy, numpy, pydantic
 
 EXTENSION_NAMES = ("temperature", "harmonics")  # labcal.analysis.models.EXTENSIONS, for the help
 
@@ -37,17 +79,13 @@ def parse_at(text: str) -> tuple[float, float, float, float]:
 def singular_sensitivity(X, source: str) -> None:
     """Refuse, naming the readings file, a fit whose S cannot turn voltages into g: every check and
     estimate after it inverts S."""
-    from labcal.analysis.attitude import sensitivity_defect
-
-    defect = sensitivity_defect(X)
+    defect = attitude.sensitivity_defect(X)
     if defect:
         raise LabcalError(f"{source}: {defect}")
 
 
 def choose_model(args: argparse.Namespace, readings) -> tuple[str, str | None]:
     """The model to fit and, when it was chosen for the user, the one line saying why."""
-    from labcal.analysis.device_fit import LINEAR_HINT, default_model
-
     if args.index_errors and args.model not in (None, "device"):
         raise LabcalError("--index-errors extends the device model; leave out --model or give --model device")
     if (args.table_index or args.table_wobble) and args.model not in (None, "device"):
@@ -58,10 +96,10 @@ def choose_model(args: argparse.Namespace, readings) -> tuple[str, str | None]:
                           "with --model device")
     if args.model is not None:
         return args.model, None
-    model, note = default_model(readings)
+    model, note = device_fit.default_model(readings)
     if model == "device" and (args.extend or args.at):
         return "linear", "linear model: --extend and --at need it (--model device fits the misalignments)"
-    return model, note + ("; " + LINEAR_HINT if model == "device" else "")
+    return model, note + ("; " + device_fit.LINEAR_HINT if model == "device" else "")
 
 
 def against_station(args: argparse.Namespace, readings, fit, doc: dict, flags: list) -> list:
@@ -70,21 +108,17 @@ def against_station(args: argparse.Namespace, readings, fit, doc: dict, flags: l
     "declared_noise"; the readings it names that the gross-error ``flags`` do not already."""
     if not args.station:
         return []
-    from labcal.analysis.declared_noise import NO_ANGLE_ERRORS, Declared, noise_check
-    from labcal.analysis.device_fit import AngleErrors
-    from labcal.config.station import load_station
-
-    config, _ = load_station(args.station)
+    config, _ = station.load_station(args.station)
     if readings.units != "V":
         raise LabcalError(f"--station: the station declares its noise in volts, the readings are in "
                           f"{readings.units}")
     u, settle = config.uncertainty, config.sequencer.settle
-    errors = AngleErrors(u.pitch_index, u.pitch_wobble, u.roll_index, u.roll_wobble)
+    errors = device_fit.AngleErrors(u.pitch_index, u.pitch_wobble, u.roll_index, u.roll_wobble)
     if not errors:
-        doc["declared_noise"] = {"made": False, "summary": NO_ANGLE_ERRORS}
+        doc["declared_noise"] = {"made": False, "summary": declared_noise.NO_ANGLE_ERRORS}
         return []
-    declared = Declared.of(settle.noise_v, settle.samples, errors)
-    check = noise_check(readings, fit.coefficients[1:], declared)
+    declared = declared_noise.Declared.of(settle.noise_v, settle.samples, errors)
+    check = declared_noise.noise_check(readings, fit.coefficients[1:], declared)
     doc["declared_noise"] = {"made": True, **check.to_json(), "summary": check.summary(readings.units)}
     if check.passed:
         return []
@@ -94,47 +128,38 @@ def against_station(args: argparse.Namespace, readings, fit, doc: dict, flags: l
 
 def cmd_fit(args: argparse.Namespace) -> int:
     keep_freed_memory()
-    import numpy as np
-
-    from labcal.analysis.coning import coning, coning_json
-    from labcal.analysis.distributions import t_quantile
-    from labcal.analysis.fit import SENSORS, extension_tests, fit_readings, reference_temperature
-    from labcal.analysis.gross_errors import fit_flags, implausible_volts
-    from labcal.analysis.models import Model, Points
-    from labcal.config.readings_csv import read_readings
-
-    readings = read_readings(args.readings, args.units)
-    implausible_volts(readings.volts, readings.units)
+    readings = readings_csv.read_readings(args.readings, args.units)
+    gross_errors.implausible_volts(readings.volts, readings.units)
     model, chosen = choose_model(args, readings)
     checked = None  # (the linear fit, its gross-error flags), computed once for the choice and the device fit
     if model == "device":
-        linear = fit_readings(readings)
+        linear = analysis_fit.fit_readings(readings)
         singular_sensitivity(linear.coefficients, args.readings)
-        checked = linear, fit_flags(readings, linear)
+        checked = linear, gross_errors.fit_flags(readings, linear)
         if checked[1] and args.model is None:
             model, chosen = "linear", ("linear model: some readings fail the gross-error checks (listed "
                                        "below); the device model is fitted only to readings that pass them")
     if model == "device":
         return fit_device_model(args, readings, chosen, checked)
     extend = tuple(e.strip() for e in args.extend.split(",") if e.strip()) if args.extend else ()
-    fit = fit_readings(readings, Model(extend, reference_temperature(readings)))
+    fit = analysis_fit.fit_readings(
+        readings, models.Model(extend, analysis_fit.reference_temperature(readings))
+    )
     singular_sensitivity(fit.coefficients, args.readings)
-    doc = coning_json(fit) if model == "coning" else fit.to_json()
+    doc = analysis_coning.coning_json(fit) if model == "coning" else fit.to_json()
     doc["units"] = readings.units  # B and S_E in these, S in these per g
     if chosen:
         doc.setdefault("notes", []).insert(0, chosen)
-    if fit.sensors != SENSORS:  # a package: its sensors as Tripp & Tcheng state them (eq. 8)
-        from labcal.analysis.packages import package_of, sensors_of
-
-        doc["package"] = {"package": package_of(fit.sensors), "sensors": {
+    if fit.sensors != analysis_fit.SENSORS:  # a package: its sensors as Tripp & Tcheng state them (eq. 8)
+        doc["package"] = {"package": packages.package_of(fit.sensors), "sensors": {
             s.axis: {"b": s.b, "S": s.S, "omega_deg": float(np.degrees(s.omega)),
-                     "azimuth_deg": float(np.degrees(s.azimuth))} for s in sensors_of(fit)}}
-    flags = fit_flags(readings, fit)
+                     "azimuth_deg": float(np.degrees(s.azimuth))} for s in packages.sensors_of(fit)}}
+    flags = gross_errors.fit_flags(readings, fit)
     doc["gross_errors"] = [f.to_json() for f in flags]
     flags += against_station(args, readings, fit, doc, flags)
     at = [parse_at(a) for a in args.at or []]
     if at:
-        points = Points.at(*np.array(at).T)
+        points = models.Points.at(*np.array(at).T)
         pred = fit.predict(points, args.level)
         doc["predictions"] = [
             {"pitch_deg": p[0], "roll_deg": p[1], "y_deg": p[2], "u_deg": p[3],
@@ -143,19 +168,13 @@ def cmd_fit(args: argparse.Namespace) -> int:
              "prediction_half_width": pred["prediction"][i].tolist()}
             for i, p in enumerate(at)]
     if args.test_extensions:
-        doc["extension_tests"] = {t.name: t.to_json() for t in extension_tests(readings)}
+        doc["extension_tests"] = {t.name: t.to_json() for t in analysis_fit.extension_tests(readings)}
     doc["lack_of_fit"] = lack_of_fit_doc(readings, fit)
     if args.json:
         print_json(doc)
         return outcome_of_checks(flags, args.allow_outliers, args.readings)
-    from labcal.commands.console import (  # rich, which --json does not need: a third of a second
-        coefficients_with_standard_errors,
-        extension_terms,
-        with_standard_error,
-    )
-
-    out.print(coefficients_with_standard_errors(fit, units=readings.units))
-    if (terms := extension_terms(fit)) is not None:
+    out.print(console.coefficients_with_standard_errors(fit, units=readings.units))
+    if (terms := console.extension_terms(fit)) is not None:
         out.print(terms)
     for note in doc.get("notes", []):
         out.print(f"[yellow]note:[/] {note}")
@@ -166,16 +185,16 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if "declared_noise" in doc:
         out.print(f"against the station: {doc['declared_noise']['summary']}", markup=False)
     if model == "coning":
-        out.print(coning_table(coning(fit), readings.units))
+        out.print(coning_table(analysis_coning.coning(fit), readings.units))
     if fit.replication is not None:
         out.print(replication_table(doc["replication"], readings.units, doc["residual_standard_error"]))
-    k = t_quantile(0.5 + args.level / 2, fit.variance_dof)  # the half-widths' coverage factor
+    k = distributions.t_quantile(0.5 + args.level / 2, fit.variance_dof)  # the half-widths' coverage factor
     for p in doc.get("predictions", []):
         out.print(f"at pitch {p['pitch_deg']:g}°, roll {p['roll_deg']:g}°, mount y={p['y_deg']:g} "
                   f"u={p['u_deg']:g}, {p['level']:.1%} intervals:")
         for j, (s, v, c, q) in enumerate(zip(fit.sensors, p["volts"], p["confidence_half_width"],
                                              p["prediction_half_width"], strict=True)):
-            value = with_standard_error(v, c / k[j]).split(" ±")[0]  # to the digits its SE supports
+            value = console.with_standard_error(v, c / k[j]).split(" ±")[0]  # to the digits its SE supports
             out.print(f"  v{s} = {value} {readings.units}; confidence ± {c:.2g}, prediction ± {q:.2g} "
                       f"(k = {k[j]:.2f})")
     for name, test in doc.get("extension_tests", {}).items():
@@ -192,40 +211,31 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 def fit_device_model(args: argparse.Namespace, readings, chosen: str | None, checked=None) -> int:
     """`labcal fit --model device`: the instrument and the device's six misalignments together."""
-    from labcal.analysis.device_fit import AngleErrors, fit_device
-    from labcal.analysis.fit import NOISE_FREE
-    from labcal.analysis.gross_errors import fit_flags
-    from labcal.analysis.kinematics import ARCSEC
-
-    index, wobble = args.table_index * ARCSEC, args.table_wobble * ARCSEC
-    fit = fit_device(readings, checked[0] if checked else None, AngleErrors(index, wobble, index, wobble))
+    index, wobble = args.table_index * kinematics.ARCSEC, args.table_wobble * kinematics.ARCSEC
+    fit = device_fit.fit_device(
+        readings, checked[0] if checked else None, device_fit.AngleErrors(index, wobble, index, wobble)
+    )
     doc = fit.to_json()
     doc["units"] = readings.units  # B and S_E in these, S in these per g
     # what physics guarantees, whichever model is fitted (the same linear fit: the same flags)
-    flags = checked[1] if checked else fit_flags(readings, fit.linear)
+    flags = checked[1] if checked else gross_errors.fit_flags(readings, fit.linear)
     doc["gross_errors"] = [f.to_json() for f in flags]
     flags = [*flags, *against_station(args, readings, fit.linear, doc, flags)]
     if args.index_errors:
-        from labcal.analysis.index_errors import fit_index_errors
-
-        extension = fit_index_errors(readings, fit)
+        extension = index_errors.fit_index_errors(readings, fit)
         doc["index_errors"] = None if extension is None else extension.to_json()
     # the readings' own notes (noise-free data) hold whichever model is fitted
-    exact = [n for n in fit.linear.notes if n.startswith(NOISE_FREE)]
+    exact = [n for n in fit.linear.notes if n.startswith(analysis_fit.NOISE_FREE)]
     doc["notes"] = [*([chosen] if chosen else []), *exact, *doc.get("notes", [])]
     if not doc["notes"]:
         del doc["notes"]
     if args.test_extensions:
-        from labcal.analysis.fit import extension_tests
-
-        doc["extension_tests"] = {t.name: t.to_json() for t in extension_tests(readings)}
+        doc["extension_tests"] = {t.name: t.to_json() for t in analysis_fit.extension_tests(readings)}
     doc["lack_of_fit"] = lack_of_fit_doc(readings, fit.linear, fit, index, wobble)
     if args.json:
         print_json(doc)
         return outcome_of_checks(flags, args.allow_outliers, args.readings)
-    from labcal.commands.console import device_tables  # rich, which --json does not need
-
-    for table in device_tables(doc):
+    for table in console.device_tables(doc):
         out.print(table)
     for note in doc.get("notes", []):
         out.print(f"[yellow]note:[/] {note}")
@@ -257,18 +267,27 @@ def lack_of_fit_doc(readings, fit, device=None, index: float = 0.0, wobble: floa
     readings' windows show and the tables' stated index and wobble (--table-index, --table-wobble):
     a flag, not a failure of the command — the coefficients are what the readings give, and the
     certificate of a run states the same flag."""
-    from labcal.analysis.budget import TypeBInputs, calibration_of, calibration_of_device
-    from labcal.analysis.lack_of_fit import MAX_READINGS, fit_lack_of_fit
-
-    if len(readings) > MAX_READINGS:
-        return {"tested": False, "reason": f"more than {MAX_READINGS} readings: not a calibration run"}
+    if len(readings) > lack_of_fit.MAX_READINGS:
+        return {
+            "tested": False,
+            "reason": f"more than {lack_of_fit.MAX_READINGS} readings: not a calibration run",
+        }
     if len(fit.sensors) < 3:  # the test weighs the three sensors' residuals together (their |g|)
         return {"tested": False, "reason": f"a package of the {', '.join(fit.sensors)} sensor(s): the test "
                                            "is made of three sensors' residuals together; Table 2's "
                                            "replicated analysis above tests each sensor's lack of fit"}
-    cal = calibration_of(fit, readings) if device is None else calibration_of_device(device, readings)
-    check = fit_lack_of_fit(cal, TypeBInputs(pitch_index=index, pitch_wobble=wobble, roll_index=index,
-                                             roll_wobble=wobble), readings, fit, device)
+    cal = (
+        budget.calibration_of(fit, readings)
+        if device is None
+        else budget.calibration_of_device(device, readings)
+    )
+    check = lack_of_fit.fit_lack_of_fit(
+        cal,
+        budget.TypeBInputs(pitch_index=index, pitch_wobble=wobble, roll_index=index, roll_wobble=wobble),
+        readings,
+        fit,
+        device,
+    )
     if check is None:
         return {"tested": False, "reason": "the readings do not carry their windows' scatter (the audit "
                                            "columns n_samples, sd_vx, sd_vy, sd_vz labcal writes)"}
@@ -315,28 +334,31 @@ def index_error_text(doc: dict | None) -> str:
 
 
 def coning_table(sensors, units: str = "V") -> Table:
-    from rich import box
-    from rich.table import Table
-
-    from labcal.analysis.coning import OMEGA_NEAR_ZERO
-    from labcal.commands.console import with_standard_error
-
-    table = Table(title="Coning model (Tripp eq. 2): v = b + S·(u·g), ± u (k=1)", box=box.SIMPLE_HEAD,
-                  pad_edge=False)
+    table = rich_table.Table(
+        title="Coning model (Tripp eq. 2): v = b + S·(u·g), ± u (k=1)", box=box.SIMPLE_HEAD, pad_edge=False
+    )
     for col in ("sensor", f"b ({units})", f"S ({units}/g)", "Ω (°)", "Ω 95 % interval (°)", "A (°)"):
         table.add_column(col, justify="right")
     for c in sensors:
         d = c.to_json()
         se = d["standard_errors"]
-        azimuth = (with_standard_error(d["azimuth_deg"], se["azimuth_deg"]) if d["azimuth_deg"] is not None
-                   else "undefined")
-        omega = with_standard_error(d["omega_deg"], se["omega_deg"])
+        azimuth = (
+            console.with_standard_error(d["azimuth_deg"], se["azimuth_deg"])
+            if d["azimuth_deg"] is not None
+            else "undefined"
+        )
+        omega = console.with_standard_error(d["omega_deg"], se["omega_deg"])
         low, high = d["omega_interval_95_deg"]
-        table.add_row(c.name, with_standard_error(d["b"], se["b"]), with_standard_error(d["S"], se["S"]),
-                      omega if d["omega_interval_reliable"] else f"{omega} *", f"{low:.3g} … {high:.3g}",
-                      azimuth)
+        table.add_row(
+            c.name,
+            console.with_standard_error(d["b"], se["b"]),
+            console.with_standard_error(d["S"], se["S"]),
+            omega if d["omega_interval_reliable"] else f"{omega} *",
+            f"{low:.3g} … {high:.3g}",
+            azimuth,
+        )
     if not all(c.azimuth_defined for c in sensors):
-        table.caption = f"* {OMEGA_NEAR_ZERO}"
+        table.caption = f"* {analysis_coning.OMEGA_NEAR_ZERO}"
     return table
 
 
@@ -344,9 +366,7 @@ def replication_table(rep: dict, units: str = "V", sigma_e: list[float] | None =
     """Tripp & Tcheng Table 2's columns per sensor: σ_E, σ_bias, σ_prec; the bias test T_bias against
     its 95 % limit F_bias; the offset and sensitivity drifts σ_b, σ_S and their tests T_b, T_S against
     their 95 % limit F_bS."""
-    from rich.table import Table
-
-    table = Table(title="Replicated calibration (Tripp Table 2)")
+    table = rich_table.Table(title="Replicated calibration (Tripp Table 2)")
     for col in ("sensor", f"σ_E ({units})", f"σ_bias ({units})", f"σ_prec ({units})", "T_bias (df)",
                 "(F_bias)95", f"σ_b ({units})", f"σ_S ({units}/g)", "T_b", "T_S", "(F_bS)95"):
         table.add_column(col, justify="right")
@@ -373,10 +393,8 @@ def replication_table(rep: dict, units: str = "V", sigma_e: list[float] | None =
 
 
 def _units(text: str) -> str:
-    from labcal.config.readings_csv import unit_named
-
     try:
-        return unit_named(text, "--units")
+        return readings_csv.unit_named(text, "--units")
     except LabcalError as exc:
         raise argparse.ArgumentTypeError(str(exc).removeprefix("--units: ")) from None
 

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import argparse
 
+from labcal.app.histories import InstrumentHistory, instrument_history
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, err, out, print_history, print_json
 
 
 def cmd_history(args: argparse.Namespace) -> int:
-    from labcal.app.histories import InstrumentHistory, instrument_history
-
     history = instrument_history(InstrumentHistory(args.serial, args.db, args.include_simulated, args.plot))
     if history.stale:
         err.print(history.stale, markup=False)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 
+from labcal.app import instruments
+from labcal.app.instruments import InstrumentFields
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, day_given, err, lab_of, out, print_json, register_write
 
@@ -13,8 +15,6 @@ SIMULATED_HELP = "count dry runs' certificates as calibrations too (as labcal hi
 
 
 def _fields(args: argparse.Namespace):
-    from labcal.app.instruments import InstrumentFields
-
     return InstrumentFields(args.model, args.manufacturer, args.customer, args.owner, args.location,
                             args.interval, args.status, args.notes)
 
@@ -29,8 +29,6 @@ def _print_row(i) -> None:
 
 
 def cmd_add(args: argparse.Namespace) -> int:
-    from labcal.app import instruments
-
     fields = _fields(args)
     fields.values()  # checked before the database is opened (or created)
     return register_write(args, instruments.add, fields, create=True,
@@ -38,15 +36,11 @@ def cmd_add(args: argparse.Namespace) -> int:
 
 
 def cmd_edit(args: argparse.Namespace) -> int:
-    from labcal.app import instruments
-
     return register_write(args, instruments.edit, _fields(args), create=False,
                           said=lambda i, lab: f"{i.serial} updated")
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    from labcal.app import instruments
-
     lab = lab_of(args.db, create=False)
     try:
         found = instruments.listed(lab, args.search)
@@ -64,8 +58,6 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 
 def cmd_show(args: argparse.Namespace) -> int:
-    from labcal.app import instruments
-
     today = day_given(args.on)
     lab = lab_of(args.db, create=False)
     try:
@@ -103,8 +95,6 @@ def cmd_show(args: argparse.Namespace) -> int:
 
 
 def cmd_due(args: argparse.Namespace) -> int:
-    from labcal.app import instruments
-
     today = day_given(args.on)
     lab = lab_of(args.db, create=False)
     try:

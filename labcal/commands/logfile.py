@@ -15,9 +15,13 @@ from contextlib import contextmanager
 from typing import TYPE_CHECKING
 
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 
 if TYPE_CHECKING:
     import logging
+    import logging as _logging
+else:
+    _logging = lazy("logging")  # start-up without logging
 
 LOG_LEVELS = ("debug", "info", "warning")  # logging's names, lower case (logging loads after parsing)
 
@@ -32,10 +36,8 @@ def add_log_options(parser: argparse.ArgumentParser) -> None:
 
 def utc_formatter() -> logging.Formatter:  # logging is imported only once a command runs
     """``2026-11-23T22:31:54.123Z WARNING labcal.drivers.transport: …``: UTC, like the journal."""
-    import logging
-
-    class UtcFormatter(logging.Formatter):
-        def formatTime(self, record: logging.LogRecord, datefmt: str | None = None) -> str:  # noqa: N802
+    class UtcFormatter(_logging.Formatter):
+        def formatTime(self, record: _logging.LogRecord, datefmt: str | None = None) -> str:  # noqa: N802
             return (time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created))
                     + f".{int(record.msecs):03d}Z")
 
@@ -46,20 +48,18 @@ def utc_formatter() -> logging.Formatter:  # logging is imported only once a com
 def logging_to(path: str | None, level: str | None) -> Iterator[None]:
     """labcal's log (loggers ``labcal.*``) appended to ``path``, or on stderr when only a level is
     given, for the block's duration; a file that cannot be opened is a one-line error."""
-    import logging
-
-    logger = logging.getLogger("labcal")
-    if not any(isinstance(h, logging.NullHandler) for h in logger.handlers):
-        logger.addHandler(logging.NullHandler())  # no log unless asked for (not Python's last resort)
+    logger = _logging.getLogger("labcal")
+    if not any(isinstance(h, _logging.NullHandler) for h in logger.handlers):
+        logger.addHandler(_logging.NullHandler())  # no log unless asked for (not Python's last resort)
     if path is None and level is None:
         yield
         return
-    handler: logging.Handler
+    handler: _logging.Handler
     if path is None:
-        handler = logging.StreamHandler(sys.stderr)
+        handler = _logging.StreamHandler(sys.stderr)
     else:
         try:
-            handler = logging.FileHandler(path, encoding="utf-8")
+            handler = _logging.FileHandler(path, encoding="utf-8")
         except OSError as exc:
             raise LabcalError(f"--log-file {path}: cannot open it ({exc.strerror or exc}); give a file in a "
                               "folder you can write to") from None

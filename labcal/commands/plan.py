@@ -3,22 +3,49 @@
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING
 
-from labcal.app.planning import CORRECTION_NOTE
+from labcal.app.planning import CORRECTION_NOTE, optimize_plan, package_verdict
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, angle_deg, bounded, bounded_field, err, out, print_json
+from labcal.config.plans import load_plan, plan_correction, plan_toml, shipped_plan_summaries
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 
 if TYPE_CHECKING:
+    import matplotlib
+    import numpy as np
+    import pydantic
+    from matplotlib import pyplot as plt
+    from rich import table as rich_table
     from rich.table import Table
+
+    from labcal.analysis import design, device_model, kinematics, optimize, packages
+    from labcal.analysis import plan as analysis_plan
+    from labcal.config import files
+    from labcal.documents import plotfile
+else:
+    analysis_plan = lazy("labcal.analysis.plan")  # start-up without numpy, pydantic
+    design = lazy("labcal.analysis.design")  # start-up without numpy, pydantic
+    device_model = lazy("labcal.analysis.device_model")  # start-up without scipy, numpy
+    files = lazy("labcal.config.files")  # start-up without pydantic
+    kinematics = lazy("labcal.analysis.kinematics")  # start-up without numpy
+    matplotlib = lazy("matplotlib")  # start-up without matplotlib, numpy
+    np = lazy("numpy")  # start-up without numpy
+    optimize = lazy("labcal.analysis.optimize")  # start-up without scipy, numpy, pydantic
+    packages = lazy("labcal.analysis.packages")  # start-up without scipy, numpy
+    plotfile = lazy("labcal.documents.plotfile")  # start-up without 3 more modules
+    plt = lazy("matplotlib.pyplot")  # start-up without matplotlib, numpy
+    pydantic = lazy("pydantic")  # start-up without pydantic
+    rich_table = lazy("rich.table")  # start-up without rich
 
 
 def cmd_list(args: argparse.Namespace) -> int:
     """Plain text, not a rich table: listing two plans should not cost importing rich."""
-    from labcal.config.plans import shipped_plan_summaries  # tomllib: not on --help's path
-
     plans = shipped_plan_summaries()
     if args.json:
         print_json({"plans": plans})
@@ -32,10 +59,6 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 
 def cmd_show(args: argparse.Namespace) -> int:
-    from rich.table import Table
-
-    from labcal.config.plans import load_plan
-
     plan, text = load_plan(args.plan)
     correction = relied_on(text)
     if args.json:
@@ -50,7 +73,7 @@ def cmd_show(args: argparse.Namespace) -> int:
               f"{len(plan.points)} points = {plan.n_points} points")
     for i, mount in enumerate(plan.mount_list, 1):
         out.print(f"  mount {i}: {mount.describe()} ({mount})")
-    table = Table(title="Points")
+    table = rich_table.Table(title="Points")
     for col in ("#", "pitch (°)", "roll (°)"):
         table.add_column(col, justify="right")
     for i, (p, r) in enumerate(plan.points, 1):
@@ -61,23 +84,11 @@ def cmd_show(args: argparse.Namespace) -> int:
 
 def relied_on(text: str) -> dict | None:
     """The ``[device_correction]`` table of a plan written by `plan optimize --device`, or None."""
-    from labcal.config.plans import plan_correction
-
     table = plan_correction(text, "the plan")  # validated once already, by load_plan
     return None if table is None else table.model_dump()
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
-    import os
-    from pathlib import Path
-
-    from pydantic import ValidationError
-
-    from labcal.analysis import design
-    from labcal.analysis.plan import Plan
-    from labcal.config.files import one_line
-    from labcal.config.plans import plan_toml
-
     points = {
         "d1": lambda: design.d1(args.pitch_max, args.n_pitch, args.n_roll, args.roll_closed),
         "tripp-table-1": lambda: design.tripp_table_1(args.column).points(),
@@ -96,9 +107,9 @@ def cmd_generate(args: argparse.Namespace) -> int:
     try:
         plan = design.make_plan(args.name or Path(args.out).stem, description, points, args.four_mounts,
                                 args.replicates)
-    except ValidationError as exc:
+    except pydantic.ValidationError as exc:
         raise LabcalError(f"plan generate {args.design}: the generated plan is not valid: "
-                          f"{one_line(exc, Plan)}") from None
+                          f"{files.one_line(exc, analysis_plan.Plan)}") from None
     if os.path.lexists(args.out):  # a plan file may be the record of a past calibration: never replace it
         raise LabcalError(f"{args.out}: exists; choose another --out (or delete it first)")
     try:
@@ -127,9 +138,6 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
 
 def cmd_merit(args: argparse.Namespace) -> int:
-    from labcal.analysis import design
-    from labcal.config.plans import load_plan
-
     plan, _ = load_plan(args.plan)
     pitches = [p for p, _ in plan.points]
     calibration_range = tuple(args.pitch_range) if args.pitch_range else (min(pitches), max(pitches))
@@ -158,20 +166,11 @@ def plot_merit(plan, calibration_range, usage, path: str) -> None:
     without roll on this plan (eq. 78), the single-axis sensor at an independently measured roll
     (eq. 81, Ω = 1°, A = 90°) against pitch and against roll, and the x–y package (eq. 90, Ω = 1°,
     A_x = 90°, A_y = 0°, σ_y = σ_x) against roll at five pitches."""
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    from labcal.analysis.design import normalised_variance
-    from labcal.analysis.packages import Sensor, inferred_covariance, sd_pitch_at_roll, sd_pitch_without_roll
-    from labcal.documents.plotfile import check_folder, save
-
-    check_folder(path)
+    plotfile.check_folder(path)
     lo, hi = calibration_range
     pitch = np.linspace(lo, hi, 721)
-    sd = np.sqrt(normalised_variance(plan, pitch[:, None], np.arange(72)[None, :] * 5.0))
+    sd = np.sqrt(design.normalised_variance(plan, pitch[:, None], np.arange(72)[None, :] * 5.0))
     fig, axes = plt.subplots(2, 3, figsize=(15, 8.5))
     ax = axes[0, 0]
     ax.plot(pitch, sd.mean(axis=1), label="mean over roll")
@@ -184,17 +183,20 @@ def plot_merit(plan, calibration_range, usage, path: str) -> None:
 
     ax = axes[0, 1]  # Fig. 6: this plan's σ_v at roll 0 through eq. 78 (φ = 0, S = 1)
     inner = pitch[np.abs(pitch) < 85]
-    sigma_v = np.sqrt(normalised_variance(plan, inner, np.zeros_like(inner)))
-    ax.semilogy(inner, sd_pitch_without_roll(sigma_v, 1.0, 0.0, np.radians(inner)))
+    sigma_v = np.sqrt(design.normalised_variance(plan, inner, np.zeros_like(inner)))
+    ax.semilogy(inner, packages.sd_pitch_without_roll(sigma_v, 1.0, 0.0, np.radians(inner)))
     ax.set(xlabel="pitch α (°)", ylabel="σ_α̂ · S√K / σ_E")
     ax.set_title("single axis without roll (Tripp Fig. 6, eq. 78)", parse_math=False)
 
-    single = [Sensor("x", 0.0, 1.0, np.radians(1.0), np.radians(90.0))]
+    single = [packages.Sensor("x", 0.0, 1.0, np.radians(1.0), np.radians(90.0))]
     ax = axes[0, 2]  # Fig. 7
     alpha = np.linspace(-85, 85, 341)
     for ratio in (1, 10):
-        ax.semilogy(alpha, sd_pitch_at_roll(single, [1.0], np.radians(alpha), np.radians(45.0), ratio),
-                    label=f"σ_R = {ratio} σ_v/S")
+        ax.semilogy(
+            alpha,
+            packages.sd_pitch_at_roll(single, [1.0], np.radians(alpha), np.radians(45.0), ratio),
+            label=f"σ_R = {ratio} σ_v/S",
+        )
     ax.set(xlabel="pitch α (°)", ylabel="σ_α̂ · S / σ_v")
     ax.set_title("single axis at measured roll 45° (Tripp Fig. 7, eq. 81)", parse_math=False)
     ax.legend(fontsize=8)
@@ -202,17 +204,17 @@ def plot_merit(plan, calibration_range, usage, path: str) -> None:
     ax = axes[1, 0]  # Fig. 8
     roll = np.linspace(0, 180, 361)
     for ratio in (1, 10, 100):
-        ax.plot(roll, sd_pitch_at_roll(single, [1.0], 0.0, np.radians(roll), ratio),
+        ax.plot(roll, packages.sd_pitch_at_roll(single, [1.0], 0.0, np.radians(roll), ratio),
                 label=f"σ_R = {ratio} σ_v/S")
     ax.set(xlabel="roll R (°)", ylabel="σ_α̂ · S / σ_v")
     ax.set_title("single axis at measured roll, α = 0 (Tripp Fig. 8)", parse_math=False)
     ax.legend(fontsize=8)
 
-    package = [Sensor("x", 0.0, 1.0, np.radians(1.0), np.radians(90.0)),
-               Sensor("y", 0.0, 1.0, np.radians(1.0))]
+    package = [packages.Sensor("x", 0.0, 1.0, np.radians(1.0), np.radians(90.0)),
+               packages.Sensor("y", 0.0, 1.0, np.radians(1.0))]
     roll = np.linspace(-180, 180, 721)
     for a in (0, 20, 40, 60, 80):  # Fig. 10(a)
-        cov = inferred_covariance(package, [1.0, 1.0], np.radians(a), np.radians(roll))
+        cov = packages.inferred_covariance(package, [1.0, 1.0], np.radians(a), np.radians(roll))
         axes[1, 1].semilogy(roll, np.sqrt(cov[:, 0, 0]), label=f"α = {a}°")
         axes[1, 2].semilogy(roll, np.sqrt(cov[:, 1, 1]), label=f"α = {a}°")
     for ax, angle in ((axes[1, 1], "α̂"), (axes[1, 2], "R̂")):
@@ -224,32 +226,24 @@ def plot_merit(plan, calibration_range, usage, path: str) -> None:
         ax.grid(alpha=0.3)
     fig.tight_layout()
     try:
-        save(fig, path, dpi=110, bbox_inches="tight")
+        plotfile.save(fig, path, dpi=110, bbox_inches="tight")
     finally:
         plt.close(fig)
 
 
 def cmd_audit(args: argparse.Namespace) -> int:
-    from rich.table import Table
-
-    from labcal.analysis.design import LEAK_ZERO, audit, audit_summary
-    from labcal.analysis.device_model import Geometry, identifiability
-    from labcal.config.plans import load_plan
-
     plan, _ = load_plan(args.plan)
-    leaks = audit(plan)
-    summary = audit_summary(leaks)
-    ident = identifiability(Geometry.of_plan(plan.points, plan.mounts))
-    from labcal.app.planning import package_verdict
-
+    leaks = design.audit(plan)
+    summary = design.audit_summary(leaks)
+    ident = device_model.identifiability(device_model.Geometry.of_plan(plan.points, plan.mounts))
     package = package_verdict(args.station) if args.station else None
     if args.json:
-        print_json({"plan": plan.name, "zero_below": LEAK_ZERO,
+        print_json({"plan": plan.name, "zero_below": design.LEAK_ZERO,
                     "rows": ["B", "S row g_x", "S row g_y", "S row g_z"],
                     "per_radian": {n: d.tolist() for n, d in leaks.items()}, "summary": summary,
                     "identifiability": ident.to_json(), **({"package": package} if package else {})})
         return 0
-    table = Table(title=f"{plan.name}: change of X per radian of CD misalignment (first order)")
+    table = rich_table.Table(title=f"{plan.name}: change of X per radian of CD misalignment (first order)")
     table.caption = "cancelled: no leakage into B or the off-diagonal of S (ideal instrument)"
     for col in ("misalignment", "max |∂B|", "max |∂S| off-diagonal", "max |∂S| diagonal", "verdict"):
         table.add_column(col, justify="right")
@@ -280,13 +274,9 @@ def cmd_audit(args: argparse.Namespace) -> int:
 
 def identifiability_table(name: str, ident) -> Table:
     """Rank, condition and each misalignment's uncertainty per µg of reading noise."""
-    import math
-
-    from rich.table import Table
-
     condition = "∞" if math.isinf(ident.condition) else f"{ident.condition:.3g}"
-    table = Table(title=f"{name}: identifiability of the device model (rank {ident.rank} of 18, "
-                        f"condition {condition})")
+    table = rich_table.Table(title=f"{name}: identifiability of the device model (rank {ident.rank} of 18, "
+                                   f"condition {condition})")
     table.caption = ("u: standard uncertainty of the misalignment per µg of reading noise, ideal instrument, "
                      "one pass of the plan")
     for col in ("misalignment", "u (″ per µg)", "verdict"):
@@ -428,11 +418,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 # --- plan optimize -----------------------------------------------------------------
 def cmd_optimize(args: argparse.Namespace) -> int:
-    import math
-
-    from labcal.analysis.kinematics import ARCSEC
-    from labcal.app.planning import optimize_plan
-
     result = optimize_plan(args.target_attitude_u95_deg, args.station, args.device, args.db, args.out,
                            said=lambda line: err.print(line, markup=False))
     chosen, reference = result.chosen, result.reference
@@ -450,10 +435,10 @@ def cmd_optimize(args: argparse.Namespace) -> int:
            "device_correction": None if correction is None else {
                "device_id": correction.device_id, "source": correction.source,
                "calibrated_utc": correction.calibrated_utc,
-               "value_arcsec": {n: v / ARCSEC for n, v in correction.value_rad.items()},
-               "U_arcsec": {n: v / ARCSEC for n, v in correction.U_rad.items()},
-               "u_arcsec": {n: v / ARCSEC for n, v in (budget_u or correction.u_rad).items()},
-               "u_history_arcsec": {n: v / ARCSEC for n, v in correction.u_rad.items()}},
+               "value_arcsec": {n: v / kinematics.ARCSEC for n, v in correction.value_rad.items()},
+               "U_arcsec": {n: v / kinematics.ARCSEC for n, v in correction.U_rad.items()},
+               "u_arcsec": {n: v / kinematics.ARCSEC for n, v in (budget_u or correction.u_rad).items()},
+               "u_history_arcsec": {n: v / kinematics.ARCSEC for n, v in correction.u_rad.items()}},
            "candidates": len(result.found), "out": args.out}
     if args.json:
         print_json(doc)
@@ -463,8 +448,8 @@ def cmd_optimize(args: argparse.Namespace) -> int:
     out.print(f"optimized plan: {len(c.mounts)} mount(s) × {len(c.points)} points, {c.samples} samples per "
               f"point: predicted rig time {chosen.rig_time_s:.0f} s = {doc['rig_time_ratio']:.3f}× "
               f"four-mount-64's {reference.rig_time_s:.0f} s; predicted attitude U95 "
-              f"{doc['u95_deg']:.5f}° (pitch {chosen.u95_pitch_rad / ARCSEC:.2f}″, roll "
-              f"{chosen.u95_roll_rad / ARCSEC:.2f}″) ≤ {args.target_attitude_u95_deg:g}° "
+              f"{doc['u95_deg']:.5f}° (pitch {chosen.u95_pitch_rad / kinematics.ARCSEC:.2f}″, roll "
+              f"{chosen.u95_roll_rad / kinematics.ARCSEC:.2f}″) ≤ {args.target_attitude_u95_deg:g}° "
               f"(four-mount-64: {math.degrees(reference.u95_rad):.5f}°)")
     if correction is not None:
         out.print(f"it relies on device {correction.device_id}'s misalignments from {correction.source} "
@@ -479,24 +464,14 @@ def cmd_optimize(args: argparse.Namespace) -> int:
 def plot_frontier(found, chosen, reference, target: float, path: str) -> None:
     """Every candidate's predicted rig time against its U95, the frontier, the target and the choice.
     U95 in degrees, the unit of --target-attitude-u95-deg, with arcseconds on the top axis."""
-    import math
-
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    from labcal.analysis.optimize import frontier
-    from labcal.documents.plotfile import save
-
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for mounts, colour in ((1, "tab:blue"), (2, "tab:orange"), (4, "tab:green")):
         pts = np.array([(math.degrees(e.u95_rad), e.rig_time_s / 60) for e in found
                         if len(e.candidate.mounts) == mounts])
         if len(pts):
             ax.scatter(pts[:, 0], pts[:, 1], s=12, color=colour, alpha=0.5, label=f"{mounts} mount(s)")
-    front = np.array([(math.degrees(e.u95_rad), e.rig_time_s / 60) for e in frontier(found)])
+    front = np.array([(math.degrees(e.u95_rad), e.rig_time_s / 60) for e in optimize.frontier(found)])
     ax.step(front[:, 0], front[:, 1], where="post", color="black", lw=1, label="frontier")
     ax.axvline(math.degrees(target), color="tab:red", ls="--", label=f"target {math.degrees(target):.4g}°")
     ax.scatter([math.degrees(reference.u95_rad)], [reference.rig_time_s / 60], marker="*", s=120,
@@ -512,6 +487,6 @@ def plot_frontier(found, chosen, reference, target: float, path: str) -> None:
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     try:
-        save(fig, path, dpi=120, bbox_inches="tight")
+        plotfile.save(fig, path, dpi=120, bbox_inches="tight")
     finally:
         plt.close(fig)

@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import argparse
+from datetime import date
 from typing import TYPE_CHECKING
 
+from rich.markup import escape
+
+from labcal.app.certificates import IssueCertificate, issue_certificate
 from labcal.commands import summary
 from labcal.commands.common import (
     add_db_option,
@@ -16,19 +20,20 @@ from labcal.commands.common import (
     out,
     print_json,
 )
+from labcal.lazy import lazy
 
 if TYPE_CHECKING:
+    from rich import table as _rich_table
     from rich.table import Table as RichTable
+else:
+    _rich_table = lazy("rich.table")  # start-up without rich
 
 
 def rich_table(t) -> RichTable:
     """A report table (`labcal.documents.report_tables.Table`) for the terminal. Its text is the
     report's, not rich markup: escaped, so that "[certificate]" (a station file's section) is printed,
     not eaten."""
-    from rich.markup import escape
-    from rich.table import Table as RichTable
-
-    table = RichTable(title=escape(t.title), caption=escape(t.caption) if t.caption else None)
+    table = _rich_table.Table(title=escape(t.title), caption=escape(t.caption) if t.caption else None)
     for h in t.header:
         table.add_column(escape(h), justify="right")
     for i, row in enumerate(t.rows):
@@ -38,10 +43,6 @@ def rich_table(t) -> RichTable:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from rich.markup import escape
-
-    from labcal.app.certificates import IssueCertificate, issue_certificate
-
     issued = issue_certificate(IssueCertificate(
         args.run_dir, args.db, args.station, args.tolerance_deg, args.bias_max_v,
         tuple(args.usage_pitch) if args.usage_pitch else None,
@@ -68,8 +69,6 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def _day(text: str):
     """A receipt date: a real day, and not after today (an item is received before it is calibrated)."""
-    from datetime import date
-
     try:
         day = date.fromisoformat(text)
     except ValueError:

@@ -4,10 +4,12 @@ station file's devices through the real drivers (--station), on its emulators wi
 from __future__ import annotations
 
 import argparse
+import shlex
 from contextlib import contextmanager
+from dataclasses import fields
 from typing import TYPE_CHECKING, Any
 
-from labcal.commands import summary
+from labcal.commands import console, summary
 from labcal.commands.common import (
     EXIT_INTERRUPTED,
     EXIT_STOPPED,
@@ -24,12 +26,23 @@ from labcal.commands.common import (
     out,
     print_json,
 )
+from labcal.commands.console import (
+    ProgressDisplay,
+    before_run,
+    coefficients_with_standard_errors,
+    format_duration,
+)
+from labcal.lazy import lazy
+from labcal.run.operator import AutoOperator, ConsoleOperator, ScriptedOperator
 
 # The run machinery (sequencer, journal, statistics) is imported where it is used, so that the
 # other commands, which import this module to build the parser, do not pay for it at start-up.
 if TYPE_CHECKING:
+    from labcal.app import calibration
     from labcal.app.calibration import AlreadyComplete, Ended, Estimated, Finished
     from labcal.config.run_metadata import Checklist
+else:
+    calibration = lazy("labcal.app.calibration")  # start-up without scipy, numpy, pydantic, …
 
 
 class CommandLine:
@@ -46,8 +59,6 @@ class CommandLine:
         return make_operator(self.args)
 
     def checklist(self, bench, station, points: int, samples: int) -> Checklist:
-        from labcal.commands.console import before_run
-
         return before_run(self.args, bench, station, points, samples)
 
     def unregistered(self, serial: str) -> bool:
@@ -63,31 +74,23 @@ class CommandLine:
     @contextmanager
     def display(self, total: int, done: int):
         """The progress bar, which is also the terminal the prompts pause it for."""
-        from labcal.commands.console import ProgressDisplay
-
         with ProgressDisplay(err, total, done) as display:
             yield display, display
 
 
 def request(kind: type, args: argparse.Namespace) -> Any:
     """A use case's request from the parsed options of the same names."""
-    from dataclasses import fields
-
     return kind(**{f.name: (tuple(v) if isinstance(v := getattr(args, f.name), list) else v)
                    for f in fields(kind)})
 
 
 def make_operator(args: argparse.Namespace):
-    from labcal.run.operator import AutoOperator, ConsoleOperator, ScriptedOperator
-
     if args.answers:
         return ScriptedOperator(err, args.answers)
     return AutoOperator(err) if args.yes else ConsoleOperator(err)
 
 
 def print_estimate(estimated: Estimated, as_json: bool) -> None:
-    from labcal.commands.console import format_duration
-
     plan, est = estimated.plan, estimated.estimate
     doc: dict[str, Any] = {
         "plan": plan.name, "points": plan.n_points, "total_s": est.total_s,
@@ -110,10 +113,7 @@ def print_estimate(estimated: Estimated, as_json: bool) -> None:
 
 def run_and_report(args, ended: Ended | Finished) -> int:
     """How the run ended, in words and an exit code; a complete run's fit, files and certificate."""
-    from labcal.app.calibration import Ended
-    from labcal.commands.console import coefficients_with_standard_errors, format_duration
-
-    if isinstance(ended, Ended):
+    if isinstance(ended, calibration.Ended):
         run_dir = ended.run_dir
         if ended.how == "interrupted":
             why = f" ({ended.why})" if ended.why else ""
@@ -140,14 +140,10 @@ def run_and_report(args, ended: Ended | Finished) -> int:
                     else "pass" if issued.certificate.conformity.passed else "fail"})
         return 0
     if result.device is not None:
-        from labcal.commands.console import device_tables
-
-        for table in device_tables(result.device.to_json()):
+        for table in console.device_tables(result.device.to_json()):
             out.print(table)
     else:
         out.print(coefficients_with_standard_errors(result.fit))
-    import shlex
-
     linear = shlex.join(["labcal", "fit", str(run_dir / "readings.csv"), "--model", "linear"])
     hint = f"; `{linear}` gives Soto's linear fit"
     for note in (result.model_note + (hint if result.device is not None else ""), *result.fit.notes):
@@ -174,20 +170,16 @@ def run_and_report(args, ended: Ended | Finished) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from labcal.app.calibration import Estimated, StartRun, start_run
-
-    ended = start_run(request(StartRun, args), CommandLine(args))
-    if isinstance(ended, Estimated):
+    ended = calibration.start_run(request(calibration.StartRun, args), CommandLine(args))
+    if isinstance(ended, calibration.Estimated):
         print_estimate(ended, args.json)
         return 0
     return run_and_report(args, ended)
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
-    from labcal.app.calibration import AlreadyComplete, ResumeRun, resume_run
-
-    ended = resume_run(request(ResumeRun, args), CommandLine(args))
-    if isinstance(ended, AlreadyComplete):
+    ended = calibration.resume_run(request(calibration.ResumeRun, args), CommandLine(args))
+    if isinstance(ended, calibration.AlreadyComplete):
         return finish_complete(args, ended)
     return run_and_report(args, ended)
 

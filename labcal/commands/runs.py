@@ -5,9 +5,13 @@ from __future__ import annotations
 
 import argparse
 
+from rich.table import Table
+
 from labcal.app import STATUSES
+from labcal.app.runs import ListRuns, ReadLog, list_runs, read_log
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, err, out, print_json
+from labcal.commands.console import format_duration
 
 
 def _when(utc: str | None) -> str:
@@ -15,8 +19,6 @@ def _when(utc: str | None) -> str:
 
 
 def cmd_runs(args: argparse.Namespace) -> int:
-    from labcal.app.runs import ListRuns, list_runs
-
     found = list_runs(ListRuns(args.db, args.serial, tuple(args.status or ()), args.attention))
     where, runs = found.database, found.runs
     if found.stale:
@@ -30,8 +32,6 @@ def cmd_runs(args: argparse.Namespace) -> int:
         # a path is not broken
         out.print(f"no runs{matching} in {where}{missing}", markup=False, soft_wrap=True)
         return 0
-    from rich.table import Table
-
     table = Table(title=f"Runs in {where}", box=None, pad_edge=False)  # 80 columns
     for col in ("id", "serial", "plan", "status", "started UTC", "points", "operator"):
         table.add_column(col, justify="right" if col in ("id", "points") else "left", min_width=len(col),
@@ -49,9 +49,6 @@ def cmd_runs(args: argparse.Namespace) -> int:
 
 
 def cmd_log(args: argparse.Namespace) -> int:
-    from labcal.app.runs import ReadLog, read_log
-    from labcal.commands.console import format_duration
-
     run = read_log(ReadLog(args.run, args.db))
     if run.stale:
         err.print(run.stale, markup=False)

@@ -11,8 +11,13 @@ import argparse
 import signal
 import sys
 
+from labcal.analysis.kinematics import Mount
 from labcal.commands import summary
 from labcal.commands.common import SEED, TIME_SCALE, TIME_SCALE_HELP, err, out, print_json
+from labcal.config.emulation import FaultKind
+from labcal.config.station import load_station
+from labcal.sim.emulation import Emulation
+from labcal.sim.faults import Fault
 
 HELP = ("commands: mount Y U | fault DEVICE KIND [COUNT] (KIND: no-reply, late-reply, garbled, truncated, "
         "lost-request, alarm, exception, close-port, dropped-byte) | status | quit")
@@ -20,10 +25,6 @@ HELP = ("commands: mount Y U | fault DEVICE KIND [COUNT] (KIND: no-reply, late-r
 
 def console_command(emulation, line: str) -> str:
     """Carry out one console line; returns what to print. Raises EOFError on quit."""
-    from labcal.analysis.kinematics import Mount
-    from labcal.config.emulation import FaultKind
-    from labcal.sim.faults import Fault
-
     words = line.split()
     if not words:
         return ""
@@ -51,9 +52,6 @@ def console_command(emulation, line: str) -> str:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    from labcal.config.station import load_station
-    from labcal.sim.emulation import Emulation
-
     config, _ = load_station(args.station)
     # Ctrl-C and a kill stop them cleanly. SIGINT is installed too: Python leaves it ignored when
     # the process started with it ignored (`labcal sim serve … &` from a script), and then nothing

@@ -3,11 +3,19 @@
 from __future__ import annotations
 
 import argparse
+import os
 from typing import TYPE_CHECKING
 
+from labcal.analysis import kinematics
+from labcal.analysis.kinematics import IndexWobble
 from labcal.commands import summary
 from labcal.commands.common import SEED, bounded, err, print_json
+from labcal.config.emulation import InstrumentTruth
+from labcal.config.files import load_model
+from labcal.config.plans import load_plan
+from labcal.config.readings_csv import write_readings
 from labcal.errors import LabcalError
+from labcal.sim.direct import simulate_readings
 
 if TYPE_CHECKING:
     from labcal.analysis.kinematics import Misalignment
@@ -32,29 +40,18 @@ def parse_angle(name: str, text: str) -> float:
 
 def parse_misalign(text: str) -> Misalignment:
     """'a=60arcsec,k=0.01deg' (units arcsec/″ or deg/°; bare numbers are degrees) → Misalignment."""
-    from labcal.analysis.kinematics import MISALIGNMENT_NAMES, Misalignment
-
     angles: dict[str, float] = {}
     for part in filter(None, (p.strip() for p in text.split(","))):
         name, sep, value = part.partition("=")
         name = name.strip()
-        if not sep or name not in MISALIGNMENT_NAMES:
+        if not sep or name not in kinematics.MISALIGNMENT_NAMES:
             raise LabcalError(f"--misalign: {part!r} is not NAME=ANGLE with NAME one of "
-                              f"{', '.join(MISALIGNMENT_NAMES)} (e.g. a=60arcsec,k=0.01deg)")
+                              f"{', '.join(kinematics.MISALIGNMENT_NAMES)} (e.g. a=60arcsec,k=0.01deg)")
         angles[name] = parse_angle(name, value)
-    return Misalignment.from_degrees(**angles)
+    return kinematics.Misalignment.from_degrees(**angles)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    import os
-
-    from labcal.analysis.kinematics import IndexWobble
-    from labcal.config.emulation import InstrumentTruth
-    from labcal.config.files import load_model
-    from labcal.config.plans import load_plan
-    from labcal.config.readings_csv import write_readings
-    from labcal.sim.direct import simulate_readings
-
     if os.path.lexists(args.out) and not args.force:  # it may be a measured file: replace it only if told
         raise LabcalError(f"{args.out}: exists; choose another --out, or give --force to replace it")
     plan, _ = load_plan(args.plan)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 
+from labcal.app import standards
+from labcal.app.standards import RecordOverride, StandardFields, record_override
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, day_given, lab_of, out, print_json, register_write
 
@@ -12,8 +14,6 @@ KINDS = ("dmm", "pitch-table", "roll-table", "reference-level", "other")  # as l
 
 
 def _fields(args: argparse.Namespace):
-    from labcal.app.standards import StandardFields
-
     return StandardFields(args.kind, args.model, args.manufacturer, args.certificate, args.issued_by,
                           args.calibrated, args.due, args.bench, args.status, args.notes)
 
@@ -24,8 +24,6 @@ def _row(s) -> str:
 
 
 def cmd_add(args: argparse.Namespace) -> int:
-    from labcal.app import standards
-
     fields = _fields(args)
     fields.values()  # checked before the database is opened (or created)
     return register_write(args, standards.add, fields, create=True,
@@ -34,15 +32,11 @@ def cmd_add(args: argparse.Namespace) -> int:
 
 
 def cmd_edit(args: argparse.Namespace) -> int:
-    from labcal.app import standards
-
     return register_write(args, standards.edit, _fields(args), create=False,
                           said=lambda s, lab: f"{s.serial} updated: due {s.due_on.isoformat()}")
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    from labcal.app import standards
-
     today = day_given(args.on)
     lab = lab_of(args.db, create=False)
     try:
@@ -62,8 +56,6 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 
 def cmd_show(args: argparse.Namespace) -> int:
-    from labcal.app import standards
-
     today = day_given(args.on)
     lab = lab_of(args.db, create=False)
     try:
@@ -91,14 +83,10 @@ def cmd_show(args: argparse.Namespace) -> int:
 
 
 def cmd_override(args: argparse.Namespace) -> int:
-    from labcal.app.standards import RecordOverride, record_override
-
     standard, row = record_override(RecordOverride(args.serial, args.reason, args.by, args.role, args.key,
                                                    args.until, args.db), day_given(None))
     if args.json:
-        from labcal.app.standards import override_json
-
-        print_json({"serial": standard.serial, **override_json(row)})
+        print_json({"serial": standard.serial, **standards.override_json(row)})
     else:
         out.print(f"override recorded: runs may use {standard.serial} (due {standard.due_on.isoformat()}) "
                   f"until {row.valid_until.isoformat()}, by {row.approver} ({row.role}): {row.reason}",

@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import argparse
 from contextlib import ExitStack
+from datetime import datetime
+from pathlib import Path
 
+from rich.markup import escape
+from rich.table import Table
+
+from labcal.bench.checklist import run_checklist, unmet
+from labcal.bench.setup import bench_for_check
 from labcal.commands import summary
 from labcal.commands.common import (
     TIME_SCALE,
@@ -15,14 +22,16 @@ from labcal.commands.common import (
     out,
     print_json,
 )
+from labcal.commands.console import power_on_given, print_checklist
+from labcal.config.plans import load_plan
+from labcal.config.station import load_station, shipped_stations
+from labcal.config.uncertainty import overdue_standards
 from labcal.errors import LabcalError
+from labcal.store.journal import db_path
+from labcal.store.labdb import lab_server
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    from rich.table import Table
-
-    from labcal.config.station import load_station, shipped_stations
-
     stations = {name: load_station(name)[0] for name in shipped_stations()}
     if args.json:
         print_json({"stations": [{"name": n, "description": s.description, "pitch": s.pitch.driver,
@@ -50,21 +59,6 @@ def _row(report: dict) -> tuple[str, str, str]:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from datetime import datetime
-    from pathlib import Path
-
-    from rich.markup import escape
-    from rich.table import Table
-
-    from labcal.bench.checklist import run_checklist, unmet
-    from labcal.bench.setup import bench_for_check
-    from labcal.commands.console import power_on_given, print_checklist
-    from labcal.config.plans import load_plan
-    from labcal.config.station import load_station
-    from labcal.config.uncertainty import overdue_standards
-    from labcal.store.journal import db_path
-    from labcal.store.labdb import lab_server
-
     config, _ = load_station(args.station)
     now = datetime.now().astimezone()
     power = power_on_given(args, now)  # a mistake here is one line before any device is opened

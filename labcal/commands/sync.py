@@ -7,15 +7,14 @@ import argparse
 
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, out, print_json
+from labcal.config.lab import ServerDatabase
+from labcal.store import labdb
+from labcal.store.journal import db_path
+from labcal.store.labdb import lab_database
+from labcal.store.sync import Sender, is_outage
 
 
 def cmd_sync(args: argparse.Namespace) -> int:
-    from labcal.config.lab import ServerDatabase
-    from labcal.store import labdb
-    from labcal.store.journal import db_path
-    from labcal.store.labdb import lab_database
-    from labcal.store.sync import Sender, is_outage
-
     where = lab_database(args.db)
     nothing = {"database": str(where), "journal": str(where), "sent": {}, "new": {}, "received": {},
                "refused": {}}

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import getpass
 import os
 import sys
 
+from labcal.app import audit, users
 from labcal.commands import summary
 from labcal.commands.common import out, print_json, warn_if_secret_in
 from labcal.errors import LabcalError
@@ -42,8 +44,6 @@ def _password(args: argparse.Namespace, done: str = "nothing was added") -> str:
         return given
     if os.environ.get(PASSWORD_ENV):
         return os.environ[PASSWORD_ENV]
-    import getpass
-
     def ask(prompt: str) -> str:
         if sys.stdin.isatty():
             return getpass.getpass(prompt)  # without echo
@@ -65,8 +65,6 @@ def _password(args: argparse.Namespace, done: str = "nothing was added") -> str:
 
 
 def cmd_add(args: argparse.Namespace) -> int:
-    from labcal.app import users
-
     request = users.AddUser(args.name, args.role, _password(args))  # before the database is touched
     lab = _lab(args.db, create=True)
     try:
@@ -84,8 +82,6 @@ def cmd_add(args: argparse.Namespace) -> int:
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    from labcal.app import audit, users
-
     lab = _lab(args.db, create=False)
     try:
         found = users.listed(lab)
@@ -106,8 +102,6 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 
 def cmd_disable(args: argparse.Namespace) -> int:
-    from labcal.app import users
-
     lab = _lab(args.db, create=False)
     try:
         u = users.disable(lab, args.name)
@@ -121,8 +115,6 @@ def cmd_disable(args: argparse.Namespace) -> int:
 
 
 def cmd_passwd(args: argparse.Namespace) -> int:
-    from labcal.app import users
-
     password = _password(args, "the password is unchanged")
     lab = _lab(args.db, create=False)
     try:
@@ -134,8 +126,6 @@ def cmd_passwd(args: argparse.Namespace) -> int:
 
 
 def cmd_token(args: argparse.Namespace) -> int:
-    from labcal.app import users
-
     lab = _lab(args.db, create=False)
     try:
         issued = users.new_token(lab, args.name)
@@ -151,8 +141,6 @@ def cmd_token(args: argparse.Namespace) -> int:
 
 
 def cmd_unlock(args: argparse.Namespace) -> int:
-    from labcal.app import users
-
     lab = _lab(args.db, create=False)
     try:
         before = users.unlock(lab, args.name)
@@ -164,8 +152,6 @@ def cmd_unlock(args: argparse.Namespace) -> int:
 
 
 def cmd_audit(args: argparse.Namespace) -> int:
-    from labcal.app import audit
-
     lab = _lab(args.db, create=False)
     try:
         broken = audit.verify(lab)

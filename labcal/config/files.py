@@ -12,13 +12,19 @@ from collections.abc import Callable
 from difflib import get_close_matches
 from pathlib import Path
 from types import UnionType
-from typing import Annotated, Any, BinaryIO, Literal, TypeVar, Union, get_args, get_origin
+from typing import TYPE_CHECKING, Annotated, Any, BinaryIO, Literal, TypeVar, Union, get_args, get_origin
 
 from pydantic import BaseModel, ValidationError
 from pydantic.fields import FieldInfo
 
 from labcal.config.json_values import json_safe
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from labcal.config import streams
+else:
+    streams = lazy("labcal.config.streams")  # start-up without 3 more modules
 
 Model = TypeVar("Model", bound=BaseModel)
 
@@ -26,10 +32,8 @@ Model = TypeVar("Model", bound=BaseModel)
 def read_text(path: str | Path, kind: str) -> str:
     """The file's text; ``kind`` names the file in the message ("plan", "readings", ...). A pipe is
     read as long as it delivers, a device or a folder refused (`labcal.config.streams`)."""
-    from labcal.config.streams import kind_of, read_pipe
-
-    if kind_of(path, kind) == "pipe":
-        return read_pipe(path, kind)
+    if streams.kind_of(path, kind) == "pipe":
+        return streams.read_pipe(path, kind)
     try:
         return Path(path).read_text(encoding="utf-8-sig")
     except FileNotFoundError:

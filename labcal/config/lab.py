@@ -37,6 +37,7 @@ import socket
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 from urllib.parse import parse_qsl, urlencode
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -44,6 +45,15 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from labcal.config.files import parse_model, read_text
 from labcal.config.settings import CertificateSettings
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from importlib import util
+
+    from labcal.config import numbering
+else:
+    numbering = lazy("labcal.config.numbering")  # start-up without 3 more modules
+    util = lazy("importlib.util")  # start-up without importlib
 
 CONFIG_ENV = "LABCAL_CONFIG"
 DB_ENV = "LABCAL_DB"
@@ -78,9 +88,7 @@ class Laboratory(BaseModel):
         code (checked at load, so a typo is one line now, not a failed certificate after a run)."""
         if not self.certificate_number:
             return self
-        from labcal.config.numbering import number_problem
-
-        problem = number_problem(self.certificate_number, self.code)
+        problem = numbering.number_problem(self.certificate_number, self.code)
         if problem:
             raise ValueError(f"certificate_number {self.certificate_number!r}: {problem}")
         return self
@@ -271,9 +279,7 @@ def database_location(location: str, source: str) -> Path | ServerDatabase:
         if not rest.partition("/")[2]:
             raise LabcalError(f"{source}: {server} names no database; write "
                               "postgresql://USER@HOST:PORT/DBNAME")
-        import importlib.util
-
-        if importlib.util.find_spec("psycopg") is None:
+        if util.find_spec("psycopg") is None:
             raise LabcalError(f"{source}: {server} is a PostgreSQL server, and its driver (psycopg 3) is not "
                               f"installed; {DRIVER_HINT}")
         return server

@@ -10,10 +10,17 @@ from typing import TYPE_CHECKING
 
 from labcal import sequences
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 
 if TYPE_CHECKING:  # the model (pydantic, numpy) is imported where a plan is read: not by `plan list`
+    from labcal.analysis import plan as analysis_plan
     from labcal.analysis.plan import Plan
+    from labcal.config import corrections, files
     from labcal.config.corrections import DeviceCorrectionTable
+else:
+    analysis_plan = lazy("labcal.analysis.plan")  # start-up without numpy, pydantic
+    corrections = lazy("labcal.config.corrections")  # start-up without numpy, pydantic
+    files = lazy("labcal.config.files")  # start-up without pydantic
 
 PLAN_SUFFIX = ".toml"
 
@@ -52,35 +59,29 @@ def _toml(text: str) -> dict:
 def parse_plan(text: str, source: str) -> Plan:
     """Parse and validate plan TOML; errors name the source and the field. A ``[device_correction]``
     table (`plan_correction`) is validated too: a run of the plan applies it."""
-    from labcal.analysis.plan import Plan
-    from labcal.config.files import parse_model, validate_model
-
     data = _toml(text)
     if DEVICE_CORRECTION in data:
         plan_correction(text, source)
-        return validate_model({k: v for k, v in data.items() if k != DEVICE_CORRECTION}, Plan, source)
-    return parse_model(text, Plan, source)
+        return files.validate_model(
+            {k: v for k, v in data.items() if k != DEVICE_CORRECTION}, analysis_plan.Plan, source
+        )
+    return files.parse_model(text, analysis_plan.Plan, source)
 
 
 def plan_correction(text: str, source: str) -> DeviceCorrectionTable | None:
     """The plan's device correction, validated (one line naming the field where it is not), or None
     for a plan that identifies or cancels the misalignments itself."""
-    from labcal.config.corrections import DeviceCorrectionTable
-    from labcal.config.files import validate_model
-
     table = _toml(text).get(DEVICE_CORRECTION)
     if table is None:
         return None
-    return validate_model(table, DeviceCorrectionTable, f"{source}: [{DEVICE_CORRECTION}]")
+    return files.validate_model(table, corrections.DeviceCorrectionTable, f"{source}: [{DEVICE_CORRECTION}]")
 
 
 def load_plan(name_or_path: str) -> tuple[Plan, str]:
     """A plan by file path or by the name of a shipped plan; returns the plan and its TOML text."""
     path = Path(name_or_path)
     if path.suffix == PLAN_SUFFIX or path.exists():
-        from labcal.config.files import read_text
-
-        text = read_text(path, "plan")
+        text = files.read_text(path, "plan")
         return parse_plan(text, str(path)), text
     plans = shipped_plans()
     if name_or_path not in plans:

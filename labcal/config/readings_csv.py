@@ -18,12 +18,21 @@ import re
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from labcal.analysis.readings import Readings
+from labcal.config import files
+from labcal.config.files import read_text, write_atomic
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from labcal.config import streams
+else:
+    streams = lazy("labcal.config.streams")  # start-up without 3 more modules
 
 REQUIRED = ("replicate", "y_deg", "u_deg", "pitch_deg", "roll_deg", "vx", "vy", "vz")
 OPTIONAL = ("temp_c",)
@@ -123,10 +132,8 @@ def _read_csv(path: str | Path, kind: str, required: tuple[str, ...], optional: 
               check=None, absent: tuple[str, ...] = ()) -> _Csv:
     """``absent``: required columns that may be empty on every row (NaN), never on some rows only: the
     outputs of the sensors a package does not have (Tripp & Tcheng §6)."""
-    from labcal.config.streams import kind_of, read_pipe
-
     path = Path(path)
-    piped = read_pipe(path, kind) if kind_of(path, kind) == "pipe" else None  # a pipe is read once
+    piped = streams.read_pipe(path, kind) if streams.kind_of(path, kind) == "pipe" else None  # read once
     comments = _leading_comments(path, piped)
     skip = len(comments)
     fast = _read_clean(path, required, optional, piped, skip)
@@ -137,8 +144,6 @@ def _read_csv(path: str | Path, kind: str, required: tuple[str, ...], optional: 
             return _Csv(fast[0], comments, fast[1], piped)
         except LabcalError:
             pass  # say it with the exact line (blank lines are skipped above): read row by row
-
-    from labcal.config.files import read_text  # pydantic, which a clean file does not need
 
     text = read_text(path, kind) if piped is None else piped
     if not text.strip():
@@ -249,9 +254,7 @@ def _units_of(path: Path, read: _Csv) -> str | None:
         if match:
             stated[unit_named(match[1], f"{path}: line {k + 1}")] = f"line {k + 1}"
     if "units" in read.header:
-        from labcal.config.files import read_text
-
-        text = read.text if read.text is not None else read_text(path, "readings")
+        text = read.text if read.text is not None else files.read_text(path, "readings")
         column = read.header.index("units")
         rows = csv.reader(text.splitlines()[len(read.comments) + 1:])
         values = {row[column].strip() for row in rows if len(row) > column and row[column].strip()}
@@ -351,8 +354,6 @@ class ReadingsWriter:
         return self._file.getvalue()
 
     def close(self) -> None:
-        from labcal.config.files import write_atomic  # pydantic, which reading a clean file does not need
-
         write_atomic(self.path, self.text())
 
     def __enter__(self) -> ReadingsWriter:

@@ -25,9 +25,13 @@ from labcal.config.files import validate_model
 from labcal.config.run_metadata import RunMetadata
 from labcal.config.station import CertificateSection, StationFile
 from labcal.config.uncertainty import UncertaintyInputs
+from labcal.lazy import lazy
 
 if TYPE_CHECKING:
+    from labcal.analysis import device_fit
     from labcal.analysis.device_fit import AngleErrors
+else:
+    device_fit = lazy("labcal.analysis.device_fit")  # start-up without scipy, numpy
 
 
 class SimulatedRigSnapshot(BaseModel):
@@ -149,8 +153,6 @@ def stated_angle_errors(snapshot: StationSnapshot | None) -> AngleErrors | None:
     """The tables' index accuracy and wobble for the device model's covariance: a station file's
     ``[uncertainty]`` table, or the simulated rig's own amplitudes (its errors are bounded by them:
     the half-widths). None where neither states any."""
-    from labcal.analysis.device_fit import AngleErrors
-
     if isinstance(snapshot, StationFileSnapshot):
         u = snapshot.section().uncertainty
     elif isinstance(snapshot, SimulatedRigSnapshot):
@@ -158,7 +160,7 @@ def stated_angle_errors(snapshot: StationSnapshot | None) -> AngleErrors | None:
         u = simulator_inputs(snapshot.rig, 1)
     else:
         return None
-    errors = AngleErrors(u.pitch_index, u.pitch_wobble, u.roll_index, u.roll_wobble)
+    errors = device_fit.AngleErrors(u.pitch_index, u.pitch_wobble, u.roll_index, u.roll_wobble)
     return errors if errors else None
 
 

@@ -25,6 +25,7 @@ import os
 import stat
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from cryptography.exceptions import InvalidSignature, UnsupportedAlgorithm
 from cryptography.hazmat.primitives import serialization
@@ -33,6 +34,12 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey,
 from labcal.config.files import read_text
 from labcal.documents.certificate import Certificate, certificate_from_doc, parse_json, seal
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from labcal.documents import dcc
+else:
+    dcc = lazy("labcal.documents.dcc")  # start-up without scipy, numpy, pydantic, …
 
 ALGORITHM = "Ed25519"
 
@@ -68,8 +75,11 @@ def keygen(prefix: str | Path) -> tuple[Path, Path]:
         fd = os.open(private_path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
         with os.fdopen(fd, "wb") as out:
             out.write(pem)
-        public_path.write_bytes(key.public_key().public_bytes(serialization.Encoding.PEM,
-                                                              serialization.PublicFormat.SubjectPublicKeyInfo))
+        public_path.write_bytes(
+            key.public_key().public_bytes(
+                serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
+            )
+        )
     except OSError as exc:
         raise LabcalError(f"{exc.filename}: cannot write the key ({exc.strerror})") from None
     return private_path, public_path
@@ -122,8 +132,6 @@ def approve(cert: Certificate, by: str, role: str, key: Ed25519PrivateKey,
     """The certificate approved by ``by`` (``role``) and signed with ``key``, sealed again; the
     signature covers the DCC that `dcc_document` makes of it (its SHA-256 is in the approval).
     ``server``: the key is the lab server's, signing for ``by`` (`certificate.ServerSignature`)."""
-    from labcal.documents.dcc import dcc_document
-
     if cert.approval is not None:
         raise LabcalError(f"certificate {cert.number} is already approved by {cert.approval.by}; a change "
                           "is a new revision (`labcal report` issues it)")
@@ -137,7 +145,7 @@ def approve(cert: Certificate, by: str, role: str, key: Ed25519PrivateKey,
         approval["server"] = server
     unsigned = {k: v for k, v in cert.to_json().items() if k != "digest"}
     # The DCC states who approved (not the signature nor its own digest): make it once to hash it.
-    approval["dcc_sha256"] = dcc_sha256(dcc_document(seal({**unsigned, "approval": approval})))
+    approval["dcc_sha256"] = dcc_sha256(dcc.dcc_document(seal({**unsigned, "approval": approval})))
     # Sign the document exactly as it will be written (validated and serialised once), so that the
     # verifier, which reads the written JSON, sees the same bytes.
     doc = seal({**unsigned, "approval": approval}).to_json()

@@ -20,14 +20,21 @@ from pathlib import Path
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
-from labcal.analysis.attitude import Calibration
+from labcal.analysis.attitude import Calibration, calibration_from_json
 from labcal.analysis.packages import PackageCalibration
 from labcal.config.files import read_text
 from labcal.documents.approval import key_id, load_public_key, signature_holds, signed_certificate
-from labcal.documents.certificate import Certificate, ServerSignature, certificate_from_doc, parse_json
+from labcal.documents.certificate import (
+    Certificate,
+    ServerSignature,
+    certificate_from_doc,
+    is_certificate,
+    parse_json,
+)
 from labcal.errors import LabcalError
 from labcal.store import approvers as register
 from labcal.store.journal import db_path
+from labcal.store.labquery import records
 
 COLUMNS = ", ".join(register.COLUMNS)
 # The role a lab server's key is registered with: it signs only for an approver signed in to the
@@ -123,8 +130,6 @@ def _lab(db: str | Path | None, key_id: str | None = None, name: str | None = No
          ) -> list[Approver]:
     """Registrations as the lab database holds them (`labcal.store.labquery`: a bench that cannot
     reach it reads its own journal's), optionally of one key or one name, or only the active ones."""
-    from labcal.store.labquery import records
-
     where = {k: v for k, v in (("key_id", key_id), ("name", name)) if v is not None}
     rows = records(db, "approvers", tuple(COLUMNS.split(", ")), where, ("id",), must_exist=False).rows
     found = [Approver(*row) for row in rows]
@@ -175,8 +180,6 @@ def server_user_problems(user_id: int, name: str, when: str | None, db: str | Pa
     server: no such user, another name, not an approver, added after or disabled before. A user's
     name and role never change and a user is never deleted (`labcal.app.users`), so the users table
     says what they were at any time."""
-    from labcal.store.labquery import records
-
     found_rows = records(db, "users", ("name", "role", "created_utc", "disabled_utc"), {"id": user_id},
                          must_exist=False)
     if not found_rows.exists:
@@ -239,9 +242,6 @@ def calibration_in_use(path: str | Path, db: str | Path | None = None, unverifie
     certificate's standing is (None: a fit JSON, no certificate). An approved certificate is used only
     if its signature is by a key registered in the lab database to the name and role it states
     (`verify_registered`); ``unverified`` uses it anyway, and the standing says so and why."""
-    from labcal.analysis.attitude import calibration_from_json
-    from labcal.documents.certificate import is_certificate
-
     source = str(path)
     doc = parse_json(read_text(path, "calibration"), source)
     if not is_certificate(doc):

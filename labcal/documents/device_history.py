@@ -16,11 +16,12 @@ from contextlib import closing
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from labcal.analysis import correction_check
 from labcal.analysis.correction_check import FALSE_ALARM, Change, check
 from labcal.analysis.device_fit import DeviceFit, PointMeans
 from labcal.analysis.fit import Fit
@@ -29,17 +30,30 @@ from labcal.analysis.plan import Plan
 from labcal.config.corrections import DeviceCorrectionTable
 from labcal.config.files import write_json
 from labcal.config.lab import load_lab_config
-from labcal.config.plans import plan_correction
+from labcal.config.plans import DEVICE_CORRECTION, plan_correction
 from labcal.config.readings_csv import read_numeric_csv
 from labcal.config.run_metadata import RunMetadata
 from labcal.config.snapshot import stated_angle_errors
 from labcal.documents.device_report import DEVICE_JSON, device_document
 from labcal.documents.plotfile import check_folder, save
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.store import labdb
 from labcal.store.journal import db_path
 from labcal.store.record import RunRecord
 from labcal.store.rundir import READINGS
+
+if TYPE_CHECKING:
+    from matplotlib import figure
+
+    from labcal.analysis import device_ageing, device_model, optimize
+    from labcal.documents import history
+else:
+    device_ageing = lazy("labcal.analysis.device_ageing")  # start-up without numpy
+    device_model = lazy("labcal.analysis.device_model")  # start-up without scipy, numpy
+    figure = lazy("matplotlib.figure")  # start-up without matplotlib, numpy
+    history = lazy("labcal.documents.history")  # with the certificates: not on a run's path
+    optimize = lazy("labcal.analysis.optimize")  # start-up without scipy, numpy, pydantic
 
 RULE = "|Δ| > √(U₁² + U₂²): a change larger than the combined expanded uncertainty (95 %)"
 IDENTIFYING_PLAN = "four-mount-64"  # the built-in plan whose mounts identify all six misalignments
@@ -147,17 +161,15 @@ def calibrated(estimate: DeviceEstimate) -> datetime:
 def in_sittings(estimates: list[DeviceEstimate]) -> list[DeviceEstimate]:
     """The history's distinct sittings, each by its latest estimate (`analysis.device_ageing.sittings`):
     estimates of one UTC day, or of the same readings, are one piece of evidence, not several."""
-    from labcal.analysis.device_ageing import sittings
-
-    found = sittings([calibrated(e) for e in estimates],
-                     [np.array([e.value_arcsec[n] for n in MISALIGNMENT_NAMES]) for e in estimates])
+    found = device_ageing.sittings(
+        [calibrated(e) for e in estimates],
+        [np.array([e.value_arcsec[n] for n in MISALIGNMENT_NAMES]) for e in estimates],
+    )
     return [estimates[i] for i in found.kept]
 
 
 def correction_uses(device_id: str, source: str, db: str | Path | None = None) -> int:
     """How many complete runs journaled in ``db`` corrected from ``device_id``'s estimate ``source``."""
-    from labcal.config.plans import DEVICE_CORRECTION, plan_correction
-
     path = db_path(db)
     if not path.is_file():
         return 0
@@ -198,9 +210,6 @@ def correction_for(device_id: str, db: str | Path | None = None, now: datetime |
     two sittings at least, no flagged change between the last two (`RULE`), the latest not expired;
     each u aged by the history's random walk (`analysis.device_ageing`) to ``now``. (None, why) where
     not known. ``said`` hears the line saying the lab could not be reached (`estimates_read`)."""
-    from labcal.analysis.device_ageing import walk_rate
-    from labcal.analysis.optimize import DeviceCorrection
-
     estimates, stale = estimates_read(device_id, db)  # an unknown device: one line naming the known ones
     if stale and said is not None:
         said(stale)
@@ -217,16 +226,21 @@ def correction_for(device_id: str, db: str | Path | None = None, now: datetime |
     why = expired(device_id, last.source, calibrated(last), db, now)
     if why:
         return None, why
-    rate = walk_rate([calibrated(e) for e in kept],
-                     [np.array([e.value_arcsec[n] for n in MISALIGNMENT_NAMES]) for e in kept],
-                     [np.array([e.U_arcsec[n] / NORMAL_K for n in MISALIGNMENT_NAMES]) for e in kept])
+    rate = device_ageing.walk_rate(
+        [calibrated(e) for e in kept],
+        [np.array([e.value_arcsec[n] for n in MISALIGNMENT_NAMES]) for e in kept],
+        [np.array([e.U_arcsec[n] / NORMAL_K for n in MISALIGNMENT_NAMES]) for e in kept],
+    )
     age = ((now or datetime.now(UTC)) - calibrated(last)).total_seconds() / 86400.0
     u = rate.aged_u(np.array([last.U_arcsec[n] / NORMAL_K for n in MISALIGNMENT_NAMES]), age)
-    return DeviceCorrection(device_id, last.source,
-                            {n: last.value_arcsec[n] * ARCSEC for n in MISALIGNMENT_NAMES},
-                            {n: float(v) * ARCSEC for n, v in zip(MISALIGNMENT_NAMES, u, strict=True)},
-                            {n: last.U_arcsec[n] * ARCSEC for n in MISALIGNMENT_NAMES},
-                            last.calibrated_utc), ""
+    return optimize.DeviceCorrection(
+        device_id,
+        last.source,
+        {n: last.value_arcsec[n] * ARCSEC for n in MISALIGNMENT_NAMES},
+        {n: float(v) * ARCSEC for n, v in zip(MISALIGNMENT_NAMES, u, strict=True)},
+        {n: last.U_arcsec[n] * ARCSEC for n in MISALIGNMENT_NAMES},
+        last.calibrated_utc,
+    ), ""
 
 
 def check_correction(correction: DeviceCorrectionTable, device_id: str, db: str | Path | None = None,
@@ -259,13 +273,14 @@ def check_correction(correction: DeviceCorrectionTable, device_id: str, db: str 
     if why:
         raise LabcalError(why)
     if plan is not None:
-        from labcal.analysis.correction_check import sensitivity
-        from labcal.analysis.device_model import Geometry
-
         unit = np.vstack([np.zeros(3), np.eye(3)])  # what is seen is geometry: any instrument, any noise
         held = correction.misalignment()
-        seen = sensitivity(Geometry.of_plan(list(plan.points), list(plan.mounts)), unit, np.ones(3),
-                           np.array([getattr(held, n) for n in MISALIGNMENT_NAMES])).observable
+        seen = correction_check.sensitivity(
+            device_model.Geometry.of_plan(list(plan.points), list(plan.mounts)),
+            unit,
+            np.ones(3),
+            np.array([getattr(held, n) for n in MISALIGNMENT_NAMES]),
+        ).observable
         unseen = [n for n in MISALIGNMENT_NAMES if n not in seen]
         if unseen:
             raise LabcalError(f"this plan corrects for device {wanted}'s misalignments but its mounts cannot "
@@ -309,9 +324,7 @@ def estimates_for(device_id: str, db: str | Path | None = None) -> list[DeviceEs
 def estimates_read(device_id: str, db: str | Path | None = None) -> tuple[list[DeviceEstimate], str | None]:
     """The device's estimates, oldest calibration first: every bench's, where the lab database is a
     server; and the line saying the lab could not be reached (None: read from it)."""
-    from labcal.documents.history import stored_rows  # with the certificates: not on a run's path
-
-    stored = stored_rows(
+    stored = history.stored_rows(
         db, "device_estimates", "device_id", device_id, ("document",), ("calibrated_utc", "source"),
         f"no device estimates for {device_id!r}", "known devices",
         "a finished run stores its device estimate there")
@@ -362,11 +375,9 @@ def history_json(device_id: str, estimates: list[DeviceEstimate],
 def plot_history(device_id: str, estimates: list[DeviceEstimate], found: list[DeviceChange],
                  path: str | Path) -> None:
     """Each misalignment against calibration number with ±U error bars; flagged changes in red."""
-    from matplotlib.figure import Figure
-
     check_folder(path)
     index = {e.source: n for n, e in enumerate(estimates, start=1)}
-    fig = Figure(figsize=(10, 6))
+    fig = figure.Figure(figsize=(10, 6))
     fig.subplots_adjust(left=0.08, right=0.98, top=0.9, bottom=0.1, hspace=0.35, wspace=0.3)
     axes = fig.subplots(2, 3, squeeze=False).ravel()
     numbers = list(range(1, len(estimates) + 1))

@@ -12,10 +12,14 @@ import numpy as np
 
 from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.fit import SENSORS
+from labcal.lazy import lazy
 from labcal.store.record import RunRecord
 
 if TYPE_CHECKING:  # matplotlib only where a figure is drawn: a run stores device.json without it
+    from matplotlib import figure
     from matplotlib.figure import Figure
+else:
+    figure = lazy("matplotlib.figure")  # start-up without matplotlib, numpy
 
 TITLE_Y = 1.0  # titles at a fixed height, as the report's figures have them (labcal.documents.report_figures)
 
@@ -63,9 +67,7 @@ def device_rows(fit: DeviceFit) -> list[tuple[str, list[str], list[list[str]], s
 def residuals_side_by_side(fit: DeviceFit, record: RunRecord) -> Figure:
     """Residuals against pitch and roll, linear model beside device model, per sensor (µV)."""
     r = record.readings
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(11, 10))
+    fig = figure.Figure(figsize=(11, 10))
     fig.subplots_adjust(left=0.08, right=0.98, top=0.92, bottom=0.06, hspace=0.42, wspace=0.25)
     axes = fig.subplots(3, 4, squeeze=False, sharex="col", sharey="row")  # ticks once per column and row
     models = (("linear", fit.linear.ls.residuals), ("device", fit.residuals))

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from matplotlib.dates import ConciseDateFormatter
+from matplotlib.figure import Figure
 
 from labcal.analysis.distributions import t_quantile
 from labcal.analysis.fit import ROW_NAMES, SENSORS
@@ -25,7 +27,7 @@ from labcal.documents.certificate import COVERAGE, Certificate, certificate_from
 from labcal.documents.issuing import SIMULATED_SERIAL
 from labcal.documents.plotfile import check_folder, save
 from labcal.errors import LabcalError
-from labcal.store import labdb
+from labcal.store import labdb, labquery
 from labcal.store.journal import db_path
 
 RULE = "|Δ| > k·√(u₁² + u₂²), k = t₀.₉₇₅(ν) at the Welch–Satterthwaite ν of the difference"
@@ -70,8 +72,6 @@ def stored_rows(db: str | Path | None, table: str, column: str, key: str, column
     every bench's, where the lab is a server (`labcal.store.labquery`); a missing database, or a key
     it does not hold, is one line naming what it does hold. The instrument's and the device's
     histories both read through here."""
-    from labcal.store import labquery
-
     found = labquery.records(db, table, columns, {column: key}, order, must_exist=False)
     if not found.exists:
         raise LabcalError(f"{found.source.shown}: no such database; {stored_by} (or give {{0}} / set "
@@ -182,9 +182,6 @@ def history_json(serial: str, certs: list[Certificate], found: list[Change]) -> 
 
 def plot_history(serial: str, certs: list[Certificate], found: list[Change], path: str | Path) -> None:
     """Each coefficient against calibration date with ±U error bars; flagged changes in red."""
-    from matplotlib.dates import ConciseDateFormatter
-    from matplotlib.figure import Figure
-
     check_folder(path)
     dates = [c.calibrated_utc for c in certs]
     X = np.array([c.by_sensor(c.coefficients) for c in certs])  # a package's absent sensors: gaps

@@ -12,19 +12,28 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from labcal.analysis.device_fit import DeviceFit
 from labcal.analysis.fit import Fit
 from labcal.config.files import write_atomic
+from labcal.documents import history
 from labcal.documents.certificate import Certificate, read_certificate, write_certificate
+from labcal.documents.dcc import DCC_FILE, write_dcc
 from labcal.documents.device_history import store_device_estimate
 from labcal.documents.report_figures import draw, figures
 from labcal.documents.report_html import render_html
 from labcal.documents.report_pdf import render_pdf
 from labcal.documents.report_tables import Table
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.store.exports import run_fits
 from labcal.store.record import RunRecord, load_run
+
+if TYPE_CHECKING:
+    from labcal.documents import device_report
+else:
+    device_report = lazy("labcal.documents.device_report")  # start-up without scipy, numpy, pydantic
 
 CERTIFICATE = "certificate.json"
 REPORT_HTML = "report.html"
@@ -38,11 +47,9 @@ def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit
     figures_drawn = figures(cert, record, fit, device)
     extra: tuple[Table, ...] = ()
     if device is not None:
-        from labcal.documents.device_report import device_rows, residuals_side_by_side
-
-        extra = tuple(Table(*parts) for parts in device_rows(device))
+        extra = tuple(Table(*parts) for parts in device_report.device_rows(device))
         figures_drawn.append(("Residuals of the linear and of the device model",
-                              residuals_side_by_side(device, record)))
+                              device_report.residuals_side_by_side(device, record)))
     figs = [draw(title, fig) for title, fig in figures_drawn]
     html_path, pdf_path = directory / REPORT_HTML, directory / REPORT_PDF
     write_atomic(html_path, render_html(cert, figs, extra))  # whole or not at all: a kill never cuts a report
@@ -95,9 +102,6 @@ def write_documents(cert: Certificate, record: RunRecord, fit: Fit, device: Devi
     """Every file an issue (or an approval) writes: certificate, report, history entry — through one
     function, so that making them one transaction changes one place. ``device``: the device model
     the certificate rests on (`fitted`), None where the linear model is used."""
-    from labcal.documents import history
-    from labcal.documents.dcc import DCC_FILE, write_dcc
-
     dcc_path = write_dcc(record.directory / DCC_FILE, cert)  # validated first: a bad one stops it all
     html_path, pdf_path = write_report(record.directory, cert, record, fit, device)
     # The history entry and the certificate file go together: the entry is committed first and the
@@ -114,9 +118,6 @@ def write_documents(cert: Certificate, record: RunRecord, fit: Fit, device: Devi
 def outputs_in_place(run_dir: str | Path, db: str | Path | None = None) -> bool:
     """Whether a complete run's certificate, its report and its history entry are all there and
     are of the run's current readings (after a kill during `labcal report` one may be missing)."""
-    from labcal.documents import history
-    from labcal.documents.dcc import DCC_FILE
-
     run_dir = Path(run_dir)
     if not all((run_dir / name).is_file() for name in (CERTIFICATE, DCC_FILE, REPORT_HTML, REPORT_PDF)):
         return False

@@ -28,10 +28,14 @@ from labcal.config.settings import CertificateSettings
 from labcal.documents.certificate import Certificate
 from labcal.documents.issuing import envelope_grid
 from labcal.documents.package import region_parts
+from labcal.lazy import lazy
 from labcal.store.record import RunRecord
 
 if TYPE_CHECKING:
+    from matplotlib import figure
     from matplotlib.figure import Figure
+else:
+    figure = lazy("matplotlib.figure")  # start-up without matplotlib, numpy
 
 MOUNT_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red")
 # Fixed margins: a layout engine would double the drawing time of every figure.
@@ -106,12 +110,10 @@ def residual_figure(fit: Fit, record: RunRecord, device: DeviceFit | None = None
     """Residuals of the model the certificate states against table pitch and roll, per sensor, with
     the 95 % bands of a reading taken at the other angle 0°, top-forward mount (Tripp & Tcheng figs.
     44, 47); each sensor in µV, mV or V by the size of what is drawn."""
-    from matplotlib.figure import Figure
-
     r = record.readings
     name, equation, resid = certified_residuals(fit, device)
     sensors = fit.sensors if device is None else SENSORS  # a package's: the sensors it has
-    fig = Figure(figsize=(11, 10 * (len(sensors) + 0.6) / 3.6))
+    fig = figure.Figure(figsize=(11, 10 * (len(sensors) + 0.6) / 3.6))
     fig.subplots_adjust(left=0.08, right=0.98, top=0.90, bottom=0.06, hspace=0.42, wspace=0.22)
     # the angle's ticks once, under each column
     axes = fig.subplots(len(sensors), 2, squeeze=False, sharex="col")
@@ -174,10 +176,8 @@ def inferred_attitude(cert: Certificate, record: RunRecord) -> dict[str, np.ndar
 
 def attitude_error_figure(cert: Certificate, record: RunRecord) -> Figure:
     """Errors of inferred pitch and roll with their U95 (Tripp & Tcheng figs. 45–46, 48–49)."""
-    from matplotlib.figure import Figure
-
     e = inferred_attitude(cert, record)
-    fig = Figure(figsize=(11, 4.5))
+    fig = figure.Figure(figsize=(11, 4.5))
     fig.subplots_adjust(**WIDE)
     axes = fig.subplots(1, 2)
     masks = _mount_masks(record)
@@ -204,11 +204,9 @@ def attitude_error_figure(cert: Certificate, record: RunRecord) -> Figure:
 
 def sphere_figure(record: RunRecord) -> Figure:
     """Where the plan's points lie on the unit gravity sphere, in the instrument's axes, per mount."""
-    from matplotlib.figure import Figure
-
     plan = record.plan
     g = plan.nominal_gravity().reshape(len(plan.mounts), len(plan.points), 3)
-    fig = Figure(figsize=(7, 6.5))
+    fig = figure.Figure(figsize=(7, 6.5))
     ax = fig.add_subplot(projection="3d")
     u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 37), np.linspace(0, np.pi, 19))
     ax.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.8", lw=0.4)
@@ -232,15 +230,13 @@ def sphere_figure(record: RunRecord) -> Figure:
 
 def envelope_figure(cert: Certificate) -> Figure:
     """U95 of inferred pitch and roll against pitch over the usage envelope (largest and RMS over roll)."""
-    from matplotlib.figure import Figure
-
     a = cert.attitude
     settings = CertificateSettings(usage_pitch_deg=a.usage_pitch_deg, usage_roll_deg=a.usage_roll_deg,
                                    grid_step_deg=a.grid_step_deg)
     env = envelope_grid(cert.calibration(), settings)
     tolerance = next((c.limit for c in (cert.conformity.checks if cert.conformity else []) if c.unit == "°"),
                      None)
-    fig = Figure(figsize=(11, 4.5))
+    fig = figure.Figure(figsize=(11, 4.5))
     fig.subplots_adjust(**WIDE)
     axes = fig.subplots(1, 2)
     for ax, angle, values in zip(axes, ("pitch", "roll"), (env.u95_pitch_deg, env.u95_roll_deg), strict=True):
@@ -266,14 +262,12 @@ def envelope_figure(cert: Certificate) -> Figure:
 def package_envelope_figure(cert: Certificate, fit: Fit) -> Figure:
     """A package's inferred angles' U95 against pitch over the region its section states (largest
     and RMS over roll), from the same parts as its budget (Tripp & Tcheng eqs. 78, 81, 90, 96)."""
-    from matplotlib.figure import Figure
-
     section = cert.package
     assert section is not None
     parts = region_parts(fit, section)
     pitch_deg = np.degrees(parts.alpha[:, 0])
     angles = {"pitch": parts.pitch} | ({} if parts.roll_sd is None else {"roll": parts.roll_sd})
-    fig = Figure(figsize=(5.5 * len(angles), 4.5))
+    fig = figure.Figure(figsize=(5.5 * len(angles), 4.5))
     fig.subplots_adjust(**WIDE)
     axes = np.atleast_1d(fig.subplots(1, len(angles)))
     for ax, (angle, by_source) in zip(axes, angles.items(), strict=True):

@@ -35,7 +35,16 @@ from reportlab.pdfbase import pdfmetrics
 from reportlab.pdfbase.pdfmetrics import stringWidth
 from reportlab.pdfbase.ttfonts import TTFont
 from reportlab.pdfgen.canvas import Canvas
-from reportlab.platypus import KeepTogether, Paragraph, Table, TableStyle
+from reportlab.platypus import (
+    Image,
+    KeepTogether,
+    PageBreak,
+    Paragraph,
+    SimpleDocTemplate,
+    Spacer,
+    Table,
+    TableStyle,
+)
 
 BODY_PT = 9.0  # body text and table cells
 SMALL_PT = 8.0  # captions, header and footer: the smallest text on any page
@@ -168,8 +177,6 @@ def _table(t: TableLike, width: float, styles: dict[str, Any]) -> list[Any]:
 
 
 def _figure(fig: FigureLike, width: float, height: float, styles: dict[str, Any]) -> list[Any]:
-    from reportlab.platypus import Image, KeepTogether, Paragraph
-
     w_in, h_in = fig.size_in
     scale = min(width / w_in, (height - 40) / h_in)
     return [KeepTogether([Paragraph(_text(fig.title), styles["h2"]),
@@ -179,8 +186,6 @@ def _figure(fig: FigureLike, width: float, height: float, styles: dict[str, Any]
 def render(doc: CertificateDocument) -> bytes:
     """The PDF's bytes, typeset once: each page's "of Y" is written when the document is saved and
     its number of pages known (`_counting_canvas`), not by typesetting everything twice."""
-    from reportlab.platypus import PageBreak, Paragraph, SimpleDocTemplate, Spacer, Table, TableStyle
-
     styles = _styles()
     regular, bold = _fonts()
     page_w, page_h = A4
@@ -254,8 +259,6 @@ def wrapped(text: str, font: str, size: float, width: float) -> list[str]:
     """``text`` in lines no wider than ``width`` points in ``font`` at ``size`` (reportlab's metrics), broken
     at spaces, and within a word longer than a line (a long serial, a certificate number) between
     characters."""
-    from reportlab.pdfbase.pdfmetrics import stringWidth
-
     def fits(line: str) -> bool:
         return stringWidth(line, font, size) <= width
 

@@ -37,11 +37,18 @@ import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from labcal.analysis.kinematics import MOUNTS
+from labcal.config.lab import load_lab_config
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.run.events import Paused, Prompt, RunEvent, Status
+
+if TYPE_CHECKING:
+    import apprise as _apprise
+else:
+    _apprise = lazy("apprise")  # start-up without apprise
 
 log = logging.getLogger(__name__)
 
@@ -124,13 +131,11 @@ class Notifications:
             self._queue.put(message)
 
     def _work(self) -> None:
-        import apprise
-
         while (message := self._queue.get()) is not None:
             self._busy = message
             why = ""
             try:
-                with apprise.LogCapture(level=logging.WARNING, fmt="%(message)s") as said:
+                with _apprise.LogCapture(level=logging.WARNING, fmt="%(message)s") as said:
                     ok = bool(self._apprise.notify(body=message.body, title=message.title))
                 lines = said.getvalue().splitlines()
                 why = "" if ok else "; ".join(line for line in lines if line.strip())
@@ -287,7 +292,5 @@ def lab_notifications(warn: Warn) -> Notifications:
     """The notifications the lab asks for ($LABCAL_NOTIFY, else the lab file's ``notify``), their
     URLs checked by apprise now, before anything moves; with none, a `Notifications` that sends
     nothing."""
-    from labcal.config.lab import load_lab_config
-
     urls, source = load_lab_config().notify_urls()
     return Notifications(urls, source, warn)

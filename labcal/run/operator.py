@@ -10,19 +10,28 @@ prose wraps at word boundaries at its width; in a file or pipe each paragraph st
 from __future__ import annotations
 
 import os
+import select
 import sys
 from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Literal, Protocol
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 from rich.console import Console
 
 from labcal.analysis.kinematics import Mount
 from labcal.devices.station import may_be_moving
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.run.mounting import drawing
+
+if TYPE_CHECKING:
+    import msvcrt
+    import termios
+else:
+    msvcrt = lazy("msvcrt")  # start-up without not importable alone
+    termios = lazy("termios")  # start-up without termios
 
 PauseChoice = Literal["resume", "abort"]
 
@@ -88,15 +97,11 @@ def discard_typeahead(fd: int) -> int:
     alike; the number of bytes thrown away. Keys pressed while points were being measured must
     not answer the next prompt. Nothing on anything but a terminal: piped answers are answers."""
     if sys.platform == "win32":  # the console's own key queue
-        import msvcrt
-
         discarded = 0
         while msvcrt.kbhit():
             msvcrt.getwch()
             discarded += 1
         return discarded
-    import termios
-
     try:
         saved = termios.tcgetattr(fd)
     except (termios.error, OSError):
@@ -154,8 +159,6 @@ class QuietKeys:
     def __enter__(self) -> QuietKeys:
         if self.fd is None or self.saved is not None:
             return self
-        import termios
-
         try:
             saved = termios.tcgetattr(self.fd)
             quiet = [*saved[:6], list(saved[6])]
@@ -172,8 +175,6 @@ class QuietKeys:
         reads its own answer); nothing where stdin is not this process's terminal."""
         if self.fd is None or self.saved is None:
             return ""
-        import select
-
         keys = b""
         try:
             while select.select([self.fd], [], [], 0)[0] and len(keys) < 1024:
@@ -197,8 +198,6 @@ class QuietKeys:
         saved, self.saved = self.saved, None
         if self.fd is None or saved is None:
             return
-        import termios
-
         try:
             termios.tcsetattr(self.fd, termios.TCSANOW, saved)
         except (termios.error, OSError):  # the terminal is gone (its window closed): nothing to restore

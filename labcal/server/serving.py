@@ -13,10 +13,13 @@ so in one line: passwords and cookies would cross the lab's network in clear.
 from __future__ import annotations
 
 import ipaddress
+import logging
 import socket
 import ssl
 from collections.abc import Callable
 from dataclasses import dataclass
+
+import uvicorn
 
 from labcal.app.labdatabase import OpenLab, open_lab
 from labcal.app.server_approval import server_key
@@ -117,8 +120,6 @@ def url_of(sock: socket.socket, tls: bool = False) -> str:
 def log_to_stderr() -> None:
     """The server's own warnings (failed sign-ins, lockouts: `labcal.app.users`) on stderr, one line
     each with the time, beside uvicorn's."""
-    import logging
-
     logger = logging.getLogger("labcal.server")
     if not logger.handlers:
         handler = logging.StreamHandler()
@@ -131,8 +132,6 @@ def log_to_stderr() -> None:
 def serve(settings: ServerSettings, host: str, port: int, listening: Callable[[str], None],
           transport: Transport = Transport()) -> None:
     """Serve until Ctrl-C; ``listening`` is told the URL once the socket is bound."""
-    import uvicorn
-
     sock = listen(host, port)
     log_to_stderr()
     proxy = transport.forwarded_allow_ips

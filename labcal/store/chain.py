@@ -25,9 +25,24 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Iterable, Mapping, Sequence
+from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+from labcal.config.lab import load_lab_config
+from labcal.lazy import lazy
+from labcal.store import labdb
+
+if TYPE_CHECKING:
+    import sqlalchemy
+    from sqlalchemy import exc
+
+    from labcal.store import schema
+else:
+    exc = lazy("sqlalchemy.exc")  # start-up without sqlalchemy
+    schema = lazy("labcal.store.schema")  # start-up without sqlalchemy
+    sqlalchemy = lazy("sqlalchemy")  # start-up without sqlalchemy
 
 FORM = "labcal.journal-chain/1"
 UNCHAINED = "journaled before digests; not tamper-evident"
@@ -245,15 +260,14 @@ def check_sqlite(db: Any, run_id: int, run: str | None = None) -> ChainCheck:
 
 def check_server(connection: Any, run_id: int, run: str | None = None) -> ChainCheck:
     """The chain of run ``run_id`` of the lab's server (an open SQLAlchemy connection)."""
-    from sqlalchemy import text
-
     runs_sql, points_sql, events_sql = _sql(":run")
-    row = connection.execute(text(runs_sql), {"run": run_id}).fetchone()
+    row = connection.execute(sqlalchemy.text(runs_sql), {"run": run_id}).fetchone()
     if row is None:
         raise LookupError(run_id)
     values = dict(zip(RUN_COLUMNS, row[:-1], strict=True))
-    records = (_records("point", POINT_COLUMNS, connection.execute(text(points_sql), {"run": run_id}))
-               + _records("event", EVENT_COLUMNS, connection.execute(text(events_sql), {"run": run_id})))
+    records = _records(
+        "point", POINT_COLUMNS, connection.execute(sqlalchemy.text(points_sql), {"run": run_id})
+    ) + _records("event", EVENT_COLUMNS, connection.execute(sqlalchemy.text(events_sql), {"run": run_id}))
     return check(run or f"run {run_id}", values, row[-1], records)
 
 
@@ -261,11 +275,6 @@ def copies(db: str | Path | None, run_uuid: str) -> list[tuple[str, ChainCheck]]
     """The run's chain recomputed in every database this station knows that holds it, as (where,
     check): the lab's server, when the lab database is one and can be reached, and the station's
     journal (the lab database itself when that is a SQLite file). Nothing is created or changed."""
-    from contextlib import closing
-
-    from labcal.config.lab import load_lab_config
-    from labcal.store import labdb
-
     found: list[tuple[str, ChainCheck]] = []
     where = labdb.lab_database(db)
     server = None if isinstance(where, Path) else where
@@ -275,11 +284,9 @@ def copies(db: str | Path | None, run_uuid: str) -> list[tuple[str, ChainCheck]]
         except labdb.Unreachable:
             engine = None
         if engine is not None:
-            from sqlalchemy import text
-
             try:
                 with engine.connect() as connection:
-                    row = connection.execute(text("SELECT id FROM runs WHERE uuid = :u"),
+                    row = connection.execute(sqlalchemy.text("SELECT id FROM runs WHERE uuid = :u"),
                                              {"u": run_uuid}).first()
                     if row is not None:
                         lab_run = f"run {row[0]} of the lab"
@@ -313,24 +320,28 @@ def append_audit(connection: Any, utc: str, kind: str, account: str | None, acto
     savepoint): its digest, or None when a row of that ``origin`` is there already (a bench's row
     copied once). ``prev`` is unique, so two writers cannot both follow one row: the one that loses
     appends again after the other's. Raises `RuntimeError` after `AUDIT_TRIES` lost races."""
-    from sqlalchemy import desc, select
-    from sqlalchemy.exc import IntegrityError
-
-    from labcal.store.schema import audit
-
     for _ in range(AUDIT_TRIES):
         try:
             with connection.begin_nested():
-                if origin is not None and connection.execute(
-                        select(audit.c.id).where(audit.c.origin == origin)).first() is not None:
+                if (
+                    origin is not None
+                    and connection.execute(
+                        sqlalchemy.select(schema.audit.c.id).where(schema.audit.c.origin == origin)
+                    ).first()
+                    is not None
+                ):
                     return None
-                last = connection.execute(select(audit.c.digest).order_by(desc(audit.c.id)).limit(1)).first()
+                last = connection.execute(
+                    sqlalchemy.select(schema.audit.c.digest)
+                    .order_by(sqlalchemy.desc(schema.audit.c.id))
+                    .limit(1)
+                ).first()
                 prev = "" if last is None else last[0]
                 digest = audit_digest(prev, utc, kind, account, actor, client, detail)
-                connection.execute(audit.insert().values(
+                connection.execute(schema.audit.insert().values(
                     utc=utc, kind=kind, account=account, actor=actor, client=client, detail=detail, prev=prev,
                     digest=digest, origin=origin))
             return digest
-        except IntegrityError:  # another writer appended after the same row, or the same origin meanwhile
+        except exc.IntegrityError:  # another writer appended after the same row, or the same origin meanwhile
             continue
     raise RuntimeError("the audit trail is being written by too many at once")

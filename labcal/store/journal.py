@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from labcal.analysis.readings import Readings
 from labcal.config.lab import load_lab_config
+from labcal.config.plans import parse_plan
 from labcal.errors import LabcalError
 from labcal.store import chain, labdb
 from labcal.store.labdb import lab_database
@@ -79,8 +80,6 @@ def station_name() -> str:
 def schedule_length(plan_text: str) -> int | None:
     """Every step of the run's schedule (replicates × mounts × points), or None for a plan this
     labcal cannot read (a run journaled by another version)."""
-    from labcal.config.plans import parse_plan
-
     try:
         return parse_plan(plan_text, "the run's plan").n_points
     except (LabcalError, ValueError):

@@ -19,17 +19,25 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import sqlalchemy
+from sqlalchemy import func, insert, select
+
 from labcal.config.files import write_atomic
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.store.chain import check_server
 from labcal.store.exports import station_description
 from labcal.store.journal import RunRow, readings_of
 from labcal.store.lab_points import ok_points
 from labcal.store.record import RunRecord, run_record
 from labcal.store.rundir import identity
+from labcal.store.schema import certificate_files, certificates, events, runs
 
 if TYPE_CHECKING:
+    from sqlalchemy.dialects import postgresql
     from sqlalchemy.engine import Connection, Engine
+else:
+    postgresql = lazy("sqlalchemy.dialects.postgresql")  # start-up without sqlalchemy
 
 # What a server's approval keeps, in the order a bench writes them (the certificate, which says the
 # run is approved, last: a bench killed while writing leaves a draft, never a half-approved folder)
@@ -43,18 +51,14 @@ def lab_label(run_id: int) -> str:
 def lock_run(connection: Connection, run_id: int) -> None:
     """Serialise approvals of one run across every server process: a transaction-scoped advisory lock
     (the server's role may not lock the runs row itself, which it may not update)."""
-    from sqlalchemy import text
-
-    connection.execute(text("SELECT pg_advisory_xact_lock(:k)"), {"k": 0x1ABCA1 * 1_000_000 + run_id})
+    connection.execute(
+        sqlalchemy.text("SELECT pg_advisory_xact_lock(:k)"), {"k": 0x1ABCA1 * 1_000_000 + run_id}
+    )
 
 
 def lab_record(connection: Connection, run_id: int, directory: Path) -> RunRecord:
     """Run ``run_id`` as the lab database holds it, as a `RunRecord` whose documents go to
     ``directory``; an unknown or unfinished run is one line."""
-    from sqlalchemy import select
-
-    from labcal.store.schema import events, runs
-
     columns = [f.name for f in fields(RunRow)]
     found = connection.execute(select(*(runs.c[c] for c in columns)).where(runs.c.id == run_id)).first()
     label = lab_label(run_id)
@@ -90,10 +94,6 @@ def draft_document(connection: Connection, serial: str | None, run_uuid: str, lo
     JSON text; None when no bench has sent one. ``lock``: its rows locked until the caller's
     transaction ends (an approval), so that a draft the bench re-issues meanwhile is either the one
     read here or arrives after the approval, never lost between the two."""
-    from sqlalchemy import select
-
-    from labcal.store.schema import certificates
-
     # by the run it states, not its serial: a serial stripped or given at issue need not be the run's
     query = (select(certificates.c.document).where(certificates.c.document.contains(run_uuid))
              .order_by(certificates.c.issued_utc.desc()))
@@ -138,10 +138,6 @@ def _approvals(connection: Connection, in_force: dict[str, dict]) -> dict[str, d
     """Who approved each run's certificate in force (its ``approval``), for the runs whose certificate
     in force is approved: the server's signed copy in ``certificate_files`` where it kept one (one
     statement for all of them), else the document's own (a bench's approval, synced)."""
-    from sqlalchemy import select
-
-    from labcal.store.schema import certificate_files
-
     ids = {str(d.get("certificate_id")): run_uuid for run_uuid, d in in_force.items()}
     found = {run_uuid: d["approval"] for run_uuid, d in in_force.items() if d.get("approval")}
     if ids:
@@ -156,10 +152,6 @@ def _approvals(connection: Connection, in_force: dict[str, dict]) -> dict[str, d
 
 def in_force(connection: Connection, run_uuid: str) -> dict | None:
     """The run's certificate in force (`_in_force`) as the lab holds it; None: none issued."""
-    from sqlalchemy import select
-
-    from labcal.store.schema import certificates
-
     # by the run it states, not its serial: a serial stripped or given at issue need not be the run's
     rows = connection.execute(select(certificates.c.issued_utc, certificates.c.document)
                               .where(certificates.c.document.contains(run_uuid))).all()
@@ -170,10 +162,6 @@ def replaced_document(connection: Connection, run_uuid: str, number: str) -> byt
     """The run's certificate numbered ``number`` (a revision's ``replaces``) as the lab keeps it: the
     server's signed copy where it approved that revision, else the lab's certificates row; None: the
     lab holds no such revision of the run."""
-    from sqlalchemy import select
-
-    from labcal.store.schema import certificate_files, certificates
-
     for text in connection.execute(select(certificates.c.document)
                                    .where(certificates.c.document.contains(run_uuid))).scalars():
         document = _in_force([("", text)], {run_uuid}).get(run_uuid)
@@ -190,10 +178,6 @@ def approved_by(connection: Connection, run_id: int) -> dict | None:
     """Who approved the run's certificate in force and when, as the lab knows it (its ``approval``:
     by, role, approved_utc, …); None while that revision is a draft (or nothing is there). A later
     revision of an approved certificate is a draft again until it is approved itself."""
-    from sqlalchemy import select
-
-    from labcal.store.schema import runs
-
     uuid = connection.execute(select(runs.c.uuid).where(runs.c.id == run_id)).scalar()
     if uuid is None:
         return None
@@ -204,10 +188,6 @@ def approved_by(connection: Connection, run_id: int) -> dict | None:
 def approved_runs(connection: Connection, run_uuids: Collection[str]) -> dict[str, dict]:
     """`approved_by` for many runs at once, by uuid (only the approved ones): two statements whatever
     their number — the lab's certificates read once, not searched once per run."""
-    from sqlalchemy import select
-
-    from labcal.store.schema import certificates
-
     wanted = set(run_uuids)
     if not wanted:
         return {}
@@ -217,10 +197,6 @@ def approved_runs(connection: Connection, run_uuids: Collection[str]) -> dict[st
 
 def store_files(connection: Connection, certificate_id: str, run_uuid: str, files: dict[str, bytes]) -> None:
     """Keep an approved certificate's files in the lab database (in the caller's transaction)."""
-    from sqlalchemy import insert
-
-    from labcal.store.schema import certificate_files
-
     now = datetime.now(UTC).isoformat()
     connection.execute(insert(certificate_files), [
         {"certificate_id": certificate_id, "run_uuid": run_uuid, "name": name,
@@ -233,13 +209,9 @@ def replace_draft(connection: Connection, certificate_id: str, serial: str, cali
     """The approved certificate in place of its draft in the lab's certificates (in the caller's
     transaction): every bench's history then shows it approved, and each bench's journal receives it
     on its next sync, as a bench's own approval reaches the lab."""
-    from sqlalchemy.dialects.postgresql import insert
-
-    from labcal.store.schema import certificates
-
     values = {"certificate_id": certificate_id, "serial": serial, "calibrated_utc": calibrated_utc,
               "issued_utc": issued_utc, "sha256": sha256, "document": document}
-    statement = insert(certificates).values(**values)
+    statement = postgresql.insert(certificates).values(**values)
     connection.execute(statement.on_conflict_do_update(
         index_elements=[certificates.c.certificate_id],
         set_={k: statement.excluded[k] for k in values if k != "certificate_id"}))
@@ -248,10 +220,6 @@ def replace_draft(connection: Connection, certificate_id: str, serial: str, cali
 def files_of(connection: Connection, run_uuid: str) -> dict[str, bytes]:
     """The files the lab keeps of the run's certificate in force, approved by the server (empty: that
     revision is not, or there is none), each checked against the digest stored with it."""
-    from sqlalchemy import select
-
-    from labcal.store.schema import certificate_files
-
     document = in_force(connection, run_uuid)
     if document is None:
         return {}
@@ -268,10 +236,6 @@ def files_of(connection: Connection, run_uuid: str) -> dict[str, bytes]:
 
 def approved_files(engine: Engine, run_id: int) -> dict[str, bytes]:
     """`files_of` the lab's run ``run_id`` (empty: no such run, or none approved there)."""
-    from sqlalchemy import select
-
-    from labcal.store.schema import runs
-
     with engine.connect() as connection:
         uuid = connection.execute(select(runs.c.uuid).where(runs.c.id == run_id)).scalar()
         return {} if uuid is None else files_of(connection, uuid)
@@ -280,10 +244,6 @@ def approved_files(engine: Engine, run_id: int) -> dict[str, bytes]:
 def file_names(connection: Connection, run_uuid: str) -> list[str]:
     """The names of the files the lab keeps of the run's certificate in force, approved by the
     server, sorted."""
-    from sqlalchemy import select
-
-    from labcal.store.schema import certificate_files
-
     document = in_force(connection, run_uuid)
     return [] if document is None else sorted(connection.execute(select(certificate_files.c.name).where(
         certificate_files.c.certificate_id == str(document.get("certificate_id")))).scalars())
@@ -305,10 +265,6 @@ def write_files(run_dir: Path, files: dict[str, bytes]) -> list[str]:
 def run_documents(connection: Connection, run_uuid: str) -> list[tuple[str, str | bytes]]:
     """Every certificate document the lab holds that may be the run's (certificate id, document): the
     certificates rows naming its uuid, and the server's signed copies kept for it; unverified."""
-    from sqlalchemy import select
-
-    from labcal.store.schema import certificate_files, certificates
-
     rows = connection.execute(select(certificates.c.certificate_id, certificates.c.document)
                               .where(certificates.c.document.contains(run_uuid))).all()
     stored = connection.execute(select(certificate_files.c.certificate_id, certificate_files.c.content).where(
@@ -319,10 +275,6 @@ def run_documents(connection: Connection, run_uuid: str) -> list[tuple[str, str 
 def serial_documents(connection: Connection, serial: str) -> list[tuple[str, str]]:
     """Every certificate (id, document) the lab holds under ``serial``, whatever its case (a
     certificate issued as acc-0042 before the register held ACC-0042 is its too); unverified."""
-    from sqlalchemy import func, select
-
-    from labcal.store.schema import certificates
-
     query = (select(certificates.c.certificate_id, certificates.c.document)
              .where(func.lower(certificates.c.serial) == serial.lower()))
     return [(c, d) for c, d in connection.execute(query)]
@@ -330,20 +282,12 @@ def serial_documents(connection: Connection, serial: str) -> list[tuple[str, str
 
 def certificate_text(connection: Connection, certificate_id: str) -> str | None:
     """The lab's certificates row's document of ``certificate_id`` (None: none)."""
-    from sqlalchemy import select
-
-    from labcal.store.schema import certificates
-
     return connection.execute(select(certificates.c.document)
                               .where(certificates.c.certificate_id == certificate_id)).scalar()
 
 
 def kept_names(connection: Connection, certificate_id: str) -> set[str]:
     """The names of the files the server kept of certificate ``certificate_id`` when it approved it."""
-    from sqlalchemy import select
-
-    from labcal.store.schema import certificate_files
-
     return set(connection.execute(select(certificate_files.c.name)
                                   .where(certificate_files.c.certificate_id == certificate_id)).scalars())
 
@@ -351,10 +295,6 @@ def kept_names(connection: Connection, certificate_id: str) -> set[str]:
 def kept_file(connection: Connection, certificate_id: str, name: str) -> bytes | None:
     """The file ``name`` the server kept of certificate ``certificate_id``, where its stored digest
     holds (None: none kept, or not intact)."""
-    from sqlalchemy import select
-
-    from labcal.store.schema import certificate_files
-
     stored = connection.execute(select(certificate_files.c.content, certificate_files.c.sha256).where(
         certificate_files.c.certificate_id == certificate_id, certificate_files.c.name == name)).first()
     if stored is None or hashlib.sha256(bytes(stored.content)).hexdigest() != stored.sha256:

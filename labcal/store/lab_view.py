@@ -8,6 +8,7 @@ names of the columns selected (`SUMMARY`, `EVENT_COLUMNS`, `POINT_COLUMNS`).
 
 from __future__ import annotations
 
+import json
 from collections.abc import Collection
 from typing import TYPE_CHECKING, Any
 
@@ -128,8 +129,6 @@ def faults(conn: Connection, run_id: int) -> list[str]:
 
 def events_of_kind(conn: Connection, run_id: int, kind: str) -> list[dict]:
     """The run's events of one ``kind`` as the journal's readers take them (kind, message, data)."""
-    import json
-
     rows = conn.execute(select(events.c.kind, events.c.message, events.c.data)
                         .where(events.c.run_id == run_id, events.c.kind == kind).order_by(events.c.id))
     return [{"kind": r.kind, "message": r.message, "data": json.loads(r.data) if r.data else None}

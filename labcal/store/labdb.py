@@ -37,10 +37,21 @@ from typing import TYPE_CHECKING
 from labcal.config.files import size_text
 from labcal.config.lab import DRIVER_HINT, ServerDatabase, database_location, load_lab_config
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
+from labcal.store import migrations
 from labcal.store.migrations import HEAD
 
 if TYPE_CHECKING:
+    import sqlalchemy
+    from sqlalchemy import event, pool
+    from sqlalchemy import exc as sqlalchemy_exc
     from sqlalchemy.engine import Connection, Engine
+else:
+    event = lazy("sqlalchemy.event")  # start-up without sqlalchemy
+    pool = lazy("sqlalchemy.pool")  # start-up without sqlalchemy
+    sqlalchemy = lazy("sqlalchemy")  # start-up without sqlalchemy
+    sqlalchemy_exc = lazy("sqlalchemy.exc")  # start-up without sqlalchemy
+
 
 def lab_database(option: str | Path | None = None) -> Path | ServerDatabase:
     """The lab database: --db, else $LABCAL_DB, else the lab file's, else the user's data folder
@@ -299,10 +310,9 @@ def _sqlite_engine(path: Path) -> Engine:
     """A SQLAlchemy engine on the file whose transactions are SQLite's own, begun with BEGIN
     IMMEDIATE (the write lock at once), so that DDL is inside them and a failure rolls all back
     (SQLAlchemy's recipe for pysqlite: the driver's own transaction handling is switched off)."""
-    from sqlalchemy import create_engine, event
-    from sqlalchemy.pool import NullPool
-
-    engine = create_engine(f"sqlite:///{path}", poolclass=NullPool, connect_args={"timeout": 10.0})
+    engine = sqlalchemy.create_engine(
+        f"sqlite:///{path}", poolclass=pool.NullPool, connect_args={"timeout": 10.0}
+    )
 
     @event.listens_for(engine, "connect")
     def _autocommit_driver(dbapi_connection: sqlite3.Connection, _record: object) -> None:
@@ -318,8 +328,6 @@ def _sqlite_engine(path: Path) -> Engine:
 def _steps(connection: Connection, found: Revision) -> None:
     """From ``found`` to the newest revision, inside the caller's transaction: a pre-Alembic file
     completed (version 0) and stamped at its version first."""
-    from labcal.store import migrations
-
     if found.legacy:
         if found.revision == "0000":
             for statement in BASELINE:
@@ -330,8 +338,6 @@ def _steps(connection: Connection, found: Revision) -> None:
 
 def _upgrade_sqlite(path: Path) -> Upgraded:
     """Bring the file to the newest revision under its write lock."""
-    from sqlalchemy.exc import SQLAlchemyError
-
     engine = _sqlite_engine(path)
     found = Revision(None)
     backup = None
@@ -350,7 +356,7 @@ def _upgrade_sqlite(path: Path) -> Upgraded:
                     _backup(path, backup)
                 _steps(connection, found)
                 connection.exec_driver_sql(f"PRAGMA user_version = {ALEMBIC_USER_VERSION}")
-    except (SQLAlchemyError, sqlite3.Error) as exc:
+    except (sqlalchemy_exc.SQLAlchemyError, sqlite3.Error) as exc:
         original = getattr(exc, "orig", None) or exc
         if isinstance(original, sqlite3.Error) and found.revision is None:
             raise failure(path, original) from None
@@ -439,33 +445,30 @@ def unreachable(server: ServerDatabase, exc: BaseException) -> Unreachable:
 
 
 def _server_revision(connection: Connection) -> Revision:
-    from sqlalchemy import inspect, text
-
-    names = set(inspect(connection).get_table_names())
+    names = set(sqlalchemy.inspect(connection).get_table_names())
     if "alembic_version" in names:
-        row = connection.execute(text("SELECT version_num FROM alembic_version")).fetchone()
+        row = connection.execute(sqlalchemy.text("SELECT version_num FROM alembic_version")).fetchone()
         return Revision(row[0] if row else None)
     return Revision(None) if not names else Revision("unknown tables, no alembic_version")
 
 
 def _upgrade_server(server: ServerDatabase, create_only: bool = False) -> Upgraded:
-    from sqlalchemy import text
-    from sqlalchemy.exc import SQLAlchemyError
-
     engine = server_engine(server)
     try:
         with engine.begin() as connection:
-            connection.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": PG_LOCK})
+            connection.execute(sqlalchemy.text("SELECT pg_advisory_xact_lock(:key)"), {"key": PG_LOCK})
             found = _server_revision(connection)
             if found.ahead:
                 raise refusal(server, found, "")
             if found.revision == HEAD or (create_only and found.revision is not None):
                 return Upgraded(found, found.revision or HEAD, None)
             _steps(connection, found)
-    except SQLAlchemyError as exc:
-        from sqlalchemy.exc import DBAPIError
-
-        if isinstance(exc, DBAPIError) and exc.connection_invalidated or _is_connection_error(exc):
+    except sqlalchemy_exc.SQLAlchemyError as exc:
+        if (
+            isinstance(exc, sqlalchemy_exc.DBAPIError)
+            and exc.connection_invalidated
+            or _is_connection_error(exc)
+        ):
             raise unreachable(server, exc) from None
         raise LabcalError(f"{server}: cannot upgrade the lab database to {HEAD} ({_first_line(exc)}); "
                           "nothing was changed") from None
@@ -475,9 +478,7 @@ def _upgrade_server(server: ServerDatabase, create_only: bool = False) -> Upgrad
 
 
 def _is_connection_error(exc: BaseException) -> bool:
-    from sqlalchemy.exc import OperationalError
-
-    return isinstance(exc, OperationalError)
+    return isinstance(exc, sqlalchemy_exc.OperationalError)
 
 
 def upgrade(where: Path | ServerDatabase) -> Upgraded:
@@ -520,9 +521,7 @@ def lab_engine(db: str | Path | None = None) -> Engine:
     where = lab_database(db)
     if isinstance(where, Path):
         connect(where).close()  # created if new, refused if behind or ahead
-        from sqlalchemy import create_engine
-
-        return create_engine(f"sqlite:///{where}", connect_args={"timeout": 10.0})
+        return sqlalchemy.create_engine(f"sqlite:///{where}", connect_args={"timeout": 10.0})
     return open_server(where)
 
 

@@ -19,8 +19,9 @@ Every query is SQLAlchemy Core over `labcal.store.schema`'s tables, on either ba
 from __future__ import annotations
 
 import json
+import sqlite3
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -28,11 +29,22 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 from labcal.config.lab import ServerDatabase
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.store import labdb
+from labcal.store.journal import db_path
 from labcal.store.labdb import lab_database
+from labcal.store.sync import target_of
 
 if TYPE_CHECKING:
+    import sqlalchemy
+    from sqlalchemy import pool
     from sqlalchemy.engine import Connection, Engine
+
+    from labcal.store import schema
+else:
+    pool = lazy("sqlalchemy.pool")  # start-up without sqlalchemy
+    schema = lazy("labcal.store.schema")  # start-up without sqlalchemy
+    sqlalchemy = lazy("sqlalchemy")  # start-up without sqlalchemy
 
 T = TypeVar("T")
 PROVISIONAL = 8  # hex digits of a run's uuid in its provisional label
@@ -72,11 +84,10 @@ def _age(utc: str | None) -> str:
 
 
 def _sqlite_engine(path: Path) -> Engine:
-    from sqlalchemy import create_engine
-    from sqlalchemy.pool import NullPool
-
     labdb.connect(path).close()  # at this labcal's schema (refused in one line if behind or ahead)
-    return create_engine(f"sqlite:///{path}", poolclass=NullPool, connect_args={"timeout": 10.0})
+    return sqlalchemy.create_engine(
+        f"sqlite:///{path}", poolclass=pool.NullPool, connect_args={"timeout": 10.0}
+    )
 
 
 @contextmanager
@@ -93,9 +104,6 @@ def _sqlite(path: Path) -> Iterator[Connection]:
 def reading(db: str | Path | None, *, must_exist: bool = True) -> Iterator[tuple[Connection | None, Source]]:
     """A connection to the lab database for reads, and where it is. On a server that cannot be
     reached: this bench's journal instead (None when it has none), with the line saying so."""
-    from labcal.store.journal import db_path
-    from labcal.store.sync import target_of
-
     where = lab_database(db)
     if isinstance(where, Path):
         if not where.is_file():
@@ -128,11 +136,9 @@ def reading(db: str | Path | None, *, must_exist: bool = True) -> Iterator[tuple
 
 
 def _synced(conn: Connection, target: str) -> str | None:
-    from sqlalchemy import select
-
-    from labcal.store.schema import sync_targets
-
-    return conn.execute(select(sync_targets.c.synced_utc).where(sync_targets.c.target == target)).scalar()
+    return conn.execute(
+        sqlalchemy.select(schema.sync_targets.c.synced_utc).where(schema.sync_targets.c.target == target)
+    ).scalar()
 
 
 def from_lab(db: str | Path | None, read: Callable[[Connection], T], empty: T) -> tuple[T, Source]:
@@ -171,39 +177,44 @@ class LabRun:
 
 def _run_query() -> Any:
     """Every run with its points counted (measured, and journaled in all), in the lab's order."""
-    from sqlalchemy import case, func, select
-
-    from labcal.store.schema import points, runs
-
-    ok = func.sum(case((points.c.status == "ok", 1), else_=0))
-    counts = (select(points.c.run_id, func.count().label("done"), ok.label("ok"))
-              .group_by(points.c.run_id).subquery())
-    return (select(runs.c.id, runs.c.uuid, runs.c.station, runs.c.instrument_serial, runs.c.plan_name,
-                   runs.c.status, runs.c.reason, runs.c.started_utc, runs.c.ended_utc,
-                   func.coalesce(counts.c.ok, 0).label("ok"), func.coalesce(counts.c.done, 0).label("done"),
-                   runs.c.operator, runs.c.run_dir, runs.c.metadata)
-            .outerjoin(counts, counts.c.run_id == runs.c.id).order_by(runs.c.id))
+    ok = sqlalchemy.func.sum(sqlalchemy.case((schema.points.c.status == "ok", 1), else_=0))
+    counts = (sqlalchemy.select(schema.points.c.run_id, sqlalchemy.func.count().label("done"), ok.label("ok"))
+              .group_by(schema.points.c.run_id).subquery())
+    return (
+        sqlalchemy.select(
+            schema.runs.c.id,
+            schema.runs.c.uuid,
+            schema.runs.c.station,
+            schema.runs.c.instrument_serial,
+            schema.runs.c.plan_name,
+            schema.runs.c.status,
+            schema.runs.c.reason,
+            schema.runs.c.started_utc,
+            schema.runs.c.ended_utc,
+            sqlalchemy.func.coalesce(counts.c.ok, 0).label("ok"),
+            sqlalchemy.func.coalesce(counts.c.done, 0).label("done"),
+            schema.runs.c.operator,
+            schema.runs.c.run_dir,
+            schema.runs.c.metadata,
+        )
+        .outerjoin(counts, counts.c.run_id == schema.runs.c.id)
+        .order_by(schema.runs.c.id)
+    )
 
 
 def _run_rows(conn: Connection, serial: str | None, statuses: tuple[str, ...]) -> list[Any]:
-    from labcal.store.schema import runs
-
     query = _run_query()
     if serial is not None:
-        query = query.where(runs.c.instrument_serial == serial)
+        query = query.where(schema.runs.c.instrument_serial == serial)
     if statuses:
-        query = query.where(runs.c.status.in_(statuses))
+        query = query.where(schema.runs.c.status.in_(statuses))
     return list(conn.execute(query))
 
 
 def _numbers(conn: Connection, target: str) -> dict[int, int]:
     """This journal's runs as the lab numbered them: {journal row id: lab number}."""
-    from sqlalchemy import select
-
-    from labcal.store.schema import sync_runs
-
-    return dict(conn.execute(select(sync_runs.c.run_id, sync_runs.c.lab_run_id)
-                             .where(sync_runs.c.target == target)).all())
+    return dict(conn.execute(sqlalchemy.select(schema.sync_runs.c.run_id, schema.sync_runs.c.lab_run_id)
+                             .where(schema.sync_runs.c.target == target)).all())
 
 
 def _lab_run(row: Any, number: int | None, local_id: int | None) -> LabRun:
@@ -257,12 +268,17 @@ class RunEvents:
 
 
 def _events(conn: Connection, run_id: int) -> list[dict]:
-    from sqlalchemy import select
-
-    from labcal.store.schema import events
-
-    rows = conn.execute(select(events.c.utc, events.c.station_time, events.c.kind, events.c.message,
-                               events.c.data).where(events.c.run_id == run_id).order_by(events.c.id))
+    rows = conn.execute(
+        sqlalchemy.select(
+            schema.events.c.utc,
+            schema.events.c.station_time,
+            schema.events.c.kind,
+            schema.events.c.message,
+            schema.events.c.data,
+        )
+        .where(schema.events.c.run_id == run_id)
+        .order_by(schema.events.c.id)
+    )
     return [{"utc": u, "station_time": t, "kind": k, "message": m, "data": json.loads(d) if d else None}
             for u, t, k, m, d in rows]
 
@@ -271,17 +287,20 @@ def run_events(db: str | Path | None, number: int | None = None, uuid: str | Non
                ) -> tuple[RunEvents, Source]:
     """One run and its journaled events, by its lab number or (a run not numbered yet, or named by
     its folder) its uuid; one line when the lab holds no such run."""
-    from labcal.store.schema import runs
-
     with reading(db) as (conn, source):
         assert conn is not None  # reading(must_exist=True) raises instead
         if source.target is not None and source.stale is not None:  # the journal, for the lab
             numbers = _numbers(conn, source.target)
             mine = {lab: own for own, lab in numbers.items()}.get(number) if number is not None else None
-            row = _one(conn, runs.c.id == mine if number is not None else runs.c.uuid.like(f"{uuid}%"))
+            row = _one(
+                conn, schema.runs.c.id == mine if number is not None else schema.runs.c.uuid.like(f"{uuid}%")
+            )
             found = None if row is None else _lab_run(row, numbers.get(row.id), row.id)
         else:
-            row = _one(conn, runs.c.id == number if number is not None else runs.c.uuid.like(f"{uuid}%"))
+            row = _one(
+                conn,
+                schema.runs.c.id == number if number is not None else schema.runs.c.uuid.like(f"{uuid}%"),
+            )
             found = None if row is None else _lab_run(row, row.id, row.id if source.target is None else None)
         if found is None and uuid and source.journal is not None and source.target is not None:
             return _journal_run(source, uuid)  # a run of this bench the lab has not seen yet
@@ -292,13 +311,11 @@ def run_events(db: str | Path | None, number: int | None = None, uuid: str | Non
 
 
 def _journal_run(source: Source, uuid: str) -> tuple[RunEvents, Source]:
-    from labcal.store.schema import runs
-
     assert source.journal is not None
     engine = _sqlite_engine(source.journal)
     try:
         with engine.connect() as conn:
-            row = _one(conn, runs.c.uuid.like(f"{uuid}%"))
+            row = _one(conn, schema.runs.c.uuid.like(f"{uuid}%"))
             if row is None:
                 raise LabcalError(f"{source.shown}: no run {uuid} there nor in {source.journal}; labcal runs "
                                   "lists them")
@@ -318,11 +335,6 @@ def lab_number_of(journal: Path, run_id: int, db: str | Path | None = None) -> s
     """The label of this bench's run ``run_id`` as the lab knows it (a notification, a log line):
     its lab number where the journal has heard it, else its provisional label; on a SQLite lab
     database its own id."""
-    import sqlite3
-    from contextlib import closing
-
-    from labcal.store.sync import target_of
-
     where = lab_database(db)
     try:
         with closing(sqlite3.connect(f"file:{journal}?mode=ro", uri=True, timeout=5.0)) as conn:
@@ -354,12 +366,10 @@ def records(db: str | Path | None, table: str, columns: tuple[str, ...], where: 
             order: tuple[str, ...] = (), *, must_exist: bool = True) -> Rows:
     """``columns`` of ``table``'s rows whose columns equal ``where``'s values, ordered by ``order``.
     A SQLite lab database that does not exist raises (``must_exist``) or holds no rows."""
-    from sqlalchemy import select
-
-    from labcal.store.schema import METADATA
-
-    t = METADATA.tables[table]
-    query = select(*(t.c[c] for c in columns)).where(*(t.c[k] == v for k, v in (where or {}).items()))
+    t = schema.METADATA.tables[table]
+    query = sqlalchemy.select(*(t.c[c] for c in columns)).where(
+        *(t.c[k] == v for k, v in (where or {}).items())
+    )
     query = query.order_by(*(t.c[c] for c in order))
     with reading(db, must_exist=must_exist) as (conn, source):
         return Rows([] if conn is None else [tuple(r) for r in conn.execute(query)], source, conn is not None)
@@ -367,15 +377,14 @@ def records(db: str | Path | None, table: str, columns: tuple[str, ...], where: 
 
 def distinct(db: str | Path | None, table: str, column: str) -> list[str]:
     """Every value of ``column`` in ``table``, sorted (what a refusal names as known)."""
-    from sqlalchemy import select
-
-    from labcal.store.schema import METADATA
-
-    t = METADATA.tables[table]
+    t = schema.METADATA.tables[table]
     with reading(db, must_exist=False) as (conn, _):
         if conn is None:
             return []
-        return [str(v) for v in conn.execute(select(t.c[column]).distinct().order_by(t.c[column])).scalars()]
+        return [
+            str(v)
+            for v in conn.execute(sqlalchemy.select(t.c[column]).distinct().order_by(t.c[column])).scalars()
+        ]
 
 
 def journal_run(db: str | Path | None, number: int) -> int:
@@ -383,25 +392,22 @@ def journal_run(db: str | Path | None, number: int) -> int:
     folder are this bench's to export and report). On a SQLite lab database the number is the row;
     on a server the journal's ``sync_runs`` says which, and a run of another bench is one line
     naming that bench."""
-    from sqlalchemy import select
-
-    from labcal.store.journal import db_path
-    from labcal.store.schema import runs, sync_runs
-    from labcal.store.sync import target_of
-
     where = lab_database(db)
     if isinstance(where, Path):
         return number
     journal = db_path(db)
     if journal.is_file():
         with _sqlite(journal) as conn:
-            found = conn.execute(select(sync_runs.c.run_id).where(sync_runs.c.target == target_of(where),
-                                                                  sync_runs.c.lab_run_id == number)).scalar()
+            found = conn.execute(
+                sqlalchemy.select(schema.sync_runs.c.run_id).where(
+                    schema.sync_runs.c.target == target_of(where), schema.sync_runs.c.lab_run_id == number
+                )
+            ).scalar()
         if found is not None:
             return int(found)
     with reading(db, must_exist=False) as (conn, source):
         station = None if conn is None or source.stale else \
-            conn.execute(select(runs.c.station).where(runs.c.id == number)).first()
+            conn.execute(sqlalchemy.select(schema.runs.c.station).where(schema.runs.c.id == number)).first()
     if station is not None:
         raise LabcalError(f"run {number} was measured at {station[0] or 'another bench'}: its folder is that "
                           "bench's (run the command there)")

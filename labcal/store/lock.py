@@ -14,6 +14,7 @@ without closing it (`held_by` tells the two apart).
 from __future__ import annotations
 
 import fcntl
+import hashlib
 import json
 import os
 import socket
@@ -199,8 +200,6 @@ class StationLock:
         self._fds: dict[Path, int] = {}
 
     def acquire(self) -> StationLock:
-        import hashlib
-
         try:
             for folder in self.folders:
                 try:

@@ -28,15 +28,25 @@ import hashlib
 import hmac
 import os
 import re
+import secrets
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from labcal.config.lab import ServerDatabase
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
+from labcal.store import labdb
 
 if TYPE_CHECKING:
+    import sqlalchemy
+    from sqlalchemy import engine as sqlalchemy_engine
+    from sqlalchemy import exc as sqlalchemy_exc
     from sqlalchemy.engine import Connection
+else:
+    sqlalchemy = lazy("sqlalchemy")  # start-up without sqlalchemy
+    sqlalchemy_engine = lazy("sqlalchemy.engine")  # start-up without sqlalchemy
+    sqlalchemy_exc = lazy("sqlalchemy.exc")  # start-up without sqlalchemy
 
 BENCH = "labcal_bench"
 SERVER = "labcal_server"
@@ -91,9 +101,7 @@ POLICIES: tuple[tuple[str, str, str], ...] = (  # (table, name, definition after
 
 
 def _tables(connection: Connection) -> set[str]:
-    from sqlalchemy import inspect
-
-    return set(inspect(connection).get_table_names())
+    return set(sqlalchemy.inspect(connection).get_table_names())
 
 
 def grants(tables: set[str]) -> list[str]:
@@ -137,11 +145,9 @@ def create_role(name: str, attributes: str) -> str:
 def setup(connection: Connection) -> None:
     """The group roles, their grants and the row-level security policies, as this module's docstring
     says (idempotent: run by every `labcal db upgrade` on a server, inside its transaction)."""
-    from sqlalchemy import text
-
     for group in (BENCH, SERVER):
         connection.exec_driver_sql(create_role(group, "NOLOGIN"))
-    database = connection.execute(text("SELECT current_database()")).scalar_one()
+    database = connection.execute(sqlalchemy.text("SELECT current_database()")).scalar_one()
     connection.exec_driver_sql(f'GRANT CONNECT ON DATABASE "{database}" TO {BENCH}, {SERVER}')
     for statement in grants(_tables(connection)):
         connection.exec_driver_sql(statement)
@@ -151,17 +157,12 @@ def set_up(server: ServerDatabase) -> str:
     """`setup` on the lab's server, under the lock its schema is upgraded under (`labcal db upgrade`,
     once the schema is current), in one line: set up, or why not (a user who may upgrade the schema
     but not create roles is told what is left undone, and nothing of it is done)."""
-    from sqlalchemy import text
-    from sqlalchemy.exc import DBAPIError
-
-    from labcal.store import labdb
-
     engine = labdb.server_engine(server)
     try:
         with engine.begin() as connection:
-            connection.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": labdb.PG_LOCK})
+            connection.execute(sqlalchemy.text("SELECT pg_advisory_xact_lock(:key)"), {"key": labdb.PG_LOCK})
             setup(connection)
-    except DBAPIError as exc:
+    except sqlalchemy_exc.DBAPIError as exc:
         if exc.connection_invalidated or labdb._is_connection_error(exc):
             raise labdb.unreachable(server, exc) from None
         return (f"the roles {BENCH} and {SERVER} and their policies are not set up "
@@ -203,9 +204,7 @@ def bench_url(admin: ServerDatabase, role: str) -> str:
 
 def pgpass_line(admin: ServerDatabase, role: str, password: str) -> str:
     """The bench's password as libpq's password file holds it (PGPASSFILE): host:port:db:user:password."""
-    from sqlalchemy.engine import make_url
-
-    url = make_url(admin.sqlalchemy_url)
+    url = sqlalchemy_engine.make_url(admin.sqlalchemy_url)
     escape = lambda value: str(value).replace("\\", "\\\\").replace(":", "\\:")  # noqa: E731
     return ":".join(escape(v) for v in (url.host or "localhost", url.port or 5432, url.database or "*",
                                         role, password)) + "\n"
@@ -251,13 +250,6 @@ def grant_server(admin: ServerDatabase, name: str, password: str | None = None,
 
 def _grant(admin: ServerDatabase, name: str, group: str, role: str, password: str | None,
            password_file: Path | None) -> Granted:
-    import secrets
-
-    from sqlalchemy import text
-    from sqlalchemy.exc import SQLAlchemyError
-
-    from labcal.store import labdb
-
     if password_file is not None and password is None:
         password = secrets.token_urlsafe(24)
         if password_file.exists():
@@ -270,7 +262,7 @@ def _grant(admin: ServerDatabase, name: str, group: str, role: str, password: st
     engine = labdb.server_engine(admin)
     try:
         with engine.begin() as connection:
-            other = connection.execute(text("SELECT station FROM station_roles WHERE role = :r"),
+            other = connection.execute(sqlalchemy.text("SELECT station FROM station_roles WHERE role = :r"),
                                        {"r": role}).scalar_one_or_none()
             if other is not None and other != name:
                 raise LabcalError(f"{name!r}: its role {role} already belongs to the station {other!r}; "
@@ -282,13 +274,19 @@ def _grant(admin: ServerDatabase, name: str, group: str, role: str, password: st
             if password is not None:  # the verifier is base64 with $ and :, never a quote
                 connection.exec_driver_sql(f"ALTER ROLE {role} PASSWORD '{scram_verifier(password)}'")
             if group == BENCH:
-                connection.execute(text("INSERT INTO station_roles (role, station) VALUES (:r, :s) "
-                                        "ON CONFLICT (role) DO UPDATE SET station = excluded.station"),
-                                   {"r": role, "s": name})
-    except SQLAlchemyError as exc:
-        raise LabcalError(f"{admin}: cannot grant {name!r} a role "
-                          f"({labdb._first_line(getattr(exc, 'orig', None) or exc)}); run this as the lab "
-                          "database's administrator (its owner, allowed to create roles)") from None
+                connection.execute(
+                    sqlalchemy.text(
+                        "INSERT INTO station_roles (role, station) VALUES (:r, :s) "
+                        "ON CONFLICT (role) DO UPDATE SET station = excluded.station"
+                    ),
+                    {"r": role, "s": name},
+                )
+    except sqlalchemy_exc.SQLAlchemyError as exc:
+        raise LabcalError(
+            f"{admin}: cannot grant {name!r} a role "
+            f"({labdb._first_line(getattr(exc, 'orig', None) or exc)}); run this as the lab "
+            "database's administrator (its owner, allowed to create roles)"
+        ) from None
     finally:
         engine.dispose()
     if password_file is not None and password is not None:

@@ -35,12 +35,28 @@ from typing import TYPE_CHECKING, Any
 
 from labcal.config.lab import ServerDatabase, load_lab_config
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.store import labdb
+from labcal.store.chain import append_audit
+from labcal.store.journal import Journal, db_path, utc_now
 from labcal.store.labdb import lab_database
 from labcal.store.roles import BENCH_CLOSES_RUNS
 
 if TYPE_CHECKING:
+    import sqlalchemy
+    from sqlalchemy import exc as sqlalchemy_exc
+    from sqlalchemy.dialects import postgresql
     from sqlalchemy.engine import Connection, Engine
+
+    from labcal.store import lab_certificates, schema
+else:
+    lab_certificates = lazy("labcal.store.lab_certificates")  # start-up without scipy, numpy, pydantic, …
+    # SQLAlchemy's tables only here, where a server is written: a run on a SQLite lab database (the journal
+    # itself) imports neither them nor SQLAlchemy
+    postgresql = lazy("sqlalchemy.dialects.postgresql")
+    schema = lazy("labcal.store.schema")  # start-up without sqlalchemy
+    sqlalchemy = lazy("sqlalchemy")  # start-up without sqlalchemy
+    sqlalchemy_exc = lazy("sqlalchemy.exc")  # start-up without sqlalchemy
 
 EVENT_COLUMNS = ("utc", "station_time", "kind", "message", "data", "link", "digest")
 BATCH = 500  # rows per statement: a catch-up after a long outage goes in bounded transactions
@@ -82,9 +98,7 @@ def _text_of(values: tuple | list) -> str:
 
 def and_all(table: Any, columns: tuple[str, ...], values: list[str]) -> Any:
     """The SQL condition that a row's ``columns`` equal ``values`` (a key split at `UNIT`)."""
-    from sqlalchemy import and_
-
-    return and_(*(table.c[c] == v for c, v in zip(columns, values, strict=True)))
+    return sqlalchemy.and_(*(table.c[c] == v for c, v in zip(columns, values, strict=True)))
 
 
 def _joined(columns: tuple[str, ...]) -> str:
@@ -161,8 +175,6 @@ class Sender:
                          passed: frozenset[str] = frozenset()) -> list[tuple]:
         """A record table's rows whose state this lab database has not committed, but for the keys
         ``passed`` over (refused earlier in this push): (key, state, row)."""
-        from labcal.store import schema
-
         columns = [c.name for c in schema.METADATA.tables[record.table].columns if c.name != "id"]
         key, state = _joined(record.key), _joined(record.state)
         rows = db.execute(
@@ -225,33 +237,28 @@ class Sender:
     def _pull_approved(self, db: sqlite3.Connection, server: Connection) -> int:
         """The files of certificates the lab server approved (`labcal.store.lab_certificates`) written
         into the folders of this bench's runs; how many files were written."""
-        from sqlalchemy import select
-
-        from labcal.store.lab_certificates import files_of, write_files
-        from labcal.store.schema import certificate_files
-
-        approved = set(server.execute(select(certificate_files.c.run_uuid).distinct()).scalars())
+        approved = set(
+            server.execute(sqlalchemy.select(schema.certificate_files.c.run_uuid).distinct()).scalars()
+        )
         written = 0
         for uuid, run_dir in db.execute("SELECT uuid, run_dir FROM runs WHERE status = 'complete'"):
             if uuid in approved and Path(run_dir).is_dir():
-                written += len(write_files(Path(run_dir), files_of(server, uuid)))
+                written += len(
+                    lab_certificates.write_files(Path(run_dir), lab_certificates.files_of(server, uuid))
+                )
         return written
 
     def _pull_record(self, db: sqlite3.Connection, server: Connection, record: Record) -> int:
-        from sqlalchemy import or_, select
-
-        from labcal.store import schema
-
         table = schema.METADATA.tables[record.table]
         n = len(record.key)
         lab = {_text_of(row[:n]): _text_of(row[n:])
-               for row in server.execute(select(*(table.c[c] for c in record.key + record.state)))}
+               for row in server.execute(sqlalchemy.select(*(table.c[c] for c in record.key + record.state)))}
         wanted = list(self._taken(db, record, lab))
         columns = [c.name for c in table.columns if c.name != "id"]
         rows: list[tuple] = []
         for part in range(0, len(wanted), BATCH):
             match = [and_all(table, record.key, k.split(UNIT)) for k in wanted[part:part + BATCH]]
-            query = select(*(table.c[c] for c in columns)).where(or_(*match))
+            query = sqlalchemy.select(*(table.c[c] for c in columns)).where(sqlalchemy.or_(*match))
             rows += [tuple(r) for r in server.execute(query)]
         if not rows:
             return 0
@@ -285,12 +292,6 @@ class Sender:
         return {k for k, v in lab.items() if k not in mine or (mine[k] == sent.get(k) and mine[k] != v)}
 
     def _push_once(self, db: sqlite3.Connection, passed: dict[str, set[str]]) -> Sent:
-        # SQLAlchemy's tables only here, where a server is written: a run on a SQLite lab database
-        # (the journal itself) imports neither them nor SQLAlchemy
-        from sqlalchemy.dialects.postgresql import insert
-
-        from labcal.store import schema
-
         point_columns = tuple(c.name for c in schema.points.columns if c.name != "run_id")
         run_columns = tuple(c.name for c in schema.runs.columns if c.name not in ("id", "station"))
 
@@ -315,11 +316,11 @@ class Sender:
             sent.offered["runs"] = len(run_rows)
             moved_points, sent.offered["points"], sent.stored["points"] = self._send_rows(
                 server, db, "points", "rowid", marks.get("points", 0), point_columns, lab_ids,
-                lambda rows: insert(schema.points).values(rows).on_conflict_do_nothing(
+                lambda rows: postgresql.insert(schema.points).values(rows).on_conflict_do_nothing(
                     index_elements=["run_id", "seq"]))
             moved_events, sent.offered["events"], sent.stored["events"] = self._send_rows(
                 server, db, "events", "id", marks.get("events", 0), EVENT_COLUMNS, lab_ids,
-                lambda rows: insert(schema.events).values(rows).on_conflict_do_nothing(
+                lambda rows: postgresql.insert(schema.events).values(rows).on_conflict_do_nothing(
                     index_elements=["run_id", "origin_id"]), origin=True)
             records = []
             for record in RECORDS:
@@ -387,8 +388,6 @@ class Sender:
         digest it has in the journal (``origin``, unique: a row sent again is not appended again):
         (the new cursor or None, offered, appended). A role that may not write the audit trail (a
         bench's: it may not change the approvers either) has them passed over, once per push."""
-        from labcal.store.chain import append_audit
-
         rows = [] if passed else db.execute(
             "SELECT id, utc, kind, account, actor, client, detail, digest FROM audit WHERE id > ? "
             "ORDER BY id LIMIT ?", (after, BATCH)).fetchall()
@@ -448,25 +447,27 @@ def lab_number(server: Connection, values: dict) -> tuple[int, bool]:
     sending transaction commits, so the lab's runs are numbered 1, 2, 3 … in the order they reached
     it, without a gap (a database sequence would leave one at every rolled-back or conflicting insert).
     Returns the number, and whether the run is new to the lab."""
-    from sqlalchemy import func, select, text, update
-
-    from labcal.store.schema import runs
-
     def known() -> int | None:
-        return server.execute(select(runs.c.id).where(runs.c.uuid == values["uuid"])).scalar()
+        return server.execute(
+            sqlalchemy.select(schema.runs.c.id).where(schema.runs.c.uuid == values["uuid"])
+        ).scalar()
 
     status = {name: values[name] for name in BENCH_CLOSES_RUNS}  # what a bench's role may update of its run
     number = known()
     if number is None:
-        server.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": RUN_NUMBER_LOCK})
+        server.execute(sqlalchemy.text("SELECT pg_advisory_xact_lock(:key)"), {"key": RUN_NUMBER_LOCK})
         number = known()  # sent meanwhile by another process of this bench (a run's sender, labcal sync)
     if number is not None:
-        server.execute(update(runs).where(runs.c.id == number).values(**status))
+        server.execute(sqlalchemy.update(schema.runs).where(schema.runs.c.id == number).values(**status))
         return number, False
-    number = int(server.execute(select(func.coalesce(func.max(runs.c.id), 0) + 1)).scalar_one())
-    server.execute(runs.insert().values(id=number, **values))
+    number = int(
+        server.execute(
+            sqlalchemy.select(sqlalchemy.func.coalesce(sqlalchemy.func.max(schema.runs.c.id), 0) + 1)
+        ).scalar_one()
+    )
+    server.execute(schema.runs.insert().values(id=number, **values))
     # the column's own sequence follows, so that nothing else inserting a run takes a number twice
-    server.execute(text("SELECT setval(pg_get_serial_sequence('runs', 'id'), :n)"), {"n": number})
+    server.execute(sqlalchemy.text("SELECT setval(pg_get_serial_sequence('runs', 'id'), :n)"), {"n": number})
     return number, True
 
 
@@ -477,13 +478,8 @@ def send_records(server: Connection, record: Record, rows: list[dict]) -> int:
     Returns how many rows the lab database changed."""
     if not rows:
         return 0
-    from sqlalchemy import update
-    from sqlalchemy.dialects.postgresql import insert
-
-    from labcal.store import schema
-
     table = schema.METADATA.tables[record.table]
-    statement = insert(table).values(rows)
+    statement = postgresql.insert(table).values(rows)
     if record.table == "approvers":
         # a name active twice (two benches registered two keys for it offline) is refused by the
         # lab's unique index: the first registration stands, as it would have on one database
@@ -491,21 +487,25 @@ def send_records(server: Connection, record: Record, rows: list[dict]) -> int:
         stored = _count(server.execute(kept), len(rows))
         for row in rows:
             if row["revoked_utc"] is not None:
-                stored += _count(server.execute(
-                    update(table).where(table.c.key_id == row["key_id"], table.c.revoked_utc.is_(None))
-                    .values(revoked_utc=row["revoked_utc"])), 1)
+                stored += _count(
+                    server.execute(
+                        sqlalchemy.update(table)
+                        .where(table.c.key_id == row["key_id"], table.c.revoked_utc.is_(None))
+                        .values(revoked_utc=row["revoked_utc"])
+                    ),
+                    1,
+                )
         return stored
     # a certificate whose digest differs, but never a draft over an approved one (the lab's record of
     # the approval, whichever role sends it); an estimate or a pool stored later than the lab's copy
     if record.table == "certificates":
-        from sqlalchemy import and_, or_
-        from sqlalchemy.dialects.postgresql import JSONB
-
         def approved(document: Any) -> Any:
-            return document.cast(JSONB)["approval"].is_not(None)
+            return document.cast(postgresql.JSONB)["approval"].is_not(None)
 
-        newer = and_(table.c.sha256 != statement.excluded.sha256,
-                     or_(~approved(table.c.document), approved(statement.excluded.document)))
+        newer = sqlalchemy.and_(
+            table.c.sha256 != statement.excluded.sha256,
+            sqlalchemy.or_(~approved(table.c.document), approved(statement.excluded.document)),
+        )
     else:
         newer = table.c[record.state[0]] < statement.excluded[record.state[0]]
     changed = {c.name: statement.excluded[c.name] for c in table.columns if c.name not in record.key}
@@ -528,10 +528,8 @@ def is_refusal(exc: BaseException) -> bool:
 
 def is_outage(exc: BaseException) -> bool:
     """A server that cannot be reached (or went away mid-transaction): retried, not fatal."""
-    from sqlalchemy.exc import DBAPIError, OperationalError
-
-    return isinstance(exc, OperationalError | labdb.Unreachable) or (
-        isinstance(exc, DBAPIError) and exc.connection_invalidated)
+    return isinstance(exc, sqlalchemy_exc.OperationalError | labdb.Unreachable) or (
+        isinstance(exc, sqlalchemy_exc.DBAPIError) and exc.connection_invalidated)
 
 
 class Background:
@@ -610,8 +608,6 @@ class Background:
 def _run_event(journal: Path) -> Callable[[str], None]:
     """A journal event on the newest running run (the one this process measures)."""
     def record(message: str) -> None:
-        from labcal.store.journal import Journal
-
         try:  # through the journal's writer: the event takes its place in the run's chain
             with Journal(journal) as writer:
                 row = writer.db.execute("SELECT max(id) FROM runs WHERE status='running'").fetchone()
@@ -627,8 +623,6 @@ def ready(db: str | Path | None) -> None:
     reached at this labcal's schema (created if empty). A server behind or ahead refuses the run
     in one line; one that cannot be reached does not (the run never waits for it): the run's
     sender says so, once."""
-    from labcal.store.journal import db_path
-
     labdb.connect(db_path(db)).close()
     check_server(db)
     receive(db)
@@ -638,8 +632,6 @@ def receive(db: str | Path | None) -> dict[str, int]:
     """The lab's records this bench lacks copied into its journal (`Sender.pull`): before a run, so
     that it starts from the lab's settle pool and device history. A server that cannot be reached is
     not waited for (the run starts from what the journal last had)."""
-    from labcal.store.journal import db_path
-
     where = lab_database(db)
     journal = db_path(db)
     if isinstance(where, Path) or not journal.is_file():
@@ -693,8 +685,6 @@ def send_now(db: str | Path | None) -> str | None:
     """What this bench has just recorded (an approver registered or revoked, a certificate approved)
     sent to the lab's server at once, so that every bench sees it now; None when sent (or when the
     lab database is the journal itself), else the one line saying it waits for ``labcal sync``."""
-    from labcal.store.journal import db_path
-
     where = lab_database(db)
     journal = db_path(db)
     if isinstance(where, Path) or not journal.is_file():
@@ -731,6 +721,4 @@ SENT = ("INSERT INTO sync_sent (target, name, key, state) VALUES (?,?,?,?) "
 
 
 def _utc() -> str:
-    from labcal.store.journal import utc_now
-
     return utc_now()

@@ -257,10 +257,10 @@ def test_an_smc100_power_cycled_mid_run_is_homed_after_one_r(tmp_path, capsys, n
     """The pitch SMC100 is switched off and on as its sixth move command (PA) reaches it, mid-run
     (that command is lost): it comes back NOT REFERENCED (0Ah) and refuses PA (error H). The
     trigger counts moves, which a plan fixes, not status requests, whose number depends on how
-    fast the machine polls: the 60th status request came after the last point on a busy machine. The run stops the tables
-    and pauses; the pause says the pitch table lost its reference and that resuming homes it. One
-    "r" (the answers' second line) homes it and the run completes with every point. Before, "r"
-    moved again, was refused, and the run paused for good."""
+    fast the machine polls: the 60th status request came after the last point on a busy machine.
+    The run stops the tables and pauses; the pause says the pitch table lost its reference and
+    that resuming homes it. One "r" (the answers' second line) homes it and the run completes with
+    every point. Before, "r" moved again, was refused, and the run paused for good."""
     cycle = faults('device = "pitch"\nkind = "power-cycle"\nmatch = "^1PA"\nafter = 5')
     station = private_file("smc100-serial", tmp_path, cycle, QUICK)
     answers = tmp_path / "answers.txt"
