@@ -288,6 +288,6 @@ def listed_metadata(text: str | None) -> RunMetadata:
 
 def json_schema() -> dict[str, Any]:
     """The published JSON Schema of a run's metadata (`SCHEMA_FILE`, written by
-    tools/run_metadata_schema.py)."""
+    tools/schemas.py)."""
     return {"$schema": "https://json-schema.org/draft/2020-12/schema",
             **RunMetadata.model_json_schema(mode="validation"), "title": "labcal run metadata"}

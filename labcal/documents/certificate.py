@@ -697,7 +697,7 @@ SCHEMA_FILE = "schemas/certificate.schema.json"  # in the repository, beside lab
 
 def json_schema() -> dict:
     """The JSON Schema (draft 2020-12) of certificate.json, generated from these models: published
-    in the repository as `SCHEMA_FILE` (`tools/certificate_schema.py` writes it; a test keeps it
+    in the repository as `SCHEMA_FILE` (`tools/schemas.py` writes it; a test keeps it
     equal to this), so that a customer's software validates a certificate without labcal. Checks
     that JSON Schema cannot state (a plan's SHA-256 of its text, the digest, array shapes) are
     labcal's own on reading."""

@@ -294,7 +294,7 @@ def json_schema() -> dict[str, Any]:
     """The published JSON Schema (draft 2020-12) of a run's events as a subscriber's or a stream
     client's JSON carries them (`RunEvent.model_dump_json`: a point without the journal's record and
     samples), one kind each, told apart by ``kind``: `SCHEMA_FILE`, written by
-    tools/run_events_schema.py, so that a program that follows a run reads its events without labcal."""
+    tools/schemas.py, so that a program that follows a run reads its events without labcal."""
     return {"$schema": "https://json-schema.org/draft/2020-12/schema",
             **EVENTS.json_schema(mode="serialization"), "title": "labcal run event"}
 

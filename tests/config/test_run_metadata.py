@@ -65,7 +65,7 @@ def fresh(tmp_path_factory) -> Path:
 
 
 def test_the_published_schema_is_the_one_the_model_generates():
-    """Edit the model and not the published file (tools/run_metadata_schema.py writes it): this fails."""
+    """Edit the model and not the published file (tools/schemas.py writes it): this fails."""
     assert json.loads((ROOT / SCHEMA_FILE).read_text(encoding="utf-8")) == json_schema()
 
 

@@ -61,7 +61,7 @@ def validator() -> jsonschema.Draft202012Validator:
 
 
 def test_the_published_schema_is_the_one_the_models_generate():
-    """Edit a model and not the published file (tools/certificate_schema.py writes it): this fails."""
+    """Edit a model and not the published file (tools/schemas.py writes it): this fails."""
     assert json.loads((ROOT / SCHEMA_FILE).read_text(encoding="utf-8")) == json_schema()
 
 

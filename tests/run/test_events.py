@@ -197,7 +197,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_the_published_event_schema_is_the_one_the_models_generate():
-    """Edit an event's model and not the published file (tools/run_events_schema.py writes it): this fails."""
+    """Edit an event's model and not the published file (tools/schemas.py writes it): this fails."""
     assert json.loads((ROOT / SCHEMA_FILE).read_text(encoding="utf-8")) == json_schema()
 
 
