@@ -24,6 +24,20 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     return min(2 * cores, 16)
 
 
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Longest first: CI's slow step (`pytest -m slow --dist loadgroup`) hands tests to its workers in
+    this order, and a three-minute test handed out last would run alone at the end while the other
+    workers idle. A test marked `slow(seconds=N)` (its time in that step on two cores) goes ahead of
+    the rest, longest first; the sort is stable, so everything else keeps pytest-randomly's order.
+    The ordinary suite deselects the slow tests before this runs: there it changes nothing."""
+    def expected_seconds(item: pytest.Item) -> float:
+        mark = item.get_closest_marker("slow")
+        return float(mark.kwargs.get("seconds", 0)) if mark is not None else 0.0
+
+    items.sort(key=expected_seconds, reverse=True)
+
+
 @pytest.fixture(scope="session", autouse=True)
 def neutral_folder(tmp_path_factory):
     """Module and session fixtures (which start before `lab_database` below) work in a folder of

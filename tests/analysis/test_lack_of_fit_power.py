@@ -18,7 +18,7 @@ def plan():
     return load_plan("four-mount-64")[0]
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=32)
 def test_a_clean_bench_stated_truly_is_flagged_in_at_most_one_calibration_in_a_hundred(plan):
     """500 calibrations: the test's nominal size is 1 %; a true rate of 1 % gives 5 ± 2.2 flags."""
     false_alarms, drifts = flagged(plan, with_effect("clean"), 500, first_seed=7000)

@@ -187,7 +187,7 @@ def test_a_corrected_plan_states_within_x_in_95_percent_of_runs():
     assert share >= 0.95
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=40)
 def test_the_chosen_plans_certificates_cover_new_readings_in_use_on_both_sides():
     """The plan the optimizer chooses for X = 1.5 × four-mount-64 (it identifies the device: no
     correction) is calibrated 600 times on the simulated bench with its realistic errors (noise per

@@ -211,7 +211,7 @@ def signalled_stop_latency(station: str, dead: str, delay_s: float, tmp_path) ->
         return arrivals[0] - signalled[0]
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=25)
 @pytest.mark.parametrize(("station", "dead", "seed"), [
     ("az-modbus-rtu", "pitch", 1), ("az-modbus-tcp", "roll", 2),
     ("smc100-serial", "roll", 3), ("smc100-serial", "pitch", 4),

@@ -22,7 +22,7 @@ from cli import LABCAL, bench_env
 from lab_server import add_user, served
 from simulated_runs import bench_run
 
-pytestmark = pytest.mark.slow  # two runs through the drivers and a server: about 40 s
+pytestmark = pytest.mark.slow(seconds=36)  # two runs through the drivers and a server
 
 
 def environment(tmp_path: Path, station: str, db: str) -> dict[str, str]:

@@ -27,7 +27,7 @@ from simulated_runs import bench_run
 
 SERIAL = "ACC-0042"
 FILES = {"certificate.json", "certificate.dcc.xml", "report.pdf", "report.html"}
-pytestmark = pytest.mark.slow  # a run through the drivers, a server, four syncs: about 40 s
+pytestmark = pytest.mark.slow(seconds=45)  # a run through the drivers, a server, four syncs
 
 
 def environment(tmp_path: Path, station: str, db: str) -> dict[str, str]:

@@ -32,7 +32,7 @@ from labcal.cli import main
 
 SERIAL = "ACC-0042"
 NAME, ROLE = "A. Metrologist", "Technical manager"
-pytestmark = pytest.mark.slow  # two dry runs, one through the drivers, a server: about 60 s
+pytestmark = pytest.mark.slow(seconds=90)  # two dry runs, one through the drivers, a server
 
 
 def environment(tmp_path: Path, station: str, db: str) -> dict[str, str]:

@@ -26,7 +26,7 @@ def readme_command(heading: str) -> str:
     return re.search(r"```sh\n(.+?)\n```", section, re.S).group(1).strip()
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=180)
 @pytest.mark.timeout(1200)
 def test_the_readme_commands_in_a_fresh_clone_at_a_long_path(tmp_path):
     if not (REPO / ".git").exists() or shutil.which("git") is None:

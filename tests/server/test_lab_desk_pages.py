@@ -32,7 +32,7 @@ from simulated_runs import bench_run
 
 from labcal.cli import main
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("desk_pages")]  # its runs built once, on one worker
 
 INTERVAL = 365
 DUE_IN = {"ACC-0103": 5, "ACC-0110": 12, "ACC-0117": 25}  # days until due: within 30 days

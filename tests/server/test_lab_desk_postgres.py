@@ -20,7 +20,8 @@ from simulated_runs import bench_run
 
 from labcal.cli import main
 
-pytestmark = pytest.mark.slow  # a run through the drivers, a sync and a server: about 30 s
+# A run through the drivers, a sync and a server (about 30 s), built once on one worker (loadgroup)
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("desk_postgres")]
 
 SERIAL = "ACC-0042"
 PASSWORD = "a long passphrase 1"

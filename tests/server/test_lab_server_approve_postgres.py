@@ -25,7 +25,9 @@ from cli import in_process as labcal
 from lab_server import accessible, add_user, parses_cleanly, served
 from simulated_runs import bench_run
 
-pytestmark = pytest.mark.slow  # four runs through the drivers and a server: about 40 s
+# Four runs through the drivers and a server (about 40 s), built once: the group keeps this module's
+# tests on one worker of the slow step (`--dist loadgroup`), which otherwise hands out test by test.
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("approve_postgres")]
 
 SERIAL = "ACC-0042"
 FILES = {"certificate.json", "certificate.dcc.xml", "report.pdf", "report.html"}

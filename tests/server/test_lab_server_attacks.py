@@ -136,7 +136,7 @@ def test_the_approval_forms_password_is_throttled_like_a_sign_in(lab):
 
 
 # --- bounded work for the unauthenticated -----------------------------------------------------------------
-@pytest.mark.slow
+@pytest.mark.slow(seconds=32)
 def test_ten_thousand_anonymous_requests_sign_nobody_out(lab):
     """10,000 GET /login (the review's 10,056 filled the 10,000-session table and signed everyone
     out): no session is opened for them, and the signed-in viewer stays signed in."""

@@ -25,7 +25,7 @@ from labcal.app.run_documents import write_run_outputs
 from labcal.cli import main
 
 # three bench runs through the drivers, each with its report, and three servers: about a minute on two cores
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("server_key")]  # built once, on one worker
 
 PASSWORD = {"ada": "ada's passphrase", "bob": "bob's passphrase", "tom": "tom's passphrase 3"}
 

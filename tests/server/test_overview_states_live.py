@@ -63,7 +63,7 @@ def _badge(page) -> str:
     return (page.text_content(f"{CARD} .badge") or "").strip()
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=33)
 def test_a_killed_bench_is_shown_not_heard_from_within_two_minutes(browser, tmp_path):
     db = str(tmp_path / "lab.sqlite")
     add_user(db, "ada", "approver", "ada's passphrase")
