@@ -4,36 +4,27 @@ verify a signature."""
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-from labcal.app.certificates import (
-    SERVER_ROLE,
-    AddApprover,
-    ApproveCertificate,
-    ListApprovers,
-    MakeKeys,
-    RevokeApprover,
-    VerifyCertificate,
-    add_approver,
-    approve_certificate,
-    list_approvers,
-    make_keys,
-    revoke_approver,
-    share_with_lab,
-    verify_certificate,
-)
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, err, out, print_json
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from labcal.app import certificates
+else:
+    certificates = lazy("labcal.app.certificates")  # not for --help: SQLAlchemy, scipy, matplotlib
 
 
 def _share(db: str | None) -> None:
     """Send what the command recorded to the lab's server now; one line on stderr when it cannot."""
-    unsent = share_with_lab(db)
+    unsent = certificates.share_with_lab(db)
     if unsent:
         err.print(unsent, markup=False)
 
 
 def cmd_keygen(args: argparse.Namespace) -> int:
-    keys = make_keys(MakeKeys(args.out))
+    keys = certificates.make_keys(certificates.MakeKeys(args.out))
     if args.json:
         print_json({"private_key": str(keys.private_key), "public_key": str(keys.public_key),
                     "key_id": keys.key_id})
@@ -45,8 +36,9 @@ def cmd_keygen(args: argparse.Namespace) -> int:
 
 
 def cmd_approve(args: argparse.Namespace) -> int:
-    approved = approve_certificate(ApproveCertificate(args.run_dir, args.by, args.role, args.key, args.db,
-                                                      args.station, unchained=args.unchained))
+    request = certificates.ApproveCertificate(args.run_dir, args.by, args.role, args.key, args.db,
+                                              args.station, unchained=args.unchained)
+    approved = certificates.approve_certificate(request)
     _share(args.db)
     if args.json:
         print_json(approved.to_json())
@@ -61,12 +53,12 @@ def cmd_approve(args: argparse.Namespace) -> int:
 
 
 def cmd_approvers_add(args: argparse.Namespace) -> int:
-    a = add_approver(AddApprover(args.name, args.role, args.public_key, args.db))
+    a = certificates.add_approver(certificates.AddApprover(args.name, args.role, args.public_key, args.db))
     _share(args.db)
     if args.json:
         print_json(a.to_json())
         return 0
-    if a.role == SERVER_ROLE:
+    if a.role == certificates.SERVER_ROLE:
         out.print(f"{a.name}: the lab server's key {a.key_id[:12]}… (`labcal serve --key`) signs for every "
                   "approver signed in to the server, and as nobody itself")
     else:
@@ -75,7 +67,7 @@ def cmd_approvers_add(args: argparse.Namespace) -> int:
 
 
 def cmd_approvers_list(args: argparse.Namespace) -> int:
-    found = list_approvers(ListApprovers(args.db)).approvers
+    found = certificates.list_approvers(certificates.ListApprovers(args.db)).approvers
     if args.json:
         print_json({"approvers": [a.to_json() for a in found]})
         return 0
@@ -89,7 +81,7 @@ def cmd_approvers_list(args: argparse.Namespace) -> int:
 
 
 def cmd_approvers_revoke(args: argparse.Namespace) -> int:
-    a = revoke_approver(RevokeApprover(args.name, args.db))
+    a = certificates.revoke_approver(certificates.RevokeApprover(args.name, args.db))
     _share(args.db)
     if args.json:
         print_json(a.to_json())
@@ -100,7 +92,8 @@ def cmd_approvers_revoke(args: argparse.Namespace) -> int:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    v = verify_certificate(VerifyCertificate(args.file, args.public_key, args.dcc, args.db))
+    v = certificates.verify_certificate(
+        certificates.VerifyCertificate(args.file, args.public_key, args.dcc, args.db))
     if args.json:
         print_json(v.to_json())
         return 0

@@ -106,6 +106,14 @@ def keep_freed_memory() -> None:
         mallopt(m_trim_threshold, 1 << 30)
 
 
+def format_duration(seconds: float) -> str:
+    """'1 h 02 min 03 s' or '25 min 04 s': a run's or a plan's length, as the estimate and the log say it."""
+    seconds = int(round(seconds))
+    h, rem = divmod(seconds, 3600)
+    m, s = divmod(rem, 60)
+    return f"{h} h {m:02d} min {s:02d} s" if h else f"{m} min {s:02d} s"
+
+
 def print_json(doc: dict) -> None:
     """One JSON document on stdout and nothing else (`--json`)."""
     sys.stdout.write(json.dumps(json_values.json_safe(doc), indent=2) + "\n")

@@ -42,13 +42,6 @@ else:
     checklist = lazy("labcal.bench.checklist")  # start-up without pydantic
 
 
-def format_duration(seconds: float) -> str:
-    seconds = int(round(seconds))
-    h, rem = divmod(seconds, 3600)
-    m, s = divmod(rem, 60)
-    return f"{h} h {m:02d} min {s:02d} s" if h else f"{m} min {s:02d} s"
-
-
 def clock(seconds: float) -> str:
     """'25:34' or '1:02:03': a duration in the fewest columns (the progress line must fit 80)."""
     seconds = int(round(max(seconds, 0.0)))

@@ -3,14 +3,20 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-from labcal.app.histories import DeviceHistory, device_history
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, err, print_history, print_json
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from labcal.app import histories
+else:
+    histories = lazy("labcal.app.histories")  # not for --help: SQLAlchemy, scipy, matplotlib
 
 
 def cmd_history(args: argparse.Namespace) -> int:
-    history = device_history(DeviceHistory(args.device_id, args.db, args.plot))
+    history = histories.device_history(histories.DeviceHistory(args.device_id, args.db, args.plot))
     if history.stale:
         err.print(history.stale, markup=False)
     if args.json:

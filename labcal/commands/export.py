@@ -3,15 +3,21 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-from labcal.app.folders import ExportRun, RebuildRunFolder, export_run, rebuild_run_folder
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, err, print_json
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from labcal.app import folders
+else:
+    folders = lazy("labcal.app.folders")  # SQLAlchemy and scipy: not for --help
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    result = (export_run(ExportRun(args.run, args.out, args.db)) if args.out
-              else rebuild_run_folder(RebuildRunFolder(args.run, args.db)))
+    result = (folders.export_run(folders.ExportRun(args.run, args.out, args.db)) if args.out
+              else folders.rebuild_run_folder(folders.RebuildRunFolder(args.run, args.db)))
     if args.json:
         print_json({"id": result.number, "label": result.label, "uuid": result.run_uuid,
                     "folder": str(result.folder), "status": result.status, "notes": list(result.notes),

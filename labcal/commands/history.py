@@ -3,14 +3,21 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-from labcal.app.histories import InstrumentHistory, instrument_history
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, err, out, print_history, print_json
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from labcal.app import histories
+else:
+    histories = lazy("labcal.app.histories")  # not for --help: SQLAlchemy, scipy, matplotlib
 
 
 def cmd_history(args: argparse.Namespace) -> int:
-    history = instrument_history(InstrumentHistory(args.serial, args.db, args.include_simulated, args.plot))
+    history = histories.instrument_history(
+        histories.InstrumentHistory(args.serial, args.db, args.include_simulated, args.plot))
     if history.stale:
         err.print(history.stale, markup=False)
     if args.json:

@@ -4,19 +4,24 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-from labcal.app import instruments
-from labcal.app.instruments import InstrumentFields
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, day_given, err, lab_of, out, print_json, register_write
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from labcal.app import instruments
+else:
+    instruments = lazy("labcal.app.instruments")  # not for --help: SQLAlchemy, scipy, matplotlib
 
 STATUSES = ("active", "retired", "out-for-repair")  # as labcal.app.instruments.STATUSES, for --help
 SIMULATED_HELP = "count dry runs' certificates as calibrations too (as labcal history --include-simulated)"
 
 
 def _fields(args: argparse.Namespace):
-    return InstrumentFields(args.model, args.manufacturer, args.customer, args.owner, args.location,
-                            args.interval, args.status, args.notes)
+    return instruments.InstrumentFields(args.model, args.manufacturer, args.customer, args.owner,
+                                        args.location, args.interval, args.status, args.notes)
 
 
 def _interval(days: int | None) -> str:

@@ -8,7 +8,6 @@ from typing import TYPE_CHECKING
 
 from rich.markup import escape
 
-from labcal.app.certificates import IssueCertificate, issue_certificate
 from labcal.commands import summary
 from labcal.commands.common import (
     add_db_option,
@@ -25,7 +24,10 @@ from labcal.lazy import lazy
 if TYPE_CHECKING:
     from rich import table as _rich_table
     from rich.table import Table as RichTable
+
+    from labcal.app import certificates
 else:
+    certificates = lazy("labcal.app.certificates")  # not for --help: SQLAlchemy, scipy, matplotlib
     _rich_table = lazy("rich.table")  # start-up without rich
 
 
@@ -43,7 +45,7 @@ def rich_table(t) -> RichTable:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    issued = issue_certificate(IssueCertificate(
+    issued = certificates.issue_certificate(certificates.IssueCertificate(
         args.run_dir, args.db, args.station, args.tolerance_deg, args.bias_max_v,
         tuple(args.usage_pitch) if args.usage_pitch else None,
         tuple(args.usage_roll) if args.usage_roll else None,

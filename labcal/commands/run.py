@@ -22,16 +22,12 @@ from labcal.commands.common import (
     bounded_field,
     command_line,
     err,
+    format_duration,
     literal,
     out,
     print_json,
 )
-from labcal.commands.console import (
-    ProgressDisplay,
-    before_run,
-    coefficients_with_standard_errors,
-    format_duration,
-)
+from labcal.commands.console import ProgressDisplay, before_run, coefficients_with_standard_errors
 from labcal.lazy import lazy
 from labcal.run.operator import AutoOperator, ConsoleOperator, ScriptedOperator
 

@@ -4,14 +4,19 @@ journal (before these, only `sqlite3` showed the prompts, answers, faults, pause
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
 from rich.table import Table
 
 from labcal.app import STATUSES
-from labcal.app.runs import ListRuns, ReadLog, list_runs, read_log
 from labcal.commands import summary
-from labcal.commands.common import add_db_option, err, out, print_json
-from labcal.commands.console import format_duration
+from labcal.commands.common import add_db_option, err, format_duration, out, print_json
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from labcal.app import runs as app_runs
+else:
+    app_runs = lazy("labcal.app.runs")  # not for --help: SQLAlchemy, scipy, matplotlib
 
 
 def _when(utc: str | None) -> str:
@@ -19,7 +24,8 @@ def _when(utc: str | None) -> str:
 
 
 def cmd_runs(args: argparse.Namespace) -> int:
-    found = list_runs(ListRuns(args.db, args.serial, tuple(args.status or ()), args.attention))
+    found = app_runs.list_runs(
+        app_runs.ListRuns(args.db, args.serial, tuple(args.status or ()), args.attention))
     where, runs = found.database, found.runs
     if found.stale:
         err.print(found.stale, markup=False)
@@ -49,7 +55,7 @@ def cmd_runs(args: argparse.Namespace) -> int:
 
 
 def cmd_log(args: argparse.Namespace) -> int:
-    run = read_log(ReadLog(args.run, args.db))
+    run = app_runs.read_log(app_runs.ReadLog(args.run, args.db))
     if run.stale:
         err.print(run.stale, markup=False)
     if args.json:

@@ -4,18 +4,24 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-from labcal.app import standards
-from labcal.app.standards import RecordOverride, StandardFields, record_override
 from labcal.commands import summary
 from labcal.commands.common import add_db_option, day_given, lab_of, out, print_json, register_write
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from labcal.app import standards
+else:
+    standards = lazy("labcal.app.standards")  # SQLAlchemy and pydantic: not for --help
 
 KINDS = ("dmm", "pitch-table", "roll-table", "reference-level", "other")  # as labcal.app.standards.KINDS
 
 
 def _fields(args: argparse.Namespace):
-    return StandardFields(args.kind, args.model, args.manufacturer, args.certificate, args.issued_by,
-                          args.calibrated, args.due, args.bench, args.status, args.notes)
+    return standards.StandardFields(args.kind, args.model, args.manufacturer, args.certificate,
+                                    args.issued_by, args.calibrated, args.due, args.bench, args.status,
+                                    args.notes)
 
 
 def _row(s) -> str:
@@ -83,8 +89,9 @@ def cmd_show(args: argparse.Namespace) -> int:
 
 
 def cmd_override(args: argparse.Namespace) -> int:
-    standard, row = record_override(RecordOverride(args.serial, args.reason, args.by, args.role, args.key,
-                                                   args.until, args.db), day_given(None))
+    request = standards.RecordOverride(args.serial, args.reason, args.by, args.role, args.key, args.until,
+                                       args.db)
+    standard, row = standards.record_override(request, day_given(None))
     if args.json:
         print_json({"serial": standard.serial, **standards.override_json(row)})
     else:

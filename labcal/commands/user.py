@@ -6,11 +6,18 @@ import argparse
 import getpass
 import os
 import sys
+from typing import TYPE_CHECKING
 
-from labcal.app import audit, users
 from labcal.commands import summary
 from labcal.commands.common import out, print_json, warn_if_secret_in
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from labcal.app import audit, users
+else:
+    audit = lazy("labcal.app.audit")  # SQLAlchemy: not for --help
+    users = lazy("labcal.app.users")  # SQLAlchemy and argon2: not for --help
 
 # as labcal.app.users.ROLES, without importing argon2 for --help
 ROLES = ("technician", "approver", "viewer")

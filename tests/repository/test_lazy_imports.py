@@ -9,6 +9,7 @@ import subprocess
 import sys
 
 from labcal.analysis.models import EXTENSIONS
+from labcal.commands import COMMANDS
 from labcal.commands.fit import EXTENSION_NAMES
 
 HEAVY = ("numpy", "pydantic", "rich", "importlib.metadata", "scipy", "matplotlib")
@@ -48,6 +49,21 @@ def test_help_and_plan_list_import_none_of_the_heavy_libraries():
 
 
 SERVER = ("sqlalchemy", "alembic", "apprise", "fastapi", "uvicorn", "starlette", "argon2", "psycopg")
+
+# The commands whose parsers are built from the station model, the plans or the run machinery (their
+# options' choices and bounds come from there): their help loads numpy and pydantic, about 0.5 s.
+HELP_BUILT_FROM_THE_MODELS = ("run", "resume", "simulate", "attitude", "station", "sim", "sync", "config",
+                              "db")
+
+
+def test_every_other_commands_help_loads_no_scientific_database_or_document_library():
+    """`labcal certificate --help` took 1.8 s: the command's module imported its use cases, and with
+    them SQLAlchemy, scipy, matplotlib and reportlab, to print a page of text. A command module names
+    its use cases with labcal.lazy; its help, and an option refused by argparse, load none of them."""
+    among = ("numpy", "scipy", "matplotlib", "PIL", "pydantic", "reportlab", "lxml", *SERVER)
+    for command in sorted(set(COMMANDS) - set(HELP_BUILT_FROM_THE_MODELS)):
+        assert imported_by(command, "--help", among=among) == [], command
+    assert set(HELP_BUILT_FROM_THE_MODELS) <= set(COMMANDS)  # the exceptions are commands that exist
 
 
 def test_the_fit_help_names_every_model_extension():
