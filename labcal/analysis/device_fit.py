@@ -13,11 +13,10 @@ from a first pass. The covariance is s²·(JᵀWJ)⁻¹ with s² the weighted re
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares as minimise
 
 from labcal.analysis.device_model import (
     N_MIS,
@@ -38,6 +37,12 @@ from labcal.analysis.readings import Readings
 from labcal.analysis.regression import least_squares
 from labcal.analysis.replication import ALPHA, Replication, analyse_points
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from scipy import optimize
+else:
+    optimize = lazy("scipy.optimize")  # about 0.2 s: a command that reads a stored fit fits nothing
 
 MAX_EVALUATIONS = 200  # Levenberg–Marquardt from the linear fit needs about ten
 SMALL_ANGLE_LIMIT_DEG = 2.0  # Soto's grouped misalignments are small rotations; beyond, the model is wrong
@@ -348,9 +353,9 @@ def _solve(theta0: NDArray[np.float64], data: PointMeans,
             last[key] = data.weighted(theta, sd)
         return last[key]
 
-    result = minimise(lambda t: weighted(t)[0], theta0, jac=lambda t: weighted(t)[1], method="lm",
-                      x_scale="jac", xtol=SOLVER_TOLERANCE, ftol=SOLVER_TOLERANCE, gtol=SOLVER_TOLERANCE,
-                      max_nfev=MAX_EVALUATIONS)
+    result = optimize.least_squares(lambda t: weighted(t)[0], theta0, jac=lambda t: weighted(t)[1],
+                                    method="lm", x_scale="jac", xtol=SOLVER_TOLERANCE, ftol=SOLVER_TOLERANCE,
+                                    gtol=SOLVER_TOLERANCE, max_nfev=MAX_EVALUATIONS)
     if result.status <= 0:
         cost = 2 * float(result.cost)
         raise LabcalError(f"the device model did not converge in {MAX_EVALUATIONS} evaluations (its cost "

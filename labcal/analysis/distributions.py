@@ -3,18 +3,25 @@ critical values, χ² probabilities and quantiles — from scipy.special, the we
 (Cephes/Boost) every scientific-Python user already trusts.
 
 They keep numpy's broadcasting and this module's names, so that every caller states which of them it
-uses. scipy is imported inside each function, where it is used: a command that needs no statistic
-(`--help`, `plan list`) never loads it, and scipy.special alone costs a run far less than
-scipy.stats would.
+uses. scipy.special is imported at the first statistic computed (`labcal.lazy`): a command that
+computes none (listing the lab's runs, a command's help) never loads it, and scipy.special alone
+costs a run far less than scipy.stats would.
 """
 
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import special
+
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from scipy import special
+else:
+    special = lazy("scipy.special")  # about 0.2 s: not for a command that computes no statistic
 
 Array = NDArray[np.float64]
 

@@ -29,10 +29,10 @@ Tcheng §8).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import special
 
 from labcal.analysis.budget import Calibration, TypeBInputs, bench_in_readings
 from labcal.analysis.device_fit import DeviceFit
@@ -40,6 +40,12 @@ from labcal.analysis.device_model import Geometry, jacobian
 from labcal.analysis.distributions import chi2_cdf, f_sf
 from labcal.analysis.fit import Fit, readings_points
 from labcal.analysis.readings import Readings
+from labcal.lazy import lazy
+
+if TYPE_CHECKING:
+    from scipy import special
+else:
+    special = lazy("scipy.special")  # as labcal.analysis.distributions: at the first statistic
 
 ALPHA = 0.01  # false alarms on a clean bench: at most one calibration in a hundred
 # Readings beyond which the test is not made: its matrices are (3 × readings) × (the bench's inputs); a

@@ -42,17 +42,17 @@ from labcal.app.residuals import certified_residuals, residual_png
 from labcal.config.run_metadata import RunMetadata, listed_metadata
 from labcal.documents.certificate import Certificate, certificate_from_doc, format_result
 from labcal.documents.overrides import STANDARD_OVERRIDE_EVENT, checklist_overrides, run_overrides
-from labcal.documents.report_figures import in_volts
 from labcal.errors import LabcalError
 from labcal.lazy import lazy
 from labcal.store import lab_certificates, lab_view
 from labcal.store.lab_certificates import approved_runs
 
 if TYPE_CHECKING:
-    from labcal.documents import dcc
+    from labcal.documents import dcc, report_figures
     from labcal.store.handles import Connection
 else:
     dcc = lazy("labcal.documents.dcc")  # start-up without scipy, numpy, pydantic, …
+    report_figures = lazy("labcal.documents.report_figures")  # matplotlib: not to list runs
 
 CERTIFICATE, DCC, PDF, HTML = "certificate.json", "certificate.dcc.xml", "report.pdf", "report.html"
 MEDIA = {CERTIFICATE: "application/json", DCC: "application/xml", PDF: "application/pdf",
@@ -227,7 +227,7 @@ class Results:
 
 
 def _in_unit(value: float, unit: str) -> str:
-    return in_volts(value, unit)
+    return report_figures.in_volts(value, unit)
 
 
 def _verdict(cert: Certificate) -> tuple[str | None, bool | None]:

@@ -26,16 +26,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import matplotlib
 import numpy as np
-from matplotlib.figure import Figure
 
 from labcal.analysis.fit import fit_readings
 from labcal.analysis.kinematics import NO_MISALIGNMENT, Misalignment, gravity
 from labcal.analysis.readings import Readings
-from labcal.documents import report_figures
 from labcal.documents.certificate import Certificate
-from labcal.documents.report_figures import volt_unit
 from labcal.errors import LabcalError
 from labcal.lazy import lazy
 from labcal.store.journal import readings_of
@@ -43,9 +39,16 @@ from labcal.store.lab_certificates import lab_record
 from labcal.store.lab_points import ok_points, points_state, run_status_and_folder
 
 if TYPE_CHECKING:
-    from labcal.documents import report
+    import matplotlib
+    from matplotlib import figure
+
+    from labcal.documents import report, report_figures
     from labcal.store.handles import Connection
 else:
+    # matplotlib only for a page that asks for the plot: `labcal runs` and the overview list runs without it
+    matplotlib = lazy("matplotlib")
+    figure = lazy("matplotlib.figure")
+    report_figures = lazy("labcal.documents.report_figures")
     report = lazy("labcal.documents.report")  # load only for such a certificate)
 
 
@@ -179,12 +182,12 @@ def _draw(conn: Connection, run_id: int, cert: Certificate | None) -> bytes | No
         return None
     found, heading = shown
     matplotlib.use("Agg")
-    fig = Figure(figsize=(9, 6.5 * (len(found.sensors) + 0.5) / 3.5), dpi=100, layout="constrained")
+    fig = figure.Figure(figsize=(9, 6.5 * (len(found.sensors) + 0.5) / 3.5), dpi=100, layout="constrained")
     axes = fig.subplots(len(found.sensors), 2, sharex="col", squeeze=False)
     residuals = np.asarray(found.residuals, dtype=float)
     rms = np.sqrt(np.mean(residuals**2, axis=0))
     for j, sensor in enumerate(found.sensors):
-        factor, unit = volt_unit(float(np.max(np.abs(residuals[:, j]))), found.unit)
+        factor, unit = report_figures.volt_unit(float(np.max(np.abs(residuals[:, j]))), found.unit)
         for k, (angle, label) in enumerate(((found.pitch_deg, "pitch (°)"), (found.roll_deg, "roll (°)"))):
             ax = axes[j, k]
             ax.axhline(0.0, color="#888", lw=0.8)

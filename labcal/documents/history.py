@@ -16,10 +16,9 @@ from __future__ import annotations
 from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-from matplotlib.dates import ConciseDateFormatter
-from matplotlib.figure import Figure
 
 from labcal.analysis.distributions import t_quantile
 from labcal.analysis.fit import ROW_NAMES, SENSORS
@@ -27,8 +26,17 @@ from labcal.documents.certificate import COVERAGE, Certificate, certificate_from
 from labcal.documents.issuing import SIMULATED_SERIAL
 from labcal.documents.plotfile import check_folder, save
 from labcal.errors import LabcalError
+from labcal.lazy import lazy
 from labcal.store import labdb, labquery
 from labcal.store.journal import db_path
+
+if TYPE_CHECKING:
+    from matplotlib import dates as mdates
+    from matplotlib import figure
+else:
+    # matplotlib only for `--plot`: storing a certificate's row and reading the history draw nothing
+    mdates = lazy("matplotlib.dates")
+    figure = lazy("matplotlib.figure")
 
 RULE = "|Δ| > k·√(u₁² + u₂²), k = t₀.₉₇₅(ν) at the Welch–Satterthwaite ν of the difference"
 
@@ -187,7 +195,7 @@ def plot_history(serial: str, certs: list[Certificate], found: list[Change], pat
     X = np.array([c.by_sensor(c.coefficients) for c in certs])  # a package's absent sensors: gaps
     U = np.array([c.by_sensor(c.U) for c in certs])
     index = {c.certificate_id: n for n, c in enumerate(certs)}
-    fig = Figure(figsize=(12, 10))
+    fig = figure.Figure(figsize=(12, 10))
     fig.subplots_adjust(left=0.09, right=0.98, top=0.93, bottom=0.08, hspace=0.3, wspace=0.42)
     axes = fig.subplots(4, 3, sharex=True, squeeze=False)
     for i, row in enumerate(ROW_NAMES):
@@ -206,7 +214,7 @@ def plot_history(serial: str, certs: list[Certificate], found: list[Change], pat
                 ax.legend(fontsize=7)
             if i == len(ROW_NAMES) - 1:
                 ax.set_xlabel("calibration date (UTC)", labelpad=14)  # below the date offset
-                ax.xaxis.set_major_formatter(ConciseDateFormatter(ax.xaxis.get_major_locator()))
+                ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(ax.xaxis.get_major_locator()))
     fig.suptitle(f"Instrument {serial}: coefficients ± U (95 %) over time; red: {RULE}", fontsize=10,
                  parse_math=False)  # the serial as typed: "$" is no mathtext
     save(fig, path, dpi=110)

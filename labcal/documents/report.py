@@ -21,9 +21,6 @@ from labcal.documents import history
 from labcal.documents.certificate import Certificate, read_certificate, write_certificate
 from labcal.documents.dcc import DCC_FILE, write_dcc
 from labcal.documents.device_history import store_device_estimate
-from labcal.documents.report_figures import draw, figures
-from labcal.documents.report_html import render_html
-from labcal.documents.report_pdf import render_pdf
 from labcal.documents.report_tables import Table
 from labcal.errors import LabcalError
 from labcal.lazy import lazy
@@ -31,9 +28,13 @@ from labcal.store.exports import run_fits
 from labcal.store.record import RunRecord, load_run
 
 if TYPE_CHECKING:
-    from labcal.documents import device_report
+    from labcal.documents import device_report, report_figures, report_html, report_pdf
 else:
     device_report = lazy("labcal.documents.device_report")  # start-up without scipy, numpy, pydantic
+    # matplotlib and reportlab: a command that approves, lists or verifies draws no report
+    report_figures = lazy("labcal.documents.report_figures")
+    report_html = lazy("labcal.documents.report_html")
+    report_pdf = lazy("labcal.documents.report_pdf")
 
 CERTIFICATE = "certificate.json"
 REPORT_HTML = "report.html"
@@ -44,16 +45,17 @@ def write_report(directory: Path, cert: Certificate, record: RunRecord, fit: Fit
                  device: DeviceFit | None = None) -> tuple[Path, Path]:
     """``device``: the device model's fit, where the plan identifies it (its tables and residuals are
     appended: `labcal.documents.device_report`). Each figure is drawn once, for the HTML and the PDF."""
-    figures_drawn = figures(cert, record, fit, device)
+    figures_drawn = report_figures.figures(cert, record, fit, device)
     extra: tuple[Table, ...] = ()
     if device is not None:
         extra = tuple(Table(*parts) for parts in device_report.device_rows(device))
         figures_drawn.append(("Residuals of the linear and of the device model",
                               device_report.residuals_side_by_side(device, record)))
-    figs = [draw(title, fig) for title, fig in figures_drawn]
+    figs = [report_figures.draw(title, fig) for title, fig in figures_drawn]
     html_path, pdf_path = directory / REPORT_HTML, directory / REPORT_PDF
-    write_atomic(html_path, render_html(cert, figs, extra))  # whole or not at all: a kill never cuts a report
-    write_atomic(pdf_path, render_pdf(cert, figs, extra))
+    # whole or not at all: a kill never cuts a report
+    write_atomic(html_path, report_html.render_html(cert, figs, extra))
+    write_atomic(pdf_path, report_pdf.render_pdf(cert, figs, extra))
     return html_path, pdf_path
 
 

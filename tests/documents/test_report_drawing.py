@@ -25,7 +25,7 @@ def test_each_figure_is_drawn_once_and_the_html_and_pdf_carry_the_same_pixels(tm
     cert = build_certificate(record, fit, None)
     made: list[Figure] = []
     draws: dict[int, int] = {}
-    original_figures, original_draw = report.figures, Figure.draw
+    original_figures, original_draw = report_figures.figures, Figure.draw
 
     def remember(*args):
         out = original_figures(*args)
@@ -36,7 +36,7 @@ def test_each_figure_is_drawn_once_and_the_html_and_pdf_carry_the_same_pixels(tm
         draws[id(self)] = draws.get(id(self), 0) + 1
         return original_draw(self, renderer)
 
-    monkeypatch.setattr(report, "figures", remember)
+    monkeypatch.setattr(report_figures, "figures", remember)
     monkeypatch.setattr(Figure, "draw", counting_draw)
     html_path, pdf_path = report.write_report(run_dir, cert, record, fit)
     assert len(made) == 4 and [draws.get(id(f)) for f in made] == [1, 1, 1, 1]
