@@ -45,11 +45,12 @@ if TYPE_CHECKING:
     from labcal.documents import report, report_figures
     from labcal.store.handles import Connection
 else:
-    # matplotlib only for a page that asks for the plot: `labcal runs` and the overview list runs without it
+    # matplotlib only where a page draws the plot or a certificate is refitted as the report fits
+    # it: `labcal runs` and the overview list runs without it
     matplotlib = lazy("matplotlib")
     figure = lazy("matplotlib.figure")
     report_figures = lazy("labcal.documents.report_figures")
-    report = lazy("labcal.documents.report")  # load only for such a certificate)
+    report = lazy("labcal.documents.report")
 
 
 def readings(conn: Connection, run_id: int) -> Readings | None:
@@ -140,7 +141,7 @@ def _certified(conn: Connection, run_id: int, cert: Certificate) -> CertifiedRes
         return None
     r = record.readings
     stated = _gravity_misalignment(cert)
-    if stated is None:  # more than B and S: refitted as the report fits it (the report's modules
+    if stated is None:  # more than B and S: refitted as the report fits it
         try:
             fit, device, _ = report.fitted(record)
         except LabcalError:

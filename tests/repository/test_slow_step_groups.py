@@ -26,8 +26,7 @@ def test_tests_of_one_xdist_group_run_on_one_worker(tmp_path: Path):
     seen = tmp_path / "workers.txt"
     command = [sys.executable, "-m", "pytest", "-q", "-p", "no:randomly", "-p", "no:cacheprovider",
                "-n", "3", "--dist", "loadgroup", str(tmp_path / "test_grouped.py")]
-    done = subprocess.run(command,
-                          cwd=tmp_path, env={"WORKERS_SEEN": str(seen), "PATH": "/usr/bin:/bin"},
+    done = subprocess.run(command, cwd=tmp_path, env={"WORKERS_SEEN": str(seen), "PATH": "/usr/bin:/bin"},
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stdout + done.stderr
     workers = seen.read_text().split()
