@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import re
 import sys
@@ -101,7 +102,17 @@ def _attach_negative_lists(parser: argparse.ArgumentParser, argv: list[str]) -> 
 EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE, what a shell reports for a writer whose reader left
 
 
+# A labcal command makes millions of objects and drops most of them soon (a figure's artists, a
+# fit's temporaries): at CPython's default, a collection of the youngest objects every 700 new ones,
+# a dry run spent 0.37 s of its 3.2 s in the collector (530 young, 48 middle and 4 full collections),
+# re-reading the libraries it had loaded. Every 50 000 it spends 0.1 s (8 young, none full); the
+# objects not yet collected are a few megabytes at most. Cycles are still found, only in larger
+# batches.
+GC_THRESHOLDS = (50_000, 20, 10)
+
+
 def main(argv: list[str] | None = None) -> int:
+    gc.set_threshold(*GC_THRESHOLDS)
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser(only=set(argv))  # a word that names a command is the command, or harmless
     try:
