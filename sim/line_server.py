@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import select
 import socket
 import sys
 import termios
@@ -21,6 +20,7 @@ from typing import Protocol
 from labcal.config.emulation import FaultKind
 from labcal.sim.endpoint import Endpoint
 from labcal.sim.faults import FaultInjector, drop_byte, garble
+from labcal.sim.polling import readable, writable
 from labcal.sim.ptys import PtyPair
 
 
@@ -121,7 +121,7 @@ class LineServer:
                 self._open()
             watched = [self._wake_r, *self._channels] + ([self._listener] if self._listener else [])
             timeout = None if self._reopen_at is None else max(0.0, self._reopen_at - time.monotonic())
-            ready, _, _ = select.select(watched, [], [], timeout)
+            ready = readable(watched, timeout)
             if self._wake_r in ready:
                 return
             if self._forget:
@@ -239,4 +239,4 @@ def _write_all(fd: int, data: bytes) -> None:
         try:
             data = data[os.write(fd, data):]
         except BlockingIOError:
-            select.select([], [fd], [], 1.0)
+            writable(fd, 1.0)

@@ -11,12 +11,12 @@ from __future__ import annotations
 import contextlib
 import os
 import pty
-import select
 import threading
 import tty
 from pathlib import Path
 
 from labcal.errors import LabcalError
+from labcal.sim.polling import readable
 
 
 class PtyPair:
@@ -73,7 +73,7 @@ class PtyPair:
         a, b = self._masters
         peer = {a: b, b: a}
         while True:
-            ready, _, _ = select.select([a, b, self._wake_r], [], [])
+            ready = readable([a, b, self._wake_r], None)
             if self._wake_r in ready:
                 return
             for fd in ready:
