@@ -106,13 +106,23 @@ EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE, what a shell reports for a writer whose
 # fit's temporaries): at CPython's default, a collection of the youngest objects every 700 new ones,
 # a dry run spent 0.37 s of its 3.2 s in the collector (530 young, 48 middle and 4 full collections),
 # re-reading the libraries it had loaded. Every 50 000 it spends 0.1 s (8 young, none full); the
-# objects not yet collected are a few megabytes at most. Cycles are still found, only in larger
-# batches.
+# objects not yet collected are a few megabytes at most. Cycles are still found, in larger batches:
+# an object in a cycle that holds a file (a sqlite3 connection is one in Python 3.11) and is never
+# closed stays open longer, so labcal closes what it opens, and a caller of `main` in its own
+# process gets its own setting back.
 GC_THRESHOLDS = (50_000, 20, 10)
 
 
 def main(argv: list[str] | None = None) -> int:
+    before = gc.get_threshold()
     gc.set_threshold(*GC_THRESHOLDS)
+    try:
+        return _command(argv)
+    finally:
+        gc.set_threshold(*before)
+
+
+def _command(argv: list[str] | None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser(only=set(argv))  # a word that names a command is the command, or harmless
     try:

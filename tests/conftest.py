@@ -11,7 +11,6 @@ import pytest
 from labcal.analysis.fit import fit_readings
 from labcal.analysis.kinematics import Misalignment
 from labcal.analysis.plan import Plan
-from labcal.cli import GC_THRESHOLDS
 from labcal.config.emulation import InstrumentTruth
 from labcal.sim.direct import simulate_readings
 
@@ -24,13 +23,6 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     and 204-226 s with 4, on the same loaded machine."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     return min(2 * cores, 16)
-
-
-def pytest_configure(config: pytest.Config) -> None:
-    """Every process of the suite collects garbage as `labcal` does (`labcal.cli.GC_THRESHOLDS`),
-    from the start: a test that calls `labcal.cli.main` in-process sets it, and a test must not
-    see the collector differently for the tests that ran before it."""
-    gc.set_threshold(*GC_THRESHOLDS)
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import gc
 import json
 
 import numpy as np
 import pytest
 
+from labcal import cli
 from labcal.cli import main
 
 
@@ -88,3 +90,31 @@ def test_fit_rejects_bad_options(tmp_path, capsys):
     assert code == 2 and "needs a temp_c column" in err
     code, _, err = run(capsys, "plan", "merit", "four-mount-64", "--pitch-range", "10", "10")
     assert code == 2 and "pitch range 10..10 is empty" in err
+
+
+
+
+def test_a_command_collects_garbage_every_50000_new_objects_and_gives_the_callers_setting_back(
+        capsys, monkeypatch):
+    """`labcal.cli.main` runs its command at one young collection per 50 000 new objects (CPython's
+    700 cost a dry run a tenth of its time), and leaves a caller's process (a script, a test) with
+    the thresholds it had. Seen from the command's parser, which `main` builds for every command."""
+    seen: list[tuple[int, int, int]] = []
+    build = cli.build_parser
+
+    def noting(*args, **kwargs):
+        seen.append(gc.get_threshold())
+        return build(*args, **kwargs)
+
+    monkeypatch.setattr(cli, "build_parser", noting)
+    mine = (900, 11, 12)
+    before = gc.get_threshold()
+    gc.set_threshold(*mine)
+    try:
+        code = main(["plan", "list"])
+        after = gc.get_threshold()
+    finally:
+        gc.set_threshold(*before)
+    assert code == 0, capsys.readouterr().err
+    assert seen == [(50_000, 20, 10)]
+    assert after == mine

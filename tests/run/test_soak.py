@@ -17,6 +17,7 @@ import sqlite3
 import subprocess
 import sys
 import time
+from contextlib import closing
 from pathlib import Path
 
 import numpy as np
@@ -45,7 +46,8 @@ def db_state(db: Path) -> tuple[int, int, str | None]:
     if not db.exists():
         return 0, 0, None
     try:
-        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5) as con:
+        with closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5)) as con:  # closed:
+            # in Python 3.11 only the cyclic collector frees an unclosed connection, and this polls
             n, distinct = con.execute("SELECT count(*), count(DISTINCT seq) FROM points").fetchone()
             row = con.execute("SELECT status FROM runs").fetchone()
     except sqlite3.OperationalError:
