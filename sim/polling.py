@@ -10,14 +10,17 @@ from __future__ import annotations
 
 import select
 from collections.abc import Iterable
-from typing import Protocol
+from typing import Protocol, TypeVar
 
 
 class HasFileno(Protocol):
     def fileno(self) -> int: ...
 
 
-def readable(items: Iterable[int | HasFileno], timeout: float | None) -> list[int | HasFileno]:
+Waitable = TypeVar("Waitable", bound=int | HasFileno)
+
+
+def readable(items: Iterable[Waitable], timeout: float | None) -> list[Waitable]:
     """Those of ``items`` (descriptors, or objects with ``fileno()``) ready to read, or closed at
     the other end, within ``timeout`` seconds (None: however long it takes)."""
     return _ready(items, select.POLLIN | select.POLLPRI, timeout)
@@ -28,7 +31,7 @@ def writable(fd: int, timeout: float) -> bool:
     return bool(_ready([fd], select.POLLOUT, timeout))
 
 
-def _ready(items: Iterable[int | HasFileno], events: int, timeout: float | None) -> list[int | HasFileno]:
+def _ready(items: Iterable[Waitable], events: int, timeout: float | None) -> list[Waitable]:
     by_fd = {item if isinstance(item, int) else item.fileno(): item for item in items}
     poller = select.poll()
     for fd in by_fd:
