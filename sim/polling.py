@@ -8,6 +8,7 @@ limit. POSIX only, as the emulators' ptys are.
 
 from __future__ import annotations
 
+import math
 import select
 from collections.abc import Iterable
 from typing import Protocol, TypeVar
@@ -36,6 +37,6 @@ def _ready(items: Iterable[Waitable], events: int, timeout: float | None) -> lis
     poller = select.poll()
     for fd in by_fd:
         poller.register(fd, events)
-    ms = None if timeout is None else max(0, round(timeout * 1000))
+    ms = None if timeout is None else max(0, math.ceil(timeout * 1000))  # not 0 for 0.4 ms: no spin
     # an error or hang-up on a descriptor makes it ready too: its reader then sees the error or EOF
     return [by_fd[fd] for fd, _ in poller.poll(ms)]

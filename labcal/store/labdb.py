@@ -213,9 +213,10 @@ def _into_wal(db: sqlite3.Connection, wait_s: float = 10.0) -> None:
     connection's own timeout). Switching a new file to WAL takes an exclusive lock, and so does the
     clean-up of the last connection to close; SQLite may answer SQLITE_BUSY at once there instead of
     calling the busy handler that the timeout installs (SQLite's C interface, sqlite3_busy_handler:
-    "the presence of a busy handler does not guarantee that it will be invoked"). Six programs
-    opening and closing one new lab file at once, three times each, met it in 7 of 100 trials. The
-    pragma changes nothing the second time, so trying it again is safe."""
+    "the presence of a busy handler does not guarantee that it will be invoked"). Six threads, each
+    with its own connection as six programs would have, opening and closing one new lab file at once
+    three times each, met it in 7 of 100 trials. The pragma changes nothing the second time, so
+    trying it again is safe."""
     deadline = time.monotonic() + wait_s
     pause = 0.005
     while True:
