@@ -34,16 +34,26 @@ def pytest_collection_finish(session: pytest.Session) -> None:
 
 @pytest.hookimpl(trylast=True)
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Longest first: CI's slow step (`pytest -m slow --dist loadgroup`) hands tests to its workers in
-    this order, and a three-minute test handed out last would run alone at the end while the other
-    workers idle. A test marked `slow(seconds=N)` (its time in that step on two cores) goes ahead of
-    the rest, longest first; the sort is stable, so everything else keeps pytest-randomly's order.
-    The ordinary suite deselects the slow tests before this runs: there it changes nothing."""
-    def expected_seconds(item: pytest.Item) -> float:
-        mark = item.get_closest_marker("slow")
-        return float(mark.kwargs.get("seconds", 0)) if mark is not None else 0.0
+    """Longest first. pytest-xdist hands out files (the ordinary suite, `--dist loadfile`) or tests
+    and groups (CI's slow step, `--dist loadgroup`) in this order (`--no-loadscope-reorder`,
+    pyproject.toml), and a long one handed out last runs alone at the end while the other workers
+    idle: the browser's 44 s page test, a one-test file, was handed out last by pytest-xdist's own
+    order (most tests first), and the ordinary suite's workers finished at 272, 277, 299 and 319 s.
+    A file with a test marked `slow(seconds=N)` or `long(seconds=N)` (its time on two cores, module
+    fixture included) goes ahead of the rest, longest first; then files with more tests first, as
+    pytest-xdist ordered them. The sort is stable: a file stays in one piece, and files alike keep
+    pytest-randomly's order."""
+    def marked_seconds(item: pytest.Item) -> float:
+        return max((float(mark.kwargs.get("seconds", 0)) for name in ("slow", "long")
+                    for mark in item.iter_markers(name)), default=0.0)
 
-    items.sort(key=expected_seconds, reverse=True)
+    seconds: dict[str, float] = {}
+    tests: dict[str, int] = {}
+    for item in items:
+        file = item.nodeid.split("::")[0]
+        seconds[file] = max(seconds.get(file, 0.0), marked_seconds(item))
+        tests[file] = tests.get(file, 0) + 1
+    items.sort(key=lambda item: (-seconds[item.nodeid.split("::")[0]], -tests[item.nodeid.split("::")[0]]))
 
 
 @pytest.fixture(scope="session", autouse=True)

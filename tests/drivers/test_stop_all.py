@@ -25,6 +25,8 @@ from labcal.sim.emulation import Emulation
 from labcal.sim.faults import Fault
 from labcal.store.journal import Journal
 
+pytestmark = pytest.mark.long(seconds=65)  # tables moving in real time, stopped: handed out first
+
 # A reply timeout longer than the bound: a stop that waited for even one reply of the dead
 # controller before the live table's would arrive after 0.6 s and fail the bound; one that waits
 # for none needs a few milliseconds of work, the rest of the 0.5 s is scheduling margin.

@@ -16,6 +16,8 @@ from emulators import TIME_SCALE, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.config.emulation import default_instrument
 
+pytestmark = pytest.mark.long(seconds=45)  # whole runs through the drivers: handed out first
+
 EMULATE = ["--emulate", "--time-scale", str(TIME_SCALE), "--no-report"]  # the certificate is not the subject
 QUICK = "timeout_s = 0.1\nreconnect_s = 1"  # faults cost timeouts: keep them short
 

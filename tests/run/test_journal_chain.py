@@ -26,6 +26,8 @@ from simulated_runs import bench_run
 from labcal.app.run_documents import write_run_outputs
 from labcal.cli import main
 
+pytestmark = pytest.mark.long(seconds=33)  # runs approved on SQLite and PostgreSQL: handed out first
+
 SERIAL = "ACC-0042"
 APPROVER = ["--by", "A. Metrologist", "--role", "Technical manager"]
 

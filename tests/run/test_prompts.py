@@ -22,6 +22,8 @@ from emulators import private_file
 from labcal.analysis.kinematics import MOUNTS
 from labcal.run.mounting import drawing
 
+pytestmark = pytest.mark.long(seconds=22)  # runs answering prompts on a pseudo-terminal: handed out first
+
 ANSI = re.compile(r"\x1b\[[0-?]*[ -/]*[@-~]|\x1b\][^\x07\x1b]*(\x07|\x1b\\)|\x1b[()][0-9A-B]")
 
 

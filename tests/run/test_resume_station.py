@@ -11,10 +11,13 @@ import sqlite3
 import tomllib
 from pathlib import Path
 
+import pytest
 from cli import cli
 from emulators import TIME_SCALE, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.store.journal import Journal
+
+pytestmark = pytest.mark.long(seconds=22)  # runs killed and resumed: handed out first
 
 QUICK = "timeout_s = 0.1\nreconnect_s = 1"  # the injected fault costs timeouts: keep them short
 DMM_GONE = '\n[[emulation.faults]]\ndevice = "dmm"\nkind = "close-port"\nafter = 40\nmatch = "FETC"\n'

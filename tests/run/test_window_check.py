@@ -33,6 +33,8 @@ from labcal.sim.line_server import LineServer
 from labcal.sim.smc100_emulator import Smc100Emulator
 from labcal.store.journal import Journal
 
+pytestmark = pytest.mark.long(seconds=30)  # runs through the drivers with faults injected: handed out first
+
 SEQ = 5  # the point whose window the fault lands in (of one-mount-16's sixteen)
 TOLERANCE_ARCSEC = 5.0  # the example stations' in_position_arcsec (the default)
 

@@ -30,6 +30,8 @@ from lab_server import add_user, serving
 
 from labcal.cli import main
 
+pytestmark = pytest.mark.long(seconds=35)  # a server under guessing and load: handed out first
+
 PASSWORD = {"ada": "ada's long passphrase", "vic": "vic's passphrase", "tom": "tom's passphrase"}
 ROLES = {"ada": "approver", "vic": "viewer", "tom": "technician"}
 

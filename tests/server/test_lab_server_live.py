@@ -19,6 +19,8 @@ from lab_server import add_user, paced_run, served, wait_for
 
 from labcal.cli import main
 
+pytestmark = pytest.mark.long(seconds=25)  # live pages in a browser while runs journal: handed out first
+
 PACE = 120.0  # four-mount-64 at 120 × real time: a point about every quarter second, some 16 s in all
 PLAN, TOTAL = "four-mount-64", 64
 

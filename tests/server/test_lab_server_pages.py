@@ -13,9 +13,12 @@ from __future__ import annotations
 import sqlite3
 from datetime import UTC, datetime, timedelta
 
+import pytest
 from lab_server import accessible, add_user, ctrl_c, paced_run, parses_cleanly, served, wait_for
 
 from labcal.cli import main
+
+pytestmark = pytest.mark.long(seconds=45)  # a server and a browser over every page: handed out first
 
 
 def _points(db: str, run_id: int) -> int:

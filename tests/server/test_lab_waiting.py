@@ -11,8 +11,11 @@ import sqlite3
 import subprocess
 
 import httpx
+import pytest
 from cli import LABCAL
 from lab_server import add_user, ctrl_c, served, wait_for
+
+pytestmark = pytest.mark.long(seconds=20)  # a bench waiting at a prompt, seen by a server: handed out first
 
 
 def _events(db: str) -> list[tuple[str, str]]:
