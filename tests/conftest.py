@@ -47,13 +47,14 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
         return max((float(mark.kwargs.get("seconds", 0)) for name in ("slow", "long")
                     for mark in item.iter_markers(name)), default=0.0)
 
+    file_of = {item.nodeid: item.nodeid.split("::")[0] for item in items}
     seconds: dict[str, float] = {}
     tests: dict[str, int] = {}
     for item in items:
-        file = item.nodeid.split("::")[0]
+        file = file_of[item.nodeid]
         seconds[file] = max(seconds.get(file, 0.0), marked_seconds(item))
         tests[file] = tests.get(file, 0) + 1
-    items.sort(key=lambda item: (-seconds[item.nodeid.split("::")[0]], -tests[item.nodeid.split("::")[0]]))
+    items.sort(key=lambda item: (-seconds[file_of[item.nodeid]], -tests[file_of[item.nodeid]]))
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -224,8 +224,7 @@ def _into_wal(db: sqlite3.Connection, wait_s: float = 10.0) -> None:
             db.execute("PRAGMA journal_mode=WAL")
             return
         except sqlite3.OperationalError as exc:
-            busy = getattr(exc, "sqlite_errorcode", None) == sqlite3.SQLITE_BUSY or "locked" in str(exc)
-            if not busy or time.monotonic() + pause > deadline:
+            if not _busy(exc) or time.monotonic() + pause > deadline:
                 raise
         time.sleep(pause)
         pause = min(2 * pause, 0.1)
@@ -284,10 +283,16 @@ def failure(path: Path, exc: sqlite3.Error) -> LabcalError:
     if damaged or "malformed" in text or "not a database" in text:
         return LabcalError(f"{path}: the lab database is damaged ({text}); check it with sqlite3 {path} "
                            "'PRAGMA integrity_check' and restore it from its latest backup")
-    if code == sqlite3.SQLITE_BUSY or "locked" in text:
+    if _busy(exc):
         return LabcalError(f"{path}: the lab database is busy ({text}); another labcal is writing it: "
                            "wait for it and run the command again")
     return LabcalError(f"{path}: cannot use the lab database ({text})")
+
+
+def _busy(exc: sqlite3.Error) -> bool:
+    """SQLite's "busy": another connection holds the lock this one needs (a `failure` to report, or a
+    WAL switch to try again)."""
+    return getattr(exc, "sqlite_errorcode", None) == sqlite3.SQLITE_BUSY or "locked" in str(exc)
 
 
 FREE_SPACE_WANTED = 10_000_000  # a run's points and events, with room for SQLite's write-ahead log

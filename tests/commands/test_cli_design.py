@@ -92,8 +92,6 @@ def test_fit_rejects_bad_options(tmp_path, capsys):
     assert code == 2 and "pitch range 10..10 is empty" in err
 
 
-
-
 def test_a_command_collects_garbage_every_50000_new_objects_and_gives_the_callers_setting_back(
         capsys, monkeypatch):
     """`labcal.cli.main` runs its command at one young collection per 50 000 new objects (CPython's
