@@ -122,6 +122,21 @@ def main(argv: list[str] | None = None) -> int:
         gc.set_threshold(*before)
 
 
+def script() -> int:
+    """The installed `labcal` command: `main`, then an exit that skips the interpreter's last collection.
+
+    At exit CPython collects garbage once more over every object the command loaded (matplotlib's,
+    scipy's, SQLAlchemy's: about a million); that took 0.45 s of a 3.2 s dry run and 0.12 s of
+    `labcal runs`. `gc.freeze` moves them all out of that collection's sight; objects are still freed
+    by reference counting as modules are cleared, and atexit handlers (logging's flush among them)
+    still run. Only garbage in reference cycles is left to the operating system, which is safe
+    because labcal closes every file and database connection it opens. Not `main`'s own business:
+    a script or a test calling `main` in its own process goes on collecting."""
+    code = main()
+    gc.freeze()
+    return code
+
+
 def _command(argv: list[str] | None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser(only=set(argv))  # a word that names a command is the command, or harmless
@@ -148,4 +163,4 @@ def _command(argv: list[str] | None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(script())
