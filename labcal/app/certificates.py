@@ -257,6 +257,9 @@ class ListApprovers:
 @dataclass(frozen=True)
 class Approvers:
     approvers: tuple[Approver, ...] = field(default_factory=tuple)
+    database: str = ""  # where they were read
+    stale: str | None = None  # the bench read its journal's copy: the lab could not be reached
+    exists: bool = True  # False: no lab database there yet
 
 
 def add_approver(request: AddApprover) -> Approver:
@@ -283,7 +286,8 @@ def _audited(db: str | None, detail: str, name: str) -> None:
 
 def list_approvers(request: ListApprovers) -> Approvers:
     """Every registration, active and revoked (a missing database: none, and nothing is created)."""
-    return Approvers(tuple(documents_approvers.listed(request.db)))
+    read = documents_approvers.listed(request.db)
+    return Approvers(tuple(read.approvers), read.shown, read.stale, read.exists)
 
 
 def read_certificate(path: str | Path) -> Certificate:

@@ -67,13 +67,18 @@ def cmd_approvers_add(args: argparse.Namespace) -> int:
 
 
 def cmd_approvers_list(args: argparse.Namespace) -> int:
-    found = certificates.list_approvers(certificates.ListApprovers(args.db)).approvers
+    listed = certificates.list_approvers(certificates.ListApprovers(args.db))
+    found = listed.approvers
+    if listed.stale:
+        err.print(listed.stale, markup=False)
     if args.json:
-        print_json({"approvers": [a.to_json() for a in found]})
+        print_json({"database": listed.database, "approvers": [a.to_json() for a in found]})
         return 0
     if not found:
-        out.print("no approvers registered (`labcal certificate approvers add NAME --role ROLE --public-key "
-                  "FILE`)")
+        missing = "" if listed.exists else " (it does not exist yet)"
+        # a path is not markup
+        out.print(f"no approvers registered in {listed.database}{missing} (`labcal certificate approvers add "
+                  "NAME --role ROLE --public-key FILE`)", markup=False, soft_wrap=True)
     for a in found:
         state = "active" if a.active else f"revoked {a.revoked_utc}"
         out.print(f"{a.name}\t{a.role}\tkey {a.key_id[:12]}…\tadded {a.added_utc}\t{state}")

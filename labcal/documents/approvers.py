@@ -114,10 +114,23 @@ def revoke(name: str, db: str | Path | None = None) -> Approver:
     return Approver(a.name, a.role, a.public_key_pem, a.key_id, a.added_utc, when)
 
 
-def listed(db: str | Path | None = None) -> list[Approver]:
+@dataclass(frozen=True)
+class Registry:
+    """The registrations as read, and where: the lab database's name, the one line saying the bench
+    read its own journal's copy because the lab could not be reached (None: the lab's own), and
+    whether there was a database at all (a SQLite lab file not made yet holds none)."""
+
+    approvers: list[Approver]
+    shown: str
+    stale: str | None
+    exists: bool
+
+
+def listed(db: str | Path | None = None) -> Registry:
     """Every registration, active and revoked, in the order they were made (a missing database:
     none, and nothing is created): the lab's, where the lab database is a server."""
-    return _lab(db)
+    read = records(db, "approvers", tuple(COLUMNS.split(", ")), order=("id",), must_exist=False)
+    return Registry([Approver(*row) for row in read.rows], read.source.shown, read.source.stale, read.exists)
 
 
 def by_key(kid: str, db: str | Path | None = None) -> Approver | None:

@@ -170,6 +170,22 @@ def test_attitude_refuses_a_forged_or_unknown_key_certificate_unless_told(lab, c
     assert code == 0 and json.loads(out)["certificate"]["verified"] is False and "UNVERIFIED" in err
 
 
+def test_the_approvers_list_names_the_database_and_says_when_it_does_not_exist(tmp_path, capsys):
+    """A mistyped --db is not an empty registry: the list names the database it read and says the
+    file does not exist yet, and creates nothing."""
+    missing = tmp_path / "nowhere" / "lab.sqlite"
+    assert main(["certificate", "approvers", "list", "--db", str(missing)]) == 0
+    assert capsys.readouterr().out.startswith(f"no approvers registered in {missing} (it does not exist yet)")
+    assert main(["certificate", "approvers", "list", "--db", str(missing), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == {"database": str(missing), "approvers": []}
+    assert not missing.parent.exists()
+    made = tmp_path / "lab.sqlite"
+    assert main(["db", "upgrade", "--db", str(made)]) == 0
+    capsys.readouterr()
+    assert main(["certificate", "approvers", "list", "--db", str(made)]) == 0
+    assert capsys.readouterr().out.startswith(f"no approvers registered in {made} (`labcal certificate")
+
+
 def test_approvers_list_add_revoke_through_the_cli(lab, capsys):
     assert main(["certificate", "approvers", "list", "--json"]) == 0
     listed = json.loads(capsys.readouterr().out)["approvers"]

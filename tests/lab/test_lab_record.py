@@ -172,10 +172,14 @@ def test_a_bench_that_cannot_reach_the_lab_lists_its_own_runs_by_their_lab_numbe
     postgres_cluster.pause()
     try:
         listed, err = one.listed()
+        code, approvers, approvers_err = one.labcal("certificate", "approvers", "list", "--json")
     finally:
         postgres_cluster.start()
     lines = err.strip().splitlines()
     assert len(lines) == 1 and "cannot reach the lab database" in lines[0]
+    # the registry read from the journal's copy says so too, in the same one line
+    assert code == 0 and approvers_err.strip().splitlines() == lines, approvers_err
+    assert json.loads(approvers)["approvers"] == []
     assert "last in step with the lab" in lines[0] and str(one.journal) in lines[0]
     assert [(r["id"], r["uuid"]) for r in listed] == [(n, u) for n, u, s in lab_numbers(one.url)
                                                        if s == "bench-1"]
