@@ -6,10 +6,13 @@ are written here by hand from the format."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 import threading
 from datetime import datetime
 from pathlib import Path
 
+import psycopg
 import pytest
 from services import postgres_cluster, postgres_url  # noqa: F401 - fixtures
 from test_instruments import InProcess
@@ -97,3 +100,54 @@ def test_a_benchs_role_on_postgresql_numbers_in_the_labs_one_sequence(lc, postgr
     finally:
         for engine in engines:
             engine.dispose()
+
+
+
+NUMBERING = """
+import sys
+from labcal.store.certificate_numbers import assigned
+from labcal.store.labdb import lab_engine
+engine = lab_engine(sys.argv[1])
+try:
+    with engine.connect():  # connected and ready: then all start at once
+        pass
+    print("ready", flush=True)
+    sys.stdin.readline()
+    for k in range(30):
+        print(assigned(engine, f"{sys.argv[2]}-{k}", 0, lambda seq: f"ECL-{seq:05d}"), flush=True)
+finally:
+    engine.dispose()
+"""
+
+
+def test_benches_numbering_at_once_in_their_own_processes_on_postgresql_leave_no_gap(lc, postgres_url):  # noqa: F811
+    """Three processes, each a bench with its own role and connection, number thirty runs each,
+    started together once all are connected: 90 numbers, none twice, none skipped, and PostgreSQL's
+    own count and maximum agree. The benches' numbers interleave (they raced for the same next
+    number), which is what the unique sequence and the retry are for."""
+    lc("db", "upgrade", "--db", postgres_url)
+    names = ("bench-1", "bench-2", "bench-3")
+    urls = [lc("db", "grant-station", name, "--db", postgres_url).stdout.strip().splitlines()[-1]
+            for name in names]
+    benches = [subprocess.Popen([sys.executable, "-c", NUMBERING, url, name], stdin=subprocess.PIPE,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+               for url, name in zip(urls, names, strict=True)]
+    try:
+        for bench in benches:
+            assert bench.stdout is not None and bench.stdout.readline() == "ready\n"
+        for bench in benches:
+            assert bench.stdin is not None
+            bench.stdin.write("go\n")
+            bench.stdin.flush()
+        outputs = [bench.communicate(timeout=120) for bench in benches]
+    finally:
+        for bench in benches:
+            bench.kill()
+    assert [bench.returncode for bench in benches] == [0, 0, 0], [err for _, err in outputs]
+    each = [[int(line.removeprefix("ECL-")) for line in out.split()] for out, _ in outputs]
+    assert sorted(n for numbers in each for n in numbers) == list(range(1, 91))
+    assert any(numbers != list(range(numbers[0], numbers[0] + 30)) for numbers in each), each  # they raced
+    with psycopg.connect(postgres_url) as conn:
+        count, top, runs = conn.execute("SELECT count(*), max(seq), count(DISTINCT run_uuid) FROM "
+                                        "certificate_numbers WHERE scope = 0").fetchone()
+    assert (count, top, runs) == (90, 90, 90)
