@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import json
 import sqlite3
+from contextlib import closing
 from datetime import UTC, date, datetime, timedelta
 from pathlib import Path
 
 import psycopg
 import pytest
+from second_ed25519 import holds
 from services import postgres_cluster, postgres_url  # noqa: F401 - fixtures
 from test_instruments import InProcess
 
@@ -111,6 +113,30 @@ def test_an_approvers_override_lets_the_run_go_on_and_every_document_states_it(l
     number = json.loads(lc("runs", "--json").stdout)["runs"][0]["id"]
     [seen] = overrides_of(ReadLog(str(number)))
     assert (seen.kind, seen.reason, seen.by) == ("reference standard", REASON, "Ann Lee (Technical manager)")
+
+
+def test_an_override_signature_holds_in_a_second_implementation_over_its_row(lc, bench, approver):
+    """libsodium (`second_ed25519`) accepts the approver's signature over the override's row as the
+    lab database holds it, in canonical JSON (sorted keys, no spaces, UTF-8) of the standard, its due
+    date, the last valid day, the reason, the approver, the role and the time recorded: the bytes
+    made here from the row. A longer validity or another reason: refused."""
+    lc("standard", "override", "MY-DMM-7", "--reason", REASON, "--by", "Ann Lee", "--role",
+           "Technical manager", "--key", str(approver))
+    with closing(sqlite3.connect(bench)) as db:
+        [row] = db.execute("SELECT standard_key, due_on, valid_until, reason, approver, role, recorded_utc, "
+                           "signature FROM standard_overrides").fetchall()
+    names = ("standard", "due_on", "valid_until", "reason", "approver", "role", "recorded_utc")
+    fields, signature = dict(zip(names, row[:7], strict=True)), row[7]
+    assert (fields["due_on"], fields["reason"]) == ((TODAY - timedelta(days=1)).isoformat(), REASON)
+
+    def covered(**changed: str) -> bytes:
+        return json.dumps({**fields, **changed}, sort_keys=True, separators=(",", ":"),
+                          ensure_ascii=False).encode("utf-8")
+
+    public = approver.with_suffix(".pub")
+    assert holds(public, covered(), signature)
+    assert not holds(public, covered(valid_until=(TODAY + timedelta(days=30)).isoformat()), signature)
+    assert not holds(public, covered(reason="no reason"), signature)
 
 
 def test_an_override_whose_row_was_changed_after_signing_holds_nothing(lc, tmp_path, bench, approver):

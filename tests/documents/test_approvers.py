@@ -11,6 +11,7 @@ journal), which is what a real run looks like to it. A dry run (`run --sim`) is 
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 import sqlite3
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import pytest
 from cli import cli
+from second_ed25519 import holds, raw_public_key
 from simulated_runs import bench_run, simulated_run
 
 from labcal.cli import main
@@ -98,6 +100,29 @@ def test_registered_approver_signs_a_real_run_and_the_signature_covers_the_dcc(l
     volts = level_volts(lab, cert)
     assert main(["attitude", "--cert", str(cert_path), "--csv", str(volts), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["certificate"]["verified"] is True
+
+
+def test_the_approval_signature_holds_in_a_second_implementation_over_everything_but_itself(lab, capsys):
+    """libsodium (`second_ed25519`) accepts the approver's signature over the certificate as written,
+    without its digest and the signature value, in canonical JSON (sorted keys, no spaces, UTF-8): the
+    bytes are made here from the file. Another name, a nudged coefficient or another key: refused.
+    The key id on the certificate is the SHA-256 of the raw key, computed here with hashlib."""
+    assert main(approve(lab)) == 0
+    doc = json.loads((lab / "run" / "certificate.json").read_text(encoding="utf-8"))
+    signature = doc["approval"]["signature"]
+
+    def covered(change=lambda d: None) -> bytes:
+        content = json.loads(json.dumps({k: v for k, v in doc.items() if k != "digest"}))
+        del content["approval"]["signature"]
+        change(content)
+        return json.dumps(content, sort_keys=True, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
+
+    public = lab / "approver.pub"
+    assert doc["approval"]["key_id"] == hashlib.sha256(raw_public_key(public)).hexdigest()
+    assert holds(public, covered(), signature)
+    assert not holds(public, covered(lambda d: d["approval"].update(by="B. Other")), signature)
+    assert not holds(public, covered(lambda d: d["fit"]["coefficients"][0].__setitem__(0, 0.5)), signature)
+    assert not holds(lab / "stranger.pub", covered(), signature)
 
 
 def test_an_edited_draft_with_a_recomputed_digest_is_refused(lab, capsys):
