@@ -12,7 +12,6 @@ from __future__ import annotations
 import base64
 import hashlib
 import hmac
-import os
 import stat
 import subprocess
 from pathlib import Path
@@ -29,12 +28,7 @@ BENCH_READS = {"alembic_version", "runs", "points", "events", "certificates", "r
 
 def labcal(tmp_path: Path, *args: str, db: str, station: str = "bench-1",
            stdin: str | None = None) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("LABCAL_")}
-    (tmp_path / "lab.toml").touch()
-    env.update(LABCAL_DB=db, LABCAL_STATION=station, LABCAL_CONFIG=str(tmp_path / "lab.toml"),
-               LABCAL_JOURNAL=str(tmp_path / station / "journal.sqlite"),
-               XDG_DATA_HOME=str(tmp_path / "data"))
-    return cli.labcal(*args, env=env, timeout=240, typed=stdin)
+    return cli.labcal(*args, env=cli.bench_env(tmp_path, db, station), timeout=240, typed=stdin)
 
 
 def grant(tmp_path: Path, admin: str, station: str, *extra: str) -> str:

@@ -8,17 +8,14 @@ the same documents. Each page parses cleanly and has no axe-core violation in Ch
 from __future__ import annotations
 
 import hashlib
-import io
 import re
-from contextlib import redirect_stderr, redirect_stdout
 
 import httpx
 import psycopg
 import pytest
+from cli import in_process as labcal  # labcal ARGS in this process: code, stdout, stderr
 from lab_server import accessible, add_user, parses_cleanly, served
 from simulated_runs import bench_run
-
-from labcal.cli import main
 
 # A run through the drivers, a sync and a server (about 30 s), built once on one worker (loadgroup)
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("desk_postgres")]
@@ -26,12 +23,6 @@ pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("desk_postgres")]
 SERIAL = "ACC-0042"
 PASSWORD = "a long passphrase 1"
 
-
-def labcal(*args: str) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    with redirect_stdout(out), redirect_stderr(err):
-        code = main(list(args))
-    return code, out.getvalue(), err.getvalue()
 
 
 @pytest.fixture(scope="module")
