@@ -125,9 +125,10 @@ def main(argv: list[str] | None = None) -> int:
 def script() -> int:
     """The installed `labcal` command: `main`, then an exit that skips the interpreter's last collection.
 
-    At exit CPython collects garbage once more over every object the command loaded (matplotlib's,
-    scipy's, SQLAlchemy's: about a million); that took 0.45 s of a 3.2 s dry run and 0.12 s of
-    `labcal runs`. `gc.freeze` moves them all out of that collection's sight; objects are still freed
+    At exit CPython collects garbage again over every object the collector tracks (matplotlib's,
+    scipy's, SQLAlchemy's: 270 000 after a dry run, 96 000 after `labcal runs`) and over what clearing
+    the modules leaves in cycles; that took 0.45 s of a 3.2 s dry run and 0.12 s of `labcal runs`.
+    `gc.freeze` moves them all out of those collections' sight; objects are still freed
     by reference counting as modules are cleared, and atexit handlers (logging's flush among them)
     still run. Only garbage in reference cycles is left to the operating system, which is safe
     because labcal closes every file and database connection it opens. Not `main`'s own business:
