@@ -10,15 +10,15 @@ digest and the row's fields), with hashlib, not by labcal's own verifier.
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import re
 import sqlite3
-from contextlib import closing, redirect_stderr, redirect_stdout
+from contextlib import closing
 from pathlib import Path
 
 import psycopg
 import pytest
+from cli import in_process
 from services import free_port
 
 from labcal.cli import main
@@ -34,10 +34,7 @@ def labcal(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, *args: str, db: str)
                         ("LABCAL_STATION", "bench-3"), ("LABCAL_CONFIG", str(tmp_path / "lab.toml")),
                         ("LABCAL_NOTIFY", "")):
         monkeypatch.setenv(name, value)
-    out, err = io.StringIO(), io.StringIO()
-    with redirect_stdout(out), redirect_stderr(err):
-        code = main(list(args))
-    return code, out.getvalue(), err.getvalue()
+    return in_process(*args)
 
 
 def lab_trail(url: str) -> list[tuple]:
