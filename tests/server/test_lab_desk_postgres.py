@@ -24,7 +24,6 @@ SERIAL = "ACC-0042"
 PASSWORD = "a long passphrase 1"
 
 
-
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory, postgres_cluster):
     yield from _desk(tmp_path_factory, postgres_cluster)
