@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import os
 import re
-import socket
 import sys
 import threading
 import time
@@ -14,6 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
+from services import free_port
 
 from labcal.bench.hardware import Bench
 from labcal.config.station import StationFile, load_station, shipped_stations
@@ -21,12 +21,6 @@ from labcal.sim.emulation import Emulation
 
 TIME_SCALE = 1000.0  # the default test time scale: a 30-minute calibration takes ~2 s of emulated motion
 MOTION_SCALE = 20.0  # slow enough to catch a table mid-move: a 90° move lasts 250 ms of wall time
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def private(config: StationFile, tmp_path: Path, **changes: dict) -> StationFile:

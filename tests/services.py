@@ -37,10 +37,20 @@ def missing(what: str, how: str) -> None:
     pytest.skip(message)
 
 
+_GIVEN: set[int] = set()  # the ports this process has handed out
+
+
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    """A TCP port on 127.0.0.1 that nothing listens on now and that this process has not handed out
+    before. The system may offer a port it has just freed again: two calls for one station file once
+    gave its DMM and its tables the same port, a file labcal refuses."""
+    while True:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = int(s.getsockname()[1])
+        if port not in _GIVEN:
+            _GIVEN.add(port)
+            return port
 
 
 def _pg_bin(name: str) -> str | None:
