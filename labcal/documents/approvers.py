@@ -34,7 +34,7 @@ from labcal.documents.certificate import (
 from labcal.errors import LabcalError
 from labcal.store import approvers as register
 from labcal.store.journal import db_path
-from labcal.store.labquery import records
+from labcal.store.labquery import Rows, records
 
 COLUMNS = ", ".join(register.COLUMNS)
 # The role a lab server's key is registered with: it signs only for an approver signed in to the
@@ -129,8 +129,14 @@ class Registry:
 def listed(db: str | Path | None = None) -> Registry:
     """Every registration, active and revoked, in the order they were made (a missing database:
     none, and nothing is created): the lab's, where the lab database is a server."""
-    read = records(db, "approvers", tuple(COLUMNS.split(", ")), order=("id",), must_exist=False)
+    read = _read(db, {})
     return Registry([Approver(*row) for row in read.rows], read.source.shown, read.source.stale, read.exists)
+
+
+def _read(db: str | Path | None, where: dict[str, str]) -> Rows:
+    """The registry's rows equal to ``where``, in the order they were made, and where they were read
+    (a missing database: none, and nothing is created)."""
+    return records(db, "approvers", tuple(COLUMNS.split(", ")), where, ("id",), must_exist=False)
 
 
 def by_key(kid: str, db: str | Path | None = None) -> Approver | None:
@@ -144,8 +150,7 @@ def _lab(db: str | Path | None, key_id: str | None = None, name: str | None = No
     """Registrations as the lab database holds them (`labcal.store.labquery`: a bench that cannot
     reach it reads its own journal's), optionally of one key or one name, or only the active ones."""
     where = {k: v for k, v in (("key_id", key_id), ("name", name)) if v is not None}
-    rows = records(db, "approvers", tuple(COLUMNS.split(", ")), where, ("id",), must_exist=False).rows
-    found = [Approver(*row) for row in rows]
+    found = [Approver(*row) for row in _read(db, where).rows]
     return [a for a in found if a.active] if active else found
 
 
