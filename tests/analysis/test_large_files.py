@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli import cli, in_process
 
 from labcal.analysis.kinematics import gravity, nominal_gravity
 from labcal.analysis.replication import distinct, point_groups
@@ -49,10 +50,10 @@ def _fit_and_volts(tmp_path, rows: int):
     import json as _json
 
     readings = tmp_path / "r.csv"
-    subprocess.run([sys.executable, "-m", "labcal.cli", "simulate", "--noise", "1e-5", "--out",
-                    str(readings)], check=True, capture_output=True)
-    fit = subprocess.run([sys.executable, "-m", "labcal.cli", "fit", str(readings), "--json"], check=True,
-                         capture_output=True, text=True).stdout
+    code, _, err = in_process("simulate", "--noise", "1e-5", "--out", str(readings))
+    assert code == 0, err
+    code, fit, err = in_process("fit", str(readings), "--json")
+    assert code == 0, err
     (tmp_path / "fit.json").write_text(fit)
     x = np.array(_json.loads(fit)["coefficients"])
     rng = np.random.default_rng(5)
@@ -63,13 +64,17 @@ def _fit_and_volts(tmp_path, rows: int):
     return tmp_path / "fit.json", tmp_path / "v.csv"
 
 
-def test_attitude_streams_json_and_csv_that_say_what_the_rows_say(tmp_path):
+def test_attitude_streams_json_and_csv_that_say_what_the_rows_say(tmp_path, capsys):
     import json as _json
 
     fit, volts = _fit_and_volts(tmp_path, 25_001)  # more than two chunks
-    base = [sys.executable, "-m", "labcal.cli", "attitude", "--cert", str(fit), "--csv", str(volts)]
-    doc = _json.loads(subprocess.run([*base, "--json"], check=True, capture_output=True, text=True).stdout)
-    lines = subprocess.run(base, check=True, capture_output=True, text=True).stdout.splitlines()
+    base = ["attitude", "--cert", str(fit), "--csv", str(volts)]
+    code, out, err = cli(capsys, *base, "--json")
+    assert code == 0, err
+    doc = _json.loads(out)
+    code, out, err = cli(capsys, *base)
+    assert code == 0, err
+    lines = out.splitlines()
     assert len(doc["rows"]) == 25_001 and len(lines) == 25_002
     header = lines[0].split(",")
     first, last = dict(zip(header, lines[1].split(","), strict=True)), lines[-1].split(",")

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
-from cli import labcal
+from cli import cli, in_process, labcal
 from emulators import free_port, no_leaks, private_file  # noqa: F401 - fixture
 
 from labcal.cli import main
@@ -36,9 +36,9 @@ def files(tmp_path_factory) -> dict[str, Path]:
     folder = tmp_path_factory.mktemp("bad-input")
     readings, fit = folder / "readings.csv", folder / "fit.json"
     assert main(["simulate", "--noise", "1e-4", "--seed", "3", "--out", str(readings)]) == 0
-    done = labcal("fit", str(readings), "--json")
-    assert done.returncode == 0, done.stderr
-    fit.write_text(done.stdout)
+    code, out, err = in_process("fit", str(readings), "--json")
+    assert code == 0, err
+    fit.write_text(out)
     volts = folder / "volts.csv"
     volts.write_text("vx,vy,vz\n0.5,0.5,0.7071067811865476\n0,0,1\n")
     return {"readings": readings, "fit": fit, "volts": volts}
@@ -144,10 +144,11 @@ def test_standard_input_that_is_a_device_or_binary_is_refused(files):
         "labcal: error: standard input: binary data (a NUL byte), not a voltages file")
 
 
-def test_standard_input_that_is_a_pipe_is_read(files):
+def test_standard_input_that_is_a_pipe_is_read(files, capsys):
     done = labcal("attitude", "--cert", str(files["fit"]), input=files["volts"].read_text(), timeout=30)
-    by_file = labcal("attitude", "--cert", str(files["fit"]), "--csv", str(files["volts"]), timeout=30)
-    assert done.returncode == 0 and done.stdout == by_file.stdout and done.stdout.count("\n") == 3
+    code, by_file, err = cli(capsys, "attitude", "--cert", str(files["fit"]), "--csv", str(files["volts"]))
+    assert code == 0, err
+    assert done.returncode == 0 and done.stdout == by_file and done.stdout.count("\n") == 3
 
 
 # --- simulate --out, --received ----------------------------------------------------------------

@@ -9,11 +9,9 @@ from __future__ import annotations
 
 import ast
 import json
-import os
 import re
 import shutil
 import sqlite3
-import subprocess
 import threading
 from contextlib import closing
 from dataclasses import fields
@@ -75,8 +73,14 @@ def point_rows(path: Path, run_id: int) -> list[tuple]:
                            (run_id,)).fetchall()
 
 
-def labcal(db: Path, *args: str) -> subprocess.CompletedProcess:
-    return cli.labcal(*args, timeout=300, env={**os.environ, "LABCAL_DB": str(db)})
+@pytest.fixture
+def cli_on(capsys, monkeypatch):
+    """``cli_on(db, ARGS)``: ``labcal ARGS`` in this process on the lab database ``db`` ($LABCAL_DB):
+    exit code, stdout, stderr."""
+    def on(db: Path, *args: str) -> tuple[int, str, str]:
+        monkeypatch.setenv("LABCAL_DB", str(db))
+        return cli.cli(capsys, *args)
+    return on
 
 
 # --- (a) the previous labcal's database --------------------------------------------------------
@@ -98,13 +102,14 @@ def alembic_revision(path: Path) -> str | None:
         return con.execute("SELECT version_num FROM alembic_version").fetchone()[0]
 
 
-def upgrade(db: Path) -> subprocess.CompletedProcess:
-    done = labcal(db, "db", "upgrade")
-    assert done.returncode == 0, done.stderr
-    return done
+def upgrade(cli_on, db: Path) -> str:
+    """`labcal db upgrade` of ``db``, which must succeed: its stdout."""
+    code, out, err = cli_on(db, "db", "upgrade")
+    assert code == 0, err
+    return out
 
 
-def test_previous_database_is_refused_then_upgraded_resumed_and_its_certificate_read(v0):
+def test_previous_database_is_refused_then_upgraded_resumed_and_its_certificate_read(v0, cli_on):
     db = v0 / "labcal.sqlite"
     old = dump(db)
     stopped_run = json.loads((v0 / "stopped" / "run.json").read_text())["run_id"]
@@ -113,21 +118,21 @@ def test_previous_database_is_refused_then_upgraded_resumed_and_its_certificate_
     with closing(raw(db)) as con:
         (cert_id, digest), = con.execute("SELECT certificate_id, sha256 FROM certificates")
 
-    refused = labcal(db, "resume", str(v0 / "stopped"), "--yes", "--no-report")
-    assert refused.returncode == 2 and len(refused.stderr.strip().splitlines()) == 1
-    assert "older than this labcal" in refused.stderr and "labcal db upgrade" in refused.stderr
+    code, _, err = cli_on(db, "resume", str(v0 / "stopped"), "--yes", "--no-report")
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "older than this labcal" in err and "labcal db upgrade" in err
     assert dump(db) == old and not list(v0.glob("*.bak"))  # opening never migrates
 
-    done = upgrade(db)
+    done = upgrade(cli_on, db)
     backup = v0 / "labcal.sqlite.v0000.bak"
-    assert "upgraded from schema 0000" in done.stdout and backup.name in done.stdout.replace("\n", "")
+    assert "upgraded from schema 0000" in done and backup.name in done.replace("\n", "")
     assert alembic_revision(db) == HEAD
     assert user_version(db) == 6  # > 5: the labcal before Alembic refuses the file as newer
     assert ("index", "events_by_run") in {(t, n) for t, n, _ in schema(db)}
     assert user_version(backup) == 0 and dump(backup) == old  # the whole old database, unchanged
 
-    proc = labcal(db, "resume", str(v0 / "stopped"), "--yes", "--no-report")
-    assert proc.returncode == 0, proc.stderr
+    code, _, err = cli_on(db, "resume", str(v0 / "stopped"), "--yes", "--no-report")
+    assert code == 0, err
     after = point_rows(db, stopped_run)
     width = len(earlier[0])  # the old file's columns, samples last (later revisions add columns after)
     assert len(after) == 64 and all(p[width - 1] is not None for p in after)  # 48 more, samples kept
@@ -137,40 +142,40 @@ def test_previous_database_is_refused_then_upgraded_resumed_and_its_certificate_
         assert con.execute("SELECT status FROM runs WHERE id=?", (stopped_run,)).fetchone() == ("complete",)
     assert json.loads((v0 / "stopped" / "run.json").read_text())["status"] == "complete"
 
-    proc = labcal(db, "history", "SIMULATED", "--json")
-    assert proc.returncode == 0, proc.stderr
-    calibrations = json.loads(proc.stdout)["calibrations"]
+    code, out, err = cli_on(db, "history", "SIMULATED", "--json")
+    assert code == 0, err
+    calibrations = json.loads(out)["calibrations"]
     assert [(c["certificate_id"], c["digest"]) for c in calibrations] == [(cert_id, digest)]
 
 
-def test_the_resumed_run_of_the_old_database_gets_a_certificate(v0):
+def test_the_resumed_run_of_the_old_database_gets_a_certificate(v0, cli_on):
     db = v0 / "labcal.sqlite"
-    upgrade(db)
-    assert labcal(db, "resume", str(v0 / "stopped"), "--yes").returncode == 0  # reports when done
-    proc = labcal(db, "history", "SIMULATED", "--json")
-    assert proc.returncode == 0, proc.stderr
-    assert len(json.loads(proc.stdout)["calibrations"]) == 2  # the old certificate and the new one
+    upgrade(cli_on, db)
+    code, _, err = cli_on(db, "resume", str(v0 / "stopped"), "--yes")  # reports when done
+    assert code == 0, err
+    code, out, err = cli_on(db, "history", "SIMULATED", "--json")
+    assert code == 0, err
+    assert len(json.loads(out)["calibrations"]) == 2  # the old certificate and the new one
 
 
 @pytest.mark.parametrize("version", [1, 3, 5])
-def test_a_file_behind_is_refused_by_every_command_before_anything_moves(tmp_path, version):
+def test_a_file_behind_is_refused_by_every_command_before_anything_moves(tmp_path, cli_on, version):
     db = legacy_file(tmp_path / "lab.sqlite", version)
     old = dump(db)
     for command in (("runs",), ("history", "SIMULATED"),
                     ("run", "--sim", "--yes", "--no-report", "--out", str(tmp_path / "run"))):
-        proc = labcal(db, *command)
-        assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
-        line = proc.stderr.strip()
+        code, _, err = cli_on(db, *command)
+        assert code == 2 and len(err.strip().splitlines()) == 1, err
+        line = err.strip()
         assert f"schema {version:04d} (user_version {version}, before Alembic), older than this labcal's " \
                f"({HEAD}); run: labcal db upgrade --db {db}" in line.replace("\n", "")
     assert not (tmp_path / "run").exists()  # the run was refused before its folder (or a move)
     assert dump(db) == old
-    status = labcal(db, "db", "status")
-    assert status.returncode == 0 and "behind" in status.stdout
-    done = upgrade(db)
-    assert f"upgraded from schema {version:04d}" in done.stdout
+    code, out, _ = cli_on(db, "db", "status")
+    assert code == 0 and "behind" in out
+    assert f"upgraded from schema {version:04d}" in upgrade(cli_on, db)
     assert dump(labdb.backup_path(db, f"{version:04d}")) == old
-    assert labcal(db, "runs").returncode == 0
+    assert cli_on(db, "runs")[0] == 0
 
 
 def test_an_alembic_revision_behind_is_refused_and_upgraded(tmp_path):
@@ -189,14 +194,14 @@ def test_an_alembic_revision_behind_is_refused_and_upgraded(tmp_path):
         assert "origin_id" in {r[1] for r in con.execute("PRAGMA table_info(events)")}
 
 
-def test_a_new_file_is_created_at_the_newest_revision_without_setup(tmp_path):
+def test_a_new_file_is_created_at_the_newest_revision_without_setup(tmp_path, cli_on):
     db = tmp_path / "new" / "labcal.sqlite"
     with Journal(db):
         pass
     assert alembic_revision(db) == HEAD and user_version(db) == 6
     assert not list(db.parent.glob("*.bak"))  # nothing to keep
-    status = labcal(db, "db", "status")
-    assert status.returncode == 0 and f"schema {HEAD}" in status.stdout and "current" in status.stdout
+    code, out, _ = cli_on(db, "db", "status")
+    assert code == 0 and f"schema {HEAD}" in out and "current" in out
 
 
 def test_a_new_file_is_the_file_alembics_steps_make(tmp_path):
@@ -354,7 +359,7 @@ def test_point_columns_are_the_journal_record():
 
 # --- (c) a newer database is refused -------------------------------------------------------------
 @pytest.mark.parametrize("newer", ["alembic", "user_version"])
-def test_newer_database_is_refused_in_one_line_and_left_alone(v0, capsys, newer):
+def test_newer_database_is_refused_in_one_line_and_left_alone(v0, capsys, cli_on, newer):
     db = v0 / "labcal.sqlite"
     if newer == "alembic":
         labdb.upgrade(db)
@@ -379,21 +384,20 @@ def test_newer_database_is_refused_in_one_line_and_left_alone(v0, capsys, newer)
         err = capsys.readouterr().err
         assert len(err.strip().splitlines()) == 1
         assert "newer than this labcal" in err and "upgrade labcal" in err
-    proc = labcal(db, "resume", str(v0 / "stopped"), "--yes", "--no-report")
-    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1
-    assert "upgrade labcal" in proc.stderr
+    code, _, err = cli_on(db, "resume", str(v0 / "stopped"), "--yes", "--no-report")
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "upgrade labcal" in err
     assert dump(db) == before and not list(v0.glob("*.bak"))
 
 
 # --- (d) upgrading twice, and an upgrade that fails ----------------------------------------------
-def test_upgrading_twice_is_a_no_op(v0):
+def test_upgrading_twice_is_a_no_op(v0, cli_on):
     db = v0 / "labcal.sqlite"
-    upgrade(db)
+    upgrade(cli_on, db)
     migrated = dump(db)
     backup = labdb.backup_path(db, "0000")
     backup.unlink()
-    again = upgrade(db)
-    assert "already at schema" in again.stdout
+    assert "already at schema" in upgrade(cli_on, db)
     with Journal(db):
         pass
     assert dump(db) == migrated and alembic_revision(db) == HEAD
