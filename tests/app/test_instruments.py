@@ -1,7 +1,7 @@
 """The lab's instrument register, due dates and recall, and the serial a run certifies, checked
-before anything moves: real `labcal` processes and the app's use cases against a real SQLite lab
-database (and one register on the private PostgreSQL cluster). Every expected date is computed here
-by hand from the certificate the run wrote."""
+before anything moves: `labcal`'s command line (in this process) and the app's use cases against a
+real SQLite lab database (and one register on the private PostgreSQL cluster). Every expected date
+is computed here by hand from the certificate the run wrote."""
 
 from __future__ import annotations
 
@@ -28,11 +28,6 @@ from labcal.app.labdatabase import OpenLab, open_lab
 from labcal.errors import LabcalError
 
 
-def labcal(*args: str, check: int | None = 0) -> subprocess.CompletedProcess:
-    """`labcal ARGS` in a process of its own that must succeed unless told otherwise."""
-    return cli.labcal(*args, check=check)
-
-
 class InProcess:
     """`labcal ARGS` in this process (the same command line, without a Python start-up per call)."""
 
@@ -40,14 +35,11 @@ class InProcess:
         self.capsys = capsys
 
     def __call__(self, *args: str, check: int | None = 0) -> subprocess.CompletedProcess:
-        from labcal.cli import main
-
         self.capsys.readouterr()  # what came before (a simulated run's own output) is not this command's
-        code = main(list(args))
-        got = self.capsys.readouterr()
+        code, out, err = cli.cli(self.capsys, *args)
         if check is not None:
-            assert code == check, got.err
-        return subprocess.CompletedProcess(list(args), code, got.out, got.err)
+            assert code == check, err
+        return subprocess.CompletedProcess(list(args), code, out, err)
 
     def json(self, *args: str) -> dict:
         return json.loads(self(*args, "--json").stdout)
@@ -78,9 +70,8 @@ class Front:
 
 
 @pytest.mark.slow
-def test_a_serial_with_a_trailing_space_is_certified_without_it_and_says_so(tmp_path):
-    done = labcal("run", "--sim", "--yes", "--seed", "3", "--serial", "ACC-0042 ",
-                  "--out", str(tmp_path / "run"))
+def test_a_serial_with_a_trailing_space_is_certified_without_it_and_says_so(lc, tmp_path):
+    done = lc("run", "--sim", "--yes", "--seed", "3", "--serial", "ACC-0042 ", "--out", str(tmp_path / "run"))
     assert "surrounding whitespace removed, certified as 'ACC-0042'" in done.stderr
     cert = json.loads((tmp_path / "run" / "certificate.json").read_text(encoding="utf-8"))
     assert cert["instrument"]["serial"] == "ACC-0042"
@@ -88,8 +79,8 @@ def test_a_serial_with_a_trailing_space_is_certified_without_it_and_says_so(tmp_
     assert ">ACC-0042<" in dcc and "ACC-0042 <" not in dcc
 
 
-def test_a_serial_with_a_line_break_is_refused_in_one_line_before_any_run_folder(tmp_path):
-    done = labcal("run", "--sim", "--yes", "--serial", "ACC-\n0042", "--out", str(tmp_path / "run"), check=2)
+def test_a_serial_with_a_line_break_is_refused_in_one_line_before_any_run_folder(lc, tmp_path):
+    done = lc("run", "--sim", "--yes", "--serial", "ACC-\n0042", "--out", str(tmp_path / "run"), check=2)
     assert done.stderr.count("\n") == 1 and "control character" in done.stderr
     assert "Traceback" not in done.stderr
     assert not (tmp_path / "run").exists()
@@ -117,9 +108,9 @@ def test_a_serial_in_another_case_takes_the_registers_spelling(lc, lab_database)
     assert any("registered as 'ACC-0042'" in note for note in found.notes)
 
 
-def test_an_unregistered_serial_is_refused_with_yes_and_nothing_moves(tmp_path):
-    labcal("instrument", "add", "ACC-0042")
-    done = labcal("run", "--sim", "--yes", "--serial", "ACC-0043", "--out", str(tmp_path / "run"), check=2)
+def test_an_unregistered_serial_is_refused_with_yes_and_nothing_moves(lc, tmp_path):
+    lc("instrument", "add", "ACC-0042")
+    done = lc("run", "--sim", "--yes", "--serial", "ACC-0043", "--out", str(tmp_path / "run"), check=2)
     assert "not in the lab's instrument register" in done.stderr and done.stderr.count("\n") == 1
     assert not (tmp_path / "run").exists()
 
@@ -185,8 +176,8 @@ def test_an_interval_that_is_not_one_is_refused(text):
         interval_days(text)
 
 
-def test_a_bad_status_or_interval_is_refused_before_the_database_is_created(tmp_path, lab_database):
-    done = labcal("instrument", "add", "ACC-0042", "--interval", "soon", check=2)
+def test_a_bad_status_or_interval_is_refused_before_the_database_is_created(lc, lab_database):
+    done = lc("instrument", "add", "ACC-0042", "--interval", "soon", check=2)
     assert "--interval" in done.stderr and not lab_database.exists()
 
 

@@ -30,17 +30,15 @@ MOUNTS = 4
 CERTIFICATE = "certificate_id, serial, calibrated_utc, issued_utc, sha256, document"
 
 
-def env_for(tmp_path: Path, url: str, station: str) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("LABCAL_")}
-    return {**env, "LABCAL_DB": url, "LABCAL_JOURNAL": str(tmp_path / station / "journal.sqlite"),
-            "LABCAL_STATION": station, "LABCAL_CONFIG": str(tmp_path / "lab.toml"),
-            "XDG_DATA_HOME": str(tmp_path / "data")}
-
-
-@pytest.fixture
-def lab_file(tmp_path: Path) -> Path:
-    (tmp_path / "lab.toml").write_text("")
-    return tmp_path / "lab.toml"
+def as_bench(monkeypatch, tmp_path: Path, db: str, station: str = "bench") -> None:
+    """This process as the station `cli.bench_env` describes, for labcal in this process (`cli.cli`):
+    its variables set and no other LABCAL_*, through ``monkeypatch`` (undone after the test)."""
+    env = cli.bench_env(tmp_path, db, station)
+    for name in [n for n in os.environ if n.startswith("LABCAL_") and n not in env]:
+        monkeypatch.delenv(name)
+    for name, value in env.items():
+        if os.environ.get(name) != value:
+            monkeypatch.setenv(name, value)
 
 
 def assert_exactly_once(url: str, journals: list[Path]) -> int:
@@ -64,11 +62,11 @@ def server_count(url: str, sql: str = "SELECT count(*) FROM points") -> int:
 
 
 @pytest.mark.slow
-def test_three_stations_at_once_reach_one_server_exactly_once(tmp_path, postgres_url, lab_file):
+def test_three_stations_at_once_reach_one_server_exactly_once(tmp_path, postgres_url):
     stations = ("bench-north", "bench-south", "bench-east")
     runs = [subprocess.Popen([LABCAL, "run", "--sim", "--yes", "--no-report", "--seed", str(n + 1),
                               "--out", str(tmp_path / name / "run")],
-                             env=env_for(tmp_path, postgres_url, name), stdout=subprocess.PIPE,
+                             env=cli.bench_env(tmp_path, postgres_url, name), stdout=subprocess.PIPE,
                              stderr=subprocess.PIPE, text=True)
             for n, name in enumerate(stations)]
     outputs = [run.communicate(timeout=240) for run in runs]
@@ -110,14 +108,14 @@ FIGURES = Path(os.environ.get("LABCAL_OUTAGE_FIGURES", os.devnull))
 
 @pytest.mark.slow
 def test_a_run_that_loses_the_server_for_10_s_ends_with_every_reading_there_once(
-        tmp_path, postgres_cluster, lab_file):
+        tmp_path, postgres_cluster):
     """The run is held at its remount prompts by its operator (answers on stdin, given when the test
     says), so the outage falls where the test wants on any machine: mount 1 measured with the
     server up, mount 2 (and the start of mount 3) while it is down, the rest after it is back."""
     url = postgres_cluster.url(postgres_cluster.create_database())
     journal = tmp_path / "bench" / "journal.sqlite"
     run = subprocess.Popen([LABCAL, "run", "--sim", "--no-report", "--out", str(tmp_path / "bench" / "run")],
-                           env=env_for(tmp_path, url, "bench"), stdin=subprocess.PIPE,
+                           env=cli.bench_env(tmp_path, url, "bench"), stdin=subprocess.PIPE,
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert run.stdin is not None
 
@@ -166,48 +164,47 @@ def test_a_run_that_loses_the_server_for_10_s_ends_with_every_reading_there_once
                       f"while it was down, {total - before - during} after; {total} there once each\n")
 
 
-def test_labcal_sync_sends_a_run_made_while_the_server_was_down(tmp_path, postgres_cluster, lab_file):
+def test_labcal_sync_sends_a_run_made_while_the_server_was_down(tmp_path, postgres_cluster, capsys,
+                                                              monkeypatch):
     url = postgres_cluster.url(postgres_cluster.create_database())
-    env = env_for(tmp_path, url, "bench")
+    as_bench(monkeypatch, tmp_path, url)
     postgres_cluster.pause()
     try:
-        done = subprocess.run([LABCAL, "run", "--sim", "--yes", "--no-report", "--replicates", "1",
-                               "--plan", "four-mount-64", "--out", str(tmp_path / "run")],
-                              env=env, capture_output=True, text=True, timeout=120)
-        refused = subprocess.run([LABCAL, "sync"], env=env, capture_output=True, text=True, timeout=60)
+        ran, _, ran_err = cli.cli(capsys, "run", "--sim", "--yes", "--no-report", "--replicates", "1",
+                                  "--plan", "four-mount-64", "--out", str(tmp_path / "run"))
+        refused, _, refused_err = cli.cli(capsys, "sync")
     finally:
         postgres_cluster.start()
-    assert done.returncode == 0, done.stderr
-    assert "not yet in the lab database" in done.stderr and "labcal sync" in done.stderr
-    assert refused.returncode == 2 and "cannot reach the lab database" in refused.stderr
-    assert len(refused.stderr.strip().splitlines()) == 1 and "Traceback" not in refused.stderr
+    assert ran == 0, ran_err
+    assert "not yet in the lab database" in ran_err and "labcal sync" in ran_err
+    assert refused == 2 and "cannot reach the lab database" in refused_err
+    assert len(refused_err.strip().splitlines()) == 1 and "Traceback" not in refused_err
     journal = tmp_path / "bench" / "journal.sqlite"
     points = local_count(journal)
     assert points == MOUNTS * MOUNT_POINTS
-    sent = subprocess.run([LABCAL, "sync"], env=env, capture_output=True, text=True, timeout=60)
-    assert sent.returncode == 0, sent.stderr
-    assert f"{points} points" in sent.stdout
+    code, out, err = cli.cli(capsys, "sync")
+    assert code == 0, err
+    assert f"{points} points" in out
     assert assert_exactly_once(url, [journal]) == points
-    again = subprocess.run([LABCAL, "sync"], env=env, capture_output=True, text=True, timeout=60)
-    assert again.returncode == 0 and "nothing to send" in again.stdout
+    code, out, _ = cli.cli(capsys, "sync")
+    assert code == 0 and "nothing to send" in out
     assert assert_exactly_once(url, [journal]) == points
 
 
 # --- refusals: one line, exit 2, no traceback ----------------------------------------------------
-def one_line_refusal(done: subprocess.CompletedProcess, *words: str) -> str:
-    assert done.returncode == 2, done.stderr
-    lines = done.stderr.strip().splitlines()
-    assert len(lines) == 1 and "Traceback" not in done.stderr, done.stderr
+def one_line_refusal(done: tuple[int, str, str], *words: str) -> str:
+    """``done``: a labcal's exit code, stdout and stderr (`cli.cli`)."""
+    code, _, stderr = done
+    assert code == 2, stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in stderr, stderr
     for word in words:
         assert word in lines[0], lines[0]
     return lines[0]
 
 
-def labcal(env: dict[str, str], *args: str) -> subprocess.CompletedProcess:
-    return cli.labcal(*args, env=env, timeout=60)
-
-
-def test_a_server_database_behind_is_refused_until_labcal_db_upgrade(tmp_path, postgres_url, lab_file):
+def test_a_server_database_behind_is_refused_until_labcal_db_upgrade(tmp_path, postgres_url, capsys,
+                                                                     monkeypatch):
     import sqlalchemy as sa
 
     from labcal.store import migrations
@@ -216,68 +213,68 @@ def test_a_server_database_behind_is_refused_until_labcal_db_upgrade(tmp_path, p
     with engine.begin() as connection:
         migrations.upgrade(connection, "0006")
     engine.dispose()
-    env = env_for(tmp_path, postgres_url, "bench")
-    line = one_line_refusal(labcal(env, "run", "--sim", "--yes", "--no-report", "--out", str(tmp_path / "r")),
-                            "0006", "older", "labcal db upgrade")
+    as_bench(monkeypatch, tmp_path, postgres_url)
+    run = cli.cli(capsys, "run", "--sim", "--yes", "--no-report", "--out", str(tmp_path / "r"))
+    line = one_line_refusal(run, "0006", "older", "labcal db upgrade")
     assert not (tmp_path / "r").exists()  # refused before the run began
-    one_line_refusal(labcal(env, "sync"), "0006", "labcal db upgrade")
+    one_line_refusal(cli.cli(capsys, "sync"), "0006", "labcal db upgrade")
     assert "labcal" in line
-    status = labcal(env, "db", "status")
-    assert status.returncode == 0 and "0006" in status.stdout and "behind" in status.stdout
-    up = labcal(env, "db", "upgrade")
-    assert up.returncode == 0, up.stderr
+    code, out, _ = cli.cli(capsys, "db", "status")
+    assert code == 0 and "0006" in out and "behind" in out
+    code, _, err = cli.cli(capsys, "db", "upgrade")
+    assert code == 0, err
     with psycopg.connect(postgres_url) as conn:
         assert conn.execute("SELECT version_num FROM alembic_version").fetchone()[0] == migrations.HEAD
         assert conn.execute("SELECT count(*) FROM information_schema.columns WHERE table_name = 'events' "
                             "AND column_name = 'origin_id'").fetchone()[0] == 1
 
 
-def test_a_server_database_ahead_is_refused(tmp_path, postgres_url, lab_file):
+def test_a_server_database_ahead_is_refused(tmp_path, postgres_url, capsys, monkeypatch):
     with psycopg.connect(postgres_url) as conn:
         conn.execute("CREATE TABLE alembic_version (version_num VARCHAR(32) PRIMARY KEY)")
         conn.execute("INSERT INTO alembic_version VALUES ('0042')")
-    env = env_for(tmp_path, postgres_url, "bench")
-    one_line_refusal(labcal(env, "sync"), "0042", "newer", "upgrade labcal")
-    one_line_refusal(labcal(env, "db", "upgrade"), "0042", "newer", "upgrade labcal")
+    as_bench(monkeypatch, tmp_path, postgres_url)
+    one_line_refusal(cli.cli(capsys, "sync"), "0042", "newer", "upgrade labcal")
+    one_line_refusal(cli.cli(capsys, "db", "upgrade"), "0042", "newer", "upgrade labcal")
 
 
-def test_an_unreachable_server_is_one_line_at_upgrade_and_sync(tmp_path, lab_file):
+def test_an_unreachable_server_is_one_line_at_upgrade_and_sync(tmp_path, capsys, monkeypatch):
     url = f"postgresql://labcal@127.0.0.1:{free_port()}/lab"  # nothing listens there
-    env = env_for(tmp_path, url, "bench")
+    as_bench(monkeypatch, tmp_path, url)
     (tmp_path / "bench").mkdir()
     sqlite3.connect(tmp_path / "bench" / "journal.sqlite").close()
     for command in (("db", "upgrade"), ("sync",), ("db", "status")):
-        one_line_refusal(labcal(env, *command), "cannot reach the lab database", "127.0.0.1")
+        one_line_refusal(cli.cli(capsys, *command), "cannot reach the lab database", "127.0.0.1")
 
 
-def test_an_unknown_scheme_is_refused(tmp_path, lab_file):
-    env = env_for(tmp_path, "mysql://labcal@127.0.0.1:3306/lab", "bench")
+def test_an_unknown_scheme_is_refused(tmp_path, capsys, monkeypatch):
+    as_bench(monkeypatch, tmp_path, "mysql://labcal@127.0.0.1:3306/lab")
     for command in (("runs",), ("db", "upgrade"), ("sync",)):
-        one_line_refusal(labcal(env, *command), "unknown database scheme 'mysql'")
+        one_line_refusal(cli.cli(capsys, *command), "unknown database scheme 'mysql'")
 
 
-def test_a_server_url_without_its_driver_says_what_to_install(tmp_path, lab_file):
+def test_a_server_url_without_its_driver_says_what_to_install(tmp_path):
     """psycopg made unimportable in the child (as when it is not installed), then labcal's main."""
-    env = env_for(tmp_path, "postgresql://labcal@127.0.0.1:5432/lab", "bench")
+    env = cli.bench_env(tmp_path, "postgresql://labcal@127.0.0.1:5432/lab", "bench")
     code = ("import sys; sys.modules['psycopg'] = None; from labcal.cli import main; "
             "sys.argv = ['labcal', *sys.argv[1:]]; sys.exit(main(sys.argv[1:]))")
     for command in (("runs",), ("sync",), ("db", "upgrade")):
         done = subprocess.run([sys.executable, "-c", code, *command], env=env, capture_output=True, text=True,
                               timeout=60)
-        one_line_refusal(done, "psycopg", "pip install 'labcal[lab]'")
+        one_line_refusal((done.returncode, done.stdout, done.stderr), "psycopg", "pip install 'labcal[lab]'")
 
 
-def test_a_sender_fills_an_empty_server_database_and_sends_nothing_twice(tmp_path, postgres_url, lab_file):
+def test_a_sender_fills_an_empty_server_database_and_sends_nothing_twice(tmp_path, postgres_url, capsys,
+                                                                          monkeypatch):
     """A journal made with a SQLite lab database (the same schema) sent to an empty server database,
     as a run's sender does when the server was away at the start: the schema is created first."""
     from labcal.config.lab import ServerDatabase
     from labcal.store.sync import Sender
 
     journal = tmp_path / "lab.sqlite"
-    env = env_for(tmp_path, str(journal), "bench")
-    done = subprocess.run([LABCAL, "run", "--sim", "--yes", "--out", str(tmp_path / "run")],
-                          env=env, capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, done.stderr
+    as_bench(monkeypatch, tmp_path, str(journal))
+    code, _, err = cli.cli(capsys, "run", "--sim", "--yes", "--out", str(tmp_path / "run"))
+    assert code == 0, err
     with closing(sqlite3.connect(journal)) as db:
         events = db.execute("SELECT count(*) FROM events").fetchone()[0]
         certificate = db.execute(f"SELECT {CERTIFICATE} FROM certificates").fetchall()

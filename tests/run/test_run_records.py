@@ -138,16 +138,13 @@ def test_a_sigterm_is_named_on_the_stop_line_also_after_a_resume(tmp_path, capsy
 def test_a_fault_in_an_unattended_run_is_its_recorded_cause(tmp_path, capsys, monkeypatch, lab_database):
     """--yes with nobody at the console (input closed): the drive alarm that paused the run is
     why it stopped, not the unanswered pause prompt."""
-    import subprocess
-
     from emulators import private_file
 
     fault = '\n[[emulation.faults]]\ndevice = "roll"\nkind = "alarm"\ncode = 16\nafter = 150\n'
     station = private_file("az-modbus-rtu", tmp_path, fault, "timeout_s = 0.2")
-    done = subprocess.run([sys.executable, "-m", "labcal.cli", "run", "--station", str(station), "--emulate",
-                           "--time-scale", "1000", "--no-report", "--yes", "--out", str(tmp_path / "r")],
-                          stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=300)
-    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+    code, _, err = _run(capsys, monkeypatch, "run", "--station", str(station), "--emulate", "--time-scale",
+                        "1000", "--no-report", "--yes", "--out", str(tmp_path / "r"))  # stdin: none
+    assert code == 1 and "Traceback" not in err, err
     with Journal(lab_database) as journal:
         reason = journal.run(1).reason
     # the alarm is met by a move's check or, as here since every window is vouched for, by the
