@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import json
 import signal
 import subprocess
@@ -200,17 +201,18 @@ def test_run_refuses_a_used_directory(tmp_path, capsys):
 
 
 # --- runs ----------------------------------------------------------------------------------
-def test_run_sim_yes_end_to_end(tmp_path):
+def test_run_sim_yes_end_to_end(tmp_path, capsys):
     run_dir = tmp_path / "run"
-    proc = labcal("run", "--sim", "--yes", "--seed", "3", "--out", str(run_dir), "--json", "--no-report")
-    assert proc.returncode == 0, proc.stderr
-    summary = json.loads(proc.stdout)
+    code, stdout, stderr = cli(capsys, "run", "--sim", "--yes", "--seed", "3", "--out", str(run_dir),
+                               "--json", "--no-report")
+    assert code == 0, stderr
+    summary = json.loads(stdout)
     assert summary["points"] == 64 and summary["wall_time_s"] < 10
     assert summary["simulated_rig_time_s"] > 20 * 60  # 64 points and 4 remounts take real time
     # device.json too: the device estimate is the run's, report or not
     assert {p.name for p in run_dir.iterdir()} == {"readings.csv", "fit.json", "plan.toml", "run.json",
                                                    "device.json"}
-    assert proc.stderr.count("(--yes: confirmed)") == 4
+    assert stderr.count("(--yes: confirmed)") == 4
     meta = json.loads((run_dir / "run.json").read_text())
     assert meta["status"] == "complete" and meta["points_recorded"] == 64
     X = np.array(json.loads((run_dir / "fit.json").read_text())["coefficients"])
@@ -219,18 +221,20 @@ def test_run_sim_yes_end_to_end(tmp_path):
     assert np.max(np.abs(X - truth)) < 1e-4
 
 
-def test_run_prompts_are_answered_interactively(tmp_path):
-    proc = labcal("run", "--sim", "--no-report", "--out", str(tmp_path / "run"), input="y\nyes\nY\ny\n")
-    assert proc.returncode == 0, proc.stderr
-    assert proc.stderr.count("Type y and Enter when mounted") == 4
-    assert "bottom side of the plate, x sensor pointing backward" in proc.stderr
+def test_run_prompts_are_answered_interactively(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("sys.stdin", io.StringIO("y\nyes\nY\ny\n"))
+    code, _, stderr = cli(capsys, "run", "--sim", "--no-report", "--out", str(tmp_path / "run"))
+    assert code == 0, stderr
+    assert stderr.count("Type y and Enter when mounted") == 4
+    assert "bottom side of the plate, x sensor pointing backward" in stderr
 
 
-def test_operator_stops_at_a_prompt_and_keeps_readings(tmp_path):
+def test_operator_stops_at_a_prompt_and_keeps_readings(tmp_path, capsys, monkeypatch):
     run_dir = tmp_path / "run"
-    proc = labcal("run", "--sim", "--no-report", "--out", str(run_dir), input="y\nq\n")
-    assert proc.returncode == 1
-    assert "16 reading(s) kept" in proc.stderr and proc.stderr.strip().splitlines()[-1].startswith("stopped")
+    monkeypatch.setattr("sys.stdin", io.StringIO("y\nq\n"))
+    code, _, stderr = cli(capsys, "run", "--sim", "--no-report", "--out", str(run_dir))
+    assert code == 1
+    assert "16 reading(s) kept" in stderr and stderr.strip().splitlines()[-1].startswith("stopped")
     assert len((run_dir / "readings.csv").read_text().strip().splitlines()) == 1 + 16
     assert json.loads((run_dir / "run.json").read_text())["status"] == "stopped"
 
@@ -269,10 +273,11 @@ def test_ctrl_c_at_a_prompt_keeps_every_reading(tmp_path, lab_database):
     assert meta["status"] == "interrupted" and meta["points_recorded"] == 16
 
 
-def test_no_answer_at_a_prompt_stops_cleanly(tmp_path):
-    proc = labcal("run", "--sim", "--no-report", "--out", str(tmp_path / "run"), stdin=subprocess.DEVNULL)
-    assert proc.returncode == 1 and "no answer at the prompt" in proc.stderr
-    assert "0 reading(s) kept" in proc.stderr
+def test_no_answer_at_a_prompt_stops_cleanly(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("sys.stdin", io.StringIO(""))  # input closed
+    code, _, stderr = cli(capsys, "run", "--sim", "--no-report", "--out", str(tmp_path / "run"))
+    assert code == 1 and "no answer at the prompt" in stderr
+    assert "0 reading(s) kept" in stderr
 
 
 def test_rig_file_sets_the_simulated_rig(tmp_path, capsys):

@@ -8,15 +8,15 @@ request is real HTTP through httpx; the database is the SQLite file the runs jou
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import re
 import sqlite3
-import subprocess
 import tomllib
 
 import httpx
 import pytest
-from cli import labcal
+from cli import cli, labcal
 from lab_server import add_user, served
 
 from labcal.cli import main
@@ -142,39 +142,41 @@ def test_the_users_table_keeps_no_password_nor_token_in_clear(lab):
     assert PasswordHasher().verify(rows["ada"][1], PASSWORD["ada"])
 
 
-def test_user_add_prints_the_token_alone_on_its_line_and_refuses_an_empty_password(lab):
-    def add(name: str, role: str, password: str) -> subprocess.CompletedProcess:
-        return labcal("user", "add", name, "--role", role, "--password-stdin", "--db", lab["db"],
-                      typed=password + "\n")
-    done = add("eve", "viewer", "eve's password")
-    assert done.returncode == 0, done.stderr
-    assert re.fullmatch(r"[A-Za-z0-9_-]{43}\n", done.stdout)  # 32 bytes, URL-safe base64, alone
-    assert _get(lab, "/api/runs", done.stdout.strip()).status_code == 200
-    for refused in (add("eve", "viewer", "eve's password"), add("fay", "viewer", ""),
-                    add("gus", "boss", "gus's password")):
-        assert refused.returncode == 2 and refused.stdout == ""
-        assert len(refused.stderr.strip().splitlines()) == 1 and "Traceback" not in refused.stderr
-    listed = json.loads(labcal("user", "list", "--json", "--db", lab["db"]).stdout)["users"]
+def test_user_add_prints_the_token_alone_on_its_line_and_refuses_an_empty_password(lab, capsys, monkeypatch):
+    def add(name: str, role: str, password: str) -> tuple[int, str, str]:
+        monkeypatch.setattr("sys.stdin", io.StringIO(password + "\n"))
+        return cli(capsys, "user", "add", name, "--role", role, "--password-stdin", "--db", lab["db"])
+
+    code, stdout, stderr = add("eve", "viewer", "eve's password")
+    assert code == 0, stderr
+    assert re.fullmatch(r"[A-Za-z0-9_-]{43}\n", stdout)  # 32 bytes, URL-safe base64, alone
+    assert _get(lab, "/api/runs", stdout.strip()).status_code == 200
+    for code, stdout, stderr in (add("eve", "viewer", "eve's password"), add("fay", "viewer", ""),
+                                 add("gus", "boss", "gus's password")):
+        assert code == 2 and stdout == ""
+        assert len(stderr.strip().splitlines()) == 1 and "Traceback" not in stderr
+    listed = json.loads(cli(capsys, "user", "list", "--json", "--db", lab["db"])[1])["users"]
     assert "fay" not in {u["name"] for u in listed} and {"eve", "ada"} <= {u["name"] for u in listed}
 
 
-def test_a_user_refused_creates_no_lab_database(tmp_path):
+def test_a_user_refused_creates_no_lab_database(tmp_path, capsys, monkeypatch):
     """`user add` may create the lab database, but not for a request it refuses."""
     db = tmp_path / "new.sqlite"
     for name, role, password in (("", "viewer", "a password"), ("hal", "boss", "a password"),
                                  ("hal", "viewer", "")):
-        done = labcal("user", "add", name, "--role", role, "--password-stdin", "--db", str(db),
-                      typed=password + "\n")
-        assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+        monkeypatch.setattr("sys.stdin", io.StringIO(password + "\n"))
+        code, _, stderr = cli(capsys, "user", "add", name, "--role", role, "--password-stdin",
+                              "--db", str(db))
+        assert code == 2 and len(stderr.strip().splitlines()) == 1, stderr
         assert not db.exists(), (name, role, password)
 
 
-def test_a_disabled_user_is_out(lab):
+def test_a_disabled_user_is_out(lab, capsys):
     token = lab["tokens"]["dan"]
     assert _get(lab, "/api/runs", token).status_code == 200
     client = _signed_in(lab, "dan")
     assert client.get("/").status_code == 200
-    assert labcal("user", "disable", "dan", "--db", lab["db"]).returncode == 0
+    assert cli(capsys, "user", "disable", "dan", "--db", lab["db"])[0] == 0
     assert _get(lab, "/api/runs", token).status_code == 401
     assert client.get("/", follow_redirects=False).status_code == 303  # back to the login form
     assert client.post("/login", data={"name": "dan", "password": PASSWORD["dan"],
@@ -300,16 +302,12 @@ def test_serve_refuses_a_key_it_cannot_sign_with_and_a_port_in_use(lab, tmp_path
         assert len(done.stderr.strip().splitlines()) == 1 and why in done.stderr
 
 
-def test_user_add_asks_for_the_password_when_none_is_given(lab):
-    """Without --password it is asked for twice (getpass: without echo on a terminal; here, with no
-    terminal, from stdin) and refused when empty or when the two differ, adding nobody."""
-    import subprocess
+def test_user_add_asks_for_the_password_when_none_is_given(lab, capsys):
+    """Without --password it is asked for twice (getpass: without echo on a terminal; here, in a process
+    of its own with no terminal, from stdin) and refused when empty or when the two differ, adding nobody."""
+    def add(name: str, typed: str):
+        return labcal("user", "add", name, "--role", "viewer", "--db", lab["db"], typed=typed, timeout=60)
 
-    from cli import LABCAL
-
-    def add(name: str, typed: str) -> subprocess.CompletedProcess:
-        return subprocess.run([LABCAL, "user", "add", name, "--role", "viewer", "--db", lab["db"]],
-                              input=typed, capture_output=True, text=True, timeout=60, start_new_session=True)
     asked = add("hal", "hal's passphrase\nhal's passphrase\n")
     assert asked.returncode == 0, asked.stderr
     assert re.fullmatch(r"[A-Za-z0-9_-]{43}\n", asked.stdout) and "hal's passphrase" not in asked.stdout
@@ -321,6 +319,6 @@ def test_user_add_asks_for_the_password_when_none_is_given(lab):
                              ("jo", "one passphrase\ntwo passphrase\n", "differ")):
         refused = add(name, typed)
         assert refused.returncode == 2 and refused.stdout == "" and why in refused.stderr
-    shown = labcal("user", "list", "--json", "--db", lab["db"]).stdout
+    shown = cli(capsys, "user", "list", "--json", "--db", lab["db"])[1]
     listed = {u["name"] for u in json.loads(shown)["users"]}
     assert "hal" in listed and not {"ian", "jo"} & listed

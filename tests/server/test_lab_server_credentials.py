@@ -2,10 +2,12 @@
 password on a command line or a page, the lab database owner-only, a password policy (a length
 floor, a list of common passwords), `labcal user passwd`, `token` (rotation) and expiry, an audit
 trail for approvers; and user values (a serial with Rich markup) printed literally, commands
-shell-quoted. Against real processes: `labcal user …`, `labcal run --sim`, `labcal serve` over HTTP."""
+shell-quoted. `labcal serve` runs in a process of its own, over HTTP; the other commands run in this
+process, but where what a process of its own prints, or does without a terminal, is the point."""
 
 from __future__ import annotations
 
+import io
 import re
 import shlex
 import sqlite3
@@ -16,7 +18,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from cli import LABCAL, labcal
+from cli import cli, in_process, labcal
 from lab_server import add_user, served
 
 PASSWORD = {"ada": "ada's long passphrase", "vic": "vic's passphrase", "tom": "tom's passphrase"}
@@ -26,14 +28,11 @@ SERIAL = "ACC[/x] $HOME"  # Rich markup and a shell expansion in one serial
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory) -> Iterator[dict]:
     """A lab database made by `labcal run` (a simulated run issuing its certificate, of an instrument
-    whose serial is `SERIAL`) and three users."""
-    import subprocess
-
+    whose serial is `SERIAL`; its exit code, stdout and stderr) and three users."""
     base = tmp_path_factory.mktemp("cred")
     db = str(base / "lab.sqlite")
-    ran = subprocess.run([LABCAL, "run", "--sim", "--yes", "--plan", "one-mount-16", "--serial", SERIAL,
-                          "--db", db, "--out", str(base / "run")],
-                         capture_output=True, text=True, timeout=300)
+    ran = in_process("run", "--sim", "--yes", "--plan", "one-mount-16", "--serial", SERIAL,
+                     "--db", db, "--out", str(base / "run"))
     tokens = {name: add_user(db, name, role, PASSWORD[name])
               for name, role in (("ada", "approver"), ("vic", "viewer"), ("tom", "technician"))}
     with served(db) as url:
@@ -55,9 +54,9 @@ def _signed_in(url: str, name: str, password: str) -> httpx.Client:
 def test_a_serial_with_markup_is_printed_as_it_is_and_the_history_command_is_shell_quoted(lab):
     """`ACC[/x]` crashed `labcal run` after the run (Rich read it as a closing tag); the hint
     `labcal history SERIAL` is printed so that the shell gives the serial back unchanged."""
-    ran = lab["ran"]
-    assert ran.returncode == 0 and "Traceback" not in ran.stderr, ran.stderr[-800:]
-    printed = " ".join(ran.stdout.split())  # the console wraps long lines
+    code, stdout, stderr = lab["ran"]
+    assert code == 0 and "Traceback" not in stderr, stderr[-800:]
+    printed = " ".join(stdout.split())  # the console wraps long lines
     hint = re.search(r"\((labcal history .*?)\)$", printed, re.M)
     assert hint, printed[-400:]
     assert shlex.split(hint[1]) == ["labcal", "history", SERIAL]
@@ -76,46 +75,52 @@ def test_user_add_without_a_terminal_nor_a_password_says_so_in_one_line(tmp_path
     ("viewer", "123QWEASDZXC", "most common"),  # compared without case
     ("viewer", "hal-the-user", None),
 ])
-def test_the_password_policy_holds_at_user_add(tmp_path, role, password, why):
+def test_the_password_policy_holds_at_user_add(tmp_path, capsys, monkeypatch, role, password, why):
     name = "hal-the-user" if why is None else "hal"
-    done = labcal("user", "add", name, "--role", role, "--password-stdin", "--db",
-                  str(tmp_path / "lab.sqlite"), typed=password + "\n")
+    monkeypatch.setattr("sys.stdin", io.StringIO(password + "\n"))
+    code, _, stderr = cli(capsys, "user", "add", name, "--role", role, "--password-stdin", "--db",
+                          str(tmp_path / "lab.sqlite"))
     if why is None:  # the name as the password is refused too
-        assert done.returncode == 2 and "most common" in done.stderr
+        assert code == 2 and "most common" in stderr
         return
-    assert done.returncode == 2 and why in done.stderr and len(done.stderr.strip().splitlines()) == 1
+    assert code == 2 and why in stderr and len(stderr.strip().splitlines()) == 1
 
 
-def test_a_password_on_the_command_line_still_works_with_a_warning(tmp_path):
-    done = labcal("user", "add", "hal", "--role", "viewer", "--password", "hal's passphrase", "--db",
-                  str(tmp_path / "lab.sqlite"))
-    assert done.returncode == 0 and "visible to every account" in done.stderr
+def test_a_password_on_the_command_line_still_works_with_a_warning(tmp_path, capsys):
+    code, _, stderr = cli(capsys, "user", "add", "hal", "--role", "viewer", "--password", "hal's passphrase",
+                          "--db", str(tmp_path / "lab.sqlite"))
+    assert code == 0 and "visible to every account" in stderr
 
 
-def test_the_lab_database_is_created_readable_by_its_owner_only(tmp_path):
+def test_the_lab_database_is_created_readable_by_its_owner_only(tmp_path, capsys, monkeypatch):
     db = tmp_path / "new" / "lab.sqlite"
-    assert labcal("user", "add", "hal", "--role", "viewer", "--password-stdin", "--db", str(db),
-                  typed="hal's password\n").returncode == 0
+    monkeypatch.setattr("sys.stdin", io.StringIO("hal's password\n"))
+    assert cli(capsys, "user", "add", "hal", "--role", "viewer", "--password-stdin", "--db", str(db))[0] == 0
     for path in [db, *db.parent.glob("lab.sqlite-*")]:
         assert stat.S_IMODE(path.stat().st_mode) & 0o077 == 0, (path, oct(path.stat().st_mode))
 
 
-def test_a_new_password_replaces_the_old_one_and_a_new_token_the_old_one(lab):
+def test_a_new_password_replaces_the_old_one_and_a_new_token_the_old_one(lab, capsys, monkeypatch):
     db, url = lab["db"], lab["url"]
+
+    def passwd(typed: str) -> tuple[int, str, str]:
+        monkeypatch.setattr("sys.stdin", io.StringIO(typed))
+        return cli(capsys, "user", "passwd", "eve", "--password-stdin", "--db", db)
+
     add_user(db, "eve", "viewer", "eve's first passphrase")
-    changed = labcal("user", "passwd", "eve", "--password-stdin", "--db", db, typed="eve's second one\n")
-    assert changed.returncode == 0, changed.stderr
+    code, _, stderr = passwd("eve's second one\n")
+    assert code == 0, stderr
     refused = httpx.Client(base_url=url, timeout=15)
     old = refused.post("/login", data={"name": "eve", "password": "eve's first passphrase",
                                        "csrf": _csrf(refused.get("/login").text)})
     assert old.status_code == 401
     _signed_in(url, "eve", "eve's second one").close()
-    weak = labcal("user", "passwd", "eve", "--password-stdin", "--db", db, typed="short\n")
-    assert weak.returncode == 2 and "unchanged" in weak.stderr
+    code, _, stderr = passwd("short\n")
+    assert code == 2 and "unchanged" in stderr
 
-    issued = labcal("user", "token", "tom", "--db", db)
-    assert issued.returncode == 0 and re.fullmatch(r"[A-Za-z0-9_-]{43}\n", issued.stdout)
-    new = issued.stdout.strip()
+    code, stdout, _ = cli(capsys, "user", "token", "tom", "--db", db)
+    assert code == 0 and re.fullmatch(r"[A-Za-z0-9_-]{43}\n", stdout)
+    new = stdout.strip()
     api = url + "/api/runs"
     assert httpx.get(api, headers={"Authorization": f"Bearer {lab['tokens']['tom']}"}, timeout=10
                      ).status_code == 401
@@ -159,7 +164,7 @@ def test_a_database_password_is_never_printed(tmp_path):
     assert "visible to every account" in done.stderr.splitlines()[0]  # and the command line is warned of
 
 
-def test_the_audit_trail_page_is_for_approvers_and_its_chain_is_checked(lab):
+def test_the_audit_trail_page_is_for_approvers_and_its_chain_is_checked(lab, capsys):
     url, db = lab["url"], lab["db"]
     viewer = _signed_in(url, "vic", PASSWORD["vic"])
     assert viewer.get("/audit").status_code == 403
@@ -171,18 +176,18 @@ def test_the_audit_trail_page_is_for_approvers_and_its_chain_is_checked(lab):
         conn.execute("UPDATE audit SET account = 'nobody' WHERE id = 2")
     altered = approver.get("/audit")
     assert "row 2 does not follow" in altered.text
-    printed = labcal("user", "audit", "--db", db)
-    assert printed.returncode == 2 and "row 2 does not follow" in printed.stderr
+    code, _, stderr = cli(capsys, "user", "audit", "--db", db)
+    assert code == 2 and "row 2 does not follow" in stderr
 
 
-def test_changes_to_the_register_of_approvers_are_in_the_audit_trail(tmp_path):
+def test_changes_to_the_register_of_approvers_are_in_the_audit_trail(tmp_path, capsys):
     db = str(tmp_path / "lab.sqlite")
     add_user(db, "ada", "approver", PASSWORD["ada"])
-    assert labcal("certificate", "keygen", "--out", str(tmp_path / "ada")).returncode == 0
-    added = labcal("certificate", "approvers", "add", "ada", "--role", "Technical manager", "--public-key",
-                   str(tmp_path / "ada.pub"), "--db", db)
-    assert added.returncode == 0, added.stderr
-    assert labcal("certificate", "approvers", "revoke", "ada", "--db", db).returncode == 0
+    assert cli(capsys, "certificate", "keygen", "--out", str(tmp_path / "ada"))[0] == 0
+    code, _, stderr = cli(capsys, "certificate", "approvers", "add", "ada", "--role", "Technical manager",
+                          "--public-key", str(tmp_path / "ada.pub"), "--db", db)
+    assert code == 0, stderr
+    assert cli(capsys, "certificate", "approvers", "revoke", "ada", "--db", db)[0] == 0
     with sqlite3.connect(db) as conn:
         rows = conn.execute("SELECT account, detail FROM audit WHERE kind = 'approver changed' ORDER BY id"
                             ).fetchall()
