@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import io
+import os
 import subprocess
 import sys
 from contextlib import redirect_stderr, redirect_stdout
@@ -53,14 +54,24 @@ def bench_env(folder: Path, db: str, station: str = "bench-1") -> dict[str, str]
     """The environment of a bench called ``station`` on the lab database ``db``, everything of it under
     ``folder``: its journal, an empty lab file, its data folder, no notifications; no LABCAL_* of the caller's
     leaks in."""
-    import os
-
     env = {k: v for k, v in os.environ.items() if not k.startswith("LABCAL_")}
     (folder / "lab.toml").touch()
     env.update(LABCAL_DB=db, LABCAL_STATION=station, LABCAL_CONFIG=str(folder / "lab.toml"),
                LABCAL_JOURNAL=str(folder / station / "journal.sqlite"), LABCAL_NOTIFY="",
                XDG_DATA_HOME=str(folder / "data"))
     return env
+
+
+def as_bench(monkeypatch: Any, folder: Path, db: str, station: str = "bench-1") -> None:
+    """This process as the bench `bench_env` describes, for labcal in this process (`cli`,
+    `in_process`): its variables set and no other LABCAL_*, through ``monkeypatch`` (undone after
+    the test)."""
+    env = bench_env(folder, db, station)
+    for name in [n for n in os.environ if n.startswith("LABCAL_") and n not in env]:
+        monkeypatch.delenv(name)
+    for name, value in env.items():
+        if os.environ.get(name) != value:
+            monkeypatch.setenv(name, value)
 
 
 def at_bench(folder: Path, *args: str, db: str, station: str = "bench-1") -> subprocess.CompletedProcess:

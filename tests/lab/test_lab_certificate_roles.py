@@ -12,20 +12,25 @@ from __future__ import annotations
 
 import json
 import sqlite3
-import subprocess
 import uuid
 from contextlib import closing
 from pathlib import Path
+from typing import Any
 
 import psycopg
 import pytest
-from cli import at_bench
+from cli import as_bench, cli, in_process
 
 APPROVAL = {"by": "A. Metrologist", "role": "Technical manager", "approved_utc": "2026-11-27T10:00:00+00:00"}
 
 
-def labcal(tmp_path: Path, *args: str, db: str, station: str = "bench-1") -> subprocess.CompletedProcess:
-    return at_bench(tmp_path, *args, db=db, station=station)
+def labcal(env: pytest.MonkeyPatch, folder: Path, *args: str, db: str, capture: Any = None
+           ) -> tuple[int, str, str]:
+    """``labcal ARGS`` in this process as bench-1 as `cli.bench_env` describes it (`cli.as_bench`,
+    undone with ``env``): exit code, stdout, stderr, read through ``capture`` (pytest's capsys) or, without
+    one, `cli.in_process`."""
+    as_bench(env, folder, db)
+    return in_process(*args) if capture is None else cli(capture, *args)
 
 
 def refused(url: str, sql: str, args: tuple = ()) -> str:
@@ -61,13 +66,14 @@ def lab(tmp_path_factory, postgres_cluster):
     the folder.)"""
     tmp_path = tmp_path_factory.mktemp("certificate-roles")
     admin = postgres_cluster.url(postgres_cluster.create_database())
-    assert labcal(tmp_path, "db", "upgrade", "--db", admin, db=admin).returncode == 0
-    granted = labcal(tmp_path, "db", "grant-station", "bench-1", "--db", admin, db=admin)
-    assert granted.returncode == 0, granted.stderr
-    bench = granted.stdout.strip().splitlines()[-1]
-    done = labcal(tmp_path, "run", "--sim", "--yes", "--plan", "one-mount-16", "--serial", "ACC-0042",
-                  "--out", str(tmp_path / "bench-1" / "run"), db=bench)
-    assert done.returncode == 0, done.stderr
+    with pytest.MonkeyPatch.context() as env:
+        assert labcal(env, tmp_path, "db", "upgrade", "--db", admin, db=admin)[0] == 0
+        code, out, err = labcal(env, tmp_path, "db", "grant-station", "bench-1", "--db", admin, db=admin)
+        assert code == 0, err
+        bench = out.strip().splitlines()[-1]
+        code, _, err = labcal(env, tmp_path, "run", "--sim", "--yes", "--plan", "one-mount-16", "--serial",
+                              "ACC-0042", "--out", str(tmp_path / "bench-1" / "run"), db=bench)
+    assert code == 0, err
     other = str(uuid.uuid4())
     with psycopg.connect(admin) as conn:
         run_uuid, = conn.execute("SELECT uuid FROM runs WHERE station = 'bench-1'").fetchone()
@@ -133,7 +139,7 @@ def test_a_bench_role_appends_and_re_issues_only_its_own_stations_drafts(lab):
     assert not held & {"for-bench-2", "approved-at-the-bench", "no-run", "no-such-run"}
 
 
-def test_sync_passes_over_an_approved_certificate_in_one_line_and_sends_the_rest(lab):
+def test_sync_passes_over_an_approved_certificate_in_one_line_and_sends_the_rest(lab, monkeypatch, capsys):
     """A bench's journal holding a certificate approved there (its role may not store it in the lab)
     and a new draft of its own run: `labcal sync` stores the draft, says in one line what the lab
     refused, ends, and offers it again next time (it stays in the journal)."""
@@ -147,14 +153,14 @@ def test_sync_passes_over_an_approved_certificate_in_one_line_and_sends_the_rest
                    "document) VALUES ('second-draft', 'ACC-0042', '2026-11-27', '2026-11-27', ?, ?)",
                    ("0" * 64, document(draft, "second-draft", run_uuid)))
     for _ in range(2):
-        done = labcal(tmp_path, "sync", "--json", db=bench)
-        assert done.returncode == 0, done.stderr
-        said = json.loads(done.stdout)
+        code, out, err = labcal(monkeypatch, tmp_path, "sync", "--json", db=bench, capture=capsys)
+        assert code == 0, err
+        said = json.loads(out)
         assert said["refused"] == {"certificates": 1}
     assert said["sent"]["certificates"] == 0  # the draft went the first time
-    done = labcal(tmp_path, "sync", db=bench)
-    said = " ".join(done.stdout.split())  # the console wraps its lines
-    assert done.returncode == 0 and said.count("refused") == 1, done.stdout
+    code, out, _ = labcal(monkeypatch, tmp_path, "sync", db=bench, capture=capsys)
+    said = " ".join(out.split())  # the console wraps its lines
+    assert code == 0 and said.count("refused") == 1, out
     assert "refused this bench's role 1 certificates (new row violates row-level security" in said
     with psycopg.connect(admin) as conn:
         held = {r[0] for r in conn.execute("SELECT certificate_id FROM certificates")}

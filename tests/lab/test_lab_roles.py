@@ -12,9 +12,10 @@ from __future__ import annotations
 import base64
 import hashlib
 import hmac
+import io
 import stat
-import subprocess
 from pathlib import Path
+from typing import Any
 
 import cli
 import psycopg
@@ -26,15 +27,19 @@ BENCH_READS = {"alembic_version", "runs", "points", "events", "certificates", "r
                "certificate_files", "standards", "standard_overrides", "certificate_numbers"}
 
 
-def labcal(tmp_path: Path, *args: str, db: str, station: str = "bench-1",
-           stdin: str | None = None) -> subprocess.CompletedProcess:
-    return cli.labcal(*args, env=cli.bench_env(tmp_path, db, station), timeout=240, typed=stdin)
+def labcal(env: pytest.MonkeyPatch, folder: Path, *args: str, db: str, station: str = "bench-1",
+           capture: Any = None) -> tuple[int, str, str]:
+    """``labcal ARGS`` in this process as the bench `cli.bench_env` describes (`cli.as_bench`, undone with
+    ``env``): exit code, stdout, stderr, read through ``capture`` (pytest's capsys or capfd) or, without
+    one, `cli.in_process`."""
+    cli.as_bench(env, folder, db, station)
+    return cli.in_process(*args) if capture is None else cli.cli(capture, *args)
 
 
-def grant(tmp_path: Path, admin: str, station: str, *extra: str) -> str:
-    done = labcal(tmp_path, "db", "grant-station", station, "--db", admin, *extra, db=admin)
-    assert done.returncode == 0, done.stderr
-    return done.stdout.strip().splitlines()[-1]
+def grant(env: pytest.MonkeyPatch, folder: Path, admin: str, station: str, *extra: str) -> str:
+    code, out, err = labcal(env, folder, "db", "grant-station", station, "--db", admin, *extra, db=admin)
+    assert code == 0, err
+    return out.strip().splitlines()[-1]
 
 
 def denied(url: str, sql: str, args: tuple = ()) -> str:
@@ -51,33 +56,35 @@ def lab(tmp_path_factory, postgres_cluster):
     that share it change nothing in it (PostgreSQL refuses them)."""
     tmp_path = tmp_path_factory.mktemp("roles")
     postgres_url = postgres_cluster.url(postgres_cluster.create_database())
-    up = labcal(tmp_path, "db", "upgrade", "--db", postgres_url, db=postgres_url)
-    assert up.returncode == 0, up.stderr
-    again = labcal(tmp_path, "db", "upgrade", "--db", postgres_url, db=postgres_url)  # idempotent
-    assert again.returncode == 0 and "grants and policies are set up" in " ".join(again.stdout.split())
-    bench = grant(tmp_path, postgres_url, "bench-1")
-    done = labcal(tmp_path, "run", "--sim", "--yes", "--no-report", "--plan", "one-mount-16", "--out",
-                  str(tmp_path / "bench-1" / "run"), db=bench)
-    assert done.returncode == 0, done.stderr
-    assert "not yet in the lab database" not in done.stderr and "stopped" not in done.stderr
+    with pytest.MonkeyPatch.context() as env:
+        code, _, err = labcal(env, tmp_path, "db", "upgrade", "--db", postgres_url, db=postgres_url)
+        assert code == 0, err
+        code, out, _ = labcal(env, tmp_path, "db", "upgrade", "--db", postgres_url, db=postgres_url)
+        assert code == 0 and "grants and policies are set up" in " ".join(out.split())  # idempotent
+        bench = grant(env, tmp_path, postgres_url, "bench-1")
+        code, _, err = labcal(env, tmp_path, "run", "--sim", "--yes", "--no-report", "--plan", "one-mount-16",
+                              "--out", str(tmp_path / "bench-1" / "run"), db=bench)
+    assert code == 0, err
+    assert "not yet in the lab database" not in err and "stopped" not in err
     with psycopg.connect(postgres_url) as conn:
         run_id = conn.execute("SELECT id FROM runs WHERE station = 'bench-1'").fetchone()[0]
     return postgres_url, bench, run_id, tmp_path
 
 
-def test_grant_station_prints_the_benchs_url_last_and_keeps_the_password_off_the_screen(tmp_path,
-                                                                                       postgres_url):
+def test_grant_station_prints_the_benchs_url_last_and_keeps_the_password_off_the_screen(
+        tmp_path, postgres_url, monkeypatch, capfd):
+    """Read through capfd: what reaches the file descriptors, as a process of its own would write it."""
     password_file = tmp_path / "bench-2.pgpass"
-    done = labcal(tmp_path, "db", "grant-station", "Bench 2", "--db", postgres_url, "--password-file",
-                  str(password_file), db=postgres_url)
-    assert done.returncode == 0, done.stderr
+    code, out, err = labcal(monkeypatch, tmp_path, "db", "grant-station", "Bench 2", "--db", postgres_url,
+                            "--password-file", str(password_file), db=postgres_url, capture=capfd)
+    assert code == 0, err
     host_port_db = postgres_url.rpartition("@")[2]
-    assert done.stdout.strip().splitlines()[-1] == f"postgresql://labcal_bench_bench_2@{host_port_db}"
+    assert out.strip().splitlines()[-1] == f"postgresql://labcal_bench_bench_2@{host_port_db}"
     assert stat.S_IMODE(password_file.stat().st_mode) == 0o600
     host, port, database, role, password = password_file.read_text().strip().split(":")
     assert (host, port, database, role) == ("127.0.0.1", host_port_db.split(":")[1].split("/")[0],
                                             host_port_db.rpartition("/")[2], "labcal_bench_bench_2")
-    assert password not in done.stdout + done.stderr and len(password) >= 24
+    assert password not in out + err and len(password) >= 24
     with psycopg.connect(postgres_url) as conn:
         verifier, login = conn.execute("SELECT rolpassword, rolcanlogin FROM pg_authid "
                                        "WHERE rolname = 'labcal_bench_bench_2'").fetchone()
@@ -89,13 +96,13 @@ def test_grant_station_prints_the_benchs_url_last_and_keeps_the_password_off_the
     assert login and members == [("labcal_bench",)] and mapped == ("Bench 2",)
     assert verifier.startswith("SCRAM-SHA-256$4096:") and password not in verifier
     # a password file is never overwritten; a SQLite lab database has no roles: one line each
-    again = labcal(tmp_path, "db", "grant-station", "Bench 2", "--db", postgres_url, "--password-file",
-                   str(password_file), db=postgres_url)
-    assert again.returncode == 2 and "never overwritten" in again.stderr
-    assert len(again.stderr.splitlines()) == 1
-    sqlite = labcal(tmp_path, "db", "grant-station", "x", "--db", str(tmp_path / "lab.sqlite"),
-                    db=postgres_url)
-    assert sqlite.returncode == 2 and "one machine, one trust domain" in sqlite.stderr
+    code, _, err = labcal(monkeypatch, tmp_path, "db", "grant-station", "Bench 2", "--db", postgres_url,
+                          "--password-file", str(password_file), db=postgres_url, capture=capfd)
+    assert code == 2 and "never overwritten" in err
+    assert len(err.splitlines()) == 1
+    code, _, err = labcal(monkeypatch, tmp_path, "db", "grant-station", "x", "--db",
+                          str(tmp_path / "lab.sqlite"), db=postgres_url, capture=capfd)
+    assert code == 2 and "one machine, one trust domain" in err
 
 
 def test_the_password_verifier_answers_rfc_7677s_published_exchange():
@@ -148,9 +155,9 @@ def test_a_bench_role_cannot_touch_users_approvers_approvals_nor_edit_a_point_or
         assert conn.execute("SELECT count(*) FROM points WHERE run_id = %s", (run_id,)).fetchone() == (16,)
 
 
-def test_a_bench_role_cannot_append_a_run_or_a_point_for_another_station(lab, tmp_path):
+def test_a_bench_role_cannot_append_a_run_or_a_point_for_another_station(lab, tmp_path, monkeypatch, capsys):
     admin, bench, run_id, _ = lab
-    other = grant(tmp_path, admin, "bench-2")
+    other = grant(monkeypatch, tmp_path, admin, "bench-2")
     forged = ("INSERT INTO runs (run_dir, plan_name, plan_text, plan_hash, station_text, station_hash, "
               "software_version, settings, metadata, started_utc, status, uuid, station) VALUES "
               "('x', 'p', 'p', 'h', 's', 'h', 'v', '{}', '{}', '2026-01-01', 'running', 'u-forged', %s)")
@@ -165,15 +172,16 @@ def test_a_bench_role_cannot_append_a_run_or_a_point_for_another_station(lab, tm
         assert conn.execute("SELECT count(*) FROM points WHERE run_id = %s", (run_id,)).fetchone() == (16,)
         assert conn.execute("UPDATE runs SET status = 'aborted' WHERE id = %s", (run_id,)).rowcount == 0
     # a bench that says it is another station is refused by the server, and keeps every reading
-    done = labcal(tmp_path, "run", "--sim", "--yes", "--no-report", "--plan", "one-mount-16", "--out",
-                  str(tmp_path / "bench-2" / "run"), db=bench, station="bench-2")
-    assert done.returncode == 0
-    assert "row-level security" in done.stderr and "journal keeps every record" in done.stderr
+    code, _, err = labcal(monkeypatch, tmp_path, "run", "--sim", "--yes", "--no-report", "--plan",
+                          "one-mount-16", "--out", str(tmp_path / "bench-2" / "run"), db=bench,
+                          station="bench-2", capture=capsys)
+    assert code == 0
+    assert "row-level security" in err and "journal keeps every record" in err
     with psycopg.connect(admin) as conn:
         assert conn.execute("SELECT count(*) FROM runs WHERE station = 'bench-2'").fetchone() == (0,)
 
 
-def test_a_bench_role_syncs_its_journal_end_to_end(lab):
+def test_a_bench_role_syncs_its_journal_end_to_end(lab, monkeypatch, capsys):
     """The run of the fixture reached the lab as it was measured; a second run, made while the lab
     could not be reached, reaches it by `labcal sync` as the bench's role: every point, with the
     digests the journal wrote."""
@@ -184,12 +192,13 @@ def test_a_bench_role_syncs_its_journal_end_to_end(lab):
 
     admin, bench, run_id, tmp_path = lab
     away = bench.replace(bench.rpartition("@")[2].split("/")[0], f"127.0.0.1:{free_port()}")
-    offline = labcal(tmp_path, "run", "--sim", "--yes", "--no-report", "--plan", "one-mount-16", "--out",
-                     str(tmp_path / "bench-1" / "offline"), db=away)
-    assert offline.returncode == 0 and "unreachable" in offline.stderr, offline.stderr
-    done = labcal(tmp_path, "sync", db=bench)
-    assert done.returncode == 0, done.stderr
-    assert "16 points" in " ".join(done.stdout.split()), done.stdout
+    code, _, err = labcal(monkeypatch, tmp_path, "run", "--sim", "--yes", "--no-report", "--plan",
+                          "one-mount-16", "--out", str(tmp_path / "bench-1" / "offline"), db=away,
+                          capture=capsys)
+    assert code == 0 and "unreachable" in err, err
+    code, out, err = labcal(monkeypatch, tmp_path, "sync", db=bench, capture=capsys)
+    assert code == 0, err
+    assert "16 points" in " ".join(out.split()), out
     with closing(sqlite3.connect(tmp_path / "bench-1" / "journal.sqlite")) as db:
         journal = db.execute("SELECT r.uuid, p.seq, p.vx, p.vy, p.vz, p.link, p.digest FROM points p "
                              "JOIN runs r ON r.id = p.run_id ORDER BY r.uuid, p.seq").fetchall()
@@ -199,19 +208,21 @@ def test_a_bench_role_syncs_its_journal_end_to_end(lab):
                                   "ORDER BY r.uuid, p.seq").fetchall()
         statuses = conn.execute("SELECT status FROM runs WHERE station = 'bench-1'").fetchall()
     assert lab_points == journal and len(journal) == 32 and statuses == [("complete",), ("complete",)]
-    again = labcal(tmp_path, "sync", db=bench)
-    assert again.returncode == 0 and "nothing to send" in " ".join(again.stdout.split())
+    code, out, _ = labcal(monkeypatch, tmp_path, "sync", db=bench, capture=capsys)
+    assert code == 0 and "nothing to send" in " ".join(out.split())
 
 
-def test_the_servers_role_reads_the_lab_and_appends_no_reading(lab, tmp_path):
+def test_the_servers_role_reads_the_lab_and_appends_no_reading(lab, tmp_path, monkeypatch, capfd):
+    """Read through capfd: what reaches the file descriptors, as a process of its own would write it."""
     admin, bench, run_id, _ = lab
     secret = "a-password-typed-by-the-administrator"
-    done = labcal(tmp_path, "db", "grant-server", "web", "--db", admin, "--password-stdin", db=admin,
-                  stdin=secret + "\n")
-    assert done.returncode == 0, done.stderr
-    server = done.stdout.strip().splitlines()[-1]
+    monkeypatch.setattr("sys.stdin", io.StringIO(secret + "\n"))
+    code, out, err = labcal(monkeypatch, tmp_path, "db", "grant-server", "web", "--db", admin,
+                            "--password-stdin", db=admin, capture=capfd)
+    assert code == 0, err
+    server = out.strip().splitlines()[-1]
     assert server == f"postgresql://labcal_server_web@{admin.rpartition('@')[2]}"
-    assert secret not in done.stdout + done.stderr
+    assert secret not in out + err
     with psycopg.connect(admin) as conn:  # another test of this module may have added a user
         users = conn.execute("SELECT count(*) FROM users").fetchone()
     with psycopg.connect(server) as conn:
@@ -231,14 +242,15 @@ def test_the_servers_role_reads_the_lab_and_appends_no_reading(lab, tmp_path):
     assert verifier[0].startswith("SCRAM-SHA-256$4096:")
 
 
-def test_the_lab_server_serves_the_benchs_runs_connected_as_its_own_role(lab, tmp_path):
+def test_the_lab_server_serves_the_benchs_runs_connected_as_its_own_role(lab, tmp_path, monkeypatch, capsys):
     import httpx
     from lab_server import add_user, served
 
     admin, _, run_id, _ = lab
-    done = labcal(tmp_path, "db", "grant-server", "lab-web", "--db", admin, db=admin)
-    assert done.returncode == 0, done.stderr
-    server = done.stdout.strip().splitlines()[-1]
+    code, out, err = labcal(monkeypatch, tmp_path, "db", "grant-server", "lab-web", "--db", admin, db=admin,
+                            capture=capsys)
+    assert code == 0, err
+    server = out.strip().splitlines()[-1]
     token = add_user(admin, "vic", "viewer", "vic's passphrase")  # users are the administrator's to add
     with served(server) as url:
         runs = httpx.get(f"{url}/api/runs", headers={"Authorization": f"Bearer {token}"}, timeout=30)

@@ -30,17 +30,6 @@ MOUNTS = 4
 CERTIFICATE = "certificate_id, serial, calibrated_utc, issued_utc, sha256, document"
 
 
-def as_bench(monkeypatch, tmp_path: Path, db: str, station: str = "bench") -> None:
-    """This process as the station `cli.bench_env` describes, for labcal in this process (`cli.cli`):
-    its variables set and no other LABCAL_*, through ``monkeypatch`` (undone after the test)."""
-    env = cli.bench_env(tmp_path, db, station)
-    for name in [n for n in os.environ if n.startswith("LABCAL_") and n not in env]:
-        monkeypatch.delenv(name)
-    for name, value in env.items():
-        if os.environ.get(name) != value:
-            monkeypatch.setenv(name, value)
-
-
 def assert_exactly_once(url: str, journals: list[Path]) -> int:
     """Every point of every journal on the server once, equal in every column; nothing else there."""
     expected: dict[tuple[str, int], tuple] = {}
@@ -167,7 +156,7 @@ def test_a_run_that_loses_the_server_for_10_s_ends_with_every_reading_there_once
 def test_labcal_sync_sends_a_run_made_while_the_server_was_down(tmp_path, postgres_cluster, capsys,
                                                               monkeypatch):
     url = postgres_cluster.url(postgres_cluster.create_database())
-    as_bench(monkeypatch, tmp_path, url)
+    cli.as_bench(monkeypatch, tmp_path, url, "bench")
     postgres_cluster.pause()
     try:
         ran, _, ran_err = cli.cli(capsys, "run", "--sim", "--yes", "--no-report", "--replicates", "1",
@@ -213,7 +202,7 @@ def test_a_server_database_behind_is_refused_until_labcal_db_upgrade(tmp_path, p
     with engine.begin() as connection:
         migrations.upgrade(connection, "0006")
     engine.dispose()
-    as_bench(monkeypatch, tmp_path, postgres_url)
+    cli.as_bench(monkeypatch, tmp_path, postgres_url, "bench")
     run = cli.cli(capsys, "run", "--sim", "--yes", "--no-report", "--out", str(tmp_path / "r"))
     line = one_line_refusal(run, "0006", "older", "labcal db upgrade")
     assert not (tmp_path / "r").exists()  # refused before the run began
@@ -233,14 +222,14 @@ def test_a_server_database_ahead_is_refused(tmp_path, postgres_url, capsys, monk
     with psycopg.connect(postgres_url) as conn:
         conn.execute("CREATE TABLE alembic_version (version_num VARCHAR(32) PRIMARY KEY)")
         conn.execute("INSERT INTO alembic_version VALUES ('0042')")
-    as_bench(monkeypatch, tmp_path, postgres_url)
+    cli.as_bench(monkeypatch, tmp_path, postgres_url, "bench")
     one_line_refusal(cli.cli(capsys, "sync"), "0042", "newer", "upgrade labcal")
     one_line_refusal(cli.cli(capsys, "db", "upgrade"), "0042", "newer", "upgrade labcal")
 
 
 def test_an_unreachable_server_is_one_line_at_upgrade_and_sync(tmp_path, capsys, monkeypatch):
     url = f"postgresql://labcal@127.0.0.1:{free_port()}/lab"  # nothing listens there
-    as_bench(monkeypatch, tmp_path, url)
+    cli.as_bench(monkeypatch, tmp_path, url, "bench")
     (tmp_path / "bench").mkdir()
     sqlite3.connect(tmp_path / "bench" / "journal.sqlite").close()
     for command in (("db", "upgrade"), ("sync",), ("db", "status")):
@@ -248,7 +237,7 @@ def test_an_unreachable_server_is_one_line_at_upgrade_and_sync(tmp_path, capsys,
 
 
 def test_an_unknown_scheme_is_refused(tmp_path, capsys, monkeypatch):
-    as_bench(monkeypatch, tmp_path, "mysql://labcal@127.0.0.1:3306/lab")
+    cli.as_bench(monkeypatch, tmp_path, "mysql://labcal@127.0.0.1:3306/lab", "bench")
     for command in (("runs",), ("db", "upgrade"), ("sync",)):
         one_line_refusal(cli.cli(capsys, *command), "unknown database scheme 'mysql'")
 
@@ -272,7 +261,7 @@ def test_a_sender_fills_an_empty_server_database_and_sends_nothing_twice(tmp_pat
     from labcal.store.sync import Sender
 
     journal = tmp_path / "lab.sqlite"
-    as_bench(monkeypatch, tmp_path, str(journal))
+    cli.as_bench(monkeypatch, tmp_path, str(journal), "bench")
     code, _, err = cli.cli(capsys, "run", "--sim", "--yes", "--out", str(tmp_path / "run"))
     assert code == 0, err
     with closing(sqlite3.connect(journal)) as db:
