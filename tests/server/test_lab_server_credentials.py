@@ -3,7 +3,7 @@ password on a command line or a page, the lab database owner-only, a password po
 floor, a list of common passwords), `labcal user passwd`, `token` (rotation) and expiry, an audit
 trail for approvers; and user values (a serial with Rich markup) printed literally, commands
 shell-quoted. `labcal serve` runs in a process of its own, over HTTP; the other commands run in this
-process, but where what a process of its own prints, or does without a terminal, is the point."""
+process, except where the point is what a process of its own prints or does without a terminal."""
 
 from __future__ import annotations
 
