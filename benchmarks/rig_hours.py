@@ -84,8 +84,8 @@ def dry_run(plan, text: str, rig: RigConfig, seed: int, mode: str, db: Path, out
         result = calibrate(plan, text, sim.station(), station_text, AutoOperator(Console(file=io.StringIO())),
                            settings, out, journal)
         points = journal.points(result.run_id)
-        pooled = [e["data"]["records"] for e in journal.events(result.run_id)
-                  if e["kind"] == "settle_pool" and e.get("data")]
+        pooled = [e.values["records"] for e in journal.events(result.run_id)
+                  if e.kind == "settle_pool" and "records" in e.values]
     return result, points, settle, (pooled[0] if pooled else 0)
 
 

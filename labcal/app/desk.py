@@ -50,6 +50,7 @@ from labcal.store.lab_certificates import approved_runs
 if TYPE_CHECKING:
     from labcal.documents import dcc, report_figures
     from labcal.store.handles import Connection
+    from labcal.store.journal import EventRow
 else:
     dcc = lazy("labcal.documents.dcc")  # start-up without scipy, numpy, pydantic, …
     report_figures = lazy("labcal.documents.report_figures")  # matplotlib: not to list runs
@@ -96,7 +97,7 @@ def _current(revisions: list[Certificate]) -> Certificate | None:
 
 
 # --- what needs an approver's eye ------------------------------------------------------------------
-def checklist_attention(metadata: RunMetadata, resumed: Iterable[dict] = ()) -> tuple[str, ...]:
+def checklist_attention(metadata: RunMetadata, resumed: Iterable[EventRow] = ()) -> tuple[str, ...]:
     """What the run's journaled metadata says an approver must know of how it was measured: the
     checklist items it went on regardless of (as the certificate states them, `checklist_overrides`),
     a reference standard the checklist found overdue or unnamed, an overdue registered standard used
@@ -114,7 +115,7 @@ def checklist_attention(metadata: RunMetadata, resumed: Iterable[dict] = ()) -> 
 
 
 def needs_attention(metadata: RunMetadata, faults: Iterable[str], cert: Certificate | None,
-                    resumed: Iterable[dict] = ()) -> tuple[str, ...]:
+                    resumed: Iterable[EventRow] = ()) -> tuple[str, ...]:
     """What an approver must know before signing, in this order: the metadata's (`checklist_attention`:
     overrides, reference standards, serial), then the run's faults, a device correction used, a
     failed verdict."""

@@ -13,6 +13,7 @@ from labcal.documents.overrides import run_overrides
 from labcal.errors import LabcalError
 from labcal.lazy import lazy
 from labcal.store import labquery
+from labcal.store.journal import EventRow  # already loaded with labquery: the type of a run's events
 from labcal.store.lab_view import run_row
 from labcal.store.labquery import LabRun, Source, from_lab, lab_runs, run_events
 from labcal.store.lock import held_by
@@ -149,11 +150,11 @@ class RunLog:
     started_utc: str
     ended_utc: str | None
     points_ok: int
-    events: tuple[dict, ...]  # kind, utc, station_time, message, data
+    events: tuple[EventRow, ...]
     stale: str | None = None  # the lab could not be reached: read from this bench's journal
 
     def to_json(self) -> dict:
-        doc = {**asdict(self), "events": list(self.events)}
+        doc = {**asdict(self), "events": [e.to_json() for e in self.events]}
         doc.pop("stale")
         return doc
 
@@ -193,7 +194,7 @@ def read_log(request: ReadLog) -> RunLog:
                   tuple(found.events), source.stale)
 
 
-def overrides_in(run: LabRun, events: Iterable[dict]) -> tuple[Override, ...]:
+def overrides_in(run: LabRun, events: Iterable[EventRow]) -> tuple[Override, ...]:
     """Every override a run was measured under (`labcal.documents.overrides`: the warm-up and other
     checklist items gone on regardless of, overdue standards used under an approver's override, faults
     accepted), from its row in the lab database and its journaled events, as its certificate states them."""

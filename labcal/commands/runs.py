@@ -69,20 +69,19 @@ def cmd_log(args: argparse.Namespace) -> int:
     if not run.events:
         out.print("no events journaled", markup=False)
     for e in run.events:
-        rig = "" if e["station_time"] is None else f"  rig {format_duration(e['station_time'])}"
-        out.print(f"{_when(e['utc'])}{rig}  {e['kind']}: {_message(e)}", markup=False)
+        rig = "" if e.station_time is None else f"  rig {format_duration(e.station_time)}"
+        out.print(f"{_when(e.utc)}{rig}  {e.kind}: {_message(e)}", markup=False)
     return 0
 
 
-def _message(event: dict) -> str:
+def _message(event: app_runs.EventRow) -> str:
     """An event's message with what its data adds for a reader: why the tables were stopped, why
     a prompt was declined (journals of every labcal carry both in the data, not in the words)."""
-    data = event["data"] if isinstance(event["data"], dict) else {}
-    why = data.get("cause") if event["kind"] == "stop" else data.get("reason") if event["kind"] == "answer" \
-        else None
+    why = event.values.get("cause") if event.kind == "stop" else \
+        event.values.get("reason") if event.kind == "answer" else None
     if not why:
-        return event["message"]
-    return f"{event['message']} ({'after ' if event['kind'] == 'stop' else ''}{why})"
+        return event.message
+    return f"{event.message} ({'after ' if event.kind == 'stop' else ''}{why})"
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -24,10 +24,21 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any, Protocol
 
 from labcal.errors import LabcalError
 
 MOVE_EVENT = "move"  # the journal's event kind for a move's windings, journaled before it starts
+
+
+class Journaled(Protocol):
+    """A journaled event as the journal gives it back (`labcal.store.journal.EventRow`, a layer above)."""
+
+    @property
+    def kind(self) -> str: ...
+
+    @property
+    def values(self) -> dict[str, Any]: ...
 HALF_TURN = 180.0
 ON_PATH_DEG = 0.5  # how far outside its last journaled move a table may read and still be on it
 
@@ -118,17 +129,17 @@ def locate(read_deg: float, last: tuple[float, float] | None, reach: Reach) -> f
     return last[1] + wrapped(read_deg - last[1])
 
 
-def last_move(events: Sequence[dict]) -> tuple[tuple[float, float], tuple[float, float]] | None:
+def last_move(events: Sequence[Journaled]) -> tuple[tuple[float, float], tuple[float, float]] | None:
     """The last journaled move's windings, ((pitch from, to), (roll from, to)), or None."""
     for event in reversed(events):
-        if event["kind"] == MOVE_EVENT and isinstance(event["data"], dict):
-            data = event["data"]
+        if event.kind == MOVE_EVENT and event.values:
+            data = event.values
             return (float(data["pitch"][0]), float(data["pitch"][1])), (float(data["roll"][0]),
                                                                           float(data["roll"][1]))
     return None
 
 
-def left_at(events: Sequence[dict]) -> tuple[float, float] | None:
+def left_at(events: Sequence[Journaled]) -> tuple[float, float] | None:
     """Where the journal last sent the tables (pitch, roll), accumulated from home; None if nowhere.
     A simulated or emulated rig resumes with its tables there, as a real bench's stayed."""
     last = last_move(events)

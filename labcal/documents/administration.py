@@ -41,8 +41,8 @@ def journaled_identities(record: RunRecord) -> dict[str, DeviceIdentity]:
     ``device_identity`` event, which journals the same documents)."""
     found = dict(record.meta.device_identity or {})
     for event in record.events:
-        if event["kind"] == "device_identity":
-            found.update({role: DeviceIdentity.model_validate(said) for role, said in event["data"].items()})
+        if event.kind == "device_identity":
+            found.update({role: DeviceIdentity.model_validate(said) for role, said in event.values.items()})
     return found
 
 

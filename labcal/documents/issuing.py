@@ -255,12 +255,12 @@ STORY_EVENTS = 200  # a day-long run with many remounts stays readable; the jour
 def _story(record: RunRecord) -> RunStory:
     """The journal's story: what happened to the run. The tables' moves (journaled, each before it
     starts, for the cables' winding) are the run's routine, not its story."""
-    events = [e for e in record.events if e["kind"] != MOVE_EVENT]
-    kinds = [e["kind"] for e in events]
+    events = [e for e in record.events if e.kind != MOVE_EVENT]
+    kinds = [e.kind for e in events]
     listed = events[:STORY_EVENTS]
     return RunStory(counts={k: kinds.count(k) for k in dict.fromkeys(kinds)},
-                    events=[JournalEvent(utc=e["utc"], station_time_s=e["station_time"], kind=e["kind"],
-                                         message=e["message"]) for e in listed],
+                    events=[JournalEvent(utc=e.utc, station_time_s=e.station_time, kind=e.kind,
+                                         message=e.message) for e in listed],
                     omitted=len(events) - len(listed))
 
 

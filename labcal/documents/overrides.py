@@ -13,9 +13,13 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 from labcal.config.dates import written_date
 from labcal.config.run_metadata import Checklist, RunMetadata, StandardOverride
+
+if TYPE_CHECKING:
+    from labcal.store.journal import EventRow
 
 FAULT_PAUSE = "fault: "  # how the sequencer's pause on a device fault begins its reason
 OPERATOR_RESUMED = "operator resumed"  # the resume event of an answered pause (not `labcal resume`'s)
@@ -61,13 +65,12 @@ def _checklist(meta: RunMetadata) -> list[Override]:
 STANDARD_OVERRIDE_EVENT = "standard_override"  # journaled where a resumed run goes on under one
 
 
-def resumed_overrides(events: Iterable[dict]) -> list[StandardOverride]:
+def resumed_overrides(events: Iterable[EventRow]) -> list[StandardOverride]:
     """The approvers' overrides a run resumed under, as its ``standard_override`` events journal them."""
-    return [StandardOverride.model_validate(e["data"]) for e in events
-            if e.get("kind") == STANDARD_OVERRIDE_EVENT]
+    return [StandardOverride.model_validate(e.data) for e in events if e.kind == STANDARD_OVERRIDE_EVENT]
 
 
-def _standards(meta: RunMetadata, events: Iterable[dict]) -> list[Override]:
+def _standards(meta: RunMetadata, events: Iterable[EventRow]) -> list[Override]:
     """The overrides a run started under (its metadata) and those it resumed under (its events), once each."""
     found, seen = [], set()
     for held in [*(meta.standard_overrides or []), *resumed_overrides(events)]:
@@ -82,22 +85,21 @@ def _standards(meta: RunMetadata, events: Iterable[dict]) -> list[Override]:
     return found
 
 
-def _faults(events: Iterable[dict], operator: str | None) -> list[Override]:
+def _faults(events: Iterable[EventRow], operator: str | None) -> list[Override]:
     """A pause on a device fault that the operator answered by resuming: the fault accepted."""
     found, paused = [], None
     for e in events:
-        if e.get("kind") == "pause":
-            message = str(e.get("message") or "")
-            paused = message if message.startswith(FAULT_PAUSE) else None
-        elif e.get("kind") == "resume" and paused is not None:
-            if str(e.get("message") or "").startswith(OPERATOR_RESUMED):
+        if e.kind == "pause":
+            paused = e.message if e.message.startswith(FAULT_PAUSE) else None
+        elif e.kind == "resume" and paused is not None:
+            if e.message.startswith(OPERATOR_RESUMED):
                 found.append(Override("fault accepted", f"the run paused on {paused} and was resumed",
-                                      operator or "the operator", None, e.get("utc")))
+                                      operator or "the operator", None, e.utc))
             paused = None
     return found
 
 
-def run_overrides(meta: RunMetadata, events: Iterable[dict] = ()) -> list[Override]:
+def run_overrides(meta: RunMetadata, events: Iterable[EventRow] = ()) -> list[Override]:
     """Every override of a run (see the module), checklist first, then standards, then faults in order."""
     events = list(events)
     return [*_checklist(meta), *_standards(meta, events), *_faults(events, meta.operator)]

@@ -713,8 +713,8 @@ class Sequencer:
         """The last mount check's reading of each mount, as the journal has it (mean volts, samples)."""
         found = {}
         for event in self.journal.events(self.run_id):
-            data = event["data"] or {}
-            if event["kind"] in ("mount", "closure") and "volts" in data:
+            data = event.values
+            if event.kind in ("mount", "closure") and "volts" in data:
                 found[Mount(*data["mount"])] = (data["volts"], int(data["samples"]))
         return found
 

@@ -18,9 +18,10 @@ import sqlite3
 import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, fields
+from dataclasses import asdict, dataclass, fields
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -112,6 +113,34 @@ class PointRecord:
     temp_c: float | None
     settle_s: float | None
     settle_verdict: str
+
+
+@dataclass(frozen=True)
+class EventRow:
+    """One row of a run's events table, its data decoded: what every reader of a run's events gets,
+    from the station's journal and from the lab database alike (`Journal.events`,
+    `labcal.store.labquery`, `labcal.store.lab_certificates`, `labcal.store.lab_view`). The kinds and
+    what each one's data holds are `labcal.run.events`' (`RunEvent.journal_entry`)."""
+
+    utc: str
+    station_time: float | None  # rig seconds since the run began; None for what was not the run's
+    kind: str
+    message: str
+    data: Any = None  # the event's JSON data: an object for every event labcal journals, or None
+
+    @classmethod
+    def read(cls, utc: str, station_time: float | None, kind: str, message: str, data: str | None
+             ) -> EventRow:
+        """A row as the table holds it (``data``: its JSON text)."""
+        return cls(utc, station_time, kind, message, json.loads(data) if data else None)
+
+    @property
+    def values(self) -> dict[str, Any]:
+        """``data`` where it is an object, else empty: what a reader of named fields takes."""
+        return self.data if isinstance(self.data, dict) else {}
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
 
 
 @dataclass(frozen=True)
@@ -371,11 +400,10 @@ class Journal:
                               (run_id, run_id)).fetchone()
         return float(row[0] or 0.0)
 
-    def events(self, run_id: int) -> list[dict]:
+    def events(self, run_id: int) -> list[EventRow]:
         rows = self.db.execute("SELECT utc, station_time, kind, message, data FROM events WHERE run_id=? "
                                "ORDER BY id", (run_id,)).fetchall()
-        return [{"utc": u, "station_time": t, "kind": k, "message": m, "data": json.loads(d) if d else None}
-                for u, t, k, m, d in rows]
+        return [EventRow.read(*row) for row in rows]
 
     def readings(self, run_id: int) -> Readings:
         """The committed good points as Readings (the export behind readings.csv and the fit)."""

@@ -27,7 +27,7 @@ from labcal.errors import LabcalError
 from labcal.lazy import lazy
 from labcal.store.chain import check_server
 from labcal.store.exports import station_description
-from labcal.store.journal import RunRow, readings_of
+from labcal.store.journal import EventRow, RunRow, readings_of
 from labcal.store.lab_points import ok_points
 from labcal.store.record import RunRecord, run_record
 from labcal.store.rundir import identity
@@ -72,12 +72,10 @@ def lab_record(connection: Connection, run_id: int, directory: Path) -> RunRecor
         raise LabcalError(f"{label} is {row.status}{why}; only a complete run gets a certificate")
     said = connection.execute(select(events.c.utc, events.c.station_time, events.c.kind, events.c.message,
                                      events.c.data).where(events.c.run_id == run_id).order_by(events.c.id))
-    logged = tuple({"utc": u, "station_time": t, "kind": k, "message": m,
-                    "data": json.loads(d) if d else None} for u, t, k, m, d in said)
+    logged = tuple(EventRow.read(*row) for row in said)
     # a point measured again in its own right: the lab's copy keeps it as sent (measured), and the
     # run's chained `remeasured` event says which reading replaced it, as the journal's mark does
-    superseded = {int(e["data"]["seq"]) for e in logged
-                  if e["kind"] == "remeasured" and isinstance(e["data"], dict) and "seq" in e["data"]}
+    superseded = {int(e.values["seq"]) for e in logged if e.kind == "remeasured" and "seq" in e.values}
     good = [p for p in ok_points(connection, run_id) if p.seq not in superseded]
     chain = check_server(connection, run_id, label)
     # what run.json says of the run (`labcal.store.exports`), which the lab keeps no copy of

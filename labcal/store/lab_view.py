@@ -8,12 +8,12 @@ names of the columns selected (`SUMMARY`, `EVENT_COLUMNS`, `POINT_COLUMNS`).
 
 from __future__ import annotations
 
-import json
 from collections.abc import Collection
 from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import case, func, select
 
+from labcal.store.journal import EventRow
 from labcal.store.schema import events, points, runs, station_roles
 
 if TYPE_CHECKING:
@@ -127,12 +127,12 @@ def faults(conn: Connection, run_id: int) -> list[str]:
     return list(conn.execute(query.order_by(events.c.id)).scalars())
 
 
-def events_of_kind(conn: Connection, run_id: int, kind: str) -> list[dict]:
-    """The run's events of one ``kind`` as the journal's readers take them (kind, message, data)."""
-    rows = conn.execute(select(events.c.kind, events.c.message, events.c.data)
+def events_of_kind(conn: Connection, run_id: int, kind: str) -> list[EventRow]:
+    """The run's events of one ``kind``, as the journal's readers take them."""
+    rows = conn.execute(select(events.c.utc, events.c.station_time, events.c.kind, events.c.message,
+                               events.c.data)
                         .where(events.c.run_id == run_id, events.c.kind == kind).order_by(events.c.id))
-    return [{"kind": r.kind, "message": r.message, "data": json.loads(r.data) if r.data else None}
-            for r in rows]
+    return [EventRow.read(*row) for row in rows]
 
 
 def run_place(conn: Connection, *, uuid: str | None = None, run_id: int | None = None) -> Any | None:

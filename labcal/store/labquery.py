@@ -18,7 +18,6 @@ Every query is SQLAlchemy Core over `labcal.store.schema`'s tables, on either ba
 
 from __future__ import annotations
 
-import json
 import sqlite3
 from collections.abc import Callable, Iterator
 from contextlib import closing, contextmanager
@@ -31,7 +30,7 @@ from labcal.config.lab import ServerDatabase
 from labcal.errors import LabcalError
 from labcal.lazy import lazy
 from labcal.store import labdb
-from labcal.store.journal import db_path
+from labcal.store.journal import EventRow, db_path
 from labcal.store.labdb import lab_database
 from labcal.store.sync import target_of
 
@@ -264,10 +263,10 @@ def _journal_runs(source: Source, serial: str | None, statuses: tuple[str, ...])
 @dataclass(frozen=True)
 class RunEvents:
     run: LabRun
-    events: list[dict]
+    events: list[EventRow]
 
 
-def _events(conn: Connection, run_id: int) -> list[dict]:
+def _events(conn: Connection, run_id: int) -> list[EventRow]:
     rows = conn.execute(
         sqlalchemy.select(
             schema.events.c.utc,
@@ -279,8 +278,7 @@ def _events(conn: Connection, run_id: int) -> list[dict]:
         .where(schema.events.c.run_id == run_id)
         .order_by(schema.events.c.id)
     )
-    return [{"utc": u, "station_time": t, "kind": k, "message": m, "data": json.loads(d) if d else None}
-            for u, t, k, m, d in rows]
+    return [EventRow.read(*row) for row in rows]
 
 
 def run_events(db: str | Path | None, number: int | None = None, uuid: str | None = None

@@ -22,7 +22,7 @@ from labcal.config.snapshot import StationSnapshot, is_simulated, output_units, 
 from labcal.errors import LabcalError
 from labcal.store import exports
 from labcal.store.chain import ChainCheck, check_sqlite
-from labcal.store.journal import PointRecord, RunRow
+from labcal.store.journal import EventRow, PointRecord, RunRow
 from labcal.store.lock import held_by
 from labcal.store.rundir import open_run, read_run_json
 
@@ -39,7 +39,7 @@ class RunRecord:
     meta: RunMetadata  # the journal's metadata and row over run.json: station, settings, dates, status, …
     notes: tuple[str, ...] = ()  # how the folder differs from the journal (said, not repaired)
     station: StationSnapshot | None = None  # the journal's snapshot of the station the run used
-    events: tuple[dict, ...] = ()  # the journal's events: prompts, answers, faults, retries, pauses
+    events: tuple[EventRow, ...] = ()  # the journal's events: prompts, answers, faults, retries, pauses
     # The fits fit.json was derived from (checking the folder fits them): issuing reuses them
     fit: Fit | None = None
     device: DeviceFit | None = None  # the device model, where the points identify it
@@ -90,7 +90,7 @@ def load_run(run_dir: str | Path) -> RunRecord:
 
 
 def run_record(directory: Path, row: RunRow, info: dict, points: list[PointRecord], readings: Readings,
-               events: tuple[dict, ...], chain: ChainCheck, notes: list[str], label: str, copy: str,
+               events: tuple[EventRow, ...], chain: ChainCheck, notes: list[str], label: str, copy: str,
                derived: exports.Derived | None = None) -> RunRecord:
     """A run as a `RunRecord`, from wherever it was read — a station's journal and its folder's run.json
     (`load_run`), or the lab database's copy (`labcal.store.lab_certificates.lab_record`): the journal's

@@ -12,6 +12,7 @@ from pathlib import Path
 from labcal.app.desk import checklist_attention, needs_attention
 from labcal.config.run_metadata import RunMetadata
 from labcal.documents.certificate import seal
+from labcal.store.journal import EventRow
 
 STORED = Path(__file__).parent.parent / "data" / "certificates" / "simulated.json"
 OVERRIDDEN = RunMetadata(checklist={"went_on_regardless": True, "items": [
@@ -61,5 +62,7 @@ def test_an_overdue_standard_a_resumed_run_went_on_under_needs_the_approvers_eye
             "1 November 2026) and used under an override valid until 5 December 2026; reason: "
             "recalibration booked.")
     assert needs_attention(RunMetadata(), [], None) == ()
-    assert needs_attention(RunMetadata(), [], None, [{"kind": "standard_override", "data": held}]) == (said,)
+    resumed = EventRow("2026-11-20T09:00:01+00:00", 0.0, "standard_override", "resumed under an override",
+                       held)
+    assert needs_attention(RunMetadata(), [], None, [resumed]) == (said,)
     assert needs_attention(RunMetadata(standard_overrides=[held]), [], None) == (said,)

@@ -95,7 +95,7 @@ def test_read_log_reads_only(unchanged):
     base, db = unchanged
     by_id, by_folder = read_log(ReadLog("2", str(db))), read_log(ReadLog(str(base / "bench")))
     assert by_id == by_folder and by_id.points_ok == 16 and by_id.run_dir == str(base / "bench")
-    assert any(e["kind"] == "prompt" for e in by_id.events)
+    assert any(e.kind == "prompt" for e in by_id.events)
 
 
 def test_instrument_history_reads_only(unchanged):

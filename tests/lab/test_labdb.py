@@ -320,7 +320,7 @@ def test_added_columns_break_no_read_or_write(v0):
         journal.finish(run_id, "complete")
         assert journal.points(run_id) == journal.points(1)
         assert np.array_equal(journal.samples(run_id, points[3].seq), journal.samples(1, points[3].seq))
-        assert [(e["kind"], e["data"], e["station_time"]) for e in journal.events(run_id)] == [
+        assert [(e.kind, e.data, e.station_time) for e in journal.events(run_id)] == [
             ("note", {"by": "a later labcal"}, 1.5)]
         assert journal.run(run_id).status == "complete"
     with closing(raw(db)) as con:  # the new column got its default, never a shifted value

@@ -117,10 +117,10 @@ def test_swapped_smc100_addresses_are_named_at_the_first_mount_check_before_any_
 
     with Journal(tmp_path / "j.db") as journal:
         events = journal.events(1)
-    kinds = [e["kind"] for e in events]
+    kinds = [e.kind for e in events]
     fault = kinds.index("fault")
-    assert "the tables look exchanged" in events[fault]["message"]
+    assert "the tables look exchanged" in events[fault].message
     # from the mount to the notice: one move (to the check attitude) and its one window, no point
-    moves = [e for e in events[:fault] if e["kind"] == "move"]
-    assert (moves[-1]["data"]["pitch"][1], moves[-1]["data"]["roll"][1]) == CHECK_ATTITUDE
+    moves = [e for e in events[:fault] if e.kind == "move"]
+    assert (moves[-1].data["pitch"][1], moves[-1].data["roll"][1]) == CHECK_ATTITUDE
     assert kinds[kinds.index("answer"):fault].count("move") == 1 and "point" not in kinds

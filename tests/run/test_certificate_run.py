@@ -16,6 +16,7 @@ from labcal.documents.administration import ItemGiven, administration
 from labcal.documents.certificate import read_certificate
 from labcal.sim.dmm_emulator import IDN
 from labcal.sim.smc100_emulator import VERSION
+from labcal.store.journal import EventRow
 from labcal.store.record import load_run
 
 
@@ -42,7 +43,7 @@ def test_an_emulated_run_certifies_the_identities_the_emulators_reported(tmp_pat
     swapped = {"dmm": {"model": "Keysight Technologies 34970A", "identity": "swapped", "maker": "Keysight",
                        "serial": "MY99", "firmware": "1-0-0"}}
     resumed = dataclasses.replace(record, events=record.events + (
-        {"kind": "device_identity", "data": swapped, "utc": "", "station_time": 0.0, "message": ""},))
+        EventRow("", 0.0, "device_identity", "", swapped),))
     *_, dmm = administration(resumed, CertificateSection(), ItemGiven(), "SN-7").equipment
     assert (dmm.serial, dmm.firmware, dmm.identity) == ("MY99", "1-0-0", "swapped")
 

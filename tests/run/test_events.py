@@ -250,14 +250,14 @@ def test_the_event_stream_of_a_run_matches_its_journal_and_its_schedule(tmp_path
     assert [(e.what, e.mount, e.step, e.n_steps) for e in prompts] == [("mount", 1, 1, 4), ("mount", 2, 2, 4),
                                                                        ("mount", 3, 3, 4), ("mount", 4, 4, 4)]
     # every journaled event but the statuses between milestones was published, in the same order
-    assert [(e["kind"], e["message"]) for e in journaled] == [
+    assert [(e.kind, e.message) for e in journaled] == [
         e.journal_entry()[:2] for e in events if e.journal_entry() is not None]
 
     statuses = [e for e in events if isinstance(e, Status)]
     assert statuses[0].at == "start" and statuses[-1].at == "end"
     last = statuses[-1]
     assert (last.status, last.points_done, last.next_remount_in_s, last.eta_s) == ("complete", 64, None, 0.0)
-    assert [e["data"]["at"] for e in journaled if e["kind"] == "status"] == ["mount"] * 4 + ["end"]
+    assert [e.data["at"] for e in journaled if e.kind == "status"] == ["mount"] * 4 + ["end"]
 
     # next remount after each point, by hand from the schedule: the rest of the mount's steps, then
     # the next mount's move to the load position (clamped); None once the last mount is on
@@ -315,7 +315,7 @@ def test_a_durable_subscriber_that_fails_stops_the_run_with_the_point_on_disk(tm
     with Journal(tmp_path / "lab.sqlite") as journal:
         assert [p.seq for p in journal.points(1)] == [0, 1, 2, 3, 4]  # the journal heard it first
         assert journal.run(1).status == "stopped"
-        assert [e["message"] for e in journal.events(1) if e["kind"] == "stop"] == ["both tables stopped"]
+        assert [e.message for e in journal.events(1) if e.kind == "stop"] == ["both tables stopped"]
     assert [e.seq for e in seen if e.kind == "point"] == [0, 1, 2, 3]  # the others never heard of the 5th
     assert (seen[-1].kind, seen[-1].status) == ("status", "stopped")
 

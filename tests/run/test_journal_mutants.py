@@ -143,9 +143,9 @@ def test_events_keep_their_order_kind_time_and_data(tmp_path):
         j.event(run, "prompt", "mount 2", {"mount": [180, 0]}, station_time=12.5)
         j.event(run, "answer", "yes")
         events = j.events(run)
-    assert [(e["kind"], e["message"], e["data"], e["station_time"]) for e in events] == [
+    assert [(e.kind, e.message, e.data, e.station_time) for e in events] == [
         ("prompt", "mount 2", {"mount": [180, 0]}, 12.5), ("answer", "yes", None, None)]
-    assert all(re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}\+00:00", e["utc"]) for e in events)
+    assert all(re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}\+00:00", e.utc) for e in events)
     raw = sqlite3.connect(tmp_path / "lab.sqlite").execute("SELECT data FROM events ORDER BY id").fetchall()
     assert raw == [('{"mount": [180, 0]}',), (None,)]  # no data is NULL, not the JSON text "null"
 

@@ -133,10 +133,10 @@ def test_rig_time_runs_on_across_resumes(tmp_path):
     resume(tmp_path / "run")
     with Journal(tmp_path / "j.sqlite") as journal:
         points = journal.points(1)
-        segments = [e for e in journal.events(1) if e["kind"] == "segment"]
+        segments = [e for e in journal.events(1) if e.kind == "segment"]
     t_end = [p.t_end for p in points]
     assert len(points) == 64 and all(b > a for a, b in zip(t_end, t_end[1:], strict=False))
-    offsets = [s["data"]["offset_s"] for s in segments]
+    offsets = [s.data["offset_s"] for s in segments]
     assert len(offsets) == 3 and offsets[0] == 0.0
     assert offsets[1] >= t_end[19] and offsets[2] >= t_end[39]  # each resume starts where time had got to
     assert t_end[20] > offsets[1] and t_end[40] > offsets[2]

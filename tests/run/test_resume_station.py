@@ -76,15 +76,15 @@ def test_a_station_file_with_only_the_ports_changed_resumes_and_finishes(tmp_pat
     after = {(r["y_deg"], r["u_deg"], r["pitch_deg"], r["roll_deg"]): r for r in readings(run_dir)}
     assert all(after[(r["y_deg"], r["u_deg"], r["pitch_deg"], r["roll_deg"])] == r for r in before)
     with Journal(lab_database) as journal:
-        resumed = [e for e in journal.events(1) if e["kind"] == "resume"]
-    assert len(resumed) == 1 and str(new) in resumed[0]["message"]
-    assert resumed[0]["data"]["station_file"] == str(new)
-    assert resumed[0]["data"]["station_sha256"] == hashlib.sha256(new.read_bytes()).hexdigest()
-    assert resumed[0]["data"]["station_text"] == new.read_text()
+        resumed = [e for e in journal.events(1) if e.kind == "resume"]
+    assert len(resumed) == 1 and str(new) in resumed[0].message
+    assert resumed[0].data["station_file"] == str(new)
+    assert resumed[0].data["station_sha256"] == hashlib.sha256(new.read_bytes()).hexdigest()
+    assert resumed[0].data["station_text"] == new.read_text()
     # who answered: the run's metadata (and run.json) when it started, an event when it resumed
     with Journal(lab_database) as journal:
         started = journal.run(1).metadata["device_identity"]
-        [identified] = [e["data"] for e in journal.events(1) if e["kind"] == "device_identity"]
+        [identified] = [e.data for e in journal.events(1) if e.kind == "device_identity"]
     assert json.loads((run_dir / "run.json").read_text())["device_identity"] == started
     for identity in (started, identified):
         assert identity["dmm"]["model"] == "Keysight Technologies 34970A" and identity["dmm"]["serial"]

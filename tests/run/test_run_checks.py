@@ -82,7 +82,7 @@ def test_a_clean_run_passes_its_checks_and_issues_its_certificate(clean):
     assert code == 0 and (run_dir / "certificate.json").exists()
     assert json.loads((run_dir / "run.json").read_text())["status"] == "complete"
     assert len(points) == 64 and all(p.status == "ok" for p in points.values())
-    assert [e["message"] for e in events if e["kind"] == "checks"] == [
+    assert [e.message for e in events if e.kind == "checks"] == [
         "the readings pass the checks of their fit and the declared noise"]
 
 
@@ -118,9 +118,9 @@ def test_a_roll_table_slipped_at_its_output_issues_no_certificate(clean, capsys,
         np.testing.assert_allclose(measured, expected, atol=20e-6, err_msg=f"point {seq}")
         off += bool(np.max(np.abs(expected)) > 10 * SIGMA)
     assert off >= 4  # 5 of the 12 points after the slip: where roll moves gravity (not at pitch ±90°)
-    notice = next(e for e in events if e["kind"] == "fault")
-    assert notice["message"].startswith("the rig is not where it was")
-    assert at < notice["station_time"] < points[32].t_start  # noticed before the next mount's first point
+    notice = next(e for e in events if e.kind == "fault")
+    assert notice.message.startswith("the rig is not where it was")
+    assert at < notice.station_time < points[32].t_start  # noticed before the next mount's first point
 
 
 def test_the_slip_on_emulated_smc100_tables_gives_no_certificate(tmp_path, capsys, no_leaks):  # noqa: F811
@@ -162,6 +162,6 @@ def test_a_slip_that_lasted_one_window_is_measured_again_and_the_run_issues_its_
     clean_v = np.array([window.vx, window.vy, window.vz])
     np.testing.assert_allclose(first - clean_v, by_hand(window, SLIP_DEG), atol=20e-6)
     np.testing.assert_allclose([again.vx, again.vy, again.vz], clean_v, atol=1e-4)
-    checks = [e["message"] for e in events if e["kind"] == "checks"]
+    checks = [e.message for e in events if e.kind == "checks"]
     assert checks[0].startswith(f"measuring point(s) {seq} again")
     assert checks[-1].startswith(f"the readings pass the checks of their fit once point(s) {seq} were")

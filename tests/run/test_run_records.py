@@ -65,8 +65,8 @@ def test_an_older_runs_relative_folder_is_resolved_only_where_it_shows_that_run(
     assert _run(capsys, monkeypatch, "export", "1", "--db", str(db))[0] == 0
     with Journal(db) as journal:
         assert journal.run(1).run_dir == str(here / "r")  # recorded absolute from now on
-        events = [e for e in journal.events(1) if e["kind"] == "export"]
-    assert [e["message"] for e in events] == [f"run folder recorded as {here / 'r'} (was r)"]
+        events = [e for e in journal.events(1) if e.kind == "export"]
+    assert [e.message for e in events] == [f"run folder recorded as {here / 'r'} (was r)"]
 
 
 # --- 2. the log names why the tables stopped, and every answer ------------------------------------

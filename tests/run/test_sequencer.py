@@ -103,10 +103,10 @@ def test_first_ctrl_c_pauses_after_the_point_then_the_run_goes_on(tmp_path):
     assert result.outcome.points_recorded == 64
     with Journal(tmp_path / "j.sqlite") as journal:
         events = journal.events(result.run_id)
-        kinds = [e["kind"] for e in events]
+        kinds = [e.kind for e in events]
         assert "pause" in kinds and "resume" in kinds
         pause_at = kinds.index("pause")
-        paused_at = events[pause_at]["station_time"]
+        paused_at = events[pause_at].station_time
         points_before = [p for p in journal.points(result.run_id) if p.t_end <= paused_at]
         assert len(points_before) == 10  # paused right after the 10th point, nothing cut short
 
@@ -138,8 +138,8 @@ def test_a_failing_stop_does_not_hide_why_the_run_ended(tmp_path):
         journal_run(tmp_path, setup, After(3, lambda: (_ for _ in ()).throw(KeyboardInterrupt)))
     assert exc.value.__notes__ == ["STOP FAILED: the stop did not reach the roll table (roll: port closed)"]
     with Journal(tmp_path / "j.sqlite") as journal:
-        stops = [e for e in journal.events(1) if e["kind"] == "stop"]
-    assert [s["data"]["may_be_moving"] for s in stops] == [["roll"]]
+        stops = [e for e in journal.events(1) if e.kind == "stop"]
+    assert [s.data["may_be_moving"] for s in stops] == [["roll"]]
 
 
 def test_a_wrong_mount_is_caught_before_any_point_is_kept(tmp_path):
@@ -153,7 +153,7 @@ def test_a_wrong_mount_is_caught_before_any_point_is_kept(tmp_path):
     setup.station.remounted = technician
     result = journal_run(tmp_path, setup)
     with Journal(tmp_path / "j.sqlite") as journal:
-        faults = [e["message"] for e in journal.events(result.run_id) if e["kind"] == "fault"]
+        faults = [e.message for e in journal.events(result.run_id) if e.kind == "fault"]
         points = journal.points(result.run_id)
     assert faults == ["wrong mount: expected y=180°, u=0°, reads as y=0°, u=180°"]
     assert len(points) == 64
@@ -185,8 +185,8 @@ def test_a_point_that_never_settles_is_retried_then_handled_by_the_policy(tmp_pa
                    SequencerSettings(settle=tight, check_mount=False, on_failure="skip"))
     with Journal(tmp_path / "journal.sqlite") as journal:
         failed = journal.points(1, status="failed")
-        retries = [e for e in journal.events(1) if e["kind"] == "retry"]
-        discarded = [e["data"] for e in journal.events(1) if e["kind"] == "discarded"]
+        retries = [e for e in journal.events(1) if e.kind == "retry"]
+        discarded = [e.data for e in journal.events(1) if e.kind == "discarded"]
         assert journal.run(1).status == "failed"
     assert len(failed) == 16 and len(retries) == 16
     assert sorted(d["seq"] for d in discarded) == sorted(p.seq for p in failed)
@@ -267,9 +267,9 @@ def test_a_device_fault_pauses_and_resuming_retries_the_point(tmp_path):
     assert result.outcome.points_recorded == 64
     with Journal(tmp_path / "j.sqlite") as journal:
         events = journal.events(result.run_id)
-    faults = [e["message"] for e in events if e["kind"] == "fault"]
+    faults = [e.message for e in events if e.kind == "fault"]
     assert faults == ["DMM (34970A at socket://127.0.0.1:5025): no reply to READ? within 2 s"]
-    assert [e["kind"] for e in events].count("pause") == 1
+    assert [e.kind for e in events].count("pause") == 1
 
 
 def test_a_device_fault_with_nobody_to_answer_stops_and_keeps_every_point(tmp_path):
