@@ -231,7 +231,10 @@ class Keysight34970A:
         try:
             return self.link.query(query, timeout_s)
         except NoReply:
-            self._check(query)  # silence because the query failed, or just silence
+            # silence because the query failed, or just silence; a reply that comes late is drained
+            # first, not read as the error queue's answer (it was, on a loaded machine: one try lost)
+            self.link.drain()
+            self._check(query)
             raise
 
     def _exchange(self, exchange: Callable[[], T]) -> T:

@@ -126,6 +126,22 @@ def test_a_lost_garbled_or_late_scan_is_taken_again(dmm, kind):
     assert list(emulation.faults["dmm"].recent).count("INIT") >= 2
 
 
+def test_a_reply_later_than_the_timeout_is_drained_not_read_as_the_error_queues_answer(dmm, caplog):
+    """A reply that comes after the query's timeout (a loaded computer, a slow link): the driver asks
+    the error queue why the unit was silent, and the late reply must not be taken for its answer.
+    It was: the error queue's ``SYST:ERR?`` read the late ranges and the try ended as a BadReply
+    ('+1.00000000E+01,... is not an error-queue entry') instead of the silence it was."""
+    emulation, meter = dmm
+    # just past the 0.1 s timeout, as on a loaded machine; the drain listens until the line has been
+    # quiet for one timeout (a reply later still is the next try's to recognise: a BadReply)
+    emulation.faults["dmm"].add(Fault(FaultKind.LATE_REPLY, match="^VOLT:DC:RANG", delay_s=0.12))
+    with pytest.raises(NoReply, match="no reply within 0.1 s"):
+        meter._ask("VOLT:DC:RANG? (@101,102,103)")
+    assert "late reply discarded" in caplog.text and emulation.faults["dmm"].count(FaultKind.LATE_REPLY) == 1
+    assert meter.errors() == []  # the queue read after it is the queue's, and the line is clean
+    assert meter.differences() == []
+
+
 def test_bounded_retries(dmm):
     emulation, meter = dmm
     emulation.faults["dmm"].add(Fault(FaultKind.GARBLED, count=3, match="FETC"))
