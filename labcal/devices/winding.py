@@ -29,16 +29,6 @@ from typing import Any, Protocol
 from labcal.errors import LabcalError
 
 MOVE_EVENT = "move"  # the journal's event kind for a move's windings, journaled before it starts
-
-
-class Journaled(Protocol):
-    """A journaled event as the journal gives it back (`labcal.store.journal.EventRow`, a layer above)."""
-
-    @property
-    def kind(self) -> str: ...
-
-    @property
-    def values(self) -> dict[str, Any]: ...
 HALF_TURN = 180.0
 ON_PATH_DEG = 0.5  # how far outside its last journaled move a table may read and still be on it
 
@@ -127,6 +117,16 @@ def locate(read_deg: float, last: tuple[float, float] | None, reach: Reach) -> f
     if on_path <= hi:
         return on_path
     return last[1] + wrapped(read_deg - last[1])
+
+
+class Journaled(Protocol):
+    """A journaled event as the journal gives it back (`labcal.store.journal.EventRow`, a layer above)."""
+
+    @property
+    def kind(self) -> str: ...
+
+    @property
+    def values(self) -> dict[str, Any]: ...
 
 
 def last_move(events: Sequence[Journaled]) -> tuple[tuple[float, float], tuple[float, float]] | None:

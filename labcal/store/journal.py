@@ -140,6 +140,7 @@ class EventRow:
         return self.data if isinstance(self.data, dict) else {}
 
     def to_json(self) -> dict[str, Any]:
+        """The row as `labcal log --json` writes it: its five fields under their column names."""
         return asdict(self)
 
 
