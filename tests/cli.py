@@ -74,6 +74,15 @@ def as_bench(monkeypatch: Any, folder: Path, db: str, station: str = "bench-1") 
             monkeypatch.setenv(name, value)
 
 
+def here_at_bench(monkeypatch: Any, folder: Path, *args: str, db: str, station: str = "bench-1",
+                  capture: Any = None) -> tuple[int, str, str]:
+    """``labcal ARGS`` in this process as the bench `bench_env` describes (`as_bench`, undone with
+    ``monkeypatch``): exit code, stdout, stderr, read through ``capture`` (pytest's capsys or capfd)
+    or, without one (a module fixture), `in_process`."""
+    as_bench(monkeypatch, folder, db, station)
+    return in_process(*args) if capture is None else cli(capture, *args)
+
+
 def at_bench(folder: Path, *args: str, db: str, station: str = "bench-1") -> subprocess.CompletedProcess:
     """``labcal ARGS`` as the bench `bench_env` describes, in a process of its own."""
     return labcal(*args, env=bench_env(folder, db, station), timeout=240)

@@ -14,23 +14,12 @@ import json
 import sqlite3
 import uuid
 from contextlib import closing
-from pathlib import Path
-from typing import Any
 
 import psycopg
 import pytest
-from cli import as_bench, cli, in_process
+from cli import here_at_bench as here
 
 APPROVAL = {"by": "A. Metrologist", "role": "Technical manager", "approved_utc": "2026-11-27T10:00:00+00:00"}
-
-
-def labcal(env: pytest.MonkeyPatch, folder: Path, *args: str, db: str, capture: Any = None
-           ) -> tuple[int, str, str]:
-    """``labcal ARGS`` in this process as bench-1 as `cli.bench_env` describes it (`cli.as_bench`,
-    undone with ``env``): exit code, stdout, stderr, read through ``capture`` (pytest's capsys) or, without
-    one, `cli.in_process`."""
-    as_bench(env, folder, db)
-    return in_process(*args) if capture is None else cli(capture, *args)
 
 
 def refused(url: str, sql: str, args: tuple = ()) -> str:
@@ -67,12 +56,12 @@ def lab(tmp_path_factory, postgres_cluster):
     tmp_path = tmp_path_factory.mktemp("certificate-roles")
     admin = postgres_cluster.url(postgres_cluster.create_database())
     with pytest.MonkeyPatch.context() as env:
-        assert labcal(env, tmp_path, "db", "upgrade", "--db", admin, db=admin)[0] == 0
-        code, out, err = labcal(env, tmp_path, "db", "grant-station", "bench-1", "--db", admin, db=admin)
+        assert here(env, tmp_path, "db", "upgrade", "--db", admin, db=admin)[0] == 0
+        code, out, err = here(env, tmp_path, "db", "grant-station", "bench-1", "--db", admin, db=admin)
         assert code == 0, err
         bench = out.strip().splitlines()[-1]
-        code, _, err = labcal(env, tmp_path, "run", "--sim", "--yes", "--plan", "one-mount-16", "--serial",
-                              "ACC-0042", "--out", str(tmp_path / "bench-1" / "run"), db=bench)
+        code, _, err = here(env, tmp_path, "run", "--sim", "--yes", "--plan", "one-mount-16", "--serial",
+                            "ACC-0042", "--out", str(tmp_path / "bench-1" / "run"), db=bench)
     assert code == 0, err
     other = str(uuid.uuid4())
     with psycopg.connect(admin) as conn:
@@ -153,12 +142,12 @@ def test_sync_passes_over_an_approved_certificate_in_one_line_and_sends_the_rest
                    "document) VALUES ('second-draft', 'ACC-0042', '2026-11-27', '2026-11-27', ?, ?)",
                    ("0" * 64, document(draft, "second-draft", run_uuid)))
     for _ in range(2):
-        code, out, err = labcal(monkeypatch, tmp_path, "sync", "--json", db=bench, capture=capsys)
+        code, out, err = here(monkeypatch, tmp_path, "sync", "--json", db=bench, capture=capsys)
         assert code == 0, err
         said = json.loads(out)
         assert said["refused"] == {"certificates": 1}
     assert said["sent"]["certificates"] == 0  # the draft went the first time
-    code, out, _ = labcal(monkeypatch, tmp_path, "sync", db=bench, capture=capsys)
+    code, out, _ = here(monkeypatch, tmp_path, "sync", db=bench, capture=capsys)
     said = " ".join(out.split())  # the console wraps its lines
     assert code == 0 and said.count("refused") == 1, out
     assert "refused this bench's role 1 certificates (new row violates row-level security" in said

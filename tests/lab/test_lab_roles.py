@@ -15,11 +15,10 @@ import hmac
 import io
 import stat
 from pathlib import Path
-from typing import Any
 
-import cli
 import psycopg
 import pytest
+from cli import here_at_bench as here
 
 # What a bench may do, as the lab's roles page states it: read these, and nothing else at all
 BENCH_READS = {"alembic_version", "runs", "points", "events", "certificates", "run_exports",
@@ -27,17 +26,8 @@ BENCH_READS = {"alembic_version", "runs", "points", "events", "certificates", "r
                "certificate_files", "standards", "standard_overrides", "certificate_numbers"}
 
 
-def labcal(env: pytest.MonkeyPatch, folder: Path, *args: str, db: str, station: str = "bench-1",
-           capture: Any = None) -> tuple[int, str, str]:
-    """``labcal ARGS`` in this process as the bench `cli.bench_env` describes (`cli.as_bench`, undone with
-    ``env``): exit code, stdout, stderr, read through ``capture`` (pytest's capsys or capfd) or, without
-    one, `cli.in_process`."""
-    cli.as_bench(env, folder, db, station)
-    return cli.in_process(*args) if capture is None else cli.cli(capture, *args)
-
-
 def grant(env: pytest.MonkeyPatch, folder: Path, admin: str, station: str, *extra: str) -> str:
-    code, out, err = labcal(env, folder, "db", "grant-station", station, "--db", admin, *extra, db=admin)
+    code, out, err = here(env, folder, "db", "grant-station", station, "--db", admin, *extra, db=admin)
     assert code == 0, err
     return out.strip().splitlines()[-1]
 
@@ -57,13 +47,13 @@ def lab(tmp_path_factory, postgres_cluster):
     tmp_path = tmp_path_factory.mktemp("roles")
     postgres_url = postgres_cluster.url(postgres_cluster.create_database())
     with pytest.MonkeyPatch.context() as env:
-        code, _, err = labcal(env, tmp_path, "db", "upgrade", "--db", postgres_url, db=postgres_url)
+        code, _, err = here(env, tmp_path, "db", "upgrade", "--db", postgres_url, db=postgres_url)
         assert code == 0, err
-        code, out, _ = labcal(env, tmp_path, "db", "upgrade", "--db", postgres_url, db=postgres_url)
+        code, out, _ = here(env, tmp_path, "db", "upgrade", "--db", postgres_url, db=postgres_url)
         assert code == 0 and "grants and policies are set up" in " ".join(out.split())  # idempotent
         bench = grant(env, tmp_path, postgres_url, "bench-1")
-        code, _, err = labcal(env, tmp_path, "run", "--sim", "--yes", "--no-report", "--plan", "one-mount-16",
-                              "--out", str(tmp_path / "bench-1" / "run"), db=bench)
+        code, _, err = here(env, tmp_path, "run", "--sim", "--yes", "--no-report", "--plan", "one-mount-16",
+                            "--out", str(tmp_path / "bench-1" / "run"), db=bench)
     assert code == 0, err
     assert "not yet in the lab database" not in err and "stopped" not in err
     with psycopg.connect(postgres_url) as conn:
@@ -75,8 +65,8 @@ def test_grant_station_prints_the_benchs_url_last_and_keeps_the_password_off_the
         tmp_path, postgres_url, monkeypatch, capfd):
     """Read through capfd: what reaches the file descriptors, as a process of its own would write it."""
     password_file = tmp_path / "bench-2.pgpass"
-    code, out, err = labcal(monkeypatch, tmp_path, "db", "grant-station", "Bench 2", "--db", postgres_url,
-                            "--password-file", str(password_file), db=postgres_url, capture=capfd)
+    code, out, err = here(monkeypatch, tmp_path, "db", "grant-station", "Bench 2", "--db", postgres_url,
+                          "--password-file", str(password_file), db=postgres_url, capture=capfd)
     assert code == 0, err
     host_port_db = postgres_url.rpartition("@")[2]
     assert out.strip().splitlines()[-1] == f"postgresql://labcal_bench_bench_2@{host_port_db}"
@@ -96,12 +86,12 @@ def test_grant_station_prints_the_benchs_url_last_and_keeps_the_password_off_the
     assert login and members == [("labcal_bench",)] and mapped == ("Bench 2",)
     assert verifier.startswith("SCRAM-SHA-256$4096:") and password not in verifier
     # a password file is never overwritten; a SQLite lab database has no roles: one line each
-    code, _, err = labcal(monkeypatch, tmp_path, "db", "grant-station", "Bench 2", "--db", postgres_url,
-                          "--password-file", str(password_file), db=postgres_url, capture=capfd)
+    code, _, err = here(monkeypatch, tmp_path, "db", "grant-station", "Bench 2", "--db", postgres_url,
+                        "--password-file", str(password_file), db=postgres_url, capture=capfd)
     assert code == 2 and "never overwritten" in err
     assert len(err.splitlines()) == 1
-    code, _, err = labcal(monkeypatch, tmp_path, "db", "grant-station", "x", "--db",
-                          str(tmp_path / "lab.sqlite"), db=postgres_url, capture=capfd)
+    code, _, err = here(monkeypatch, tmp_path, "db", "grant-station", "x", "--db",
+                        str(tmp_path / "lab.sqlite"), db=postgres_url, capture=capfd)
     assert code == 2 and "one machine, one trust domain" in err
 
 
@@ -172,9 +162,9 @@ def test_a_bench_role_cannot_append_a_run_or_a_point_for_another_station(lab, tm
         assert conn.execute("SELECT count(*) FROM points WHERE run_id = %s", (run_id,)).fetchone() == (16,)
         assert conn.execute("UPDATE runs SET status = 'aborted' WHERE id = %s", (run_id,)).rowcount == 0
     # a bench that says it is another station is refused by the server, and keeps every reading
-    code, _, err = labcal(monkeypatch, tmp_path, "run", "--sim", "--yes", "--no-report", "--plan",
-                          "one-mount-16", "--out", str(tmp_path / "bench-2" / "run"), db=bench,
-                          station="bench-2", capture=capsys)
+    code, _, err = here(monkeypatch, tmp_path, "run", "--sim", "--yes", "--no-report", "--plan",
+                        "one-mount-16", "--out", str(tmp_path / "bench-2" / "run"), db=bench,
+                        station="bench-2", capture=capsys)
     assert code == 0
     assert "row-level security" in err and "journal keeps every record" in err
     with psycopg.connect(admin) as conn:
@@ -192,11 +182,11 @@ def test_a_bench_role_syncs_its_journal_end_to_end(lab, monkeypatch, capsys):
 
     admin, bench, run_id, tmp_path = lab
     away = bench.replace(bench.rpartition("@")[2].split("/")[0], f"127.0.0.1:{free_port()}")
-    code, _, err = labcal(monkeypatch, tmp_path, "run", "--sim", "--yes", "--no-report", "--plan",
-                          "one-mount-16", "--out", str(tmp_path / "bench-1" / "offline"), db=away,
-                          capture=capsys)
+    code, _, err = here(monkeypatch, tmp_path, "run", "--sim", "--yes", "--no-report", "--plan",
+                        "one-mount-16", "--out", str(tmp_path / "bench-1" / "offline"), db=away,
+                        capture=capsys)
     assert code == 0 and "unreachable" in err, err
-    code, out, err = labcal(monkeypatch, tmp_path, "sync", db=bench, capture=capsys)
+    code, out, err = here(monkeypatch, tmp_path, "sync", db=bench, capture=capsys)
     assert code == 0, err
     assert "16 points" in " ".join(out.split()), out
     with closing(sqlite3.connect(tmp_path / "bench-1" / "journal.sqlite")) as db:
@@ -208,7 +198,7 @@ def test_a_bench_role_syncs_its_journal_end_to_end(lab, monkeypatch, capsys):
                                   "ORDER BY r.uuid, p.seq").fetchall()
         statuses = conn.execute("SELECT status FROM runs WHERE station = 'bench-1'").fetchall()
     assert lab_points == journal and len(journal) == 32 and statuses == [("complete",), ("complete",)]
-    code, out, _ = labcal(monkeypatch, tmp_path, "sync", db=bench, capture=capsys)
+    code, out, _ = here(monkeypatch, tmp_path, "sync", db=bench, capture=capsys)
     assert code == 0 and "nothing to send" in " ".join(out.split())
 
 
@@ -217,8 +207,8 @@ def test_the_servers_role_reads_the_lab_and_appends_no_reading(lab, tmp_path, mo
     admin, bench, run_id, _ = lab
     secret = "a-password-typed-by-the-administrator"
     monkeypatch.setattr("sys.stdin", io.StringIO(secret + "\n"))
-    code, out, err = labcal(monkeypatch, tmp_path, "db", "grant-server", "web", "--db", admin,
-                            "--password-stdin", db=admin, capture=capfd)
+    code, out, err = here(monkeypatch, tmp_path, "db", "grant-server", "web", "--db", admin,
+                          "--password-stdin", db=admin, capture=capfd)
     assert code == 0, err
     server = out.strip().splitlines()[-1]
     assert server == f"postgresql://labcal_server_web@{admin.rpartition('@')[2]}"
@@ -247,8 +237,8 @@ def test_the_lab_server_serves_the_benchs_runs_connected_as_its_own_role(lab, tm
     from lab_server import add_user, served
 
     admin, _, run_id, _ = lab
-    code, out, err = labcal(monkeypatch, tmp_path, "db", "grant-server", "lab-web", "--db", admin, db=admin,
-                            capture=capsys)
+    code, out, err = here(monkeypatch, tmp_path, "db", "grant-server", "lab-web", "--db", admin, db=admin,
+                          capture=capsys)
     assert code == 0, err
     server = out.strip().splitlines()[-1]
     token = add_user(admin, "vic", "viewer", "vic's passphrase")  # users are the administrator's to add
